@@ -1,0 +1,1 @@
+"""Bilateral teleoperation scene: a haptic master, an operator, a gripper and an egg."""

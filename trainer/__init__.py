@@ -1,0 +1,1 @@
+"""Offline training in numpy: preprocessing, model-based baseline, hierarchical MLPs."""
