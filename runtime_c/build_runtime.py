@@ -16,10 +16,21 @@ HEADER = HERE / "include" / "fbgforce.h"
 
 def _cdef_text() -> str:
     lines = []
+    in_cplusplus = False
     for line in HEADER.read_text().splitlines():
         stripped = line.lstrip()
+        # The C++ linkage guard ('extern "C" {' ... '}') is not C; drop what it encloses.
+        if re.match(r"#\s*ifdef\s+__cplusplus\b", stripped):
+            in_cplusplus = True
+            continue
+        if in_cplusplus:
+            if re.match(r"#\s*endif\b", stripped):
+                in_cplusplus = False
+            continue
         # cffi understands '#define NAME <integer>' but no other preprocessor lines.
         if stripped.startswith("#"):
+            # A trailing /* comment */ on a constant is documentation, not part of the value.
+            stripped = re.sub(r"/\*.*?\*/\s*$", "", stripped).rstrip()
             if re.match(r"#\s*define\s+FBG_\w+\s+\(?-?(0x)?[0-9A-Fa-f]+[uUlL]*\)?\s*$", stripped):
                 lines.append(stripped)
             continue

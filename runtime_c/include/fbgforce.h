@@ -1,13 +1,342 @@
-/* fbgforce.h - public API of the fbgforce fixed-point runtime (C99). */
+/*
+ * fbgforce.h - the one public header of the fbgforce runtime (C99).
+ *
+ * Turns the peak wavelengths of four strain FBGs and one temperature-reference FBG into
+ * contact, force and contact location, one sample at a time (1 kHz), exactly like the float
+ * pipeline of fbgforce.model:
+ *
+ *   wl (int32 fm) -> tare -> temperature compensation -> causal FIR (Q15 taps)
+ *                 -> standardise to int16 -> contact net -> force net -> location net
+ *
+ * Two builds of the same pipeline live in this library:
+ *   fbg_*   fixed point (int16 weights/activations, int8 weights optional, int64 accumulators);
+ *           no float or double anywhere (`make -C runtime_c check-nofloat` proves it);
+ *   fbgf_*  single-precision float (for FPU targets and as the C float estimator).
+ *
+ * Style: like CMSIS-DSP / CMSIS-NN. The caller owns every struct (no malloc); all sizes are
+ * compile-time constants (FBG_MAX_*, sizeof(fbg_state)); every call returns an fbg_status.
+ * Units: wavelengths int32 femtometres (1 fm = 1e-6 nm; 1600 nm = 1.6e9 fm fits int32),
+ * force mN, location um in the pad frame (origin top-left, x right, y down).
+ * The arithmetic (one rounding rule, one saturation rule, Q formats) is in
+ * docs/fixed-point.md; the blob layout in docs/model-format.md; the API walk-through in
+ * docs/runtime.md.
+ *
+ * Typical use (fixed point):
+ *
+ *   static fbg_model model;  static fbg_state st;  fbg_output out;
+ *   fbg_model_from_blob(&model, blob, blob_len);     // or use a generated const fbg_model
+ *   fbg_init(&st, &model, 0);
+ *   fbg_tare_begin(&st); for (k..) fbg_tare_add(&st, wl_fm); fbg_tare_end(&st);
+ *   for (;;) { fbg_step(&st, wl_fm, &out); use(out.contact, out.force_mN, out.x_um, ...); }
+ *
+ * Thread safety: functions touch only the structs passed in; a const fbg_model may be shared
+ * by any number of fbg_state instances.
+ */
 #ifndef FBGFORCE_H
 #define FBGFORCE_H
 
+#include <stddef.h>
 #include <stdint.h>
 
-#define FBG_VERSION_MAJOR 0
-#define FBG_VERSION_MINOR 1
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define FBG_VERSION_MAJOR 1
+#define FBG_VERSION_MINOR 0
+
+/* ---- Compile-time limits (memory is sizeof(fbg_state); no other buffers are needed) ---- */
+#define FBG_N_CHANNELS 5        /* wl1..wl4 (strain), wlT (temperature reference) */
+#define FBG_N_STRAIN 4
+#define FBG_MAX_TAPS 64         /* causal FIR length */
+#define FBG_MAX_WIDTH 128       /* widest layer (inputs or outputs) of any net */
+#define FBG_MAX_LAYERS 8        /* layers per net */
+#define FBG_N_NETS 3            /* contact, force, location (evaluation order) */
+#define FBG_NET_CONTACT 0
+#define FBG_NET_FORCE 1
+#define FBG_NET_LOCATION 2
+#define FBG_LOCATION_INPUTS 6   /* z1..z4, contact flag, force net output */
+
+/* ---- Sensor-fault rule (see fbg_step) ---- */
+#define FBG_WL_MIN_FM 1000000000   /* 1000 nm: a peak below this is "lost" (0, sentinels) */
+#define FBG_WL_MAX_FM 2000000000   /* 2000 nm: a peak above this is "lost" */
+
+/* Q format of the temperature coefficients: coeff = temp_coeff_q24 / 2^24. */
+#define FBG_TEMP_COEFF_SHIFT 24
+/* Blob format understood by this library (docs/model-format.md). */
+#define FBG_BLOB_VERSION 1
+#define FBG_BLOB_HEADER_SIZE 16
+
+/* ---- Return codes: 0 is success, every error has its own negative code ---- */
+typedef enum {
+    FBG_OK = 0,
+    FBG_ERR_NULL = -1,          /* a required pointer argument is NULL */
+    FBG_ERR_TRUNCATED = -2,     /* blob shorter than its header or than its declared length */
+    FBG_ERR_BAD_MAGIC = -3,     /* blob does not start with "FBGM" */
+    FBG_ERR_VERSION = -4,       /* blob format version not supported by this library */
+    FBG_ERR_CRC = -5,           /* CRC-32 over the blob body does not match */
+    FBG_ERR_SHAPE = -6,         /* layer shapes inconsistent, too large, or nets of wrong I/O */
+    FBG_ERR_RANGE = -7,         /* a parameter outside its allowed range (shift, Q format...) */
+    FBG_ERR_BOUND = -8,         /* accumulator worst-case bound would overflow int64 */
+    FBG_ERR_SIZE = -9,          /* declared length differs from the length the shapes imply */
+    FBG_ERR_ALIGN = -10,        /* blob pointer not 8-byte aligned (arrays are used in place) */
+    FBG_ERR_ENDIAN = -11,       /* host is not little-endian (blob arrays are little-endian) */
+    FBG_ERR_STATE = -12,        /* state not initialised by fbg_init (or corrupted) */
+    FBG_ERR_NOT_TARED = -13,    /* fbg_step with FBG_OPT_REQUIRE_TARE before a tare */
+    FBG_ERR_TARE = -14,         /* tare_add/tare_end without tare_begin, or no valid sample */
+    FBG_ERR_ARG = -15           /* bad argument value (e.g. baseline outside the window) */
+} fbg_status;
+
+/* ---- Output status flags (fbg_output.status; several may be set) ---- */
+#define FBG_STATUS_NOT_TARED 0x01     /* running on the model's nominal baseline */
+#define FBG_STATUS_SATURATED 0x02     /* some value was clamped (int16/int32) this sample */
+#define FBG_STATUS_OVERLOAD 0x04      /* contact and force_mN > model overload_mN */
+#define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost or jumped: outputs are the safe output */
+#define FBG_STATUS_WARMUP 0x10        /* fewer than n_taps samples since init/tare */
+
+/* fbg_init options */
+#define FBG_OPT_REQUIRE_TARE 0x01     /* fbg_step returns FBG_ERR_NOT_TARED until tared */
+
+/* ---------------------------------------------------------------------------------------
+ * Fixed-point model: a const view of quantised weights. Filled by fbg_model_from_blob
+ * (pointers into the blob, zero copy) or defined as a const object in generated C
+ * (fbgforce export writes <name>_model.c/.h). Never modified by the library.
+ * ------------------------------------------------------------------------------------- */
+
+/* One dense layer: acc[r] = bias[r] + sum_j w[r][j] * x[j]        (int64 accumulator)
+ *                  y[r]   = rshift_round(acc[r] * mult[r], shift)
+ * hidden layers:   y = sat16(max(y, 0))    (ReLU, int16 activations)
+ * output layers:   y = sat32(y)            (physical units, see fbg_model) */
+typedef struct {
+    uint16_t n_in;
+    uint16_t n_out;
+    uint8_t w_bits;          /* 16: weights in w16; 8: weights in w8 */
+    uint8_t shift;           /* requantisation shift, 1..62 */
+    uint8_t reserved[2];
+    const int16_t *w16;      /* row-major n_out x n_in (NULL if w_bits == 8) */
+    const int8_t *w8;        /* row-major n_out x n_in (NULL if w_bits == 16) */
+    const int64_t *bias;     /* n_out, at accumulator scale */
+    const int32_t *mult;     /* n_out, requantisation multipliers (per output row) */
+} fbg_layer;
+
+typedef struct {
+    uint8_t n_layers;        /* 1..FBG_MAX_LAYERS; the last layer is the output layer */
+    uint8_t reserved[3];
+    fbg_layer layers[FBG_MAX_LAYERS];
+} fbg_net;
+
+typedef struct {
+    /* Nominal unloaded wavelengths (fm): the baseline before any tare. */
+    int32_t baseline_fm[FBG_N_CHANNELS];
+    /* SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel. */
+    int32_t jump_max_fm;
+    /* comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)        (fm) */
+    int32_t temp_coeff_q24[FBG_N_STRAIN];
+    /* Causal FIR: filt = sat32(rshift_round(sum_k taps[k] * comp[n-k], tap_q)); taps are
+     * int16 in Q(tap_q): Q15 normally, Q14 when a tap is >= 1 (e.g. no filter = {16384}). */
+    uint16_t n_taps;         /* 1..FBG_MAX_TAPS */
+    uint8_t tap_q;           /* 1..15 */
+    /* z_i = sat16(rshift_round(sat32(filt_i - mean_fm[i]) * z_mult[i], z_shift)):
+     * the standardised input in Q(z_frac), i.e. z_real = z / 2^z_frac. */
+    uint8_t z_frac;          /* 0..14 */
+    uint8_t z_shift;         /* 1..62 */
+    /* Location-net input 6 = force in the force net's own output units, Q(z_frac):
+     * f_q = sat16(rshift_round(force_out * fq_mult, fq_shift)). Input 5 = contact << z_frac. */
+    uint8_t fq_shift;        /* 1..62 */
+    uint8_t reserved[2];
+    int32_t mean_fm[FBG_N_STRAIN];
+    int32_t z_mult[FBG_N_STRAIN];
+    int32_t fq_mult;
+    /* Output layers give: contact net -> contact margin Q8 (contact iff its accumulator
+     * is > 0); force net -> force_out (mN, before offset); location net -> x, y (um, before
+     * offset). Then force_mN = sat32(force_out + force_offset_mN), x_um likewise. */
+    int32_t force_offset_mN;
+    int32_t xy_offset_um[2];
+    int32_t overload_mN;     /* FBG_STATUS_OVERLOAD above this force */
+    const int16_t *taps;     /* n_taps */
+    fbg_net nets[FBG_N_NETS];
+} fbg_model;
+
+/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN = x_um =
+ * y_um = 0. Safe output (SENSOR_FAULT, or an error return): everything 0 except status. */
+typedef struct {
+    int32_t force_mN;            /* normal force, mN (0 when no contact) */
+    int32_t x_um;                /* contact location, um (0 when no contact) */
+    int32_t y_um;
+    int32_t contact_margin_q8;   /* contact-net margin (logit difference) * 256 */
+    uint32_t status;             /* FBG_STATUS_* flags */
+    uint16_t contact_conf_q15;   /* P(contact) in Q15, 0..32767 (sigmoid of the margin) */
+    uint8_t contact;             /* 1 = contact */
+    uint8_t reserved;
+} fbg_output;
+
+/* Caller-owned streaming state. Treat as opaque; size is sizeof(fbg_state). */
+typedef struct {
+    uint32_t magic;                              /* set by fbg_init */
+    uint32_t options;
+    const fbg_model *model;
+    int32_t baseline_fm[FBG_N_CHANNELS];
+    int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
+    int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
+    int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
+    int64_t tare_sum[FBG_N_CHANNELS];
+    uint32_t tare_count;
+    uint16_t pos;                                /* next write index into hist */
+    uint16_t since_reset;                        /* samples since init/tare, saturating */
+    uint8_t tared;
+    uint8_t tare_active;
+    uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
+    uint8_t reserved;
+    int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
+} fbg_state;
 
 /* Library version as (major << 16) | minor, for checking header against library. */
 uint32_t fbg_version(void);
+
+/* Number of bytes of an fbg_state / fbgf_state (for bindings that cannot use sizeof). */
+size_t fbg_state_size(void);
+size_t fbgf_state_size(void);
+
+/* Human-readable name of a status code ("FBG_ERR_CRC", ...); never NULL. */
+const char *fbg_status_str(int status);
+
+/* Fill *model from a blob (docs/model-format.md) without copying: the model points into the
+ * blob, which must stay alive and unchanged. Checks, in this order: pointers (NULL), length
+ * >= header (TRUNCATED), magic (BAD_MAGIC), version (VERSION), declared length <= len
+ * (TRUNCATED), CRC-32 (CRC), then every field (SHAPE, RANGE, SIZE, BOUND) as fbg_model_check.
+ * Never reads outside blob[0, len). The blob must be 8-byte aligned (ALIGN). */
+fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len);
+
+/* Validate a model (shapes, ranges, non-NULL arrays, int64 accumulator bound proof).
+ * fbg_init calls it, so a generated const model is checked once at start-up too. */
+fbg_status fbg_model_check(const fbg_model *model);
+
+/* Bytes a blob occupies as declared in its header (0 if shorter than the header). */
+size_t fbg_blob_declared_size(const uint8_t *blob, size_t len);
+
+/* CRC-32 (IEEE 802.3, reflected, poly 0xEDB88320, init/xorout 0xFFFFFFFF) as in zlib. */
+uint32_t fbg_crc32(const uint8_t *data, size_t len);
+
+/* Initialise a state for a model: baseline = model nominal baseline (status NOT_TARED),
+ * zero FIR history. options: FBG_OPT_* flags. */
+fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options);
+
+/* Clear the FIR history and the fault tracker (keeps baseline and tare). */
+fbg_status fbg_reset(fbg_state *state);
+
+/* Tare = average of valid samples between begin and end becomes the baseline. Samples with
+ * any channel outside [FBG_WL_MIN_FM, FBG_WL_MAX_FM] are skipped (tare_add returns FBG_OK
+ * and *accepted = 0; accepted may be NULL). tare_end: FBG_ERR_TARE if nothing was accepted
+ * (baseline unchanged); else sets the baseline (mean rounded half up), clears NOT_TARED and
+ * resets the FIR history. Stepping during a tare is allowed (it uses the old baseline). */
+fbg_status fbg_tare_begin(fbg_state *state);
+fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted);
+fbg_status fbg_tare_end(fbg_state *state);
+
+/* Set the baseline directly (e.g. stored from a previous tare); every channel must lie in
+ * [FBG_WL_MIN_FM, FBG_WL_MAX_FM] (else FBG_ERR_ARG). Resets the FIR history. */
+fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS]);
+fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS]);
+
+/* Process one sample wl_fm = {wl1, wl2, wl3, wl4, wlT} (fm).
+ * Sensor-fault rule: channel c is faulty when wl_fm[c] < FBG_WL_MIN_FM or > FBG_WL_MAX_FM
+ * (a lost peak: 0, -1, INT32 sentinels), or when it jumps by more than model->jump_max_fm
+ * from the previous in-window sample of that channel (prev is updated by every in-window
+ * sample, so a genuine step faults one sample only). A faulty T channel (reference gone)
+ * faults the sample too. On a fault: the FIR is fed its last input again (time base kept),
+ * the nets are not run, *out is the safe output with FBG_STATUS_SENSOR_FAULT.
+ * Returns FBG_OK (the output status says the rest), FBG_ERR_NULL, FBG_ERR_STATE or
+ * FBG_ERR_NOT_TARED (with FBG_OPT_REQUIRE_TARE; *out then safe, state unchanged). */
+fbg_status fbg_step(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out);
+
+/* Batch: n samples, wl_fm row-major n x 5, out[n]. Same as n calls of fbg_step; stops at
+ * the first error and returns it (that sample's output is the safe output; later outputs
+ * are not written). */
+fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output *out);
+
+/* Integer sigmoid used for contact_conf_q15: x_q8 = margin * 256 -> P in Q15 (0..32767).
+ * Table of 129 points on [-8, 8] with linear interpolation (docs/fixed-point.md). */
+int32_t fbg_sigmoid_q15(int32_t x_q8);
+
+/* ---------------------------------------------------------------------------------------
+ * Float build (single precision): the same pipeline as fbgforce.model in float32, for FPU
+ * targets (Cortex-M4F) and as the "cfloat" engine. The model is a view of float arrays
+ * (generated C writes <name>_model_f32; the Python binding builds one from numpy).
+ * Tare, fault rule and status flags are those of the fixed-point build (input is the same
+ * int32 fm; the tare difference is exact in integers before conversion to float).
+ * ------------------------------------------------------------------------------------- */
+typedef struct {
+    uint16_t n_in;
+    uint16_t n_out;
+    const float *w;          /* row-major n_out x n_in */
+    const float *b;          /* n_out */
+} fbgf_layer;
+
+typedef struct {
+    uint8_t n_layers;
+    uint8_t reserved[3];
+    fbgf_layer layers[FBG_MAX_LAYERS];
+} fbgf_net;
+
+typedef struct {
+    int32_t baseline_fm[FBG_N_CHANNELS];
+    int32_t jump_max_fm;
+    float temp_coeff[FBG_N_STRAIN];
+    float input_mean_pm[FBG_N_STRAIN];
+    float input_std_pm[FBG_N_STRAIN];
+    float force_offset_N;
+    float force_scale;
+    float xy_offset_mm[2];
+    float xy_scale[2];
+    float overload_N;
+    uint16_t n_taps;         /* 1..FBG_MAX_TAPS */
+    uint8_t reserved[2];
+    const float *taps;       /* taps[k] weights sample n - k */
+    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits), as in the float model */
+} fbgf_model;
+
+typedef struct {
+    float force_N;           /* 0 when no contact */
+    float x_mm;              /* 0 when no contact */
+    float y_mm;
+    float p_contact;         /* softmax probability of contact */
+    float margin;            /* logit[1] - logit[0] */
+    uint32_t status;         /* FBG_STATUS_* (SATURATED only if the tare difference clamps) */
+    uint8_t contact;
+    uint8_t reserved[3];
+} fbgf_output;
+
+typedef struct {
+    uint32_t magic;
+    uint32_t options;
+    const fbgf_model *model;
+    int32_t baseline_fm[FBG_N_CHANNELS];
+    int32_t prev_fm[FBG_N_CHANNELS];
+    float hist[FBG_MAX_TAPS][FBG_N_STRAIN];
+    float last_comp[FBG_N_STRAIN];
+    int64_t tare_sum[FBG_N_CHANNELS];
+    uint32_t tare_count;
+    uint16_t pos;
+    uint16_t since_reset;
+    uint8_t tared;
+    uint8_t tare_active;
+    uint8_t prev_valid;
+    uint8_t reserved;
+    float act[2][FBG_MAX_WIDTH];
+} fbgf_state;
+
+fbg_status fbgf_model_check(const fbgf_model *model);
+fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options);
+fbg_status fbgf_reset(fbgf_state *state);
+fbg_status fbgf_tare_begin(fbgf_state *state);
+fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted);
+fbg_status fbgf_tare_end(fbgf_state *state);
+fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS]);
+fbg_status fbgf_step(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out);
+fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_output *out);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* FBGFORCE_H */

@@ -1,0 +1,237 @@
+"""Host timing of the inference engines: single-sample steps and batches, measured alike.
+
+What is timed is always the WHOLE shipped pipeline per sample, raw wavelengths in, estimates
+out (tare, temperature compensation, FIR, standardisation, three nets, gating), because that is
+what a 1 kHz controller pays. Two call patterns:
+
+- ``single``: one sample per call through the engine's streaming API (a controller's
+  interrupt). For numpy and onnxruntime this is :class:`FloatStepper` (the float64 pipeline with
+  a ring-buffer FIR, numerically the same as :func:`fbgforce.model.predict`); for the C runtime,
+  ``Runtime.step``. Includes the Python call overhead, which dominates for every engine here.
+- ``batch``: one call over ``n`` samples of a continuous recording (offline evaluation, log
+  replay), reported per sample.
+
+Engines are measured in interleaved rounds (A B C A B C ...) so that a slow spell of the shared
+machine hits all of them alike, and the figure is the median over every timed call (single) or
+every timed batch (batch). Single calls are timed on the wall clock (they are µs long, so the
+median discards the few that another process interrupts); batches, which last milliseconds,
+in the calling thread's CPU time, so a busy shared machine does not inflate them.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from fbgforce import model as fm
+
+
+class FloatStepper:
+    """Streaming float pipeline, one sample per :meth:`step`, matching :func:`fbgforce.model.predict`.
+
+    Parameters
+    ----------
+    model
+        The float model (causal or no filter; the centred filter needs future samples).
+    baseline_nm
+        (5,) tare wavelengths.
+    nets
+        ``"numpy"`` (float64, :func:`fbgforce.model.predict_from_features`) or ``"onnx"``
+        (float32 onnxruntime session of :mod:`fbgforce.export.onnx_export`).
+    model_dir
+        Where an exported ``model.onnx`` may be (for ``nets="onnx"``).
+    """
+
+    def __init__(self, model: fm.HierarchicalModel, baseline_nm: np.ndarray, nets: str = "numpy",
+                 model_dir: Any = None) -> None:
+        pre = model.preprocess
+        if pre.filter_kind == "centred":
+            raise ValueError("the centred filter uses future samples and cannot stream")
+        self.model = model
+        self.taps_rev = (np.ones(1) if pre.filter_kind == "none" else pre.taps)[::-1].copy()
+        self.n_taps = self.taps_rev.size
+        # Doubled ring buffer: each sample is written at i and i + L, so the last L samples are
+        # always the contiguous slice [i+1, i+L] (oldest .. newest), with no copy per step.
+        self.buf = np.zeros((2 * self.n_taps, fm.N_STRAIN))
+        self.pos = 0
+        self.base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
+        self.temp_coeff = pre.temp_coeff
+        self.mean, self.inv_std = pre.input_mean, 1.0 / pre.input_std
+        if nets == "numpy":
+            self._nets = self._numpy_nets
+        elif nets == "onnx":
+            from fbgforce.export.onnx_export import session_for
+
+            self._sess = session_for(model, model_dir)
+            self._nets = self._onnx_nets
+        else:
+            raise ValueError(f"nets must be 'numpy' or 'onnx', not {nets!r}")
+
+    def step(self, wl_nm: np.ndarray) -> dict[str, Any]:
+        """Process one sample (5,) nm; returns contact, force_N, x_mm, y_mm (gated)."""
+        shift = (wl_nm - self.base) * 1000.0
+        comp = shift[:fm.N_STRAIN] - shift[fm.N_STRAIN] * self.temp_coeff
+        i = self.pos
+        self.buf[i] = comp
+        self.buf[i + self.n_taps] = comp
+        filt = self.taps_rev @ self.buf[i + 1:i + 1 + self.n_taps]
+        self.pos = (i + 1) % self.n_taps
+        return self._nets(((filt - self.mean) * self.inv_std)[None, :])
+
+    def _numpy_nets(self, z: np.ndarray) -> dict[str, Any]:
+        out = fm.predict_from_features(self.model, z)
+        return {k: out[k][0] for k in ("contact", "force_N", "x_mm", "y_mm")}
+
+    def _onnx_nets(self, z: np.ndarray) -> dict[str, Any]:
+        contact, force, x, y = self._sess.run(
+            ["contact", "force_N", "x_mm", "y_mm"], {"z": z.astype(np.float32)})
+        c = bool(contact[0])
+        return {"contact": c, "force_N": float(force[0]) if c else 0.0,
+                "x_mm": float(x[0]) if c else float("nan"), "y_mm": float(y[0]) if c else float("nan")}
+
+
+@dataclass
+class Timer:
+    """One engine's timed callables.
+
+    ``single`` is called once per sample with the sample index (it steps a stream);
+    ``batch`` is called with ``(start, stop)`` sample indices of the recording.
+    """
+
+    name: str
+    single: Callable[[int], Any] | None = None
+    batch: Callable[[int, int], Any] | None = None
+    single_ns: list[int] = field(default_factory=list)
+    batch_ns_per_sample: list[float] = field(default_factory=list)
+
+
+def measure(timers: list[Timer], n_samples: int, *, single_calls: int = 2000,
+            batch_size: int = 2000, batch_reps: int = 50, rounds: int = 5,
+            warmup: int = 50, batch_target_ms: float = 2.0, min_batch: int = 64
+            ) -> dict[str, dict[str, float | None]]:
+    """Time every engine in interleaved rounds; return medians in ns per sample.
+
+    Parameters
+    ----------
+    timers
+        The engines; a missing callable is reported as ``None``.
+    n_samples
+        Length of the recording the callables index into (calls wrap around it).
+    single_calls
+        Single-sample calls timed per engine in total (split over the rounds).
+    batch_size, batch_reps
+        Largest number of samples per batch call, and batch calls per engine in total (split
+        over the rounds).
+    rounds
+        Interleaving rounds.
+    batch_target_ms, min_batch
+        Each engine's batch length is chosen (between ``min_batch`` and ``batch_size``) so
+        that one call takes about ``batch_target_ms`` of CPU time: long enough that per-call
+        overhead is small against the work, short enough that caches stay warm.
+
+    Returns
+    -------
+    dict
+        ``{name: {"single_ns": median, "single_p99_ns", "batch_ns": median per sample,
+        "single_min_ns", "batch_min_ns", "single_calls", "batch_calls", "batch_size"}}``.
+    """
+    batch_size = max(1, min(batch_size, n_samples))
+    per_round_single = max(1, single_calls // rounds)
+    per_round_batch = max(1, -(-batch_reps // rounds))
+    clock = time.perf_counter_ns
+    # Batches are timed in this thread's CPU time: every engine runs on the calling thread
+    # (onnxruntime and OpenBLAS set to one thread), so this is the compute time, without the
+    # time slices a busy shared machine gives to other processes in the middle of a call.
+    cpu_clock = time.thread_time_ns
+    sizes: dict[str, int] = {}
+    for t in timers:
+        if t.single is not None:
+            for i in range(warmup):
+                t.single(i % n_samples)
+        if t.batch is not None:
+            probe = min(batch_size, max(1, min_batch))
+            t.batch(0, probe)
+            est = []
+            for _ in range(3):
+                t0 = cpu_clock()
+                t.batch(0, probe)
+                est.append((cpu_clock() - t0) / probe)
+            per_sample = max(min(est), 1.0)
+            sizes[t.name] = int(min(batch_size, max(min(min_batch, batch_size),
+                                                    batch_target_ms * 1e6 / per_sample)))
+    pos_single = {t.name: warmup for t in timers}
+    pos_batch = {t.name: 0 for t in timers}
+    for _ in range(rounds):
+        for t in timers:
+            if t.single is not None:
+                k = pos_single[t.name]
+                fn = t.single
+                out = t.single_ns
+                for _ in range(per_round_single):
+                    t0 = clock()
+                    fn(k % n_samples)
+                    out.append(clock() - t0)
+                    k += 1
+                pos_single[t.name] = k
+            if t.batch is not None:
+                size = sizes[t.name]
+                for _ in range(per_round_batch):
+                    start = pos_batch[t.name]
+                    if start + size > n_samples:
+                        start = 0
+                    t0 = cpu_clock()
+                    t.batch(start, start + size)
+                    t.batch_ns_per_sample.append((cpu_clock() - t0) / size)
+                    pos_batch[t.name] = start + size
+    result: dict[str, dict[str, float | None]] = {}
+    for t in timers:
+        single = sorted(t.single_ns)
+        result[t.name] = {
+            "single_ns": float(statistics.median(single)) if single else None,
+            "single_p99_ns": float(single[min(len(single) - 1, int(0.99 * len(single)))])
+            if single else None,
+            "batch_ns": float(statistics.median(t.batch_ns_per_sample))
+            if t.batch_ns_per_sample else None,
+            # The fastest repetition: the figure least disturbed by other processes on a
+            # shared machine (the median is the headline; both are reported).
+            "single_min_ns": float(single[0]) if single else None,
+            "batch_min_ns": float(min(t.batch_ns_per_sample)) if t.batch_ns_per_sample else None,
+            "single_calls": len(single),
+            "batch_calls": len(t.batch_ns_per_sample),
+            "batch_size": sizes.get(t.name),
+        }
+    return result
+
+
+def limit_blas_threads(n: int = 1) -> int | None:
+    """Set the number of threads of the BLAS numpy uses (OpenBLAS builds), in this process.
+
+    onnxruntime and the C runtime run on one thread here; numpy's OpenBLAS would otherwise use
+    every core for each matrix product, which on a shared 2-core machine mostly waits for busy
+    cores (measured: 6.5 vs 1.6 µs per sample for a 2000-sample batch under load). Returns the
+    previous count, or None when no OpenBLAS is loaded (then nothing changes).
+    """
+    import ctypes
+
+    try:
+        with open("/proc/self/maps") as f:
+            paths = {line.split()[-1] for line in f if "openblas" in line.lower()}
+    except OSError:
+        return None
+    for path in sorted(paths):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix in ("scipy_openblas", "openblas"):
+            for suffix in ("64_", ""):
+                setter = getattr(lib, f"{prefix}_set_num_threads{suffix}", None)
+                getter = getattr(lib, f"{prefix}_get_num_threads{suffix}", None)
+                if setter is not None and getter is not None:
+                    before = int(getter())
+                    setter(int(n))
+                    return before
+    return None

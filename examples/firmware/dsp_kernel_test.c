@@ -1,0 +1,167 @@
+/* dsp_kernel_test.c - the DSP-extension kernels of runtime_c/src/fbg_dsp.c against the
+ * arithmetic rules of docs/fixed-point.md, on random layers the golden vectors of one model
+ * never reach: odd widths, rows starting at odd halfwords (unaligned words), every shift
+ * 1..62, the largest multipliers the int64 bound proof allows (both signs), saturating and
+ * all-negative rows, exact rounding ties (x = 0, bias = k 2^s + 2^(s-1) and neighbours), and
+ * random FIR ring positions. Runs on QEMU mps2-an386; prints
+ *   KERNEL_TEST cases=N mismatches=M fast=F first=L saturated=S
+ * and exits with 0 when M == 0 (fast, first = layers that took rows3_asm, first_asm). */
+#include <stdint.h>
+#include <string.h>
+
+#include "fbg_dsp.h"
+#include "semihost.h"
+
+#define N_CASES 1500u
+
+static int16_t W[FBG_MAX_WIDTH * FBG_MAX_WIDTH + 1];
+static int16_t X[FBG_MAX_WIDTH + 1];
+static int64_t B[FBG_MAX_WIDTH];
+static int32_t M[FBG_MAX_WIDTH];
+static int16_t Y_ref[FBG_MAX_WIDTH], Y_dsp[FBG_MAX_WIDTH];
+static int32_t HIST[FBG_MAX_TAPS][FBG_N_STRAIN];
+static int16_t TAPS[FBG_MAX_TAPS];
+
+static uint32_t seed = 12345u;
+static uint32_t rnd(void)
+{
+    seed = seed * 1103515245u + 12345u;
+    return (seed >> 16) | (seed << 16);
+}
+static int16_t rnd16(void)
+{
+    int32_t v = (int16_t)(rnd() >> 7);
+    return (int16_t)(v == -32768 ? -32767 : v); /* symmetric int16, as sat16 produces */
+}
+
+/* The rules, written from docs/fixed-point.md (not from fbg_fixed.c). */
+static int64_t ref_rshift_round(int64_t x, unsigned s) { return (x + ((int64_t)1 << (s - 1u))) >> s; }
+
+static void ref_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned r, j;
+    for (r = 0; r < ly->n_out; ++r) {
+        int64_t acc = ly->bias[r], v;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int64_t)ly->w16[(uint32_t)r * ly->n_in + j] * x[j];
+        v = ref_rshift_round(acc * ly->mult[r], ly->shift);
+        if (v < 0)
+            v = 0;
+        if (v > 32767) {
+            v = 32767;
+            *sat = 1u;
+        }
+        y[r] = (int16_t)v;
+    }
+}
+
+int main(void)
+{
+    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 20, 40, 50, 63, 70, 127, 128};
+    uint32_t c, mismatches = 0, fast = 0, first = 0, saturated = 0;
+    for (c = 0; c < N_CASES; ++c) {
+        unsigned n = widths[rnd() % 16u], m = widths[rnd() % 16u], mode = c % 6u, off = (c / 6u) % 2u;
+        unsigned shift = 1u + rnd() % 62u, i, r;
+        uint32_t sat_ref = 0u, sat_dsp = 0u;
+        fbg_layer ly;
+        if (mode >= 2u)
+            shift = 32u + rnd() % 31u;
+        if (mode == 5u)
+            shift = 32u + rnd() % 27u; /* |bias| < 2^60 with the tie constructions below */
+        for (i = 0; i < n * m; ++i)
+            W[off + i] = mode == 1u ? (int16_t)((rnd() & 1u) ? 32767 : -32767) : rnd16();
+        for (i = 0; i < n; ++i) {
+            int16_t v = rnd16();
+            X[off + i] = mode == 3u ? (int16_t)(v < 0 ? -v : v) : v; /* ReLU outputs: >= 0 */
+            if (mode == 5u)
+                X[off + i] = 0;
+        }
+        for (r = 0; r < m; ++r) {
+            /* Largest |mult| with sum|w| * 32767 + |b| times it inside int64 (the proof). */
+            int64_t sumw = 0, bound, lim;
+            for (i = 0; i < n; ++i)
+                sumw += W[off + r * n + i] < 0 ? -(int64_t)W[off + r * n + i] : W[off + r * n + i];
+            B[r] = (int64_t)(int32_t)rnd() * (int64_t)(rnd() % 4096u);
+            bound = sumw * 32767 + (B[r] < 0 ? -B[r] : B[r]);
+            lim = (INT64_MAX - ((int64_t)1 << (shift - 1u))) / (bound ? bound : 1);
+            if (lim > (1 << 30))
+                lim = 1 << 30;
+            M[r] = (mode == 1u || mode == 4u) ? (int32_t)lim : (int32_t)(rnd() % (uint32_t)(lim + 1));
+            if (rnd() & 1u)
+                M[r] = -M[r];
+            if (mode == 5u) {
+                /* acc = bias exactly; p = bias * 1 sits on or next to a rounding tie. */
+                int64_t unit = (int64_t)1 << shift, half = unit >> 1;
+                int64_t k = (int64_t)(rnd() % 7u) - 3;
+                static const int64_t delta[4] = {0, -1, 1, 0};
+                B[r] = k * unit + ((rnd() & 1u) ? half : -half) + delta[rnd() % 4u];
+                M[r] = (rnd() & 1u) ? 1 : -1;
+            }
+        }
+        memset(&ly, 0, sizeof ly);
+        ly.n_in = (uint16_t)n;
+        ly.n_out = (uint16_t)m;
+        ly.w_bits = 16u;
+        ly.shift = (uint8_t)shift;
+        ly.w16 = W + off;
+        ly.bias = B;
+        ly.mult = M;
+        ref_hidden(&ly, X + off, Y_ref, &sat_ref);
+        memset(Y_dsp, 0x5A, sizeof Y_dsp);
+        fbg_dsp_hidden16(&ly, X + off, Y_dsp, &sat_dsp);
+        if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
+            if (mismatches < 5u) {
+                sh_puts("KERNEL_MISMATCH");
+                sh_kv("case", (int32_t)c);
+                sh_kv("n", (int32_t)n);
+                sh_kv("m", (int32_t)m);
+                sh_kv("shift", (int32_t)shift);
+                sh_puts("\n");
+            }
+            ++mismatches;
+        }
+        for (r = 0; r < m; ++r) {
+            int64_t acc = B[r];
+            for (i = 0; i < n; ++i)
+                acc += (int64_t)W[off + r * n + i] * X[off + i];
+            if (fbg_dsp_dot16(W + off + r * n, X + off, n, B[r]) != acc) {
+                ++mismatches;
+                break;
+            }
+        }
+        first += shift >= 32u && (n == 2u || n == 4u || n == 6u);
+        fast += shift >= 32u && m >= 3u && !(n == 2u || n == 4u || n == 6u);
+        saturated += sat_ref != 0u;
+        /* FIR: random taps, history and ring position. */
+        {
+            unsigned nt = 1u + rnd() % FBG_MAX_TAPS, pos = rnd() % nt, k, ch;
+            int64_t f[FBG_N_STRAIN];
+            for (k = 0; k < nt; ++k) {
+                TAPS[k] = rnd16();
+                for (ch = 0; ch < FBG_N_STRAIN; ++ch)
+                    HIST[k][ch] = (int32_t)rnd();
+            }
+            fbg_dsp_fir4(TAPS, nt, (const int32_t(*)[FBG_N_STRAIN])HIST, pos, f);
+            for (ch = 0; ch < FBG_N_STRAIN; ++ch) {
+                int64_t want = 0;
+                unsigned idx = pos;
+                for (k = 0; k < nt; ++k) {
+                    want += (int64_t)TAPS[k] * HIST[idx][ch];
+                    idx = idx == 0u ? nt - 1u : idx - 1u;
+                }
+                if (want != f[ch]) {
+                    ++mismatches;
+                    break;
+                }
+            }
+        }
+    }
+    sh_puts("KERNEL_TEST");
+    sh_kv("cases", (int32_t)N_CASES);
+    sh_kv("mismatches", (int32_t)mismatches);
+    sh_kv("fast", (int32_t)fast);
+    sh_kv("first", (int32_t)first);
+    sh_kv("saturated", (int32_t)saturated);
+    sh_puts("\n");
+    return mismatches ? 1 : 0;
+}

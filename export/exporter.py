@@ -1,0 +1,147 @@
+"""``fbgforce export``: every artifact of a model directory in one call.
+
+Writes into the model directory ``model.onnx`` (float reference, via
+:func:`fbgforce.export.onnx_export.export_onnx`), ``model.fbgm`` (fixed-point blob), ``c/``
+(generated C, :mod:`fbgforce.export.codegen`) and ``export_report.json`` (scales, the
+accumulator bounds proven from the weights, the largest accumulators actually reached on the
+calibration data, and the fixed-vs-float error on it).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+from fbgforce.export import blob, codegen, intref
+from fbgforce.export import quantize as qz
+
+REPORT_FILE = "export_report.json"
+C_DIR = "c"
+
+
+def model_digest(model: fm.HierarchicalModel) -> str:
+    """SHA-256 of everything the fixed-point model is quantised from (nets, output scaling,
+    preprocessing, nominal baseline): recorded at export to recognise a stale model.fbgm."""
+    import hashlib
+
+    from fbgforce.export.onnx_export import weights_digest
+
+    pre = model.preprocess
+    h = hashlib.sha256(weights_digest(model).encode())
+    h.update(pre.filter_kind.encode())
+    for arr in (pre.temp_coeff, pre.taps, pre.input_mean, pre.input_std, model.baseline_nm):
+        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def check_fresh(model_dir: str | Path, model: fm.HierarchicalModel) -> None:
+    """Raise InputError if model.fbgm was exported from other weights than ``model``'s.
+
+    Directories exported before the digest existed (no report key) are accepted.
+    """
+    rep = Path(model_dir) / REPORT_FILE
+    if not rep.is_file():
+        return
+    try:
+        digest = json.loads(rep.read_text()).get("model_digest")
+    except (json.JSONDecodeError, AttributeError):
+        return
+    if digest is not None and digest != model_digest(model):
+        raise InputError("model.fbgm is stale (the model was retrained after export); run "
+                         "'fbgforce export --model DIR' again", path=str(Path(model_dir) / blob.FILE_NAME))
+
+
+def recording_baseline(ds: Any, path: str | None = None) -> np.ndarray:
+    """The tare baseline of a recording, the same rule evaluate/verify use (trainer's tare)."""
+    from fbgforce.trainer.preprocess import tare
+
+    return tare(ds.wl_nm, ds.contact, ds.t_s, path=path)[0]
+
+
+def calibration_recordings(model: fm.HierarchicalModel, calib: Sequence[str | Path] | None
+                           ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray], list[str]]:
+    """Calibration recordings: ``calib`` files, else the training files in model metadata.
+
+    Returns ``([(wl_nm, baseline_nm), ...], [true force per recording], [paths])``.
+    """
+    from fbgforce import dataset as fds
+
+    paths: list[str] = [str(p) for p in calib] if calib else []
+    if not paths:
+        for entry in model.metadata.get("data", []) or []:
+            p = entry.get("path") if isinstance(entry, dict) else entry
+            if p and Path(p).is_file():
+                paths.append(str(p))
+    if not paths:
+        raise InputError("no calibration data: the model's training files are not available; "
+                         "pass --calib FILE (a recording in the dataset format)", column="--calib")
+    recs, forces = [], []
+    for p in paths:
+        ds = fds.load(p)
+        recs.append((ds.wl_nm, recording_baseline(ds, p)))
+        forces.append(np.asarray(ds.force_N, dtype=np.float64)[np.asarray(ds.contact, dtype=bool)])
+    return recs, forces, paths
+
+
+def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str | Path] | None = None,
+                 name: str = "fbgforce", jump_nm: float = qz.DEFAULT_JUMP_NM,
+                 overload_N: float | None = None, onnx: bool = True) -> dict[str, Any]:
+    """Quantise and write every artifact; returns the export report (also written)."""
+    t0 = time.perf_counter()
+    root = Path(model_dir)
+    model = fm.load(root)
+    recs, forces, paths = calibration_recordings(model, calib)
+    cal = qz.calibrate(model, recs, forces)
+    q, report = qz.quantize(model, cal, bits=bits, jump_nm=jump_nm, overload_N=overload_N)
+    data = blob.to_bytes(q)
+    (root / blob.FILE_NAME).write_bytes(data)
+    files = [str(root / blob.FILE_NAME)]
+    files += [str(p) for p in codegen.write_c(q, model, root / C_DIR, name)]
+    if onnx:
+        from fbgforce.export.onnx_export import export_onnx
+
+        export_onnx(model, root / "model.onnx")
+        files.insert(0, str(root / "model.onnx"))
+
+    # Measured on the calibration data: the largest accumulators (to set beside the proven
+    # bounds) and the fixed-vs-float error.
+    trace: dict[str, int] = {}
+    errs = {"force_N": 0.0, "x_mm": 0.0, "y_mm": 0.0}
+    disagree = samples = 0
+    for wl, base in recs:
+        out = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(base), trace=trace))
+        ref = fm.predict(model, wl, base)
+        both = out["contact"] & ref["contact"]
+        disagree += int((out["contact"] != ref["contact"]).sum())
+        samples += len(wl)
+        for k in errs:
+            if both.any():
+                errs[k] = max(errs[k], float(np.abs(out[k][both] - ref[k][both]).max()))
+    for name_net, infos in report["nets"].items():
+        for i, info in enumerate(infos):
+            info["calib_max_abs_acc"] = trace.get(f"{name_net}.{i}", 0)
+    report["fir"]["calib_max_abs_acc"] = trace.get("fir", 0)
+    weight_bytes = sum(ly.w.size * ly.w_bits // 8 + ly.n_out * 12 for net in q.nets for ly in net)
+    report.update({
+        "model": str(root), "model_digest": model_digest(model), "calibration_files": paths, "files": files, "blob_bytes": len(data),
+        "const_bytes": int(weight_bytes + q.taps.size * 2),
+        "state_bytes": _state_bytes(),
+        "calibration_check": {"samples": samples, "contact_disagreements": disagree,
+                              **{f"max_abs_err_{k}": v for k, v in errs.items()}},
+        "seconds": round(time.perf_counter() - t0, 3),
+    })
+    (root / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
+    return report
+
+
+def _state_bytes() -> int | None:
+    try:
+        from fbgforce._runtime import lib
+    except ImportError:
+        return None
+    return int(lib.fbg_state_size())

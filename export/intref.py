@@ -1,0 +1,235 @@
+"""The numpy INTEGER reference of the fixed-point runtime: the C code, bit for bit.
+
+Every operation of runtime_c/src/fbg_fixed.c is written here once more with the same rounding
+rule, the same saturation rule and the same order, in int64 numpy arithmetic (vectorised over
+samples; exact because every intermediate is proven to stay inside int64, see
+docs/fixed-point.md). ``fbgforce verify`` and the tests compare the C output with this one
+and require equality of every output bit.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.export.quantize import SAT16, SAT32, TEMP_COEFF_SHIFT, WL_MAX_FM, WL_MIN_FM, QLayer, QModel
+
+# Status flags of fbgforce.h.
+STATUS_NOT_TARED = 0x01
+STATUS_SATURATED = 0x02
+STATUS_OVERLOAD = 0x04
+STATUS_SENSOR_FAULT = 0x08
+STATUS_WARMUP = 0x10
+
+#: round(32768 / (1 + exp(-x))) at x = -8, -7.875, ..., 8, clamped to 32767: the same literal
+#: table as runtime_c/src/fbg_fixed.c (a test checks both against the formula and each other).
+SIGMOID_Q15_TABLE = np.array([
+    11, 12, 14, 16, 18, 21, 23, 26, 30, 34, 38, 43, 49, 56, 63, 72, 81, 92, 104, 118, 133,
+    151, 171, 194, 219, 248, 281, 318, 360, 407, 461, 521, 589, 666, 753, 851, 961, 1084,
+    1223, 1379, 1554, 1750, 1969, 2213, 2486, 2789, 3124, 3496, 3906, 4357, 4851, 5391,
+    5978, 6613, 7297, 8031, 8813, 9641, 10513, 11424, 12371, 13348, 14347, 15361, 16384,
+    17407, 18421, 19420, 20397, 21344, 22255, 23127, 23955, 24737, 25471, 26155, 26790,
+    27377, 27917, 28411, 28862, 29272, 29644, 29979, 30282, 30555, 30799, 31018, 31214,
+    31389, 31545, 31684, 31807, 31917, 32015, 32102, 32179, 32247, 32307, 32361, 32408,
+    32450, 32487, 32520, 32549, 32574, 32597, 32617, 32635, 32650, 32664, 32676, 32687,
+    32696, 32705, 32712, 32719, 32725, 32730, 32734, 32738, 32742, 32745, 32747, 32750,
+    32752, 32754, 32756, 32757], dtype=np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# The two rules (docs/fixed-point.md)
+# --------------------------------------------------------------------------------------------
+
+def rshift_round(x: np.ndarray, s: int) -> np.ndarray:
+    """``(x + 2^(s-1)) >> s`` with an arithmetic shift: round half up (s >= 1)."""
+    return (np.asarray(x, dtype=np.int64) + np.int64(1 << (s - 1))) >> np.int64(s)
+
+
+def sat(x: np.ndarray, limit: int) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric saturation to ``[-limit, limit]``; also returns where it clamped."""
+    x = np.asarray(x, dtype=np.int64)
+    return np.clip(x, -limit, limit), (x > limit) | (x < -limit)
+
+
+def sigmoid_q15(x_q8: np.ndarray) -> np.ndarray:
+    """``fbg_sigmoid_q15``: table lookup with linear interpolation (Q8 in, Q15 out)."""
+    x = np.asarray(x_q8, dtype=np.int64)
+    u = np.clip(x + 2048, 0, 4095)
+    idx, frac = u >> 5, u & 31
+    lo, hi = SIGMOID_Q15_TABLE[idx], SIGMOID_Q15_TABLE[np.minimum(idx + 1, 128)]
+    out = lo + (((hi - lo) * frac + 16) >> 5)
+    out = np.where(x <= -2048, SIGMOID_Q15_TABLE[0], out)
+    return np.where(x >= 2048, SIGMOID_Q15_TABLE[128], out)
+
+
+def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
+    """Wavelengths nm (float) -> int32 femtometres as the runtime receives them.
+
+    Rounded to nearest (ties to even); NaN/inf (a lost peak) -> 0; clipped to the int32 range.
+    Every engine converts through this one function, so all see the same integers.
+    """
+    x = np.asarray(wl_nm, dtype=np.float64) * 1e6
+    x = np.where(np.isfinite(x), x, 0.0)
+    return np.clip(np.rint(x), -SAT32, SAT32).astype(np.int32)
+
+
+# --------------------------------------------------------------------------------------------
+# The pipeline
+# --------------------------------------------------------------------------------------------
+
+def _prev_in_window(wl: np.ndarray, inwin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample and channel: the last in-window value strictly before it, and whether any."""
+    n = wl.shape[0]
+    idx = np.where(inwin, np.arange(n)[:, None], -1)
+    last = np.maximum.accumulate(idx, axis=0) if n else idx
+    prev_idx = np.vstack([np.full((1, wl.shape[1]), -1), last[:-1]]) if n else idx
+    prev = np.take_along_axis(wl, np.maximum(prev_idx, 0), axis=0)
+    return prev, prev_idx >= 0
+
+
+def _hidden(layer: QLayer, x: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    acc = x @ layer.w.T + layer.bias
+    y = rshift_round(acc * layer.mult, layer.shift)
+    y, clamped = sat(np.maximum(y, 0), SAT16)
+    flag |= clamped.any(axis=1)
+    return y
+
+
+def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | None, name: str
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """Hidden layers then the output layer's accumulator and sat32 output (per row)."""
+    for i, layer in enumerate(layers[:-1]):
+        if trace is not None and x.size:
+            trace[f"{name}.{i}"] = max(trace.get(f"{name}.{i}", 0),
+                                       int(np.abs(x @ layer.w.T + layer.bias).max()))
+        x = _hidden(layer, x, flag)
+    last = layers[-1]
+    acc = x @ last.w.T + last.bias
+    if trace is not None and x.size:
+        key = f"{name}.{len(layers) - 1}"
+        trace[key] = max(trace.get(key, 0), int(np.abs(acc).max()))
+    y, clamped = sat(rshift_round(acc * last.mult, last.shift), SAT32)
+    flag |= clamped.any(axis=1)
+    return acc, y
+
+
+def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
+        trace: dict[str, int] | None = None) -> dict[str, np.ndarray]:
+    """Run the fixed-point pipeline on one continuous recording from a fresh state.
+
+    Equivalent to ``fbg_init`` then (if ``baseline_fm`` is given) ``fbg_set_baseline`` and
+    ``fbg_step`` on every row.
+
+    Parameters
+    ----------
+    wl_fm
+        (n, 5) int32 femtometres.
+    baseline_fm
+        (5,) tare baseline; None runs on the model's nominal baseline (status NOT_TARED).
+    trace
+        If a dict, receives the largest ``|accumulator|`` seen per layer (``"net.layer"``)
+        and for the FIR (``"fir"``), for the export report.
+
+    Returns
+    -------
+    dict
+        int arrays named as ``fbg_output``: force_mN, x_um, y_um, contact_margin_q8, status,
+        contact_conf_q15, contact.
+    """
+    wl = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
+    n = wl.shape[0]
+    tared = baseline_fm is not None
+    base = np.asarray(q.baseline_fm if baseline_fm is None else baseline_fm, dtype=np.int64).reshape(5)
+    status = np.full(n, 0 if tared else STATUS_NOT_TARED, dtype=np.int64)
+    flag = np.zeros(n, dtype=bool)
+
+    # 1. Fault rule.
+    inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
+    prev, has_prev = _prev_in_window(wl, inwin)
+    jump = inwin & has_prev & (np.abs(wl - prev) > q.jump_max_fm)
+    fault = np.any(~inwin | jump, axis=1)
+    ok = ~fault
+
+    # 2. Tare and temperature compensation (rows without a fault).
+    shift_t, c1 = sat(wl[:, 4] - base[4], SAT32)
+    shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
+    t = rshift_round(shift_t[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
+    comp, c3 = sat(shift - t, SAT32)
+    flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1))
+    # A faulty sample feeds the FIR the last good input again (zeros before any).
+    idx = np.where(ok, np.arange(n), -1)
+    last_ok = np.maximum.accumulate(idx) if n else idx
+    held = np.where((last_ok >= 0)[:, None], comp[np.maximum(last_ok, 0)], 0)
+
+    # 3. Causal FIR, zero history, then standardisation into Q(z_frac).
+    acc = np.stack([np.convolve(held[:, c], q.taps)[:n] for c in range(4)], axis=1) if n else held
+    if trace is not None and n:
+        trace["fir"] = max(trace.get("fir", 0), int(np.abs(acc[ok]).max(initial=0)))
+    filt, c4 = sat(rshift_round(acc, q.tap_q), SAT32)
+    d, c5 = sat(filt - q.mean_fm, SAT32)
+    z, c6 = sat(rshift_round(d * q.z_mult, q.z_shift), SAT16)
+    flag |= ok & (c4 | c5 | c6).any(axis=1)
+
+    status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
+    status |= np.where(np.arange(1, n + 1) < q.taps.size, STATUS_WARMUP, 0)
+
+    out = {k: np.zeros(n, dtype=np.int64) for k in
+           ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        # 4. Contact net.
+        f_ok = np.zeros(rows.size, dtype=bool)
+        acc_c, margin = _net(q.nets[0], z[rows], f_ok, trace, "contact")
+        contact = acc_c[:, 0] > 0
+        out["contact_margin_q8"][rows] = margin[:, 0]
+        out["contact_conf_q15"][rows] = sigmoid_q15(margin[:, 0])
+        out["contact"][rows] = contact
+        flag[rows] |= f_ok
+        crow = rows[contact]
+        if crow.size:
+            # 5. Force net, 6. location net on [z, contact << z_frac, quantised force].
+            f_c = np.zeros(crow.size, dtype=bool)
+            _, force_out = _net(q.nets[1], z[crow], f_c, trace, "force")
+            force_out = force_out[:, 0]
+            force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
+            fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
+            loc_in = np.column_stack([z[crow], np.full(crow.size, 1 << q.z_frac), fq])
+            _, xy = _net(q.nets[2], loc_in, f_c, trace, "location")
+            x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
+            y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)
+            f_c |= c7 | c8 | c9 | c10
+            out["force_mN"][crow] = force_mN
+            out["x_um"][crow] = x_um
+            out["y_um"][crow] = y_um
+            flag[crow] |= f_c
+            status[crow] |= np.where(force_mN > q.overload_mN, STATUS_OVERLOAD, 0)
+    status |= np.where(flag, STATUS_SATURATED, 0)
+    out["status"] = status
+    return out
+
+
+def to_engine_dict(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """Fixed-point outputs -> the engine keys of fbgforce.engines (SI-ish units, NaN gating)."""
+    contact = np.asarray(out["contact"]).astype(bool)
+    return {
+        "contact": contact,
+        "p_contact": np.asarray(out["contact_conf_q15"], dtype=np.float64) / 32768.0,
+        "force_N": np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
+        "x_mm": np.where(contact, np.asarray(out["x_um"], dtype=np.float64) / 1000.0, np.nan),
+        "y_mm": np.where(contact, np.asarray(out["y_um"], dtype=np.float64) / 1000.0, np.nan),
+        "status": np.asarray(out["status"], dtype=np.uint32),
+    }
+
+
+def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
+                  baseline_nm: np.ndarray) -> dict[str, Any]:
+    """Engine ``intref``: the integer reference on ``model_dir/model.fbgm``."""
+    from fbgforce.export.blob import load_model_blob
+    from fbgforce.export.exporter import check_fresh
+
+    if model is not None:
+        check_fresh(model_dir, model)
+    q = load_model_blob(model_dir)
+    return to_engine_dict(run(q, nm_to_fm(wl_nm), nm_to_fm(np.asarray(baseline_nm).reshape(5))))

@@ -1,0 +1,478 @@
+"""Post-training quantisation of a float model into the fixed-point model of the C runtime.
+
+The arithmetic the runtime performs is fixed in docs/fixed-point.md; this module only CHOOSES
+its integers (multipliers, shifts, Q formats, quantised weights) from the float model and a
+calibration set. Float is allowed here because nothing the C code mirrors is computed in float:
+once chosen, the integers are the model, and :mod:`fbgforce.export.intref` and the C runtime
+evaluate exactly the same integer expressions.
+
+Scales (all chosen from calibration data: the float pipeline run on recordings)
+-----------------------------------------------------------------------------
+- Net inputs ``z`` (standardised channels), the contact flag and the force net's output that
+  feeds the location net share one power-of-two Q format ``Q(z_frac)``: the largest ``z_frac``
+  (<= 14) with ``Z_HEADROOM * max|z or f| * 2^z_frac <= 32767``. A power of two makes the
+  contact flag exact (``1 << z_frac``) and lets the location net's first layer treat its six
+  inputs alike.
+- Hidden activations: one scale per layer, ``ACT_HEADROOM * max(calibration activation) / 32767``.
+- Weights: symmetric per output row, ``max|W[r]| / 32767`` (int16) or ``/ 127`` (int8).
+- Biases: int64 at the accumulator scale ``in_scale * w_scale[r]``.
+- Requantisation ``y = rshift_round(acc * mult[r], shift)``: one shift per layer, the largest for
+  which every multiplier stays below 2^30 AND ``acc_bound[r] * |mult[r]| <= 2^62`` (so the
+  product and the rounding constant cannot overflow int64: the accumulator proof).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+
+# Constants shared with runtime_c/include/fbgforce.h (tests compare them with the C values).
+SAT16 = 32767
+SAT32 = 2**31 - 1
+TEMP_COEFF_SHIFT = 24
+MAX_TAPS = 64
+MAX_WIDTH = 128
+MAX_LAYERS = 8
+WL_MIN_FM = 1_000_000_000
+WL_MAX_FM = 2_000_000_000
+NET_NAMES = fm.NET_NAMES
+NET_OUTPUTS = {"contact": 1, "force": 1, "location": 2}
+
+#: Calibration maximum of the net inputs times this must fit int16. 25 % above the
+#: calibration range, like the activations: a press well beyond it (where the nets extrapolate
+#: anyway) saturates and is flagged (SATURATED, and OVERLOAD above the calibrated force);
+#: a spare bit (2.0) would cost the whole calibrated range one bit of resolution, which
+#: doubled the location error on the test model (docs/fixed-point.md).
+Z_HEADROOM = 1.25
+#: The same for hidden activations.
+ACT_HEADROOM = 1.25
+#: Multipliers stay below 2^MULT_BITS (int32 with margin).
+MULT_BITS = 30
+#: |product| limit of ``acc * mult`` (the rounding constant adds at most 2^61).
+PRODUCT_LIMIT = 2**62
+#: Default for the sensor-fault jump rule, nm per sample.
+DEFAULT_JUMP_NM = 2.0
+
+
+@dataclass
+class QLayer:
+    """One quantised dense layer (``fbg_layer`` in C). Integer arrays are int64 numpy arrays
+    holding values of the C types (int16/int8 weights, int64 bias, int32 multipliers)."""
+
+    w: np.ndarray
+    w_bits: int
+    bias: np.ndarray
+    mult: np.ndarray
+    shift: int
+    info: dict[str, Any] = field(default_factory=dict)
+    #: Exporter-only float scales (not in the blob): w_scale (n_out,), in_scale, out_ratio
+    #: (n_out,) = output integer units per real accumulator unit; used by error_bounds().
+    scales: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        self.w = np.asarray(self.w, dtype=np.int64)
+        self.bias = np.asarray(self.bias, dtype=np.int64).reshape(-1)
+        self.mult = np.asarray(self.mult, dtype=np.int64).reshape(-1)
+
+    @property
+    def n_in(self) -> int:
+        return int(self.w.shape[1])
+
+    @property
+    def n_out(self) -> int:
+        return int(self.w.shape[0])
+
+    def acc_bound(self) -> np.ndarray:
+        """Worst-case ``|acc|`` per output row for any int16 inputs (|x| <= 32767)."""
+        return np.abs(self.w).sum(axis=1) * SAT16 + np.abs(self.bias)
+
+
+@dataclass
+class QModel:
+    """The fixed-point model (``fbg_model`` in C); see runtime_c/include/fbgforce.h."""
+
+    baseline_fm: np.ndarray
+    jump_max_fm: int
+    temp_coeff_q24: np.ndarray
+    taps: np.ndarray
+    tap_q: int
+    mean_fm: np.ndarray
+    z_mult: np.ndarray
+    z_shift: int
+    z_frac: int
+    fq_mult: int
+    fq_shift: int
+    force_offset_mN: int
+    xy_offset_um: np.ndarray
+    overload_mN: int
+    nets: list[list[QLayer]]
+
+    def __post_init__(self) -> None:
+        for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um"):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
+        for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
+                     "force_offset_mN", "overload_mN"):
+            setattr(self, name, int(getattr(self, name)))
+
+    @property
+    def w_bits(self) -> int:
+        """Weight width of the nets (16, or 8 for an int8-weight export)."""
+        return max(layer.w_bits for net in self.nets for layer in net)
+
+    def check(self) -> None:
+        """The checks of ``fbg_model_check`` (C), raising ValueError with the reason."""
+        def need(cond: bool, what: str) -> None:
+            if not cond:
+                raise ValueError(what)
+
+        need(self.baseline_fm.size == 5 and all(WL_MIN_FM <= b <= WL_MAX_FM for b in self.baseline_fm),
+             "baseline outside the 1000-2000 nm window")
+        need(self.jump_max_fm > 0, "jump_max_fm must be positive")
+        need(1 <= self.taps.size <= MAX_TAPS, f"1..{MAX_TAPS} taps")
+        need(np.all(np.abs(self.taps) <= SAT16 + 1) and np.all(self.taps >= -32768)
+             and np.all(self.taps <= 32767), "taps must be int16")
+        need(1 <= self.tap_q <= 15 and 0 <= self.z_frac <= 14 and 1 <= self.z_shift <= 62
+             and 1 <= self.fq_shift <= 62, "Q format or shift out of range")
+        for arr in (self.temp_coeff_q24, self.z_mult, self.mean_fm, self.xy_offset_um):
+            need(bool(np.all(np.abs(arr) <= SAT32)), "int32 parameter out of range")
+        need(abs(self.fq_mult) <= SAT32, "fq_mult out of range")
+        ins = {"contact": 4, "force": 4, "location": fm.LOCATION_INPUTS}
+        for name, net in zip(NET_NAMES, self.nets):
+            need(1 <= len(net) <= MAX_LAYERS, f"{name}: 1..{MAX_LAYERS} layers")
+            need(net[0].n_in == ins[name] and net[-1].n_out == NET_OUTPUTS[name],
+                 f"{name}: wrong input/output width")
+            for i, layer in enumerate(net):
+                need(1 <= layer.n_in <= MAX_WIDTH and 1 <= layer.n_out <= MAX_WIDTH,
+                     f"{name} layer {i}: width above {MAX_WIDTH}")
+                need(i == 0 or layer.n_in == net[i - 1].n_out, f"{name} layer {i}: shape chain")
+                qmax = 127 if layer.w_bits == 8 else 32767
+                need(layer.w_bits in (8, 16) and bool(np.all(np.abs(layer.w) <= qmax + 1)),
+                     f"{name} layer {i}: weights exceed int{layer.w_bits}")
+                need(1 <= layer.shift <= 62, f"{name} layer {i}: shift out of range")
+                need(bool(np.all(np.abs(layer.mult) <= SAT32)), f"{name} layer {i}: multiplier")
+                bound = [int(b) * abs(int(m)) + (1 << (layer.shift - 1))
+                         for b, m in zip(layer.acc_bound(), layer.mult)]
+                need(bool(np.all(np.abs(layer.bias) < 2**60)) and max(bound) <= 2**63 - 1,
+                     f"{name} layer {i}: accumulator bound exceeds int64")
+
+
+# --------------------------------------------------------------------------------------------
+# Choosing integers
+# --------------------------------------------------------------------------------------------
+
+def choose_shift(ratios: Sequence[float], limits: Sequence[int] | int = 2**MULT_BITS,
+                 max_shift: int = 62) -> tuple[int, np.ndarray]:
+    """Largest shift ``s`` (1..max_shift) with ``|round(ratio * 2^s)| <= limit`` for all ratios.
+
+    Returns ``(s, multipliers)``; ``rshift_round(x * mult, s)`` then approximates
+    ``x * ratio`` with a relative error of at most ``2^-(bits of the smallest |mult|)``.
+    """
+    r = np.asarray(ratios, dtype=np.float64).reshape(-1)
+    lim = np.broadcast_to(np.asarray(limits, dtype=np.float64), r.shape)
+    if not np.all(np.isfinite(r)):
+        raise ValueError("non-finite scale ratio")
+    for s in range(max_shift, 0, -1):
+        m = np.array([int(round(float(v) * 2.0**s)) for v in r], dtype=np.int64)
+        if np.all(np.abs(m) <= lim):
+            return s, m
+    raise ValueError(f"scale ratio too large to represent: max {np.abs(r).max():g}")
+
+
+def quantize_taps(pre: fm.Preprocess) -> tuple[np.ndarray, int]:
+    """Causal FIR taps as int16 in Q15 (Q14 if a tap reaches 1), DC gain kept exactly."""
+    if pre.filter_kind == "centred":
+        raise InputError("the model uses the centred (offline) filter, which needs future "
+                         "samples; retrain with the causal filter to export", column="filter_kind")
+    taps = np.array([1.0]) if pre.filter_kind == "none" else np.asarray(pre.taps, dtype=np.float64)
+    if taps.size > MAX_TAPS:
+        raise InputError(f"{taps.size} filter taps; the runtime holds at most {MAX_TAPS} "
+                         "(use a smaller sigma)", column="taps")
+    peak = float(np.abs(taps).max())
+    if peak < 32767.5 / 32768:
+        q = 15
+    elif peak < 32767.5 / 16384:
+        q = 14
+    else:
+        raise InputError(f"filter tap {peak:g} >= 2 cannot be represented", column="taps")
+    t = np.round(taps * 2.0**q).astype(np.int64)
+    # Put the rounding residue on the largest tap so a constant input passes exactly.
+    target = int(round(float(taps.sum()) * 2.0**q))
+    t[int(np.argmax(np.abs(t)))] += target - int(t.sum())
+    if np.any(np.abs(t) > 32767):
+        raise InputError("filter taps do not fit int16 after normalisation", column="taps")
+    return t, q
+
+
+@dataclass
+class Calibration:
+    """Float activations of the pipeline on calibration recordings (what scales come from)."""
+
+    z: np.ndarray               # (n, 4) standardised inputs
+    contact: np.ndarray         # (n,) float contact decision
+    f: np.ndarray               # (n,) force net output
+    force_N: np.ndarray         # (n,) float force (raw, before gating)
+    true_force_N: np.ndarray | None
+    max_step_fm: float          # largest per-sample change of any in-window channel
+    samples: int
+    max_comp_pm: float = 0.0    # largest |compensated shift| (before the filter)
+    #: (n, 4) per sample: |comp[n]| and max_k |comp[n-k] - comp[n]| over the filter window (pm)
+    comp_abs_pm: np.ndarray | None = None
+    comp_var_pm: np.ndarray | None = None
+
+
+def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray, np.ndarray]],
+              true_force_N: Sequence[np.ndarray] | None = None) -> Calibration:
+    """Run the float pipeline on ``recordings`` = [(wl_nm (n,5), baseline_nm (5,)), ...]."""
+    zs, steps, comp_max, c_abs, c_var = [], [0.0], 0.0, [], []
+    n_taps = model.preprocess.taps.size
+    for wl, base in recordings:
+        wl = np.asarray(wl, dtype=np.float64)
+        zs.append(fm.features(model, wl, base))
+        comp = fm.compensate(model, wl, base)
+        comp_max = max(comp_max, float(np.abs(comp[np.isfinite(comp)]).max(initial=0.0)))
+        # Zero history before the first sample, as the causal filter sees it.
+        padded = np.concatenate([np.zeros((n_taps - 1, 4)), comp])
+        var = np.zeros_like(comp)
+        for k in range(1, n_taps):
+            var = np.maximum(var, np.abs(padded[n_taps - 1 - k:padded.shape[0] - k] - comp))
+        c_abs.append(np.abs(comp))
+        c_var.append(var)
+        if wl.shape[0] > 1:
+            d = np.abs(np.diff(wl, axis=0)) * 1e6
+            d = d[np.isfinite(d)]
+            steps.append(float(d.max()) if d.size else 0.0)
+    if not zs or sum(len(z) for z in zs) == 0:
+        raise InputError("no calibration samples")
+    z = np.concatenate(zs)
+    finite = np.all(np.isfinite(z), axis=1)
+    z = z[finite]
+    pred = fm.predict_from_features(model, z)
+    f = model.force.forward(z)[:, 0]
+    truth = None
+    if true_force_N is not None:
+        truth = np.concatenate([np.asarray(t, dtype=np.float64) for t in true_force_N])
+    return Calibration(z=z, contact=pred["contact"], f=f, force_N=pred["force_raw_N"],
+                       true_force_N=truth, max_step_fm=max(steps), samples=int(z.shape[0]),
+                       max_comp_pm=comp_max, comp_abs_pm=np.concatenate(c_abs)[finite],
+                       comp_var_pm=np.concatenate(c_var)[finite])
+
+
+def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np.ndarray,
+                    bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, dict[str, Any]]:
+    """Quantise one layer. ``out_ratio[r]`` is (real output unit) per (real accumulator unit):
+    the multiplier implements ``acc * acc_scale[r] * out_ratio[r]``."""
+    qmax = 127 if bits == 8 else 32767
+    row_max = np.abs(w).max(axis=1)
+    w_scale = np.where(row_max > 0, row_max / qmax, 1.0)
+    wq = np.clip(np.round(w / w_scale[:, None]), -qmax, qmax).astype(np.int64)
+    acc_scale = in_scale * w_scale
+    bq = np.round(b / acc_scale)
+    if np.any(np.abs(bq) >= 2**60):
+        raise InputError("a bias is too large for the accumulator scale (model weights out of range)")
+    bq = bq.astype(np.int64)
+    bound = np.abs(wq).sum(axis=1) * SAT16 + np.abs(bq)
+    limits = np.minimum(2**MULT_BITS, PRODUCT_LIMIT // np.maximum(bound, 1))
+    shift, mult = choose_shift(acc_scale * out_ratio, limits)
+    info = {"in_scale": in_scale, "w_scale_max": float(w_scale.max()),
+            "acc_bound": int(bound.max()), "acc_bound_log2": round(math.log2(max(int(bound.max()), 1)), 2),
+            "acc32_safe": bool(bound.max() <= SAT32),
+            "product_bound_log2": round(math.log2(max(int(max(int(x) * abs(int(m)) for x, m in zip(bound, mult))), 1)), 2),
+            "mult_min_abs": int(np.abs(mult).min()), "shift": shift}
+    info["_scales"] = {"w_scale": w_scale, "in_scale": in_scale, "out_ratio": np.asarray(out_ratio, dtype=np.float64) * np.ones(w.shape[0])}
+    return wq, bq, mult, shift, info
+
+
+def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
+             jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None
+             ) -> tuple[QModel, dict[str, Any]]:
+    """Quantise ``model`` with scales from ``calib``.
+
+    Parameters
+    ----------
+    bits
+        Weight width of the nets: 16 (default) or 8. Activations are always int16.
+    jump_nm
+        Sensor-fault jump threshold (raised to twice the largest per-sample step seen in the
+        calibration recordings, so that normal data never trips it).
+    overload_N
+        FBG_STATUS_OVERLOAD threshold; default: the largest true force of the calibration
+        data if known, else the largest float force estimate.
+
+    Returns
+    -------
+    (QModel, report)
+        The report holds the scales and the accumulator bounds (docs/fixed-point.md).
+    """
+    if bits not in (8, 16):
+        raise InputError(f"--bits must be 16 or 8, not {bits}", column="--bits")
+    pre = model.preprocess
+    taps, tap_q = quantize_taps(pre)
+
+    zmax = float(max(np.abs(calib.z).max(initial=0.0), np.abs(calib.f).max(initial=0.0), 1e-6))
+    z_frac = int(min(14, max(0, math.floor(math.log2(SAT16 / (Z_HEADROOM * zmax))))))
+    zs = 2.0**-z_frac
+
+    tc = np.round(pre.temp_coeff * 2.0**TEMP_COEFF_SHIFT)
+    if np.any(np.abs(tc) > SAT32):
+        raise InputError("temperature coefficient beyond +-128 cannot be represented",
+                         column="temp_coeff")
+    mean_fm = np.round(pre.input_mean * 1000.0)
+    if np.any(np.abs(mean_fm) > SAT32):
+        raise InputError("input_mean beyond +-2 ms of pm cannot be represented", column="input_mean")
+    z_shift, z_mult = choose_shift(2.0**z_frac / (1000.0 * pre.input_std))
+    fq_shift, fq_mult = choose_shift([2.0**z_frac / (1000.0 * model.force_scale)])
+
+    nets: list[list[QLayer]] = []
+    report_nets: dict[str, list[dict[str, Any]]] = {}
+    loc_in = np.column_stack([calib.z, calib.contact.astype(np.float64), calib.f])
+    inputs = {"contact": calib.z, "force": calib.z, "location": loc_in}
+    for name in NET_NAMES:
+        net = model.nets[name]
+        x = inputs[name]
+        in_scale = zs
+        layers, infos = [], []
+        for i, (w, b) in enumerate(zip(net.weights, net.biases)):
+            last = i == len(net.weights) - 1
+            if name == "contact" and last:
+                # Two logits -> one margin row: contact iff margin > 0, exactly the float rule.
+                w = (w[1] - w[0])[None, :]
+                b = np.array([b[1] - b[0]])
+            a = x @ w.T + b
+            if not last:
+                a = np.maximum(a, 0.0)
+                amax = float(a.max(initial=0.0))
+                out_scale = (ACT_HEADROOM * amax / SAT16) if amax > 0 else 1.0 / SAT16
+                ratio = np.full(w.shape[0], 1.0 / out_scale)
+            elif name == "contact":
+                out_scale, ratio = 1.0 / 256.0, np.array([256.0])
+            elif name == "force":
+                out_scale, ratio = 1e-3, np.array([1000.0 * model.force_scale])
+            else:
+                out_scale, ratio = 1e-3, 1000.0 * model.xy_scale
+            wq, bq, mult, shift, info = _quantize_layer(w, b, in_scale, ratio, bits)
+            info.update({"shape": [int(w.shape[0]), int(w.shape[1])], "w_bits": bits,
+                         "out_scale": out_scale, "calib_max_abs": float(np.abs(a).max(initial=0.0))})
+            scales = info.pop("_scales")
+            scales["w_float"], scales["b_float"] = w, b
+            layers.append(QLayer(wq, bits, bq, mult, shift, info, scales))
+            infos.append(info)
+            x, in_scale = a, out_scale
+        nets.append(layers)
+        report_nets[name] = infos
+
+    if overload_N is None:
+        src = calib.true_force_N if calib.true_force_N is not None and calib.true_force_N.size else None
+        if src is None:
+            src = calib.force_N[calib.contact] if calib.contact.any() else calib.force_N
+        overload_N = float(np.nanmax(src)) if np.size(src) else 70.0
+    jump_fm = int(round(max(jump_nm * 1e6, 2.0 * calib.max_step_fm)))
+    q = QModel(
+        baseline_fm=np.round(model.baseline_nm * 1e6), jump_max_fm=min(jump_fm, SAT32),
+        temp_coeff_q24=tc, taps=taps, tap_q=tap_q, mean_fm=mean_fm, z_mult=z_mult,
+        z_shift=z_shift, z_frac=z_frac, fq_mult=int(fq_mult[0]), fq_shift=fq_shift,
+        force_offset_mN=int(round(model.force_offset * 1000.0)),
+        xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
+        nets=nets)
+    try:
+        q.check()
+    except ValueError as exc:
+        raise InputError(f"model cannot be quantised: {exc}") from exc
+    fir_bound = (2**31 - 1) * int(np.abs(taps).sum())
+    bounds = error_bounds(model, q, calib)
+    report = {
+        "bits": bits,
+        "calibration": {"samples": calib.samples, "max_abs_input": zmax,
+                        "max_step_nm": calib.max_step_fm * 1e-6},
+        "input": {"z_frac": z_frac, "z_shift": z_shift, "z_mult": z_mult.tolist(),
+                  "mean_fm": q.mean_fm.tolist(), "temp_coeff_q24": q.temp_coeff_q24.tolist(),
+                  "fq_mult": q.fq_mult, "fq_shift": fq_shift,
+                  "product_bound_log2": round(math.log2((2**31 - 1) * 2**MULT_BITS), 2)},
+        "fir": {"n_taps": int(taps.size), "tap_q": tap_q, "taps_sum": int(taps.sum()),
+                "acc_bound": fir_bound, "acc_bound_log2": round(math.log2(fir_bound), 2),
+                "acc32_safe": fir_bound <= SAT32},
+        "nets": report_nets,
+        "error_bounds": bounds,
+        "outputs": {"force_offset_mN": q.force_offset_mN, "xy_offset_um": q.xy_offset_um.tolist(),
+                    "overload_mN": q.overload_mN, "jump_max_fm": q.jump_max_fm},
+    }
+    return q, report
+
+
+def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> dict[str, float]:
+    """Error budget of fixed vs float on every calibration sample; the maxima.
+
+    (docs/fixed-point.md, "Error bounds".) Each rounding of the integer pipeline injects a
+    bounded error (``inj``); the nets are piecewise linear, so, at a sample whose ReLU pattern
+    the quantised net shares, the output error is at most ``sum_l |g_l| . inj_l`` with ``g_l``
+    the signed gradient of the output with respect to layer l's activations at that sample
+    (a first-order bound, exact for the linear piece; it can fail only where a unit sits
+    within its error of zero, i.e. near a kink). Per layer, row r::
+
+        inj[r] = sum_j |W[r,j] - Wq[r,j]| |x[j]| + |b[r] - bq[r]|
+                 + out_scale * (|acc[r]| * |mult[r] / 2^shift - R[r]| + 1/2)
+
+    The input error (proven, per sample): conversion to fm (0.5 fm on wl and baseline), the
+    Q24 coefficient, Q15 taps (their sum is exact to 2^-16, so the tap residue acts only on the
+    variation of the signal within the filter window), the standardisation multiplier and
+    the Q(z_frac) rounding.
+    """
+    pre = model.preprocess
+    taps_f = np.array([1.0]) if pre.filter_kind == "none" else pre.taps
+    dtaps = taps_f - q.taps / 2.0**q.tap_q
+    comp_abs = calib.comp_abs_pm * 1000.0
+    comp_var = calib.comp_var_pm * 1000.0
+    tc_err = np.abs(pre.temp_coeff - q.temp_coeff_q24 / 2.0**TEMP_COEFF_SHIFT)
+    e_comp = 1.0 + np.abs(pre.temp_coeff) + 0.5 + tc_err * comp_abs.max(initial=0.0)
+    e_filt = (e_comp * np.abs(taps_f).sum() + np.abs(dtaps).sum() * comp_var
+              + abs(dtaps.sum()) * comp_abs + 0.5)
+    zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
+    d = np.abs(calib.z) * 1000.0 * pre.input_std + e_filt + 0.5
+    e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
+
+    def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
+        """Per-sample bound of output ``row`` in output integer units."""
+        acts, masks, injs = [x], [], []
+        for i, layer in enumerate(layers):
+            sc = layer.scales
+            w, b = sc["w_float"], sc["b_float"]
+            acc_scale = sc["in_scale"] * sc["w_scale"]
+            dw = np.abs(w - layer.w * sc["w_scale"][:, None])
+            a = acts[-1] @ w.T + b
+            ratio_err = np.abs(layer.mult / 2.0**layer.shift - acc_scale * sc["out_ratio"])
+            out_unit = 1.0 / np.abs(sc["out_ratio"])
+            injs.append(np.abs(acts[-1]) @ dw.T + np.abs(b - layer.bias * acc_scale)
+                        + out_unit * (np.abs(a) / acc_scale * ratio_err + 0.5))
+            if i < len(layers) - 1:
+                masks.append(a > 0.0)
+                acts.append(np.maximum(a, 0.0))
+        unit = 1.0 / abs(layers[-1].scales["out_ratio"][row])
+        total = injs[-1][:, row] / unit
+        g = np.broadcast_to(layers[-1].scales["w_float"][row], (x.shape[0], layers[-1].n_in))
+        for i in range(len(layers) - 2, -1, -1):
+            g = g * masks[i]                       # gradient w.r.t. layer i's pre-activation
+            total = total + (np.abs(g) * injs[i]).sum(axis=1) / unit
+            g = g @ layers[i].scales["w_float"]
+        return total + (np.abs(g) * e_in).sum(axis=1) / unit
+
+    z = calib.z
+    e_margin = net_err(q.nets[0], z, e_z, 0) / 256.0
+    out = {"contact_margin": float(e_margin.max(initial=0.0)), "input_z": float(e_z.max(initial=0.0))}
+    c = calib.contact
+    if c.any():
+        zc, ezc = z[c], e_z[c]
+        e_force_mN = net_err(q.nets[1], zc, ezc, 0)
+        fq_ratio = 2.0**q.z_frac / (1000.0 * model.force_scale)
+        force_out = np.abs(calib.f[c]) * 1000.0 * abs(model.force_scale) + e_force_mN
+        e_fq = ((e_force_mN + 0.5) * abs(fq_ratio) + force_out * abs(q.fq_mult / 2.0**q.fq_shift - fq_ratio)
+                + 0.5) / 2.0**q.z_frac
+        loc_x = np.column_stack([zc, np.ones(zc.shape[0]), calib.f[c]])
+        loc_e = np.column_stack([ezc, np.zeros(zc.shape[0]), e_fq])
+        out.update({"force_N": float((e_force_mN.max() + 0.5) / 1000.0),
+                    "x_mm": float((net_err(q.nets[2], loc_x, loc_e, 0).max() + 0.5) / 1000.0),
+                    "y_mm": float((net_err(q.nets[2], loc_x, loc_e, 1).max() + 0.5) / 1000.0)})
+    return out

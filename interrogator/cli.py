@@ -1,0 +1,215 @@
+"""``fbgforce emulate | stream | record``: serial I/O commands (docs/serial.md, docs/cli.md)."""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import Any
+
+from fbgforce.errors import InputError
+
+
+def _positive_float(text: str) -> float:
+    v = float(text)
+    if not v > 0 or not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
+    return v
+
+
+def _non_negative_int(text: str) -> int:
+    v = int(text)
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, not {text}")
+    return v
+
+
+def _positive_int(text: str) -> int:
+    v = int(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, not {text}")
+    return v
+
+
+def _add_stop_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--duration", type=_positive_float, metavar="S",
+                   help="stop S seconds after the first sample (default: run until stopped)")
+    p.add_argument("--samples", type=_positive_int, metavar="N", help="stop after N samples")
+    p.add_argument("--idle-timeout", type=_positive_float, metavar="S",
+                   help="stop when no sample arrived for S seconds (default: wait, reconnecting)")
+    p.add_argument("--start-timeout", type=_positive_float, metavar="S",
+                   help="give up if the first sample has not arrived after S seconds")
+    p.add_argument("--baud", type=_positive_int, default=None,
+                   help="line speed for real UARTs (default 3000000; ptys/sockets ignore it)")
+    p.add_argument("--quiet", action="store_true", help="no live status on stderr")
+
+
+def register(subparsers: Any) -> None:
+    """Add ``emulate``, ``stream`` and ``record``."""
+    from fbgforce.cli import add_json_flag
+
+    p = subparsers.add_parser(
+        "emulate", help="virtual interrogator on a pseudo-terminal (plays a scene in real time)",
+        description="Play a simulated scene (or a dataset file) in real time on a pseudo-terminal "
+                    "as an FBG interrogator would: native frames pushed at --rate, or FiSpec-style "
+                    "answers to '?>'/'P>' polls. The scene's dropout effect becomes real line "
+                    "faults. Prints the device path(s); playback starts when every port has a "
+                    "client. Protocols: docs/protocol.md.")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--scene", help="built-in scene name or scene TOML path")
+    src.add_argument("--data", metavar="FILE", help="play a dataset file (CSV/npz) instead")
+    p.add_argument("--pty", action="store_true", default=True,
+                   help="serve on a new pseudo-terminal (the default and only transport)")
+    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+    p.add_argument("--rate", type=_positive_float, default=1000.0,
+                   help="samples per second of playback (default 1000)")
+    p.add_argument("--loadcell", action="store_true",
+                   help="open a second pty with the stage/load-cell line protocol")
+    p.add_argument("--seed", type=_non_negative_int, default=None,
+                   help="scene seed (default: the scene's); also seeds the fault details")
+    p.add_argument("--device", type=_non_negative_int, default=None, help="scene device number")
+    p.add_argument("--duration", type=_positive_float, metavar="S",
+                   help="play at most S seconds (default: the whole recording)")
+    p.add_argument("--faults", metavar="SPEC", default=None,
+                   help="extra line faults per sample, e.g. drop=0.01,flip=0.01,truncate=0.005,"
+                        "garbage=0.005 (on top of the scene's dropout column)")
+    p.add_argument("--link", metavar="PATH", help="also make PATH a symlink to the device")
+    p.add_argument("--loadcell-link", metavar="PATH", help="symlink to the load-cell device")
+    p.add_argument("--no-wait", action="store_true",
+                   help="start playing at once instead of waiting for clients")
+    p.add_argument("--linger", type=float, default=2.0, metavar="S",
+                   help="after the last sample keep the ports open until clients close, at "
+                        "most S seconds (default 2)")
+    p.add_argument("--loop", action="store_true", help="repeat the recording until stopped")
+    add_json_flag(p)
+    p.set_defaults(handler=_emulate)
+
+    p = subparsers.add_parser(
+        "stream", help="live estimation from an interrogator through the C runtime",
+        description="Read an interrogator (device path or pyserial URL), tare on the first "
+                    "samples, estimate contact, force and location for every sample with the "
+                    "fixed-point C runtime, show a one-line live status on stderr and optionally "
+                    "write the estimates as CSV.")
+    p.add_argument("--port", required=True, metavar="DEV",
+                   help="device path or pyserial URL (/dev/ttyUSB0, socket://host:port, loop://)")
+    p.add_argument("--model", required=True, metavar="MODEL_DIR")
+    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+    p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
+    p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
+                   help="fixed (C fixed-point runtime, default) or float (numpy reference)")
+    p.add_argument("--tare-samples", type=_non_negative_int, default=200,
+                   help="tare on the first N samples, fingertip unloaded (default 200 = 0.2 s; "
+                        "0 = use the model's training baseline)")
+    p.add_argument("--channels", type=_positive_int, default=5,
+                   help="gratings per frame (default 5: FBG 1..4 and T)")
+    _add_stop_options(p)
+    add_json_flag(p)
+    p.set_defaults(handler=_stream)
+
+    p = subparsers.add_parser(
+        "record", help="record a calibration log (interrogator + stage/load cell) as a dataset",
+        description="Read the interrogator and the stage/load-cell port, join the samples on the "
+                    "sample counter and write a dataset file (docs/dataset.md) ready for "
+                    "'fbgforce train'.")
+    p.add_argument("--port", required=True, metavar="DEV", help="interrogator device or URL")
+    p.add_argument("--loadcell-port", required=True, metavar="DEV2",
+                   help="stage/load-cell device or URL")
+    p.add_argument("--out", required=True, metavar="FILE.csv", help="dataset to write (.csv/.npz)")
+    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+    p.add_argument("--rate", type=_positive_float, default=1000.0,
+                   help="device sample rate, for time stamps when the protocol has none (fispec)")
+    p.add_argument("--loadcell-baud", type=_positive_int, default=115200)
+    _add_stop_options(p)
+    add_json_flag(p)
+    p.set_defaults(handler=_record)
+
+
+def _emulate(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.interrogator import emulator as E
+
+    try:
+        rates = E.parse_fault_rates(args.faults)
+    except ValueError as exc:
+        raise InputError(str(exc), column="--faults") from None
+    if args.linger < 0:
+        raise InputError("must be >= 0", column="--linger")
+    if args.data is not None:
+        from pathlib import Path
+
+        if not Path(args.data).is_file():
+            raise InputError("no such file", path=args.data, column="--data")
+    playback = E.load_playback(args.scene, args.data, seed=args.seed, device=args.device)
+    plan = E.plan_faults(len(playback), rates=rates, dropout=playback.dropout,
+                         seed=args.seed if args.seed is not None else 0)
+    em = E.Emulator(playback, protocol=args.protocol, rate=args.rate, faults=plan,
+                    loadcell=args.loadcell, seed=args.seed, wait_client=not args.no_wait,
+                    linger=args.linger, loop=args.loop, link=args.link,
+                    loadcell_link=args.loadcell_link)
+    out = sys.stderr if args.json else sys.stdout
+    for role, path in em.paths.items():
+        print(f"{role}: {path}", file=out, flush=True)
+    if not args.no_wait:
+        print("emulate: waiting for a client on every port (Ctrl-C to stop)", file=sys.stderr,
+              flush=True)
+    max_samples = None if args.duration is None else math.ceil(args.duration * args.rate)
+    try:
+        stats = em.run(max_samples=max_samples)
+    finally:
+        em.close()
+    result = {"protocol": args.protocol, "rate_hz": args.rate, **em.paths,
+              "samples": len(playback), "fault_plan": {
+                  name: int((plan == code).sum()) for code, name in enumerate(E.FAULTS) if code},
+              **stats.as_dict()}
+    if not args.json:
+        print(f"emulate: played {stats.samples_played} samples, {stats.frames_sent} intact frames"
+              f" ({stats.dropped} dropped, {stats.flipped} flipped, {stats.truncated} truncated, "
+              f"{stats.garbage_bursts} garbage bursts)", file=sys.stderr)
+    return result
+
+
+def _baud(args: argparse.Namespace) -> dict[str, Any]:
+    return {} if args.baud is None else {"baudrate": args.baud}
+
+
+def _stream(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.interrogator.reader import open_reader
+    from fbgforce.interrogator.stream import LiveEstimator, run_stream
+
+    est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
+    reader = open_reader(args.port, args.protocol, channels=args.channels, **_baud(args))
+    try:
+        result = run_stream(reader, est, out=args.out, duration=args.duration,
+                            max_samples=args.samples, idle_timeout=args.idle_timeout,
+                            start_timeout=args.start_timeout, status=not args.quiet)
+    finally:
+        reader.close()
+    result = {"port": args.port, "protocol": args.protocol, **result}
+    if not args.json:
+        print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
+              f"{result['bad_frames']} bad frames" + (f", written to {args.out}" if args.out else ""),
+              file=sys.stderr)
+    return result
+
+
+def _record(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.interrogator.reader import LoadCellReader, open_reader
+    from fbgforce.interrogator.record import run_record
+
+    reader = open_reader(args.port, args.protocol, **_baud(args))
+    loadcell = LoadCellReader(args.loadcell_port, baudrate=args.loadcell_baud)
+    # Open both now: a device that waits for its clients starts only when both are there.
+    reader.link.open()
+    loadcell.link.open()
+    try:
+        result = run_record(reader, loadcell, args.out, duration=args.duration,
+                            max_samples=args.samples, idle_timeout=args.idle_timeout,
+                            start_timeout=args.start_timeout, rate_hz=args.rate,
+                            status=not args.quiet)
+    finally:
+        reader.close()
+        loadcell.close()
+    if not args.json:
+        print(f"record: wrote {result['samples']} samples ({result['presses']} presses) to "
+              f"{result['out']}; unmatched {result['unmatched_frames']} frames / "
+              f"{result['unmatched_loadcell_lines']} lines, lost {result['lost_frames']}",
+              file=sys.stderr)
+    return result

@@ -1,0 +1,508 @@
+"""Virtual interrogator: plays a recording in real time on a pseudo-terminal.
+
+The emulator is the device side of the protocols in :mod:`fbgforce.interrogator.protocol`:
+
+- ``native``: pushes one frame per sample at ``rate`` samples per second;
+- ``fispec``: answers ``?>``, ``p?>`` and ``P>`` polls with the latest sample (unknown
+  commands are ignored, as a device would);
+- with ``loadcell=True`` a second pty carries the stage/load-cell lines of the same samples,
+  tagged with the same sample counter.
+
+Line faults. Each sample gets a fault kind (:data:`FAULTS`): ``drop`` (frame never sent),
+``flip`` (1–3 bits flipped), ``truncate`` (only a prefix sent), ``garbage`` (a burst of random
+bytes sent before the intact frame). The kinds come from the recording's ``dropout`` column
+when it has one (Part 1's ``dropout`` effect; mapping in :func:`faults_from_dropout`) and/or
+from per-kind rates. The plan is drawn up front from a seeded generator, so a test knows which
+frames are good.
+
+Like a real UART device, bytes written while no client has the port open are lost; by default
+playback starts only once every port has a client (``wait_client``), and after the last sample
+the ports stay open until the clients close them or ``linger`` seconds pass.
+"""
+from __future__ import annotations
+
+import errno
+import os
+import select
+import threading
+import time
+import tty
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from fbgforce.interrogator import protocol as P
+
+#: Fault kinds by code (the codes stored in a fault plan).
+FAULTS = ("none", "drop", "flip", "truncate", "garbage")
+FAULT_CODE = {name: code for code, name in enumerate(FAULTS)}
+#: FiSpec frame fields the emulator reports besides the wavelengths.
+FISPEC_AMPLITUDE = 12000
+FISPEC_TEMPERATURE_C100 = 2500
+FISPEC_IDENT = b"FiSpec FBGX-EMU (fbgforce virtual interrogator)"
+#: Pause between the last client opening its port and the first sample (see Emulator._run).
+START_DELAY_S = 0.25
+
+
+@dataclass
+class Playback:
+    """What the emulator plays: per sample a device timestamp, wavelengths and stage data.
+
+    Attributes
+    ----------
+    t_us
+        (n,) int64 device timestamps, µs.
+    wl_fm
+        (n, c) int64 peak wavelengths, fm (0 = no peak).
+    x_mm, y_mm, force_N
+        (n,) stage position and load-cell force (x/y 0 where the dataset has NaN: the stage is
+        somewhere, the dataset simply does not say where when there is no contact).
+    contact, press
+        (n,) int stage contact state and press number.
+    dropout
+        (n,) the dataset's ``dropout`` column if it has one, else ``None``.
+    """
+
+    t_us: np.ndarray
+    wl_fm: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    force_N: np.ndarray
+    contact: np.ndarray
+    press: np.ndarray
+    dropout: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.t_us.shape[0])
+
+    @classmethod
+    def from_dataset(cls, ds: Any) -> "Playback":
+        """From a :class:`fbgforce.dataset.Dataset` (or anything with the same fields)."""
+        t_us = np.round(np.asarray(ds.t_s, dtype=np.float64) * 1e6).astype(np.int64)
+        extra = getattr(ds, "extra", None) or {}
+        dropout = extra.get("dropout")
+        return cls(
+            t_us=t_us,
+            wl_fm=P.nm_to_fm(ds.wl_nm),
+            x_mm=np.nan_to_num(np.asarray(ds.x_mm, dtype=np.float64)),
+            y_mm=np.nan_to_num(np.asarray(ds.y_mm, dtype=np.float64)),
+            force_N=np.asarray(ds.force_N, dtype=np.float64),
+            contact=np.asarray(ds.contact).astype(np.int64),
+            press=np.asarray(ds.press_id).astype(np.int64),
+            dropout=None if dropout is None else np.asarray(dropout),
+        )
+
+
+def faults_from_dropout(dropout: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Map a ``dropout`` column to fault codes.
+
+    0 (or False/NaN) is a good sample. 1 (or True) is a lost sample: ``drop``. 2 is a garbled
+    sample: ``flip``. Any other non-zero value is a generic line fault whose kind (flip,
+    truncate, garbage) is drawn from ``rng``, so a boolean column still exercises all of them.
+    """
+    d = np.nan_to_num(np.asarray(dropout, dtype=np.float64)).astype(np.int64)
+    out = np.zeros(d.shape[0], dtype=np.uint8)
+    out[d == 1] = FAULT_CODE["drop"]
+    out[d == 2] = FAULT_CODE["flip"]
+    other = (d != 0) & (d != 1) & (d != 2)
+    choice = rng.choice([FAULT_CODE["flip"], FAULT_CODE["truncate"], FAULT_CODE["garbage"]],
+                        size=int(other.sum()))
+    out[other] = choice
+    return out
+
+
+def plan_faults(n: int, *, rates: Mapping[str, float] | None = None,
+                dropout: np.ndarray | None = None, seed: int | None = 0) -> np.ndarray:
+    """Fault code per sample (uint8, codes of :data:`FAULTS`).
+
+    ``dropout`` (the recording's column) is applied first; ``rates`` (probability per sample for
+    ``drop``, ``flip``, ``truncate``, ``garbage``) then fault further good samples. Seeded.
+    """
+    rng = np.random.default_rng(seed)
+    plan = np.zeros(n, dtype=np.uint8)
+    if dropout is not None:
+        plan[:] = faults_from_dropout(dropout[:n], rng)
+    for name, rate in (rates or {}).items():
+        if name not in FAULT_CODE or name == "none":
+            raise ValueError(f"unknown fault {name!r}; choose from {', '.join(FAULTS[1:])}")
+        if not 0.0 <= rate <= 1.0:
+            raise ValueError(f"fault rate {name}={rate} must be within 0..1")
+        hit = (rng.random(n) < rate) & (plan == 0)
+        plan[hit] = FAULT_CODE[name]
+    return plan
+
+
+def parse_fault_rates(text: str | None) -> dict[str, float]:
+    """``"drop=0.01,flip=0.005"`` -> ``{"drop": 0.01, "flip": 0.005}``."""
+    rates: dict[str, float] = {}
+    if not text:
+        return rates
+    for item in text.split(","):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in FAULT_CODE or name == "none":
+            raise ValueError(f"bad fault {item!r}: expected NAME=RATE with NAME one of "
+                             f"{', '.join(FAULTS[1:])}")
+        try:
+            rates[name] = float(value)
+        except ValueError:
+            raise ValueError(f"bad fault rate in {item!r}: not a number") from None
+        if not 0.0 <= rates[name] <= 1.0:
+            raise ValueError(f"bad fault rate in {item!r}: must be within 0..1")
+    return rates
+
+
+class PtyEndpoint:
+    """The device end of a pseudo-terminal pair.
+
+    The slave side (the path clients open) is put in raw mode once so that the line
+    discipline neither echoes nor translates bytes even for clients that do not configure
+    the tty. The master is non-blocking: a device never waits for the host. The kernel's pty
+    buffer is small (about 16 KiB, 80 ms at 5 kHz), so, like the TX FIFO of a USB-serial
+    device, up to ``tx_buffer`` bytes wait here for a slow host; beyond that new bytes are
+    lost (counted as overrun).
+    """
+
+    def __init__(self, link: str | os.PathLike[str] | None = None, tx_buffer: int = 1 << 20
+                 ) -> None:
+        self.master, slave = os.openpty()
+        self.path = os.ttyname(slave)
+        tty.setraw(slave)
+        # Closing our slave fd lets POLLHUP on the master tell whether a client has it open.
+        os.close(slave)
+        os.set_blocking(self.master, False)
+        self.link = Path(link) if link else None
+        if self.link is not None:
+            tmp = self.link.with_name(self.link.name + f".tmp{os.getpid()}")
+            if tmp.is_symlink() or tmp.exists():
+                tmp.unlink()
+            os.symlink(self.path, tmp)
+            os.replace(tmp, self.link)  # atomic: a reader never sees a missing link mid-swap
+        self.overrun_bytes = 0
+        self.bytes_sent = 0
+        self.tx_buffer = tx_buffer
+        self._backlog = bytearray()
+        self._closed = False
+
+    @property
+    def name(self) -> str:
+        """The path to hand to clients (the link if one was asked for)."""
+        return str(self.link) if self.link is not None else self.path
+
+    def client_connected(self) -> bool:
+        ev = select.poll()
+        ev.register(self.master, select.POLLHUP)
+        return not any(flag & select.POLLHUP for _, flag in ev.poll(0))
+
+    @property
+    def backlog(self) -> int:
+        """Bytes waiting for the host to read."""
+        return len(self._backlog)
+
+    def write(self, data: bytes) -> None:
+        """Queue ``data`` (dropping it if the buffer is full) and push what the pty takes."""
+        room = self.tx_buffer - len(self._backlog)
+        if len(data) > room:
+            self.overrun_bytes += len(data) - max(room, 0)
+            data = data[:max(room, 0)]
+        self._backlog += data
+        self.flush()
+
+    def flush(self) -> None:
+        """Push queued bytes into the pty as far as it takes them (never blocks)."""
+        while self._backlog:
+            try:
+                n = os.write(self.master, self._backlog)
+            except BlockingIOError:
+                return
+            except OSError as exc:
+                if exc.errno not in (errno.EIO, errno.EAGAIN):
+                    raise
+                return
+            if n <= 0:
+                return
+            self.bytes_sent += n
+            del self._backlog[:n]
+
+    def read(self) -> bytes:
+        try:
+            return os.read(self.master, 4096)
+        except (BlockingIOError, OSError):
+            return b""
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        os.close(self.master)
+        if self.link is not None:
+            try:
+                if os.readlink(self.link) == self.path:
+                    self.link.unlink()
+            except OSError:
+                pass
+
+
+@dataclass
+class EmulatorStats:
+    """What the emulator did (returned by :meth:`Emulator.run`)."""
+
+    samples_played: int = 0  #: samples whose time came (sent, faulted or polled)
+    frames_sent: int = 0  #: intact frames written (native) or replies sent (fispec)
+    dropped: int = 0
+    flipped: int = 0
+    truncated: int = 0
+    garbage_bursts: int = 0
+    garbage_bytes: int = 0
+    bytes_sent: int = 0  #: bytes the interrogator port delivered into its pty
+    overrun_bytes: int = 0  #: bytes dropped because the host fell > tx_buffer behind (all ports)
+    commands: int = 0  #: FiSpec commands received
+    ignored_commands: int = 0  #: unknown commands (ignored, no reply)
+    loadcell_lines: int = 0
+    loops: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class Emulator:
+    """A virtual interrogator (and optionally a stage/load-cell) on pseudo-terminals.
+
+    Parameters
+    ----------
+    playback
+        The samples to play (:meth:`Playback.from_dataset`).
+    protocol
+        ``"native"`` or ``"fispec"``.
+    rate
+        Samples per second of playback (wall clock).
+    faults
+        Fault code per sample (:func:`plan_faults`); ``None`` = no faults.
+    loadcell
+        Also open the stage/load-cell pty.
+    seed
+        Seeds the bits flipped, truncation lengths and garbage bytes.
+    wait_client
+        Start playing only when every port has a client.
+    linger
+        After the last sample, keep the ports open until the clients close (at most this long).
+    loop
+        Start over after the last sample (counter and timestamps keep increasing).
+    link, loadcell_link
+        Optional stable symlink paths to the ptys (a reader can reopen them after a restart).
+    """
+
+    def __init__(self, playback: Playback, *, protocol: str = "native", rate: float = 1000.0,
+                 faults: np.ndarray | None = None, loadcell: bool = False, seed: int | None = 0,
+                 wait_client: bool = True, linger: float = 2.0, loop: bool = False,
+                 link: str | None = None, loadcell_link: str | None = None) -> None:
+        if protocol not in ("native", "fispec"):
+            raise ValueError(f"protocol must be 'native' or 'fispec', not {protocol!r}")
+        if not rate > 0:
+            raise ValueError("rate must be positive")
+        if len(playback) == 0:
+            raise ValueError("nothing to play: the recording has no samples")
+        self.playback = playback
+        self.protocol = protocol
+        self.rate = float(rate)
+        n = len(playback)
+        self.faults = np.zeros(n, dtype=np.uint8) if faults is None else np.asarray(faults, np.uint8)
+        if self.faults.shape != (n,):
+            raise ValueError(f"fault plan has {self.faults.shape} entries, recording {n}")
+        self.rng = np.random.default_rng(np.random.SeedSequence([0 if seed is None else seed, 7]))
+        self.wait_client = wait_client
+        self.linger = linger
+        self.loop = loop
+        self.stats = EmulatorStats()
+        self.port = PtyEndpoint(link)
+        self.loadcell_port = PtyEndpoint(loadcell_link) if loadcell else None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._parser = P.CommandParser()
+        self._span_us = int(playback.t_us[-1] - playback.t_us[0]) + int(round(1e6 / self.rate))
+
+    # -- public API ----------------------------------------------------------------------
+    @property
+    def paths(self) -> dict[str, str]:
+        out = {"interrogator": self.port.name}
+        if self.loadcell_port is not None:
+            out["loadcell"] = self.loadcell_port.name
+        return out
+
+    def start(self, max_samples: int | None = None) -> "Emulator":
+        """Run :meth:`run` in a background thread."""
+        self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
+                                        name="fbgforce-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop playing and close the ports."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.close()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def close(self) -> None:
+        self.port.close()
+        if self.loadcell_port is not None:
+            self.loadcell_port.close()
+
+    def run(self, max_samples: int | None = None) -> EmulatorStats:
+        """Play (blocking) until the recording, ``max_samples`` or :meth:`stop` ends it."""
+        try:
+            self._run(max_samples)
+        finally:
+            self.stats.bytes_sent = self.port.bytes_sent
+            self.stats.overrun_bytes = sum(p.overrun_bytes for p in self._ports())
+            self.close()
+        return self.stats
+
+    # -- internals -----------------------------------------------------------------------
+    def _ports(self) -> list[PtyEndpoint]:
+        return [p for p in (self.port, self.loadcell_port) if p is not None]
+
+    def _run(self, max_samples: int | None) -> None:
+        n = len(self.playback)
+        total = n if max_samples is None or self.loop else min(n, max_samples)
+        if max_samples is not None and self.loop:
+            total = max_samples
+        if self.wait_client:
+            while not self._stop.is_set() and not all(p.client_connected() for p in self._ports()):
+                self._service_commands(-1)
+                time.sleep(0.002)
+            # A client opening the port configures the tty and flushes its input (pyserial
+            # does) just after the open that we detected: give it time, or the first frames go.
+            settle = time.monotonic() + START_DELAY_S
+            while not self._stop.is_set() and time.monotonic() < settle:
+                self._service_commands(-1)
+                time.sleep(0.002)
+        t0 = time.monotonic()
+        sent = 0  # samples whose time has come
+        period = 1.0 / self.rate
+        while not self._stop.is_set() and sent < total:
+            due = min(total, int((time.monotonic() - t0) * self.rate) + 1)
+            if due > sent:
+                self._emit(sent, due)
+                sent = due
+                self.stats.samples_played = sent
+            self._service_commands(sent - 1)
+            wait = max(0.0, t0 + sent * period - time.monotonic())
+            if self.protocol == "fispec":
+                # Wake as soon as a poll arrives: a device answers P> at once.
+                select.select([self.port.master], [], [], min(wait, 0.01))
+            else:
+                time.sleep(min(wait, 0.01))
+        end = time.monotonic() + self.linger
+        while not self._stop.is_set() and any(p.client_connected() for p in self._ports()) and (
+                time.monotonic() < end or any(p.backlog for p in self._ports())):
+            self._service_commands(sent - 1)
+            time.sleep(0.002)
+
+    def _index(self, k: int) -> tuple[int, int]:
+        """Sample index into the playback and the loop count for the k-th played sample."""
+        n = len(self.playback)
+        return k % n, k // n
+
+    def _emit(self, start: int, stop: int) -> None:
+        """Push samples [start, stop) (native frames and/or load-cell lines)."""
+        pb = self.playback
+        chunks: list[bytes] = []
+        lines: list[bytes] = []
+        for k in range(start, stop):
+            i, lap = self._index(k)
+            if lap != self.stats.loops:
+                self.stats.loops = lap
+            if self.protocol == "native":
+                frame = P.encode_frame(k, int(pb.t_us[i]) + lap * self._span_us,
+                                       pb.wl_fm[i].tolist())
+                chunks.append(self._fault(frame, int(self.faults[i])))
+            if self.loadcell_port is not None:
+                lines.append(P.encode_loadcell_line(P.LoadCellSample(
+                    k, float(pb.x_mm[i]), float(pb.y_mm[i]), float(pb.force_N[i]),
+                    int(pb.contact[i]), int(pb.press[i]))))
+        if chunks:
+            data = b"".join(chunks)
+            if data:
+                self.port.write(data)
+        if lines:
+            self.loadcell_port.write(b"".join(lines))  # type: ignore[union-attr]
+            self.stats.loadcell_lines += len(lines)
+
+    def _fault(self, frame: bytes, code: int) -> bytes:
+        """The bytes actually put on the line for ``frame`` under fault ``code``."""
+        st = self.stats
+        rng = self.rng
+        kind = FAULTS[code]
+        if kind == "none":
+            st.frames_sent += 1
+            return frame
+        if kind == "drop":
+            st.dropped += 1
+            return b""
+        if kind == "flip":
+            st.flipped += 1
+            buf = bytearray(frame)
+            # 1-3 distinct bits: CRC-16/CCITT detects every such error in frames this short.
+            for bit in rng.choice(len(buf) * 8, size=int(rng.integers(1, 4)), replace=False):
+                buf[bit // 8] ^= 1 << (bit % 8)
+            return bytes(buf)
+        if kind == "truncate":
+            st.truncated += 1
+            # At least the CRC is cut, so following bytes complete it only by a 2**-16 chance.
+            return frame[:int(rng.integers(1, len(frame) - 2))]
+        st.garbage_bursts += 1
+        burst = rng.integers(0, 256, size=int(rng.integers(1, 65)), dtype=np.uint8).tobytes()
+        st.garbage_bytes += len(burst)
+        st.frames_sent += 1
+        return burst + frame
+
+    def _service_commands(self, latest: int) -> None:
+        """Read what the host sent; answer FiSpec commands (native mode ignores input)."""
+        for p in self._ports():
+            p.flush()
+            data = p.read()
+            if not data or p is not self.port or self.protocol != "fispec":
+                continue
+            for cmd in self._parser.feed(data):
+                self.stats.commands += 1
+                self._answer(cmd, latest)
+
+    def _answer(self, cmd: bytes, latest: int) -> None:
+        n_ch = self.playback.wl_fm.shape[1]
+        if cmd == P.CMD_IDENT:
+            self.port.write(FISPEC_IDENT + b" N=%d\r\n" % n_ch)
+        elif cmd == P.CMD_PARAMS:
+            self.port.write(b"#Pixel_512#Channels_%d#Rate_%d#\r\n" % (n_ch, round(self.rate)))
+        elif cmd == P.CMD_PEAKS:
+            if latest < 0:
+                return  # not started yet: a real device would answer with no peaks; stay quiet
+            i, _lap = self._index(latest)
+            wl = self.playback.wl_fm[i]
+            units = np.round(wl / (P.FM_PER_NM // P.FISPEC_UNITS_PER_NM)).astype(np.int64)
+            amp = np.where(wl != 0, FISPEC_AMPLITUDE, 0)
+            frame = P.encode_fispec_frame(units.tolist(), amp.tolist(), FISPEC_TEMPERATURE_C100,
+                                          latest)
+            self.port.write(self._fault(frame, int(self.faults[i])))
+        else:
+            self.stats.ignored_commands += 1
+
+
+def load_playback(scene: str | None = None, data: str | None = None, *, seed: int | None = None,
+                  device: int | None = None) -> Playback:
+    """The recording to play: a simulated scene or a dataset file."""
+    if (scene is None) == (data is None):
+        raise ValueError("give exactly one of scene or data")
+    if data is not None:
+        from fbgforce import dataset
+
+        return Playback.from_dataset(dataset.load(data))
+    from fbgforce import sim
+
+    return Playback.from_dataset(sim.simulate(scene, seed=seed, device=device))

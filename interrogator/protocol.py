@@ -1,0 +1,442 @@
+"""Wire protocols of the interrogator link (byte layouts in docs/protocol.md).
+
+Three protocols, each with an encoder (what a device sends) and an incremental decoder (what
+the host runs on whatever bytes arrive, in pieces of any size):
+
+1. The **native streaming frame**: the device pushes one CRC-protected binary frame per sample.
+   :func:`encode_frame` / :class:`FrameDecoder`.
+2. The **FiSpec-style command protocol** (3 Mbaud 8N1): the host sends ASCII commands ending in
+   ``>``; ``?>`` returns an identification string starting with ``FiSpec``, ``P>`` one
+   measurement frame of ``8*N + 12`` bytes ending in ``Ende``. :func:`encode_fispec_frame`,
+   :func:`decode_fispec_frame`, :class:`CommandParser` (device side).
+3. The **load-cell / stage line protocol**: one ASCII line per sample on a second port, tagged
+   with the interrogator's sample counter so the two streams can be joined.
+   :func:`encode_loadcell_line` / :class:`LineDecoder`.
+
+Units: wavelengths travel as integers, femtometres (1e-6 nm, the C runtime's input unit) in
+the native frame and 1e-4 nm in the FiSpec frame. The decoders never raise on bad bytes; they
+count what they discard in :class:`DecoderStats`.
+"""
+from __future__ import annotations
+
+import binascii
+import struct
+from dataclasses import asdict, dataclass
+from typing import Sequence
+
+import numpy as np
+
+# --------------------------------------------------------------------------------------------
+# Shared
+# --------------------------------------------------------------------------------------------
+
+FM_PER_NM = 1_000_000
+#: FiSpec wavelength unit: 1e-4 nm.
+FISPEC_UNITS_PER_NM = 10_000
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+
+
+def crc16_ccitt_false(data: bytes | bytearray | memoryview, crc: int = 0xFFFF) -> int:
+    """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, not reflected, no final XOR.
+
+    ``crc16_ccitt_false(b"123456789") == 0x29B1`` (the catalogue check value). ``binascii``'s
+    ``crc_hqx`` is exactly this polynomial without reflection, in C, so the host decoder keeps
+    up with 1 kHz easily.
+    """
+    return binascii.crc_hqx(bytes(data), crc)
+
+
+def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
+    """Wavelengths in nm to int32-range integers in femtometres (round half away from zero).
+
+    Non-finite values (a lost peak in simulated data) become 0, the "no peak" value a real
+    interrogator reports and the runtime flags as a sensor fault.
+    """
+    wl = np.asarray(wl_nm, dtype=np.float64)
+    fm = np.where(np.isfinite(wl), np.round(wl * FM_PER_NM), 0.0)
+    return np.clip(fm, INT32_MIN, INT32_MAX).astype(np.int64)
+
+
+def fm_to_nm(wl_fm: np.ndarray) -> np.ndarray:
+    """Femtometres (integers) to nm (float64); exact inverse of :func:`nm_to_fm` on its range."""
+    return np.asarray(wl_fm, dtype=np.float64) / FM_PER_NM
+
+
+@dataclass
+class DecoderStats:
+    """Counters of one decoder. Every byte received ends up in exactly one of: a delivered
+    frame, ``discarded_bytes``, or the decoder's pending buffer."""
+
+    bytes: int = 0  #: bytes fed
+    frames: int = 0  #: good frames delivered
+    crc_errors: int = 0  #: candidate frames (sync and header plausible) whose CRC failed
+    header_errors: int = 0  #: sync word found but version or channel count impossible
+    resyncs: int = 0  #: times the decoder lost lock and hunted for the next sync word
+    discarded_bytes: int = 0  #: bytes not part of any delivered frame
+    partial_frames: int = 0  #: incomplete frames dropped by :meth:`FrameDecoder.flush`
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------------------------
+# 1. Native streaming frame
+# --------------------------------------------------------------------------------------------
+
+SYNC = b"\xa5\x5a"
+PROTOCOL_VERSION = 1
+#: Header: sync (2), version (1), channel count (1), sequence u32, timestamp u64 µs.
+HEADER = struct.Struct("<2sBBIQ")
+HEADER_SIZE = HEADER.size  # 16
+CRC_SIZE = 2
+MAX_CHANNELS = 32
+
+
+def frame_size(n_channels: int) -> int:
+    """Bytes in one native frame with ``n_channels`` wavelengths: ``18 + 4 * n``."""
+    return HEADER_SIZE + 4 * n_channels + CRC_SIZE
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One decoded sample.
+
+    Attributes
+    ----------
+    seq
+        Sample counter (native: 32-bit wrapping sequence number; FiSpec: the counter in the
+        frame's last four bytes).
+    t_us
+        Device timestamp in microseconds (FiSpec frames carry none: -1).
+    wl_fm
+        Peak wavelengths in femtometres, gratings 1..4 then T (any channel count).
+    """
+
+    seq: int
+    t_us: int
+    wl_fm: tuple[int, ...]
+
+
+def encode_frame(seq: int, t_us: int, wl_fm: Sequence[int]) -> bytes:
+    """Encode one native frame (see docs/protocol.md for the byte layout)."""
+    n = len(wl_fm)
+    if not 1 <= n <= MAX_CHANNELS:
+        raise ValueError(f"channel count must be 1..{MAX_CHANNELS}, not {n}")
+    body = HEADER.pack(SYNC, PROTOCOL_VERSION, n, seq & 0xFFFFFFFF, t_us & 0xFFFFFFFFFFFFFFFF)
+    body += struct.pack(f"<{n}i", *(int(v) for v in wl_fm))
+    return body + struct.pack("<H", crc16_ccitt_false(body))
+
+
+def encode_frames(seq0: int, t_us: np.ndarray, wl_fm: np.ndarray) -> list[bytes]:
+    """Encode consecutive samples ``seq0, seq0 + 1, ...`` (one frame each)."""
+    t = np.asarray(t_us, dtype=np.int64)
+    wl = np.asarray(wl_fm, dtype=np.int64)
+    return [encode_frame(seq0 + i, int(t[i]), wl[i].tolist()) for i in range(len(t))]
+
+
+class FrameDecoder:
+    """Incremental decoder of native frames that never raises on bad bytes.
+
+    Feed it bytes as they arrive; it returns the complete, CRC-valid frames found. On garbage it
+    hunts for the sync word; on a failed CRC it advances by one byte only, so that a good frame
+    hidden inside the bytes of a truncated or corrupted one is still found.
+
+    Parameters
+    ----------
+    channels
+        Expected channel count; frames with another count are header errors. ``None`` accepts
+        any count 1..:data:`MAX_CHANNELS`.
+    """
+
+    def __init__(self, channels: int | None = None) -> None:
+        if channels is not None and not 1 <= channels <= MAX_CHANNELS:
+            raise ValueError(f"channels must be 1..{MAX_CHANNELS}")
+        self.channels = channels
+        self.stats = DecoderStats()
+        self._buf = bytearray()
+        self._locked = True  # so that a stream starting with garbage counts one resync
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[Frame]:
+        """Consume ``data`` and return the frames it completes, in order."""
+        self.stats.bytes += len(data)
+        buf = self._buf
+        buf += data
+        out: list[Frame] = []
+        pos = 0
+        st = self.stats
+        while True:
+            start = buf.find(SYNC, pos)
+            if start < 0:
+                # Keep a trailing first sync byte: it may be the start of the next frame.
+                keep = 1 if len(buf) > pos and buf[-1] == SYNC[0] else 0
+                self._discard(len(buf) - keep - pos)
+                pos = len(buf) - keep
+                break
+            if start > pos:
+                self._discard(start - pos)
+                pos = start
+            if len(buf) - pos < HEADER_SIZE:
+                break
+            _, version, n, seq, t_us = HEADER.unpack_from(buf, pos)
+            if version != PROTOCOL_VERSION or not 1 <= n <= MAX_CHANNELS or (
+                    self.channels is not None and n != self.channels):
+                st.header_errors += 1
+                self._discard(1)
+                pos += 1
+                continue
+            size = frame_size(n)
+            if len(buf) - pos < size:
+                break
+            end = pos + size
+            (crc,) = struct.unpack_from("<H", buf, end - CRC_SIZE)
+            if crc != crc16_ccitt_false(memoryview(buf)[pos:end - CRC_SIZE]):
+                st.crc_errors += 1
+                self._discard(1)
+                pos += 1
+                continue
+            wl = struct.unpack_from(f"<{n}i", buf, pos + HEADER_SIZE)
+            out.append(Frame(seq, t_us, wl))
+            st.frames += 1
+            self._locked = True
+            pos = end
+        del buf[:pos]
+        return out
+
+    def flush(self) -> None:
+        """Drop a partial frame (after a timeout or a disconnect), counting it."""
+        if self._buf:
+            if self._buf.startswith(SYNC):
+                self.stats.partial_frames += 1
+            self.stats.discarded_bytes += len(self._buf)
+            self._buf.clear()
+            self._locked = True
+
+    def _discard(self, n: int) -> None:
+        if n <= 0:
+            return
+        if self._locked:
+            self.stats.resyncs += 1
+            self._locked = False
+        self.stats.discarded_bytes += n
+
+
+# --------------------------------------------------------------------------------------------
+# 2. FiSpec-style command protocol
+# --------------------------------------------------------------------------------------------
+
+FISPEC_TRAILER = b"Ende"
+FISPEC_IDENT_PREFIX = b"FiSpec"
+CMD_IDENT = b"?>"
+CMD_PEAKS = b"P>"
+CMD_PARAMS = b"p?>"
+#: Longest command a device buffers before it gives up on the line (garbage protection).
+MAX_COMMAND = 64
+
+
+def fispec_frame_size(n_channels: int) -> int:
+    """``8 * N + 12`` bytes."""
+    return 8 * n_channels + 12
+
+
+def encode_fispec_frame(wl_units: Sequence[int], amplitude: Sequence[int], temperature_c100: int,
+                        counter: int) -> bytes:
+    """One FiSpec measurement frame.
+
+    Parameters
+    ----------
+    wl_units
+        Peak wavelengths, int32 in 1e-4 nm, one per grating.
+    amplitude
+        The second int32 per grating (peak amplitude; 0 when no peak was found).
+    temperature_c100
+        Device temperature, °C × 100, int16.
+    counter
+        Written as u32 into the "4 further bytes" (this emulator's frame counter).
+    """
+    n = len(wl_units)
+    parts = [struct.pack("<ii", int(w), int(a)) for w, a in zip(wl_units, amplitude)]
+    parts.append(struct.pack("<hHI", int(temperature_c100), 0, counter & 0xFFFFFFFF))
+    parts.append(FISPEC_TRAILER)
+    frame = b"".join(parts)
+    assert len(frame) == fispec_frame_size(n)
+    return frame
+
+
+@dataclass(frozen=True)
+class FiSpecFrame:
+    """A decoded FiSpec frame: wavelengths in 1e-4 nm and the raw extra fields."""
+
+    wl_units: tuple[int, ...]
+    amplitude: tuple[int, ...]
+    temperature_c100: int
+    counter: int
+
+    def to_frame(self) -> Frame:
+        """As a :class:`Frame` in femtometres (no device timestamp: ``t_us = -1``)."""
+        scale = FM_PER_NM // FISPEC_UNITS_PER_NM
+        return Frame(self.counter, -1, tuple(int(w) * scale for w in self.wl_units))
+
+
+def decode_fispec_frame(data: bytes, n_channels: int) -> FiSpecFrame | None:
+    """Decode exactly one frame; ``None`` if its length or trailer is wrong."""
+    if len(data) != fispec_frame_size(n_channels) or not data.endswith(FISPEC_TRAILER):
+        return None
+    vals = struct.unpack_from(f"<{2 * n_channels}i", data, 0)
+    temp, _empty, counter = struct.unpack_from("<hHI", data, 8 * n_channels)
+    return FiSpecFrame(vals[0::2], vals[1::2], temp, counter)
+
+
+class CommandParser:
+    """Device side of the FiSpec command protocol: split incoming bytes into commands.
+
+    A command is the bytes up to and including ``>``, after the last CR or LF (noise on an
+    earlier line does not spoil the next command); spaces and NULs around it are ignored. A line
+    longer than :data:`MAX_COMMAND` without ``>`` is discarded (counted), as a device's
+    command buffer would overflow.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self.overflows = 0
+
+    def feed(self, data: bytes) -> list[bytes]:
+        self._buf += data
+        cmds = []
+        while True:
+            i = self._buf.find(b">")
+            if i < 0:
+                if len(self._buf) > MAX_COMMAND:
+                    self.overflows += 1
+                    self._buf.clear()
+                return cmds
+            cmd = bytes(self._buf[:i + 1])
+            # Anything before the last line break belongs to an earlier, broken line.
+            cmd = cmd[max(cmd.rfind(b"\n"), cmd.rfind(b"\r")) + 1:].strip(b" \x00")
+            del self._buf[:i + 1]
+            if cmd:
+                cmds.append(cmd)
+
+
+# --------------------------------------------------------------------------------------------
+# 3. Load-cell / stage line protocol
+# --------------------------------------------------------------------------------------------
+
+LOADCELL_TAG = b"LC"
+
+
+@dataclass(frozen=True)
+class LoadCellSample:
+    """One stage/load-cell line.
+
+    ``counter`` is the interrogator sample counter the line belongs to (native ``seq``);
+    ``x_mm``/``y_mm`` the stage position in the pad frame; ``force_N`` the load cell;
+    ``contact`` the stage's contact state; ``press`` the press number of the protocol.
+    """
+
+    counter: int
+    x_mm: float
+    y_mm: float
+    force_N: float
+    contact: int
+    press: int
+
+
+def _nmea_checksum(payload: bytes) -> int:
+    c = 0
+    for b in payload:
+        c ^= b
+    return c
+
+
+def encode_loadcell_line(s: LoadCellSample) -> bytes:
+    """``$LC,<counter>,<x_mm>,<y_mm>,<force_N>,<contact>,<press>*HH\\r\\n``.
+
+    Fixed decimals: 4 for x/y (0.1 µm, finer than any stage), 5 for force (10 µN). ``HH`` is
+    the XOR of the bytes between ``$`` and ``*`` in upper-case hex, as in NMEA 0183.
+    """
+    payload = b"LC,%d,%.4f,%.4f,%.5f,%d,%d" % (s.counter, s.x_mm, s.y_mm, s.force_N,
+                                             s.contact, s.press)
+    return b"$%s*%02X\r\n" % (payload, _nmea_checksum(payload))
+
+
+@dataclass
+class LineStats:
+    """Counters of the line decoder."""
+
+    lines: int = 0  #: good lines delivered
+    bad_lines: int = 0  #: lines with a wrong checksum, tag or field
+    discarded_bytes: int = 0  #: bytes outside good lines (noise, bad lines, overlong lines)
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class LineDecoder:
+    """Incremental decoder of load-cell lines; bad lines are counted, never raised."""
+
+    MAX_LINE = 160
+
+    def __init__(self) -> None:
+        self.stats = LineStats()
+        self._buf = bytearray()
+
+    def feed(self, data: bytes) -> list[LoadCellSample]:
+        self._buf += data
+        out: list[LoadCellSample] = []
+        while True:
+            i = self._buf.find(b"\n")
+            if i < 0:
+                if len(self._buf) > self.MAX_LINE:
+                    self.stats.bad_lines += 1
+                    self.stats.discarded_bytes += len(self._buf)
+                    self._buf.clear()
+                return out
+            raw = bytes(self._buf[:i + 1])
+            del self._buf[:i + 1]
+            sample = self._parse(raw)
+            if sample is None:
+                if raw.strip():
+                    self.stats.bad_lines += 1
+                self.stats.discarded_bytes += len(raw)
+            else:
+                self.stats.lines += 1
+                out.append(sample)
+
+    def flush(self) -> None:
+        """Drop a partial line (after a timeout or disconnect)."""
+        self.stats.discarded_bytes += len(self._buf)
+        self._buf.clear()
+
+    @staticmethod
+    def _parse(raw: bytes) -> LoadCellSample | None:
+        # A line may follow noise on the same line: start at the last '$'.
+        start = raw.rfind(b"$")
+        star = raw.rfind(b"*")
+        if start < 0 or star < start or len(raw) < star + 3:
+            return None
+        payload = raw[start + 1:star]
+        try:
+            if int(raw[star + 1:star + 3], 16) != _nmea_checksum(payload):
+                return None
+            f = payload.split(b",")
+            if len(f) != 7 or f[0] != LOADCELL_TAG:
+                return None
+            return LoadCellSample(int(f[1]), float(f[2]), float(f[3]), float(f[4]), int(f[5]),
+                                  int(f[6]))
+        except ValueError:
+            return None
+
+
+__all__ = [
+    "CMD_IDENT", "CMD_PARAMS", "CMD_PEAKS", "CommandParser", "DecoderStats", "FISPEC_TRAILER",
+    "FISPEC_UNITS_PER_NM", "FM_PER_NM", "FiSpecFrame", "Frame", "FrameDecoder", "LineDecoder",
+    "LineStats", "LoadCellSample", "MAX_CHANNELS", "PROTOCOL_VERSION", "SYNC",
+    "crc16_ccitt_false", "decode_fispec_frame", "encode_fispec_frame", "encode_frame",
+    "encode_frames", "encode_loadcell_line", "fispec_frame_size", "fm_to_nm", "frame_size",
+    "nm_to_fm",
+]

@@ -1,0 +1,271 @@
+"""Live estimation from an interrogator stream (``fbgforce stream``).
+
+Samples from a reader (:mod:`fbgforce.interrogator.reader`) go through the shipped pipeline as
+they arrive. The runtime is tared on the first ``tare_samples`` samples (the fingertip must be
+unloaded when the stream starts, as at the start of every calibration file); those samples
+are then run too, so the estimates of the whole stream are exactly what the offline engine
+gives on the same samples with the same baseline::
+
+    fbgforce.engines.run_engine("fixed", model_dir, model, wl_nm, baseline_nm)
+
+Lost frames are not filled in: the filter sees the samples that arrived (a gap of a few
+samples shifts the filter's time base by as much; the count is in the status line and the
+summary).
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+from fbgforce.interrogator.protocol import Frame, fm_to_nm, nm_to_fm
+from fbgforce.interrogator.reader import Reader, iter_batches
+
+ENGINES = ("fixed", "float")
+OUTPUT_KEYS = ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")
+CSV_COLUMNS = ("seq", "t_us", "host_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm",
+               *OUTPUT_KEYS)
+
+
+class LiveEstimator:
+    """Tare, then estimate batch after batch with the filter state carried across batches.
+
+    Parameters
+    ----------
+    model_dir
+        Model directory (``fixed`` needs ``model.fbgm`` from ``fbgforce export``).
+    engine
+        ``"fixed"``: the C fixed-point runtime (what ships). ``"float"``: the float64 reference
+        pipeline of :mod:`fbgforce.model`, for machines without the C extension.
+    tare_samples
+        Samples to tare on (their mean, as the C runtime's tare computes it). 0 = use the
+        model's training baseline.
+    """
+
+    def __init__(self, model_dir: str | Path, *, engine: str = "fixed", tare_samples: int = 200
+                 ) -> None:
+        if engine not in ENGINES:
+            raise InputError(f"engine must be one of {', '.join(ENGINES)}", column="--engine")
+        if tare_samples < 0:
+            raise InputError("must be >= 0", column="--tare-samples")
+        self.model_dir = Path(model_dir)
+        self.model = fm.load(model_dir)
+        self.engine = engine
+        self.tare_samples = tare_samples
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+        self.baseline_fm: np.ndarray | None = None
+        self.compute_s = 0.0
+        self.estimated = 0
+        if engine == "fixed":
+            from fbgforce.pybind import Runtime
+
+            self._rt = Runtime(self.model_dir)
+        else:
+            self._history = np.zeros((0, 5), dtype=np.int64)
+        if tare_samples == 0:
+            self._set_baseline(nm_to_fm(self.model.baseline_nm))
+
+    @property
+    def baseline_nm(self) -> np.ndarray | None:
+        return None if self.baseline_fm is None else fm_to_nm(self.baseline_fm)
+
+    def _set_baseline(self, base_fm: np.ndarray) -> None:
+        self.baseline_fm = np.asarray(base_fm, dtype=np.int64)
+        if self.engine == "fixed":
+            self._rt.set_baseline(self.baseline_fm)  # also starts the filter from zero history
+
+    def push(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
+        """Estimates for the samples that became computable (none while taring)."""
+        wl_fm = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
+        if self.baseline_fm is None:
+            self._pending.append(wl_fm)
+            self._n_pending += len(wl_fm)
+            if self._n_pending < self.tare_samples:
+                return _empty()
+            wl_fm = np.concatenate(self._pending)
+            self._pending = []
+            self._tare(wl_fm[:self.tare_samples])
+        t0 = time.perf_counter()
+        out = self._run(wl_fm)
+        self.compute_s += time.perf_counter() - t0
+        self.estimated += len(wl_fm)
+        return out
+
+    def _tare(self, rows: np.ndarray) -> None:
+        if self.engine == "fixed":
+            base = self._rt.tare(rows.astype(np.int32))
+            self._set_baseline(nm_to_fm(base))
+        else:
+            self._set_baseline(np.round(rows.mean(axis=0)).astype(np.int64))
+
+    def _run(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
+        if self.engine == "fixed":
+            out = self._rt.run(wl_fm.astype(np.int32))
+            return {k: np.asarray(out[k]) for k in OUTPUT_KEYS}
+        # Float: run the reference pipeline on (history + batch) and keep the batch's rows;
+        # with len(taps) - 1 samples of history the causal FIR sees exactly what it would
+        # have seen on the whole recording.
+        keep = self.model.preprocess.taps.size - 1
+        rows = np.concatenate([self._history, wl_fm])
+        z = fm.features(self.model, fm_to_nm(rows), self.baseline_nm)
+        pred = fm.predict_from_features(self.model, z[len(self._history):])
+        self._history = rows[len(rows) - keep:] if keep else rows[:0]
+        pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
+        return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
+
+
+def _empty() -> dict[str, np.ndarray]:
+    return {k: np.zeros(0) for k in OUTPUT_KEYS}
+
+
+class StatusLine:
+    """One-line live status on stderr: rewritten in place on a terminal, else once a second."""
+
+    def __init__(self, stream: TextIO = sys.stderr, enabled: bool = True) -> None:
+        self.stream = stream
+        self.enabled = enabled
+        self.tty = bool(getattr(stream, "isatty", lambda: False)())
+        self.period = 0.2 if self.tty else 1.0
+        self._last = time.monotonic()
+        self._count = 0
+        self.rate_hz = 0.0
+
+    def update(self, n_new: int, last: dict[str, Any] | None, stats: dict[str, int],
+               force: bool = False) -> None:
+        self._count += n_new
+        now = time.monotonic()
+        dt = now - self._last
+        if not force and dt < self.period:
+            return
+        if dt > 0:
+            self.rate_hz = self._count / dt
+        self._last, self._count = now, 0
+        if not self.enabled:
+            return
+        if last is None:
+            text = f"{self.rate_hz:7.1f} Hz  taring...  lost {stats.get('lost_frames', 0)}"
+        else:
+            x = last["x_mm"] if np.isfinite(last["x_mm"]) else float("nan")
+            y = last["y_mm"] if np.isfinite(last["y_mm"]) else float("nan")
+            text = (f"{self.rate_hz:7.1f} Hz  contact {int(last['contact'])} "
+                    f"({last['p_contact']:.2f})  F {last['force_N']:7.2f} N  "
+                    f"x {x:6.2f} mm  y {y:6.2f} mm  lost {stats.get('lost_frames', 0)}  "
+                    f"bad {stats.get('crc_errors', 0) + stats.get('header_errors', 0) + stats.get('bad_replies', 0)}")
+        if self.tty:
+            self.stream.write("\r" + text + "\x1b[K")
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | None = None,
+               duration: float | None = None, max_samples: int | None = None,
+               idle_timeout: float | None = None, start_timeout: float | None = None,
+               status: bool = True) -> dict[str, Any]:
+    """Read, estimate and (optionally) write a CSV of estimates until a stop condition.
+
+    Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md).
+    """
+    fh = None
+    if out is not None:
+        out = Path(out)
+        if out.suffix.lower() != ".csv":
+            raise InputError("estimates are written as CSV: use a .csv name", path=str(out),
+                             column="--out")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(out, "w", encoding="utf-8", newline="\n")
+        fh.write("# fbgforce stream: raw samples and live estimates; host_s = receive time\n")
+        fh.write(",".join(CSV_COLUMNS) + "\n")
+    line = StatusLine(enabled=status)
+    waiting: list[tuple[Frame, float]] = []  # received, not yet estimated (taring)
+    n = 0
+    contact_n = 0
+    max_force = 0.0
+    last: dict[str, Any] | None = None
+    t_first = t_last = None
+    try:
+        for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
+                                  idle_timeout=idle_timeout, start_timeout=start_timeout):
+            now = time.monotonic()
+            t_first = now if t_first is None else t_first
+            t_last = now
+            waiting.extend((f, now) for f in batch)
+            est = estimator.push(np.array([f.wl_fm for f in batch], dtype=np.int64))
+            k = len(est["contact"])
+            if k:
+                done, waiting = waiting[:k], waiting[k:]
+                if fh is not None:
+                    _write_rows(fh, done, est)
+                n += k
+                contact_n += int(np.count_nonzero(est["contact"]))
+                max_force = max(max_force, float(np.max(est["force_N"])))
+                last = {key: est[key][-1] for key in OUTPUT_KEYS}
+            line.update(len(batch), last, reader.stats())
+    finally:
+        line.close()
+        if fh is not None:
+            fh.close()
+    stats = reader.stats()
+    span = (t_last - t_first) if t_first is not None and t_last is not None else 0.0
+    return {
+        "samples": n,
+        "received": n + len(waiting),
+        "duration_s": round(span, 3),
+        "rate_hz": round((n + len(waiting) - 1) / span, 1) if span > 0 else 0.0,
+        "lost_frames": stats.get("lost_frames", 0),
+        "bad_frames": stats.get("crc_errors", 0) + stats.get("header_errors", 0)
+        + stats.get("bad_replies", 0),
+        "engine": estimator.engine,
+        "baseline_nm": None if estimator.baseline_nm is None else estimator.baseline_nm.tolist(),
+        "contact_fraction": contact_n / n if n else 0.0,
+        "max_force_N": max_force,
+        "compute_us_per_sample": 1e6 * estimator.compute_s / estimator.estimated
+        if estimator.estimated else None,
+        "out": None if out is None else str(out),
+        "reader": stats,
+    }
+
+
+def _write_rows(fh: TextIO, frames: list[tuple[Frame, float]], est: dict[str, np.ndarray]) -> None:
+    wl = fm_to_nm(np.array([f.wl_fm for f, _ in frames], dtype=np.int64))
+    rows = []
+    for i, (f, host) in enumerate(frames):
+        x, y = est["x_mm"][i], est["y_mm"][i]
+        rows.append(
+            f"{f.seq},{f.t_us},{host:.6f},"
+            + ",".join(f"{v:.6f}" for v in wl[i])
+            + f",{int(est['contact'][i])},{est['p_contact'][i]:.6f},{est['force_N'][i]:.6f},"
+            + ("" if not np.isfinite(x) else f"{x:.6f}") + ","
+            + ("" if not np.isfinite(y) else f"{y:.6f}") + f",{int(est['status'][i])}\n")
+    fh.write("".join(rows))
+
+
+def load_estimates(path: str | Path) -> dict[str, np.ndarray]:
+    """Read a CSV written by :func:`run_stream` into arrays by column (``wl_nm`` (n, 5) too)."""
+    path = Path(path)
+    lines = [ln for ln in path.read_text(encoding="utf-8").splitlines() if not ln.startswith("#")]
+    if not lines or lines[0].split(",") != list(CSV_COLUMNS):
+        raise InputError(f"not a 'fbgforce stream' estimates file (header must be "
+                         f"{','.join(CSV_COLUMNS)})", path=str(path))
+    if len(lines) == 1:
+        table = np.zeros((0, len(CSV_COLUMNS)))
+    else:
+        table = np.genfromtxt(lines[1:], delimiter=",", dtype=np.float64, filling_values=np.nan)
+        table = table.reshape(-1, len(CSV_COLUMNS))
+    cols = {name: table[:, i] for i, name in enumerate(CSV_COLUMNS)}
+    for k in ("seq", "t_us", "status"):
+        cols[k] = cols[k].astype(np.int64)
+    cols["contact"] = cols["contact"].astype(bool)
+    cols["wl_nm"] = np.column_stack([cols[c] for c in CSV_COLUMNS[3:8]])
+    return cols

@@ -1,0 +1,293 @@
+"""Python binding of the C runtime (cffi API mode, module ``fbgforce._runtime``).
+
+:class:`Runtime` wraps the fixed-point library: numpy wavelengths in (nm as float, or int32
+femtometres), structured numpy arrays out. :class:`FloatRuntime` wraps the float build
+(``fbgf_*``) with the weights of a float model directory. Every C error code has its own
+exception class (:data:`ERRORS`), all subclasses of :class:`RuntimeCError`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+
+try:
+    from fbgforce._runtime import ffi, lib
+except ImportError as exc:  # pragma: no cover - depends on the build
+    raise ImportError("the C extension fbgforce._runtime is not built; run "
+                      "'python setup.py build_ext --inplace' in the project root") from exc
+
+__all__ = ["Runtime", "FloatRuntime", "RuntimeCError", "ERRORS", "OUTPUT_DTYPE", "FLOAT_OUTPUT_DTYPE",
+           "STATUS_FLAGS", "check", "to_fm"]
+
+
+class RuntimeCError(Exception):
+    """A C runtime call returned an error code (``code``, ``name`` as in fbgforce.h)."""
+
+    code = 0
+    name = "FBG_ERR"
+
+    def __init__(self, message: str = "") -> None:
+        super().__init__(f"{self.name}: {message}" if message else self.name)
+
+
+def _make(name: str, doc: str, code: int) -> type[RuntimeCError]:
+    cls_name = "".join(part.title() for part in name.removeprefix("FBG_ERR_").split("_")) + "Error"
+    return type(cls_name, (RuntimeCError,), {"code": code, "name": name, "__doc__": doc})
+
+
+_DOCS = {
+    "FBG_ERR_NULL": "A required pointer was NULL.",
+    "FBG_ERR_TRUNCATED": "The blob is shorter than its header or its declared length.",
+    "FBG_ERR_BAD_MAGIC": "The file is not an fbgforce model blob.",
+    "FBG_ERR_VERSION": "The blob format version is not supported by this library.",
+    "FBG_ERR_CRC": "The blob's CRC-32 does not match (corrupt file).",
+    "FBG_ERR_SHAPE": "Layer shapes are inconsistent or too large.",
+    "FBG_ERR_RANGE": "A model parameter is out of its allowed range.",
+    "FBG_ERR_BOUND": "An accumulator bound would overflow int64.",
+    "FBG_ERR_SIZE": "The declared length differs from what the shapes imply.",
+    "FBG_ERR_ALIGN": "The blob buffer is not 8-byte aligned.",
+    "FBG_ERR_ENDIAN": "The host is not little-endian.",
+    "FBG_ERR_STATE": "The runtime state is not initialised.",
+    "FBG_ERR_NOT_TARED": "The runtime requires a tare before stepping.",
+    "FBG_ERR_TARE": "Tare failed: not begun, or no valid sample.",
+    "FBG_ERR_ARG": "An argument value is invalid (e.g. baseline outside 1000-2000 nm).",
+}
+#: C error code -> exception class.
+ERRORS: dict[int, type[RuntimeCError]] = {}
+for _name, _doc in _DOCS.items():
+    _cls = _make(_name, _doc, int(getattr(lib, _name)))
+    ERRORS[_cls.code] = _cls
+    globals()[_cls.__name__] = _cls
+    __all__.append(_cls.__name__)
+
+#: Output status bits (fbg_output.status).
+STATUS_FLAGS = {name: int(getattr(lib, f"FBG_STATUS_{name}"))
+                for name in ("NOT_TARED", "SATURATED", "OVERLOAD", "SENSOR_FAULT", "WARMUP")}
+
+# The C struct fbg_output, byte for byte (checked against ffi.sizeof at import).
+_C_OUTPUT = np.dtype([("force_mN", "<i4"), ("x_um", "<i4"), ("y_um", "<i4"),
+                      ("contact_margin_q8", "<i4"), ("status", "<u4"),
+                      ("contact_conf_q15", "<u2"), ("contact", "u1"), ("reserved", "u1")])
+_C_FOUTPUT = np.dtype([("force_N", "<f4"), ("x_mm", "<f4"), ("y_mm", "<f4"), ("p_contact", "<f4"),
+                       ("margin", "<f4"), ("status", "<u4"), ("contact", "u1"), ("reserved", "u1", 3)])
+assert _C_OUTPUT.itemsize == ffi.sizeof("fbg_output")
+assert _C_FOUTPUT.itemsize == ffi.sizeof("fbgf_output")
+
+#: What :meth:`Runtime.run` returns: the raw integer outputs plus the same in SI-ish units
+#: (force_N 0 and x_mm/y_mm NaN where no contact, as the float model).
+OUTPUT_DTYPE = np.dtype([("contact", "?"), ("p_contact", "<f8"), ("force_N", "<f8"), ("x_mm", "<f8"),
+                         ("y_mm", "<f8"), ("status", "<u4"), ("force_mN", "<i4"), ("x_um", "<i4"),
+                         ("y_um", "<i4"), ("contact_margin_q8", "<i4"), ("contact_conf_q15", "<u2")])
+FLOAT_OUTPUT_DTYPE = np.dtype([("contact", "?"), ("p_contact", "<f8"), ("force_N", "<f8"),
+                               ("x_mm", "<f8"), ("y_mm", "<f8"), ("status", "<u4"), ("margin", "<f8")])
+
+
+def check(status: int, what: str = "") -> None:
+    """Raise the exception class of a C status code (no-op for FBG_OK)."""
+    if status != 0:
+        raise ERRORS.get(status, RuntimeCError)(what)
+
+
+def to_fm(wl: Any) -> np.ndarray:
+    """Wavelengths -> C-contiguous int32 fm: integer input is taken as fm, float as nm."""
+    from fbgforce.export.intref import nm_to_fm
+
+    a = np.asarray(wl)
+    if np.issubdtype(a.dtype, np.integer):
+        if a.size and (a.min() < -2**31 or a.max() > 2**31 - 1):
+            raise InputError("integer wavelengths (fm) outside the int32 range")
+        return np.ascontiguousarray(a, dtype=np.int32)
+    return np.ascontiguousarray(nm_to_fm(a))
+
+
+def _rows(wl: Any) -> np.ndarray:
+    a = to_fm(wl)
+    if a.ndim == 1:
+        a = a.reshape(1, -1)
+    if a.ndim != 2 or a.shape[1] != 5:
+        raise InputError(f"wavelengths must be shaped (n, 5) or (5,), got {np.shape(wl)}")
+    return np.ascontiguousarray(a)
+
+
+class _Base:
+    """Shared tare / baseline handling of the fixed and float runtimes."""
+
+    _prefix = "fbg"
+
+    def _fn(self, name: str) -> Any:
+        return getattr(lib, f"{self._prefix}_{name}")
+
+    def tare(self, wl: Any) -> np.ndarray:
+        """Tare on samples (n, 5) (nm float or fm int): their mean becomes the baseline.
+
+        Samples with a channel outside 1000-2000 nm are skipped. Returns the baseline (nm).
+        """
+        rows = _rows(wl)
+        check(self._fn("tare_begin")(self._state), "tare_begin")
+        ptr = ffi.cast("int32_t *", ffi.from_buffer(rows))
+        for i in range(rows.shape[0]):
+            check(self._fn("tare_add")(self._state, ptr + 5 * i, ffi.NULL), "tare_add")
+        check(self._fn("tare_end")(self._state), "no valid sample to tare on")
+        return self.baseline_nm
+
+    def set_baseline(self, baseline: Any) -> None:
+        """Set the tare baseline (5,) directly (nm float or fm int); resets the filter."""
+        b = _rows(baseline).reshape(-1)
+        if b.size != 5:
+            raise InputError("a baseline has 5 values (wl1..wl4, wlT)")
+        check(self._fn("set_baseline")(self._state, ffi.cast("int32_t *", ffi.from_buffer(b))),
+              "baseline outside 1000-2000 nm")
+
+    def reset(self) -> None:
+        """Clear the filter history and fault tracker (keeps the baseline)."""
+        check(self._fn("reset")(self._state), "reset")
+
+    @property
+    def baseline_fm(self) -> np.ndarray:
+        return np.array(list(self._state.baseline_fm), dtype=np.int64)
+
+    @property
+    def baseline_nm(self) -> np.ndarray:
+        return self.baseline_fm.astype(np.float64) * 1e-6
+
+    @property
+    def tared(self) -> bool:
+        return bool(self._state.tared)
+
+    def step(self, wl: Any) -> np.void:
+        """One sample (5,) -> one record of the output dtype."""
+        return self.run(np.asarray(wl).reshape(1, 5))[0]
+
+
+class Runtime(_Base):
+    """The fixed-point C runtime on a model blob.
+
+    Parameters
+    ----------
+    model
+        A model directory (its ``model.fbgm``), a blob file path, or the blob's bytes.
+    require_tare
+        Refuse to step before a tare (FBG_OPT_REQUIRE_TARE -> :class:`NotTaredError`).
+
+    Examples
+    --------
+    >>> rt = fbgforce.Runtime("runs/model")           # doctest: +SKIP
+    >>> rt.tare(wl_nm[:300]); out = rt.run(wl_nm)      # doctest: +SKIP
+    >>> out["force_N"], out["x_mm"], out["status"]     # doctest: +SKIP
+    """
+
+    _prefix = "fbg"
+
+    def __init__(self, model: str | Path | bytes, *, require_tare: bool = False) -> None:
+        if isinstance(model, (bytes, bytearray, memoryview)):
+            data, where = bytes(model), "<bytes>"
+        else:
+            from fbgforce.export.blob import blob_path
+
+            path = blob_path(model)
+            if not path.is_file():
+                raise InputError("no fixed-point model blob; run 'fbgforce export --model DIR' first",
+                                 path=str(path))
+            data, where = path.read_bytes(), str(path)
+        # uint64 storage makes the buffer 8-byte aligned, as the zero-copy loader requires.
+        self._blob = ffi.new("uint64_t[]", max(1, (len(data) + 7) // 8))
+        ffi.memmove(self._blob, data, len(data))
+        self._model = ffi.new("fbg_model *")
+        self._state = ffi.new("fbg_state *")
+        check(lib.fbg_model_from_blob(self._model, ffi.cast("uint8_t *", self._blob), len(data)), where)
+        check(lib.fbg_init(self._state, self._model, lib.FBG_OPT_REQUIRE_TARE if require_tare else 0),
+              "fbg_init")
+        self.blob_size = len(data)
+
+    def run_raw(self, wl: Any) -> np.ndarray:
+        """Batch through ``fbg_run``; returns the C ``fbg_output`` records unchanged."""
+        rows = _rows(wl)
+        out = np.zeros(rows.shape[0], dtype=_C_OUTPUT)
+        if rows.shape[0]:
+            check(lib.fbg_run(self._state, ffi.cast("int32_t *", ffi.from_buffer(rows)), rows.shape[0],
+                              ffi.cast("fbg_output *", ffi.from_buffer(out))), "fbg_run")
+        return out
+
+    def run(self, wl: Any) -> np.ndarray:
+        """Batch of samples (n, 5) -> structured array of :data:`OUTPUT_DTYPE` (n,)."""
+        raw = self.run_raw(wl)
+        out = np.zeros(raw.shape[0], dtype=OUTPUT_DTYPE)
+        contact = raw["contact"].astype(bool)
+        for k in ("status", "force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15"):
+            out[k] = raw[k]
+        out["contact"] = contact
+        out["p_contact"] = raw["contact_conf_q15"] / 32768.0
+        out["force_N"] = raw["force_mN"] / 1000.0
+        out["x_mm"] = np.where(contact, raw["x_um"] / 1000.0, np.nan)
+        out["y_mm"] = np.where(contact, raw["y_um"] / 1000.0, np.nan)
+        return out
+
+
+class FloatRuntime(_Base):
+    """The C float build (``fbgf_*``) on a float model (directory or HierarchicalModel)."""
+
+    _prefix = "fbgf"
+
+    def __init__(self, model: str | Path | fm.HierarchicalModel, *, jump_nm: float | None = None,
+                 overload_N: float | None = None, require_tare: bool = False) -> None:
+        from fbgforce.export.quantize import DEFAULT_JUMP_NM, quantize_taps
+
+        m = fm.load(model) if isinstance(model, (str, Path)) else model
+        taps, tap_q = quantize_taps(m.preprocess)  # validates the filter kind and length
+        del taps, tap_q
+        pre = m.preprocess
+        keep: list[Any] = []
+
+        def farr(values: Any) -> Any:
+            a = ffi.new("float[]", [float(v) for v in np.asarray(values, dtype=np.float64).ravel()])
+            keep.append(a)
+            return a
+
+        c = ffi.new("fbgf_model *")
+        c.baseline_fm = [int(v) for v in np.rint(m.baseline_nm * 1e6)]
+        c.jump_max_fm = int(round((DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
+        c.temp_coeff = list(map(float, pre.temp_coeff))
+        c.input_mean_pm = list(map(float, pre.input_mean))
+        c.input_std_pm = list(map(float, pre.input_std))
+        c.force_offset_N = m.force_offset
+        c.force_scale = m.force_scale
+        c.xy_offset_mm = list(map(float, m.xy_offset))
+        c.xy_scale = list(map(float, m.xy_scale))
+        c.overload_N = float(np.inf if overload_N is None else overload_N)
+        taps_f = [1.0] if pre.filter_kind == "none" else pre.taps
+        c.n_taps = len(taps_f)
+        c.taps = farr(taps_f)
+        for n, name in enumerate(fm.NET_NAMES):
+            net = m.nets[name]
+            c.nets[n].n_layers = len(net.weights)
+            for i, (w, b) in enumerate(zip(net.weights, net.biases)):
+                ly = c.nets[n].layers[i]
+                ly.n_in, ly.n_out = int(w.shape[1]), int(w.shape[0])
+                ly.w = farr(w)
+                ly.b = farr(b)
+        self._keep, self._model = keep, c
+        self._state = ffi.new("fbgf_state *")
+        check(lib.fbgf_init(self._state, c, lib.FBG_OPT_REQUIRE_TARE if require_tare else 0), "fbgf_init")
+
+    def run(self, wl: Any) -> np.ndarray:
+        """Batch (n, 5) -> structured array of :data:`FLOAT_OUTPUT_DTYPE`."""
+        rows = _rows(wl)
+        raw = np.zeros(rows.shape[0], dtype=_C_FOUTPUT)
+        if rows.shape[0]:
+            check(lib.fbgf_run(self._state, ffi.cast("int32_t *", ffi.from_buffer(rows)), rows.shape[0],
+                               ffi.cast("fbgf_output *", ffi.from_buffer(raw))), "fbgf_run")
+        out = np.zeros(rows.shape[0], dtype=FLOAT_OUTPUT_DTYPE)
+        contact = raw["contact"].astype(bool)
+        out["contact"] = contact
+        out["p_contact"] = raw["p_contact"]
+        out["force_N"] = raw["force_N"]
+        out["x_mm"] = np.where(contact, raw["x_mm"], np.nan)
+        out["y_mm"] = np.where(contact, raw["y_mm"], np.nan)
+        out["status"] = raw["status"]
+        out["margin"] = raw["margin"]
+        return out

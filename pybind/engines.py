@@ -1,0 +1,46 @@
+"""Engines ``fixed`` (C fixed point) and ``cfloat`` (C float build) for fbgforce.engines.
+
+Signature of every engine: ``(model_dir, model, wl_nm (n, 5), baseline_nm (5,)) -> dict`` with
+``contact`` (bool), ``p_contact``, ``force_N`` (0 where no contact), ``x_mm``/``y_mm`` (NaN where
+no contact), plus ``status`` (the runtime's flags).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.pybind import FloatRuntime, Runtime
+
+
+def _as_dict(out: np.ndarray) -> dict[str, np.ndarray]:
+    return {k: np.asarray(out[k]) for k in ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")}
+
+
+def run_fixed(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
+              baseline_nm: np.ndarray) -> dict[str, Any]:
+    """The fixed-point C runtime on ``model_dir/model.fbgm`` (run ``fbgforce export`` first)."""
+    if model is not None:
+        from fbgforce.export.exporter import check_fresh
+
+        check_fresh(model_dir, model)
+    rt = Runtime(model_dir)
+    rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
+    return _as_dict(rt.run(np.asarray(wl_nm, dtype=np.float64)))
+
+
+def run_cfloat(model_dir: str | Path | None, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
+               baseline_nm: np.ndarray) -> dict[str, Any]:
+    """The C float build on the float weights (fault/overload thresholds from the blob if any)."""
+    jump_nm = overload_N = None
+    if model_dir is not None and (Path(model_dir) / "model.fbgm").is_file():
+        from fbgforce.export.blob import load_model_blob
+
+        q = load_model_blob(model_dir)
+        jump_nm, overload_N = q.jump_max_fm * 1e-6, q.overload_mN * 1e-3
+    m = fm.load(model_dir) if model is None else model
+    rt = FloatRuntime(m, jump_nm=jump_nm, overload_N=overload_N)
+    rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
+    return _as_dict(rt.run(np.asarray(wl_nm, dtype=np.float64)))

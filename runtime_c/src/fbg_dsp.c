@@ -1,0 +1,545 @@
+/*
+ * fbg_dsp.c - Cortex-M4 DSP-extension inner loops (FBG_USE_DSP=1); see fbg_dsp.h.
+ *
+ * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in rows3_asm).
+ * - Layers with shift >= 32 (what the exporter chooses for int16 layers) run in rows3_asm, a
+ *   naked function in inline assembly (register allocation by hand: GCC spilled the six
+ *   accumulator registers); everything else in C with ACLE intrinsics (__smlald, __usat).
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ */
+#include "fbg_dsp.h"
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; no LDRD/LDM,
+ * which would fault on the 2-byte-aligned rows of an odd-width layer). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
+{
+    int64_t acc2 = 0;
+    unsigned j = 0;
+    for (; j + 4u <= n; j += 4u) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        acc2 = __smlald(ld2(w + j + 2u), ld2(x + j + 2u), acc2);
+    }
+    if (j + 2u <= n) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        j += 2u;
+    }
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc + acc2;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+/* A hidden layer with shift >= 32, three rows per pass, everything in registers:
+ *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
+ *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
+ *         pairs: 30 instructions per 24 MACs; then 2, 1 pairs and 1 element for n % 8.
+ *   requantisation per row (10 instructions): H = hi + bit31(lo); SMULL lo * mult, add
+ *         2^(shift-1) (ADDS/ADC), MLA H * mult into the high word = floor(p / 2^32) (see
+ *         rounded_product_hi), ASR by shift - 32, ReLU (BIC with ASR #31), USAT #15, STRH.
+ *         USAT sets the sticky Q flag exactly when a (non-negative) value exceeds 32767, i.e.
+ *         when the portable sat16 raises its flag: Q is cleared on entry, read into
+ *         job->clamped on exit, and the caller's APSR restored.
+ * GCC's own code for this spilled the accumulators around every row group (about 30
+ * instructions per row against 10 here), hence hand-allocated registers in a naked function. */
+__attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        "mrs     r12, apsr\n\t"
+        "push    {r4-r12, lr}\n\t"
+        "bic     r12, r12, #0x08000000\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "mov     r3, r0\n\t"
+        "0:\n\t"
+        "ldr     r12, [r3, #8]\n\t"
+        "ldrd    r4, r5, [r12]\n\t"
+        "ldrd    r6, r7, [r12, #8]\n\t"
+        "ldrd    r8, r9, [r12, #16]\n\t"
+        "add     r12, r12, #24\n\t"
+        "str     r12, [r3, #8]\n\t"
+        "ldr     r0, [r3]\n\t"
+        "ldr     r12, [r3, #20]\n\t"
+        "add     r10, r0, r12, lsl #1\n\t"
+        "add     r11, r10, r12, lsl #1\n\t"
+        "ldr     r1, [r3, #4]\n\t"
+        "bic     lr, r12, #7\n\t"
+        "add     lr, r1, lr, lsl #1\n\t"
+        "cmp     r1, lr\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "cmp     r1, lr\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ldr     lr, [r3, #20]\n\t"
+        "tst     lr, #4\n\t"
+        "beq     3f\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "3:\n\t"
+        "tst     lr, #2\n\t"
+        "beq     4f\n\t"
+        "ldr     r12, [r1], #4\n\t"
+        "ldr     r2, [r0], #4\n\t"
+        "smlald  r4, r5, r2, r12\n\t"
+        "ldr     r2, [r10], #4\n\t"
+        "smlald  r6, r7, r2, r12\n\t"
+        "ldr     r2, [r11], #4\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "4:\n\t"
+        "tst     lr, #1\n\t"
+        "beq     5f\n\t"
+        "ldrsh   r12, [r1]\n\t"
+        "ldrsh   r2, [r0]\n\t"
+        "smlalbb r4, r5, r2, r12\n\t"
+        "ldrsh   r2, [r10]\n\t"
+        "smlalbb r6, r7, r2, r12\n\t"
+        "ldrsh   r2, [r11], #2\n\t"
+        "smlalbb r8, r9, r2, r12\n\t"
+        "5:\n\t"
+        "str     r11, [r3]\n\t"
+        "ldr     r0, [r3, #12]\n\t"
+        "ldrd    r1, r2, [r3, #28]\n\t"
+        "ldr     lr, [r3, #36]\n\t"
+        "ldr     r10, [r3, #16]\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r5, r5, r4, lsr #31\n\t"
+        "smull   r12, r4, r4, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r4, r4, r2\n\t"
+        "mla     r4, r5, r11, r4\n\t"
+        "asr     r4, r4, lr\n\t"
+        "bic     r4, r4, r4, asr #31\n\t"
+        "usat    r12, #15, r4\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r7, r7, r6, lsr #31\n\t"
+        "smull   r12, r6, r6, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r6, r6, r2\n\t"
+        "mla     r6, r7, r11, r6\n\t"
+        "asr     r6, r6, lr\n\t"
+        "bic     r6, r6, r6, asr #31\n\t"
+        "usat    r12, #15, r6\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r9, r9, r8, lsr #31\n\t"
+        "smull   r12, r8, r8, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r8, r8, r2\n\t"
+        "mla     r8, r9, r11, r8\n\t"
+        "asr     r8, r8, lr\n\t"
+        "bic     r8, r8, r8, asr #31\n\t"
+        "usat    r12, #15, r8\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "str     r0, [r3, #12]\n\t"
+        "str     r10, [r3, #16]\n\t"
+        "ldr     r12, [r3, #24]\n\t"
+        "subs    r12, r12, #1\n\t"
+        "str     r12, [r3, #24]\n\t"
+        "bne     0b\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "str     r12, [r3, #40]\n\t"
+        "pop     {r4-r12, lr}\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "bx      lr\n\t");
+}
+
+/* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
+ * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
+ * LDRD of its bias, one LDR + SMLALD per input pair and the 9-instruction requantisation of
+ * rows3_asm (rounding constant kept on the stack, read with one LDRD): 17 instructions per
+ * row for 4 inputs against about 27 through rows3_asm, whose bookkeeping per three rows is
+ * written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
+ * the number of ROWS here. */
+__attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        "mrs     r12, apsr\n\t"
+        "push    {r4-r12, lr}\n\t"
+        "bic     r12, r12, #0x08000000\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "sub     sp, sp, #16\n\t"
+        "ldrd    r10, r11, [r0, #28]\n\t"
+        "strd    r10, r11, [sp]\n\t"
+        "str     r0, [sp, #8]\n\t"
+        "ldr     r7, [r0, #36]\n\t"
+        "ldr     r3, [r0, #16]\n\t"
+        "ldr     r12, [r0, #24]\n\t"
+        "add     r12, r3, r12, lsl #1\n\t"
+        "ldr     r1, [r0, #8]\n\t"
+        "ldr     r2, [r0, #12]\n\t"
+        "ldr     lr, [r0, #20]\n\t"
+        "ldr     r10, [r0, #4]\n\t"
+        "ldr     r0, [r0]\n\t"
+        "ldr     r4, [r10]\n\t"
+        "cmp     lr, #4\n\t"
+        "blo     2f\n\t"
+        "ldr     r5, [r10, #4]\n\t"
+        "beq     4f\n\t"
+        "ldr     r6, [r10, #8]\n\t"
+        "b       6f\n\t"
+        "2:\n\t"
+        "ldrd    r8, r9, [r1], #8\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r4\n\t"
+        "ldr     lr, [r2], #4\n\t"
+        "add     r9, r9, r8, lsr #31\n\t"
+        "ldrd    r10, r11, [sp]\n\t"
+        "smlal   r10, r11, r8, lr\n\t"
+        "mla     r11, r9, lr, r11\n\t"
+        "asr     r11, r11, r7\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r11, #15, r11\n\t"
+        "strh    r11, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        "ldrd    r8, r9, [r1], #8\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r4\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r5\n\t"
+        "ldr     lr, [r2], #4\n\t"
+        "add     r9, r9, r8, lsr #31\n\t"
+        "ldrd    r10, r11, [sp]\n\t"
+        "smlal   r10, r11, r8, lr\n\t"
+        "mla     r11, r9, lr, r11\n\t"
+        "asr     r11, r11, r7\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r11, #15, r11\n\t"
+        "strh    r11, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        "ldrd    r8, r9, [r1], #8\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r4\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r5\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        "smlald  r8, r9, r10, r6\n\t"
+        "ldr     lr, [r2], #4\n\t"
+        "add     r9, r9, r8, lsr #31\n\t"
+        "ldrd    r10, r11, [sp]\n\t"
+        "smlal   r10, r11, r8, lr\n\t"
+        "mla     r11, r9, lr, r11\n\t"
+        "asr     r11, r11, r7\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r11, #15, r11\n\t"
+        "strh    r11, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     6b\n\t"
+        "b       9f\n\t"
+        "9:\n\t"
+        "ldr     r0, [sp, #8]\n\t"
+        "add     sp, sp, #16\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "str     r12, [r0, #40]\n\t"
+        "pop     {r4-r12, lr}\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "bx      lr\n\t");
+}
+
+static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int16_t *w = ly->w16;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    uint32_t clamped = 0u;
+    unsigned r = 0;
+
+    if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
+        fbg_dsp_job job;
+        job.w = w;
+        job.x = x;
+        job.bias = ly->bias;
+        job.mult = ly->mult;
+        job.y = y;
+        job.n = n;
+        job.groups = m;
+        job.round_lo = (uint32_t)round;
+        job.round_hi = (uint32_t)(round >> 32);
+        job.s32 = shift - 32u;
+        job.clamped = 0u;
+        first_asm(&job);
+        if (job.clamped)
+            *sat = 1u;
+        return;
+    }
+    if (shift >= 32u && m >= 3u) {
+        fbg_dsp_job job;
+        job.w = w;
+        job.x = x;
+        job.bias = ly->bias;
+        job.mult = ly->mult;
+        job.y = y;
+        job.n = n;
+        job.groups = m / 3u;
+        job.round_lo = (uint32_t)round;
+        job.round_hi = (uint32_t)(round >> 32);
+        job.s32 = shift - 32u;
+        job.clamped = 0u;
+        rows3_asm(&job);
+        clamped = job.clamped;
+        r = 3u * (m / 3u);
+        w += (size_t)r * n;
+    }
+    /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
+     * exporter for int16 layers in practice, but valid): SMLALD per row, C requantisation. */
+    for (; r < m; ++r, w += n)
+        y[r] = (int16_t)relu_sat16(fbg_dsp_dot16(w, x, n, ly->bias[r]), ly->mult[r], shift, round,
+                                   &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
+static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
+{
+    unsigned j, n4 = n & ~3u;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        int8x4_t v = ld4_8(w + j);
+        acc = __smlald(__sxtb16(v), xp[0], acc);
+        acc = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v)), xp[1], acc);
+    }
+    for (; j < n; ++j)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+/* A hidden layer with int8 weights: two rows per pass share the re-paired inputs; per four
+ * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C (relu_sat16). */
+static void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    int16x2_t xp[FBG_MAX_WIDTH / 2];
+    uint32_t clamped = 0u;
+    unsigned j, r = 0;
+    for (j = 0; j < n4; j += 4u) {
+        xp[j / 2u] = pair16(x[j], x[j + 2u]);
+        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
+    }
+    for (; r + 2u <= m; r += 2u) {
+        const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
+        const int16x2_t *pp = xp;
+        int64_t a0 = ly->bias[r], a1 = ly->bias[r + 1u];
+        for (j = 0; j < n4; j += 4u, pp += 2) {
+            int8x4_t v0 = ld4_8(w0 + j), v1 = ld4_8(w1 + j);
+            a0 = __smlald(__sxtb16(v0), pp[0], a0);
+            a1 = __smlald(__sxtb16(v1), pp[0], a1);
+            a0 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v0)), pp[1], a0);
+            a1 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v1)), pp[1], a1);
+        }
+        for (; j < n; ++j) {
+            a0 += (int32_t)w0[j] * (int32_t)x[j];
+            a1 += (int32_t)w1[j] * (int32_t)x[j];
+        }
+        y[r] = (int16_t)relu_sat16(a0, ly->mult[r], shift, round, &clamped);
+        y[r + 1u] = (int16_t)relu_sat16(a1, ly->mult[r + 1u], shift, round, &clamped);
+    }
+    if (r < m)
+        y[r] = (int16_t)relu_sat16(dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]),
+                                   ly->mult[r], shift, round, &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (ly->w_bits == 16u)
+        hidden16(ly, x, y, sat);
+    else
+        hidden8(ly, x, y, sat);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u)
+        return fbg_dsp_dot16(ly->w16 + (size_t)r * n, x, n, ly->bias[r]);
+    {
+        int16x2_t xp[FBG_MAX_WIDTH / 2];
+        unsigned j;
+        for (j = 0; j + 4u <= n; j += 4u) {
+            xp[j / 2u] = pair16(x[j], x[j + 2u]);
+            xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
+        }
+        return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
+    }
+}
+
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN])
+{
+    int64_t f0 = 0, f1 = 0, f2 = 0, f3 = 0;
+    unsigned k = 0, i;
+    /* Newest first: ring index pos, pos-1, ..., 0 (taps 0..pos), then n_taps-1, ..., pos+1. */
+#define FBG_FIR_TAP(row)                 \
+    do {                                 \
+        const int32_t *h_ = (row);       \
+        int32_t t_ = taps[k++];          \
+        f0 += (int64_t)t_ * h_[0];       \
+        f1 += (int64_t)t_ * h_[1];       \
+        f2 += (int64_t)t_ * h_[2];       \
+        f3 += (int64_t)t_ * h_[3];       \
+    } while (0)
+    for (i = pos + 1u; i-- > 0u;)
+        FBG_FIR_TAP(hist[i]);
+    for (i = n_taps; i-- > pos + 1u;)
+        FBG_FIR_TAP(hist[i]);
+#undef FBG_FIR_TAP
+    f[0] = f0;
+    f[1] = f1;
+    f[2] = f2;
+    f[3] = f3;
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_unused;
+#endif

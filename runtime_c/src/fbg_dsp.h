@@ -1,0 +1,41 @@
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+#include "fbg_internal.h"
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */

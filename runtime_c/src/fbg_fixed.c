@@ -1,0 +1,366 @@
+/*
+ * fbg_fixed.c - the fixed-point pipeline: init, tare, step, batch (docs/fixed-point.md).
+ *
+ * No float or double in this file (check-nofloat builds it with -mgeneral-regs-only).
+ * export/intref.py mirrors every operation here bit for bit.
+ */
+#include <string.h>
+
+#include "fbg_internal.h"
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
+#include "fbg_dsp.h"
+#endif
+
+/* round(32768 / (1 + exp(-x))) for x = -8, -7.875, ..., 8, clamped to 32767
+ * (docs/fixed-point.md; export/intref.py holds the same table and a test compares them). */
+static const uint16_t sigmoid_table[129] = {
+    11, 12, 14, 16, 18, 21, 23, 26, 30, 34, 38, 43,
+    49, 56, 63, 72, 81, 92, 104, 118, 133, 151, 171, 194,
+    219, 248, 281, 318, 360, 407, 461, 521, 589, 666, 753, 851,
+    961, 1084, 1223, 1379, 1554, 1750, 1969, 2213, 2486, 2789, 3124, 3496,
+    3906, 4357, 4851, 5391, 5978, 6613, 7297, 8031, 8813, 9641, 10513, 11424,
+    12371, 13348, 14347, 15361, 16384, 17407, 18421, 19420, 20397, 21344, 22255, 23127,
+    23955, 24737, 25471, 26155, 26790, 27377, 27917, 28411, 28862, 29272, 29644, 29979,
+    30282, 30555, 30799, 31018, 31214, 31389, 31545, 31684, 31807, 31917, 32015, 32102,
+    32179, 32247, 32307, 32361, 32408, 32450, 32487, 32520, 32549, 32574, 32597, 32617,
+    32635, 32650, 32664, 32676, 32687, 32696, 32705, 32712, 32719, 32725, 32730, 32734,
+    32738, 32742, 32745, 32747, 32750, 32752, 32754, 32756, 32757
+};
+
+uint32_t fbg_version(void)
+{
+    return ((uint32_t)FBG_VERSION_MAJOR << 16) | (uint32_t)FBG_VERSION_MINOR;
+}
+
+size_t fbg_state_size(void)
+{
+    return sizeof(fbg_state);
+}
+
+const char *fbg_status_str(int status)
+{
+    switch (status) {
+    case FBG_OK: return "FBG_OK";
+    case FBG_ERR_NULL: return "FBG_ERR_NULL";
+    case FBG_ERR_TRUNCATED: return "FBG_ERR_TRUNCATED";
+    case FBG_ERR_BAD_MAGIC: return "FBG_ERR_BAD_MAGIC";
+    case FBG_ERR_VERSION: return "FBG_ERR_VERSION";
+    case FBG_ERR_CRC: return "FBG_ERR_CRC";
+    case FBG_ERR_SHAPE: return "FBG_ERR_SHAPE";
+    case FBG_ERR_RANGE: return "FBG_ERR_RANGE";
+    case FBG_ERR_BOUND: return "FBG_ERR_BOUND";
+    case FBG_ERR_SIZE: return "FBG_ERR_SIZE";
+    case FBG_ERR_ALIGN: return "FBG_ERR_ALIGN";
+    case FBG_ERR_ENDIAN: return "FBG_ERR_ENDIAN";
+    case FBG_ERR_STATE: return "FBG_ERR_STATE";
+    case FBG_ERR_NOT_TARED: return "FBG_ERR_NOT_TARED";
+    case FBG_ERR_TARE: return "FBG_ERR_TARE";
+    case FBG_ERR_ARG: return "FBG_ERR_ARG";
+    default: return "FBG_ERR_UNKNOWN";
+    }
+}
+
+int32_t fbg_sigmoid_q15(int32_t x_q8)
+{
+    int32_t u, idx, frac, lo, hi;
+    if (x_q8 <= -2048)
+        return sigmoid_table[0];
+    if (x_q8 >= 2048)
+        return sigmoid_table[128];
+    u = x_q8 + 2048; /* 0..4095: 32 steps of Q8 per table interval of 1/8 */
+    idx = u >> 5;
+    frac = u & 31;
+    lo = sigmoid_table[idx];
+    hi = sigmoid_table[idx + 1];
+    /* hi >= lo (monotone table), so the interpolation term is non-negative. */
+    return lo + (((hi - lo) * frac + 16) >> 5);
+}
+
+static void clear_filter(fbg_state *s)
+{
+    memset(s->hist, 0, sizeof s->hist);
+    memset(s->last_comp, 0, sizeof s->last_comp);
+    memset(s->prev_fm, 0, sizeof s->prev_fm);
+    s->prev_valid = 0u;
+    s->pos = 0u;
+    s->since_reset = 0u;
+}
+
+static int state_ok(const fbg_state *s)
+{
+    return s->magic == FBG_STATE_MAGIC && s->model != NULL;
+}
+
+fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
+{
+    fbg_status st;
+    if (state == NULL || model == NULL)
+        return FBG_ERR_NULL;
+    st = fbg_model_check(model);
+    if (st != FBG_OK)
+        return st;
+    memset(state, 0, sizeof *state);
+    state->model = model;
+    state->options = options;
+    memcpy(state->baseline_fm, model->baseline_fm, sizeof state->baseline_fm);
+    state->magic = FBG_STATE_MAGIC;
+    return FBG_OK;
+}
+
+fbg_status fbg_reset(fbg_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    clear_filter(state);
+    return FBG_OK;
+}
+
+fbg_status fbg_tare_begin(fbg_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    memset(state->tare_sum, 0, sizeof state->tare_sum);
+    state->tare_count = 0u;
+    state->tare_active = 1u;
+    return FBG_OK;
+}
+
+fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
+{
+    int ok;
+    if (state == NULL || wl_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    if (!state->tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, state->tare_sum, &state->tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+fbg_status fbg_tare_end(fbg_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    if (!state->tare_active)
+        return FBG_ERR_TARE;
+    state->tare_active = 0u;
+    if (state->tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(state->tare_sum, state->tare_count, state->baseline_fm);
+    state->tared = 1u;
+    clear_filter(state);
+    return FBG_OK;
+}
+
+fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(state->baseline_fm, baseline_fm, sizeof state->baseline_fm);
+    state->tared = 1u;
+    clear_filter(state);
+    return FBG_OK;
+}
+
+fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(state))
+        return FBG_ERR_STATE;
+    memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
+    return FBG_OK;
+}
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
+ * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
+static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int64_t acc = ly->bias[r];
+    unsigned j;
+#if FBG_USE_DSP /* SMLALD: two MACs per instruction; same int64 sum */
+    return fbg_dsp_row_acc(ly, r, x);
+#endif
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    unsigned l, r, buf = 0u;
+    for (l = 0; l + 1u < net->n_layers; ++l) {
+        const fbg_layer *ly = &net->layers[l];
+        int16_t *y = s->act[buf];
+#if FBG_USE_DSP /* SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+        fbg_dsp_hidden(ly, x, y, sat);
+        x = y;
+        buf ^= 1u;
+        continue;
+#endif
+        for (r = 0; r < ly->n_out; ++r) {
+            int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
+            y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+        }
+        x = y;
+        buf ^= 1u;
+    }
+    return x;
+}
+
+/* Output row r of a net's last layer in its physical unit, saturated to int32. */
+static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
+                          uint32_t *sat)
+{
+    int64_t acc = layer_acc(ly, r, x);
+    if (acc_out != NULL)
+        *acc_out = acc;
+    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+}
+
+static void safe_output(fbg_output *out, uint32_t status)
+{
+    memset(out, 0, sizeof *out);
+    out->status = status;
+}
+
+fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
+{
+    const fbg_model *m;
+    uint32_t status, sat = 0u;
+    int32_t comp[FBG_N_STRAIN];
+    int16_t in[FBG_LOCATION_INPUTS];
+    const int16_t *x;
+    const fbg_layer *last;
+    unsigned c, k, idx;
+    int64_t acc;
+
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    if (!state_ok(s)) {
+        safe_output(out, 0u);
+        return FBG_ERR_STATE;
+    }
+    m = s->model;
+    status = s->tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((s->options & FBG_OPT_REQUIRE_TARE) && !s->tared) {
+        safe_output(out, status);
+        return FBG_ERR_NOT_TARED;
+    }
+
+    /* 1. Fault rule, tare and temperature compensation (fm). */
+    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, m->jump_max_fm)) {
+        status |= FBG_STATUS_SENSOR_FAULT;
+        memcpy(comp, s->last_comp, sizeof comp);
+    } else {
+        int32_t shift_t = fbg_sat32((int64_t)wl_fm[FBG_N_STRAIN] - s->baseline_fm[FBG_N_STRAIN], &sat);
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int32_t shift = fbg_sat32((int64_t)wl_fm[c] - s->baseline_fm[c], &sat);
+            int64_t t = fbg_rshift_round((int64_t)shift_t * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+            comp[c] = fbg_sat32((int64_t)shift - t, &sat);
+        }
+        memcpy(s->last_comp, comp, sizeof comp);
+    }
+
+    /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->hist[s->pos][c] = comp[c];
+    if (s->since_reset < 0xFFFFu)
+        s->since_reset++;
+    if (s->since_reset < m->n_taps)
+        status |= FBG_STATUS_WARMUP;
+    if (status & FBG_STATUS_SENSOR_FAULT) {
+        s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+        safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
+        return FBG_OK;
+    }
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums */
+    int64_t fir[FBG_N_STRAIN];
+    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+#endif
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t f = 0;
+#if FBG_USE_DSP
+        f = fir[c];
+        (void)k;
+        (void)idx;
+#else
+        idx = s->pos;
+        for (k = 0; k < m->n_taps; ++k) {
+            f += (int64_t)m->taps[k] * s->hist[idx][c];
+            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
+        }
+#endif
+        /* 3. Standardise into Q(z_frac) int16. */
+        {
+            int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
+            int32_t d = fbg_sat32((int64_t)filt - m->mean_fm[c], &sat);
+            in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), &sat);
+        }
+    }
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+
+    /* 4. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
+    memset(out, 0, sizeof *out);
+    x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
+    last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
+    out->contact_margin_q8 = output_row(last, 0u, x, &acc, &sat);
+    out->contact = acc > 0 ? 1u : 0u;
+    out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+
+    if (out->contact) {
+        /* 5. Force net -> force_out (mN before offset); its quantised value feeds location. */
+        int32_t force_out;
+        x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
+        last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
+        force_out = output_row(last, 0u, x, NULL, &sat);
+        out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
+        if (out->force_mN > m->overload_mN)
+            status |= FBG_STATUS_OVERLOAD;
+
+        /* 6. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]. */
+        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
+        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
+        last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
+        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, x, NULL, &sat) + m->xy_offset_um[1], &sat);
+    }
+    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    return FBG_OK;
+}
+
+fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output *out)
+{
+    size_t i;
+    fbg_status st;
+    if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
+        return FBG_ERR_NULL;
+    for (i = 0; i < n; ++i) {
+        st = fbg_step(state, wl_fm + i * FBG_N_CHANNELS, out + i);
+        if (st != FBG_OK)
+            return st;
+    }
+    return FBG_OK;
+}

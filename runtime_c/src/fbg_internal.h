@@ -1,0 +1,121 @@
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid.
+ * Returns 1 if the sample is faulty. Integer only (shared with the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, int32_t jump_max_fm)
+{
+    int fault = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        if (!fbg_wl_in_window(wl[c])) {
+            fault = 1;
+            continue;
+        }
+        if (*prev_valid & (1u << c)) {
+            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
+            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
+            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+                fault = 1;
+        }
+        prev[c] = wl[c];
+        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+    }
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */

@@ -1,0 +1,89 @@
+/*
+ * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
+ */
+#include "fbg_internal.h"
+
+/* |bias| above this is refused so that the bound below cannot overflow int64 itself. */
+#define FBG_BIAS_LIMIT ((int64_t)1 << 60)
+
+static fbg_status check_layer(const fbg_layer *ly)
+{
+    unsigned r, j;
+    if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+        return FBG_ERR_SHAPE;
+    if (ly->w_bits == 16u) {
+        if (ly->w16 == NULL)
+            return FBG_ERR_NULL;
+    } else if (ly->w_bits == 8u) {
+        if (ly->w8 == NULL)
+            return FBG_ERR_NULL;
+    } else {
+        return FBG_ERR_RANGE;
+    }
+    if (ly->bias == NULL || ly->mult == NULL)
+        return FBG_ERR_NULL;
+    if (ly->shift < 1u || ly->shift > 62u)
+        return FBG_ERR_RANGE;
+    for (r = 0; r < ly->n_out; ++r) {
+        /* Worst case |acc| = sum_j |w[r][j]| * 32767 + |bias[r]|: every layer input is an
+         * int16 saturated to +-32767 (sat16 is symmetric). acc * mult + 2^(shift-1) must
+         * stay inside int64: that is the whole overflow proof of the nets (fixed-point.md). */
+        int64_t sumw = 0, bound, limit, b = ly->bias[r], m = ly->mult[r];
+        for (j = 0; j < ly->n_in; ++j) {
+            int32_t w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
+                                          : ly->w8[(size_t)r * ly->n_in + j];
+            sumw += w < 0 ? -(int64_t)w : (int64_t)w;
+        }
+        if (b >= FBG_BIAS_LIMIT || b <= -FBG_BIAS_LIMIT)
+            return FBG_ERR_BOUND;
+        bound = sumw * FBG_SAT16 + (b < 0 ? -b : b);
+        if (m < 0)
+            m = -m;
+        if (m != 0) {
+            limit = (INT64_MAX - ((int64_t)1 << (ly->shift - 1u))) / m;
+            if (bound > limit)
+                return FBG_ERR_BOUND;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbg_model_check(const fbg_model *model)
+{
+    static const uint16_t net_in[FBG_N_NETS] = {FBG_N_STRAIN, FBG_N_STRAIN, FBG_LOCATION_INPUTS};
+    static const uint16_t net_out[FBG_N_NETS] = {1u, 1u, 2u};
+    unsigned n, l, c;
+    fbg_status st;
+
+    if (model == NULL)
+        return FBG_ERR_NULL;
+    if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
+        return FBG_ERR_SHAPE;
+    if (model->taps == NULL)
+        return FBG_ERR_NULL;
+    if (model->tap_q < 1u || model->tap_q > 15u || model->z_frac > 14u || model->z_shift < 1u ||
+        model->z_shift > 62u || model->fq_shift < 1u || model->fq_shift > 62u)
+        return FBG_ERR_RANGE;
+    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm))
+        return FBG_ERR_RANGE;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        if (model->z_mult[c] == INT32_MIN || model->temp_coeff_q24[c] == INT32_MIN)
+            return FBG_ERR_RANGE;
+    if (model->fq_mult == INT32_MIN)
+        return FBG_ERR_RANGE;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbg_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            if (l > 0u && net->layers[l].n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            st = check_layer(&net->layers[l]);
+            if (st != FBG_OK)
+                return st;
+        }
+    }
+    return FBG_OK;
+}

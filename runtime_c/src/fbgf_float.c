@@ -1,0 +1,283 @@
+/*
+ * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
+ * build for FPU targets). Mirrors fbgforce.model's float64 reference operation by operation;
+ * only this file uses float (check-nofloat leaves it out).
+ */
+#include <string.h>
+
+#include "fbg_internal.h"
+
+size_t fbgf_state_size(void)
+{
+    return sizeof(fbgf_state);
+}
+
+/* exp(x) for x in [-87, 88] to ~2 ulp without libm (the library links nothing beyond
+ * <string.h>): x = k ln2 + r, |r| <= ln2/2, degree-6 Taylor polynomial of exp(r), 2^k by
+ * building the exponent bits. */
+static float fbgf_exp(float x)
+{
+    const float ln2_hi = 0.693145751953125f, ln2_lo = 1.428606765330187e-06f;
+    float kf, r, p;
+    int32_t k;
+    union {
+        uint32_t u;
+        float f;
+    } two_k;
+    /* Written so that NaN also lands in range: the float -> int conversion below would be
+     * undefined behaviour for NaN or out-of-range values. */
+    if (!(x > -87.0f))
+        x = -87.0f;
+    if (x > 88.0f)
+        x = 88.0f;
+    kf = x * 1.4426950408889634f;
+    k = (int32_t)(kf + (kf >= 0.0f ? 0.5f : -0.5f));
+    kf = (float)k;
+    r = (x - kf * ln2_hi) - kf * ln2_lo;
+    p = 1.0f + r * (1.0f + r * (0.5f + r * (1.0f / 6.0f + r * (1.0f / 24.0f + r * (1.0f / 120.0f + r * (1.0f / 720.0f))))));
+    two_k.u = (uint32_t)(k + 127) << 23;
+    return p * two_k.f;
+}
+
+static int fstate_ok(const fbgf_state *s)
+{
+    return s->magic == FBGF_STATE_MAGIC && s->model != NULL;
+}
+
+fbg_status fbgf_model_check(const fbgf_model *model)
+{
+    static const uint16_t net_in[FBG_N_NETS] = {FBG_N_STRAIN, FBG_N_STRAIN, FBG_LOCATION_INPUTS};
+    static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
+    unsigned n, l, c;
+    if (model == NULL)
+        return FBG_ERR_NULL;
+    if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
+        return FBG_ERR_SHAPE;
+    if (model->taps == NULL)
+        return FBG_ERR_NULL;
+    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm))
+        return FBG_ERR_RANGE;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        if (!(model->input_std_pm[c] > 0.0f))
+            return FBG_ERR_RANGE;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbgf_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            const fbgf_layer *ly = &net->layers[l];
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            if (ly->w == NULL || ly->b == NULL)
+                return FBG_ERR_NULL;
+        }
+    }
+    return FBG_OK;
+}
+
+static void fclear(fbgf_state *s)
+{
+    memset(s->hist, 0, sizeof s->hist);
+    memset(s->last_comp, 0, sizeof s->last_comp);
+    memset(s->prev_fm, 0, sizeof s->prev_fm);
+    s->prev_valid = 0u;
+    s->pos = 0u;
+    s->since_reset = 0u;
+}
+
+fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
+{
+    fbg_status st;
+    if (state == NULL || model == NULL)
+        return FBG_ERR_NULL;
+    st = fbgf_model_check(model);
+    if (st != FBG_OK)
+        return st;
+    memset(state, 0, sizeof *state);
+    state->model = model;
+    state->options = options;
+    memcpy(state->baseline_fm, model->baseline_fm, sizeof state->baseline_fm);
+    state->magic = FBGF_STATE_MAGIC;
+    return FBG_OK;
+}
+
+fbg_status fbgf_reset(fbgf_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!fstate_ok(state))
+        return FBG_ERR_STATE;
+    fclear(state);
+    return FBG_OK;
+}
+
+fbg_status fbgf_tare_begin(fbgf_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!fstate_ok(state))
+        return FBG_ERR_STATE;
+    memset(state->tare_sum, 0, sizeof state->tare_sum);
+    state->tare_count = 0u;
+    state->tare_active = 1u;
+    return FBG_OK;
+}
+
+fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
+{
+    int ok;
+    if (state == NULL || wl_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!fstate_ok(state))
+        return FBG_ERR_STATE;
+    if (!state->tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, state->tare_sum, &state->tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+fbg_status fbgf_tare_end(fbgf_state *state)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!fstate_ok(state))
+        return FBG_ERR_STATE;
+    if (!state->tare_active)
+        return FBG_ERR_TARE;
+    state->tare_active = 0u;
+    if (state->tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(state->tare_sum, state->tare_count, state->baseline_fm);
+    state->tared = 1u;
+    fclear(state);
+    return FBG_OK;
+}
+
+fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!fstate_ok(state))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(state->baseline_fm, baseline_fm, sizeof state->baseline_fm);
+    state->tared = 1u;
+    fclear(state);
+    return FBG_OK;
+}
+
+/* Dense ReLU MLP; returns a pointer to the output vector (inside s->act). */
+static const float *fnet(fbgf_state *s, const fbgf_net *net, const float *x)
+{
+    unsigned l, r, j, buf = 0u;
+    for (l = 0; l < net->n_layers; ++l) {
+        const fbgf_layer *ly = &net->layers[l];
+        float *y = s->act[buf];
+        for (r = 0; r < ly->n_out; ++r) {
+            const float *w = ly->w + (size_t)r * ly->n_in;
+            float a = ly->b[r];
+            for (j = 0; j < ly->n_in; ++j)
+                a += w[j] * x[j];
+            y[r] = (l + 1u < net->n_layers && a < 0.0f) ? 0.0f : a;
+        }
+        x = y;
+        buf ^= 1u;
+    }
+    return x;
+}
+
+fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
+{
+    const fbgf_model *m;
+    uint32_t status, sat = 0u;
+    float comp[FBG_N_STRAIN], in[FBG_LOCATION_INPUTS], z[FBG_N_STRAIN], margin, f;
+    const float *y;
+    unsigned c, k, idx;
+
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    memset(out, 0, sizeof *out);
+    if (!fstate_ok(s))
+        return FBG_ERR_STATE;
+    m = s->model;
+    status = s->tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((s->options & FBG_OPT_REQUIRE_TARE) && !s->tared) {
+        out->status = status;
+        return FBG_ERR_NOT_TARED;
+    }
+    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, m->jump_max_fm)) {
+        status |= FBG_STATUS_SENSOR_FAULT;
+        memcpy(comp, s->last_comp, sizeof comp);
+    } else {
+        /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
+        float shift_t = (float)fbg_sat32((int64_t)wl_fm[FBG_N_STRAIN] - s->baseline_fm[FBG_N_STRAIN], &sat) * 1e-3f;
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            float shift = (float)fbg_sat32((int64_t)wl_fm[c] - s->baseline_fm[c], &sat) * 1e-3f;
+            comp[c] = shift - m->temp_coeff[c] * shift_t;
+        }
+        memcpy(s->last_comp, comp, sizeof comp);
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->hist[s->pos][c] = comp[c];
+    if (s->since_reset < 0xFFFFu)
+        s->since_reset++;
+    if (s->since_reset < m->n_taps)
+        status |= FBG_STATUS_WARMUP;
+    if (status & FBG_STATUS_SENSOR_FAULT) {
+        s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+        out->status = status;
+        return FBG_OK;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        float a = 0.0f;
+        idx = s->pos;
+        for (k = 0; k < m->n_taps; ++k) {
+            a += m->taps[k] * s->hist[idx][c];
+            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
+        }
+        z[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
+        in[c] = z[c];
+    }
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+
+    y = fnet(s, &m->nets[FBG_NET_CONTACT], z);
+    margin = y[1] - y[0];
+    out->margin = margin;
+    out->contact = margin > 0.0f ? 1u : 0u;
+    out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
+    if (out->contact) {
+        y = fnet(s, &m->nets[FBG_NET_FORCE], z);
+        f = y[0];
+        out->force_N = m->force_offset_N + m->force_scale * f;
+        if (out->force_N > m->overload_N)
+            status |= FBG_STATUS_OVERLOAD;
+        in[FBG_N_STRAIN] = 1.0f;
+        in[FBG_N_STRAIN + 1] = f;
+        y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
+        out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
+        out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
+    }
+    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    return FBG_OK;
+}
+
+fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_output *out)
+{
+    size_t i;
+    fbg_status st;
+    if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
+        return FBG_ERR_NULL;
+    for (i = 0; i < n; ++i) {
+        st = fbgf_step(state, wl_fm + i * FBG_N_CHANNELS, out + i);
+        if (st != FBG_OK)
+            return st;
+    }
+    return FBG_OK;
+}

@@ -1,0 +1,313 @@
+"""Fixed-point pipeline: C runtime == numpy integer reference bit for bit; fixed vs float within
+the bounds of docs/fixed-point.md; accumulator bounds; fault, tare and status rules."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from fbgforce import model as fm
+from fbgforce.export import blob, intref
+from fbgforce.export import quantize as qz
+from fbgforce.pybind import ArgError, NotTaredError, Runtime, TareError, ffi, lib
+
+FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact")
+
+
+def _balance_contact(model, wl):
+    """Shift the contact logit so that about half of ``wl`` is "contact" (both paths run)."""
+    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm))
+    model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
+    return model
+
+
+def _export(model, wl, bits=16, **kw):
+    cal = qz.calibrate(model, [(wl, model.baseline_nm)])
+    q, rep = qz.quantize(model, cal, bits=bits, **kw)
+    return q, blob.to_bytes(q), rep
+
+
+def _assert_bitexact(q, data, wl_fm, base_fm):
+    rt = Runtime(data)
+    if base_fm is not None:
+        rt.set_baseline(np.asarray(base_fm, dtype=np.int32))
+    c = rt.run_raw(np.asarray(wl_fm, dtype=np.int32))
+    ref = intref.run(q, wl_fm, base_fm)
+    for k in FIELDS:
+        bad = np.flatnonzero(np.asarray(c[k], dtype=np.int64) != ref[k])
+        assert bad.size == 0, f"{k} differs at samples {bad[:10]}: C {c[k][bad[:3]]} ref {ref[k][bad[:3]]}"
+    return ref
+
+
+@pytest.fixture(scope="module")
+def exported(random_model_factory, random_walk_factory):
+    model = random_model_factory(1)
+    wl = random_walk_factory(model, 4000, seed=1)
+    _balance_contact(model, wl)
+    q, data, rep = _export(model, wl)
+    return model, wl, q, data, rep
+
+
+def test_constants_match_header():
+    assert qz.SAT16 == 32767 and qz.SAT32 == 2**31 - 1
+    assert qz.WL_MIN_FM == lib.FBG_WL_MIN_FM and qz.WL_MAX_FM == lib.FBG_WL_MAX_FM
+    assert qz.TEMP_COEFF_SHIFT == lib.FBG_TEMP_COEFF_SHIFT
+    assert (qz.MAX_TAPS, qz.MAX_WIDTH, qz.MAX_LAYERS) == (lib.FBG_MAX_TAPS, lib.FBG_MAX_WIDTH,
+                                                          lib.FBG_MAX_LAYERS)
+    assert blob.VERSION == lib.FBG_BLOB_VERSION and blob.HEADER.size == lib.FBG_BLOB_HEADER_SIZE
+    for name, bit in (("NOT_TARED", intref.STATUS_NOT_TARED), ("SATURATED", intref.STATUS_SATURATED),
+                      ("OVERLOAD", intref.STATUS_OVERLOAD), ("SENSOR_FAULT", intref.STATUS_SENSOR_FAULT),
+                      ("WARMUP", intref.STATUS_WARMUP)):
+        assert getattr(lib, f"FBG_STATUS_{name}") == bit
+
+
+def test_sigmoid_table_formula_and_c_agree():
+    k = np.arange(129)
+    formula = np.minimum(32767, np.floor(32768 / (1 + np.exp(-(k - 64) / 8.0)) + 0.5)).astype(np.int64)
+    assert np.array_equal(intref.SIGMOID_Q15_TABLE, formula)
+    xs = np.concatenate([np.arange(-2200, 2200), [-2**31 + 1, -10**6, 10**6, 2**31 - 1]])
+    c = np.array([lib.fbg_sigmoid_q15(int(x)) for x in xs])
+    assert np.array_equal(c, intref.sigmoid_q15(xs))
+    # Q15 of the real sigmoid within interpolation (6.2 LSB) plus two roundings (docs).
+    inside = np.abs(xs) < 2048
+    exact = 32768 / (1 + np.exp(-xs[inside] / 256.0))
+    assert np.abs(c[inside] - exact).max() <= 7.5
+
+
+def test_rounding_and_saturation_rules():
+    x = np.array([-5, -4, -3, -2, -1, 0, 1, 2, 3, 4, 5], dtype=np.int64)
+    # round half up: -2.5 -> -2, -1.5 -> -1, -0.5 -> 0, 0.5 -> 1, 2.5 -> 3
+    assert intref.rshift_round(x, 1).tolist() == [-2, -2, -1, -1, 0, 0, 1, 1, 2, 2, 3]
+    y, clamped = intref.sat(np.array([-40000, -32768, -32767, 0, 32767, 32768]), 32767)
+    assert y.tolist() == [-32767, -32767, -32767, 0, 32767, 32767]
+    assert clamped.tolist() == [True, True, False, False, False, True]
+
+
+@pytest.mark.parametrize("bits", [16, 8])
+def test_bitexact_random_models(random_model_factory, random_walk_factory, bits):
+    for seed in (2, 3):
+        model = random_model_factory(seed, sizes=((30, 20), (40, 20, 10), (50, 30, 40)))
+        wl = random_walk_factory(model, 2500, seed=seed)
+        _balance_contact(model, wl)
+        q, data, _ = _export(model, wl, bits=bits)
+        assert q.w_bits == bits
+        wl_fm = intref.nm_to_fm(wl)
+        # Inject lost peaks, a jump and a reference-grating loss.
+        wl_fm[100, 2] = 0
+        wl_fm[700:705, 4] = -1
+        wl_fm[1500, 1] += 5_000_000
+        ref = _assert_bitexact(q, data, wl_fm, intref.nm_to_fm(model.baseline_nm))
+        assert ref["contact"].any() and not ref["contact"].all()
+        fault = (ref["status"] & intref.STATUS_SENSOR_FAULT) != 0
+        assert fault[[100, 700, 704, 1500]].all()
+        # Not tared: the model's nominal baseline, flag set on every sample.
+        ref2 = _assert_bitexact(q, data, wl_fm, None)
+        assert np.all(ref2["status"] & intref.STATUS_NOT_TARED)
+
+
+_EXTREMES = [0, -1, 1, -2**31 + 1, 2**31 - 1, 999_999_999, 1_000_000_000, 2_000_000_000,
+             2_000_000_001, 1_530_000_000, 1_545_000_000]
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_bitexact_hypothesis(exported, data):
+    model, _, q, blob_bytes, _ = exported
+    n = data.draw(st.integers(1, 60), label="n")
+    base = intref.nm_to_fm(model.baseline_nm).astype(np.int64)
+    mode = data.draw(st.sampled_from(["near", "wide", "extreme"]), label="mode")
+    if mode == "near":
+        # Within a few nm of the baseline: the normal operating range, including overload.
+        offs = data.draw(st.lists(st.integers(-3_000_000, 3_000_000), min_size=5 * n, max_size=5 * n))
+        wl = base + np.array(offs, dtype=np.int64).reshape(n, 5)
+    elif mode == "wide":
+        vals = data.draw(st.lists(st.integers(900_000_000, 2_100_000_000), min_size=5 * n, max_size=5 * n))
+        wl = np.array(vals, dtype=np.int64).reshape(n, 5)
+    else:
+        vals = data.draw(st.lists(st.one_of(st.sampled_from(_EXTREMES),
+                                            st.integers(-2**31 + 1, 2**31 - 1)),
+                                  min_size=5 * n, max_size=5 * n))
+        wl = np.array(vals, dtype=np.int64).reshape(n, 5)
+    b_off = data.draw(st.lists(st.integers(-20_000_000, 20_000_000), min_size=5, max_size=5))
+    tared = data.draw(st.booleans(), label="tared")
+    baseline = np.clip(base + np.array(b_off), qz.WL_MIN_FM, qz.WL_MAX_FM) if tared else None
+    _assert_bitexact(q, blob_bytes, wl, baseline)
+
+
+def test_bitexact_on_scenes(small_exported_dir, small_dataset_path):
+    """The trained small model on the smoke scene, the dropout scene and a short overload
+    scene (forces beyond calibration: saturation and overload flags)."""
+    import dataclasses
+
+    from fbgforce import dataset, sim
+    from fbgforce.export.exporter import recording_baseline
+
+    mdir = small_exported_dir
+    q = blob.load_model_blob(mdir)
+    data = (mdir / "model.fbgm").read_bytes()
+    over = sim.load_scene("overload")
+    over = dataclasses.replace(over, schedule={**over.schedule, "n_presses": 8})
+    recordings = [dataset.load(small_dataset_path), sim.simulate("dropout", seed=3), sim.simulate(over, seed=4)]
+    flags = 0
+    for ds in recordings:
+        base = recording_baseline(ds)
+        ref = _assert_bitexact(q, data, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base))
+        flags |= int(np.bitwise_or.reduce(ref["status"]))
+    assert flags & intref.STATUS_OVERLOAD
+
+
+def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
+    """docs/fixed-point.md: force within 0.05 N, location within 0.05 mm, contact decisions
+    differ only where the float margin is within 0.05 of the threshold."""
+    from fbgforce import dataset
+    from fbgforce.export.exporter import recording_baseline
+
+    mdir = small_exported_dir
+    model = fm.load(mdir)
+    q = blob.load_model_blob(mdir)
+    ds = dataset.load(small_dataset_path)
+    base = recording_baseline(ds)
+    fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base)))
+    flt = fm.predict(model, ds.wl_nm, base)
+    logits = model.contact.forward(fm.features(model, ds.wl_nm, base))
+    margin = logits[:, 1] - logits[:, 0]
+    both = fixed["contact"] & flt["contact"]
+    assert both.sum() > 1000
+    assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() < 0.05
+    assert np.abs(fixed["x_mm"][both] - flt["x_mm"][both]).max() < 0.05
+    assert np.abs(fixed["y_mm"][both] - flt["y_mm"][both]).max() < 0.05
+    dis = fixed["contact"] != flt["contact"]
+    assert dis.mean() < 0.001
+    if dis.any():
+        assert np.abs(margin[dis]).max() < 0.05
+    # ... and within the error budget the exporter derived (first-order, per sample).
+    import json
+
+    bounds = json.loads((mdir / "export_report.json").read_text())["error_bounds"]
+    assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() <= bounds["force_N"]
+    assert np.abs(fixed["x_mm"][both] - flt["x_mm"][both]).max() <= bounds["x_mm"]
+    assert np.abs(fixed["y_mm"][both] - flt["y_mm"][both]).max() <= bounds["y_mm"]
+    if dis.any():
+        assert np.abs(margin[dis]).max() <= bounds["contact_margin"]
+
+
+def test_accumulator_bounds_hold_and_are_enforced(exported):
+    model, wl, q, data, rep = exported
+    trace: dict[str, int] = {}
+    intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm), trace=trace)
+    for name, net in zip(qz.NET_NAMES, q.nets):
+        for i, layer in enumerate(net):
+            bound = layer.acc_bound()
+            assert rep["nets"][name][i]["acc_bound"] == int(bound.max())
+            assert trace[f"{name}.{i}"] <= bound.max()
+            worst = max(int(b) * abs(int(m)) for b, m in zip(bound, layer.mult)) + (1 << (layer.shift - 1))
+            assert worst < 2**63
+    assert trace["fir"] <= rep["fir"]["acc_bound"] < 2**63
+    # A blob whose bias breaks the bound is refused by the C loader (valid CRC, shapes).
+    bad = blob.from_bytes(data)
+    bad.nets[0][0].bias[0] = 2**59
+    bad.nets[0][0].mult[0] = 2**30
+    raw = _unchecked_bytes(bad)
+    m = ffi.new("fbg_model *")
+    buf = ffi.new("uint64_t[]", (len(raw) + 7) // 8)
+    ffi.memmove(buf, raw, len(raw))
+    assert lib.fbg_model_from_blob(m, ffi.cast("uint8_t *", buf), len(raw)) == lib.FBG_ERR_BOUND
+
+
+def _unchecked_bytes(q):
+    orig = qz.QModel.check
+    try:
+        qz.QModel.check = lambda self: None
+        return blob.to_bytes(q)
+    finally:
+        qz.QModel.check = orig
+
+
+def test_fault_rule_and_safe_output(exported):
+    model, wl, q, data, _ = exported
+    rt = Runtime(data)
+    base = intref.nm_to_fm(model.baseline_nm)
+    rt.set_baseline(base)
+    x = np.tile(base, (40, 1)).astype(np.int64)
+    x[20:, 0] += 3_000_000           # a genuine 3 nm step: faults exactly one sample
+    x[30, 4] = 0                     # reference grating lost for one sample
+    out = rt.run_raw(x.astype(np.int32))
+    fault = (out["status"] & intref.STATUS_SENSOR_FAULT) != 0
+    assert np.flatnonzero(fault).tolist() == [20, 30]
+    for k in ("force_mN", "x_um", "y_um", "contact", "contact_conf_q15", "contact_margin_q8"):
+        assert np.all(out[k][fault] == 0)
+    warm = (out["status"] & intref.STATUS_WARMUP) != 0
+    assert warm[: q.taps.size - 1].all() and not warm[q.taps.size - 1:].any()
+
+
+def test_tare_api(exported):
+    model, wl, q, data, _ = exported
+    rt = Runtime(data, require_tare=True)
+    with pytest.raises(NotTaredError):
+        rt.step(wl[0])
+    samples = intref.nm_to_fm(wl[:7]).astype(np.int64)
+    samples[3, 2] = 0                # skipped by the tare
+    base = rt.tare(samples.astype(np.int32))
+    good = np.delete(samples, 3, axis=0)
+    expect = (good.sum(axis=0) + good.shape[0] // 2) // good.shape[0]
+    assert np.array_equal(rt.baseline_fm, expect)
+    assert np.allclose(base, expect * 1e-6)
+    assert rt.tared
+    rt.step(wl[0])
+    with pytest.raises(TareError):
+        rt.tare(np.zeros((3, 5), dtype=np.int32))
+    with pytest.raises(ArgError):
+        rt.set_baseline(np.array([0, 1, 2, 3, 4], dtype=np.int32))
+    # Tared output equals the reference run with that baseline.
+    rt2 = Runtime(data)
+    rt2.tare(samples.astype(np.int32))
+    c = rt2.run_raw(intref.nm_to_fm(wl[:500]))
+    ref = intref.run(q, intref.nm_to_fm(wl[:500]), expect)
+    assert all(np.array_equal(np.asarray(c[k], dtype=np.int64), ref[k]) for k in FIELDS)
+
+
+def test_quantizer_rejects_unexportable_models(random_model_factory):
+    from fbgforce.errors import InputError
+
+    model = random_model_factory(5)
+    cen = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
+                        model.preprocess.input_mean, model.preprocess.input_std)
+    with pytest.raises(InputError, match="centred"):
+        qz.quantize_taps(cen)
+    long = fm.Preprocess(model.preprocess.temp_coeff, "causal", 30.0, np.ones(100) / 100,
+                         model.preprocess.input_mean, model.preprocess.input_std)
+    with pytest.raises(InputError, match="taps"):
+        qz.quantize_taps(long)
+    t, q = qz.quantize_taps(fm.Preprocess(model.preprocess.temp_coeff, "none", 0.0, [1.0],
+                                          model.preprocess.input_mean, model.preprocess.input_std))
+    assert t.tolist() == [16384] and q == 14
+    # DC gain exact for a normal Gaussian.
+    t, q = qz.quantize_taps(model.preprocess)
+    assert q == 15 and t.sum() == 32768
+
+
+def test_choose_shift_precision():
+    s, m = qz.choose_shift([0.1234567, -3.5e-4, 1.0])
+    assert np.all(np.abs(m) <= 2**30)
+    rel = np.abs(m / 2.0**s - np.array([0.1234567, -3.5e-4, 1.0])) / np.array([0.1234567, 3.5e-4, 1.0])
+    assert rel.max() < 2**-17
+    assert math.isclose(m[2] / 2.0**s, 1.0)
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 10_000), bits=st.sampled_from([16, 8]),
+       n_taps=st.sampled_from([1, 2, 7, 64]),
+       widths=st.lists(st.lists(st.integers(1, 128), min_size=0, max_size=3), min_size=3, max_size=3))
+def test_bitexact_random_structures(random_model_factory, random_walk_factory, seed, bits, n_taps, widths):
+    """Any shape the runtime accepts: 0-3 hidden layers of width 1..128, 1..64 taps, int8/int16."""
+    model = random_model_factory(seed, sizes=tuple(tuple(w) for w in widths), n_taps=n_taps,
+                                 sigma=max(n_taps / 4.0, 0.5))
+    wl = random_walk_factory(model, 600, seed=seed)
+    _balance_contact(model, wl)
+    q, data, _ = _export(model, wl, bits=bits)
+    wl_fm = intref.nm_to_fm(wl)
+    wl_fm[50] = [0, 2**31 - 1, -2**31 + 1, 1, 2_000_000_001]
+    _assert_bitexact(q, data, wl_fm, intref.nm_to_fm(model.baseline_nm))

@@ -1,0 +1,184 @@
+"""ONNX export: checker, graph naming, and agreement of onnxruntime with the float64 model."""
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import pytest
+
+from fbgforce.errors import InputError
+from fbgforce.export import onnx_export as ox
+from fbgforce.model import MLP, HierarchicalModel, Preprocess, features, predict, predict_from_features
+
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def _mlp(rng: np.random.Generator, sizes: list[int]) -> MLP:
+    # He initialisation keeps activations O(1) through the ReLU layers, like a trained net.
+    return MLP([rng.standard_normal((b, a)) * np.sqrt(2.0 / a) for a, b in zip(sizes[:-1], sizes[1:])],
+               [rng.standard_normal(b) * 0.1 for b in sizes[1:]])
+
+
+def _model(seed: int = 0, width: float = 1.0) -> HierarchicalModel:
+    rng = np.random.default_rng(seed)
+    h = [max(2, int(round(n * width))) for n in (70, 50, 20, 40)]
+    taps = np.exp(-0.5 * (np.arange(9) / 3.0) ** 2)
+    pre = Preprocess(temp_coeff=[1.02, 0.98, 1.01, 0.99], filter_kind="causal", filter_sigma=3.0,
+                     taps=taps / taps.sum(), input_mean=[5.0, -3.0, 8.0, 1.0],
+                     input_std=[40.0, 35.0, 50.0, 45.0])
+    return HierarchicalModel(
+        preprocess=pre,
+        contact=_mlp(rng, [4, h[0], h[1], h[2], 2]),
+        force=_mlp(rng, [4, h[0], h[1], h[2], 1]),
+        location=_mlp(rng, [6, h[0], h[1], h[3], 2]),
+        force_offset=12.0, force_scale=15.0, xy_offset=[10.5, 13.5], xy_scale=[6.0, 7.5],
+        baseline_nm=[1546.1, 1548.2, 1550.3, 1552.4, 1554.5])
+
+
+def _abs_forward(net: MLP, x: np.ndarray) -> np.ndarray:
+    """Forward pass with |W|, |b|, |x|: the magnitude that float32 rounding errors scale with."""
+    a = np.abs(x)
+    for w, b in zip(net.weights, net.biases):
+        a = a @ np.abs(w).T + np.abs(b)
+    return a
+
+
+def _bound(net: MLP, x: np.ndarray) -> np.ndarray:
+    # Standard dot-product error analysis: |fl(w.a) - w.a| <= gamma_n |w|.|a| per layer, with
+    # n the fan-in; summed over layers (plus input rounding), a few-fold safety factor.
+    n = sum(w.shape[1] for w in net.weights) + 1
+    return 4.0 * n * EPS32 * _abs_forward(net, x)
+
+
+def _recording(seed: int, n: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+    """Raw wavelengths (n, 5) nm: presses of random strength/shape, noise, temperature drift."""
+    rng = np.random.default_rng(seed)
+    base = np.array([1546.1, 1548.2, 1550.3, 1552.4, 1554.5])
+    load = np.zeros(n)
+    for start in range(100, n - 400, 500):
+        t = np.arange(300)
+        load[start:start + 300] = rng.uniform(5, 60) * np.sin(np.pi * t / 300) ** 2
+    sens = rng.uniform(-3.0, 3.0, size=(4,))  # pm per N, per strain grating
+    temp_pm = np.cumsum(rng.standard_normal(n)) * 0.05
+    wl = np.empty((n, 5))
+    wl[:, :4] = base[:4] + 1e-3 * (load[:, None] * sens + temp_pm[:, None]
+                                   + rng.standard_normal((n, 4)) * 3.0)
+    wl[:, 4] = base[4] + 1e-3 * temp_pm
+    return wl, base + 1e-3 * rng.standard_normal(5)
+
+
+@pytest.fixture(scope="module")
+def model() -> HierarchicalModel:
+    return _model()
+
+
+@pytest.fixture(scope="module")
+def exported(model: HierarchicalModel, tmp_path_factory: pytest.TempPathFactory):
+    d = tmp_path_factory.mktemp("model")
+    proto = ox.export_onnx(model, d / ox.ONNX_FILE)
+    return d, proto
+
+
+def test_checker_opset_and_dynamic_batch(exported) -> None:
+    d, proto = exported
+    loaded = onnx.load(d / ox.ONNX_FILE)
+    onnx.checker.check_model(loaded, full_check=True)
+    assert [o.version for o in loaded.opset_import if o.domain in ("", "ai.onnx")] == [17]
+    dims = loaded.graph.input[0].type.tensor_type.shape.dim
+    assert dims[0].dim_param == "N" and dims[1].dim_value == 4
+    assert [o.name for o in loaded.graph.output] == list(ox.OUTPUT_NAMES)
+
+
+def test_node_names_read_like_fig4(exported) -> None:
+    _, proto = exported
+    names = [n.name for n in proto.graph.node]
+    assert len(names) == len(set(names))
+    for net, n_layers in (("contact_net", 4), ("force_net", 4), ("location_net", 4)):
+        gemms = [n for n in proto.graph.node if n.name.startswith(net + "/fc")]
+        assert [n.name for n in gemms] == [f"{net}/fc{k}" for k in range(1, n_layers + 1)]
+        assert all(n.op_type == "Gemm" for n in gemms)
+    concat = next(n for n in proto.graph.node if n.name == "hierarchy/location_input")
+    assert concat.input[1] == "hierarchy/contact_f" and concat.input[2] == "force_net/out"
+
+
+@pytest.mark.parametrize("width", [1.0, 0.25])
+def test_onnxruntime_matches_float64_on_random_inputs(tmp_path, width: float) -> None:
+    model = _model(seed=3, width=width)
+    ox.export_onnx(model, tmp_path / ox.ONNX_FILE)
+    rng = np.random.default_rng(1)
+    # Typical, large and exactly-zero standardised inputs.
+    z = np.concatenate([rng.standard_normal((2000, 4)), 8.0 * rng.standard_normal((200, 4)),
+                        np.zeros((1, 4))])
+    _check_agreement(model, z, ox.run_features(model, z, tmp_path))
+
+
+def test_onnxruntime_matches_float64_on_realistic_recordings(model, exported) -> None:
+    d, _ = exported
+    for seed in range(3):
+        wl, base = _recording(seed)
+        z = features(model, wl, base)
+        _check_agreement(model, z, ox.run_features(model, z, d))
+        # The engine entry point gates exactly like fbgforce.model.predict.
+        got = ox.run_recording(d, model, wl, base)
+        ref = predict(model, wl, base)
+        same = got["contact"] == ref["contact"]
+        assert same.mean() > 0.99
+        assert np.array_equal(np.isnan(got["x_mm"][same]), np.isnan(ref["x_mm"][same]))
+        assert np.all(got["force_N"][~got["contact"]] == 0.0)
+        assert np.all(np.isnan(got["y_mm"][~got["contact"]]))
+        np.testing.assert_allclose(got["force_N"][same], ref["force_N"][same], rtol=0, atol=1e-3)
+        assert set(got) == {"contact", "p_contact", "force_N", "x_mm", "y_mm"}
+
+
+def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.ndarray]) -> None:
+    ref = predict_from_features(model, z)
+    logits = model.contact.forward(z)
+    margin = logits[:, 1] - logits[:, 0]
+    lb = _bound(model.contact, z)
+    np.testing.assert_array_less(np.abs(got["contact_logits"] - logits), lb + 1e-30)
+    # A decision may flip only where the float32 error could reach the threshold.
+    flipped = got["contact"] != ref["contact"]
+    assert np.all(np.abs(margin[flipped]) <= lb[flipped].sum(axis=1))
+    fb = abs(model.force_scale) * _bound(model.force, z)[:, 0] + 4 * EPS32 * np.abs(ref["force_raw_N"])
+    assert np.all(np.abs(got["force_N"] - ref["force_raw_N"]) <= fb)
+    # Location: compare where the contact input agrees (it is 0/1 and steers the net).
+    ok = ~flipped
+    loc_in = np.column_stack([z, ref["contact"], model.force.forward(z)[:, 0]])[ok]
+    lbound = _bound(model.location, loc_in)
+    # The force input carries the force net's own float32 error into the location net; a ReLU
+    # net's Jacobian is bounded elementwise by the product of its |W|, so propagate with those.
+    err_prop = _bound(model.force, z[ok])[:, 0:1] * np.abs(model.location.weights[0][:, 5])
+    for w in model.location.weights[1:]:
+        err_prop = err_prop @ np.abs(w).T
+    xy_bound = lbound + err_prop
+    for k, key in enumerate(("x_mm", "y_mm")):
+        err = np.abs(got[key][ok] - ref[key.replace("_mm", "_raw_mm")][ok])
+        assert np.all(err <= abs(model.xy_scale[k]) * xy_bound[:, k]
+                      + 4 * EPS32 * np.abs(ref[key.replace("_mm", "_raw_mm")][ok]))
+    np.testing.assert_allclose(got["p_contact"], ref["p_contact"], rtol=0, atol=1e-5 + lb.sum(axis=1).max())
+
+
+def test_batch_sizes_one_and_many(model, exported) -> None:
+    d, _ = exported
+    z = np.random.default_rng(5).standard_normal((7, 4))
+    many = ox.run_features(model, z, d)
+    for i in range(7):
+        one = ox.run_features(model, z[i:i + 1], d)
+        for key in ox.OUTPUT_NAMES:
+            assert one[key].shape[0] == 1
+            np.testing.assert_allclose(one[key], many[key][i:i + 1], rtol=1e-6, atol=1e-6)
+
+
+def test_stale_file_is_not_used(tmp_path) -> None:
+    old, new = _model(seed=1), _model(seed=2)
+    ox.export_onnx(old, tmp_path / ox.ONNX_FILE)
+    z = np.random.default_rng(0).standard_normal((50, 4))
+    got = ox.run_features(new, z, tmp_path)
+    np.testing.assert_allclose(got["force_N"], predict_from_features(new, z)["force_raw_N"],
+                               rtol=1e-4, atol=1e-3)
+    assert ox.session_for(new, tmp_path) is ox.session_for(new, tmp_path)
+
+
+def test_corrupt_file_is_refused(tmp_path) -> None:
+    (tmp_path / ox.ONNX_FILE).write_bytes(b"\x08\x07this is not a protobuf\xff\xff")
+    with pytest.raises(InputError, match="ONNX"):
+        ox.run_features(_model(seed=4), np.zeros((1, 4)), tmp_path)

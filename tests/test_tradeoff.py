@@ -1,0 +1,193 @@
+"""Part 5: the tradeoff harness, its timing helpers and quantization-aware fine-tuning."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from fbgforce import model as fm
+from fbgforce.bench import timing, tradeoff
+from fbgforce.cli import main
+
+
+def _mlp(rng: np.random.Generator, sizes: list[int]) -> fm.MLP:
+    return fm.MLP([rng.standard_normal((b, a)) * np.sqrt(2.0 / a) for a, b in zip(sizes[:-1], sizes[1:])],
+                  [rng.standard_normal(b) * 0.1 for b in sizes[1:]])
+
+
+def _model(kind: str = "causal", seed: int = 0) -> fm.HierarchicalModel:
+    rng = np.random.default_rng(seed)
+    taps = {"causal": np.exp(-0.5 * (np.arange(16) / 5.0) ** 2), "none": np.ones(1)}[kind]
+    pre = fm.Preprocess([1.01, 0.99, 1.0, 1.02], kind, 5.0 if kind == "causal" else 0.0,
+                        taps / taps.sum(), [3.0, -2.0, 1.0, 0.5], [40.0, 30.0, 50.0, 45.0])
+    return fm.HierarchicalModel(pre, _mlp(rng, [4, 20, 10, 2]), _mlp(rng, [4, 20, 10, 1]),
+                                _mlp(rng, [6, 20, 12, 2]), 10.0, 12.0, [10.5, 13.5], [5.0, 7.0],
+                                [1530.0, 1538.0, 1546.0, 1554.0, 1562.0])
+
+
+def _wavelengths(n: int, seed: int = 1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    base = np.array([1530.0, 1538.0, 1546.0, 1554.0, 1562.0])
+    load = np.clip(np.sin(np.arange(n) / 60.0), 0, None) * 40.0
+    wl = base + 1e-3 * rng.standard_normal((n, 5)) * 4.0
+    wl[:, :4] += 1e-3 * load[:, None] * np.array([1.5, -1.0, 2.0, 0.7])
+    return wl
+
+
+@pytest.mark.parametrize("kind", ["causal", "none"])
+@pytest.mark.parametrize("nets", ["numpy", "onnx"])
+def test_stepper_equals_batch_pipeline(kind: str, nets: str) -> None:
+    """What the single-sample timing runs is the real pipeline, sample for sample."""
+    model = _model(kind)
+    wl = _wavelengths(400)
+    base = wl[:20].mean(axis=0)
+    ref = fm.predict(model, wl, base)
+    st = timing.FloatStepper(model, base, nets)
+    got = [st.step(wl[i]) for i in range(wl.shape[0])]
+    contact = np.array([g["contact"] for g in got])
+    assert 0 < contact.sum() < contact.size  # both branches exercised
+    tol = 1e-9 if nets == "numpy" else 2e-3
+    if nets == "numpy":
+        assert np.array_equal(contact, ref["contact"])
+    same = contact == ref["contact"]
+    assert same.mean() > 0.99
+    np.testing.assert_allclose(np.array([g["force_N"] for g in got])[same], ref["force_N"][same],
+                               rtol=0, atol=tol * 10)
+    np.testing.assert_allclose(np.array([g["x_mm"] for g in got])[same], ref["x_mm"][same],
+                               rtol=0, atol=tol)
+
+
+def test_stepper_refuses_centred_filter() -> None:
+    model = _model()
+    model.preprocess = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
+                                     model.preprocess.input_mean, model.preprocess.input_std)
+    with pytest.raises(ValueError, match="centred"):
+        timing.FloatStepper(model, model.baseline_nm)
+
+
+def test_measure_reports_every_engine_and_missing_callables() -> None:
+    calls = {"a": 0, "b": 0}
+
+    def single(i: int) -> None:
+        calls["a"] += 1
+
+    def batch(a: int, b: int) -> None:
+        calls["b"] += b - a
+
+    res = timing.measure([timing.Timer("x", single=single, batch=batch), timing.Timer("y")], 100,
+                         single_calls=40, batch_size=30, batch_reps=4, rounds=2, warmup=5)
+    assert res["x"]["single_calls"] == 40 and res["x"]["batch_calls"] == 4
+    assert res["x"]["single_ns"] > 0 and res["x"]["batch_ns"] > 0
+    assert res["y"]["single_ns"] is None and res["y"]["batch_ns"] is None
+    assert calls["a"] == 45
+
+
+def test_pareto_mask() -> None:
+    pts = [(1.0, 5.0), (2.0, 1.0), (1.5, 3.0), (2.0, 6.0), (1.0, 5.0), (3.0, 1.0)]
+    assert tradeoff.pareto_mask(pts) == [True, True, True, False, True, False]
+
+
+def test_grid_shapes() -> None:
+    s = tradeoff.Settings(sigmas=(2.0, 5.0), default_sigma=5.0)
+    star = [v.tag for v in tradeoff.variants(s)]
+    assert star == ["paper-nofilter", "paper-causal-s2", "paper-causal-s5", "half-causal-s5",
+                    "quarter-causal-s5", "paper-centred-s5"]
+    s.grid = "full"
+    assert len(tradeoff.variants(s)) == 4 * 3
+    sizes = tradeoff.scaled_sizes("quarter")
+    assert sizes["location"] == [18, 12, 10] and sizes["contact"] == [18, 12, 5]
+
+
+def test_error_index_and_match() -> None:
+    ref = {"status": "ok", "contact_accuracy": 0.98, "rmse_force_N": 1.0, "rmse_x_mm": 0.5,
+           "rmse_y_mm": 1.0}
+    same = dict(ref, rmse_force_N=1.04)
+    worse = dict(ref, rmse_y_mm=1.2)
+    tradeoff._score([ref, same, worse], ref)
+    assert ref["error_index"] == 1.0 and ref["matches_reference"]
+    assert same["matches_reference"] and math.isclose(same["error_index"], 1.04 ** 0.25)
+    assert not worse["matches_reference"] and worse["error_index"] > 1.0
+
+
+def test_qat_recovers_int8_accuracy() -> None:
+    """Fine-tuning with fake-quantised weights lowers the quantised net's loss."""
+    from fbgforce.trainer import qat
+    from fbgforce.trainer.nets import FlatMLP, fit
+
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((3000, 4))
+    y = (np.sin(x[:, :1] * 1.5) + x[:, 1:2] * x[:, 2:3] - 0.3 * x[:, 3:4])
+    net = FlatMLP([4, 24, 16, 1], rng)
+    fit(net, "mse", x, y, epochs=40, learning_rate=3e-3, progress=False)
+    mlp = net.to_mlp()
+    # 3-bit weights make the quantisation loss unmistakable on a small net.
+    fq = qat.FakeQuantMLP(mlp, 3, 16, x)
+    before = float(np.mean((fq.forward(x) - y) ** 2))
+    float_loss = float(np.mean((mlp.forward(x) - y) ** 2))
+    assert before > 3 * float_loss
+    fit(fq, "mse", x, y, epochs=6, learning_rate=1e-3, progress=False)
+    after = float(np.mean((fq.forward(x) - y) ** 2))
+    assert after < 0.5 * before
+    # Straight-through: what is kept are float shadow weights, not the quantised copies.
+    assert any(not np.array_equal(w, q) for w, q in zip(fq.W, fq.quantized_weights()))
+
+
+def test_qat_finetune_keeps_model_contract() -> None:
+    from fbgforce.trainer import qat
+
+    model = _model()
+    rng = np.random.default_rng(2)
+    z = rng.standard_normal((600, 4))
+    contact = z[:, 0] > 0
+    force = np.where(contact, 10 + 5 * z[:, 1], 0.0)
+    x = np.where(contact, 10 + z[:, 2], np.nan)
+    y = np.where(contact, 13 + z[:, 3], np.nan)
+    tuned, rep = qat.finetune(model, z, contact, force, x, y, epochs=1, progress=False)
+    assert [n.sizes for n in tuned.nets.values()] == [n.sizes for n in model.nets.values()]
+    assert tuned.metadata["qat"]["weight_bits"] == 8
+    assert tuned.preprocess is model.preprocess and tuned.force_scale == model.force_scale
+    assert set(rep) >= {"contact", "force", "location"}
+
+
+def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
+    """``fbgforce tradeoff --quick`` on a small scene: every output written and consistent."""
+    sim = pytest.importorskip("fbgforce.sim")
+    if not hasattr(sim, "simulate"):
+        pytest.skip("simulator not available")
+    out = tmp_path / "t"
+    code = main(["tradeoff", "--scene", "smoke", "--out", str(out), "--quick", "--json"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    res = json.loads((out / "tradeoff.json").read_text())
+    for name in ("json", "csv", "md"):
+        assert (out / f"tradeoff.{name}").stat().st_size > 0
+    rows = res["rows"]
+    ok = [r for r in rows if r["status"] == "ok"]
+    engines_ok = {r["engine"] for r in ok}
+    assert {"numpy-f64", "onnx-f32"} <= engines_ok
+    # Every engine is either measured or says why not; nothing silently dropped.
+    assert {r["engine"] for r in rows} == {s.name for s in tradeoff.ENGINE_SPECS}
+    assert all(r["status"] == "ok" or r["status"].startswith(("missing", "n/a")) for r in rows)
+    ref = [r for r in ok if r["is_reference"]]
+    assert len(ref) == 1 and ref[0]["error_index"] == 1.0
+    for r in ok:
+        assert 0.0 <= r["contact_accuracy"] <= 1.0 and r["rmse_force_N"] >= 0
+        assert r["host_batch_ns"] > 0 and r["macs"] >= r["macs_nets"] > 0
+        if r["causal"]:
+            assert r["host_single_ns"] > 0
+    # onnxruntime and numpy score the same model alike (float32 vs float64).
+    by = {(r["variant"], r["engine"]): r for r in ok}
+    for (variant, engine), r in by.items():
+        if engine == "onnx-f32":
+            f64 = by[(variant, "numpy-f64")]
+            assert abs(r["rmse_force_N"] - f64["rmse_force_N"]) < 0.01 * f64["rmse_force_N"] + 1e-3
+    # The shipped causal filter delays; no filter does not; the front is non-empty.
+    delays = {r["filter"]: r["filter_delay_ms"] for r in ok}
+    assert delays["none"] == 0.0 and delays["causal"] > 0.0
+    assert any(r["pareto_compute"] for r in ok)
+    assert summary["measured"] == len(ok) and summary["summary"] == res["summary"]
+    assert "reference" in res["summary"]
+    csv_lines = (out / "tradeoff.csv").read_text().strip().splitlines()
+    assert len(csv_lines) == len(rows) + 1

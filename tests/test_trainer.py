@@ -1,0 +1,319 @@
+"""Trainer: nets, optimizer, preprocessing, metrics, engines, baseline, training (no simulator)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbgforce import engines, metrics
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+from fbgforce.trainer import baseline as bl
+from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.nets import FlatMLP, fit, mse, predict_batched, softmax_xent
+from fbgforce.trainer.optim import AdamOptimizer
+
+
+# ------------------------------------------------------------------------------ nets
+@pytest.mark.parametrize("hidden", ["relu", "linear"])
+@pytest.mark.parametrize("loss", ["xent", "mse"])
+def test_gradient_matches_finite_differences(hidden, loss):
+    rng = np.random.default_rng(3)
+    net = FlatMLP([4, 9, 7, 3], rng, hidden=hidden)
+    net.theta += rng.normal(0, 0.1, net.theta.size)  # non-zero biases too
+    x = rng.standard_normal((11, 4))
+    y = rng.integers(0, 3, 11) if loss == "xent" else rng.standard_normal((11, 3))
+    fn = softmax_xent if loss == "xent" else mse
+    out = net.forward(x, keep=True)
+    _, dout = fn(out, y)
+    dx = net.backward(dout)
+    analytic = net.grad.copy()
+    numeric = np.empty_like(analytic)
+    eps = 1e-6
+    for i in range(net.theta.size):
+        old = net.theta[i]
+        net.theta[i] = old + eps
+        lp = fn(net.forward(x), y)[0]
+        net.theta[i] = old - eps
+        lm = fn(net.forward(x), y)[0]
+        net.theta[i] = old
+        numeric[i] = (lp - lm) / (2 * eps)
+    assert np.max(np.abs(analytic - numeric)) < 1e-7 * max(1.0, np.max(np.abs(numeric)))
+    # Input gradient too (chained nets and the gradient check of the data path).
+    num_dx = np.empty_like(x)
+    for idx in np.ndindex(*x.shape):
+        xp, xm = x.copy(), x.copy()
+        xp[idx] += eps
+        xm[idx] -= eps
+        num_dx[idx] = (fn(net.forward(xp), y)[0] - fn(net.forward(xm), y)[0]) / (2 * eps)
+    assert np.allclose(dx, num_dx, atol=1e-7)
+
+
+def test_flat_mlp_matches_model_contract():
+    rng = np.random.default_rng(0)
+    net = FlatMLP([4, 70, 50, 20, 2], rng)
+    x = rng.standard_normal((50, 4))
+    assert np.allclose(net.forward(x), net.to_mlp().forward(x))
+    again = FlatMLP([4, 70, 50, 20, 2], init=net.to_mlp())
+    assert np.array_equal(again.theta, net.theta)
+    with pytest.raises(ValueError):
+        FlatMLP([4, 10, 2], init=net.to_mlp())
+
+
+def test_adam_minimises_a_quadratic():
+    target = np.array([3.0, -2.0, 0.5])
+    theta = np.zeros(3)
+    opt = AdamOptimizer(3, learning_rate_init=0.1, decay=0.99)
+    for _ in range(2000):
+        opt.update_params(theta, 2 * (theta - target))
+        if opt.t % 100 == 0:
+            opt.epoch_ends()
+    assert np.allclose(theta, target, atol=1e-3)
+    assert opt.learning_rate == pytest.approx(0.1 * 0.99 ** 20)
+
+
+def test_contact_net_learns_a_nonlinear_boundary():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(-1, 1, (6000, 4))
+    y = (x[:, 0] ** 2 + x[:, 1] ** 2 > 0.4).astype(np.int64)
+    net = FlatMLP([4, 70, 50, 20, 2], rng)
+    fit(net, "xent", x[:5000], y[:5000], x[5000:], y[5000:], epochs=40, progress=False, rng=rng)
+    acc = np.mean(np.argmax(net.forward(x[5000:]), 1) == y[5000:])
+    assert acc > 0.95
+
+
+def test_force_and_location_nets_learn_regressions():
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-1, 1, (6000, 6))
+    f = (x[:, 0] * x[:, 1] + np.sin(2 * x[:, 2]))[:, None]
+    xy = np.column_stack([x[:, 3] - x[:, 4] ** 2, x[:, 5] * x[:, 0]])
+    for sizes, inp, target in (([4, 70, 50, 20, 1], x[:, :4], f), ([6, 70, 50, 40, 2], x, xy)):
+        net = FlatMLP(sizes, rng)
+        start = mse(net.forward(inp[5000:]), target[5000:])[0]
+        rep = fit(net, "mse", inp[:5000], target[:5000], inp[5000:], target[5000:], epochs=60,
+                  progress=False, rng=rng)
+        end = mse(predict_batched(net, inp[5000:]), target[5000:])[0]
+        assert end < 0.02 * np.var(target) and end < 0.1 * start
+        assert rep["best_val_loss"] == pytest.approx(end)
+
+
+def test_early_stopping_keeps_best_epoch():
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((400, 4))
+    y = rng.standard_normal((400, 1))  # pure noise: validation loss cannot keep improving
+    net = FlatMLP([4, 70, 50, 20, 1], rng)
+    rep = fit(net, "mse", x[:300], y[:300], x[300:], y[300:], epochs=200, patience=3,
+              learning_rate=1e-2, progress=False, rng=rng)
+    assert rep["epochs_run"] < 200
+    assert rep["epochs_run"] - rep["best_epoch"] == 3
+    assert mse(net.forward(x[300:]), y[300:])[0] == pytest.approx(rep["best_val_loss"])
+
+
+# ------------------------------------------------------------------------------ preprocessing
+@pytest.mark.parametrize("sigma", [1.0, 3.0, 8.0])
+def test_causal_filter_uses_no_future_sample(sigma):
+    taps = pp.gaussian_taps("causal", sigma)
+    assert taps.sum() == pytest.approx(1.0) and np.all(np.diff(taps) < 0)
+    pre = pp.make_preprocess("causal", sigma, np.ones(4))
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal((500, 4))
+    y = fm.apply_filter(pre, x)
+    for n0 in (0, 1, 137, 499):
+        x2 = x.copy()
+        x2[n0:] += rng.standard_normal(x2[n0:].shape) * 100
+        y2 = fm.apply_filter(pre, x2)
+        assert np.array_equal(y2[:n0], y[:n0])
+        assert not np.allclose(y2[n0], y[n0])
+    # Group delay of a half-Gaussian ~ sigma * sqrt(2/pi), reported in ms at the sample rate.
+    assert pp.group_delay_ms(pre, 1000.0) == pytest.approx(np.dot(np.arange(taps.size), taps))
+    if sigma >= 3:
+        assert pp.group_delay_ms(pre, 1000.0) == pytest.approx(sigma * np.sqrt(2 / np.pi), rel=0.15)
+    assert pp.group_delay_ms(pre, 500.0) == pytest.approx(2 * pp.group_delay_ms(pre, 1000.0))
+
+
+def test_centred_filter_is_symmetric_and_none_is_identity():
+    taps = pp.gaussian_taps("centred", 4.0)
+    assert taps.size % 2 == 1 and np.allclose(taps, taps[::-1])
+    assert pp.gaussian_taps("none", 4.0).tolist() == [1.0]
+    assert pp.make_preprocess("causal", 0.0, np.ones(4)).filter_kind == "none"
+    with pytest.raises(InputError):
+        pp.gaussian_taps("boxcar", 2.0)
+
+
+def test_compensation_removes_a_pure_temperature_ramp(synthetic_recording):
+    coeff = np.array([0.95, 1.0, 1.03, 1.08])
+    # No contact at all: 30 presses with zero force are just rest; 400 pm of drift (~20 K).
+    ds = synthetic_recording(n_press=30, temp_ramp_pm=400.0, noise_pm=2.0, temp_coeff=coeff)
+    free = ds.subset(~ds.contact)
+    base, info = pp.tare(free.wl_nm, free.contact, free.t_s)
+    shift = (free.wl_nm - base) * 1000.0
+    mask = pp.contact_free_mask(free.contact, free.t_s)
+    k, tinfo = pp.fit_temp_coeff([shift], [mask])
+    assert np.allclose(k, coeff, atol=0.01)
+    assert min(tinfo["temp_coeff_identified"]) > 0.99
+    pre = pp.make_preprocess("causal", 5.0, k)
+    comp = pp.recording_features(pre, free.wl_nm, base)
+    raw = shift[:, :4] - shift[:, 4:]  # plain reference subtraction, k = 1
+    assert np.std(comp[50:]) < 2.0  # noise only (2 pm white, smoothed)
+    assert np.ptp(raw[:, 3]) > 25.0  # the ramp would have stayed without the fitted k
+
+
+def test_temperature_fit_falls_back_to_one_without_temperature_variation(synthetic_recording):
+    ds = synthetic_recording(n_press=20, temp_ramp_pm=0.0, noise_pm=5.0)
+    base, _ = pp.tare(ds.wl_nm, ds.contact, ds.t_s)
+    shift = (ds.wl_nm - base) * 1000.0
+    k, info = pp.fit_temp_coeff([shift], [pp.contact_free_mask(ds.contact, ds.t_s)])
+    assert np.allclose(k, 1.0, atol=0.05)
+    assert max(info["temp_coeff_identified"]) < 0.5
+
+
+def test_tare_prefers_start_and_rejects_files_without_rest():
+    wl = np.tile([1530.0, 1538.0, 1546.0, 1554.0, 1562.0], (100, 1))
+    contact = np.zeros(100, bool)
+    contact[40:] = True
+    wl[40:, :4] -= 0.5
+    wl[90:] += 0.01  # late drift after unloading must not move a start tare
+    contact[90:] = False
+    base, info = pp.tare(wl, contact)
+    assert info["tare_from"] == "start" and info["tare_samples"] == 40
+    assert np.allclose(base, [1530, 1538, 1546, 1554, 1562])
+    with pytest.raises(InputError, match="no contact-free"):
+        pp.tare(wl, np.ones(100, bool), path="x.csv")
+
+
+# ------------------------------------------------------------------------------ metrics
+def test_metric_definitions():
+    tc = np.array([1, 1, 1, 0, 0, 1], bool)
+    tf = np.array([10.0, 20.0, 3.0, 0.0, 0.0, 6.0])
+    tx = np.array([1.0, 2.0, 3.0, np.nan, np.nan, 10.0])
+    ty = np.array([4.0, 5.0, 6.0, np.nan, np.nan, 13.0])
+    pred = {"contact": np.array([1, 1, 0, 1, 0, 1], bool),
+            "force_N": np.array([11.0, 18.0, 99.0, 2.0, 0.0, 6.0]),  # 99 is gated to 0
+            "x_mm": np.array([1.5, 2.0, np.nan, 7.0, np.nan, 10.0]),
+            "y_mm": np.array([4.0, 6.0, np.nan, 7.0, np.nan, 13.0])}
+    m = metrics.compute(pred, tc, tf, tx, ty, pad_mm=(21.0, 27.0))
+    assert m["n_samples"] == 6
+    assert m["contact_accuracy"] == pytest.approx(4 / 6)
+    # Force over the 4 true contacts, the missed one counting its full 3 N.
+    assert m["rmse_force_N"] == pytest.approx(np.sqrt((1 + 4 + 9 + 0) / 4))
+    # Location over the 3 samples where both say contact.
+    assert m["rmse_x_mm"] == pytest.approx(np.sqrt(0.25 / 3))
+    assert m["rmse_y_mm"] == pytest.approx(np.sqrt(1 / 3))
+    assert m["contact_accuracy_above_5N"] == pytest.approx(1.0)  # 10, 20, 6 N all detected
+    assert m["false_contact_rate"] == pytest.approx(0.5)
+    low = m["by_force"][0]
+    assert low["range_N"] == [0.0, 5.0] and low["n_samples"] == 1
+    assert low["rmse_force_N"] == pytest.approx(3.0) and low["rmse_x_mm"] is None
+    # Only sample 0 (x = 1 mm) is closer than 2 mm to an edge; sample 1 is exactly 2 mm away.
+    assert m["boundary"]["n_samples"] == 1 and m["interior"]["n_samples"] == 3
+    assert m["boundary"]["rmse_x_mm"] == pytest.approx(0.5)
+    core = metrics.compute(pred, tc, tf, tx, ty, extras=False)
+    assert set(core) == {"contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"}
+
+
+# ------------------------------------------------------------------------------ engines
+def _tiny_model(rng):
+    pre = pp.make_preprocess("causal", 2.0, np.ones(4))
+    nets = {name: FlatMLP(s, rng).to_mlp() for name, s in
+            (("contact", [4, 8, 2]), ("force", [4, 8, 1]), ("location", [6, 8, 2]))}
+    return fm.HierarchicalModel(preprocess=pre, force_offset=1.0, force_scale=2.0,
+                                xy_offset=[10, 13], xy_scale=[3, 4],
+                                baseline_nm=[1530, 1538, 1546, 1554, 1562], **nets)
+
+
+def test_float_engine_and_errors(tmp_path):
+    rng = np.random.default_rng(0)
+    model = _tiny_model(rng)
+    wl = model.baseline_nm + rng.normal(0, 0.05, (200, 5))
+    out = engines.run_engine("float", None, model, wl, model.baseline_nm)
+    ref = fm.predict(model, wl, model.baseline_nm)
+    for k in ("contact", "force_N", "p_contact"):
+        assert np.array_equal(out[k], ref[k])
+    fm.save(model, tmp_path / "m")
+    again = engines.run_engine("float", tmp_path / "m", None, wl, model.baseline_nm)
+    assert np.allclose(again["force_N"], ref["force_N"])
+    with pytest.raises(InputError, match="unknown engine"):
+        engines.run_engine("gpu", None, model, wl, model.baseline_nm)
+    with pytest.raises(InputError, match=r"\(n, 5\)"):
+        engines.run_engine("float", None, model, wl[:, :4], model.baseline_nm)
+    assert engines.available()["float"] is True
+
+
+# ------------------------------------------------------------------------------ baseline
+def test_nominal_baseline_inverts_the_nominal_model_and_fit_recovers_a_device():
+    from fbgforce.geometry import NOMINAL
+
+    rng = np.random.default_rng(0)
+    f = rng.uniform(1, 70, 3000)
+    x, y = rng.uniform(0, 21, 3000), rng.uniform(0, 27, 3000)
+    shift = (NOMINAL.forward(f, x, y) - NOMINAL.base_wl_nm)[:, :4] * 1000.0
+    nom = bl.nominal()
+    nom.contact_threshold_N = 0.5
+    p = nom.predict(shift)
+    assert np.allclose(p["force_N"], f) and np.allclose(p["x_mm"], x) and np.allclose(p["y_mm"], y)
+    device = NOMINAL.replace(gain=[0.9, 1.1, 0.95, 1.05],
+                             supports_mm=NOMINAL.supports_mm + [[0.3, 1.0], [-0.2, 0.8],
+                                                                [0.1, -1.2], [0.0, 0.5]])
+    dshift = (device.forward(f, x, y) - device.base_wl_nm)[:, :4] * 1000.0
+    wrong = nom.predict(dshift)
+    fitted = bl.fit(dshift, f, x, y)
+    fitted.contact_threshold_N = 0.5
+    # A rigid pad has 3 degrees of freedom, so the four shifts span a 3-D subspace and the 12
+    # parameters are identifiable only up to one null direction; the PREDICTIONS are exact.
+    good = fitted.predict(dshift)
+    for key, truth in (("force_N", f), ("x_mm", x), ("y_mm", y)):
+        assert np.allclose(good[key], truth, atol=1e-6)
+    assert np.sqrt(np.mean((wrong["y_mm"] - y) ** 2)) > 0.3
+
+
+# ------------------------------------------------------------------------------ training
+def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording, tmp_path):
+    from fbgforce import dataset
+    from fbgforce.trainer.evaluate import evaluate
+    from fbgforce.trainer.train import train
+
+    ds = synthetic_recording(n_press=30, seed=1, temp_ramp_pm=100.0)
+    path = tmp_path / "rec.npz"
+    dataset.save(ds, path)
+    kw = dict(epochs=4, seed=7, progress=False,
+              sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
+    a = train([path], **kw)
+    b = train([ds], **kw)
+    for name in fm.NET_NAMES:
+        for wa, wb in zip(a.nets[name].weights, b.nets[name].weights):
+            assert np.array_equal(wa, wb)
+    md = a.metadata
+    assert md["data"][0]["sha256"] and md["seed"] == 7
+    assert md["sizes"]["location"] == [6, 16, 8, 2]
+    assert md["split"]["samples"]["train"] > 5 * md["split"]["samples"]["test"] > 0
+    fm.save(a, tmp_path / "m")
+    ev = evaluate(tmp_path / "m", [path], split="test")
+    for k in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"):
+        assert ev[k] == pytest.approx(md["metrics"]["test"][k], rel=1e-9)
+
+
+def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
+    from fbgforce.trainer.train import train
+
+    ds = synthetic_recording(n_press=40, seed=2, noise_pm=3.0)
+    model = train([ds], epochs=25, seed=0, progress=False)
+    test = model.metadata["metrics"]["test"]
+    assert test["contact_accuracy"] > 0.95
+    assert test["rmse_force_N"] < 3.0 and test["rmse_x_mm"] < 2.0 and test["rmse_y_mm"] < 2.5
+    other = synthetic_recording(n_press=40, seed=3, base_nm=[1531, 1539, 1545, 1553, 1561])
+    fresh = train([other], epochs=1, seed=0, progress=False)
+    warm = train([other], epochs=1, seed=0, progress=False, init=model)
+    f_loss = fresh.metadata["history"]["force"][0]["val_loss"]
+    w_loss = warm.metadata["history"]["force"][0]["val_loss"]
+    assert w_loss < f_loss
+    assert np.array_equal(warm.preprocess.input_std, model.preprocess.input_std)
+
+
+def test_train_rejects_bad_inputs(synthetic_recording):
+    from fbgforce.trainer.train import train
+
+    ds = synthetic_recording(n_press=5, seed=1)
+    with pytest.raises(InputError, match="no training data"):
+        train([], progress=False)
+    no_rest = ds.subset(ds.contact)
+    with pytest.raises(InputError, match="contact-free"):
+        train([no_rest], epochs=1, progress=False)

@@ -1,0 +1,184 @@
+"""Subcommands of the trainer: ``train``, ``evaluate``, ``analyze``, ``report`` (docs/cli.md)."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce.errors import InputError
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    value = float(text)
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
+    return value
+
+
+def _check_files(paths: list[str], flag: str) -> None:
+    for p in paths:
+        if not Path(p).is_file():
+            raise InputError("no such file", path=p, column=flag)
+
+
+def register(subparsers: Any) -> None:
+    """Add ``train``, ``evaluate``, ``analyze`` and ``report`` to the ``fbgforce`` command."""
+    from fbgforce.cli import add_json_flag
+    from fbgforce.engines import ENGINES
+    from fbgforce.model import FILTER_KINDS
+    from fbgforce.trainer.evaluate import SPLITS
+    from fbgforce.trainer.preprocess import DEFAULT_SIGMA
+
+    p = subparsers.add_parser(
+        "train", help="train the hierarchical contact/force/location nets",
+        description="Fit preprocessing (tare, temperature coefficients, Gaussian filter), split "
+                    "8:1:1 by press, train the contact, force and location nets (numpy, Adam, "
+                    "early stopping) and write a model directory.")
+    p.add_argument("--data", nargs="+", required=True, metavar="FILE",
+                   help="calibration recordings (CSV or npz, dataset contract), one device")
+    p.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
+    p.add_argument("--epochs", type=_positive_int, default=200,
+                   help="maximum epochs per net (early stopping usually ends sooner; default 200)")
+    p.add_argument("--seed", type=int, default=0, help="split, initialisation and shuffling seed")
+    p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
+                   help="smoothing: causal (shipped, default), centred (offline, paper) or none")
+    p.add_argument("--sigma", type=_non_negative, default=DEFAULT_SIGMA,
+                   help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA:g}; 0 = no filter)")
+    p.add_argument("--window", type=_positive_int, default=None,
+                   help="filter taps (causal) or half-width (centred); default ceil(3 sigma)")
+    p.add_argument("--init", metavar="MODEL_DIR", default=None,
+                   help="start from another device's model (transfer learning)")
+    p.add_argument("--train-fraction", type=float, default=1.0,
+                   help="use only this fraction of the training presses (default 1)")
+    add_json_flag(p)
+    p.set_defaults(handler=_train)
+
+    p = subparsers.add_parser(
+        "evaluate", help="score a model on recordings with one engine",
+        description="Run a model on each recording (tared on its own contact-free samples) with "
+                    "an engine and print the shared metrics.")
+    p.add_argument("--model", required=True, metavar="MODEL_DIR")
+    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
+    p.add_argument("--engine", choices=tuple(ENGINES), default="float",
+                   help="float (numpy float64, default), onnx, fixed, cfloat, intref")
+    p.add_argument("--split", choices=SPLITS, default="all",
+                   help="score all samples (default) or one part of the by-press split made "
+                        "with the model's seed")
+    add_json_flag(p)
+    p.set_defaults(handler=_evaluate)
+
+    p = subparsers.add_parser(
+        "analyze", help="auto-encoder study: how many features the four channels hold",
+        description="Train 4->k->4 auto-encoders (k = 1, 2, 3) on the compensated, filtered "
+                    "contact samples and print their reconstruction RMSE (paper §VII-D).")
+    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
+    p.add_argument("--plot", metavar="PNG", default=None,
+                   help="write the 3-feature embedding (paper Fig. 10); needs matplotlib")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--epochs", type=_positive_int, default=30)
+    add_json_flag(p)
+    p.set_defaults(handler=_analyze)
+
+    p = subparsers.add_parser(
+        "report", help="the paper's results side by side with ours",
+        description="Model-based (nominal, fitted) vs network (causal, centred, unfiltered) on "
+                    "the held-out test presses; contact success overall and above 5 N; errors "
+                    "by force range and at the boundary. Writes report.md and report.json.")
+    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
+    p.add_argument("--model", metavar="MODEL_DIR", default=None,
+                   help="use this model for the causal network instead of training one")
+    p.add_argument("--out", metavar="DIR", default=None, help="write report.md and report.json")
+    p.add_argument("--epochs", type=_positive_int, default=200)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sigma", type=_non_negative, default=DEFAULT_SIGMA)
+    add_json_flag(p)
+    p.set_defaults(handler=_report)
+
+
+def _train(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce import model as fm
+    from fbgforce.trainer.train import train
+
+    _check_files(args.data, "--data")
+    if not 0.0 < args.train_fraction <= 1.0:
+        raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
+    model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
+                  sigma=args.sigma, window=args.window, init=args.init,
+                  train_fraction=args.train_fraction)
+    fm.save(model, args.out)
+    md = model.metadata
+    test = md["metrics"]["test"] or {}
+    from fbgforce.metrics import headline
+    print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
+          f"{headline(test)}", file=sys.stderr)
+    return {"model": str(args.out), "seconds": md["times_s"]["prepare"] + md["times_s"]["train"],
+            "epochs": {k: v["epochs_run"] for k, v in md["training"].items()},
+            "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
+            "val": md["metrics"]["val"], "test": md["metrics"]["test"]}
+
+
+def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.metrics import headline
+    from fbgforce.trainer.evaluate import evaluate
+
+    _check_files(args.data, "--data")
+    out = evaluate(args.model, args.data, engine=args.engine, split=args.split)
+    if not args.json:
+        print(f"{args.engine}: {headline(out)} (n={out['n_samples']})")
+    return out
+
+
+def _analyze(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.trainer.analysis import autoencoder_study, plot_embedding
+    from fbgforce.trainer.train import load_datasets, prepare
+
+    _check_files(args.data, "--data")
+    ds_list, described = load_datasets(args.data)
+    data = prepare(ds_list, seed=args.seed, sources=[d["path"] for d in described])
+    rows = np.flatnonzero(data.contact)
+    if rows.size < 10:
+        raise InputError("fewer than 10 contact samples to analyse", path=args.data[0],
+                         column="contact")
+    feats = data.feats[rows]
+    z = (feats - feats.mean(axis=0)) / np.maximum(feats.std(axis=0), 1e-3)
+    res = autoencoder_study(z, seed=args.seed, epochs=args.epochs)
+    emb, emb_rows = res.pop("embedding", None), res.pop("embedding_rows", None)
+    if args.plot:
+        if emb is None:
+            raise InputError("no 3-feature embedding to plot", column="--plot")
+        r = rows[emb_rows]
+        res["plot"] = (args.plot if plot_embedding(emb, data.force_N[r], data.x_mm[r],
+                                                   data.y_mm[r], args.plot) else None)
+        if res["plot"] is None:
+            print("fbgforce analyze: matplotlib is not installed; no plot written",
+                  file=sys.stderr)
+    if not args.json:
+        print("k  auto-encoder RMSE  PCA RMSE   (standardised units)")
+        for k, a, b in zip(res["ks"], res["rmse"], res["rmse_pca"]):
+            print(f"{k}  {a:17.3g}  {b:8.3g}")
+    res["data"] = [d["path"] for d in described]
+    return res
+
+
+def _report(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce.trainer.report import build_report, to_markdown, write
+
+    _check_files(args.data, "--data")
+    rep = build_report(args.data, model_dir=args.model, epochs=args.epochs, seed=args.seed,
+                       sigma=args.sigma)
+    if args.out:
+        md, js = write(rep, args.out)
+        rep["files"] = [str(md), str(js)]
+    if not args.json:
+        print(to_markdown(rep))
+    return rep

@@ -1,0 +1,250 @@
+"""Vectorised numpy MLPs for training: forward, backward, losses and the mini-batch loop.
+
+Layout follows :class:`fbgforce.model.MLP` (``W[l]`` shaped ``(n_out, n_in)``, ``a @ W.T + b``)
+so a trained net converts to the model contract without transposes. All weights and biases of a
+net live in ONE flat vector (``theta``) of which the per-layer arrays are views, and likewise
+the gradient; the optimizer then updates everything in a few numpy calls. The backward pass is
+the paper's eq. (8) with the mean over the mini-batch folded into the loss gradient.
+"""
+from __future__ import annotations
+
+import math
+import sys
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from fbgforce.model import MLP
+from fbgforce.trainer.optim import AdamOptimizer
+
+HIDDEN_ACTIVATIONS = ("relu", "linear")
+
+# ------------------------------------------------------------------------------------------
+# Losses: each returns (mean loss, gradient of that mean loss w.r.t. the net output)
+# ------------------------------------------------------------------------------------------
+
+
+def softmax_xent(logits: np.ndarray, labels: np.ndarray) -> tuple[float, np.ndarray]:
+    """Mean softmax cross-entropy of integer ``labels`` (n,) given ``logits`` (n, k)."""
+    n = logits.shape[0]
+    shifted = logits - logits.max(axis=1, keepdims=True)
+    exp = np.exp(shifted)
+    denom = exp.sum(axis=1, keepdims=True)
+    rows = np.arange(n)
+    loss = float(np.mean(np.log(denom[:, 0]) - shifted[rows, labels]))
+    grad = exp / denom
+    grad[rows, labels] -= 1.0
+    grad /= n
+    return loss, grad
+
+
+def mse(pred: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray]:
+    """Mean over samples of the mean squared error over outputs; ``pred``/``target`` (n, k)."""
+    diff = pred - target
+    loss = float(np.mean(diff * diff))
+    return loss, diff * (2.0 / diff.size)
+
+
+LOSSES: dict[str, Callable[[np.ndarray, np.ndarray], tuple[float, np.ndarray]]] = {
+    "xent": softmax_xent,
+    "mse": mse,
+}
+
+
+# ------------------------------------------------------------------------------------------
+# The trainable net
+# ------------------------------------------------------------------------------------------
+
+
+class FlatMLP:
+    """A ReLU (or linear) MLP with all parameters in one flat vector.
+
+    Parameters
+    ----------
+    sizes
+        Layer widths from input to output, e.g. ``[4, 70, 50, 20, 2]``.
+    rng
+        Generator for He-normal initialisation (ignored when ``init`` is given).
+    init
+        Start from these weights instead (transfer learning); must have the same sizes.
+    hidden
+        Hidden-layer activation: ``"relu"`` (the shipped nets) or ``"linear"`` (auto-encoder).
+    """
+
+    def __init__(self, sizes: Sequence[int], rng: np.random.Generator | None = None,
+                 init: MLP | None = None, hidden: str = "relu") -> None:
+        if hidden not in HIDDEN_ACTIVATIONS:
+            raise ValueError(f"hidden must be one of {HIDDEN_ACTIVATIONS}")
+        self.sizes = [int(s) for s in sizes]
+        if len(self.sizes) < 2 or min(self.sizes) < 1:
+            raise ValueError(f"bad layer sizes {self.sizes}")
+        self.hidden = hidden
+        shapes = [(o, i) for i, o in zip(self.sizes[:-1], self.sizes[1:])]
+        n = sum(o * i + o for o, i in shapes)
+        self.theta = np.zeros(n)
+        self.grad = np.zeros(n)
+        self.W: list[np.ndarray] = []
+        self.b: list[np.ndarray] = []
+        self.gW: list[np.ndarray] = []
+        self.gb: list[np.ndarray] = []
+        pos = 0
+        for o, i in shapes:
+            for params, grads, shape in ((self.W, self.gW, (o, i)), (self.b, self.gb, (o,))):
+                size = math.prod(shape)
+                params.append(self.theta[pos:pos + size].reshape(shape))
+                grads.append(self.grad[pos:pos + size].reshape(shape))
+                pos += size
+        if init is not None:
+            if init.sizes != self.sizes:
+                raise ValueError(f"initial net has sizes {init.sizes}, expected {self.sizes}")
+            for layer, (w, b) in enumerate(zip(init.weights, init.biases)):
+                self.W[layer][...] = w
+                self.b[layer][...] = b
+        else:
+            rng = rng if rng is not None else np.random.default_rng(0)
+            for w in self.W:
+                # He initialisation keeps ReLU activations' variance constant through depth.
+                w[...] = rng.standard_normal(w.shape) * np.sqrt(2.0 / w.shape[1])
+        self._acts: list[np.ndarray] = []
+
+    @property
+    def n_params(self) -> int:
+        return self.theta.size
+
+    def forward(self, x: np.ndarray, keep: bool = False) -> np.ndarray:
+        """Outputs for a batch ``x`` (n, n_in); ``keep`` stores activations for :meth:`backward`."""
+        a = x
+        acts = [a]
+        last = len(self.W) - 1
+        for layer, (w, b) in enumerate(zip(self.W, self.b)):
+            a = a @ w.T
+            a += b
+            if layer != last and self.hidden == "relu":
+                np.maximum(a, 0.0, out=a)
+            acts.append(a)
+        if keep:
+            self._acts = acts
+        return a
+
+    def backward(self, dout: np.ndarray) -> np.ndarray:
+        """Fill :attr:`grad` from the loss gradient w.r.t. the last :meth:`forward` output.
+
+        Returns the gradient w.r.t. the input (used by the gradient check and for chaining).
+        """
+        acts = self._acts
+        if not acts:
+            raise RuntimeError("backward() needs forward(..., keep=True) first")
+        dz = dout
+        for layer in range(len(self.W) - 1, -1, -1):
+            a_prev = acts[layer]
+            np.dot(dz.T, a_prev, out=self.gW[layer])
+            np.sum(dz, axis=0, out=self.gb[layer])
+            dz = dz @ self.W[layer]
+            if layer and self.hidden == "relu":
+                # ReLU's derivative: the activation was clipped to 0 exactly where z <= 0.
+                dz *= acts[layer] > 0.0
+        return dz
+
+    def to_mlp(self) -> MLP:
+        """A copy of the current weights as the model contract's :class:`~fbgforce.model.MLP`."""
+        return MLP([w.copy() for w in self.W], [b.copy() for b in self.b])
+
+
+# ------------------------------------------------------------------------------------------
+# The training loop
+# ------------------------------------------------------------------------------------------
+
+
+def predict_batched(net: FlatMLP, x: np.ndarray, batch: int = 65536) -> np.ndarray:
+    """Forward pass over a large array in chunks (bounded memory)."""
+    if x.shape[0] <= batch:
+        return net.forward(x)
+    return np.concatenate([net.forward(x[i:i + batch]) for i in range(0, x.shape[0], batch)])
+
+
+def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray | None = None,
+        y_val: np.ndarray | None = None, *, epochs: int = 100, batch_size: int = 128,
+        learning_rate: float = 1e-3, decay: float = 0.97, patience: int = 10,
+        min_delta: float = 1e-4, rng: np.random.Generator | None = None,
+        val_metrics: Callable[[FlatMLP], dict[str, float]] | None = None,
+        desc: str = "train", progress: bool | None = None,
+        time_budget_s: float | None = None) -> dict[str, Any]:
+    """Mini-batch Adam with learning-rate decay and early stopping on the validation loss.
+
+    Parameters
+    ----------
+    net
+        Trained in place; on return it holds the weights of the best validation epoch.
+    loss
+        ``"xent"`` (``y`` integer labels) or ``"mse"`` (``y`` shaped like the output).
+    x, y, x_val, y_val
+        Training and validation data. Without validation data, the training loss is used for
+        early stopping.
+    epochs, batch_size, learning_rate, decay, patience, min_delta
+        At most ``epochs`` passes; stop after ``patience`` epochs without a relative
+        improvement of ``min_delta`` in the validation loss.
+    rng
+        Shuffling order (seeded by the caller for reproducibility).
+    val_metrics
+        Called after each epoch for extra numbers shown in the progress bar and the history.
+    desc, progress
+        Progress bar label; ``progress=None`` shows it only on a terminal (tqdm's rule).
+    time_budget_s
+        Stop (keeping the best weights) once this much wall time has passed.
+
+    Returns
+    -------
+    dict
+        ``epochs_run``, ``best_epoch``, ``best_val_loss``, ``seconds``, ``history`` (per epoch:
+        loss, val_loss, lr and the ``val_metrics``).
+    """
+    from tqdm import tqdm
+
+    loss_fn = LOSSES[loss]
+    rng = rng if rng is not None else np.random.default_rng(0)
+    opt = AdamOptimizer(net.n_params, learning_rate, decay)
+    n = x.shape[0]
+    if n == 0:
+        raise ValueError(f"{desc}: no training samples")
+    use_val = x_val is not None and y_val is not None and x_val.shape[0] > 0
+    best_theta = net.theta.copy()
+    best_loss = np.inf
+    best_epoch = 0
+    history = []
+    t0 = time.perf_counter()
+    bar = tqdm(range(epochs), desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True,
+               disable=None if progress is None else not progress)
+    epochs_run = 0
+    for epoch in bar:
+        order = rng.permutation(n)
+        total = 0.0
+        for start in range(0, n, batch_size):
+            idx = order[start:start + batch_size]
+            out = net.forward(x[idx], keep=True)
+            batch_loss, dout = loss_fn(out, y[idx])
+            net.backward(dout)
+            opt.update_params(net.theta, net.grad)
+            total += batch_loss * idx.size
+        opt.epoch_ends()
+        epochs_run = epoch + 1
+        train_loss = total / n
+        val_loss = loss_fn(predict_batched(net, x_val), y_val)[0] if use_val else train_loss
+        row: dict[str, Any] = {"epoch": epochs_run, "loss": train_loss, "val_loss": val_loss,
+                               "lr": opt.learning_rate}
+        if val_metrics is not None:
+            row.update(val_metrics(net))
+        history.append(row)
+        bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v)
+                         for k, v in row.items() if k not in ("epoch", "lr")})
+        if val_loss < best_loss * (1.0 - min_delta):
+            best_loss, best_epoch = val_loss, epochs_run
+            best_theta[...] = net.theta
+        elif epochs_run - best_epoch >= patience:
+            break
+        if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
+            break
+    bar.close()
+    net.theta[...] = best_theta
+    return {"epochs_run": epochs_run, "best_epoch": best_epoch, "best_val_loss": float(best_loss),
+            "seconds": time.perf_counter() - t0, "history": history}

@@ -1,0 +1,263 @@
+"""Fitting the preprocessing parameters of :class:`fbgforce.model.Preprocess`.
+
+The float pipeline itself (``compensate -> apply_filter -> standardise``) is
+:mod:`fbgforce.model`; this module only *fits* its parameters from calibration recordings:
+
+- :func:`tare`: unloaded wavelengths (robust median of contact-free samples, preferring those at
+  the start of the recording, as the runtime tares after power-up);
+- :func:`fit_temp_coeff`: per-channel temperature coefficients by least squares of the strain
+  gratings' shifts on the reference grating's shift, over contact-free samples, shrunk toward
+  1.0 when the data does not contain enough temperature variation to identify them;
+- :func:`gaussian_taps`: the Gaussian smoothing filter, causal (half-Gaussian over the last
+  ``window`` samples, what ships) or centred (the paper's offline smoothing);
+- :func:`recording_features`: compensated, filtered shifts of one continuous recording, so that
+  every recording is filtered on its own BEFORE any split by press.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from types import SimpleNamespace
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+
+#: Contact-free samples this soon after a contact ends are left out of taring and of the
+#: temperature fit: a viscoelastic pad relaxes for a while after unloading (hysteresis).
+GUARD_S = 0.1
+#: Fewest contact-free samples at the start of a recording for a start-only tare.
+MIN_START_SAMPLES = 20
+#: Prior standard deviation of a temperature coefficient around 1.0 (gratings on one steel part
+#: differ by a few percent; their base wavelengths by up to ~2 %): the ridge toward 1.
+TEMP_PRIOR_SD = 0.25
+#: Default Gaussian sigma in samples, and the window in sigmas.
+DEFAULT_SIGMA = 5.0
+WINDOW_SIGMAS = 3.0
+
+
+def sample_rate_hz(t_s: np.ndarray) -> float:
+    """Sample rate from the median time step (robust to gaps and dropped samples)."""
+    t = np.asarray(t_s, dtype=np.float64)
+    if t.size < 2:
+        return 1000.0
+    dt = float(np.median(np.diff(t)))
+    return 1.0 / dt if dt > 0 else 1000.0
+
+
+def contact_free_mask(contact: np.ndarray, t_s: np.ndarray | None = None,
+                      guard_s: float = GUARD_S) -> np.ndarray:
+    """Contact-free samples, leaving out ``guard_s`` seconds after every contact ends."""
+    c = np.asarray(contact).astype(bool)
+    free = ~c
+    if not c.any() or guard_s <= 0:
+        return free
+    t = np.arange(c.size, dtype=np.float64) / 1000.0 if t_s is None else np.asarray(t_s, float)
+    # Time of the most recent contact sample at or before each sample (-inf before the first).
+    last_contact_t = np.where(c, t, -np.inf)
+    np.maximum.accumulate(last_contact_t, out=last_contact_t)
+    return free & (t - last_contact_t > guard_s)
+
+
+def tare(wl_nm: np.ndarray, contact: np.ndarray, t_s: np.ndarray | None = None, *,
+         path: str | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """Unloaded wavelengths (5,) of one recording: robust median of contact-free samples.
+
+    Uses the contact-free samples before the first contact when there are at least
+    :data:`MIN_START_SAMPLES` of them (what the runtime sees when it tares at start-up, and
+    free of any temperature drift later in the file); otherwise every contact-free sample the
+    file flags (``contact == 0``), minus a guard after each contact.
+
+    Returns
+    -------
+    baseline_nm, info
+        ``info`` says which samples were used (``"start"`` or ``"flagged"``) and how many.
+
+    Raises
+    ------
+    InputError
+        If the recording has no contact-free samples at all.
+    """
+    wl = np.asarray(wl_nm, dtype=np.float64)
+    c = np.asarray(contact).astype(bool)
+    if wl.shape[0] == 0:
+        raise InputError("empty recording: nothing to tare", path=path)
+    first = int(np.argmax(c)) if c.any() else c.size
+    if first >= MIN_START_SAMPLES:
+        sel = np.zeros(c.size, dtype=bool)
+        sel[:first] = True
+        how = "start"
+    else:
+        sel = contact_free_mask(c, t_s)
+        if not sel.any():
+            sel = ~c
+        how = "flagged"
+    if not sel.any():
+        raise InputError("no contact-free samples (contact == 0) to tare against: record some "
+                         "unloaded samples, ideally at the start", path=path, column="contact")
+    return np.median(wl[sel], axis=0), {"tare_samples": int(sel.sum()), "tare_from": how}
+
+
+def _block_means(x: np.ndarray, mask: np.ndarray, block: int) -> np.ndarray:
+    """Means of ``block`` consecutive masked samples inside contiguous masked runs."""
+    if block <= 1:
+        return x[mask]
+    idx = np.flatnonzero(mask)
+    if idx.size == 0:
+        return np.empty((0,) + x.shape[1:])
+    # Run boundaries where consecutive masked indices are not adjacent.
+    breaks = np.flatnonzero(np.diff(idx) != 1) + 1
+    out = []
+    for run in np.split(idx, breaks):
+        m = run.size // block
+        if m:
+            out.append(x[run[:m * block]].reshape(m, block, *x.shape[1:]).mean(axis=1))
+    return np.concatenate(out) if out else np.empty((0,) + x.shape[1:])
+
+
+def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray], *,
+                   rate_hz: float = 1000.0, prior_sd: float = TEMP_PRIOR_SD
+                   ) -> tuple[np.ndarray, dict[str, Any]]:
+    """Per-channel temperature coefficients ``k_i`` in ``shift_i ~ k_i * shift_T``.
+
+    Least squares over contact-free samples of all recordings (shifts relative to each
+    recording's own tare), on 50 ms block means (slow temperature survives, interrogator noise
+    averages out), with two safeguards that make it work on any file:
+
+    - errors in variables: the reference shift is noisy too, which would bias plain least
+      squares toward 0 when the temperature barely moves; its noise variance (from first
+      differences) is subtracted from the regressor's energy;
+    - shrinkage toward 1 like a Gaussian prior ``k ~ N(1, prior_sd^2)``: the least-squares
+      estimate gets the weight ``info / (info + 1/prior_sd^2)`` with ``info`` the reference
+      signal energy beyond what noise alone would give (over the residual variance), so with
+      little temperature variation the estimate moves smoothly to 1.0 (plain reference
+      subtraction) instead of to noise.
+
+    Parameters
+    ----------
+    shifts_pm
+        Per recording, (n, 5) tared shifts in pm (gratings 1..4, T).
+    masks
+        Per recording, (n,) contact-free samples to fit on.
+
+    Returns
+    -------
+    temp_coeff, info
+        ``info``: ``temp_coeff_identified`` (0..1 per channel, the data's weight against the
+        prior: ~0 means "fell back to 1.0"), ``temp_ref_range_pm`` (spread of the reference
+        shift seen), ``temp_fit_samples``.
+    """
+    block = max(1, int(round(0.05 * rate_hz)))
+    xs, ys, noise_t = [], [], []
+    for s, m in zip(shifts_pm, masks):
+        s = np.asarray(s, dtype=np.float64)
+        m = np.asarray(m, dtype=bool)
+        if m.sum() < 2:
+            continue
+        bm = _block_means(s, m, block)
+        if bm.shape[0] < 2:
+            continue
+        # Centred per recording: a tare is itself a noisy estimate, and its constant error
+        # must not pass for temperature; only variation within a recording identifies k.
+        bm = bm - bm.mean(axis=0)
+        xs.append(bm[:, fm.N_STRAIN])
+        ys.append(bm[:, :fm.N_STRAIN])
+        free_t = s[m, fm.N_STRAIN]
+        # White-noise variance of one sample from first differences, then of a block mean.
+        noise_t.append((np.var(np.diff(free_t)) / 2.0 / block, bm.shape[0] - 1))
+    n_fit = int(sum(x.size for x in xs))
+    if n_fit < 3:
+        return np.ones(fm.N_STRAIN), {"temp_coeff_identified": [0.0] * fm.N_STRAIN,
+                                      "temp_ref_range_pm": 0.0, "temp_fit_samples": n_fit}
+    x = np.concatenate(xs)
+    y = np.concatenate(ys)
+    noise_energy = sum(v * k for v, k in noise_t)
+    noise_energy_sd = math.sqrt(2.0 * sum(v * v * k for v, k in noise_t))
+    # Energy of the reference shift that noise does not explain (errors in variables) ...
+    sxx = max(float(x @ x) - noise_energy, 0.0)
+    sxy = x @ y
+    k_ols = sxy / sxx if sxx > 0 else np.ones(fm.N_STRAIN)
+    resid = y - np.outer(x, k_ols)
+    # Residual variance per channel, floored so a noiseless synthetic file stays well posed.
+    sigma2 = np.maximum(np.var(resid, axis=0), 1e-6)
+    # ... of which only what lies 3 standard deviations beyond pure noise's energy counts as
+    # information, so a file without temperature change gets weight ~0 (k = 1), not noise.
+    info_data = max(sxx - 3.0 * noise_energy_sd, 0.0) / sigma2
+    info_prior = 1.0 / prior_sd ** 2
+    weight = info_data / (info_data + info_prior)
+    coeff = 1.0 + weight * (k_ols - 1.0)
+    return coeff, {"temp_coeff_identified": weight.tolist(),
+                   "temp_ref_range_pm": float(np.percentile(x, 99) - np.percentile(x, 1)),
+                   "temp_fit_samples": n_fit}
+
+
+def gaussian_taps(kind: str, sigma: float = DEFAULT_SIGMA, window: int | None = None
+                  ) -> np.ndarray:
+    """Gaussian FIR taps summing to 1.
+
+    Parameters
+    ----------
+    kind
+        ``"causal"``: half-Gaussian over the last ``window`` samples, ``taps[k]`` weighting
+        sample ``n - k`` (no future sample, what a 1 kHz controller can run). ``"centred"``:
+        symmetric over ``2 * window + 1`` samples (the paper's offline smoothing).
+        ``"none"``: ``[1.0]``.
+    sigma
+        Standard deviation in samples.
+    window
+        Causal: number of taps; centred: half-width. Default ``ceil(3 sigma)`` (+1 causal).
+    """
+    if kind == "none" or sigma <= 0:
+        return np.ones(1)
+    if kind not in ("causal", "centred"):
+        raise InputError(f"filter must be one of {fm.FILTER_KINDS}, not {kind!r}",
+                         column="--filter")
+    if window is None:
+        window = int(math.ceil(WINDOW_SIGMAS * sigma)) + (1 if kind == "causal" else 0)
+    if window < 1:
+        raise InputError("filter window must be at least 1 sample", column="--window")
+    k = np.arange(window) if kind == "causal" else np.arange(-window, window + 1)
+    taps = np.exp(-0.5 * (k / sigma) ** 2)
+    return taps / taps.sum()
+
+
+def make_preprocess(kind: str, sigma: float, temp_coeff: np.ndarray,
+                    window: int | None = None) -> fm.Preprocess:
+    """A :class:`~fbgforce.model.Preprocess` with unit standardisation (fit it afterwards)."""
+    kind = "none" if sigma <= 0 else kind
+    return fm.Preprocess(temp_coeff=temp_coeff, filter_kind=kind, filter_sigma=float(sigma),
+                         taps=gaussian_taps(kind, sigma, window), input_mean=np.zeros(fm.N_STRAIN),
+                         input_std=np.ones(fm.N_STRAIN))
+
+
+def group_delay_ms(pre: fm.Preprocess, rate_hz: float = 1000.0) -> float:
+    """Delay the filter adds to a slowly varying signal, in milliseconds."""
+    return pre.group_delay_samples * 1000.0 / rate_hz
+
+
+def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
+    """Tared, temperature-compensated shifts (n, 4) in pm via :func:`fbgforce.model.compensate`."""
+    # compensate() only reads model.preprocess; a namespace avoids building a dummy model.
+    return fm.compensate(SimpleNamespace(preprocess=pre), wl_nm, baseline_nm)  # type: ignore[arg-type]
+
+
+def recording_features(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray
+                       ) -> np.ndarray:
+    """Compensated and filtered shifts (n, 4), pm, of ONE continuous recording (unstandardised)."""
+    return fm.apply_filter(pre, compensated(pre, wl_nm, baseline_nm))
+
+
+@dataclass
+class Standardisation:
+    """Input standardisation fitted on training features."""
+
+    mean: np.ndarray
+    std: np.ndarray
+
+    @classmethod
+    def fit(cls, x: np.ndarray) -> "Standardisation":
+        std = np.std(x, axis=0)
+        # A dead channel must not divide by zero; 1e-3 pm is far below any interrogator's noise.
+        return cls(np.mean(x, axis=0), np.maximum(std, 1e-3))

@@ -1,0 +1,219 @@
+"""``fbgforce report``: the paper's results section (§V, §VII) side by side with ours.
+
+Everything is measured on the held-out test presses (split 8:1:1 by press with the given seed)
+of the recordings given, with the shared metric definitions of :mod:`fbgforce.metrics`:
+
+- model-based baseline, nominal and fitted (:mod:`fbgforce.trainer.baseline`), on the same
+  compensated, causally filtered shifts the network sees;
+- the hierarchical network with the causal (shipped) filter, the centred (paper's offline)
+  filter and no filter (smoothing on/off, paper §VII-A);
+- contact success overall and above 5 N, errors by force range and near the boundary
+  (paper §VII-B).
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce import metrics as fmetrics
+from fbgforce import model as fm
+from fbgforce.trainer import baseline as bl
+from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.train import evaluate_rows, load_datasets, prepare, train
+
+#: The paper's numbers (Kim et al. 2019, §V and §VII-A).
+PAPER = {
+    "model_based": {"rmse_x_mm": 1.67, "rmse_y_mm": 9.72, "rmse_force_N": 10.18},
+    "network": {"rmse_x_mm": 0.43, "rmse_y_mm": 1.11, "rmse_force_N": 1.16,
+                "contact_accuracy": 0.984, "contact_accuracy_above_5N": 1.0},
+    "network_unfiltered": {"rmse_force_N": 1.53, "contact_accuracy": 0.953},
+    "training_time_s": 20 * 60,
+}
+KEYS = ("rmse_x_mm", "rmse_y_mm", "rmse_force_N", "contact_accuracy", "contact_accuracy_above_5N")
+
+
+def baselines(data: Any) -> dict[str, Any]:
+    """Nominal and fitted model-based estimates scored on the test rows of prepared data."""
+    tr, te = data.rows("train"), data.rows("test")
+    free = tr[~data.contact[tr]]
+    ctr = tr[data.contact[tr]]
+    out = {}
+    base_nm = np.median([r.baseline_nm for r in data.recordings], axis=0)
+    models = {"nominal": bl.nominal(base_nm),
+              "fitted": bl.fit(data.feats[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
+    for name, m in models.items():
+        m.set_threshold(data.feats[free])
+        pred = m.predict(data.feats[te])
+        out[name] = {"metrics": fmetrics.compute(pred, *data.truth(te)), "params": m.to_dict()}
+    return out
+
+
+def _fmt(v: Any, key: str) -> str:
+    if v is None:
+        return "–"
+    if key.startswith("contact"):
+        return f"{100 * v:.1f} %"
+    return f"{v:.2f}"
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or b is None or b == 0 else a / b
+
+
+def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = None,
+                 epochs: int = 200, seed: int = 0, sigma: float = pp.DEFAULT_SIGMA,
+                 progress: bool | None = None) -> dict[str, Any]:
+    """Run every comparison and return the report as a dict (see module docstring)."""
+    t0 = time.perf_counter()
+    ds_list, described = load_datasets(data_paths)
+    sources = [d.get("path") or d.get("source") or "" for d in described]
+    prepared = {kind: prepare(ds_list, seed=seed, filter=kind, sigma=sigma, sources=sources)
+                for kind in ("causal", "centred", "none")}
+    te = prepared["causal"].rows("test")
+    nets: dict[str, Any] = {}
+    for kind, data in prepared.items():
+        if kind == "causal" and model_dir is not None:
+            model = fm.load(model_dir)
+            # Run the given model's own preprocessing on each whole recording, then score
+            # the test presses of the same split.
+            from fbgforce.trainer.evaluate import evaluate
+            m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model)
+            nets[kind] = {"metrics": m, "model": str(model_dir),
+                          "train_seconds": model.metadata.get("times_s", {}).get("train")}
+            continue
+        t1 = time.perf_counter()
+        model = train(ds_list, epochs=epochs, seed=seed, filter=kind, sigma=sigma,
+                      prepared=data, progress=progress)
+        nets[kind] = {"metrics": evaluate_rows(model, data, data.rows("test")),
+                      "train_seconds": time.perf_counter() - t1,
+                      "group_delay_ms": model.metadata["filter"]["group_delay_ms"]}
+    base = baselines(prepared["causal"])
+    ours = nets["causal"]["metrics"]
+    nominal = base["nominal"]["metrics"]
+    checks = {
+        "network_beats_nominal_3x_y": (_ratio(nominal["rmse_y_mm"], ours["rmse_y_mm"]) or 0) >= 3,
+        "network_beats_nominal_3x_force":
+            (_ratio(nominal["rmse_force_N"], ours["rmse_force_N"]) or 0) >= 3,
+        "smoothing_improves_every_metric": _smoothing_improves(nets["causal"]["metrics"],
+                                                               nets["none"]["metrics"]),
+        "errors_concentrate_below_5N": _below_5n_worse(ours),
+        "errors_concentrate_at_boundary": _boundary_worse(ours),
+        "beats_paper_network": {k: (ours.get(k) is not None and
+                                    (ours[k] >= PAPER["network"][k] if k.startswith("contact")
+                                     else ours[k] <= PAPER["network"][k]))
+                                for k in KEYS},
+    }
+    return {
+        "data": described,
+        "seed": seed,
+        "test_samples": int(te.size),
+        "filter_sigma_samples": sigma,
+        "paper": PAPER,
+        "model_based": base,
+        "network": nets,
+        "ratios_nominal_over_network": {k: _ratio(nominal[k], ours[k])
+                                        for k in ("rmse_x_mm", "rmse_y_mm", "rmse_force_N")},
+        "checks": checks,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _smoothing_improves(on: dict[str, Any], off: dict[str, Any]) -> bool:
+    ok = True
+    for k in KEYS[:4]:
+        a, b = on.get(k), off.get(k)
+        if a is None or b is None:
+            return False
+        ok &= (a >= b) if k.startswith("contact") else (a <= b)
+    return bool(ok)
+
+
+def _below_5n_worse(m: dict[str, Any]) -> bool:
+    low, rest = m["by_force"][0], m["by_force"][1:]
+    worse = []
+    for k in ("rmse_x_mm", "rmse_y_mm", "contact_accuracy"):
+        others = [r[k] for r in rest if r[k] is not None]
+        if low[k] is None or not others:
+            continue
+        worse.append(low[k] < min(others) if k.startswith("contact") else low[k] > max(others))
+    return bool(worse) and all(worse)
+
+
+def _boundary_worse(m: dict[str, Any]) -> bool:
+    b, i = m["boundary"], m["interior"]
+    pairs = [(b[k], i[k]) for k in ("rmse_x_mm", "rmse_y_mm") if b[k] is not None and i[k] is not None]
+    return bool(pairs) and all(bv > iv for bv, iv in pairs)
+
+
+def to_markdown(rep: dict[str, Any]) -> str:
+    """The report as Markdown tables."""
+    P = rep["paper"]
+    nom, fit_ = rep["model_based"]["nominal"]["metrics"], rep["model_based"]["fitted"]["metrics"]
+    nets = rep["network"]
+    lines = ["# fbgforce report: paper vs ours", "",
+             f"Data: {', '.join(str(d.get('path') or d.get('source')) for d in rep['data'])}; "
+             f"held-out test presses ({rep['test_samples']} samples, split 8:1:1 by press, "
+             f"seed {rep['seed']}). Metric definitions: docs/cli.md.", "",
+             "## Model-based vs network (§V)", "",
+             "| metric | paper model | ours nominal | ours fitted | paper network | "
+             "ours causal | ours centred | ours unfiltered |",
+             "|---|---|---|---|---|---|---|---|"]
+    for k in KEYS:
+        lines.append("| " + " | ".join([
+            k, _fmt(P["model_based"].get(k), k), _fmt(nom.get(k), k), _fmt(fit_.get(k), k),
+            _fmt(P["network"].get(k), k), _fmt(nets["causal"]["metrics"].get(k), k),
+            _fmt(nets["centred"]["metrics"].get(k), k), _fmt(nets["none"]["metrics"].get(k), k)])
+            + " |")
+    r = rep["ratios_nominal_over_network"]
+    lines += ["", "Nominal baseline / causal network: " + ", ".join(
+        f"{k} {v:.1f}×" for k, v in r.items() if v is not None), "",
+        "## Smoothing on/off (§VII-A)", "",
+        "| metric | paper off | paper on | ours off | ours causal | ours centred |",
+        "|---|---|---|---|---|---|"]
+    for k in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm"):
+        lines.append("| " + " | ".join([
+            k, _fmt(P["network_unfiltered"].get(k), k), _fmt(P["network"].get(k), k),
+            _fmt(nets["none"]["metrics"].get(k), k), _fmt(nets["causal"]["metrics"].get(k), k),
+            _fmt(nets["centred"]["metrics"].get(k), k)]) + " |")
+    gd = nets["causal"].get("group_delay_ms")
+    if gd is not None:
+        lines += ["", f"Causal filter group delay: {gd:.2f} ms."]
+    m = nets["causal"]["metrics"]
+    lines += ["", "## Errors by force range and at the boundary (§VII-B), causal network", "",
+              "| samples | n | contact | force RMSE N | x RMSE mm | y RMSE mm |",
+              "|---|---|---|---|---|---|"]
+    rows = [(f"{lo:g}–{hi:g} N" if hi is not None else f"> {lo:g} N", b)
+            for b in m["by_force"] for lo, hi in [b["range_N"]]]
+    rows += [(f"boundary (< {m['boundary']['within_mm']:g} mm from edge)", m["boundary"]),
+             ("interior", m["interior"])]
+    for label, b in rows:
+        lines.append(f"| {label} | {b['n_samples']} | {_fmt(b['contact_accuracy'], 'contact')} | "
+                     f"{_fmt(b['rmse_force_N'], 'f')} | {_fmt(b['rmse_x_mm'], 'x')} | "
+                     f"{_fmt(b['rmse_y_mm'], 'y')} |")
+    lines += ["", "## Checks", ""]
+    for k, v in rep["checks"].items():
+        lines.append(f"- {k}: {v}")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def write(rep: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
+    """Write ``report.md`` and ``report.json`` into ``out_dir``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    md, js = out / "report.md", out / "report.json"
+    md.write_text(to_markdown(rep))
+    js.write_text(json.dumps(rep, indent=2, default=_json_default) + "\n")
+    return md, js
+
+
+def _json_default(v: Any) -> Any:
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(type(v).__name__)

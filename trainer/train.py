@@ -1,0 +1,349 @@
+"""Training the hierarchical model (paper §III) from calibration recordings.
+
+``train(datasets, ...)`` fits preprocessing (tare per recording, temperature coefficients,
+Gaussian filter, standardisation), splits every recording 8:1:1 BY PRESS, trains the contact,
+force and location nets in that order with Adam and early stopping, and returns a
+:class:`fbgforce.model.HierarchicalModel` whose metadata records the data (files and sha256),
+the seed, the sizes, the validation and test metrics and the times.
+
+Why by press: consecutive samples at 1 kHz are nearly identical (the same press, a few µN and
+a few pm apart); a split by sample puts the neighbours of every test sample in the training
+set, so the test error measures interpolation between twins, not the error on a new press.
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from fbgforce import __version__
+from fbgforce import metrics as fmetrics
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.nets import FlatMLP, fit, predict_batched
+
+#: Hidden-layer widths of the paper's Fig. 4.
+DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
+    "contact": (70, 50, 20),
+    "force": (70, 50, 20),
+    "location": (70, 50, 40),
+}
+SPLIT_RATIOS = (8, 1, 1)
+
+
+@dataclass
+class Recording:
+    """One continuous recording, tared and filtered on its own."""
+
+    ds: Any
+    source: str
+    baseline_nm: np.ndarray
+    tare_info: dict[str, Any]
+    rate_hz: float
+    shift_pm: np.ndarray
+    feats: np.ndarray | None = None
+    split: np.ndarray | None = None  # 0 train, 1 val, 2 test per sample
+
+
+@dataclass
+class Prepared:
+    """All recordings with a fitted preprocessing, ready to index by split."""
+
+    recordings: list[Recording]
+    pre: fm.Preprocess
+    temp_info: dict[str, Any]
+    feats: np.ndarray = field(init=False)
+    split: np.ndarray = field(init=False)
+    contact: np.ndarray = field(init=False)
+    force_N: np.ndarray = field(init=False)
+    x_mm: np.ndarray = field(init=False)
+    y_mm: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        recs = self.recordings
+        self.feats = np.concatenate([r.feats for r in recs])
+        self.split = np.concatenate([r.split for r in recs])
+        self.contact = np.concatenate([np.asarray(r.ds.contact, bool) for r in recs])
+        self.force_N = np.concatenate([np.asarray(r.ds.force_N, float) for r in recs])
+        self.x_mm = np.concatenate([np.asarray(r.ds.x_mm, float) for r in recs])
+        self.y_mm = np.concatenate([np.asarray(r.ds.y_mm, float) for r in recs])
+
+    def rows(self, part: str) -> np.ndarray:
+        """Sample indices of ``"train"``, ``"val"``, ``"test"`` or ``"all"``."""
+        if part == "all":
+            return np.arange(self.split.size)
+        return np.flatnonzero(self.split == {"train": 0, "val": 1, "test": 2}[part])
+
+    def truth(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
+        return self.contact[rows], self.force_N[rows], self.x_mm[rows], self.y_mm[rows]
+
+
+def file_sha256(path: str | Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def load_datasets(datasets: Sequence[Any]) -> tuple[list[Any], list[dict[str, Any]]]:
+    """Datasets from paths or objects, with a description (path, sha256) of each."""
+    from fbgforce import dataset as fds
+
+    out, described = [], []
+    for item in datasets:
+        if isinstance(item, (str, Path)):
+            out.append(fds.load(item))
+            described.append({"path": str(item), "sha256": file_sha256(item),
+                              "samples": len(out[-1])})
+        else:
+            out.append(item)
+            described.append({"path": None, "source": getattr(item, "source", ""),
+                              "samples": len(item)})
+    return out, described
+
+
+def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.ndarray:
+    """Per-sample split label (0 train, 1 val, 2 test) of one recording, by press."""
+    from fbgforce import dataset as fds
+
+    rows = np.arange(len(ds), dtype=np.int64)
+    tagged = ds.subset(np.ones(len(ds), dtype=bool))
+    tagged.extra = dict(tagged.extra)
+    tagged.extra["_row"] = rows
+    label = np.zeros(len(ds), dtype=np.int8)
+    parts = fds.split_by_press(tagged, seed=seed, ratios=tuple(ratios))
+    for value, part in enumerate(parts):
+        label[np.asarray(part.extra["_row"], dtype=np.int64)] = value
+    return label
+
+
+def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
+            sigma: float = pp.DEFAULT_SIGMA, window: int | None = None,
+            sources: Sequence[str] | None = None) -> Prepared:
+    """Tare, fit temperature coefficients, filter every recording, split each by press."""
+    if not datasets:
+        raise InputError("no training data given", column="--data")
+    recs = []
+    for i, ds in enumerate(datasets):
+        src = sources[i] if sources else getattr(ds, "source", f"recording {i}")
+        base, info = pp.tare(ds.wl_nm, ds.contact, ds.t_s, path=src)
+        shift = (np.asarray(ds.wl_nm, float) - base) * 1000.0
+        recs.append(Recording(ds, src, base, info, pp.sample_rate_hz(ds.t_s), shift))
+    rate = float(np.median([r.rate_hz for r in recs]))
+    masks = [pp.contact_free_mask(r.ds.contact, r.ds.t_s) for r in recs]
+    coeff, temp_info = pp.fit_temp_coeff([r.shift_pm for r in recs], masks, rate_hz=rate)
+    pre = pp.make_preprocess(filter, sigma, coeff, window)
+    for r in recs:
+        r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
+        r.split = split_rows(r.ds, seed)
+    return Prepared(recs, pre, temp_info)
+
+
+def _sizes(sizes: Mapping[str, Sequence[int]] | None) -> dict[str, list[int]]:
+    hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
+    for k, v in (sizes or {}).items():
+        if k not in hidden:
+            raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
+        hidden[k] = [int(s) for s in v]
+    n_in = {"contact": fm.N_STRAIN, "force": fm.N_STRAIN, "location": fm.LOCATION_INPUTS}
+    n_out = {"contact": 2, "force": 1, "location": 2}
+    return {k: [n_in[k], *hidden[k], n_out[k]] for k in hidden}
+
+
+def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
+    """Location-net input exactly as :func:`fbgforce.model.predict_from_features` builds it."""
+    return np.column_stack([z, contact.astype(np.float64), f_raw])
+
+
+def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
+                  extras: bool = True) -> dict[str, Any]:
+    """Float-pipeline metrics on given rows of prepared data."""
+    z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
+    pred = fm.predict_from_features(model, z)
+    return fmetrics.compute(pred, *data.truth(rows), extras=extras)
+
+
+def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: str = "causal",
+          sigma: float = pp.DEFAULT_SIGMA, window: int | None = None,
+          init: str | Path | fm.HierarchicalModel | None = None,
+          sizes: Mapping[str, Sequence[int]] | None = None, learning_rate: float = 1e-3,
+          decay: float = 0.97, patience: int = 10, batch_size: int = 128,
+          progress: bool | None = None, prepared: Prepared | None = None,
+          train_fraction: float = 1.0, time_budget_s: float | None = None
+          ) -> fm.HierarchicalModel:
+    """Train the hierarchical model on calibration recordings.
+
+    Parameters
+    ----------
+    datasets
+        Paths (CSV/npz in the dataset contract) or ``fbgforce.dataset.Dataset`` objects; each
+        one is a continuous recording of one device.
+    epochs, seed, learning_rate, decay, patience, batch_size
+        Training loop (see :func:`fbgforce.trainer.nets.fit`); ``seed`` fixes the split, the
+        initial weights and the shuffling, so a run is reproducible.
+    filter, sigma, window
+        Smoothing: ``causal`` (shipped), ``centred`` (offline, the paper's) or ``none``;
+        sigma in samples.
+    init
+        A model (or model directory) of another device to start from (paper §VII-C). Its input
+        standardisation and output scaling are kept so its weights keep their meaning; tare and
+        temperature coefficients are fitted on the new data.
+    sizes
+        Hidden widths per net, e.g. ``{"location": (70, 50, 40)}``; defaults :data:`DEFAULT_SIZES`.
+    prepared
+        Reuse the output of :func:`prepare` (same data, filter and seed) to save time.
+    train_fraction
+        Use only this fraction of the training presses (transfer study: "how much less data").
+    time_budget_s
+        Per-net wall-time cap (keeps the best weights so far).
+
+    Returns
+    -------
+    fbgforce.model.HierarchicalModel
+    """
+    t_start = time.perf_counter()
+    ds_list, described = load_datasets(datasets)
+    sources = [d.get("path") or d.get("source") or f"recording {i}"
+               for i, d in enumerate(described)]
+    init_model = fm.load(init) if isinstance(init, (str, Path)) else init
+    net_sizes = _sizes(sizes)
+    if init_model is not None:
+        for name, net in init_model.nets.items():
+            if sizes is None:
+                net_sizes[name] = net.sizes
+            elif net.sizes != net_sizes[name]:
+                raise InputError(f"--init model's {name} net has sizes {net.sizes}, not "
+                                 f"{net_sizes[name]}", column="--init")
+    if prepared is None:
+        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
+                           sources=sources)
+    data = prepared
+    t_prep = time.perf_counter() - t_start
+    tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
+    ss = np.random.SeedSequence(seed)
+    rng_init, rng_c, rng_f, rng_l, rng_sub = (np.random.default_rng(s) for s in ss.spawn(5))
+    if train_fraction < 1.0:
+        tr = _subsample_presses(data, tr, train_fraction, rng_sub)
+    if tr.size == 0 or not data.contact[tr].any() or data.contact[tr].all():
+        raise InputError("training split needs both contact and contact-free samples; "
+                         "give more presses or check the contact column", column="contact")
+
+    if init_model is not None:
+        std = pp.Standardisation(init_model.preprocess.input_mean, init_model.preprocess.input_std)
+        f_off, f_scale = init_model.force_offset, init_model.force_scale
+        xy_off, xy_scale = init_model.xy_offset, init_model.xy_scale
+    else:
+        std = pp.Standardisation.fit(data.feats[tr])
+        ctr = tr[data.contact[tr]]
+        f_off, f_scale = float(np.mean(data.force_N[ctr])), float(max(np.std(data.force_N[ctr]), 1e-6))
+        xy = np.column_stack([data.x_mm[ctr], data.y_mm[ctr]])
+        xy_off, xy_scale = np.nanmean(xy, axis=0), np.maximum(np.nanstd(xy, axis=0), 1e-6)
+    pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
+    pre.input_mean, pre.input_std = std.mean, std.std
+    z = (data.feats - std.mean) / std.std
+    common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
+                  decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s)
+    reports: dict[str, Any] = {}
+
+    # 1. Contact: every sample, softmax cross-entropy.
+    labels = data.contact.astype(np.int64)
+    cnet = FlatMLP(net_sizes["contact"], rng_init, init=init_model.contact if init_model else None)
+
+    def contact_val(net: FlatMLP) -> dict[str, float]:
+        return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z[va]), 1) == 1)
+                                         == data.contact[va])) if va.size else float("nan")}
+
+    reports["contact"] = fit(cnet, "xent", z[tr], labels[tr], z[va], labels[va], rng=rng_c,
+                             val_metrics=contact_val, desc="contact net", **common)
+    logits = predict_batched(cnet, z)
+    pred_contact = logits[:, 1] > logits[:, 0]
+
+    # 2. Force: true-contact samples only (the output is gated by the contact net anyway).
+    ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
+    ft = ((data.force_N - f_off) / f_scale)[:, None]
+    fnet = FlatMLP(net_sizes["force"], rng_init, init=init_model.force if init_model else None)
+
+    def force_val(net: FlatMLP) -> dict[str, float]:
+        e = (predict_batched(net, z[fva])[:, 0] * f_scale + f_off) - data.force_N[fva]
+        return {"val_rmse_N": float(np.sqrt(np.mean(e * e))) if e.size else float("nan")}
+
+    reports["force"] = fit(fnet, "mse", z[ftr], ft[ftr], z[fva], ft[fva], rng=rng_f,
+                           val_metrics=force_val, desc="force net", **common)
+    f_raw = predict_batched(fnet, z)[:, 0]
+
+    # 3. Location: samples where true and predicted contact agree (where a location is both
+    #    defined and output), fed the contact net's decision and the force net's OWN estimate.
+    loc_x = _loc_inputs(z, pred_contact, f_raw)
+    xy_t = (np.column_stack([data.x_mm, data.y_mm]) - xy_off) / xy_scale
+    ltr = tr[data.contact[tr] & pred_contact[tr]]
+    lva = va[data.contact[va] & pred_contact[va]]
+    lnet = FlatMLP(net_sizes["location"], rng_init,
+                   init=init_model.location if init_model else None)
+
+    def loc_val(net: FlatMLP) -> dict[str, float]:
+        e = (predict_batched(net, loc_x[lva]) - xy_t[lva]) * xy_scale
+        if not e.size:
+            return {}
+        r = np.sqrt(np.mean(e * e, axis=0))
+        return {"val_x_mm": float(r[0]), "val_y_mm": float(r[1])}
+
+    reports["location"] = fit(lnet, "mse", loc_x[ltr], xy_t[ltr], loc_x[lva], xy_t[lva],
+                              rng=rng_l, val_metrics=loc_val, desc="location net", **common)
+
+    model = fm.HierarchicalModel(
+        preprocess=pre, contact=cnet.to_mlp(), force=fnet.to_mlp(), location=lnet.to_mlp(),
+        force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
+        baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
+    t_train = time.perf_counter() - t_start - t_prep
+    rate = float(np.median([r.rate_hz for r in data.recordings]))
+    model.metadata = {
+        "fbgforce_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "data": [{**d, **r.tare_info, "baseline_nm": r.baseline_nm.tolist(),
+                  "sample_rate_hz": r.rate_hz} for d, r in zip(described, data.recordings)],
+        "seed": seed,
+        "split": {"by": "press", "ratios": list(SPLIT_RATIOS), "train_fraction": train_fraction,
+                  "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
+        "sizes": {name: net.sizes for name, net in model.nets.items()},
+        "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
+                   "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
+                   "sample_rate_hz": rate},
+        "temperature": {"temp_coeff": pre.temp_coeff.tolist(), **data.temp_info},
+        "init": str(init) if isinstance(init, (str, Path)) else (None if init is None else "model"),
+        "optimizer": {"name": "adam", "learning_rate": learning_rate, "decay_per_epoch": decay,
+                      "batch_size": batch_size, "max_epochs": epochs, "patience": patience},
+        "training": {name: {k: v for k, v in rep.items() if k != "history"}
+                     for name, rep in reports.items()},
+        "history": {name: rep["history"] for name, rep in reports.items()},
+        "times_s": {"prepare": t_prep, "train": t_train,
+                    **{name: rep["seconds"] for name, rep in reports.items()}},
+        "metrics": {"val": evaluate_rows(model, data, va) if va.size else None,
+                    "test": evaluate_rows(model, data, te) if te.size else None},
+        "platform": {"python": platform.python_version(), "numpy": np.__version__},
+    }
+    return model
+
+
+def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,
+                       rng: np.random.Generator) -> np.ndarray:
+    """Keep a random ``fraction`` of the presses among ``rows`` (whole presses, per recording)."""
+    keep = []
+    start = 0
+    for r in data.recordings:
+        n = len(r.ds)
+        sel = rows[(rows >= start) & (rows < start + n)]
+        pid = np.asarray(r.ds.press_id)[sel - start]
+        presses = np.unique(pid)
+        k = max(1, int(round(fraction * presses.size)))
+        chosen = rng.choice(presses, size=k, replace=False)
+        keep.append(sel[np.isin(pid, chosen)])
+        start += n
+    return np.concatenate(keep) if keep else rows[:0]
