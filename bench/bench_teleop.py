@@ -6,7 +6,8 @@ measured feedback delay:
 
 - no force feedback; the true force; the true force after 10/25/50 ms of delay;
 - the runtime estimator on the first model (what ships), and with 20/50 ms of added link delay;
-- the runtime estimator on each further model (e.g. trained with other ``--sigma``/``--filter``).
+- the runtime estimator on each further model (e.g. trained with other ``--sigma``/``--filter``);
+- the true force with a three times steeper stiffness slope (why the scene's slope is what it is).
 
 Usage::
 
@@ -70,6 +71,11 @@ def main(argv: list[str] | None = None) -> int:
 
     rows = run_ablation(scene, main_conditions, args.seed, args.runs, log=log)
     rows += run_ablation(scene, cheap_variants, args.seed, args.runs, log=log)
+    # Why the stiffness slope is what it is: three times steeper, even the true force makes
+    # the stiffening master oscillate with the hand.
+    steep = scene.with_values(master__full_stiffness_force_N=25.0)
+    rows += run_ablation(steep, [Condition("true force, steep slope (F_full 25 N)", TrueForce)],
+                         args.seed, args.runs, log=log)
     rows += run_ablation(scene, sensor_variants, args.seed, args.variant_runs, log=log)
 
     table = markdown_table(rows)

@@ -463,6 +463,10 @@ def recording_fm(data: str | None, scene: str, seed: int, samples: int) -> tuple
 
 def _figures(run: FirmwareRun, macs: list[int], contact: list[bool]) -> dict[str, Any]:
     w = np.asarray(run.windows, dtype=np.int64)
+    if w.size != len(macs):  # the run stopped early (fault, crash): no per-step figures
+        return {"instructions_per_step": int(w.max()) if w.size else None,
+                "instructions_per_step_mean": None, "instructions_per_step_no_contact_max": None,
+                "instructions_per_mac": None, "budget_fraction_at_168MHz": None}
     m = np.asarray(macs, dtype=np.int64)
     c = np.asarray(contact, dtype=bool)
     full = c & (m > 0)
@@ -629,9 +633,12 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
 def _print_summary(rep: dict[str, Any]) -> None:
     print(f"bit-exact on Cortex-M4 (portable and DSP): {rep['bit_exact']} over {rep['samples']} steps")
     for name, b in rep["builds"].items():
+        frac = b["budget_fraction_at_168MHz"]
+        share = f"{100 * frac:.1f} %" if frac is not None else "?"
         print(f"  {name:8s}: {b['instructions_per_step']} instructions worst step, "
-              f"{b['instructions_per_mac']} per MAC, {100 * b['budget_fraction_at_168MHz']:.1f} % "
-              f"of 1 ms at 168 MHz (1 instruction/cycle assumed)")
+              f"{b['instructions_per_mac']} per MAC, {share} of 1 ms at 168 MHz "
+              f"(1 instruction/cycle assumed)" + ("" if b["bit_exact"] else
+                                                  f"  MISMATCH: {b.get('first_mismatches')}"))
     print(f"  MACs per step {rep['macs_per_step']}; flash {rep['flash_bytes']} B "
           f"(text {rep['text_bytes']}, rodata {rep['rodata_bytes']}, data {rep['data_bytes']}); "
           f"RAM {rep['ram_bytes']} B (bss {rep['bss_bytes']}, state {rep['state_bytes']}, "

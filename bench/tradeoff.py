@@ -113,13 +113,16 @@ class Settings:
     rounds: int = 6
     target: bool = True
     engines: tuple[str, ...] = tuple(s.name for s in ENGINE_SPECS)
+    #: Run the int8 engines (export, QAT) on every causal variant, or only on the reference
+    #: variant (quick mode: each export costs seconds).
+    int8_all_variants: bool = True
 
 
 def quick_settings(seed: int = 0) -> Settings:
     """Small everything: for CI (< 60 s on a small scene)."""
     return Settings(seed=seed, epochs=4, time_budget_s=5.0, sigmas=(5.0,), widths=("paper", "quarter"),
                     qat_epochs=1, single_calls=300, batch_size=500, batch_reps=15, rounds=3,
-                    target=False)
+                    target=False, int8_all_variants=False)
 
 
 def variants(s: Settings) -> list[Variant]:
@@ -193,6 +196,35 @@ def _save_with_key(model: fm.HierarchicalModel, model_dir: Path, key: dict[str, 
     (model_dir / "tradeoff-key.json").write_text(json.dumps(key, indent=1) + "\n")
 
 
+#: Quantizer calibration uses at most this many samples (whole presses from the start of the
+#: first recording): the export's cost grows with it, its scales hardly do.
+CALIB_MAX_SAMPLES = 60000
+
+
+def calibration_subset(ds_list: Sequence[Any], sources: Sequence[str], out: Path) -> list[str]:
+    """Files to calibrate the fixed-point export on: the recordings, or a prefix of the first.
+
+    The exporter derives its scales from the ranges the float pipeline reaches on this data;
+    the first presses of a calibration protocol cover those ranges already, and exporting with
+    all 234k samples costs about five times longer per model for the same scales.
+    """
+    ds = ds_list[0]
+    if sum(len(d) for d in ds_list) <= CALIB_MAX_SAMPLES:
+        return list(sources)
+    from fbgforce import dataset as fds
+
+    pid = np.asarray(ds.press_id)
+    cut = CALIB_MAX_SAMPLES
+    # End on a press boundary so no press is cut in half.
+    while cut < len(ds) and pid[cut] == pid[cut - 1]:
+        cut += 1
+    path = out / "data" / f"calib-{Path(sources[0]).stem}-{cut}.npz"
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fds.save(ds.subset(np.arange(cut)), path)
+    return [str(path)]
+
+
 def export_fixed(model_dir: Path, bits: int, calib: Sequence[str]) -> str | None:
     """Write ``model.fbgm`` (and C source) for ``bits``-bit weights; None or the reason it failed.
 
@@ -200,9 +232,20 @@ def export_fixed(model_dir: Path, bits: int, calib: Sequence[str]) -> str | None
     recordings of the run (the model's training data).
     """
     try:
-        from fbgforce.export.exporter import export_model
+        from fbgforce.export.exporter import REPORT_FILE, check_fresh, export_model
     except ImportError as exc:
         return f"exporter not available ({exc})"
+    report = model_dir / REPORT_FILE
+    try:
+        # A rerun over reused models keeps a blob exported from these weights at these bits.
+        if (model_dir / "model.fbgm").is_file() and json.loads(report.read_text()).get("bits") == bits:
+            check_fresh(model_dir, fm.load(model_dir))
+            from fbgforce.pybind import Runtime
+
+            Runtime(model_dir)  # and this runtime still reads it (blob format version)
+            return None
+    except Exception:  # stale, unreadable or from another blob version: export again
+        pass
     try:
         export_model(model_dir, bits=bits, calib=calib)
     except Exception as exc:  # report it in the row, don't abort the whole grid
@@ -364,6 +407,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
     rate_hz = float(np.median([tr.pp.sample_rate_hz(ds.t_s) for ds in ds_list]))
     grid = variants(s)
     specs = [sp for sp in ENGINE_SPECS if sp.name in s.engines]
+    calib = calibration_subset(ds_list, sources, out)
     prepared_cache: dict[tuple[str, float], Any] = {}
     rows: list[dict[str, Any]] = []
     timers: list[timing.Timer] = []
@@ -398,23 +442,25 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
         dirs: dict[str, tuple[Path, fm.HierarchicalModel]] = {"float": (model_dir, model)}
         # Fixed-point blobs per artifact; an export failure only affects the fixed engines.
         export_err: dict[str, str | None] = {}
+        int8_here = s.int8_all_variants or v == Variant("causal", s.default_sigma, "paper")
         if v.causal and any(sp.engine == "fixed" for sp in specs):
-            export_err["float"] = export_fixed(model_dir, 16, sources)
-            if any(sp.artifact == "int8" for sp in specs):
+            export_err["float"] = export_fixed(model_dir, 16, calib)
+            if any(sp.artifact == "int8" for sp in specs) and int8_here:
                 d8 = out / "models" / f"{v.tag}-int8"
-                _save_with_key(model, d8, {**key, "artifact": "int8"})
+                if _reusable(d8, {**key, "artifact": "int8"}) is None:
+                    _save_with_key(model, d8, {**key, "artifact": "int8"})
                 dirs["int8"] = (d8, model)
-                export_err["int8"] = export_fixed(d8, 8, sources)
-            if any(sp.artifact == "int8-qat" for sp in specs):
+                export_err["int8"] = export_fixed(d8, 8, calib)
+            if any(sp.artifact == "int8-qat" for sp in specs) and int8_here:
                 dq = out / "models" / f"{v.tag}-int8-qat"
-                qkey = {**key, "artifact": "int8-qat", "qat_epochs": s.qat_epochs}
+                qkey = {**key, "artifact": "int8-qat", "qat_epochs": s.qat_epochs, "qat_rule": 2}
                 qmodel = _reusable(dq, qkey)
                 if qmodel is None:
                     log(f"QAT fine-tuning {v.tag} (int8 weights) ...")
                     qmodel = _qat_model(model, prep, s, qat)
                     _save_with_key(qmodel, dq, qkey)
                 dirs["int8-qat"] = (dq, qmodel)
-                export_err["int8-qat"] = export_fixed(dq, 8, sources)
+                export_err["int8-qat"] = export_fixed(dq, 8, calib)
 
         common = {
             "variant": v.tag, "width": v.width, "filter": v.filter,
@@ -431,6 +477,9 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             if sp.engine != "float" and sp.engine != "onnx" and not v.causal:
                 row["status"] = "n/a: the centred filter is offline only"
                 continue
+            if sp.artifact not in dirs:
+                row["status"] = "n/a: int8 engines run on the reference variant only (--quick)"
+                continue
             mdir, mdl = dirs[sp.artifact]
             err = export_err.get(sp.artifact) if sp.engine == "fixed" else None
             if err:
@@ -439,9 +488,14 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             row["model_bytes"] = _model_bytes(sp, mdl, mdir)
             try:
                 fn = fengines.get_engine(sp.engine)
-                preds = [fn(mdir, mdl, r.ds.wl_nm, r.baseline_nm) for r in prep.recordings]
             except InputError as exc:
                 row["status"] = f"missing: {exc}"
+                continue
+            try:
+                preds = [fn(mdir, mdl, r.ds.wl_nm, r.baseline_nm) for r in prep.recordings]
+            except Exception as exc:  # one broken engine must not lose the rest of the grid
+                row["status"] = f"error: {type(exc).__name__}: {exc}"
+                log(f"{v.tag}/{sp.name}: {row['status']}")
                 continue
             pred = {k: np.concatenate([np.asarray(p[k]) for p in preds])[test_rows]
                     for k in ("contact", "force_N", "x_mm", "y_mm")}
@@ -485,7 +539,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
     _mark_pareto(rows)
     result = {
         "command": " ".join(sys.argv) if sys.argv and sys.argv[0] else None,
-        "data": described, "sample_rate_hz": rate_hz,
+        "data": described, "sample_rate_hz": rate_hz, "quantizer_calibration": calib,
         "settings": {k: v for k, v in s.__dict__.items()},
         "reference": None if ref is None else {"variant": ref["variant"], "engine": ref["engine"]},
         "rows": rows,
@@ -649,11 +703,19 @@ def summary_paragraph(res: dict[str, Any]) -> str:
                      f"{_ns(r.get('host_single_ns'))} single"
                      + (f", {r['model_bytes']} model bytes" if r.get("model_bytes") else "") + ".")
     ratios = res.get("ratios", {})
+
+    def rel(x: float | None) -> str:
+        if not x:
+            return "–"
+        return f"{x:.1f}× slower than" if x >= 1 else f"{1 / x:.1f}× faster than"
+
     if ratios.get("onnx-f32_over_c-int16_batch"):
-        parts.append(f"Same model, same run: onnxruntime takes {ratios['onnx-f32_over_c-int16_batch']:.1f}× "
-                     f"and numpy {ratios['numpy-f64_over_c-int16_batch']:.1f}× the C int16 time "
-                     f"per sample batched ({ratios['onnx-f32_over_c-int16_single']:.1f}× and "
-                     f"{ratios['numpy-f64_over_c-int16_single']:.1f}× for single-sample calls).")
+        parts.append(
+            f"Same model, same run, relative to the C int16 runtime: batched, onnxruntime is "
+            f"{rel(ratios['onnx-f32_over_c-int16_batch'])} it and numpy "
+            f"{rel(ratios['numpy-f64_over_c-int16_batch'])} it; in single-sample calls "
+            f"onnxruntime is {rel(ratios['onnx-f32_over_c-int16_single'])} it and numpy "
+            f"{rel(ratios['numpy-f64_over_c-int16_single'])} it.")
     # Filter: what delay buys.
     filt = sorted((r for r in rows if r["width"] == "paper" and r["engine"] == "numpy-f64"),
                   key=lambda r: (not r["causal"], r["filter_delay_ms"]))
@@ -670,6 +732,18 @@ def summary_paragraph(res: dict[str, Any]) -> str:
         desc = "; ".join(f"{r['width']} ({r['macs_nets']} MACs): index {r['error_index']:.2f}, "
                          f"{_ns(r.get('host_batch_ns'))}" for r in widths)
         parts.append(f"Network width: {desc}.")
+    paper_cfg = next((r for r in rows if not r["causal"] and r["width"] == "paper"
+                      and r["engine"] == "numpy-f64"), None)
+    if paper_cfg is not None:
+        parts.append(f"The paper's own configuration (paper width, centred Gaussian σ = "
+                     f"{paper_cfg['sigma']:g}) reaches error index {paper_cfg['error_index']:.3f} "
+                     f"({acc(paper_cfg)}) but needs {paper_cfg['filter_delay_ms']:.0f} ms of future "
+                     f"samples, so it is an offline reference, off the deployable front.")
+    front = sorted((r for r in rows if r.get("pareto_compute")), key=lambda r: r["host_batch_ns"])
+    if front:
+        parts.append("Deployable Pareto front, error against host compute: " + ", ".join(
+            f"{r['variant']}/{r['engine']} ({_ns(r['host_batch_ns'])}, index {r['error_index']:.3f})"
+            for r in front) + ".")
     m4 = [r for r in rows if r["engine"] == "c-int16" and r.get("m4_instructions_per_step")]
     if m4:
         desc = "; ".join(
@@ -756,7 +830,8 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
     except ImportError:
         return "matplotlib not installed: no plot (pip install 'fbgforce[plot]')"
     rows = [r for r in res["rows"] if r.get("status") == "ok" and r.get("error_index") is not None]
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.2))
+    m4 = [r for r in rows if r.get("m4_instructions_per_step")]
+    fig, axes = plt.subplots(1, 3 if m4 else 2, figsize=(19 if m4 else 13, 5.2))
     engines = sorted({r["engine"] for r in rows}, key=[s.name for s in ENGINE_SPECS].index)
     markers = dict(zip([s.name for s in ENGINE_SPECS], "osD^vP"))
     widths = {"paper": 90, "half": 50, "quarter": 25}
@@ -770,10 +845,14 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
             keep = [(x, r) for x, r in zip(xs, pts) if x is not None]
             if not keep:
                 continue
-            ax.scatter([x for x, _ in keep], [r["error_index"] for _, r in keep],
-                       s=[widths.get(r["width"], 40) for _, r in keep], marker=markers.get(eng, "o"),
-                       facecolors=[cmap(i) if r["causal"] else "none" for _, r in keep],
-                       edgecolors=cmap(i), label=eng, alpha=0.8)
+            for causal in (True, False):
+                part = [(x, r) for x, r in keep if r["causal"] == causal]
+                if part:
+                    ax.scatter([x for x, _ in part], [r["error_index"] for _, r in part],
+                               s=[widths.get(r["width"], 40) for _, r in part],
+                               marker=markers.get(eng, "o"),
+                               facecolors=cmap(i) if causal else "none", edgecolors=cmap(i),
+                               linewidths=1.2, label=eng if causal else None, alpha=0.8)
         front_key = "pareto_compute" if xkey == "host_batch_ns" else "pareto_delay"
         front = sorted(((r["filter_delay_ms"] + (r.get("host_single_ns") or r.get("host_batch_ns") or 0) / 1e6
                          if xkey == "total_ms" else r["host_batch_ns"], r["error_index"])
@@ -813,6 +892,32 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
     axes[0].set_title("accuracy vs compute (marker size = width; hollow = offline filter)",
                       fontsize=9)
     axes[1].set_title("accuracy vs what the loop feels: filter delay + one step", fontsize=9)
+    if m4:
+        ax = axes[2]
+        for i, eng in enumerate(engines):
+            pts = [r for r in m4 if r["engine"] == eng]
+            if pts:
+                ax.scatter([r["m4_instructions_per_step"] for r in pts],
+                           [r["error_index"] for r in pts], s=[widths.get(r["width"], 40) for r in pts],
+                           marker=markers.get(eng, "o"), color=cmap(i), label=eng, alpha=0.8)
+                for r in pts:
+                    ax.annotate(r["variant"], (r["m4_instructions_per_step"], r["error_index"]),
+                                textcoords="offset points", xytext=(4, 3), fontsize=6)
+        front = sorted((r["m4_instructions_per_step"], r["error_index"]) for r in m4)
+        best, stair = math.inf, []
+        for x, y in front:
+            if y < best:
+                best = y
+                stair.append((x, y))
+        ax.step([p[0] for p in stair], [p[1] for p in stair], where="post", color="k", lw=1.2,
+                ls="--", label="Pareto front")
+        ax.axvline(16800, color="0.5", lw=0.8, ls=":")
+        ax.text(16800, ax.get_ylim()[1], " 10 % of 1 kHz at 168 MHz", fontsize=7, va="top")
+        ax.set_xlabel("Cortex-M4 instructions per step (worst step, DSP build)")
+        ax.set_ylabel("error index")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+        ax.set_title("accuracy vs firmware cost (QEMU instruction counts)", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

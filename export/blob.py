@@ -7,8 +7,8 @@ Layout (little-endian; docs/model-format.md is the normative description)::
     6   u16 flags (0)
     8   u32 total_len              bytes of the whole blob, a multiple of 8
     12  u32 crc32                  zlib CRC-32 of bytes [16, total_len)
-    16  parameter block (104 bytes, see _PARAMS) -> offset 120
-    120 layer table: 8 bytes per layer, nets in order contact, force, location:
+    16  parameter block (128 bytes, see _PARAMS) -> offset 144
+    144 layer table: 8 bytes per layer, nets in order contact, force, location:
         u16 n_in, u16 n_out, u8 w_bits, u8 shift, u16 reserved (0)
     then arrays, each starting at a multiple of 8 (zero padding):
         taps int16[n_taps]; per layer: weights int16|int8[n_out*n_in] (row-major),
@@ -27,17 +27,17 @@ from fbgforce.errors import InputError
 from fbgforce.export.quantize import NET_NAMES, QLayer, QModel
 
 MAGIC = b"FBGM"
-VERSION = 1
+VERSION = 2
 HEADER = struct.Struct("<4sHHII")
 #: baseline_fm[5], jump_max_fm, temp_coeff_q24[4], mean_fm[4], z_mult[4], fq_mult,
-#: force_offset_mN, xy_offset_um[2], overload_mN | n_taps, tap_q, z_frac, z_shift, fq_shift,
-#: n_layers[3], pad[3]
-_PARAMS = struct.Struct("<5ii4i4i4iii2ii" + "HBBBB3B3x")
+#: force_offset_mN, xy_offset_um[2], overload_mN, load_coeff[4], load_max_mN | n_taps, tap_q,
+#: z_frac, z_shift, fq_shift, load_shift, n_layers[3], stuck_max, pad[4]
+_PARAMS = struct.Struct("<5ii4i4i4iii2ii4ii" + "HBBBBB3BH4x")
 PARAMS_END = HEADER.size + _PARAMS.size
 LAYER_ENTRY = struct.Struct("<HHBBH")
 FILE_NAME = "model.fbgm"
 
-assert PARAMS_END == 120
+assert PARAMS_END == 144
 
 
 def _pad8(buf: bytearray) -> None:
@@ -50,7 +50,9 @@ def to_bytes(q: QModel) -> bytes:
     body = bytearray(_PARAMS.pack(
         *q.baseline_fm.tolist(), q.jump_max_fm, *q.temp_coeff_q24.tolist(), *q.mean_fm.tolist(),
         *q.z_mult.tolist(), q.fq_mult, q.force_offset_mN, *q.xy_offset_um.tolist(), q.overload_mN,
-        q.taps.size, q.tap_q, q.z_frac, q.z_shift, q.fq_shift, *[len(net) for net in q.nets]))
+        *q.load_coeff.tolist(), q.load_max_mN,
+        q.taps.size, q.tap_q, q.z_frac, q.z_shift, q.fq_shift, q.load_shift,
+        *[len(net) for net in q.nets], q.stuck_max))
     for net in q.nets:
         for layer in net:
             body += LAYER_ENTRY.pack(layer.n_in, layer.n_out, layer.w_bits, layer.shift, 0)
@@ -93,8 +95,9 @@ def from_bytes(data: bytes, path: str | None = None) -> QModel:
     p = _PARAMS.unpack_from(data, HEADER.size)
     baseline, jump, tc, mean, zm = p[0:5], p[5], p[6:10], p[10:14], p[14:18]
     fq_mult, f_off, xy_off, overload = p[18], p[19], p[20:22], p[22]
-    n_taps, tap_q, z_frac, z_shift, fq_shift = p[23:28]
-    n_layers = p[28:31]
+    load_coeff, load_max = p[23:27], p[27]
+    n_taps, tap_q, z_frac, z_shift, fq_shift, load_shift = p[28:34]
+    n_layers, stuck_max = p[34:37], p[37]
     off = PARAMS_END
     shapes = []
     for name, nl in zip(NET_NAMES, n_layers):
@@ -132,7 +135,8 @@ def from_bytes(data: bytes, path: str | None = None) -> QModel:
     q = QModel(baseline_fm=baseline, jump_max_fm=jump, temp_coeff_q24=tc, taps=taps, tap_q=tap_q,
                mean_fm=mean, z_mult=zm, z_shift=z_shift, z_frac=z_frac, fq_mult=fq_mult,
                fq_shift=fq_shift, force_offset_mN=f_off, xy_offset_um=xy_off,
-               overload_mN=overload, nets=nets)
+               overload_mN=overload, nets=nets, load_coeff=load_coeff, load_shift=load_shift,
+               load_max_mN=load_max, stuck_max=stuck_max)
     try:
         q.check()
     except ValueError as exc:

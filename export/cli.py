@@ -27,6 +27,9 @@ def register(subparsers: Any) -> None:
                    help="sensor-fault threshold: largest plausible change per sample, nm (default 2)")
     p.add_argument("--overload-N", type=float, default=None,
                    help="OVERLOAD flag threshold, N (default: largest calibration force)")
+    p.add_argument("--stuck-samples", type=int, default=None, metavar="N",
+                   help="sensor fault after N identical consecutive values of a channel (0 = off; "
+                        "default: 4x the longest run in the calibration data, at least 25)")
     p.add_argument("--no-onnx", action="store_true", help="skip model.onnx")
     add_json_flag(p)
     p.set_defaults(handler=_export)
@@ -53,7 +56,8 @@ def _export(args: argparse.Namespace) -> dict[str, Any]:
     if args.jump_nm <= 0:
         raise InputError("must be positive", column="--jump-nm")
     rep = export_model(args.model, bits=args.bits, calib=args.calib, name=args.name,
-                       jump_nm=args.jump_nm, overload_N=args.overload_N, onnx=not args.no_onnx)
+                       jump_nm=args.jump_nm, overload_N=args.overload_N,
+                       stuck_samples=args.stuck_samples, onnx=not args.no_onnx)
     if not args.json:
         chk = rep["calibration_check"]
         print(f"exported {args.model}: blob {rep['blob_bytes']} B, const data {rep['const_bytes']} B, "

@@ -86,13 +86,15 @@ def fixed_source(q: QModel, name: str) -> tuple[str, str]:
            f"#include \"{ident}_model.h\"\n\n{body}\n\n"
            f"const fbg_model {ident}_model = {{\n"
            f"    .baseline_fm = {arr(q.baseline_fm)},\n"
-           f"    .jump_max_fm = {q.jump_max_fm},\n"
+           f"    .jump_max_fm = {q.jump_max_fm},\n    .stuck_max = {q.stuck_max},\n"
            f"    .temp_coeff_q24 = {arr(q.temp_coeff_q24)},\n"
            f"    .n_taps = {q.taps.size},\n    .tap_q = {q.tap_q},\n"
            f"    .z_frac = {q.z_frac},\n    .z_shift = {q.z_shift},\n    .fq_shift = {q.fq_shift},\n"
            f"    .mean_fm = {arr(q.mean_fm)},\n    .z_mult = {arr(q.z_mult)},\n"
            f"    .fq_mult = {q.fq_mult},\n    .force_offset_mN = {q.force_offset_mN},\n"
            f"    .xy_offset_um = {arr(q.xy_offset_um)},\n    .overload_mN = {q.overload_mN},\n"
+           f"    .load_coeff = {arr(q.load_coeff)},\n    .load_max_mN = {q.load_max_mN},\n"
+           f"    .load_shift = {q.load_shift},\n"
            f"    .taps = taps,\n"
            f"    .nets = {{\n" + ",\n".join(nets) + "}\n};\n")
     hdr = _header(f"{ident}_model.h", f"{ident.upper()}_MODEL_H",
@@ -102,7 +104,7 @@ def fixed_source(q: QModel, name: str) -> tuple[str, str]:
 
 
 def float_source(model: fm.HierarchicalModel, name: str, jump_max_fm: int,
-                 overload_N: float) -> tuple[str, str]:
+                 overload_N: float, stuck_max: int = 0) -> tuple[str, str]:
     """(header, source) text of the float model for the fbgf_* build."""
     ident = c_identifier(name)
     pre = model.preprocess
@@ -129,6 +131,7 @@ def float_source(model: fm.HierarchicalModel, name: str, jump_max_fm: int,
            f"#include \"{ident}_model_f32.h\"\n\n" + "\n\n".join(arrays) + "\n\n"
            f"const fbgf_model {ident}_model_f32 = {{\n"
            f"    .baseline_fm = {{{base_fm}}},\n    .jump_max_fm = {jump_max_fm},\n"
+           f"    .stuck_max = {stuck_max},\n"
            f"    .temp_coeff = {farr(pre.temp_coeff)},\n    .input_mean_pm = {farr(pre.input_mean)},\n"
            f"    .input_std_pm = {farr(pre.input_std)},\n"
            f"    .force_offset_N = {_flit(model.force_offset)},\n    .force_scale = {_flit(model.force_scale)},\n"
@@ -148,7 +151,7 @@ def write_c(q: QModel, model: fm.HierarchicalModel, out_dir: str | Path, name: s
     out.mkdir(parents=True, exist_ok=True)
     ident = c_identifier(name)
     hdr, src = fixed_source(q, ident)
-    fhdr, fsrc = float_source(model, ident, q.jump_max_fm, q.overload_mN / 1000.0)
+    fhdr, fsrc = float_source(model, ident, q.jump_max_fm, q.overload_mN / 1000.0, q.stuck_max)
     files = {f"{ident}_model.h": hdr, f"{ident}_model.c": src,
              f"{ident}_model_f32.h": fhdr, f"{ident}_model_f32.c": fsrc}
     paths = []

@@ -149,7 +149,14 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
     prev, has_prev = _prev_in_window(wl, inwin)
     jump = inwin & has_prev & (np.abs(wl - prev) > q.jump_max_fm)
-    fault = np.any(~inwin | jump, axis=1)
+    # Stuck-peak rule: run of consecutive samples equal to the previous in-window value,
+    # restarted by any change or out-of-window sample (uint16 counter, saturating).
+    same = inwin & has_prev & (wl == prev)
+    steps = np.arange(n)[:, None]
+    last_reset = np.maximum.accumulate(np.where(same, -1, steps), axis=0) if n else steps
+    run = np.minimum(steps - last_reset, 0xFFFF)
+    stuck = (run >= q.stuck_max) if q.stuck_max else np.zeros_like(inwin)
+    fault = np.any(~inwin | jump | stuck, axis=1)
     ok = ~fault
 
     # 2. Tare and temperature compensation (rows without a fault).
@@ -171,6 +178,9 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     d, c5 = sat(filt - q.mean_fm, SAT32)
     z, c6 = sat(rshift_round(d * q.z_mult, q.z_shift), SAT16)
     flag |= ok & (c4 | c5 | c6).any(axis=1)
+    # Input-side overload: the linear load proxy (|coeff| < 2^28, so the sum stays < 2^61).
+    load = rshift_round(filt @ q.load_coeff, q.load_shift)
+    status |= np.where(ok & (load > q.load_max_mN), STATUS_OVERLOAD, 0)
 
     status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
     status |= np.where(np.arange(1, n + 1) < q.taps.size, STATUS_WARMUP, 0)

@@ -55,6 +55,12 @@ ACT_HEADROOM = 1.25
 MULT_BITS = 30
 #: |product| limit of ``acc * mult`` (the rounding constant adds at most 2^61).
 PRODUCT_LIMIT = 2**62
+#: |load_coeff| limit (four int32 x int32 products must sum inside int64 with margin).
+LOAD_COEFF_LIMIT = 2**28
+#: Stuck-peak rule defaults: at least this many identical samples, and off when the
+#: calibration data itself repeats values this long (noise-free data).
+STUCK_MIN = 25
+STUCK_OFF_RUN = 1000
 #: Default for the sensor-fault jump rule, nm per sample.
 DEFAULT_JUMP_NM = 2.0
 
@@ -111,12 +117,19 @@ class QModel:
     xy_offset_um: np.ndarray
     overload_mN: int
     nets: list[list[QLayer]]
+    #: Input-side overload rule (fbg_model.load_*): defaults disable it.
+    load_coeff: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
+    load_shift: int = 1
+    load_max_mN: int = SAT32
+    #: Stuck-peak rule (fbg_model.stuck_max): 0 disables it.
+    stuck_max: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um"):
+        for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
+                     "load_coeff"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
-                     "force_offset_mN", "overload_mN"):
+                     "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max"):
             setattr(self, name, int(getattr(self, name)))
 
     @property
@@ -141,6 +154,10 @@ class QModel:
         for arr in (self.temp_coeff_q24, self.z_mult, self.mean_fm, self.xy_offset_um):
             need(bool(np.all(np.abs(arr) <= SAT32)), "int32 parameter out of range")
         need(abs(self.fq_mult) <= SAT32, "fq_mult out of range")
+        need(self.load_coeff.size == 4 and bool(np.all(np.abs(self.load_coeff) < LOAD_COEFF_LIMIT))
+             and 1 <= self.load_shift <= 62 and abs(self.load_max_mN) <= SAT32,
+             "load proxy out of range")
+        need(0 <= self.stuck_max <= 0xFFFF, "stuck_max must fit uint16")
         ins = {"contact": 4, "force": 4, "location": fm.LOCATION_INPUTS}
         for name, net in zip(NET_NAMES, self.nets):
             need(1 <= len(net) <= MAX_LAYERS, f"{name}: 1..{MAX_LAYERS} layers")
@@ -218,6 +235,7 @@ class Calibration:
     force_N: np.ndarray         # (n,) float force (raw, before gating)
     true_force_N: np.ndarray | None
     max_step_fm: float          # largest per-sample change of any in-window channel
+    max_same_run: int           # longest run of identical consecutive values (fm), any channel
     samples: int
     max_comp_pm: float = 0.0    # largest |compensated shift| (before the filter)
     #: (n, 4) per sample: |comp[n]| and max_k |comp[n-k] - comp[n]| over the filter window (pm)
@@ -225,10 +243,24 @@ class Calibration:
     comp_var_pm: np.ndarray | None = None
 
 
+def _longest_same_run(wl_nm: np.ndarray) -> int:
+    """Longest run of consecutive samples repeating the previous value (in fm), any channel:
+    the count the runtime's stuck-peak rule keeps."""
+    from fbgforce.export.intref import nm_to_fm
+
+    x = nm_to_fm(wl_nm).astype(np.int64)
+    if x.shape[0] < 2:
+        return 0
+    same = np.vstack([np.zeros((1, x.shape[1]), dtype=bool), x[1:] == x[:-1]])
+    n = np.arange(x.shape[0])[:, None]
+    last_reset = np.maximum.accumulate(np.where(same, -1, n), axis=0)
+    return int((n - last_reset).max())
+
+
 def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray, np.ndarray]],
               true_force_N: Sequence[np.ndarray] | None = None) -> Calibration:
     """Run the float pipeline on ``recordings`` = [(wl_nm (n,5), baseline_nm (5,)), ...]."""
-    zs, steps, comp_max, c_abs, c_var = [], [0.0], 0.0, [], []
+    zs, steps, comp_max, c_abs, c_var, same_run = [], [0.0], 0.0, [], [], 0
     n_taps = model.preprocess.taps.size
     for wl, base in recordings:
         wl = np.asarray(wl, dtype=np.float64)
@@ -242,6 +274,7 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
             var = np.maximum(var, np.abs(padded[n_taps - 1 - k:padded.shape[0] - k] - comp))
         c_abs.append(np.abs(comp))
         c_var.append(var)
+        same_run = max(same_run, _longest_same_run(wl))
         if wl.shape[0] > 1:
             d = np.abs(np.diff(wl, axis=0)) * 1e6
             d = d[np.isfinite(d)]
@@ -257,9 +290,37 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
     if true_force_N is not None:
         truth = np.concatenate([np.asarray(t, dtype=np.float64) for t in true_force_N])
     return Calibration(z=z, contact=pred["contact"], f=f, force_N=pred["force_raw_N"],
-                       true_force_N=truth, max_step_fm=max(steps), samples=int(z.shape[0]),
+                       true_force_N=truth, max_step_fm=max(steps), max_same_run=same_run,
+                       samples=int(z.shape[0]),
                        max_comp_pm=comp_max, comp_abs_pm=np.concatenate(c_abs)[finite],
                        comp_var_pm=np.concatenate(c_var)[finite])
+
+
+def fit_load_proxy(model: fm.HierarchicalModel, calib: Calibration
+                   ) -> tuple[np.ndarray, int, int, dict[str, Any]]:
+    """The input-side overload rule: a linear force proxy on the filtered shifts.
+
+    Beyond the trained range the nets extrapolate (a 150 N press can read 60 N), so OVERLOAD
+    cannot rest on their estimate alone. The four beams carry the pad, so the force is close to
+    a fixed linear combination of the four filtered shifts whatever the location: least
+    squares (no intercept) of the float model's force on ``filt`` (fm) over the calibration
+    samples it calls contact. The threshold is the largest proxy value on the calibration
+    data, so no calibration sample trips it.
+
+    Returns ``(load_coeff (4,), load_shift, load_max_mN, info)``.
+    """
+    pre = model.preprocess
+    filt_fm = (calib.z * pre.input_std + pre.input_mean) * 1000.0
+    sel = calib.contact
+    if sel.sum() < 8:
+        return np.zeros(4, dtype=np.int64), 1, SAT32, {"fitted": False}
+    coef, *_ = np.linalg.lstsq(filt_fm[sel], calib.force_N[sel] * 1000.0, rcond=None)
+    shift, q = choose_shift(coef, LOAD_COEFF_LIMIT - 1)
+    proxy = filt_fm @ (q / 2.0**shift)
+    resid = proxy[sel] - calib.force_N[sel] * 1000.0
+    load_max = int(min(SAT32, math.ceil(float(proxy.max())) + 1))
+    return q, shift, load_max, {"fitted": True, "coeff": q.tolist(), "shift": shift,
+                                "max_mN": load_max, "fit_rms_N": float(np.sqrt(np.mean(resid**2)) / 1000.0)}
 
 
 def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np.ndarray,
@@ -288,8 +349,8 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
 
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
-             jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None
-             ) -> tuple[QModel, dict[str, Any]]:
+             jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
+             stuck_samples: int | None = None) -> tuple[QModel, dict[str, Any]]:
     """Quantise ``model`` with scales from ``calib``.
 
     Parameters
@@ -302,6 +363,11 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     overload_N
         FBG_STATUS_OVERLOAD threshold; default: the largest true force of the calibration
         data if known, else the largest float force estimate.
+    stuck_samples
+        Stuck-peak rule: SENSOR_FAULT after this many identical consecutive values of a
+        channel (0 = off). Default: 4x the longest such run in the calibration data, at least
+        25 (25 ms at 1 kHz); off if the calibration data repeats a value for 1000 samples or
+        more (noise-free data, where repetition is normal).
 
     Returns
     -------
@@ -371,13 +437,19 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
             src = calib.force_N[calib.contact] if calib.contact.any() else calib.force_N
         overload_N = float(np.nanmax(src)) if np.size(src) else 70.0
     jump_fm = int(round(max(jump_nm * 1e6, 2.0 * calib.max_step_fm)))
+    load_coeff, load_shift, load_max_mN, load_info = fit_load_proxy(model, calib)
+    if stuck_samples is None:
+        stuck_samples = 0 if calib.max_same_run >= STUCK_OFF_RUN else max(STUCK_MIN, 4 * calib.max_same_run)
+    if not 0 <= stuck_samples <= 0xFFFF:
+        raise InputError("must be 0 (off) .. 65535", column="--stuck-samples")
     q = QModel(
         baseline_fm=np.round(model.baseline_nm * 1e6), jump_max_fm=min(jump_fm, SAT32),
         temp_coeff_q24=tc, taps=taps, tap_q=tap_q, mean_fm=mean_fm, z_mult=z_mult,
         z_shift=z_shift, z_frac=z_frac, fq_mult=int(fq_mult[0]), fq_shift=fq_shift,
         force_offset_mN=int(round(model.force_offset * 1000.0)),
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
-        nets=nets)
+        nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
+        stuck_max=stuck_samples)
     try:
         q.check()
     except ValueError as exc:
@@ -398,7 +470,9 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         "nets": report_nets,
         "error_bounds": bounds,
         "outputs": {"force_offset_mN": q.force_offset_mN, "xy_offset_um": q.xy_offset_um.tolist(),
-                    "overload_mN": q.overload_mN, "jump_max_fm": q.jump_max_fm},
+                    "overload_mN": q.overload_mN, "jump_max_fm": q.jump_max_fm,
+                    "stuck_max": q.stuck_max, "calib_longest_same_run": calib.max_same_run},
+        "load_proxy": load_info,
     }
     return q, report
 

@@ -22,6 +22,7 @@ the ports stay open until the clients close them or ``linger`` seconds pass.
 from __future__ import annotations
 
 import errno
+import math
 import os
 import select
 import threading
@@ -321,7 +322,9 @@ class Emulator:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._parser = P.CommandParser()
-        self._span_us = int(playback.t_us[-1] - playback.t_us[0]) + int(round(1e6 / self.rate))
+        # A loop continues the device clock by one scene sample period after the last sample.
+        step = int(np.median(np.diff(playback.t_us))) if n > 1 else int(round(1e6 / self.rate))
+        self._span_us = int(playback.t_us[-1] - playback.t_us[0]) + step
 
     # -- public API ----------------------------------------------------------------------
     @property
@@ -370,9 +373,9 @@ class Emulator:
 
     def _run(self, max_samples: int | None) -> None:
         n = len(self.playback)
-        total = n if max_samples is None or self.loop else min(n, max_samples)
-        if max_samples is not None and self.loop:
-            total = max_samples
+        total: float = n if not self.loop else math.inf
+        if max_samples is not None:
+            total = min(total, max_samples)
         if self.wait_client:
             while not self._stop.is_set() and not all(p.client_connected() for p in self._ports()):
                 self._service_commands(-1)
@@ -387,7 +390,7 @@ class Emulator:
         sent = 0  # samples whose time has come
         period = 1.0 / self.rate
         while not self._stop.is_set() and sent < total:
-            due = min(total, int((time.monotonic() - t0) * self.rate) + 1)
+            due = int(min(total, int((time.monotonic() - t0) * self.rate) + 1))
             if due > sent:
                 self._emit(sent, due)
                 sent = due
@@ -481,8 +484,8 @@ class Emulator:
         elif cmd == P.CMD_PARAMS:
             self.port.write(b"#Pixel_512#Channels_%d#Rate_%d#\r\n" % (n_ch, round(self.rate)))
         elif cmd == P.CMD_PEAKS:
-            if latest < 0:
-                return  # not started yet: a real device would answer with no peaks; stay quiet
+            # Before playback starts the device already measures: it reports the first sample.
+            latest = max(latest, 0)
             i, _lap = self._index(latest)
             wl = self.playback.wl_fm[i]
             units = np.round(wl / (P.FM_PER_NM // P.FISPEC_UNITS_PER_NM)).astype(np.int64)

@@ -107,29 +107,33 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
     started = time.monotonic()
     first = last = None
     last_report = started
-    while True:
-        frames = reader.read(0.01)
-        lines = loadcell.read(0.0)
-        now = time.monotonic()
-        if frames or lines:
-            first = now if first is None else first
-            last = now
-            join.add(frames, lines)
-        if status and now - last_report >= 1.0:
-            last_report = now
-            print(f"record: {len(join.pairs)} samples, lost {reader.stats().get('lost_frames', 0)}"
-                  f" frames, unmatched {join.unmatched_frames}/{join.unmatched_lines}",
-                  file=sys.stderr, flush=True)
-        if max_samples is not None and len(join.pairs) >= max_samples:
-            break
-        if first is None:
-            if start_timeout is not None and now - started >= start_timeout:
+    interrupted = False
+    try:
+        while True:
+            frames = reader.read(0.01)
+            lines = loadcell.read(0.0)
+            now = time.monotonic()
+            if frames or lines:
+                first = now if first is None else first
+                last = now
+                join.add(frames, lines)
+            if status and now - last_report >= 1.0:
+                last_report = now
+                print(f"record: {len(join.pairs)} samples, lost "
+                      f"{reader.stats().get('lost_frames', 0)} frames, unmatched "
+                      f"{join.unmatched_frames}/{join.unmatched_lines}", file=sys.stderr, flush=True)
+            if max_samples is not None and len(join.pairs) >= max_samples:
                 break
-            continue
-        if duration is not None and now - first >= duration:
-            break
-        if idle_timeout is not None and now - last >= idle_timeout:
-            break
+            if first is None:
+                if start_timeout is not None and now - started >= start_timeout:
+                    break
+                continue
+            if duration is not None and now - first >= duration:
+                break
+            if idle_timeout is not None and now - last >= idle_timeout:
+                break
+    except KeyboardInterrupt:
+        interrupted = True  # the operator ends the recording: keep what was joined
     join.finish()
     pairs = join.pairs[:max_samples] if max_samples is not None else join.pairs
     if not pairs:
@@ -150,6 +154,7 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
         "loadcell_lost_lines": ls.get("lost_frames", 0),
         "loadcell_bad_lines": ls.get("bad_lines", 0),
         "out": str(out),
+        "interrupted": interrupted,
         "reader": rs,
         "loadcell": ls,
     }

@@ -127,8 +127,9 @@ def _empty() -> dict[str, np.ndarray]:
 class StatusLine:
     """One-line live status on stderr: rewritten in place on a terminal, else once a second."""
 
-    def __init__(self, stream: TextIO = sys.stderr, enabled: bool = True) -> None:
-        self.stream = stream
+    def __init__(self, stream: TextIO | None = None, enabled: bool = True) -> None:
+        # Looked up now, not at import: sys.stderr may have been replaced since.
+        self.stream = sys.stderr if stream is None else stream
         self.enabled = enabled
         self.tty = bool(getattr(stream, "isatty", lambda: False)())
         self.period = 0.2 if self.tty else 1.0
@@ -194,6 +195,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     max_force = 0.0
     last: dict[str, Any] | None = None
     t_first = t_last = None
+    interrupted = False
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout):
@@ -212,6 +214,8 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
                 max_force = max(max_force, float(np.max(est["force_N"])))
                 last = {key: est[key][-1] for key in OUTPUT_KEYS}
             line.update(len(batch), last, reader.stats())
+    except KeyboardInterrupt:
+        interrupted = True  # Ctrl-C is how a live stream normally ends: still summarise
     finally:
         line.close()
         if fh is not None:
@@ -233,6 +237,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "compute_us_per_sample": 1e6 * estimator.compute_s / estimator.estimated
         if estimator.estimated else None,
         "out": None if out is None else str(out),
+        "interrupted": interrupted,
         "reader": stats,
     }
 

@@ -203,6 +203,24 @@ class Runtime(_Base):
         check(lib.fbg_init(self._state, self._model, lib.FBG_OPT_REQUIRE_TARE if require_tare else 0),
               "fbg_init")
         self.blob_size = len(data)
+        # Preallocated single-sample buffers: step() is what a 1 kHz loop calls.
+        self._in = np.zeros(5, dtype=np.int32)
+        self._in_ptr = ffi.cast("int32_t *", ffi.from_buffer(self._in))
+        self._out = ffi.new("fbg_output *")
+
+    def step(self, wl: Any) -> np.void:
+        """One sample (5,) (nm float or fm int) -> one record of :data:`OUTPUT_DTYPE`."""
+        a = np.asarray(wl)
+        if a.size != 5:
+            raise InputError(f"one sample has 5 wavelengths, got shape {a.shape}")
+        self._in[:] = to_fm(a.reshape(5))
+        check(lib.fbg_step(self._state, self._in_ptr, self._out), "fbg_step")
+        o = self._out
+        contact = bool(o.contact)
+        return np.array((contact, o.contact_conf_q15 / 32768.0, o.force_mN / 1000.0,
+                         o.x_um / 1000.0 if contact else np.nan, o.y_um / 1000.0 if contact else np.nan,
+                         o.status, o.force_mN, o.x_um, o.y_um, o.contact_margin_q8, o.contact_conf_q15),
+                        dtype=OUTPUT_DTYPE)[()]
 
     def run_raw(self, wl: Any) -> np.ndarray:
         """Batch through ``fbg_run``; returns the C ``fbg_output`` records unchanged."""
@@ -234,7 +252,8 @@ class FloatRuntime(_Base):
     _prefix = "fbgf"
 
     def __init__(self, model: str | Path | fm.HierarchicalModel, *, jump_nm: float | None = None,
-                 overload_N: float | None = None, require_tare: bool = False) -> None:
+                 overload_N: float | None = None, stuck_samples: int = 0,
+                 require_tare: bool = False) -> None:
         from fbgforce.export.quantize import DEFAULT_JUMP_NM, quantize_taps
 
         m = fm.load(model) if isinstance(model, (str, Path)) else model
@@ -251,6 +270,7 @@ class FloatRuntime(_Base):
         c = ffi.new("fbgf_model *")
         c.baseline_fm = [int(v) for v in np.rint(m.baseline_nm * 1e6)]
         c.jump_max_fm = int(round((DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
+        c.stuck_max = int(stuck_samples)
         c.temp_coeff = list(map(float, pre.temp_coeff))
         c.input_mean_pm = list(map(float, pre.input_mean))
         c.input_std_pm = list(map(float, pre.input_std))

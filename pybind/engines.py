@@ -35,12 +35,13 @@ def run_cfloat(model_dir: str | Path | None, model: fm.HierarchicalModel | None,
                baseline_nm: np.ndarray) -> dict[str, Any]:
     """The C float build on the float weights (fault/overload thresholds from the blob if any)."""
     jump_nm = overload_N = None
+    stuck = 0
     if model_dir is not None and (Path(model_dir) / "model.fbgm").is_file():
         from fbgforce.export.blob import load_model_blob
 
         q = load_model_blob(model_dir)
-        jump_nm, overload_N = q.jump_max_fm * 1e-6, q.overload_mN * 1e-3
+        jump_nm, overload_N, stuck = q.jump_max_fm * 1e-6, q.overload_mN * 1e-3, q.stuck_max
     m = fm.load(model_dir) if model is None else model
-    rt = FloatRuntime(m, jump_nm=jump_nm, overload_N=overload_N)
+    rt = FloatRuntime(m, jump_nm=jump_nm, overload_N=overload_N, stuck_samples=stuck)
     rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
     return _as_dict(rt.run(np.asarray(wl_nm, dtype=np.float64)))

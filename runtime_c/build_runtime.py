@@ -48,8 +48,10 @@ ffibuilder.set_source(
     include_dirs=["runtime_c/include"],
     # Only optimisation here: cffi's generated wrapper is not -pedantic clean. The library's own
     # sources are held to -std=c99 -Wall -Wextra -Werror -pedantic by runtime_c/Makefile,
-    # which the test suite runs.
-    extra_compile_args=["-O2"],
+    # which the test suite runs. -O3 lets GCC vectorise the int16 x int16 -> int64 MAC loops
+    # (exact integer arithmetic, so the bits do not change): 8.2 -> 3.4 us per sample on the
+    # host for the paper-sized model (docs/runtime.md).
+    extra_compile_args=["-O3"],
 )
 
 if __name__ == "__main__":

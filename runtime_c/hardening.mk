@@ -12,21 +12,22 @@
 #   fuzz            the two libFuzzer targets (clang): fuzz_step, fuzz_blob
 #   fuzz-run        runs each fuzzer FUZZ_SECONDS (default 20) from the committed corpus in
 #                   fuzz/corpus/<target>; new inputs go to build/, the corpus stays unchanged
-#   fuzz-corpus     regenerates the committed seed corpus from the exporter (fuzz/hardcases.py)
-#   hardening-check asan-check + valgrind-check + fuzz-run (what CI runs)
+#   fuzz-corpus     regenerates the committed fuzz models and seed corpus (fuzz/hardcases.py)
+#   hardening-check asan-check + valgrind-check + fuzz-run
 
 HARD_DIR      := $(dir $(lastword $(MAKEFILE_LIST)))
 HARD_BUILD    ?= $(HARD_DIR)build/hardening
 HARD_SRC      := $(sort $(wildcard $(HARD_DIR)src/*.c))
 HARD_INC      := -I$(HARD_DIR)include
-HARD_HDR      := $(wildcard $(HARD_DIR)include/*.h)
+HARD_HDR      := $(wildcard $(HARD_DIR)include/*.h $(HARD_DIR)src/*.h)
 PYTHON        ?= python3
 FUZZ_SECONDS  ?= 20
 HARD_CC       ?= gcc
 FUZZ_CC       ?= clang
 HARD_WARN     := -std=c99 -Wall -Wextra -Werror -pedantic
 # The suite selection the sanitized / valgrind runs execute (pytest node ids or paths).
-HARDCASE_TESTS ?= tests/test_hardcases.py
+# (the valgrind and fuzz tests are left out: these targets ARE those runs, suite-wide).
+HARDCASE_TESTS ?= tests/test_hardcases.py -k "not valgrind_memcheck and not fuzzers_bounded"
 
 SAN_FLAGS     := -g -O1 -fno-omit-frame-pointer -fsanitize=address,undefined \
                  -fno-sanitize-recover=all -fsanitize=float-divide-by-zero,float-cast-overflow

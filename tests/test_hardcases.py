@@ -178,7 +178,7 @@ def driver(tmp_path_factory) -> Path | None:
     if env:
         return Path(env)
     if shutil.which("gcc") is None or shutil.which("make") is None:
-        pytest.skip("gcc/make not available: no sanitizer build of the driver")
+        return None  # cffi and the integer reference still run every case
     build = tmp_path_factory.mktemp("hardening")
     p = subprocess.run(["make", "-s", "-C", str(RUNTIME_C), "asan-driver", f"HARD_BUILD={build}"],
                        capture_output=True, text=True)
@@ -228,8 +228,10 @@ def assert_contract(out: dict[str, np.ndarray], q, wl: np.ndarray, tared: bool) 
     none = out["contact"] == 0
     for k in ("force_mN", "x_um", "y_um"):
         assert not np.any(out[k][none]), f"{k} without contact"
+    # OVERLOAD: the estimate above overload_mN, or the input-side load rule (contact or not).
     over = (out["contact"] == 1) & (out["force_mN"] > q.overload_mN)
-    np.testing.assert_array_equal((st & OVERLOAD) != 0, over, "OVERLOAD flag")
+    assert ((st[over] & OVERLOAD) != 0).all(), "force above overload_mN without OVERLOAD"
+    assert not np.any(st[fault] & OVERLOAD), "OVERLOAD on a faulty sample"
     ok = ~fault
     np.testing.assert_array_equal(out["contact_conf_q15"][ok],
                                   intref.sigmoid_q15(out["contact_margin_q8"][ok]))
@@ -320,50 +322,82 @@ def scene_fm(name: str, **schedule: Any) -> tuple[np.ndarray, Any]:
 # Scenes: overload, low force, boundary, thermal soak, impact, dropouts
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("key", ["small16", "small8"])
-def test_overload_to_150N_flags_and_never_wraps(models, driver, key):
-    m = models[key]
-    wl, ds = scene_fm("overload", n_presses=14)
-    out = run_case(m, wl, driver, tare=wl[:TARE_ROWS])
-    contact = out["contact"] == 1
-    f = out["force_mN"] / 1000.0
-    truth = ds.force_N
-    hard = truth > 100.0
-    assert hard.sum() > 100
-    # A wrap would turn a huge force into a small or negative one: at every sample the true
-    # force exceeds 100 N the runtime reports contact and a force beyond the training range.
-    assert contact[hard].all()
-    assert (f[hard] > 0.8 * m.q.overload_mN / 1000.0).all(), f[hard].min()
-    over = (out["status"] & OVERLOAD) != 0
-    thr = m.q.overload_mN / 1000.0
-    rate = {f">{g}x": round(float(over[truth > g * thr].mean()), 3) for g in (1.2, 1.5, 1.8)}
-    # OVERLOAD is defined on the ESTIMATED force (fbgforce.h); the nets extrapolate below the
-    # truth beyond their training range, so the flag trails the true force (docs/robustness.md).
-    assert rate[">1.5x"] > 0.9, rate
-    record(f"overload/{key}", samples=len(wl), true_max_N=round(float(truth.max()), 1),
-           out_max_N=round(float(f.max()), 1), overload_N=m.q.overload_mN / 1000,
-           overload_flag_rate_by_true_force=rate, overload_flagged=int(over.sum()), saturated=int(((out["status"] & SATURATED) != 0).sum()),
-           min_out_N_where_true_over_100N=round(float(f[hard].min()), 1))
-
-    # Beyond: the same presses with the strain signal scaled up to the wavelength window's
-    # end (x2 .. x1000; the gratings' shifts then reach hundreds of nm).
+def _overload_runs(m: Model, driver, gains=(1, 2, 5, 20, 100, 1000)):
+    """The overload scene (10 presses, 70-150 N) and the same presses with the strain signal
+    scaled by ``gain`` (clipped to the wavelength window: shifts up to hundreds of nm)."""
+    wl, ds = scene_fm("overload", n_presses=10)
     base = expected_tare(wl[:TARE_ROWS])
-    rows = []
-    for gain in (2, 5, 20, 100, 1000):
+    runs = {}
+    for gain in gains:
         w = wl.copy()
         w[:, :4] = np.clip(base[:4] + (wl[:, :4] - base[:4]) * gain, WL_MIN_FM, WL_MAX_FM)
-        o = run_case(m, w, driver, baseline=base)
-        okc = (o["status"] & FAULT) == 0
-        sat = (o["status"] & SATURATED) != 0
-        big = hard & okc
-        # Every such sample is flagged: SATURATED when an input clamps, else OVERLOAD.
-        assert ((o["status"][big] & (SATURATED | OVERLOAD)) != 0).all()
-        assert (o["contact"][big] == 1).all()
-        assert (o["force_mN"][big] > 0).all(), "a force beyond the window must not wrap negative"
-        rows.append((gain, int(sat.sum()), int(((o["status"] & FAULT) != 0).sum()),
-                     round(float(o["force_mN"][big].min() / 1000), 1),
-                     int(((o["status"][big] & OVERLOAD) == 0).sum())))
-    record(f"overload_beyond/{key}", gain_saturated_faults_minforceN_notoverloadflagged=rows)
+        if gain == 1:
+            runs[gain] = run_case(m, w, driver, tare=wl[:TARE_ROWS])
+        else:
+            runs[gain] = run_case(m, w, driver, baseline=base)
+    return runs, ds
+
+
+@pytest.fixture(scope="module")
+def overload_runs(models, driver):
+    return {key: _overload_runs(models[key], driver, (1, 2, 5, 20, 100, 1000) if key == "small16"
+                                else (1, 5, 1000)) for key in ("small16", "small8")}
+
+
+@pytest.mark.parametrize("key", ["small16", "small8"])
+def test_overload_to_150N_and_beyond_never_wraps(models, overload_runs, key):
+    """Up to 150 N and far beyond (x1000 strain): bit-exact (run_case), in contract (OVERLOAD
+    whenever the estimate exceeds overload_mN), clamps flagged SATURATED, and no wrap: at
+    every sample whose true force exceeds 100 N the runtime reports contact and a positive
+    force (a wrap would turn it negative or tiny)."""
+    m = models[key]
+    runs, ds = overload_runs[key]
+    truth = ds.force_N
+    hard = truth > 100.0
+    assert hard.sum() > 50
+    thr = m.q.overload_mN / 1000.0
+    rows = []
+    for gain, o in runs.items():
+        ok = hard & ((o["status"] & FAULT) == 0)
+        assert (o["contact"][ok] == 1).all(), gain
+        assert (o["force_mN"][ok] > 0).all(), gain
+        flags = o["status"][ok]
+        rows.append({"gain": gain, "min_force_N": round(float(o["force_mN"][ok].min()) / 1000, 1),
+                     "max_force_N": round(float(o["force_mN"].max()) / 1000, 1),
+                     "saturated": round(float(((flags & SATURATED) != 0).mean()), 3),
+                     "overload": round(float(((flags & OVERLOAD) != 0).mean()), 3),
+                     "neither": round(float(((flags & (SATURATED | OVERLOAD)) == 0).mean()), 3)})
+    o = runs[1]
+    over = (o["status"] & OVERLOAD) != 0
+    record(f"overload/{key}", samples=len(truth), true_max_N=round(float(truth.max()), 1),
+           overload_N=thr, samples_true_over_100N=int(hard.sum()),
+           overload_rate_by_true_force={f">{g}x": round(float(over[truth > g * thr].mean()), 3)
+                                        for g in (1.2, 1.5, 1.8)},
+           by_gain_at_true_over_100N=rows)
+
+
+@pytest.mark.parametrize("key", ["small16", "small8"])
+def test_overload_flag_covers_every_true_overload(models, overload_runs, key):
+    """OVERLOAD must not depend on the nets' estimate alone: beyond the trained range they
+    extrapolate low (a 100-150 N press read 40-70 N with no flag before the runtime got its
+    input-side load rule; this test was the strict-xfail that reported it). Every non-faulty
+    sample whose true force exceeds 1.2x the calibrated maximum carries OVERLOAD, at every
+    strain gain up to the window's end, and none below half of it."""
+    m = models[key]
+    runs, ds = overload_runs[key]
+    thr = m.q.overload_mN / 1000.0
+    rates = {}
+    for gain, o in runs.items():
+        flag = (o["status"] & OVERLOAD) != 0
+        okf = (o["status"] & FAULT) == 0
+        rates[gain] = {f">{g}x": round(float(flag[(ds.force_N > g * thr) & okf].mean()), 3)
+                       for g in (1.0, 1.1, 1.2, 1.5)}
+        over = (ds.force_N > 1.2 * thr) & okf
+        assert flag[over].all(), (gain, rates[gain])
+        if gain == 1:
+            assert not flag[ds.force_N < 0.5 * thr].any(), "OVERLOAD far below the range"
+    record(f"overload_flag/{key}", overload_rate_by_true_force_per_gain=rates,
+           false_overload_below_0p8x=int(((runs[1]["status"] & OVERLOAD) != 0)[ds.force_N < 0.8 * thr].sum()))
 
 
 def test_low_force_and_boundary_contacts(models, driver):
@@ -392,7 +426,7 @@ def test_thermal_soak_40K_no_false_contact(models, driver, tmp_path):
     """40 K ramp, no contact. With the temperature coefficients the small model was trained
     with (its smoke data has 0.5 K of drift: coefficients not identified, 1.0) compensation
     leaves ~3 % of the 0.75 nm thermal shift and the nets see a press: recorded, not asserted.
-    With coefficients calibrated on the first 20 K of the ramp (trainer.preprocess.fit_temp_coeff,
+    With coefficients calibrated on the first 20 K of the ramp (12 s to +40 K) (trainer.preprocess.fit_temp_coeff,
     as a thermal calibration would), the ramp adds no false contacts beyond the model's rate
     at rest and the force stays near zero over the full 40 K."""
     from fbgforce import model as fm
@@ -400,26 +434,26 @@ def test_thermal_soak_40K_no_false_contact(models, driver, tmp_path):
     from fbgforce.export.exporter import export_model
     from fbgforce.trainer.preprocess import fit_temp_coeff
 
-    sc = sim.load_scene("thermal_soak").replace(schedule={"duration_s": 30.0})
+    sc = sim.load_scene("thermal_soak").replace(schedule={"duration_s": 20.0})
     sc = sc.replace(effects={**sc.effects, "temperature": {**sc.effects["temperature"],
-                                                            "ramp_start_s": 5.0, "ramp_duration_s": 20.0}})
+                                                            "ramp_start_s": 4.0, "ramp_duration_s": 12.0}})
     ds = sim.simulate(sc)
     wl = intref.nm_to_fm(ds.wl_nm).astype(np.int64)
     dT = float(np.ptp(ds.extra["temperature_K"]))
     assert dT > 39.0
-    rest, ramp = slice(TARE_ROWS, 5000), slice(5000, None)
+    rest, ramp = slice(TARE_ROWS, 4000), slice(4000, None)
 
     out = run_case(models["small16"], wl, driver, tare=wl[:TARE_ROWS])
     record("thermal_soak/uncalibrated", samples=len(wl), dT_K=round(dT, 1),
            false_contacts=int(out["contact"].sum()),
            max_force_N=float(out["force_mN"].max()) / 1000.0)
 
-    # Thermal calibration on the first 15 s (0 -> 20 K), then export and run the full 40 K.
+    # Thermal calibration on the first 10 s (0 -> 20 K), then export and run the full 40 K.
     d = tmp_path / "model"
     shutil.copytree(models["small16"].path, d)
     model = fm.load(d)
     base_nm = np.median(ds.wl_nm[:TARE_ROWS], axis=0)
-    k, info = fit_temp_coeff([(ds.wl_nm[:15000] - base_nm) * 1000.0], [np.ones(15000, dtype=bool)])
+    k, info = fit_temp_coeff([(ds.wl_nm[:10000] - base_nm) * 1000.0], [np.ones(10000, dtype=bool)])
     model.preprocess.temp_coeff = k
     fm.save(model, d)
     from fbgforce.export.blob import FILE_NAME
@@ -554,9 +588,9 @@ def test_sensor_faults(models, driver, press_fm, kind):
     record(f"fault/{kind}", samples_affected=int(b - a), fault_flags=n_fault,
            contact_during=int(out["contact"][a:b].sum()))
     if kind == "stuck":
-        # A stuck peak stays inside the window and never jumps: the fault rule cannot see it
-        # (documented limitation, docs/robustness.md). Outputs stay bounded and bit-exact.
-        assert n_fault == 0
+        # A stuck peak stays inside the window and never jumps: the current fault rule cannot
+        # see it (test_stuck_peak_is_flagged, xfail). Outputs stay bounded and bit-exact, and
+        # exact again n_taps samples after the peak comes unstuck.
         _recovers(m, wl, w, out, base, b)
         return
     if kind == "step_3nm":
@@ -569,6 +603,21 @@ def test_sensor_faults(models, driver, press_fm, kind):
     else:
         assert fault[a:b].all() and n_fault == b - a
     _recovers(m, wl, w, out, base, b)
+
+
+@pytest.mark.xfail(strict=True, reason="FINDING (docs/robustness.md): the fault rule of "
+                   "fbgforce.h only sees lost (out-of-window) and jumping peaks; a peak frozen "
+                   "at one value while the others move (a stuck interrogator channel) is not "
+                   "flagged. Needs e.g. an 'identical for N samples' rule (Part 3).")
+def test_stuck_peak_is_flagged(models, press_fm):
+    m = models["small16"]
+    wl, ds = press_fm
+    base = expected_tare(wl[:TARE_ROWS])
+    a = int(np.flatnonzero(ds.contact)[0])
+    w = wl.copy()
+    w[a:a + 300, 1] = w[a, 1]  # 0.3 s frozen; real peaks carry 3-10 pm of noise
+    out = run_case(m, w, None, baseline=base)
+    assert ((out["status"][a + 50:a + 300] & FAULT) != 0).all()
 
 
 # --------------------------------------------------------------------------------------------
@@ -606,7 +655,6 @@ def test_hypothesis_random_int32_streams(models, driver, key):
     """Property: any int32 stream (biased to the window and its edges) is bit-exact, in
     contract, and flagged by the fault rule. Few examples per run: each goes through the
     sanitizer driver too."""
-    hyp = pytest.importorskip("hypothesis")
     from hypothesis import HealthCheck, given, settings
     from hypothesis import strategies as st
 
@@ -625,7 +673,6 @@ def test_hypothesis_random_int32_streams(models, driver, key):
         run_case(m, wl, driver, baseline=m.q.baseline_fm if tared else None,
                  mode="step" if len(wl) < 40 else "run")
 
-    del hyp
     prop()
 
 
@@ -757,7 +804,9 @@ def test_stress_model_reaches_every_bound(models, driver, key):
                 assert (out["x_um"][n:] > 0).all() and (out["y_um"][n:] < 0).all()
     # One multiplier step further and the C check refuses the model (the proof is tight):
     # the first row whose multiplier is not capped at the int32 limit.
-    ly = next(ly for net in q.nets for ly in net if ly.mult[0] < 2**31 - 1)
+    ly = next((ly for net in q.nets for ly in net if ly.mult[0] < 2**31 - 1), None)
+    if ly is None:  # int8 weights: every multiplier is capped, the bound is far from int64
+        return
     ly.mult = ly.mult.copy()
     ly.mult[0] += 1
     bad = to_bytes_unchecked(q)
@@ -908,7 +957,7 @@ def test_nan_inf_into_float_paths(models, driver):
         for k in ("force_N", "p_contact", "margin"):
             assert np.isfinite(o[k]).all(), k
         assert np.isfinite(o["x_mm"][o["contact"]]).all() and np.isfinite(o["y_mm"][o["contact"]]).all()
-        assert not np.any(o["status"] & ~ALL_FLAGS)
+        assert not np.any(np.asarray(o["status"], dtype=np.int64) & ~ALL_FLAGS)
     record("nan_inf", rows=len(rows), faults_fixed=int(fault.sum()))
 
 
@@ -983,16 +1032,18 @@ def test_corrupt_blobs_are_refused(models, driver):
     n = len(blob)
     rng = np.random.default_rng(4)
     cases: list[tuple[str, bytes]] = []
-    for cut in list(range(0, 200)) + sorted(rng.choice(np.arange(200, n), 300, replace=False).tolist()):
+    for cut in list(range(0, 130)) + sorted(rng.choice(np.arange(130, n), 120, replace=False).tolist()):
         cases.append(("truncated", blob[:cut]))
-    head = 120 + 8 * sum(len(net) for net in models["small16"].q.nets)
+    from fbgforce.export.blob import PARAMS_END
+
+    head = PARAMS_END + 8 * sum(len(net) for net in models["small16"].q.nets)
     flips = [(i, bit) for i in range(head) for bit in range(8)]
-    flips += [(int(i), int(rng.integers(0, 8))) for i in rng.integers(head, n, 300)]
+    flips = flips[::2] + [(int(i), int(rng.integers(0, 8))) for i in rng.integers(head, n, 120)]
     for i, bit in flips:
         b = bytearray(blob)
         b[i] ^= 1 << bit
         cases.append((f"flip@{i}", bytes(b)))
-    for _ in range(400):
+    for _ in range(250):
         b = bytearray(blob)
         for _ in range(int(rng.integers(1, 4))):
             i = int(rng.integers(8, head))
@@ -1066,13 +1117,17 @@ def test_valgrind_memcheck_clean(models, press_fm, tmp_path):
     os.environ["FBGFORCE_HARDCASE_WRAPPER"] = wrapper
     try:
         wl, _ = press_fm
-        for key in ("small16", "small8", "stress_bias"):
-            m = models[key]
+        narrow = to_bytes(hc.stress_qmodel(width=16, n_layers=3, bias=(1 << 60) - 1, n_taps=8))
+        for key in ("small16", "small8", "stress_narrow"):
+            m = models[key] if key in models else Model(narrow, from_bytes(narrow), None, None)
             ops = _compact_stream(m, wl)
             _same(exec_cffi(m.blob, ops), hc.run_driver(drv, m.blob, ops))
         blob = models["small16"].blob
+        from fbgforce.export.blob import PARAMS_END
+
+        # Truncated, bad magic, and a layer table entry of 0xffff x 0xffff with a valid CRC.
         bad = [blob[:10], blob[:500], blob[:-8], bytes([blob[0] ^ 1]) + blob[1:],
-               _with_crc(bytearray(blob[:120] + b"\xff" * 8 + blob[128:]))]
+               _with_crc(bytearray(blob[:PARAMS_END] + b"\xff" * 8 + blob[PARAMS_END + 8:]))]
         got = hc.driver_blob_status(drv, bad + [blob])
         assert got[-1] == 0 and all(s < 0 for s in got[:-1])
     finally:
@@ -1094,12 +1149,69 @@ def _libfuzzer_available() -> bool:
 @pytest.mark.skipif(not _libfuzzer_available(), reason="clang with libFuzzer not available")
 def test_fuzzers_bounded_run(tmp_path):
     """Both libFuzzer targets (ASan+UBSan) run from the committed corpus for a bounded time
-    (FBGFORCE_FUZZ_SECONDS, default 5 s each; `make -C runtime_c fuzz-run` uses 20 s) and
+    (FBGFORCE_FUZZ_SECONDS, default 4 s each; `make -C runtime_c fuzz-run` uses 20 s) and
     find nothing."""
-    secs = os.environ.get("FBGFORCE_FUZZ_SECONDS", "5")
+    secs = os.environ.get("FBGFORCE_FUZZ_SECONDS", "4")
     p = subprocess.run(["make", "-s", "-C", str(RUNTIME_C), "fuzz-run", f"HARD_BUILD={tmp_path}",
                         f"FUZZ_SECONDS={secs}"], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
     runs = [int(line.split()[1]) for line in p.stdout.splitlines() if line.startswith("Done ")]
     assert len(runs) == 2 and min(runs) > 100, p.stdout[-2000:]
     record("fuzz", seconds_each=secs, runs=runs)
+
+
+def test_float_overflow_in_nets_gives_safe_output(models):
+    """Finite but huge weights overflow float32 inside the nets (inf, then inf - inf = NaN):
+    the C float build returns the safe output with SATURATED, never NaN/inf."""
+    from fbgforce import model as fm
+    from fbgforce.pybind import FloatRuntime
+
+    model = fm.load(models["small16"].path)
+    for net in (model.contact, model.force):
+        net.weights = [w * 1e18 for w in net.weights]
+    fr = FloatRuntime(model)
+    fr.set_baseline(models["small16"].q.baseline_fm)
+    wl = np.concatenate([hc.stress_inputs(models["small16"].q, 1, 40),
+                         hc.stress_inputs(models["small16"].q, -1, 40)]).astype(np.int32)
+    o = fr.run(wl)
+    for k in ("force_N", "p_contact", "margin"):
+        assert np.isfinite(o[k]).all(), k
+    sat = (o["status"] & SATURATED) != 0
+    assert sat.any()
+    assert not o["contact"][sat].any() and (o["force_N"][sat] == 0).all()
+    record("float_overflow", samples=len(wl), saturated=int(sat.sum()))
+
+
+# --------------------------------------------------------------------------------------------
+# The documented bounds (docs/fixed-point.md, "Worst cases driven to their bounds")
+# --------------------------------------------------------------------------------------------
+
+def bound_table(q) -> list[str]:
+    """Markdown rows: per layer (consecutive identical layers of a net merged, "net.1-6") the
+    proven |acc| bound, the largest requantisation value ``bound * |mult| + 2^(shift-1)`` and
+    its distance to INT64_MAX."""
+    rows: list[tuple[str, int, int, str]] = []
+    for name, net in zip(("contact", "force", "location"), q.nets):
+        for i, ly in enumerate(net):
+            b = [int(np.abs(ly.w[r]).sum()) * SAT16 + abs(int(ly.bias[r])) for r in range(ly.n_out)]
+            prod = max(bb * abs(int(m)) + (1 << (ly.shift - 1)) for bb, m in zip(b, ly.mult))
+            body = (f"{ly.n_out}x{ly.n_in} int{ly.w_bits} | {max(b)} (2^{np.log2(max(b)):.2f}) | "
+                    f"{prod} | {INT64_MAX - prod} |")
+            if rows and rows[-1][0] == name and rows[-1][3] == body and rows[-1][2] == i - 1:
+                rows[-1] = (name, rows[-1][1], i, body)
+            else:
+                rows.append((name, i, i, body))
+    out = [f"| {n}.{a}{'' if a == b else f'-{b}'} | {body}" for n, a, b, body in rows]
+    fir = INT32_MAX * int(np.abs(q.taps).sum())
+    out.append(f"| fir | {q.taps.size} taps Q{q.tap_q} | {fir} (2^{np.log2(fir):.2f}) | "
+               f"{fir + (1 << (q.tap_q - 1))} | {INT64_MAX - fir - (1 << (q.tap_q - 1))} |")
+    return out
+
+
+def test_documented_stress_bounds_match():
+    """docs/fixed-point.md lists the stress model's bounds; they are recomputed here (and
+    test_stress_model_reaches_every_bound shows the runtime reaching each one)."""
+    doc = (ROOT / "docs" / "fixed-point.md").read_text()
+    for w_bits in (16, 8):
+        for row in bound_table(hc.stress_qmodel(w_bits=w_bits)):
+            assert row in doc, f"docs/fixed-point.md lacks or disagrees with: {row}"

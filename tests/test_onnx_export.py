@@ -182,3 +182,19 @@ def test_corrupt_file_is_refused(tmp_path) -> None:
     (tmp_path / ox.ONNX_FILE).write_bytes(b"\x08\x07this is not a protobuf\xff\xff")
     with pytest.raises(InputError, match="ONNX"):
         ox.run_features(_model(seed=4), np.zeros((1, 4)), tmp_path)
+
+
+def test_trained_model_on_simulated_recording(small_model_dir, small_dataset_path, tmp_path) -> None:
+    """A model the trainer produced, on the simulator's recording: onnxruntime == float64."""
+    from fbgforce import dataset as fds
+    from fbgforce.model import load
+    from fbgforce.trainer.preprocess import tare
+
+    model = load(small_model_dir)
+    ds = fds.load(small_dataset_path)
+    base = tare(ds.wl_nm, ds.contact, ds.t_s)[0]
+    z = features(model, ds.wl_nm, base)
+    ox.export_onnx(model, tmp_path / ox.ONNX_FILE)
+    got = ox.run_features(model, z, tmp_path)
+    _check_agreement(model, z, got)
+    assert 0.05 < got["contact"].mean() < 0.95  # both branches of the hierarchy exercised

@@ -76,7 +76,7 @@ def test_blob_loads_and_error_codes(blob_bytes):
     bad[0:4] = b"XXXX"
     assert _load(bytes(bad)) == lib.FBG_ERR_BAD_MAGIC
     bad = bytearray(blob_bytes)
-    bad[4] = 2
+    bad[4] = 1                                   # an older format version
     assert _load(bytes(bad)) == lib.FBG_ERR_VERSION
     for pos in (16, 200, len(blob_bytes) // 2, len(blob_bytes) - 1):
         bad = bytearray(blob_bytes)
@@ -85,13 +85,13 @@ def test_blob_loads_and_error_codes(blob_bytes):
     assert _load(blob_bytes, offset=4) == lib.FBG_ERR_ALIGN
     # Consistent CRC but inconsistent content: layer widths, sizes, shifts.
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 120, 5)          # contact layer 0 n_in 4 -> 5
+    struct.pack_into("<H", bad, 144, 5)          # contact layer 0 n_in 4 -> 5
     assert _load(_recrc(bad)) in (lib.FBG_ERR_SHAPE, lib.FBG_ERR_SIZE)
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 122, 200)        # n_out above FBG_MAX_WIDTH
+    struct.pack_into("<H", bad, 146, 200)        # n_out above FBG_MAX_WIDTH
     assert _load(_recrc(bad)) == lib.FBG_ERR_SHAPE
     bad = bytearray(blob_bytes)
-    bad[125] = 63                                # shift out of range
+    bad[149] = 63                                # shift out of range
     assert _load(_recrc(bad)) == lib.FBG_ERR_RANGE
     bad = bytearray(blob_bytes) + bytearray(8)
     struct.pack_into("<I", bad, 8, len(bad))     # declared longer than the shapes imply
@@ -116,7 +116,7 @@ def test_python_exceptions_per_code(blob_bytes, tmp_path):
         with pytest.raises(exc):
             Runtime(data)
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 122, 200)
+    struct.pack_into("<H", bad, 146, 200)
     with pytest.raises(ShapeError):
         Runtime(_recrc(bad))
     bad = bytearray(blob_bytes) + bytearray(8)

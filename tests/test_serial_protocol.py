@@ -35,7 +35,9 @@ def test_frame_layout_byte_by_byte():
     assert f[4:8] == bytes([4, 3, 2, 1])  # little-endian sequence
     assert struct.unpack_from("<Q", f, 8)[0] == 0x1122334455667788
     assert struct.unpack_from("<5i", f, 16) == (1_546_213_456, -1, 0, 2**31 - 1, -(2**31))
-    assert struct.unpack_from("<H", f, 36)[0] == P.crc16_ccitt_false(f[:36])
+    assert struct.unpack_from("<H", f, 36)[0] == P.crc16_ccitt_false(f[:36]) == 0x3053
+    assert f.hex() == ("a55a0105040302018877665544332211" "5058295cffffffff00000000ffffff7f"
+                       "000000805330")  # the example in docs/protocol.md
 
 
 def test_decoder_byte_by_byte_and_split_anywhere():
@@ -214,3 +216,34 @@ def test_link_to_missing_device_does_not_raise():
         assert link.read(0.01) == b""
     assert link.stats.open_failures >= 2 and not link.is_open
     assert not link.write(b"P>")
+
+
+@pytest.mark.parametrize("engine", ["fixed", "float"])
+def test_live_estimator_in_chunks_equals_offline_engine(engine, small_exported_dir,
+                                                        small_dataset_path):
+    """Tare on the first samples, then any chunking gives the offline engine's estimates."""
+    from fbgforce import dataset, engines
+    from fbgforce import model as fm
+    from fbgforce.interrogator.stream import LiveEstimator
+
+    wl_fm = P.nm_to_fm(dataset.load(small_dataset_path).wl_nm[:3000])
+    est = LiveEstimator(small_exported_dir, engine=engine, tare_samples=200)
+    rng = np.random.default_rng(0)
+    parts, k = [], 0
+    while k < len(wl_fm):
+        step = int(rng.integers(1, 120))
+        out = est.push(wl_fm[k:k + step])
+        parts.append(out)
+        k += step
+    live = {key: np.concatenate([p[key] for p in parts]) for key in ("contact", "force_N", "x_mm")}
+    assert len(live["contact"]) == len(wl_fm)
+    off = engines.run_engine(engine, small_exported_dir, fm.load(small_exported_dir),
+                             P.fm_to_nm(wl_fm), est.baseline_nm)
+    if engine == "fixed":
+        assert np.array_equal(off["force_N"], live["force_N"])
+        assert np.array_equal(off["x_mm"], live["x_mm"], equal_nan=True)
+    else:  # float: same arithmetic on a sliding window; equal to rounding
+        np.testing.assert_allclose(off["force_N"], live["force_N"], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(off["x_mm"], live["x_mm"], rtol=0, atol=1e-9)
+    assert np.array_equal(off["contact"], live["contact"])
+    assert np.abs(est.baseline_nm - P.fm_to_nm(wl_fm[:200]).mean(axis=0)).max() < 2e-6

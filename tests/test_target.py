@@ -51,6 +51,22 @@ def test_missing_tools_message_names_apt_packages(monkeypatch):
         assert pkg in str(exc.value)
 
 
+def test_golden_session_covers_every_status_and_api_call(small_model_dir):
+    """The replayed session is not just a recording: every status flag, contact and no
+    contact, refused tare samples, error returns and every API call occur (no tools needed)."""
+    q, _ = target.load_quantized(Path(small_model_dir))
+    wl, contact, _ = target.recording_fm(None, "smoke", 0, SAMPLES)
+    recs = target.golden_session(q, wl, contact)
+    c = target.header_constants()
+    steps = [r for r in recs if r.op == target.OP_STEP]
+    for flag in ("NOT_TARED", "SATURATED", "OVERLOAD", "SENSOR_FAULT", "WARMUP"):
+        assert any(r.out["status"] & c[f"FBG_STATUS_{flag}"] for r in steps), flag
+    assert any(r.out["contact"] for r in steps) and not all(r.out["contact"] for r in steps)
+    assert {r.op for r in recs} == set(range(7))
+    assert any(r.op == target.OP_TARE_ADD and r.accepted == 0 for r in recs)
+    assert {c["FBG_ERR_ARG"], c["FBG_ERR_TARE"]} <= {r.status for r in recs}
+
+
 def test_cross_libraries_build_clean_and_without_float(tools):
     """-Werror builds of the three libraries, and the soft-float symbol scan passes."""
     r = subprocess.run(["make", "-s", "-C", str(ROOT / "runtime_c"), "-f", "target.mk", "target-libs"],
@@ -89,7 +105,9 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path):
     fields = dict(kv.split("=") for kv in line.split()[1:])
     assert r.returncode == 0 and fields.get("mismatches") == "0", r.stdout + r.stderr
     # Both assembly paths and saturation were exercised.
-    assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["saturated"]) > 100
+    assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["int8"]) > 300
+    assert 100 < int(fields["aligned"]) < int(fields["fast"]) - 100  # both rows3 variants
+    assert int(fields["saturated"]) > 100
 
 
 def test_golden_vectors_bit_exact_on_target_both_builds(report):

@@ -149,6 +149,7 @@ def test_qat_finetune_keeps_model_contract() -> None:
     assert tuned.metadata["qat"]["weight_bits"] == 8
     assert tuned.preprocess is model.preprocess and tuned.force_scale == model.force_scale
     assert set(rep) >= {"contact", "force", "location"}
+    assert all(isinstance(rep[k]["kept_start"], bool) for k in ("contact", "force", "location"))
 
 
 def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:

@@ -70,3 +70,19 @@ def test_analyze_needs_three_features(capsys, tmp_path, small_dataset_path):
     assert res["rmse"][2] < 0.5 * res["rmse"][1]
     if res.get("plot"):
         assert (tmp_path / "ae.png").stat().st_size > 1000
+
+
+def test_report_runs_end_to_end(capsys, tmp_path, small_dataset_path, small_model_dir):
+    res = _run_json(capsys, ["report", "--data", str(small_dataset_path), "--model",
+                             str(small_model_dir), "--epochs", "3", "--out", str(tmp_path / "r"),
+                             "--json"])
+    md = (tmp_path / "r" / "report.md").read_text()
+    assert "| rmse_y_mm |" in md and "paper model" in md
+    assert json.loads((tmp_path / "r" / "report.json").read_text())["test_samples"] == res["test_samples"]
+    nominal = res["model_based"]["nominal"]["metrics"]
+    fitted = res["model_based"]["fitted"]["metrics"]
+    # The fitted beam model knows this device; the nominal one only the drawing.
+    assert fitted["rmse_force_N"] < nominal["rmse_force_N"]
+    assert set(res["network"]) == {"causal", "centred", "none"}
+    assert res["network"]["causal"]["metrics"]["n_samples"] == res["test_samples"]
+    assert isinstance(res["checks"]["network_beats_nominal_3x_force"], bool)

@@ -14,8 +14,10 @@ early stopping) on nets whose forward pass sees what the fixed-point runtime com
 
 The hierarchy is kept: the location net is fine-tuned on the contact decision and the force
 output of the already fine-tuned, fake-quantised contact and force nets, as the runtime feeds it.
-The result is a float :class:`~fbgforce.model.HierarchicalModel` (the shadow weights) that the
-normal exporter quantises.
+A net keeps its starting weights when fine-tuning does not lower its fake-quantised validation
+loss, so QAT never makes the int8 model worse on the split it is judged by. The result is a
+float :class:`~fbgforce.model.HierarchicalModel` (the shadow weights) that the normal exporter
+quantises.
 """
 from __future__ import annotations
 
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from fbgforce import model as fm
-from fbgforce.trainer.nets import FlatMLP, fit
+from fbgforce.trainer.nets import LOSSES, FlatMLP, fit, predict_batched
 
 
 def quantize_symmetric(x: np.ndarray, scale: float | np.ndarray, bits: int) -> np.ndarray:
@@ -132,7 +134,8 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         (n, 4) standardised features of the training samples (``fbgforce.model.features`` of
         each continuous recording, restricted to the training split).
     contact, force_N, x_mm, y_mm
-        Ground truth of those samples; force and location nets train on true-contact samples.
+        Ground truth of those samples. As in the trainer, the force net trains on true-contact
+        samples, the location net where true and (quantised) predicted contact agree.
     val
         Optional ``(z, contact, force_N, x_mm, y_mm)`` of the validation split, for early stopping.
     weight_bits, act_bits
@@ -143,7 +146,8 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
     Returns
     -------
     model, report
-        ``report`` holds per-net epochs run and best validation losses.
+        ``report`` holds per net the epochs run, the fake-quantised validation loss before and
+        after, and ``kept_start`` (fine-tuning did not lower it, so the start was kept).
     """
     rng = np.random.default_rng(seed)
     kw = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate, decay=decay,
@@ -156,15 +160,27 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         vf, vxy = _targets(model, *(np.asarray(v, float) for v in val[2:5]))
     report: dict[str, Any] = {"weight_bits": weight_bits, "act_bits": act_bits}
 
+    def tune(net: FakeQuantMLP, loss: str, x: np.ndarray, y: np.ndarray,
+             xv: np.ndarray | None, yv: np.ndarray | None, name: str) -> None:
+        # Keep the starting weights unless fine-tuning lowers the quantised net's validation
+        # loss: QAT must never make the shipped int8 model worse than plain quantisation.
+        ex, ey = (xv, yv) if xv is not None and xv.shape[0] else (x, y)
+        start_theta = net.theta.copy()
+        start = LOSSES[loss](predict_batched(net, ex), ey)[0]
+        r = fit(net, loss, x, y, xv, yv, desc=f"qat {name}", **kw)
+        kept = not r["best_val_loss"] < start
+        if kept:
+            net.theta[...] = start_theta
+        report[name] = {"epochs_run": r["epochs_run"], "best_epoch": r["best_epoch"],
+                        "start_val_loss": float(start), "best_val_loss": r["best_val_loss"],
+                        "kept_start": kept}
+
     cnet = FakeQuantMLP(model.contact, weight_bits, act_bits, z)
-    r = fit(cnet, "xent", z, c.astype(np.int64), *((vz, vc.astype(np.int64)) if val else (None, None)),
-            desc="qat contact", **kw)
-    report["contact"] = {k: r[k] for k in ("epochs_run", "best_epoch", "best_val_loss")}
+    tune(cnet, "xent", z, c.astype(np.int64), vz if val else None,
+         vc.astype(np.int64) if val else None, "contact")
 
     fnet = FakeQuantMLP(model.force, weight_bits, act_bits, z[c])
-    r = fit(fnet, "mse", z[c], f_t[c], *((vz[vc], vf[vc]) if val else (None, None)),
-            desc="qat force", **kw)
-    report["force"] = {k: r[k] for k in ("epochs_run", "best_epoch", "best_val_loss")}
+    tune(fnet, "mse", z[c], f_t[c], vz[vc] if val else None, vf[vc] if val else None, "force")
 
     def loc_inputs(zz: np.ndarray) -> np.ndarray:
         # What the runtime feeds the location net: the (quantised) nets' own decisions/outputs.
@@ -172,11 +188,19 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
         return np.column_stack([zz, pred_c, fnet.forward(zz)[:, 0]])
 
-    lx = loc_inputs(z[c])
+    # As the trainer: location on samples where true and predicted contact agree.
+    def loc_rows(zz: np.ndarray, cc: np.ndarray) -> np.ndarray:
+        logits = cnet.forward(zz)
+        return cc & (logits[:, 1] > logits[:, 0])
+
+    lt = loc_rows(z, c)
+    lx = loc_inputs(z[lt])
     lnet = FakeQuantMLP(model.location, weight_bits, act_bits, lx)
-    r = fit(lnet, "mse", lx, xy_t[c], *((loc_inputs(vz[vc]), vxy[vc]) if val else (None, None)),
-            desc="qat location", **kw)
-    report["location"] = {k: r[k] for k in ("epochs_run", "best_epoch", "best_val_loss")}
+    if val:
+        lv = loc_rows(vz, vc)
+        tune(lnet, "mse", lx, xy_t[lt], loc_inputs(vz[lv]), vxy[lv], "location")
+    else:
+        tune(lnet, "mse", lx, xy_t[lt], None, None, "location")
 
     meta = dict(model.metadata)
     meta["qat"] = report

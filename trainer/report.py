@@ -83,7 +83,8 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
             from fbgforce.trainer.evaluate import evaluate
             m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model)
             nets[kind] = {"metrics": m, "model": str(model_dir),
-                          "train_seconds": model.metadata.get("times_s", {}).get("train")}
+                          "train_seconds": model.metadata.get("times_s", {}).get("train"),
+                          "group_delay_ms": model.metadata.get("filter", {}).get("group_delay_ms")}
             continue
         t1 = time.perf_counter()
         model = train(ds_list, epochs=epochs, seed=seed, filter=kind, sigma=sigma,

@@ -1,11 +1,12 @@
 /* dsp_kernel_test.c - the DSP-extension kernels of runtime_c/src/fbg_dsp.c against the
  * arithmetic rules of docs/fixed-point.md, on random layers the golden vectors of one model
- * never reach: odd widths, rows starting at odd halfwords (unaligned words), every shift
+ * never reach: int16 and int8 weights, odd widths, rows starting at odd halfwords (unaligned words), every shift
  * 1..62, the largest multipliers the int64 bound proof allows (both signs), saturating and
  * all-negative rows, exact rounding ties (x = 0, bias = k 2^s + 2^(s-1) and neighbours), and
  * random FIR ring positions. Runs on QEMU mps2-an386; prints
- *   KERNEL_TEST cases=N mismatches=M fast=F first=L saturated=S
- * and exits with 0 when M == 0 (fast, first = layers that took rows3_asm, first_asm). */
+ *   KERNEL_TEST cases=N mismatches=M fast=F aligned=A first=L int8=E saturated=S
+ * and exits with 0 when M == 0 (fast = layers through rows3_asm or, A of them, rows3d_asm;
+ * first = through first_asm). W and X are word-aligned arrays; off = 1 misaligns them. */
 #include <stdint.h>
 #include <string.h>
 
@@ -14,8 +15,9 @@
 
 #define N_CASES 1500u
 
-static int16_t W[FBG_MAX_WIDTH * FBG_MAX_WIDTH + 1];
-static int16_t X[FBG_MAX_WIDTH + 1];
+static int16_t W[FBG_MAX_WIDTH * FBG_MAX_WIDTH + 1] __attribute__((aligned(4)));
+static int8_t W8[FBG_MAX_WIDTH * FBG_MAX_WIDTH + 1];
+static int16_t X[FBG_MAX_WIDTH + 1] __attribute__((aligned(4)));
 static int64_t B[FBG_MAX_WIDTH];
 static int32_t M[FBG_MAX_WIDTH];
 static int16_t Y_ref[FBG_MAX_WIDTH], Y_dsp[FBG_MAX_WIDTH];
@@ -43,7 +45,8 @@ static void ref_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32
     for (r = 0; r < ly->n_out; ++r) {
         int64_t acc = ly->bias[r], v;
         for (j = 0; j < ly->n_in; ++j)
-            acc += (int64_t)ly->w16[(uint32_t)r * ly->n_in + j] * x[j];
+            acc += (int64_t)(ly->w_bits == 16u ? ly->w16[(uint32_t)r * ly->n_in + j]
+                                               : ly->w8[(uint32_t)r * ly->n_in + j]) * x[j];
         v = ref_rshift_round(acc * ly->mult[r], ly->shift);
         if (v < 0)
             v = 0;
@@ -57,19 +60,28 @@ static void ref_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32
 
 int main(void)
 {
-    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 20, 40, 50, 63, 70, 127, 128};
-    uint32_t c, mismatches = 0, fast = 0, first = 0, saturated = 0;
+    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
+    const uint32_t n_widths = sizeof widths / sizeof widths[0];
+    uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
     for (c = 0; c < N_CASES; ++c) {
-        unsigned n = widths[rnd() % 16u], m = widths[rnd() % 16u], mode = c % 6u, off = (c / 6u) % 2u;
+        unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u;
         unsigned shift = 1u + rnd() % 62u, i, r;
         uint32_t sat_ref = 0u, sat_dsp = 0u;
+        int bits8 = (c % 3u) == 2u;
         fbg_layer ly;
         if (mode >= 2u)
             shift = 32u + rnd() % 31u;
         if (mode == 5u)
             shift = 32u + rnd() % 27u; /* |bias| < 2^60 with the tie constructions below */
-        for (i = 0; i < n * m; ++i)
+        for (i = 0; i < n * m; ++i) {
             W[off + i] = mode == 1u ? (int16_t)((rnd() & 1u) ? 32767 : -32767) : rnd16();
+            if (bits8) {
+                W8[off + i] = (int8_t)(W[off + i] >> 8);
+                if (W8[off + i] == -128)
+                    W8[off + i] = -127;
+                W[off + i] = W8[off + i]; /* the bound below reads W */
+            }
+        }
         for (i = 0; i < n; ++i) {
             int16_t v = rnd16();
             X[off + i] = mode == 3u ? (int16_t)(v < 0 ? -v : v) : v; /* ReLU outputs: >= 0 */
@@ -101,14 +113,17 @@ int main(void)
         memset(&ly, 0, sizeof ly);
         ly.n_in = (uint16_t)n;
         ly.n_out = (uint16_t)m;
-        ly.w_bits = 16u;
+        ly.w_bits = bits8 ? 8u : 16u;
         ly.shift = (uint8_t)shift;
-        ly.w16 = W + off;
+        if (bits8)
+            ly.w8 = W8 + off;
+        else
+            ly.w16 = W + off;
         ly.bias = B;
         ly.mult = M;
         ref_hidden(&ly, X + off, Y_ref, &sat_ref);
         memset(Y_dsp, 0x5A, sizeof Y_dsp);
-        fbg_dsp_hidden16(&ly, X + off, Y_dsp, &sat_dsp);
+        fbg_dsp_hidden(&ly, X + off, Y_dsp, &sat_dsp);
         if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
             if (mismatches < 5u) {
                 sh_puts("KERNEL_MISMATCH");
@@ -124,13 +139,18 @@ int main(void)
             int64_t acc = B[r];
             for (i = 0; i < n; ++i)
                 acc += (int64_t)W[off + r * n + i] * X[off + i];
-            if (fbg_dsp_dot16(W + off + r * n, X + off, n, B[r]) != acc) {
+            if (fbg_dsp_row_acc(&ly, r, X + off) != acc) {
                 ++mismatches;
                 break;
             }
         }
-        first += shift >= 32u && (n == 2u || n == 4u || n == 6u);
-        fast += shift >= 32u && m >= 3u && !(n == 2u || n == 4u || n == 6u);
+        first += !bits8 && shift >= 32u && (n == 2u || n == 4u || n == 6u);
+        if (!bits8 && shift >= 32u && m >= 3u && !(n == 2u || n == 4u || n == 6u)) {
+            ++fast;
+            /* The condition under which fbg_dsp.c takes the LDRD variant (rows3d_asm). */
+            fast_aligned += ((((uintptr_t)(X + off) | (uintptr_t)(W + off)) & 3u) == 0u && (n & 1u) == 0u);
+        }
+        int8_layers += (uint32_t)bits8;
         saturated += sat_ref != 0u;
         /* FIR: random taps, history and ring position. */
         {
@@ -160,7 +180,9 @@ int main(void)
     sh_kv("cases", (int32_t)N_CASES);
     sh_kv("mismatches", (int32_t)mismatches);
     sh_kv("fast", (int32_t)fast);
+    sh_kv("aligned", (int32_t)fast_aligned);
     sh_kv("first", (int32_t)first);
+    sh_kv("int8", (int32_t)int8_layers);
     sh_kv("saturated", (int32_t)saturated);
     sh_puts("\n");
     return mismatches ? 1 : 0;

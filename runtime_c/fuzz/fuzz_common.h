@@ -9,7 +9,8 @@
  *   - no int32 output is INT32_MIN (saturation is symmetric, so a wrap would show here);
  *   - SENSOR_FAULT => the safe output (every field 0 but status);
  *   - no contact  => force_mN = x_um = y_um = 0;
- *   - OVERLOAD    <=> contact and force_mN > model->overload_mN;
+ *   - contact and force_mN > model->overload_mN => OVERLOAD (the flag may also come from
+ *     the input-side load rule, contact or not; never on a faulty sample);
  *   - NOT_TARED   <=> the state has not been tared;
  *   - contact_conf_q15 == fbg_sigmoid_q15(contact_margin_q8) outside faults.
  */
@@ -52,8 +53,8 @@ static inline const char *hc_check_output(const fbg_output *o, const fbg_model *
     }
     if (!o->contact && (o->force_mN || o->x_um || o->y_um))
         return "force/location without contact";
-    if (!!(o->status & FBG_STATUS_OVERLOAD) != (o->contact && o->force_mN > m->overload_mN))
-        return "OVERLOAD flag disagrees with force_mN > overload_mN";
+    if (o->contact && o->force_mN > m->overload_mN && !(o->status & FBG_STATUS_OVERLOAD))
+        return "force_mN > overload_mN without OVERLOAD";
     if ((int32_t)o->contact_conf_q15 != fbg_sigmoid_q15(o->contact_margin_q8))
         return "contact_conf_q15 is not sigmoid(margin)";
     return NULL;

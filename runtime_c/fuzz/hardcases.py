@@ -147,6 +147,7 @@ def stress_qmodel(width: int = 128, n_layers: int = 8, w_bits: int = 16, bias: i
 
     Output layers: contact margin row positive (contact), force row positive (force clamps to
     INT32_MAX -> OVERLOAD), location x row positive, y row negative (x, y clamp to +-INT32_MAX).
+    The load proxy (input-side overload rule) has the largest coefficients the loader accepts.
     """
     from fbgforce.export.quantize import QLayer, QModel
 
@@ -182,7 +183,10 @@ def stress_qmodel(width: int = 128, n_layers: int = 8, w_bits: int = 16, bias: i
         baseline_fm=[1_530_000_000, 1_538_000_000, 1_546_000_000, 1_554_000_000, 1_562_000_000],
         jump_max_fm=2_000_000, temp_coeff_q24=[4 << 24] * 4, taps=[SAT16] * n_taps, tap_q=15,
         mean_fm=[0] * 4, z_mult=[1] * 4, z_shift=1, z_frac=14, fq_mult=1 << 30, fq_shift=1,
-        force_offset_mN=1000, xy_offset_um=[0, 0], overload_mN=70_000, nets=nets)
+        force_offset_mN=1000, xy_offset_um=[0, 0], overload_mN=70_000, nets=nets,
+        # The input-side load proxy at its limits too: |coeff| just below 2^28, so the sum of
+        # four products of saturated filter outputs is ~2^61.
+        load_coeff=[(1 << 28) - 1] * 4, load_shift=30, load_max_mN=1000)
 
 
 def stress_inputs(q, sign: int = 1, n: int | None = None) -> np.ndarray:

@@ -64,7 +64,7 @@ extern "C" {
 /* Q format of the temperature coefficients: coeff = temp_coeff_q24 / 2^24. */
 #define FBG_TEMP_COEFF_SHIFT 24
 /* Blob format understood by this library (docs/model-format.md). */
-#define FBG_BLOB_VERSION 1
+#define FBG_BLOB_VERSION 2
 #define FBG_BLOB_HEADER_SIZE 16
 
 /* ---- Return codes: 0 is success, every error has its own negative code ---- */
@@ -90,7 +90,7 @@ typedef enum {
 /* ---- Output status flags (fbg_output.status; several may be set) ---- */
 #define FBG_STATUS_NOT_TARED 0x01     /* running on the model's nominal baseline */
 #define FBG_STATUS_SATURATED 0x02     /* some value was clamped (int16/int32) this sample */
-#define FBG_STATUS_OVERLOAD 0x04      /* contact and force_mN > model overload_mN */
+#define FBG_STATUS_OVERLOAD 0x04      /* beyond the trained force range (see fbg_model) */
 #define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost or jumped: outputs are the safe output */
 #define FBG_STATUS_WARMUP 0x10        /* fewer than n_taps samples since init/tare */
 
@@ -130,6 +130,10 @@ typedef struct {
     int32_t baseline_fm[FBG_N_CHANNELS];
     /* SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel. */
     int32_t jump_max_fm;
+    /* SENSOR_FAULT when a channel has repeated the identical value for stuck_max consecutive
+     * samples (a frozen peak / stale interrogator channel); 0 disables the rule. */
+    uint16_t stuck_max;
+    uint16_t reserved0;
     /* comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)        (fm) */
     int32_t temp_coeff_q24[FBG_N_STRAIN];
     /* Causal FIR: filt = sat32(rshift_round(sum_k taps[k] * comp[n-k], tap_q)); taps are
@@ -143,7 +147,8 @@ typedef struct {
     /* Location-net input 6 = force in the force net's own output units, Q(z_frac):
      * f_q = sat16(rshift_round(force_out * fq_mult, fq_shift)). Input 5 = contact << z_frac. */
     uint8_t fq_shift;        /* 1..62 */
-    uint8_t reserved[2];
+    uint8_t load_shift;      /* 1..62, see load_coeff */
+    uint8_t reserved;
     int32_t mean_fm[FBG_N_STRAIN];
     int32_t z_mult[FBG_N_STRAIN];
     int32_t fq_mult;
@@ -152,7 +157,13 @@ typedef struct {
      * offset). Then force_mN = sat32(force_out + force_offset_mN), x_um likewise. */
     int32_t force_offset_mN;
     int32_t xy_offset_um[2];
-    int32_t overload_mN;     /* FBG_STATUS_OVERLOAD above this force */
+    int32_t overload_mN;     /* OVERLOAD when contact and force_mN > overload_mN */
+    /* Input-side overload rule, independent of the nets (which extrapolate low beyond the
+     * trained range): load_mN = rshift_round(sum_i load_coeff[i] * filt_i, load_shift), a
+     * linear force proxy fitted at export; OVERLOAD when load_mN > load_max_mN (the largest
+     * value on the calibration data), contact or not. |load_coeff[i]| < 2^28. */
+    int32_t load_coeff[FBG_N_STRAIN];
+    int32_t load_max_mN;
     const int16_t *taps;     /* n_taps */
     fbg_net nets[FBG_N_NETS];
 } fbg_model;
@@ -183,6 +194,7 @@ typedef struct {
     uint32_t tare_count;
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
+    uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
     uint8_t tared;
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
@@ -242,7 +254,9 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
  * Sensor-fault rule: channel c is faulty when wl_fm[c] < FBG_WL_MIN_FM or > FBG_WL_MAX_FM
  * (a lost peak: 0, -1, INT32 sentinels), or when it jumps by more than model->jump_max_fm
  * from the previous in-window sample of that channel (prev is updated by every in-window
- * sample, so a genuine step faults one sample only). A faulty T channel (reference gone)
+ * sample, so a genuine step faults one sample only), or when it has repeated the identical
+ * value for model->stuck_max consecutive samples (a frozen peak; the counter restarts on
+ * any change or out-of-window sample; stuck_max 0 = off). A faulty T channel (reference gone)
  * faults the sample too. On a fault: the FIR is fed its last input again (time base kept),
  * the nets are not run, *out is the safe output with FBG_STATUS_SENSOR_FAULT.
  * Returns FBG_OK (the output status says the rest), FBG_ERR_NULL, FBG_ERR_STATE or
@@ -281,6 +295,8 @@ typedef struct {
 typedef struct {
     int32_t baseline_fm[FBG_N_CHANNELS];
     int32_t jump_max_fm;
+    uint16_t stuck_max;
+    uint16_t reserved0;
     float temp_coeff[FBG_N_STRAIN];
     float input_mean_pm[FBG_N_STRAIN];
     float input_std_pm[FBG_N_STRAIN];
@@ -301,7 +317,8 @@ typedef struct {
     float y_mm;
     float p_contact;         /* softmax probability of contact */
     float margin;            /* logit[1] - logit[0] */
-    uint32_t status;         /* FBG_STATUS_* (SATURATED only if the tare difference clamps) */
+    uint32_t status;         /* FBG_STATUS_* (SATURATED if the tare difference clamps, or
+                              * a non-finite value arose in the nets: then the safe output) */
     uint8_t contact;
     uint8_t reserved[3];
 } fbgf_output;
@@ -318,6 +335,7 @@ typedef struct {
     uint32_t tare_count;
     uint16_t pos;
     uint16_t since_reset;
+    uint16_t same_run[FBG_N_CHANNELS];
     uint8_t tared;
     uint8_t tare_active;
     uint8_t prev_valid;

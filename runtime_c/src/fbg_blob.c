@@ -9,7 +9,7 @@
 
 #include "fbg_internal.h"
 
-#define FBG_PARAMS_END 120u   /* end of the fixed parameter block */
+#define FBG_PARAMS_END 144u   /* end of the fixed parameter block */
 #define FBG_LAYER_ENTRY 8u    /* bytes per layer-table entry */
 
 uint32_t fbg_crc32(const uint8_t *data, size_t len)
@@ -110,13 +110,19 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
     model->xy_offset_um[1] = rdi32(p + 12);
     model->overload_mN = rdi32(p + 16);
     p += 20;
+    for (c = 0; c < FBG_N_STRAIN; ++c, p += 4)
+        model->load_coeff[c] = rdi32(p);
+    model->load_max_mN = rdi32(p);
+    p += 4;
     model->n_taps = rd16(p);
     model->tap_q = p[2];
     model->z_frac = p[3];
     model->z_shift = p[4];
     model->fq_shift = p[5];
+    model->load_shift = p[6];
+    model->stuck_max = rd16(p + 10);
     for (n = 0; n < FBG_N_NETS; ++n) {
-        model->nets[n].n_layers = p[6 + n];
+        model->nets[n].n_layers = p[7 + n];
         if (model->nets[n].n_layers < 1u || model->nets[n].n_layers > FBG_MAX_LAYERS)
             return FBG_ERR_SHAPE;
     }

@@ -12,10 +12,12 @@
  *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
  *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
  *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
- *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in rows3_asm).
- * - Layers with shift >= 32 (what the exporter chooses for int16 layers) run in rows3_asm, a
- *   naked function in inline assembly (register allocation by hand: GCC spilled the six
- *   accumulator registers); everything else in C with ACLE intrinsics (__smlald, __usat).
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - int16 layers with shift >= 32 (what the exporter chooses) run in naked functions of
+ *   inline assembly (registers allocated by hand: GCC spilled the six accumulator
+ *   registers): rows3d_asm (word-aligned, LDRD), rows3_asm (any alignment), first_asm (2, 4
+ *   or 6 inputs held in registers). Everything else is C with ACLE intrinsics (__smlald,
+ *   __sxtb16 for int8 weights, __usat).
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -27,8 +29,9 @@
 #include <stddef.h>
 #include <string.h>
 
-/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; no LDRD/LDM,
- * which would fault on the 2-byte-aligned rows of an odd-width layer). */
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
 static inline int16x2_t ld2(const int16_t *p)
 {
     int16x2_t v;
@@ -267,12 +270,198 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
+/* rows3_asm for word-aligned inputs and rows (x and w 4-byte aligned, n even), the usual case
+ * (activation buffers in fbg_state, generated arrays and blob arrays are word-aligned): LDRD
+ * fetches four inputs or four weights of a row in one instruction, so sixteen inputs of
+ * three rows cost 4 x (1 + 3 x 3) + 3 = 43 instructions per 48 MACs (0.90) instead of 60;
+ * with all four temporaries in use, the job pointer, the loop end, n and the end of the
+ * output live on the stack (computed once per layer; the group loop ends at the last output). Then 8, 4 and 2 inputs for n % 16. Same
+ * arithmetic, same requantisation as rows3_asm. (LDRD needs word alignment: the caller
+ * checks it, the unaligned case stays with rows3_asm.) */
+__attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        "mrs     r12, apsr\n\t"
+        "push    {r4-r12, lr}\n\t"
+        "bic     r12, r12, #0x08000000\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "sub     sp, sp, #16\n\t"
+        "str     r0, [sp]\n\t"
+        "ldr     r12, [r0, #24]\n\t"
+        "ldr     r1, [r0, #16]\n\t"
+        "add     r12, r12, r12, lsl #1\n\t"
+        "add     r12, r1, r12, lsl #1\n\t"
+        "str     r12, [sp, #12]\n\t"
+        "ldr     r12, [r0, #20]\n\t"
+        "str     r12, [sp, #8]\n\t"
+        "ldr     r1, [r0, #4]\n\t"
+        "bic     r12, r12, #15\n\t"
+        "add     r12, r1, r12, lsl #1\n\t"
+        "str     r12, [sp, #4]\n\t"
+        "0:\n\t"
+        "ldr     r3, [sp]\n\t"
+        "ldr     r12, [r3, #8]\n\t"
+        "ldrd    r4, r5, [r12], #8\n\t"
+        "ldrd    r6, r7, [r12], #8\n\t"
+        "ldrd    r8, r9, [r12], #8\n\t"
+        "str     r12, [r3, #8]\n\t"
+        "ldr     r0, [r3]\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "add     r10, r0, r12, lsl #1\n\t"
+        "add     r11, r10, r12, lsl #1\n\t"
+        "ldr     r1, [r3, #4]\n\t"
+        "ldr     lr, [sp, #4]\n\t"
+        "cmp     r1, lr\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "ldr     r12, [sp, #4]\n\t"
+        "cmp     r1, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "tst     r12, #8\n\t"
+        "beq     3f\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "3:\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "lsls    r12, r12, #30\n\t"
+        "bcc     4f\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "smlald  r4, r5, lr, r3\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "smlald  r6, r7, lr, r3\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "smlald  r8, r9, lr, r3\n\t"
+        "4:\n\t"
+        "bpl     5f\n\t"
+        "ldr     r2, [r1], #4\n\t"
+        "ldr     r12, [r0], #4\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "ldr     r12, [r10], #4\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "ldr     r12, [r11], #4\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "5:\n\t"
+        "ldr     r3, [sp]\n\t"
+        "str     r11, [r3]\n\t"
+        "ldr     r0, [r3, #12]\n\t"
+        "ldrd    r1, r2, [r3, #28]\n\t"
+        "ldr     lr, [r3, #36]\n\t"
+        "ldr     r10, [r3, #16]\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r5, r5, r4, lsr #31\n\t"
+        "smull   r12, r4, r4, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r4, r4, r2\n\t"
+        "mla     r4, r5, r11, r4\n\t"
+        "asr     r4, r4, lr\n\t"
+        "bic     r4, r4, r4, asr #31\n\t"
+        "usat    r12, #15, r4\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r7, r7, r6, lsr #31\n\t"
+        "smull   r12, r6, r6, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r6, r6, r2\n\t"
+        "mla     r6, r7, r11, r6\n\t"
+        "asr     r6, r6, lr\n\t"
+        "bic     r6, r6, r6, asr #31\n\t"
+        "usat    r12, #15, r6\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "ldr     r11, [r0], #4\n\t"
+        "add     r9, r9, r8, lsr #31\n\t"
+        "smull   r12, r8, r8, r11\n\t"
+        "adds    r12, r12, r1\n\t"
+        "adc     r8, r8, r2\n\t"
+        "mla     r8, r9, r11, r8\n\t"
+        "asr     r8, r8, lr\n\t"
+        "bic     r8, r8, r8, asr #31\n\t"
+        "usat    r12, #15, r8\n\t"
+        "strh    r12, [r10], #2\n\t"
+        "str     r0, [r3, #12]\n\t"
+        "str     r10, [r3, #16]\n\t"
+        "ldr     r12, [sp, #12]\n\t"
+        "cmp     r10, r12\n\t"
+        "bne     0b\n\t"
+        "add     sp, sp, #16\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "str     r12, [r3, #40]\n\t"
+        "pop     {r4-r12, lr}\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "bx      lr\n\t");
+}
+
 /* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
  * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
- * LDRD of its bias, one LDR + SMLALD per input pair and the 9-instruction requantisation of
- * rows3_asm (rounding constant kept on the stack, read with one LDRD): 17 instructions per
- * row for 4 inputs against about 27 through rows3_asm, whose bookkeeping per three rows is
- * written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
+ * LDRD of its bias, one LDR + SMLALD per input pair, the requantisation of rows3_asm (with
+ * the rounding constant kept on the stack, read with one LDRD: 9 instructions) and the loop
+ * test: 16 instructions per row for 4 inputs against about 27 through rows3_asm, whose
+ * bookkeeping per three rows is written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
  * the number of ROWS here. */
 __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
 {
@@ -394,6 +583,7 @@ static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t
         return;
     }
     if (shift >= 32u && m >= 3u) {
+        const int aligned = (((uintptr_t)x | (uintptr_t)w) & 3u) == 0u && (n & 1u) == 0u;
         fbg_dsp_job job;
         job.w = w;
         job.x = x;
@@ -406,9 +596,28 @@ static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t
         job.round_hi = (uint32_t)(round >> 32);
         job.s32 = shift - 32u;
         job.clamped = 0u;
-        rows3_asm(&job);
+        if (aligned)
+            rows3d_asm(&job);
+        else
+            rows3_asm(&job);
         clamped = job.clamped;
         r = 3u * (m / 3u);
+        if (m - r == 2u) {
+            /* Two rows left: one more pass over the LAST three rows (the first of them is
+             * recomputed, to the same value) is cheaper than two rows in C. */
+            job.w = ly->w16 + (size_t)(m - 3u) * n;
+            job.bias = ly->bias + (m - 3u);
+            job.mult = ly->mult + (m - 3u);
+            job.y = y + (m - 3u);
+            job.groups = 1u;
+            job.clamped = 0u;
+            if (aligned)
+                rows3d_asm(&job);
+            else
+                rows3_asm(&job);
+            clamped |= job.clamped;
+            r = m;
+        }
         w += (size_t)r * n;
     }
     /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
@@ -453,7 +662,8 @@ static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsi
 
 /* A hidden layer with int8 weights: two rows per pass share the re-paired inputs; per four
  * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C (relu_sat16). */
-static void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                              uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
     const int64_t round = (int64_t)1 << (shift - 1u);
@@ -497,20 +707,24 @@ void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t 
         hidden8(ly, x, y, sat);
 }
 
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+/* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
+static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
     const unsigned n = ly->n_in;
-    if (ly->w_bits == 16u)
-        return fbg_dsp_dot16(ly->w16 + (size_t)r * n, x, n, ly->bias[r]);
-    {
-        int16x2_t xp[FBG_MAX_WIDTH / 2];
-        unsigned j;
-        for (j = 0; j + 4u <= n; j += 4u) {
-            xp[j / 2u] = pair16(x[j], x[j + 2u]);
-            xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
-        }
-        return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
+    int16x2_t xp[FBG_MAX_WIDTH / 2];
+    unsigned j;
+    for (j = 0; j + 4u <= n; j += 4u) {
+        xp[j / 2u] = pair16(x[j], x[j + 2u]);
+        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
     }
+    return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->w_bits == 16u)
+        return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
+    return row_acc8(ly, r, x);
 }
 
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],

@@ -82,6 +82,7 @@ static void clear_filter(fbg_state *s)
     memset(s->last_comp, 0, sizeof s->last_comp);
     memset(s->prev_fm, 0, sizeof s->prev_fm);
     s->prev_valid = 0u;
+    memset(s->same_run, 0, sizeof s->same_run);
     s->pos = 0u;
     s->since_reset = 0u;
 }
@@ -254,7 +255,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c, k, idx;
-    int64_t acc;
+    int64_t acc, load = 0;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
@@ -270,7 +271,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, m->jump_max_fm)) {
+    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, s->same_run, m->jump_max_fm,
+                        m->stuck_max)) {
         status |= FBG_STATUS_SENSOR_FAULT;
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
@@ -317,9 +319,13 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
             int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
             int32_t d = fbg_sat32((int64_t)filt - m->mean_fm[c], &sat);
             in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), &sat);
+            load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
         }
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
+    if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
+        status |= FBG_STATUS_OVERLOAD;
 
     /* 4. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);

@@ -59,16 +59,19 @@ static inline int fbg_wl_in_window(int32_t wl)
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
 }
 
-/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid.
- * Returns 1 if the sample is faulty. Integer only (shared with the float build). */
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
 static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
-                                  uint8_t *prev_valid, int32_t jump_max_fm)
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
     unsigned c;
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
         if (!fbg_wl_in_window(wl[c])) {
             fault = 1;
+            run[c] = 0u;
             continue;
         }
         if (*prev_valid & (1u << c)) {
@@ -76,7 +79,17 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
             int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
             if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
                 fault = 1;
+            if (d == 0) {
+                if (run[c] < 0xFFFFu)
+                    run[c]++;
+            } else {
+                run[c] = 0u;
+            }
+        } else {
+            run[c] = 0u;
         }
+        if (stuck_max != 0u && run[c] >= stuck_max)
+            fault = 1;
         prev[c] = wl[c];
         *prev_valid = (uint8_t)(*prev_valid | (1u << c));
     }

@@ -5,6 +5,7 @@
 
 /* |bias| above this is refused so that the bound below cannot overflow int64 itself. */
 #define FBG_BIAS_LIMIT ((int64_t)1 << 60)
+#define FBG_LOAD_COEFF_LIMIT ((int32_t)1 << 28)
 
 static fbg_status check_layer(const fbg_layer *ly)
 {
@@ -71,6 +72,12 @@ fbg_status fbg_model_check(const fbg_model *model)
             return FBG_ERR_RANGE;
     if (model->fq_mult == INT32_MIN)
         return FBG_ERR_RANGE;
+    /* The load proxy sums four int32 x int32 products: |coeff| < 2^28 keeps the sum < 2^61. */
+    if (model->load_shift < 1u || model->load_shift > 62u)
+        return FBG_ERR_RANGE;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        if (model->load_coeff[c] >= FBG_LOAD_COEFF_LIMIT || model->load_coeff[c] <= -FBG_LOAD_COEFF_LIMIT)
+            return FBG_ERR_RANGE;
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbg_net *net = &model->nets[n];
         if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)

@@ -39,6 +39,21 @@ static float fbgf_exp(float x)
     return p * two_k.f;
 }
 
+/* Finite (not NaN, not +-inf) without libm: inf - inf and NaN - NaN are NaN. */
+static int finite_f(float x)
+{
+    return x == x && x - x == 0.0f;
+}
+
+static int all_finite(const float *x, size_t n)
+{
+    size_t i;
+    for (i = 0; i < n; ++i)
+        if (!finite_f(x[i]))
+            return 0;
+    return 1;
+}
+
 static int fstate_ok(const fbgf_state *s)
 {
     return s->magic == FBGF_STATE_MAGIC && s->model != NULL;
@@ -60,6 +75,14 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     for (c = 0; c < FBG_N_STRAIN; ++c)
         if (!(model->input_std_pm[c] > 0.0f))
             return FBG_ERR_RANGE;
+    /* A NaN/inf parameter would make every output NaN: refuse the model instead
+     * (docs/robustness.md). overload_N may be +inf ("no overload threshold"), not NaN. */
+    if (!all_finite(model->temp_coeff, FBG_N_STRAIN) || !all_finite(model->input_mean_pm, FBG_N_STRAIN) ||
+        !all_finite(model->input_std_pm, FBG_N_STRAIN) || !all_finite(model->xy_offset_mm, 2) ||
+        !all_finite(model->xy_scale, 2) || !finite_f(model->force_offset_N) ||
+        !finite_f(model->force_scale) || model->overload_N != model->overload_N ||
+        !all_finite(model->taps, model->n_taps))
+        return FBG_ERR_RANGE;
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbgf_net *net = &model->nets[n];
         if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
@@ -74,6 +97,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
                 return FBG_ERR_SHAPE;
             if (ly->w == NULL || ly->b == NULL)
                 return FBG_ERR_NULL;
+            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
+                return FBG_ERR_RANGE;
         }
     }
     return FBG_OK;
@@ -85,6 +110,7 @@ static void fclear(fbgf_state *s)
     memset(s->last_comp, 0, sizeof s->last_comp);
     memset(s->prev_fm, 0, sizeof s->prev_fm);
     s->prev_valid = 0u;
+    memset(s->same_run, 0, sizeof s->same_run);
     s->pos = 0u;
     s->since_reset = 0u;
 }
@@ -212,7 +238,8 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         out->status = status;
         return FBG_ERR_NOT_TARED;
     }
-    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, m->jump_max_fm)) {
+    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, s->same_run, m->jump_max_fm,
+                        m->stuck_max)) {
         status |= FBG_STATUS_SENSOR_FAULT;
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
@@ -249,6 +276,12 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], z);
     margin = y[1] - y[0];
+    if (!finite_f(margin)) {
+        /* Float overflow inside the nets (finite parameters, extreme inputs): the float
+         * analogue of a clamp. Safe output, never a NaN/inf (docs/robustness.md). */
+        out->status = status | FBG_STATUS_SATURATED;
+        return FBG_OK;
+    }
     out->margin = margin;
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
@@ -263,6 +296,11 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
+        if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
+            memset(out, 0, sizeof *out);
+            out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
+            return FBG_OK;
+        }
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
