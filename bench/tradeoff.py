@@ -615,13 +615,30 @@ def _score(rows: list[dict[str, Any]], ref: dict[str, Any] | None) -> None:
                     and r[k] <= MATCH_RMSE_FACTOR * ref[k] for k in METRIC_KEYS[1:]))
 
 
-def pareto_mask(points: Sequence[tuple[float, ...]]) -> list[bool]:
-    """True for points not dominated (every coordinate <=, one <) by another point."""
-    pts = [tuple(p) for p in points]
+#: Error indices closer than this count as equal when deciding dominance: differences in
+#: the third decimal (float32 vs float64, int16 rounding) are not accuracy differences.
+PARETO_ERR_TOL = 0.01
+
+
+def pareto_mask(points: Sequence[tuple[float, ...]], tol: Sequence[float] | None = None
+                ) -> list[bool]:
+    """True for points that no other point dominates (minimising every coordinate).
+
+    ``q`` dominates ``p`` when ``q[k] <= p[k] + tol[k]`` for every k and ``q[k] < p[k] - tol[k]``
+    for at least one k (``tol`` defaults to zeros: plain Pareto dominance).
+    """
+    pts = [tuple(float(v) for v in p) for p in points]
+    t = [0.0] * (len(pts[0]) if pts else 0) if tol is None else [float(v) for v in tol]
     out = []
     for i, p in enumerate(pts):
-        dominated = any(all(q[k] <= p[k] for k in range(len(p))) and q != p
-                        for j, q in enumerate(pts) if j != i)
+        dominated = False
+        for j, q in enumerate(pts):
+            if j == i:
+                continue
+            if all(q[k] <= p[k] + t[k] for k in range(len(p))) and \
+                    any(q[k] < p[k] - t[k] for k in range(len(p))):
+                dominated = True
+                break
         out.append(not dominated)
     return out
 
@@ -637,7 +654,9 @@ def _mark_pareto(rows: list[dict[str, Any]]) -> None:
     for key, coords in (("pareto_compute", lambda r: (r["error_index"], r["host_batch_ns"])),
                         ("pareto_delay", lambda r: (r["error_index"], r["filter_delay_ms"],
                                                     r["host_batch_ns"]))):
-        for r, front in zip(cand, pareto_mask([coords(r) for r in cand])):
+        pts = [coords(r) for r in cand]
+        tol = [PARETO_ERR_TOL] + [0.0] * (len(pts[0]) - 1) if pts else None
+        for r, front in zip(cand, pareto_mask(pts, tol)):
             r[key] = front
 
 
@@ -752,15 +771,24 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f" at one instruction per cycle)"
             for r in sorted(m4, key=lambda r: -r["m4_instructions_per_step"]))
         parts.append(f"On the Cortex-M4 (DSP build, int16, worst step): {desc}.")
+        r16, r8 = by.get((tag, "c-int16")), by.get((tag, "c-int8"))
+        if r16 and r8 and r16.get("m4_instructions_per_step") and r8.get("m4_instructions_per_step"):
+            parts.append(f"Int8 weights shrink the blob from {r16['model_bytes']} to "
+                         f"{r8['model_bytes']} bytes but take {r8['m4_instructions_per_step']} "
+                         f"instead of {r16['m4_instructions_per_step']} instructions per step on "
+                         f"the M4 ({r8['m4_instructions_per_step'] / r16['m4_instructions_per_step']:.1f}×"
+                         f"; the portable int16 build takes {r16.get('m4_instructions_portable')}).")
     cheaper = [r for r in rows if r.get("matches_reference") and r["causal"] and r is not ref
                and (r["macs"] < ref["macs"] or r["filter_delay_ms"] < ref["filter_delay_ms"] - 1e-9)]
     if cheaper:
         best = min(cheaper, key=lambda r: (r["macs"], r["filter_delay_ms"], r.get("host_batch_ns") or 0))
+        engines = [r["engine"] for r in cheaper if r["variant"] == best["variant"]]
         parts.append(f"Cheapest configuration matching the reference (every RMSE within "
                      f"{100 * (MATCH_RMSE_FACTOR - 1):.0f} %, contact within "
-                     f"{100 * CONTACT_SLACK:.1f} points): {best['variant']} on {best['engine']}, "
-                     f"{best['macs']} MACs (reference {ref['macs']}), {best['filter_delay_ms']:.1f} ms"
-                     f" delay, index {best['error_index']:.3f}.")
+                     f"{100 * CONTACT_SLACK:.1f} points): {best['variant']}, {best['macs']} MACs "
+                     f"against the reference's {ref['macs']} ({ref['macs'] / best['macs']:.1f}× fewer), "
+                     f"{best['filter_delay_ms']:.1f} ms delay, index {best['error_index']:.3f}; it "
+                     f"matches on {', '.join(engines)}.")
     else:
         worse = sorted((r for r in rows if r["causal"] and r is not ref and r["engine"] == ref["engine"]
                         and (r["macs"] < ref["macs"] or r["filter_delay_ms"] < ref["filter_delay_ms"])),

@@ -69,10 +69,14 @@ def fixed_source(q: QModel, name: str) -> tuple[str, str]:
         for i, ly in enumerate(net):
             base = f"{net_name}_{i}"
             ctype = "int16_t" if ly.w_bits == 16 else "int8_t"
-            arrays.append(f"static const {ctype} {base}_w[{ly.w.size}] = {{{_ints(ly.w.ravel())}}};")
+            # A union with int64_t makes the weights 8-byte aligned in plain C99, so that the
+            # Cortex-M4 DSP build can fetch them with LDRD (docs/firmware.md); without it the
+            # alignment, and with it the speed, would depend on the linker's layout.
+            arrays.append(f"static const union {{ {ctype} v[{ly.w.size}]; int64_t align; }} {base}_w = "
+                          f"{{{{{_ints(ly.w.ravel())}}}}};")
             arrays.append(f"static const int64_t {base}_b[{ly.n_out}] = {{{_ints(ly.bias, 'INT64_C({})')}}};")
             arrays.append(f"static const int32_t {base}_m[{ly.n_out}] = {{{_ints(ly.mult)}}};")
-            wfield = f".w16 = {base}_w" if ly.w_bits == 16 else f".w8 = {base}_w"
+            wfield = f".w16 = {base}_w.v" if ly.w_bits == 16 else f".w8 = {base}_w.v"
             layers.append(f"            {{.n_in = {ly.n_in}, .n_out = {ly.n_out}, .w_bits = {ly.w_bits}, "
                           f".shift = {ly.shift}, {wfield}, .bias = {base}_b, .mult = {base}_m}}")
         nets.append(f"        {{.n_layers = {len(net)}, .layers = {{\n" + ",\n".join(layers) + "}}")

@@ -54,6 +54,7 @@ def summarize(label: str, fb: Feedback, result: TeleopResult, wall_s: float) -> 
         "mean_time_in_safe_band_fraction": round(float(np.mean(o["time_in_safe_band_fraction"])), 3),
         "median_estimator_delay_ms": (None if np.all(np.isnan(delays))
                                       else round(float(np.nanmedian(delays)), 1)),
+        "failed_seeds": [int(v) for v in o["seed"][~o["success"]]],
         "wall_s": round(wall_s, 1),
         "feedback": describe(fb),
     }

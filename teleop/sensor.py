@@ -55,9 +55,14 @@ def make_engine(model: Any, model_dir: str | Path, engine: str) -> _Engine:
         raise InputError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINE_NAMES)}",
                          column="--engine")
     try:
-        from fbgforce.pybind import FloatRuntime, Runtime
+        from fbgforce.pybind import FloatRuntime, Runtime, RuntimeCError
     except ImportError as exc:
         raise InputError(f"the C runtime is not available ({exc})", column="--engine") from exc
-    if engine == "fixed":
-        return _Engine(Runtime(model_dir), raw_mN=True)
-    return _Engine(FloatRuntime(model), raw_mN=False)
+    try:
+        if engine == "fixed":
+            return _Engine(Runtime(model_dir), raw_mN=True)
+        return _Engine(FloatRuntime(model), raw_mN=False)
+    except RuntimeCError as exc:
+        # A blob from another export format version, or a corrupt one: the user's file.
+        raise InputError(f"the runtime refuses this model ({exc}); re-run 'fbgforce export "
+                         f"--model {model_dir}'", path=str(model_dir)) from exc

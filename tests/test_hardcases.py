@@ -198,9 +198,11 @@ def execute(blob: bytes, ops: list[tuple], driver: Path | None) -> list[dict[str
 # Oracles
 # --------------------------------------------------------------------------------------------
 
-def fault_oracle(wl: np.ndarray, jump_max_fm: int) -> np.ndarray:
-    """The sensor-fault rule of fbgforce.h, evaluated independently of intref and C: a channel
-    outside [WL_MIN, WL_MAX], or jumping more than jump_max from its previous in-window value."""
+def fault_oracle(wl: np.ndarray, jump_max_fm: int, stuck_max: int = 0) -> np.ndarray:
+    """The sensor-fault rule of fbgforce.h, evaluated independently of intref and C (a plain
+    loop per channel): a channel outside [WL_MIN, WL_MAX]; or jumping more than jump_max from
+    its previous in-window value; or (stuck_max > 0) repeating that value for stuck_max
+    consecutive samples (the run restarts on any change or out-of-window sample)."""
     wl = np.asarray(wl, dtype=np.int64).reshape(-1, 5)
     inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
     fault = ~inwin.all(axis=1)
@@ -209,6 +211,17 @@ def fault_oracle(wl: np.ndarray, jump_max_fm: int) -> np.ndarray:
         if idx.size > 1:
             jumped = np.abs(np.diff(wl[idx, c])) > jump_max_fm
             fault[idx[1:][jumped]] = True
+        if stuck_max:
+            run, prev = 0, None
+            col, win = wl[:, c].tolist(), inwin[:, c].tolist()
+            for t in range(len(col)):
+                if not win[t]:
+                    run = 0
+                    continue
+                run = min(run + 1, 0xFFFF) if prev is not None and col[t] == prev else 0
+                prev = col[t]
+                if run >= stuck_max:
+                    fault[t] = True
     return fault
 
 
@@ -222,7 +235,8 @@ def assert_contract(out: dict[str, np.ndarray], q, wl: np.ndarray, tared: bool) 
         assert (np.abs(out[k]) <= SAT32).all(), f"{k} outside +-(2^31-1)"
     assert (((st & NOT_TARED) != 0) == (not tared)).all()
     fault = (st & FAULT) != 0
-    np.testing.assert_array_equal(fault, fault_oracle(wl, q.jump_max_fm), "SENSOR_FAULT vs the rule")
+    np.testing.assert_array_equal(fault, fault_oracle(wl, q.jump_max_fm, q.stuck_max),
+                                  "SENSOR_FAULT vs the rule")
     for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact", "contact_conf_q15"):
         assert not np.any(out[k][fault]), f"faulty samples must give the safe output ({k})"
     none = out["contact"] == 0
@@ -362,7 +376,11 @@ def test_overload_to_150N_and_beyond_never_wraps(models, overload_runs, key):
         assert (o["contact"][ok] == 1).all(), gain
         assert (o["force_mN"][ok] > 0).all(), gain
         flags = o["status"][ok]
-        rows.append({"gain": gain, "min_force_N": round(float(o["force_mN"][ok].min()) / 1000, 1),
+        if not ok.any():  # x1000: clipped at the window edge for > stuck_max samples: faults
+            rows.append({"gain": gain, "faulted": 1.0})
+            continue
+        rows.append({"gain": gain, "faulted": round(1.0 - float(ok.sum()) / float(hard.sum()), 3),
+                     "min_force_N": round(float(o["force_mN"][ok].min()) / 1000, 1),
                      "max_force_N": round(float(o["force_mN"].max()) / 1000, 1),
                      "saturated": round(float(((flags & SATURATED) != 0).mean()), 3),
                      "overload": round(float(((flags & OVERLOAD) != 0).mean()), 3),
@@ -390,8 +408,9 @@ def test_overload_flag_covers_every_true_overload(models, overload_runs, key):
     for gain, o in runs.items():
         flag = (o["status"] & OVERLOAD) != 0
         okf = (o["status"] & FAULT) == 0
-        rates[gain] = {f">{g}x": round(float(flag[(ds.force_N > g * thr) & okf].mean()), 3)
-                       for g in (1.0, 1.1, 1.2, 1.5)}
+        rates[gain] = {f">{g}x": round(float(flag[sel].mean()), 3) if sel.any() else "all faulted"
+                       for g in (1.0, 1.1, 1.2, 1.5)
+                       for sel in [(ds.force_N > g * thr) & okf]}
         over = (ds.force_N > 1.2 * thr) & okf
         assert flag[over].all(), (gain, rates[gain])
         if gain == 1:
@@ -588,9 +607,10 @@ def test_sensor_faults(models, driver, press_fm, kind):
     record(f"fault/{kind}", samples_affected=int(b - a), fault_flags=n_fault,
            contact_during=int(out["contact"][a:b].sum()))
     if kind == "stuck":
-        # A stuck peak stays inside the window and never jumps: the current fault rule cannot
-        # see it (test_stuck_peak_is_flagged, xfail). Outputs stay bounded and bit-exact, and
-        # exact again n_taps samples after the peak comes unstuck.
+        # A frozen peak stays in the window and never jumps: the stuck-peak rule faults it
+        # from its stuck_max-th repeat on; exact again n_taps samples after it comes unstuck.
+        k = m.q.stuck_max
+        assert k > 0 and fault[a + k:b].all() and n_fault == b - a - k
         _recovers(m, wl, w, out, base, b)
         return
     if kind == "step_3nm":
@@ -605,19 +625,24 @@ def test_sensor_faults(models, driver, press_fm, kind):
     _recovers(m, wl, w, out, base, b)
 
 
-@pytest.mark.xfail(strict=True, reason="FINDING (docs/robustness.md): the fault rule of "
-                   "fbgforce.h only sees lost (out-of-window) and jumping peaks; a peak frozen "
-                   "at one value while the others move (a stuck interrogator channel) is not "
-                   "flagged. Needs e.g. an 'identical for N samples' rule (Part 3).")
-def test_stuck_peak_is_flagged(models, press_fm):
+def test_stuck_peak_is_flagged(models, press_fm, driver):
+    """A peak frozen for 0.3 s during a press (a hung interrogator channel) is flagged (the
+    runtime's stuck-peak rule; this was a strict-xfail finding of this suite before it
+    existed), while the clean recording, with its 3-10 pm noise on a 1 pm grid, never trips
+    it. Each channel in turn, the reference grating included."""
     m = models["small16"]
     wl, ds = press_fm
     base = expected_tare(wl[:TARE_ROWS])
+    clean = run_case(m, wl, driver, baseline=base)
+    assert not np.any(clean["status"] & FAULT)
     a = int(np.flatnonzero(ds.contact)[0])
-    w = wl.copy()
-    w[a:a + 300, 1] = w[a, 1]  # 0.3 s frozen; real peaks carry 3-10 pm of noise
-    out = run_case(m, w, None, baseline=base)
-    assert ((out["status"][a + 50:a + 300] & FAULT) != 0).all()
+    k = m.q.stuck_max
+    for ch in range(5):
+        w = wl.copy()
+        w[a:a + 300, ch] = w[a, ch]
+        out = run_case(m, w, driver, baseline=base)
+        assert ((out["status"][a + k:a + 300] & FAULT) != 0).all(), ch
+    record("fault/stuck_rule", stuck_max=k, clean_samples=len(wl), clean_faults=0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -738,6 +763,8 @@ def test_exported_accumulator_bounds(models, driver, key):
         row[:4] = base[:4] + np.array(p) * 100_000_000
         segs.append(np.tile(row, (hold, 1)))
     wl = np.concatenate(segs)
+    # A 1 pm dither keeps the stuck-peak rule quiet (it does not move a saturated z).
+    wl += (np.arange(len(wl)) % 2)[:, None] * 1000
     out = run_case(m, wl, driver, baseline=base)
     trace: dict[str, int] = {}
     intref.run(q, wl, base, trace=trace)
@@ -1215,3 +1242,17 @@ def test_documented_stress_bounds_match():
     for w_bits in (16, 8):
         for row in bound_table(hc.stress_qmodel(w_bits=w_bits)):
             assert row in doc, f"docs/fixed-point.md lacks or disagrees with: {row}"
+
+
+def test_committed_fuzz_corpus_is_current():
+    """The fuzz models in runtime_c/fuzz/models must load with this library (a blob format
+    change makes them stale: regenerate with `make -C runtime_c fuzz-corpus`), and the
+    fuzz_blob seeds must cover a valid blob, truncations, a bad magic and a misalignment."""
+    for name in ("small16", "small8", "stress", "stress_bias"):
+        blob = (hc.MODELS_DIR / f"{name}.fbgm").read_bytes()
+        assert load_status(blob) == 0, f"{name}.fbgm is stale: run make -C runtime_c fuzz-corpus"
+    seeds = {p.name: p.read_bytes() for p in (hc.CORPUS_DIR / "fuzz_blob").iterdir()}
+    assert load_status(seeds["valid16"][1:]) == 0
+    assert load_status(seeds["truncated_body"][1:]) == lib.FBG_ERR_TRUNCATED
+    assert load_status(seeds["bad_magic"][1:]) == lib.FBG_ERR_BAD_MAGIC
+    assert len(list((hc.CORPUS_DIR / "fuzz_step").iterdir())) >= 4

@@ -127,6 +127,9 @@ def test_instruction_counts_and_figures(report):
     assert report["instructions_per_mac"] == dsp["instructions_per_mac"]
     assert report["budget_fraction_at_168MHz"] == pytest.approx(
         report["instructions_per_step"] / 168_000, abs=1e-4)
+    # Generated weights are 8-byte aligned (codegen) and misaligned inputs are copied, so every
+    # hidden layer of an even width takes the LDRD kernel, never the unaligned fallback.
+    assert "rows3d_asm" in dsp["profile_per_step"] and "rows3_asm" not in dsp["profile_per_step"]
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]
     for key in ("text_bytes", "rodata_bytes", "data_bytes", "bss_bytes", "state_bytes", "stack_bytes"):

@@ -250,3 +250,15 @@ def test_sensor_prefetch_changes_nothing(doc, small_exported_dir):
     assert a.traces["force_true_N"].max() > 0.0
     for key in ("force_reported_N", "force_true_N", "master_mm"):
         np.testing.assert_array_equal(a.traces[key], b.traces[key])
+
+
+def test_corrupt_blob_is_an_input_error(tmp_path, small_exported_dir):
+    import shutil
+
+    bad = tmp_path / "model"
+    shutil.copytree(small_exported_dir, bad)
+    blob = bytearray((bad / "model.fbgm").read_bytes())
+    blob[-1] ^= 0xFF  # breaks the CRC
+    (bad / "model.fbgm").write_bytes(bytes(blob))
+    with pytest.raises(InputError, match="export"):
+        simulate(load_teleop_scene("egg_grasp"), SensorFeedback(bad), [0])

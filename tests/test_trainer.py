@@ -89,7 +89,7 @@ def test_force_and_location_nets_learn_regressions():
     for sizes, inp, target in (([4, 70, 50, 20, 1], x[:, :4], f), ([6, 70, 50, 40, 2], x, xy)):
         net = FlatMLP(sizes, rng)
         start = mse(net.forward(inp[5000:]), target[5000:])[0]
-        rep = fit(net, "mse", inp[:5000], target[:5000], inp[5000:], target[5000:], epochs=60,
+        rep = fit(net, "mse", inp[:5000], target[:5000], inp[5000:], target[5000:], epochs=40,
                   progress=False, rng=rng)
         end = mse(predict_batched(net, inp[5000:]), target[5000:])[0]
         assert end < 0.02 * np.var(target) and end < 0.1 * start
@@ -294,12 +294,12 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
     from fbgforce.trainer.train import train
 
-    ds = synthetic_recording(n_press=40, seed=2, noise_pm=3.0)
-    model = train([ds], epochs=25, seed=0, progress=False)
+    ds = synthetic_recording(n_press=30, seed=2, noise_pm=3.0)
+    model = train([ds], epochs=12, seed=0, progress=False)
     test = model.metadata["metrics"]["test"]
     assert test["contact_accuracy"] > 0.95
     assert test["rmse_force_N"] < 3.0 and test["rmse_x_mm"] < 2.0 and test["rmse_y_mm"] < 2.5
-    other = synthetic_recording(n_press=40, seed=3, base_nm=[1531, 1539, 1545, 1553, 1561])
+    other = synthetic_recording(n_press=20, seed=3, base_nm=[1531, 1539, 1545, 1553, 1561])
     fresh = train([other], epochs=1, seed=0, progress=False)
     warm = train([other], epochs=1, seed=0, progress=False, init=model)
     f_loss = fresh.metadata["history"]["force"][0]["val_loss"]

@@ -37,7 +37,7 @@ def register(subparsers: Any) -> None:
     from fbgforce.engines import ENGINES
     from fbgforce.model import FILTER_KINDS
     from fbgforce.trainer.evaluate import SPLITS
-    from fbgforce.trainer.preprocess import DEFAULT_SIGMA
+    from fbgforce.trainer.preprocess import DEFAULT_SIGMA, DEFAULT_SIGMA_MS
 
     p = subparsers.add_parser(
         "train", help="train the hierarchical contact/force/location nets",
@@ -52,8 +52,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="split, initialisation and shuffling seed")
     p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
                    help="smoothing: causal (shipped, default), centred (offline, paper) or none")
-    p.add_argument("--sigma", type=_non_negative, default=DEFAULT_SIGMA,
-                   help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA:g}; 0 = no filter)")
+    p.add_argument("--sigma", type=_non_negative, default=None,
+                   help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
+                        f"data's sample rate: {DEFAULT_SIGMA:g} at 1 kHz; 0 = no filter)")
     p.add_argument("--window", type=_positive_int, default=None,
                    help="filter taps (causal) or half-width (centred); default ceil(3 sigma)")
     p.add_argument("--init", metavar="MODEL_DIR", default=None,
@@ -100,7 +101,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", metavar="DIR", default=None, help="write report.md and report.json")
     p.add_argument("--epochs", type=_positive_int, default=200)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma", type=_non_negative, default=DEFAULT_SIGMA)
+    p.add_argument("--sigma", type=_non_negative, default=None,
+                   help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
+                        "data's sample rate)")
     add_json_flag(p)
     p.set_defaults(handler=_report)
 

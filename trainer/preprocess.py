@@ -33,9 +33,18 @@ MIN_START_SAMPLES = 20
 #: Prior standard deviation of a temperature coefficient around 1.0 (gratings on one steel part
 #: differ by a few percent; their base wavelengths by up to ~2 %): the ridge toward 1.
 TEMP_PRIOR_SD = 0.25
-#: Default Gaussian sigma in samples, and the window in sigmas.
+#: Default Gaussian sigma in samples AT 1 kHz, and the window in sigmas.
 DEFAULT_SIGMA = 5.0
 WINDOW_SIGMAS = 3.0
+#: Default Gaussian sigma in milliseconds. The filter trades noise for delay on signals whose
+#: dynamics (press onsets, grasps) are set in TIME, so a log at another rate gets the same time
+#: constant (10 samples at 2 kHz, 2.5 at 500 Hz), not the same number of samples.
+DEFAULT_SIGMA_MS = DEFAULT_SIGMA
+
+
+def default_sigma(rate_hz: float) -> float:
+    """Default sigma in samples at ``rate_hz``: :data:`DEFAULT_SIGMA_MS` milliseconds."""
+    return DEFAULT_SIGMA_MS * float(rate_hz) / 1000.0
 
 
 def sample_rate_hz(t_s: np.ndarray) -> float:
@@ -47,11 +56,38 @@ def sample_rate_hz(t_s: np.ndarray) -> float:
     return 1.0 / dt if dt > 0 else 1000.0
 
 
+def rest_guard_s(contact: np.ndarray, t_s: np.ndarray | None = None) -> float:
+    """Guard after each release: :data:`GUARD_S`, or half the median rest if rests are shorter.
+
+    A logger with rests of only 30-80 ms would otherwise leave no contact-free sample at all for
+    the temperature fit; the later half of each rest is the most relaxed data it offers.
+    """
+    c = np.asarray(contact).astype(bool)
+    if c.size < 2:
+        return GUARD_S
+    t = np.arange(c.size, dtype=np.float64) / 1000.0 if t_s is None else np.asarray(t_s, float)
+    edges = np.flatnonzero(np.diff(c.astype(np.int8)))
+    # Rests strictly between a release and the next contact (not the lead-in or the tail).
+    starts = edges[c[edges]] + 1            # first free sample after a release
+    ends = edges[~c[edges]]                 # last free sample before a contact
+    nxt = np.searchsorted(ends, starts)
+    ok = nxt < ends.size
+    rests = t[ends[nxt[ok]]] - t[starts[ok]]
+    if rests.size == 0:
+        return GUARD_S
+    return float(min(GUARD_S, 0.5 * np.median(rests)))
+
+
 def contact_free_mask(contact: np.ndarray, t_s: np.ndarray | None = None,
-                      guard_s: float = GUARD_S) -> np.ndarray:
-    """Contact-free samples, leaving out ``guard_s`` seconds after every contact ends."""
+                      guard_s: float | None = None) -> np.ndarray:
+    """Contact-free samples, leaving out ``guard_s`` seconds after every contact ends.
+
+    ``guard_s=None``: :func:`rest_guard_s` (0.1 s unless the recording's rests are shorter).
+    """
     c = np.asarray(contact).astype(bool)
     free = ~c
+    if guard_s is None:
+        guard_s = rest_guard_s(c, t_s)
     if not c.any() or guard_s <= 0:
         return free
     t = np.arange(c.size, dtype=np.float64) / 1000.0 if t_s is None else np.asarray(t_s, float)
@@ -68,7 +104,7 @@ def tare(wl_nm: np.ndarray, contact: np.ndarray, t_s: np.ndarray | None = None, 
     Uses the contact-free samples before the first contact when there are at least
     :data:`MIN_START_SAMPLES` of them (what the runtime sees when it tares at start-up, and
     free of any temperature drift later in the file); otherwise every contact-free sample the
-    file flags (``contact == 0``), minus a guard after each contact.
+    file flags (``contact == 0``), minus a guard after each contact (:func:`rest_guard_s`).
 
     Returns
     -------

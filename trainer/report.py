@@ -65,7 +65,7 @@ def _ratio(a: float | None, b: float | None) -> float | None:
 
 
 def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = None,
-                 epochs: int = 200, seed: int = 0, sigma: float = pp.DEFAULT_SIGMA,
+                 epochs: int = 200, seed: int = 0, sigma: float | None = None,
                  progress: bool | None = None) -> dict[str, Any]:
     """Run every comparison and return the report as a dict (see module docstring)."""
     t0 = time.perf_counter()
@@ -112,7 +112,7 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
         "data": described,
         "seed": seed,
         "test_samples": int(te.size),
-        "filter_sigma_samples": sigma,
+        "filter_sigma_samples": prepared["causal"].pre.filter_sigma,
         "paper": PAPER,
         "model_based": base,
         "network": nets,

@@ -126,9 +126,13 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 
 
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
-            sigma: float = pp.DEFAULT_SIGMA, window: int | None = None,
+            sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None) -> Prepared:
-    """Tare, fit temperature coefficients, filter every recording, split each by press."""
+    """Tare, fit temperature coefficients, filter every recording, split each by press.
+
+    ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
+    at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz.
+    """
     if not datasets:
         raise InputError("no training data given", column="--data")
     recs = []
@@ -140,6 +144,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     rate = float(np.median([r.rate_hz for r in recs]))
     masks = [pp.contact_free_mask(r.ds.contact, r.ds.t_s) for r in recs]
     coeff, temp_info = pp.fit_temp_coeff([r.shift_pm for r in recs], masks, rate_hz=rate)
+    if sigma is None:
+        sigma = pp.default_sigma(rate)
     pre = pp.make_preprocess(filter, sigma, coeff, window)
     for r in recs:
         r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
@@ -172,7 +178,7 @@ def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
 
 
 def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: str = "causal",
-          sigma: float = pp.DEFAULT_SIGMA, window: int | None = None,
+          sigma: float | None = None, window: int | None = None,
           init: str | Path | fm.HierarchicalModel | None = None,
           sizes: Mapping[str, Sequence[int]] | None = None, learning_rate: float = 1e-3,
           decay: float = 0.97, patience: int = 10, batch_size: int = 128,
@@ -191,7 +197,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         initial weights and the shuffling, so a run is reproducible.
     filter, sigma, window
         Smoothing: ``causal`` (shipped), ``centred`` (offline, the paper's) or ``none``;
-        sigma in samples.
+        sigma in samples, default 5 ms at the data's sample rate (5 samples at 1 kHz).
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and

@@ -6,7 +6,8 @@
  * random FIR ring positions. Runs on QEMU mps2-an386; prints
  *   KERNEL_TEST cases=N mismatches=M fast=F aligned=A first=L int8=E saturated=S
  * and exits with 0 when M == 0 (fast = layers through rows3_asm or, A of them, rows3d_asm;
- * first = through first_asm). W and X are word-aligned arrays; off = 1 misaligns them. */
+ * first = through first_asm). W and X are word-aligned arrays; off, offx = 1 misalign the
+ * weights, the inputs (all four combinations occur). */
 #include <stdint.h>
 #include <string.h>
 
@@ -64,7 +65,8 @@ int main(void)
     const uint32_t n_widths = sizeof widths / sizeof widths[0];
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
     for (c = 0; c < N_CASES; ++c) {
-        unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u;
+        unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
+                 offx = (c / 12u) % 2u;
         unsigned shift = 1u + rnd() % 62u, i, r;
         uint32_t sat_ref = 0u, sat_dsp = 0u;
         int bits8 = (c % 3u) == 2u;
@@ -84,9 +86,9 @@ int main(void)
         }
         for (i = 0; i < n; ++i) {
             int16_t v = rnd16();
-            X[off + i] = mode == 3u ? (int16_t)(v < 0 ? -v : v) : v; /* ReLU outputs: >= 0 */
+            X[offx + i] = mode == 3u ? (int16_t)(v < 0 ? -v : v) : v; /* ReLU outputs: >= 0 */
             if (mode == 5u)
-                X[off + i] = 0;
+                X[offx + i] = 0;
         }
         for (r = 0; r < m; ++r) {
             /* Largest |mult| with sum|w| * 32767 + |b| times it inside int64 (the proof). */
@@ -121,9 +123,9 @@ int main(void)
             ly.w16 = W + off;
         ly.bias = B;
         ly.mult = M;
-        ref_hidden(&ly, X + off, Y_ref, &sat_ref);
+        ref_hidden(&ly, X + offx, Y_ref, &sat_ref);
         memset(Y_dsp, 0x5A, sizeof Y_dsp);
-        fbg_dsp_hidden(&ly, X + off, Y_dsp, &sat_dsp);
+        fbg_dsp_hidden(&ly, X + offx, Y_dsp, &sat_dsp);
         if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
             if (mismatches < 5u) {
                 sh_puts("KERNEL_MISMATCH");
@@ -138,8 +140,8 @@ int main(void)
         for (r = 0; r < m; ++r) {
             int64_t acc = B[r];
             for (i = 0; i < n; ++i)
-                acc += (int64_t)W[off + r * n + i] * X[off + i];
-            if (fbg_dsp_row_acc(&ly, r, X + off) != acc) {
+                acc += (int64_t)W[off + r * n + i] * X[offx + i];
+            if (fbg_dsp_row_acc(&ly, r, X + offx) != acc) {
                 ++mismatches;
                 break;
             }
@@ -147,8 +149,9 @@ int main(void)
         first += !bits8 && shift >= 32u && (n == 2u || n == 4u || n == 6u);
         if (!bits8 && shift >= 32u && m >= 3u && !(n == 2u || n == 4u || n == 6u)) {
             ++fast;
-            /* The condition under which fbg_dsp.c takes the LDRD variant (rows3d_asm). */
-            fast_aligned += ((((uintptr_t)(X + off) | (uintptr_t)(W + off)) & 3u) == 0u && (n & 1u) == 0u);
+            /* The condition under which fbg_dsp.c takes the LDRD variant (rows3d_asm; a
+             * misaligned input is copied to an aligned buffer first). */
+            fast_aligned += (((uintptr_t)(W + off) & 3u) == 0u && (n & 1u) == 0u);
         }
         int8_layers += (uint32_t)bits8;
         saturated += sat_ref != 0u;

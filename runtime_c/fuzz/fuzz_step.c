@@ -12,7 +12,8 @@
  *           channel's previous value), 7 previous value + (d mod 64) (noise-sized steps).
  * Two states run in lockstep: A with fbg_step per sample, B with fbg_run per op; their
  * outputs must be identical bytes. Every output must satisfy hc_check_output, and the
- * SENSOR_FAULT flag must equal an independent evaluation of the fault rule of fbgforce.h.
+ * SENSOR_FAULT flag must equal an independent evaluation of the fault rule of fbgforce.h
+ * (window, jump and stuck-peak rules).
  * Any violation aborts (a finding). Models: FBG_FUZZ_MODELS (env) or the compiled-in dir.
  */
 #include "fuzz_common.h"
@@ -80,6 +81,7 @@ static int32_t sat_i32(int64_t v)
 typedef struct {
     int32_t prev[FBG_N_CHANNELS];
     unsigned valid;
+    unsigned run[FBG_N_CHANNELS]; /* repeats of the identical in-window value */
     int32_t last[FBG_N_CHANNELS]; /* last decoded sample, for "stuck" channels */
     int tared;
 } tracker;
@@ -89,19 +91,26 @@ static int in_window(int32_t v)
     return v >= FBG_WL_MIN_FM && v <= FBG_WL_MAX_FM;
 }
 
-static int expect_fault(tracker *t, const int32_t wl[FBG_N_CHANNELS], int32_t jump)
+static int expect_fault(tracker *t, const int32_t wl[FBG_N_CHANNELS], int32_t jump,
+                        unsigned stuck_max)
 {
     int fault = 0, c;
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
         if (!in_window(wl[c])) {
             fault = 1;
+            t->run[c] = 0u;
             continue;
         }
         if ((t->valid >> c) & 1u) {
             int64_t d = (int64_t)wl[c] - t->prev[c];
             if (d > jump || d < -(int64_t)jump)
                 fault = 1;
+            t->run[c] = d == 0 ? (t->run[c] < 0xFFFFu ? t->run[c] + 1u : t->run[c]) : 0u;
+        } else {
+            t->run[c] = 0u;
         }
+        if (stuck_max != 0u && t->run[c] >= stuck_max)
+            fault = 1;
         t->prev[c] = wl[c];
         t->valid |= 1u << c;
     }
@@ -176,7 +185,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             k = op == 4u ? 1u + (next(&in) & 7u) : 1u;
             for (i = 0; i < k; ++i) {
                 sample(&in, m, &t, wl[i]);
-                faults[i] = expect_fault(&t, wl[i], m->jump_max_fm);
+                faults[i] = expect_fault(&t, wl[i], m->jump_max_fm, m->stuck_max);
             }
             for (i = 0; i < k; ++i)
                 if (fbg_step(&a, wl[i], &oa[i]) != FBG_OK)
@@ -218,6 +227,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             if (sa == FBG_OK) {
                 t.tared = 1;
                 t.valid = 0u; /* tare_end clears the fault tracker */
+                memset(t.run, 0, sizeof t.run);
             }
         } else if (op == 6u) {
             int ok = 1, c, sa, sb;
@@ -231,11 +241,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             if (ok) {
                 t.tared = 1;
                 t.valid = 0u;
+                memset(t.run, 0, sizeof t.run);
             }
         } else {
             if (fbg_reset(&a) != FBG_OK || fbg_reset(&b) != FBG_OK)
                 fail("reset failed", op_i);
             t.valid = 0u;
+            memset(t.run, 0, sizeof t.run);
         }
         if (memcmp(&a.baseline_fm, &b.baseline_fm, sizeof a.baseline_fm) != 0)
             fail("baselines of the twin states differ", op_i);

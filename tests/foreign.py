@@ -1,0 +1,245 @@
+"""Foreign calibration logs: an INDEPENDENT generator of files in the dataset contract.
+
+The trainer will be scored on logs from sources we never see (other grippers on real x-y-z
+stages, other simulators). This test helper makes such logs with physics that deliberately
+differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here):
+
+- a 30 × 40 mm pad (not 21 × 27) on four supports in a skewed quadrilateral, the load shared
+  among them like a FLEXIBLE plate (inverse-square-distance shares, not the rigid-plate
+  force/torque balance), so the strain-to-location map is nonlinear;
+- per-channel sensitivities ±30 %, a quadratic beam response (±8 % at full load) and linear
+  cross-talk between channels (up to 5 %), optional viscoelastic creep;
+- base wavelengths anywhere in 1510–1590 nm; sample rates 500 / 1000 / 2000 Hz; white noise
+  2–15 pm quantised to 0.1 pm;
+- temperature: a slow ramp plus a wander seen by every grating with its own coefficient, or
+  exactly none (then the coefficients cannot be identified from the data);
+- presses: trapezoidal force profiles up to 50 or 100 N, rests of any length (including very
+  short ones), a recording that starts inside the end of a press;
+- labels: contact = load-cell force above a threshold of 0.1–1 N, load-cell noise making small
+  negative forces at rest, press ids large and non-contiguous in arbitrary order;
+- files: columns in a shuffled order, ``#`` comments before the header and among the data,
+  extra columns (numeric and text), optionally CRLF line ends; one device may be logged in
+  several files.
+
+Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
+:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept.
+:data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce.dataset import Dataset
+
+#: Column names of the dataset contract (the CSV writer shuffles them).
+_CONTRACT = ("t_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm", "contact", "x_mm",
+             "y_mm", "force_N", "press_id")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """What a foreign log looks like; every field has a physical or logging meaning."""
+
+    name: str
+    pad_mm: tuple[float, float] = (30.0, 40.0)
+    rate_hz: float = 1000.0
+    noise_pm: float = 5.0
+    force_max_N: float = 50.0
+    force_min_N: float = 0.5
+    contact_threshold_N: float = 0.5
+    load_cell_noise_N: float = 0.03
+    drift: bool = True                   # temperature ramp + wander (False: exactly constant)
+    drift_K: float = 1.5                 # ramp over the log, K
+    creep: float = 0.0                   # viscoelastic fraction (0 = none)
+    rest_s: tuple[float, float] = (0.15, 0.4)
+    ramp_s: tuple[float, float] = (0.15, 0.35)
+    hold_s: tuple[float, float] = (0.0, 0.2)
+    start_in_contact: int = 0            # samples of a press's tail before the first rest
+    crlf: bool = False
+    extras: bool = True
+
+
+@dataclass
+class Device:
+    """One foreign fingertip: geometry, gratings and their responses (from a seed)."""
+
+    spec: Spec
+    supports_mm: np.ndarray              # (4, 2)
+    soft_mm: float                       # plate flexibility length in the share law
+    gain_pm_per_N: np.ndarray            # (4,) per beam
+    quad: np.ndarray                     # (4,) relative quadratic term at full beam load
+    crosstalk: np.ndarray                # (4, 4) I + small off-diagonals
+    base_nm: np.ndarray                  # (5,)
+    temp_pm_per_K: float                 # reference grating
+    temp_coeff: np.ndarray               # (4,) strain gratings relative to the reference
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def device(spec: Spec, seed: int) -> Device:
+    """A device drawn from ``seed``: skewed supports, sensitivities ±30 %, wavelengths anywhere
+    in 1510–1590 nm (at least 4 nm apart so peaks never cross)."""
+    rng = np.random.default_rng(seed)
+    w, h = spec.pad_mm
+    corners = np.array([[0.2 * w, 0.15 * h], [0.8 * w, 0.2 * h], [0.15 * w, 0.85 * h],
+                        [0.85 * w, 0.8 * h]])
+    supports = corners + rng.normal(0.0, 0.04 * min(w, h), corners.shape)
+    while True:
+        base = np.sort(rng.uniform(1510.0, 1590.0, 5))
+        if np.min(np.diff(base)) > 4.0:
+            break
+    rng.shuffle(base)  # the reference grating need not be the longest wavelength
+    off = rng.uniform(-0.05, 0.05, (4, 4))
+    np.fill_diagonal(off, 0.0)
+    return Device(spec=spec, supports_mm=supports, soft_mm=rng.uniform(6.0, 10.0),
+                  gain_pm_per_N=40.0 * rng.uniform(0.7, 1.3, 4), quad=rng.uniform(-0.08, 0.08, 4),
+                  crosstalk=np.eye(4) + off, base_nm=base,
+                  temp_pm_per_K=rng.uniform(9.0, 11.0), temp_coeff=rng.uniform(0.9, 1.1, 4))
+
+
+def shares(dev: Device, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Fraction of the load on each support (n, 4): inverse-square distance, summing to 1."""
+    d2 = (x[:, None] - dev.supports_mm[:, 0]) ** 2 + (y[:, None] - dev.supports_mm[:, 1]) ** 2
+    wgt = 1.0 / (d2 + dev.soft_mm ** 2)
+    return wgt / wgt.sum(axis=1, keepdims=True)
+
+
+def strain_pm(dev: Device, force: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Noise-free strain-grating shifts (n, 4), pm: shares, quadratic beams, cross-talk."""
+    beam = force[:, None] * shares(dev, x, y)
+    full = dev.spec.force_max_N / 2.0  # a beam rarely carries more than half the load
+    s = dev.gain_pm_per_N * beam * (1.0 + dev.quad * beam / full)
+    return s @ dev.crosstalk.T
+
+
+def _profile(rng: np.random.Generator, spec: Spec, peak: float) -> np.ndarray:
+    r = spec.rate_hz
+    up = int(rng.uniform(*spec.ramp_s) * r)
+    hold = int(rng.uniform(*spec.hold_s) * r)
+    down = int(rng.uniform(*spec.ramp_s) * r)
+    # Indentation at constant speed into a rubber pad: force grows faster than linearly.
+    rise = np.linspace(0.0, 1.0, up, endpoint=False) ** 1.4
+    fall = np.linspace(1.0, 0.0, down) ** 1.4
+    return peak * np.concatenate([rise, np.ones(hold), fall])
+
+
+def log(dev: Device, seed: int, n_press: int = 40) -> Dataset:
+    """One recording of ``dev`` with ``n_press`` presses (seeded)."""
+    spec = dev.spec
+    rng = np.random.default_rng(seed)
+    w, h = spec.pad_mm
+    forces, xs, ys, pids = [], [], [], []
+    # Press ids: large, non-contiguous, in no particular order.
+    ids = rng.choice(np.arange(10 ** 6, 10 ** 6 + 50 * (n_press + 1)), n_press + 1, replace=False)
+    ids = ids * 7919 + 10 ** 10
+    if spec.start_in_contact:
+        k = spec.start_in_contact
+        forces.append(np.linspace(rng.uniform(2.0, 6.0), 0.0, k + 1)[:k])
+        xs.append(np.full(k, rng.uniform(2.0, w - 2.0)))
+        ys.append(np.full(k, rng.uniform(2.0, h - 2.0)))
+        pids.append(np.full(k, ids[-1]))
+    for p in range(n_press):
+        rest = np.zeros(int(rng.uniform(*spec.rest_s) * spec.rate_hz))
+        f = _profile(rng, spec, rng.uniform(spec.force_min_N, spec.force_max_N))
+        forces.append(np.concatenate([rest, f]))
+        n = rest.size + f.size
+        xs.append(np.full(n, rng.uniform(1.0, w - 1.0)))
+        ys.append(np.full(n, rng.uniform(1.0, h - 1.0)))
+        pids.append(np.full(n, ids[p]))
+    # A final rest so the last press is complete.
+    tail = int(0.2 * spec.rate_hz)
+    forces.append(np.zeros(tail))
+    xs.append(np.full(tail, xs[-1][-1]))
+    ys.append(np.full(tail, ys[-1][-1]))
+    pids.append(np.full(tail, ids[n_press - 1]))
+    f = np.concatenate(forces)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    n = f.size
+    t = np.arange(n) / spec.rate_hz + rng.uniform(0.0, 100.0)
+    s = strain_pm(dev, f, x, y)
+    if spec.creep > 0:
+        # Viscoelastic pad: part of the response follows the load with a 50 ms lag.
+        a = 1.0 - np.exp(-1.0 / (0.05 * spec.rate_hz))
+        lag = np.empty_like(s)
+        acc = np.zeros(4)
+        for i in range(n):
+            acc += a * (s[i] - acc)
+            lag[i] = acc
+        s = (1.0 - spec.creep) * s + spec.creep * lag
+    if spec.drift:
+        dur = n / spec.rate_hz
+        phase = rng.uniform(0, 2 * np.pi)
+        temp_K = (spec.drift_K * (t - t[0]) / dur
+                  + 0.3 * np.sin(2 * np.pi * (t - t[0]) / max(dur / 1.5, 1.0) + phase))
+        temp_K -= temp_K[0]
+    else:
+        temp_K = np.zeros(n)
+    shift_t = dev.temp_pm_per_K * temp_K
+    wl = np.empty((n, 5))
+    wl[:, :4] = dev.base_nm[:4] + (s + np.outer(shift_t, dev.temp_coeff)) / 1000.0
+    wl[:, 4] = dev.base_nm[4] + shift_t / 1000.0
+    wl += rng.normal(0.0, spec.noise_pm / 1000.0, wl.shape)
+    wl = np.round(wl, 4)  # the interrogator reports 0.1 pm
+    contact = f > spec.contact_threshold_N
+    cell = f + rng.normal(0.0, spec.load_cell_noise_N, n)
+    extra: dict[str, np.ndarray] = {}
+    if spec.extras:
+        extra = {"stage_z_mm": -0.01 * f + rng.normal(0, 1e-3, n),
+                 "room_C": 22.0 + temp_K,
+                 "operator": np.where(np.arange(n) % 2 == 0, "ana", "bo")}
+    return Dataset(t_s=t, wl_nm=wl, contact=contact, x_mm=np.where(contact, x, np.nan),
+                   y_mm=np.where(contact, y, np.nan), force_N=cell, press_id=np.concatenate(pids),
+                   extra=extra, source=f"foreign:{spec.name} seed={seed}")
+
+
+def write_csv(ds: Dataset, path: str | Path, seed: int = 0, crlf: bool = False) -> Path:
+    """A valid but unusual CSV: shuffled columns, comments before the header and among the
+    rows, a blank line, extra columns last or first, optional CRLF (dataset contract §4)."""
+    rng = np.random.default_rng(seed)
+    cols = ds.columns()
+    names = list(cols)
+    order = [names[i] for i in rng.permutation(len(names))]
+    fmt = {"t_s": "{:.6f}", "contact": "{:d}", "press_id": "{:d}", "force_N": "{:.4f}",
+           "x_mm": "{:.3f}", "y_mm": "{:.3f}"}
+    text_cols = []
+    for name in order:
+        arr = cols[name]
+        if arr.dtype.kind in "US":
+            text_cols.append([str(v) for v in arr])
+            continue
+        if arr.dtype == bool:
+            arr = arr.astype(np.int64)
+        f = fmt.get(name, "{:.4f}" if name.startswith("wl") else "{:.6g}")
+        text_cols.append(["" if (isinstance(v, float) and np.isnan(v)) else f.format(v)
+                          for v in arr.tolist()])
+    rows = [",".join(r) for r in zip(*text_cols)]
+    mid = len(rows) // 2
+    lines = ["# exported by stage-logger 3.1 (foreign format test)",
+             "# interrogator: 4+1 gratings, peaks in nm", ",".join(order),
+             *rows[:mid], "# stage paused for re-homing", "", *rows[mid:]]
+    nl = "\r\n" if crlf else "\n"
+    p = Path(path)
+    p.write_text(nl.join(lines) + nl, encoding="utf-8")
+    return p
+
+
+#: Named variants: each differs from our simulator's calibration scene in several ways at once.
+VARIANTS: dict[str, Spec] = {
+    # 1 kHz, moderate noise, drift, 0.5 N contact threshold, 50 N.
+    "pad30x40": Spec("pad30x40"),
+    # 500 Hz, no temperature change at all (coefficients unidentifiable), 0.2 N threshold.
+    "rate500_nodrift": Spec("rate500_nodrift", rate_hz=500.0, noise_pm=8.0, drift=False,
+                            contact_threshold_N=0.2),
+    # 2 kHz, quiet interrogator, drift, 100 N, 0.1 N threshold, creep.
+    "rate2k_100N": Spec("rate2k_100N", rate_hz=2000.0, noise_pm=2.0, force_max_N=100.0,
+                        contact_threshold_N=0.1, creep=0.03),
+    # Noisy interrogator (15 pm), 1 N threshold, 100 N, CRLF file.
+    "noisy15pm": Spec("noisy15pm", noise_pm=15.0, force_max_N=100.0, force_min_N=1.5,
+                      contact_threshold_N=1.0, crlf=True),
+    # Starts inside a press, rests of 30-80 ms only, strong drift.
+    "short_rests": Spec("short_rests", rest_s=(0.03, 0.08), start_in_contact=12, drift_K=3.0,
+                        contact_threshold_N=0.3),
+}
