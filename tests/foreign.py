@@ -27,17 +27,12 @@ Use :func:`device` for a device (seeded), :func:`log` for one recording of it, a
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from fbgforce.dataset import Dataset
-
-#: Column names of the dataset contract (the CSV writer shuffles them).
-_CONTRACT = ("t_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm", "contact", "x_mm",
-             "y_mm", "force_N", "press_id")
 
 
 @dataclass(frozen=True)
@@ -76,7 +71,6 @@ class Device:
     base_nm: np.ndarray                  # (5,)
     temp_pm_per_K: float                 # reference grating
     temp_coeff: np.ndarray               # (4,) strain gratings relative to the reference
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 def device(spec: Spec, seed: int) -> Device:

@@ -30,7 +30,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
     are scored with :func:`fbgforce.metrics.compute`.
     """
-    from fbgforce.trainer.train import load_datasets, split_rows
+    from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}")
@@ -48,7 +48,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
                        np.asarray(ds.x_mm)[rows], np.asarray(ds.y_mm)[rows]))
     pred = {k: np.concatenate([p[k] for p in preds]) for k in preds[0]}
     truth = [np.concatenate([t[i] for t in truths]) for i in range(4)]
-    out = fmetrics.compute(pred, *truth, extras=extras)
+    out = fmetrics.compute(pred, *truth, extras=extras, pad_mm=model_pad_mm(model))
     out.update({"engine": engine, "model": str(model_dir), "split": split,
                 "data": [d.get("path") or d.get("source") for d in described]})
     return out

@@ -80,7 +80,8 @@ def rest_guard_s(contact: np.ndarray, t_s: np.ndarray | None = None) -> float:
 
 def contact_free_mask(contact: np.ndarray, t_s: np.ndarray | None = None,
                       guard_s: float | None = None) -> np.ndarray:
-    """Contact-free samples, leaving out ``guard_s`` seconds after every contact ends.
+    """Contact-free samples, leaving out ``guard_s`` seconds after every contact ends and half
+    of that before every contact starts.
 
     ``guard_s=None``: :func:`rest_guard_s` (0.1 s unless the recording's rests are shorter).
     """
@@ -94,7 +95,12 @@ def contact_free_mask(contact: np.ndarray, t_s: np.ndarray | None = None,
     # Time of the most recent contact sample at or before each sample (-inf before the first).
     last_contact_t = np.where(c, t, -np.inf)
     np.maximum.accumulate(last_contact_t, out=last_contact_t)
-    return free & (t - last_contact_t > guard_s)
+    # ... and of the next one at or after it (+inf after the last): a log labelled at a
+    # threshold of up to 1 N carries sub-threshold load on the samples just before each onset.
+    next_contact_t = np.where(c, t, np.inf)[::-1]
+    np.minimum.accumulate(next_contact_t, out=next_contact_t)
+    next_contact_t = next_contact_t[::-1]
+    return free & (t - last_contact_t > guard_s) & (next_contact_t - t > 0.5 * guard_s)
 
 
 def tare(wl_nm: np.ndarray, contact: np.ndarray, t_s: np.ndarray | None = None, *,

@@ -169,12 +169,28 @@ def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.nda
     return np.column_stack([z, contact.astype(np.float64), f_raw])
 
 
+def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:
+    """Pad size (x, y) for the boundary metrics: the nominal 21 x 27 mm design, or larger where
+    the calibration data touched locations beyond it (another gripper's pad)."""
+    from fbgforce.geometry import PAD_SIZE_MM
+
+    xmax = float(np.nanmax(x_mm)) if np.isfinite(x_mm).any() else 0.0
+    ymax = float(np.nanmax(y_mm)) if np.isfinite(y_mm).any() else 0.0
+    return max(float(PAD_SIZE_MM[0]), xmax), max(float(PAD_SIZE_MM[1]), ymax)
+
+
+def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
+    """The pad size a model was calibrated on (metadata ``pad_mm``), None for older models."""
+    pad = model.metadata.get("pad_mm") if model.metadata else None
+    return (float(pad[0]), float(pad[1])) if pad else None
+
+
 def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data."""
     z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
     pred = fm.predict_from_features(model, z)
-    return fmetrics.compute(pred, *data.truth(rows), extras=extras)
+    return fmetrics.compute(pred, *data.truth(rows), extras=extras, pad_mm=model_pad_mm(model))
 
 
 def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: str = "causal",
@@ -272,8 +288,14 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     logits = predict_batched(cnet, z)
     pred_contact = logits[:, 1] > logits[:, 0]
 
-    # 2. Force: true-contact samples only (the output is gated by the contact net anyway).
-    ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
+    # 2. Force: the samples the contact net passes (its output is 0 N elsewhere, whatever the
+    #    net says), with the load-cell force as target: where the contact is real this is the
+    #    force the metric scores; on false contacts (light touches below the label threshold,
+    #    pad creep) it teaches ~0 N, which is what a controller should see. Missed contacts
+    #    are left out: their output is gated to 0 N, so fitting them would only spend capacity.
+    ftr, fva = tr[pred_contact[tr]], va[pred_contact[va]]
+    if ftr.size == 0:  # a contact net that never fires: fall back to the true contacts
+        ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
     ft = ((data.force_N - f_off) / f_scale)[:, None]
     fnet = FlatMLP(net_sizes["force"], rng_init, init=init_model.force if init_model else None)
 
@@ -310,6 +332,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
     t_train = time.perf_counter() - t_start - t_prep
     rate = float(np.median([r.rate_hz for r in data.recordings]))
+    pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
+    model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
     model.metadata = {
         "fbgforce_version": __version__,
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
@@ -319,6 +343,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "split": {"by": "press", "ratios": list(SPLIT_RATIOS), "train_fraction": train_fraction,
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
+        "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
                    "sample_rate_hz": rate},
