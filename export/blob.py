@@ -3,13 +3,13 @@
 Layout (little-endian; docs/model-format.md is the normative description)::
 
     0   "FBGM"                     magic
-    4   u16 version (1)            FBG_BLOB_VERSION
+    4   u16 version (3)            FBG_BLOB_VERSION
     6   u16 flags (0)
     8   u32 total_len              bytes of the whole blob, a multiple of 8
     12  u32 crc32                  zlib CRC-32 of bytes [16, total_len)
     16  parameter block (128 bytes, see _PARAMS) -> offset 144
     144 layer table: 8 bytes per layer, nets in order contact, force, location:
-        u16 n_in, u16 n_out, u8 w_bits, u8 shift, u16 reserved (0)
+        u16 n_in, u16 n_out, u8 w_bits, u8 shift, u8 acc32 (0: int64, 1: int32), u8 reserved (0)
     then arrays, each starting at a multiple of 8 (zero padding):
         taps int16[n_taps]; per layer: weights int16|int8[n_out*n_in] (row-major),
         bias int64[n_out], mult int32[n_out]
@@ -27,14 +27,14 @@ from fbgforce.errors import InputError
 from fbgforce.export.quantize import NET_NAMES, QLayer, QModel
 
 MAGIC = b"FBGM"
-VERSION = 2
+VERSION = 3
 HEADER = struct.Struct("<4sHHII")
 #: baseline_fm[5], jump_max_fm, temp_coeff_q24[4], mean_fm[4], z_mult[4], fq_mult,
 #: force_offset_mN, xy_offset_um[2], overload_mN, load_coeff[4], load_max_mN | n_taps, tap_q,
 #: z_frac, z_shift, fq_shift, load_shift, n_layers[3], stuck_max, pad[4]
 _PARAMS = struct.Struct("<5ii4i4i4iii2ii4ii" + "HBBBBB3BH4x")
 PARAMS_END = HEADER.size + _PARAMS.size
-LAYER_ENTRY = struct.Struct("<HHBBH")
+LAYER_ENTRY = struct.Struct("<HHBBBB")
 FILE_NAME = "model.fbgm"
 
 assert PARAMS_END == 144
@@ -55,7 +55,8 @@ def to_bytes(q: QModel) -> bytes:
         *[len(net) for net in q.nets], q.stuck_max))
     for net in q.nets:
         for layer in net:
-            body += LAYER_ENTRY.pack(layer.n_in, layer.n_out, layer.w_bits, layer.shift, 0)
+            body += LAYER_ENTRY.pack(layer.n_in, layer.n_out, layer.w_bits, layer.shift,
+                                     int(layer.acc32), 0)
     buf = bytearray(HEADER.size) + body
     _pad8(buf)
     buf += q.taps.astype("<i2").tobytes()
@@ -105,7 +106,10 @@ def from_bytes(data: bytes, path: str | None = None) -> QModel:
         for _ in range(nl):
             if off + LAYER_ENTRY.size > total:
                 raise bad(f"{name}: layer table runs past the end")
-            rows.append(LAYER_ENTRY.unpack_from(data, off)[:4])
+            entry = LAYER_ENTRY.unpack_from(data, off)
+            if entry[4] not in (0, 1) or entry[5] != 0:
+                raise bad(f"{name}: layer table flags {entry[4]}/{entry[5]} (acc32 must be 0 or 1)")
+            rows.append(entry[:5])
             off += LAYER_ENTRY.size
         shapes.append(rows)
 
@@ -123,11 +127,12 @@ def from_bytes(data: bytes, path: str | None = None) -> QModel:
     nets = []
     for rows in shapes:
         layers = []
-        for n_in, n_out, w_bits, shift in rows:
+        for n_in, n_out, w_bits, shift, acc32 in rows:
             if w_bits not in (8, 16):
                 raise bad(f"weight width {w_bits} is neither 8 nor 16")
             w = take("<i2" if w_bits == 16 else "i1", n_in * n_out).reshape(n_out, n_in)
-            layers.append(QLayer(w, w_bits, take("<i8", n_out), take("<i4", n_out), shift))
+            layers.append(QLayer(w, w_bits, take("<i8", n_out), take("<i4", n_out), shift,
+                                 acc32=bool(acc32)))
         nets.append(layers)
     off += -off % 8
     if off != total:

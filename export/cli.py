@@ -30,6 +30,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--stuck-samples", type=int, default=None, metavar="N",
                    help="sensor fault after N identical consecutive values of a channel (0 = off; "
                         "default: 4x the longest run in the calibration data, at least 25)")
+    p.add_argument("--acc32-max-drop", type=float, default=None, metavar="BITS",
+                   help="int32 accumulators: bits of weight resolution a layer may give up so "
+                        "that its proven worst case fits int32 (default 6; negative: int64 "
+                        "everywhere, as blob version 2 did)")
     p.add_argument("--no-onnx", action="store_true", help="skip model.onnx")
     add_json_flag(p)
     p.set_defaults(handler=_export)
@@ -51,13 +55,16 @@ def register(subparsers: Any) -> None:
 def _export(args: argparse.Namespace) -> dict[str, Any]:
     import sys
 
+    from fbgforce.export import quantize as qz
     from fbgforce.export.exporter import export_model
 
     if args.jump_nm <= 0:
         raise InputError("must be positive", column="--jump-nm")
     rep = export_model(args.model, bits=args.bits, calib=args.calib, name=args.name,
                        jump_nm=args.jump_nm, overload_N=args.overload_N,
-                       stuck_samples=args.stuck_samples, onnx=not args.no_onnx)
+                       stuck_samples=args.stuck_samples, onnx=not args.no_onnx,
+                       acc32_max_drop=(qz.ACC32_MAX_DROP if args.acc32_max_drop is None
+                                       else args.acc32_max_drop))
     if not args.json:
         chk = rep["calibration_check"]
         print(f"exported {args.model}: blob {rep['blob_bytes']} B, const data {rep['const_bytes']} B, "

@@ -78,7 +78,8 @@ def fixed_source(q: QModel, name: str) -> tuple[str, str]:
             arrays.append(f"static const int32_t {base}_m[{ly.n_out}] = {{{_ints(ly.mult)}}};")
             wfield = f".w16 = {base}_w.v" if ly.w_bits == 16 else f".w8 = {base}_w.v"
             layers.append(f"            {{.n_in = {ly.n_in}, .n_out = {ly.n_out}, .w_bits = {ly.w_bits}, "
-                          f".shift = {ly.shift}, {wfield}, .bias = {base}_b, .mult = {base}_m}}")
+                          f".shift = {ly.shift}, .acc32 = {int(ly.acc32)}, {wfield}, .bias = {base}_b, "
+                          f".mult = {base}_m}}")
         nets.append(f"        {{.n_layers = {len(net)}, .layers = {{\n" + ",\n".join(layers) + "}}")
 
     def arr(a: np.ndarray) -> str:

@@ -91,7 +91,7 @@ def calibration_recordings(model: fm.HierarchicalModel, calib: Sequence[str | Pa
 def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str | Path] | None = None,
                  name: str = "fbgforce", jump_nm: float = qz.DEFAULT_JUMP_NM,
                  overload_N: float | None = None, stuck_samples: int | None = None,
-                 onnx: bool = True) -> dict[str, Any]:
+                 onnx: bool = True, acc32_max_drop: float = qz.ACC32_MAX_DROP) -> dict[str, Any]:
     """Quantise and write every artifact; returns the export report (also written)."""
     t0 = time.perf_counter()
     root = Path(model_dir)
@@ -99,7 +99,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     recs, forces, paths = calibration_recordings(model, calib)
     cal = qz.calibrate(model, recs, forces)
     q, report = qz.quantize(model, cal, bits=bits, jump_nm=jump_nm, overload_N=overload_N,
-                            stuck_samples=stuck_samples)
+                            stuck_samples=stuck_samples, acc32_max_drop=acc32_max_drop)
     data = blob.to_bytes(q)
     (root / blob.FILE_NAME).write_bytes(data)
     files = [str(root / blob.FILE_NAME)]

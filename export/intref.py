@@ -89,8 +89,25 @@ def _prev_in_window(wl: np.ndarray, inwin: np.ndarray) -> tuple[np.ndarray, np.n
     return prev, prev_idx >= 0
 
 
-def _hidden(layer: QLayer, x: np.ndarray, flag: np.ndarray) -> np.ndarray:
-    acc = x @ layer.w.T + layer.bias
+def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
+    """The layer's accumulators. For an int32 layer (``acc32``) the sum is taken in int32, as
+    the C code does. It equals the int64 sum because the bound below (the loader's proof,
+    inputs are sat16 values, and ReLU outputs >= 0 after the first layer) keeps every partial
+    sum inside int32; numpy would wrap silently otherwise, hence the check."""
+    if not layer.acc32:
+        return x @ layer.w.T + layer.bias
+    # The proof that applies to these inputs: the ReLU-input bound needs x >= 0.
+    nonneg = x.size == 0 or int(x.min()) >= 0
+    if (relu_inputs and not nonneg) or (x.size and int(np.abs(x).max()) > SAT16) \
+            or int(layer.acc32_bound(nonneg).max()) > SAT32:
+        raise ValueError("int32 accumulator without the int32 bound proof")
+    acc = x.astype(np.int32) @ layer.w.T.astype(np.int32) + layer.bias.astype(np.int32)
+    return acc.astype(np.int64)
+
+
+def _hidden(layer: QLayer, x: np.ndarray, flag: np.ndarray, relu_inputs: bool = False
+            ) -> np.ndarray:
+    acc = _acc(layer, x, relu_inputs)
     y = rshift_round(acc * layer.mult, layer.shift)
     y, clamped = sat(np.maximum(y, 0), SAT16)
     flag |= clamped.any(axis=1)
@@ -103,10 +120,10 @@ def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | No
     for i, layer in enumerate(layers[:-1]):
         if trace is not None and x.size:
             trace[f"{name}.{i}"] = max(trace.get(f"{name}.{i}", 0),
-                                       int(np.abs(x @ layer.w.T + layer.bias).max()))
-        x = _hidden(layer, x, flag)
+                                       int(np.abs(_acc(layer, x, i > 0)).max()))
+        x = _hidden(layer, x, flag, i > 0)
     last = layers[-1]
-    acc = x @ last.w.T + last.bias
+    acc = _acc(last, x, len(layers) > 1)
     if trace is not None and x.size:
         key = f"{name}.{len(layers) - 1}"
         trace[key] = max(trace.get(key, 0), int(np.abs(acc).max()))

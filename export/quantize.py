@@ -55,6 +55,9 @@ ACT_HEADROOM = 1.25
 MULT_BITS = 30
 #: |product| limit of ``acc * mult`` (the rounding constant adds at most 2^61).
 PRODUCT_LIMIT = 2**62
+#: Default of ``quantize(acc32_max_drop=)``: bits of weight resolution a layer may give up
+#: for an int32 accumulator (docs/fixed-point.md, "int32 layers").
+ACC32_MAX_DROP = 6.0
 #: |load_coeff| limit (four int32 x int32 products must sum inside int64 with margin).
 LOAD_COEFF_LIMIT = 2**28
 #: Stuck-peak rule defaults: at least this many identical samples, and off when the
@@ -79,8 +82,12 @@ class QLayer:
     #: Exporter-only float scales (not in the blob): w_scale (n_out,), in_scale, out_ratio
     #: (n_out,) = output integer units per real accumulator unit; used by error_bounds().
     scales: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: int32 accumulator (``fbg_layer.acc32``): allowed only when :meth:`acc_bound` fits int32,
+    #: so the int32 sum equals the int64 one (docs/fixed-point.md, "int32 layers").
+    acc32: bool = False
 
     def __post_init__(self) -> None:
+        self.acc32 = bool(self.acc32)
         self.w = np.asarray(self.w, dtype=np.int64)
         self.bias = np.asarray(self.bias, dtype=np.int64).reshape(-1)
         self.mult = np.asarray(self.mult, dtype=np.int64).reshape(-1)
@@ -96,6 +103,17 @@ class QLayer:
     def acc_bound(self) -> np.ndarray:
         """Worst-case ``|acc|`` per output row for any int16 inputs (|x| <= 32767)."""
         return np.abs(self.w).sum(axis=1) * SAT16 + np.abs(self.bias)
+
+    def acc32_bound(self, relu_inputs: bool) -> np.ndarray:
+        """Worst-case ``|acc|`` (and of every partial sum) per row for the inputs the runtime
+        can produce: any int16 for a net's first layer, ReLU outputs in [0, 32767] for the
+        others (``relu_inputs``), where the positive and negative weights cannot both act:
+        ``max(sum of w > 0, sum of |w < 0|) * 32767 + |b|``. The proof of ``acc32``."""
+        if not relu_inputs:
+            return self.acc_bound()
+        pos = np.where(self.w > 0, self.w, 0).sum(axis=1)
+        neg = np.where(self.w < 0, -self.w, 0).sum(axis=1)
+        return np.maximum(pos, neg) * SAT16 + np.abs(self.bias)
 
 
 @dataclass
@@ -176,6 +194,8 @@ class QModel:
                          for b, m in zip(layer.acc_bound(), layer.mult)]
                 need(bool(np.all(np.abs(layer.bias) < 2**60)) and max(bound) <= 2**63 - 1,
                      f"{name} layer {i}: accumulator bound exceeds int64")
+                need(not layer.acc32 or int(layer.acc32_bound(i > 0).max()) <= SAT32,
+                     f"{name} layer {i}: int32 accumulator but the bound exceeds int32")
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,25 +343,73 @@ def fit_load_proxy(model: fm.HierarchicalModel, calib: Calibration
                                 "max_mN": load_max, "fit_rms_N": float(np.sqrt(np.mean(resid**2)) / 1000.0)}
 
 
-def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np.ndarray,
-                    bits: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, dict[str, Any]]:
-    """Quantise one layer. ``out_ratio[r]`` is (real output unit) per (real accumulator unit):
-    the multiplier implements ``acc * acc_scale[r] * out_ratio[r]``."""
-    qmax = 127 if bits == 8 else 32767
-    row_max = np.abs(w).max(axis=1)
-    w_scale = np.where(row_max > 0, row_max / qmax, 1.0)
+def _int_weights(w: np.ndarray, b: np.ndarray, in_scale: float, w_scale: np.ndarray, qmax: int,
+                 relu_inputs: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(wq, bq, bound, bound32): integer weights and biases at ``w_scale``, each row's
+    worst-case ``|acc|`` for any int16 inputs, and for the inputs the runtime can produce
+    (:meth:`QLayer.acc32_bound`)."""
     wq = np.clip(np.round(w / w_scale[:, None]), -qmax, qmax).astype(np.int64)
-    acc_scale = in_scale * w_scale
-    bq = np.round(b / acc_scale)
+    bq = np.round(b / (in_scale * w_scale))
     if np.any(np.abs(bq) >= 2**60):
         raise InputError("a bias is too large for the accumulator scale (model weights out of range)")
     bq = bq.astype(np.int64)
-    bound = np.abs(wq).sum(axis=1) * SAT16 + np.abs(bq)
+    ly = QLayer(wq, 16, bq, np.zeros(wq.shape[0]), 1)
+    return wq, bq, ly.acc_bound(), ly.acc32_bound(relu_inputs)
+
+
+def _acc32_scale(w: np.ndarray, b: np.ndarray, in_scale: float, w_scale: np.ndarray,
+                 relu_inputs: bool) -> np.ndarray:
+    """Per row, the smallest weight scale (>= ``w_scale``) whose integer bound
+    (:meth:`QLayer.acc32_bound`) provably fits int32: rounding adds at most 1/2 per weight and
+    per bias, hence the slack in the limit."""
+    if relu_inputs:
+        sw = np.maximum(np.where(w > 0, w, 0.0).sum(axis=1), np.where(w < 0, -w, 0.0).sum(axis=1))
+    else:
+        sw = np.abs(w).sum(axis=1)
+    need = sw * SAT16 + np.abs(b) / in_scale
+    room = SAT32 - (w.shape[1] * SAT16) / 2.0 - 2.0
+    return np.maximum(w_scale, need / room * (1.0 + 2.0**-20))
+
+
+def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np.ndarray,
+                    bits: int, acc32_max_drop: float = 0.0, relu_inputs: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, dict[str, Any]]:
+    """Quantise one layer. ``out_ratio[r]`` is (real output unit) per (real accumulator unit):
+    the multiplier implements ``acc * acc_scale[r] * out_ratio[r]``.
+
+    The layer gets an int32 accumulator (``acc32``) when its proven bound fits int32, either
+    as it is or after coarser weight scales on the rows that need it, as long as no row loses
+    more than ``acc32_max_drop`` bits of weight resolution (negative: never int32).
+    """
+    qmax = 127 if bits == 8 else 32767
+    row_max = np.abs(w).max(axis=1)
+    w_scale = np.where(row_max > 0, row_max / qmax, 1.0)
+    wq, bq, bound, bound32 = _int_weights(w, b, in_scale, w_scale, qmax, relu_inputs)
+    acc32_free = bool(bound32.max() <= SAT32)
+    acc32, drop = False, 0.0
+    if acc32_max_drop >= 0.0:
+        if acc32_free:
+            acc32 = True
+        else:
+            scale32 = _acc32_scale(w, b, in_scale, w_scale, relu_inputs)
+            drop = float(np.log2(scale32 / w_scale).max())
+            if drop <= acc32_max_drop:
+                wq, bq, bound, bound32 = _int_weights(w, b, in_scale, scale32, qmax, relu_inputs)
+                if bound32.max() > SAT32:  # cannot happen by _acc32_scale's slack; never trust it
+                    raise AssertionError("int32 weight scales do not meet the bound")
+                w_scale, acc32 = scale32, True
+            else:
+                drop = 0.0
+    acc_scale = in_scale * w_scale
     limits = np.minimum(2**MULT_BITS, PRODUCT_LIMIT // np.maximum(bound, 1))
-    shift, mult = choose_shift(acc_scale * out_ratio, limits)
+    # int32 layers requantise with shift 32 when the multipliers allow it: the DSP build then
+    # takes the rounded high word of acc * mult in one SMMULR (exactly rshift_round(., 32)).
+    # Fewer multiplier bits cost at most |acc| / 2^33 <= 1/4 output LSB.
+    shift, mult = choose_shift(acc_scale * out_ratio, limits, max_shift=32 if acc32 else 62)
     info = {"in_scale": in_scale, "w_scale_max": float(w_scale.max()),
             "acc_bound": int(bound.max()), "acc_bound_log2": round(math.log2(max(int(bound.max()), 1)), 2),
-            "acc32_safe": bool(bound.max() <= SAT32),
+            "acc32_safe": acc32_free, "acc32": acc32, "acc32_weight_bits_dropped": round(drop, 3),
+            "acc32_bound": int(bound32.max()),
             "product_bound_log2": round(math.log2(max(int(max(int(x) * abs(int(m)) for x, m in zip(bound, mult))), 1)), 2),
             "mult_min_abs": int(np.abs(mult).min()), "shift": shift}
     info["_scales"] = {"w_scale": w_scale, "in_scale": in_scale, "out_ratio": np.asarray(out_ratio, dtype=np.float64) * np.ones(w.shape[0])}
@@ -350,7 +418,8 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
              jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
-             stuck_samples: int | None = None) -> tuple[QModel, dict[str, Any]]:
+             stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP
+             ) -> tuple[QModel, dict[str, Any]]:
     """Quantise ``model`` with scales from ``calib``.
 
     Parameters
@@ -368,6 +437,10 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         channel (0 = off). Default: 4x the longest such run in the calibration data, at least
         25 (25 ms at 1 kHz); off if the calibration data repeats a value for 1000 samples or
         more (noise-free data, where repetition is normal).
+    acc32_max_drop
+        int32 accumulators: a layer whose proven worst case does not fit int32 as quantised
+        gets coarser weight scales on the rows that need it if no row loses more than this
+        many bits of weight resolution; otherwise it keeps int64. Negative: int64 everywhere.
 
     Returns
     -------
@@ -420,12 +493,13 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
                 out_scale, ratio = 1e-3, np.array([1000.0 * model.force_scale])
             else:
                 out_scale, ratio = 1e-3, 1000.0 * model.xy_scale
-            wq, bq, mult, shift, info = _quantize_layer(w, b, in_scale, ratio, bits)
+            wq, bq, mult, shift, info = _quantize_layer(w, b, in_scale, ratio, bits, acc32_max_drop,
+                                                        relu_inputs=i > 0)
             info.update({"shape": [int(w.shape[0]), int(w.shape[1])], "w_bits": bits,
                          "out_scale": out_scale, "calib_max_abs": float(np.abs(a).max(initial=0.0))})
             scales = info.pop("_scales")
             scales["w_float"], scales["b_float"] = w, b
-            layers.append(QLayer(wq, bits, bq, mult, shift, info, scales))
+            layers.append(QLayer(wq, bits, bq, mult, shift, info, scales, acc32=info["acc32"]))
             infos.append(info)
             x, in_scale = a, out_scale
         nets.append(layers)

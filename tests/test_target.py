@@ -108,6 +108,12 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path):
     assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["int8"]) > 300
     assert 100 < int(fields["aligned"]) < int(fields["fast"]) - 100  # both rows3 variants
     assert int(fields["saturated"]) > 100
+    # int32 layers (acc32): SMLAD/SMMULR kernels (first32_asm, rows4d32_asm) and the C rows,
+    # with half the cases driving row 0's accumulator exactly to the loader's int32 bound.
+    assert int(fields["acc32"]) > 500 and int(fields["acc32_fast"]) > 40
+    assert int(fields["acc32_first"]) > 30 and int(fields["acc32_at_bound"]) > 400
+    assert int(fields["acc32_saturated"]) > 100
+    assert int(fields["acc32_int8"]) > 300 and int(fields["acc32_int8_saturated"]) > 100
 
 
 def test_golden_vectors_bit_exact_on_target_both_builds(report):
@@ -127,9 +133,13 @@ def test_instruction_counts_and_figures(report):
     assert report["instructions_per_mac"] == dsp["instructions_per_mac"]
     assert report["budget_fraction_at_168MHz"] == pytest.approx(
         report["instructions_per_step"] / 168_000, abs=1e-4)
-    # Generated weights are 8-byte aligned (codegen) and misaligned inputs are copied, so every
-    # hidden layer of an even width takes the LDRD kernel, never the unaligned fallback.
-    assert "rows3d_asm" in dsp["profile_per_step"] and "rows3_asm" not in dsp["profile_per_step"]
+    # Generated weights are 8-byte aligned (codegen) and so are the activation buffers of
+    # fbg_state, so every hidden layer of an even width takes an LDRD kernel, never the
+    # unaligned fallback, and no input is copied. The exporter proves int32 accumulators for
+    # this model's layers, so the SMLAD/SMMULR kernels run (docs/fixed-point.md).
+    prof = dsp["profile_per_step"]
+    assert "rows4d32_asm" in prof and "first32_asm" in prof and "rows3_asm" not in prof
+    assert "memcpy" not in prof
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]
     for key in ("text_bytes", "rodata_bytes", "data_bytes", "bss_bytes", "state_bytes", "stack_bytes"):

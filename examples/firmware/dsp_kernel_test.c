@@ -64,6 +64,8 @@ int main(void)
     static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
     const uint32_t n_widths = sizeof widths / sizeof widths[0];
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
+    uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
+    uint32_t acc32_int8 = 0, acc32_int8_sat = 0;
     for (c = 0; c < N_CASES; ++c) {
         unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
                  offx = (c / 12u) % 2u;
@@ -153,6 +155,25 @@ int main(void)
              * misaligned input is copied to an aligned buffer first). */
             fast_aligned += (((uintptr_t)(W + off) & 3u) == 0u && (n & 1u) == 0u);
         }
+        if (bits8) {
+            /* The same int8 layer as an int32 one (its bound is below 2^29), shift 32 or any. */
+            uint32_t s8_ref = 0u, s8_dsp = 0u;
+            for (r = 0; r < m; ++r) {
+                B[r] = (int64_t)(int32_t)(rnd() >> 4) * ((rnd() & 1u) ? 1 : -1);
+                M[r] = (int32_t)(rnd() % (1u << 30)) * ((rnd() & 1u) ? 1 : -1);
+            }
+            ly.acc32 = 1u;
+            ly.shift = (uint8_t)((rnd() % 4u) != 0u ? 32u : 1u + rnd() % 62u);
+            ref_hidden(&ly, X + offx, Y_ref, &s8_ref);
+            memset(Y_dsp, 0x5A, sizeof Y_dsp);
+            fbg_dsp_hidden(&ly, X + offx, Y_dsp, &s8_dsp);
+            if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || s8_ref != s8_dsp) {
+                sh_puts("KERNEL_MISMATCH_ACC32_INT8\n");
+                ++mismatches;
+            }
+            acc32_int8 += 1u;
+            acc32_int8_sat += s8_ref != 0u;
+        }
         int8_layers += (uint32_t)bits8;
         saturated += sat_ref != 0u;
         /* FIR: random taps, history and ring position. */
@@ -178,6 +199,90 @@ int main(void)
                 }
             }
         }
+        /* int32 layers (fbg_layer.acc32): weights scaled down until the loader's proof holds
+         * (sum|w| * 32767 + |b| <= INT32_MAX, any int16 inputs), shift 32 (the SMMULR kernels)
+         * three times in four, else any shift; every other case the inputs sit at the
+         * saturation limits with the signs of row 0's weights, so that its accumulator equals
+         * the bound. */
+        if (!bits8) {
+            unsigned k = 0, sh32 = (rnd() % 4u) != 0u ? 32u : 1u + rnd() % 62u;
+            for (;;) {
+                int64_t worst = 0;
+                for (r = 0; r < m; ++r) {
+                    int64_t sw = 0;
+                    for (i = 0; i < n; ++i) {
+                        int32_t w = W[off + r * n + i] >> k;
+                        sw += w < 0 ? -w : w;
+                    }
+                    if (sw > worst)
+                        worst = sw;
+                }
+                if (worst * 32767 <= INT32_MAX - 65536)
+                    break;
+                ++k;
+            }
+            for (i = 0; i < n * m; ++i)
+                W[off + i] = (int16_t)(W[off + i] >> k);
+            for (r = 0; r < m; ++r) {
+                int64_t sw = 0, room;
+                for (i = 0; i < n; ++i)
+                    sw += W[off + r * n + i] < 0 ? -W[off + r * n + i] : W[off + r * n + i];
+                room = INT32_MAX - sw * 32767;
+                B[r] = (int64_t)(rnd() % (uint32_t)(room + 1)) * ((rnd() & 1u) ? 1 : -1);
+                M[r] = (mode == 1u) ? (1 << 30) : (int32_t)(rnd() % (1u << 30));
+                if (rnd() & 1u)
+                    M[r] = -M[r];
+            }
+            if ((c & 1u) == 0u) {
+                for (i = 0; i < n; ++i)
+                    X[offx + i] = (int16_t)(W[off + i] < 0 ? -32767 : 32767);
+                B[0] = B[0] < 0 ? -B[0] : B[0];
+            }
+            memset(&ly, 0, sizeof ly);
+            ly.n_in = (uint16_t)n;
+            ly.n_out = (uint16_t)m;
+            ly.w_bits = 16u;
+            ly.shift = (uint8_t)sh32;
+            ly.acc32 = 1u;
+            ly.w16 = W + off;
+            ly.bias = B;
+            ly.mult = M;
+            sat_ref = sat_dsp = 0u;
+            ref_hidden(&ly, X + offx, Y_ref, &sat_ref);
+            memset(Y_dsp, 0x5A, sizeof Y_dsp);
+            fbg_dsp_hidden(&ly, X + offx, Y_dsp, &sat_dsp);
+            if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
+                if (mismatches < 5u) {
+                    sh_puts("KERNEL_MISMATCH_ACC32");
+                    sh_kv("case", (int32_t)c);
+                    sh_kv("n", (int32_t)n);
+                    sh_kv("m", (int32_t)m);
+                    sh_kv("shift", (int32_t)sh32);
+                    sh_puts("\n");
+                }
+                ++mismatches;
+            }
+            for (r = 0; r < m; ++r) {
+                int64_t acc = B[r];
+                for (i = 0; i < n; ++i)
+                    acc += (int64_t)W[off + r * n + i] * X[offx + i];
+                if (r == 0u && (c & 1u) == 0u) {
+                    int64_t sw = 0;
+                    for (i = 0; i < n; ++i)
+                        sw += W[off + i] < 0 ? -W[off + i] : W[off + i];
+                    acc32_at_bound += acc == sw * 32767 + B[0];
+                }
+                if (fbg_dsp_row_acc(&ly, r, X + offx) != acc) {
+                    ++mismatches;
+                    break;
+                }
+            }
+            ++acc32_layers;
+            acc32_sat += sat_ref != 0u;
+            acc32_first += sh32 == 32u && (n == 2u || n == 4u || n == 6u) && ((uintptr_t)(W + off) & 3u) == 0u;
+            acc32_fast += sh32 == 32u && m >= 4u && (n & 1u) == 0u && !(n == 2u || n == 4u || n == 6u) &&
+                          ((uintptr_t)(W + off) & 3u) == 0u && ((uintptr_t)(X + offx) & 3u) == 0u;
+        }
     }
     sh_puts("KERNEL_TEST");
     sh_kv("cases", (int32_t)N_CASES);
@@ -187,6 +292,13 @@ int main(void)
     sh_kv("first", (int32_t)first);
     sh_kv("int8", (int32_t)int8_layers);
     sh_kv("saturated", (int32_t)saturated);
+    sh_kv("acc32", (int32_t)acc32_layers);
+    sh_kv("acc32_fast", (int32_t)acc32_fast);
+    sh_kv("acc32_first", (int32_t)acc32_first);
+    sh_kv("acc32_at_bound", (int32_t)acc32_at_bound);
+    sh_kv("acc32_saturated", (int32_t)acc32_sat);
+    sh_kv("acc32_int8", (int32_t)acc32_int8);
+    sh_kv("acc32_int8_saturated", (int32_t)acc32_int8_sat);
     sh_puts("\n");
     return mismatches ? 1 : 0;
 }

@@ -9,7 +9,8 @@
  *                 -> standardise to int16 -> contact net -> force net -> location net
  *
  * Two builds of the same pipeline live in this library:
- *   fbg_*   fixed point (int16 weights/activations, int8 weights optional, int64 accumulators);
+ *   fbg_*   fixed point (int16 weights/activations, int8 weights optional, int32 or int64
+ *           accumulators per layer, whichever the exporter proved);
  *           no float or double anywhere (`make -C runtime_c check-nofloat` proves it);
  *   fbgf_*  single-precision float (for FPU targets and as the C float estimator).
  *
@@ -64,7 +65,7 @@ extern "C" {
 /* Q format of the temperature coefficients: coeff = temp_coeff_q24 / 2^24. */
 #define FBG_TEMP_COEFF_SHIFT 24
 /* Blob format understood by this library (docs/model-format.md). */
-#define FBG_BLOB_VERSION 2
+#define FBG_BLOB_VERSION 3
 #define FBG_BLOB_HEADER_SIZE 16
 
 /* ---- Return codes: 0 is success, every error has its own negative code ---- */
@@ -77,7 +78,8 @@ typedef enum {
     FBG_ERR_CRC = -5,           /* CRC-32 over the blob body does not match */
     FBG_ERR_SHAPE = -6,         /* layer shapes inconsistent, too large, or nets of wrong I/O */
     FBG_ERR_RANGE = -7,         /* a parameter outside its allowed range (shift, Q format...) */
-    FBG_ERR_BOUND = -8,         /* accumulator worst-case bound would overflow int64 */
+    FBG_ERR_BOUND = -8,         /* accumulator worst-case bound would overflow int64 (int32
+                                 * for an acc32 layer) */
     FBG_ERR_SIZE = -9,          /* declared length differs from the length the shapes imply */
     FBG_ERR_ALIGN = -10,        /* blob pointer not 8-byte aligned (arrays are used in place) */
     FBG_ERR_ENDIAN = -11,       /* host is not little-endian (blob arrays are little-endian) */
@@ -103,16 +105,23 @@ typedef enum {
  * (fbgforce export writes <name>_model.c/.h). Never modified by the library.
  * ------------------------------------------------------------------------------------- */
 
-/* One dense layer: acc[r] = bias[r] + sum_j w[r][j] * x[j]        (int64 accumulator)
+/* One dense layer: acc[r] = bias[r] + sum_j w[r][j] * x[j]        (int64 accumulator, or
+ *                                                                   int32 when acc32 = 1)
  *                  y[r]   = rshift_round(acc[r] * mult[r], shift)
+ * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
+ * int32 (fbg_model_check refuses the model otherwise, FBG_ERR_BOUND), so the int32 sum is the
  * hidden layers:   y = sat16(max(y, 0))    (ReLU, int16 activations)
- * output layers:   y = sat32(y)            (physical units, see fbg_model) */
+ * output layers:   y = sat32(y)            (physical units, see fbg_model)
+ * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
+ * int32 (fbg_model_check refuses the model otherwise, FBG_ERR_BOUND), so the int32 sum is the
+ * same number as the int64 one; the DSP build then uses SMLAD/SMMULR kernels. */
 typedef struct {
     uint16_t n_in;
     uint16_t n_out;
     uint8_t w_bits;          /* 16: weights in w16; 8: weights in w8 */
     uint8_t shift;           /* requantisation shift, 1..62 */
-    uint8_t reserved[2];
+    uint8_t acc32;           /* 0: int64 accumulator; 1: int32 (proven, see above) */
+    uint8_t reserved;
     const int16_t *w16;      /* row-major n_out x n_in (NULL if w_bits == 8) */
     const int8_t *w8;        /* row-major n_out x n_in (NULL if w_bits == 16) */
     const int64_t *bias;     /* n_out, at accumulator scale */
@@ -191,6 +200,9 @@ typedef struct {
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
     int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
     int64_t tare_sum[FBG_N_CHANNELS];
+    /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
+     * the activations with LDRD (no copy to an aligned buffer per layer). */
+    int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
     uint32_t tare_count;
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
@@ -199,7 +211,6 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t reserved;
-    int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
 } fbg_state;
 
 /* Library version as (major << 16) | minor, for checking header against library. */

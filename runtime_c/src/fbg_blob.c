@@ -140,6 +140,9 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
             ly->n_out = rd16(blob + off + 2);
             ly->w_bits = blob[off + 4];
             ly->shift = blob[off + 5];
+            ly->acc32 = blob[off + 6];   /* 0 or 1, checked by fbg_model_check */
+            if (blob[off + 7] != 0u)
+                return FBG_ERR_RANGE;
             off += FBG_LAYER_ENTRY;
             if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
                 return FBG_ERR_SHAPE;

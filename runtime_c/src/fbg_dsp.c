@@ -18,6 +18,8 @@
  *   registers): rows3d_asm (word-aligned, LDRD), rows3_asm (any alignment), first_asm (2, 4
  *   or 6 inputs held in registers). Everything else is C with ACLE intrinsics (__smlald,
  *   __sxtb16 for int8 weights, __usat).
+ * - int32 layers (fbg_layer.acc32, proven by the loader: every partial sum fits int32) use
+ *   SMLAD and SMMULR instead: rows4d32_asm, first32_asm, C rows with __smlad (see below).
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -556,6 +558,349 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
+
+/* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
+ * row fits int32 (fbg_model_check re-proves it), so SMLAD (two 16x16 products added to a
+ * 32-bit accumulator, which cannot overflow here) gives the same number as the int64 sum, in
+ * ONE register per row; and rshift_round(acc * mult, 32) is exactly SMMULR (the high word
+ * of acc * mult + 2^31). Requantisation: LDR mult, SMMULR, BIC (ReLU), USAT #15, STRH = 5
+ * instructions per neuron instead of 10.
+ *
+ * rows4d32_asm: FOUR rows per pass (one register per accumulator leaves room for it),
+ * word-aligned rows and inputs, n even, at least four rows (the caller checks). All fourteen
+ * registers are in use in the MAC loop: r0/r9/r10/r11 the four weight rows, r1 x, r8 end of the 16-input
+ * blocks, r4-r7 accumulators, r2/r3 four inputs, r12/lr four weights; the job pointer and n
+ * live on the stack. Sixteen inputs of four rows: 4 x (1 + 4 x 3) + 2 = 54 instructions per
+ * 64 MACs (0.84); then 8, 4 and 2 inputs, and the 5-instruction requantisation per row. */
+__attribute__((naked, noinline)) static void rows4d32_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        "mrs     r12, apsr\n\t"
+        "push    {r4-r12, lr}\n\t"
+        "bic     r12, r12, #0x08000000\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "sub     sp, sp, #8\n\t"
+        "str     r0, [sp]\n\t"
+        "ldr     r2, [r0, #20]\n\t"
+        "str     r2, [sp, #4]\n\t"
+        "ldr     r1, [r0, #4]\n\t"
+        "bic     r8, r2, #15\n\t"
+        "add     r8, r1, r8, lsl #1\n\t"
+        "0:\n\t"
+        "ldr     r3, [sp]\n\t"
+        "ldr     r12, [r3, #8]\n\t"
+        "ldr     r4, [r12], #8\n\t"
+        "ldr     r5, [r12], #8\n\t"
+        "ldr     r6, [r12], #8\n\t"
+        "ldr     r7, [r12], #8\n\t"
+        "str     r12, [r3, #8]\n\t"
+        "ldr     r0, [r3]\n\t"
+        "ldr     r2, [sp, #4]\n\t"
+        "add     r9, r0, r2, lsl #1\n\t"
+        "add     r10, r9, r2, lsl #1\n\t"
+        "add     r11, r10, r2, lsl #1\n\t"
+        "ldr     r1, [r3, #4]\n\t"
+        "cmp     r1, r8\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "cmp     r1, r8\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ldr     r12, [sp, #4]\n\t"
+        "tst     r12, #8\n\t"
+        "beq     3f\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "3:\n\t"
+        "ldr     r12, [sp, #4]\n\t"
+        "tst     r12, #4\n\t"
+        "beq     4f\n\t"
+        "ldrd    r2, r3, [r1], #8\n\t"
+        "ldrd    r12, lr, [r0], #8\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "smlad   r4, lr, r3, r4\n\t"
+        "ldrd    r12, lr, [r9], #8\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "smlad   r5, lr, r3, r5\n\t"
+        "ldrd    r12, lr, [r10], #8\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "smlad   r6, lr, r3, r6\n\t"
+        "ldrd    r12, lr, [r11], #8\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "smlad   r7, lr, r3, r7\n\t"
+        "4:\n\t"
+        "ldr     r12, [sp, #4]\n\t"
+        "tst     r12, #2\n\t"
+        "beq     5f\n\t"
+        "ldr     r2, [r1], #4\n\t"
+        "ldr     r12, [r0], #4\n\t"
+        "smlad   r4, r12, r2, r4\n\t"
+        "ldr     r12, [r9], #4\n\t"
+        "smlad   r5, r12, r2, r5\n\t"
+        "ldr     r12, [r10], #4\n\t"
+        "smlad   r6, r12, r2, r6\n\t"
+        "ldr     r12, [r11], #4\n\t"
+        "smlad   r7, r12, r2, r7\n\t"
+        "5:\n\t"
+        "ldr     r3, [sp]\n\t"
+        "str     r11, [r3]\n\t"
+        "ldr     r12, [r3, #12]\n\t"
+        "ldr     lr, [r3, #16]\n\t"
+        "ldr     r2, [r12], #4\n\t"
+        "smmulr  r4, r4, r2\n\t"
+        "bic     r4, r4, r4, asr #31\n\t"
+        "usat    r4, #15, r4\n\t"
+        "strh    r4, [lr], #2\n\t"
+        "ldr     r2, [r12], #4\n\t"
+        "smmulr  r5, r5, r2\n\t"
+        "bic     r5, r5, r5, asr #31\n\t"
+        "usat    r5, #15, r5\n\t"
+        "strh    r5, [lr], #2\n\t"
+        "ldr     r2, [r12], #4\n\t"
+        "smmulr  r6, r6, r2\n\t"
+        "bic     r6, r6, r6, asr #31\n\t"
+        "usat    r6, #15, r6\n\t"
+        "strh    r6, [lr], #2\n\t"
+        "ldr     r2, [r12], #4\n\t"
+        "smmulr  r7, r7, r2\n\t"
+        "bic     r7, r7, r7, asr #31\n\t"
+        "usat    r7, #15, r7\n\t"
+        "strh    r7, [lr], #2\n\t"
+        "str     r12, [r3, #12]\n\t"
+        "str     lr, [r3, #16]\n\t"
+        "ldr     r12, [r3, #24]\n\t"
+        "subs    r12, r12, #1\n\t"
+        "str     r12, [r3, #24]\n\t"
+        "bne     0b\n\t"
+        "add     sp, sp, #8\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "str     r12, [r3, #40]\n\t"
+        "pop     {r4-r12, lr}\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "bx      lr\n\t");
+}
+
+/* first32_asm: a first layer (2, 4 or 6 inputs) of an int32 layer with shift 32: the inputs
+ * stay in registers (r4-r6 as int16 pairs; LDR may be unaligned), the weights (word-aligned:
+ * the caller checks) come with LDRD; per row the low word of the int64 bias (|bias| <= the
+ * int32 bound), one SMLAD per input pair and the 5-instruction requantisation: 11 instructions
+ * for 4 inputs plus the loop test. job->groups holds the number of ROWS. */
+__attribute__((naked, noinline)) static void first32_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        "mrs     r12, apsr\n\t"
+        "push    {r4-r12, lr}\n\t"
+        "bic     r12, r12, #0x08000000\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "mov     r11, r0\n\t"
+        "ldr     r3, [r11, #16]\n\t"
+        "ldr     r12, [r11, #24]\n\t"
+        "add     r12, r3, r12, lsl #1\n\t"
+        "ldr     r1, [r11, #8]\n\t"
+        "ldr     r2, [r11, #12]\n\t"
+        "ldr     lr, [r11, #20]\n\t"
+        "ldr     r10, [r11, #4]\n\t"
+        "ldr     r0, [r11]\n\t"
+        "ldr     r4, [r10]\n\t"
+        "cmp     lr, #4\n\t"
+        "blo     2f\n\t"
+        "ldr     r5, [r10, #4]\n\t"
+        "beq     4f\n\t"
+        "ldr     r6, [r10, #8]\n\t"
+        "b       6f\n\t"
+        "2:\n\t"
+        "ldr     r8, [r1], #8\n\t"
+        "ldr     r9, [r0], #4\n\t"
+        "smlad   r8, r9, r4, r8\n\t"
+        "ldr     r9, [r2], #4\n\t"
+        "smmulr  r8, r8, r9\n\t"
+        "bic     r8, r8, r8, asr #31\n\t"
+        "usat    r8, #15, r8\n\t"
+        "strh    r8, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        "ldr     r8, [r1], #8\n\t"
+        "ldrd    r9, r10, [r0], #8\n\t"
+        "smlad   r8, r9, r4, r8\n\t"
+        "smlad   r8, r10, r5, r8\n\t"
+        "ldr     r9, [r2], #4\n\t"
+        "smmulr  r8, r8, r9\n\t"
+        "bic     r8, r8, r8, asr #31\n\t"
+        "usat    r8, #15, r8\n\t"
+        "strh    r8, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        "ldr     r8, [r1], #8\n\t"
+        "ldrd    r9, r10, [r0], #8\n\t"
+        "smlad   r8, r9, r4, r8\n\t"
+        "smlad   r8, r10, r5, r8\n\t"
+        "ldr     r9, [r0], #4\n\t"
+        "smlad   r8, r9, r6, r8\n\t"
+        "ldr     r9, [r2], #4\n\t"
+        "smmulr  r8, r8, r9\n\t"
+        "bic     r8, r8, r8, asr #31\n\t"
+        "usat    r8, #15, r8\n\t"
+        "strh    r8, [r3], #2\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     6b\n\t"
+        "9:\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "str     r12, [r11, #40]\n\t"
+        "pop     {r4-r12, lr}\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "bx      lr\n\t");
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+/* An int32 int16-weight hidden layer. shift 32 (what the exporter chooses) runs the assembly
+ * above; anything else (valid, but not exported) runs SMLAD rows with C requantisation. */
+static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int16_t *w = ly->w16;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    int wal = ((uintptr_t)w & 3u) == 0u;
+    uint32_t clamped = 0u;
+    unsigned r = 0;
+    fbg_dsp_job job;
+
+    job.w = w;
+    job.x = x;
+    job.bias = ly->bias;
+    job.mult = ly->mult;
+    job.y = y;
+    job.n = n;
+    job.round_lo = 0u;
+    job.round_hi = 0u;
+    job.s32 = 0u;
+    job.clamped = 0u;
+    if (shift == 32u && wal && (n == 2u || n == 4u || n == 6u)) {
+        job.groups = m;
+        first32_asm(&job);
+        if (job.clamped)
+            *sat = 1u;
+        return;
+    }
+    if (shift == 32u && wal && m >= 4u && (n & 1u) == 0u && ((uintptr_t)x & 3u) == 0u) {
+        job.groups = m / 4u;
+        rows4d32_asm(&job);
+        clamped = job.clamped;
+        if (m % 4u != 0u) {
+            /* One to three rows left: one more pass over the LAST four rows (those already
+             * done are recomputed to the same values) is cheaper than C rows. Layers of
+             * three rows or fewer run in C below. */
+            job.w = w + (size_t)(m - 4u) * n;
+            job.bias = ly->bias + (m - 4u);
+            job.mult = ly->mult + (m - 4u);
+            job.y = y + (m - 4u);
+            job.groups = 1u;
+            job.clamped = 0u;
+            rows4d32_asm(&job);
+            clamped |= job.clamped;
+        }
+        r = m;
+    }
+    for (; r < m; ++r)
+        y[r] = (int16_t)relu_sat16(dot16_32(w + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
+                                   ly->mult[r], shift, round, &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
 static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
@@ -658,6 +1003,25 @@ static inline int8x4_t ld4_8(const int8_t *p)
     return v;
 }
 
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
 /* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
 static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
 {
@@ -673,12 +1037,15 @@ static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsi
 }
 
 /* A hidden layer with int8 weights: two rows per pass share the re-paired inputs; per four
- * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C (relu_sat16). */
+ * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C: relu_sat16, or for an
+ * int32 layer at shift 32 (int8 weights always prove int32: 128 * 127 * 32767 < 2^29) one
+ * SMMULR; SMLALD costs what SMLAD does, so the MAC loop is shared. */
 static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
                                               uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
     const int64_t round = (int64_t)1 << (shift - 1u);
+    const int fast32 = ly->acc32 && shift == 32u;
     int16x2_t xp[FBG_MAX_WIDTH / 2];
     uint32_t clamped = 0u;
     unsigned j, r = 0;
@@ -701,8 +1068,14 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
             a0 += (int32_t)w0[j] * (int32_t)x[j];
             a1 += (int32_t)w1[j] * (int32_t)x[j];
         }
-        y[r] = (int16_t)relu_sat16(a0, ly->mult[r], shift, round, &clamped);
-        y[r + 1u] = (int16_t)relu_sat16(a1, ly->mult[r + 1u], shift, round, &clamped);
+        if (fast32) {
+            /* An int32 layer: a0, a1 fit int32 (the proof), so SMMULR is the rounding rule. */
+            y[r] = (int16_t)relu_usat15(smmulr((int32_t)a0, ly->mult[r]), &clamped);
+            y[r + 1u] = (int16_t)relu_usat15(smmulr((int32_t)a1, ly->mult[r + 1u]), &clamped);
+        } else {
+            y[r] = (int16_t)relu_sat16(a0, ly->mult[r], shift, round, &clamped);
+            y[r + 1u] = (int16_t)relu_sat16(a1, ly->mult[r + 1u], shift, round, &clamped);
+        }
     }
     if (r < m)
         y[r] = (int16_t)relu_sat16(dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]),
@@ -713,7 +1086,9 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
 
 void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    if (ly->w_bits == 16u)
+    if (ly->w_bits == 16u && ly->acc32)
+        hidden16_32(ly, x, y, sat);
+    else if (ly->w_bits == 16u)
         hidden16(ly, x, y, sat);
     else
         hidden8(ly, x, y, sat);
@@ -734,6 +1109,8 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
+    if (ly->w_bits == 16u && ly->acc32)
+        return dot16_32(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);

@@ -186,15 +186,38 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
     return FBG_OK;
 }
 
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
+typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
+ * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
+static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int32_t acc = (int32_t)ly->bias[r];
+    unsigned j;
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
     int64_t acc = ly->bias[r];
     unsigned j;
-#if FBG_USE_DSP /* SMLALD: two MACs per instruction; same int64 sum */
+#if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
     return fbg_dsp_row_acc(ly, r, x);
 #endif
+    if (ly->acc32)
+        return layer_acc32(ly, r, x);
     if (ly->w_bits == 16u) {
         const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
         for (j = 0; j < ly->n_in; ++j)

@@ -7,7 +7,9 @@
 #define FBG_BIAS_LIMIT ((int64_t)1 << 60)
 #define FBG_LOAD_COEFF_LIMIT ((int32_t)1 << 28)
 
-static fbg_status check_layer(const fbg_layer *ly)
+/* relu_inputs: the layer's inputs are ReLU outputs in [0, 32767] (every layer after a net's
+ * first), which is what the int32 bound of an acc32 layer may use. */
+static fbg_status check_layer(const fbg_layer *ly, int relu_inputs)
 {
     unsigned r, j;
     if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
@@ -23,21 +25,32 @@ static fbg_status check_layer(const fbg_layer *ly)
     }
     if (ly->bias == NULL || ly->mult == NULL)
         return FBG_ERR_NULL;
-    if (ly->shift < 1u || ly->shift > 62u)
+    if (ly->shift < 1u || ly->shift > 62u || ly->acc32 > 1u)
         return FBG_ERR_RANGE;
     for (r = 0; r < ly->n_out; ++r) {
         /* Worst case |acc| = sum_j |w[r][j]| * 32767 + |bias[r]|: every layer input is an
          * int16 saturated to +-32767 (sat16 is symmetric). acc * mult + 2^(shift-1) must
          * stay inside int64: that is the whole overflow proof of the nets (fixed-point.md). */
-        int64_t sumw = 0, bound, limit, b = ly->bias[r], m = ly->mult[r];
+        int64_t sumw = 0, sump = 0, bound, limit, b = ly->bias[r], m = ly->mult[r];
         for (j = 0; j < ly->n_in; ++j) {
             int32_t w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
                                           : ly->w8[(size_t)r * ly->n_in + j];
             sumw += w < 0 ? -(int64_t)w : (int64_t)w;
+            sump += w > 0 ? (int64_t)w : 0;
         }
         if (b >= FBG_BIAS_LIMIT || b <= -FBG_BIAS_LIMIT)
             return FBG_ERR_BOUND;
         bound = sumw * FBG_SAT16 + (b < 0 ? -b : b);
+        /* An int32 layer: every partial sum of the row is within the same bound, so no
+         * int32 addition can overflow (the product acc * mult is then < 2^61 anyway). */
+        if (ly->acc32) {
+            /* With inputs in [0, 32767] every partial sum lies in
+             * [b - 32767 * sum|w<0|, b + 32767 * sum(w>0)]; any int16 inputs: |.| <= bound. */
+            int64_t sumn = sumw - sump, s = sump > sumn ? sump : sumn;
+            int64_t b32 = relu_inputs ? s * FBG_SAT16 + (b < 0 ? -b : b) : bound;
+            if (b32 > INT32_MAX)
+                return FBG_ERR_BOUND;
+        }
         if (m < 0)
             m = -m;
         if (m != 0) {
@@ -87,7 +100,7 @@ fbg_status fbg_model_check(const fbg_model *model)
         for (l = 0; l < net->n_layers; ++l) {
             if (l > 0u && net->layers[l].n_in != net->layers[l - 1u].n_out)
                 return FBG_ERR_SHAPE;
-            st = check_layer(&net->layers[l]);
+            st = check_layer(&net->layers[l], l > 0u);
             if (st != FBG_OK)
                 return st;
         }
