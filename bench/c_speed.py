@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     from fbgforce import dataset as fds
     from fbgforce.bench.tradeoff import timing_samples
     from fbgforce.pybind import Runtime, to_fm
-    from fbgforce.trainer.preprocess import tare
+    from fbgforce.tare import tare
 
     cc = os.environ.get("CC", "gcc")
     if shutil.which(cc) is None:

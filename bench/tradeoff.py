@@ -37,6 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from fbgforce.jsonutil import json_default
 from fbgforce import engines as fengines
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
@@ -396,6 +397,7 @@ def _filter_delay_ms(model: fm.HierarchicalModel, rate_hz: float) -> float:
 def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None] = print
         ) -> dict[str, Any]:
     """Train or reuse every variant, evaluate every engine, time them, write the outputs."""
+    from fbgforce.tare import sample_rate_hz
     from fbgforce.trainer import qat
     from fbgforce.trainer import train as tr
 
@@ -404,7 +406,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
     ds_list, described = tr.load_datasets([str(p) for p in paths])
     sources = [str(p) for p in paths]
     digest = _data_digest(paths)
-    rate_hz = float(np.median([tr.pp.sample_rate_hz(ds.t_s) for ds in ds_list]))
+    rate_hz = float(np.median([sample_rate_hz(ds.t_s) for ds in ds_list]))
     grid = variants(s)
     specs = [sp for sp in ENGINE_SPECS if sp.name in s.engines]
     calib = calibration_subset(ds_list, sources, out)
@@ -954,7 +956,7 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
 
 def write_outputs(res: dict[str, Any], out: Path, log: Callable[[str], None]) -> None:
     """tradeoff.json, tradeoff.csv, tradeoff.md and tradeoff.png in ``out``."""
-    (out / "tradeoff.json").write_text(json.dumps(res, indent=1, default=_json_default) + "\n")
+    (out / "tradeoff.json").write_text(json.dumps(res, indent=1, default=json_default) + "\n")
     with open(out / "tradeoff.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
@@ -971,12 +973,3 @@ def write_outputs(res: dict[str, Any], out: Path, log: Callable[[str], None]) ->
         md += ["![accuracy against time](tradeoff.png)", ""]
     (out / "tradeoff.md").write_text("\n".join(md))
 
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

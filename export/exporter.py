@@ -58,7 +58,7 @@ def check_fresh(model_dir: str | Path, model: fm.HierarchicalModel) -> None:
 
 def recording_baseline(ds: Any, path: str | None = None) -> np.ndarray:
     """The tare baseline of a recording, the same rule evaluate/verify use (trainer's tare)."""
-    from fbgforce.trainer.preprocess import tare
+    from fbgforce.tare import tare
 
     return tare(ds.wl_nm, ds.contact, ds.t_s, path=path)[0]
 

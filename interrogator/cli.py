@@ -6,39 +6,19 @@ import math
 import sys
 from typing import Any
 
+from fbgforce.cli import non_negative_int, positive_float, positive_int
 from fbgforce.errors import InputError
 
 
-def _positive_float(text: str) -> float:
-    v = float(text)
-    if not v > 0 or not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"must be a positive number, not {text}")
-    return v
-
-
-def _non_negative_int(text: str) -> int:
-    v = int(text)
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, not {text}")
-    return v
-
-
-def _positive_int(text: str) -> int:
-    v = int(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, not {text}")
-    return v
-
-
 def _add_stop_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--duration", type=_positive_float, metavar="S",
+    p.add_argument("--duration", type=positive_float, metavar="S",
                    help="stop S seconds after the first sample (default: run until stopped)")
-    p.add_argument("--samples", type=_positive_int, metavar="N", help="stop after N samples")
-    p.add_argument("--idle-timeout", type=_positive_float, metavar="S",
+    p.add_argument("--samples", type=positive_int, metavar="N", help="stop after N samples")
+    p.add_argument("--idle-timeout", type=positive_float, metavar="S",
                    help="stop when no sample arrived for S seconds (default: wait, reconnecting)")
-    p.add_argument("--start-timeout", type=_positive_float, metavar="S",
+    p.add_argument("--start-timeout", type=positive_float, metavar="S",
                    help="give up if the first sample has not arrived after S seconds")
-    p.add_argument("--baud", type=_positive_int, default=None,
+    p.add_argument("--baud", type=positive_int, default=None,
                    help="line speed for real UARTs (default 3000000; ptys/sockets ignore it)")
     p.add_argument("--quiet", action="store_true", help="no live status on stderr")
 
@@ -60,14 +40,14 @@ def register(subparsers: Any) -> None:
     p.add_argument("--pty", action="store_true", default=True,
                    help="serve on a new pseudo-terminal (the default and only transport)")
     p.add_argument("--protocol", choices=("native", "fispec"), default="native")
-    p.add_argument("--rate", type=_positive_float, default=1000.0,
+    p.add_argument("--rate", type=positive_float, default=1000.0,
                    help="samples per second of playback (default 1000)")
     p.add_argument("--loadcell", action="store_true",
                    help="open a second pty with the stage/load-cell line protocol")
-    p.add_argument("--seed", type=_non_negative_int, default=None,
+    p.add_argument("--seed", type=non_negative_int, default=None,
                    help="scene seed (default: the scene's); also seeds the fault details")
-    p.add_argument("--device", type=_non_negative_int, default=None, help="scene device number")
-    p.add_argument("--duration", type=_positive_float, metavar="S",
+    p.add_argument("--device", type=non_negative_int, default=None, help="scene device number")
+    p.add_argument("--duration", type=positive_float, metavar="S",
                    help="play at most S seconds (default: the whole recording)")
     p.add_argument("--faults", metavar="SPEC", default=None,
                    help="extra line faults per sample, e.g. drop=0.01,flip=0.01,truncate=0.005,"
@@ -96,10 +76,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
     p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")
-    p.add_argument("--tare-samples", type=_non_negative_int, default=200,
+    p.add_argument("--tare-samples", type=non_negative_int, default=200,
                    help="tare on the first N samples, fingertip unloaded (default 200 = 0.2 s; "
                         "0 = use the model's training baseline)")
-    p.add_argument("--channels", type=_positive_int, default=5,
+    p.add_argument("--channels", type=positive_int, default=5,
                    help="gratings per frame (default 5: FBG 1..4 and T)")
     _add_stop_options(p)
     add_json_flag(p)
@@ -115,9 +95,9 @@ def register(subparsers: Any) -> None:
                    help="stage/load-cell device or URL")
     p.add_argument("--out", required=True, metavar="FILE.csv", help="dataset to write (.csv/.npz)")
     p.add_argument("--protocol", choices=("native", "fispec"), default="native")
-    p.add_argument("--rate", type=_positive_float, default=1000.0,
+    p.add_argument("--rate", type=positive_float, default=1000.0,
                    help="device sample rate, for time stamps when the protocol has none (fispec)")
-    p.add_argument("--loadcell-baud", type=_positive_int, default=115200)
+    p.add_argument("--loadcell-baud", type=positive_int, default=115200)
     _add_stop_options(p)
     add_json_flag(p)
     p.set_defaults(handler=_record)

@@ -13,9 +13,11 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import math
 import sys
 from typing import Any, Callable, Sequence
 
+from fbgforce.jsonutil import json_default
 from fbgforce import __version__
 from fbgforce.errors import InputError
 
@@ -40,6 +42,40 @@ def add_json_flag(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="print one JSON object on stdout (keys in docs/cli.md); progress stays on stderr",
     )
+
+
+# Argument types shared by every subcommand, so a bad number reads the same everywhere.
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, not {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, not {text}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, not {text}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -70,18 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
 def emit(result: dict[str, Any] | None, as_json: bool) -> None:
     """Print a handler's result: JSON on stdout with ``--json``, else nothing more."""
     if as_json and result is not None:
-        json.dump(result, sys.stdout, indent=None, sort_keys=False, default=_json_default)
+        json.dump(result, sys.stdout, indent=None, sort_keys=False, default=json_default)
         sys.stdout.write("\n")
 
-
-def _json_default(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

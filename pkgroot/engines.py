@@ -94,7 +94,7 @@ def run_engine(engine: str, model_dir: str | Path | None, model: fm.Hierarchical
     wl_nm
         (n, 5) wavelengths of gratings 1..4 and T, nm, one continuous recording.
     baseline_nm
-        (5,) unloaded wavelengths to tare against (see ``fbgforce.trainer.preprocess.tare``).
+        (5,) unloaded wavelengths to tare against (see ``fbgforce.tare.tare``).
 
     Returns
     -------

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
 FORMAT_NAME = "fbgforce-model"
@@ -325,16 +326,9 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
             arrays[f"{name}.W{layer}"] = w
             arrays[f"{name}.b{layer}"] = b
     np.savez(out / WEIGHTS_NPZ, **arrays)
-    (out / MODEL_JSON).write_text(json.dumps(doc, indent=2, default=_json_default) + "\n")
+    (out / MODEL_JSON).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")
     return out
 
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def load(directory: str | Path) -> HierarchicalModel:

@@ -21,6 +21,7 @@ import foreign as fg  # noqa: E402
 
 from fbgforce import dataset  # noqa: E402
 from fbgforce.trainer import preprocess as pp  # noqa: E402
+from fbgforce import tare as fbgtare  # noqa: E402
 from fbgforce.trainer.evaluate import evaluate  # noqa: E402
 from fbgforce.trainer.train import train  # noqa: E402
 
@@ -100,7 +101,7 @@ def test_trains_and_generalises_to_another_log(foreign_files, name):
     far = ds_b.contact & (ds_b.y_mm > 30) & (ds_b.force_N > 10)
     if far.any():
         from fbgforce import model as fm
-        pred = fm.predict(model, ds_b.wl_nm, pp.tare(ds_b.wl_nm, ds_b.contact, ds_b.t_s)[0])
+        pred = fm.predict(model, ds_b.wl_nm, fbgtare.tare(ds_b.wl_nm, ds_b.contact, ds_b.t_s)[0])
         # Not squeezed into our 27 mm: a good part of these far presses is placed beyond it.
         assert np.nanpercentile(pred["y_mm"][far], 90) > 27.0
 
@@ -108,10 +109,10 @@ def test_trains_and_generalises_to_another_log(foreign_files, name):
 def test_short_rests_still_fit_temperature():
     spec = fg.VARIANTS["short_rests"]
     ds = fg.log(fg.device(spec, 5), 1, 30)
-    assert pp.rest_guard_s(ds.contact, ds.t_s) < 0.05
-    base, info = pp.tare(ds.wl_nm, ds.contact, ds.t_s)
+    assert fbgtare.rest_guard_s(ds.contact, ds.t_s) < 0.05
+    base, info = fbgtare.tare(ds.wl_nm, ds.contact, ds.t_s)
     assert info["tare_from"] == "flagged"  # the log starts inside a press
-    mask = pp.contact_free_mask(ds.contact, ds.t_s)
+    mask = fbgtare.contact_free_mask(ds.contact, ds.t_s)
     assert mask.sum() > 300
     shift = (ds.wl_nm - base) * 1000.0
     k, info = pp.fit_temp_coeff([shift], [mask], rate_hz=spec.rate_hz)

@@ -188,7 +188,7 @@ def test_trained_model_on_simulated_recording(small_model_dir, small_dataset_pat
     """A model the trainer produced, on the simulator's recording: onnxruntime == float64."""
     from fbgforce import dataset as fds
     from fbgforce.model import load
-    from fbgforce.trainer.preprocess import tare
+    from fbgforce.tare import tare
 
     model = load(small_model_dir)
     ds = fds.load(small_dataset_path)

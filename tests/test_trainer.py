@@ -9,6 +9,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer import baseline as bl
 from fbgforce.trainer import preprocess as pp
+from fbgforce import tare as fbgtare  # noqa: E402
 from fbgforce.trainer.nets import FlatMLP, fit, mse, predict_batched, softmax_xent
 from fbgforce.trainer.optim import AdamOptimizer
 
@@ -144,9 +145,9 @@ def test_compensation_removes_a_pure_temperature_ramp(synthetic_recording):
     # No contact at all: 30 presses with zero force are just rest; 400 pm of drift (~20 K).
     ds = synthetic_recording(n_press=30, temp_ramp_pm=400.0, noise_pm=2.0, temp_coeff=coeff)
     free = ds.subset(~ds.contact)
-    base, info = pp.tare(free.wl_nm, free.contact, free.t_s)
+    base, info = fbgtare.tare(free.wl_nm, free.contact, free.t_s)
     shift = (free.wl_nm - base) * 1000.0
-    mask = pp.contact_free_mask(free.contact, free.t_s)
+    mask = fbgtare.contact_free_mask(free.contact, free.t_s)
     k, tinfo = pp.fit_temp_coeff([shift], [mask])
     assert np.allclose(k, coeff, atol=0.01)
     assert min(tinfo["temp_coeff_identified"]) > 0.99
@@ -159,9 +160,9 @@ def test_compensation_removes_a_pure_temperature_ramp(synthetic_recording):
 
 def test_temperature_fit_falls_back_to_one_without_temperature_variation(synthetic_recording):
     ds = synthetic_recording(n_press=20, temp_ramp_pm=0.0, noise_pm=5.0)
-    base, _ = pp.tare(ds.wl_nm, ds.contact, ds.t_s)
+    base, _ = fbgtare.tare(ds.wl_nm, ds.contact, ds.t_s)
     shift = (ds.wl_nm - base) * 1000.0
-    k, info = pp.fit_temp_coeff([shift], [pp.contact_free_mask(ds.contact, ds.t_s)])
+    k, info = pp.fit_temp_coeff([shift], [fbgtare.contact_free_mask(ds.contact, ds.t_s)])
     assert np.allclose(k, 1.0, atol=0.05)
     assert max(info["temp_coeff_identified"]) < 0.5
 
@@ -173,11 +174,11 @@ def test_tare_prefers_start_and_rejects_files_without_rest():
     wl[40:, :4] -= 0.5
     wl[90:] += 0.01  # late drift after unloading must not move a start tare
     contact[90:] = False
-    base, info = pp.tare(wl, contact)
+    base, info = fbgtare.tare(wl, contact)
     assert info["tare_from"] == "start" and info["tare_samples"] == 40
     assert np.allclose(base, [1530, 1538, 1546, 1554, 1562])
     with pytest.raises(InputError, match="no contact-free"):
-        pp.tare(wl, np.ones(100, bool), path="x.csv")
+        fbgtare.tare(wl, np.ones(100, bool), path="x.csv")
 
 
 # ------------------------------------------------------------------------------ metrics

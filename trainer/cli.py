@@ -8,21 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce.cli import non_negative_float, positive_int
 from fbgforce.errors import InputError
-
-
-def _positive_int(text: str) -> int:
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {value}")
-    return value
-
-
-def _non_negative(text: str) -> float:
-    value = float(text)
-    if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
-    return value
 
 
 def _check_files(paths: list[str], flag: str) -> None:
@@ -47,15 +34,15 @@ def register(subparsers: Any) -> None:
     p.add_argument("--data", nargs="+", required=True, metavar="FILE",
                    help="calibration recordings (CSV or npz, dataset contract), one device")
     p.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
-    p.add_argument("--epochs", type=_positive_int, default=200,
+    p.add_argument("--epochs", type=positive_int, default=200,
                    help="maximum epochs per net (early stopping usually ends sooner; default 200)")
     p.add_argument("--seed", type=int, default=0, help="split, initialisation and shuffling seed")
     p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
                    help="smoothing: causal (shipped, default), centred (offline, paper) or none")
-    p.add_argument("--sigma", type=_non_negative, default=None,
+    p.add_argument("--sigma", type=non_negative_float, default=None,
                    help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
                         f"data's sample rate: {DEFAULT_SIGMA:g} at 1 kHz; 0 = no filter)")
-    p.add_argument("--window", type=_positive_int, default=None,
+    p.add_argument("--window", type=positive_int, default=None,
                    help="filter taps (causal) or half-width (centred); default ceil(3 sigma)")
     p.add_argument("--init", metavar="MODEL_DIR", default=None,
                    help="start from another device's model (transfer learning)")
@@ -86,7 +73,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--plot", metavar="PNG", default=None,
                    help="write the 3-feature embedding (paper Fig. 10); needs matplotlib")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--epochs", type=_positive_int, default=30)
+    p.add_argument("--epochs", type=positive_int, default=30)
     add_json_flag(p)
     p.set_defaults(handler=_analyze)
 
@@ -99,9 +86,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--model", metavar="MODEL_DIR", default=None,
                    help="use this model for the causal network instead of training one")
     p.add_argument("--out", metavar="DIR", default=None, help="write report.md and report.json")
-    p.add_argument("--epochs", type=_positive_int, default=200)
+    p.add_argument("--epochs", type=positive_int, default=200)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma", type=_non_negative, default=None,
+    p.add_argument("--sigma", type=non_negative_float, default=None,
                    help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
                         "data's sample rate)")
     add_json_flag(p)

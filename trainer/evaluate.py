@@ -9,7 +9,7 @@ import numpy as np
 from fbgforce import engines
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
-from fbgforce.trainer import preprocess as pp
+from fbgforce import tare as fbgtare
 
 SPLITS = ("all", "train", "val", "test")
 
@@ -17,7 +17,7 @@ SPLITS = ("all", "train", "val", "test")
 def run_recording(engine: str, model_dir: str | Path | None, model: fm.HierarchicalModel,
                   ds: Any, source: str | None = None) -> dict[str, np.ndarray]:
     """Tare one continuous recording on its own contact-free samples, then run ``engine``."""
-    base, _ = pp.tare(ds.wl_nm, ds.contact, ds.t_s, path=source)
+    base, _ = fbgtare.tare(ds.wl_nm, ds.contact, ds.t_s, path=source)
     return engines.run_engine(engine, model_dir, model, ds.wl_nm, base)
 
 

@@ -19,10 +19,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce.jsonutil import json_default
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.trainer import baseline as bl
-from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.train import evaluate_rows, load_datasets, prepare, train
 
 #: The paper's numbers (Kim et al. 2019, §V and §VII-A).
@@ -208,13 +208,6 @@ def write(rep: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
     out.mkdir(parents=True, exist_ok=True)
     md, js = out / "report.md", out / "report.json"
     md.write_text(to_markdown(rep))
-    js.write_text(json.dumps(rep, indent=2, default=_json_default) + "\n")
+    js.write_text(json.dumps(rep, indent=2, default=json_default) + "\n")
     return md, js
 
-
-def _json_default(v: Any) -> Any:
-    if isinstance(v, np.generic):
-        return v.item()
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    raise TypeError(type(v).__name__)

@@ -27,6 +27,7 @@ from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
+from fbgforce import tare as fbgtare
 from fbgforce.trainer.nets import FlatMLP, fit, predict_batched
 
 #: Hidden-layer widths of the paper's Fig. 4.
@@ -138,11 +139,11 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     recs = []
     for i, ds in enumerate(datasets):
         src = sources[i] if sources else getattr(ds, "source", f"recording {i}")
-        base, info = pp.tare(ds.wl_nm, ds.contact, ds.t_s, path=src)
+        base, info = fbgtare.tare(ds.wl_nm, ds.contact, ds.t_s, path=src)
         shift = (np.asarray(ds.wl_nm, float) - base) * 1000.0
-        recs.append(Recording(ds, src, base, info, pp.sample_rate_hz(ds.t_s), shift))
+        recs.append(Recording(ds, src, base, info, fbgtare.sample_rate_hz(ds.t_s), shift))
     rate = float(np.median([r.rate_hz for r in recs]))
-    masks = [pp.contact_free_mask(r.ds.contact, r.ds.t_s) for r in recs]
+    masks = [fbgtare.contact_free_mask(r.ds.contact, r.ds.t_s) for r in recs]
     coeff, temp_info = pp.fit_temp_coeff([r.shift_pm for r in recs], masks, rate_hz=rate)
     if sigma is None:
         sigma = pp.default_sigma(rate)
