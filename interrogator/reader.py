@@ -249,7 +249,53 @@ class Reader(Protocol):
     def close(self) -> None: ...
 
 
-class NativeReader:
+class _PushReader:
+    """A port that pushes records on its own: decode them, drop partial ones on a timeout or a
+    disconnect, and track their sequence numbers. Subclasses name the decoder and the field
+    that numbers a record (:meth:`_sequence_of`)."""
+
+    def __init__(self, link: SerialLink, decoder: Any, timeout: float) -> None:
+        self.link = link
+        self.decoder = decoder
+        self.seq = SequenceTracker()
+        self.timeout = timeout
+        self.timeouts = 0
+        self._last_rx = time.monotonic()
+        self._timed_out = False
+
+    @staticmethod
+    def _sequence_of(record: Any) -> int:
+        raise NotImplementedError
+
+    def read(self, wait: float = 0.02) -> list[Any]:
+        """Records decoded within ``wait`` seconds (possibly none); never raises on line faults."""
+        was_open = self.link.is_open
+        data = self.link.read(wait)
+        now = time.monotonic()
+        if was_open and not self.link.is_open:
+            self.decoder.flush()  # the rest of a record cut by the disconnect never comes
+        if not data:
+            if not self._timed_out and now - self._last_rx > self.timeout:
+                self.timeouts += 1
+                self._timed_out = True
+                self.decoder.flush()
+            return []
+        self._last_rx = now
+        self._timed_out = False
+        return [r for r in self.decoder.feed(data) if self.seq.accept(self._sequence_of(r))]
+
+    def stats(self) -> dict[str, int]:
+        d = self.decoder.stats.as_dict()
+        d.update(self.seq.stats.as_dict())
+        d.update(self.link.stats.as_dict())
+        d["timeouts"] = self.timeouts
+        return d
+
+    def close(self) -> None:
+        self.link.close()
+
+
+class NativeReader(_PushReader):
     """Reads native frames from a port that pushes them.
 
     Parameters
@@ -264,40 +310,12 @@ class NativeReader:
 
     def __init__(self, url: str, *, channels: int | None = 5, baudrate: int = DEFAULT_BAUDRATE,
                  timeout: float = 0.25, reconnect: bool = True) -> None:
-        self.link = SerialLink(url, baudrate=baudrate, reconnect=reconnect)
-        self.decoder = FrameDecoder(channels)
-        self.seq = SequenceTracker()
-        self.timeout = timeout
-        self.timeouts = 0
-        self._last_rx = time.monotonic()
-        self._timed_out = False
+        super().__init__(SerialLink(url, baudrate=baudrate, reconnect=reconnect),
+                         FrameDecoder(channels), timeout)
 
-    def read(self, wait: float = 0.02) -> list[Frame]:
-        """Frames decoded within ``wait`` seconds (possibly none); never raises on line faults."""
-        was_open = self.link.is_open
-        data = self.link.read(wait)
-        now = time.monotonic()
-        if was_open and not self.link.is_open:
-            self.decoder.flush()  # the rest of a frame cut by the disconnect never comes
-        if not data:
-            if not self._timed_out and now - self._last_rx > self.timeout:
-                self.timeouts += 1
-                self._timed_out = True
-                self.decoder.flush()
-            return []
-        self._last_rx = now
-        self._timed_out = False
-        return [f for f in self.decoder.feed(data) if self.seq.accept(f.seq)]
-
-    def stats(self) -> dict[str, int]:
-        d = self.decoder.stats.as_dict()
-        d.update(self.seq.stats.as_dict())
-        d.update(self.link.stats.as_dict())
-        d["timeouts"] = self.timeouts
-        return d
-
-    def close(self) -> None:
-        self.link.close()
+    @staticmethod
+    def _sequence_of(record: Frame) -> int:
+        return record.seq
 
 
 class FiSpecReader:
@@ -435,44 +453,17 @@ class FiSpecReader:
         self.link.close()
 
 
-class LoadCellReader:
+class LoadCellReader(_PushReader):
     """Reads stage/load-cell lines (``$LC,...*HH``) from the second port."""
 
     def __init__(self, url: str, *, baudrate: int = 115200, timeout: float = 0.25,
                  reconnect: bool = True) -> None:
-        self.link = SerialLink(url, baudrate=baudrate, reconnect=reconnect)
-        self.decoder = LineDecoder()
-        self.seq = SequenceTracker()
-        self.timeout = timeout
-        self.timeouts = 0
-        self._last_rx = time.monotonic()
-        self._timed_out = False
+        super().__init__(SerialLink(url, baudrate=baudrate, reconnect=reconnect),
+                         LineDecoder(), timeout)
 
-    def read(self, wait: float = 0.02) -> list[LoadCellSample]:
-        was_open = self.link.is_open
-        data = self.link.read(wait)
-        now = time.monotonic()
-        if was_open and not self.link.is_open:
-            self.decoder.flush()
-        if not data:
-            if not self._timed_out and now - self._last_rx > self.timeout:
-                self.timeouts += 1
-                self._timed_out = True
-                self.decoder.flush()
-            return []
-        self._last_rx = now
-        self._timed_out = False
-        return [s for s in self.decoder.feed(data) if self.seq.accept(s.counter)]
-
-    def stats(self) -> dict[str, int]:
-        d = self.decoder.stats.as_dict()
-        d.update(self.seq.stats.as_dict())
-        d.update(self.link.stats.as_dict())
-        d["timeouts"] = self.timeouts
-        return d
-
-    def close(self) -> None:
-        self.link.close()
+    @staticmethod
+    def _sequence_of(record: LoadCellSample) -> int:
+        return record.counter
 
 
 PROTOCOLS = ("native", "fispec")
