@@ -233,16 +233,15 @@ class Runtime(_Base):
 
     def run(self, wl: Any) -> np.ndarray:
         """Batch of samples (n, 5) -> structured array of :data:`OUTPUT_DTYPE` (n,)."""
+        # The unit conversion is the integer reference's, so both engines report alike.
+        from fbgforce.export.intref import to_engine_dict
+
         raw = self.run_raw(wl)
         out = np.zeros(raw.shape[0], dtype=OUTPUT_DTYPE)
-        contact = raw["contact"].astype(bool)
-        for k in ("status", "force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15"):
+        for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15"):
             out[k] = raw[k]
-        out["contact"] = contact
-        out["p_contact"] = raw["contact_conf_q15"] / 32768.0
-        out["force_N"] = raw["force_mN"] / 1000.0
-        out["x_mm"] = np.where(contact, raw["x_um"] / 1000.0, np.nan)
-        out["y_mm"] = np.where(contact, raw["y_um"] / 1000.0, np.nan)
+        for k, v in to_engine_dict(raw).items():
+            out[k] = v
         return out
 
 
