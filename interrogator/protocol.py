@@ -33,7 +33,6 @@ import numpy as np
 FM_PER_NM = 1_000_000
 #: FiSpec wavelength unit: 1e-4 nm.
 FISPEC_UNITS_PER_NM = 10_000
-INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 
 def crc16_ccitt_false(data: bytes | bytearray | memoryview, crc: int = 0xFFFF) -> int:
@@ -47,14 +46,15 @@ def crc16_ccitt_false(data: bytes | bytearray | memoryview, crc: int = 0xFFFF) -
 
 
 def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
-    """Wavelengths in nm to int32-range integers in femtometres (round half away from zero).
+    """Wavelengths in nm to femtometres as int64, by the runtime's one conversion rule.
 
-    Non-finite values (a lost peak in simulated data) become 0, the "no peak" value a real
-    interrogator reports and the runtime flags as a sensor fault.
+    That rule is :func:`fbgforce.export.intref.nm_to_fm` (nearest, ties to even; non-finite,
+    i.e. a lost peak, becomes 0, which the runtime flags as a sensor fault), so what travels on
+    the wire is exactly what an offline engine feeds the runtime.
     """
-    wl = np.asarray(wl_nm, dtype=np.float64)
-    fm = np.where(np.isfinite(wl), np.round(wl * FM_PER_NM), 0.0)
-    return np.clip(fm, INT32_MIN, INT32_MAX).astype(np.int64)
+    from fbgforce.export.intref import nm_to_fm as runtime_nm_to_fm
+
+    return runtime_nm_to_fm(wl_nm).astype(np.int64)
 
 
 def fm_to_nm(wl_fm: np.ndarray) -> np.ndarray:
