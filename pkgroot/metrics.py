@@ -16,8 +16,15 @@ Extras (same conventions): ``contact_accuracy_above_5N`` (true contact with forc
 fraction detected, the paper's "100 % over 5 N"), ``false_contact_rate`` (fraction of true
 no-contact samples flagged as contact), ``by_force`` (the three RMSEs and contact accuracy per
 true-force range), ``boundary`` / ``interior`` (location and force RMSE for contacts within
-``boundary_mm`` of the pad edge, and the rest). An RMSE over an empty set is ``None`` (JSON
-``null``), never NaN, so the JSON stays standard.
+``boundary_mm`` of the pad edge, and the rest), ``contact_accuracy_above_1N`` and
+``contact_by_force`` (fraction of true-contact samples detected per finer force bin: where
+light-touch detection fails). An RMSE over an empty set is ``None`` (JSON ``null``), never
+NaN, so the JSON stays standard.
+
+Contact timing (:func:`press_delays`, :func:`timing_summary`; ``contact_timing`` when the
+caller passes ``delays``): per press, the onset delay is the first predicted-contact sample
+minus the first true-contact sample, the release delay the first predicted no-contact sample
+after the press minus the first true no-contact sample after it, both in ms (negative: early).
 """
 from __future__ import annotations
 
@@ -31,6 +38,10 @@ FORCE_BINS_N: tuple[float, ...] = (5.0, 20.0, 40.0)
 BOUNDARY_MM = 2.0
 #: Force above which the paper reports a 100 % contact success rate.
 HIGH_FORCE_N = 5.0
+#: Upper edges (N) of the finer force bins of ``contact_by_force`` (light touch); last is open.
+CONTACT_BINS_N: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0)
+#: Force above which the contact goal is "every sample detected" (``contact_accuracy_above_1N``).
+LIGHT_FORCE_N = 1.0
 
 
 def _pad_size_mm() -> tuple[float, float]:
@@ -59,7 +70,8 @@ def _core(pc: np.ndarray, pf: np.ndarray, px: np.ndarray, py: np.ndarray,
 def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.ndarray,
             x_mm: np.ndarray, y_mm: np.ndarray, *, extras: bool = True,
             force_bins_N: Sequence[float] = FORCE_BINS_N, boundary_mm: float = BOUNDARY_MM,
-            pad_mm: tuple[float, float] | None = None) -> dict[str, Any]:
+            pad_mm: tuple[float, float] | None = None,
+            delays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
     """Score predictions against ground truth.
 
     Parameters
@@ -71,9 +83,13 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         Ground truth (n,); x/y may be NaN where there is no contact.
     extras
         Add ``contact_accuracy_above_5N``, ``false_contact_rate``, ``by_force``, ``boundary``,
-        ``interior`` to the five shared keys.
+        ``interior``, ``contact_accuracy_above_1N``, ``contact_by_force`` to the five shared
+        keys.
     force_bins_N, boundary_mm, pad_mm
         Range edges for ``by_force``; edge distance and pad size (x, y) for ``boundary``.
+    delays
+        Per-press onset and release delays (ms) from :func:`press_delays` (concatenated over
+        recordings); with ``extras`` they are summarised under ``contact_timing``.
 
     Returns
     -------
@@ -100,6 +116,17 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         return out
     high = tc & (tf > HIGH_FORCE_N)
     out["contact_accuracy_above_5N"] = float(np.mean(pc[high])) if high.any() else None
+    above_1 = tc & (tf > LIGHT_FORCE_N)
+    out["contact_accuracy_above_1N"] = float(np.mean(pc[above_1])) if above_1.any() else None
+    contact_by_force = []
+    cedges = [-np.inf, *map(float, CONTACT_BINS_N), np.inf]
+    for lo, hi in zip(cedges[:-1], cedges[1:]):
+        # The first bin is open below: a labelled contact may read <= 0 N on a noisy load cell.
+        sel = tc & (tf > lo) & (tf <= hi)
+        contact_by_force.append({"range_N": [max(lo, 0.0), None if np.isinf(hi) else hi],
+                                 "n_samples": int(sel.sum()),
+                                 "contact_accuracy": float(np.mean(pc[sel])) if sel.any() else None})
+    out["contact_by_force"] = contact_by_force
     out["false_contact_rate"] = float(np.mean(pc[~tc])) if (~tc).any() else None
     edges = [0.0, *map(float, force_bins_N), np.inf]
     by_force = []
@@ -117,7 +144,102 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         row = _core(pc[sel], pf[sel], px[sel], py[sel], tc[sel], tf[sel], tx[sel], ty[sel])
         row["within_mm"] = boundary_mm
         out[key] = row
+    if delays is not None:
+        out["contact_timing"] = timing_summary(*delays)
     return out
+
+
+def press_delays(pred_contact: np.ndarray, contact: np.ndarray, t_s: np.ndarray,
+                 press_id: np.ndarray, keep: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Onset and release delays (ms) of every press of ONE continuous recording.
+
+    A press is a run of equal ``press_id`` holding at least one true-contact sample; its true
+    onset is its first true-contact sample and its true release the sample after its last one
+    (load-cell flicker around the threshold inside a press does not split it).
+
+    - Onset: if the prediction is off at the true onset, the first predicted-contact sample
+      up to the true release minus the onset (> 0, late); if it is already on, the start of
+      that predicted run (not before the press's first sample) minus the onset (<= 0, early).
+    - Release: if the prediction is still on at the last true-contact sample, the first
+      predicted no-contact sample after it (searched until the next press's true onset or the
+      end of the recording) minus the true release (>= 0, late); otherwise the sample after
+      the last predicted-contact sample within the press's contact minus the true release
+      (< 0, early).
+
+    A press with no predicted contact between its true onset and release is missed: both
+    delays are NaN.
+
+    Parameters
+    ----------
+    pred_contact, contact
+        (n,) predicted and true contact of the recording, in time order.
+    t_s
+        (n,) sample times; the sample period is their median difference.
+    press_id
+        (n,) press of every sample.
+    keep
+        (n,) only presses whose true onset sample is kept are returned (a split's rows).
+
+    Returns
+    -------
+    onset_ms, release_ms
+        One entry per press (NaN where missed).
+    """
+    pc = np.asarray(pred_contact, bool).reshape(-1)
+    tc = np.asarray(contact, bool).reshape(-1)
+    pid = np.asarray(press_id).reshape(-1)
+    n = tc.size
+    if n < 2:
+        return np.empty(0), np.empty(0)
+    dt_ms = 1000.0 * float(np.median(np.diff(np.asarray(t_s, dtype=np.float64))))
+    seg_starts = np.concatenate([[0], np.flatnonzero(pid[1:] != pid[:-1]) + 1])
+    seg_ends = np.concatenate([seg_starts[1:], [n]])
+    presses = []
+    for a, b in zip(seg_starts, seg_ends):
+        on = np.flatnonzero(tc[a:b])
+        if on.size:
+            presses.append((a, a + on[0], a + on[-1] + 1))
+    onsets, releases = [], []
+    for k, (seg_a, t_on, t_off) in enumerate(presses):
+        if keep is not None and not keep[t_on]:
+            continue
+        inside = np.flatnonzero(pc[t_on:t_off])
+        if inside.size == 0:
+            onsets.append(np.nan)
+            releases.append(np.nan)
+            continue
+        if pc[t_on]:
+            off_before = np.flatnonzero(~pc[seg_a:t_on])
+            start = seg_a + (off_before[-1] + 1 if off_before.size else 0)
+        else:
+            start = t_on + inside[0]
+        onsets.append((start - t_on) * dt_ms)
+        if pc[t_off - 1]:
+            limit = presses[k + 1][1] if k + 1 < len(presses) else n
+            off_after = np.flatnonzero(~pc[t_off:limit])
+            stop = t_off + (off_after[0] if off_after.size else limit - t_off)
+        else:
+            stop = t_on + inside[-1] + 1
+        releases.append((stop - t_off) * dt_ms)
+    return np.asarray(onsets, dtype=np.float64), np.asarray(releases, dtype=np.float64)
+
+
+def timing_summary(onset_ms: np.ndarray, release_ms: np.ndarray) -> dict[str, Any]:
+    """``contact_timing``: presses, missed presses, and mean / median / 90th percentile / max
+    of the onset and release delays (ms) over the presses that were detected."""
+    onset = np.asarray(onset_ms, dtype=np.float64)
+    release = np.asarray(release_ms, dtype=np.float64)
+    found = np.isfinite(onset)
+
+    def stats(d: np.ndarray) -> dict[str, float | None]:
+        if not d.size:
+            return {"mean": None, "median": None, "p90": None, "max": None}
+        return {"mean": float(np.mean(d)), "median": float(np.median(d)),
+                "p90": float(np.percentile(d, 90)), "max": float(np.max(d))}
+
+    return {"presses": int(onset.size), "missed_presses": int((~found).sum()),
+            "onset_delay_ms": stats(onset[found]), "release_delay_ms": stats(release[found])}
 
 
 def from_dataset(pred: Mapping[str, np.ndarray], ds: Any, **kwargs: Any) -> dict[str, Any]:

@@ -290,6 +290,9 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     ev = evaluate(tmp_path / "m", [path], split="test")
     for k in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"):
         assert ev[k] == pytest.approx(md["metrics"]["test"][k], rel=1e-9)
+    # Contact timing: the same presses and delays whether scored by train or by evaluate.
+    assert ev["contact_timing"] == md["metrics"]["test"]["contact_timing"]
+    assert ev["contact_timing"]["presses"] >= 1
 
 
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
@@ -318,3 +321,68 @@ def test_train_rejects_bad_inputs(synthetic_recording):
     no_rest = ds.subset(ds.contact)
     with pytest.raises(InputError, match="contact-free"):
         train([no_rest], epochs=1, progress=False)
+
+
+def test_contact_by_force_and_press_delays():
+    tc = np.array([0, 1, 1, 1, 1, 0, 0, 1, 1, 0], bool)
+    tf = np.array([0.0, 0.3, 0.8, 1.5, 12.0, 0.0, 0.0, 3.0, 7.0, 0.0])
+    pc = np.array([0, 0, 1, 1, 1, 1, 0, 0, 1, 0], bool)
+    nan = np.full(10, np.nan)
+    m = metrics.compute({"contact": pc, "force_N": tf, "x_mm": nan, "y_mm": nan}, tc, tf, nan,
+                        nan)
+    bins = {tuple(b["range_N"]): (b["n_samples"], b["contact_accuracy"])
+            for b in m["contact_by_force"]}
+    assert bins[(0.0, 0.5)] == (1, 0.0) and bins[(0.5, 1.0)] == (1, 1.0)
+    assert bins[(2.0, 5.0)] == (1, 0.0) and bins[(10.0, None)] == (1, 1.0)
+    assert bins[(5.0, 10.0)] == (1, 1.0)
+    assert m["contact_accuracy_above_1N"] == pytest.approx(3 / 4)
+    # Two presses at 1 kHz: the first is detected 1 ms late and released 1 ms late, the
+    # second 1 ms late and on time.
+    t = np.arange(10) * 1e-3
+    pid = np.array([5, 5, 5, 5, 5, 5, 9, 9, 9, 9])
+    onset, release = metrics.press_delays(pc, tc, t, pid)
+    assert np.allclose(onset, [1.0, 1.0]) and np.allclose(release, [1.0, 0.0])
+    # Early onset (prediction already on before the true onset), early release, a miss, keep.
+    pc2 = np.array([0, 1, 1, 1, 0, 0, 0, 0, 0, 0], bool)
+    onset, release = metrics.press_delays(pc2, tc, t, pid)
+    assert np.allclose(onset[:1], [0.0]) and np.allclose(release[:1], [-1.0])
+    assert np.isnan(onset[1]) and np.isnan(release[1])
+    pc3 = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 1], bool)
+    onset, release = metrics.press_delays(pc3, tc, t, pid, keep=np.arange(10) >= 6)
+    assert np.allclose(onset, [-1.0]) and np.allclose(release, [1.0])  # runs to the end
+    s = metrics.timing_summary(np.array([1.0, 3.0, np.nan]), np.array([0.0, 2.0, np.nan]))
+    assert s["presses"] == 3 and s["missed_presses"] == 1
+    assert s["onset_delay_ms"]["median"] == pytest.approx(2.0)
+    assert s["release_delay_ms"]["max"] == pytest.approx(2.0)
+
+
+def test_weight_decay_shrinks_weights():
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((400, 4))
+    y = (x @ np.array([1.0, -2.0, 0.5, 0.0]))[:, None]
+    norms = []
+    for wd in (0.0, 5.0):
+        net = FlatMLP([4, 16, 1], np.random.default_rng(0))
+        # Adam moves each weight by about the learning rate per step: enough steps to shrink.
+        fit(net, "mse", x, y, epochs=30, batch_size=16, learning_rate=3e-3, weight_decay=wd,
+            progress=False, rng=np.random.default_rng(1))
+        norms.append(sum(float(np.sum(w * w)) for w in net.W))
+    assert norms[1] < 0.5 * norms[0]
+
+
+def test_scaled_presses_scale_the_strain_features_per_press(synthetic_recording):
+    from fbgforce.trainer.train import _scaled_presses, prepare
+
+    ds = synthetic_recording(n_press=6, seed=3, noise_pm=0.0, temp_ramp_pm=50.0)
+    data = prepare([ds], seed=0)
+    rows = np.flatnonzero(data.contact & (data.force_N > 10.0))
+    feats, kept = _scaled_presses(data, rows, 3.0, np.random.default_rng(0))
+    assert np.array_equal(kept, rows) and feats.shape == (rows.size, data.feats.shape[1])
+    # Deep inside a press the (linear) filter has forgotten the previous press: the strain
+    # features are the original ones times the press's own factor in [1, 3].
+    ratio = feats[:, :fm.N_STRAIN] / data.feats[rows, :fm.N_STRAIN]
+    pid = np.asarray(ds.press_id)[rows]
+    for p in np.unique(pid):
+        r = ratio[pid == p]
+        assert 1.0 <= r.min() and r.max() <= 3.0
+        assert np.ptp(r) < 1e-6 * r.mean()

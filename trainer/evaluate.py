@@ -28,7 +28,8 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
 
     Each recording is run whole (the filter needs its continuous history), then the samples
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
-    are scored with :func:`fbgforce.metrics.compute`.
+    are scored with :func:`fbgforce.metrics.compute`; the presses of the split also give the
+    onset and release delays (``contact_timing``).
     """
     from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
@@ -37,18 +38,26 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     model = fm.load(model_dir) if model is None else model
     seed = int(model.metadata.get("seed", 0)) if seed is None else seed
     ds_list, described = load_datasets(data)
-    preds, truths = [], []
+    preds, truths, onsets, releases = [], [], [], []
     for ds, d in zip(ds_list, described):
         pred = run_recording(engine, model_dir, model, ds, d.get("path"))
         rows = np.arange(len(ds))
+        keep = None
         if split != "all":
-            rows = np.flatnonzero(split_rows(ds, seed) == SPLITS.index(split) - 1)
+            keep = split_rows(ds, seed) == SPLITS.index(split) - 1
+            rows = np.flatnonzero(keep)
+        # Delays need the whole recording: a release may run into the next press's rest.
+        onset, release = fmetrics.press_delays(pred["contact"], ds.contact, ds.t_s, ds.press_id,
+                                               keep)
+        onsets.append(onset)
+        releases.append(release)
         preds.append({k: np.asarray(pred[k])[rows] for k in ("contact", "force_N", "x_mm", "y_mm")})
         truths.append((np.asarray(ds.contact)[rows], np.asarray(ds.force_N)[rows],
                        np.asarray(ds.x_mm)[rows], np.asarray(ds.y_mm)[rows]))
     pred = {k: np.concatenate([p[k] for p in preds]) for k in preds[0]}
     truth = [np.concatenate([t[i] for t in truths]) for i in range(4)]
-    out = fmetrics.compute(pred, *truth, extras=extras, pad_mm=model_pad_mm(model))
+    out = fmetrics.compute(pred, *truth, extras=extras, pad_mm=model_pad_mm(model),
+                           delays=(np.concatenate(onsets), np.concatenate(releases)))
     out.update({"engine": engine, "model": str(model_dir), "split": split,
                 "data": [d.get("path") or d.get("source") for d in described]})
     return out

@@ -166,7 +166,9 @@ def predict_batched(net: FlatMLP, x: np.ndarray, batch: int = 65536) -> np.ndarr
 def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray | None = None,
         y_val: np.ndarray | None = None, *, epochs: int = 100, batch_size: int = 128,
         learning_rate: float = 1e-3, decay: float = 0.97, patience: int = 10,
-        min_delta: float = 1e-4, rng: np.random.Generator | None = None,
+        min_delta: float = 1e-4, plateau: int | None = None, plateau_factor: float = 0.3,
+        weight_decay: float = 0.0, input_noise: float = 0.0,
+        rng: np.random.Generator | None = None,
         val_metrics: Callable[[FlatMLP], dict[str, float]] | None = None,
         desc: str = "train", progress: bool | None = None,
         time_budget_s: float | None = None) -> dict[str, Any]:
@@ -184,8 +186,18 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
     epochs, batch_size, learning_rate, decay, patience, min_delta
         At most ``epochs`` passes; stop after ``patience`` epochs without a relative
         improvement of ``min_delta`` in the validation loss.
+    plateau, plateau_factor
+        Reduce on plateau: after ``plateau`` epochs without improvement, go back to the best
+        weights and multiply the learning rate by ``plateau_factor`` (then wait ``plateau``
+        epochs again). ``None`` keeps the plain exponential decay.
+    weight_decay
+        L2 penalty ``weight_decay * sum(W**2) / 2`` on the weights (not the biases), added to
+        the gradient of every step.
+    input_noise
+        Standard deviation of Gaussian noise added to the inputs of every training batch
+        (in input units; the validation data stay clean).
     rng
-        Shuffling order (seeded by the caller for reproducibility).
+        Shuffling order and input noise (seeded by the caller for reproducibility).
     val_metrics
         Called after each epoch for extra numbers shown in the progress bar and the history.
     desc, progress
@@ -216,14 +228,21 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
     bar = tqdm(range(epochs), desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True,
                disable=None if progress is None else not progress)
     epochs_run = 0
+    last_cut = 0
     for epoch in bar:
         order = rng.permutation(n)
         total = 0.0
         for start in range(0, n, batch_size):
             idx = order[start:start + batch_size]
-            out = net.forward(x[idx], keep=True)
+            xb = x[idx]
+            if input_noise > 0.0:
+                xb = xb + rng.normal(0.0, input_noise, xb.shape)
+            out = net.forward(xb, keep=True)
             batch_loss, dout = loss_fn(out, y[idx])
             net.backward(dout)
+            if weight_decay > 0.0:
+                for w, g in zip(net.W, net.gW):
+                    g += weight_decay * w
             opt.update_params(net.theta, net.grad)
             total += batch_loss * idx.size
         opt.epoch_ends()
@@ -240,8 +259,15 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
         if val_loss < best_loss * (1.0 - min_delta):
             best_loss, best_epoch = val_loss, epochs_run
             best_theta[...] = net.theta
+            last_cut = epochs_run
         elif epochs_run - best_epoch >= patience:
             break
+        elif plateau is not None and epochs_run - max(best_epoch, last_cut) >= plateau:
+            # Smaller steps from the best point so far: a noisy plateau of the validation loss
+            # is Adam's step size, not the end of what the net can learn.
+            net.theta[...] = best_theta
+            opt.scale_learning_rate(plateau_factor)
+            last_cut = epochs_run
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
             break
     bar.close()

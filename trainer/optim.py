@@ -65,6 +65,11 @@ class AdamOptimizer:
         self._tmp *= lr
         params -= self._tmp
 
+    def scale_learning_rate(self, factor: float) -> None:
+        """Multiply the learning rate (now and for every later epoch) by ``factor``."""
+        self.learning_rate_init *= float(factor)
+        self.learning_rate *= float(factor)
+
     def epoch_ends(self) -> None:
         """Decay the learning rate; call once after every epoch."""
         self.epoch += 1

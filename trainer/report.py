@@ -8,7 +8,9 @@ of the recordings given, with the shared metric definitions of :mod:`fbgforce.me
 - the hierarchical network with the causal (shipped) filter, the centred (paper's offline)
   filter and no filter (smoothing on/off, paper §VII-A);
 - contact success overall and above 5 N, errors by force range and near the boundary
-  (paper §VII-B).
+  (paper §VII-B);
+- light touch: contact detected per finer force bin, and the per-press onset and release
+  delays (ms).
 """
 from __future__ import annotations
 
@@ -43,11 +45,14 @@ def baselines(data: Any) -> dict[str, Any]:
     ctr = tr[data.contact[tr]]
     out = {}
     base_nm = np.median([r.baseline_nm for r in data.recordings], axis=0)
+    # The beam model reads the filtered, compensated shifts: the first feature columns
+    # (features with memory, if any, come after them).
+    shifts = data.feats[:, :fm.N_STRAIN]
     models = {"nominal": bl.nominal(base_nm),
-              "fitted": bl.fit(data.feats[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
+              "fitted": bl.fit(shifts[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
     for name, m in models.items():
-        m.set_threshold(data.feats[free])
-        pred = m.predict(data.feats[te])
+        m.set_threshold(shifts[free])
+        pred = m.predict(shifts[te])
         out[name] = {"metrics": fmetrics.compute(pred, *data.truth(te)), "params": m.to_dict()}
     return out
 
@@ -195,11 +200,29 @@ def to_markdown(rep: dict[str, Any]) -> str:
         lines.append(f"| {label} | {b['n_samples']} | {_fmt(b['contact_accuracy'], 'contact')} | "
                      f"{_fmt(b['rmse_force_N'], 'f')} | {_fmt(b['rmse_x_mm'], 'x')} | "
                      f"{_fmt(b['rmse_y_mm'], 'y')} |")
+    lines += ["", "## Light touch and timing, causal network", "",
+              "| true force | n | contact detected |", "|---|---|---|"]
+    for b in m.get("contact_by_force", []):
+        lo, hi = b["range_N"]
+        label = f"{lo:g}–{hi:g} N" if hi is not None else f"> {lo:g} N"
+        lines.append(f"| {label} | {b['n_samples']} | {_fmt(b['contact_accuracy'], 'contact')} |")
+    timing = m.get("contact_timing")
+    if timing:
+        on, off = timing["onset_delay_ms"], timing["release_delay_ms"]
+        lines += ["", f"Per press ({timing['presses']} presses, {timing['missed_presses']} "
+                  "missed): onset delay " + _delay(on) + "; release delay " + _delay(off) + "."]
     lines += ["", "## Checks", ""]
     for k, v in rep["checks"].items():
         lines.append(f"- {k}: {v}")
     lines.append("")
     return "\n".join(lines)
+
+
+def _delay(stats: dict[str, Any]) -> str:
+    if stats.get("median") is None:
+        return "–"
+    return (f"median {stats['median']:.1f} ms, mean {stats['mean']:.1f} ms, "
+            f"90th percentile {stats['p90']:.1f} ms, max {stats['max']:.1f} ms")
 
 
 def write(rep: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:

@@ -37,6 +37,11 @@ DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
     "location": (70, 50, 40),
 }
 SPLIT_RATIOS = (8, 1, 1)
+#: L2 weight decay per net (see docs/trainer.md, "What limits training").
+DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 1e-2, "location": 0.0}
+#: The location net also trains on copies of the training presses scaled by a factor drawn
+#: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
+LOCATION_AUGMENT = 3.0
 
 
 @dataclass
@@ -154,15 +159,29 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     return Prepared(recs, pre, temp_info)
 
 
-def _sizes(sizes: Mapping[str, Sequence[int]] | None) -> dict[str, list[int]]:
+def _sizes(sizes: Mapping[str, Sequence[int]] | None, n_features: int) -> dict[str, list[int]]:
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
     for k, v in (sizes or {}).items():
         if k not in hidden:
             raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
         hidden[k] = [int(s) for s in v]
-    n_in = {"contact": fm.N_STRAIN, "force": fm.N_STRAIN, "location": fm.LOCATION_INPUTS}
+    # The location net also gets the contact decision and the force net's output.
+    n_in = {"contact": n_features, "force": n_features, "location": n_features + 2}
     n_out = {"contact": 2, "force": 1, "location": 2}
     return {k: [n_in[k], *hidden[k], n_out[k]] for k in hidden}
+
+
+def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float]:
+    """L2 weight decay per net: the defaults, one value for all, or per-net overrides."""
+    if weight_decay is None:
+        return dict(DEFAULT_WEIGHT_DECAY)
+    if isinstance(weight_decay, Mapping):
+        unknown = set(weight_decay) - set(DEFAULT_WEIGHT_DECAY)
+        if unknown:
+            raise InputError(f"unknown net {sorted(unknown)[0]!r} in weight_decay; nets are "
+                             f"{', '.join(DEFAULT_WEIGHT_DECAY)}")
+        return {**DEFAULT_WEIGHT_DECAY, **{k: float(v) for k, v in weight_decay.items()}}
+    return {k: float(weight_decay) for k in DEFAULT_WEIGHT_DECAY}
 
 
 def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
@@ -189,9 +208,33 @@ def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
 def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data."""
-    z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
+    if not extras:
+        z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
+        return fmetrics.compute(fm.predict_from_features(model, z), *data.truth(rows),
+                                extras=False)
+    z = (data.feats - model.preprocess.input_mean) / model.preprocess.input_std
     pred = fm.predict_from_features(model, z)
-    return fmetrics.compute(pred, *data.truth(rows), extras=extras, pad_mm=model_pad_mm(model))
+    delays = press_delays(data, pred["contact"], rows)
+    return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
+                            extras=extras, pad_mm=model_pad_mm(model), delays=delays)
+
+
+def press_delays(data: Prepared, pred_contact: np.ndarray, rows: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Onset and release delays (ms) of the presses whose onset lies in ``rows``, from a
+    contact prediction over ALL rows of ``data`` (each recording scored as one time series)."""
+    keep = np.zeros(data.split.size, dtype=bool)
+    keep[rows] = True
+    onsets, releases = [], []
+    start = 0
+    for r in data.recordings:
+        sl = slice(start, start + len(r.ds))
+        o, rel = fmetrics.press_delays(pred_contact[sl], data.contact[sl], r.ds.t_s,
+                                       r.ds.press_id, keep[sl])
+        onsets.append(o)
+        releases.append(rel)
+        start = sl.stop
+    return np.concatenate(onsets), np.concatenate(releases)
 
 
 def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: str = "causal",
@@ -200,7 +243,10 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
           sizes: Mapping[str, Sequence[int]] | None = None, learning_rate: float = 1e-3,
           decay: float = 0.97, patience: int = 10, batch_size: int = 128,
           progress: bool | None = None, prepared: Prepared | None = None,
-          train_fraction: float = 1.0, time_budget_s: float | None = None
+          train_fraction: float = 1.0, time_budget_s: float | None = None,
+          plateau: int | None = None, plateau_factor: float = 0.3,
+          weight_decay: float | Mapping[str, float] | None = None,
+          location_augment: float = LOCATION_AUGMENT
           ) -> fm.HierarchicalModel:
     """Train the hierarchical model on calibration recordings.
 
@@ -237,7 +283,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     sources = [d.get("path") or d.get("source") or f"recording {i}"
                for i, d in enumerate(described)]
     init_model = fm.load(init) if isinstance(init, (str, Path)) else init
-    net_sizes = _sizes(sizes)
+    if prepared is None:
+        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
+                           sources=sources)
+    data = prepared
+    net_sizes = _sizes(sizes, data.feats.shape[1])
     if init_model is not None:
         for name, net in init_model.nets.items():
             if sizes is None:
@@ -245,14 +295,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
             elif net.sizes != net_sizes[name]:
                 raise InputError(f"--init model's {name} net has sizes {net.sizes}, not "
                                  f"{net_sizes[name]}", column="--init")
-    if prepared is None:
-        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
-                           sources=sources)
-    data = prepared
     t_prep = time.perf_counter() - t_start
     tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
     ss = np.random.SeedSequence(seed)
-    rng_init, rng_c, rng_f, rng_l, rng_sub = (np.random.default_rng(s) for s in ss.spawn(5))
+    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug = (np.random.default_rng(s)
+                                                       for s in ss.spawn(6))
     if train_fraction < 1.0:
         tr = _subsample_presses(data, tr, train_fraction, rng_sub)
     if tr.size == 0 or not data.contact[tr].any() or data.contact[tr].all():
@@ -273,7 +320,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     pre.input_mean, pre.input_std = std.mean, std.std
     z = (data.feats - std.mean) / std.std
     common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
-                  decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s)
+                  decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s,
+                  plateau=plateau, plateau_factor=plateau_factor)
+    decays = _weight_decays(weight_decay)
     reports: dict[str, Any] = {}
 
     # 1. Contact: every sample, softmax cross-entropy.
@@ -285,7 +334,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                                          == data.contact[va])) if va.size else float("nan")}
 
     reports["contact"] = fit(cnet, "xent", z[tr], labels[tr], z[va], labels[va], rng=rng_c,
-                             val_metrics=contact_val, desc="contact net", **common)
+                             val_metrics=contact_val, desc="contact net",
+                             weight_decay=decays["contact"], **common)
     logits = predict_batched(cnet, z)
     pred_contact = logits[:, 1] > logits[:, 0]
 
@@ -305,7 +355,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         return {"val_rmse_N": float(np.sqrt(np.mean(e * e))) if e.size else float("nan")}
 
     reports["force"] = fit(fnet, "mse", z[ftr], ft[ftr], z[fva], ft[fva], rng=rng_f,
-                           val_metrics=force_val, desc="force net", **common)
+                           val_metrics=force_val, desc="force net",
+                           weight_decay=decays["force"], **common)
     f_raw = predict_batched(fnet, z)[:, 0]
 
     # 3. Location: samples where true and predicted contact agree (where a location is both
@@ -324,8 +375,17 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         r = np.sqrt(np.mean(e * e, axis=0))
         return {"val_x_mm": float(r[0]), "val_y_mm": float(r[1])}
 
-    reports["location"] = fit(lnet, "mse", loc_x[ltr], xy_t[ltr], loc_x[lva], xy_t[lva],
-                              rng=rng_l, val_metrics=loc_val, desc="location net", **common)
+    loc_train_x, loc_train_y = loc_x[ltr], xy_t[ltr]
+    if location_augment > 1.0:
+        z_aug, rows_aug = _scaled_presses(data, ltr, location_augment, rng_aug)
+        z_aug = (z_aug - std.mean) / std.std
+        aug_x = _loc_inputs(z_aug, np.ones(rows_aug.size, bool),
+                            predict_batched(fnet, z_aug)[:, 0])
+        loc_train_x = np.concatenate([loc_train_x, aug_x])
+        loc_train_y = np.concatenate([loc_train_y, xy_t[rows_aug]])
+    reports["location"] = fit(lnet, "mse", loc_train_x, loc_train_y, loc_x[lva], xy_t[lva],
+                              rng=rng_l, val_metrics=loc_val, desc="location net",
+                              weight_decay=decays["location"], **common)
 
     model = fm.HierarchicalModel(
         preprocess=pre, contact=cnet.to_mlp(), force=fnet.to_mlp(), location=lnet.to_mlp(),
@@ -362,6 +422,38 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "platform": {"python": platform.python_version(), "numpy": np.__version__},
     }
     return model
+
+
+def _scaled_presses(data: Prepared, rows: np.ndarray, max_scale: float,
+                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Features of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
+    per press, and the rows (of ``data``) they stand for.
+
+    Where a press lands does not depend on how hard: the strain part of every grating's
+    compensated shift is scaled by ``k`` (temperature and tare untouched) and the features are
+    recomputed with the model's own preprocessing on the whole recording, so any feature with
+    memory sees a consistent time series. The location net then sees each spot at forces the
+    calibration did not reach there; without it, it interpolates between the few presses that
+    reached high force and loses to the linear baseline at high force (docs/trainer.md).
+    """
+    feats, kept = [], []
+    start = 0
+    for r in data.recordings:
+        n = len(r.ds)
+        sel = rows[(rows >= start) & (rows < start + n)] - start
+        if sel.size:
+            pid = np.asarray(r.ds.press_id)
+            _, inverse = np.unique(pid, return_inverse=True)
+            k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
+            comp = pp.compensated(data.pre, r.ds.wl_nm, r.baseline_nm)
+            wl = np.array(r.ds.wl_nm, dtype=np.float64, copy=True)
+            wl[:, :fm.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
+            feats.append(pp.recording_features(data.pre, wl, r.baseline_nm)[sel])
+            kept.append(sel + start)
+        start += n
+    if not feats:
+        return data.feats[:0], rows[:0]
+    return np.concatenate(feats), np.concatenate(kept)
 
 
 def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,

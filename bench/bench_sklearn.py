@@ -1,0 +1,250 @@
+"""fbgforce's trainer against scikit-learn's MLPs on identical inputs and split.
+
+Usage::
+
+    python -m fbgforce.bench.bench_sklearn [--data FILE [FILE ...] | --scene NAME [--presses N]]
+                                           [--seed N] [--epochs N] [--max-iter N] [--json OUT]
+
+Needs the optional ``bench`` extra (``pip install "fbgforce[bench]"``: scikit-learn).
+
+One preparation (:func:`fbgforce.trainer.train.prepare`: tare, temperature fit, filter, and
+whatever features the model's preprocessing computes) and one split by press feed three
+estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-out test presses:
+
+- **fbgforce**: :func:`fbgforce.trainer.train.train` with its defaults;
+- **scikit-learn**: ``MLPClassifier`` (contact) -> ``MLPRegressor`` (force) -> ``MLPRegressor``
+  (location) in the paper's hierarchy with the paper's hidden sizes, trained on the training
+  presses with scikit-learn's defaults (Adam, lr 1e-3, batch 200, L2 1e-4, stop when the
+  training loss improves by less than 1e-4 for 10 epochs, at most ``--max-iter`` epochs). Its
+  inputs are the trainer's own standardised features ``z`` (the fbgforce model's
+  ``input_mean``/``input_std``); the force and location nets are fitted on the true-contact
+  training samples, with targets scaled like the trainer's (``force_offset``/``force_scale``,
+  ``xy_offset``/``xy_scale``); the location net gets ``[z, contact decision, force output]``
+  exactly as the fbgforce location net does, from its own contact and force nets;
+- **linear (fitted)**: the fitted beam model of :mod:`fbgforce.trainer.baseline` on the
+  filtered, compensated shifts (the first four feature columns).
+
+Prints a table (contact accuracy overall and above 1 N, force, x, y RMSE, median onset and
+release delay, training time) and optionally writes it as JSON. Foreign data: write CSVs with
+``tests/foreign.py`` (docs/trainer.md, "Against scikit-learn") and pass them with ``--data``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+#: Columns of the printed table: (key in the metrics, header, format, scale).
+COLUMNS = (
+    ("contact_accuracy", "contact", "{:.2f} %", 100.0),
+    ("contact_accuracy_above_1N", ">1 N", "{:.2f} %", 100.0),
+    ("rmse_force_N", "force N", "{:.3f}", 1.0),
+    ("rmse_x_mm", "x mm", "{:.3f}", 1.0),
+    ("rmse_y_mm", "y mm", "{:.3f}", 1.0),
+)
+SUMMARY_KEYS = ("contact_accuracy", "contact_accuracy_above_1N", "contact_accuracy_above_5N",
+                "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples", "contact_by_force",
+                "contact_timing")
+
+
+def load_data(args: argparse.Namespace) -> tuple[list[Any], list[str]]:
+    """The recordings to compare on: ``--data`` files or a simulated scene."""
+    from fbgforce import dataset
+
+    if args.data:
+        return [dataset.load(p) for p in args.data], list(args.data)
+    from fbgforce.sim import simulate
+
+    scene = args.scene
+    if args.presses is not None:
+        # A derived scene inherits everything but the number of presses.
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / f"{args.scene}_{args.presses}.toml"
+            path.write_text(f'base = "{args.scene}"\n\n[schedule]\nn_presses = {args.presses}\n')
+            ds = simulate(path, progress=None)
+        return [ds], [f"scene {scene} ({args.presses} presses)"]
+    return [simulate(scene, progress=None)], [f"scene {scene}"]
+
+
+def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, seed: int,
+                      max_iter: int) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """Fit scikit-learn's MLPs in the paper's hierarchy on ``z[tr]``; predict every row.
+
+    Returns the predictions in the engines' format and the seconds per net.
+    """
+    import warnings
+
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.neural_network import MLPClassifier, MLPRegressor
+
+    from fbgforce.trainer.train import DEFAULT_SIZES
+
+    common = dict(max_iter=max_iter, random_state=seed)
+    seconds = {}
+    ctr = tr[data.contact[tr]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        t0 = time.perf_counter()
+        clf = MLPClassifier(hidden_layer_sizes=DEFAULT_SIZES["contact"], **common)
+        clf.fit(z[tr], data.contact[tr])
+        seconds["contact"] = time.perf_counter() - t0
+        contact = clf.predict(z).astype(bool)
+        print(f"  scikit-learn contact: {clf.n_iter_} epochs, {seconds['contact']:.1f} s",
+              file=sys.stderr)
+
+        t0 = time.perf_counter()
+        freg = MLPRegressor(hidden_layer_sizes=DEFAULT_SIZES["force"], **common)
+        freg.fit(z[ctr], (data.force_N[ctr] - model.force_offset) / model.force_scale)
+        seconds["force"] = time.perf_counter() - t0
+        f = freg.predict(z)
+        print(f"  scikit-learn force: {freg.n_iter_} epochs, {seconds['force']:.1f} s",
+              file=sys.stderr)
+
+        loc_in = np.column_stack([z, contact.astype(np.float64), f])
+        xy = (np.column_stack([data.x_mm, data.y_mm]) - model.xy_offset) / model.xy_scale
+        t0 = time.perf_counter()
+        lreg = MLPRegressor(hidden_layer_sizes=DEFAULT_SIZES["location"], **common)
+        lreg.fit(loc_in[ctr], xy[ctr])
+        seconds["location"] = time.perf_counter() - t0
+        uv = lreg.predict(loc_in)
+        print(f"  scikit-learn location: {lreg.n_iter_} epochs, {seconds['location']:.1f} s",
+              file=sys.stderr)
+    force = model.force_offset + model.force_scale * f
+    xy_mm = model.xy_offset + model.xy_scale * uv
+    pred = {"contact": contact, "force_N": np.where(contact, force, 0.0),
+            "x_mm": np.where(contact, xy_mm[:, 0], np.nan),
+            "y_mm": np.where(contact, xy_mm[:, 1], np.nan)}
+    return pred, seconds
+
+
+def linear_baseline(data: Any, tr: np.ndarray) -> tuple[dict[str, np.ndarray], float]:
+    """The fitted beam model on the filtered, compensated shifts; predictions for every row."""
+    from fbgforce import model as fm
+    from fbgforce.trainer import baseline as bl
+
+    t0 = time.perf_counter()
+    shifts = data.feats[:, :fm.N_STRAIN]
+    ctr, free = tr[data.contact[tr]], tr[~data.contact[tr]]
+    lin = bl.fit(shifts[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])
+    lin.set_threshold(shifts[free])
+    return lin.predict(shifts), time.perf_counter() - t0
+
+
+def score(data: Any, pred: dict[str, np.ndarray], rows: np.ndarray) -> dict[str, Any]:
+    """Shared metrics of whole-data predictions on ``rows`` (with contact timing)."""
+    from fbgforce import metrics as fmetrics
+    from fbgforce.trainer.train import press_delays
+
+    full = fmetrics.compute({k: np.asarray(v)[rows] for k, v in pred.items()}, *data.truth(rows),
+                            delays=press_delays(data, np.asarray(pred["contact"]), rows))
+    return {k: full[k] for k in SUMMARY_KEYS if k in full}
+
+
+def table(results: dict[str, dict[str, Any]]) -> str:
+    """The comparison as aligned text."""
+    head = (f"{'estimator':<18}" + "".join(f"{h:>11}" for _, h, _, _ in COLUMNS)
+            + f"{'onset ms':>10}{'release ms':>11}{'train s':>9}")
+    lines = [head, "-" * len(head)]
+    for name, r in results.items():
+        m = r["metrics"]
+        cells = []
+        for key, _, fmt, scale in COLUMNS:
+            v = m.get(key)
+            cells.append(f"{'-' if v is None else fmt.format(v * scale):>11}")
+        timing = m.get("contact_timing", {})
+        on = timing.get("onset_delay_ms", {}).get("median")
+        off = timing.get("release_delay_ms", {}).get("median")
+        lines.append(f"{name:<18}" + "".join(cells)
+                     + f"{'-' if on is None else f'{on:.1f}':>10}"
+                     + f"{'-' if off is None else f'{off:.1f}':>11}"
+                     + f"{r['train_s']:9.1f}")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(
+        prog="python -m fbgforce.bench.bench_sklearn",
+        description="Compare fbgforce's trainer with scikit-learn's MLPs and the fitted linear "
+                    "baseline on identical inputs and the same split by press.")
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--data", nargs="+", metavar="FILE",
+                     help="recordings of one device (CSV/npz, dataset contract)")
+    src.add_argument("--scene", default="calibration",
+                     help="scene to simulate when no --data is given (default calibration)")
+    ap.add_argument("--presses", type=int, default=None,
+                    help="simulate only this many presses of the scene (default: the scene's)")
+    ap.add_argument("--seed", type=int, default=0, help="split, initialisation, shuffling")
+    ap.add_argument("--epochs", type=int, default=200, help="fbgforce: maximum epochs per net")
+    ap.add_argument("--max-iter", type=int, default=200,
+                    help="scikit-learn: maximum epochs per net (its default 200)")
+    ap.add_argument("--json", metavar="OUT", help="also write the results to this JSON file")
+    args = ap.parse_args(argv)
+    try:
+        import sklearn
+    except ImportError:
+        print("bench_sklearn: scikit-learn is not installed; pip install 'fbgforce[bench]'",
+              file=sys.stderr)
+        return 2
+    if args.presses is not None and args.presses < 10:
+        print("bench_sklearn: --presses must be at least 10 (the split is 8:1:1 by press)",
+              file=sys.stderr)
+        return 2
+
+    from fbgforce.errors import InputError
+    from fbgforce.trainer.train import prepare, train
+
+    try:
+        ds_list, names = load_data(args)
+        data = prepare(ds_list, seed=args.seed, sources=names)
+    except InputError as exc:
+        print(f"bench_sklearn: {exc}", file=sys.stderr)
+        return 2
+    tr, te = data.rows("train"), data.rows("test")
+    print(f"data: {', '.join(names)}: {data.split.size} samples, {data.feats.shape[1]} features; "
+          f"train {tr.size}, test {te.size} samples", file=sys.stderr)
+
+    results: dict[str, dict[str, Any]] = {}
+    print("fbgforce trainer ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    model = train(ds_list, seed=args.seed, epochs=args.epochs, prepared=data)
+    t_fbg = time.perf_counter() - t0
+    z = (data.feats - model.preprocess.input_mean) / model.preprocess.input_std
+    from fbgforce import model as fm
+
+    results["fbgforce"] = {"metrics": score(data, fm.predict_from_features(model, z), te),
+                           "train_s": t_fbg,
+                           "epochs": {k: v["epochs_run"] for k, v in
+                                      model.metadata["training"].items()}}
+    print(f"scikit-learn {sklearn.__version__} ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    pred, seconds = sklearn_hierarchy(z, data, tr, model, seed=args.seed, max_iter=args.max_iter)
+    results["scikit-learn"] = {"metrics": score(data, pred, te),
+                               "train_s": time.perf_counter() - t0, "seconds": seconds}
+    pred, t_lin = linear_baseline(data, tr)
+    results["linear (fitted)"] = {"metrics": score(data, pred, te), "train_s": t_lin}
+
+    print(table(results))
+    f, s = results["fbgforce"]["metrics"], results["scikit-learn"]["metrics"]
+    ratios = {k: (f[k] / s[k] if f.get(k) and s.get(k) else None)
+              for k in ("rmse_force_N", "rmse_x_mm", "rmse_y_mm")}
+    print("fbgforce / scikit-learn RMSE: " + ", ".join(
+        f"{k} {v:.2f}" for k, v in ratios.items() if v is not None))
+    if args.json:
+        doc = {"data": names, "seed": args.seed, "features": int(data.feats.shape[1]),
+               "samples": {"train": int(tr.size), "test": int(te.size)},
+               "sklearn_version": sklearn.__version__, "max_iter": args.max_iter,
+               "epochs": args.epochs, "results": results, "ratios_fbgforce_over_sklearn": ratios}
+        from fbgforce.jsonutil import json_default
+
+        Path(args.json).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
