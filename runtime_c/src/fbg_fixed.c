@@ -29,35 +29,13 @@ static const uint16_t sigmoid_table[129] = {
 
 uint32_t fbg_version(void)
 {
-    return ((uint32_t)FBG_VERSION_MAJOR << 16) | (uint32_t)FBG_VERSION_MINOR;
+    return ((uint32_t)FBG_VERSION_MAJOR << 16) | ((uint32_t)FBG_VERSION_MINOR << 8) |
+           (uint32_t)FBG_VERSION_PATCH;
 }
 
 size_t fbg_state_size(void)
 {
     return sizeof(fbg_state);
-}
-
-const char *fbg_status_str(int status)
-{
-    switch (status) {
-    case FBG_OK: return "FBG_OK";
-    case FBG_ERR_NULL: return "FBG_ERR_NULL";
-    case FBG_ERR_TRUNCATED: return "FBG_ERR_TRUNCATED";
-    case FBG_ERR_BAD_MAGIC: return "FBG_ERR_BAD_MAGIC";
-    case FBG_ERR_VERSION: return "FBG_ERR_VERSION";
-    case FBG_ERR_CRC: return "FBG_ERR_CRC";
-    case FBG_ERR_SHAPE: return "FBG_ERR_SHAPE";
-    case FBG_ERR_RANGE: return "FBG_ERR_RANGE";
-    case FBG_ERR_BOUND: return "FBG_ERR_BOUND";
-    case FBG_ERR_SIZE: return "FBG_ERR_SIZE";
-    case FBG_ERR_ALIGN: return "FBG_ERR_ALIGN";
-    case FBG_ERR_ENDIAN: return "FBG_ERR_ENDIAN";
-    case FBG_ERR_STATE: return "FBG_ERR_STATE";
-    case FBG_ERR_NOT_TARED: return "FBG_ERR_NOT_TARED";
-    case FBG_ERR_TARE: return "FBG_ERR_TARE";
-    case FBG_ERR_ARG: return "FBG_ERR_ARG";
-    default: return "FBG_ERR_UNKNOWN";
-    }
 }
 
 int32_t fbg_sigmoid_q15(int32_t x_q8)
@@ -83,6 +61,9 @@ static void clear_filter(fbg_state *s)
     memset(s->prev_fm, 0, sizeof s->prev_fm);
     s->prev_valid = 0u;
     memset(s->same_run, 0, sizeof s->same_run);
+    memset(s->ema, 0, sizeof s->ema);
+    memset(s->play, 0, sizeof s->play);
+    s->mem_primed = 0u;
     s->pos = 0u;
     s->since_reset = 0u;
 }
@@ -263,6 +244,45 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
+/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"): for each
+ * exponential average k the four channels, then for each play operator k. The states take
+ * the first sample after init/tare/reset as they are (every feature starts at 0). A faulty
+ * sample never gets here (fbg_step returns before), so a fault freezes the states. */
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    unsigned c, k, j = FBG_N_STRAIN;
+    if (!s->mem_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            for (k = 0; k < m->n_ema; ++k)
+                s->ema[c][k] = (int32_t)in[c] * ((int32_t)1 << FBG_EMA_FRAC);
+            for (k = 0; k < m->n_play; ++k)
+                s->play[c][k] = in[c];
+        }
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k) {
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target
+             * by at most the whole distance, so it stays between old state and target. */
+            int64_t target = (int64_t)in[c] * ((int64_t)1 << FBG_EMA_FRAC);
+            int32_t e = (int32_t)(s->ema[c][k] + fbg_rshift_round(target - s->ema[c][k], m->ema_shift[k]));
+            int64_t d = (int64_t)in[c] - fbg_rshift_round(e, FBG_EMA_FRAC);
+            s->ema[c][k] = e;
+            in[j] = fbg_sat16(d * ((int64_t)1 << m->ema_gain[k]), sat);
+        }
+    }
+    for (k = 0; k < m->n_play; ++k) {
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            /* The state stays within play_width of the current z: |state| < 2^16. */
+            int32_t lo = (int32_t)in[c] - m->play_width[k], hi = (int32_t)in[c] + m->play_width[k];
+            int32_t p = s->play[c][k];
+            p = p < lo ? lo : (p > hi ? hi : p);
+            s->play[c][k] = p;
+            in[j] = fbg_sat16(((int64_t)in[c] - p) * ((int64_t)1 << m->play_gain[k]), sat);
+        }
+    }
+}
+
 static void safe_output(fbg_output *out, uint32_t status)
 {
     memset(out, 0, sizeof *out);
@@ -274,7 +294,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_model *m;
     uint32_t status, sat = 0u;
     int32_t comp[FBG_N_STRAIN];
-    int16_t in[FBG_LOCATION_INPUTS];
+    int16_t in[FBG_MAX_INPUTS];
+    unsigned features;
     const int16_t *x;
     const fbg_layer *last;
     unsigned c, k, idx;
@@ -350,7 +371,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
         status |= FBG_STATUS_OVERLOAD;
 
-    /* 4. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
+    /* 4. Memory features after z. */
+    memory_features(s, m, in, &sat);
+    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+
+    /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
     x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
@@ -359,7 +384,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 
     if (out->contact) {
-        /* 5. Force net -> force_out (mN before offset); its quantised value feeds location. */
+        /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
         x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
@@ -368,9 +393,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 6. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]. */
-        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        /* 7. Location net on [features, contact in Q(z_frac), force net output in Q(z_frac)]. */
+        in[features] = (int16_t)(1 << m->z_frac);
+        in[features + 1u] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);

@@ -61,11 +61,25 @@ static int fstate_ok(const fbgf_state *s)
 
 fbg_status fbgf_model_check(const fbgf_model *model)
 {
-    static const uint16_t net_in[FBG_N_NETS] = {FBG_N_STRAIN, FBG_N_STRAIN, FBG_LOCATION_INPUTS};
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
-    unsigned n, l, c;
+    uint16_t net_in[FBG_N_NETS];
+    unsigned n, l, c, features;
     if (model == NULL)
         return FBG_ERR_NULL;
+    if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
+        return FBG_ERR_SHAPE;
+    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    net_in[FBG_NET_CONTACT] = (uint16_t)features;
+    net_in[FBG_NET_FORCE] = (uint16_t)features;
+    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
+    for (c = 0; c < model->n_ema; ++c)
+        if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
+            model->ema_gain[c] > FBG_MAX_MEM_GAIN)
+            return FBG_ERR_RANGE;
+    for (c = 0; c < model->n_play; ++c)
+        if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
+            model->play_gain[c] > FBG_MAX_MEM_GAIN)
+            return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -111,8 +125,43 @@ static void fclear(fbgf_state *s)
     memset(s->prev_fm, 0, sizeof s->prev_fm);
     s->prev_valid = 0u;
     memset(s->same_run, 0, sizeof s->same_run);
+    memset(s->ema, 0, sizeof s->ema);
+    memset(s->play, 0, sizeof s->play);
+    s->mem_primed = 0u;
     s->pos = 0u;
     s->since_reset = 0u;
+}
+
+/* Memory features after z, as fbg_fixed.c's memory_features in float (the states are primed
+ * with the first sample after a reset and frozen during a fault). */
+static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
+{
+    unsigned c, k, j = FBG_N_STRAIN;
+    if (!s->mem_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            for (k = 0; k < m->n_ema; ++k)
+                s->ema[c][k] = in[c];
+            for (k = 0; k < m->n_play; ++k)
+                s->play[c][k] = in[c];
+        }
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k) {
+        float alpha = 1.0f / (float)(1u << m->ema_shift[k]), gain = (float)(1u << m->ema_gain[k]);
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            s->ema[c][k] += alpha * (in[c] - s->ema[c][k]);
+            in[j] = (in[c] - s->ema[c][k]) * gain;
+        }
+    }
+    for (k = 0; k < m->n_play; ++k) {
+        float w = m->play_width[k], gain = (float)(1u << m->play_gain[k]);
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            float p = s->play[c][k];
+            p = p < in[c] - w ? in[c] - w : (p > in[c] + w ? in[c] + w : p);
+            s->play[c][k] = p;
+            in[j] = (in[c] - p) * gain;
+        }
+    }
 }
 
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
@@ -223,9 +272,9 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], in[FBG_LOCATION_INPUTS], z[FBG_N_STRAIN], margin, f;
+    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
     const float *y;
-    unsigned c, k, idx;
+    unsigned c, k, idx, features;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
@@ -269,12 +318,13 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
             a += m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
-        z[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
-        in[c] = z[c];
+        in[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    fmemory_features(s, m, in);
+    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
 
-    y = fnet(s, &m->nets[FBG_NET_CONTACT], z);
+    y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
     if (!finite_f(margin)) {
         /* Float overflow inside the nets (finite parameters, extreme inputs): the float
@@ -286,13 +336,13 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
     if (out->contact) {
-        y = fnet(s, &m->nets[FBG_NET_FORCE], z);
+        y = fnet(s, &m->nets[FBG_NET_FORCE], in);
         f = y[0];
         out->force_N = m->force_offset_N + m->force_scale * f;
         if (out->force_N > m->overload_N)
             status |= FBG_STATUS_OVERLOAD;
-        in[FBG_N_STRAIN] = 1.0f;
-        in[FBG_N_STRAIN + 1] = f;
+        in[features] = 1.0f;
+        in[features + 1u] = f;
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
