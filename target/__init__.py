@@ -16,10 +16,11 @@ numpy integer reference (:mod:`fbgforce.export.intref`), links the bare-metal re
   INSTRUCTION PER CYCLE (QEMU has no timing model; on a real M4 loads not pipelined with a
   neighbouring load take 2 cycles and taken branches 2-4, so real cycles are somewhat higher).
 
-The golden session (:func:`fbgforce.target.golden.golden_session`) drives the whole API, not only ``fbg_step``: steps
-before any tare, a tare through ``fbg_tare_begin/add/end`` (with rejected samples), a recording
-replayed on that tare, ``fbg_set_baseline`` with edge-case samples (lost peaks, jumps, sentinels,
-values that saturate), error returns, ``fbg_reset`` and a fresh ``fbg_init``.
+The golden session (:func:`fbgforce.target.golden.golden_session`) drives the whole API, not
+only ``fbg_step``: steps before any tare, a tare through ``fbg_tare_begin/add/end`` (with
+rejected samples), a recording replayed on that tare, ``fbg_set_baseline`` with edge-case
+samples (lost peaks, jumps, sentinels, values that saturate), error returns, ``fbg_reset`` and
+a fresh ``fbg_init``.
 
 Tools: ``apt-get install --no-install-recommends gcc-arm-none-eabi libnewlib-arm-none-eabi
 qemu-system-arm`` (plus ``make`` and a host ``gcc`` for the plugin).

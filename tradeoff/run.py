@@ -16,7 +16,8 @@ from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import artifacts, scoring, timing
-from fbgforce.tradeoff.grid import ENGINE_SPECS, EngineSpec, Settings, Variant, scaled_sizes, variants
+from fbgforce.tradeoff.grid import (ENGINE_SPECS, EngineSpec, Settings, Variant, scaled_sizes,
+                                    variants)
 from fbgforce.tradeoff.outputs import summary_paragraph, write_outputs
 from fbgforce.tradeoff.timers import make_timer, timing_samples
 
