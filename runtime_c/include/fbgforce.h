@@ -108,8 +108,6 @@ typedef enum {
 /* One dense layer: acc[r] = bias[r] + sum_j w[r][j] * x[j]        (int64 accumulator, or
  *                                                                   int32 when acc32 = 1)
  *                  y[r]   = rshift_round(acc[r] * mult[r], shift)
- * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
- * int32 (fbg_model_check refuses the model otherwise, FBG_ERR_BOUND), so the int32 sum is the
  * hidden layers:   y = sat16(max(y, 0))    (ReLU, int16 activations)
  * output layers:   y = sat32(y)            (physical units, see fbg_model)
  * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
