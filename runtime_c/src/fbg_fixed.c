@@ -134,6 +134,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
+#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -151,16 +152,17 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
+#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    int64_t acc = ly->bias[r];
-    unsigned j;
 #if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
     return fbg_dsp_row_acc(ly, r, x);
-#endif
+#else
+    int64_t acc = ly->bias[r];
+    unsigned j;
     if (ly->acc32)
         return layer_acc32(ly, r, x);
     if (ly->w_bits == 16u) {
@@ -173,25 +175,25 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
+#endif
 }
 
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-    unsigned l, r, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
         fbg_dsp_hidden(ly, x, y, sat);
-        x = y;
-        buf ^= 1u;
-        continue;
-#endif
+#else
+        unsigned r;
         for (r = 0; r < ly->n_out; ++r) {
             int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
             y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
         }
+#endif
         x = y;
         buf ^= 1u;
     }
@@ -222,7 +224,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     int16_t in[FBG_LOCATION_INPUTS];
     const int16_t *x;
     const fbg_layer *last;
-    unsigned c, k, idx;
+    unsigned c;
     int64_t acc, load = 0;
     fbg_status st;
 
@@ -258,13 +260,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t f = 0;
 #if FBG_USE_DSP
-        f = fir[c];
-        (void)k;
-        (void)idx;
+        int64_t f = fir[c];
 #else
-        idx = s->pos;
+        int64_t f = 0;
+        unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
