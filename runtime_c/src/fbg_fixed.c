@@ -87,8 +87,9 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     st = fbg_model_check(model);
     if (st != FBG_OK)
         return st;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    memset(state, 0, sizeof *state);
     state->model = model;
+    fbg_front_init(FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 

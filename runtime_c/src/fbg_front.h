@@ -23,8 +23,6 @@
 
 /* The front end's view of one state (of either build). */
 typedef struct {
-    void *state;                 /* the whole state, cleared by fbg_front_init */
-    size_t state_size;
     uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
     int model_set;               /* state->model != NULL when the view was made */
     uint32_t *magic;
@@ -48,7 +46,7 @@ typedef struct {
 /* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
  * alike, which is why one initialiser serves both). */
 #define FBG_FRONT_OF(s, magic_val)                                                            \
-    ((fbg_front){.state = (s), .state_size = sizeof *(s), .magic_value = (magic_val),         \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
                  .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
                  .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
@@ -64,12 +62,12 @@ static inline int fbg_front_ok(fbg_front f)
     return *f.magic == f.magic_value && f.model_set;
 }
 
-/* fbg_init after the model check: a zeroed state on the model's nominal baseline. The caller
- * stores the (typed) model pointer afterwards. */
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
 static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
                                   uint32_t options)
 {
-    memset(f.state, 0, f.state_size);
     *f.options = options;
     memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
     *f.magic = f.magic_value;

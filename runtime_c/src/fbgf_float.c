@@ -110,8 +110,9 @@ fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t option
     st = fbgf_model_check(model);
     if (st != FBG_OK)
         return st;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    memset(state, 0, sizeof *state);
     state->model = model;
+    fbg_front_init(FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
