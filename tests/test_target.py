@@ -97,15 +97,19 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
     assert "__aeabi_fmul" in r.stderr
 
 
-def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path):
+@pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
+def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
-    extreme multipliers, rounding ties, saturation, random FIR ring positions."""
-    r = subprocess.run(["make", "-s", "-C", str(ROOT / "examples" / "firmware"), f"BUILD={tmp_path}", "kernel-test"],
+    extreme multipliers, rounding ties, saturation, random FIR ring positions; the assembly
+    kernels and (FBG_DSP_ASM=0) their ACLE C versions."""
+    r = subprocess.run(["make", "-s", "-C", str(ROOT / "examples" / "firmware"), f"BUILD={tmp_path}",
+                        f"DSP_ASM={dsp_asm}", "kernel-test"],
                        capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=120)
     line = next((ln for ln in (r.stdout + r.stderr).splitlines() if ln.startswith("KERNEL_TEST")), "")
     fields = dict(kv.split("=") for kv in line.split()[1:])
     assert r.returncode == 0 and fields.get("mismatches") == "0", r.stdout + r.stderr
-    # Both assembly paths and saturation were exercised.
+    # Both three-row paths (assembly: rows3_asm and rows3d_asm), the first-layer path and
+    # saturation were exercised.
     assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["int8"]) > 300
     assert 100 < int(fields["aligned"]) < int(fields["fast"]) - 100  # both rows3 variants
     assert int(fields["saturated"]) > 100

@@ -6,7 +6,7 @@
  */
 #include <string.h>
 
-#include "fbg_internal.h"
+#include "fbg_front.h"
 #if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
 #include "fbg_dsp.h"
 #endif
@@ -54,24 +54,8 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
     return lo + (((hi - lo) * frac + 16) >> 5);
 }
 
-static void clear_filter(fbg_state *s)
-{
-    memset(s->hist, 0, sizeof s->hist);
-    memset(s->last_comp, 0, sizeof s->last_comp);
-    memset(s->prev_fm, 0, sizeof s->prev_fm);
-    s->prev_valid = 0u;
-    memset(s->same_run, 0, sizeof s->same_run);
-    memset(s->ema, 0, sizeof s->ema);
-    memset(s->play, 0, sizeof s->play);
-    s->mem_primed = 0u;
-    s->pos = 0u;
-    s->since_reset = 0u;
-}
-
-static int state_ok(const fbg_state *s)
-{
-    return s->magic == FBG_STATE_MAGIC && s->model != NULL;
-}
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
@@ -83,85 +67,44 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
         return st;
     memset(state, 0, sizeof *state);
     state->model = model;
-    state->options = options;
-    memcpy(state->baseline_fm, model->baseline_fm, sizeof state->baseline_fm);
-    state->magic = FBG_STATE_MAGIC;
+    fbg_front_init(FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
 fbg_status fbg_reset(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    clear_filter(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
 }
 
 fbg_status fbg_tare_begin(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    memset(state->tare_sum, 0, sizeof state->tare_sum);
-    state->tare_count = 0u;
-    state->tare_active = 1u;
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
 }
 
 fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
 {
-    int ok;
     if (state == NULL || wl_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    ok = fbg_tare_accept(wl_fm, state->tare_sum, &state->tare_count);
-    if (accepted != NULL)
-        *accepted = ok;
-    return FBG_OK;
+    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
 }
 
 fbg_status fbg_tare_end(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    state->tare_active = 0u;
-    if (state->tare_count == 0u)
-        return FBG_ERR_TARE;
-    fbg_tare_mean(state->tare_sum, state->tare_count, state->baseline_fm);
-    state->tared = 1u;
-    clear_filter(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_end(FRONT(state));
 }
 
 fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!fbg_baseline_ok(baseline_fm))
-        return FBG_ERR_ARG;
-    memcpy(state->baseline_fm, baseline_fm, sizeof state->baseline_fm);
-    state->tared = 1u;
-    clear_filter(state);
-    return FBG_OK;
+    return fbg_front_set_baseline(FRONT(state), baseline_fm);
 }
 
 fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
+    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
         return FBG_ERR_STATE;
     memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
     return FBG_OK;
@@ -170,6 +113,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
+#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -187,16 +131,17 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
+#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    int64_t acc = ly->bias[r];
-    unsigned j;
 #if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
     return fbg_dsp_row_acc(ly, r, x);
-#endif
+#else
+    int64_t acc = ly->bias[r];
+    unsigned j;
     if (ly->acc32)
         return layer_acc32(ly, r, x);
     if (ly->w_bits == 16u) {
@@ -209,25 +154,25 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
+#endif
 }
 
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-    unsigned l, r, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
         fbg_dsp_hidden(ly, x, y, sat);
-        x = y;
-        buf ^= 1u;
-        continue;
-#endif
+#else
+        unsigned r;
         for (r = 0; r < ly->n_out; ++r) {
             int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
             y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
         }
+#endif
         x = y;
         buf ^= 1u;
     }
@@ -293,38 +238,31 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 {
     const fbg_model *m;
     uint32_t status, sat = 0u;
-    int32_t comp[FBG_N_STRAIN];
+    int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
     int16_t in[FBG_MAX_INPUTS];
     unsigned features;
     const int16_t *x;
     const fbg_layer *last;
-    unsigned c, k, idx;
+    unsigned c;
     int64_t acc, load = 0;
+    fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(s)) {
-        safe_output(out, 0u);
-        return FBG_ERR_STATE;
+    st = fbg_front_step_begin(FRONT(s), &status);
+    if (st != FBG_OK) {
+        safe_output(out, status);
+        return st;
     }
     m = s->model;
-    status = s->tared ? 0u : FBG_STATUS_NOT_TARED;
-    if ((s->options & FBG_OPT_REQUIRE_TARE) && !s->tared) {
-        safe_output(out, status);
-        return FBG_ERR_NOT_TARED;
-    }
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, s->same_run, m->jump_max_fm,
-                        m->stuck_max)) {
-        status |= FBG_STATUS_SENSOR_FAULT;
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
-        int32_t shift_t = fbg_sat32((int64_t)wl_fm[FBG_N_STRAIN] - s->baseline_fm[FBG_N_STRAIN], &sat);
         for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int32_t shift = fbg_sat32((int64_t)wl_fm[c] - s->baseline_fm[c], &sat);
-            int64_t t = fbg_rshift_round((int64_t)shift_t * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            comp[c] = fbg_sat32((int64_t)shift - t, &sat);
+            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+            comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
         }
         memcpy(s->last_comp, comp, sizeof comp);
     }
@@ -332,12 +270,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
-    if (s->since_reset < 0xFFFFu)
-        s->since_reset++;
-    if (s->since_reset < m->n_taps)
-        status |= FBG_STATUS_WARMUP;
-    if (status & FBG_STATUS_SENSOR_FAULT) {
-        s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
     }
@@ -346,13 +279,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t f = 0;
 #if FBG_USE_DSP
-        f = fir[c];
-        (void)k;
-        (void)idx;
+        int64_t f = fir[c];
 #else
-        idx = s->pos;
+        int64_t f = 0;
+        unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
