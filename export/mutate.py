@@ -17,6 +17,7 @@ from typing import Iterator
 import numpy as np
 
 from fbgforce import contract
+from fbgforce.export import blob
 
 _EXTREMES = {
     "int32_t": (0, 1, -1, -2**31, 2**31 - 1, -(2**31 - 1)),
@@ -92,7 +93,7 @@ def mutants(blob: bytes, n: int, seed: int = 0) -> Iterator[tuple[str, bytes]]:
             buf = buf[:int(rng.integers(0, len(buf)))]
         elif kind == "length":
             total = len(buf) + int(rng.choice([-8, 8, -1, 1, -len(buf), 2**31, 16 - len(buf)]))
-            if rng.random() < 0.5:
+            if rng.random() < 0.5 and total - len(buf) <= 64:   # a longer blob to match
                 buf += bytes(max(0, total - len(buf)))
             struct.pack_into("<I", buf, 8, max(0, min(total, 2**32 - 1)))
         elif kind == "header":
@@ -126,3 +127,22 @@ def mutants(blob: bytes, n: int, seed: int = 0) -> Iterator[tuple[str, bytes]]:
             gaps += [contract.PARAMS_END + 8 * k + 7 for k in range(n_layers)] + array_gaps
             buf[int(rng.choice(gaps))] = int(rng.integers(1, 256))
         yield kind, fix_crc(buf) if fix else bytes(buf)
+
+
+def python_verdict(data: bytes) -> str:
+    """``FBG_OK`` or the ``FBG_ERR_*`` name :func:`fbgforce.export.blob.from_bytes` gives."""
+    try:
+        blob.from_bytes(data)
+    except blob.BlobError as exc:
+        return f"FBG_{exc.code}"
+    return "FBG_OK"
+
+
+def c_verdict(data: bytes) -> str:
+    """The code name ``fbg_model_from_blob`` returns for ``data`` (from an aligned copy)."""
+    from fbgforce.pybind import ffi, lib   # the C extension: only where a verdict is asked
+
+    buf = ffi.new("uint64_t[]", max(1, (len(data) + 7) // 8))
+    ffi.memmove(buf, data, len(data))
+    model = ffi.new("fbg_model *")
+    return contract.CODE_NAME[lib.fbg_model_from_blob(model, ffi.cast("uint8_t *", buf), len(data))]

@@ -8,6 +8,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce.errors import InputError
 from fbgforce.target.sources import header_constants
 
@@ -15,8 +16,7 @@ from fbgforce.target.sources import header_constants
 # Ops of examples/firmware/fw_golden.h.
 OP_STEP, OP_TARE_BEGIN, OP_TARE_ADD, OP_TARE_END, OP_SET_BASELINE, OP_RESET, OP_INIT = range(7)
 #: Output fields of ``fbg_output`` (fbgforce.h), as the integer reference names them.
-OUTPUT_FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15",
-                 "contact")
+OUTPUT_FIELDS = contract.OUTPUT_FIELDS
 INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
 
 

@@ -12,24 +12,7 @@ from fbgforce import model as fm
 from fbgforce.export import blob, mutate
 from fbgforce.export.quantize import calibrate, quantize
 
-lib_mod = pytest.importorskip("fbgforce.pybind")
-ffi, lib = lib_mod.ffi, lib_mod.lib
-
-
-def c_verdict(data: bytes) -> str:
-    """The C loader's code name for ``data`` (loaded from an 8-byte-aligned copy)."""
-    buf = ffi.new("uint64_t[]", max(1, (len(data) + 7) // 8))
-    ffi.memmove(buf, data, len(data))
-    model = ffi.new("fbg_model *")
-    return contract.CODE_NAME[lib.fbg_model_from_blob(model, ffi.cast("uint8_t *", buf), len(data))]
-
-
-def py_verdict(data: bytes) -> str:
-    try:
-        blob.from_bytes(data)
-    except blob.BlobError as exc:
-        return f"FBG_{exc.code}"
-    return "FBG_OK"
+c_verdict, py_verdict = mutate.c_verdict, mutate.python_verdict
 
 
 def small_blob(random_model_factory, random_walk_factory, bits: int = 16) -> bytes:
