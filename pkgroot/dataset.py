@@ -21,6 +21,8 @@ Validation rules (docs/dataset.md):
 from __future__ import annotations
 
 import io
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -612,13 +614,16 @@ def _load_npz(path: Path) -> Dataset:
         npz = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise InputError("no such file", path=spath) from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"not a readable npz file: {exc}", path=spath) from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"not a readable npz file (truncated or corrupt?): {exc}",
+                         path=spath) from None
     with npz:
         try:
             arrays = {k: npz[k] for k in npz.files}
         except ValueError as exc:  # object arrays need pickle, which we never allow
             raise InputError(f"unsupported array in npz: {exc}", path=spath) from None
+        except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InputError(f"npz file truncated or corrupt: {exc}", path=spath) from None
     if not arrays:
         raise InputError("empty file: no arrays", path=spath)
     cols: dict[str, np.ndarray] = {}
