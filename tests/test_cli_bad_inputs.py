@@ -141,6 +141,8 @@ def test_table_covers_every_subcommand():
     missing = sorted(set(sub.choices) - {c[0] for c in CASES})
     assert not missing, f"subcommands without a bad-input case: {missing}"
     print(f"\nbad-input table: {len(CASES)} cases over {len(sub.choices)} subcommands")
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "cli.md").read_text()
+    assert f"({len(CASES)} cases)" in doc, "docs/cli.md quotes another number of bad-input cases"
 
 
 @pytest.mark.parametrize("command,case,args,words", CASES,
