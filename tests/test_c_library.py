@@ -267,6 +267,20 @@ def test_header_typical_use_compiles(tmp_path):
           "-o", tmp_path / "use.o"])
 
 
+def test_runtime_md_call_sequence_compiles(golden, tmp_path):
+    """The fixed-point call sequence docs/runtime.md shows, with the generated model header."""
+    _require("cc")
+    text = (ROOT / "docs" / "runtime.md").read_text()
+    code = re.search(r"## Call sequence.*?```c\n(.*?)```", text, re.S).group(1)
+    (tmp_path / "seq.c").write_text(
+        "#include <stdint.h>\n"
+        "const int32_t *read_peaks_fm(void);\n"
+        "void control(int32_t force_mN, int32_t x_um, int32_t y_um);\n"
+        "int setup(void);\nvoid isr_1khz(void);\n" + code)
+    _run(["cc", *STRICT, f"-I{RUNTIME / 'include'}", f"-I{golden[2]}", "-c", tmp_path / "seq.c",
+          "-o", tmp_path / "seq.o"])
+
+
 # ---- docs/runtime.md quotes sizes; each must be what the code has -----------------------
 
 def _paper_sized_quantized():
@@ -329,6 +343,13 @@ def test_docs_runtime_sizes_match_the_code():
         "blob_bytes": len(blob.to_bytes(q)),
     }
     documented = _doc_figures()
+    # The compile-time limits the page quotes (`FBG_MAX_TAPS` 64, ...) are the header's.
+    text = (ROOT / "docs" / "runtime.md").read_text()
+    limits = re.findall(r"`(FBG_[A-Z_]+)` (\d+)", text)
+    assert {name for name, _ in limits} >= {"FBG_MAX_TAPS", "FBG_MAX_WIDTH", "FBG_MAX_LAYERS"}
+    for name, value in limits:
+        actual[name] = int(getattr(lib, name))
+        documented[name] = (int(value), f"`{name}` {value}")
     assert set(documented) >= set(actual), f"docs/runtime.md lost figures: {set(actual) - set(documented)}"
     wrong = [f"docs/runtime.md says {documented[k][0]} for {k}, the code has {v}: "
              f"update the line {documented[k][1].strip()!r}"
