@@ -153,7 +153,7 @@ def accuracy_vs_time(points: Sequence[Mapping[str, Any]], path: Path) -> dict[st
         ax.annotate(p["engine"], (p["us_per_sample"], p["rmse_force_N"]),
                     textcoords="offset points", xytext=(6, 4), fontsize=9)
     ax.set_xscale("log")
-    ax.set_xlabel("host time per sample, whole recording through the engine (µs, log)")
+    ax.set_xlabel("host time per sample, evaluating the whole recording (µs, log)")
     ax.set_ylabel("force RMSE, test split (N)")
     title = "Accuracy against time per sample, by engine (width/filter grid: fbgforce tradeoff)"
     ax.set_title(title, fontsize=10)
