@@ -60,24 +60,37 @@ def force_over_presses(t_s: np.ndarray, true_N: np.ndarray, pred_N: np.ndarray,
 
 
 def error_map(x_mm: np.ndarray, y_mm: np.ndarray, err_mm: np.ndarray, pad_mm: Sequence[float],
-              path: Path, bins: int = 12) -> dict[str, Any]:
-    """Mean location error binned over the pad (pad frame: origin top-left, y down)."""
+              path: Path) -> dict[str, Any]:
+    """Mean location error at each pressed point of the pad (pad frame: origin top-left, y
+    down), beside the error against the distance to the nearest edge."""
     plt = _pyplot()
     w, h = float(pad_mm[0]), float(pad_mm[1])
     ok = np.isfinite(x_mm) & np.isfinite(y_mm) & np.isfinite(err_mm)
-    xe, ye = np.linspace(0.0, w, bins + 1), np.linspace(0.0, h, int(round(bins * h / w)) + 1)
-    total, _, _ = np.histogram2d(y_mm[ok], x_mm[ok], bins=(ye, xe), weights=err_mm[ok])
-    count, _, _ = np.histogram2d(y_mm[ok], x_mm[ok], bins=(ye, xe))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.where(count > 0, total / count, np.nan)
-    fig, ax = plt.subplots(figsize=FIGSIZE_IN)
-    im = ax.imshow(mean, extent=(0.0, w, h, 0.0), cmap="viridis", aspect="equal",
-                   interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="mean location error (mm)")
+    x, y, err = x_mm[ok], y_mm[ok], err_mm[ok]
+    # One point per pressed location (a press holds its location; 0.1 mm groups them).
+    keys = np.round(np.column_stack([x, y]) * 10.0).astype(np.int64)
+    uniq, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    mean = np.bincount(inverse, weights=err, minlength=len(uniq)) / np.maximum(counts, 1)
+    px, py = uniq[:, 0] / 10.0, uniq[:, 1] / 10.0
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=FIGSIZE_IN,
+                                  gridspec_kw={"width_ratios": [1.0, 1.3]})
+    ax.add_patch(plt.Rectangle((0.0, 0.0), w, h, fill=False, color="0.4", lw=1.0))
+    sc = ax.scatter(px, py, c=mean, s=60, cmap="viridis", edgecolors="k", linewidths=0.4)
+    fig.colorbar(sc, ax=ax, label="mean location error (mm)")
+    ax.set_xlim(-1.0, w + 1.0)
+    ax.set_ylim(h + 1.0, -1.0)
+    ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm, down)")
+    ax.set_title("pressed points on the pad", fontsize=9)
+    edge = np.minimum.reduce([px, w - px, py, h - py])
+    ax2.scatter(edge, mean, s=25, color="tab:blue")
+    ax2.set_xlabel("distance of the pressed point to the nearest edge (mm)")
+    ax2.set_ylabel("mean location error (mm)")
+    ax2.grid(alpha=0.3)
     title = "Location error over the pad, test contact samples"
-    ax.set_title(title, fontsize=10)
+    fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path, title)
 
