@@ -27,7 +27,7 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__version__ = "0.1.0"
+from fbgforce.contract import VERSION_STR as __version__
 
 #: Public name -> "module:attribute". Resolved on first use, so that `import fbgforce` stays
 #: cheap for the CLI and simulation/training work where the C extension is not built.

@@ -10,7 +10,8 @@ the header is ``include/fbgforce.h`` with the public headers it includes pasted 
 
 Private headers are pasted at every ``#include`` (not only the first), so their include guards
 decide what the compiler sees, exactly as in a normal build; a header without a guard is
-refused. ``tests/test_c_library.py`` checks that the committed files are fresh and build.
+refused. Macros a source file defines are ``#undef``-ed after it, as if its translation unit
+ended there; ``static`` names must still differ between sources (the test compiles the file). ``tests/test_c_library.py`` checks that the committed files are fresh and build.
 """
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ PUBLIC_HEADER = "fbgforce.h"
 
 _QUOTED_INCLUDE = re.compile(r'^\s*#\s*include\s+"([^"]+)"\s*(?:/\*.*\*/|//.*)?$')
 _GUARD = re.compile(r"#\s*ifndef\s+(\w+)\s*\n\s*#\s*define\s+\1\b")
+_DEFINE = re.compile(r"^\s*#\s*define\s+(\w+)", re.M)
+_IFNDEF = re.compile(r"^\s*#\s*ifndef\s+(\w+)", re.M)
 
 
 def _banner(what: str) -> str:
@@ -87,6 +90,13 @@ def render() -> dict[str, str]:
     body: list[str] = []
     for src in sources():
         body += _paste(src, [SRC], PUBLIC_HEADER, (), set())
+        # A macro a source defines for itself ends with it, as at the end of its own
+        # translation unit, so the next source may define the same name. Overridable
+        # defaults (#ifndef X / #define X) stay: X may come from the command line.
+        text = src.read_text()
+        defaults = set(_IFNDEF.findall(text))
+        own = [n for n in dict.fromkeys(_DEFINE.findall(text)) if n not in defaults]
+        body += [f"#undef {name}" for name in own]
     return {
         "fbgforce.h": _banner("fbgforce.h - the public header of the fbgforce runtime, single-file form.")
         + "\n".join(header) + "\n",

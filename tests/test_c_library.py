@@ -64,7 +64,8 @@ CONSUMER_C = r"""
 /* stdin: 5 int32 baseline (fm), then n x 5 int32 samples (fm); stdout: one fbg_output each. */
 int main(void) {
     static fbg_state st; int32_t base[FBG_N_CHANNELS], wl[FBG_N_CHANNELS]; fbg_output o;
-    if (fbg_version() != (((uint32_t)FBG_VERSION_MAJOR << 16) | FBG_VERSION_MINOR)) return 2;
+    if (fbg_version() != (((uint32_t)FBG_VERSION_MAJOR << 16) | ((uint32_t)FBG_VERSION_MINOR << 8)
+                          | FBG_VERSION_PATCH)) return 2;
     if (fbg_init(&st, &fbgforce_model, 0) != FBG_OK) return 3;
     if (fread(base, sizeof base, 1, stdin) != 1) return 4;
     if (fbg_set_baseline(&st, base) != FBG_OK) return 5;
@@ -78,7 +79,7 @@ int main(void) {
 
 CONSUMER_CMAKE = """cmake_minimum_required(VERSION 3.13)
 project(fbg_consumer C)
-find_package(fbgforce 1 REQUIRED CONFIG)
+find_package(fbgforce ${FBG_VERSION} REQUIRED CONFIG)
 file(GLOB MODEL_SOURCES "${MODEL_C_DIR}/*.c")
 add_executable(consumer main.c ${MODEL_SOURCES})
 target_include_directories(consumer PRIVATE "${MODEL_C_DIR}")
@@ -113,6 +114,14 @@ def _check_consumer(exe: Path, golden) -> None:
         assert np.array_equal(np.asarray(out[k], dtype=np.int64), ref[k]), k
 
 
+def _library_version() -> str:
+    """MAJOR.MINOR.PATCH as the built library reports it (fbg_version())."""
+    from fbgforce.pybind import lib
+
+    v = lib.fbg_version()
+    return f"{v >> 16}.{(v >> 8) & 0xFF}.{v & 0xFF}"
+
+
 def _model_sources(cdir: Path) -> list[Path]:
     return sorted(cdir.glob("*.c"))
 
@@ -130,6 +139,7 @@ def test_consumer_cmake_find_package_from_installed_prefix(golden, tmp_path):
     (app / "main.c").write_text(CONSUMER_C)
     (app / "CMakeLists.txt").write_text(CONSUMER_CMAKE)
     _run(["cmake", "-S", app, "-B", app / "build", f"-DCMAKE_PREFIX_PATH={prefix}",
+          f"-DFBG_VERSION={_library_version()}",
           f"-DMODEL_C_DIR={golden[2]}", f"-DCMAKE_C_FLAGS={' '.join(STRICT)}"])
     _run(["cmake", "--build", app / "build"])
     _check_consumer(app / "build" / "consumer", golden)
@@ -148,10 +158,7 @@ def test_consumer_pkg_config_over_make_install(golden, tmp_path):
     assert f"prefix={prefix}" in pc and "@" not in pc
     env = {**os.environ, "PKG_CONFIG_PATH": str(prefix / "lib/pkgconfig")}
     version = _run(["pkg-config", "--modversion", "fbgforce"], env=env).stdout.strip()
-    from fbgforce.pybind import lib
-
-    v = lib.fbg_version()
-    assert version == f"{v >> 16}.{v & 0xFFFF}"
+    assert version == _library_version()
     flags = _run(["pkg-config", "--cflags", "--libs", "fbgforce"], env=env).stdout.split()
     (tmp_path / "main.c").write_text(CONSUMER_C)
     exe = tmp_path / "consumer"
