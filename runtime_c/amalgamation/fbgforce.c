@@ -18,8 +18,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 152u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 168u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 168u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 184u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -334,8 +334,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 152u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 168u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 168u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 184u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -406,22 +406,25 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->load_shift = rd_u8(p + 124);
     for (k = 0; k < 3u; ++k)
         m->nets[k].n_layers = rd_u8(p + 125 + 1u * k);
-    m->n_ema = rd_u8(p + 128);
-    m->n_play = rd_u8(p + 129);
     for (k = 0; k < 4u; ++k)
-        m->ema_shift[k] = rd_u8(p + 130 + 1u * k);
+        m->mem_mult[k] = rd_i32(p + 128 + 4u * k);
+    m->mem_shift = rd_u8(p + 144);
+    m->n_ema = rd_u8(p + 145);
+    m->n_play = rd_u8(p + 146);
     for (k = 0; k < 4u; ++k)
-        m->ema_gain[k] = rd_u8(p + 134 + 1u * k);
+        m->ema_shift[k] = rd_u8(p + 147 + 1u * k);
     for (k = 0; k < 4u; ++k)
-        m->play_gain[k] = rd_u8(p + 138 + 1u * k);
+        m->ema_gain[k] = rd_u8(p + 151 + 1u * k);
     for (k = 0; k < 4u; ++k)
-        m->play_width[k] = rd_i16(p + 142 + 2u * k);
+        m->play_gain[k] = rd_u8(p + 155 + 1u * k);
+    for (k = 0; k < 4u; ++k)
+        m->play_width[k] = rd_i16(p + 159 + 2u * k);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 150u; k < 152u; ++k)
+    for (k = 167u; k < 168u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -477,6 +480,12 @@ fbg_status fbg_params_check(const fbg_model *m)
         if (v < 1 || v > 8)
             return FBG_ERR_SHAPE;
     }
+    for (k = 0; k < 4u; ++k) {
+        int32_t v = m->mem_mult[k];
+        if (v < -2147483647)
+            return FBG_ERR_RANGE;
+    }
+    { uint8_t v = m->mem_shift; if (v < 1 || v > 62) return FBG_ERR_RANGE; }
     { uint8_t v = m->n_ema; if (v > 4) return FBG_ERR_SHAPE; }
     { uint8_t v = m->n_play; if (v > 4) return FBG_ERR_SHAPE; }
     for (k = 0; k < 4u; ++k) {
@@ -2784,42 +2793,45 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
-/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"): for each
- * exponential average k the four channels, then for each play operator k. The states take
- * the first sample after init/tare/reset as they are (every feature starts at 0). A faulty
- * sample never gets here (fbg_step returns before), so a fault freezes the states. */
+/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"). The states
+ * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+ * its force path, which all four beams share): the exponential averages' features, then the
+ * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them: the averages at u, the play operators at u + width (the load
+ * last went down), so the features read what they read at every rest of the calibration
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
+    int64_t acc = 0;
+    int32_t u;
+    if (m->n_ema == 0u && m->n_play == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
+    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
     if (!s->mem_primed) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            for (k = 0; k < m->n_ema; ++k)
-                s->ema[c][k] = (int32_t)in[c] * ((int32_t)1 << FBG_EMA_FRAC);
-            for (k = 0; k < m->n_play; ++k)
-                s->play[c][k] = in[c];
-        }
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
         s->mem_primed = 1u;
     }
-    for (k = 0; k < m->n_ema; ++k) {
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target
-             * by at most the whole distance, so it stays between old state and target. */
-            int64_t target = (int64_t)in[c] * ((int64_t)1 << FBG_EMA_FRAC);
-            int32_t e = (int32_t)(s->ema[c][k] + fbg_rshift_round(target - s->ema[c][k], m->ema_shift[k]));
-            int64_t d = (int64_t)in[c] - fbg_rshift_round(e, FBG_EMA_FRAC);
-            s->ema[c][k] = e;
-            in[j] = fbg_sat16(d * ((int64_t)1 << m->ema_gain[k]), sat);
-        }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
+         * at most the whole distance, so it stays between its old value and the target. */
+        int64_t target = (int64_t)u * ((int64_t)1 << FBG_EMA_FRAC);
+        int32_t e = (int32_t)(s->ema[k] + fbg_rshift_round(target - s->ema[k], m->ema_shift[k]));
+        s->ema[k] = e;
+        in[j] = fbg_sat16(((int64_t)u - fbg_rshift_round(e, FBG_EMA_FRAC)) * ((int64_t)1 << m->ema_gain[k]), sat);
     }
-    for (k = 0; k < m->n_play; ++k) {
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            /* The state stays within play_width of the current z: |state| < 2^16. */
-            int32_t lo = (int32_t)in[c] - m->play_width[k], hi = (int32_t)in[c] + m->play_width[k];
-            int32_t p = s->play[c][k];
-            p = p < lo ? lo : (p > hi ? hi : p);
-            s->play[c][k] = p;
-            in[j] = fbg_sat16(((int64_t)in[c] - p) * ((int64_t)1 << m->play_gain[k]), sat);
-        }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        /* The state stays within play_width of the current u: |state| < 2^16. */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        in[j] = fbg_sat16(((int64_t)u - p) * ((int64_t)1 << m->play_gain[k]), sat);
     }
 }
 
@@ -2899,7 +2911,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, &sat);
-    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -2956,8 +2968,8 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 152u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 168u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 168u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 184u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -3179,7 +3191,7 @@ fbg_status fbg_model_check(const fbg_model *model)
         return st;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
@@ -3605,7 +3617,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_NULL;
     if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
         return FBG_ERR_SHAPE;
-    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
@@ -3617,6 +3629,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
             model->play_gain[c] > FBG_MAX_MEM_GAIN)
             return FBG_ERR_RANGE;
+    if (!all_finite(model->mem_weight, FBG_N_STRAIN))
+        return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -3658,35 +3672,33 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 /* The shared front end's view of a float state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
-/* Memory features after z, as fbg_fixed.c's memory_features in float (the states are primed
- * with the first sample after a reset and frozen during a fault). */
+/* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
+ * load signal u, are primed by the first sample after a reset as at rest after a release,
+ * and are frozen during a fault). */
 static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
 {
     unsigned c, k, j = FBG_N_STRAIN;
+    float u = 0.0f;
+    if (m->n_ema == 0u && m->n_play == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        u += m->mem_weight[c] * in[c];
     if (!s->mem_primed) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            for (k = 0; k < m->n_ema; ++k)
-                s->ema[c][k] = in[c];
-            for (k = 0; k < m->n_play; ++k)
-                s->play[c][k] = in[c];
-        }
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u;
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
         s->mem_primed = 1u;
     }
-    for (k = 0; k < m->n_ema; ++k) {
-        float alpha = 1.0f / (float)(1u << m->ema_shift[k]), gain = (float)(1u << m->ema_gain[k]);
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            s->ema[c][k] += alpha * (in[c] - s->ema[c][k]);
-            in[j] = (in[c] - s->ema[c][k]) * gain;
-        }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
+        in[j] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
     }
-    for (k = 0; k < m->n_play; ++k) {
-        float w = m->play_width[k], gain = (float)(1u << m->play_gain[k]);
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            float p = s->play[c][k];
-            p = p < in[c] - w ? in[c] - w : (p > in[c] + w ? in[c] + w : p);
-            s->play[c][k] = p;
-            in[j] = (in[c] - p) * gain;
-        }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        float w = m->play_width[k], p = s->play[k];
+        p = p < u - w ? u - w : (p > u + w ? u + w : p);
+        s->play[k] = p;
+        in[j] = (u - p) * (float)(1u << m->play_gain[k]);
     }
 }
 
@@ -3798,7 +3810,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in);
-    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
