@@ -31,6 +31,8 @@ reproducing its figures; it uses future samples and cannot be exported to the ru
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -502,8 +504,9 @@ def load(directory: str | Path) -> HierarchicalModel:
     try:
         with np.load(npz_path) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read weights: {exc}", path=str(npz_path)) from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"cannot read weights (truncated or corrupt?): {exc}",
+                         path=str(npz_path)) from exc
     try:
         nets = {}
         for name in NET_NAMES:
