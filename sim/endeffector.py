@@ -1,8 +1,8 @@
 """The simulated end-effector: applied load in, five peak wavelengths out, sample by sample.
 
-:class:`EndEffector` keeps every effect's state (pad friction and lag, vibration, temperature walk, random
-streams, dropout bursts) between calls, so a controller can drive it in blocks of any size
-and get exactly (bit for bit) what one call over the whole recording would give.
+:class:`EndEffector` keeps every effect's state (pad friction and lag, vibration, temperature
+walk, random streams, dropout bursts) between calls, so a controller can drive it in blocks of
+any size and get exactly (bit for bit) what one call over the whole recording would give.
 """
 from __future__ import annotations
 

@@ -306,6 +306,7 @@ def test_friction_loop_spread_between_beams_is_a_device_property():
 
 def test_former_effect_name_hysteresis_reads_as_viscoelastic():
     old = EndEffector({"hysteresis": {"magnitude": 0.2}})
-    assert list(old.effects) == ["viscoelastic"] and old.effects["viscoelastic"].p["magnitude"] == 0.2
+    assert list(old.effects) == ["viscoelastic"]
+    assert old.effects["viscoelastic"].p["magnitude"] == 0.2
     with pytest.raises(InputError, match="repeated"):
         EndEffector({"hysteresis": {}, "viscoelastic": {}})
