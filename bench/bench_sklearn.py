@@ -16,8 +16,8 @@ estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-ou
   (location) in the paper's hierarchy with the paper's hidden sizes, trained on the training
   presses with scikit-learn's defaults (Adam, lr 1e-3, batch 200, L2 1e-4, stop when the
   training loss improves by less than 1e-4 for 10 epochs, at most ``--max-iter`` epochs). Its
-  inputs are the trainer's own standardised features ``z`` (the fbgforce model's
-  ``input_mean``/``input_std``); the force and location nets are fitted on the true-contact
+  inputs are the trainer's own net inputs ``z`` (the fbgforce model's standardisation and
+  memory features, ``Prepared.inputs``); the force and location nets are fitted on the true-contact
   training samples, with targets scaled like the trainer's (``force_offset``/``force_scale``,
   ``xy_offset``/``xy_scale``); the location net gets ``[z, contact decision, force output]``
   exactly as the fbgforce location net does, from its own contact and force nets;
@@ -206,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_sklearn: {exc}", file=sys.stderr)
         return 2
     tr, te = data.rows("train"), data.rows("test")
-    print(f"data: {', '.join(names)}: {data.split.size} samples, {data.feats.shape[1]} features; "
+    print(f"data: {', '.join(names)}: {data.split.size} samples; "
           f"train {tr.size}, test {te.size} samples", file=sys.stderr)
 
     results: dict[str, dict[str, Any]] = {}
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     model = train(ds_list, seed=args.seed, epochs=args.epochs, prepared=data)
     t_fbg = time.perf_counter() - t0
-    z = (data.feats - model.preprocess.input_mean) / model.preprocess.input_std
+    z = data.inputs(model.preprocess)  # the fbgforce nets' own inputs (standardised, memory)
     from fbgforce import model as fm
 
     results["fbgforce"] = {"metrics": score(data, fm.predict_from_features(model, z), te),
@@ -229,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     pred, t_lin = linear_baseline(data, tr)
     results["linear (fitted)"] = {"metrics": score(data, pred, te), "train_s": t_lin}
 
+    print(f"{z.shape[1]} net inputs (memory: {model.metadata.get('memory')})")
     print(table(results))
     f, s = results["fbgforce"]["metrics"], results["scikit-learn"]["metrics"]
     ratios = {k: (f[k] / s[k] if f.get(k) and s.get(k) else None)
@@ -236,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     print("fbgforce / scikit-learn RMSE: " + ", ".join(
         f"{k} {v:.2f}" for k, v in ratios.items() if v is not None))
     if args.json:
-        doc = {"data": names, "seed": args.seed, "features": int(data.feats.shape[1]),
+        doc = {"data": names, "seed": args.seed, "features": int(z.shape[1]),
                "samples": {"train": int(tr.size), "test": int(te.size)},
                "sklearn_version": sklearn.__version__, "max_iter": args.max_iter,
                "epochs": args.epochs, "results": results, "ratios_fbgforce_over_sklearn": ratios}

@@ -17,7 +17,9 @@ def _add_stop_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--idle-timeout", type=positive_float, metavar="S",
                    help="stop when no sample arrived for S seconds (default: wait, reconnecting)")
     p.add_argument("--start-timeout", type=positive_float, metavar="S",
-                   help="give up if the first sample has not arrived after S seconds")
+                   help="fail (exit 2) if the first sample has not arrived after S seconds "
+                        "(default: 5 s, or --duration/--idle-timeout if longer, when any stop "
+                        "option is given; otherwise wait for the device until stopped)")
     p.add_argument("--baud", type=positive_int, default=None,
                    help="line speed for real UARTs (default 3000000; ptys/sockets ignore it)")
     p.add_argument("--quiet", action="store_true", help="no live status on stderr")
@@ -150,18 +152,32 @@ def _baud(args: argparse.Namespace) -> dict[str, Any]:
     return {} if args.baud is None else {"baudrate": args.baud}
 
 
+def _start_timeout(args: argparse.Namespace) -> float | None:
+    from fbgforce.interrogator.nodata import start_timeout_for
+
+    return start_timeout_for(args.start_timeout, args.duration, args.samples, args.idle_timeout)
+
+
 def _stream(args: argparse.Namespace) -> dict[str, Any]:
+    import time
+
+    from fbgforce.interrogator.nodata import no_data_error
     from fbgforce.interrogator.reader import open_reader
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
     reader = open_reader(args.port, args.protocol, channels=args.channels, **_baud(args))
+    started = time.monotonic()
     try:
         result = run_stream(reader, est, out=args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=args.start_timeout, status=not args.quiet)
+                            start_timeout=_start_timeout(args), status=not args.quiet)
     finally:
         reader.close()
+    if result["received"] == 0:
+        raise no_data_error(args.port, args.protocol, time.monotonic() - started,
+                            reader.stats(), reader.link.last_error, baud=args.baud,
+                            interrupted=result["interrupted"])
     result = {"port": args.port, "protocol": args.protocol, **result}
     if not args.json:
         print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
@@ -171,6 +187,9 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _record(args: argparse.Namespace) -> dict[str, Any]:
+    import time
+
+    from fbgforce.interrogator.nodata import no_data_error
     from fbgforce.interrogator.reader import LoadCellReader, open_reader
     from fbgforce.interrogator.record import run_record
 
@@ -179,11 +198,18 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     # Open both now: a device that waits for its clients starts only when both are there.
     reader.link.open()
     loadcell.link.open()
+    started = time.monotonic()
     try:
         result = run_record(reader, loadcell, args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=args.start_timeout, rate_hz=args.rate,
+                            start_timeout=_start_timeout(args), rate_hz=args.rate,
                             status=not args.quiet)
+    except InputError as exc:
+        # Nothing joined: when the interrogator itself was silent, say what was tried there.
+        if exc.column == "--port" and reader.stats().get("frames", 0) == 0:
+            raise no_data_error(args.port, args.protocol, time.monotonic() - started,
+                                reader.stats(), reader.link.last_error, baud=args.baud) from None
+        raise
     finally:
         reader.close()
         loadcell.close()

@@ -68,6 +68,7 @@ class LiveEstimator:
             self._rt = Runtime(self.model_dir)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
+            self._memory = fm.MemoryStream(self.model.preprocess.memory)
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -108,13 +109,15 @@ class LiveEstimator:
         if self.engine == "fixed":
             out = self._rt.run(wl_fm.astype(np.int32))
             return {k: np.asarray(out[k]) for k in OUTPUT_KEYS}
-        # Float: run the reference pipeline on (history + batch) and keep the batch's rows;
-        # with len(taps) - 1 samples of history the causal FIR sees exactly what it would
-        # have seen on the whole recording.
-        keep = self.model.preprocess.taps.size - 1
+        # Float: filter (history + batch) and keep the batch's rows; with len(taps) - 1
+        # samples of history the causal FIR sees exactly what it would have seen on the whole
+        # recording. The memory states carry over from batch to batch.
+        pre = self.model.preprocess
+        keep = pre.taps.size - 1
         rows = np.concatenate([self._history, wl_fm])
-        z = fm.features(self.model, fm_to_nm(rows), self.baseline_nm)
-        pred = fm.predict_from_features(self.model, z[len(self._history):])
+        filt = fm.apply_filter(pre, fm.compensate(self.model, fm_to_nm(rows), self.baseline_nm))
+        z = (filt[len(self._history):] - pre.input_mean) / pre.input_std
+        pred = fm.predict_from_features(self.model, self._memory.push(z))
         self._history = rows[len(rows) - keep:] if keep else rows[:0]
         pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}

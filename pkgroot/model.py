@@ -5,42 +5,165 @@ This module is the contract between training (``fbgforce.trainer``) and export /
 float64 implementation of the shipped pipeline, which is the reference every other engine
 (onnxruntime, C float, C fixed-point) is compared against.
 
-The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/pipeline.md)::
+The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)::
 
     shift_i[n]  = 1000 * (wl_i[n] - baseline_i)                      # tare, pm
     shift_T[n]  = 1000 * (wl_T[n] - baseline_T)
     comp_i[n]   = shift_i[n] - temp_coeff_i * shift_T[n]              # temperature compensation
     filt_i[n]   = sum_k taps[k] * comp_i[n - k]                        # causal FIR, zero history
     z_i[n]      = (filt_i[n] - input_mean_i) / input_std_i            # standardisation
-    logits      = contact_net(z)            -> contact = logits[1] > logits[0]
-    f           = force_net(z)[0]           -> force_N = force_offset + force_scale * f
-    (u, v)      = location_net([z, contact, f])
+    u[n]        = sum_i weight_i * z_i[n]                              # memory: a load signal,
+    e_k[n]      = e_k[n-1] + (u[n] - e_k[n-1]) / 2^ema_shift[k]       # its averages ...
+    p_k[n]      = clamp(p_k[n-1], u[n] - w_k, u[n] + w_k)             # ... and play operators
+    x           = [z, (u - e_k) * 2^ema_gain[k] for each k, (u - p_k) * 2^play_gain[k] for each k]
+    logits      = contact_net(x)            -> contact = logits[1] > logits[0]
+    f           = force_net(x)[0]           -> force_N = force_offset + force_scale * f
+    (u, v)      = location_net([x, contact, f])
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
 
-The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
+The memory states are primed by the recording's first sample as a pad at rest after a release
+leaves them (averages at u, play operators at u + width: the load last moved down), as the
+runtime's after a tare or reset, so the features read at the start what they read at every
+rest of the calibration data. The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
 reproducing its figures; it uses future samples and cannot be exported to the runtime.
 """
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
 FORMAT_NAME = "fbgforce-model"
-FORMAT_VERSION = 1
-N_STRAIN = 4
+FORMAT_VERSION = 2
+N_STRAIN = contract.N_STRAIN
 FILTER_KINDS = ("causal", "centred", "none")
-NET_NAMES = ("contact", "force", "location")
-#: Inputs of the location net: the four standardised channels, the contact flag (0/1) and the
-#: force net's own (scaled) output, exactly as it runs.
-LOCATION_INPUTS = N_STRAIN + 2
+NET_NAMES = contract.NET_NAMES
+
+
+@dataclass
+class Memory:
+    """Recursive states of one load signal whose features give the nets a sense of history.
+
+    The states follow ``u = z @ weights``, a fixed linear combination of the standardised
+    channels that tracks the load (the trainer fits it to the force): a pad's hysteresis lives
+    in its force path, which all four beams share, so one signal carries it, and its
+    direction of motion is the load's (a single channel may go either way at a release,
+    depending on where the press was).
+
+    ``ema_shifts[k]``: an exponential average with factor 2^-shift (time constant about 2^shift
+    samples); its feature is ``(u - average) * 2^ema_gains[k]``, the recent change. Rate
+    dependent: what a viscoelastic pad's creep needs. ``play_widths[k]``: a play (backlash)
+    operator of half-width w; its feature ``(u - play) * 2^play_gains[k]`` says which way the
+    load last moved and how far, whatever the speed: the building block of Prandtl-Ishlinskii
+    hysteresis models, what a pad's rate-independent (frictional) hysteresis needs. Constant
+    work and memory per sample (docs/trainer.md, "memory").
+    """
+
+    ema_shifts: tuple[int, ...] = ()
+    ema_gains: tuple[int, ...] = ()
+    play_widths: tuple[float, ...] = ()
+    play_gains: tuple[int, ...] = ()
+    weights: tuple[float, ...] = (0.25, 0.25, 0.25, 0.25)
+
+    def __post_init__(self) -> None:
+        self.ema_shifts = tuple(int(v) for v in self.ema_shifts)
+        self.ema_gains = tuple(int(v) for v in self.ema_gains) or (0,) * len(self.ema_shifts)
+        self.play_widths = tuple(float(v) for v in self.play_widths)
+        self.play_gains = tuple(int(v) for v in self.play_gains) or (0,) * len(self.play_widths)
+        self.weights = tuple(float(v) for v in self.weights)
+        lim = contract.LIMIT
+        if len(self.ema_shifts) > contract.MAX_EMA or len(self.play_widths) > contract.MAX_PLAY:
+            raise ValueError(f"at most {contract.MAX_EMA} averages and {contract.MAX_PLAY} play "
+                             "operators")
+        if len(self.ema_gains) != len(self.ema_shifts) or len(self.play_gains) != len(self.play_widths):
+            raise ValueError("one gain per memory state")
+        if len(self.weights) != N_STRAIN or not all(np.isfinite(self.weights)):
+            raise ValueError(f"{N_STRAIN} finite memory weights")
+        if not all(1 <= s <= lim["MAX_EMA_SHIFT"] for s in self.ema_shifts):
+            raise ValueError(f"average shifts must be 1..{lim['MAX_EMA_SHIFT']}")
+        if not all(0 <= g <= lim["MAX_MEM_GAIN"] for g in self.ema_gains + self.play_gains):
+            raise ValueError(f"memory gains must be 0..{lim['MAX_MEM_GAIN']}")
+        if not all(np.isfinite(w) and w >= 0 for w in self.play_widths):
+            raise ValueError("play widths must be finite and >= 0")
+
+    @property
+    def n_states(self) -> int:
+        """Memory states (averages and play operators)."""
+        return len(self.ema_shifts) + len(self.play_widths)
+
+    def to_json(self) -> dict[str, list]:
+        return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
+                "play_widths": list(self.play_widths), "play_gains": list(self.play_gains),
+                "weights": list(self.weights)}
+
+
+class MemoryStream:
+    """The memory states of one continuous recording, fed in pieces: ``push(z)`` on
+    consecutive pieces gives what :func:`memory_features` gives on the whole."""
+
+    def __init__(self, memory: Memory) -> None:
+        self.memory = memory
+        self.ema: list[float] | None = None     # None until the first sample primes them
+        self.play: list[float] = []
+
+    def push(self, z: np.ndarray) -> np.ndarray:
+        """Net inputs (n, 4 + states) of the next ``z`` (n, 4) of the recording."""
+        memory = self.memory
+        z = np.asarray(z, dtype=np.float64).reshape(-1, N_STRAIN)
+        n = z.shape[0]
+        if memory.n_states == 0 or n == 0:
+            return z.copy() if n else np.zeros((0, N_STRAIN + memory.n_states))
+        u = z @ np.asarray(memory.weights)
+        if self.ema is None:       # primed as at rest after a release (the load came down)
+            self.ema = [float(u[0])] * len(memory.ema_shifts)
+            self.play = [float(u[0]) + w for w in memory.play_widths]
+        feats = [z]
+        for k, (shift, gain) in enumerate(zip(memory.ema_shifts, memory.ema_gains)):
+            # e[n] = (1 - a) e[n-1] + a u[n]: a first-order IIR. A blocked closed form keeps
+            # it exact to rounding and fast in numpy: within a block of 256 the powers of
+            # (1 - a) cannot underflow for the shifts allowed here.
+            alpha = 2.0 ** -shift
+            e = np.empty_like(u)
+            prev = self.ema[k]
+            for start in range(0, n, 256):
+                seg = u[start:start + 256]
+                i = np.arange(seg.shape[0])
+                w = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
+                out = (1.0 - alpha) ** (i + 1) * prev + w @ seg
+                e[start:start + seg.shape[0]] = out
+                prev = float(out[-1])
+            self.ema[k] = prev
+            feats.append(((u - e) * 2.0 ** gain)[:, None])
+        for k, (width, gain) in enumerate(zip(memory.play_widths, memory.play_gains)):
+            p = np.empty_like(u)
+            state = self.play[k]
+            lo, hi = (u - width).tolist(), (u + width).tolist()
+            for i in range(n):
+                state = min(max(state, lo[i]), hi[i])
+                p[i] = state
+            self.play[k] = state
+            feats.append(((u - p) * 2.0 ** gain)[:, None])
+        return np.concatenate(feats, axis=1)
+
+
+def memory_features(memory: Memory, z: np.ndarray) -> np.ndarray:
+    """The net inputs of one continuous recording: ``z`` (n, 4) and its memory features.
+
+    Returns (n, 4 + states) in the order of :mod:`fbgforce.contract`: z, then one feature per
+    average, then one per play operator, all of the load signal ``u = z @ weights``; the
+    states are primed by the first sample as a pad at rest after a release leaves them.
+    """
+    return MemoryStream(memory).push(z)
 
 
 @dataclass
@@ -61,6 +184,8 @@ class Preprocess:
         length, ``taps[k]`` weights sample ``n + k - len(taps)//2``.
     input_mean, input_std
         (4,) standardisation of the filtered compensated shifts (pm).
+    memory
+        The memory states after standardisation (:class:`Memory`; none by default).
     """
 
     temp_coeff: np.ndarray
@@ -69,6 +194,7 @@ class Preprocess:
     taps: np.ndarray
     input_mean: np.ndarray
     input_std: np.ndarray
+    memory: Memory = field(default_factory=Memory)
 
     def __post_init__(self) -> None:
         self.temp_coeff = np.asarray(self.temp_coeff, dtype=np.float64).reshape(N_STRAIN)
@@ -83,6 +209,11 @@ class Preprocess:
             raise ValueError("a centred filter needs an odd number of taps")
         if np.any(self.input_std <= 0):
             raise ValueError("input_std must be positive")
+
+    @property
+    def n_features(self) -> int:
+        """Width of the feature vector the contact and force nets read."""
+        return contract.n_features(len(self.memory.ema_shifts), len(self.memory.play_widths))
 
     @property
     def group_delay_samples(self) -> float:
@@ -145,8 +276,9 @@ class HierarchicalModel:
     preprocess
         See :class:`Preprocess`.
     contact, force, location
-        The nets. Contact: 4 -> ... -> 2 logits (index 1 is "contact"). Force: 4 -> ... -> 1.
-        Location: 6 -> ... -> 2 (inputs per :data:`LOCATION_INPUTS`).
+        The nets. Contact: F -> ... -> 2 logits (index 1 is "contact"). Force: F -> ... -> 1.
+        Location: F + 2 -> ... -> 2 (the features, the contact flag, the force net's output),
+        with F = ``preprocess.n_features`` (4 without memory).
     force_offset, force_scale
         ``force_N = force_offset + force_scale * force_net_output``.
     xy_offset, xy_scale
@@ -175,8 +307,10 @@ class HierarchicalModel:
         self.baseline_nm = np.asarray(self.baseline_nm, dtype=np.float64).reshape(N_STRAIN + 1)
         self.force_offset = float(self.force_offset)
         self.force_scale = float(self.force_scale)
-        expected = {"contact": (N_STRAIN, 2), "force": (N_STRAIN, 1), "location": (LOCATION_INPUTS, 2)}
-        for name, (n_in, n_out) in expected.items():
+        mem = self.preprocess.memory
+        for net in contract.NETS:
+            name, n_out = net.name, net.float_outputs
+            n_in = contract.net_inputs(name, len(mem.ema_shifts), len(mem.play_widths))
             sizes = getattr(self, name).sizes
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
@@ -241,11 +375,17 @@ def apply_filter(pre: Preprocess, x: np.ndarray) -> np.ndarray:
     return out
 
 
+def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
+    """Net inputs (n, F) of one continuous recording from its filtered shifts (n, 4), pm:
+    standardisation, then the memory features."""
+    return memory_features(pre.memory, (np.asarray(filt, dtype=np.float64) - pre.input_mean)
+                           / pre.input_std)
+
+
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
-    """Standardised net inputs ``z`` (n, 4) for one continuous recording."""
+    """Net inputs (n, F) for one continuous recording: standardised channels and memory."""
     pre = model.preprocess
-    filt = apply_filter(pre, compensate(model, wl_nm, baseline_nm))
-    return (filt - pre.input_mean) / pre.input_std
+    return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
 
 
 def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, np.ndarray]:
@@ -310,6 +450,7 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
             "taps": pre.taps.tolist(),
             "input_mean": pre.input_mean.tolist(),
             "input_std": pre.input_std.tolist(),
+            "memory": pre.memory.to_json(),
             "group_delay_ms_at_1kHz": pre.group_delay_samples,
         },
         "nets": {name: {"sizes": net.sizes} for name, net in model.nets.items()},
@@ -356,15 +497,16 @@ def load(directory: str | Path) -> HierarchicalModel:
     if doc.get("format") != FORMAT_NAME:
         raise InputError(f"format is {doc.get('format')!r}, expected {FORMAT_NAME!r}",
                          path=str(json_path), column="format")
-    if doc.get("version") != FORMAT_VERSION:
+    if doc.get("version") not in (1, FORMAT_VERSION):   # version 1: no memory
         raise InputError(f"format version {doc.get('version')!r} is not supported "
                          f"(this fbgforce reads version {FORMAT_VERSION})",
                          path=str(json_path), column="version")
     try:
         with np.load(npz_path) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read weights: {exc}", path=str(npz_path)) from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"cannot read weights (truncated or corrupt?): {exc}",
+                         path=str(npz_path)) from exc
     try:
         nets = {}
         for name in NET_NAMES:
@@ -373,7 +515,7 @@ def load(directory: str | Path) -> HierarchicalModel:
                              [arrays[f"{name}.b{i}"] for i in range(n_layers)])
         p = doc["preprocess"]
         pre = Preprocess(p["temp_coeff"], p["filter_kind"], p["filter_sigma"], p["taps"],
-                         p["input_mean"], p["input_std"])
+                         p["input_mean"], p["input_std"], Memory(**p.get("memory", {})))
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],

@@ -284,7 +284,7 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
             assert np.array_equal(wa, wb)
     md = a.metadata
     assert md["data"][0]["sha256"] and md["seed"] == 7
-    assert md["sizes"]["location"] == [6, 16, 8, 2]
+    assert md["sizes"]["location"] == [a.preprocess.n_features + 2, 16, 8, 2]
     assert md["split"]["samples"]["train"] > 5 * md["split"]["samples"]["test"] > 0
     fm.save(a, tmp_path / "m")
     ev = evaluate(tmp_path / "m", [path], split="test")
@@ -375,12 +375,13 @@ def test_scaled_presses_scale_the_strain_features_per_press(synthetic_recording)
 
     ds = synthetic_recording(n_press=6, seed=3, noise_pm=0.0, temp_ramp_pm=50.0)
     data = prepare([ds], seed=0)
+    pre = data.pre  # unit standardisation and no memory: the inputs are the filtered shifts
     rows = np.flatnonzero(data.contact & (data.force_N > 10.0))
-    feats, kept = _scaled_presses(data, rows, 3.0, np.random.default_rng(0))
-    assert np.array_equal(kept, rows) and feats.shape == (rows.size, data.feats.shape[1])
+    z, kept = _scaled_presses(data, pre, rows, 3.0, np.random.default_rng(0))
+    assert np.array_equal(kept, rows) and z.shape == (rows.size, data.inputs(pre).shape[1])
     # Deep inside a press the (linear) filter has forgotten the previous press: the strain
-    # features are the original ones times the press's own factor in [1, 3].
-    ratio = feats[:, :fm.N_STRAIN] / data.feats[rows, :fm.N_STRAIN]
+    # inputs are the original ones times the press's own factor in [1, 3].
+    ratio = z[:, :fm.N_STRAIN] / data.inputs(pre)[rows, :fm.N_STRAIN]
     pid = np.asarray(ds.press_id)[rows]
     for p in np.unique(pid):
         r = ratio[pid == p]

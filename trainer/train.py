@@ -23,6 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from fbgforce import __version__
+from fbgforce import contract
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.errors import InputError
@@ -80,6 +81,11 @@ class Prepared:
         self.force_N = np.concatenate([np.asarray(r.ds.force_N, float) for r in recs])
         self.x_mm = np.concatenate([np.asarray(r.ds.x_mm, float) for r in recs])
         self.y_mm = np.concatenate([np.asarray(r.ds.y_mm, float) for r in recs])
+
+    def inputs(self, pre: fm.Preprocess) -> np.ndarray:
+        """Net inputs (n, F) of every sample under ``pre``'s standardisation and memory,
+        computed recording by recording (the memory states run along each recording)."""
+        return np.concatenate([fm.standardise(pre, r.feats) for r in self.recordings])
 
     def rows(self, part: str) -> np.ndarray:
         """Sample indices of ``"train"``, ``"val"``, ``"test"`` or ``"all"``."""
@@ -159,16 +165,85 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     return Prepared(recs, pre, temp_info)
 
 
-def _sizes(sizes: Mapping[str, Sequence[int]] | None, n_features: int) -> dict[str, list[int]]:
+def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
     for k, v in (sizes or {}).items():
         if k not in hidden:
             raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
         hidden[k] = [int(s) for s in v]
-    # The location net also gets the contact decision and the force net's output.
-    n_in = {"contact": n_features, "force": n_features, "location": n_features + 2}
-    n_out = {"contact": 2, "force": 1, "location": 2}
-    return {k: [n_in[k], *hidden[k], n_out[k]] for k in hidden}
+    n_ema, n_play = len(memory.ema_shifts), len(memory.play_widths)
+    return {net.name: [contract.net_inputs(net.name, n_ema, n_play), *hidden[net.name],
+                       net.float_outputs] for net in contract.NETS}
+
+
+def parse_memory(text: str) -> fm.Memory:
+    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``ema:S,S,...`` and/or
+    ``play:W,W,...`` joined by ``+`` (average shifts; play half-widths in standardised units)."""
+    text = text.strip()
+    if text in MEMORY_PRESETS:
+        return MEMORY_PRESETS[text]
+    ema: list[int] = []
+    play: list[float] = []
+    try:
+        for part in text.split("+"):
+            kind, _, values = part.partition(":")
+            nums = [v for v in values.split(",") if v.strip()]
+            if kind.strip() == "ema":
+                ema += [int(v) for v in nums]
+            elif kind.strip() == "play":
+                play += [float(v) for v in nums]
+            else:
+                raise ValueError(f"unknown memory kind {kind!r}")
+        return fm.Memory(ema_shifts=tuple(ema), play_widths=tuple(play))
+    except ValueError as exc:
+        raise InputError(f"bad memory {text!r}: {exc}; use none, "
+                         f"{', '.join(MEMORY_PRESETS)}, or e.g. ema:3,6+play:0.1",
+                         column="--memory") from exc
+
+
+#: Named memories (docs/trainer.md, "memory"): averages of about 16 and 128 ms at 1 kHz;
+#: play operators of half-width 0.05 and 0.25 standard deviations of the load signal (about
+#: 1 % and 5 % of the force range of a calibration run). Even counts keep the first layers'
+#: widths even, which the Cortex-M4 kernels take in pairs.
+MEMORY_PRESETS: dict[str, fm.Memory] = {
+    "none": fm.Memory(),
+    "ema": fm.Memory(ema_shifts=(4, 7)),
+    "play": fm.Memory(play_widths=(0.05, 0.25)),
+    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25)),
+}
+DEFAULT_MEMORY = "both"
+
+
+def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np.ndarray
+               ) -> fm.Memory:
+    """The memory's load signal and gains, fitted on the training ``rows``.
+
+    Weights: least squares of the load-cell force (0 at rest) on the standardised channels,
+    scaled so that ``u`` has unit spread: u tracks the load, and the play widths are fractions
+    of its spread. Gains: the power of two that brings each feature's spread near 0.5, like
+    the standardised inputs' (small recent changes would otherwise reach the nets as nearly
+    constant inputs)."""
+    if memory.n_states == 0:
+        return memory
+    plain = copy.deepcopy(pre)
+    plain.memory = fm.Memory()
+    z = data.inputs(plain)[rows]
+    force = np.where(data.contact[rows], np.nan_to_num(data.force_N[rows]), 0.0)
+    w, *_ = np.linalg.lstsq(np.column_stack([z, np.ones(len(z))]), force, rcond=None)
+    u = z @ w[:fm.N_STRAIN]
+    weights = w[:fm.N_STRAIN] / max(float(np.std(u)), 1e-12)
+    trial = fm.Memory(memory.ema_shifts, (), memory.play_widths, (), tuple(weights))
+    pre_trial = copy.deepcopy(pre)
+    pre_trial.memory = trial
+    x = data.inputs(pre_trial)[rows]
+    gains = []
+    for k in range(trial.n_states):
+        sd = float(np.std(x[:, fm.N_STRAIN + k]))
+        g = int(np.floor(np.log2(0.5 / sd))) if sd > 0 else 0
+        gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
+    n_ema = len(memory.ema_shifts)
+    return fm.Memory(memory.ema_shifts, tuple(gains[:n_ema]), memory.play_widths,
+                     tuple(gains[n_ema:]), tuple(weights))
 
 
 def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float]:
@@ -209,11 +284,10 @@ def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data."""
     if not extras:
-        z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
+        z = data.inputs(model.preprocess)[rows]
         return fmetrics.compute(fm.predict_from_features(model, z), *data.truth(rows),
                                 extras=False)
-    z = (data.feats - model.preprocess.input_mean) / model.preprocess.input_std
-    pred = fm.predict_from_features(model, z)
+    pred = fm.predict_from_features(model, data.inputs(model.preprocess))
     delays = press_delays(data, pred["contact"], rows)
     return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
                             extras=extras, pad_mm=model_pad_mm(model), delays=delays)
@@ -246,8 +320,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
           train_fraction: float = 1.0, time_budget_s: float | None = None,
           plateau: int | None = None, plateau_factor: float = 0.3,
           weight_decay: float | Mapping[str, float] | None = None,
-          location_augment: float = LOCATION_AUGMENT
-          ) -> fm.HierarchicalModel:
+          location_augment: float = LOCATION_AUGMENT,
+          memory: fm.Memory | str | None = None) -> fm.HierarchicalModel:
     """Train the hierarchical model on calibration recordings.
 
     Parameters
@@ -273,6 +347,18 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         Use only this fraction of the training presses (transfer study: "how much less data").
     time_budget_s
         Per-net wall-time cap (keeps the best weights so far).
+    plateau, plateau_factor
+        Reduce the learning rate on a validation plateau (see :func:`~fbgforce.trainer.nets.fit`;
+        off by default).
+    weight_decay
+        L2 weight decay: one value for every net or per net (``{"force": 1e-2}``); ``None``
+        means :data:`DEFAULT_WEIGHT_DECAY`.
+    location_augment
+        The location net also trains on the training presses pressed up to this many times
+        harder (:func:`_scaled_presses`); 1 turns it off.
+    memory
+        The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
+        ``None``: the ``--init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
 
     Returns
     -------
@@ -283,11 +369,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     sources = [d.get("path") or d.get("source") or f"recording {i}"
                for i, d in enumerate(described)]
     init_model = fm.load(init) if isinstance(init, (str, Path)) else init
-    if prepared is None:
-        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
-                           sources=sources)
-    data = prepared
-    net_sizes = _sizes(sizes, data.feats.shape[1])
+    if memory is None:
+        memory = init_model.preprocess.memory if init_model else DEFAULT_MEMORY
+    if isinstance(memory, str):
+        memory = parse_memory(memory)
+    net_sizes = _sizes(sizes, memory)
     if init_model is not None:
         for name, net in init_model.nets.items():
             if sizes is None:
@@ -295,6 +381,10 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
             elif net.sizes != net_sizes[name]:
                 raise InputError(f"--init model's {name} net has sizes {net.sizes}, not "
                                  f"{net_sizes[name]}", column="--init")
+    if prepared is None:
+        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
+                           sources=sources)
+    data = prepared
     t_prep = time.perf_counter() - t_start
     tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
     ss = np.random.SeedSequence(seed)
@@ -318,7 +408,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         xy_off, xy_scale = np.nanmean(xy, axis=0), np.maximum(np.nanstd(xy, axis=0), 1e-6)
     pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
     pre.input_mean, pre.input_std = std.mean, std.std
-    z = (data.feats - std.mean) / std.std
+    if init_model is not None:
+        pre.memory = init_model.preprocess.memory
+    else:
+        pre.memory = fit_memory(memory, pre, data, tr)
+    z = data.inputs(pre)
     common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
                   decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s,
                   plateau=plateau, plateau_factor=plateau_factor)
@@ -377,8 +471,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
 
     loc_train_x, loc_train_y = loc_x[ltr], xy_t[ltr]
     if location_augment > 1.0:
-        z_aug, rows_aug = _scaled_presses(data, ltr, location_augment, rng_aug)
-        z_aug = (z_aug - std.mean) / std.std
+        z_aug, rows_aug = _scaled_presses(data, pre, ltr, location_augment, rng_aug)
         aug_x = _loc_inputs(z_aug, np.ones(rows_aug.size, bool),
                             predict_batched(fnet, z_aug)[:, 0])
         loc_train_x = np.concatenate([loc_train_x, aug_x])
@@ -404,6 +497,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "split": {"by": "press", "ratios": list(SPLIT_RATIOS), "train_fraction": train_fraction,
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
+        "memory": pre.memory.to_json(),
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
@@ -424,36 +518,36 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     return model
 
 
-def _scaled_presses(data: Prepared, rows: np.ndarray, max_scale: float,
+def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_scale: float,
                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Features of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
+    """Net inputs of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
     per press, and the rows (of ``data``) they stand for.
 
     Where a press lands does not depend on how hard: the strain part of every grating's
-    compensated shift is scaled by ``k`` (temperature and tare untouched) and the features are
-    recomputed with the model's own preprocessing on the whole recording, so any feature with
-    memory sees a consistent time series. The location net then sees each spot at forces the
-    calibration did not reach there; without it, it interpolates between the few presses that
-    reached high force and loses to the linear baseline at high force (docs/trainer.md).
+    compensated shift is scaled by ``k`` (temperature and tare untouched) and the inputs are
+    recomputed with the model's own preprocessing ``pre`` (filter, standardisation, memory) on
+    the whole recording, so the memory states see a consistent time series. The location net
+    then sees each spot at forces the calibration did not reach there; without it, it
+    interpolates between the few presses that reached high force (docs/trainer.md).
     """
-    feats, kept = [], []
+    inputs, kept = [], []
     start = 0
     for r in data.recordings:
         n = len(r.ds)
         sel = rows[(rows >= start) & (rows < start + n)] - start
         if sel.size:
-            pid = np.asarray(r.ds.press_id)
-            _, inverse = np.unique(pid, return_inverse=True)
+            _, inverse = np.unique(np.asarray(r.ds.press_id), return_inverse=True)
             k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
-            comp = pp.compensated(data.pre, r.ds.wl_nm, r.baseline_nm)
+            comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm)
             wl = np.array(r.ds.wl_nm, dtype=np.float64, copy=True)
             wl[:, :fm.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
-            feats.append(pp.recording_features(data.pre, wl, r.baseline_nm)[sel])
+            feats = pp.recording_features(pre, wl, r.baseline_nm)
+            inputs.append(fm.standardise(pre, feats)[sel])
             kept.append(sel + start)
         start += n
-    if not feats:
-        return data.feats[:0], rows[:0]
-    return np.concatenate(feats), np.concatenate(kept)
+    if not inputs:
+        return np.empty((0, data.inputs(pre).shape[1])), rows[:0]
+    return np.concatenate(inputs), np.concatenate(kept)
 
 
 def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,

@@ -32,8 +32,13 @@ def register(subparsers: Any) -> None:
                    help="wall-time cap per net in seconds (keeps the best weights so far)")
     p.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
                    help="causal Gaussian sigmas in samples (default 2 5 10; quick: 5)")
-    p.add_argument("--grid", choices=("star", "full"), default="star",
-                   help="star: filters at paper width + widths at the shipped filter; full: product")
+    p.add_argument("--memories", nargs="+", default=None, metavar="SPEC",
+                   help="the memory axis, each as `fbgforce train --memory` takes it (default: "
+                        "none, ema:5+play:0.1, both, ema:3,6,9,12+play:0.03,0.1,0.3,1; quick: "
+                        "none, both)")
+    p.add_argument("--grid", choices=("star", "full", "memory"), default="star",
+                   help="star: filters at paper width + widths at the shipped filter + memories "
+                        "at the shipped configuration; full: product; memory: the memories only")
     p.add_argument("--engines", nargs="+", default=None, metavar="NAME",
                    help="subset of: numpy-f64 onnx-f32 c-float c-int16 c-int8 c-int8-qat")
     p.add_argument("--qat-epochs", type=int, default=None, help="QAT fine-tuning epochs")
@@ -42,16 +47,15 @@ def register(subparsers: Any) -> None:
     add_json_flag(p)
     p.set_defaults(handler=_handler)
 
-    # Part 4: `target-report` lives in its own module (bench/target.py).
-    from fbgforce.bench import target
-
-    target.register(subparsers)
-
 
 def _handler(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.bench import tradeoff as to
+    # Imported here, not at the top: `fbgforce --help` loads every command module.
+    from fbgforce.tradeoff.artifacts import prepare_data
+    from fbgforce.tradeoff.grid import ENGINE_SPECS, Settings, quick_settings
+    from fbgforce.tradeoff.outputs import markdown_table
+    from fbgforce.tradeoff.run import run
 
-    s = to.quick_settings(args.seed) if args.quick else to.Settings(seed=args.seed)
+    s = quick_settings(args.seed) if args.quick else Settings(seed=args.seed)
     if args.epochs is not None:
         if args.epochs < 1:
             raise InputError("must be at least 1", column="--epochs")
@@ -66,8 +70,14 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
         if s.default_sigma not in s.sigmas:
             s.default_sigma = s.sigmas[0]
     s.grid = args.grid
+    if args.memories:
+        from fbgforce.trainer.train import parse_memory
+
+        for spec in args.memories:
+            parse_memory(spec)                 # refuse a bad spec before any training
+        s.memories = tuple(args.memories)
     if args.engines:
-        known = [e.name for e in to.ENGINE_SPECS]
+        known = [e.name for e in ENGINE_SPECS]
         bad = [e for e in args.engines if e not in known]
         if bad:
             raise InputError(f"unknown engine(s) {', '.join(bad)}; choose from {', '.join(known)}",
@@ -82,10 +92,10 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
     def log(msg: str) -> None:
         print(f"tradeoff: {msg}", file=sys.stderr, flush=True)
 
-    paths = to.prepare_data(args.data, args.scene, out, args.seed, log)
-    res = to.run(paths, out, s, log)
+    paths = prepare_data(args.data, args.scene, out, args.seed, log)
+    res = run(paths, out, s, log)
     if not args.json:
-        print(to.markdown_table(res))
+        print(markdown_table(res))
         print()
         print(res["summary"])
     ok = [r for r in res["rows"] if r.get("status") == "ok"]
