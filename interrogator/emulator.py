@@ -452,13 +452,14 @@ class Emulator:
         if kind == "flip":
             st.flipped += 1
             buf = bytearray(frame)
-            # 1-3 distinct bits: CRC-16/CCITT detects every such error in frames this short.
+            # 1-3 distinct bits: both frame checks detect every such error in frames this short.
             for bit in rng.choice(len(buf) * 8, size=int(rng.integers(1, 4)), replace=False):
                 buf[bit // 8] ^= 1 << (bit % 8)
             return bytes(buf)
         if kind == "truncate":
             st.truncated += 1
-            # At least the CRC is cut, so following bytes complete it only by a 2**-16 chance.
+            # At least the CRC is cut: following bytes complete it only by a 2**-32 chance
+            # (2**-16 with version-1 frames), and the reader's gate refuses what they make.
             return frame[:int(rng.integers(1, len(frame) - 2))]
         st.garbage_bursts += 1
         burst = rng.integers(0, 256, size=int(rng.integers(1, 65)), dtype=np.uint8).tobytes()
