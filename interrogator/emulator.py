@@ -536,8 +536,9 @@ class HyperionEmulator:
     address, command_port, stream_port
         Where to listen (port 0: any free port; the ports taken are :attr:`command_port` and
         :attr:`stream_port` after construction).
-    wait_client, linger, loop, faults, rate
-        As for :class:`Emulator` (a client of the stream port is what playback waits for).
+    wait_client, linger, loop, faults, rate, loadcell, loadcell_link
+        As for :class:`Emulator` (playback waits for a client of the stream port, and of the
+        load-cell pty if there is one; its lines carry the serial number as counter).
     """
 
     def __init__(self, playback: Playback, *, rate: float = 1000.0,
@@ -545,7 +546,8 @@ class HyperionEmulator:
                  command_port: int = 51971, stream_port: int = 51972,
                  peak_map: Any = None, channels: int = 4, wait_client: bool = True,
                  linger: float = 2.0, loop: bool = False, t0_s: int = 1_700_000_000,
-                 serial_number: str = "HYP-EMU-0001") -> None:
+                 serial_number: str = "HYP-EMU-0001", loadcell: bool = False,
+                 loadcell_link: str | None = None) -> None:
         if not rate > 0:
             raise ValueError("rate must be positive")
         if len(playback) == 0:
@@ -568,6 +570,7 @@ class HyperionEmulator:
         self.stats = EmulatorStats()
         self.stream_clients_served = 0
         self._wl_nm = H.gratings_nm(playback.wl_fm)
+        self.loadcell_port = PtyEndpoint(loadcell_link) if loadcell else None
         self._listen: dict[str, socket.socket] = {}
         try:
             for role, port in (("command", command_port), ("stream", stream_port)):
@@ -600,7 +603,10 @@ class HyperionEmulator:
 
     @property
     def paths(self) -> dict[str, str]:
-        return {"interrogator": self.url}
+        out = {"interrogator": self.url}
+        if self.loadcell_port is not None:
+            out["loadcell"] = self.loadcell_port.name
+        return out
 
     def start(self, max_samples: int | None = None) -> "HyperionEmulator":
         self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
@@ -628,6 +634,8 @@ class HyperionEmulator:
         self._listen = {}
         self._cmd_clients = {}
         self._stream_clients = {}
+        if getattr(self, "loadcell_port", None) is not None:
+            self.loadcell_port.close()  # type: ignore[union-attr]
 
     def run(self, max_samples: int | None = None) -> EmulatorStats:
         """Play (blocking) until the recording, ``max_samples`` or :meth:`stop` ends it."""
@@ -648,6 +656,9 @@ class HyperionEmulator:
 
     def _service(self, wait: float) -> None:
         """Accept clients, answer commands, push queued stream bytes (waits at most ``wait``)."""
+        if self.loadcell_port is not None:
+            self.loadcell_port.flush()
+            self.loadcell_port.read()  # a stage controller ignores what the host sends
         readable = list(self._listen.values()) + list(self._cmd_clients)
         writable = [c for c, q in self._stream_clients.items() if q]
         try:
@@ -747,33 +758,51 @@ class HyperionEmulator:
         total: float = n if not self.loop else math.inf
         if max_samples is not None:
             total = min(total, max_samples)
+        lc = self.loadcell_port
         if self.wait_client:
-            while not self._stop.is_set() and not self._stream_clients:
+            while not self._stop.is_set() and not (
+                    self._stream_clients and (lc is None or lc.client_connected())):
                 self._service(0.01)
+            if lc is not None:  # let the load-cell client finish opening (see Emulator._run)
+                settle = time.monotonic() + START_DELAY_S
+                while not self._stop.is_set() and time.monotonic() < settle:
+                    self._service(0.005)
         t0 = time.monotonic()
         sent = 0
         period = 1.0 / self.rate
+        pb = self.playback
         while not self._stop.is_set() and sent < total:
             due = int(min(total, int((time.monotonic() - t0) * self.rate) + 1))
             if due > sent:
                 chunks = []
+                lines = []
                 for k in range(sent, due):
                     i = k % n
                     self.stats.loops = k // n
+                    if lc is not None:
+                        lines.append(P.encode_loadcell_line(P.LoadCellSample(
+                            k, float(pb.x_mm[i]), float(pb.y_mm[i]), float(pb.force_N[i]),
+                            int(pb.contact[i]), int(pb.press[i]))))
                     if self.faults[i] != FAULT_CODE["none"]:
                         self.stats.dropped += 1
                         continue
                     chunks.append(H.encode_stream_message(self._record(k)))
                     self.stats.frames_sent += 1
                 data = b"".join(chunks)
-                for c, q in self._stream_clients.items():
+                for c, q in list(self._stream_clients.items()):
                     q += data
                     self._push(c)
+                if lines and lc is not None:
+                    lc.write(b"".join(lines))
+                    self.stats.loadcell_lines += len(lines)
                 sent = due
                 self._latest = sent - 1
                 self.stats.samples_played = sent
             self._service(max(0.0, min(t0 + sent * period - time.monotonic(), 0.01)))
         end = time.monotonic() + self.linger
-        while not self._stop.is_set() and (self._stream_clients or self._cmd_clients) and (
-                time.monotonic() < end or any(self._stream_clients.values())):
+        while not self._stop.is_set() and (
+                self._stream_clients or self._cmd_clients
+                or (lc is not None and lc.client_connected())) and (
+                time.monotonic() < end or any(self._stream_clients.values())
+                or (lc is not None and lc.backlog)):
             self._service(0.005)

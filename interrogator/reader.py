@@ -23,6 +23,7 @@ from typing import Any, Iterator, Protocol
 
 import serial
 
+from fbgforce.interrogator.hyperion import HyperionReader
 from fbgforce.interrogator.protocol import (
     CMD_IDENT,
     CMD_PEAKS,
@@ -482,12 +483,22 @@ class LoadCellReader(_PushReader):
         return record.counter
 
 
-PROTOCOLS = ("native", "fispec")
+PROTOCOLS = ("native", "fispec", "hyperion")
 
 
-def open_reader(url: str, protocol: str = "native", *, channels: int | None = 5,
-                baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True) -> NativeReader | FiSpecReader:
-    """A reader for ``protocol`` (``"native"`` or ``"fispec"``) on ``url``."""
+def open_reader(url: str, protocol: str | None = None, *, channels: int | None = 5,
+                baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True,
+                peak_map: Any = None) -> Any:
+    """A reader for ``protocol`` on ``url``: ``"native"``, ``"fispec"`` (serial ports and
+    pyserial URLs) or ``"hyperion"`` (``hyperion://HOST[:PORT]``, which also selects it when
+    ``protocol`` is ``None``; ``peak_map`` is its :class:`~fbgforce.interrogator.hyperion.PeakMap`).
+    """
+    if protocol is None:
+        protocol = "hyperion" if url.startswith("hyperion://") else "native"
+    if protocol == "hyperion" or url.startswith("hyperion://"):
+        if protocol != "hyperion":
+            raise ValueError(f"a hyperion:// source speaks the hyperion protocol, not {protocol!r}")
+        return HyperionReader(url, peak_map=peak_map, reconnect=reconnect)
     if protocol == "native":
         return NativeReader(url, channels=channels, baudrate=baudrate, reconnect=reconnect)
     if protocol == "fispec":
