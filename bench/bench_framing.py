@@ -51,6 +51,16 @@ def _walk(n: int, rng: np.random.Generator) -> np.ndarray:
     return base + np.cumsum(steps, axis=0)
 
 
+def _chunks(data: bytes, rng: np.random.Generator) -> list[bytes]:
+    """``data`` cut into random pieces of 1..4096 bytes (how reads return a stream)."""
+    sizes = rng.integers(1, 4097, size=len(data) // 1024 + 8)
+    while sizes.sum() < len(data):
+        sizes = np.concatenate([sizes, rng.integers(1, 4097, size=len(data) // 1024 + 8)])
+    ends = np.minimum(np.cumsum(sizes), len(data))
+    starts = np.concatenate([[0], ends[:-1]])
+    return [data[a:b] for a, b in zip(starts.tolist(), ends.tolist()) if b > a]
+
+
 def _score(delivered: list[P.Frame], truth: Callable[[int], P.Frame | None], lost_reported: int,
            intact: int, n: int, seconds: float, **extra: Any) -> dict[str, Any]:
     good = wrong = 0
@@ -116,14 +126,9 @@ def run_native(n: int, seed: int = 0, version: int = P.PROTOCOL_VERSION, gate: b
     dec = P.FrameDecoder(CHANNELS, P.FrameGate() if gate else None)
     got: list[P.Frame] = []
     t0 = time.perf_counter()
-    pos = 0
     data = bytes(line)
-    cuts = rng.integers(1, 4097, size=len(data) // 512 + 2)
-    for c in cuts:
-        if pos >= len(data):
-            break
-        got += dec.feed(data[pos:pos + int(c)])
-        pos += int(c)
+    for chunk in _chunks(data, rng):
+        got += dec.feed(chunk)
     dec.flush()
     seconds = time.perf_counter() - t0
     if gate:
@@ -285,16 +290,10 @@ def run_hyperion(n: int, seed: int = 0, fault_rate: float = 0.3) -> dict[str, An
     t0 = time.perf_counter()
     for s_index, data in enumerate(sessions):
         dec = H.PeakStreamDecoder()  # each connection starts at a message boundary
-        pos = 0
-        cuts = rng.integers(1, 4097, size=len(data) // 512 + 2)
-        for c in cuts:
-            if pos >= len(data):
-                break
-            for msg in dec.feed(bytes(data[pos:pos + int(c)])):
-                frame = mapping.frame(msg)
-                for f in reader_gate.push(frame) or []:
+        for chunk in _chunks(bytes(data), rng):
+            for msg in dec.feed(chunk):
+                for f in reader_gate.push(mapping.frame(msg)) or []:
                     got.append((s_index, f))
-            pos += int(c)
         dec.flush()
     seconds = time.perf_counter() - t0
     # Match delivered frames to what was sent by timestamp (a restart reuses serial numbers,
