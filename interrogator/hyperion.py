@@ -27,7 +27,7 @@ import struct
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Sequence
 from urllib.parse import parse_qs, urlsplit
 
 import numpy as np

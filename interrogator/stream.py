@@ -122,6 +122,12 @@ class LiveEstimator:
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
 
 
+def _bad_frames(stats: dict[str, int]) -> int:
+    """Frames received but not delivered for being damaged or implausible."""
+    return sum(stats.get(k, 0) for k in ("crc_errors", "header_errors", "bad_replies",
+                                         "implausible_frames"))
+
+
 def _empty() -> dict[str, np.ndarray]:
     return {k: np.zeros(0) for k in OUTPUT_KEYS}
 
@@ -159,7 +165,7 @@ class StatusLine:
             text = (f"{self.rate_hz:7.1f} Hz  contact {int(last['contact'])} "
                     f"({last['p_contact']:.2f})  F {last['force_N']:7.2f} N  "
                     f"x {x:6.2f} mm  y {y:6.2f} mm  lost {stats.get('lost_frames', 0)}  "
-                    f"bad {stats.get('crc_errors', 0) + stats.get('header_errors', 0) + stats.get('bad_replies', 0)}")
+                    f"bad {_bad_frames(stats)}")
         if self.tty:
             self.stream.write("\r" + text + "\x1b[K")
         else:
@@ -243,8 +249,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "duration_s": round(span, 3),
         "rate_hz": round((n + len(waiting) - 1) / span, 1) if span > 0 else 0.0,
         "lost_frames": stats.get("lost_frames", 0),
-        "bad_frames": stats.get("crc_errors", 0) + stats.get("header_errors", 0)
-        + stats.get("bad_replies", 0) + stats.get("implausible_frames", 0),
+        "bad_frames": _bad_frames(stats),
         "engine": estimator.engine,
         "baseline_nm": None if estimator.baseline_nm is None else estimator.baseline_nm.tolist(),
         "contact_fraction": contact_n / n if n else 0.0,
