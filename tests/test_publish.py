@@ -250,3 +250,27 @@ def test_publish_bad_url_exits_2(tmp_path, small_exported_dir, capsys):
     assert main(["stream", "--source", "loop://", "--model", str(small_exported_dir),
                  "--publish", "tcp://x:1"]) == 2
     assert "--publish" in capsys.readouterr().err
+
+
+def test_float_engine_estimates_are_rounded_to_the_datagram_units():
+    est = {"status": np.array([0, 8], dtype=np.uint32), "contact": np.array([True, False]),
+           "p_contact": np.array([0.75, 0.01]), "force_N": np.array([12.3456, 0.0]),
+           "x_mm": np.array([10.0004, np.nan]), "y_mm": np.array([13.5006, np.nan])}
+    ints = U.estimate_integers(est)
+    assert ints["contact_conf_q15"].tolist() == [24576, 328]
+    assert ints["force_mN"].tolist() == [12346, 0]
+    assert ints["x_um"].tolist() == [10000, 0] and ints["y_um"].tolist() == [13501, 0]
+    rec = U.decode_datagram(U.encode_datagrams(0, [P.Frame(3, -1, (0,) * 5)] * 2, est)[1])
+    assert rec is not None and int(rec["status"]) == 8 and int(rec["t_us"]) == -1
+
+
+def test_lcm_type_ships_with_the_package():
+    from importlib import resources
+
+    files = resources.files("fbgforce.interrogator.lcmtypes")
+    assert files.joinpath("estimate_t.lcm").is_file()
+    from fbgforce.interrogator.lcmtypes.estimate_t import estimate_t
+
+    m = estimate_t()
+    m.force_mN, m.sample_seq = 1234, 2**32 - 1
+    assert estimate_t.decode(m.encode()).force_mN == 1234

@@ -49,7 +49,7 @@ def test_frame_v2_layout_crc32_and_both_versions_read():
     assert P.crc32(b"123456789") == 0xCBF43926
     assert struct.unpack_from("<I", f, 36)[0] == P.crc32(f[:36])
     assert f.hex() == ("a55a0205040302018877665544332211" "5058295cffffffff00000000ffffff7f"
-                       "00000080" + f[36:].hex())
+                       "000000806e34fea8")  # the example in docs/protocol.md
     v1 = P.encode_frame(7, 8, [1, 2, 3, 4, 5], version=1)
     assert [fr.seq for fr in P.FrameDecoder(5).feed(v1 + v1[:3])] == [7]  # old devices still read
     # After the first good frame the stream is locked on its version: a v1 frame amid v2 ones is
