@@ -172,3 +172,57 @@ def test_peak_map_from_model_metadata_and_bad_options(tmp_path, small_exported_d
     assert main(["stream", "--source", "hyperion://127.0.0.1:1", "--model", str(model_dir),
                  "--protocol", "native"]) == 2
     assert main(["emulate", "--scene", "smoke", "--protocol", "hyperion", "--link", "x"]) == 2
+
+
+def test_reader_reopens_a_stream_that_is_out_of_step(playback):
+    """A peak stream whose header makes no sense cannot be resynchronised (no sync word): the
+    reader counts a header error, closes and reconnects, and goes on from the new connection."""
+    import socket
+    import threading
+
+    cmd = E.HyperionEmulator(playback, command_port=0, stream_port=0, wait_client=False,
+                             linger=0.0)  # serves the commands the reader asks on connect
+    srv = socket.socket()
+    srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(2)
+    wl = [1530.0, 1535.0, 1540.0, 1545.0, 1550.0]
+
+    def message(k: int) -> bytes:
+        return H.encode_stream_message(H.encode_peaks(k, 1, k * 1_000_000, [wl, [], [], []]))
+
+    def serve() -> None:
+        conn, _ = srv.accept()
+        conn.sendall(message(0) + message(1) + b"\x07" * 8 + message(2))  # nonsense, then more
+        conn2, _ = srv.accept()
+        conn2.sendall(message(3) + message(4))
+        time.sleep(0.5)
+        conn.close()
+        conn2.close()
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    stop = threading.Event()
+
+    def commands() -> None:
+        while not stop.is_set():
+            cmd._service(0.01)
+
+    tc = threading.Thread(target=commands, daemon=True)
+    tc.start()
+    rd = H.HyperionReader(f"hyperion://127.0.0.1:{cmd.command_port}?stream="
+                          f"{srv.getsockname()[1]}")
+    got = []
+    try:
+        t0 = time.monotonic()
+        while len(got) < 4 and time.monotonic() - t0 < 5:
+            got += rd.read(0.02)
+    finally:
+        rd.close()
+        stop.set()
+        tc.join(2)
+        cmd.close()
+        srv.close()
+    s = rd.stats()
+    assert [f.seq for f in got] == [0, 1, 3, 4]
+    assert s["header_errors"] == 1 and s["reconnects"] == 1 and s["lost_frames"] == 1
