@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from fbgforce import dataset as fds
-    from fbgforce.bench.tradeoff import timing_samples
+    from fbgforce.tradeoff.timers import timing_samples
     from fbgforce.pybind import Runtime, to_fm
     from fbgforce.tare import tare
 

@@ -1,43 +1,51 @@
 """The ``model.fbgm`` blob: the fixed-point model as the C runtime loads it (zero copy).
 
-Layout (little-endian; docs/model-format.md is the normative description)::
+Layout (little-endian; docs/model-format.md is the normative description; the field list is
+:data:`fbgforce.contract.PARAMS`)::
 
     0   "FBGM"                     magic
-    4   u16 version (3)            FBG_BLOB_VERSION
-    6   u16 flags (0)
+    4   u16 version                FBG_BLOB_VERSION
+    6   u16 flags                  0 (a non-zero flag is a format this library does not know)
     8   u32 total_len              bytes of the whole blob, a multiple of 8
     12  u32 crc32                  zlib CRC-32 of bytes [16, total_len)
-    16  parameter block (128 bytes, see _PARAMS) -> offset 144
-    144 layer table: 8 bytes per layer, nets in order contact, force, location:
-        u16 n_in, u16 n_out, u8 w_bits, u8 shift, u8 acc32 (0: int64, 1: int32), u8 reserved (0)
+    16  parameter block            contract.PARAMS in order, zero-padded to a multiple of 8
+    ..  layer table: 8 bytes per layer, nets in order contact, force, location:
+        u16 n_in, u16 n_out, u8 w_bits, u8 shift, u8 acc32 (0: int64, 1: int32), u8 0
     then arrays, each starting at a multiple of 8 (zero padding):
         taps int16[n_taps]; per layer: weights int16|int8[n_out*n_in] (row-major),
         bias int64[n_out], mult int32[n_out]
     total_len = end of the last array rounded up to 8
+
+:func:`from_bytes` applies the C loader's checks (runtime_c/src/fbg_blob.c) in the C loader's
+order and reports the same ``FBG_ERR_*`` code, so both readers give every blob one verdict
+(tests/test_blob_verdict.py).
 """
 from __future__ import annotations
 
-import struct
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce.errors import InputError
-from fbgforce.export.quantize import NET_NAMES, QLayer, QModel
+from fbgforce.export.quantize import NET_NAMES, ModelCheckError, QLayer, QModel
 
-MAGIC = b"FBGM"
-VERSION = 3
-HEADER = struct.Struct("<4sHHII")
-#: baseline_fm[5], jump_max_fm, temp_coeff_q24[4], mean_fm[4], z_mult[4], fq_mult,
-#: force_offset_mN, xy_offset_um[2], overload_mN, load_coeff[4], load_max_mN | n_taps, tap_q,
-#: z_frac, z_shift, fq_shift, load_shift, n_layers[3], stuck_max, pad[4]
-_PARAMS = struct.Struct("<5ii4i4i4iii2ii4ii" + "HBBBBB3BH4x")
-PARAMS_END = HEADER.size + _PARAMS.size
-LAYER_ENTRY = struct.Struct("<HHBBBB")
-FILE_NAME = "model.fbgm"
+MAGIC = contract.MAGIC
+VERSION = contract.LIMIT["BLOB_VERSION"]
+HEADER = contract.HEADER
+PARAMS_END = contract.PARAMS_END
+LAYER_ENTRY = contract.LAYER_ENTRY
+FILE_NAME = contract.BLOB_FILE
+MAX_WIDTH = contract.LIMIT["MAX_WIDTH"]
 
-assert PARAMS_END == 144
+
+class BlobError(InputError):
+    """A blob the C loader refuses; ``code`` is the ``FBG_ERR_*`` name it returns."""
+
+    def __init__(self, code: str, reason: str, path: str | None = None) -> None:
+        self.code = code
+        super().__init__(f"{reason} ({code})", path=path)
 
 
 def _pad8(buf: bytearray) -> None:
@@ -47,12 +55,7 @@ def _pad8(buf: bytearray) -> None:
 def to_bytes(q: QModel) -> bytes:
     """Serialise a quantised model (it is checked first)."""
     q.check()
-    body = bytearray(_PARAMS.pack(
-        *q.baseline_fm.tolist(), q.jump_max_fm, *q.temp_coeff_q24.tolist(), *q.mean_fm.tolist(),
-        *q.z_mult.tolist(), q.fq_mult, q.force_offset_mN, *q.xy_offset_um.tolist(), q.overload_mN,
-        *q.load_coeff.tolist(), q.load_max_mN,
-        q.taps.size, q.tap_q, q.z_frac, q.z_shift, q.fq_shift, q.load_shift,
-        *[len(net) for net in q.nets], q.stuck_max))
+    body = bytearray(contract.encode_params(q.params()))
     for net in q.nets:
         for layer in net:
             body += LAYER_ENTRY.pack(layer.n_in, layer.n_out, layer.w_bits, layer.shift,
@@ -75,77 +78,92 @@ def to_bytes(q: QModel) -> bytes:
 
 
 def from_bytes(data: bytes, path: str | None = None) -> QModel:
-    """Parse a blob into a :class:`QModel` (pure Python; same checks as the C loader, with
-    InputError messages instead of codes)."""
-    def bad(why: str) -> InputError:
-        return InputError(why, path=path)
+    """Parse and check a blob into a :class:`QModel`, raising :class:`BlobError` with the code
+    the C loader (``fbg_model_from_blob``) returns for the same bytes."""
+    def bad(code: str, why: str) -> BlobError:
+        return BlobError(code, why, path=path)
 
     if len(data) < HEADER.size:
-        raise bad("truncated: shorter than the 16-byte header")
-    magic, version, _flags, total, crc = HEADER.unpack_from(data)
+        raise bad("ERR_TRUNCATED", "truncated: shorter than the 16-byte header")
+    magic, version, flags, total, crc = HEADER.unpack_from(data)
     if magic != MAGIC:
-        raise bad(f"not an fbgforce model blob (magic {magic!r})")
-    if version != VERSION:
-        raise bad(f"blob format version {version} is not supported (this fbgforce reads {VERSION})")
+        raise bad("ERR_BAD_MAGIC", f"not an fbgforce model blob (magic {magic!r})")
+    if version != VERSION or flags != 0:
+        raise bad("ERR_VERSION", f"blob format version {version} flags {flags} is not supported "
+                                 f"(this fbgforce reads version {VERSION}, flags 0)")
     if total > len(data):
-        raise bad(f"truncated: declares {total} bytes, has {len(data)}")
+        raise bad("ERR_TRUNCATED", f"truncated: declares {total} bytes, has {len(data)}")
     if total < PARAMS_END:
-        raise bad("declared length smaller than the parameter block")
+        raise bad("ERR_SIZE", "declared length smaller than the parameter block")
     if zlib.crc32(data[HEADER.size:total]) & 0xFFFFFFFF != crc:
-        raise bad("CRC-32 mismatch: the blob is corrupt")
-    p = _PARAMS.unpack_from(data, HEADER.size)
-    baseline, jump, tc, mean, zm = p[0:5], p[5], p[6:10], p[10:14], p[14:18]
-    fq_mult, f_off, xy_off, overload = p[18], p[19], p[20:22], p[22]
-    load_coeff, load_max = p[23:27], p[27]
-    n_taps, tap_q, z_frac, z_shift, fq_shift, load_shift = p[28:34]
-    n_layers, stuck_max = p[34:37], p[37]
+        raise bad("ERR_CRC", "CRC-32 mismatch: the blob is corrupt")
+    block = data[HEADER.size:PARAMS_END]
+    p = contract.decode_params(block)
+    if any(block[contract.PARAMS_STRUCT.size:]):
+        raise bad("ERR_RANGE", "non-zero padding after the parameter block")
+    problem = contract.check_params(p)
+    if problem is not None:
+        raise bad(*problem)
+
     off = PARAMS_END
     shapes = []
-    for name, nl in zip(NET_NAMES, n_layers):
+    for name, n_layers in zip(NET_NAMES, p["n_layers"]):  # type: ignore[arg-type]
         rows = []
-        for _ in range(nl):
+        for _ in range(n_layers):
             if off + LAYER_ENTRY.size > total:
-                raise bad(f"{name}: layer table runs past the end")
-            entry = LAYER_ENTRY.unpack_from(data, off)
-            if entry[4] not in (0, 1) or entry[5] != 0:
-                raise bad(f"{name}: layer table flags {entry[4]}/{entry[5]} (acc32 must be 0 or 1)")
-            rows.append(entry[:5])
+                raise bad("ERR_SIZE", f"{name}: layer table runs past the declared length")
+            n_in, n_out, w_bits, shift, acc32, zero = LAYER_ENTRY.unpack_from(data, off)
+            if zero != 0 or acc32 > 1:
+                raise bad("ERR_RANGE", f"{name}: layer table acc32 {acc32} / reserved {zero}")
             off += LAYER_ENTRY.size
+            if not (1 <= n_in <= MAX_WIDTH and 1 <= n_out <= MAX_WIDTH):
+                raise bad("ERR_SHAPE", f"{name}: layer {n_in} x {n_out} beyond 1..{MAX_WIDTH}")
+            if w_bits not in (8, 16):
+                raise bad("ERR_RANGE", f"{name}: weight width {w_bits} is neither 8 nor 16")
+            rows.append((n_in, n_out, w_bits, shift, acc32))
         shapes.append(rows)
 
-    def take(dtype: str, count: int) -> np.ndarray:
+    def take(nbytes: int) -> int:
+        """Claim nbytes at off and the zero padding after them; returns their offset."""
         nonlocal off
-        off += -off % 8
-        size = np.dtype(dtype).itemsize * count
-        if off + size > total:
-            raise bad("array runs past the declared length")
-        arr = np.frombuffer(data, dtype=dtype, count=count, offset=off).astype(np.int64)
-        off += size
-        return arr
+        end = off + nbytes + (-(off + nbytes) % 8)
+        if off + nbytes > total or end > total:
+            raise bad("ERR_SIZE", "array runs past the declared length")
+        if any(data[off + nbytes:end]):
+            raise bad("ERR_RANGE", "non-zero padding between arrays")
+        start, off = off, end
+        return start
 
-    taps = take("<i2", n_taps)
+    def array(dtype: str, count: int) -> np.ndarray:
+        start = take(np.dtype(dtype).itemsize * count)
+        return np.frombuffer(data, dtype=dtype, count=count, offset=start).astype(np.int64)
+
+    take(0)  # the layer table's padding
+    taps = array("<i2", int(p["n_taps"]))  # type: ignore[arg-type]
     nets = []
     for rows in shapes:
         layers = []
         for n_in, n_out, w_bits, shift, acc32 in rows:
-            if w_bits not in (8, 16):
-                raise bad(f"weight width {w_bits} is neither 8 nor 16")
-            w = take("<i2" if w_bits == 16 else "i1", n_in * n_out).reshape(n_out, n_in)
-            layers.append(QLayer(w, w_bits, take("<i8", n_out), take("<i4", n_out), shift,
+            w = array("<i2" if w_bits == 16 else "i1", n_in * n_out).reshape(n_out, n_in)
+            layers.append(QLayer(w, w_bits, array("<i8", n_out), array("<i4", n_out), shift,
                                  acc32=bool(acc32)))
         nets.append(layers)
-    off += -off % 8
     if off != total:
-        raise bad(f"declared length {total} differs from the {off} bytes the shapes imply")
-    q = QModel(baseline_fm=baseline, jump_max_fm=jump, temp_coeff_q24=tc, taps=taps, tap_q=tap_q,
-               mean_fm=mean, z_mult=zm, z_shift=z_shift, z_frac=z_frac, fq_mult=fq_mult,
-               fq_shift=fq_shift, force_offset_mN=f_off, xy_offset_um=xy_off,
-               overload_mN=overload, nets=nets, load_coeff=load_coeff, load_shift=load_shift,
-               load_max_mN=load_max, stuck_max=stuck_max)
+        raise bad("ERR_SIZE", f"declared length {total} differs from the {off} bytes the shapes imply")
+    q = QModel(baseline_fm=p["baseline_fm"], jump_max_fm=p["jump_max_fm"],
+               temp_coeff_q24=p["temp_coeff_q24"], taps=taps, tap_q=p["tap_q"],
+               mean_fm=p["mean_fm"], z_mult=p["z_mult"], z_shift=p["z_shift"],
+               z_frac=p["z_frac"], fq_mult=p["fq_mult"], fq_shift=p["fq_shift"],
+               force_offset_mN=p["force_offset_mN"], xy_offset_um=p["xy_offset_um"],
+               overload_mN=p["overload_mN"], nets=nets, load_coeff=p["load_coeff"],
+               load_shift=p["load_shift"], load_max_mN=p["load_max_mN"],
+               stuck_max=p["stuck_max"], n_ema=p["n_ema"], n_play=p["n_play"],
+               ema_shift=p["ema_shift"], ema_gain=p["ema_gain"], play_gain=p["play_gain"],
+               play_width=p["play_width"], writer_version=p["writer_version"])
     try:
         q.check()
-    except ValueError as exc:
-        raise bad(str(exc)) from exc
+    except ModelCheckError as exc:
+        raise bad(exc.code, str(exc)) from exc
     return q
 
 

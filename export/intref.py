@@ -13,15 +13,20 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export.quantize import SAT16, SAT32, TEMP_COEFF_SHIFT, WL_MAX_FM, WL_MIN_FM, QLayer, QModel
+from fbgforce.units import nm_to_fm, to_engine_dict
 
-# Status flags of fbgforce.h.
-STATUS_NOT_TARED = 0x01
-STATUS_SATURATED = 0x02
-STATUS_OVERLOAD = 0x04
-STATUS_SENSOR_FAULT = 0x08
-STATUS_WARMUP = 0x10
+STATUS_NOT_TARED = contract.STATUS_FLAG["NOT_TARED"]
+STATUS_SATURATED = contract.STATUS_FLAG["SATURATED"]
+STATUS_OVERLOAD = contract.STATUS_FLAG["OVERLOAD"]
+STATUS_SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
+STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
+EMA_FRAC = contract.LIMIT["EMA_FRAC"]
+
+__all__ = ["run", "run_recording", "memory_features", "rshift_round", "sat", "sigmoid_q15",
+           "nm_to_fm", "to_engine_dict"]
 
 #: round(32768 / (1 + exp(-x))) at x = -8, -7.875, ..., 8, clamped to 32767: the same literal
 #: table as runtime_c/src/fbg_fixed.c (a test checks both against the formula and each other).
@@ -62,17 +67,6 @@ def sigmoid_q15(x_q8: np.ndarray) -> np.ndarray:
     out = lo + (((hi - lo) * frac + 16) >> 5)
     out = np.where(x <= -2048, SIGMOID_Q15_TABLE[0], out)
     return np.where(x >= 2048, SIGMOID_Q15_TABLE[128], out)
-
-
-def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
-    """Wavelengths nm (float) -> int32 femtometres as the runtime receives them.
-
-    Rounded to nearest (ties to even); NaN/inf (a lost peak) -> 0; clipped to the int32 range.
-    Every engine converts through this one function, so all see the same integers.
-    """
-    x = np.asarray(wl_nm, dtype=np.float64) * 1e6
-    x = np.where(np.isfinite(x), x, 0.0)
-    return np.clip(np.rint(x), -SAT32, SAT32).astype(np.int32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -130,6 +124,39 @@ def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | No
     y, clamped = sat(rshift_round(acc * last.mult, last.shift), SAT32)
     flag |= clamped.any(axis=1)
     return acc, y
+
+
+def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``memory_features`` of fbg_fixed.c on the consecutive fault-free samples ``z`` (m, 4)
+    of one recording (the states are primed with the first and never see a faulty sample).
+
+    Returns the net inputs (m, F) and, per sample, whether a feature saturated.
+    """
+    z = np.asarray(z, dtype=np.int64)
+    m = z.shape[0]
+    feats = np.zeros((m, q.n_features), dtype=np.int64)
+    feats[:, :4] = z
+    if m == 0 or q.n_ema + q.n_play == 0:
+        return feats, np.zeros(m, dtype=bool)
+    shifts = q.ema_shift[:q.n_ema, None]
+    halves = np.int64(1) << (shifts - 1)
+    widths = q.play_width[:q.n_play, None]
+    ema = np.repeat(z[:1] << EMA_FRAC, q.n_ema, axis=0)          # (n_ema, 4)
+    play = np.repeat(z[:1], q.n_play, axis=0)                    # (n_play, 4)
+    ema_mean = np.zeros((m, q.n_ema, 4), dtype=np.int64)
+    play_state = np.zeros((m, q.n_play, 4), dtype=np.int64)
+    for i in range(m):
+        zi = z[i]
+        ema = ema + ((((zi << EMA_FRAC) - ema) + halves) >> shifts)
+        play = np.minimum(np.maximum(play, zi - widths), zi + widths)
+        ema_mean[i] = ema
+        play_state[i] = play
+    d_ema = (z[:, None, :] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema, None]
+    d_play = (z[:, None, :] - play_state) << q.play_gain[:q.n_play, None]
+    raw = np.concatenate([d_ema.reshape(m, -1), d_play.reshape(m, -1)], axis=1)
+    clipped, clamped = sat(raw, SAT16)
+    feats[:, 4:] = clipped
+    return feats, clamped.any(axis=1)
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
@@ -205,8 +232,14 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     out = {k: np.zeros(n, dtype=np.int64) for k in
            ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
     rows = np.flatnonzero(ok)
+    # 4. Memory features on the fault-free samples, in order.
+    x, c_mem = memory_features(q, z[rows])
+    flag[rows] |= c_mem
+    feats = np.zeros((n, q.n_features), dtype=np.int64)
+    feats[rows] = x
+    z = feats
     if rows.size:
-        # 4. Contact net.
+        # 5. Contact net.
         f_ok = np.zeros(rows.size, dtype=bool)
         acc_c, margin = _net(q.nets[0], z[rows], f_ok, trace, "contact")
         contact = acc_c[:, 0] > 0
@@ -216,7 +249,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         flag[rows] |= f_ok
         crow = rows[contact]
         if crow.size:
-            # 5. Force net, 6. location net on [z, contact << z_frac, quantised force].
+            # 6. Force net, 7. location net on [features, contact << z_frac, quantised force].
             f_c = np.zeros(crow.size, dtype=bool)
             _, force_out = _net(q.nets[1], z[crow], f_c, trace, "force")
             force_out = force_out[:, 0]
@@ -235,19 +268,6 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
     return out
-
-
-def to_engine_dict(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Fixed-point outputs -> the engine keys of fbgforce.engines (SI-ish units, NaN gating)."""
-    contact = np.asarray(out["contact"]).astype(bool)
-    return {
-        "contact": contact,
-        "p_contact": np.asarray(out["contact_conf_q15"], dtype=np.float64) / 32768.0,
-        "force_N": np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
-        "x_mm": np.where(contact, np.asarray(out["x_um"], dtype=np.float64) / 1000.0, np.nan),
-        "y_mm": np.where(contact, np.asarray(out["y_um"], dtype=np.float64) / 1000.0, np.nan),
-        "status": np.asarray(out["status"], dtype=np.uint32),
-    }
 
 
 def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,

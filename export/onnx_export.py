@@ -3,7 +3,7 @@
 The graph holds the part of :mod:`fbgforce.model`'s pipeline after preprocessing: the three
 nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float32::
 
-    z [N,4] ─► contact_net ─► contact_logits [N,2] ─► hierarchy/contact (logit1 > logit0)
+    z [N,F] ─► contact_net ─► contact_logits [N,2] ─► hierarchy/contact (logit1 > logit0)
       │                                                    │
       ├──────► force_net ─► f [N,1] ──► hierarchy/force_scale ─► force_N [N]
       │                       │                            │
@@ -16,9 +16,10 @@ flag as 0/1 and the force net's *unscaled* output ``f``. The outputs ``force_N``
 "no contact"; the caller gates them with the ``contact`` output (``run_recording`` does). This
 keeps the graph free of NaN constants and lets a user see what the nets say near the threshold.
 
-Tare, temperature compensation, filtering and standardisation stay outside the graph: they are
-recording-level operations done in float64 by :mod:`fbgforce.model` (the C runtime does them
-in fixed point).
+Tare, temperature compensation, filtering, standardisation and the memory features stay
+outside the graph: they are recording-level (recursive) operations done in float64 by
+:mod:`fbgforce.model` (the C runtime does them in fixed point); the graph's input ``z`` is the
+whole feature vector, ``[N, F]`` with F = 4 without memory.
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from fbgforce import __version__
 from fbgforce.errors import InputError
-from fbgforce.model import N_STRAIN, HierarchicalModel, MLP, features
+from fbgforce.model import HierarchicalModel, MLP, features
 
 #: File name of the exported graph inside a model directory.
 ONNX_FILE = "model.onnx"
@@ -143,8 +144,9 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     node("Squeeze", [y2, axis1], "y_mm", "hierarchy/y_out")
 
     inputs = [helper.make_tensor_value_info(
-        INPUT_NAME, TensorProto.FLOAT, [_BATCH, N_STRAIN],
-        doc_string="standardised features: (filtered compensated shift - input_mean) / input_std")]
+        INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_features],
+        doc_string="net inputs: standardised features (filtered compensated shift - input_mean) / "
+                   "input_std, then the memory features (fbgforce.model.memory_features)")]
     outputs = [
         helper.make_tensor_value_info("contact_logits", TensorProto.FLOAT, [_BATCH, 2],
                                       doc_string="contact net logits; index 1 is 'contact'"),
@@ -255,7 +257,7 @@ def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path 
                  ) -> dict[str, np.ndarray]:
     """Run the graph on standardised features ``z`` (n, 4); returns the raw (ungated) outputs."""
     sess = session_for(model, model_dir)
-    z32 = np.ascontiguousarray(np.asarray(z).reshape(-1, N_STRAIN), dtype=np.float32)
+    z32 = np.ascontiguousarray(np.asarray(z).reshape(-1, model.preprocess.n_features), dtype=np.float32)
     values = sess.run(list(OUTPUT_NAMES), {INPUT_NAME: z32})
     return dict(zip(OUTPUT_NAMES, values))
 

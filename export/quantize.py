@@ -28,20 +28,20 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.errors import InputError
+from fbgforce.units import nm_to_fm
 
-# Constants shared with runtime_c/include/fbgforce.h (tests compare them with the C values).
-SAT16 = 32767
-SAT32 = 2**31 - 1
-TEMP_COEFF_SHIFT = 24
-MAX_TAPS = 64
-MAX_WIDTH = 128
-MAX_LAYERS = 8
-WL_MIN_FM = 1_000_000_000
-WL_MAX_FM = 2_000_000_000
-NET_NAMES = fm.NET_NAMES
-NET_OUTPUTS = {"contact": 1, "force": 1, "location": 2}
+SAT16 = contract.SAT16
+SAT32 = contract.SAT32
+TEMP_COEFF_SHIFT = contract.LIMIT["TEMP_COEFF_SHIFT"]
+MAX_TAPS = contract.LIMIT["MAX_TAPS"]
+MAX_WIDTH = contract.LIMIT["MAX_WIDTH"]
+WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
+WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
+NET_NAMES = contract.NET_NAMES
+NET_OUTPUTS = {net.name: net.fixed_outputs for net in contract.NETS}
 
 #: Calibration maximum of the net inputs times this must fit int16. 25 % above the
 #: calibration range, like the activations: a press well beyond it (where the nets extrapolate
@@ -59,13 +59,25 @@ PRODUCT_LIMIT = 2**62
 #: for an int32 accumulator (docs/fixed-point.md, "int32 layers").
 ACC32_MAX_DROP = 6.0
 #: |load_coeff| limit (four int32 x int32 products must sum inside int64 with margin).
-LOAD_COEFF_LIMIT = 2**28
+LOAD_COEFF_LIMIT = contract.LIMIT["LOAD_COEFF_LIMIT"]
+#: |bias| limit of fbg_model_check, so that the accumulator bound cannot overflow int64 itself.
+BIAS_LIMIT = 2**60
+
+
+class ModelCheckError(ValueError):
+    """A model the C runtime refuses: ``code`` is the ``FBG_ERR_*`` name it returns."""
+
+    def __init__(self, code: str, reason: str) -> None:
+        self.code = code
+        super().__init__(reason)
 #: Stuck-peak rule defaults: at least this many identical samples, and off when the
 #: calibration data itself repeats values this long (noise-free data).
 STUCK_MIN = 25
 STUCK_OFF_RUN = 1000
 #: Default for the sensor-fault jump rule, nm per sample.
-DEFAULT_JUMP_NM = 2.0
+DEFAULT_JUMP_NM = contract.DEFAULT_JUMP_NM
+#: Default OVERLOAD threshold: this factor above the largest calibration force.
+OVERLOAD_MARGIN = 1.02
 
 
 @dataclass
@@ -116,6 +128,36 @@ class QLayer:
         return np.maximum(pos, neg) * SAT16 + np.abs(self.bias)
 
 
+def check_layer(layer: QLayer, relu_inputs: bool, where: str) -> None:
+    """``check_layer`` of runtime_c/src/fbg_model.c, rule for rule and in its order, in
+    Python integers (numpy's int64 ``abs`` would wrap at INT64_MIN)."""
+    def need(cond: bool, code: str, what: str) -> None:
+        if not cond:
+            raise ModelCheckError(code, f"{where}: {what}")
+
+    need(1 <= layer.n_in <= MAX_WIDTH and 1 <= layer.n_out <= MAX_WIDTH, "ERR_SHAPE",
+         f"width above {MAX_WIDTH}")
+    need(layer.w_bits in (8, 16), "ERR_RANGE", f"weight width {layer.w_bits}")
+    need(1 <= layer.shift <= 62 and layer.acc32 in (0, 1), "ERR_RANGE", "shift or acc32 out of range")
+    qmax = 127 if layer.w_bits == 8 else 32767
+    need(bool(np.all(np.abs(layer.w) <= qmax + 1)), "ERR_RANGE", f"weights exceed int{layer.w_bits}")
+    mults = [int(m) for m in layer.mult]
+    need(all(abs(m) <= SAT32 for m in mults), "ERR_RANGE", "multiplier out of int32 (or INT32_MIN)")
+    half = 1 << (layer.shift - 1)
+    for r in range(layer.n_out):
+        row = [int(v) for v in layer.w[r]]
+        b = int(layer.bias[r])
+        need(abs(b) < BIAS_LIMIT, "ERR_BOUND", f"row {r}: |bias| >= 2^60")
+        sumw = sum(abs(v) for v in row)
+        bound = sumw * SAT16 + abs(b)
+        if layer.acc32:
+            pos = sum(v for v in row if v > 0)
+            b32 = max(pos, sumw - pos) * SAT16 + abs(b) if relu_inputs else bound
+            need(b32 <= SAT32, "ERR_BOUND", f"row {r}: int32 accumulator but the bound exceeds int32")
+        need(bound * abs(mults[r]) + half <= 2**63 - 1, "ERR_BOUND",
+             f"row {r}: accumulator bound exceeds int64")
+
+
 @dataclass
 class QModel:
     """The fixed-point model (``fbg_model`` in C); see runtime_c/include/fbgforce.h."""
@@ -141,14 +183,42 @@ class QModel:
     load_max_mN: int = SAT32
     #: Stuck-peak rule (fbg_model.stuck_max): 0 disables it.
     stuck_max: int = 0
+    #: Memory (fbg_model.n_ema ...): entries beyond n_ema / n_play are 0.
+    n_ema: int = 0
+    n_play: int = 0
+    ema_shift: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
+    ema_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
+    play_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
+    play_width: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
+    #: Version of the library that wrote the blob (fbg_model.writer_version).
+    writer_version: int = contract.VERSION_CODE
 
     def __post_init__(self) -> None:
         for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
-                     "load_coeff"):
+                     "load_coeff", "ema_shift", "ema_gain", "play_gain", "play_width"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
-                     "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max"):
+                     "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
+                     "n_ema", "n_play", "writer_version"):
             setattr(self, name, int(getattr(self, name)))
+
+    @property
+    def n_features(self) -> int:
+        """Width of the contact and force nets' input (z and memory features)."""
+        return contract.n_features(self.n_ema, self.n_play)
+
+    def params(self) -> dict[str, Any]:
+        """The parameter block as :data:`fbgforce.contract.PARAMS` names it."""
+        values: dict[str, Any] = {}
+        for f in contract.PARAMS:
+            if f.name == "n_taps":
+                values[f.name] = int(self.taps.size)
+            elif f.name == "n_layers":
+                values[f.name] = tuple(len(net) for net in self.nets)
+            else:
+                v = getattr(self, f.name)
+                values[f.name] = tuple(int(x) for x in v) if f.count > 1 else int(v)
+        return values
 
     @property
     def w_bits(self) -> int:
@@ -156,47 +226,26 @@ class QModel:
         return max(layer.w_bits for net in self.nets for layer in net)
 
     def check(self) -> None:
-        """The checks of ``fbg_model_check`` (C), raising ValueError with the reason."""
-        def need(cond: bool, what: str) -> None:
+        """The checks of ``fbg_model_check`` (C), in its order: raises
+        :class:`ModelCheckError` with the code C returns for the first violated rule."""
+        def need(cond: bool, code: str, what: str) -> None:
             if not cond:
-                raise ValueError(what)
+                raise ModelCheckError(code, what)
 
-        need(self.baseline_fm.size == 5 and all(WL_MIN_FM <= b <= WL_MAX_FM for b in self.baseline_fm),
-             "baseline outside the 1000-2000 nm window")
-        need(self.jump_max_fm > 0, "jump_max_fm must be positive")
-        need(1 <= self.taps.size <= MAX_TAPS, f"1..{MAX_TAPS} taps")
-        need(np.all(np.abs(self.taps) <= SAT16 + 1) and np.all(self.taps >= -32768)
-             and np.all(self.taps <= 32767), "taps must be int16")
-        need(1 <= self.tap_q <= 15 and 0 <= self.z_frac <= 14 and 1 <= self.z_shift <= 62
-             and 1 <= self.fq_shift <= 62, "Q format or shift out of range")
-        for arr in (self.temp_coeff_q24, self.z_mult, self.mean_fm, self.xy_offset_um):
-            need(bool(np.all(np.abs(arr) <= SAT32)), "int32 parameter out of range")
-        need(abs(self.fq_mult) <= SAT32, "fq_mult out of range")
-        need(self.load_coeff.size == 4 and bool(np.all(np.abs(self.load_coeff) < LOAD_COEFF_LIMIT))
-             and 1 <= self.load_shift <= 62 and abs(self.load_max_mN) <= SAT32,
-             "load proxy out of range")
-        need(0 <= self.stuck_max <= 0xFFFF, "stuck_max must fit uint16")
-        ins = {"contact": 4, "force": 4, "location": fm.LOCATION_INPUTS}
+        bad = contract.check_params(self.params())
+        if bad is not None:
+            raise ModelCheckError(*bad)
+        need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
+             "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
-            need(1 <= len(net) <= MAX_LAYERS, f"{name}: 1..{MAX_LAYERS} layers")
-            need(net[0].n_in == ins[name] and net[-1].n_out == NET_OUTPUTS[name],
-                 f"{name}: wrong input/output width")
+            n_in = contract.net_inputs(name, self.n_ema, self.n_play)
+            need(net[0].n_in == n_in and net[-1].n_out == NET_OUTPUTS[name], "ERR_SHAPE",
+                 f"{name}: input/output width {net[0].n_in}/{net[-1].n_out}, expected "
+                 f"{n_in}/{NET_OUTPUTS[name]}")
             for i, layer in enumerate(net):
-                need(1 <= layer.n_in <= MAX_WIDTH and 1 <= layer.n_out <= MAX_WIDTH,
-                     f"{name} layer {i}: width above {MAX_WIDTH}")
-                need(i == 0 or layer.n_in == net[i - 1].n_out, f"{name} layer {i}: shape chain")
-                qmax = 127 if layer.w_bits == 8 else 32767
-                need(layer.w_bits in (8, 16) and bool(np.all(np.abs(layer.w) <= qmax + 1)),
-                     f"{name} layer {i}: weights exceed int{layer.w_bits}")
-                need(1 <= layer.shift <= 62, f"{name} layer {i}: shift out of range")
-                need(bool(np.all(np.abs(layer.mult) <= SAT32)), f"{name} layer {i}: multiplier")
-                bound = [int(b) * abs(int(m)) + (1 << (layer.shift - 1))
-                         for b, m in zip(layer.acc_bound(), layer.mult)]
-                need(bool(np.all(np.abs(layer.bias) < 2**60)) and max(bound) <= 2**63 - 1,
-                     f"{name} layer {i}: accumulator bound exceeds int64")
-                need(not layer.acc32 or int(layer.acc32_bound(i > 0).max()) <= SAT32,
-                     f"{name} layer {i}: int32 accumulator but the bound exceeds int32")
-
+                where = f"{name} layer {i}"
+                need(i == 0 or layer.n_in == net[i - 1].n_out, "ERR_SHAPE", f"{where}: shape chain")
+                check_layer(layer, i > 0, where)
 
 # --------------------------------------------------------------------------------------------
 # Choosing integers
@@ -266,8 +315,6 @@ class Calibration:
 def _longest_same_run(wl_nm: np.ndarray) -> int:
     """Longest run of consecutive samples repeating the previous value (in fm), any channel:
     the count the runtime's stuck-peak rule keeps."""
-    from fbgforce.export.intref import nm_to_fm
-
     x = nm_to_fm(wl_nm).astype(np.int64)
     if x.shape[0] < 2:
         return 0
@@ -330,7 +377,7 @@ def fit_load_proxy(model: fm.HierarchicalModel, calib: Calibration
     Returns ``(load_coeff (4,), load_shift, load_max_mN, info)``.
     """
     pre = model.preprocess
-    filt_fm = (calib.z * pre.input_std + pre.input_mean) * 1000.0
+    filt_fm = (calib.z[:, :fm.N_STRAIN] * pre.input_std + pre.input_mean) * 1000.0
     sel = calib.contact
     if sel.sum() < 8:
         return np.zeros(4, dtype=np.int64), 1, SAT32, {"fitted": False}
@@ -416,6 +463,21 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
     return wq, bq, mult, shift, info
 
 
+def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
+    """The memory's integers: shifts and gains as they are, play half-widths in Q(z_frac)."""
+    def padded(values: Sequence[int], size: int) -> np.ndarray:
+        out = np.zeros(size, dtype=np.int64)
+        out[:len(values)] = values
+        return out
+
+    widths = [min(SAT16, int(round(w * 2.0**z_frac))) for w in memory.play_widths]
+    return {"n_ema": len(memory.ema_shifts), "n_play": len(memory.play_widths),
+            "ema_shift": padded(memory.ema_shifts, contract.MAX_EMA),
+            "ema_gain": padded(memory.ema_gains, contract.MAX_EMA),
+            "play_gain": padded(memory.play_gains, contract.MAX_PLAY),
+            "play_width": padded(widths, contract.MAX_PLAY)}
+
+
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
              jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
              stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP
@@ -430,8 +492,8 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         Sensor-fault jump threshold (raised to twice the largest per-sample step seen in the
         calibration recordings, so that normal data never trips it).
     overload_N
-        FBG_STATUS_OVERLOAD threshold; default: the largest true force of the calibration
-        data if known, else the largest float force estimate.
+        FBG_STATUS_OVERLOAD threshold; default: the largest force of the calibration data,
+        true (if known) or as the float model estimates it on its contact samples.
     stuck_samples
         Stuck-peak rule: SENSOR_FAULT after this many identical consecutive values of a
         channel (0 = off). Default: 4x the longest such run in the calibration data, at least
@@ -506,10 +568,14 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         report_nets[name] = infos
 
     if overload_N is None:
-        src = calib.true_force_N if calib.true_force_N is not None and calib.true_force_N.size else None
-        if src is None:
-            src = calib.force_N[calib.contact] if calib.contact.any() else calib.force_N
-        overload_N = float(np.nanmax(src)) if np.size(src) else 70.0
+        # The largest force of the calibration data, true or estimated, plus OVERLOAD_MARGIN,
+        # so that (like the load proxy's threshold) no calibration sample trips OVERLOAD: a net
+        # may read a little above the largest true force at the peak of the strongest press,
+        # and the fixed-point estimate a little above the float one.
+        est = calib.force_N[calib.contact] if calib.contact.any() else calib.force_N
+        known = [] if calib.true_force_N is None else [calib.true_force_N]
+        vals = np.concatenate([np.ravel(v) for v in [est, *known]]) if np.size(est) or known else []
+        overload_N = float(np.nanmax(vals)) * OVERLOAD_MARGIN if np.size(vals) else 70.0
     jump_fm = int(round(max(jump_nm * 1e6, 2.0 * calib.max_step_fm)))
     load_coeff, load_shift, load_max_mN, load_info = fit_load_proxy(model, calib)
     if stuck_samples is None:
@@ -523,7 +589,7 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         force_offset_mN=int(round(model.force_offset * 1000.0)),
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
         nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
-        stuck_max=stuck_samples)
+        stuck_max=stuck_samples, **quantize_memory(pre.memory, z_frac))
     try:
         q.check()
     except ValueError as exc:
@@ -579,8 +645,17 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     e_filt = (e_comp * np.abs(taps_f).sum() + np.abs(dtaps).sum() * comp_var
               + abs(dtaps.sum()) * comp_abs + 0.5)
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
-    d = np.abs(calib.z) * 1000.0 * pre.input_std + e_filt + 0.5
+    d = np.abs(calib.z[:, :fm.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
     e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
+    # A memory state is a weighted mean (or a clamp) of past inputs, so its error is at most
+    # the largest input error plus its own rounding (one LSB, the average's rounding residues
+    # summing to less than that); a feature is the difference of the two, times its gain; the
+    # float play width is rounded to Q(z_frac) too (half an LSB).
+    lsb = 2.0**-q.z_frac
+    worst = e_z.max(axis=0)
+    gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
+    e_mem = [np.broadcast_to((e_z + worst + 1.5 * lsb) * 2.0**g, e_z.shape) for g in gains]
+    e_z = np.concatenate([e_z, *e_mem], axis=1)
 
     def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
         """Per-sample bound of output ``row`` in output integer units."""

@@ -13,12 +13,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import contract
+
 from fbgforce import model as fm
 from fbgforce.export import intref
 from fbgforce.export.blob import load_model_blob
 from fbgforce.export.exporter import recording_baseline
 
-RAW_FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact")
+RAW_FIELDS = contract.OUTPUT_FIELDS
 
 
 def verify(model_dir: str | Path, data: Sequence[str | Path]) -> dict[str, Any]:

@@ -28,6 +28,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fbgforce import units
 from fbgforce.dataset import WL_RANGE_NM
 
 # --------------------------------------------------------------------------------------------
@@ -58,13 +59,11 @@ def crc32(data: bytes | bytearray | memoryview) -> int:
 def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
     """Wavelengths in nm to femtometres as int64, by the runtime's one conversion rule.
 
-    That rule is :func:`fbgforce.export.intref.nm_to_fm` (nearest, ties to even; non-finite,
+    That rule is :func:`fbgforce.units.nm_to_fm` (nearest, ties to even; non-finite,
     i.e. a lost peak, becomes 0, which the runtime flags as a sensor fault), so what travels on
     the wire is exactly what an offline engine feeds the runtime.
     """
-    from fbgforce.export.intref import nm_to_fm as runtime_nm_to_fm
-
-    return runtime_nm_to_fm(wl_nm).astype(np.int64)
+    return units.nm_to_fm(wl_nm).astype(np.int64)
 
 
 def fm_to_nm(wl_fm: np.ndarray) -> np.ndarray:

@@ -5,20 +5,24 @@ This module is the contract between training (``fbgforce.trainer``) and export /
 float64 implementation of the shipped pipeline, which is the reference every other engine
 (onnxruntime, C float, C fixed-point) is compared against.
 
-The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/pipeline.md)::
+The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)::
 
     shift_i[n]  = 1000 * (wl_i[n] - baseline_i)                      # tare, pm
     shift_T[n]  = 1000 * (wl_T[n] - baseline_T)
     comp_i[n]   = shift_i[n] - temp_coeff_i * shift_T[n]              # temperature compensation
     filt_i[n]   = sum_k taps[k] * comp_i[n - k]                        # causal FIR, zero history
     z_i[n]      = (filt_i[n] - input_mean_i) / input_std_i            # standardisation
-    logits      = contact_net(z)            -> contact = logits[1] > logits[0]
-    f           = force_net(z)[0]           -> force_N = force_offset + force_scale * f
-    (u, v)      = location_net([z, contact, f])
+    e_ki[n]     = e_ki[n-1] + (z_i[n] - e_ki[n-1]) / 2^ema_shift[k]   # memory: averages ...
+    p_ki[n]     = clamp(p_ki[n-1], z_i[n] - w_k, z_i[n] + w_k)        # ... and play operators
+    x           = [z, (z - e_k) * 2^ema_gain[k] for each k, (z - p_k) * 2^play_gain[k] for each k]
+    logits      = contact_net(x)            -> contact = logits[1] > logits[0]
+    f           = force_net(x)[0]           -> force_N = force_offset + force_scale * f
+    (u, v)      = location_net([x, contact, f])
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
 
-The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
+The memory states take the recording's first sample as they are (every memory feature starts
+at 0), as the runtime's after a tare or reset. The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
 reproducing its figures; it uses future samples and cannot be exported to the runtime.
 """
 from __future__ import annotations
@@ -30,17 +34,104 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
 FORMAT_NAME = "fbgforce-model"
-FORMAT_VERSION = 1
-N_STRAIN = 4
+FORMAT_VERSION = 2
+N_STRAIN = contract.N_STRAIN
 FILTER_KINDS = ("causal", "centred", "none")
-NET_NAMES = ("contact", "force", "location")
-#: Inputs of the location net: the four standardised channels, the contact flag (0/1) and the
-#: force net's own (scaled) output, exactly as it runs.
-LOCATION_INPUTS = N_STRAIN + 2
+NET_NAMES = contract.NET_NAMES
+
+
+@dataclass
+class Memory:
+    """Recursive per-channel states whose features give the nets a sense of history.
+
+    ``ema_shifts[k]``: an exponential average with factor 2^-shift (time constant about 2^shift
+    samples); its feature is ``(z - average) * 2^ema_gains[k]``, the recent change. Rate
+    dependent: what a viscoelastic pad's creep needs. ``play_widths[k]``: a play (backlash)
+    operator of half-width w in standardised units; its feature ``(z - play) * 2^play_gains[k]``
+    says which way the signal last moved and how far, whatever the speed: the building block of
+    Prandtl-Ishlinskii hysteresis models, what a pad's rate-independent (frictional)
+    hysteresis needs. Constant work and memory per sample (docs/trainer.md, "memory").
+    """
+
+    ema_shifts: tuple[int, ...] = ()
+    ema_gains: tuple[int, ...] = ()
+    play_widths: tuple[float, ...] = ()
+    play_gains: tuple[int, ...] = ()
+
+    def __post_init__(self) -> None:
+        self.ema_shifts = tuple(int(v) for v in self.ema_shifts)
+        self.ema_gains = tuple(int(v) for v in self.ema_gains) or (0,) * len(self.ema_shifts)
+        self.play_widths = tuple(float(v) for v in self.play_widths)
+        self.play_gains = tuple(int(v) for v in self.play_gains) or (0,) * len(self.play_widths)
+        lim = contract.LIMIT
+        if len(self.ema_shifts) > contract.MAX_EMA or len(self.play_widths) > contract.MAX_PLAY:
+            raise ValueError(f"at most {contract.MAX_EMA} averages and {contract.MAX_PLAY} play "
+                             "operators")
+        if len(self.ema_gains) != len(self.ema_shifts) or len(self.play_gains) != len(self.play_widths):
+            raise ValueError("one gain per memory state")
+        if not all(1 <= s <= lim["MAX_EMA_SHIFT"] for s in self.ema_shifts):
+            raise ValueError(f"average shifts must be 1..{lim['MAX_EMA_SHIFT']}")
+        if not all(0 <= g <= lim["MAX_MEM_GAIN"] for g in self.ema_gains + self.play_gains):
+            raise ValueError(f"memory gains must be 0..{lim['MAX_MEM_GAIN']}")
+        if not all(np.isfinite(w) and w >= 0 for w in self.play_widths):
+            raise ValueError("play widths must be finite and >= 0")
+
+    @property
+    def n_states(self) -> int:
+        """States per channel."""
+        return len(self.ema_shifts) + len(self.play_widths)
+
+    def to_json(self) -> dict[str, list]:
+        return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
+                "play_widths": list(self.play_widths), "play_gains": list(self.play_gains)}
+
+
+def memory_features(memory: Memory, z: np.ndarray) -> np.ndarray:
+    """The net inputs of one continuous recording: ``z`` (n, 4) and its memory features.
+
+    Returns (n, 4 * (1 + states)) in the order of :mod:`fbgforce.contract`: z, then the four
+    channels of each average, then of each play operator.
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if memory.n_states == 0 or z.shape[0] == 0:
+        return z.reshape(z.shape[0], -1).copy() if memory.n_states == 0 else np.zeros(
+            (0, N_STRAIN * (1 + memory.n_states)))
+    n = z.shape[0]
+    feats = [z]
+    for shift, gain in zip(memory.ema_shifts, memory.ema_gains):
+        alpha = 2.0 ** -shift
+        # e[n] = (1 - a) e[n-1] + a z[n], e[0] = z[0]: a first-order IIR. A blocked recursion
+        # keeps it exact to rounding and fast in numpy: within a block the closed form uses
+        # powers of (1 - a) that cannot underflow over 256 steps for the shifts allowed here.
+        e = np.empty_like(z)
+        prev = z[0].copy()
+        block = 256
+        k = np.arange(1, block + 1)[:, None]
+        decay = (1.0 - alpha) ** k
+        for start in range(0, n, block):
+            seg = z[start:start + block]
+            m = seg.shape[0]
+            # e[start + j] = (1-a)^(j+1) prev + a * sum_{i<=j} (1-a)^(j-i) seg[i]
+            w = (1.0 - alpha) ** (np.arange(m)[:, None] - np.arange(m)[None, :])
+            w = np.tril(w) * alpha
+            out = decay[:m] * prev + w @ seg
+            e[start:start + m] = out
+            prev = out[-1]
+        feats.append((z - e) * 2.0 ** gain)
+    for width, gain in zip(memory.play_widths, memory.play_gains):
+        p = np.empty_like(z)
+        state = z[0].copy()
+        lo, hi = z - width, z + width
+        for i in range(n):
+            state = np.minimum(np.maximum(state, lo[i]), hi[i])
+            p[i] = state
+        feats.append((z - p) * 2.0 ** gain)
+    return np.concatenate(feats, axis=1)
 
 
 @dataclass
@@ -61,6 +152,8 @@ class Preprocess:
         length, ``taps[k]`` weights sample ``n + k - len(taps)//2``.
     input_mean, input_std
         (4,) standardisation of the filtered compensated shifts (pm).
+    memory
+        The memory states after standardisation (:class:`Memory`; none by default).
     """
 
     temp_coeff: np.ndarray
@@ -69,6 +162,7 @@ class Preprocess:
     taps: np.ndarray
     input_mean: np.ndarray
     input_std: np.ndarray
+    memory: Memory = field(default_factory=Memory)
 
     def __post_init__(self) -> None:
         self.temp_coeff = np.asarray(self.temp_coeff, dtype=np.float64).reshape(N_STRAIN)
@@ -83,6 +177,11 @@ class Preprocess:
             raise ValueError("a centred filter needs an odd number of taps")
         if np.any(self.input_std <= 0):
             raise ValueError("input_std must be positive")
+
+    @property
+    def n_features(self) -> int:
+        """Width of the feature vector the contact and force nets read."""
+        return contract.n_features(len(self.memory.ema_shifts), len(self.memory.play_widths))
 
     @property
     def group_delay_samples(self) -> float:
@@ -145,8 +244,9 @@ class HierarchicalModel:
     preprocess
         See :class:`Preprocess`.
     contact, force, location
-        The nets. Contact: 4 -> ... -> 2 logits (index 1 is "contact"). Force: 4 -> ... -> 1.
-        Location: 6 -> ... -> 2 (inputs per :data:`LOCATION_INPUTS`).
+        The nets. Contact: F -> ... -> 2 logits (index 1 is "contact"). Force: F -> ... -> 1.
+        Location: F + 2 -> ... -> 2 (the features, the contact flag, the force net's output),
+        with F = ``preprocess.n_features`` (4 without memory).
     force_offset, force_scale
         ``force_N = force_offset + force_scale * force_net_output``.
     xy_offset, xy_scale
@@ -175,8 +275,10 @@ class HierarchicalModel:
         self.baseline_nm = np.asarray(self.baseline_nm, dtype=np.float64).reshape(N_STRAIN + 1)
         self.force_offset = float(self.force_offset)
         self.force_scale = float(self.force_scale)
-        expected = {"contact": (N_STRAIN, 2), "force": (N_STRAIN, 1), "location": (LOCATION_INPUTS, 2)}
-        for name, (n_in, n_out) in expected.items():
+        mem = self.preprocess.memory
+        for net in contract.NETS:
+            name, n_out = net.name, net.float_outputs
+            n_in = contract.net_inputs(name, len(mem.ema_shifts), len(mem.play_widths))
             sizes = getattr(self, name).sizes
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
@@ -241,11 +343,17 @@ def apply_filter(pre: Preprocess, x: np.ndarray) -> np.ndarray:
     return out
 
 
+def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
+    """Net inputs (n, F) of one continuous recording from its filtered shifts (n, 4), pm:
+    standardisation, then the memory features."""
+    return memory_features(pre.memory, (np.asarray(filt, dtype=np.float64) - pre.input_mean)
+                           / pre.input_std)
+
+
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
-    """Standardised net inputs ``z`` (n, 4) for one continuous recording."""
+    """Net inputs (n, F) for one continuous recording: standardised channels and memory."""
     pre = model.preprocess
-    filt = apply_filter(pre, compensate(model, wl_nm, baseline_nm))
-    return (filt - pre.input_mean) / pre.input_std
+    return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
 
 
 def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, np.ndarray]:
@@ -310,6 +418,7 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
             "taps": pre.taps.tolist(),
             "input_mean": pre.input_mean.tolist(),
             "input_std": pre.input_std.tolist(),
+            "memory": pre.memory.to_json(),
             "group_delay_ms_at_1kHz": pre.group_delay_samples,
         },
         "nets": {name: {"sizes": net.sizes} for name, net in model.nets.items()},
@@ -356,7 +465,7 @@ def load(directory: str | Path) -> HierarchicalModel:
     if doc.get("format") != FORMAT_NAME:
         raise InputError(f"format is {doc.get('format')!r}, expected {FORMAT_NAME!r}",
                          path=str(json_path), column="format")
-    if doc.get("version") != FORMAT_VERSION:
+    if doc.get("version") not in (1, FORMAT_VERSION):   # version 1: no memory
         raise InputError(f"format version {doc.get('version')!r} is not supported "
                          f"(this fbgforce reads version {FORMAT_VERSION})",
                          path=str(json_path), column="version")
@@ -373,7 +482,7 @@ def load(directory: str | Path) -> HierarchicalModel:
                              [arrays[f"{name}.b{i}"] for i in range(n_layers)])
         p = doc["preprocess"]
         pre = Preprocess(p["temp_coeff"], p["filter_kind"], p["filter_sigma"], p["taps"],
-                         p["input_mean"], p["input_std"])
+                         p["input_mean"], p["input_std"], Memory(**p.get("memory", {})))
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce import contract, units
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 
@@ -40,41 +41,20 @@ def _make(name: str, doc: str, code: int) -> type[RuntimeCError]:
     return type(cls_name, (RuntimeCError,), {"code": code, "name": name, "__doc__": doc})
 
 
-_DOCS = {
-    "FBG_ERR_NULL": "A required pointer was NULL.",
-    "FBG_ERR_TRUNCATED": "The blob is shorter than its header or its declared length.",
-    "FBG_ERR_BAD_MAGIC": "The file is not an fbgforce model blob.",
-    "FBG_ERR_VERSION": "The blob format version is not supported by this library.",
-    "FBG_ERR_CRC": "The blob's CRC-32 does not match (corrupt file).",
-    "FBG_ERR_SHAPE": "Layer shapes are inconsistent or too large.",
-    "FBG_ERR_RANGE": "A model parameter is out of its allowed range.",
-    "FBG_ERR_BOUND": "An accumulator bound would overflow int64.",
-    "FBG_ERR_SIZE": "The declared length differs from what the shapes imply.",
-    "FBG_ERR_ALIGN": "The blob buffer is not 8-byte aligned.",
-    "FBG_ERR_ENDIAN": "The host is not little-endian.",
-    "FBG_ERR_STATE": "The runtime state is not initialised.",
-    "FBG_ERR_NOT_TARED": "The runtime requires a tare before stepping.",
-    "FBG_ERR_TARE": "Tare failed: not begun, or no valid sample.",
-    "FBG_ERR_ARG": "An argument value is invalid (e.g. baseline outside 1000-2000 nm).",
-}
 #: C error code -> exception class.
 ERRORS: dict[int, type[RuntimeCError]] = {}
-for _name, _doc in _DOCS.items():
-    _cls = _make(_name, _doc, int(getattr(lib, _name)))
+for _code in contract.ERRORS[1:]:
+    _cls = _make(f"FBG_{_code.name}", _code.doc[:1].upper() + _code.doc[1:] + ".", _code.value)
     ERRORS[_cls.code] = _cls
     globals()[_cls.__name__] = _cls
     __all__.append(_cls.__name__)
 
 #: Output status bits (fbg_output.status).
-STATUS_FLAGS = {name: int(getattr(lib, f"FBG_STATUS_{name}"))
-                for name in ("NOT_TARED", "SATURATED", "OVERLOAD", "SENSOR_FAULT", "WARMUP")}
+STATUS_FLAGS = dict(contract.STATUS_FLAG)
 
-# The C struct fbg_output, byte for byte (checked against ffi.sizeof at import).
-_C_OUTPUT = np.dtype([("force_mN", "<i4"), ("x_um", "<i4"), ("y_um", "<i4"),
-                      ("contact_margin_q8", "<i4"), ("status", "<u4"),
-                      ("contact_conf_q15", "<u2"), ("contact", "u1"), ("reserved", "u1")])
-_C_FOUTPUT = np.dtype([("force_N", "<f4"), ("x_mm", "<f4"), ("y_mm", "<f4"), ("p_contact", "<f4"),
-                       ("margin", "<f4"), ("status", "<u4"), ("contact", "u1"), ("reserved", "u1", 3)])
+# The C structs fbg_output / fbgf_output, byte for byte (checked against ffi.sizeof at import).
+_C_OUTPUT = np.dtype(contract.numpy_dtype(contract.OUTPUT))
+_C_FOUTPUT = np.dtype(contract.numpy_dtype(contract.FLOAT_OUTPUT))
 assert _C_OUTPUT.itemsize == ffi.sizeof("fbg_output")
 assert _C_FOUTPUT.itemsize == ffi.sizeof("fbgf_output")
 
@@ -95,14 +75,12 @@ def check(status: int, what: str = "") -> None:
 
 def to_fm(wl: Any) -> np.ndarray:
     """Wavelengths -> C-contiguous int32 fm: integer input is taken as fm, float as nm."""
-    from fbgforce.export.intref import nm_to_fm
-
     a = np.asarray(wl)
     if np.issubdtype(a.dtype, np.integer):
         if a.size and (a.min() < -2**31 or a.max() > 2**31 - 1):
             raise InputError("integer wavelengths (fm) outside the int32 range")
         return np.ascontiguousarray(a, dtype=np.int32)
-    return np.ascontiguousarray(nm_to_fm(a))
+    return np.ascontiguousarray(units.nm_to_fm(a))
 
 
 def _rows(wl: Any) -> np.ndarray:
@@ -187,9 +165,7 @@ class Runtime(_Base):
         if isinstance(model, (bytes, bytearray, memoryview)):
             data, where = bytes(model), "<bytes>"
         else:
-            from fbgforce.export.blob import blob_path
-
-            path = blob_path(model)
+            path = Path(model) / contract.BLOB_FILE if Path(model).is_dir() else Path(model)
             if not path.is_file():
                 raise InputError("no fixed-point model blob; run 'fbgforce export --model DIR' first",
                                  path=str(path))
@@ -234,13 +210,11 @@ class Runtime(_Base):
     def run(self, wl: Any) -> np.ndarray:
         """Batch of samples (n, 5) -> structured array of :data:`OUTPUT_DTYPE` (n,)."""
         # The unit conversion is the integer reference's, so both engines report alike.
-        from fbgforce.export.intref import to_engine_dict
-
         raw = self.run_raw(wl)
         out = np.zeros(raw.shape[0], dtype=OUTPUT_DTYPE)
         for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15"):
             out[k] = raw[k]
-        for k, v in to_engine_dict(raw).items():
+        for k, v in units.to_engine_dict(raw).items():
             out[k] = v
         return out
 
@@ -253,12 +227,15 @@ class FloatRuntime(_Base):
     def __init__(self, model: str | Path | fm.HierarchicalModel, *, jump_nm: float | None = None,
                  overload_N: float | None = None, stuck_samples: int = 0,
                  require_tare: bool = False) -> None:
-        from fbgforce.export.quantize import DEFAULT_JUMP_NM, quantize_taps
-
         m = fm.load(model) if isinstance(model, (str, Path)) else model
-        taps, tap_q = quantize_taps(m.preprocess)  # validates the filter kind and length
-        del taps, tap_q
         pre = m.preprocess
+        taps_f = [1.0] if pre.filter_kind == "none" else list(pre.taps)
+        if pre.filter_kind == "centred":
+            raise InputError("the model uses the centred (offline) filter, which needs future "
+                             "samples; retrain with the causal filter", column="filter_kind")
+        if len(taps_f) > contract.LIMIT["MAX_TAPS"]:
+            raise InputError(f"{len(taps_f)} filter taps; the runtime holds at most "
+                             f"{contract.LIMIT['MAX_TAPS']}", column="taps")
         keep: list[Any] = []
 
         def farr(values: Any) -> Any:
@@ -268,7 +245,7 @@ class FloatRuntime(_Base):
 
         c = ffi.new("fbgf_model *")
         c.baseline_fm = [int(v) for v in np.rint(m.baseline_nm * 1e6)]
-        c.jump_max_fm = int(round((DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
+        c.jump_max_fm = int(round((contract.DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
         c.stuck_max = int(stuck_samples)
         c.temp_coeff = list(map(float, pre.temp_coeff))
         c.input_mean_pm = list(map(float, pre.input_mean))
@@ -278,7 +255,12 @@ class FloatRuntime(_Base):
         c.xy_offset_mm = list(map(float, m.xy_offset))
         c.xy_scale = list(map(float, m.xy_scale))
         c.overload_N = float(np.inf if overload_N is None else overload_N)
-        taps_f = [1.0] if pre.filter_kind == "none" else pre.taps
+        mem = pre.memory
+        c.n_ema, c.n_play = len(mem.ema_shifts), len(mem.play_widths)
+        for k, (shift, gain) in enumerate(zip(mem.ema_shifts, mem.ema_gains)):
+            c.ema_shift[k], c.ema_gain[k] = shift, gain
+        for k, (width, gain) in enumerate(zip(mem.play_widths, mem.play_gains)):
+            c.play_width[k], c.play_gain[k] = width, gain
         c.n_taps = len(taps_f)
         c.taps = farr(taps_f)
         for n, name in enumerate(fm.NET_NAMES):

@@ -96,4 +96,4 @@ target-libs: target-lib target-lib-dsp target-lib-float target-check-nofloat
 
 # Runs from the repository root (one level above runtime_c/) so the package imports.
 target-test: target-libs
-	cd $(TARGET_DIR).. && $(TARGET_PYTHON) -m fbgforce.bench.target $(if $(MODEL),--model $(abspath $(MODEL))) --json
+	cd $(TARGET_DIR).. && $(TARGET_PYTHON) -m fbgforce.target $(if $(MODEL),--model $(abspath $(MODEL))) --json

@@ -80,9 +80,11 @@ def synthetic_recording():
 # bit-exact tests that need no training.
 # ------------------------------------------------------------------------------------------
 def make_random_model(seed: int = 0, sizes=((70, 50, 20), (70, 50, 20), (70, 50, 40)),
-                      n_taps: int = 16, sigma: float = 4.0, filter_kind: str = "causal"):
+                      n_taps: int = 16, sigma: float = 4.0, filter_kind: str = "causal",
+                      memory=None):
     """A :class:`fbgforce.model.HierarchicalModel` with random He-scaled weights, a causal
-    Gaussian filter, standardisation of a few hundred pm and the nominal baseline."""
+    Gaussian filter, standardisation of a few hundred pm, the nominal baseline and the given
+    memory (a :class:`fbgforce.model.Memory`; none by default)."""
     from fbgforce import model as fm
 
     rng = _np.random.default_rng(seed)
@@ -96,8 +98,10 @@ def make_random_model(seed: int = 0, sizes=((70, 50, 20), (70, 50, 20), (70, 50,
     taps = _np.exp(-0.5 * (k / sigma) ** 2)
     pre = fm.Preprocess(temp_coeff=rng.uniform(0.9, 1.1, 4), filter_kind=filter_kind,
                         filter_sigma=sigma, taps=taps / taps.sum(),
-                        input_mean=rng.normal(0.0, 50.0, 4), input_std=rng.uniform(100.0, 400.0, 4))
-    return fm.HierarchicalModel(pre, mlp(4, sizes[0], 2), mlp(4, sizes[1], 1), mlp(6, sizes[2], 2),
+                        input_mean=rng.normal(0.0, 50.0, 4), input_std=rng.uniform(100.0, 400.0, 4),
+                        memory=memory or fm.Memory())
+    f = pre.n_features
+    return fm.HierarchicalModel(pre, mlp(f, sizes[0], 2), mlp(f, sizes[1], 1), mlp(f + 2, sizes[2], 2),
                                 force_offset=20.0, force_scale=15.0, xy_offset=[10.5, 13.5],
                                 xy_scale=[6.0, 7.5],
                                 baseline_nm=[1530.0, 1535.0, 1540.0, 1545.0, 1550.0])

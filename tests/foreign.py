@@ -24,9 +24,21 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
 Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
 :func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept.
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
+
+As a script it writes the logs the generalisation benchmark scores (bench/bench_generalisation.py
+reads them; it does not import this file)::
+
+    python tests/foreign.py --out DIR [--presses 60] [VARIANT ...]
+
+For each variant (default all): a device (seed 100 + its index in :data:`VARIANTS`), two logs of
+it (seeds 1 and 2) as ``DIR/<variant>_A.csv`` and ``DIR/<variant>_B.csv``, and ``DIR/foreign.json``
+naming them with the device's true temperature coefficients (:data:`MANIFEST`).
 """
 from __future__ import annotations
 
+import argparse
+import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -237,3 +249,51 @@ VARIANTS: dict[str, Spec] = {
     "short_rests": Spec("short_rests", rest_s=(0.03, 0.08), start_in_contact=12, drift_K=3.0,
                         contact_threshold_N=0.3),
 }
+
+#: The file ``main`` writes next to the logs: ``{"presses": n, "variants": {name: {"train":
+#: "<name>_A.csv", "other": "<name>_B.csv", "device_seed": s, "temp_coeff_true": [4 floats]}}}``
+#: (file names relative to the manifest).
+MANIFEST = "foreign.json"
+
+
+def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 60) -> Path:
+    """Two logs per variant of one device each, and the manifest; returns the manifest's path."""
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+    entries = {}
+    for name in names or list(VARIANTS):
+        spec = VARIANTS[name]
+        seed = 100 + list(VARIANTS).index(name)
+        dev = device(spec, seed)
+        for tag, log_seed in (("A", 1), ("B", 2)):
+            write_csv(log(dev, log_seed, presses), root / f"{name}_{tag}.csv", seed=log_seed,
+                      crlf=spec.crlf)
+        entries[name] = {"train": f"{name}_A.csv", "other": f"{name}_B.csv", "device_seed": seed,
+                         "temp_coeff_true": dev.temp_coeff.tolist()}
+    path = root / MANIFEST
+    path.write_text(json.dumps({"presses": presses, "variants": entries}, indent=1) + "\n")
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description="Write foreign calibration logs (two per variant) "
+                                 "and foreign.json, for bench/bench_generalisation.py.")
+    ap.add_argument("variants", nargs="*", metavar="VARIANT",
+                    help=f"variant names (default: all of {', '.join(VARIANTS)})")
+    ap.add_argument("--out", required=True, metavar="DIR", help="directory for the logs")
+    ap.add_argument("--presses", type=int, default=60, help="presses per log (default 60)")
+    args = ap.parse_args(argv)
+    unknown = [v for v in args.variants if v not in VARIANTS]
+    if unknown:
+        print(f"foreign.py: unknown variant(s) {', '.join(unknown)}; choose from "
+              f"{', '.join(VARIANTS)}", file=sys.stderr)
+        return 2
+    if args.presses < 2:
+        print("foreign.py: --presses must be at least 2", file=sys.stderr)
+        return 2
+    print(write_logs(args.out, args.variants or None, args.presses))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -27,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from fbgforce import contract
 import pytest
 
 from fbgforce.export import intref
@@ -37,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RUNTIME_C = ROOT / "runtime_c"
 INT32_MIN, INT32_MAX = -2**31, 2**31 - 1
 INT64_MAX = 2**63 - 1
-FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact")
+FIELDS = contract.OUTPUT_FIELDS
 FAULT, SATURATED, OVERLOAD = (intref.STATUS_SENSOR_FAULT, intref.STATUS_SATURATED,
                               intref.STATUS_OVERLOAD)
 NOT_TARED, WARMUP = intref.STATUS_NOT_TARED, intref.STATUS_WARMUP
@@ -77,9 +79,7 @@ def _write_report():
 
 _lib_mod = pytest.importorskip("fbgforce.pybind")
 ffi, lib = _lib_mod.ffi, _lib_mod.lib
-C_OUTPUT = np.dtype([("force_mN", "<i4"), ("x_um", "<i4"), ("y_um", "<i4"),
-                     ("contact_margin_q8", "<i4"), ("status", "<u4"),
-                     ("contact_conf_q15", "<u2"), ("contact", "u1"), ("reserved", "u1")])
+C_OUTPUT = np.dtype(contract.numpy_dtype(contract.OUTPUT))
 assert C_OUTPUT.itemsize == ffi.sizeof("fbg_output")
 
 

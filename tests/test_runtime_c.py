@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fbgforce import contract
+
 from fbgforce.export import blob, intref
 from fbgforce.pybind import (ERRORS, AlignError, BadMagicError, CrcError, FloatRuntime, Runtime,
                              RuntimeCError, ShapeError, SizeError, TruncatedError, VersionError,
@@ -85,19 +87,21 @@ def test_blob_loads_and_error_codes(blob_bytes):
     assert _load(blob_bytes, offset=4) == lib.FBG_ERR_ALIGN
     # Consistent CRC but inconsistent content: layer widths, sizes, shifts.
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 144, 5)          # contact layer 0 n_in 4 -> 5
-    assert _load(_recrc(bad)) in (lib.FBG_ERR_SHAPE, lib.FBG_ERR_SIZE)
+    table = contract.PARAMS_END                  # first layer-table entry
+    struct.pack_into("<H", bad, table, 5)        # contact layer 0 n_in -> 5
+    # (the arrays then shift: a size, shape or non-zero-padding refusal, whichever comes first)
+    assert _load(_recrc(bad)) in (lib.FBG_ERR_SHAPE, lib.FBG_ERR_SIZE, lib.FBG_ERR_RANGE)
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 146, 200)        # n_out above FBG_MAX_WIDTH
+    struct.pack_into("<H", bad, table + 2, 200)  # n_out above FBG_MAX_WIDTH
     assert _load(_recrc(bad)) == lib.FBG_ERR_SHAPE
     bad = bytearray(blob_bytes)
-    bad[149] = 63                                # shift out of range
+    bad[table + 5] = 63                          # shift out of range
     assert _load(_recrc(bad)) == lib.FBG_ERR_RANGE
     bad = bytearray(blob_bytes) + bytearray(8)
     struct.pack_into("<I", bad, 8, len(bad))     # declared longer than the shapes imply
     assert _load(_recrc(bad)) == lib.FBG_ERR_SIZE
     bad = bytearray(blob_bytes)
-    struct.pack_into("<i", bad, 16, 5)           # baseline outside the 1000-2000 nm window
+    struct.pack_into("<i", bad, 20, 5)           # baseline outside the 1000-2000 nm window
     assert _load(_recrc(bad)) == lib.FBG_ERR_RANGE
     m = ffi.new("fbg_model *")
     assert lib.fbg_model_from_blob(ffi.NULL, ffi.new("uint8_t[]", 16), 16) == lib.FBG_ERR_NULL
@@ -116,7 +120,7 @@ def test_python_exceptions_per_code(blob_bytes, tmp_path):
         with pytest.raises(exc):
             Runtime(data)
     bad = bytearray(blob_bytes)
-    struct.pack_into("<H", bad, 146, 200)
+    struct.pack_into("<H", bad, contract.PARAMS_END + 2, 200)
     with pytest.raises(ShapeError):
         Runtime(_recrc(bad))
     bad = bytearray(blob_bytes) + bytearray(8)
@@ -187,7 +191,7 @@ def test_generated_c_model_matches_blob_and_float(small_exported_dir, small_data
     c_fixed = np.frombuffer(rec["o"].tobytes(), dtype=_C_OUTPUT)
     c_float = np.frombuffer(rec["f"].tobytes(), dtype=_C_FOUTPUT)
     ref = intref.run(blob.load_model_blob(small_exported_dir), wl, base)
-    for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact"):
+    for k in contract.OUTPUT_FIELDS:
         assert np.array_equal(np.asarray(c_fixed[k], dtype=np.int64), ref[k]), k
     fr = FloatRuntime(small_exported_dir)
     fr.set_baseline(base)
@@ -300,5 +304,5 @@ def test_generated_c_int8_random_model(random_model_factory, random_walk_factory
     rec = np.frombuffer(r.stdout, dtype=np.dtype([("o", "V%d" % osz), ("f", "V%d" % fsz)]))
     c_fixed = np.frombuffer(rec["o"].tobytes(), dtype=_C_OUTPUT)
     ref = intref.run(q, wl_fm, base)
-    for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact"):
+    for k in contract.OUTPUT_FIELDS:
         assert np.array_equal(np.asarray(c_fixed[k], dtype=np.int64), ref[k]), k

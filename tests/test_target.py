@@ -1,4 +1,4 @@
-"""Cortex-M4 target (Part 4): cross builds, golden vectors on QEMU, instruction counts, sizes.
+"""Cortex-M4 target: cross builds, golden vectors on QEMU, instruction counts, sizes.
 
 Needs arm-none-eabi-gcc, newlib and qemu-system-arm; without them every test here SKIPS with
 the apt line to install, except under CI=true, where a missing tool is a FAILURE.
@@ -12,7 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from fbgforce.bench import target
+from fbgforce.target import firmware, golden, sources, toolchain
+from fbgforce.target.report import load_quantized, recording_fm, target_report
 
 ROOT = Path(__file__).resolve().parent.parent
 #: Recording samples replayed per report (edge cases and API calls come on top): enough for
@@ -21,9 +22,9 @@ SAMPLES = 300
 
 
 def _require_tools() -> None:
-    missing = target.missing_tools()
+    missing = toolchain.missing_tools()
     if missing:
-        msg = f"Cortex-M4 tools missing ({', '.join(missing)}); install: {target.APT_LINE}"
+        msg = f"Cortex-M4 tools missing ({', '.join(missing)}); install: {toolchain.APT_LINE}"
         if os.environ.get("CI", "").lower() == "true":
             pytest.fail(msg)
         pytest.skip(msg)
@@ -38,32 +39,32 @@ def tools() -> None:
 def report(tools, small_model_dir, tmp_path_factory):
     """The report of the shared small model (int16), build kept for the other tests."""
     build = tmp_path_factory.mktemp("target_build")
-    rep = target.target_report(small_model_dir, samples=SAMPLES, build_dir=build)
+    rep = target_report(small_model_dir, samples=SAMPLES, build_dir=build)
     rep["_build"] = build
     return rep
 
 
 def test_missing_tools_message_names_apt_packages(monkeypatch):
-    monkeypatch.setattr(target.shutil, "which", lambda name: None)
-    with pytest.raises(target.ToolchainMissing) as exc:
-        target.require_tools()
-    for pkg in target.APT_PACKAGES:
+    monkeypatch.setattr(toolchain.shutil, "which", lambda name: None)
+    with pytest.raises(toolchain.ToolchainMissing) as exc:
+        toolchain.require_tools()
+    for pkg in toolchain.APT_PACKAGES:
         assert pkg in str(exc.value)
 
 
 def test_golden_session_covers_every_status_and_api_call(small_model_dir):
     """The replayed session is not just a recording: every status flag, contact and no
     contact, refused tare samples, error returns and every API call occur (no tools needed)."""
-    q, _ = target.load_quantized(Path(small_model_dir))
-    wl, contact, _ = target.recording_fm(None, "smoke", 0, SAMPLES)
-    recs = target.golden_session(q, wl, contact)
-    c = target.header_constants()
-    steps = [r for r in recs if r.op == target.OP_STEP]
+    q, _ = load_quantized(Path(small_model_dir))
+    wl, contact, _ = recording_fm(None, "smoke", 0, SAMPLES)
+    recs = golden.golden_session(q, wl, contact)
+    c = sources.header_constants()
+    steps = [r for r in recs if r.op == golden.OP_STEP]
     for flag in ("NOT_TARED", "SATURATED", "OVERLOAD", "SENSOR_FAULT", "WARMUP"):
         assert any(r.out["status"] & c[f"FBG_STATUS_{flag}"] for r in steps), flag
     assert any(r.out["contact"] for r in steps) and not all(r.out["contact"] for r in steps)
     assert {r.op for r in recs} == set(range(7))
-    assert any(r.op == target.OP_TARE_ADD and r.accepted == 0 for r in recs)
+    assert any(r.op == golden.OP_TARE_ADD and r.accepted == 0 for r in recs)
     assert {c["FBG_ERR_ARG"], c["FBG_ERR_TARE"]} <= {r.status for r in recs}
 
 
@@ -96,15 +97,19 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
     assert "__aeabi_fmul" in r.stderr
 
 
-def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path):
+@pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
+def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
-    extreme multipliers, rounding ties, saturation, random FIR ring positions."""
-    r = subprocess.run(["make", "-s", "-C", str(target.FIRMWARE_DIR), f"BUILD={tmp_path}", "kernel-test"],
+    extreme multipliers, rounding ties, saturation, random FIR ring positions; the assembly
+    kernels and (FBG_DSP_ASM=0) their ACLE C versions."""
+    r = subprocess.run(["make", "-s", "-C", str(ROOT / "examples" / "firmware"), f"BUILD={tmp_path}",
+                        f"DSP_ASM={dsp_asm}", "kernel-test"],
                        capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=120)
     line = next((ln for ln in (r.stdout + r.stderr).splitlines() if ln.startswith("KERNEL_TEST")), "")
     fields = dict(kv.split("=") for kv in line.split()[1:])
     assert r.returncode == 0 and fields.get("mismatches") == "0", r.stdout + r.stderr
-    # Both assembly paths and saturation were exercised.
+    # Both three-row paths (assembly: rows3_asm and rows3d_asm), the first-layer path and
+    # saturation were exercised.
     assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["int8"]) > 300
     assert 100 < int(fields["aligned"]) < int(fields["fast"]) - 100  # both rows3 variants
     assert int(fields["saturated"]) > 100
@@ -145,7 +150,7 @@ def test_instruction_counts_and_figures(report):
     for key in ("text_bytes", "rodata_bytes", "data_bytes", "bss_bytes", "state_bytes", "stack_bytes"):
         assert isinstance(report[key], int) and report[key] >= 0, key
     assert report["text_bytes"] > 1000 and report["rodata_bytes"] > 1000
-    # Goals of issue 5 that are exact, deterministic figures: flash and static RAM.
+    # Budgets that are exact, deterministic figures: flash and static RAM.
     assert report["flash_bytes"] < 48 * 1024
     assert report["ram_bytes"] < 4 * 1024
 
@@ -153,16 +158,16 @@ def test_instruction_counts_and_figures(report):
 def test_counts_are_deterministic(report):
     """Two QEMU runs of the same firmware give identical per-step counts."""
     build = report["_build"] / "dsp"
-    a, b = target.run_firmware(build), target.run_firmware(build)
+    a, b = firmware.run_firmware(build), firmware.run_firmware(build)
     assert a.exit_code == 0 and a.windows == b.windows and len(a.windows) == report["samples"]
 
 
 def test_firmware_reports_a_single_flipped_bit(report, small_model_dir):
     """The on-target comparison can fail: expected outputs off by one LSB in one record."""
-    q, _ = target.load_quantized(Path(small_model_dir))
-    wl, contact, _ = target.recording_fm(None, "smoke", 0, 96)
-    recs = target.golden_session(q, wl, contact)
-    idx = next(i for i, r in enumerate(recs) if r.op == target.OP_STEP and r.out["contact"])
+    q, _ = load_quantized(Path(small_model_dir))
+    wl, contact, _ = recording_fm(None, "smoke", 0, 96)
+    recs = golden.golden_session(q, wl, contact)
+    idx = next(i for i, r in enumerate(recs) if r.op == golden.OP_STEP and r.out["contact"])
     recs[idx].out["x_um"] += 1
     from fbgforce.export import codegen
 
@@ -171,20 +176,22 @@ def test_firmware_reports_a_single_flipped_bit(report, small_model_dir):
     hdr, src = codegen.fixed_source(q, "bad")
     (bdir / "bad_model.h").write_text(hdr)
     (bdir / "bad_model.c").write_text(src)
-    golden = bdir / "golden_bad.c"
-    target.write_golden_c(recs, golden)
-    subprocess.run(["make", "-s", "-C", str(target.FIRMWARE_DIR), f"BUILD={bdir}", "DSP=1",
+    golden_c = bdir / "golden_bad.c"
+    golden.write_golden_c(recs, golden_c)
+    # The C tree the report staged (and already built the libraries in).
+    firmware_dir = report["_build"] / "src" / "examples" / "firmware"
+    subprocess.run(["make", "-s", "-C", str(firmware_dir), f"BUILD={bdir}", "DSP=1",
                     f"MODEL_C={bdir / 'bad_model.c'}", "MODEL_SYM=bad_model",
-                    f"GOLDEN_C={golden}", "all", f"{bdir}/insn_window.so"], check=True,
+                    f"GOLDEN_C={golden_c}", "all", f"{bdir}/insn_window.so"], check=True,
                    capture_output=True)
-    run = target.run_firmware(bdir)
+    run = firmware.run_firmware(bdir)
     assert run.exit_code == 1
     assert run.result["mismatches"] == 1 and run.result["first_mismatch"] == idx
     assert f"record={idx}" in run.mismatch_lines[0]
 
 
 def test_int8_weights_bit_exact(tools, small_model_dir):
-    rep = target.target_report(small_model_dir, samples=128, bits=8)
+    rep = target_report(small_model_dir, samples=128, bits=8)
     assert rep["bit_exact"] and rep["weight_bits"] == 8
 
 

@@ -1,4 +1,4 @@
-"""Part 5: the tradeoff harness, its timing helpers and quantization-aware fine-tuning."""
+"""The tradeoff harness, its timing helpers and quantization-aware fine-tuning."""
 from __future__ import annotations
 
 import json
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fbgforce import model as fm
-from fbgforce.bench import timing, tradeoff
+from fbgforce.tradeoff import grid, scoring, timing
 from fbgforce.cli import main
 
 
@@ -86,17 +86,17 @@ def test_measure_reports_every_engine_and_missing_callables() -> None:
 
 def test_pareto_mask() -> None:
     pts = [(1.0, 5.0), (2.0, 1.0), (1.5, 3.0), (2.0, 6.0), (1.0, 5.0), (3.0, 1.0)]
-    assert tradeoff.pareto_mask(pts) == [True, True, True, False, True, False]
+    assert scoring.pareto_mask(pts) == [True, True, True, False, True, False]
 
 
 def test_grid_shapes() -> None:
-    s = tradeoff.Settings(sigmas=(2.0, 5.0), default_sigma=5.0)
-    star = [v.tag for v in tradeoff.variants(s)]
+    s = grid.Settings(sigmas=(2.0, 5.0), default_sigma=5.0)
+    star = [v.tag for v in grid.variants(s)]
     assert star == ["paper-nofilter", "paper-causal-s2", "paper-causal-s5", "half-causal-s5",
                     "quarter-causal-s5", "paper-centred-s5"]
     s.grid = "full"
-    assert len(tradeoff.variants(s)) == 4 * 3
-    sizes = tradeoff.scaled_sizes("quarter")
+    assert len(grid.variants(s)) == 4 * 3
+    sizes = grid.scaled_sizes("quarter")
     assert sizes["location"] == [18, 12, 10] and sizes["contact"] == [18, 12, 5]
 
 
@@ -105,7 +105,7 @@ def test_error_index_and_match() -> None:
            "rmse_y_mm": 1.0}
     same = dict(ref, rmse_force_N=1.04)
     worse = dict(ref, rmse_y_mm=1.2)
-    tradeoff._score([ref, same, worse], ref)
+    scoring.score([ref, same, worse], ref)
     assert ref["error_index"] == 1.0 and ref["matches_reference"]
     assert same["matches_reference"] and math.isclose(same["error_index"], 1.04 ** 0.25)
     assert not worse["matches_reference"] and worse["error_index"] > 1.0
@@ -169,7 +169,7 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     engines_ok = {r["engine"] for r in ok}
     assert {"numpy-f64", "onnx-f32"} <= engines_ok
     # Every engine is either measured or says why not; nothing silently dropped.
-    assert {r["engine"] for r in rows} == {s.name for s in tradeoff.ENGINE_SPECS}
+    assert {r["engine"] for r in rows} == {s.name for s in grid.ENGINE_SPECS}
     assert all(r["status"] == "ok" or r["status"].startswith(("missing", "n/a")) for r in rows)
     ref = [r for r in ok if r["is_reference"]]
     assert len(ref) == 1 and ref[0]["error_index"] == 1.0

@@ -48,6 +48,11 @@ def register(subparsers: Any) -> None:
                    help="start from another device's model (transfer learning)")
     p.add_argument("--train-fraction", type=float, default=1.0,
                    help="use only this fraction of the training presses (default 1)")
+    p.add_argument("--memory", default=None, metavar="SPEC",
+                   help="memory states after standardisation: none, ema, play, both (default "
+                        "both, or the --init model's), or e.g. 'ema:3,6+play:0.03,0.1' "
+                        "(average shifts; play half-widths in input standard deviations); "
+                        "docs/trainer.md")
     add_json_flag(p)
     p.set_defaults(handler=_train)
 
@@ -103,6 +108,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
+                  memory=args.memory,
                   sigma=args.sigma, window=args.window, init=args.init,
                   train_fraction=args.train_fraction)
     fm.save(model, args.out)

@@ -23,6 +23,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from fbgforce import __version__
+from fbgforce import contract
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.errors import InputError
@@ -75,6 +76,11 @@ class Prepared:
         self.force_N = np.concatenate([np.asarray(r.ds.force_N, float) for r in recs])
         self.x_mm = np.concatenate([np.asarray(r.ds.x_mm, float) for r in recs])
         self.y_mm = np.concatenate([np.asarray(r.ds.y_mm, float) for r in recs])
+
+    def inputs(self, pre: fm.Preprocess) -> np.ndarray:
+        """Net inputs (n, F) of every sample under ``pre``'s standardisation and memory,
+        computed recording by recording (the memory states run along each recording)."""
+        return np.concatenate([fm.standardise(pre, r.feats) for r in self.recordings])
 
     def rows(self, part: str) -> np.ndarray:
         """Sample indices of ``"train"``, ``"val"``, ``"test"`` or ``"all"``."""
@@ -154,15 +160,67 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     return Prepared(recs, pre, temp_info)
 
 
-def _sizes(sizes: Mapping[str, Sequence[int]] | None) -> dict[str, list[int]]:
+def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
     for k, v in (sizes or {}).items():
         if k not in hidden:
             raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
         hidden[k] = [int(s) for s in v]
-    n_in = {"contact": fm.N_STRAIN, "force": fm.N_STRAIN, "location": fm.LOCATION_INPUTS}
-    n_out = {"contact": 2, "force": 1, "location": 2}
-    return {k: [n_in[k], *hidden[k], n_out[k]] for k in hidden}
+    n_ema, n_play = len(memory.ema_shifts), len(memory.play_widths)
+    return {net.name: [contract.net_inputs(net.name, n_ema, n_play), *hidden[net.name],
+                       net.float_outputs] for net in contract.NETS}
+
+
+def parse_memory(text: str) -> fm.Memory:
+    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``ema:S,S,...`` and/or
+    ``play:W,W,...`` joined by ``+`` (average shifts; play half-widths in standardised units)."""
+    text = text.strip()
+    if text in MEMORY_PRESETS:
+        return MEMORY_PRESETS[text]
+    ema: list[int] = []
+    play: list[float] = []
+    try:
+        for part in text.split("+"):
+            kind, _, values = part.partition(":")
+            nums = [v for v in values.split(",") if v.strip()]
+            if kind.strip() == "ema":
+                ema += [int(v) for v in nums]
+            elif kind.strip() == "play":
+                play += [float(v) for v in nums]
+            else:
+                raise ValueError(f"unknown memory kind {kind!r}")
+        return fm.Memory(ema_shifts=tuple(ema), play_widths=tuple(play))
+    except ValueError as exc:
+        raise InputError(f"bad memory {text!r}: {exc}; use none, "
+                         f"{', '.join(MEMORY_PRESETS)}, or e.g. ema:3,6+play:0.1",
+                         column="--memory") from exc
+
+
+#: Named memories (docs/trainer.md, "memory"): averages of about 8, 64 and 512 ms at 1 kHz;
+#: play operators of half-width 0.03, 0.1 and 0.3 standard deviations of the input.
+MEMORY_PRESETS: dict[str, fm.Memory] = {
+    "none": fm.Memory(),
+    "ema": fm.Memory(ema_shifts=(3, 6, 9)),
+    "play": fm.Memory(play_widths=(0.03, 0.1, 0.3)),
+    "both": fm.Memory(ema_shifts=(3, 6), play_widths=(0.03, 0.1, 0.3)),
+}
+DEFAULT_MEMORY = "both"
+
+
+def fit_memory_gains(memory: fm.Memory, z: np.ndarray, rows: np.ndarray) -> fm.Memory:
+    """The memory with power-of-two gains that bring each feature's spread on ``rows`` near
+    that of the standardised inputs (std 1): small recent changes would otherwise reach the
+    nets as near-constant inputs. ``z`` holds the inputs computed with all gains 0."""
+    if memory.n_states == 0:
+        return memory
+    gains = []
+    for k in range(memory.n_states):
+        sd = float(np.std(z[rows, fm.N_STRAIN * (1 + k):fm.N_STRAIN * (2 + k)]))
+        g = int(np.floor(np.log2(0.5 / sd))) if sd > 0 else 0
+        gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
+    n_ema = len(memory.ema_shifts)
+    return fm.Memory(ema_shifts=memory.ema_shifts, ema_gains=tuple(gains[:n_ema]),
+                     play_widths=memory.play_widths, play_gains=tuple(gains[n_ema:]))
 
 
 def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
@@ -189,7 +247,7 @@ def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
 def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data."""
-    z = (data.feats[rows] - model.preprocess.input_mean) / model.preprocess.input_std
+    z = data.inputs(model.preprocess)[rows]
     pred = fm.predict_from_features(model, z)
     return fmetrics.compute(pred, *data.truth(rows), extras=extras, pad_mm=model_pad_mm(model))
 
@@ -200,8 +258,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
           sizes: Mapping[str, Sequence[int]] | None = None, learning_rate: float = 1e-3,
           decay: float = 0.97, patience: int = 10, batch_size: int = 128,
           progress: bool | None = None, prepared: Prepared | None = None,
-          train_fraction: float = 1.0, time_budget_s: float | None = None
-          ) -> fm.HierarchicalModel:
+          train_fraction: float = 1.0, time_budget_s: float | None = None,
+          memory: fm.Memory | str | None = None) -> fm.HierarchicalModel:
     """Train the hierarchical model on calibration recordings.
 
     Parameters
@@ -227,6 +285,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         Use only this fraction of the training presses (transfer study: "how much less data").
     time_budget_s
         Per-net wall-time cap (keeps the best weights so far).
+    memory
+        The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
+        ``None``: the ``--init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
 
     Returns
     -------
@@ -237,7 +298,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     sources = [d.get("path") or d.get("source") or f"recording {i}"
                for i, d in enumerate(described)]
     init_model = fm.load(init) if isinstance(init, (str, Path)) else init
-    net_sizes = _sizes(sizes)
+    if memory is None:
+        memory = init_model.preprocess.memory if init_model else DEFAULT_MEMORY
+    if isinstance(memory, str):
+        memory = parse_memory(memory)
+    net_sizes = _sizes(sizes, memory)
     if init_model is not None:
         for name, net in init_model.nets.items():
             if sizes is None:
@@ -271,7 +336,12 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         xy_off, xy_scale = np.nanmean(xy, axis=0), np.maximum(np.nanstd(xy, axis=0), 1e-6)
     pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
     pre.input_mean, pre.input_std = std.mean, std.std
-    z = (data.feats - std.mean) / std.std
+    if init_model is not None:
+        pre.memory = init_model.preprocess.memory
+    else:
+        pre.memory = fm.Memory(ema_shifts=memory.ema_shifts, play_widths=memory.play_widths)
+        pre.memory = fit_memory_gains(pre.memory, data.inputs(pre), tr)
+    z = data.inputs(pre)
     common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
                   decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s)
     reports: dict[str, Any] = {}
@@ -344,6 +414,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "split": {"by": "press", "ratios": list(SPLIT_RATIOS), "train_fraction": train_fraction,
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
+        "memory": pre.memory.to_json(),
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),

@@ -25,6 +25,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import contract
+
 HERE = Path(__file__).resolve().parent
 INT64_MAX = 2**63 - 1
 SAT16 = 32767
@@ -32,7 +34,7 @@ SAT16 = 32767
 # Driver op codes (hardcase_driver.c).
 OP_INIT, OP_TARE, OP_BASE, OP_STEP, OP_RUN, OP_RESET = 1, 2, 3, 4, 5, 6
 #: Output fields per sample, in the driver's order (= fbg_output's integer fields).
-OUT_FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "contact_conf_q15", "contact")
+OUT_FIELDS = contract.OUTPUT_FIELDS
 
 
 # --------------------------------------------------------------------------------------------

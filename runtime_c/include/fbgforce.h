@@ -27,7 +27,7 @@
  *   static fbg_model model;  static fbg_state st;  fbg_output out;
  *   fbg_model_from_blob(&model, blob, blob_len);     // or use a generated const fbg_model
  *   fbg_init(&st, &model, 0);
- *   fbg_tare_begin(&st); for (k..) fbg_tare_add(&st, wl_fm); fbg_tare_end(&st);
+ *   fbg_tare_begin(&st); for (k..) fbg_tare_add(&st, wl_fm, NULL); fbg_tare_end(&st);
  *   for (;;) { fbg_step(&st, wl_fm, &out); use(out.contact, out.force_mN, out.x_um, ...); }
  *
  * Thread safety: functions touch only the structs passed in; a const fbg_model may be shared
@@ -43,58 +43,61 @@
 extern "C" {
 #endif
 
-#define FBG_VERSION_MAJOR 1
-#define FBG_VERSION_MINOR 0
-
-/* ---- Compile-time limits (memory is sizeof(fbg_state); no other buffers are needed) ---- */
-#define FBG_N_CHANNELS 5        /* wl1..wl4 (strain), wlT (temperature reference) */
-#define FBG_N_STRAIN 4
-#define FBG_MAX_TAPS 64         /* causal FIR length */
-#define FBG_MAX_WIDTH 128       /* widest layer (inputs or outputs) of any net */
-#define FBG_MAX_LAYERS 8        /* layers per net */
-#define FBG_N_NETS 3            /* contact, force, location (evaluation order) */
+/* ---- BEGIN GENERATED constants: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+#define FBG_N_CHANNELS 5  /* wl1..wl4 (strain), wlT (temperature reference) */
+#define FBG_N_STRAIN 4  /* strain gratings */
+#define FBG_MAX_TAPS 64  /* causal FIR length */
+#define FBG_MAX_WIDTH 128  /* widest layer (inputs or outputs) of any net */
+#define FBG_MAX_LAYERS 8  /* layers per net */
+#define FBG_MAX_EMA 4  /* exponential-average memory states per strain channel */
+#define FBG_MAX_PLAY 4  /* play-operator memory states per strain channel */
+#define FBG_MAX_INPUTS 38  /* widest net input: z, memory features, contact flag, force */
+#define FBG_N_NETS 3  /* contact, force, location (evaluation order) */
+#define FBG_WL_MIN_FM 1000000000  /* 1000 nm: a peak below this is lost (0, sentinels) */
+#define FBG_WL_MAX_FM 2000000000  /* 2000 nm: a peak above this is lost */
+#define FBG_TEMP_COEFF_SHIFT 24  /* temperature coefficients are Q24 */
+#define FBG_EMA_FRAC 15  /* fractional bits of the exponential-average states below Q(z_frac) */
+#define FBG_MAX_EMA_SHIFT 15  /* largest exponential-average shift (time constant 2^15 samples) */
+#define FBG_MAX_MEM_GAIN 8  /* largest memory-feature gain shift */
+#define FBG_LOAD_COEFF_LIMIT 268435456  /* |load_coeff| below this: the load proxy sum fits int64 */
+#define FBG_BLOB_VERSION 4  /* blob format this library reads and writes */
+#define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
+#define FBG_VERSION_MAJOR 0  /* library version */
+#define FBG_VERSION_MINOR 2
+#define FBG_VERSION_PATCH 0
 #define FBG_NET_CONTACT 0
 #define FBG_NET_FORCE 1
 #define FBG_NET_LOCATION 2
-#define FBG_LOCATION_INPUTS 6   /* z1..z4, contact flag, force net output */
 
-/* ---- Sensor-fault rule (see fbg_step) ---- */
-#define FBG_WL_MIN_FM 1000000000   /* 1000 nm: a peak below this is "lost" (0, sentinels) */
-#define FBG_WL_MAX_FM 2000000000   /* 2000 nm: a peak above this is "lost" */
-
-/* Q format of the temperature coefficients: coeff = temp_coeff_q24 / 2^24. */
-#define FBG_TEMP_COEFF_SHIFT 24
-/* Blob format understood by this library (docs/model-format.md). */
-#define FBG_BLOB_VERSION 3
-#define FBG_BLOB_HEADER_SIZE 16
-
-/* ---- Return codes: 0 is success, every error has its own negative code ---- */
+/* Return codes: 0 is success, every error has its own negative code. */
 typedef enum {
-    FBG_OK = 0,
-    FBG_ERR_NULL = -1,          /* a required pointer argument is NULL */
-    FBG_ERR_TRUNCATED = -2,     /* blob shorter than its header or than its declared length */
-    FBG_ERR_BAD_MAGIC = -3,     /* blob does not start with "FBGM" */
-    FBG_ERR_VERSION = -4,       /* blob format version not supported by this library */
-    FBG_ERR_CRC = -5,           /* CRC-32 over the blob body does not match */
-    FBG_ERR_SHAPE = -6,         /* layer shapes inconsistent, too large, or nets of wrong I/O */
-    FBG_ERR_RANGE = -7,         /* a parameter outside its allowed range (shift, Q format...) */
-    FBG_ERR_BOUND = -8,         /* accumulator worst-case bound would overflow int64 (int32
-                                 * for an acc32 layer) */
-    FBG_ERR_SIZE = -9,          /* declared length differs from the length the shapes imply */
-    FBG_ERR_ALIGN = -10,        /* blob pointer not 8-byte aligned (arrays are used in place) */
-    FBG_ERR_ENDIAN = -11,       /* host is not little-endian (blob arrays are little-endian) */
-    FBG_ERR_STATE = -12,        /* state not initialised by fbg_init (or corrupted) */
-    FBG_ERR_NOT_TARED = -13,    /* fbg_step with FBG_OPT_REQUIRE_TARE before a tare */
-    FBG_ERR_TARE = -14,         /* tare_add/tare_end without tare_begin, or no valid sample */
-    FBG_ERR_ARG = -15           /* bad argument value (e.g. baseline outside the window) */
+    FBG_OK = 0,  /* success */
+    FBG_ERR_NULL = -1,  /* a required pointer argument is NULL */
+    FBG_ERR_TRUNCATED = -2,  /* blob shorter than its header or than its declared length */
+    FBG_ERR_BAD_MAGIC = -3,  /* blob does not start with "FBGM" */
+    FBG_ERR_VERSION = -4,  /* blob format version or header flags not supported by this library */
+    FBG_ERR_CRC = -5,  /* CRC-32 over the blob body does not match */
+    FBG_ERR_SHAPE = -6,  /* layer shapes inconsistent, too large, or nets of wrong I/O */
+    FBG_ERR_RANGE = -7,  /* a parameter outside its allowed range, or non-zero padding */
+    FBG_ERR_BOUND = -8,  /* accumulator worst-case bound would overflow int64 (int32 for an acc32 layer) */
+    FBG_ERR_SIZE = -9,  /* declared length differs from the length the shapes imply */
+    FBG_ERR_ALIGN = -10,  /* blob pointer not 8-byte aligned (arrays are used in place) */
+    FBG_ERR_ENDIAN = -11,  /* host is not little-endian (blob arrays are little-endian) */
+    FBG_ERR_STATE = -12,  /* state not initialised by fbg_init (or corrupted) */
+    FBG_ERR_NOT_TARED = -13,  /* fbg_step with FBG_OPT_REQUIRE_TARE before a tare */
+    FBG_ERR_TARE = -14,  /* tare_add/tare_end without tare_begin, or no valid sample */
+    FBG_ERR_ARG = -15  /* bad argument value (e.g. baseline outside the window) */
 } fbg_status;
 
-/* ---- Output status flags (fbg_output.status; several may be set) ---- */
-#define FBG_STATUS_NOT_TARED 0x01     /* running on the model's nominal baseline */
-#define FBG_STATUS_SATURATED 0x02     /* some value was clamped (int16/int32) this sample */
-#define FBG_STATUS_OVERLOAD 0x04      /* beyond the trained force range (see fbg_model) */
-#define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost or jumped: outputs are the safe output */
-#define FBG_STATUS_WARMUP 0x10        /* fewer than n_taps samples since init/tare */
+/* Output status flags (fbg_output.status; several may be set). */
+#define FBG_STATUS_NOT_TARED 0x01  /* running on the model's nominal baseline */
+#define FBG_STATUS_SATURATED 0x02  /* some value was clamped (int16/int32) this sample */
+#define FBG_STATUS_OVERLOAD 0x04  /* beyond the trained force range (see fbg_model) */
+#define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost, jumped or stuck: outputs are the safe output */
+#define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
+/* ---- END GENERATED constants ---- */
+
+/* ---- Sensor-fault rule (see fbg_step): a peak outside [FBG_WL_MIN_FM, FBG_WL_MAX_FM] is lost. */
 
 /* fbg_init options */
 #define FBG_OPT_REQUIRE_TARE 0x01     /* fbg_step returns FBG_ERR_NOT_TARED until tared */
@@ -108,8 +111,6 @@ typedef enum {
 /* One dense layer: acc[r] = bias[r] + sum_j w[r][j] * x[j]        (int64 accumulator, or
  *                                                                   int32 when acc32 = 1)
  *                  y[r]   = rshift_round(acc[r] * mult[r], shift)
- * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
- * int32 (fbg_model_check refuses the model otherwise, FBG_ERR_BOUND), so the int32 sum is the
  * hidden layers:   y = sat16(max(y, 0))    (ReLU, int16 activations)
  * output layers:   y = sat32(y)            (physical units, see fbg_model)
  * acc32 = 1 declares that every row's worst case sum_j |w[r][j]| * 32767 + |bias[r]| fits
@@ -134,61 +135,53 @@ typedef struct {
     fbg_layer layers[FBG_MAX_LAYERS];
 } fbg_net;
 
+/* ---- BEGIN GENERATED fixed: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* Fixed-point model. The parameters are those of the blob (docs/model-format.md),
+ * declared grouped by size so that the struct has no implicit padding. */
 typedef struct {
-    /* Nominal unloaded wavelengths (fm): the baseline before any tare. */
-    int32_t baseline_fm[FBG_N_CHANNELS];
-    /* SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel. */
-    int32_t jump_max_fm;
-    /* SENSOR_FAULT when a channel has repeated the identical value for stuck_max consecutive
-     * samples (a frozen peak / stale interrogator channel); 0 disables the rule. */
-    uint16_t stuck_max;
-    uint16_t reserved0;
-    /* comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)        (fm) */
-    int32_t temp_coeff_q24[FBG_N_STRAIN];
-    /* Causal FIR: filt = sat32(rshift_round(sum_k taps[k] * comp[n-k], tap_q)); taps are
-     * int16 in Q(tap_q): Q15 normally, Q14 when a tap is >= 1 (e.g. no filter = {16384}). */
-    uint16_t n_taps;         /* 1..FBG_MAX_TAPS */
-    uint8_t tap_q;           /* 1..15 */
-    /* z_i = sat16(rshift_round(sat32(filt_i - mean_fm[i]) * z_mult[i], z_shift)):
-     * the standardised input in Q(z_frac), i.e. z_real = z / 2^z_frac. */
-    uint8_t z_frac;          /* 0..14 */
-    uint8_t z_shift;         /* 1..62 */
-    /* Location-net input 6 = force in the force net's own output units, Q(z_frac):
-     * f_q = sat16(rshift_round(force_out * fq_mult, fq_shift)). Input 5 = contact << z_frac. */
-    uint8_t fq_shift;        /* 1..62 */
-    uint8_t load_shift;      /* 1..62, see load_coeff */
-    uint8_t reserved;
-    int32_t mean_fm[FBG_N_STRAIN];
-    int32_t z_mult[FBG_N_STRAIN];
-    int32_t fq_mult;
-    /* Output layers give: contact net -> contact margin Q8 (contact iff its accumulator
-     * is > 0); force net -> force_out (mN, before offset); location net -> x, y (um, before
-     * offset). Then force_mN = sat32(force_out + force_offset_mN), x_um likewise. */
-    int32_t force_offset_mN;
-    int32_t xy_offset_um[2];
-    int32_t overload_mN;     /* OVERLOAD when contact and force_mN > overload_mN */
-    /* Input-side overload rule, independent of the nets (which extrapolate low beyond the
-     * trained range): load_mN = rshift_round(sum_i load_coeff[i] * filt_i, load_shift), a
-     * linear force proxy fitted at export; OVERLOAD when load_mN > load_max_mN (the largest
-     * value on the calibration data), contact or not. |load_coeff[i]| < 2^28. */
-    int32_t load_coeff[FBG_N_STRAIN];
-    int32_t load_max_mN;
-    const int16_t *taps;     /* n_taps */
+    uint32_t writer_version;  /* VERSION_CODE of the library that wrote the blob (informational: any value loads) */
+    int32_t baseline_fm[5];  /* nominal unloaded wavelengths (fm): the baseline before any tare [1000000000, 2000000000] */
+    int32_t jump_max_fm;  /* SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel [1, 2147483647] */
+    int32_t temp_coeff_q24[4];  /* comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)  (fm) */
+    int32_t mean_fm[4];  /* z_i = sat16(rshift_round(sat32(filt_i - mean_fm[i]) * z_mult[i], z_shift)) */
+    int32_t z_mult[4];  /* standardisation multipliers */
+    int32_t fq_mult;  /* location input: f_q = sat16(rshift_round(force_out * fq_mult, fq_shift)) */
+    int32_t force_offset_mN;  /* force_mN = sat32(force_out + offset) */
+    int32_t xy_offset_um[2];  /* x_um, y_um likewise */
+    int32_t overload_mN;  /* OVERLOAD when contact and force_mN > this */
+    int32_t load_coeff[4];  /* input-side overload: load_mN = rshift_round(sum_i load_coeff[i] * filt_i, load_shift) [-268435455, 268435455] */
+    int32_t load_max_mN;  /* OVERLOAD when load_mN > load_max_mN */
+    uint16_t n_taps;  /* causal FIR length [1, 64] */
+    uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
+    int16_t play_width[4];  /* state = clamp(state, z - play_width[k], z + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
+    uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
+    uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
+    uint8_t z_shift;  /* [1, 62] */
+    uint8_t fq_shift;  /* [1, 62] */
+    uint8_t load_shift;  /* [1, 62] */
+    uint8_t n_ema;  /* exponential-average memory states per channel [0, 4] */
+    uint8_t n_play;  /* play-operator memory states per channel [0, 4] */
+    uint8_t ema_shift[4];  /* state += rshift_round((z << EMA_FRAC) - state, ema_shift[k]) [1, 15] for k < n_ema, else 0 */
+    uint8_t ema_gain[4];  /* feature = sat16((z - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
+    uint8_t play_gain[4];  /* feature = sat16((z - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
+    uint8_t pad_[1];  /* explicit padding, keep 0 */
+    const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
 } fbg_model;
 
-/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN = x_um =
- * y_um = 0. Safe output (SENSOR_FAULT, or an error return): everything 0 except status. */
+/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =
+ * x_um = y_um = 0. Safe output (SENSOR_FAULT, or an error return): all 0 but status. */
 typedef struct {
-    int32_t force_mN;            /* normal force, mN (0 when no contact) */
-    int32_t x_um;                /* contact location, um (0 when no contact) */
+    int32_t force_mN;  /* normal force, mN (0 when no contact) */
+    int32_t x_um;  /* contact location, um (0 when no contact) */
     int32_t y_um;
-    int32_t contact_margin_q8;   /* contact-net margin (logit difference) * 256 */
-    uint32_t status;             /* FBG_STATUS_* flags */
-    uint16_t contact_conf_q15;   /* P(contact) in Q15, 0..32767 (sigmoid of the margin) */
-    uint8_t contact;             /* 1 = contact */
+    int32_t contact_margin_q8;  /* contact-net margin (logit difference) * 256 */
+    uint32_t status;  /* FBG_STATUS_* flags */
+    uint16_t contact_conf_q15;  /* P(contact) in Q15, 0..32767 (sigmoid of the margin) */
+    uint8_t contact;  /* 1 = contact */
     uint8_t reserved;
 } fbg_output;
+/* ---- END GENERATED fixed ---- */
 
 /* Caller-owned streaming state. Treat as opaque; size is sizeof(fbg_state). */
 typedef struct {
@@ -199,6 +192,10 @@ typedef struct {
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
     int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
+    /* Memory states per channel (docs/fixed-point.md, "memory"): exponential averages in
+     * Q(z_frac + FBG_EMA_FRAC), play operators in Q(z_frac). */
+    int32_t ema[FBG_N_STRAIN][FBG_MAX_EMA];
+    int32_t play[FBG_N_STRAIN][FBG_MAX_PLAY];
     int64_t tare_sum[FBG_N_CHANNELS];
     /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
      * the activations with LDRD (no copy to an aligned buffer per layer). */
@@ -210,10 +207,11 @@ typedef struct {
     uint8_t tared;
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
-    uint8_t reserved;
+    uint8_t mem_primed;                          /* memory states hold a sample */
 } fbg_state;
 
-/* Library version as (major << 16) | minor, for checking header against library. */
+/* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was
+ * built with, the same version as the Python package (fbgforce.contract.VERSION). */
 uint32_t fbg_version(void);
 
 /* Number of bytes of an fbg_state / fbgf_state (for bindings that cannot use sizeof). */
@@ -303,36 +301,43 @@ typedef struct {
     fbgf_layer layers[FBG_MAX_LAYERS];
 } fbgf_net;
 
+/* ---- BEGIN GENERATED float: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* Float model: the same pipeline in single precision. */
 typedef struct {
-    int32_t baseline_fm[FBG_N_CHANNELS];
+    int32_t baseline_fm[5];
     int32_t jump_max_fm;
-    uint16_t stuck_max;
-    uint16_t reserved0;
-    float temp_coeff[FBG_N_STRAIN];
-    float input_mean_pm[FBG_N_STRAIN];
-    float input_std_pm[FBG_N_STRAIN];
+    float temp_coeff[4];
+    float input_mean_pm[4];
+    float input_std_pm[4];
     float force_offset_N;
     float force_scale;
     float xy_offset_mm[2];
     float xy_scale[2];
     float overload_N;
-    uint16_t n_taps;         /* 1..FBG_MAX_TAPS */
-    uint8_t reserved[2];
+    float play_width[4];  /* in standardised units */
+    uint16_t stuck_max;
+    uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
+    uint8_t n_ema;  /* as fbg_model */
+    uint8_t n_play;
+    uint8_t ema_shift[4];  /* state += (z - state) / 2^ema_shift[k] */
+    uint8_t ema_gain[4];
+    uint8_t play_gain[4];
+    uint8_t pad_[2];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
-    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits), as in the float model */
+    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
 } fbgf_model;
 
 typedef struct {
-    float force_N;           /* 0 when no contact */
-    float x_mm;              /* 0 when no contact */
+    float force_N;  /* 0 when no contact */
+    float x_mm;  /* 0 when no contact */
     float y_mm;
-    float p_contact;         /* softmax probability of contact */
-    float margin;            /* logit[1] - logit[0] */
-    uint32_t status;         /* FBG_STATUS_* (SATURATED if the tare difference clamps, or
-                              * a non-finite value arose in the nets: then the safe output) */
+    float p_contact;  /* softmax probability of contact */
+    float margin;  /* logit[1] - logit[0] */
+    uint32_t status;  /* FBG_STATUS_* */
     uint8_t contact;
     uint8_t reserved[3];
 } fbgf_output;
+/* ---- END GENERATED float ---- */
 
 typedef struct {
     uint32_t magic;
@@ -342,6 +347,8 @@ typedef struct {
     int32_t prev_fm[FBG_N_CHANNELS];
     float hist[FBG_MAX_TAPS][FBG_N_STRAIN];
     float last_comp[FBG_N_STRAIN];
+    float ema[FBG_N_STRAIN][FBG_MAX_EMA];
+    float play[FBG_N_STRAIN][FBG_MAX_PLAY];
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
     uint16_t pos;
@@ -350,7 +357,7 @@ typedef struct {
     uint8_t tared;
     uint8_t tare_active;
     uint8_t prev_valid;
-    uint8_t reserved;
+    uint8_t mem_primed;
     float act[2][FBG_MAX_WIDTH];
 } fbgf_state;
 

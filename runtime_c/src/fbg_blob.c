@@ -7,10 +7,8 @@
  */
 #include <string.h>
 
+#include "fbg_contract.h"
 #include "fbg_internal.h"
-
-#define FBG_PARAMS_END 144u   /* end of the fixed parameter block */
-#define FBG_LAYER_ENTRY 8u    /* bytes per layer-table entry */
 
 uint32_t fbg_crc32(const uint8_t *data, size_t len)
 {
@@ -39,13 +37,6 @@ static uint32_t rd32(const uint8_t *p)
     return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
 }
 
-static int32_t rdi32(const uint8_t *p)
-{
-    uint32_t u = rd32(p);
-    /* Two's-complement reinterpretation without implementation-defined conversion. */
-    return (u & 0x80000000u) ? -(int32_t)(~u) - 1 : (int32_t)u;
-}
-
 size_t fbg_blob_declared_size(const uint8_t *blob, size_t len)
 {
     if (blob == NULL || len < FBG_BLOB_HEADER_SIZE)
@@ -66,11 +57,33 @@ static int host_is_little_endian(void)
     return first == 1u;
 }
 
+/* Claim the array of nbytes at *off: it and its zero padding up to the next multiple of 8
+ * must lie inside the declared length (SIZE), and the padding must be zero (RANGE). */
+static fbg_status take(const uint8_t *blob, size_t total, size_t *off, size_t nbytes,
+                       const void **where)
+{
+    size_t end, k;
+    if (*off + nbytes > total)
+        return FBG_ERR_SIZE;
+    end = align8(*off + nbytes);
+    if (end > total)
+        return FBG_ERR_SIZE;
+    for (k = *off + nbytes; k < end; ++k)
+        if (blob[k] != 0u)
+            return FBG_ERR_RANGE;
+    *where = blob + *off;
+    *off = end;
+    return FBG_OK;
+}
+
+/* The check order below is the contract: export/blob.py follows it step for step, so both
+ * readers give every blob the same verdict and code (tests/test_blob_verdict.py). */
 fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
 {
     size_t total, off;
-    unsigned n, l, c;
-    const uint8_t *p;
+    unsigned n, l;
+    fbg_status st;
+    const void *where;
 
     if (model == NULL || blob == NULL)
         return FBG_ERR_NULL;
@@ -78,7 +91,7 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
         return FBG_ERR_TRUNCATED;
     if (memcmp(blob, "FBGM", 4) != 0)
         return FBG_ERR_BAD_MAGIC;
-    if (rd16(blob + 4) != FBG_BLOB_VERSION)
+    if (rd16(blob + 4) != FBG_BLOB_VERSION || rd16(blob + 6) != 0u)
         return FBG_ERR_VERSION;
     total = (size_t)rd32(blob + 8);
     if (total > len)
@@ -93,41 +106,12 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
         return FBG_ERR_ALIGN;
 
     memset(model, 0, sizeof *model);
-    p = blob + FBG_BLOB_HEADER_SIZE;
-    for (c = 0; c < FBG_N_CHANNELS; ++c, p += 4)
-        model->baseline_fm[c] = rdi32(p);
-    model->jump_max_fm = rdi32(p);
-    p += 4;
-    for (c = 0; c < FBG_N_STRAIN; ++c, p += 4)
-        model->temp_coeff_q24[c] = rdi32(p);
-    for (c = 0; c < FBG_N_STRAIN; ++c, p += 4)
-        model->mean_fm[c] = rdi32(p);
-    for (c = 0; c < FBG_N_STRAIN; ++c, p += 4)
-        model->z_mult[c] = rdi32(p);
-    model->fq_mult = rdi32(p);
-    model->force_offset_mN = rdi32(p + 4);
-    model->xy_offset_um[0] = rdi32(p + 8);
-    model->xy_offset_um[1] = rdi32(p + 12);
-    model->overload_mN = rdi32(p + 16);
-    p += 20;
-    for (c = 0; c < FBG_N_STRAIN; ++c, p += 4)
-        model->load_coeff[c] = rdi32(p);
-    model->load_max_mN = rdi32(p);
-    p += 4;
-    model->n_taps = rd16(p);
-    model->tap_q = p[2];
-    model->z_frac = p[3];
-    model->z_shift = p[4];
-    model->fq_shift = p[5];
-    model->load_shift = p[6];
-    model->stuck_max = rd16(p + 10);
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        model->nets[n].n_layers = p[7 + n];
-        if (model->nets[n].n_layers < 1u || model->nets[n].n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
-    }
-    if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
-        return FBG_ERR_SHAPE;
+    fbg_params_decode(model, blob + FBG_BLOB_HEADER_SIZE);
+    if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
+        return FBG_ERR_RANGE;
+    st = fbg_params_check(model);
+    if (st != FBG_OK)
+        return st;
 
     /* Layer table. */
     off = FBG_PARAMS_END;
@@ -140,8 +124,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
             ly->n_out = rd16(blob + off + 2);
             ly->w_bits = blob[off + 4];
             ly->shift = blob[off + 5];
-            ly->acc32 = blob[off + 6];   /* 0 or 1, checked by fbg_model_check */
-            if (blob[off + 7] != 0u)
+            ly->acc32 = blob[off + 6];
+            if (blob[off + 7] != 0u || ly->acc32 > 1u)
                 return FBG_ERR_RANGE;
             off += FBG_LAYER_ENTRY;
             if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
@@ -153,30 +137,27 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
     /* Arrays, each at an 8-aligned offset; sizes are bounded (<= 128*128*2 bytes each), so
      * these sums cannot overflow size_t before they are compared with total. */
-    off = align8(off);
-    if (off + (size_t)model->n_taps * 2u > total)
-        return FBG_ERR_SIZE;
-    model->taps = (const int16_t *)(const void *)(blob + off);
-    off = align8(off + (size_t)model->n_taps * 2u);
+    if ((st = take(blob, total, &off, 0u, &where)) != FBG_OK)   /* the table's padding */
+        return st;
+    if ((st = take(blob, total, &off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
+        return st;
+    model->taps = (const int16_t *)where;
     for (n = 0; n < FBG_N_NETS; ++n) {
         for (l = 0; l < model->nets[n].n_layers; ++l) {
             fbg_layer *ly = &model->nets[n].layers[l];
             size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
-            if (off + nw > total)
-                return FBG_ERR_SIZE;
+            if ((st = take(blob, total, &off, nw, &where)) != FBG_OK)
+                return st;
             if (ly->w_bits == 16u)
-                ly->w16 = (const int16_t *)(const void *)(blob + off);
+                ly->w16 = (const int16_t *)where;
             else
-                ly->w8 = (const int8_t *)(const void *)(blob + off);
-            off = align8(off + nw);
-            if (off + (size_t)ly->n_out * 8u > total)
-                return FBG_ERR_SIZE;
-            ly->bias = (const int64_t *)(const void *)(blob + off);
-            off = align8(off + (size_t)ly->n_out * 8u);
-            if (off + (size_t)ly->n_out * 4u > total)
-                return FBG_ERR_SIZE;
-            ly->mult = (const int32_t *)(const void *)(blob + off);
-            off = align8(off + (size_t)ly->n_out * 4u);
+                ly->w8 = (const int8_t *)where;
+            if ((st = take(blob, total, &off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
+                return st;
+            ly->bias = (const int64_t *)where;
+            if ((st = take(blob, total, &off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
+                return st;
+            ly->mult = (const int32_t *)where;
         }
     }
     if (off != total)

@@ -13,13 +13,14 @@
  *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
  *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
  *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
- * - int16 layers with shift >= 32 (what the exporter chooses) run in naked functions of
- *   inline assembly (registers allocated by hand: GCC spilled the six accumulator
- *   registers): rows3d_asm (word-aligned, LDRD), rows3_asm (any alignment), first_asm (2, 4
- *   or 6 inputs held in registers). Everything else is C with ACLE intrinsics (__smlald,
- *   __sxtb16 for int8 weights, __usat).
- * - int32 layers (fbg_layer.acc32, proven by the loader: every partial sum fits int32) use
- *   SMLAD and SMMULR instead: rows4d32_asm, first32_asm, C rows with __smlad (see below).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except five kernels of int16-weight layers that stay hand-written assembly
+ *   because they measurably win (FBG_DSP_ASM, below; docs/firmware.md has the instructions
+ *   per step of both): for int64 layers with shift >= 32, rows3d_asm (word-aligned, LDRD),
+ *   rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in registers); for int32
+ *   layers (fbg_layer.acc32, proven by the loader: every partial sum fits int32; SMLAD and
+ *   SMMULR instead) at shift 32, rows4d32_asm and first32_asm. Each has an ACLE C version
+ *   (rows3_c, first_c, rows4_32_c, first32_c) that FBG_DSP_ASM=0 builds instead.
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -30,6 +31,17 @@
 #include <arm_acle.h>
 #include <stddef.h>
 #include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
 
 /* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
  * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
@@ -77,6 +89,29 @@ static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int6
     return y;
 }
 
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
 int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
 {
     int64_t acc2 = 0;
@@ -116,6 +151,164 @@ typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_d
                                   offsetof(fbg_dsp_job, s32) == 36 &&
                                   offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
 
+
+/* ---- The kernels in C with ACLE intrinsics: the FBG_DSP_ASM=0 versions of the assembly
+ * further down, same jobs, same bits (any alignment: LDR may be unaligned on ARMv7E-M). With
+ * GCC 12 they cost more instructions per step than the assembly, which therefore stays the
+ * default (docs/firmware.md has the figures): GCC forms no LDRD from two word loads, advances
+ * every row pointer with its own ADD and keeps ReLU as ASR + BIC. ---- */
+#if !FBG_DSP_ASM
+
+/* Requantise an int64 row with shift >= 32 (rounded_product_hi), ReLU, USAT #15. */
+static inline int32_t requant64(int64_t acc, int32_t mult, int64_t round, unsigned s32,
+                                uint32_t *clamped)
+{
+    return relu_usat15(rounded_product_hi(acc, mult, round) >> s32, clamped);
+}
+
+static inline int64_t job_round(const fbg_dsp_job *job)
+{
+    return (int64_t)(((uint64_t)job->round_hi << 32) | job->round_lo);
+}
+
+/* Three int64 rows per pass (rows3_asm, rows3d_asm). */
+__attribute__((noinline)) static void rows3_c(fbg_dsp_job *job)
+{
+    const unsigned n = job->n, s32 = job->s32;
+    const int64_t round = job_round(job);
+    const int16_t *w = job->w, *x = job->x;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y;
+    uint32_t clamped = 0u, g;
+    for (g = job->groups; g > 0u; --g, w += 3u * n, bias += 3, mult += 3, y += 3) {
+        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n;
+        int64_t a0 = bias[0], a1 = bias[1], a2 = bias[2];
+        unsigned j = 0;
+        for (; j + 2u <= n; j += 2u) {
+            int16x2_t xv = ld2(x + j);
+            a0 = __smlald(ld2(w0 + j), xv, a0);
+            a1 = __smlald(ld2(w1 + j), xv, a1);
+            a2 = __smlald(ld2(w2 + j), xv, a2);
+        }
+        if (j < n) {
+            a0 += (int32_t)w0[j] * (int32_t)x[j];
+            a1 += (int32_t)w1[j] * (int32_t)x[j];
+            a2 += (int32_t)w2[j] * (int32_t)x[j];
+        }
+        y[0] = (int16_t)requant64(a0, mult[0], round, s32, &clamped);
+        y[1] = (int16_t)requant64(a1, mult[1], round, s32, &clamped);
+        y[2] = (int16_t)requant64(a2, mult[2], round, s32, &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+/* A first layer of n = 2, 4 or 6 inputs held in registers, int64 rows (first_asm); n is a
+ * constant at each call, so the row loop carries no test on it. */
+static inline void first_n(fbg_dsp_job *job, unsigned n)
+{
+    const int64_t round = job_round(job);
+    const unsigned s32 = job->s32;
+    const int16_t *w = job->w;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y, *end = job->y + job->groups;
+    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
+                    x2 = n > 4u ? ld2(job->x + 4) : 0;
+    uint32_t clamped = 0u;
+    while (y != end) {
+        int64_t a = __smlald(ld2(w), x0, *bias++);
+        w += 2;
+        if (n > 2u) {
+            a = __smlald(ld2(w), x1, a);
+            w += 2;
+        }
+        if (n > 4u) {
+            a = __smlald(ld2(w), x2, a);
+            w += 2;
+        }
+        *y++ = (int16_t)requant64(a, *mult++, round, s32, &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+__attribute__((noinline)) static void first_c(fbg_dsp_job *job)
+{
+    if (job->n == 2u)
+        first_n(job, 2u);
+    else if (job->n == 4u)
+        first_n(job, 4u);
+    else
+        first_n(job, 6u);
+}
+
+/* Four int32 rows per pass, SMLAD and SMMULR (rows4d32_asm); n even. */
+__attribute__((noinline)) static void rows4_32_c(fbg_dsp_job *job)
+{
+    const unsigned n = job->n;
+    const int16_t *w = job->w, *x = job->x;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y;
+    uint32_t clamped = 0u, g;
+    for (g = job->groups; g > 0u; --g, w += 4u * n, bias += 4, mult += 4, y += 4) {
+        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n, *w3 = w2 + n;
+        int32_t a0 = (int32_t)bias[0], a1 = (int32_t)bias[1], a2 = (int32_t)bias[2],
+                a3 = (int32_t)bias[3];
+        unsigned j;
+        for (j = 0; j < n; j += 2u) {
+            int16x2_t xv = ld2(x + j);
+            a0 = __smlad(ld2(w0 + j), xv, a0);
+            a1 = __smlad(ld2(w1 + j), xv, a1);
+            a2 = __smlad(ld2(w2 + j), xv, a2);
+            a3 = __smlad(ld2(w3 + j), xv, a3);
+        }
+        y[0] = (int16_t)relu_usat15(smmulr(a0, mult[0]), &clamped);
+        y[1] = (int16_t)relu_usat15(smmulr(a1, mult[1]), &clamped);
+        y[2] = (int16_t)relu_usat15(smmulr(a2, mult[2]), &clamped);
+        y[3] = (int16_t)relu_usat15(smmulr(a3, mult[3]), &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+/* A first int32 layer of n = 2, 4 or 6 inputs held in registers (first32_asm). */
+static inline void first32_n(fbg_dsp_job *job, unsigned n)
+{
+    const int16_t *w = job->w;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y, *end = job->y + job->groups;
+    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
+                    x2 = n > 4u ? ld2(job->x + 4) : 0;
+    uint32_t clamped = 0u;
+    while (y != end) {
+        int32_t a = __smlad(ld2(w), x0, (int32_t)*bias++);
+        w += 2;
+        if (n > 2u) {
+            a = __smlad(ld2(w), x1, a);
+            w += 2;
+        }
+        if (n > 4u) {
+            a = __smlad(ld2(w), x2, a);
+            w += 2;
+        }
+        *y++ = (int16_t)relu_usat15(smmulr(a, *mult++), &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+__attribute__((noinline)) static void first32_c(fbg_dsp_job *job)
+{
+    if (job->n == 2u)
+        first32_n(job, 2u);
+    else if (job->n == 4u)
+        first32_n(job, 4u);
+    else
+        first32_n(job, 6u);
+}
+#endif /* !FBG_DSP_ASM */
+
+#if FBG_DSP_ASM
 /* A hidden layer with shift >= 32, three rows per pass, everything in registers:
  *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
  *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
@@ -835,6 +1028,49 @@ __attribute__((naked, noinline)) static void first32_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
+#endif /* FBG_DSP_ASM */
+
+/* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
+static void run_rows3(fbg_dsp_job *job, int aligned)
+{
+#if FBG_DSP_ASM
+    if (aligned)
+        rows3d_asm(job);
+    else
+        rows3_asm(job);
+#else
+    (void)aligned;
+    rows3_c(job);
+#endif
+}
+
+static void run_first(fbg_dsp_job *job)
+{
+#if FBG_DSP_ASM
+    first_asm(job);
+#else
+    first_c(job);
+#endif
+}
+
+static void run_first32(fbg_dsp_job *job)
+{
+#if FBG_DSP_ASM
+    first32_asm(job);
+#else
+    first32_c(job);
+#endif
+}
+
+static void run_rows4_32(fbg_dsp_job *job)
+{
+#if FBG_DSP_ASM
+    rows4d32_asm(job);
+#else
+    rows4_32_c(job);
+#endif
+}
+
 /* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
 static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
 {
@@ -870,14 +1106,14 @@ static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint3
     job.clamped = 0u;
     if (shift == 32u && wal && (n == 2u || n == 4u || n == 6u)) {
         job.groups = m;
-        first32_asm(&job);
+        run_first32(&job);
         if (job.clamped)
             *sat = 1u;
         return;
     }
     if (shift == 32u && wal && m >= 4u && (n & 1u) == 0u && ((uintptr_t)x & 3u) == 0u) {
         job.groups = m / 4u;
-        rows4d32_asm(&job);
+        run_rows4_32(&job);
         clamped = job.clamped;
         if (m % 4u != 0u) {
             /* One to three rows left: one more pass over the LAST four rows (those already
@@ -889,7 +1125,7 @@ static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint3
             job.y = y + (m - 4u);
             job.groups = 1u;
             job.clamped = 0u;
-            rows4d32_asm(&job);
+            run_rows4_32(&job);
             clamped |= job.clamped;
         }
         r = m;
@@ -922,7 +1158,7 @@ static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t
         job.round_hi = (uint32_t)(round >> 32);
         job.s32 = shift - 32u;
         job.clamped = 0u;
-        first_asm(&job);
+        run_first(&job);
         if (job.clamped)
             *sat = 1u;
         return;
@@ -953,10 +1189,7 @@ static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t
         job.round_hi = (uint32_t)(round >> 32);
         job.s32 = shift - 32u;
         job.clamped = 0u;
-        if (aligned)
-            rows3d_asm(&job);
-        else
-            rows3_asm(&job);
+        run_rows3(&job, aligned);
         clamped = job.clamped;
         r = 3u * (m / 3u);
         if (m - r == 2u) {
@@ -968,10 +1201,7 @@ static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t
             job.y = y + (m - 3u);
             job.groups = 1u;
             job.clamped = 0u;
-            if (aligned)
-                rows3d_asm(&job);
-            else
-                rows3_asm(&job);
+            run_rows3(&job, aligned);
             clamped |= job.clamped;
             r = m;
         }
@@ -1001,25 +1231,6 @@ static inline int8x4_t ld4_8(const int8_t *p)
     int8x4_t v;
     memcpy(&v, p, sizeof v);
     return v;
-}
-
-/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
- * acc * mult + 2^31, exactly the rounding rule at shift 32. */
-static inline int32_t smmulr(int32_t acc, int32_t mult)
-{
-    int32_t r;
-    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
-    return r;
-}
-
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
-static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
-{
-    int32_t y;
-    v &= ~(v >> 31);
-    y = __usat(v, 15);
-    *clamped |= (uint32_t)(v - y);
-    return y;
 }
 
 /* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */

@@ -6,7 +6,7 @@
  */
 #include <string.h>
 
-#include "fbg_internal.h"
+#include "fbg_front.h"
 #if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
 #include "fbg_dsp.h"
 #endif
@@ -29,35 +29,13 @@ static const uint16_t sigmoid_table[129] = {
 
 uint32_t fbg_version(void)
 {
-    return ((uint32_t)FBG_VERSION_MAJOR << 16) | (uint32_t)FBG_VERSION_MINOR;
+    return ((uint32_t)FBG_VERSION_MAJOR << 16) | ((uint32_t)FBG_VERSION_MINOR << 8) |
+           (uint32_t)FBG_VERSION_PATCH;
 }
 
 size_t fbg_state_size(void)
 {
     return sizeof(fbg_state);
-}
-
-const char *fbg_status_str(int status)
-{
-    switch (status) {
-    case FBG_OK: return "FBG_OK";
-    case FBG_ERR_NULL: return "FBG_ERR_NULL";
-    case FBG_ERR_TRUNCATED: return "FBG_ERR_TRUNCATED";
-    case FBG_ERR_BAD_MAGIC: return "FBG_ERR_BAD_MAGIC";
-    case FBG_ERR_VERSION: return "FBG_ERR_VERSION";
-    case FBG_ERR_CRC: return "FBG_ERR_CRC";
-    case FBG_ERR_SHAPE: return "FBG_ERR_SHAPE";
-    case FBG_ERR_RANGE: return "FBG_ERR_RANGE";
-    case FBG_ERR_BOUND: return "FBG_ERR_BOUND";
-    case FBG_ERR_SIZE: return "FBG_ERR_SIZE";
-    case FBG_ERR_ALIGN: return "FBG_ERR_ALIGN";
-    case FBG_ERR_ENDIAN: return "FBG_ERR_ENDIAN";
-    case FBG_ERR_STATE: return "FBG_ERR_STATE";
-    case FBG_ERR_NOT_TARED: return "FBG_ERR_NOT_TARED";
-    case FBG_ERR_TARE: return "FBG_ERR_TARE";
-    case FBG_ERR_ARG: return "FBG_ERR_ARG";
-    default: return "FBG_ERR_UNKNOWN";
-    }
 }
 
 int32_t fbg_sigmoid_q15(int32_t x_q8)
@@ -76,21 +54,8 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
     return lo + (((hi - lo) * frac + 16) >> 5);
 }
 
-static void clear_filter(fbg_state *s)
-{
-    memset(s->hist, 0, sizeof s->hist);
-    memset(s->last_comp, 0, sizeof s->last_comp);
-    memset(s->prev_fm, 0, sizeof s->prev_fm);
-    s->prev_valid = 0u;
-    memset(s->same_run, 0, sizeof s->same_run);
-    s->pos = 0u;
-    s->since_reset = 0u;
-}
-
-static int state_ok(const fbg_state *s)
-{
-    return s->magic == FBG_STATE_MAGIC && s->model != NULL;
-}
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
@@ -102,85 +67,44 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
         return st;
     memset(state, 0, sizeof *state);
     state->model = model;
-    state->options = options;
-    memcpy(state->baseline_fm, model->baseline_fm, sizeof state->baseline_fm);
-    state->magic = FBG_STATE_MAGIC;
+    fbg_front_init(FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
 fbg_status fbg_reset(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    clear_filter(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
 }
 
 fbg_status fbg_tare_begin(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    memset(state->tare_sum, 0, sizeof state->tare_sum);
-    state->tare_count = 0u;
-    state->tare_active = 1u;
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
 }
 
 fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
 {
-    int ok;
     if (state == NULL || wl_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    ok = fbg_tare_accept(wl_fm, state->tare_sum, &state->tare_count);
-    if (accepted != NULL)
-        *accepted = ok;
-    return FBG_OK;
+    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
 }
 
 fbg_status fbg_tare_end(fbg_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    state->tare_active = 0u;
-    if (state->tare_count == 0u)
-        return FBG_ERR_TARE;
-    fbg_tare_mean(state->tare_sum, state->tare_count, state->baseline_fm);
-    state->tared = 1u;
-    clear_filter(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_end(FRONT(state));
 }
 
 fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
-        return FBG_ERR_STATE;
-    if (!fbg_baseline_ok(baseline_fm))
-        return FBG_ERR_ARG;
-    memcpy(state->baseline_fm, baseline_fm, sizeof state->baseline_fm);
-    state->tared = 1u;
-    clear_filter(state);
-    return FBG_OK;
+    return fbg_front_set_baseline(FRONT(state), baseline_fm);
 }
 
 fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(state))
+    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
         return FBG_ERR_STATE;
     memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
     return FBG_OK;
@@ -189,6 +113,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
+#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -206,16 +131,17 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
+#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    int64_t acc = ly->bias[r];
-    unsigned j;
 #if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
     return fbg_dsp_row_acc(ly, r, x);
-#endif
+#else
+    int64_t acc = ly->bias[r];
+    unsigned j;
     if (ly->acc32)
         return layer_acc32(ly, r, x);
     if (ly->w_bits == 16u) {
@@ -228,25 +154,25 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
+#endif
 }
 
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-    unsigned l, r, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
         fbg_dsp_hidden(ly, x, y, sat);
-        x = y;
-        buf ^= 1u;
-        continue;
-#endif
+#else
+        unsigned r;
         for (r = 0; r < ly->n_out; ++r) {
             int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
             y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
         }
+#endif
         x = y;
         buf ^= 1u;
     }
@@ -263,6 +189,45 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
+/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"): for each
+ * exponential average k the four channels, then for each play operator k. The states take
+ * the first sample after init/tare/reset as they are (every feature starts at 0). A faulty
+ * sample never gets here (fbg_step returns before), so a fault freezes the states. */
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    unsigned c, k, j = FBG_N_STRAIN;
+    if (!s->mem_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            for (k = 0; k < m->n_ema; ++k)
+                s->ema[c][k] = (int32_t)in[c] * ((int32_t)1 << FBG_EMA_FRAC);
+            for (k = 0; k < m->n_play; ++k)
+                s->play[c][k] = in[c];
+        }
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k) {
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target
+             * by at most the whole distance, so it stays between old state and target. */
+            int64_t target = (int64_t)in[c] * ((int64_t)1 << FBG_EMA_FRAC);
+            int32_t e = (int32_t)(s->ema[c][k] + fbg_rshift_round(target - s->ema[c][k], m->ema_shift[k]));
+            int64_t d = (int64_t)in[c] - fbg_rshift_round(e, FBG_EMA_FRAC);
+            s->ema[c][k] = e;
+            in[j] = fbg_sat16(d * ((int64_t)1 << m->ema_gain[k]), sat);
+        }
+    }
+    for (k = 0; k < m->n_play; ++k) {
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            /* The state stays within play_width of the current z: |state| < 2^16. */
+            int32_t lo = (int32_t)in[c] - m->play_width[k], hi = (int32_t)in[c] + m->play_width[k];
+            int32_t p = s->play[c][k];
+            p = p < lo ? lo : (p > hi ? hi : p);
+            s->play[c][k] = p;
+            in[j] = fbg_sat16(((int64_t)in[c] - p) * ((int64_t)1 << m->play_gain[k]), sat);
+        }
+    }
+}
+
 static void safe_output(fbg_output *out, uint32_t status)
 {
     memset(out, 0, sizeof *out);
@@ -273,37 +238,31 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 {
     const fbg_model *m;
     uint32_t status, sat = 0u;
-    int32_t comp[FBG_N_STRAIN];
-    int16_t in[FBG_LOCATION_INPUTS];
+    int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
+    int16_t in[FBG_MAX_INPUTS];
+    unsigned features;
     const int16_t *x;
     const fbg_layer *last;
-    unsigned c, k, idx;
+    unsigned c;
     int64_t acc, load = 0;
+    fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    if (!state_ok(s)) {
-        safe_output(out, 0u);
-        return FBG_ERR_STATE;
+    st = fbg_front_step_begin(FRONT(s), &status);
+    if (st != FBG_OK) {
+        safe_output(out, status);
+        return st;
     }
     m = s->model;
-    status = s->tared ? 0u : FBG_STATUS_NOT_TARED;
-    if ((s->options & FBG_OPT_REQUIRE_TARE) && !s->tared) {
-        safe_output(out, status);
-        return FBG_ERR_NOT_TARED;
-    }
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, s->same_run, m->jump_max_fm,
-                        m->stuck_max)) {
-        status |= FBG_STATUS_SENSOR_FAULT;
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
-        int32_t shift_t = fbg_sat32((int64_t)wl_fm[FBG_N_STRAIN] - s->baseline_fm[FBG_N_STRAIN], &sat);
         for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int32_t shift = fbg_sat32((int64_t)wl_fm[c] - s->baseline_fm[c], &sat);
-            int64_t t = fbg_rshift_round((int64_t)shift_t * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            comp[c] = fbg_sat32((int64_t)shift - t, &sat);
+            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+            comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
         }
         memcpy(s->last_comp, comp, sizeof comp);
     }
@@ -311,12 +270,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
-    if (s->since_reset < 0xFFFFu)
-        s->since_reset++;
-    if (s->since_reset < m->n_taps)
-        status |= FBG_STATUS_WARMUP;
-    if (status & FBG_STATUS_SENSOR_FAULT) {
-        s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
     }
@@ -325,13 +279,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t f = 0;
 #if FBG_USE_DSP
-        f = fir[c];
-        (void)k;
-        (void)idx;
+        int64_t f = fir[c];
 #else
-        idx = s->pos;
+        int64_t f = 0;
+        unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
@@ -350,7 +302,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
         status |= FBG_STATUS_OVERLOAD;
 
-    /* 4. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
+    /* 4. Memory features after z. */
+    memory_features(s, m, in, &sat);
+    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+
+    /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
     x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
@@ -359,7 +315,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 
     if (out->contact) {
-        /* 5. Force net -> force_out (mN before offset); its quantised value feeds location. */
+        /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
         x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
@@ -368,9 +324,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 6. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]. */
-        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        /* 7. Location net on [features, contact in Q(z_frac), force net output in Q(z_frac)]. */
+        in[features] = (int16_t)(1 << m->z_frac);
+        in[features + 1u] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);

@@ -1,11 +1,11 @@
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
  */
+#include "fbg_contract.h"
 #include "fbg_internal.h"
 
 /* |bias| above this is refused so that the bound below cannot overflow int64 itself. */
 #define FBG_BIAS_LIMIT ((int64_t)1 << 60)
-#define FBG_LOAD_COEFF_LIMIT ((int32_t)1 << 28)
 
 /* relu_inputs: the layer's inputs are ReLU outputs in [0, 32767] (every layer after a net's
  * first), which is what the int32 bound of an acc32 layer may use. */
@@ -27,6 +27,9 @@ static fbg_status check_layer(const fbg_layer *ly, int relu_inputs)
         return FBG_ERR_NULL;
     if (ly->shift < 1u || ly->shift > 62u || ly->acc32 > 1u)
         return FBG_ERR_RANGE;
+    for (r = 0; r < ly->n_out; ++r)
+        if (ly->mult[r] == INT32_MIN)   /* symmetric like sat32: |mult| must be an int32 */
+            return FBG_ERR_RANGE;
     for (r = 0; r < ly->n_out; ++r) {
         /* Worst case |acc| = sum_j |w[r][j]| * 32767 + |bias[r]|: every layer input is an
          * int16 saturated to +-32767 (sat16 is symmetric). acc * mult + 2^(shift-1) must
@@ -64,37 +67,24 @@ static fbg_status check_layer(const fbg_layer *ly, int relu_inputs)
 
 fbg_status fbg_model_check(const fbg_model *model)
 {
-    static const uint16_t net_in[FBG_N_NETS] = {FBG_N_STRAIN, FBG_N_STRAIN, FBG_LOCATION_INPUTS};
+    unsigned n, l, features;
+    uint16_t net_in[FBG_N_NETS];
     static const uint16_t net_out[FBG_N_NETS] = {1u, 1u, 2u};
-    unsigned n, l, c;
     fbg_status st;
 
     if (model == NULL)
         return FBG_ERR_NULL;
-    if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
-        return FBG_ERR_SHAPE;
+    st = fbg_params_check(model);
+    if (st != FBG_OK)
+        return st;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    if (model->tap_q < 1u || model->tap_q > 15u || model->z_frac > 14u || model->z_shift < 1u ||
-        model->z_shift > 62u || model->fq_shift < 1u || model->fq_shift > 62u)
-        return FBG_ERR_RANGE;
-    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm))
-        return FBG_ERR_RANGE;
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        if (model->z_mult[c] == INT32_MIN || model->temp_coeff_q24[c] == INT32_MIN)
-            return FBG_ERR_RANGE;
-    if (model->fq_mult == INT32_MIN)
-        return FBG_ERR_RANGE;
-    /* The load proxy sums four int32 x int32 products: |coeff| < 2^28 keeps the sum < 2^61. */
-    if (model->load_shift < 1u || model->load_shift > 62u)
-        return FBG_ERR_RANGE;
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        if (model->load_coeff[c] >= FBG_LOAD_COEFF_LIMIT || model->load_coeff[c] <= -FBG_LOAD_COEFF_LIMIT)
-            return FBG_ERR_RANGE;
+    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    net_in[FBG_NET_CONTACT] = (uint16_t)features;
+    net_in[FBG_NET_FORCE] = (uint16_t)features;
+    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbg_net *net = &model->nets[n];
-        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
         if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
             return FBG_ERR_SHAPE;
         for (l = 0; l < net->n_layers; ++l) {

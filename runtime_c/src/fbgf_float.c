@@ -5,7 +5,7 @@
  */
 #include <string.h>
 
-#include "fbg_internal.h"
+#include "fbg_front.h"
 
 size_t fbgf_state_size(void)
 {
@@ -54,18 +54,27 @@ static int all_finite(const float *x, size_t n)
     return 1;
 }
 
-static int fstate_ok(const fbgf_state *s)
-{
-    return s->magic == FBGF_STATE_MAGIC && s->model != NULL;
-}
-
 fbg_status fbgf_model_check(const fbgf_model *model)
 {
-    static const uint16_t net_in[FBG_N_NETS] = {FBG_N_STRAIN, FBG_N_STRAIN, FBG_LOCATION_INPUTS};
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
-    unsigned n, l, c;
+    uint16_t net_in[FBG_N_NETS];
+    unsigned n, l, c, features;
     if (model == NULL)
         return FBG_ERR_NULL;
+    if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
+        return FBG_ERR_SHAPE;
+    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    net_in[FBG_NET_CONTACT] = (uint16_t)features;
+    net_in[FBG_NET_FORCE] = (uint16_t)features;
+    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
+    for (c = 0; c < model->n_ema; ++c)
+        if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
+            model->ema_gain[c] > FBG_MAX_MEM_GAIN)
+            return FBG_ERR_RANGE;
+    for (c = 0; c < model->n_play; ++c)
+        if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
+            model->play_gain[c] > FBG_MAX_MEM_GAIN)
+            return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -104,15 +113,39 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     return FBG_OK;
 }
 
-static void fclear(fbgf_state *s)
+/* The shared front end's view of a float state (fbg_front.h). */
+#define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
+
+/* Memory features after z, as fbg_fixed.c's memory_features in float (the states are primed
+ * with the first sample after a reset and frozen during a fault). */
+static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
 {
-    memset(s->hist, 0, sizeof s->hist);
-    memset(s->last_comp, 0, sizeof s->last_comp);
-    memset(s->prev_fm, 0, sizeof s->prev_fm);
-    s->prev_valid = 0u;
-    memset(s->same_run, 0, sizeof s->same_run);
-    s->pos = 0u;
-    s->since_reset = 0u;
+    unsigned c, k, j = FBG_N_STRAIN;
+    if (!s->mem_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            for (k = 0; k < m->n_ema; ++k)
+                s->ema[c][k] = in[c];
+            for (k = 0; k < m->n_play; ++k)
+                s->play[c][k] = in[c];
+        }
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k) {
+        float alpha = 1.0f / (float)(1u << m->ema_shift[k]), gain = (float)(1u << m->ema_gain[k]);
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            s->ema[c][k] += alpha * (in[c] - s->ema[c][k]);
+            in[j] = (in[c] - s->ema[c][k]) * gain;
+        }
+    }
+    for (k = 0; k < m->n_play; ++k) {
+        float w = m->play_width[k], gain = (float)(1u << m->play_gain[k]);
+        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
+            float p = s->play[c][k];
+            p = p < in[c] - w ? in[c] - w : (p > in[c] + w ? in[c] + w : p);
+            s->play[c][k] = p;
+            in[j] = (in[c] - p) * gain;
+        }
+    }
 }
 
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
@@ -125,78 +158,37 @@ fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t option
         return st;
     memset(state, 0, sizeof *state);
     state->model = model;
-    state->options = options;
-    memcpy(state->baseline_fm, model->baseline_fm, sizeof state->baseline_fm);
-    state->magic = FBGF_STATE_MAGIC;
+    fbg_front_init(FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
 fbg_status fbgf_reset(fbgf_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!fstate_ok(state))
-        return FBG_ERR_STATE;
-    fclear(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
 }
 
 fbg_status fbgf_tare_begin(fbgf_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!fstate_ok(state))
-        return FBG_ERR_STATE;
-    memset(state->tare_sum, 0, sizeof state->tare_sum);
-    state->tare_count = 0u;
-    state->tare_active = 1u;
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
 }
 
 fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
 {
-    int ok;
     if (state == NULL || wl_fm == NULL)
         return FBG_ERR_NULL;
-    if (!fstate_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    ok = fbg_tare_accept(wl_fm, state->tare_sum, &state->tare_count);
-    if (accepted != NULL)
-        *accepted = ok;
-    return FBG_OK;
+    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
 }
 
 fbg_status fbgf_tare_end(fbgf_state *state)
 {
-    if (state == NULL)
-        return FBG_ERR_NULL;
-    if (!fstate_ok(state))
-        return FBG_ERR_STATE;
-    if (!state->tare_active)
-        return FBG_ERR_TARE;
-    state->tare_active = 0u;
-    if (state->tare_count == 0u)
-        return FBG_ERR_TARE;
-    fbg_tare_mean(state->tare_sum, state->tare_count, state->baseline_fm);
-    state->tared = 1u;
-    fclear(state);
-    return FBG_OK;
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_end(FRONT(state));
 }
 
 fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!fstate_ok(state))
-        return FBG_ERR_STATE;
-    if (!fbg_baseline_ok(baseline_fm))
-        return FBG_ERR_ARG;
-    memcpy(state->baseline_fm, baseline_fm, sizeof state->baseline_fm);
-    state->tared = 1u;
-    fclear(state);
-    return FBG_OK;
+    return fbg_front_set_baseline(FRONT(state), baseline_fm);
 }
 
 /* Dense ReLU MLP; returns a pointer to the output vector (inside s->act). */
@@ -223,42 +215,33 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], in[FBG_LOCATION_INPUTS], z[FBG_N_STRAIN], margin, f;
+    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
+    int32_t shift[FBG_N_CHANNELS];
     const float *y;
-    unsigned c, k, idx;
+    unsigned c, k, idx, features;
+    fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
     memset(out, 0, sizeof *out);
-    if (!fstate_ok(s))
-        return FBG_ERR_STATE;
-    m = s->model;
-    status = s->tared ? 0u : FBG_STATUS_NOT_TARED;
-    if ((s->options & FBG_OPT_REQUIRE_TARE) && !s->tared) {
+    st = fbg_front_step_begin(FRONT(s), &status);
+    if (st != FBG_OK) {
         out->status = status;
-        return FBG_ERR_NOT_TARED;
+        return st;
     }
-    if (fbg_fault_check(wl_fm, s->prev_fm, &s->prev_valid, s->same_run, m->jump_max_fm,
-                        m->stuck_max)) {
-        status |= FBG_STATUS_SENSOR_FAULT;
+    m = s->model;
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
-        float shift_t = (float)fbg_sat32((int64_t)wl_fm[FBG_N_STRAIN] - s->baseline_fm[FBG_N_STRAIN], &sat) * 1e-3f;
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            float shift = (float)fbg_sat32((int64_t)wl_fm[c] - s->baseline_fm[c], &sat) * 1e-3f;
-            comp[c] = shift - m->temp_coeff[c] * shift_t;
-        }
+        float shift_t = (float)shift[FBG_N_STRAIN] * 1e-3f;
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t;
         memcpy(s->last_comp, comp, sizeof comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
-    if (s->since_reset < 0xFFFFu)
-        s->since_reset++;
-    if (s->since_reset < m->n_taps)
-        status |= FBG_STATUS_WARMUP;
-    if (status & FBG_STATUS_SENSOR_FAULT) {
-        s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         out->status = status;
         return FBG_OK;
     }
@@ -269,12 +252,13 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
             a += m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
-        z[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
-        in[c] = z[c];
+        in[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    fmemory_features(s, m, in);
+    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
 
-    y = fnet(s, &m->nets[FBG_NET_CONTACT], z);
+    y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
     if (!finite_f(margin)) {
         /* Float overflow inside the nets (finite parameters, extreme inputs): the float
@@ -286,13 +270,13 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
     if (out->contact) {
-        y = fnet(s, &m->nets[FBG_NET_FORCE], z);
+        y = fnet(s, &m->nets[FBG_NET_FORCE], in);
         f = y[0];
         out->force_N = m->force_offset_N + m->force_scale * f;
         if (out->force_N > m->overload_N)
             status |= FBG_STATUS_OVERLOAD;
-        in[FBG_N_STRAIN] = 1.0f;
-        in[FBG_N_STRAIN + 1] = f;
+        in[features] = 1.0f;
+        in[features + 1u] = f;
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];

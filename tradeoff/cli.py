@@ -42,16 +42,15 @@ def register(subparsers: Any) -> None:
     add_json_flag(p)
     p.set_defaults(handler=_handler)
 
-    # Part 4: `target-report` lives in its own module (bench/target.py).
-    from fbgforce.bench import target
-
-    target.register(subparsers)
-
 
 def _handler(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.bench import tradeoff as to
+    # Imported here, not at the top: `fbgforce --help` loads every command module.
+    from fbgforce.tradeoff.artifacts import prepare_data
+    from fbgforce.tradeoff.grid import ENGINE_SPECS, Settings, quick_settings
+    from fbgforce.tradeoff.outputs import markdown_table
+    from fbgforce.tradeoff.run import run
 
-    s = to.quick_settings(args.seed) if args.quick else to.Settings(seed=args.seed)
+    s = quick_settings(args.seed) if args.quick else Settings(seed=args.seed)
     if args.epochs is not None:
         if args.epochs < 1:
             raise InputError("must be at least 1", column="--epochs")
@@ -67,7 +66,7 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
             s.default_sigma = s.sigmas[0]
     s.grid = args.grid
     if args.engines:
-        known = [e.name for e in to.ENGINE_SPECS]
+        known = [e.name for e in ENGINE_SPECS]
         bad = [e for e in args.engines if e not in known]
         if bad:
             raise InputError(f"unknown engine(s) {', '.join(bad)}; choose from {', '.join(known)}",
@@ -82,10 +81,10 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
     def log(msg: str) -> None:
         print(f"tradeoff: {msg}", file=sys.stderr, flush=True)
 
-    paths = to.prepare_data(args.data, args.scene, out, args.seed, log)
-    res = to.run(paths, out, s, log)
+    paths = prepare_data(args.data, args.scene, out, args.seed, log)
+    res = run(paths, out, s, log)
     if not args.json:
-        print(to.markdown_table(res))
+        print(markdown_table(res))
         print()
         print(res["summary"])
     ok = [r for r in res["rows"] if r.get("status") == "ok"]

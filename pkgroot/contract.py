@@ -1,0 +1,611 @@
+"""The runtime contract, defined once: limits, codes, flags, nets, parameter blocks, outputs.
+
+Everything that the C library, the blob and the Python side must agree on is declared here and
+nowhere else:
+
+- the limits and fixed-point constants (``LIMITS``), the library version;
+- the return codes (``ERRORS``) and the output status flags (``STATUS``);
+- the net table (``NETS``): name, inputs, outputs, loss, output scaling;
+- the fixed-point model's parameter block (``PARAMS``): C type, count, allowed range and the
+  error code a violation gives, in blob order; the float model's (``FLOAT_PARAMS``);
+- the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``).
+
+``python -m fbgforce.contract --write`` regenerates the derived C text: the marked section of
+``runtime_c/include/fbgforce.h`` (declarations) and ``runtime_c/src/fbg_contract.c`` (the blob
+parameter decoder, the parameter checker and ``fbg_status_str``). The Python side (the blob
+codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
+dtypes of :mod:`fbgforce.pybind`) reads the same tables at import. ``tests/test_contract.py``
+fails when a generated file is stale.
+
+A Python module rather than a schema file: every consumer but the C compiler is Python, so a
+schema would need a parser and still a Python generator; here the spec is data that the tests,
+the codecs and the generator import directly, with no dependency at all (this module imports
+nothing from fbgforce, so anything may import it).
+"""
+from __future__ import annotations
+
+import argparse
+import struct
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+#: Library version: the C library (``fbg_version()``), the Python package and the blob's
+#: ``writer_version`` field all report this one.
+VERSION_STR = "0.2.0"
+VERSION = tuple(int(part) for part in VERSION_STR.split("."))
+VERSION_CODE = (VERSION[0] << 16) | (VERSION[1] << 8) | VERSION[2]
+
+N_CHANNELS = 5
+N_STRAIN = 4
+MAX_EMA = 4
+MAX_PLAY = 4
+
+#: name -> (value, comment). Emitted as ``#define FBG_<name>``.
+LIMITS: dict[str, tuple[int, str]] = {
+    "N_CHANNELS": (N_CHANNELS, "wl1..wl4 (strain), wlT (temperature reference)"),
+    "N_STRAIN": (N_STRAIN, "strain gratings"),
+    "MAX_TAPS": (64, "causal FIR length"),
+    "MAX_WIDTH": (128, "widest layer (inputs or outputs) of any net"),
+    "MAX_LAYERS": (8, "layers per net"),
+    "MAX_EMA": (MAX_EMA, "exponential-average memory states per strain channel"),
+    "MAX_PLAY": (MAX_PLAY, "play-operator memory states per strain channel"),
+    "MAX_INPUTS": (N_STRAIN * (1 + MAX_EMA + MAX_PLAY) + 2,
+                   "widest net input: z, memory features, contact flag, force"),
+    "N_NETS": (3, "contact, force, location (evaluation order)"),
+    "WL_MIN_FM": (1_000_000_000, "1000 nm: a peak below this is lost (0, sentinels)"),
+    "WL_MAX_FM": (2_000_000_000, "2000 nm: a peak above this is lost"),
+    "TEMP_COEFF_SHIFT": (24, "temperature coefficients are Q24"),
+    "EMA_FRAC": (15, "fractional bits of the exponential-average states below Q(z_frac)"),
+    "MAX_EMA_SHIFT": (15, "largest exponential-average shift (time constant 2^15 samples)"),
+    "MAX_MEM_GAIN": (8, "largest memory-feature gain shift"),
+    "LOAD_COEFF_LIMIT": (1 << 28, "|load_coeff| below this: the load proxy sum fits int64"),
+    "BLOB_VERSION": (4, "blob format this library reads and writes"),
+    "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
+    "VERSION_MAJOR": (VERSION[0], "library version"),
+    "VERSION_MINOR": (VERSION[1], ""),
+    "VERSION_PATCH": (VERSION[2], ""),
+}
+LIMIT = {name: value for name, (value, _doc) in LIMITS.items()}
+SAT16 = 32767
+SAT32 = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class Code:
+    """A return code of the C API (``fbg_status``)."""
+
+    name: str
+    value: int
+    doc: str
+
+
+ERRORS: tuple[Code, ...] = (
+    Code("OK", 0, "success"),
+    Code("ERR_NULL", -1, "a required pointer argument is NULL"),
+    Code("ERR_TRUNCATED", -2, "blob shorter than its header or than its declared length"),
+    Code("ERR_BAD_MAGIC", -3, "blob does not start with \"FBGM\""),
+    Code("ERR_VERSION", -4, "blob format version or header flags not supported by this library"),
+    Code("ERR_CRC", -5, "CRC-32 over the blob body does not match"),
+    Code("ERR_SHAPE", -6, "layer shapes inconsistent, too large, or nets of wrong I/O"),
+    Code("ERR_RANGE", -7, "a parameter outside its allowed range, or non-zero padding"),
+    Code("ERR_BOUND", -8, "accumulator worst-case bound would overflow int64 (int32 for an "
+                          "acc32 layer)"),
+    Code("ERR_SIZE", -9, "declared length differs from the length the shapes imply"),
+    Code("ERR_ALIGN", -10, "blob pointer not 8-byte aligned (arrays are used in place)"),
+    Code("ERR_ENDIAN", -11, "host is not little-endian (blob arrays are little-endian)"),
+    Code("ERR_STATE", -12, "state not initialised by fbg_init (or corrupted)"),
+    Code("ERR_NOT_TARED", -13, "fbg_step with FBG_OPT_REQUIRE_TARE before a tare"),
+    Code("ERR_TARE", -14, "tare_add/tare_end without tare_begin, or no valid sample"),
+    Code("ERR_ARG", -15, "bad argument value (e.g. baseline outside the window)"),
+)
+CODE = {c.name: c.value for c in ERRORS}
+CODE_NAME = {c.value: f"FBG_{c.name}" for c in ERRORS}
+
+STATUS: tuple[Code, ...] = (
+    Code("NOT_TARED", 0x01, "running on the model's nominal baseline"),
+    Code("SATURATED", 0x02, "some value was clamped (int16/int32) this sample"),
+    Code("OVERLOAD", 0x04, "beyond the trained force range (see fbg_model)"),
+    Code("SENSOR_FAULT", 0x08, "a peak lost, jumped or stuck: outputs are the safe output"),
+    Code("WARMUP", 0x10, "fewer than n_taps samples since init/tare/reset"),
+)
+STATUS_FLAG = {c.name: c.value for c in STATUS}
+
+
+@dataclass(frozen=True)
+class Net:
+    """One net of the hierarchy, in evaluation order.
+
+    ``extra_inputs`` are appended to the feature vector (z and memory features) it reads;
+    ``float_outputs`` is what the float model's net gives, ``fixed_outputs`` what the C output
+    layer computes (the contact net's two logits become one margin row)."""
+
+    name: str
+    extra_inputs: tuple[str, ...]
+    float_outputs: int
+    fixed_outputs: int
+    loss: str
+    scaling: str
+
+
+NETS: tuple[Net, ...] = (
+    Net("contact", (), 2, 1, "softmax cross-entropy", "fixed: logit margin in Q8"),
+    Net("force", (), 1, 1, "mean squared error on contact samples",
+        "force_N = force_offset + force_scale * out; fixed: mN before offset"),
+    Net("location", ("contact flag (0/1)", "force net output (unscaled)"), 2, 2,
+        "mean squared error on contact samples",
+        "xy_mm = xy_offset + xy_scale * out; fixed: um before offset"),
+)
+NET_NAMES = tuple(n.name for n in NETS)
+
+
+def n_features(n_ema: int, n_play: int) -> int:
+    """Width of the feature vector the contact and force nets read: the standardised channels
+    and one feature per channel and memory state."""
+    return N_STRAIN * (1 + n_ema + n_play)
+
+
+def net_inputs(net: str, n_ema: int, n_play: int) -> int:
+    """Input width of a net for a model with the given memory."""
+    spec = next(n for n in NETS if n.name == net)
+    return n_features(n_ema, n_play) + len(spec.extra_inputs)
+
+
+# ------------------------------------------------------------------------------------------
+# Parameter blocks
+# ------------------------------------------------------------------------------------------
+
+#: C type -> (struct format character, numpy dtype, bytes)
+CTYPES = {
+    "int32_t": ("i", "<i4", 4), "uint32_t": ("I", "<u4", 4), "int16_t": ("h", "<i2", 2),
+    "uint16_t": ("H", "<u2", 2), "uint8_t": ("B", "u1", 1), "float": ("f", "<f4", 4),
+}
+
+
+@dataclass(frozen=True)
+class Field:
+    """One parameter of a model block.
+
+    Values must lie in ``[lo, hi]`` (``None``: the C type's whole range), else ``code``.
+    ``active`` names a count field: entries at or beyond that count must be 0 (any code
+    ``RANGE``), entries below it lie in ``[lo, hi]``. ``blob=False`` fields are set by the
+    loader (pointers) and are not part of the parameter block.
+    """
+
+    name: str
+    ctype: str
+    count: int = 1
+    lo: int | None = None
+    hi: int | None = None
+    code: str = "ERR_RANGE"
+    active: str | None = None
+    doc: str = ""
+    #: Where the C model keeps it when not as a member of the same name (``k`` is the index).
+    c_member: str | None = None
+
+    def c_lvalue(self, index: str = "k") -> str:
+        """The C expression of entry ``index`` (or of the scalar) inside ``m->``."""
+        if self.c_member:
+            return self.c_member.replace("k", index) if self.count > 1 else self.c_member
+        return f"{self.name}[{index}]" if self.count > 1 else self.name
+
+
+_I32 = (-SAT32, SAT32)   # INT32_MIN is refused everywhere: negation must not overflow
+
+PARAMS: tuple[Field, ...] = (
+    Field("writer_version", "uint32_t", doc="VERSION_CODE of the library that wrote the blob "
+          "(informational: any value loads)"),
+    Field("baseline_fm", "int32_t", N_CHANNELS, LIMIT["WL_MIN_FM"], LIMIT["WL_MAX_FM"],
+          doc="nominal unloaded wavelengths (fm): the baseline before any tare"),
+    Field("jump_max_fm", "int32_t", 1, 1, SAT32,
+          doc="SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel"),
+    Field("temp_coeff_q24", "int32_t", N_STRAIN, *_I32,
+          doc="comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)  (fm)"),
+    Field("mean_fm", "int32_t", N_STRAIN, *_I32,
+          doc="z_i = sat16(rshift_round(sat32(filt_i - mean_fm[i]) * z_mult[i], z_shift))"),
+    Field("z_mult", "int32_t", N_STRAIN, *_I32, doc="standardisation multipliers"),
+    Field("fq_mult", "int32_t", 1, *_I32,
+          doc="location input: f_q = sat16(rshift_round(force_out * fq_mult, fq_shift))"),
+    Field("force_offset_mN", "int32_t", 1, *_I32, doc="force_mN = sat32(force_out + offset)"),
+    Field("xy_offset_um", "int32_t", 2, *_I32, doc="x_um, y_um likewise"),
+    Field("overload_mN", "int32_t", 1, *_I32, doc="OVERLOAD when contact and force_mN > this"),
+    Field("load_coeff", "int32_t", N_STRAIN, -(LIMIT["LOAD_COEFF_LIMIT"] - 1),
+          LIMIT["LOAD_COEFF_LIMIT"] - 1,
+          doc="input-side overload: load_mN = rshift_round(sum_i load_coeff[i] * filt_i, "
+              "load_shift)"),
+    Field("load_max_mN", "int32_t", 1, *_I32, doc="OVERLOAD when load_mN > load_max_mN"),
+    Field("n_taps", "uint16_t", 1, 1, LIMIT["MAX_TAPS"], "ERR_SHAPE", doc="causal FIR length"),
+    Field("stuck_max", "uint16_t", doc="SENSOR_FAULT after this many identical samples on a "
+          "channel; 0 disables the rule"),
+    Field("tap_q", "uint8_t", 1, 1, 15, doc="FIR taps are int16 in Q(tap_q)"),
+    Field("z_frac", "uint8_t", 1, 0, 14, doc="net inputs are int16 in Q(z_frac)"),
+    Field("z_shift", "uint8_t", 1, 1, 62),
+    Field("fq_shift", "uint8_t", 1, 1, 62),
+    Field("load_shift", "uint8_t", 1, 1, 62),
+    Field("n_layers", "uint8_t", 3, 1, LIMIT["MAX_LAYERS"], "ERR_SHAPE",
+          doc="layers of the contact, force and location nets", c_member="nets[k].n_layers"),
+    Field("n_ema", "uint8_t", 1, 0, MAX_EMA, "ERR_SHAPE",
+          doc="exponential-average memory states per channel"),
+    Field("n_play", "uint8_t", 1, 0, MAX_PLAY, "ERR_SHAPE",
+          doc="play-operator memory states per channel"),
+    Field("ema_shift", "uint8_t", MAX_EMA, 1, LIMIT["MAX_EMA_SHIFT"], active="n_ema",
+          doc="state += rshift_round((z << EMA_FRAC) - state, ema_shift[k])"),
+    Field("ema_gain", "uint8_t", MAX_EMA, 0, LIMIT["MAX_MEM_GAIN"], active="n_ema",
+          doc="feature = sat16((z - rshift_round(state, EMA_FRAC)) << ema_gain[k])"),
+    Field("play_gain", "uint8_t", MAX_PLAY, 0, LIMIT["MAX_MEM_GAIN"], active="n_play",
+          doc="feature = sat16((z - state) << play_gain[k])"),
+    Field("play_width", "int16_t", MAX_PLAY, 0, SAT16, active="n_play",
+          doc="state = clamp(state, z - play_width[k], z + play_width[k]), Q(z_frac)"),
+)
+
+FLOAT_PARAMS: tuple[Field, ...] = (
+    Field("baseline_fm", "int32_t", N_CHANNELS),
+    Field("jump_max_fm", "int32_t"),
+    Field("stuck_max", "uint16_t"),
+    Field("n_taps", "uint16_t", doc="1..FBG_MAX_TAPS"),
+    Field("temp_coeff", "float", N_STRAIN),
+    Field("input_mean_pm", "float", N_STRAIN),
+    Field("input_std_pm", "float", N_STRAIN),
+    Field("force_offset_N", "float"),
+    Field("force_scale", "float"),
+    Field("xy_offset_mm", "float", 2),
+    Field("xy_scale", "float", 2),
+    Field("overload_N", "float"),
+    Field("n_ema", "uint8_t", doc="as fbg_model"),
+    Field("n_play", "uint8_t"),
+    Field("ema_shift", "uint8_t", MAX_EMA, doc="state += (z - state) / 2^ema_shift[k]"),
+    Field("ema_gain", "uint8_t", MAX_EMA),
+    Field("play_gain", "uint8_t", MAX_PLAY),
+    Field("play_width", "float", MAX_PLAY, doc="in standardised units"),
+)
+
+#: File name of the blob inside a model directory.
+BLOB_FILE = "model.fbgm"
+#: Default of the sensor-fault jump rule, nm per sample (the exporter raises it to twice the
+#: largest step of the calibration data).
+DEFAULT_JUMP_NM = 2.0
+
+#: Layer-table entry of the blob: u16 n_in, u16 n_out, u8 w_bits, u8 shift, u8 acc32, u8 zero.
+LAYER_ENTRY = struct.Struct("<HHBBBB")
+#: Blob header: magic, u16 version, u16 flags (0), u32 total length, u32 CRC-32 of the rest.
+HEADER = struct.Struct("<4sHHII")
+MAGIC = b"FBGM"
+
+
+def _pad8(n: int) -> int:
+    return n + (-n % 8)
+
+
+PARAMS_STRUCT = struct.Struct("<" + "".join(f"{f.count}{CTYPES[f.ctype][0]}" for f in PARAMS))
+#: Parameter block bytes, padded with zeros to a multiple of 8.
+PARAMS_SIZE = _pad8(PARAMS_STRUCT.size)
+PARAMS_END = HEADER.size + PARAMS_SIZE
+
+
+def decode_params(block: bytes) -> dict[str, int | tuple[int, ...]]:
+    """Parameter block -> {field: value or tuple}; no checks (see :func:`check_params`)."""
+    flat = PARAMS_STRUCT.unpack_from(block)
+    out: dict[str, int | tuple[int, ...]] = {}
+    i = 0
+    for f in PARAMS:
+        vals = flat[i:i + f.count]
+        out[f.name] = vals[0] if f.count == 1 else tuple(vals)
+        i += f.count
+    return out
+
+
+def encode_params(values: dict[str, object]) -> bytes:
+    """{field: value} -> the padded parameter block."""
+    flat: list[int] = []
+    for f in PARAMS:
+        v = values[f.name]
+        seq = list(v) if f.count > 1 else [v]  # type: ignore[call-overload]
+        if len(seq) != f.count:
+            raise ValueError(f"{f.name}: {len(seq)} values, expected {f.count}")
+        flat += [int(x) for x in seq]
+    raw = PARAMS_STRUCT.pack(*flat)
+    return raw + b"\0" * (PARAMS_SIZE - len(raw))
+
+
+def check_params(values: dict[str, object]) -> tuple[str, str] | None:
+    """The generated ``fbg_params_check`` in Python: the first violated rule, in field order,
+    as ``(code name, reason)``; None when every field is in range."""
+    for f in PARAMS:
+        v = values[f.name]
+        seq = list(v) if f.count > 1 else [v]  # type: ignore[call-overload]
+        n_active = int(values[f.active]) if f.active else f.count  # type: ignore[arg-type]
+        for k, x in enumerate(seq):
+            x = int(x)
+            if f.active and k >= n_active:
+                if x != 0:
+                    return "ERR_RANGE", f"{f.name}[{k}] = {x}: unused entries must be 0"
+                continue
+            if f.lo is not None and not f.lo <= x <= f.hi:  # type: ignore[operator]
+                where = f"{f.name}[{k}]" if f.count > 1 else f.name
+                return f.code, f"{where} = {x} outside [{f.lo}, {f.hi}]"
+    return None
+
+
+# ------------------------------------------------------------------------------------------
+# Output records (C structs, byte for byte)
+# ------------------------------------------------------------------------------------------
+
+OUTPUT: tuple[Field, ...] = (
+    Field("force_mN", "int32_t", doc="normal force, mN (0 when no contact)"),
+    Field("x_um", "int32_t", doc="contact location, um (0 when no contact)"),
+    Field("y_um", "int32_t"),
+    Field("contact_margin_q8", "int32_t", doc="contact-net margin (logit difference) * 256"),
+    Field("status", "uint32_t", doc="FBG_STATUS_* flags"),
+    Field("contact_conf_q15", "uint16_t", doc="P(contact) in Q15, 0..32767 (sigmoid of the margin)"),
+    Field("contact", "uint8_t", doc="1 = contact"),
+    Field("reserved", "uint8_t"),
+)
+FLOAT_OUTPUT: tuple[Field, ...] = (
+    Field("force_N", "float", doc="0 when no contact"),
+    Field("x_mm", "float", doc="0 when no contact"),
+    Field("y_mm", "float"),
+    Field("p_contact", "float", doc="softmax probability of contact"),
+    Field("margin", "float", doc="logit[1] - logit[0]"),
+    Field("status", "uint32_t", doc="FBG_STATUS_*"),
+    Field("contact", "uint8_t"),
+    Field("reserved", "uint8_t", 3),
+)
+#: The fields of the fixed-point output record that carry information (not padding).
+OUTPUT_FIELDS = tuple(f.name for f in OUTPUT if f.name != "reserved")
+
+
+def numpy_dtype(fields: tuple[Field, ...]) -> list[tuple]:
+    """numpy dtype description of a C struct of these fields (no implicit padding: the
+    records above are laid out so that none is needed, which a test checks with cffi)."""
+    return [(f.name, CTYPES[f.ctype][1]) if f.count == 1 else (f.name, CTYPES[f.ctype][1], f.count)
+            for f in fields]
+
+
+# ------------------------------------------------------------------------------------------
+# C generation
+# ------------------------------------------------------------------------------------------
+
+ROOT = Path(__file__).resolve().parent.parent
+HEADER_PATH = ROOT / "runtime_c" / "include" / "fbgforce.h"
+SOURCE_PATH = ROOT / "runtime_c" / "src" / "fbg_contract.c"
+SECTIONS = ("constants", "fixed", "float")
+
+
+def _begin(section: str) -> str:
+    return (f"/* ---- BEGIN GENERATED {section}: `python -m fbgforce.contract --write` from "
+            f"pkgroot/contract.py; do not edit ---- */")
+
+
+def _end(section: str) -> str:
+    return f"/* ---- END GENERATED {section} ---- */"
+
+
+def _decl(f: Field, indent: str = "    ") -> str:
+    arr = f"[{f.count}]" if f.count > 1 else ""
+    rng = ""
+    if f.lo is not None and (f.lo, f.hi) != _I32:
+        rng = f" [{f.lo}, {f.hi}]" + (f" for k < {f.active}, else 0" if f.active else "")
+    doc = f"{f.doc}{rng}".strip()
+    return f"{indent}{f.ctype} {f.name}{arr};" + (f"  /* {doc} */" if doc else "")
+
+
+def struct_order(fields: tuple[Field, ...]) -> list[Field]:
+    """Declaration order of a parameter struct: 4-byte fields, then 2, then 1 (no implicit
+    padding). Generated initialisers list values in this order."""
+    return [f for width in (4, 2, 1) for f in fields
+            if CTYPES[f.ctype][2] == width and f.c_member is None]
+
+
+def struct_padding(fields: tuple[Field, ...]) -> int:
+    """Bytes of explicit padding (``pad_``) after the parameters of a struct."""
+    return -sum(CTYPES[f.ctype][2] * f.count for f in struct_order(fields)) % 4
+
+
+def _struct_fields(fields: tuple[Field, ...]) -> list[str]:
+    out = [_decl(f) for f in struct_order(fields)]
+    if struct_padding(fields):
+        out.append(f"    uint8_t pad_[{struct_padding(fields)}];  /* explicit padding, keep 0 */")
+    return out
+
+
+def header_sections() -> dict[str, str]:
+    """The generated parts of fbgforce.h, by section name."""
+    c = []
+    for name, (value, doc) in LIMITS.items():
+        c.append(f"#define FBG_{name} {value}" + (f"  /* {doc} */" if doc else ""))
+    for i, net in enumerate(NETS):
+        c.append(f"#define FBG_NET_{net.name.upper()} {i}")
+    c += ["", "/* Return codes: 0 is success, every error has its own negative code. */",
+          "typedef enum {"]
+    for i, code in enumerate(ERRORS):
+        comma = "," if i + 1 < len(ERRORS) else ""
+        c.append(f"    FBG_{code.name} = {code.value}{comma}  /* {code.doc} */")
+    c += ["} fbg_status;", "", "/* Output status flags (fbg_output.status; several may be set). */"]
+    for code in STATUS:
+        c.append(f"#define FBG_STATUS_{code.name} 0x{code.value:02X}  /* {code.doc} */")
+
+    x = ["/* Fixed-point model. The parameters are those of the blob (docs/model-format.md),",
+         " * declared grouped by size so that the struct has no implicit padding. */",
+         "typedef struct {"]
+    x += _struct_fields(PARAMS)
+    x += ["    const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */",
+          "    fbg_net nets[FBG_N_NETS];",
+          "} fbg_model;", "",
+          "/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =",
+          " * x_um = y_um = 0. Safe output (SENSOR_FAULT, or an error return): all 0 but status. */",
+          "typedef struct {"]
+    x += [_decl(f) for f in OUTPUT]
+    x += ["} fbg_output;"]
+
+    fl = ["/* Float model: the same pipeline in single precision. */", "typedef struct {"]
+    fl += _struct_fields(FLOAT_PARAMS)
+    fl += ["    const float *taps;       /* taps[k] weights sample n - k */",
+           "    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */",
+           "} fbgf_model;", "", "typedef struct {"]
+    fl += [_decl(f) for f in FLOAT_OUTPUT]
+    fl += ["} fbgf_output;"]
+    return {"constants": "\n".join(c), "fixed": "\n".join(x), "float": "\n".join(fl)}
+
+
+def render_header(text: str) -> str:
+    """``text`` (fbgforce.h) with every generated section replaced by the spec's."""
+    for name, body in header_sections().items():
+        start = text.index(_begin(name))
+        end = text.index(_end(name)) + len(_end(name))
+        text = text[:start] + _begin(name) + "\n" + body + "\n" + _end(name) + text[end:]
+    return text
+
+
+_CTYPE_RANGE = {"int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),
+                "int16_t": (-2**15, 2**15 - 1), "uint16_t": (0, 2**16 - 1), "uint8_t": (0, 255)}
+
+
+def _range_condition(f: Field) -> str:
+    """C condition of "v is outside [lo, hi]", without comparisons the type makes constant
+    (-Wtype-limits)."""
+    if f.lo is None:
+        return "0"
+    tmin, tmax = _CTYPE_RANGE[f.ctype]
+    parts = []
+    if f.lo > tmin:
+        parts.append(f"v < {f.lo}")
+    if f.hi < tmax:
+        parts.append(f"v > {f.hi}")
+    return " || ".join(parts) or "0"
+
+
+def source_text() -> str:
+    """runtime_c/src/fbg_contract.c: parameter decoder, checker and status names."""
+    out = [
+        "/*",
+        " * fbg_contract.c - GENERATED by `python -m fbgforce.contract --write` from",
+        " * pkgroot/contract.py; do not edit. The blob parameter block decoder, the parameter",
+        " * range checker (the same rules, in the same order, as fbgforce.contract.check_params)",
+        " * and the names of the return codes.",
+        " */",
+        '#include "fbg_contract.h"', "",
+        "static int32_t rd_i32(const uint8_t *p)",
+        "{",
+        "    uint32_t u = (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);",
+        "    /* Two's-complement reinterpretation without implementation-defined conversion. */",
+        "    return (u & 0x80000000u) ? -(int32_t)(~u) - 1 : (int32_t)u;",
+        "}", "",
+        "static uint32_t rd_u32(const uint8_t *p)",
+        "{",
+        "    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);",
+        "}", "",
+        "static uint16_t rd_u16(const uint8_t *p)",
+        "{",
+        "    return (uint16_t)(p[0] | (p[1] << 8));",
+        "}", "",
+        "static int16_t rd_i16(const uint8_t *p)",
+        "{",
+        "    uint16_t u = rd_u16(p);",
+        "    return (u & 0x8000u) ? (int16_t)(-(int32_t)(uint16_t)~u - 1) : (int16_t)u;",
+        "}", "",
+        "static uint8_t rd_u8(const uint8_t *p)",
+        "{",
+        "    return p[0];",
+        "}", "",
+        "void fbg_params_decode(fbg_model *m, const uint8_t *p)",
+        "{",
+        "    unsigned k;",
+        "    (void)k;",
+    ]
+    reader = {"int32_t": "rd_i32", "uint32_t": "rd_u32", "uint16_t": "rd_u16",
+              "int16_t": "rd_i16", "uint8_t": "rd_u8"}
+    off = 0
+    for f in PARAMS:
+        size = CTYPES[f.ctype][2]
+        rd = reader[f.ctype]
+        if f.count == 1:
+            out.append(f"    m->{f.c_lvalue()} = {rd}(p + {off});")
+        else:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k)")
+            out.append(f"        m->{f.c_lvalue()} = {rd}(p + {off} + {size}u * k);")
+        off += size * f.count
+    out += ["}", "", f"int fbg_params_padding_ok(const uint8_t *p)", "{",
+            "    unsigned k;",
+            f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
+            "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
+            "fbg_status fbg_params_check(const fbg_model *m)", "{", "    unsigned k;", "    (void)k;"]
+    for f in PARAMS:
+        if f.lo is None and not f.active:
+            continue
+        cond = _range_condition(f)
+        if f.count == 1:
+            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
+        elif f.active:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
+            out.append("            if (v != 0)")
+            out.append("                return FBG_ERR_RANGE;")
+            out.append(f"        }} else if ({cond}) {{")
+            out.append(f"            return FBG_{f.code};")
+            out.append("        }")
+            out.append("    }")
+        else:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if ({cond})")
+            out.append(f"            return FBG_{f.code};")
+            out.append("    }")
+    out += ["    return FBG_OK;", "}", "", "const char *fbg_status_str(int status)", "{",
+            "    switch (status) {"]
+    for c in ERRORS:
+        out.append(f"    case FBG_{c.name}: return \"FBG_{c.name}\";")
+    out += ["    default: return \"FBG_ERR_UNKNOWN\";", "    }", "}", ""]
+    return "\n".join(out)
+
+
+def contract_header_text() -> str:
+    """runtime_c/src/fbg_contract.h (internal): declarations of the generated functions."""
+    return "\n".join([
+        "/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */",
+        "#ifndef FBG_CONTRACT_H", "#define FBG_CONTRACT_H", "", '#include "fbgforce.h"', "",
+        f"#define FBG_PARAMS_SIZE {PARAMS_SIZE}u     /* parameter block bytes, zero-padded */",
+        f"#define FBG_PARAMS_END {PARAMS_END}u      /* header + parameter block */",
+        f"#define FBG_LAYER_ENTRY {LAYER_ENTRY.size}u       /* bytes per layer-table entry */",
+        "",
+        "/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */",
+        "void fbg_params_decode(fbg_model *m, const uint8_t *p);",
+        "/* 1 if the block's padding bytes are all zero. */",
+        "int fbg_params_padding_ok(const uint8_t *p);",
+        "/* The first parameter out of its range, in blob order: its code; else FBG_OK. */",
+        "fbg_status fbg_params_check(const fbg_model *m);", "",
+        "#endif /* FBG_CONTRACT_H */", ""])
+
+
+def generated_files() -> dict[Path, str]:
+    """Every generated file and its expected full text."""
+    return {HEADER_PATH: render_header(HEADER_PATH.read_text()),
+            SOURCE_PATH: source_text(),
+            SOURCE_PATH.with_suffix(".h"): contract_header_text()}
+
+
+def stale_files() -> list[Path]:
+    """Generated files whose text differs from what the spec gives."""
+    return [p for p, t in generated_files().items() if not p.is_file() or p.read_text() != t]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m fbgforce.contract",
+                                 description="Check or regenerate the C text derived from the "
+                                             "runtime contract (fbgforce.contract).")
+    ap.add_argument("--write", action="store_true", help="rewrite stale files (default: check)")
+    args = ap.parse_args(argv)
+    stale = stale_files()
+    if args.write:
+        for p, t in generated_files().items():
+            if p in stale:
+                p.write_text(t)
+                print(f"wrote {p}")
+        return 0
+    for p in stale:
+        print(f"stale: {p} (run python -m fbgforce.contract --write)", file=sys.stderr)
+    return 1 if stale else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,182 @@
+"""The target report: golden vectors replayed bit-exactly on both builds, instructions per step,
+MACs, flash, RAM and the share of a 1 kHz period."""
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce.errors import InputError
+from fbgforce.target import firmware, golden, sources, toolchain
+
+#: Clock the budget fraction is quoted for, and the controller period.
+CLOCK_HZ = 168_000_000
+PERIOD_S = 1e-3
+
+
+def load_quantized(model_dir: Path, calib: Sequence[str] | None = None, bits: int | None = None
+                   ) -> tuple[Any, str]:
+    """The fixed-point model: ``model.fbgm`` if exported (and ``bits`` is None), else quantised
+    in memory with ``bits``-bit weights (default 16; the model directory is not written).
+    Returns ``(QModel, where it came from)``."""
+    from fbgforce.export import blob
+
+    if bits is None and (model_dir / blob.FILE_NAME).is_file():
+        return blob.load_model_blob(model_dir), str(model_dir / blob.FILE_NAME)
+    from fbgforce import model as fm
+    from fbgforce.export import exporter
+    from fbgforce.export import quantize as qz
+
+    model = fm.load(model_dir)
+    recs, forces, _ = exporter.calibration_recordings(model, calib)
+    q, _ = qz.quantize(model, qz.calibrate(model, recs, forces), bits=bits or 16)
+    return q, f"quantised in memory, int{bits or 16} weights"
+
+
+def recording_fm(data: str | None, scene: str, seed: int, samples: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """``samples`` consecutive samples (int32 fm) and their contact flags: from ``data`` or a
+    simulated ``scene``; the window starts shortly before the first contact."""
+    from fbgforce import dataset as fds
+    from fbgforce.export import intref
+
+    if data:
+        ds = fds.load(data)
+        src = str(data)
+    else:
+        from fbgforce import sim
+
+        ds = sim.simulate(scene, seed=seed)
+        src = f"scene {scene} seed {seed}"
+    contact = np.asarray(ds.contact, dtype=bool)
+    first = int(np.argmax(contact)) if contact.any() else 0
+    start = max(0, min(first - samples // 5, len(ds) - samples))
+    sl = slice(start, start + samples)
+    return intref.nm_to_fm(ds.wl_nm[sl]), contact[sl], f"{src}, samples {sl.start}..{sl.stop - 1}"
+
+
+def _figures(run: firmware.FirmwareRun, macs: list[int], contact: list[bool]) -> dict[str, Any]:
+    w = np.asarray(run.windows, dtype=np.int64)
+    if w.size != len(macs):  # the run stopped early (fault, crash): no per-step figures
+        return {"instructions_per_step": int(w.max()) if w.size else None,
+                "instructions_per_step_mean": None, "instructions_per_step_no_contact_max": None,
+                "instructions_per_mac": None, "budget_fraction_at_168MHz": None}
+    m = np.asarray(macs, dtype=np.int64)
+    c = np.asarray(contact, dtype=bool)
+    full = c & (m > 0)
+    worst = int(w.max()) if w.size else 0
+    ipm = float(w[full].sum() / m[full].sum()) if full.any() else None
+    return {
+        "instructions_per_step": worst,
+        "instructions_per_step_mean": round(float(w.mean()), 1) if w.size else None,
+        "instructions_per_step_no_contact_max": int(w[~c & (m > 0)].max()) if (~c & (m > 0)).any() else None,
+        "instructions_per_mac": round(ipm, 3) if ipm is not None else None,
+        "budget_fraction_at_168MHz": round(worst / (CLOCK_HZ * PERIOD_S), 4),
+    }
+
+
+def target_report(model_dir: str | Path, *, data: str | None = None, scene: str = "smoke",
+                  seed: int = 0, samples: int = 600, calib: Sequence[str] | None = None,
+                  bits: int | None = None, build_dir: str | Path | None = None, log=None
+                  ) -> dict[str, Any]:
+    """Build, replay the golden vectors on QEMU (portable and DSP builds), count and measure.
+
+    Returns the report dict (keys in docs/cli.md#target-report). Raises
+    :class:`~fbgforce.target.toolchain.ToolchainMissing` without the tools,
+    :class:`~fbgforce.target.sources.CSourcesMissing` without the C sources and
+    :class:`InputError` for a bad model/data.
+    """
+    from fbgforce.export import codegen
+
+    t0 = time.perf_counter()
+    log = log or (lambda msg: None)
+    toolchain.require_tools()
+    root = Path(model_dir)
+    if not root.exists():
+        raise InputError("no such model directory", path=str(root))
+    q, source = load_quantized(root, calib, bits)
+    wl, contact, data_src = recording_fm(data, scene, seed, samples)
+    records = golden.golden_session(q, wl, contact, seed=seed)
+    steps = [r for r in records if r.op == golden.OP_STEP]
+    macs = golden.step_macs(q, records)
+    step_contact = [bool(r.out["contact"]) for r in steps]
+
+    tmp = None
+    if build_dir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="fbg-target-")
+        build = Path(tmp.name)
+    else:
+        build = Path(build_dir).resolve()
+        build.mkdir(parents=True, exist_ok=True)
+    try:
+        ident = "target"
+        hdr, src = codegen.fixed_source(q, ident)
+        (build / f"{ident}_model.h").write_text(hdr)
+        model_c = build / f"{ident}_model.c"
+        model_c.write_text(src)
+        golden_c = build / "golden_vectors.c"
+        golden.write_golden_c(records, golden_c)
+        log(f"{len(records)} golden records ({len(steps)} steps) from {data_src}")
+        log("cross-compiling libfbgforce (portable, DSP, float)")
+        csrc = sources.stage(build / "src")
+        libs = firmware.build_libraries(csrc)
+        builds: dict[str, Any] = {}
+        exact = True
+        for dsp in (False, True):
+            name = "dsp" if dsp else "portable"
+            log(f"firmware ({name}): build and run on QEMU mps2-an386")
+            bdir = firmware.build_firmware(csrc, build, model_c, f"{ident}_model", golden_c, dsp)
+            run = firmware.run_firmware(bdir)
+            ok = (run.exit_code == 0 and run.result.get("mismatches") == 0
+                  and run.result.get("steps") == len(steps) and len(run.windows) == len(steps))
+            exact &= ok
+            sizes = firmware.map_sizes(bdir / "fw_size.map", exclude=("startup.o", "semihost.o", "main_size.o"))
+            entry = {"bit_exact": ok, "exit_code": run.exit_code,
+                     "mismatches": run.result.get("mismatches"),
+                     **_figures(run, macs, step_contact),
+                     **{f"{k}_bytes": v for k, v in sizes.items()},
+                     "stack_bytes": run.result.get("stack_bytes"),
+                     "state_bytes": run.result.get("state_bytes")}
+            # Instructions per replayed step by function (init and tare calls included: they
+            # are a few hundred instructions in all), largest first.
+            entry["profile_per_step"] = {k: round(v / max(len(steps), 1), 1)
+                                         for k, v in list(run.profile.items())[:12]}
+            if run.mismatch_lines:
+                entry["first_mismatches"] = run.mismatch_lines[:3]
+            if not run.result:
+                entry["console"] = run.console[-2000:]
+            builds[name] = entry
+        best = builds["dsp"]
+        full = [m for m, cc in zip(macs, step_contact) if cc and m > 0]
+        report = {
+            "bit_exact": exact,
+            "samples": len(steps),
+            "records": len(records),
+            "instructions_per_step": best["instructions_per_step"],
+            "macs_per_step": max(full) if full else max(macs, default=0),
+            "instructions_per_mac": best["instructions_per_mac"],
+            "text_bytes": best["text_bytes"],
+            "rodata_bytes": best["rodata_bytes"],
+            "data_bytes": best["data_bytes"],
+            "bss_bytes": best["bss_bytes"],
+            "flash_bytes": best["text_bytes"] + best["rodata_bytes"] + best["data_bytes"],
+            "ram_bytes": best["data_bytes"] + best["bss_bytes"] + (best["state_bytes"] or 0)
+                         + (best["stack_bytes"] or 0),
+            "state_bytes": best["state_bytes"],
+            "stack_bytes": best["stack_bytes"],
+            "budget_fraction_at_168MHz": best["budget_fraction_at_168MHz"],
+            "assumption": "one instruction per cycle (QEMU counts instructions, not cycles); "
+                          "instructions_per_step is the worst step (contact: all three nets)",
+            "builds": builds,
+            "model": source,
+            "weight_bits": int(q.w_bits),
+            "data": data_src,
+            "nofloat_ok": libs["nofloat_ok"],
+            "seconds": round(time.perf_counter() - t0, 2),
+        }
+        return report
+    finally:
+        if tmp is not None:
+            tmp.cleanup()

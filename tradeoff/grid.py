@@ -1,0 +1,99 @@
+"""The grid: which models are trained (variants), which engines run them, and the settings."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One trained model of the grid."""
+
+    filter: str
+    sigma: float
+    width: str
+
+    @property
+    def tag(self) -> str:
+        f = "nofilter" if self.filter == "none" else f"{self.filter}-s{self.sigma:g}"
+        return f"{self.width}-{f}"
+
+    @property
+    def causal(self) -> bool:
+        return self.filter != "centred"
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """An engine column: which ``fbgforce.engines`` engine on which model artifact."""
+
+    name: str
+    engine: str
+    artifact: str  # "float" (plain model dir), "int8" or "int8-qat" (sibling dirs)
+    weight_bits: int | None
+    act_bits: int | None
+    dtype_bytes: float
+
+
+ENGINE_SPECS = (
+    EngineSpec("numpy-f64", "float", "float", None, None, 8),
+    EngineSpec("onnx-f32", "onnx", "float", None, None, 4),
+    EngineSpec("c-float", "cfloat", "float", None, None, 4),
+    EngineSpec("c-int16", "fixed", "float", 16, 16, 2),
+    EngineSpec("c-int8", "fixed", "int8", 8, 16, 1),
+    EngineSpec("c-int8-qat", "fixed", "int8-qat", 8, 16, 1),
+)
+
+
+@dataclass
+class Settings:
+    """Everything that shapes a run (written to tradeoff.json)."""
+
+    seed: int = 0
+    epochs: int = 200
+    time_budget_s: float | None = None
+    sigmas: tuple[float, ...] = (2.0, 5.0, 10.0)
+    default_sigma: float = 5.0
+    widths: tuple[str, ...] = ("paper", "half", "quarter")
+    grid: str = "star"
+    centred: bool = True
+    qat_epochs: int = 3
+    single_calls: int = 3000
+    batch_size: int = 2000
+    batch_reps: int = 60
+    rounds: int = 6
+    target: bool = True
+    engines: tuple[str, ...] = tuple(s.name for s in ENGINE_SPECS)
+    #: Run the int8 engines (export, QAT) on every causal variant, or only on the reference
+    #: variant (quick mode: each export costs seconds).
+    int8_all_variants: bool = True
+
+
+def quick_settings(seed: int = 0) -> Settings:
+    """Small everything: for CI (< 60 s on a small scene)."""
+    return Settings(seed=seed, epochs=4, time_budget_s=5.0, sigmas=(5.0,), widths=("paper", "quarter"),
+                    qat_epochs=1, single_calls=300, batch_size=500, batch_reps=15, rounds=3,
+                    target=False, int8_all_variants=False)
+
+
+def variants(s: Settings) -> list[Variant]:
+    """The models of the grid (see the module docstring)."""
+    filters = [("none", 0.0)] + [("causal", sg) for sg in s.sigmas]
+    if s.centred:
+        filters.append(("centred", s.default_sigma))
+    out: list[Variant] = []
+    for kind, sg in filters:
+        for w in s.widths:
+            star_ok = w == "paper" or (kind == "causal" and sg == s.default_sigma)
+            if s.grid == "full" or star_ok:
+                out.append(Variant(kind, sg, w))
+    return out
+
+
+def scaled_sizes(width: str) -> dict[str, list[int]]:
+    """Hidden widths of every net, the paper's scaled by the width factor (at least 2)."""
+    from fbgforce.trainer.train import DEFAULT_SIZES
+
+    f = WIDTHS[width]
+    return {k: [max(2, int(round(h * f))) for h in v] for k, v in DEFAULT_SIZES.items()}

@@ -1,0 +1,264 @@
+"""The whole run: train or reuse every variant, evaluate and time every engine, count on the
+Cortex-M4, score, and write the outputs."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from fbgforce import engines as fengines
+from fbgforce import metrics as fmetrics
+from fbgforce import model as fm
+from fbgforce.errors import InputError
+from fbgforce.tradeoff import artifacts, scoring, timing
+from fbgforce.tradeoff.grid import (ENGINE_SPECS, EngineSpec, Settings, Variant, scaled_sizes,
+                                    variants)
+from fbgforce.tradeoff.outputs import summary_paragraph, write_outputs
+from fbgforce.tradeoff.timers import make_timer, timing_samples
+
+
+def target_instructions(model_dir: Path, data: Path | None = None, samples: int = 64,
+                        timeout_s: float = 300.0) -> dict[str, Any]:
+    """Cortex-M4 instruction counts per step from ``fbgforce target-report``.
+
+    Returns ``{"m4_instructions_per_step": worst step of the DSP build (the shipped one),
+    "m4_instructions_portable": worst step of the portable C build, "m4_bit_exact": ...}``,
+    or ``{"m4_note": why not}`` when the toolchain is missing or the command fails. The report
+    runs in a child process, so a hung QEMU is bounded by ``timeout_s``.
+    """
+    cmd = [sys.executable, "-m", "fbgforce.cli", "target-report", "--model", str(model_dir),
+           "--samples", str(samples), "--json"]
+    if data is not None:
+        cmd += ["--data", str(data)]
+    try:
+        r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        return {"m4_note": "target-report timed out"}
+    if r.returncode != 0:
+        return {"m4_note": (r.stderr.strip().splitlines() or ["target-report failed"])[-1]}
+    try:
+        rep = json.loads(r.stdout.strip().splitlines()[-1])
+    except (ValueError, IndexError):
+        return {"m4_note": "target-report printed no JSON"}
+    portable = rep.get("builds", {}).get("portable", {})
+    return {"m4_instructions_per_step": rep.get("instructions_per_step"),
+            "m4_instructions_portable": portable.get("instructions_per_step"),
+            "m4_bit_exact": rep.get("bit_exact"),
+            "m4_budget_fraction_at_168MHz": rep.get("budget_fraction_at_168MHz"),
+            "m4_flash_bytes": rep.get("flash_bytes")}
+
+
+def _model_bytes(spec: EngineSpec, model: fm.HierarchicalModel, model_dir: Path) -> int:
+    """Bytes of the model as the engine holds it: the blob for C fixed, parameters otherwise."""
+    if spec.engine == "fixed":
+        blob = model_dir / "model.fbgm"
+        if blob.is_file():
+            return blob.stat().st_size
+    n = sum(w.size + b.size for net in model.nets.values() for w, b in zip(net.weights, net.biases))
+    return int(n * spec.dtype_bytes)
+
+
+def _filter_macs(model: fm.HierarchicalModel) -> int:
+    pre = model.preprocess
+    return 0 if pre.filter_kind == "none" else fm.N_STRAIN * int(pre.taps.size)
+
+
+def _filter_delay_ms(model: fm.HierarchicalModel, rate_hz: float) -> float:
+    """Group delay of a causal filter; for the centred filter, the look-ahead an online
+    implementation would have to wait for (half its window)."""
+    pre = model.preprocess
+    if pre.filter_kind == "centred":
+        return (pre.taps.size // 2) * 1000.0 / rate_hz
+    return pre.group_delay_samples * 1000.0 / rate_hz
+
+
+def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None] = print
+        ) -> dict[str, Any]:
+    """Train or reuse every variant, evaluate every engine, time them, write the outputs."""
+    from fbgforce.tare import sample_rate_hz
+    from fbgforce.trainer import qat
+    from fbgforce.trainer import train as tr
+
+    t_run = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    ds_list, described = tr.load_datasets([str(p) for p in paths])
+    sources = [str(p) for p in paths]
+    digest = artifacts.data_digest(paths)
+    rate_hz = float(np.median([sample_rate_hz(ds.t_s) for ds in ds_list]))
+    grid = variants(s)
+    specs = [sp for sp in ENGINE_SPECS if sp.name in s.engines]
+    calib = artifacts.calibration_subset(ds_list, sources, out)
+    prepared_cache: dict[tuple[str, float], Any] = {}
+    rows: list[dict[str, Any]] = []
+    timers: list[timing.Timer] = []
+    timer_rows: dict[str, dict[str, Any]] = {}
+    train_seconds: dict[str, float] = {}
+
+    for v in grid:
+        key_pf = (v.filter, v.sigma)
+        if key_pf not in prepared_cache:
+            prepared_cache[key_pf] = tr.prepare(ds_list, seed=s.seed, filter=v.filter,
+                                                sigma=v.sigma, sources=sources)
+        prep = prepared_cache[key_pf]
+        test_rows = prep.rows("test")
+        key = {"variant": v.tag, "filter": v.filter, "sigma": v.sigma,
+               "sizes": scaled_sizes(v.width), "seed": s.seed, "epochs": s.epochs,
+               "time_budget_s": s.time_budget_s, "data": digest}
+        model_dir = out / "models" / v.tag
+        model = artifacts.reusable_model(model_dir, key)
+        if model is None:
+            log(f"training {v.tag} ...")
+            t0 = time.perf_counter()
+            model = tr.train(sources, epochs=s.epochs, seed=s.seed, filter=v.filter,
+                             sigma=v.sigma, sizes={k: h for k, h in key["sizes"].items()},
+                             prepared=prep, time_budget_s=s.time_budget_s)
+            train_seconds[v.tag] = time.perf_counter() - t0
+            artifacts.save_with_key(model, model_dir, key)
+        else:
+            log(f"reusing {model_dir}")
+        from fbgforce.export.onnx_export import ONNX_FILE, export_onnx
+
+        export_onnx(model, model_dir / ONNX_FILE)
+        dirs: dict[str, tuple[Path, fm.HierarchicalModel]] = {"float": (model_dir, model)}
+        # Fixed-point blobs per artifact; an export failure only affects the fixed engines.
+        export_err: dict[str, str | None] = {}
+        int8_here = s.int8_all_variants or v == Variant("causal", s.default_sigma, "paper")
+        if v.causal and any(sp.engine == "fixed" for sp in specs):
+            export_err["float"] = artifacts.export_fixed(model_dir, 16, calib)
+            if any(sp.artifact == "int8" for sp in specs) and int8_here:
+                d8 = out / "models" / f"{v.tag}-int8"
+                if artifacts.reusable_model(d8, {**key, "artifact": "int8"}) is None:
+                    artifacts.save_with_key(model, d8, {**key, "artifact": "int8"})
+                dirs["int8"] = (d8, model)
+                export_err["int8"] = artifacts.export_fixed(d8, 8, calib)
+            if any(sp.artifact == "int8-qat" for sp in specs) and int8_here:
+                dq = out / "models" / f"{v.tag}-int8-qat"
+                qkey = {**key, "artifact": "int8-qat", "qat_epochs": s.qat_epochs, "qat_rule": 2}
+                qmodel = artifacts.reusable_model(dq, qkey)
+                if qmodel is None:
+                    log(f"QAT fine-tuning {v.tag} (int8 weights) ...")
+                    qmodel = _qat_model(model, prep, s, qat)
+                    artifacts.save_with_key(qmodel, dq, qkey)
+                dirs["int8-qat"] = (dq, qmodel)
+                export_err["int8-qat"] = artifacts.export_fixed(dq, 8, calib)
+
+        common = {
+            "variant": v.tag, "width": v.width, "filter": v.filter,
+            "sigma": v.sigma if v.filter != "none" else None, "causal": v.causal,
+            "filter_taps": 0 if v.filter == "none" else int(model.preprocess.taps.size),
+            "filter_delay_ms": _filter_delay_ms(model, rate_hz),
+            "macs_nets": model.macs, "macs": model.macs + _filter_macs(model),
+            "sizes": {k: net.sizes for k, net in model.nets.items()},
+        }
+        for sp in specs:
+            row: dict[str, Any] = {**common, "engine": sp.name, "weight_bits": sp.weight_bits,
+                                   "act_bits": sp.act_bits, "qat": sp.artifact == "int8-qat"}
+            rows.append(row)
+            if sp.engine != "float" and sp.engine != "onnx" and not v.causal:
+                row["status"] = "n/a: the centred filter is offline only"
+                continue
+            if sp.artifact not in dirs:
+                row["status"] = "n/a: int8 engines run on the reference variant only (--quick)"
+                continue
+            mdir, mdl = dirs[sp.artifact]
+            err = export_err.get(sp.artifact) if sp.engine == "fixed" else None
+            if err:
+                row["status"] = f"missing: {err}"
+                continue
+            row["model_bytes"] = _model_bytes(sp, mdl, mdir)
+            try:
+                fn = fengines.get_engine(sp.engine)
+            except InputError as exc:
+                row["status"] = f"missing: {exc}"
+                continue
+            try:
+                preds = [fn(mdir, mdl, r.ds.wl_nm, r.baseline_nm) for r in prep.recordings]
+            except Exception as exc:  # one broken engine must not lose the rest of the grid
+                row["status"] = f"error: {type(exc).__name__}: {exc}"
+                log(f"{v.tag}/{sp.name}: {row['status']}")
+                continue
+            pred = {k: np.concatenate([np.asarray(p[k]) for p in preds])[test_rows]
+                    for k in ("contact", "force_N", "x_mm", "y_mm")}
+            row.update(fmetrics.compute(pred, *prep.truth(test_rows), extras=False))
+            row["status"] = "ok"
+            rec = prep.recordings[0]
+            try:
+                t = make_timer(sp, f"{v.tag}/{sp.name}", mdir, mdl, timing_samples(rec.ds),
+                               rec.baseline_nm)
+            except Exception as exc:  # a runtime that evaluates but cannot be timed: say so
+                row["timing_error"] = f"{type(exc).__name__}: {exc}"
+                continue
+            timers.append(t)
+            timer_rows[t.name] = row
+            row["_dir"] = mdir
+
+    log(f"timing {len(timers)} engine/model pairs (interleaved) ...")
+    blas_threads = timing.limit_blas_threads(1)  # every engine on one thread (timing.py)
+    n_time = len(timing_samples(ds_list[0]))  # every timer replays the same samples
+    times = timing.measure(timers, n_time, single_calls=s.single_calls, batch_size=s.batch_size,
+                           batch_reps=s.batch_reps, rounds=s.rounds)
+    for name, tm in times.items():
+        r = timer_rows[name]
+        r["host_single_ns"] = tm["single_ns"]
+        r["host_single_p99_ns"] = tm["single_p99_ns"]
+        r["host_batch_ns"] = tm["batch_ns"]
+        r["host_batch_min_ns"] = tm["batch_min_ns"]
+        r["host_batch_size"] = tm["batch_size"]
+
+    target_cache: dict[str, dict[str, Any]] = {}
+    for r in rows:
+        mdir = r.pop("_dir", None)
+        r["m4_instructions_per_step"] = None
+        if s.target and mdir is not None and r["engine"].startswith("c-int"):
+            if str(mdir) not in target_cache:
+                log(f"Cortex-M4 counts for {Path(mdir).name} ...")
+                target_cache[str(mdir)] = target_instructions(mdir, Path(sources[0]))
+            r.update(target_cache[str(mdir)])
+    ref = scoring.reference(rows, s)
+    scoring.score(rows, ref)
+    scoring.mark_pareto(rows)
+    result = {
+        "command": " ".join(sys.argv) if sys.argv and sys.argv[0] else None,
+        "data": described, "sample_rate_hz": rate_hz, "quantizer_calibration": calib,
+        "settings": {k: v for k, v in s.__dict__.items()},
+        "reference": None if ref is None else {"variant": ref["variant"], "engine": ref["engine"]},
+        "rows": rows,
+        "ratios": scoring.ratios(rows, s),
+        "train_seconds": train_seconds,
+        "seconds": time.perf_counter() - t_run,
+        "platform": {**_platform(), "blas_threads_before_timing": blas_threads},
+    }
+    result["summary"] = summary_paragraph(result)
+    write_outputs(result, out, log)
+    return result
+
+
+def _qat_model(model: fm.HierarchicalModel, prep: Any, s: Settings, qat: Any
+               ) -> fm.HierarchicalModel:
+    z = (prep.feats - model.preprocess.input_mean) / model.preprocess.input_std
+    trn, val = prep.rows("train"), prep.rows("val")
+    truth = (prep.contact, prep.force_N, prep.x_mm, prep.y_mm)
+    tuned, _ = qat.finetune(model, z[trn], *(t[trn] for t in truth),
+                            val=(z[val], *(t[val] for t in truth)) if val.size else None,
+                            weight_bits=8, act_bits=16, epochs=s.qat_epochs, seed=s.seed)
+    return tuned
+
+
+def _platform() -> dict[str, Any]:
+    import os
+    import platform
+
+    info: dict[str, Any] = {"python": platform.python_version(), "numpy": np.__version__,
+                            "machine": platform.machine(), "cpus": os.cpu_count()}
+    try:
+        import onnxruntime
+
+        info["onnxruntime"] = onnxruntime.__version__
+    except ImportError:
+        pass
+    return info
