@@ -33,7 +33,7 @@ def _free_udp_port() -> int:
 def _est(n: int) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(0)
     return {"status": rng.integers(0, 32, n).astype(np.uint32), "contact": rng.random(n) < 0.5,
-            "contact_conf_q15": rng.integers(0, 32769, n).astype(np.uint16),
+            "contact_conf_q15": rng.integers(0, 32768, n).astype(np.uint16),
             "force_mN": rng.integers(-5000, 70000, n).astype(np.int32),
             "x_um": rng.integers(-100, 21000, n).astype(np.int32),
             "y_um": rng.integers(-100, 27000, n).astype(np.int32)}
