@@ -70,6 +70,7 @@ class LiveEstimator:
             self._rt = Runtime(self.model_dir)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
+            self._memory_state: list[np.ndarray | None] = []
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -99,6 +100,26 @@ class LiveEstimator:
         self.estimated += len(wl_fm)
         return out
 
+    def _memory_features(self, zs: np.ndarray) -> np.ndarray:
+        """Net inputs of a batch of standardised rows, the memory states carried across
+        batches (what :func:`fbgforce.model.memory_features` gives on the whole stream, to
+        rounding)."""
+        mem = self.model.preprocess.memory
+        if mem.n_states == 0 or len(zs) == 0:
+            return fm.memory_features(mem, zs)
+        singles = [fm.Memory(ema_shifts=(s,), ema_gains=(g,)) for s, g in
+                   zip(mem.ema_shifts, mem.ema_gains)]
+        singles += [fm.Memory(play_widths=(w,), play_gains=(g,)) for w, g in
+                    zip(mem.play_widths, mem.play_gains)]
+        gains = list(mem.ema_gains) + list(mem.play_gains)
+        if not self._memory_state:
+            self._memory_state = [None] * len(singles)
+        feats = [zs]
+        for k, (one, gain) in enumerate(zip(singles, gains)):
+            f, self._memory_state[k] = _continue_memory(one, self._memory_state[k], zs, gain)
+            feats.append(f)
+        return np.concatenate(feats, axis=1)
+
     def _tare(self, rows: np.ndarray) -> None:
         if self.engine == "fixed":
             base = self._rt.tare(rows.astype(np.int32))
@@ -112,14 +133,31 @@ class LiveEstimator:
             return {k: np.asarray(out[k]) for k in OUTPUT_KEYS + RAW_KEYS}
         # Float: run the reference pipeline on (history + batch) and keep the batch's rows;
         # with len(taps) - 1 samples of history the causal FIR sees exactly what it would
-        # have seen on the whole recording.
-        keep = self.model.preprocess.taps.size - 1
+        # have seen on the whole recording. The memory states carry over from batch to batch.
+        pre = self.model.preprocess
+        keep = pre.taps.size - 1
         rows = np.concatenate([self._history, wl_fm])
-        z = fm.features(self.model, fm_to_nm(rows), self.baseline_nm)
-        pred = fm.predict_from_features(self.model, z[len(self._history):])
+        filt = fm.apply_filter(pre, fm.compensate(self.model, fm_to_nm(rows), self.baseline_nm))
+        zs = (filt[len(self._history):] - pre.input_mean) / pre.input_std
+        pred = fm.predict_from_features(self.model, self._memory_features(zs))
         self._history = rows[len(rows) - keep:] if keep else rows[:0]
         pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
+
+
+def _continue_memory(memory: fm.Memory, state: np.ndarray | None, zs: np.ndarray,
+                     gain: int) -> tuple[np.ndarray, np.ndarray]:
+    """One memory state (``memory`` has exactly one) over a batch, continuing from ``state``.
+
+    :func:`fbgforce.model.memory_features` starts every state at the first row it is given, so
+    the carried state goes in as that row and its output row is dropped; the new state is read
+    back from the last feature (``feature = (z - state) * 2^gain``, the scaling exact).
+    """
+    z = zs if state is None else np.concatenate([state[None], zs])
+    feat = fm.memory_features(memory, z)[:, zs.shape[1]:]
+    if state is not None:
+        feat = feat[1:]
+    return feat, zs[-1] - feat[-1] * 2.0 ** -gain
 
 
 def _bad_frames(stats: dict[str, int]) -> int:
