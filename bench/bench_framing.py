@@ -148,7 +148,8 @@ def run_native(n: int, seed: int = 0, version: int = P.PROTOCOL_VERSION, gate: b
     label = f"native v{version}" + ("" if gate else ", CRC only")
     return _score(got, truth, lost, intact, n, seconds, protocol=label,
                   crc_errors=dec.stats.crc_errors,
-                  implausible=dec.gate.stats.implausible_frames if gate else 0)  # type: ignore[union-attr]
+                  implausible=dec.gate.stats.implausible_frames if gate  # type: ignore[union-attr]
+                  else 0)
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,7 +173,9 @@ class _TrailerOnlyReply:
         size = P.fispec_frame_size(CHANNELS)
         if len(self.buf) < size or not self.buf.endswith(P.FISPEC_TRAILER):
             return None
-        frame = P.decode_fispec_frame(bytes(self.buf[-size:]), CHANNELS).to_frame()  # type: ignore[union-attr]
+        fr = P.decode_fispec_frame(bytes(self.buf[-size:]), CHANNELS)
+        assert fr is not None  # the length and trailer were just checked
+        frame = fr.to_frame()
         return [frame] if self.tracker.accept(frame.seq) else []
 
 
@@ -237,7 +240,8 @@ def run_fispec(n: int, seed: int = 0, fault_rate: float = 0.3, gate: bool = True
                 break
         refused += reply.refused
     seconds = time.perf_counter() - t0
-    lost = gate.stats.lost_frames if use_gate else tracker.stats.lost_frames  # type: ignore[attr-defined]
+    lost = (gate.stats.lost_frames if use_gate  # type: ignore[attr-defined]
+            else tracker.stats.lost_frames)
     return _score(got, sent.get, lost, intact, n, seconds,
                   protocol="fispec" + ("" if use_gate else ", trailer only"), crc_errors=0,
                   implausible=gate.stats.implausible_frames,  # type: ignore[attr-defined]

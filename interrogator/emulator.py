@@ -11,9 +11,9 @@ The emulator is the device side of the protocols in :mod:`fbgforce.interrogator.
 Line faults. Each sample gets a fault kind (:data:`FAULTS`): ``drop`` (frame never sent),
 ``flip`` (1–3 bits flipped), ``truncate`` (only a prefix sent), ``garbage`` (a burst of random
 bytes sent before the intact frame). The kinds come from the recording's ``dropout`` column
-when it has one (Part 1's ``dropout`` effect; mapping in :func:`faults_from_dropout`) and/or
-from per-kind rates. The plan is drawn up front from a seeded generator, so a test knows which
-frames are good.
+when it has one (the simulator's ``dropout`` effect; mapping in :func:`faults_from_dropout`)
+and/or from per-kind rates. The plan is drawn up front from a seeded generator, so a test
+knows which frames are good.
 
 Like a real UART device, bytes written while no client has the port open are lost; by default
 playback starts only once every port has a client (``wait_client``), and after the last sample
@@ -555,7 +555,8 @@ class HyperionEmulator:
         self.playback = playback
         self.rate = float(rate)
         n = len(playback)
-        self.faults = np.zeros(n, dtype=np.uint8) if faults is None else np.asarray(faults, np.uint8)
+        self.faults = (np.zeros(n, dtype=np.uint8) if faults is None
+                       else np.asarray(faults, np.uint8))
         if self.faults.shape != (n,):
             raise ValueError(f"fault plan has {self.faults.shape} entries, recording {n}")
         self.peak_map = peak_map or H.PeakMap.default()

@@ -82,7 +82,8 @@ def estimate_integers(est: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return out
     p = np.nan_to_num(np.asarray(est["p_contact"], dtype=np.float64))
     out["contact_conf_q15"] = np.clip(np.round(p * 32768.0), 0, CONF_Q15_MAX).astype(np.int64)
-    out["force_mN"] = np.round(np.asarray(est["force_N"], dtype=np.float64) * 1000.0).astype(np.int64)
+    force = np.asarray(est["force_N"], dtype=np.float64)
+    out["force_mN"] = np.round(force * 1000.0).astype(np.int64)
     for k, src in (("x_um", "x_mm"), ("y_um", "y_mm")):
         out[k] = np.round(np.nan_to_num(np.asarray(est[src], dtype=np.float64)) * 1000.0
                           ).astype(np.int64) if n else np.zeros(0, np.int64)

@@ -33,7 +33,8 @@ def test_trailer_only_rule_is_fooled_by_the_same_fispec_stream():
 
 
 def _f(seq: int, t_us: int, wl: int = 1_546_000_000) -> P.Frame:
-    return P.Frame(seq, t_us, (wl, wl + 5_000_000, wl + 10_000_000, wl - 5_000_000, wl - 10_000_000))
+    return P.Frame(seq, t_us, (wl, wl + 5_000_000, wl + 10_000_000, wl - 5_000_000,
+                               wl - 10_000_000))
 
 
 def test_gate_one_fabricated_sequence_number_moves_no_counter():

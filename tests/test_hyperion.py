@@ -164,7 +164,8 @@ def test_peak_map_from_model_metadata_and_bad_options(tmp_path, small_exported_d
     doc = json.loads((model_dir / "model.json").read_text())
     doc.setdefault("metadata", {})["hyperion_peak_map"] = "1:1,1:2,1:3,1:4,2:1"
     (model_dir / "model.json").write_text(json.dumps(doc))
-    assert H.peak_map_from_model(model_dir).text() == "1:1,1:2,1:3,1:4,2:1"  # type: ignore[union-attr]
+    found = H.peak_map_from_model(model_dir)
+    assert found is not None and found.text() == "1:1,1:2,1:3,1:4,2:1"
     assert H.peak_map_from_model(tmp_path) is None
     assert main(["stream", "--source", "hyperion://127.0.0.1:1", "--model", str(model_dir),
                  "--peak-map", "1:1"]) == 2
