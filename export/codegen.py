@@ -141,7 +141,7 @@ def float_source(model: fm.HierarchicalModel, name: str, jump_max_fm: int,
         "input_mean_pm": pre.input_mean, "input_std_pm": pre.input_std,
         "force_offset_N": model.force_offset, "force_scale": model.force_scale,
         "xy_offset_mm": model.xy_offset, "xy_scale": model.xy_scale, "overload_N": overload_N,
-        "n_ema": len(mem.ema_shifts), "n_play": len(mem.play_widths),
+        "mem_weight": list(mem.weights), "n_ema": len(mem.ema_shifts), "n_play": len(mem.play_widths),
         "ema_shift": pad(mem.ema_shifts, contract.MAX_EMA), "ema_gain": pad(mem.ema_gains, contract.MAX_EMA),
         "play_gain": pad(mem.play_gains, contract.MAX_PLAY),
         "play_width": pad(mem.play_widths, contract.MAX_PLAY)}

@@ -128,35 +128,39 @@ def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | No
 
 def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``memory_features`` of fbg_fixed.c on the consecutive fault-free samples ``z`` (m, 4)
-    of one recording (the states are primed with the first and never see a faulty sample).
+    of one recording (the states are primed by the first as at rest after a release, and
+    never see a faulty sample).
 
-    Returns the net inputs (m, F) and, per sample, whether a feature saturated.
+    Returns the net inputs (m, F) and, per sample, whether a value saturated.
     """
-    z = np.asarray(z, dtype=np.int64)
+    z = np.asarray(z, dtype=np.int64).reshape(-1, 4)
     m = z.shape[0]
     feats = np.zeros((m, q.n_features), dtype=np.int64)
     feats[:, :4] = z
     if m == 0 or q.n_ema + q.n_play == 0:
         return feats, np.zeros(m, dtype=bool)
-    shifts = q.ema_shift[:q.n_ema, None]
-    halves = np.int64(1) << (shifts - 1)
-    widths = q.play_width[:q.n_play, None]
-    ema = np.repeat(z[:1] << EMA_FRAC, q.n_ema, axis=0)          # (n_ema, 4)
-    play = np.repeat(z[:1], q.n_play, axis=0)                    # (n_play, 4)
-    ema_mean = np.zeros((m, q.n_ema, 4), dtype=np.int64)
-    play_state = np.zeros((m, q.n_play, 4), dtype=np.int64)
-    for i in range(m):
-        zi = z[i]
-        ema = ema + ((((zi << EMA_FRAC) - ema) + halves) >> shifts)
-        play = np.minimum(np.maximum(play, zi - widths), zi + widths)
-        ema_mean[i] = ema
-        play_state[i] = play
-    d_ema = (z[:, None, :] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema, None]
-    d_play = (z[:, None, :] - play_state) << q.play_gain[:q.n_play, None]
-    raw = np.concatenate([d_ema.reshape(m, -1), d_play.reshape(m, -1)], axis=1)
-    clipped, clamped = sat(raw, SAT16)
-    feats[:, 4:] = clipped
-    return feats, clamped.any(axis=1)
+    u, clamped = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
+    shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
+    widths = [int(v) for v in q.play_width[:q.n_play]]
+    ema = [int(u[0]) << EMA_FRAC for _ in shifts]
+    play = [int(u[0]) + w for w in widths]
+    ema_mean = np.zeros((m, q.n_ema), dtype=np.int64)
+    play_state = np.zeros((m, q.n_play), dtype=np.int64)
+    # Python integers, sample by sample: the recursions do not vectorise, and this keeps the
+    # rounding of every step exactly the C code's.
+    for i, ui in enumerate(u.tolist()):
+        target = ui << EMA_FRAC
+        for k, s in enumerate(shifts):
+            ema[k] += (target - ema[k] + (1 << (s - 1))) >> s
+            ema_mean[i, k] = ema[k]
+        for k, w in enumerate(widths):
+            play[k] = min(max(play[k], ui - w), ui + w)
+            play_state[i, k] = play[k]
+    d_ema = (u[:, None] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :]
+    d_play = (u[:, None] - play_state) << q.play_gain[:q.n_play][None, :]
+    values, c2 = sat(np.concatenate([d_ema, d_play], axis=1), SAT16)
+    feats[:, 4:] = values
+    return feats, clamped | c2.any(axis=1)
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,

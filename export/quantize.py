@@ -183,7 +183,9 @@ class QModel:
     load_max_mN: int = SAT32
     #: Stuck-peak rule (fbg_model.stuck_max): 0 disables it.
     stuck_max: int = 0
-    #: Memory (fbg_model.n_ema ...): entries beyond n_ema / n_play are 0.
+    #: Memory (fbg_model.mem_mult, n_ema ...): entries beyond n_ema / n_play are 0.
+    mem_mult: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
+    mem_shift: int = 1
     n_ema: int = 0
     n_play: int = 0
     ema_shift: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
@@ -195,11 +197,11 @@ class QModel:
 
     def __post_init__(self) -> None:
         for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
-                     "load_coeff", "ema_shift", "ema_gain", "play_gain", "play_width"):
+                     "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
                      "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
-                     "n_ema", "n_play", "writer_version"):
+                     "mem_shift", "n_ema", "n_play", "writer_version"):
             setattr(self, name, int(getattr(self, name)))
 
     @property
@@ -464,14 +466,17 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
 
 
 def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
-    """The memory's integers: shifts and gains as they are, play half-widths in Q(z_frac)."""
+    """The memory's integers: the load signal's weights as multipliers and a shift (u keeps
+    the Q(z_frac) of z), shifts and gains as they are, play half-widths in Q(z_frac)."""
     def padded(values: Sequence[int], size: int) -> np.ndarray:
         out = np.zeros(size, dtype=np.int64)
         out[:len(values)] = values
         return out
 
     widths = [min(SAT16, int(round(w * 2.0**z_frac))) for w in memory.play_widths]
-    return {"n_ema": len(memory.ema_shifts), "n_play": len(memory.play_widths),
+    mem_shift, mem_mult = choose_shift(memory.weights) if any(memory.weights) else (1, np.zeros(4))
+    return {"mem_mult": mem_mult, "mem_shift": mem_shift,
+            "n_ema": len(memory.ema_shifts), "n_play": len(memory.play_widths),
             "ema_shift": padded(memory.ema_shifts, contract.MAX_EMA),
             "ema_gain": padded(memory.ema_gains, contract.MAX_EMA),
             "play_gain": padded(memory.play_gains, contract.MAX_PLAY),
@@ -514,7 +519,9 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     pre = model.preprocess
     taps, tap_q = quantize_taps(pre)
 
-    zmax = float(max(np.abs(calib.z).max(initial=0.0), np.abs(calib.f).max(initial=0.0), 1e-6))
+    u = calib.z[:, :fm.N_STRAIN] @ np.asarray(pre.memory.weights) if pre.memory.n_states else calib.f[:0]
+    zmax = float(max(np.abs(calib.z).max(initial=0.0), np.abs(calib.f).max(initial=0.0),
+                     np.abs(u).max(initial=0.0), 1e-6))
     z_frac = int(min(14, max(0, math.floor(math.log2(SAT16 / (Z_HEADROOM * zmax))))))
     zs = 2.0**-z_frac
 
@@ -647,15 +654,20 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
     d = np.abs(calib.z[:, :fm.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
     e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-    # A memory state is a weighted mean (or a clamp) of past inputs, so its error is at most
-    # the largest input error plus its own rounding (one LSB, the average's rounding residues
-    # summing to less than that); a feature is the difference of the two, times its gain; the
-    # float play width is rounded to Q(z_frac) too (half an LSB).
+    # The load signal u = z . weights carries the inputs' errors through the weights, the
+    # multipliers' residue and its rounding (half an LSB). A memory state is a weighted mean
+    # (or a clamp) of past values of u, so its error is at most the largest error of u plus its
+    # own rounding (one LSB, the average's rounding residues summing to less than that); a
+    # feature is the difference of the two, times its gain; the float play width is rounded to
+    # Q(z_frac) too (half an LSB).
     lsb = 2.0**-q.z_frac
-    worst = e_z.max(axis=0)
-    gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
-    e_mem = [np.broadcast_to((e_z + worst + 1.5 * lsb) * 2.0**g, e_z.shape) for g in gains]
-    e_z = np.concatenate([e_z, *e_mem], axis=1)
+    if q.n_ema + q.n_play:
+        wts = np.asarray(pre.memory.weights)
+        wq = q.mem_mult / 2.0**q.mem_shift
+        e_u = e_z @ np.abs(wts) + np.abs(calib.z[:, :fm.N_STRAIN]) @ np.abs(wq - wts) + 0.5 * lsb
+        gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
+        e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
+        e_z = np.concatenate([e_z, *e_mem], axis=1)
 
     def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
         """Per-sample bound of output ``row`` in output integer units."""

@@ -10,9 +10,10 @@ nowhere else:
   error code a violation gives, in blob order; the float model's (``FLOAT_PARAMS``);
 - the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``).
 
-``python -m fbgforce.contract --write`` regenerates the derived C text: the marked section of
-``runtime_c/include/fbgforce.h`` (declarations) and ``runtime_c/src/fbg_contract.c`` (the blob
-parameter decoder, the parameter checker and ``fbg_status_str``). The Python side (the blob
+``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
+``runtime_c/include/fbgforce.h`` (declarations), ``runtime_c/src/fbg_contract.c`` and ``.h``
+(the blob parameter decoder, the parameter checker and ``fbg_status_str``) and the parameter
+table of ``docs/model-format.md``. The Python side (the blob
 codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
 dtypes of :mod:`fbgforce.pybind`) reads the same tables at import. ``tests/test_contract.py``
 fails when a generated file is stale.
@@ -48,9 +49,9 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_TAPS": (64, "causal FIR length"),
     "MAX_WIDTH": (128, "widest layer (inputs or outputs) of any net"),
     "MAX_LAYERS": (8, "layers per net"),
-    "MAX_EMA": (MAX_EMA, "exponential-average memory states per strain channel"),
-    "MAX_PLAY": (MAX_PLAY, "play-operator memory states per strain channel"),
-    "MAX_INPUTS": (N_STRAIN * (1 + MAX_EMA + MAX_PLAY) + 2,
+    "MAX_EMA": (MAX_EMA, "exponential-average memory states"),
+    "MAX_PLAY": (MAX_PLAY, "play-operator memory states"),
+    "MAX_INPUTS": (N_STRAIN + MAX_EMA + MAX_PLAY + 2,
                    "widest net input: z, memory features, contact flag, force"),
     "N_NETS": (3, "contact, force, location (evaluation order)"),
     "WL_MIN_FM": (1_000_000_000, "1000 nm: a peak below this is lost (0, sentinels)"),
@@ -141,8 +142,8 @@ NET_NAMES = tuple(n.name for n in NETS)
 
 def n_features(n_ema: int, n_play: int) -> int:
     """Width of the feature vector the contact and force nets read: the standardised channels
-    and one feature per channel and memory state."""
-    return N_STRAIN * (1 + n_ema + n_play)
+    and one feature per memory state (the states follow one load signal, see PARAMS)."""
+    return N_STRAIN + n_ema + n_play
 
 
 def net_inputs(net: str, n_ema: int, n_play: int) -> int:
@@ -219,23 +220,27 @@ PARAMS: tuple[Field, ...] = (
           "channel; 0 disables the rule"),
     Field("tap_q", "uint8_t", 1, 1, 15, doc="FIR taps are int16 in Q(tap_q)"),
     Field("z_frac", "uint8_t", 1, 0, 14, doc="net inputs are int16 in Q(z_frac)"),
-    Field("z_shift", "uint8_t", 1, 1, 62),
-    Field("fq_shift", "uint8_t", 1, 1, 62),
-    Field("load_shift", "uint8_t", 1, 1, 62),
+    Field("z_shift", "uint8_t", 1, 1, 62, doc="shift of the standardisation (with z_mult)"),
+    Field("fq_shift", "uint8_t", 1, 1, 62, doc="shift of the location net's force input"),
+    Field("load_shift", "uint8_t", 1, 1, 62, doc="shift of the load proxy"),
     Field("n_layers", "uint8_t", 3, 1, LIMIT["MAX_LAYERS"], "ERR_SHAPE",
           doc="layers of the contact, force and location nets", c_member="nets[k].n_layers"),
+    Field("mem_mult", "int32_t", N_STRAIN, *_I32,
+          doc="memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a "
+              "load signal in Q(z_frac)"),
+    Field("mem_shift", "uint8_t", 1, 1, 62, doc="shift of the memory input"),
     Field("n_ema", "uint8_t", 1, 0, MAX_EMA, "ERR_SHAPE",
-          doc="exponential-average memory states per channel"),
+          doc="exponential-average memory states"),
     Field("n_play", "uint8_t", 1, 0, MAX_PLAY, "ERR_SHAPE",
-          doc="play-operator memory states per channel"),
+          doc="play-operator memory states"),
     Field("ema_shift", "uint8_t", MAX_EMA, 1, LIMIT["MAX_EMA_SHIFT"], active="n_ema",
-          doc="state += rshift_round((z << EMA_FRAC) - state, ema_shift[k])"),
+          doc="state += rshift_round((u << EMA_FRAC) - state, ema_shift[k])"),
     Field("ema_gain", "uint8_t", MAX_EMA, 0, LIMIT["MAX_MEM_GAIN"], active="n_ema",
-          doc="feature = sat16((z - rshift_round(state, EMA_FRAC)) << ema_gain[k])"),
+          doc="feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k])"),
     Field("play_gain", "uint8_t", MAX_PLAY, 0, LIMIT["MAX_MEM_GAIN"], active="n_play",
-          doc="feature = sat16((z - state) << play_gain[k])"),
+          doc="feature = sat16((u - state) << play_gain[k])"),
     Field("play_width", "int16_t", MAX_PLAY, 0, SAT16, active="n_play",
-          doc="state = clamp(state, z - play_width[k], z + play_width[k]), Q(z_frac)"),
+          doc="state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -251,9 +256,10 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("xy_offset_mm", "float", 2),
     Field("xy_scale", "float", 2),
     Field("overload_N", "float"),
+    Field("mem_weight", "float", N_STRAIN, doc="memory input u = sum_i mem_weight[i] * z_i"),
     Field("n_ema", "uint8_t", doc="as fbg_model"),
     Field("n_play", "uint8_t"),
-    Field("ema_shift", "uint8_t", MAX_EMA, doc="state += (z - state) / 2^ema_shift[k]"),
+    Field("ema_shift", "uint8_t", MAX_EMA, doc="state += (u - state) / 2^ema_shift[k]"),
     Field("ema_gain", "uint8_t", MAX_EMA),
     Field("play_gain", "uint8_t", MAX_PLAY),
     Field("play_width", "float", MAX_PLAY, doc="in standardised units"),
@@ -577,9 +583,39 @@ def contract_header_text() -> str:
         "#endif /* FBG_CONTRACT_H */", ""])
 
 
+DOC_PATH = ROOT / "docs" / "model-format.md"
+DOC_BEGIN = "<!-- BEGIN GENERATED params: `python -m fbgforce.contract --write`; do not edit -->"
+DOC_END = "<!-- END GENERATED params -->"
+
+
+def params_table() -> str:
+    """The parameter block as a Markdown table (docs/model-format.md)."""
+    rows = ["| offset | type | field | allowed | else |", "|---|---|---|---|---|"]
+    off = HEADER.size
+    for f in PARAMS:
+        size = CTYPES[f.ctype][2]
+        typ = f"{f.ctype}[{f.count}]" if f.count > 1 else f.ctype
+        allowed = "any" if f.lo is None else f"{f.lo} .. {f.hi}"
+        if f.active:
+            allowed += f" (entries from `{f.active}` on: 0)"
+        doc = f.doc.replace("|", "\\|")
+        rows.append(f"| {off} | {typ} | `{f.name}`: {doc} | {allowed} | "
+                    f"{'' if f.lo is None and not f.active else 'FBG_' + f.code} |")
+        off += size * f.count
+    rows.append(f"| {off} | | zero padding to {PARAMS_END} | 0 | FBG_ERR_RANGE |")
+    return "\n".join(rows)
+
+
+def render_doc(text: str) -> str:
+    start = text.index(DOC_BEGIN)
+    end = text.index(DOC_END) + len(DOC_END)
+    return text[:start] + DOC_BEGIN + "\n" + params_table() + "\n" + DOC_END + text[end:]
+
+
 def generated_files() -> dict[Path, str]:
     """Every generated file and its expected full text."""
     return {HEADER_PATH: render_header(HEADER_PATH.read_text()),
+            DOC_PATH: render_doc(DOC_PATH.read_text()),
             SOURCE_PATH: source_text(),
             SOURCE_PATH.with_suffix(".h"): contract_header_text()}
 

@@ -12,17 +12,20 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
     comp_i[n]   = shift_i[n] - temp_coeff_i * shift_T[n]              # temperature compensation
     filt_i[n]   = sum_k taps[k] * comp_i[n - k]                        # causal FIR, zero history
     z_i[n]      = (filt_i[n] - input_mean_i) / input_std_i            # standardisation
-    e_ki[n]     = e_ki[n-1] + (z_i[n] - e_ki[n-1]) / 2^ema_shift[k]   # memory: averages ...
-    p_ki[n]     = clamp(p_ki[n-1], z_i[n] - w_k, z_i[n] + w_k)        # ... and play operators
-    x           = [z, (z - e_k) * 2^ema_gain[k] for each k, (z - p_k) * 2^play_gain[k] for each k]
+    u[n]        = sum_i weight_i * z_i[n]                              # memory: a load signal,
+    e_k[n]      = e_k[n-1] + (u[n] - e_k[n-1]) / 2^ema_shift[k]       # its averages ...
+    p_k[n]      = clamp(p_k[n-1], u[n] - w_k, u[n] + w_k)             # ... and play operators
+    x           = [z, (u - e_k) * 2^ema_gain[k] for each k, (u - p_k) * 2^play_gain[k] for each k]
     logits      = contact_net(x)            -> contact = logits[1] > logits[0]
     f           = force_net(x)[0]           -> force_N = force_offset + force_scale * f
     (u, v)      = location_net([x, contact, f])
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
 
-The memory states take the recording's first sample as they are (every memory feature starts
-at 0), as the runtime's after a tare or reset. The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
+The memory states are primed by the recording's first sample as a pad at rest after a release
+leaves them (averages at u, play operators at u + width: the load last moved down), as the
+runtime's after a tare or reset, so the features read at the start what they read at every
+rest of the calibration data. The centred filter (``filter_kind == "centred"``) is the paper's offline smoothing, for
 reproducing its figures; it uses future samples and cannot be exported to the runtime.
 """
 from __future__ import annotations
@@ -47,33 +50,43 @@ NET_NAMES = contract.NET_NAMES
 
 @dataclass
 class Memory:
-    """Recursive per-channel states whose features give the nets a sense of history.
+    """Recursive states of one load signal whose features give the nets a sense of history.
+
+    The states follow ``u = z @ weights``, a fixed linear combination of the standardised
+    channels that tracks the load (the trainer fits it to the force): a pad's hysteresis lives
+    in its force path, which all four beams share, so one signal carries it, and its
+    direction of motion is the load's (a single channel may go either way at a release,
+    depending on where the press was).
 
     ``ema_shifts[k]``: an exponential average with factor 2^-shift (time constant about 2^shift
-    samples); its feature is ``(z - average) * 2^ema_gains[k]``, the recent change. Rate
+    samples); its feature is ``(u - average) * 2^ema_gains[k]``, the recent change. Rate
     dependent: what a viscoelastic pad's creep needs. ``play_widths[k]``: a play (backlash)
-    operator of half-width w in standardised units; its feature ``(z - play) * 2^play_gains[k]``
-    says which way the signal last moved and how far, whatever the speed: the building block of
-    Prandtl-Ishlinskii hysteresis models, what a pad's rate-independent (frictional)
-    hysteresis needs. Constant work and memory per sample (docs/trainer.md, "memory").
+    operator of half-width w; its feature ``(u - play) * 2^play_gains[k]`` says which way the
+    load last moved and how far, whatever the speed: the building block of Prandtl-Ishlinskii
+    hysteresis models, what a pad's rate-independent (frictional) hysteresis needs. Constant
+    work and memory per sample (docs/trainer.md, "memory").
     """
 
     ema_shifts: tuple[int, ...] = ()
     ema_gains: tuple[int, ...] = ()
     play_widths: tuple[float, ...] = ()
     play_gains: tuple[int, ...] = ()
+    weights: tuple[float, ...] = (0.25, 0.25, 0.25, 0.25)
 
     def __post_init__(self) -> None:
         self.ema_shifts = tuple(int(v) for v in self.ema_shifts)
         self.ema_gains = tuple(int(v) for v in self.ema_gains) or (0,) * len(self.ema_shifts)
         self.play_widths = tuple(float(v) for v in self.play_widths)
         self.play_gains = tuple(int(v) for v in self.play_gains) or (0,) * len(self.play_widths)
+        self.weights = tuple(float(v) for v in self.weights)
         lim = contract.LIMIT
         if len(self.ema_shifts) > contract.MAX_EMA or len(self.play_widths) > contract.MAX_PLAY:
             raise ValueError(f"at most {contract.MAX_EMA} averages and {contract.MAX_PLAY} play "
                              "operators")
         if len(self.ema_gains) != len(self.ema_shifts) or len(self.play_gains) != len(self.play_widths):
             raise ValueError("one gain per memory state")
+        if len(self.weights) != N_STRAIN or not all(np.isfinite(self.weights)):
+            raise ValueError(f"{N_STRAIN} finite memory weights")
         if not all(1 <= s <= lim["MAX_EMA_SHIFT"] for s in self.ema_shifts):
             raise ValueError(f"average shifts must be 1..{lim['MAX_EMA_SHIFT']}")
         if not all(0 <= g <= lim["MAX_MEM_GAIN"] for g in self.ema_gains + self.play_gains):
@@ -83,54 +96,52 @@ class Memory:
 
     @property
     def n_states(self) -> int:
-        """States per channel."""
+        """Memory states (averages and play operators)."""
         return len(self.ema_shifts) + len(self.play_widths)
 
     def to_json(self) -> dict[str, list]:
         return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
-                "play_widths": list(self.play_widths), "play_gains": list(self.play_gains)}
+                "play_widths": list(self.play_widths), "play_gains": list(self.play_gains),
+                "weights": list(self.weights)}
 
 
 def memory_features(memory: Memory, z: np.ndarray) -> np.ndarray:
     """The net inputs of one continuous recording: ``z`` (n, 4) and its memory features.
 
-    Returns (n, 4 * (1 + states)) in the order of :mod:`fbgforce.contract`: z, then the four
-    channels of each average, then of each play operator.
+    Returns (n, 4 + states) in the order of :mod:`fbgforce.contract`: z, then one feature per
+    average, then one per play operator, all of the load signal ``u = z @ weights``.
     """
-    z = np.asarray(z, dtype=np.float64)
-    if memory.n_states == 0 or z.shape[0] == 0:
-        return z.reshape(z.shape[0], -1).copy() if memory.n_states == 0 else np.zeros(
-            (0, N_STRAIN * (1 + memory.n_states)))
+    z = np.asarray(z, dtype=np.float64).reshape(-1, N_STRAIN)
     n = z.shape[0]
+    if memory.n_states == 0 or n == 0:
+        return np.zeros((n, N_STRAIN + memory.n_states)) if n == 0 else z.copy()
+    u = z @ np.asarray(memory.weights)
     feats = [z]
     for shift, gain in zip(memory.ema_shifts, memory.ema_gains):
         alpha = 2.0 ** -shift
-        # e[n] = (1 - a) e[n-1] + a z[n], e[0] = z[0]: a first-order IIR. A blocked recursion
-        # keeps it exact to rounding and fast in numpy: within a block the closed form uses
-        # powers of (1 - a) that cannot underflow over 256 steps for the shifts allowed here.
-        e = np.empty_like(z)
-        prev = z[0].copy()
+        # e[n] = (1 - a) e[n-1] + a u[n], primed at u[0]: a first-order IIR. A blocked closed
+        # form keeps it exact to rounding and fast in numpy: within a block of 256 the powers
+        # of (1 - a) cannot underflow for the shifts allowed here.
+        e = np.empty_like(u)
+        prev = u[0]
         block = 256
-        k = np.arange(1, block + 1)[:, None]
-        decay = (1.0 - alpha) ** k
         for start in range(0, n, block):
-            seg = z[start:start + block]
+            seg = u[start:start + block]
             m = seg.shape[0]
-            # e[start + j] = (1-a)^(j+1) prev + a * sum_{i<=j} (1-a)^(j-i) seg[i]
-            w = (1.0 - alpha) ** (np.arange(m)[:, None] - np.arange(m)[None, :])
-            w = np.tril(w) * alpha
-            out = decay[:m] * prev + w @ seg
+            k = np.arange(m)
+            w = np.tril((1.0 - alpha) ** (k[:, None] - k[None, :])) * alpha
+            out = (1.0 - alpha) ** (k + 1) * prev + w @ seg
             e[start:start + m] = out
             prev = out[-1]
-        feats.append((z - e) * 2.0 ** gain)
+        feats.append(((u - e) * 2.0 ** gain)[:, None])
     for width, gain in zip(memory.play_widths, memory.play_gains):
-        p = np.empty_like(z)
-        state = z[0].copy()
-        lo, hi = z - width, z + width
+        p = np.empty_like(u)
+        state = u[0] + width          # primed as at rest after a release (the load came down)
+        lo, hi = (u - width).tolist(), (u + width).tolist()
         for i in range(n):
-            state = np.minimum(np.maximum(state, lo[i]), hi[i])
+            state = min(max(state, lo[i]), hi[i])
             p[i] = state
-        feats.append((z - p) * 2.0 ** gain)
+        feats.append(((u - p) * 2.0 ** gain)[:, None])
     return np.concatenate(feats, axis=1)
 
 

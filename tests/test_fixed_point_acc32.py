@@ -131,7 +131,8 @@ def test_relu_input_rule_applies_only_after_a_nets_first_layer(small_exported_di
     monkeypatch.setattr(qz.QModel, "check", lambda self: None)  # write what the exporter never would
     first = q.nets[0][0]
     first.w = first.w.copy()
-    first.w[0] = row
+    first.w[0] = 0
+    first.w[0, :4] = row
     first.bias = first.bias.copy()
     first.bias[0] = 0
     first.acc32 = True

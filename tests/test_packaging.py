@@ -48,9 +48,12 @@ def test_c_extension_loads_and_matches_header_version() -> None:
     from fbgforce import _runtime
 
     header = (REPO / "runtime_c" / "include" / "fbgforce.h").read_text()
-    major = int(header.split("#define FBG_VERSION_MAJOR")[1].split()[0])
-    minor = int(header.split("#define FBG_VERSION_MINOR")[1].split()[0])
-    assert _runtime.lib.fbg_version() == (major << 16) | minor
+    major, minor, patch = (int(header.split(f"#define FBG_VERSION_{part}")[1].split()[0])
+                           for part in ("MAJOR", "MINOR", "PATCH"))
+    assert _runtime.lib.fbg_version() == (major << 16) | (minor << 8) | patch
+    import fbgforce
+
+    assert fbgforce.__version__ == f"{major}.{minor}.{patch}"
 
 
 def test_console_command_lists_every_part() -> None:

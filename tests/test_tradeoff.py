@@ -92,10 +92,13 @@ def test_pareto_mask() -> None:
 def test_grid_shapes() -> None:
     s = grid.Settings(sigmas=(2.0, 5.0), default_sigma=5.0)
     star = [v.tag for v in grid.variants(s)]
+    mems = [f"paper-causal-s5-mem-{m}" for m in ("none", "ema_5_play_0.1",
+                                                  "ema_3_6_9_12_play_0.03_0.1_0.3_1")]
     assert star == ["paper-nofilter", "paper-causal-s2", "paper-causal-s5", "half-causal-s5",
-                    "quarter-causal-s5", "paper-centred-s5"]
+                    "quarter-causal-s5", "paper-centred-s5", *mems]
     s.grid = "full"
-    assert len(grid.variants(s)) == 4 * 3
+    # filters x widths, plus every other memory on the 2 x 3 causal variants
+    assert len(grid.variants(s)) == 4 * 3 + 3 * 2 * 3
     sizes = grid.scaled_sizes("quarter")
     assert sizes["location"] == [18, 12, 10] and sizes["contact"] == [18, 12, 5]
 

@@ -32,6 +32,10 @@ def register(subparsers: Any) -> None:
                    help="wall-time cap per net in seconds (keeps the best weights so far)")
     p.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
                    help="causal Gaussian sigmas in samples (default 2 5 10; quick: 5)")
+    p.add_argument("--memories", nargs="+", default=None, metavar="SPEC",
+                   help="the memory axis, each as `fbgforce train --memory` takes it (default: "
+                        "none, ema:5+play:0.1, both, ema:3,6,9,12+play:0.03,0.1,0.3,1; quick: "
+                        "none, both)")
     p.add_argument("--grid", choices=("star", "full"), default="star",
                    help="star: filters at paper width + widths at the shipped filter; full: product")
     p.add_argument("--engines", nargs="+", default=None, metavar="NAME",
@@ -65,6 +69,12 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
         if s.default_sigma not in s.sigmas:
             s.default_sigma = s.sigmas[0]
     s.grid = args.grid
+    if args.memories:
+        from fbgforce.trainer.train import parse_memory
+
+        for spec in args.memories:
+            parse_memory(spec)                 # refuse a bad spec before any training
+        s.memories = tuple(args.memories)
     if args.engines:
         known = [e.name for e in ENGINE_SPECS]
         bad = [e for e in args.engines if e not in known]

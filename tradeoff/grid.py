@@ -4,6 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
+#: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both") at a
+#: smaller and a larger size (states per channel: 0, 2, 5, 8).
+MEMORIES = ("none", "ema:5+play:0.1", "both", "ema:3,6,9,12+play:0.03,0.1,0.3,1")
+DEFAULT_MEMORY = "both"
 
 
 @dataclass(frozen=True)
@@ -13,11 +17,14 @@ class Variant:
     filter: str
     sigma: float
     width: str
+    memory: str = DEFAULT_MEMORY
 
     @property
     def tag(self) -> str:
         f = "nofilter" if self.filter == "none" else f"{self.filter}-s{self.sigma:g}"
-        return f"{self.width}-{f}"
+        mem = "" if self.memory == DEFAULT_MEMORY else "-mem-" + "".join(
+            ch if ch.isalnum() or ch == "." else "_" for ch in self.memory)
+        return f"{self.width}-{f}{mem}"
 
     @property
     def causal(self) -> bool:
@@ -56,6 +63,7 @@ class Settings:
     sigmas: tuple[float, ...] = (2.0, 5.0, 10.0)
     default_sigma: float = 5.0
     widths: tuple[str, ...] = ("paper", "half", "quarter")
+    memories: tuple[str, ...] = MEMORIES
     grid: str = "star"
     centred: bool = True
     qat_epochs: int = 3
@@ -73,6 +81,7 @@ class Settings:
 def quick_settings(seed: int = 0) -> Settings:
     """Small everything: for CI (< 60 s on a small scene)."""
     return Settings(seed=seed, epochs=4, time_budget_s=5.0, sigmas=(5.0,), widths=("paper", "quarter"),
+                    memories=("none", DEFAULT_MEMORY),
                     qat_epochs=1, single_calls=300, batch_size=500, batch_reps=15, rounds=3,
                     target=False, int8_all_variants=False)
 
@@ -88,6 +97,15 @@ def variants(s: Settings) -> list[Variant]:
             star_ok = w == "paper" or (kind == "causal" and sg == s.default_sigma)
             if s.grid == "full" or star_ok:
                 out.append(Variant(kind, sg, w))
+    # The memory axis: every memory on the shipped configuration (paper width, default causal
+    # filter); in the full grid on every causal variant.
+    for mem in s.memories:
+        if mem == DEFAULT_MEMORY:
+            continue
+        for v in list(out):
+            if v.memory == DEFAULT_MEMORY and v.filter == "causal" and (
+                    s.grid == "full" or (v.width == "paper" and v.sigma == s.default_sigma)):
+                out.append(Variant(v.filter, v.sigma, v.width, mem))
     return out
 
 

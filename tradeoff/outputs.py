@@ -85,6 +85,15 @@ def summary_paragraph(res: dict[str, Any]) -> str:
         desc = "; ".join(f"{r['width']} ({r['macs_nets']} MACs): index {r['error_index']:.2f}, "
                          f"{_ns(r.get('host_batch_ns'))}" for r in widths)
         parts.append(f"Network width: {desc}.")
+    mems = sorted((r for r in rows if r["engine"] == ref["engine"] and r["width"] == ref["width"]
+                   and r["filter"] == ref["filter"] and r["sigma"] == ref["sigma"]
+                   and r.get("status") == "ok"), key=lambda r: r.get("memory_states", 0))
+    if len(mems) > 1:
+        desc = "; ".join(
+            f"{r['memory']} ({r['memory_states']} states per channel, {r['memory_state_bytes']} "
+            f"bytes of state, {r['macs_nets']} MACs): {acc(r)}, index {r['error_index']:.3f}, "
+            f"{_ns(r.get('host_batch_ns'))}" for r in mems)
+        parts.append(f"Memory (what the pad's hysteresis costs a memoryless net): {desc}.")
     paper_cfg = next((r for r in rows if not r["causal"] and r["width"] == "paper"
                       and r["engine"] == "numpy-f64"), None)
     if paper_cfg is not None:
@@ -139,7 +148,8 @@ def summary_paragraph(res: dict[str, Any]) -> str:
 # Outputs
 # --------------------------------------------------------------------------------------------
 
-CSV_COLUMNS = ("variant", "engine", "width", "filter", "sigma", "causal", "weight_bits",
+CSV_COLUMNS = ("variant", "engine", "width", "filter", "sigma", "memory", "memory_states",
+               "memory_state_bytes", "causal", "weight_bits",
                "act_bits", "qat", "status", *METRIC_KEYS, "n_samples", "error_index",
                "matches_reference", "is_reference", "host_single_ns", "host_single_p99_ns",
                "host_batch_ns", "host_batch_min_ns", "m4_instructions_per_step",
@@ -149,8 +159,8 @@ CSV_COLUMNS = ("variant", "engine", "width", "filter", "sigma", "causal", "weigh
 
 def markdown_table(res: dict[str, Any]) -> str:
     """The grid as a Markdown table, best error index first within each variant group."""
-    head = ("| variant | engine | contact % | force N | x mm | y mm | error index | single | "
-            "batch | M4 instr. | delay ms | MACs | bytes | Pareto |")
+    head = ("| variant | engine | memory | contact % | force N | x mm | y mm | error index | single | "
+            "batch | M4 instr. | delay ms | MACs | state B | bytes | Pareto |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in res["rows"]:
         if r.get("status") != "ok":
@@ -166,11 +176,12 @@ def markdown_table(res: dict[str, Any]) -> str:
             mark.append("≈ref")
         lines.append("| " + " | ".join([
             r["variant"] + ("" if r["causal"] else " (offline)"), r["engine"],
-            _fmt(100 * r["contact_accuracy"], ".2f"), _fmt(r["rmse_force_N"], ".3f"),
+            r.get("memory", "none"), _fmt(100 * r["contact_accuracy"], ".2f"), _fmt(r["rmse_force_N"], ".3f"),
             _fmt(r["rmse_x_mm"], ".3f"), _fmt(r["rmse_y_mm"], ".3f"), _fmt(r["error_index"], ".3f"),
             _ns(r.get("host_single_ns")), _ns(r.get("host_batch_ns")),
             _fmt(r.get("m4_instructions_per_step")), _fmt(r["filter_delay_ms"], ".1f"),
-            str(r["macs"]), _fmt(r.get("model_bytes")), " ".join(mark)]) + " |")
+            str(r["macs"]), _fmt(r.get("memory_state_bytes")), _fmt(r.get("model_bytes")),
+            " ".join(mark)]) + " |")
     missing = [r for r in res["rows"] if r.get("status") != "ok"]
     if missing:
         seen = {}

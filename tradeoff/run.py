@@ -106,7 +106,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
                                                 sigma=v.sigma, sources=sources)
         prep = prepared_cache[key_pf]
         test_rows = prep.rows("test")
-        key = {"variant": v.tag, "filter": v.filter, "sigma": v.sigma,
+        key = {"variant": v.tag, "filter": v.filter, "sigma": v.sigma, "memory": v.memory,
                "sizes": scaled_sizes(v.width), "seed": s.seed, "epochs": s.epochs,
                "time_budget_s": s.time_budget_s, "data": digest}
         model_dir = out / "models" / v.tag
@@ -116,7 +116,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             t0 = time.perf_counter()
             model = tr.train(sources, epochs=s.epochs, seed=s.seed, filter=v.filter,
                              sigma=v.sigma, sizes={k: h for k, h in key["sizes"].items()},
-                             prepared=prep, time_budget_s=s.time_budget_s)
+                             prepared=prep, time_budget_s=s.time_budget_s, memory=v.memory)
             train_seconds[v.tag] = time.perf_counter() - t0
             artifacts.save_with_key(model, model_dir, key)
         else:
@@ -152,6 +152,9 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             "sigma": v.sigma if v.filter != "none" else None, "causal": v.causal,
             "filter_taps": 0 if v.filter == "none" else int(model.preprocess.taps.size),
             "filter_delay_ms": _filter_delay_ms(model, rate_hz),
+            "memory": v.memory, "memory_states": model.preprocess.memory.n_states,
+            # int32 states per channel in fbg_state (averages and play operators alike)
+            "memory_state_bytes": 4 * 4 * model.preprocess.memory.n_states,
             "macs_nets": model.macs, "macs": model.macs + _filter_macs(model),
             "sizes": {k: net.sizes for k, net in model.nets.items()},
         }
@@ -240,7 +243,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
 
 def _qat_model(model: fm.HierarchicalModel, prep: Any, s: Settings, qat: Any
                ) -> fm.HierarchicalModel:
-    z = (prep.feats - model.preprocess.input_mean) / model.preprocess.input_std
+    z = prep.inputs(model.preprocess)
     trn, val = prep.rows("train"), prep.rows("val")
     truth = (prep.contact, prep.force_N, prep.x_mm, prep.y_mm)
     tuned, _ = qat.finetune(model, z[trn], *(t[trn] for t in truth),

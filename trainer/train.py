@@ -196,31 +196,49 @@ def parse_memory(text: str) -> fm.Memory:
                          column="--memory") from exc
 
 
-#: Named memories (docs/trainer.md, "memory"): averages of about 8, 64 and 512 ms at 1 kHz;
-#: play operators of half-width 0.03, 0.1 and 0.3 standard deviations of the input.
+#: Named memories (docs/trainer.md, "memory"): averages of about 16 and 128 ms at 1 kHz;
+#: play operators of half-width 0.05 and 0.25 standard deviations of the load signal (about
+#: 1 % and 5 % of the force range of a calibration run). Even counts keep the first layers'
+#: widths even, which the Cortex-M4 kernels take in pairs.
 MEMORY_PRESETS: dict[str, fm.Memory] = {
     "none": fm.Memory(),
-    "ema": fm.Memory(ema_shifts=(3, 6, 9)),
-    "play": fm.Memory(play_widths=(0.03, 0.1, 0.3)),
-    "both": fm.Memory(ema_shifts=(3, 6), play_widths=(0.03, 0.1, 0.3)),
+    "ema": fm.Memory(ema_shifts=(4, 7)),
+    "play": fm.Memory(play_widths=(0.05, 0.25)),
+    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25)),
 }
 DEFAULT_MEMORY = "both"
 
 
-def fit_memory_gains(memory: fm.Memory, z: np.ndarray, rows: np.ndarray) -> fm.Memory:
-    """The memory with power-of-two gains that bring each feature's spread on ``rows`` near
-    that of the standardised inputs (std 1): small recent changes would otherwise reach the
-    nets as near-constant inputs. ``z`` holds the inputs computed with all gains 0."""
+def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np.ndarray
+               ) -> fm.Memory:
+    """The memory's load signal and gains, fitted on the training ``rows``.
+
+    Weights: least squares of the load-cell force (0 at rest) on the standardised channels,
+    scaled so that ``u`` has unit spread: u tracks the load, and the play widths are fractions
+    of its spread. Gains: the power of two that brings each feature's spread near 0.5, like
+    the standardised inputs' (small recent changes would otherwise reach the nets as nearly
+    constant inputs)."""
     if memory.n_states == 0:
         return memory
+    plain = copy.deepcopy(pre)
+    plain.memory = fm.Memory()
+    z = data.inputs(plain)[rows]
+    force = np.where(data.contact[rows], np.nan_to_num(data.force_N[rows]), 0.0)
+    w, *_ = np.linalg.lstsq(np.column_stack([z, np.ones(len(z))]), force, rcond=None)
+    u = z @ w[:fm.N_STRAIN]
+    weights = w[:fm.N_STRAIN] / max(float(np.std(u)), 1e-12)
+    trial = fm.Memory(memory.ema_shifts, (), memory.play_widths, (), tuple(weights))
+    pre_trial = copy.deepcopy(pre)
+    pre_trial.memory = trial
+    x = data.inputs(pre_trial)[rows]
     gains = []
-    for k in range(memory.n_states):
-        sd = float(np.std(z[rows, fm.N_STRAIN * (1 + k):fm.N_STRAIN * (2 + k)]))
+    for k in range(trial.n_states):
+        sd = float(np.std(x[:, fm.N_STRAIN + k]))
         g = int(np.floor(np.log2(0.5 / sd))) if sd > 0 else 0
         gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
     n_ema = len(memory.ema_shifts)
-    return fm.Memory(ema_shifts=memory.ema_shifts, ema_gains=tuple(gains[:n_ema]),
-                     play_widths=memory.play_widths, play_gains=tuple(gains[n_ema:]))
+    return fm.Memory(memory.ema_shifts, tuple(gains[:n_ema]), memory.play_widths,
+                     tuple(gains[n_ema:]), tuple(weights))
 
 
 def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
@@ -339,8 +357,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     if init_model is not None:
         pre.memory = init_model.preprocess.memory
     else:
-        pre.memory = fm.Memory(ema_shifts=memory.ema_shifts, play_widths=memory.play_widths)
-        pre.memory = fit_memory_gains(pre.memory, data.inputs(pre), tr)
+        pre.memory = fit_memory(memory, pre, data, tr)
     z = data.inputs(pre)
     common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
                   decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s)

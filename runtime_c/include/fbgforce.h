@@ -49,9 +49,9 @@ extern "C" {
 #define FBG_MAX_TAPS 64  /* causal FIR length */
 #define FBG_MAX_WIDTH 128  /* widest layer (inputs or outputs) of any net */
 #define FBG_MAX_LAYERS 8  /* layers per net */
-#define FBG_MAX_EMA 4  /* exponential-average memory states per strain channel */
-#define FBG_MAX_PLAY 4  /* play-operator memory states per strain channel */
-#define FBG_MAX_INPUTS 38  /* widest net input: z, memory features, contact flag, force */
+#define FBG_MAX_EMA 4  /* exponential-average memory states */
+#define FBG_MAX_PLAY 4  /* play-operator memory states */
+#define FBG_MAX_INPUTS 14  /* widest net input: z, memory features, contact flag, force */
 #define FBG_N_NETS 3  /* contact, force, location (evaluation order) */
 #define FBG_WL_MIN_FM 1000000000  /* 1000 nm: a peak below this is lost (0, sentinels) */
 #define FBG_WL_MAX_FM 2000000000  /* 2000 nm: a peak above this is lost */
@@ -151,20 +151,21 @@ typedef struct {
     int32_t overload_mN;  /* OVERLOAD when contact and force_mN > this */
     int32_t load_coeff[4];  /* input-side overload: load_mN = rshift_round(sum_i load_coeff[i] * filt_i, load_shift) [-268435455, 268435455] */
     int32_t load_max_mN;  /* OVERLOAD when load_mN > load_max_mN */
+    int32_t mem_mult[4];  /* memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a load signal in Q(z_frac) */
     uint16_t n_taps;  /* causal FIR length [1, 64] */
     uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
-    int16_t play_width[4];  /* state = clamp(state, z - play_width[k], z + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
+    int16_t play_width[4];  /* state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
-    uint8_t z_shift;  /* [1, 62] */
-    uint8_t fq_shift;  /* [1, 62] */
-    uint8_t load_shift;  /* [1, 62] */
-    uint8_t n_ema;  /* exponential-average memory states per channel [0, 4] */
-    uint8_t n_play;  /* play-operator memory states per channel [0, 4] */
-    uint8_t ema_shift[4];  /* state += rshift_round((z << EMA_FRAC) - state, ema_shift[k]) [1, 15] for k < n_ema, else 0 */
-    uint8_t ema_gain[4];  /* feature = sat16((z - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
-    uint8_t play_gain[4];  /* feature = sat16((z - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
-    uint8_t pad_[1];  /* explicit padding, keep 0 */
+    uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
+    uint8_t fq_shift;  /* shift of the location net's force input [1, 62] */
+    uint8_t load_shift;  /* shift of the load proxy [1, 62] */
+    uint8_t mem_shift;  /* shift of the memory input [1, 62] */
+    uint8_t n_ema;  /* exponential-average memory states [0, 4] */
+    uint8_t n_play;  /* play-operator memory states [0, 4] */
+    uint8_t ema_shift[4];  /* state += rshift_round((u << EMA_FRAC) - state, ema_shift[k]) [1, 15] for k < n_ema, else 0 */
+    uint8_t ema_gain[4];  /* feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
+    uint8_t play_gain[4];  /* feature = sat16((u - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
 } fbg_model;
@@ -192,10 +193,10 @@ typedef struct {
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
     int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
-    /* Memory states per channel (docs/fixed-point.md, "memory"): exponential averages in
-     * Q(z_frac + FBG_EMA_FRAC), play operators in Q(z_frac). */
-    int32_t ema[FBG_N_STRAIN][FBG_MAX_EMA];
-    int32_t play[FBG_N_STRAIN][FBG_MAX_PLAY];
+    /* Memory states of the load signal u (docs/fixed-point.md, "memory"): exponential
+     * averages in Q(z_frac + FBG_EMA_FRAC), play operators in Q(z_frac). */
+    int32_t ema[FBG_MAX_EMA];
+    int32_t play[FBG_MAX_PLAY];
     int64_t tare_sum[FBG_N_CHANNELS];
     /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
      * the activations with LDRD (no copy to an aligned buffer per layer). */
@@ -314,12 +315,13 @@ typedef struct {
     float xy_offset_mm[2];
     float xy_scale[2];
     float overload_N;
+    float mem_weight[4];  /* memory input u = sum_i mem_weight[i] * z_i */
     float play_width[4];  /* in standardised units */
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
     uint8_t n_ema;  /* as fbg_model */
     uint8_t n_play;
-    uint8_t ema_shift[4];  /* state += (z - state) / 2^ema_shift[k] */
+    uint8_t ema_shift[4];  /* state += (u - state) / 2^ema_shift[k] */
     uint8_t ema_gain[4];
     uint8_t play_gain[4];
     uint8_t pad_[2];  /* explicit padding, keep 0 */
@@ -347,8 +349,8 @@ typedef struct {
     int32_t prev_fm[FBG_N_CHANNELS];
     float hist[FBG_MAX_TAPS][FBG_N_STRAIN];
     float last_comp[FBG_N_STRAIN];
-    float ema[FBG_N_STRAIN][FBG_MAX_EMA];
-    float play[FBG_N_STRAIN][FBG_MAX_PLAY];
+    float ema[FBG_MAX_EMA];
+    float play[FBG_MAX_PLAY];
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
     uint16_t pos;

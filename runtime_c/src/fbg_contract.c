@@ -65,22 +65,25 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->load_shift = rd_u8(p + 124);
     for (k = 0; k < 3u; ++k)
         m->nets[k].n_layers = rd_u8(p + 125 + 1u * k);
-    m->n_ema = rd_u8(p + 128);
-    m->n_play = rd_u8(p + 129);
     for (k = 0; k < 4u; ++k)
-        m->ema_shift[k] = rd_u8(p + 130 + 1u * k);
+        m->mem_mult[k] = rd_i32(p + 128 + 4u * k);
+    m->mem_shift = rd_u8(p + 144);
+    m->n_ema = rd_u8(p + 145);
+    m->n_play = rd_u8(p + 146);
     for (k = 0; k < 4u; ++k)
-        m->ema_gain[k] = rd_u8(p + 134 + 1u * k);
+        m->ema_shift[k] = rd_u8(p + 147 + 1u * k);
     for (k = 0; k < 4u; ++k)
-        m->play_gain[k] = rd_u8(p + 138 + 1u * k);
+        m->ema_gain[k] = rd_u8(p + 151 + 1u * k);
     for (k = 0; k < 4u; ++k)
-        m->play_width[k] = rd_i16(p + 142 + 2u * k);
+        m->play_gain[k] = rd_u8(p + 155 + 1u * k);
+    for (k = 0; k < 4u; ++k)
+        m->play_width[k] = rd_i16(p + 159 + 2u * k);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 150u; k < 152u; ++k)
+    for (k = 167u; k < 168u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -136,6 +139,12 @@ fbg_status fbg_params_check(const fbg_model *m)
         if (v < 1 || v > 8)
             return FBG_ERR_SHAPE;
     }
+    for (k = 0; k < 4u; ++k) {
+        int32_t v = m->mem_mult[k];
+        if (v < -2147483647)
+            return FBG_ERR_RANGE;
+    }
+    { uint8_t v = m->mem_shift; if (v < 1 || v > 62) return FBG_ERR_RANGE; }
     { uint8_t v = m->n_ema; if (v > 4) return FBG_ERR_SHAPE; }
     { uint8_t v = m->n_play; if (v > 4) return FBG_ERR_SHAPE; }
     for (k = 0; k < 4u; ++k) {

@@ -189,42 +189,45 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
-/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"): for each
- * exponential average k the four channels, then for each play operator k. The states take
- * the first sample after init/tare/reset as they are (every feature starts at 0). A faulty
- * sample never gets here (fbg_step returns before), so a fault freezes the states. */
+/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"). The states
+ * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+ * its force path, which all four beams share): the exponential averages' features, then the
+ * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them: the averages at u, the play operators at u + width (the load
+ * last went down), so the features read what they read at every rest of the calibration
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
+    int64_t acc = 0;
+    int32_t u;
+    if (m->n_ema == 0u && m->n_play == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
+    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
     if (!s->mem_primed) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            for (k = 0; k < m->n_ema; ++k)
-                s->ema[c][k] = (int32_t)in[c] * ((int32_t)1 << FBG_EMA_FRAC);
-            for (k = 0; k < m->n_play; ++k)
-                s->play[c][k] = in[c];
-        }
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
         s->mem_primed = 1u;
     }
-    for (k = 0; k < m->n_ema; ++k) {
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target
-             * by at most the whole distance, so it stays between old state and target. */
-            int64_t target = (int64_t)in[c] * ((int64_t)1 << FBG_EMA_FRAC);
-            int32_t e = (int32_t)(s->ema[c][k] + fbg_rshift_round(target - s->ema[c][k], m->ema_shift[k]));
-            int64_t d = (int64_t)in[c] - fbg_rshift_round(e, FBG_EMA_FRAC);
-            s->ema[c][k] = e;
-            in[j] = fbg_sat16(d * ((int64_t)1 << m->ema_gain[k]), sat);
-        }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
+         * at most the whole distance, so it stays between its old value and the target. */
+        int64_t target = (int64_t)u * ((int64_t)1 << FBG_EMA_FRAC);
+        int32_t e = (int32_t)(s->ema[k] + fbg_rshift_round(target - s->ema[k], m->ema_shift[k]));
+        s->ema[k] = e;
+        in[j] = fbg_sat16(((int64_t)u - fbg_rshift_round(e, FBG_EMA_FRAC)) * ((int64_t)1 << m->ema_gain[k]), sat);
     }
-    for (k = 0; k < m->n_play; ++k) {
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            /* The state stays within play_width of the current z: |state| < 2^16. */
-            int32_t lo = (int32_t)in[c] - m->play_width[k], hi = (int32_t)in[c] + m->play_width[k];
-            int32_t p = s->play[c][k];
-            p = p < lo ? lo : (p > hi ? hi : p);
-            s->play[c][k] = p;
-            in[j] = fbg_sat16(((int64_t)in[c] - p) * ((int64_t)1 << m->play_gain[k]), sat);
-        }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        /* The state stays within play_width of the current u: |state| < 2^16. */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        in[j] = fbg_sat16(((int64_t)u - p) * ((int64_t)1 << m->play_gain[k]), sat);
     }
 }
 
@@ -304,7 +307,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, &sat);
-    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);

@@ -79,7 +79,7 @@ fbg_status fbg_model_check(const fbg_model *model)
         return st;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);

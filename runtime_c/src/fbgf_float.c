@@ -63,7 +63,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_NULL;
     if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
         return FBG_ERR_SHAPE;
-    features = FBG_N_STRAIN * (1u + model->n_ema + model->n_play);
+    features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
@@ -75,6 +75,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
             model->play_gain[c] > FBG_MAX_MEM_GAIN)
             return FBG_ERR_RANGE;
+    if (!all_finite(model->mem_weight, FBG_N_STRAIN))
+        return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -116,35 +118,33 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 /* The shared front end's view of a float state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
-/* Memory features after z, as fbg_fixed.c's memory_features in float (the states are primed
- * with the first sample after a reset and frozen during a fault). */
+/* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
+ * load signal u, are primed by the first sample after a reset as at rest after a release,
+ * and are frozen during a fault). */
 static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
 {
     unsigned c, k, j = FBG_N_STRAIN;
+    float u = 0.0f;
+    if (m->n_ema == 0u && m->n_play == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        u += m->mem_weight[c] * in[c];
     if (!s->mem_primed) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            for (k = 0; k < m->n_ema; ++k)
-                s->ema[c][k] = in[c];
-            for (k = 0; k < m->n_play; ++k)
-                s->play[c][k] = in[c];
-        }
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u;
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
         s->mem_primed = 1u;
     }
-    for (k = 0; k < m->n_ema; ++k) {
-        float alpha = 1.0f / (float)(1u << m->ema_shift[k]), gain = (float)(1u << m->ema_gain[k]);
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            s->ema[c][k] += alpha * (in[c] - s->ema[c][k]);
-            in[j] = (in[c] - s->ema[c][k]) * gain;
-        }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
+        in[j] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
     }
-    for (k = 0; k < m->n_play; ++k) {
-        float w = m->play_width[k], gain = (float)(1u << m->play_gain[k]);
-        for (c = 0; c < FBG_N_STRAIN; ++c, ++j) {
-            float p = s->play[c][k];
-            p = p < in[c] - w ? in[c] - w : (p > in[c] + w ? in[c] + w : p);
-            s->play[c][k] = p;
-            in[j] = (in[c] - p) * gain;
-        }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        float w = m->play_width[k], p = s->play[k];
+        p = p < u - w ? u - w : (p > u + w ? u + w : p);
+        s->play[k] = p;
+        in[j] = (u - p) * (float)(1u << m->play_gain[k]);
     }
 }
 
@@ -256,7 +256,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in);
-    features = FBG_N_STRAIN * (1u + m->n_ema + m->n_play);
+    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];

@@ -1,0 +1,129 @@
+"""Imports run one way: no cycles between fbgforce modules, and each layer imports only the
+layers below it (units and the contract at the bottom, the runtime binding above them, the
+exporter and trainer above that, commands and tools on top; benchmarks import no tests)."""
+from __future__ import annotations
+
+import ast
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE_DIR = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg, directory in PACKAGE_DIR.items():
+        base = ROOT / directory
+        for path in base.rglob("*.py"):
+            rel = path.relative_to(base).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            name = ".".join([pkg, *parts])
+            if name in out or any(part.startswith(".") for part in rel.parts):
+                continue
+            out[name] = path
+    return out
+
+
+def _module_level_imports(path: Path, name: str, known: set[str]) -> set[str]:
+    """fbgforce modules imported at module level (not inside functions: those are allowed
+    for optional dependencies and start-up time, and do not make a load-time cycle)."""
+    tree = ast.parse(path.read_text())
+    found: set[str] = set()
+
+    def visit(nodes: list[ast.stmt]) -> None:
+        for node in nodes:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            if isinstance(node, ast.Import):
+                found.update(a.name for a in node.names if a.name.startswith("fbgforce"))
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
+                    and node.module.startswith("fbgforce"):
+                found.add(node.module)
+                found.update(f"{node.module}.{a.name}" for a in node.names
+                             if f"{node.module}.{a.name}" in known)
+            for field in ("body", "orelse", "finalbody", "handlers"):
+                inner = getattr(node, field, None)
+                if isinstance(inner, list) and not isinstance(node, ast.ClassDef):
+                    visit([n for n in inner if isinstance(n, ast.stmt)])
+                elif isinstance(node, ast.ClassDef) and field == "body":
+                    visit(node.body)
+
+    visit(tree.body)
+    return {m for m in found if m in known and m != name}
+
+
+def _graph() -> dict[str, set[str]]:
+    mods = _modules()
+    known = set(mods)
+    return {name: _module_level_imports(path, name, known) for name, path in mods.items()}
+
+
+def test_no_import_cycles():
+    graph = _graph()
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def dfs(node: str) -> None:
+        state[node] = 1
+        stack.append(node)
+        for dep in sorted(graph.get(node, ())):
+            if dep.startswith(node + "."):
+                continue          # a package importing its own submodule
+            if state.get(dep) == 1:
+                cycle = stack[stack.index(dep):] + [dep]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if dep not in state:
+                dfs(dep)
+        stack.pop()
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            dfs(node)
+
+
+# Layer of each module (prefix match, longest first); a module may import its own layer and
+# the layers below it.
+LAYERS = {
+    "fbgforce.contract": 0, "fbgforce.units": 0, "fbgforce.errors": 0, "fbgforce.jsonutil": 0,
+    "fbgforce.geometry": 1, "fbgforce.dataset": 1, "fbgforce.model": 1, "fbgforce.tare": 1,
+    "fbgforce.metrics": 1, "fbgforce._runtime": 1,
+    "fbgforce.pybind": 2,
+    "fbgforce.export": 3, "fbgforce.trainer": 3, "fbgforce.sim": 3, "fbgforce.interrogator": 3,
+    "fbgforce.engines": 4,
+    "fbgforce.trainer.evaluate": 5, "fbgforce.trainer.report": 5,
+}
+
+
+def _layer(name: str) -> int:
+    if name.rsplit(".", 1)[-1] == "cli":
+        return 9                              # command modules sit on top, whatever package
+    best = None
+    for prefix, layer in LAYERS.items():
+        if (name == prefix or name.startswith(prefix + ".")) and (best is None or len(prefix) > len(best[0])):
+            best = (prefix, layer)
+    return 9 if best is None else best[1]     # commands, tools, benchmarks: the top
+
+
+def test_layers_import_downward_only():
+    bad = []
+    for name, deps in _graph().items():
+        for dep in deps:
+            if name == "fbgforce" or dep == "fbgforce":
+                continue
+            if _layer(dep) > _layer(name):
+                bad.append(f"{name} (layer {_layer(name)}) imports {dep} (layer {_layer(dep)})")
+    assert not bad, "\n".join(sorted(bad))
+
+
+def test_benchmarks_do_not_import_tests():
+    for path in (ROOT / "bench").glob("*.py"):
+        text = path.read_text()
+        assert "tests/" not in text.replace("python tests/", "") or "sys.path" not in text, path
+        tree = ast.parse(text)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module:
+                assert not node.module.startswith(("tests", "conftest", "foreign")), (path, node.module)
+            if isinstance(node, ast.Import):
+                assert not any(a.name.startswith(("tests", "conftest", "foreign")) for a in node.names), path
