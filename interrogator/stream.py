@@ -70,7 +70,7 @@ class LiveEstimator:
             self._rt = Runtime(self.model_dir)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
-            self._memory_state: list[np.ndarray | None] = []
+            self._memory_state: list[float | None] = []
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -107,16 +107,17 @@ class LiveEstimator:
         mem = self.model.preprocess.memory
         if mem.n_states == 0 or len(zs) == 0:
             return fm.memory_features(mem, zs)
-        singles = [fm.Memory(ema_shifts=(s,), ema_gains=(g,)) for s, g in
-                   zip(mem.ema_shifts, mem.ema_gains)]
-        singles += [fm.Memory(play_widths=(w,), play_gains=(g,)) for w, g in
-                    zip(mem.play_widths, mem.play_gains)]
-        gains = list(mem.ema_gains) + list(mem.play_gains)
+        w = mem.weights
+        singles = [(fm.Memory(ema_shifts=(s,), ema_gains=(g,), weights=w), g, 0.0)
+                   for s, g in zip(mem.ema_shifts, mem.ema_gains)]
+        singles += [(fm.Memory(play_widths=(pw,), play_gains=(g,), weights=w), g, pw)
+                    for pw, g in zip(mem.play_widths, mem.play_gains)]
         if not self._memory_state:
             self._memory_state = [None] * len(singles)
         feats = [zs]
-        for k, (one, gain) in enumerate(zip(singles, gains)):
-            f, self._memory_state[k] = _continue_memory(one, self._memory_state[k], zs, gain)
+        for k, (one, gain, prime) in enumerate(singles):
+            f, self._memory_state[k] = _continue_memory(one, self._memory_state[k], zs, gain,
+                                                        prime)
             feats.append(f)
         return np.concatenate(feats, axis=1)
 
@@ -145,19 +146,26 @@ class LiveEstimator:
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
 
 
-def _continue_memory(memory: fm.Memory, state: np.ndarray | None, zs: np.ndarray,
-                     gain: int) -> tuple[np.ndarray, np.ndarray]:
+def _continue_memory(memory: fm.Memory, state: float | None, zs: np.ndarray, gain: int,
+                     prime: float) -> tuple[np.ndarray, float]:
     """One memory state (``memory`` has exactly one) over a batch, continuing from ``state``.
 
-    :func:`fbgforce.model.memory_features` starts every state at the first row it is given, so
-    the carried state goes in as that row and its output row is dropped; the new state is read
-    back from the last feature (``feature = (z - state) * 2^gain``, the scaling exact).
+    :func:`fbgforce.model.memory_features` primes a state from the first row it is given (at
+    ``u[0] + prime``, ``u = z @ weights``), so the carried state goes in as a first row whose
+    load signal primes it to exactly that value, and that row's output is dropped. The new state
+    is read back from the last feature (``feature = (u - state) * 2^gain``, the scaling exact).
     """
-    z = zs if state is None else np.concatenate([state[None], zs])
+    w = np.asarray(memory.weights, dtype=np.float64)
+    if state is None:
+        z = zs
+    else:
+        ww = float(w @ w)
+        first = (state - prime) * w / ww if ww > 0 else np.zeros_like(w)
+        z = np.concatenate([first[None], zs])
     feat = fm.memory_features(memory, z)[:, zs.shape[1]:]
     if state is not None:
         feat = feat[1:]
-    return feat, zs[-1] - feat[-1] * 2.0 ** -gain
+    return feat, float(zs[-1] @ w - feat[-1, 0] * 2.0 ** -gain)
 
 
 def _bad_frames(stats: dict[str, int]) -> int:
