@@ -150,16 +150,7 @@ def from_bytes(data: bytes, path: str | None = None) -> QModel:
         nets.append(layers)
     if off != total:
         raise bad("ERR_SIZE", f"declared length {total} differs from the {off} bytes the shapes imply")
-    q = QModel(baseline_fm=p["baseline_fm"], jump_max_fm=p["jump_max_fm"],
-               temp_coeff_q24=p["temp_coeff_q24"], taps=taps, tap_q=p["tap_q"],
-               mean_fm=p["mean_fm"], z_mult=p["z_mult"], z_shift=p["z_shift"],
-               z_frac=p["z_frac"], fq_mult=p["fq_mult"], fq_shift=p["fq_shift"],
-               force_offset_mN=p["force_offset_mN"], xy_offset_um=p["xy_offset_um"],
-               overload_mN=p["overload_mN"], nets=nets, load_coeff=p["load_coeff"],
-               load_shift=p["load_shift"], load_max_mN=p["load_max_mN"],
-               stuck_max=p["stuck_max"], n_ema=p["n_ema"], n_play=p["n_play"],
-               ema_shift=p["ema_shift"], ema_gain=p["ema_gain"], play_gain=p["play_gain"],
-               play_width=p["play_width"], writer_version=p["writer_version"])
+    q = QModel.from_params(p, taps, nets)
     try:
         q.check()
     except ModelCheckError as exc:

@@ -128,10 +128,9 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
         for i, info in enumerate(infos):
             info["calib_max_abs_acc"] = trace.get(f"{name_net}.{i}", 0)
     report["fir"]["calib_max_abs_acc"] = trace.get("fir", 0)
-    weight_bytes = sum(ly.w.size * ly.w_bits // 8 + ly.n_out * 12 for net in q.nets for ly in net)
     report.update({
         "model": str(root), "model_digest": model_digest(model), "calibration_files": paths, "files": files, "blob_bytes": len(data),
-        "const_bytes": int(weight_bytes + q.taps.size * 2),
+        "const_bytes": const_bytes(q),
         "state_bytes": _state_bytes(),
         "calibration_check": {"samples": samples, "contact_disagreements": disagree,
                               **{f"max_abs_err_{k}": v for k, v in errs.items()}},
@@ -139,6 +138,13 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     })
     (root / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+def const_bytes(q: qz.QModel) -> int:
+    """Bytes of constant arrays a generated C model puts in flash: weights, per-row bias
+    (int64) and multiplier (int32), FIR taps (int16). docs/runtime.md quotes it."""
+    weight_bytes = sum(ly.w.size * ly.w_bits // 8 + ly.n_out * 12 for net in q.nets for ly in net)
+    return int(weight_bytes + q.taps.size * 2)
 
 
 def _state_bytes() -> int | None:

@@ -209,6 +209,14 @@ class QModel:
         """Width of the contact and force nets' input (z and memory features)."""
         return contract.n_features(self.n_ema, self.n_play)
 
+    @classmethod
+    def from_params(cls, values: dict[str, Any], taps: np.ndarray, nets: list[list[QLayer]]
+                    ) -> "QModel":
+        """The model of a decoded parameter block (:data:`fbgforce.contract.PARAMS` names)
+        with its taps and nets; ``n_taps`` and ``n_layers`` are implied by those."""
+        fields = {k: v for k, v in values.items() if k not in ("n_taps", "n_layers")}
+        return cls(taps=taps, nets=nets, **fields)
+
     def params(self) -> dict[str, Any]:
         """The parameter block as :data:`fbgforce.contract.PARAMS` names it."""
         values: dict[str, Any] = {}

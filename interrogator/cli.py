@@ -17,7 +17,9 @@ def _add_stop_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--idle-timeout", type=positive_float, metavar="S",
                    help="stop when no sample arrived for S seconds (default: wait, reconnecting)")
     p.add_argument("--start-timeout", type=positive_float, metavar="S",
-                   help="give up if the first sample has not arrived after S seconds")
+                   help="fail (exit 2) if the first sample has not arrived after S seconds "
+                        "(default: 5 s, or --duration/--idle-timeout if longer, when any stop "
+                        "option is given; otherwise wait for the device until stopped)")
     p.add_argument("--baud", type=positive_int, default=None,
                    help="line speed for real UARTs (default 3000000; ptys/sockets ignore it)")
     p.add_argument("--quiet", action="store_true", help="no live status on stderr")
@@ -48,13 +50,18 @@ def _peak_map(text: str | None, model_dir: str | None = None) -> Any:
     return PeakMap.default()
 
 
+def _protocol(args: argparse.Namespace) -> str:
+    """--protocol, or what the source implies (hyperion:// -> hyperion, else native)."""
+    if args.protocol is not None:
+        return str(args.protocol)
+    return "hyperion" if args.port.startswith("hyperion://") else "native"
+
+
 def _open_reader(args: argparse.Namespace, model_dir: str | None = None, **kw: Any) -> Any:
     from fbgforce.interrogator.reader import open_reader
 
-    protocol = args.protocol
+    protocol = _protocol(args)
     hyperion = args.port.startswith("hyperion://")
-    if protocol is None:
-        protocol = "hyperion" if hyperion else "native"
     if hyperion != (protocol == "hyperion"):
         raise InputError("hyperion:// sources speak --protocol hyperion and only they do",
                          column="--protocol")
@@ -233,23 +240,37 @@ def _baud(args: argparse.Namespace) -> dict[str, Any]:
     return {} if args.baud is None else {"baudrate": args.baud}
 
 
+def _start_timeout(args: argparse.Namespace) -> float | None:
+    from fbgforce.interrogator.nodata import start_timeout_for
+
+    return start_timeout_for(args.start_timeout, args.duration, args.samples, args.idle_timeout)
+
+
 def _stream(args: argparse.Namespace) -> dict[str, Any]:
+    import time
+
+    from fbgforce.interrogator.nodata import no_data_error
     from fbgforce.interrogator.publish import open_publishers
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
     reader = _open_reader(args, args.model, channels=args.channels)
-    protocol = "hyperion" if args.port.startswith("hyperion://") else (args.protocol or "native")
+    protocol = _protocol(args)
     publishers = open_publishers(args.publish)
+    started = time.monotonic()
     try:
         result = run_stream(reader, est, out=args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=args.start_timeout, status=not args.quiet,
+                            start_timeout=_start_timeout(args), status=not args.quiet,
                             publishers=publishers)
     finally:
         reader.close()
         for pub in publishers:
             pub.close()
+    if result["received"] == 0:
+        raise no_data_error(args.port, protocol, time.monotonic() - started,
+                            reader.stats(), reader.link.last_error, baud=args.baud,
+                            interrupted=result["interrupted"])
     result = {"port": args.port, "protocol": protocol, **result}
     if not args.json:
         print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
@@ -259,6 +280,9 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _record(args: argparse.Namespace) -> dict[str, Any]:
+    import time
+
+    from fbgforce.interrogator.nodata import no_data_error
     from fbgforce.interrogator.reader import LoadCellReader
     from fbgforce.interrogator.record import run_record
 
@@ -267,11 +291,18 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     # Open both now: a device that waits for its clients starts only when both are there.
     reader.link.open()
     loadcell.link.open()
+    started = time.monotonic()
     try:
         result = run_record(reader, loadcell, args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=args.start_timeout, rate_hz=args.rate,
+                            start_timeout=_start_timeout(args), rate_hz=args.rate,
                             status=not args.quiet)
+    except InputError as exc:
+        # Nothing joined: when the interrogator itself was silent, say what was tried there.
+        if exc.column == "--port" and reader.stats().get("frames", 0) == 0:
+            raise no_data_error(args.port, _protocol(args), time.monotonic() - started,
+                                reader.stats(), reader.link.last_error, baud=args.baud) from None
+        raise
     finally:
         reader.close()
         loadcell.close()

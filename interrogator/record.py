@@ -120,7 +120,8 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
                 first = now if first is None else first
                 last = now
                 join.add(frames, lines)
-            if status and now - last_report >= 1.0:
+            # Nothing to report before the first sample (a silent port ends in one error line).
+            if status and first is not None and now - last_report >= 1.0:
                 last_report = now
                 print(f"record: {len(join.pairs)} samples, lost "
                       f"{reader.stats().get('lost_frames', 0)} frames, unmatched "

@@ -70,7 +70,7 @@ class LiveEstimator:
             self._rt = Runtime(self.model_dir)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
-            self._memory_state: list[float | None] = []
+            self._memory = fm.MemoryStream(self.model.preprocess.memory)
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -100,27 +100,6 @@ class LiveEstimator:
         self.estimated += len(wl_fm)
         return out
 
-    def _memory_features(self, zs: np.ndarray) -> np.ndarray:
-        """Net inputs of a batch of standardised rows, the memory states carried across
-        batches (what :func:`fbgforce.model.memory_features` gives on the whole stream, to
-        rounding)."""
-        mem = self.model.preprocess.memory
-        if mem.n_states == 0 or len(zs) == 0:
-            return fm.memory_features(mem, zs)
-        w = mem.weights
-        singles = [(fm.Memory(ema_shifts=(s,), ema_gains=(g,), weights=w), g, 0.0)
-                   for s, g in zip(mem.ema_shifts, mem.ema_gains)]
-        singles += [(fm.Memory(play_widths=(pw,), play_gains=(g,), weights=w), g, pw)
-                    for pw, g in zip(mem.play_widths, mem.play_gains)]
-        if not self._memory_state:
-            self._memory_state = [None] * len(singles)
-        feats = [zs]
-        for k, (one, gain, prime) in enumerate(singles):
-            f, self._memory_state[k] = _continue_memory(one, self._memory_state[k], zs, gain,
-                                                        prime)
-            feats.append(f)
-        return np.concatenate(feats, axis=1)
-
     def _tare(self, rows: np.ndarray) -> None:
         if self.engine == "fixed":
             base = self._rt.tare(rows.astype(np.int32))
@@ -132,40 +111,18 @@ class LiveEstimator:
         if self.engine == "fixed":
             out = self._rt.run(wl_fm.astype(np.int32))
             return {k: np.asarray(out[k]) for k in OUTPUT_KEYS + RAW_KEYS}
-        # Float: run the reference pipeline on (history + batch) and keep the batch's rows;
-        # with len(taps) - 1 samples of history the causal FIR sees exactly what it would
-        # have seen on the whole recording. The memory states carry over from batch to batch.
+        # Float: filter (history + batch) and keep the batch's rows; with len(taps) - 1
+        # samples of history the causal FIR sees exactly what it would have seen on the whole
+        # recording. The memory states carry over from batch to batch.
         pre = self.model.preprocess
         keep = pre.taps.size - 1
         rows = np.concatenate([self._history, wl_fm])
         filt = fm.apply_filter(pre, fm.compensate(self.model, fm_to_nm(rows), self.baseline_nm))
-        zs = (filt[len(self._history):] - pre.input_mean) / pre.input_std
-        pred = fm.predict_from_features(self.model, self._memory_features(zs))
+        z = (filt[len(self._history):] - pre.input_mean) / pre.input_std
+        pred = fm.predict_from_features(self.model, self._memory.push(z))
         self._history = rows[len(rows) - keep:] if keep else rows[:0]
         pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
-
-
-def _continue_memory(memory: fm.Memory, state: float | None, zs: np.ndarray, gain: int,
-                     prime: float) -> tuple[np.ndarray, float]:
-    """One memory state (``memory`` has exactly one) over a batch, continuing from ``state``.
-
-    :func:`fbgforce.model.memory_features` primes a state from the first row it is given (at
-    ``u[0] + prime``, ``u = z @ weights``), so the carried state goes in as a first row whose
-    load signal primes it to exactly that value, and that row's output is dropped. The new state
-    is read back from the last feature (``feature = (u - state) * 2^gain``, the scaling exact).
-    """
-    w = np.asarray(memory.weights, dtype=np.float64)
-    if state is None:
-        z = zs
-    else:
-        ww = float(w @ w)
-        first = (state - prime) * w / ww if ww > 0 else np.zeros_like(w)
-        z = np.concatenate([first[None], zs])
-    feat = fm.memory_features(memory, z)[:, zs.shape[1]:]
-    if state is not None:
-        feat = feat[1:]
-    return feat, float(zs[-1] @ w - feat[-1, 0] * 2.0 ** -gain)
 
 
 def _bad_frames(stats: dict[str, int]) -> int:

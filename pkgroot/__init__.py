@@ -1,5 +1,22 @@
 """fbgforce: contact, force and contact location from fibre Bragg gratings.
 
+The researcher's API (docs/python-api.md), all from ``import fbgforce``:
+
+======================  ==================================================================
+``simulate``            a recording from the built-in simulator (``fbgforce.sim.simulate``)
+``load_dataset``        a recording from a CSV or npz file (``fbgforce.dataset.load``)
+``save_dataset``        write one (``fbgforce.dataset.save``)
+``to_dataframe``        a recording as a pandas DataFrame (needs pandas)
+``from_dataframe``      a recording from a DataFrame, validated like a file (needs pandas)
+``train``               train the three nets (``fbgforce.trainer.train.train``)
+``predict``             the float pipeline on an (n, 5) numpy array of wavelengths (nm)
+``evaluate``            metrics of a model directory on recordings, any engine
+``save_model``          write a model directory; ``load_model`` reads one
+``export_model``        ONNX, the fixed-point blob and C source of a model directory
+``Runtime``             the fixed-point C runtime (``fbgforce.pybind.Runtime``)
+``Dataset``             the recording type (``fbgforce.dataset.Dataset``)
+======================  ==================================================================
+
 Subpackages live in sibling top-level directories of the repository and are mapped onto this
 namespace by ``pyproject.toml``: ``fbgforce.sim`` (simulator), ``fbgforce.trainer`` (numpy
 training), ``fbgforce.export`` (ONNX and fixed-point export), ``fbgforce.pybind`` (the cffi
@@ -7,18 +24,41 @@ binding of the C runtime), ``fbgforce.interrogator`` (serial I/O), ``fbgforce.te
 """
 from __future__ import annotations
 
+import importlib
 from typing import Any
 
 from fbgforce.contract import VERSION_STR as __version__
 
-__all__ = ["Runtime", "__version__"]
+#: Public name -> "module:attribute". Resolved on first use, so that `import fbgforce` stays
+#: cheap for the CLI and simulation/training work where the C extension is not built.
+_API = {
+    "simulate": "fbgforce.sim:simulate",
+    "load_dataset": "fbgforce.dataset:load",
+    "save_dataset": "fbgforce.dataset:save",
+    "to_dataframe": "fbgforce.dataset:to_dataframe",
+    "from_dataframe": "fbgforce.dataset:from_dataframe",
+    "Dataset": "fbgforce.dataset:Dataset",
+    "train": "fbgforce.trainer.train:train",
+    "predict": "fbgforce.model:predict",
+    "evaluate": "fbgforce.trainer.evaluate:evaluate",
+    "save_model": "fbgforce.model:save",
+    "load_model": "fbgforce.model:load",
+    "export_model": "fbgforce.export.exporter:export_model",
+    "Runtime": "fbgforce.pybind:Runtime",
+}
+
+__all__ = sorted(_API) + ["__version__"]
 
 
 def __getattr__(name: str) -> Any:
-    # The C extension is imported lazily so that simulation and training work even where the
-    # extension could not be built, and so that `import fbgforce` stays cheap for the CLI.
-    if name == "Runtime":
-        from fbgforce.pybind import Runtime
+    target = _API.get(name)
+    if target is None:
+        raise AttributeError(f"module 'fbgforce' has no attribute {name!r}")
+    module_name, attr = target.split(":")
+    value = getattr(importlib.import_module(module_name), attr)
+    globals()[name] = value  # later look-ups skip this function
+    return value
 
-        return Runtime
-    raise AttributeError(f"module 'fbgforce' has no attribute {name!r}")
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

@@ -21,6 +21,8 @@ Validation rules (docs/dataset.md):
 from __future__ import annotations
 
 import io
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -612,13 +614,16 @@ def _load_npz(path: Path) -> Dataset:
         npz = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise InputError("no such file", path=spath) from None
-    except (OSError, ValueError) as exc:
-        raise InputError(f"not a readable npz file: {exc}", path=spath) from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise InputError(f"not a readable npz file (truncated or corrupt?): {exc}",
+                         path=spath) from None
     with npz:
         try:
             arrays = {k: npz[k] for k in npz.files}
         except ValueError as exc:  # object arrays need pickle, which we never allow
             raise InputError(f"unsupported array in npz: {exc}", path=spath) from None
+        except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+            raise InputError(f"npz file truncated or corrupt: {exc}", path=spath) from None
     if not arrays:
         raise InputError("empty file: no arrays", path=spath)
     cols: dict[str, np.ndarray] = {}
@@ -706,6 +711,57 @@ def load(path: str | Path) -> Dataset:
     """
     p = Path(path)
     return _load_csv(p) if _kind(p) == "csv" else _load_npz(p)
+
+
+# --------------------------------------------------------------------------------------------
+# pandas (optional: only these two functions need it)
+# --------------------------------------------------------------------------------------------
+
+def _pandas() -> Any:
+    try:
+        import pandas
+    except ImportError:
+        raise ImportError("pandas is not installed; `pip install pandas` to convert datasets "
+                          "to and from DataFrames") from None
+    return pandas
+
+
+def to_dataframe(ds: Dataset) -> Any:
+    """``ds`` as a pandas DataFrame with the CSV column names (required columns first, then
+    the extra columns); ``df.attrs["source"]`` keeps :attr:`Dataset.source`. Needs pandas."""
+    pd = _pandas()
+    df = pd.DataFrame({name: np.array(col, copy=True) for name, col in ds.columns().items()})
+    df.attrs["source"] = ds.source
+    return df
+
+
+def from_dataframe(df: Any, source: str | None = None) -> Dataset:
+    """A :class:`Dataset` from a DataFrame with the CSV column names (any order; columns
+    beyond the required ones become :attr:`Dataset.extra`), validated exactly as a file is:
+    a problem raises :class:`InputError` naming the row (0-based position) and column. ``source`` defaults to ``df.attrs["source"]`` or ``"<DataFrame>"``."""
+    where = source or getattr(df, "attrs", {}).get("source") or "<DataFrame>"
+    missing = [c for c in REQUIRED_COLUMNS if c not in df.columns]
+    if missing:
+        raise InputError(f"missing column(s) {', '.join(missing)} (required: "
+                         f"{', '.join(REQUIRED_COLUMNS)})", path=where)
+    cols: dict[str, np.ndarray] = {}
+    for name in REQUIRED_COLUMNS:
+        try:
+            cols[name] = np.asarray(df[name].to_numpy(dtype=np.float64, na_value=np.nan))
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"not numeric: {exc}", path=where, column=name) from None
+    if len(df) == 0:
+        raise InputError("empty dataset: no samples", path=where)
+    problems = validate_columns(cols)
+    if problems:
+        raise DatasetError(problems, path=where, unit="row")
+    extra = {}
+    for name in df.columns:
+        if name in REQUIRED_COLUMNS:
+            continue
+        values = df[name].to_numpy()
+        extra[str(name)] = values.astype(str) if values.dtype == object else values
+    return _dataset_from_columns(cols, extra, where)
 
 
 def validate(ds: Dataset, where: str = "<dataset>") -> None:

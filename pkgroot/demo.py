@@ -2,7 +2,8 @@
 
 simulate the paper's calibration protocol → train the hierarchical nets (causal filter) →
 export ONNX, the fixed-point blob and C source → verify the C runtime against the integer
-reference and the float model on every sample → report against the paper's numbers.
+reference and the float model on every sample → score every engine → report against the
+paper's numbers → draw the figures (``fbgforce.figures``) into ``<out>/figures/``.
 Every step is an ordinary subcommand; this one only strings them together so a newcomer sees
 the product work end to end, and prints the commands it ran so they can be repeated one by one.
 """
@@ -14,7 +15,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fbgforce.cli import add_json_flag
+import numpy as np
+
+from fbgforce.cli import add_json_flag, positive_int
 from fbgforce.errors import InputError
 
 
@@ -27,41 +30,54 @@ def register(subparsers: Any) -> None:
             "Run the whole chain on the built-in simulator: simulate the calibration scene "
             "(the paper's protocol, ~234k samples), train the three nets with the causal "
             "filter, export ONNX + fixed-point blob + C, verify the C runtime bit for bit "
-            "against the integer reference, and compare with the paper. Takes a few minutes "
-            "on 2 cores; --quick uses a small scene and finishes in well under a minute."),
+            "against the integer reference, score each engine, compare with the paper and "
+            "draw the figures (PNG, in DIR/figures/). Takes a few minutes on 2 cores; --quick "
+            "uses a small scene and finishes in well under a minute."),
     )
     p.add_argument("--out", default="fbgforce-demo", metavar="DIR",
-                   help="working directory for the data, model and report (default: %(default)s)")
+                   help="directory for everything the demo writes: data, model, report, "
+                        "figures (default: %(default)s)")
     p.add_argument("--quick", action="store_true",
                    help="small scene and few epochs: a smoke test of the chain, not of accuracy")
+    p.add_argument("--epochs", type=positive_int, default=None,
+                   help="training epochs of every net (default: 200, or 15 with --quick)")
     p.add_argument("--seed", type=int, default=0, help="seed for simulation and training")
     add_json_flag(p)
     p.set_defaults(handler=run)
 
 
-def _step(title: str, command: str) -> float:
-    print(f"\n== {title}\n   $ {command}", file=sys.stderr)
+#: Engines the demo scores and times (the float reference, ONNX, the C fixed-point runtime the
+#: firmware uses, the C float build).
+ENGINES_SCORED = ("float", "onnx", "fixed", "cfloat")
+
+
+def _step(title: str, command: str | None) -> float:
+    print(f"\n== {title}" + (f"\n   $ {command}" if command else ""), file=sys.stderr)
     return time.perf_counter()
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``fbgforce demo``."""
     from fbgforce import dataset
+    from fbgforce import figures
     from fbgforce import model as fm
+    from fbgforce.geometry import PAD_SIZE_MM
     from fbgforce.export.exporter import export_model
     from fbgforce.export.verify import verify
     from fbgforce.metrics import headline
     from fbgforce.sim import simulate
-    from fbgforce.trainer.evaluate import evaluate
-    from fbgforce.trainer.report import build_report, to_markdown, write
-    from fbgforce.trainer.train import train
+    from fbgforce.trainer.evaluate import SPLITS, evaluate, run_recording
+    from fbgforce.trainer.report import PAPER, build_report, to_markdown, write
+    from fbgforce.trainer.train import model_pad_mm, split_rows, train
 
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", column="--seed")
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise InputError("exists and is not a directory", path=str(out), column="--out")
     out.mkdir(parents=True, exist_ok=True)
     scene = "smoke" if args.quick else "calibration"
-    epochs = 15 if args.quick else 200
+    epochs = args.epochs if args.epochs is not None else (15 if args.quick else 200)
     data_path = out / f"{scene}.csv"
     model_dir = out / "model"
     seconds: dict[str, float] = {}
@@ -91,19 +107,41 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
           f"mismatches, {verified['contact_disagreements']} fixed/float contact disagreements",
           file=sys.stderr)
 
-    engines = {}
-    for engine in ("float", "onnx", "fixed"):
+    # Each engine runs the whole recording (loaded once, so the time is the engine's and the
+    # scoring's, not the CSV parser's) and is scored on the test presses.
+    recording = dataset.load(data_path)
+    engines: dict[str, Any] = {}
+    timings = []
+    for engine in ENGINES_SCORED:
         t = _step(f"evaluate ({engine})", f"fbgforce evaluate --model {model_dir} --data "
-                                          f"{data_path} --engine {engine}")
-        engines[engine] = evaluate(model_dir, [data_path], engine=engine, split="test")
-        seconds[f"evaluate_{engine}"] = time.perf_counter() - t
-        print(f"   test split: {headline(engines[engine])}", file=sys.stderr)
+                                          f"{data_path} --engine {engine} --split test")
+        m = evaluate(model_dir, [recording], engine=engine, split="test", seed=args.seed,
+                     model=model)
+        run_s = time.perf_counter() - t
+        m.update({"data": [str(data_path)], "us_per_sample": 1e6 * run_s / len(recording)})
+        engines[engine] = m
+        timings.append({"engine": engine, "us_per_sample": m["us_per_sample"],
+                        "rmse_force_N": m["rmse_force_N"]})
+        seconds[f"evaluate_{engine}"] = run_s
+        print(f"   test split: {headline(m)}; {m['us_per_sample']:.2f} us/sample", file=sys.stderr)
 
     t = _step("report", f"fbgforce report --data {data_path} --model {model_dir} "
                         f"--epochs {epochs} --out {out / 'report'}")
     rep = build_report([data_path], model_dir=model_dir, epochs=epochs, seed=args.seed)
     write(rep, out / "report")
     seconds["report"] = time.perf_counter() - t
+
+    t = _step("figures", None)
+    shown = "fixed"  # what the firmware would compute
+    pngs = figures.write_demo_figures(
+        out / "figures", ds=recording,
+        test_rows=np.flatnonzero(split_rows(recording, args.seed) == SPLITS.index("test") - 1),
+        pred=run_recording(shown, model_dir, model, recording, str(data_path)), engine=shown,
+        metrics=engines[shown], paper=PAPER["network"], timings=timings,
+        pad_mm=model_pad_mm(model) or PAD_SIZE_MM)
+    seconds["figures"] = time.perf_counter() - t
+    for f in pngs:
+        print(f"   {f['path']}: {f['title']}", file=sys.stderr)
     if not args.json:
         print(to_markdown(rep))
     if verified["mismatches"]:
@@ -116,6 +154,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "verify": verified,
         "evaluate": engines,
         "report": str(out / "report"),
+        "figures": pngs,
         "checks": rep["checks"],
         "seconds": seconds,
     }

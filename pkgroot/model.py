@@ -31,6 +31,8 @@ reproducing its figures; it uses future samples and cannot be exported to the ru
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -105,44 +107,63 @@ class Memory:
                 "weights": list(self.weights)}
 
 
+class MemoryStream:
+    """The memory states of one continuous recording, fed in pieces: ``push(z)`` on
+    consecutive pieces gives what :func:`memory_features` gives on the whole."""
+
+    def __init__(self, memory: Memory) -> None:
+        self.memory = memory
+        self.ema: list[float] | None = None     # None until the first sample primes them
+        self.play: list[float] = []
+
+    def push(self, z: np.ndarray) -> np.ndarray:
+        """Net inputs (n, 4 + states) of the next ``z`` (n, 4) of the recording."""
+        memory = self.memory
+        z = np.asarray(z, dtype=np.float64).reshape(-1, N_STRAIN)
+        n = z.shape[0]
+        if memory.n_states == 0 or n == 0:
+            return z.copy() if n else np.zeros((0, N_STRAIN + memory.n_states))
+        u = z @ np.asarray(memory.weights)
+        if self.ema is None:       # primed as at rest after a release (the load came down)
+            self.ema = [float(u[0])] * len(memory.ema_shifts)
+            self.play = [float(u[0]) + w for w in memory.play_widths]
+        feats = [z]
+        for k, (shift, gain) in enumerate(zip(memory.ema_shifts, memory.ema_gains)):
+            # e[n] = (1 - a) e[n-1] + a u[n]: a first-order IIR. A blocked closed form keeps
+            # it exact to rounding and fast in numpy: within a block of 256 the powers of
+            # (1 - a) cannot underflow for the shifts allowed here.
+            alpha = 2.0 ** -shift
+            e = np.empty_like(u)
+            prev = self.ema[k]
+            for start in range(0, n, 256):
+                seg = u[start:start + 256]
+                i = np.arange(seg.shape[0])
+                w = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
+                out = (1.0 - alpha) ** (i + 1) * prev + w @ seg
+                e[start:start + seg.shape[0]] = out
+                prev = float(out[-1])
+            self.ema[k] = prev
+            feats.append(((u - e) * 2.0 ** gain)[:, None])
+        for k, (width, gain) in enumerate(zip(memory.play_widths, memory.play_gains)):
+            p = np.empty_like(u)
+            state = self.play[k]
+            lo, hi = (u - width).tolist(), (u + width).tolist()
+            for i in range(n):
+                state = min(max(state, lo[i]), hi[i])
+                p[i] = state
+            self.play[k] = state
+            feats.append(((u - p) * 2.0 ** gain)[:, None])
+        return np.concatenate(feats, axis=1)
+
+
 def memory_features(memory: Memory, z: np.ndarray) -> np.ndarray:
     """The net inputs of one continuous recording: ``z`` (n, 4) and its memory features.
 
     Returns (n, 4 + states) in the order of :mod:`fbgforce.contract`: z, then one feature per
-    average, then one per play operator, all of the load signal ``u = z @ weights``.
+    average, then one per play operator, all of the load signal ``u = z @ weights``; the
+    states are primed by the first sample as a pad at rest after a release leaves them.
     """
-    z = np.asarray(z, dtype=np.float64).reshape(-1, N_STRAIN)
-    n = z.shape[0]
-    if memory.n_states == 0 or n == 0:
-        return np.zeros((n, N_STRAIN + memory.n_states)) if n == 0 else z.copy()
-    u = z @ np.asarray(memory.weights)
-    feats = [z]
-    for shift, gain in zip(memory.ema_shifts, memory.ema_gains):
-        alpha = 2.0 ** -shift
-        # e[n] = (1 - a) e[n-1] + a u[n], primed at u[0]: a first-order IIR. A blocked closed
-        # form keeps it exact to rounding and fast in numpy: within a block of 256 the powers
-        # of (1 - a) cannot underflow for the shifts allowed here.
-        e = np.empty_like(u)
-        prev = u[0]
-        block = 256
-        for start in range(0, n, block):
-            seg = u[start:start + block]
-            m = seg.shape[0]
-            k = np.arange(m)
-            w = np.tril((1.0 - alpha) ** (k[:, None] - k[None, :])) * alpha
-            out = (1.0 - alpha) ** (k + 1) * prev + w @ seg
-            e[start:start + m] = out
-            prev = out[-1]
-        feats.append(((u - e) * 2.0 ** gain)[:, None])
-    for width, gain in zip(memory.play_widths, memory.play_gains):
-        p = np.empty_like(u)
-        state = u[0] + width          # primed as at rest after a release (the load came down)
-        lo, hi = (u - width).tolist(), (u + width).tolist()
-        for i in range(n):
-            state = min(max(state, lo[i]), hi[i])
-            p[i] = state
-        feats.append(((u - p) * 2.0 ** gain)[:, None])
-    return np.concatenate(feats, axis=1)
+    return MemoryStream(memory).push(z)
 
 
 @dataclass
@@ -483,8 +504,9 @@ def load(directory: str | Path) -> HierarchicalModel:
     try:
         with np.load(npz_path) as npz:
             arrays = {k: npz[k] for k in npz.files}
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read weights: {exc}", path=str(npz_path)) from exc
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"cannot read weights (truncated or corrupt?): {exc}",
+                         path=str(npz_path)) from exc
     try:
         nets = {}
         for name in NET_NAMES:

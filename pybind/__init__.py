@@ -36,9 +36,17 @@ class RuntimeCError(Exception):
         super().__init__(f"{self.name}: {message}" if message else self.name)
 
 
+#: Codes that mean "this model blob is unusable": its exception classes are also InputError,
+#: so that a corrupt or truncated model.fbgm given to a command is the usual one-line error
+#: (exit 2) naming the file.
+BLOB_ERRORS = ("FBG_ERR_TRUNCATED", "FBG_ERR_BAD_MAGIC", "FBG_ERR_VERSION", "FBG_ERR_CRC",
+               "FBG_ERR_SHAPE", "FBG_ERR_RANGE", "FBG_ERR_BOUND", "FBG_ERR_SIZE")
+
+
 def _make(name: str, doc: str, code: int) -> type[RuntimeCError]:
     cls_name = "".join(part.title() for part in name.removeprefix("FBG_ERR_").split("_")) + "Error"
-    return type(cls_name, (RuntimeCError,), {"code": code, "name": name, "__doc__": doc})
+    bases: tuple[type, ...] = (RuntimeCError, InputError) if name in BLOB_ERRORS else (RuntimeCError,)
+    return type(cls_name, bases, {"code": code, "name": name, "__doc__": doc})
 
 
 #: C error code -> exception class.
@@ -175,7 +183,10 @@ class Runtime(_Base):
         ffi.memmove(self._blob, data, len(data))
         self._model = ffi.new("fbg_model *")
         self._state = ffi.new("fbg_state *")
-        check(lib.fbg_model_from_blob(self._model, ffi.cast("uint8_t *", self._blob), len(data)), where)
+        status = lib.fbg_model_from_blob(self._model, ffi.cast("uint8_t *", self._blob), len(data))
+        if status != lib.FBG_OK:
+            reason = ERRORS[status].__doc__ if status in ERRORS else "refused by the C loader"
+            check(status, f"{where} ({len(data)} bytes): {reason}")
         check(lib.fbg_init(self._state, self._model, lib.FBG_OPT_REQUIRE_TARE if require_tare else 0),
               "fbg_init")
         self.blob_size = len(data)

@@ -41,6 +41,16 @@ def test_c_and_python_give_every_mutant_the_same_verdict(random_model_factory,
         assert seen[code] > 0, (code, seen)
 
 
+def test_reader_returns_every_parameter_the_writer_wrote(random_model_factory, random_walk_factory):
+    mem = fm.Memory(ema_shifts=(3, 7), play_widths=(0.05,), weights=(0.5, -0.25, 0.125, 1.0))
+    model = random_model_factory(6, sizes=((6,), (5,), (4,)), n_taps=5, sigma=1.5, memory=mem)
+    q, _ = quantize(model, calibrate(model, [(random_walk_factory(model, 400, 2), model.baseline_nm)]))
+    back = blob.from_bytes(blob.to_bytes(q))
+    assert back.params() == q.params()
+    assert all(np.array_equal(a.w, b.w) and np.array_equal(a.bias, b.bias) and np.array_equal(a.mult, b.mult)
+               for na, nb in zip(q.nets, back.nets) for a, b in zip(na, nb))
+
+
 def test_documented_zero_fields_are_checked(random_model_factory, random_walk_factory):
     data = bytearray(small_blob(random_model_factory, random_walk_factory))
     flags = bytearray(data)

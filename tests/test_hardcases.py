@@ -554,12 +554,25 @@ def press_fm():
     return wl, ds
 
 
-def _recovers(m: Model, clean: np.ndarray, faulty: np.ndarray, out: dict, base, end: int) -> None:
-    """n_taps samples after the last faulty sample the output equals the clean run's."""
+def _recovers(m: Model, clean: np.ndarray, faulty: np.ndarray, out: dict, base, end: int,
+              contact: np.ndarray | None = None) -> None:
+    """Without memory states, n_taps samples after the last faulty sample the output equals
+    the clean run's: only the FIR window remembers. With memory the fault froze the states
+    (docs/fixed-point.md), so they catch up with the load instead: from the first release
+    after the fault (plus the FIR window) contact decisions equal the clean run's on 99 % of
+    the samples (a light touch near the threshold may flip) and the force is within 1 N of it,
+    and a second later within 0.05 N (measured on the smoke model: 0.51 N and 10 mN)."""
     ref = intref.run(m.q, clean, base)
     k = end + m.q.taps.size
-    for f in FIELDS:
-        np.testing.assert_array_equal(out[f][k:], np.asarray(ref[f][k:], dtype=np.int64), err_msg=f)
+    if m.q.n_ema + m.q.n_play == 0:
+        for f in FIELDS:
+            np.testing.assert_array_equal(out[f][k:], np.asarray(ref[f][k:], dtype=np.int64), err_msg=f)
+        return
+    if contact is not None and (~contact[end:]).any():
+        k = max(k, end + int(np.flatnonzero(~contact[end:])[0]) + m.q.taps.size)
+    assert np.mean(out["contact"][k:] == ref["contact"][k:]) >= 0.99
+    df = np.abs(np.asarray(out["force_mN"], dtype=np.int64) - ref["force_mN"])
+    assert df[k:].max() <= 1000 and df[k + 1000:].max(initial=0) <= 50, (df[k:].max(), df[k + 1000:].max(initial=0))
 
 
 @pytest.mark.parametrize("kind", ["lost0", "sentinel_neg1", "int32_min", "int32_max", "below_window",
@@ -611,7 +624,7 @@ def test_sensor_faults(models, driver, press_fm, kind):
         # from its stuck_max-th repeat on; exact again n_taps samples after it comes unstuck.
         k = m.q.stuck_max
         assert k > 0 and fault[a + k:b].all() and n_fault == b - a - k
-        _recovers(m, wl, w, out, base, b)
+        _recovers(m, wl, w, out, base, b, ds.contact)
         return
     if kind == "step_3nm":
         # One faulty sample at the step, then a (wrong but bounded) estimate: the rule treats
@@ -622,7 +635,7 @@ def test_sensor_faults(models, driver, press_fm, kind):
         assert fault[a] and fault[a + 1] and n_fault == 2  # the jump there and the jump back
     else:
         assert fault[a:b].all() and n_fault == b - a
-    _recovers(m, wl, w, out, base, b)
+    _recovers(m, wl, w, out, base, b, ds.contact)
 
 
 def test_stuck_peak_is_flagged(models, press_fm, driver):
@@ -746,12 +759,15 @@ def test_exported_accumulator_bounds(models, driver, key):
     # Drive each first-layer row of the contact and force nets to +bound and -bound: channel
     # c saturates to sign(w[r][c]) * 32767 with a 100 nm compensated shift held n_taps+2
     # samples (one jump fault at each change, then a full FIR window).
+    # With memory states the first layers also read memory features, which a held input
+    # drives to their rest values: there the bound is checked, not reached.
+    tight = q.n_features == 4
     hold = q.taps.size + 2
     patterns = set()
     for net in q.nets[:2]:
         ly = net[0]
         for r in range(ly.n_out):
-            s = np.sign(ly.w[r]).astype(np.int64)
+            s = np.sign(ly.w[r, :4]).astype(np.int64)
             s[s == 0] = 1
             d = 1 if ly.bias[r] >= 0 else -1
             patterns.add(tuple(d * s))
@@ -770,13 +786,16 @@ def test_exported_accumulator_bounds(models, driver, key):
     intref.run(q, wl, base, trace=trace)
     for i, name in enumerate(("contact", "force")):
         # Every row's bound is attained somewhere, so the layer maximum is too.
-        assert trace[f"{name}.0"] == bounds[name][0], (name, trace[f"{name}.0"], bounds[name][0])
+        if tight:
+            assert trace[f"{name}.0"] == bounds[name][0], (name, trace[f"{name}.0"], bounds[name][0])
+        assert trace[f"{name}.0"] <= bounds[name][0]
     assert ((out["status"] & SATURATED) != 0).any()
 
     # Deeper layers: search the input box for the largest accumulators (random corners and
     # interior points of z, evaluated on the integer reference's layers directly).
     rng = np.random.default_rng(3)
-    z = np.concatenate([rng.choice([-SAT16, SAT16], (4000, 4)), rng.integers(-SAT16, SAT16 + 1, (20000, 4))])
+    f = q.n_features
+    z = np.concatenate([rng.choice([-SAT16, SAT16], (4000, f)), rng.integers(-SAT16, SAT16 + 1, (20000, f))])
     reached = {}
     for name, net, zin in (("contact", q.nets[0], z), ("force", q.nets[1], z),
                            ("location", q.nets[2],
@@ -914,12 +933,18 @@ def test_long_run_1e7_steps_bounded_no_drift(tiny_model, press_fm):
     assert 0 <= c.state.pos < ntaps
     hist = np.array([[c.state.hist[i][k] for k in range(4)] for i in range(ntaps)])
     assert np.abs(hist).max() < 10**8  # the compensated shifts of the presses, no growth
-    # Final window vs a fresh runtime fed the same samples (after n_taps of warm-up).
+    # The memory states stay in their proven ranges (docs/fixed-point.md).
+    assert all(abs(int(v)) <= 32767 << 15 for v in c.state.ema)
+    assert all(abs(int(v)) < 2**16 for v in c.state.play)
+    # Final window vs a fresh runtime fed the same samples, from the start of a repetition of
+    # the recording (a rest: where a tare primes the memory states, see docs/fixed-point.md).
     w = 5000
     fresh = CModel(m.blob)
     assert fresh.init() == 0
     assert lib.fbg_set_baseline(fresh.state, ffi.cast("int32_t *", ffi.from_buffer(bb))) == 0
-    tail_in = last_in[-(w + ntaps):]
+    start = ((len(last_in) - w - ntaps) // len(wl)) * len(wl)
+    assert start >= 0
+    tail_in = last_in[start:]
     status, fout = fresh.run(tail_in)
     assert status == 0
     ref = intref.run(m.q, tail_in, base)

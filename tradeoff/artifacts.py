@@ -26,9 +26,11 @@ def prepare_data(data: Sequence[str | Path] | None, scene: str | None, out: Path
         raise InputError("give --data FILE or --scene NAME")
     from fbgforce import dataset as fds
     from fbgforce.sim import simulate
+    from fbgforce.sim.scene import load_scene
 
     target = out / "data" / f"{Path(scene).stem}-seed{seed}.npz"
     if not target.is_file():
+        load_scene(scene)  # a bad scene fails here, before any progress line
         log(f"simulating scene {scene!r} -> {target}")
         target.parent.mkdir(parents=True, exist_ok=True)
         fds.save(simulate(scene, seed=seed), target)

@@ -60,6 +60,7 @@ class FloatStepper:
         self.base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
         self.temp_coeff = pre.temp_coeff
         self.mean, self.inv_std = pre.input_mean, 1.0 / pre.input_std
+        self.memory = fm.MemoryStream(pre.memory)
         if nets == "numpy":
             self._nets = self._numpy_nets
         elif nets == "onnx":
@@ -79,7 +80,7 @@ class FloatStepper:
         self.buf[i + self.n_taps] = comp
         filt = self.taps_rev @ self.buf[i + 1:i + 1 + self.n_taps]
         self.pos = (i + 1) % self.n_taps
-        return self._nets(((filt - self.mean) * self.inv_std)[None, :])
+        return self._nets(self.memory.push(((filt - self.mean) * self.inv_std)[None, :]))
 
     def _numpy_nets(self, z: np.ndarray) -> dict[str, Any]:
         out = fm.predict_from_features(self.model, z)

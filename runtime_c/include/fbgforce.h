@@ -22,13 +22,20 @@
  * docs/fixed-point.md; the blob layout in docs/model-format.md; the API walk-through in
  * docs/runtime.md.
  *
- * Typical use (fixed point):
+ * Typical use (fixed point); read_peaks_fm() and control() are the caller's, and
+ * tests/test_c_library.py compiles these lines:
  *
- *   static fbg_model model;  static fbg_state st;  fbg_output out;
- *   fbg_model_from_blob(&model, blob, blob_len);     // or use a generated const fbg_model
+ *   static fbg_model model;  static fbg_state st;  fbg_output out;  int k;
+ *   if (fbg_model_from_blob(&model, blob, blob_len) != FBG_OK) return;  // or a generated model
  *   fbg_init(&st, &model, 0);
- *   fbg_tare_begin(&st); for (k..) fbg_tare_add(&st, wl_fm, NULL); fbg_tare_end(&st);
- *   for (;;) { fbg_step(&st, wl_fm, &out); use(out.contact, out.force_mN, out.x_um, ...); }
+ *   fbg_tare_begin(&st);                                      // fingertip unloaded
+ *   for (k = 0; k < 300; ++k) fbg_tare_add(&st, read_peaks_fm(), NULL);
+ *   fbg_tare_end(&st);
+ *   for (;;) {
+ *       fbg_step(&st, read_peaks_fm(), &out);
+ *       if (!(out.status & FBG_STATUS_SENSOR_FAULT) && out.contact)
+ *           control(out.force_mN, out.x_um, out.y_um);
+ *   }
  *
  * Thread safety: functions touch only the structs passed in; a const fbg_model may be shared
  * by any number of fbg_state instances.
