@@ -12,8 +12,8 @@ device keeps the same imperfections in every scene and under every scene seed.
 
 Effects run in a fixed physical order, whatever the order in the scene file
 (:data:`EFFECT_ORDER`): tolerance (device) → edge_contact (where the load enters the
-beams) → hysteresis (rubber pad) → dynamics (pad/beam vibration) → Bragg shift →
-temperature → noise → quantization (interrogator) → dropout (link).
+beams) → friction_hysteresis, viscoelastic (rubber pad) → dynamics (pad/beam vibration) →
+Bragg shift → temperature → noise → quantization (interrogator) → dropout (link).
 """
 from __future__ import annotations
 
@@ -170,16 +170,83 @@ class EdgeContact(Effect):
         return v - np.sign(u) * loss
 
 
-class Hysteresis(Effect):
+class FrictionHysteresis(Effect):
+    """Rate-independent (frictional) hysteresis of the rubber pad: a Prandtl–Ishlinskii model,
+    a weighted sum of play operators, per beam.
+
+    Where the pad bears on a support it sticks until the load change overcomes friction, and
+    Coulomb friction grows with the normal load, so each play operator's half-width is
+    proportional to the load it carries: operator ``i`` of beam ``b`` follows
+    ``y = clip(y, F - r_i |F|, F + r_i |F|)`` with ``F`` the beam force, and the beam receives
+    ``F + mean_i(y_i - F)``. Thresholds ``r_i = g_b (2 i - 1) / (2 n)`` (``i = 1..n``,
+    ``n = n_operators``) spread evenly so that their mean is ``g_b / 2``: on branches where
+    every operator has slipped, loading delivers ``(1 - g_b / 2) F`` and unloading
+    ``(1 + g_b / 2) F``, a gap of ``g_b F`` at equal force; right after a reversal the
+    operators release one by one (the rounded corner of a rubber loop). The loop closes at zero
+    load, so the pad carries nothing when nothing presses on it. The output depends on the
+    sequence of loads only, not on their timing (the rate-dependent part is
+    :class:`Viscoelastic`). ``g_b = gap * max(0, 1 + gap_sd * z_b)`` with ``z_b`` drawn once
+    per device from this effect's device stream (the friction of each support differs).
+    """
+
+    name = "friction_hysteresis"
+    summary = "rubber pad friction: rate-independent loading/unloading loop (play operators)"
+    params = {
+        "gap": Param("float", 0.06, "loading-unloading gap at equal force on developed branches, "
+                     "as a fraction of that force (0 = none)", 0, 0.5),
+        "gap_sd": Param("float", 0.2, "relative sd of the gap between beams (supports)", 0, 1),
+        "n_operators": Param("int", 8, "play operators per beam (smoothness of the reversal)",
+                             1, 64),
+    }
+
+    def __init__(self, params: Mapping[str, Any], ctx: Context) -> None:
+        super().__init__(params, ctx)
+        z = self.rng(device_property=True).standard_normal(N_BEAMS)
+        n = self.p["n_operators"]
+        self.beam_gap = self.p["gap"] * np.clip(1.0 + self.p["gap_sd"] * z, 0.0, None)
+        # (beam, operator) half-widths relative to the load.
+        self.ratio = self.beam_gap[:, None] * ((2 * np.arange(1, n + 1) - 1) / (2.0 * n))[None, :]
+        self.state = np.zeros((N_BEAMS, n))
+
+    def process(self, beam_forces: np.ndarray) -> np.ndarray:
+        """Pass (n, 4) beam forces through the pad; keeps the operator states between calls."""
+        f = np.asarray(beam_forces, float)
+        out = np.empty_like(f)
+        n_ops = self.ratio.shape[1]
+        for b in range(N_BEAMS):
+            col = f[:, b].tolist()
+            mag = np.abs(f[:, b])
+            dev_sum = np.zeros(f.shape[0])
+            for i in range(n_ops):
+                r = float(self.ratio[b, i])
+                lo = (f[:, b] - r * mag).tolist()
+                hi = (f[:, b] + r * mag).tolist()
+                y = float(self.state[b, i])
+                ys = [0.0] * len(col)
+                # A plain float loop: min/max are exact, so any chunking gives the same bits.
+                for k in range(len(col)):
+                    if y < lo[k]:
+                        y = lo[k]
+                    elif y > hi[k]:
+                        y = hi[k]
+                    ys[k] = y
+                self.state[b, i] = y
+                dev_sum += np.asarray(ys) - f[:, b]
+            out[:, b] = f[:, b] + dev_sum / n_ops
+        return out
+
+
+class Viscoelastic(Effect):
     """Viscoelastic rubber pad (paper Fig. 8): the force reaching the beams lags the applied
     force, a standard-linear-solid response per beam,
     ``out = F + magnitude * (F_lag - F)`` with ``F_lag`` a first-order lag of ``F`` with time
-    constant ``time_constant_s``: lower strain while loading, higher while unloading (a loop),
-    and a small creep recovery after release.
+    constant ``time_constant_s``: lower strain while loading, higher while unloading (a loop
+    that narrows as the press slows down), and a small creep recovery after release. Scene
+    files may still call it ``hysteresis`` (its former name, see :data:`RENAMED_EFFECTS`).
     """
 
-    name = "hysteresis"
-    summary = "viscoelastic pad: loading differs from unloading"
+    name = "viscoelastic"
+    summary = "viscoelastic pad: rate-dependent lag and creep"
     params = {
         "magnitude": Param("float", 0.06, "fraction of the force that relaxes (0 = elastic)", 0, 0.9),
         "time_constant_s": Param("float", 0.25, "relaxation time constant, s", 0, 100, lo_open=True),
@@ -444,8 +511,17 @@ class Dropout(Effect):
 
 
 #: Every effect by name, in the order they act.
-EFFECT_ORDER = ("tolerance", "edge_contact", "hysteresis", "dynamics", "temperature", "noise",
-                "quantization", "dropout")
+EFFECT_ORDER = ("tolerance", "edge_contact", "friction_hysteresis", "viscoelastic", "dynamics",
+                "temperature", "noise", "quantization", "dropout")
 EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
-    Tolerance, EdgeContact, Hysteresis, Dynamics, Temperature, Noise, Quantization, Dropout)}
+    Tolerance, EdgeContact, FrictionHysteresis, Viscoelastic, Dynamics, Temperature, Noise,
+    Quantization, Dropout)}
 assert tuple(EFFECTS) == EFFECT_ORDER
+#: Former effect names still accepted in scene files and effect mappings: ``hysteresis`` was
+#: the viscoelastic lag before the rate-independent loop got its own effect.
+RENAMED_EFFECTS = {"hysteresis": "viscoelastic"}
+
+
+def canonical_effect_name(name: str) -> str:
+    """The current name of an effect (a former name maps to its successor)."""
+    return RENAMED_EFFECTS.get(name, name)

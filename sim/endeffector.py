@@ -1,8 +1,8 @@
 """The simulated end-effector: applied load in, five peak wavelengths out, sample by sample.
 
-:class:`EndEffector` keeps every effect's state (pad lag, vibration, temperature walk, random
-streams, dropout bursts) between calls, so a controller can drive it in blocks of any size
-and get exactly (bit for bit) what one call over the whole recording would give.
+:class:`EndEffector` keeps every effect's state (pad friction and lag, vibration, temperature
+walk, random streams, dropout bursts) between calls, so a controller can drive it in blocks of
+any size and get exactly (bit for bit) what one call over the whole recording would give.
 """
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from fbgforce.errors import InputError
 from fbgforce.geometry import NOMINAL, PAD_SIZE_MM, Design
-from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS, Context, Effect
+from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS, Context, Effect, canonical_effect_name
 from fbgforce.sim.params import check_params
 from fbgforce.sim.scene import Scene, load_scene
 
@@ -51,10 +51,11 @@ class EndEffector:
             rate_hz = scene.sample_rate_hz if rate_hz is None else rate_hz
         else:
             effects = {}
-            for name, params in dict(scene_or_effects or {}).items():
-                if name not in EFFECTS:
-                    raise InputError(f"unknown effect; allowed effects: {', '.join(EFFECT_ORDER)}",
-                                     column=f"effects.{name}")
+            for given, params in dict(scene_or_effects or {}).items():
+                name = canonical_effect_name(given)
+                if name not in EFFECTS or name in effects:
+                    raise InputError(f"unknown or repeated effect; allowed effects: "
+                                     f"{', '.join(EFFECT_ORDER)}", column=f"effects.{given}")
                 effects[name] = check_params(params, EFFECTS[name].params, path=None,
                                              key_path=f"effects.{name}")
         self.ctx = Context(seed=int(seed or 0), device=int(device or 0),
@@ -66,6 +67,13 @@ class EndEffector:
             design = self.effects["tolerance"].apply(design)  # type: ignore[attr-defined]
         self.design: Design = design
         self.n_processed = 0
+
+    def _pad(self, beam_forces: np.ndarray) -> np.ndarray:
+        """Beam forces after the rubber pad (friction loop, then viscoelastic lag)."""
+        for name in ("friction_hysteresis", "viscoelastic"):
+            if name in self.effects:
+                beam_forces = self.effects[name].process(beam_forces)  # type: ignore[attr-defined]
+        return beam_forces
 
     @property
     def rate_hz(self) -> float:
@@ -135,9 +143,7 @@ class EndEffector:
             x, y = fx["edge_contact"].location(x, y)  # type: ignore[attr-defined]
         design = self.design
         if "dynamics" in fx:
-            bf = design.beam_forces(f, x, y)
-            if "hysteresis" in fx:
-                bf = fx["hysteresis"].process(bf)  # type: ignore[attr-defined]
+            bf = self._pad(design.beam_forces(f, x, y))
             dyn = fx["dynamics"]
             kicks = design.beam_forces(j, x, y) if np.any(j) else None
             steps = None
@@ -149,9 +155,7 @@ class EndEffector:
             bf = dyn.process(bf, kicks, steps)  # type: ignore[attr-defined]
         else:
             load = f + j * self.ctx.rate_hz if np.any(j) else f
-            bf = design.beam_forces(load, x, y)
-            if "hysteresis" in fx:
-                bf = fx["hysteresis"].process(bf)  # type: ignore[attr-defined]
+            bf = self._pad(design.beam_forces(load, x, y))
         wl = design.wavelengths(bf)
         signal = wl - design.base_wl_nm
         if "temperature" in fx:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from fbgforce.errors import InputError
-from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS
+from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS, RENAMED_EFFECTS, canonical_effect_name
 from fbgforce.sim.params import Param, check_params
 
 _REGIONS = ("pad", "interior", "boundary")
@@ -156,6 +156,7 @@ def scene_from_dict(data: Mapping[str, Any], *, path: str | None = None,
     eff = data.get("effects", {})
     if not isinstance(eff, Mapping):
         raise InputError("must be a table of [effects.NAME] tables", path=path, column="effects")
+    eff = _canonical_effects(eff, path)
     effects: dict[str, dict[str, Any]] = {}
     for ename, params in eff.items():
         if ename not in EFFECTS:
@@ -177,6 +178,20 @@ def scene_from_dict(data: Mapping[str, Any], *, path: str | None = None,
     return Scene(name=name, description=values["description"], seed=values["seed"],
                  device=values["device"], sample_rate_hz=values["sample_rate_hz"],
                  schedule=sched_vals, effects=effects, path=path)
+
+
+def _canonical_effects(eff: Mapping[str, Any], path: str | None) -> dict[str, Any]:
+    """``eff`` with former effect names (:data:`RENAMED_EFFECTS`) replaced by current ones;
+    a table naming one effect under both names is ambiguous and refused."""
+    out: dict[str, Any] = {}
+    for given, params in eff.items():
+        name = canonical_effect_name(given)
+        if name in out:
+            old = [k for k, v in RENAMED_EFFECTS.items() if v == name]
+            raise InputError(f"effect {name!r} given twice (also as its former name "
+                             f"{', '.join(old)!s})", path=path, column=f"effects.{given}")
+        out[name] = params
+    return out
 
 
 def _check_schedule(s: dict[str, Any], path: str | None) -> None:
@@ -246,7 +261,9 @@ def _inherit(data: Mapping[str, Any], path: str | None, chain: tuple[str, ...]) 
             merged["schedule"] = {**sched, **value}
         elif key == "effects" and isinstance(value, Mapping):
             effects = merged.get("effects", {})
-            for ename, params in value.items():
+            if isinstance(effects, Mapping):
+                effects = _canonical_effects(effects, where)
+            for ename, params in _canonical_effects(value, path).items():
                 if params is False:
                     effects.pop(ename, None)
                 elif isinstance(params, Mapping) and isinstance(effects.get(ename), Mapping):

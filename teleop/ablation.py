@@ -37,6 +37,10 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     return (max(0.0, centre - half), min(1.0, centre + half))
 
 
+def _nanmedian(v: np.ndarray) -> float | None:
+    return None if np.all(np.isnan(v)) else round(float(np.nanmedian(v)), 3)
+
+
 def summarize(label: str, fb: Feedback, result: TeleopResult, wall_s: float) -> dict[str, Any]:
     """One table row from a batch of runs."""
     o = result.outcomes
@@ -54,6 +58,8 @@ def summarize(label: str, fb: Feedback, result: TeleopResult, wall_s: float) -> 
         "mean_time_in_safe_band_fraction": round(float(np.mean(o["time_in_safe_band_fraction"])), 3),
         "median_estimator_delay_ms": (None if np.all(np.isnan(delays))
                                       else round(float(np.nanmedian(delays)), 1)),
+        "median_force_rmse_N": _nanmedian(o["force_rmse_N"]),
+        "median_force_bias_N": _nanmedian(o["force_bias_N"]),
         "failed_seeds": [int(v) for v in o["seed"][~o["success"]]],
         "wall_s": round(wall_s, 1),
         "feedback": describe(fb),
@@ -83,8 +89,9 @@ def run_ablation(scene: TeleopScene, conditions: list[Condition], seed: int, n_r
 def markdown_table(rows: list[dict[str, Any]]) -> str:
     """The ablation rows as a Markdown table."""
     head = ("| condition | runs | success | 95 % CI | broken | dropped | max force median / p95 (N) "
-            "| time in safe band | measured delay (ms) | filter delay (ms) |")
-    lines = [head, "|" + "---|" * 10]
+            "| time in safe band | measured delay (ms) | filter delay (ms) "
+            "| in-loop force RMSE / bias, median (N) |")
+    lines = [head, "|" + "---|" * 11]
     for r in rows:
         fb = r["feedback"]
         filt = fb.get("filter_group_delay_ms")
@@ -95,8 +102,13 @@ def markdown_table(rows: list[dict[str, Any]]) -> str:
             f"{r['dropped_rate']:.0%} | {r['median_max_force_N']:.1f} / {r['p95_max_force_N']:.1f} | "
             f"{r['mean_time_in_safe_band_fraction']:.2f} | "
             f"{'-' if delay is None else f'{delay:.0f}'} | "
-            f"{'-' if filt is None else f'{filt:.1f}'} |")
+            f"{'-' if filt is None else f'{filt:.1f}'} | {_error_cell(r)} |")
     return "\n".join(lines) + "\n"
+
+
+def _error_cell(row: dict[str, Any]) -> str:
+    rmse, bias = row["median_force_rmse_N"], row["median_force_bias_N"]
+    return "-" if rmse is None else f"{rmse:.2f} / {bias:+.2f}"
 
 
 def estimator_label(fb: SensorFeedback) -> str:

@@ -41,11 +41,15 @@ def register(subparsers: Any) -> None:
                    help="runtime for --feedback estimator: C fixed point (default) or C float")
     p.add_argument("--delay-ms", type=float, default=0.0,
                    help="extra transport delay between the force source and the master, ms")
+    p.add_argument("--allow-other-device", action="store_true",
+                   help="run the estimator even if the scene's fingertip is not the device the "
+                        "model was calibrated on (default: refuse; to measure what it costs)")
     add_json_flag(p)
     p.set_defaults(handler=run)
 
 
-def make_feedback(kind: str, model: str | None, engine: str, delay_ms: float) -> Any:
+def make_feedback(kind: str, model: str | None, engine: str, delay_ms: float,
+                  allow_other_device: bool = False) -> Any:
     """The feedback source for the command-line options."""
     from fbgforce.teleop.feedback import NoFeedback, SensorFeedback, TrueForce
 
@@ -58,7 +62,8 @@ def make_feedback(kind: str, model: str | None, engine: str, delay_ms: float) ->
     if not model:
         raise InputError("--feedback estimator needs --model MODEL_DIR (or use --feedback "
                          "true|none)", column="--model")
-    return SensorFeedback(model, engine=engine, extra_delay_ms=delay_ms)
+    return SensorFeedback(model, engine=engine, extra_delay_ms=delay_ms,
+                          allow_other_device=allow_other_device)
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -73,7 +78,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", column="--seed")
     scene = load_teleop_scene(args.scene)
-    fb = make_feedback(args.feedback, args.model, args.engine, args.delay_ms)
+    fb = make_feedback(args.feedback, args.model, args.engine, args.delay_ms,
+                       args.allow_other_device)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     result = simulate(scene, fb, run_seeds(args.seed, args.runs), progress=True)
@@ -89,6 +95,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     _write_runs_csv(result, out / "runs.csv")
+    check = getattr(fb, "device_check", None)
+    if check is not None and check["status"] != "verified":
+        print(f"warning: device {check['status']}: {check['detail']}", file=sys.stderr)
     if not args.json:
         r = summary
         state = ("BROKEN" if r["egg_broken"] else "DROPPED" if r["egg_dropped"]
@@ -96,6 +105,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         print(f"run 0 (seed {args.seed}, feedback {fb.name}): egg {state}, max force "
               f"{r['max_force_N']:.1f} N, {r['time_in_safe_band_fraction']:.0%} of the carry in "
               f"the safe band, estimator delay {r['estimator_delay_ms']} ms")
+        if r["force_rmse_N"] is not None:
+            print(f"reported vs true force in contact: RMSE {r['force_rmse_N']:.2f} N, bias "
+                  f"{r['force_bias_N']:+.2f} N")
         if args.runs > 1:
             print(f"{args.runs} runs: success {r['success_rate']:.0%}, broken "
                   f"{r['broken_rate']:.0%}, dropped {r['dropped_rate']:.0%}")
@@ -108,7 +120,8 @@ def _write_runs_csv(result: Any, path: Path) -> None:
     """One line per run: seed and outcome."""
     o = result.outcomes
     keys = ("seed", "egg_broken", "egg_dropped", "success", "max_force_N",
-            "time_in_safe_band_fraction", "estimator_delay_ms", "contact_noticed_s")
+            "time_in_safe_band_fraction", "estimator_delay_ms", "force_rmse_N", "force_bias_N",
+            "contact_noticed_s")
     with path.open("w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(keys)

@@ -125,12 +125,22 @@ class SensorFeedback:
     prefetch
         Compute contact-free stretches the loop announces in one block (identical output;
         about 15 % less CPU on the egg scene); False steps every sample singly.
+    allow_other_device
+        Run even when the scene's fingertip is not the device the model was calibrated on
+        (:func:`fbgforce.teleop.sensor.check_device`; to measure what that costs). By default
+        such a mismatch is an :class:`InputError`.
+
+    Attributes
+    ----------
+    device_check
+        The result of the device check, after :meth:`start`.
     """
 
     renders_force = True
 
     def __init__(self, model_dir: str | Path, engine: str = "fixed", extra_delay_ms: float = 0.0,
-                 label: str | None = None, prefetch: bool = True) -> None:
+                 label: str | None = None, prefetch: bool = True,
+                 allow_other_device: bool = False) -> None:
         from fbgforce import model as model_mod
         from fbgforce.teleop.sensor import ENGINE_NAMES
 
@@ -140,6 +150,8 @@ class SensorFeedback:
         self.model_dir = Path(model_dir)
         self.engine = engine
         self.prefetch = prefetch
+        self.allow_other_device = allow_other_device
+        self.device_check: dict[str, Any] | None = None
         self.extra_delay_ms = float(extra_delay_ms)
         self.name = label or ("estimator" + ("" if engine == "fixed" else f"[{engine}]")
                               + (f"+{extra_delay_ms:g}ms" if extra_delay_ms else ""))
@@ -154,8 +166,13 @@ class SensorFeedback:
         return self.model.preprocess.group_delay_samples
 
     def start(self, scene: TeleopScene, seeds: list[int]) -> None:
-        from fbgforce.teleop.sensor import make_end_effector, make_engine
+        from fbgforce.teleop.sensor import check_device, make_end_effector, make_engine
 
+        self.device_check = check_device(self.model, scene.sim_scene)
+        if self.device_check["status"] == "mismatch" and not self.allow_other_device:
+            raise InputError(self.device_check["detail"] + " (use the calibration scene's device, "
+                             "or --allow-other-device to measure what the mismatch costs)",
+                             path=scene.path, column="effects")
         self.dt = scene.dt
         self.line = DelayLine(round(self.extra_delay_ms * 1e-3 * scene.rate_hz), len(seeds))
         self.sensors = [make_end_effector(scene, seed) for seed in seeds]
@@ -211,5 +228,5 @@ def describe(fb: Any) -> dict[str, Any]:
         d.update(model=str(fb.model_dir), engine=fb.engine, extra_delay_ms=fb.extra_delay_ms,
                  filter=fb.model.preprocess.filter_kind,
                  filter_sigma=fb.model.preprocess.filter_sigma,
-                 filter_group_delay_ms=fb.filter_delay_ms)
+                 filter_group_delay_ms=fb.filter_delay_ms, device_check=fb.device_check)
     return d

@@ -41,7 +41,8 @@ class TeleopResult:
         ``required_N`` (grip needed to hold the egg at that instant, once carried).
     outcomes
         Per-run arrays: ``egg_broken``, ``egg_dropped``, ``success``, ``max_force_N``,
-        ``time_in_safe_band_fraction``, ``estimator_delay_ms``, ``seed``.
+        ``time_in_safe_band_fraction``, ``estimator_delay_ms``, ``force_rmse_N``,
+        ``force_bias_N``, ``seed``.
     """
 
     t_s: np.ndarray
@@ -62,6 +63,8 @@ class TeleopResult:
             "max_force_N": round(float(o["max_force_N"][k]), 4),
             "time_in_safe_band_fraction": round(float(o["time_in_safe_band_fraction"][k]), 4),
             "estimator_delay_ms": None if np.isnan(delay) else round(delay, 2),
+            "force_rmse_N": _rounded(o["force_rmse_N"][k]),
+            "force_bias_N": _rounded(o["force_bias_N"][k]),
         }
 
     def rates(self) -> dict[str, float]:
@@ -70,6 +73,25 @@ class TeleopResult:
         return {"success_rate": float(np.mean(o["success"])),
                 "broken_rate": float(np.mean(o["egg_broken"])),
                 "dropped_rate": float(np.mean(o["egg_dropped"]))}
+
+
+def _rounded(v: float) -> float | None:
+    return None if np.isnan(v) else round(float(v), 4)
+
+
+def force_error(true_N: np.ndarray, reported_N: np.ndarray, threshold_N: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-run RMSE and bias (mean of reported - true), N, of the reported force against the
+    truth over the samples in contact (true force above ``threshold_N``: the calibration's
+    label rule, so the figures compare with the model's offline test RMSE); NaN for a run
+    without contact."""
+    inside = true_N > threshold_N
+    count = inside.sum(axis=0)
+    err = np.where(inside, reported_N - true_N, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rmse = np.sqrt((err ** 2).sum(axis=0) / count)
+        bias = err.sum(axis=0) / count
+    return np.where(count > 0, rmse, np.nan), np.where(count > 0, bias, np.nan)
 
 
 def run_seeds(seed: int, n_runs: int) -> list[int]:
@@ -187,6 +209,11 @@ def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
                            for k in range(n_runs)])
     else:
         delays = np.full(n_runs, np.nan)
+    if feedback.renders_force:
+        rmse, bias = force_error(f, tr["force_reported_N"],
+                                 float(scene.sim_scene.schedule["contact_threshold_N"]))
+    else:
+        rmse = bias = np.full(n_runs, np.nan)
     outcomes = {
         "seed": np.asarray(seeds),
         "egg_broken": egg.broken.copy(),
@@ -195,6 +222,8 @@ def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
         "max_force_N": f.max(axis=0),
         "time_in_safe_band_fraction": frac,
         "estimator_delay_ms": delays,
+        "force_rmse_N": rmse,
+        "force_bias_N": bias,
         "contact_noticed_s": operator.contact_time_s,
     }
     tr["required_N"] = np.where(carried[:, None], egg.required_grip_N(load[:, None]), np.nan)

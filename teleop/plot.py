@@ -52,8 +52,11 @@ def plot_run(result: TeleopResult, path: str | Path, k: int = 0, title: str | No
               framealpha=0.9)
     outcome = ("BROKEN" if o["egg_broken"][k] else "DROPPED" if o["egg_dropped"][k]
                else "carried unbroken")
-    ax.set_title(title or f"egg grasp, seed {int(o['seed'][k])}, feedback {result.feedback}: "
-                 f"{outcome}", fontsize=10)
+    rmse, bias = float(o["force_rmse_N"][k]), float(o["force_bias_N"][k])
+    error = ("" if np.isnan(rmse) else
+             f"\nreported vs true force in contact: RMSE {rmse:.2f} N, bias {bias:+.2f} N")
+    ax.set_title((title or f"egg grasp, seed {int(o['seed'][k])}, feedback {result.feedback}: "
+                  f"{outcome}") + error, fontsize=10)
     ax_zoom.plot(t, tr["felt_N"][:, k], color="tab:brown", lw=1.0, label="force on the hand")
     ax_zoom.set_ylabel("master, N")
     ax_zoom.set_xlabel("time, s")

@@ -8,7 +8,9 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
   among them like a FLEXIBLE plate (inverse-square-distance shares, not the rigid-plate
   force/torque balance), so the strain-to-location map is nonlinear;
 - per-channel sensitivities ±30 %, a quadratic beam response (±8 % at full load) and linear
-  cross-talk between channels (up to 5 %), optional viscoelastic creep;
+  cross-talk between channels (up to 5 %), optional viscoelastic creep, optional
+  rate-independent pad friction (a Duhem/Dahl-type model with smooth, exponential reversals:
+  not the simulator's play operators);
 - base wavelengths anywhere in 1510–1590 nm; sample rates 500 / 1000 / 2000 Hz; white noise
   2–15 pm quantised to 0.1 pm;
 - temperature: a slow ramp plus a wander seen by every grating with its own coefficient, or
@@ -62,6 +64,9 @@ class Spec:
     drift: bool = True                   # temperature ramp + wander (False: exactly constant)
     drift_K: float = 1.5                 # ramp over the log, K
     creep: float = 0.0                   # viscoelastic fraction (0 = none)
+    friction: float = 0.0                # pad friction: loading/unloading gap at equal load,
+                                         # as a fraction of that load (0 = none)
+    friction_sharpness: float = 4.0      # how fast a reversal slips (higher: sharper corner)
     rest_s: tuple[float, float] = (0.15, 0.4)
     ramp_s: tuple[float, float] = (0.15, 0.35)
     hold_s: tuple[float, float] = (0.0, 0.2)
@@ -113,9 +118,41 @@ def shares(dev: Device, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return wgt / wgt.sum(axis=1, keepdims=True)
 
 
+def pad_friction(beam: np.ndarray, gap: float, sharpness: float) -> np.ndarray:
+    """Beam loads (n, 4) after a frictional pad: a Duhem (Dahl-type) model.
+
+    A friction force ``z`` per beam opposes the load change and saturates at ``mu |F|`` with
+    ``mu = gap / 2`` (Coulomb: proportional to the load, so the loop closes at zero), approached
+    exponentially in the load travelled: ``z <- b + (z - b) exp(-sharpness |dF| / (mu |F|))``
+    with ``b = mu |F| sign(dF)``. The beam receives ``F - z``. Depends on the sequence of
+    loads only, not on time.
+    """
+    mu = gap / 2.0
+    out = np.empty_like(beam)
+    for j in range(beam.shape[1]):
+        col = beam[:, j].tolist()
+        res = [0.0] * len(col)
+        z, prev = 0.0, 0.0
+        for i, f in enumerate(col):
+            d = f - prev
+            bound = mu * abs(f)
+            if bound == 0.0:
+                z = 0.0
+            elif d != 0.0:
+                target = bound if d > 0 else -bound
+                z = target + (z - target) * np.exp(-sharpness * abs(d) / bound)
+            res[i] = f - z
+            prev = f
+        out[:, j] = res
+    return out
+
+
 def strain_pm(dev: Device, force: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Noise-free strain-grating shifts (n, 4), pm: shares, quadratic beams, cross-talk."""
+    """Noise-free strain-grating shifts (n, 4), pm: shares, (pad friction,) quadratic beams,
+    cross-talk."""
     beam = force[:, None] * shares(dev, x, y)
+    if dev.spec.friction > 0:
+        beam = pad_friction(beam, dev.spec.friction, dev.spec.friction_sharpness)
     full = dev.spec.force_max_N / 2.0  # a beam rarely carries more than half the load
     s = dev.gain_pm_per_N * beam * (1.0 + dev.quad * beam / full)
     return s @ dev.crosstalk.T
@@ -248,6 +285,9 @@ VARIANTS: dict[str, Spec] = {
     # Starts inside a press, rests of 30-80 ms only, strong drift.
     "short_rests": Spec("short_rests", rest_s=(0.03, 0.08), start_in_contact=12, drift_K=3.0,
                         contact_threshold_N=0.3),
+    # Strongly hysteretic pad: friction loop 12 % of the load (6 % of full scale between the
+    # branches at mid-range) plus 8 % creep; a memoryless estimator can only average them.
+    "hysteretic_pad": Spec("hysteretic_pad", friction=0.12, creep=0.08, hold_s=(0.0, 0.4)),
 }
 
 #: The file ``main`` writes next to the logs: ``{"presses": n, "variants": {name: {"train":

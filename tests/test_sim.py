@@ -100,9 +100,9 @@ def test_two_devices_share_the_protocol_not_the_device():
     assert load_scene("two_devices").device != load_scene("calibration").device
 
 
-def test_hysteresis_loop_is_visible():
-    scene = small("smoke", 6).replace(effects={"hysteresis": {}})
-    ds = simulate(scene)
+def loop_gaps(ds) -> np.ndarray:
+    """Per press: (loading - unloading) summed shift at half the peak force, relative to the
+    loading shift there."""
     gaps = []
     for pid in np.unique(ds.press_id):
         p = ds.press_id == pid
@@ -112,9 +112,29 @@ def test_hysteresis_loop_is_visible():
         up = np.interp(half, f[: k + 1], s[: k + 1])
         down = np.interp(half, f[k:][::-1], s[k:][::-1])
         gaps.append((up - down) / abs(up - s[0]))
+    return np.array(gaps)
+
+
+@pytest.mark.parametrize("effect", ["viscoelastic", "friction_hysteresis"])
+def test_pad_loop_is_visible(effect):
+    gaps = loop_gaps(simulate(small("smoke", 6).replace(effects={effect: {}})))
     # The pad lags: at the same load-cell force the beams carry less while loading than while
     # unloading, so unloading reads a lower wavelength (more compression): a loop.
     assert min(gaps) > 0 and np.median(gaps) > 0.02
+
+
+def test_calibration_pad_loop_strength():
+    """The calibration device's pad: at half the peak force, unloading reads 6-12 % more
+    than loading (friction gap 0.06 per unit force on developed branches, about 0.055 at the
+    half-peak point, plus the viscoelastic lag)."""
+    scene = small("calibration", 8)
+    assert scene.effects["friction_hysteresis"]["gap"] == 0.06
+    pad_only = {k: scene.effects[k] for k in ("friction_hysteresis", "viscoelastic")}
+    gaps = loop_gaps(simulate(scene.replace(effects=pad_only)))
+    assert 0.06 < np.median(gaps) < 0.12, gaps
+    friction = loop_gaps(simulate(scene.replace(effects={"friction_hysteresis":
+                                                         pad_only["friction_hysteresis"]})))
+    assert 0.04 < np.median(friction) < 0.07, friction
 
 
 def test_impact_rings_and_decays_within_40_ms():
@@ -147,8 +167,12 @@ def test_thermal_soak_has_no_contact_and_a_40K_ramp():
      "allowed keys: sigma_pm, relative"),
     ('[schedule]\nkind = "presses"\n[effects.noise]\nsigma_pm = "3"\n', "effects.noise.sigma_pm",
      "expected a number in [0, 1000]"),
-    ('[schedule]\nkind = "presses"\n[effects.hysteresis]\ntime_constant_s = 0\n',
-     "effects.hysteresis.time_constant_s", "out of range; expected a number in (0, 100]"),
+    ('[schedule]\nkind = "presses"\n[effects.viscoelastic]\ntime_constant_s = 0\n',
+     "effects.viscoelastic.time_constant_s", "out of range; expected a number in (0, 100]"),
+    ('[schedule]\nkind = "presses"\n[effects.hysteresis]\n[effects.viscoelastic]\n',
+     "effects.viscoelastic", "given twice"),
+    ('[schedule]\nkind = "presses"\n[effects.friction_hysteresis]\ngap = 0.9\n',
+     "effects.friction_hysteresis.gap", "out of range"),
     ('[schedule]\nkind = "presses"\nn_presses = 2.5\n', "schedule.n_presses", "an integer"),
     ('[schedule]\nkind = "presses"\nregion = "edge"\n', "schedule.region", "one of 'pad'"),
     ('[schedule]\nkind = "walk"\n', "schedule.kind", "allowed: presses, rest, impacts"),

@@ -6,6 +6,7 @@ import pytest
 
 from fbgforce.errors import InputError
 from fbgforce.sim import EFFECT_ORDER, EFFECTS, EndEffector, effect_rng
+from fbgforce.sim.effects import Context, FrictionHysteresis
 
 RATE = 1000.0
 
@@ -14,7 +15,8 @@ NEUTRAL = {
     "tolerance": dict(gain_sd=0.0, strain_transfer=1.0, strain_transfer_sd=0.0,
                       support_sd_x_mm=0.0, support_sd_y_mm=0.0, stiffness_sd=0.0, base_wl_sd_nm=0.0),
     "edge_contact": dict(strength_x=0.0, strength_y=0.0),
-    "hysteresis": dict(magnitude=0.0),
+    "friction_hysteresis": dict(gap=0.0),
+    "viscoelastic": dict(magnitude=0.0),
     "dynamics": None,
     "temperature": dict(drift_K_per_sqrt_s=0.0, mismatch_sd=0.0),
     "noise": dict(sigma_pm=0.0, relative=0.0),
@@ -25,7 +27,8 @@ NEUTRAL = {
 OTHER = {
     "tolerance": dict(gain_sd=0.2, support_sd_y_mm=2.0),
     "edge_contact": dict(width_mm=5.0, strength_y=0.3),
-    "hysteresis": dict(magnitude=0.3, time_constant_s=0.05),
+    "friction_hysteresis": dict(gap=0.2, gap_sd=0.5, n_operators=3),
+    "viscoelastic": dict(magnitude=0.3, time_constant_s=0.05),
     "dynamics": dict(frequency_hz=900.0, internal_rate_hz=50000.0),
     "temperature": dict(ramp_K=5.0, ramp_duration_s=0.5, drift_K_per_sqrt_s=1.0),
     "noise": dict(sigma_pm=9.0, relative=0.05),
@@ -212,3 +215,98 @@ def test_bad_effects_mapping_and_inputs():
     with pytest.raises(ValueError, match="samples"):
         ee.process([0.0, 0.001], [1.0], [3.0], [3.0])
     assert set(EFFECTS) == set(EFFECT_ORDER)
+
+
+# ------------------------------------------------------------------ rate-independent pad loop
+
+def friction_pad(gap: float = 0.1, n_operators: int = 8):
+    """The friction loop alone, without spread between beams."""
+    ctx = Context(seed=0, device=0, rate_hz=RATE)
+    return FrictionHysteresis({"gap": gap, "gap_sd": 0.0, "n_operators": n_operators}, ctx)
+
+
+def triangle(peak: float, n_up: int) -> np.ndarray:
+    """0 -> peak -> 0 in ``n_up`` equal steps each way, on every beam."""
+    up = np.linspace(0.0, peak, n_up + 1)
+    return np.repeat(np.concatenate([up, up[-2::-1]])[:, None], 4, axis=1)
+
+
+def test_friction_loop_gap_at_equal_force_matches_the_parameter():
+    gap, peak, n_up = 0.1, 40.0, 400
+    out = friction_pad(gap).process(triangle(peak, n_up))[:, 0]
+    f = triangle(peak, n_up)[:, 0]
+    load, unload = out[:n_up + 1], out[n_up:][::-1]  # both indexed by the same force
+    # Developed branches: every operator has slipped (F below peak (1 - r_max) / (1 + r_max)).
+    r_max = gap * (2 * 8 - 1) / (2 * 8)
+    developed = (f[:n_up + 1] > 0) & (f[:n_up + 1] < peak * (1 - r_max) / (1 + r_max))
+    np.testing.assert_allclose(load[developed], (1 - gap / 2) * f[:n_up + 1][developed], rtol=1e-12)
+    np.testing.assert_allclose((unload - load)[developed], gap * f[:n_up + 1][developed],
+                               rtol=1e-12)
+    # Sticking at the reversal: the output stays flat at first, then the operators release.
+    k = n_up
+    assert out[k + 1] == out[k] and out[k + 40] < out[k]
+    # The loop closes at zero load: nothing is left on the beams once the press is over.
+    assert out[-1] == 0.0 and out[0] == 0.0
+
+
+def test_friction_loop_is_rate_independent_and_the_viscoelastic_one_is_not():
+    """The same press at two speeds (the slow one samples the fast one's forces and 9 more
+    between each): the friction loop gives the same output at the same force, the viscoelastic
+    lag does not."""
+    peak = 30.0
+    fast, slow = triangle(peak, 40), triangle(peak, 400)
+    out_fast = friction_pad(0.08).process(fast)
+    out_slow = friction_pad(0.08).process(slow)
+    np.testing.assert_allclose(out_slow[::10], out_fast, rtol=1e-12, atol=1e-12)
+
+    def viscoelastic(forces):
+        ve = EFFECTS["viscoelastic"]({"magnitude": 0.1, "time_constant_s": 0.05},
+                                     Context(seed=0, device=0, rate_hz=RATE))
+        return ve.process(forces)
+    assert np.max(np.abs(viscoelastic(slow)[::10] - viscoelastic(fast))) > 0.05 * peak * 0.1
+
+
+def test_friction_loop_through_the_end_effector_at_two_press_speeds():
+    """At the sensor: the wavelength gap at equal force is the same for a 0.1 s and a 1 s
+    press."""
+    gaps = []
+    for n_up in (100, 1000):
+        f = triangle(20.0, n_up)[:, 0]
+        n = f.size
+        ee = EndEffector({"friction_hysteresis": {"gap": 0.1, "gap_sd": 0.0}})
+        wl = ee.process(np.arange(n) / RATE, f, np.full(n, 10.5), np.full(n, 13.5))
+        s = (wl[:, :4] - wl[0, :4]).sum(axis=1)
+        gaps.append(s[n_up // 4] - s[n - 1 - n_up // 4])  # loading vs unloading at 5 N
+    assert gaps[0] == pytest.approx(gaps[1], rel=1e-9)
+    ideal = EndEffector(None).process(np.zeros(2), [0.0, 5.0], [10.5, 10.5], [13.5, 13.5])
+    per_5N = (ideal[1, :4] - ideal[0, :4]).sum()
+    assert gaps[0] == pytest.approx(-0.1 * per_5N, rel=1e-9)  # a 10 % gap of 5 N
+
+
+def test_friction_loop_state_carries_across_chunks():
+    forces = np.abs(np.sin(np.linspace(0, 9, 1000)))[:, None] * np.array([[10.0, 20.0, 5.0, 1.0]])
+    forces[::97] *= -0.3  # a beam may be pulled (negative force) near an edge
+    whole = friction_pad(0.2, 5).process(forces)
+    pad = friction_pad(0.2, 5)
+    parts = [pad.process(forces[a:b]) for a, b in ((0, 1), (1, 333), (333, 334), (334, 1000))]
+    np.testing.assert_array_equal(np.concatenate(parts), whole)
+
+
+def test_friction_loop_spread_between_beams_is_a_device_property():
+    ctx = Context(seed=5, device=3, rate_hz=RATE)
+    a = FrictionHysteresis({"gap": 0.06, "gap_sd": 0.2, "n_operators": 8}, ctx).beam_gap
+    b = FrictionHysteresis({"gap": 0.06, "gap_sd": 0.2, "n_operators": 8},
+                           Context(seed=9, device=3, rate_hz=RATE)).beam_gap
+    np.testing.assert_array_equal(a, b)  # same device under another scene seed
+    assert np.ptp(a) > 0 and np.all(a >= 0)
+    c = FrictionHysteresis({"gap": 0.06, "gap_sd": 0.2, "n_operators": 8},
+                           Context(seed=5, device=4, rate_hz=RATE)).beam_gap
+    assert not np.array_equal(a, c)
+
+
+def test_former_effect_name_hysteresis_reads_as_viscoelastic():
+    old = EndEffector({"hysteresis": {"magnitude": 0.2}})
+    assert list(old.effects) == ["viscoelastic"]
+    assert old.effects["viscoelastic"].p["magnitude"] == 0.2
+    with pytest.raises(InputError, match="repeated"):
+        EndEffector({"hysteresis": {}, "viscoelastic": {}})

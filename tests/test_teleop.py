@@ -219,8 +219,9 @@ def test_cli_json_and_files(tmp_path, capsys):
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     for key in ("egg_broken", "egg_dropped", "max_force_N", "time_in_safe_band_fraction",
-                "estimator_delay_ms"):
+                "estimator_delay_ms", "force_rmse_N", "force_bias_N"):
         assert key in res
+    assert res["force_rmse_N"] == 0.0 and res["force_bias_N"] == 0.0  # undelayed true force
     assert res["n_runs"] == 3 and res["seed"] == 2
     assert json.loads((out / "summary.json").read_text())["max_force_N"] == res["max_force_N"]
     lines = (out / "runs.csv").read_text().splitlines()
@@ -262,3 +263,61 @@ def test_corrupt_blob_is_an_input_error(tmp_path, small_exported_dir):
     (bad / "model.fbgm").write_bytes(bytes(blob))
     with pytest.raises(InputError, match="export"):
         simulate(load_teleop_scene("egg_grasp"), SensorFeedback(bad), [0])
+
+
+# ------------------------------------------------------------------------------ truth in the loop
+
+def offline_test_rmse_up_to(model, force_N: float) -> float:
+    """The model's offline test force RMSE over the force bins that start below ``force_N``
+    (sample-weighted), from its metadata."""
+    bins = [b for b in model.metadata["metrics"]["test"]["by_force"]
+            if b["range_N"][0] < force_N and b["n_samples"]]
+    n = sum(b["n_samples"] for b in bins)
+    return float(np.sqrt(sum(b["rmse_force_N"] ** 2 * b["n_samples"] for b in bins) / n))
+
+
+def test_in_loop_force_error_is_bounded_by_the_offline_test_error(doc, small_exported_dir):
+    """The loop's fingertip is the calibrated device, so the reported force is as good in the
+    loop as on held-out calibration presses of the same force range. Factor 1.5 for what the
+    loop adds: the C fixed-point engine (rounding, a few mN), grips held for seconds while the
+    calibration presses never hold (the pad's creep runs further), and another temperature
+    history. The bias stays within the offline RMSE."""
+    fb = SensorFeedback(small_exported_dir)
+    res = simulate(short_scene(doc), fb, [0, 1, 2])
+    assert fb.device_check["status"] == "verified"
+    o = res.outcomes
+    offline = offline_test_rmse_up_to(fb.model, float(o["max_force_N"].max()))
+    assert np.all(o["max_force_N"] > 2.0)
+    assert np.all(o["force_rmse_N"] <= 1.5 * offline), (o["force_rmse_N"], offline)
+    assert np.all(np.abs(o["force_bias_N"]) <= offline), (o["force_bias_N"], offline)
+    summary = res.run_summary(0)
+    assert summary["force_rmse_N"] == pytest.approx(o["force_rmse_N"][0], abs=1e-4)
+    assert summary["force_bias_N"] == pytest.approx(o["force_bias_N"][0], abs=1e-4)
+
+
+def test_a_fingertip_that_is_not_the_calibrated_device_is_refused(doc, small_exported_dir):
+    """A fingertip with another bond strain transfer (0.90 against the calibration's 0.48)
+    reads about twice the true force: refused, or measured with allow_other_device."""
+    d = copy.deepcopy(doc)
+    d["effects"] = {"tolerance": {"strain_transfer": 0.90}}
+    other = parse_scene(d, "<other>", "other")
+    with pytest.raises(InputError, match="strain_transfer"):
+        simulate(other, SensorFeedback(small_exported_dir), [0])
+    fb = SensorFeedback(small_exported_dir, allow_other_device=True)
+    res = simulate(other, fb, [0])
+    assert fb.device_check["status"] == "mismatch"
+    assert res.outcomes["force_bias_N"][0] > 0.5 * res.outcomes["force_rmse_N"][0] > 1.0
+
+
+def test_device_check_without_a_known_origin(small_exported_dir, tmp_path):
+    from fbgforce import model as fm
+    from fbgforce.teleop.sensor import check_device
+
+    model = fm.load(small_exported_dir)
+    scene = load_teleop_scene("egg_grasp").sim_scene
+    assert check_device(model, scene)["status"] == "verified"
+    model.metadata = {**model.metadata, "data": [{"path": str(tmp_path / "moved.csv")}]}
+    assert check_device(model, scene)["status"] == "unverified"
+    model.metadata["data"] = [{"source": "sim:smoke seed=0 device=7"}]
+    result = check_device(model, scene)
+    assert result["status"] == "mismatch" and "device 7" in result["detail"]

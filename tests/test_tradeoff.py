@@ -99,6 +99,8 @@ def test_grid_shapes() -> None:
     s.grid = "full"
     # filters x widths, plus every other memory on the 2 x 3 causal variants
     assert len(grid.variants(s)) == 4 * 3 + 3 * 2 * 3
+    s.grid = "memory"
+    assert [v.memory for v in grid.variants(s)] == list(grid.MEMORIES)
     sizes = grid.scaled_sizes("quarter")
     assert sizes["location"] == [18, 12, 10] and sizes["contact"] == [18, 12, 5]
 

@@ -36,8 +36,9 @@ def register(subparsers: Any) -> None:
                    help="the memory axis, each as `fbgforce train --memory` takes it (default: "
                         "none, ema:5+play:0.1, both, ema:3,6,9,12+play:0.03,0.1,0.3,1; quick: "
                         "none, both)")
-    p.add_argument("--grid", choices=("star", "full"), default="star",
-                   help="star: filters at paper width + widths at the shipped filter; full: product")
+    p.add_argument("--grid", choices=("star", "full", "memory"), default="star",
+                   help="star: filters at paper width + widths at the shipped filter + memories "
+                        "at the shipped configuration; full: product; memory: the memories only")
     p.add_argument("--engines", nargs="+", default=None, metavar="NAME",
                    help="subset of: numpy-f64 onnx-f32 c-float c-int16 c-int8 c-int8-qat")
     p.add_argument("--qat-epochs", type=int, default=None, help="QAT fine-tuning epochs")

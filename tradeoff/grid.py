@@ -87,7 +87,10 @@ def quick_settings(seed: int = 0) -> Settings:
 
 
 def variants(s: Settings) -> list[Variant]:
-    """The models of the grid (see the module docstring)."""
+    """The models of the grid (see the module docstring); ``grid == "memory"``: only the
+    memory axis on the shipped configuration (paper width, default causal filter)."""
+    if s.grid == "memory":
+        return [Variant("causal", s.default_sigma, "paper", m) for m in s.memories]
     filters = [("none", 0.0)] + [("causal", sg) for sg in s.sigmas]
     if s.centred:
         filters.append(("centred", s.default_sigma))
