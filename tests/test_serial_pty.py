@@ -1,6 +1,6 @@
 """Serial I/O on real pseudo-terminals: virtual interrogator -> reader / stream / record.
 
-The long test is the 10-second 1 kHz stream (issue 7); the rest play at a few kHz so the
+The long test is the 10-second 1 kHz stream; the rest play at a few kHz so the
 whole file stays around half a minute.
 """
 from __future__ import annotations
