@@ -25,23 +25,81 @@ def _add_stop_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no live status on stderr")
 
 
+def _add_peak_map_option(p: argparse.ArgumentParser, text: str) -> None:
+    p.add_argument("--peak-map", metavar="MAP", default=None,
+                   help=text + "; MAP = five CH:K (K-th peak of channel CH) or CH:LO-HI (the one "
+                               "peak between LO and HI nm), for wl1,wl2,wl3,wl4,wlT")
+
+
+def _peak_map(text: str | None, model_dir: str | None = None) -> Any:
+    """--peak-map, else the model's ``hyperion_peak_map`` metadata, else the default."""
+    from fbgforce.interrogator.hyperion import PeakMap, peak_map_from_model
+
+    if text is not None:
+        try:
+            return PeakMap.parse(text)
+        except ValueError as exc:
+            raise InputError(str(exc), column="--peak-map") from None
+    if model_dir is not None:
+        try:
+            found = peak_map_from_model(model_dir)
+        except ValueError as exc:
+            raise InputError(f"hyperion_peak_map: {exc}", path=f"{model_dir}/model.json") from None
+        if found is not None:
+            return found
+    return PeakMap.default()
+
+
+def _protocol(args: argparse.Namespace) -> str:
+    """--protocol, or what the source implies (hyperion:// -> hyperion, else native)."""
+    if args.protocol is not None:
+        return str(args.protocol)
+    return "hyperion" if args.port.startswith("hyperion://") else "native"
+
+
+def _open_reader(args: argparse.Namespace, model_dir: str | None = None, **kw: Any) -> Any:
+    from fbgforce.interrogator.reader import open_reader
+
+    protocol = _protocol(args)
+    hyperion = args.port.startswith("hyperion://")
+    if hyperion != (protocol == "hyperion"):
+        raise InputError("hyperion:// sources speak --protocol hyperion and only they do",
+                         column="--protocol")
+    try:
+        return open_reader(args.port, protocol, peak_map=_peak_map(args.peak_map, model_dir)
+                           if protocol == "hyperion" else None, **kw, **_baud(args))
+    except ValueError as exc:
+        raise InputError(str(exc), column="--source") from None
+
+
 def register(subparsers: Any) -> None:
     """Add ``emulate``, ``stream`` and ``record``."""
     from fbgforce.cli import add_json_flag
 
     p = subparsers.add_parser(
-        "emulate", help="virtual interrogator on a pseudo-terminal (plays a scene in real time)",
-        description="Play a simulated scene (or a dataset file) in real time on a pseudo-terminal "
-                    "as an FBG interrogator would: native frames pushed at --rate, or FiSpec-style "
-                    "answers to '?>'/'P>' polls. The scene's dropout effect becomes real line "
-                    "faults. Prints the device path(s); playback starts when every port has a "
-                    "client. Protocols: docs/protocol.md.")
+        "emulate", help="virtual interrogator on a pseudo-terminal or TCP (plays a scene in real "
+                        "time)",
+        description="Play a simulated scene (or a dataset file) in real time as an FBG "
+                    "interrogator would: on a pseudo-terminal, native frames pushed at --rate or "
+                    "FiSpec-style answers to '?>'/'P>' polls; on TCP (--protocol hyperion), a "
+                    "Luna/Micron Optics Hyperion's command port and peak stream. The scene's "
+                    "dropout effect becomes real line faults. Prints the device path(s) or URL; "
+                    "playback starts when every port has a client. Protocols: docs/protocol.md.")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--scene", help="built-in scene name or scene TOML path")
     src.add_argument("--data", metavar="FILE", help="play a dataset file (CSV/npz) instead")
     p.add_argument("--pty", action="store_true", default=True,
-                   help="serve on a new pseudo-terminal (the default and only transport)")
-    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+                   help="serve on a new pseudo-terminal (the transport of native and fispec)")
+    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default="native",
+                   help="native frames, FiSpec polls (pty) or a Hyperion instrument (TCP)")
+    p.add_argument("--address", default="127.0.0.1",
+                   help="hyperion: address to listen on (default 127.0.0.1)")
+    p.add_argument("--command-port", type=non_negative_int, default=51971,
+                   help="hyperion: command port (default 51971; 0 = any free port)")
+    p.add_argument("--stream-port", type=non_negative_int, default=51972,
+                   help="hyperion: peak stream port (default 51972; 0 = any free port)")
+    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
+                            "(default 1:1,1:2,1:3,1:4,1:5)")
     p.add_argument("--rate", type=positive_float, default=1000.0,
                    help="samples per second of playback (default 1000)")
     p.add_argument("--loadcell", action="store_true",
@@ -71,10 +129,18 @@ def register(subparsers: Any) -> None:
                     "samples, estimate contact, force and location for every sample with the "
                     "fixed-point C runtime, show a one-line live status on stderr and optionally "
                     "write the estimates as CSV.")
-    p.add_argument("--port", required=True, metavar="DEV",
-                   help="device path or pyserial URL (/dev/ttyUSB0, socket://host:port, loop://)")
+    p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
+                   help="device path, pyserial URL (/dev/ttyUSB0, socket://host:port, loop://) "
+                        "or hyperion://HOST[:PORT]")
     p.add_argument("--model", required=True, metavar="MODEL_DIR")
-    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
+                   help="default: hyperion for hyperion:// sources, else native")
+    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T (default: "
+                            "the model's hyperion_peak_map metadata, else 1:1,...,1:5)")
+    p.add_argument("--publish", metavar="URL", action="append", default=[],
+                   help="also publish every estimate: udp://HOST:PORT (one datagram per sample, "
+                        "docs/protocol.md) or lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
+                        "extra); may be repeated")
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
     p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")
@@ -92,11 +158,15 @@ def register(subparsers: Any) -> None:
         description="Read the interrogator and the stage/load-cell port, join the samples on the "
                     "sample counter and write a dataset file (docs/dataset.md) ready for "
                     "'fbgforce train'.")
-    p.add_argument("--port", required=True, metavar="DEV", help="interrogator device or URL")
+    p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
+                   help="interrogator device, URL or hyperion://HOST[:PORT]")
     p.add_argument("--loadcell-port", required=True, metavar="DEV2",
                    help="stage/load-cell device or URL")
     p.add_argument("--out", required=True, metavar="FILE.csv", help="dataset to write (.csv/.npz)")
-    p.add_argument("--protocol", choices=("native", "fispec"), default="native")
+    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
+                   help="default: hyperion for hyperion:// sources, else native")
+    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
+                            "(default 1:1,1:2,1:3,1:4,1:5)")
     p.add_argument("--rate", type=positive_float, default=1000.0,
                    help="device sample rate, for time stamps when the protocol has none (fispec)")
     p.add_argument("--loadcell-baud", type=positive_int, default=115200)
@@ -119,13 +189,29 @@ def _emulate(args: argparse.Namespace) -> dict[str, Any]:
 
         if not Path(args.data).is_file():
             raise InputError("no such file", path=args.data, column="--data")
+    hyperion = args.protocol == "hyperion"
+    if hyperion and args.link:
+        raise InputError("hyperion serves TCP ports, not a pty: use --command-port/--stream-port",
+                         column="--link")
+    peak_map = _peak_map(args.peak_map) if hyperion else None
     playback = E.load_playback(args.scene, args.data, seed=args.seed, device=args.device)
     plan = E.plan_faults(len(playback), rates=rates, dropout=playback.dropout,
                          seed=args.seed if args.seed is not None else 0)
-    em = E.Emulator(playback, protocol=args.protocol, rate=args.rate, faults=plan,
-                    loadcell=args.loadcell, seed=args.seed, wait_client=not args.no_wait,
-                    linger=args.linger, loop=args.loop, link=args.link,
-                    loadcell_link=args.loadcell_link)
+    if hyperion:
+        try:
+            em: Any = E.HyperionEmulator(
+                playback, rate=args.rate, faults=plan, address=args.address,
+                command_port=args.command_port, stream_port=args.stream_port, peak_map=peak_map,
+                wait_client=not args.no_wait, linger=args.linger, loop=args.loop,
+                loadcell=args.loadcell, loadcell_link=args.loadcell_link)
+        except OSError as exc:
+            raise InputError(f"cannot listen on {args.address}: {exc.strerror or exc}",
+                             column="--command-port") from None
+    else:
+        em = E.Emulator(playback, protocol=args.protocol, rate=args.rate, faults=plan,
+                        loadcell=args.loadcell, seed=args.seed, wait_client=not args.no_wait,
+                        linger=args.linger, loop=args.loop, link=args.link,
+                        loadcell_link=args.loadcell_link)
     out = sys.stderr if args.json else sys.stdout
     for role, path in em.paths.items():
         print(f"{role}: {path}", file=out, flush=True)
@@ -137,7 +223,9 @@ def _emulate(args: argparse.Namespace) -> dict[str, Any]:
         stats = em.run(max_samples=max_samples)
     finally:
         em.close()
-    result = {"protocol": args.protocol, "rate_hz": args.rate, **em.paths,
+    ports = {"address": em.address, "command_port": em.command_port,
+             "stream_port": em.stream_port, "peak_map": peak_map.text()} if hyperion else {}
+    result = {"protocol": args.protocol, "rate_hz": args.rate, **em.paths, **ports,
               "samples": len(playback), "fault_plan": {
                   name: int((plan == code).sum()) for code, name in enumerate(E.FAULTS) if code},
               **stats.as_dict()}
@@ -162,23 +250,28 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
     from fbgforce.interrogator.nodata import no_data_error
-    from fbgforce.interrogator.reader import open_reader
+    from fbgforce.interrogator.publish import open_publishers
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
-    reader = open_reader(args.port, args.protocol, channels=args.channels, **_baud(args))
+    reader = _open_reader(args, args.model, channels=args.channels)
+    protocol = _protocol(args)
+    publishers = open_publishers(args.publish)
     started = time.monotonic()
     try:
         result = run_stream(reader, est, out=args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=_start_timeout(args), status=not args.quiet)
+                            start_timeout=_start_timeout(args), status=not args.quiet,
+                            publishers=publishers)
     finally:
         reader.close()
+        for pub in publishers:
+            pub.close()
     if result["received"] == 0:
-        raise no_data_error(args.port, args.protocol, time.monotonic() - started,
+        raise no_data_error(args.port, protocol, time.monotonic() - started,
                             reader.stats(), reader.link.last_error, baud=args.baud,
                             interrupted=result["interrupted"])
-    result = {"port": args.port, "protocol": args.protocol, **result}
+    result = {"port": args.port, "protocol": protocol, **result}
     if not args.json:
         print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
               f"{result['bad_frames']} bad frames" + (f", written to {args.out}" if args.out else ""),
@@ -190,10 +283,10 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
     from fbgforce.interrogator.nodata import no_data_error
-    from fbgforce.interrogator.reader import LoadCellReader, open_reader
+    from fbgforce.interrogator.reader import LoadCellReader
     from fbgforce.interrogator.record import run_record
 
-    reader = open_reader(args.port, args.protocol, **_baud(args))
+    reader = _open_reader(args)
     loadcell = LoadCellReader(args.loadcell_port, baudrate=args.loadcell_baud)
     # Open both now: a device that waits for its clients starts only when both are there.
     reader.link.open()
@@ -207,7 +300,7 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     except InputError as exc:
         # Nothing joined: when the interrogator itself was silent, say what was tried there.
         if exc.column == "--port" and reader.stats().get("frames", 0) == 0:
-            raise no_data_error(args.port, args.protocol, time.monotonic() - started,
+            raise no_data_error(args.port, _protocol(args), time.monotonic() - started,
                                 reader.stats(), reader.link.last_error, baud=args.baud) from None
         raise
     finally:

@@ -11,9 +11,9 @@ The emulator is the device side of the protocols in :mod:`fbgforce.interrogator.
 Line faults. Each sample gets a fault kind (:data:`FAULTS`): ``drop`` (frame never sent),
 ``flip`` (1–3 bits flipped), ``truncate`` (only a prefix sent), ``garbage`` (a burst of random
 bytes sent before the intact frame). The kinds come from the recording's ``dropout`` column
-when it has one (Part 1's ``dropout`` effect; mapping in :func:`faults_from_dropout`) and/or
-from per-kind rates. The plan is drawn up front from a seeded generator, so a test knows which
-frames are good.
+when it has one (the simulator's ``dropout`` effect; mapping in :func:`faults_from_dropout`)
+and/or from per-kind rates. The plan is drawn up front from a seeded generator, so a test
+knows which frames are good.
 
 Like a real UART device, bytes written while no client has the port open are lost; by default
 playback starts only once every port has a client (``wait_client``), and after the last sample
@@ -25,6 +25,8 @@ import errno
 import math
 import os
 import select
+import socket
+import struct
 import threading
 import time
 import tty
@@ -34,6 +36,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from fbgforce.interrogator import hyperion as H
 from fbgforce.interrogator import protocol as P
 
 #: Fault kinds by code (the codes stored in a fault plan).
@@ -452,13 +455,14 @@ class Emulator:
         if kind == "flip":
             st.flipped += 1
             buf = bytearray(frame)
-            # 1-3 distinct bits: CRC-16/CCITT detects every such error in frames this short.
+            # 1-3 distinct bits: both frame checks detect every such error in frames this short.
             for bit in rng.choice(len(buf) * 8, size=int(rng.integers(1, 4)), replace=False):
                 buf[bit // 8] ^= 1 << (bit % 8)
             return bytes(buf)
         if kind == "truncate":
             st.truncated += 1
-            # At least the CRC is cut, so following bytes complete it only by a 2**-16 chance.
+            # At least the CRC is cut: following bytes complete it only by a 2**-32 chance
+            # (2**-16 with version-1 frames), and the reader's gate refuses what they make.
             return frame[:int(rng.integers(1, len(frame) - 2))]
         st.garbage_bursts += 1
         burst = rng.integers(0, 256, size=int(rng.integers(1, 65)), dtype=np.uint8).tobytes()
@@ -509,3 +513,297 @@ def load_playback(scene: str | None = None, data: str | None = None, *, seed: in
     from fbgforce import sim
 
     return Playback.from_dataset(sim.simulate(scene, seed=seed, device=device))
+
+
+class HyperionEmulator:
+    """A virtual Hyperion interrogator on TCP: the command port and the peak stream.
+
+    The command port answers ``#GetSerialNumber``, ``#GetFirmwareVersion``,
+    ``#GetFPGAVersion``, ``#GetInstrumentName``, ``#isready``, ``#GetDutChannelCount``,
+    ``#GetMaximumPeakCountPerDutChannel``, ``#GetLaserScanSpeed``,
+    ``#GetAvailableLaserScanSpeeds`` and ``#GetPeaks`` (the latest sample); any other command
+    gets an error status with a message, as the instrument does. The stream port pushes one
+    peaks record per sample to every connected client, at ``rate`` samples per second, with
+    the sample counter as serial number and the scene's time as timestamp (plus ``t0_s``).
+    Each grating's peak goes on the channel the :class:`~fbgforce.interrogator.hyperion.PeakMap`
+    gives it; a lost peak (NaN in the scene) is simply missing from its channel.
+
+    TCP does not garble bytes, so of the line faults only ``drop`` applies (a record the device
+    skips); any other fault code in the plan is played as a drop too.
+
+    Parameters
+    ----------
+    address, command_port, stream_port
+        Where to listen (port 0: any free port; the ports taken are :attr:`command_port` and
+        :attr:`stream_port` after construction).
+    wait_client, linger, loop, faults, rate, loadcell, loadcell_link
+        As for :class:`Emulator` (playback waits for a client of the stream port, and of the
+        load-cell pty if there is one; its lines carry the serial number as counter).
+    """
+
+    def __init__(self, playback: Playback, *, rate: float = 1000.0,
+                 faults: np.ndarray | None = None, address: str = "127.0.0.1",
+                 command_port: int = 51971, stream_port: int = 51972,
+                 peak_map: Any = None, channels: int = 4, wait_client: bool = True,
+                 linger: float = 2.0, loop: bool = False, t0_s: int = 1_700_000_000,
+                 serial_number: str = "HYP-EMU-0001", loadcell: bool = False,
+                 loadcell_link: str | None = None) -> None:
+        if not rate > 0:
+            raise ValueError("rate must be positive")
+        if len(playback) == 0:
+            raise ValueError("nothing to play: the recording has no samples")
+        self.playback = playback
+        self.rate = float(rate)
+        n = len(playback)
+        self.faults = (np.zeros(n, dtype=np.uint8) if faults is None
+                       else np.asarray(faults, np.uint8))
+        if self.faults.shape != (n,):
+            raise ValueError(f"fault plan has {self.faults.shape} entries, recording {n}")
+        self.peak_map = peak_map or H.PeakMap.default()
+        if max(s.channel for s in self.peak_map.selectors) > channels:
+            raise ValueError(f"the peak map uses a channel beyond the instrument's {channels}")
+        self.channels = channels
+        self.wait_client = wait_client
+        self.linger = linger
+        self.loop = loop
+        self.t0_s = t0_s
+        self.serial_number = serial_number
+        self.stats = EmulatorStats()
+        self.stream_clients_served = 0
+        self._wl_nm = H.gratings_nm(playback.wl_fm)
+        self.loadcell_port = PtyEndpoint(loadcell_link) if loadcell else None
+        self._listen: dict[str, socket.socket] = {}
+        try:
+            for role, port in (("command", command_port), ("stream", stream_port)):
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                s.bind((address, port))
+                s.listen(8)
+                s.setblocking(False)
+                self._listen[role] = s
+        except OSError:
+            self.close()
+            raise
+        self.address = address
+        self.command_port = self._listen["command"].getsockname()[1]
+        self.stream_port = self._listen["stream"].getsockname()[1]
+        self._cmd_clients: dict[Any, bytearray] = {}
+        self._stream_clients: dict[Any, bytearray] = {}
+        self._latest = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        step = int(np.median(np.diff(playback.t_us))) if n > 1 else int(round(1e6 / self.rate))
+        self._span_us = int(playback.t_us[-1] - playback.t_us[0]) + step
+
+    @property
+    def url(self) -> str:
+        """The ``hyperion://`` URL a reader opens."""
+        base = f"hyperion://{self.address}:{self.command_port}"
+        return base if self.stream_port == self.command_port + 1 else (
+            f"{base}?stream={self.stream_port}")
+
+    @property
+    def paths(self) -> dict[str, str]:
+        out = {"interrogator": self.url}
+        if self.loadcell_port is not None:
+            out["loadcell"] = self.loadcell_port.name
+        return out
+
+    def start(self, max_samples: int | None = None) -> "HyperionEmulator":
+        self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
+                                        name="fbgforce-hyperion-emulator", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.close()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def close(self) -> None:
+        for s in list(self._listen.values()) + list(getattr(self, "_cmd_clients", {})) + list(
+                getattr(self, "_stream_clients", {})):
+            try:
+                s.close()
+            except OSError:
+                pass
+        self._listen = {}
+        self._cmd_clients = {}
+        self._stream_clients = {}
+        if getattr(self, "loadcell_port", None) is not None:
+            self.loadcell_port.close()  # type: ignore[union-attr]
+
+    def run(self, max_samples: int | None = None) -> EmulatorStats:
+        """Play (blocking) until the recording, ``max_samples`` or :meth:`stop` ends it."""
+        try:
+            self._run(max_samples)
+        finally:
+            self.close()
+        return self.stats
+
+    # -- internals -----------------------------------------------------------------------
+    def _record(self, k: int) -> bytes:
+        i, lap = k % len(self.playback), k // len(self.playback)
+        t_us = int(self.playback.t_us[i]) + lap * self._span_us
+        chans = self.peak_map.to_channels(self._wl_nm[i], self.channels)
+        t_ns = t_us * 1000
+        return H.encode_peaks(k, self.t0_s + t_ns // 1_000_000_000, t_ns % 1_000_000_000,
+                                   chans)
+
+    def _service(self, wait: float) -> None:
+        """Accept clients, answer commands, push queued stream bytes (waits at most ``wait``)."""
+        if self.loadcell_port is not None:
+            self.loadcell_port.flush()
+            self.loadcell_port.read()  # a stage controller ignores what the host sends
+        readable = list(self._listen.values()) + list(self._cmd_clients)
+        writable = [c for c, q in self._stream_clients.items() if q]
+        try:
+            r, w, _ = select.select(readable, writable, [], max(0.0, wait))
+        except (OSError, ValueError):
+            return
+        for s in r:
+            if s is self._listen.get("command") or s is self._listen.get("stream"):
+                try:
+                    conn, _ = s.accept()
+                except OSError:
+                    continue
+                conn.setblocking(False)
+                conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                if s is self._listen["command"]:
+                    self._cmd_clients[conn] = bytearray()
+                else:
+                    self._stream_clients[conn] = bytearray()
+                    self.stream_clients_served += 1
+                continue
+            try:
+                data = s.recv(4096)
+            except OSError:
+                data = b""
+            if not data:
+                self._drop(s)
+                continue
+            buf = self._cmd_clients[s]
+            buf += data
+            self._answer_all(s, buf)
+        for s in w:
+            self._push(s)
+
+    def _drop(self, s: Any) -> None:
+        self._cmd_clients.pop(s, None)
+        self._stream_clients.pop(s, None)
+        try:
+            s.close()
+        except OSError:
+            pass
+
+    def _push(self, s: Any) -> None:
+        q = self._stream_clients.get(s)
+        if not q:
+            return
+        try:
+            n = s.send(q)
+        except BlockingIOError:
+            return
+        except OSError:
+            self._drop(s)
+            return
+        self.stats.bytes_sent += n
+        del q[:n]
+
+    def _answer_all(self, s: Any, buf: bytearray) -> None:
+        while len(buf) >= H.REQUEST_HEADER.size:
+            _opt, _res, cmd_len, arg_len = H.REQUEST_HEADER.unpack_from(buf, 0)
+            end = H.REQUEST_HEADER.size + cmd_len + arg_len
+            if len(buf) < end:
+                return
+            cmd = bytes(buf[H.REQUEST_HEADER.size:H.REQUEST_HEADER.size + cmd_len]).decode(
+                "ascii", errors="replace")
+            del buf[:end]
+            self.stats.commands += 1
+            reply = self._answer(cmd)
+            try:
+                s.sendall(reply)
+            except OSError:
+                self._drop(s)
+                return
+
+    def _answer(self, cmd: str) -> bytes:
+        c = cmd.lower()
+        text = {"#getserialnumber": self.serial_number, "#getfirmwareversion": "fbgforce-emu",
+                "#getfpgaversion": "fbgforce-emu", "#getinstrumentname": "fbgforce virtual si155"}
+        if c in text:
+            return H.encode_response(text[c].encode("ascii"))
+        if c == "#isready":
+            return H.encode_response(b"\x01")
+        if c == "#getdutchannelcount":
+            return H.encode_response(struct.pack("<I", self.channels))
+        if c == "#getmaximumpeakcountperdutchannel":
+            return H.encode_response(struct.pack("<I", 16))
+        if c == "#getlaserscanspeed":
+            return H.encode_response(struct.pack("<I", int(round(self.rate))))
+        if c == "#getavailablelaserscanspeeds":
+            return H.encode_response(struct.pack("<I", int(round(self.rate))))
+        if c == "#getpeaks":
+            # Before playback the instrument already measures: it reports the first sample.
+            return H.encode_response(self._record(max(self._latest, 0)))
+        self.stats.ignored_commands += 1
+        return H.encode_response(message=f"Unknown command {cmd}", status=1)
+
+    def _run(self, max_samples: int | None) -> None:
+        n = len(self.playback)
+        total: float = n if not self.loop else math.inf
+        if max_samples is not None:
+            total = min(total, max_samples)
+        lc = self.loadcell_port
+        if self.wait_client:
+            while not self._stop.is_set() and not (
+                    self._stream_clients and (lc is None or lc.client_connected())):
+                self._service(0.01)
+            if lc is not None:  # let the load-cell client finish opening (see Emulator._run)
+                settle = time.monotonic() + START_DELAY_S
+                while not self._stop.is_set() and time.monotonic() < settle:
+                    self._service(0.005)
+        t0 = time.monotonic()
+        sent = 0
+        period = 1.0 / self.rate
+        pb = self.playback
+        while not self._stop.is_set() and sent < total:
+            due = int(min(total, int((time.monotonic() - t0) * self.rate) + 1))
+            if due > sent:
+                chunks = []
+                lines = []
+                for k in range(sent, due):
+                    i = k % n
+                    self.stats.loops = k // n
+                    if lc is not None:
+                        lines.append(P.encode_loadcell_line(P.LoadCellSample(
+                            k, float(pb.x_mm[i]), float(pb.y_mm[i]), float(pb.force_N[i]),
+                            int(pb.contact[i]), int(pb.press[i]))))
+                    if self.faults[i] != FAULT_CODE["none"]:
+                        self.stats.dropped += 1
+                        continue
+                    chunks.append(H.encode_stream_message(self._record(k)))
+                    self.stats.frames_sent += 1
+                data = b"".join(chunks)
+                for c, q in list(self._stream_clients.items()):
+                    q += data
+                    self._push(c)
+                if lines and lc is not None:
+                    lc.write(b"".join(lines))
+                    self.stats.loadcell_lines += len(lines)
+                sent = due
+                self._latest = sent - 1
+                self.stats.samples_played = sent
+            self._service(max(0.0, min(t0 + sent * period - time.monotonic(), 0.01)))
+        end = time.monotonic() + self.linger
+        while not self._stop.is_set() and (
+                self._stream_clients or self._cmd_clients
+                or (lc is not None and lc.client_connected())) and (
+                time.monotonic() < end or any(self._stream_clients.values())
+                or (lc is not None and lc.backlog)):
+            self._service(0.005)

@@ -57,6 +57,7 @@ def no_data_error(port: str, protocol: str, waited_s: float, stats: dict[str, An
         detail = ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in bad.items())
         reason = (f"{nbytes} bytes arrived but none formed a valid {protocol} frame"
                   + (f" ({detail})" if detail else ""))
-        check = ("check --protocol (native or fispec), --channels and, for a real UART, --baud")
+        check = ("check --protocol (native, fispec or hyperion), --channels and, for a real "
+                 "UART, --baud")
     return InputError(f"no sample from {port} {when} ({line}): {reason}; {check}",
                       column="--port")

@@ -3,8 +3,9 @@
 Three protocols, each with an encoder (what a device sends) and an incremental decoder (what
 the host runs on whatever bytes arrive, in pieces of any size):
 
-1. The **native streaming frame**: the device pushes one CRC-protected binary frame per sample.
-   :func:`encode_frame` / :class:`FrameDecoder`.
+1. The **native streaming frame**: the device pushes one CRC-protected binary frame per sample
+   (version 2: CRC-32; version 1, CRC-16, is still read). :func:`encode_frame` /
+   :class:`FrameDecoder`, with :class:`FrameGate` refusing implausible frames.
 2. The **FiSpec-style command protocol** (3 Mbaud 8N1): the host sends ASCII commands ending in
    ``>``; ``?>`` returns an identification string starting with ``FiSpec``, ``P>`` one
    measurement frame of ``8*N + 12`` bytes ending in ``Ende``. :func:`encode_fispec_frame`,
@@ -21,12 +22,14 @@ from __future__ import annotations
 
 import binascii
 import struct
+import zlib
 from dataclasses import asdict, dataclass
 from typing import Sequence
 
 import numpy as np
 
 from fbgforce import units
+from fbgforce.dataset import WL_RANGE_NM
 
 # --------------------------------------------------------------------------------------------
 # Shared
@@ -45,6 +48,12 @@ def crc16_ccitt_false(data: bytes | bytearray | memoryview, crc: int = 0xFFFF) -
     up with 1 kHz easily.
     """
     return binascii.crc_hqx(bytes(data), crc)
+
+
+def crc32(data: bytes | bytearray | memoryview) -> int:
+    """CRC-32/ISO-HDLC (zlib, Ethernet): reflected poly 0x04C11DB7, init and final XOR
+    0xFFFFFFFF; ``crc32(b"123456789") == 0xCBF43926``."""
+    return zlib.crc32(data) & 0xFFFFFFFF
 
 
 def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
@@ -74,6 +83,8 @@ class DecoderStats:
     resyncs: int = 0  #: times the decoder lost lock and hunted for the next sync word
     discarded_bytes: int = 0  #: bytes not part of any delivered frame
     partial_frames: int = 0  #: incomplete frames dropped by :meth:`FrameDecoder.flush`
+    delivered_bytes: int = 0  #: bytes of delivered frames (frames of two versions differ in size)
+    version_errors: int = 0  #: frames of another version than the one the stream locked on
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -84,17 +95,24 @@ class DecoderStats:
 # --------------------------------------------------------------------------------------------
 
 SYNC = b"\xa5\x5a"
-PROTOCOL_VERSION = 1
+#: Version written by :func:`encode_frame`: CRC-32. Version 1 (CRC-16) frames are still read.
+PROTOCOL_VERSION = 2
 #: Header: sync (2), version (1), channel count (1), sequence u32, timestamp u64 µs.
 HEADER = struct.Struct("<2sBBIQ")
 HEADER_SIZE = HEADER.size  # 16
-CRC_SIZE = 2
+#: Check size by version: 1 = CRC-16/CCITT-FALSE, 2 = CRC-32.
+CRC_SIZES = {1: 2, 2: 4}
+CRC_SIZE = CRC_SIZES[PROTOCOL_VERSION]
 MAX_CHANNELS = 32
 
 
-def frame_size(n_channels: int) -> int:
-    """Bytes in one native frame with ``n_channels`` wavelengths: ``18 + 4 * n``."""
-    return HEADER_SIZE + 4 * n_channels + CRC_SIZE
+def frame_size(n_channels: int, version: int = PROTOCOL_VERSION) -> int:
+    """Bytes in one native frame: ``16 + 4 * n`` plus the check (2 bytes in version 1, 4 in 2)."""
+    return HEADER_SIZE + 4 * n_channels + CRC_SIZES[version]
+
+
+def _check(version: int, body: bytes | bytearray | memoryview) -> int:
+    return crc32(body) if version == 2 else crc16_ccitt_false(body)
 
 
 @dataclass(frozen=True)
@@ -105,7 +123,7 @@ class Frame:
     ----------
     seq
         Sample counter (native: 32-bit wrapping sequence number; FiSpec: the counter in the
-        frame's last four bytes).
+        frame's last four bytes; Hyperion: the peaks header's serial number, low 32 bits).
     t_us
         Device timestamp in microseconds (FiSpec frames carry none: -1).
     wl_fm
@@ -117,44 +135,181 @@ class Frame:
     wl_fm: tuple[int, ...]
 
 
-def encode_frame(seq: int, t_us: int, wl_fm: Sequence[int]) -> bytes:
+def encode_frame(seq: int, t_us: int, wl_fm: Sequence[int], version: int = PROTOCOL_VERSION
+                 ) -> bytes:
     """Encode one native frame (see docs/protocol.md for the byte layout)."""
     n = len(wl_fm)
     if not 1 <= n <= MAX_CHANNELS:
         raise ValueError(f"channel count must be 1..{MAX_CHANNELS}, not {n}")
-    body = HEADER.pack(SYNC, PROTOCOL_VERSION, n, seq & 0xFFFFFFFF, t_us & 0xFFFFFFFFFFFFFFFF)
+    if version not in CRC_SIZES:
+        raise ValueError(f"version must be one of {sorted(CRC_SIZES)}, not {version}")
+    body = HEADER.pack(SYNC, version, n, seq & 0xFFFFFFFF, t_us & 0xFFFFFFFFFFFFFFFF)
     body += struct.pack(f"<{n}i", *(int(v) for v in wl_fm))
+    if version == 2:
+        return body + struct.pack("<I", crc32(body))
     return body + struct.pack("<H", crc16_ccitt_false(body))
 
 
-def encode_frames(seq0: int, t_us: np.ndarray, wl_fm: np.ndarray) -> list[bytes]:
+def encode_frames(seq0: int, t_us: np.ndarray, wl_fm: np.ndarray, version: int = PROTOCOL_VERSION
+                  ) -> list[bytes]:
     """Encode consecutive samples ``seq0, seq0 + 1, ...`` (one frame each)."""
     t = np.asarray(t_us, dtype=np.int64)
     wl = np.asarray(wl_fm, dtype=np.int64)
-    return [encode_frame(seq0 + i, int(t[i]), wl[i].tolist()) for i in range(len(t))]
+    return [encode_frame(seq0 + i, int(t[i]), wl[i].tolist(), version) for i in range(len(t))]
+
+
+# --------------------------------------------------------------------------------------------
+# Plausibility: refuse a frame that cannot follow the last one
+# --------------------------------------------------------------------------------------------
+
+#: Wavelength window of a real peak (the dataset contract's); 0 = lost peak, always allowed.
+WL_WINDOW_NM = WL_RANGE_NM
+#: Largest forward sequence step taken without confirmation (65 s at 1 kHz).
+MAX_SEQ_STEP = 1 << 16
+#: Largest device-time step per sample step (1 s: rates down to 1 Hz).
+MAX_PERIOD_US = 1_000_000
+#: Largest wavelength change per sample step (the fingertip moves < 0.05 nm per ms).
+MAX_STEP_NM = 2.0
+
+
+@dataclass
+class GateStats:
+    """Counters of a :class:`FrameGate`."""
+
+    lost_frames: int = 0  #: sequence gaps between frames delivered (confirmed jumps included)
+    duplicates: int = 0  #: frames whose sequence number was just delivered (dropped)
+    seq_restarts: int = 0  #: confirmed backward jumps (device restarted; not counted lost)
+    seq_jumps: int = 0  #: confirmed forward jumps beyond ``max_seq_step``
+    implausible_frames: int = 0  #: refused: wavelength outside the window, or an unconfirmed jump
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+class FrameGate:
+    """Decides whether a well-formed frame is a plausible next sample.
+
+    A frame must have every wavelength inside ``window_nm`` (or 0, a lost peak). It *follows*
+    the last delivered frame when its sequence step ``d = (seq - last) mod 2**32`` is
+    ``1..max_seq_step``, its device time (when both have one) advanced by ``1 µs .. d *
+    max_period_us``, and no wavelength moved more than ``d * max_step_nm`` (lost peaks
+    excepted). A frame that follows is delivered and ``d - 1`` frames count as lost; ``d == 0``
+    is a duplicate. A frame that does not follow is *held*, not delivered: if the next frame
+    follows the held one (a device restart, or a real jump), both are delivered and the jump
+    counted once (a restart, or ``d - 1`` lost); otherwise the held frame is refused. So one
+    fabricated frame can neither be delivered nor move the counters.
+
+    :meth:`push` returns the frames to deliver, ``[]`` for a duplicate, or ``None`` when the
+    frame was refused or held (a byte-stream decoder then resumes its hunt one byte further,
+    so a good frame starting inside the refused one's bytes is still found).
+    """
+
+    MOD = 1 << 32
+
+    def __init__(self, *, window_nm: tuple[float, float] = WL_WINDOW_NM,
+                 max_seq_step: int = MAX_SEQ_STEP, max_period_us: int = MAX_PERIOD_US,
+                 max_step_nm: float = MAX_STEP_NM) -> None:
+        self.lo_fm = int(round(window_nm[0] * FM_PER_NM))
+        self.hi_fm = int(round(window_nm[1] * FM_PER_NM))
+        self.max_seq_step = max_seq_step
+        self.max_period_us = max_period_us
+        self.max_step_fm = int(round(max_step_nm * FM_PER_NM))
+        self.stats = GateStats()
+        self.last: Frame | None = None
+        self.held: Frame | None = None
+
+    def in_window(self, frame: Frame) -> bool:
+        lo, hi = self.lo_fm, self.hi_fm
+        return all(v == 0 or lo <= v <= hi for v in frame.wl_fm)
+
+    def _step(self, a: Frame, b: Frame) -> int | None:
+        """Sequence step from ``a`` to ``b`` if ``b`` follows ``a``, else ``None``."""
+        d = (b.seq - a.seq) % self.MOD
+        if not 1 <= d <= self.max_seq_step or len(a.wl_fm) != len(b.wl_fm):
+            return None
+        if a.t_us >= 0 and b.t_us >= 0 and not 1 <= b.t_us - a.t_us <= d * self.max_period_us:
+            return None
+        lim = d * self.max_step_fm
+        for x, y in zip(a.wl_fm, b.wl_fm):
+            if x and y and abs(x - y) > lim:
+                return None
+        return d
+
+    def push(self, frame: Frame) -> list[Frame] | None:
+        st = self.stats
+        if not self.in_window(frame):
+            st.implausible_frames += 1
+            return None
+        last = self.last
+        if last is None:
+            self.last = frame
+            return [frame]
+        d = self._step(last, frame)
+        if d is not None:
+            if self.held is not None:
+                st.implausible_frames += 1
+                self.held = None
+            st.lost_frames += d - 1
+            self.last = frame
+            return [frame]
+        if frame.seq == last.seq and frame.t_us == last.t_us:
+            st.duplicates += 1
+            return []
+        held = self.held
+        if held is not None and self._step(held, frame) is not None:
+            # Two frames agree on a new course: the device restarted or really jumped.
+            jump = (held.seq - last.seq) % self.MOD
+            if jump >= self.MOD // 2 or (last.t_us >= 0 and held.t_us >= 0
+                                         and held.t_us <= last.t_us):
+                st.seq_restarts += 1
+            else:
+                st.seq_jumps += 1
+                st.lost_frames += jump - 1
+            st.lost_frames += (frame.seq - held.seq) % self.MOD - 1
+            self.held = None
+            self.last = frame
+            return [held, frame]
+        if held is not None:
+            st.implausible_frames += 1
+        self.held = frame
+        return None
+
+    def reset(self) -> None:
+        """Forget the course (a new device session); counters are kept."""
+        if self.held is not None:
+            self.stats.implausible_frames += 1
+        self.last = self.held = None
 
 
 class FrameDecoder:
     """Incremental decoder of native frames that never raises on bad bytes.
 
     Feed it bytes as they arrive; it returns the complete, CRC-valid frames found. On garbage it
-    hunts for the sync word; on a failed CRC it advances by one byte only, so that a good frame
-    hidden inside the bytes of a truncated or corrupted one is still found.
+    hunts for the sync word; on a failed CRC, an implausible or a held frame it advances by one
+    byte only, so that a good frame hidden inside the bytes of a truncated or corrupted one is
+    still found. Version 1 (CRC-16) and 2 (CRC-32) frames are read; after the first good frame
+    the stream is locked on that version, so a damaged version byte cannot select the weaker
+    check.
 
     Parameters
     ----------
     channels
         Expected channel count; frames with another count are header errors. ``None`` accepts
         any count 1..:data:`MAX_CHANNELS`.
+    gate
+        A :class:`FrameGate` that every CRC-valid frame must pass (``None``: CRC only).
     """
 
-    def __init__(self, channels: int | None = None) -> None:
+    def __init__(self, channels: int | None = None, gate: FrameGate | None = None) -> None:
         if channels is not None and not 1 <= channels <= MAX_CHANNELS:
             raise ValueError(f"channels must be 1..{MAX_CHANNELS}")
         self.channels = channels
+        self.gate = gate
+        self.version: int | None = None
         self.stats = DecoderStats()
         self._buf = bytearray()
         self._locked = True  # so that a stream starting with garbage counts one resync
+        self._held_size = 0
 
     @property
     def pending(self) -> int:
@@ -183,25 +338,53 @@ class FrameDecoder:
             if len(buf) - pos < HEADER_SIZE:
                 break
             _, version, n, seq, t_us = HEADER.unpack_from(buf, pos)
-            if version != PROTOCOL_VERSION or not 1 <= n <= MAX_CHANNELS or (
+            if version not in CRC_SIZES or not 1 <= n <= MAX_CHANNELS or (
                     self.channels is not None and n != self.channels):
                 st.header_errors += 1
                 self._discard(1)
                 pos += 1
                 continue
-            size = frame_size(n)
+            if self.version is not None and version != self.version:
+                st.version_errors += 1
+                self._discard(1)
+                pos += 1
+                continue
+            size = frame_size(n, version)
             if len(buf) - pos < size:
                 break
             end = pos + size
-            (crc,) = struct.unpack_from("<H", buf, end - CRC_SIZE)
-            if crc != crc16_ccitt_false(memoryview(buf)[pos:end - CRC_SIZE]):
+            crc_size = CRC_SIZES[version]
+            crc = int.from_bytes(buf[end - crc_size:end], "little")
+            if crc != _check(version, memoryview(buf)[pos:end - crc_size]):
                 st.crc_errors += 1
                 self._discard(1)
                 pos += 1
                 continue
-            wl = struct.unpack_from(f"<{n}i", buf, pos + HEADER_SIZE)
-            out.append(Frame(seq, t_us, wl))
-            st.frames += 1
+            frame = Frame(seq, t_us, struct.unpack_from(f"<{n}i", buf, pos + HEADER_SIZE))
+            if self.gate is not None:
+                verdict = self.gate.push(frame)
+                if verdict is None:
+                    # Held or refused: its bytes are discarded one by one while hunting; a held
+                    # frame confirmed later takes its bytes back (see below).
+                    if self.gate.held is frame:
+                        self._held_size = size
+                    self._discard(1)
+                    pos += 1
+                    continue
+                if len(verdict) == 2:
+                    st.discarded_bytes -= self._held_size
+                    st.delivered_bytes += self._held_size
+                    st.frames += 1
+                self._held_size = 0
+            else:
+                verdict = [frame]
+            self.version = version
+            if verdict:
+                out.extend(verdict)
+                st.frames += 1
+                st.delivered_bytes += size
+            else:  # a duplicate: consumed, not delivered
+                st.discarded_bytes += size
             self._locked = True
             pos = end
         del buf[:pos]
@@ -275,6 +458,7 @@ class FiSpecFrame:
     amplitude: tuple[int, ...]
     temperature_c100: int
     counter: int
+    empty: int = 0  #: the two bytes after the temperature, 0 on a well-formed frame
 
     def to_frame(self) -> Frame:
         """As a :class:`Frame` in femtometres (no device timestamp: ``t_us = -1``)."""
@@ -287,8 +471,57 @@ def decode_fispec_frame(data: bytes, n_channels: int) -> FiSpecFrame | None:
     if len(data) != fispec_frame_size(n_channels) or not data.endswith(FISPEC_TRAILER):
         return None
     vals = struct.unpack_from(f"<{2 * n_channels}i", data, 0)
-    temp, _empty, counter = struct.unpack_from("<hHI", data, 8 * n_channels)
-    return FiSpecFrame(vals[0::2], vals[1::2], temp, counter)
+    temp, empty, counter = struct.unpack_from("<hHI", data, 8 * n_channels)
+    return FiSpecFrame(vals[0::2], vals[1::2], temp, counter, empty)
+
+
+class FiSpecReply:
+    """Collects the reply to one ``P>`` poll, chunk by chunk, and decides when it is complete.
+
+    A candidate is the last ``8*N + 12`` bytes whenever the bytes so far end in ``Ende``. Junk
+    before the reply and a payload that happens to contain ``Ende`` can make a candidate out of
+    junk and part of the reply; such a candidate is refused unless it is well-formed (empty
+    field 0) *and* passes the :class:`FrameGate` (wavelength window, counter and step
+    continuity), and reading goes on, so the rest of the reply still completes the right frame.
+
+    Parameters
+    ----------
+    channels
+        N, the number of gratings.
+    gate
+        The reader's gate (carries the course of the stream from poll to poll).
+    seq
+        Sequence number to give the frame instead of its counter (devices without one).
+    """
+
+    def __init__(self, channels: int, gate: FrameGate, seq: int | None = None) -> None:
+        self.channels = channels
+        self.size = fispec_frame_size(channels)
+        self.gate = gate
+        self.seq = seq
+        self.buf = bytearray()
+        self.refused = 0  #: candidates refused while this reply was read
+        self.frame_bytes: bytes | None = None  #: the accepted frame's bytes
+
+    def feed(self, chunk: bytes) -> list[Frame] | None:
+        """Add ``chunk``; the frames to deliver once the reply is accepted, else ``None``."""
+        self.buf += chunk
+        if len(self.buf) < self.size or not self.buf.endswith(FISPEC_TRAILER):
+            return None
+        raw = bytes(self.buf[-self.size:])
+        fr = decode_fispec_frame(raw, self.channels)
+        if fr is None or fr.empty != 0:
+            self.refused += 1
+            return None
+        frame = fr.to_frame()
+        if self.seq is not None:
+            frame = Frame(self.seq, frame.t_us, frame.wl_fm)
+        verdict = self.gate.push(frame)
+        if verdict is None:
+            self.refused += 1
+            return None
+        self.frame_bytes = raw
+        return verdict
 
 
 class CommandParser:
@@ -434,7 +667,8 @@ class LineDecoder:
 
 __all__ = [
     "CMD_IDENT", "CMD_PARAMS", "CMD_PEAKS", "CommandParser", "DecoderStats", "FISPEC_TRAILER",
-    "FISPEC_UNITS_PER_NM", "FM_PER_NM", "FiSpecFrame", "Frame", "FrameDecoder", "LineDecoder",
+    "FISPEC_UNITS_PER_NM", "FM_PER_NM", "FiSpecFrame", "FiSpecReply", "Frame", "FrameDecoder",
+    "FrameGate", "GateStats", "LineDecoder", "crc32",
     "LineStats", "LoadCellSample", "MAX_CHANNELS", "PROTOCOL_VERSION", "SYNC",
     "crc16_ccitt_false", "decode_fispec_frame", "encode_fispec_frame", "encode_frame",
     "encode_frames", "encode_loadcell_line", "fispec_frame_size", "fm_to_nm", "frame_size",

@@ -23,16 +23,17 @@ from typing import Any, Iterator, Protocol
 
 import serial
 
+from fbgforce.interrogator.hyperion import HyperionReader
 from fbgforce.interrogator.protocol import (
     CMD_IDENT,
     CMD_PEAKS,
     FISPEC_TRAILER,
+    FiSpecReply,
     Frame,
     FrameDecoder,
+    FrameGate,
     LineDecoder,
     LoadCellSample,
-    decode_fispec_frame,
-    fispec_frame_size,
 )
 
 #: FiSpec devices run at 3 Mbaud 8N1; the native protocol needs >= 460800 Bd for 5 channels at
@@ -252,12 +253,14 @@ class Reader(Protocol):
 class _PushReader:
     """A port that pushes records on its own: decode them, drop partial ones on a timeout or a
     disconnect, and track their sequence numbers. Subclasses name the decoder and the field
-    that numbers a record (:meth:`_sequence_of`)."""
+    that numbers a record (:meth:`_sequence_of`), or leave sequence checks to the decoder's
+    :class:`FrameGate` (``seq=None``)."""
 
-    def __init__(self, link: SerialLink, decoder: Any, timeout: float) -> None:
+    def __init__(self, link: SerialLink, decoder: Any, timeout: float,
+                 seq: SequenceTracker | None = None) -> None:
         self.link = link
         self.decoder = decoder
-        self.seq = SequenceTracker()
+        self.seq = seq
         self.timeout = timeout
         self.timeouts = 0
         self._last_rx = time.monotonic()
@@ -282,11 +285,15 @@ class _PushReader:
             return []
         self._last_rx = now
         self._timed_out = False
-        return [r for r in self.decoder.feed(data) if self.seq.accept(self._sequence_of(r))]
+        records = self.decoder.feed(data)
+        if self.seq is None:
+            return records
+        return [r for r in records if self.seq.accept(self._sequence_of(r))]
 
     def stats(self) -> dict[str, int]:
         d = self.decoder.stats.as_dict()
-        d.update(self.seq.stats.as_dict())
+        gate = getattr(self.decoder, "gate", None)
+        d.update((self.seq.stats if self.seq is not None else gate.stats).as_dict())
         d.update(self.link.stats.as_dict())
         d["timeouts"] = self.timeouts
         return d
@@ -306,27 +313,27 @@ class NativeReader(_PushReader):
         Expected channel count (5: gratings 1..4 and T); ``None`` accepts any.
     timeout
         A gap of this many seconds without bytes counts one timeout and drops a partial frame.
+    gate
+        Plausibility rules (:class:`FrameGate`; default: its defaults).
     """
 
     def __init__(self, url: str, *, channels: int | None = 5, baudrate: int = DEFAULT_BAUDRATE,
-                 timeout: float = 0.25, reconnect: bool = True) -> None:
+                 timeout: float = 0.25, reconnect: bool = True, gate: FrameGate | None = None
+                 ) -> None:
         super().__init__(SerialLink(url, baudrate=baudrate, reconnect=reconnect),
-                         FrameDecoder(channels), timeout)
-
-    @staticmethod
-    def _sequence_of(record: Frame) -> int:
-        return record.seq
+                         FrameDecoder(channels, gate or FrameGate()), timeout)
 
 
 class FiSpecReader:
     """Client of a FiSpec-style interrogator: polls ``P>`` and reads to the ``Ende`` trailer.
 
-    A reply is accepted when the buffer ends in ``Ende`` and holds at least ``8*N + 12`` bytes
-    (the last that many form the frame; a binary frame may contain ``Ende`` by chance, so the
-    length decides). A reply that does not complete within ``reply_timeout`` counts as a
-    timeout and the client polls again. The frame's last four bytes before the trailer carry a
-    sample counter on the fbgforce emulator; with a device that leaves them constant the
-    duplicate filter is switched off by ``counter=False``.
+    A reply is accepted when the buffer ends in ``Ende``, holds at least ``8*N + 12`` bytes (the
+    last that many form the frame; a binary frame may contain ``Ende`` by chance, so the
+    length decides) and that frame is well-formed and plausible (:class:`FiSpecReply`,
+    :class:`FrameGate`); otherwise reading continues until ``reply_timeout``, which counts as a
+    timeout (nothing came) or a bad reply, and the client polls again. The frame's last four
+    bytes before the trailer carry a sample counter on the fbgforce emulator; with a device
+    that leaves them constant the counter checks are switched off by ``counter=False``.
 
     Parameters
     ----------
@@ -334,22 +341,26 @@ class FiSpecReader:
         N, the number of gratings; ``None`` learns it from the first reply's length.
     poll_interval
         Minimum time between polls (1 ms = the device's 1 kHz rate).
+    gate
+        Plausibility rules (:class:`FrameGate`; default: its defaults).
     """
 
     def __init__(self, url: str, *, channels: int | None = 5, baudrate: int = DEFAULT_BAUDRATE,
                  reply_timeout: float = 0.1, poll_interval: float = 0.001, counter: bool = True,
-                 reconnect: bool = True) -> None:
+                 reconnect: bool = True, gate: FrameGate | None = None) -> None:
         self.link = SerialLink(url, baudrate=baudrate, reconnect=reconnect)
         self.channels = channels
         self.reply_timeout = reply_timeout
         self.poll_interval = poll_interval
         self.use_counter = counter
-        self.seq = SequenceTracker()
+        self.gate = gate or FrameGate()
         self.polls = 0
         self.replies = 0
         self.bad_replies = 0
         self.timeouts = 0
+        self.refused_candidates = 0
         self.discarded_bytes = 0
+        self.last_reply: bytes | None = None
         self._next_poll = 0.0
         self._synthetic_seq = 0
 
@@ -367,15 +378,24 @@ class FiSpecReader:
         text = bytes(buf).decode("ascii", errors="replace").strip()
         return text or None
 
-    def poll(self) -> bytes | None:
-        """One ``P>`` round trip: the raw frame bytes, or ``None`` (timeout / bad reply)."""
+    def _reply(self) -> FiSpecReply | None:
+        if self.channels is None:
+            return None
+        return FiSpecReply(self.channels, self.gate,
+                           None if self.use_counter else self._synthetic_seq)
+
+    def poll(self) -> list[Frame] | None:
+        """One ``P>`` round trip: the frames to deliver (``[]``: a duplicate), or ``None``
+        (timeout / bad reply). The accepted frame's bytes are kept in :attr:`last_reply`."""
         self.link.discard_input()
         self.polls += 1
         if not self.link.write(CMD_PEAKS):
             return None
+        reply = self._reply()
         buf = bytearray()
         deadline = time.monotonic() + self.reply_timeout
         quiet = None
+        verdict = None
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -384,20 +404,28 @@ class FiSpecReader:
             if chunk:
                 buf += chunk
                 quiet = None
-            elif self.channels is None and buf.endswith(FISPEC_TRAILER):
+                if reply is not None:
+                    verdict = reply.feed(chunk)
+                    if verdict is not None:
+                        break
+            elif reply is None and buf.endswith(FISPEC_TRAILER):
                 quiet = quiet or time.monotonic()
                 if time.monotonic() - quiet > 0.005:  # reply over: learn N from its length
                     if len(buf) >= 20 and (len(buf) - 12) % 8 == 0:
                         self.channels = (len(buf) - 12) // 8
-                        return bytes(buf)
+                        reply = self._reply()
+                        verdict = reply.feed(bytes(buf))  # type: ignore[union-attr]
                     break
-            if self.channels is not None:
-                size = fispec_frame_size(self.channels)
-                if len(buf) >= size and buf.endswith(FISPEC_TRAILER):
-                    self.discarded_bytes += len(buf) - size
-                    return bytes(buf[-size:])
             if not self.link.is_open:
                 break
+        if reply is not None:
+            self.refused_candidates += reply.refused
+        if verdict is not None:
+            self.replies += 1
+            self.last_reply = reply.frame_bytes  # type: ignore[union-attr]
+            self.discarded_bytes += len(buf) - len(self.last_reply or b"")
+            self._synthetic_seq += 1
+            return verdict
         if buf:
             self.bad_replies += 1
             self.discarded_bytes += len(buf)
@@ -416,19 +444,9 @@ class FiSpecReader:
                     break
                 time.sleep(self._next_poll - now)
             self._next_poll = time.monotonic() + self.poll_interval
-            raw = self.poll()
-            if raw is not None and self.channels is not None:
-                fr = decode_fispec_frame(raw, self.channels)
-                if fr is None:
-                    self.bad_replies += 1
-                else:
-                    self.replies += 1
-                    frame = fr.to_frame()
-                    if not self.use_counter:
-                        frame = Frame(self._synthetic_seq, -1, frame.wl_fm)
-                        self._synthetic_seq += 1
-                    if self.seq.accept(frame.seq):
-                        out.append(frame)
+            frames = self.poll()
+            if frames:
+                out.extend(frames)
             if time.monotonic() >= end:
                 break
         return out
@@ -436,18 +454,17 @@ class FiSpecReader:
     def stats(self) -> dict[str, int]:
         # Polling sees the device's latest sample: counter gaps are samples measured between
         # polls (skipped_samples), not line losses; a poll without a whole reply is lost.
-        seq = self.seq.stats
-        d = {"frames": self.seq_frames, "polls": self.polls, "replies": self.replies,
-             "bad_replies": self.bad_replies, "timeouts": self.timeouts,
+        g = self.gate.stats
+        d = {"frames": self.replies - g.duplicates, "polls": self.polls,
+             "replies": self.replies, "bad_replies": self.bad_replies, "timeouts": self.timeouts,
              "lost_frames": self.bad_replies + self.timeouts,
-             "skipped_samples": seq.lost_frames, "duplicates": seq.duplicates,
-             "seq_restarts": seq.seq_restarts, "discarded_bytes": self.discarded_bytes}
+             "skipped_samples": g.lost_frames, "duplicates": g.duplicates,
+             "seq_restarts": g.seq_restarts, "seq_jumps": g.seq_jumps,
+             "implausible_frames": g.implausible_frames,
+             "refused_candidates": self.refused_candidates,
+             "discarded_bytes": self.discarded_bytes}
         d.update(self.link.stats.as_dict())
         return d
-
-    @property
-    def seq_frames(self) -> int:
-        return self.replies - self.seq.stats.duplicates
 
     def close(self) -> None:
         self.link.close()
@@ -459,19 +476,29 @@ class LoadCellReader(_PushReader):
     def __init__(self, url: str, *, baudrate: int = 115200, timeout: float = 0.25,
                  reconnect: bool = True) -> None:
         super().__init__(SerialLink(url, baudrate=baudrate, reconnect=reconnect),
-                         LineDecoder(), timeout)
+                         LineDecoder(), timeout, SequenceTracker())
 
     @staticmethod
     def _sequence_of(record: LoadCellSample) -> int:
         return record.counter
 
 
-PROTOCOLS = ("native", "fispec")
+PROTOCOLS = ("native", "fispec", "hyperion")
 
 
-def open_reader(url: str, protocol: str = "native", *, channels: int | None = 5,
-                baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True) -> NativeReader | FiSpecReader:
-    """A reader for ``protocol`` (``"native"`` or ``"fispec"``) on ``url``."""
+def open_reader(url: str, protocol: str | None = None, *, channels: int | None = 5,
+                baudrate: int = DEFAULT_BAUDRATE, reconnect: bool = True,
+                peak_map: Any = None) -> Any:
+    """A reader for ``protocol`` on ``url``: ``"native"``, ``"fispec"`` (serial ports and
+    pyserial URLs) or ``"hyperion"`` (``hyperion://HOST[:PORT]``, which also selects it when
+    ``protocol`` is ``None``; ``peak_map`` is its :class:`~fbgforce.interrogator.hyperion.PeakMap`).
+    """
+    if protocol is None:
+        protocol = "hyperion" if url.startswith("hyperion://") else "native"
+    if protocol == "hyperion" or url.startswith("hyperion://"):
+        if protocol != "hyperion":
+            raise ValueError(f"a hyperion:// source speaks the hyperion protocol, not {protocol!r}")
+        return HyperionReader(url, peak_map=peak_map, reconnect=reconnect)
     if protocol == "native":
         return NativeReader(url, channels=channels, baudrate=baudrate, reconnect=reconnect)
     if protocol == "fispec":

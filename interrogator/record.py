@@ -79,8 +79,11 @@ def pairs_to_dataset(pairs: list[tuple[Frame, LoadCellSample]], *, rate_hz: floa
     t_us = np.array([f.t_us for f, _ in pairs], dtype=np.int64)
     wl = fm_to_nm(np.array([f.wl_fm for f, _ in pairs], dtype=np.int64).reshape(-1, 5))
     ok = np.all((wl >= WL_VALID_NM[0]) & (wl <= WL_VALID_NM[1]), axis=1)
-    # Device timestamps where the protocol has them (native); else the counter at the rate.
-    t_s = np.where(t_us >= 0, t_us / 1e6, (seq - (seq[0] if len(seq) else 0)) / rate_hz)
+    # Device timestamps where the protocol has them (native, Hyperion), from the first sample
+    # (a Hyperion clock counts from 1970: seconds since then would not keep µs in a CSV); else
+    # the counter at the rate.
+    t0 = t_us[0] if len(t_us) else 0
+    t_s = np.where(t_us >= 0, (t_us - t0) / 1e6, (seq - (seq[0] if len(seq) else 0)) / rate_hz)
     contact = np.array([s.contact for _, s in pairs], dtype=bool)
     x = np.array([s.x_mm for _, s in pairs], dtype=np.float64)
     y = np.array([s.y_mm for _, s in pairs], dtype=np.float64)

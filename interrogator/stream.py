@@ -17,7 +17,7 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Sequence, TextIO
 
 import numpy as np
 
@@ -28,6 +28,8 @@ from fbgforce.interrogator.reader import Reader, iter_batches
 
 ENGINES = ("fixed", "float")
 OUTPUT_KEYS = ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")
+#: The fixed-point runtime's integer outputs, also returned by the fixed engine (publishing).
+RAW_KEYS = ("force_mN", "x_um", "y_um", "contact_conf_q15")
 CSV_COLUMNS = ("seq", "t_us", "host_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm",
                *OUTPUT_KEYS)
 
@@ -108,7 +110,7 @@ class LiveEstimator:
     def _run(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
         if self.engine == "fixed":
             out = self._rt.run(wl_fm.astype(np.int32))
-            return {k: np.asarray(out[k]) for k in OUTPUT_KEYS}
+            return {k: np.asarray(out[k]) for k in OUTPUT_KEYS + RAW_KEYS}
         # Float: filter (history + batch) and keep the batch's rows; with len(taps) - 1
         # samples of history the causal FIR sees exactly what it would have seen on the whole
         # recording. The memory states carry over from batch to batch.
@@ -121,6 +123,12 @@ class LiveEstimator:
         self._history = rows[len(rows) - keep:] if keep else rows[:0]
         pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
+
+
+def _bad_frames(stats: dict[str, int]) -> int:
+    """Frames received but not delivered for being damaged or implausible."""
+    return sum(stats.get(k, 0) for k in ("crc_errors", "header_errors", "bad_replies",
+                                         "implausible_frames"))
 
 
 def _empty() -> dict[str, np.ndarray]:
@@ -160,7 +168,7 @@ class StatusLine:
             text = (f"{self.rate_hz:7.1f} Hz  contact {int(last['contact'])} "
                     f"({last['p_contact']:.2f})  F {last['force_N']:7.2f} N  "
                     f"x {x:6.2f} mm  y {y:6.2f} mm  lost {stats.get('lost_frames', 0)}  "
-                    f"bad {stats.get('crc_errors', 0) + stats.get('header_errors', 0) + stats.get('bad_replies', 0)}")
+                    f"bad {_bad_frames(stats)}")
         if self.tty:
             self.stream.write("\r" + text + "\x1b[K")
         else:
@@ -176,10 +184,14 @@ class StatusLine:
 def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | None = None,
                duration: float | None = None, max_samples: int | None = None,
                idle_timeout: float | None = None, start_timeout: float | None = None,
-               status: bool = True) -> dict[str, Any]:
-    """Read, estimate and (optionally) write a CSV of estimates until a stop condition.
+               status: bool = True, publishers: Sequence[Any] = ()) -> dict[str, Any]:
+    """Read, estimate, publish (``publishers``, :mod:`fbgforce.interrogator.publish`) and
+    (optionally) write a CSV of estimates until a stop condition.
 
-    Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md).
+    Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md). With
+    publishers it holds ``publish_latency_us``: time from a sample's arrival (its batch
+    returned by the reader) to its publication (the last publisher's send returned), over the
+    samples that arrived after the tare (those before wait for the tare by design).
     """
     fh = None
     if out is not None:
@@ -193,6 +205,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         fh.write(",".join(CSV_COLUMNS) + "\n")
     line = StatusLine(enabled=status)
     waiting: list[tuple[Frame, float]] = []  # received, not yet estimated (taring)
+    latency_ns: list[int] = []
     n = 0
     contact_n = 0
     max_force = 0.0
@@ -202,14 +215,22 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout):
+            arrived_ns = time.perf_counter_ns()
             now = time.monotonic()
             t_first = now if t_first is None else t_first
             t_last = now
+            tared = estimator.baseline_fm is not None
             waiting.extend((f, now) for f in batch)
             est = estimator.push(np.array([f.wl_fm for f in batch], dtype=np.int64))
             k = len(est["contact"])
             if k:
                 done, waiting = waiting[:k], waiting[k:]
+                if publishers:
+                    frames = [f for f, _ in done]
+                    for pub in publishers:
+                        pub.publish(frames, est)
+                    if tared:
+                        latency_ns.extend([time.perf_counter_ns() - arrived_ns] * k)
                 if fh is not None:
                     _write_rows(fh, done, est)
                 n += k
@@ -231,8 +252,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "duration_s": round(span, 3),
         "rate_hz": round((n + len(waiting) - 1) / span, 1) if span > 0 else 0.0,
         "lost_frames": stats.get("lost_frames", 0),
-        "bad_frames": stats.get("crc_errors", 0) + stats.get("header_errors", 0)
-        + stats.get("bad_replies", 0),
+        "bad_frames": _bad_frames(stats),
         "engine": estimator.engine,
         "baseline_nm": None if estimator.baseline_nm is None else estimator.baseline_nm.tolist(),
         "contact_fraction": contact_n / n if n else 0.0,
@@ -242,7 +262,18 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "out": None if out is None else str(out),
         "interrupted": interrupted,
         "reader": stats,
+        **({"published": [p.stats() for p in publishers],
+            "publish_latency_us": _percentiles(latency_ns)} if publishers else {}),
     }
+
+
+def _percentiles(latency_ns: list[int]) -> dict[str, float | int | None]:
+    if not latency_ns:
+        return {"p50": None, "p99": None, "max": None, "n": 0}
+    a = np.asarray(latency_ns, dtype=np.float64) / 1000.0
+    return {"p50": round(float(np.percentile(a, 50)), 1),
+            "p99": round(float(np.percentile(a, 99)), 1), "max": round(float(a.max()), 1),
+            "n": int(a.size)}
 
 
 def _write_rows(fh: TextIO, frames: list[tuple[Frame, float]], est: dict[str, np.ndarray]) -> None:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 # ------------------------------------------------------------------------------------------
-# Trainer fixtures (Part 2): a small simulated calibration-like recording and a model trained
+# Trainer fixtures: a small simulated calibration-like recording and a model trained
 # on it with the causal (shippable) filter, for export / runtime / verify tests.
 # ------------------------------------------------------------------------------------------
 import numpy as _np
@@ -76,7 +76,7 @@ def synthetic_recording():
 
 
 # ------------------------------------------------------------------------------------------
-# Fixed-point runtime fixtures (Part 3): hand-made float models with realistic scales, for
+# Fixed-point runtime fixtures: hand-made float models with realistic scales, for
 # bit-exact tests that need no training.
 # ------------------------------------------------------------------------------------------
 def make_random_model(seed: int = 0, sizes=((70, 50, 20), (70, 50, 20), (70, 50, 40)),

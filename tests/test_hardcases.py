@@ -1,4 +1,4 @@
-"""Hard cases stay numerically stable (issue 8; the table in docs/robustness.md).
+"""Hard cases stay numerically stable (the table in docs/robustness.md).
 
 Every case runs the fixed-point runtime three ways and demands the same bits:
 

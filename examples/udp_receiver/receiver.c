@@ -1,0 +1,132 @@
+/*
+ * Receiver of `fbgforce stream --publish udp://HOST:PORT` (datagram layout: docs/protocol.md,
+ * "Estimate datagram"). Portable C99 + POSIX sockets, no dependencies:
+ *
+ *     cc -std=c99 -Wall -Wextra -Werror -pedantic -o receiver receiver.c
+ *     ./receiver 127.0.0.1 9870 [COUNT]
+ *
+ * Prints one CSV line per valid datagram (seq,sample_seq,t_us,status,contact,conf_q15,
+ * force_mN,x_um,y_um) and, on stderr at the end, how many datagrams were bad or missing.
+ * Fields are read byte by byte as little-endian, so the code is right on any host byte order.
+ */
+#define _POSIX_C_SOURCE 200112L
+#include <arpa/inet.h>
+#include <netinet/in.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#define DATAGRAM_SIZE 48
+#define CRC_OFFSET 44
+
+typedef struct {
+    uint32_t seq;          /* publication counter */
+    uint32_t sample_seq;   /* interrogator sample counter */
+    int64_t t_us;          /* device timestamp, us (-1: none) */
+    uint32_t status;       /* runtime status flags */
+    uint8_t contact;       /* 0/1 */
+    uint16_t conf_q15;     /* contact confidence / 32768 */
+    int32_t force_mN;
+    int32_t x_um;
+    int32_t y_um;
+} fbg_estimate;
+
+static uint32_t le32(const unsigned char *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+static uint16_t le16(const unsigned char *p) { return (uint16_t)(p[0] | (p[1] << 8)); }
+
+/* CRC-32 (zlib/Ethernet: reflected 0xEDB88320, init and final XOR 0xFFFFFFFF), bitwise. */
+static uint32_t crc32(const unsigned char *p, size_t n)
+{
+    uint32_t c = 0xFFFFFFFFu;
+    size_t i;
+    int b;
+    for (i = 0; i < n; i++) {
+        c ^= p[i];
+        for (b = 0; b < 8; b++) c = (c & 1u) ? (c >> 1) ^ 0xEDB88320u : c >> 1;
+    }
+    return c ^ 0xFFFFFFFFu;
+}
+
+/* 0 on success; -1 if the datagram is not a valid version-1 estimate. */
+static int decode(const unsigned char *d, size_t n, fbg_estimate *e)
+{
+    uint64_t t;
+    if (n != DATAGRAM_SIZE || memcmp(d, "FBGO", 4) != 0) return -1;
+    if (le16(d + 4) != 1 || le16(d + 6) != DATAGRAM_SIZE) return -1;
+    if (crc32(d, CRC_OFFSET) != le32(d + CRC_OFFSET)) return -1;
+    e->seq = le32(d + 8);
+    e->sample_seq = le32(d + 12);
+    t = (uint64_t)le32(d + 16) | ((uint64_t)le32(d + 20) << 32);
+    e->t_us = (t >> 63) ? -(int64_t)(~t) - 1 : (int64_t)t; /* two's complement, portably */
+    e->status = le32(d + 24);
+    e->contact = d[28];
+    e->conf_q15 = le16(d + 30);
+    e->force_mN = (int32_t)le32(d + 32);
+    e->x_um = (int32_t)le32(d + 36);
+    e->y_um = (int32_t)le32(d + 40);
+    return 0;
+}
+
+int main(int argc, char **argv)
+{
+    struct sockaddr_in addr;
+    unsigned char buf[256];
+    long count, got = 0, bad = 0, missing = 0;
+    uint32_t next = 0;
+    int have_next = 0, fd;
+
+    if (argc < 3) {
+        fprintf(stderr, "usage: %s ADDRESS PORT [COUNT]\n", argv[0]);
+        return 2;
+    }
+    count = argc > 3 ? atol(argv[3]) : -1;
+    fd = socket(AF_INET, SOCK_DGRAM, 0);
+    if (fd < 0) {
+        perror("socket");
+        return 1;
+    }
+    {
+        int size = 1 << 22; /* room for bursts: the publisher sends a batch at a time */
+        setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &size, sizeof size);
+    }
+    memset(&addr, 0, sizeof addr);
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons((uint16_t)atoi(argv[2]));
+    if (inet_pton(AF_INET, argv[1], &addr.sin_addr) != 1 ||
+        bind(fd, (struct sockaddr *)&addr, sizeof addr) != 0) {
+        perror("bind");
+        return 1;
+    }
+    fprintf(stderr, "listening\n");
+    while (count < 0 || got < count) {
+        fbg_estimate e;
+        ssize_t n = recv(fd, buf, sizeof buf, 0);
+        if (n < 0) {
+            perror("recv");
+            break;
+        }
+        if (decode(buf, (size_t)n, &e) != 0) {
+            bad++;
+            continue;
+        }
+        if (have_next && e.seq != next) missing += (long)(uint32_t)(e.seq - next);
+        next = e.seq + 1u;
+        have_next = 1;
+        got++;
+        printf("%lu,%lu,%lld,%lu,%u,%u,%ld,%ld,%ld\n", (unsigned long)e.seq,
+               (unsigned long)e.sample_seq, (long long)e.t_us, (unsigned long)e.status,
+               (unsigned)e.contact, (unsigned)e.conf_q15, (long)e.force_mN, (long)e.x_um,
+               (long)e.y_um);
+    }
+    fflush(stdout);
+    fprintf(stderr, "received %ld, bad %ld, missing %ld\n", got, bad, missing);
+    close(fd);
+    return 0;
+}

@@ -1,0 +1,276 @@
+"""Estimates out to a controller: the UDP datagram (layout, C and Python receivers, 10,000
+datagrams on loopback equal to the offline fixed engine) and LCM end to end."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbgforce import sim
+from fbgforce.cli import main
+from fbgforce.interrogator import protocol as P
+from fbgforce.interrogator import publish as U
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "udp_receiver"
+CI = os.environ.get("CI", "").lower() == "true"
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _est(n: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(0)
+    return {"status": rng.integers(0, 32, n).astype(np.uint32), "contact": rng.random(n) < 0.5,
+            "contact_conf_q15": rng.integers(0, 32768, n).astype(np.uint16),
+            "force_mN": rng.integers(-5000, 70000, n).astype(np.int32),
+            "x_um": rng.integers(-100, 21000, n).astype(np.int32),
+            "y_um": rng.integers(-100, 27000, n).astype(np.int32)}
+
+
+def test_datagram_layout_is_the_documented_one():
+    assert U.DATAGRAM_SIZE == 48
+    offsets = {name: U.DATAGRAM_DTYPE.fields[name][1] for name in U.DATAGRAM_DTYPE.names}
+    assert offsets == {"magic": 0, "version": 4, "size": 6, "seq": 8, "sample_seq": 12,
+                       "t_us": 16, "status": 24, "contact": 28, "reserved": 29,
+                       "contact_conf_q15": 30, "force_mN": 32, "x_um": 36, "y_um": 40,
+                       "crc32": 44}
+    frames = [P.Frame(0xFFFFFFFF, -1, (0,) * 5), P.Frame(7, 123_456_789_012, (0,) * 5)]
+    est = _est(2)
+    d = U.encode_datagrams(5, frames, est)
+    assert d[1][:8] == b"FBGO\x01\x00\x30\x00"
+    assert d[1][8:12] == (6).to_bytes(4, "little") and d[1][12:16] == (7).to_bytes(4, "little")
+    assert d[1][16:24] == (123_456_789_012).to_bytes(8, "little")
+    assert d[0][16:24] == b"\xff" * 8  # t_us -1: no device timestamp
+    assert d[1][44:] == P.crc32(d[1][:44]).to_bytes(4, "little")
+    rec = U.decode_datagram(d[1])
+    assert rec is not None and int(rec["force_mN"]) == int(est["force_mN"][1])
+    bad = bytearray(d[1])
+    bad[33] ^= 0x10
+    assert U.decode_datagram(bytes(bad)) is None
+    # The example Python receiver (no fbgforce inside) reads the same layout.
+    sys.path.insert(0, str(EXAMPLE))
+    try:
+        import receiver  # type: ignore[import-not-found]
+    finally:
+        sys.path.remove(str(EXAMPLE))
+    e = receiver.decode(d[1])
+    assert e == (6, 7, 123_456_789_012, int(est["status"][1]), int(est["contact"][1]),
+                 int(est["contact_conf_q15"][1]), int(est["force_mN"][1]), int(est["x_um"][1]),
+                 int(est["y_um"][1]))
+    assert receiver.decode(bytes(bad)) is None
+
+
+def _compile_receiver(tmp_path: Path) -> Path:
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        if CI:
+            pytest.fail("no C compiler")
+        pytest.skip("no C compiler")
+    exe = tmp_path / "receiver"
+    subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-o", str(exe),
+                    str(EXAMPLE / "receiver.c")], check=True, capture_output=True, text=True)
+    return exe
+
+
+def _start_receiver(cmd: list[str]) -> subprocess.Popen:
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    line = proc.stderr.readline()  # "listening": bound, ready for datagrams
+    assert "listening" in line, line
+    return proc
+
+
+def _receiver_rows(proc: subprocess.Popen, timeout: float = 30) -> np.ndarray:
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        raise AssertionError(f"receiver did not get every datagram: {err}")
+    assert proc.returncode == 0, err
+    return np.loadtxt(out.splitlines(), delimiter=",", dtype=np.int64, ndmin=2)
+
+
+def _emulate(*args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "fbgforce.cli", "emulate", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _wait_line(proc: subprocess.Popen, prefix: str) -> str:
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if line.startswith(prefix):
+            return line.split(":", 1)[1].strip()
+        if not line and proc.poll() is not None:
+            break
+    proc.kill()
+    raise AssertionError(f"emulator did not start: {proc.communicate()[1][-2000:]}")
+
+
+def _offline(model_dir: Path, wl_nm: np.ndarray, baseline_nm: list[float]) -> np.ndarray:
+    """The fixed engine's records, as ``run_engine("fixed", ...)`` computes them."""
+    from fbgforce.pybind import Runtime
+
+    rt = Runtime(model_dir)
+    rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
+    return rt.run(np.asarray(wl_nm, dtype=np.float64))
+
+
+def test_stream_publishes_10000_datagrams_equal_to_offline_fixed(tmp_path, small_exported_dir,
+                                                                 capsys):
+    """emulate (Hyperion on TCP) -> stream --source hyperion:// --publish udp:// (twice) -> the
+    C receiver and the Python receiver: every one of 10,000 datagrams arrives and carries the
+    offline fixed engine's values for its sample."""
+    exe = _compile_receiver(tmp_path)
+    port_c, port_py = _free_udp_port(), _free_udp_port()
+    rx_c = _start_receiver([str(exe), "127.0.0.1", str(port_c), "10000"])
+    rx_py = _start_receiver([sys.executable, str(EXAMPLE / "receiver.py"), "127.0.0.1",
+                             str(port_py), "10000"])
+    em = _emulate("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    try:
+        url = _wait_line(em, "interrogator:")
+        assert url.startswith("hyperion://127.0.0.1:")
+        code = main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
+                     "10000", "--publish", f"udp://127.0.0.1:{port_c}", "--publish",
+                     f"udp://127.0.0.1:{port_py}", "--start-timeout", "30", "--quiet", "--json"])
+        assert code == 0
+        summary = json.loads(capsys.readouterr().out)
+        rows_c = _receiver_rows(rx_c)
+        rows_py = _receiver_rows(rx_py)
+    finally:
+        for p in (rx_c, rx_py, em):
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert summary["protocol"] == "hyperion" and summary["samples"] == 10000
+    assert summary["lost_frames"] == 0 and summary["bad_frames"] == 0
+    assert [p["sent"] for p in summary["published"]] == [10000, 10000]
+    assert summary["publish_latency_us"]["n"] > 9000
+    assert np.array_equal(rows_c, rows_py)
+    scene = sim.simulate("smoke", seed=5).subset(np.arange(10000))
+    # seq, sample_seq, t_us, status, contact, conf_q15, force_mN, x_um, y_um
+    assert rows_c[:, 0].tolist() == list(range(10000))
+    assert rows_c[:, 1].tolist() == list(range(10000))
+    t_us = np.round(scene.t_s * 1e6).astype(np.int64) + 1_700_000_000 * 1_000_000
+    assert np.array_equal(rows_c[:, 2], t_us)
+    off = _offline(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
+    assert np.array_equal(rows_c[:, 3], off["status"])
+    assert np.array_equal(rows_c[:, 4], off["contact"].astype(np.int64))
+    assert np.array_equal(rows_c[:, 5], off["contact_conf_q15"])
+    assert np.array_equal(rows_c[:, 6], off["force_mN"])
+    assert np.array_equal(rows_c[:, 7], off["x_um"])
+    assert np.array_equal(rows_c[:, 8], off["y_um"])
+    assert rows_c[:, 4].any() and rows_c[:, 6].max() > 5000
+
+
+def _need_lcm() -> None:
+    try:
+        import lcm  # noqa: F401
+    except ImportError:
+        if CI:
+            pytest.fail("the lcm package (extra [lcm]) is missing; .ci/run installs it")
+        pytest.skip("the lcm package is not installed: pip install 'fbgforce[lcm]'")
+
+
+LCM_SUBSCRIBER = r"""
+import sys, lcm
+from fbgforce.interrogator.lcmtypes.estimate_t import estimate_t
+lc = lcm.LCM(sys.argv[1]); want = int(sys.argv[3]); rows = []
+def on(channel, data):
+    m = estimate_t.decode(data)
+    rows.append((m.seq, m.sample_seq, m.t_us, m.status, int(m.contact), m.contact_conf_q15,
+                 m.force_mN, m.x_um, m.y_um))
+# LCM keeps 30 messages per subscription by default; the publisher sends a batch at a time.
+lc.subscribe(sys.argv[2], on).set_queue_capacity(100000)
+print("listening", file=sys.stderr, flush=True)
+while len(rows) < want:
+    lc.handle_timeout(20000)
+print("\n".join(",".join(str(v) for v in r) for r in rows))
+"""
+
+
+def test_lcm_end_to_end_with_lcm_subscriber(tmp_path, small_exported_dir, capsys):
+    """stream --publish lcm:// -> LCM's own subscriber in another process (multicast with
+    ttl=0 on this host): every message arrives with the offline fixed engine's values."""
+    _need_lcm()
+    lcm_url = f"udpm://239.255.76.67:{_free_udp_port()}?ttl=0"
+    channel = f"FBGFORCE_TEST_{os.getpid()}"
+    n = 2000
+    sub = _start_receiver([sys.executable, "-c", LCM_SUBSCRIBER,
+                           lcm_url + "&recv_buf_size=4194304", channel, str(n)])
+    em = _emulate("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    try:
+        url = _wait_line(em, "interrogator:")
+        assert main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
+                     str(n), "--publish", f"lcm://{channel}?url={lcm_url}", "--start-timeout",
+                     "30", "--quiet", "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        rows = _receiver_rows(sub)
+    finally:
+        for p in (sub, em):
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert rows[:, 0].tolist() == list(range(n)) and rows[:, 1].tolist() == list(range(n))
+    scene = sim.simulate("smoke", seed=5).subset(np.arange(n))
+    off = _offline(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
+    for col, key in ((3, "status"), (5, "contact_conf_q15"), (6, "force_mN"), (7, "x_um"),
+                     (8, "y_um")):
+        assert np.array_equal(rows[:, col], off[key]), key
+
+
+def test_lcm_type_is_generated_from_its_lcm_file(tmp_path):
+    """estimate_t.py is lcm-gen's output for estimate_t.lcm (stale check)."""
+    _need_lcm()
+    gen = shutil.which("lcm-gen") or str(Path(sys.executable).parent / "lcm-gen")
+    src = ROOT / "interrogator" / "lcmtypes"
+    subprocess.run([gen, "-p", "--ppath", str(tmp_path), str(src / "estimate_t.lcm")], check=True,
+                   capture_output=True)
+    assert (tmp_path / "fbgforce" / "estimate_t.py").read_text() == (
+        src / "estimate_t.py").read_text(), "regenerate: lcm-gen -p estimate_t.lcm"
+
+
+def test_publish_bad_url_exits_2(tmp_path, small_exported_dir, capsys):
+    assert main(["stream", "--source", "loop://", "--model", str(small_exported_dir),
+                 "--publish", "tcp://x:1"]) == 2
+    assert "--publish" in capsys.readouterr().err
+
+
+def test_float_engine_estimates_are_rounded_to_the_datagram_units():
+    est = {"status": np.array([0, 8], dtype=np.uint32), "contact": np.array([True, False]),
+           "p_contact": np.array([0.75, 0.01]), "force_N": np.array([12.3456, 0.0]),
+           "x_mm": np.array([10.0004, np.nan]), "y_mm": np.array([13.5006, np.nan])}
+    ints = U.estimate_integers(est)
+    assert ints["contact_conf_q15"].tolist() == [24576, 328]
+    assert ints["force_mN"].tolist() == [12346, 0]
+    assert ints["x_um"].tolist() == [10000, 0] and ints["y_um"].tolist() == [13501, 0]
+    rec = U.decode_datagram(U.encode_datagrams(0, [P.Frame(3, -1, (0,) * 5)] * 2, est)[1])
+    assert rec is not None and int(rec["status"]) == 8 and int(rec["t_us"]) == -1
+
+
+def test_lcm_type_ships_with_the_package():
+    from importlib import resources
+
+    files = resources.files("fbgforce.interrogator.lcmtypes")
+    assert files.joinpath("estimate_t.lcm").is_file()
+    from fbgforce.interrogator.lcmtypes.estimate_t import estimate_t
+
+    m = estimate_t()
+    m.force_mN, m.sample_seq = 1234, 2**32 - 1
+    assert estimate_t.decode(m.encode()).force_mN == 1234
