@@ -39,7 +39,7 @@ DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
 }
 SPLIT_RATIOS = (8, 1, 1)
 #: L2 weight decay per net (see docs/trainer.md, "What limits training").
-DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 1e-2, "location": 0.0}
+DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 0.0, "location": 0.0}
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
 LOCATION_AUGMENT = 3.0
