@@ -40,7 +40,7 @@ def random_blob(seed: int = 0) -> bytes:
                       [rng.normal(0, 0.1, b) for b in dims[1:]])
 
     f = pre.n_features
-    model = fm.HierarchicalModel(pre, mlp([f, 6, 5, 2]), mlp([f, 7, 1]), mlp([f + 2, 5, 4, 2]),
+    model = fm.HierarchicalModel(pre, mlp([f, 6, 5, 2]), mlp([f, 7, 1]), mlp([6, 5, 4, 2]),
                                  force_offset=20.0, force_scale=15.0, xy_offset=[10.5, 13.5],
                                  xy_scale=[6.0, 7.5], baseline_nm=[1530, 1535, 1540, 1545, 1550])
     walk = np.cumsum(rng.normal(0.0, 0.004, (600, 5)), axis=0)

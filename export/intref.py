@@ -253,13 +253,13 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         flag[rows] |= f_ok
         crow = rows[contact]
         if crow.size:
-            # 6. Force net, 7. location net on [features, contact << z_frac, quantised force].
+            # 6. Force net, 7. location net on [z, contact << z_frac, quantised force].
             f_c = np.zeros(crow.size, dtype=bool)
             _, force_out = _net(q.nets[1], z[crow], f_c, trace, "force")
             force_out = force_out[:, 0]
             force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
             fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
-            loc_in = np.column_stack([z[crow], np.full(crow.size, 1 << q.z_frac), fq])
+            loc_in = np.column_stack([z[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq])
             _, xy = _net(q.nets[2], loc_in, f_c, trace, "location")
             x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
             y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)

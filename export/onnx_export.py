@@ -7,7 +7,7 @@ nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float
       │                                                    │
       ├──────► force_net ─► f [N,1] ──► hierarchy/force_scale ─► force_N [N]
       │                       │                            │
-      └──────────────► hierarchy/location_input = [z, contact, f] ─► location_net
+      └──────────────► hierarchy/location_input = [z[:, :4], contact, f] ─► location_net
                                                  ─► hierarchy/xy_scale ─► x_mm [N], y_mm [N]
 
 Exactly as :func:`fbgforce.model.predict_from_features`, the location net is fed the contact
@@ -123,7 +123,10 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     node("Squeeze", [p_2d, axis1], "p_contact", "hierarchy/p_contact_out")
 
     # Location net input [z, contact, f]: the force net's unscaled output, as trained.
-    loc_in = node("Concat", [z, contact_f, "force_net/out"], "hierarchy/location_input",
+    # The location net reads the four standardised channels, not the memory features.
+    z4 = node("Slice", [z, const("hierarchy/z_begin", [0], np.int64), const("hierarchy/z_end", [4], np.int64),
+                        const("hierarchy/z_axis", [1], np.int64)], "hierarchy/z4", "hierarchy/z4")
+    loc_in = node("Concat", [z4, contact_f, "force_net/out"], "hierarchy/location_input",
                   "hierarchy/location_input", axis=1)
     _mlp_nodes(model.location, _NET_PREFIX["location"], loc_in, "location_net/out", inits, nodes)
 

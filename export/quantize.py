@@ -545,7 +545,7 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
 
     nets: list[list[QLayer]] = []
     report_nets: dict[str, list[dict[str, Any]]] = {}
-    loc_in = np.column_stack([calib.z, calib.contact.astype(np.float64), calib.f])
+    loc_in = fm.location_inputs(calib.z, calib.contact, calib.f)
     inputs = {"contact": calib.z, "force": calib.z, "location": loc_in}
     for name in NET_NAMES:
         net = model.nets[name]
@@ -713,8 +713,8 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
         force_out = np.abs(calib.f[c]) * 1000.0 * abs(model.force_scale) + e_force_mN
         e_fq = ((e_force_mN + 0.5) * abs(fq_ratio) + force_out * abs(q.fq_mult / 2.0**q.fq_shift - fq_ratio)
                 + 0.5) / 2.0**q.z_frac
-        loc_x = np.column_stack([zc, np.ones(zc.shape[0]), calib.f[c]])
-        loc_e = np.column_stack([ezc, np.zeros(zc.shape[0]), e_fq])
+        loc_x = fm.location_inputs(zc, np.ones(zc.shape[0]), calib.f[c])
+        loc_e = np.column_stack([ezc[:, :fm.N_STRAIN], np.zeros(zc.shape[0]), e_fq])
         out.update({"force_N": float((e_force_mN.max() + 0.5) / 1000.0),
                     "x_mm": float((net_err(q.nets[2], loc_x, loc_e, 0).max() + 0.5) / 1000.0),
                     "y_mm": float((net_err(q.nets[2], loc_x, loc_e, 1).max() + 0.5) / 1000.0)})

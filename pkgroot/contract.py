@@ -51,8 +51,8 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_LAYERS": (8, "layers per net"),
     "MAX_EMA": (MAX_EMA, "exponential-average memory states"),
     "MAX_PLAY": (MAX_PLAY, "play-operator memory states"),
-    "MAX_INPUTS": (N_STRAIN + MAX_EMA + MAX_PLAY + 2,
-                   "widest net input: z, memory features, contact flag, force"),
+    "MAX_INPUTS": (N_STRAIN + MAX_EMA + MAX_PLAY,
+                   "widest net input: z and the memory features"),
     "N_NETS": (3, "contact, force, location (evaluation order)"),
     "WL_MIN_FM": (1_000_000_000, "1000 nm: a peak below this is lost (0, sentinels)"),
     "WL_MAX_FM": (2_000_000_000, "2000 nm: a peak above this is lost"),
@@ -146,10 +146,17 @@ def n_features(n_ema: int, n_play: int) -> int:
     return N_STRAIN + n_ema + n_play
 
 
+#: Nets that read the memory features; the location net reads the standardised channels only
+#: (where a press is does not depend on the load's history; its magnitude comes in through
+#: the force net's output).
+MEMORY_NETS = ("contact", "force")
+
+
 def net_inputs(net: str, n_ema: int, n_play: int) -> int:
     """Input width of a net for a model with the given memory."""
     spec = next(n for n in NETS if n.name == net)
-    return n_features(n_ema, n_play) + len(spec.extra_inputs)
+    base = n_features(n_ema, n_play) if net in MEMORY_NETS else N_STRAIN
+    return base + len(spec.extra_inputs)
 
 
 # ------------------------------------------------------------------------------------------

@@ -18,7 +18,7 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
     x           = [z, (u - e_k) * 2^ema_gain[k] for each k, (u - p_k) * 2^play_gain[k] for each k]
     logits      = contact_net(x)            -> contact = logits[1] > logits[0]
     f           = force_net(x)[0]           -> force_N = force_offset + force_scale * f
-    (u, v)      = location_net([x, contact, f])
+    (u, v)      = location_net([z, contact, f])                        # no memory features
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
 
@@ -277,8 +277,8 @@ class HierarchicalModel:
         See :class:`Preprocess`.
     contact, force, location
         The nets. Contact: F -> ... -> 2 logits (index 1 is "contact"). Force: F -> ... -> 1.
-        Location: F + 2 -> ... -> 2 (the features, the contact flag, the force net's output),
-        with F = ``preprocess.n_features`` (4 without memory).
+        Location: 6 -> ... -> 2 (the four standardised channels, the contact flag, the force
+        net's output); F = ``preprocess.n_features`` (4 + memory states).
     force_offset, force_scale
         ``force_N = force_offset + force_scale * force_net_output``.
     xy_offset, xy_scale
@@ -388,6 +388,13 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
     return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
 
 
+def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """The location net's input: the standardised channels (not the memory features), the
+    contact decision (0/1) and the force net's own (unscaled) output, as every engine builds
+    it (:data:`fbgforce.contract.MEMORY_NETS`)."""
+    return np.column_stack([np.asarray(x)[:, :N_STRAIN], np.asarray(contact, dtype=np.float64), f])
+
+
 def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, np.ndarray]:
     """Run the three nets on standardised inputs.
 
@@ -404,8 +411,7 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, 
     contact = margin > 0.0
     p_contact = 1.0 / (1.0 + np.exp(-np.clip(margin, -500.0, 500.0)))
     f = model.force.forward(z)[:, 0]
-    loc_in = np.column_stack([z, contact.astype(np.float64), f])
-    uv = model.location.forward(loc_in)
+    uv = model.location.forward(location_inputs(z, contact, f))
     force_raw = model.force_offset + model.force_scale * f
     xy_raw = model.xy_offset + model.xy_scale * uv
     return {

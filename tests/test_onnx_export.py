@@ -8,6 +8,7 @@ import pytest
 from fbgforce.errors import InputError
 from fbgforce.export import onnx_export as ox
 from fbgforce.model import MLP, HierarchicalModel, Preprocess, features, predict, predict_from_features
+from fbgforce.model import location_inputs as fm_location_inputs
 
 EPS32 = float(np.finfo(np.float32).eps)
 
@@ -142,7 +143,7 @@ def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.
     assert np.all(np.abs(got["force_N"] - ref["force_raw_N"]) <= fb)
     # Location: compare where the contact input agrees (it is 0/1 and steers the net).
     ok = ~flipped
-    loc_in = np.column_stack([z, ref["contact"], model.force.forward(z)[:, 0]])[ok]
+    loc_in = fm_location_inputs(z, ref["contact"], model.force.forward(z)[:, 0])[ok]
     lbound = _bound(model.location, loc_in)
     # The force input carries the force net's own float32 error into the location net; a ReLU
     # net's Jacobian is bounded elementwise by the product of its |W|, so propagate with those.

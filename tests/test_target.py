@@ -155,7 +155,10 @@ def test_instruction_counts_and_figures(report, small_model_dir):
         assert isinstance(report[key], int) and report[key] >= 0, key
     assert report["text_bytes"] > 1000 and report["rodata_bytes"] > 1000
     # Budgets that are exact, deterministic figures: flash and static RAM.
-    assert report["flash_bytes"] < 48 * 1024
+    # 48 KB held until the parameter checks became generated (every field of the contract is
+    # range-checked at fbg_init: +1.2 KB of code) and the nets gained memory inputs (+1.7 KB
+    # of weights and code at the default memory): 52 KB (docs/firmware.md).
+    assert report["flash_bytes"] < 52 * 1024
     assert report["ram_bytes"] < 4 * 1024
 
 

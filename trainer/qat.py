@@ -186,7 +186,7 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         # What the runtime feeds the location net: the (quantised) nets' own decisions/outputs.
         logits = cnet.forward(zz)
         pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
-        return np.column_stack([zz, pred_c, fnet.forward(zz)[:, 0]])
+        return fm.location_inputs(zz, pred_c, fnet.forward(zz)[:, 0])
 
     # As the trainer: location on samples where true and predicted contact agree.
     def loc_rows(zz: np.ndarray, cc: np.ndarray) -> np.ndarray:

@@ -261,7 +261,7 @@ def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str
 
 def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
     """Location-net input exactly as :func:`fbgforce.model.predict_from_features` builds it."""
-    return np.column_stack([z, contact.astype(np.float64), f_raw])
+    return fm.location_inputs(z, contact, f_raw)
 
 
 def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:

@@ -2847,7 +2847,6 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     uint32_t status, sat = 0u;
     int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
     int16_t in[FBG_MAX_INPUTS];
-    unsigned features;
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
@@ -2911,7 +2910,6 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, &sat);
-    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -2931,9 +2929,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 7. Location net on [features, contact in Q(z_frac), force net output in Q(z_frac)]. */
-        in[features] = (int16_t)(1 << m->z_frac);
-        in[features + 1u] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]:
+         * the memory features after z are no longer needed and make room. */
+        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
+        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);
@@ -3194,7 +3193,7 @@ fbg_status fbg_model_check(const fbg_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);   /* z, contact, force */
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbg_net *net = &model->nets[n];
         if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
@@ -3620,7 +3619,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);
     for (c = 0; c < model->n_ema; ++c)
         if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
             model->ema_gain[c] > FBG_MAX_MEM_GAIN)
@@ -3772,7 +3771,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
     int32_t shift[FBG_N_CHANNELS];
     const float *y;
-    unsigned c, k, idx, features;
+    unsigned c, k, idx;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -3810,7 +3809,6 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in);
-    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
@@ -3829,8 +3827,8 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         out->force_N = m->force_offset_N + m->force_scale * f;
         if (out->force_N > m->overload_N)
             status |= FBG_STATUS_OVERLOAD;
-        in[features] = 1.0f;
-        in[features + 1u] = f;
+        in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
+        in[FBG_N_STRAIN + 1] = f;
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];

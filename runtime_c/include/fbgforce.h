@@ -58,7 +58,7 @@ extern "C" {
 #define FBG_MAX_LAYERS 8  /* layers per net */
 #define FBG_MAX_EMA 4  /* exponential-average memory states */
 #define FBG_MAX_PLAY 4  /* play-operator memory states */
-#define FBG_MAX_INPUTS 14  /* widest net input: z, memory features, contact flag, force */
+#define FBG_MAX_INPUTS 12  /* widest net input: z and the memory features */
 #define FBG_N_NETS 3  /* contact, force, location (evaluation order) */
 #define FBG_WL_MIN_FM 1000000000  /* 1000 nm: a peak below this is lost (0, sentinels) */
 #define FBG_WL_MAX_FM 2000000000  /* 2000 nm: a peak above this is lost */

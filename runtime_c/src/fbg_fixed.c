@@ -243,7 +243,6 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     uint32_t status, sat = 0u;
     int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
     int16_t in[FBG_MAX_INPUTS];
-    unsigned features;
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
@@ -307,7 +306,6 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, &sat);
-    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -327,9 +325,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 7. Location net on [features, contact in Q(z_frac), force net output in Q(z_frac)]. */
-        in[features] = (int16_t)(1 << m->z_frac);
-        in[features + 1u] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]:
+         * the memory features after z are no longer needed and make room. */
+        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
+        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);

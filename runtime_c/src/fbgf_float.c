@@ -66,7 +66,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(features + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);
     for (c = 0; c < model->n_ema; ++c)
         if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
             model->ema_gain[c] > FBG_MAX_MEM_GAIN)
@@ -218,7 +218,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
     int32_t shift[FBG_N_CHANNELS];
     const float *y;
-    unsigned c, k, idx, features;
+    unsigned c, k, idx;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -256,7 +256,6 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in);
-    features = FBG_N_STRAIN + m->n_ema + m->n_play;
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
@@ -275,8 +274,8 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         out->force_N = m->force_offset_N + m->force_scale * f;
         if (out->force_N > m->overload_N)
             status |= FBG_STATUS_OVERLOAD;
-        in[features] = 1.0f;
-        in[features + 1u] = f;
+        in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
+        in[FBG_N_STRAIN + 1] = f;
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
