@@ -19,8 +19,9 @@ estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-ou
   inputs are the trainer's own net inputs ``z`` (the fbgforce model's standardisation and
   memory features, ``Prepared.inputs``); the force and location nets are fitted on the true-contact
   training samples, with targets scaled like the trainer's (``force_offset``/``force_scale``,
-  ``xy_offset``/``xy_scale``); the location net gets ``[z, contact decision, force output]``
-  exactly as the fbgforce location net does, from its own contact and force nets;
+  ``xy_offset``/``xy_scale``); the location net gets the same inputs as the fbgforce location net
+  (``fbgforce.model.location_inputs``: channels, contact decision, force output), from its own
+  contact and force nets;
 - **linear (fitted)**: the fitted beam model of :mod:`fbgforce.trainer.baseline` on the
   filtered, compensated shifts (the first four feature columns).
 
@@ -83,6 +84,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.neural_network import MLPClassifier, MLPRegressor
 
+    from fbgforce import model as fm
     from fbgforce.trainer.train import DEFAULT_SIZES
 
     common = dict(max_iter=max_iter, random_state=seed)
@@ -106,7 +108,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
         print(f"  scikit-learn force: {freg.n_iter_} epochs, {seconds['force']:.1f} s",
               file=sys.stderr)
 
-        loc_in = np.column_stack([z, contact.astype(np.float64), f])
+        loc_in = fm.location_inputs(z, contact, f)  # what the fbgforce location net reads
         xy = (np.column_stack([data.x_mm, data.y_mm]) - model.xy_offset) / model.xy_scale
         t0 = time.perf_counter()
         lreg = MLPRegressor(hidden_layer_sizes=DEFAULT_SIZES["location"], **common)
