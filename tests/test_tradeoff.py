@@ -92,8 +92,8 @@ def test_pareto_mask() -> None:
 def test_grid_shapes() -> None:
     s = grid.Settings(sigmas=(2.0, 5.0), default_sigma=5.0)
     star = [v.tag for v in grid.variants(s)]
-    mems = [f"paper-causal-s5-mem-{m}" for m in ("none", "ema_5_play_0.1",
-                                                  "ema_3_6_9_12_play_0.03_0.1_0.3_1")]
+    mems = [f"paper-causal-s5-mem-{m}" for m in ("none", "play",
+                                                  "ema_4_7_play_0.03_0.1_0.25_0.5")]
     assert star == ["paper-nofilter", "paper-causal-s2", "paper-causal-s5", "half-causal-s5",
                     "quarter-causal-s5", "paper-centred-s5", *mems]
     s.grid = "full"

@@ -34,8 +34,7 @@ def register(subparsers: Any) -> None:
                    help="causal Gaussian sigmas in samples (default 2 5 10; quick: 5)")
     p.add_argument("--memories", nargs="+", default=None, metavar="SPEC",
                    help="the memory axis, each as `fbgforce train --memory` takes it (default: "
-                        "none, ema:5+play:0.1, both, ema:3,6,9,12+play:0.03,0.1,0.3,1; quick: "
-                        "none, both)")
+                        "none, play, both, ema:4,7+play:0.03,0.1,0.25,0.5; quick: none, both)")
     p.add_argument("--grid", choices=("star", "full", "memory"), default="star",
                    help="star: filters at paper width + widths at the shipped filter + memories "
                         "at the shipped configuration; full: product; memory: the memories only")

@@ -4,9 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
-#: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both") at a
-#: smaller and a larger size (states per channel: 0, 2, 5, 8).
-MEMORIES = ("none", "ema:5+play:0.1", "both", "ema:3,6,9,12+play:0.03,0.1,0.3,1")
+#: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both": two averages
+#: and two plays) at a smaller (the plays alone) and a larger size (four plays): 0, 2, 4, 6
+#: states.
+MEMORIES = ("none", "play", "both", "ema:4,7+play:0.03,0.1,0.25,0.5")
 DEFAULT_MEMORY = "both"
 
 
