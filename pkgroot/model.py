@@ -135,12 +135,15 @@ class MemoryStream:
             alpha = 2.0 ** -shift
             e = np.empty_like(u)
             prev = self.ema[k]
-            for start in range(0, n, 256):
-                seg = u[start:start + 256]
-                i = np.arange(seg.shape[0])
-                w = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
-                out = (1.0 - alpha) ** (i + 1) * prev + w @ seg
-                e[start:start + seg.shape[0]] = out
+            block = min(n, 256)
+            i = np.arange(block)
+            w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
+            decay = (1.0 - alpha) ** (i + 1)
+            for start in range(0, n, block):
+                seg = u[start:start + block]
+                m = seg.shape[0]
+                out = decay[:m] * prev + w_full[:m, :m] @ seg
+                e[start:start + m] = out
                 prev = float(out[-1])
             self.ema[k] = prev
             feats.append(((u - e) * 2.0 ** gain)[:, None])

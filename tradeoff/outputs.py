@@ -70,7 +70,8 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f"onnxruntime is {rel(ratios['onnx-f32_over_c-int16_single'])} it and numpy "
             f"{rel(ratios['numpy-f64_over_c-int16_single'])} it.")
     # Filter: what delay buys.
-    filt = sorted((r for r in rows if r["width"] == "paper" and r["engine"] == "numpy-f64"),
+    filt = sorted((r for r in rows if r["width"] == "paper" and r["engine"] == "numpy-f64"
+                   and r.get("memory") == ref.get("memory")),
                   key=lambda r: (not r["causal"], r["filter_delay_ms"]))
     if len(filt) > 1:
         desc = "; ".join(
@@ -80,7 +81,8 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f"index {r['error_index']:.2f}" for r in filt)
         parts.append(f"Filter delay against accuracy at paper width: {desc}.")
     widths = sorted((r for r in rows if r["engine"] == "numpy-f64" and r["filter"] == ref["filter"]
-                     and r["sigma"] == ref["sigma"]), key=lambda r: -r["macs_nets"])
+                     and r["sigma"] == ref["sigma"] and r.get("memory") == ref.get("memory")),
+                    key=lambda r: -r["macs_nets"])
     if len(widths) > 1:
         desc = "; ".join(f"{r['width']} ({r['macs_nets']} MACs): index {r['error_index']:.2f}, "
                          f"{_ns(r.get('host_batch_ns'))}" for r in widths)
@@ -90,7 +92,7 @@ def summary_paragraph(res: dict[str, Any]) -> str:
                    and r.get("status") == "ok"), key=lambda r: r.get("memory_states", 0))
     if len(mems) > 1:
         desc = "; ".join(
-            f"{r['memory']} ({r['memory_states']} states per channel, {r['memory_state_bytes']} "
+            f"{r['memory']} ({r['memory_states']} states, {r['memory_state_bytes']} "
             f"bytes of state, {r['macs_nets']} MACs): {acc(r)}, index {r['error_index']:.3f}, "
             f"{_ns(r.get('host_batch_ns'))}" for r in mems)
         parts.append(f"Memory (what the pad's hysteresis costs a memoryless net): {desc}.")

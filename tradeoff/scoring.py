@@ -20,9 +20,11 @@ CONTACT_ERR_FLOOR = 1e-3
 
 
 def reference(rows: list[dict[str, Any]], s: Settings) -> dict[str, Any] | None:
+    """The shipped configuration (paper width, default causal filter, default memory) in
+    numpy float64; else the first measured causal row."""
+    ref_tag = Variant("causal", s.default_sigma, "paper").tag
     for r in rows:
-        if (r["width"] == "paper" and r["filter"] == "causal" and r["sigma"] == s.default_sigma
-                and r["engine"] == "numpy-f64" and r.get("status") == "ok"):
+        if r["variant"] == ref_tag and r["engine"] == "numpy-f64" and r.get("status") == "ok":
             return r
     ok = [r for r in rows if r.get("status") == "ok" and r["causal"]]
     return ok[0] if ok else None
