@@ -8,6 +8,7 @@ import struct
 import subprocess
 import time
 import zlib
+import os
 from pathlib import Path
 
 import numpy as np
@@ -306,3 +307,22 @@ def test_generated_c_int8_random_model(random_model_factory, random_walk_factory
     ref = intref.run(q, wl_fm, base)
     for k in contract.OUTPUT_FIELDS:
         assert np.array_equal(np.asarray(c_fixed[k], dtype=np.int64), ref[k]), k
+
+
+def test_generated_model_c_compiles_as_cxx_and_c99(small_exported_dir):
+    """The generated model sources are plain positional initialisers in declaration order, so a
+    C++ firmware (which has no C99 designated initialisers before C++20) can compile them."""
+    import shutil
+    import subprocess
+
+    cxx, cc = shutil.which("g++") or shutil.which("clang++"), shutil.which("cc")
+    if cxx is None or cc is None:
+        pytest.skip("needs a C and a C++ compiler")
+    cdir = small_exported_dir / "c"
+    inc = str(ROOT / "runtime_c" / "include")
+    for src in sorted(cdir.glob("*.c")):
+        for cmd in ([cxx, "-std=c++11", "-x", "c++"], [cc, "-std=c99"]):
+            r = subprocess.run([*cmd, "-Wall", "-Wextra", "-Werror", "-pedantic", "-I", inc,
+                                "-I", str(cdir), "-c", str(src), "-o", os.devnull],
+                               capture_output=True, text=True)
+            assert r.returncode == 0, (cmd, src.name, r.stderr)
