@@ -113,7 +113,7 @@ def mutants(blob: bytes, n: int, seed: int = 0) -> Iterator[tuple[str, bytes]]:
             if f.lo is not None:
                 values += [f.lo, f.hi, f.lo - 1, f.hi + 1]
             v = int(rng.choice(values))
-            lo, hi = contract._CTYPE_RANGE[ctype]
+            lo, hi = contract.CTYPE_RANGE[ctype]
             struct.pack_into(_FMT[ctype], buf, off, min(max(v, lo), hi))
         elif kind == "array":
             off, ctype, count = arrays[int(rng.integers(len(arrays)))]

@@ -168,6 +168,10 @@ CTYPES = {
     "int32_t": ("i", "<i4", 4), "uint32_t": ("I", "<u4", 4), "int16_t": ("h", "<i2", 2),
     "uint16_t": ("H", "<u2", 2), "uint8_t": ("B", "u1", 1), "float": ("f", "<f4", 4),
 }
+#: Integer C type -> the values it holds
+CTYPE_RANGE = {name: (-(1 << (8 * size - 1)), (1 << (8 * size - 1)) - 1) if fmt.islower()
+               else (0, (1 << (8 * size)) - 1)
+               for name, (fmt, _dtype, size) in CTYPES.items() if name != "float"}
 
 
 @dataclass(frozen=True)
@@ -469,16 +473,12 @@ def render_header(text: str) -> str:
     return text
 
 
-_CTYPE_RANGE = {"int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),
-                "int16_t": (-2**15, 2**15 - 1), "uint16_t": (0, 2**16 - 1), "uint8_t": (0, 255)}
-
-
 def _range_condition(f: Field) -> str:
     """C condition of "v is outside [lo, hi]", without comparisons the type makes constant
     (-Wtype-limits)."""
     if f.lo is None:
         return "0"
-    tmin, tmax = _CTYPE_RANGE[f.ctype]
+    tmin, tmax = CTYPE_RANGE[f.ctype]
     parts = []
     if f.lo > tmin:
         parts.append(f"v < {f.lo}")
