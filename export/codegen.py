@@ -118,7 +118,7 @@ def float_source(model: fm.HierarchicalModel, name: str, jump_max_fm: int,
     """(header, source) text of the float model for the fbgf_* build."""
     ident = c_identifier(name)
     pre = model.preprocess
-    taps = [1.0] if pre.filter_kind == "none" else list(pre.taps)
+    taps = list(pre.runtime_taps())
     arrays = [f"static const float taps[{len(taps)}] = {{{_floats(taps)}}};"]
     nets = []
     for net_name in NET_NAMES:

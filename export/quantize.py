@@ -36,7 +36,6 @@ from fbgforce.units import nm_to_fm
 SAT16 = contract.SAT16
 SAT32 = contract.SAT32
 TEMP_COEFF_SHIFT = contract.LIMIT["TEMP_COEFF_SHIFT"]
-MAX_TAPS = contract.LIMIT["MAX_TAPS"]
 MAX_WIDTH = contract.LIMIT["MAX_WIDTH"]
 WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
 WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
@@ -281,13 +280,7 @@ def choose_shift(ratios: Sequence[float], limits: Sequence[int] | int = 2**MULT_
 
 def quantize_taps(pre: fm.Preprocess) -> tuple[np.ndarray, int]:
     """Causal FIR taps as int16 in Q15 (Q14 if a tap reaches 1), DC gain kept exactly."""
-    if pre.filter_kind == "centred":
-        raise InputError("the model uses the centred (offline) filter, which needs future "
-                         "samples; retrain with the causal filter to export", column="filter_kind")
-    taps = np.array([1.0]) if pre.filter_kind == "none" else np.asarray(pre.taps, dtype=np.float64)
-    if taps.size > MAX_TAPS:
-        raise InputError(f"{taps.size} filter taps; the runtime holds at most {MAX_TAPS} "
-                         "(use a smaller sigma)", column="taps")
+    taps = pre.runtime_taps()
     peak = float(np.abs(taps).max())
     if peak < 32767.5 / 32768:
         q = 15

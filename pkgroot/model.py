@@ -218,6 +218,23 @@ class Preprocess:
         """Width of the feature vector the contact and force nets read."""
         return contract.n_features(len(self.memory.ema_shifts), len(self.memory.play_widths))
 
+    def runtime_taps(self) -> np.ndarray:
+        """The causal FIR the runtimes run (``[1]`` for no filter).
+
+        Raises
+        ------
+        InputError
+            For the centred (offline) filter, or more taps than the runtime holds.
+        """
+        if self.filter_kind == "centred":
+            raise InputError("the model uses the centred (offline) filter, which needs future "
+                             "samples; retrain with the causal filter to export", column="filter_kind")
+        taps = np.array([1.0]) if self.filter_kind == "none" else self.taps.copy()
+        if taps.size > contract.LIMIT["MAX_TAPS"]:
+            raise InputError(f"{taps.size} filter taps; the runtime holds at most "
+                             f"{contract.LIMIT['MAX_TAPS']} (use a smaller sigma)", column="taps")
+        return taps
+
     @property
     def group_delay_samples(self) -> float:
         """Delay the filter adds to a slowly varying signal, in samples (0 for centred)."""

@@ -240,13 +240,7 @@ class FloatRuntime(_Base):
                  require_tare: bool = False) -> None:
         m = fm.load(model) if isinstance(model, (str, Path)) else model
         pre = m.preprocess
-        taps_f = [1.0] if pre.filter_kind == "none" else list(pre.taps)
-        if pre.filter_kind == "centred":
-            raise InputError("the model uses the centred (offline) filter, which needs future "
-                             "samples; retrain with the causal filter", column="filter_kind")
-        if len(taps_f) > contract.LIMIT["MAX_TAPS"]:
-            raise InputError(f"{len(taps_f)} filter taps; the runtime holds at most "
-                             f"{contract.LIMIT['MAX_TAPS']}", column="taps")
+        taps_f = pre.runtime_taps()
         keep: list[Any] = []
 
         def farr(values: Any) -> Any:

@@ -281,13 +281,16 @@ def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
 
 
 def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
-                  extras: bool = True) -> dict[str, Any]:
-    """Float-pipeline metrics on given rows of prepared data."""
+                  extras: bool = True, inputs: np.ndarray | None = None) -> dict[str, Any]:
+    """Float-pipeline metrics on given rows of prepared data. ``inputs``: the net inputs of
+    every row under ``model.preprocess`` if the caller has them (the memory states make them
+    a pass over every recording)."""
+    if inputs is None:
+        inputs = data.inputs(model.preprocess)
     if not extras:
-        z = data.inputs(model.preprocess)[rows]
-        return fmetrics.compute(fm.predict_from_features(model, z), *data.truth(rows),
+        return fmetrics.compute(fm.predict_from_features(model, inputs[rows]), *data.truth(rows),
                                 extras=False)
-    pred = fm.predict_from_features(model, data.inputs(model.preprocess))
+    pred = fm.predict_from_features(model, inputs)
     delays = press_delays(data, pred["contact"], rows)
     return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
                             extras=extras, pad_mm=model_pad_mm(model), delays=delays)
@@ -511,8 +514,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "history": {name: rep["history"] for name, rep in reports.items()},
         "times_s": {"prepare": t_prep, "train": t_train,
                     **{name: rep["seconds"] for name, rep in reports.items()}},
-        "metrics": {"val": evaluate_rows(model, data, va) if va.size else None,
-                    "test": evaluate_rows(model, data, te) if te.size else None},
+        "metrics": {"val": evaluate_rows(model, data, va, inputs=z) if va.size else None,
+                    "test": evaluate_rows(model, data, te, inputs=z) if te.size else None},
         "platform": {"python": platform.python_version(), "numpy": np.__version__},
     }
     return model
@@ -546,7 +549,7 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
             kept.append(sel + start)
         start += n
     if not inputs:
-        return np.empty((0, data.inputs(pre).shape[1])), rows[:0]
+        return np.empty((0, pre.n_features)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
 
 
