@@ -271,7 +271,40 @@ class EmulatorStats:
         return asdict(self)
 
 
-class Emulator:
+class _BackgroundPlayer:
+    """Start/stop/join of an emulator that plays in a background thread: the subclass sets
+    ``self._stop`` (an Event) and ``self._thread`` (None) and defines ``run`` and ``close``."""
+
+    _thread_name = "fbgforce-emulator"
+    _stop: threading.Event
+    _thread: threading.Thread | None
+
+    def run(self, max_samples: int | None = None) -> "EmulatorStats":
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def start(self, max_samples: int | None = None) -> "_BackgroundPlayer":
+        """Run :meth:`run` in a background thread."""
+        self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
+                                        name=self._thread_name, daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop playing and close the ports."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.close()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+
+class Emulator(_BackgroundPlayer):
     """A virtual interrogator (and optionally a stage/load-cell) on pseudo-terminals.
 
     Parameters
@@ -336,24 +369,6 @@ class Emulator:
         if self.loadcell_port is not None:
             out["loadcell"] = self.loadcell_port.name
         return out
-
-    def start(self, max_samples: int | None = None) -> "Emulator":
-        """Run :meth:`run` in a background thread."""
-        self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
-                                        name="fbgforce-emulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self, timeout: float = 5.0) -> None:
-        """Stop playing and close the ports."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-        self.close()
-
-    def join(self, timeout: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
 
     def close(self) -> None:
         self.port.close()
@@ -515,7 +530,7 @@ def load_playback(scene: str | None = None, data: str | None = None, *, seed: in
     return Playback.from_dataset(sim.simulate(scene, seed=seed, device=device))
 
 
-class HyperionEmulator:
+class HyperionEmulator(_BackgroundPlayer):
     """A virtual Hyperion interrogator on TCP: the command port and the peak stream.
 
     The command port answers ``#GetSerialNumber``, ``#GetFirmwareVersion``,
@@ -540,6 +555,8 @@ class HyperionEmulator:
         As for :class:`Emulator` (playback waits for a client of the stream port, and of the
         load-cell pty if there is one; its lines carry the serial number as counter).
     """
+
+    _thread_name = "fbgforce-hyperion-emulator"
 
     def __init__(self, playback: Playback, *, rate: float = 1000.0,
                  faults: np.ndarray | None = None, address: str = "127.0.0.1",
@@ -608,22 +625,6 @@ class HyperionEmulator:
         if self.loadcell_port is not None:
             out["loadcell"] = self.loadcell_port.name
         return out
-
-    def start(self, max_samples: int | None = None) -> "HyperionEmulator":
-        self._thread = threading.Thread(target=self.run, kwargs={"max_samples": max_samples},
-                                        name="fbgforce-hyperion-emulator", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self, timeout: float = 5.0) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-        self.close()
-
-    def join(self, timeout: float | None = None) -> None:
-        if self._thread is not None:
-            self._thread.join(timeout)
 
     def close(self) -> None:
         for s in list(self._listen.values()) + list(getattr(self, "_cmd_clients", {})) + list(
