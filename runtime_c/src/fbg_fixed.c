@@ -213,12 +213,9 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
-        if (kernel != 0u) {
-            int32_t acc[FBG_MAX_WIDTH];
-            fbg_simd_acc32(kernel, ly, x, acc);
-            for (r = 0; r < ly->n_out; ++r)
-                y[r] = hidden_value(ly, r, acc[r], sat);
-        } else
+        if (kernel != 0u)
+            fbg_simd_hidden(kernel, ly, x, y, sat);
+        else
 #endif
         {
             for (r = 0; r < ly->n_out; ++r)

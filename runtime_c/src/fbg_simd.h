@@ -3,8 +3,9 @@
  *
  * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
  * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
- * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights; the
- * requantisation stays in fbg_fixed.c (the one rounding and saturation rule). Why the sums
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
@@ -42,6 +43,10 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 /* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
  * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 #endif
 
 #endif /* FBG_SIMD_H */

@@ -2,21 +2,29 @@
  * fbg_simd_x86.c - SSE2 and AVX2 dense-layer kernels for x86-64 (see fbg_simd.h).
  *
  * PMADDWD (_mm_madd_epi16 / _mm256_madd_epi16) multiplies int16 pairs and adds adjacent
- * products into int32 lanes; PADDD adds lanes. Both wrap modulo 2^32, so every lane holds its
- * share of the row's sum modulo 2^32, and so does their total; the loader proved the row's
- * true sum fits int32, which makes the modular total the true sum (docs/fixed-point.md, "Host
- * SIMD kernels"). Four rows run together so each vector of x is loaded once per four rows.
+ * products into int32 lanes; PADDD and PHADDD add lanes. All of them wrap modulo 2^32, so
+ * every lane holds its share of a row's sum modulo 2^32, and so does their total; the loader
+ * proved the row's true sum fits int32, which makes the modular total the true sum
+ * (docs/fixed-point.md, "Host SIMD kernels"). SSE2 runs four rows together and AVX2 eight,
+ * so each vector of x is loaded once per group; rows past n_out read a row of zeros.
  *
- * Rows are read as whole vectors of npad = n_in rounded up to 8 weights, against x copied
- * into a buffer that is zero from n_in to npad: the weights read past a row's end belong to
- * the next row and meet zeros. Where such a read would leave the weight array (the last
- * rows), the row is first copied into a zero-padded buffer instead. int8 rows are widened to
- * int16 in such a buffer. The AVX2 functions carry __attribute__((target("avx2"))), so the
- * file builds without -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out
- * when the CPU (and the OS, which must save the YMM registers) supports AVX2.
+ * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
+ * widened on load), against x copied into a buffer that is zero from n_in on: the weights
+ * read past a row's end belong to the next row and meet zeros. Where such a read would leave
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer.
  *
- * Integer SIMD only: no floating-point vector type or instruction is used here (check-nofloat scans
- * this file, which -mgeneral-regs-only cannot compile).
+ * AVX2 also requantises eight rows at once: VPMULDQ gives the exact int64 products
+ * acc * mult, the rounding constant is added in int64, and a logical shift right stands for
+ * the arithmetic one because a negative sum becomes 0 under the ReLU anyway (so only
+ * non-negative values are shifted); the clamp at 32767 raises the saturation flag exactly
+ * where fbg_sat16 does. SSE2 requantises with the scalar helpers of fbg_internal.h.
+ *
+ * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
+ * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
+ * OS, which must save the YMM registers) supports AVX2.
+ *
+ * Integer SIMD only: no floating-point vector type or instruction is used here
+ * (check-nofloat scans this file, which -mgeneral-regs-only cannot compile).
  */
 #include "fbg_simd.h"
 
@@ -25,12 +33,110 @@
 #include <immintrin.h>
 #include <string.h>
 
-#define ROWS 4u
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
 
-/* The rows past n_out of the last group of four. */
-static const int16_t zero_row[FBG_MAX_WIDTH + FBG_SIMD_XPAD];
+/* The rows past n_out of a layer's last group. */
+static const int16_t zero_row16[ROW_LEN];
+static const int8_t zero_row8[ROW_LEN];
 
-/* Sum of each argument's four lanes: [sum a, sum b, sum c, sum d]. */
+/* One layer's rows: the first n_safe can be read in place for npad entries. */
+typedef struct {
+    const fbg_layer *ly;
+    unsigned n, npad, n_safe;
+} rows_view;
+
+static void rows_view_init(rows_view *v, const fbg_layer *ly)
+{
+    size_t total = (size_t)ly->n_out * ly->n_in;
+    v->ly = ly;
+    v->n = ly->n_in;
+    v->npad = (ly->n_in + 7u) & ~7u;
+    /* Row r stays inside the weight array iff r * n + npad <= total. */
+    v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
+    if (v->n_safe > ly->n_out)
+        v->n_safe = ly->n_out;
+}
+
+/* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
+ * into buf. */
+static void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int16_t *p = v->ly->w16 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w16 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row16;
+        } else {
+            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+static void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int8_t *p = v->ly->w8 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w8 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row8;
+        } else {
+            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past npad + 8: a 16-wide load of the
+ * last 8 weights reads zeros beyond). */
+static void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    memcpy(xp, x, ly->n_in * sizeof *xp);
+    memset(xp + ly->n_in, 0, FBG_SIMD_XPAD * sizeof *xp);
+}
+
+/* bias[r .. r+k-1] as int32 (|bias| <= INT32_MAX in an acc32 layer), 0 beyond k. */
+static void bias32(const fbg_layer *ly, unsigned r, unsigned k, int32_t *b)
+{
+    unsigned i;
+    for (i = 0; i < k; ++i)
+        b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
+}
+
+/* ---- SSE2: four rows per group ------------------------------------------------------- */
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+/* 8 int8 weights sign-extended to int16 (each byte doubled, then shifted down arithmetically). */
+static inline __m128i load8x8(const int8_t *p)
+{
+    __m128i b = _mm_loadl_epi64((const __m128i *)(const void *)p);
+    return _mm_srai_epi16(_mm_unpacklo_epi8(b, b), 8);
+}
+
+/* [sum of a's lanes, sum of b's, sum of c's, sum of d's]. */
 static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
 {
     __m128i ab = _mm_add_epi32(_mm_unpacklo_epi32(a, b), _mm_unpackhi_epi32(a, b));
@@ -38,147 +144,204 @@ static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
     return _mm_add_epi32(_mm_unpacklo_epi64(ab, cd), _mm_unpackhi_epi64(ab, cd));
 }
 
-static inline __m128i load128(const int16_t *p)
-{
-    return _mm_loadu_si128((const __m128i *)(const void *)p);
-}
+/* The MACs of four rows; W(i, j) loads 8 weights of row i at column j as int16. */
+#define SSE2_DOT4(W)                                                                 \
+    do {                                                                             \
+        __m128i a0 = _mm_setzero_si128(), a1 = a0, a2 = a0, a3 = a0;                \
+        for (j = 0; j < v.npad; j += 8u) {                                           \
+            __m128i xv = load128(xp + j);                                           \
+            a0 = _mm_add_epi32(a0, _mm_madd_epi16(W(0, j), xv));                    \
+            a1 = _mm_add_epi32(a1, _mm_madd_epi16(W(1, j), xv));                    \
+            a2 = _mm_add_epi32(a2, _mm_madd_epi16(W(2, j), xv));                    \
+            a3 = _mm_add_epi32(a3, _mm_madd_epi16(W(3, j), xv));                    \
+        }                                                                            \
+        sums = _mm_add_epi32(sum4_lanes(a0, a1, a2, a3), load128(b));                \
+    } while (0)
+#define SSE2_W16(i, j) load128(w16[i] + (j))
+#define SSE2_W8(i, j) load8x8(w8[i] + (j))
 
-/* Where the rows of a layer are read: n_safe leading int16 rows in place, the rest copied. */
-typedef struct {
-    const fbg_layer *ly;
-    unsigned n, npad, n_safe;
-} row_source;
-
-static void row_source_init(row_source *src, const fbg_layer *ly)
-{
-    size_t total = (size_t)ly->n_out * ly->n_in;
-    src->ly = ly;
-    src->n = ly->n_in;
-    src->npad = (ly->n_in + 7u) & ~7u;
-    /* Row r can be read in place iff r * n + npad <= total (int16 weights only). */
-    if (ly->w_bits != 16u || total < src->npad)
-        src->n_safe = 0u;
-    else
-        src->n_safe = (unsigned)((total - src->npad) / src->n) + 1u;
-    if (src->n_safe > ly->n_out)
-        src->n_safe = ly->n_out;
-}
-
-/* Row r as int16, readable for npad entries: in place, or copied (widened) into buf. */
-static const int16_t *row_at(const row_source *src, unsigned r, int16_t *buf)
-{
-    unsigned j;
-    if (r >= src->ly->n_out)
-        return zero_row;
-    if (r < src->n_safe)
-        return src->ly->w16 + (size_t)r * src->n;
-    if (src->ly->w_bits == 16u) {
-        memcpy(buf, src->ly->w16 + (size_t)r * src->n, src->n * sizeof *buf);
-    } else {
-        const int8_t *w = src->ly->w8 + (size_t)r * src->n;
-        for (j = 0; j < src->n; ++j)
-            buf[j] = w[j];
-    }
-    for (j = src->n; j < src->npad; ++j)
-        buf[j] = 0;
-    return buf;
-}
-
-/* Rows r..r+3 of the bias (0 beyond n_out), as int32: |bias| <= INT32_MAX in an acc32 layer. */
-static inline __m128i bias4(const fbg_layer *ly, unsigned r)
-{
-    int32_t b[ROWS];
-    unsigned k;
-    for (k = 0; k < ROWS; ++k)
-        b[k] = r + k < ly->n_out ? (int32_t)ly->bias[r + k] : 0;
-    return _mm_loadu_si128((const __m128i *)(const void *)b);
-}
-
-static inline void store4(const fbg_layer *ly, unsigned r, __m128i sums, int32_t *acc)
-{
-    if (r + ROWS <= ly->n_out) {
-        _mm_storeu_si128((__m128i *)(void *)(acc + r), sums);
-    } else {
-        int32_t t[ROWS];
-        _mm_storeu_si128((__m128i *)(void *)t, sums);
-        memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
-    }
-}
-
-/* x into xp, zero from n_in up to the padded width. */
-static void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
-{
-    memcpy(xp, x, ly->n_in * sizeof *xp);
-    memset(xp + ly->n_in, 0, FBG_SIMD_XPAD * sizeof *xp);
-}
-
+/* acc[r] for every row of the layer (int32). */
 static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
 {
-    int16_t xp[FBG_MAX_WIDTH + FBG_SIMD_XPAD];
-    int16_t buf[ROWS][FBG_MAX_WIDTH + FBG_SIMD_XPAD];
-    row_source src;
+    int16_t xp[ROW_LEN];
+    int16_t buf16[4][ROW_LEN];
+    int8_t buf8[4][ROW_LEN];
+    int32_t b[4], t[4];
+    rows_view v;
     unsigned r, j;
     pad_x(ly, x, xp);
-    row_source_init(&src, ly);
-    for (r = 0; r < ly->n_out; r += ROWS) {
-        const int16_t *w0 = row_at(&src, r, buf[0]), *w1 = row_at(&src, r + 1u, buf[1]);
-        const int16_t *w2 = row_at(&src, r + 2u, buf[2]), *w3 = row_at(&src, r + 3u, buf[3]);
-        __m128i a0 = _mm_setzero_si128(), a1 = a0, a2 = a0, a3 = a0;
-        for (j = 0; j < src.npad; j += 8u) {
-            __m128i xv = load128(xp + j);
-            a0 = _mm_add_epi32(a0, _mm_madd_epi16(load128(w0 + j), xv));
-            a1 = _mm_add_epi32(a1, _mm_madd_epi16(load128(w1 + j), xv));
-            a2 = _mm_add_epi32(a2, _mm_madd_epi16(load128(w2 + j), xv));
-            a3 = _mm_add_epi32(a3, _mm_madd_epi16(load128(w3 + j), xv));
+    rows_view_init(&v, ly);
+    for (r = 0; r < ly->n_out; r += 4u) {
+        __m128i sums;
+        bias32(ly, r, 4u, b);
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[4];
+            rows16(&v, r, 4u, w16, buf16);
+            SSE2_DOT4(SSE2_W16);
+        } else {
+            const int8_t *w8[4];
+            rows8(&v, r, 4u, w8, buf8);
+            SSE2_DOT4(SSE2_W8);
         }
-        store4(ly, r, _mm_add_epi32(sum4_lanes(a0, a1, a2, a3), bias4(ly, r)), acc);
+        if (r + 4u <= ly->n_out) {
+            _mm_storeu_si128((__m128i *)(void *)(acc + r), sums);
+        } else {
+            _mm_storeu_si128((__m128i *)(void *)t, sums);
+            memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
+        }
     }
 }
 
-__attribute__((target("avx2"))) static inline __m256i load256(const int16_t *p)
+static void hidden_sse2(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    return _mm256_loadu_si256((const __m256i *)(const void *)p);
+    int32_t acc[FBG_MAX_WIDTH];
+    unsigned r;
+    acc32_sse2(ly, x, acc);
+    for (r = 0; r < ly->n_out; ++r) {
+        int64_t v = fbg_rshift_round((int64_t)acc[r] * ly->mult[r], ly->shift);
+        y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+    }
 }
 
-/* The two 128-bit halves of a added lane by lane (the lanes' total is unchanged). */
-__attribute__((target("avx2"))) static inline __m128i fold256(__m256i a)
+/* ---- AVX2: eight rows per group, vector requantisation -------------------------------- */
+
+AVX2 static inline __m256i load256(const void *p)
 {
-    return _mm_add_epi32(_mm256_castsi256_si128(a), _mm256_extracti128_si256(a, 1));
+    return _mm256_loadu_si256((const __m256i *)p);
 }
 
-__attribute__((target("avx2"))) static void acc32_avx2(const fbg_layer *ly, const int16_t *x,
-                                                       int32_t *acc)
+/* 8 int16 in the low half, zeros in the high half. */
+AVX2 static inline __m256i load_low(const int16_t *p)
 {
-    int16_t xp[FBG_MAX_WIDTH + FBG_SIMD_XPAD];
-    int16_t buf[ROWS][FBG_MAX_WIDTH + FBG_SIMD_XPAD];
-    row_source src;
+    return _mm256_inserti128_si256(_mm256_setzero_si256(), load128(p), 0);
+}
+
+/* [sum of a0's lanes, ..., sum of a7's lanes]. */
+AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256i a3, __m256i a4,
+                                      __m256i a5, __m256i a6, __m256i a7)
+{
+    /* Within each 128-bit half: [a0 a1 a2 a3] and [a4 a5 a6 a7] partial sums. */
+    __m256i h0123 = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    __m256i h4567 = _mm256_hadd_epi32(_mm256_hadd_epi32(a4, a5), _mm256_hadd_epi32(a6, a7));
+    return _mm256_add_epi32(_mm256_permute2x128_si256(h0123, h4567, 0x20),
+                            _mm256_permute2x128_si256(h0123, h4567, 0x31));
+}
+
+/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j, WL(i, j) the last 8
+ * (zero above); the 16-wide x load of that tail reads zeros past npad. */
+#define AVX2_DOT8(W, WL)                                                                     \
+    do {                                                                                     \
+        __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0,   \
+                a6 = a0, a7 = a0, xv;                                                        \
+        for (j = 0; j + 16u <= v.npad; j += 16u) {                                           \
+            xv = load256(xp + j);                                                            \
+            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(W(0, j), xv));                       \
+            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(W(1, j), xv));                       \
+            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(W(2, j), xv));                       \
+            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(W(3, j), xv));                       \
+            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(W(4, j), xv));                       \
+            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(W(5, j), xv));                       \
+            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(W(6, j), xv));                       \
+            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(W(7, j), xv));                       \
+        }                                                                                    \
+        if (j < v.npad) { /* npad is a multiple of 8: half a vector left */                  \
+            xv = load256(xp + j);                                                            \
+            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(WL(0, j), xv));                      \
+            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(WL(1, j), xv));                      \
+            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(WL(2, j), xv));                      \
+            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(WL(3, j), xv));                      \
+            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(WL(4, j), xv));                      \
+            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(WL(5, j), xv));                      \
+            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(WL(6, j), xv));                      \
+            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(WL(7, j), xv));                      \
+        }                                                                                    \
+        sums = _mm256_add_epi32(sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7), load256(b));     \
+    } while (0)
+#define AVX2_W16(i, j) load256(w16[i] + (j))
+#define AVX2_W16_LOW(i, j) load_low(w16[i] + (j))
+#define AVX2_W8(i, j) _mm256_cvtepi8_epi16(load128(w8[i] + (j)))
+#define AVX2_W8_LOW(i, j) _mm256_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)(w8[i] + (j))))
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows; *sat = 1 if any row
+ * clamped at 32767. */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m128i shift,
+                                    uint32_t *sat)
+{
+    const __m256i zero = _mm256_setzero_si256(), top = _mm256_set1_epi64x(FBG_SAT16);
+    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+    __m256i half[2], big_any = zero;
+    int k;
+    for (k = 0; k < 2; ++k) {
+        __m128i a = k == 0 ? _mm256_castsi256_si128(acc) : _mm256_extracti128_si256(acc, 1);
+        __m128i m = k == 0 ? _mm256_castsi256_si128(mult) : _mm256_extracti128_si256(mult, 1);
+        /* Exact: |acc| < 2^31 and |mult| < 2^31. */
+        __m256i t = _mm256_add_epi64(_mm256_mul_epi32(_mm256_cvtepi32_epi64(a), _mm256_cvtepi32_epi64(m)),
+                                     round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, t);
+        __m256i val = _mm256_srl_epi64(t, shift); /* = t >> shift for t >= 0 */
+        __m256i big = _mm256_andnot_si256(neg, _mm256_cmpgt_epi64(val, top));
+        val = _mm256_andnot_si256(neg, _mm256_blendv_epi8(val, top, big));
+        big_any = _mm256_or_si256(big_any, big);
+        half[k] = _mm256_permutevar8x32_epi32(val, low_dwords);
+    }
+    if (!_mm256_testz_si256(big_any, big_any))
+        *sat = 1u;
+    return _mm_packs_epi32(_mm256_castsi256_si128(half[0]), _mm256_castsi256_si128(half[1]));
+}
+
+/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row. */
+AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                            uint32_t *sat)
+{
+    int16_t xp[ROW_LEN];
+    int16_t buf16[8][ROW_LEN];
+    int8_t buf8[8][ROW_LEN];
+    int32_t b[8], m[8];
+    rows_view v;
     unsigned r, j;
+    const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
+    const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
+    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
     pad_x(ly, x, xp);
-    row_source_init(&src, ly);
-    for (r = 0; r < ly->n_out; r += ROWS) {
-        const int16_t *w0 = row_at(&src, r, buf[0]), *w1 = row_at(&src, r + 1u, buf[1]);
-        const int16_t *w2 = row_at(&src, r + 2u, buf[2]), *w3 = row_at(&src, r + 3u, buf[3]);
-        __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0;
-        __m128i b0, b1, b2, b3;
-        for (j = 0; j + 16u <= src.npad; j += 16u) {
-            __m256i xv = load256(xp + j);
-            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(load256(w0 + j), xv));
-            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(load256(w1 + j), xv));
-            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(load256(w2 + j), xv));
-            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(load256(w3 + j), xv));
+    rows_view_init(&v, ly);
+    for (r = 0; r < ly->n_out; r += 8u) {
+        __m256i sums, mv;
+        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
+        if (k == 8u) {
+            __m256i lo = _mm256_permutevar8x32_epi32(load256(ly->bias + r), low_dwords);
+            __m256i hi = _mm256_permutevar8x32_epi32(load256(ly->bias + r + 4u), low_dwords);
+            _mm256_storeu_si256((__m256i *)(void *)b,
+                                _mm256_inserti128_si256(lo, _mm256_castsi256_si128(hi), 1));
+            mv = load256(ly->mult + r);
+        } else {
+            bias32(ly, r, 8u, b);
+            memset(m, 0, sizeof m);
+            memcpy(m, ly->mult + r, k * sizeof *m);
+            mv = load256(m);
         }
-        b0 = fold256(a0);
-        b1 = fold256(a1);
-        b2 = fold256(a2);
-        b3 = fold256(a3);
-        if (j < src.npad) { /* npad is a multiple of 8: one half vector left */
-            __m128i xv = load128(xp + j);
-            b0 = _mm_add_epi32(b0, _mm_madd_epi16(load128(w0 + j), xv));
-            b1 = _mm_add_epi32(b1, _mm_madd_epi16(load128(w1 + j), xv));
-            b2 = _mm_add_epi32(b2, _mm_madd_epi16(load128(w2 + j), xv));
-            b3 = _mm_add_epi32(b3, _mm_madd_epi16(load128(w3 + j), xv));
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[8];
+            rows16(&v, r, 8u, w16, buf16);
+            AVX2_DOT8(AVX2_W16, AVX2_W16_LOW);
+        } else {
+            const int8_t *w8[8];
+            rows8(&v, r, 8u, w8, buf8);
+            AVX2_DOT8(AVX2_W8, AVX2_W8_LOW);
         }
-        store4(ly, r, _mm_add_epi32(sum4_lanes(b0, b1, b2, b3), bias4(ly, r)), acc);
+        if (acc != NULL) {
+            int32_t t[8];
+            _mm256_storeu_si256((__m256i *)(void *)t, sums);
+            memcpy(acc + r, t, k * sizeof *acc);
+        } else {
+            __m128i out = requant8(sums, mv, round, shift, sat);
+            if (k == 8u) {
+                _mm_storeu_si128((__m128i *)(void *)(y + r), out);
+            } else {
+                int16_t t[8];
+                _mm_storeu_si128((__m128i *)(void *)t, out);
+                memcpy(y + r, t, k * sizeof *y);
+            }
+        }
     }
 }
 
@@ -204,9 +367,17 @@ uint32_t fbg_simd_resolve(uint32_t requested)
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
 {
     if (kernel == FBG_OPT_KERNEL_AVX2)
-        acc32_avx2(ly, x, acc);
+        layer_avx2(ly, x, acc, NULL, NULL);
     else
         acc32_sse2(ly, x, acc);
+}
+
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        layer_avx2(ly, x, NULL, y, sat);
+    else
+        hidden_sse2(ly, x, y, sat);
 }
 
 #else
