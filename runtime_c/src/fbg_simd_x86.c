@@ -40,18 +40,19 @@
 static const int16_t zero_row16[ROW_LEN];
 static const int8_t zero_row8[ROW_LEN];
 
-/* One layer's rows: the first n_safe can be read in place for npad entries. */
+/* One layer's rows: the first n_safe can be read in place for npad entries, n_in rounded up
+ * to a multiple of vec (8 or 16). */
 typedef struct {
     const fbg_layer *ly;
     unsigned n, npad, n_safe;
 } rows_view;
 
-static void rows_view_init(rows_view *v, const fbg_layer *ly)
+static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
 {
     size_t total = (size_t)ly->n_out * ly->n_in;
     v->ly = ly;
     v->n = ly->n_in;
-    v->npad = (ly->n_in + 7u) & ~7u;
+    v->npad = (ly->n_in + vec - 1u) & ~(vec - 1u);
     /* Row r stays inside the weight array iff r * n + npad <= total. */
     v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
     if (v->n_safe > ly->n_out)
@@ -106,12 +107,14 @@ static void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, 
     }
 }
 
-/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past npad + 8: a 16-wide load of the
- * last 8 weights reads zeros beyond). */
-static void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
 {
-    memcpy(xp, x, ly->n_in * sizeof *xp);
-    memset(xp + ly->n_in, 0, FBG_SIMD_XPAD * sizeof *xp);
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
 }
 
 /* bias[r .. r+k-1] as int32 (|bias| <= INT32_MAX in an acc32 layer), 0 beyond k. */
@@ -170,7 +173,7 @@ static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
     rows_view v;
     unsigned r, j;
     pad_x(ly, x, xp);
-    rows_view_init(&v, ly);
+    rows_view_init(&v, ly, 8u);
     for (r = 0; r < ly->n_out; r += 4u) {
         __m128i sums;
         bias32(ly, r, 4u, b);
@@ -210,12 +213,6 @@ AVX2 static inline __m256i load256(const void *p)
     return _mm256_loadu_si256((const __m256i *)p);
 }
 
-/* 8 int16 in the low half, zeros in the high half. */
-AVX2 static inline __m256i load_low(const int16_t *p)
-{
-    return _mm256_inserti128_si256(_mm256_setzero_si256(), load128(p), 0);
-}
-
 /* [sum of a0's lanes, ..., sum of a7's lanes]. */
 AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256i a3, __m256i a4,
                                       __m256i a5, __m256i a6, __m256i a7)
@@ -227,13 +224,12 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
                             _mm256_permute2x128_si256(h0123, h4567, 0x31));
 }
 
-/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j, WL(i, j) the last 8
- * (zero above); the 16-wide x load of that tail reads zeros past npad. */
-#define AVX2_DOT8(W, WL)                                                                     \
+/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j as int16. */
+#define AVX2_DOT8(W)                                                                         \
     do {                                                                                     \
         __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0,   \
                 a6 = a0, a7 = a0, xv;                                                        \
-        for (j = 0; j + 16u <= v.npad; j += 16u) {                                           \
+        for (j = 0; j < v.npad; j += 16u) {                                                  \
             xv = load256(xp + j);                                                            \
             a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(W(0, j), xv));                       \
             a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(W(1, j), xv));                       \
@@ -244,49 +240,49 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
             a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(W(6, j), xv));                       \
             a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(W(7, j), xv));                       \
         }                                                                                    \
-        if (j < v.npad) { /* npad is a multiple of 8: half a vector left */                  \
-            xv = load256(xp + j);                                                            \
-            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(WL(0, j), xv));                      \
-            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(WL(1, j), xv));                      \
-            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(WL(2, j), xv));                      \
-            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(WL(3, j), xv));                      \
-            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(WL(4, j), xv));                      \
-            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(WL(5, j), xv));                      \
-            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(WL(6, j), xv));                      \
-            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(WL(7, j), xv));                      \
-        }                                                                                    \
-        sums = _mm256_add_epi32(sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7), load256(b));     \
+        sums = sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7);                                   \
     } while (0)
 #define AVX2_W16(i, j) load256(w16[i] + (j))
-#define AVX2_W16_LOW(i, j) load_low(w16[i] + (j))
 #define AVX2_W8(i, j) _mm256_cvtepi8_epi16(load128(w8[i] + (j)))
-#define AVX2_W8_LOW(i, j) _mm256_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)(w8[i] + (j))))
 
-/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows; *sat = 1 if any row
- * clamped at 32767. */
-AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m128i shift,
-                                    uint32_t *sat)
+/* A layer of at most 8 inputs: two rows per vector (row 2p in the low half, 2p+1 in the
+ * high half) against x in both halves; W(i) loads row i's 8 weights as int16. */
+#define AVX2_NARROW8(W)                                                                      \
+    do {                                                                                     \
+        __m256i xv = _mm256_broadcastsi128_si256(load128(xp));                               \
+        __m256i m0 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(0)), W(1), 1), xv); \
+        __m256i m1 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(2)), W(3), 1), xv); \
+        __m256i m2 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(4)), W(5), 1), xv); \
+        __m256i m3 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(6)), W(7), 1), xv); \
+        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
+        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(m0, m1), _mm256_hadd_epi32(m2, m3)); \
+        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
+    } while (0)
+#define NARROW_W16(i) load128(w16[i])
+#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)w8[i]))
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag). */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
 {
-    const __m256i zero = _mm256_setzero_si256(), top = _mm256_set1_epi64x(FBG_SAT16);
-    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
-    __m256i half[2], big_any = zero;
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
     int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
     for (k = 0; k < 2; ++k) {
-        __m128i a = k == 0 ? _mm256_castsi256_si128(acc) : _mm256_extracti128_si256(acc, 1);
-        __m128i m = k == 0 ? _mm256_castsi256_si128(mult) : _mm256_extracti128_si256(mult, 1);
-        /* Exact: |acc| < 2^31 and |mult| < 2^31. */
-        __m256i t = _mm256_add_epi64(_mm256_mul_epi32(_mm256_cvtepi32_epi64(a), _mm256_cvtepi32_epi64(m)),
-                                     round);
-        __m256i neg = _mm256_cmpgt_epi64(zero, t);
-        __m256i val = _mm256_srl_epi64(t, shift); /* = t >> shift for t >= 0 */
-        __m256i big = _mm256_andnot_si256(neg, _mm256_cmpgt_epi64(val, top));
-        val = _mm256_andnot_si256(neg, _mm256_blendv_epi8(val, top, big));
-        big_any = _mm256_or_si256(big_any, big);
-        half[k] = _mm256_permutevar8x32_epi32(val, low_dwords);
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, over);
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
     }
-    if (!_mm256_testz_si256(big_any, big_any))
-        *sat = 1u;
-    return _mm_packs_epi32(_mm256_castsi256_si128(half[0]), _mm256_castsi256_si128(half[1]));
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
 }
 
 /* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row. */
@@ -296,44 +292,52 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
     int16_t xp[ROW_LEN];
     int16_t buf16[8][ROW_LEN];
     int8_t buf8[8][ROW_LEN];
-    int32_t b[8], m[8];
     rows_view v;
     unsigned r, j;
+    const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
+    const __m256i top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
+    __m256i big = _mm256_setzero_si256();
     const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
     const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
     pad_x(ly, x, xp);
-    rows_view_init(&v, ly);
+    rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
     for (r = 0; r < ly->n_out; r += 8u) {
-        __m256i sums, mv;
+        __m256i sums, mv, bv, lo, hi = _mm256_setzero_si256();
         unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
-        if (k == 8u) {
-            __m256i lo = _mm256_permutevar8x32_epi32(load256(ly->bias + r), low_dwords);
-            __m256i hi = _mm256_permutevar8x32_epi32(load256(ly->bias + r + 4u), low_dwords);
-            _mm256_storeu_si256((__m256i *)(void *)b,
-                                _mm256_inserti128_si256(lo, _mm256_castsi256_si128(hi), 1));
-            mv = load256(ly->mult + r);
-        } else {
-            bias32(ly, r, 8u, b);
-            memset(m, 0, sizeof m);
-            memcpy(m, ly->mult + r, k * sizeof *m);
-            mv = load256(m);
-        }
+        /* Rows r .. r+k-1 of mult and bias (masked loads read nothing past the arrays); the
+         * low dwords of the int64 biases, |bias| <= INT32_MAX in an acc32 layer. */
+        __m256i keep = _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k), lanes);
+        mv = _mm256_maskload_epi32((const int *)(const void *)(ly->mult + r), keep);
+        lo = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r),
+                                   _mm256_cvtepi32_epi64(_mm256_castsi256_si128(keep)));
+        if (k > 4u)
+            hi = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r + 4u),
+                                       _mm256_cvtepi32_epi64(_mm256_extracti128_si256(keep, 1)));
+        bv = _mm256_inserti128_si256(_mm256_permutevar8x32_epi32(lo, low_dwords),
+                                     _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
         if (ly->w_bits == 16u) {
             const int16_t *w16[8];
             rows16(&v, r, 8u, w16, buf16);
-            AVX2_DOT8(AVX2_W16, AVX2_W16_LOW);
+            if (v.npad == 8u)
+                AVX2_NARROW8(NARROW_W16);
+            else
+                AVX2_DOT8(AVX2_W16);
         } else {
             const int8_t *w8[8];
             rows8(&v, r, 8u, w8, buf8);
-            AVX2_DOT8(AVX2_W8, AVX2_W8_LOW);
+            if (v.npad == 8u)
+                AVX2_NARROW8(NARROW_W8);
+            else
+                AVX2_DOT8(AVX2_W8);
         }
+        sums = _mm256_add_epi32(sums, bv);
         if (acc != NULL) {
             int32_t t[8];
             _mm256_storeu_si256((__m256i *)(void *)t, sums);
             memcpy(acc + r, t, k * sizeof *acc);
         } else {
-            __m128i out = requant8(sums, mv, round, shift, sat);
+            __m128i out = requant8(sums, mv, round, top, shift, &big);
             if (k == 8u) {
                 _mm_storeu_si128((__m128i *)(void *)(y + r), out);
             } else {
@@ -343,6 +347,8 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
             }
         }
     }
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)
