@@ -4048,10 +4048,14 @@ static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
     v->ly = ly;
     v->n = ly->n_in;
     v->npad = (ly->n_in + vec - 1u) & ~(vec - 1u);
-    /* Row r stays inside the weight array iff r * n + npad <= total. */
-    v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
-    if (v->n_safe > ly->n_out)
+    /* Row r stays inside the weight array iff r * n + npad <= total; a read of npad entries
+     * overruns the last ceil((npad - n) / n) rows (no division for the common n >= npad - n). */
+    if (v->npad == v->n)
         v->n_safe = ly->n_out;
+    else if (v->n >= v->npad - v->n)
+        v->n_safe = ly->n_out - 1u;
+    else
+        v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
 }
 
 /* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
@@ -4280,37 +4284,51 @@ AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __
     return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
 }
 
-/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row. */
+/* Rows r .. r+k-1 (k <= 8) of a layer's bias, as int32 (|bias| <= INT32_MAX in an acc32
+ * layer: the low dwords of the int64 values), and of its mult; 0 beyond k. Masked loads read
+ * nothing past the arrays. */
+AVX2 static inline void bias_mult8(const fbg_layer *ly, unsigned r, unsigned k, __m256i *bias,
+                                   __m256i *mult)
+{
+    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+    __m256i lo, hi;
+    if (k == 8u) {
+        lo = load256(ly->bias + r);
+        hi = load256(ly->bias + r + 4u);
+        *mult = load256(ly->mult + r);
+    } else {
+        __m256i keep = _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+        *mult = _mm256_maskload_epi32((const int *)(const void *)(ly->mult + r), keep);
+        lo = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r),
+                                   _mm256_cvtepi32_epi64(_mm256_castsi256_si128(keep)));
+        hi = k > 4u ? _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r + 4u),
+                                            _mm256_cvtepi32_epi64(_mm256_extracti128_si256(keep, 1)))
+                    : _mm256_setzero_si256();
+    }
+    *bias = _mm256_inserti128_si256(_mm256_permutevar8x32_epi32(lo, low_dwords),
+                                    _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
+}
+
+/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row.
+ * Two passes: the sums of all row groups first, then bias and requantisation eight rows at
+ * a time, so that no group's long chain (reduction, then requantisation) holds up the next. */
 AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
                             uint32_t *sat)
 {
     int16_t xp[ROW_LEN];
     int16_t buf16[8][ROW_LEN];
     int8_t buf8[8][ROW_LEN];
+    int32_t sum[FBG_MAX_WIDTH + 8u];
     rows_view v;
     unsigned r, j;
-    const __m256i lanes = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
     const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
     const __m256i top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
-    __m256i big = _mm256_setzero_si256();
     const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
-    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+    __m256i big = _mm256_setzero_si256();
     pad_x(ly, x, xp);
     rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
     for (r = 0; r < ly->n_out; r += 8u) {
-        __m256i sums, mv, bv, lo, hi = _mm256_setzero_si256();
-        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
-        /* Rows r .. r+k-1 of mult and bias (masked loads read nothing past the arrays); the
-         * low dwords of the int64 biases, |bias| <= INT32_MAX in an acc32 layer. */
-        __m256i keep = _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k), lanes);
-        mv = _mm256_maskload_epi32((const int *)(const void *)(ly->mult + r), keep);
-        lo = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r),
-                                   _mm256_cvtepi32_epi64(_mm256_castsi256_si128(keep)));
-        if (k > 4u)
-            hi = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r + 4u),
-                                       _mm256_cvtepi32_epi64(_mm256_extracti128_si256(keep, 1)));
-        bv = _mm256_inserti128_si256(_mm256_permutevar8x32_epi32(lo, low_dwords),
-                                     _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
+        __m256i sums;
         if (ly->w_bits == 16u) {
             const int16_t *w16[8];
             rows16(&v, r, 8u, w16, buf16);
@@ -4326,20 +4344,22 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
             else
                 AVX2_DOT8(AVX2_W8);
         }
-        sums = _mm256_add_epi32(sums, bv);
+        _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
+    }
+    for (r = 0; r < ly->n_out; r += 8u) {
+        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
+        __m256i bias, mult, sums;
+        bias_mult8(ly, r, k, &bias, &mult);
+        sums = _mm256_add_epi32(load256(sum + r), bias);
         if (acc != NULL) {
-            int32_t t[8];
-            _mm256_storeu_si256((__m256i *)(void *)t, sums);
-            memcpy(acc + r, t, k * sizeof *acc);
+            _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
+            memcpy(acc + r, sum + r, k * sizeof *acc);
+        } else if (k == 8u) {
+            _mm_storeu_si128((__m128i *)(void *)(y + r), requant8(sums, mult, round, top, shift, &big));
         } else {
-            __m128i out = requant8(sums, mv, round, top, shift, &big);
-            if (k == 8u) {
-                _mm_storeu_si128((__m128i *)(void *)(y + r), out);
-            } else {
-                int16_t t[8];
-                _mm_storeu_si128((__m128i *)(void *)t, out);
-                memcpy(y + r, t, k * sizeof *y);
-            }
+            int16_t t[8];
+            _mm_storeu_si128((__m128i *)(void *)t, requant8(sums, mult, round, top, shift, &big));
+            memcpy(y + r, t, k * sizeof *y);
         }
     }
     if (!_mm256_testz_si256(big, big))
