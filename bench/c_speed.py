@@ -1,16 +1,20 @@
-"""How fast can the C fixed-point step run on this host, by compiler flags, and is it bit-exact?
+"""How fast can the C fixed-point step run on this host, by compiler flags and dense-layer
+kernel, and is it bit-exact?
 
 Compiles ``runtime_c/src/fbg_*.c`` with a small driver (below) under several flag sets, runs
-``fbg_run`` over the same int32 samples (the contact samples of a recording, where all three
-nets run) and reports CPU ns per sample (best of 7 passes) and whether every output record is
-byte-identical to the installed cffi extension's (``fbgforce.Runtime.run_raw``).
+the same int32 samples (the contact samples of a recording, where all three nets run) with
+every dense-layer kernel this CPU runs (``FBG_OPT_KERNEL_*``: portable C, SSE2, AVX2, NEON;
+docs/runtime.md, "Host SIMD kernels"), and reports CPU ns per sample (best of 7 passes) of
+``fbg_run`` (batch) and of one ``fbg_step`` call per sample from C, and whether every output
+record is byte-identical to the installed cffi extension's (``fbgforce.Runtime.run_raw``).
 
 Usage::
 
     python -m fbgforce.bench.c_speed --model MODEL_DIR --data FILE [--samples 5000]
 
-Needs ``gcc`` (or ``$CC``). The cffi extension is built with ``-O2`` (runtime_c/build_runtime.py);
-this script shows what other flags would buy without touching the library.
+Needs ``gcc`` (or ``$CC``). The cffi extension is built with ``-O3`` (runtime_c/build_runtime.py)
+and ``make -C runtime_c`` too; this script shows what other flags would buy without touching
+the library.
 """
 from __future__ import annotations
 
@@ -39,25 +43,33 @@ static void *slurp(const char *path, long *len) {
     buf = malloc((size_t)(*len + 8)); if (fread(buf, 1, (size_t)*len, f) != (size_t)*len) return NULL;
     fclose(f); return buf; }
 int main(int argc, char **argv) {
-    long blen, wlen, n; int r; double best = 1e300;
+    long blen, wlen, n, i; int r; double best = 1e300, best_step = 1e300;
     static fbg_model model; static fbg_state st; fbg_output *out; FILE *f;
-    uint8_t *blob; int32_t *wl;
-    if (argc != 4) return 2;
+    uint8_t *blob; int32_t *wl; uint32_t options;
+    if (argc != 5) return 2;
     blob = slurp(argv[1], &blen); wl = slurp(argv[2], &wlen);
     if (!blob || !wl) return 3;
+    options = (uint32_t)strtoul(argv[4], NULL, 0);
     n = wlen / 20 - 1;   /* row 0 is the baseline */
     out = malloc(sizeof(fbg_output) * (size_t)n);
     if (fbg_model_from_blob(&model, blob, (size_t)blen) != FBG_OK) return 4;
+    if (fbg_init(&st, &model, options) != FBG_OK) return 6;   /* kernel not on this CPU */
     for (r = 0; r < 7; ++r) {
         double t0, t;
-        fbg_init(&st, &model, 0); fbg_set_baseline(&st, wl);
+        fbg_init(&st, &model, options); fbg_set_baseline(&st, wl);
         t0 = cpu_ns();
         if (fbg_run(&st, wl + 5, (size_t)n, out) != FBG_OK) return 5;
         t = (cpu_ns() - t0) / (double)n;
         if (t < best) best = t;
+        fbg_init(&st, &model, options); fbg_set_baseline(&st, wl);
+        t0 = cpu_ns();
+        for (i = 0; i < n; ++i)
+            if (fbg_step(&st, wl + 5 * (i + 1), out + i) != FBG_OK) return 5;
+        t = (cpu_ns() - t0) / (double)n;
+        if (t < best_step) best_step = t;
     }
     f = fopen(argv[3], "wb"); fwrite(out, sizeof(fbg_output), (size_t)n, f); fclose(f);
-    printf("%.1f\n", best);
+    printf("%.1f %.1f\n", best, best_step);
     return 0;
 }
 """
@@ -74,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fbgforce import dataset as fds
     from fbgforce.tradeoff.timers import timing_samples
-    from fbgforce.pybind import Runtime, to_fm
+    from fbgforce.pybind import KERNELS, Runtime, to_fm
     from fbgforce.tare import tare
 
     cc = os.environ.get("CC", "gcc")
@@ -90,7 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     rt.set_baseline(base)
     ref = rt.run_raw(to_fm(wl)).tobytes()
     blob = Path(args.model) / "model.fbgm"
-    print(f"{'flags':24s} {'ns/sample':>10s}  bit-exact vs extension ({len(wl)} contact samples)")
+    kernels = [k for k in KERNELS if k != "auto"]
+    print(f"{'flags':20s} {'kernel':9s} {'fbg_run ns/sample':>17s} {'fbg_step ns':>11s}  "
+          f"bit-exact vs extension ({len(wl)} contact samples)")
     with tempfile.TemporaryDirectory() as tmp:
         t = Path(tmp)
         (t / "driver.c").write_text(DRIVER)
@@ -102,15 +116,19 @@ def main(argv: list[str] | None = None) -> int:
                    "-o", str(exe)]
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode != 0:
-                print(f"{flags:24s} compile failed: {r.stderr.strip().splitlines()[-1:]}")
+                print(f"{flags:20s} compile failed: {r.stderr.strip().splitlines()[-1:]}")
                 continue
-            r = subprocess.run([str(exe), str(blob), str(t / "wl.bin"), str(t / "out.bin")],
-                               capture_output=True, text=True)
-            if r.returncode != 0:
-                print(f"{flags:24s} run failed (exit {r.returncode})")
-                continue
-            same = (t / "out.bin").read_bytes() == ref
-            print(f"{flags:24s} {float(r.stdout.split()[0]):10.1f}  {'yes' if same else 'NO'}")
+            for kernel in kernels:
+                r = subprocess.run([str(exe), str(blob), str(t / "wl.bin"), str(t / "out.bin"),
+                                    str(KERNELS[kernel])], capture_output=True, text=True)
+                if r.returncode == 6:
+                    continue  # this CPU does not run the kernel
+                if r.returncode != 0:
+                    print(f"{flags:20s} {kernel:9s} run failed (exit {r.returncode})")
+                    continue
+                batch, step = (float(v) for v in r.stdout.split())
+                same = (t / "out.bin").read_bytes() == ref
+                print(f"{flags:20s} {kernel:9s} {batch:17.1f} {step:11.1f}  {'yes' if same else 'NO'}")
     return 0
 
 
