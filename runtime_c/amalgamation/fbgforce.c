@@ -3479,8 +3479,13 @@ fbg_status fbg_model_check(const fbg_model *model)
  * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
  * widened on load), against x copied into a buffer that is zero from n_in on: the weights
  * read past a row's end belong to the next row and meet zeros. Where such a read would leave
- * the weight array (the last rows), the row is first copied into a zero-padded buffer. The
- * requantisation uses the scalar helpers of fbg_internal.h.
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer.
+ *
+ * Requantisation, four rows at once: SMULL/SMULL2 give the exact int64 products acc * mult;
+ * SRSHL by -shift (vrshlq_s64) is (t + 2^(shift-1)) >> shift, the rounding rule, computed
+ * without overflow; SQXTN narrows to int32 saturating (any value beyond int32 is beyond
+ * 32767 too), then max(., 0) and min(., 32767), the comparison with 32767 feeding the
+ * saturation flag exactly where fbg_sat16 raises it.
  *
  * Integer SIMD only: no floating-point vector type or instruction is used here
  * (check-nofloat scans this file and its aarch64 object).
@@ -3731,39 +3736,38 @@ static inline int32x4_t mac8(int32x4_t acc, int16x8_t w, int16x8_t x)
 #define NEON_W16(i, j) vld1q_s16(w16[i] + (j))
 #define NEON_W8(i, j) vmovl_s8(vld1_s8(w8[i] + (j)))
 
+/* acc[r] for every row of the layer (int32), four rows of padding room past n_out. */
 static void acc32_neon(const fbg_layer *ly, const int16_t *x, int32_t *acc)
 {
     int16_t xp[ROW_LEN];
     int16_t buf16[4][ROW_LEN];
     int8_t buf8[4][ROW_LEN];
-    int32_t b[4], t[4];
+    int32_t b[4];
     unsigned r, j, i, npad = (ly->n_in + 7u) & ~7u;
+    /* Rows r < n_fast read in place: r * n + npad stays inside the weight array. */
+    size_t total = (size_t)ly->n_out * ly->n_in;
+    unsigned n_fast = total < npad ? 0u : (unsigned)((total - npad) / ly->n_in) + 1u;
     for (j = 0; j < ly->n_in; ++j)
         xp[j] = x[j];
     for (j = 0; j < FBG_SIMD_XPAD; ++j)
         xp[ly->n_in + j] = 0;
     for (r = 0; r < ly->n_out; r += 4u) {
         int32x4_t sums;
+        int fast = r + 4u <= n_fast;
         for (i = 0; i < 4u; ++i) /* |bias| <= INT32_MAX in an acc32 layer */
             b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
         if (ly->w_bits == 16u) {
             const int16_t *w16[4];
             for (i = 0; i < 4u; ++i)
-                w16[i] = row16(ly, r + i, npad, buf16[i]);
+                w16[i] = fast ? ly->w16 + (size_t)(r + i) * ly->n_in : row16(ly, r + i, npad, buf16[i]);
             NEON_DOT4(NEON_W16);
         } else {
             const int8_t *w8[4];
             for (i = 0; i < 4u; ++i)
-                w8[i] = row8(ly, r + i, npad, buf8[i]);
+                w8[i] = fast ? ly->w8 + (size_t)(r + i) * ly->n_in : row8(ly, r + i, npad, buf8[i]);
             NEON_DOT4(NEON_W8);
         }
-        sums = vaddq_s32(sums, vld1q_s32(b));
-        if (r + 4u <= ly->n_out) {
-            vst1q_s32(acc + r, sums);
-        } else {
-            vst1q_s32(t, sums);
-            memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
-        }
+        vst1q_s32(acc + r, vaddq_s32(sums, vld1q_s32(b)));
     }
 }
 
@@ -3782,20 +3786,46 @@ uint32_t fbg_simd_resolve(uint32_t requested)
 
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
 {
+    int32_t a[FBG_MAX_WIDTH + 4u];
     (void)kernel; /* NEON is the only SIMD kernel here */
-    acc32_neon(ly, x, acc);
+    acc32_neon(ly, x, a);
+    memcpy(acc, a, ly->n_out * sizeof *acc);
 }
 
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    int32_t acc[FBG_MAX_WIDTH];
-    unsigned r;
+    int32_t acc[FBG_MAX_WIDTH + 4u], mult[4];
+    int16_t out[4];
+    unsigned r, k;
+    const int64x2_t shift = vdupq_n_s64(-(int64_t)ly->shift);
+    const int32x4_t zero = vdupq_n_s32(0), top = vdupq_n_s32(FBG_SAT16);
+    uint32x4_t big = vdupq_n_u32(0);
     (void)kernel;
     acc32_neon(ly, x, acc);
-    for (r = 0; r < ly->n_out; ++r) {
-        int64_t v = fbg_rshift_round((int64_t)acc[r] * ly->mult[r], ly->shift);
-        y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+    for (r = 0; r < ly->n_out; r += 4u) {
+        int32x4_t a = vld1q_s32(acc + r), m, v;
+        k = ly->n_out - r < 4u ? ly->n_out - r : 4u;
+        if (k == 4u) {
+            m = vld1q_s32(ly->mult + r);
+        } else {
+            memset(mult, 0, sizeof mult);
+            memcpy(mult, ly->mult + r, k * sizeof *mult);
+            m = vld1q_s32(mult);
+        }
+        v = vqmovn_high_s64(vqmovn_s64(vrshlq_s64(vmull_s32(vget_low_s32(a), vget_low_s32(m)), shift)),
+                            vrshlq_s64(vmull_high_s32(a, m), shift));
+        v = vmaxq_s32(v, zero);
+        big = vorrq_u32(big, vcgtq_s32(v, top));
+        v = vminq_s32(v, top);
+        if (k == 4u) {
+            vst1_s16(y + r, vmovn_s32(v));
+        } else {
+            vst1_s16(out, vmovn_s32(v));
+            memcpy(y + r, out, k * sizeof *y);
+        }
     }
+    if (vmaxvq_u32(big) != 0u)
+        *sat = 1u;
 }
 
 #else
