@@ -260,6 +260,25 @@ def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
         _check_replay([str(exe)], kernels)
 
 
+def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
+    """AddressSanitizer (global redzones around every generated weight array) and UBSan on the
+    extreme session: the whole-vector reads past a row's end stay inside the weight array."""
+    _require("cc")
+    exe = tmp_path / "replay_asan"
+    try:
+        _build_replay("cc", sessions[1], exe, ["-fsanitize=address,undefined", "-fno-sanitize-recover=all",
+                                                "-fno-omit-frame-pointer"])
+    except AssertionError as exc:
+        if "asan" in str(exc).lower() or "sanitize" in str(exc).lower():
+            pytest.skip(f"the compiler has no sanitizer runtime here: {exc}")
+        raise
+    env = dict(os.environ, ASAN_OPTIONS="detect_leaks=0")
+    r = subprocess.run([str(exe)] + [hex(k) for k in [lib.FBG_OPT_KERNEL_PORTABLE] +
+                                     [KERNELS[k] for k in host_kernels()]],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0 and "ERROR" not in r.stderr, r.stdout + r.stderr
+
+
 def test_golden_sessions_on_aarch64_neon_under_qemu(sessions, tmp_path):
     _require("aarch64-linux-gnu-gcc", "qemu-aarch64")
     for i, session in enumerate(sessions):
