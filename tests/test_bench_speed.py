@@ -17,7 +17,7 @@ import pytest
 from fbgforce.cli import main
 from fbgforce.tradeoff import cdriver, speed
 
-ARGS = ["--samples", "400", "--single-calls", "60", "--rounds", "1", "--reps", "2",
+ARGS = ["--samples", "400", "--batch", "100", "--single-calls", "60", "--rounds", "1", "--reps", "2",
         "--count-samples", "30"]
 
 
@@ -34,8 +34,7 @@ def result(small_exported_dir, small_dataset_path, tmp_path_factory):
     _require("gcc")
     out = tmp_path_factory.mktemp("bench_speed") / "speed.json"
     code = main(["bench-speed", "--model", str(small_exported_dir), "--data",
-                 str(small_dataset_path), *ARGS, "--c-build", "O1=-O1", "--c-build",
-                 f"as-extension={cdriver.extension_flags()}", "--out", str(out)])
+                 str(small_dataset_path), *ARGS, "--c-build", "O1=-O1", "--out", str(out)])
     assert code == 0
     return json.loads(out.read_text())
 
@@ -52,7 +51,12 @@ def test_every_engine_call_and_caller(result):
             for scope in ("pipeline", "nets"):
                 assert (engine, call, "python", scope, None) in seen
     assert len(seen) == len(result["rows"]), "a row appears twice"
-    assert [b["name"] for b in result["builds"]] == ["O1", "as-extension"]
+    # Every batch from Python has the same length; from C one batch is all samples.
+    assert {r["batch_size"] for r in result["rows"] if r["call"] == "batch"
+            and r["caller"] == "python"} == {100}
+    assert {r["batch_size"] for r in result["rows"] if r["call"] == "batch"
+            and r["caller"] == "c"} == {400}
+    assert [b["name"] for b in result["builds"]] == ["as-extension", "O1"]
     assert result["samples"] == 400 and result["count_samples"] == 30
     assert result["macs_per_step"] > 0 and result["platform"]["cpus"] >= 1
 

@@ -70,6 +70,9 @@ def _register_bench_speed(subparsers: Any) -> None:
     p.add_argument("--seed", type=int, default=0, help="simulation seed for --scene")
     p.add_argument("--samples", type=positive_int, default=5000,
                    help="contact samples timed (default 5000)")
+    p.add_argument("--batch", type=positive_int, default=2000,
+                   help="samples per batch call from Python, the same for every engine "
+                        "(default 2000; from C one batch is all samples)")
     p.add_argument("--single-calls", type=positive_int, default=3000,
                    help="single-sample calls timed per engine from Python (default 3000)")
     p.add_argument("--rounds", type=positive_int, default=6,
@@ -80,8 +83,8 @@ def _register_bench_speed(subparsers: Any) -> None:
                    help="steps run under callgrind per engine and build (default 200)")
     p.add_argument("--c-build", action="append", default=None, metavar="NAME=FLAGS",
                    help="a driver build: compiler flags for runtime_c/src/*.c and the driver, "
-                        "e.g. 'O2=-O2' or 'native=-O3 -march=native'; repeat for several "
-                        "(default: one build with the cffi extension's flags)")
+                        "e.g. 'O2=-O2' or 'native=-O3 -march=native'; repeat for several. "
+                        "Always measured: 'as-extension', the cffi extension's flags")
     p.add_argument("--no-callgrind", action="store_true", help="skip the instruction counts")
     p.add_argument("--out", metavar="FILE", help="write the JSON result here")
     add_json_flag(p)
@@ -103,7 +106,7 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
             builds.append(parse_build(text))
         except ValueError as exc:
             raise InputError(str(exc), column="--c-build") from exc
-    s = SpeedSettings(samples=args.samples, single_calls=args.single_calls, rounds=args.rounds,
+    s = SpeedSettings(samples=args.samples, batch=args.batch, single_calls=args.single_calls, rounds=args.rounds,
                       c_reps=args.reps, count_samples=args.count_samples,
                       callgrind=not args.no_callgrind, builds=tuple(builds))
 

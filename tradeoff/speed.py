@@ -44,6 +44,7 @@ class SpeedSettings:
     """How much is measured (``fbgforce bench-speed`` options)."""
 
     samples: int = 5000
+    batch: int = 2000
     single_calls: int = 3000
     batch_reps: int = 60
     rounds: int = 6
@@ -86,8 +87,8 @@ def _check_fixed_dir(model_dir: Path, model: fm.HierarchicalModel, bits: int, op
 def _row(engine: str, call: str, caller: str, scope: str, how: str, *, build: str | None = None,
          ns: float | None = None, note: str | None = None) -> dict[str, Any]:
     return {"engine": engine, "call": call, "caller": caller, "scope": scope, "how": how,
-            "build": build, "ns_per_sample": ns, "ratio": None, "instructions_per_step": None,
-            "bit_exact": None, "note": note}
+            "build": build, "batch_size": None, "ns_per_sample": ns, "ratio": None,
+            "instructions_per_step": None, "bit_exact": None, "note": note}
 
 
 def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, wl: np.ndarray,
@@ -171,6 +172,7 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
             run = "fbg_run" if kind == "fixed" else "fbgf_run"
             step = "fbg_step" if kind == "fixed" else "fbgf_step"
             batch_row = _row(name, "batch", "c", "pipeline", f"{run} from C", build=b.name)
+            batch_row["batch_size"] = int(wl_fm.shape[0])
             single_row = _row(name, "single", "c", "pipeline", f"{step} from C", build=b.name)
             rows += [batch_row, single_row]
             tick(f"{name} from C ({b.name})")
@@ -217,7 +219,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         What to measure.
     int8_dir
         The int8 export of the same model; by default made here in a temporary copy,
-        calibrated on ``data``.
+        calibrated on ``data`` (its first presses: :func:`~fbgforce.tradeoff.artifacts.calibration_subset`).
     progress
         tqdm bar on stderr (None: only on a terminal).
     log
@@ -233,7 +235,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     from fbgforce import dataset as fds
     from fbgforce.pybind import to_fm
     from fbgforce.tare import tare
-    from fbgforce.tradeoff.artifacts import export_fixed
+    from fbgforce.tradeoff.artifacts import calibration_subset, export_fixed
 
     t_start = time.perf_counter()
     model_dir = Path(model_dir)
@@ -251,7 +253,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     wl = timing_samples(ds)[:s.samples]
     if wl.shape[0] < 2:
         raise InputError("fewer than 2 samples to time", path=str(data))
-    builds = s.builds or default_builds()
+    builds = default_builds() + tuple(b for b in s.builds if b not in default_builds())
     n_c = len(builds) * (1 + 3 * (2 if s.callgrind else 1))
     bar = tqdm(total=2 + (int8_dir is None) + n_c, desc="bench-speed", file=sys.stderr,
                leave=False, dynamic_ncols=True, disable=None if progress is None else not progress)
@@ -268,19 +270,24 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
             tick("exporting the int8 model")
             int8_dir = work / "int8"
             fm.save(model, int8_dir)
-            err = export_fixed(int8_dir, 8, [str(data)])
+            err = export_fixed(int8_dir, 8, calibration_subset([ds], [str(data)], work))
             if err:
                 raise InputError(err, path=str(model_dir))
         tick("timing from Python (interleaved)")
         timers = python_timers(model_dir, int8_dir, model, wl, base)
         blas = timing.limit_blas_threads(1)
+        # One batch length for every engine: a Python engine's per-call cost is spread over
+        # as many samples as a C engine's, so the batch figures compare the engines, not the
+        # lengths (measure() would otherwise size each engine's batch to a fixed time).
+        batch = min(s.batch, wl.shape[0])
         times = timing.measure([t for t, _, _ in timers], wl.shape[0], single_calls=s.single_calls,
-                               batch_size=min(2000, wl.shape[0]), batch_reps=s.batch_reps,
-                               rounds=s.rounds)
+                               batch_size=batch, batch_reps=s.batch_reps, rounds=s.rounds,
+                               min_batch=batch)
         rows: list[dict[str, Any]] = []
         for t, single, batch in timers:
             single["ns_per_sample"] = times[t.name]["single_ns"]
             batch["ns_per_sample"] = times[t.name]["batch_ns"]
+            batch["batch_size"] = times[t.name]["batch_size"]
             rows += [batch, single]
         tick("timing from C")
         rows += c_rows(builds, work, model_dir, int8_dir, to_fm(base), to_fm(wl), s, tick)
@@ -326,7 +333,8 @@ def _fmt_us(ns: float | None) -> str:
 def markdown_table(res: dict[str, Any]) -> str:
     """The result as a Markdown table (what the command prints), with a header line."""
     ref = res["reference"]
-    lines = [f"{res['samples']} contact samples of {res['data']}; model {res['model']} "
+    lines = [f"{res['samples']} contact samples of {res['data']} (batches from Python: "
+             f"{res['settings']['batch']} samples per call; from C: all); model {res['model']} "
              f"({res['macs_per_step']} MACs per step); {res['platform'].get('cpu', res['platform']['machine'])}, "
              f"{res['date_utc']} UTC; ratio = time / {ref['engine']} {ref['call']} ({ref['scope']} "
              f"only); instructions per step from callgrind over {res['count_samples']} steps",
