@@ -87,15 +87,27 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     from fbgforce.tare import tare
     from fbgforce.tradeoff.timers import timing_samples
 
+    row = next(r for r in result["rows"] if (r["engine"], r["build"], r["call"], r["caller"]) ==
+               ("c-int16", "O1", "single", "c"))
+    start, n = row["counted_steps"]["start"], row["counted_steps"]["n"]
+    assert start >= result["count_warmup"] and 0 < n <= result["count_samples"]
     ds = fds.load(small_dataset_path)
-    wl = timing_samples(ds)[:30]
+    wl = timing_samples(ds)[:start + n]
     cdriver.write_samples(tmp_path / "s.bin", to_fm(tare(ds.wl_nm, ds.contact, ds.t_s)[0]),
                           to_fm(wl))
     exe = cdriver.build(cdriver.CBuild("O1", "-O1"), tmp_path / "b",
                         cdriver.float_model_source(small_exported_dir))
     again = cdriver.count_instructions(exe, "fixed", small_exported_dir / "model.fbgm",
-                                       tmp_path / "s.bin", 30)
+                                       tmp_path / "s.bin", start, n)
     assert again == counted[("c-int16", "O1")]
+
+
+def test_contact_window():
+    c = np.array([1, 1, 0, 1, 1, 1, 0, 1, 1, 1, 1, 1], dtype=bool)
+    assert speed.contact_window(c, 2, 4) == (7, 4)      # the first full run after the warm-up
+    assert speed.contact_window(c, 2, 9) == (7, 5)      # else the longest
+    assert speed.contact_window(c, 0, 2) == (0, 2)
+    assert speed.contact_window(np.zeros(5, bool), 0, 2) is None
 
 
 def test_table_lists_every_row(result):

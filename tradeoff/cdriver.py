@@ -9,10 +9,13 @@ int32 femtometre samples (row 0 the tare baseline) and either
 - ``time``: runs ``fbg_run`` over all samples and, separately, one ``fbg_step`` call per sample,
   each best of ``reps`` passes in the thread's CPU time, and writes the ``fbg_run`` outputs (so
   a caller can compare them byte for byte with the cffi extension), or
-- ``count``: calls only ``*_step`` once per sample, so that ``valgrind --tool=callgrind
-  --toggle-collect=fbg_step`` counts exactly the instructions of the steps (callgrind counts
-  are deterministic: the same binary on the same samples gives the same figure, whatever the
-  machine's load).
+- ``count``: calls only ``*_step``, once per sample for the first ``k`` samples, so that
+  ``valgrind --tool=callgrind --toggle-collect=fbg_step`` counts exactly the instructions of
+  those steps (callgrind counts are deterministic: the same binary on the same samples gives
+  the same figure, whatever the machine's load). Two counts, over ``w`` and ``w + n`` steps,
+  give the ``n`` steps after a warm-up of ``w`` by difference: the first steps after a
+  restart fill the filter and the memory states and may skip nets, so they are no measure of
+  a running step.
 
 A build's flags can force what the compiler may use (``-O2``, ``-march=native``, or a macro a
 kernel source reads to pick its path); :func:`extension_flags` are the flags the cffi extension
@@ -50,6 +53,9 @@ DRIVER = r"""
 #ifdef FBG_BENCH_FLOAT_MODEL
 #include FBG_BENCH_FLOAT_HEADER
 #endif
+#ifndef FBG_BENCH_INIT_OPTIONS
+#define FBG_BENCH_INIT_OPTIONS 0u
+#endif
 
 static double cpu_ns(void) { struct timespec t; clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
                              return (double)t.tv_sec * 1e9 + (double)t.tv_nsec; }
@@ -63,7 +69,8 @@ static void *slurp(const char *path, long *len) {
     fclose(f); return buf;
 }
 
-/* argv: MODE(time|count) KIND(fixed|float) BLOB(or -) SAMPLES.bin REPS OUT.bin(or -) */
+/* argv: MODE(time|count) KIND(fixed|float) BLOB(or -) SAMPLES.bin REPS OUT.bin(or -);
+ * count mode: REPS steps from the first sample, no output file. */
 int main(int argc, char **argv) {
     long blen = 0, wlen = 0; size_t n, i; int r, reps, count, fixed;
     double best_run = 1e300, best_step = 1e300;
@@ -87,7 +94,7 @@ int main(int argc, char **argv) {
         return 4;
 #endif
     }
-#define RESTART() (fixed ? (fbg_init(&st, &model, 0) || fbg_set_baseline(&st, wl)) \
+#define RESTART() (fixed ? (fbg_init(&st, &model, FBG_BENCH_INIT_OPTIONS) || fbg_set_baseline(&st, wl)) \
                          : (FLOAT_INIT() || fbgf_set_baseline(&fst, wl)))
 #ifdef FBG_BENCH_FLOAT_MODEL
 #define FLOAT_INIT() fbgf_init(&fst, &FBG_BENCH_FLOAT_MODEL, 0)
@@ -96,8 +103,9 @@ int main(int argc, char **argv) {
 #endif
 #define STEP(k) (fixed ? fbg_step(&st, wl + 5 * ((k) + 1), (fbg_output *)out + (k)) \
                        : fbgf_step(&fst, wl + 5 * ((k) + 1), (fbgf_output *)out + (k)))
-    if (count) {
-        if (RESTART()) return 5;
+    if (count) { /* REPS is the number of steps here, from the first sample */
+        if ((size_t)reps < n) n = (size_t)reps;
+        if (RESTART()) return 7;
         for (i = 0; i < n; ++i)
             if (STEP(i) != FBG_OK) return 5;
         printf("%lu\n", (unsigned long)n);
@@ -105,20 +113,20 @@ int main(int argc, char **argv) {
     }
     for (r = 0; r < reps; ++r) {
         double t0, t;
-        if (RESTART()) return 5;
+        if (RESTART()) return 7;
         t0 = cpu_ns();
         for (i = 0; i < n; ++i)
             if (STEP(i) != FBG_OK) return 5;
         t = (cpu_ns() - t0) / (double)n;
         if (t < best_step) best_step = t;
-        if (RESTART()) return 5;
+        if (RESTART()) return 7;
         t0 = cpu_ns();
         if ((fixed ? fbg_run(&st, wl + 5, n, (fbg_output *)out)
                    : fbgf_run(&fst, wl + 5, n, (fbgf_output *)out)) != FBG_OK) return 5;
         t = (cpu_ns() - t0) / (double)n;
         if (t < best_run) best_run = t;
     }
-    if (strcmp(argv[6], "-") != 0) {
+    if (strcmp(argv[6], "-") != 0) { /* the outputs of the last fbg_run pass */
         FILE *f = fopen(argv[6], "wb");
         if (!f || fwrite(out, rec, n, f) != n) return 6;
         fclose(f);
@@ -131,10 +139,13 @@ int main(int argc, char **argv) {
 
 @dataclass(frozen=True)
 class CBuild:
-    """A driver build: a name for the tables and the compiler flags (split on spaces)."""
+    """A driver build: a name for the tables, the compiler flags (split on spaces) and the
+    ``fbg_init`` options of its fixed-point runs (None: 0; a kernel choice where the header
+    defines ``FBG_OPT_KERNEL_*`` values, so that every kernel path is timed and counted)."""
 
     name: str
     flags: str
+    init_options: int | None = None
 
 
 def extension_flags() -> str | None:
@@ -198,12 +209,15 @@ def build(b: CBuild, work: Path, float_model: Path | None = None) -> Path:
         extra = [f"-DFBG_BENCH_FLOAT_MODEL={ident}",
                  f'-DFBG_BENCH_FLOAT_HEADER="{float_model.with_suffix(".h").name}"',
                  f"-I{float_model.parent}", str(float_model)]
+    if b.init_options is not None:
+        extra.append(f"-DFBG_BENCH_INIT_OPTIONS={int(b.init_options)}u")
     cmd = [*cc.split(), "-std=c99", *b.flags.split(), f"-I{root / 'include'}", *srcs,
            *extra, str(work / "driver.c"), "-o", str(exe)]
     r = subprocess.run(cmd, capture_output=True, text=True)
     if r.returncode != 0:
-        last = (r.stderr.strip().splitlines() or ["(no message)"])[-1]
-        raise RuntimeError(f"compile with {b.flags!r} failed: {last}")
+        lines = r.stderr.strip().splitlines()
+        first = next((ln for ln in lines if "error" in ln), lines[-1] if lines else "(no message)")
+        raise RuntimeError(f"compile with {b.flags!r} failed: {first.strip()}")
     return exe
 
 
@@ -215,9 +229,13 @@ def write_samples(path: Path, baseline_fm: np.ndarray, wl_fm: np.ndarray) -> Non
 def time_run(exe: Path, kind: str, blob: Path | None, samples: Path, reps: int,
              out: Path | None) -> tuple[float, float]:
     """CPU ns per sample of ``*_run`` over all samples and of one ``*_step`` call per sample,
-    each the best of ``reps`` passes; ``out`` receives the ``*_run`` output records."""
+    each the best of ``reps`` passes; ``out`` receives the ``*_run`` output records
+    (``fbg_output`` or ``fbgf_output``)."""
     r = subprocess.run([str(exe), "time", kind, str(blob or "-"), str(samples), str(reps),
                         str(out or "-")], capture_output=True, text=True)
+    if r.returncode == 7:
+        raise RuntimeError("fbg_init refused the build's options (a kernel this CPU or build "
+                           "does not run)")
     if r.returncode != 0:
         raise RuntimeError(f"driver failed (exit {r.returncode}) on {kind} {blob or ''}")
     run_ns, step_ns = (float(v) for v in r.stdout.split())
@@ -229,9 +247,8 @@ def valgrind() -> str | None:
     return shutil.which("valgrind")
 
 
-def count_instructions(exe: Path, kind: str, blob: Path | None, samples: Path, n: int) -> float:
-    """Instructions per ``*_step`` call from callgrind: every instruction executed inside the
-    step function (callees included) over ``n`` steps, divided by ``n``."""
+def _callgrind_steps(exe: Path, kind: str, blob: Path | None, samples: Path, steps: int) -> int:
+    """Instructions executed inside ``*_step`` over the first ``steps`` samples."""
     vg = valgrind()
     if vg is None:
         raise RuntimeError("valgrind not found")
@@ -239,9 +256,19 @@ def count_instructions(exe: Path, kind: str, blob: Path | None, samples: Path, n
     cg_out = samples.parent / f"callgrind.{kind}.out"
     r = subprocess.run([vg, "--tool=callgrind", f"--toggle-collect={fn}",
                         f"--callgrind-out-file={cg_out}", str(exe), "count", kind, str(blob or "-"),
-                        str(samples), "1", "-"], capture_output=True, text=True)
+                        str(samples), str(steps), "-"], capture_output=True, text=True)
     cg_out.unlink(missing_ok=True)
     m = re.search(r"Collected\s*:\s*(\d+)", r.stderr)
-    if r.returncode != 0 or m is None or int(r.stdout.split()[0]) != n:
+    if r.returncode != 0 or m is None or r.stdout.split() != [str(steps)]:
         raise RuntimeError(f"callgrind run failed (exit {r.returncode})")
-    return int(m.group(1)) / n
+    return int(m.group(1))
+
+
+def count_instructions(exe: Path, kind: str, blob: Path | None, samples: Path, warmup: int,
+                       n: int) -> float:
+    """Mean instructions per ``*_step`` call over the ``n`` steps after the first ``warmup``
+    of a stream from a restart, from callgrind: every instruction executed inside the step
+    function, callees included (``samples`` holds at least ``warmup + n`` samples)."""
+    total = _callgrind_steps(exe, kind, blob, samples, warmup + n)
+    before = _callgrind_steps(exe, kind, blob, samples, warmup) if warmup else 0
+    return (total - before) / n

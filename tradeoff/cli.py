@@ -80,7 +80,11 @@ def _register_bench_speed(subparsers: Any) -> None:
     p.add_argument("--reps", type=positive_int, default=7,
                    help="passes over the samples from C; the best counts (default 7)")
     p.add_argument("--count-samples", type=positive_int, default=200,
-                   help="steps run under callgrind per engine and build (default 200)")
+                   help="consecutive contact steps counted by callgrind per engine and build "
+                        "(default 200)")
+    p.add_argument("--count-warmup", type=int, default=100, metavar="N",
+                   help="the counted steps start at or after this step of the stream "
+                        "(filter and memory warm-up; default 100)")
     p.add_argument("--c-build", action="append", default=None, metavar="NAME=FLAGS",
                    help="a driver build: compiler flags for runtime_c/src/*.c and the driver, "
                         "e.g. 'O2=-O2' or 'native=-O3 -march=native'; repeat for several. "
@@ -108,6 +112,7 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
             raise InputError(str(exc), column="--c-build") from exc
     s = SpeedSettings(samples=args.samples, batch=args.batch, single_calls=args.single_calls, rounds=args.rounds,
                       c_reps=args.reps, count_samples=args.count_samples,
+                      count_warmup=max(0, args.count_warmup),
                       callgrind=not args.no_callgrind, builds=tuple(builds))
 
     def log(msg: str) -> None:

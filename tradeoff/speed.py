@@ -50,14 +50,30 @@ class SpeedSettings:
     rounds: int = 6
     c_reps: int = 7
     count_samples: int = 200
+    count_warmup: int = 100
     callgrind: bool = True
     builds: tuple[cdriver.CBuild, ...] = field(default_factory=tuple)
 
 
 def default_builds() -> tuple[cdriver.CBuild, ...]:
-    """The driver built as the extension is (empty where its flags are unknown)."""
+    """The driver built as the extension is, and once more per dense-layer kernel the header
+    offers (``FBG_OPT_KERNEL_*`` values for ``fbg_init``, AUTO excepted: that is the first
+    build); empty where the extension's flags are unknown."""
+    from fbgforce.target.sources import CSourcesMissing, header_constants
+
     flags = cdriver.extension_flags()
-    return () if flags is None else (cdriver.CBuild("as-extension", flags),)
+    if flags is None:
+        return ()
+    builds = [cdriver.CBuild("as-extension", flags)]
+    try:
+        consts = header_constants()
+    except CSourcesMissing:
+        consts = {}
+    for name, value in sorted(consts.items(), key=lambda kv: kv[1]):
+        kernel = name.removeprefix("FBG_OPT_KERNEL_")
+        if name.startswith("FBG_OPT_KERNEL_") and kernel not in ("AUTO", "MASK"):
+            builds.append(cdriver.CBuild(f"kernel-{kernel.lower()}", flags, value))
+    return tuple(builds)
 
 
 def _fixed_bits(model_dir: Path) -> int | None:
@@ -84,11 +100,37 @@ def _check_fixed_dir(model_dir: Path, model: fm.HierarchicalModel, bits: int, op
     check_fresh(model_dir, model)
 
 
+def contact_window(contact: np.ndarray, warmup: int, n_max: int) -> tuple[int, int] | None:
+    """The steps to count: the first ``n_max`` steps at or after ``warmup`` during which the
+    engine decided "contact" at every step (all three nets run), else the longest such run
+    there; None when the engine never decided contact after the warm-up.
+
+    Returns ``(start, n)``: ``n`` steps from sample ``start`` of the stream.
+    """
+    c = np.asarray(contact, dtype=bool)
+    best: tuple[int, int] | None = None
+    i = max(0, warmup)
+    while i < c.size:
+        if not c[i]:
+            i += 1
+            continue
+        j = i
+        while j < c.size and c[j] and j - i < n_max:
+            j += 1
+        if j - i == n_max:
+            return i, n_max
+        if best is None or j - i > best[1]:
+            best = (i, j - i)
+        i = j
+    return best
+
+
 def _row(engine: str, call: str, caller: str, scope: str, how: str, *, build: str | None = None,
          ns: float | None = None, note: str | None = None) -> dict[str, Any]:
     return {"engine": engine, "call": call, "caller": caller, "scope": scope, "how": how,
             "build": build, "batch_size": None, "ns_per_sample": ns, "ratio": None,
-            "instructions_per_step": None, "bit_exact": None, "note": note}
+            "instructions_per_step": None, "counted_steps": None, "bit_exact": None,
+            "note": note}
 
 
 def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, wl: np.ndarray,
@@ -143,10 +185,10 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
     from fbgforce.pybind import Runtime
 
     rows: list[dict[str, Any]] = []
-    samples, counted = work / "samples.bin", work / "count.bin"
+    from fbgforce import contract
+
+    samples = work / "samples.bin"
     cdriver.write_samples(samples, base_fm, wl_fm)
-    n_count = min(s.count_samples, wl_fm.shape[0])
-    cdriver.write_samples(counted, base_fm, wl_fm[:n_count])
     reference: dict[str, bytes] = {}
     for name, mdir in (("c-int16", model_dir), ("c-int8", int8_dir)):
         rt = Runtime(mdir)
@@ -157,7 +199,7 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
     for b in builds:
         engines: list[tuple[str, str, Path | None]] = [
             ("c-int16", "fixed", model_dir / "model.fbgm"), ("c-int8", "fixed", int8_dir / "model.fbgm")]
-        if float_src is not None:
+        if float_src is not None and b.init_options is None:  # options: fixed point only
             engines.append(("c-float", "float", None))
         try:
             tick(f"compiling the driver ({b.name}: {b.flags or 'no flags'})")
@@ -176,27 +218,37 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
             single_row = _row(name, "single", "c", "pipeline", f"{step} from C", build=b.name)
             rows += [batch_row, single_row]
             tick(f"{name} from C ({b.name})")
-            outputs = work / "out.bin" if kind == "fixed" else None
+            outputs = work / "out.bin"
             try:
                 batch_row["ns_per_sample"], single_row["ns_per_sample"] = cdriver.time_run(
                     exe, kind, blob, samples, s.c_reps, outputs)
             except RuntimeError as exc:
                 batch_row["note"] = single_row["note"] = f"n/a: {exc}"
                 continue
-            if outputs is not None:
-                same = outputs.read_bytes() == reference[name]
-                batch_row["bit_exact"] = same
+            raw = outputs.read_bytes()
+            if kind == "fixed":
+                batch_row["bit_exact"] = raw == reference[name]
+            dtype = np.dtype(contract.numpy_dtype(contract.OUTPUT if kind == "fixed"
+                                                  else contract.FLOAT_OUTPUT))
+            window = contact_window(np.frombuffer(raw, dtype=dtype)["contact"] != 0,
+                                    s.count_warmup, s.count_samples)
             if vg is None:
                 single_row["note"] = ("n/a: valgrind not found (apt-get install valgrind)"
                                       if s.callgrind else "callgrind skipped (--no-callgrind)")
                 continue
+            if window is None:
+                single_row["note"] = "n/a: no contact step after the warm-up to count"
+                continue
             tick(f"{name} under callgrind ({b.name})")
             try:
-                ipc = cdriver.count_instructions(exe, kind, blob, counted, n_count)
+                ipc = cdriver.count_instructions(exe, kind, blob, samples, *window)
             except RuntimeError as exc:
                 single_row["note"] = f"n/a: {exc}"
                 continue
             single_row["instructions_per_step"] = ipc
+            single_row["counted_steps"] = {"start": window[0], "n": window[1]}
+            if window[1] < s.count_samples:
+                single_row["note"] = f"counted over {window[1]} contact steps"
     if not builds:
         rows.append(_row("c-int16", "single", "c", "pipeline", "fbg_step from C",
                          note="n/a: no C build (runtime_c/build_runtime.py not found; give "
@@ -253,7 +305,8 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     wl = timing_samples(ds)[:s.samples]
     if wl.shape[0] < 2:
         raise InputError("fewer than 2 samples to time", path=str(data))
-    builds = default_builds() + tuple(b for b in s.builds if b not in default_builds())
+    base_builds = default_builds()
+    builds = base_builds + tuple(b for b in s.builds if b not in base_builds)
     n_c = len(builds) * (1 + 3 * (2 if s.callgrind else 1))
     bar = tqdm(total=2 + (int8_dir is None) + n_c, desc="bench-speed", file=sys.stderr,
                leave=False, dynamic_ncols=True, disable=None if progress is None else not progress)
@@ -304,12 +357,14 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         else str(int8_dir),
         "data": str(data),
         "samples": int(wl.shape[0]),
-        "count_samples": int(min(s.count_samples, wl.shape[0])),
+        "count_warmup": s.count_warmup,
+        "count_samples": s.count_samples,
         "sizes": {k: net.sizes for k, net in model.nets.items()},
         "memory_states": model.preprocess.memory.n_states,
         "macs_per_step": step_macs(model),
         "reference": dict(zip(("engine", "call", "scope"), REFERENCE)),
-        "builds": [{"name": b.name, "flags": b.flags} for b in builds],
+        "builds": [{"name": b.name, "flags": b.flags, "init_options": b.init_options}
+                   for b in builds],
         "rows": rows,
         "platform": {**timing.platform_info(), "blas_threads_before_timing": blas},
         "settings": {k: v for k, v in s.__dict__.items() if k != "builds"},
@@ -337,7 +392,9 @@ def markdown_table(res: dict[str, Any]) -> str:
              f"{res['settings']['batch']} samples per call; from C: all); model {res['model']} "
              f"({res['macs_per_step']} MACs per step); {res['platform'].get('cpu', res['platform']['machine'])}, "
              f"{res['date_utc']} UTC; ratio = time / {ref['engine']} {ref['call']} ({ref['scope']} "
-             f"only); instructions per step from callgrind over {res['count_samples']} steps",
+             f"only); instructions/step: callgrind, mean over {res['count_samples']} consecutive "
+             f"steps that decided contact (all three nets run), from step "
+             f">= {res['count_warmup']}",
              "",
              "| engine | call | from | scope | how | build | µs/sample | ratio | instructions/step | note |",
              "|---|---|---|---|---|---|---:|---:|---:|---|"]
