@@ -129,3 +129,16 @@ def test_parse_build():
     assert cdriver.parse_build("-O2") == cdriver.CBuild("-O2", "-O2")
     with pytest.raises(ValueError):
         cdriver.parse_build("=-O2")
+
+
+def test_one_build_per_kernel_the_header_offers(monkeypatch):
+    from fbgforce.target import sources
+
+    monkeypatch.setattr(sources, "header_constants", lambda: {
+        "FBG_OK": 0, "FBG_OPT_REQUIRE_TARE": 1, "FBG_OPT_KERNEL_MASK": 0xF0,
+        "FBG_OPT_KERNEL_AUTO": 0, "FBG_OPT_KERNEL_SSE2": 0x20, "FBG_OPT_KERNEL_PORTABLE": 0x10})
+    builds = speed.default_builds()
+    flags = cdriver.extension_flags()
+    assert builds == (cdriver.CBuild("as-extension", flags),
+                      cdriver.CBuild("kernel-portable", flags, 0x10),
+                      cdriver.CBuild("kernel-sse2", flags, 0x20))
