@@ -97,9 +97,13 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
                           to_fm(wl))
     exe = cdriver.build(cdriver.CBuild("O1", "-O1"), tmp_path / "b",
                         cdriver.float_model_source(small_exported_dir))
-    again = cdriver.count_instructions(exe, "fixed", small_exported_dir / "model.fbgm",
-                                       tmp_path / "s.bin", start, n)
+    again, profile = cdriver.count_instructions(exe, "fixed", small_exported_dir / "model.fbgm",
+                                                tmp_path / "s.bin", start, n)
     assert again == counted[("c-int16", "O1")]
+    # The per-function profile adds up to the step (every function, self costs).
+    if shutil.which("callgrind_annotate"):
+        assert sum(profile.values()) == pytest.approx(again)
+        assert "fbg_step" in profile and row["profile_per_step"]
 
 
 def test_contact_window():

@@ -247,28 +247,51 @@ def valgrind() -> str | None:
     return shutil.which("valgrind")
 
 
-def _callgrind_steps(exe: Path, kind: str, blob: Path | None, samples: Path, steps: int) -> int:
-    """Instructions executed inside ``*_step`` over the first ``steps`` samples."""
+def _callgrind_steps(exe: Path, kind: str, blob: Path | None, samples: Path,
+                     steps: int) -> tuple[int, dict[str, int]]:
+    """Instructions executed inside ``*_step`` over the first ``steps`` samples, in total and
+    per function (self cost; empty when ``callgrind_annotate`` is missing)."""
     vg = valgrind()
     if vg is None:
         raise RuntimeError("valgrind not found")
     fn = "fbg_step" if kind == "fixed" else "fbgf_step"
     cg_out = samples.parent / f"callgrind.{kind}.out"
-    r = subprocess.run([vg, "--tool=callgrind", f"--toggle-collect={fn}",
-                        f"--callgrind-out-file={cg_out}", str(exe), "count", kind, str(blob or "-"),
-                        str(samples), str(steps), "-"], capture_output=True, text=True)
-    cg_out.unlink(missing_ok=True)
-    m = re.search(r"Collected\s*:\s*(\d+)", r.stderr)
-    if r.returncode != 0 or m is None or r.stdout.split() != [str(steps)]:
-        raise RuntimeError(f"callgrind run failed (exit {r.returncode})")
-    return int(m.group(1))
+    try:
+        r = subprocess.run([vg, "--tool=callgrind", f"--toggle-collect={fn}",
+                            f"--callgrind-out-file={cg_out}", str(exe), "count", kind,
+                            str(blob or "-"), str(samples), str(steps), "-"],
+                           capture_output=True, text=True)
+        m = re.search(r"Collected\s*:\s*(\d+)", r.stderr)
+        if r.returncode != 0 or m is None or r.stdout.split() != [str(steps)]:
+            raise RuntimeError(f"callgrind run failed (exit {r.returncode})")
+        return int(m.group(1)), _self_costs(cg_out)
+    finally:
+        cg_out.unlink(missing_ok=True)
+
+
+def _self_costs(cg_out: Path) -> dict[str, int]:
+    """Per-function instruction counts of a callgrind output file (``callgrind_annotate``)."""
+    annotate = shutil.which("callgrind_annotate")
+    if annotate is None or not cg_out.is_file():
+        return {}
+    r = subprocess.run([annotate, "--threshold=100", str(cg_out)], capture_output=True,
+                       text=True)
+    costs: dict[str, int] = {}
+    for line in r.stdout.splitlines():
+        m = re.match(r"\s*([\d,]+)\s+\([\s\d.]+%\)\s+\S*?:(\w+)", line)
+        if m:
+            costs[m.group(2)] = costs.get(m.group(2), 0) + int(m.group(1).replace(",", ""))
+    return costs
 
 
 def count_instructions(exe: Path, kind: str, blob: Path | None, samples: Path, warmup: int,
-                       n: int) -> float:
+                       n: int) -> tuple[float, dict[str, float]]:
     """Mean instructions per ``*_step`` call over the ``n`` steps after the first ``warmup``
     of a stream from a restart, from callgrind: every instruction executed inside the step
-    function, callees included (``samples`` holds at least ``warmup + n`` samples)."""
-    total = _callgrind_steps(exe, kind, blob, samples, warmup + n)
-    before = _callgrind_steps(exe, kind, blob, samples, warmup) if warmup else 0
-    return (total - before) / n
+    function, callees included (``samples`` holds at least ``warmup + n`` samples); and the
+    same per function (the functions the compiler kept; inlined code counts in its caller).
+    """
+    total, per_fn = _callgrind_steps(exe, kind, blob, samples, warmup + n)
+    before, before_fn = _callgrind_steps(exe, kind, blob, samples, warmup) if warmup else (0, {})
+    profile = {f: (c - before_fn.get(f, 0)) / n for f, c in per_fn.items()}
+    return (total - before) / n, dict(sorted(profile.items(), key=lambda kv: -kv[1]))

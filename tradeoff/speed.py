@@ -20,6 +20,7 @@ batch over the nets (below 1: faster than onnxruntime).
 """
 from __future__ import annotations
 
+import json
 import sys
 import tempfile
 import time
@@ -33,7 +34,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import cdriver, timing
 from fbgforce.tradeoff.grid import step_macs
-from fbgforce.tradeoff.timers import _c_callables, timing_samples
+from fbgforce.tradeoff.timers import c_callables, timing_samples
 
 #: The row every ratio divides by: (engine, call, scope).
 REFERENCE = ("onnx-f32", "batch", "nets")
@@ -77,8 +78,6 @@ def default_builds() -> tuple[cdriver.CBuild, ...]:
 
 
 def _fixed_bits(model_dir: Path) -> int | None:
-    import json
-
     from fbgforce.export.exporter import REPORT_FILE
 
     try:
@@ -129,7 +128,8 @@ def _row(engine: str, call: str, caller: str, scope: str, how: str, *, build: st
          ns: float | None = None, note: str | None = None) -> dict[str, Any]:
     return {"engine": engine, "call": call, "caller": caller, "scope": scope, "how": how,
             "build": build, "batch_size": None, "ns_per_sample": ns, "ratio": None,
-            "instructions_per_step": None, "counted_steps": None, "bit_exact": None,
+            "instructions_per_step": None, "counted_steps": None, "profile_per_step": None,
+            "bit_exact": None,
             "note": note}
 
 
@@ -145,7 +145,7 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
                              ("c-float", "cfloat", model_dir)):
         rt: Any = Runtime(mdir) if kind == "fixed" else FloatRuntime(model)
         rt.set_baseline(base)
-        _, batch = _c_callables(kind, mdir, model, wl, base)
+        _, batch = c_callables(kind, mdir, model, wl, base)
         api = "Runtime.step" if kind == "fixed" else "FloatRuntime.step"
         run = "fbg_run" if kind == "fixed" else "fbgf_run"
         out.append((timing.Timer(name, single=lambda i, rt=rt: rt.step(wl[i]), batch=batch),
@@ -241,11 +241,12 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
                 continue
             tick(f"{name} under callgrind ({b.name})")
             try:
-                ipc = cdriver.count_instructions(exe, kind, blob, samples, *window)
+                ipc, profile = cdriver.count_instructions(exe, kind, blob, samples, *window)
             except RuntimeError as exc:
                 single_row["note"] = f"n/a: {exc}"
                 continue
             single_row["instructions_per_step"] = ipc
+            single_row["profile_per_step"] = {f: v for f, v in profile.items() if v >= 0.01 * ipc}
             single_row["counted_steps"] = {"start": window[0], "n": window[1]}
             if window[1] < s.count_samples:
                 single_row["note"] = f"counted over {window[1]} contact steps"
@@ -400,6 +401,10 @@ def markdown_table(res: dict[str, Any]) -> str:
              "|---|---|---|---|---|---|---:|---:|---:|---|"]
     for r in res["rows"]:
         note = r["note"] or ""
+        if r.get("profile_per_step"):
+            top = list(r["profile_per_step"].items())[:3]
+            note = ", ".join(f"{f} {100 * v / r['instructions_per_step']:.0f} %" for f, v in top) + \
+                (f"; {note}" if note else "")
         if r["bit_exact"] is not None:
             note = ("bit-exact vs extension" if r["bit_exact"] else "DIFFERS from extension") + \
                 (f"; {note}" if note else "")
