@@ -89,6 +89,8 @@ def _register_bench_speed(subparsers: Any) -> None:
                    help="a driver build: compiler flags for runtime_c/src/*.c and the driver, "
                         "e.g. 'O2=-O2' or 'native=-O3 -march=native'; repeat for several. "
                         "Always measured: 'as-extension', the cffi extension's flags")
+    p.add_argument("--no-kernels", action="store_true",
+                   help="skip the builds per dense-layer kernel (FBG_OPT_KERNEL_*)")
     p.add_argument("--no-callgrind", action="store_true", help="skip the instruction counts")
     p.add_argument("--out", metavar="FILE", help="write the JSON result here")
     add_json_flag(p)
@@ -113,7 +115,8 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
     s = SpeedSettings(samples=args.samples, batch=args.batch, single_calls=args.single_calls, rounds=args.rounds,
                       c_reps=args.reps, count_samples=args.count_samples,
                       count_warmup=max(0, args.count_warmup),
-                      callgrind=not args.no_callgrind, builds=tuple(builds))
+                      callgrind=not args.no_callgrind, kernels=not args.no_kernels,
+                      builds=tuple(builds))
 
     def log(msg: str) -> None:
         print(f"bench-speed: {msg}", file=sys.stderr, flush=True)

@@ -53,19 +53,22 @@ class SpeedSettings:
     count_samples: int = 200
     count_warmup: int = 100
     callgrind: bool = True
+    kernels: bool = True
     builds: tuple[cdriver.CBuild, ...] = field(default_factory=tuple)
 
 
-def default_builds() -> tuple[cdriver.CBuild, ...]:
-    """The driver built as the extension is, and once more per dense-layer kernel the header
-    offers (``FBG_OPT_KERNEL_*`` values for ``fbg_init``, AUTO excepted: that is the first
-    build); empty where the extension's flags are unknown."""
+def default_builds(kernels: bool = True) -> tuple[cdriver.CBuild, ...]:
+    """The driver built as the extension is, and (``kernels``) once more per dense-layer
+    kernel the header offers (``FBG_OPT_KERNEL_*`` values for ``fbg_init``, AUTO excepted:
+    that is the first build); empty where the extension's flags are unknown."""
     from fbgforce.target.sources import CSourcesMissing, header_constants
 
     flags = cdriver.extension_flags()
     if flags is None:
         return ()
     builds = [cdriver.CBuild("as-extension", flags)]
+    if not kernels:
+        return tuple(builds)
     try:
         consts = header_constants()
     except CSourcesMissing:
@@ -306,7 +309,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     wl = timing_samples(ds)[:s.samples]
     if wl.shape[0] < 2:
         raise InputError("fewer than 2 samples to time", path=str(data))
-    base_builds = default_builds()
+    base_builds = default_builds(s.kernels)
     builds = base_builds + tuple(b for b in s.builds if b not in base_builds)
     n_c = len(builds) * (1 + 3 * (2 if s.callgrind else 1))
     bar = tqdm(total=2 + (int8_dir is None) + n_c, desc="bench-speed", file=sys.stderr,
