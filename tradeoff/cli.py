@@ -131,6 +131,8 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
         # Stage lines where no progress bar shows (stderr not a terminal: logs, CI).
         res = bench_speed(args.model, data, s, int8_dir=args.int8,
                           log=(lambda m: None) if sys.stderr.isatty() else log)
+    if args.scene:  # the simulated file was temporary: name what made it
+        res["data"] = f"scene {args.scene} (seed {args.seed}, simulated)"
     if out is not None:
         out.write_text(json.dumps(res, indent=1, default=json_default) + "\n")
     if not args.json:
