@@ -392,8 +392,11 @@ def _fmt_us(ns: float | None) -> str:
 def markdown_table(res: dict[str, Any]) -> str:
     """The result as a Markdown table (what the command prints), with a header line."""
     ref = res["reference"]
+    sizes = sorted({r["batch_size"] for r in res["rows"]
+                    if r["call"] == "batch" and r["caller"] == "python" and r["batch_size"]})
     lines = [f"{res['samples']} contact samples of {res['data']} (batches from Python: "
-             f"{res['settings']['batch']} samples per call; from C: all); model {res['model']} "
+             f"{'/'.join(map(str, sizes)) or 'n/a'} samples per call; from C: all); "
+             f"model {res['model']} "
              f"({res['macs_per_step']} MACs per step); {res['platform'].get('cpu', res['platform']['machine'])}, "
              f"{res['date_utc']} UTC; ratio = time / {ref['engine']} {ref['call']} ({ref['scope']} "
              f"only); instructions/step: callgrind, mean over {res['count_samples']} consecutive "
