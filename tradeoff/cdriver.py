@@ -17,9 +17,9 @@ int32 femtometre samples (row 0 the tare baseline) and either
   restart fill the filter and the memory states and may skip nets, so they are no measure of
   a running step.
 
-A build's flags can force what the compiler may use (``-O2``, ``-march=native``, or a macro a
-kernel source reads to pick its path); :func:`extension_flags` are the flags the cffi extension
-itself is built with, the default build.
+A build's flags set what the compiler may use (``-O2``, ``-march=native``, ...) and its
+``init_options`` what ``fbg_init`` is given (a dense-layer kernel choice);
+:func:`extension_flags` are the flags the cffi extension itself is built with.
 """
 from __future__ import annotations
 
@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 from fbgforce.target.sources import REPOSITORY, CSourcesMissing, source_root
-
 
 
 def runtime_c() -> Path:
