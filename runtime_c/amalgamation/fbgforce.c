@@ -4090,7 +4090,7 @@ static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
 
 /* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
  * into buf. */
-static void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
+static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
 {
     unsigned i, j;
     if (r + k <= v->n_safe) {
@@ -4113,7 +4113,7 @@ static void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w
     }
 }
 
-static void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
+static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
 {
     unsigned i, j;
     if (r + k <= v->n_safe) {
