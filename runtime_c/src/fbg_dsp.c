@@ -43,6 +43,11 @@
 #endif
 #endif
 
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
 /* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
  * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
  * an alignment check). */
@@ -242,8 +247,9 @@ __attribute__((noinline)) static void first_c(fbg_dsp_job *job)
         first_n(job, 6u);
 }
 
-/* Four int32 rows per pass, SMLAD and SMMULR (rows4d32_asm); n even. */
-__attribute__((noinline)) static void rows4_32_c(fbg_dsp_job *job)
+/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm); n even, y
+ * word-aligned (the outputs of a pair are written as one word there); job->groups = pairs. */
+__attribute__((noinline)) static void rows2_32_c(fbg_dsp_job *job)
 {
     const unsigned n = job->n;
     const int16_t *w = job->w, *x = job->x;
@@ -251,60 +257,19 @@ __attribute__((noinline)) static void rows4_32_c(fbg_dsp_job *job)
     const int32_t *mult = job->mult;
     int16_t *y = job->y;
     uint32_t clamped = 0u, g;
-    for (g = job->groups; g > 0u; --g, w += 4u * n, bias += 4, mult += 4, y += 4) {
-        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n, *w3 = w2 + n;
-        int32_t a0 = (int32_t)bias[0], a1 = (int32_t)bias[1], a2 = (int32_t)bias[2],
-                a3 = (int32_t)bias[3];
+    for (g = job->groups; g > 0u; --g, w += 2u * n, bias += 2, mult += 2, y += 2) {
+        const int16_t *w0 = w, *w1 = w0 + n;
+        int32_t a0 = (int32_t)bias[0], a1 = (int32_t)bias[1];
         unsigned j;
         for (j = 0; j < n; j += 2u) {
             int16x2_t xv = ld2(x + j);
             a0 = __smlad(ld2(w0 + j), xv, a0);
             a1 = __smlad(ld2(w1 + j), xv, a1);
-            a2 = __smlad(ld2(w2 + j), xv, a2);
-            a3 = __smlad(ld2(w3 + j), xv, a3);
         }
         y[0] = (int16_t)relu_usat15(smmulr(a0, mult[0]), &clamped);
         y[1] = (int16_t)relu_usat15(smmulr(a1, mult[1]), &clamped);
-        y[2] = (int16_t)relu_usat15(smmulr(a2, mult[2]), &clamped);
-        y[3] = (int16_t)relu_usat15(smmulr(a3, mult[3]), &clamped);
     }
     job->clamped = clamped != 0u;
-}
-
-/* A first int32 layer of n = 2, 4 or 6 inputs held in registers (first32_asm). */
-static inline void first32_n(fbg_dsp_job *job, unsigned n)
-{
-    const int16_t *w = job->w;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y, *end = job->y + job->groups;
-    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
-                    x2 = n > 4u ? ld2(job->x + 4) : 0;
-    uint32_t clamped = 0u;
-    while (y != end) {
-        int32_t a = __smlad(ld2(w), x0, (int32_t)*bias++);
-        w += 2;
-        if (n > 2u) {
-            a = __smlad(ld2(w), x1, a);
-            w += 2;
-        }
-        if (n > 4u) {
-            a = __smlad(ld2(w), x2, a);
-            w += 2;
-        }
-        *y++ = (int16_t)relu_usat15(smmulr(a, *mult++), &clamped);
-    }
-    job->clamped = clamped != 0u;
-}
-
-__attribute__((noinline)) static void first32_c(fbg_dsp_job *job)
-{
-    if (job->n == 2u)
-        first32_n(job, 2u);
-    else if (job->n == 4u)
-        first32_n(job, 4u);
-    else
-        first32_n(job, 6u);
 }
 #endif /* !FBG_DSP_ASM */
 
@@ -753,19 +718,33 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
 
 
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
- * row fits int32 (fbg_model_check re-proves it), so SMLAD (two 16x16 products added to a
- * 32-bit accumulator, which cannot overflow here) gives the same number as the int64 sum, in
- * ONE register per row; and rshift_round(acc * mult, 32) is exactly SMMULR (the high word
- * of acc * mult + 2^31). Requantisation: LDR mult, SMMULR, BIC (ReLU), USAT #15, STRH = 5
- * instructions per neuron instead of 10.
+ * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
+ * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
+ * 16x16 products added to a 32-bit accumulator, which cannot overflow here and so never sets
+ * Q) gives the same number as the int64 sum, in ONE register per row; and
+ * rshift_round(acc * mult, 32) is exactly SMMULR (the high word of acc * mult + 2^31).
  *
- * rows4d32_asm: FOUR rows per pass (one register per accumulator leaves room for it),
- * word-aligned rows and inputs, n even, at least four rows (the caller checks). All fourteen
- * registers are in use in the MAC loop: r0/r9/r10/r11 the four weight rows, r1 x, r8 end of the 16-input
- * blocks, r4-r7 accumulators, r2/r3 four inputs, r12/lr four weights; the job pointer and n
- * live on the stack. Sixteen inputs of four rows: 4 x (1 + 4 x 3) + 2 = 54 instructions per
- * 64 MACs (0.84); then 8, 4 and 2 inputs, and the 5-instruction requantisation per row. */
-__attribute__((naked, noinline)) static void rows4d32_asm(fbg_dsp_job *job)
+ * Both kernels below run TWO rows per pass and finish a pass with the same 9-instruction
+ * requantisation of the pair: LDRD of the two multipliers, SMMULR x 2, ReLU as BIC with ASR #31
+ * x 2, USAT #15 x 2 (Q set exactly when a non-negative value exceeds 32767, i.e. when the
+ * portable sat16 raises its flag), PKHBT and one STR of both outputs (y word-aligned, row r in
+ * the low half: little-endian). The pair's two int32 biases come with one LDM of the int64
+ * pair {lo, hi, lo, hi} (the high words land in scratch registers). job->groups = number of
+ * PAIRS; the caller runs the last row of an odd layer. Q is cleared on entry, read into
+ * job->clamped on exit and the caller's APSR restored.
+ *
+ * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
+ * 8-input block, fully unrolled,
+ *     LDM x!, {4 words}; LDM rowA!, {4 words}; SMLAD x 4; LDM rowB!, {4 words}; SMLAD x 4
+ * = 11 instructions per 16 MACs (0.69) with no loop test: every block is 44 bytes, so a layer
+ * of n inputs enters the body n / 8 blocks before its end (computed once per layer, kept in
+ * lr), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX lr) when there
+ * is one. Thirteen registers are live in the body (two row pointers, x, four inputs, four
+ * weights, two accumulators) and lr holds the entry; the bias, multiplier and output pointers,
+ * the output end and the row length live in a stack frame, read with one LDM and written
+ * back with one STM per pair. Per pair beyond the MACs: 9 (requantisation) + 9 (frame, loop
+ * test, biases, next rows, rewind x, dispatch) + 1 (a tail's BX) instructions. */
+__attribute__((naked, noinline)) static void rows2d32_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
@@ -773,176 +752,110 @@ __attribute__((naked, noinline)) static void rows4d32_asm(fbg_dsp_job *job)
         "push    {r4-r12, lr}\n\t"
         "bic     r12, r12, #0x08000000\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        "sub     sp, sp, #8\n\t"
-        "str     r0, [sp]\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "str     r2, [sp, #4]\n\t"
-        "ldr     r1, [r0, #4]\n\t"
-        "bic     r8, r2, #15\n\t"
-        "add     r8, r1, r8, lsl #1\n\t"
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes, [20] job,
+         * [24] where a pass starts (tail or body entry, Thumb bit set) */
+        "sub     sp, sp, #32\n\t"
+        "str     r0, [sp, #20]\n\t"
+        "ldr     r5, [r0, #20]\n\t"
+        "lsl     r8, r5, #1\n\t"
+        "str     r8, [sp, #16]\n\t"
+        "ldr     r4, [r0, #16]\n\t"
+        "str     r4, [sp, #8]\n\t"
+        "ldr     r6, [r0, #24]\n\t"
+        "add     r6, r4, r6, lsl #2\n\t"
+        "str     r6, [sp, #12]\n\t"
+        "ldr     r3, [r0, #8]\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "str     r3, [sp]\n\t"
+        "ldr     r3, [r0, #12]\n\t"
+        "str     r3, [sp, #4]\n\t"
+        "ldr     r2, [r0, #4]\n\t"
+        "ldr     r0, [r0]\n\t"
+        "add     r1, r0, r8\n\t"
+        "adr.w   lr, 8f\n\t"
+        "lsr     r7, r5, #3\n\t"
+        "mov     r3, #44\n\t"
+        "mls     lr, r7, r3, lr\n\t"
+        "orr     lr, lr, #1\n\t"
+        "mov     r3, lr\n\t"
+        "ands    r7, r5, #6\n\t"
+        "beq     1f\n\t"
+        "adr.w   r3, 72f\n\t"
+        "cmp     r7, #2\n\t"
+        "beq     0f\n\t"
+        "adr.w   r3, 74f\n\t"
+        "cmp     r7, #4\n\t"
+        "beq     0f\n\t"
+        "adr.w   r3, 76f\n\t"
         "0:\n\t"
-        "ldr     r3, [sp]\n\t"
-        "ldr     r12, [r3, #8]\n\t"
-        "ldr     r4, [r12], #8\n\t"
-        "ldr     r5, [r12], #8\n\t"
-        "ldr     r6, [r12], #8\n\t"
-        "ldr     r7, [r12], #8\n\t"
-        "str     r12, [r3, #8]\n\t"
-        "ldr     r0, [r3]\n\t"
-        "ldr     r2, [sp, #4]\n\t"
-        "add     r9, r0, r2, lsl #1\n\t"
-        "add     r10, r9, r2, lsl #1\n\t"
-        "add     r11, r10, r2, lsl #1\n\t"
-        "ldr     r1, [r3, #4]\n\t"
-        "cmp     r1, r8\n\t"
-        "beq     2f\n\t"
+        "orr     r3, r3, #1\n\t"
         "1:\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "cmp     r1, r8\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #8\n\t"
-        "beq     3f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "3:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #4\n\t"
-        "beq     4f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "4:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #2\n\t"
-        "beq     5f\n\t"
-        "ldr     r2, [r1], #4\n\t"
-        "ldr     r12, [r0], #4\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "ldr     r12, [r9], #4\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "ldr     r12, [r10], #4\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "ldr     r12, [r11], #4\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "5:\n\t"
-        "ldr     r3, [sp]\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r12, [r3, #12]\n\t"
-        "ldr     lr, [r3, #16]\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r4, r4, r2\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r4, #15, r4\n\t"
-        "strh    r4, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r5, r5, r2\n\t"
-        "bic     r5, r5, r5, asr #31\n\t"
-        "usat    r5, #15, r5\n\t"
-        "strh    r5, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r6, r6, r2\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r6, #15, r6\n\t"
-        "strh    r6, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r7, r7, r2\n\t"
-        "bic     r7, r7, r7, asr #31\n\t"
-        "usat    r7, #15, r7\n\t"
-        "strh    r7, [lr], #2\n\t"
-        "str     r12, [r3, #12]\n\t"
-        "str     lr, [r3, #16]\n\t"
-        "ldr     r12, [r3, #24]\n\t"
-        "subs    r12, r12, #1\n\t"
-        "str     r12, [r3, #24]\n\t"
-        "bne     0b\n\t"
-        "add     sp, sp, #8\n\t"
+        "str     r3, [sp, #24]\n\t"
+        "bx      r3\n\t"
+        /* tails: 2, 4, 6 inputs, then into the body */
+        "72:\n\t"
+        "ldr     r3, [r2], #4\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "bx      lr\n\t"
+        "74:\n\t"
+        "ldrd    r3, r4, [r2], #8\n\t"
+        "ldrd    r7, r8, [r0], #8\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "ldrd    r7, r8, [r1], #8\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "bx      lr\n\t"
+        "76:\n\t"
+        "ldmia.w r2!, {r3-r5}\n\t"
+        "ldmia.w r0!, {r7, r8, r10}\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "ldmia.w r1!, {r7, r8, r10}\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "bx      lr\n\t"
+        /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
+        ".rept   16\n\t"
+        "ldmia.w r2!, {r3-r6}\n\t"
+        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        ".endr\n\t"
+        "8:\n\t"
+        "ldm     sp, {r3, r4, r5, r6, r8}\n\t"
+        "ldrd    r7, r10, [r4], #8\n\t"
+        "smmulr  r9, r9, r7\n\t"
+        "smmulr  r11, r11, r10\n\t"
+        "bic     r9, r9, r9, asr #31\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r9, #15, r9\n\t"
+        "usat    r11, #15, r11\n\t"
+        "pkhbt   r9, r9, r11, lsl #16\n\t"
+        "str     r9, [r5], #4\n\t"
+        "cmp     r5, r6\n\t"
+        "beq     9f\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "stmia   sp, {r3, r4, r5}\n\t"
+        "mov     r0, r1\n\t"
+        "add     r1, r1, r8\n\t"
+        "sub     r2, r2, r8\n\t"
+        "ldr     pc, [sp, #24]\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #20]\n\t"
+        "add     sp, sp, #32\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r12, r12, #27, #1\n\t"
         "str     r12, [r3, #40]\n\t"
@@ -951,12 +864,28 @@ __attribute__((naked, noinline)) static void rows4d32_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
-/* first32_asm: a first layer (2, 4 or 6 inputs) of an int32 layer with shift 32: the inputs
- * stay in registers (r4-r6 as int16 pairs; LDR may be unaligned), the weights (word-aligned:
- * the caller checks) come with LDRD; per row the low word of the int64 bias (|bias| <= the
- * int32 bound), one SMLAD per input pair and the 5-instruction requantisation: 11 instructions
- * for 4 inputs plus the loop test. job->groups holds the number of ROWS. */
-__attribute__((naked, noinline)) static void first32_asm(fbg_dsp_job *job)
+/* The per-pair requantisation and loop test of first2d32_asm (END: register holding the
+ * output end, or a stack load into one). */
+#define FBG_PAIR_OUT                             \
+        "ldrd    r8, r10, [r2], #8\n\t"          \
+        "smmulr  r9, r9, r8\n\t"                 \
+        "smmulr  r11, r11, r10\n\t"              \
+        "bic     r9, r9, r9, asr #31\n\t"        \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r9, #15, r9\n\t"                \
+        "usat    r11, #15, r11\n\t"              \
+        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
+        "str     r9, [r3], #4\n\t"
+
+/* first2d32_asm: a first layer of n = 2, 4, 6 or 8 inputs (the nets' inputs with or without
+ * the memory features), two rows per pass: the inputs stay in registers (r4-r7 as int16
+ * pairs, read once with LDR, which may be unaligned); the two rows are adjacent in memory, so
+ * one pointer walks both (one LDRD or LDM per row, or one LDM for both at n = 4). Per pair:
+ * LDM of the biases, the weights, n SMLAD, the 9-instruction requantisation and the loop test
+ * (CMP with the output end, held in r7 for n <= 6 and read from the stack at n = 8, where all
+ * four input registers are taken): 15, 17, 20 and 23 instructions for 4, 8, 12 and 16 MACs.
+ * Weights and y word-aligned (the caller checks); job->groups = number of PAIRS. */
+__attribute__((naked, noinline)) static void first2d32_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
@@ -964,69 +893,88 @@ __attribute__((naked, noinline)) static void first32_asm(fbg_dsp_job *job)
         "push    {r4-r12, lr}\n\t"
         "bic     r12, r12, #0x08000000\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        "mov     r11, r0\n\t"
-        "ldr     r3, [r11, #16]\n\t"
-        "ldr     r12, [r11, #24]\n\t"
-        "add     r12, r3, r12, lsl #1\n\t"
-        "ldr     r1, [r11, #8]\n\t"
-        "ldr     r2, [r11, #12]\n\t"
-        "ldr     lr, [r11, #20]\n\t"
-        "ldr     r10, [r11, #4]\n\t"
-        "ldr     r0, [r11]\n\t"
+        "sub     sp, sp, #8\n\t"
+        "str     r0, [sp, #4]\n\t"
+        "ldr     r3, [r0, #16]\n\t"
+        "ldr     r7, [r0, #24]\n\t"
+        "add     r7, r3, r7, lsl #2\n\t"
+        "str     r7, [sp]\n\t"
+        "ldr     r1, [r0, #8]\n\t"
+        "ldr     r2, [r0, #12]\n\t"
+        "ldr     r12, [r0, #20]\n\t"
+        "ldr     r10, [r0, #4]\n\t"
+        "ldr     r0, [r0]\n\t"
         "ldr     r4, [r10]\n\t"
-        "cmp     lr, #4\n\t"
+        "cmp     r12, #4\n\t"
         "blo     2f\n\t"
         "ldr     r5, [r10, #4]\n\t"
         "beq     4f\n\t"
         "ldr     r6, [r10, #8]\n\t"
-        "b       6f\n\t"
+        "cmp     r12, #6\n\t"
+        "beq     6f\n\t"
+        "ldr     r7, [r10, #12]\n\t"
+        "b       8f\n\t"
         "2:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldr     r9, [r0], #4\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldrd    r8, r10, [r0], #8\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     2b\n\t"
         "b       9f\n\t"
         "4:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldrd    r9, r10, [r0], #8\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "smlad   r8, r10, r5, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r6, r8, r10, r12}\n\t"
+        "smlad   r9, r6, r4, r9\n\t"
+        "smlad   r9, r8, r5, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "smlad   r11, r12, r5, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldrd    r9, r10, [r0], #8\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "smlad   r8, r10, r5, r8\n\t"
-        "ldr     r9, [r0], #4\n\t"
-        "smlad   r8, r9, r6, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     6b\n\t"
+        "b       9f\n\t"
+        "8:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "smlad   r9, lr, r7, r9\n\t"
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        "smlad   r11, lr, r7, r11\n\t"
+        FBG_PAIR_OUT
+        "ldr     r8, [sp]\n\t"
+        "cmp     r3, r8\n\t"
+        "bne     8b\n\t"
         "9:\n\t"
+        "ldr     r3, [sp, #4]\n\t"
+        "add     sp, sp, #8\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r11, #40]\n\t"
+        "str     r12, [r3, #40]\n\t"
         "pop     {r4-r12, lr}\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "bx      lr\n\t");
 }
+#undef FBG_PAIR_OUT
 
 #endif /* FBG_DSP_ASM */
 
@@ -1053,21 +1001,17 @@ static void run_first(fbg_dsp_job *job)
 #endif
 }
 
-static void run_first32(fbg_dsp_job *job)
+/* Pairs of int32 rows: the first-layer kernel (inputs in registers) for n <= 8, else the
+ * unrolled one (x word-aligned). */
+static void run_pairs32(fbg_dsp_job *job)
 {
 #if FBG_DSP_ASM
-    first32_asm(job);
+    if (job->n <= 8u)
+        first2d32_asm(job);
+    else
+        rows2d32_asm(job);
 #else
-    first32_c(job);
-#endif
-}
-
-static void run_rows4_32(fbg_dsp_job *job)
-{
-#if FBG_DSP_ASM
-    rows4d32_asm(job);
-#else
-    rows4_32_c(job);
+    rows2_32_c(job);
 #endif
 }
 
@@ -1082,53 +1026,37 @@ static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t 
     return acc;
 }
 
-/* An int32 int16-weight hidden layer. shift 32 (what the exporter chooses) runs the assembly
- * above; anything else (valid, but not exported) runs SMLAD rows with C requantisation. */
+/* An int32 int16-weight hidden layer. shift 32 (what the exporter chooses) runs the pair
+ * kernels above on every pair of rows when the rows, the outputs and (beyond 8 inputs, read
+ * with LDM) the inputs are word-aligned and n is even, as generated models, blobs and the
+ * activation buffers of fbg_state give; the last row of an odd layer, other alignments and
+ * other shifts (valid, but not exported) run SMLAD rows with C requantisation. */
 static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
     const int16_t *w = ly->w16;
     const int64_t round = (int64_t)1 << (shift - 1u);
-    int wal = ((uintptr_t)w & 3u) == 0u;
     uint32_t clamped = 0u;
     unsigned r = 0;
-    fbg_dsp_job job;
 
-    job.w = w;
-    job.x = x;
-    job.bias = ly->bias;
-    job.mult = ly->mult;
-    job.y = y;
-    job.n = n;
-    job.round_lo = 0u;
-    job.round_hi = 0u;
-    job.s32 = 0u;
-    job.clamped = 0u;
-    if (shift == 32u && wal && (n == 2u || n == 4u || n == 6u)) {
-        job.groups = m;
-        run_first32(&job);
-        if (job.clamped)
-            *sat = 1u;
-        return;
-    }
-    if (shift == 32u && wal && m >= 4u && (n & 1u) == 0u && ((uintptr_t)x & 3u) == 0u) {
-        job.groups = m / 4u;
-        run_rows4_32(&job);
+    if (shift == 32u && m >= 2u && (n & 1u) == 0u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
+        ((uintptr_t)w & 3u) == 0u && ((uintptr_t)y & 3u) == 0u &&
+        (n <= 8u || ((uintptr_t)x & 3u) == 0u)) {
+        fbg_dsp_job job;
+        job.w = w;
+        job.x = x;
+        job.bias = ly->bias;
+        job.mult = ly->mult;
+        job.y = y;
+        job.n = n;
+        job.groups = m / 2u;
+        job.round_lo = 0u;
+        job.round_hi = 0u;
+        job.s32 = 0u;
+        job.clamped = 0u;
+        run_pairs32(&job);
         clamped = job.clamped;
-        if (m % 4u != 0u) {
-            /* One to three rows left: one more pass over the LAST four rows (those already
-             * done are recomputed to the same values) is cheaper than C rows. Layers of
-             * three rows or fewer run in C below. */
-            job.w = w + (size_t)(m - 4u) * n;
-            job.bias = ly->bias + (m - 4u);
-            job.mult = ly->mult + (m - 4u);
-            job.y = y + (m - 4u);
-            job.groups = 1u;
-            job.clamped = 0u;
-            run_rows4_32(&job);
-            clamped |= job.clamped;
-        }
-        r = m;
+        r = m & ~1u;
     }
     for (; r < m; ++r)
         y[r] = (int16_t)relu_sat16(dot16_32(w + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
