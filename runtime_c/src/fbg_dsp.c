@@ -157,6 +157,10 @@ typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_d
                                   offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
 
 
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
 /* ---- The kernels in C with ACLE intrinsics: the FBG_DSP_ASM=0 versions of the assembly
  * further down, same jobs, same bits (any alignment: LDR may be unaligned on ARMv7E-M). With
  * GCC 12 they cost more instructions per step than the assembly, which therefore stays the
@@ -247,29 +251,28 @@ __attribute__((noinline)) static void first_c(fbg_dsp_job *job)
         first_n(job, 6u);
 }
 
-/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm); n even, y
- * word-aligned (the outputs of a pair are written as one word there); job->groups = pairs. */
-__attribute__((noinline)) static void rows2_32_c(fbg_dsp_job *job)
+/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
+ * rows of the layer (n_out & ~1 rows), n even, y word-aligned; returns 1 iff a row clamped. */
+__attribute__((noinline)) static uint32_t rows2_32_c(const fbg_layer *ly, const int16_t *x,
+                                                     int16_t *y)
 {
-    const unsigned n = job->n;
-    const int16_t *w = job->w, *x = job->x;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y;
-    uint32_t clamped = 0u, g;
-    for (g = job->groups; g > 0u; --g, w += 2u * n, bias += 2, mult += 2, y += 2) {
-        const int16_t *w0 = w, *w1 = w0 + n;
-        int32_t a0 = (int32_t)bias[0], a1 = (int32_t)bias[1];
+    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
+    const int16_t *w = ly->w16;
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = 0; r < m2; r += 2u, w += 2u * n) {
+        const int16_t *w1 = w + n;
+        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
         unsigned j;
         for (j = 0; j < n; j += 2u) {
             int16x2_t xv = ld2(x + j);
-            a0 = __smlad(ld2(w0 + j), xv, a0);
+            a0 = __smlad(ld2(w + j), xv, a0);
             a1 = __smlad(ld2(w1 + j), xv, a1);
         }
-        y[0] = (int16_t)relu_usat15(smmulr(a0, mult[0]), &clamped);
-        y[1] = (int16_t)relu_usat15(smmulr(a1, mult[1]), &clamped);
+        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
+        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
     }
-    job->clamped = clamped != 0u;
+    return clamped != 0u;
 }
 #endif /* !FBG_DSP_ASM */
 
@@ -744,33 +747,35 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
  * the output end and the row length live in a stack frame, read with one LDM and written
  * back with one STM per pair. Per pair beyond the MACs: 9 (requantisation) + 9 (frame, loop
  * test, biases, next rows, rewind x, dispatch) + 1 (a tail's BX) instructions. */
-__attribute__((naked, noinline)) static void rows2d32_asm(fbg_dsp_job *job)
+__attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *ly,
+                                                              const int16_t *x, int16_t *y)
 {
-    (void)job;
+    (void)ly;
+    (void)x;
+    (void)y;
     __asm__ volatile(
         "mrs     r12, apsr\n\t"
         "push    {r4-r12, lr}\n\t"
         "bic     r12, r12, #0x08000000\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes, [20] job,
-         * [24] where a pass starts (tail or body entry, Thumb bit set) */
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last PAIR),
+         * [16] row bytes, [24] where a pass starts (tail or body entry, Thumb bit set) */
         "sub     sp, sp, #32\n\t"
-        "str     r0, [sp, #20]\n\t"
-        "ldr     r5, [r0, #20]\n\t"
+        "ldrh    r5, [r0]\n\t"
+        "ldrh    r6, [r0, #2]\n\t"
         "lsl     r8, r5, #1\n\t"
         "str     r8, [sp, #16]\n\t"
-        "ldr     r4, [r0, #16]\n\t"
-        "str     r4, [sp, #8]\n\t"
-        "ldr     r6, [r0, #24]\n\t"
-        "add     r6, r4, r6, lsl #2\n\t"
+        "str     r2, [sp, #8]\n\t"
+        "bic     r6, r6, #1\n\t"
+        "add     r6, r2, r6, lsl #1\n\t"
         "str     r6, [sp, #12]\n\t"
-        "ldr     r3, [r0, #8]\n\t"
+        "ldr     r3, [r0, #16]\n\t"
         "ldmia   r3!, {r9-r12}\n\t"
         "str     r3, [sp]\n\t"
-        "ldr     r3, [r0, #12]\n\t"
+        "ldr     r3, [r0, #20]\n\t"
         "str     r3, [sp, #4]\n\t"
-        "ldr     r2, [r0, #4]\n\t"
-        "ldr     r0, [r0]\n\t"
+        "mov     r2, r1\n\t"
+        "ldr     r0, [r0, #8]\n\t"
         "add     r1, r0, r8\n\t"
         "adr.w   lr, 8f\n\t"
         "lsr     r7, r5, #3\n\t"
@@ -854,11 +859,9 @@ __attribute__((naked, noinline)) static void rows2d32_asm(fbg_dsp_job *job)
         "sub     r2, r2, r8\n\t"
         "ldr     pc, [sp, #24]\n\t"
         "9:\n\t"
-        "ldr     r3, [sp, #20]\n\t"
         "add     sp, sp, #32\n\t"
         "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
+        "ubfx    r0, r12, #27, #1\n\t"
         "pop     {r4-r12, lr}\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "bx      lr\n\t");
@@ -885,25 +888,28 @@ __attribute__((naked, noinline)) static void rows2d32_asm(fbg_dsp_job *job)
  * (CMP with the output end, held in r7 for n <= 6 and read from the stack at n = 8, where all
  * four input registers are taken): 15, 17, 20 and 23 instructions for 4, 8, 12 and 16 MACs.
  * Weights and y word-aligned (the caller checks); job->groups = number of PAIRS. */
-__attribute__((naked, noinline)) static void first2d32_asm(fbg_dsp_job *job)
+__attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *ly,
+                                                               const int16_t *x, int16_t *y)
 {
-    (void)job;
+    (void)ly;
+    (void)x;
+    (void)y;
     __asm__ volatile(
         "mrs     r12, apsr\n\t"
         "push    {r4-r12, lr}\n\t"
         "bic     r12, r12, #0x08000000\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "sub     sp, sp, #8\n\t"
-        "str     r0, [sp, #4]\n\t"
-        "ldr     r3, [r0, #16]\n\t"
-        "ldr     r7, [r0, #24]\n\t"
-        "add     r7, r3, r7, lsl #2\n\t"
+        "mov     r3, r2\n\t"
+        "ldrh    r7, [r0, #2]\n\t"
+        "bic     r7, r7, #1\n\t"
+        "add     r7, r3, r7, lsl #1\n\t"
         "str     r7, [sp]\n\t"
-        "ldr     r1, [r0, #8]\n\t"
-        "ldr     r2, [r0, #12]\n\t"
-        "ldr     r12, [r0, #20]\n\t"
-        "ldr     r10, [r0, #4]\n\t"
-        "ldr     r0, [r0]\n\t"
+        "mov     r10, r1\n\t"
+        "ldr     r1, [r0, #16]\n\t"
+        "ldr     r2, [r0, #20]\n\t"
+        "ldrh    r12, [r0]\n\t"
+        "ldr     r0, [r0, #8]\n\t"
         "ldr     r4, [r10]\n\t"
         "cmp     r12, #4\n\t"
         "blo     2f\n\t"
@@ -965,11 +971,9 @@ __attribute__((naked, noinline)) static void first2d32_asm(fbg_dsp_job *job)
         "cmp     r3, r8\n\t"
         "bne     8b\n\t"
         "9:\n\t"
-        "ldr     r3, [sp, #4]\n\t"
         "add     sp, sp, #8\n\t"
         "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
+        "ubfx    r0, r12, #27, #1\n\t"
         "pop     {r4-r12, lr}\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "bx      lr\n\t");
@@ -1001,17 +1005,14 @@ static void run_first(fbg_dsp_job *job)
 #endif
 }
 
-/* Pairs of int32 rows: the first-layer kernel (inputs in registers) for n <= 8, else the
- * unrolled one (x word-aligned). */
-static void run_pairs32(fbg_dsp_job *job)
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= 8, else the unrolled one (x word-aligned); 1 iff a row clamped. */
+static uint32_t run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y)
 {
 #if FBG_DSP_ASM
-    if (job->n <= 8u)
-        first2d32_asm(job);
-    else
-        rows2d32_asm(job);
+    return ly->n_in <= 8u ? first2d32_asm(ly, x, y) : rows2d32_asm(ly, x, y);
 #else
-    rows2_32_c(job);
+    return rows2_32_c(ly, x, y);
 #endif
 }
 
@@ -1026,40 +1027,17 @@ static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t 
     return acc;
 }
 
-/* An int32 int16-weight hidden layer. shift 32 (what the exporter chooses) runs the pair
- * kernels above on every pair of rows when the rows, the outputs and (beyond 8 inputs, read
- * with LDM) the inputs are word-aligned and n is even, as generated models, blobs and the
- * activation buffers of fbg_state give; the last row of an odd layer, other alignments and
- * other shifts (valid, but not exported) run SMLAD rows with C requantisation. */
-static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+/* An int32 int16-weight hidden layer that the pair kernels do not take (see
+ * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
+static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
+                        uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int16_t *w = ly->w16;
     const int64_t round = (int64_t)1 << (shift - 1u);
     uint32_t clamped = 0u;
-    unsigned r = 0;
-
-    if (shift == 32u && m >= 2u && (n & 1u) == 0u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
-        ((uintptr_t)w & 3u) == 0u && ((uintptr_t)y & 3u) == 0u &&
-        (n <= 8u || ((uintptr_t)x & 3u) == 0u)) {
-        fbg_dsp_job job;
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m / 2u;
-        job.round_lo = 0u;
-        job.round_hi = 0u;
-        job.s32 = 0u;
-        job.clamped = 0u;
-        run_pairs32(&job);
-        clamped = job.clamped;
-        r = m & ~1u;
-    }
-    for (; r < m; ++r)
-        y[r] = (int16_t)relu_sat16(dot16_32(w + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
+    unsigned r;
+    for (r = r0; r < m; ++r)
+        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
                                    ly->mult[r], shift, round, &clamped);
     if (clamped)
         *sat = 1u;
@@ -1225,8 +1203,20 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
 
 void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    if (ly->w_bits == 16u && ly->acc32)
-        hidden16_32(ly, x, y, sat);
+    const unsigned n = ly->n_in;
+    /* int32 layers at shift 32 (what the exporter writes) with n even, the weights and y
+     * word-aligned and, beyond 8 inputs (read with LDM), x too - as generated models, blobs and
+     * the activation buffers of fbg_state give: the pair kernels, reading the layer itself;
+     * the last row of an odd layer in C. */
+    if (ly->w_bits == 16u && ly->acc32 && ly->shift == 32u && ly->n_out >= 2u && (n & 1u) == 0u &&
+        n <= 8u * FBG_DSP_BODY_BLOCKS &&
+        (((uintptr_t)ly->w16 | (uintptr_t)y | (n > 8u ? (uintptr_t)x : 0u)) & 3u) == 0u) {
+        if (run_pairs32(ly, x, y))
+            *sat = 1u;
+        if (ly->n_out & 1u)
+            hidden16_32(ly, x, y, ly->n_out - 1u, sat);
+    } else if (ly->w_bits == 16u && ly->acc32)
+        hidden16_32(ly, x, y, 0u, sat);
     else if (ly->w_bits == 16u)
         hidden16(ly, x, y, sat);
     else
