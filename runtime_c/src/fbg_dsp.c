@@ -727,26 +727,28 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
  * Q) gives the same number as the int64 sum, in ONE register per row; and
  * rshift_round(acc * mult, 32) is exactly SMMULR (the high word of acc * mult + 2^31).
  *
- * Both kernels below run TWO rows per pass and finish a pass with the same 9-instruction
- * requantisation of the pair: LDRD of the two multipliers, SMMULR x 2, ReLU as BIC with ASR #31
- * x 2, USAT #15 x 2 (Q set exactly when a non-negative value exceeds 32767, i.e. when the
- * portable sat16 raises its flag), PKHBT and one STR of both outputs (y word-aligned, row r in
- * the low half: little-endian). The pair's two int32 biases come with one LDM of the int64
- * pair {lo, hi, lo, hi} (the high words land in scratch registers). job->groups = number of
- * PAIRS; the caller runs the last row of an odd layer. Q is cleared on entry, read into
- * job->clamped on exit and the caller's APSR restored.
+ * Both kernels below take the layer itself (fbg_layer offsets checked above), run TWO rows
+ * per pass over every pair of rows (n_out & ~1; the caller runs the last row of an odd layer)
+ * and finish a pass with the same 9-instruction requantisation of the pair: LDRD of the two
+ * multipliers, SMMULR x 2, ReLU as BIC with ASR #31 x 2, USAT #15 x 2 (Q set exactly when a
+ * non-negative value exceeds 32767, i.e. when the portable sat16 raises its flag), PKHBT and
+ * one STR of both outputs (y word-aligned, row r in the low half: little-endian). The pair's
+ * two int32 biases come with one LDM of the int64 pair {lo, hi, lo, hi} (the high words land
+ * in scratch registers). Q is cleared on entry and returned (1 iff a row clamped); the AAPCS
+ * leaves Q and the condition flags undefined across calls, so the caller's are not restored.
  *
  * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
  * 8-input block, fully unrolled,
  *     LDM x!, {4 words}; LDM rowA!, {4 words}; SMLAD x 4; LDM rowB!, {4 words}; SMLAD x 4
  * = 11 instructions per 16 MACs (0.69) with no loop test: every block is 44 bytes, so a layer
  * of n inputs enters the body n / 8 blocks before its end (computed once per layer, kept in
- * lr), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX lr) when there
- * is one. Thirteen registers are live in the body (two row pointers, x, four inputs, four
- * weights, two accumulators) and lr holds the entry; the bias, multiplier and output pointers,
- * the output end and the row length live in a stack frame, read with one LDM and written
- * back with one STM per pair. Per pair beyond the MACs: 9 (requantisation) + 9 (frame, loop
- * test, biases, next rows, rewind x, dispatch) + 1 (a tail's BX) instructions. */
+ * r2), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX r2) when there
+ * is one. Fourteen registers are live in the body (two row pointers, x in lr, four inputs,
+ * four weights, two accumulators, the entry); the bias, multiplier and output pointers, the
+ * output end, the row length and the start of x live in a stack frame, read with one LDM
+ * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
+ * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
+ * instructions. */
 __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *ly,
                                                               const int16_t *x, int16_t *y)
 {
@@ -754,17 +756,18 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
     (void)x;
     (void)y;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last PAIR),
-         * [16] row bytes, [24] where a pass starts (tail or body entry, Thumb bit set) */
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
+         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit) */
         "sub     sp, sp, #32\n\t"
         "ldrh    r5, [r0]\n\t"
         "ldrh    r6, [r0, #2]\n\t"
         "lsl     r8, r5, #1\n\t"
         "str     r8, [sp, #16]\n\t"
+        "str     r1, [sp, #20]\n\t"
+        "mov     lr, r1\n\t"
         "str     r2, [sp, #8]\n\t"
         "bic     r6, r6, #1\n\t"
         "add     r6, r2, r6, lsl #1\n\t"
@@ -774,15 +777,14 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "str     r3, [sp]\n\t"
         "ldr     r3, [r0, #20]\n\t"
         "str     r3, [sp, #4]\n\t"
-        "mov     r2, r1\n\t"
         "ldr     r0, [r0, #8]\n\t"
         "add     r1, r0, r8\n\t"
-        "adr.w   lr, 8f\n\t"
+        "adr.w   r2, 8f\n\t"
         "lsr     r7, r5, #3\n\t"
         "mov     r3, #44\n\t"
-        "mls     lr, r7, r3, lr\n\t"
-        "orr     lr, lr, #1\n\t"
-        "mov     r3, lr\n\t"
+        "mls     r2, r7, r3, r2\n\t"
+        "orr     r2, r2, #1\n\t"
+        "mov     r3, r2\n\t"
         "ands    r7, r5, #6\n\t"
         "beq     1f\n\t"
         "adr.w   r3, 72f\n\t"
@@ -799,23 +801,23 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "bx      r3\n\t"
         /* tails: 2, 4, 6 inputs, then into the body */
         "72:\n\t"
-        "ldr     r3, [r2], #4\n\t"
+        "ldr     r3, [lr], #4\n\t"
         "ldr     r7, [r0], #4\n\t"
         "smlad   r9, r7, r3, r9\n\t"
         "ldr     r7, [r1], #4\n\t"
         "smlad   r11, r7, r3, r11\n\t"
-        "bx      lr\n\t"
+        "bx      r2\n\t"
         "74:\n\t"
-        "ldrd    r3, r4, [r2], #8\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
         "ldrd    r7, r8, [r0], #8\n\t"
         "smlad   r9, r7, r3, r9\n\t"
         "smlad   r9, r8, r4, r9\n\t"
         "ldrd    r7, r8, [r1], #8\n\t"
         "smlad   r11, r7, r3, r11\n\t"
         "smlad   r11, r8, r4, r11\n\t"
-        "bx      lr\n\t"
+        "bx      r2\n\t"
         "76:\n\t"
-        "ldmia.w r2!, {r3-r5}\n\t"
+        "ldmia.w lr!, {r3-r5}\n\t"
         "ldmia.w r0!, {r7, r8, r10}\n\t"
         "smlad   r9, r7, r3, r9\n\t"
         "smlad   r9, r8, r4, r9\n\t"
@@ -824,10 +826,10 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "smlad   r11, r7, r3, r11\n\t"
         "smlad   r11, r8, r4, r11\n\t"
         "smlad   r11, r10, r5, r11\n\t"
-        "bx      lr\n\t"
+        "bx      r2\n\t"
         /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
         ".rept   16\n\t"
-        "ldmia.w r2!, {r3-r6}\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
         "ldmia.w r0!, {r7, r8, r10, r12}\n\t"
         "smlad   r9, r7, r3, r9\n\t"
         "smlad   r9, r8, r4, r9\n\t"
@@ -840,7 +842,7 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "smlad   r11, r12, r6, r11\n\t"
         ".endr\n\t"
         "8:\n\t"
-        "ldm     sp, {r3, r4, r5, r6, r8}\n\t"
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
         "ldrd    r7, r10, [r4], #8\n\t"
         "smmulr  r9, r9, r7\n\t"
         "smmulr  r11, r11, r10\n\t"
@@ -856,19 +858,15 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "stmia   sp, {r3, r4, r5}\n\t"
         "mov     r0, r1\n\t"
         "add     r1, r1, r8\n\t"
-        "sub     r2, r2, r8\n\t"
         "ldr     pc, [sp, #24]\n\t"
         "9:\n\t"
         "add     sp, sp, #32\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r0, r12, #27, #1\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "bx      lr\n\t");
+        "pop     {r4-r11, pc}\n\t");
 }
 
-/* The per-pair requantisation and loop test of first2d32_asm (END: register holding the
- * output end, or a stack load into one). */
+/* The requantisation and store of a pair in first2d32_asm. */
 #define FBG_PAIR_OUT                             \
         "ldrd    r8, r10, [r2], #8\n\t"          \
         "smmulr  r9, r9, r8\n\t"                 \
@@ -880,14 +878,30 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "pkhbt   r9, r9, r11, lsl #16\n\t"       \
         "str     r9, [r3], #4\n\t"
 
+/* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
+#define FBG_PAIR8                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "smlad   r9, lr, r7, r9\n\t"             \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        "smlad   r11, lr, r7, r11\n\t"           \
+        FBG_PAIR_OUT
+
 /* first2d32_asm: a first layer of n = 2, 4, 6 or 8 inputs (the nets' inputs with or without
  * the memory features), two rows per pass: the inputs stay in registers (r4-r7 as int16
  * pairs, read once with LDR, which may be unaligned); the two rows are adjacent in memory, so
  * one pointer walks both (one LDRD or LDM per row, or one LDM for both at n = 4). Per pair:
  * LDM of the biases, the weights, n SMLAD, the 9-instruction requantisation and the loop test
- * (CMP with the output end, held in r7 for n <= 6 and read from the stack at n = 8, where all
- * four input registers are taken): 15, 17, 20 and 23 instructions for 4, 8, 12 and 16 MACs.
- * Weights and y word-aligned (the caller checks); job->groups = number of PAIRS. */
+ * (CMP with the output end, held in r7 for n <= 6): 15, 17 and 20 instructions for 4, 8 and 12
+ * MACs. At n = 8 all four input registers are taken and the end is read from the stack, so
+ * that loop runs two pairs per test (entered at its second pair for an odd number of pairs):
+ * 43 instructions per 32 MACs. Weights and y word-aligned (the caller checks). */
 __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *ly,
                                                                const int16_t *x, int16_t *y)
 {
@@ -895,14 +909,13 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
     (void)x;
     (void)y;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "sub     sp, sp, #8\n\t"
         "mov     r3, r2\n\t"
-        "ldrh    r7, [r0, #2]\n\t"
-        "bic     r7, r7, #1\n\t"
+        "ldrh    r9, [r0, #2]\n\t"
+        "bic     r7, r9, #1\n\t"
         "add     r7, r3, r7, lsl #1\n\t"
         "str     r7, [sp]\n\t"
         "mov     r10, r1\n\t"
@@ -919,6 +932,8 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
         "cmp     r12, #6\n\t"
         "beq     6f\n\t"
         "ldr     r7, [r10, #12]\n\t"
+        "tst     r9, #2\n\t"
+        "bne     81f\n\t"
         "b       8f\n\t"
         "2:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
@@ -955,18 +970,9 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
         "bne     6b\n\t"
         "b       9f\n\t"
         "8:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "smlad   r9, lr, r7, r9\n\t"
-        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        "smlad   r11, lr, r7, r11\n\t"
-        FBG_PAIR_OUT
+        FBG_PAIR8
+        "81:\n\t"
+        FBG_PAIR8
         "ldr     r8, [sp]\n\t"
         "cmp     r3, r8\n\t"
         "bne     8b\n\t"
@@ -974,10 +980,9 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
         "add     sp, sp, #8\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r0, r12, #27, #1\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "bx      lr\n\t");
+        "pop     {r4-r11, pc}\n\t");
 }
+#undef FBG_PAIR8
 #undef FBG_PAIR_OUT
 
 #endif /* FBG_DSP_ASM */
