@@ -985,6 +985,106 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
 #undef FBG_PAIR8
 #undef FBG_PAIR_OUT
 
+/* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
+ * fbg_dsp_row_acc), w and x word-aligned, n even: 8 inputs per LDM pair and four SMLAD
+ * (8 instructions per 8 MACs with the loop test), then the n % 8 inputs two at a time. */
+__attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, const int16_t *x,
+                                                          unsigned n, int32_t acc)
+{
+    (void)w;
+    (void)x;
+    (void)n;
+    (void)acc;
+    __asm__ volatile(
+        "push    {r4-r11}\n\t"
+        "bic     r12, r2, #7\n\t"
+        "add     r12, r0, r12, lsl #1\n\t"
+        "cmp     r0, r12\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldmia   r1!, {r4-r7}\n\t"
+        "ldmia   r0!, {r8-r11}\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "smlad   r3, r9, r5, r3\n\t"
+        "smlad   r3, r10, r6, r3\n\t"
+        "smlad   r3, r11, r7, r3\n\t"
+        "cmp     r0, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ands    r2, r2, #7\n\t"
+        "beq     4f\n\t"
+        "3:\n\t"
+        "ldr     r4, [r1], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "subs    r2, r2, #2\n\t"
+        "bne     3b\n\t"
+        "4:\n\t"
+        "mov     r0, r3\n\t"
+        "pop     {r4-r11}\n\t"
+        "bx      lr\n\t");
+}
+
+typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
+
+/* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
+ * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
+ * newest sample) and four SMLAL (32 x 32 -> 64, exact: the same int64 products as the C),
+ * 9 instructions with the loop test; the ring is walked as two contiguous runs, rows pos..0
+ * then n_taps-1..pos+1. */
+__attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsigned n_taps,
+                                                      const int32_t (*hist)[FBG_N_STRAIN],
+                                                      unsigned pos, int64_t f[FBG_N_STRAIN])
+{
+    (void)taps;
+    (void)n_taps;
+    (void)hist;
+    (void)pos;
+    (void)f;
+    __asm__ volatile(
+        "push    {r4-r11, lr}\n\t"
+        "add     r12, r2, r1, lsl #4\n\t"
+        "add     r1, r2, r3, lsl #4\n\t"
+        "add     r1, r1, #16\n\t"
+        "push    {r1, r12}\n\t"
+        "mov     lr, r2\n\t"
+        "movs    r4, #0\n\t"
+        "movs    r5, #0\n\t"
+        "movs    r6, #0\n\t"
+        "movs    r7, #0\n\t"
+        "mov     r8, #0\n\t"
+        "mov     r9, #0\n\t"
+        "mov     r10, #0\n\t"
+        "mov     r11, #0\n\t"
+        "1:\n\t"
+        "ldrsh   r12, [r0], #2\n\t"
+        "ldmdb   r1!, {r2, r3}\n\t"
+        "smlal   r8, r9, r2, r12\n\t"
+        "smlal   r10, r11, r3, r12\n\t"
+        "ldmdb   r1!, {r2, r3}\n\t"
+        "smlal   r4, r5, r2, r12\n\t"
+        "smlal   r6, r7, r3, r12\n\t"
+        "cmp     r1, lr\n\t"
+        "bne     1b\n\t"
+        "pop     {r1, lr}\n\t"
+        "cmp     lr, r1\n\t"
+        "beq     3f\n\t"
+        "2:\n\t"
+        "ldrsh   r12, [r0], #2\n\t"
+        "ldmdb   lr!, {r2, r3}\n\t"
+        "smlal   r8, r9, r2, r12\n\t"
+        "smlal   r10, r11, r3, r12\n\t"
+        "ldmdb   lr!, {r2, r3}\n\t"
+        "smlal   r4, r5, r2, r12\n\t"
+        "smlal   r6, r7, r3, r12\n\t"
+        "cmp     lr, r1\n\t"
+        "bne     2b\n\t"
+        "3:\n\t"
+        "ldr     r0, [sp, #36]\n\t"
+        "stmia   r0, {r4-r11}\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+
 #endif /* FBG_DSP_ASM */
 
 /* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
@@ -1243,8 +1343,14 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    if (ly->w_bits == 16u && ly->acc32)
-        return dot16_32(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
+    if (ly->w_bits == 16u && ly->acc32) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+#if FBG_DSP_ASM
+        if ((ly->n_in & 1u) == 0u && (((uintptr_t)w | (uintptr_t)x) & 3u) == 0u)
+            return dot32_asm(w, x, ly->n_in, (int32_t)ly->bias[r]);
+#endif
+        return dot16_32(w, x, ly->n_in, (int32_t)ly->bias[r]);
+    }
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
@@ -1253,6 +1359,9 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
                   unsigned pos, int64_t f[FBG_N_STRAIN])
 {
+#if FBG_DSP_ASM
+    fir4_asm(taps, n_taps, hist, pos, f);
+#else
     int64_t f0 = 0, f1 = 0, f2 = 0, f3 = 0;
     unsigned k = 0, i;
     /* Newest first: ring index pos, pos-1, ..., 0 (taps 0..pos), then n_taps-1, ..., pos+1. */
@@ -1274,6 +1383,7 @@ void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FB
     f[1] = f1;
     f[2] = f2;
     f[3] = f3;
+#endif
 }
 
 #else
