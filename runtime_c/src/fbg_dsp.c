@@ -252,9 +252,9 @@ __attribute__((noinline)) static void first_c(fbg_dsp_job *job)
 }
 
 /* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
- * rows of the layer (n_out & ~1 rows), n even, y word-aligned; returns 1 iff a row clamped. */
-__attribute__((noinline)) static uint32_t rows2_32_c(const fbg_layer *ly, const int16_t *x,
-                                                     int16_t *y)
+ * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
+__attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int16_t *x,
+                                                 int16_t *y, uint32_t *sat)
 {
     const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
     const int16_t *w = ly->w16;
@@ -272,7 +272,7 @@ __attribute__((noinline)) static uint32_t rows2_32_c(const fbg_layer *ly, const 
         y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
         y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
     }
-    return clamped != 0u;
+    *sat |= clamped != 0u;
 }
 #endif /* !FBG_DSP_ASM */
 
@@ -734,8 +734,9 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
  * non-negative value exceeds 32767, i.e. when the portable sat16 raises its flag), PKHBT and
  * one STR of both outputs (y word-aligned, row r in the low half: little-endian). The pair's
  * two int32 biases come with one LDM of the int64 pair {lo, hi, lo, hi} (the high words land
- * in scratch registers). Q is cleared on entry and returned (1 iff a row clamped); the AAPCS
- * leaves Q and the condition flags undefined across calls, so the caller's are not restored.
+ * in scratch registers). Q is cleared on entry and ORed into *sat on exit (1 iff a row
+ * clamped); the AAPCS leaves Q and the condition flags undefined across calls, so the
+ * caller's are not restored.
  *
  * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
  * 8-input block, fully unrolled,
@@ -749,19 +750,22 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
  * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
  * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
  * instructions. */
-__attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *ly,
-                                                              const int16_t *x, int16_t *y)
+__attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                          int16_t *y, uint32_t *sat)
 {
     (void)ly;
     (void)x;
     (void)y;
+    (void)sat;
     __asm__ volatile(
         "push    {r4-r11, lr}\n\t"
         "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
-         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit) */
+         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
+         * [28] sat */
         "sub     sp, sp, #32\n\t"
+        "str     r3, [sp, #28]\n\t"
         "ldrh    r5, [r0]\n\t"
         "ldrh    r6, [r0, #2]\n\t"
         "lsl     r8, r5, #1\n\t"
@@ -860,9 +864,13 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
         "add     r1, r1, r8\n\t"
         "ldr     pc, [sp, #24]\n\t"
         "9:\n\t"
+        "ldr     r3, [sp, #28]\n\t"
         "add     sp, sp, #32\n\t"
         "mrs     r12, apsr\n\t"
-        "ubfx    r0, r12, #27, #1\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
         "pop     {r4-r11, pc}\n\t");
 }
 
@@ -902,17 +910,19 @@ __attribute__((naked, noinline)) static uint32_t rows2d32_asm(const fbg_layer *l
  * MACs. At n = 8 all four input registers are taken and the end is read from the stack, so
  * that loop runs two pairs per test (entered at its second pair for an odd number of pairs):
  * 43 instructions per 32 MACs. Weights and y word-aligned (the caller checks). */
-__attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *ly,
-                                                               const int16_t *x, int16_t *y)
+__attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                           int16_t *y, uint32_t *sat)
 {
     (void)ly;
     (void)x;
     (void)y;
+    (void)sat;
     __asm__ volatile(
         "push    {r4-r11, lr}\n\t"
         "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
         "sub     sp, sp, #8\n\t"
+        "str     r3, [sp, #4]\n\t"
         "mov     r3, r2\n\t"
         "ldrh    r9, [r0, #2]\n\t"
         "bic     r7, r9, #1\n\t"
@@ -977,9 +987,13 @@ __attribute__((naked, noinline)) static uint32_t first2d32_asm(const fbg_layer *
         "cmp     r3, r8\n\t"
         "bne     8b\n\t"
         "9:\n\t"
+        "ldr     r3, [sp, #4]\n\t"
         "add     sp, sp, #8\n\t"
         "mrs     r12, apsr\n\t"
-        "ubfx    r0, r12, #27, #1\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
         "pop     {r4-r11, pc}\n\t");
 }
 #undef FBG_PAIR8
@@ -1111,13 +1125,18 @@ static void run_first(fbg_dsp_job *job)
 }
 
 /* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
- * registers) for n <= 8, else the unrolled one (x word-aligned); 1 iff a row clamped. */
-static uint32_t run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y)
+ * registers) for n <= 8, else the unrolled one (x word-aligned); *sat |= 1 iff a row clamped. */
+static void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                        uint32_t *sat)
 {
 #if FBG_DSP_ASM
-    return ly->n_in <= 8u ? first2d32_asm(ly, x, y) : rows2d32_asm(ly, x, y);
+    if (n <= 8u)
+        first2d32_asm(ly, x, y, sat);
+    else
+        rows2d32_asm(ly, x, y, sat);
 #else
-    return rows2_32_c(ly, x, y);
+    (void)n;
+    rows2_32_c(ly, x, y, sat);
 #endif
 }
 
@@ -1306,26 +1325,52 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
         *sat = 1u;
 }
 
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
+ * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
+#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
+typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
+                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
+
+/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
+ * writes) with n even, at least two rows, the weights and y word-aligned and, beyond 8 inputs
+ * (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
+ * give. The fields are read two words at a time: this runs for every layer of every step. */
+static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
+                             unsigned *n_out)
 {
-    const unsigned n = ly->n_in;
-    /* int32 layers at shift 32 (what the exporter writes) with n even, the weights and y
-     * word-aligned and, beyond 8 inputs (read with LDM), x too - as generated models, blobs and
-     * the activation buffers of fbg_state give: the pair kernels, reading the layer itself;
-     * the last row of an odd layer in C. */
-    if (ly->w_bits == 16u && ly->acc32 && ly->shift == 32u && ly->n_out >= 2u && (n & 1u) == 0u &&
-        n <= 8u * FBG_DSP_BODY_BLOCKS &&
-        (((uintptr_t)ly->w16 | (uintptr_t)y | (n > 8u ? (uintptr_t)x : 0u)) & 3u) == 0u) {
-        if (run_pairs32(ly, x, y))
-            *sat = 1u;
-        if (ly->n_out & 1u)
-            hidden16_32(ly, x, y, ly->n_out - 1u, sat);
+    uint32_t dims, kind;
+    unsigned n;
+    memcpy(&dims, &ly->n_in, sizeof dims);
+    memcpy(&kind, &ly->w_bits, sizeof kind);
+    n = dims & 0xFFFFu;
+    *n_out = dims >> 16;
+    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
+           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > 8u ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
+}
+
+/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
+static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                                   uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
+        run_pairs32(ly, x, y, ly->n_in, sat);
+        hidden16_32(ly, x, y, m - 1u, sat);
     } else if (ly->w_bits == 16u && ly->acc32)
         hidden16_32(ly, x, y, 0u, sat);
     else if (ly->w_bits == 16u)
         hidden16(ly, x, y, sat);
     else
         hidden8(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
+        run_pairs32(ly, x, y, ly->n_in, sat);
+    else
+        hidden_other(ly, x, y, sat);
 }
 
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
