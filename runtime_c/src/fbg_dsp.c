@@ -1039,6 +1039,164 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
         "bx      lr\n\t");
 }
 
+/* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
+ * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
+ * unaligned), y word-aligned. xp holds the inputs re-paired for SXTB16 (see hidden8): per
+ * group of four (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
+ * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
+ * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
+ *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD); CMP; BNE
+ * = 23 instructions per 16 MACs. The n % 8 inputs after the loop: four (LDRD of two input
+ * words, per row LDR + 2 SXTB16 + 2 SMLAD) and/or two (per row two LDRSB and SMLABB, SMLATB
+ * with the natural pair), entered through a per-layer address in the frame. Requantisation,
+ * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
+ * comes from USAT). */
+__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16x2_t *xp,
+                                                          int16_t *y, uint32_t *sat)
+{
+    (void)ly;
+    (void)xp;
+    (void)y;
+    (void)sat;
+    __asm__ volatile(
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
+         * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
+         * r2 = end of the 8-input groups of xp throughout */
+        "sub     sp, sp, #40\n\t"
+        "str     r3, [sp, #28]\n\t"
+        "ldrh    r8, [r0]\n\t"
+        "ldrh    r6, [r0, #2]\n\t"
+        "str     r8, [sp, #16]\n\t"
+        "str     r1, [sp, #20]\n\t"
+        "mov     lr, r1\n\t"
+        "str     r2, [sp, #8]\n\t"
+        "bic     r6, r6, #1\n\t"
+        "add     r6, r2, r6, lsl #1\n\t"
+        "str     r6, [sp, #12]\n\t"
+        "bic     r7, r8, #7\n\t"
+        "add     r2, r1, r7, lsl #1\n\t"
+        "ldr     r3, [r0, #16]\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "str     r3, [sp]\n\t"
+        "ldr     r3, [r0, #20]\n\t"
+        "str     r3, [sp, #4]\n\t"
+        "ldr     r0, [r0, #12]\n\t"
+        "add     r1, r0, r8\n\t"
+        /* the tail: none, 2, 4 or 4 + 2 inputs */
+        "and     r7, r8, #6\n\t"
+        "adr.w   r3, 8f\n\t"
+        "cmp     r7, #2\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 72f\n\t"
+        "cmp     r7, #4\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 74f\n\t"
+        "cmp     r7, #6\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 76f\n\t"
+        "orr     r3, r3, #1\n\t"
+        "str     r3, [sp, #32]\n\t"
+        "cmp     r8, #8\n\t"
+        "it      hs\n\t"
+        "adrhs.w r3, 1f\n\t"
+        "orr     r3, r3, #1\n\t"
+        "str     r3, [sp, #24]\n\t"
+        "bx      r3\n\t"
+        "1:\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r9, r10, r6, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "ldr     r8, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r11, r10, r6, r11\n\t"
+        "cmp     lr, r2\n\t"
+        "bne     1b\n\t"
+        "ldr     pc, [sp, #32]\n\t"
+        /* 4 inputs, then to the epilogue */
+        "74:\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "b       8f\n\t"
+        /* 4 + 2 inputs */
+        "76:\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        /* 2 inputs: (x[n-2], x[n-1]) */
+        "72:\n\t"
+        "ldr     r3, [lr], #4\n\t"
+        "ldrsb   r7, [r0], #1\n\t"
+        "ldrsb   r8, [r0], #1\n\t"
+        "smlabb  r9, r3, r7, r9\n\t"
+        "smlatb  r9, r3, r8, r9\n\t"
+        "ldrsb   r7, [r1], #1\n\t"
+        "ldrsb   r8, [r1], #1\n\t"
+        "smlabb  r11, r3, r7, r11\n\t"
+        "smlatb  r11, r3, r8, r11\n\t"
+        "8:\n\t"
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
+        "ldrd    r7, r10, [r4], #8\n\t"
+        "smmulr  r9, r9, r7\n\t"
+        "smmulr  r11, r11, r10\n\t"
+        "bic     r9, r9, r9, asr #31\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r9, #15, r9\n\t"
+        "usat    r11, #15, r11\n\t"
+        "pkhbt   r9, r9, r11, lsl #16\n\t"
+        "str     r9, [r5], #4\n\t"
+        "cmp     r5, r6\n\t"
+        "beq     9f\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "stmia   sp, {r3, r4, r5}\n\t"
+        "mov     r0, r1\n\t"
+        "add     r1, r1, r8\n\t"
+        "ldr     pc, [sp, #24]\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #28]\n\t"
+        "add     sp, sp, #40\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
 
 /* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
@@ -1294,6 +1452,14 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
         xp[j / 2u] = pair16(x[j], x[j + 2u]);
         xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
     }
+#if FBG_DSP_ASM
+    if (fast32 && (n & 1u) == 0u && m >= 2u && ((uintptr_t)y & 3u) == 0u) {
+        if (n != n4) /* the last two inputs as they are (rows2b32_asm) */
+            xp[n4 / 2u] = pair16(x[n4], x[n4 + 1u]);
+        rows2b32_asm(ly, xp, y, sat);
+        r = m & ~1u;
+    }
+#endif
     for (; r + 2u <= m; r += 2u) {
         const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
         const int16x2_t *pp = xp;
