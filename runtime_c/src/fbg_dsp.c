@@ -1045,8 +1045,9 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
  * group of four (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
  * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
  * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
- *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD); CMP; BNE
- * = 23 instructions per 16 MACs. The n % 8 inputs after the loop: four (LDRD of two input
+ *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD)
+ * = 21 instructions per 16 MACs, two such groups per loop test (CMP, BNE; an odd number of
+ * groups enters the loop at its second). The n % 8 inputs after the loop: four (LDRD of two input
  * words, per row LDR + 2 SXTB16 + 2 SMLAD) and/or two (per row two LDRSB and SMLABB, SMLATB
  * with the natural pair), entered through a per-layer address in the frame. Requantisation,
  * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
@@ -1099,13 +1100,40 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "adreq.w r3, 76f\n\t"
         "orr     r3, r3, #1\n\t"
         "str     r3, [sp, #32]\n\t"
+        /* 8-input groups: two per loop test, entered at the second for an odd count */
         "cmp     r8, #8\n\t"
-        "it      hs\n\t"
-        "adrhs.w r3, 1f\n\t"
+        "blo     0f\n\t"
+        "tst     r8, #8\n\t"
+        "ite     ne\n\t"
+        "adrne.w r3, 10f\n\t"
+        "adreq.w r3, 1f\n\t"
         "orr     r3, r3, #1\n\t"
+        "0:\n\t"
         "str     r3, [sp, #24]\n\t"
         "bx      r3\n\t"
         "1:\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r9, r10, r6, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "ldr     r8, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r11, r10, r6, r11\n\t"
+        "10:\n\t"
         "ldmia.w lr!, {r3-r6}\n\t"
         "ldr     r7, [r0], #4\n\t"
         "ldr     r8, [r0], #4\n\t"
@@ -1421,6 +1449,46 @@ static inline int8x4_t ld4_8(const int8_t *p)
     return v;
 }
 
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+/* One row of an int32 layer with int8 weights (the output layers' rows): no re-paired copy
+ * of x; the two SXTB16 halves (w0, w2), (w1, w3) are re-packed into (w0, w1), (w2, w3) to meet
+ * the inputs as they lie (two PKH per four weights). */
+static int32_t dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j;
+    for (j = 0; j + 4u <= n; j += 4u) {
+        uint32_t v;
+        uint32_t e, o;
+        memcpy(&v, w + j, sizeof v);
+        e = (uint32_t)__sxtb16((int8x4_t)v);
+        o = (uint32_t)__sxtb16((int8x4_t)ror8(v));
+        acc = __smlad((int16x2_t)((e & 0xFFFFu) | (o << 16)), ld2(x + j), acc);
+        acc = __smlad((int16x2_t)((o & 0xFFFF0000u) | (e >> 16)), ld2(x + j + 2u), acc);
+    }
+    for (; j < n; ++j)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
 /* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
 static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
 {
@@ -1448,10 +1516,7 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
     int16x2_t xp[FBG_MAX_WIDTH / 2];
     uint32_t clamped = 0u;
     unsigned j, r = 0;
-    for (j = 0; j < n4; j += 4u) {
-        xp[j / 2u] = pair16(x[j], x[j + 2u]);
-        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
-    }
+    repair8(x, n4, xp);
 #if FBG_DSP_ASM
     if (fast32 && (n & 1u) == 0u && m >= 2u && ((uintptr_t)y & 3u) == 0u) {
         if (n != n4) /* the last two inputs as they are (rows2b32_asm) */
@@ -1544,16 +1609,14 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 {
     const unsigned n = ly->n_in;
     int16x2_t xp[FBG_MAX_WIDTH / 2];
-    unsigned j;
-    for (j = 0; j + 4u <= n; j += 4u) {
-        xp[j / 2u] = pair16(x[j], x[j + 2u]);
-        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
-    }
+    repair8(x, n & ~3u, xp);
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
+    if (ly->w_bits == 8u && ly->acc32)
+        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
     if (ly->w_bits == 16u && ly->acc32) {
         const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
 #if FBG_DSP_ASM
