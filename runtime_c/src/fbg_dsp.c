@@ -1041,8 +1041,9 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
 
 /* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
  * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
- * unaligned), y word-aligned. xp holds the inputs re-paired for SXTB16 (see hidden8): per
- * group of four (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
+ * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
+ * (as hidden8 does, 8 inputs per LDM, two PKHBT, two PKHTB, STM): per group of four
+ * (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
  * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
  * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
  *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD)
@@ -1052,11 +1053,11 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
  * with the natural pair), entered through a per-layer address in the frame. Requantisation,
  * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
  * comes from USAT). */
-__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16x2_t *xp,
+__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16_t *x,
                                                           int16_t *y, uint32_t *sat)
 {
     (void)ly;
-    (void)xp;
+    (void)x;
     (void)y;
     (void)sat;
     __asm__ volatile(
@@ -1065,10 +1066,39 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "msr     APSR_nzcvq, r12\n\t"
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
          * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
-         * r2 = end of the 8-input groups of xp throughout */
-        "sub     sp, sp, #40\n\t"
+         * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
+         * MAC loop */
+        "sub     sp, sp, #296\n\t"
         "str     r3, [sp, #28]\n\t"
         "ldrh    r8, [r0]\n\t"
+        /* x (word-aligned) re-paired into xp: LDM of 8 inputs, PKHBT/PKHTB, STM */
+        "add     r12, sp, #40\n\t"
+        "bic     r7, r8, #7\n\t"
+        "add     r7, r1, r7, lsl #1\n\t"
+        "cmp     r1, r7\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldmia   r1!, {r3-r6}\n\t"
+        "pkhbt   r9, r3, r4, lsl #16\n\t"
+        "pkhtb   r10, r4, r3, asr #16\n\t"
+        "pkhbt   r11, r5, r6, lsl #16\n\t"
+        "pkhtb   lr, r6, r5, asr #16\n\t"
+        "stmia   r12!, {r9, r10, r11, lr}\n\t"
+        "cmp     r1, r7\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "tst     r8, #4\n\t"
+        "beq     3f\n\t"
+        "ldmia   r1!, {r3, r4}\n\t"
+        "pkhbt   r9, r3, r4, lsl #16\n\t"
+        "pkhtb   r10, r4, r3, asr #16\n\t"
+        "stmia   r12!, {r9, r10}\n\t"
+        "3:\n\t"
+        "tst     r8, #2\n\t"
+        "itt     ne\n\t"
+        "ldrne   r3, [r1]\n\t"
+        "strne   r3, [r12]\n\t"
+        "add     r1, sp, #40\n\t"
         "ldrh    r6, [r0, #2]\n\t"
         "str     r8, [sp, #16]\n\t"
         "str     r1, [sp, #20]\n\t"
@@ -1216,7 +1246,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "ldr     pc, [sp, #24]\n\t"
         "9:\n\t"
         "ldr     r3, [sp, #28]\n\t"
-        "add     sp, sp, #40\n\t"
+        "add     sp, sp, #296\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r12, r12, #27, #1\n\t"
         "ldr     r0, [r3]\n\t"
@@ -1225,6 +1255,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "pop     {r4-r11, pc}\n\t");
 }
 
+typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
 
 /* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
@@ -1517,14 +1548,6 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
     uint32_t clamped = 0u;
     unsigned j, r = 0;
     repair8(x, n4, xp);
-#if FBG_DSP_ASM
-    if (fast32 && (n & 1u) == 0u && m >= 2u && ((uintptr_t)y & 3u) == 0u) {
-        if (n != n4) /* the last two inputs as they are (rows2b32_asm) */
-            xp[n4 / 2u] = pair16(x[n4], x[n4 + 1u]);
-        rows2b32_asm(ly, xp, y, sat);
-        r = m & ~1u;
-    }
-#endif
     for (; r + 2u <= m; r += 2u) {
         const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
         const int16x2_t *pp = xp;
@@ -1587,7 +1610,23 @@ static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const in
     if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
         run_pairs32(ly, x, y, ly->n_in, sat);
         hidden16_32(ly, x, y, m - 1u, sat);
-    } else if (ly->w_bits == 16u && ly->acc32)
+    }
+#if FBG_DSP_ASM
+    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
+             (ly->n_in & 1u) == 0u && (((uintptr_t)x | (uintptr_t)y) & 3u) == 0u) {
+        /* int8 weights (int32 by construction), shift 32: the pairs in rows2b32_asm, the last
+         * row of an odd layer with dot8_32. */
+        rows2b32_asm(ly, x, y, sat);
+        if (m & 1u) {
+            uint32_t clamped = 0u;
+            y[m - 1u] = (int16_t)relu_usat15(
+                smmulr(dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
+                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
+            *sat |= clamped != 0u;
+        }
+    }
+#endif
+    else if (ly->w_bits == 16u && ly->acc32)
         hidden16_32(ly, x, y, 0u, sat);
     else if (ly->w_bits == 16u)
         hidden16(ly, x, y, sat);
