@@ -906,10 +906,10 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
  * pairs, read once with LDR, which may be unaligned); the two rows are adjacent in memory, so
  * one pointer walks both (one LDRD or LDM per row, or one LDM for both at n = 4). Per pair:
  * LDM of the biases, the weights, n SMLAD, the 9-instruction requantisation and the loop test
- * (CMP with the output end, held in r7 for n <= 6): 15, 17 and 20 instructions for 4, 8 and 12
- * MACs. At n = 8 all four input registers are taken and the end is read from the stack, so
- * that loop runs two pairs per test (entered at its second pair for an odd number of pairs):
- * 43 instructions per 32 MACs. Weights and y word-aligned (the caller checks). */
+ * (CMP with the output end, held in r7 for n <= 6): 15 and 17 instructions for 4 and 8 MACs.
+ * The n = 6 and n = 8 loops run two pairs per test (entered at their second pair for an odd
+ * number of pairs): 38 instructions per 24 MACs, and at n = 8, where all four input registers
+ * are taken and the end is read from the stack, 43 per 32. Weights and y word-aligned (the caller checks). */
 __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
@@ -940,7 +940,11 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "beq     4f\n\t"
         "ldr     r6, [r10, #8]\n\t"
         "cmp     r12, #6\n\t"
-        "beq     6f\n\t"
+        "bne     7f\n\t"
+        "tst     r9, #2\n\t"
+        "bne     61f\n\t"
+        "b       6f\n\t"
+        "7:\n\t"
         "ldr     r7, [r10, #12]\n\t"
         "tst     r9, #2\n\t"
         "bne     81f\n\t"
@@ -966,6 +970,17 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        FBG_PAIR_OUT
+        "61:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
         "ldmia.w r0!, {r8, r10, r12}\n\t"
         "smlad   r9, r8, r4, r9\n\t"
