@@ -14,13 +14,16 @@
  *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
  *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
  * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
- *   __usat) except five kernels of int16-weight layers that stay hand-written assembly
- *   because they measurably win (FBG_DSP_ASM, below; docs/firmware.md has the instructions
- *   per step of both): for int64 layers with shift >= 32, rows3d_asm (word-aligned, LDRD),
- *   rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in registers); for int32
- *   layers (fbg_layer.acc32, proven by the loader: every partial sum fits int32; SMLAD and
- *   SMMULR instead) at shift 32, rows4d32_asm and first32_asm. Each has an ACLE C version
- *   (rows3_c, first_c, rows4_32_c, first32_c) that FBG_DSP_ASM=0 builds instead.
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 8, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
