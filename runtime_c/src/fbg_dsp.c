@@ -1796,16 +1796,19 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    if (ly->w_bits == 8u && ly->acc32)
-        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
-    if (ly->w_bits == 16u && ly->acc32) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+    uint32_t kind;
+    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
+    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
+        const unsigned n = ly->n_in;
+        const int16_t *w = ly->w16 + (size_t)r * n;
 #if FBG_DSP_ASM
-        if ((ly->n_in & 1u) == 0u && (((uintptr_t)w | (uintptr_t)x) & 3u) == 0u)
-            return dot32_asm(w, x, ly->n_in, (int32_t)ly->bias[r]);
+        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
+            return dot32_asm(w, x, n, (int32_t)ly->bias[r]);
 #endif
-        return dot16_32(w, x, ly->n_in, (int32_t)ly->bias[r]);
+        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
     }
+    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
+        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
