@@ -20,7 +20,9 @@ Cortex-M4 technical reference manual (ARM DDI 0439, "Processor instruction timin
 - every transfer of control (a taken branch, BX, BL, a load or POP into the PC, falling
   anywhere but to the next instruction): + P cycles of pipeline refill, P = 1 to 3 by the TRM
   (alignment and width of the target, early speculation); the estimate uses P = 2 and also
-  gives P = 1 and P = 3. A conditional branch that falls through costs 1.
+  gives P = 1 and P = 3. A conditional branch that falls through costs 1. Only branches and
+  writes to the PC are priced a refill (QEMU reports a discontinuity after an instruction that
+  precedes one crossing a page boundary; that is translation, not the core).
 
 Not modelled (so the figure is for zero-wait-state memory: SRAM, or flash behind a cache that
 hits): flash wait states, bus contention between instruction fetch and data, and interrupts.
@@ -139,7 +141,11 @@ def estimate(pcs: Iterable[tuple[int, int, int, int]], dis: dict[int, tuple[str,
             raise ValueError(f"no instruction at 0x{pc:x} in the disassembly")
         mnem, ops = dis[pc]
         cls, cost, always = instruction_class(mnem, ops)
-        taken_n = executed if always else taken
+        # Only a branch or a write to the PC can transfer control; QEMU may still report a
+        # discontinuity after another instruction (at an instruction that crosses a page
+        # boundary, translated on its own), which is not a pipeline refill.
+        taken_n = executed if always else (taken if cls == "branch" or _writes_pc(
+            base_mnemonic(mnem)[0], ops) else 0)
         c = cost * executed + refill * taken_n
         if cls == "load" and seq_in and pc in prev_of:
             pcls = instruction_class(*dis[prev_of[pc]])[0]

@@ -55,3 +55,9 @@ def test_estimate_prices_refills_and_pipelined_loads():
 def test_estimate_refuses_an_address_outside_the_disassembly():
     with pytest.raises(ValueError, match="0x64"):
         cycles.estimate([(100, 1, 0, 0)], {0: ("nop", "")})
+
+
+def test_a_discontinuity_after_a_non_branch_is_not_a_refill():
+    dis = {0: ("smlad", "r9, r7, r3, r9"), 4: ("ldmia.w", "r1!, {r7, r8}")}
+    est = cycles.estimate([(0, 5, 5, 5), (4, 5, 0, 0)], dis, refill=2)
+    assert est["cycles"] == 5 * 1 + 5 * 3 and est["taken_transfers"] == 0
