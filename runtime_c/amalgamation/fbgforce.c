@@ -1493,46 +1493,43 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "msr     APSR_nzcvq, r12\n\t"
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
          * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
-         * [28] sat */
+         * [28] sat; written with one STM */
         "sub     sp, sp, #32\n\t"
-        "str     r3, [sp, #28]\n\t"
-        "ldrh    r5, [r0]\n\t"
-        "ldrh    r6, [r0, #2]\n\t"
-        "lsl     r8, r5, #1\n\t"
-        "str     r8, [sp, #16]\n\t"
-        "str     r1, [sp, #20]\n\t"
-        "mov     lr, r1\n\t"
-        "str     r2, [sp, #8]\n\t"
+        "mov     r10, r3\n\t"
+        "ldr     r11, [r0]\n\t"
+        "ldrd    r3, r4, [r0, #16]\n\t"
+        "ldr     r0, [r0, #8]\n\t"
+        "mov     r5, r2\n\t"
+        "lsr     r6, r11, #16\n\t"
         "bic     r6, r6, #1\n\t"
         "add     r6, r2, r6, lsl #1\n\t"
-        "str     r6, [sp, #12]\n\t"
-        "ldr     r3, [r0, #16]\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "str     r3, [sp]\n\t"
-        "ldr     r3, [r0, #20]\n\t"
-        "str     r3, [sp, #4]\n\t"
-        "ldr     r0, [r0, #8]\n\t"
-        "add     r1, r0, r8\n\t"
+        "uxth    r11, r11\n\t"
+        "lsl     r7, r11, #1\n\t"
+        "mov     r8, r1\n\t"
+        "mov     lr, r1\n\t"
+        "add     r1, r0, r7\n\t"
         "adr.w   r2, 8f\n\t"
-        "lsr     r7, r5, #3\n\t"
-        "mov     r3, #44\n\t"
-        "mls     r2, r7, r3, r2\n\t"
+        "lsr     r12, r11, #3\n\t"
+        "mov     r9, #44\n\t"
+        "mls     r2, r12, r9, r2\n\t"
         "orr     r2, r2, #1\n\t"
-        "mov     r3, r2\n\t"
-        "ands    r7, r5, #6\n\t"
+        "mov     r9, r2\n\t"
+        "ands    r12, r11, #6\n\t"
         "beq     1f\n\t"
-        "adr.w   r3, 72f\n\t"
-        "cmp     r7, #2\n\t"
+        "adr.w   r9, 72f\n\t"
+        "cmp     r12, #2\n\t"
         "beq     0f\n\t"
-        "adr.w   r3, 74f\n\t"
-        "cmp     r7, #4\n\t"
+        "adr.w   r9, 74f\n\t"
+        "cmp     r12, #4\n\t"
         "beq     0f\n\t"
-        "adr.w   r3, 76f\n\t"
+        "adr.w   r9, 76f\n\t"
         "0:\n\t"
-        "orr     r3, r3, #1\n\t"
+        "orr     r9, r9, #1\n\t"
         "1:\n\t"
-        "str     r3, [sp, #24]\n\t"
-        "bx      r3\n\t"
+        "add     r3, r3, #16\n\t"
+        "stm     sp, {r3-r10}\n\t"
+        "ldmdb   r3, {r9-r12}\n\t"
+        "ldr     pc, [sp, #24]\n\t"
         /* tails: 2, 4, 6 inputs, then into the body */
         "72:\n\t"
         "ldr     r3, [lr], #4\n\t"
@@ -2526,16 +2523,19 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    if (ly->w_bits == 8u && ly->acc32)
-        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
-    if (ly->w_bits == 16u && ly->acc32) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+    uint32_t kind;
+    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
+    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
+        const unsigned n = ly->n_in;
+        const int16_t *w = ly->w16 + (size_t)r * n;
 #if FBG_DSP_ASM
-        if ((ly->n_in & 1u) == 0u && (((uintptr_t)w | (uintptr_t)x) & 3u) == 0u)
-            return dot32_asm(w, x, ly->n_in, (int32_t)ly->bias[r]);
+        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
+            return dot32_asm(w, x, n, (int32_t)ly->bias[r]);
 #endif
-        return dot16_32(w, x, ly->n_in, (int32_t)ly->bias[r]);
+        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
     }
+    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
+        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
