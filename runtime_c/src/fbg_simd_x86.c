@@ -80,9 +80,9 @@ static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int1
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row16;
         } else {
-            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
+            const int16_t *src = v->ly->w16 + (size_t)r * v->n;
+            for (j = 0; j < v->npad; ++j) /* a plain loop: a few entries, no call */
+                buf[i][j] = j < v->n ? src[j] : 0;
             w[i] = buf[i];
         }
     }
@@ -103,9 +103,9 @@ static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row8;
         } else {
-            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
+            const int8_t *src = v->ly->w8 + (size_t)r * v->n;
+            for (j = 0; j < v->npad; ++j)
+                buf[i][j] = j < v->n ? src[j] : 0;
             w[i] = buf[i];
         }
     }
@@ -314,25 +314,182 @@ AVX2 static inline void bias_mult8(const fbg_layer *ly, unsigned r, unsigned k, 
                                     _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
 }
 
-/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row.
- * Two passes: the sums of all row groups first, then bias and requantisation eight rows at
- * a time, so that no group's long chain (reduction, then requantisation) holds up the next. */
-AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
-                            uint32_t *sat)
+/* What a layer's rows share in the one pass over them: the requantisation constants, and the
+ * saturation flags gathered from every group. */
+typedef struct {
+    const fbg_layer *ly;
+    int32_t *acc;
+    int16_t *y;
+    __m256i round, top, big;
+    __m128i shift;
+} layer_out;
+
+/* Rows r .. r+k-1 (1 <= k <= 8) from their sums (lanes 0 .. k-1 of sums; the other lanes are
+ * ignored): bias added, then stored as accumulators (o->acc) or requantised into o->y. Stores
+ * write rows r .. r+k-1 only. */
+AVX2 static inline void finish_rows(layer_out *o, unsigned r, unsigned k, __m256i sums)
 {
+    __m256i bias, mult;
+    __m128i q;
+    bias_mult8(o->ly, r, k, &bias, &mult);
+    sums = _mm256_add_epi32(sums, bias);
+    if (o->acc != NULL) {
+        if (k == 8u)
+            _mm256_storeu_si256((__m256i *)(void *)(o->acc + r), sums);
+        else
+            _mm256_maskstore_epi32((int *)(void *)(o->acc + r),
+                                   _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k),
+                                                      _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)),
+                                   sums);
+        return;
+    }
+    /* Lanes past k have mult 0 (bias_mult8): they requantise to 0 and never clamp. */
+    q = requant8(sums, mult, o->round, o->top, o->shift, &o->big);
+    if (k == 8u) {
+        _mm_storeu_si128((__m128i *)(void *)(o->y + r), q);
+        return;
+    }
+    if (k & 4u) {
+        _mm_storel_epi64((__m128i *)(void *)(o->y + r), q);
+        q = _mm_srli_si128(q, 8);
+        r += 4u;
+    }
+    if (k & 2u) {
+        _mm_storeu_si32(o->y + r, q);
+        q = _mm_srli_si128(q, 4);
+        r += 2u;
+    }
+    if (k & 1u)
+        o->y[r] = (int16_t)_mm_cvtsi128_si32(q);
+}
+
+/* ---- AVX2, layers of at least 16 inputs: rows read in place ---------------------------- */
+
+/* Row i of a group starting at row pointer w, columns j .. j+15, as int16. */
+#define WIDE_W16(i, j) load256(w + (size_t)(i) * n + (j))
+#define WIDE_W8(i, j) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n + (j)))
+#define MADD(a, wv, xv) a = _mm256_add_epi32(a, _mm256_madd_epi16(wv, xv))
+#define WIDE_STEP1(W, j, xv) MADD(a0, W(0, j), xv)
+#define WIDE_STEP2(W, j, xv) WIDE_STEP1(W, j, xv); MADD(a1, W(1, j), xv)
+#define WIDE_STEP4(W, j, xv) WIDE_STEP2(W, j, xv); MADD(a2, W(2, j), xv); MADD(a3, W(3, j), xv)
+#define WIDE_STEP8(W, j, xv)                                                                 \
+    WIDE_STEP4(W, j, xv); MADD(a4, W(4, j), xv); MADD(a5, W(5, j), xv); MADD(a6, W(6, j), xv); \
+    MADD(a7, W(7, j), xv)
+
+/* The MACs of K rows (K = 1, 2, 4, 8) into a0 .. a(K-1): whole vectors of 16 columns up to
+ * n16 = n rounded down to 16, then, when n is not a multiple of 16, the last 16 columns of
+ * every row once more against xtail, which is x[n-16 .. n) with the columns already counted
+ * set to zero. Every read stays inside its row and inside x[0 .. n). */
+#define WIDE_DOT(K, W)                                                                       \
+    do {                                                                                     \
+        for (j = 0; j < n16; j += 16u) {                                                     \
+            __m256i xv = load256(x + j);                                                     \
+            WIDE_STEP##K(W, j, xv);                                                          \
+        }                                                                                    \
+        if (n16 != n) {                                                                      \
+            WIDE_STEP##K(W, n - 16u, xtail);                                                 \
+        }                                                                                    \
+    } while (0)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* -1 in the last t of 16 lanes read from tail_lanes + t (t = n mod 16). */
+static const int16_t tail_lanes[32] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                                       -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1};
+
+/* Every row of a layer of n >= 16 inputs: groups of eight rows, then the last n_out mod 8
+ * rows as a group of 4, of 2 and of 1 (so an output layer of one or two rows multiplies only
+ * those). */
+#define WIDE_LAYER(T, W)                                                                     \
+    do {                                                                                     \
+        const T *w;                                                                          \
+        unsigned k = ly->n_out & 7u, done = 0u;                                              \
+        int32_t part[8] = {0, 0, 0, 0, 0, 0, 0, 0};                                          \
+        for (r = 0; r + 8u <= ly->n_out; r += 8u) {                                          \
+            __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0, \
+                    a6 = a0, a7 = a0;                                                        \
+            w = base + (size_t)r * n;                                                        \
+            WIDE_DOT(8, W);                                                                  \
+            finish_rows(o, r, 8u, sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7));               \
+        }                                                                                    \
+        if (k == 0u)                                                                         \
+            break;                                                                           \
+        if (k & 4u) {                                                                        \
+            __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0;                  \
+            w = base + (size_t)r * n;                                                        \
+            WIDE_DOT(4, W);                                                                  \
+            _mm_storeu_si128((__m128i *)(void *)part, sum4_rows(a0, a1, a2, a3));            \
+            done = 4u;                                                                       \
+        }                                                                                    \
+        if (k & 2u) {                                                                        \
+            __m256i a0 = _mm256_setzero_si256(), a1 = a0;                                    \
+            w = base + (size_t)(r + done) * n;                                               \
+            WIDE_DOT(2, W);                                                                  \
+            _mm_storel_epi64((__m128i *)(void *)(part + done), sum2_rows(a0, a1));           \
+            done += 2u;                                                                      \
+        }                                                                                    \
+        if (k & 1u) {                                                                        \
+            __m256i a0 = _mm256_setzero_si256();                                             \
+            w = base + (size_t)(r + done) * n;                                               \
+            WIDE_DOT(1, W);                                                                  \
+            part[done] = _mm_cvtsi128_si32(sum1_row(a0));                                    \
+        }                                                                                    \
+        finish_rows(o, r, k, load256(part));                                                 \
+    } while (0)
+
+AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
+{
+    const fbg_layer *ly = o->ly;
+    const size_t n = ly->n_in;
+    const unsigned n16 = ly->n_in & ~15u;
+    const __m256i xtail = _mm256_and_si256(load256(x + n - 16u), load256(tail_lanes + (n & 15u)));
+    unsigned r, j;
+    if (ly->w_bits == 16u) {
+        const int16_t *base = ly->w16;
+        WIDE_LAYER(int16_t, WIDE_W16);
+    } else {
+        const int8_t *base = ly->w8;
+        WIDE_LAYER(int8_t, WIDE_W8);
+    }
+}
+
+/* ---- AVX2, layers of fewer than 16 inputs: x padded, rows of 8 or 16 -------------------- */
+
+/* x is copied into a buffer that is zero from n_in on, rows are read as whole vectors of
+ * npad = 8 or 16 weights: the weights read past a row's end belong to the next row and meet
+ * zeros; the last rows, whose read would leave the weight array, are read from zero-padded
+ * copies (rows16 / rows8), and rows past n_out from a row of zeros. */
+AVX2 static void narrow_avx2(layer_out *o, const int16_t *x)
+{
+    const fbg_layer *ly = o->ly;
     int16_t xp[ROW_LEN];
     int16_t buf16[8][ROW_LEN];
     int8_t buf8[8][ROW_LEN];
-    int32_t sum[FBG_MAX_WIDTH + 8u];
     rows_view v;
     unsigned r, j;
-    const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
-    const __m256i top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
-    const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
-    __m256i big = _mm256_setzero_si256();
     pad_x(ly, x, xp);
     rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
     for (r = 0; r < ly->n_out; r += 8u) {
+        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
         __m256i sums;
         if (ly->w_bits == 16u) {
             const int16_t *w16[8];
@@ -349,25 +506,28 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
             else
                 AVX2_DOT8(AVX2_W8);
         }
-        _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
+        finish_rows(o, r, k, sums);
     }
-    for (r = 0; r < ly->n_out; r += 8u) {
-        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
-        __m256i bias, mult, sums;
-        bias_mult8(ly, r, k, &bias, &mult);
-        sums = _mm256_add_epi32(load256(sum + r), bias);
-        if (acc != NULL) {
-            _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
-            memcpy(acc + r, sum + r, k * sizeof *acc);
-        } else if (k == 8u) {
-            _mm_storeu_si128((__m128i *)(void *)(y + r), requant8(sums, mult, round, top, shift, &big));
-        } else {
-            int16_t t[8];
-            _mm_storeu_si128((__m128i *)(void *)t, requant8(sums, mult, round, top, shift, &big));
-            memcpy(y + r, t, k * sizeof *y);
-        }
-    }
-    if (!_mm256_testz_si256(big, big))
+}
+
+/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row,
+ * in one pass over the rows. */
+AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                            uint32_t *sat)
+{
+    layer_out o;
+    o.ly = ly;
+    o.acc = acc;
+    o.y = y;
+    o.round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
+    o.top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
+    o.shift = _mm_cvtsi32_si128((int)ly->shift);
+    o.big = _mm256_setzero_si256();
+    if (ly->n_in >= 16u)
+        wide_avx2(&o, x);
+    else
+        narrow_avx2(&o, x);
+    if (acc == NULL && !_mm256_testz_si256(o.big, o.big))
         *sat = 1u;
 }
 
