@@ -368,7 +368,15 @@ AVX2 static inline void finish_rows(layer_out *o, unsigned r, unsigned k, __m256
 /* Row i of a group starting at row pointer w, columns j .. j+15, as int16. */
 #define WIDE_W16(i, j) load256(w + (size_t)(i) * n + (j))
 #define WIDE_W8(i, j) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n + (j)))
-#define MADD(a, wv, xv) a = _mm256_add_epi32(a, _mm256_madd_epi16(wv, xv))
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+#define WIDE_ROW(i, W) lanes32 a##i = (lanes32)_mm256_madd_epi16(W(i, n - 16u), xtail)
+#define WIDE_ROWS1(W) WIDE_ROW(0, W)
+#define WIDE_ROWS2(W) WIDE_ROWS1(W); WIDE_ROW(1, W)
+#define WIDE_ROWS4(W) WIDE_ROWS2(W); WIDE_ROW(2, W); WIDE_ROW(3, W)
+#define WIDE_ROWS8(W) WIDE_ROWS4(W); WIDE_ROW(4, W); WIDE_ROW(5, W); WIDE_ROW(6, W); WIDE_ROW(7, W)
 #define WIDE_STEP1(W, j, xv) MADD(a0, W(0, j), xv)
 #define WIDE_STEP2(W, j, xv) WIDE_STEP1(W, j, xv); MADD(a1, W(1, j), xv)
 #define WIDE_STEP4(W, j, xv) WIDE_STEP2(W, j, xv); MADD(a2, W(2, j), xv); MADD(a3, W(3, j), xv)
@@ -376,20 +384,18 @@ AVX2 static inline void finish_rows(layer_out *o, unsigned r, unsigned k, __m256
     WIDE_STEP4(W, j, xv); MADD(a4, W(4, j), xv); MADD(a5, W(5, j), xv); MADD(a6, W(6, j), xv); \
     MADD(a7, W(7, j), xv)
 
-/* The MACs of K rows (K = 1, 2, 4, 8) into a0 .. a(K-1): whole vectors of 16 columns up to
- * n16 = n rounded down to 16, then, when n is not a multiple of 16, the last 16 columns of
- * every row once more against xtail, which is x[n-16 .. n) with the columns already counted
- * set to zero. Every read stays inside its row and inside x[0 .. n). */
+/* Declares a0 .. a(K-1) (K = 1, 2, 4, 8) and sums K rows into them: first the last 16
+ * columns of every row against xtail, which is x[n-16 .. n) with the columns of the whole
+ * vectors (those below n16 = n rounded down to 16) set to zero (all of it when n16 == n),
+ * then the whole vectors. Every read stays inside its row and inside x[0 .. n). */
 #define WIDE_DOT(K, W)                                                                       \
-    do {                                                                                     \
-        for (j = 0; j < n16; j += 16u) {                                                     \
-            __m256i xv = load256(x + j);                                                     \
-            WIDE_STEP##K(W, j, xv);                                                          \
-        }                                                                                    \
-        if (n16 != n) {                                                                      \
-            WIDE_STEP##K(W, n - 16u, xtail);                                                 \
-        }                                                                                    \
-    } while (0)
+    WIDE_ROWS##K(W);                                                                         \
+    j = 0;                                                                                   \
+    do { /* n16 >= 16 */                                                                     \
+        __m256i xv = load256(x + j);                                                         \
+        WIDE_STEP##K(W, j, xv);                                                              \
+        j += 16u;                                                                            \
+    } while (j < n16)
 
 /* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
 AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
@@ -425,33 +431,29 @@ static const int16_t tail_lanes[32] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
         unsigned k = ly->n_out & 7u, done = 0u;                                              \
         int32_t part[8] = {0, 0, 0, 0, 0, 0, 0, 0};                                          \
         for (r = 0; r + 8u <= ly->n_out; r += 8u) {                                          \
-            __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0, \
-                    a6 = a0, a7 = a0;                                                        \
             w = base + (size_t)r * n;                                                        \
             WIDE_DOT(8, W);                                                                  \
-            finish_rows(o, r, 8u, sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7));               \
+            finish_rows(o, r, 8u, sum8_lanes((__m256i)a0, (__m256i)a1, (__m256i)a2, (__m256i)a3,     \
+                                              (__m256i)a4, (__m256i)a5, (__m256i)a6, (__m256i)a7));                \
         }                                                                                    \
         if (k == 0u)                                                                         \
             break;                                                                           \
         if (k & 4u) {                                                                        \
-            __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0;                  \
             w = base + (size_t)r * n;                                                        \
             WIDE_DOT(4, W);                                                                  \
-            _mm_storeu_si128((__m128i *)(void *)part, sum4_rows(a0, a1, a2, a3));            \
+            _mm_storeu_si128((__m128i *)(void *)part, sum4_rows((__m256i)a0, (__m256i)a1, (__m256i)a2, (__m256i)a3));            \
             done = 4u;                                                                       \
         }                                                                                    \
         if (k & 2u) {                                                                        \
-            __m256i a0 = _mm256_setzero_si256(), a1 = a0;                                    \
             w = base + (size_t)(r + done) * n;                                               \
             WIDE_DOT(2, W);                                                                  \
-            _mm_storel_epi64((__m128i *)(void *)(part + done), sum2_rows(a0, a1));           \
+            _mm_storel_epi64((__m128i *)(void *)(part + done), sum2_rows((__m256i)a0, (__m256i)a1));           \
             done += 2u;                                                                      \
         }                                                                                    \
         if (k & 1u) {                                                                        \
-            __m256i a0 = _mm256_setzero_si256();                                             \
             w = base + (size_t)(r + done) * n;                                               \
             WIDE_DOT(1, W);                                                                  \
-            part[done] = _mm_cvtsi128_si32(sum1_row(a0));                                    \
+            part[done] = _mm_cvtsi128_si32(sum1_row((__m256i)a0));                                    \
         }                                                                                    \
         finish_rows(o, r, k, load256(part));                                                 \
     } while (0)
