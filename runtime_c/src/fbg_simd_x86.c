@@ -228,43 +228,6 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
                             _mm256_permute2x128_si256(h0123, h4567, 0x31));
 }
 
-/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j as int16. */
-#define AVX2_DOT8(W)                                                                         \
-    do {                                                                                     \
-        __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0,   \
-                a6 = a0, a7 = a0, xv;                                                        \
-        for (j = 0; j < v.npad; j += 16u) {                                                  \
-            xv = load256(xp + j);                                                            \
-            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(W(0, j), xv));                       \
-            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(W(1, j), xv));                       \
-            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(W(2, j), xv));                       \
-            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(W(3, j), xv));                       \
-            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(W(4, j), xv));                       \
-            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(W(5, j), xv));                       \
-            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(W(6, j), xv));                       \
-            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(W(7, j), xv));                       \
-        }                                                                                    \
-        sums = sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7);                                   \
-    } while (0)
-#define AVX2_W16(i, j) load256(w16[i] + (j))
-#define AVX2_W8(i, j) _mm256_cvtepi8_epi16(load128(w8[i] + (j)))
-
-/* A layer of at most 8 inputs: two rows per vector (row 2p in the low half, 2p+1 in the
- * high half) against x in both halves; W(i) loads row i's 8 weights as int16. */
-#define AVX2_NARROW8(W)                                                                      \
-    do {                                                                                     \
-        __m256i xv = _mm256_broadcastsi128_si256(load128(xp));                               \
-        __m256i m0 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(0)), W(1), 1), xv); \
-        __m256i m1 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(2)), W(3), 1), xv); \
-        __m256i m2 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(4)), W(5), 1), xv); \
-        __m256i m3 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(6)), W(7), 1), xv); \
-        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
-        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(m0, m1), _mm256_hadd_epi32(m2, m3)); \
-        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
-    } while (0)
-#define NARROW_W16(i) load128(w16[i])
-#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)w8[i]))
-
 /* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
  * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
  * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
@@ -476,40 +439,72 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
 
 /* ---- AVX2, layers of fewer than 16 inputs: x padded, rows of 8 or 16 -------------------- */
 
-/* x is copied into a buffer that is zero from n_in on, rows are read as whole vectors of
- * npad = 8 or 16 weights: the weights read past a row's end belong to the next row and meet
- * zeros; the last rows, whose read would leave the weight array, are read from zero-padded
- * copies (rows16 / rows8), and rows past n_out from a row of zeros. */
+/* Rows of 8 (n <= 8) or 16 weights read from each row's start: the weights past a row's end
+ * belong to the next rows and meet the zeros of x padded into xp. The groups whose reads
+ * would leave the weight array read a zero-padded copy of the array's rest instead, made
+ * once (fewer than 7 n + 16 weights, read up to 7 n + 16 past a group's start, so the copy
+ * holds 2 (7 * 15 + 16) < NARROW_COPY entries). Rows past n_out meet zeros in the copy and
+ * finish_rows ignores them. */
+#define NARROW_COPY 256u
+#define NARROW_W16(i) load128(w + (size_t)(i) * n)
+#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)(w + (size_t)(i) * n)))
+#define NARROW_PAIR(i, W) _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(i)), W(i + 1), 1), xv)
+/* Two rows per vector (row 2p in the low half, 2p+1 in the high one) against x in both. */
+#define NARROW8_SUMS(W)                                                                      \
+    do {                                                                                     \
+        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(NARROW_PAIR(0, W), NARROW_PAIR(2, W)), \
+                                      _mm256_hadd_epi32(NARROW_PAIR(4, W), NARROW_PAIR(6, W))); \
+        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
+        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
+    } while (0)
+#define NARROW16_W16(i) load256(w + (size_t)(i) * n)
+#define NARROW16_W8(i) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n))
+#define NARROW16_SUMS(W)                                                                     \
+    sums = sum8_lanes(_mm256_madd_epi16(W(0), xv), _mm256_madd_epi16(W(1), xv),              \
+                      _mm256_madd_epi16(W(2), xv), _mm256_madd_epi16(W(3), xv),              \
+                      _mm256_madd_epi16(W(4), xv), _mm256_madd_epi16(W(5), xv),              \
+                      _mm256_madd_epi16(W(6), xv), _mm256_madd_epi16(W(7), xv))
+
+#define NARROW_LAYER(T, BASE, SUMS8, SUMS16)                                                 \
+    do {                                                                                     \
+        T copy[NARROW_COPY];                                                                 \
+        const T *w = BASE;                                                                   \
+        const size_t total = (size_t)ly->n_out * n, reach = 7u * n + (n <= 8u ? 8u : 16u);   \
+        size_t start = 0, i;                                                                 \
+        for (r = 0; r < ly->n_out; r += 8u, w += 8u * n) {                                   \
+            unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;                            \
+            __m256i sums;                                                                    \
+            if (start == 0u && (size_t)r * n + reach > total) {                              \
+                /* the last group's reads end at end */                                     \
+                size_t end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - (size_t)r * n;   \
+                start = (size_t)r * n;                                                       \
+                for (i = 0; i < total - start; ++i)                                          \
+                    copy[i] = (BASE)[start + i];                                             \
+                for (; i < end; ++i)                                                         \
+                    copy[i] = 0;                                                             \
+                w = copy;                                                                    \
+            }                                                                                \
+            if (n <= 8u)                                                                     \
+                SUMS8;                                                                       \
+            else                                                                             \
+                SUMS16;                                                                      \
+            finish_rows(o, r, k, sums);                                                      \
+        }                                                                                    \
+    } while (0)
+
 AVX2 static void narrow_avx2(layer_out *o, const int16_t *x)
 {
     const fbg_layer *ly = o->ly;
+    const size_t n = ly->n_in;
     int16_t xp[ROW_LEN];
-    int16_t buf16[8][ROW_LEN];
-    int8_t buf8[8][ROW_LEN];
-    rows_view v;
-    unsigned r, j;
+    __m256i xv;
+    unsigned r;
     pad_x(ly, x, xp);
-    rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
-    for (r = 0; r < ly->n_out; r += 8u) {
-        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
-        __m256i sums;
-        if (ly->w_bits == 16u) {
-            const int16_t *w16[8];
-            rows16(&v, r, 8u, w16, buf16);
-            if (v.npad == 8u)
-                AVX2_NARROW8(NARROW_W16);
-            else
-                AVX2_DOT8(AVX2_W16);
-        } else {
-            const int8_t *w8[8];
-            rows8(&v, r, 8u, w8, buf8);
-            if (v.npad == 8u)
-                AVX2_NARROW8(NARROW_W8);
-            else
-                AVX2_DOT8(AVX2_W8);
-        }
-        finish_rows(o, r, k, sums);
-    }
+    xv = n <= 8u ? _mm256_broadcastsi128_si256(load128(xp)) : load256(xp);
+    if (ly->w_bits == 16u)
+        NARROW_LAYER(int16_t, ly->w16, NARROW8_SUMS(NARROW_W16), NARROW16_SUMS(NARROW16_W16));
+    else
+        NARROW_LAYER(int8_t, ly->w8, NARROW8_SUMS(NARROW_W8), NARROW16_SUMS(NARROW16_W8));
 }
 
 /* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row,
