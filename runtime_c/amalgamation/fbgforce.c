@@ -4603,9 +4603,9 @@ static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int1
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row16;
         } else {
-            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
+            const int16_t *src = v->ly->w16 + (size_t)r * v->n;
+            for (j = 0; j < v->npad; ++j) /* a plain loop: a few entries, no call */
+                buf[i][j] = j < v->n ? src[j] : 0;
             w[i] = buf[i];
         }
     }
@@ -4626,9 +4626,9 @@ static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row8;
         } else {
-            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
+            const int8_t *src = v->ly->w8 + (size_t)r * v->n;
+            for (j = 0; j < v->npad; ++j)
+                buf[i][j] = j < v->n ? src[j] : 0;
             w[i] = buf[i];
         }
     }
@@ -4751,43 +4751,6 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
                             _mm256_permute2x128_si256(h0123, h4567, 0x31));
 }
 
-/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j as int16. */
-#define AVX2_DOT8(W)                                                                         \
-    do {                                                                                     \
-        __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0,   \
-                a6 = a0, a7 = a0, xv;                                                        \
-        for (j = 0; j < v.npad; j += 16u) {                                                  \
-            xv = load256(xp + j);                                                            \
-            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(W(0, j), xv));                       \
-            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(W(1, j), xv));                       \
-            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(W(2, j), xv));                       \
-            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(W(3, j), xv));                       \
-            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(W(4, j), xv));                       \
-            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(W(5, j), xv));                       \
-            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(W(6, j), xv));                       \
-            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(W(7, j), xv));                       \
-        }                                                                                    \
-        sums = sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7);                                   \
-    } while (0)
-#define AVX2_W16(i, j) load256(w16[i] + (j))
-#define AVX2_W8(i, j) _mm256_cvtepi8_epi16(load128(w8[i] + (j)))
-
-/* A layer of at most 8 inputs: two rows per vector (row 2p in the low half, 2p+1 in the
- * high half) against x in both halves; W(i) loads row i's 8 weights as int16. */
-#define AVX2_NARROW8(W)                                                                      \
-    do {                                                                                     \
-        __m256i xv = _mm256_broadcastsi128_si256(load128(xp));                               \
-        __m256i m0 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(0)), W(1), 1), xv); \
-        __m256i m1 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(2)), W(3), 1), xv); \
-        __m256i m2 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(4)), W(5), 1), xv); \
-        __m256i m3 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(6)), W(7), 1), xv); \
-        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
-        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(m0, m1), _mm256_hadd_epi32(m2, m3)); \
-        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
-    } while (0)
-#define NARROW_W16(i) load128(w16[i])
-#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)w8[i]))
-
 /* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
  * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
  * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
@@ -4837,60 +4800,254 @@ AVX2 static inline void bias_mult8(const fbg_layer *ly, unsigned r, unsigned k, 
                                     _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
 }
 
-/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row.
- * Two passes: the sums of all row groups first, then bias and requantisation eight rows at
- * a time, so that no group's long chain (reduction, then requantisation) holds up the next. */
+/* What a layer's rows share in the one pass over them: the requantisation constants, and the
+ * saturation flags gathered from every group. */
+typedef struct {
+    const fbg_layer *ly;
+    int32_t *acc;
+    int16_t *y;
+    __m256i round, top, big;
+    __m128i shift;
+} layer_out;
+
+/* Rows r .. r+k-1 (1 <= k <= 8) from their sums (lanes 0 .. k-1 of sums; the other lanes are
+ * ignored): bias added, then stored as accumulators (o->acc) or requantised into o->y. Stores
+ * write rows r .. r+k-1 only. */
+AVX2 static inline void finish_rows(layer_out *o, unsigned r, unsigned k, __m256i sums)
+{
+    __m256i bias, mult;
+    __m128i q;
+    bias_mult8(o->ly, r, k, &bias, &mult);
+    sums = _mm256_add_epi32(sums, bias);
+    if (o->acc != NULL) {
+        if (k == 8u)
+            _mm256_storeu_si256((__m256i *)(void *)(o->acc + r), sums);
+        else
+            _mm256_maskstore_epi32((int *)(void *)(o->acc + r),
+                                   _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k),
+                                                      _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)),
+                                   sums);
+        return;
+    }
+    /* Lanes past k have mult 0 (bias_mult8): they requantise to 0 and never clamp. */
+    q = requant8(sums, mult, o->round, o->top, o->shift, &o->big);
+    if (k == 8u) {
+        _mm_storeu_si128((__m128i *)(void *)(o->y + r), q);
+        return;
+    }
+    if (k & 4u) {
+        _mm_storel_epi64((__m128i *)(void *)(o->y + r), q);
+        q = _mm_srli_si128(q, 8);
+        r += 4u;
+    }
+    if (k & 2u) {
+        _mm_storeu_si32(o->y + r, q);
+        q = _mm_srli_si128(q, 4);
+        r += 2u;
+    }
+    if (k & 1u)
+        o->y[r] = (int16_t)_mm_cvtsi128_si32(q);
+}
+
+/* ---- AVX2, layers of at least 16 inputs: rows read in place ---------------------------- */
+
+/* Row i of a group starting at row pointer w, columns j .. j+15, as int16. */
+#define WIDE_W16(i, j) load256(w + (size_t)(i) * n + (j))
+#define WIDE_W8(i, j) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n + (j)))
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+#define WIDE_ROW(i, W) lanes32 a##i = (lanes32)_mm256_madd_epi16(W(i, n - 16u), xtail)
+#define WIDE_ROWS1(W) WIDE_ROW(0, W)
+#define WIDE_ROWS2(W) WIDE_ROWS1(W); WIDE_ROW(1, W)
+#define WIDE_ROWS4(W) WIDE_ROWS2(W); WIDE_ROW(2, W); WIDE_ROW(3, W)
+#define WIDE_ROWS8(W) WIDE_ROWS4(W); WIDE_ROW(4, W); WIDE_ROW(5, W); WIDE_ROW(6, W); WIDE_ROW(7, W)
+#define WIDE_STEP1(W, j, xv) MADD(a0, W(0, j), xv)
+#define WIDE_STEP2(W, j, xv) WIDE_STEP1(W, j, xv); MADD(a1, W(1, j), xv)
+#define WIDE_STEP4(W, j, xv) WIDE_STEP2(W, j, xv); MADD(a2, W(2, j), xv); MADD(a3, W(3, j), xv)
+#define WIDE_STEP8(W, j, xv)                                                                 \
+    WIDE_STEP4(W, j, xv); MADD(a4, W(4, j), xv); MADD(a5, W(5, j), xv); MADD(a6, W(6, j), xv); \
+    MADD(a7, W(7, j), xv)
+
+/* Declares a0 .. a(K-1) (K = 1, 2, 4, 8) and sums K rows into them: first the last 16
+ * columns of every row against xtail, which is x[n-16 .. n) with the columns of the whole
+ * vectors (those below n16 = n rounded down to 16) set to zero (all of it when n16 == n),
+ * then the whole vectors. Every read stays inside its row and inside x[0 .. n). */
+#define WIDE_DOT(K, W)                                                                       \
+    WIDE_ROWS##K(W);                                                                         \
+    j = 0;                                                                                   \
+    do { /* n16 >= 16 */                                                                     \
+        __m256i xv = load256(x + j);                                                         \
+        WIDE_STEP##K(W, j, xv);                                                              \
+        j += 16u;                                                                            \
+    } while (j < n16)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* -1 in the last t of 16 lanes read from tail_lanes + t (t = n mod 16). */
+static const int16_t tail_lanes[32] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
+                                       -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1, -1};
+
+/* Every row of a layer of n >= 16 inputs: groups of eight rows, then the last n_out mod 8
+ * rows as a group of 4, of 2 and of 1 (so an output layer of one or two rows multiplies only
+ * those). */
+#define WIDE_LAYER(T, W)                                                                     \
+    do {                                                                                     \
+        const T *w;                                                                          \
+        unsigned k = ly->n_out & 7u, done = 0u;                                              \
+        int32_t part[8] = {0, 0, 0, 0, 0, 0, 0, 0};                                          \
+        for (r = 0; r + 8u <= ly->n_out; r += 8u) {                                          \
+            w = base + (size_t)r * n;                                                        \
+            WIDE_DOT(8, W);                                                                  \
+            finish_rows(o, r, 8u, sum8_lanes((__m256i)a0, (__m256i)a1, (__m256i)a2, (__m256i)a3,     \
+                                              (__m256i)a4, (__m256i)a5, (__m256i)a6, (__m256i)a7));                \
+        }                                                                                    \
+        if (k == 0u)                                                                         \
+            break;                                                                           \
+        if (k & 4u) {                                                                        \
+            w = base + (size_t)r * n;                                                        \
+            WIDE_DOT(4, W);                                                                  \
+            _mm_storeu_si128((__m128i *)(void *)part, sum4_rows((__m256i)a0, (__m256i)a1, (__m256i)a2, (__m256i)a3));            \
+            done = 4u;                                                                       \
+        }                                                                                    \
+        if (k & 2u) {                                                                        \
+            w = base + (size_t)(r + done) * n;                                               \
+            WIDE_DOT(2, W);                                                                  \
+            _mm_storel_epi64((__m128i *)(void *)(part + done), sum2_rows((__m256i)a0, (__m256i)a1));           \
+            done += 2u;                                                                      \
+        }                                                                                    \
+        if (k & 1u) {                                                                        \
+            w = base + (size_t)(r + done) * n;                                               \
+            WIDE_DOT(1, W);                                                                  \
+            part[done] = _mm_cvtsi128_si32(sum1_row((__m256i)a0));                                    \
+        }                                                                                    \
+        finish_rows(o, r, k, load256(part));                                                 \
+    } while (0)
+
+AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
+{
+    const fbg_layer *ly = o->ly;
+    const size_t n = ly->n_in;
+    const unsigned n16 = ly->n_in & ~15u;
+    const __m256i xtail = _mm256_and_si256(load256(x + n - 16u), load256(tail_lanes + (n & 15u)));
+    unsigned r, j;
+    if (ly->w_bits == 16u) {
+        const int16_t *base = ly->w16;
+        WIDE_LAYER(int16_t, WIDE_W16);
+    } else {
+        const int8_t *base = ly->w8;
+        WIDE_LAYER(int8_t, WIDE_W8);
+    }
+}
+
+/* ---- AVX2, layers of fewer than 16 inputs: x padded, rows of 8 or 16 -------------------- */
+
+/* Rows of 8 (n <= 8) or 16 weights read from each row's start: the weights past a row's end
+ * belong to the next rows and meet the zeros of x padded into xp. The groups whose reads
+ * would leave the weight array read a zero-padded copy of the array's rest instead, made
+ * once (fewer than 7 n + 16 weights, read up to 7 n + 16 past a group's start, so the copy
+ * holds 2 (7 * 15 + 16) < NARROW_COPY entries). Rows past n_out meet zeros in the copy and
+ * finish_rows ignores them. */
+#define NARROW_COPY 256u
+#define NARROW_W16(i) load128(w + (size_t)(i) * n)
+#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)(w + (size_t)(i) * n)))
+#define NARROW_PAIR(i, W) _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(i)), W(i + 1), 1), xv)
+/* Two rows per vector (row 2p in the low half, 2p+1 in the high one) against x in both. */
+#define NARROW8_SUMS(W)                                                                      \
+    do {                                                                                     \
+        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(NARROW_PAIR(0, W), NARROW_PAIR(2, W)), \
+                                      _mm256_hadd_epi32(NARROW_PAIR(4, W), NARROW_PAIR(6, W))); \
+        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
+        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
+    } while (0)
+#define NARROW16_W16(i) load256(w + (size_t)(i) * n)
+#define NARROW16_W8(i) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n))
+#define NARROW16_SUMS(W)                                                                     \
+    sums = sum8_lanes(_mm256_madd_epi16(W(0), xv), _mm256_madd_epi16(W(1), xv),              \
+                      _mm256_madd_epi16(W(2), xv), _mm256_madd_epi16(W(3), xv),              \
+                      _mm256_madd_epi16(W(4), xv), _mm256_madd_epi16(W(5), xv),              \
+                      _mm256_madd_epi16(W(6), xv), _mm256_madd_epi16(W(7), xv))
+
+#define NARROW_LAYER(T, BASE, SUMS8, SUMS16)                                                 \
+    do {                                                                                     \
+        T copy[NARROW_COPY];                                                                 \
+        const T *w = BASE;                                                                   \
+        const size_t total = (size_t)ly->n_out * n, reach = 7u * n + (n <= 8u ? 8u : 16u);   \
+        size_t start = 0, i;                                                                 \
+        for (r = 0; r < ly->n_out; r += 8u, w += 8u * n) {                                   \
+            unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;                            \
+            __m256i sums;                                                                    \
+            if (start == 0u && (size_t)r * n + reach > total) {                              \
+                /* the last group's reads end at end */                                     \
+                size_t end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - (size_t)r * n;   \
+                start = (size_t)r * n;                                                       \
+                for (i = 0; i < total - start; ++i)                                          \
+                    copy[i] = (BASE)[start + i];                                             \
+                for (; i < end; ++i)                                                         \
+                    copy[i] = 0;                                                             \
+                w = copy;                                                                    \
+            }                                                                                \
+            if (n <= 8u)                                                                     \
+                SUMS8;                                                                       \
+            else                                                                             \
+                SUMS16;                                                                      \
+            finish_rows(o, r, k, sums);                                                      \
+        }                                                                                    \
+    } while (0)
+
+AVX2 static void narrow_avx2(layer_out *o, const int16_t *x)
+{
+    const fbg_layer *ly = o->ly;
+    const size_t n = ly->n_in;
+    int16_t xp[ROW_LEN];
+    __m256i xv;
+    unsigned r;
+    pad_x(ly, x, xp);
+    xv = n <= 8u ? _mm256_broadcastsi128_si256(load128(xp)) : load256(xp);
+    if (ly->w_bits == 16u)
+        NARROW_LAYER(int16_t, ly->w16, NARROW8_SUMS(NARROW_W16), NARROW16_SUMS(NARROW16_W16));
+    else
+        NARROW_LAYER(int8_t, ly->w8, NARROW8_SUMS(NARROW_W8), NARROW16_SUMS(NARROW16_W8));
+}
+
+/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row,
+ * in one pass over the rows. */
 AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
                             uint32_t *sat)
 {
-    int16_t xp[ROW_LEN];
-    int16_t buf16[8][ROW_LEN];
-    int8_t buf8[8][ROW_LEN];
-    int32_t sum[FBG_MAX_WIDTH + 8u];
-    rows_view v;
-    unsigned r, j;
-    const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
-    const __m256i top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
-    const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
-    __m256i big = _mm256_setzero_si256();
-    pad_x(ly, x, xp);
-    rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
-    for (r = 0; r < ly->n_out; r += 8u) {
-        __m256i sums;
-        if (ly->w_bits == 16u) {
-            const int16_t *w16[8];
-            rows16(&v, r, 8u, w16, buf16);
-            if (v.npad == 8u)
-                AVX2_NARROW8(NARROW_W16);
-            else
-                AVX2_DOT8(AVX2_W16);
-        } else {
-            const int8_t *w8[8];
-            rows8(&v, r, 8u, w8, buf8);
-            if (v.npad == 8u)
-                AVX2_NARROW8(NARROW_W8);
-            else
-                AVX2_DOT8(AVX2_W8);
-        }
-        _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
-    }
-    for (r = 0; r < ly->n_out; r += 8u) {
-        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
-        __m256i bias, mult, sums;
-        bias_mult8(ly, r, k, &bias, &mult);
-        sums = _mm256_add_epi32(load256(sum + r), bias);
-        if (acc != NULL) {
-            _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
-            memcpy(acc + r, sum + r, k * sizeof *acc);
-        } else if (k == 8u) {
-            _mm_storeu_si128((__m128i *)(void *)(y + r), requant8(sums, mult, round, top, shift, &big));
-        } else {
-            int16_t t[8];
-            _mm_storeu_si128((__m128i *)(void *)t, requant8(sums, mult, round, top, shift, &big));
-            memcpy(y + r, t, k * sizeof *y);
-        }
-    }
-    if (!_mm256_testz_si256(big, big))
+    layer_out o;
+    o.ly = ly;
+    o.acc = acc;
+    o.y = y;
+    o.round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
+    o.top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
+    o.shift = _mm_cvtsi32_si128((int)ly->shift);
+    o.big = _mm256_setzero_si256();
+    if (ly->n_in >= 16u)
+        wide_avx2(&o, x);
+    else
+        narrow_avx2(&o, x);
+    if (acc == NULL && !_mm256_testz_si256(o.big, o.big))
         *sat = 1u;
 }
 
@@ -4938,12 +5095,29 @@ typedef int fbg_simd_x86_unused;
 #undef SSE2_DOT4
 #undef SSE2_W16
 #undef SSE2_W8
-#undef AVX2_DOT8
-#undef AVX2_W16
-#undef AVX2_W8
-#undef AVX2_NARROW8
+#undef WIDE_W16
+#undef WIDE_W8
+#undef MADD
+#undef WIDE_ROW
+#undef WIDE_ROWS1
+#undef WIDE_ROWS2
+#undef WIDE_ROWS4
+#undef WIDE_ROWS8
+#undef WIDE_STEP1
+#undef WIDE_STEP2
+#undef WIDE_STEP4
+#undef WIDE_STEP8
+#undef WIDE_DOT
+#undef WIDE_LAYER
+#undef NARROW_COPY
 #undef NARROW_W16
 #undef NARROW_W8
+#undef NARROW_PAIR
+#undef NARROW8_SUMS
+#undef NARROW16_W16
+#undef NARROW16_W8
+#undef NARROW16_SUMS
+#undef NARROW_LAYER
 /* ---- src/fbgf_float.c ---- */
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
