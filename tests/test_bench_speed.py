@@ -78,10 +78,10 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     counted = {(r["engine"], r["build"]): r["instructions_per_step"] for r in result["rows"]
                if r["caller"] == "c" and r["call"] == "single"}
     assert all(v is not None and v > 1000 for v in counted.values()), counted
-    # The int16 step is cheaper than the float one only if the vectoriser worked; what holds
-    # regardless: every step runs all three nets, so it executes at least one instruction
-    # per MAC at -O1 (no SIMD at -O1).
-    assert counted[("c-int16", "O1")] >= result["macs_per_step"]
+    # What holds for every build and kernel: every step runs all three nets, so it executes
+    # at least one instruction per 16 MACs (the host SIMD kernels run at -O1 too, and the
+    # widest, AVX2, does 16 MACs per VPMADDWD).
+    assert counted[("c-int16", "O1")] >= result["macs_per_step"] / 16
     # Counting again gives the same figure: the count is noise-free.
     from fbgforce import dataset as fds
     from fbgforce.pybind import to_fm

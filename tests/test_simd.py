@@ -196,7 +196,8 @@ def test_kernel_selection():
     with pytest.raises(Exception, match="unknown kernel"):
         Runtime(data, kernel="mmx")
     # fbg_init refuses an unknown kernel value; fbg_kernel of an uninitialised state is 0.
-    model = Runtime(data)._model
+    rt = Runtime(data)  # holds the model's memory while fbg_init reads it
+    model = rt._model
     st = ffi.new("fbg_state *")
     assert lib.fbg_init(st, model, 0x70) == lib.FBG_ERR_ARG
     assert lib.fbg_kernel(st) == 0

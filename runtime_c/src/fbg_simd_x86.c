@@ -465,30 +465,38 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
                       _mm256_madd_epi16(W(4), xv), _mm256_madd_epi16(W(5), xv),              \
                       _mm256_madd_epi16(W(6), xv), _mm256_madd_epi16(W(7), xv))
 
+#define NARROW_SUMS(SUMS8, SUMS16)                                                           \
+    do {                                                                                     \
+        if (n <= 8u)                                                                         \
+            SUMS8;                                                                           \
+        else                                                                                 \
+            SUMS16;                                                                          \
+    } while (0)
+/* The groups read in place (all of them whole: their reads reach row r + 7 and beyond),
+ * then the rest from the copy. */
 #define NARROW_LAYER(T, BASE, SUMS8, SUMS16)                                                 \
     do {                                                                                     \
         T copy[NARROW_COPY];                                                                 \
         const T *w = BASE;                                                                   \
         const size_t total = (size_t)ly->n_out * n, reach = 7u * n + (n <= 8u ? 8u : 16u);   \
-        size_t start = 0, i;                                                                 \
-        for (r = 0; r < ly->n_out; r += 8u, w += 8u * n) {                                   \
-            unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;                            \
-            __m256i sums;                                                                    \
-            if (start == 0u && (size_t)r * n + reach > total) {                              \
-                /* the last group's reads end at end */                                     \
-                size_t end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - (size_t)r * n;   \
-                start = (size_t)r * n;                                                       \
-                for (i = 0; i < total - start; ++i)                                          \
-                    copy[i] = (BASE)[start + i];                                             \
-                for (; i < end; ++i)                                                         \
-                    copy[i] = 0;                                                             \
-                w = copy;                                                                    \
-            }                                                                                \
-            if (n <= 8u)                                                                     \
-                SUMS8;                                                                       \
-            else                                                                             \
-                SUMS16;                                                                      \
-            finish_rows(o, r, k, sums);                                                      \
+        size_t start, end, i;                                                                \
+        __m256i sums;                                                                        \
+        for (r = 0; (size_t)r * n + reach <= total; r += 8u, w += 8u * n) {                  \
+            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            finish_rows(o, r, 8u, sums);                                                     \
+        }                                                                                    \
+        if (r >= ly->n_out)                                                                  \
+            break;                                                                           \
+        /* The last group's reads end at end. */                                             \
+        start = (size_t)r * n;                                                               \
+        end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - start;                         \
+        for (i = 0; i < total - start; ++i)                                                  \
+            copy[i] = (BASE)[start + i];                                                     \
+        for (; i < end; ++i)                                                                 \
+            copy[i] = 0;                                                                     \
+        for (w = copy; r < ly->n_out; r += 8u, w += 8u * n) {                                \
+            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            finish_rows(o, r, ly->n_out - r < 8u ? ly->n_out - r : 8u, sums);               \
         }                                                                                    \
     } while (0)
 
