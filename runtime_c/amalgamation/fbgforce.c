@@ -4342,13 +4342,23 @@ typedef int fbg_simd_neon_unused;
  * products into int32 lanes; PADDD and PHADDD add lanes. All of them wrap modulo 2^32, so
  * every lane holds its share of a row's sum modulo 2^32, and so does their total; the loader
  * proved the row's true sum fits int32, which makes the modular total the true sum
- * (docs/fixed-point.md, "Host SIMD kernels"). SSE2 runs four rows together and AVX2 eight,
- * so each vector of x is loaded once per group; rows past n_out read a row of zeros.
+ * (docs/fixed-point.md, "Host SIMD kernels"); a column counted twice meets a zero of x the
+ * second time. SSE2 runs four rows together and AVX2 eight, so each vector of x is loaded
+ * once per group.
  *
- * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
+ * SSE2 reads rows as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
  * widened on load), against x copied into a buffer that is zero from n_in on: the weights
  * read past a row's end belong to the next row and meet zeros. Where such a read would leave
- * the weight array (the last rows), the row is first copied into a zero-padded buffer.
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer; rows
+ * past n_out read a row of zeros.
+ *
+ * AVX2 reads a layer of n_in >= 16 in place: rows at a stride of n_in from the weight array,
+ * x where it is, whole vectors of 16 columns, and the last 16 columns of every row once more
+ * against x with the columns already counted masked to zero, so no read leaves a row or x;
+ * eight rows per group, then groups of 4, 2 and 1 for the rest (an output layer of one or two
+ * rows multiplies only those). Narrower layers pad x and read 8 (two rows per vector) or 16
+ * weights from each row's start; the last groups read a zero-padded copy of the array's
+ * rest. Each group's sums get their bias and requantisation at once (one pass).
  *
  * AVX2 also requantises eight rows at once: VPMULDQ gives the exact int64 products
  * acc * mult, the rounding constant is added in int64, and a logical shift right stands for
@@ -4988,30 +4998,38 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
                       _mm256_madd_epi16(W(4), xv), _mm256_madd_epi16(W(5), xv),              \
                       _mm256_madd_epi16(W(6), xv), _mm256_madd_epi16(W(7), xv))
 
+#define NARROW_SUMS(SUMS8, SUMS16)                                                           \
+    do {                                                                                     \
+        if (n <= 8u)                                                                         \
+            SUMS8;                                                                           \
+        else                                                                                 \
+            SUMS16;                                                                          \
+    } while (0)
+/* The groups read in place (all of them whole: their reads reach row r + 7 and beyond),
+ * then the rest from the copy. */
 #define NARROW_LAYER(T, BASE, SUMS8, SUMS16)                                                 \
     do {                                                                                     \
         T copy[NARROW_COPY];                                                                 \
         const T *w = BASE;                                                                   \
         const size_t total = (size_t)ly->n_out * n, reach = 7u * n + (n <= 8u ? 8u : 16u);   \
-        size_t start = 0, i;                                                                 \
-        for (r = 0; r < ly->n_out; r += 8u, w += 8u * n) {                                   \
-            unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;                            \
-            __m256i sums;                                                                    \
-            if (start == 0u && (size_t)r * n + reach > total) {                              \
-                /* the last group's reads end at end */                                     \
-                size_t end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - (size_t)r * n;   \
-                start = (size_t)r * n;                                                       \
-                for (i = 0; i < total - start; ++i)                                          \
-                    copy[i] = (BASE)[start + i];                                             \
-                for (; i < end; ++i)                                                         \
-                    copy[i] = 0;                                                             \
-                w = copy;                                                                    \
-            }                                                                                \
-            if (n <= 8u)                                                                     \
-                SUMS8;                                                                       \
-            else                                                                             \
-                SUMS16;                                                                      \
-            finish_rows(o, r, k, sums);                                                      \
+        size_t start, end, i;                                                                \
+        __m256i sums;                                                                        \
+        for (r = 0; (size_t)r * n + reach <= total; r += 8u, w += 8u * n) {                  \
+            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            finish_rows(o, r, 8u, sums);                                                     \
+        }                                                                                    \
+        if (r >= ly->n_out)                                                                  \
+            break;                                                                           \
+        /* The last group's reads end at end. */                                             \
+        start = (size_t)r * n;                                                               \
+        end = (size_t)((ly->n_out - 1u) & ~7u) * n + reach - start;                         \
+        for (i = 0; i < total - start; ++i)                                                  \
+            copy[i] = (BASE)[start + i];                                                     \
+        for (; i < end; ++i)                                                                 \
+            copy[i] = 0;                                                                     \
+        for (w = copy; r < ly->n_out; r += 8u, w += 8u * n) {                                \
+            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            finish_rows(o, r, ly->n_out - r < 8u ? ly->n_out - r : 8u, sums);               \
         }                                                                                    \
     } while (0)
 
@@ -5117,6 +5135,7 @@ typedef int fbg_simd_x86_unused;
 #undef NARROW16_W16
 #undef NARROW16_W8
 #undef NARROW16_SUMS
+#undef NARROW_SUMS
 #undef NARROW_LAYER
 /* ---- src/fbgf_float.c ---- */
 /*

@@ -5,13 +5,23 @@
  * products into int32 lanes; PADDD and PHADDD add lanes. All of them wrap modulo 2^32, so
  * every lane holds its share of a row's sum modulo 2^32, and so does their total; the loader
  * proved the row's true sum fits int32, which makes the modular total the true sum
- * (docs/fixed-point.md, "Host SIMD kernels"). SSE2 runs four rows together and AVX2 eight,
- * so each vector of x is loaded once per group; rows past n_out read a row of zeros.
+ * (docs/fixed-point.md, "Host SIMD kernels"); a column counted twice meets a zero of x the
+ * second time. SSE2 runs four rows together and AVX2 eight, so each vector of x is loaded
+ * once per group.
  *
- * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
+ * SSE2 reads rows as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
  * widened on load), against x copied into a buffer that is zero from n_in on: the weights
  * read past a row's end belong to the next row and meet zeros. Where such a read would leave
- * the weight array (the last rows), the row is first copied into a zero-padded buffer.
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer; rows
+ * past n_out read a row of zeros.
+ *
+ * AVX2 reads a layer of n_in >= 16 in place: rows at a stride of n_in from the weight array,
+ * x where it is, whole vectors of 16 columns, and the last 16 columns of every row once more
+ * against x with the columns already counted masked to zero, so no read leaves a row or x;
+ * eight rows per group, then groups of 4, 2 and 1 for the rest (an output layer of one or two
+ * rows multiplies only those). Narrower layers pad x and read 8 (two rows per vector) or 16
+ * weights from each row's start; the last groups read a zero-padded copy of the array's
+ * rest. Each group's sums get their bias and requantisation at once (one pass).
  *
  * AVX2 also requantises eight rows at once: VPMULDQ gives the exact int64 products
  * acc * mult, the rounding constant is added in int64, and a logical shift right stands for
