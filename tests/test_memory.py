@@ -156,3 +156,21 @@ def test_memory_text_and_presets():
     for bad in ("ema:0", "play:-1", "lstm:3", "ema:1,2,3,4,5"):
         with pytest.raises(InputError):
             parse_memory(bad)
+
+
+def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_dir):
+    """train() records how long the training presses hold their load; with averages in the
+    memory and no hold it warns (the averages would read a held grip low)."""
+    from fbgforce import sim
+    from fbgforce.trainer import train as T
+
+    small = sim.load_scene("calibration_holds").replace(schedule={"n_presses": 3})
+    held = T.prepare([sim.simulate(small)])
+    # 3 presses holding 0.5 s each, found in 10 ms blocks.
+    assert T.hold_seconds(held) == pytest.approx(1.5, abs=0.1)
+    assert T.hold_seconds(held, np.arange(0)) == 0.0
+    presses = T.prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
+    assert T.hold_seconds(presses) == 0.0
+    md = fm.load(small_model_dir).metadata  # the smoke scene: presses without holds
+    assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
+    assert len(md["warnings"]) == 1 and "hold" in md["warnings"][0]

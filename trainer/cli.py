@@ -117,10 +117,13 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
           f"{headline(test)}", file=sys.stderr)
+    for warning in md.get("warnings", []):
+        print(f"fbgforce train: warning: {warning}", file=sys.stderr)
     return {"model": str(args.out), "seconds": md["times_s"]["prepare"] + md["times_s"]["train"],
             "epochs": {k: v["epochs_run"] for k, v in md["training"].items()},
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
-            "val": md["metrics"]["val"], "test": md["metrics"]["test"]}
+            "val": md["metrics"]["val"], "test": md["metrics"]["test"],
+            "warnings": md.get("warnings", [])}
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:

@@ -246,6 +246,49 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
                      tuple(gains[n_ema:]), tuple(weights))
 
 
+#: A hold: the load standing still under contact for at least this long (within
+#: :data:`HOLD_BAND`). Models whose memory has averages need some in their calibration data.
+HOLD_MIN_S = 0.2
+#: How still a hold is: its load stays within max(0.2 N, 3 % of the load).
+HOLD_BAND = (0.2, 0.03)
+
+
+def hold_seconds(data: Prepared, rows: np.ndarray | None = None) -> float:
+    """Seconds of ``data`` (optionally only ``rows``) inside holds: stretches of at least
+    :data:`HOLD_MIN_S` in contact with the load-cell force within :data:`HOLD_BAND`.
+
+    An average of the load reads a held load as it reads the instant a press turns round; a
+    net that never saw a hold takes one for a release (docs/teleop.md measures a grip read
+    1.7 N low), so :func:`train` warns when the training data has none.
+    """
+    total, start = 0.0, 0
+    keep = None
+    if rows is not None:
+        keep = np.zeros(data.contact.size, bool)
+        keep[rows] = True
+    for r in data.recordings:
+        n = len(r.ds)
+        block = max(1, int(round(0.01 * r.rate_hz)))          # 10 ms blocks
+        width = max(1, int(round(HOLD_MIN_S * r.rate_hz / block)))
+        m = (n // block) * block
+        f = np.asarray(r.ds.force_N, float)[:m].reshape(-1, block)
+        c = np.asarray(r.ds.contact, bool)[:m].reshape(-1, block).all(axis=1)
+        if keep is not None:
+            c &= keep[start:start + m].reshape(-1, block).all(axis=1)
+        start += n
+        if f.shape[0] < width:
+            continue
+        win = np.lib.stride_tricks.sliding_window_view
+        hi = win(f.max(axis=1), width).max(axis=1)
+        lo = win(f.min(axis=1), width).min(axis=1)
+        still = (hi - lo <= np.maximum(HOLD_BAND[0], HOLD_BAND[1] * hi)) & win(c, width).all(axis=1)
+        inside = np.zeros(f.shape[0], bool)
+        for k in np.flatnonzero(still):
+            inside[k:k + width] = True
+        total += float(inside.sum()) * block / r.rate_hz
+    return total
+
+
 def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float]:
     """L2 weight decay per net: the defaults, one value for all, or per-net overrides."""
     if weight_decay is None:
@@ -483,6 +526,14 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                               rng=rng_l, val_metrics=loc_val, desc="location net",
                               weight_decay=decays["location"], **common)
 
+    warnings = []
+    held_s = hold_seconds(data, tr)
+    if pre.memory.ema_shifts and held_s == 0.0:
+        warnings.append(
+            "the training presses hold no load (no %.1f s in contact within %.1f N or %d %%): "
+            "the memory's averages will read a held grip low; calibrate with holds (scene "
+            "calibration_holds, docs/teleop.md) or train with --memory play"
+            % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
     model = fm.HierarchicalModel(
         preprocess=pre, contact=cnet.to_mlp(), force=fnet.to_mlp(), location=lnet.to_mlp(),
         force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
@@ -501,6 +552,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
         "memory": pre.memory.to_json(),
+        "train_hold_s": held_s,
+        "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
