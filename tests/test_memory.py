@@ -202,3 +202,40 @@ def test_memory_text_and_presets():
                 "loc:3+loc:4"):
         with pytest.raises(InputError):
             parse_memory(bad)
+
+
+@pytest.mark.parametrize("name", ["full", "loc"])
+def test_tare_and_reset_restart_every_state_bit_for_bit(random_model_factory, random_walk_factory,
+                                                        name):
+    """After a reset or a tare the C engine continues exactly as the integer reference started
+    afresh on the samples that follow: every state (load averages, plays, location averages)
+    is cleared and primed again."""
+    model, wl, q = _model(random_model_factory, random_walk_factory, MEMORIES[name])
+    wl_fm = intref.nm_to_fm(wl)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(intref.nm_to_fm(model.baseline_nm).astype(np.int32))
+    rt.run_raw(wl_fm[:800])
+    rt.reset()
+    c = rt.run_raw(wl_fm[800:1600])
+    ref = intref.run(q, wl_fm[800:1600], intref.nm_to_fm(model.baseline_nm))
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+    rt.tare(wl[1600:1700])
+    base = np.asarray(rt.baseline_fm, dtype=np.int64)
+    c = rt.run_raw(wl_fm[1700:])
+    ref = intref.run(q, wl_fm[1700:], base)
+    assert not np.array_equal(base, intref.nm_to_fm(model.baseline_nm))
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+
+
+def test_a_blob_of_the_previous_version_is_refused(random_model_factory, random_walk_factory):
+    """Blob version 5 added loc_shift to the parameter block; a version 4 blob is refused by
+    both readers (re-export the model)."""
+    from fbgforce.export import mutate
+
+    _, _, q = _model(random_model_factory, random_walk_factory, MEMORIES["loc"])
+    old = bytearray(blob.to_bytes(q))
+    old[4:6] = (contract.LIMIT["BLOB_VERSION"] - 1).to_bytes(2, "little")
+    old = mutate.fix_crc(old)
+    assert mutate.c_verdict(old) == mutate.python_verdict(old) == "FBG_ERR_VERSION"
