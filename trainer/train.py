@@ -212,12 +212,15 @@ def parse_memory(text: str) -> fm.Memory:
 #: Named memories (docs/trainer.md, "memory"): averages of about 16 and 128 ms at 1 kHz;
 #: play operators of half-width 0.05 and 0.25 standard deviations of the load signal (about
 #: 1 % and 5 % of the force range of a calibration run). Even counts keep the first layers'
-#: widths even, which the Cortex-M4 kernels take in pairs.
+#: widths even, which the Cortex-M4 kernels take in pairs. The default, ``both``, also gives
+#: the location net the location averages of about 32 ms (``loc:5``; shifts 4 and 6 were
+#: worse on the calibration scene, docs/trainer.md).
 MEMORY_PRESETS: dict[str, fm.Memory] = {
     "none": fm.Memory(),
     "ema": fm.Memory(ema_shifts=(4, 7)),
     "play": fm.Memory(play_widths=(0.05, 0.25)),
-    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25)),
+    "loc": fm.Memory(loc_shift=5),
+    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25), loc_shift=5),
 }
 DEFAULT_MEMORY = "both"
 
