@@ -534,10 +534,14 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     taps, tap_q = quantize_taps(pre)
 
     u = calib.z[:, :fm.N_STRAIN] @ np.asarray(pre.memory.weights) if pre.memory.n_states else calib.f[:0]
-    # The location averages' input r = z - z_rest must fit as well as z (the averages do).
+    # The location averages' input r = z - z_rest (and so the averages, which stay within its
+    # range) must fit too, but without the headroom of z: r differs from z by the rest value
+    # |z_rest|, small beside the range of z, and taking it as is would cost every input a bit
+    # whenever it crosses a power of two. Beyond the calibration range it saturates (SATURATED).
     r = calib.z[:, :fm.N_STRAIN] - pre.z_rest if pre.memory.n_loc else calib.f[:0]
-    zmax = float(max(np.abs(calib.z).max(initial=0.0), np.abs(calib.f).max(initial=0.0),
-                     np.abs(u).max(initial=0.0), np.abs(r).max(initial=0.0), 1e-6))
+    zmax = float(max(np.abs(calib.z[:, :pre.n_features]).max(initial=0.0),
+                     np.abs(calib.f).max(initial=0.0), np.abs(u).max(initial=0.0),
+                     np.abs(r).max(initial=0.0) / Z_HEADROOM, 1e-6))
     z_frac = int(min(14, max(0, math.floor(math.log2(SAT16 / (Z_HEADROOM * zmax))))))
     zs = 2.0**-z_frac
 
