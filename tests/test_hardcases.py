@@ -939,6 +939,7 @@ def test_long_run_1e7_steps_bounded_no_drift(tiny_model, press_fm):
     # The memory states stay in their proven ranges (docs/fixed-point.md).
     assert all(abs(int(v)) <= 32767 << 15 for v in c.state.ema)
     assert all(abs(int(v)) < 2**16 for v in c.state.play)
+    assert all(abs(int(v)) <= 32767 << 15 for v in c.state.loc)
     # Final window vs a fresh runtime fed the same samples, from the start of a repetition of
     # the recording (a rest: where a tare primes the memory states, see docs/fixed-point.md).
     w = 5000

@@ -239,3 +239,34 @@ def test_a_blob_of_the_previous_version_is_refused(random_model_factory, random_
     old[4:6] = (contract.LIMIT["BLOB_VERSION"] - 1).to_bytes(2, "little")
     old = mutate.fix_crc(old)
     assert mutate.c_verdict(old) == mutate.python_verdict(old) == "FBG_ERR_VERSION"
+
+
+def test_location_averages_at_their_saturation_bounds(random_model_factory, random_walk_factory):
+    """z0 saturated (a mean far from zero) and z driven to the opposite end: r = z - z0
+    saturates, the averages stay within their proven range, and C equals the integer
+    reference bit for bit, SATURATED included."""
+    import dataclasses
+
+    _, _, q = _model(random_model_factory, random_walk_factory, MEMORIES["full"])
+    ratio = q.z_mult / 2.0**q.z_shift                       # z per fm of filtered shift
+    mean = np.round(2.0 * 32767 / np.abs(ratio)) * np.sign(ratio) * np.array([1, -1, 1, -1])
+    q = dataclasses.replace(q, mean_fm=mean.astype(np.int64))
+    z0, saturated = q.z_rest()
+    assert saturated and np.all(np.abs(z0) == 32767)
+    base = intref.nm_to_fm(np.array([1530.0, 1535.0, 1540.0, 1545.0, 1550.0]))
+    q = dataclasses.replace(q, baseline_fm=base, jump_max_fm=2**31 - 1, stuck_max=0)
+    # Each channel swings to +-4 times the saturating shift (signs against z0) and back.
+    n = 1200
+    swing = np.sin(np.linspace(0.0, 4.0 * np.pi, n))[:, None] * 4.0 * np.abs(mean)[None, :] * -np.sign(z0)
+    wl = np.column_stack([base[:4] + np.round(swing).astype(np.int64), np.full(n, base[4])])
+    ref = intref.run(q, wl, base)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(base.astype(np.int32))
+    c = rt.run_raw(wl)
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+    sat = contract.STATUS_FLAG["SATURATED"]
+    assert np.all(ref["status"][q.taps.size:] & sat)
+    x, _ = intref.memory_features(q, np.tile(-np.sign(z0) * 32767, (3, 1)))
+    assert np.all(np.abs(x[:, q.n_features:]) == 32767)
+    assert all(abs(int(v)) <= 32767 << 15 for v in rt._state.loc)
