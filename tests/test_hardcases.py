@@ -803,7 +803,7 @@ def test_exported_accumulator_bounds(models, driver, key):
     for name, net, zin in (("contact", q.nets[0], z), ("force", q.nets[1], z),
                            ("location", q.nets[2],
                             np.column_stack([z[:, :4], np.full(len(z), 1 << q.z_frac),
-                                             rng.integers(-SAT16, SAT16 + 1, len(z))]))):
+                                             rng.integers(-SAT16, SAT16 + 1, (len(z), 1 + q.n_loc))]))):
         x = zin.astype(np.int64)
         flag = np.zeros(len(x), dtype=bool)
         for i, ly in enumerate(net):
