@@ -182,8 +182,8 @@ def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
         for c in range(4):
             state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
             out[i, c] = state[c]
-    feats, c_f = sat(rshift_round(out, EMA_FRAC), SAT16)
-    return feats, c_r.any(axis=1) | c_f.any(axis=1) | c0
+    # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
+    return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,

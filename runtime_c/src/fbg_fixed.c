@@ -206,14 +206,16 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     if (m->loc_shift) {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* r = z - z0, z0 the standardisation of a zero filtered shift: 0 at rest. The
-             * state stays between its old value and r << EMA_FRAC: |state| <= 32767 * 2^15. */
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
             int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
-            int32_t r = fbg_sat16((int64_t)in[c] - z0, sat);
-            int64_t target = (int64_t)r * ((int64_t)1 << FBG_EMA_FRAC);
-            if (!s->mem_primed)
-                s->loc[c] = (int32_t)target;
-            s->loc[c] = (int32_t)(s->loc[c] + fbg_rshift_round(target - s->loc[c], m->loc_shift));
-            loc[c] = fbg_sat16(fbg_rshift_round(s->loc[c], FBG_EMA_FRAC), sat);
+            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = s->mem_primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
         }
     }
     if (m->n_ema == 0u && m->n_play == 0u) {
