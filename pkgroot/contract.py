@@ -261,7 +261,7 @@ PARAMS: tuple[Field, ...] = (
     Field("loc_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
           doc="location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero "
               "shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location "
-              "input sat16(rshift_round(loc_i, EMA_FRAC))"),
+              "input rshift_round(loc_i, EMA_FRAC)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (

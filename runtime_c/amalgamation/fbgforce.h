@@ -177,7 +177,7 @@ typedef struct {
     uint8_t ema_shift[4];  /* state += rshift_round((u << EMA_FRAC) - state, ema_shift[k]) [1, 15] for k < n_ema, else 0 */
     uint8_t ema_gain[4];  /* feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
     uint8_t play_gain[4];  /* feature = sat16((u - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
-    uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input sat16(rshift_round(loc_i, EMA_FRAC)) [0, 15] */
+    uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input rshift_round(loc_i, EMA_FRAC) [0, 15] */
     uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
