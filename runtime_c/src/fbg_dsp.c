@@ -110,6 +110,19 @@ static inline int32_t smmulr(int32_t acc, int32_t mult)
 #endif
 }
 
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
 /* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
@@ -1794,12 +1807,11 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
+static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    uint32_t kind;
-    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
-    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
-        const unsigned n = ly->n_in;
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u) {
         const int16_t *w = ly->w16 + (size_t)r * n;
 #if FBG_DSP_ASM
         if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
@@ -1807,11 +1819,97 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 #endif
         return dot16_32(w, x, n, (int32_t)ly->bias[r]);
     }
-    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
-        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
+    return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->acc32)
+        return row_acc32(ly, r, x);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
+}
+
+int32_t fbg_dsp_output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
+                           uint32_t *sat)
+{
+    int64_t acc;
+    if (ly->acc32 && ly->shift == 32u) {
+        /* |acc| <= INT32_MAX and |mult| <= INT32_MAX: |acc * mult + 2^31| < 2^62, so the
+         * rounded value is below 2^30 in magnitude and sat32 never clamps. */
+        int32_t acc32 = row_acc32(ly, r, x);
+        if (acc_out != NULL)
+            *acc_out = acc32;
+        return smmulr(acc32, ly->mult[r]);
+    }
+    acc = fbg_dsp_row_acc(ly, r, x);
+    if (acc_out != NULL)
+        *acc_out = acc;
+    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+}
+
+/* sat32 of a 64-bit value given as its two words (|hi:lo| any): *clamped = 1 if it clamps. */
+static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
+{
+    /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
+    if (hi != ((int32_t)lo >> 31) || lo == 0x80000000u) {
+        *clamped = 1u;
+        return hi < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    return (int32_t)lo;
+}
+
+/* sat16 of an int32 with the flag of fbg_sat16: SSAT to [-32768, 32767], then -32768 up. */
+static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
+{
+    int32_t y = __ssat(v, 16);
+    y += y == -32768;
+    *clamped |= (uint32_t)(v != y);
+    return y;
+}
+
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat)
+{
+    const unsigned tq = m->tap_q, zs = m->z_shift;
+    const int64_t zround = (int64_t)1 << (zs - 1u);
+    uint32_t clamped = 0u;
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
+         * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
+         * arithmetic shift of the 64-bit sum is two words shifted and joined. */
+        const int64_t g = f[c] + ((int64_t)1 << (tq - 1u));
+        const uint32_t glo = (uint32_t)g;
+        const int32_t ghi = (int32_t)(g >> 32);
+        int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
+        int32_t d, v;
+        int64_t p;
+        /* d = sat32(filt - mean): on int32 overflow the true difference has filt's sign. */
+        if (__builtin_sub_overflow(filt, m->mean_fm[c], &d)) {
+            clamped = 1u;
+            d = filt < 0 ? -FBG_SAT32 : FBG_SAT32;
+        } else if (d == INT32_MIN) {
+            clamped = 1u;
+            d = -FBG_SAT32;
+        }
+        /* |d * z_mult| < 2^62 and 2^(zs-1) <= 2^61: p is exact in int64. */
+        p = smlal(zround, d, m->z_mult[c]);
+        if (zs >= 32u) {
+            v = (int32_t)(p >> 32) >> (zs - 32u); /* floor(p / 2^zs), |.| < 2^31 */
+        } else {
+            int64_t q = p >> zs;
+            /* Beyond int32 the outcome of sat16 is already decided; keep the sign. */
+            v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+        }
+        z[c] = (int16_t)sat16_32(v, &clamped);
+        load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
+    }
+    if (clamped)
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }
 
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],

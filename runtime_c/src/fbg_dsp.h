@@ -29,6 +29,17 @@ void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t 
 /* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
 
+/* sat32(rshift_round(acc * mult[r], shift)) of output row r (fbg_fixed.c output_row), with
+ * acc = fbg_dsp_row_acc(ly, r, x) stored in *acc_out unless NULL. */
+int32_t fbg_dsp_output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
+                           uint32_t *sat);
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
 /* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
 int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
 

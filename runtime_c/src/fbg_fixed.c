@@ -113,7 +113,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
-#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
+#if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -131,15 +131,11 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
-#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-#if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
-    return fbg_dsp_row_acc(ly, r, x);
-#else
     int64_t acc = ly->bias[r];
     unsigned j;
     if (ly->acc32)
@@ -154,8 +150,8 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
-#endif
 }
+#endif
 
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
@@ -183,10 +179,14 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
 static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
                           uint32_t *sat)
 {
+#if FBG_USE_DSP /* int32 rows at shift 32: SMMULR, which provably never clamps */
+    return fbg_dsp_output_row(ly, r, x, acc_out, sat);
+#else
     int64_t acc = layer_acc(ly, r, x);
     if (acc_out != NULL)
         *acc_out = acc;
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+#endif
 }
 
 /* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"). The states
@@ -246,7 +246,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
-    int64_t acc, load = 0;
+    int64_t acc;
+#if !FBG_USE_DSP
+    int64_t load = 0;
+#endif
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -276,21 +279,23 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
     }
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums */
-    int64_t fir[FBG_N_STRAIN];
-    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-#endif
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-#if FBG_USE_DSP
-        int64_t f = fir[c];
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
+                  * step 3 on 32-bit words (fbg_dsp.c says why each is exact) */
+    {
+        int64_t fir[FBG_N_STRAIN];
+        fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+        if (fbg_dsp_standardise(m, fir, in, &sat))
+            status |= FBG_STATUS_OVERLOAD;
+    }
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
-#endif
         /* 3. Standardise into Q(z_frac) int16. */
         {
             int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
@@ -303,6 +308,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
     if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
         status |= FBG_STATUS_OVERLOAD;
+#endif
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, &sat);
