@@ -1789,13 +1789,49 @@ static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const in
         hidden8(ly, x, y, sat);
 }
 
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
     unsigned m;
     if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
         run_pairs32(ly, x, y, ly->n_in, sat);
     else
         hidden_other(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    hidden_layer(ly, x, y, sat);
+}
+
+/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
+typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
+
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
+{
+    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
+     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
+     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
+    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
+    int16_t *y = act[0], *other = act[1];
+    uintptr_t x_odd = (uintptr_t)x & 3u;
+    for (; ly != end; ++ly) {
+        uint32_t dims, kind;
+        unsigned n;
+        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
+        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
+        n = dims & 0xFFFFu;
+        if ((kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND &&
+            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > 8u ? x_odd : 0u)) == 0u)
+            run_pairs32(ly, x, y, n, sat);
+        else
+            hidden_other(ly, x, y, sat);
+        x = y;
+        y = other;
+        other = (int16_t *)(uintptr_t)x;
+        x_odd = 0u;
+    }
+    return x;
 }
 
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */

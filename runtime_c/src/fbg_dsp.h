@@ -26,6 +26,11 @@
  * clamped at 32767. */
 void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
 /* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
 

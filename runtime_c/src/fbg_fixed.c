@@ -156,23 +156,23 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+#else
     unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
-        fbg_dsp_hidden(ly, x, y, sat);
-#else
         unsigned r;
         for (r = 0; r < ly->n_out; ++r) {
             int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
             y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
         }
-#endif
         x = y;
         buf ^= 1u;
     }
     return x;
+#endif
 }
 
 /* Output row r of a net's last layer in its physical unit, saturated to int32. */
@@ -262,7 +262,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     m = s->model;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         for (c = 0; c < FBG_N_STRAIN; ++c) {

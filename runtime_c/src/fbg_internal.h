@@ -67,32 +67,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
