@@ -1885,7 +1885,7 @@ int32_t fbg_dsp_output_row(const fbg_layer *ly, unsigned r, const int16_t *x, in
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
-/* sat32 of a 64-bit value given as its two words (|hi:lo| any): *clamped = 1 if it clamps. */
+/* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
 static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
 {
     /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
@@ -1896,12 +1896,13 @@ static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
     return (int32_t)lo;
 }
 
-/* sat16 of an int32 with the flag of fbg_sat16: SSAT to [-32768, 32767], then -32768 up. */
+/* sat16 of an int32 with the flag of fbg_sat16 (*clamped != 0 iff it clamped): SSAT to
+ * [-32768, 32767], then -32768 up to -32767. */
 static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
 {
     int32_t y = __ssat(v, 16);
-    y += y == -32768;
-    *clamped |= (uint32_t)(v != y);
+    y = y < -FBG_SAT16 ? -FBG_SAT16 : y;
+    *clamped |= (uint32_t)(v ^ y);
     return y;
 }
 
@@ -1909,7 +1910,10 @@ int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16
                         uint32_t *sat)
 {
     const unsigned tq = m->tap_q, zs = m->z_shift;
-    const int64_t zround = (int64_t)1 << (zs - 1u);
+    const uint32_t fround = 1u << (tq - 1u);
+    /* 2^(zs-1), zs <= 62, built so that one of its words is visibly zero. */
+    const int64_t zround = zs > 32u ? (int64_t)((uint64_t)(1u << (zs - 33u)) << 32)
+                                    : (int64_t)(uint32_t)(1u << (zs - 1u));
     uint32_t clamped = 0u;
     int64_t load = 0;
     unsigned c;
@@ -1917,7 +1921,7 @@ int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16
         /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
          * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
          * arithmetic shift of the 64-bit sum is two words shifted and joined. */
-        const int64_t g = f[c] + ((int64_t)1 << (tq - 1u));
+        const int64_t g = f[c] + (int64_t)fround;
         const uint32_t glo = (uint32_t)g;
         const int32_t ghi = (int32_t)(g >> 32);
         int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
@@ -1943,7 +1947,7 @@ int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16
         z[c] = (int16_t)sat16_32(v, &clamped);
         load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
     }
-    if (clamped)
+    if (clamped != 0u)
         *sat = 1u;
     return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }

@@ -215,19 +215,22 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint3
     }
     for (k = 0; k < m->n_ema; ++k, ++j) {
         /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. */
-        int64_t target = (int64_t)u * ((int64_t)1 << FBG_EMA_FRAC);
-        int32_t e = (int32_t)(s->ema[k] + fbg_rshift_round(target - s->ema[k], m->ema_shift[k]));
+         * at most the whole distance, so it stays between its old value and the target. So
+         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
+         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
+        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
         s->ema[k] = e;
-        in[j] = fbg_sat16(((int64_t)u - fbg_rshift_round(e, FBG_EMA_FRAC)) * ((int64_t)1 << m->ema_gain[k]), sat);
+        in[j] = fbg_sat16((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
     }
     for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16. */
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
         int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
         int32_t p = s->play[k];
         p = p < lo ? lo : (p > hi ? hi : p);
         s->play[k] = p;
-        in[j] = fbg_sat16(((int64_t)u - p) * ((int64_t)1 << m->play_gain[k]), sat);
+        in[j] = fbg_sat16((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
     }
 }
 

@@ -3,6 +3,7 @@
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -25,6 +26,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
