@@ -221,7 +221,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint3
         int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
         int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
         s->ema[k] = e;
-        in[j] = fbg_sat16((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
     }
     for (k = 0; k < m->n_play; ++k, ++j) {
         /* The state stays within play_width of the current u: |state| < 2^16, and the
@@ -230,7 +230,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint3
         int32_t p = s->play[k];
         p = p < lo ? lo : (p > hi ? hi : p);
         s->play[k] = p;
-        in[j] = fbg_sat16((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
     }
 }
 
@@ -330,7 +330,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
         force_out = output_row(last, 0u, x, NULL, &sat);
-        out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
+        out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
@@ -340,8 +340,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, x, NULL, &sat) + m->xy_offset_um[1], &sat);
+        out->x_um = fbg_sat32_add(output_row(last, 0u, x, NULL, &sat), m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32_add(output_row(last, 1u, x, NULL, &sat), m->xy_offset_um[1], &sat);
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;

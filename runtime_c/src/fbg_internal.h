@@ -62,6 +62,35 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
