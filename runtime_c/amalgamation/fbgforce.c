@@ -617,6 +617,9 @@ const char *fbg_status_str(int status)
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) and the output rows
+ *   (fbg_dsp_output_row) compute the same int64 values on 32-bit words; the comments at each
+ *   step give the bound that makes the narrower arithmetic exact.
  */
 /* ---- src/fbg_dsp.h ---- */
 /*
