@@ -27,9 +27,9 @@
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
- * - The standardisation after it (fbg_dsp_standardise) and the output rows
- *   (fbg_dsp_output_row) compute the same int64 values on 32-bit words; the comments at each
- *   step give the bound that makes the narrower arithmetic exact.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
  */
 #include "fbg_dsp.h"
 
@@ -1861,7 +1861,7 @@ static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *
     return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
 }
 
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
     if (ly->acc32)
         return row_acc32(ly, r, x);
@@ -1870,22 +1870,16 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
     return row_acc8(ly, r, x);
 }
 
-int32_t fbg_dsp_output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
-                           uint32_t *sat)
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    int64_t acc;
-    if (ly->acc32 && ly->shift == 32u) {
-        /* |acc| <= INT32_MAX and |mult| <= INT32_MAX: |acc * mult + 2^31| < 2^62, so the
-         * rounded value is below 2^30 in magnitude and sat32 never clamps. */
-        int32_t acc32 = row_acc32(ly, r, x);
-        if (acc_out != NULL)
-            *acc_out = acc32;
-        return smmulr(acc32, ly->mult[r]);
-    }
-    acc = fbg_dsp_row_acc(ly, r, x);
-    if (acc_out != NULL)
-        *acc_out = acc;
-    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+    return row_acc(ly, r, x);
+}
+
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = row_acc(ly, r, x);
 }
 
 /* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
