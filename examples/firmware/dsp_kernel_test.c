@@ -70,14 +70,18 @@ static int64_t ref_sat(int64_t v, int64_t lim, uint32_t *sat)
     return v;
 }
 
-/* fbg_dsp_rshift32_product against rshift_round(acc * mult, 32) for the accumulators of an
- * int32 layer's rows (fbg_dsp_row_acc) and their extremes. Returns the number of mismatches. */
+/* fbg_dsp_output_accs against fbg_dsp_row_acc (checked against the rule below), and
+ * fbg_dsp_rshift32_product against rshift_round(acc * mult, 32) for the accumulators of an
+ * int32 layer's rows and their extremes. Returns the number of mismatches. */
 static uint32_t check_output_rows(const fbg_layer *ly, const int16_t *x)
 {
+    static int64_t accs[FBG_MAX_WIDTH];
     uint32_t bad = 0u;
     unsigned r;
+    fbg_dsp_output_accs(ly, x, accs);
     for (r = 0; r < ly->n_out; ++r) {
         const int32_t acc = (int32_t)fbg_dsp_row_acc(ly, r, x), mult = ly->mult[r];
+        bad += accs[r] != acc;
         const int32_t edge[3] = {acc, INT32_MAX, -INT32_MAX};
         unsigned k;
         for (k = 0; k < 3u; ++k) {

@@ -1878,6 +1878,17 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
 {
     unsigned r;
+#if FBG_DSP_ASM
+    const unsigned n = ly->n_in;
+    if (ly->acc32 && ly->w_bits == 16u &&
+        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
+        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
+        const int16_t *w = ly->w16;
+        for (r = 0; r < ly->n_out; ++r, w += n)
+            acc[r] = dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+        return;
+    }
+#endif
     for (r = 0; r < ly->n_out; ++r)
         acc[r] = row_acc(ly, r, x);
 }
