@@ -66,7 +66,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
+    if (model->loc_shift > FBG_MAX_EMA_SHIFT)
+        return FBG_ERR_RANGE;
     for (c = 0; c < model->n_ema; ++c)
         if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
             model->ema_gain[c] > FBG_MAX_MEM_GAIN)
@@ -120,13 +122,25 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 
 /* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
- * and are frozen during a fault). */
-static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
+ * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
+static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     float u = 0.0f;
-    if (m->n_ema == 0u && m->n_play == 0u)
+    if (m->loc_shift) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* z_rest = -mean / std: the standardised zero shift */
+            float r = in[c] + m->input_mean_pm[c] / m->input_std_pm[c];
+            if (!s->mem_primed)
+                s->loc[c] = r;
+            s->loc[c] += (r - s->loc[c]) / (float)(1u << m->loc_shift);
+            loc[c] = s->loc[c];
+        }
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
         return;
+    }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         u += m->mem_weight[c] * in[c];
     if (!s->mem_primed) {
@@ -215,7 +229,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
+    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], margin, f;
     int32_t shift[FBG_N_CHANNELS];
     const float *y;
     unsigned c, k, idx;
@@ -255,7 +269,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         in[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    fmemory_features(s, m, in);
+    fmemory_features(s, m, in, loc);
 
     y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
@@ -276,6 +290,8 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
             status |= FBG_STATUS_OVERLOAD;
         in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
         in[FBG_N_STRAIN + 1] = f;
+        if (m->loc_shift)             /* ... and the location averages */
+            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
