@@ -168,6 +168,38 @@ static uint32_t check_standardise(uint32_t *clamps, uint32_t *unclamped, uint32_
     return memcmp(z_ref, z_dsp, sizeof z_ref) != 0 || sat_ref != sat_dsp || over_ref != over_dsp;
 }
 
+/* fbg_sat16_rshift_round (fbg_internal.h: two-word arithmetic on this 32-bit core) against
+ * sat16(rshift_round(x, s)) for every s and x of every magnitude that keeps x + 2^(s-1) in
+ * int64, ties included. Returns the number of mismatches. */
+static uint32_t check_sat16_rshift_round(void)
+{
+    uint32_t bad = 0u;
+    unsigned s, k;
+    const uint32_t layer_seed = seed; /* its own stream: the layers' cases stay as they were */
+    seed = 777u;
+    for (s = 1u; s <= 62u; ++s) {
+        for (k = 0; k < 200u; ++k) {
+            int64_t x = (int64_t)(((uint64_t)rnd() << 32) | rnd()) >> (rnd() % 64u), want;
+            if (k % 5u == 2u && s < 30u) { /* shifted value 2^e + a small one, e >= 32 */
+                x = (((int64_t)1 << (32u + rnd() % (30u - s))) + (int64_t)(rnd() & 0xFFFFu)) * ((int64_t)1 << s);
+                if (rnd() & 1u)
+                    x = -x;
+            }
+            if (k % 5u == 1u) /* around the int32 range of the shifted value */
+                x = (int64_t)(((uint64_t)rnd() << 32) | rnd()) >> (s < 31u ? 31u - s + rnd() % 3u : 0u);
+            uint32_t flag_ref = 0u, flag = 0u;
+            if (k % 5u == 0u) /* a tie: x = (2q + 1) 2^(s-1) */
+                x = ((int64_t)((int32_t)rnd() >> (s > 29u ? s - 29u : rnd() % 32u)) * 2 + 1) * ((int64_t)1 << (s - 1u));
+            if (x > INT64_MAX - ((int64_t)1 << (s - 1u)))
+                x = INT64_MAX - ((int64_t)1 << (s - 1u));
+            want = ref_sat(ref_rshift_round(x, s), 32767, &flag_ref);
+            bad += fbg_sat16_rshift_round(x, s, &flag) != want || flag != flag_ref;
+        }
+    }
+    seed = layer_seed;
+    return bad;
+}
+
 int main(void)
 {
     static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
@@ -176,6 +208,7 @@ int main(void)
     uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
     uint32_t acc32_int8 = 0, acc32_int8_sat = 0, acc32_int8_fast = 0;
     uint32_t standardise_clamped = 0, standardise_exact = 0, standardise_overload = 0;
+    mismatches += check_sat16_rshift_round();
     for (c = 0; c < N_CASES; ++c) {
         unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
                  offx = (c / 12u) % 2u;

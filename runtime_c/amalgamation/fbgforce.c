@@ -105,6 +105,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
     return (int16_t)x;
 }
 
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
 static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
 {
@@ -709,6 +737,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
@@ -2935,6 +2991,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
     return (int16_t)x;
 }
 
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
 static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
 {
@@ -3319,6 +3403,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
     return (int16_t)x;
 }
 
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
 static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
 {
@@ -3538,6 +3650,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
@@ -3958,8 +4098,8 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
-            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t z0 = fbg_sat16_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift, sat);
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
             int32_t e = s->mem_primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
@@ -3973,7 +4113,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
     if (!s->mem_primed) {
         for (k = 0; k < m->n_ema; ++k)
             s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
@@ -4108,7 +4248,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
          * location averages]: the memory features after z are no longer needed and make
          * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
@@ -4231,6 +4371,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
@@ -4544,6 +4712,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
@@ -4957,6 +5153,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
@@ -5588,6 +5812,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
         return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
     }
     return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
 }
 
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */

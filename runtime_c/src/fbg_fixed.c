@@ -280,8 +280,8 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
-            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t z0 = fbg_sat16_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift, sat);
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
             int32_t e = s->mem_primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
@@ -295,7 +295,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
     if (!s->mem_primed) {
         for (k = 0; k < m->n_ema; ++k)
             s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
@@ -430,7 +430,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
          * location averages]: the memory features after z are no longer needed and make
          * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);

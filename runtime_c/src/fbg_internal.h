@@ -72,6 +72,34 @@ static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
     return (int16_t)x;
 }
 
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
 /* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
 static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
 {
