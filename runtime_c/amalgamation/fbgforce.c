@@ -5378,9 +5378,9 @@ static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int1
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row16;
         } else {
-            const int16_t *src = v->ly->w16 + (size_t)r * v->n;
-            for (j = 0; j < v->npad; ++j) /* a plain loop: a few entries, no call */
-                buf[i][j] = j < v->n ? src[j] : 0;
+            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
             w[i] = buf[i];
         }
     }
@@ -5401,9 +5401,9 @@ static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_
         } else if (r >= v->ly->n_out) {
             w[i] = zero_row8;
         } else {
-            const int8_t *src = v->ly->w8 + (size_t)r * v->n;
-            for (j = 0; j < v->npad; ++j)
-                buf[i][j] = j < v->n ? src[j] : 0;
+            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
             w[i] = buf[i];
         }
     }
