@@ -459,11 +459,14 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
 #define NARROW_W16(i) load128(w + (size_t)(i) * n)
 #define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)(w + (size_t)(i) * n)))
 #define NARROW_PAIR(i, W) _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(i)), W(i + 1), 1), xv)
-/* Two rows per vector (row 2p in the low half, 2p+1 in the high one) against x in both. */
-#define NARROW8_SUMS(W)                                                                      \
+/* n == 8: rows i and i + 1 are one vector of 16 weights. */
+#define NARROW_PAIR16(i, W) _mm256_madd_epi16(NARROW16_W##W(i), xv)
+/* Two rows per vector (row 2p in the low half, 2p+1 in the high one) against x in both;
+ * P(i, W) multiplies rows i and i + 1. */
+#define NARROW8_SUMS(P, W)                                                                   \
     do {                                                                                     \
-        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(NARROW_PAIR(0, W), NARROW_PAIR(2, W)), \
-                                      _mm256_hadd_epi32(NARROW_PAIR(4, W), NARROW_PAIR(6, W))); \
+        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(P(0, W), P(2, W)),                   \
+                                      _mm256_hadd_epi32(P(4, W), P(6, W)));                  \
         /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
         sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
     } while (0)
@@ -475,16 +478,18 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
                       _mm256_madd_epi16(W(4), xv), _mm256_madd_epi16(W(5), xv),              \
                       _mm256_madd_epi16(W(6), xv), _mm256_madd_epi16(W(7), xv))
 
-#define NARROW_SUMS(SUMS8, SUMS16)                                                           \
+#define NARROW_SUMS(SUMS8, SUMS8J, SUMS16)                                                   \
     do {                                                                                     \
-        if (n <= 8u)                                                                         \
+        if (n < 8u)                                                                          \
             SUMS8;                                                                           \
+        else if (n == 8u)                                                                    \
+            SUMS8J;                                                                          \
         else                                                                                 \
             SUMS16;                                                                          \
     } while (0)
 /* The groups read in place (all of them whole: their reads reach row r + 7 and beyond),
  * then the rest from the copy. */
-#define NARROW_LAYER(T, BASE, SUMS8, SUMS16)                                                 \
+#define NARROW_LAYER(T, BASE, SUMS8, SUMS8J, SUMS16)                                                 \
     do {                                                                                     \
         T copy[NARROW_COPY];                                                                 \
         const T *w = BASE;                                                                   \
@@ -492,7 +497,7 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
         size_t start, end, i;                                                                \
         __m256i sums;                                                                        \
         for (r = 0; (size_t)r * n + reach <= total; r += 8u, w += 8u * n) {                  \
-            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            NARROW_SUMS(SUMS8, SUMS8J, SUMS16);                                              \
             finish_rows(o, r, 8u, sums);                                                     \
         }                                                                                    \
         if (r >= ly->n_out)                                                                  \
@@ -505,7 +510,7 @@ AVX2 static void wide_avx2(layer_out *o, const int16_t *x)
         for (; i < end; ++i)                                                                 \
             copy[i] = 0;                                                                     \
         for (w = copy; r < ly->n_out; r += 8u, w += 8u * n) {                                \
-            NARROW_SUMS(SUMS8, SUMS16);                                                      \
+            NARROW_SUMS(SUMS8, SUMS8J, SUMS16);                                              \
             finish_rows(o, r, ly->n_out - r < 8u ? ly->n_out - r : 8u, sums);               \
         }                                                                                    \
     } while (0)
@@ -520,9 +525,11 @@ AVX2 static void narrow_avx2(layer_out *o, const int16_t *x)
     pad_x(ly, x, xp);
     xv = n <= 8u ? _mm256_broadcastsi128_si256(load128(xp)) : load256(xp);
     if (ly->w_bits == 16u)
-        NARROW_LAYER(int16_t, ly->w16, NARROW8_SUMS(NARROW_W16), NARROW16_SUMS(NARROW16_W16));
+        NARROW_LAYER(int16_t, ly->w16, NARROW8_SUMS(NARROW_PAIR, NARROW_W16),
+                     NARROW8_SUMS(NARROW_PAIR16, 16), NARROW16_SUMS(NARROW16_W16));
     else
-        NARROW_LAYER(int8_t, ly->w8, NARROW8_SUMS(NARROW_W8), NARROW16_SUMS(NARROW16_W8));
+        NARROW_LAYER(int8_t, ly->w8, NARROW8_SUMS(NARROW_PAIR, NARROW_W8),
+                     NARROW8_SUMS(NARROW_PAIR16, 8), NARROW16_SUMS(NARROW16_W8));
 }
 
 /* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row,
