@@ -177,8 +177,8 @@ static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
 #define SSE2_W16(i, j) load128(w16[i] + (j))
 #define SSE2_W8(i, j) load8x8(w8[i] + (j))
 
-/* acc[r] for every row of the layer (int32). */
-static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+/* acc[r] for every row of a layer of fewer than 8 inputs (int32), x padded. */
+static void acc32_sse2_padded(const fbg_layer *ly, const int16_t *x, int32_t *acc)
 {
     int16_t xp[ROW_LEN];
     int16_t buf16[4][ROW_LEN];
@@ -205,6 +205,76 @@ static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
         } else {
             _mm_storeu_si128((__m128i *)(void *)t, sums);
             memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
+        }
+    }
+}
+
+/* SSE2, layers of at least 8 inputs: rows and x read in place, as AVX2 does with 16 columns
+ * (wide_avx2): the last 8 columns of every row against x[n-8 .. n) with the columns of the
+ * whole vectors masked to zero first, then whole vectors of 8 columns; four rows per group,
+ * the last n_out mod 4 rows one by one. */
+typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
+static const int16_t tail_lanes8[16] = {0, 0, 0, 0, 0, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, -1};
+#define SSE2_IN16(i, j) load128(w16 + (size_t)(i) * n + (j))
+#define SSE2_IN8(i, j) load8x8(w8 + (size_t)(i) * n + (j))
+#define SSE2_MADD(a, wv, xv) a += (lanes32x4)_mm_madd_epi16(wv, xv)
+#define SSE2_ROWS4(W)                                                                        \
+    do {                                                                                     \
+        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail),                       \
+                  a1 = (lanes32x4)_mm_madd_epi16(W(1, n - 8u), xtail),                       \
+                  a2 = (lanes32x4)_mm_madd_epi16(W(2, n - 8u), xtail),                       \
+                  a3 = (lanes32x4)_mm_madd_epi16(W(3, n - 8u), xtail);                       \
+        for (j = 0; j < n8; j += 8u) {                                                       \
+            __m128i xv = load128(x + j);                                                     \
+            SSE2_MADD(a0, W(0, j), xv);                                                      \
+            SSE2_MADD(a1, W(1, j), xv);                                                      \
+            SSE2_MADD(a2, W(2, j), xv);                                                      \
+            SSE2_MADD(a3, W(3, j), xv);                                                      \
+        }                                                                                    \
+        sums = sum4_lanes((__m128i)a0, (__m128i)a1, (__m128i)a2, (__m128i)a3);               \
+    } while (0)
+#define SSE2_ROW1(W)                                                                         \
+    do {                                                                                     \
+        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail);                       \
+        __m128i t;                                                                           \
+        for (j = 0; j < n8; j += 8u)                                                         \
+            SSE2_MADD(a0, W(0, j), load128(x + j));                                          \
+        t = _mm_add_epi32((__m128i)a0, _mm_shuffle_epi32((__m128i)a0, 0x4e));                \
+        t = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0xb1));                                    \
+        acc[r] = (int32_t)((uint32_t)_mm_cvtsi128_si32(t) + (uint32_t)ly->bias[r]);          \
+    } while (0)
+
+static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    const size_t n = ly->n_in;
+    const unsigned n8 = ly->n_in & ~7u;
+    __m128i xtail;
+    unsigned r, j;
+    if (ly->n_in < 8u) {
+        acc32_sse2_padded(ly, x, acc);
+        return;
+    }
+    xtail = _mm_and_si128(load128(x + n - 8u), load128(tail_lanes8 + (n & 7u)));
+    for (r = 0; r + 4u <= ly->n_out; r += 4u) {
+        int32_t b[4];
+        __m128i sums;
+        bias32(ly, r, 4u, b);
+        if (ly->w_bits == 16u) {
+            const int16_t *w16 = ly->w16 + (size_t)r * n;
+            SSE2_ROWS4(SSE2_IN16);
+        } else {
+            const int8_t *w8 = ly->w8 + (size_t)r * n;
+            SSE2_ROWS4(SSE2_IN8);
+        }
+        _mm_storeu_si128((__m128i *)(void *)(acc + r), _mm_add_epi32(sums, load128(b)));
+    }
+    for (; r < ly->n_out; ++r) {
+        if (ly->w_bits == 16u) {
+            const int16_t *w16 = ly->w16 + (size_t)r * n;
+            SSE2_ROW1(SSE2_IN16);
+        } else {
+            const int8_t *w8 = ly->w8 + (size_t)r * n;
+            SSE2_ROW1(SSE2_IN8);
         }
     }
 }
