@@ -9,11 +9,12 @@
  * second time. SSE2 runs four rows together and AVX2 eight, so each vector of x is loaded
  * once per group.
  *
- * SSE2 reads rows as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
- * widened on load), against x copied into a buffer that is zero from n_in on: the weights
- * read past a row's end belong to the next row and meet zeros. Where such a read would leave
- * the weight array (the last rows), the row is first copied into a zero-padded buffer; rows
- * past n_out read a row of zeros.
+ * SSE2 reads a layer of n_in >= 8 in place as AVX2 does (below) with vectors of 8 columns.
+ * Narrower layers are read as whole vectors of npad = 8 weights (int8 weights are widened on
+ * load), against x copied into a buffer that is zero from n_in on: the weights read past a
+ * row's end belong to the next row and meet zeros. Where such a read would leave the weight
+ * array (the last rows), the row is first copied into a zero-padded buffer; rows past n_out
+ * read a row of zeros.
  *
  * AVX2 reads a layer of n_in >= 16 in place: rows at a stride of n_in from the weight array,
  * x where it is, whole vectors of 16 columns, and the last 16 columns of every row once more
