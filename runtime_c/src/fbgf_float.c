@@ -6,6 +6,7 @@
 #include <string.h>
 
 #include "fbg_front.h"
+#include "fbgf_dense.h"
 
 size_t fbgf_state_size(void)
 {
@@ -192,19 +193,12 @@ fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_
 }
 
 /* Dense ReLU MLP; returns a pointer to the output vector (inside s->act). */
-static const float *fnet(fbgf_state *s, const fbgf_net *net, const float *x)
+static const float *fnet(fbgf_state *s, fbgf_kernel kernel, const fbgf_net *net, const float *x)
 {
-    unsigned l, r, j, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l < net->n_layers; ++l) {
-        const fbgf_layer *ly = &net->layers[l];
         float *y = s->act[buf];
-        for (r = 0; r < ly->n_out; ++r) {
-            const float *w = ly->w + (size_t)r * ly->n_in;
-            float a = ly->b[r];
-            for (j = 0; j < ly->n_in; ++j)
-                a += w[j] * x[j];
-            y[r] = (l + 1u < net->n_layers && a < 0.0f) ? 0.0f : a;
-        }
+        fbgf_dense(kernel, &net->layers[l], x, y, l + 1u < net->n_layers);
         x = y;
         buf ^= 1u;
     }
@@ -218,6 +212,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], margin, f;
     int32_t shift[FBG_N_CHANNELS];
     const float *y;
+    fbgf_kernel kernel;
     unsigned c, k, idx;
     fbg_status st;
 
@@ -257,7 +252,8 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in);
 
-    y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
+    kernel = fbgf_dense_kernel();
+    y = fnet(s, kernel, &m->nets[FBG_NET_CONTACT], in);
     margin = y[1] - y[0];
     if (!finite_f(margin)) {
         /* Float overflow inside the nets (finite parameters, extreme inputs): the float
@@ -269,14 +265,14 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
     if (out->contact) {
-        y = fnet(s, &m->nets[FBG_NET_FORCE], in);
+        y = fnet(s, kernel, &m->nets[FBG_NET_FORCE], in);
         f = y[0];
         out->force_N = m->force_offset_N + m->force_scale * f;
         if (out->force_N > m->overload_N)
             status |= FBG_STATUS_OVERLOAD;
         in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
         in[FBG_N_STRAIN + 1] = f;
-        y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
+        y = fnet(s, kernel, &m->nets[FBG_NET_LOCATION], in);
         out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
         out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
         if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {

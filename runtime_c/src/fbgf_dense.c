@@ -1,0 +1,290 @@
+/*
+ * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels
+ * (SSE2 and AVX2+FMA on x86-64, NEON on aarch64); fbgf_dense.h says which one runs.
+ *
+ * The portable kernel is one chain of dependent adds per output, so it runs at the add
+ * latency (about 4 cycles per multiply-add on a desktop core), and the compiler may not
+ * vectorise it without reassociating (it must not, under ISO C floating point). The SIMD
+ * kernels compute several rows at once with one accumulator per row and lane: the
+ * weights are row-major, so lane k of row r holds the products of inputs j = k (mod lanes);
+ * each row's lanes are then added pairwise, ((l0 + l1) + (l2 + l3)) [+ ((l4 + l5) + (l6 + l7))
+ * on AVX], and the bias last. A row's result does not depend on which block it falls in: the
+ * last block of a layer repeats its last row in the unused slots and stores only the rows
+ * that exist. Inputs past n_in are multiplied by zero (zero-filled copies or masked loads),
+ * and weights past a row are never read.
+ */
+#include <string.h>
+
+#include "fbgf_dense.h"
+
+#ifndef FBGF_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && (defined(__GNUC__) || defined(__clang__))
+#define FBGF_SIMD 1
+#else
+#define FBGF_SIMD 0
+#endif
+#endif
+
+#if FBGF_SIMD && defined(__x86_64__)
+#define FBGF_HAVE_SSE2 1
+#include <emmintrin.h>
+#if !defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2
+#define FBGF_HAVE_AVX2 1
+#include <immintrin.h>
+#endif
+#elif FBGF_SIMD && defined(__aarch64__)
+#define FBGF_HAVE_NEON 1
+#include <arm_neon.h>
+#endif
+
+static void dense_portable(const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    unsigned r, j;
+    for (r = 0; r < ly->n_out; ++r) {
+        const float *w = ly->w + (size_t)r * ly->n_in;
+        float a = ly->b[r];
+        for (j = 0; j < ly->n_in; ++j)
+            a += w[j] * x[j];
+        /* a < 0 is false for NaN: an overflow inside the nets reaches the output check. */
+        y[r] = (relu && a < 0.0f) ? 0.0f : a;
+    }
+}
+
+#if defined(FBGF_HAVE_SSE2) || defined(FBGF_HAVE_NEON)
+/* The row pointers of the block of rows r0.. (at most `lanes` rows; short blocks repeat the
+ * last row) and how many of them are real. */
+static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, const float **w)
+{
+    unsigned k, n = ly->n_out - r0 < rows ? ly->n_out - r0 : rows;
+    for (k = 0; k < rows; ++k)
+        w[k] = ly->w + (size_t)(r0 + (k < n ? k : n - 1u)) * ly->n_in;
+    return n;
+}
+#endif
+
+#ifdef FBGF_HAVE_SSE2
+/* Four rows x four lanes. _mm_max_ps(0, a) is a < 0 ? 0 : a, NaN and -0 kept, as portable. */
+static void dense_sse2(const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    float xp[FBG_MAX_WIDTH + 4], tail[4][4], out[4];
+    const unsigned n_in = ly->n_in, full = n_in & ~3u;
+    const __m128 zero = _mm_setzero_ps();
+    unsigned r0, j, k, n;
+    memcpy(xp, x, n_in * sizeof *x);
+    memset(xp + n_in, 0, 4u * sizeof *xp);
+    for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
+        const float *w[4];
+        __m128 a0 = zero, a1 = zero, a2 = zero, a3 = zero, t0, t1, t2, t3, s;
+        n = block_rows(ly, r0, 4u, w);
+        for (j = 0; j < full; j += 4u) {
+            const __m128 xv = _mm_loadu_ps(xp + j);
+            a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(w[0] + j), xv));
+            a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(w[1] + j), xv));
+            a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(w[2] + j), xv));
+            a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(w[3] + j), xv));
+        }
+        if (full < n_in) {
+            const __m128 xv = _mm_loadu_ps(xp + full);
+            memset(tail, 0, sizeof tail);
+            for (k = 0; k < 4u; ++k)
+                memcpy(tail[k], w[k] + full, (n_in - full) * sizeof(float));
+            a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(tail[0]), xv));
+            a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(tail[1]), xv));
+            a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(tail[2]), xv));
+            a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(tail[3]), xv));
+        }
+        /* Transpose so that t_k holds lane k of every row, then (l0 + l1) + (l2 + l3). */
+        t0 = _mm_unpacklo_ps(a0, a1);   /* a0[0] a1[0] a0[1] a1[1] */
+        t1 = _mm_unpackhi_ps(a0, a1);   /* a0[2] a1[2] a0[3] a1[3] */
+        t2 = _mm_unpacklo_ps(a2, a3);
+        t3 = _mm_unpackhi_ps(a2, a3);
+        a0 = _mm_movelh_ps(t0, t2);     /* lane 0 of rows 0..3 */
+        a1 = _mm_movehl_ps(t2, t0);     /* lane 1 */
+        a2 = _mm_movelh_ps(t1, t3);     /* lane 2 */
+        a3 = _mm_movehl_ps(t3, t1);     /* lane 3 */
+        s = _mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3));
+        if (n == 4u) {
+            s = _mm_add_ps(s, _mm_loadu_ps(ly->b + r0));
+        } else {
+            float b[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+            memcpy(b, ly->b + r0, n * sizeof *b);
+            s = _mm_add_ps(s, _mm_loadu_ps(b));
+        }
+        if (relu)
+            s = _mm_max_ps(zero, s);
+        if (n == 4u) {
+            _mm_storeu_ps(y + r0, s);
+        } else {
+            _mm_storeu_ps(out, s);
+            memcpy(y + r0, out, n * sizeof *out);
+        }
+    }
+}
+#endif
+
+#ifdef FBGF_HAVE_AVX2
+#define FBGF_AVX2 __attribute__((target("avx2,fma")))
+
+/* Lanes 0..7 of row k summed as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7)), rows in
+ * order. _mm256_hadd_ps adds neighbours within each 128-bit half. */
+FBGF_AVX2 static __m256 sum8x8(__m256 a0, __m256 a1, __m256 a2, __m256 a3, __m256 a4, __m256 a5,
+                               __m256 a6, __m256 a7)
+{
+    /* h01 = [r0:l0+l1, l2+l3, r1:l0+l1, l2+l3 | r0:l4+l5, l6+l7, r1:l4+l5, l6+l7] */
+    __m256 h01 = _mm256_hadd_ps(a0, a1), h23 = _mm256_hadd_ps(a2, a3);
+    __m256 h45 = _mm256_hadd_ps(a4, a5), h67 = _mm256_hadd_ps(a6, a7);
+    /* q0 = [r0..r3: (l0+l1)+(l2+l3) | r0..r3: (l4+l5)+(l6+l7)] */
+    __m256 q0 = _mm256_hadd_ps(h01, h23), q1 = _mm256_hadd_ps(h45, h67);
+    __m256 lo = _mm256_permute2f128_ps(q0, q1, 0x20), hi = _mm256_permute2f128_ps(q0, q1, 0x31);
+    return _mm256_add_ps(lo, hi);
+}
+
+/* Eight rows x eight lanes, fused multiply-add. */
+FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+    float xp[FBG_MAX_WIDTH + 8], out[8];
+    const unsigned n_in = ly->n_in, full = n_in & ~7u;
+    /* Lanes 0 .. n_in - full - 1 on: maskload reads nothing past a row. */
+    const __m256i mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - (n_in - full)));
+    const __m256 zero = _mm256_setzero_ps();
+    unsigned r0, j, n;
+    memcpy(xp, x, n_in * sizeof *x);
+    memset(xp + n_in, 0, 8u * sizeof *xp);
+    for (r0 = 0; r0 < ly->n_out; r0 += 8u) {
+        const float *w[8];
+        __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero,
+               a7 = zero, s;
+        n = block_rows(ly, r0, 8u, w);
+        for (j = 0; j < full; j += 8u) {
+            const __m256 xv = _mm256_loadu_ps(xp + j);
+            a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w[0] + j), xv, a0);
+            a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w[1] + j), xv, a1);
+            a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w[2] + j), xv, a2);
+            a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w[3] + j), xv, a3);
+            a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w[4] + j), xv, a4);
+            a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w[5] + j), xv, a5);
+            a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w[6] + j), xv, a6);
+            a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w[7] + j), xv, a7);
+        }
+        if (full < n_in) {
+            const __m256 xv = _mm256_loadu_ps(xp + full);
+            a0 = _mm256_fmadd_ps(_mm256_maskload_ps(w[0] + full, mask), xv, a0);
+            a1 = _mm256_fmadd_ps(_mm256_maskload_ps(w[1] + full, mask), xv, a1);
+            a2 = _mm256_fmadd_ps(_mm256_maskload_ps(w[2] + full, mask), xv, a2);
+            a3 = _mm256_fmadd_ps(_mm256_maskload_ps(w[3] + full, mask), xv, a3);
+            a4 = _mm256_fmadd_ps(_mm256_maskload_ps(w[4] + full, mask), xv, a4);
+            a5 = _mm256_fmadd_ps(_mm256_maskload_ps(w[5] + full, mask), xv, a5);
+            a6 = _mm256_fmadd_ps(_mm256_maskload_ps(w[6] + full, mask), xv, a6);
+            a7 = _mm256_fmadd_ps(_mm256_maskload_ps(w[7] + full, mask), xv, a7);
+        }
+        s = sum8x8(a0, a1, a2, a3, a4, a5, a6, a7);
+        if (n == 8u) {
+            s = _mm256_add_ps(s, _mm256_loadu_ps(ly->b + r0));
+        } else {
+            float b[8] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+            memcpy(b, ly->b + r0, n * sizeof *b);
+            s = _mm256_add_ps(s, _mm256_loadu_ps(b));
+        }
+        if (relu)
+            s = _mm256_max_ps(zero, s);
+        if (n == 8u) {
+            _mm256_storeu_ps(y + r0, s);
+        } else {
+            _mm256_storeu_ps(out, s);
+            memcpy(y + r0, out, n * sizeof *out);
+        }
+    }
+}
+#endif
+
+#ifdef FBGF_HAVE_NEON
+/* Four rows x four lanes, fused multiply-add; vpaddq adds neighbours, which gives the same
+ * (l0 + l1) + (l2 + l3) per row as the SSE2 transpose. */
+static void dense_neon(const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    float xp[FBG_MAX_WIDTH + 4], tail[4][4], out[4];
+    const unsigned n_in = ly->n_in, full = n_in & ~3u;
+    const float32x4_t zero = vdupq_n_f32(0.0f);
+    unsigned r0, j, k, n;
+    memcpy(xp, x, n_in * sizeof *x);
+    memset(xp + n_in, 0, 4u * sizeof *xp);
+    for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
+        const float *w[4];
+        float32x4_t a0 = zero, a1 = zero, a2 = zero, a3 = zero, s;
+        n = block_rows(ly, r0, 4u, w);
+        for (j = 0; j < full; j += 4u) {
+            const float32x4_t xv = vld1q_f32(xp + j);
+            a0 = vfmaq_f32(a0, vld1q_f32(w[0] + j), xv);
+            a1 = vfmaq_f32(a1, vld1q_f32(w[1] + j), xv);
+            a2 = vfmaq_f32(a2, vld1q_f32(w[2] + j), xv);
+            a3 = vfmaq_f32(a3, vld1q_f32(w[3] + j), xv);
+        }
+        if (full < n_in) {
+            const float32x4_t xv = vld1q_f32(xp + full);
+            memset(tail, 0, sizeof tail);
+            for (k = 0; k < 4u; ++k)
+                memcpy(tail[k], w[k] + full, (n_in - full) * sizeof(float));
+            a0 = vfmaq_f32(a0, vld1q_f32(tail[0]), xv);
+            a1 = vfmaq_f32(a1, vld1q_f32(tail[1]), xv);
+            a2 = vfmaq_f32(a2, vld1q_f32(tail[2]), xv);
+            a3 = vfmaq_f32(a3, vld1q_f32(tail[3]), xv);
+        }
+        s = vpaddq_f32(vpaddq_f32(a0, a1), vpaddq_f32(a2, a3));
+        if (n == 4u) {
+            s = vaddq_f32(s, vld1q_f32(ly->b + r0));
+        } else {
+            float b[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+            memcpy(b, ly->b + r0, n * sizeof *b);
+            s = vaddq_f32(s, vld1q_f32(b));
+        }
+        if (relu)   /* a < 0 ? 0 : a, NaN and -0 kept, as portable */
+            s = vbslq_f32(vcltq_f32(s, zero), zero, s);
+        if (n == 4u) {
+            vst1q_f32(y + r0, s);
+        } else {
+            vst1q_f32(out, s);
+            memcpy(y + r0, out, n * sizeof *out);
+        }
+    }
+}
+#endif
+
+fbgf_kernel fbgf_dense_kernel(void)
+{
+#if defined(FBGF_HAVE_AVX2)
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+        return FBGF_KERNEL_AVX2_FMA;
+    return FBGF_KERNEL_SSE2;
+#elif defined(FBGF_HAVE_SSE2)
+    return FBGF_KERNEL_SSE2;
+#elif defined(FBGF_HAVE_NEON)
+    return FBGF_KERNEL_NEON;
+#else
+    return FBGF_KERNEL_PORTABLE;
+#endif
+}
+
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    switch (kernel) {
+#ifdef FBGF_HAVE_AVX2
+    case FBGF_KERNEL_AVX2_FMA:
+        dense_avx2(ly, x, y, relu);
+        return;
+#endif
+#ifdef FBGF_HAVE_SSE2
+    case FBGF_KERNEL_SSE2:
+        dense_sse2(ly, x, y, relu);
+        return;
+#endif
+#ifdef FBGF_HAVE_NEON
+    case FBGF_KERNEL_NEON:
+        dense_neon(ly, x, y, relu);
+        return;
+#endif
+    default:
+        dense_portable(ly, x, y, relu);
+        return;
+    }
+}
