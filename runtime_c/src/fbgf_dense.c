@@ -125,77 +125,109 @@ static void dense_sse2(const fbgf_layer *ly, const float *x, float *y, int relu)
 #ifdef FBGF_HAVE_AVX2
 #define FBGF_AVX2 __attribute__((target("avx2,fma")))
 
-/* Lanes 0..7 of row k summed as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7)), rows in
- * order. _mm256_hadd_ps adds neighbours within each 128-bit half. */
-FBGF_AVX2 static __m256 sum8x8(__m256 a0, __m256 a1, __m256 a2, __m256 a3, __m256 a4, __m256 a5,
-                               __m256 a6, __m256 a7)
+/* Lanes of the inputs 0 .. n_in - full - 1 of the last, partial group of eight: maskload
+ * reads nothing past a row (or past x). */
+FBGF_AVX2 static __m256i tail_mask(unsigned n_in, unsigned full)
 {
-    /* h01 = [r0:l0+l1, l2+l3, r1:l0+l1, l2+l3 | r0:l4+l5, l6+l7, r1:l4+l5, l6+l7] */
+    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+    return _mm256_loadu_si256((const __m256i *)(ones + 8u - (n_in - full)));
+}
+
+/* One row's eight lane sums a[k] = sum over j = k (mod 8) of w[j] x[j], fused, j ascending. */
+#define FBGF_ROW_LANES(acc, w)                                                              \
+    do {                                                                                    \
+        for (j = 0; j < full; j += 8u)                                                      \
+            acc = _mm256_fmadd_ps(_mm256_loadu_ps((w) + j), _mm256_loadu_ps(x + j), acc);   \
+        if (full < n_in)                                                                    \
+            acc = _mm256_fmadd_ps(_mm256_maskload_ps((w) + full, mask), xt, acc);           \
+    } while (0)
+
+/* The lane sums of rows 0..7 (a0..a7) added as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7))
+ * per row, rows in order; _mm256_hadd_ps adds neighbours within each 128-bit half. The four-
+ * and one-row forms below use the same tree, so a row's bits do not depend on its block. */
+FBGF_AVX2 static __m256 sum8(__m256 a0, __m256 a1, __m256 a2, __m256 a3, __m256 a4, __m256 a5,
+                             __m256 a6, __m256 a7)
+{
+    /* h01 = [r0: l0+l1, l2+l3, r1: l0+l1, l2+l3 | r0: l4+l5, l6+l7, r1: l4+l5, l6+l7] */
     __m256 h01 = _mm256_hadd_ps(a0, a1), h23 = _mm256_hadd_ps(a2, a3);
     __m256 h45 = _mm256_hadd_ps(a4, a5), h67 = _mm256_hadd_ps(a6, a7);
     /* q0 = [r0..r3: (l0+l1)+(l2+l3) | r0..r3: (l4+l5)+(l6+l7)] */
     __m256 q0 = _mm256_hadd_ps(h01, h23), q1 = _mm256_hadd_ps(h45, h67);
-    __m256 lo = _mm256_permute2f128_ps(q0, q1, 0x20), hi = _mm256_permute2f128_ps(q0, q1, 0x31);
-    return _mm256_add_ps(lo, hi);
+    return _mm256_add_ps(_mm256_permute2f128_ps(q0, q1, 0x20), _mm256_permute2f128_ps(q0, q1, 0x31));
 }
 
-/* Eight rows x eight lanes, fused multiply-add. */
+FBGF_AVX2 static __m128 sum4(__m256 a0, __m256 a1, __m256 a2, __m256 a3)
+{
+    __m256 q = _mm256_hadd_ps(_mm256_hadd_ps(a0, a1), _mm256_hadd_ps(a2, a3));
+    return _mm_add_ps(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1));
+}
+
+FBGF_AVX2 static float sum1(__m256 a)
+{
+    __m256 q = _mm256_hadd_ps(a, a);
+    q = _mm256_hadd_ps(q, q);
+    return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1)));
+}
+
+/* Blocks of eight rows, then four, then single rows; eight lanes, fused multiply-add.
+ * _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as the portable kernel. */
 FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *x, float *y, int relu)
 {
-    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
-    float xp[FBG_MAX_WIDTH + 8], out[8];
-    const unsigned n_in = ly->n_in, full = n_in & ~7u;
-    /* Lanes 0 .. n_in - full - 1 on: maskload reads nothing past a row. */
-    const __m256i mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - (n_in - full)));
+    const unsigned n_in = ly->n_in, n_out = ly->n_out, full = n_in & ~7u;
+    const size_t stride = n_in;
+    const __m256i mask = tail_mask(n_in, full);
     const __m256 zero = _mm256_setzero_ps();
-    unsigned r0, j, n;
-    memcpy(xp, x, n_in * sizeof *x);
-    memset(xp + n_in, 0, 8u * sizeof *xp);
-    for (r0 = 0; r0 < ly->n_out; r0 += 8u) {
-        const float *w[8];
+    const __m256 xt = _mm256_maskload_ps(x + full, mask);
+    unsigned r = 0, j;
+    for (; r + 8u <= n_out; r += 8u) {
+        const float *w = ly->w + r * stride;
         __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero,
                a7 = zero, s;
-        n = block_rows(ly, r0, 8u, w);
         for (j = 0; j < full; j += 8u) {
-            const __m256 xv = _mm256_loadu_ps(xp + j);
-            a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w[0] + j), xv, a0);
-            a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w[1] + j), xv, a1);
-            a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w[2] + j), xv, a2);
-            a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w[3] + j), xv, a3);
-            a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w[4] + j), xv, a4);
-            a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w[5] + j), xv, a5);
-            a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w[6] + j), xv, a6);
-            a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w[7] + j), xv, a7);
+            const __m256 xv = _mm256_loadu_ps(x + j);
+            a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
+            a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + stride + j), xv, a1);
+            a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * stride + j), xv, a2);
+            a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * stride + j), xv, a3);
+            a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 4u * stride + j), xv, a4);
+            a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 5u * stride + j), xv, a5);
+            a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 6u * stride + j), xv, a6);
+            a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 7u * stride + j), xv, a7);
         }
         if (full < n_in) {
-            const __m256 xv = _mm256_loadu_ps(xp + full);
-            a0 = _mm256_fmadd_ps(_mm256_maskload_ps(w[0] + full, mask), xv, a0);
-            a1 = _mm256_fmadd_ps(_mm256_maskload_ps(w[1] + full, mask), xv, a1);
-            a2 = _mm256_fmadd_ps(_mm256_maskload_ps(w[2] + full, mask), xv, a2);
-            a3 = _mm256_fmadd_ps(_mm256_maskload_ps(w[3] + full, mask), xv, a3);
-            a4 = _mm256_fmadd_ps(_mm256_maskload_ps(w[4] + full, mask), xv, a4);
-            a5 = _mm256_fmadd_ps(_mm256_maskload_ps(w[5] + full, mask), xv, a5);
-            a6 = _mm256_fmadd_ps(_mm256_maskload_ps(w[6] + full, mask), xv, a6);
-            a7 = _mm256_fmadd_ps(_mm256_maskload_ps(w[7] + full, mask), xv, a7);
+            a0 = _mm256_fmadd_ps(_mm256_maskload_ps(w + full, mask), xt, a0);
+            a1 = _mm256_fmadd_ps(_mm256_maskload_ps(w + stride + full, mask), xt, a1);
+            a2 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 2u * stride + full, mask), xt, a2);
+            a3 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 3u * stride + full, mask), xt, a3);
+            a4 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 4u * stride + full, mask), xt, a4);
+            a5 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 5u * stride + full, mask), xt, a5);
+            a6 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 6u * stride + full, mask), xt, a6);
+            a7 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 7u * stride + full, mask), xt, a7);
         }
-        s = sum8x8(a0, a1, a2, a3, a4, a5, a6, a7);
-        if (n == 8u) {
-            s = _mm256_add_ps(s, _mm256_loadu_ps(ly->b + r0));
-        } else {
-            float b[8] = {0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-            memcpy(b, ly->b + r0, n * sizeof *b);
-            s = _mm256_add_ps(s, _mm256_loadu_ps(b));
-        }
-        if (relu)
-            s = _mm256_max_ps(zero, s);
-        if (n == 8u) {
-            _mm256_storeu_ps(y + r0, s);
-        } else {
-            _mm256_storeu_ps(out, s);
-            memcpy(y + r0, out, n * sizeof *out);
-        }
+        s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(ly->b + r));
+        _mm256_storeu_ps(y + r, relu ? _mm256_max_ps(zero, s) : s);
+    }
+    if (r + 4u <= n_out) {
+        const float *w = ly->w + r * stride;
+        __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero;
+        __m128 s;
+        FBGF_ROW_LANES(a0, w);
+        FBGF_ROW_LANES(a1, w + stride);
+        FBGF_ROW_LANES(a2, w + 2u * stride);
+        FBGF_ROW_LANES(a3, w + 3u * stride);
+        s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(ly->b + r));
+        _mm_storeu_ps(y + r, relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
+        r += 4u;
+    }
+    for (; r < n_out; ++r) {
+        __m256 a = zero;
+        float s;
+        FBGF_ROW_LANES(a, ly->w + r * stride);
+        s = sum1(a) + ly->b[r];
+        y[r] = (relu && s < 0.0f) ? 0.0f : s;
     }
 }
+#undef FBGF_ROW_LANES
 #endif
 
 #ifdef FBGF_HAVE_NEON
