@@ -17,14 +17,6 @@
 
 #include "fbgf_dense.h"
 
-#ifndef FBGF_SIMD
-#if (defined(__x86_64__) || defined(__aarch64__)) && (defined(__GNUC__) || defined(__clang__))
-#define FBGF_SIMD 1
-#else
-#define FBGF_SIMD 0
-#endif
-#endif
-
 #if FBGF_SIMD && defined(__x86_64__)
 #define FBGF_HAVE_SSE2 1
 #include <emmintrin.h>
@@ -169,18 +161,86 @@ FBGF_AVX2 static float sum1(__m256 a)
     return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1)));
 }
 
+/* Layers with at most eight inputs (the first layer of each net): one row per lane instead.
+ * Eight rows are loaded once per block and transposed, so that column j (the weights of
+ * input j in rows r..r+7) is one vector; each sample then needs n_in fused multiply-adds
+ * with its broadcast input and no horizontal sums: output r is b[r] followed by
+ * fma(w[r][j], x[j], .) for j ascending, the portable order with fused steps. */
+FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                                        size_t y_stride, size_t n, int relu)
+{
+    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+    const unsigned n_in = ly->n_in, n_out = ly->n_out;
+    const __m256i in_mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - n_in));
+    const __m256 zero = _mm256_setzero_ps();
+    unsigned r, j, k;
+    size_t i;
+    for (r = 0; r < n_out; r += 8u) {
+        const unsigned rows = n_out - r < 8u ? n_out - r : 8u;
+        const __m256i row_mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - rows));
+        __m256 c[8], t[8], bias;
+        for (k = 0; k < 8u; ++k)
+            c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in, in_mask) : zero;
+        /* 8 x 8 transpose: c[k] = row k -> c[j] = column j. */
+        t[0] = _mm256_unpacklo_ps(c[0], c[1]);
+        t[1] = _mm256_unpackhi_ps(c[0], c[1]);
+        t[2] = _mm256_unpacklo_ps(c[2], c[3]);
+        t[3] = _mm256_unpackhi_ps(c[2], c[3]);
+        t[4] = _mm256_unpacklo_ps(c[4], c[5]);
+        t[5] = _mm256_unpackhi_ps(c[4], c[5]);
+        t[6] = _mm256_unpacklo_ps(c[6], c[7]);
+        t[7] = _mm256_unpackhi_ps(c[6], c[7]);
+        c[0] = _mm256_shuffle_ps(t[0], t[2], 0x44);
+        c[1] = _mm256_shuffle_ps(t[0], t[2], 0xEE);
+        c[2] = _mm256_shuffle_ps(t[1], t[3], 0x44);
+        c[3] = _mm256_shuffle_ps(t[1], t[3], 0xEE);
+        c[4] = _mm256_shuffle_ps(t[4], t[6], 0x44);
+        c[5] = _mm256_shuffle_ps(t[4], t[6], 0xEE);
+        c[6] = _mm256_shuffle_ps(t[5], t[7], 0x44);
+        c[7] = _mm256_shuffle_ps(t[5], t[7], 0xEE);
+        t[0] = _mm256_permute2f128_ps(c[0], c[4], 0x20);
+        t[1] = _mm256_permute2f128_ps(c[1], c[5], 0x20);
+        t[2] = _mm256_permute2f128_ps(c[2], c[6], 0x20);
+        t[3] = _mm256_permute2f128_ps(c[3], c[7], 0x20);
+        t[4] = _mm256_permute2f128_ps(c[0], c[4], 0x31);
+        t[5] = _mm256_permute2f128_ps(c[1], c[5], 0x31);
+        t[6] = _mm256_permute2f128_ps(c[2], c[6], 0x31);
+        t[7] = _mm256_permute2f128_ps(c[3], c[7], 0x31);
+        bias = _mm256_maskload_ps(ly->b + r, row_mask);
+        for (i = 0; i < n; ++i) {
+            const float *x = xs + i * x_stride;
+            __m256 a = bias;
+            for (j = 0; j < n_in; ++j)
+                a = _mm256_fmadd_ps(t[j], _mm256_broadcast_ss(x + j), a);
+            if (relu)
+                a = _mm256_max_ps(zero, a);
+            if (rows == 8u)
+                _mm256_storeu_ps(ys + i * y_stride + r, a);
+            else
+                _mm256_maskstore_ps(ys + i * y_stride + r, row_mask, a);
+        }
+    }
+}
+
 /* Blocks of eight rows, then four, then single rows; eight lanes, fused multiply-add.
  * _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as the portable kernel. */
-FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *x, float *y, int relu)
+FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                                size_t y_stride, size_t n, int relu)
 {
     const unsigned n_in = ly->n_in, n_out = ly->n_out, full = n_in & ~7u;
     const size_t stride = n_in;
     const __m256i mask = tail_mask(n_in, full);
     const __m256 zero = _mm256_setzero_ps();
-    const __m256 xt = _mm256_maskload_ps(x + full, mask);
     unsigned r = 0, j;
+    size_t i;
+    /* Samples inside row blocks: a block's weights stay in L1 while every sample uses them
+     * (a paper-size model's 65 kB of weights do not fit a 32 kB L1). */
     for (; r + 8u <= n_out; r += 8u) {
-        const float *w = ly->w + r * stride;
+      const float *w = ly->w + r * stride;
+      for (i = 0; i < n; ++i) {
+        const float *x = xs + i * x_stride;
+        float *y = ys + i * y_stride;
+        const __m256 xt = _mm256_maskload_ps(x + full, mask);
         __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero,
                a7 = zero, s;
         for (j = 0; j < full; j += 8u) {
@@ -206,9 +266,14 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *x, float *y,
         }
         s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(ly->b + r));
         _mm256_storeu_ps(y + r, relu ? _mm256_max_ps(zero, s) : s);
+      }
     }
     if (r + 4u <= n_out) {
-        const float *w = ly->w + r * stride;
+      const float *w = ly->w + r * stride;
+      for (i = 0; i < n; ++i) {
+        const float *x = xs + i * x_stride;
+        float *y = ys + i * y_stride;
+        const __m256 xt = _mm256_maskload_ps(x + full, mask);
         __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero;
         __m128 s;
         FBGF_ROW_LANES(a0, w);
@@ -217,14 +282,19 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *x, float *y,
         FBGF_ROW_LANES(a3, w + 3u * stride);
         s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(ly->b + r));
         _mm_storeu_ps(y + r, relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
-        r += 4u;
+      }
+      r += 4u;
     }
     for (; r < n_out; ++r) {
+      for (i = 0; i < n; ++i) {
+        const float *x = xs + i * x_stride;
+        const __m256 xt = _mm256_maskload_ps(x + full, mask);
         __m256 a = zero;
         float s;
         FBGF_ROW_LANES(a, ly->w + r * stride);
         s = sum1(a) + ly->b[r];
-        y[r] = (relu && s < 0.0f) ? 0.0f : s;
+        ys[i * y_stride + r] = (relu && s < 0.0f) ? 0.0f : s;
+      }
     }
 }
 #undef FBGF_ROW_LANES
@@ -297,26 +367,34 @@ fbgf_kernel fbgf_dense_kernel(void)
 #endif
 }
 
-void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, float *y, int relu)
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
+                size_t y_stride, size_t n, int relu)
 {
-    switch (kernel) {
+    size_t i;
 #ifdef FBGF_HAVE_AVX2
-    case FBGF_KERNEL_AVX2_FMA:
-        dense_avx2(ly, x, y, relu);
+    if (kernel == FBGF_KERNEL_AVX2_FMA) {
+        if (ly->n_in <= 8u)
+            dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);
+        else
+            dense_avx2(ly, x, x_stride, y, y_stride, n, relu);
         return;
+    }
 #endif
+    for (i = 0; i < n; ++i, x += x_stride, y += y_stride) {
+        switch (kernel) {
 #ifdef FBGF_HAVE_SSE2
-    case FBGF_KERNEL_SSE2:
-        dense_sse2(ly, x, y, relu);
-        return;
+        case FBGF_KERNEL_SSE2:
+            dense_sse2(ly, x, y, relu);
+            break;
 #endif
 #ifdef FBGF_HAVE_NEON
-    case FBGF_KERNEL_NEON:
-        dense_neon(ly, x, y, relu);
-        return;
+        case FBGF_KERNEL_NEON:
+            dense_neon(ly, x, y, relu);
+            break;
 #endif
-    default:
-        dense_portable(ly, x, y, relu);
-        return;
+        default:
+            dense_portable(ly, x, y, relu);
+            break;
+        }
     }
 }

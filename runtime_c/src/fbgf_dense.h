@@ -20,12 +20,24 @@
 
 #include "fbgforce.h"
 
+#ifndef FBGF_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && (defined(__GNUC__) || defined(__clang__))
+#define FBGF_SIMD 1
+#else
+#define FBGF_SIMD 0
+#endif
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
 fbgf_kernel fbgf_dense_kernel(void);
 
-/* y[0..n_out) = W x + b, then max(0, .) when relu; x holds n_in values, y does not alias x. */
-void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, float *y, int relu);
+/* For each of n samples i: y_i[0..n_out) = W x_i + b, then max(0, .) when relu, where x_i =
+ * x + i * x_stride holds n_in values and y_i = y + i * y_stride; y does not alias x. A sample's
+ * result does not depend on n or on the other samples: kernels that reuse a block of weights
+ * across samples (while it is in L1) compute each sample exactly as alone. */
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
+                size_t y_stride, size_t n, int relu);
 
 #endif /* FBGF_DENSE_H */
