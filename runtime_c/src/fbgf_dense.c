@@ -125,15 +125,6 @@ FBGF_AVX2 static __m256i tail_mask(unsigned n_in, unsigned full)
     return _mm256_loadu_si256((const __m256i *)(ones + 8u - (n_in - full)));
 }
 
-/* One row's eight lane sums a[k] = sum over j = k (mod 8) of w[j] x[j], fused, j ascending. */
-#define FBGF_ROW_LANES(acc, w)                                                              \
-    do {                                                                                    \
-        for (j = 0; j < full; j += 8u)                                                      \
-            acc = _mm256_fmadd_ps(_mm256_loadu_ps((w) + j), _mm256_loadu_ps(x + j), acc);   \
-        if (full < n_in)                                                                    \
-            acc = _mm256_fmadd_ps(_mm256_maskload_ps((w) + full, mask), xt, acc);           \
-    } while (0)
-
 /* The lane sums of rows 0..7 (a0..a7) added as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7))
  * per row, rows in order; _mm256_hadd_ps adds neighbours within each 128-bit half. The four-
  * and one-row forms below use the same tree, so a row's bits do not depend on its block. */
@@ -222,82 +213,181 @@ FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, s
     }
 }
 
-/* Blocks of eight rows, then four, then single rows; eight lanes, fused multiply-add.
- * _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as the portable kernel. */
+/* The kernels below give row r of one sample the lanes a[k] = sum of w[r][j] x[j] over
+ * j = k (mod 8), fused, j ascending, the inputs past the last full group of eight through
+ * masked loads (`mask`, `full` = n_in rounded down to 8), then sum8/sum4/sum1, then b[r]. They
+ * differ only in how many rows and samples share the loop (registers and loads), not in the
+ * arithmetic. _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as portable. */
+typedef struct {
+    size_t stride;      /* floats from one row of weights to the next (n_in) */
+    unsigned n_in, full;
+    __m256i mask;
+    int relu;
+} dense_shape;
+
+/* Eight rows, one sample: eight independent accumulators. */
+FBGF_AVX2 static void rows8x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    const size_t st = d->stride;
+    const __m256 zero = _mm256_setzero_ps(), xt = _mm256_maskload_ps(x + d->full, d->mask);
+    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero, a7 = zero, s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u) {
+        const __m256 xv = _mm256_loadu_ps(x + j);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + st + j), xv, a1);
+        a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * st + j), xv, a2);
+        a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * st + j), xv, a3);
+        a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 4u * st + j), xv, a4);
+        a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 5u * st + j), xv, a5);
+        a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 6u * st + j), xv, a6);
+        a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 7u * st + j), xv, a7);
+    }
+    if (d->full < d->n_in) {
+        const float *wt = w + d->full;
+        a0 = _mm256_fmadd_ps(_mm256_maskload_ps(wt, d->mask), xt, a0);
+        a1 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + st, d->mask), xt, a1);
+        a2 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 2u * st, d->mask), xt, a2);
+        a3 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 3u * st, d->mask), xt, a3);
+        a4 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 4u * st, d->mask), xt, a4);
+        a5 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 5u * st, d->mask), xt, a5);
+        a6 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 6u * st, d->mask), xt, a6);
+        a7 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 7u * st, d->mask), xt, a7);
+    }
+    s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(b));
+    _mm256_storeu_ps(y, d->relu ? _mm256_max_ps(zero, s) : s);
+}
+
+/* Four rows, two samples: each weight load serves both samples (fewer loads per FMA). */
+FBGF_AVX2 static void rows4x2(const dense_shape *d, const float *w, const float *b, const float *x,
+                              const float *x2, float *y, float *y2)
+{
+    const size_t st = d->stride;
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, c0 = zero, c1 = zero, c2 = zero, c3 = zero, v;
+    __m128 s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u) {
+        const __m256 xv = _mm256_loadu_ps(x + j), xv2 = _mm256_loadu_ps(x2 + j);
+        v = _mm256_loadu_ps(w + j);
+        a0 = _mm256_fmadd_ps(v, xv, a0);
+        c0 = _mm256_fmadd_ps(v, xv2, c0);
+        v = _mm256_loadu_ps(w + st + j);
+        a1 = _mm256_fmadd_ps(v, xv, a1);
+        c1 = _mm256_fmadd_ps(v, xv2, c1);
+        v = _mm256_loadu_ps(w + 2u * st + j);
+        a2 = _mm256_fmadd_ps(v, xv, a2);
+        c2 = _mm256_fmadd_ps(v, xv2, c2);
+        v = _mm256_loadu_ps(w + 3u * st + j);
+        a3 = _mm256_fmadd_ps(v, xv, a3);
+        c3 = _mm256_fmadd_ps(v, xv2, c3);
+    }
+    if (d->full < d->n_in) {
+        const float *wt = w + d->full;
+        const __m256 xt = _mm256_maskload_ps(x + d->full, d->mask);
+        const __m256 xt2 = _mm256_maskload_ps(x2 + d->full, d->mask);
+        v = _mm256_maskload_ps(wt, d->mask);
+        a0 = _mm256_fmadd_ps(v, xt, a0);
+        c0 = _mm256_fmadd_ps(v, xt2, c0);
+        v = _mm256_maskload_ps(wt + st, d->mask);
+        a1 = _mm256_fmadd_ps(v, xt, a1);
+        c1 = _mm256_fmadd_ps(v, xt2, c1);
+        v = _mm256_maskload_ps(wt + 2u * st, d->mask);
+        a2 = _mm256_fmadd_ps(v, xt, a2);
+        c2 = _mm256_fmadd_ps(v, xt2, c2);
+        v = _mm256_maskload_ps(wt + 3u * st, d->mask);
+        a3 = _mm256_fmadd_ps(v, xt, a3);
+        c3 = _mm256_fmadd_ps(v, xt2, c3);
+    }
+    s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(b));
+    _mm_storeu_ps(y, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
+    s = _mm_add_ps(sum4(c0, c1, c2, c3), _mm_loadu_ps(b));
+    _mm_storeu_ps(y2, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
+}
+
+/* Four rows, one sample. */
+FBGF_AVX2 static void rows4x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    const size_t st = d->stride;
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero;
+    __m128 s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u) {
+        const __m256 xv = _mm256_loadu_ps(x + j);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + st + j), xv, a1);
+        a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * st + j), xv, a2);
+        a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * st + j), xv, a3);
+    }
+    if (d->full < d->n_in) {
+        const float *wt = w + d->full;
+        const __m256 xt = _mm256_maskload_ps(x + d->full, d->mask);
+        a0 = _mm256_fmadd_ps(_mm256_maskload_ps(wt, d->mask), xt, a0);
+        a1 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + st, d->mask), xt, a1);
+        a2 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 2u * st, d->mask), xt, a2);
+        a3 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 3u * st, d->mask), xt, a3);
+    }
+    s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(b));
+    _mm_storeu_ps(y, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
+}
+
+/* One row, one sample. */
+FBGF_AVX2 static void rows1x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    __m256 a = _mm256_setzero_ps();
+    float s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u)
+        a = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), _mm256_loadu_ps(x + j), a);
+    if (d->full < d->n_in)
+        a = _mm256_fmadd_ps(_mm256_maskload_ps(w + d->full, d->mask),
+                            _mm256_maskload_ps(x + d->full, d->mask), a);
+    s = sum1(a) + *b;
+    *y = (d->relu && s < 0.0f) ? 0.0f : s;
+}
+
+/* Blocks of eight rows (sample pairs as two four-row halves), then four, then single rows.
+ * Samples inside row blocks: a block's weights stay in L1 while every sample uses them (a
+ * paper-size model's 65 kB of weights do not fit a 32 kB L1). */
 FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
                                 size_t y_stride, size_t n, int relu)
 {
-    const unsigned n_in = ly->n_in, n_out = ly->n_out, full = n_in & ~7u;
-    const size_t stride = n_in;
-    const __m256i mask = tail_mask(n_in, full);
-    const __m256 zero = _mm256_setzero_ps();
-    unsigned r = 0, j;
+    dense_shape d;
+    unsigned r = 0;
     size_t i;
-    /* Samples inside row blocks: a block's weights stay in L1 while every sample uses them
-     * (a paper-size model's 65 kB of weights do not fit a 32 kB L1). */
-    for (; r + 8u <= n_out; r += 8u) {
-      const float *w = ly->w + r * stride;
-      for (i = 0; i < n; ++i) {
-        const float *x = xs + i * x_stride;
-        float *y = ys + i * y_stride;
-        const __m256 xt = _mm256_maskload_ps(x + full, mask);
-        __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero,
-               a7 = zero, s;
-        for (j = 0; j < full; j += 8u) {
-            const __m256 xv = _mm256_loadu_ps(x + j);
-            a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
-            a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + stride + j), xv, a1);
-            a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * stride + j), xv, a2);
-            a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * stride + j), xv, a3);
-            a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 4u * stride + j), xv, a4);
-            a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 5u * stride + j), xv, a5);
-            a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 6u * stride + j), xv, a6);
-            a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 7u * stride + j), xv, a7);
+    d.stride = ly->n_in;
+    d.n_in = ly->n_in;
+    d.full = ly->n_in & ~7u;
+    d.mask = tail_mask(d.n_in, d.full);
+    d.relu = relu;
+    for (; r + 8u <= ly->n_out; r += 8u) {
+        const float *w = ly->w + r * d.stride, *b = ly->b + r;
+        for (i = 0; i + 2u <= n; i += 2u) {
+            const float *x = xs + i * x_stride;
+            float *y = ys + i * y_stride + r;
+            rows4x2(&d, w, b, x, x + x_stride, y, y + y_stride);
+            rows4x2(&d, w + 4u * d.stride, b + 4, x, x + x_stride, y + 4, y + y_stride + 4);
         }
-        if (full < n_in) {
-            a0 = _mm256_fmadd_ps(_mm256_maskload_ps(w + full, mask), xt, a0);
-            a1 = _mm256_fmadd_ps(_mm256_maskload_ps(w + stride + full, mask), xt, a1);
-            a2 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 2u * stride + full, mask), xt, a2);
-            a3 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 3u * stride + full, mask), xt, a3);
-            a4 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 4u * stride + full, mask), xt, a4);
-            a5 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 5u * stride + full, mask), xt, a5);
-            a6 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 6u * stride + full, mask), xt, a6);
-            a7 = _mm256_fmadd_ps(_mm256_maskload_ps(w + 7u * stride + full, mask), xt, a7);
-        }
-        s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(ly->b + r));
-        _mm256_storeu_ps(y + r, relu ? _mm256_max_ps(zero, s) : s);
-      }
+        if (i < n)
+            rows8x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
     }
-    if (r + 4u <= n_out) {
-      const float *w = ly->w + r * stride;
-      for (i = 0; i < n; ++i) {
-        const float *x = xs + i * x_stride;
-        float *y = ys + i * y_stride;
-        const __m256 xt = _mm256_maskload_ps(x + full, mask);
-        __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero;
-        __m128 s;
-        FBGF_ROW_LANES(a0, w);
-        FBGF_ROW_LANES(a1, w + stride);
-        FBGF_ROW_LANES(a2, w + 2u * stride);
-        FBGF_ROW_LANES(a3, w + 3u * stride);
-        s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(ly->b + r));
-        _mm_storeu_ps(y + r, relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
-      }
-      r += 4u;
+    if (r + 4u <= ly->n_out) {
+        const float *w = ly->w + r * d.stride, *b = ly->b + r;
+        for (i = 0; i + 2u <= n; i += 2u)
+            rows4x2(&d, w, b, xs + i * x_stride, xs + (i + 1u) * x_stride, ys + i * y_stride + r,
+                    ys + (i + 1u) * y_stride + r);
+        if (i < n)
+            rows4x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
+        r += 4u;
     }
-    for (; r < n_out; ++r) {
-      for (i = 0; i < n; ++i) {
-        const float *x = xs + i * x_stride;
-        const __m256 xt = _mm256_maskload_ps(x + full, mask);
-        __m256 a = zero;
-        float s;
-        FBGF_ROW_LANES(a, ly->w + r * stride);
-        s = sum1(a) + ly->b[r];
-        ys[i * y_stride + r] = (relu && s < 0.0f) ? 0.0f : s;
-      }
-    }
+    for (; r < ly->n_out; ++r)
+        for (i = 0; i < n; ++i)
+            rows1x1(&d, ly->w + r * d.stride, ly->b + r, xs + i * x_stride, ys + i * y_stride + r);
 }
-#undef FBGF_ROW_LANES
 #endif
 
 #ifdef FBGF_HAVE_NEON

@@ -207,6 +207,17 @@ static const float *fnet(fbgf_kernel kernel, const fbgf_net *net, const float *x
     return x;
 }
 
+/* fir_tap spells out the four strain channels. */
+typedef char fbgf_require_four_strain_channels[FBG_N_STRAIN == 4 ? 1 : -1];
+
+static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN])
+{
+    a[0] += tap * h[0];
+    a[1] += tap * h[1];
+    a[2] += tap * h[2];
+    a[3] += tap * h[3];
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[]. Returns 1 when the nets must run (out->status then holds the
  * status so far), 0 when out is final (*st is what the step returns). */
@@ -241,16 +252,16 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         out->status = status;
         return 0;
     }
-    /* Channels inner: each channel still sums its taps in order, and the four independent
-     * sums can share vector instructions. */
+    /* Taps outer, channels inner: each channel still sums its taps in order (the same bits),
+     * and the four independent sums share vector instructions. The ring is walked as two
+     * straight runs (pos down to 0, then the top down to pos + 1). */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         a[c] = 0.0f;
-    idx = s->pos;
-    for (k = 0; k < m->n_taps; ++k) {
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            a[c] += m->taps[k] * s->hist[idx][c];
-        idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-    }
+    k = 0u;
+    for (idx = s->pos + 1u; idx-- > 0u; ++k)
+        fir_tap(a, m->taps[k], s->hist[idx]);
+    for (idx = m->n_taps; k < m->n_taps; ++k)
+        fir_tap(a, m->taps[k], s->hist[--idx]);
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
