@@ -55,60 +55,66 @@ static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, con
 #endif
 
 #ifdef FBGF_HAVE_SSE2
-/* Four rows x four lanes. _mm_max_ps(0, a) is a < 0 ? 0 : a, NaN and -0 kept, as portable. */
-static void dense_sse2(const fbgf_layer *ly, const float *x, float *y, int relu)
+/* Four rows x four lanes, samples inside row blocks (the block's weights stay in L1).
+ * _mm_max_ps(0, a) is a < 0 ? 0 : a, NaN and -0 kept, as portable. */
+static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                       size_t y_stride, size_t n_samples, int relu)
 {
-    float xp[FBG_MAX_WIDTH + 4], tail[4][4], out[4];
+    float wt[4][4], xt[4], b[4], out[4];
     const unsigned n_in = ly->n_in, full = n_in & ~3u;
     const __m128 zero = _mm_setzero_ps();
     unsigned r0, j, k, n;
-    memcpy(xp, x, n_in * sizeof *x);
-    memset(xp + n_in, 0, 4u * sizeof *xp);
+    size_t i;
     for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
         const float *w[4];
-        __m128 a0 = zero, a1 = zero, a2 = zero, a3 = zero, t0, t1, t2, t3, s;
+        __m128 bias;
         n = block_rows(ly, r0, 4u, w);
-        for (j = 0; j < full; j += 4u) {
-            const __m128 xv = _mm_loadu_ps(xp + j);
-            a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(w[0] + j), xv));
-            a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(w[1] + j), xv));
-            a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(w[2] + j), xv));
-            a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(w[3] + j), xv));
-        }
-        if (full < n_in) {
-            const __m128 xv = _mm_loadu_ps(xp + full);
-            memset(tail, 0, sizeof tail);
-            for (k = 0; k < 4u; ++k)
-                memcpy(tail[k], w[k] + full, (n_in - full) * sizeof(float));
-            a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(tail[0]), xv));
-            a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(tail[1]), xv));
-            a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(tail[2]), xv));
-            a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(tail[3]), xv));
-        }
-        /* Transpose so that t_k holds lane k of every row, then (l0 + l1) + (l2 + l3). */
-        t0 = _mm_unpacklo_ps(a0, a1);   /* a0[0] a1[0] a0[1] a1[1] */
-        t1 = _mm_unpackhi_ps(a0, a1);   /* a0[2] a1[2] a0[3] a1[3] */
-        t2 = _mm_unpacklo_ps(a2, a3);
-        t3 = _mm_unpackhi_ps(a2, a3);
-        a0 = _mm_movelh_ps(t0, t2);     /* lane 0 of rows 0..3 */
-        a1 = _mm_movehl_ps(t2, t0);     /* lane 1 */
-        a2 = _mm_movelh_ps(t1, t3);     /* lane 2 */
-        a3 = _mm_movehl_ps(t3, t1);     /* lane 3 */
-        s = _mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3));
-        if (n == 4u) {
-            s = _mm_add_ps(s, _mm_loadu_ps(ly->b + r0));
-        } else {
-            float b[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-            memcpy(b, ly->b + r0, n * sizeof *b);
-            s = _mm_add_ps(s, _mm_loadu_ps(b));
-        }
-        if (relu)
-            s = _mm_max_ps(zero, s);
-        if (n == 4u) {
-            _mm_storeu_ps(y + r0, s);
-        } else {
-            _mm_storeu_ps(out, s);
-            memcpy(y + r0, out, n * sizeof *out);
+        /* The inputs past the last group of four, zero-filled (weights and inputs). */
+        memset(wt, 0, sizeof wt);
+        for (k = 0; k < 4u; ++k)
+            memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+        memset(b, 0, sizeof b);
+        memcpy(b, ly->b + r0, n * sizeof *b);
+        bias = _mm_loadu_ps(b);
+        for (i = 0; i < n_samples; ++i) {
+            const float *x = xs + i * x_stride;
+            float *y = ys + i * y_stride;
+            __m128 a0 = zero, a1 = zero, a2 = zero, a3 = zero, t0, t1, t2, t3, s;
+            for (j = 0; j < full; j += 4u) {
+                const __m128 xv = _mm_loadu_ps(x + j);
+                a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(w[0] + j), xv));
+                a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(w[1] + j), xv));
+                a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(w[2] + j), xv));
+                a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(w[3] + j), xv));
+            }
+            if (full < n_in) {
+                __m128 xv;
+                memset(xt, 0, sizeof xt);
+                memcpy(xt, x + full, (n_in - full) * sizeof *x);
+                xv = _mm_loadu_ps(xt);
+                a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(wt[0]), xv));
+                a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(wt[1]), xv));
+                a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(wt[2]), xv));
+                a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(wt[3]), xv));
+            }
+            /* Transpose so that t_k holds lane k of every row, then (l0 + l1) + (l2 + l3). */
+            t0 = _mm_unpacklo_ps(a0, a1);   /* a0[0] a1[0] a0[1] a1[1] */
+            t1 = _mm_unpackhi_ps(a0, a1);   /* a0[2] a1[2] a0[3] a1[3] */
+            t2 = _mm_unpacklo_ps(a2, a3);
+            t3 = _mm_unpackhi_ps(a2, a3);
+            a0 = _mm_movelh_ps(t0, t2);     /* lane 0 of rows 0..3 */
+            a1 = _mm_movehl_ps(t2, t0);     /* lane 1 */
+            a2 = _mm_movelh_ps(t1, t3);     /* lane 2 */
+            a3 = _mm_movehl_ps(t3, t1);     /* lane 3 */
+            s = _mm_add_ps(_mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3)), bias);
+            if (relu)
+                s = _mm_max_ps(zero, s);
+            if (n == 4u) {
+                _mm_storeu_ps(y + r0, s);
+            } else {
+                _mm_storeu_ps(out, s);
+                memcpy(y + r0, out, n * sizeof *out);
+            }
         }
     }
 }
@@ -391,52 +397,56 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x
 #endif
 
 #ifdef FBGF_HAVE_NEON
-/* Four rows x four lanes, fused multiply-add; vpaddq adds neighbours, which gives the same
- * (l0 + l1) + (l2 + l3) per row as the SSE2 transpose. */
-static void dense_neon(const fbgf_layer *ly, const float *x, float *y, int relu)
+/* Four rows x four lanes, fused multiply-add, samples inside row blocks as on SSE2; vpaddq
+ * adds neighbours, which gives the same (l0 + l1) + (l2 + l3) per row as the SSE2 transpose. */
+static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                       size_t y_stride, size_t n_samples, int relu)
 {
-    float xp[FBG_MAX_WIDTH + 4], tail[4][4], out[4];
+    float wt[4][4], xt[4], b[4], out[4];
     const unsigned n_in = ly->n_in, full = n_in & ~3u;
     const float32x4_t zero = vdupq_n_f32(0.0f);
     unsigned r0, j, k, n;
-    memcpy(xp, x, n_in * sizeof *x);
-    memset(xp + n_in, 0, 4u * sizeof *xp);
+    size_t i;
     for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
         const float *w[4];
-        float32x4_t a0 = zero, a1 = zero, a2 = zero, a3 = zero, s;
+        float32x4_t bias;
         n = block_rows(ly, r0, 4u, w);
-        for (j = 0; j < full; j += 4u) {
-            const float32x4_t xv = vld1q_f32(xp + j);
-            a0 = vfmaq_f32(a0, vld1q_f32(w[0] + j), xv);
-            a1 = vfmaq_f32(a1, vld1q_f32(w[1] + j), xv);
-            a2 = vfmaq_f32(a2, vld1q_f32(w[2] + j), xv);
-            a3 = vfmaq_f32(a3, vld1q_f32(w[3] + j), xv);
-        }
-        if (full < n_in) {
-            const float32x4_t xv = vld1q_f32(xp + full);
-            memset(tail, 0, sizeof tail);
-            for (k = 0; k < 4u; ++k)
-                memcpy(tail[k], w[k] + full, (n_in - full) * sizeof(float));
-            a0 = vfmaq_f32(a0, vld1q_f32(tail[0]), xv);
-            a1 = vfmaq_f32(a1, vld1q_f32(tail[1]), xv);
-            a2 = vfmaq_f32(a2, vld1q_f32(tail[2]), xv);
-            a3 = vfmaq_f32(a3, vld1q_f32(tail[3]), xv);
-        }
-        s = vpaddq_f32(vpaddq_f32(a0, a1), vpaddq_f32(a2, a3));
-        if (n == 4u) {
-            s = vaddq_f32(s, vld1q_f32(ly->b + r0));
-        } else {
-            float b[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-            memcpy(b, ly->b + r0, n * sizeof *b);
-            s = vaddq_f32(s, vld1q_f32(b));
-        }
-        if (relu)   /* a < 0 ? 0 : a, NaN and -0 kept, as portable */
-            s = vbslq_f32(vcltq_f32(s, zero), zero, s);
-        if (n == 4u) {
-            vst1q_f32(y + r0, s);
-        } else {
-            vst1q_f32(out, s);
-            memcpy(y + r0, out, n * sizeof *out);
+        memset(wt, 0, sizeof wt);
+        for (k = 0; k < 4u; ++k)
+            memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+        memset(b, 0, sizeof b);
+        memcpy(b, ly->b + r0, n * sizeof *b);
+        bias = vld1q_f32(b);
+        for (i = 0; i < n_samples; ++i) {
+            const float *x = xs + i * x_stride;
+            float *y = ys + i * y_stride;
+            float32x4_t a0 = zero, a1 = zero, a2 = zero, a3 = zero, s;
+            for (j = 0; j < full; j += 4u) {
+                const float32x4_t xv = vld1q_f32(x + j);
+                a0 = vfmaq_f32(a0, vld1q_f32(w[0] + j), xv);
+                a1 = vfmaq_f32(a1, vld1q_f32(w[1] + j), xv);
+                a2 = vfmaq_f32(a2, vld1q_f32(w[2] + j), xv);
+                a3 = vfmaq_f32(a3, vld1q_f32(w[3] + j), xv);
+            }
+            if (full < n_in) {
+                float32x4_t xv;
+                memset(xt, 0, sizeof xt);
+                memcpy(xt, x + full, (n_in - full) * sizeof *x);
+                xv = vld1q_f32(xt);
+                a0 = vfmaq_f32(a0, vld1q_f32(wt[0]), xv);
+                a1 = vfmaq_f32(a1, vld1q_f32(wt[1]), xv);
+                a2 = vfmaq_f32(a2, vld1q_f32(wt[2]), xv);
+                a3 = vfmaq_f32(a3, vld1q_f32(wt[3]), xv);
+            }
+            s = vaddq_f32(vpaddq_f32(vpaddq_f32(a0, a1), vpaddq_f32(a2, a3)), bias);
+            if (relu)   /* a < 0 ? 0 : a, NaN and -0 kept, as portable */
+                s = vbslq_f32(vcltq_f32(s, zero), zero, s);
+            if (n == 4u) {
+                vst1q_f32(y + r0, s);
+            } else {
+                vst1q_f32(out, s);
+                memcpy(y + r0, out, n * sizeof *out);
+            }
         }
     }
 }
@@ -461,30 +471,28 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
                 size_t y_stride, size_t n, int relu)
 {
     size_t i;
+    switch (kernel) {
 #ifdef FBGF_HAVE_AVX2
-    if (kernel == FBGF_KERNEL_AVX2_FMA) {
+    case FBGF_KERNEL_AVX2_FMA:
         if (ly->n_in <= 8u)
             dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);
         else
             dense_avx2(ly, x, x_stride, y, y_stride, n, relu);
         return;
-    }
 #endif
-    for (i = 0; i < n; ++i, x += x_stride, y += y_stride) {
-        switch (kernel) {
 #ifdef FBGF_HAVE_SSE2
-        case FBGF_KERNEL_SSE2:
-            dense_sse2(ly, x, y, relu);
-            break;
+    case FBGF_KERNEL_SSE2:
+        dense_sse2(ly, x, x_stride, y, y_stride, n, relu);
+        return;
 #endif
 #ifdef FBGF_HAVE_NEON
-        case FBGF_KERNEL_NEON:
-            dense_neon(ly, x, y, relu);
-            break;
+    case FBGF_KERNEL_NEON:
+        dense_neon(ly, x, x_stride, y, y_stride, n, relu);
+        return;
 #endif
-        default:
-            dense_portable(ly, x, y, relu);
-            break;
-        }
+    default:
+        for (i = 0; i < n; ++i)
+            dense_portable(ly, x + i * x_stride, y + i * y_stride, relu);
+        return;
     }
 }
