@@ -69,13 +69,20 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
         const float *w[4];
         __m128 bias;
         n = block_rows(ly, r0, 4u, w);
-        /* The inputs past the last group of four, zero-filled (weights and inputs). */
-        memset(wt, 0, sizeof wt);
-        for (k = 0; k < 4u; ++k)
-            memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
-        memset(b, 0, sizeof b);
-        memcpy(b, ly->b + r0, n * sizeof *b);
-        bias = _mm_loadu_ps(b);
+        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
+         * per sample, into xt). */
+        if (full < n_in) {
+            memset(wt, 0, sizeof wt);
+            for (k = 0; k < 4u; ++k)
+                memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+        }
+        if (n == 4u) {
+            bias = _mm_loadu_ps(ly->b + r0);
+        } else {
+            memset(b, 0, sizeof b);
+            memcpy(b, ly->b + r0, n * sizeof *b);
+            bias = _mm_loadu_ps(b);
+        }
         for (i = 0; i < n_samples; ++i) {
             const float *x = xs + i * x_stride;
             float *y = ys + i * y_stride;
@@ -411,12 +418,20 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
         const float *w[4];
         float32x4_t bias;
         n = block_rows(ly, r0, 4u, w);
-        memset(wt, 0, sizeof wt);
-        for (k = 0; k < 4u; ++k)
-            memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
-        memset(b, 0, sizeof b);
-        memcpy(b, ly->b + r0, n * sizeof *b);
-        bias = vld1q_f32(b);
+        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
+         * per sample, into xt). */
+        if (full < n_in) {
+            memset(wt, 0, sizeof wt);
+            for (k = 0; k < 4u; ++k)
+                memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+        }
+        if (n == 4u) {
+            bias = vld1q_f32(ly->b + r0);
+        } else {
+            memset(b, 0, sizeof b);
+            memcpy(b, ly->b + r0, n * sizeof *b);
+            bias = vld1q_f32(b);
+        }
         for (i = 0; i < n_samples; ++i) {
             const float *x = xs + i * x_stride;
             float *y = ys + i * y_stride;
