@@ -3,15 +3,19 @@
  * (SSE2 and AVX2+FMA on x86-64, NEON on aarch64); fbgf_dense.h says which one runs.
  *
  * The portable kernel is one chain of dependent adds per output, so it runs at the add
- * latency (about 4 cycles per multiply-add on a desktop core), and the compiler may not
- * vectorise it without reassociating (it must not, under ISO C floating point). The SIMD
- * kernels compute several rows at once with one accumulator per row and lane: the
- * weights are row-major, so lane k of row r holds the products of inputs j = k (mod lanes);
- * each row's lanes are then added pairwise, ((l0 + l1) + (l2 + l3)) [+ ((l4 + l5) + (l6 + l7))
- * on AVX], and the bias last. A row's result does not depend on which block it falls in: the
- * last block of a layer repeats its last row in the unused slots and stores only the rows
- * that exist. Inputs past n_in are multiplied by zero (zero-filled copies or masked loads),
- * and weights past a row are never read.
+ * latency, and the compiler may not vectorise it without reassociating (under ISO C
+ * floating point it must not). The SIMD kernels keep one accumulator per row and lane: the
+ * weights are row-major, so lane k of row r sums the products of inputs j = k (mod lanes),
+ * j ascending; each row's lanes are then added pairwise, ((l0 + l1) + (l2 + l3))
+ * [+ ((l4 + l5) + (l6 + l7)) on AVX], and the bias last. On AVX2, layers with at most eight
+ * inputs (each net's first) use one lane per row instead (dense_avx2_narrow). A row's
+ * result never depends on which block of rows it falls in, on the other samples of a batch,
+ * or on alignment. Inputs past n_in are multiplied by zero (zero-filled copies or masked
+ * loads: exact, the sums never hold -0), and weights past a row are never read.
+ *
+ * Batches (fbgf_run) loop over samples inside each block of rows, so the block's weights are
+ * read from L1 once per sample instead of from L2: a paper-size model's 65 kB of float
+ * weights do not fit a 32 kB L1, and a single step is bound by that traffic.
  */
 #include <string.h>
 
@@ -130,12 +134,12 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
 #ifdef FBGF_HAVE_AVX2
 #define FBGF_AVX2 __attribute__((target("avx2,fma")))
 
-/* Lanes of the inputs 0 .. n_in - full - 1 of the last, partial group of eight: maskload
- * reads nothing past a row (or past x). */
-FBGF_AVX2 static __m256i tail_mask(unsigned n_in, unsigned full)
+/* Lanes 0 .. n - full - 1 on: the inputs of the last, partial group of eight (maskload reads
+ * nothing past a row or past x), or with full = 0 the first n lanes. */
+FBGF_AVX2 static __m256i tail_mask(unsigned n, unsigned full)
 {
     static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
-    return _mm256_loadu_si256((const __m256i *)(ones + 8u - (n_in - full)));
+    return _mm256_loadu_si256((const __m256i *)(ones + 8u - (n - full)));
 }
 
 /* The lane sums of rows 0..7 (a0..a7) added as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7))
@@ -173,15 +177,14 @@ FBGF_AVX2 static float sum1(__m256 a)
 FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
                                         size_t y_stride, size_t n, int relu)
 {
-    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
     const unsigned n_in = ly->n_in, n_out = ly->n_out;
-    const __m256i in_mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - n_in));
+    const __m256i in_mask = tail_mask(n_in, 0u);
     const __m256 zero = _mm256_setzero_ps();
     unsigned r, j, k;
     size_t i;
     for (r = 0; r < n_out; r += 8u) {
         const unsigned rows = n_out - r < 8u ? n_out - r : 8u;
-        const __m256i row_mask = _mm256_loadu_si256((const __m256i *)(ones + 8u - rows));
+        const __m256i row_mask = tail_mask(rows, 0u);
         __m256 c[8], t[8], bias;
         for (k = 0; k < 8u; ++k)
             c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in, in_mask) : zero;
@@ -229,8 +232,7 @@ FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, s
 /* The kernels below give row r of one sample the lanes a[k] = sum of w[r][j] x[j] over
  * j = k (mod 8), fused, j ascending, the inputs past the last full group of eight through
  * masked loads (`mask`, `full` = n_in rounded down to 8), then sum8/sum4/sum1, then b[r]. They
- * differ only in how many rows and samples share the loop (registers and loads), not in the
- * arithmetic. _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as portable. */
+ * differ only in how many rows share the loop, not in the arithmetic. _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as portable. */
 typedef struct {
     size_t stride;      /* floats from one row of weights to the next (n_in) */
     unsigned n_in, full;
@@ -270,53 +272,6 @@ FBGF_AVX2 static void rows8x1(const dense_shape *d, const float *w, const float 
     }
     s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(b));
     _mm256_storeu_ps(y, d->relu ? _mm256_max_ps(zero, s) : s);
-}
-
-/* Four rows, two samples: each weight load serves both samples (fewer loads per FMA). */
-FBGF_AVX2 static void rows4x2(const dense_shape *d, const float *w, const float *b, const float *x,
-                              const float *x2, float *y, float *y2)
-{
-    const size_t st = d->stride;
-    const __m256 zero = _mm256_setzero_ps();
-    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, c0 = zero, c1 = zero, c2 = zero, c3 = zero, v;
-    __m128 s;
-    unsigned j;
-    for (j = 0; j < d->full; j += 8u) {
-        const __m256 xv = _mm256_loadu_ps(x + j), xv2 = _mm256_loadu_ps(x2 + j);
-        v = _mm256_loadu_ps(w + j);
-        a0 = _mm256_fmadd_ps(v, xv, a0);
-        c0 = _mm256_fmadd_ps(v, xv2, c0);
-        v = _mm256_loadu_ps(w + st + j);
-        a1 = _mm256_fmadd_ps(v, xv, a1);
-        c1 = _mm256_fmadd_ps(v, xv2, c1);
-        v = _mm256_loadu_ps(w + 2u * st + j);
-        a2 = _mm256_fmadd_ps(v, xv, a2);
-        c2 = _mm256_fmadd_ps(v, xv2, c2);
-        v = _mm256_loadu_ps(w + 3u * st + j);
-        a3 = _mm256_fmadd_ps(v, xv, a3);
-        c3 = _mm256_fmadd_ps(v, xv2, c3);
-    }
-    if (d->full < d->n_in) {
-        const float *wt = w + d->full;
-        const __m256 xt = _mm256_maskload_ps(x + d->full, d->mask);
-        const __m256 xt2 = _mm256_maskload_ps(x2 + d->full, d->mask);
-        v = _mm256_maskload_ps(wt, d->mask);
-        a0 = _mm256_fmadd_ps(v, xt, a0);
-        c0 = _mm256_fmadd_ps(v, xt2, c0);
-        v = _mm256_maskload_ps(wt + st, d->mask);
-        a1 = _mm256_fmadd_ps(v, xt, a1);
-        c1 = _mm256_fmadd_ps(v, xt2, c1);
-        v = _mm256_maskload_ps(wt + 2u * st, d->mask);
-        a2 = _mm256_fmadd_ps(v, xt, a2);
-        c2 = _mm256_fmadd_ps(v, xt2, c2);
-        v = _mm256_maskload_ps(wt + 3u * st, d->mask);
-        a3 = _mm256_fmadd_ps(v, xt, a3);
-        c3 = _mm256_fmadd_ps(v, xt2, c3);
-    }
-    s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(b));
-    _mm_storeu_ps(y, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
-    s = _mm_add_ps(sum4(c0, c1, c2, c3), _mm_loadu_ps(b));
-    _mm_storeu_ps(y2, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
 }
 
 /* Four rows, one sample. */
@@ -363,9 +318,7 @@ FBGF_AVX2 static void rows1x1(const dense_shape *d, const float *w, const float 
     *y = (d->relu && s < 0.0f) ? 0.0f : s;
 }
 
-/* Blocks of eight rows (sample pairs as two four-row halves), then four, then single rows.
- * Samples inside row blocks: a block's weights stay in L1 while every sample uses them (a
- * paper-size model's 65 kB of weights do not fit a 32 kB L1). */
+/* Blocks of eight rows, then four, then single rows, samples inside each block. */
 FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
                                 size_t y_stride, size_t n, int relu)
 {
@@ -379,21 +332,12 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x
     d.relu = relu;
     for (; r + 8u <= ly->n_out; r += 8u) {
         const float *w = ly->w + r * d.stride, *b = ly->b + r;
-        for (i = 0; i + 2u <= n; i += 2u) {
-            const float *x = xs + i * x_stride;
-            float *y = ys + i * y_stride + r;
-            rows4x2(&d, w, b, x, x + x_stride, y, y + y_stride);
-            rows4x2(&d, w + 4u * d.stride, b + 4, x, x + x_stride, y + 4, y + y_stride + 4);
-        }
-        if (i < n)
+        for (i = 0; i < n; ++i)
             rows8x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
     }
     if (r + 4u <= ly->n_out) {
         const float *w = ly->w + r * d.stride, *b = ly->b + r;
-        for (i = 0; i + 2u <= n; i += 2u)
-            rows4x2(&d, w, b, xs + i * x_stride, xs + (i + 1u) * x_stride, ys + i * y_stride + r,
-                    ys + (i + 1u) * y_stride + r);
-        if (i < n)
+        for (i = 0; i < n; ++i)
             rows4x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
         r += 4u;
     }

@@ -9,11 +9,12 @@
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
  *
- * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment or
- * earlier calls), so a given build on a given CPU gives the same bits for the same inputs.
- * The SIMD kernels reassociate the sums (lanes, then a fixed tree) and, on AVX2 and NEON,
- * fuse multiply and add, so their results differ from the portable kernel's by float32
- * rounding only (tests/test_float_simd.py bounds it).
+ * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
+ * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
+ * the same bits for the same inputs, and fbgf_run the bits of fbgf_step. The SIMD kernels
+ * reassociate the sums (lanes, then a fixed tree; fbgf_dense.c) and, on AVX2 and NEON, fuse
+ * multiply and add, so their results differ from the portable kernel's by float32 rounding
+ * (tests/test_float_simd.py bounds it; docs/runtime.md, "Float build: speed").
  */
 #ifndef FBGF_DENSE_H
 #define FBGF_DENSE_H
