@@ -147,9 +147,12 @@ def _float32_parameters(model: fm.HierarchicalModel) -> None:
 
 @pytest.fixture(scope="module")
 def case(random_model_factory, random_walk_factory, tmp_path_factory):
-    """A random model with every kind of memory state (8 net inputs), its C source, a random
+    """A random model with every kind of memory state (10 net inputs), its C source, a random
     walk and the float64 model's outputs on it."""
-    memory = fm.Memory(ema_shifts=(3, 6), ema_gains=(1, 0), play_widths=(0.05, 0.2), play_gains=(1, 0))
+    # 10 net inputs: the AVX2 kernel for first layers takes them as one full and one partial
+    # block of eight.
+    memory = fm.Memory(ema_shifts=(2, 4, 7), ema_gains=(1, 1, 0), play_widths=(0.03, 0.1, 0.3),
+                       play_gains=(2, 1, 0))
     model = random_model_factory(seed=3, memory=memory)
     wl = random_walk_factory(model, SAMPLES, seed=4)
     base = np.asarray(model.baseline_nm, dtype=np.float64)

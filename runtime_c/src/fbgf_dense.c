@@ -7,7 +7,7 @@
  * floating point it must not). The SIMD kernels keep one accumulator per row and lane: the
  * weights are row-major, so lane k of row r sums the products of inputs j = k (mod lanes),
  * j ascending; each row's lanes are then added pairwise, ((l0 + l1) + (l2 + l3))
- * [+ ((l4 + l5) + (l6 + l7)) on AVX], and the bias last. On AVX2, layers with at most eight
+ * [+ ((l4 + l5) + (l6 + l7)) on AVX], and the bias last. On AVX2, layers with at most 16
  * inputs (each net's first) use one lane per row instead (dense_avx2_narrow). A row's
  * result never depends on which block of rows it falls in, on the other samples of a batch,
  * or on alignment. Inputs past n_in are multiplied by zero (zero-filled copies or masked
@@ -169,56 +169,67 @@ FBGF_AVX2 static float sum1(__m256 a)
     return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1)));
 }
 
-/* Layers with at most eight inputs (the first layer of each net): one row per lane instead.
- * Eight rows are loaded once per block and transposed, so that column j (the weights of
- * input j in rows r..r+7) is one vector; each sample then needs n_in fused multiply-adds
- * with its broadcast input and no horizontal sums: output r is b[r] followed by
- * fma(w[r][j], x[j], .) for j ascending, the portable order with fused steps. */
+/* c[k] = row k of an 8 x 8 block -> col[j] = column j. */
+FBGF_AVX2 static void transpose8(const __m256 c[8], __m256 col[8])
+{
+    __m256 t[8], u[8];
+    t[0] = _mm256_unpacklo_ps(c[0], c[1]);
+    t[1] = _mm256_unpackhi_ps(c[0], c[1]);
+    t[2] = _mm256_unpacklo_ps(c[2], c[3]);
+    t[3] = _mm256_unpackhi_ps(c[2], c[3]);
+    t[4] = _mm256_unpacklo_ps(c[4], c[5]);
+    t[5] = _mm256_unpackhi_ps(c[4], c[5]);
+    t[6] = _mm256_unpacklo_ps(c[6], c[7]);
+    t[7] = _mm256_unpackhi_ps(c[6], c[7]);
+    u[0] = _mm256_shuffle_ps(t[0], t[2], 0x44);
+    u[1] = _mm256_shuffle_ps(t[0], t[2], 0xEE);
+    u[2] = _mm256_shuffle_ps(t[1], t[3], 0x44);
+    u[3] = _mm256_shuffle_ps(t[1], t[3], 0xEE);
+    u[4] = _mm256_shuffle_ps(t[4], t[6], 0x44);
+    u[5] = _mm256_shuffle_ps(t[4], t[6], 0xEE);
+    u[6] = _mm256_shuffle_ps(t[5], t[7], 0x44);
+    u[7] = _mm256_shuffle_ps(t[5], t[7], 0xEE);
+    col[0] = _mm256_permute2f128_ps(u[0], u[4], 0x20);
+    col[1] = _mm256_permute2f128_ps(u[1], u[5], 0x20);
+    col[2] = _mm256_permute2f128_ps(u[2], u[6], 0x20);
+    col[3] = _mm256_permute2f128_ps(u[3], u[7], 0x20);
+    col[4] = _mm256_permute2f128_ps(u[0], u[4], 0x31);
+    col[5] = _mm256_permute2f128_ps(u[1], u[5], 0x31);
+    col[6] = _mm256_permute2f128_ps(u[2], u[6], 0x31);
+    col[7] = _mm256_permute2f128_ps(u[3], u[7], 0x31);
+}
+
+/* Layers with at most FBGF_NARROW inputs (each net's first: FBG_MAX_INPUTS): one lane per
+ * row instead. Eight rows are loaded once per block and transposed, so that column j (the
+ * weights of input j in rows r..r+7) is one vector; each sample then needs n_in fused
+ * multiply-adds with its broadcast input and no horizontal sums: output r is b[r] followed
+ * by fma(w[r][j], x[j], .) for j ascending, the portable order with fused steps. */
+#define FBGF_NARROW 16u
+typedef char fbgf_require_narrow_first_layers[FBG_MAX_INPUTS <= FBGF_NARROW ? 1 : -1];
+
 FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
                                         size_t y_stride, size_t n, int relu)
 {
     const unsigned n_in = ly->n_in, n_out = ly->n_out;
-    const __m256i in_mask = tail_mask(n_in, 0u);
     const __m256 zero = _mm256_setzero_ps();
-    unsigned r, j, k;
+    unsigned r, j, k, j0;
     size_t i;
     for (r = 0; r < n_out; r += 8u) {
         const unsigned rows = n_out - r < 8u ? n_out - r : 8u;
         const __m256i row_mask = tail_mask(rows, 0u);
-        __m256 c[8], t[8], bias;
-        for (k = 0; k < 8u; ++k)
-            c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in, in_mask) : zero;
-        /* 8 x 8 transpose: c[k] = row k -> c[j] = column j. */
-        t[0] = _mm256_unpacklo_ps(c[0], c[1]);
-        t[1] = _mm256_unpackhi_ps(c[0], c[1]);
-        t[2] = _mm256_unpacklo_ps(c[2], c[3]);
-        t[3] = _mm256_unpackhi_ps(c[2], c[3]);
-        t[4] = _mm256_unpacklo_ps(c[4], c[5]);
-        t[5] = _mm256_unpackhi_ps(c[4], c[5]);
-        t[6] = _mm256_unpacklo_ps(c[6], c[7]);
-        t[7] = _mm256_unpackhi_ps(c[6], c[7]);
-        c[0] = _mm256_shuffle_ps(t[0], t[2], 0x44);
-        c[1] = _mm256_shuffle_ps(t[0], t[2], 0xEE);
-        c[2] = _mm256_shuffle_ps(t[1], t[3], 0x44);
-        c[3] = _mm256_shuffle_ps(t[1], t[3], 0xEE);
-        c[4] = _mm256_shuffle_ps(t[4], t[6], 0x44);
-        c[5] = _mm256_shuffle_ps(t[4], t[6], 0xEE);
-        c[6] = _mm256_shuffle_ps(t[5], t[7], 0x44);
-        c[7] = _mm256_shuffle_ps(t[5], t[7], 0xEE);
-        t[0] = _mm256_permute2f128_ps(c[0], c[4], 0x20);
-        t[1] = _mm256_permute2f128_ps(c[1], c[5], 0x20);
-        t[2] = _mm256_permute2f128_ps(c[2], c[6], 0x20);
-        t[3] = _mm256_permute2f128_ps(c[3], c[7], 0x20);
-        t[4] = _mm256_permute2f128_ps(c[0], c[4], 0x31);
-        t[5] = _mm256_permute2f128_ps(c[1], c[5], 0x31);
-        t[6] = _mm256_permute2f128_ps(c[2], c[6], 0x31);
-        t[7] = _mm256_permute2f128_ps(c[3], c[7], 0x31);
+        __m256 c[8], col[FBGF_NARROW], bias;
+        for (j0 = 0; j0 < n_in; j0 += 8u) {
+            const __m256i in_mask = tail_mask(n_in - j0 < 8u ? n_in - j0 : 8u, 0u);
+            for (k = 0; k < 8u; ++k)
+                c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in + j0, in_mask) : zero;
+            transpose8(c, col + j0);
+        }
         bias = _mm256_maskload_ps(ly->b + r, row_mask);
         for (i = 0; i < n; ++i) {
             const float *x = xs + i * x_stride;
             __m256 a = bias;
             for (j = 0; j < n_in; ++j)
-                a = _mm256_fmadd_ps(t[j], _mm256_broadcast_ss(x + j), a);
+                a = _mm256_fmadd_ps(col[j], _mm256_broadcast_ss(x + j), a);
             if (relu)
                 a = _mm256_max_ps(zero, a);
             if (rows == 8u)
@@ -232,7 +243,8 @@ FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, s
 /* The kernels below give row r of one sample the lanes a[k] = sum of w[r][j] x[j] over
  * j = k (mod 8), fused, j ascending, the inputs past the last full group of eight through
  * masked loads (`mask`, `full` = n_in rounded down to 8), then sum8/sum4/sum1, then b[r]. They
- * differ only in how many rows share the loop, not in the arithmetic. _mm256_max_ps(0, a) is a < 0 ? 0 : a with NaN and -0 kept, as portable. */
+ * differ only in how many rows share the loop, not in the arithmetic. _mm256_max_ps(0, a) is
+ * a < 0 ? 0 : a with NaN and -0 kept, as portable. */
 typedef struct {
     size_t stride;      /* floats from one row of weights to the next (n_in) */
     unsigned n_in, full;
@@ -433,7 +445,7 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
     switch (kernel) {
 #ifdef FBGF_HAVE_AVX2
     case FBGF_KERNEL_AVX2_FMA:
-        if (ly->n_in <= 8u)
+        if (ly->n_in <= FBGF_NARROW)
             dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);
         else
             dense_avx2(ly, x, x_stride, y, y_stride, n, relu);
