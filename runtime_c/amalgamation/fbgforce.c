@@ -3474,11 +3474,20 @@ FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, s
         const unsigned rows = n_out - r < 8u ? n_out - r : 8u;
         const __m256i row_mask = tail_mask(rows, 0u);
         __m256 c[8], col[FBGF_NARROW], bias;
-        for (j0 = 0; j0 < n_in; j0 += 8u) {
-            const __m256i in_mask = tail_mask(n_in - j0 < 8u ? n_in - j0 : 8u, 0u);
+        if (n_in <= 8u) {
+            /* One block of columns: the common case kept free of the loop below. */
+            const __m256i in_mask = tail_mask(n_in, 0u);
             for (k = 0; k < 8u; ++k)
-                c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in + j0, in_mask) : zero;
-            transpose8(c, col + j0);
+                c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in, in_mask) : zero;
+            transpose8(c, col);
+        } else {
+            for (j0 = 0; j0 < n_in; j0 += 8u) {
+                const __m256i in_mask = tail_mask(n_in - j0 < 8u ? n_in - j0 : 8u, 0u);
+                for (k = 0; k < 8u; ++k)
+                    c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in + j0, in_mask)
+                                    : zero;
+                transpose8(c, col + j0);
+            }
         }
         bias = _mm256_maskload_ps(ly->b + r, row_mask);
         for (i = 0; i < n; ++i) {
