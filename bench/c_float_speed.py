@@ -152,8 +152,14 @@ def main(argv: list[str] | None = None) -> int:
         from fbgforce.tare import tare
         from fbgforce.tradeoff.timers import timing_samples
 
-        model = fm.load(args.model)
-        ds = fds.load(args.data)
+        from fbgforce.errors import InputError
+
+        try:
+            model = fm.load(args.model)
+            ds = fds.load(args.data)
+        except InputError as exc:
+            print(f"c_float_speed: {exc}", file=sys.stderr)
+            return 2
         base = tare(ds.wl_nm, ds.contact, ds.t_s)[0]
         wl = timing_samples(ds)[:args.samples]
     ref = fm.predict(model, wl, base)
