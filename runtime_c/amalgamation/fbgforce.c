@@ -3303,7 +3303,7 @@ static void dense_portable(const fbgf_layer *ly, const float *x, float *y, int r
 }
 
 #if defined(FBGF_HAVE_SSE2) || defined(FBGF_HAVE_NEON)
-/* The row pointers of the block of rows r0.. (at most `lanes` rows; short blocks repeat the
+/* The row pointers of the block of rows r0.. (`rows` of them; a short last block repeats the
  * last row) and how many of them are real. */
 static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, const float **w)
 {
@@ -4377,8 +4377,8 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         out->status = status;
         return 0;
     }
-    /* Taps outer, channels inner: each channel still sums its taps in order (the same bits),
-     * and the four independent sums share vector instructions. The ring is walked as two
+    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
+     * and the four independent sums can share vector instructions. The ring is walked as two
      * straight runs (pos down to 0, then the top down to pos + 1). */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         a[c] = 0.0f;

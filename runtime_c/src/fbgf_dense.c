@@ -47,7 +47,7 @@ static void dense_portable(const fbgf_layer *ly, const float *x, float *y, int r
 }
 
 #if defined(FBGF_HAVE_SSE2) || defined(FBGF_HAVE_NEON)
-/* The row pointers of the block of rows r0.. (at most `lanes` rows; short blocks repeat the
+/* The row pointers of the block of rows r0.. (`rows` of them; a short last block repeats the
  * last row) and how many of them are real. */
 static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, const float **w)
 {

@@ -252,8 +252,8 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         out->status = status;
         return 0;
     }
-    /* Taps outer, channels inner: each channel still sums its taps in order (the same bits),
-     * and the four independent sums share vector instructions. The ring is walked as two
+    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
+     * and the four independent sums can share vector instructions. The ring is walked as two
      * straight runs (pos down to 0, then the top down to pos + 1). */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         a[c] = 0.0f;
