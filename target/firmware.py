@@ -49,6 +49,11 @@ def _symbols(elf: Path, functions_only: bool = False) -> dict[str, tuple[int, in
     return syms
 
 
+def function_ranges(elf: Path) -> dict[str, tuple[int, int]]:
+    """``{function: (address, size)}`` of every sized function symbol of ``elf``."""
+    return {k: v for k, v in _symbols(elf, functions_only=True).items() if v[1] > 0}
+
+
 #: Functions of the replay harness itself, left out of the per-function profile.
 HARNESS_FUNCTIONS = {"main", "paint_stack", "report_mismatch", "current_sp", "stack_used_below",
                      "Reset_Handler", "Fault_Handler", "sh_exit", "sh_puts", "sh_putu", "sh_puti",
@@ -65,6 +70,8 @@ class FirmwareRun:
     insns_total: int
     console: str
     profile: dict[str, int] = field(default_factory=dict)
+    #: The worst window instruction by instruction: (address, executed, taken, sequential in).
+    worst_pcs: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 def run_firmware(build: Path, timeout: float = 300.0) -> FirmwareRun:
@@ -92,7 +99,7 @@ def run_firmware(build: Path, timeout: float = 300.0) -> FirmwareRun:
         if line.startswith("FBG_RESULT"):
             result = {k: int(v) for k, v in re.findall(r"(\w+)=(-?\d+)", line)}
     mism = [ln for ln in console.splitlines() if ln.startswith("FBG_MISMATCH")]
-    windows, total, by_lo = [], 0, {}
+    windows, total, by_lo, pcs = [], 0, {}, []
     if out.is_file():
         for line in out.read_text().splitlines():
             key, _, val = line.partition(" ")
@@ -103,9 +110,12 @@ def run_firmware(build: Path, timeout: float = 300.0) -> FirmwareRun:
             elif key == "range":
                 lo, _, cnt = val.split()
                 by_lo[int(lo)] = int(cnt)
+            elif key == "pc":
+                a, e, t, q = (int(v) for v in val.split())
+                pcs.append((a, e, t, q))
     profile = {name: by_lo.get(lo, 0) for name, (lo, _) in funcs.items()}
     return FirmwareRun(r.returncode, result, mism, windows, total, console,
-                       {k: v for k, v in sorted(profile.items(), key=lambda kv: -kv[1]) if v})
+                       {k: v for k, v in sorted(profile.items(), key=lambda kv: -kv[1]) if v}, pcs)
 
 
 _MAP_LINE = re.compile(r"^\s+0x[0-9a-fA-F]+\s+0x([0-9a-fA-F]+)\s+(\S.*)$")

@@ -13,7 +13,7 @@ from fbgforce.errors import InputError
 from fbgforce.sim import EndEffector, builtin_scenes, build_schedule, load_scene, simulate
 
 SPEC_SCENES = {"calibration", "ideal", "thermal_soak", "impact", "low_force", "boundary",
-               "overload", "two_devices", "smoke"}
+               "overload", "two_devices", "smoke", "calibration_holds"}
 
 
 def small(name: str, n_presses: int = 12):
@@ -28,6 +28,18 @@ def test_builtin_scenes_all_load_and_schedule():
         sched = build_schedule(scene)
         assert len(sched) > 0 and np.all(np.diff(sched.t_s) > 0)
         assert not sched.contact[: int(0.2 * scene.sample_rate_hz)].any(), name  # tare window
+
+
+def test_calibration_holds_dwells_at_every_peak():
+    """The dwell protocol: each press holds its peak load for hold_s, on the calibration device."""
+    scene = small("calibration_holds", 3)
+    assert scene.schedule["hold_s"] == 0.5
+    assert scene.effects == load_scene("calibration").effects
+    sched = build_schedule(scene)
+    for p in np.unique(sched.press_id[sched.contact]):
+        f = sched.truth_force_N[sched.press_id == p]
+        at_peak = np.isclose(f, f.max(), rtol=1e-9)
+        assert at_peak.sum() >= int(0.5 * scene.sample_rate_hz) - 1, p
 
 
 def test_ideal_inverts_exactly_through_the_nominal_model():

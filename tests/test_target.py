@@ -113,12 +113,14 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     assert int(fields["fast"]) > 300 and int(fields["first"]) > 100 and int(fields["int8"]) > 300
     assert 100 < int(fields["aligned"]) < int(fields["fast"]) - 100  # both rows3 variants
     assert int(fields["saturated"]) > 100
-    # int32 layers (acc32): SMLAD/SMMULR kernels (first32_asm, rows4d32_asm) and the C rows,
-    # with half the cases driving row 0's accumulator exactly to the loader's int32 bound.
+    # int32 layers (acc32): SMLAD/SMMULR pair kernels (first2d32_asm, rows2d32_asm) and the C
+    # rows, with half the cases driving row 0's accumulator exactly to the loader's int32 bound;
+    # int8 weights through rows2b32_asm / first2b32_asm and the C rows.
     assert int(fields["acc32"]) > 500 and int(fields["acc32_fast"]) > 40
     assert int(fields["acc32_first"]) > 30 and int(fields["acc32_at_bound"]) > 400
     assert int(fields["acc32_saturated"]) > 100
     assert int(fields["acc32_int8"]) > 300 and int(fields["acc32_int8_saturated"]) > 100
+    assert int(fields["acc32_int8_fast"]) > 50
 
 
 def test_golden_vectors_bit_exact_on_target_both_builds(report):
@@ -143,11 +145,8 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # unaligned fallback, and no input is copied. The exporter proves int32 accumulators for
     # this model's layers, so the SMLAD/SMMULR kernels run (docs/fixed-point.md).
     prof = dsp["profile_per_step"]
-    assert "rows4d32_asm" in prof and "rows3_asm" not in prof
-    from fbgforce import model as fm
-
-    if fm.load(small_model_dir).preprocess.n_features in (2, 4, 6):
-        assert "first32_asm" in prof      # inputs held in registers (no memory features)
+    assert "rows2d32_asm" in prof and "rows3_asm" not in prof
+    assert "first2d32_asm" in prof  # first layers (<= 8 inputs): inputs held in registers
     assert "memcpy" not in prof
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]
@@ -160,6 +159,23 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # of weights and code at the default memory): 52 KB (docs/firmware.md).
     assert report["flash_bytes"] < 52 * 1024
     assert report["ram_bytes"] < 4 * 1024
+
+
+def test_cycle_estimate_of_the_worst_step(report):
+    """Cycles from the worst step's instruction mix: every executed instruction priced (the
+    mix adds up to the worst step's count), more cycles than instructions (loads, LDM, taken
+    branches), the range ordered by pipeline-refill cost."""
+    dsp = report["builds"]["dsp"]
+    mix = dsp["cycle_mix"]
+    assert sum(n for n, _ in mix.values()) == dsp["instructions_per_step"]
+    assert sum(c for _, c in mix.values()) == dsp["cycles_per_step_estimate"]
+    lo, hi = dsp["cycles_per_step_range"]
+    assert lo < dsp["cycles_per_step_estimate"] < hi
+    assert 1.0 < dsp["cycles_per_instruction"] < 3.0
+    assert mix["multiply"][0] > 0 and mix["load_store_multiple"][0] > 0
+    assert sum(dsp["worst_step_by_function"].values()) == dsp["instructions_per_step"]
+    assert report["budget_fraction_cycles_at_168MHz"] == pytest.approx(
+        dsp["cycles_per_step_estimate"] / 168_000, abs=1e-4)
 
 
 def test_counts_are_deterministic(report):

@@ -10,7 +10,7 @@ from fbgforce.errors import InputError
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``tradeoff`` subcommand."""
+    """Add the ``tradeoff`` and ``bench-speed`` subcommands."""
     from fbgforce.cli import add_json_flag
 
     p = subparsers.add_parser(
@@ -45,6 +45,99 @@ def register(subparsers: Any) -> None:
                    help="skip the Cortex-M4 instruction counts (fbgforce target-report)")
     add_json_flag(p)
     p.set_defaults(handler=_handler)
+    _register_bench_speed(subparsers)
+
+
+def _register_bench_speed(subparsers: Any) -> None:
+    from fbgforce.cli import add_json_flag, positive_int
+
+    p = subparsers.add_parser(
+        "bench-speed", help="every engine timed side by side in one run, with ratios",
+        description="Time one model in every engine on the same contact samples in one run: "
+                    "the C runtime int16, int8 and float (batch and single-sample, from Python "
+                    "through cffi and from C through a compiled driver), numpy float64 and "
+                    "onnxruntime float32 (whole pipeline and nets only, batch and single-sample); "
+                    "per-sample CPU time, the ratio to onnxruntime's batch over the nets, and "
+                    "instructions per step counted by callgrind (valgrind). Prints a Markdown "
+                    "table; --out writes the JSON (keys in docs/cli.md).")
+    p.add_argument("--model", required=True, metavar="DIR",
+                   help="trained model directory with its int16 export (fbgforce export)")
+    p.add_argument("--int8", metavar="DIR", help="the int8 export of the same model (fbgforce "
+                   "export --bits 8 on a copy); default: exported here, calibrated on the data")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", metavar="FILE", help="recording in the dataset contract")
+    src.add_argument("--scene", metavar="NAME", help="simulate this scene (name or TOML path)")
+    p.add_argument("--seed", type=int, default=0, help="simulation seed for --scene")
+    p.add_argument("--samples", type=positive_int, default=5000,
+                   help="contact samples timed (default 5000)")
+    p.add_argument("--batch", type=positive_int, default=2000,
+                   help="samples per batch call from Python, the same for every engine "
+                        "(default 2000; from C one batch is all samples)")
+    p.add_argument("--single-calls", type=positive_int, default=3000,
+                   help="single-sample calls timed per engine from Python (default 3000)")
+    p.add_argument("--rounds", type=positive_int, default=6,
+                   help="interleaved rounds of the Python timing (default 6)")
+    p.add_argument("--reps", type=positive_int, default=7,
+                   help="passes over the samples from C; the best counts (default 7)")
+    p.add_argument("--count-samples", type=positive_int, default=200,
+                   help="consecutive contact steps counted by callgrind per engine and build "
+                        "(default 200)")
+    p.add_argument("--count-warmup", type=int, default=100, metavar="N",
+                   help="the counted steps start at or after this step of the stream "
+                        "(filter and memory warm-up; default 100)")
+    p.add_argument("--c-build", action="append", default=None, metavar="NAME=FLAGS",
+                   help="a driver build: compiler flags for runtime_c/src/*.c and the driver, "
+                        "e.g. 'O2=-O2' or 'native=-O3 -march=native'; repeat for several. "
+                        "Always measured: 'as-extension', the cffi extension's flags")
+    p.add_argument("--no-kernels", action="store_true",
+                   help="skip the builds per dense-layer kernel (FBG_OPT_KERNEL_*)")
+    p.add_argument("--no-callgrind", action="store_true", help="skip the instruction counts")
+    p.add_argument("--out", metavar="FILE", help="write the JSON result here")
+    add_json_flag(p)
+    p.set_defaults(handler=_bench_speed_handler)
+
+
+def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
+    import json
+    import tempfile
+
+    from fbgforce.jsonutil import json_default
+    from fbgforce.tradeoff.artifacts import prepare_data
+    from fbgforce.tradeoff.cdriver import parse_build
+    from fbgforce.tradeoff.speed import SpeedSettings, bench_speed, markdown_table
+
+    builds = []
+    for text in args.c_build or ():
+        try:
+            builds.append(parse_build(text))
+        except ValueError as exc:
+            raise InputError(str(exc), column="--c-build") from exc
+    s = SpeedSettings(samples=args.samples, batch=args.batch, single_calls=args.single_calls, rounds=args.rounds,
+                      c_reps=args.reps, count_samples=args.count_samples,
+                      count_warmup=max(0, args.count_warmup),
+                      callgrind=not args.no_callgrind, kernels=not args.no_kernels,
+                      builds=tuple(builds))
+
+    def log(msg: str) -> None:
+        print(f"bench-speed: {msg}", file=sys.stderr, flush=True)
+
+    out = Path(args.out) if args.out else None
+    if out is not None and not out.parent.is_dir():
+        raise InputError("the directory of the output file does not exist", path=str(out),
+                         column="--out")
+    with tempfile.TemporaryDirectory(prefix="fbgforce-scene-") as tmp:
+        data = prepare_data([args.data] if args.data else None, args.scene, Path(tmp), args.seed,
+                            log)[0]
+        # Stage lines where no progress bar shows (stderr not a terminal: logs, CI).
+        res = bench_speed(args.model, data, s, int8_dir=args.int8,
+                          log=(lambda m: None) if sys.stderr.isatty() else log)
+    if args.scene:  # the simulated file was temporary: name what made it
+        res["data"] = f"scene {args.scene} (seed {args.seed}, simulated)"
+    if out is not None:
+        out.write_text(json.dumps(res, indent=1, default=json_default) + "\n")
+    if not args.json:
+        print(markdown_table(res))
+    return res
 
 
 def _handler(args: argparse.Namespace) -> dict[str, Any]:

@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
+
+from fbgforce import contract
 
 WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
 #: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both": two averages
@@ -119,3 +122,10 @@ def scaled_sizes(width: str) -> dict[str, list[int]]:
 
     f = WIDTHS[width]
     return {k: [max(2, int(round(h * f))) for h in v] for k, v in DEFAULT_SIZES.items()}
+
+
+def step_macs(model: Any) -> int:
+    """Multiply-accumulates of one full step of ``model`` (a ``HierarchicalModel``): the
+    causal filter (strain channels x taps) and every layer of the three nets."""
+    pre = model.preprocess
+    return int(model.macs) + (0 if pre.filter_kind == "none" else contract.N_STRAIN * int(pre.taps.size))

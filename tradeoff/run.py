@@ -17,7 +17,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import artifacts, scoring, timing
 from fbgforce.tradeoff.grid import (ENGINE_SPECS, EngineSpec, Settings, Variant, scaled_sizes,
-                                    variants)
+                                    step_macs, variants)
 from fbgforce.tradeoff.outputs import summary_paragraph, write_outputs
 from fbgforce.tradeoff.timers import make_timer, timing_samples
 
@@ -61,11 +61,6 @@ def _model_bytes(spec: EngineSpec, model: fm.HierarchicalModel, model_dir: Path)
             return blob.stat().st_size
     n = sum(w.size + b.size for net in model.nets.values() for w, b in zip(net.weights, net.biases))
     return int(n * spec.dtype_bytes)
-
-
-def _filter_macs(model: fm.HierarchicalModel) -> int:
-    pre = model.preprocess
-    return 0 if pre.filter_kind == "none" else fm.N_STRAIN * int(pre.taps.size)
 
 
 def _filter_delay_ms(model: fm.HierarchicalModel, rate_hz: float) -> float:
@@ -155,7 +150,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             "memory": v.memory, "memory_states": model.preprocess.memory.n_states,
             # int32 states per channel in fbg_state (averages and play operators alike)
             "memory_state_bytes": 4 * 4 * model.preprocess.memory.n_states,
-            "macs_nets": model.macs, "macs": model.macs + _filter_macs(model),
+            "macs_nets": model.macs, "macs": step_macs(model),
             "sizes": {k: net.sizes for k, net in model.nets.items()},
         }
         for sp in specs:
@@ -234,7 +229,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
         "ratios": scoring.ratios(rows, s),
         "train_seconds": train_seconds,
         "seconds": time.perf_counter() - t_run,
-        "platform": {**_platform(), "blas_threads_before_timing": blas_threads},
+        "platform": {**timing.platform_info(), "blas_threads_before_timing": blas_threads},
     }
     result["summary"] = summary_paragraph(result)
     write_outputs(result, out, log)
@@ -250,18 +245,3 @@ def _qat_model(model: fm.HierarchicalModel, prep: Any, s: Settings, qat: Any
                             val=(z[val], *(t[val] for t in truth)) if val.size else None,
                             weight_bits=8, act_bits=16, epochs=s.qat_epochs, seed=s.seed)
     return tuned
-
-
-def _platform() -> dict[str, Any]:
-    import os
-    import platform
-
-    info: dict[str, Any] = {"python": platform.python_version(), "numpy": np.__version__,
-                            "machine": platform.machine(), "cpus": os.cpu_count()}
-    try:
-        import onnxruntime
-
-        info["onnxruntime"] = onnxruntime.__version__
-    except ImportError:
-        pass
-    return info

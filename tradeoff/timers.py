@@ -12,7 +12,7 @@ from fbgforce import model as fm
 from fbgforce.tradeoff import timing
 from fbgforce.tradeoff.grid import EngineSpec
 
-def _c_callables(engine: str, model_dir: Path, model: fm.HierarchicalModel, wl: np.ndarray,
+def c_callables(engine: str, model_dir: Path, model: fm.HierarchicalModel, wl: np.ndarray,
                  base: np.ndarray) -> tuple[Callable[[int], Any], Callable[[int, int], Any]]:
     """Single-sample and batch callables straight onto the C API (``fbg_run``/``fbgf_run``).
 
@@ -65,7 +65,7 @@ def make_timer(spec: EngineSpec, name: str, model_dir: Path, model: fm.Hierarchi
     """Timed callables running the whole pipeline of ``spec`` on recording ``wl``.
 
     numpy / onnxruntime: single samples through :class:`fbgforce.tradeoff.timing.FloatStepper`,
-    batches through the engine function. C: both straight onto the C API (:func:`_c_callables`).
+    batches through the engine function. C: both straight onto the C API (:func:`c_callables`).
     The centred filter cannot stream, so those rows have a batch time only.
     """
     streamable = model.preprocess.filter_kind != "centred"
@@ -78,5 +78,5 @@ def make_timer(spec: EngineSpec, name: str, model_dir: Path, model: fm.Hierarchi
             single = lambda i: stepper.step(wl[i])  # noqa: E731
         return timing.Timer(name, single=single,
                             batch=lambda a, b: fn(model_dir, model, wl[a:b], base))
-    single_c, batch_c = _c_callables(spec.engine, model_dir, model, wl, base)
+    single_c, batch_c = c_callables(spec.engine, model_dir, model, wl, base)
     return timing.Timer(name, single=single_c, batch=batch_c)

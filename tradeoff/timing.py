@@ -236,3 +236,26 @@ def limit_blas_threads(n: int = 1) -> int | None:
                     setter(int(n))
                     return before
     return None
+
+
+def platform_info() -> dict[str, Any]:
+    """The machine and library versions a timing was taken with (for the JSON outputs)."""
+    import os
+    import platform
+
+    info: dict[str, Any] = {"python": platform.python_version(), "numpy": np.__version__,
+                            "machine": platform.machine(), "cpus": os.cpu_count()}
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+        if names:
+            info["cpu"] = names[0]
+    except OSError:
+        pass
+    try:
+        import onnxruntime
+
+        info["onnxruntime"] = onnxruntime.__version__
+    except ImportError:
+        pass
+    return info

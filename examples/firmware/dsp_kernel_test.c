@@ -65,7 +65,7 @@ int main(void)
     const uint32_t n_widths = sizeof widths / sizeof widths[0];
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
     uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
-    uint32_t acc32_int8 = 0, acc32_int8_sat = 0;
+    uint32_t acc32_int8 = 0, acc32_int8_sat = 0, acc32_int8_fast = 0;
     for (c = 0; c < N_CASES; ++c) {
         unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
                  offx = (c / 12u) % 2u;
@@ -171,6 +171,19 @@ int main(void)
                 sh_puts("KERNEL_MISMATCH_ACC32_INT8\n");
                 ++mismatches;
             }
+            for (r = 0; r < m; ++r) { /* the output layers' rows (dot8_32) */
+                int64_t acc = B[r];
+                for (i = 0; i < n; ++i)
+                    acc += (int64_t)W8[off + r * n + i] * X[offx + i];
+                if (fbg_dsp_row_acc(&ly, r, X + offx) != acc) {
+                    sh_puts("KERNEL_MISMATCH_ACC32_INT8_ROW\n");
+                    ++mismatches;
+                    break;
+                }
+            }
+            /* The conditions under which fbg_dsp.c runs rows2b32_asm. */
+            acc32_int8_fast += ly.shift == 32u && m >= 2u && (n & 1u) == 0u &&
+                               ((uintptr_t)(X + offx) & 3u) == 0u;
             acc32_int8 += 1u;
             acc32_int8_sat += s8_ref != 0u;
         }
@@ -279,8 +292,10 @@ int main(void)
             }
             ++acc32_layers;
             acc32_sat += sat_ref != 0u;
-            acc32_first += sh32 == 32u && (n == 2u || n == 4u || n == 6u) && ((uintptr_t)(W + off) & 3u) == 0u;
-            acc32_fast += sh32 == 32u && m >= 4u && (n & 1u) == 0u && !(n == 2u || n == 4u || n == 6u) &&
+            /* The conditions under which fbg_dsp.c runs first2d32_asm and rows2d32_asm. */
+            acc32_first += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n <= 8u &&
+                           ((uintptr_t)(W + off) & 3u) == 0u;
+            acc32_fast += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n > 8u &&
                           ((uintptr_t)(W + off) & 3u) == 0u && ((uintptr_t)(X + offx) & 3u) == 0u;
         }
     }
@@ -299,6 +314,7 @@ int main(void)
     sh_kv("acc32_saturated", (int32_t)acc32_sat);
     sh_kv("acc32_int8", (int32_t)acc32_int8);
     sh_kv("acc32_int8_saturated", (int32_t)acc32_int8_sat);
+    sh_kv("acc32_int8_fast", (int32_t)acc32_int8_fast);
     sh_puts("\n");
     return mismatches ? 1 : 0;
 }

@@ -15,8 +15,16 @@
  * Optional profile ranges r=LO:HI (e.g. one per function, from nm -S): executed instructions
  * with PC in [LO, HI) over the WHOLE run (windows or not), one "range LO HI COUNT" line each.
  *
+ * The worst window (the largest count) is also kept instruction by instruction, for the
+ * cycle estimate of fbgforce.target.cycles: every executed instruction outside the excluded
+ * ranges gets a callback that counts its executions, the executions after which the next
+ * executed instruction was not the one that follows it in memory (a taken branch, exact
+ * whatever the instruction), and the executions it was entered by falling through from the
+ * instruction before it in memory (so a load after a load is known to pipeline).
+ *
  * Output (to FILE, or stderr): "insns_total T", "windows N", "sum S", "min A", "max B", then one
- * line "w COUNT" per window in execution order, then the "range" lines.
+ * line "w COUNT" per window in execution order, then the "range" lines, then one line
+ * "pc ADDR EXECUTED TAKEN SEQ_IN" per instruction executed in the worst window.
  *
  * Debian 12 ships QEMU 7.2 without qemu-plugin.h, so the few plugin API v1 declarations used are
  * written out here (they resolve against the qemu binary). QEMU >= 9 renamed the inline API
@@ -47,6 +55,7 @@ extern void qemu_plugin_register_vcpu_insn_exec_cb(struct qemu_plugin_insn *, qe
 extern size_t qemu_plugin_tb_n_insns(const struct qemu_plugin_tb *);
 extern struct qemu_plugin_insn *qemu_plugin_tb_get_insn(const struct qemu_plugin_tb *, size_t);
 extern uint64_t qemu_plugin_insn_vaddr(const struct qemu_plugin_insn *);
+extern size_t qemu_plugin_insn_size(const struct qemu_plugin_insn *);
 extern void qemu_plugin_register_atexit_cb(qemu_plugin_id_t, qemu_plugin_udata_cb_t, void *);
 
 QEMU_PLUGIN_EXPORT int qemu_plugin_version = 1;
@@ -67,6 +76,50 @@ static int window_open, nested_begin, stray_end;
 static uint64_t *windows;
 static size_t n_windows, cap_windows;
 
+/* Per-instruction counts of the current and of the worst window, one slot per distinct PC. */
+#define MAX_SLOTS 32768
+#define HASH_SIZE 65536 /* power of two, > MAX_SLOTS */
+static uint64_t slot_pc[MAX_SLOTS], slot_next[MAX_SLOTS];
+static uint64_t cur_exec[MAX_SLOTS], cur_taken[MAX_SLOTS], cur_seq[MAX_SLOTS];
+static uint64_t best_exec[MAX_SLOTS], best_taken[MAX_SLOTS], best_seq[MAX_SLOTS];
+static uint64_t best_window;
+static int32_t hash_slot[HASH_SIZE]; /* slot + 1, 0 = empty */
+static int n_slots, prev_slot = -1;
+
+static int slot_of(uint64_t pc, uint64_t size)
+{
+    uint32_t h = (uint32_t)((pc >> 1) * 2654435761u) & (HASH_SIZE - 1);
+    while (hash_slot[h]) {
+        if (slot_pc[hash_slot[h] - 1] == pc)
+            return hash_slot[h] - 1;
+        h = (h + 1) & (HASH_SIZE - 1);
+    }
+    if (n_slots == MAX_SLOTS) {
+        fprintf(stderr, "insn_window: more than %d distinct instructions\n", MAX_SLOTS);
+        exit(3);
+    }
+    slot_pc[n_slots] = pc;
+    slot_next[n_slots] = pc + size;
+    hash_slot[h] = n_slots + 1;
+    return n_slots++;
+}
+
+static void on_insn(unsigned int vcpu, void *udata)
+{
+    int slot = (int)(intptr_t)udata;
+    (void)vcpu;
+    if (!window_open)
+        return;
+    if (prev_slot >= 0) {
+        if (slot_next[prev_slot] == slot_pc[slot])
+            cur_seq[slot]++;
+        else
+            cur_taken[prev_slot]++;
+    }
+    cur_exec[slot]++;
+    prev_slot = slot;
+}
+
 static int excluded(uint64_t pc)
 {
     for (int i = 0; i < n_excluded; i++)
@@ -82,6 +135,10 @@ static void on_begin(unsigned int vcpu, void *udata)
         nested_begin = 1;
     window_open = 1;
     window_start = counted;
+    memset(cur_exec, 0, (size_t)n_slots * sizeof cur_exec[0]);
+    memset(cur_taken, 0, (size_t)n_slots * sizeof cur_taken[0]);
+    memset(cur_seq, 0, (size_t)n_slots * sizeof cur_seq[0]);
+    prev_slot = -1;
 }
 
 static void on_end(unsigned int vcpu, void *udata)
@@ -103,6 +160,12 @@ static void on_end(unsigned int vcpu, void *udata)
         cap_windows = cap;
     }
     windows[n_windows++] = counted - window_start;
+    if (counted - window_start > best_window) {
+        best_window = counted - window_start;
+        memcpy(best_exec, cur_exec, (size_t)n_slots * sizeof cur_exec[0]);
+        memcpy(best_taken, cur_taken, (size_t)n_slots * sizeof cur_taken[0]);
+        memcpy(best_seq, cur_seq, (size_t)n_slots * sizeof cur_seq[0]);
+    }
 }
 
 static void tb_trans(qemu_plugin_id_t id, struct qemu_plugin_tb *tb)
@@ -119,8 +182,11 @@ static void tb_trans(qemu_plugin_id_t id, struct qemu_plugin_tb *tb)
             qemu_plugin_register_vcpu_insn_exec_cb(insn, on_begin, QEMU_PLUGIN_CB_NO_REGS, NULL);
         else if (pc == end_pc)
             qemu_plugin_register_vcpu_insn_exec_cb(insn, on_end, QEMU_PLUGIN_CB_NO_REGS, NULL);
-        if (!excluded(pc))
+        if (!excluded(pc)) {
             qemu_plugin_register_vcpu_insn_exec_inline(insn, QEMU_PLUGIN_INLINE_ADD_U64, &counted, 1);
+            qemu_plugin_register_vcpu_insn_exec_cb(insn, on_insn, QEMU_PLUGIN_CB_NO_REGS,
+                                                   (void *)(intptr_t)slot_of(pc, qemu_plugin_insn_size(insn)));
+        }
         for (int r = 0; r < n_ranges; r++)
             if (pc >= r_lo[r] && pc < r_hi[r])
                 qemu_plugin_register_vcpu_insn_exec_inline(insn, QEMU_PLUGIN_INLINE_ADD_U64, &r_count[r], 1);
@@ -151,6 +217,11 @@ static void at_exit(qemu_plugin_id_t id, void *p)
     for (int r = 0; r < n_ranges; r++)
         fprintf(f, "range %llu %llu %llu\n", (unsigned long long)r_lo[r], (unsigned long long)r_hi[r],
                 (unsigned long long)r_count[r]);
+    for (int i = 0; i < n_slots; i++)
+        if (best_exec[i])
+            fprintf(f, "pc %llu %llu %llu %llu\n", (unsigned long long)slot_pc[i],
+                    (unsigned long long)best_exec[i], (unsigned long long)best_taken[i],
+                    (unsigned long long)best_seq[i]);
     if (outpath)
         fclose(f);
 }

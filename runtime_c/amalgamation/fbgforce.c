@@ -566,13 +566,16 @@ const char *fbg_status_str(int status)
  *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
  *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
  * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
- *   __usat) except five kernels of int16-weight layers that stay hand-written assembly
- *   because they measurably win (FBG_DSP_ASM, below; docs/firmware.md has the instructions
- *   per step of both): for int64 layers with shift >= 32, rows3d_asm (word-aligned, LDRD),
- *   rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in registers); for int32
- *   layers (fbg_layer.acc32, proven by the loader: every partial sum fits int32; SMLAD and
- *   SMMULR instead) at shift 32, rows4d32_asm and first32_asm. Each has an ACLE C version
- *   (rows3_c, first_c, rows4_32_c, first32_c) that FBG_DSP_ASM=0 builds instead.
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 8, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -770,6 +773,11 @@ void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FB
 #endif
 #endif
 
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
 /* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
  * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
  * an alignment check). */
@@ -879,6 +887,10 @@ typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_d
                                   offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
 
 
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
 /* ---- The kernels in C with ACLE intrinsics: the FBG_DSP_ASM=0 versions of the assembly
  * further down, same jobs, same bits (any alignment: LDR may be unaligned on ARMv7E-M). With
  * GCC 12 they cost more instructions per step than the assembly, which therefore stays the
@@ -969,69 +981,28 @@ __attribute__((noinline)) static void first_c(fbg_dsp_job *job)
         first_n(job, 6u);
 }
 
-/* Four int32 rows per pass, SMLAD and SMMULR (rows4d32_asm); n even. */
-__attribute__((noinline)) static void rows4_32_c(fbg_dsp_job *job)
+/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
+ * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
+__attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int16_t *x,
+                                                 int16_t *y, uint32_t *sat)
 {
-    const unsigned n = job->n;
-    const int16_t *w = job->w, *x = job->x;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y;
-    uint32_t clamped = 0u, g;
-    for (g = job->groups; g > 0u; --g, w += 4u * n, bias += 4, mult += 4, y += 4) {
-        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n, *w3 = w2 + n;
-        int32_t a0 = (int32_t)bias[0], a1 = (int32_t)bias[1], a2 = (int32_t)bias[2],
-                a3 = (int32_t)bias[3];
+    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
+    const int16_t *w = ly->w16;
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = 0; r < m2; r += 2u, w += 2u * n) {
+        const int16_t *w1 = w + n;
+        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
         unsigned j;
         for (j = 0; j < n; j += 2u) {
             int16x2_t xv = ld2(x + j);
-            a0 = __smlad(ld2(w0 + j), xv, a0);
+            a0 = __smlad(ld2(w + j), xv, a0);
             a1 = __smlad(ld2(w1 + j), xv, a1);
-            a2 = __smlad(ld2(w2 + j), xv, a2);
-            a3 = __smlad(ld2(w3 + j), xv, a3);
         }
-        y[0] = (int16_t)relu_usat15(smmulr(a0, mult[0]), &clamped);
-        y[1] = (int16_t)relu_usat15(smmulr(a1, mult[1]), &clamped);
-        y[2] = (int16_t)relu_usat15(smmulr(a2, mult[2]), &clamped);
-        y[3] = (int16_t)relu_usat15(smmulr(a3, mult[3]), &clamped);
+        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
+        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
     }
-    job->clamped = clamped != 0u;
-}
-
-/* A first int32 layer of n = 2, 4 or 6 inputs held in registers (first32_asm). */
-static inline void first32_n(fbg_dsp_job *job, unsigned n)
-{
-    const int16_t *w = job->w;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y, *end = job->y + job->groups;
-    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
-                    x2 = n > 4u ? ld2(job->x + 4) : 0;
-    uint32_t clamped = 0u;
-    while (y != end) {
-        int32_t a = __smlad(ld2(w), x0, (int32_t)*bias++);
-        w += 2;
-        if (n > 2u) {
-            a = __smlad(ld2(w), x1, a);
-            w += 2;
-        }
-        if (n > 4u) {
-            a = __smlad(ld2(w), x2, a);
-            w += 2;
-        }
-        *y++ = (int16_t)relu_usat15(smmulr(a, *mult++), &clamped);
-    }
-    job->clamped = clamped != 0u;
-}
-
-__attribute__((noinline)) static void first32_c(fbg_dsp_job *job)
-{
-    if (job->n == 2u)
-        first32_n(job, 2u);
-    else if (job->n == 4u)
-        first32_n(job, 4u);
-    else
-        first32_n(job, 6u);
+    *sat |= clamped != 0u;
 }
 #endif /* !FBG_DSP_ASM */
 
@@ -1480,279 +1451,734 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
 
 
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
- * row fits int32 (fbg_model_check re-proves it), so SMLAD (two 16x16 products added to a
- * 32-bit accumulator, which cannot overflow here) gives the same number as the int64 sum, in
- * ONE register per row; and rshift_round(acc * mult, 32) is exactly SMMULR (the high word
- * of acc * mult + 2^31). Requantisation: LDR mult, SMMULR, BIC (ReLU), USAT #15, STRH = 5
- * instructions per neuron instead of 10.
+ * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
+ * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
+ * 16x16 products added to a 32-bit accumulator, which cannot overflow here and so never sets
+ * Q) gives the same number as the int64 sum, in ONE register per row; and
+ * rshift_round(acc * mult, 32) is exactly SMMULR (the high word of acc * mult + 2^31).
  *
- * rows4d32_asm: FOUR rows per pass (one register per accumulator leaves room for it),
- * word-aligned rows and inputs, n even, at least four rows (the caller checks). All fourteen
- * registers are in use in the MAC loop: r0/r9/r10/r11 the four weight rows, r1 x, r8 end of the 16-input
- * blocks, r4-r7 accumulators, r2/r3 four inputs, r12/lr four weights; the job pointer and n
- * live on the stack. Sixteen inputs of four rows: 4 x (1 + 4 x 3) + 2 = 54 instructions per
- * 64 MACs (0.84); then 8, 4 and 2 inputs, and the 5-instruction requantisation per row. */
-__attribute__((naked, noinline)) static void rows4d32_asm(fbg_dsp_job *job)
+ * Both kernels below take the layer itself (fbg_layer offsets checked above), run TWO rows
+ * per pass over every pair of rows (n_out & ~1; the caller runs the last row of an odd layer)
+ * and finish a pass with the same 9-instruction requantisation of the pair: LDRD of the two
+ * multipliers, SMMULR x 2, ReLU as BIC with ASR #31 x 2, USAT #15 x 2 (Q set exactly when a
+ * non-negative value exceeds 32767, i.e. when the portable sat16 raises its flag), PKHBT and
+ * one STR of both outputs (y word-aligned, row r in the low half: little-endian). The pair's
+ * two int32 biases come with one LDM of the int64 pair {lo, hi, lo, hi} (the high words land
+ * in scratch registers). Q is cleared on entry and ORed into *sat on exit (1 iff a row
+ * clamped); the AAPCS leaves Q and the condition flags undefined across calls, so the
+ * caller's are not restored.
+ *
+ * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
+ * 8-input block, fully unrolled,
+ *     LDM x!, {4 words}; LDM rowA!, {4 words}; SMLAD x 4; LDM rowB!, {4 words}; SMLAD x 4
+ * = 11 instructions per 16 MACs (0.69) with no loop test: every block is 44 bytes, so a layer
+ * of n inputs enters the body n / 8 blocks before its end (computed once per layer, kept in
+ * r2), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX r2) when there
+ * is one. Fourteen registers are live in the body (two row pointers, x in lr, four inputs,
+ * four weights, two accumulators, the entry); the bias, multiplier and output pointers, the
+ * output end, the row length and the start of x live in a stack frame, read with one LDM
+ * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
+ * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
+ * instructions. */
+__attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                          int16_t *y, uint32_t *sat)
 {
-    (void)job;
+    (void)ly;
+    (void)x;
+    (void)y;
+    (void)sat;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        "sub     sp, sp, #8\n\t"
-        "str     r0, [sp]\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "str     r2, [sp, #4]\n\t"
-        "ldr     r1, [r0, #4]\n\t"
-        "bic     r8, r2, #15\n\t"
-        "add     r8, r1, r8, lsl #1\n\t"
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
+         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
+         * [28] sat; written with one STM */
+        "sub     sp, sp, #32\n\t"
+        "mov     r10, r3\n\t"
+        "ldr     r11, [r0]\n\t"
+        "ldrd    r3, r4, [r0, #16]\n\t"
+        "ldr     r0, [r0, #8]\n\t"
+        "mov     r5, r2\n\t"
+        "lsr     r6, r11, #16\n\t"
+        "bic     r6, r6, #1\n\t"
+        "add     r6, r2, r6, lsl #1\n\t"
+        "uxth    r11, r11\n\t"
+        "lsl     r7, r11, #1\n\t"
+        "mov     r8, r1\n\t"
+        "mov     lr, r1\n\t"
+        "add     r1, r0, r7\n\t"
+        "adr.w   r2, 8f\n\t"
+        "lsr     r12, r11, #3\n\t"
+        "mov     r9, #44\n\t"
+        "mls     r2, r12, r9, r2\n\t"
+        "orr     r2, r2, #1\n\t"
+        "mov     r9, r2\n\t"
+        "ands    r12, r11, #6\n\t"
+        "beq     1f\n\t"
+        "adr.w   r9, 72f\n\t"
+        "cmp     r12, #2\n\t"
+        "beq     0f\n\t"
+        "adr.w   r9, 74f\n\t"
+        "cmp     r12, #4\n\t"
+        "beq     0f\n\t"
+        "adr.w   r9, 76f\n\t"
         "0:\n\t"
-        "ldr     r3, [sp]\n\t"
-        "ldr     r12, [r3, #8]\n\t"
-        "ldr     r4, [r12], #8\n\t"
-        "ldr     r5, [r12], #8\n\t"
-        "ldr     r6, [r12], #8\n\t"
-        "ldr     r7, [r12], #8\n\t"
-        "str     r12, [r3, #8]\n\t"
-        "ldr     r0, [r3]\n\t"
-        "ldr     r2, [sp, #4]\n\t"
-        "add     r9, r0, r2, lsl #1\n\t"
-        "add     r10, r9, r2, lsl #1\n\t"
-        "add     r11, r10, r2, lsl #1\n\t"
-        "ldr     r1, [r3, #4]\n\t"
-        "cmp     r1, r8\n\t"
-        "beq     2f\n\t"
+        "orr     r9, r9, #1\n\t"
         "1:\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "cmp     r1, r8\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #8\n\t"
-        "beq     3f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "3:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #4\n\t"
-        "beq     4f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "smlad   r4, lr, r3, r4\n\t"
-        "ldrd    r12, lr, [r9], #8\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "smlad   r5, lr, r3, r5\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "smlad   r6, lr, r3, r6\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "smlad   r7, lr, r3, r7\n\t"
-        "4:\n\t"
-        "ldr     r12, [sp, #4]\n\t"
-        "tst     r12, #2\n\t"
-        "beq     5f\n\t"
-        "ldr     r2, [r1], #4\n\t"
-        "ldr     r12, [r0], #4\n\t"
-        "smlad   r4, r12, r2, r4\n\t"
-        "ldr     r12, [r9], #4\n\t"
-        "smlad   r5, r12, r2, r5\n\t"
-        "ldr     r12, [r10], #4\n\t"
-        "smlad   r6, r12, r2, r6\n\t"
-        "ldr     r12, [r11], #4\n\t"
-        "smlad   r7, r12, r2, r7\n\t"
-        "5:\n\t"
-        "ldr     r3, [sp]\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r12, [r3, #12]\n\t"
-        "ldr     lr, [r3, #16]\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r4, r4, r2\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r4, #15, r4\n\t"
-        "strh    r4, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r5, r5, r2\n\t"
-        "bic     r5, r5, r5, asr #31\n\t"
-        "usat    r5, #15, r5\n\t"
-        "strh    r5, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r6, r6, r2\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r6, #15, r6\n\t"
-        "strh    r6, [lr], #2\n\t"
-        "ldr     r2, [r12], #4\n\t"
-        "smmulr  r7, r7, r2\n\t"
-        "bic     r7, r7, r7, asr #31\n\t"
-        "usat    r7, #15, r7\n\t"
-        "strh    r7, [lr], #2\n\t"
-        "str     r12, [r3, #12]\n\t"
-        "str     lr, [r3, #16]\n\t"
-        "ldr     r12, [r3, #24]\n\t"
-        "subs    r12, r12, #1\n\t"
-        "str     r12, [r3, #24]\n\t"
-        "bne     0b\n\t"
-        "add     sp, sp, #8\n\t"
+        "add     r3, r3, #16\n\t"
+        "stm     sp, {r3-r10}\n\t"
+        "ldmdb   r3, {r9-r12}\n\t"
+        "ldr     pc, [sp, #24]\n\t"
+        /* tails: 2, 4, 6 inputs, then into the body */
+        "72:\n\t"
+        "ldr     r3, [lr], #4\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "bx      r2\n\t"
+        "74:\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
+        "ldrd    r7, r8, [r0], #8\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "ldrd    r7, r8, [r1], #8\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "bx      r2\n\t"
+        "76:\n\t"
+        "ldmia.w lr!, {r3-r5}\n\t"
+        "ldmia.w r0!, {r7, r8, r10}\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "ldmia.w r1!, {r7, r8, r10}\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "bx      r2\n\t"
+        /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
+        ".rept   16\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
+        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"
+        "smlad   r9, r7, r3, r9\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"
+        "smlad   r11, r7, r3, r11\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        ".endr\n\t"
+        "8:\n\t"
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
+        "ldrd    r7, r10, [r4], #8\n\t"
+        "smmulr  r9, r9, r7\n\t"
+        "smmulr  r11, r11, r10\n\t"
+        "bic     r9, r9, r9, asr #31\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r9, #15, r9\n\t"
+        "usat    r11, #15, r11\n\t"
+        "pkhbt   r9, r9, r11, lsl #16\n\t"
+        "str     r9, [r5], #4\n\t"
+        "cmp     r5, r6\n\t"
+        "beq     9f\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "stmia   sp, {r3, r4, r5}\n\t"
+        "mov     r0, r1\n\t"
+        "add     r1, r1, r8\n\t"
+        "ldr     pc, [sp, #24]\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #28]\n\t"
+        "add     sp, sp, #32\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "bx      lr\n\t");
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
+        "pop     {r4-r11, pc}\n\t");
 }
 
-/* first32_asm: a first layer (2, 4 or 6 inputs) of an int32 layer with shift 32: the inputs
- * stay in registers (r4-r6 as int16 pairs; LDR may be unaligned), the weights (word-aligned:
- * the caller checks) come with LDRD; per row the low word of the int64 bias (|bias| <= the
- * int32 bound), one SMLAD per input pair and the 5-instruction requantisation: 11 instructions
- * for 4 inputs plus the loop test. job->groups holds the number of ROWS. */
-__attribute__((naked, noinline)) static void first32_asm(fbg_dsp_job *job)
+/* The requantisation and store of a pair in first2d32_asm. */
+#define FBG_PAIR_OUT                             \
+        "ldrd    r8, r10, [r2], #8\n\t"          \
+        "smmulr  r9, r9, r8\n\t"                 \
+        "smmulr  r11, r11, r10\n\t"              \
+        "bic     r9, r9, r9, asr #31\n\t"        \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r9, #15, r9\n\t"                \
+        "usat    r11, #15, r11\n\t"              \
+        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
+        "str     r9, [r3], #4\n\t"
+
+/* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
+#define FBG_PAIR8                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "smlad   r9, lr, r7, r9\n\t"             \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        "smlad   r11, lr, r7, r11\n\t"           \
+        FBG_PAIR_OUT
+
+/* first2d32_asm: a first layer of n = 2, 4, 6 or 8 inputs (the nets' inputs with or without
+ * the memory features), two rows per pass: the inputs stay in registers (r4-r7 as int16
+ * pairs, read once with LDR, which may be unaligned); the two rows are adjacent in memory, so
+ * one pointer walks both (one LDRD or LDM per row, or one LDM for both at n = 4). Per pair:
+ * LDM of the biases, the weights, n SMLAD, the 9-instruction requantisation and the loop test
+ * (CMP with the output end, held in r7 for n <= 6): 15 and 17 instructions for 4 and 8 MACs.
+ * The n = 6 and n = 8 loops run two pairs per test (entered at their second pair for an odd
+ * number of pairs): 38 instructions per 24 MACs, and at n = 8, where all four input registers
+ * are taken and the end is read from the stack, 43 per 32. Weights and y word-aligned (the caller checks). */
+__attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                           int16_t *y, uint32_t *sat)
 {
-    (void)job;
+    (void)ly;
+    (void)x;
+    (void)y;
+    (void)sat;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
         "msr     APSR_nzcvq, r12\n\t"
-        "mov     r11, r0\n\t"
-        "ldr     r3, [r11, #16]\n\t"
-        "ldr     r12, [r11, #24]\n\t"
-        "add     r12, r3, r12, lsl #1\n\t"
-        "ldr     r1, [r11, #8]\n\t"
-        "ldr     r2, [r11, #12]\n\t"
-        "ldr     lr, [r11, #20]\n\t"
-        "ldr     r10, [r11, #4]\n\t"
-        "ldr     r0, [r11]\n\t"
+        "sub     sp, sp, #8\n\t"
+        "str     r3, [sp, #4]\n\t"
+        "mov     r3, r2\n\t"
+        "ldrh    r9, [r0, #2]\n\t"
+        "bic     r7, r9, #1\n\t"
+        "add     r7, r3, r7, lsl #1\n\t"
+        "str     r7, [sp]\n\t"
+        "mov     r10, r1\n\t"
+        "ldr     r1, [r0, #16]\n\t"
+        "ldr     r2, [r0, #20]\n\t"
+        "ldrh    r12, [r0]\n\t"
+        "ldr     r0, [r0, #8]\n\t"
         "ldr     r4, [r10]\n\t"
-        "cmp     lr, #4\n\t"
+        "cmp     r12, #4\n\t"
         "blo     2f\n\t"
         "ldr     r5, [r10, #4]\n\t"
         "beq     4f\n\t"
         "ldr     r6, [r10, #8]\n\t"
+        "cmp     r12, #6\n\t"
+        "bne     7f\n\t"
+        "tst     r9, #2\n\t"
+        "bne     61f\n\t"
         "b       6f\n\t"
+        "7:\n\t"
+        "ldr     r7, [r10, #12]\n\t"
+        "tst     r9, #2\n\t"
+        "bne     81f\n\t"
+        "b       8f\n\t"
         "2:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldr     r9, [r0], #4\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldrd    r8, r10, [r0], #8\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     2b\n\t"
         "b       9f\n\t"
         "4:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldrd    r9, r10, [r0], #8\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "smlad   r8, r10, r5, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r6, r8, r10, r12}\n\t"
+        "smlad   r9, r6, r4, r9\n\t"
+        "smlad   r9, r8, r5, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "smlad   r11, r12, r5, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
-        "ldr     r8, [r1], #8\n\t"
-        "ldrd    r9, r10, [r0], #8\n\t"
-        "smlad   r8, r9, r4, r8\n\t"
-        "smlad   r8, r10, r5, r8\n\t"
-        "ldr     r9, [r0], #4\n\t"
-        "smlad   r8, r9, r6, r8\n\t"
-        "ldr     r9, [r2], #4\n\t"
-        "smmulr  r8, r8, r9\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r8, #15, r8\n\t"
-        "strh    r8, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        FBG_PAIR_OUT
+        "61:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "smlad   r9, r12, r6, r9\n\t"
+        "ldmia.w r0!, {r8, r10, r12}\n\t"
+        "smlad   r11, r8, r4, r11\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "smlad   r11, r12, r6, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
         "bne     6b\n\t"
+        "b       9f\n\t"
+        "8:\n\t"
+        FBG_PAIR8
+        "81:\n\t"
+        FBG_PAIR8
+        "ldr     r8, [sp]\n\t"
+        "cmp     r3, r8\n\t"
+        "bne     8b\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #4]\n\t"
+        "add     sp, sp, #8\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+#undef FBG_PAIR8
+#undef FBG_PAIR_OUT
+
+/* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
+ * fbg_dsp_row_acc), w and x word-aligned, n even: 8 inputs per LDM pair and four SMLAD
+ * (8 instructions per 8 MACs with the loop test), then the n % 8 inputs two at a time. */
+__attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, const int16_t *x,
+                                                          unsigned n, int32_t acc)
+{
+    (void)w;
+    (void)x;
+    (void)n;
+    (void)acc;
+    __asm__ volatile(
+        "push    {r4-r11}\n\t"
+        "bic     r12, r2, #7\n\t"
+        "add     r12, r0, r12, lsl #1\n\t"
+        "cmp     r0, r12\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldmia   r1!, {r4-r7}\n\t"
+        "ldmia   r0!, {r8-r11}\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "smlad   r3, r9, r5, r3\n\t"
+        "smlad   r3, r10, r6, r3\n\t"
+        "smlad   r3, r11, r7, r3\n\t"
+        "cmp     r0, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ands    r2, r2, #7\n\t"
+        "beq     4f\n\t"
+        "3:\n\t"
+        "ldr     r4, [r1], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "subs    r2, r2, #2\n\t"
+        "bne     3b\n\t"
+        "4:\n\t"
+        "mov     r0, r3\n\t"
+        "pop     {r4-r11}\n\t"
+        "bx      lr\n\t");
+}
+
+/* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
+ * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
+ * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
+ * (as hidden8 does, 8 inputs per LDM, two PKHBT, two PKHTB, STM): per group of four
+ * (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
+ * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
+ * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
+ *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD)
+ * = 21 instructions per 16 MACs, two such groups per loop test (CMP, BNE; an odd number of
+ * groups enters the loop at its second). The n % 8 inputs after the loop: four (LDRD of two input
+ * words, per row LDR + 2 SXTB16 + 2 SMLAD) and/or two (per row two LDRSB and SMLABB, SMLATB
+ * with the natural pair), entered through a per-layer address in the frame. Requantisation,
+ * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
+ * comes from USAT). */
+__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16_t *x,
+                                                          int16_t *y, uint32_t *sat)
+{
+    (void)ly;
+    (void)x;
+    (void)y;
+    (void)sat;
+    __asm__ volatile(
+        "push    {r4-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
+         * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
+         * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
+         * MAC loop */
+        "sub     sp, sp, #296\n\t"
+        "str     r3, [sp, #28]\n\t"
+        "ldrh    r8, [r0]\n\t"
+        /* x (word-aligned) re-paired into xp: LDM of 8 inputs, PKHBT/PKHTB, STM */
+        "add     r12, sp, #40\n\t"
+        "bic     r7, r8, #7\n\t"
+        "add     r7, r1, r7, lsl #1\n\t"
+        "cmp     r1, r7\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldmia   r1!, {r3-r6}\n\t"
+        "pkhbt   r9, r3, r4, lsl #16\n\t"
+        "pkhtb   r10, r4, r3, asr #16\n\t"
+        "pkhbt   r11, r5, r6, lsl #16\n\t"
+        "pkhtb   lr, r6, r5, asr #16\n\t"
+        "stmia   r12!, {r9, r10, r11, lr}\n\t"
+        "cmp     r1, r7\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "tst     r8, #4\n\t"
+        "beq     3f\n\t"
+        "ldmia   r1!, {r3, r4}\n\t"
+        "pkhbt   r9, r3, r4, lsl #16\n\t"
+        "pkhtb   r10, r4, r3, asr #16\n\t"
+        "stmia   r12!, {r9, r10}\n\t"
+        "3:\n\t"
+        "tst     r8, #2\n\t"
+        "itt     ne\n\t"
+        "ldrne   r3, [r1]\n\t"
+        "strne   r3, [r12]\n\t"
+        "add     r1, sp, #40\n\t"
+        "ldrh    r6, [r0, #2]\n\t"
+        "str     r8, [sp, #16]\n\t"
+        "str     r1, [sp, #20]\n\t"
+        "mov     lr, r1\n\t"
+        "str     r2, [sp, #8]\n\t"
+        "bic     r6, r6, #1\n\t"
+        "add     r6, r2, r6, lsl #1\n\t"
+        "str     r6, [sp, #12]\n\t"
+        "bic     r7, r8, #7\n\t"
+        "add     r2, r1, r7, lsl #1\n\t"
+        "ldr     r3, [r0, #16]\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "str     r3, [sp]\n\t"
+        "ldr     r3, [r0, #20]\n\t"
+        "str     r3, [sp, #4]\n\t"
+        "ldr     r0, [r0, #12]\n\t"
+        "add     r1, r0, r8\n\t"
+        /* the tail: none, 2, 4 or 4 + 2 inputs */
+        "and     r7, r8, #6\n\t"
+        "adr.w   r3, 8f\n\t"
+        "cmp     r7, #2\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 72f\n\t"
+        "cmp     r7, #4\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 74f\n\t"
+        "cmp     r7, #6\n\t"
+        "it      eq\n\t"
+        "adreq.w r3, 76f\n\t"
+        "orr     r3, r3, #1\n\t"
+        "str     r3, [sp, #32]\n\t"
+        /* 8-input groups: two per loop test, entered at the second for an odd count */
+        "cmp     r8, #8\n\t"
+        "blo     0f\n\t"
+        "tst     r8, #8\n\t"
+        "ite     ne\n\t"
+        "adrne.w r3, 10f\n\t"
+        "adreq.w r3, 1f\n\t"
+        "orr     r3, r3, #1\n\t"
+        "0:\n\t"
+        "str     r3, [sp, #24]\n\t"
+        "bx      r3\n\t"
+        "1:\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r9, r10, r6, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "ldr     r8, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r11, r10, r6, r11\n\t"
+        "10:\n\t"
+        "ldmia.w lr!, {r3-r6}\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r9, r10, r5, r9\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r9, r10, r6, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "ldr     r8, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "sxtb16  r10, r8\n\t"
+        "smlad   r11, r10, r5, r11\n\t"
+        "sxtb16  r10, r8, ror #8\n\t"
+        "smlad   r11, r10, r6, r11\n\t"
+        "cmp     lr, r2\n\t"
+        "bne     1b\n\t"
+        "ldr     pc, [sp, #32]\n\t"
+        /* 4 inputs, then to the epilogue */
+        "74:\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "b       8f\n\t"
+        /* 4 + 2 inputs */
+        "76:\n\t"
+        "ldrd    r3, r4, [lr], #8\n\t"
+        "ldr     r7, [r0], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r9, r10, r3, r9\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r9, r10, r4, r9\n\t"
+        "ldr     r7, [r1], #4\n\t"
+        "sxtb16  r10, r7\n\t"
+        "smlad   r11, r10, r3, r11\n\t"
+        "sxtb16  r10, r7, ror #8\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        /* 2 inputs: (x[n-2], x[n-1]) */
+        "72:\n\t"
+        "ldr     r3, [lr], #4\n\t"
+        "ldrsb   r7, [r0], #1\n\t"
+        "ldrsb   r8, [r0], #1\n\t"
+        "smlabb  r9, r3, r7, r9\n\t"
+        "smlatb  r9, r3, r8, r9\n\t"
+        "ldrsb   r7, [r1], #1\n\t"
+        "ldrsb   r8, [r1], #1\n\t"
+        "smlabb  r11, r3, r7, r11\n\t"
+        "smlatb  r11, r3, r8, r11\n\t"
+        "8:\n\t"
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
+        "ldrd    r7, r10, [r4], #8\n\t"
+        "smmulr  r9, r9, r7\n\t"
+        "smmulr  r11, r11, r10\n\t"
+        "bic     r9, r9, r9, asr #31\n\t"
+        "bic     r11, r11, r11, asr #31\n\t"
+        "usat    r9, #15, r9\n\t"
+        "usat    r11, #15, r11\n\t"
+        "pkhbt   r9, r9, r11, lsl #16\n\t"
+        "str     r9, [r5], #4\n\t"
+        "cmp     r5, r6\n\t"
+        "beq     9f\n\t"
+        "ldmia   r3!, {r9-r12}\n\t"
+        "stmia   sp, {r3, r4, r5}\n\t"
+        "mov     r0, r1\n\t"
+        "add     r1, r1, r8\n\t"
+        "ldr     pc, [sp, #24]\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #28]\n\t"
+        "add     sp, sp, #296\n\t"
+        "mrs     r12, apsr\n\t"
+        "ubfx    r12, r12, #27, #1\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+
+/* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
+#define FBG_PAIR_OUT8                            \
+        "ldrd    r8, r10, [r2], #8\n\t"          \
+        "smmulr  r9, r9, r8\n\t"                 \
+        "smmulr  r11, r11, r10\n\t"              \
+        "bic     r9, r9, r9, asr #31\n\t"        \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r9, #15, r9\n\t"                \
+        "usat    r11, #15, r11\n\t"              \
+        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
+        "str     r9, [r3], #4\n\t"               \
+        "cmp     r3, lr\n\t"
+
+/* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
+#define FBG_W4(acc, xa, xb)                      \
+        "sxtb16  r8, r10\n\t"                    \
+        "smlad   " acc ", r8, " xa ", " acc "\n\t" \
+        "sxtb16  r8, r10, ror #8\n\t"            \
+        "smlad   " acc ", r8, " xb ", " acc "\n\t"
+
+/* Two int8 weights (two LDRSB) against the natural input pair XW, into ACC. */
+#define FBG_W2(acc, xw)                          \
+        "ldrsb   r10, [r0], #1\n\t"              \
+        "ldrsb   r12, [r0], #1\n\t"              \
+        "smlabb  " acc ", " xw ", r10, " acc "\n\t" \
+        "smlatb  " acc ", " xw ", r12, " acc "\n\t"
+
+/* first2b32_asm: an int8-weight int32 first layer (shift 32) of n = 2, 4, 6 or 8 inputs, two
+ * rows per pass, the inputs re-paired once into registers (r4-r7: (x0, x2), (x1, x3) per four,
+ * the natural pair for the last two when n % 4 == 2; LDR, which may be unaligned, and
+ * PKHBT/PKHTB); the rows are adjacent, one pointer walks both (single LDR/LDRSB, any
+ * alignment). Per pair: LDM of the biases, per row one LDR + 2 SXTB16 + 2 SMLAD per four
+ * weights and 2 LDRSB + SMLABB + SMLATB per two, the requantisation of first2d32_asm and the
+ * loop test (output end in lr): 20, 22, 30 and 32 instructions for 4, 8, 12 and 16 MACs.
+ * y word-aligned (the caller checks). */
+__attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, const int16_t *x,
+                                                           int16_t *y, uint32_t *sat)
+{
+    (void)ly;
+    (void)x;
+    (void)y;
+    (void)sat;
+    __asm__ volatile(
+        "push    {r3-r11, lr}\n\t"
+        "mov     r12, #0\n\t"
+        "msr     APSR_nzcvq, r12\n\t"
+        "mov     r3, r2\n\t"
+        "ldrh    r9, [r0, #2]\n\t"
+        "bic     lr, r9, #1\n\t"
+        "add     lr, r3, lr, lsl #1\n\t"
+        "ldr     r2, [r0, #20]\n\t"
+        "ldrh    r12, [r0]\n\t"
+        "mov     r10, r1\n\t"
+        "ldr     r1, [r0, #16]\n\t"
+        "ldr     r0, [r0, #12]\n\t"
+        "ldr     r4, [r10]\n\t"
+        "cmp     r12, #4\n\t"
+        "blo     2f\n\t"
+        "ldr     r5, [r10, #4]\n\t"
+        "pkhbt   r8, r4, r5, lsl #16\n\t"
+        "pkhtb   r5, r5, r4, asr #16\n\t"
+        "mov     r4, r8\n\t"
+        "beq     4f\n\t"
+        "ldr     r6, [r10, #8]\n\t"
+        "cmp     r12, #6\n\t"
+        "beq     6f\n\t"
+        "ldr     r7, [r10, #12]\n\t"
+        "pkhbt   r8, r6, r7, lsl #16\n\t"
+        "pkhtb   r7, r7, r6, asr #16\n\t"
+        "mov     r6, r8\n\t"
+        "b       8f\n\t"
+        "2:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        FBG_W2("r9", "r4")
+        FBG_W2("r11", "r4")
+        FBG_PAIR_OUT8
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        FBG_PAIR_OUT8
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        FBG_W2("r9", "r6")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        FBG_W2("r11", "r6")
+        FBG_PAIR_OUT8
+        "bne     6b\n\t"
+        "b       9f\n\t"
+        "8:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r6", "r7")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r6", "r7")
+        FBG_PAIR_OUT8
+        "bne     8b\n\t"
         "9:\n\t"
         "mrs     r12, apsr\n\t"
         "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r11, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "bx      lr\n\t");
+        "pop     {r3}\n\t"
+        "ldr     r0, [r3]\n\t"
+        "orr     r0, r0, r12\n\t"
+        "str     r0, [r3]\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+#undef FBG_W2
+#undef FBG_W4
+#undef FBG_PAIR_OUT8
+
+typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
+typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
+
+/* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
+ * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
+ * newest sample) and four SMLAL (32 x 32 -> 64, exact: the same int64 products as the C),
+ * 9 instructions with the loop test; the ring is walked as two contiguous runs, rows pos..0
+ * then n_taps-1..pos+1. */
+__attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsigned n_taps,
+                                                      const int32_t (*hist)[FBG_N_STRAIN],
+                                                      unsigned pos, int64_t f[FBG_N_STRAIN])
+{
+    (void)taps;
+    (void)n_taps;
+    (void)hist;
+    (void)pos;
+    (void)f;
+    __asm__ volatile(
+        "push    {r4-r11, lr}\n\t"
+        "add     r12, r2, r1, lsl #4\n\t"
+        "add     r1, r2, r3, lsl #4\n\t"
+        "add     r1, r1, #16\n\t"
+        "push    {r1, r12}\n\t"
+        "mov     lr, r2\n\t"
+        "movs    r4, #0\n\t"
+        "movs    r5, #0\n\t"
+        "movs    r6, #0\n\t"
+        "movs    r7, #0\n\t"
+        "mov     r8, #0\n\t"
+        "mov     r9, #0\n\t"
+        "mov     r10, #0\n\t"
+        "mov     r11, #0\n\t"
+        "1:\n\t"
+        "ldrsh   r12, [r0], #2\n\t"
+        "ldmdb   r1!, {r2, r3}\n\t"
+        "smlal   r8, r9, r2, r12\n\t"
+        "smlal   r10, r11, r3, r12\n\t"
+        "ldmdb   r1!, {r2, r3}\n\t"
+        "smlal   r4, r5, r2, r12\n\t"
+        "smlal   r6, r7, r3, r12\n\t"
+        "cmp     r1, lr\n\t"
+        "bne     1b\n\t"
+        "pop     {r1, lr}\n\t"
+        "cmp     lr, r1\n\t"
+        "beq     3f\n\t"
+        "2:\n\t"
+        "ldrsh   r12, [r0], #2\n\t"
+        "ldmdb   lr!, {r2, r3}\n\t"
+        "smlal   r8, r9, r2, r12\n\t"
+        "smlal   r10, r11, r3, r12\n\t"
+        "ldmdb   lr!, {r2, r3}\n\t"
+        "smlal   r4, r5, r2, r12\n\t"
+        "smlal   r6, r7, r3, r12\n\t"
+        "cmp     lr, r1\n\t"
+        "bne     2b\n\t"
+        "3:\n\t"
+        "ldr     r0, [sp, #36]\n\t"
+        "stmia   r0, {r4-r11}\n\t"
+        "pop     {r4-r11, pc}\n\t");
 }
 
 #endif /* FBG_DSP_ASM */
@@ -1780,21 +2206,19 @@ static void run_first(fbg_dsp_job *job)
 #endif
 }
 
-static void run_first32(fbg_dsp_job *job)
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= 8, else the unrolled one (x word-aligned); *sat |= 1 iff a row clamped. */
+static void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                        uint32_t *sat)
 {
 #if FBG_DSP_ASM
-    first32_asm(job);
+    if (n <= 8u)
+        first2d32_asm(ly, x, y, sat);
+    else
+        rows2d32_asm(ly, x, y, sat);
 #else
-    first32_c(job);
-#endif
-}
-
-static void run_rows4_32(fbg_dsp_job *job)
-{
-#if FBG_DSP_ASM
-    rows4d32_asm(job);
-#else
-    rows4_32_c(job);
+    (void)n;
+    rows2_32_c(ly, x, y, sat);
 #endif
 }
 
@@ -1809,56 +2233,17 @@ static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t 
     return acc;
 }
 
-/* An int32 int16-weight hidden layer. shift 32 (what the exporter chooses) runs the assembly
- * above; anything else (valid, but not exported) runs SMLAD rows with C requantisation. */
-static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+/* An int32 int16-weight hidden layer that the pair kernels do not take (see
+ * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
+static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
+                        uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int16_t *w = ly->w16;
     const int64_t round = (int64_t)1 << (shift - 1u);
-    int wal = ((uintptr_t)w & 3u) == 0u;
     uint32_t clamped = 0u;
-    unsigned r = 0;
-    fbg_dsp_job job;
-
-    job.w = w;
-    job.x = x;
-    job.bias = ly->bias;
-    job.mult = ly->mult;
-    job.y = y;
-    job.n = n;
-    job.round_lo = 0u;
-    job.round_hi = 0u;
-    job.s32 = 0u;
-    job.clamped = 0u;
-    if (shift == 32u && wal && (n == 2u || n == 4u || n == 6u)) {
-        job.groups = m;
-        run_first32(&job);
-        if (job.clamped)
-            *sat = 1u;
-        return;
-    }
-    if (shift == 32u && wal && m >= 4u && (n & 1u) == 0u && ((uintptr_t)x & 3u) == 0u) {
-        job.groups = m / 4u;
-        run_rows4_32(&job);
-        clamped = job.clamped;
-        if (m % 4u != 0u) {
-            /* One to three rows left: one more pass over the LAST four rows (those already
-             * done are recomputed to the same values) is cheaper than C rows. Layers of
-             * three rows or fewer run in C below. */
-            job.w = w + (size_t)(m - 4u) * n;
-            job.bias = ly->bias + (m - 4u);
-            job.mult = ly->mult + (m - 4u);
-            job.y = y + (m - 4u);
-            job.groups = 1u;
-            job.clamped = 0u;
-            run_rows4_32(&job);
-            clamped |= job.clamped;
-        }
-        r = m;
-    }
-    for (; r < m; ++r)
-        y[r] = (int16_t)relu_sat16(dot16_32(w + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
+    unsigned r;
+    for (r = r0; r < m; ++r)
+        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
                                    ly->mult[r], shift, round, &clamped);
     if (clamped)
         *sat = 1u;
@@ -1960,6 +2345,46 @@ static inline int8x4_t ld4_8(const int8_t *p)
     return v;
 }
 
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+/* One row of an int32 layer with int8 weights (the output layers' rows): no re-paired copy
+ * of x; the two SXTB16 halves (w0, w2), (w1, w3) are re-packed into (w0, w1), (w2, w3) to meet
+ * the inputs as they lie (two PKH per four weights). */
+static int32_t dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j;
+    for (j = 0; j + 4u <= n; j += 4u) {
+        uint32_t v;
+        uint32_t e, o;
+        memcpy(&v, w + j, sizeof v);
+        e = (uint32_t)__sxtb16((int8x4_t)v);
+        o = (uint32_t)__sxtb16((int8x4_t)ror8(v));
+        acc = __smlad((int16x2_t)((e & 0xFFFFu) | (o << 16)), ld2(x + j), acc);
+        acc = __smlad((int16x2_t)((o & 0xFFFF0000u) | (e >> 16)), ld2(x + j + 2u), acc);
+    }
+    for (; j < n; ++j)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
 /* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
 static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
 {
@@ -1987,10 +2412,7 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
     int16x2_t xp[FBG_MAX_WIDTH / 2];
     uint32_t clamped = 0u;
     unsigned j, r = 0;
-    for (j = 0; j < n4; j += 4u) {
-        xp[j / 2u] = pair16(x[j], x[j + 2u]);
-        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
-    }
+    repair8(x, n4, xp);
     for (; r + 2u <= m; r += 2u) {
         const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
         const int16x2_t *pp = xp;
@@ -2022,14 +2444,72 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
         *sat = 1u;
 }
 
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
+ * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
+#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
+typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
+                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
+
+/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
+ * writes) with n even, at least two rows, the weights and y word-aligned and, beyond 8 inputs
+ * (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
+ * give. The fields are read two words at a time: this runs for every layer of every step. */
+static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
+                             unsigned *n_out)
 {
-    if (ly->w_bits == 16u && ly->acc32)
-        hidden16_32(ly, x, y, sat);
+    uint32_t dims, kind;
+    unsigned n;
+    memcpy(&dims, &ly->n_in, sizeof dims);
+    memcpy(&kind, &ly->w_bits, sizeof kind);
+    n = dims & 0xFFFFu;
+    *n_out = dims >> 16;
+    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
+           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > 8u ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
+}
+
+/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
+static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                                   uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
+        run_pairs32(ly, x, y, ly->n_in, sat);
+        hidden16_32(ly, x, y, m - 1u, sat);
+    }
+#if FBG_DSP_ASM
+    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
+             (ly->n_in & 1u) == 0u && ((uintptr_t)y & 3u) == 0u &&
+             (ly->n_in <= 8u || ((uintptr_t)x & 3u) == 0u)) {
+        /* int8 weights (int32 by construction), shift 32: the pairs in first2b32_asm (n <= 8)
+         * or rows2b32_asm, the last row of an odd layer with dot8_32. */
+        if (ly->n_in <= 8u)
+            first2b32_asm(ly, x, y, sat);
+        else
+            rows2b32_asm(ly, x, y, sat);
+        if (m & 1u) {
+            uint32_t clamped = 0u;
+            y[m - 1u] = (int16_t)relu_usat15(
+                smmulr(dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
+                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
+            *sat |= clamped != 0u;
+        }
+    }
+#endif
+    else if (ly->w_bits == 16u && ly->acc32)
+        hidden16_32(ly, x, y, 0u, sat);
     else if (ly->w_bits == 16u)
         hidden16(ly, x, y, sat);
     else
         hidden8(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
+        run_pairs32(ly, x, y, ly->n_in, sat);
+    else
+        hidden_other(ly, x, y, sat);
 }
 
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
@@ -2037,18 +2517,25 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
 {
     const unsigned n = ly->n_in;
     int16x2_t xp[FBG_MAX_WIDTH / 2];
-    unsigned j;
-    for (j = 0; j + 4u <= n; j += 4u) {
-        xp[j / 2u] = pair16(x[j], x[j + 2u]);
-        xp[j / 2u + 1u] = pair16(x[j + 1u], x[j + 3u]);
-    }
+    repair8(x, n & ~3u, xp);
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    if (ly->w_bits == 16u && ly->acc32)
-        return dot16_32(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
+    uint32_t kind;
+    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
+    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
+        const unsigned n = ly->n_in;
+        const int16_t *w = ly->w16 + (size_t)r * n;
+#if FBG_DSP_ASM
+        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
+            return dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+#endif
+        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
+    }
+    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
+        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
@@ -2057,6 +2544,9 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
                   unsigned pos, int64_t f[FBG_N_STRAIN])
 {
+#if FBG_DSP_ASM
+    fir4_asm(taps, n_taps, hist, pos, f);
+#else
     int64_t f0 = 0, f1 = 0, f2 = 0, f3 = 0;
     unsigned k = 0, i;
     /* Newest first: ring index pos, pos-1, ..., 0 (taps 0..pos), then n_taps-1, ..., pos+1. */
@@ -2078,12 +2568,20 @@ void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FB
     f[1] = f1;
     f[2] = f2;
     f[3] = f3;
+#endif
 }
 
 #else
 /* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
 typedef int fbg_dsp_unused;
 #endif
+#undef FBG_DSP_BODY_BLOCKS
+#undef FBG_PAIR_OUT
+#undef FBG_PAIR8
+#undef FBG_PAIR_OUT8
+#undef FBG_W4
+#undef FBG_W2
+#undef FBG_DSP_PAIRS_KIND
 #undef FBG_FIR_TAP
 /* ---- src/fbg_fixed.c ---- */
 /*
