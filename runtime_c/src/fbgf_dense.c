@@ -170,7 +170,7 @@ FBGF_AVX2 static float sum1(__m256 a)
 }
 
 /* c[k] = row k of an 8 x 8 block -> col[j] = column j. */
-FBGF_AVX2 static void transpose8(const __m256 c[8], __m256 col[8])
+FBGF_AVX2 static inline void transpose8(const __m256 c[8], __m256 col[8])
 {
     __m256 t[8], u[8];
     t[0] = _mm256_unpacklo_ps(c[0], c[1]);
