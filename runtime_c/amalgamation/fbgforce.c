@@ -3761,6 +3761,14 @@ fbg_status fbg_model_check(const fbg_model *model)
 #endif
 #endif
 
+/* fbgf_run runs the nets of several samples together (about 18 kB of stack) only where a SIMD
+ * kernel can reuse the weights; elsewhere (Cortex-M4F) it stays a loop of fbgf_step. */
+#if FBGF_SIMD && (defined(__x86_64__) || defined(__aarch64__))
+#define FBGF_RUN_BATCHED 1
+#else
+#define FBGF_RUN_BATCHED 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
@@ -4617,6 +4625,14 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 #endif
 #endif
 
+/* fbgf_run runs the nets of several samples together (about 18 kB of stack) only where a SIMD
+ * kernel can reuse the weights; elsewhere (Cortex-M4F) it stays a loop of fbgf_step. */
+#if FBGF_SIMD && (defined(__x86_64__) || defined(__aarch64__))
+#define FBGF_RUN_BATCHED 1
+#else
+#define FBGF_RUN_BATCHED 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
@@ -4957,7 +4973,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     return FBG_OK;
 }
 
-#if FBGF_SIMD
+#if FBGF_RUN_BATCHED
 /* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
  * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
  * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
@@ -5008,7 +5024,7 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     fbg_status st;
     if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
         return FBG_ERR_NULL;
-#if FBGF_SIMD
+#if FBGF_RUN_BATCHED
     {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {

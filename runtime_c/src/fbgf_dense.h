@@ -29,6 +29,14 @@
 #endif
 #endif
 
+/* fbgf_run runs the nets of several samples together (about 18 kB of stack) only where a SIMD
+ * kernel can reuse the weights; elsewhere (Cortex-M4F) it stays a loop of fbgf_step. */
+#if FBGF_SIMD && (defined(__x86_64__) || defined(__aarch64__))
+#define FBGF_RUN_BATCHED 1
+#else
+#define FBGF_RUN_BATCHED 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 

@@ -334,7 +334,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     return FBG_OK;
 }
 
-#if FBGF_SIMD
+#if FBGF_RUN_BATCHED
 /* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
  * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
  * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
@@ -385,7 +385,7 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     fbg_status st;
     if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
         return FBG_ERR_NULL;
-#if FBGF_SIMD
+#if FBGF_RUN_BATCHED
     {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
