@@ -47,6 +47,14 @@ static void dense_portable(const fbgf_layer *ly, const float *x, float *y, int r
 }
 
 #if defined(FBGF_HAVE_SSE2) || defined(FBGF_HAVE_NEON)
+/* dst[0..4) = src[0..n) then zeros, n <= 4 (a loop: a memcpy call costs more than the copy). */
+static void copy4(float dst[4], const float *src, unsigned n)
+{
+    unsigned k;
+    for (k = 0; k < 4u; ++k)
+        dst[k] = k < n ? src[k] : 0.0f;
+}
+
 /* The row pointers of the block of rows r0.. (`rows` of them; a short last block repeats the
  * last row) and how many of them are real. */
 static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, const float **w)
@@ -76,15 +84,13 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
         /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
          * per sample, into xt). */
         if (full < n_in) {
-            memset(wt, 0, sizeof wt);
             for (k = 0; k < 4u; ++k)
-                memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+                copy4(wt[k], w[k] + full, n_in - full);
         }
         if (n == 4u) {
             bias = _mm_loadu_ps(ly->b + r0);
         } else {
-            memset(b, 0, sizeof b);
-            memcpy(b, ly->b + r0, n * sizeof *b);
+            copy4(b, ly->b + r0, n);
             bias = _mm_loadu_ps(b);
         }
         for (i = 0; i < n_samples; ++i) {
@@ -100,8 +106,7 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
             }
             if (full < n_in) {
                 __m128 xv;
-                memset(xt, 0, sizeof xt);
-                memcpy(xt, x + full, (n_in - full) * sizeof *x);
+                copy4(xt, x + full, n_in - full);
                 xv = _mm_loadu_ps(xt);
                 a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(wt[0]), xv));
                 a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(wt[1]), xv));
@@ -386,15 +391,13 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
         /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
          * per sample, into xt). */
         if (full < n_in) {
-            memset(wt, 0, sizeof wt);
             for (k = 0; k < 4u; ++k)
-                memcpy(wt[k], w[k] + full, (n_in - full) * sizeof(float));
+                copy4(wt[k], w[k] + full, n_in - full);
         }
         if (n == 4u) {
             bias = vld1q_f32(ly->b + r0);
         } else {
-            memset(b, 0, sizeof b);
-            memcpy(b, ly->b + r0, n * sizeof *b);
+            copy4(b, ly->b + r0, n);
             bias = vld1q_f32(b);
         }
         for (i = 0; i < n_samples; ++i) {
@@ -410,8 +413,7 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
             }
             if (full < n_in) {
                 float32x4_t xv;
-                memset(xt, 0, sizeof xt);
-                memcpy(xt, x + full, (n_in - full) * sizeof *x);
+                copy4(xt, x + full, n_in - full);
                 xv = vld1q_f32(xt);
                 a0 = vfmaq_f32(a0, vld1q_f32(wt[0]), xv);
                 a1 = vfmaq_f32(a1, vld1q_f32(wt[1]), xv);
