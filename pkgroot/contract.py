@@ -112,6 +112,20 @@ STATUS: tuple[Code, ...] = (
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
 
+#: fbg_init options (``#define FBG_OPT_<name>``). The KERNEL_* values (a field under
+#: KERNEL_MASK) choose the dense-layer kernels of the fixed-point build (docs/runtime.md,
+#: "Host SIMD kernels"); every kernel gives the same bits.
+OPTIONS: tuple[Code, ...] = (
+    Code("REQUIRE_TARE", 0x01, "fbg_step returns FBG_ERR_NOT_TARED until tared"),
+    Code("KERNEL_MASK", 0xF0, "the dense-layer kernel field of the options"),
+    Code("KERNEL_AUTO", 0x00, "the fastest kernel this CPU runs"),
+    Code("KERNEL_PORTABLE", 0x10, "portable C"),
+    Code("KERNEL_SSE2", 0x20, "x86-64 SSE2"),
+    Code("KERNEL_AVX2", 0x30, "x86-64 AVX2 (if the CPU has it)"),
+    Code("KERNEL_NEON", 0x40, "aarch64 NEON"),
+)
+OPTION = {c.name: c.value for c in OPTIONS}
+
 
 @dataclass(frozen=True)
 class Net:
@@ -440,6 +454,9 @@ def header_sections() -> dict[str, str]:
     c += ["} fbg_status;", "", "/* Output status flags (fbg_output.status; several may be set). */"]
     for code in STATUS:
         c.append(f"#define FBG_STATUS_{code.name} 0x{code.value:02X}  /* {code.doc} */")
+    c += ["", "/* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */"]
+    for code in OPTIONS:
+        c.append(f"#define FBG_OPT_{code.name} 0x{code.value:02X}  /* {code.doc} */")
 
     x = ["/* Fixed-point model. The parameters are those of the blob (docs/model-format.md),",
          " * declared grouped by size so that the struct has no implicit padding. */",

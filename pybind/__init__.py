@@ -59,6 +59,11 @@ for _code in contract.ERRORS[1:]:
 
 #: Output status bits (fbg_output.status).
 STATUS_FLAGS = dict(contract.STATUS_FLAG)
+#: Dense-layer kernels of the fixed-point build by name -> FBG_OPT_KERNEL_* (docs/runtime.md,
+#: "Host SIMD kernels").
+KERNELS = {name[len("KERNEL_"):].lower(): value for name, value in contract.OPTION.items()
+           if name.startswith("KERNEL_") and name != "KERNEL_MASK"}
+KERNEL_NAME = {value: name for name, value in KERNELS.items()}
 
 # The C structs fbg_output / fbgf_output, byte for byte (checked against ffi.sizeof at import).
 _C_OUTPUT = np.dtype(contract.numpy_dtype(contract.OUTPUT))
@@ -159,6 +164,10 @@ class Runtime(_Base):
         A model directory (its ``model.fbgm``), a blob file path, or the blob's bytes.
     require_tare
         Refuse to step before a tare (FBG_OPT_REQUIRE_TARE -> :class:`NotTaredError`).
+    kernel
+        Dense-layer kernels (:data:`KERNELS`): ``"auto"`` (the fastest this CPU runs),
+        ``"portable"``, ``"sse2"``, ``"avx2"`` or ``"neon"``; every kernel gives the same bits.
+        One this CPU cannot run raises :class:`ArgError`. :attr:`kernel` names the one in use.
 
     Examples
     --------
@@ -169,7 +178,10 @@ class Runtime(_Base):
 
     _prefix = "fbg"
 
-    def __init__(self, model: str | Path | bytes, *, require_tare: bool = False) -> None:
+    def __init__(self, model: str | Path | bytes, *, require_tare: bool = False,
+                 kernel: str = "auto") -> None:
+        if kernel not in KERNELS:
+            raise InputError(f"unknown kernel {kernel!r}; one of {', '.join(KERNELS)}")
         if isinstance(model, (bytes, bytearray, memoryview)):
             data, where = bytes(model), "<bytes>"
         else:
@@ -187,8 +199,12 @@ class Runtime(_Base):
         if status != lib.FBG_OK:
             reason = ERRORS[status].__doc__ if status in ERRORS else "refused by the C loader"
             check(status, f"{where} ({len(data)} bytes): {reason}")
-        check(lib.fbg_init(self._state, self._model, lib.FBG_OPT_REQUIRE_TARE if require_tare else 0),
-              "fbg_init")
+        options = (lib.FBG_OPT_REQUIRE_TARE if require_tare else 0) | KERNELS[kernel]
+        check(lib.fbg_init(self._state, self._model, options),
+              f"fbg_init: kernel {kernel!r} does not run on this CPU or build" if kernel != "auto"
+              else "fbg_init")
+        #: The dense-layer kernel this runtime runs (a key of :data:`KERNELS`, never "auto").
+        self.kernel = KERNEL_NAME[lib.fbg_kernel(self._state)]
         self.blob_size = len(data)
         # Preallocated single-sample buffers: step() is what a 1 kHz loop calls.
         self._in = np.zeros(5, dtype=np.int32)

@@ -2934,6 +2934,193 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 }
 
 #endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        if (!fbg_wl_in_window(wl[c])) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        if (*prev_valid & (1u << c)) {
+            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
+            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
+            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+                fault = 1;
+            if (d == 0) {
+                if (run[c] < 0xFFFFu)
+                    run[c]++;
+            } else {
+                run[c] = 0u;
+            }
+        } else {
+            run[c] = 0u;
+        }
+        if (stuck_max != 0u && run[c] >= stuck_max)
+            fault = 1;
+        prev[c] = wl[c];
+        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+    }
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+
+#endif /* FBG_SIMD_H */
 #if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
 /* ---- src/fbg_dsp.h ---- */
 /*
@@ -3159,18 +3346,40 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
 /* The shared front end's view of a fixed-point state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
+/* The kernel a state runs for a requested FBG_OPT_KERNEL_* value; 0 if it cannot run here. */
+static uint32_t resolve_kernel(uint32_t requested)
+{
+#if FBG_HOST_SIMD
+    return fbg_simd_resolve(requested);
+#else
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+#endif
+}
+
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
     fbg_status st;
+    uint32_t kernel;
     if (state == NULL || model == NULL)
         return FBG_ERR_NULL;
     st = fbg_model_check(model);
     if (st != FBG_OK)
         return st;
+    kernel = resolve_kernel(options & FBG_OPT_KERNEL_MASK);
+    if (kernel == 0u)
+        return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
     state->model = model;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
     return FBG_OK;
+}
+
+uint32_t fbg_kernel(const fbg_state *state)
+{
+    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+        return 0u;
+    return state->options & FBG_OPT_KERNEL_MASK;
 }
 
 fbg_status fbg_reset(fbg_state *state)
@@ -3259,6 +3468,26 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 #endif
 }
 
+/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
+static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
+    return fbg_sat16(v < 0 ? 0 : v, sat);
+}
+
+/* The kernel of a state for an acc32 layer, when it is a host SIMD one (else 0). */
+static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
+{
+#if FBG_HOST_SIMD
+    uint32_t kernel = s->options & FBG_OPT_KERNEL_MASK;
+    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
+#else
+    (void)s;
+    (void)ly;
+    return 0u;
+#endif
+}
+
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
@@ -3270,9 +3499,15 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
         fbg_dsp_hidden(ly, x, y, sat);
 #else
         unsigned r;
-        for (r = 0; r < ly->n_out; ++r) {
-            int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
-            y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+#if FBG_HOST_SIMD
+        uint32_t kernel = simd_kernel(s, ly);
+        if (kernel != 0u)
+            fbg_simd_hidden(kernel, ly, x, y, sat);
+        else
+#endif
+        {
+            for (r = 0; r < ly->n_out; ++r)
+                y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
         }
 #endif
         x = y;
@@ -3281,13 +3516,30 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
     return x;
 }
 
-/* Output row r of a net's last layer in its physical unit, saturated to int32. */
-static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
-                          uint32_t *sat)
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
 {
-    int64_t acc = layer_acc(ly, r, x);
-    if (acc_out != NULL)
-        *acc_out = acc;
+    unsigned r;
+#if FBG_HOST_SIMD
+    uint32_t kernel = simd_kernel(s, ly);
+    if (kernel != 0u) {
+        int32_t acc32[FBG_MAX_WIDTH];
+        fbg_simd_acc32(kernel, ly, x, acc32);
+        for (r = 0; r < ly->n_out; ++r)
+            acc[r] = acc32[r];
+        return;
+    }
+#else
+    (void)s;
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = layer_acc(ly, r, x);
+}
+
+/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
+ * int32. */
+static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
@@ -3348,7 +3600,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
-    int64_t acc, load = 0;
+    int64_t acc[FBG_MAX_WIDTH], load = 0;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -3413,8 +3665,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     memset(out, 0, sizeof *out);
     x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
-    out->contact_margin_q8 = output_row(last, 0u, x, &acc, &sat);
-    out->contact = acc > 0 ? 1u : 0u;
+    output_accs(s, last, x, acc);
+    out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
+    out->contact = acc[0] > 0 ? 1u : 0u;
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 
     if (out->contact) {
@@ -3422,7 +3675,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         int32_t force_out;
         x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
-        force_out = output_row(last, 0u, x, NULL, &sat);
+        output_accs(s, last, x, acc);
+        force_out = output_row(last, 0u, acc[0], &sat);
         out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
@@ -3433,8 +3687,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, x, NULL, &sat) + m->xy_offset_um[1], &sat);
+        output_accs(s, last, x, acc);
+        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, acc[0], &sat) + m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, acc[1], &sat) + m->xy_offset_um[1], &sat);
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
@@ -3707,6 +3962,988 @@ fbg_status fbg_model_check(const fbg_model *model)
     return FBG_OK;
 }
 #undef FBG_BIAS_LIMIT
+/* ---- src/fbg_simd_neon.c ---- */
+/*
+ * fbg_simd_neon.c - NEON dense-layer kernels for aarch64 (see fbg_simd.h).
+ *
+ * SMLAL/SMLAL2 (vmlal_s16 / vmlal_high_s16) multiply int16 pairs exactly and add the products
+ * into int32 lanes, and ADDP (vpaddq_s32) adds lanes; all wrap modulo 2^32, so every lane
+ * holds its share of a row's sum modulo 2^32, and so does their total; the loader proved the
+ * row's true sum fits int32, which makes the modular total the true sum (docs/fixed-point.md,
+ * "Host SIMD kernels"). Four rows run together so each vector of x is loaded once per four
+ * rows; rows past n_out read a row of zeros. NEON is part of every AArch64 CPU, so there is
+ * no run-time check.
+ *
+ * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
+ * widened on load), against x copied into a buffer that is zero from n_in on: the weights
+ * read past a row's end belong to the next row and meet zeros. Where such a read would leave
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer.
+ *
+ * Requantisation, four rows at once: SMULL/SMULL2 give the exact int64 products acc * mult;
+ * SRSHL by -shift (vrshlq_s64) is (t + 2^(shift-1)) >> shift, the rounding rule, computed
+ * without overflow; SQXTN narrows to int32 saturating (any value beyond int32 is beyond
+ * 32767 too), then max(., 0) and min(., 32767), the comparison with 32767 feeding the
+ * saturation flag exactly where fbg_sat16 raises it.
+ *
+ * Integer SIMD only: no floating-point vector type or instruction is used here
+ * (check-nofloat scans this file and its aarch64 object).
+ */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        if (!fbg_wl_in_window(wl[c])) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        if (*prev_valid & (1u << c)) {
+            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
+            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
+            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+                fault = 1;
+            if (d == 0) {
+                if (run[c] < 0xFFFFu)
+                    run[c]++;
+            } else {
+                run[c] = 0u;
+            }
+        } else {
+            run[c] = 0u;
+        }
+        if (stuck_max != 0u && run[c] >= stuck_max)
+            fault = 1;
+        prev[c] = wl[c];
+        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+    }
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__aarch64__)
+#include <arm_neon.h>
+#include <string.h>
+
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* The rows past n_out of a layer's last group. */
+static const int16_t zero_row16[ROW_LEN];
+static const int8_t zero_row8[ROW_LEN];
+
+/* Where row r of the layer is read for npad entries: in place if r * n + npad stays inside the
+ * weight array, else a zero-padded copy in buf; past n_out, the zero row. */
+static const int16_t *row16(const fbg_layer *ly, unsigned r, unsigned npad, int16_t *buf)
+{
+    size_t start = (size_t)r * ly->n_in;
+    if (r >= ly->n_out)
+        return zero_row16;
+    if (start + npad <= (size_t)ly->n_out * ly->n_in)
+        return ly->w16 + start;
+    memset(buf, 0, npad * sizeof *buf);
+    memcpy(buf, ly->w16 + start, ly->n_in * sizeof *buf);
+    return buf;
+}
+
+static const int8_t *row8(const fbg_layer *ly, unsigned r, unsigned npad, int8_t *buf)
+{
+    size_t start = (size_t)r * ly->n_in;
+    if (r >= ly->n_out)
+        return zero_row8;
+    if (start + npad <= (size_t)ly->n_out * ly->n_in)
+        return ly->w8 + start;
+    memset(buf, 0, npad);
+    memcpy(buf, ly->w8 + start, ly->n_in);
+    return buf;
+}
+
+/* acc += w . x over 8 entries (exact products, int32 lanes). */
+static inline int32x4_t mac8(int32x4_t acc, int16x8_t w, int16x8_t x)
+{
+    return vmlal_high_s16(vmlal_s16(acc, vget_low_s16(w), vget_low_s16(x)), w, x);
+}
+
+/* The MACs of four rows; W(i, j) loads 8 weights of row i at column j as int16. */
+#define NEON_DOT4(W)                                                                 \
+    do {                                                                             \
+        int32x4_t a0 = vdupq_n_s32(0), a1 = a0, a2 = a0, a3 = a0;                    \
+        for (j = 0; j < npad; j += 8u) {                                             \
+            int16x8_t xv = vld1q_s16(xp + j);                                        \
+            a0 = mac8(a0, W(0, j), xv);                                              \
+            a1 = mac8(a1, W(1, j), xv);                                              \
+            a2 = mac8(a2, W(2, j), xv);                                              \
+            a3 = mac8(a3, W(3, j), xv);                                              \
+        }                                                                            \
+        sums = vpaddq_s32(vpaddq_s32(a0, a1), vpaddq_s32(a2, a3));                   \
+    } while (0)
+#define NEON_W16(i, j) vld1q_s16(w16[i] + (j))
+#define NEON_W8(i, j) vmovl_s8(vld1_s8(w8[i] + (j)))
+
+/* acc[r] for every row of the layer (int32), four rows of padding room past n_out. */
+static void acc32_neon(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    int16_t xp[ROW_LEN];
+    int16_t buf16[4][ROW_LEN];
+    int8_t buf8[4][ROW_LEN];
+    int32_t b[4];
+    unsigned r, j, i, npad = (ly->n_in + 7u) & ~7u;
+    /* Rows r < n_fast read in place: r * n + npad stays inside the weight array. */
+    size_t total = (size_t)ly->n_out * ly->n_in;
+    unsigned n_fast = total < npad ? 0u : (unsigned)((total - npad) / ly->n_in) + 1u;
+    for (j = 0; j < ly->n_in; ++j)
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+    for (r = 0; r < ly->n_out; r += 4u) {
+        int32x4_t sums;
+        int fast = r + 4u <= n_fast;
+        for (i = 0; i < 4u; ++i) /* |bias| <= INT32_MAX in an acc32 layer */
+            b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[4];
+            for (i = 0; i < 4u; ++i)
+                w16[i] = fast ? ly->w16 + (size_t)(r + i) * ly->n_in : row16(ly, r + i, npad, buf16[i]);
+            NEON_DOT4(NEON_W16);
+        } else {
+            const int8_t *w8[4];
+            for (i = 0; i < 4u; ++i)
+                w8[i] = fast ? ly->w8 + (size_t)(r + i) * ly->n_in : row8(ly, r + i, npad, buf8[i]);
+            NEON_DOT4(NEON_W8);
+        }
+        vst1q_s32(acc + r, vaddq_s32(sums, vld1q_s32(b)));
+    }
+}
+
+uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    switch (requested) {
+    case FBG_OPT_KERNEL_AUTO:
+        return FBG_OPT_KERNEL_NEON;
+    case FBG_OPT_KERNEL_PORTABLE:
+    case FBG_OPT_KERNEL_NEON:
+        return requested;
+    default:
+        return 0u;
+    }
+}
+
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    int32_t a[FBG_MAX_WIDTH + 4u];
+    (void)kernel; /* NEON is the only SIMD kernel here */
+    acc32_neon(ly, x, a);
+    memcpy(acc, a, ly->n_out * sizeof *acc);
+}
+
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    int32_t acc[FBG_MAX_WIDTH + 4u], mult[4];
+    int16_t out[4];
+    unsigned r, k;
+    const int64x2_t shift = vdupq_n_s64(-(int64_t)ly->shift);
+    const int32x4_t zero = vdupq_n_s32(0), top = vdupq_n_s32(FBG_SAT16);
+    uint32x4_t big = vdupq_n_u32(0);
+    (void)kernel;
+    acc32_neon(ly, x, acc);
+    for (r = 0; r < ly->n_out; r += 4u) {
+        int32x4_t a = vld1q_s32(acc + r), m, v;
+        k = ly->n_out - r < 4u ? ly->n_out - r : 4u;
+        if (k == 4u) {
+            m = vld1q_s32(ly->mult + r);
+        } else {
+            memset(mult, 0, sizeof mult);
+            memcpy(mult, ly->mult + r, k * sizeof *mult);
+            m = vld1q_s32(mult);
+        }
+        v = vqmovn_high_s64(vqmovn_s64(vrshlq_s64(vmull_s32(vget_low_s32(a), vget_low_s32(m)), shift)),
+                            vrshlq_s64(vmull_high_s32(a, m), shift));
+        v = vmaxq_s32(v, zero);
+        big = vorrq_u32(big, vcgtq_s32(v, top));
+        v = vminq_s32(v, top);
+        if (k == 4u) {
+            vst1_s16(y + r, vmovn_s32(v));
+        } else {
+            vst1_s16(out, vmovn_s32(v));
+            memcpy(y + r, out, k * sizeof *y);
+        }
+    }
+    if (vmaxvq_u32(big) != 0u)
+        *sat = 1u;
+}
+
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_neon_unused;
+#endif
+#undef ROW_LEN
+#undef NEON_DOT4
+#undef NEON_W16
+#undef NEON_W8
+/* ---- src/fbg_simd_x86.c ---- */
+/*
+ * fbg_simd_x86.c - SSE2 and AVX2 dense-layer kernels for x86-64 (see fbg_simd.h).
+ *
+ * PMADDWD (_mm_madd_epi16 / _mm256_madd_epi16) multiplies int16 pairs and adds adjacent
+ * products into int32 lanes; PADDD and PHADDD add lanes. All of them wrap modulo 2^32, so
+ * every lane holds its share of a row's sum modulo 2^32, and so does their total; the loader
+ * proved the row's true sum fits int32, which makes the modular total the true sum
+ * (docs/fixed-point.md, "Host SIMD kernels"). SSE2 runs four rows together and AVX2 eight,
+ * so each vector of x is loaded once per group; rows past n_out read a row of zeros.
+ *
+ * Rows are read as whole vectors of npad = n_in rounded up to 8 weights (int8 weights are
+ * widened on load), against x copied into a buffer that is zero from n_in on: the weights
+ * read past a row's end belong to the next row and meet zeros. Where such a read would leave
+ * the weight array (the last rows), the row is first copied into a zero-padded buffer.
+ *
+ * AVX2 also requantises eight rows at once: VPMULDQ gives the exact int64 products
+ * acc * mult, the rounding constant is added in int64, and a logical shift right stands for
+ * the arithmetic one because a negative sum becomes 0 under the ReLU anyway (so only
+ * non-negative values are shifted); the clamp at 32767 raises the saturation flag exactly
+ * where fbg_sat16 does. SSE2 requantises with the scalar helpers of fbg_internal.h.
+ *
+ * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
+ * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
+ * OS, which must save the YMM registers) supports AVX2.
+ *
+ * Integer SIMD only: no floating-point vector type or instruction is used here
+ * (check-nofloat scans this file, which -mgeneral-regs-only cannot compile).
+ */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        if (!fbg_wl_in_window(wl[c])) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        if (*prev_valid & (1u << c)) {
+            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
+            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
+            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+                fault = 1;
+            if (d == 0) {
+                if (run[c] < 0xFFFFu)
+                    run[c]++;
+            } else {
+                run[c] = 0u;
+            }
+        } else {
+            run[c] = 0u;
+        }
+        if (stuck_max != 0u && run[c] >= stuck_max)
+            fault = 1;
+        prev[c] = wl[c];
+        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+    }
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+#include <emmintrin.h>
+#include <immintrin.h>
+#include <string.h>
+
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* The rows past n_out of a layer's last group. */
+static const int16_t zero_row16[ROW_LEN];
+static const int8_t zero_row8[ROW_LEN];
+
+/* One layer's rows: the first n_safe can be read in place for npad entries, n_in rounded up
+ * to a multiple of vec (8 or 16). */
+typedef struct {
+    const fbg_layer *ly;
+    unsigned n, npad, n_safe;
+} rows_view;
+
+static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
+{
+    size_t total = (size_t)ly->n_out * ly->n_in;
+    v->ly = ly;
+    v->n = ly->n_in;
+    v->npad = (ly->n_in + vec - 1u) & ~(vec - 1u);
+    /* Row r stays inside the weight array iff r * n + npad <= total; a read of npad entries
+     * overruns the last ceil((npad - n) / n) rows (no division for the common n >= npad - n). */
+    if (v->npad == v->n)
+        v->n_safe = ly->n_out;
+    else if (v->n >= v->npad - v->n)
+        v->n_safe = ly->n_out - 1u;
+    else
+        v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
+}
+
+/* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
+ * into buf. */
+static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int16_t *p = v->ly->w16 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w16 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row16;
+        } else {
+            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int8_t *p = v->ly->w8 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w8 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row8;
+        } else {
+            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+}
+
+/* bias[r .. r+k-1] as int32 (|bias| <= INT32_MAX in an acc32 layer), 0 beyond k. */
+static void bias32(const fbg_layer *ly, unsigned r, unsigned k, int32_t *b)
+{
+    unsigned i;
+    for (i = 0; i < k; ++i)
+        b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
+}
+
+/* ---- SSE2: four rows per group ------------------------------------------------------- */
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+/* 8 int8 weights sign-extended to int16 (each byte doubled, then shifted down arithmetically). */
+static inline __m128i load8x8(const int8_t *p)
+{
+    __m128i b = _mm_loadl_epi64((const __m128i *)(const void *)p);
+    return _mm_srai_epi16(_mm_unpacklo_epi8(b, b), 8);
+}
+
+/* [sum of a's lanes, sum of b's, sum of c's, sum of d's]. */
+static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
+{
+    __m128i ab = _mm_add_epi32(_mm_unpacklo_epi32(a, b), _mm_unpackhi_epi32(a, b));
+    __m128i cd = _mm_add_epi32(_mm_unpacklo_epi32(c, d), _mm_unpackhi_epi32(c, d));
+    return _mm_add_epi32(_mm_unpacklo_epi64(ab, cd), _mm_unpackhi_epi64(ab, cd));
+}
+
+/* The MACs of four rows; W(i, j) loads 8 weights of row i at column j as int16. */
+#define SSE2_DOT4(W)                                                                 \
+    do {                                                                             \
+        __m128i a0 = _mm_setzero_si128(), a1 = a0, a2 = a0, a3 = a0;                \
+        for (j = 0; j < v.npad; j += 8u) {                                           \
+            __m128i xv = load128(xp + j);                                           \
+            a0 = _mm_add_epi32(a0, _mm_madd_epi16(W(0, j), xv));                    \
+            a1 = _mm_add_epi32(a1, _mm_madd_epi16(W(1, j), xv));                    \
+            a2 = _mm_add_epi32(a2, _mm_madd_epi16(W(2, j), xv));                    \
+            a3 = _mm_add_epi32(a3, _mm_madd_epi16(W(3, j), xv));                    \
+        }                                                                            \
+        sums = _mm_add_epi32(sum4_lanes(a0, a1, a2, a3), load128(b));                \
+    } while (0)
+#define SSE2_W16(i, j) load128(w16[i] + (j))
+#define SSE2_W8(i, j) load8x8(w8[i] + (j))
+
+/* acc[r] for every row of the layer (int32). */
+static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    int16_t xp[ROW_LEN];
+    int16_t buf16[4][ROW_LEN];
+    int8_t buf8[4][ROW_LEN];
+    int32_t b[4], t[4];
+    rows_view v;
+    unsigned r, j;
+    pad_x(ly, x, xp);
+    rows_view_init(&v, ly, 8u);
+    for (r = 0; r < ly->n_out; r += 4u) {
+        __m128i sums;
+        bias32(ly, r, 4u, b);
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[4];
+            rows16(&v, r, 4u, w16, buf16);
+            SSE2_DOT4(SSE2_W16);
+        } else {
+            const int8_t *w8[4];
+            rows8(&v, r, 4u, w8, buf8);
+            SSE2_DOT4(SSE2_W8);
+        }
+        if (r + 4u <= ly->n_out) {
+            _mm_storeu_si128((__m128i *)(void *)(acc + r), sums);
+        } else {
+            _mm_storeu_si128((__m128i *)(void *)t, sums);
+            memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
+        }
+    }
+}
+
+static void hidden_sse2(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    int32_t acc[FBG_MAX_WIDTH];
+    unsigned r;
+    acc32_sse2(ly, x, acc);
+    for (r = 0; r < ly->n_out; ++r) {
+        int64_t v = fbg_rshift_round((int64_t)acc[r] * ly->mult[r], ly->shift);
+        y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+    }
+}
+
+/* ---- AVX2: eight rows per group, vector requantisation -------------------------------- */
+
+AVX2 static inline __m256i load256(const void *p)
+{
+    return _mm256_loadu_si256((const __m256i *)p);
+}
+
+/* [sum of a0's lanes, ..., sum of a7's lanes]. */
+AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256i a3, __m256i a4,
+                                      __m256i a5, __m256i a6, __m256i a7)
+{
+    /* Within each 128-bit half: [a0 a1 a2 a3] and [a4 a5 a6 a7] partial sums. */
+    __m256i h0123 = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    __m256i h4567 = _mm256_hadd_epi32(_mm256_hadd_epi32(a4, a5), _mm256_hadd_epi32(a6, a7));
+    return _mm256_add_epi32(_mm256_permute2x128_si256(h0123, h4567, 0x20),
+                            _mm256_permute2x128_si256(h0123, h4567, 0x31));
+}
+
+/* The MACs of eight rows: W(i, j) loads 16 weights of row i at column j as int16. */
+#define AVX2_DOT8(W)                                                                         \
+    do {                                                                                     \
+        __m256i a0 = _mm256_setzero_si256(), a1 = a0, a2 = a0, a3 = a0, a4 = a0, a5 = a0,   \
+                a6 = a0, a7 = a0, xv;                                                        \
+        for (j = 0; j < v.npad; j += 16u) {                                                  \
+            xv = load256(xp + j);                                                            \
+            a0 = _mm256_add_epi32(a0, _mm256_madd_epi16(W(0, j), xv));                       \
+            a1 = _mm256_add_epi32(a1, _mm256_madd_epi16(W(1, j), xv));                       \
+            a2 = _mm256_add_epi32(a2, _mm256_madd_epi16(W(2, j), xv));                       \
+            a3 = _mm256_add_epi32(a3, _mm256_madd_epi16(W(3, j), xv));                       \
+            a4 = _mm256_add_epi32(a4, _mm256_madd_epi16(W(4, j), xv));                       \
+            a5 = _mm256_add_epi32(a5, _mm256_madd_epi16(W(5, j), xv));                       \
+            a6 = _mm256_add_epi32(a6, _mm256_madd_epi16(W(6, j), xv));                       \
+            a7 = _mm256_add_epi32(a7, _mm256_madd_epi16(W(7, j), xv));                       \
+        }                                                                                    \
+        sums = sum8_lanes(a0, a1, a2, a3, a4, a5, a6, a7);                                   \
+    } while (0)
+#define AVX2_W16(i, j) load256(w16[i] + (j))
+#define AVX2_W8(i, j) _mm256_cvtepi8_epi16(load128(w8[i] + (j)))
+
+/* A layer of at most 8 inputs: two rows per vector (row 2p in the low half, 2p+1 in the
+ * high half) against x in both halves; W(i) loads row i's 8 weights as int16. */
+#define AVX2_NARROW8(W)                                                                      \
+    do {                                                                                     \
+        __m256i xv = _mm256_broadcastsi128_si256(load128(xp));                               \
+        __m256i m0 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(0)), W(1), 1), xv); \
+        __m256i m1 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(2)), W(3), 1), xv); \
+        __m256i m2 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(4)), W(5), 1), xv); \
+        __m256i m3 = _mm256_madd_epi16(_mm256_inserti128_si256(_mm256_castsi128_si256(W(6)), W(7), 1), xv); \
+        /* [r0 r2 r4 r6 | r1 r3 r5 r7], then in row order. */                                \
+        __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(m0, m1), _mm256_hadd_epi32(m2, m3)); \
+        sums = _mm256_permutevar8x32_epi32(h, _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7));    \
+    } while (0)
+#define NARROW_W16(i) load128(w16[i])
+#define NARROW_W8(i) _mm_cvtepi8_epi16(_mm_loadl_epi64((const __m128i *)(const void *)w8[i]))
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag). */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
+{
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
+    int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
+    for (k = 0; k < 2; ++k) {
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, over);
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
+    }
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* Rows r .. r+k-1 (k <= 8) of a layer's bias, as int32 (|bias| <= INT32_MAX in an acc32
+ * layer: the low dwords of the int64 values), and of its mult; 0 beyond k. Masked loads read
+ * nothing past the arrays. */
+AVX2 static inline void bias_mult8(const fbg_layer *ly, unsigned r, unsigned k, __m256i *bias,
+                                   __m256i *mult)
+{
+    const __m256i low_dwords = _mm256_setr_epi32(0, 2, 4, 6, 1, 3, 5, 7);
+    __m256i lo, hi;
+    if (k == 8u) {
+        lo = load256(ly->bias + r);
+        hi = load256(ly->bias + r + 4u);
+        *mult = load256(ly->mult + r);
+    } else {
+        __m256i keep = _mm256_cmpgt_epi32(_mm256_set1_epi32((int)k), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+        *mult = _mm256_maskload_epi32((const int *)(const void *)(ly->mult + r), keep);
+        lo = _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r),
+                                   _mm256_cvtepi32_epi64(_mm256_castsi256_si128(keep)));
+        hi = k > 4u ? _mm256_maskload_epi64((const long long *)(const void *)(ly->bias + r + 4u),
+                                            _mm256_cvtepi32_epi64(_mm256_extracti128_si256(keep, 1)))
+                    : _mm256_setzero_si256();
+    }
+    *bias = _mm256_inserti128_si256(_mm256_permutevar8x32_epi32(lo, low_dwords),
+                                    _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(hi, low_dwords)), 1);
+}
+
+/* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row.
+ * Two passes: the sums of all row groups first, then bias and requantisation eight rows at
+ * a time, so that no group's long chain (reduction, then requantisation) holds up the next. */
+AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                            uint32_t *sat)
+{
+    int16_t xp[ROW_LEN];
+    int16_t buf16[8][ROW_LEN];
+    int8_t buf8[8][ROW_LEN];
+    int32_t sum[FBG_MAX_WIDTH + 8u];
+    rows_view v;
+    unsigned r, j;
+    const __m256i round = _mm256_set1_epi64x((int64_t)1 << (ly->shift - 1u));
+    const __m256i top = _mm256_set1_epi64x(ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX);
+    const __m128i shift = _mm_cvtsi32_si128((int)ly->shift);
+    __m256i big = _mm256_setzero_si256();
+    pad_x(ly, x, xp);
+    rows_view_init(&v, ly, ly->n_in <= 8u ? 8u : 16u);
+    for (r = 0; r < ly->n_out; r += 8u) {
+        __m256i sums;
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[8];
+            rows16(&v, r, 8u, w16, buf16);
+            if (v.npad == 8u)
+                AVX2_NARROW8(NARROW_W16);
+            else
+                AVX2_DOT8(AVX2_W16);
+        } else {
+            const int8_t *w8[8];
+            rows8(&v, r, 8u, w8, buf8);
+            if (v.npad == 8u)
+                AVX2_NARROW8(NARROW_W8);
+            else
+                AVX2_DOT8(AVX2_W8);
+        }
+        _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
+    }
+    for (r = 0; r < ly->n_out; r += 8u) {
+        unsigned k = ly->n_out - r < 8u ? ly->n_out - r : 8u;
+        __m256i bias, mult, sums;
+        bias_mult8(ly, r, k, &bias, &mult);
+        sums = _mm256_add_epi32(load256(sum + r), bias);
+        if (acc != NULL) {
+            _mm256_storeu_si256((__m256i *)(void *)(sum + r), sums);
+            memcpy(acc + r, sum + r, k * sizeof *acc);
+        } else if (k == 8u) {
+            _mm_storeu_si128((__m128i *)(void *)(y + r), requant8(sums, mult, round, top, shift, &big));
+        } else {
+            int16_t t[8];
+            _mm_storeu_si128((__m128i *)(void *)t, requant8(sums, mult, round, top, shift, &big));
+            memcpy(y + r, t, k * sizeof *y);
+        }
+    }
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
+}
+
+uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    int avx2;
+    __builtin_cpu_init();
+    /* GCC's and Clang's runtimes report AVX2 only if the OS saves the YMM state (XGETBV). */
+    avx2 = __builtin_cpu_supports("avx2") != 0;
+    switch (requested) {
+    case FBG_OPT_KERNEL_AUTO:
+        return avx2 ? FBG_OPT_KERNEL_AVX2 : FBG_OPT_KERNEL_SSE2;
+    case FBG_OPT_KERNEL_PORTABLE:
+    case FBG_OPT_KERNEL_SSE2:
+        return requested;
+    case FBG_OPT_KERNEL_AVX2:
+        return avx2 ? requested : 0u;
+    default:
+        return 0u;
+    }
+}
+
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        layer_avx2(ly, x, acc, NULL, NULL);
+    else
+        acc32_sse2(ly, x, acc);
+}
+
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        layer_avx2(ly, x, NULL, y, sat);
+    else
+        hidden_sse2(ly, x, y, sat);
+}
+
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_x86_unused;
+#endif
+#undef AVX2
+#undef ROW_LEN
+#undef SSE2_DOT4
+#undef SSE2_W16
+#undef SSE2_W8
+#undef AVX2_DOT8
+#undef AVX2_W16
+#undef AVX2_W8
+#undef AVX2_NARROW8
+#undef NARROW_W16
+#undef NARROW_W8
 /* ---- src/fbgf_dense.c ---- */
 /*
  * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels

@@ -106,12 +106,18 @@ typedef enum {
 #define FBG_STATUS_OVERLOAD 0x04  /* beyond the trained force range (see fbg_model) */
 #define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost, jumped or stuck: outputs are the safe output */
 #define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
+
+/* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */
+#define FBG_OPT_REQUIRE_TARE 0x01  /* fbg_step returns FBG_ERR_NOT_TARED until tared */
+#define FBG_OPT_KERNEL_MASK 0xF0  /* the dense-layer kernel field of the options */
+#define FBG_OPT_KERNEL_AUTO 0x00  /* the fastest kernel this CPU runs */
+#define FBG_OPT_KERNEL_PORTABLE 0x10  /* portable C */
+#define FBG_OPT_KERNEL_SSE2 0x20  /* x86-64 SSE2 */
+#define FBG_OPT_KERNEL_AVX2 0x30  /* x86-64 AVX2 (if the CPU has it) */
+#define FBG_OPT_KERNEL_NEON 0x40  /* aarch64 NEON */
 /* ---- END GENERATED constants ---- */
 
 /* ---- Sensor-fault rule (see fbg_step): a peak outside [FBG_WL_MIN_FM, FBG_WL_MAX_FM] is lost. */
-
-/* fbg_init options */
-#define FBG_OPT_REQUIRE_TARE 0x01     /* fbg_step returns FBG_ERR_NOT_TARED until tared */
 
 /* ---------------------------------------------------------------------------------------
  * Fixed-point model: a const view of quantised weights. Filled by fbg_model_from_blob
@@ -251,8 +257,14 @@ size_t fbg_blob_declared_size(const uint8_t *blob, size_t len);
 uint32_t fbg_crc32(const uint8_t *data, size_t len);
 
 /* Initialise a state for a model: baseline = model nominal baseline (status NOT_TARED),
- * zero FIR history. options: FBG_OPT_* flags. */
+ * zero FIR history. options: FBG_OPT_* flags, or-ed with at most one FBG_OPT_KERNEL_* value
+ * (the dense-layer kernels; AUTO, 0, is the fastest this CPU runs; every kernel gives the
+ * same bits). FBG_ERR_ARG if the requested kernel cannot run on this CPU or build. */
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options);
+
+/* The FBG_OPT_KERNEL_* value a state runs (never AUTO: the one fbg_init chose); 0 if the
+ * state is NULL or not initialised. */
+uint32_t fbg_kernel(const fbg_state *state);
 
 /* Clear the FIR history and the fault tracker (keeps baseline and tare). */
 fbg_status fbg_reset(fbg_state *state);

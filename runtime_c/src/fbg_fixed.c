@@ -7,6 +7,7 @@
 #include <string.h>
 
 #include "fbg_front.h"
+#include "fbg_simd.h" /* host SIMD dense layers (FBG_HOST_SIMD, docs/runtime.md) */
 #if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
 #include "fbg_dsp.h"
 #endif
@@ -57,18 +58,40 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
 /* The shared front end's view of a fixed-point state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
+/* The kernel a state runs for a requested FBG_OPT_KERNEL_* value; 0 if it cannot run here. */
+static uint32_t resolve_kernel(uint32_t requested)
+{
+#if FBG_HOST_SIMD
+    return fbg_simd_resolve(requested);
+#else
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+#endif
+}
+
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
     fbg_status st;
+    uint32_t kernel;
     if (state == NULL || model == NULL)
         return FBG_ERR_NULL;
     st = fbg_model_check(model);
     if (st != FBG_OK)
         return st;
+    kernel = resolve_kernel(options & FBG_OPT_KERNEL_MASK);
+    if (kernel == 0u)
+        return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
     state->model = model;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
     return FBG_OK;
+}
+
+uint32_t fbg_kernel(const fbg_state *state)
+{
+    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+        return 0u;
+    return state->options & FBG_OPT_KERNEL_MASK;
 }
 
 fbg_status fbg_reset(fbg_state *state)
@@ -157,6 +180,26 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 #endif
 }
 
+/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
+static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
+    return fbg_sat16(v < 0 ? 0 : v, sat);
+}
+
+/* The kernel of a state for an acc32 layer, when it is a host SIMD one (else 0). */
+static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
+{
+#if FBG_HOST_SIMD
+    uint32_t kernel = s->options & FBG_OPT_KERNEL_MASK;
+    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
+#else
+    (void)s;
+    (void)ly;
+    return 0u;
+#endif
+}
+
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
@@ -168,9 +211,15 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
         fbg_dsp_hidden(ly, x, y, sat);
 #else
         unsigned r;
-        for (r = 0; r < ly->n_out; ++r) {
-            int64_t v = fbg_rshift_round(layer_acc(ly, r, x) * ly->mult[r], ly->shift);
-            y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+#if FBG_HOST_SIMD
+        uint32_t kernel = simd_kernel(s, ly);
+        if (kernel != 0u)
+            fbg_simd_hidden(kernel, ly, x, y, sat);
+        else
+#endif
+        {
+            for (r = 0; r < ly->n_out; ++r)
+                y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
         }
 #endif
         x = y;
@@ -179,13 +228,30 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
     return x;
 }
 
-/* Output row r of a net's last layer in its physical unit, saturated to int32. */
-static int32_t output_row(const fbg_layer *ly, unsigned r, const int16_t *x, int64_t *acc_out,
-                          uint32_t *sat)
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
 {
-    int64_t acc = layer_acc(ly, r, x);
-    if (acc_out != NULL)
-        *acc_out = acc;
+    unsigned r;
+#if FBG_HOST_SIMD
+    uint32_t kernel = simd_kernel(s, ly);
+    if (kernel != 0u) {
+        int32_t acc32[FBG_MAX_WIDTH];
+        fbg_simd_acc32(kernel, ly, x, acc32);
+        for (r = 0; r < ly->n_out; ++r)
+            acc[r] = acc32[r];
+        return;
+    }
+#else
+    (void)s;
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = layer_acc(ly, r, x);
+}
+
+/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
+ * int32. */
+static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
@@ -246,7 +312,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
-    int64_t acc, load = 0;
+    int64_t acc[FBG_MAX_WIDTH], load = 0;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -311,8 +377,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     memset(out, 0, sizeof *out);
     x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
-    out->contact_margin_q8 = output_row(last, 0u, x, &acc, &sat);
-    out->contact = acc > 0 ? 1u : 0u;
+    output_accs(s, last, x, acc);
+    out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
+    out->contact = acc[0] > 0 ? 1u : 0u;
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 
     if (out->contact) {
@@ -320,7 +387,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         int32_t force_out;
         x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
-        force_out = output_row(last, 0u, x, NULL, &sat);
+        output_accs(s, last, x, acc);
+        force_out = output_row(last, 0u, acc[0], &sat);
         out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
@@ -331,8 +399,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, x, NULL, &sat) + m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, x, NULL, &sat) + m->xy_offset_um[1], &sat);
+        output_accs(s, last, x, acc);
+        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, acc[0], &sat) + m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, acc[1], &sat) + m->xy_offset_um[1], &sat);
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;

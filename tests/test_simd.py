@@ -1,0 +1,298 @@
+"""Host SIMD dense-layer kernels (SSE2, AVX2, NEON): every output record equals the portable
+C's and the integer reference's, on golden sessions and on random streams through random
+models (odd widths, int8 weights, weights at +-32767 / -32768 within the int32 proof,
+saturating activations).
+
+x86-64 kernels run in this process (``Runtime(kernel=...)``) and in a natively built replay
+of golden vectors (tests/simd_replay.c); NEON runs the same replay cross-compiled with
+``aarch64-linux-gnu-gcc`` under ``qemu-aarch64`` (skipped without them, a failure with CI=true).
+"""
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import make_random_model, make_random_walk
+from fbgforce import contract
+from fbgforce import model as fm
+from fbgforce.export import blob, codegen, intref
+from fbgforce.export import quantize as qz
+from fbgforce.pybind import KERNELS, ArgError, Runtime, ffi, lib
+from fbgforce.target import golden
+from fbgforce.target.report import load_quantized, recording_fm
+
+ROOT = Path(__file__).resolve().parent.parent
+RUNTIME = ROOT / "runtime_c"
+FIELDS = contract.OUTPUT_FIELDS
+INT32_MAX = 2**31 - 1
+X86 = platform.machine() in ("x86_64", "AMD64")
+
+
+def _cpu_has_avx2() -> bool:
+    try:
+        return " avx2" in Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+
+
+def host_kernels() -> list[str]:
+    """The SIMD kernels this CPU must run: SSE2 on every x86-64, AVX2 where the CPU has it."""
+    if X86:
+        return ["sse2"] + (["avx2"] if _cpu_has_avx2() else [])
+    if platform.machine() in ("aarch64", "arm64"):
+        return ["neon"]
+    return []
+
+
+def _require(*tools: str) -> None:
+    missing = [t for t in tools if shutil.which(t) is None]
+    if missing:
+        msg = (f"{', '.join(missing)} not found; install: apt-get install --no-install-recommends "
+               "gcc qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross")
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(msg)
+        pytest.skip(msg)
+
+
+def _balance_contact(model: fm.HierarchicalModel, wl: np.ndarray) -> None:
+    """Shift the contact logit so that about half of ``wl`` is contact (every net runs)."""
+    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm))
+    model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
+
+
+def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool) -> qz.QLayer:
+    """A layer of the same shape whose rows sit at the edge of the int32 proof: int16 rows
+    holding -32768 and 32767 (twice over after a ReLU, where the proof bounds the positive and
+    the negative weights apart), random rows spending most of the budget, the extremes in
+    random columns (the last and odd ones included); int8 rows of -128 / 127."""
+    n_out, n_in = layer.w.shape
+    lo, hi = (-32768, 32767) if layer.w_bits == 16 else (-128, 127)
+    w = np.zeros((n_out, n_in), dtype=np.int64)
+    for r in range(n_out):
+        kind = rng.integers(3)
+        if layer.w_bits == 8:
+            w[r] = rng.choice([lo, hi, 0, 1, -1], n_in)
+        elif kind == 0 or n_in < 2:
+            # sum|w| = 65535 (any inputs) or max(sum w>0, sum|w<0|) = 65536 (ReLU inputs).
+            cols = rng.permutation(n_in)
+            w[r, cols[0]] = lo
+            if n_in >= 2:
+                w[r, cols[1]] = hi
+            if relu_inputs and n_in >= 4:
+                w[r, cols[2]], w[r, cols[3]] = lo, hi - 1
+        else:
+            # Random weights spending up to 65000 of sum|w|, 32767 in the last column (kind 2).
+            v = rng.normal(0.0, 1.0, n_in)
+            budget = rng.uniform(0.3, 0.98) * 65000
+            if kind == 2:
+                v[-1] = 0.0
+                budget -= hi
+            w[r] = np.clip(np.trunc(v / np.abs(v).sum() * budget), lo, hi)
+            if kind == 2:
+                w[r, -1] = hi
+    probe = qz.QLayer(w=w, w_bits=layer.w_bits, bias=np.zeros(n_out, dtype=np.int64),
+                      mult=np.ones(n_out, dtype=np.int64), shift=30, acc32=True)
+    room = INT32_MAX - probe.acc32_bound(relu_inputs)
+    assert (room >= 0).all()
+    bias = np.array([rng.integers(-min(r, 10**7), min(r, 10**7) + 1) for r in room], dtype=np.int64)
+    mult = rng.integers(1 << 17, 1 << 21, n_out) * rng.choice([1, 1, 1, -1], n_out)
+    return qz.QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=30, acc32=True)
+
+
+def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+    """A quantised random model whose hidden layers are replaced by :func:`_extreme_layer`
+    ones, and a stream for it: a random walk with strain excursions large enough to saturate
+    the net inputs, and the golden session's edge samples."""
+    rng = np.random.default_rng(seed)
+    model = make_random_model(seed, sizes=sizes, memory=memory)
+    wl = make_random_walk(model, 1200, seed=seed, step_nm=0.02)
+    cal = qz.calibrate(model, [(wl, model.baseline_nm)])
+    q, _ = qz.quantize(model, cal, bits=bits)
+    for net in q.nets:
+        for i in range(len(net) - 1):
+            net[i] = _extreme_layer(rng, net[i], i > 0)
+    wl_fm = np.vstack([intref.nm_to_fm(wl), golden.edge_samples(q.baseline_fm, q.jump_max_fm, seed)])
+    # Contact on about half of the stream, so that the force and location nets run: move the
+    # contact row's bias by the median margin (in accumulator units), keeping the int32 proof.
+    last = q.nets[0][-1]
+    for _ in range(4):
+        margin = np.median(intref.run(q, wl_fm, None)["contact_margin_q8"])
+        last.bias = last.bias - int(round(margin * 2.0**last.shift / last.mult[0]))
+        last.acc32 = bool((last.acc32_bound(True) <= INT32_MAX).all())
+    return q, np.vstack([wl_fm, wl_fm[:200]])
+
+
+def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+    """A quantised random model as the exporter makes it (acc32 where proven) and its stream."""
+    model = make_random_model(seed, sizes=sizes, memory=memory)
+    wl = make_random_walk(model, 1500, seed=seed)
+    _balance_contact(model, wl)
+    cal = qz.calibrate(model, [(wl, model.baseline_nm)])
+    q, _ = qz.quantize(model, cal, bits=bits)
+    return q, intref.nm_to_fm(wl)
+
+
+PAPER = ((70, 50, 20), (70, 50, 20), (70, 50, 40))
+ODD = ((13, 7, 3), (1, 9, 17), (33, 5, 2))
+WIDE = ((128, 3, 127), (31, 128, 1), (9, 16, 24))
+MEM8 = fm.Memory(ema_shifts=(3, 6), ema_gains=(2, 1), play_widths=(0.2, 0.5), play_gains=(1, 2))
+MEM5 = fm.Memory(ema_shifts=(4,), ema_gains=(1,))
+CASES = {
+    "paper-int16": (_realistic_model, 1, PAPER, 16, MEM8),
+    "odd-int16": (_realistic_model, 2, ODD, 16, MEM5),
+    "paper-int8": (_realistic_model, 3, PAPER, 8, MEM8),
+    "extreme-paper-int16": (_extreme_model, 4, PAPER, 16, MEM8),
+    "extreme-odd-int16": (_extreme_model, 5, ODD, 16, MEM5),
+    "extreme-wide-int16": (_extreme_model, 6, WIDE, 16, fm.Memory()),
+    "extreme-odd-int8": (_extreme_model, 7, ODD, 8, MEM5),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CASES))
+def case(request):
+    make, seed, sizes, bits, memory = CASES[request.param]
+    q, wl_fm = make(seed, sizes, bits, memory)
+    return request.param, q, wl_fm
+
+
+def test_every_host_kernel_matches_portable_and_the_reference(case):
+    name, q, wl_fm = case
+    data = blob.to_bytes(q)
+    ref = intref.run(q, wl_fm, None)
+    # The stream exercises what it should: both contact outcomes, clamping and clean samples.
+    assert ref["contact"].any() and not ref["contact"].all(), name
+    if name.startswith("extreme"):
+        sat = (ref["status"] & contract.STATUS_FLAG["SATURATED"]) != 0
+        assert sat.any() and not sat.all(), name
+    portable = Runtime(data, kernel="portable").run_raw(wl_fm)
+    for k in FIELDS:
+        assert np.array_equal(np.asarray(portable[k], dtype=np.int64), ref[k]), (name, k)
+    kernels = host_kernels()
+    if not kernels:
+        pytest.skip(f"no host SIMD kernel on {platform.machine()}")
+    for kernel in kernels:
+        rt = Runtime(data, kernel=kernel)
+        assert rt.kernel == kernel
+        got = rt.run_raw(wl_fm)
+        assert got.tobytes() == portable.tobytes(), (name, kernel)
+
+
+def test_kernel_selection():
+    q, _ = _realistic_model(8, ODD, 16, fm.Memory())
+    data = blob.to_bytes(q)
+    assert Runtime(data, kernel="portable").kernel == "portable"
+    best = host_kernels()
+    assert Runtime(data).kernel == (best[-1] if best else "portable")
+    for kernel in ("sse2", "avx2", "neon"):
+        if kernel not in best:
+            with pytest.raises(ArgError):
+                Runtime(data, kernel=kernel)
+    with pytest.raises(Exception, match="unknown kernel"):
+        Runtime(data, kernel="mmx")
+    # fbg_init refuses an unknown kernel value; fbg_kernel of an uninitialised state is 0.
+    model = Runtime(data)._model
+    st = ffi.new("fbg_state *")
+    assert lib.fbg_init(st, model, 0x70) == lib.FBG_ERR_ARG
+    assert lib.fbg_kernel(st) == 0
+    assert lib.fbg_init(st, model, lib.FBG_OPT_KERNEL_PORTABLE | lib.FBG_OPT_REQUIRE_TARE) == lib.FBG_OK
+    assert lib.fbg_kernel(st) == lib.FBG_OPT_KERNEL_PORTABLE
+    assert set(KERNELS) == {"auto", "portable", "sse2", "avx2", "neon"}
+
+
+# ---- golden sessions replayed by a C driver, natively and on aarch64 ------------------------
+
+def _golden_sources(out: Path, q: qz.QModel, wl_fm: np.ndarray, contact: np.ndarray | None) -> list[Path]:
+    """replay_model.{c,h} and golden_vectors.c for the session of ``q`` on ``wl_fm``."""
+    hdr, src = codegen.fixed_source(q, "replay")
+    (out / "replay_model.h").write_text(hdr)
+    (out / "replay_model.c").write_text(src)
+    golden.write_golden_c(golden.golden_session(q, wl_fm, contact), out / "golden_vectors.c")
+    return [out / "replay_model.c", out / "golden_vectors.c"]
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory, small_model_dir):
+    """Source directories of two golden sessions: the shared trained model on a simulated
+    recording, and an extreme random model on its stream."""
+    dirs = []
+    q, _ = load_quantized(Path(small_model_dir))
+    wl, contact, _ = recording_fm(None, "smoke", 0, 300)
+    d = tmp_path_factory.mktemp("golden_trained")
+    _golden_sources(d, q, wl, contact)
+    dirs.append(d)
+    q, wl = _extreme_model(9, ODD, 16, MEM5)
+    d = tmp_path_factory.mktemp("golden_extreme")
+    _golden_sources(d, q, wl[:600], None)
+    dirs.append(d)
+    return dirs
+
+
+def _build_replay(cc: str, session: Path, exe: Path, extra: list[str]) -> None:
+    cmd = [cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O2", *extra,
+           f"-I{RUNTIME / 'include'}", f"-I{ROOT / 'examples' / 'firmware'}", f"-I{session}",
+           *sorted(str(p) for p in (RUNTIME / "src").glob("*.c")),
+           str(session / "replay_model.c"), str(session / "golden_vectors.c"),
+           str(ROOT / "tests" / "simd_replay.c"), "-o", str(exe)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+
+
+def _check_replay(cmd: list[str], kernels: list[int]) -> None:
+    r = subprocess.run(cmd + [hex(k) for k in kernels], capture_output=True, text=True, timeout=300)
+    lines = r.stdout.strip().splitlines()
+    assert r.returncode == 0 and len(lines) == len(kernels), r.stdout + r.stderr
+    for k, line in zip(kernels, lines):
+        assert line.startswith(f"kernel 0x{k:02x}: ") and line.endswith(", 0 differ"), line
+
+
+def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
+    _require("cc")
+    kernels = [lib.FBG_OPT_KERNEL_PORTABLE] + [KERNELS[k] for k in host_kernels()]
+    for i, session in enumerate(sessions):
+        exe = tmp_path / f"replay{i}"
+        _build_replay("cc", session, exe, [])
+        _check_replay([str(exe)], kernels)
+
+
+def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
+    """AddressSanitizer (global redzones around every generated weight array) and UBSan on the
+    extreme session: the whole-vector reads past a row's end stay inside the weight array."""
+    _require("cc")
+    exe = tmp_path / "replay_asan"
+    try:
+        _build_replay("cc", sessions[1], exe, ["-fsanitize=address,undefined", "-fno-sanitize-recover=all",
+                                                "-fno-omit-frame-pointer"])
+    except AssertionError as exc:
+        if "asan" in str(exc).lower() or "sanitize" in str(exc).lower():
+            pytest.skip(f"the compiler has no sanitizer runtime here: {exc}")
+        raise
+    env = dict(os.environ, ASAN_OPTIONS="detect_leaks=0")
+    r = subprocess.run([str(exe)] + [hex(k) for k in [lib.FBG_OPT_KERNEL_PORTABLE] +
+                                     [KERNELS[k] for k in host_kernels()]],
+                       capture_output=True, text=True, timeout=300, env=env)
+    assert r.returncode == 0 and "ERROR" not in r.stderr, r.stdout + r.stderr
+
+
+def test_golden_sessions_on_aarch64_neon_under_qemu(sessions, tmp_path):
+    _require("aarch64-linux-gnu-gcc", "qemu-aarch64")
+    for i, session in enumerate(sessions):
+        exe = tmp_path / f"replay{i}.a64"
+        _build_replay("aarch64-linux-gnu-gcc", session, exe, ["-static"])
+        _check_replay(["qemu-aarch64", str(exe)], [lib.FBG_OPT_KERNEL_PORTABLE, lib.FBG_OPT_KERNEL_NEON])
+
+
+def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
+    """-DFBG_HOST_SIMD=0 builds the portable C alone: it replays the session and refuses
+    every SIMD kernel."""
+    _require("cc")
+    exe = tmp_path / "replay_portable"
+    _build_replay("cc", sessions[1], exe, ["-DFBG_HOST_SIMD=0"])
+    _check_replay([str(exe)], [lib.FBG_OPT_KERNEL_PORTABLE])
+    r = subprocess.run([str(exe), hex(lib.FBG_OPT_KERNEL_SSE2)], capture_output=True, text=True)
+    assert r.returncode == 1 and "cannot run here" in r.stdout
