@@ -30,7 +30,8 @@ from fbgforce.export.quantize import calibrate, quantize
 def random_blob(seed: int = 0) -> bytes:
     """A small quantised model (random weights, memory of every kind)."""
     rng = np.random.default_rng(seed)
-    mem = fm.Memory(ema_shifts=(3, 7), ema_gains=(2, 0), play_widths=(0.05,), play_gains=(3,))
+    mem = fm.Memory(ema_shifts=(3, 7), ema_gains=(2, 0), play_widths=(0.05,), play_gains=(3,),
+                    loc_shift=4)
     pre = fm.Preprocess(temp_coeff=rng.uniform(0.9, 1.1, 4), filter_kind="causal", filter_sigma=1.5,
                         taps=np.exp(-0.5 * (np.arange(5) / 1.5) ** 2) / np.exp(-0.5 * (np.arange(5) / 1.5) ** 2).sum(),
                         input_mean=rng.normal(0, 50, 4), input_std=rng.uniform(100, 400, 4), memory=mem)
@@ -40,7 +41,7 @@ def random_blob(seed: int = 0) -> bytes:
                       [rng.normal(0, 0.1, b) for b in dims[1:]])
 
     f = pre.n_features
-    model = fm.HierarchicalModel(pre, mlp([f, 6, 5, 2]), mlp([f, 7, 1]), mlp([6, 5, 4, 2]),
+    model = fm.HierarchicalModel(pre, mlp([f, 6, 5, 2]), mlp([f, 7, 1]), mlp([6 + mem.n_loc, 5, 4, 2]),
                                  force_offset=20.0, force_scale=15.0, xy_offset=[10.5, 13.5],
                                  xy_scale=[6.0, 7.5], baseline_nm=[1530, 1535, 1540, 1545, 1550])
     walk = np.cumsum(rng.normal(0.0, 0.004, (600, 5)), axis=0)

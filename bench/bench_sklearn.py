@@ -89,6 +89,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
 
     common = dict(max_iter=max_iter, random_state=seed)
     seconds = {}
+    x, z = z, z[:, :model.preprocess.n_features]  # contact and force read the first columns
     ctr = tr[data.contact[tr]]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
@@ -108,7 +109,8 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
         print(f"  scikit-learn force: {freg.n_iter_} epochs, {seconds['force']:.1f} s",
               file=sys.stderr)
 
-        loc_in = fm.location_inputs(z, contact, f)  # what the fbgforce location net reads
+        # what the fbgforce location net reads
+        loc_in = fm.location_inputs(x, contact, f, model.preprocess.memory.n_loc)
         xy = (np.column_stack([data.x_mm, data.y_mm]) - model.xy_offset) / model.xy_scale
         t0 = time.perf_counter()
         lreg = MLPRegressor(hidden_layer_sizes=DEFAULT_SIZES["location"], **common)

@@ -131,15 +131,20 @@ def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     of one recording (the states are primed by the first as at rest after a release, and
     never see a faulty sample).
 
-    Returns the net inputs (m, F) and, per sample, whether a value saturated.
+    Returns the net inputs (m, F + location averages) and, per sample, whether a value
+    saturated.
     """
     z = np.asarray(z, dtype=np.int64).reshape(-1, 4)
     m = z.shape[0]
-    feats = np.zeros((m, q.n_features), dtype=np.int64)
+    nf = q.n_features
+    feats = np.zeros((m, nf + q.n_loc), dtype=np.int64)
     feats[:, :4] = z
+    clamped = np.zeros(m, dtype=bool)
+    if m and q.n_loc:
+        feats[:, nf:], clamped = _location_averages(q, z)
     if m == 0 or q.n_ema + q.n_play == 0:
-        return feats, np.zeros(m, dtype=bool)
-    u, clamped = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
+        return feats, clamped
+    u, c_u = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
     shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
     widths = [int(v) for v in q.play_width[:q.n_play]]
     ema = [int(u[0]) << EMA_FRAC for _ in shifts]
@@ -159,8 +164,26 @@ def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     d_ema = (u[:, None] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :]
     d_play = (u[:, None] - play_state) << q.play_gain[:q.n_play][None, :]
     values, c2 = sat(np.concatenate([d_ema, d_play], axis=1), SAT16)
-    feats[:, 4:] = values
-    return feats, clamped | c2.any(axis=1)
+    feats[:, 4:nf] = values
+    return feats, clamped | c_u | c2.any(axis=1)
+
+
+def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The location averages of fbg_fixed.c's ``memory_features`` on consecutive fault-free
+    ``z`` (m, 4), primed by the first: the Q(z_frac) inputs (m, 4) and where r or z0
+    saturated."""
+    z0, c0 = q.z_rest()
+    r, c_r = sat(z - z0[None, :], SAT16)
+    s = q.loc_shift
+    state = [int(v) << EMA_FRAC for v in r[0].tolist()]
+    out = np.zeros(r.shape, dtype=np.int64)
+    # Python integers, sample by sample, exactly the C recursion (as the load averages).
+    for i, ri in enumerate(r.tolist()):
+        for c in range(4):
+            state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
+            out[i, c] = state[c]
+    # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
+    return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
@@ -239,9 +262,10 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     # 4. Memory features on the fault-free samples, in order.
     x, c_mem = memory_features(q, z[rows])
     flag[rows] |= c_mem
-    feats = np.zeros((n, q.n_features), dtype=np.int64)
+    nf = q.n_features
+    feats = np.zeros((n, nf + q.n_loc), dtype=np.int64)
     feats[rows] = x
-    z = feats
+    z = feats[:, :nf]
     if rows.size:
         # 5. Contact net.
         f_ok = np.zeros(rows.size, dtype=bool)
@@ -253,13 +277,15 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         flag[rows] |= f_ok
         crow = rows[contact]
         if crow.size:
-            # 6. Force net, 7. location net on [z, contact << z_frac, quantised force].
+            # 6. Force net, 7. location net on [z, contact << z_frac, quantised force,
+            #    location averages].
             f_c = np.zeros(crow.size, dtype=bool)
             _, force_out = _net(q.nets[1], z[crow], f_c, trace, "force")
             force_out = force_out[:, 0]
             force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
             fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
-            loc_in = np.column_stack([z[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq])
+            loc_in = np.column_stack([z[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq,
+                                      feats[crow, nf:]])
             _, xy = _net(q.nets[2], loc_in, f_c, trace, "location")
             x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
             y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)

@@ -102,6 +102,16 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
         return output
 
     z = INPUT_NAME
+    pre = model.preprocess
+    n_loc = pre.memory.n_loc
+    axis_1 = ""
+    if n_loc:
+        axis_1 = const("hierarchy/axis_1", [1], np.int64)
+        # The input ends with the location averages; the contact and force nets read the
+        # columns before them.
+        z = node("Slice", [INPUT_NAME, const("hierarchy/features_begin", [0], np.int64),
+                           const("hierarchy/features_end", [pre.n_features], np.int64), axis_1],
+                 "hierarchy/features", "hierarchy/features")
     _mlp_nodes(model.contact, _NET_PREFIX["contact"], z, "contact_logits", inits, nodes)
     _mlp_nodes(model.force, _NET_PREFIX["force"], z, "force_net/out", inits, nodes)
 
@@ -122,12 +132,18 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     p_2d = node("Sigmoid", [margin], "hierarchy/p_contact_2d", "hierarchy/p_contact")
     node("Squeeze", [p_2d, axis1], "p_contact", "hierarchy/p_contact_out")
 
-    # Location net input [z, contact, f]: the force net's unscaled output, as trained.
-    # The location net reads the four standardised channels, not the memory features.
+    # Location net input [z, contact, f, location averages]: the force net's unscaled output,
+    # as trained. The location net reads the four standardised channels, not the load
+    # signal's memory features.
     z4 = node("Slice", [z, const("hierarchy/z_begin", [0], np.int64), const("hierarchy/z_end", [4], np.int64),
                         const("hierarchy/z_axis", [1], np.int64)], "hierarchy/z4", "hierarchy/z4")
-    loc_in = node("Concat", [z4, contact_f, "force_net/out"], "hierarchy/location_input",
-                  "hierarchy/location_input", axis=1)
+    loc_parts = [z4, contact_f, "force_net/out"]
+    if n_loc:
+        loc_parts.append(node("Slice", [INPUT_NAME, const("hierarchy/loc_begin", [pre.n_features], np.int64),
+                                        const("hierarchy/loc_end", [pre.n_inputs], np.int64), axis_1],
+                              "hierarchy/location_averages", "hierarchy/location_averages"))
+    loc_in = node("Concat", loc_parts, "hierarchy/location_input", "hierarchy/location_input",
+                  axis=1)
     _mlp_nodes(model.location, _NET_PREFIX["location"], loc_in, "location_net/out", inits, nodes)
 
     # Output scaling, in float64 on the host then rounded once to float32 constants.
@@ -147,9 +163,10 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     node("Squeeze", [y2, axis1], "y_mm", "hierarchy/y_out")
 
     inputs = [helper.make_tensor_value_info(
-        INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_features],
+        INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_inputs],
         doc_string="net inputs: standardised features (filtered compensated shift - input_mean) / "
-                   "input_std, then the memory features (fbgforce.model.memory_features)")]
+                   "input_std, then the memory features and the location averages "
+                   "(fbgforce.model.memory_features)")]
     outputs = [
         helper.make_tensor_value_info("contact_logits", TensorProto.FLOAT, [_BATCH, 2],
                                       doc_string="contact net logits; index 1 is 'contact'"),
@@ -177,7 +194,8 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
         DIGEST_KEY: weights_digest(model),
         "fbgforce.net_sizes": str(sizes),
         "fbgforce.outputs_gated": "false",
-        "fbgforce.location_input": "[z1, z2, z3, z4, contact (0/1), force_net raw output]",
+        "fbgforce.location_input": "[z1, z2, z3, z4, contact (0/1), force_net raw output"
+                                   + (", location averages a1..a4]" if n_loc else "]"),
     })
     return proto
 
@@ -260,7 +278,7 @@ def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path 
                  ) -> dict[str, np.ndarray]:
     """Run the graph on standardised features ``z`` (n, 4); returns the raw (ungated) outputs."""
     sess = session_for(model, model_dir)
-    z32 = np.ascontiguousarray(np.asarray(z).reshape(-1, model.preprocess.n_features), dtype=np.float32)
+    z32 = np.ascontiguousarray(np.asarray(z).reshape(-1, model.preprocess.n_inputs), dtype=np.float32)
     values = sess.run(list(OUTPUT_NAMES), {INPUT_NAME: z32})
     return dict(zip(OUTPUT_NAMES, values))
 

@@ -191,6 +191,8 @@ class QModel:
     ema_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
     play_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
     play_width: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
+    #: Location averages (fbg_model.loc_shift): 0 is off.
+    loc_shift: int = 0
     #: Version of the library that wrote the blob (fbg_model.writer_version).
     writer_version: int = contract.VERSION_CODE
 
@@ -200,13 +202,24 @@ class QModel:
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
                      "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
-                     "mem_shift", "n_ema", "n_play", "writer_version"):
+                     "mem_shift", "n_ema", "n_play", "loc_shift", "writer_version"):
             setattr(self, name, int(getattr(self, name)))
 
     @property
     def n_features(self) -> int:
         """Width of the contact and force nets' input (z and memory features)."""
         return contract.n_features(self.n_ema, self.n_play)
+
+    @property
+    def n_loc(self) -> int:
+        """Location averages (4 when ``loc_shift`` is on, else 0)."""
+        return contract.n_loc(self.loc_shift)
+
+    def z_rest(self) -> tuple[np.ndarray, bool]:
+        """(4,) ``z0``, the standardisation of a zero filtered shift as fbg_fixed.c computes it,
+        and whether it saturated."""
+        z0 = ((-self.mean_fm * self.z_mult) + (1 << (self.z_shift - 1))) >> self.z_shift
+        return np.clip(z0, -SAT16, SAT16), bool(np.any(np.abs(z0) > SAT16))
 
     @classmethod
     def from_params(cls, values: dict[str, Any], taps: np.ndarray, nets: list[list[QLayer]]
@@ -247,7 +260,7 @@ class QModel:
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
-            n_in = contract.net_inputs(name, self.n_ema, self.n_play)
+            n_in = contract.net_inputs(name, self.n_ema, self.n_play, self.n_loc)
             need(net[0].n_in == n_in and net[-1].n_out == NET_OUTPUTS[name], "ERR_SHAPE",
                  f"{name}: input/output width {net[0].n_in}/{net[-1].n_out}, expected "
                  f"{n_in}/{NET_OUTPUTS[name]}")
@@ -355,7 +368,7 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
     finite = np.all(np.isfinite(z), axis=1)
     z = z[finite]
     pred = fm.predict_from_features(model, z)
-    f = model.force.forward(z)[:, 0]
+    f = model.force.forward(z[:, :model.preprocess.n_features])[:, 0]
     truth = None
     if true_force_N is not None:
         truth = np.concatenate([np.asarray(t, dtype=np.float64) for t in true_force_N])
@@ -481,7 +494,7 @@ def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
             "ema_shift": padded(memory.ema_shifts, contract.MAX_EMA),
             "ema_gain": padded(memory.ema_gains, contract.MAX_EMA),
             "play_gain": padded(memory.play_gains, contract.MAX_PLAY),
-            "play_width": padded(widths, contract.MAX_PLAY)}
+            "play_width": padded(widths, contract.MAX_PLAY), "loc_shift": memory.loc_shift}
 
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
@@ -521,8 +534,14 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     taps, tap_q = quantize_taps(pre)
 
     u = calib.z[:, :fm.N_STRAIN] @ np.asarray(pre.memory.weights) if pre.memory.n_states else calib.f[:0]
-    zmax = float(max(np.abs(calib.z).max(initial=0.0), np.abs(calib.f).max(initial=0.0),
-                     np.abs(u).max(initial=0.0), 1e-6))
+    # The location averages' input r = z - z_rest (and so the averages, which stay within its
+    # range) must fit too, but without the headroom of z: r differs from z by the rest value
+    # |z_rest|, small beside the range of z, and taking it as is would cost every input a bit
+    # whenever it crosses a power of two. Beyond the calibration range it saturates (SATURATED).
+    r = calib.z[:, :fm.N_STRAIN] - pre.z_rest if pre.memory.n_loc else calib.f[:0]
+    zmax = float(max(np.abs(calib.z[:, :pre.n_features]).max(initial=0.0),
+                     np.abs(calib.f).max(initial=0.0), np.abs(u).max(initial=0.0),
+                     np.abs(r).max(initial=0.0) / Z_HEADROOM, 1e-6))
     z_frac = int(min(14, max(0, math.floor(math.log2(SAT16 / (Z_HEADROOM * zmax))))))
     zs = 2.0**-z_frac
 
@@ -538,8 +557,9 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
 
     nets: list[list[QLayer]] = []
     report_nets: dict[str, list[dict[str, Any]]] = {}
-    loc_in = fm.location_inputs(calib.z, calib.contact, calib.f)
-    inputs = {"contact": calib.z, "force": calib.z, "location": loc_in}
+    loc_in = fm.location_inputs(calib.z, calib.contact, calib.f, pre.memory.n_loc)
+    zf = calib.z[:, :pre.n_features]
+    inputs = {"contact": zf, "force": zf, "location": loc_in}
     for name in NET_NAMES:
         net = model.nets[name]
         x = inputs[name]
@@ -669,7 +689,15 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
         gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
         e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
         e_z = np.concatenate([e_z, *e_mem], axis=1)
-
+    # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the
+    # multiplier's residue, the rounding to Q(z_frac)); an average is a weighted mean of past
+    # r, so its error is at most the largest error of r plus its own rounding, as above.
+    e_loc = np.zeros((e_z.shape[0], 0))
+    if q.n_loc:
+        mean_fm = q.mean_fm.astype(np.float64)
+        e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
+        e_r = e_z[:, :fm.N_STRAIN] + e_z0
+        e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
     def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
         """Per-sample bound of output ``row`` in output integer units."""
         acts, masks, injs = [x], [], []
@@ -695,19 +723,19 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
             g = g @ layers[i].scales["w_float"]
         return total + (np.abs(g) * e_in).sum(axis=1) / unit
 
-    z = calib.z
+    z = calib.z[:, :q.n_features]
     e_margin = net_err(q.nets[0], z, e_z, 0) / 256.0
     out = {"contact_margin": float(e_margin.max(initial=0.0)), "input_z": float(e_z.max(initial=0.0))}
     c = calib.contact
     if c.any():
-        zc, ezc = z[c], e_z[c]
+        zc, ezc, xc = z[c], e_z[c], calib.z[c]
         e_force_mN = net_err(q.nets[1], zc, ezc, 0)
         fq_ratio = 2.0**q.z_frac / (1000.0 * model.force_scale)
         force_out = np.abs(calib.f[c]) * 1000.0 * abs(model.force_scale) + e_force_mN
         e_fq = ((e_force_mN + 0.5) * abs(fq_ratio) + force_out * abs(q.fq_mult / 2.0**q.fq_shift - fq_ratio)
                 + 0.5) / 2.0**q.z_frac
-        loc_x = fm.location_inputs(zc, np.ones(zc.shape[0]), calib.f[c])
-        loc_e = np.column_stack([ezc[:, :fm.N_STRAIN], np.zeros(zc.shape[0]), e_fq])
+        loc_x = fm.location_inputs(xc, np.ones(zc.shape[0]), calib.f[c], q.n_loc)
+        loc_e = np.column_stack([ezc[:, :fm.N_STRAIN], np.zeros(zc.shape[0]), e_fq, e_loc[c]])
         out.update({"force_N": float((e_force_mN.max() + 0.5) / 1000.0),
                     "x_mm": float((net_err(q.nets[2], loc_x, loc_e, 0).max() + 0.5) / 1000.0),
                     "y_mm": float((net_err(q.nets[2], loc_x, loc_e, 1).max() + 0.5) / 1000.0)})

@@ -47,7 +47,8 @@ def verify(model_dir: str | Path, data: Sequence[str | Path]) -> dict[str, Any]:
             differs |= np.asarray(c_out[k], dtype=np.int64) != ref[k]
         fixed = intref.to_engine_dict(ref)
         flt = fm.predict(model, ds.wl_nm, base)
-        logits = model.contact.forward(fm.features(model, ds.wl_nm, base))
+        logits = model.contact.forward(
+            fm.features(model, ds.wl_nm, base)[:, :model.preprocess.n_features])
         margin = logits[:, 1] - logits[:, 0]
         dis = fixed["contact"] != flt["contact"]
         both = fixed["contact"] & flt["contact"]

@@ -70,7 +70,8 @@ class LiveEstimator:
             self._rt = Runtime(self.model_dir)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
-            self._memory = fm.MemoryStream(self.model.preprocess.memory)
+            pre = self.model.preprocess
+            self._memory = fm.MemoryStream(pre.memory, pre.z_rest)
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 

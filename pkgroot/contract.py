@@ -61,7 +61,7 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_EMA_SHIFT": (15, "largest exponential-average shift (time constant 2^15 samples)"),
     "MAX_MEM_GAIN": (8, "largest memory-feature gain shift"),
     "LOAD_COEFF_LIMIT": (1 << 28, "|load_coeff| below this: the load proxy sum fits int64"),
-    "BLOB_VERSION": (4, "blob format this library reads and writes"),
+    "BLOB_VERSION": (5, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -160,17 +160,23 @@ def n_features(n_ema: int, n_play: int) -> int:
     return N_STRAIN + n_ema + n_play
 
 
-#: Nets that read the memory features; the location net reads the standardised channels only
-#: (where a press is does not depend on the load's history; its magnitude comes in through
-#: the force net's output).
+#: Nets that read the load signal's memory features; the location net reads the standardised
+#: channels (where a press is does not depend on the load's history; its magnitude comes in
+#: through the force net's output) and, when ``loc_shift`` is on, the location averages.
 MEMORY_NETS = ("contact", "force")
 
 
-def net_inputs(net: str, n_ema: int, n_play: int) -> int:
-    """Input width of a net for a model with the given memory."""
+def n_loc(loc_shift: int) -> int:
+    """Location averages of a model: one per strain channel when ``loc_shift`` is on (> 0)."""
+    return N_STRAIN if loc_shift else 0
+
+
+def net_inputs(net: str, n_ema: int, n_play: int, n_loc: int = 0) -> int:
+    """Input width of a net for a model with the given memory: the location net reads the
+    ``n_loc`` location averages after its extra inputs."""
     spec = next(n for n in NETS if n.name == net)
     base = n_features(n_ema, n_play) if net in MEMORY_NETS else N_STRAIN
-    return base + len(spec.extra_inputs)
+    return base + len(spec.extra_inputs) + (n_loc if net == "location" else 0)
 
 
 # ------------------------------------------------------------------------------------------
@@ -266,6 +272,10 @@ PARAMS: tuple[Field, ...] = (
           doc="feature = sat16((u - state) << play_gain[k])"),
     Field("play_width", "int16_t", MAX_PLAY, 0, SAT16, active="n_play",
           doc="state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac)"),
+    Field("loc_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
+          doc="location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero "
+              "shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location "
+              "input rshift_round(loc_i, EMA_FRAC)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -288,6 +298,8 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("ema_gain", "uint8_t", MAX_EMA),
     Field("play_gain", "uint8_t", MAX_PLAY),
     Field("play_width", "float", MAX_PLAY, doc="in standardised units"),
+    Field("loc_shift", "uint8_t", doc="location averages of z - z_rest (0: off): "
+          "state += (r - state) / 2^loc_shift"),
 )
 
 #: File name of the blob inside a model directory.

@@ -18,7 +18,9 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
     x           = [z, (u - e_k) * 2^ema_gain[k] for each k, (u - p_k) * 2^play_gain[k] for each k]
     logits      = contact_net(x)            -> contact = logits[1] > logits[0]
     f           = force_net(x)[0]           -> force_N = force_offset + force_scale * f
-    (u, v)      = location_net([z, contact, f])                        # no memory features
+    r_i[n]      = z_i[n] - z0_i,  z0_i = -input_mean_i / input_std_i  # rest-referenced z
+    a_i[n]      = a_i[n-1] + (r_i[n] - a_i[n-1]) / 2^loc_shift         # location averages
+    (u, v)      = location_net([z, contact, f, a if loc_shift])        # not the load memory
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
 
@@ -60,6 +62,14 @@ class Memory:
     direction of motion is the load's (a single channel may go either way at a release,
     depending on where the press was).
 
+    ``loc_shift`` (0: off) gives the location net four more inputs: exponential averages
+    (factor 2^-loc_shift) of the rest-referenced channels ``r = z - z_rest``, where ``z_rest``
+    is the standardised value of a zero filtered shift, so r is 0 at rest. The direction of
+    the four-beam vector says where a press is; at a light touch sensor noise makes it noisy
+    and the average steadies it, and because r is 0 at rest, averaging rest samples in at a
+    press onset only shrinks the average, keeping its direction. Updated on every sample,
+    contact or not, like the load signal's states.
+
     ``ema_shifts[k]``: an exponential average with factor 2^-shift (time constant about 2^shift
     samples); its feature is ``(u - average) * 2^ema_gains[k]``, the recent change. Rate
     dependent: what a viscoelastic pad's creep needs. ``play_widths[k]``: a play (backlash)
@@ -74,8 +84,10 @@ class Memory:
     play_widths: tuple[float, ...] = ()
     play_gains: tuple[int, ...] = ()
     weights: tuple[float, ...] = (0.25, 0.25, 0.25, 0.25)
+    loc_shift: int = 0
 
     def __post_init__(self) -> None:
+        self.loc_shift = int(self.loc_shift)
         self.ema_shifts = tuple(int(v) for v in self.ema_shifts)
         self.ema_gains = tuple(int(v) for v in self.ema_gains) or (0,) * len(self.ema_shifts)
         self.play_widths = tuple(float(v) for v in self.play_widths)
@@ -95,57 +107,94 @@ class Memory:
             raise ValueError(f"memory gains must be 0..{lim['MAX_MEM_GAIN']}")
         if not all(np.isfinite(w) and w >= 0 for w in self.play_widths):
             raise ValueError("play widths must be finite and >= 0")
+        if not 0 <= self.loc_shift <= lim["MAX_EMA_SHIFT"]:
+            raise ValueError(f"location average shift must be 0 (off)..{lim['MAX_EMA_SHIFT']}")
 
     @property
     def n_states(self) -> int:
         """Memory states (averages and play operators)."""
         return len(self.ema_shifts) + len(self.play_widths)
 
+    @property
+    def n_loc(self) -> int:
+        """Location averages (one per channel, or none)."""
+        return contract.n_loc(self.loc_shift)
+
     def to_json(self) -> dict[str, list]:
         return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
                 "play_widths": list(self.play_widths), "play_gains": list(self.play_gains),
-                "weights": list(self.weights)}
+                "weights": list(self.weights), "loc_shift": self.loc_shift}
+
+
+def _exp_average(x: np.ndarray, shift: int, prev: np.ndarray) -> np.ndarray:
+    """e[n] = e[n-1] + (x[n] - e[n-1]) / 2^shift along axis 0 of ``x`` (n, k) from ``prev``
+    (k,): a first-order IIR. A blocked closed form keeps it exact to rounding and fast in
+    numpy: within a block of 256 the powers of (1 - a) cannot underflow for the shifts allowed
+    here."""
+    alpha = 2.0 ** -shift
+    n = x.shape[0]
+    e = np.empty_like(x)
+    block = min(n, 256)
+    i = np.arange(block)
+    w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
+    decay = (1.0 - alpha) ** (i + 1)
+    for start in range(0, n, block):
+        seg = x[start:start + block]
+        m = seg.shape[0]
+        out = decay[:m, None] * prev[None, :] + w_full[:m, :m] @ seg
+        e[start:start + m] = out
+        prev = out[-1]
+    return e
 
 
 class MemoryStream:
     """The memory states of one continuous recording, fed in pieces: ``push(z)`` on
-    consecutive pieces gives what :func:`memory_features` gives on the whole."""
+    consecutive pieces gives what :func:`memory_features` gives on the whole.
 
-    def __init__(self, memory: Memory) -> None:
+    ``z_rest`` (4,): the standardised channels at rest (:attr:`Preprocess.z_rest`), needed by
+    the location averages (``memory.loc_shift``)."""
+
+    def __init__(self, memory: Memory, z_rest: np.ndarray | None = None) -> None:
         self.memory = memory
         self.ema: list[float] | None = None     # None until the first sample primes them
         self.play: list[float] = []
+        self.loc: np.ndarray | None = None
+        if memory.loc_shift and z_rest is None:
+            raise ValueError("the location averages need z_rest (Preprocess.z_rest)")
+        self.z_rest = None if z_rest is None else np.asarray(z_rest, dtype=np.float64).reshape(N_STRAIN)
 
     def push(self, z: np.ndarray) -> np.ndarray:
-        """Net inputs (n, 4 + states) of the next ``z`` (n, 4) of the recording."""
+        """Net inputs (n, 4 + states + location averages) of the next ``z`` (n, 4) of the
+        recording."""
         memory = self.memory
         z = np.asarray(z, dtype=np.float64).reshape(-1, N_STRAIN)
         n = z.shape[0]
-        if memory.n_states == 0 or n == 0:
-            return z.copy() if n else np.zeros((0, N_STRAIN + memory.n_states))
+        if n == 0:
+            return np.zeros((0, N_STRAIN + memory.n_states + memory.n_loc))
+        feats = [z]
+        if memory.n_states:
+            feats += self._load_features(z)
+        if memory.n_loc:
+            r = z - self.z_rest
+            if self.loc is None:    # primed by the first sample, as the load averages
+                self.loc = r[0].copy()
+            a = _exp_average(r, memory.loc_shift, self.loc)
+            self.loc = a[-1].copy()
+            feats.append(a)
+        return np.concatenate(feats, axis=1) if len(feats) > 1 else z.copy()
+
+    def _load_features(self, z: np.ndarray) -> list[np.ndarray]:
+        """The load signal's features (averages, then play operators), one column each."""
+        memory = self.memory
+        n = z.shape[0]
         u = z @ np.asarray(memory.weights)
         if self.ema is None:       # primed as at rest after a release (the load came down)
             self.ema = [float(u[0])] * len(memory.ema_shifts)
             self.play = [float(u[0]) + w for w in memory.play_widths]
-        feats = [z]
+        feats = []
         for k, (shift, gain) in enumerate(zip(memory.ema_shifts, memory.ema_gains)):
-            # e[n] = (1 - a) e[n-1] + a u[n]: a first-order IIR. A blocked closed form keeps
-            # it exact to rounding and fast in numpy: within a block of 256 the powers of
-            # (1 - a) cannot underflow for the shifts allowed here.
-            alpha = 2.0 ** -shift
-            e = np.empty_like(u)
-            prev = self.ema[k]
-            block = min(n, 256)
-            i = np.arange(block)
-            w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
-            decay = (1.0 - alpha) ** (i + 1)
-            for start in range(0, n, block):
-                seg = u[start:start + block]
-                m = seg.shape[0]
-                out = decay[:m] * prev + w_full[:m, :m] @ seg
-                e[start:start + m] = out
-                prev = float(out[-1])
-            self.ema[k] = prev
+            e = _exp_average(u[:, None], shift, np.array([self.ema[k]]))[:, 0]
+            self.ema[k] = float(e[-1])
             feats.append(((u - e) * 2.0 ** gain)[:, None])
         for k, (width, gain) in enumerate(zip(memory.play_widths, memory.play_gains)):
             p = np.empty_like(u)
@@ -156,17 +205,20 @@ class MemoryStream:
                 p[i] = state
             self.play[k] = state
             feats.append(((u - p) * 2.0 ** gain)[:, None])
-        return np.concatenate(feats, axis=1)
+        return feats
 
 
-def memory_features(memory: Memory, z: np.ndarray) -> np.ndarray:
+def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = None
+                    ) -> np.ndarray:
     """The net inputs of one continuous recording: ``z`` (n, 4) and its memory features.
 
-    Returns (n, 4 + states) in the order of :mod:`fbgforce.contract`: z, then one feature per
-    average, then one per play operator, all of the load signal ``u = z @ weights``; the
-    states are primed by the first sample as a pad at rest after a release leaves them.
+    Returns (n, 4 + states + location averages) in the order of :mod:`fbgforce.contract`: z,
+    then one feature per average, then one per play operator, all of the load signal
+    ``u = z @ weights``, then the location averages of ``z - z_rest`` (if
+    ``memory.loc_shift``); the states are primed by the first sample as a pad at rest after a
+    release leaves them.
     """
-    return MemoryStream(memory).push(z)
+    return MemoryStream(memory, z_rest).push(z)
 
 
 @dataclass
@@ -215,8 +267,19 @@ class Preprocess:
 
     @property
     def n_features(self) -> int:
-        """Width of the feature vector the contact and force nets read."""
+        """Width of the feature vector the contact and force nets read (its first columns)."""
         return contract.n_features(len(self.memory.ema_shifts), len(self.memory.play_widths))
+
+    @property
+    def n_inputs(self) -> int:
+        """Width of the whole feature vector: the contact and force nets' inputs, then the
+        location averages."""
+        return self.n_features + self.memory.n_loc
+
+    @property
+    def z_rest(self) -> np.ndarray:
+        """(4,) the standardised value of a zero filtered shift: the channels at rest."""
+        return -self.input_mean / self.input_std
 
     def runtime_taps(self) -> np.ndarray:
         """The causal FIR the runtimes run (``[1]`` for no filter).
@@ -297,8 +360,9 @@ class HierarchicalModel:
         See :class:`Preprocess`.
     contact, force, location
         The nets. Contact: F -> ... -> 2 logits (index 1 is "contact"). Force: F -> ... -> 1.
-        Location: 6 -> ... -> 2 (the four standardised channels, the contact flag, the force
-        net's output); F = ``preprocess.n_features`` (4 + memory states).
+        Location: 6 (10 with location averages) -> ... -> 2 (the four standardised channels,
+        the contact flag, the force net's output, the location averages);
+        F = ``preprocess.n_features`` (4 + memory states).
     force_offset, force_scale
         ``force_N = force_offset + force_scale * force_net_output``.
     xy_offset, xy_scale
@@ -330,7 +394,7 @@ class HierarchicalModel:
         mem = self.preprocess.memory
         for net in contract.NETS:
             name, n_out = net.name, net.float_outputs
-            n_in = contract.net_inputs(name, len(mem.ema_shifts), len(mem.play_widths))
+            n_in = contract.net_inputs(name, len(mem.ema_shifts), len(mem.play_widths), mem.n_loc)
             sizes = getattr(self, name).sizes
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
@@ -399,7 +463,7 @@ def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
     """Net inputs (n, F) of one continuous recording from its filtered shifts (n, 4), pm:
     standardisation, then the memory features."""
     return memory_features(pre.memory, (np.asarray(filt, dtype=np.float64) - pre.input_mean)
-                           / pre.input_std)
+                           / pre.input_std, pre.z_rest)
 
 
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
@@ -408,11 +472,17 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
     return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
 
 
-def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray) -> np.ndarray:
-    """The location net's input: the standardised channels (not the memory features), the
-    contact decision (0/1) and the force net's own (unscaled) output, as every engine builds
+def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: int = 0
+                    ) -> np.ndarray:
+    """The location net's input: the standardised channels (not the load signal's memory
+    features), the contact decision (0/1), the force net's own (unscaled) output and, with
+    ``n_loc`` location averages, the last ``n_loc`` columns of ``x``, as every engine builds
     it (:data:`fbgforce.contract.MEMORY_NETS`)."""
-    return np.column_stack([np.asarray(x)[:, :N_STRAIN], np.asarray(contact, dtype=np.float64), f])
+    x = np.asarray(x)
+    cols = [x[:, :N_STRAIN], np.asarray(contact, dtype=np.float64), f]
+    if n_loc:
+        cols.append(x[:, x.shape[1] - n_loc:])
+    return np.column_stack(cols)
 
 
 def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, np.ndarray]:
@@ -425,13 +495,14 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, 
         (0 where no contact), ``x_mm``/``y_mm`` (NaN where no contact), and the raw net
         outputs ``force_raw_N``, ``x_raw_mm``, ``y_raw_mm`` (before gating on contact).
     """
-    z = np.asarray(z, dtype=np.float64)
+    x = np.asarray(z, dtype=np.float64)
+    z = x[:, :model.preprocess.n_features]
     logits = model.contact.forward(z)
     margin = logits[:, 1] - logits[:, 0]
     contact = margin > 0.0
     p_contact = 1.0 / (1.0 + np.exp(-np.clip(margin, -500.0, 500.0)))
     f = model.force.forward(z)[:, 0]
-    uv = model.location.forward(location_inputs(z, contact, f))
+    uv = model.location.forward(location_inputs(x, contact, f, model.preprocess.memory.n_loc))
     force_raw = model.force_offset + model.force_scale * f
     xy_raw = model.xy_offset + model.xy_scale * uv
     return {

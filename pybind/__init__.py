@@ -279,6 +279,7 @@ class FloatRuntime(_Base):
         mem = pre.memory
         c.n_ema, c.n_play = len(mem.ema_shifts), len(mem.play_widths)
         c.mem_weight = list(mem.weights)
+        c.loc_shift = mem.loc_shift
         for k, (shift, gain) in enumerate(zip(mem.ema_shifts, mem.ema_gains)):
             c.ema_shift[k], c.ema_gain[k] = shift, gain
         for k, (width, gain) in enumerate(zip(mem.play_widths, mem.play_gains)):

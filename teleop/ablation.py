@@ -112,9 +112,13 @@ def _error_cell(row: dict[str, Any]) -> str:
 
 
 def estimator_label(fb: SensorFeedback) -> str:
-    """A readable label for an estimator condition: filter and delay."""
+    """A readable label for an estimator condition: engine, filter, memory and added delay."""
     pre = fb.model.preprocess
     filt = "no filter" if pre.filter_kind == "none" or pre.taps.size == 1 else (
         f"{pre.filter_kind} sigma {pre.filter_sigma:g}")
+    mem = pre.memory
+    parts = ([f"averages {','.join(map(str, mem.ema_shifts))}"] if mem.ema_shifts else []) + (
+        [f"plays {','.join(f'{w:g}' for w in mem.play_widths)}"] if mem.play_widths else [])
+    memory = f"memory {' + '.join(parts)}" if parts else "no memory"
     extra = f" +{fb.extra_delay_ms:g} ms link" if fb.extra_delay_ms else ""
-    return f"estimator ({fb.engine}, {filt}){extra}"
+    return f"estimator ({fb.engine}, {filt}, {memory}){extra}"

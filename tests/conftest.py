@@ -101,7 +101,8 @@ def make_random_model(seed: int = 0, sizes=((70, 50, 20), (70, 50, 20), (70, 50,
                         input_mean=rng.normal(0.0, 50.0, 4), input_std=rng.uniform(100.0, 400.0, 4),
                         memory=memory or fm.Memory())
     f = pre.n_features
-    return fm.HierarchicalModel(pre, mlp(f, sizes[0], 2), mlp(f, sizes[1], 1), mlp(6, sizes[2], 2),
+    return fm.HierarchicalModel(pre, mlp(f, sizes[0], 2), mlp(f, sizes[1], 1),
+                                mlp(6 + pre.memory.n_loc, sizes[2], 2),
                                 force_offset=20.0, force_scale=15.0, xy_offset=[10.5, 13.5],
                                 xy_scale=[6.0, 7.5],
                                 baseline_nm=[1530.0, 1535.0, 1540.0, 1545.0, 1550.0])

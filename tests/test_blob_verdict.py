@@ -17,7 +17,8 @@ c_verdict, py_verdict = mutate.c_verdict, mutate.python_verdict
 
 def small_blob(random_model_factory, random_walk_factory, bits: int = 16) -> bytes:
     """A small model with every kind of memory, quantised from a random walk."""
-    mem = fm.Memory(ema_shifts=(3, 7), ema_gains=(2, 0), play_widths=(0.05,), play_gains=(3,))
+    mem = fm.Memory(ema_shifts=(3, 7), ema_gains=(2, 0), play_widths=(0.05,), play_gains=(3,),
+                    loc_shift=4)
     model = random_model_factory(5, sizes=((6, 5), (7,), (5, 4)), n_taps=5, sigma=1.5, memory=mem)
     wl = random_walk_factory(model, 600, 1)
     q, _ = quantize(model, calibrate(model, [(wl, model.baseline_nm)]), bits=bits)
@@ -56,9 +57,15 @@ def test_documented_zero_fields_are_checked(random_model_factory, random_walk_fa
     flags = bytearray(data)
     flags[6] = 1
     assert c_verdict(mutate.fix_crc(flags)) == py_verdict(mutate.fix_crc(flags)) == "FBG_ERR_VERSION"
-    pad = bytearray(data)
-    pad[contract.PARAMS_END - 1] = 1
-    assert c_verdict(mutate.fix_crc(pad)) == py_verdict(mutate.fix_crc(pad)) == "FBG_ERR_RANGE"
+    # The parameter block's padding (none while the fields fill it to a multiple of 8).
+    for pos in range(contract.HEADER.size + contract.PARAMS_STRUCT.size, contract.PARAMS_END):
+        pad = bytearray(data)
+        pad[pos] = 1
+        assert c_verdict(mutate.fix_crc(pad)) == py_verdict(mutate.fix_crc(pad)) == "FBG_ERR_RANGE"
+    # The last field, loc_shift, beyond its range.
+    last = bytearray(data)
+    last[contract.HEADER.size + contract.PARAMS_STRUCT.size - 1] = contract.LIMIT["MAX_EMA_SHIFT"] + 1
+    assert c_verdict(mutate.fix_crc(last)) == py_verdict(mutate.fix_crc(last)) == "FBG_ERR_RANGE"
 
 
 def test_extreme_values_that_once_split_the_readers(random_model_factory, random_walk_factory):

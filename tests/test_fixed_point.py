@@ -21,7 +21,7 @@ FIELDS = contract.OUTPUT_FIELDS
 
 def _balance_contact(model, wl):
     """Shift the contact logit so that about half of ``wl`` is "contact" (both paths run)."""
-    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm))
+    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm)[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     return model
 
@@ -167,7 +167,7 @@ def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
     base = recording_baseline(ds)
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base)))
     flt = fm.predict(model, ds.wl_nm, base)
-    logits = model.contact.forward(fm.features(model, ds.wl_nm, base))
+    logits = model.contact.forward(fm.features(model, ds.wl_nm, base)[:, :model.preprocess.n_features])
     margin = logits[:, 1] - logits[:, 0]
     both = fixed["contact"] & flt["contact"]
     assert both.sum() > 1000

@@ -803,7 +803,7 @@ def test_exported_accumulator_bounds(models, driver, key):
     for name, net, zin in (("contact", q.nets[0], z), ("force", q.nets[1], z),
                            ("location", q.nets[2],
                             np.column_stack([z[:, :4], np.full(len(z), 1 << q.z_frac),
-                                             rng.integers(-SAT16, SAT16 + 1, len(z))]))):
+                                             rng.integers(-SAT16, SAT16 + 1, (len(z), 1 + q.n_loc))]))):
         x = zin.astype(np.int64)
         flag = np.zeros(len(x), dtype=bool)
         for i, ly in enumerate(net):
@@ -939,6 +939,7 @@ def test_long_run_1e7_steps_bounded_no_drift(tiny_model, press_fm):
     # The memory states stay in their proven ranges (docs/fixed-point.md).
     assert all(abs(int(v)) <= 32767 << 15 for v in c.state.ema)
     assert all(abs(int(v)) < 2**16 for v in c.state.play)
+    assert all(abs(int(v)) <= 32767 << 15 for v in c.state.loc)
     # Final window vs a fresh runtime fed the same samples, from the start of a repetition of
     # the recording (a rest: where a tare primes the memory states, see docs/fixed-point.md).
     w = 5000

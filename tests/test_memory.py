@@ -1,6 +1,6 @@
-"""The memory states (exponential averages, play operators) in every engine: float reference,
-integer reference, C fixed point (bit for bit), C float; what they do on reset, tare and
-sensor faults."""
+"""The memory states (exponential averages, play operators, location averages) in every
+engine: float reference, integer reference, C fixed point (bit for bit), C float; what they do
+on reset, tare and sensor faults."""
 from __future__ import annotations
 
 import numpy as np
@@ -17,11 +17,14 @@ MEMORIES = {
     "play": fm.Memory(play_widths=(0.02, 0.4), play_gains=(5, 1), weights=(0.25, 0.25, 0.25, 0.25)),
     "full": fm.Memory(ema_shifts=(1, 4, 8, 15), ema_gains=(8, 2, 1, 0),
                       play_widths=(0.0, 0.05, 0.3, 2.0), play_gains=(0, 4, 2, 0),
-                      weights=(1.0, -0.5, 0.7, 0.1)),
+                      weights=(1.0, -0.5, 0.7, 0.1), loc_shift=5),
+    "loc": fm.Memory(loc_shift=2),
+    "loc15": fm.Memory(ema_shifts=(3,), ema_gains=(2,), loc_shift=15),
 }
+Z_REST = np.array([-0.3, 0.5, -1.2, 0.1])
 
 
-def naive_memory(memory: fm.Memory, z: np.ndarray) -> np.ndarray:
+def naive_memory(memory: fm.Memory, z: np.ndarray, z_rest: np.ndarray) -> np.ndarray:
     """The float recursion written sample by sample, as the C float build runs it."""
     u = z @ np.asarray(memory.weights)
     feats = [z]
@@ -37,6 +40,13 @@ def naive_memory(memory: fm.Memory, z: np.ndarray) -> np.ndarray:
             p = min(max(p, ui - width), ui + width)
             out[i] = (ui - p) * 2.0**gain
         feats.append(out[:, None])
+    if memory.loc_shift:
+        r = z - z_rest
+        a, out = r[0].copy(), np.empty_like(r)
+        for i, ri in enumerate(r):
+            a = a + (ri - a) * 2.0**-memory.loc_shift
+            out[i] = a
+        feats.append(out)
     return np.concatenate(feats, axis=1)
 
 
@@ -44,16 +54,20 @@ def naive_memory(memory: fm.Memory, z: np.ndarray) -> np.ndarray:
 def test_float_reference_equals_the_naive_recursion(name):
     rng = np.random.default_rng(3)
     z = np.cumsum(rng.normal(0, 0.05, (2000, 4)), axis=0)
-    got = fm.memory_features(MEMORIES[name], z)
-    assert got.shape == (2000, 4 + MEMORIES[name].n_states)
-    assert np.allclose(got, naive_memory(MEMORIES[name], z), atol=1e-9)
+    got = fm.memory_features(MEMORIES[name], z, Z_REST)
+    assert got.shape == (2000, 4 + MEMORIES[name].n_states + MEMORIES[name].n_loc)
+    assert np.allclose(got, naive_memory(MEMORIES[name], z, Z_REST), atol=1e-9)
+    stream = fm.MemoryStream(MEMORIES[name], Z_REST)          # fed in pieces: the same
+    pieces = np.concatenate([stream.push(z[a:b]) for a, b in ((0, 1), (1, 700), (700, 2000))])
+    assert np.allclose(pieces, got, atol=1e-9)
 
 
 def _model(random_model_factory, random_walk_factory, memory, seed=2):
     model = random_model_factory(seed, sizes=((24, 12), (24, 12), (24, 16)), n_taps=9,
                                  sigma=2.5, memory=memory)
     wl = random_walk_factory(model, 3000, seed)
-    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm))
+    x = fm.features(model, wl, model.baseline_nm)
+    logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     q, rep = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
     q.report = rep
@@ -109,7 +123,7 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     st = rt._state
 
     def states() -> tuple:
-        return (np.array(list(st.ema)), np.array(list(st.play)))
+        return (np.array(list(st.ema)), np.array(list(st.play)), np.array(list(st.loc)))
 
     rt.run(wl[:500])
     assert st.mem_primed == 1
@@ -122,6 +136,7 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     assert all(np.array_equal(a, b) for a, b in zip(before, after))   # frozen, not poisoned
     rt.run(wl[530:600])
     assert not np.array_equal(states()[0], before[0])               # running again
+    assert not np.array_equal(states()[2], before[2])
     rt.reset()
     assert st.mem_primed == 0 and not any(a.any() for a in states())
     rt.run(wl[600:700])
@@ -139,10 +154,37 @@ def test_first_sample_after_reset_primes_the_states_as_at_rest(random_model_fact
     assert list(x[0, :4]) == [100, -200, 300, -400]
     assert np.all(x[0, 4:4 + q.n_ema] == 0)
     expect = -(q.play_width[:q.n_play] << q.play_gain[:q.n_play])
-    assert np.array_equal(x[0, 4 + q.n_ema:], np.clip(expect, -32767, 32767))
+    assert np.array_equal(x[0, 4 + q.n_ema:q.n_features], np.clip(expect, -32767, 32767))
+    z0, _ = q.z_rest()
+    assert np.array_equal(x[0, 4 + q.n_ema + q.n_play:], np.clip(z[0] - z0, -32767, 32767))
     mem = MEMORIES["full"]
-    f = fm.memory_features(mem, np.zeros((1, 4)))
-    assert np.allclose(f[0, 4 + 4:], -np.array(mem.play_widths) * 2.0 ** np.array(mem.play_gains))
+    f = fm.memory_features(mem, np.zeros((1, 4)), Z_REST)
+    assert np.allclose(f[0, 4 + 4:4 + 8], -np.array(mem.play_widths) * 2.0 ** np.array(mem.play_gains))
+    assert np.allclose(f[0, 4 + 8:], -Z_REST)                  # the average starts at r = z - z0
+
+
+def test_location_averages_read_zero_at_rest_and_keep_a_press_direction(random_model_factory,
+                                                                         random_walk_factory):
+    """r = z - z0 is 0 for a zero filtered shift in every engine, so a press onset after rest
+    only scales the average; the location net reads z, contact, force, then the averages."""
+    model, wl, q = _model(random_model_factory, random_walk_factory, MEMORIES["full"])
+    pre = model.preprocess
+    assert np.allclose((np.zeros(4) - pre.input_mean) / pre.input_std, pre.z_rest)
+    z0, saturated = q.z_rest()
+    assert not saturated
+    # The fixed z0 is the standardisation of a zero shift, within half an LSB of the float.
+    assert np.abs(z0 / 2.0**q.z_frac - pre.z_rest).max() <= 0.5 * 2.0**-q.z_frac + 1e-3
+    rest = np.repeat(z0[None, :], 50, axis=0)
+    direction = np.array([3000, -1000, 2000, 500])
+    press = np.concatenate([rest, rest + direction])
+    x, _ = intref.memory_features(q, press)
+    a = x[:, q.n_features:]
+    assert not intref._location_averages(q, press)[1].any()     # nothing saturated there
+    assert np.all(a[:50] == 0)
+    later = a[60].astype(float)                                # 10 samples into the press
+    cos = later @ direction / np.linalg.norm(later) / np.linalg.norm(direction)
+    assert cos > 0.9999 and np.linalg.norm(later) < np.linalg.norm(direction)
+    assert contract.net_inputs("location", q.n_ema, q.n_play, q.n_loc) == 10 <= contract.LIMIT["MAX_INPUTS"]
 
 
 def test_memory_text_and_presets():
@@ -150,9 +192,99 @@ def test_memory_text_and_presets():
     from fbgforce.trainer.train import MEMORY_PRESETS, parse_memory
 
     m = parse_memory("ema:3,6+play:0.1")
-    assert m.ema_shifts == (3, 6) and m.play_widths == (0.1,)
+    assert m.ema_shifts == (3, 6) and m.play_widths == (0.1,) and m.loc_shift == 0
+    m = parse_memory("play:0.1+loc:5")
+    assert m.play_widths == (0.1,) and m.loc_shift == 5 and m.n_loc == 4
+    assert parse_memory("loc:4").n_states == 0
     assert parse_memory("none").n_states == 0
     assert all(p.n_states <= contract.MAX_EMA + contract.MAX_PLAY for p in MEMORY_PRESETS.values())
-    for bad in ("ema:0", "play:-1", "lstm:3", "ema:1,2,3,4,5"):
+    for bad in ("ema:0", "play:-1", "lstm:3", "ema:1,2,3,4,5", "loc:0", "loc:16", "loc:3,4",
+                "loc:3+loc:4"):
         with pytest.raises(InputError):
             parse_memory(bad)
+
+
+@pytest.mark.parametrize("name", ["full", "loc"])
+def test_tare_and_reset_restart_every_state_bit_for_bit(random_model_factory, random_walk_factory,
+                                                        name):
+    """After a reset or a tare the C engine continues exactly as the integer reference started
+    afresh on the samples that follow: every state (load averages, plays, location averages)
+    is cleared and primed again."""
+    model, wl, q = _model(random_model_factory, random_walk_factory, MEMORIES[name])
+    wl_fm = intref.nm_to_fm(wl)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(intref.nm_to_fm(model.baseline_nm).astype(np.int32))
+    rt.run_raw(wl_fm[:800])
+    rt.reset()
+    c = rt.run_raw(wl_fm[800:1600])
+    ref = intref.run(q, wl_fm[800:1600], intref.nm_to_fm(model.baseline_nm))
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+    rt.tare(wl[1600:1700])
+    base = np.asarray(rt.baseline_fm, dtype=np.int64)
+    c = rt.run_raw(wl_fm[1700:])
+    ref = intref.run(q, wl_fm[1700:], base)
+    assert not np.array_equal(base, intref.nm_to_fm(model.baseline_nm))
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+
+
+def test_a_blob_of_the_previous_version_is_refused(random_model_factory, random_walk_factory):
+    """Blob version 5 added loc_shift to the parameter block; a version 4 blob is refused by
+    both readers (re-export the model)."""
+    from fbgforce.export import mutate
+
+    _, _, q = _model(random_model_factory, random_walk_factory, MEMORIES["loc"])
+    old = bytearray(blob.to_bytes(q))
+    old[4:6] = (contract.LIMIT["BLOB_VERSION"] - 1).to_bytes(2, "little")
+    old = mutate.fix_crc(old)
+    assert mutate.c_verdict(old) == mutate.python_verdict(old) == "FBG_ERR_VERSION"
+
+
+def test_location_averages_at_their_saturation_bounds(random_model_factory, random_walk_factory):
+    """z0 saturated (a mean far from zero) and z driven to the opposite end: r = z - z0
+    saturates, the averages stay within their proven range, and C equals the integer
+    reference bit for bit, SATURATED included."""
+    import dataclasses
+
+    _, _, q = _model(random_model_factory, random_walk_factory, MEMORIES["full"])
+    ratio = q.z_mult / 2.0**q.z_shift                       # z per fm of filtered shift
+    mean = np.round(2.0 * 32767 / np.abs(ratio)) * np.sign(ratio) * np.array([1, -1, 1, -1])
+    q = dataclasses.replace(q, mean_fm=mean.astype(np.int64))
+    z0, saturated = q.z_rest()
+    assert saturated and np.all(np.abs(z0) == 32767)
+    base = intref.nm_to_fm(np.array([1530.0, 1535.0, 1540.0, 1545.0, 1550.0]))
+    q = dataclasses.replace(q, baseline_fm=base, jump_max_fm=2**31 - 1, stuck_max=0)
+    # Each channel swings to +-4 times the saturating shift (signs against z0) and back.
+    n = 1200
+    swing = np.sin(np.linspace(0.0, 4.0 * np.pi, n))[:, None] * 4.0 * np.abs(mean)[None, :] * -np.sign(z0)
+    wl = np.column_stack([base[:4] + np.round(swing).astype(np.int64), np.full(n, base[4])])
+    ref = intref.run(q, wl, base)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(base.astype(np.int32))
+    c = rt.run_raw(wl)
+    for k in contract.OUTPUT_FIELDS:
+        assert np.array_equal(c[k].astype(np.int64), ref[k]), k
+    sat = contract.STATUS_FLAG["SATURATED"]
+    assert np.all(ref["status"][q.taps.size:] & sat)
+    x, _ = intref.memory_features(q, np.tile(-np.sign(z0) * 32767, (3, 1)))
+    assert np.all(np.abs(x[:, q.n_features:]) == 32767)
+    assert all(abs(int(v)) <= 32767 << 15 for v in rt._state.loc)
+
+
+def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_dir):
+    """train() records how long the training presses hold their load; with averages in the
+    memory and no hold it warns (the averages would read a held grip low)."""
+    from fbgforce import sim
+    from fbgforce.trainer import train as T
+
+    small = sim.load_scene("calibration_holds").replace(schedule={"n_presses": 3})
+    held = T.prepare([sim.simulate(small)])
+    # 3 presses holding 0.5 s each, found in 10 ms blocks.
+    assert T.hold_seconds(held) == pytest.approx(1.5, abs=0.1)
+    assert T.hold_seconds(held, np.arange(0)) == 0.0
+    presses = T.prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
+    assert T.hold_seconds(presses) == 0.0
+    md = fm.load(small_model_dir).metadata  # the smoke scene: presses without holds
+    assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
+    assert len(md["warnings"]) == 1 and "hold" in md["warnings"][0]

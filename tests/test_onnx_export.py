@@ -7,7 +7,8 @@ import pytest
 
 from fbgforce.errors import InputError
 from fbgforce.export import onnx_export as ox
-from fbgforce.model import MLP, HierarchicalModel, Preprocess, features, predict, predict_from_features
+from fbgforce.model import (MLP, HierarchicalModel, Memory, Preprocess, features, predict,
+                            predict_from_features)
 from fbgforce.model import location_inputs as fm_location_inputs
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -19,18 +20,20 @@ def _mlp(rng: np.random.Generator, sizes: list[int]) -> MLP:
                [rng.standard_normal(b) * 0.1 for b in sizes[1:]])
 
 
-def _model(seed: int = 0, width: float = 1.0) -> HierarchicalModel:
+def _model(seed: int = 0, width: float = 1.0, memory: Memory | None = None) -> HierarchicalModel:
     rng = np.random.default_rng(seed)
+    memory = memory or Memory()
+    f = 4 + memory.n_states
     h = [max(2, int(round(n * width))) for n in (70, 50, 20, 40)]
     taps = np.exp(-0.5 * (np.arange(9) / 3.0) ** 2)
     pre = Preprocess(temp_coeff=[1.02, 0.98, 1.01, 0.99], filter_kind="causal", filter_sigma=3.0,
                      taps=taps / taps.sum(), input_mean=[5.0, -3.0, 8.0, 1.0],
-                     input_std=[40.0, 35.0, 50.0, 45.0])
+                     input_std=[40.0, 35.0, 50.0, 45.0], memory=memory)
     return HierarchicalModel(
         preprocess=pre,
-        contact=_mlp(rng, [4, h[0], h[1], h[2], 2]),
-        force=_mlp(rng, [4, h[0], h[1], h[2], 1]),
-        location=_mlp(rng, [6, h[0], h[1], h[3], 2]),
+        contact=_mlp(rng, [f, h[0], h[1], h[2], 2]),
+        force=_mlp(rng, [f, h[0], h[1], h[2], 1]),
+        location=_mlp(rng, [6 + memory.n_loc, h[0], h[1], h[3], 2]),
         force_offset=12.0, force_scale=15.0, xy_offset=[10.5, 13.5], xy_scale=[6.0, 7.5],
         baseline_nm=[1546.1, 1548.2, 1550.3, 1552.4, 1554.5])
 
@@ -132,6 +135,7 @@ def test_onnxruntime_matches_float64_on_realistic_recordings(model, exported) ->
 
 def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.ndarray]) -> None:
     ref = predict_from_features(model, z)
+    x, z = z, z[:, :model.preprocess.n_features]   # the location averages are for location only
     logits = model.contact.forward(z)
     margin = logits[:, 1] - logits[:, 0]
     lb = _bound(model.contact, z)
@@ -143,7 +147,8 @@ def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.
     assert np.all(np.abs(got["force_N"] - ref["force_raw_N"]) <= fb)
     # Location: compare where the contact input agrees (it is 0/1 and steers the net).
     ok = ~flipped
-    loc_in = fm_location_inputs(z, ref["contact"], model.force.forward(z)[:, 0])[ok]
+    loc_in = fm_location_inputs(x, ref["contact"], model.force.forward(z)[:, 0],
+                                model.preprocess.memory.n_loc)[ok]
     lbound = _bound(model.location, loc_in)
     # The force input carries the force net's own float32 error into the location net; a ReLU
     # net's Jacobian is bounded elementwise by the product of its |W|, so propagate with those.
@@ -199,3 +204,22 @@ def test_trained_model_on_simulated_recording(small_model_dir, small_dataset_pat
     got = ox.run_features(model, z, tmp_path)
     _check_agreement(model, z, got)
     assert 0.05 < got["contact"].mean() < 0.95  # both branches of the hierarchy exercised
+
+
+def test_memory_and_location_averages_reach_the_nets_they_belong_to(tmp_path) -> None:
+    """With memory, the graph's input ends with the location averages: the contact and force
+    nets read the columns before them, the location net z, contact, force and the averages;
+    onnxruntime agrees with the float64 model on recordings."""
+    model = _model(seed=5, width=0.5, memory=Memory(ema_shifts=(3,), play_widths=(0.1,),
+                                                    weights=(0.3, 0.2, 0.4, 0.1), loc_shift=5))
+    proto = ox.export_onnx(model, tmp_path / ox.ONNX_FILE)
+    dim = proto.graph.input[0].type.tensor_type.shape.dim[1].dim_value
+    assert dim == model.preprocess.n_inputs == 4 + 2 + 4
+    concat = next(n for n in proto.graph.node if n.name == "hierarchy/location_input")
+    assert list(concat.input[1:]) == ["hierarchy/contact_f", "force_net/out",
+                                      "hierarchy/location_averages"]
+    for seed in range(2):
+        wl, base = _recording(seed)
+        z = features(model, wl, base)
+        assert z.shape[1] == 10
+        _check_agreement(model, z, ox.run_features(model, z, tmp_path))

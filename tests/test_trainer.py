@@ -285,8 +285,9 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     md = a.metadata
     assert md["data"][0]["sha256"] and md["seed"] == 7
     # The location net reads the four channels, the contact flag and the force, not the
-    # memory features (fbgforce.contract.net_inputs).
-    assert md["sizes"]["location"] == [fm.N_STRAIN + 2, 16, 8, 2]
+    # load signal's memory features, then the location averages of the default memory
+    # (fbgforce.contract.net_inputs).
+    assert md["sizes"]["location"] == [fm.N_STRAIN + 2 + fm.N_STRAIN, 16, 8, 2]
     assert md["split"]["samples"]["train"] > 5 * md["split"]["samples"]["test"] > 0
     fm.save(a, tmp_path / "m")
     ev = evaluate(tmp_path / "m", [path], split="test")

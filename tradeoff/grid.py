@@ -8,8 +8,8 @@ from fbgforce import contract
 
 WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
 #: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both": two averages
-#: and two plays) at a smaller (the plays alone) and a larger size (four plays): 0, 2, 4, 6
-#: states.
+#: and two plays of the load signal, and the location averages) at a smaller (the plays alone)
+#: and a larger size (four plays, no location averages): 0, 2, 4, 6 load states.
 MEMORIES = ("none", "play", "both", "ema:4,7+play:0.03,0.1,0.25,0.5")
 DEFAULT_MEMORY = "both"
 

@@ -60,7 +60,7 @@ class FloatStepper:
         self.base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
         self.temp_coeff = pre.temp_coeff
         self.mean, self.inv_std = pre.input_mean, 1.0 / pre.input_std
-        self.memory = fm.MemoryStream(pre.memory)
+        self.memory = fm.MemoryStream(pre.memory, pre.z_rest)
         if nets == "numpy":
             self._nets = self._numpy_nets
         elif nets == "onnx":

@@ -49,9 +49,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--train-fraction", type=float, default=1.0,
                    help="use only this fraction of the training presses (default 1)")
     p.add_argument("--memory", default=None, metavar="SPEC",
-                   help="memory states after standardisation: none, ema, play, both (default "
-                        "both, or the --init model's), or e.g. 'ema:3,6+play:0.03,0.1' "
-                        "(average shifts; play half-widths in input standard deviations); "
+                   help="memory states after standardisation: none, ema, play, loc, both "
+                        "(default both: ema, play and loc, or the --init model's), or e.g. "
+                        "'ema:3,6+play:0.03,0.1+loc:5' (average shifts; play half-widths in "
+                        "input standard deviations; the location averages' shift); "
                         "docs/trainer.md")
     add_json_flag(p)
     p.set_defaults(handler=_train)
@@ -117,10 +118,13 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
           f"{headline(test)}", file=sys.stderr)
+    for warning in md.get("warnings", []):
+        print(f"fbgforce train: warning: {warning}", file=sys.stderr)
     return {"model": str(args.out), "seconds": md["times_s"]["prepare"] + md["times_s"]["train"],
             "epochs": {k: v["epochs_run"] for k, v in md["training"].items()},
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
-            "val": md["metrics"]["val"], "test": md["metrics"]["test"]}
+            "val": md["metrics"]["val"], "test": md["metrics"]["test"],
+            "warnings": md.get("warnings", [])}
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:

@@ -150,13 +150,18 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         after, and ``kept_start`` (fine-tuning did not lower it, so the start was kept).
     """
     rng = np.random.default_rng(seed)
+    # The contact and force nets read the first n_features columns; the location net also
+    # the location averages at the end (fbgforce.model.location_inputs).
+    nf, n_loc = model.preprocess.n_features, model.preprocess.memory.n_loc
+    x_full, z = z, z[:, :nf]
+    vx_full = val[0] if val is not None else None
     kw = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate, decay=decay,
               patience=max(2, epochs), rng=rng, progress=progress)
     c = np.asarray(contact).astype(bool)
     f_t, xy_t = _targets(model, np.asarray(force_N, float), np.asarray(x_mm, float),
                          np.asarray(y_mm, float))
     if val is not None:
-        vz, vc = val[0], np.asarray(val[1]).astype(bool)
+        vz, vc = val[0][:, :nf], np.asarray(val[1]).astype(bool)
         vf, vxy = _targets(model, *(np.asarray(v, float) for v in val[2:5]))
     report: dict[str, Any] = {"weight_bits": weight_bits, "act_bits": act_bits}
 
@@ -182,11 +187,12 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
     fnet = FakeQuantMLP(model.force, weight_bits, act_bits, z[c])
     tune(fnet, "mse", z[c], f_t[c], vz[vc] if val else None, vf[vc] if val else None, "force")
 
-    def loc_inputs(zz: np.ndarray) -> np.ndarray:
+    def loc_inputs(xx: np.ndarray) -> np.ndarray:
         # What the runtime feeds the location net: the (quantised) nets' own decisions/outputs.
+        zz = xx[:, :nf]
         logits = cnet.forward(zz)
         pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
-        return fm.location_inputs(zz, pred_c, fnet.forward(zz)[:, 0])
+        return fm.location_inputs(xx, pred_c, fnet.forward(zz)[:, 0], n_loc)
 
     # As the trainer: location on samples where true and predicted contact agree.
     def loc_rows(zz: np.ndarray, cc: np.ndarray) -> np.ndarray:
@@ -194,11 +200,11 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         return cc & (logits[:, 1] > logits[:, 0])
 
     lt = loc_rows(z, c)
-    lx = loc_inputs(z[lt])
+    lx = loc_inputs(x_full[lt])
     lnet = FakeQuantMLP(model.location, weight_bits, act_bits, lx)
     if val:
         lv = loc_rows(vz, vc)
-        tune(lnet, "mse", lx, xy_t[lt], loc_inputs(vz[lv]), vxy[lv], "location")
+        tune(lnet, "mse", lx, xy_t[lt], loc_inputs(vx_full[lv]), vxy[lv], "location")
     else:
         tune(lnet, "mse", lx, xy_t[lt], None, None, "location")
 

@@ -172,18 +172,20 @@ def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict
             raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
         hidden[k] = [int(s) for s in v]
     n_ema, n_play = len(memory.ema_shifts), len(memory.play_widths)
-    return {net.name: [contract.net_inputs(net.name, n_ema, n_play), *hidden[net.name],
+    return {net.name: [contract.net_inputs(net.name, n_ema, n_play, memory.n_loc), *hidden[net.name],
                        net.float_outputs] for net in contract.NETS}
 
 
 def parse_memory(text: str) -> fm.Memory:
-    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``ema:S,S,...`` and/or
-    ``play:W,W,...`` joined by ``+`` (average shifts; play half-widths in standardised units)."""
+    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``ema:S,S,...``, ``play:W,W,...``
+    and ``loc:S`` joined by ``+`` (average shifts; play half-widths in standardised units; the
+    location averages' shift)."""
     text = text.strip()
     if text in MEMORY_PRESETS:
         return MEMORY_PRESETS[text]
     ema: list[int] = []
     play: list[float] = []
+    loc = 0
     try:
         for part in text.split("+"):
             kind, _, values = part.partition(":")
@@ -192,24 +194,33 @@ def parse_memory(text: str) -> fm.Memory:
                 ema += [int(v) for v in nums]
             elif kind.strip() == "play":
                 play += [float(v) for v in nums]
+            elif kind.strip() == "loc":
+                if len(nums) != 1 or loc:
+                    raise ValueError("loc takes one shift")
+                loc = int(nums[0])
+                if loc < 1:
+                    raise ValueError("the loc shift must be at least 1 (leave loc out for none)")
             else:
                 raise ValueError(f"unknown memory kind {kind!r}")
-        return fm.Memory(ema_shifts=tuple(ema), play_widths=tuple(play))
+        return fm.Memory(ema_shifts=tuple(ema), play_widths=tuple(play), loc_shift=loc)
     except ValueError as exc:
         raise InputError(f"bad memory {text!r}: {exc}; use none, "
-                         f"{', '.join(MEMORY_PRESETS)}, or e.g. ema:3,6+play:0.1",
+                         f"{', '.join(MEMORY_PRESETS)}, or e.g. ema:3,6+play:0.1+loc:5",
                          column="--memory") from exc
 
 
 #: Named memories (docs/trainer.md, "memory"): averages of about 16 and 128 ms at 1 kHz;
 #: play operators of half-width 0.05 and 0.25 standard deviations of the load signal (about
 #: 1 % and 5 % of the force range of a calibration run). Even counts keep the first layers'
-#: widths even, which the Cortex-M4 kernels take in pairs.
+#: widths even, which the Cortex-M4 kernels take in pairs. The default, ``both``, also gives
+#: the location net the location averages of about 32 ms (``loc:5``; shifts 4 and 6 were
+#: worse on the calibration scene, docs/trainer.md).
 MEMORY_PRESETS: dict[str, fm.Memory] = {
     "none": fm.Memory(),
     "ema": fm.Memory(ema_shifts=(4, 7)),
     "play": fm.Memory(play_widths=(0.05, 0.25)),
-    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25)),
+    "loc": fm.Memory(loc_shift=5),
+    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25), loc_shift=5),
 }
 DEFAULT_MEMORY = "both"
 
@@ -225,6 +236,9 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
     constant inputs)."""
     if memory.n_states == 0:
         return memory
+    loc_shift = memory.loc_shift
+    memory = fm.Memory(memory.ema_shifts, memory.ema_gains, memory.play_widths, memory.play_gains,
+                       memory.weights)
     plain = copy.deepcopy(pre)
     plain.memory = fm.Memory()
     z = data.inputs(plain)[rows]
@@ -243,7 +257,50 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
         gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
     n_ema = len(memory.ema_shifts)
     return fm.Memory(memory.ema_shifts, tuple(gains[:n_ema]), memory.play_widths,
-                     tuple(gains[n_ema:]), tuple(weights))
+                     tuple(gains[n_ema:]), tuple(weights), loc_shift)
+
+
+#: A hold: the load standing still under contact for at least this long (within
+#: :data:`HOLD_BAND`). Models whose memory has averages need some in their calibration data.
+HOLD_MIN_S = 0.2
+#: How still a hold is: its load stays within max(0.2 N, 3 % of the load).
+HOLD_BAND = (0.2, 0.03)
+
+
+def hold_seconds(data: Prepared, rows: np.ndarray | None = None) -> float:
+    """Seconds of ``data`` (optionally only ``rows``) inside holds: stretches of at least
+    :data:`HOLD_MIN_S` in contact with the load-cell force within :data:`HOLD_BAND`.
+
+    An average of the load reads a held load as it reads the instant a press turns round; a
+    net that never saw a hold takes one for a release (docs/teleop.md measures a grip read
+    1.7 N low), so :func:`train` warns when the training data has none.
+    """
+    total, start = 0.0, 0
+    keep = None
+    if rows is not None:
+        keep = np.zeros(data.contact.size, bool)
+        keep[rows] = True
+    for r in data.recordings:
+        n = len(r.ds)
+        block = max(1, int(round(0.01 * r.rate_hz)))          # 10 ms blocks
+        width = max(1, int(round(HOLD_MIN_S * r.rate_hz / block)))
+        m = (n // block) * block
+        f = np.asarray(r.ds.force_N, float)[:m].reshape(-1, block)
+        c = np.asarray(r.ds.contact, bool)[:m].reshape(-1, block).all(axis=1)
+        if keep is not None:
+            c &= keep[start:start + m].reshape(-1, block).all(axis=1)
+        start += n
+        if f.shape[0] < width:
+            continue
+        win = np.lib.stride_tricks.sliding_window_view
+        hi = win(f.max(axis=1), width).max(axis=1)
+        lo = win(f.min(axis=1), width).min(axis=1)
+        still = (hi - lo <= np.maximum(HOLD_BAND[0], HOLD_BAND[1] * hi)) & win(c, width).all(axis=1)
+        inside = np.zeros(f.shape[0], bool)
+        for k in np.flatnonzero(still):
+            inside[k:k + width] = True
+        total += float(inside.sum()) * block / r.rate_hz
+    return total
 
 
 def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float]:
@@ -259,9 +316,9 @@ def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str
     return {k: float(weight_decay) for k in DEFAULT_WEIGHT_DECAY}
 
 
-def _loc_inputs(z: np.ndarray, contact: np.ndarray, f_raw: np.ndarray) -> np.ndarray:
+def _loc_inputs(x: np.ndarray, contact: np.ndarray, f_raw: np.ndarray, n_loc: int) -> np.ndarray:
     """Location-net input exactly as :func:`fbgforce.model.predict_from_features` builds it."""
-    return fm.location_inputs(z, contact, f_raw)
+    return fm.location_inputs(x, contact, f_raw, n_loc)
 
 
 def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:
@@ -415,7 +472,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         pre.memory = init_model.preprocess.memory
     else:
         pre.memory = fit_memory(memory, pre, data, tr)
-    z = data.inputs(pre)
+    x_all = data.inputs(pre)
+    z = x_all[:, :pre.n_features]    # what the contact and force nets read
+    n_loc = pre.memory.n_loc
     common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
                   decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s,
                   plateau=plateau, plateau_factor=plateau_factor)
@@ -458,7 +517,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
 
     # 3. Location: samples where true and predicted contact agree (where a location is both
     #    defined and output), fed the contact net's decision and the force net's OWN estimate.
-    loc_x = _loc_inputs(z, pred_contact, f_raw)
+    loc_x = _loc_inputs(x_all, pred_contact, f_raw, n_loc)
     xy_t = (np.column_stack([data.x_mm, data.y_mm]) - xy_off) / xy_scale
     ltr = tr[data.contact[tr] & pred_contact[tr]]
     lva = va[data.contact[va] & pred_contact[va]]
@@ -476,13 +535,21 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     if location_augment > 1.0:
         z_aug, rows_aug = _scaled_presses(data, pre, ltr, location_augment, rng_aug)
         aug_x = _loc_inputs(z_aug, np.ones(rows_aug.size, bool),
-                            predict_batched(fnet, z_aug)[:, 0])
+                            predict_batched(fnet, z_aug[:, :pre.n_features])[:, 0], n_loc)
         loc_train_x = np.concatenate([loc_train_x, aug_x])
         loc_train_y = np.concatenate([loc_train_y, xy_t[rows_aug]])
     reports["location"] = fit(lnet, "mse", loc_train_x, loc_train_y, loc_x[lva], xy_t[lva],
                               rng=rng_l, val_metrics=loc_val, desc="location net",
                               weight_decay=decays["location"], **common)
 
+    warnings = []
+    held_s = hold_seconds(data, tr)
+    if pre.memory.ema_shifts and held_s == 0.0:
+        warnings.append(
+            "the training presses hold no load (no %.1f s in contact within %.1f N or %d %%): "
+            "the memory's averages will read a held grip low; calibrate with holds (scene "
+            "calibration_holds, docs/teleop.md) or train with --memory play"
+            % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
     model = fm.HierarchicalModel(
         preprocess=pre, contact=cnet.to_mlp(), force=fnet.to_mlp(), location=lnet.to_mlp(),
         force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
@@ -501,6 +568,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
         "memory": pre.memory.to_json(),
+        "train_hold_s": held_s,
+        "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
@@ -514,8 +583,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "history": {name: rep["history"] for name, rep in reports.items()},
         "times_s": {"prepare": t_prep, "train": t_train,
                     **{name: rep["seconds"] for name, rep in reports.items()}},
-        "metrics": {"val": evaluate_rows(model, data, va, inputs=z) if va.size else None,
-                    "test": evaluate_rows(model, data, te, inputs=z) if te.size else None},
+        "metrics": {"val": evaluate_rows(model, data, va, inputs=x_all) if va.size else None,
+                    "test": evaluate_rows(model, data, te, inputs=x_all) if te.size else None},
         "platform": {"python": platform.python_version(), "numpy": np.__version__},
     }
     return model
@@ -549,7 +618,7 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
             kept.append(sel + start)
         start += n
     if not inputs:
-        return np.empty((0, pre.n_features)), rows[:0]
+        return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
 
 

@@ -419,12 +419,13 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->play_gain[k] = rd_u8(p + 155 + 1u * k);
     for (k = 0; k < 4u; ++k)
         m->play_width[k] = rd_i16(p + 159 + 2u * k);
+    m->loc_shift = rd_u8(p + 167);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 167u; k < 168u; ++k)
+    for (k = 168u; k < 168u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -524,6 +525,7 @@ fbg_status fbg_params_check(const fbg_model *m)
             return FBG_ERR_RANGE;
         }
     }
+    { uint8_t v = m->loc_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -2766,6 +2768,8 @@ typedef struct {
     size_t ema_size;
     void *play;
     size_t play_size;
+    void *loc;                   /* the location averages */
+    size_t loc_size;
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -2786,7 +2790,8 @@ typedef struct {
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .mem_primed = &(s)->mem_primed,               \
+                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -2816,6 +2821,7 @@ static inline void fbg_front_clear(fbg_front f)
     memset(f.last_comp, 0, f.last_comp_size);
     memset(f.ema, 0, f.ema_size);
     memset(f.play, 0, f.play_size);
+    memset(f.loc, 0, f.loc_size);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -3543,20 +3549,39 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
-/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"). The states
+/* Append the memory features to z = in[0..3] and put the location averages (when loc_shift
+ * is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load signal's states
  * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
  * its force path, which all four beams share): the exponential averages' features, then the
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
  * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
-static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
+                            uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     int64_t acc = 0;
     int32_t u;
-    if (m->n_ema == 0u && m->n_play == 0u)
+    if (m->loc_shift) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* r = z - z0, z0 the standardisation of a zero filtered shift: 0 at rest. The
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
+            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
+            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = s->mem_primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
+        }
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
         return;
+    }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
     u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
@@ -3596,7 +3621,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_model *m;
     uint32_t status, sat = 0u;
     int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
-    int16_t in[FBG_MAX_INPUTS];
+    int16_t in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN];
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
@@ -3659,7 +3684,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         status |= FBG_STATUS_OVERLOAD;
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, &sat);
+    memory_features(s, m, in, loc, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -3681,10 +3706,13 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]:
-         * the memory features after z are no longer needed and make room. */
+        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac),
+         * location averages]: the memory features after z are no longer needed and make
+         * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
         in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        if (m->loc_shift)
+            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         output_accs(s, last, x, acc);
@@ -3946,7 +3974,8 @@ fbg_status fbg_model_check(const fbg_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);   /* z, contact, force */
+    /* z, contact, force, then the location averages (4 when loc_shift is on) */
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbg_net *net = &model->nets[n];
         if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
@@ -5664,6 +5693,8 @@ typedef struct {
     size_t ema_size;
     void *play;
     size_t play_size;
+    void *loc;                   /* the location averages */
+    size_t loc_size;
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -5684,7 +5715,8 @@ typedef struct {
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .mem_primed = &(s)->mem_primed,               \
+                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -5714,6 +5746,7 @@ static inline void fbg_front_clear(fbg_front f)
     memset(f.last_comp, 0, f.last_comp_size);
     memset(f.ema, 0, f.ema_size);
     memset(f.play, 0, f.play_size);
+    memset(f.loc, 0, f.loc_size);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -5945,7 +5978,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
+    if (model->loc_shift > FBG_MAX_EMA_SHIFT)
+        return FBG_ERR_RANGE;
     for (c = 0; c < model->n_ema; ++c)
         if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
             model->ema_gain[c] > FBG_MAX_MEM_GAIN)
@@ -5999,13 +6034,25 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 
 /* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
- * and are frozen during a fault). */
-static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
+ * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
+static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     float u = 0.0f;
-    if (m->n_ema == 0u && m->n_play == 0u)
+    if (m->loc_shift) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* z_rest = -mean / std: the standardised zero shift */
+            float r = in[c] + m->input_mean_pm[c] / m->input_std_pm[c];
+            if (!s->mem_primed)
+                s->loc[c] = r;
+            s->loc[c] += (r - s->loc[c]) / (float)(1u << m->loc_shift);
+            loc[c] = s->loc[c];
+        }
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
         return;
+    }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         u += m->mem_weight[c] * in[c];
     if (!s->mem_primed) {
@@ -6097,10 +6144,11 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
 }
 
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
- * and memory features into in[]. Returns 1 when the nets must run (out->status then holds the
- * status so far), 0 when out is final (*st is what the step returns). */
+ * and memory features into in[], the location averages into loc[] (when the model has them).
+ * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
+ * final (*st is what the step returns). */
 static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
-                       float in[FBG_MAX_INPUTS], fbg_status *st)
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], fbg_status *st)
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
@@ -6143,7 +6191,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    fmemory_features(s, m, in);
+    fmemory_features(s, m, in, loc);
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return 1;
 }
@@ -6166,13 +6214,16 @@ static int contact_output(const float *y, fbgf_output *out)
 }
 
 /* The force from the force net's output f; in[] becomes the location net's input. */
-static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS])
+static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS],
+                         const float loc[FBG_N_STRAIN])
 {
     out->force_N = m->force_offset_N + m->force_scale * f;
     if (out->force_N > m->overload_N)
         out->status |= FBG_STATUS_OVERLOAD;
     in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
     in[FBG_N_STRAIN + 1] = f;
+    if (m->loc_shift)             /* ... and the location averages */
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
 }
 
 static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
@@ -6189,14 +6240,14 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
 fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
 {
     const fbgf_model *m;
-    float in[FBG_MAX_INPUTS], *act[2];
+    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], *act[2];
     const float *y;
     fbgf_kernel kernel;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    if (!step_inputs(s, wl_fm, out, in, &st))
+    if (!step_inputs(s, wl_fm, out, in, loc, &st))
         return st;
     m = s->model;
     kernel = fbgf_dense_kernel();
@@ -6206,7 +6257,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     if (!contact_output(y, out))
         return FBG_OK;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
-    force_output(m, y[0], out, in);
+    force_output(m, y[0], out, in, loc);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
     return FBG_OK;
@@ -6227,15 +6278,17 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
 {
     const fbgf_model *m = s->model;
     float in[FBGF_RUN_CHUNK][FBG_MAX_INPUTS], in2[FBGF_RUN_CHUNK][FBG_MAX_INPUTS];
+    float loc[FBGF_RUN_CHUNK][FBG_N_STRAIN];
     float buf0[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], buf1[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], *act[2];
     size_t i, k, n_run = 0u, n_contact = 0u, who[FBGF_RUN_CHUNK], touched[FBGF_RUN_CHUNK];
+    size_t row[FBGF_RUN_CHUNK];   /* the row of in[] and loc[] of each contact sample */
     fbg_status st = FBG_OK;
     const float *y;
 
     act[0] = &buf0[0][0];
     act[1] = &buf1[0][0];
     for (i = 0; i < n && st == FBG_OK; ++i)
-        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], &st))
+        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], &st))
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
@@ -6243,13 +6296,14 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
             memcpy(in2[n_contact], in[k], sizeof in[k]);
+            row[n_contact] = k;
             touched[n_contact++] = who[k];
         }
     if (n_contact == 0u)
         return st;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
-        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k]);
+        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);

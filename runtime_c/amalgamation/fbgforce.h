@@ -71,7 +71,7 @@ extern "C" {
 #define FBG_MAX_EMA_SHIFT 15  /* largest exponential-average shift (time constant 2^15 samples) */
 #define FBG_MAX_MEM_GAIN 8  /* largest memory-feature gain shift */
 #define FBG_LOAD_COEFF_LIMIT 268435456  /* |load_coeff| below this: the load proxy sum fits int64 */
-#define FBG_BLOB_VERSION 4  /* blob format this library reads and writes */
+#define FBG_BLOB_VERSION 5  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -183,6 +183,8 @@ typedef struct {
     uint8_t ema_shift[4];  /* state += rshift_round((u << EMA_FRAC) - state, ema_shift[k]) [1, 15] for k < n_ema, else 0 */
     uint8_t ema_gain[4];  /* feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
     uint8_t play_gain[4];  /* feature = sat16((u - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
+    uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input rshift_round(loc_i, EMA_FRAC) [0, 15] */
+    uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
 } fbg_model;
@@ -214,6 +216,7 @@ typedef struct {
      * averages in Q(z_frac + FBG_EMA_FRAC), play operators in Q(z_frac). */
     int32_t ema[FBG_MAX_EMA];
     int32_t play[FBG_MAX_PLAY];
+    int32_t loc[FBG_N_STRAIN];   /* location averages of z - z0, Q(z_frac + FBG_EMA_FRAC) */
     int64_t tare_sum[FBG_N_CHANNELS];
     /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
      * the activations with LDRD (no copy to an aligned buffer per layer). */
@@ -347,7 +350,8 @@ typedef struct {
     uint8_t ema_shift[4];  /* state += (u - state) / 2^ema_shift[k] */
     uint8_t ema_gain[4];
     uint8_t play_gain[4];
-    uint8_t pad_[2];  /* explicit padding, keep 0 */
+    uint8_t loc_shift;  /* location averages of z - z_rest (0: off): state += (r - state) / 2^loc_shift */
+    uint8_t pad_[1];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
 } fbgf_model;
@@ -374,6 +378,7 @@ typedef struct {
     float last_comp[FBG_N_STRAIN];
     float ema[FBG_MAX_EMA];
     float play[FBG_MAX_PLAY];
+    float loc[FBG_N_STRAIN];
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
     uint16_t pos;

@@ -78,12 +78,13 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->play_gain[k] = rd_u8(p + 155 + 1u * k);
     for (k = 0; k < 4u; ++k)
         m->play_width[k] = rd_i16(p + 159 + 2u * k);
+    m->loc_shift = rd_u8(p + 167);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 167u; k < 168u; ++k)
+    for (k = 168u; k < 168u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -183,6 +184,7 @@ fbg_status fbg_params_check(const fbg_model *m)
             return FBG_ERR_RANGE;
         }
     }
+    { uint8_t v = m->loc_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

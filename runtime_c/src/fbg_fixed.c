@@ -255,20 +255,39 @@ static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
-/* Append the memory features to z = in[0..3] (docs/fixed-point.md, "memory"). The states
+/* Append the memory features to z = in[0..3] and put the location averages (when loc_shift
+ * is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load signal's states
  * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
  * its force path, which all four beams share): the exponential averages' features, then the
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
  * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
-static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
+                            uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     int64_t acc = 0;
     int32_t u;
-    if (m->n_ema == 0u && m->n_play == 0u)
+    if (m->loc_shift) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* r = z - z0, z0 the standardisation of a zero filtered shift: 0 at rest. The
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
+            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
+            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = s->mem_primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
+        }
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
         return;
+    }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
     u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
@@ -308,7 +327,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_model *m;
     uint32_t status, sat = 0u;
     int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
-    int16_t in[FBG_MAX_INPUTS];
+    int16_t in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN];
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
@@ -371,7 +390,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         status |= FBG_STATUS_OVERLOAD;
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, &sat);
+    memory_features(s, m, in, loc, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -393,10 +412,13 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
-        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac)]:
-         * the memory features after z are no longer needed and make room. */
+        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac),
+         * location averages]: the memory features after z are no longer needed and make
+         * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
         in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        if (m->loc_shift)
+            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         output_accs(s, last, x, acc);

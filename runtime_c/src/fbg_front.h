@@ -37,6 +37,8 @@ typedef struct {
     size_t ema_size;
     void *play;
     size_t play_size;
+    void *loc;                   /* the location averages */
+    size_t loc_size;
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -57,7 +59,8 @@ typedef struct {
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .mem_primed = &(s)->mem_primed,               \
+                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -87,6 +90,7 @@ static inline void fbg_front_clear(fbg_front f)
     memset(f.last_comp, 0, f.last_comp_size);
     memset(f.ema, 0, f.ema_size);
     memset(f.play, 0, f.play_size);
+    memset(f.loc, 0, f.loc_size);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;

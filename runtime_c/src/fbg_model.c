@@ -82,7 +82,8 @@ fbg_status fbg_model_check(const fbg_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);   /* z, contact, force */
+    /* z, contact, force, then the location averages (4 when loc_shift is on) */
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
     for (n = 0; n < FBG_N_NETS; ++n) {
         const fbg_net *net = &model->nets[n];
         if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])

@@ -67,7 +67,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     features = FBG_N_STRAIN + model->n_ema + model->n_play;
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
-    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u);
+    net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
+    if (model->loc_shift > FBG_MAX_EMA_SHIFT)
+        return FBG_ERR_RANGE;
     for (c = 0; c < model->n_ema; ++c)
         if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
             model->ema_gain[c] > FBG_MAX_MEM_GAIN)
@@ -121,13 +123,25 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 
 /* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
- * and are frozen during a fault). */
-static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in)
+ * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
+static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     float u = 0.0f;
-    if (m->n_ema == 0u && m->n_play == 0u)
+    if (m->loc_shift) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* z_rest = -mean / std: the standardised zero shift */
+            float r = in[c] + m->input_mean_pm[c] / m->input_std_pm[c];
+            if (!s->mem_primed)
+                s->loc[c] = r;
+            s->loc[c] += (r - s->loc[c]) / (float)(1u << m->loc_shift);
+            loc[c] = s->loc[c];
+        }
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
         return;
+    }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         u += m->mem_weight[c] * in[c];
     if (!s->mem_primed) {
@@ -219,10 +233,11 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
 }
 
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
- * and memory features into in[]. Returns 1 when the nets must run (out->status then holds the
- * status so far), 0 when out is final (*st is what the step returns). */
+ * and memory features into in[], the location averages into loc[] (when the model has them).
+ * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
+ * final (*st is what the step returns). */
 static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
-                       float in[FBG_MAX_INPUTS], fbg_status *st)
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], fbg_status *st)
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
@@ -265,7 +280,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    fmemory_features(s, m, in);
+    fmemory_features(s, m, in, loc);
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return 1;
 }
@@ -288,13 +303,16 @@ static int contact_output(const float *y, fbgf_output *out)
 }
 
 /* The force from the force net's output f; in[] becomes the location net's input. */
-static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS])
+static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS],
+                         const float loc[FBG_N_STRAIN])
 {
     out->force_N = m->force_offset_N + m->force_scale * f;
     if (out->force_N > m->overload_N)
         out->status |= FBG_STATUS_OVERLOAD;
     in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
     in[FBG_N_STRAIN + 1] = f;
+    if (m->loc_shift)             /* ... and the location averages */
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
 }
 
 static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
@@ -311,14 +329,14 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
 fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
 {
     const fbgf_model *m;
-    float in[FBG_MAX_INPUTS], *act[2];
+    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], *act[2];
     const float *y;
     fbgf_kernel kernel;
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    if (!step_inputs(s, wl_fm, out, in, &st))
+    if (!step_inputs(s, wl_fm, out, in, loc, &st))
         return st;
     m = s->model;
     kernel = fbgf_dense_kernel();
@@ -328,7 +346,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     if (!contact_output(y, out))
         return FBG_OK;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
-    force_output(m, y[0], out, in);
+    force_output(m, y[0], out, in, loc);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
     return FBG_OK;
@@ -349,15 +367,17 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
 {
     const fbgf_model *m = s->model;
     float in[FBGF_RUN_CHUNK][FBG_MAX_INPUTS], in2[FBGF_RUN_CHUNK][FBG_MAX_INPUTS];
+    float loc[FBGF_RUN_CHUNK][FBG_N_STRAIN];
     float buf0[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], buf1[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], *act[2];
     size_t i, k, n_run = 0u, n_contact = 0u, who[FBGF_RUN_CHUNK], touched[FBGF_RUN_CHUNK];
+    size_t row[FBGF_RUN_CHUNK];   /* the row of in[] and loc[] of each contact sample */
     fbg_status st = FBG_OK;
     const float *y;
 
     act[0] = &buf0[0][0];
     act[1] = &buf1[0][0];
     for (i = 0; i < n && st == FBG_OK; ++i)
-        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], &st))
+        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], &st))
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
@@ -365,13 +385,14 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
             memcpy(in2[n_contact], in[k], sizeof in[k]);
+            row[n_contact] = k;
             touched[n_contact++] = who[k];
         }
     if (n_contact == 0u)
         return st;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
-        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k]);
+        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);
