@@ -147,17 +147,18 @@ def _float32_parameters(model: fm.HierarchicalModel) -> None:
 
 @pytest.fixture(scope="module")
 def case(random_model_factory, random_walk_factory, tmp_path_factory):
-    """A random model with every kind of memory state (10 net inputs), its C source, a random
+    """A random model with every kind of memory state and the location averages, its C source, a random
     walk and the float64 model's outputs on it."""
-    # 10 net inputs: the AVX2 kernel for first layers takes them as one full and one partial
-    # block of eight.
+    # 10 net inputs (and 10 for the location net, with the location averages): the AVX2
+    # kernel for first layers takes them as one full and one partial block of eight.
     memory = fm.Memory(ema_shifts=(2, 4, 7), ema_gains=(1, 1, 0), play_widths=(0.03, 0.1, 0.3),
-                       play_gains=(2, 1, 0))
+                       play_gains=(2, 1, 0), loc_shift=3)
     model = random_model_factory(seed=3, memory=memory)
     wl = random_walk_factory(model, SAMPLES, seed=4)
     base = np.asarray(model.baseline_nm, dtype=np.float64)
     # Contact on about half of the samples: both branches of the step run.
-    logits = model.contact.forward(fm.features(model, wl, base))
+    x = fm.features(model, wl, base)
+    logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     _float32_parameters(model)
     d = tmp_path_factory.mktemp("float_simd")
