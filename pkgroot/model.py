@@ -120,6 +120,12 @@ class Memory:
         """Location averages (one per channel, or none)."""
         return contract.n_loc(self.loc_shift)
 
+    @property
+    def state_words(self) -> int:
+        """int32 words of state the memory uses in ``fbg_state``: one per average, play
+        operator and location average."""
+        return self.n_states + self.n_loc
+
     def to_json(self) -> dict[str, list]:
         return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
                 "play_widths": list(self.play_widths), "play_gains": list(self.play_gains),

@@ -100,8 +100,9 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
 @pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
 def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
-    extreme multipliers, rounding ties, saturation, random FIR ring positions; the assembly
-    kernels and (FBG_DSP_ASM=0) their ACLE C versions."""
+    extreme multipliers, rounding ties, saturation, random FIR ring positions, the hidden-layer
+    loop, the output rows' rounded product and the standardisation; the assembly kernels and
+    (FBG_DSP_ASM=0) their ACLE C versions."""
     r = subprocess.run(["make", "-s", "-C", str(ROOT / "examples" / "firmware"), f"BUILD={tmp_path}",
                         f"DSP_ASM={dsp_asm}", "kernel-test"],
                        capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=120)
@@ -121,6 +122,10 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     assert int(fields["acc32_saturated"]) > 100
     assert int(fields["acc32_int8"]) > 300 and int(fields["acc32_int8_saturated"]) > 100
     assert int(fields["acc32_int8_fast"]) > 50
+    # The DSP standardisation on random parameters: clamping and exact cases, and the load
+    # proxy on both sides of its limit.
+    assert int(fields["standardise_clamped"]) > 300 and int(fields["standardise_exact"]) > 300
+    assert 300 < int(fields["standardise_overload"]) < 1200
 
 
 def test_golden_vectors_bit_exact_on_target_both_builds(report):

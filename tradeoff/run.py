@@ -147,9 +147,9 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
             "sigma": v.sigma if v.filter != "none" else None, "causal": v.causal,
             "filter_taps": 0 if v.filter == "none" else int(model.preprocess.taps.size),
             "filter_delay_ms": _filter_delay_ms(model, rate_hz),
-            "memory": v.memory, "memory_states": model.preprocess.memory.n_states,
-            # int32 states per channel in fbg_state (averages and play operators alike)
-            "memory_state_bytes": 4 * 4 * model.preprocess.memory.n_states,
+            "memory": v.memory, "memory_states": model.preprocess.memory.state_words,
+            # one int32 in fbg_state per state: load averages, plays, location averages
+            "memory_state_bytes": 4 * model.preprocess.memory.state_words,
             "macs_nets": model.macs, "macs": step_macs(model),
             "sizes": {k: net.sizes for k, net in model.nets.items()},
         }

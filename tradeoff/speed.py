@@ -364,7 +364,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         "count_warmup": s.count_warmup,
         "count_samples": s.count_samples,
         "sizes": {k: net.sizes for k, net in model.nets.items()},
-        "memory_states": model.preprocess.memory.n_states,
+        "memory_states": model.preprocess.memory.state_words,
         "macs_per_step": step_macs(model),
         "reference": dict(zip(("engine", "call", "scope"), REFERENCE)),
         "builds": [{"name": b.name, "flags": b.flags, "init_options": b.init_options}

@@ -6,7 +6,9 @@
  * random FIR ring positions. Runs on QEMU mps2-an386; prints
  *   KERNEL_TEST cases=N mismatches=M fast=F aligned=A first=L int8=E saturated=S
  * and exits with 0 when M == 0 (fast = layers through rows3_asm or, A of them, rows3d_asm;
- * first = through first_asm). W and X are word-aligned arrays; off, offx = 1 misalign the
+ * first = through first_asm). Every layer also goes through fbg_dsp_run_hidden (as a net's
+ * one hidden layer), the int32 layers' rows through fbg_dsp_rshift32_product, and every case
+ * checks fbg_dsp_standardise on random parameters. W and X are word-aligned arrays; off, offx = 1 misalign the
  * weights, the inputs (all four combinations occur). */
 #include <stdint.h>
 #include <string.h>
@@ -59,6 +61,145 @@ static void ref_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32
     }
 }
 
+static int64_t ref_sat(int64_t v, int64_t lim, uint32_t *sat)
+{
+    if (v > lim || v < -lim) {
+        *sat = 1u;
+        return v > 0 ? lim : -lim;
+    }
+    return v;
+}
+
+/* fbg_dsp_output_accs against fbg_dsp_row_acc (checked against the rule below), and
+ * fbg_dsp_rshift32_product against rshift_round(acc * mult, 32) for the accumulators of an
+ * int32 layer's rows and their extremes. Returns the number of mismatches. */
+static uint32_t check_output_rows(const fbg_layer *ly, const int16_t *x)
+{
+    static int64_t accs[FBG_MAX_WIDTH];
+    uint32_t bad = 0u;
+    unsigned r;
+    fbg_dsp_output_accs(ly, x, accs);
+    for (r = 0; r < ly->n_out; ++r) {
+        const int32_t acc = (int32_t)fbg_dsp_row_acc(ly, r, x), mult = ly->mult[r];
+        bad += accs[r] != acc;
+        const int32_t edge[3] = {acc, INT32_MAX, -INT32_MAX};
+        unsigned k;
+        for (k = 0; k < 3u; ++k) {
+            bad += fbg_dsp_rshift32_product(edge[k], mult) != ref_rshift_round((int64_t)edge[k] * mult, 32u);
+            bad += fbg_dsp_rshift32_product(edge[k], k == 0u ? INT32_MAX : -INT32_MAX) !=
+                   ref_rshift_round((int64_t)edge[k] * (k == 0u ? INT32_MAX : -INT32_MAX), 32u);
+        }
+    }
+    return bad;
+}
+
+static int16_t ACT[2][FBG_MAX_WIDTH] __attribute__((aligned(4)));
+
+/* fbg_dsp_run_hidden on a net whose one hidden layer is ly, input x: the output must be
+ * ACT[0] holding y_ref (n_out values), with the flag sat_ref. */
+static uint32_t check_run_hidden(const fbg_layer *ly, const int16_t *x, const int16_t *y_ref,
+                                 uint32_t sat_ref)
+{
+    static fbg_net net;
+    uint32_t sat = 0u;
+    const int16_t *y;
+    memset(&net, 0, sizeof net);
+    net.n_layers = 2u;
+    net.layers[0] = *ly;
+    net.layers[1] = *ly; /* the output layer: not run */
+    memset(ACT, 0x5A, sizeof ACT);
+    y = fbg_dsp_run_hidden(&net, x, ACT, &sat);
+    return y != ACT[0] || memcmp(y, y_ref, ly->n_out * sizeof *y) != 0 || sat != sat_ref;
+}
+
+/* fbg_dsp_standardise against the rules of docs/fixed-point.md (step 3 and the load proxy)
+ * on random parameters: every tap_q and z_shift, sums that saturate filt, differences that
+ * overflow int32 or land exactly on INT32_MIN, rounding ties. Returns 1 on a mismatch;
+ * counts the cases with and without a clamp and those over the load limit. */
+static uint32_t check_standardise(uint32_t *clamps, uint32_t *unclamped, uint32_t *overloads)
+{
+    static fbg_model mdl;
+    int64_t f[FBG_N_STRAIN], load = 0;
+    int16_t z_ref[FBG_N_STRAIN], z_dsp[FBG_N_STRAIN];
+    uint32_t sat_ref = 0u, sat_dsp = 0u;
+    int over_ref, over_dsp;
+    unsigned ch, gentle;
+    /* Its own random stream: the layers' cases stay those of the stream above. */
+    static uint32_t own_seed = 424242u;
+    const uint32_t layer_seed = seed;
+    seed = own_seed;
+    gentle = rnd() & 1u; /* half the cases with values that mostly fit */
+    memset(&mdl, 0, sizeof mdl);
+    mdl.tap_q = (uint8_t)(1u + rnd() % 15u);
+    mdl.z_shift = (uint8_t)(gentle ? 24u + rnd() % 39u : 1u + rnd() % 62u);
+    mdl.load_shift = (uint8_t)(1u + rnd() % 62u);
+    mdl.load_max_mN = (int32_t)rnd() >> (rnd() % 31u);
+    for (ch = 0; ch < FBG_N_STRAIN; ++ch) {
+        int64_t filt, d;
+        /* |f| < 2^53; a rounding tie at tap_q when the low bits come out so. */
+        f[ch] = ((int64_t)(int32_t)rnd() << (rnd() % 22u)) + (rnd() & 3u ? 0 : ((int64_t)1 << (mdl.tap_q - 1u)));
+        if ((rnd() & 7u) == 0u)
+            f[ch] = ((int64_t)(int32_t)rnd() >> (rnd() % 31u)) * ((int64_t)1 << mdl.tap_q) + ((int64_t)1 << (mdl.tap_q - 1u));
+        if ((rnd() & 15u) == 0u) /* filt at +-2^31 before the clamp (sat32 is symmetric) */
+            f[ch] = ((rnd() & 1u) ? -1 : 1) * ((int64_t)1 << (31u + mdl.tap_q)) + (int64_t)(rnd() % (1u << (mdl.tap_q - 1u)));
+        if (gentle)
+            f[ch] = ((int64_t)((int32_t)rnd() >> (rnd() % 16u)) << mdl.tap_q) + (int64_t)(rnd() % (1u << mdl.tap_q));
+        mdl.mean_fm[ch] = (int32_t)rnd() >> (rnd() % 32u + gentle);
+        if (mdl.mean_fm[ch] == INT32_MIN)
+            mdl.mean_fm[ch] = -INT32_MAX;
+        mdl.z_mult[ch] = (int32_t)rnd() >> (rnd() % 32u + 8u * gentle);
+        if (mdl.z_mult[ch] == INT32_MIN)
+            mdl.z_mult[ch] = -INT32_MAX;
+        mdl.load_coeff[ch] = ((int32_t)rnd() >> 3) % 268435456;
+        filt = ref_sat(ref_rshift_round(f[ch], mdl.tap_q), INT32_MAX, &sat_ref);
+        if ((rnd() % 10u) == 0u && filt < 0)
+            mdl.mean_fm[ch] = (int32_t)(filt + ((int64_t)1 << 31)); /* filt - mean = INT32_MIN */
+        d = ref_sat(filt - mdl.mean_fm[ch], INT32_MAX, &sat_ref);
+        z_ref[ch] = (int16_t)ref_sat(ref_rshift_round(d * mdl.z_mult[ch], mdl.z_shift), 32767, &sat_ref);
+        load += filt * mdl.load_coeff[ch];
+    }
+    own_seed = seed;
+    seed = layer_seed;
+    over_ref = ref_rshift_round(load, mdl.load_shift) > mdl.load_max_mN;
+    over_dsp = fbg_dsp_standardise(&mdl, f, z_dsp, &sat_dsp);
+    *clamps += sat_ref;
+    *unclamped += !sat_ref;
+    *overloads += (uint32_t)over_ref;
+    return memcmp(z_ref, z_dsp, sizeof z_ref) != 0 || sat_ref != sat_dsp || over_ref != over_dsp;
+}
+
+/* fbg_sat16_rshift_round (fbg_internal.h: two-word arithmetic on this 32-bit core) against
+ * sat16(rshift_round(x, s)) for every s and x of every magnitude that keeps x + 2^(s-1) in
+ * int64, ties included. Returns the number of mismatches. */
+static uint32_t check_sat16_rshift_round(void)
+{
+    uint32_t bad = 0u;
+    unsigned s, k;
+    const uint32_t layer_seed = seed; /* its own stream: the layers' cases stay as they were */
+    seed = 777u;
+    for (s = 1u; s <= 62u; ++s) {
+        for (k = 0; k < 200u; ++k) {
+            int64_t x = (int64_t)(((uint64_t)rnd() << 32) | rnd()) >> (rnd() % 64u), want;
+            if (k % 5u == 2u && s < 30u) { /* shifted value 2^e + a small one, e >= 32 */
+                x = (((int64_t)1 << (32u + rnd() % (30u - s))) + (int64_t)(rnd() & 0xFFFFu)) * ((int64_t)1 << s);
+                if (rnd() & 1u)
+                    x = -x;
+            }
+            if (k % 5u == 1u) /* around the int32 range of the shifted value */
+                x = (int64_t)(((uint64_t)rnd() << 32) | rnd()) >> (s < 31u ? 31u - s + rnd() % 3u : 0u);
+            uint32_t flag_ref = 0u, flag = 0u;
+            if (k % 5u == 0u) /* a tie: x = (2q + 1) 2^(s-1) */
+                x = ((int64_t)((int32_t)rnd() >> (s > 29u ? s - 29u : rnd() % 32u)) * 2 + 1) * ((int64_t)1 << (s - 1u));
+            if (x > INT64_MAX - ((int64_t)1 << (s - 1u)))
+                x = INT64_MAX - ((int64_t)1 << (s - 1u));
+            want = ref_sat(ref_rshift_round(x, s), 32767, &flag_ref);
+            bad += fbg_sat16_rshift_round(x, s, &flag) != want || flag != flag_ref;
+        }
+    }
+    seed = layer_seed;
+    return bad;
+}
+
 int main(void)
 {
     static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
@@ -66,6 +207,8 @@ int main(void)
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
     uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
     uint32_t acc32_int8 = 0, acc32_int8_sat = 0, acc32_int8_fast = 0;
+    uint32_t standardise_clamped = 0, standardise_exact = 0, standardise_overload = 0;
+    mismatches += check_sat16_rshift_round();
     for (c = 0; c < N_CASES; ++c) {
         unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
                  offx = (c / 12u) % 2u;
@@ -128,6 +271,7 @@ int main(void)
         ref_hidden(&ly, X + offx, Y_ref, &sat_ref);
         memset(Y_dsp, 0x5A, sizeof Y_dsp);
         fbg_dsp_hidden(&ly, X + offx, Y_dsp, &sat_dsp);
+        mismatches += check_run_hidden(&ly, X + offx, Y_ref, sat_ref);
         if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
             if (mismatches < 5u) {
                 sh_puts("KERNEL_MISMATCH");
@@ -189,6 +333,7 @@ int main(void)
         }
         int8_layers += (uint32_t)bits8;
         saturated += sat_ref != 0u;
+        mismatches += check_standardise(&standardise_clamped, &standardise_exact, &standardise_overload);
         /* FIR: random taps, history and ring position. */
         {
             unsigned nt = 1u + rnd() % FBG_MAX_TAPS, pos = rnd() % nt, k, ch;
@@ -264,6 +409,8 @@ int main(void)
             ref_hidden(&ly, X + offx, Y_ref, &sat_ref);
             memset(Y_dsp, 0x5A, sizeof Y_dsp);
             fbg_dsp_hidden(&ly, X + offx, Y_dsp, &sat_dsp);
+            mismatches += check_run_hidden(&ly, X + offx, Y_ref, sat_ref);
+            mismatches += check_output_rows(&ly, X + offx);
             if (memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp) {
                 if (mismatches < 5u) {
                     sh_puts("KERNEL_MISMATCH_ACC32");
@@ -315,6 +462,9 @@ int main(void)
     sh_kv("acc32_int8", (int32_t)acc32_int8);
     sh_kv("acc32_int8_saturated", (int32_t)acc32_int8_sat);
     sh_kv("acc32_int8_fast", (int32_t)acc32_int8_fast);
+    sh_kv("standardise_clamped", (int32_t)standardise_clamped);
+    sh_kv("standardise_exact", (int32_t)standardise_exact);
+    sh_kv("standardise_overload", (int32_t)standardise_overload);
     sh_puts("\n");
     return mismatches ? 1 : 0;
 }

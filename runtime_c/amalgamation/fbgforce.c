@@ -36,6 +36,7 @@ fbg_status fbg_params_check(const fbg_model *m);
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -58,6 +59,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -87,6 +95,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -100,32 +165,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -581,6 +647,9 @@ const char *fbg_status_str(int status)
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
  */
 /* ---- src/fbg_dsp.h ---- */
 /*
@@ -601,6 +670,7 @@ const char *fbg_status_str(int status)
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -623,6 +693,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -652,6 +729,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -665,32 +799,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -745,8 +880,30 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
  * clamped at 32767. */
 void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
 /* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
 
 /* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
 int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
@@ -836,6 +993,19 @@ static inline int32_t smmulr(int32_t acc, int32_t mult)
     return r;
 #else
     return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
 #endif
 }
 
@@ -2505,13 +2675,49 @@ static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const in
         hidden8(ly, x, y, sat);
 }
 
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
     unsigned m;
     if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
         run_pairs32(ly, x, y, ly->n_in, sat);
     else
         hidden_other(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    hidden_layer(ly, x, y, sat);
+}
+
+/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
+typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
+
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
+{
+    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
+     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
+     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
+    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
+    int16_t *y = act[0], *other = act[1];
+    uintptr_t x_odd = (uintptr_t)x & 3u;
+    for (; ly != end; ++ly) {
+        uint32_t dims, kind;
+        unsigned n;
+        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
+        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
+        n = dims & 0xFFFFu;
+        if ((kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND &&
+            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > 8u ? x_odd : 0u)) == 0u)
+            run_pairs32(ly, x, y, n, sat);
+        else
+            hidden_other(ly, x, y, sat);
+        x = y;
+        y = other;
+        other = (int16_t *)(uintptr_t)x;
+        x_odd = 0u;
+    }
+    return x;
 }
 
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
@@ -2523,12 +2729,11 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
+static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    uint32_t kind;
-    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
-    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
-        const unsigned n = ly->n_in;
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u) {
         const int16_t *w = ly->w16 + (size_t)r * n;
 #if FBG_DSP_ASM
         if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
@@ -2536,11 +2741,106 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 #endif
         return dot16_32(w, x, n, (int32_t)ly->bias[r]);
     }
-    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
-        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
+    return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
+}
+
+static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->acc32)
+        return row_acc32(ly, r, x);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    return row_acc(ly, r, x);
+}
+
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+#if FBG_DSP_ASM
+    const unsigned n = ly->n_in;
+    if (ly->acc32 && ly->w_bits == 16u &&
+        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
+        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
+        const int16_t *w = ly->w16;
+        for (r = 0; r < ly->n_out; ++r, w += n)
+            acc[r] = dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+        return;
+    }
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = row_acc(ly, r, x);
+}
+
+/* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
+static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
+{
+    /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
+    if (hi != ((int32_t)lo >> 31) || lo == 0x80000000u) {
+        *clamped = 1u;
+        return hi < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    return (int32_t)lo;
+}
+
+/* sat16 of an int32 with the flag of fbg_sat16 (*clamped != 0 iff it clamped): SSAT to
+ * [-32768, 32767], then -32768 up to -32767. */
+static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
+{
+    int32_t y = __ssat(v, 16);
+    y = y < -FBG_SAT16 ? -FBG_SAT16 : y;
+    *clamped |= (uint32_t)(v ^ y);
+    return y;
+}
+
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat)
+{
+    const unsigned tq = m->tap_q, zs = m->z_shift;
+    const uint32_t fround = 1u << (tq - 1u);
+    /* 2^(zs-1), zs <= 62, built so that one of its words is visibly zero. */
+    const int64_t zround = zs > 32u ? (int64_t)((uint64_t)(1u << (zs - 33u)) << 32)
+                                    : (int64_t)(uint32_t)(1u << (zs - 1u));
+    uint32_t clamped = 0u;
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
+         * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
+         * arithmetic shift of the 64-bit sum is two words shifted and joined. */
+        const int64_t g = f[c] + (int64_t)fround;
+        const uint32_t glo = (uint32_t)g;
+        const int32_t ghi = (int32_t)(g >> 32);
+        int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
+        int32_t d, v;
+        int64_t p;
+        /* d = sat32(filt - mean): on int32 overflow the true difference has filt's sign. */
+        if (__builtin_sub_overflow(filt, m->mean_fm[c], &d)) {
+            clamped = 1u;
+            d = filt < 0 ? -FBG_SAT32 : FBG_SAT32;
+        } else if (d == INT32_MIN) {
+            clamped = 1u;
+            d = -FBG_SAT32;
+        }
+        /* |d * z_mult| < 2^62 and 2^(zs-1) <= 2^61: p is exact in int64. */
+        p = smlal(zround, d, m->z_mult[c]);
+        if (zs >= 32u) {
+            v = (int32_t)(p >> 32) >> (zs - 32u); /* floor(p / 2^zs), |.| < 2^31 */
+        } else {
+            int64_t q = p >> zs;
+            /* Beyond int32 the outcome of sat16 is already decided; keep the sign. */
+            v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+        }
+        z[c] = (int16_t)sat16_32(v, &clamped);
+        load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
+    }
+    if (clamped != 0u)
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }
 
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
@@ -2622,6 +2922,7 @@ typedef int fbg_dsp_unused;
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -2644,6 +2945,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -2673,6 +2981,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -2686,32 +3051,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -2907,18 +3273,22 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
  * to *status; the caller feeds the FIR its held last_comp again), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
- * FBG_N_STRAIN included (clamps reported in *sat). */
+ * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
                                    int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
-                                   int32_t shift_fm[FBG_N_CHANNELS], uint32_t *sat)
+                                   int32_t shift_fm[FBG_N_CHANNELS])
 {
     unsigned c;
     if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
         *status |= FBG_STATUS_SENSOR_FAULT;
         return 1;
     }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
     for (c = 0; c < FBG_N_CHANNELS; ++c)
-        shift_fm[c] = fbg_sat32((int64_t)wl_fm[c] - f.baseline_fm[c], sat);
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
     return 0;
 }
 
@@ -2964,6 +3334,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -2986,6 +3357,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -3015,6 +3393,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -3028,32 +3463,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -3147,6 +3583,7 @@ void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -3169,6 +3606,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -3198,6 +3642,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -3211,32 +3712,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -3291,8 +3793,30 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
  * clamped at 32767. */
 void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
 /* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
 int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
 
 /* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
 int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
@@ -3430,7 +3954,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
-#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
+#if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -3448,15 +3972,11 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
-#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-#if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
-    return fbg_dsp_row_acc(ly, r, x);
-#else
     int64_t acc = ly->bias[r];
     unsigned j;
     if (ly->acc32)
@@ -3471,8 +3991,8 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
-#endif
 }
+#endif
 
 /* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
 static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
@@ -3497,13 +4017,13 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+#else
     unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
-        fbg_dsp_hidden(ly, x, y, sat);
-#else
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
@@ -3515,11 +4035,11 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
             for (r = 0; r < ly->n_out; ++r)
                 y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
         }
-#endif
         x = y;
         buf ^= 1u;
     }
     return x;
+#endif
 }
 
 /* The accumulators of every row of a net's output layer. */
@@ -3538,14 +4058,23 @@ static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *
 #else
     (void)s;
 #endif
+#if FBG_USE_DSP /* every row in one call */
+    (void)r;
+    fbg_dsp_output_accs(ly, x, acc);
+#else
     for (r = 0; r < ly->n_out; ++r)
         acc[r] = layer_acc(ly, r, x);
+#endif
 }
 
 /* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
  * int32. */
-static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
 {
+#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
+    if (ly->acc32 && ly->shift == 32u)
+        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
+#endif
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
@@ -3569,8 +4098,8 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
-            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t z0 = fbg_sat16_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift, sat);
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
             int32_t e = s->mem_primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
@@ -3584,7 +4113,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
     if (!s->mem_primed) {
         for (k = 0; k < m->n_ema; ++k)
             s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
@@ -3594,19 +4123,22 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (k = 0; k < m->n_ema; ++k, ++j) {
         /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. */
-        int64_t target = (int64_t)u * ((int64_t)1 << FBG_EMA_FRAC);
-        int32_t e = (int32_t)(s->ema[k] + fbg_rshift_round(target - s->ema[k], m->ema_shift[k]));
+         * at most the whole distance, so it stays between its old value and the target. So
+         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
+         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
+        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
         s->ema[k] = e;
-        in[j] = fbg_sat16(((int64_t)u - fbg_rshift_round(e, FBG_EMA_FRAC)) * ((int64_t)1 << m->ema_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
     }
     for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16. */
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
         int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
         int32_t p = s->play[k];
         p = p < lo ? lo : (p > hi ? hi : p);
         s->play[k] = p;
-        in[j] = fbg_sat16(((int64_t)u - p) * ((int64_t)1 << m->play_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
     }
 }
 
@@ -3625,7 +4157,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
-    int64_t acc[FBG_MAX_WIDTH], load = 0;
+    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+#if !FBG_USE_DSP
+    int64_t load = 0;
+#endif
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -3638,7 +4173,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     m = s->model;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
@@ -3655,21 +4190,23 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
     }
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums */
-    int64_t fir[FBG_N_STRAIN];
-    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-#endif
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-#if FBG_USE_DSP
-        int64_t f = fir[c];
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
+                  * step 3 on 32-bit words (fbg_dsp.c says why each is exact) */
+    {
+        int64_t fir[FBG_N_STRAIN];
+        fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+        if (fbg_dsp_standardise(m, fir, in, &sat))
+            status |= FBG_STATUS_OVERLOAD;
+    }
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
-#endif
         /* 3. Standardise into Q(z_frac) int16. */
         {
             int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
@@ -3682,6 +4219,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
     if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
         status |= FBG_STATUS_OVERLOAD;
+#endif
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, loc, &sat);
@@ -3702,7 +4240,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
         output_accs(s, last, x, acc);
         force_out = output_row(last, 0u, acc[0], &sat);
-        out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
+        out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
@@ -3710,14 +4248,14 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
          * location averages]: the memory features after z are no longer needed and make
          * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         output_accs(s, last, x, acc);
-        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, acc[0], &sat) + m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, acc[1], &sat) + m->xy_offset_um[1], &sat);
+        out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
@@ -3766,6 +4304,7 @@ fbg_status fbg_params_check(const fbg_model *m);
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -3788,6 +4327,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -3817,6 +4363,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -3830,32 +4433,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -4041,6 +4645,7 @@ fbg_status fbg_model_check(const fbg_model *model)
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -4063,6 +4668,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -4092,6 +4704,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -4105,32 +4774,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -4416,6 +5086,7 @@ typedef int fbg_simd_neon_unused;
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -4438,6 +5109,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -4467,6 +5145,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -4480,32 +5215,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -5547,6 +6283,7 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -5569,6 +6306,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -5598,6 +6342,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -5611,32 +6412,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 
@@ -5832,18 +6634,22 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
  * to *status; the caller feeds the FIR its held last_comp again), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
- * FBG_N_STRAIN included (clamps reported in *sat). */
+ * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
                                    int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
-                                   int32_t shift_fm[FBG_N_CHANNELS], uint32_t *sat)
+                                   int32_t shift_fm[FBG_N_CHANNELS])
 {
     unsigned c;
     if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
         *status |= FBG_STATUS_SENSOR_FAULT;
         return 1;
     }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
     for (c = 0; c < FBG_N_CHANNELS; ++c)
-        shift_fm[c] = fbg_sat32((int64_t)wl_fm[c] - f.baseline_fm[c], sat);
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
     return 0;
 }
 
@@ -6163,7 +6969,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         return 0;
     }
     m = s->model;
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */

@@ -27,6 +27,9 @@
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
  */
 #include "fbg_dsp.h"
 
@@ -107,6 +110,19 @@ static inline int32_t smmulr(int32_t acc, int32_t mult)
     return r;
 #else
     return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
 #endif
 }
 
@@ -1776,13 +1792,49 @@ static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const in
         hidden8(ly, x, y, sat);
 }
 
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
 {
     unsigned m;
     if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
         run_pairs32(ly, x, y, ly->n_in, sat);
     else
         hidden_other(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    hidden_layer(ly, x, y, sat);
+}
+
+/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
+typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
+
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
+{
+    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
+     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
+     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
+    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
+    int16_t *y = act[0], *other = act[1];
+    uintptr_t x_odd = (uintptr_t)x & 3u;
+    for (; ly != end; ++ly) {
+        uint32_t dims, kind;
+        unsigned n;
+        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
+        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
+        n = dims & 0xFFFFu;
+        if ((kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND &&
+            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > 8u ? x_odd : 0u)) == 0u)
+            run_pairs32(ly, x, y, n, sat);
+        else
+            hidden_other(ly, x, y, sat);
+        x = y;
+        y = other;
+        other = (int16_t *)(uintptr_t)x;
+        x_odd = 0u;
+    }
+    return x;
 }
 
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
@@ -1794,12 +1846,11 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
+static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-    uint32_t kind;
-    memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 (FBG_DSP_PAIRS_KIND) */
-    if ((kind & 0xFF00FFu) == (16u | (1u << 16))) { /* int16 weights, int32 accumulator */
-        const unsigned n = ly->n_in;
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u) {
         const int16_t *w = ly->w16 + (size_t)r * n;
 #if FBG_DSP_ASM
         if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
@@ -1807,11 +1858,106 @@ int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 #endif
         return dot16_32(w, x, n, (int32_t)ly->bias[r]);
     }
-    if ((kind & 0xFF00FFu) == (8u | (1u << 16)))
-        return dot8_32(ly->w8 + (size_t)r * ly->n_in, x, ly->n_in, (int32_t)ly->bias[r]);
+    return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
+}
+
+static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->acc32)
+        return row_acc32(ly, r, x);
     if (ly->w_bits == 16u)
         return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
     return row_acc8(ly, r, x);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    return row_acc(ly, r, x);
+}
+
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+#if FBG_DSP_ASM
+    const unsigned n = ly->n_in;
+    if (ly->acc32 && ly->w_bits == 16u &&
+        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
+        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
+        const int16_t *w = ly->w16;
+        for (r = 0; r < ly->n_out; ++r, w += n)
+            acc[r] = dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+        return;
+    }
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = row_acc(ly, r, x);
+}
+
+/* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
+static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
+{
+    /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
+    if (hi != ((int32_t)lo >> 31) || lo == 0x80000000u) {
+        *clamped = 1u;
+        return hi < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    return (int32_t)lo;
+}
+
+/* sat16 of an int32 with the flag of fbg_sat16 (*clamped != 0 iff it clamped): SSAT to
+ * [-32768, 32767], then -32768 up to -32767. */
+static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
+{
+    int32_t y = __ssat(v, 16);
+    y = y < -FBG_SAT16 ? -FBG_SAT16 : y;
+    *clamped |= (uint32_t)(v ^ y);
+    return y;
+}
+
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat)
+{
+    const unsigned tq = m->tap_q, zs = m->z_shift;
+    const uint32_t fround = 1u << (tq - 1u);
+    /* 2^(zs-1), zs <= 62, built so that one of its words is visibly zero. */
+    const int64_t zround = zs > 32u ? (int64_t)((uint64_t)(1u << (zs - 33u)) << 32)
+                                    : (int64_t)(uint32_t)(1u << (zs - 1u));
+    uint32_t clamped = 0u;
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
+         * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
+         * arithmetic shift of the 64-bit sum is two words shifted and joined. */
+        const int64_t g = f[c] + (int64_t)fround;
+        const uint32_t glo = (uint32_t)g;
+        const int32_t ghi = (int32_t)(g >> 32);
+        int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
+        int32_t d, v;
+        int64_t p;
+        /* d = sat32(filt - mean): on int32 overflow the true difference has filt's sign. */
+        if (__builtin_sub_overflow(filt, m->mean_fm[c], &d)) {
+            clamped = 1u;
+            d = filt < 0 ? -FBG_SAT32 : FBG_SAT32;
+        } else if (d == INT32_MIN) {
+            clamped = 1u;
+            d = -FBG_SAT32;
+        }
+        /* |d * z_mult| < 2^62 and 2^(zs-1) <= 2^61: p is exact in int64. */
+        p = smlal(zround, d, m->z_mult[c]);
+        if (zs >= 32u) {
+            v = (int32_t)(p >> 32) >> (zs - 32u); /* floor(p / 2^zs), |.| < 2^31 */
+        } else {
+            int64_t q = p >> zs;
+            /* Beyond int32 the outcome of sat16 is already decided; keep the sign. */
+            v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+        }
+        z[c] = (int16_t)sat16_32(v, &clamped);
+        load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
+    }
+    if (clamped != 0u)
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }
 
 void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],

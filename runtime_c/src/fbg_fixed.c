@@ -136,7 +136,7 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 
-#if !FBG_USE_DSP /* the DSP build has its own kernels for these rows (fbg_dsp.c) */
+#if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
@@ -154,15 +154,11 @@ static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
     }
     return acc;
 }
-#endif
 
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
  * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
 static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
-#if FBG_USE_DSP /* SMLALD/SMLAD: two MACs per instruction; same sum */
-    return fbg_dsp_row_acc(ly, r, x);
-#else
     int64_t acc = ly->bias[r];
     unsigned j;
     if (ly->acc32)
@@ -177,8 +173,8 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
             acc += (int32_t)w[j] * (int32_t)x[j];
     }
     return acc;
-#endif
 }
+#endif
 
 /* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
 static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
@@ -203,13 +199,13 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
+#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+#else
     unsigned l, buf = 0u;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
-#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
-        fbg_dsp_hidden(ly, x, y, sat);
-#else
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
@@ -221,11 +217,11 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
             for (r = 0; r < ly->n_out; ++r)
                 y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
         }
-#endif
         x = y;
         buf ^= 1u;
     }
     return x;
+#endif
 }
 
 /* The accumulators of every row of a net's output layer. */
@@ -244,14 +240,23 @@ static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *
 #else
     (void)s;
 #endif
+#if FBG_USE_DSP /* every row in one call */
+    (void)r;
+    fbg_dsp_output_accs(ly, x, acc);
+#else
     for (r = 0; r < ly->n_out; ++r)
         acc[r] = layer_acc(ly, r, x);
+#endif
 }
 
 /* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
  * int32. */
-static int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
 {
+#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
+    if (ly->acc32 && ly->shift == 32u)
+        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
+#endif
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
 
@@ -275,8 +280,8 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t z0 = fbg_sat16(fbg_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift), sat);
-            int32_t target = (int32_t)fbg_sat16((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t z0 = fbg_sat16_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift, sat);
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
             int32_t e = s->mem_primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
@@ -290,7 +295,7 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16(fbg_rshift_round(acc, m->mem_shift), sat);
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
     if (!s->mem_primed) {
         for (k = 0; k < m->n_ema; ++k)
             s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
@@ -300,19 +305,22 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
     for (k = 0; k < m->n_ema; ++k, ++j) {
         /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. */
-        int64_t target = (int64_t)u * ((int64_t)1 << FBG_EMA_FRAC);
-        int32_t e = (int32_t)(s->ema[k] + fbg_rshift_round(target - s->ema[k], m->ema_shift[k]));
+         * at most the whole distance, so it stays between its old value and the target. So
+         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
+         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
+        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
         s->ema[k] = e;
-        in[j] = fbg_sat16(((int64_t)u - fbg_rshift_round(e, FBG_EMA_FRAC)) * ((int64_t)1 << m->ema_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
     }
     for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16. */
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
         int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
         int32_t p = s->play[k];
         p = p < lo ? lo : (p > hi ? hi : p);
         s->play[k] = p;
-        in[j] = fbg_sat16(((int64_t)u - p) * ((int64_t)1 << m->play_gain[k]), sat);
+        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
     }
 }
 
@@ -331,7 +339,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const int16_t *x;
     const fbg_layer *last;
     unsigned c;
-    int64_t acc[FBG_MAX_WIDTH], load = 0;
+    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+#if !FBG_USE_DSP
+    int64_t load = 0;
+#endif
     fbg_status st;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
@@ -344,7 +355,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     m = s->model;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
@@ -361,21 +372,23 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
     }
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums */
-    int64_t fir[FBG_N_STRAIN];
-    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-#endif
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-#if FBG_USE_DSP
-        int64_t f = fir[c];
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
+                  * step 3 on 32-bit words (fbg_dsp.c says why each is exact) */
+    {
+        int64_t fir[FBG_N_STRAIN];
+        fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+        if (fbg_dsp_standardise(m, fir, in, &sat))
+            status |= FBG_STATUS_OVERLOAD;
+    }
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
-#endif
         /* 3. Standardise into Q(z_frac) int16. */
         {
             int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
@@ -388,6 +401,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
     if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
         status |= FBG_STATUS_OVERLOAD;
+#endif
 
     /* 4. Memory features after z. */
     memory_features(s, m, in, loc, &sat);
@@ -408,7 +422,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
         output_accs(s, last, x, acc);
         force_out = output_row(last, 0u, acc[0], &sat);
-        out->force_mN = fbg_sat32((int64_t)force_out + m->force_offset_mN, &sat);
+        out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
             status |= FBG_STATUS_OVERLOAD;
 
@@ -416,14 +430,14 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
          * location averages]: the memory features after z are no longer needed and make
          * room. */
         in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16(fbg_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift), &sat);
+        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
         x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         output_accs(s, last, x, acc);
-        out->x_um = fbg_sat32((int64_t)output_row(last, 0u, acc[0], &sat) + m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32((int64_t)output_row(last, 1u, acc[1], &sat) + m->xy_offset_um[1], &sat);
+        out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
+        out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
     }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;

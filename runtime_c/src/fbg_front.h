@@ -176,18 +176,22 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
  * to *status; the caller feeds the FIR its held last_comp again), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
- * FBG_N_STRAIN included (clamps reported in *sat). */
+ * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
                                    int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
-                                   int32_t shift_fm[FBG_N_CHANNELS], uint32_t *sat)
+                                   int32_t shift_fm[FBG_N_CHANNELS])
 {
     unsigned c;
     if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
         *status |= FBG_STATUS_SENSOR_FAULT;
         return 1;
     }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
     for (c = 0; c < FBG_N_CHANNELS; ++c)
-        shift_fm[c] = fbg_sat32((int64_t)wl_fm[c] - f.baseline_fm[c], sat);
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
     return 0;
 }
 

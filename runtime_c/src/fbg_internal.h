@@ -3,6 +3,7 @@
  *
  * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
  *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
  *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
  *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
  * export/intref.py implements exactly the same functions in numpy.
@@ -25,6 +26,13 @@ typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1]
 static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
 {
     return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
 }
 
 /* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
@@ -54,6 +62,63 @@ static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
     return (int32_t)x;
 }
 
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
 static inline int fbg_wl_in_window(int32_t wl)
 {
     return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
@@ -67,32 +132,33 @@ static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev
                                   int32_t jump_max_fm, uint16_t stuck_max)
 {
     int fault = 0;
-    unsigned c;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
     for (c = 0; c < FBG_N_CHANNELS; ++c) {
-        if (!fbg_wl_in_window(wl[c])) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
             fault = 1;
             run[c] = 0u;
             continue;
         }
-        if (*prev_valid & (1u << c)) {
-            /* Both in [1e9, 2e9]: the difference fits int32 comfortably; int64 anyway. */
-            int64_t d = (int64_t)wl[c] - (int64_t)prev[c];
-            if (d > jump_max_fm || d < -(int64_t)jump_max_fm)
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
                 fault = 1;
-            if (d == 0) {
-                if (run[c] < 0xFFFFu)
-                    run[c]++;
-            } else {
-                run[c] = 0u;
-            }
-        } else {
-            run[c] = 0u;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
         }
-        if (stuck_max != 0u && run[c] >= stuck_max)
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
             fault = 1;
-        prev[c] = wl[c];
-        *prev_valid = (uint8_t)(*prev_valid | (1u << c));
+        prev[c] = w;
+        valid |= 1u << c;
     }
+    *prev_valid = (uint8_t)valid;
     return fault;
 }
 

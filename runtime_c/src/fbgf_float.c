@@ -252,7 +252,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         return 0;
     }
     m = s->model;
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift, &sat)) {
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
