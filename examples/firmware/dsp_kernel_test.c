@@ -202,10 +202,11 @@ static uint32_t check_sat16_rshift_round(void)
 
 int main(void)
 {
-    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
+    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
     const uint32_t n_widths = sizeof widths / sizeof widths[0];
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
-    uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
+    uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_first_wide = 0, acc32_at_bound = 0,
+             acc32_sat = 0;
     uint32_t acc32_int8 = 0, acc32_int8_sat = 0, acc32_int8_fast = 0;
     uint32_t standardise_clamped = 0, standardise_exact = 0, standardise_overload = 0;
     mismatches += check_sat16_rshift_round();
@@ -440,9 +441,12 @@ int main(void)
             ++acc32_layers;
             acc32_sat += sat_ref != 0u;
             /* The conditions under which fbg_dsp.c runs first2d32_asm and rows2d32_asm. */
-            acc32_first += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n <= 8u &&
+            acc32_first += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n <= 12u &&
                            ((uintptr_t)(W + off) & 3u) == 0u;
-            acc32_fast += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n > 8u &&
+            /* those with 10 or 12 inputs (six input registers, two loads per row) */
+            acc32_first_wide += sh32 == 32u && m >= 2u && (n == 10u || n == 12u) &&
+                                ((uintptr_t)(W + off) & 3u) == 0u;
+            acc32_fast += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n > 12u &&
                           ((uintptr_t)(W + off) & 3u) == 0u && ((uintptr_t)(X + offx) & 3u) == 0u;
         }
     }
@@ -457,6 +461,7 @@ int main(void)
     sh_kv("acc32", (int32_t)acc32_layers);
     sh_kv("acc32_fast", (int32_t)acc32_fast);
     sh_kv("acc32_first", (int32_t)acc32_first);
+    sh_kv("acc32_first_wide", (int32_t)acc32_first_wide);
     sh_kv("acc32_at_bound", (int32_t)acc32_at_bound);
     sh_kv("acc32_saturated", (int32_t)acc32_sat);
     sh_kv("acc32_int8", (int32_t)acc32_int8);
