@@ -1026,10 +1026,14 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "b       6f\n\t"
         "7:\n\t"
         "ldr     r7, [r10, #12]\n\t"
+        "ubfx    r11, r9, #1, #2\n\t"
         "cmp     r12, #8\n\t"
         "bne     10f\n\t"
-        "tst     r9, #2\n\t"
-        "bne     81f\n\t"
+        "cmp     r11, #2\n\t"
+        "beq     83f\n\t"
+        "bhi     82f\n\t"
+        "cmp     r11, #1\n\t"
+        "beq     84f\n\t"
         "b       8f\n\t"
         "2:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
@@ -1078,7 +1082,11 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "b       9f\n\t"
         "8:\n\t"
         FBG_PAIR8
-        "81:\n\t"
+        "82:\n\t"
+        FBG_PAIR8
+        "83:\n\t"
+        FBG_PAIR8
+        "84:\n\t"
         FBG_PAIR8
         "ldr     r8, [sp]\n\t"
         "cmp     r3, r8\n\t"
@@ -1088,11 +1096,18 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "ldr     r8, [r10, #16]\n\t"
         "cmp     r12, #10\n\t"
         "bne     12f\n\t"
-        "tst     r9, #2\n\t"
-        "bne     101f\n\t"
+        "cmp     r11, #2\n\t"
+        "beq     103f\n\t"
+        "bhi     102f\n\t"
+        "cmp     r11, #1\n\t"
+        "beq     104f\n\t"
         "100:\n\t"
         FBG_PAIR10
-        "101:\n\t"
+        "102:\n\t"
+        FBG_PAIR10
+        "103:\n\t"
+        FBG_PAIR10
+        "104:\n\t"
         FBG_PAIR10
         "ldr     r12, [sp]\n\t"
         "cmp     r3, r12\n\t"
