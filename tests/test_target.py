@@ -120,6 +120,8 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     assert int(fields["acc32"]) > 500 and int(fields["acc32_fast"]) > 40
     assert int(fields["acc32_first"]) > 30 and int(fields["acc32_at_bound"]) > 400
     assert int(fields["acc32_first_wide"]) > 20  # first layers of 10 and 12 inputs
+    # and every entry of the first-layer kernel: 2-12 inputs, every pair count modulo 4
+    assert int(fields["first_sweep"]) == 96
     assert int(fields["acc32_saturated"]) > 100
     assert int(fields["acc32_int8"]) > 300 and int(fields["acc32_int8_saturated"]) > 100
     assert int(fields["acc32_int8_fast"]) > 50
