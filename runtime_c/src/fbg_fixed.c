@@ -281,21 +281,24 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     int64_t acc = 0;
     int32_t u;
     if (m->loc_shift) {
-        *sat |= s->loc_z0_clamped;
+        /* A local flag: *sat may alias s->loc for the compiler. */
+        uint32_t clamped = s->loc_z0_clamped;
+        const int primed = s->mem_primed;
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
              * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], sat) *
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
                              ((int32_t)1 << FBG_EMA_FRAC);
-            int32_t e = s->mem_primed ? s->loc[c] : target;
+            int32_t e = primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
             /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
             loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
         }
+        *sat |= clamped;
     }
     if (m->n_ema == 0u && m->n_play == 0u) {
         s->mem_primed = 1u;
