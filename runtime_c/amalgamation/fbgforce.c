@@ -5829,6 +5829,544 @@ typedef int fbg_simd_x86_unused;
 #undef AVX2_NARROW8
 #undef NARROW_W16
 #undef NARROW_W8
+/* ---- src/fbgf_dense.c ---- */
+/*
+ * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels
+ * (SSE2 and AVX2+FMA on x86-64, NEON on aarch64); fbgf_dense.h says which one runs.
+ *
+ * The portable kernel is one chain of dependent adds per output, so it runs at the add
+ * latency, and the compiler may not vectorise it without reassociating (under ISO C
+ * floating point it must not). The SIMD kernels keep one accumulator per row and lane: the
+ * weights are row-major, so lane k of row r sums the products of inputs j = k (mod lanes),
+ * j ascending; each row's lanes are then added pairwise, ((l0 + l1) + (l2 + l3))
+ * [+ ((l4 + l5) + (l6 + l7)) on AVX], and the bias last. On AVX2, layers with at most 16
+ * inputs (each net's first) use one lane per row instead (dense_avx2_narrow). A row's
+ * result never depends on which block of rows it falls in, on the other samples of a batch,
+ * or on alignment. Inputs past n_in are multiplied by zero (zero-filled copies or masked
+ * loads: exact, the sums never hold -0), and weights past a row are never read.
+ *
+ * Batches (fbgf_run) loop over samples inside each block of rows, so the block's weights are
+ * read from L1 once per sample instead of from L2: a paper-size model's 65 kB of float
+ * weights do not fit a 32 kB L1, and a single step is bound by that traffic.
+ */
+#include <string.h>
+
+/* ---- src/fbgf_dense.h ---- */
+/*
+ * fbgf_dense.h - the dense layer of the float build (not installed): y = W x + b, ReLU on
+ * hidden layers. fbgf_dense.c holds a portable C kernel and SIMD kernels; which one runs is
+ * fixed by the build and the CPU (docs/runtime.md, "Float build: speed"):
+ *
+ *   FBGF_SIMD=0          portable C everywhere: each output sums its products in index order,
+ *                        one multiply and one add each (the order of fbgforce.model)
+ *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
+ *                        has both (asked at run time); aarch64: NEON with FMA
+ *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *
+ * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
+ * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
+ * the same bits for the same inputs, and fbgf_run the bits of fbgf_step. The SIMD kernels
+ * reassociate the sums (lanes, then a fixed tree; fbgf_dense.c) and, on AVX2 and NEON, fuse
+ * multiply and add, so their results differ from the portable kernel's by float32 rounding
+ * (tests/test_float_simd.py bounds it; docs/runtime.md, "Float build: speed").
+ */
+#ifndef FBGF_DENSE_H
+#define FBGF_DENSE_H
+
+#include "fbgforce.h"
+
+#ifndef FBGF_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && (defined(__GNUC__) || defined(__clang__))
+#define FBGF_SIMD 1
+#else
+#define FBGF_SIMD 0
+#endif
+#endif
+
+/* fbgf_run runs the nets of several samples together (about 18 kB of stack) only where a SIMD
+ * kernel can reuse the weights; elsewhere (Cortex-M4F) it stays a loop of fbgf_step. */
+#if FBGF_SIMD && (defined(__x86_64__) || defined(__aarch64__))
+#define FBGF_RUN_BATCHED 1
+#else
+#define FBGF_RUN_BATCHED 0
+#endif
+
+/* The kernel the build and this CPU use. */
+typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
+
+fbgf_kernel fbgf_dense_kernel(void);
+
+/* For each of n samples i: y_i[0..n_out) = W x_i + b, then max(0, .) when relu, where x_i =
+ * x + i * x_stride holds n_in values and y_i = y + i * y_stride; y does not alias x. A sample's
+ * result does not depend on n or on the other samples: kernels that reuse a block of weights
+ * across samples (while it is in L1) compute each sample exactly as alone. */
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
+                size_t y_stride, size_t n, int relu);
+
+#endif /* FBGF_DENSE_H */
+
+#if FBGF_SIMD && defined(__x86_64__)
+#define FBGF_HAVE_SSE2 1
+#include <emmintrin.h>
+#if !defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2
+#define FBGF_HAVE_AVX2 1
+#include <immintrin.h>
+#endif
+#elif FBGF_SIMD && defined(__aarch64__)
+#define FBGF_HAVE_NEON 1
+#include <arm_neon.h>
+#endif
+
+static void dense_portable(const fbgf_layer *ly, const float *x, float *y, int relu)
+{
+    unsigned r, j;
+    for (r = 0; r < ly->n_out; ++r) {
+        const float *w = ly->w + (size_t)r * ly->n_in;
+        float a = ly->b[r];
+        for (j = 0; j < ly->n_in; ++j)
+            a += w[j] * x[j];
+        /* a < 0 is false for NaN: an overflow inside the nets reaches the output check. */
+        y[r] = (relu && a < 0.0f) ? 0.0f : a;
+    }
+}
+
+#if defined(FBGF_HAVE_SSE2) || defined(FBGF_HAVE_NEON)
+/* dst[0..4) = src[0..n) then zeros, n <= 4 (a loop: a memcpy call costs more than the copy). */
+static void copy4(float dst[4], const float *src, unsigned n)
+{
+    unsigned k;
+    for (k = 0; k < 4u; ++k)
+        dst[k] = k < n ? src[k] : 0.0f;
+}
+
+/* The row pointers of the block of rows r0.. (`rows` of them; a short last block repeats the
+ * last row) and how many of them are real. */
+static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, const float **w)
+{
+    unsigned k, n = ly->n_out - r0 < rows ? ly->n_out - r0 : rows;
+    for (k = 0; k < rows; ++k)
+        w[k] = ly->w + (size_t)(r0 + (k < n ? k : n - 1u)) * ly->n_in;
+    return n;
+}
+#endif
+
+#ifdef FBGF_HAVE_SSE2
+/* Four rows x four lanes, samples inside row blocks (the block's weights stay in L1).
+ * _mm_max_ps(0, a) is a < 0 ? 0 : a, NaN and -0 kept, as portable. */
+static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                       size_t y_stride, size_t n_samples, int relu)
+{
+    float wt[4][4], xt[4], b[4], out[4];
+    const unsigned n_in = ly->n_in, full = n_in & ~3u;
+    const __m128 zero = _mm_setzero_ps();
+    unsigned r0, j, k, n;
+    size_t i;
+    for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
+        const float *w[4];
+        __m128 bias;
+        n = block_rows(ly, r0, 4u, w);
+        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
+         * per sample, into xt). */
+        if (full < n_in) {
+            for (k = 0; k < 4u; ++k)
+                copy4(wt[k], w[k] + full, n_in - full);
+        }
+        if (n == 4u) {
+            bias = _mm_loadu_ps(ly->b + r0);
+        } else {
+            copy4(b, ly->b + r0, n);
+            bias = _mm_loadu_ps(b);
+        }
+        for (i = 0; i < n_samples; ++i) {
+            const float *x = xs + i * x_stride;
+            float *y = ys + i * y_stride;
+            __m128 a0 = zero, a1 = zero, a2 = zero, a3 = zero, t0, t1, t2, t3, s;
+            for (j = 0; j < full; j += 4u) {
+                const __m128 xv = _mm_loadu_ps(x + j);
+                a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(w[0] + j), xv));
+                a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(w[1] + j), xv));
+                a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(w[2] + j), xv));
+                a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(w[3] + j), xv));
+            }
+            if (full < n_in) {
+                __m128 xv;
+                copy4(xt, x + full, n_in - full);
+                xv = _mm_loadu_ps(xt);
+                a0 = _mm_add_ps(a0, _mm_mul_ps(_mm_loadu_ps(wt[0]), xv));
+                a1 = _mm_add_ps(a1, _mm_mul_ps(_mm_loadu_ps(wt[1]), xv));
+                a2 = _mm_add_ps(a2, _mm_mul_ps(_mm_loadu_ps(wt[2]), xv));
+                a3 = _mm_add_ps(a3, _mm_mul_ps(_mm_loadu_ps(wt[3]), xv));
+            }
+            /* Transpose so that t_k holds lane k of every row, then (l0 + l1) + (l2 + l3). */
+            t0 = _mm_unpacklo_ps(a0, a1);   /* a0[0] a1[0] a0[1] a1[1] */
+            t1 = _mm_unpackhi_ps(a0, a1);   /* a0[2] a1[2] a0[3] a1[3] */
+            t2 = _mm_unpacklo_ps(a2, a3);
+            t3 = _mm_unpackhi_ps(a2, a3);
+            a0 = _mm_movelh_ps(t0, t2);     /* lane 0 of rows 0..3 */
+            a1 = _mm_movehl_ps(t2, t0);     /* lane 1 */
+            a2 = _mm_movelh_ps(t1, t3);     /* lane 2 */
+            a3 = _mm_movehl_ps(t3, t1);     /* lane 3 */
+            s = _mm_add_ps(_mm_add_ps(_mm_add_ps(a0, a1), _mm_add_ps(a2, a3)), bias);
+            if (relu)
+                s = _mm_max_ps(zero, s);
+            if (n == 4u) {
+                _mm_storeu_ps(y + r0, s);
+            } else {
+                _mm_storeu_ps(out, s);
+                memcpy(y + r0, out, n * sizeof *out);
+            }
+        }
+    }
+}
+#endif
+
+#ifdef FBGF_HAVE_AVX2
+#define FBGF_AVX2 __attribute__((target("avx2,fma")))
+
+/* Lanes 0 .. n - full - 1 on: the inputs of the last, partial group of eight (maskload reads
+ * nothing past a row or past x), or with full = 0 the first n lanes. */
+FBGF_AVX2 static __m256i tail_mask(unsigned n, unsigned full)
+{
+    static const int32_t ones[16] = {-1, -1, -1, -1, -1, -1, -1, -1, 0, 0, 0, 0, 0, 0, 0, 0};
+    return _mm256_loadu_si256((const __m256i *)(ones + 8u - (n - full)));
+}
+
+/* The lane sums of rows 0..7 (a0..a7) added as ((l0 + l1) + (l2 + l3)) + ((l4 + l5) + (l6 + l7))
+ * per row, rows in order; _mm256_hadd_ps adds neighbours within each 128-bit half. The four-
+ * and one-row forms below use the same tree, so a row's bits do not depend on its block. */
+FBGF_AVX2 static __m256 sum8(__m256 a0, __m256 a1, __m256 a2, __m256 a3, __m256 a4, __m256 a5,
+                             __m256 a6, __m256 a7)
+{
+    /* h01 = [r0: l0+l1, l2+l3, r1: l0+l1, l2+l3 | r0: l4+l5, l6+l7, r1: l4+l5, l6+l7] */
+    __m256 h01 = _mm256_hadd_ps(a0, a1), h23 = _mm256_hadd_ps(a2, a3);
+    __m256 h45 = _mm256_hadd_ps(a4, a5), h67 = _mm256_hadd_ps(a6, a7);
+    /* q0 = [r0..r3: (l0+l1)+(l2+l3) | r0..r3: (l4+l5)+(l6+l7)] */
+    __m256 q0 = _mm256_hadd_ps(h01, h23), q1 = _mm256_hadd_ps(h45, h67);
+    return _mm256_add_ps(_mm256_permute2f128_ps(q0, q1, 0x20), _mm256_permute2f128_ps(q0, q1, 0x31));
+}
+
+FBGF_AVX2 static __m128 sum4(__m256 a0, __m256 a1, __m256 a2, __m256 a3)
+{
+    __m256 q = _mm256_hadd_ps(_mm256_hadd_ps(a0, a1), _mm256_hadd_ps(a2, a3));
+    return _mm_add_ps(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1));
+}
+
+FBGF_AVX2 static float sum1(__m256 a)
+{
+    __m256 q = _mm256_hadd_ps(a, a);
+    q = _mm256_hadd_ps(q, q);
+    return _mm_cvtss_f32(_mm_add_ss(_mm256_castps256_ps128(q), _mm256_extractf128_ps(q, 1)));
+}
+
+/* c[k] = row k of an 8 x 8 block -> col[j] = column j. */
+FBGF_AVX2 static inline void transpose8(const __m256 c[8], __m256 col[8])
+{
+    __m256 t[8], u[8];
+    t[0] = _mm256_unpacklo_ps(c[0], c[1]);
+    t[1] = _mm256_unpackhi_ps(c[0], c[1]);
+    t[2] = _mm256_unpacklo_ps(c[2], c[3]);
+    t[3] = _mm256_unpackhi_ps(c[2], c[3]);
+    t[4] = _mm256_unpacklo_ps(c[4], c[5]);
+    t[5] = _mm256_unpackhi_ps(c[4], c[5]);
+    t[6] = _mm256_unpacklo_ps(c[6], c[7]);
+    t[7] = _mm256_unpackhi_ps(c[6], c[7]);
+    u[0] = _mm256_shuffle_ps(t[0], t[2], 0x44);
+    u[1] = _mm256_shuffle_ps(t[0], t[2], 0xEE);
+    u[2] = _mm256_shuffle_ps(t[1], t[3], 0x44);
+    u[3] = _mm256_shuffle_ps(t[1], t[3], 0xEE);
+    u[4] = _mm256_shuffle_ps(t[4], t[6], 0x44);
+    u[5] = _mm256_shuffle_ps(t[4], t[6], 0xEE);
+    u[6] = _mm256_shuffle_ps(t[5], t[7], 0x44);
+    u[7] = _mm256_shuffle_ps(t[5], t[7], 0xEE);
+    col[0] = _mm256_permute2f128_ps(u[0], u[4], 0x20);
+    col[1] = _mm256_permute2f128_ps(u[1], u[5], 0x20);
+    col[2] = _mm256_permute2f128_ps(u[2], u[6], 0x20);
+    col[3] = _mm256_permute2f128_ps(u[3], u[7], 0x20);
+    col[4] = _mm256_permute2f128_ps(u[0], u[4], 0x31);
+    col[5] = _mm256_permute2f128_ps(u[1], u[5], 0x31);
+    col[6] = _mm256_permute2f128_ps(u[2], u[6], 0x31);
+    col[7] = _mm256_permute2f128_ps(u[3], u[7], 0x31);
+}
+
+/* Layers with at most FBGF_NARROW inputs (each net's first: FBG_MAX_INPUTS): one lane per
+ * row instead. Eight rows are loaded once per block and transposed, so that column j (the
+ * weights of input j in rows r..r+7) is one vector; each sample then needs n_in fused
+ * multiply-adds with its broadcast input and no horizontal sums: output r is b[r] followed
+ * by fma(w[r][j], x[j], .) for j ascending, the portable order with fused steps. */
+#define FBGF_NARROW 16u
+typedef char fbgf_require_narrow_first_layers[FBG_MAX_INPUTS <= FBGF_NARROW ? 1 : -1];
+
+FBGF_AVX2 static void dense_avx2_narrow(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                                        size_t y_stride, size_t n, int relu)
+{
+    const unsigned n_in = ly->n_in, n_out = ly->n_out;
+    const __m256 zero = _mm256_setzero_ps();
+    unsigned r, j, k, j0;
+    size_t i;
+    for (r = 0; r < n_out; r += 8u) {
+        const unsigned rows = n_out - r < 8u ? n_out - r : 8u;
+        const __m256i row_mask = tail_mask(rows, 0u);
+        __m256 c[8], col[FBGF_NARROW], bias;
+        if (n_in <= 8u) {
+            /* One block of columns: the common case kept free of the loop below. */
+            const __m256i in_mask = tail_mask(n_in, 0u);
+            for (k = 0; k < 8u; ++k)
+                c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in, in_mask) : zero;
+            transpose8(c, col);
+        } else {
+            for (j0 = 0; j0 < n_in; j0 += 8u) {
+                const __m256i in_mask = tail_mask(n_in - j0 < 8u ? n_in - j0 : 8u, 0u);
+                for (k = 0; k < 8u; ++k)
+                    c[k] = k < rows ? _mm256_maskload_ps(ly->w + (size_t)(r + k) * n_in + j0, in_mask)
+                                    : zero;
+                transpose8(c, col + j0);
+            }
+        }
+        bias = _mm256_maskload_ps(ly->b + r, row_mask);
+        for (i = 0; i < n; ++i) {
+            const float *x = xs + i * x_stride;
+            __m256 a = bias;
+            for (j = 0; j < n_in; ++j)
+                a = _mm256_fmadd_ps(col[j], _mm256_broadcast_ss(x + j), a);
+            if (relu)
+                a = _mm256_max_ps(zero, a);
+            if (rows == 8u)
+                _mm256_storeu_ps(ys + i * y_stride + r, a);
+            else
+                _mm256_maskstore_ps(ys + i * y_stride + r, row_mask, a);
+        }
+    }
+}
+
+/* The kernels below give row r of one sample the lanes a[k] = sum of w[r][j] x[j] over
+ * j = k (mod 8), fused, j ascending, the inputs past the last full group of eight through
+ * masked loads (`mask`, `full` = n_in rounded down to 8), then sum8/sum4/sum1, then b[r]. They
+ * differ only in how many rows share the loop, not in the arithmetic. _mm256_max_ps(0, a) is
+ * a < 0 ? 0 : a with NaN and -0 kept, as portable. */
+typedef struct {
+    size_t stride;      /* floats from one row of weights to the next (n_in) */
+    unsigned n_in, full;
+    __m256i mask;
+    int relu;
+} dense_shape;
+
+/* Eight rows, one sample: eight independent accumulators. */
+FBGF_AVX2 static void rows8x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    const size_t st = d->stride;
+    const __m256 zero = _mm256_setzero_ps(), xt = _mm256_maskload_ps(x + d->full, d->mask);
+    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero, a4 = zero, a5 = zero, a6 = zero, a7 = zero, s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u) {
+        const __m256 xv = _mm256_loadu_ps(x + j);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + st + j), xv, a1);
+        a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * st + j), xv, a2);
+        a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * st + j), xv, a3);
+        a4 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 4u * st + j), xv, a4);
+        a5 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 5u * st + j), xv, a5);
+        a6 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 6u * st + j), xv, a6);
+        a7 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 7u * st + j), xv, a7);
+    }
+    if (d->full < d->n_in) {
+        const float *wt = w + d->full;
+        a0 = _mm256_fmadd_ps(_mm256_maskload_ps(wt, d->mask), xt, a0);
+        a1 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + st, d->mask), xt, a1);
+        a2 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 2u * st, d->mask), xt, a2);
+        a3 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 3u * st, d->mask), xt, a3);
+        a4 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 4u * st, d->mask), xt, a4);
+        a5 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 5u * st, d->mask), xt, a5);
+        a6 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 6u * st, d->mask), xt, a6);
+        a7 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 7u * st, d->mask), xt, a7);
+    }
+    s = _mm256_add_ps(sum8(a0, a1, a2, a3, a4, a5, a6, a7), _mm256_loadu_ps(b));
+    _mm256_storeu_ps(y, d->relu ? _mm256_max_ps(zero, s) : s);
+}
+
+/* Four rows, one sample. */
+FBGF_AVX2 static void rows4x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    const size_t st = d->stride;
+    const __m256 zero = _mm256_setzero_ps();
+    __m256 a0 = zero, a1 = zero, a2 = zero, a3 = zero;
+    __m128 s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u) {
+        const __m256 xv = _mm256_loadu_ps(x + j);
+        a0 = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), xv, a0);
+        a1 = _mm256_fmadd_ps(_mm256_loadu_ps(w + st + j), xv, a1);
+        a2 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 2u * st + j), xv, a2);
+        a3 = _mm256_fmadd_ps(_mm256_loadu_ps(w + 3u * st + j), xv, a3);
+    }
+    if (d->full < d->n_in) {
+        const float *wt = w + d->full;
+        const __m256 xt = _mm256_maskload_ps(x + d->full, d->mask);
+        a0 = _mm256_fmadd_ps(_mm256_maskload_ps(wt, d->mask), xt, a0);
+        a1 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + st, d->mask), xt, a1);
+        a2 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 2u * st, d->mask), xt, a2);
+        a3 = _mm256_fmadd_ps(_mm256_maskload_ps(wt + 3u * st, d->mask), xt, a3);
+    }
+    s = _mm_add_ps(sum4(a0, a1, a2, a3), _mm_loadu_ps(b));
+    _mm_storeu_ps(y, d->relu ? _mm_max_ps(_mm_setzero_ps(), s) : s);
+}
+
+/* One row, one sample. */
+FBGF_AVX2 static void rows1x1(const dense_shape *d, const float *w, const float *b, const float *x,
+                              float *y)
+{
+    __m256 a = _mm256_setzero_ps();
+    float s;
+    unsigned j;
+    for (j = 0; j < d->full; j += 8u)
+        a = _mm256_fmadd_ps(_mm256_loadu_ps(w + j), _mm256_loadu_ps(x + j), a);
+    if (d->full < d->n_in)
+        a = _mm256_fmadd_ps(_mm256_maskload_ps(w + d->full, d->mask),
+                            _mm256_maskload_ps(x + d->full, d->mask), a);
+    s = sum1(a) + *b;
+    *y = (d->relu && s < 0.0f) ? 0.0f : s;
+}
+
+/* Blocks of eight rows, then four, then single rows, samples inside each block. */
+FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                                size_t y_stride, size_t n, int relu)
+{
+    dense_shape d;
+    unsigned r = 0;
+    size_t i;
+    d.stride = ly->n_in;
+    d.n_in = ly->n_in;
+    d.full = ly->n_in & ~7u;
+    d.mask = tail_mask(d.n_in, d.full);
+    d.relu = relu;
+    for (; r + 8u <= ly->n_out; r += 8u) {
+        const float *w = ly->w + r * d.stride, *b = ly->b + r;
+        for (i = 0; i < n; ++i)
+            rows8x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
+    }
+    if (r + 4u <= ly->n_out) {
+        const float *w = ly->w + r * d.stride, *b = ly->b + r;
+        for (i = 0; i < n; ++i)
+            rows4x1(&d, w, b, xs + i * x_stride, ys + i * y_stride + r);
+        r += 4u;
+    }
+    for (; r < ly->n_out; ++r)
+        for (i = 0; i < n; ++i)
+            rows1x1(&d, ly->w + r * d.stride, ly->b + r, xs + i * x_stride, ys + i * y_stride + r);
+}
+#endif
+
+#ifdef FBGF_HAVE_NEON
+/* Four rows x four lanes, fused multiply-add, samples inside row blocks as on SSE2; vpaddq
+ * adds neighbours, which gives the same (l0 + l1) + (l2 + l3) per row as the SSE2 transpose. */
+static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, float *ys,
+                       size_t y_stride, size_t n_samples, int relu)
+{
+    float wt[4][4], xt[4], b[4], out[4];
+    const unsigned n_in = ly->n_in, full = n_in & ~3u;
+    const float32x4_t zero = vdupq_n_f32(0.0f);
+    unsigned r0, j, k, n;
+    size_t i;
+    for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
+        const float *w[4];
+        float32x4_t bias;
+        n = block_rows(ly, r0, 4u, w);
+        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
+         * per sample, into xt). */
+        if (full < n_in) {
+            for (k = 0; k < 4u; ++k)
+                copy4(wt[k], w[k] + full, n_in - full);
+        }
+        if (n == 4u) {
+            bias = vld1q_f32(ly->b + r0);
+        } else {
+            copy4(b, ly->b + r0, n);
+            bias = vld1q_f32(b);
+        }
+        for (i = 0; i < n_samples; ++i) {
+            const float *x = xs + i * x_stride;
+            float *y = ys + i * y_stride;
+            float32x4_t a0 = zero, a1 = zero, a2 = zero, a3 = zero, s;
+            for (j = 0; j < full; j += 4u) {
+                const float32x4_t xv = vld1q_f32(x + j);
+                a0 = vfmaq_f32(a0, vld1q_f32(w[0] + j), xv);
+                a1 = vfmaq_f32(a1, vld1q_f32(w[1] + j), xv);
+                a2 = vfmaq_f32(a2, vld1q_f32(w[2] + j), xv);
+                a3 = vfmaq_f32(a3, vld1q_f32(w[3] + j), xv);
+            }
+            if (full < n_in) {
+                float32x4_t xv;
+                copy4(xt, x + full, n_in - full);
+                xv = vld1q_f32(xt);
+                a0 = vfmaq_f32(a0, vld1q_f32(wt[0]), xv);
+                a1 = vfmaq_f32(a1, vld1q_f32(wt[1]), xv);
+                a2 = vfmaq_f32(a2, vld1q_f32(wt[2]), xv);
+                a3 = vfmaq_f32(a3, vld1q_f32(wt[3]), xv);
+            }
+            s = vaddq_f32(vpaddq_f32(vpaddq_f32(a0, a1), vpaddq_f32(a2, a3)), bias);
+            if (relu)   /* a < 0 ? 0 : a, NaN and -0 kept, as portable */
+                s = vbslq_f32(vcltq_f32(s, zero), zero, s);
+            if (n == 4u) {
+                vst1q_f32(y + r0, s);
+            } else {
+                vst1q_f32(out, s);
+                memcpy(y + r0, out, n * sizeof *out);
+            }
+        }
+    }
+}
+#endif
+
+fbgf_kernel fbgf_dense_kernel(void)
+{
+#if defined(FBGF_HAVE_AVX2)
+    if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
+        return FBGF_KERNEL_AVX2_FMA;
+    return FBGF_KERNEL_SSE2;
+#elif defined(FBGF_HAVE_SSE2)
+    return FBGF_KERNEL_SSE2;
+#elif defined(FBGF_HAVE_NEON)
+    return FBGF_KERNEL_NEON;
+#else
+    return FBGF_KERNEL_PORTABLE;
+#endif
+}
+
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
+                size_t y_stride, size_t n, int relu)
+{
+    size_t i;
+    switch (kernel) {
+#ifdef FBGF_HAVE_AVX2
+    case FBGF_KERNEL_AVX2_FMA:
+        if (ly->n_in <= FBGF_NARROW)
+            dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);
+        else
+            dense_avx2(ly, x, x_stride, y, y_stride, n, relu);
+        return;
+#endif
+#ifdef FBGF_HAVE_SSE2
+    case FBGF_KERNEL_SSE2:
+        dense_sse2(ly, x, x_stride, y, y_stride, n, relu);
+        return;
+#endif
+#ifdef FBGF_HAVE_NEON
+    case FBGF_KERNEL_NEON:
+        dense_neon(ly, x, x_stride, y, y_stride, n, relu);
+        return;
+#endif
+    default:
+        for (i = 0; i < n; ++i)
+            dense_portable(ly, x + i * x_stride, y + i * y_stride, relu);
+        return;
+    }
+}
+#undef FBGF_HAVE_SSE2
+#undef FBGF_HAVE_AVX2
+#undef FBGF_HAVE_NEON
+#undef FBGF_AVX2
+#undef FBGF_NARROW
 /* ---- src/fbgf_float.c ---- */
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
@@ -6253,6 +6791,59 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 }
 
 #endif /* FBG_FRONT_H */
+/* ---- src/fbgf_dense.h ---- */
+/*
+ * fbgf_dense.h - the dense layer of the float build (not installed): y = W x + b, ReLU on
+ * hidden layers. fbgf_dense.c holds a portable C kernel and SIMD kernels; which one runs is
+ * fixed by the build and the CPU (docs/runtime.md, "Float build: speed"):
+ *
+ *   FBGF_SIMD=0          portable C everywhere: each output sums its products in index order,
+ *                        one multiply and one add each (the order of fbgforce.model)
+ *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
+ *                        has both (asked at run time); aarch64: NEON with FMA
+ *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *
+ * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
+ * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
+ * the same bits for the same inputs, and fbgf_run the bits of fbgf_step. The SIMD kernels
+ * reassociate the sums (lanes, then a fixed tree; fbgf_dense.c) and, on AVX2 and NEON, fuse
+ * multiply and add, so their results differ from the portable kernel's by float32 rounding
+ * (tests/test_float_simd.py bounds it; docs/runtime.md, "Float build: speed").
+ */
+#ifndef FBGF_DENSE_H
+#define FBGF_DENSE_H
+
+#include "fbgforce.h"
+
+#ifndef FBGF_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && (defined(__GNUC__) || defined(__clang__))
+#define FBGF_SIMD 1
+#else
+#define FBGF_SIMD 0
+#endif
+#endif
+
+/* fbgf_run runs the nets of several samples together (about 18 kB of stack) only where a SIMD
+ * kernel can reuse the weights; elsewhere (Cortex-M4F) it stays a loop of fbgf_step. */
+#if FBGF_SIMD && (defined(__x86_64__) || defined(__aarch64__))
+#define FBGF_RUN_BATCHED 1
+#else
+#define FBGF_RUN_BATCHED 0
+#endif
+
+/* The kernel the build and this CPU use. */
+typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
+
+fbgf_kernel fbgf_dense_kernel(void);
+
+/* For each of n samples i: y_i[0..n_out) = W x_i + b, then max(0, .) when relu, where x_i =
+ * x + i * x_stride holds n_in values and y_i = y + i * y_stride; y does not alias x. A sample's
+ * result does not depend on n or on the other samples: kernels that reuse a block of weights
+ * across samples (while it is in L1) compute each sample exactly as alone. */
+void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
+                size_t y_stride, size_t n, int relu);
+
+#endif /* FBGF_DENSE_H */
 
 size_t fbgf_state_size(void)
 {
@@ -6452,43 +7043,50 @@ fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_
     return fbg_front_set_baseline(FRONT(state), baseline_fm);
 }
 
-/* Dense ReLU MLP; returns a pointer to the output vector (inside s->act). */
-static const float *fnet(fbgf_state *s, const fbgf_net *net, const float *x)
+/* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
+ * n rows of FBG_MAX_WIDTH. Returns the output rows (stride FBG_MAX_WIDTH, inside a). */
+static const float *fnet(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
+                         size_t n, float *a[2])
 {
-    unsigned l, r, j, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l < net->n_layers; ++l) {
-        const fbgf_layer *ly = &net->layers[l];
-        float *y = s->act[buf];
-        for (r = 0; r < ly->n_out; ++r) {
-            const float *w = ly->w + (size_t)r * ly->n_in;
-            float a = ly->b[r];
-            for (j = 0; j < ly->n_in; ++j)
-                a += w[j] * x[j];
-            y[r] = (l + 1u < net->n_layers && a < 0.0f) ? 0.0f : a;
-        }
-        x = y;
+        fbgf_dense(kernel, &net->layers[l], x, x_stride, a[buf], FBG_MAX_WIDTH, n, l + 1u < net->n_layers);
+        x = a[buf];
+        x_stride = FBG_MAX_WIDTH;
         buf ^= 1u;
     }
     return x;
 }
 
-fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
+/* fir_tap spells out the four strain channels. */
+typedef char fbgf_require_four_strain_channels[FBG_N_STRAIN == 4 ? 1 : -1];
+
+static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN])
+{
+    a[0] += tap * h[0];
+    a[1] += tap * h[1];
+    a[2] += tap * h[2];
+    a[3] += tap * h[3];
+}
+
+/* Everything before the nets: the front end, temperature compensation, FIR, standardisation
+ * and memory features into in[], the location averages into loc[] (when the model has them).
+ * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
+ * final (*st is what the step returns). */
+static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], fbg_status *st)
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], margin, f;
+    float comp[FBG_N_STRAIN], a[FBG_N_STRAIN];
     int32_t shift[FBG_N_CHANNELS];
-    const float *y;
     unsigned c, k, idx;
-    fbg_status st;
 
-    if (s == NULL || wl_fm == NULL || out == NULL)
-        return FBG_ERR_NULL;
     memset(out, 0, sizeof *out);
-    st = fbg_front_step_begin(FRONT(s), &status);
-    if (st != FBG_OK) {
+    *st = fbg_front_step_begin(FRONT(s), &status);
+    if (*st != FBG_OK) {
         out->status = status;
-        return st;
+        return 0;
     }
     m = s->model;
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
@@ -6504,53 +7102,140 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         out->status = status;
-        return FBG_OK;
+        return 0;
     }
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        float a = 0.0f;
-        idx = s->pos;
-        for (k = 0; k < m->n_taps; ++k) {
-            a += m->taps[k] * s->hist[idx][c];
-            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-        }
-        in[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
-    }
+    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
+     * and the four independent sums can share vector instructions. The ring is walked as two
+     * straight runs (pos down to 0, then the top down to pos + 1). */
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        a[c] = 0.0f;
+    k = 0u;
+    for (idx = s->pos + 1u; idx-- > 0u; ++k)
+        fir_tap(a, m->taps[k], s->hist[idx]);
+    for (idx = m->n_taps; k < m->n_taps; ++k)
+        fir_tap(a, m->taps[k], s->hist[--idx]);
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
+    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    return 1;
+}
 
-    y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
-    margin = y[1] - y[0];
+/* The contact decision from the contact net's logits y. Returns 1 when the force and
+ * location nets must run. */
+static int contact_output(const float *y, fbgf_output *out)
+{
+    float margin = y[1] - y[0];
     if (!finite_f(margin)) {
         /* Float overflow inside the nets (finite parameters, extreme inputs): the float
          * analogue of a clamp. Safe output, never a NaN/inf (docs/robustness.md). */
-        out->status = status | FBG_STATUS_SATURATED;
-        return FBG_OK;
+        out->status |= FBG_STATUS_SATURATED;
+        return 0;
     }
     out->margin = margin;
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
-    if (out->contact) {
-        y = fnet(s, &m->nets[FBG_NET_FORCE], in);
-        f = y[0];
-        out->force_N = m->force_offset_N + m->force_scale * f;
-        if (out->force_N > m->overload_N)
-            status |= FBG_STATUS_OVERLOAD;
-        in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
-        in[FBG_N_STRAIN + 1] = f;
-        if (m->loc_shift)             /* ... and the location averages */
-            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
-        out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
-        out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
-        if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
-            memset(out, 0, sizeof *out);
-            out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
-            return FBG_OK;
-        }
+    return out->contact;
+}
+
+/* The force from the force net's output f; in[] becomes the location net's input. */
+static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS],
+                         const float loc[FBG_N_STRAIN])
+{
+    out->force_N = m->force_offset_N + m->force_scale * f;
+    if (out->force_N > m->overload_N)
+        out->status |= FBG_STATUS_OVERLOAD;
+    in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
+    in[FBG_N_STRAIN + 1] = f;
+    if (m->loc_shift)             /* ... and the location averages */
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
+}
+
+static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
+{
+    out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
+    out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
+    if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
+        uint32_t status = out->status;
+        memset(out, 0, sizeof *out);
+        out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
     }
-    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+}
+
+fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
+{
+    const fbgf_model *m;
+    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], *act[2];
+    const float *y;
+    fbgf_kernel kernel;
+    fbg_status st;
+
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    if (!step_inputs(s, wl_fm, out, in, loc, &st))
+        return st;
+    m = s->model;
+    kernel = fbgf_dense_kernel();
+    act[0] = s->act[0];
+    act[1] = s->act[1];
+    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
+    if (!contact_output(y, out))
+        return FBG_OK;
+    y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
+    force_output(m, y[0], out, in, loc);
+    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
+    location_output(m, y, out);
     return FBG_OK;
 }
+
+#if FBGF_RUN_BATCHED
+/* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
+ * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
+ * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
+#define FBGF_RUN_CHUNK 16u
+
+/* n samples through the front end one by one (the state advances in order), then each net
+ * for all samples that need it, layer by layer. Every sample's outputs are those fbgf_step
+ * gives: the nets are pure functions of their inputs and fbgf_dense computes a sample the
+ * same way whatever else it runs with. */
+static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl_fm, size_t n,
+                            fbgf_output *out)
+{
+    const fbgf_model *m = s->model;
+    float in[FBGF_RUN_CHUNK][FBG_MAX_INPUTS], in2[FBGF_RUN_CHUNK][FBG_MAX_INPUTS];
+    float loc[FBGF_RUN_CHUNK][FBG_N_STRAIN];
+    float buf0[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], buf1[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], *act[2];
+    size_t i, k, n_run = 0u, n_contact = 0u, who[FBGF_RUN_CHUNK], touched[FBGF_RUN_CHUNK];
+    size_t row[FBGF_RUN_CHUNK];   /* the row of in[] and loc[] of each contact sample */
+    fbg_status st = FBG_OK;
+    const float *y;
+
+    act[0] = &buf0[0][0];
+    act[1] = &buf1[0][0];
+    for (i = 0; i < n && st == FBG_OK; ++i)
+        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], &st))
+            who[n_run++] = i;
+    if (n_run == 0u)
+        return st;
+    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
+    for (k = 0; k < n_run; ++k)
+        if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
+            memcpy(in2[n_contact], in[k], sizeof in[k]);
+            row[n_contact] = k;
+            touched[n_contact++] = who[k];
+        }
+    if (n_contact == 0u)
+        return st;
+    y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
+    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);
+    return st;
+}
+#endif
 
 fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_output *out)
 {
@@ -6558,11 +7243,24 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     fbg_status st;
     if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
         return FBG_ERR_NULL;
+#if FBGF_RUN_BATCHED
+    {
+        const fbgf_kernel kernel = fbgf_dense_kernel();
+        for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
+            size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
+            st = run_chunk(state, kernel, wl_fm + i * FBG_N_CHANNELS, len, out + i);
+            if (st != FBG_OK)
+                return st;
+        }
+    }
+#else
     for (i = 0; i < n; ++i) {
         st = fbgf_step(state, wl_fm + i * FBG_N_CHANNELS, out + i);
         if (st != FBG_OK)
             return st;
     }
+#endif
     return FBG_OK;
 }
 #undef FRONT
+#undef FBGF_RUN_CHUNK

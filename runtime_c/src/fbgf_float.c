@@ -6,6 +6,7 @@
 #include <string.h>
 
 #include "fbg_front.h"
+#include "fbgf_dense.h"
 
 size_t fbgf_state_size(void)
 {
@@ -205,43 +206,50 @@ fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_
     return fbg_front_set_baseline(FRONT(state), baseline_fm);
 }
 
-/* Dense ReLU MLP; returns a pointer to the output vector (inside s->act). */
-static const float *fnet(fbgf_state *s, const fbgf_net *net, const float *x)
+/* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
+ * n rows of FBG_MAX_WIDTH. Returns the output rows (stride FBG_MAX_WIDTH, inside a). */
+static const float *fnet(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
+                         size_t n, float *a[2])
 {
-    unsigned l, r, j, buf = 0u;
+    unsigned l, buf = 0u;
     for (l = 0; l < net->n_layers; ++l) {
-        const fbgf_layer *ly = &net->layers[l];
-        float *y = s->act[buf];
-        for (r = 0; r < ly->n_out; ++r) {
-            const float *w = ly->w + (size_t)r * ly->n_in;
-            float a = ly->b[r];
-            for (j = 0; j < ly->n_in; ++j)
-                a += w[j] * x[j];
-            y[r] = (l + 1u < net->n_layers && a < 0.0f) ? 0.0f : a;
-        }
-        x = y;
+        fbgf_dense(kernel, &net->layers[l], x, x_stride, a[buf], FBG_MAX_WIDTH, n, l + 1u < net->n_layers);
+        x = a[buf];
+        x_stride = FBG_MAX_WIDTH;
         buf ^= 1u;
     }
     return x;
 }
 
-fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
+/* fir_tap spells out the four strain channels. */
+typedef char fbgf_require_four_strain_channels[FBG_N_STRAIN == 4 ? 1 : -1];
+
+static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN])
+{
+    a[0] += tap * h[0];
+    a[1] += tap * h[1];
+    a[2] += tap * h[2];
+    a[3] += tap * h[3];
+}
+
+/* Everything before the nets: the front end, temperature compensation, FIR, standardisation
+ * and memory features into in[], the location averages into loc[] (when the model has them).
+ * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
+ * final (*st is what the step returns). */
+static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], fbg_status *st)
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], margin, f;
+    float comp[FBG_N_STRAIN], a[FBG_N_STRAIN];
     int32_t shift[FBG_N_CHANNELS];
-    const float *y;
     unsigned c, k, idx;
-    fbg_status st;
 
-    if (s == NULL || wl_fm == NULL || out == NULL)
-        return FBG_ERR_NULL;
     memset(out, 0, sizeof *out);
-    st = fbg_front_step_begin(FRONT(s), &status);
-    if (st != FBG_OK) {
+    *st = fbg_front_step_begin(FRONT(s), &status);
+    if (*st != FBG_OK) {
         out->status = status;
-        return st;
+        return 0;
     }
     m = s->model;
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
@@ -257,53 +265,140 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
         s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         out->status = status;
-        return FBG_OK;
+        return 0;
     }
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        float a = 0.0f;
-        idx = s->pos;
-        for (k = 0; k < m->n_taps; ++k) {
-            a += m->taps[k] * s->hist[idx][c];
-            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-        }
-        in[c] = (a - m->input_mean_pm[c]) / m->input_std_pm[c];
-    }
+    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
+     * and the four independent sums can share vector instructions. The ring is walked as two
+     * straight runs (pos down to 0, then the top down to pos + 1). */
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        a[c] = 0.0f;
+    k = 0u;
+    for (idx = s->pos + 1u; idx-- > 0u; ++k)
+        fir_tap(a, m->taps[k], s->hist[idx]);
+    for (idx = m->n_taps; k < m->n_taps; ++k)
+        fir_tap(a, m->taps[k], s->hist[--idx]);
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
+    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    return 1;
+}
 
-    y = fnet(s, &m->nets[FBG_NET_CONTACT], in);
-    margin = y[1] - y[0];
+/* The contact decision from the contact net's logits y. Returns 1 when the force and
+ * location nets must run. */
+static int contact_output(const float *y, fbgf_output *out)
+{
+    float margin = y[1] - y[0];
     if (!finite_f(margin)) {
         /* Float overflow inside the nets (finite parameters, extreme inputs): the float
          * analogue of a clamp. Safe output, never a NaN/inf (docs/robustness.md). */
-        out->status = status | FBG_STATUS_SATURATED;
-        return FBG_OK;
+        out->status |= FBG_STATUS_SATURATED;
+        return 0;
     }
     out->margin = margin;
     out->contact = margin > 0.0f ? 1u : 0u;
     out->p_contact = 1.0f / (1.0f + fbgf_exp(-margin));
-    if (out->contact) {
-        y = fnet(s, &m->nets[FBG_NET_FORCE], in);
-        f = y[0];
-        out->force_N = m->force_offset_N + m->force_scale * f;
-        if (out->force_N > m->overload_N)
-            status |= FBG_STATUS_OVERLOAD;
-        in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
-        in[FBG_N_STRAIN + 1] = f;
-        if (m->loc_shift)             /* ... and the location averages */
-            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        y = fnet(s, &m->nets[FBG_NET_LOCATION], in);
-        out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
-        out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
-        if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
-            memset(out, 0, sizeof *out);
-            out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
-            return FBG_OK;
-        }
+    return out->contact;
+}
+
+/* The force from the force net's output f; in[] becomes the location net's input. */
+static void force_output(const fbgf_model *m, float f, fbgf_output *out, float in[FBG_MAX_INPUTS],
+                         const float loc[FBG_N_STRAIN])
+{
+    out->force_N = m->force_offset_N + m->force_scale * f;
+    if (out->force_N > m->overload_N)
+        out->status |= FBG_STATUS_OVERLOAD;
+    in[FBG_N_STRAIN] = 1.0f;      /* the location net reads z1..z4, contact, force */
+    in[FBG_N_STRAIN + 1] = f;
+    if (m->loc_shift)             /* ... and the location averages */
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
+}
+
+static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
+{
+    out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
+    out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
+    if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
+        uint32_t status = out->status;
+        memset(out, 0, sizeof *out);
+        out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
     }
-    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+}
+
+fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
+{
+    const fbgf_model *m;
+    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], *act[2];
+    const float *y;
+    fbgf_kernel kernel;
+    fbg_status st;
+
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    if (!step_inputs(s, wl_fm, out, in, loc, &st))
+        return st;
+    m = s->model;
+    kernel = fbgf_dense_kernel();
+    act[0] = s->act[0];
+    act[1] = s->act[1];
+    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
+    if (!contact_output(y, out))
+        return FBG_OK;
+    y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
+    force_output(m, y[0], out, in, loc);
+    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
+    location_output(m, y, out);
     return FBG_OK;
 }
+
+#if FBGF_RUN_BATCHED
+/* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
+ * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
+ * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
+#define FBGF_RUN_CHUNK 16u
+
+/* n samples through the front end one by one (the state advances in order), then each net
+ * for all samples that need it, layer by layer. Every sample's outputs are those fbgf_step
+ * gives: the nets are pure functions of their inputs and fbgf_dense computes a sample the
+ * same way whatever else it runs with. */
+static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl_fm, size_t n,
+                            fbgf_output *out)
+{
+    const fbgf_model *m = s->model;
+    float in[FBGF_RUN_CHUNK][FBG_MAX_INPUTS], in2[FBGF_RUN_CHUNK][FBG_MAX_INPUTS];
+    float loc[FBGF_RUN_CHUNK][FBG_N_STRAIN];
+    float buf0[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], buf1[FBGF_RUN_CHUNK][FBG_MAX_WIDTH], *act[2];
+    size_t i, k, n_run = 0u, n_contact = 0u, who[FBGF_RUN_CHUNK], touched[FBGF_RUN_CHUNK];
+    size_t row[FBGF_RUN_CHUNK];   /* the row of in[] and loc[] of each contact sample */
+    fbg_status st = FBG_OK;
+    const float *y;
+
+    act[0] = &buf0[0][0];
+    act[1] = &buf1[0][0];
+    for (i = 0; i < n && st == FBG_OK; ++i)
+        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], &st))
+            who[n_run++] = i;
+    if (n_run == 0u)
+        return st;
+    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
+    for (k = 0; k < n_run; ++k)
+        if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
+            memcpy(in2[n_contact], in[k], sizeof in[k]);
+            row[n_contact] = k;
+            touched[n_contact++] = who[k];
+        }
+    if (n_contact == 0u)
+        return st;
+    y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
+    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);
+    return st;
+}
+#endif
 
 fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_output *out)
 {
@@ -311,10 +406,22 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     fbg_status st;
     if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
         return FBG_ERR_NULL;
+#if FBGF_RUN_BATCHED
+    {
+        const fbgf_kernel kernel = fbgf_dense_kernel();
+        for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
+            size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
+            st = run_chunk(state, kernel, wl_fm + i * FBG_N_CHANNELS, len, out + i);
+            if (st != FBG_OK)
+                return st;
+        }
+    }
+#else
     for (i = 0; i < n; ++i) {
         st = fbgf_step(state, wl_fm + i * FBG_N_CHANNELS, out + i);
         if (st != FBG_OK)
             return st;
     }
+#endif
     return FBG_OK;
 }
