@@ -119,6 +119,9 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     # int8 weights through rows2b32_asm / first2b32_asm and the C rows.
     assert int(fields["acc32"]) > 500 and int(fields["acc32_fast"]) > 40
     assert int(fields["acc32_first"]) > 30 and int(fields["acc32_at_bound"]) > 400
+    assert int(fields["acc32_first_wide"]) > 20  # first layers of 10 and 12 inputs
+    # and every entry of the first-layer kernel: 2-12 inputs, every pair count modulo 4
+    assert int(fields["first_sweep"]) == 96
     assert int(fields["acc32_saturated"]) > 100
     assert int(fields["acc32_int8"]) > 300 and int(fields["acc32_int8_saturated"]) > 100
     assert int(fields["acc32_int8_fast"]) > 50
@@ -151,7 +154,7 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # this model's layers, so the SMLAD/SMMULR kernels run (docs/fixed-point.md).
     prof = dsp["profile_per_step"]
     assert "rows2d32_asm" in prof and "rows3_asm" not in prof
-    assert "first2d32_asm" in prof  # first layers (<= 8 inputs): inputs held in registers
+    assert "first2d32_asm" in prof  # first layers (<= 12 inputs): inputs held in registers
     assert "memcpy" not in prof
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]

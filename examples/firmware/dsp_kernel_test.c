@@ -4,7 +4,7 @@
  * 1..62, the largest multipliers the int64 bound proof allows (both signs), saturating and
  * all-negative rows, exact rounding ties (x = 0, bias = k 2^s + 2^(s-1) and neighbours), and
  * random FIR ring positions. Runs on QEMU mps2-an386; prints
- *   KERNEL_TEST cases=N mismatches=M fast=F aligned=A first=L int8=E saturated=S
+ *   KERNEL_TEST cases=N mismatches=M fast=F aligned=A first=L int8=E saturated=S ...
  * and exits with 0 when M == 0 (fast = layers through rows3_asm or, A of them, rows3d_asm;
  * first = through first_asm). Every layer also goes through fbg_dsp_run_hidden (as a net's
  * one hidden layer), the int32 layers' rows through fbg_dsp_rshift32_product, and every case
@@ -200,14 +200,55 @@ static uint32_t check_sat16_rshift_round(void)
     return bad;
 }
 
+/* Every entry of the first-layer kernel: int32 layers at shift 32 of 2-12 inputs and 2-17
+ * rows (every pair count modulo 4, with and without an odd last row), half of them with
+ * multipliers large enough to clamp, against the rule. Counts the layers in *layers. */
+static uint32_t check_first_layers(uint32_t *layers)
+{
+    uint32_t bad = 0u;
+    unsigned n, m, i, r;
+    for (n = 2u; n <= 12u; n += 2u) {
+        for (m = 2u; m <= 17u; ++m) {
+            fbg_layer ly;
+            uint32_t sat_ref = 0u, sat_dsp = 0u;
+            for (i = 0; i < n * m; ++i)
+                W[i] = (int16_t)(rnd16() >> 5); /* sum |w| * 32767 + |b| < 2^31: int32 rows */
+            for (i = 0; i < n; ++i)
+                X[i] = rnd16();
+            for (r = 0; r < m; ++r) {
+                B[r] = (int64_t)(int32_t)(rnd() >> 2) - (1 << 29);
+                M[r] = (int32_t)(rnd() % ((m & 1u) ? (1u << 30) : (1u << 20))) * ((rnd() & 1u) ? 1 : -1);
+            }
+            memset(&ly, 0, sizeof ly);
+            ly.n_in = (uint16_t)n;
+            ly.n_out = (uint16_t)m;
+            ly.w_bits = 16u;
+            ly.shift = 32u;
+            ly.acc32 = 1u;
+            ly.w16 = W;
+            ly.bias = B;
+            ly.mult = M;
+            ref_hidden(&ly, X, Y_ref, &sat_ref);
+            memset(Y_dsp, 0x5A, sizeof Y_dsp);
+            fbg_dsp_hidden(&ly, X, Y_dsp, &sat_dsp);
+            bad += memcmp(Y_ref, Y_dsp, m * sizeof Y_ref[0]) != 0 || sat_ref != sat_dsp;
+            bad += check_run_hidden(&ly, X, Y_ref, sat_ref);
+            ++*layers;
+        }
+    }
+    return bad;
+}
+
 int main(void)
 {
-    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
+    static const uint16_t widths[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 12, 14, 20, 30, 40, 50, 62, 63, 70, 127, 128};
     const uint32_t n_widths = sizeof widths / sizeof widths[0];
     uint32_t c, mismatches = 0, fast = 0, fast_aligned = 0, first = 0, int8_layers = 0, saturated = 0;
-    uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_at_bound = 0, acc32_sat = 0;
+    uint32_t acc32_layers = 0, acc32_fast = 0, acc32_first = 0, acc32_first_wide = 0, acc32_at_bound = 0,
+             acc32_sat = 0;
     uint32_t acc32_int8 = 0, acc32_int8_sat = 0, acc32_int8_fast = 0;
     uint32_t standardise_clamped = 0, standardise_exact = 0, standardise_overload = 0;
+    uint32_t first_sweep = 0;
     mismatches += check_sat16_rshift_round();
     for (c = 0; c < N_CASES; ++c) {
         unsigned n = widths[rnd() % n_widths], m = widths[rnd() % n_widths], mode = c % 6u, off = (c / 6u) % 2u,
@@ -440,11 +481,19 @@ int main(void)
             ++acc32_layers;
             acc32_sat += sat_ref != 0u;
             /* The conditions under which fbg_dsp.c runs first2d32_asm and rows2d32_asm. */
-            acc32_first += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n <= 8u &&
+            acc32_first += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n <= 12u &&
                            ((uintptr_t)(W + off) & 3u) == 0u;
-            acc32_fast += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n > 8u &&
+            /* those with 10 or 12 inputs (six input registers, two loads per row) */
+            acc32_first_wide += sh32 == 32u && m >= 2u && (n == 10u || n == 12u) &&
+                                ((uintptr_t)(W + off) & 3u) == 0u;
+            acc32_fast += sh32 == 32u && m >= 2u && (n & 1u) == 0u && n > 12u &&
                           ((uintptr_t)(W + off) & 3u) == 0u && ((uintptr_t)(X + offx) & 3u) == 0u;
         }
+    }
+    {
+        const uint32_t layer_seed = seed; /* the random cases above stay what they were */
+        mismatches += check_first_layers(&first_sweep);
+        seed = layer_seed;
     }
     sh_puts("KERNEL_TEST");
     sh_kv("cases", (int32_t)N_CASES);
@@ -457,6 +506,8 @@ int main(void)
     sh_kv("acc32", (int32_t)acc32_layers);
     sh_kv("acc32_fast", (int32_t)acc32_fast);
     sh_kv("acc32_first", (int32_t)acc32_first);
+    sh_kv("acc32_first_wide", (int32_t)acc32_first_wide);
+    sh_kv("first_sweep", (int32_t)first_sweep);
     sh_kv("acc32_at_bound", (int32_t)acc32_at_bound);
     sh_kv("acc32_saturated", (int32_t)acc32_sat);
     sh_kv("acc32_int8", (int32_t)acc32_int8);

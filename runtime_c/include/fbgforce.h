@@ -221,10 +221,12 @@ typedef struct {
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
     uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
+    int16_t loc_z0[FBG_N_STRAIN];                /* z of a zero filtered shift (the model's) */
     uint8_t tared;
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
+    uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
 } fbg_state;
 
 /* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was

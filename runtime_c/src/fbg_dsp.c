@@ -19,7 +19,7 @@
  *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
  *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
  *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
- *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 8, inputs in
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
  *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
  *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
  *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
@@ -52,6 +52,8 @@
 /* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
  * the widest layer the loader accepts. */
 #define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
 typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
 
 /* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
@@ -917,15 +919,77 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "smlad   r11, lr, r7, r11\n\t"           \
         FBG_PAIR_OUT
 
-/* first2d32_asm: a first layer of n = 2, 4, 6 or 8 inputs (the nets' inputs with or without
- * the memory features), two rows per pass: the inputs stay in registers (r4-r7 as int16
- * pairs, read once with LDR, which may be unaligned); the two rows are adjacent in memory, so
- * one pointer walks both (one LDRD or LDM per row, or one LDM for both at n = 4). Per pair:
- * LDM of the biases, the weights, n SMLAD, the 9-instruction requantisation and the loop test
- * (CMP with the output end, held in r7 for n <= 6): 15 and 17 instructions for 4 and 8 MACs.
- * The n = 6 and n = 8 loops run two pairs per test (entered at their second pair for an odd
- * number of pairs): 38 instructions per 24 MACs, and at n = 8, where all four input registers
- * are taken and the end is read from the stack, 43 per 32. Weights and y word-aligned (the caller checks). */
+/* One pair of a 10-input first layer: inputs in r4-r8, accumulators r9 and r11, three
+ * registers left for the weights (an LDM of 3 and one of 2 words per row). */
+#define FBG_PAIR10                               \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
+        "smlad   r9, r10, r4, r9\n\t"            \
+        "smlad   r9, r12, r5, r9\n\t"            \
+        "smlad   r9, lr, r6, r9\n\t"             \
+        "ldrd    r10, r12, [r0], #8\n\t"         \
+        "smlad   r9, r10, r7, r9\n\t"            \
+        "smlad   r9, r12, r8, r9\n\t"            \
+        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
+        "smlad   r11, r10, r4, r11\n\t"          \
+        "smlad   r11, r12, r5, r11\n\t"          \
+        "smlad   r11, lr, r6, r11\n\t"           \
+        "ldrd    r10, r12, [r0], #8\n\t"         \
+        "smlad   r11, r10, r7, r11\n\t"          \
+        "smlad   r11, r12, r8, r11\n\t"          \
+        "ldrd    r10, r12, [r2], #8\n\t"         \
+        "smmulr  r9, r9, r10\n\t"                \
+        "smmulr  r11, r11, r12\n\t"              \
+        "bic     r9, r9, r9, asr #31\n\t"        \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r9, #15, r9\n\t"                \
+        "usat    r11, #15, r11\n\t"              \
+        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
+        "str     r9, [r3], #4\n\t"
+
+/* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
+ * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
+#define FBG_PAIR12                               \
+        "ldmia   r1!, {r10-r12, lr}\n\t"         \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r4, r10\n\t"          \
+        "smlad   r10, lr, r5, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r6, r10\n\t"          \
+        "smlad   r10, lr, r7, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r8, r10\n\t"          \
+        "smlad   r10, lr, r9, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r4, r12\n\t"          \
+        "smlad   r12, lr, r5, r12\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r6, r12\n\t"          \
+        "smlad   r12, lr, r7, r12\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r8, r12\n\t"          \
+        "smlad   r12, lr, r9, r12\n\t"           \
+        "ldrd    r11, lr, [r2], #8\n\t"          \
+        "smmulr  r10, r10, r11\n\t"              \
+        "smmulr  r12, r12, lr\n\t"               \
+        "bic     r10, r10, r10, asr #31\n\t"     \
+        "bic     r12, r12, r12, asr #31\n\t"     \
+        "usat    r10, #15, r10\n\t"              \
+        "usat    r12, #15, r12\n\t"              \
+        "pkhbt   r10, r10, r12, lsl #16\n\t"     \
+        "str     r10, [r3], #4\n\t"
+
+/* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
+ * the memory features and location averages), two rows per pass: the inputs stay in registers
+ * (r4-r9 as int16 pairs, read once with LDR, which may be unaligned); the two rows are
+ * adjacent in memory, so one pointer walks both (one LDRD or LDM per row, or one LDM for both
+ * at n = 4). Per pair: LDM of the biases, the weights, n SMLAD, the 9-instruction
+ * requantisation and the loop test (CMP with the output end, held in r7 for n <= 6): 15 and 17
+ * instructions for 4 and 8 MACs. The n = 6, 8 and 10 loops run two pairs per test (entered at
+ * their second pair for an odd number of pairs): 38 instructions per 24 MACs, and from n = 8
+ * on, where the end is read from the stack, 43 per 32 and 51 per 40 (two loads per row at
+ * n = 10: three registers are left for weights). n = 12 runs one pair per test, 31
+ * instructions per 24 MACs. Weights and y word-aligned (the caller checks). */
 __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
@@ -962,8 +1026,14 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "b       6f\n\t"
         "7:\n\t"
         "ldr     r7, [r10, #12]\n\t"
-        "tst     r9, #2\n\t"
-        "bne     81f\n\t"
+        "ubfx    r11, r9, #1, #2\n\t"
+        "cmp     r12, #8\n\t"
+        "bne     10f\n\t"
+        "cmp     r11, #2\n\t"
+        "beq     83f\n\t"
+        "bhi     82f\n\t"
+        "cmp     r11, #1\n\t"
+        "beq     84f\n\t"
         "b       8f\n\t"
         "2:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
@@ -1012,11 +1082,44 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "b       9f\n\t"
         "8:\n\t"
         FBG_PAIR8
-        "81:\n\t"
+        "82:\n\t"
+        FBG_PAIR8
+        "83:\n\t"
+        FBG_PAIR8
+        "84:\n\t"
         FBG_PAIR8
         "ldr     r8, [sp]\n\t"
         "cmp     r3, r8\n\t"
         "bne     8b\n\t"
+        "b       9f\n\t"
+        "10:\n\t"
+        "ldr     r8, [r10, #16]\n\t"
+        "cmp     r12, #10\n\t"
+        "bne     12f\n\t"
+        "cmp     r11, #2\n\t"
+        "beq     103f\n\t"
+        "bhi     102f\n\t"
+        "cmp     r11, #1\n\t"
+        "beq     104f\n\t"
+        "100:\n\t"
+        FBG_PAIR10
+        "102:\n\t"
+        FBG_PAIR10
+        "103:\n\t"
+        FBG_PAIR10
+        "104:\n\t"
+        FBG_PAIR10
+        "ldr     r12, [sp]\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     100b\n\t"
+        "b       9f\n\t"
+        "12:\n\t"
+        "ldr     r9, [r10, #20]\n\t"
+        "120:\n\t"
+        FBG_PAIR12
+        "ldr     r11, [sp]\n\t"
+        "cmp     r3, r11\n\t"
+        "bne     120b\n\t"
         "9:\n\t"
         "ldr     r3, [sp, #4]\n\t"
         "add     sp, sp, #8\n\t"
@@ -1027,6 +1130,8 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "str     r0, [r3]\n\t"
         "pop     {r4-r11, pc}\n\t");
 }
+#undef FBG_PAIR12
+#undef FBG_PAIR10
 #undef FBG_PAIR8
 #undef FBG_PAIR_OUT
 
@@ -1496,12 +1601,13 @@ static void run_first(fbg_dsp_job *job)
 }
 
 /* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
- * registers) for n <= 8, else the unrolled one (x word-aligned); *sat |= 1 iff a row clamped. */
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
 static void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
                         uint32_t *sat)
 {
 #if FBG_DSP_ASM
-    if (n <= 8u)
+    if (n <= FBG_DSP_FIRST_MAX_IN)
         first2d32_asm(ly, x, y, sat);
     else
         rows2d32_asm(ly, x, y, sat);
@@ -1740,8 +1846,8 @@ typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(f
                                   offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
 
 /* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
- * writes) with n even, at least two rows, the weights and y word-aligned and, beyond 8 inputs
- * (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
+ * writes) with n even, at least two rows, the weights and y word-aligned and, beyond
+ * FBG_DSP_FIRST_MAX_IN inputs (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
  * give. The fields are read two words at a time: this runs for every layer of every step. */
 static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
                              unsigned *n_out)
@@ -1753,7 +1859,7 @@ static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_
     n = dims & 0xFFFFu;
     *n_out = dims >> 16;
     return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
-           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > 8u ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
+           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > FBG_DSP_FIRST_MAX_IN ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
 }
 
 /* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
@@ -1825,7 +1931,7 @@ const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
         memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
         n = dims & 0xFFFFu;
         if ((kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND &&
-            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > 8u ? x_odd : 0u)) == 0u)
+            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > FBG_DSP_FIRST_MAX_IN ? x_odd : 0u)) == 0u)
             run_pairs32(ly, x, y, n, sat);
         else
             hidden_other(ly, x, y, sat);

@@ -72,7 +72,8 @@ static uint32_t resolve_kernel(uint32_t requested)
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
     fbg_status st;
-    uint32_t kernel;
+    uint32_t kernel, clamped = 0u;
+    unsigned c;
     if (state == NULL || model == NULL)
         return FBG_ERR_NULL;
     st = fbg_model_check(model);
@@ -84,6 +85,11 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     memset(state, 0, sizeof *state);
     state->model = model;
     fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
+    /* The location averages' rest reference is a model constant: computed here, not per step. */
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        state->loc_z0[c] = fbg_sat16_rshift_round((int64_t)-model->mean_fm[c] * model->z_mult[c],
+                                                  model->z_shift, &clamped);
+    state->loc_z0_clamped = (uint8_t)clamped;
     return FBG_OK;
 }
 
@@ -275,19 +281,24 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     int64_t acc = 0;
     int32_t u;
     if (m->loc_shift) {
+        /* A local flag: *sat may alias s->loc for the compiler. */
+        uint32_t clamped = s->loc_z0_clamped;
+        const int primed = s->mem_primed;
         for (c = 0; c < FBG_N_STRAIN; ++c) {
-            /* r = z - z0, z0 the standardisation of a zero filtered shift: 0 at rest. The
+            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
+             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
              * state stays between its old value and the target r << EMA_FRAC, so both lie
              * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
              * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t z0 = fbg_sat16_rshift_round((int64_t)-m->mean_fm[c] * m->z_mult[c], m->z_shift, sat);
-            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - z0, sat) * ((int32_t)1 << FBG_EMA_FRAC);
-            int32_t e = s->mem_primed ? s->loc[c] : target;
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
+                             ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = primed ? s->loc[c] : target;
             e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
             s->loc[c] = e;
             /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
             loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
         }
+        *sat |= clamped;
     }
     if (m->n_ema == 0u && m->n_play == 0u) {
         s->mem_primed = 1u;
