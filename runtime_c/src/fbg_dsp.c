@@ -1175,6 +1175,31 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
         "bx      lr\n\t");
 }
 
+/* One group of rows2b32_asm's loop: 8 inputs (x words in r3-r6) of rows r0 and r1, int8
+ * weights widened by SXTB16 into the accumulators r9 and r11. */
+#define ROWS2B32_GROUP \
+        "ldmia.w lr!, {r3-r6}\n\t" \
+        "ldr     r7, [r0], #4\n\t" \
+        "ldr     r8, [r0], #4\n\t" \
+        "sxtb16  r10, r7\n\t" \
+        "smlad   r9, r10, r3, r9\n\t" \
+        "sxtb16  r10, r7, ror #8\n\t" \
+        "smlad   r9, r10, r4, r9\n\t" \
+        "sxtb16  r10, r8\n\t" \
+        "smlad   r9, r10, r5, r9\n\t" \
+        "sxtb16  r10, r8, ror #8\n\t" \
+        "smlad   r9, r10, r6, r9\n\t" \
+        "ldr     r7, [r1], #4\n\t" \
+        "ldr     r8, [r1], #4\n\t" \
+        "sxtb16  r10, r7\n\t" \
+        "smlad   r11, r10, r3, r11\n\t" \
+        "sxtb16  r10, r7, ror #8\n\t" \
+        "smlad   r11, r10, r4, r11\n\t" \
+        "sxtb16  r10, r8\n\t" \
+        "smlad   r11, r10, r5, r11\n\t" \
+        "sxtb16  r10, r8, ror #8\n\t" \
+        "smlad   r11, r10, r6, r11\n\t"
+
 /* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
  * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
  * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
@@ -1278,49 +1303,9 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "str     r3, [sp, #24]\n\t"
         "bx      r3\n\t"
         "1:\n\t"
-        "ldmia.w lr!, {r3-r6}\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "ldr     r8, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "sxtb16  r10, r8\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "sxtb16  r10, r8, ror #8\n\t"
-        "smlad   r9, r10, r6, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "ldr     r8, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
-        "sxtb16  r10, r8\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "sxtb16  r10, r8, ror #8\n\t"
-        "smlad   r11, r10, r6, r11\n\t"
+        ROWS2B32_GROUP
         "10:\n\t"
-        "ldmia.w lr!, {r3-r6}\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "ldr     r8, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "sxtb16  r10, r8\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "sxtb16  r10, r8, ror #8\n\t"
-        "smlad   r9, r10, r6, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "ldr     r8, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
-        "sxtb16  r10, r8\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "sxtb16  r10, r8, ror #8\n\t"
-        "smlad   r11, r10, r6, r11\n\t"
+        ROWS2B32_GROUP
         "cmp     lr, r2\n\t"
         "bne     1b\n\t"
         "ldr     pc, [sp, #32]\n\t"
