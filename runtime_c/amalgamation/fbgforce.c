@@ -2790,22 +2790,22 @@ const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
      * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
      * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
     const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
-    int16_t *y = act[0], *other = act[1];
     uintptr_t x_odd = (uintptr_t)x & 3u;
-    for (; ly != end; ++ly) {
+    unsigned buf = 0u;
+    for (; ly != end; ++ly, buf ^= 1u) {
+        int16_t *const y = act[buf];
         uint32_t dims, kind;
         unsigned n;
         memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
         memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
         n = dims & 0xFFFFu;
-        if ((kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND &&
-            ((dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) | (n > FBG_DSP_FIRST_MAX_IN ? x_odd : 0u)) == 0u)
+        /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
+        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) |
+             (n > FBG_DSP_FIRST_MAX_IN ? x_odd : 0u)) == 0u)
             run_pairs32(ly, x, y, n, sat);
         else
             hidden_other(ly, x, y, sat);
         x = y;
-        y = other;
-        other = (int16_t *)(uintptr_t)x;
         x_odd = 0u;
     }
     return x;
