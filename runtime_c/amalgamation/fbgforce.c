@@ -2800,8 +2800,8 @@ const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
         memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
         n = dims & 0xFFFFu;
         /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
-        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u) |
-             (n > FBG_DSP_FIRST_MAX_IN ? x_odd : 0u)) == 0u)
+        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u)) == 0u &&
+            (n <= FBG_DSP_FIRST_MAX_IN || x_odd == 0u))
             run_pairs32(ly, x, y, n, sat);
         else
             hidden_other(ly, x, y, sat);
