@@ -5,8 +5,28 @@ from __future__ import annotations
 # Trainer fixtures: a small simulated calibration-like recording and a model trained
 # on it with the causal (shippable) filter, for export / runtime / verify tests.
 # ------------------------------------------------------------------------------------------
+import os as _os
+import shutil as _shutil
+
 import numpy as _np
 import pytest as _pytest
+
+def missing_tool(msg: str) -> None:
+    """A test's tool is missing: skip it, except with CI=true, where .ci/run installs every
+    tool and a missing one is a failure."""
+    if _os.environ.get("CI", "").lower() == "true":
+        _pytest.fail(msg)
+    _pytest.skip(msg)
+
+
+def require_tools(*tools: str, install: str) -> None:
+    """:func:`missing_tool` unless every one of ``tools`` is on the PATH; ``install`` names the
+    Debian packages that provide them."""
+    missing = [t for t in tools if _shutil.which(t) is None]
+    if missing:
+        missing_tool(f"{', '.join(missing)} not found; install: apt-get install "
+                     f"--no-install-recommends {install}")
+
 
 #: Seeds of the shared small data set and model (tests may compare against fixed behaviour).
 SMALL_SCENE = "smoke"

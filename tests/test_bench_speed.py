@@ -8,12 +8,12 @@ are n/a and the callgrind checks skip, except under CI=true, where that fails.
 from __future__ import annotations
 
 import json
-import os
 import shutil
 
 import numpy as np
 import pytest
 
+from conftest import require_tools
 from fbgforce.cli import main
 from fbgforce.tradeoff import cdriver, speed
 
@@ -23,11 +23,7 @@ ARGS = ["--samples", "400", "--batch", "100", "--single-calls", "60", "--rounds"
 
 
 def _require(tool: str) -> None:
-    if shutil.which(tool) is None:
-        msg = f"{tool} not found; install: apt-get install --no-install-recommends {tool}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require_tools(tool, install=tool)
 
 
 @pytest.fixture(scope="module")

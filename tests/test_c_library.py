@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import require_tools
 from fbgforce.export import blob, intref
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,13 +35,7 @@ OUTPUT_FIELDS = ("force_mN", "x_um", "y_um", "contact_margin_q8", "status", "con
 
 
 def _require(*tools: str) -> None:
-    missing = [t for t in tools if shutil.which(t) is None]
-    if missing:
-        msg = (f"{', '.join(missing)} not found; install: apt-get install --no-install-recommends "
-               "cmake pkg-config gcc make")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require_tools(*tools, install="cmake pkg-config gcc make")
 
 
 def _run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
@@ -229,12 +224,7 @@ def test_every_build_compiles_the_same_sources(tmp_path):
 
 def test_arm_none_eabi_toolchain_file_cross_compiles(tmp_path):
     _require("cmake")
-    if shutil.which("arm-none-eabi-gcc") is None:
-        msg = ("arm-none-eabi-gcc not found; install: apt-get install --no-install-recommends "
-               "gcc-arm-none-eabi libnewlib-arm-none-eabi")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require_tools("arm-none-eabi-gcc", install="gcc-arm-none-eabi libnewlib-arm-none-eabi")
     build = tmp_path / "cm4"
     _run(["cmake", "-S", RUNTIME, "-B", build,
           f"-DCMAKE_TOOLCHAIN_FILE={RUNTIME / 'cmake' / 'arm-none-eabi.cmake'}",

@@ -21,15 +21,14 @@ SKIPS, except under CI=true, where it FAILS.
 """
 from __future__ import annotations
 
-import os
 import platform
-import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import require_tools
 from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export.codegen import float_source
@@ -118,13 +117,7 @@ X86_BUILDS = {"portable": (["-DFBGF_SIMD=0"], "portable"), "sse2": (["-DFBGF_NO_
 
 
 def _need(*tools: str) -> None:
-    missing = [t for t in tools if shutil.which(t) is None]
-    if missing:
-        msg = (f"{', '.join(missing)} not found; install: apt-get install --no-install-recommends "
-               "gcc gcc-aarch64-linux-gnu qemu-user")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require_tools(*tools, install="gcc gcc-aarch64-linux-gnu qemu-user")
 
 
 def _float32_parameters(model: fm.HierarchicalModel) -> None:

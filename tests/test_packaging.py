@@ -9,13 +9,14 @@ import importlib
 import importlib.resources
 import importlib.util
 import json
-import os
 import subprocess
 import sys
 import tomllib
 from pathlib import Path
 
 import pytest
+
+from conftest import missing_tool
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
@@ -157,10 +158,7 @@ def test_target_report_runs_from_the_installed_package(tmp_path: Path, tiny_mode
 
     missing = toolchain.missing_tools()
     if missing:
-        msg = f"Cortex-M4 tools missing ({', '.join(missing)}); install: {toolchain.APT_LINE}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        missing_tool(f"Cortex-M4 tools missing ({', '.join(missing)}); install: {toolchain.APT_LINE}")
     packaged = None if _runs_from_repository() else _tree(sources.PACKAGED)
     result = subprocess.run([sys.executable, "-m", "fbgforce.cli", "target-report", "--model",
                              str(tiny_model_dir), "--samples", "96", "--json"], cwd=tmp_path,

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import os
 import platform
-import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import make_random_model, make_random_walk
+from conftest import make_random_model, make_random_walk, require_tools
 from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob, codegen, intref
@@ -51,13 +50,7 @@ def host_kernels() -> list[str]:
 
 
 def _require(*tools: str) -> None:
-    missing = [t for t in tools if shutil.which(t) is None]
-    if missing:
-        msg = (f"{', '.join(missing)} not found; install: apt-get install --no-install-recommends "
-               "gcc qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross")
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+    require_tools(*tools, install="gcc qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross")
 
 
 def _balance_contact(model: fm.HierarchicalModel, wl: np.ndarray) -> None:

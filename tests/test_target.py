@@ -6,12 +6,12 @@ the apt line to install, except under CI=true, where a missing tool is a FAILURE
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 from pathlib import Path
 
 import pytest
 
+from conftest import missing_tool
 from fbgforce.target import firmware, golden, sources, toolchain
 from fbgforce.target.report import load_quantized, recording_fm, target_report
 
@@ -24,10 +24,7 @@ SAMPLES = 300
 def _require_tools() -> None:
     missing = toolchain.missing_tools()
     if missing:
-        msg = f"Cortex-M4 tools missing ({', '.join(missing)}); install: {toolchain.APT_LINE}"
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(msg)
-        pytest.skip(msg)
+        missing_tool(f"Cortex-M4 tools missing ({', '.join(missing)}); install: {toolchain.APT_LINE}")
 
 
 @pytest.fixture(scope="module")
