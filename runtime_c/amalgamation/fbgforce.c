@@ -6211,6 +6211,22 @@ static unsigned block_rows(const fbgf_layer *ly, unsigned r0, unsigned rows, con
         w[k] = ly->w + (size_t)(r0 + (k < n ? k : n - 1u)) * ly->n_in;
     return n;
 }
+
+/* A four-row block's set-up for the SSE2 and NEON kernels: its row pointers (block_rows), the
+ * weights past the last group of four inputs zero-filled into wt (the inputs likewise, per
+ * sample), its bias zero-filled into b; returns how many rows are real. */
+static unsigned block4_setup(const fbgf_layer *ly, unsigned r0, const float **w, float wt[4][4],
+                             float b[4])
+{
+    const unsigned full = ly->n_in & ~3u;
+    unsigned k, n = block_rows(ly, r0, 4u, w);
+    if (full < ly->n_in) {
+        for (k = 0; k < 4u; ++k)
+            copy4(wt[k], w[k] + full, ly->n_in - full);
+    }
+    copy4(b, ly->b + r0, n);
+    return n;
+}
 #endif
 
 #ifdef FBGF_HAVE_SSE2
@@ -6222,24 +6238,13 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
     float wt[4][4], xt[4], b[4], out[4];
     const unsigned n_in = ly->n_in, full = n_in & ~3u;
     const __m128 zero = _mm_setzero_ps();
-    unsigned r0, j, k, n;
+    unsigned r0, j, n;
     size_t i;
     for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
         const float *w[4];
         __m128 bias;
-        n = block_rows(ly, r0, 4u, w);
-        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
-         * per sample, into xt). */
-        if (full < n_in) {
-            for (k = 0; k < 4u; ++k)
-                copy4(wt[k], w[k] + full, n_in - full);
-        }
-        if (n == 4u) {
-            bias = _mm_loadu_ps(ly->b + r0);
-        } else {
-            copy4(b, ly->b + r0, n);
-            bias = _mm_loadu_ps(b);
-        }
+        n = block4_setup(ly, r0, w, wt, b);
+        bias = _mm_loadu_ps(b);
         for (i = 0; i < n_samples; ++i) {
             const float *x = xs + i * x_stride;
             float *y = ys + i * y_stride;
@@ -6529,24 +6534,13 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
     float wt[4][4], xt[4], b[4], out[4];
     const unsigned n_in = ly->n_in, full = n_in & ~3u;
     const float32x4_t zero = vdupq_n_f32(0.0f);
-    unsigned r0, j, k, n;
+    unsigned r0, j, n;
     size_t i;
     for (r0 = 0; r0 < ly->n_out; r0 += 4u) {
         const float *w[4];
         float32x4_t bias;
-        n = block_rows(ly, r0, 4u, w);
-        /* The weights past the last group of four inputs, zero-filled (the inputs likewise,
-         * per sample, into xt). */
-        if (full < n_in) {
-            for (k = 0; k < 4u; ++k)
-                copy4(wt[k], w[k] + full, n_in - full);
-        }
-        if (n == 4u) {
-            bias = vld1q_f32(ly->b + r0);
-        } else {
-            copy4(b, ly->b + r0, n);
-            bias = vld1q_f32(b);
-        }
+        n = block4_setup(ly, r0, w, wt, b);
+        bias = vld1q_f32(b);
         for (i = 0; i < n_samples; ++i) {
             const float *x = xs + i * x_stride;
             float *y = ys + i * y_stride;
