@@ -18,7 +18,7 @@ import platform
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -92,6 +92,21 @@ class Prepared:
         if part == "all":
             return np.arange(self.split.size)
         return np.flatnonzero(self.split == {"train": 0, "val": 1, "test": 2}[part])
+
+    def recording_slices(self) -> Iterator[tuple[Recording, slice]]:
+        """Each recording with the slice of the concatenated arrays that holds its rows."""
+        start = 0
+        for r in self.recordings:
+            yield r, slice(start, start + len(r.ds))
+            start += len(r.ds)
+
+    def row_mask(self, rows: np.ndarray | None = None) -> np.ndarray:
+        """Boolean mask over all rows: ``rows`` (every row when None)."""
+        if rows is None:
+            return np.ones(self.split.size, dtype=bool)
+        keep = np.zeros(self.split.size, dtype=bool)
+        keep[rows] = True
+        return keep
 
     def truth(self, rows: np.ndarray) -> tuple[np.ndarray, ...]:
         return self.contact[rows], self.force_N[rows], self.x_mm[rows], self.y_mm[rows]
@@ -275,30 +290,23 @@ def hold_seconds(data: Prepared, rows: np.ndarray | None = None) -> float:
     net that never saw a hold takes one for a release (docs/teleop.md measures a grip read
     1.7 N low), so :func:`train` warns when the training data has none.
     """
-    total, start = 0.0, 0
-    keep = None
-    if rows is not None:
-        keep = np.zeros(data.contact.size, bool)
-        keep[rows] = True
-    for r in data.recordings:
-        n = len(r.ds)
+    total = 0.0
+    keep = data.row_mask(rows) & data.contact
+    for r, sl in data.recording_slices():
         block = max(1, int(round(0.01 * r.rate_hz)))          # 10 ms blocks
         width = max(1, int(round(HOLD_MIN_S * r.rate_hz / block)))
-        m = (n // block) * block
-        f = np.asarray(r.ds.force_N, float)[:m].reshape(-1, block)
-        c = np.asarray(r.ds.contact, bool)[:m].reshape(-1, block).all(axis=1)
-        if keep is not None:
-            c &= keep[start:start + m].reshape(-1, block).all(axis=1)
-        start += n
+        m = ((sl.stop - sl.start) // block) * block
+        f = data.force_N[sl][:m].reshape(-1, block)
+        c = keep[sl][:m].reshape(-1, block).all(axis=1)
         if f.shape[0] < width:
             continue
         win = np.lib.stride_tricks.sliding_window_view
         hi = win(f.max(axis=1), width).max(axis=1)
         lo = win(f.min(axis=1), width).min(axis=1)
         still = (hi - lo <= np.maximum(HOLD_BAND[0], HOLD_BAND[1] * hi)) & win(c, width).all(axis=1)
-        inside = np.zeros(f.shape[0], bool)
-        for k in np.flatnonzero(still):
-            inside[k:k + width] = True
+        # A block is inside a hold when any still window starting in the last `width` blocks
+        # covers it.
+        inside = np.convolve(still, np.ones(width, dtype=int))[:f.shape[0]] > 0
         total += float(inside.sum()) * block / r.rate_hz
     return total
 
@@ -357,17 +365,13 @@ def press_delays(data: Prepared, pred_contact: np.ndarray, rows: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Onset and release delays (ms) of the presses whose onset lies in ``rows``, from a
     contact prediction over ALL rows of ``data`` (each recording scored as one time series)."""
-    keep = np.zeros(data.split.size, dtype=bool)
-    keep[rows] = True
+    keep = data.row_mask(rows)
     onsets, releases = [], []
-    start = 0
-    for r in data.recordings:
-        sl = slice(start, start + len(r.ds))
+    for r, sl in data.recording_slices():
         o, rel = fmetrics.press_delays(pred_contact[sl], data.contact[sl], r.ds.t_s,
                                        r.ds.press_id, keep[sl])
         onsets.append(o)
         releases.append(rel)
-        start = sl.stop
     return np.concatenate(onsets), np.concatenate(releases)
 
 
@@ -603,10 +607,9 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
     interpolates between the few presses that reached high force (docs/trainer.md).
     """
     inputs, kept = [], []
-    start = 0
-    for r in data.recordings:
-        n = len(r.ds)
-        sel = rows[(rows >= start) & (rows < start + n)] - start
+    for r, sl in data.recording_slices():
+        start = sl.start
+        sel = rows[(rows >= start) & (rows < sl.stop)] - start
         if sel.size:
             _, inverse = np.unique(np.asarray(r.ds.press_id), return_inverse=True)
             k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
@@ -616,7 +619,6 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
             feats = pp.recording_features(pre, wl, r.baseline_nm)
             inputs.append(fm.standardise(pre, feats)[sel])
             kept.append(sel + start)
-        start += n
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
@@ -626,14 +628,11 @@ def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,
                        rng: np.random.Generator) -> np.ndarray:
     """Keep a random ``fraction`` of the presses among ``rows`` (whole presses, per recording)."""
     keep = []
-    start = 0
-    for r in data.recordings:
-        n = len(r.ds)
-        sel = rows[(rows >= start) & (rows < start + n)]
-        pid = np.asarray(r.ds.press_id)[sel - start]
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)]
+        pid = np.asarray(r.ds.press_id)[sel - sl.start]
         presses = np.unique(pid)
         k = max(1, int(round(fraction * presses.size)))
         chosen = rng.choice(presses, size=k, replace=False)
         keep.append(sel[np.isin(pid, chosen)])
-        start += n
     return np.concatenate(keep) if keep else rows[:0]
