@@ -131,6 +131,8 @@ def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz
     return q, intref.nm_to_fm(wl)
 
 
+#: The kernels with a packed weight layout (fbg_pack).
+PACKED_KERNELS = ("sse2", "avx2")
 PAPER = ((70, 50, 20), (70, 50, 20), (70, 50, 40))
 ODD = ((13, 7, 3), (1, 9, 17), (33, 5, 2))
 WIDE = ((128, 3, 127), (31, 128, 1), (9, 16, 24))
@@ -170,10 +172,11 @@ def test_every_host_kernel_matches_portable_and_the_reference(case):
     if not kernels:
         pytest.skip(f"no host SIMD kernel on {platform.machine()}")
     for kernel in kernels:
-        rt = Runtime(data, kernel=kernel)
-        assert rt.kernel == kernel
-        got = rt.run_raw(wl_fm)
-        assert got.tobytes() == portable.tobytes(), (name, kernel)
+        for packed in (False, True):
+            rt = Runtime(data, kernel=kernel, packed=packed)
+            assert rt.kernel == kernel and rt.packed == (packed and kernel in PACKED_KERNELS)
+            got = rt.run_raw(wl_fm)
+            assert got.tobytes() == portable.tobytes(), (name, kernel, packed)
 
 
 def test_kernel_selection():

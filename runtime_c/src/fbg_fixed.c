@@ -100,6 +100,59 @@ uint32_t fbg_kernel(const fbg_state *state)
     return state->options & FBG_OPT_KERNEL_MASK;
 }
 
+size_t fbg_pack_bytes(const fbg_state *state)
+{
+#if FBG_SIMD_PACKED
+    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+        return 0u;
+    return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
+#else
+    (void)state;
+    return 0u;
+#endif
+}
+
+fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
+{
+    size_t need;
+    if (state == NULL || buf == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT(state)))
+        return FBG_ERR_STATE;
+    need = fbg_pack_bytes(state);
+    if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
+        return FBG_ERR_ARG;
+#if FBG_SIMD_PACKED
+    fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
+    state->packed = buf;
+#endif
+    return FBG_OK;
+}
+
+fbg_status fbg_use_pack(fbg_state *state, const void *packed)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT(state)))
+        return FBG_ERR_STATE;
+    if (packed != NULL) {
+#if FBG_SIMD_PACKED
+        fbg_pack_header h;
+        if (((uintptr_t)packed % FBG_PACK_ALIGN) != 0u)
+            return FBG_ERR_ARG;
+        memcpy(&h, packed, sizeof h);
+        if (h.magic != FBG_PACK_MAGIC || h.model != state->model ||
+            h.kernel != (state->options & FBG_OPT_KERNEL_MASK) ||
+            h.bytes != fbg_simd_pack_bytes(h.kernel, state->model))
+            return FBG_ERR_ARG;
+#else
+        return FBG_ERR_ARG;
+#endif
+    }
+    state->packed = packed;
+    return FBG_OK;
+}
+
 fbg_status fbg_reset(fbg_state *state)
 {
     return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
@@ -139,8 +192,10 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
     return FBG_OK;
 }
 
-/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
+ * kernels write whole groups of 8 rows into them. */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
 
 #if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
@@ -202,19 +257,27 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 #endif
 }
 
-/* Run the hidden layers of a net on x; returns the input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+/* Run the hidden layers of net n on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, unsigned n, const int16_t *x, uint32_t *sat)
 {
+    const fbg_net *net = &s->model->nets[n];
 #if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
     return fbg_dsp_run_hidden(net, x, s->act, sat);
 #else
     unsigned l, buf = 0u;
+    (void)n;
     for (l = 0; l + 1u < net->n_layers; ++l) {
         const fbg_layer *ly = &net->layers[l];
         int16_t *y = s->act[buf];
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
+#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
+        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
+        if (block != NULL)
+            fbg_simd_hidden_packed(kernel, block, x, y, sat);
+        else
+#endif
         if (kernel != 0u)
             fbg_simd_hidden(kernel, ly, x, y, sat);
         else
@@ -419,7 +482,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
-    x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
+    x = run_hidden(s, FBG_NET_CONTACT, in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
     output_accs(s, last, x, acc);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
@@ -429,7 +492,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (out->contact) {
         /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
-        x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
+        x = run_hidden(s, FBG_NET_FORCE, in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
         output_accs(s, last, x, acc);
         force_out = output_row(last, 0u, acc[0], &sat);
@@ -444,7 +507,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
+        x = run_hidden(s, FBG_NET_LOCATION, in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
         output_accs(s, last, x, acc);
         out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);

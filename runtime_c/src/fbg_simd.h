@@ -15,6 +15,9 @@
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
+#include <stddef.h>
+#include <string.h>
+
 #include "fbg_internal.h"
 
 #ifndef FBG_HOST_SIMD
@@ -47,6 +50,56 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_PACKED 1
+#else
+#define FBG_SIMD_PACKED 0
 #endif
+
+#if FBG_SIMD_PACKED
+/*
+ * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
+ * header of hidden layer l of net n in the kernel's packed form, 0 for a layer that is not
+ * packed (an int64-accumulator layer, which runs the portable C, and every output layer,
+ * which keeps the row kernels: one or two rows gain nothing from row interleaving). */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
+ * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
+ * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
+ * FBG_MAX_WIDTH, a multiple of 8, always holds. */
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The block of hidden layer `layer` of net `net` in a packed buffer, NULL if not packed (the
+ * header is read with memcpy: the caller's buffer may have any declared type). */
+static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
+{
+    uint32_t off;
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
+                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
+    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
+}
+#endif /* FBG_SIMD_PACKED */
+#else
+#define FBG_SIMD_PACKED 0
+#endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */

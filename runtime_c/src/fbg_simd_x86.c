@@ -624,6 +624,248 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
         *sat = 1u;
 }
 
+/* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------ */
+
+/* A packed hidden layer: this head, then per group of `rows` output rows (8 for AVX2, 4 for
+ * SSE2) the rows' biases as int32 (|bias| <= INT32_MAX in an acc32 layer), their multipliers,
+ * and for each input pair p the 2 * rows int16 (w[r][2p], w[r][2p+1]) of the group's rows r.
+ * Rows past n_out and the odd last column are zeros; int8 weights are widened (the same
+ * values). A vector of a pair's weights against x[2p], x[2p+1] broadcast to every lane gives,
+ * through (V)PMADDWD, each row's share of that pair in the row's own int32 lane, so a group's
+ * accumulator holds the group's row sums once every pair is added: no horizontal sums. Every
+ * block and group is a multiple of 32 bytes long, so with the buffer FBG_PACK_ALIGN-aligned
+ * every vector lies aligned. */
+typedef struct {
+    int64_t round;      /* 2^(shift - 1) */
+    int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
+    uint32_t shift;
+    uint16_t n_in, n_out, n_groups;
+    uint16_t reserved[3];
+} packed_head;
+
+typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
+
+#define PACK_HEADER_BYTES ((sizeof(fbg_pack_header) + 31u) & ~(size_t)31u)
+
+/* Rows per group of a kernel's packed form; 0: no packed form. */
+static unsigned pack_rows(uint32_t kernel)
+{
+    return kernel == FBG_OPT_KERNEL_AVX2 ? 8u : kernel == FBG_OPT_KERNEL_SSE2 ? 4u : 0u;
+}
+
+/* Bytes of one group: biases and multipliers (4 bytes a row each), then 2 int16 a row per pair. */
+static size_t packed_group_bytes(unsigned n_in, unsigned rows)
+{
+    return (size_t)rows * (8u + 4u * ((n_in + 1u) / 2u));
+}
+
+static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
+{
+    return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
+}
+
+/* The layers the packed form holds: the hidden acc32 ones. */
+static int packed_layer(const fbg_net *net, unsigned l)
+{
+    return l + 1u < net->n_layers && net->layers[l].acc32;
+}
+
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
+{
+    const unsigned rows = pack_rows(kernel);
+    size_t total = PACK_HEADER_BYTES;
+    unsigned n, l;
+    if (rows == 0u)
+        return 0u;
+    for (n = 0; n < FBG_N_NETS; ++n)
+        for (l = 0; l < m->nets[n].n_layers; ++l)
+            if (packed_layer(&m->nets[n], l))
+                total += packed_layer_bytes(&m->nets[n].layers[l], rows);
+    return total;
+}
+
+/* One layer's block at dst. Plain stores through memcpy: the buffer's declared type is the
+ * caller's. */
+static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
+{
+    const unsigned pairs = (ly->n_in + 1u) / 2u;
+    packed_head h;
+    unsigned g, i, p, k;
+    memset(&h, 0, sizeof h);
+    h.shift = ly->shift;
+    h.round = (int64_t)1 << (ly->shift - 1u);
+    h.top = ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX;
+    h.n_in = ly->n_in;
+    h.n_out = ly->n_out;
+    h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
+    memcpy(dst, &h, sizeof h);
+    dst += sizeof h;
+    for (g = 0; g < h.n_groups; ++g) {
+        for (i = 0; i < rows; ++i) {
+            const unsigned r = g * rows + i;
+            const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
+            const int32_t mult = r < ly->n_out ? ly->mult[r] : 0;
+            memcpy(dst + 4u * i, &bias, sizeof bias);
+            memcpy(dst + 4u * (rows + i), &mult, sizeof mult);
+        }
+        dst += 8u * rows;
+        for (p = 0; p < pairs; ++p)
+            for (i = 0; i < rows; ++i)
+                for (k = 0; k < 2u; ++k) {
+                    const unsigned r = g * rows + i, j = 2u * p + k;
+                    int16_t w = 0;
+                    if (r < ly->n_out && j < ly->n_in)
+                        w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
+                                              : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+                    memcpy(dst, &w, sizeof w);
+                    dst += sizeof w;
+                }
+    }
+}
+
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
+{
+    const unsigned rows = pack_rows(kernel);
+    unsigned char *base = (unsigned char *)buf;
+    fbg_pack_header hd;
+    size_t off = PACK_HEADER_BYTES;
+    unsigned n, l;
+    memset(&hd, 0, sizeof hd);
+    memset(base, 0, PACK_HEADER_BYTES);
+    for (n = 0; n < FBG_N_NETS; ++n)
+        for (l = 0; l < m->nets[n].n_layers; ++l)
+            if (packed_layer(&m->nets[n], l)) {
+                pack_layer(&m->nets[n].layers[l], rows, base + off);
+                hd.layer_off[n][l] = (uint32_t)off;
+                off += packed_layer_bytes(&m->nets[n].layers[l], rows);
+            }
+    hd.magic = FBG_PACK_MAGIC;
+    hd.kernel = kernel;
+    hd.model = m;
+    hd.bytes = off;
+    memcpy(base, &hd, sizeof hd);
+}
+
+/* SSE2: groups of four rows, K groups per pass over the input pairs (each broadcast pair
+ * serves K groups); the sums requantised by the scalar rule. */
+#define PK4_ACC(i) lanes32x4 a##i = (lanes32x4)load128(g + (i) * stride)
+#define PK4_MADD(i, p, xb) a##i += (lanes32x4)_mm_madd_epi16(load128(g + (i) * stride + 32u + 16u * (p)), xb)
+#define PK4_OUT(i)                                                                           \
+    do {                                                                                     \
+        int32_t t[4], m[4];                                                                  \
+        unsigned q;                                                                          \
+        _mm_storeu_si128((__m128i *)(void *)t, (__m128i)a##i);                               \
+        memcpy(m, g + (i) * stride + 16u, sizeof m);                                         \
+        for (q = 0; q < 4u; ++q) {                                                           \
+            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], h.shift);                     \
+            y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
+        }                                                                                    \
+    } while (0)
+#define PK4_PASS(K, ACCS, MADDS, OUTS)                                                       \
+    do {                                                                                     \
+        ACCS;                                                                                \
+        for (p = 0; p < full; ++p) {                                                         \
+            int32_t pair;                                                                    \
+            __m128i xb;                                                                      \
+            memcpy(&pair, x + 2u * p, sizeof pair);                                          \
+            xb = _mm_set1_epi32(pair);                                                       \
+            MADDS;                                                                           \
+        }                                                                                    \
+        if (full != pairs) {                                                                 \
+            const __m128i xb = _mm_set1_epi32(last);                                         \
+            MADDS;                                                                           \
+        }                                                                                    \
+        OUTS;                                                                                \
+        g += (K) * stride;                                                                   \
+        grp += (K);                                                                          \
+    } while (0)
+
+static void hidden_packed_sse2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    packed_head h;
+    const unsigned char *g = block + sizeof h;
+    unsigned pairs, full, grp = 0u, p;
+    size_t stride;
+    int32_t last;
+    memcpy(&h, block, sizeof h);
+    pairs = (h.n_in + 1u) / 2u;
+    full = h.n_in / 2u;
+    stride = packed_group_bytes(h.n_in, 4u);
+    /* The odd last column pairs with 0 (its weight partner is 0 too). */
+    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0;
+    while (h.n_groups - grp >= 4u)
+        PK4_PASS(4u, PK4_ACC(0); PK4_ACC(1); PK4_ACC(2); PK4_ACC(3),
+                 PK4_MADD(0, p, xb); PK4_MADD(1, p, xb); PK4_MADD(2, p, xb); PK4_MADD(3, p, xb),
+                 PK4_OUT(0); PK4_OUT(1); PK4_OUT(2); PK4_OUT(3));
+    if (h.n_groups - grp >= 2u)
+        PK4_PASS(2u, PK4_ACC(0); PK4_ACC(1), PK4_MADD(0, p, xb); PK4_MADD(1, p, xb), PK4_OUT(0); PK4_OUT(1));
+    if (h.n_groups - grp == 1u)
+        PK4_PASS(1u, PK4_ACC(0), PK4_MADD(0, p, xb), PK4_OUT(0));
+}
+
+/* AVX2: groups of eight rows, K groups per pass; eight rows requantised at once (requant8). */
+#define PK8_ACC(i) lanes32 a##i = (lanes32)load256(g + (i) * stride)
+#define PK8_MADD(i, p, xb) a##i += (lanes32)_mm256_madd_epi16(load256(g + (i) * stride + 64u + 32u * (p)), xb)
+#define PK8_OUT(i)                                                                           \
+    _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
+                     requant8((__m256i)a##i, load256(g + (i) * stride + 32u), round, top, shift, &big))
+#define PK8_PASS(K, ACCS, MADDS, OUTS)                                                       \
+    do {                                                                                     \
+        ACCS;                                                                                \
+        for (p = 0; p < full; ++p) {                                                         \
+            int32_t pair;                                                                    \
+            __m256i xb;                                                                      \
+            memcpy(&pair, x + 2u * p, sizeof pair);                                          \
+            xb = _mm256_set1_epi32(pair);                                                    \
+            MADDS;                                                                           \
+        }                                                                                    \
+        if (full != pairs) {                                                                 \
+            const __m256i xb = _mm256_set1_epi32(last);                                      \
+            MADDS;                                                                           \
+        }                                                                                    \
+        OUTS;                                                                                \
+        g += (K) * stride;                                                                   \
+        grp += (K);                                                                          \
+    } while (0)
+
+AVX2 static void hidden_packed_avx2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    packed_head h;
+    const unsigned char *g = block + sizeof h;
+    unsigned pairs, full, grp = 0u, p;
+    size_t stride;
+    int32_t last;
+    __m256i round, top, big = _mm256_setzero_si256();
+    __m128i shift;
+    memcpy(&h, block, sizeof h);
+    pairs = (h.n_in + 1u) / 2u;
+    full = h.n_in / 2u;
+    stride = packed_group_bytes(h.n_in, 8u);
+    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0;
+    round = _mm256_set1_epi64x(h.round);
+    top = _mm256_set1_epi64x(h.top);
+    shift = _mm_cvtsi32_si128((int)h.shift);
+    while (h.n_groups - grp >= 4u)
+        PK8_PASS(4u, PK8_ACC(0); PK8_ACC(1); PK8_ACC(2); PK8_ACC(3),
+                 PK8_MADD(0, p, xb); PK8_MADD(1, p, xb); PK8_MADD(2, p, xb); PK8_MADD(3, p, xb),
+                 PK8_OUT(0); PK8_OUT(1); PK8_OUT(2); PK8_OUT(3));
+    if (h.n_groups - grp >= 2u)
+        PK8_PASS(2u, PK8_ACC(0); PK8_ACC(1), PK8_MADD(0, p, xb); PK8_MADD(1, p, xb), PK8_OUT(0); PK8_OUT(1));
+    if (h.n_groups - grp == 1u)
+        PK8_PASS(1u, PK8_ACC(0), PK8_MADD(0, p, xb), PK8_OUT(0));
+    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
+}
+
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        hidden_packed_avx2((const unsigned char *)block, x, y, sat);
+    else
+        hidden_packed_sse2((const unsigned char *)block, x, y, sat);
+}
+
 uint32_t fbg_simd_resolve(uint32_t requested)
 {
     int avx2;
