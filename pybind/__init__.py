@@ -23,7 +23,7 @@ except ImportError as exc:  # pragma: no cover - depends on the build
                       "'python setup.py build_ext --inplace' in the project root") from exc
 
 __all__ = ["Runtime", "FloatRuntime", "RuntimeCError", "ERRORS", "OUTPUT_DTYPE", "FLOAT_OUTPUT_DTYPE",
-           "STATUS_FLAGS", "check", "to_fm"]
+           "STATUS_FLAGS", "KERNELS", "PACKED_KERNELS", "check", "to_fm"]
 
 
 class RuntimeCError(Exception):
@@ -64,6 +64,9 @@ STATUS_FLAGS = dict(contract.STATUS_FLAG)
 KERNELS = {name[len("KERNEL_"):].lower(): value for name, value in contract.OPTION.items()
            if name.startswith("KERNEL_") and name != "KERNEL_MASK"}
 KERNEL_NAME = {value: name for name, value in KERNELS.items()}
+#: The kernels with a packed weight form (``fbg_pack``; docs/runtime.md, "Packed weights"),
+#: which :class:`Runtime` uses by default; tests/test_simd.py checks it against the library.
+PACKED_KERNELS = ("sse2", "avx2")
 
 # The C structs fbg_output / fbgf_output, byte for byte (checked against ffi.sizeof at import).
 _C_OUTPUT = np.dtype(contract.numpy_dtype(contract.OUTPUT))

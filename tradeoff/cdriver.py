@@ -18,7 +18,8 @@ int32 femtometre samples (row 0 the tare baseline) and either
   a running step.
 
 A build's flags set what the compiler may use (``-O2``, ``-march=native``, ...) and its
-``init_options`` what ``fbg_init`` is given (a dense-layer kernel choice);
+``init_options`` what ``fbg_init`` is given (a dense-layer kernel choice) and ``packed``
+whether the state then runs from weights ``fbg_pack`` packs for its kernel;
 :func:`extension_flags` are the flags the cffi extension itself is built with.
 """
 from __future__ import annotations
@@ -75,6 +76,9 @@ int main(int argc, char **argv) {
     double best_run = 1e300, best_step = 1e300;
     static fbg_model model; static fbg_state st; static fbgf_state fst;
     void *out; size_t rec; uint8_t *blob = NULL; int32_t *wl;
+#ifdef FBG_BENCH_PACK
+    unsigned char *pack_mem, *pack = NULL;
+#endif
     if (argc != 7) return 2;
     count = strcmp(argv[1], "count") == 0;
     fixed = strcmp(argv[2], "fixed") == 0;
@@ -93,7 +97,22 @@ int main(int argc, char **argv) {
         return 4;
 #endif
     }
-#define RESTART() (fixed ? (fbg_init(&st, &model, FBG_BENCH_INIT_OPTIONS) || fbg_set_baseline(&st, wl)) \
+#ifdef FBG_BENCH_PACK /* the state runs from weights packed into a buffer of the driver's,
+                       * when its kernel has a packed form (as fbgforce.Runtime does) */
+    if (fixed && fbg_init(&st, &model, FBG_BENCH_INIT_OPTIONS) != FBG_OK) return 7;
+    if (fixed && fbg_pack_bytes(&st) != 0u) {
+        size_t bytes = fbg_pack_bytes(&st);
+        pack_mem = malloc(bytes + FBG_PACK_ALIGN);
+        if (!pack_mem) return 3;
+        pack = pack_mem + (FBG_PACK_ALIGN - (uintptr_t)pack_mem % FBG_PACK_ALIGN) % FBG_PACK_ALIGN;
+        if (fbg_pack(&st, pack, bytes) != FBG_OK) return 8;
+    }
+#define PACK_AGAIN() fbg_use_pack(&st, pack)
+#else
+#define PACK_AGAIN() FBG_OK
+#endif
+#define RESTART() (fixed ? (fbg_init(&st, &model, FBG_BENCH_INIT_OPTIONS) || fbg_set_baseline(&st, wl) \
+                            || PACK_AGAIN()) \
                          : (FLOAT_INIT() || fbgf_set_baseline(&fst, wl)))
 #ifdef FBG_BENCH_FLOAT_MODEL
 #define FLOAT_INIT() fbgf_init(&fst, &FBG_BENCH_FLOAT_MODEL, 0)
@@ -140,11 +159,13 @@ int main(int argc, char **argv) {
 class CBuild:
     """A driver build: a name for the tables, the compiler flags (split on spaces) and the
     ``fbg_init`` options of its fixed-point runs (None: 0; a kernel choice where the header
-    defines ``FBG_OPT_KERNEL_*`` values, so that every kernel path is timed and counted)."""
+    defines ``FBG_OPT_KERNEL_*`` values, so that every kernel path is timed and counted), and
+    whether those runs use packed weights (``fbg_pack``, as :class:`fbgforce.Runtime` does)."""
 
     name: str
     flags: str
     init_options: int | None = None
+    packed: bool = False
 
 
 def extension_flags() -> str | None:
@@ -161,13 +182,14 @@ def extension_flags() -> str | None:
 
 
 def parse_build(text: str) -> CBuild:
-    """``NAME=FLAGS`` (or just ``FLAGS``, named after them) -> :class:`CBuild`."""
+    """``NAME=FLAGS`` (or just ``FLAGS``, named after them) -> :class:`CBuild`, which runs
+    as the extension does: the fastest kernel, from packed weights where it has them."""
     name, sep, flags = text.partition("=")
     if not sep:
         name, flags = text.strip(), text
     if not name.strip():
         raise ValueError(f"a build needs a name or flags: {text!r} (NAME=FLAGS)")
-    return CBuild(name.strip(), flags.strip())
+    return CBuild(name.strip(), flags.strip(), packed=True)
 
 
 def compiler() -> str | None:
@@ -210,6 +232,8 @@ def build(b: CBuild, work: Path, float_model: Path | None = None) -> Path:
                  f"-I{float_model.parent}", str(float_model)]
     if b.init_options is not None:
         extra.append(f"-DFBG_BENCH_INIT_OPTIONS={int(b.init_options)}u")
+    if b.packed:
+        extra.append("-DFBG_BENCH_PACK")
     cmd = [*cc.split(), "-std=c99", *b.flags.split(), f"-I{root / 'include'}", *srcs,
            *extra, str(work / "driver.c"), "-o", str(exe)]
     r = subprocess.run(cmd, capture_output=True, text=True)
@@ -235,6 +259,8 @@ def time_run(exe: Path, kind: str, blob: Path | None, samples: Path, reps: int,
     if r.returncode == 7:
         raise RuntimeError("fbg_init refused the build's options (a kernel this CPU or build "
                            "does not run)")
+    if r.returncode == 8:
+        raise RuntimeError("fbg_pack refused the driver's buffer")
     if r.returncode != 0:
         raise RuntimeError(f"driver failed (exit {r.returncode}) on {kind} {blob or ''}")
     run_ns, step_ns = (float(v) for v in r.stdout.split())

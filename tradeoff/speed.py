@@ -58,15 +58,22 @@ class SpeedSettings:
 
 
 def default_builds(kernels: bool = True) -> tuple[cdriver.CBuild, ...]:
-    """The driver built as the extension is, and (``kernels``) once more per dense-layer
-    kernel the header offers (``FBG_OPT_KERNEL_*`` values for ``fbg_init``, AUTO excepted:
-    that is the first build); empty where the extension's flags are unknown."""
+    """The driver built as the extension is (packed weights where the kernel has them, as
+    :class:`fbgforce.Runtime` runs), and (``kernels``) once more per dense-layer kernel the
+    header offers (``FBG_OPT_KERNEL_*`` values for ``fbg_init``, AUTO excepted: that is the
+    first build) on the weights as the model holds them, and once more packed for each kernel
+    with a packed form (``kernel-avx2-packed``, ...); empty where the extension's flags are
+    unknown."""
     from fbgforce.target.sources import CSourcesMissing, header_constants
 
     flags = cdriver.extension_flags()
     if flags is None:
         return ()
-    builds = [cdriver.CBuild("as-extension", flags)]
+    try:
+        from fbgforce.pybind import PACKED_KERNELS
+    except ImportError:  # no extension: c_rows reports that
+        PACKED_KERNELS = ()
+    builds = [cdriver.CBuild("as-extension", flags, packed=bool(PACKED_KERNELS))]
     if not kernels:
         return tuple(builds)
     try:
@@ -77,6 +84,8 @@ def default_builds(kernels: bool = True) -> tuple[cdriver.CBuild, ...]:
         kernel = name.removeprefix("FBG_OPT_KERNEL_")
         if name.startswith("FBG_OPT_KERNEL_") and kernel not in ("AUTO", "MASK"):
             builds.append(cdriver.CBuild(f"kernel-{kernel.lower()}", flags, value))
+            if kernel.lower() in PACKED_KERNELS:
+                builds.append(cdriver.CBuild(f"kernel-{kernel.lower()}-packed", flags, value, packed=True))
     return tuple(builds)
 
 
@@ -367,7 +376,8 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         "memory_states": model.preprocess.memory.state_words,
         "macs_per_step": step_macs(model),
         "reference": dict(zip(("engine", "call", "scope"), REFERENCE)),
-        "builds": [{"name": b.name, "flags": b.flags, "init_options": b.init_options}
+        "builds": [{"name": b.name, "flags": b.flags, "init_options": b.init_options,
+                    "packed": b.packed}
                    for b in builds],
         "rows": rows,
         "platform": {**timing.platform_info(), "blas_threads_before_timing": blas},

@@ -61,9 +61,8 @@ void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int
 #if FBG_SIMD_PACKED
 /*
  * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
- * header of hidden layer l of net n in the kernel's packed form, 0 for a layer that is not
- * packed (an int64-accumulator layer, which runs the portable C, and every output layer,
- * which keeps the row kernels: one or two rows gain nothing from row interleaving). */
+ * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
+ * (an int64-accumulator layer, which runs the portable C). */
 typedef struct {
     uint32_t magic;               /* FBG_PACK_MAGIC once packed */
     uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
@@ -88,7 +87,11 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
  * FBG_MAX_WIDTH, a multiple of 8, always holds. */
 void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
 
-/* The block of hidden layer `layer` of net `net` in a packed buffer, NULL if not packed (the
+/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
+ * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+
+/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
  * header is read with memcpy: the caller's buffer may have any declared type). */
 static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
 {

@@ -664,10 +664,10 @@ static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
     return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
 }
 
-/* The layers the packed form holds: the hidden acc32 ones. */
+/* The layers the packed form holds: the acc32 ones. */
 static int packed_layer(const fbg_net *net, unsigned l)
 {
-    return l + 1u < net->n_layers && net->layers[l].acc32;
+    return net->layers[l].acc32;
 }
 
 size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
@@ -746,11 +746,83 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
     memcpy(base, &hd, sizeof hd);
 }
 
-/* SSE2: groups of four rows, K groups per pass over the input pairs (each broadcast pair
- * serves K groups); the sums requantised by the scalar rule. */
-#define PK4_ACC(i) lanes32x4 a##i = (lanes32x4)load128(g + (i) * stride)
-#define PK4_MADD(i, p, xb) a##i += (lanes32x4)_mm_madd_epi16(load128(g + (i) * stride + 32u + 16u * (p)), xb)
-#define PK4_OUT(i)                                                                           \
+/* The passes over the input pairs: K groups (1 <= K <= 8) per pass, so each broadcast pair
+ * serves K groups (all the groups of a layer of up to 64 rows in one pass), and two pairs per
+ * loop iteration. ACCS##K declares the accumulators a0 .. a(K-1) holding their groups'
+ * biases, MADDS##K adds one pair's products, OUTS##K(O) finishes every group with O(i). */
+#define PK_LIST1(M, A, B) M(0, A, B)
+#define PK_LIST2(M, A, B) PK_LIST1(M, A, B); M(1, A, B)
+#define PK_LIST3(M, A, B) PK_LIST2(M, A, B); M(2, A, B)
+#define PK_LIST4(M, A, B) PK_LIST3(M, A, B); M(3, A, B)
+#define PK_LIST5(M, A, B) PK_LIST4(M, A, B); M(4, A, B)
+#define PK_LIST6(M, A, B) PK_LIST5(M, A, B); M(5, A, B)
+#define PK_LIST7(M, A, B) PK_LIST6(M, A, B); M(6, A, B)
+#define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
+/* One pass of K groups: BCAST(p) is the broadcast pair p, ACC / MADD / OUT the kernel's. */
+#define PK_PASS(K, T, BCAST, ACC, MADD, OUT)                                                 \
+    do {                                                                                     \
+        PK_LIST##K(ACC, 0, 0);                                                               \
+        for (p = 0; p + 2u <= full; p += 2u) {                                               \
+            const T xb0 = BCAST(p), xb1 = BCAST(p + 1u);                                     \
+            PK_LIST##K(MADD, p, xb0);                                                        \
+            PK_LIST##K(MADD, p + 1u, xb1);                                                   \
+        }                                                                                    \
+        if (p < full) {                                                                      \
+            const T xb = BCAST(p);                                                           \
+            PK_LIST##K(MADD, p, xb);                                                         \
+        }                                                                                    \
+        if (full != pairs) { /* the odd last column pairs with 0 (its weights' partner too) */ \
+            PK_LIST##K(MADD, full, xlast);                                                   \
+        }                                                                                    \
+        PK_LIST##K(OUT, 0, 0);                                                               \
+        g += (size_t)(K) * stride;                                                           \
+        grp += (K);                                                                          \
+    } while (0)
+/* Every group of a layer, eight or fewer per pass. */
+#define PK_LAYER(T, BCAST, ACC, MADD, OUT)                                                   \
+    do {                                                                                     \
+        while (grp < h.n_groups) {                                                           \
+            switch (h.n_groups - grp) {                                                      \
+            case 1: PK_PASS(1, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 2: PK_PASS(2, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 3: PK_PASS(3, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 4: PK_PASS(4, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 5: PK_PASS(5, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 6: PK_PASS(6, T, BCAST, ACC, MADD, OUT); break;                             \
+            case 7: PK_PASS(7, T, BCAST, ACC, MADD, OUT); break;                             \
+            default: PK_PASS(8, T, BCAST, ACC, MADD, OUT); break;                            \
+            }                                                                                \
+        }                                                                                    \
+    } while (0)
+
+/* Input pair p (x[2p] in the low half) as one int32; memcpy: x is int16 storage. */
+static inline int32_t x_pair(const int16_t *x, unsigned p)
+{
+    int32_t v;
+    memcpy(&v, x + 2u * p, sizeof v);
+    return v;
+}
+
+/* The common start of a packed kernel: the head, the pair counts, the group stride, the odd
+ * last column with a zero partner. */
+#define PK_BEGIN(ROWS)                                                                       \
+    packed_head h;                                                                           \
+    const unsigned char *g = block + sizeof h;                                               \
+    unsigned pairs, full, grp = 0u, p;                                                       \
+    size_t stride;                                                                           \
+    int32_t last;                                                                            \
+    memcpy(&h, block, sizeof h);                                                             \
+    pairs = (h.n_in + 1u) / 2u;                                                              \
+    full = h.n_in / 2u;                                                                      \
+    stride = packed_group_bytes(h.n_in, ROWS);                                               \
+    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0
+
+/* SSE2: groups of four rows (biases at +0, multipliers at +16, pairs from +32). */
+#define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
+#define PK4_ACC(i, p_, xb_) lanes32x4 a##i = (lanes32x4)load128(g + (i) * stride)
+#define PK4_MADD(i, p, xb) a##i += (lanes32x4)_mm_madd_epi16(load128(g + (i) * stride + 32u + 16u * (size_t)(p)), xb)
+#define PK4_ACC_OUT(i, p_, xb_) _mm_storeu_si128((__m128i *)(void *)(acc + 4u * (grp + (i))), (__m128i)a##i)
+#define PK4_HIDDEN_OUT(i, p_, xb_)                                                              \
     do {                                                                                     \
         int32_t t[4], m[4];                                                                  \
         unsigned q;                                                                          \
@@ -761,101 +833,49 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
             y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
         }                                                                                    \
     } while (0)
-#define PK4_PASS(K, ACCS, MADDS, OUTS)                                                       \
-    do {                                                                                     \
-        ACCS;                                                                                \
-        for (p = 0; p < full; ++p) {                                                         \
-            int32_t pair;                                                                    \
-            __m128i xb;                                                                      \
-            memcpy(&pair, x + 2u * p, sizeof pair);                                          \
-            xb = _mm_set1_epi32(pair);                                                       \
-            MADDS;                                                                           \
-        }                                                                                    \
-        if (full != pairs) {                                                                 \
-            const __m128i xb = _mm_set1_epi32(last);                                         \
-            MADDS;                                                                           \
-        }                                                                                    \
-        OUTS;                                                                                \
-        g += (K) * stride;                                                                   \
-        grp += (K);                                                                          \
-    } while (0)
 
 static void hidden_packed_sse2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    packed_head h;
-    const unsigned char *g = block + sizeof h;
-    unsigned pairs, full, grp = 0u, p;
-    size_t stride;
-    int32_t last;
-    memcpy(&h, block, sizeof h);
-    pairs = (h.n_in + 1u) / 2u;
-    full = h.n_in / 2u;
-    stride = packed_group_bytes(h.n_in, 4u);
-    /* The odd last column pairs with 0 (its weight partner is 0 too). */
-    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0;
-    while (h.n_groups - grp >= 4u)
-        PK4_PASS(4u, PK4_ACC(0); PK4_ACC(1); PK4_ACC(2); PK4_ACC(3),
-                 PK4_MADD(0, p, xb); PK4_MADD(1, p, xb); PK4_MADD(2, p, xb); PK4_MADD(3, p, xb),
-                 PK4_OUT(0); PK4_OUT(1); PK4_OUT(2); PK4_OUT(3));
-    if (h.n_groups - grp >= 2u)
-        PK4_PASS(2u, PK4_ACC(0); PK4_ACC(1), PK4_MADD(0, p, xb); PK4_MADD(1, p, xb), PK4_OUT(0); PK4_OUT(1));
-    if (h.n_groups - grp == 1u)
-        PK4_PASS(1u, PK4_ACC(0), PK4_MADD(0, p, xb), PK4_OUT(0));
+    PK_BEGIN(4u);
+    const __m128i xlast = _mm_set1_epi32(last);
+    PK_LAYER(__m128i, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
 }
 
-/* AVX2: groups of eight rows, K groups per pass; eight rows requantised at once (requant8). */
-#define PK8_ACC(i) lanes32 a##i = (lanes32)load256(g + (i) * stride)
-#define PK8_MADD(i, p, xb) a##i += (lanes32)_mm256_madd_epi16(load256(g + (i) * stride + 64u + 32u * (p)), xb)
-#define PK8_OUT(i)                                                                           \
+static void acc32_packed_sse2(const unsigned char *block, const int16_t *x, int32_t *acc)
+{
+    PK_BEGIN(4u);
+    const __m128i xlast = _mm_set1_epi32(last);
+    PK_LAYER(__m128i, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
+}
+
+/* AVX2: groups of eight rows (biases at +0, multipliers at +32, pairs from +64), eight rows
+ * requantised at once (requant8). */
+#define PK8_BCAST(p) _mm256_set1_epi32(x_pair(x, p))
+#define PK8_ACC(i, p_, xb_) lanes32 a##i = (lanes32)load256(g + (i) * stride)
+#define PK8_MADD(i, p, xb) a##i += (lanes32)_mm256_madd_epi16(load256(g + (i) * stride + 64u + 32u * (size_t)(p)), xb)
+#define PK8_ACC_OUT(i, p_, xb_) _mm256_storeu_si256((__m256i *)(void *)(acc + 8u * (grp + (i))), (__m256i)a##i)
+#define PK8_HIDDEN_OUT(i, p_, xb_)                                                              \
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
                      requant8((__m256i)a##i, load256(g + (i) * stride + 32u), round, top, shift, &big))
-#define PK8_PASS(K, ACCS, MADDS, OUTS)                                                       \
-    do {                                                                                     \
-        ACCS;                                                                                \
-        for (p = 0; p < full; ++p) {                                                         \
-            int32_t pair;                                                                    \
-            __m256i xb;                                                                      \
-            memcpy(&pair, x + 2u * p, sizeof pair);                                          \
-            xb = _mm256_set1_epi32(pair);                                                    \
-            MADDS;                                                                           \
-        }                                                                                    \
-        if (full != pairs) {                                                                 \
-            const __m256i xb = _mm256_set1_epi32(last);                                      \
-            MADDS;                                                                           \
-        }                                                                                    \
-        OUTS;                                                                                \
-        g += (K) * stride;                                                                   \
-        grp += (K);                                                                          \
-    } while (0)
 
 AVX2 static void hidden_packed_avx2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
 {
-    packed_head h;
-    const unsigned char *g = block + sizeof h;
-    unsigned pairs, full, grp = 0u, p;
-    size_t stride;
-    int32_t last;
-    __m256i round, top, big = _mm256_setzero_si256();
-    __m128i shift;
-    memcpy(&h, block, sizeof h);
-    pairs = (h.n_in + 1u) / 2u;
-    full = h.n_in / 2u;
-    stride = packed_group_bytes(h.n_in, 8u);
-    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0;
-    round = _mm256_set1_epi64x(h.round);
-    top = _mm256_set1_epi64x(h.top);
-    shift = _mm_cvtsi32_si128((int)h.shift);
-    while (h.n_groups - grp >= 4u)
-        PK8_PASS(4u, PK8_ACC(0); PK8_ACC(1); PK8_ACC(2); PK8_ACC(3),
-                 PK8_MADD(0, p, xb); PK8_MADD(1, p, xb); PK8_MADD(2, p, xb); PK8_MADD(3, p, xb),
-                 PK8_OUT(0); PK8_OUT(1); PK8_OUT(2); PK8_OUT(3));
-    if (h.n_groups - grp >= 2u)
-        PK8_PASS(2u, PK8_ACC(0); PK8_ACC(1), PK8_MADD(0, p, xb); PK8_MADD(1, p, xb), PK8_OUT(0); PK8_OUT(1));
-    if (h.n_groups - grp == 1u)
-        PK8_PASS(1u, PK8_ACC(0), PK8_MADD(0, p, xb), PK8_OUT(0));
+    PK_BEGIN(8u);
+    const __m256i xlast = _mm256_set1_epi32(last);
+    const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
+    const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
+    __m256i big = _mm256_setzero_si256();
+    PK_LAYER(__m256i, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
     if (!_mm256_testz_si256(big, big))
         *sat = 1u;
+}
+
+AVX2 static void acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
+{
+    PK_BEGIN(8u);
+    const __m256i xlast = _mm256_set1_epi32(last);
+    PK_LAYER(__m256i, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
 }
 
 void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
@@ -864,6 +884,14 @@ void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x
         hidden_packed_avx2((const unsigned char *)block, x, y, sat);
     else
         hidden_packed_sse2((const unsigned char *)block, x, y, sat);
+}
+
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        acc32_packed_avx2((const unsigned char *)block, x, acc);
+    else
+        acc32_packed_sse2((const unsigned char *)block, x, acc);
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)
