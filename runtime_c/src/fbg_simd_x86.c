@@ -626,15 +626,18 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
 
 /* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------ */
 
-/* A packed hidden layer: this head, then per group of `rows` output rows (8 for AVX2, 4 for
- * SSE2) the rows' biases as int32 (|bias| <= INT32_MAX in an acc32 layer), their multipliers,
- * and for each input pair p the 2 * rows int16 (w[r][2p], w[r][2p+1]) of the group's rows r.
- * Rows past n_out and the odd last column are zeros; int8 weights are widened (the same
- * values). A vector of a pair's weights against x[2p], x[2p+1] broadcast to every lane gives,
- * through (V)PMADDWD, each row's share of that pair in the row's own int32 lane, so a group's
- * accumulator holds the group's row sums once every pair is added: no horizontal sums. Every
- * block and group is a multiple of 32 bytes long, so with the buffer FBG_PACK_ALIGN-aligned
- * every vector lies aligned. */
+/* A packed layer: this head, then its output rows in groups of `rows` (8 for AVX2, 4 for
+ * SSE2; the rows past n_out are zeros), the groups in passes of up to PACK_PASS (eight
+ * groups, then the rest: the kernel's passes over the inputs). A pass of K groups holds the K
+ * groups' biases as int32 (|bias| <= INT32_MAX in an acc32 layer), then their multipliers,
+ * then for each input pair p the K groups' vectors of 2 * rows int16, (w[r][2p], w[r][2p+1])
+ * for the group's rows r (the odd last column's partner is 0; int8 weights are widened, the
+ * same values). A pair's vector against x[2p], x[2p+1] broadcast to every lane gives, through
+ * (V)PMADDWD, each row's share of that pair in the row's own int32 lane: a group's
+ * accumulator holds its rows' sums once every pair is added, with no horizontal sums, and
+ * the pass reads its vectors in order. Every block is a multiple of 32 bytes long, so with the
+ * buffer FBG_PACK_ALIGN-aligned every vector lies aligned. */
+#define PACK_PASS 8u
 typedef struct {
     int64_t round;      /* 2^(shift - 1) */
     int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
@@ -690,7 +693,7 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
 {
     const unsigned pairs = (ly->n_in + 1u) / 2u;
     packed_head h;
-    unsigned g, i, p, k;
+    unsigned g0, k, g, i, p, c;
     memset(&h, 0, sizeof h);
     h.shift = ly->shift;
     h.round = (int64_t)1 << (ly->shift - 1u);
@@ -700,26 +703,29 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
     h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
     memcpy(dst, &h, sizeof h);
     dst += sizeof h;
-    for (g = 0; g < h.n_groups; ++g) {
-        for (i = 0; i < rows; ++i) {
-            const unsigned r = g * rows + i;
-            const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
-            const int32_t mult = r < ly->n_out ? ly->mult[r] : 0;
-            memcpy(dst + 4u * i, &bias, sizeof bias);
-            memcpy(dst + 4u * (rows + i), &mult, sizeof mult);
-        }
-        dst += 8u * rows;
+    for (g0 = 0; g0 < h.n_groups; g0 += k) {
+        k = h.n_groups - g0 < PACK_PASS ? h.n_groups - g0 : PACK_PASS;
+        for (g = g0; g < g0 + k; ++g)
+            for (i = 0; i < rows; ++i) {
+                const unsigned r = g * rows + i;
+                const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
+                const int32_t mult = r < ly->n_out ? ly->mult[r] : 0;
+                memcpy(dst + 4u * ((g - g0) * rows + i), &bias, sizeof bias);
+                memcpy(dst + 4u * ((k + g - g0) * rows + i), &mult, sizeof mult);
+            }
+        dst += 8u * k * rows;
         for (p = 0; p < pairs; ++p)
-            for (i = 0; i < rows; ++i)
-                for (k = 0; k < 2u; ++k) {
-                    const unsigned r = g * rows + i, j = 2u * p + k;
-                    int16_t w = 0;
-                    if (r < ly->n_out && j < ly->n_in)
-                        w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
-                                              : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
-                    memcpy(dst, &w, sizeof w);
-                    dst += sizeof w;
-                }
+            for (g = g0; g < g0 + k; ++g)
+                for (i = 0; i < rows; ++i)
+                    for (c = 0; c < 2u; ++c) {
+                        const unsigned r = g * rows + i, j = 2u * p + c;
+                        int16_t w = 0;
+                        if (r < ly->n_out && j < ly->n_in)
+                            w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
+                                                  : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+                        memcpy(dst, &w, sizeof w);
+                        dst += sizeof w;
+                    }
     }
 }
 
@@ -746,10 +752,11 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
     memcpy(base, &hd, sizeof hd);
 }
 
-/* The passes over the input pairs: K groups (1 <= K <= 8) per pass, so each broadcast pair
- * serves K groups (all the groups of a layer of up to 64 rows in one pass), and two pairs per
- * loop iteration. ACCS##K declares the accumulators a0 .. a(K-1) holding their groups'
- * biases, MADDS##K adds one pair's products, OUTS##K(O) finishes every group with O(i). */
+/* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
+ * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
+ * in one pass), two pairs per loop iteration. In a pass at b (VB bytes a vector): the biases
+ * at b, the multipliers at b + K VB, the vector of group i for pair p at
+ * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
 #define PK_LIST1(M, A, B) M(0, A, B)
 #define PK_LIST2(M, A, B) PK_LIST1(M, A, B); M(1, A, B)
 #define PK_LIST3(M, A, B) PK_LIST2(M, A, B); M(2, A, B)
@@ -758,42 +765,49 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 #define PK_LIST6(M, A, B) PK_LIST5(M, A, B); M(5, A, B)
 #define PK_LIST7(M, A, B) PK_LIST6(M, A, B); M(6, A, B)
 #define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
-/* One pass of K groups: BCAST(p) is the broadcast pair p, ACC / MADD / OUT the kernel's. */
-#define PK_PASS(K, T, BCAST, ACC, MADD, OUT)                                                 \
+/* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p; ACC(i) declares
+ * accumulator a##i from its bias, MADD(i, w, xb) adds the products of the vector at w + i VB,
+ * OUT(i) finishes group i. */
+#define PK_PASS(K, T, VB, BCAST, ACC, MADD, OUT)                                             \
     do {                                                                                     \
+        const size_t kb = (size_t)(K) * (VB);                                                \
+        const unsigned char *w = b + 2u * kb;                                                \
         PK_LIST##K(ACC, 0, 0);                                                               \
-        for (p = 0; p + 2u <= full; p += 2u) {                                               \
+        for (p = 0; p + 2u <= full; p += 2u, w += 2u * kb) {                                 \
             const T xb0 = BCAST(p), xb1 = BCAST(p + 1u);                                     \
-            PK_LIST##K(MADD, p, xb0);                                                        \
-            PK_LIST##K(MADD, p + 1u, xb1);                                                   \
+            PK_LIST##K(MADD, w, xb0);                                                        \
+            PK_LIST##K(MADD, w + kb, xb1);                                                   \
         }                                                                                    \
         if (p < full) {                                                                      \
             const T xb = BCAST(p);                                                           \
-            PK_LIST##K(MADD, p, xb);                                                         \
+            PK_LIST##K(MADD, w, xb);                                                         \
+            w += kb;                                                                         \
         }                                                                                    \
-        if (full != pairs) { /* the odd last column pairs with 0 (its weights' partner too) */ \
-            PK_LIST##K(MADD, full, xlast);                                                   \
+        if (full != pairs) { /* the odd last column, paired with 0 */                        \
+            PK_LIST##K(MADD, w, xlast);                                                      \
+            w += kb;                                                                         \
         }                                                                                    \
         PK_LIST##K(OUT, 0, 0);                                                               \
-        g += (size_t)(K) * stride;                                                           \
+        b = w;                                                                               \
         grp += (K);                                                                          \
     } while (0)
-/* Every group of a layer, eight or fewer per pass. */
-#define PK_LAYER(T, BCAST, ACC, MADD, OUT)                                                   \
+/* Every group of a layer: passes of PACK_PASS groups, then one of the rest. */
+#define PK_LAYER(T, VB, BCAST, ACC, MADD, OUT)                                               \
     do {                                                                                     \
-        while (grp < h.n_groups) {                                                           \
-            switch (h.n_groups - grp) {                                                      \
-            case 1: PK_PASS(1, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 2: PK_PASS(2, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 3: PK_PASS(3, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 4: PK_PASS(4, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 5: PK_PASS(5, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 6: PK_PASS(6, T, BCAST, ACC, MADD, OUT); break;                             \
-            case 7: PK_PASS(7, T, BCAST, ACC, MADD, OUT); break;                             \
-            default: PK_PASS(8, T, BCAST, ACC, MADD, OUT); break;                            \
-            }                                                                                \
+        while (h.n_groups - grp >= PACK_PASS)                                                \
+            PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT);                                        \
+        switch (h.n_groups - grp) {                                                          \
+        case 1: PK_PASS(1, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 2: PK_PASS(2, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 3: PK_PASS(3, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 4: PK_PASS(4, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 5: PK_PASS(5, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 6: PK_PASS(6, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 7: PK_PASS(7, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        default: break;                                                                      \
         }                                                                                    \
     } while (0)
+typedef char pack_pass_is_8[PACK_PASS == 8u ? 1 : -1]; /* PK_LAYER's passes */
 
 /* Input pair p (x[2p] in the low half) as one int32; memcpy: x is int16 storage. */
 static inline int32_t x_pair(const int16_t *x, unsigned p)
@@ -803,79 +817,81 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
     return v;
 }
 
-/* The common start of a packed kernel: the head, the pair counts, the group stride, the odd
- * last column with a zero partner. */
-#define PK_BEGIN(ROWS)                                                                       \
+/* The common start of a packed kernel: the head, the pair counts, the odd last column with a
+ * zero partner. */
+#define PK_BEGIN                                                                             \
     packed_head h;                                                                           \
-    const unsigned char *g = block + sizeof h;                                               \
+    const unsigned char *b = block + sizeof h;                                               \
     unsigned pairs, full, grp = 0u, p;                                                       \
-    size_t stride;                                                                           \
     int32_t last;                                                                            \
     memcpy(&h, block, sizeof h);                                                             \
     pairs = (h.n_in + 1u) / 2u;                                                              \
     full = h.n_in / 2u;                                                                      \
-    stride = packed_group_bytes(h.n_in, ROWS);                                               \
     last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0
 
-/* SSE2: groups of four rows (biases at +0, multipliers at +16, pairs from +32). */
+/* SSE2: groups of four rows, 16-byte vectors; the sums requantised by the scalar rule. */
 #define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
-#define PK4_ACC(i, p_, xb_) lanes32x4 a##i = (lanes32x4)load128(g + (i) * stride)
-#define PK4_MADD(i, p, xb) a##i += (lanes32x4)_mm_madd_epi16(load128(g + (i) * stride + 32u + 16u * (size_t)(p)), xb)
+#define PK4_ACC(i, p_, xb_) lanes32x4 a##i = (lanes32x4)load128(b + 16u * (i))
+#define PK4_MADD(i, w, xb) a##i += (lanes32x4)_mm_madd_epi16(load128((w) + 16u * (i)), xb)
 #define PK4_ACC_OUT(i, p_, xb_) _mm_storeu_si128((__m128i *)(void *)(acc + 4u * (grp + (i))), (__m128i)a##i)
-#define PK4_HIDDEN_OUT(i, p_, xb_)                                                              \
+#define PK4_HIDDEN_OUT(i, p_, xb_)                                                           \
     do {                                                                                     \
         int32_t t[4], m[4];                                                                  \
         unsigned q;                                                                          \
         _mm_storeu_si128((__m128i *)(void *)t, (__m128i)a##i);                               \
-        memcpy(m, g + (i) * stride + 16u, sizeof m);                                         \
+        memcpy(m, b + kb + 16u * (i), sizeof m);                                             \
         for (q = 0; q < 4u; ++q) {                                                           \
             int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], h.shift);                     \
             y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
         }                                                                                    \
     } while (0)
 
-static void hidden_packed_sse2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
+/* Not inlined into the kernel dispatch, which then stays a plain jump to either kernel. */
+__attribute__((noinline)) static void hidden_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                         int16_t *y, uint32_t *sat)
 {
-    PK_BEGIN(4u);
+    PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
-    PK_LAYER(__m128i, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
+    PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
 }
 
-static void acc32_packed_sse2(const unsigned char *block, const int16_t *x, int32_t *acc)
+__attribute__((noinline)) static void acc32_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                        int32_t *acc)
 {
-    PK_BEGIN(4u);
+    PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
-    PK_LAYER(__m128i, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
+    PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
 }
 
-/* AVX2: groups of eight rows (biases at +0, multipliers at +32, pairs from +64), eight rows
- * requantised at once (requant8). */
+/* AVX2: groups of eight rows, 32-byte vectors; eight rows requantised at once (requant8). */
 #define PK8_BCAST(p) _mm256_set1_epi32(x_pair(x, p))
-#define PK8_ACC(i, p_, xb_) lanes32 a##i = (lanes32)load256(g + (i) * stride)
-#define PK8_MADD(i, p, xb) a##i += (lanes32)_mm256_madd_epi16(load256(g + (i) * stride + 64u + 32u * (size_t)(p)), xb)
+#define PK8_ACC(i, p_, xb_) lanes32 a##i = (lanes32)load256(b + 32u * (i))
+#define PK8_MADD(i, w, xb) a##i += (lanes32)_mm256_madd_epi16(load256((w) + 32u * (i)), xb)
 #define PK8_ACC_OUT(i, p_, xb_) _mm256_storeu_si256((__m256i *)(void *)(acc + 8u * (grp + (i))), (__m256i)a##i)
-#define PK8_HIDDEN_OUT(i, p_, xb_)                                                              \
+#define PK8_HIDDEN_OUT(i, p_, xb_)                                                           \
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
-                     requant8((__m256i)a##i, load256(g + (i) * stride + 32u), round, top, shift, &big))
+                     requant8((__m256i)a##i, load256(b + kb + 32u * (i)), round, top, shift, &big))
 
-AVX2 static void hidden_packed_avx2(const unsigned char *block, const int16_t *x, int16_t *y, uint32_t *sat)
+AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                              int16_t *y, uint32_t *sat)
 {
-    PK_BEGIN(8u);
+    PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
     const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
     __m256i big = _mm256_setzero_si256();
-    PK_LAYER(__m256i, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
+    PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
     if (!_mm256_testz_si256(big, big))
         *sat = 1u;
 }
 
-AVX2 static void acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
+AVX2 __attribute__((noinline)) static void acc32_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                             int32_t *acc)
 {
-    PK_BEGIN(8u);
+    PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
-    PK_LAYER(__m256i, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
+    PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
 }
 
 void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
