@@ -1,7 +1,9 @@
-"""Host SIMD dense-layer kernels (SSE2, AVX2, NEON): every output record equals the portable
-C's and the integer reference's, on golden sessions and on random streams through random
-models (odd widths, int8 weights, weights at +-32767 / -32768 within the int32 proof,
-saturating activations).
+"""Host SIMD dense-layer kernels (SSE2, AVX2, NEON), on the weights as the model holds them
+and packed by ``fbg_pack``: every output record equals the portable C's and the integer
+reference's, on golden sessions and on random streams through random models (odd widths,
+int8 weights, weights at +-32767 / -32768 within the int32 proof, saturating activations,
+int64-accumulator layers between int32 ones); ``fbg_pack`` / ``fbg_use_pack`` refuse bad
+buffers and states.
 
 x86-64 kernels run in this process (``Runtime(kernel=...)``) and in a natively built replay
 of golden vectors (tests/simd_replay.c); NEON runs the same replay cross-compiled with
@@ -13,6 +15,7 @@ import os
 import platform
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -22,7 +25,7 @@ from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
-from fbgforce.pybind import KERNELS, ArgError, Runtime, ffi, lib
+from fbgforce.pybind import KERNEL_NAME, KERNELS, PACKED_KERNELS, ArgError, Runtime, ffi, lib
 from fbgforce.target import golden
 from fbgforce.target.report import load_quantized, recording_fm
 
@@ -131,8 +134,18 @@ def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz
     return q, intref.nm_to_fm(wl)
 
 
-#: The kernels with a packed weight layout (fbg_pack).
-PACKED_KERNELS = ("sse2", "avx2")
+def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+    """:func:`_realistic_model` with every other layer (hidden and output ones, alternating
+    between the nets) on int64 accumulators, which run the portable C between SIMD layers
+    and are left out of the packed form."""
+    q, wl_fm = _realistic_model(seed, sizes, bits, memory)
+    for n, net in enumerate(q.nets):
+        for i, layer in enumerate(net):
+            if (i + n) % 2 == 0:
+                layer.acc32 = False
+    return q, wl_fm
+
+
 PAPER = ((70, 50, 20), (70, 50, 20), (70, 50, 40))
 ODD = ((13, 7, 3), (1, 9, 17), (33, 5, 2))
 WIDE = ((128, 3, 127), (31, 128, 1), (9, 16, 24))
@@ -146,6 +159,7 @@ CASES = {
     "extreme-odd-int16": (_extreme_model, 5, ODD, 16, MEM5),
     "extreme-wide-int16": (_extreme_model, 6, WIDE, 16, fm.Memory()),
     "extreme-odd-int8": (_extreme_model, 7, ODD, 8, MEM5),
+    "mixed-acc-odd-int16": (_mixed_acc_model, 2, ODD, 16, MEM5),
 }
 
 
@@ -202,6 +216,72 @@ def test_kernel_selection():
     assert set(KERNELS) == {"auto", "portable", "sse2", "avx2", "neon"}
 
 
+def _aligned(size: int, offset: int = 0) -> tuple[Any, Any]:
+    """A cffi buffer of ``size`` bytes at ``offset`` past an FBG_PACK_ALIGN boundary (the
+    memory, to be held, and the pointer)."""
+    mem = ffi.new("uint8_t[]", size + 2 * lib.FBG_PACK_ALIGN)
+    start = (-int(ffi.cast("uintptr_t", mem))) % lib.FBG_PACK_ALIGN + offset
+    return mem, mem + start
+
+
+def test_pack_refuses_bad_buffers_and_states():
+    kernels = [k for k in host_kernels() if k in PACKED_KERNELS]
+    if not kernels:
+        pytest.skip(f"no kernel with a packed form on {platform.machine()}")
+    q, wl_fm = _realistic_model(11, ODD, 16, MEM5)
+    data = blob.to_bytes(q)
+    rt = Runtime(data, kernel=kernels[0], packed=False)  # holds the model
+    model, st = rt._model, ffi.new("fbg_state *")
+    # Not initialised: no size, FBG_ERR_STATE; NULL pointers: FBG_ERR_NULL.
+    assert lib.fbg_pack_bytes(ffi.NULL) == 0 and lib.fbg_pack_bytes(st) == 0
+    mem, buf = _aligned(1 << 16)
+    assert lib.fbg_pack(st, buf, 1 << 16) == lib.FBG_ERR_STATE
+    assert lib.fbg_use_pack(st, ffi.NULL) == lib.FBG_ERR_STATE
+    assert lib.fbg_pack(ffi.NULL, buf, 1 << 16) == lib.FBG_ERR_NULL
+    assert lib.fbg_use_pack(ffi.NULL, buf) == lib.FBG_ERR_NULL
+    # The portable kernel has no packed form.
+    assert lib.fbg_init(st, model, lib.FBG_OPT_KERNEL_PORTABLE) == lib.FBG_OK
+    assert lib.fbg_pack_bytes(st) == 0
+    assert lib.fbg_pack(st, buf, 1 << 16) == lib.FBG_ERR_ARG and st.packed == ffi.NULL
+    for kernel in kernels:
+        assert lib.fbg_init(st, model, KERNELS[kernel]) == lib.FBG_OK
+        size = lib.fbg_pack_bytes(st)
+        assert 0 < size <= 1 << 16
+        assert lib.fbg_pack(st, ffi.NULL, size) == lib.FBG_ERR_NULL
+        # Too small, or not FBG_PACK_ALIGN-aligned: FBG_ERR_ARG, the state still unpacked.
+        assert lib.fbg_pack(st, buf, size - 1) == lib.FBG_ERR_ARG
+        for offset in (1, 2, 8, 16):
+            _, off = _aligned(size, offset)
+            assert lib.fbg_pack(st, off, size) == lib.FBG_ERR_ARG
+        assert st.packed == ffi.NULL
+        # Not a packed form (zeros), misaligned, another kernel's or another model's: refused.
+        assert lib.fbg_use_pack(st, buf) == lib.FBG_ERR_ARG
+        assert lib.fbg_pack(st, buf, size) == lib.FBG_OK and st.packed == buf
+        assert lib.fbg_use_pack(st, buf + 1) == lib.FBG_ERR_ARG and st.packed == buf
+        other = Runtime(data, kernel=[k for k in ("sse2", "avx2") if k != kernel][0]
+                        if len(kernels) > 1 else "portable", packed=False)
+        if other.kernel in PACKED_KERNELS:
+            assert lib.fbg_use_pack(other._state, buf) == lib.FBG_ERR_ARG
+        twin = Runtime(data, kernel=kernel, packed=False)  # the same blob, another model struct
+        assert lib.fbg_use_pack(twin._state, buf) == lib.FBG_ERR_ARG
+        # Two states share one packed form; NULL goes back to the unpacked kernels; fbg_init
+        # forgets it, reset and tare keep it; every way, the bits of the portable C.
+        ref = Runtime(data, kernel="portable").run_raw(wl_fm).tobytes()
+        st2 = ffi.new("fbg_state *")
+        assert lib.fbg_init(st2, model, KERNELS[kernel]) == lib.FBG_OK
+        assert lib.fbg_use_pack(st2, buf) == lib.FBG_OK and st2.packed == buf
+        for state in (st, st2):
+            out = np.zeros(len(wl_fm), dtype=rt.run_raw(wl_fm[:0]).dtype)
+            assert lib.fbg_reset(state) == lib.FBG_OK and state.packed == buf
+            rows = np.ascontiguousarray(wl_fm, dtype=np.int32)
+            assert lib.fbg_run(state, ffi.cast("int32_t *", ffi.from_buffer(rows)), len(rows),
+                               ffi.cast("fbg_output *", ffi.from_buffer(out))) == lib.FBG_OK
+            assert out.tobytes() == ref
+        assert lib.fbg_use_pack(st2, ffi.NULL) == lib.FBG_OK and st2.packed == ffi.NULL
+        assert lib.fbg_init(st, model, KERNELS[kernel]) == lib.FBG_OK and st.packed == ffi.NULL
+    del mem
+
+
 # ---- golden sessions replayed by a C driver, natively and on aarch64 ------------------------
 
 def _golden_sources(out: Path, q: qz.QModel, wl_fm: np.ndarray, contact: np.ndarray | None) -> list[Path]:
@@ -240,12 +320,23 @@ def _build_replay(cc: str, session: Path, exe: Path, extra: list[str]) -> None:
     assert r.returncode == 0, r.stderr
 
 
-def _check_replay(cmd: list[str], kernels: list[int]) -> None:
-    r = subprocess.run(cmd + [hex(k) for k in kernels], capture_output=True, text=True, timeout=300)
+def _replay_args(kernels: list[int], packed: bool = True) -> list[str]:
+    """simd_replay arguments: each kernel, and (``packed``) once more from packed weights
+    where it has a packed form (a trailing "p")."""
+    args = [hex(k) for k in kernels]
+    if packed:
+        args += [hex(k) + "p" for k in kernels if KERNEL_NAME.get(k) in PACKED_KERNELS]
+    return args
+
+
+def _check_replay(cmd: list[str], args: list[str]) -> None:
+    r = subprocess.run(cmd + args, capture_output=True, text=True, timeout=300)
     lines = r.stdout.strip().splitlines()
-    assert r.returncode == 0 and len(lines) == len(kernels), r.stdout + r.stderr
-    for k, line in zip(kernels, lines):
-        assert line.startswith(f"kernel 0x{k:02x}: ") and line.endswith(", 0 differ"), line
+    assert r.returncode == 0 and len(lines) == len(args), r.stdout + r.stderr
+    for arg, line in zip(args, lines):
+        k, packed = int(arg.rstrip("p"), 16), arg.endswith("p")
+        assert line.startswith(f"kernel 0x{k:02x}{' packed' if packed else ''}: "), line
+        assert line.endswith(", 0 differ"), line
 
 
 def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
@@ -254,7 +345,7 @@ def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
     for i, session in enumerate(sessions):
         exe = tmp_path / f"replay{i}"
         _build_replay("cc", session, exe, [])
-        _check_replay([str(exe)], kernels)
+        _check_replay([str(exe)], _replay_args(kernels))
 
 
 def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
@@ -270,8 +361,8 @@ def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
             pytest.skip(f"the compiler has no sanitizer runtime here: {exc}")
         raise
     env = dict(os.environ, ASAN_OPTIONS="detect_leaks=0")
-    r = subprocess.run([str(exe)] + [hex(k) for k in [lib.FBG_OPT_KERNEL_PORTABLE] +
-                                     [KERNELS[k] for k in host_kernels()]],
+    r = subprocess.run([str(exe)] + _replay_args([lib.FBG_OPT_KERNEL_PORTABLE] +
+                                                 [KERNELS[k] for k in host_kernels()]),
                        capture_output=True, text=True, timeout=300, env=env)
     assert r.returncode == 0 and "ERROR" not in r.stderr, r.stdout + r.stderr
 
@@ -281,7 +372,12 @@ def test_golden_sessions_on_aarch64_neon_under_qemu(sessions, tmp_path):
     for i, session in enumerate(sessions):
         exe = tmp_path / f"replay{i}.a64"
         _build_replay("aarch64-linux-gnu-gcc", session, exe, ["-static"])
-        _check_replay(["qemu-aarch64", str(exe)], [lib.FBG_OPT_KERNEL_PORTABLE, lib.FBG_OPT_KERNEL_NEON])
+        _check_replay(["qemu-aarch64", str(exe)], _replay_args([lib.FBG_OPT_KERNEL_PORTABLE,
+                                                                lib.FBG_OPT_KERNEL_NEON]))
+    # NEON keeps its row kernels: no packed form there.
+    r = subprocess.run(["qemu-aarch64", str(exe), hex(lib.FBG_OPT_KERNEL_NEON) + "p"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 1 and "packed: cannot run here" in r.stdout, r.stdout + r.stderr
 
 
 def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
@@ -290,6 +386,9 @@ def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
     _require("cc")
     exe = tmp_path / "replay_portable"
     _build_replay("cc", sessions[1], exe, ["-DFBG_HOST_SIMD=0"])
-    _check_replay([str(exe)], [lib.FBG_OPT_KERNEL_PORTABLE])
+    _check_replay([str(exe)], [hex(lib.FBG_OPT_KERNEL_PORTABLE)])
     r = subprocess.run([str(exe), hex(lib.FBG_OPT_KERNEL_SSE2)], capture_output=True, text=True)
     assert r.returncode == 1 and "cannot run here" in r.stdout
+    # ... and has no packed form (fbg_pack_bytes 0).
+    r = subprocess.run([str(exe), hex(lib.FBG_OPT_KERNEL_PORTABLE) + "p"], capture_output=True, text=True)
+    assert r.returncode == 1 and "packed: cannot run here" in r.stdout
