@@ -98,7 +98,11 @@ def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool
     assert (room >= 0).all()
     bias = np.array([rng.integers(-min(r, 10**7), min(r, 10**7) + 1) for r in room], dtype=np.int64)
     mult = rng.integers(1 << 17, 1 << 21, n_out) * rng.choice([1, 1, 1, -1], n_out)
-    return qz.QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=30, acc32=True)
+    # The same scales at shift 30 or 40: the packed AVX2 kernel requantises in int32 lanes
+    # (shift <= 32, |mult| <= 2^(shift-1)) or in int64 ones.
+    shift = int(rng.choice([30, 40]))
+    mult = mult << (shift - 30)
+    return qz.QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=shift, acc32=True)
 
 
 def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:

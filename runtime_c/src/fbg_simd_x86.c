@@ -643,7 +643,8 @@ typedef struct {
     int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
     uint32_t shift;
     uint16_t n_in, n_out, n_groups;
-    uint16_t reserved[3];
+    uint16_t narrow;    /* 1: requant8_narrow is exact for every row (narrow_requant) */
+    uint16_t reserved[2];
 } packed_head;
 
 typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
@@ -689,6 +690,24 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
 
 /* One layer's block at dst. Plain stores through memcpy: the buffer's declared type is the
  * caller's. */
+/* Whether every row's requantised value before the clamp, floor((acc * mult + 2^(shift-1)) /
+ * 2^shift), is an int32 found in bits shift .. shift+31 of the int64 sum, which
+ * requant8_narrow takes: shift <= 32 keeps those bits inside the 64, and |mult| <= 2^(shift-1)
+ * bounds the sum by 2^(shift-1) (2^31 + 1) in magnitude (|acc| <= 2^31 in an acc32 layer), so
+ * the quotient lies in [-2^30 - 1, 2^30] (docs/fixed-point.md, "Host SIMD kernels"). */
+static int narrow_requant(const fbg_layer *ly)
+{
+    unsigned r;
+    if (ly->shift > 32u)
+        return 0;
+    for (r = 0; r < ly->n_out; ++r) {
+        const int64_t m = ly->mult[r];
+        if ((m < 0 ? -m : m) > ((int64_t)1 << (ly->shift - 1u)))
+            return 0;
+    }
+    return 1;
+}
+
 static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
 {
     const unsigned pairs = (ly->n_in + 1u) / 2u;
@@ -701,6 +720,7 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
     h.n_in = ly->n_in;
     h.n_out = ly->n_out;
     h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
+    h.narrow = (uint16_t)narrow_requant(ly);
     memcpy(dst, &h, sizeof h);
     dst += sizeof h;
     for (g0 = 0; g0 < h.n_groups; g0 += k) {
@@ -872,6 +892,28 @@ __attribute__((noinline)) static void acc32_packed_sse2(const unsigned char *blo
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
                      requant8((__m256i)a##i, load256(b + kb + 32u * (i)), round, top, shift, &big))
 
+/* requant8 where narrow_requant holds: t = acc * mult + round exactly in int64 (VPMULDQ),
+ * the quotient t >> shift is an int32 made of bits shift .. shift+31 of t (for the even rows
+ * a logical shift right brings them down, for the odd ones a shift left by 32 - shift lifts
+ * them into the high dword, and one blend puts the eight in row order), then ReLU (VPMAXSD)
+ * and the clamp at 32767 (VPACKSSDW saturates exactly there for values >= 0; the compare
+ * beside it raises fbg_sat16's flag). */
+AVX2 static inline __m128i requant8_narrow(__m256i acc, __m256i mult, __m256i round, __m128i shift,
+                                           __m128i lift, __m256i *big)
+{
+    const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, mult), round);
+    const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32),
+                                                         _mm256_srli_epi64(mult, 32)), round);
+    const __m256i q = _mm256_blend_epi32(_mm256_srl_epi64(t0, shift), _mm256_sll_epi64(t1, lift), 0xAA);
+    const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
+    *big = _mm256_or_si256(*big, _mm256_cmpgt_epi32(r, _mm256_set1_epi32(32767)));
+    return _mm_packs_epi32(_mm256_castsi256_si128(r), _mm256_extracti128_si256(r, 1));
+}
+
+#define PK8_NARROW_OUT(i, p_, xb_)                                                           \
+    _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
+                     requant8_narrow((__m256i)a##i, load256(b + kb + 32u * (i)), round, shift, lift, &big))
+
 AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned char *block, const int16_t *x,
                                                               int16_t *y, uint32_t *sat)
 {
@@ -879,8 +921,12 @@ AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned cha
     const __m256i xlast = _mm256_set1_epi32(last);
     const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
     const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
+    const __m128i lift = _mm_cvtsi32_si128(32 - (int)h.shift);
     __m256i big = _mm256_setzero_si256();
-    PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
+    if (h.narrow)
+        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_NARROW_OUT);
+    else
+        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
     if (!_mm256_testz_si256(big, big))
         *sat = 1u;
