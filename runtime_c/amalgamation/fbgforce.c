@@ -3423,6 +3423,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
+#include <stddef.h>
+#include <string.h>
+
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -3655,7 +3658,60 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_PACKED 1
+#else
+#define FBG_SIMD_PACKED 0
 #endif
+
+#if FBG_SIMD_PACKED
+/*
+ * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
+ * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
+ * (an int64-accumulator layer, which runs the portable C). */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
+ * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
+ * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
+ * FBG_MAX_WIDTH, a multiple of 8, always holds. */
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
+ * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+
+/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
+ * header is read with memcpy: the caller's buffer may have any declared type). */
+static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
+{
+    uint32_t off;
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
+                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
+    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
+}
+#endif /* FBG_SIMD_PACKED */
+#else
+#define FBG_SIMD_PACKED 0
+#endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
 #if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
@@ -4013,6 +4069,59 @@ uint32_t fbg_kernel(const fbg_state *state)
     return state->options & FBG_OPT_KERNEL_MASK;
 }
 
+size_t fbg_pack_bytes(const fbg_state *state)
+{
+#if FBG_SIMD_PACKED
+    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+        return 0u;
+    return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
+#else
+    (void)state;
+    return 0u;
+#endif
+}
+
+fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
+{
+    size_t need;
+    if (state == NULL || buf == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT(state)))
+        return FBG_ERR_STATE;
+    need = fbg_pack_bytes(state);
+    if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
+        return FBG_ERR_ARG;
+#if FBG_SIMD_PACKED
+    fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
+    state->packed = buf;
+#endif
+    return FBG_OK;
+}
+
+fbg_status fbg_use_pack(fbg_state *state, const void *packed)
+{
+    if (state == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT(state)))
+        return FBG_ERR_STATE;
+    if (packed != NULL) {
+#if FBG_SIMD_PACKED
+        fbg_pack_header h;
+        if (((uintptr_t)packed % FBG_PACK_ALIGN) != 0u)
+            return FBG_ERR_ARG;
+        memcpy(&h, packed, sizeof h);
+        if (h.magic != FBG_PACK_MAGIC || h.model != state->model ||
+            h.kernel != (state->options & FBG_OPT_KERNEL_MASK) ||
+            h.bytes != fbg_simd_pack_bytes(h.kernel, state->model))
+            return FBG_ERR_ARG;
+#else
+        return FBG_ERR_ARG;
+#endif
+    }
+    state->packed = packed;
+    return FBG_OK;
+}
+
 fbg_status fbg_reset(fbg_state *state)
 {
     return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
@@ -4052,8 +4161,10 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
     return FBG_OK;
 }
 
-/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h). */
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
+ * kernels write whole groups of 8 rows into them. */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
 
 #if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
@@ -4115,9 +4226,13 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 #endif
 }
 
-/* Run the hidden layers of a net on x; returns the input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+/* Run the hidden layers of net, net n of the model, on x; returns the input of the output
+ * layer. */
+static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
+#if !FBG_SIMD_PACKED
+    (void)n;
+#endif
 #if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
     return fbg_dsp_run_hidden(net, x, s->act, sat);
 #else
@@ -4128,6 +4243,12 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
+#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
+        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
+        if (block != NULL)
+            fbg_simd_hidden_packed(kernel, block, x, y, sat);
+        else
+#endif
         if (kernel != 0u)
             fbg_simd_hidden(kernel, ly, x, y, sat);
         else
@@ -4143,21 +4264,32 @@ static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t
 #endif
 }
 
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+/* The accumulators of every row of a net's output layer ly, layer l of net n. */
+static void output_accs(const fbg_state *s, unsigned n, unsigned l, const fbg_layer *ly,
+                        const int16_t *x, int64_t *acc)
 {
     unsigned r;
 #if FBG_HOST_SIMD
     uint32_t kernel = simd_kernel(s, ly);
     if (kernel != 0u) {
         int32_t acc32[FBG_MAX_WIDTH];
-        fbg_simd_acc32(kernel, ly, x, acc32);
+#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
+        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
+        if (block != NULL)
+            fbg_simd_acc32_packed(kernel, block, x, acc32);
+        else
+#endif
+            fbg_simd_acc32(kernel, ly, x, acc32);
         for (r = 0; r < ly->n_out; ++r)
             acc[r] = acc32[r];
         return;
     }
 #else
     (void)s;
+#endif
+#if !FBG_SIMD_PACKED
+    (void)n;
+    (void)l;
 #endif
 #if FBG_USE_DSP /* every row in one call */
     (void)r;
@@ -4332,9 +4464,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
-    x = run_hidden(s, &m->nets[FBG_NET_CONTACT], in, &sat);
+    x = run_hidden(s, FBG_NET_CONTACT, &m->nets[FBG_NET_CONTACT], in, &sat);
     last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
-    output_accs(s, last, x, acc);
+    output_accs(s, FBG_NET_CONTACT, m->nets[FBG_NET_CONTACT].n_layers - 1u, last, x, acc);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
     out->contact = acc[0] > 0 ? 1u : 0u;
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
@@ -4342,9 +4474,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (out->contact) {
         /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
-        x = run_hidden(s, &m->nets[FBG_NET_FORCE], in, &sat);
+        x = run_hidden(s, FBG_NET_FORCE, &m->nets[FBG_NET_FORCE], in, &sat);
         last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
-        output_accs(s, last, x, acc);
+        output_accs(s, FBG_NET_FORCE, m->nets[FBG_NET_FORCE].n_layers - 1u, last, x, acc);
         force_out = output_row(last, 0u, acc[0], &sat);
         out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
@@ -4357,9 +4489,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        x = run_hidden(s, &m->nets[FBG_NET_LOCATION], in, &sat);
+        x = run_hidden(s, FBG_NET_LOCATION, &m->nets[FBG_NET_LOCATION], in, &sat);
         last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        output_accs(s, last, x, acc);
+        output_accs(s, FBG_NET_LOCATION, m->nets[FBG_NET_LOCATION].n_layers - 1u, last, x, acc);
         out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
         out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
     }
@@ -4745,6 +4877,9 @@ fbg_status fbg_model_check(const fbg_model *model)
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
+#include <stddef.h>
+#include <string.h>
+
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -4977,7 +5112,60 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_PACKED 1
+#else
+#define FBG_SIMD_PACKED 0
 #endif
+
+#if FBG_SIMD_PACKED
+/*
+ * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
+ * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
+ * (an int64-accumulator layer, which runs the portable C). */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
+ * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
+ * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
+ * FBG_MAX_WIDTH, a multiple of 8, always holds. */
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
+ * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+
+/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
+ * header is read with memcpy: the caller's buffer may have any declared type). */
+static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
+{
+    uint32_t off;
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
+                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
+    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
+}
+#endif /* FBG_SIMD_PACKED */
+#else
+#define FBG_SIMD_PACKED 0
+#endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
 
@@ -5197,6 +5385,9 @@ typedef int fbg_simd_neon_unused;
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
+#include <stddef.h>
+#include <string.h>
+
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -5429,7 +5620,60 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_PACKED 1
+#else
+#define FBG_SIMD_PACKED 0
 #endif
+
+#if FBG_SIMD_PACKED
+/*
+ * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
+ * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
+ * (an int64-accumulator layer, which runs the portable C). */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
+ * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
+ * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
+ * FBG_MAX_WIDTH, a multiple of 8, always holds. */
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
+ * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+
+/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
+ * header is read with memcpy: the caller's buffer may have any declared type). */
+static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
+{
+    uint32_t off;
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
+                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
+    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
+}
+#endif /* FBG_SIMD_PACKED */
+#else
+#define FBG_SIMD_PACKED 0
+#endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
 
@@ -6018,6 +6262,338 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
         *sat = 1u;
 }
 
+/* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------ */
+
+/* A packed layer: this head, then its output rows in groups of `rows` (8 for AVX2, 4 for
+ * SSE2; the rows past n_out are zeros), the groups in passes of up to PACK_PASS (eight
+ * groups, then the rest: the kernel's passes over the inputs). A pass of K groups holds the K
+ * groups' biases as int32 (|bias| <= INT32_MAX in an acc32 layer), then their multipliers,
+ * then for each input pair p the K groups' vectors of 2 * rows int16, (w[r][2p], w[r][2p+1])
+ * for the group's rows r (the odd last column's partner is 0; int8 weights are widened, the
+ * same values). A pair's vector against x[2p], x[2p+1] broadcast to every lane gives, through
+ * (V)PMADDWD, each row's share of that pair in the row's own int32 lane: a group's
+ * accumulator holds its rows' sums once every pair is added, with no horizontal sums, and
+ * the pass reads its vectors in order. Every block is a multiple of 32 bytes long, so with the
+ * buffer FBG_PACK_ALIGN-aligned every vector lies aligned. */
+#define PACK_PASS 8u
+typedef struct {
+    int64_t round;      /* 2^(shift - 1) */
+    int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
+    uint32_t shift;
+    uint16_t n_in, n_out, n_groups;
+    uint16_t narrow;    /* 1: requant8_narrow is exact for every row (narrow_requant) */
+    uint16_t reserved[2];
+} packed_head;
+
+typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
+
+#define PACK_HEADER_BYTES ((sizeof(fbg_pack_header) + 31u) & ~(size_t)31u)
+
+/* Rows per group of a kernel's packed form; 0: no packed form. */
+static unsigned pack_rows(uint32_t kernel)
+{
+    return kernel == FBG_OPT_KERNEL_AVX2 ? 8u : kernel == FBG_OPT_KERNEL_SSE2 ? 4u : 0u;
+}
+
+/* Bytes of one group: biases and multipliers (4 bytes a row each), then 2 int16 a row per pair. */
+static size_t packed_group_bytes(unsigned n_in, unsigned rows)
+{
+    return (size_t)rows * (8u + 4u * ((n_in + 1u) / 2u));
+}
+
+static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
+{
+    return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
+}
+
+/* The layers the packed form holds: the acc32 ones. */
+static int packed_layer(const fbg_net *net, unsigned l)
+{
+    return net->layers[l].acc32;
+}
+
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
+{
+    const unsigned rows = pack_rows(kernel);
+    size_t total = PACK_HEADER_BYTES;
+    unsigned n, l;
+    if (rows == 0u)
+        return 0u;
+    for (n = 0; n < FBG_N_NETS; ++n)
+        for (l = 0; l < m->nets[n].n_layers; ++l)
+            if (packed_layer(&m->nets[n], l))
+                total += packed_layer_bytes(&m->nets[n].layers[l], rows);
+    return total;
+}
+
+/* One layer's block at dst. Plain stores through memcpy: the buffer's declared type is the
+ * caller's. */
+/* Whether every row's requantised value before the clamp, floor((acc * mult + 2^(shift-1)) /
+ * 2^shift), is an int32 found in bits shift .. shift+31 of the int64 sum, which
+ * requant8_narrow takes: shift <= 32 keeps those bits inside the 64, and |mult| <= 2^(shift-1)
+ * bounds the sum by 2^(shift-1) (2^31 + 1) in magnitude (|acc| <= 2^31 in an acc32 layer), so
+ * the quotient lies in [-2^30 - 1, 2^30] (docs/fixed-point.md, "Host SIMD kernels"). */
+static int narrow_requant(const fbg_layer *ly)
+{
+    unsigned r;
+    if (ly->shift > 32u)
+        return 0;
+    for (r = 0; r < ly->n_out; ++r) {
+        const int64_t m = ly->mult[r];
+        if ((m < 0 ? -m : m) > ((int64_t)1 << (ly->shift - 1u)))
+            return 0;
+    }
+    return 1;
+}
+
+static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
+{
+    const unsigned pairs = (ly->n_in + 1u) / 2u;
+    packed_head h;
+    unsigned g0, k, g, i, p, c;
+    memset(&h, 0, sizeof h);
+    h.shift = ly->shift;
+    h.round = (int64_t)1 << (ly->shift - 1u);
+    h.top = ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX;
+    h.n_in = ly->n_in;
+    h.n_out = ly->n_out;
+    h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
+    h.narrow = (uint16_t)narrow_requant(ly);
+    memcpy(dst, &h, sizeof h);
+    dst += sizeof h;
+    for (g0 = 0; g0 < h.n_groups; g0 += k) {
+        k = h.n_groups - g0 < PACK_PASS ? h.n_groups - g0 : PACK_PASS;
+        for (g = g0; g < g0 + k; ++g)
+            for (i = 0; i < rows; ++i) {
+                const unsigned r = g * rows + i;
+                const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
+                const int32_t mult = r < ly->n_out ? ly->mult[r] : 0;
+                memcpy(dst + 4u * ((g - g0) * rows + i), &bias, sizeof bias);
+                memcpy(dst + 4u * ((k + g - g0) * rows + i), &mult, sizeof mult);
+            }
+        dst += 8u * k * rows;
+        for (p = 0; p < pairs; ++p)
+            for (g = g0; g < g0 + k; ++g)
+                for (i = 0; i < rows; ++i)
+                    for (c = 0; c < 2u; ++c) {
+                        const unsigned r = g * rows + i, j = 2u * p + c;
+                        int16_t w = 0;
+                        if (r < ly->n_out && j < ly->n_in)
+                            w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
+                                                  : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+                        memcpy(dst, &w, sizeof w);
+                        dst += sizeof w;
+                    }
+    }
+}
+
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
+{
+    const unsigned rows = pack_rows(kernel);
+    unsigned char *base = (unsigned char *)buf;
+    fbg_pack_header hd;
+    size_t off = PACK_HEADER_BYTES;
+    unsigned n, l;
+    memset(&hd, 0, sizeof hd);
+    memset(base, 0, PACK_HEADER_BYTES);
+    for (n = 0; n < FBG_N_NETS; ++n)
+        for (l = 0; l < m->nets[n].n_layers; ++l)
+            if (packed_layer(&m->nets[n], l)) {
+                pack_layer(&m->nets[n].layers[l], rows, base + off);
+                hd.layer_off[n][l] = (uint32_t)off;
+                off += packed_layer_bytes(&m->nets[n].layers[l], rows);
+            }
+    hd.magic = FBG_PACK_MAGIC;
+    hd.kernel = kernel;
+    hd.model = m;
+    hd.bytes = off;
+    memcpy(base, &hd, sizeof hd);
+}
+
+/* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
+ * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
+ * in one pass), two pairs per loop iteration. In a pass at b (VB bytes a vector): the biases
+ * at b, the multipliers at b + K VB, the vector of group i for pair p at
+ * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
+#define PK_LIST1(M, A, B) M(0, A, B)
+#define PK_LIST2(M, A, B) PK_LIST1(M, A, B); M(1, A, B)
+#define PK_LIST3(M, A, B) PK_LIST2(M, A, B); M(2, A, B)
+#define PK_LIST4(M, A, B) PK_LIST3(M, A, B); M(3, A, B)
+#define PK_LIST5(M, A, B) PK_LIST4(M, A, B); M(4, A, B)
+#define PK_LIST6(M, A, B) PK_LIST5(M, A, B); M(5, A, B)
+#define PK_LIST7(M, A, B) PK_LIST6(M, A, B); M(6, A, B)
+#define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
+/* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p; ACC(i) declares
+ * accumulator a##i from its bias, MADD(i, w, xb) adds the products of the vector at w + i VB,
+ * OUT(i) finishes group i. */
+#define PK_PASS(K, T, VB, BCAST, ACC, MADD, OUT)                                             \
+    do {                                                                                     \
+        const size_t kb = (size_t)(K) * (VB);                                                \
+        const unsigned char *w = b + 2u * kb;                                                \
+        PK_LIST##K(ACC, 0, 0);                                                               \
+        for (p = 0; p + 2u <= full; p += 2u, w += 2u * kb) {                                 \
+            const T xb0 = BCAST(p), xb1 = BCAST(p + 1u);                                     \
+            PK_LIST##K(MADD, w, xb0);                                                        \
+            PK_LIST##K(MADD, w + kb, xb1);                                                   \
+        }                                                                                    \
+        if (p < full) {                                                                      \
+            const T xb = BCAST(p);                                                           \
+            PK_LIST##K(MADD, w, xb);                                                         \
+            w += kb;                                                                         \
+        }                                                                                    \
+        if (full != pairs) { /* the odd last column, paired with 0 */                        \
+            PK_LIST##K(MADD, w, xlast);                                                      \
+            w += kb;                                                                         \
+        }                                                                                    \
+        PK_LIST##K(OUT, 0, 0);                                                               \
+        b = w;                                                                               \
+        grp += (K);                                                                          \
+    } while (0)
+/* Every group of a layer: passes of PACK_PASS groups, then one of the rest. */
+#define PK_LAYER(T, VB, BCAST, ACC, MADD, OUT)                                               \
+    do {                                                                                     \
+        while (h.n_groups - grp >= PACK_PASS)                                                \
+            PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT);                                        \
+        switch (h.n_groups - grp) {                                                          \
+        case 1: PK_PASS(1, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 2: PK_PASS(2, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 3: PK_PASS(3, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 4: PK_PASS(4, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 5: PK_PASS(5, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 6: PK_PASS(6, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 7: PK_PASS(7, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        default: break;                                                                      \
+        }                                                                                    \
+    } while (0)
+typedef char pack_pass_is_8[PACK_PASS == 8u ? 1 : -1]; /* PK_LAYER's passes */
+
+/* Input pair p (x[2p] in the low half) as one int32; memcpy: x is int16 storage. */
+static inline int32_t x_pair(const int16_t *x, unsigned p)
+{
+    int32_t v;
+    memcpy(&v, x + 2u * p, sizeof v);
+    return v;
+}
+
+/* The common start of a packed kernel: the head, the pair counts, the odd last column with a
+ * zero partner. */
+#define PK_BEGIN                                                                             \
+    packed_head h;                                                                           \
+    const unsigned char *b = block + sizeof h;                                               \
+    unsigned pairs, full, grp = 0u, p;                                                       \
+    int32_t last;                                                                            \
+    memcpy(&h, block, sizeof h);                                                             \
+    pairs = (h.n_in + 1u) / 2u;                                                              \
+    full = h.n_in / 2u;                                                                      \
+    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0
+
+/* SSE2: groups of four rows, 16-byte vectors; the sums requantised by the scalar rule. */
+#define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
+#define PK4_ACC(i, p_, xb_) lanes32x4 a##i = (lanes32x4)load128(b + 16u * (i))
+#define PK4_MADD(i, w, xb) a##i += (lanes32x4)_mm_madd_epi16(load128((w) + 16u * (i)), xb)
+#define PK4_ACC_OUT(i, p_, xb_) _mm_storeu_si128((__m128i *)(void *)(acc + 4u * (grp + (i))), (__m128i)a##i)
+#define PK4_HIDDEN_OUT(i, p_, xb_)                                                           \
+    do {                                                                                     \
+        int32_t t[4], m[4];                                                                  \
+        unsigned q;                                                                          \
+        _mm_storeu_si128((__m128i *)(void *)t, (__m128i)a##i);                               \
+        memcpy(m, b + kb + 16u * (i), sizeof m);                                             \
+        for (q = 0; q < 4u; ++q) {                                                           \
+            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], h.shift);                     \
+            y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
+        }                                                                                    \
+    } while (0)
+
+/* Not inlined into the kernel dispatch, which then stays a plain jump to either kernel. */
+__attribute__((noinline)) static void hidden_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                         int16_t *y, uint32_t *sat)
+{
+    PK_BEGIN;
+    const __m128i xlast = _mm_set1_epi32(last);
+    PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
+}
+
+__attribute__((noinline)) static void acc32_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                        int32_t *acc)
+{
+    PK_BEGIN;
+    const __m128i xlast = _mm_set1_epi32(last);
+    PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
+}
+
+/* AVX2: groups of eight rows, 32-byte vectors; eight rows requantised at once (requant8). */
+#define PK8_BCAST(p) _mm256_set1_epi32(x_pair(x, p))
+#define PK8_ACC(i, p_, xb_) lanes32 a##i = (lanes32)load256(b + 32u * (i))
+#define PK8_MADD(i, w, xb) a##i += (lanes32)_mm256_madd_epi16(load256((w) + 32u * (i)), xb)
+#define PK8_ACC_OUT(i, p_, xb_) _mm256_storeu_si256((__m256i *)(void *)(acc + 8u * (grp + (i))), (__m256i)a##i)
+#define PK8_HIDDEN_OUT(i, p_, xb_)                                                           \
+    _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
+                     requant8((__m256i)a##i, load256(b + kb + 32u * (i)), round, top, shift, &big))
+
+/* requant8 where narrow_requant holds: t = acc * mult + round exactly in int64 (VPMULDQ),
+ * the quotient t >> shift is an int32 made of bits shift .. shift+31 of t (for the even rows
+ * a logical shift right brings them down, for the odd ones a shift left by 32 - shift lifts
+ * them into the high dword, and one blend puts the eight in row order), then ReLU (VPMAXSD)
+ * and the clamp at 32767 (VPACKSSDW saturates exactly there for values >= 0; the compare
+ * beside it raises fbg_sat16's flag). */
+AVX2 static inline __m128i requant8_narrow(__m256i acc, __m256i mult, __m256i round, __m128i shift,
+                                           __m128i lift, __m256i *big)
+{
+    const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, mult), round);
+    const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32),
+                                                         _mm256_srli_epi64(mult, 32)), round);
+    const __m256i q = _mm256_blend_epi32(_mm256_srl_epi64(t0, shift), _mm256_sll_epi64(t1, lift), 0xAA);
+    const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
+    *big = _mm256_or_si256(*big, _mm256_cmpgt_epi32(r, _mm256_set1_epi32(32767)));
+    return _mm_packs_epi32(_mm256_castsi256_si128(r), _mm256_extracti128_si256(r, 1));
+}
+
+#define PK8_NARROW_OUT(i, p_, xb_)                                                           \
+    _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
+                     requant8_narrow((__m256i)a##i, load256(b + kb + 32u * (i)), round, shift, lift, &big))
+
+AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                              int16_t *y, uint32_t *sat)
+{
+    PK_BEGIN;
+    const __m256i xlast = _mm256_set1_epi32(last);
+    const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
+    const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
+    const __m128i lift = _mm_cvtsi32_si128(32 - (int)h.shift);
+    __m256i big = _mm256_setzero_si256();
+    if (h.narrow)
+        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_NARROW_OUT);
+    else
+        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
+    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
+}
+
+AVX2 __attribute__((noinline)) static void acc32_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                             int32_t *acc)
+{
+    PK_BEGIN;
+    const __m256i xlast = _mm256_set1_epi32(last);
+    PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
+}
+
+void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        hidden_packed_avx2((const unsigned char *)block, x, y, sat);
+    else
+        hidden_packed_sse2((const unsigned char *)block, x, y, sat);
+}
+
+void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        acc32_packed_avx2((const unsigned char *)block, x, acc);
+    else
+        acc32_packed_sse2((const unsigned char *)block, x, acc);
+}
+
 uint32_t fbg_simd_resolve(uint32_t requested)
 {
     int avx2;
@@ -6092,6 +6668,30 @@ typedef int fbg_simd_x86_unused;
 #undef NARROW16_SUMS
 #undef NARROW_SUMS
 #undef NARROW_LAYER
+#undef PACK_PASS
+#undef PACK_HEADER_BYTES
+#undef PK_LIST1
+#undef PK_LIST2
+#undef PK_LIST3
+#undef PK_LIST4
+#undef PK_LIST5
+#undef PK_LIST6
+#undef PK_LIST7
+#undef PK_LIST8
+#undef PK_PASS
+#undef PK_LAYER
+#undef PK_BEGIN
+#undef PK4_BCAST
+#undef PK4_ACC
+#undef PK4_MADD
+#undef PK4_ACC_OUT
+#undef PK4_HIDDEN_OUT
+#undef PK8_BCAST
+#undef PK8_ACC
+#undef PK8_MADD
+#undef PK8_ACC_OUT
+#undef PK8_HIDDEN_OUT
+#undef PK8_NARROW_OUT
 /* ---- src/fbgf_dense.c ---- */
 /*
  * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels

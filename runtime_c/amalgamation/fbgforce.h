@@ -208,6 +208,7 @@ typedef struct {
     uint32_t magic;                              /* set by fbg_init */
     uint32_t options;
     const fbg_model *model;
+    const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
     int32_t baseline_fm[FBG_N_CHANNELS];
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
@@ -270,6 +271,36 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options);
 /* The FBG_OPT_KERNEL_* value a state runs (never AUTO: the one fbg_init chose); 0 if the
  * state is NULL or not initialised. */
 uint32_t fbg_kernel(const fbg_state *state);
+
+/* ---- Packed weights (host SIMD kernels; docs/runtime.md, "Packed weights") ----
+ * The SSE2 and AVX2 kernels run faster from a copy of the model's hidden layers packed for
+ * them (four or eight rows' weights interleaved per input pair, so no row sums need adding
+ * up across a vector). The caller owns that copy's memory, as it owns the state:
+ *
+ *   size_t n = fbg_pack_bytes(&st);            // 0: this state's kernel has no packed form
+ *   if (n != 0) fbg_pack(&st, buf, n);         // buf: n bytes, FBG_PACK_ALIGN-aligned
+ *
+ * The buffer must stay alive and unchanged while a state uses it; any number of states of the
+ * same model and kernel may share it (fbg_use_pack). fbg_init forgets it (the state runs the
+ * unpacked kernels until fbg_pack or fbg_use_pack again); reset and tare keep it. The bits
+ * are those of every other kernel. Builds without host SIMD kernels (Cortex-M, NEON,
+ * FBG_HOST_SIMD=0) have no packed form: fbg_pack_bytes returns 0 there. */
+#define FBG_PACK_ALIGN 32  /* alignment in bytes of a packed-weights buffer */
+
+/* Bytes fbg_pack needs for this state's model and kernel; 0 if the kernel has no packed form
+ * (portable C, NEON) or the state is NULL or not initialised. */
+size_t fbg_pack_bytes(const fbg_state *state);
+
+/* Pack the state's model for the state's kernel into buf[0, len) and make the state use it.
+ * FBG_ERR_NULL (state or buf NULL), FBG_ERR_STATE (not initialised), FBG_ERR_ARG (the kernel
+ * has no packed form, len < fbg_pack_bytes(state), or buf not FBG_PACK_ALIGN-aligned); on
+ * an error the state and buf are unchanged. */
+fbg_status fbg_pack(fbg_state *state, void *buf, size_t len);
+
+/* Make a state use weights fbg_pack packed for another state (or itself); NULL goes back to
+ * the unpacked kernels. FBG_ERR_ARG if packed was not packed by fbg_pack for this state's
+ * model and kernel (the state is then unchanged). */
+fbg_status fbg_use_pack(fbg_state *state, const void *packed);
 
 /* Clear the FIR history and the fault tracker (keeps baseline and tare). */
 fbg_status fbg_reset(fbg_state *state);
