@@ -204,7 +204,6 @@ typedef struct {
     uint32_t magic;                              /* set by fbg_init */
     uint32_t options;
     const fbg_model *model;
-    const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
     int32_t baseline_fm[FBG_N_CHANNELS];
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
@@ -228,6 +227,7 @@ typedef struct {
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
+    const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
 } fbg_state;
 
 /* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was
