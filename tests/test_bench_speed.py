@@ -92,7 +92,7 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     wl = timing_samples(ds)[:start + n]
     cdriver.write_samples(tmp_path / "s.bin", to_fm(tare(ds.wl_nm, ds.contact, ds.t_s)[0]),
                           to_fm(wl))
-    exe = cdriver.build(cdriver.CBuild("O1", "-O1"), tmp_path / "b",
+    exe = cdriver.build(cdriver.parse_build("O1=-O1"), tmp_path / "b",
                         cdriver.float_model_source(small_exported_dir))
     again, profile = cdriver.count_instructions(exe, "fixed", small_exported_dir / "model.fbgm",
                                                 tmp_path / "s.bin", start, n)
@@ -126,8 +126,10 @@ def test_extension_flags_are_the_builders():
 
 
 def test_parse_build():
-    assert cdriver.parse_build("native=-O3 -march=native") == cdriver.CBuild("native", "-O3 -march=native")
-    assert cdriver.parse_build("-O2") == cdriver.CBuild("-O2", "-O2")
+    # A --c-build runs as the extension does: packed weights where the kernel has them.
+    assert cdriver.parse_build("native=-O3 -march=native") == cdriver.CBuild("native", "-O3 -march=native",
+                                                                             packed=True)
+    assert cdriver.parse_build("-O2") == cdriver.CBuild("-O2", "-O2", packed=True)
     with pytest.raises(ValueError):
         cdriver.parse_build("=-O2")
 
@@ -140,6 +142,36 @@ def test_one_build_per_kernel_the_header_offers(monkeypatch):
         "FBG_OPT_KERNEL_AUTO": 0, "FBG_OPT_KERNEL_SSE2": 0x20, "FBG_OPT_KERNEL_PORTABLE": 0x10})
     builds = speed.default_builds()
     flags = cdriver.extension_flags()
-    assert builds == (cdriver.CBuild("as-extension", flags),
+    # Every kernel on the model's weights, and once more packed where it has a packed form.
+    assert builds == (cdriver.CBuild("as-extension", flags, packed=True),
                       cdriver.CBuild("kernel-portable", flags, 0x10),
-                      cdriver.CBuild("kernel-sse2", flags, 0x20))
+                      cdriver.CBuild("kernel-sse2", flags, 0x20),
+                      cdriver.CBuild("kernel-sse2-packed", flags, 0x20, packed=True))
+
+
+@pytest.mark.parametrize("kernel", ["sse2", "avx2"])
+def test_packed_driver_builds_give_the_extensions_bits(kernel, small_exported_dir, small_dataset_path,
+                                                       tmp_path):
+    """The driver's packed runs (fbg_pack into its own buffer, fbg_use_pack after every
+    restart) give the extension's fbg_run bits."""
+    _require("gcc")
+    from fbgforce import dataset as fds
+    from fbgforce.pybind import KERNELS, ArgError, Runtime, to_fm
+    from fbgforce.tare import tare
+    from fbgforce.tradeoff.timers import timing_samples
+
+    try:
+        rt = Runtime(small_exported_dir, kernel=kernel)
+    except ArgError:
+        pytest.skip(f"this CPU or build does not run {kernel}")
+    assert rt.packed
+    ds = fds.load(small_dataset_path)
+    base = to_fm(tare(ds.wl_nm, ds.contact, ds.t_s)[0])
+    wl = to_fm(timing_samples(ds)[:300])
+    cdriver.write_samples(tmp_path / "s.bin", base, wl)
+    exe = cdriver.build(cdriver.CBuild(f"kernel-{kernel}-packed", cdriver.extension_flags() or "",
+                                       KERNELS[kernel], packed=True), tmp_path / "b")
+    cdriver.time_run(exe, "fixed", small_exported_dir / "model.fbgm", tmp_path / "s.bin", 1,
+                     tmp_path / "out.bin")
+    rt.set_baseline(base)
+    assert (tmp_path / "out.bin").read_bytes() == rt.run_raw(wl).tobytes()
