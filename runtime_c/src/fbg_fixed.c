@@ -102,7 +102,7 @@ uint32_t fbg_kernel(const fbg_state *state)
 
 size_t fbg_pack_bytes(const fbg_state *state)
 {
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
     return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
@@ -122,7 +122,7 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
     need = fbg_pack_bytes(state);
     if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
         return FBG_ERR_ARG;
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
     fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
     state->packed = buf;
 #endif
@@ -136,7 +136,7 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     if (!fbg_front_ok(FRONT(state)))
         return FBG_ERR_STATE;
     if (packed != NULL) {
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
         fbg_pack_header h;
         if (((uintptr_t)packed % FBG_PACK_ALIGN) != 0u)
             return FBG_ERR_ARG;
@@ -261,7 +261,7 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
  * layer. */
 static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-#if !FBG_SIMD_PACKED
+#if !FBG_SIMD_X86
     (void)n;
 #endif
 #if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
@@ -274,7 +274,7 @@ static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, c
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
-#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
+#if FBG_SIMD_X86 /* fbg_pack: the layer's packed form, when it has one */
         const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
         if (block != NULL)
             fbg_simd_hidden_packed(kernel, block, x, y, sat);
@@ -304,7 +304,7 @@ static void output_accs(const fbg_state *s, unsigned n, unsigned l, const fbg_la
     uint32_t kernel = simd_kernel(s, ly);
     if (kernel != 0u) {
         int32_t acc32[FBG_MAX_WIDTH];
-#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
+#if FBG_SIMD_X86 /* fbg_pack: the layer's packed form, when it has one */
         const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
         if (block != NULL)
             fbg_simd_acc32_packed(kernel, block, x, acc32);
@@ -318,7 +318,7 @@ static void output_accs(const fbg_state *s, unsigned n, unsigned l, const fbg_la
 #else
     (void)s;
 #endif
-#if !FBG_SIMD_PACKED
+#if !FBG_SIMD_X86
     (void)n;
     (void)l;
 #endif
@@ -469,9 +469,19 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
+#if FBG_SIMD_X86 /* AVX2: the four channels' sums in one vector (fbg_simd_x86.c); same sums */
+    int64_t fir[FBG_N_STRAIN];
+    const int fir_done = fbg_simd_fir4(s->options & FBG_OPT_KERNEL_MASK, m->taps, m->n_taps,
+                                       (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+#endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
+#if FBG_SIMD_X86
+        if (fir_done)
+            f = fir[c];
+        else
+#endif
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;

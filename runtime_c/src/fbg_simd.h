@@ -51,14 +51,15 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
-/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 filter ---- */
 #if defined(__x86_64__)
-#define FBG_SIMD_PACKED 1
+#define FBG_SIMD_X86 1
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif
 
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
 /*
  * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
  * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
@@ -91,6 +92,13 @@ void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x
  * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
 void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
 
+/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
+ * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
+ * untouched; the caller sums it itself). */
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
+
 /* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
  * header is read with memcpy: the caller's buffer may have any declared type). */
 static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
@@ -100,9 +108,9 @@ static inline const void *fbg_simd_packed_block(const void *packed, unsigned net
                      ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
     return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
 }
-#endif /* FBG_SIMD_PACKED */
+#endif /* FBG_SIMD_X86 */
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */

@@ -956,6 +956,35 @@ void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x,
         acc32_packed_sse2((const unsigned char *)block, x, acc);
 }
 
+/* ---- AVX2 filter: the four channels in one vector of int64 --------------------------- */
+
+/* Each tap: the four int32 history values sign-extended to int64 (VPMOVSXDQ), times the tap
+ * (VPMULDQ multiplies the low dwords as signed: int32 by int16, exact in int64), added in
+ * int64; the ring read as its two runs, newest first, so no index wraps. The sum is the
+ * portable loop's sum of the same integers, which fbg_model_check bounds within int64. */
+AVX2 static void fir4_avx2(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                           unsigned pos, int64_t *fir)
+{
+    __m256i acc = _mm256_setzero_si256();
+    unsigned k, idx;
+    for (k = 0, idx = pos; k <= pos; ++k, --idx)
+        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
+                                                     _mm256_set1_epi32(taps[k])));
+    for (idx = n_taps - 1u; k < n_taps; ++k, --idx)
+        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
+                                                     _mm256_set1_epi32(taps[k])));
+    _mm256_storeu_si256((__m256i *)(void *)fir, acc);
+}
+
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir)
+{
+    if (kernel != FBG_OPT_KERNEL_AVX2)
+        return 0;
+    fir4_avx2(taps, n_taps, hist, pos, fir);
+    return 1;
+}
+
 uint32_t fbg_simd_resolve(uint32_t requested)
 {
     int avx2;
