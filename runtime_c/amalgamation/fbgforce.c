@@ -3423,9 +3423,6 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
-#include <stddef.h>
-#include <string.h>
-
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -3659,24 +3656,26 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
-/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 filter ---- */
 #if defined(__x86_64__)
-#define FBG_SIMD_PACKED 1
+#define FBG_SIMD_X86 1
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif
 
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
 /*
- * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
- * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
- * (an int64-accumulator layer, which runs the portable C). */
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
 typedef struct {
     uint32_t magic;               /* FBG_PACK_MAGIC once packed */
     uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
     const fbg_model *model;       /* the model it was packed from */
     size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
-    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+    uint32_t net_off[FBG_N_NETS];
 } fbg_pack_header;
 
 #define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
@@ -3689,28 +3688,26 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
  * aligned); the header last, so a buffer is marked packed only when it is. */
 void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 
-/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
- * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
- * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
- * FBG_MAX_WIDTH, a multiple of 8, always holds. */
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
- * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
+ * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
+ * untouched; the caller sums it itself). */
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
 
-/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
- * header is read with memcpy: the caller's buffer may have any declared type). */
-static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
-{
-    uint32_t off;
-    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
-                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
-    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
-}
-#endif /* FBG_SIMD_PACKED */
+#endif /* FBG_SIMD_X86 */
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -4071,7 +4068,7 @@ uint32_t fbg_kernel(const fbg_state *state)
 
 size_t fbg_pack_bytes(const fbg_state *state)
 {
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
     return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
@@ -4091,7 +4088,7 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
     need = fbg_pack_bytes(state);
     if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
         return FBG_ERR_ARG;
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
     fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
     state->packed = buf;
 #endif
@@ -4105,7 +4102,7 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     if (!fbg_front_ok(FRONT(state)))
         return FBG_ERR_STATE;
     if (packed != NULL) {
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
         fbg_pack_header h;
         if (((uintptr_t)packed % FBG_PACK_ALIGN) != 0u)
             return FBG_ERR_ARG;
@@ -4226,13 +4223,9 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 #endif
 }
 
-/* Run the hidden layers of net, net n of the model, on x; returns the input of the output
- * layer. */
-static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, const int16_t *x, uint32_t *sat)
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-#if !FBG_SIMD_PACKED
-    (void)n;
-#endif
 #if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
     return fbg_dsp_run_hidden(net, x, s->act, sat);
 #else
@@ -4243,12 +4236,6 @@ static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, c
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
-#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
-        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
-        if (block != NULL)
-            fbg_simd_hidden_packed(kernel, block, x, y, sat);
-        else
-#endif
         if (kernel != 0u)
             fbg_simd_hidden(kernel, ly, x, y, sat);
         else
@@ -4264,32 +4251,21 @@ static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, c
 #endif
 }
 
-/* The accumulators of every row of a net's output layer ly, layer l of net n. */
-static void output_accs(const fbg_state *s, unsigned n, unsigned l, const fbg_layer *ly,
-                        const int16_t *x, int64_t *acc)
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
 {
     unsigned r;
 #if FBG_HOST_SIMD
     uint32_t kernel = simd_kernel(s, ly);
     if (kernel != 0u) {
         int32_t acc32[FBG_MAX_WIDTH];
-#if FBG_SIMD_PACKED /* fbg_pack: the layer's packed form, when it has one */
-        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
-        if (block != NULL)
-            fbg_simd_acc32_packed(kernel, block, x, acc32);
-        else
-#endif
-            fbg_simd_acc32(kernel, ly, x, acc32);
+        fbg_simd_acc32(kernel, ly, x, acc32);
         for (r = 0; r < ly->n_out; ++r)
             acc[r] = acc32[r];
         return;
     }
 #else
     (void)s;
-#endif
-#if !FBG_SIMD_PACKED
-    (void)n;
-    (void)l;
 #endif
 #if FBG_USE_DSP /* every row in one call */
     (void)r;
@@ -4386,6 +4362,29 @@ static void safe_output(fbg_output *out, uint32_t status)
     out->status = status;
 }
 
+/* In fbg_step: every layer of net n on the net inputs in; acc = the accumulators of its output
+ * layer, last = that layer. Layer by layer (NET_LAYERS), or from packed weights in one call
+ * where the state has them (fbg_pack; x86-64 builds only). */
+#define NET_LAST(n) (&m->nets[n].layers[m->nets[n].n_layers - 1u])
+#define NET_LAYERS(n)                                                                        \
+    do {                                                                                     \
+        x = run_hidden(s, &m->nets[n], in, &sat);                                            \
+        last = NET_LAST(n);                                                                  \
+        output_accs(s, last, x, acc);                                                        \
+    } while (0)
+#if FBG_SIMD_X86
+#define NET_ACCS(n)                                                                          \
+    do {                                                                                     \
+        if (s->packed != NULL && fbg_simd_net_packed(s->options & FBG_OPT_KERNEL_MASK, s->packed, \
+                                                     n, m->nets[n].n_layers, in, s->act, acc, &sat)) \
+            last = NET_LAST(n);                                                              \
+        else                                                                                 \
+            NET_LAYERS(n);                                                                   \
+    } while (0)
+#else
+#define NET_ACCS(n) NET_LAYERS(n)
+#endif
+
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
@@ -4438,9 +4437,19 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
+#if FBG_SIMD_X86 /* AVX2: the four channels' sums in one vector (fbg_simd_x86.c); same sums */
+    int64_t fir[FBG_N_STRAIN];
+    const int fir_done = fbg_simd_fir4(s->options & FBG_OPT_KERNEL_MASK, m->taps, m->n_taps,
+                                       (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+#endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
+#if FBG_SIMD_X86
+        if (fir_done)
+            f = fir[c];
+        else
+#endif
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
@@ -4464,9 +4473,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
-    x = run_hidden(s, FBG_NET_CONTACT, &m->nets[FBG_NET_CONTACT], in, &sat);
-    last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
-    output_accs(s, FBG_NET_CONTACT, m->nets[FBG_NET_CONTACT].n_layers - 1u, last, x, acc);
+    NET_ACCS(FBG_NET_CONTACT);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
     out->contact = acc[0] > 0 ? 1u : 0u;
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
@@ -4474,9 +4481,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (out->contact) {
         /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
-        x = run_hidden(s, FBG_NET_FORCE, &m->nets[FBG_NET_FORCE], in, &sat);
-        last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
-        output_accs(s, FBG_NET_FORCE, m->nets[FBG_NET_FORCE].n_layers - 1u, last, x, acc);
+        NET_ACCS(FBG_NET_FORCE);
         force_out = output_row(last, 0u, acc[0], &sat);
         out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
@@ -4489,9 +4494,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        x = run_hidden(s, FBG_NET_LOCATION, &m->nets[FBG_NET_LOCATION], in, &sat);
-        last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        output_accs(s, FBG_NET_LOCATION, m->nets[FBG_NET_LOCATION].n_layers - 1u, last, x, acc);
+        NET_ACCS(FBG_NET_LOCATION);
         out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
         out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
     }
@@ -4513,6 +4516,9 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
     return FBG_OK;
 }
 #undef FRONT
+#undef NET_LAST
+#undef NET_LAYERS
+#undef NET_ACCS
 /* ---- src/fbg_model.c ---- */
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
@@ -4877,9 +4883,6 @@ fbg_status fbg_model_check(const fbg_model *model)
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
-#include <stddef.h>
-#include <string.h>
-
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -5113,24 +5116,26 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
-/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 filter ---- */
 #if defined(__x86_64__)
-#define FBG_SIMD_PACKED 1
+#define FBG_SIMD_X86 1
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif
 
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
 /*
- * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
- * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
- * (an int64-accumulator layer, which runs the portable C). */
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
 typedef struct {
     uint32_t magic;               /* FBG_PACK_MAGIC once packed */
     uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
     const fbg_model *model;       /* the model it was packed from */
     size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
-    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+    uint32_t net_off[FBG_N_NETS];
 } fbg_pack_header;
 
 #define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
@@ -5143,28 +5148,26 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
  * aligned); the header last, so a buffer is marked packed only when it is. */
 void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 
-/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
- * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
- * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
- * FBG_MAX_WIDTH, a multiple of 8, always holds. */
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
- * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
+ * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
+ * untouched; the caller sums it itself). */
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
 
-/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
- * header is read with memcpy: the caller's buffer may have any declared type). */
-static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
-{
-    uint32_t off;
-    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
-                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
-    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
-}
-#endif /* FBG_SIMD_PACKED */
+#endif /* FBG_SIMD_X86 */
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -5385,9 +5388,6 @@ typedef int fbg_simd_neon_unused;
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
-#include <stddef.h>
-#include <string.h>
-
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -5621,24 +5621,26 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
  * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
-/* ---- Packed weights (fbg_pack; docs/runtime.md, "Packed weights"): x86-64 only ---- */
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 filter ---- */
 #if defined(__x86_64__)
-#define FBG_SIMD_PACKED 1
+#define FBG_SIMD_X86 1
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif
 
-#if FBG_SIMD_PACKED
+#if FBG_SIMD_X86
 /*
- * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
- * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
- * (an int64-accumulator layer, which runs the portable C). */
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
 typedef struct {
     uint32_t magic;               /* FBG_PACK_MAGIC once packed */
     uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
     const fbg_model *model;       /* the model it was packed from */
     size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
-    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+    uint32_t net_off[FBG_N_NETS];
 } fbg_pack_header;
 
 #define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
@@ -5651,28 +5653,26 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
  * aligned); the header last, so a buffer is marked packed only when it is. */
 void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 
-/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
- * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
- * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
- * FBG_MAX_WIDTH, a multiple of 8, always holds. */
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
- * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
+ * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
+ * untouched; the caller sums it itself). */
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
 
-/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
- * header is read with memcpy: the caller's buffer may have any declared type). */
-static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
-{
-    uint32_t off;
-    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
-                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
-    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
-}
-#endif /* FBG_SIMD_PACKED */
+#endif /* FBG_SIMD_X86 */
 #else
-#define FBG_SIMD_PACKED 0
+#define FBG_SIMD_X86 0
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -5680,6 +5680,7 @@ static inline const void *fbg_simd_packed_block(const void *packed, unsigned net
 #if FBG_HOST_SIMD && defined(__x86_64__)
 #include <emmintrin.h>
 #include <immintrin.h>
+#include <stddef.h>
 #include <string.h>
 
 #define AVX2 __attribute__((target("avx2")))
@@ -6306,10 +6307,14 @@ static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
     return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
 }
 
-/* The layers the packed form holds: the acc32 ones. */
-static int packed_layer(const fbg_net *net, unsigned l)
+/* The nets the packed form holds: those with only acc32 layers. */
+static int packed_net(const fbg_net *net)
 {
-    return net->layers[l].acc32;
+    unsigned l;
+    for (l = 0; l < net->n_layers; ++l)
+        if (!net->layers[l].acc32)
+            return 0;
+    return 1;
 }
 
 size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
@@ -6320,8 +6325,8 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
     if (rows == 0u)
         return 0u;
     for (n = 0; n < FBG_N_NETS; ++n)
-        for (l = 0; l < m->nets[n].n_layers; ++l)
-            if (packed_layer(&m->nets[n], l))
+        if (packed_net(&m->nets[n]))
+            for (l = 0; l < m->nets[n].n_layers; ++l)
                 total += packed_layer_bytes(&m->nets[n].layers[l], rows);
     return total;
 }
@@ -6396,13 +6401,15 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
     unsigned n, l;
     memset(&hd, 0, sizeof hd);
     memset(base, 0, PACK_HEADER_BYTES);
-    for (n = 0; n < FBG_N_NETS; ++n)
-        for (l = 0; l < m->nets[n].n_layers; ++l)
-            if (packed_layer(&m->nets[n], l)) {
-                pack_layer(&m->nets[n].layers[l], rows, base + off);
-                hd.layer_off[n][l] = (uint32_t)off;
-                off += packed_layer_bytes(&m->nets[n].layers[l], rows);
-            }
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        if (!packed_net(&m->nets[n]))
+            continue;
+        hd.net_off[n] = (uint32_t)off;
+        for (l = 0; l < m->nets[n].n_layers; ++l) {
+            pack_layer(&m->nets[n].layers[l], rows, base + off);
+            off += packed_layer_bytes(&m->nets[n].layers[l], rows);
+        }
+    }
     hd.magic = FBG_PACK_MAGIC;
     hd.kernel = kernel;
     hd.model = m;
@@ -6504,21 +6511,35 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
         }                                                                                    \
     } while (0)
 
-/* Not inlined into the kernel dispatch, which then stays a plain jump to either kernel. */
-__attribute__((noinline)) static void hidden_packed_sse2(const unsigned char *block, const int16_t *x,
-                                                         int16_t *y, uint32_t *sat)
+/* One hidden layer; returns the next layer's block. */
+static inline const unsigned char *hidden_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                      int16_t *y, uint32_t *sat)
 {
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
+    return b;
 }
 
-__attribute__((noinline)) static void acc32_packed_sse2(const unsigned char *block, const int16_t *x,
-                                                        int32_t *acc)
+/* The output layer: its rows' accumulators into acc (n_out rounded up to 4); returns n_out. */
+static inline unsigned acc32_packed_sse2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
+    return h.n_out;
+}
+
+/* Every layer of a packed net (n_layers blocks from block on). */
+static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, const int16_t *x,
+                                int16_t (*act)[FBG_MAX_WIDTH], int32_t *acc, uint32_t *sat)
+{
+    unsigned l;
+    for (l = 0; l + 1u < n_layers; ++l) {
+        block = hidden_packed_sse2(block, x, act[l & 1u], sat);
+        x = act[l & 1u];
+    }
+    return acc32_packed_sse2(block, x, acc);
 }
 
 /* AVX2: groups of eight rows, 32-byte vectors; eight rows requantised at once (requant8). */
@@ -6552,46 +6573,95 @@ AVX2 static inline __m128i requant8_narrow(__m256i acc, __m256i mult, __m256i ro
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
                      requant8_narrow((__m256i)a##i, load256(b + kb + 32u * (i)), round, shift, lift, &big))
 
-AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned char *block, const int16_t *x,
-                                                              int16_t *y, uint32_t *sat)
+/* One hidden layer; big collects the rows that clamped; returns the next layer's block. */
+AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                           int16_t *y, __m256i *bigp)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
     const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
     const __m128i lift = _mm_cvtsi32_si128(32 - (int)h.shift);
-    __m256i big = _mm256_setzero_si256();
+    __m256i big = *bigp;
     if (h.narrow)
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_NARROW_OUT);
     else
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
-    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
-    if (!_mm256_testz_si256(big, big))
-        *sat = 1u;
+    *bigp = big;
+    return b;
 }
 
-AVX2 __attribute__((noinline)) static void acc32_packed_avx2(const unsigned char *block, const int16_t *x,
-                                                             int32_t *acc)
+/* The output layer: its rows' accumulators into acc (n_out rounded up to 8); returns n_out. */
+AVX2 __attribute__((always_inline)) static inline unsigned acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
+    return h.n_out;
 }
 
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
+AVX2 static unsigned net_packed_avx2(const unsigned char *block, unsigned n_layers, const int16_t *x,
+                                     int16_t (*act)[FBG_MAX_WIDTH], int32_t *acc, uint32_t *sat)
 {
-    if (kernel == FBG_OPT_KERNEL_AVX2)
-        hidden_packed_avx2((const unsigned char *)block, x, y, sat);
-    else
-        hidden_packed_sse2((const unsigned char *)block, x, y, sat);
+    __m256i big = _mm256_setzero_si256();
+    unsigned l;
+    for (l = 0; l + 1u < n_layers; ++l) {
+        block = hidden_packed_avx2(block, x, act[l & 1u], &big);
+        x = act[l & 1u];
+    }
+    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
+    return acc32_packed_avx2(block, x, acc);
 }
 
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc)
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat)
 {
+    int32_t acc32[FBG_MAX_WIDTH];
+    uint32_t off;
+    unsigned r, n_out;
+    /* memcpy: the caller's buffer may have any declared type. */
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, net_off) + n * sizeof off,
+           sizeof off);
+    if (off == 0u)
+        return 0;
     if (kernel == FBG_OPT_KERNEL_AVX2)
-        acc32_packed_avx2((const unsigned char *)block, x, acc);
+        n_out = net_packed_avx2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
     else
-        acc32_packed_sse2((const unsigned char *)block, x, acc);
+        n_out = net_packed_sse2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
+    for (r = 0; r < n_out; ++r)
+        acc[r] = acc32[r];
+    return 1;
+}
+
+/* ---- AVX2 filter: the four channels in one vector of int64 --------------------------- */
+
+/* Each tap: the four int32 history values sign-extended to int64 (VPMOVSXDQ), times the tap
+ * (VPMULDQ multiplies the low dwords as signed: int32 by int16, exact in int64), added in
+ * int64; the ring read as its two runs, newest first, so no index wraps. The sum is the
+ * portable loop's sum of the same integers, which fbg_model_check bounds within int64. */
+AVX2 static void fir4_avx2(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                           unsigned pos, int64_t *fir)
+{
+    __m256i acc = _mm256_setzero_si256();
+    unsigned k, idx;
+    for (k = 0, idx = pos; k <= pos; ++k, --idx)
+        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
+                                                     _mm256_set1_epi32(taps[k])));
+    for (idx = n_taps - 1u; k < n_taps; ++k, --idx)
+        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
+                                                     _mm256_set1_epi32(taps[k])));
+    _mm256_storeu_si256((__m256i *)(void *)fir, acc);
+}
+
+int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
+                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir)
+{
+    if (kernel != FBG_OPT_KERNEL_AVX2)
+        return 0;
+    fir4_avx2(taps, n_taps, hist, pos, fir);
+    return 1;
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)

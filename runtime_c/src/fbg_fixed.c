@@ -257,13 +257,9 @@ static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
 #endif
 }
 
-/* Run the hidden layers of net, net n of the model, on x; returns the input of the output
- * layer. */
-static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, const int16_t *x, uint32_t *sat)
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
-#if !FBG_SIMD_X86
-    (void)n;
-#endif
 #if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
     return fbg_dsp_run_hidden(net, x, s->act, sat);
 #else
@@ -274,12 +270,6 @@ static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, c
         unsigned r;
 #if FBG_HOST_SIMD
         uint32_t kernel = simd_kernel(s, ly);
-#if FBG_SIMD_X86 /* fbg_pack: the layer's packed form, when it has one */
-        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
-        if (block != NULL)
-            fbg_simd_hidden_packed(kernel, block, x, y, sat);
-        else
-#endif
         if (kernel != 0u)
             fbg_simd_hidden(kernel, ly, x, y, sat);
         else
@@ -295,32 +285,21 @@ static const int16_t *run_hidden(fbg_state *s, unsigned n, const fbg_net *net, c
 #endif
 }
 
-/* The accumulators of every row of a net's output layer ly, layer l of net n. */
-static void output_accs(const fbg_state *s, unsigned n, unsigned l, const fbg_layer *ly,
-                        const int16_t *x, int64_t *acc)
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
 {
     unsigned r;
 #if FBG_HOST_SIMD
     uint32_t kernel = simd_kernel(s, ly);
     if (kernel != 0u) {
         int32_t acc32[FBG_MAX_WIDTH];
-#if FBG_SIMD_X86 /* fbg_pack: the layer's packed form, when it has one */
-        const void *block = s->packed != NULL ? fbg_simd_packed_block(s->packed, n, l) : NULL;
-        if (block != NULL)
-            fbg_simd_acc32_packed(kernel, block, x, acc32);
-        else
-#endif
-            fbg_simd_acc32(kernel, ly, x, acc32);
+        fbg_simd_acc32(kernel, ly, x, acc32);
         for (r = 0; r < ly->n_out; ++r)
             acc[r] = acc32[r];
         return;
     }
 #else
     (void)s;
-#endif
-#if !FBG_SIMD_X86
-    (void)n;
-    (void)l;
 #endif
 #if FBG_USE_DSP /* every row in one call */
     (void)r;
@@ -417,6 +396,29 @@ static void safe_output(fbg_output *out, uint32_t status)
     out->status = status;
 }
 
+/* In fbg_step: every layer of net n on the net inputs in; acc = the accumulators of its output
+ * layer, last = that layer. Layer by layer (NET_LAYERS), or from packed weights in one call
+ * where the state has them (fbg_pack; x86-64 builds only). */
+#define NET_LAST(n) (&m->nets[n].layers[m->nets[n].n_layers - 1u])
+#define NET_LAYERS(n)                                                                        \
+    do {                                                                                     \
+        x = run_hidden(s, &m->nets[n], in, &sat);                                            \
+        last = NET_LAST(n);                                                                  \
+        output_accs(s, last, x, acc);                                                        \
+    } while (0)
+#if FBG_SIMD_X86
+#define NET_ACCS(n)                                                                          \
+    do {                                                                                     \
+        if (s->packed != NULL && fbg_simd_net_packed(s->options & FBG_OPT_KERNEL_MASK, s->packed, \
+                                                     n, m->nets[n].n_layers, in, s->act, acc, &sat)) \
+            last = NET_LAST(n);                                                              \
+        else                                                                                 \
+            NET_LAYERS(n);                                                                   \
+    } while (0)
+#else
+#define NET_ACCS(n) NET_LAYERS(n)
+#endif
+
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
@@ -505,9 +507,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
-    x = run_hidden(s, FBG_NET_CONTACT, &m->nets[FBG_NET_CONTACT], in, &sat);
-    last = &m->nets[FBG_NET_CONTACT].layers[m->nets[FBG_NET_CONTACT].n_layers - 1u];
-    output_accs(s, FBG_NET_CONTACT, m->nets[FBG_NET_CONTACT].n_layers - 1u, last, x, acc);
+    NET_ACCS(FBG_NET_CONTACT);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
     out->contact = acc[0] > 0 ? 1u : 0u;
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
@@ -515,9 +515,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (out->contact) {
         /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
         int32_t force_out;
-        x = run_hidden(s, FBG_NET_FORCE, &m->nets[FBG_NET_FORCE], in, &sat);
-        last = &m->nets[FBG_NET_FORCE].layers[m->nets[FBG_NET_FORCE].n_layers - 1u];
-        output_accs(s, FBG_NET_FORCE, m->nets[FBG_NET_FORCE].n_layers - 1u, last, x, acc);
+        NET_ACCS(FBG_NET_FORCE);
         force_out = output_row(last, 0u, acc[0], &sat);
         out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
         if (out->force_mN > m->overload_mN)
@@ -530,9 +528,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
         if (m->loc_shift)
             memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        x = run_hidden(s, FBG_NET_LOCATION, &m->nets[FBG_NET_LOCATION], in, &sat);
-        last = &m->nets[FBG_NET_LOCATION].layers[m->nets[FBG_NET_LOCATION].n_layers - 1u];
-        output_accs(s, FBG_NET_LOCATION, m->nets[FBG_NET_LOCATION].n_layers - 1u, last, x, acc);
+        NET_ACCS(FBG_NET_LOCATION);
         out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
         out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
     }

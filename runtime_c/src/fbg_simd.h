@@ -15,9 +15,6 @@
 #ifndef FBG_SIMD_H
 #define FBG_SIMD_H
 
-#include <stddef.h>
-#include <string.h>
-
 #include "fbg_internal.h"
 
 #ifndef FBG_HOST_SIMD
@@ -61,15 +58,16 @@ void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int
 
 #if FBG_SIMD_X86
 /*
- * A packed buffer starts with this header; layer_off[n][l] is the byte offset from the
- * header of layer l of net n in the kernel's packed form, 0 for a layer that is not packed
- * (an int64-accumulator layer, which runs the portable C). */
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
 typedef struct {
     uint32_t magic;               /* FBG_PACK_MAGIC once packed */
     uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
     const fbg_model *model;       /* the model it was packed from */
     size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
-    uint32_t layer_off[FBG_N_NETS][FBG_MAX_LAYERS];
+    uint32_t net_off[FBG_N_NETS];
 } fbg_pack_header;
 
 #define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
@@ -82,15 +80,15 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
  * aligned); the header last, so a buffer is marked packed only when it is. */
 void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 
-/* A hidden layer from its packed form (the block at a non-zero layer_off of a buffer packed
- * for this kernel): the same y and *sat as fbg_simd_hidden. Writes y up to n_out rounded up
- * to the kernel's row group (8 for AVX2, 4 for SSE2; the rows past n_out get 0), which
- * FBG_MAX_WIDTH, a multiple of 8, always holds. */
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat);
-
-/* The accumulators acc[r] = bias[r] + sum_j w[r][j] * x[j] of a layer from its packed form,
- * as fbg_simd_acc32 gives them; writes acc up to n_out rounded up to the row group. */
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc);
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
 /* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
  * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
@@ -99,15 +97,6 @@ void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x,
 int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
                   const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
 
-/* The block of layer `layer` of net `net` in a packed buffer, NULL if not packed (the
- * header is read with memcpy: the caller's buffer may have any declared type). */
-static inline const void *fbg_simd_packed_block(const void *packed, unsigned net, unsigned layer)
-{
-    uint32_t off;
-    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, layer_off) +
-                     ((size_t)net * FBG_MAX_LAYERS + layer) * sizeof off, sizeof off);
-    return off != 0u ? (const void *)((const unsigned char *)packed + off) : NULL;
-}
 #endif /* FBG_SIMD_X86 */
 #else
 #define FBG_SIMD_X86 0

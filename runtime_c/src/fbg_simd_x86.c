@@ -42,6 +42,7 @@
 #if FBG_HOST_SIMD && defined(__x86_64__)
 #include <emmintrin.h>
 #include <immintrin.h>
+#include <stddef.h>
 #include <string.h>
 
 #define AVX2 __attribute__((target("avx2")))
@@ -668,10 +669,14 @@ static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
     return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
 }
 
-/* The layers the packed form holds: the acc32 ones. */
-static int packed_layer(const fbg_net *net, unsigned l)
+/* The nets the packed form holds: those with only acc32 layers. */
+static int packed_net(const fbg_net *net)
 {
-    return net->layers[l].acc32;
+    unsigned l;
+    for (l = 0; l < net->n_layers; ++l)
+        if (!net->layers[l].acc32)
+            return 0;
+    return 1;
 }
 
 size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
@@ -682,8 +687,8 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
     if (rows == 0u)
         return 0u;
     for (n = 0; n < FBG_N_NETS; ++n)
-        for (l = 0; l < m->nets[n].n_layers; ++l)
-            if (packed_layer(&m->nets[n], l))
+        if (packed_net(&m->nets[n]))
+            for (l = 0; l < m->nets[n].n_layers; ++l)
                 total += packed_layer_bytes(&m->nets[n].layers[l], rows);
     return total;
 }
@@ -758,13 +763,15 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
     unsigned n, l;
     memset(&hd, 0, sizeof hd);
     memset(base, 0, PACK_HEADER_BYTES);
-    for (n = 0; n < FBG_N_NETS; ++n)
-        for (l = 0; l < m->nets[n].n_layers; ++l)
-            if (packed_layer(&m->nets[n], l)) {
-                pack_layer(&m->nets[n].layers[l], rows, base + off);
-                hd.layer_off[n][l] = (uint32_t)off;
-                off += packed_layer_bytes(&m->nets[n].layers[l], rows);
-            }
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        if (!packed_net(&m->nets[n]))
+            continue;
+        hd.net_off[n] = (uint32_t)off;
+        for (l = 0; l < m->nets[n].n_layers; ++l) {
+            pack_layer(&m->nets[n].layers[l], rows, base + off);
+            off += packed_layer_bytes(&m->nets[n].layers[l], rows);
+        }
+    }
     hd.magic = FBG_PACK_MAGIC;
     hd.kernel = kernel;
     hd.model = m;
@@ -866,21 +873,35 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
         }                                                                                    \
     } while (0)
 
-/* Not inlined into the kernel dispatch, which then stays a plain jump to either kernel. */
-__attribute__((noinline)) static void hidden_packed_sse2(const unsigned char *block, const int16_t *x,
-                                                         int16_t *y, uint32_t *sat)
+/* One hidden layer; returns the next layer's block. */
+static inline const unsigned char *hidden_packed_sse2(const unsigned char *block, const int16_t *x,
+                                                      int16_t *y, uint32_t *sat)
 {
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
+    return b;
 }
 
-__attribute__((noinline)) static void acc32_packed_sse2(const unsigned char *block, const int16_t *x,
-                                                        int32_t *acc)
+/* The output layer: its rows' accumulators into acc (n_out rounded up to 4); returns n_out. */
+static inline unsigned acc32_packed_sse2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
+    return h.n_out;
+}
+
+/* Every layer of a packed net (n_layers blocks from block on). */
+static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, const int16_t *x,
+                                int16_t (*act)[FBG_MAX_WIDTH], int32_t *acc, uint32_t *sat)
+{
+    unsigned l;
+    for (l = 0; l + 1u < n_layers; ++l) {
+        block = hidden_packed_sse2(block, x, act[l & 1u], sat);
+        x = act[l & 1u];
+    }
+    return acc32_packed_sse2(block, x, acc);
 }
 
 /* AVX2: groups of eight rows, 32-byte vectors; eight rows requantised at once (requant8). */
@@ -914,46 +935,66 @@ AVX2 static inline __m128i requant8_narrow(__m256i acc, __m256i mult, __m256i ro
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
                      requant8_narrow((__m256i)a##i, load256(b + kb + 32u * (i)), round, shift, lift, &big))
 
-AVX2 __attribute__((noinline)) static void hidden_packed_avx2(const unsigned char *block, const int16_t *x,
-                                                              int16_t *y, uint32_t *sat)
+/* One hidden layer; big collects the rows that clamped; returns the next layer's block. */
+AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_packed_avx2(const unsigned char *block, const int16_t *x,
+                                                           int16_t *y, __m256i *bigp)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
     const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
     const __m128i lift = _mm_cvtsi32_si128(32 - (int)h.shift);
-    __m256i big = _mm256_setzero_si256();
+    __m256i big = *bigp;
     if (h.narrow)
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_NARROW_OUT);
     else
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
-    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
-    if (!_mm256_testz_si256(big, big))
-        *sat = 1u;
+    *bigp = big;
+    return b;
 }
 
-AVX2 __attribute__((noinline)) static void acc32_packed_avx2(const unsigned char *block, const int16_t *x,
-                                                             int32_t *acc)
+/* The output layer: its rows' accumulators into acc (n_out rounded up to 8); returns n_out. */
+AVX2 __attribute__((always_inline)) static inline unsigned acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
+    return h.n_out;
 }
 
-void fbg_simd_hidden_packed(uint32_t kernel, const void *block, const int16_t *x, int16_t *y, uint32_t *sat)
+AVX2 static unsigned net_packed_avx2(const unsigned char *block, unsigned n_layers, const int16_t *x,
+                                     int16_t (*act)[FBG_MAX_WIDTH], int32_t *acc, uint32_t *sat)
 {
-    if (kernel == FBG_OPT_KERNEL_AVX2)
-        hidden_packed_avx2((const unsigned char *)block, x, y, sat);
-    else
-        hidden_packed_sse2((const unsigned char *)block, x, y, sat);
+    __m256i big = _mm256_setzero_si256();
+    unsigned l;
+    for (l = 0; l + 1u < n_layers; ++l) {
+        block = hidden_packed_avx2(block, x, act[l & 1u], &big);
+        x = act[l & 1u];
+    }
+    /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
+    if (!_mm256_testz_si256(big, big))
+        *sat = 1u;
+    return acc32_packed_avx2(block, x, acc);
 }
 
-void fbg_simd_acc32_packed(uint32_t kernel, const void *block, const int16_t *x, int32_t *acc)
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat)
 {
+    int32_t acc32[FBG_MAX_WIDTH];
+    uint32_t off;
+    unsigned r, n_out;
+    /* memcpy: the caller's buffer may have any declared type. */
+    memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, net_off) + n * sizeof off,
+           sizeof off);
+    if (off == 0u)
+        return 0;
     if (kernel == FBG_OPT_KERNEL_AVX2)
-        acc32_packed_avx2((const unsigned char *)block, x, acc);
+        n_out = net_packed_avx2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
     else
-        acc32_packed_sse2((const unsigned char *)block, x, acc);
+        n_out = net_packed_sse2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
+    for (r = 0; r < n_out; ++r)
+        acc[r] = acc32[r];
+    return 1;
 }
 
 /* ---- AVX2 filter: the four channels in one vector of int64 --------------------------- */
