@@ -5363,6 +5363,11 @@ typedef int fbg_simd_neon_unused;
  * non-negative values are shifted); the clamp at 32767 raises the saturation flag exactly
  * where fbg_sat16 does. SSE2 requantises with the scalar helpers of fbg_internal.h.
  *
+ * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
+ * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
+ * interleaved for it, and a whole net runs in one call. AVX2 also runs the FIR of the four
+ * strain channels as one vector of int64 sums (fbg_simd_fir4).
+ *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
  * OS, which must save the YMM registers) supports AVX2.
@@ -6263,7 +6268,7 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
         *sat = 1u;
 }
 
-/* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------ */
+/* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------- */
 
 /* A packed layer: this head, then its output rows in groups of `rows` (8 for AVX2, 4 for
  * SSE2; the rows past n_out are zeros), the groups in passes of up to PACK_PASS (eight

@@ -273,9 +273,10 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options);
 uint32_t fbg_kernel(const fbg_state *state);
 
 /* ---- Packed weights (host SIMD kernels; docs/runtime.md, "Packed weights") ----
- * The SSE2 and AVX2 kernels run faster from a copy of the model's hidden layers packed for
- * them (four or eight rows' weights interleaved per input pair, so no row sums need adding
- * up across a vector). The caller owns that copy's memory, as it owns the state:
+ * The SSE2 and AVX2 kernels run faster from a copy of the model's nets packed for them (four
+ * or eight rows' weights interleaved per input pair, so no row sums need adding up across a
+ * vector, and each net runs in one call). The caller owns that copy's memory, as it owns the
+ * state:
  *
  *   size_t n = fbg_pack_bytes(&st);            // 0: this state's kernel has no packed form
  *   if (n != 0) fbg_pack(&st, buf, n);         // buf: n bytes, FBG_PACK_ALIGN-aligned
