@@ -353,9 +353,9 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 }
 
 #if FBGF_RUN_BATCHED
-/* fbgf_run: the nets of FBGF_RUN_CHUNK samples run together, so that each block of weights
- * is loaded once for all of them; the buffers below take 2 x 16 x FBG_MAX_WIDTH floats
- * (16 kB) of stack. */
+/* fbgf_run runs the nets of FBGF_RUN_CHUNK samples together, so that each block of weights is
+ * loaded once for all of them; run_chunk's buffers take 2 x 16 x FBG_MAX_WIDTH floats (16 kB)
+ * of stack. */
 
 #if FBGF_HAVE_AVX2
 /* The first n_in inputs of the n samples in `in` into lanes (fbgf_dense_lanes); the lanes past
@@ -383,8 +383,9 @@ static const float *fnet_lanes(const fbgf_net *net, const float *x, size_t n, fl
     return x;
 }
 
-/* The nets of run_chunk on the AVX2+FMA kernel, samples in lanes: the bits of fbgf_step, whose
- * kernel sums each output in the same order. in[k] and loc[k] belong to the output who[k]. */
+/* The nets of run_chunk on the AVX2+FMA kernel with the samples in lanes: each sample gets the
+ * bits of fbgf_step, whose kernel sums every output in the same order (fbgf_dense.c). in[k] and
+ * loc[k] belong to out[who[k]]; the rows of the contact samples move to the front of in[]. */
 static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
                            float loc[][FBG_N_STRAIN], const size_t *who, size_t n_run,
                            fbgf_output *out, float *act[2])
@@ -443,8 +444,7 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
     if (n_run == 0u)
         return st;
 #if FBGF_HAVE_AVX2
-    if (kernel == FBGF_KERNEL_AVX2_FMA)
-    {
+    if (kernel == FBGF_KERNEL_AVX2_FMA) {
         run_nets_lanes(m, in, loc, who, n_run, out, act);
         return st;
     }
