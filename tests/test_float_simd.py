@@ -179,7 +179,7 @@ int main(void)
 
 #: label -> (extra C flags, kernel the driver must report on this host)
 X86_BUILDS = {"portable": (["-DFBGF_SIMD=0"], "portable"), "sse2": (["-DFBGF_NO_AVX2=1"], "sse2"),
-              "auto": ([], None)}
+              "auto": ([], None), "rows": (["-DFBGF_RUN_LANES=0"], None)}
 
 
 def _need(*tools: str) -> None:
@@ -293,6 +293,13 @@ def test_x86_simd_differs_from_portable_by_rounding_only(case, x86_outputs):
                         | {"contact": portable["contact"].astype(bool)}, name, 1e-4)
     # They are different code: a test that could not tell them apart would prove nothing.
     assert not np.array_equal(x86_outputs["sse2"][1]["force_N"], portable["force_N"])
+
+
+def test_batches_in_lanes_give_the_bits_of_batches_in_rows(x86_outputs):
+    """fbgf_run with the samples in lanes (AVX2+FMA, the default) and in rows
+    (-DFBGF_RUN_LANES=0) runs the same kernel order: the same bytes."""
+    assert x86_outputs["rows"][0] == x86_outputs["auto"][0]
+    assert x86_outputs["rows"][1].tobytes() == x86_outputs["auto"][1].tobytes()
 
 
 def test_auto_build_picks_avx2_where_the_cpu_has_it(x86_outputs):

@@ -6125,6 +6125,9 @@ typedef int fbg_simd_x86_unused;
  *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *   FBGF_RUN_LANES=0     x86-64 with AVX2+FMA: fbgf_run passes the samples of a batch to
+ *                        fbgf_dense in rows instead of to fbgf_dense_lanes in lanes (the same
+ *                        bits, slower), e.g. to compare the two
  *
  * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
  * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
@@ -6176,12 +6179,16 @@ fbgf_kernel fbgf_dense_kernel(void);
 void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
                 size_t y_stride, size_t n, int relu);
 
+#ifndef FBGF_RUN_LANES
+#define FBGF_RUN_LANES FBGF_HAVE_AVX2
+#endif
+
 #if FBGF_HAVE_AVX2
 /* The AVX2+FMA kernel (only when fbgf_dense_kernel() says so) on samples in lanes: input j of
  * sample s is x[j * FBGF_RUN_CHUNK + s], output r goes to y[r * FBGF_RUN_CHUNK + s], for the
- * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples must hold finite values,
- * e.g. zeros, and give unused results). Each sample gets the bits fbgf_dense gives it alone;
- * y does not alias x. */
+ * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples are computed too, and
+ * zeros there keep that cheap). Each sample gets the bits fbgf_dense gives it alone, whatever
+ * its lane and the other lanes; y does not alias x. */
 void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu);
 #endif
 
@@ -7235,6 +7242,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *   FBGF_RUN_LANES=0     x86-64 with AVX2+FMA: fbgf_run passes the samples of a batch to
+ *                        fbgf_dense in rows instead of to fbgf_dense_lanes in lanes (the same
+ *                        bits, slower), e.g. to compare the two
  *
  * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
  * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
@@ -7286,12 +7296,16 @@ fbgf_kernel fbgf_dense_kernel(void);
 void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
                 size_t y_stride, size_t n, int relu);
 
+#ifndef FBGF_RUN_LANES
+#define FBGF_RUN_LANES FBGF_HAVE_AVX2
+#endif
+
 #if FBGF_HAVE_AVX2
 /* The AVX2+FMA kernel (only when fbgf_dense_kernel() says so) on samples in lanes: input j of
  * sample s is x[j * FBGF_RUN_CHUNK + s], output r goes to y[r * FBGF_RUN_CHUNK + s], for the
- * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples must hold finite values,
- * e.g. zeros, and give unused results). Each sample gets the bits fbgf_dense gives it alone;
- * y does not alias x. */
+ * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples are computed too, and
+ * zeros there keep that cheap). Each sample gets the bits fbgf_dense gives it alone, whatever
+ * its lane and the other lanes; y does not alias x. */
 void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu);
 #endif
 
@@ -7646,7 +7660,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
  * loaded once for all of them; run_chunk's buffers take 2 x 16 x FBG_MAX_WIDTH floats (16 kB)
  * of stack. */
 
-#if FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
 /* The first n_in inputs of the n samples in `in` into lanes (fbgf_dense_lanes); the lanes past
  * n get zeros. */
 static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float *x)
@@ -7732,7 +7746,7 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
-#if FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
     if (kernel == FBGF_KERNEL_AVX2_FMA) {
         run_nets_lanes(m, in, loc, who, n_run, out, act);
         return st;

@@ -357,7 +357,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
  * loaded once for all of them; run_chunk's buffers take 2 x 16 x FBG_MAX_WIDTH floats (16 kB)
  * of stack. */
 
-#if FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
 /* The first n_in inputs of the n samples in `in` into lanes (fbgf_dense_lanes); the lanes past
  * n get zeros. */
 static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float *x)
@@ -443,7 +443,7 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
-#if FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
     if (kernel == FBGF_KERNEL_AVX2_FMA) {
         run_nets_lanes(m, in, loc, who, n_run, out, act);
         return st;
