@@ -26,7 +26,9 @@ estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-ou
   filtered, compensated shifts (the first four feature columns).
 
 Prints a table (contact accuracy overall and above 1 N, force, x, y RMSE, median onset and
-release delay, training time) and optionally writes it as JSON. Foreign data: write CSVs with
+release delay, training time), then x and y of all three on the test samples that all three
+and the truth call contact (:func:`fbgforce.metrics.common_location`: like for like, since each
+estimator's own x/y leave out the touches it misses), and optionally writes it as JSON. Foreign data: write CSVs with
 ``tests/foreign.py`` (docs/trainer.md, "Against scikit-learn") and pass them with ``--data``.
 """
 from __future__ import annotations
@@ -221,30 +223,44 @@ def main(argv: list[str] | None = None) -> int:
     z = data.inputs(model.preprocess)  # the fbgforce nets' own inputs (standardised, memory)
     from fbgforce import model as fm
 
-    results["fbgforce"] = {"metrics": score(data, fm.predict_from_features(model, z), te),
+    preds = {"fbgforce": fm.predict_from_features(model, z)}
+    results["fbgforce"] = {"metrics": score(data, preds["fbgforce"], te),
                            "train_s": t_fbg,
                            "epochs": {k: v["epochs_run"] for k, v in
                                       model.metadata["training"].items()}}
     print(f"scikit-learn {sklearn.__version__} ...", file=sys.stderr)
     t0 = time.perf_counter()
-    pred, seconds = sklearn_hierarchy(z, data, tr, model, seed=args.seed, max_iter=args.max_iter)
-    results["scikit-learn"] = {"metrics": score(data, pred, te),
+    preds["scikit-learn"], seconds = sklearn_hierarchy(z, data, tr, model, seed=args.seed,
+                                                       max_iter=args.max_iter)
+    results["scikit-learn"] = {"metrics": score(data, preds["scikit-learn"], te),
                                "train_s": time.perf_counter() - t0, "seconds": seconds}
-    pred, t_lin = linear_baseline(data, tr)
-    results["linear (fitted)"] = {"metrics": score(data, pred, te), "train_s": t_lin}
+    preds["linear (fitted)"], t_lin = linear_baseline(data, tr)
+    results["linear (fitted)"] = {"metrics": score(data, preds["linear (fitted)"], te),
+                                  "train_s": t_lin}
+    from fbgforce import metrics as fmetrics
+
+    # Each estimator's own x/y are scored where it detects contact; these are like for like.
+    common_xy = fmetrics.common_location({k: {c: np.asarray(v)[te] for c, v in p.items()}
+                                       for k, p in preds.items()},
+                                      data.contact[te], data.x_mm[te], data.y_mm[te])
 
     print(f"{z.shape[1]} net inputs (memory: {model.metadata.get('memory')})")
     print(table(results))
     f, s = results["fbgforce"]["metrics"], results["scikit-learn"]["metrics"]
     ratios = {k: (f[k] / s[k] if f.get(k) and s.get(k) else None)
               for k in ("rmse_force_N", "rmse_x_mm", "rmse_y_mm")}
+    if common_xy["n_samples"]:
+        print(f"x / y mm on the {common_xy['n_samples']} test samples all three call contact: "
+              + ", ".join(f"{k} {common_xy[k]['rmse_x_mm']:.3f} / {common_xy[k]['rmse_y_mm']:.3f}"
+                          for k in preds))
     print("fbgforce / scikit-learn RMSE: " + ", ".join(
         f"{k} {v:.2f}" for k, v in ratios.items() if v is not None))
     if args.json:
         doc = {"data": names, "seed": args.seed, "features": int(z.shape[1]),
                "samples": {"train": int(tr.size), "test": int(te.size)},
                "sklearn_version": sklearn.__version__, "max_iter": args.max_iter,
-               "epochs": args.epochs, "results": results, "ratios_fbgforce_over_sklearn": ratios}
+               "epochs": args.epochs, "results": results, "ratios_fbgforce_over_sklearn": ratios,
+               "location_on_common_contacts": common_xy}
         from fbgforce.jsonutil import json_default
 
         Path(args.json).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")

@@ -21,6 +21,12 @@ true-force range), ``boundary`` / ``interior`` (location and force RMSE for cont
 light-touch detection fails). An RMSE over an empty set is ``None`` (JSON ``null``), never
 NaN, so the JSON stays standard.
 
+Location on common contacts (:func:`common_location`): ``rmse_x_mm``/``rmse_y_mm`` of several
+estimators over the samples where the truth and EVERY one of them say "contact". Each
+estimator's own ``rmse_x_mm`` is scored where it detects contact, so a detector that misses the
+light touches (where location is hardest) is scored on easier samples; on the common samples
+the comparison is like for like.
+
 Contact timing (:func:`press_delays`, :func:`timing_summary`; ``contact_timing`` when the
 caller passes ``delays``): per press, the onset delay is the first predicted-contact sample
 minus the first true-contact sample, the release delay the first predicted no-contact sample
@@ -146,6 +152,35 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         out[key] = row
     if delays is not None:
         out["contact_timing"] = timing_summary(*delays)
+    return out
+
+
+def common_location(preds: Mapping[str, Mapping[str, np.ndarray]], contact: np.ndarray,
+                    x_mm: np.ndarray, y_mm: np.ndarray) -> dict[str, Any]:
+    """Location RMSE of each estimator on the samples every estimator and the truth call contact.
+
+    Parameters
+    ----------
+    preds
+        Estimator name -> engine output (``contact``, ``x_mm``, ``y_mm``; (n,) each).
+    contact, x_mm, y_mm
+        Ground truth (n,).
+
+    Returns
+    -------
+    dict
+        ``n_samples`` (the common contacts) and, per estimator name, ``rmse_x_mm`` and
+        ``rmse_y_mm`` over them (``None`` when there are none).
+    """
+    both = np.asarray(contact).astype(bool).reshape(-1)
+    for p in preds.values():
+        both = both & np.asarray(p["contact"]).astype(bool).reshape(-1)
+    tx = np.asarray(x_mm, dtype=np.float64).reshape(-1)[both]
+    ty = np.asarray(y_mm, dtype=np.float64).reshape(-1)[both]
+    out: dict[str, Any] = {"n_samples": int(both.sum())}
+    for name, p in preds.items():
+        out[name] = {"rmse_x_mm": _rmse(np.asarray(p["x_mm"], dtype=np.float64).reshape(-1)[both] - tx),
+                     "rmse_y_mm": _rmse(np.asarray(p["y_mm"], dtype=np.float64).reshape(-1)[both] - ty)}
     return out
 
 

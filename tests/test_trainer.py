@@ -211,6 +211,30 @@ def test_metric_definitions():
     assert set(core) == {"contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"}
 
 
+def test_common_location_scores_every_estimator_on_the_same_samples():
+    tc = np.array([1, 1, 1, 0], bool)
+    tx = np.array([1.0, 2.0, 3.0, np.nan])
+    ty = np.array([4.0, 5.0, 6.0, np.nan])
+    # "lax" misses the hard third touch, so its own x RMSE looks better than "keen"'s.
+    lax = {"contact": np.array([1, 1, 0, 0], bool), "x_mm": np.array([1.0, 3.0, np.nan, np.nan]),
+           "y_mm": np.array([4.0, 5.0, np.nan, np.nan])}
+    keen = {"contact": np.array([1, 1, 1, 1], bool), "x_mm": np.array([1.5, 2.0, 7.0, 0.0]),
+            "y_mm": np.array([4.0, 5.5, 6.0, 0.0])}
+    own = {k: metrics.compute({**p, "force_N": np.ones(4)}, tc, np.ones(4), tx, ty,
+                              extras=False)["rmse_x_mm"]
+           for k, p in (("lax", lax), ("keen", keen))}
+    assert own["lax"] < own["keen"]
+    c = metrics.common_location({"lax": lax, "keen": keen}, tc, tx, ty)
+    assert c["n_samples"] == 2
+    assert c["lax"]["rmse_x_mm"] == pytest.approx(np.sqrt(1 / 2))
+    assert c["keen"]["rmse_x_mm"] == pytest.approx(np.sqrt(0.25 / 2))
+    assert c["keen"]["rmse_y_mm"] == pytest.approx(np.sqrt(0.25 / 2))
+    assert c["keen"]["rmse_x_mm"] < c["lax"]["rmse_x_mm"]
+    none = metrics.common_location({"lax": lax, "never": {**keen, "contact": np.zeros(4, bool)}},
+                                   tc, tx, ty)
+    assert none["n_samples"] == 0 and none["lax"]["rmse_x_mm"] is None
+
+
 # ------------------------------------------------------------------------------ engines
 def _tiny_model(rng):
     pre = pp.make_preprocess("causal", 2.0, np.ones(4))

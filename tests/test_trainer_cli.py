@@ -86,3 +86,10 @@ def test_report_runs_end_to_end(capsys, tmp_path, small_dataset_path, small_mode
     assert set(res["network"]) == {"causal", "centred", "none"}
     assert res["network"]["causal"]["metrics"]["n_samples"] == res["test_samples"]
     assert isinstance(res["checks"]["network_beats_nominal_3x_force"], bool)
+    # Location like for like: both scored on the same true contacts that both detect.
+    common = res["model_based"]["fitted"]["common_with_network"]
+    assert 0 < common["n_samples"] < res["test_samples"]
+    for who in ("network", "fitted"):
+        assert common[who]["rmse_x_mm"] > 0 and common[who]["rmse_y_mm"] > 0
+    assert isinstance(res["checks"]["network_beats_fitted_on_every_metric"], bool)
+    assert "both the causal network and the fitted baseline call contact" in md
