@@ -14,7 +14,11 @@ with memory features over a random walk (contact and no contact). For every buil
   within 1e-4;
 * the SIMD kernels differ from the portable one by float32 rounding only (within 1e-4 of the
   output's scale), and the cffi extension gives the bits of the build that picks the same
-  kernel.
+  kernel;
+* on AVX2+FMA, the batch kernel with the samples in lanes (``fbgf_dense_lanes``, which
+  ``fbgf_run`` uses) gives every sample of every layer shape (narrow and wide, rows not a
+  multiple of the block) the bytes that ``fbgf_dense`` gives it alone, in whichever lane and
+  with whatever the other lanes hold.
 
 Tools: gcc (x86-64 builds), aarch64-linux-gnu-gcc and qemu-aarch64 (NEON); a missing tool
 SKIPS, except under CI=true, where it FAILS.
@@ -111,9 +115,71 @@ int main(int argc, char **argv)
 }
 """
 
+LANES_DRIVER = r"""
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include "fbgforce.h"
+#include "fbgf_dense.h"
+
+static unsigned long long rng = 88172645463325252ull;
+static float uniform(void)   /* [-1, 1) with zeros and signed zeros now and then */
+{
+    rng ^= rng << 13; rng ^= rng >> 7; rng ^= rng << 17;
+    switch (rng % 16u) {
+    case 0: return 0.0f;
+    case 1: return -0.0f;
+    default: return (float)((rng >> 11) % 2000001u) / 1000000.0f - 1.0f;
+    }
+}
+
+/* Every sample of random layers of each shape through fbgf_dense_lanes (in either vector,
+ * with the other lanes random) and alone through fbgf_dense. stdout: shapes checked and bytes
+ * that differ, or "skip" when this CPU does not run the AVX2 kernel. */
+int main(void)
+{
+    static const unsigned ins[] = {1, 3, 8, 10, 16, 17, 23, 40, 50, 64, 70, 127, 128};
+    static const unsigned outs[] = {1, 2, 5, 6, 7, 13, 20, 50, 128};
+    static float w[128 * 128], b[128], x[128 * FBGF_RUN_CHUNK], y[128 * FBGF_RUN_CHUNK];
+    static float xs[FBGF_RUN_CHUNK][128], ys[FBGF_RUN_CHUNK][128];
+    unsigned a, c, i, j, n, relu, n_vec, shapes = 0, bad = 0;
+    fbgf_layer ly;
+    if (fbgf_dense_kernel() != FBGF_KERNEL_AVX2_FMA) {
+        puts("skip");
+        return 0;
+    }
+    for (a = 0; a < sizeof ins / sizeof *ins; ++a)
+        for (c = 0; c < sizeof outs / sizeof *outs; ++c)
+            for (relu = 0; relu < 2u; ++relu)
+                for (n_vec = 1; n_vec <= FBGF_RUN_CHUNK / 8u; ++n_vec) {
+                    ly.n_in = (uint16_t)ins[a];
+                    ly.n_out = (uint16_t)outs[c];
+                    ly.w = w;
+                    ly.b = b;
+                    for (i = 0; i < 128u * 128u; ++i) w[i] = uniform();
+                    for (i = 0; i < 128u; ++i) b[i] = uniform();
+                    for (i = 0; i < 128u * FBGF_RUN_CHUNK; ++i) x[i] = 4.0f * uniform();
+                    n = 8u * n_vec;
+                    for (i = 0; i < n; ++i)
+                        for (j = 0; j < ly.n_in; ++j)
+                            xs[i][j] = x[j * FBGF_RUN_CHUNK + i];
+                    memset(y, 0, sizeof y);
+                    fbgf_dense_lanes(&ly, x, y, n_vec, (int)relu);
+                    for (i = 0; i < n; ++i) {
+                        fbgf_dense(FBGF_KERNEL_AVX2_FMA, &ly, xs[i], 128, ys[i], 128, 1, (int)relu);
+                        for (j = 0; j < ly.n_out; ++j)
+                            bad += memcmp(&ys[i][j], &y[j * FBGF_RUN_CHUNK + i], sizeof(float)) != 0;
+                    }
+                    ++shapes;
+                }
+    printf("%u %u\n", shapes, bad);
+    return 0;
+}
+"""
+
 #: label -> (extra C flags, kernel the driver must report on this host)
 X86_BUILDS = {"portable": (["-DFBGF_SIMD=0"], "portable"), "sse2": (["-DFBGF_NO_AVX2=1"], "sse2"),
-              "auto": ([], None)}
+              "auto": ([], None), "rows": (["-DFBGF_RUN_LANES=0"], None)}
 
 
 def _need(*tools: str) -> None:
@@ -229,6 +295,13 @@ def test_x86_simd_differs_from_portable_by_rounding_only(case, x86_outputs):
     assert not np.array_equal(x86_outputs["sse2"][1]["force_N"], portable["force_N"])
 
 
+def test_batches_in_lanes_give_the_bits_of_batches_in_rows(x86_outputs):
+    """fbgf_run with the samples in lanes (AVX2+FMA, the default) and in rows
+    (-DFBGF_RUN_LANES=0) runs the same kernel order: the same bytes."""
+    assert x86_outputs["rows"][0] == x86_outputs["auto"][0]
+    assert x86_outputs["rows"][1].tobytes() == x86_outputs["auto"][1].tobytes()
+
+
 def test_auto_build_picks_avx2_where_the_cpu_has_it(x86_outputs):
     flags = Path("/proc/cpuinfo").read_text().split() if Path("/proc/cpuinfo").is_file() else []
     expected = "avx2+fma" if {"avx2", "fma"} <= set(flags) else "sse2"
@@ -247,6 +320,28 @@ def test_extension_gives_the_bits_of_the_matching_build(case, x86_outputs):
     assert lib.fbgf_run(rt._state, ffi.cast("int32_t *", ffi.from_buffer(rows)), rows.shape[0],
                         ffi.cast("fbgf_output *", ffi.from_buffer(raw))) == 0
     assert raw.tobytes() == x86_outputs["auto"][1].tobytes()
+
+
+def test_avx2_lanes_kernel_gives_each_sample_its_single_bits(tmp_path):
+    """fbgf_dense_lanes against fbgf_dense one sample at a time: the same bytes for every
+    sample, layer shape, lane and ReLU setting (the rule that lets fbgf_run give the bits of
+    fbgf_step)."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("the AVX2 kernels need an x86-64 host")
+    _need("gcc")
+    (tmp_path / "lanes.c").write_text(LANES_DRIVER)
+    exe = tmp_path / "lanes"
+    r = subprocess.run(["gcc", *STRICT, f"-I{RUNTIME / 'include'}", f"-I{RUNTIME / 'src'}",
+                        str(RUNTIME / "src" / "fbgf_dense.c"), str(tmp_path / "lanes.c"), "-o", str(exe)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    r = subprocess.run([str(exe)], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    if r.stdout.split() == ["skip"]:
+        pytest.skip("this CPU lacks AVX2 or FMA")
+    shapes, bad = (int(v) for v in r.stdout.split())
+    assert shapes == 13 * 9 * 2 * 2
+    assert bad == 0, f"{bad} outputs of fbgf_dense_lanes differ from fbgf_dense"
 
 
 def test_neon_kernel_under_qemu(case):

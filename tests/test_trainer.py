@@ -322,6 +322,27 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     assert ev["contact_timing"]["presses"] >= 1
 
 
+def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synthetic_recording):
+    from fbgforce.trainer.train import train
+
+    ds = synthetic_recording(n_press=30, seed=3)
+    kw = dict(epochs=3, seed=5, progress=False,
+              sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
+    one = train([ds], restarts=1, **kw)
+    three = train([ds], restarts={"force": 3}, **kw)
+    # The contact net never restarts; the force net's first draw is the single-draw net.
+    for wa, wb in zip(one.contact.weights, three.contact.weights):
+        assert np.array_equal(wa, wb)
+    single, best_of = one.metadata["training"]["force"], three.metadata["training"]["force"]
+    draws = best_of["restarts"]["val_losses"]
+    assert len(draws) == 3 and draws[0] == single["best_val_loss"]
+    assert len(set(draws)) == 3  # independent initialisations, not copies
+    assert best_of["best_val_loss"] == min(draws) == draws[best_of["restarts"]["kept"]]
+    assert len(three.metadata["training"]["location"]["restarts"]["val_losses"]) == 1
+    if best_of["restarts"]["kept"] != 0:
+        assert not np.array_equal(one.force.weights[0], three.force.weights[0])
+
+
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
     from fbgforce.trainer.train import train
 

@@ -54,6 +54,10 @@ def register(subparsers: Any) -> None:
                         "'ema:3,6+play:0.03,0.1+loc:5' (average shifts; play half-widths in "
                         "input standard deviations; the location averages' shift); "
                         "docs/trainer.md")
+    p.add_argument("--restarts", default=None, metavar="SPEC",
+                   help="initialisations tried per net, the lowest validation loss kept: N for "
+                        "every net or e.g. 'force=3,location=2' (default contact=1, force=3, "
+                        "location=1)")
     add_json_flag(p)
     p.set_defaults(handler=_train)
 
@@ -109,7 +113,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
-                  memory=args.memory,
+                  memory=args.memory, restarts=_restarts(args.restarts),
                   sigma=args.sigma, window=args.window, init=args.init,
                   train_fraction=args.train_fraction)
     fm.save(model, args.out)
@@ -125,6 +129,25 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
             "val": md["metrics"]["val"], "test": md["metrics"]["test"],
             "warnings": md.get("warnings", [])}
+
+
+def _restarts(spec: str | None) -> int | dict[str, int] | None:
+    """``--restarts``: ``N`` or ``net=N,net=N``; InputError naming the option otherwise."""
+    if spec is None:
+        return None
+    try:
+        if "=" not in spec:
+            value: int | dict[str, int] = int(spec)
+            counts = [value]
+        else:
+            value = {k.strip(): int(v) for k, v in (part.split("=", 1) for part in spec.split(","))}
+            counts = list(value.values())
+    except ValueError:
+        raise InputError(f"expected N or net=N,... (e.g. force=3,location=2), not {spec!r}",
+                         column="--restarts") from None
+    if any(c < 1 for c in counts):
+        raise InputError(f"every count must be at least 1, not {spec!r}", column="--restarts")
+    return value
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:

@@ -6800,6 +6800,9 @@ typedef int fbg_simd_x86_unused;
  *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *   FBGF_RUN_LANES=0     x86-64 with AVX2+FMA: fbgf_run passes the samples of a batch to
+ *                        fbgf_dense in rows instead of to fbgf_dense_lanes in lanes (the same
+ *                        bits, slower), e.g. to compare the two
  *
  * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
  * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
@@ -6829,6 +6832,16 @@ typedef int fbg_simd_x86_unused;
 #define FBGF_RUN_BATCHED 0
 #endif
 
+/* Samples whose nets fbgf_run runs together: on AVX2, two vectors of eight (fbgf_dense_lanes). */
+#define FBGF_RUN_CHUNK 16u
+
+/* x86-64 builds that may pick AVX2+FMA at run time; these also have fbgf_dense_lanes. */
+#if FBGF_SIMD && defined(__x86_64__) && (!defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2)
+#define FBGF_HAVE_AVX2 1
+#else
+#define FBGF_HAVE_AVX2 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
@@ -6841,13 +6854,25 @@ fbgf_kernel fbgf_dense_kernel(void);
 void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
                 size_t y_stride, size_t n, int relu);
 
+#ifndef FBGF_RUN_LANES
+#define FBGF_RUN_LANES FBGF_HAVE_AVX2
+#endif
+
+#if FBGF_HAVE_AVX2
+/* The AVX2+FMA kernel (only when fbgf_dense_kernel() says so) on samples in lanes: input j of
+ * sample s is x[j * FBGF_RUN_CHUNK + s], output r goes to y[r * FBGF_RUN_CHUNK + s], for the
+ * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples are computed too, and
+ * zeros there keep that cheap). Each sample gets the bits fbgf_dense gives it alone, whatever
+ * its lane and the other lanes; y does not alias x. */
+void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu);
+#endif
+
 #endif /* FBGF_DENSE_H */
 
 #if FBGF_SIMD && defined(__x86_64__)
 #define FBGF_HAVE_SSE2 1
 #include <emmintrin.h>
-#if !defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2
-#define FBGF_HAVE_AVX2 1
+#if FBGF_HAVE_AVX2
 #include <immintrin.h>
 #endif
 #elif FBGF_SIMD && defined(__aarch64__)
@@ -6963,7 +6988,7 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
 }
 #endif
 
-#ifdef FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2
 #define FBGF_AVX2 __attribute__((target("avx2,fma")))
 
 /* Lanes 0 .. n - full - 1 on: the inputs of the last, partial group of eight (maskload reads
@@ -7198,6 +7223,153 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x
         for (i = 0; i < n; ++i)
             rows1x1(&d, ly->w + r * d.stride, ly->b + r, xs + i * x_stride, ys + i * y_stride + r);
 }
+/* Samples in lanes (fbgf_dense_lanes): a block of up to six rows times n_vec (1 or 2) vectors
+ * of eight samples, one accumulator each (at most twelve of the sixteen vector registers), so
+ * that every weight is broadcast once for 8 * n_vec samples and no sum crosses lanes. Sample
+ * by sample the sums are those of the kernels above:
+ *
+ *   narrow (n_in <= FBGF_NARROW, as dense_avx2_narrow): b[r], then fused w[r][j] x[j] for j
+ *     ascending;
+ *   otherwise (as rows8x1, rows4x1, rows1x1): eight phases, phase k the fused sum from zero of
+ *     w[r][j] x[j] over j = k (mod 8) ascending (lane k of those kernels; their zero products
+ *     past n_in change no sum, which never holds -0), then ((p0 + p1) + (p2 + p3)) +
+ *     ((p4 + p5) + (p6 + p7)), then + b[r]. The tree is built as the phases end (t0 = p0, then
+ *     p0 + p1, then (p0 + p1) + (p2 + p3); t1 = p2, then p4, then p4 + p5; t2 = p6; after
+ *     phase 7, t0 + (t1 + (t2 + p7)), which is the same tree), so that the phase sums wait in
+ *     three slots instead of eight and the last phase ends the block.
+ *
+ * rows, n_vec and narrow are constants where this is inlined, so that the accumulators stay in
+ * registers: they are named, not an array, because GCC keeps an array of vectors in memory. */
+#define FBGF_LANE_ROWS 6u
+
+FBGF_AVX2 static inline __attribute__((always_inline)) void
+lanes_block(const float *w, unsigned n_in, const float *b, const float *x, float *y,
+            const unsigned rows, const unsigned n_vec, const int narrow, int relu)
+{
+    const __m256 zero = _mm256_setzero_ps();
+    const float *w1 = w + n_in, *w2 = w1 + n_in, *w3 = w2 + n_in, *w4 = w3 + n_in, *w5 = w4 + n_in;
+    __m256 a00 = zero, a01 = zero, a10 = zero, a11 = zero, a20 = zero, a21 = zero;
+    __m256 a30 = zero, a31 = zero, a40 = zero, a41 = zero, a50 = zero, a51 = zero;
+    __m256 t[FBGF_LANE_ROWS][2][3];
+    unsigned j;
+#define FBGF_LANES_EACH(DO) DO(0) DO(1) DO(2) DO(3) DO(4) DO(5)
+#define FBGF_LANES_FMA(K, WK)                                                       \
+        if (rows > K##u) {                                                          \
+            const __m256 wk = _mm256_broadcast_ss(WK + j);                          \
+            a##K##0 = _mm256_fmadd_ps(wk, x0, a##K##0);                             \
+            if (n_vec > 1u)                                                         \
+                a##K##1 = _mm256_fmadd_ps(wk, x1, a##K##1);                         \
+        }
+#define FBGF_LANES_LOOP(J0, STEP)                                                   \
+    for (j = (J0); j < n_in; j += (STEP)) {                                         \
+        const float *xj = x + (size_t)j * FBGF_RUN_CHUNK;                           \
+        const __m256 x0 = _mm256_loadu_ps(xj);                                      \
+        const __m256 x1 = n_vec > 1u ? _mm256_loadu_ps(xj + 8) : zero;              \
+        FBGF_LANES_FMA(0, w) FBGF_LANES_FMA(1, w1) FBGF_LANES_FMA(2, w2)            \
+        FBGF_LANES_FMA(3, w3) FBGF_LANES_FMA(4, w4) FBGF_LANES_FMA(5, w5)           \
+    }
+    /* y row K, vector V gets A + b[K] (narrow: A), then ReLU on hidden layers. */
+#define FBGF_LANES_PUT(A, K, V)                                                     \
+    _mm256_storeu_ps(y + K * FBGF_RUN_CHUNK + 8 * V, relu ? _mm256_max_ps(zero, A) : A);
+    if (narrow) {
+#define FBGF_LANES_BIAS(K)                                                          \
+        if (rows > K##u)                                                            \
+            a##K##0 = a##K##1 = _mm256_broadcast_ss(b + K);
+#define FBGF_LANES_STORE(K)                                                         \
+        if (rows > K##u) {                                                          \
+            FBGF_LANES_PUT(a##K##0, K, 0)                                           \
+            if (n_vec > 1u)                                                         \
+                FBGF_LANES_PUT(a##K##1, K, 1)                                       \
+        }
+        FBGF_LANES_EACH(FBGF_LANES_BIAS)
+        FBGF_LANES_LOOP(0u, 1u)
+        FBGF_LANES_EACH(FBGF_LANES_STORE)
+        return;
+    }
+#define FBGF_LANES_FOLD(P, A, K, V)                                                 \
+        switch (P) {                                                                \
+        case 0u: t[K][V][0] = A; break;                                             \
+        case 1u: t[K][V][0] = _mm256_add_ps(t[K][V][0], A); break;                  \
+        case 2u: t[K][V][1] = A; break;                                             \
+        case 3u: t[K][V][0] = _mm256_add_ps(t[K][V][0], _mm256_add_ps(t[K][V][1], A)); break; \
+        case 4u: t[K][V][1] = A; break;                                             \
+        case 5u: t[K][V][1] = _mm256_add_ps(t[K][V][1], A); break;                  \
+        case 6u: t[K][V][2] = A; break;                                             \
+        default:                                                                    \
+            A = _mm256_add_ps(t[K][V][1], _mm256_add_ps(t[K][V][2], A));            \
+            A = _mm256_add_ps(_mm256_add_ps(t[K][V][0], A), _mm256_broadcast_ss(b + K)); \
+            FBGF_LANES_PUT(A, K, V)                                                 \
+        }
+#define FBGF_LANES_KEEP(K)                                                          \
+        if (rows > K##u) {                                                          \
+            FBGF_LANES_FOLD(phase, a##K##0, K, 0)                                   \
+            if (n_vec > 1u)                                                         \
+                FBGF_LANES_FOLD(phase, a##K##1, K, 1)                               \
+        }
+#define FBGF_LANES_ZERO(K) a##K##0 = a##K##1 = zero;
+    /* The phases written out, so that each one's tree step is fixed where it is compiled. */
+#define FBGF_LANES_PHASE(P)                                                         \
+    {                                                                               \
+        const unsigned phase = P;                                                   \
+        FBGF_LANES_EACH(FBGF_LANES_ZERO)                                            \
+        FBGF_LANES_LOOP(phase, 8u)                                                  \
+        FBGF_LANES_EACH(FBGF_LANES_KEEP)                                            \
+    }
+    FBGF_LANES_PHASE(0u) FBGF_LANES_PHASE(1u) FBGF_LANES_PHASE(2u) FBGF_LANES_PHASE(3u)
+    FBGF_LANES_PHASE(4u) FBGF_LANES_PHASE(5u) FBGF_LANES_PHASE(6u) FBGF_LANES_PHASE(7u)
+#undef FBGF_LANES_PHASE
+#undef FBGF_LANES_ZERO
+#undef FBGF_LANES_KEEP
+#undef FBGF_LANES_FOLD
+#undef FBGF_LANES_STORE
+#undef FBGF_LANES_BIAS
+#undef FBGF_LANES_PUT
+#undef FBGF_LANES_LOOP
+#undef FBGF_LANES_FMA
+#undef FBGF_LANES_EACH
+}
+
+FBGF_AVX2 static void lanes_rows(const float *w, unsigned n_in, const float *b, const float *x, float *y,
+                                 unsigned rows, unsigned n_vec, int relu)
+{
+#define FBGF_LANES_CASE(R)                                                          \
+    case R:                                                                         \
+        if (n_in <= FBGF_NARROW) {                                                  \
+            if (n_vec > 1u)                                                         \
+                lanes_block(w, n_in, b, x, y, R, 2u, 1, relu);                      \
+            else                                                                    \
+                lanes_block(w, n_in, b, x, y, R, 1u, 1, relu);                      \
+        } else if (n_vec > 1u) {                                                    \
+            lanes_block(w, n_in, b, x, y, R, 2u, 0, relu);                          \
+        } else {                                                                    \
+            lanes_block(w, n_in, b, x, y, R, 1u, 0, relu);                          \
+        }                                                                           \
+        return;
+    switch (rows) {
+        FBGF_LANES_CASE(6u)
+        FBGF_LANES_CASE(5u)
+        FBGF_LANES_CASE(4u)
+        FBGF_LANES_CASE(3u)
+        FBGF_LANES_CASE(2u)
+    default:
+        FBGF_LANES_CASE(1u)
+    }
+#undef FBGF_LANES_CASE
+}
+
+/* The rows go in blocks of as equal a size as FBGF_LANE_ROWS allows (50 rows: 5 x 6 + 4 x 5),
+ * so that no block is left with too few accumulators to hide the fused multiply-add latency. */
+FBGF_AVX2 void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu)
+{
+    const unsigned n_out = ly->n_out, blocks = (n_out + FBGF_LANE_ROWS - 1u) / FBGF_LANE_ROWS;
+    unsigned blk, r = 0;
+    for (blk = 0; blk < blocks; ++blk) {
+        const unsigned rows = (n_out - r) / (blocks - blk) + ((n_out - r) % (blocks - blk) != 0u);
+        lanes_rows(ly->w + (size_t)r * ly->n_in, ly->n_in, ly->b + r, x, y + (size_t)r * FBGF_RUN_CHUNK,
+                   rows, n_vec, relu);
+        r += rows;
+    }
+}
 #endif
 
 #ifdef FBGF_HAVE_NEON
@@ -7252,7 +7424,7 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
 
 fbgf_kernel fbgf_dense_kernel(void)
 {
-#if defined(FBGF_HAVE_AVX2)
+#if FBGF_HAVE_AVX2
     if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
         return FBGF_KERNEL_AVX2_FMA;
     return FBGF_KERNEL_SSE2;
@@ -7270,7 +7442,7 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 {
     size_t i;
     switch (kernel) {
-#ifdef FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2
     case FBGF_KERNEL_AVX2_FMA:
         if (ly->n_in <= FBGF_NARROW)
             dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);
@@ -7295,10 +7467,21 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
     }
 }
 #undef FBGF_HAVE_SSE2
-#undef FBGF_HAVE_AVX2
 #undef FBGF_HAVE_NEON
 #undef FBGF_AVX2
 #undef FBGF_NARROW
+#undef FBGF_LANE_ROWS
+#undef FBGF_LANES_EACH
+#undef FBGF_LANES_FMA
+#undef FBGF_LANES_LOOP
+#undef FBGF_LANES_PUT
+#undef FBGF_LANES_BIAS
+#undef FBGF_LANES_STORE
+#undef FBGF_LANES_FOLD
+#undef FBGF_LANES_KEEP
+#undef FBGF_LANES_ZERO
+#undef FBGF_LANES_PHASE
+#undef FBGF_LANES_CASE
 /* ---- src/fbgf_float.c ---- */
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
@@ -7734,6 +7917,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *   FBGF_RUN_LANES=0     x86-64 with AVX2+FMA: fbgf_run passes the samples of a batch to
+ *                        fbgf_dense in rows instead of to fbgf_dense_lanes in lanes (the same
+ *                        bits, slower), e.g. to compare the two
  *
  * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
  * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
@@ -7763,6 +7949,16 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 #define FBGF_RUN_BATCHED 0
 #endif
 
+/* Samples whose nets fbgf_run runs together: on AVX2, two vectors of eight (fbgf_dense_lanes). */
+#define FBGF_RUN_CHUNK 16u
+
+/* x86-64 builds that may pick AVX2+FMA at run time; these also have fbgf_dense_lanes. */
+#if FBGF_SIMD && defined(__x86_64__) && (!defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2)
+#define FBGF_HAVE_AVX2 1
+#else
+#define FBGF_HAVE_AVX2 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
@@ -7774,6 +7970,19 @@ fbgf_kernel fbgf_dense_kernel(void);
  * across samples (while it is in L1) compute each sample exactly as alone. */
 void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
                 size_t y_stride, size_t n, int relu);
+
+#ifndef FBGF_RUN_LANES
+#define FBGF_RUN_LANES FBGF_HAVE_AVX2
+#endif
+
+#if FBGF_HAVE_AVX2
+/* The AVX2+FMA kernel (only when fbgf_dense_kernel() says so) on samples in lanes: input j of
+ * sample s is x[j * FBGF_RUN_CHUNK + s], output r goes to y[r * FBGF_RUN_CHUNK + s], for the
+ * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples are computed too, and
+ * zeros there keep that cheap). Each sample gets the bits fbgf_dense gives it alone, whatever
+ * its lane and the other lanes; y does not alias x. */
+void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu);
+#endif
 
 #endif /* FBGF_DENSE_H */
 
@@ -8122,10 +8331,72 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 }
 
 #if FBGF_RUN_BATCHED
-/* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
- * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
- * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
-#define FBGF_RUN_CHUNK 16u
+/* fbgf_run runs the nets of FBGF_RUN_CHUNK samples together, so that each block of weights is
+ * loaded once for all of them; run_chunk's buffers take 2 x 16 x FBG_MAX_WIDTH floats (16 kB)
+ * of stack. */
+
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
+/* The first n_in inputs of the n samples in `in` into lanes (fbgf_dense_lanes); the lanes past
+ * n get zeros. */
+static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float *x)
+{
+    unsigned j;
+    size_t k;
+    for (j = 0; j < n_in; ++j)
+        for (k = 0; k < FBGF_RUN_CHUNK; ++k)
+            x[j * FBGF_RUN_CHUNK + k] = k < n ? in[k][j] : 0.0f;
+}
+
+/* fnet for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
+ * r of sample k at [r * FBGF_RUN_CHUNK + k]. */
+static const float *fnet_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
+{
+    const unsigned n_vec = (unsigned)((n + 7u) / 8u);
+    unsigned l, buf = 0u;
+    for (l = 0; l < net->n_layers; ++l) {
+        fbgf_dense_lanes(&net->layers[l], x, a[buf], n_vec, l + 1u < net->n_layers);
+        x = a[buf];
+        buf ^= 1u;
+    }
+    return x;
+}
+
+/* The nets of run_chunk on the AVX2+FMA kernel with the samples in lanes: each sample gets the
+ * bits of fbgf_step, whose kernel sums every output in the same order (fbgf_dense.c). in[k] and
+ * loc[k] belong to out[who[k]]; the rows of the contact samples move to the front of in[]. */
+static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
+                           float loc[][FBG_N_STRAIN], const size_t *who, size_t n_run,
+                           fbgf_output *out, float *act[2])
+{
+    float x[FBG_MAX_INPUTS * FBGF_RUN_CHUNK], y2[2];
+    size_t k, n_contact = 0u, row[FBGF_RUN_CHUNK];
+    const float *y;
+    to_lanes(in, n_run, m->nets[FBG_NET_CONTACT].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
+    for (k = 0; k < n_run; ++k) {
+        y2[0] = y[k];
+        y2[1] = y[FBGF_RUN_CHUNK + k];
+        if (contact_output(y2, out + who[k])) {
+            if (n_contact != k)
+                memcpy(in[n_contact], in[k], sizeof in[k]);
+            row[n_contact++] = k;
+        }
+    }
+    if (n_contact == 0u)
+        return;
+    to_lanes(in, n_contact, m->nets[FBG_NET_FORCE].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        force_output(m, y[k], out + who[row[k]], in[k], loc[row[k]]);
+    to_lanes(in, n_contact, m->nets[FBG_NET_LOCATION].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
+    for (k = 0; k < n_contact; ++k) {
+        y2[0] = y[k];
+        y2[1] = y[FBGF_RUN_CHUNK + k];
+        location_output(m, y2, out + who[row[k]]);
+    }
+}
+#endif
 
 /* n samples through the front end one by one (the state advances in order), then each net
  * for all samples that need it, layer by layer. Every sample's outputs are those fbgf_step
@@ -8150,6 +8421,12 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
+    if (kernel == FBGF_KERNEL_AVX2_FMA) {
+        run_nets_lanes(m, in, loc, who, n_run, out, act);
+        return st;
+    }
+#endif
     y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
@@ -8195,4 +8472,3 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     return FBG_OK;
 }
 #undef FRONT
-#undef FBGF_RUN_CHUNK

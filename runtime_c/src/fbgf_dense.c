@@ -24,8 +24,7 @@
 #if FBGF_SIMD && defined(__x86_64__)
 #define FBGF_HAVE_SSE2 1
 #include <emmintrin.h>
-#if !defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2
-#define FBGF_HAVE_AVX2 1
+#if FBGF_HAVE_AVX2
 #include <immintrin.h>
 #endif
 #elif FBGF_SIMD && defined(__aarch64__)
@@ -141,7 +140,7 @@ static void dense_sse2(const fbgf_layer *ly, const float *xs, size_t x_stride, f
 }
 #endif
 
-#ifdef FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2
 #define FBGF_AVX2 __attribute__((target("avx2,fma")))
 
 /* Lanes 0 .. n - full - 1 on: the inputs of the last, partial group of eight (maskload reads
@@ -376,6 +375,153 @@ FBGF_AVX2 static void dense_avx2(const fbgf_layer *ly, const float *xs, size_t x
         for (i = 0; i < n; ++i)
             rows1x1(&d, ly->w + r * d.stride, ly->b + r, xs + i * x_stride, ys + i * y_stride + r);
 }
+/* Samples in lanes (fbgf_dense_lanes): a block of up to six rows times n_vec (1 or 2) vectors
+ * of eight samples, one accumulator each (at most twelve of the sixteen vector registers), so
+ * that every weight is broadcast once for 8 * n_vec samples and no sum crosses lanes. Sample
+ * by sample the sums are those of the kernels above:
+ *
+ *   narrow (n_in <= FBGF_NARROW, as dense_avx2_narrow): b[r], then fused w[r][j] x[j] for j
+ *     ascending;
+ *   otherwise (as rows8x1, rows4x1, rows1x1): eight phases, phase k the fused sum from zero of
+ *     w[r][j] x[j] over j = k (mod 8) ascending (lane k of those kernels; their zero products
+ *     past n_in change no sum, which never holds -0), then ((p0 + p1) + (p2 + p3)) +
+ *     ((p4 + p5) + (p6 + p7)), then + b[r]. The tree is built as the phases end (t0 = p0, then
+ *     p0 + p1, then (p0 + p1) + (p2 + p3); t1 = p2, then p4, then p4 + p5; t2 = p6; after
+ *     phase 7, t0 + (t1 + (t2 + p7)), which is the same tree), so that the phase sums wait in
+ *     three slots instead of eight and the last phase ends the block.
+ *
+ * rows, n_vec and narrow are constants where this is inlined, so that the accumulators stay in
+ * registers: they are named, not an array, because GCC keeps an array of vectors in memory. */
+#define FBGF_LANE_ROWS 6u
+
+FBGF_AVX2 static inline __attribute__((always_inline)) void
+lanes_block(const float *w, unsigned n_in, const float *b, const float *x, float *y,
+            const unsigned rows, const unsigned n_vec, const int narrow, int relu)
+{
+    const __m256 zero = _mm256_setzero_ps();
+    const float *w1 = w + n_in, *w2 = w1 + n_in, *w3 = w2 + n_in, *w4 = w3 + n_in, *w5 = w4 + n_in;
+    __m256 a00 = zero, a01 = zero, a10 = zero, a11 = zero, a20 = zero, a21 = zero;
+    __m256 a30 = zero, a31 = zero, a40 = zero, a41 = zero, a50 = zero, a51 = zero;
+    __m256 t[FBGF_LANE_ROWS][2][3];
+    unsigned j;
+#define FBGF_LANES_EACH(DO) DO(0) DO(1) DO(2) DO(3) DO(4) DO(5)
+#define FBGF_LANES_FMA(K, WK)                                                       \
+        if (rows > K##u) {                                                          \
+            const __m256 wk = _mm256_broadcast_ss(WK + j);                          \
+            a##K##0 = _mm256_fmadd_ps(wk, x0, a##K##0);                             \
+            if (n_vec > 1u)                                                         \
+                a##K##1 = _mm256_fmadd_ps(wk, x1, a##K##1);                         \
+        }
+#define FBGF_LANES_LOOP(J0, STEP)                                                   \
+    for (j = (J0); j < n_in; j += (STEP)) {                                         \
+        const float *xj = x + (size_t)j * FBGF_RUN_CHUNK;                           \
+        const __m256 x0 = _mm256_loadu_ps(xj);                                      \
+        const __m256 x1 = n_vec > 1u ? _mm256_loadu_ps(xj + 8) : zero;              \
+        FBGF_LANES_FMA(0, w) FBGF_LANES_FMA(1, w1) FBGF_LANES_FMA(2, w2)            \
+        FBGF_LANES_FMA(3, w3) FBGF_LANES_FMA(4, w4) FBGF_LANES_FMA(5, w5)           \
+    }
+    /* y row K, vector V gets A + b[K] (narrow: A), then ReLU on hidden layers. */
+#define FBGF_LANES_PUT(A, K, V)                                                     \
+    _mm256_storeu_ps(y + K * FBGF_RUN_CHUNK + 8 * V, relu ? _mm256_max_ps(zero, A) : A);
+    if (narrow) {
+#define FBGF_LANES_BIAS(K)                                                          \
+        if (rows > K##u)                                                            \
+            a##K##0 = a##K##1 = _mm256_broadcast_ss(b + K);
+#define FBGF_LANES_STORE(K)                                                         \
+        if (rows > K##u) {                                                          \
+            FBGF_LANES_PUT(a##K##0, K, 0)                                           \
+            if (n_vec > 1u)                                                         \
+                FBGF_LANES_PUT(a##K##1, K, 1)                                       \
+        }
+        FBGF_LANES_EACH(FBGF_LANES_BIAS)
+        FBGF_LANES_LOOP(0u, 1u)
+        FBGF_LANES_EACH(FBGF_LANES_STORE)
+        return;
+    }
+#define FBGF_LANES_FOLD(P, A, K, V)                                                 \
+        switch (P) {                                                                \
+        case 0u: t[K][V][0] = A; break;                                             \
+        case 1u: t[K][V][0] = _mm256_add_ps(t[K][V][0], A); break;                  \
+        case 2u: t[K][V][1] = A; break;                                             \
+        case 3u: t[K][V][0] = _mm256_add_ps(t[K][V][0], _mm256_add_ps(t[K][V][1], A)); break; \
+        case 4u: t[K][V][1] = A; break;                                             \
+        case 5u: t[K][V][1] = _mm256_add_ps(t[K][V][1], A); break;                  \
+        case 6u: t[K][V][2] = A; break;                                             \
+        default:                                                                    \
+            A = _mm256_add_ps(t[K][V][1], _mm256_add_ps(t[K][V][2], A));            \
+            A = _mm256_add_ps(_mm256_add_ps(t[K][V][0], A), _mm256_broadcast_ss(b + K)); \
+            FBGF_LANES_PUT(A, K, V)                                                 \
+        }
+#define FBGF_LANES_KEEP(K)                                                          \
+        if (rows > K##u) {                                                          \
+            FBGF_LANES_FOLD(phase, a##K##0, K, 0)                                   \
+            if (n_vec > 1u)                                                         \
+                FBGF_LANES_FOLD(phase, a##K##1, K, 1)                               \
+        }
+#define FBGF_LANES_ZERO(K) a##K##0 = a##K##1 = zero;
+    /* The phases written out, so that each one's tree step is fixed where it is compiled. */
+#define FBGF_LANES_PHASE(P)                                                         \
+    {                                                                               \
+        const unsigned phase = P;                                                   \
+        FBGF_LANES_EACH(FBGF_LANES_ZERO)                                            \
+        FBGF_LANES_LOOP(phase, 8u)                                                  \
+        FBGF_LANES_EACH(FBGF_LANES_KEEP)                                            \
+    }
+    FBGF_LANES_PHASE(0u) FBGF_LANES_PHASE(1u) FBGF_LANES_PHASE(2u) FBGF_LANES_PHASE(3u)
+    FBGF_LANES_PHASE(4u) FBGF_LANES_PHASE(5u) FBGF_LANES_PHASE(6u) FBGF_LANES_PHASE(7u)
+#undef FBGF_LANES_PHASE
+#undef FBGF_LANES_ZERO
+#undef FBGF_LANES_KEEP
+#undef FBGF_LANES_FOLD
+#undef FBGF_LANES_STORE
+#undef FBGF_LANES_BIAS
+#undef FBGF_LANES_PUT
+#undef FBGF_LANES_LOOP
+#undef FBGF_LANES_FMA
+#undef FBGF_LANES_EACH
+}
+
+FBGF_AVX2 static void lanes_rows(const float *w, unsigned n_in, const float *b, const float *x, float *y,
+                                 unsigned rows, unsigned n_vec, int relu)
+{
+#define FBGF_LANES_CASE(R)                                                          \
+    case R:                                                                         \
+        if (n_in <= FBGF_NARROW) {                                                  \
+            if (n_vec > 1u)                                                         \
+                lanes_block(w, n_in, b, x, y, R, 2u, 1, relu);                      \
+            else                                                                    \
+                lanes_block(w, n_in, b, x, y, R, 1u, 1, relu);                      \
+        } else if (n_vec > 1u) {                                                    \
+            lanes_block(w, n_in, b, x, y, R, 2u, 0, relu);                          \
+        } else {                                                                    \
+            lanes_block(w, n_in, b, x, y, R, 1u, 0, relu);                          \
+        }                                                                           \
+        return;
+    switch (rows) {
+        FBGF_LANES_CASE(6u)
+        FBGF_LANES_CASE(5u)
+        FBGF_LANES_CASE(4u)
+        FBGF_LANES_CASE(3u)
+        FBGF_LANES_CASE(2u)
+    default:
+        FBGF_LANES_CASE(1u)
+    }
+#undef FBGF_LANES_CASE
+}
+
+/* The rows go in blocks of as equal a size as FBGF_LANE_ROWS allows (50 rows: 5 x 6 + 4 x 5),
+ * so that no block is left with too few accumulators to hide the fused multiply-add latency. */
+FBGF_AVX2 void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu)
+{
+    const unsigned n_out = ly->n_out, blocks = (n_out + FBGF_LANE_ROWS - 1u) / FBGF_LANE_ROWS;
+    unsigned blk, r = 0;
+    for (blk = 0; blk < blocks; ++blk) {
+        const unsigned rows = (n_out - r) / (blocks - blk) + ((n_out - r) % (blocks - blk) != 0u);
+        lanes_rows(ly->w + (size_t)r * ly->n_in, ly->n_in, ly->b + r, x, y + (size_t)r * FBGF_RUN_CHUNK,
+                   rows, n_vec, relu);
+        r += rows;
+    }
+}
 #endif
 
 #ifdef FBGF_HAVE_NEON
@@ -430,7 +576,7 @@ static void dense_neon(const fbgf_layer *ly, const float *xs, size_t x_stride, f
 
 fbgf_kernel fbgf_dense_kernel(void)
 {
-#if defined(FBGF_HAVE_AVX2)
+#if FBGF_HAVE_AVX2
     if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma"))
         return FBGF_KERNEL_AVX2_FMA;
     return FBGF_KERNEL_SSE2;
@@ -448,7 +594,7 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 {
     size_t i;
     switch (kernel) {
-#ifdef FBGF_HAVE_AVX2
+#if FBGF_HAVE_AVX2
     case FBGF_KERNEL_AVX2_FMA:
         if (ly->n_in <= FBGF_NARROW)
             dense_avx2_narrow(ly, x, x_stride, y, y_stride, n, relu);

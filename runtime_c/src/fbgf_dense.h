@@ -8,6 +8,9 @@
  *   FBGF_SIMD=1          (the default where available) x86-64: SSE2, or AVX2+FMA when the CPU
  *                        has both (asked at run time); aarch64: NEON with FMA
  *   FBGF_NO_AVX2=1       x86-64: never pick AVX2+FMA (SSE2 only), e.g. to compare the paths
+ *   FBGF_RUN_LANES=0     x86-64 with AVX2+FMA: fbgf_run passes the samples of a batch to
+ *                        fbgf_dense in rows instead of to fbgf_dense_lanes in lanes (the same
+ *                        bits, slower), e.g. to compare the two
  *
  * Every kernel sums in an order fixed by the layer's shape alone (never by data alignment,
  * by the other samples of a batch or by earlier calls), so a given build on a given CPU gives
@@ -37,6 +40,16 @@
 #define FBGF_RUN_BATCHED 0
 #endif
 
+/* Samples whose nets fbgf_run runs together: on AVX2, two vectors of eight (fbgf_dense_lanes). */
+#define FBGF_RUN_CHUNK 16u
+
+/* x86-64 builds that may pick AVX2+FMA at run time; these also have fbgf_dense_lanes. */
+#if FBGF_SIMD && defined(__x86_64__) && (!defined(FBGF_NO_AVX2) || !FBGF_NO_AVX2)
+#define FBGF_HAVE_AVX2 1
+#else
+#define FBGF_HAVE_AVX2 0
+#endif
+
 /* The kernel the build and this CPU use. */
 typedef enum { FBGF_KERNEL_PORTABLE = 0, FBGF_KERNEL_SSE2, FBGF_KERNEL_AVX2_FMA, FBGF_KERNEL_NEON } fbgf_kernel;
 
@@ -48,5 +61,18 @@ fbgf_kernel fbgf_dense_kernel(void);
  * across samples (while it is in L1) compute each sample exactly as alone. */
 void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t x_stride, float *y,
                 size_t y_stride, size_t n, int relu);
+
+#ifndef FBGF_RUN_LANES
+#define FBGF_RUN_LANES FBGF_HAVE_AVX2
+#endif
+
+#if FBGF_HAVE_AVX2
+/* The AVX2+FMA kernel (only when fbgf_dense_kernel() says so) on samples in lanes: input j of
+ * sample s is x[j * FBGF_RUN_CHUNK + s], output r goes to y[r * FBGF_RUN_CHUNK + s], for the
+ * samples s < 8 * n_vec (n_vec = 1 or 2; lanes past the real samples are computed too, and
+ * zeros there keep that cheap). Each sample gets the bits fbgf_dense gives it alone, whatever
+ * its lane and the other lanes; y does not alias x. */
+void fbgf_dense_lanes(const fbgf_layer *ly, const float *x, float *y, unsigned n_vec, int relu);
+#endif
 
 #endif /* FBGF_DENSE_H */

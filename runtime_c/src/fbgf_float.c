@@ -353,10 +353,72 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
 }
 
 #if FBGF_RUN_BATCHED
-/* Samples whose nets run together in fbgf_run: each block of weights is loaded once for all
- * of them. 16 keeps the per-sample share of the weight traffic small; the buffers below take
- * 2 x 16 x FBG_MAX_WIDTH floats (16 kB) of stack. */
-#define FBGF_RUN_CHUNK 16u
+/* fbgf_run runs the nets of FBGF_RUN_CHUNK samples together, so that each block of weights is
+ * loaded once for all of them; run_chunk's buffers take 2 x 16 x FBG_MAX_WIDTH floats (16 kB)
+ * of stack. */
+
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
+/* The first n_in inputs of the n samples in `in` into lanes (fbgf_dense_lanes); the lanes past
+ * n get zeros. */
+static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float *x)
+{
+    unsigned j;
+    size_t k;
+    for (j = 0; j < n_in; ++j)
+        for (k = 0; k < FBGF_RUN_CHUNK; ++k)
+            x[j * FBGF_RUN_CHUNK + k] = k < n ? in[k][j] : 0.0f;
+}
+
+/* fnet for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
+ * r of sample k at [r * FBGF_RUN_CHUNK + k]. */
+static const float *fnet_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
+{
+    const unsigned n_vec = (unsigned)((n + 7u) / 8u);
+    unsigned l, buf = 0u;
+    for (l = 0; l < net->n_layers; ++l) {
+        fbgf_dense_lanes(&net->layers[l], x, a[buf], n_vec, l + 1u < net->n_layers);
+        x = a[buf];
+        buf ^= 1u;
+    }
+    return x;
+}
+
+/* The nets of run_chunk on the AVX2+FMA kernel with the samples in lanes: each sample gets the
+ * bits of fbgf_step, whose kernel sums every output in the same order (fbgf_dense.c). in[k] and
+ * loc[k] belong to out[who[k]]; the rows of the contact samples move to the front of in[]. */
+static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
+                           float loc[][FBG_N_STRAIN], const size_t *who, size_t n_run,
+                           fbgf_output *out, float *act[2])
+{
+    float x[FBG_MAX_INPUTS * FBGF_RUN_CHUNK], y2[2];
+    size_t k, n_contact = 0u, row[FBGF_RUN_CHUNK];
+    const float *y;
+    to_lanes(in, n_run, m->nets[FBG_NET_CONTACT].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
+    for (k = 0; k < n_run; ++k) {
+        y2[0] = y[k];
+        y2[1] = y[FBGF_RUN_CHUNK + k];
+        if (contact_output(y2, out + who[k])) {
+            if (n_contact != k)
+                memcpy(in[n_contact], in[k], sizeof in[k]);
+            row[n_contact++] = k;
+        }
+    }
+    if (n_contact == 0u)
+        return;
+    to_lanes(in, n_contact, m->nets[FBG_NET_FORCE].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
+    for (k = 0; k < n_contact; ++k)
+        force_output(m, y[k], out + who[row[k]], in[k], loc[row[k]]);
+    to_lanes(in, n_contact, m->nets[FBG_NET_LOCATION].layers[0].n_in, x);
+    y = fnet_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
+    for (k = 0; k < n_contact; ++k) {
+        y2[0] = y[k];
+        y2[1] = y[FBGF_RUN_CHUNK + k];
+        location_output(m, y2, out + who[row[k]]);
+    }
+}
+#endif
 
 /* n samples through the front end one by one (the state advances in order), then each net
  * for all samples that need it, layer by layer. Every sample's outputs are those fbgf_step
@@ -381,6 +443,12 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
+#if FBGF_HAVE_AVX2 && FBGF_RUN_LANES
+    if (kernel == FBGF_KERNEL_AVX2_FMA) {
+        run_nets_lanes(m, in, loc, who, n_run, out, act);
+        return st;
+    }
+#endif
     y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
