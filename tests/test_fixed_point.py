@@ -189,6 +189,36 @@ def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
         assert np.abs(margin[dis]).max() <= bounds["contact_margin"]
 
 
+def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
+        small_model_dir, small_dataset_path, tmp_path):
+    """Weight decay leaves a dead unit's weights at 1e-300 and below; the quantiser must treat
+    them as zeros (not divide its bias by an underflowed scale) and the chain stay exact."""
+    import shutil
+
+    from fbgforce import dataset
+    from fbgforce.export.exporter import export_model, recording_baseline
+
+    mdir = tmp_path / "model"
+    shutil.copytree(small_model_dir, mdir)
+    model = fm.load(mdir)
+    w0 = model.force.weights[0]
+    w0[3] = np.array([7e-319, -1e-318, 1e-250] + [0.0] * (w0.shape[1] - 3))
+    model.force.weights[1][5] *= 1e-300
+    fm.save(model, mdir)
+    export_model(mdir, onnx=False)
+    q = blob.load_model_blob(mdir)
+    ds = dataset.load(small_dataset_path)
+    base = recording_baseline(ds)
+    fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base)))
+    flt = fm.predict(model, ds.wl_nm, base)
+    both = fixed["contact"] & flt["contact"]
+    import json
+
+    bounds = json.loads((mdir / "export_report.json").read_text())["error_bounds"]
+    assert both.sum() > 1000
+    assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() <= bounds["force_N"]
+
+
 def test_accumulator_bounds_hold_and_are_enforced(exported):
     model, wl, q, data, rep = exported
     trace: dict[str, int] = {}

@@ -38,8 +38,9 @@ DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
     "location": (70, 50, 40),
 }
 SPLIT_RATIOS = (8, 1, 1)
-#: L2 weight decay per net (see docs/trainer.md, "What limits training").
-DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 0.0, "location": 0.0}
+#: L2 weight decay per net (docs/trainer.md, "What limits training" and "Restarts and force
+#: weight decay").
+DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 1e-4, "location": 0.0}
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
 LOCATION_AUGMENT = 3.0
@@ -48,7 +49,7 @@ LOCATION_AUGMENT = 3.0
 #: on the calibration scene and its validation loss ranks the draws as the test presses do;
 #: the location net's draws differ by less than its validation presses can rank (the lowest
 #: validation loss had a worse test y), and the contact net's errors are light touches in the
-#: noise (docs/trainer.md, "Restarts").
+#: noise (docs/trainer.md, "Restarts and force weight decay").
 DEFAULT_RESTARTS: dict[str, int] = {"contact": 1, "force": 3, "location": 1}
 
 
