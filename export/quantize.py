@@ -449,11 +449,14 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
     # A row whose weights are negligible beside its bias is quantised as a row of zeros: weight
     # decay leaves the weights of a unit it has switched off at 1e-300 and below, where
     # row_max / qmax would underflow or put the bias beyond any accumulator, while what they
-    # add is below 2^-30 of the bias.
+    # add is below 2^-30 of the bias. Its scale is then free: the largest of the other rows',
+    # so its multiplier needs no smaller shift than theirs (int32 layers keep shift 32, the
+    # Cortex-M4's one-instruction requantisation).
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         native = in_scale * row_max / qmax
         negligible = (native == 0) | (np.abs(b) / np.where(native > 0, native, 1.0) >= 2.0**60)
-    w_scale = np.where(negligible, 1.0, row_max / qmax)
+    live = row_max[~negligible] / qmax
+    w_scale = np.where(negligible, live.max() if live.size else 1.0, row_max / qmax)
     wq, bq, bound, bound32 = _int_weights(w, b, in_scale, w_scale, qmax, relu_inputs)
     acc32_free = bool(bound32.max() <= SAT32)
     acc32, drop = False, 0.0

@@ -190,7 +190,7 @@ def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
 
 
 def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
-        small_model_dir, small_dataset_path, tmp_path):
+        small_model_dir, small_exported_dir, small_dataset_path, tmp_path):
     """Weight decay leaves a dead unit's weights at 1e-300 and below; the quantiser must treat
     them as zeros (not divide its bias by an underflowed scale) and the chain stay exact."""
     import shutil
@@ -217,6 +217,11 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
     bounds = json.loads((mdir / "export_report.json").read_text())["error_bounds"]
     assert both.sum() > 1000
     assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() <= bounds["force_N"]
+    # The dead rows take the scale of the live ones: no layer needs a smaller shift than the
+    # unmodified model's (int32 layers keep shift 32, the Cortex-M4's fast requantisation).
+    report = json.loads((mdir / "export_report.json").read_text())["nets"]["force"]
+    before = json.loads((small_exported_dir / "export_report.json").read_text())["nets"]["force"]
+    assert [ly["shift"] for ly in report] == [ly["shift"] for ly in before]
 
 
 def test_accumulator_bounds_hold_and_are_enforced(exported):
