@@ -47,6 +47,10 @@ def _flit(v: float) -> str:
     v = float(v)
     if not np.isfinite(v):
         return "3.0e38f" if v > 0 else "-3.0e38f"
+    # The float32 the compiler would make of the literal, written out: a weight that weight
+    # decay left at 1e-318 becomes 0.0f (as in the float32 arrays the other engines load)
+    # rather than a constant the compiler warns is truncated to zero.
+    v = float(np.float32(v))
     s = f"{v:.9g}"
     if "e" not in s and "." not in s:
         s += ".0"

@@ -222,6 +222,22 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
     report = json.loads((mdir / "export_report.json").read_text())["nets"]["force"]
     before = json.loads((small_exported_dir / "export_report.json").read_text())["nets"]["force"]
     assert [ly["shift"] for ly in report] == [ly["shift"] for ly in before]
+    # The generated float model writes them as 0.0f, which -Werror accepts (a 1e-318 literal
+    # is "truncated to zero" and fails the build).
+    import shutil
+    import subprocess
+    from pathlib import Path
+
+    cc = shutil.which("cc")
+    if cc is None:
+        pytest.skip("needs a C compiler")
+    inc = Path(__file__).resolve().parents[1] / "runtime_c" / "include"
+    src = next((mdir / "c").glob("*_f32.c"))
+    assert "e-318" not in src.read_text() and "e-250" not in src.read_text()
+    r = subprocess.run([cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-I", str(inc),
+                        "-I", str(mdir / "c"), "-c", str(src), "-o", str(tmp_path / "f32.o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
 
 
 def test_accumulator_bounds_hold_and_are_enforced(exported):
