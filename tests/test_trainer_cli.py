@@ -93,3 +93,6 @@ def test_report_runs_end_to_end(capsys, tmp_path, small_dataset_path, small_mode
         assert common[who]["rmse_x_mm"] > 0 and common[who]["rmse_y_mm"] > 0
     assert isinstance(res["checks"]["network_beats_fitted_on_every_metric"], bool)
     assert "both the causal network and the fitted baseline call contact" in md
+    sc = res["smoothing_common_location"]
+    assert 0 < sc["n_samples"] < res["test_samples"] and sc["none"]["rmse_x_mm"] > 0
+    assert "both the causal and the unfiltered network call contact" in md
