@@ -23,13 +23,15 @@ def run_recording(engine: str, model_dir: str | Path | None, model: fm.Hierarchi
 
 def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine: str = "float",
              split: str = "all", seed: int | None = None, model: fm.HierarchicalModel | None = None,
-             extras: bool = True) -> dict[str, Any]:
+             extras: bool = True, predictions: Sequence[dict[str, np.ndarray]] | None = None
+             ) -> dict[str, Any]:
     """Metrics of ``engine`` over the recordings in ``data``.
 
     Each recording is run whole (the filter needs its continuous history), then the samples
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
     are scored with :func:`fbgforce.metrics.compute`; the presses of the split also give the
-    onset and release delays (``contact_timing``).
+    onset and release delays (``contact_timing``). ``predictions``: the engine's output on
+    each whole recording (:func:`run_recording`) when the caller has it already.
     """
     from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
@@ -39,8 +41,10 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     seed = int(model.metadata.get("seed", 0)) if seed is None else seed
     ds_list, described = load_datasets(data)
     preds, truths, onsets, releases = [], [], [], []
-    for ds, d in zip(ds_list, described):
-        pred = run_recording(engine, model_dir, model, ds, d.get("path"))
+    if predictions is None:
+        predictions = [run_recording(engine, model_dir, model, ds, d.get("path"))
+                       for ds, d in zip(ds_list, described)]
+    for ds, pred in zip(ds_list, predictions):
         rows = np.arange(len(ds))
         keep = None
         if split != "all":

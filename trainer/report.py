@@ -56,15 +56,16 @@ def baselines(data: Any, network_pred: dict[str, np.ndarray] | None = None) -> d
     shifts = data.feats[:, :fm.N_STRAIN]
     models = {"nominal": bl.nominal(base_nm),
               "fitted": bl.fit(shifts[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
+    truth = data.truth(te)
+    network = (None if network_pred is None else
+               {k: np.asarray(v)[te] for k, v in network_pred.items()})
     for name, m in models.items():
         m.set_threshold(shifts[free])
         pred = m.predict(shifts[te])
-        out[name] = {"metrics": fmetrics.compute(pred, *data.truth(te)), "params": m.to_dict()}
-        if network_pred is not None:
-            truth = data.truth(te)
+        out[name] = {"metrics": fmetrics.compute(pred, *truth), "params": m.to_dict()}
+        if network is not None:
             out[name]["common_with_network"] = fmetrics.common_location(
-                {"network": {k: np.asarray(v)[te] for k, v in network_pred.items()}, name: pred},
-                truth[0], truth[2], truth[3])
+                {"network": network, name: pred}, truth[0], truth[2], truth[3])
     return out
 
 
@@ -98,9 +99,10 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
             # Run the given model's own preprocessing on each whole recording, then score
             # the test presses of the same split.
             from fbgforce.trainer.evaluate import evaluate, run_recording
-            m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model)
             runs = [run_recording("float", model_dir, model, ds, d.get("path"))
                     for ds, d in zip(ds_list, described)]
+            m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model,
+                         predictions=runs)
             preds[kind] = {k: np.concatenate([np.asarray(r[k]) for r in runs])
                            for k in ("contact", "force_N", "x_mm", "y_mm")}
             nets[kind] = {"metrics": m, "model": str(model_dir),
@@ -153,30 +155,32 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
     }
 
 
-def _beats_fitted(ours: dict[str, Any], fitted: dict[str, Any]) -> bool:
-    """Contact and force as scored; x and y on the samples both detect (like for like)."""
-    fm_ = fitted["metrics"]
-    common = fitted.get("common_with_network", {})
+def _better_everywhere(a: dict[str, Any], b: dict[str, Any], common: dict[str, Any],
+                       a_name: str, b_name: str, *, strict: bool) -> bool:
+    """Estimator ``a`` at least as good as ``b`` (better, if ``strict``) on every metric:
+    contact and force as scored (``a``/``b`` metrics), x and y on the samples both detect
+    (``common``, :func:`fbgforce.metrics.common_location` of ``a_name`` and ``b_name``)."""
     if not common.get("n_samples"):
         return False
-    pairs = [(ours["contact_accuracy"], fm_["contact_accuracy"], True),
-             (ours["rmse_force_N"], fm_["rmse_force_N"], False)]
-    pairs += [(common["network"][k], common["fitted"][k], False) for k in ("rmse_x_mm", "rmse_y_mm")]
-    if any(a is None or b is None for a, b, _ in pairs):
+    pairs = [(a.get("contact_accuracy"), b.get("contact_accuracy"), True),
+             (a.get("rmse_force_N"), b.get("rmse_force_N"), False)]
+    pairs += [(common[a_name][k], common[b_name][k], False) for k in ("rmse_x_mm", "rmse_y_mm")]
+    if any(x is None or y is None for x, y, _ in pairs):
         return False
-    return all((a > b) if higher else (a < b) for a, b, higher in pairs)
+    if strict:
+        return all((x > y) if higher else (x < y) for x, y, higher in pairs)
+    return all((x >= y) if higher else (x <= y) for x, y, higher in pairs)
+
+
+def _beats_fitted(ours: dict[str, Any], fitted: dict[str, Any]) -> bool:
+    """Better than the fitted baseline on every metric, location like for like."""
+    return _better_everywhere(ours, fitted["metrics"], fitted.get("common_with_network", {}),
+                              "network", "fitted", strict=True)
 
 
 def _smoothing_improves(on: dict[str, Any], off: dict[str, Any], common: dict[str, Any]) -> bool:
-    """Contact and force as scored; x and y on the samples both networks detect."""
-    if not common.get("n_samples"):
-        return False
-    pairs = [(on.get(k), off.get(k), k.startswith("contact"))
-             for k in ("contact_accuracy", "rmse_force_N")]
-    pairs += [(common["causal"][k], common["none"][k], False) for k in ("rmse_x_mm", "rmse_y_mm")]
-    if any(a is None or b is None for a, b, _ in pairs):
-        return False
-    return all((a >= b) if higher else (a <= b) for a, b, higher in pairs)
+    """The causal net no worse than the unfiltered one on every metric, location like for like."""
+    return _better_everywhere(on, off, common, "causal", "none", strict=False)
 
 
 def _below_5n_worse(m: dict[str, Any]) -> bool:
