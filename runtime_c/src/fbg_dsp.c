@@ -892,17 +892,22 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "pop     {r4-r11, pc}\n\t");
 }
 
-/* The requantisation and store of a pair in first2d32_asm. */
-#define FBG_PAIR_OUT                             \
-        "ldrd    r8, r10, [r2], #8\n\t"          \
-        "smmulr  r9, r9, r8\n\t"                 \
-        "smmulr  r11, r11, r10\n\t"              \
+/* The requantisation and store of a pair of rows of the first-layer kernels (first2d32_asm,
+ * first2b32_asm): accumulators r9 and r11, their multipliers loaded into ma and mb, the two
+ * outputs stored as one word at r3. */
+#define FBG_PAIR_REQUANT(ma, mb)                 \
+        "ldrd    " ma ", " mb ", [r2], #8\n\t"   \
+        "smmulr  r9, r9, " ma "\n\t"             \
+        "smmulr  r11, r11, " mb "\n\t"           \
         "bic     r9, r9, r9, asr #31\n\t"        \
         "bic     r11, r11, r11, asr #31\n\t"     \
         "usat    r9, #15, r9\n\t"                \
         "usat    r11, #15, r11\n\t"              \
         "pkhbt   r9, r9, r11, lsl #16\n\t"       \
         "str     r9, [r3], #4\n\t"
+
+/* The requantisation and store of a pair in first2d32_asm. */
+#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r8", "r10")
 
 /* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
 #define FBG_PAIR8                                \
@@ -937,15 +942,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "ldrd    r10, r12, [r0], #8\n\t"         \
         "smlad   r11, r10, r7, r11\n\t"          \
         "smlad   r11, r12, r8, r11\n\t"          \
-        "ldrd    r10, r12, [r2], #8\n\t"         \
-        "smmulr  r9, r9, r10\n\t"                \
-        "smmulr  r11, r11, r12\n\t"              \
-        "bic     r9, r9, r9, asr #31\n\t"        \
-        "bic     r11, r11, r11, asr #31\n\t"     \
-        "usat    r9, #15, r9\n\t"                \
-        "usat    r11, #15, r11\n\t"              \
-        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
-        "str     r9, [r3], #4\n\t"
+        FBG_PAIR_REQUANT("r10", "r12")
 
 /* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
  * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
@@ -1378,15 +1375,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
 
 /* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
 #define FBG_PAIR_OUT8                            \
-        "ldrd    r8, r10, [r2], #8\n\t"          \
-        "smmulr  r9, r9, r8\n\t"                 \
-        "smmulr  r11, r11, r10\n\t"              \
-        "bic     r9, r9, r9, asr #31\n\t"        \
-        "bic     r11, r11, r11, asr #31\n\t"     \
-        "usat    r9, #15, r9\n\t"                \
-        "usat    r11, #15, r11\n\t"              \
-        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
-        "str     r9, [r3], #4\n\t"               \
+        FBG_PAIR_REQUANT("r8", "r10")            \
         "cmp     r3, lr\n\t"
 
 /* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
@@ -1498,6 +1487,7 @@ __attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, 
 #undef FBG_W2
 #undef FBG_W4
 #undef FBG_PAIR_OUT8
+#undef FBG_PAIR_REQUANT
 
 typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
