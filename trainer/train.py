@@ -338,19 +338,15 @@ def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str
     return _per_net(weight_decay, DEFAULT_WEIGHT_DECAY, "weight_decay", float)
 
 
-#: Index of each net in the seeds of its extra initialisations (:func:`_fit_best_of`).
-_NET_INDEX = {"contact": 0, "force": 1, "location": 2}
-
-
 def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
                  rng_init: np.random.Generator, rng_fit: np.random.Generator,
                  init: Any, *args: Any, **kwargs: Any) -> tuple[FlatMLP, dict[str, Any]]:
     """Train ``tries`` initialisations of one net and keep the lowest validation loss.
 
     The first draw uses the caller's generators, so ``tries == 1`` is a plain :func:`fit`;
-    the others get their own streams from ``(seed, net, draw)``, so adding draws leaves the
-    first one and every other net unchanged. The report is the kept draw's, with
-    ``restarts``: every draw's best validation loss and the index of the kept one.
+    the others get their own streams from ``(seed, the net's index in NET_NAMES, draw)``, so
+    adding draws leaves the first one and every other net unchanged. The report is the kept
+    draw's, with ``restarts``: every draw's best validation loss and the index of the kept one.
     """
     if tries < 1:
         raise InputError(f"restarts for the {name} net must be at least 1, not {tries}")
@@ -362,7 +358,7 @@ def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
             r_init, r_fit = rng_init, rng_fit
         else:
             r_init, r_fit = (np.random.default_rng(s) for s in
-                             np.random.SeedSequence([seed, _NET_INDEX[name], i]).spawn(2))
+                             np.random.SeedSequence([seed, fm.NET_NAMES.index(name), i]).spawn(2))
         net = FlatMLP(sizes, r_init, init=init)
         rep = fit(net, *args, desc=desc if tries == 1 else f"{desc} {i + 1}/{tries}",
                   rng=r_fit, **kwargs)
