@@ -6278,8 +6278,9 @@ typedef struct {
     int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
     uint32_t shift;
     uint16_t n_in, n_out, n_groups;
-    uint16_t narrow;    /* 1: requant8_narrow is exact for every row (narrow_requant) */
-    uint16_t reserved[2];
+    uint16_t high_word; /* 1: multipliers stored at shift 32 for requant8_high (high_word_requant) */
+    uint16_t dot;       /* 1: an output layer in the dot-product form (dot_layer) */
+    uint16_t reserved;
 } packed_head;
 
 typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
@@ -6298,8 +6299,26 @@ static size_t packed_group_bytes(unsigned n_in, unsigned rows)
     return (size_t)rows * (8u + 4u * ((n_in + 1u) / 2u));
 }
 
-static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows)
+/* AVX2 packs an output layer of up to DOT_ROWS rows that reads a hidden layer's output
+ * (l >= 1: the activation buffer, FBG_MAX_WIDTH long) in the dot-product form instead of
+ * groups: a group of 8 rows would spend a broadcast and a multiply-add of 8 lanes on each
+ * input pair for one or two rows. The block: the head, the rows' biases as int32 (32 bytes),
+ * then each row's weights as int16, zero from n_in up to DOT_WIDTH(n_in) (whole vectors of
+ * 16). The kernel multiplies whole vectors of x, so it reads x up to DOT_WIDTH(n_in) <=
+ * FBG_MAX_WIDTH; the activations there past n_in meet those zero weights. */
+#define DOT_ROWS 2u
+#define DOT_WIDTH(n_in) (((unsigned)(n_in) + 15u) & ~15u)
+typedef char dot_reads_inside_act[(FBG_MAX_WIDTH % 16) == 0 ? 1 : -1];
+
+static int dot_layer(const fbg_net *net, unsigned l, unsigned rows)
 {
+    return rows == 8u && l >= 1u && l + 1u == net->n_layers && net->layers[l].n_out <= DOT_ROWS;
+}
+
+static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows, int dot)
+{
+    if (dot)
+        return sizeof(packed_head) + 32u + (size_t)ly->n_out * DOT_WIDTH(ly->n_in) * 2u;
     return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
 }
 
@@ -6323,31 +6342,56 @@ size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
     for (n = 0; n < FBG_N_NETS; ++n)
         if (packed_net(&m->nets[n]))
             for (l = 0; l < m->nets[n].n_layers; ++l)
-                total += packed_layer_bytes(&m->nets[n].layers[l], rows);
+                total += packed_layer_bytes(&m->nets[n].layers[l], rows, dot_layer(&m->nets[n], l, rows));
     return total;
 }
 
 /* One layer's block at dst. Plain stores through memcpy: the buffer's declared type is the
  * caller's. */
-/* Whether every row's requantised value before the clamp, floor((acc * mult + 2^(shift-1)) /
- * 2^shift), is an int32 found in bits shift .. shift+31 of the int64 sum, which
- * requant8_narrow takes: shift <= 32 keeps those bits inside the 64, and |mult| <= 2^(shift-1)
- * bounds the sum by 2^(shift-1) (2^31 + 1) in magnitude (|acc| <= 2^31 in an acc32 layer), so
- * the quotient lies in [-2^30 - 1, 2^30] (docs/fixed-point.md, "Host SIMD kernels"). */
-static int narrow_requant(const fbg_layer *ly)
+/* Whether AVX2 can requantise the layer at shift 32 (requant8_high): shift <= 32 and every
+ * multiplier times 2^(32 - shift) an int32, which the pack then stores. Then
+ * acc * mult * 2^(32-shift) + 2^31 is the rounding sum times 2^(32-shift), exact in int64
+ * (|acc| <= 2^31 in an acc32 layer), and its floor over 2^32, the high dword, is the
+ * quotient floor((acc * mult + 2^(shift-1)) / 2^shift) (docs/fixed-point.md, "Host SIMD
+ * kernels"). */
+static int high_word_requant(const fbg_layer *ly)
 {
     unsigned r;
     if (ly->shift > 32u)
         return 0;
     for (r = 0; r < ly->n_out; ++r) {
-        const int64_t m = ly->mult[r];
-        if ((m < 0 ? -m : m) > ((int64_t)1 << (ly->shift - 1u)))
+        const int64_t m = (int64_t)ly->mult[r] * ((int64_t)1 << (32u - ly->shift));
+        if (m > INT32_MAX || m < INT32_MIN)
             return 0;
     }
     return 1;
 }
 
-static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
+/* Weight w[r][j] of a layer as int16 (int8 weights widened: the same value). */
+static int16_t weight16(const fbg_layer *ly, unsigned r, unsigned j)
+{
+    return ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j] : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+}
+
+/* The dot-product form's block after the head (dot_layer). */
+static void pack_dot(const fbg_layer *ly, unsigned char *dst)
+{
+    const unsigned width = DOT_WIDTH(ly->n_in);
+    unsigned r, j;
+    memset(dst, 0, 32u);
+    for (r = 0; r < ly->n_out; ++r) {
+        const int32_t bias = (int32_t)ly->bias[r];
+        memcpy(dst + 4u * r, &bias, sizeof bias);
+    }
+    dst += 32u;
+    for (r = 0; r < ly->n_out; ++r)
+        for (j = 0; j < width; ++j, dst += 2u) {
+            const int16_t w = j < ly->n_in ? weight16(ly, r, j) : 0;
+            memcpy(dst, &w, sizeof w);
+        }
+}
+
+static void pack_layer(const fbg_layer *ly, unsigned rows, int dot, unsigned char *dst)
 {
     const unsigned pairs = (ly->n_in + 1u) / 2u;
     packed_head h;
@@ -6359,16 +6403,24 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
     h.n_in = ly->n_in;
     h.n_out = ly->n_out;
     h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
-    h.narrow = (uint16_t)narrow_requant(ly);
+    /* SSE2 requantises from the multipliers as they are. */
+    h.high_word = (uint16_t)(rows == 8u && high_word_requant(ly));
+    h.dot = (uint16_t)dot;
     memcpy(dst, &h, sizeof h);
     dst += sizeof h;
+    if (dot) {
+        pack_dot(ly, dst);
+        return;
+    }
     for (g0 = 0; g0 < h.n_groups; g0 += k) {
         k = h.n_groups - g0 < PACK_PASS ? h.n_groups - g0 : PACK_PASS;
         for (g = g0; g < g0 + k; ++g)
             for (i = 0; i < rows; ++i) {
                 const unsigned r = g * rows + i;
                 const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
-                const int32_t mult = r < ly->n_out ? ly->mult[r] : 0;
+                const int32_t mult = r >= ly->n_out ? 0
+                                     : h.high_word ? (int32_t)((int64_t)ly->mult[r] * ((int64_t)1 << (32u - h.shift)))
+                                                : ly->mult[r];
                 memcpy(dst + 4u * ((g - g0) * rows + i), &bias, sizeof bias);
                 memcpy(dst + 4u * ((k + g - g0) * rows + i), &mult, sizeof mult);
             }
@@ -6378,10 +6430,7 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, unsigned char *dst)
                 for (i = 0; i < rows; ++i)
                     for (c = 0; c < 2u; ++c) {
                         const unsigned r = g * rows + i, j = 2u * p + c;
-                        int16_t w = 0;
-                        if (r < ly->n_out && j < ly->n_in)
-                            w = ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j]
-                                                  : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+                        const int16_t w = r < ly->n_out && j < ly->n_in ? weight16(ly, r, j) : 0;
                         memcpy(dst, &w, sizeof w);
                         dst += sizeof w;
                     }
@@ -6402,8 +6451,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
             continue;
         hd.net_off[n] = (uint32_t)off;
         for (l = 0; l < m->nets[n].n_layers; ++l) {
-            pack_layer(&m->nets[n].layers[l], rows, base + off);
-            off += packed_layer_bytes(&m->nets[n].layers[l], rows);
+            const int dot = dot_layer(&m->nets[n], l, rows);
+            pack_layer(&m->nets[n].layers[l], rows, dot, base + off);
+            off += packed_layer_bytes(&m->nets[n].layers[l], rows, dot);
         }
     }
     hd.magic = FBG_PACK_MAGIC;
@@ -6547,68 +6597,117 @@ static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, c
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
                      requant8((__m256i)a##i, load256(b + kb + 32u * (i)), round, top, shift, &big))
 
-/* requant8 where narrow_requant holds: t = acc * mult + round exactly in int64 (VPMULDQ),
- * the quotient t >> shift is an int32 made of bits shift .. shift+31 of t (for the even rows
- * a logical shift right brings them down, for the odd ones a shift left by 32 - shift lifts
- * them into the high dword, and one blend puts the eight in row order), then ReLU (VPMAXSD)
- * and the clamp at 32767 (VPACKSSDW saturates exactly there for values >= 0; the compare
- * beside it raises fbg_sat16's flag). */
-AVX2 static inline __m128i requant8_narrow(__m256i acc, __m256i mult, __m256i round, __m128i shift,
-                                           __m128i lift, __m256i *big)
+/* requant8 where high_word_requant holds, from multipliers stored at shift 32 (m' = mult *
+ * 2^(32-shift)) at mult: t = acc * m' + 2^31 exactly in int64 (VPMULDQ of the even rows, then
+ * of the odd ones against the multipliers read 4 bytes on, whose low dwords are the odd
+ * rows'), and the quotient is t's high dword (for the even rows shifted down, the odd ones'
+ * already in place: one blend puts the eight in row order); then ReLU (VPMAXSD) and the clamp
+ * at 32767 (VPACKSSDW saturates exactly there for values >= 0). *above collects the results
+ * by OR: a bit above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
+AVX2 static inline __m128i requant8_high(__m256i acc, const unsigned char *mult, __m256i *above)
 {
-    const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, mult), round);
-    const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32),
-                                                         _mm256_srli_epi64(mult, 32)), round);
-    const __m256i q = _mm256_blend_epi32(_mm256_srl_epi64(t0, shift), _mm256_sll_epi64(t1, lift), 0xAA);
+    const __m256i round = _mm256_set1_epi64x((int64_t)1 << 31);
+    const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, load256(mult)), round);
+    const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32), load256(mult + 4)), round);
+    const __m256i q = _mm256_blend_epi32(_mm256_srli_epi64(t0, 32), t1, 0xAA);
     const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
-    *big = _mm256_or_si256(*big, _mm256_cmpgt_epi32(r, _mm256_set1_epi32(32767)));
+    *above = _mm256_or_si256(*above, r);
     return _mm_packs_epi32(_mm256_castsi256_si128(r), _mm256_extracti128_si256(r, 1));
 }
 
-#define PK8_NARROW_OUT(i, p_, xb_)                                                           \
+/* The multipliers of the pass's last group are followed by its first weights: the read 4
+ * bytes on stays inside the block. */
+#define PK8_HIGH_OUT(i, p_, xb_)                                                             \
     _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
-                     requant8_narrow((__m256i)a##i, load256(b + kb + 32u * (i)), round, shift, lift, &big))
+                     requant8_high((__m256i)a##i, b + kb + 32u * (i), &big))
 
-/* One hidden layer; big collects the rows that clamped; returns the next layer's block. */
+/* One hidden layer; big collects the rows that clamped (any bit above bit 14 of a lane:
+ * requant8 sets all of a clamped lane's bits, requant8_high leaves its value there); returns
+ * the next layer's block. */
 AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_packed_avx2(const unsigned char *block, const int16_t *x,
                                                            int16_t *y, __m256i *bigp)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
-    const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
-    const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
-    const __m128i lift = _mm_cvtsi32_si128(32 - (int)h.shift);
     __m256i big = *bigp;
-    if (h.narrow)
-        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_NARROW_OUT);
-    else
+    if (h.high_word) {
+        PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIGH_OUT);
+    } else {
+        const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
+        const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
+    }
     *bigp = big;
     return b;
 }
 
-/* The output layer: its rows' accumulators into acc (n_out rounded up to 8); returns n_out. */
-AVX2 __attribute__((always_inline)) static inline unsigned acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
+/* The output layer in groups: its rows' accumulators into acc (n_out rounded up to 8). */
+AVX2 __attribute__((always_inline)) static inline void acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
-    return h.n_out;
 }
 
-AVX2 static unsigned net_packed_avx2(const unsigned char *block, unsigned n_layers, const int16_t *x,
-                                     int16_t (*act)[FBG_MAX_WIDTH], int32_t *acc, uint32_t *sat)
+/* The output layer in the dot-product form (dot_layer): each row's whole vectors of 16
+ * weights against x's, one multiply-add and one add a vector, the lanes added up at the end
+ * (any order: the int32 proof), the bias added, sign-extended into acc. */
+AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsigned char *block, const int16_t *x, int64_t *acc)
 {
+    packed_head h;
+    const unsigned char *w = block + sizeof h + 32u;
+    unsigned j, width;
+    int32_t bias;
+    lanes32 a0, a1;
+    __m128i s;
+    memcpy(&h, block, sizeof h);
+    width = DOT_WIDTH(h.n_in);
+    a0 = (lanes32)_mm256_madd_epi16(load256(w), load256(x));
+    if (h.n_out == 1u) {
+        for (j = 16u; j < width; j += 16u)
+            MADD(a0, load256(w + 2u * j), load256(x + j));
+        s = _mm_add_epi32(_mm256_castsi256_si128((__m256i)a0), _mm256_extracti128_si256((__m256i)a0, 1));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4e));
+        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xb1));
+        memcpy(&bias, block + sizeof h, sizeof bias);
+        acc[0] = (int32_t)((uint32_t)_mm_cvtsi128_si32(s) + (uint32_t)bias);
+        return;
+    }
+    a1 = (lanes32)_mm256_madd_epi16(load256(w + 2u * width), load256(x));
+    for (j = 16u; j < width; j += 16u) {
+        const __m256i xv = load256(x + j);
+        MADD(a0, load256(w + 2u * j), xv);
+        MADD(a1, load256(w + 2u * (width + j)), xv);
+    }
+    s = sum2_rows((__m256i)a0, (__m256i)a1);
+    s = _mm_add_epi32(s, _mm_loadl_epi64((const __m128i *)(const void *)(block + sizeof h)));
+    _mm_storeu_si128((__m128i *)(void *)acc, _mm_cvtepi32_epi64(s));
+}
+
+AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, const int16_t *x,
+                                 int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat)
+{
+    /* Every bit but the low 15 of a lane: a clamped row. */
+    const __m256i clamped = _mm256_set1_epi32(~0x7FFF);
     __m256i big = _mm256_setzero_si256();
-    unsigned l;
+    packed_head h;
+    int32_t acc32[FBG_MAX_WIDTH];
+    unsigned l, r;
     for (l = 0; l + 1u < n_layers; ++l) {
         block = hidden_packed_avx2(block, x, act[l & 1u], &big);
         x = act[l & 1u];
     }
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
-    if (!_mm256_testz_si256(big, big))
+    if (!_mm256_testz_si256(big, clamped))
         *sat = 1u;
-    return acc32_packed_avx2(block, x, acc);
+    memcpy(&h, block, sizeof h);
+    if (h.dot) {
+        acc_dot_avx2(block, x, acc);
+        return;
+    }
+    acc32_packed_avx2(block, x, acc32);
+    for (r = 0; r < h.n_out; ++r)
+        acc[r] = acc32[r];
 }
 
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
@@ -6622,10 +6721,11 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
            sizeof off);
     if (off == 0u)
         return 0;
-    if (kernel == FBG_OPT_KERNEL_AVX2)
-        n_out = net_packed_avx2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
-    else
-        n_out = net_packed_sse2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
+    if (kernel == FBG_OPT_KERNEL_AVX2) {
+        net_packed_avx2((const unsigned char *)packed + off, n_layers, x, act, acc, sat);
+        return 1;
+    }
+    n_out = net_packed_sse2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
     for (r = 0; r < n_out; ++r)
         acc[r] = acc32[r];
     return 1;
@@ -6736,6 +6836,8 @@ typedef int fbg_simd_x86_unused;
 #undef NARROW_LAYER
 #undef PACK_PASS
 #undef PACK_HEADER_BYTES
+#undef DOT_ROWS
+#undef DOT_WIDTH
 #undef PK_LIST1
 #undef PK_LIST2
 #undef PK_LIST3
@@ -6757,7 +6859,7 @@ typedef int fbg_simd_x86_unused;
 #undef PK8_MADD
 #undef PK8_ACC_OUT
 #undef PK8_HIDDEN_OUT
-#undef PK8_NARROW_OUT
+#undef PK8_HIGH_OUT
 /* ---- src/fbgf_dense.c ---- */
 /*
  * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels
