@@ -1,9 +1,9 @@
 """Host SIMD dense-layer kernels (SSE2, AVX2, NEON), on the weights as the model holds them
 and packed by ``fbg_pack``: every output record equals the portable C's and the integer
 reference's, on golden sessions and on random streams through random models (odd widths,
-int8 weights, weights at +-32767 / -32768 within the int32 proof, saturating activations,
-int64-accumulator layers between int32 ones); ``fbg_pack`` / ``fbg_use_pack`` refuse bad
-buffers and states.
+int8 weights, weights at +-32767 / -32768 within the int32 proof, multipliers at +-2^(shift-1),
+saturating activations, int64-accumulator layers between int32 ones); ``fbg_pack`` /
+``fbg_use_pack`` refuse bad buffers and states.
 
 x86-64 kernels run in this process (``Runtime(kernel=...)``) and in a natively built replay
 of golden vectors (tests/simd_replay.c); NEON runs the same replay cross-compiled with
@@ -105,10 +105,23 @@ def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool
     return qz.QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=shift, acc32=True)
 
 
-def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+def _edge_multipliers(layer: qz.QLayer, sign: int) -> qz.QLayer:
+    """``layer`` at shift 31 (the same scales) with row 0's multiplier at ``sign`` * 2^30, the
+    edge of the packed AVX2 kernel's requantisation at shift 32: -2^30 * 2^(32-31) = -2^31 is
+    an int32 (that layer requantises from the high dword), +2^31 is not (that layer takes the
+    64-bit clamp)."""
+    mult = np.array([int(m) << (31 - layer.shift) if layer.shift <= 31 else int(m) >> (layer.shift - 31)
+                     for m in layer.mult], dtype=np.int64)
+    mult[0] = sign << 30
+    return qz.QLayer(w=layer.w, w_bits=layer.w_bits, bias=layer.bias, mult=mult, shift=31, acc32=True)
+
+
+def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory,
+                   edge: bool = False) -> tuple[qz.QModel, np.ndarray]:
     """A quantised random model whose hidden layers are replaced by :func:`_extreme_layer`
-    ones, and a stream for it: a random walk with strain excursions large enough to saturate
-    the net inputs, and the golden session's edge samples."""
+    ones (``edge``: then given :func:`_edge_multipliers`, +2^30 and -2^30 in turn), and a
+    stream for it: a random walk with strain excursions large enough to saturate the net
+    inputs, and the golden session's edge samples."""
     rng = np.random.default_rng(seed)
     model = make_random_model(seed, sizes=sizes, memory=memory)
     wl = make_random_walk(model, 1200, seed=seed, step_nm=0.02)
@@ -117,6 +130,8 @@ def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.Q
     for net in q.nets:
         for i in range(len(net) - 1):
             net[i] = _extreme_layer(rng, net[i], i > 0)
+            if edge:
+                net[i] = _edge_multipliers(net[i], 1 if i % 2 == 0 else -1)
     wl_fm = np.vstack([intref.nm_to_fm(wl), golden.edge_samples(q.baseline_fm, q.jump_max_fm, seed)])
     # Contact on about half of the stream, so that the force and location nets run: move the
     # contact row's bias by the median margin (in accumulator units), keeping the int32 proof.
@@ -126,6 +141,10 @@ def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.Q
         last.bias = last.bias - int(round(margin * 2.0**last.shift / last.mult[0]))
         last.acc32 = bool((last.acc32_bound(True) <= INT32_MAX).all())
     return q, np.vstack([wl_fm, wl_fm[:200]])
+
+
+def _edge_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+    return _extreme_model(seed, sizes, bits, memory, edge=True)
 
 
 def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
@@ -163,6 +182,8 @@ CASES = {
     "extreme-odd-int16": (_extreme_model, 5, ODD, 16, MEM5),
     "extreme-wide-int16": (_extreme_model, 6, WIDE, 16, fm.Memory()),
     "extreme-odd-int8": (_extreme_model, 7, ODD, 8, MEM5),
+    "extreme-edge-mult-odd-int16": (_edge_model, 10, ODD, 16, MEM5),
+    "extreme-edge-mult-paper-int16": (_edge_model, 11, PAPER, 16, MEM8),
     "mixed-acc-odd-int16": (_mixed_acc_model, 2, ODD, 16, MEM5),
 }
 
