@@ -6735,19 +6735,37 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
 
 /* Each tap: the four int32 history values sign-extended to int64 (VPMOVSXDQ), times the tap
  * (VPMULDQ multiplies the low dwords as signed: int32 by int16, exact in int64), added in
- * int64; the ring read as its two runs, newest first, so no index wraps. The sum is the
- * portable loop's sum of the same integers, which fbg_model_check bounds within int64. */
+ * int64; the ring read as its two runs, newest first, so no index wraps. Within a run, four
+ * taps at a time are widened to int32 in one vector whose two halves both hold them, so that
+ * VPSHUFD puts tap j in the low dword of every 64-bit lane (all VPMULDQ reads); the run's
+ * last len mod 4 taps one by one. The sum is the portable loop's sum of the same integers,
+ * in another order, which fbg_model_check bounds within int64 whatever the order (every
+ * partial sum is a sum of a subset of the terms). */
+#define FIR_TAP(j) _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx - (j)])), _mm256_shuffle_epi32(t4, (j) * 0x55))
+AVX2 static inline __m256i fir_run(__m256i acc, const int16_t *taps, const int32_t (*hist)[FBG_N_STRAIN],
+                                   size_t idx, unsigned len)
+{
+    unsigned k; /* idx a size_t: the four reads of a block take one address and offsets */
+    for (k = 0; k + 4u <= len; k += 4u, idx -= 4u) {
+        const __m256i t4 = _mm256_broadcastsi128_si256(
+            _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)(taps + k))));
+        acc = _mm256_add_epi64(acc, _mm256_add_epi64(_mm256_add_epi64(FIR_TAP(0), FIR_TAP(1)),
+                                                     _mm256_add_epi64(FIR_TAP(2), FIR_TAP(3))));
+    }
+    for (; k < len; ++k, --idx)
+        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
+                                                     _mm256_set1_epi32(taps[k])));
+    return acc;
+}
+
+/* The first run: taps 0 .. pos against hist[pos] down to hist[0]; the second: taps pos+1 ..
+ * n_taps-1 against hist[n_taps-1] down to hist[pos+1]. idx - 3 stays >= 0 within a run's
+ * blocks of four (idx counts down to the run's last entry). */
 AVX2 static void fir4_avx2(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
                            unsigned pos, int64_t *fir)
 {
-    __m256i acc = _mm256_setzero_si256();
-    unsigned k, idx;
-    for (k = 0, idx = pos; k <= pos; ++k, --idx)
-        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
-                                                     _mm256_set1_epi32(taps[k])));
-    for (idx = n_taps - 1u; k < n_taps; ++k, --idx)
-        acc = _mm256_add_epi64(acc, _mm256_mul_epi32(_mm256_cvtepi32_epi64(load128(hist[idx])),
-                                                     _mm256_set1_epi32(taps[k])));
+    __m256i acc = fir_run(_mm256_setzero_si256(), taps, hist, pos, pos + 1u);
+    acc = fir_run(acc, taps + pos + 1u, hist, n_taps - 1u, n_taps - 1u - pos);
     _mm256_storeu_si256((__m256i *)(void *)fir, acc);
 }
 
@@ -6860,6 +6878,7 @@ typedef int fbg_simd_x86_unused;
 #undef PK8_ACC_OUT
 #undef PK8_HIDDEN_OUT
 #undef PK8_HIGH_OUT
+#undef FIR_TAP
 /* ---- src/fbgf_dense.c ---- */
 /*
  * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels
