@@ -157,6 +157,32 @@ def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz
     return q, intref.nm_to_fm(wl)
 
 
+def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+    """:func:`_realistic_model` with the units weight decay leaves in the force and location
+    nets: a third of each hidden layer's outputs unread (the next layer's column all zero),
+    half of those with all-zero weights too (a bias alone), the force net's first layer wholly
+    so (every row unused: its next layer has no input left), and in the location net's first
+    layer an unread bias-only unit that clamps on every step the net runs (the packed form must
+    keep it for the saturation flag). The contact net stays as it is (contact on about half
+    of the stream)."""
+    q, wl_fm = _realistic_model(seed, sizes, bits, memory)
+    rng = np.random.default_rng(seed)
+    for n in (1, 2):
+        net = q.nets[n]
+        for i in range(len(net) - 1):
+            layer, nxt = net[i], net[i + 1]
+            n_out = layer.w.shape[0]
+            unread = np.arange(n_out) if (n, i) == (1, 0) else rng.choice(n_out, max(1, n_out // 3), replace=False)
+            nxt.w[:, unread] = 0
+            layer.w[unread if (n, i) == (1, 0) else unread[::2]] = 0
+    loc0, loc1 = q.nets[2][0], q.nets[2][1]
+    r = int(np.flatnonzero((loc1.w == 0).all(axis=0))[0])
+    loc0.w[r] = 0
+    loc0.mult[r] = 1 << (loc0.shift - 2)
+    loc0.bias[r] = 1 << 20  # requantises to 2^18: clamps
+    return q, wl_fm
+
+
 def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
     """:func:`_realistic_model` with every other layer (hidden and output ones, alternating
     between the nets) on int64 accumulators, which run the portable C between SIMD layers
@@ -185,6 +211,8 @@ CASES = {
     "extreme-edge-mult-odd-int16": (_edge_model, 10, ODD, 16, MEM5),
     "extreme-edge-mult-paper-int16": (_edge_model, 11, PAPER, 16, MEM8),
     "mixed-acc-odd-int16": (_mixed_acc_model, 2, ODD, 16, MEM5),
+    "dead-units-paper-int16": (_dead_units_model, 12, PAPER, 16, MEM8),
+    "dead-units-odd-int8": (_dead_units_model, 13, ODD, 8, MEM5),
 }
 
 
@@ -216,6 +244,24 @@ def test_every_host_kernel_matches_portable_and_the_reference(case):
             assert rt.kernel == kernel and rt.packed == (packed and kernel in PACKED_KERNELS)
             got = rt.run_raw(wl_fm)
             assert got.tobytes() == portable.tobytes(), (name, kernel, packed)
+
+
+def test_packed_form_leaves_out_unused_units():
+    """The dead units of :func:`_dead_units_model` are left out of the packed form (smaller
+    than the same shapes without them), except the one that clamps, whose flag the stream
+    shows on the steps the location net runs."""
+    live, wl_fm = _realistic_model(12, PAPER, 16, MEM8)
+    dead, _ = _dead_units_model(12, PAPER, 16, MEM8)
+    ref = intref.run(dead, wl_fm, None)
+    sat = (ref["status"] & contract.STATUS_FLAG["SATURATED"]) != 0
+    assert np.array_equal(sat, ref["contact"] != 0)
+    kernels = [k for k in host_kernels() if k in PACKED_KERNELS]
+    if not kernels:
+        pytest.skip(f"no kernel with a packed form on {platform.machine()}")
+    for kernel in kernels:
+        sizes = [lib.fbg_pack_bytes(Runtime(blob.to_bytes(q), kernel=kernel, packed=True)._state)
+                 for q in (live, dead)]
+        assert 0 < sizes[1] < sizes[0], (kernel, sizes)
 
 
 def test_kernel_selection():

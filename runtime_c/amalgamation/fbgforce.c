@@ -6315,13 +6315,6 @@ static int dot_layer(const fbg_net *net, unsigned l, unsigned rows)
     return rows == 8u && l >= 1u && l + 1u == net->n_layers && net->layers[l].n_out <= DOT_ROWS;
 }
 
-static size_t packed_layer_bytes(const fbg_layer *ly, unsigned rows, int dot)
-{
-    if (dot)
-        return sizeof(packed_head) + 32u + (size_t)ly->n_out * DOT_WIDTH(ly->n_in) * 2u;
-    return sizeof(packed_head) + (size_t)((ly->n_out + rows - 1u) / rows) * packed_group_bytes(ly->n_in, rows);
-}
-
 /* The nets the packed form holds: those with only acc32 layers. */
 static int packed_net(const fbg_net *net)
 {
@@ -6332,22 +6325,110 @@ static int packed_net(const fbg_net *net)
     return 1;
 }
 
+/* Weight w[r][j] of a layer as int16 (int8 weights widened: the same value). */
+static int16_t weight16(const fbg_layer *ly, unsigned r, unsigned j)
+{
+    return ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j] : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
+}
+
+/* Whether row r of hidden layer l (not the last) may be left out of the packed form: the next
+ * layer's column r is all zeros, so the row's output adds nothing anywhere, and the row can
+ * never clamp, so it never raises the saturation flag either. Its accumulator lies in
+ * [lo, hi]: the bias plus the weights against inputs in [-32767, 32767] (a first layer: sat16
+ * inputs) or [0, 32767] (ReLU outputs), within int32 by the acc32 proof; the requantised
+ * value rshift_round(acc * mult, shift) is monotonic in acc, so its largest value is at lo or
+ * hi, and the row clamps (ReLU, then sat16) only if that exceeds 32767. Weight decay leaves
+ * such units (all-zero rows and columns) in trained nets. */
+static int row_unused(const fbg_net *net, unsigned l, unsigned r)
+{
+    const fbg_layer *ly = &net->layers[l], *next = &net->layers[l + 1u];
+    int64_t pos = 0, neg = 0, lo, hi;
+    unsigned i, j;
+    for (i = 0; i < next->n_out; ++i)
+        if (weight16(next, i, r) != 0)
+            return 0;
+    for (j = 0; j < ly->n_in; ++j) {
+        const int64_t w = weight16(ly, r, j);
+        if (w > 0)
+            pos += w;
+        else
+            neg += w;
+    }
+    if (l == 0u) {
+        hi = ly->bias[r] + FBG_SAT16 * (pos - neg);
+        lo = ly->bias[r] - FBG_SAT16 * (pos - neg);
+    } else {
+        hi = ly->bias[r] + FBG_SAT16 * pos;
+        lo = ly->bias[r] + FBG_SAT16 * neg;
+    }
+    return fbg_rshift_round(hi * ly->mult[r], ly->shift) <= FBG_SAT16 &&
+           fbg_rshift_round(lo * ly->mult[r], ly->shift) <= FBG_SAT16;
+}
+
+/* Which rows and columns of a layer a packed net keeps: row[0 .. n_rows) and col[0 .. n_cols)
+ * in order, the rows of row_unused left out, and with them the next layer's columns (the
+ * activations of the kept rows are stored back to back). A first layer keeps every column
+ * (the net inputs), an output layer every row. */
+typedef struct {
+    unsigned n_rows, n_cols;
+    uint8_t row[FBG_MAX_WIDTH], col[FBG_MAX_WIDTH];
+} pack_shape;
+
+typedef char pack_shape_indices_fit[FBG_MAX_WIDTH <= 256 ? 1 : -1];
+
+static unsigned kept_rows(const fbg_net *net, unsigned l, uint8_t *row)
+{
+    unsigned r, n = 0;
+    for (r = 0; r < net->layers[l].n_out; ++r)
+        if (l + 1u == net->n_layers || !row_unused(net, l, r))
+            row[n++] = (uint8_t)r;
+    return n;
+}
+
+static void pack_shape_of(const fbg_net *net, unsigned l, pack_shape *sh)
+{
+    unsigned j;
+    sh->n_rows = kept_rows(net, l, sh->row);
+    if (l > 0u) {
+        sh->n_cols = kept_rows(net, l - 1u, sh->col);
+    } else {
+        sh->n_cols = net->layers[0].n_in;
+        for (j = 0; j < sh->n_cols; ++j)
+            sh->col[j] = (uint8_t)j;
+    }
+}
+
+/* At least one vector, so that the kernel's first multiply-add reads weights of the block
+ * (every column of the layer may have gone with the rows before). */
+static unsigned dot_width(unsigned n_in)
+{
+    return n_in == 0u ? 16u : DOT_WIDTH(n_in);
+}
+
+static size_t packed_layer_bytes(const pack_shape *sh, unsigned rows, int dot)
+{
+    if (dot)
+        return sizeof(packed_head) + 32u + (size_t)sh->n_rows * dot_width(sh->n_cols) * 2u;
+    return sizeof(packed_head) + (size_t)((sh->n_rows + rows - 1u) / rows) * packed_group_bytes(sh->n_cols, rows);
+}
+
 size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m)
 {
     const unsigned rows = pack_rows(kernel);
     size_t total = PACK_HEADER_BYTES;
+    pack_shape sh;
     unsigned n, l;
     if (rows == 0u)
         return 0u;
     for (n = 0; n < FBG_N_NETS; ++n)
         if (packed_net(&m->nets[n]))
-            for (l = 0; l < m->nets[n].n_layers; ++l)
-                total += packed_layer_bytes(&m->nets[n].layers[l], rows, dot_layer(&m->nets[n], l, rows));
+            for (l = 0; l < m->nets[n].n_layers; ++l) {
+                pack_shape_of(&m->nets[n], l, &sh);
+                total += packed_layer_bytes(&sh, rows, dot_layer(&m->nets[n], l, rows));
+            }
     return total;
 }
 
-/* One layer's block at dst. Plain stores through memcpy: the buffer's declared type is the
- * caller's. */
 /* Whether AVX2 can requantise the layer at shift 32 (requant8_high): shift <= 32 and every
  * multiplier times 2^(32 - shift) an int32, which the pack then stores. Then
  * acc * mult * 2^(32-shift) + 2^31 is the rounding sum times 2^(32-shift), exact in int64
@@ -6367,60 +6448,56 @@ static int high_word_requant(const fbg_layer *ly)
     return 1;
 }
 
-/* Weight w[r][j] of a layer as int16 (int8 weights widened: the same value). */
-static int16_t weight16(const fbg_layer *ly, unsigned r, unsigned j)
-{
-    return ly->w_bits == 16u ? ly->w16[(size_t)r * ly->n_in + j] : (int16_t)ly->w8[(size_t)r * ly->n_in + j];
-}
-
 /* The dot-product form's block after the head (dot_layer). */
-static void pack_dot(const fbg_layer *ly, unsigned char *dst)
+static void pack_dot(const fbg_layer *ly, const pack_shape *sh, unsigned char *dst)
 {
-    const unsigned width = DOT_WIDTH(ly->n_in);
+    const unsigned width = dot_width(sh->n_cols);
     unsigned r, j;
     memset(dst, 0, 32u);
-    for (r = 0; r < ly->n_out; ++r) {
-        const int32_t bias = (int32_t)ly->bias[r];
+    for (r = 0; r < sh->n_rows; ++r) {
+        const int32_t bias = (int32_t)ly->bias[sh->row[r]];
         memcpy(dst + 4u * r, &bias, sizeof bias);
     }
     dst += 32u;
-    for (r = 0; r < ly->n_out; ++r)
+    for (r = 0; r < sh->n_rows; ++r)
         for (j = 0; j < width; ++j, dst += 2u) {
-            const int16_t w = j < ly->n_in ? weight16(ly, r, j) : 0;
+            const int16_t w = j < sh->n_cols ? weight16(ly, sh->row[r], sh->col[j]) : 0;
             memcpy(dst, &w, sizeof w);
         }
 }
 
-static void pack_layer(const fbg_layer *ly, unsigned rows, int dot, unsigned char *dst)
+/* One layer's block at dst (its kept rows and columns, sh). Plain stores through memcpy: the
+ * buffer's declared type is the caller's. */
+static void pack_layer(const fbg_layer *ly, const pack_shape *sh, unsigned rows, int dot, unsigned char *dst)
 {
-    const unsigned pairs = (ly->n_in + 1u) / 2u;
+    const unsigned pairs = (sh->n_cols + 1u) / 2u;
     packed_head h;
     unsigned g0, k, g, i, p, c;
     memset(&h, 0, sizeof h);
     h.shift = ly->shift;
     h.round = (int64_t)1 << (ly->shift - 1u);
     h.top = ly->shift < 48u ? ((int64_t)32768 << ly->shift) - 1 : INT64_MAX;
-    h.n_in = ly->n_in;
-    h.n_out = ly->n_out;
-    h.n_groups = (uint16_t)((ly->n_out + rows - 1u) / rows);
+    h.n_in = (uint16_t)sh->n_cols;
+    h.n_out = (uint16_t)sh->n_rows;
+    h.n_groups = (uint16_t)((sh->n_rows + rows - 1u) / rows);
     /* SSE2 requantises from the multipliers as they are. */
     h.high_word = (uint16_t)(rows == 8u && high_word_requant(ly));
     h.dot = (uint16_t)dot;
     memcpy(dst, &h, sizeof h);
     dst += sizeof h;
     if (dot) {
-        pack_dot(ly, dst);
+        pack_dot(ly, sh, dst);
         return;
     }
     for (g0 = 0; g0 < h.n_groups; g0 += k) {
         k = h.n_groups - g0 < PACK_PASS ? h.n_groups - g0 : PACK_PASS;
         for (g = g0; g < g0 + k; ++g)
             for (i = 0; i < rows; ++i) {
-                const unsigned r = g * rows + i;
-                const int32_t bias = r < ly->n_out ? (int32_t)ly->bias[r] : 0;
-                const int32_t mult = r >= ly->n_out ? 0
-                                     : h.high_word ? (int32_t)((int64_t)ly->mult[r] * ((int64_t)1 << (32u - h.shift)))
-                                                : ly->mult[r];
+                const unsigned r = g * rows + i, src = r < sh->n_rows ? sh->row[r] : 0u;
+                const int32_t bias = r < sh->n_rows ? (int32_t)ly->bias[src] : 0;
+                const int32_t mult = r >= sh->n_rows ? 0
+                                     : h.high_word ? (int32_t)((int64_t)ly->mult[src] * ((int64_t)1 << (32u - h.shift)))
+                                                   : ly->mult[src];
                 memcpy(dst + 4u * ((g - g0) * rows + i), &bias, sizeof bias);
                 memcpy(dst + 4u * ((k + g - g0) * rows + i), &mult, sizeof mult);
             }
@@ -6430,7 +6507,7 @@ static void pack_layer(const fbg_layer *ly, unsigned rows, int dot, unsigned cha
                 for (i = 0; i < rows; ++i)
                     for (c = 0; c < 2u; ++c) {
                         const unsigned r = g * rows + i, j = 2u * p + c;
-                        const int16_t w = r < ly->n_out && j < ly->n_in ? weight16(ly, r, j) : 0;
+                        const int16_t w = r < sh->n_rows && j < sh->n_cols ? weight16(ly, sh->row[r], sh->col[j]) : 0;
                         memcpy(dst, &w, sizeof w);
                         dst += sizeof w;
                     }
@@ -6442,6 +6519,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
     const unsigned rows = pack_rows(kernel);
     unsigned char *base = (unsigned char *)buf;
     fbg_pack_header hd;
+    pack_shape sh;
     size_t off = PACK_HEADER_BYTES;
     unsigned n, l;
     memset(&hd, 0, sizeof hd);
@@ -6452,8 +6530,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
         hd.net_off[n] = (uint32_t)off;
         for (l = 0; l < m->nets[n].n_layers; ++l) {
             const int dot = dot_layer(&m->nets[n], l, rows);
-            pack_layer(&m->nets[n].layers[l], rows, dot, base + off);
-            off += packed_layer_bytes(&m->nets[n].layers[l], rows, dot);
+            pack_shape_of(&m->nets[n], l, &sh);
+            pack_layer(&m->nets[n].layers[l], &sh, rows, dot, base + off);
+            off += packed_layer_bytes(&sh, rows, dot);
         }
     }
     hd.magic = FBG_PACK_MAGIC;
@@ -6661,7 +6740,7 @@ AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsign
     lanes32 a0, a1;
     __m128i s;
     memcpy(&h, block, sizeof h);
-    width = DOT_WIDTH(h.n_in);
+    width = dot_width(h.n_in);
     a0 = (lanes32)_mm256_madd_epi16(load256(w), load256(x));
     if (h.n_out == 1u) {
         for (j = 16u; j < width; j += 16u)
