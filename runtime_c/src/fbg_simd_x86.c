@@ -928,7 +928,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 #define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
 /* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p; ACC(i) declares
  * accumulator a##i from its bias, MADD(i, w, xb) adds the products of the vector at w + i VB,
- * OUT(i) finishes group i. */
+ * OUT(i, K, 0) finishes group i of the K. */
 #define PK_PASS(K, T, VB, BCAST, ACC, MADD, OUT)                                             \
     do {                                                                                     \
         const size_t kb = (size_t)(K) * (VB);                                                \
@@ -948,7 +948,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
             PK_LIST##K(MADD, w, xlast);                                                      \
             w += kb;                                                                         \
         }                                                                                    \
-        PK_LIST##K(OUT, 0, 0);                                                               \
+        PK_LIST##K(OUT, K, 0);                                                               \
         b = w;                                                                               \
         grp += (K);                                                                          \
     } while (0)
@@ -1054,7 +1054,7 @@ static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, c
  * already in place: one blend puts the eight in row order); then ReLU (VPMAXSD) and the clamp
  * at 32767 (VPACKSSDW saturates exactly there for values >= 0). *above collects the results
  * by OR: a bit above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
-AVX2 static inline __m128i requant8_high(__m256i acc, const unsigned char *mult, __m256i *above)
+AVX2 static inline __m256i requant8_high(__m256i acc, const unsigned char *mult, __m256i *above)
 {
     const __m256i round = _mm256_set1_epi64x((int64_t)1 << 31);
     const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, load256(mult)), round);
@@ -1062,14 +1062,24 @@ AVX2 static inline __m128i requant8_high(__m256i acc, const unsigned char *mult,
     const __m256i q = _mm256_blend_epi32(_mm256_srli_epi64(t0, 32), t1, 0xAA);
     const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
     *above = _mm256_or_si256(*above, r);
-    return _mm_packs_epi32(_mm256_castsi256_si128(r), _mm256_extracti128_si256(r, 1));
+    return r;
 }
 
-/* The multipliers of the pass's last group are followed by its first weights: the read 4
- * bytes on stays inside the block. */
-#define PK8_HIGH_OUT(i, p_, xb_)                                                             \
-    _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                              \
-                     requant8_high((__m256i)a##i, b + kb + 32u * (i), &big))
+/* requant8_high's int32 results of group i into rq[i]; then, at each odd i, groups i-1 and i
+ * narrowed to int16 together (VPACKSSDW of the two interleaves them by 64 bits, VPERMQ puts
+ * them back in row order) and stored as one vector of 16 rows, and the pass's last group
+ * alone when K is odd. The multipliers of the pass's last group are followed by its first
+ * weights: the read 4 bytes on stays inside the block. */
+#define PK8_HIGH_OUT(i, K, xb_)                                                              \
+    do {                                                                                     \
+        rq[i] = requant8_high((__m256i)a##i, b + kb + 32u * (i), &big);                      \
+        if ((i) & 1u)                                                                        \
+            _mm256_storeu_si256((__m256i *)(void *)(y + 8u * (grp + (i) - 1u)),              \
+                                _mm256_permute4x64_epi64(_mm256_packs_epi32(rq[(i) - ((i) & 1u)], rq[i]), 0xD8)); \
+        else if ((i) + 1u == (K))                                                            \
+            _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                      \
+                             _mm_packs_epi32(_mm256_castsi256_si128(rq[i]), _mm256_extracti128_si256(rq[i], 1))); \
+    } while (0)
 
 /* One hidden layer; big collects the rows that clamped (any bit above bit 14 of a lane:
  * requant8 sets all of a clamped lane's bits, requant8_high leaves its value there); returns
@@ -1081,6 +1091,7 @@ AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_pa
     const __m256i xlast = _mm256_set1_epi32(last);
     __m256i big = *bigp;
     if (h.high_word) {
+        __m256i rq[PACK_PASS];
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIGH_OUT);
     } else {
         const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
