@@ -915,7 +915,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 
 /* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
  * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
- * in one pass), two pairs per loop iteration. In a pass at b (VB bytes a vector): the biases
+ * in one pass), two pairs per loop iteration (four where K <= 4). In a pass at b (VB bytes a vector): the biases
  * at b, the multipliers at b + K VB, the vector of group i for pair p at
  * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
 #define PK_LIST1(M, A, B) M(0, A, B)
@@ -934,7 +934,16 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
         const size_t kb = (size_t)(K) * (VB);                                                \
         const unsigned char *w = b + 2u * kb;                                                \
         PK_LIST##K(ACC, 0, 0);                                                               \
-        for (p = 0; p + 2u <= full; p += 2u, w += 2u * kb) {                                 \
+        p = 0;                                                                               \
+        if ((K) <= 4) /* registers for four broadcasts beside the accumulators */          \
+            for (; p + 4u <= full; p += 4u, w += 4u * kb) {                                  \
+                const T xb0 = BCAST(p), xb1 = BCAST(p + 1u), xb2 = BCAST(p + 2u), xb3 = BCAST(p + 3u); \
+                PK_LIST##K(MADD, w, xb0);                                                    \
+                PK_LIST##K(MADD, w + kb, xb1);                                               \
+                PK_LIST##K(MADD, w + 2u * kb, xb2);                                          \
+                PK_LIST##K(MADD, w + 3u * kb, xb3);                                          \
+            }                                                                                \
+        for (; p + 2u <= full; p += 2u, w += 2u * kb) {                                      \
             const T xb0 = BCAST(p), xb1 = BCAST(p + 1u);                                     \
             PK_LIST##K(MADD, w, xb0);                                                        \
             PK_LIST##K(MADD, w + kb, xb1);                                                   \
