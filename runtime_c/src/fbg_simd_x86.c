@@ -1180,24 +1180,31 @@ AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, 
         acc[r] = acc32[r];
 }
 
+/* SSE2's packed net and the copy of its int32 accumulators: kept out of line, so that the
+ * AVX2 path through fbg_simd_net_packed needs no frame (a call every net of every step). */
+__attribute__((noinline)) static void net_packed_sse2_acc64(const unsigned char *block, unsigned n_layers,
+                                                            const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH],
+                                                            int64_t *acc, uint32_t *sat)
+{
+    int32_t acc32[FBG_MAX_WIDTH];
+    unsigned r, n_out = net_packed_sse2(block, n_layers, x, act, acc32, sat);
+    for (r = 0; r < n_out; ++r)
+        acc[r] = acc32[r];
+}
+
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat)
 {
-    int32_t acc32[FBG_MAX_WIDTH];
     uint32_t off;
-    unsigned r, n_out;
     /* memcpy: the caller's buffer may have any declared type. */
     memcpy(&off, (const unsigned char *)packed + offsetof(fbg_pack_header, net_off) + n * sizeof off,
            sizeof off);
     if (off == 0u)
         return 0;
-    if (kernel == FBG_OPT_KERNEL_AVX2) {
+    if (kernel == FBG_OPT_KERNEL_AVX2)
         net_packed_avx2((const unsigned char *)packed + off, n_layers, x, act, acc, sat);
-        return 1;
-    }
-    n_out = net_packed_sse2((const unsigned char *)packed + off, n_layers, x, act, acc32, sat);
-    for (r = 0; r < n_out; ++r)
-        acc[r] = acc32[r];
+    else
+        net_packed_sse2_acc64((const unsigned char *)packed + off, n_layers, x, act, acc, sat);
     return 1;
 }
 
