@@ -246,6 +246,42 @@ def test_every_host_kernel_matches_portable_and_the_reference(case):
             assert got.tobytes() == portable.tobytes(), (name, kernel, packed)
 
 
+def test_front_end_clamps_on_every_kernel():
+    """The AVX2 front end (filter, standardisation, load proxy in int64 lanes) where every
+    clamp of it fires: taps of 32767 in Q15 (a gain of 16) on swings of +-0.45e9 fm held for
+    20 samples drive the filtered shift past int32 both ways (a mean of 2^30 lets the
+    difference show whether it was clamped), means at +-(2^31 - 1) drive the difference past it,
+    and large multipliers the standardised value past int16; the load proxy flags overload
+    on part of the stream. Every kernel gives the portable C's and the reference's records."""
+    q, _ = _realistic_model(14, ODD, 16, MEM5)
+    rng = np.random.default_rng(14)
+    q.taps = np.full(16, 32767, dtype=np.int64)
+    q.tap_q = 15
+    q.jump_max_fm = 2**31 - 1
+    q.mean_fm = np.array([2**31 - 1, -(2**31 - 1), 2**30, 123456], dtype=np.int64)
+    q.z_mult = np.array([1 << 13, -(1 << 13), 1 << 13, 3 << 22], dtype=np.int64)
+    q.z_shift = 30
+    q.load_coeff = rng.integers(-(1 << 27), 1 << 27, 4)
+    q.load_shift, q.load_max_mN = 24, 1 << 20
+    base = np.asarray(q.baseline_fm, dtype=np.int64)
+    swing = np.repeat(rng.integers(-450_000_000, 450_000_000, (75, 5)), 20, axis=0)  # held 20 steps
+    walk = np.cumsum(rng.integers(-3_000_000, 3_000_001, (1500, 5)), axis=0)
+    wl_fm = np.clip(base + np.where(np.arange(1500)[:, None] % 300 < 150, swing, walk),
+                    1_000_000_000, 2_000_000_000)
+    ref = intref.run(q, wl_fm, None)
+    sat = (ref["status"] & contract.STATUS_FLAG["SATURATED"]) != 0
+    over = (ref["status"] & contract.STATUS_FLAG["OVERLOAD"]) != 0
+    assert sat.any() and over.any() and not over.all()
+    data = blob.to_bytes(q)
+    portable = Runtime(data, kernel="portable").run_raw(wl_fm)
+    for k in FIELDS:
+        assert np.array_equal(np.asarray(portable[k], dtype=np.int64), ref[k]), k
+    for kernel in host_kernels():
+        for packed in (False, True):
+            got = Runtime(data, kernel=kernel, packed=packed).run_raw(wl_fm)
+            assert got.tobytes() == portable.tobytes(), (kernel, packed)
+
+
 def test_packed_form_leaves_out_unused_units():
     """The dead units of :func:`_dead_units_model` are left out of the packed form (smaller
     than the same shapes without them), except the one that clamps, whose flag the stream

@@ -3689,12 +3689,14 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
- * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
- * untouched; the caller sums it itself). */
-int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
-                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
+/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
+ * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
+ * same integers in another order), then in[c] = its standardised value and *load = the load
+ * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
+ * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
+ * runs its loop). */
+int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
+                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -4428,19 +4430,13 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: the four channels' sums in one vector (fbg_simd_x86.c); same sums */
-    int64_t fir[FBG_N_STRAIN];
-    const int fir_done = fbg_simd_fir4(s->options & FBG_OPT_KERNEL_MASK, m->taps, m->n_taps,
-                                       (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors (fbg_simd_x86.c); same values */
+    if (!fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, m, (const int32_t(*)[FBG_N_STRAIN])s->hist,
+                          s->pos, in, &load, &sat))
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
-#if FBG_SIMD_X86
-        if (fir_done)
-            f = fir[c];
-        else
-#endif
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
@@ -5149,12 +5145,14 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
- * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
- * untouched; the caller sums it itself). */
-int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
-                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
+/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
+ * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
+ * same integers in another order), then in[c] = its standardised value and *load = the load
+ * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
+ * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
+ * runs its loop). */
+int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
+                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -5357,7 +5355,7 @@ typedef int fbg_simd_neon_unused;
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
  * interleaved for it, and a whole net runs in one call. AVX2 also runs the FIR of the four
- * strain channels as one vector of int64 sums (fbg_simd_fir4).
+ * strain channels and their standardisation as vectors of int64 (fbg_simd_filter4).
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -5659,12 +5657,14 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
- * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
- * untouched; the caller sums it itself). */
-int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
-                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
+/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
+ * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
+ * same integers in another order), then in[c] = its standardised value and *load = the load
+ * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
+ * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
+ * runs its loop). */
+int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
+                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -6867,20 +6867,67 @@ AVX2 static inline __m256i fir_run(__m256i acc, const int16_t *taps, const int32
 /* The first run: taps 0 .. pos against hist[pos] down to hist[0]; the second: taps pos+1 ..
  * n_taps-1 against hist[n_taps-1] down to hist[pos+1]. idx - 3 stays >= 0 within a run's
  * blocks of four (idx counts down to the run's last entry). */
-AVX2 static void fir4_avx2(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
-                           unsigned pos, int64_t *fir)
+AVX2 static inline __m256i fir4_avx2(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                                     unsigned pos)
 {
-    __m256i acc = fir_run(_mm256_setzero_si256(), taps, hist, pos, pos + 1u);
-    acc = fir_run(acc, taps + pos + 1u, hist, n_taps - 1u, n_taps - 1u - pos);
-    _mm256_storeu_si256((__m256i *)(void *)fir, acc);
+    const __m256i acc = fir_run(_mm256_setzero_si256(), taps, hist, pos, pos + 1u);
+    return fir_run(acc, taps + pos + 1u, hist, n_taps - 1u, n_taps - 1u - pos);
 }
 
-int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
-                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir)
+/* floor(v / 2^s) of int64 lanes (AVX2 has no 64-bit arithmetic shift): with m = -1 in the
+ * negative lanes, v ^ m is -v - 1 >= 0 there, whose logical shift is floor((-v - 1) / 2^s),
+ * and ^ m again gives -floor((-v - 1) / 2^s) - 1 = floor(v / 2^s). */
+AVX2 static inline __m256i sra64(__m256i v, __m128i s)
+{
+    const __m256i m = _mm256_cmpgt_epi64(_mm256_setzero_si256(), v);
+    return _mm256_xor_si256(_mm256_srl_epi64(_mm256_xor_si256(v, m), s), m);
+}
+
+/* clamp(v, -lim, lim) of int64 lanes, *flag gathering the lanes that clamped (fbg_sat32's or
+ * fbg_sat16's flag). */
+AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
+{
+    const __m256i hi = _mm256_set1_epi64x(lim), lo = _mm256_set1_epi64x(-lim);
+    const __m256i over = _mm256_cmpgt_epi64(v, hi), under = _mm256_cmpgt_epi64(lo, v);
+    *flag = _mm256_or_si256(*flag, _mm256_or_si256(over, under));
+    return _mm256_blendv_epi8(_mm256_blendv_epi8(v, hi, over), lo, under);
+}
+
+/* Steps 2 and 3 of fbg_step in lanes of int64, one channel each, the same operations as its
+ * loop: filt = sat32(rshift_round(fir, tap_q)), d = sat32(filt - mean), in =
+ * sat16(rshift_round(d * z_mult, z_shift)) (VPMULDQ: filt and d are int32 after their clamps,
+ * the low dwords it reads; the products are exact in int64), and the load proxy's terms
+ * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
+ * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
+AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
+                             int16_t *in, int64_t *load)
+{
+    __m256i flag = _mm256_setzero_si256(), t;
+    __m128i l;
+    const __m256i fir = fir4_avx2(m->taps, m->n_taps, hist, pos);
+    const __m256i filt = clamp64(sra64(_mm256_add_epi64(fir, _mm256_set1_epi64x((int64_t)1 << (m->tap_q - 1u))),
+                                       _mm_cvtsi32_si128(m->tap_q)), FBG_SAT32, &flag);
+    const __m256i d = clamp64(_mm256_sub_epi64(filt, _mm256_cvtepi32_epi64(load128(m->mean_fm))), FBG_SAT32, &flag);
+    t = _mm256_add_epi64(_mm256_mul_epi32(d, _mm256_cvtepi32_epi64(load128(m->z_mult))),
+                         _mm256_set1_epi64x((int64_t)1 << (m->z_shift - 1u)));
+    t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
+    /* The four values' low dwords (each an int16 value) into the low half, narrowed. */
+    t = _mm256_permutevar8x32_epi32(t, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6));
+    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(_mm256_castsi256_si128(t), _mm256_castsi256_si128(t)));
+    t = _mm256_mul_epi32(filt, _mm256_cvtepi32_epi64(load128(m->load_coeff)));
+    l = _mm_add_epi64(_mm256_castsi256_si128(t), _mm256_extracti128_si256(t, 1));
+    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
+    *load = _mm_cvtsi128_si64(l);
+    return !_mm256_testz_si256(flag, flag);
+}
+
+int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
+                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat)
 {
     if (kernel != FBG_OPT_KERNEL_AVX2)
         return 0;
-    fir4_avx2(taps, n_taps, hist, pos, fir);
+    if (filter4_avx2(m, hist, pos, in, load))
+        *sat = 1u;
     return 1;
 }
 

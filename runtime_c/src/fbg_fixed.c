@@ -471,19 +471,13 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: the four channels' sums in one vector (fbg_simd_x86.c); same sums */
-    int64_t fir[FBG_N_STRAIN];
-    const int fir_done = fbg_simd_fir4(s->options & FBG_OPT_KERNEL_MASK, m->taps, m->n_taps,
-                                       (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors (fbg_simd_x86.c); same values */
+    if (!fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, m, (const int32_t(*)[FBG_N_STRAIN])s->hist,
+                          s->pos, in, &load, &sat))
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
-#if FBG_SIMD_X86
-        if (fir_done)
-            f = fir[c];
-        else
-#endif
         for (k = 0; k < m->n_taps; ++k) {
             f += (int64_t)m->taps[k] * s->hist[idx][c];
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;

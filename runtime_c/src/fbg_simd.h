@@ -90,12 +90,14 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The causal FIR of the four strain channels, fir[c] = sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c], exactly in int64 as fbg_step sums it (the same integers in another order):
- * returns 1 with fir filled when the kernel has a vector filter (AVX2), else 0 (fir
- * untouched; the caller sums it itself). */
-int fbg_simd_fir4(uint32_t kernel, const int16_t *taps, unsigned n_taps,
-                  const int32_t (*hist)[FBG_N_STRAIN], unsigned pos, int64_t *fir);
+/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
+ * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
+ * same integers in another order), then in[c] = its standardised value and *load = the load
+ * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
+ * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
+ * runs its loop). */
+int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
+                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
