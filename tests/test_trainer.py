@@ -343,6 +343,37 @@ def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synth
         assert not np.array_equal(one.force.weights[0], three.force.weights[0])
 
 
+def test_default_weight_decay_falls_with_the_training_samples(synthetic_recording):
+    from fbgforce.trainer.train import DEFAULT_DECAY_SAMPLES, train
+
+    kw = dict(epochs=2, seed=5, progress=False, restarts=1,
+              sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
+    short_log = synthetic_recording(n_press=20, seed=3)
+    short = train([short_log], **kw)
+    long = train([synthetic_recording(n_press=40, seed=3)], **kw)
+    for m in (short, long):
+        tr = m.metadata["training"]
+        assert tr["force"]["weight_decay"] == pytest.approx(
+            DEFAULT_DECAY_SAMPLES["force"] / tr["force"]["train_samples"])
+        assert tr["contact"]["weight_decay"] == DEFAULT_DECAY_SAMPLES["contact"]
+    n_short = short.metadata["training"]["force"]["train_samples"]
+    n_long = long.metadata["training"]["force"]["train_samples"]
+    assert n_long > 1.5 * n_short
+    assert short.metadata["training"]["force"]["weight_decay"] > \
+        1.5 * long.metadata["training"]["force"]["weight_decay"]
+    # The recorded decay is the one used: given explicitly, it trains the same force net;
+    # a value given for one net leaves the others at their defaults.
+    wd = short.metadata["training"]["force"]["weight_decay"]
+    again = train([short_log], weight_decay={"force": wd}, **kw)
+    for wa, wb in zip(short.force.weights, again.force.weights):
+        assert np.array_equal(wa, wb)
+    other = train([short_log], weight_decay={"force": 10 * wd}, **kw)
+    assert other.metadata["training"]["force"]["weight_decay"] == 10 * wd
+    assert not np.array_equal(other.force.weights[0], short.force.weights[0])
+    for wa, wb in zip(short.contact.weights, other.contact.weights):
+        assert np.array_equal(wa, wb)
+
+
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
     from fbgforce.trainer.train import train
 

@@ -38,9 +38,13 @@ DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
     "location": (70, 50, 40),
 }
 SPLIT_RATIOS = (8, 1, 1)
-#: L2 weight decay per net (docs/trainer.md, "What limits training" and "Restarts and force
-#: weight decay").
-DEFAULT_WEIGHT_DECAY: dict[str, float] = {"contact": 0.0, "force": 1e-4, "location": 0.0}
+#: The default L2 weight decay of each net, as a prior of fixed strength: the decay is this
+#: many training samples' worth divided by the number of samples the net trains on. A fit
+#: with a fixed Gaussian prior on the weights weighs it so against a loss averaged over n
+#: samples, and so a short calibration log is regularised harder than a long one: 1.1e-4 for
+#: the force net on the calibration scene (132,000 samples), 4.7e-4 on a 60-press log
+#: (docs/trainer.md, "What limits training" and "Restarts and force weight decay").
+DEFAULT_DECAY_SAMPLES: dict[str, float] = {"contact": 0.0, "force": 15.0, "location": 0.0}
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
 LOCATION_AUGMENT = 3.0
@@ -333,9 +337,16 @@ def _per_net(value: Any, defaults: Mapping[str, Any], what: str, kind: Callable[
     return {k: kind(value) for k in defaults}
 
 
-def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float]:
-    """L2 weight decay per net: the defaults, one value for all, or per-net overrides."""
-    return _per_net(weight_decay, DEFAULT_WEIGHT_DECAY, "weight_decay", float)
+def _weight_decays(weight_decay: float | Mapping[str, float] | None) -> dict[str, float | None]:
+    """L2 weight decay per net as given (one value for all, or per-net overrides); None
+    where the net takes the default (:func:`default_weight_decay`)."""
+    return _per_net(weight_decay, {k: None for k in DEFAULT_DECAY_SAMPLES}, "weight_decay", float)
+
+
+def default_weight_decay(name: str, n_samples: int) -> float:
+    """The default L2 weight decay of net ``name`` trained on ``n_samples`` samples:
+    :data:`DEFAULT_DECAY_SAMPLES` over ``n_samples``."""
+    return DEFAULT_DECAY_SAMPLES[name] / max(int(n_samples), 1)
 
 
 def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
@@ -462,8 +473,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         Reduce the learning rate on a validation plateau (see :func:`~fbgforce.trainer.nets.fit`;
         off by default).
     weight_decay
-        L2 weight decay: one value for every net or per net (``{"force": 1e-2}``); ``None``
-        means :data:`DEFAULT_WEIGHT_DECAY`.
+        L2 weight decay: one value for every net or per net (``{"force": 1e-2}``); a net
+        given none takes :func:`default_weight_decay` (it falls with the number of samples the
+        net trains on). The model records each net's in ``metadata.training.NET.weight_decay``.
     location_augment
         The location net also trains on the training presses pressed up to this many times
         harder (:func:`_scaled_presses`); 1 turns it off.
@@ -540,12 +552,15 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         tries = {k: 1 for k in tries}
     reports: dict[str, Any] = {}
 
-    def fit_net(name: str, rng_fit: np.random.Generator, *args: Any, **kwargs: Any
-                ) -> FlatMLP:
+    def fit_net(name: str, rng_fit: np.random.Generator, loss: str, x: np.ndarray,
+                *args: Any, **kwargs: Any) -> FlatMLP:
+        given = decays[name]
+        wd = default_weight_decay(name, len(x)) if given is None else given
         net, reports[name] = _fit_best_of(
             tries[name], name, seed, net_sizes[name], rng_init, rng_fit,
-            init_model.nets[name] if init_model else None, *args,
-            weight_decay=decays[name], **kwargs, **common)
+            init_model.nets[name] if init_model else None, loss, x, *args,
+            weight_decay=wd, **kwargs, **common)
+        reports[name].update(weight_decay=wd, train_samples=int(len(x)))
         return net
 
     # 1. Contact: every sample, softmax cross-entropy.
