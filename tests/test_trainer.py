@@ -343,6 +343,46 @@ def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synth
         assert not np.array_equal(one.force.weights[0], three.force.weights[0])
 
 
+def test_unread_units_are_dropped_and_float32_outputs_stay():
+    from fbgforce.model import MLP
+    from fbgforce.trainer.nets import drop_unread_units
+
+    rng = np.random.default_rng(4)
+    sizes = [6, 9, 7, 5, 2]
+    w = [rng.normal(size=(o, i)) for i, o in zip(sizes[:-1], sizes[1:])]
+    b = [rng.normal(size=o) for o in sizes[1:]]
+    w[3][:, [1, 2]] = 1e-318       # units 1, 2 of the last hidden layer: switched off by decay
+    w[2][:, [4, 5]] = 0.0          # units 4, 5 of the middle layer: never read
+    w[1][:, [1, 3]] = 0.0          # units 1, 3 of the first: read only by ...
+    w[1][4, 1] = w[1][5, 3] = 0.7  # ... middle units 4 and 5, which go: so they go too
+    w[3][1, 3] = 1e-30             # small, but float32 reads it: unit 3 stays
+    full = MLP(w, b)
+    pruned, dropped = drop_unread_units(full)
+    assert dropped == 6 and pruned.sizes == [6, 7, 5, 3, 2]
+    x = rng.normal(size=(500, 6)) * 3
+
+    def f32(m: MLP) -> np.ndarray:
+        a = x.astype(np.float32)
+        for l, (wl, bl) in enumerate(zip(m.weights, m.biases)):
+            a = a @ wl.astype(np.float32).T + bl.astype(np.float32)
+            if l < len(m.weights) - 1:
+                a = np.maximum(a, 0)
+        return a
+
+    np.testing.assert_allclose(f32(pruned), f32(full), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(pruned.forward(x), full.forward(x), rtol=1e-12, atol=1e-12)
+    # A layer nobody reads keeps one unit, so every layer still has a width.
+    w2 = [wl.copy() for wl in w]
+    w2[3][:] = 0.0
+    empty, n = drop_unread_units(MLP(w2, b))
+    assert empty.sizes == [6, 7, 5, 1, 2] and n == 4 + 2 + 2
+    # Units go in pairs: one unread unit alone stays, so widths keep their parity.
+    w3 = [wl + 1.0 for wl in w]
+    w3[3][:, 2] = 0.0
+    same, none = drop_unread_units(MLP(w3, b))
+    assert none == 0 and same.sizes == sizes
+
+
 def test_default_weight_decay_falls_with_the_training_samples(synthetic_recording):
     from fbgforce.trainer.train import DEFAULT_DECAY_SAMPLES, train
 
@@ -367,6 +407,11 @@ def test_default_weight_decay_falls_with_the_training_samples(synthetic_recordin
     again = train([short_log], weight_decay={"force": wd}, **kw)
     for wa, wb in zip(short.force.weights, again.force.weights):
         assert np.array_equal(wa, wb)
+    # Units the decay switches off leave the model: what it records adds up.
+    for m in (short, long):
+        for name, net in m.nets.items():
+            kept = sum(net.sizes[1:-1])
+            assert kept + m.metadata["training"][name]["dropped_units"] == sum(kw["sizes"][name])
     other = train([short_log], weight_decay={"force": 10 * wd}, **kw)
     assert other.metadata["training"]["force"]["weight_decay"] == 10 * wd
     assert not np.array_equal(other.force.weights[0], short.force.weights[0])

@@ -151,6 +151,35 @@ class FlatMLP:
         return MLP([w.copy() for w in self.W], [b.copy() for b in self.b])
 
 
+def drop_unread_units(mlp: MLP) -> tuple[MLP, int]:
+    """``mlp`` without the hidden units that no later layer reads, and how many were dropped.
+
+    A unit is unread when every weight leading out of it rounds to 0 in float32: weight decay
+    leaves a unit that never fires with weights of 1e-300 and below, which the float32 engines
+    (onnxruntime, the C float build) already read as 0 and the quantiser exports as 0. Dropping
+    such a unit, with its row and bias, leaves the float32 outputs as they were and saves its
+    multiply-adds in every engine. Layers are pruned from the output back, so a unit read only
+    by dropped units goes too; every layer keeps at least one unit. Units go in pairs, so an
+    even width stays even: the Cortex-M4 kernels' fast paths read inputs and rows in pairs, and
+    an odd width would cost more than the unit saves.
+    """
+    weights = [np.array(w, dtype=np.float64) for w in mlp.weights]
+    biases = [np.array(b, dtype=np.float64) for b in mlp.biases]
+    dropped = 0
+    for l in range(len(weights) - 2, -1, -1):
+        read = np.any(weights[l + 1].astype(np.float32) != 0, axis=0)
+        if not read.any():
+            read[0] = True
+        if (~read).sum() % 2:
+            read[np.flatnonzero(~read)[-1]] = True
+        if read.all():
+            continue
+        dropped += int((~read).sum())
+        weights[l], biases[l] = weights[l][read], biases[l][read]
+        weights[l + 1] = weights[l + 1][:, read]
+    return MLP(weights, biases), dropped
+
+
 # ------------------------------------------------------------------------------------------
 # The training loop
 # ------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce import tare as fbgtare
-from fbgforce.trainer.nets import FlatMLP, fit, predict_batched
+from fbgforce.trainer.nets import FlatMLP, drop_unread_units, fit, predict_batched
 
 #: Hidden-layer widths of the paper's Fig. 4.
 DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
@@ -625,8 +625,13 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
             "the memory's averages will read a held grip low; calibrate with holds (scene "
             "calibration_holds, docs/teleop.md) or train with --memory play"
             % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
+    # Units weight decay switched off cost multiply-adds in every engine and change no float32
+    # output: leave them out of the model.
+    mlps: dict[str, fm.MLP] = {}
+    for name, net in (("contact", cnet), ("force", fnet), ("location", lnet)):
+        mlps[name], reports[name]["dropped_units"] = drop_unread_units(net.to_mlp())
     model = fm.HierarchicalModel(
-        preprocess=pre, contact=cnet.to_mlp(), force=fnet.to_mlp(), location=lnet.to_mlp(),
+        preprocess=pre, contact=mlps["contact"], force=mlps["force"], location=mlps["location"],
         force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
     t_train = time.perf_counter() - t_start - t_prep
