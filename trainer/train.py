@@ -42,10 +42,9 @@ SPLIT_RATIOS = (8, 1, 1)
 #: many training samples' worth divided by the number of samples the net trains on. A fit
 #: with a fixed Gaussian prior on the weights weighs it so against a loss averaged over n
 #: samples, and so a short calibration log is regularised harder than a long one: 1.1e-4 for
-#: the force net on the calibration scene (132,000 samples), 4.7e-4 on a 60-press log; for the
-#: location net 5.7e-5 and 2.9e-4 (docs/trainer.md, "What limits training" and "Restarts and
-#: force weight decay").
-DEFAULT_DECAY_SAMPLES: dict[str, float] = {"contact": 0.0, "force": 15.0, "location": 15.0}
+#: the force net on the calibration scene (132,000 samples), 4.7e-4 on a 60-press log
+#: (docs/trainer.md, "What limits training" and "Restarts and force weight decay").
+DEFAULT_DECAY_SAMPLES: dict[str, float] = {"contact": 0.0, "force": 15.0, "location": 0.0}
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
 LOCATION_AUGMENT = 3.0
