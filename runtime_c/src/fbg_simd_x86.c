@@ -1136,9 +1136,7 @@ AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsign
     if (h.n_out == 1u) {
         for (j = 16u; j < width; j += 16u)
             MADD(a0, load256(w + 2u * j), load256(x + j));
-        s = _mm_add_epi32(_mm256_castsi256_si128((__m256i)a0), _mm256_extracti128_si256((__m256i)a0, 1));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0x4e));
-        s = _mm_add_epi32(s, _mm_shuffle_epi32(s, 0xb1));
+        s = sum1_row((__m256i)a0);
         memcpy(&bias, block + sizeof h, sizeof bias);
         acc[0] = (int32_t)((uint32_t)_mm_cvtsi128_si32(s) + (uint32_t)bias);
         return;
