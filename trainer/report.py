@@ -38,10 +38,10 @@ PAPER = {
 KEYS = ("rmse_x_mm", "rmse_y_mm", "rmse_force_N", "contact_accuracy", "contact_accuracy_above_5N")
 
 
-def baselines(data: Any, network_pred: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
+def baselines(data: Any, network_test: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Nominal and fitted model-based estimates scored on the test rows of prepared data.
 
-    With ``network_pred`` (the network's output on every row of ``data``), each baseline also
+    With ``network_test`` (the network's output on the test rows of ``data``), each baseline also
     gets ``common_with_network``: its x/y and the network's on the test samples both detect
     (:func:`fbgforce.metrics.common_location`), since a baseline that misses the light touches
     is otherwise scored on easier samples.
@@ -57,15 +57,13 @@ def baselines(data: Any, network_pred: dict[str, np.ndarray] | None = None) -> d
     models = {"nominal": bl.nominal(base_nm),
               "fitted": bl.fit(shifts[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
     truth = data.truth(te)
-    network = (None if network_pred is None else
-               {k: np.asarray(v)[te] for k, v in network_pred.items()})
     for name, m in models.items():
         m.set_threshold(shifts[free])
         pred = m.predict(shifts[te])
         out[name] = {"metrics": fmetrics.compute(pred, *truth), "params": m.to_dict()}
-        if network is not None:
+        if network_test is not None:
             out[name]["common_with_network"] = fmetrics.common_location(
-                {"network": network, name: pred}, truth[0], truth[2], truth[3])
+                {"network": network_test, name: pred}, truth[0], truth[2], truth[3])
     return out
 
 
@@ -116,13 +114,14 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
         nets[kind] = {"metrics": evaluate_rows(model, data, data.rows("test")),
                       "train_seconds": time.perf_counter() - t1,
                       "group_delay_ms": model.metadata["filter"]["group_delay_ms"]}
-    base = baselines(prepared["causal"], preds["causal"])
+    # The causal and unfiltered nets on the test rows: the baselines are compared with the
+    # first, and smoothing on/off like for like (the unfiltered net misses more light touches,
+    # so its own x/y come from heavier ones).
+    test_preds = {kind: {k: np.asarray(v)[te] for k, v in preds[kind].items()}
+                  for kind in ("causal", "none")}
+    base = baselines(prepared["causal"], test_preds["causal"])
     truth = prepared["causal"].truth(te)
-    # Smoothing on/off like for like: the unfiltered net misses more light touches, so its
-    # own x/y come from heavier ones.
-    smoothing_common = fmetrics.common_location(
-        {kind: {k: np.asarray(v)[te] for k, v in preds[kind].items()} for kind in ("causal", "none")},
-        truth[0], truth[2], truth[3])
+    smoothing_common = fmetrics.common_location(test_preds, truth[0], truth[2], truth[3])
     ours = nets["causal"]["metrics"]
     nominal = base["nominal"]["metrics"]
     checks = {
