@@ -193,7 +193,10 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
         small_model_dir, small_exported_dir, small_dataset_path, tmp_path):
     """Weight decay leaves a dead unit's weights at 1e-300 and below; the quantiser must treat
     them as zeros (not divide its bias by an underflowed scale) and the chain stay exact."""
+    import json
     import shutil
+    import subprocess
+    from pathlib import Path
 
     from fbgforce import dataset
     from fbgforce.export.exporter import export_model, recording_baseline
@@ -212,22 +215,15 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base)))
     flt = fm.predict(model, ds.wl_nm, base)
     both = fixed["contact"] & flt["contact"]
-    import json
-
-    bounds = json.loads((mdir / "export_report.json").read_text())["error_bounds"]
+    report = json.loads((mdir / "export_report.json").read_text())
     assert both.sum() > 1000
-    assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() <= bounds["force_N"]
+    assert np.abs(fixed["force_N"][both] - flt["force_N"][both]).max() <= report["error_bounds"]["force_N"]
     # The dead rows take the scale of the live ones: no layer needs a smaller shift than the
     # unmodified model's (int32 layers keep shift 32, the Cortex-M4's fast requantisation).
-    report = json.loads((mdir / "export_report.json").read_text())["nets"]["force"]
     before = json.loads((small_exported_dir / "export_report.json").read_text())["nets"]["force"]
-    assert [ly["shift"] for ly in report] == [ly["shift"] for ly in before]
+    assert [ly["shift"] for ly in report["nets"]["force"]] == [ly["shift"] for ly in before]
     # The generated float model writes them as 0.0f, which -Werror accepts (a 1e-318 literal
     # is "truncated to zero" and fails the build).
-    import shutil
-    import subprocess
-    from pathlib import Path
-
     cc = shutil.which("cc")
     if cc is None:
         pytest.skip("needs a C compiler")
