@@ -656,6 +656,32 @@ typedef struct {
 
 typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
 
+/* One field of the head at the start of a block, read where it lies (memcpy: the buffer's
+ * declared type is the caller's), so that a kernel loads only the fields it uses. */
+static inline unsigned head_u16(const unsigned char *block, size_t off)
+{
+    uint16_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+
+static inline unsigned head_u32(const unsigned char *block, size_t off)
+{
+    uint32_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+
+static inline int64_t head_i64(const unsigned char *block, size_t off)
+{
+    int64_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+#define HEAD_U16(block, field) head_u16(block, offsetof(packed_head, field))
+#define HEAD_I64(block, field) head_i64(block, offsetof(packed_head, field))
+#define HEAD_U32(block, field) head_u32(block, offsetof(packed_head, field))
+
 #define PACK_HEADER_BYTES ((sizeof(fbg_pack_header) + 31u) & ~(size_t)31u)
 
 /* Rows per group of a kernel's packed form; 0: no packed form. */
@@ -964,9 +990,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 /* Every group of a layer: passes of PACK_PASS groups, then one of the rest. */
 #define PK_LAYER(T, VB, BCAST, ACC, MADD, OUT)                                               \
     do {                                                                                     \
-        while (h.n_groups - grp >= PACK_PASS)                                                \
+        while (n_groups - grp >= PACK_PASS)                                                \
             PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT);                                        \
-        switch (h.n_groups - grp) {                                                          \
+        switch (n_groups - grp) {                                                          \
         case 1: PK_PASS(1, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 2: PK_PASS(2, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 3: PK_PASS(3, T, VB, BCAST, ACC, MADD, OUT); break;                             \
@@ -990,14 +1016,11 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
 /* The common start of a packed kernel: the head, the pair counts, the odd last column with a
  * zero partner. */
 #define PK_BEGIN                                                                             \
-    packed_head h;                                                                           \
-    const unsigned char *b = block + sizeof h;                                               \
-    unsigned pairs, full, grp = 0u, p;                                                       \
-    int32_t last;                                                                            \
-    memcpy(&h, block, sizeof h);                                                             \
-    pairs = (h.n_in + 1u) / 2u;                                                              \
-    full = h.n_in / 2u;                                                                      \
-    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0
+    const unsigned char *b = block + sizeof(packed_head);                                    \
+    const unsigned n_in = HEAD_U16(block, n_in), n_groups = HEAD_U16(block, n_groups);       \
+    const unsigned pairs = (n_in + 1u) / 2u, full = n_in / 2u;                               \
+    const int32_t last = (n_in & 1u) ? (int32_t)(uint16_t)x[n_in - 1u] : 0;                  \
+    unsigned grp = 0u, p
 
 /* SSE2: groups of four rows, 16-byte vectors; the sums requantised by the scalar rule. */
 #define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
@@ -1011,7 +1034,7 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
         _mm_storeu_si128((__m128i *)(void *)t, (__m128i)a##i);                               \
         memcpy(m, b + kb + 16u * (i), sizeof m);                                             \
         for (q = 0; q < 4u; ++q) {                                                           \
-            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], h.shift);                     \
+            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], shift);                       \
             y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
         }                                                                                    \
     } while (0)
@@ -1021,6 +1044,7 @@ static inline const unsigned char *hidden_packed_sse2(const unsigned char *block
                                                       int16_t *y, uint32_t *sat)
 {
     PK_BEGIN;
+    const unsigned shift = HEAD_U32(block, shift);
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
     return b;
@@ -1032,7 +1056,7 @@ static inline unsigned acc32_packed_sse2(const unsigned char *block, const int16
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
-    return h.n_out;
+    return HEAD_U16(block, n_out);
 }
 
 /* Every layer of a packed net (n_layers blocks from block on). */
@@ -1099,12 +1123,13 @@ AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_pa
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     __m256i big = *bigp;
-    if (h.high_word) {
+    if (HEAD_U16(block, high_word)) {
         __m256i rq[PACK_PASS];
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIGH_OUT);
     } else {
-        const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
-        const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
+        const __m256i round = _mm256_set1_epi64x(HEAD_I64(block, round));
+        const __m256i top = _mm256_set1_epi64x(HEAD_I64(block, top));
+        const __m128i shift = _mm_cvtsi32_si128((int)HEAD_U32(block, shift));
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
     }
     *bigp = big;
@@ -1124,20 +1149,18 @@ AVX2 __attribute__((always_inline)) static inline void acc32_packed_avx2(const u
  * (any order: the int32 proof), the bias added, sign-extended into acc. */
 AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsigned char *block, const int16_t *x, int64_t *acc)
 {
-    packed_head h;
-    const unsigned char *w = block + sizeof h + 32u;
-    unsigned j, width;
+    const unsigned char *w = block + sizeof(packed_head) + 32u;
+    const unsigned width = dot_width(HEAD_U16(block, n_in));
+    unsigned j;
     int32_t bias;
     lanes32 a0, a1;
     __m128i s;
-    memcpy(&h, block, sizeof h);
-    width = dot_width(h.n_in);
     a0 = (lanes32)_mm256_madd_epi16(load256(w), load256(x));
-    if (h.n_out == 1u) {
+    if (HEAD_U16(block, n_out) == 1u) {
         for (j = 16u; j < width; j += 16u)
             MADD(a0, load256(w + 2u * j), load256(x + j));
         s = sum1_row((__m256i)a0);
-        memcpy(&bias, block + sizeof h, sizeof bias);
+        memcpy(&bias, block + sizeof(packed_head), sizeof bias);
         acc[0] = (int32_t)((uint32_t)_mm_cvtsi128_si32(s) + (uint32_t)bias);
         return;
     }
@@ -1148,7 +1171,7 @@ AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsign
         MADD(a1, load256(w + 2u * (width + j)), xv);
     }
     s = sum2_rows((__m256i)a0, (__m256i)a1);
-    s = _mm_add_epi32(s, _mm_loadl_epi64((const __m128i *)(const void *)(block + sizeof h)));
+    s = _mm_add_epi32(s, _mm_loadl_epi64((const __m128i *)(const void *)(block + sizeof(packed_head))));
     _mm_storeu_si128((__m128i *)(void *)acc, _mm_cvtepi32_epi64(s));
 }
 
@@ -1158,9 +1181,8 @@ AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, 
     /* Every bit but the low 15 of a lane: a clamped row. */
     const __m256i clamped = _mm256_set1_epi32(~0x7FFF);
     __m256i big = _mm256_setzero_si256();
-    packed_head h;
     int32_t acc32[FBG_MAX_WIDTH];
-    unsigned l, r;
+    unsigned l, r, n_out;
     for (l = 0; l + 1u < n_layers; ++l) {
         block = hidden_packed_avx2(block, x, act[l & 1u], &big);
         x = act[l & 1u];
@@ -1168,13 +1190,13 @@ AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, 
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
     if (!_mm256_testz_si256(big, clamped))
         *sat = 1u;
-    memcpy(&h, block, sizeof h);
-    if (h.dot) {
+    if (HEAD_U16(block, dot)) {
         acc_dot_avx2(block, x, acc);
         return;
     }
     acc32_packed_avx2(block, x, acc32);
-    for (r = 0; r < h.n_out; ++r)
+    n_out = HEAD_U16(block, n_out);
+    for (r = 0; r < n_out; ++r)
         acc[r] = acc32[r];
 }
 
