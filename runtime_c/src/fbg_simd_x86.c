@@ -941,7 +941,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 
 /* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
  * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
- * in one pass), two pairs per loop iteration (four where K <= 4). In a pass at b (VB bytes a vector): the biases
+ * in one pass), two pairs per loop iteration (four where K <= 2). In a pass at b (VB bytes a vector): the biases
  * at b, the multipliers at b + K VB, the vector of group i for pair p at
  * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
 #define PK_LIST1(M, A, B) M(0, A, B)
@@ -961,7 +961,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
         const unsigned char *w = b + 2u * kb;                                                \
         PK_LIST##K(ACC, 0, 0);                                                               \
         p = 0;                                                                               \
-        if ((K) <= 4) /* registers for four broadcasts beside the accumulators */          \
+        if ((K) <= 2) /* four broadcasts: wider passes spill accumulators */              \
             for (; p + 4u <= full; p += 4u, w += 4u * kb) {                                  \
                 const T xb0 = BCAST(p), xb1 = BCAST(p + 1u), xb2 = BCAST(p + 2u), xb3 = BCAST(p + 3u); \
                 PK_LIST##K(MADD, w, xb0);                                                    \
