@@ -5948,7 +5948,8 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
  * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
  * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
  * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
- * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag). */
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
 AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
                                     __m128i shift, __m256i *big)
 {
@@ -5960,7 +5961,7 @@ AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __
     for (k = 0; k < 2; ++k) {
         __m256i v = _mm256_add_epi64(t[k], round);
         __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
-        *big = _mm256_or_si256(*big, over);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
         t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
     }
     /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
@@ -6285,6 +6286,32 @@ typedef struct {
 
 typedef char packed_head_is_32_bytes[sizeof(packed_head) == 32u ? 1 : -1];
 
+/* One field of the head at the start of a block, read where it lies (memcpy: the buffer's
+ * declared type is the caller's), so that a kernel loads only the fields it uses. */
+static inline unsigned head_u16(const unsigned char *block, size_t off)
+{
+    uint16_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+
+static inline unsigned head_u32(const unsigned char *block, size_t off)
+{
+    uint32_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+
+static inline int64_t head_i64(const unsigned char *block, size_t off)
+{
+    int64_t v;
+    memcpy(&v, block + off, sizeof v);
+    return v;
+}
+#define HEAD_U16(block, field) head_u16(block, offsetof(packed_head, field))
+#define HEAD_I64(block, field) head_i64(block, offsetof(packed_head, field))
+#define HEAD_U32(block, field) head_u32(block, offsetof(packed_head, field))
+
 #define PACK_HEADER_BYTES ((sizeof(fbg_pack_header) + 31u) & ~(size_t)31u)
 
 /* Rows per group of a kernel's packed form; 0: no packed form. */
@@ -6544,7 +6571,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 
 /* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
  * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
- * in one pass), two pairs per loop iteration (four where K <= 4). In a pass at b (VB bytes a vector): the biases
+ * in one pass), two pairs per loop iteration (four where K <= 2). In a pass at b (VB bytes a vector): the biases
  * at b, the multipliers at b + K VB, the vector of group i for pair p at
  * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
 #define PK_LIST1(M, A, B) M(0, A, B)
@@ -6564,7 +6591,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
         const unsigned char *w = b + 2u * kb;                                                \
         PK_LIST##K(ACC, 0, 0);                                                               \
         p = 0;                                                                               \
-        if ((K) <= 4) /* registers for four broadcasts beside the accumulators */          \
+        if ((K) <= 2) /* four broadcasts: wider passes spill accumulators */              \
             for (; p + 4u <= full; p += 4u, w += 4u * kb) {                                  \
                 const T xb0 = BCAST(p), xb1 = BCAST(p + 1u), xb2 = BCAST(p + 2u), xb3 = BCAST(p + 3u); \
                 PK_LIST##K(MADD, w, xb0);                                                    \
@@ -6593,9 +6620,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 /* Every group of a layer: passes of PACK_PASS groups, then one of the rest. */
 #define PK_LAYER(T, VB, BCAST, ACC, MADD, OUT)                                               \
     do {                                                                                     \
-        while (h.n_groups - grp >= PACK_PASS)                                                \
+        while (n_groups - grp >= PACK_PASS)                                                \
             PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT);                                        \
-        switch (h.n_groups - grp) {                                                          \
+        switch (n_groups - grp) {                                                          \
         case 1: PK_PASS(1, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 2: PK_PASS(2, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 3: PK_PASS(3, T, VB, BCAST, ACC, MADD, OUT); break;                             \
@@ -6619,14 +6646,11 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
 /* The common start of a packed kernel: the head, the pair counts, the odd last column with a
  * zero partner. */
 #define PK_BEGIN                                                                             \
-    packed_head h;                                                                           \
-    const unsigned char *b = block + sizeof h;                                               \
-    unsigned pairs, full, grp = 0u, p;                                                       \
-    int32_t last;                                                                            \
-    memcpy(&h, block, sizeof h);                                                             \
-    pairs = (h.n_in + 1u) / 2u;                                                              \
-    full = h.n_in / 2u;                                                                      \
-    last = (h.n_in & 1u) ? (int32_t)(uint16_t)x[h.n_in - 1u] : 0
+    const unsigned char *b = block + sizeof(packed_head);                                    \
+    const unsigned n_in = HEAD_U16(block, n_in), n_groups = HEAD_U16(block, n_groups);       \
+    const unsigned pairs = (n_in + 1u) / 2u, full = n_in / 2u;                               \
+    const int32_t last = (n_in & 1u) ? (int32_t)(uint16_t)x[n_in - 1u] : 0;                  \
+    unsigned grp = 0u, p
 
 /* SSE2: groups of four rows, 16-byte vectors; the sums requantised by the scalar rule. */
 #define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
@@ -6640,7 +6664,7 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
         _mm_storeu_si128((__m128i *)(void *)t, (__m128i)a##i);                               \
         memcpy(m, b + kb + 16u * (i), sizeof m);                                             \
         for (q = 0; q < 4u; ++q) {                                                           \
-            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], h.shift);                     \
+            int64_t v = fbg_rshift_round((int64_t)t[q] * m[q], shift);                       \
             y[4u * (grp + (i)) + q] = fbg_sat16(v < 0 ? 0 : v, sat);                         \
         }                                                                                    \
     } while (0)
@@ -6650,6 +6674,7 @@ static inline const unsigned char *hidden_packed_sse2(const unsigned char *block
                                                       int16_t *y, uint32_t *sat)
 {
     PK_BEGIN;
+    const unsigned shift = HEAD_U32(block, shift);
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
     return b;
@@ -6661,7 +6686,7 @@ static inline unsigned acc32_packed_sse2(const unsigned char *block, const int16
     PK_BEGIN;
     const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
-    return h.n_out;
+    return HEAD_U16(block, n_out);
 }
 
 /* Every layer of a packed net (n_layers blocks from block on). */
@@ -6689,51 +6714,55 @@ static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, c
  * 2^(32-shift)) at mult: t = acc * m' + 2^31 exactly in int64 (VPMULDQ of the even rows, then
  * of the odd ones against the multipliers read 4 bytes on, whose low dwords are the odd
  * rows'), and the quotient is t's high dword (for the even rows shifted down, the odd ones'
- * already in place: one blend puts the eight in row order); then ReLU (VPMAXSD) and the clamp
- * at 32767 (VPACKSSDW saturates exactly there for values >= 0). *above collects the results
- * by OR: a bit above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
-AVX2 static inline __m256i requant8_high(__m256i acc, const unsigned char *mult, __m256i *above)
+ * already in place: one blend puts the eight in row order), returned before ReLU.
+ * *peak keeps each lane's largest value (VPMAXSD; it starts at 0, so it stays >= 0): a bit
+ * above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
+AVX2 static inline __m256i requant8_high(__m256i acc, const unsigned char *mult, __m256i *peak)
 {
     const __m256i round = _mm256_set1_epi64x((int64_t)1 << 31);
     const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, load256(mult)), round);
     const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32), load256(mult + 4)), round);
     const __m256i q = _mm256_blend_epi32(_mm256_srli_epi64(t0, 32), t1, 0xAA);
-    const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
-    *above = _mm256_or_si256(*above, r);
-    return r;
+    *peak = _mm256_max_epi32(*peak, q);
+    return q;
 }
 
-/* requant8_high's int32 results of group i into rq[i]; then, at each odd i, groups i-1 and i
- * narrowed to int16 together (VPACKSSDW of the two interleaves them by 64 bits, VPERMQ puts
- * them back in row order) and stored as one vector of 16 rows, and the pass's last group
- * alone when K is odd. The multipliers of the pass's last group are followed by its first
- * weights: the read 4 bytes on stays inside the block. */
+/* requant8_high's int32 quotients of group i into rq[i]; then, at each odd i, groups i-1 and
+ * i narrowed to int16 together (VPACKSSDW of the two interleaves them by 64 bits and
+ * saturates at 32767, the clamp; VPMAXSW with 0 is the ReLU, which commutes with that
+ * narrowing: a negative value stays negative; VPERMQ puts the rows back in order) and stored
+ * as one vector of 16 rows, and the pass's last group alone when K is odd. The multipliers
+ * of the pass's last group are followed by its first weights: the read 4 bytes on stays
+ * inside the block. */
 #define PK8_HIGH_OUT(i, K, xb_)                                                              \
     do {                                                                                     \
         rq[i] = requant8_high((__m256i)a##i, b + kb + 32u * (i), &big);                      \
         if ((i) & 1u)                                                                        \
             _mm256_storeu_si256((__m256i *)(void *)(y + 8u * (grp + (i) - 1u)),              \
-                                _mm256_permute4x64_epi64(_mm256_packs_epi32(rq[(i) - ((i) & 1u)], rq[i]), 0xD8)); \
+                                _mm256_permute4x64_epi64(_mm256_max_epi16(_mm256_packs_epi32(rq[(i) - ((i) & 1u)], rq[i]), \
+                                                                          _mm256_setzero_si256()), 0xD8)); \
         else if ((i) + 1u == (K))                                                            \
             _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                      \
-                             _mm_packs_epi32(_mm256_castsi256_si128(rq[i]), _mm256_extracti128_si256(rq[i], 1))); \
+                             _mm_max_epi16(_mm_packs_epi32(_mm256_castsi256_si128(rq[i]), _mm256_extracti128_si256(rq[i], 1)), \
+                                           _mm_setzero_si128()));                            \
     } while (0)
 
-/* One hidden layer; big collects the rows that clamped (any bit above bit 14 of a lane:
- * requant8 sets all of a clamped lane's bits, requant8_high leaves its value there); returns
- * the next layer's block. */
+/* One hidden layer; big collects the rows that clamped (a bit above bit 14 in a lane, which
+ * stays >= 0: requant8 sets all but the sign bit of a clamped lane, requant8_high keeps the
+ * lane's largest value there); returns the next layer's block. */
 AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_packed_avx2(const unsigned char *block, const int16_t *x,
                                                            int16_t *y, __m256i *bigp)
 {
     PK_BEGIN;
     const __m256i xlast = _mm256_set1_epi32(last);
     __m256i big = *bigp;
-    if (h.high_word) {
+    if (HEAD_U16(block, high_word)) {
         __m256i rq[PACK_PASS];
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIGH_OUT);
     } else {
-        const __m256i round = _mm256_set1_epi64x(h.round), top = _mm256_set1_epi64x(h.top);
-        const __m128i shift = _mm_cvtsi32_si128((int)h.shift);
+        const __m256i round = _mm256_set1_epi64x(HEAD_I64(block, round));
+        const __m256i top = _mm256_set1_epi64x(HEAD_I64(block, top));
+        const __m128i shift = _mm_cvtsi32_si128((int)HEAD_U32(block, shift));
         PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_HIDDEN_OUT);
     }
     *bigp = big;
@@ -6753,20 +6782,18 @@ AVX2 __attribute__((always_inline)) static inline void acc32_packed_avx2(const u
  * (any order: the int32 proof), the bias added, sign-extended into acc. */
 AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsigned char *block, const int16_t *x, int64_t *acc)
 {
-    packed_head h;
-    const unsigned char *w = block + sizeof h + 32u;
-    unsigned j, width;
+    const unsigned char *w = block + sizeof(packed_head) + 32u;
+    const unsigned width = dot_width(HEAD_U16(block, n_in));
+    unsigned j;
     int32_t bias;
     lanes32 a0, a1;
     __m128i s;
-    memcpy(&h, block, sizeof h);
-    width = dot_width(h.n_in);
     a0 = (lanes32)_mm256_madd_epi16(load256(w), load256(x));
-    if (h.n_out == 1u) {
+    if (HEAD_U16(block, n_out) == 1u) {
         for (j = 16u; j < width; j += 16u)
             MADD(a0, load256(w + 2u * j), load256(x + j));
         s = sum1_row((__m256i)a0);
-        memcpy(&bias, block + sizeof h, sizeof bias);
+        memcpy(&bias, block + sizeof(packed_head), sizeof bias);
         acc[0] = (int32_t)((uint32_t)_mm_cvtsi128_si32(s) + (uint32_t)bias);
         return;
     }
@@ -6777,7 +6804,7 @@ AVX2 __attribute__((always_inline)) static inline void acc_dot_avx2(const unsign
         MADD(a1, load256(w + 2u * (width + j)), xv);
     }
     s = sum2_rows((__m256i)a0, (__m256i)a1);
-    s = _mm_add_epi32(s, _mm_loadl_epi64((const __m128i *)(const void *)(block + sizeof h)));
+    s = _mm_add_epi32(s, _mm_loadl_epi64((const __m128i *)(const void *)(block + sizeof(packed_head))));
     _mm_storeu_si128((__m128i *)(void *)acc, _mm_cvtepi32_epi64(s));
 }
 
@@ -6787,9 +6814,8 @@ AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, 
     /* Every bit but the low 15 of a lane: a clamped row. */
     const __m256i clamped = _mm256_set1_epi32(~0x7FFF);
     __m256i big = _mm256_setzero_si256();
-    packed_head h;
     int32_t acc32[FBG_MAX_WIDTH];
-    unsigned l, r;
+    unsigned l, r, n_out;
     for (l = 0; l + 1u < n_layers; ++l) {
         block = hidden_packed_avx2(block, x, act[l & 1u], &big);
         x = act[l & 1u];
@@ -6797,13 +6823,13 @@ AVX2 static void net_packed_avx2(const unsigned char *block, unsigned n_layers, 
     /* Rows past n_out have multiplier 0: they requantise to 0 and never clamp. */
     if (!_mm256_testz_si256(big, clamped))
         *sat = 1u;
-    memcpy(&h, block, sizeof h);
-    if (h.dot) {
+    if (HEAD_U16(block, dot)) {
         acc_dot_avx2(block, x, acc);
         return;
     }
     acc32_packed_avx2(block, x, acc32);
-    for (r = 0; r < h.n_out; ++r)
+    n_out = HEAD_U16(block, n_out);
+    for (r = 0; r < n_out; ++r)
         acc[r] = acc32[r];
 }
 
@@ -7004,6 +7030,9 @@ typedef int fbg_simd_x86_unused;
 #undef NARROW_SUMS
 #undef NARROW_LAYER
 #undef PACK_PASS
+#undef HEAD_U16
+#undef HEAD_I64
+#undef HEAD_U32
 #undef PACK_HEADER_BYTES
 #undef DOT_ROWS
 #undef DOT_WIDTH

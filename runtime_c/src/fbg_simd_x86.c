@@ -319,7 +319,8 @@ AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256
  * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
  * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
  * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
- * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag). */
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
 AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
                                     __m128i shift, __m256i *big)
 {
@@ -331,7 +332,7 @@ AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __
     for (k = 0; k < 2; ++k) {
         __m256i v = _mm256_add_epi64(t[k], round);
         __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
-        *big = _mm256_or_si256(*big, over);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
         t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
     }
     /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
@@ -1084,39 +1085,42 @@ static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, c
  * 2^(32-shift)) at mult: t = acc * m' + 2^31 exactly in int64 (VPMULDQ of the even rows, then
  * of the odd ones against the multipliers read 4 bytes on, whose low dwords are the odd
  * rows'), and the quotient is t's high dword (for the even rows shifted down, the odd ones'
- * already in place: one blend puts the eight in row order); then ReLU (VPMAXSD) and the clamp
- * at 32767 (VPACKSSDW saturates exactly there for values >= 0). *above collects the results
- * by OR: a bit above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
-AVX2 static inline __m256i requant8_high(__m256i acc, const unsigned char *mult, __m256i *above)
+ * already in place: one blend puts the eight in row order), returned before ReLU.
+ * *peak keeps each lane's largest value (VPMAXSD; it starts at 0, so it stays >= 0): a bit
+ * above bit 14 in some lane is a row that clamped (fbg_sat16's flag). */
+AVX2 static inline __m256i requant8_high(__m256i acc, const unsigned char *mult, __m256i *peak)
 {
     const __m256i round = _mm256_set1_epi64x((int64_t)1 << 31);
     const __m256i t0 = _mm256_add_epi64(_mm256_mul_epi32(acc, load256(mult)), round);
     const __m256i t1 = _mm256_add_epi64(_mm256_mul_epi32(_mm256_srli_epi64(acc, 32), load256(mult + 4)), round);
     const __m256i q = _mm256_blend_epi32(_mm256_srli_epi64(t0, 32), t1, 0xAA);
-    const __m256i r = _mm256_max_epi32(q, _mm256_setzero_si256());
-    *above = _mm256_or_si256(*above, r);
-    return r;
+    *peak = _mm256_max_epi32(*peak, q);
+    return q;
 }
 
-/* requant8_high's int32 results of group i into rq[i]; then, at each odd i, groups i-1 and i
- * narrowed to int16 together (VPACKSSDW of the two interleaves them by 64 bits, VPERMQ puts
- * them back in row order) and stored as one vector of 16 rows, and the pass's last group
- * alone when K is odd. The multipliers of the pass's last group are followed by its first
- * weights: the read 4 bytes on stays inside the block. */
+/* requant8_high's int32 quotients of group i into rq[i]; then, at each odd i, groups i-1 and
+ * i narrowed to int16 together (VPACKSSDW of the two interleaves them by 64 bits and
+ * saturates at 32767, the clamp; VPMAXSW with 0 is the ReLU, which commutes with that
+ * narrowing: a negative value stays negative; VPERMQ puts the rows back in order) and stored
+ * as one vector of 16 rows, and the pass's last group alone when K is odd. The multipliers
+ * of the pass's last group are followed by its first weights: the read 4 bytes on stays
+ * inside the block. */
 #define PK8_HIGH_OUT(i, K, xb_)                                                              \
     do {                                                                                     \
         rq[i] = requant8_high((__m256i)a##i, b + kb + 32u * (i), &big);                      \
         if ((i) & 1u)                                                                        \
             _mm256_storeu_si256((__m256i *)(void *)(y + 8u * (grp + (i) - 1u)),              \
-                                _mm256_permute4x64_epi64(_mm256_packs_epi32(rq[(i) - ((i) & 1u)], rq[i]), 0xD8)); \
+                                _mm256_permute4x64_epi64(_mm256_max_epi16(_mm256_packs_epi32(rq[(i) - ((i) & 1u)], rq[i]), \
+                                                                          _mm256_setzero_si256()), 0xD8)); \
         else if ((i) + 1u == (K))                                                            \
             _mm_storeu_si128((__m128i *)(void *)(y + 8u * (grp + (i))),                      \
-                             _mm_packs_epi32(_mm256_castsi256_si128(rq[i]), _mm256_extracti128_si256(rq[i], 1))); \
+                             _mm_max_epi16(_mm_packs_epi32(_mm256_castsi256_si128(rq[i]), _mm256_extracti128_si256(rq[i], 1)), \
+                                           _mm_setzero_si128()));                            \
     } while (0)
 
-/* One hidden layer; big collects the rows that clamped (any bit above bit 14 of a lane:
- * requant8 sets all of a clamped lane's bits, requant8_high leaves its value there); returns
- * the next layer's block. */
+/* One hidden layer; big collects the rows that clamped (a bit above bit 14 in a lane, which
+ * stays >= 0: requant8 sets all but the sign bit of a clamped lane, requant8_high keeps the
+ * lane's largest value there); returns the next layer's block. */
 AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_packed_avx2(const unsigned char *block, const int16_t *x,
                                                            int16_t *y, __m256i *bigp)
 {
