@@ -58,7 +58,8 @@ def _require(*tools: str) -> None:
 
 def _balance_contact(model: fm.HierarchicalModel, wl: np.ndarray) -> None:
     """Shift the contact logit so that about half of ``wl`` is contact (every net runs)."""
-    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm))
+    x = fm.features(model, wl, model.baseline_nm)
+    logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
 
 
@@ -200,6 +201,8 @@ ODD = ((13, 7, 3), (1, 9, 17), (33, 5, 2))
 WIDE = ((128, 3, 127), (31, 128, 1), (9, 16, 24))
 MEM8 = fm.Memory(ema_shifts=(3, 6), ema_gains=(2, 1), play_widths=(0.2, 0.5), play_gains=(1, 2))
 MEM5 = fm.Memory(ema_shifts=(4,), ema_gains=(1,))
+# With the location averages, which the AVX2 front end updates in vectors.
+MEMLOC = fm.Memory(ema_shifts=(3,), ema_gains=(2,), play_widths=(0.2,), play_gains=(1,), loc_shift=3)
 CASES = {
     "paper-int16": (_realistic_model, 1, PAPER, 16, MEM8),
     "odd-int16": (_realistic_model, 2, ODD, 16, MEM5),
@@ -213,6 +216,8 @@ CASES = {
     "mixed-acc-odd-int16": (_mixed_acc_model, 2, ODD, 16, MEM5),
     "dead-units-paper-int16": (_dead_units_model, 12, PAPER, 16, MEM8),
     "dead-units-odd-int8": (_dead_units_model, 13, ODD, 8, MEM5),
+    "loc-paper-int16": (_realistic_model, 14, PAPER, 16, MEMLOC),
+    "extreme-loc-paper-int16": (_extreme_model, 15, PAPER, 16, MEMLOC),
 }
 
 
@@ -244,6 +249,42 @@ def test_every_host_kernel_matches_portable_and_the_reference(case):
             assert rt.kernel == kernel and rt.packed == (packed and kernel in PACKED_KERNELS)
             got = rt.run_raw(wl_fm)
             assert got.tobytes() == portable.tobytes(), (name, kernel, packed)
+
+
+def test_location_average_clamp_alone_raises_saturated_on_every_kernel():
+    """The location averages' r = z - z0 clamps while nothing else does: z0 at +-20000 (not
+    saturated), z swinging from z0 to -0.8 z0 (never clamped), hidden layers that output 0
+    (multipliers 0), a memory of the location averages only. SATURATED then comes from that
+    clamp alone, on some steps and not on others, and every kernel, packed or not, equals the
+    integer reference (the AVX2 front end updates the averages in vectors)."""
+    import dataclasses
+
+    model = make_random_model(21, sizes=PAPER, memory=fm.Memory(loc_shift=3))
+    wl = make_random_walk(model, 600, seed=21)
+    q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
+    for net in q.nets:
+        for layer in net[:-1]:
+            layer.mult = np.zeros_like(layer.mult)
+    ratio = q.z_mult / 2.0**q.z_shift  # z per fm of filtered shift
+    z0 = 20000 * np.array([1, -1, 1, -1])
+    base = intref.nm_to_fm(np.array([1530.0, 1535.0, 1540.0, 1545.0, 1550.0]))
+    q = dataclasses.replace(q, mean_fm=np.round(-z0 / ratio).astype(np.int64), baseline_fm=base,
+                            jump_max_fm=2**31 - 1, stuck_max=0)
+    assert not q.z_rest()[1]
+    n = 1200
+    swing = np.sin(np.linspace(0.0, 3.0 * np.pi, n))[:, None] ** 2 * (-1.8 * z0 / ratio)[None, :]
+    wl_fm = np.column_stack([base[:4] + np.round(swing).astype(np.int64), np.full(n, base[4])])
+    ref = intref.run(q, wl_fm, base)
+    sat = (ref["status"][q.taps.size:] & contract.STATUS_FLAG["SATURATED"]) != 0
+    assert sat.any() and not sat.all()
+    data = blob.to_bytes(q)
+    for kernel in ["portable"] + host_kernels():
+        for packed in (False, True):
+            rt = Runtime(data, kernel=kernel, packed=packed)
+            rt.set_baseline(base.astype(np.int32))
+            got = rt.run_raw(wl_fm)
+            for k in FIELDS:
+                assert np.array_equal(np.asarray(got[k], dtype=np.int64), ref[k]), (kernel, packed, k)
 
 
 def test_front_end_clamps_on_every_kernel():

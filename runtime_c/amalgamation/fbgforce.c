@@ -3690,13 +3690,13 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
 /* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order), then in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
- * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
- * runs its loop). */
-int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
-                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
+ * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
+ * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
+ * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
+ * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
+ * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
+int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -4287,14 +4287,15 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them.
+ * loc_done: the AVX2 filter has updated the location averages already (fbg_simd_filter4). */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            uint32_t *sat)
+                            int loc_done, uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     int64_t acc = 0;
     int32_t u;
-    if (m->loc_shift) {
+    if (m->loc_shift && !loc_done) {
         /* A local flag: *sat may alias s->loc for the compiler. */
         uint32_t clamped = s->loc_z0_clamped;
         const int primed = s->mem_primed;
@@ -4388,6 +4389,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+    int loc_done = 0;
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -4430,9 +4432,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors (fbg_simd_x86.c); same values */
-    if (!fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, m, (const int32_t(*)[FBG_N_STRAIN])s->hist,
-                          s->pos, in, &load, &sat))
+#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors, and step 4's location
+                   * averages (fbg_simd_x86.c); same values */
+    loc_done = fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, s, in, loc, &load, &sat);
+    if (!loc_done)
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
@@ -4456,7 +4459,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, &sat);
+    memory_features(s, m, in, loc, loc_done, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -5146,13 +5149,13 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
 /* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order), then in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
- * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
- * runs its loop). */
-int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
-                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
+ * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
+ * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
+ * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
+ * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
+ * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
+int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -5658,13 +5661,13 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
 /* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order), then in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c], *sat = 1 where a clamp happened: the values
- * and the flag of fbg_step's loop. Returns 1, or 0 doing nothing for another kernel (the caller
- * runs its loop). */
-int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
-                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat);
+ * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
+ * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
+ * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
+ * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
+ * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
+ * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
+int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -6924,7 +6927,7 @@ AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
  * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
  * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
 AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
-                             int16_t *in, int64_t *load)
+                             int16_t *in, int64_t *load, __m128i *z)
 {
     __m256i flag = _mm256_setzero_si256(), t;
     __m128i l;
@@ -6937,7 +6940,8 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
     /* The four values' low dwords (each an int16 value) into the low half, narrowed. */
     t = _mm256_permutevar8x32_epi32(t, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6));
-    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(_mm256_castsi256_si128(t), _mm256_castsi256_si128(t)));
+    *z = _mm256_castsi256_si128(t);
+    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(*z, *z));
     t = _mm256_mul_epi32(filt, _mm256_cvtepi32_epi64(load128(m->load_coeff)));
     l = _mm_add_epi64(_mm256_castsi256_si128(t), _mm256_extracti128_si256(t, 1));
     l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
@@ -6945,13 +6949,48 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     return !_mm256_testz_si256(flag, flag);
 }
 
-int fbg_simd_filter4(uint32_t kernel, const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN],
-                     unsigned pos, int16_t *in, int64_t *load, uint32_t *sat)
+/* The location averages of memory_features (fbg_fixed.c) from z = in[0..3] as int32 lanes,
+ * the same operations lane by lane: r = sat16(z - z0) (VPMINSD/VPMAXSD; a lane that moved
+ * clamped), target = r * 2^15, the state primed at the target on the first sample, state +=
+ * rshift_round(target - state, shift) with the arithmetic shift VPSRAD (the scalar loop's
+ * bounds keep every lane's sum in int32), loc = rshift_round(state, 15), which lies within
+ * int16, so VPACKSSDW narrows it unchanged. Returns 1 where a lane clamped. The constants
+ * are loaded from memory (one instruction each, where building them takes three). */
+static const int32_t loc_consts[3][4] = {{FBG_SAT16, FBG_SAT16, FBG_SAT16, FBG_SAT16},
+                                          {-FBG_SAT16, -FBG_SAT16, -FBG_SAT16, -FBG_SAT16},
+                                          {1 << (FBG_EMA_FRAC - 1), 1 << (FBG_EMA_FRAC - 1),
+                                           1 << (FBG_EMA_FRAC - 1), 1 << (FBG_EMA_FRAC - 1)}};
+AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
+{
+    const __m128i d = _mm_sub_epi32(z, _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)s->loc_z0)));
+    const __m128i r = _mm_max_epi32(_mm_min_epi32(d, load128(loc_consts[0])), load128(loc_consts[1]));
+    const __m128i target = _mm_slli_epi32(r, FBG_EMA_FRAC);
+    __m128i e = s->mem_primed ? load128(s->loc) : target;
+    e = _mm_add_epi32(e, _mm_sra_epi32(_mm_add_epi32(_mm_sub_epi32(target, e), _mm_set1_epi32((int32_t)1 << (shift - 1u))),
+                                       _mm_cvtsi32_si128((int)shift)));
+    _mm_storeu_si128((__m128i *)(void *)s->loc, e);
+    e = _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC);
+    _mm_storel_epi64((__m128i *)(void *)loc, _mm_packs_epi32(e, e));
+    return !_mm_testc_si128(_mm_cmpeq_epi32(d, r), _mm_cmpeq_epi32(d, d));
+}
+
+/* One AVX2 call for steps 2 and 3 and, when the model has them, step 4's location averages:
+ * the flag of the filter's clamps, then memory_features' (loc_z0_clamped and the lanes'). */
+AVX2 static void front4_avx2(fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
+{
+    const fbg_model *m = s->model;
+    __m128i z;
+    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z))
+        *sat = 1u;
+    if (m->loc_shift && (loc4_avx2(s, m->loc_shift, z, loc) || s->loc_z0_clamped))
+        *sat = 1u;
+}
+
+int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
 {
     if (kernel != FBG_OPT_KERNEL_AVX2)
         return 0;
-    if (filter4_avx2(m, hist, pos, in, load))
-        *sat = 1u;
+    front4_avx2(s, in, loc, load, sat);
     return 1;
 }
 

@@ -328,14 +328,15 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them.
+ * loc_done: the AVX2 filter has updated the location averages already (fbg_simd_filter4). */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            uint32_t *sat)
+                            int loc_done, uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     int64_t acc = 0;
     int32_t u;
-    if (m->loc_shift) {
+    if (m->loc_shift && !loc_done) {
         /* A local flag: *sat may alias s->loc for the compiler. */
         uint32_t clamped = s->loc_z0_clamped;
         const int primed = s->mem_primed;
@@ -429,6 +430,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+    int loc_done = 0;
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -471,9 +473,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors (fbg_simd_x86.c); same values */
-    if (!fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, m, (const int32_t(*)[FBG_N_STRAIN])s->hist,
-                          s->pos, in, &load, &sat))
+#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors, and step 4's location
+                   * averages (fbg_simd_x86.c); same values */
+    loc_done = fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, s, in, loc, &load, &sat);
+    if (!loc_done)
 #endif
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t f = 0;
@@ -497,7 +500,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, &sat);
+    memory_features(s, m, in, loc, loc_done, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
