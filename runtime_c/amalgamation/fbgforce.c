@@ -6266,8 +6266,9 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
 /* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------- */
 
 /* A packed layer: this head, then its output rows in groups of `rows` (8 for AVX2, 4 for
- * SSE2; the rows past n_out are zeros), the groups in passes of up to PACK_PASS (eight
- * groups, then the rest: the kernel's passes over the inputs). A pass of K groups holds the K
+ * SSE2; the rows past n_out are zeros), the groups in passes of up to PACK_PASS (nine
+ * groups, then the rest: the kernel's passes over the inputs; nine, so that a layer of 70
+ * rows runs in one pass). A pass of K groups holds the K
  * groups' biases as int32 (|bias| <= INT32_MAX in an acc32 layer), then their multipliers,
  * then for each input pair p the K groups' vectors of 2 * rows int16, (w[r][2p], w[r][2p+1])
  * for the group's rows r (the odd last column's partner is 0; int8 weights are widened, the
@@ -6276,7 +6277,7 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
  * accumulator holds its rows' sums once every pair is added, with no horizontal sums, and
  * the pass reads its vectors in order. Every block is a multiple of 32 bytes long, so with the
  * buffer FBG_PACK_ALIGN-aligned every vector lies aligned. */
-#define PACK_PASS 8u
+#define PACK_PASS 9u
 typedef struct {
     int64_t round;      /* 2^(shift - 1) */
     int64_t top;        /* 32768 * 2^shift - 1, INT64_MAX when that overflows (requant8) */
@@ -6573,7 +6574,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 }
 
 /* The passes over the input pairs of a packed layer: K groups (1 <= K <= PACK_PASS) per
- * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 64 rows
+ * pass, so each broadcast pair serves K groups (all the groups of a layer of up to 72 rows
  * in one pass), two pairs per loop iteration (four where K <= 2). In a pass at b (VB bytes a vector): the biases
  * at b, the multipliers at b + K VB, the vector of group i for pair p at
  * w + (p K + i) VB with w = b + 2 K VB. PK_LISTK(M, A, B) is M(0, A, B); ...; M(K-1, A, B). */
@@ -6585,6 +6586,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 #define PK_LIST6(M, A, B) PK_LIST5(M, A, B); M(5, A, B)
 #define PK_LIST7(M, A, B) PK_LIST6(M, A, B); M(6, A, B)
 #define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
+#define PK_LIST9(M, A, B) PK_LIST8(M, A, B); M(8, A, B)
 /* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p; ACC(i) declares
  * accumulator a##i from its bias, MADD(i, w, xb) adds the products of the vector at w + i VB,
  * OUT(i, K, 0) finishes group i of the K. */
@@ -6624,7 +6626,7 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 #define PK_LAYER(T, VB, BCAST, ACC, MADD, OUT)                                               \
     do {                                                                                     \
         while (n_groups - grp >= PACK_PASS)                                                \
-            PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT);                                        \
+            PK_PASS(9, T, VB, BCAST, ACC, MADD, OUT);                                        \
         switch (n_groups - grp) {                                                          \
         case 1: PK_PASS(1, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 2: PK_PASS(2, T, VB, BCAST, ACC, MADD, OUT); break;                             \
@@ -6633,10 +6635,11 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
         case 5: PK_PASS(5, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 6: PK_PASS(6, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         case 7: PK_PASS(7, T, VB, BCAST, ACC, MADD, OUT); break;                             \
+        case 8: PK_PASS(8, T, VB, BCAST, ACC, MADD, OUT); break;                             \
         default: break;                                                                      \
         }                                                                                    \
     } while (0)
-typedef char pack_pass_is_8[PACK_PASS == 8u ? 1 : -1]; /* PK_LAYER's passes */
+typedef char pack_pass_is_9[PACK_PASS == 9u ? 1 : -1]; /* PK_LAYER's passes */
 
 /* Input pair p (x[2p] in the low half) as one int32; memcpy: x is int16 storage. */
 static inline int32_t x_pair(const int16_t *x, unsigned p)
@@ -7083,6 +7086,7 @@ typedef int fbg_simd_x86_unused;
 #undef PK_LIST6
 #undef PK_LIST7
 #undef PK_LIST8
+#undef PK_LIST9
 #undef PK_PASS
 #undef PK_LAYER
 #undef PK_BEGIN
