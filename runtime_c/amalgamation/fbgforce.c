@@ -3689,14 +3689,17 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
- * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
- * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
- * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
- * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
-int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
+/* Steps 1 to 3 of fbg_step for the four strain channels of a sample that passed the fault
+ * rule, when the kernel has them in vectors (AVX2): from the tare differences shift[0..4],
+ * the temperature compensation into the ring at s->pos and s->last_comp; the causal FIR from
+ * s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the same integers
+ * in another order); in[c] = its standardised value and *load = the load proxy's sum over c
+ * of filt_c * load_coeff[c]; and, when the model has location averages (loc_shift), step 4's
+ * update of s->loc and loc[c] from in[0..3]. *sat = 1 where a clamp happened: the values,
+ * states and flag of fbg_step's loops. Returns 1, or 0 doing nothing for another kernel (the
+ * caller runs its loops). */
+int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
+                    int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -4288,7 +4291,7 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
  * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them.
- * loc_done: the AVX2 filter has updated the location averages already (fbg_simd_filter4). */
+ * loc_done: the AVX2 front end has updated the location averages already (fbg_simd_front4). */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
                             int loc_done, uint32_t *sat)
 {
@@ -4389,7 +4392,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int loc_done = 0;
+    int front_done = 0; /* steps 1 to 3 and the location averages done in vectors */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -4407,7 +4410,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* 1. Fault rule, tare and temperature compensation (fm). */
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
-    } else {
+    } else
+#if FBG_SIMD_X86 /* AVX2: steps 1 to 3 of the four channels in vectors, and step 4's location
+                  * averages (fbg_simd_x86.c); same values and states */
+    if (!(front_done = fbg_simd_front4(s->options & FBG_OPT_KERNEL_MASK, s, shift, in, loc, &load, &sat)))
+#endif
+    {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
             comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
@@ -4416,8 +4424,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        s->hist[s->pos][c] = comp[c];
+    if (!front_done)
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
@@ -4432,12 +4441,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors, and step 4's location
-                   * averages (fbg_simd_x86.c); same values */
-    loc_done = fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, s, in, loc, &load, &sat);
-    if (!loc_done)
-#endif
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
+    for (c = 0; c < FBG_N_STRAIN && !front_done; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
@@ -4459,7 +4463,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, loc_done, &sat);
+    memory_features(s, m, in, loc, front_done, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
@@ -5148,14 +5152,17 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
- * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
- * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
- * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
- * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
-int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
+/* Steps 1 to 3 of fbg_step for the four strain channels of a sample that passed the fault
+ * rule, when the kernel has them in vectors (AVX2): from the tare differences shift[0..4],
+ * the temperature compensation into the ring at s->pos and s->last_comp; the causal FIR from
+ * s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the same integers
+ * in another order); in[c] = its standardised value and *load = the load proxy's sum over c
+ * of filt_c * load_coeff[c]; and, when the model has location averages (loc_shift), step 4's
+ * update of s->loc and loc[c] from in[0..3]. *sat = 1 where a clamp happened: the values,
+ * states and flag of fbg_step's loops. Returns 1, or 0 doing nothing for another kernel (the
+ * caller runs its loops). */
+int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
+                    int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -5358,7 +5365,8 @@ typedef int fbg_simd_neon_unused;
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
  * interleaved for it, and a whole net runs in one call. AVX2 also runs the FIR of the four
- * strain channels and their standardisation as vectors of int64 (fbg_simd_filter4).
+ * strain channels, their temperature compensation and standardisation as vectors of int64,
+ * and the location averages as one vector of int32 (fbg_simd_front4).
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -5660,14 +5668,17 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 2 and 3 of fbg_step for the four strain channels when the kernel has them in vectors
- * (AVX2): the causal FIR over s->hist from s->pos, sum_k taps[k] * hist[(pos - k) mod
- * n_taps][c] exactly in int64 (the same integers in another order), then in[c] = its
- * standardised value and *load = the load proxy's sum over c of filt_c * load_coeff[c]; and,
- * when the model has location averages (loc_shift), step 4's update of s->loc and loc[c]
- * from in[0..3]; *sat = 1 where a clamp happened: the values, states and flag of fbg_step's
- * loops. Returns 1, or 0 doing nothing for another kernel (the caller runs its loops). */
-int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat);
+/* Steps 1 to 3 of fbg_step for the four strain channels of a sample that passed the fault
+ * rule, when the kernel has them in vectors (AVX2): from the tare differences shift[0..4],
+ * the temperature compensation into the ring at s->pos and s->last_comp; the causal FIR from
+ * s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the same integers
+ * in another order); in[c] = its standardised value and *load = the load proxy's sum over c
+ * of filt_c * load_coeff[c]; and, when the model has location averages (loc_shift), step 4's
+ * update of s->loc and loc[c] from in[0..3]. *sat = 1 where a clamp happened: the values,
+ * states and flag of fbg_step's loops. Returns 1, or 0 doing nothing for another kernel (the
+ * caller runs its loops). */
+int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
+                    int64_t *load, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
@@ -6977,23 +6988,46 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
     return !_mm_testc_si128(_mm_cmpeq_epi32(d, r), _mm_cmpeq_epi32(d, d));
 }
 
-/* One AVX2 call for steps 2 and 3 and, when the model has them, step 4's location averages:
- * the flag of the filter's clamps, then memory_features' (loc_z0_clamped and the lanes'). */
-AVX2 static void front4_avx2(fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
+/* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
+ * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
+ * (VPMULDQ of shift_T, broadcast, by the sign-extended coefficients: exact in int64, |.| <
+ * 2^30 * 2^31), stored where the loop's values go: the ring at pos and last_comp. Returns 1
+ * where a lane clamped. */
+AVX2 static int comp4_avx2(fbg_state *s, const int32_t *shift)
+{
+    __m256i flag = _mm256_setzero_si256();
+    const __m256i p = _mm256_mul_epi32(_mm256_set1_epi32(shift[FBG_N_STRAIN]),
+                                       _mm256_cvtepi32_epi64(load128(s->model->temp_coeff_q24)));
+    const __m256i t = sra64(_mm256_add_epi64(p, _mm256_set1_epi64x((int64_t)1 << (FBG_TEMP_COEFF_SHIFT - 1))),
+                            _mm_cvtsi32_si128(FBG_TEMP_COEFF_SHIFT));
+    const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(load128(shift)), t), FBG_SAT32, &flag);
+    const __m128i comp = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(c, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6)));
+    _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], comp);
+    _mm_storeu_si128((__m128i *)(void *)s->last_comp, comp);
+    return !_mm256_testz_si256(flag, flag);
+}
+
+/* One AVX2 call for steps 1 (the compensation) to 3 and, when the model has them, step 4's
+ * location averages: the flags of the clamps in each, and memory_features' loc_z0_clamped. */
+AVX2 static void front4_avx2(fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc, int64_t *load,
+                             uint32_t *sat)
 {
     const fbg_model *m = s->model;
     __m128i z;
-    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z))
-        *sat = 1u;
-    if (m->loc_shift && (loc4_avx2(s, m->loc_shift, z, loc) || s->loc_z0_clamped))
+    int clamped = comp4_avx2(s, shift);
+    clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
+    if (m->loc_shift)
+        clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
+    if (clamped)
         *sat = 1u;
 }
 
-int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
+int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
+                    int64_t *load, uint32_t *sat)
 {
     if (kernel != FBG_OPT_KERNEL_AVX2)
         return 0;
-    front4_avx2(s, in, loc, load, sat);
+    front4_avx2(s, shift, in, loc, load, sat);
     return 1;
 }
 

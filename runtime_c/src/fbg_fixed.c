@@ -329,7 +329,7 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
  * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them.
- * loc_done: the AVX2 filter has updated the location averages already (fbg_simd_filter4). */
+ * loc_done: the AVX2 front end has updated the location averages already (fbg_simd_front4). */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
                             int loc_done, uint32_t *sat)
 {
@@ -430,7 +430,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int loc_done = 0;
+    int front_done = 0; /* steps 1 to 3 and the location averages done in vectors */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -448,7 +448,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     /* 1. Fault rule, tare and temperature compensation (fm). */
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
-    } else {
+    } else
+#if FBG_SIMD_X86 /* AVX2: steps 1 to 3 of the four channels in vectors, and step 4's location
+                  * averages (fbg_simd_x86.c); same values and states */
+    if (!(front_done = fbg_simd_front4(s->options & FBG_OPT_KERNEL_MASK, s, shift, in, loc, &load, &sat)))
+#endif
+    {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
             comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
@@ -457,8 +462,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        s->hist[s->pos][c] = comp[c];
+    if (!front_done)
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
         return FBG_OK;
@@ -473,12 +479,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-#if FBG_SIMD_X86 /* AVX2: steps 2 and 3 of the four channels in vectors, and step 4's location
-                   * averages (fbg_simd_x86.c); same values */
-    loc_done = fbg_simd_filter4(s->options & FBG_OPT_KERNEL_MASK, s, in, loc, &load, &sat);
-    if (!loc_done)
-#endif
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
+    for (c = 0; c < FBG_N_STRAIN && !front_done; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
@@ -500,7 +501,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, loc_done, &sat);
+    memory_features(s, m, in, loc, front_done, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);

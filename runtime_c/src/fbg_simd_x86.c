@@ -33,7 +33,8 @@
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
  * interleaved for it, and a whole net runs in one call. AVX2 also runs the FIR of the four
- * strain channels and their standardisation as vectors of int64 (fbg_simd_filter4).
+ * strain channels, their temperature compensation and standardisation as vectors of int64,
+ * and the location averages as one vector of int32 (fbg_simd_front4).
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -1345,23 +1346,46 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
     return !_mm_testc_si128(_mm_cmpeq_epi32(d, r), _mm_cmpeq_epi32(d, d));
 }
 
-/* One AVX2 call for steps 2 and 3 and, when the model has them, step 4's location averages:
- * the flag of the filter's clamps, then memory_features' (loc_z0_clamped and the lanes'). */
-AVX2 static void front4_avx2(fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
+/* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
+ * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
+ * (VPMULDQ of shift_T, broadcast, by the sign-extended coefficients: exact in int64, |.| <
+ * 2^30 * 2^31), stored where the loop's values go: the ring at pos and last_comp. Returns 1
+ * where a lane clamped. */
+AVX2 static int comp4_avx2(fbg_state *s, const int32_t *shift)
+{
+    __m256i flag = _mm256_setzero_si256();
+    const __m256i p = _mm256_mul_epi32(_mm256_set1_epi32(shift[FBG_N_STRAIN]),
+                                       _mm256_cvtepi32_epi64(load128(s->model->temp_coeff_q24)));
+    const __m256i t = sra64(_mm256_add_epi64(p, _mm256_set1_epi64x((int64_t)1 << (FBG_TEMP_COEFF_SHIFT - 1))),
+                            _mm_cvtsi32_si128(FBG_TEMP_COEFF_SHIFT));
+    const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(load128(shift)), t), FBG_SAT32, &flag);
+    const __m128i comp = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(c, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6)));
+    _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], comp);
+    _mm_storeu_si128((__m128i *)(void *)s->last_comp, comp);
+    return !_mm256_testz_si256(flag, flag);
+}
+
+/* One AVX2 call for steps 1 (the compensation) to 3 and, when the model has them, step 4's
+ * location averages: the flags of the clamps in each, and memory_features' loc_z0_clamped. */
+AVX2 static void front4_avx2(fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc, int64_t *load,
+                             uint32_t *sat)
 {
     const fbg_model *m = s->model;
     __m128i z;
-    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z))
-        *sat = 1u;
-    if (m->loc_shift && (loc4_avx2(s, m->loc_shift, z, loc) || s->loc_z0_clamped))
+    int clamped = comp4_avx2(s, shift);
+    clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
+    if (m->loc_shift)
+        clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
+    if (clamped)
         *sat = 1u;
 }
 
-int fbg_simd_filter4(uint32_t kernel, fbg_state *s, int16_t *in, int16_t *loc, int64_t *load, uint32_t *sat)
+int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
+                    int64_t *load, uint32_t *sat)
 {
     if (kernel != FBG_OPT_KERNEL_AVX2)
         return 0;
-    front4_avx2(s, in, loc, load, sat);
+    front4_avx2(s, shift, in, loc, load, sat);
     return 1;
 }
 
