@@ -323,6 +323,40 @@ def test_front_end_clamps_on_every_kernel():
             assert got.tobytes() == portable.tobytes(), (kernel, packed)
 
 
+def test_compensation_clamp_alone_raises_saturated_on_every_kernel():
+    """The temperature compensation sat32(shift - rshift_round(shift_T * coeff, 24)) clamps
+    while nothing after it does: coefficients of +-6 and +-5 (Q24) against a reference swing
+    of +-0.4e9 fm, one small tap (gain 1/16), z = filt / 2^14, no memory features and hidden
+    layers that output 0. SATURATED then comes from the compensation alone, on some steps
+    and not on others, and every kernel, packed or not, equals the integer reference (the AVX2
+    front end compensates in int64 lanes)."""
+    q, _ = _realistic_model(16, ODD, 16, fm.Memory())
+    for net in q.nets:
+        for layer in net[:-1]:
+            layer.mult = np.zeros_like(layer.mult)
+    q.taps = np.array([1 << 11], dtype=np.int64)
+    q.tap_q = 15
+    q.mean_fm = np.zeros(4, dtype=np.int64)
+    q.z_mult = np.ones(4, dtype=np.int64)
+    q.z_shift = 14
+    q.temp_coeff_q24 = np.array([6 << 24, -(6 << 24), 5 << 24, -(5 << 24)], dtype=np.int64)
+    q.jump_max_fm = 2**31 - 1
+    base = np.asarray(q.baseline_fm, dtype=np.int64)
+    n = 1200
+    swing = np.round(4e8 * np.sin(np.linspace(0.0, 6.0 * np.pi, n))).astype(np.int64)
+    walk = np.cumsum(np.random.default_rng(16).integers(-200_000, 200_001, (n, 4)), axis=0)
+    wl_fm = np.column_stack([base[:4] + walk, base[4] + swing])
+    ref = intref.run(q, wl_fm, None)
+    sat = (ref["status"] & contract.STATUS_FLAG["SATURATED"]) != 0
+    assert sat.any() and not sat.all()
+    data = blob.to_bytes(q)
+    for kernel in ["portable"] + host_kernels():
+        for packed in (False, True):
+            got = Runtime(data, kernel=kernel, packed=packed).run_raw(wl_fm)
+            for k in FIELDS:
+                assert np.array_equal(np.asarray(got[k], dtype=np.int64), ref[k]), (kernel, packed, k)
+
+
 def test_packed_form_leaves_out_unused_units():
     """The dead units of :func:`_dead_units_model` are left out of the packed form (smaller
     than the same shapes without them), except the one that clamps, whose flag the stream
