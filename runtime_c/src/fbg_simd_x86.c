@@ -956,7 +956,8 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
 #define PK_LIST7(M, A, B) PK_LIST6(M, A, B); M(6, A, B)
 #define PK_LIST8(M, A, B) PK_LIST7(M, A, B); M(7, A, B)
 #define PK_LIST9(M, A, B) PK_LIST8(M, A, B); M(8, A, B)
-/* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p; ACC(i) declares
+/* One pass of K groups: T the vector type, BCAST(p) the broadcast pair p (BCAST##_LAST the
+ * odd last column with a zero partner); ACC(i) declares
  * accumulator a##i from its bias, MADD(i, w, xb) adds the products of the vector at w + i VB,
  * OUT(i, K, 0) finishes group i of the K. */
 #define PK_PASS(K, T, VB, BCAST, ACC, MADD, OUT)                                             \
@@ -983,7 +984,8 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf)
             PK_LIST##K(MADD, w, xb);                                                         \
             w += kb;                                                                         \
         }                                                                                    \
-        if (full != pairs) { /* the odd last column, paired with 0 */                        \
+        if (n_in & 1u) { /* the odd last column, paired with 0 */                            \
+            const T xlast = BCAST##_LAST;                                                    \
             PK_LIST##K(MADD, w, xlast);                                                      \
             w += kb;                                                                         \
         }                                                                                    \
@@ -1018,17 +1020,17 @@ static inline int32_t x_pair(const int16_t *x, unsigned p)
     return v;
 }
 
-/* The common start of a packed kernel: the head, the pair counts, the odd last column with a
- * zero partner. */
+/* The common start of a packed kernel: the head's counts and the whole input pairs (a pass
+ * broadcasts an odd last column, with a zero partner, only where there is one). */
 #define PK_BEGIN                                                                             \
     const unsigned char *b = block + sizeof(packed_head);                                    \
     const unsigned n_in = HEAD_U16(block, n_in), n_groups = HEAD_U16(block, n_groups);       \
-    const unsigned pairs = (n_in + 1u) / 2u, full = n_in / 2u;                               \
-    const int32_t last = (n_in & 1u) ? (int32_t)(uint16_t)x[n_in - 1u] : 0;                  \
+    const unsigned full = n_in / 2u;                                                         \
     unsigned grp = 0u, p
 
 /* SSE2: groups of four rows, 16-byte vectors; the sums requantised by the scalar rule. */
 #define PK4_BCAST(p) _mm_set1_epi32(x_pair(x, p))
+#define PK4_BCAST_LAST _mm_set1_epi32((int32_t)(uint16_t)x[n_in - 1u])
 #define PK4_ACC(i, p_, xb_) lanes32x4 a##i = (lanes32x4)load128(b + 16u * (i))
 #define PK4_MADD(i, w, xb) a##i += (lanes32x4)_mm_madd_epi16(load128((w) + 16u * (i)), xb)
 #define PK4_ACC_OUT(i, p_, xb_) _mm_storeu_si128((__m128i *)(void *)(acc + 4u * (grp + (i))), (__m128i)a##i)
@@ -1050,7 +1052,6 @@ static inline const unsigned char *hidden_packed_sse2(const unsigned char *block
 {
     PK_BEGIN;
     const unsigned shift = HEAD_U32(block, shift);
-    const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_HIDDEN_OUT);
     return b;
 }
@@ -1059,7 +1060,6 @@ static inline const unsigned char *hidden_packed_sse2(const unsigned char *block
 static inline unsigned acc32_packed_sse2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
-    const __m128i xlast = _mm_set1_epi32(last);
     PK_LAYER(__m128i, 16u, PK4_BCAST, PK4_ACC, PK4_MADD, PK4_ACC_OUT);
     return HEAD_U16(block, n_out);
 }
@@ -1078,6 +1078,7 @@ static unsigned net_packed_sse2(const unsigned char *block, unsigned n_layers, c
 
 /* AVX2: groups of eight rows, 32-byte vectors; eight rows requantised at once (requant8). */
 #define PK8_BCAST(p) _mm256_set1_epi32(x_pair(x, p))
+#define PK8_BCAST_LAST _mm256_set1_epi32((int32_t)(uint16_t)x[n_in - 1u])
 #define PK8_ACC(i, p_, xb_) lanes32 a##i = (lanes32)load256(b + 32u * (i))
 #define PK8_MADD(i, w, xb) a##i += (lanes32)_mm256_madd_epi16(load256((w) + 32u * (i)), xb)
 #define PK8_ACC_OUT(i, p_, xb_) _mm256_storeu_si256((__m256i *)(void *)(acc + 8u * (grp + (i))), (__m256i)a##i)
@@ -1129,7 +1130,6 @@ AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_pa
                                                            int16_t *y, __m256i *bigp)
 {
     PK_BEGIN;
-    const __m256i xlast = _mm256_set1_epi32(last);
     __m256i big = *bigp;
     if (HEAD_U16(block, high_word)) {
         __m256i rq[PACK_PASS];
@@ -1148,7 +1148,6 @@ AVX2 __attribute__((always_inline)) static inline const unsigned char *hidden_pa
 AVX2 __attribute__((always_inline)) static inline void acc32_packed_avx2(const unsigned char *block, const int16_t *x, int32_t *acc)
 {
     PK_BEGIN;
-    const __m256i xlast = _mm256_set1_epi32(last);
     PK_LAYER(__m256i, 32u, PK8_BCAST, PK8_ACC, PK8_MADD, PK8_ACC_OUT);
 }
 
