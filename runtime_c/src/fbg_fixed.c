@@ -420,6 +420,16 @@ static void safe_output(fbg_output *out, uint32_t status)
 #define NET_ACCS(n) NET_LAYERS(n)
 #endif
 
+/* What fbg_simd_front did with a sample: nothing (0: the loops below run), everything up to
+ * the location averages, or the fault rule on a faulty one. */
+#if FBG_SIMD_X86
+#define FRONT_DONE FBG_SIMD_FRONT_DONE
+#define FRONT_FAULT FBG_SIMD_FRONT_FAULT
+#else
+#define FRONT_DONE 1
+#define FRONT_FAULT 2
+#endif
+
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
@@ -430,7 +440,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front_done = 0; /* steps 1 to 3 and the location averages done in vectors */
+    int front = 0; /* FRONT_DONE: steps 1 to 3 and the location averages done in vectors */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -446,14 +456,16 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     m = s->model;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
-        memcpy(comp, s->last_comp, sizeof comp);
-    } else
-#if FBG_SIMD_X86 /* AVX2: steps 1 to 3 of the four channels in vectors, and step 4's location
-                  * averages (fbg_simd_x86.c); same values and states */
-    if (!(front_done = fbg_simd_front4(s->options & FBG_OPT_KERNEL_MASK, s, shift, in, loc, &load, &sat)))
+#if FBG_SIMD_X86 /* AVX2: steps 1 to 3 in vectors, and step 4's location averages
+                  * (fbg_simd_x86.c); same values and states */
+    front = fbg_simd_front(s->options & FBG_OPT_KERNEL_MASK, s, wl_fm, in, loc, &load, &sat);
+    if (front == FBG_SIMD_FRONT_FAULT)
+        status |= FBG_STATUS_SENSOR_FAULT;
 #endif
-    {
+    if (front != 0 ? front == FRONT_FAULT
+                   : fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
+        memcpy(comp, s->last_comp, sizeof comp);
+    } else if (front == 0) {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
             comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
@@ -462,7 +474,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    if (!front_done)
+    if (front != FRONT_DONE)
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
@@ -479,7 +491,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-    for (c = 0; c < FBG_N_STRAIN && !front_done; ++c) {
+    for (c = 0; c < FBG_N_STRAIN && front != FRONT_DONE; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
@@ -501,7 +513,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, front_done, &sat);
+    memory_features(s, m, in, loc, front == FRONT_DONE, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);

@@ -1345,47 +1345,102 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
     return !_mm_testc_si128(_mm_cmpeq_epi32(d, r), _mm_cmpeq_epi32(d, d));
 }
 
+/* Step 1's fault rule (fbg_fault_check of fbg_internal.h) for the five channels in lanes 0-4
+ * of int32 (lanes 5-7 read and write nothing: masked loads and stores), the same tests lane
+ * by lane: a lane out of the window [FBG_WL_MIN_FM, FBG_WL_MAX_FM] is faulty and its run
+ * restarts, prev and its valid bit unchanged; an in-window lane whose prev holds a sample is
+ * faulty past jump_max_fm either way (the difference is exact in int32: both in the window)
+ * and counts a repeat of the identical value (saturating at 0xFFFF, VPMINUD), faulty at
+ * stuck_max repeats when that is not 0; an in-window lane becomes prev, valid. Returns 1 for
+ * a faulty sample; *w = the sample's lanes. */
+static const int32_t lanes5[8] = {-1, -1, -1, -1, -1, 0, 0, 0};
+static const int32_t lane_bits[8] = {1, 2, 4, 8, 16, 32, 64, 128};
+AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
+{
+    const fbg_model *m = s->model;
+    const __m256i zero = _mm256_setzero_si256(), m5 = load256(lanes5), bits = load256(lane_bits);
+    const __m256i jmax = _mm256_set1_epi32(m->jump_max_fm);
+    const unsigned valid = s->prev_valid;
+    uint16_t run16[8] = {0};
+    __m256i out, in_window, active, d, jump, n, faulty;
+    __m128i packed;
+    *w = _mm256_maskload_epi32(wl, m5);
+    out = _mm256_and_si256(m5, _mm256_or_si256(_mm256_cmpgt_epi32(_mm256_set1_epi32(FBG_WL_MIN_FM), *w),
+                                                _mm256_cmpgt_epi32(*w, _mm256_set1_epi32(FBG_WL_MAX_FM))));
+    in_window = _mm256_andnot_si256(out, m5);
+    active = _mm256_and_si256(in_window, _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32((int)valid), bits), bits));
+    d = _mm256_sub_epi32(*w, _mm256_maskload_epi32(s->prev_fm, m5));
+    jump = _mm256_or_si256(_mm256_cmpgt_epi32(d, jmax), _mm256_cmpgt_epi32(_mm256_sub_epi32(zero, jmax), d));
+    memcpy(run16, s->same_run, sizeof s->same_run);
+    n = _mm256_add_epi32(_mm256_cvtepu16_epi32(load128(run16)), _mm256_srli_epi32(m5, 31));
+    n = _mm256_and_si256(_mm256_and_si256(active, _mm256_cmpeq_epi32(d, zero)),
+                         _mm256_min_epu32(n, _mm256_set1_epi32(0xFFFF)));
+    faulty = _mm256_or_si256(out, _mm256_and_si256(jump, active));
+    if (m->stuck_max != 0u)
+        faulty = _mm256_or_si256(faulty, _mm256_cmpgt_epi32(n, _mm256_set1_epi32((int)m->stuck_max - 1)));
+    packed = _mm_packus_epi32(_mm256_castsi256_si128(n), _mm256_extracti128_si256(n, 1));
+    _mm_storeu_si128((__m128i *)(void *)run16, packed);
+    memcpy(s->same_run, run16, sizeof s->same_run);
+    _mm256_maskstore_epi32(s->prev_fm, in_window, *w);
+    if (valid != 0x1Fu) { /* until every channel has had an in-window sample */
+        int32_t lanes[8];
+        unsigned c, v = valid;
+        _mm256_storeu_si256((__m256i *)(void *)lanes, in_window);
+        for (c = 0; c < FBG_N_CHANNELS; ++c)
+            if (lanes[c])
+                v |= 1u << c;
+        s->prev_valid = (uint8_t)v;
+    }
+    return !_mm256_testz_si256(faulty, faulty);
+}
+
 /* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
  * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
- * (VPMULDQ of shift_T, broadcast, by the sign-extended coefficients: exact in int64, |.| <
- * 2^30 * 2^31), stored where the loop's values go: the ring at pos and last_comp. Returns 1
- * where a lane clamped. */
-AVX2 static int comp4_avx2(fbg_state *s, const int32_t *shift)
+ * (VPMULDQ of shift_T, lane 4 of shift broadcast, by the sign-extended coefficients: exact in
+ * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos and
+ * last_comp. Returns 1 where a lane clamped. */
+AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
 {
     __m256i flag = _mm256_setzero_si256();
-    const __m256i p = _mm256_mul_epi32(_mm256_set1_epi32(shift[FBG_N_STRAIN]),
+    const __m256i p = _mm256_mul_epi32(_mm256_permutevar8x32_epi32(shift, _mm256_set1_epi32(FBG_N_STRAIN)),
                                        _mm256_cvtepi32_epi64(load128(s->model->temp_coeff_q24)));
     const __m256i t = sra64(_mm256_add_epi64(p, _mm256_set1_epi64x((int64_t)1 << (FBG_TEMP_COEFF_SHIFT - 1))),
                             _mm_cvtsi32_si128(FBG_TEMP_COEFF_SHIFT));
-    const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(load128(shift)), t), FBG_SAT32, &flag);
+    const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(_mm256_castsi256_si128(shift)), t), FBG_SAT32, &flag);
     const __m128i comp = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(c, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6)));
     _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], comp);
     _mm_storeu_si128((__m128i *)(void *)s->last_comp, comp);
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* One AVX2 call for steps 1 (the compensation) to 3 and, when the model has them, step 4's
- * location averages: the flags of the clamps in each, and memory_features' loc_z0_clamped. */
-AVX2 static void front4_avx2(fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc, int64_t *load,
-                             uint32_t *sat)
+/* One AVX2 call for steps 1 to 3 and, when the model has them, step 4's location averages:
+ * the fault rule; for a clean sample the tare difference (within +-1e9 for in-window values:
+ * fbg_front_sample), the compensation, the filter and standardisation, the averages, and the
+ * flags of the clamps in each and memory_features' loc_z0_clamped. */
+AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t *loc, int64_t *load,
+                           uint32_t *sat)
 {
     const fbg_model *m = s->model;
+    __m256i w;
     __m128i z;
-    int clamped = comp4_avx2(s, shift);
+    int clamped;
+    if (fault5_avx2(s, wl, &w))
+        return FBG_SIMD_FRONT_FAULT;
+    clamped = comp4_avx2(s, _mm256_sub_epi32(w, _mm256_maskload_epi32(s->baseline_fm, load256(lanes5))));
     clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
     if (clamped)
         *sat = 1u;
+    return FBG_SIMD_FRONT_DONE;
 }
 
-int fbg_simd_front4(uint32_t kernel, fbg_state *s, const int32_t *shift, int16_t *in, int16_t *loc,
-                    int64_t *load, uint32_t *sat)
+int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
+                   int64_t *load, uint32_t *sat)
 {
     if (kernel != FBG_OPT_KERNEL_AVX2)
         return 0;
-    front4_avx2(s, shift, in, loc, load, sat);
-    return 1;
+    return front_avx2(s, wl_fm, in, loc, load, sat);
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)
