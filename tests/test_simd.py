@@ -357,6 +357,40 @@ def test_compensation_clamp_alone_raises_saturated_on_every_kernel():
                 assert np.array_equal(np.asarray(got[k], dtype=np.int64), ref[k]), (kernel, packed, k)
 
 
+STATE_FIELDS = ("prev_fm", "same_run", "prev_valid", "hist", "last_comp", "pos", "since_reset",
+                "ema", "play", "loc", "mem_primed")
+
+
+def test_load_signal_clamp_alone_raises_saturated_and_states_match_on_every_kernel():
+    """The load signal u = sat16(rshift_round(sum z_c * mem_mult_c, mem_shift)) clamps while
+    nothing else does: a mem_shift 3 below the exporter's (8 times the gain), one play operator of gain 0 (its
+    feature |u - state| <= its width), no location averages, hidden layers that output 0.
+    SATURATED then comes from u alone, on some steps and not on others; every kernel, packed
+    or not, equals the integer reference, and its state after the stream equals the portable
+    C's field by field (the AVX2 front end stores only the n_ema / n_play states it has)."""
+    q, wl_fm = _realistic_model(17, ODD, 16, fm.Memory(play_widths=(0.2,), play_gains=(0,)))
+    for net in q.nets:
+        for layer in net[:-1]:
+            layer.mult = np.zeros_like(layer.mult)
+    q.mem_shift -= 3
+    ref = intref.run(q, wl_fm, None)
+    sat = (ref["status"][q.taps.size:] & contract.STATUS_FLAG["SATURATED"]) != 0
+    assert sat.any() and not sat.all()
+    data = blob.to_bytes(q)
+    portable = Runtime(data, kernel="portable")
+    portable.run_raw(wl_fm)
+    for kernel in host_kernels():
+        for packed in (False, True):
+            rt = Runtime(data, kernel=kernel, packed=packed)
+            got = rt.run_raw(wl_fm)
+            for k in FIELDS:
+                assert np.array_equal(np.asarray(got[k], dtype=np.int64), ref[k]), (kernel, packed, k)
+            for f in STATE_FIELDS:
+                a, b = getattr(rt._state, f), getattr(portable._state, f)
+                assert bytes(ffi.buffer(ffi.addressof(rt._state, f))) == \
+                    bytes(ffi.buffer(ffi.addressof(portable._state, f))), (kernel, packed, f, a, b)
+
+
 def test_packed_form_leaves_out_unused_units():
     """The dead units of :func:`_dead_units_model` are left out of the packed form (smaller
     than the same shapes without them), except the one that clamps, whose flag the stream

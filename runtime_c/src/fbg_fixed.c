@@ -328,15 +328,14 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
  * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them.
- * loc_done: the AVX2 front end has updated the location averages already (fbg_simd_front4). */
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            int loc_done, uint32_t *sat)
+                            uint32_t *sat)
 {
     unsigned c, k, j = FBG_N_STRAIN;
     int64_t acc = 0;
     int32_t u;
-    if (m->loc_shift && !loc_done) {
+    if (m->loc_shift) {
         /* A local flag: *sat may alias s->loc for the compiler. */
         uint32_t clamped = s->loc_z0_clamped;
         const int primed = s->mem_primed;
@@ -420,8 +419,8 @@ static void safe_output(fbg_output *out, uint32_t status)
 #define NET_ACCS(n) NET_LAYERS(n)
 #endif
 
-/* What fbg_simd_front did with a sample: nothing (0: the loops below run), everything up to
- * the location averages, or the fault rule on a faulty one. */
+/* What fbg_simd_front did with a sample: nothing (0: the loops below run), steps 1 to 4
+ * (FRONT_DONE), or the fault rule on a faulty one (FRONT_FAULT). */
 #if FBG_SIMD_X86
 #define FRONT_DONE FBG_SIMD_FRONT_DONE
 #define FRONT_FAULT FBG_SIMD_FRONT_FAULT
@@ -440,7 +439,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front = 0; /* FRONT_DONE: steps 1 to 3 and the location averages done in vectors */
+    int front = 0; /* FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -456,8 +455,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     m = s->model;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
-#if FBG_SIMD_X86 /* AVX2: steps 1 to 3 in vectors, and step 4's location averages
-                  * (fbg_simd_x86.c); same values and states */
+#if FBG_SIMD_X86 /* AVX2: steps 1 to 4 in vectors (fbg_simd_x86.c); same values and states */
     front = fbg_simd_front(s->options & FBG_OPT_KERNEL_MASK, s, wl_fm, in, loc, &load, &sat);
     if (front == FBG_SIMD_FRONT_FAULT)
         status |= FBG_STATUS_SENSOR_FAULT;
@@ -513,7 +511,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    memory_features(s, m, in, loc, front == FRONT_DONE, &sat);
+    if (front != FRONT_DONE)
+        memory_features(s, m, in, loc, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);

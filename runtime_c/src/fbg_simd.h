@@ -90,16 +90,17 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 1 to 3 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
+/* Steps 1 to 4 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
  * wl_fm (its states in s updated as fbg_fault_check updates them): FBG_SIMD_FRONT_FAULT for a
  * faulty sample, nothing else done. For a clean one, FBG_SIMD_FRONT_DONE: the tare
  * difference and the temperature compensation into the ring at s->pos and s->last_comp; the
  * causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
  * same integers in another order); in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c]; and, when the model has location averages
- * (loc_shift), step 4's update of s->loc and loc[c] from in[0..3]. *sat = 1 where a clamp
- * happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing, for
- * another kernel (the caller runs its loops). */
+ * proxy's sum over c of filt_c * load_coeff[c]; and step 4 (memory_features of
+ * fbg_fixed.c): the location averages (s->loc, loc[c]) when the model has them, the load
+ * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
+ * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
+ * for another kernel (the caller runs its loops). */
 #define FBG_SIMD_FRONT_DONE 1
 #define FBG_SIMD_FRONT_FAULT 2
 int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,

@@ -32,9 +32,11 @@
  *
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
- * interleaved for it, and a whole net runs in one call. AVX2 also runs the FIR of the four
- * strain channels, their temperature compensation and standardisation as vectors of int64,
- * and the location averages as one vector of int32 (fbg_simd_front4).
+ * interleaved for it, and a whole net runs in one call. AVX2 also runs the front end of a
+ * step in one call (fbg_simd_front): the fault rule of the five channels in one vector of
+ * int32, the temperature compensation, FIR and standardisation of the four strain channels
+ * as vectors of int64, the location averages and the load signal's memory states in vectors
+ * of int32.
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -1413,10 +1415,70 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* One AVX2 call for steps 1 to 3 and, when the model has them, step 4's location averages:
- * the fault rule; for a clean sample the tare difference (within +-1e9 for in-window values:
- * fbg_front_sample), the compensation, the filter and standardisation, the averages, and the
- * flags of the clamps in each and memory_features' loc_z0_clamped. */
+/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes),
+ * the same operations: u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ:
+ * exact int64 products, their sum < 2^48, then the scalar rule), the states primed on the
+ * first sample, then the exponential averages in the lanes of one vector, e += (target - e +
+ * 2^(shift-1)) >> shift (VPSRAVD: each lane its own shift), feature = sat16((u -
+ * rshift_round(e, 15)) << gain) (VPSLLVD), and the play operators in another, p = clamp(p, u -
+ * width, u + width), feature = sat16((u - p) << gain): the scalar loop's bounds hold in every
+ * lane. The states of lanes k >= n_ema (n_play) stay as they are (masked stores); the
+ * features go to in[4 ..] (the averages) and in[4 + n_ema ..] (the play operators), whole
+ * vectors of four, the entries past the last feature being ones no net reads. Returns 1 where
+ * a clamp happened. */
+static const int32_t lane_index4[4] = {0, 1, 2, 3};
+AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
+{
+    const fbg_model *m = s->model;
+    const __m128i idx = load128(lane_index4), lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
+    const __m128i me = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_ema), idx), mp = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_play), idx);
+    const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
+    __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
+    uint32_t clamped = 0u;
+    int32_t word;
+    __m128i u, target, e, p, fe, fp, shift, flag;
+    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
+    u = _mm_set1_epi32(fbg_sat16_rshift_round(_mm_cvtsi128_si64(l), m->mem_shift, &clamped));
+    target = _mm_slli_epi32(u, FBG_EMA_FRAC);
+    if (s->mem_primed) {
+        e = load128(s->ema);
+        p = load128(s->play);
+    } else {
+        e = target;
+        p = _mm_add_epi32(u, _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width)));
+    }
+    memcpy(&word, m->ema_shift, sizeof word);
+    shift = _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word));
+    e = _mm_add_epi32(e, _mm_srav_epi32(_mm_add_epi32(_mm_sub_epi32(target, e),
+                                                      _mm_srli_epi32(_mm_sllv_epi32(_mm_set1_epi32(1), shift), 1)),
+                                       shift));
+    _mm_maskstore_epi32(s->ema, me, e);
+    memcpy(&word, m->ema_gain, sizeof word);
+    fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
+                        _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
+    {
+        const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
+        p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
+    }
+    _mm_maskstore_epi32(s->play, mp, p);
+    memcpy(&word, m->play_gain, sizeof word);
+    fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
+    flag = _mm_or_si128(_mm_and_si128(me, _mm_or_si128(_mm_cmpgt_epi32(fe, lim), _mm_cmpgt_epi32(nlim, fe))),
+                        _mm_and_si128(mp, _mm_or_si128(_mm_cmpgt_epi32(fp, lim), _mm_cmpgt_epi32(nlim, fp))));
+    fe = _mm_max_epi32(_mm_min_epi32(fe, lim), nlim);
+    fp = _mm_max_epi32(_mm_min_epi32(fp, lim), nlim);
+    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN), _mm_packs_epi32(fe, fe));
+    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN + m->n_ema), _mm_packs_epi32(fp, fp));
+    return clamped || !_mm_testz_si128(flag, flag);
+}
+
+typedef char memory4_stores_inside_in[FBG_N_STRAIN + FBG_MAX_EMA + 4 <= FBG_MAX_INPUTS ? 1 : -1];
+typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
+
+/* One AVX2 call for steps 1 to 4: the fault rule; for a clean sample the tare difference
+ * (within +-1e9 for in-window values: fbg_front_sample), the compensation, the filter and
+ * standardisation, the memory features (location averages, then the load signal's), and
+ * the flags of the clamps in each and memory_features' loc_z0_clamped. */
 AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t *loc, int64_t *load,
                            uint32_t *sat)
 {
@@ -1430,6 +1492,9 @@ AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t
     clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
+    if (m->n_ema != 0u || m->n_play != 0u)
+        clamped |= memory4_avx2(s, z, in);
+    s->mem_primed = 1u;
     if (clamped)
         *sat = 1u;
     return FBG_SIMD_FRONT_DONE;
