@@ -285,9 +285,11 @@ def choose_shift(ratios: Sequence[float], limits: Sequence[int] | int = 2**MULT_
     if not np.all(np.isfinite(r)):
         raise ValueError("non-finite scale ratio")
     for s in range(max_shift, 0, -1):
-        m = np.array([int(round(float(v) * 2.0**s)) for v in r], dtype=np.int64)
-        if np.all(np.abs(m) <= lim):
-            return s, m
+        # Compared as Python ints before the int64 array: at large shifts a ratio above 2
+        # would not fit int64 at all.
+        m = [int(round(float(v) * 2.0**s)) for v in r]
+        if all(abs(v) <= limit for v, limit in zip(m, lim)):
+            return s, np.array(m, dtype=np.int64)
     raise ValueError(f"scale ratio too large to represent: max {np.abs(r).max():g}")
 
 

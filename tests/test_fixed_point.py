@@ -348,6 +348,11 @@ def test_choose_shift_precision():
     rel = np.abs(m / 2.0**s - np.array([0.1234567, -3.5e-4, 1.0])) / np.array([0.1234567, 3.5e-4, 1.0])
     assert rel.max() < 2**-17
     assert math.isclose(m[2] / 2.0**s, 1.0)
+    # Ratios above 2 overflow int64 at the largest shifts (a noise-free recording gives load
+    # signal weights of about 3): the shift is chosen without the overflow.
+    s, m = qz.choose_shift([2.49, -3.02])
+    assert s == qz.MULT_BITS - 2 and m.dtype == np.int64
+    assert np.abs(m / 2.0**s - np.array([2.49, -3.02])).max() < 2.0**-s
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
