@@ -1354,8 +1354,21 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
  * faulty past jump_max_fm either way (the difference is exact in int32: both in the window)
  * and counts a repeat of the identical value (saturating at 0xFFFF, VPMINUD), faulty at
  * stuck_max repeats when that is not 0; an in-window lane becomes prev, valid. Returns 1 for
- * a faulty sample; *w = the sample's lanes. */
+ * a faulty sample; *w = the sample's lanes (lanes 5-7: 0, never stored). */
 static const int32_t lanes5[8] = {-1, -1, -1, -1, -1, 0, 0, 0};
+/* Five int32 into lanes 0-4 (the rest 0), and lanes 0-4 back: plain loads and stores, not
+ * VPMASKMOVD (its store is microcoded and slow on AMD cores). */
+AVX2 static inline __m256i load5(const int32_t *p)
+{
+    return _mm256_inserti128_si256(_mm256_castsi128_si256(load128(p)), _mm_cvtsi32_si128(p[4]), 1);
+}
+
+AVX2 static inline void store5(int32_t *p, __m256i v)
+{
+    _mm_storeu_si128((__m128i *)(void *)p, _mm256_castsi256_si128(v));
+    p[4] = _mm_cvtsi128_si32(_mm256_extracti128_si256(v, 1));
+}
+
 static const int32_t lane_bits[8] = {1, 2, 4, 8, 16, 32, 64, 128};
 AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
 {
@@ -1366,12 +1379,13 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
     uint16_t run16[8] = {0};
     __m256i out, in_window, active, d, jump, n, faulty;
     __m128i packed;
-    *w = _mm256_maskload_epi32(wl, m5);
+    const __m256i prev = load5(s->prev_fm);
+    *w = load5(wl);
     out = _mm256_and_si256(m5, _mm256_or_si256(_mm256_cmpgt_epi32(_mm256_set1_epi32(FBG_WL_MIN_FM), *w),
                                                 _mm256_cmpgt_epi32(*w, _mm256_set1_epi32(FBG_WL_MAX_FM))));
     in_window = _mm256_andnot_si256(out, m5);
     active = _mm256_and_si256(in_window, _mm256_cmpeq_epi32(_mm256_and_si256(_mm256_set1_epi32((int)valid), bits), bits));
-    d = _mm256_sub_epi32(*w, _mm256_maskload_epi32(s->prev_fm, m5));
+    d = _mm256_sub_epi32(*w, prev);
     jump = _mm256_or_si256(_mm256_cmpgt_epi32(d, jmax), _mm256_cmpgt_epi32(_mm256_sub_epi32(zero, jmax), d));
     memcpy(run16, s->same_run, sizeof s->same_run);
     n = _mm256_add_epi32(_mm256_cvtepu16_epi32(load128(run16)), _mm256_srli_epi32(m5, 31));
@@ -1383,7 +1397,7 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
     packed = _mm_packus_epi32(_mm256_castsi256_si128(n), _mm256_extracti128_si256(n, 1));
     _mm_storeu_si128((__m128i *)(void *)run16, packed);
     memcpy(s->same_run, run16, sizeof s->same_run);
-    _mm256_maskstore_epi32(s->prev_fm, in_window, *w);
+    store5(s->prev_fm, _mm256_blendv_epi8(prev, *w, in_window));
     if (valid != 0x1Fu) { /* until every channel has had an in-window sample */
         int32_t lanes[8];
         unsigned c, v = valid;
@@ -1422,7 +1436,7 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
  * 2^(shift-1)) >> shift (VPSRAVD: each lane its own shift), feature = sat16((u -
  * rshift_round(e, 15)) << gain) (VPSLLVD), and the play operators in another, p = clamp(p, u -
  * width, u + width), feature = sat16((u - p) << gain): the scalar loop's bounds hold in every
- * lane. The states of lanes k >= n_ema (n_play) stay as they are (masked stores); the
+ * lane. The states of lanes k >= n_ema (n_play) stay as they are (blended back); the
  * features go to in[4 ..] (the averages) and in[4 + n_ema ..] (the play operators), whole
  * vectors of four, the entries past the last feature being ones no net reads. Returns 1 where
  * a clamp happened. */
@@ -1452,7 +1466,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
     e = _mm_add_epi32(e, _mm_srav_epi32(_mm_add_epi32(_mm_sub_epi32(target, e),
                                                       _mm_srli_epi32(_mm_sllv_epi32(_mm_set1_epi32(1), shift), 1)),
                                        shift));
-    _mm_maskstore_epi32(s->ema, me, e);
+    _mm_storeu_si128((__m128i *)(void *)s->ema, _mm_blendv_epi8(load128(s->ema), e, me));
     memcpy(&word, m->ema_gain, sizeof word);
     fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
                         _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
@@ -1460,7 +1474,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
         const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
         p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
     }
-    _mm_maskstore_epi32(s->play, mp, p);
+    _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, mp));
     memcpy(&word, m->play_gain, sizeof word);
     fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
     flag = _mm_or_si128(_mm_and_si128(me, _mm_or_si128(_mm_cmpgt_epi32(fe, lim), _mm_cmpgt_epi32(nlim, fe))),
@@ -1488,7 +1502,7 @@ AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t
     int clamped;
     if (fault5_avx2(s, wl, &w))
         return FBG_SIMD_FRONT_FAULT;
-    clamped = comp4_avx2(s, _mm256_sub_epi32(w, _mm256_maskload_epi32(s->baseline_fm, load256(lanes5))));
+    clamped = comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm)));
     clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
