@@ -57,6 +57,9 @@ PRODUCT_LIMIT = 2**62
 #: Default of ``quantize(acc32_max_drop=)``: bits of weight resolution a layer may give up
 #: for an int32 accumulator (docs/fixed-point.md, "int32 layers").
 ACC32_MAX_DROP = 6.0
+#: Largest change, in output integer units, that the weights of a row may make for any int16
+#: input for the row to be quantised as zeros when it alone would need an int64 accumulator.
+FAINT_ROW_LSB = 0.25
 #: |load_coeff| limit (four int32 x int32 products must sum inside int64 with margin).
 LOAD_COEFF_LIMIT = contract.LIMIT["LOAD_COEFF_LIMIT"]
 #: |bias| limit of fbg_model_check, so that the accumulator bound cannot overflow int64 itself.
@@ -467,8 +470,25 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
             acc32 = True
         else:
             scale32 = _acc32_scale(w, b, in_scale, w_scale, relu_inputs)
+            row_drop = np.log2(scale32 / w_scale)
+            # A row that would cost more weight bits than allowed, but whose weights can move
+            # its output by at most FAINT_ROW_LSB output units for any int16 input, is
+            # quantised as a row of zeros (its bias stays) rather than taking the whole
+            # layer to int64: weight decay leaves such units small but not switched off. The
+            # change is within error_bounds, which compares with the float weights.
+            reach = (np.abs(w).sum(axis=1) * SAT16 * in_scale
+                     * np.abs(np.broadcast_to(out_ratio, row_drop.shape)))
+            faint = (row_drop > acc32_max_drop) & (reach <= FAINT_ROW_LSB) & ~negligible
+            if faint.any() and not np.all(negligible | faint):
+                negligible = negligible | faint
+                w = np.where(faint[:, None], 0.0, w)
+                w_scale = np.where(negligible, row_max[~negligible].max() / qmax, w_scale)
+                wq, bq, bound, bound32 = _int_weights(w, b, in_scale, w_scale, qmax, relu_inputs)
+                scale32 = _acc32_scale(w, b, in_scale, w_scale, relu_inputs)
             drop = float(np.log2(scale32 / w_scale).max())
-            if drop <= acc32_max_drop:
+            if bound32.max() <= SAT32:
+                acc32, drop = True, 0.0
+            elif drop <= acc32_max_drop:
                 wq, bq, bound, bound32 = _int_weights(w, b, in_scale, scale32, qmax, relu_inputs)
                 if bound32.max() > SAT32:  # cannot happen by _acc32_scale's slack; never trust it
                     raise AssertionError("int32 weight scales do not meet the bound")

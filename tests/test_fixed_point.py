@@ -236,6 +236,33 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
     assert r.returncode == 0, r.stderr
 
 
+def test_a_faint_row_is_zeroed_rather_than_taking_its_layer_to_int64():
+    """Weight decay can leave a unit's weights far below its bias but not switched off: int32
+    would cost that row more than ACC32_MAX_DROP bits. If its weights cannot move its output by
+    a quarter LSB it becomes a row of zeros and the layer stays int32 at shift 32; a small row
+    that can move its output keeps the layer int64."""
+    rng = np.random.default_rng(3)
+    in_scale, out_ratio = 2.0**-11, np.full(5, 3276.0)
+    w = rng.normal(0.0, 1.0, (5, 8))
+    b = rng.normal(0.0, 0.1, 5)
+    w[2], b[2] = 1e-7 * rng.normal(0.0, 1.0, 8), 1.0
+    wq, bq, mult, shift, info = qz._quantize_layer(w, b, in_scale, out_ratio, 16,
+                                                   qz.ACC32_MAX_DROP, relu_inputs=True)
+    reach = np.abs(w[2]).sum() * qz.SAT16 * in_scale * out_ratio[2]
+    assert reach <= qz.FAINT_ROW_LSB
+    assert info["acc32"] and shift == 32
+    assert not wq[2].any() and bq[2] != 0
+    # The other rows are quantised as without the faint one.
+    ref = qz._quantize_layer(np.delete(w, 2, 0), np.delete(b, 2), in_scale, np.delete(out_ratio, 2),
+                             16, qz.ACC32_MAX_DROP, relu_inputs=True)
+    assert np.array_equal(np.delete(wq, 2, 0), ref[0]) and np.array_equal(np.delete(bq, 2), ref[1])
+    # A row a thousand times stronger moves its output by tens of LSB: not faint, so int64.
+    w[2] *= 1e3
+    _, _, _, shift64, info64 = qz._quantize_layer(w, b, in_scale, out_ratio, 16,
+                                                  qz.ACC32_MAX_DROP, relu_inputs=True)
+    assert not info64["acc32"] and shift64 > 32
+
+
 def test_accumulator_bounds_hold_and_are_enforced(exported):
     model, wl, q, data, rep = exported
     trace: dict[str, int] = {}
