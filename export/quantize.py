@@ -435,7 +435,8 @@ def _acc32_scale(w: np.ndarray, b: np.ndarray, in_scale: float, w_scale: np.ndar
     else:
         sw = np.abs(w).sum(axis=1)
     need = sw * SAT16 + np.abs(b) / in_scale
-    room = SAT32 - (w.shape[1] * SAT16) / 2.0 - 2.0
+    # Rounding moves each weight by at most 1/2; a column of zeros (a padding unit) not at all.
+    room = SAT32 - (np.count_nonzero(np.any(w != 0.0, axis=0)) * SAT16) / 2.0 - 2.0
     return np.maximum(w_scale, need / room * (1.0 + 2.0**-20))
 
 
@@ -511,6 +512,25 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
     return wq, bq, mult, shift, info
 
 
+def even_hidden_widths(weights: Sequence[np.ndarray], biases: Sequence[np.ndarray]
+                       ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """The layers with every hidden width made even by a unit of zeros.
+
+    The Cortex-M4 DSP kernels take rows and inputs in pairs of int16: an odd hidden width
+    sends its layer and the layer it feeds to the unpaired path (a 35-25-10 net took more
+    instructions than a 70-50-20 one). The added unit outputs ReLU(0) = 0 and is read with
+    weight 0, so every output is the same number.
+    """
+    ws = [np.asarray(w, dtype=np.float64) for w in weights]
+    bs = [np.asarray(b, dtype=np.float64) for b in biases]
+    for i in range(len(ws) - 1):
+        if ws[i].shape[0] % 2:
+            ws[i] = np.vstack([ws[i], np.zeros((1, ws[i].shape[1]))])
+            bs[i] = np.append(bs[i], 0.0)
+            ws[i + 1] = np.hstack([ws[i + 1], np.zeros((ws[i + 1].shape[0], 1))])
+    return ws, bs
+
+
 def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
     """The memory's integers: the load signal's weights as multipliers and a shift (u keeps
     the Q(z_frac) of z), shifts and gains as they are, play half-widths in Q(z_frac)."""
@@ -531,8 +551,8 @@ def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
              jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
-             stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP
-             ) -> tuple[QModel, dict[str, Any]]:
+             stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP,
+             even_widths: bool = True) -> tuple[QModel, dict[str, Any]]:
     """Quantise ``model`` with scales from ``calib``.
 
     Parameters
@@ -554,6 +574,9 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         int32 accumulators: a layer whose proven worst case does not fit int32 as quantised
         gets coarser weight scales on the rows that need it if no row loses more than this
         many bits of weight resolution; otherwise it keeps int64. Negative: int64 everywhere.
+    even_widths
+        Pad odd hidden widths with a unit of zeros (:func:`even_hidden_widths`; the outputs
+        are the same numbers). False keeps the model's widths, which the runtime also runs.
 
     Returns
     -------
@@ -597,8 +620,10 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         x = inputs[name]
         in_scale = zs
         layers, infos = [], []
-        for i, (w, b) in enumerate(zip(net.weights, net.biases)):
-            last = i == len(net.weights) - 1
+        weights, biases = (even_hidden_widths(net.weights, net.biases) if even_widths
+                           else (net.weights, net.biases))
+        for i, (w, b) in enumerate(zip(weights, biases)):
+            last = i == len(weights) - 1
             if name == "contact" and last:
                 # Two logits -> one margin row: contact iff margin > 0, exactly the float rule.
                 w = (w[1] - w[0])[None, :]

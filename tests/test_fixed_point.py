@@ -263,6 +263,26 @@ def test_a_faint_row_is_zeroed_rather_than_taking_its_layer_to_int64():
     assert not info64["acc32"] and shift64 > 32
 
 
+def test_odd_hidden_widths_are_padded_to_even_with_the_same_outputs(random_model_factory,
+                                                                   random_walk_factory):
+    """The Cortex-M4 kernels pair rows and inputs: the exporter pads odd hidden widths with a
+    unit of zeros, and the integer outputs are the same numbers as without it."""
+    model = random_model_factory(5, sizes=((35, 25, 9), (33, 19, 8), (35, 24, 21)))
+    wl = random_walk_factory(model, 600, seed=5)
+    _balance_contact(model, wl)
+    q, data, _ = _export(model, wl)
+    for net in q.nets:
+        assert all(layer.w.shape[0] % 2 == 0 for layer in net[:-1])
+    q_odd, data_odd, _ = _export(model, wl, even_widths=False)
+    assert [layer.w.shape[0] for layer in q_odd.nets[0][:-1]] == [35, 25, 9]
+    wl_fm = intref.nm_to_fm(wl)
+    base = intref.nm_to_fm(model.baseline_nm)
+    even_out, odd_out = intref.run(q, wl_fm, base), intref.run(q_odd, wl_fm, base)
+    for k in FIELDS:
+        assert np.array_equal(even_out[k], odd_out[k]), k
+    _assert_bitexact(q, data, wl_fm, base)
+
+
 def test_accumulator_bounds_hold_and_are_enforced(exported):
     model, wl, q, data, rep = exported
     trace: dict[str, int] = {}
@@ -385,14 +405,17 @@ def test_choose_shift_precision():
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=st.integers(0, 10_000), bits=st.sampled_from([16, 8]),
        n_taps=st.sampled_from([1, 2, 7, 64]),
-       widths=st.lists(st.lists(st.integers(1, 128), min_size=0, max_size=3), min_size=3, max_size=3))
-def test_bitexact_random_structures(random_model_factory, random_walk_factory, seed, bits, n_taps, widths):
-    """Any shape the runtime accepts: 0-3 hidden layers of width 1..128, 1..64 taps, int8/int16."""
+       widths=st.lists(st.lists(st.integers(1, 128), min_size=0, max_size=3), min_size=3, max_size=3),
+       even=st.booleans())
+def test_bitexact_random_structures(random_model_factory, random_walk_factory, seed, bits, n_taps, widths,
+                                    even):
+    """Any shape the runtime accepts: 0-3 hidden layers of width 1..128, 1..64 taps, int8/int16,
+    odd widths as the model has them or padded to even by the exporter."""
     model = random_model_factory(seed, sizes=tuple(tuple(w) for w in widths), n_taps=n_taps,
                                  sigma=max(n_taps / 4.0, 0.5))
     wl = random_walk_factory(model, 600, seed=seed)
     _balance_contact(model, wl)
-    q, data, _ = _export(model, wl, bits=bits)
+    q, data, _ = _export(model, wl, bits=bits, even_widths=even)
     wl_fm = intref.nm_to_fm(wl)
     wl_fm[50] = [0, 2**31 - 1, -2**31 + 1, 1, 2_000_000_001]
     _assert_bitexact(q, data, wl_fm, intref.nm_to_fm(model.baseline_nm))
