@@ -3616,6 +3616,11 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
+/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
+ * in every build, so that fbg_step reads the same on the builds without it. */
+#define FBG_SIMD_FRONT_DONE 1
+#define FBG_SIMD_FRONT_FAULT 2
+
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -3700,8 +3705,6 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
  * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
  * for another kernel (the caller runs its loops). */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
 int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
                    int64_t *load, uint32_t *sat);
 
@@ -4385,16 +4388,6 @@ static void safe_output(fbg_output *out, uint32_t status)
 #define NET_ACCS(n) NET_LAYERS(n)
 #endif
 
-/* What fbg_simd_front did with a sample: nothing (0: the loops below run), steps 1 to 4
- * (FRONT_DONE), or the fault rule on a faulty one (FRONT_FAULT). */
-#if FBG_SIMD_X86
-#define FRONT_DONE FBG_SIMD_FRONT_DONE
-#define FRONT_FAULT FBG_SIMD_FRONT_FAULT
-#else
-#define FRONT_DONE 1
-#define FRONT_FAULT 2
-#endif
-
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
@@ -4405,7 +4398,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front = 0; /* FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
+    int front = 0; /* FBG_SIMD_FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -4426,7 +4419,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (front == FBG_SIMD_FRONT_FAULT)
         status |= FBG_STATUS_SENSOR_FAULT;
 #endif
-    if (front != 0 ? front == FRONT_FAULT
+    if (front != 0 ? front == FBG_SIMD_FRONT_FAULT
                    : fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else if (front == 0) {
@@ -4438,7 +4431,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    if (front != FRONT_DONE)
+    if (front != FBG_SIMD_FRONT_DONE)
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
@@ -4455,7 +4448,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-    for (c = 0; c < FBG_N_STRAIN && front != FRONT_DONE; ++c) {
+    for (c = 0; c < FBG_N_STRAIN && front != FBG_SIMD_FRONT_DONE; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
@@ -4477,7 +4470,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    if (front != FRONT_DONE)
+    if (front != FBG_SIMD_FRONT_DONE)
         memory_features(s, m, in, loc, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
@@ -4528,8 +4521,6 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 #undef NET_LAST
 #undef NET_LAYERS
 #undef NET_ACCS
-#undef FRONT_DONE
-#undef FRONT_FAULT
 /* ---- src/fbg_model.c ---- */
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
@@ -5096,6 +5087,11 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
+/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
+ * in every build, so that fbg_step reads the same on the builds without it. */
+#define FBG_SIMD_FRONT_DONE 1
+#define FBG_SIMD_FRONT_FAULT 2
+
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -5180,8 +5176,6 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
  * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
  * for another kernel (the caller runs its loops). */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
 int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
                    int64_t *load, uint32_t *sat);
 
@@ -5618,6 +5612,11 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
+/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
+ * in every build, so that fbg_step reads the same on the builds without it. */
+#define FBG_SIMD_FRONT_DONE 1
+#define FBG_SIMD_FRONT_FAULT 2
+
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -5702,8 +5701,6 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
  * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
  * for another kernel (the caller runs its loops). */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
 int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
                    int64_t *load, uint32_t *sat);
 
@@ -7015,7 +7012,8 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
 }
 
 /* Step 1's fault rule (fbg_fault_check of fbg_internal.h) for the five channels in lanes 0-4
- * of int32 (lanes 5-7 read and write nothing: masked loads and stores), the same tests lane
+ * of int32 (lanes 5-7 hold 0 and are masked off by lanes5; load5 and store5 touch only the
+ * five), the same tests lane
  * by lane: a lane out of the window [FBG_WL_MIN_FM, FBG_WL_MAX_FM] is faulty and its run
  * restarts, prev and its valid bit unchanged; an in-window lane whose prev holds a sample is
  * faulty past jump_max_fm either way (the difference is exact in int32: both in the window)
@@ -7113,6 +7111,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
     const fbg_model *m = s->model;
     const __m128i idx = load128(lane_index4), lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
     const __m128i me = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_ema), idx), mp = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_play), idx);
+    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
     const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
     __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
     uint32_t clamped = 0u;
@@ -7126,7 +7125,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
         p = load128(s->play);
     } else {
         e = target;
-        p = _mm_add_epi32(u, _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width)));
+        p = _mm_add_epi32(u, width);
     }
     memcpy(&word, m->ema_shift, sizeof word);
     shift = _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word));
@@ -7137,10 +7136,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
     memcpy(&word, m->ema_gain, sizeof word);
     fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
                         _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    {
-        const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
-        p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
-    }
+    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
     _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, mp));
     memcpy(&word, m->play_gain, sizeof word);
     fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));

@@ -419,16 +419,6 @@ static void safe_output(fbg_output *out, uint32_t status)
 #define NET_ACCS(n) NET_LAYERS(n)
 #endif
 
-/* What fbg_simd_front did with a sample: nothing (0: the loops below run), steps 1 to 4
- * (FRONT_DONE), or the fault rule on a faulty one (FRONT_FAULT). */
-#if FBG_SIMD_X86
-#define FRONT_DONE FBG_SIMD_FRONT_DONE
-#define FRONT_FAULT FBG_SIMD_FRONT_FAULT
-#else
-#define FRONT_DONE 1
-#define FRONT_FAULT 2
-#endif
-
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
@@ -439,7 +429,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     const fbg_layer *last;
     unsigned c;
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front = 0; /* FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
+    int front = 0; /* FBG_SIMD_FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
 #if !FBG_USE_DSP
     int64_t load = 0;
 #endif
@@ -460,7 +450,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (front == FBG_SIMD_FRONT_FAULT)
         status |= FBG_STATUS_SENSOR_FAULT;
 #endif
-    if (front != 0 ? front == FRONT_FAULT
+    if (front != 0 ? front == FBG_SIMD_FRONT_FAULT
                    : fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else if (front == 0) {
@@ -472,7 +462,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
 
     /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    if (front != FRONT_DONE)
+    if (front != FBG_SIMD_FRONT_DONE)
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
@@ -489,7 +479,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     }
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
 #else
-    for (c = 0; c < FBG_N_STRAIN && front != FRONT_DONE; ++c) {
+    for (c = 0; c < FBG_N_STRAIN && front != FBG_SIMD_FRONT_DONE; ++c) {
         int64_t f = 0;
         unsigned k, idx = s->pos;
         for (k = 0; k < m->n_taps; ++k) {
@@ -511,7 +501,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 #endif
 
     /* 4. Memory features after z. */
-    if (front != FRONT_DONE)
+    if (front != FBG_SIMD_FRONT_DONE)
         memory_features(s, m, in, loc, &sat);
 
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */

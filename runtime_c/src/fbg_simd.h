@@ -17,6 +17,11 @@
 
 #include "fbg_internal.h"
 
+/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
+ * in every build, so that fbg_step reads the same on the builds without it. */
+#define FBG_SIMD_FRONT_DONE 1
+#define FBG_SIMD_FRONT_FAULT 2
+
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -101,8 +106,6 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
  * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
  * for another kernel (the caller runs its loops). */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
 int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
                    int64_t *load, uint32_t *sat);
 

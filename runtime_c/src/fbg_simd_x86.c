@@ -1348,7 +1348,8 @@ AVX2 static int loc4_avx2(fbg_state *s, unsigned shift, __m128i z, int16_t *loc)
 }
 
 /* Step 1's fault rule (fbg_fault_check of fbg_internal.h) for the five channels in lanes 0-4
- * of int32 (lanes 5-7 read and write nothing: masked loads and stores), the same tests lane
+ * of int32 (lanes 5-7 hold 0 and are masked off by lanes5; load5 and store5 touch only the
+ * five), the same tests lane
  * by lane: a lane out of the window [FBG_WL_MIN_FM, FBG_WL_MAX_FM] is faulty and its run
  * restarts, prev and its valid bit unchanged; an in-window lane whose prev holds a sample is
  * faulty past jump_max_fm either way (the difference is exact in int32: both in the window)
@@ -1446,6 +1447,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
     const fbg_model *m = s->model;
     const __m128i idx = load128(lane_index4), lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
     const __m128i me = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_ema), idx), mp = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_play), idx);
+    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
     const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
     __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
     uint32_t clamped = 0u;
@@ -1459,7 +1461,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
         p = load128(s->play);
     } else {
         e = target;
-        p = _mm_add_epi32(u, _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width)));
+        p = _mm_add_epi32(u, width);
     }
     memcpy(&word, m->ema_shift, sizeof word);
     shift = _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word));
@@ -1470,10 +1472,7 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
     memcpy(&word, m->ema_gain, sizeof word);
     fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
                         _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    {
-        const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
-        p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
-    }
+    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
     _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, mp));
     memcpy(&word, m->play_gain, sizeof word);
     fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
