@@ -440,6 +440,13 @@ def _acc32_scale(w: np.ndarray, b: np.ndarray, in_scale: float, w_scale: np.ndar
     return np.maximum(w_scale, need / room * (1.0 + 2.0**-20))
 
 
+def _row_weight_scales(row_max: np.ndarray, zero_rows: np.ndarray, qmax: int) -> np.ndarray:
+    """Per-row weight scales ``max|W[r]| / qmax``; a row quantised as zeros takes the largest
+    of the other rows' (so its multiplier needs no smaller shift than theirs)."""
+    live = row_max[~zero_rows] / qmax
+    return np.where(zero_rows, live.max() if live.size else 1.0, row_max / qmax)
+
+
 def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np.ndarray,
                     bits: int, acc32_max_drop: float = 0.0, relu_inputs: bool = False
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, dict[str, Any]]:
@@ -461,8 +468,7 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         native = in_scale * row_max / qmax
         negligible = (native == 0) | (np.abs(b) / np.where(native > 0, native, 1.0) >= 2.0**60)
-    live = row_max[~negligible] / qmax
-    w_scale = np.where(negligible, live.max() if live.size else 1.0, row_max / qmax)
+    w_scale = _row_weight_scales(row_max, negligible, qmax)
     wq, bq, bound, bound32 = _int_weights(w, b, in_scale, w_scale, qmax, relu_inputs)
     acc32_free = bool(bound32.max() <= SAT32)
     acc32, drop = False, 0.0
@@ -483,7 +489,7 @@ def _quantize_layer(w: np.ndarray, b: np.ndarray, in_scale: float, out_ratio: np
             if faint.any() and not np.all(negligible | faint):
                 negligible = negligible | faint
                 w = np.where(faint[:, None], 0.0, w)
-                w_scale = np.where(negligible, row_max[~negligible].max() / qmax, w_scale)
+                w_scale = _row_weight_scales(row_max, negligible, qmax)
                 wq, bq, bound, bound32 = _int_weights(w, b, in_scale, w_scale, qmax, relu_inputs)
                 scale32 = _acc32_scale(w, b, in_scale, w_scale, relu_inputs)
             drop = float(np.log2(scale32 / w_scale).max())

@@ -160,8 +160,9 @@ def drop_unread_units(mlp: MLP) -> tuple[MLP, int]:
     such a unit, with its row and bias, leaves the float32 outputs as they were and saves its
     multiply-adds in every engine. Layers are pruned from the output back, so a unit read only
     by dropped units goes too; every layer keeps at least one unit. Units go in pairs, so an
-    even width stays even: the Cortex-M4 kernels' fast paths read inputs and rows in pairs, and
-    an odd width would cost more than the unit saves.
+    even width stays even: the exporter pads odd hidden widths back to even for the Cortex-M4
+    kernels (which read inputs and rows in pairs), so a single unit dropped would save
+    multiply-adds in the float engines only.
     """
     weights = [np.array(w, dtype=np.float64) for w in mlp.weights]
     biases = [np.array(b, dtype=np.float64) for b in mlp.biases]
