@@ -23,6 +23,7 @@ STATUS_SATURATED = contract.STATUS_FLAG["SATURATED"]
 STATUS_OVERLOAD = contract.STATUS_FLAG["OVERLOAD"]
 STATUS_SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
+STATUS_BASELINE_LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
 EMA_FRAC = contract.LIMIT["EMA_FRAC"]
 
 __all__ = ["run", "run_recording", "memory_features", "rshift_round", "sat", "sigmoid_q15",
@@ -126,6 +127,85 @@ def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | No
     return acc, y
 
 
+class _Memory:
+    """The memory states of fbg_fixed.c's ``memory_features`` (load-signal averages and play
+    operators, location averages), carried from one block of fault-free samples to the next.
+    The first sample primes them as at rest after a release; a faulty sample never reaches
+    them, so a fault freezes them."""
+
+    def __init__(self, q: QModel) -> None:
+        self.q = q
+        self.primed = False
+        self.ema: list[int] = []
+        self.play: list[int] = []
+        self.loc: list[int] = []
+
+    def push(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Net inputs (m, F + location averages) of the next ``z`` (m, 4), and per sample
+        whether a value saturated."""
+        q = self.q
+        z = np.asarray(z, dtype=np.int64).reshape(-1, 4)
+        m = z.shape[0]
+        nf = q.n_features
+        feats = np.zeros((m, nf + q.n_loc), dtype=np.int64)
+        feats[:, :4] = z
+        clamped = np.zeros(m, dtype=bool)
+        if m == 0:
+            return feats, clamped
+        if q.n_loc:
+            feats[:, nf:], clamped = self._location_averages(z)
+        if q.n_ema + q.n_play:
+            feats[:, 4:nf], c_mem = self._load_features(z)
+            clamped |= c_mem
+        self.primed = True
+        return feats, clamped
+
+    def _load_features(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        q = self.q
+        m = z.shape[0]
+        u, c_u = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
+        shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
+        widths = [int(v) for v in q.play_width[:q.n_play]]
+        if not self.primed:
+            self.ema = [int(u[0]) << EMA_FRAC for _ in shifts]
+            self.play = [int(u[0]) + w for w in widths]
+        ema, play = self.ema, self.play
+        ema_mean = np.zeros((m, q.n_ema), dtype=np.int64)
+        play_state = np.zeros((m, q.n_play), dtype=np.int64)
+        # Python integers, sample by sample: the recursions do not vectorise, and this keeps
+        # the rounding of every step exactly the C code's.
+        for i, ui in enumerate(u.tolist()):
+            target = ui << EMA_FRAC
+            for k, s in enumerate(shifts):
+                ema[k] += (target - ema[k] + (1 << (s - 1))) >> s
+                ema_mean[i, k] = ema[k]
+            for k, w in enumerate(widths):
+                play[k] = min(max(play[k], ui - w), ui + w)
+                play_state[i, k] = play[k]
+        d_ema = (u[:, None] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :]
+        d_play = (u[:, None] - play_state) << q.play_gain[:q.n_play][None, :]
+        values, c2 = sat(np.concatenate([d_ema, d_play], axis=1), SAT16)
+        return values, c_u | c2.any(axis=1)
+
+    def _location_averages(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The Q(z_frac) location inputs (m, 4) and where r or z0 saturated."""
+        q = self.q
+        z0, c0 = q.z_rest()
+        r, c_r = sat(z - z0[None, :], SAT16)
+        s = q.loc_shift
+        if not self.primed:
+            self.loc = [int(v) << EMA_FRAC for v in r[0].tolist()]
+        state = self.loc
+        out = np.zeros(r.shape, dtype=np.int64)
+        # Python integers, sample by sample, exactly the C recursion (as the load averages).
+        for i, ri in enumerate(r.tolist()):
+            for c in range(4):
+                state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
+                out[i, c] = state[c]
+        # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
+        return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
+
+
 def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``memory_features`` of fbg_fixed.c on the consecutive fault-free samples ``z`` (m, 4)
     of one recording (the states are primed by the first as at rest after a release, and
@@ -134,56 +214,74 @@ def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns the net inputs (m, F + location averages) and, per sample, whether a value
     saturated.
     """
-    z = np.asarray(z, dtype=np.int64).reshape(-1, 4)
-    m = z.shape[0]
-    nf = q.n_features
-    feats = np.zeros((m, nf + q.n_loc), dtype=np.int64)
-    feats[:, :4] = z
-    clamped = np.zeros(m, dtype=bool)
-    if m and q.n_loc:
-        feats[:, nf:], clamped = _location_averages(q, z)
-    if m == 0 or q.n_ema + q.n_play == 0:
-        return feats, clamped
-    u, c_u = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
-    shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
-    widths = [int(v) for v in q.play_width[:q.n_play]]
-    ema = [int(u[0]) << EMA_FRAC for _ in shifts]
-    play = [int(u[0]) + w for w in widths]
-    ema_mean = np.zeros((m, q.n_ema), dtype=np.int64)
-    play_state = np.zeros((m, q.n_play), dtype=np.int64)
-    # Python integers, sample by sample: the recursions do not vectorise, and this keeps the
-    # rounding of every step exactly the C code's.
-    for i, ui in enumerate(u.tolist()):
-        target = ui << EMA_FRAC
-        for k, s in enumerate(shifts):
-            ema[k] += (target - ema[k] + (1 << (s - 1))) >> s
-            ema_mean[i, k] = ema[k]
-        for k, w in enumerate(widths):
-            play[k] = min(max(play[k], ui - w), ui + w)
-            play_state[i, k] = play[k]
-    d_ema = (u[:, None] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :]
-    d_play = (u[:, None] - play_state) << q.play_gain[:q.n_play][None, :]
-    values, c2 = sat(np.concatenate([d_ema, d_play], axis=1), SAT16)
-    feats[:, 4:nf] = values
-    return feats, clamped | c_u | c2.any(axis=1)
+    return _Memory(q).push(z)
 
 
 def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The location averages of fbg_fixed.c's ``memory_features`` on consecutive fault-free
     ``z`` (m, 4), primed by the first: the Q(z_frac) inputs (m, 4) and where r or z0
     saturated."""
-    z0, c0 = q.z_rest()
-    r, c_r = sat(z - z0[None, :], SAT16)
-    s = q.loc_shift
-    state = [int(v) << EMA_FRAC for v in r[0].tolist()]
-    out = np.zeros(r.shape, dtype=np.int64)
-    # Python integers, sample by sample, exactly the C recursion (as the load averages).
-    for i, ri in enumerate(r.tolist()):
+    return _Memory(q)._location_averages(np.asarray(z, dtype=np.int64).reshape(-1, 4))
+
+
+def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) -> np.ndarray:
+    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples; ``state`` is
+    ``[decision, rise_run]``, carried and updated."""
+    if q.contact_on_q8 == 0 and q.contact_off_q8 == 0 and q.contact_rise_n == 1:
+        state[0], state[1] = (int(raw[-1]), 0) if raw.size else (state[0], state[1])
+        return raw.astype(bool)       # the per-sample rule itself (fbg_fixed.c says why)
+    out = np.zeros(raw.size, dtype=bool)
+    decision, rise = state
+    on, off, rise_n = q.contact_on_q8, q.contact_off_q8, q.contact_rise_n
+    for i, (r, mg) in enumerate(zip(raw.tolist(), margin.tolist())):
+        if decision:
+            decision = int(r or mg > off)
+        else:
+            rise = min(rise + 1, 255) if (r and mg >= on) else 0
+            if rise >= rise_n:
+                decision, rise = 1, 0
+        out[i] = decision
+    state[0], state[1] = decision, rise
+    return out
+
+
+class _Tracker:
+    """``rest_track`` of fbg_fixed.c: the at-rest baseline tracker's state, and its update at
+    the end of each TRACK_BLOCK block."""
+
+    def __init__(self, q: QModel) -> None:
+        self.q = q
+        self.rest_run = 0
+        self.drift = [0] * 4
+        self.frac = [0] * 4
+        self.limited = False
+
+    def end_block(self, rest: np.ndarray, r_sum: np.ndarray, base: np.ndarray) -> None:
+        """After a block: ``rest`` says which of its samples were at rest (in order),
+        ``r_sum`` is their sum of z - z0; moves ``base[:4]`` in place."""
+        q = self.q
+        # rest_run: samples at rest up to the block's end (saturating at 0xFFFF).
+        trailing = int(rest.size - (np.flatnonzero(~rest)[-1] + 1)) if (~rest).any() else None
+        self.rest_run = min(0xFFFF, trailing if trailing is not None else self.rest_run + rest.size)
+        if q.track_shift == 0 or self.rest_run < contract.LIMIT["TRACK_BLOCK"] + q.track_settle:
+            return
+        frac_bits = contract.LIMIT["TRACK_FRAC"]
         for c in range(4):
-            state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
-            out[i, c] = state[c]
-    # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
-    return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
+            frac = self.frac[c] + int(r_sum[c]) * int(q.track_gain[c])
+            step = (frac + (1 << (frac_bits - 1))) >> frac_bits
+            if abs(step) > q.track_step_max_fm:
+                step = q.track_step_max_fm if step > 0 else -q.track_step_max_fm
+                frac = 0
+            else:
+                frac -= step << frac_bits
+            drift = self.drift[c] + step
+            if abs(drift) > q.track_limit_fm:
+                drift = q.track_limit_fm if drift > 0 else -q.track_limit_fm
+                frac = 0
+                self.limited = True
+            base[c] += drift - self.drift[c]
+            self.drift[c] = drift
+            self.frac[c] = frac
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
@@ -191,7 +289,9 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     """Run the fixed-point pipeline on one continuous recording from a fresh state.
 
     Equivalent to ``fbg_init`` then (if ``baseline_fm`` is given) ``fbg_set_baseline`` and
-    ``fbg_step`` on every row.
+    ``fbg_step`` on every row. With the at-rest baseline tracker on (``q.track_shift``) the
+    recording runs in blocks of TRACK_BLOCK samples, between which the tracker may move the
+    baseline, as the C state does; otherwise in one block.
 
     Parameters
     ----------
@@ -212,11 +312,12 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     wl = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
     n = wl.shape[0]
     tared = baseline_fm is not None
-    base = np.asarray(q.baseline_fm if baseline_fm is None else baseline_fm, dtype=np.int64).reshape(5)
+    base = np.array(q.baseline_fm if baseline_fm is None else baseline_fm, dtype=np.int64).reshape(5)
     status = np.full(n, 0 if tared else STATUS_NOT_TARED, dtype=np.int64)
     flag = np.zeros(n, dtype=bool)
 
-    # 1. Fault rule.
+    # 1. Fault rule: it reads the wavelengths only, never the baseline, so it runs on the
+    #    whole recording at once.
     inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
     prev, has_prev = _prev_in_window(wl, inwin)
     jump = inwin & has_prev & (np.abs(wl - prev) > q.jump_max_fm)
@@ -225,24 +326,63 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     same = inwin & has_prev & (wl == prev)
     steps = np.arange(n)[:, None]
     last_reset = np.maximum.accumulate(np.where(same, -1, steps), axis=0) if n else steps
-    run = np.minimum(steps - last_reset, 0xFFFF)
-    stuck = (run >= q.stuck_max) if q.stuck_max else np.zeros_like(inwin)
+    run_len = np.minimum(steps - last_reset, 0xFFFF)
+    stuck = (run_len >= q.stuck_max) if q.stuck_max else np.zeros_like(inwin)
     fault = np.any(~inwin | jump | stuck, axis=1)
-    ok = ~fault
+    status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
+    warm = np.arange(1, n + 1) < q.taps.size
+    status |= np.where(warm, STATUS_WARMUP, 0)
 
+    out = {k: np.zeros(n, dtype=np.int64) for k in
+           ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
+    z_rest, _ = q.z_rest()
+    history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)   # held FIR inputs before the block
+    last_comp = np.zeros(4, dtype=np.int64)                     # zeros before any good sample
+    memory, tracker, decision = _Memory(q), _Tracker(q), [0, 0]
+    block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        if tracker.limited:
+            status[a:b] |= STATUS_BASELINE_LIMIT
+        rest, r_sum = _block(q, wl[a:b], fault[a:b], warm[a:b], base, history, last_comp,
+                             memory, decision, status[a:b], flag[a:b],
+                             {k: v[a:b] for k, v in out.items()}, trace, z_rest)
+        if block < n or q.track_shift:
+            tracker.end_block(rest & tared, r_sum, base)
+    status |= np.where(flag, STATUS_SATURATED, 0)
+    out["status"] = status
+    return out
+
+
+def _block(q: QModel, wl: np.ndarray, fault: np.ndarray, warm: np.ndarray, base: np.ndarray,
+           history: np.ndarray, last_comp: np.ndarray, memory: _Memory, decision: list[int],
+           status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
+           trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
+    ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
+    ``last_comp``, ``memory`` and ``decision``; returns which samples were at rest and their
+    sum of z - z0 (for the tracker)."""
+    n = wl.shape[0]
+    ok = ~fault
     # 2. Tare and temperature compensation (rows without a fault).
     shift_t, c1 = sat(wl[:, 4] - base[4], SAT32)
     shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
     t = rshift_round(shift_t[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
     comp, c3 = sat(shift - t, SAT32)
     flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1))
-    # A faulty sample feeds the FIR the last good input again (zeros before any).
+    # A faulty sample feeds the FIR the last good input again.
     idx = np.where(ok, np.arange(n), -1)
     last_ok = np.maximum.accumulate(idx) if n else idx
-    held = np.where((last_ok >= 0)[:, None], comp[np.maximum(last_ok, 0)], 0)
+    held = np.where((last_ok >= 0)[:, None], comp[np.maximum(last_ok, 0)], last_comp[None, :])
+    if ok.any():
+        last_comp[:] = comp[np.flatnonzero(ok)[-1]]
 
-    # 3. Causal FIR, zero history, then standardisation into Q(z_frac).
-    acc = np.stack([np.convolve(held[:, c], q.taps)[:n] for c in range(4)], axis=1) if n else held
+    # 3. Causal FIR over the carried history, then standardisation into Q(z_frac).
+    k = q.taps.size - 1
+    seq = np.vstack([history, held])
+    acc = np.stack([np.convolve(seq[:, c], q.taps)[k:k + n] for c in range(4)], axis=1)
+    if k:
+        history[:] = seq[-k:]
     if trace is not None and n:
         trace["fir"] = max(trace.get("fir", 0), int(np.abs(acc[ok]).max(initial=0)))
     filt, c4 = sat(rshift_round(acc, q.tap_q), SAT32)
@@ -253,38 +393,35 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     load = rshift_round(filt @ q.load_coeff, q.load_shift)
     status |= np.where(ok & (load > q.load_max_mN), STATUS_OVERLOAD, 0)
 
-    status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
-    status |= np.where(np.arange(1, n + 1) < q.taps.size, STATUS_WARMUP, 0)
-
-    out = {k: np.zeros(n, dtype=np.int64) for k in
-           ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
     rows = np.flatnonzero(ok)
+    rest = np.zeros(n, dtype=bool)
     # 4. Memory features on the fault-free samples, in order.
-    x, c_mem = memory_features(q, z[rows])
+    x, c_mem = memory.push(z[rows])
     flag[rows] |= c_mem
     nf = q.n_features
     feats = np.zeros((n, nf + q.n_loc), dtype=np.int64)
     feats[rows] = x
-    z = feats[:, :nf]
+    zf = feats[:, :nf]
     if rows.size:
-        # 5. Contact net.
+        # 5. Contact net, then the decision over time.
         f_ok = np.zeros(rows.size, dtype=bool)
-        acc_c, margin = _net(q.nets[0], z[rows], f_ok, trace, "contact")
-        contact = acc_c[:, 0] > 0
+        acc_c, margin = _net(q.nets[0], zf[rows], f_ok, trace, "contact")
+        contact = _decide(q, acc_c[:, 0] > 0, margin[:, 0], decision)
         out["contact_margin_q8"][rows] = margin[:, 0]
         out["contact_conf_q15"][rows] = sigmoid_q15(margin[:, 0])
         out["contact"][rows] = contact
         flag[rows] |= f_ok
+        rest[rows] = ~contact & ~warm[rows]
         crow = rows[contact]
         if crow.size:
             # 6. Force net, 7. location net on [z, contact << z_frac, quantised force,
             #    location averages].
             f_c = np.zeros(crow.size, dtype=bool)
-            _, force_out = _net(q.nets[1], z[crow], f_c, trace, "force")
+            _, force_out = _net(q.nets[1], zf[crow], f_c, trace, "force")
             force_out = force_out[:, 0]
             force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
             fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
-            loc_in = np.column_stack([z[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq,
+            loc_in = np.column_stack([zf[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq,
                                       feats[crow, nf:]])
             _, xy = _net(q.nets[2], loc_in, f_c, trace, "location")
             x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
@@ -295,9 +432,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
             out["y_um"][crow] = y_um
             flag[crow] |= f_c
             status[crow] |= np.where(force_mN > q.overload_mN, STATUS_OVERLOAD, 0)
-    status |= np.where(flag, STATUS_SATURATED, 0)
-    out["status"] = status
-    return out
+    r_sum = (z[rest] - z_rest[None, :]).sum(axis=0) if rest.any() else np.zeros(4, dtype=np.int64)
+    return rest, r_sum
 
 
 def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,

@@ -23,6 +23,7 @@ Scales (all chosen from calibration data: the float pipeline run on recordings)
 from __future__ import annotations
 
 import math
+from fractions import Fraction
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -196,16 +197,29 @@ class QModel:
     play_width: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
     #: Location averages (fbg_model.loc_shift): 0 is off.
     loc_shift: int = 0
+    #: The decision over time and the at-rest baseline tracker (fbg_model.contact_*,
+    #: track_*): the defaults are the per-sample decision on a fixed tare.
+    contact_on_q8: int = 0
+    contact_off_q8: int = 0
+    contact_rise_n: int = 1
+    track_shift: int = 0
+    track_settle: int = 0
+    track_gain: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
+    track_step_max_fm: int = 0
+    track_limit_fm: int = 0
     #: Version of the library that wrote the blob (fbg_model.writer_version).
     writer_version: int = contract.VERSION_CODE
 
     def __post_init__(self) -> None:
         for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
-                     "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width"):
+                     "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width",
+                     "track_gain"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
                      "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
-                     "mem_shift", "n_ema", "n_play", "loc_shift", "writer_version"):
+                     "mem_shift", "n_ema", "n_play", "loc_shift", "writer_version",
+                     "contact_on_q8", "contact_off_q8", "contact_rise_n", "track_shift",
+                     "track_settle", "track_step_max_fm", "track_limit_fm"):
             setattr(self, name, int(getattr(self, name)))
 
     @property
@@ -555,6 +569,33 @@ def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
             "play_width": padded(widths, contract.MAX_PLAY), "loc_shift": memory.loc_shift}
 
 
+def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
+    """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
+
+    The tracker's gain turns a block's sum of ``z - z0`` (Q(z_frac) units, whose fm value is
+    ``2^z_shift / z_mult``) into fm in Q(TRACK_FRAC), divided by its time constant
+    ``2^track_shift``: ``round(2^(TRACK_FRAC + z_shift - track_shift) / z_mult)``, exact in
+    Python integers.
+    """
+    gain = np.zeros(fm.N_STRAIN, dtype=np.int64)
+    if in_use.track_shift:
+        for c, mult in enumerate(int(v) for v in z_mult):
+            if mult == 0:
+                continue
+            g = round(Fraction(2) ** (contract.LIMIT["TRACK_FRAC"] + z_shift - in_use.track_shift)
+                      / mult)
+            if abs(g) > SAT32:
+                raise InputError(f"tracker gain of channel {c + 1} does not fit int32 (a time "
+                                 "constant this short for inputs this coarse)", column="track_shift")
+            gain[c] = g
+    return {"contact_on_q8": int(round(in_use.contact_on_margin * 256.0)),
+            "contact_off_q8": int(round(in_use.contact_off_margin * 256.0)),
+            "contact_rise_n": in_use.contact_rise_samples, "track_shift": in_use.track_shift,
+            "track_settle": in_use.track_settle, "track_gain": gain,
+            "track_step_max_fm": min(SAT32, int(round(in_use.track_step_max_pm * 1000.0))),
+            "track_limit_fm": int(round(in_use.track_limit_pm * 1000.0))}
+
+
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
              jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
              stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP,
@@ -680,7 +721,8 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         force_offset_mN=int(round(model.force_offset * 1000.0)),
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
         nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
-        stuck_max=stuck_samples, **quantize_memory(pre.memory, z_frac))
+        stuck_max=stuck_samples, **quantize_memory(pre.memory, z_frac),
+        **quantize_in_use(model.in_use, z_mult, z_shift))
     try:
         q.check()
     except ValueError as exc:

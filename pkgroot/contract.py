@@ -61,7 +61,11 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_EMA_SHIFT": (15, "largest exponential-average shift (time constant 2^15 samples)"),
     "MAX_MEM_GAIN": (8, "largest memory-feature gain shift"),
     "LOAD_COEFF_LIMIT": (1 << 28, "|load_coeff| below this: the load proxy sum fits int64"),
-    "BLOB_VERSION": (5, "blob format this library reads and writes"),
+    "TRACK_BLOCK": (64, "samples per update of the at-rest baseline tracker"),
+    "TRACK_FRAC": (16, "fractional bits of the tracker's carried baseline correction"),
+    "TRACK_LIMIT_MAX_FM": (100_000_000, "largest track_limit_fm (100 nm): a tracked baseline "
+                           "stays within 100 nm of its tare"),
+    "BLOB_VERSION": (6, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -109,6 +113,8 @@ STATUS: tuple[Code, ...] = (
     Code("OVERLOAD", 0x04, "beyond the trained force range (see fbg_model)"),
     Code("SENSOR_FAULT", 0x08, "a peak lost, jumped or stuck: outputs are the safe output"),
     Code("WARMUP", 0x10, "fewer than n_taps samples since init/tare/reset"),
+    Code("BASELINE_LIMIT", 0x20, "the at-rest baseline tracker is at its bound: drift beyond "
+                                 "what it may correct (re-tare)"),
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
 
@@ -276,6 +282,23 @@ PARAMS: tuple[Field, ...] = (
           doc="location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero "
               "shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location "
               "input rshift_round(loc_i, EMA_FRAC)"),
+    Field("contact_on_q8", "int32_t", 1, 0, SAT32,
+          doc="contact rises when acc > 0 and margin_q8 >= contact_on_q8 ..."),
+    Field("contact_off_q8", "int32_t", 1, -SAT32, 0,
+          doc="... and stays while acc > 0 or margin_q8 > contact_off_q8"),
+    Field("contact_rise_n", "uint8_t", 1, 1, 255,
+          doc="consecutive samples of the rise condition before contact rises"),
+    Field("track_shift", "uint8_t", 1, 0, 20,
+          doc="at-rest baseline tracker (0: off): time constant 2^track_shift samples"),
+    Field("track_settle", "uint16_t",
+          doc="samples of rest (tared, no contact, fault or warm-up) before a tracker block counts"),
+    Field("track_gain", "int32_t", N_STRAIN, *_I32,
+          doc="per TRACK_BLOCK at rest: corr_i += sum(z_i - z0_i) * track_gain[i] (fm in "
+              "Q(TRACK_FRAC))"),
+    Field("track_step_max_fm", "int32_t", 1, 0, SAT32,
+          doc="largest baseline step of one tracker block (fm)"),
+    Field("track_limit_fm", "int32_t", 1, 0, LIMIT["TRACK_LIMIT_MAX_FM"],
+          doc="largest |tracked - tared baseline| per channel (fm); BASELINE_LIMIT at it"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (

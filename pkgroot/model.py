@@ -228,6 +228,78 @@ def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = N
 
 
 @dataclass
+class InUse:
+    """What the runtimes do beyond the nets when they run for hours: the contact decision over
+    time and the at-rest baseline tracker (docs/runtime.md, "In use").
+
+    The defaults (all off) are the nets' own per-sample decision on a fixed tare; the trainer
+    writes :meth:`recommended`.
+
+    Attributes
+    ----------
+    contact_on_margin
+        Contact rises when the contact net's margin (logit difference) is positive and at
+        least this (>= 0) ...
+    contact_off_margin
+        ... and stays while the margin is positive or above this (<= 0): a Schmitt trigger.
+    contact_rise_samples
+        Consecutive samples of the rise condition before contact rises (>= 1).
+    track_shift
+        At-rest baseline tracker: time constant ``2**track_shift`` samples (0: off). While the
+        decision says no contact (and the state is tared, without fault or warm-up), every
+        ``contract.LIMIT['TRACK_BLOCK']`` samples move each strain grating's tare baseline
+        towards the value that makes its filtered shift zero.
+    track_settle
+        Samples of rest before the tracker's blocks count (the pad relaxes after a release).
+    track_step_max_pm
+        Largest baseline step of one block, pm.
+    track_limit_pm
+        Largest total correction per grating since the tare, pm (then the status flag
+        BASELINE_LIMIT asks for a new tare).
+    """
+
+    contact_on_margin: float = 0.0
+    contact_off_margin: float = 0.0
+    contact_rise_samples: int = 1
+    track_shift: int = 0
+    track_settle: int = 0
+    track_step_max_pm: float = 0.0
+    track_limit_pm: float = 0.0
+
+    def __post_init__(self) -> None:
+        self.contact_on_margin = float(self.contact_on_margin)
+        self.contact_off_margin = float(self.contact_off_margin)
+        self.contact_rise_samples = int(self.contact_rise_samples)
+        self.track_shift = int(self.track_shift)
+        self.track_settle = int(self.track_settle)
+        self.track_step_max_pm = float(self.track_step_max_pm)
+        self.track_limit_pm = float(self.track_limit_pm)
+        if self.contact_on_margin < 0 or self.contact_off_margin > 0:
+            raise ValueError("contact_on_margin must be >= 0 and contact_off_margin <= 0")
+        if not 1 <= self.contact_rise_samples <= 255:
+            raise ValueError("contact_rise_samples must be in [1, 255]")
+        if not 0 <= self.track_shift <= 20:
+            raise ValueError("track_shift must be in [0, 20]")
+        if not 0 <= self.track_settle <= 0xFFFF:
+            raise ValueError("track_settle must be in [0, 65535]")
+        limit_pm = contract.LIMIT["TRACK_LIMIT_MAX_FM"] / 1000.0
+        if self.track_step_max_pm < 0 or not 0 <= self.track_limit_pm <= limit_pm:
+            raise ValueError(f"track_step_max_pm must be >= 0 and track_limit_pm in [0, {limit_pm}]")
+
+    @classmethod
+    def recommended(cls, sample_rate_hz: float = 1000.0) -> "InUse":
+        """The trainer's default (docs/runtime.md, "In use", says how each value was chosen)."""
+        ms = sample_rate_hz / 1000.0
+        return cls(contact_on_margin=0.0, contact_off_margin=0.0, contact_rise_samples=1,
+                   track_shift=max(1, int(round(np.log2(1000.0 * ms)))),
+                   track_settle=int(round(200 * ms)), track_step_max_pm=0.25 / ms,
+                   track_limit_pm=200.0)
+
+    def to_json(self) -> dict[str, float | int]:
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+@dataclass
 class Preprocess:
     """Temperature compensation, causal smoothing and input standardisation.
 
@@ -390,6 +462,7 @@ class HierarchicalModel:
     xy_scale: np.ndarray
     baseline_nm: np.ndarray
     metadata: dict[str, Any] = field(default_factory=dict)
+    in_use: InUse = field(default_factory=InUse)
 
     def __post_init__(self) -> None:
         self.xy_offset = np.asarray(self.xy_offset, dtype=np.float64).reshape(2)
@@ -562,6 +635,7 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
         "xy_offset": model.xy_offset.tolist(),
         "xy_scale": model.xy_scale.tolist(),
         "baseline_nm": model.baseline_nm.tolist(),
+        "in_use": model.in_use.to_json(),
         "metadata": model.metadata,
     }
     arrays = {}
@@ -622,7 +696,7 @@ def load(directory: str | Path) -> HierarchicalModel:
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],
-            metadata=doc.get("metadata", {}), **nets)
+            metadata=doc.get("metadata", {}), in_use=InUse(**doc.get("in_use", {})), **nets)
     except KeyError as exc:
         raise InputError(f"missing entry {exc.args[0]!r}", path=str(root)) from exc
     except ValueError as exc:

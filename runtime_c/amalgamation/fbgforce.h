@@ -71,7 +71,10 @@ extern "C" {
 #define FBG_MAX_EMA_SHIFT 15  /* largest exponential-average shift (time constant 2^15 samples) */
 #define FBG_MAX_MEM_GAIN 8  /* largest memory-feature gain shift */
 #define FBG_LOAD_COEFF_LIMIT 268435456  /* |load_coeff| below this: the load proxy sum fits int64 */
-#define FBG_BLOB_VERSION 5  /* blob format this library reads and writes */
+#define FBG_TRACK_BLOCK 64  /* samples per update of the at-rest baseline tracker */
+#define FBG_TRACK_FRAC 16  /* fractional bits of the tracker's carried baseline correction */
+#define FBG_TRACK_LIMIT_MAX_FM 100000000  /* largest track_limit_fm (100 nm): a tracked baseline stays within 100 nm of its tare */
+#define FBG_BLOB_VERSION 6  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -106,6 +109,7 @@ typedef enum {
 #define FBG_STATUS_OVERLOAD 0x04  /* beyond the trained force range (see fbg_model) */
 #define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost, jumped or stuck: outputs are the safe output */
 #define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
+#define FBG_STATUS_BASELINE_LIMIT 0x20  /* the at-rest baseline tracker is at its bound: drift beyond what it may correct (re-tare) */
 
 /* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */
 #define FBG_OPT_REQUIRE_TARE 0x01  /* fbg_step returns FBG_ERR_NOT_TARED until tared */
@@ -169,9 +173,15 @@ typedef struct {
     int32_t load_coeff[4];  /* input-side overload: load_mN = rshift_round(sum_i load_coeff[i] * filt_i, load_shift) [-268435455, 268435455] */
     int32_t load_max_mN;  /* OVERLOAD when load_mN > load_max_mN */
     int32_t mem_mult[4];  /* memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a load signal in Q(z_frac) */
+    int32_t contact_on_q8;  /* contact rises when acc > 0 and margin_q8 >= contact_on_q8 ... [0, 2147483647] */
+    int32_t contact_off_q8;  /* ... and stays while acc > 0 or margin_q8 > contact_off_q8 [-2147483647, 0] */
+    int32_t track_gain[4];  /* per TRACK_BLOCK at rest: corr_i += sum(z_i - z0_i) * track_gain[i] (fm in Q(TRACK_FRAC)) */
+    int32_t track_step_max_fm;  /* largest baseline step of one tracker block (fm) [0, 2147483647] */
+    int32_t track_limit_fm;  /* largest |tracked - tared baseline| per channel (fm); BASELINE_LIMIT at it [0, 100000000] */
     uint16_t n_taps;  /* causal FIR length [1, 64] */
     uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
     int16_t play_width[4];  /* state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
+    uint16_t track_settle;  /* samples of rest (tared, no contact, fault or warm-up) before a tracker block counts */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
     uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
@@ -184,6 +194,8 @@ typedef struct {
     uint8_t ema_gain[4];  /* feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k]) [0, 8] for k < n_ema, else 0 */
     uint8_t play_gain[4];  /* feature = sat16((u - state) << play_gain[k]) [0, 8] for k < n_play, else 0 */
     uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input rshift_round(loc_i, EMA_FRAC) [0, 15] */
+    uint8_t contact_rise_n;  /* consecutive samples of the rise condition before contact rises [1, 255] */
+    uint8_t track_shift;  /* at-rest baseline tracker (0: off): time constant 2^track_shift samples [0, 20] */
     uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
@@ -217,6 +229,12 @@ typedef struct {
     int32_t ema[FBG_MAX_EMA];
     int32_t play[FBG_MAX_PLAY];
     int32_t loc[FBG_N_STRAIN];   /* location averages of z - z0, Q(z_frac + FBG_EMA_FRAC) */
+    /* At-rest baseline tracker (docs/runtime.md, "In use"): the block's sum of z - z0, the
+     * correction applied to baseline_fm[0..3] since the tare, and the carried fraction of
+     * the next step in Q(FBG_TRACK_FRAC). */
+    int32_t track_sum[FBG_N_STRAIN];
+    int32_t drift_fm[FBG_N_STRAIN];
+    int64_t track_frac[FBG_N_STRAIN];
     int64_t tare_sum[FBG_N_CHANNELS];
     /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
      * the activations with LDRD (no copy to an aligned buffer per layer). */
@@ -231,6 +249,11 @@ typedef struct {
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
+    uint8_t decision;                            /* the contact decision of the last step */
+    uint8_t rise_run;                            /* samples of the rise condition so far */
+    uint8_t track_pos;                           /* samples into the tracker's block */
+    uint8_t track_limited;                       /* 1: a channel's drift_fm is at its bound */
+    uint16_t rest_run;                           /* samples at rest, saturating */
     const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
 } fbg_state;
 

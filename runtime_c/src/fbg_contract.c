@@ -79,12 +79,21 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     for (k = 0; k < 4u; ++k)
         m->play_width[k] = rd_i16(p + 159 + 2u * k);
     m->loc_shift = rd_u8(p + 167);
+    m->contact_on_q8 = rd_i32(p + 168);
+    m->contact_off_q8 = rd_i32(p + 172);
+    m->contact_rise_n = rd_u8(p + 176);
+    m->track_shift = rd_u8(p + 177);
+    m->track_settle = rd_u16(p + 178);
+    for (k = 0; k < 4u; ++k)
+        m->track_gain[k] = rd_i32(p + 180 + 4u * k);
+    m->track_step_max_fm = rd_i32(p + 196);
+    m->track_limit_fm = rd_i32(p + 200);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 168u; k < 168u; ++k)
+    for (k = 204u; k < 208u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -185,6 +194,17 @@ fbg_status fbg_params_check(const fbg_model *m)
         }
     }
     { uint8_t v = m->loc_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_on_q8; if (v < 0) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_off_q8; if (v < -2147483647 || v > 0) return FBG_ERR_RANGE; }
+    { uint8_t v = m->contact_rise_n; if (v < 1) return FBG_ERR_RANGE; }
+    { uint8_t v = m->track_shift; if (v > 20) return FBG_ERR_RANGE; }
+    for (k = 0; k < 4u; ++k) {
+        int32_t v = m->track_gain[k];
+        if (v < -2147483647)
+            return FBG_ERR_RANGE;
+    }
+    { int32_t v = m->track_step_max_fm; if (v < 0) return FBG_ERR_RANGE; }
+    { int32_t v = m->track_limit_fm; if (v < 0 || v > 100000000) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

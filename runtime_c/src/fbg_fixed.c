@@ -153,9 +153,27 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     return FBG_OK;
 }
 
+/* Reset, tare and a new baseline restart the decision and the tracker. The baseline the
+ * tracker reached stays through a reset (it is the best estimate of the unloaded gratings)
+ * and becomes the reference of its bound, as a new baseline would; a tare replaces it. */
+static fbg_status in_use_after(fbg_state *s, fbg_status st)
+{
+    if (st != FBG_OK)
+        return st;   /* refused: nothing was cleared */
+    s->decision = 0u;
+    s->rise_run = 0u;
+    s->rest_run = 0u;
+    s->track_pos = 0u;
+    s->track_limited = 0u;
+    memset(s->track_sum, 0, sizeof s->track_sum);
+    memset(s->drift_fm, 0, sizeof s->drift_fm);
+    memset(s->track_frac, 0, sizeof s->track_frac);
+    return FBG_OK;
+}
+
 fbg_status fbg_reset(fbg_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
 }
 
 fbg_status fbg_tare_begin(fbg_state *state)
@@ -172,14 +190,14 @@ fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], i
 
 fbg_status fbg_tare_end(fbg_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_end(FRONT(state));
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
 }
 
 fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    return fbg_front_set_baseline(FRONT(state), baseline_fm);
+    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
 }
 
 fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
@@ -390,6 +408,79 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
     }
 }
 
+/* The contact decision over time (docs/runtime.md, "In use"): a Schmitt trigger on the
+ * contact net's margin with a count before rising. raw is the net's own decision (acc > 0).
+ * With contact_on_q8 = contact_off_q8 = 0 and contact_rise_n = 1 it is raw itself: margin_q8
+ * > 0 implies acc > 0 (a positive multiplier), and acc > 0 implies margin_q8 >= 0. */
+static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
+{
+    if (s->decision) {
+        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
+        return s->decision;
+    }
+    if (raw && margin_q8 >= m->contact_on_q8) {
+        if (s->rise_run < 255u)
+            s->rise_run++;
+    } else {
+        s->rise_run = 0u;
+    }
+    if (s->rise_run >= m->contact_rise_n) {
+        s->decision = 1u;
+        s->rise_run = 0u;
+    }
+    return s->decision;
+}
+
+/* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
+ * channels of a sample at rest (tared, no fault, no warm-up, decision 0), NULL otherwise.
+ * Every FBG_TRACK_BLOCK steps, a block that was at rest throughout and came after
+ * track_settle samples of rest moves the strain baselines by its sum of z - z0 times
+ * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
+ * a carried fraction), each step at most track_step_max_fm and the whole correction at most
+ * track_limit_fm from the tare. A load, a fault or a warm-up freezes it: it never learns
+ * from a sample the nets call contact. Bounds: |track_sum| <= 64 * 65534 < 2^23, so the
+ * product with |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1)
+ * after a step, and |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so
+ * wl - baseline stays within +-1.1e9 (int32). */
+static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
+{
+    unsigned c;
+    if (z != NULL) {
+        if (s->rest_run < 0xFFFFu)
+            s->rest_run++;
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->track_sum[c] += (int32_t)z[c] - s->loc_z0[c];
+    } else {
+        s->rest_run = 0u;
+    }
+    if (++s->track_pos < FBG_TRACK_BLOCK)
+        return;
+    s->track_pos = 0u;
+    if (m->track_shift != 0u && s->rest_run >= (uint32_t)FBG_TRACK_BLOCK + m->track_settle) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int64_t frac = s->track_frac[c] + (int64_t)s->track_sum[c] * m->track_gain[c];
+            int64_t step = fbg_rshift_round(frac, FBG_TRACK_FRAC);
+            int64_t drift;
+            if (step > m->track_step_max_fm || step < -(int64_t)m->track_step_max_fm) {
+                step = step > 0 ? m->track_step_max_fm : -(int64_t)m->track_step_max_fm;
+                frac = 0;   /* no wind-up: the clamped remainder is not carried */
+            } else {
+                frac -= step * ((int64_t)1 << FBG_TRACK_FRAC);
+            }
+            drift = (int64_t)s->drift_fm[c] + step;
+            if (drift > m->track_limit_fm || drift < -(int64_t)m->track_limit_fm) {
+                drift = drift > 0 ? m->track_limit_fm : -(int64_t)m->track_limit_fm;
+                frac = 0;
+                s->track_limited = 1u;
+            }
+            s->baseline_fm[c] += (int32_t)(drift - s->drift_fm[c]);
+            s->drift_fm[c] = (int32_t)drift;
+            s->track_frac[c] = frac;
+        }
+    }
+    memset(s->track_sum, 0, sizeof s->track_sum);
+}
+
 static void safe_output(fbg_output *out, uint32_t status)
 {
     memset(out, 0, sizeof *out);
@@ -443,6 +534,8 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         return st;
     }
     m = s->model;
+    if (s->track_limited)
+        status |= FBG_STATUS_BASELINE_LIMIT;
 
     /* 1. Fault rule, tare and temperature compensation (fm). */
 #if FBG_SIMD_X86 /* AVX2: steps 1 to 4 in vectors (fbg_simd_x86.c); same values and states */
@@ -467,6 +560,7 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
             s->hist[s->pos][c] = comp[c];
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
         safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
+        rest_track(s, m, NULL);   /* a fault: the decision holds, the tracker restarts */
         return FBG_OK;
     }
 #if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
@@ -508,8 +602,9 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     memset(out, 0, sizeof *out);
     NET_ACCS(FBG_NET_CONTACT);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
-    out->contact = acc[0] > 0 ? 1u : 0u;
+    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+    rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
 
     if (out->contact) {
         /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */

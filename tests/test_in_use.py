@@ -1,0 +1,126 @@
+"""The runtime in use: the contact decision over time and the at-rest baseline tracker.
+
+Bit-exactness of both against the integer reference on every host kernel (with faults,
+resets, tares and the tracker at its bound), the decision's rule on hand-made margins, and
+what the tracker does with drift and with held loads on the simulator's gripper.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbgforce import contract
+from fbgforce import model as fm
+from fbgforce.export import blob
+from fbgforce.export import intref
+from fbgforce.export import quantize as qz
+from fbgforce.pybind import Runtime
+
+from test_simd import host_kernels
+
+LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
+AGGRESSIVE = fm.InUse(contact_on_margin=0.5, contact_off_margin=-1.0, contact_rise_samples=3,
+                      track_shift=5, track_settle=40, track_step_max_pm=0.3, track_limit_pm=2.0)
+
+
+def _drifting_model(random_model_factory, random_walk_factory, in_use: fm.InUse, seed: int = 3):
+    """A random model with the given in-use parameters, and (n, 5) wavelengths whose strain
+    gratings drift away from the temperature compensation, with lost peaks."""
+    model = random_model_factory(seed, sizes=((24, 12), (24, 12), (24, 16)), n_taps=9,
+                                 sigma=2.5, memory=fm.Memory(weights=(0.25, 0.25, 0.25, 0.25), ema_shifts=(4,), ema_gains=(2,), play_widths=(0.3,), play_gains=(2,)))
+    model.in_use = in_use
+    wl = random_walk_factory(model, 6000, seed, step_nm=0.0015)
+    wl[:, :4] += np.linspace(0.0, 0.02, wl.shape[0])[:, None] * np.array([1.0, -0.5, 0.8, 0.2])
+    x = fm.features(model, wl, model.baseline_nm)
+    logits = model.contact.forward(x[:, :model.preprocess.n_features])
+    # About a third of the samples in contact: the decision has both rests and contacts.
+    model.contact.biases[-1][1] -= float(np.quantile(logits[:, 1] - logits[:, 0], 0.66))
+    q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
+    rng = np.random.default_rng(seed)
+    for start in rng.integers(100, wl.shape[0] - 50, 5):
+        wl[start:start + int(rng.integers(1, 30)), int(rng.integers(5))] = 0.0
+    return model, q, wl
+
+
+def _equal(c: np.ndarray, ref: dict[str, np.ndarray]) -> None:
+    for k in contract.OUTPUT_FIELDS:
+        bad = np.flatnonzero(c[k].astype(np.int64) != ref[k])
+        assert bad.size == 0, f"{k} differs at {bad[:5]}"
+
+
+@pytest.mark.parametrize("kernel", ["portable", *host_kernels()])
+def test_decision_and_tracker_are_bit_exact(random_model_factory, random_walk_factory, kernel):
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE)
+    assert q.track_shift == 5 and q.contact_rise_n == 3 and q.track_gain.any()
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    ref = intref.run(q, wl_fm, base)
+    # The stream exercises every branch: rests long enough to track, the bound, faults.
+    assert (ref["status"] & LIMIT).any() and not (ref["status"] & LIMIT).all()
+    assert (ref["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]).any()
+    assert 0.1 < ref["contact"].mean() < 0.9
+    rt = Runtime(blob.to_bytes(q), kernel=kernel)
+    rt.set_baseline(base.astype(np.int32))
+    _equal(rt.run_raw(wl_fm), ref)
+    # The tracker moved the strain baselines, never the reference grating's.
+    moved = np.asarray(rt.baseline_fm, dtype=np.int64) - base
+    assert np.abs(moved[:4]).max() == q.track_limit_fm and moved[4] == 0
+
+
+def test_reset_and_tare_restart_the_decision_and_tracker(random_model_factory, random_walk_factory):
+    """After a reset the runtime continues as the reference started afresh on the baseline
+    the tracker reached; after a tare, on the tare."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE, seed=4)
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(base.astype(np.int32))
+    rt.run_raw(wl_fm[:2500])
+    reached = np.asarray(rt.baseline_fm, dtype=np.int64)
+    assert not np.array_equal(reached, base)
+    rt.reset()
+    _equal(rt.run_raw(wl_fm[2500:4000]), intref.run(q, wl_fm[2500:4000], reached))
+    rt.tare(wl[4000:4100])
+    tare = np.asarray(rt.baseline_fm, dtype=np.int64)
+    _equal(rt.run_raw(wl_fm[4100:]), intref.run(q, wl_fm[4100:], tare))
+
+
+def test_off_is_the_per_sample_rule(random_model_factory, random_walk_factory):
+    """With the defaults the decision is the net's own (acc > 0) and no baseline moves."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(base.astype(np.int32))
+    out = rt.run_raw(wl_fm)
+    ok = (out["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]) == 0
+    contact, margin = out["contact"][ok] == 1, out["contact_margin_q8"][ok]
+    # acc > 0: every positive margin is contact, and no negative one is.
+    assert np.all(contact[margin > 0]) and not np.any(contact[margin < 0])
+    assert 0.1 < contact.mean() < 0.9
+    assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), base)
+
+
+def test_the_decision_rule_on_hand_made_margins():
+    q = qz.QModel.__new__(qz.QModel)
+    q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 100, -50, 2
+    margin = np.array([150, 150, 0, -40, -60, 120, 99, 120, 101, 1, -51, -60])
+    raw = margin > 0
+    # Two samples at or above 100 to rise; stays while above -50; a sample below 100 before
+    # the second restarts the count.
+    want = np.array([0, 1, 1, 1, 0, 0, 0, 0, 1, 1, 0, 0], dtype=bool)
+    state = [0, 0]
+    assert np.array_equal(intref._decide(q, raw, margin, state), want)
+    assert state == [0, 0]
+    # The state carries from one call to the next exactly as one call.
+    state = [0, 0]
+    parts = [intref._decide(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
+    assert np.array_equal(np.concatenate(parts), want)
+
+
+def test_in_use_round_trips_through_the_model_directory(tmp_path, random_model_factory):
+    model = random_model_factory(1)
+    model.in_use = AGGRESSIVE
+    fm.save(model, tmp_path)
+    assert fm.load(tmp_path).in_use == AGGRESSIVE
+    for bad in ({"contact_on_margin": -1.0}, {"contact_rise_samples": 0}, {"track_shift": 21},
+                {"track_limit_pm": 1e6}):
+        with pytest.raises(ValueError):
+            fm.InUse(**bad)
