@@ -225,24 +225,15 @@ def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) -> np.ndarray:
-    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples; ``state`` is
+    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples (the rule of
+    :func:`fbgforce.model.decide_over_time` on the Q8 margins); ``state`` is
     ``[decision, rise_run]``, carried and updated."""
     if q.contact_on_q8 == 0 and q.contact_off_q8 == 0 and q.contact_rise_n == 1:
-        state[0], state[1] = (int(raw[-1]), 0) if raw.size else (state[0], state[1])
+        if raw.size:
+            state[0], state[1] = int(raw[-1]), 0
         return raw.astype(bool)       # the per-sample rule itself (fbg_fixed.c says why)
-    out = np.zeros(raw.size, dtype=bool)
-    decision, rise = state
-    on, off, rise_n = q.contact_on_q8, q.contact_off_q8, q.contact_rise_n
-    for i, (r, mg) in enumerate(zip(raw.tolist(), margin.tolist())):
-        if decision:
-            decision = int(r or mg > off)
-        else:
-            rise = min(rise + 1, 255) if (r and mg >= on) else 0
-            if rise >= rise_n:
-                decision, rise = 1, 0
-        out[i] = decision
-    state[0], state[1] = decision, rise
-    return out
+    return fm.decide_over_time(raw, margin, q.contact_on_q8, q.contact_off_q8, q.contact_rise_n,
+                               state)
 
 
 class _Tracker:
@@ -285,7 +276,8 @@ class _Tracker:
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
-        trace: dict[str, int] | None = None) -> dict[str, np.ndarray]:
+        trace: dict[str, int] | None = None, end: dict[str, Any] | None = None
+        ) -> dict[str, np.ndarray]:
     """Run the fixed-point pipeline on one continuous recording from a fresh state.
 
     Equivalent to ``fbg_init`` then (if ``baseline_fm`` is given) ``fbg_set_baseline`` and
@@ -302,6 +294,9 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     trace
         If a dict, receives the largest ``|accumulator|`` seen per layer (``"net.layer"``)
         and for the FIR (``"fir"``), for the export report.
+    end
+        If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
+        ``fbg_get_baseline`` reads it (the tracker may have moved it).
 
     Returns
     -------
@@ -347,10 +342,11 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         rest, r_sum = _block(q, wl[a:b], fault[a:b], warm[a:b], base, history, last_comp,
                              memory, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        if block < n or q.track_shift:
-            tracker.end_block(rest & tared, r_sum, base)
+        tracker.end_block(rest & tared, r_sum, base)
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
+    if end is not None:
+        end["baseline_fm"] = base.copy()
     return out
 
 

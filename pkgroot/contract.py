@@ -323,6 +323,14 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("play_width", "float", MAX_PLAY, doc="in standardised units"),
     Field("loc_shift", "uint8_t", doc="location averages of z - z_rest (0: off): "
           "state += (r - state) / 2^loc_shift"),
+    Field("contact_on", "float", doc="decision over time as fbg_model, on the margin"),
+    Field("contact_off", "float"),
+    Field("contact_rise_n", "uint8_t", doc="1..255"),
+    Field("track_shift", "uint8_t", doc="at-rest baseline tracker as fbg_model (0: off)"),
+    Field("track_settle", "uint16_t"),
+    Field("track_step_max_pm", "float", doc="per block: corr_i += clamp(sum(filt_i) / "
+          "2^track_shift, +-track_step_max_pm)"),
+    Field("track_limit_pm", "float", doc="|corr_i| <= track_limit_pm (BASELINE_LIMIT at it)"),
 )
 
 #: File name of the blob inside a model directory.

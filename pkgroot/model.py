@@ -37,7 +37,7 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -297,6 +297,43 @@ class InUse:
 
     def to_json(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+    def float_params(self) -> dict[str, float | int]:
+        """The ``fbgf_model`` fields (:data:`fbgforce.contract.FLOAT_PARAMS`) of these values."""
+        return {"contact_on": self.contact_on_margin, "contact_off": self.contact_off_margin,
+                "contact_rise_n": self.contact_rise_samples, "track_shift": self.track_shift,
+                "track_settle": self.track_settle, "track_step_max_pm": self.track_step_max_pm,
+                "track_limit_pm": self.track_limit_pm}
+
+    @property
+    def per_sample(self) -> bool:
+        """True when the decision is the contact net's own, sample by sample."""
+        return (self.contact_on_margin == 0.0 and self.contact_off_margin == 0.0
+                and self.contact_rise_samples == 1)
+
+
+def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
+                     state: list[int]) -> np.ndarray:
+    """The contact decision over time on consecutive samples, in any units of the margin.
+
+    Contact rises after ``rise_n`` consecutive samples with ``raw`` (the net's own decision)
+    and ``margin >= on``; it stays while ``raw`` or ``margin > off``. ``state`` is
+    ``[decision, rise_run]`` of the previous sample, carried and updated. The C runtimes run
+    this rule (``contact_decision`` in fbg_fixed.c and fbgf_float.c).
+    """
+    raw = np.asarray(raw, dtype=bool)
+    out = np.zeros(raw.size, dtype=bool)
+    decision, rise = state
+    for i, (r, mg) in enumerate(zip(raw.tolist(), np.asarray(margin).tolist())):
+        if decision:
+            decision = int(r or mg > off)
+        else:
+            rise = min(rise + 1, 255) if (r and mg >= on) else 0
+            if rise >= rise_n:
+                decision, rise = 1, 0
+        out[i] = decision
+    state[0], state[1] = decision, rise
+    return out
 
 
 @dataclass
@@ -564,8 +601,14 @@ def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: in
     return np.column_stack(cols)
 
 
-def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, np.ndarray]:
+def predict_from_features(model: HierarchicalModel, z: np.ndarray,
+                          decide: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+                          ) -> dict[str, np.ndarray]:
     """Run the three nets on standardised inputs.
+
+    ``decide(raw, margin)`` turns the contact net's own decision (``margin > 0``) and margin
+    into the decision the outputs are gated on (the decision over time of
+    :func:`predict`); None takes the net's own.
 
     Returns
     -------
@@ -578,7 +621,7 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, 
     z = x[:, :model.preprocess.n_features]
     logits = model.contact.forward(z)
     margin = logits[:, 1] - logits[:, 0]
-    contact = margin > 0.0
+    contact = margin > 0.0 if decide is None else decide(margin > 0.0, margin)
     p_contact = 1.0 / (1.0 + np.exp(-np.clip(margin, -500.0, 500.0)))
     f = model.force.forward(z)[:, 0]
     uv = model.location.forward(location_inputs(x, contact, f, model.preprocess.memory.n_loc))
@@ -598,9 +641,61 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, 
 
 def predict(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray | None = None
             ) -> dict[str, np.ndarray]:
-    """Full float pipeline on one continuous recording of raw wavelengths (n, 5) in nm."""
-    base = model.baseline_nm if baseline_nm is None else baseline_nm
-    return predict_from_features(model, features(model, wl_nm, base))
+    """Full float pipeline on one continuous recording of raw wavelengths (n, 5) in nm.
+
+    With ``model.in_use`` on, the decision over time gates the outputs and the at-rest
+    baseline tracker moves the strain gratings' baseline between blocks of
+    ``contract.LIMIT["TRACK_BLOCK"]`` samples, as the runtimes do (docs/runtime.md, "In
+    use"); the first ``len(taps) - 1`` samples (the runtimes' warm-up) are never at rest.
+    """
+    base = np.array(model.baseline_nm if baseline_nm is None else baseline_nm, dtype=np.float64)
+    iu = model.in_use
+    if (iu.per_sample and not iu.track_shift) or model.preprocess.filter_kind == "centred":
+        return predict_from_features(model, features(model, wl_nm, base))
+    return _predict_in_use(model, np.asarray(wl_nm, dtype=np.float64).reshape(-1, 5), base)
+
+
+def _predict_in_use(model: HierarchicalModel, wl: np.ndarray, base: np.ndarray
+                    ) -> dict[str, np.ndarray]:
+    """:func:`predict` with the decision over time and the at-rest baseline tracker."""
+    pre, iu = model.preprocess, model.in_use
+    n, taps = wl.shape[0], pre.runtime_taps()
+    state, stream = [0, 0], MemoryStream(pre.memory, pre.z_rest)
+    history = np.zeros((taps.size - 1, N_STRAIN))
+    drift, rest_run = np.zeros(N_STRAIN), 0
+    block = contract.LIMIT["TRACK_BLOCK"] if iu.track_shift else max(n, 1)
+
+    def decide(raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
+        return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
+                                iu.contact_rise_samples, state)
+
+    parts = []
+    for a in range(0, n, block):
+        comp = compensate(model, wl[a:a + block], base)
+        seq = np.vstack([history, comp])
+        k = taps.size - 1
+        filt = np.stack([np.convolve(seq[:, c], taps)[k:k + comp.shape[0]]
+                         for c in range(N_STRAIN)], axis=1)
+        if k:
+            history = seq[-k:]
+        out = predict_from_features(model, stream.push((filt - pre.input_mean) / pre.input_std),
+                                    decide)
+        parts.append(out)
+        if not iu.track_shift:
+            continue
+        rest = ~out["contact"] & (np.arange(a, a + comp.shape[0]) >= k)
+        rest_run = min(0xFFFF, rest_run + rest.size if rest.all()
+                       else rest.size - int(np.flatnonzero(~rest)[-1]) - 1)
+        if rest_run >= block + iu.track_settle:
+            # A first-order follower of the filtered shift at rest (time constant
+            # 2^track_shift samples), each step and the whole correction bounded.
+            step = np.clip(filt.sum(axis=0) / 2.0 ** iu.track_shift,
+                           -iu.track_step_max_pm, iu.track_step_max_pm)
+            new = np.clip(drift + step, -iu.track_limit_pm, iu.track_limit_pm)
+            base[:N_STRAIN] += (new - drift) / 1000.0
+            drift = new
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]} if parts else \
+        predict_from_features(model, features(model, wl, base))
 
 
 # --------------------------------------------------------------------------------------------

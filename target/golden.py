@@ -31,12 +31,14 @@ class Record:
     out: dict[str, int] = field(default_factory=dict)
 
 
-def _steps(q: Any, wl_fm: np.ndarray, baseline_fm: np.ndarray | None) -> list[Record]:
-    """Step records of one stretch run from a fresh (or freshly tared / re-baselined) state."""
+def _steps(q: Any, wl_fm: np.ndarray, baseline_fm: np.ndarray | None,
+           end: dict[str, Any] | None = None) -> list[Record]:
+    """Step records of one stretch run from a fresh (or freshly tared / re-baselined) state;
+    ``end`` receives the baseline after it (:func:`fbgforce.export.intref.run`)."""
     from fbgforce.export import intref
 
     wl = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
-    ref = intref.run(q, wl, baseline_fm)
+    ref = intref.run(q, wl, baseline_fm, end=end)
     return [Record(OP_STEP, tuple(int(v) for v in wl[i]), 0, 0,
                    {k: int(ref[k][i]) for k in OUTPUT_FIELDS}) for i in range(wl.shape[0])]
 
@@ -124,10 +126,12 @@ def golden_session(q: Any, wl_fm: np.ndarray, contact: np.ndarray | None = None,
     recs.append(Record(OP_TARE_END, status=err_tare))
     # 5. Edge cases on an explicit baseline.
     recs.append(Record(OP_SET_BASELINE, tuple(int(v) for v in base), ok))
-    recs += _steps(q, edge_samples(base, q.jump_max_fm, seed), base)
-    # 6. fbg_reset keeps the baseline and clears the FIR: the same as a fresh run on it.
+    end: dict[str, Any] = {}
+    recs += _steps(q, edge_samples(base, q.jump_max_fm, seed), base, end)
+    # 6. fbg_reset keeps the baseline (as the at-rest tracker left it) and clears the rest:
+    #    the same as a fresh run on it.
     recs.append(Record(OP_RESET, status=ok))
-    recs += _steps(q, wl[-32:], base)
+    recs += _steps(q, wl[-32:], end["baseline_fm"])
     # 7. A fresh fbg_init: untared again.
     recs.append(Record(OP_INIT, status=ok))
     recs += _steps(q, wl[:8], None)

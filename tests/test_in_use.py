@@ -6,6 +6,8 @@ what the tracker does with drift and with held loads on the simulator's gripper.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -14,7 +16,7 @@ from fbgforce import model as fm
 from fbgforce.export import blob
 from fbgforce.export import intref
 from fbgforce.export import quantize as qz
-from fbgforce.pybind import Runtime
+from fbgforce.pybind import FloatRuntime, Runtime
 
 from test_simd import host_kernels
 
@@ -124,3 +126,25 @@ def test_in_use_round_trips_through_the_model_directory(tmp_path, random_model_f
                 {"track_limit_pm": 1e6}):
         with pytest.raises(ValueError):
             fm.InUse(**bad)
+
+
+def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory,
+                                                           random_walk_factory):
+    """The float reference follows the fixed-point runtime through the drift: the same
+    decisions but at the margin, and a tracker without it would disagree far more."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE)
+    wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)     # no faults: the float model has no rule
+    fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
+    flt = fm.predict(model, wl, model.baseline_nm)
+    untracked = fm.predict(dataclasses.replace(model, in_use=fm.InUse()), wl, model.baseline_nm)
+    assert 0.1 < flt["contact"].mean() < 0.9
+    agree = np.mean(flt["contact"] == fixed["contact"])
+    assert agree > 0.98
+    assert np.mean(untracked["contact"] == fixed["contact"]) < agree - 0.05
+    # The C float build runs the same rules in single precision.
+    rt = FloatRuntime(model)
+    rt.set_baseline(model.baseline_nm)
+    cf = rt.run(wl)
+    assert np.mean(cf["contact"] == flt["contact"]) > 0.995
+    both = cf["contact"] & flt["contact"]
+    assert np.abs(cf["force_N"][both] - flt["force_N"][both]).max() < 1e-2

@@ -8698,6 +8698,13 @@ fbg_status fbgf_model_check(const fbgf_model *model)
             return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
+    /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
+    if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
+        !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
+        model->contact_rise_n < 1u || model->track_shift > 20u ||
+        !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
+        !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
+        return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -8795,9 +8802,30 @@ fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t option
     return FBG_OK;
 }
 
+/* Reset, tare and a new baseline restart the decision and the tracker, as in fbg_fixed.c:
+ * the correction made so far stays through a reset (held) and the bound counts from there;
+ * a tare or a new baseline replaces it. */
+static fbg_status in_use_after(fbgf_state *s, fbg_status st, int keep_correction)
+{
+    unsigned c;
+    if (st != FBG_OK)
+        return st;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        s->held_pm[c] = keep_correction ? s->held_pm[c] + s->drift_pm[c] : 0.0f;
+        s->drift_pm[c] = 0.0f;
+        s->track_sum[c] = 0.0f;
+    }
+    s->decision = 0u;
+    s->rise_run = 0u;
+    s->rest_run = 0u;
+    s->track_pos = 0u;
+    s->track_limited = 0u;
+    return FBG_OK;
+}
+
 fbg_status fbgf_reset(fbgf_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : fbg_front_reset(FRONT(state));
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)), 1);
 }
 
 fbg_status fbgf_tare_begin(fbgf_state *state)
@@ -8814,14 +8842,14 @@ fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS],
 
 fbg_status fbgf_tare_end(fbgf_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_end(FRONT(state));
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)), 0);
 }
 
 fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    return fbg_front_set_baseline(FRONT(state), baseline_fm);
+    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm), 0);
 }
 
 /* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
@@ -8855,7 +8883,8 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
  * final (*st is what the step returns). */
 static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
-                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], fbg_status *st)
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], float filt[FBG_N_STRAIN],
+                       fbg_status *st)
 {
     const fbgf_model *m;
     uint32_t status, sat = 0u;
@@ -8876,7 +8905,8 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
         float shift_t = (float)shift[FBG_N_STRAIN] * 1e-3f;
         for (c = 0; c < FBG_N_STRAIN; ++c)
-            comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t;
+            comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
+                      (s->held_pm[c] + s->drift_pm[c]);
         memcpy(s->last_comp, comp, sizeof comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
@@ -8897,6 +8927,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         fir_tap(a, m->taps[k], s->hist[--idx]);
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
+    memcpy(filt, a, sizeof a);
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
@@ -8944,24 +8975,106 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
     }
 }
 
+/* contact_decision of fbg_fixed.c on the float margin. */
+static uint8_t contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+{
+    const int raw = margin > 0.0f;
+    if (s->decision) {
+        s->decision = (uint8_t)(raw || margin > m->contact_off);
+        return s->decision;
+    }
+    if (raw && margin >= m->contact_on) {
+        if (s->rise_run < 255u)
+            s->rise_run++;
+    } else {
+        s->rise_run = 0u;
+    }
+    if (s->rise_run >= m->contact_rise_n) {
+        s->decision = 1u;
+        s->rise_run = 0u;
+    }
+    return s->decision;
+}
+
+/* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
+ * NULL otherwise; a block at rest throughout, after track_settle samples of rest, adds
+ * clamp(sum(filt) / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
+ * the last reset or tare stays within +-track_limit_pm. */
+static void rest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
+{
+    unsigned c;
+    if (filt != NULL) {
+        if (s->rest_run < 0xFFFFu)
+            s->rest_run++;
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->track_sum[c] += filt[c];
+    } else {
+        s->rest_run = 0u;
+    }
+    if (++s->track_pos < FBG_TRACK_BLOCK)
+        return;
+    s->track_pos = 0u;
+    if (m->track_shift != 0u && s->rest_run >= (uint32_t)FBG_TRACK_BLOCK + m->track_settle) {
+        const float scale = 1.0f / (float)(1ul << m->track_shift);
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            float step = s->track_sum[c] * scale, drift;
+            step = step > m->track_step_max_pm ? m->track_step_max_pm
+                 : (step < -m->track_step_max_pm ? -m->track_step_max_pm : step);
+            drift = s->drift_pm[c] + step;
+            if (drift > m->track_limit_pm || drift < -m->track_limit_pm) {
+                drift = drift > 0.0f ? m->track_limit_pm : -m->track_limit_pm;
+                s->track_limited = 1u;
+            }
+            s->drift_pm[c] = drift;
+        }
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->track_sum[c] = 0.0f;
+}
+
+#if FBGF_RUN_BATCHED
+/* The model's decision is the contact net's own and no tracker runs: fbgf_run may batch. */
+static int in_use_off(const fbgf_model *m)
+{
+    return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
+           m->contact_rise_n == 1u;
+}
+#endif
+
 fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out)
 {
     const fbgf_model *m;
-    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], *act[2];
+    float in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN], filt[FBG_N_STRAIN], *act[2];
     const float *y;
     fbgf_kernel kernel;
     fbg_status st;
+    int ran;
 
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    if (!step_inputs(s, wl_fm, out, in, loc, &st))
+    ran = step_inputs(s, wl_fm, out, in, loc, filt, &st);
+    if (st != FBG_OK)
         return st;
     m = s->model;
+    if (s->track_limited)
+        out->status |= FBG_STATUS_BASELINE_LIMIT;
+    if (!ran) {
+        rest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
+        return FBG_OK;
+    }
     kernel = fbgf_dense_kernel();
     act[0] = s->act[0];
     act[1] = s->act[1];
     y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
-    if (!contact_output(y, out))
+    if (!finite_f(y[1] - y[0])) {      /* the safe output, and as a fault for the states */
+        contact_output(y, out);
+        rest_track(s, m, NULL);
+        return FBG_OK;
+    }
+    contact_output(y, out);
+    out->contact = contact_decision(s, m, out->margin);
+    rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    if (!out->contact)
         return FBG_OK;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
@@ -9056,8 +9169,9 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
 
     act[0] = &buf0[0][0];
     act[1] = &buf1[0][0];
+    float filt[FBG_N_STRAIN];
     for (i = 0; i < n && st == FBG_OK; ++i)
-        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], &st))
+        if (step_inputs(s, wl_fm + i * FBG_N_CHANNELS, out + i, in[n_run], loc[n_run], filt, &st))
             who[n_run++] = i;
     if (n_run == 0u)
         return st;
@@ -9093,7 +9207,9 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     if (state == NULL || (n > 0u && (wl_fm == NULL || out == NULL)))
         return FBG_ERR_NULL;
 #if FBGF_RUN_BATCHED
-    {
+    /* The decision over time and the tracker carry state from sample to sample through the
+     * nets' outputs: then one step at a time (the batch is the nets of many samples at once). */
+    if (fbg_front_ok(FRONT(state)) && in_use_off(state->model)) {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
             size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
@@ -9101,14 +9217,14 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
             if (st != FBG_OK)
                 return st;
         }
+        return FBG_OK;
     }
-#else
+#endif
     for (i = 0; i < n; ++i) {
         st = fbgf_step(state, wl_fm + i * FBG_N_CHANNELS, out + i);
         if (st != FBG_OK)
             return st;
     }
-#endif
     return FBG_OK;
 }
 #undef FRONT

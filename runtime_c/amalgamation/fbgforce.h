@@ -400,14 +400,21 @@ typedef struct {
     float overload_N;
     float mem_weight[4];  /* memory input u = sum_i mem_weight[i] * z_i */
     float play_width[4];  /* in standardised units */
+    float contact_on;  /* decision over time as fbg_model, on the margin */
+    float contact_off;
+    float track_step_max_pm;  /* per block: corr_i += clamp(sum(filt_i) / 2^track_shift, +-track_step_max_pm) */
+    float track_limit_pm;  /* |corr_i| <= track_limit_pm (BASELINE_LIMIT at it) */
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
+    uint16_t track_settle;
     uint8_t n_ema;  /* as fbg_model */
     uint8_t n_play;
     uint8_t ema_shift[4];  /* state += (u - state) / 2^ema_shift[k] */
     uint8_t ema_gain[4];
     uint8_t play_gain[4];
     uint8_t loc_shift;  /* location averages of z - z_rest (0: off): state += (r - state) / 2^loc_shift */
+    uint8_t contact_rise_n;  /* 1..255 */
+    uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
     uint8_t pad_[1];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
@@ -445,6 +452,18 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;
     uint8_t mem_primed;
+    /* The decision over time and the at-rest baseline tracker, as fbg_state's: the block's
+     * sum of filtered shifts (pm); the correction subtracted from the compensated shifts is
+     * held_pm (made before the last reset) + drift_pm (since, bounded by track_limit_pm). */
+    float track_sum[FBG_N_STRAIN];
+    float drift_pm[FBG_N_STRAIN];
+    float held_pm[FBG_N_STRAIN];
+    uint16_t rest_run;
+    uint8_t decision;
+    uint8_t rise_run;
+    uint8_t track_pos;
+    uint8_t track_limited;
+    uint8_t reserved_[2];
     float act[2][FBG_MAX_WIDTH];
 } fbgf_state;
 
