@@ -125,9 +125,10 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
     dict
         ``model``, ``engine``, ``logs``, ``calibration_test_rmse_force_N``, ``scored``
         (variant -> ``role``, ``data`` and the ``fbgforce evaluate --json`` metrics of its other
-        log, and ``constant+rest`` for the constant-temperature group), ``goals`` (list of rows: ``key``,
-        ``label``, ``target``, ``compare``, ``unit``, ``scored_on``, ``value``, ``pass``),
-        ``passed``, ``failed``, ``not_measured``.
+        log, and ``constant+rest`` for the constant-temperature group), ``goals`` (list of
+        rows: ``key``, ``label``, ``target``, ``compare``, ``unit``, ``scored_on``, ``value``,
+        ``pass``; every goal has a row, ``value`` and ``pass`` null where the logs of its role
+        are missing), ``passed``, ``failed``, ``not_measured``.
     """
     from fbgforce import dataset
     from fbgforce import model as fm
@@ -173,6 +174,8 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
                   "rmse_ratio": _ratio(m["rmse_force_N"], const)}
         rows += [_row(g, [name] + (twins if g.key == "rmse_ratio" else []), values[g.key])
                  for g in RAMP_GOALS]
+    if not by_role["ramp"]:
+        rows += [_row(g, [], None) for g in RAMP_GOALS]
     constant = by_role["constant"] + by_role["rest"]
     if constant:
         m = run(constant)
@@ -182,6 +185,8 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
                   "onset_median": m["contact_timing"]["onset_delay_ms"]["median"],
                   "detected_above_1N": m["contact_accuracy_above_1N"]}
         rows += [_row(g, constant, values[g.key]) for g in CONSTANT_GOALS]
+    else:
+        rows += [_row(g, [], None) for g in CONSTANT_GOALS]
     cal_rmse = None
     if by_role["hold"]:
         cal_rmse = calibration_test_rmse(model_dir, model, engine)
@@ -189,6 +194,8 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
         values = {"hold_bias": m["holds"]["force_bias_N"],
                   "hold_rmse_ratio": _ratio(m["holds"]["rmse_force_N"], cal_rmse)}
         rows += [_row(g, by_role["hold"], values[g.key]) for g in HOLD_GOALS]
+    else:
+        rows += [_row(g, [], None) for g in HOLD_GOALS]
     verdicts = [r["pass"] for r in rows]
     return {"model": str(model_dir), "engine": engine, "logs": str(logs),
             "calibration_test_rmse_force_N": cal_rmse, "scored": scored, "goals": rows,
@@ -203,7 +210,7 @@ def table(result: dict[str, Any]) -> str:
     for r in result["goals"]:
         g = goals[r["key"]]
         verdict = {True: "pass", False: "FAIL", None: "not measured"}[r["pass"]]
-        lines.append(f"| {g.label} | {', '.join(r['scored_on'])} | {g.show(r['value'])} | "
+        lines.append(f"| {g.label} | {', '.join(r['scored_on']) or '–'} | {g.show(r['value'])} | "
                      f"{g.show_target()} | {verdict} |")
     lines.append("")
     for name, m in result["scored"].items():

@@ -60,7 +60,8 @@ def test_rest_seconds_add_up_over_recordings_of_other_rates():
     t, tc, pc, force_out = _rest_case()
     fast = metrics.use_masks(pc, tc, np.zeros(300), t)
     slow = metrics.use_masks(pc, tc, np.zeros(300), 2 * t)   # 500 Hz: the gap is 25 samples
-    assert np.array_equal(np.flatnonzero(slow["rest"]), np.r_[np.arange(0, 76), np.arange(134, 300)])
+    assert np.array_equal(np.flatnonzero(slow["rest"]),
+                          np.r_[np.arange(0, 76), np.arange(134, 300)])
     use = {k: np.concatenate([fast[k], slow[k]]) for k in metrics.USE_KEYS}
     pred = {"contact": np.r_[pc, pc], "force_N": np.r_[force_out, force_out],
             "x_mm": np.r_[NAN, NAN], "y_mm": np.r_[NAN, NAN]}
@@ -223,6 +224,22 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     assert bench_in_use.main(["--model", str(small_exported_dir), "--logs",
                               str(in_use_logs)]) == 0
     assert "| force at rest, 99th percentile | ramp40K_fast |" in capsys.readouterr().out
+
+
+def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_exported_dir,
+                                                         tmp_path):
+    from fbgforce.bench import bench_in_use
+
+    entries = json.loads((in_use_logs / fg.MANIFEST).read_text())["variants"]
+    only = {"const_temp": {**entries["const_temp"],
+                           "other": str(in_use_logs / entries["const_temp"]["other"]),
+                           "train": str(in_use_logs / entries["const_temp"]["train"])}}
+    (tmp_path / fg.MANIFEST).write_text(json.dumps({"variants": only}))
+    res = bench_in_use.score(small_exported_dir, tmp_path)
+    verdict = {r["key"]: (r["value"], r["pass"]) for r in res["goals"]}
+    assert verdict["rest_contact"] == (None, None) and verdict["hold_bias"] == (None, None)
+    assert verdict["false_events"][0] is not None
+    assert res["not_measured"] == 5 and res["calibration_test_rmse_force_N"] is None
 
 
 def test_evaluate_json_reports_rests_and_holds(in_use_logs, small_exported_dir, capsys):

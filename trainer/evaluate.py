@@ -31,8 +31,8 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
     are scored with :func:`fbgforce.metrics.compute`; the presses of the split also give the
     onset and release delays (``contact_timing``) and each recording's rests and holds
-    (``at_rest``, ``holds``: :func:`fbgforce.metrics.use_masks`). ``predictions``: the engine's output on
-    each whole recording (:func:`run_recording`) when the caller has it already.
+    (``at_rest``, ``holds``: :func:`fbgforce.metrics.use_masks`). ``predictions``: the engine's
+    output on each whole recording (:func:`run_recording`) when the caller has it already.
     """
     from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
