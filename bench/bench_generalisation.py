@@ -42,7 +42,7 @@ def load_manifest(data: Path, prog: str = "bench_generalisation") -> dict[str, d
         variants = json.loads(path.read_text())["variants"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         fail(f"{path}: not a foreign-log manifest ({type(exc).__name__}: "
-              f"{exc}); write one with: python tests/foreign.py --out {data}", prog)
+             f"{exc}); write one with: python tests/foreign.py --out {data}", prog)
     out = {}
     for name, entry in variants.items():
         resolved = dict(entry)
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [v for v in args.variants if v not in manifest]
     if unknown:
         fail(f"{', '.join(unknown)} not in {args.data / MANIFEST} "
-                 f"(it lists {', '.join(manifest)})")
+             f"(it lists {', '.join(manifest)})")
     names = args.variants or list(manifest)
     rows, out = [], {}
     for name in names:

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from fbgforce.bench.bench_generalisation import fail, load_manifest
+from fbgforce.errors import InputError
 from fbgforce.jsonutil import json_default
 
 PROG = "bench_in_use"
@@ -113,7 +114,7 @@ def calibration_test_rmse(model_dir: Path, model: Any, engine: str) -> float | N
     paths = [d.get("path") for d in model.metadata.get("data", [])]
     if not paths or any(p is None or not Path(p).is_file() for p in paths):
         fail(f"{model_dir}: the model's training logs {paths} are not all readable; the held-"
-              "grip goal compares with their test presses", PROG)
+             "grip goal compares with their test presses", PROG)
     return evaluate(model_dir, paths, engine=engine, split="test", model=model)["rmse_force_N"]
 
 
@@ -142,8 +143,8 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
             by_role[entry["role"]].append(name)
     if not any(by_role.values()):
         fail(f"{logs}: no variant with a role among {', '.join(SCORED_ROLES)}; write them with "
-              "python tests/foreign.py --out DIR const_temp ramp40K long_rests held_grips ...",
-              PROG)
+             "python tests/foreign.py --out DIR const_temp ramp40K long_rests held_grips ...",
+             PROG)
 
     runs: dict[str, tuple[Any, dict[str, Any]]] = {}
 
@@ -240,8 +241,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout instead of the table")
     args = ap.parse_args(argv)
-    from fbgforce.errors import InputError
-
     if not (args.model / "model.json").is_file():
         fail(f"{args.model}: not a model directory (no model.json)", PROG)
     try:
