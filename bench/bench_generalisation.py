@@ -22,36 +22,36 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import NoReturn
 
 #: Manifest file name inside ``--data`` (tests/foreign.py writes it).
 MANIFEST = "foreign.json"
 
 
-def _fail(msg: str) -> None:
+def fail(msg: str, prog: str = "bench_generalisation") -> NoReturn:
     """Bad input: one line on stderr, exit status 2."""
-    print(f"bench_generalisation: {msg}", file=sys.stderr)
+    print(f"{prog}: {msg}", file=sys.stderr)
     sys.exit(2)
 
 
-def load_manifest(data: Path) -> dict[str, dict]:
+def load_manifest(data: Path, prog: str = "bench_generalisation") -> dict[str, dict]:
     """Variants of ``data/foreign.json`` with their log paths resolved; exits 2 with one line
-    naming the file and the field when something is missing."""
+    (starting with ``prog``) naming the file and the field when something is missing."""
     path = data / MANIFEST if data.is_dir() else data
     try:
         variants = json.loads(path.read_text())["variants"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        _fail(f"{path}: not a foreign-log manifest ({type(exc).__name__}: "
-                 f"{exc}); write one with: python tests/foreign.py --out {data}")
+        fail(f"{path}: not a foreign-log manifest ({type(exc).__name__}: "
+             f"{exc}); write one with: python tests/foreign.py --out {data}", prog)
     out = {}
     for name, entry in variants.items():
         resolved = dict(entry)
         for key in ("train", "other"):
             if key not in entry:
-                _fail(f"{path}: variant {name!r} has no {key!r} log")
+                fail(f"{path}: variant {name!r} has no {key!r} log", prog)
             resolved[key] = path.parent / entry[key]
             if not resolved[key].is_file():
-                _fail(f"{path}: variant {name!r}: no such file "
-                         f"{resolved[key]}")
+                fail(f"{path}: variant {name!r}: no such file {resolved[key]}", prog)
         out[name] = resolved
     return out
 
@@ -71,8 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     manifest = load_manifest(args.data)
     unknown = [v for v in args.variants if v not in manifest]
     if unknown:
-        _fail(f"{', '.join(unknown)} not in {args.data / MANIFEST} "
-                 f"(it lists {', '.join(manifest)})")
+        fail(f"{', '.join(unknown)} not in {args.data / MANIFEST} "
+             f"(it lists {', '.join(manifest)})")
     names = args.variants or list(manifest)
     rows, out = [], {}
     for name in names:

@@ -31,6 +31,18 @@ Contact timing (:func:`press_delays`, :func:`timing_summary`; ``contact_timing``
 caller passes ``delays``): per press, the onset delay is the first predicted-contact sample
 minus the first true-contact sample, the release delay the first predicted no-contact sample
 after the press minus the first true no-contact sample after it, both in ms (negative: early).
+
+In use (:func:`use_masks`, then ``at_rest`` and ``holds`` when the caller passes ``use``):
+
+- rest: samples at least :data:`REST_GAP_S` (50 ms) from any labelled contact; an event: the
+  predicted contact rising from no-contact to contact; ``at_rest`` counts the events whose
+  rising sample is at rest (per minute of rest), the fraction of rest samples flagged as
+  contact and the 99th percentile and maximum of the force output's magnitude at rest;
+- hold: a run of true-contact samples lasting at least :data:`HOLD_MIN_S` (1 s) around each of
+  which the true force, averaged over :data:`HOLD_SMOOTH_S` against load-cell noise, varies by
+  at most ``max(HOLD_BAND_N, HOLD_BAND_FRACTION * force)`` over a centred
+  :data:`HOLD_WINDOW_S` window (a slope below about 1 N/s at light loads, so ramps are not
+  holds); ``holds`` gives the force output's bias and RMSE over the held samples.
 """
 from __future__ import annotations
 
@@ -45,9 +57,22 @@ BOUNDARY_MM = 2.0
 #: Force above which the paper reports a 100 % contact success rate.
 HIGH_FORCE_N = 5.0
 #: Upper edges (N) of the finer force bins of ``contact_by_force`` (light touch); last is open.
-CONTACT_BINS_N: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0)
+CONTACT_BINS_N: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
 #: Force above which the contact goal is "every sample detected" (``contact_accuracy_above_1N``).
 LIGHT_FORCE_N = 1.0
+#: Rest: samples at least this far (s) from any labelled contact (``at_rest``).
+REST_GAP_S = 0.05
+#: A hold lasts at least this long (s) (``holds``).
+HOLD_MIN_S = 1.0
+#: Moving average (s) of the true force before the hold test: load-cell noise is no change.
+HOLD_SMOOTH_S = 0.02
+#: Centred window (s) over which a held sample's smoothed true force stays within the band.
+HOLD_WINDOW_S = 0.2
+#: Band of a hold: the smoothed true force varies by at most the larger of these (N, fraction).
+HOLD_BAND_N = 0.2
+HOLD_BAND_FRACTION = 0.05
+#: Keys of :func:`use_masks` (each (n,)).
+USE_KEYS = ("rest", "event", "held", "hold_start", "period_s")
 
 
 def _pad_size_mm() -> tuple[float, float]:
@@ -77,7 +102,8 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
             x_mm: np.ndarray, y_mm: np.ndarray, *, extras: bool = True,
             force_bins_N: Sequence[float] = FORCE_BINS_N, boundary_mm: float = BOUNDARY_MM,
             pad_mm: tuple[float, float] | None = None,
-            delays: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, Any]:
+            delays: tuple[np.ndarray, np.ndarray] | None = None,
+            use: Mapping[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Score predictions against ground truth.
 
     Parameters
@@ -96,6 +122,9 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
     delays
         Per-press onset and release delays (ms) from :func:`press_delays` (concatenated over
         recordings); with ``extras`` they are summarised under ``contact_timing``.
+    use
+        :func:`use_masks` of each recording, concatenated in the order of the samples; with
+        ``extras`` they give ``at_rest`` and ``holds``.
 
     Returns
     -------
@@ -152,7 +181,98 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         out[key] = row
     if delays is not None:
         out["contact_timing"] = timing_summary(*delays)
+    if use is not None:
+        masks = {k: np.asarray(use[k]).reshape(-1) for k in USE_KEYS}
+        for k, arr in masks.items():
+            if arr.size != n:
+                raise ValueError(f"use {k} has {arr.size} samples, contact has {n}")
+        out["at_rest"] = rest_summary(pc, pf, masks)
+        out["holds"] = hold_summary(pf, tf, masks)
     return out
+
+
+def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray,
+              t_s: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-sample masks of ONE continuous recording for ``at_rest`` and ``holds``.
+
+    Parameters
+    ----------
+    pred_contact, contact
+        (n,) predicted and labelled contact, in time order.
+    force_N
+        (n,) true (load-cell) force.
+    t_s
+        (n,) sample times; the sample period is their median difference.
+
+    Returns
+    -------
+    dict
+        ``rest``: at least :data:`REST_GAP_S` from any labelled contact; ``event``: the
+        prediction rises from no-contact to contact here (never at the first sample);
+        ``held``: in a hold (module docstring); ``hold_start``: the first sample of each hold;
+        ``period_s``: the recording's sample period, on every sample (rest time adds up over
+        recordings of different rates).
+    """
+    pc = np.asarray(pred_contact, bool).reshape(-1)
+    tc = np.asarray(contact, bool).reshape(-1)
+    tf = np.asarray(force_N, dtype=np.float64).reshape(-1)
+    n = tc.size
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    period = float(np.median(np.diff(t))) if n > 1 else 1e-3
+
+    def samples(seconds: float) -> int:
+        return max(1, int(round(seconds / period)))
+
+    gap = samples(REST_GAP_S)
+    # A sample is at rest when no labelled contact lies fewer than `gap` samples away.
+    near = np.convolve(tc.astype(np.int64), np.ones(2 * gap - 1, np.int64), mode="same") > 0
+    event = np.zeros(n, bool)
+    event[1:] = pc[1:] & ~pc[:-1]
+    held = np.zeros(n, bool)
+    half = samples(HOLD_WINDOW_S) // 2
+    if n > 2 * half:
+        k = samples(HOLD_SMOOTH_S)
+        smooth = np.convolve(tf, np.ones(k) / k, mode="same")
+        padded = np.pad(smooth, half, mode="edge")
+        windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
+        spread = windows.max(axis=1) - windows.min(axis=1)
+        steady = tc & (spread <= np.maximum(HOLD_BAND_N, HOLD_BAND_FRACTION * np.abs(smooth)))
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], steady.astype(np.int8), [0]])))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a >= samples(HOLD_MIN_S):
+                held[a:b] = True
+    hold_start = held & ~np.concatenate([[False], held[:-1]])
+    return {"rest": ~near, "event": event, "held": held, "hold_start": hold_start,
+            "period_s": np.full(n, period)}
+
+
+def rest_summary(pc: np.ndarray, pf: np.ndarray, masks: Mapping[str, np.ndarray]
+                 ) -> dict[str, Any]:
+    """``at_rest``: samples and seconds at rest, the fraction flagged as contact, false contact
+    events (per minute of rest), and the 99th percentile and maximum of ``|pf|`` there."""
+    rest = masks["rest"].astype(bool)
+    seconds = float(np.sum(masks["period_s"][rest]))
+    events = int(np.sum(masks["event"].astype(bool) & rest))
+    force = np.abs(pf[rest])
+    return {"gap_ms": 1000.0 * REST_GAP_S, "samples": int(rest.sum()), "seconds": seconds,
+            "contact_fraction": float(np.mean(pc[rest])) if rest.any() else None,
+            "false_events": events,
+            "false_events_per_min": 60.0 * events / seconds if seconds > 0 else None,
+            "force_p99_N": float(np.percentile(force, 99)) if force.size else None,
+            "force_max_N": float(np.max(force)) if force.size else None}
+
+
+def hold_summary(pf: np.ndarray, tf: np.ndarray, masks: Mapping[str, np.ndarray]
+                 ) -> dict[str, Any]:
+    """``holds``: how many holds, their samples and seconds, and the bias (mean of output minus
+    true force) and RMSE of the force output over the held samples."""
+    held = masks["held"].astype(bool)
+    err = pf[held] - tf[held]
+    return {"min_s": HOLD_MIN_S, "band_N": HOLD_BAND_N, "band_fraction": HOLD_BAND_FRACTION,
+            "holds": int(np.sum(masks["hold_start"].astype(bool))), "samples": int(held.sum()),
+            "seconds": float(np.sum(masks["period_s"][held])),
+            "force_bias_N": float(np.mean(err)) if err.size else None,
+            "rmse_force_N": _rmse(err)}
 
 
 def common_location(preds: Mapping[str, Mapping[str, np.ndarray]], contact: np.ndarray,

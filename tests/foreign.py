@@ -14,9 +14,15 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
 - base wavelengths anywhere in 1510–1590 nm; sample rates 500 / 1000 / 2000 Hz; white noise
   2–15 pm quantised to 0.1 pm;
 - temperature: a slow ramp plus a wander seen by every grating with its own coefficient, or
-  exactly none (then the coefficients cannot be identified from the data);
-- presses: trapezoidal force profiles up to 50 or 100 N, rests of any length (including very
-  short ones), a recording that starts inside the end of a press;
+  exactly none (then the coefficients cannot be identified from the data), or a fast ramp of
+  tens of kelvin at a set rate (K/min) starting with the first press; the temperature grating
+  can see the temperature through its own first-order lag (seconds: it sits elsewhere in the
+  fingertip), so a fast ramp leaves the reference behind the strain gratings;
+- a slow wander of every grating on its own (a few pm over tens of seconds: interrogator and
+  fibre mounts), independent of temperature;
+- presses: trapezoidal force profiles up to 50 or 100 N, held for up to seconds, rests of any
+  length (from very short ones to tens of seconds), a recording that starts inside the end of
+  a press;
 - labels: contact = load-cell force above a threshold of 0.1–1 N, load-cell noise making small
   negative forces at rest, press ids large and non-contiguous in arbitrary order;
 - files: columns in a shuffled order, ``#`` comments before the header and among the data,
@@ -26,22 +32,29 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
 Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
 :func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept.
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
+:data:`IN_USE_VARIANTS` are recordings of ONE fingertip (:data:`IN_USE_FINGERTIP`, device
+seed 200) in the conditions it is used in: a calibration log, presses at constant temperature,
+thermal ramps, long rests and held grips; each carries a ``role`` for the in-use benchmark
+(bench/bench_in_use.py, docs/robustness.md "Use in the field").
 
-As a script it writes the logs the generalisation benchmark scores (bench/bench_generalisation.py
-reads them; it does not import this file)::
+As a script it writes the logs the generalisation and in-use benchmarks score
+(bench/bench_generalisation.py and bench/bench_in_use.py read them; neither imports this file)::
 
     python tests/foreign.py --out DIR [--presses 60] [VARIANT ...]
 
-For each variant (default all): a device (seed 100 + its index in :data:`VARIANTS`), two logs of
-it (seeds 1 and 2) as ``DIR/<variant>_A.csv`` and ``DIR/<variant>_B.csv``, and ``DIR/foreign.json``
-naming them with the device's true temperature coefficients (:data:`MANIFEST`).
+For each variant (default all of :data:`VARIANTS`; the in-use ones by name): a device (the
+variant's ``device_seed``, else seed 100 + its index in :data:`VARIANTS`), two logs of it (seeds
+1 and 2) as ``DIR/<variant>_A.csv`` and ``DIR/<variant>_B.csv``, and ``DIR/foreign.json`` naming
+them with the device's true temperature coefficients and the variant's role and temperature
+ramp (:data:`MANIFEST`). A variant with ``presses_max`` writes at most that many presses per
+log (long rests and holds would otherwise make files of hundreds of MB).
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -63,7 +76,14 @@ class Spec:
     load_cell_noise_N: float = 0.03
     drift: bool = True                   # temperature ramp + wander (False: exactly constant)
     drift_K: float = 1.5                 # ramp over the log, K
+    ramp_K_per_min: float = 0.0          # > 0: from the first press the temperature rises at
+                                         # this rate to drift_K and stays (no wander)
+    temp_lag_s: float = 0.0              # first-order lag of the temperature grating, s
+    temp_coeff_spread: float = 0.1       # strain gratings' thermal coefficients: 1 +- this
+                                         # times the reference grating's
+    wander_pm: float = 0.0               # slow wander of each grating on its own (peak), pm
     creep: float = 0.0                   # viscoelastic fraction (0 = none)
+    creep_s: float = 0.05                # time constant of the viscoelastic part, s
     friction: float = 0.0                # pad friction: loading/unloading gap at equal load,
                                          # as a fraction of that load (0 = none)
     friction_sharpness: float = 4.0      # how fast a reversal slips (higher: sharper corner)
@@ -71,6 +91,9 @@ class Spec:
     ramp_s: tuple[float, float] = (0.15, 0.35)
     hold_s: tuple[float, float] = (0.0, 0.2)
     start_in_contact: int = 0            # samples of a press's tail before the first rest
+    presses_max: int | None = None       # most presses a log of this variant holds
+    device_seed: int | None = None       # the fingertip (None: one per variant, see write_logs)
+    role: str = ""                       # what the log measures in bench/bench_in_use.py
     crlf: bool = False
     extras: bool = True
 
@@ -92,7 +115,8 @@ class Device:
 
 def device(spec: Spec, seed: int) -> Device:
     """A device drawn from ``seed``: skewed supports, sensitivities ±30 %, wavelengths anywhere
-    in 1510–1590 nm (at least 4 nm apart so peaks never cross)."""
+    in 1510–1590 nm (at least 4 nm apart so peaks never cross), thermal coefficients within
+    ``spec.temp_coeff_spread`` of the reference grating's."""
     rng = np.random.default_rng(seed)
     w, h = spec.pad_mm
     corners = np.array([[0.2 * w, 0.15 * h], [0.8 * w, 0.2 * h], [0.15 * w, 0.85 * h],
@@ -108,7 +132,9 @@ def device(spec: Spec, seed: int) -> Device:
     return Device(spec=spec, supports_mm=supports, soft_mm=rng.uniform(6.0, 10.0),
                   gain_pm_per_N=40.0 * rng.uniform(0.7, 1.3, 4), quad=rng.uniform(-0.08, 0.08, 4),
                   crosstalk=np.eye(4) + off, base_nm=base,
-                  temp_pm_per_K=rng.uniform(9.0, 11.0), temp_coeff=rng.uniform(0.9, 1.1, 4))
+                  temp_pm_per_K=rng.uniform(9.0, 11.0),
+                  temp_coeff=rng.uniform(1.0 - spec.temp_coeff_spread,
+                                         1.0 + spec.temp_coeff_spread, 4))
 
 
 def shares(dev: Device, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -158,6 +184,52 @@ def strain_pm(dev: Device, force: np.ndarray, x: np.ndarray, y: np.ndarray) -> n
     return s @ dev.crosstalk.T
 
 
+def lag(x: np.ndarray, tau_samples: float) -> np.ndarray:
+    """First-order lag of ``x`` ((n,) or (n, k), each column on its own) with a time constant
+    of ``tau_samples``, starting from zero: ``y[i] = y[i-1] + a (x[i] - y[i-1])``."""
+    a = 1.0 - np.exp(-1.0 / tau_samples)
+    cols = x.reshape(x.shape[0], -1)
+    out = np.empty(cols.shape)
+    for j in range(cols.shape[1]):
+        acc = 0.0
+        res = [0.0] * cols.shape[0]
+        for i, v in enumerate(cols[:, j].tolist()):
+            acc += a * (v - acc)
+            res[i] = acc
+        out[:, j] = res
+    return out.reshape(x.shape)
+
+
+def temperature_K(spec: Spec, rng: np.random.Generator, t: np.ndarray, ramp_from: int
+                  ) -> np.ndarray:
+    """Temperature change (n,) K at the sample times ``t``, zero at the first sample.
+
+    A fast ramp (``ramp_K_per_min`` > 0) starts at sample ``ramp_from`` (the first press: the
+    start-up tare sees a constant temperature) and rises to ``drift_K``, then stays; otherwise
+    ``drift_K`` over the whole log plus a 0.3 K wander, or exactly constant.
+    """
+    if not spec.drift:
+        return np.zeros(t.size)
+    el = t - t[0]
+    if spec.ramp_K_per_min > 0:
+        return np.clip((el - el[min(ramp_from, el.size - 1)]) * spec.ramp_K_per_min / 60.0,
+                       0.0, spec.drift_K)
+    dur = t.size / spec.rate_hz
+    phase = rng.uniform(0, 2 * np.pi)
+    temp = spec.drift_K * el / dur + 0.3 * np.sin(2 * np.pi * el / max(dur / 1.5, 1.0) + phase)
+    return temp - temp[0]
+
+
+def wander_pm(spec: Spec, rng: np.random.Generator, t: np.ndarray) -> np.ndarray:
+    """Slow wander (n, 5) pm of each grating on its own: three sinusoids per grating with
+    periods of 30-300 s and random phases, together at most ``spec.wander_pm``."""
+    period = rng.uniform(30.0, 300.0, (3, 5))
+    phase = rng.uniform(0.0, 2 * np.pi, (3, 5))
+    el = (t - t[0])[:, None]
+    return (spec.wander_pm / 3.0) * sum(np.sin(2 * np.pi * el / period[k] + phase[k])
+                                        for k in range(3))
+
+
 def _profile(rng: np.random.Generator, spec: Spec, peak: float) -> np.ndarray:
     r = spec.rate_hz
     up = int(rng.uniform(*spec.ramp_s) * r)
@@ -184,8 +256,11 @@ def log(dev: Device, seed: int, n_press: int = 40) -> Dataset:
         xs.append(np.full(k, rng.uniform(2.0, w - 2.0)))
         ys.append(np.full(k, rng.uniform(2.0, h - 2.0)))
         pids.append(np.full(k, ids[-1]))
+    ramp_from = 0
     for p in range(n_press):
         rest = np.zeros(int(rng.uniform(*spec.rest_s) * spec.rate_hz))
+        if p == 0:
+            ramp_from = spec.start_in_contact + rest.size
         f = _profile(rng, spec, rng.uniform(spec.force_min_N, spec.force_max_N))
         forces.append(np.concatenate([rest, f]))
         n = rest.size + f.size
@@ -204,26 +279,17 @@ def log(dev: Device, seed: int, n_press: int = 40) -> Dataset:
     t = np.arange(n) / spec.rate_hz + rng.uniform(0.0, 100.0)
     s = strain_pm(dev, f, x, y)
     if spec.creep > 0:
-        # Viscoelastic pad: part of the response follows the load with a 50 ms lag.
-        a = 1.0 - np.exp(-1.0 / (0.05 * spec.rate_hz))
-        lag = np.empty_like(s)
-        acc = np.zeros(4)
-        for i in range(n):
-            acc += a * (s[i] - acc)
-            lag[i] = acc
-        s = (1.0 - spec.creep) * s + spec.creep * lag
-    if spec.drift:
-        dur = n / spec.rate_hz
-        phase = rng.uniform(0, 2 * np.pi)
-        temp_K = (spec.drift_K * (t - t[0]) / dur
-                  + 0.3 * np.sin(2 * np.pi * (t - t[0]) / max(dur / 1.5, 1.0) + phase))
-        temp_K -= temp_K[0]
-    else:
-        temp_K = np.zeros(n)
+        # Viscoelastic pad: part of the response follows the load with a lag (creep_s).
+        s = (1.0 - spec.creep) * s + spec.creep * lag(s, spec.creep_s * spec.rate_hz)
+    temp_K = temperature_K(spec, rng, t, ramp_from)
+    # The temperature grating sits elsewhere in the fingertip and may lag the beams' gratings.
+    temp_ref_K = lag(temp_K, spec.temp_lag_s * spec.rate_hz) if spec.temp_lag_s > 0 else temp_K
     shift_t = dev.temp_pm_per_K * temp_K
     wl = np.empty((n, 5))
     wl[:, :4] = dev.base_nm[:4] + (s + np.outer(shift_t, dev.temp_coeff)) / 1000.0
-    wl[:, 4] = dev.base_nm[4] + shift_t / 1000.0
+    wl[:, 4] = dev.base_nm[4] + dev.temp_pm_per_K * temp_ref_K / 1000.0
+    if spec.wander_pm > 0:
+        wl += wander_pm(spec, rng, t) / 1000.0
     wl += rng.normal(0.0, spec.noise_pm / 1000.0, wl.shape)
     wl = np.round(wl, 4)  # the interrogator reports 0.1 pm
     contact = f > spec.contact_threshold_N
@@ -290,10 +356,57 @@ VARIANTS: dict[str, Spec] = {
     "hysteretic_pad": Spec("hysteretic_pad", friction=0.12, creep=0.08, hold_s=(0.0, 0.4)),
 }
 
+#: The fingertip every in-use variant records (device seed 200): 0.3 N contact threshold,
+#: thermal coefficients within 4 % of the reference grating's, a temperature grating lagging by
+#: 4 s, a wander of 3 pm, a pad that creeps (5 % with a 1 s time constant) and rubs (friction
+#: loop 5 % of the load). The variants differ only in protocol: temperature, rests, holds.
+IN_USE_FINGERTIP = Spec("in_use", contact_threshold_N=0.3, temp_coeff_spread=0.04,
+                        temp_lag_s=4.0, wander_pm=3.0, creep=0.05, creep_s=1.0, friction=0.05,
+                        device_seed=200)
+# 70 presses of 1-4 s rests last about 205 s: a 40 K ramp at 13 K/min (185 s) fits.
+_SPARSE = replace(IN_USE_FINGERTIP, drift=False, rest_s=(1.0, 4.0), hold_s=(0.0, 0.15),
+                  presses_max=70)
+
+#: Named in-use variants of :data:`IN_USE_FINGERTIP`; ``role`` says what each measures
+#: (docs/robustness.md, "Use in the field"). The constant-temperature and ramp logs of one
+#: seed hold the same presses, so their force errors compare like for like.
+IN_USE_VARIANTS: dict[str, Spec] = {
+    # What a user calibrates with: about 1 K of temperature change over the log, presses that
+    # hold for 0.15 s or less, no long holds.
+    "calib_1K": replace(IN_USE_FINGERTIP, name="calib_1K", role="calibration", drift_K=0.7,
+                        hold_s=(0.0, 0.15)),
+    # Sparse presses (1-4 s rests) at constant temperature: the reference for the ramps.
+    "const_temp": replace(_SPARSE, name="const_temp", role="constant"),
+    # The same presses through temperature ramps starting with the first press.
+    "ramp20K": replace(_SPARSE, name="ramp20K", role="ramp", drift=True, drift_K=20.0,
+                       ramp_K_per_min=10.0),
+    "ramp40K": replace(_SPARSE, name="ramp40K", role="ramp", drift=True, drift_K=40.0,
+                       ramp_K_per_min=13.0),
+    "ramp40K_fast": replace(_SPARSE, name="ramp40K_fast", role="ramp", drift=True,
+                            drift_K=40.0, ramp_K_per_min=20.0),
+    # Rests of 10-30 s at constant temperature: false contact events at rest.
+    "long_rests": replace(IN_USE_FINGERTIP, name="long_rests", role="rest", drift=False,
+                          rest_s=(10.0, 30.0), hold_s=(0.0, 0.15), presses_max=10),
+    # Grips held 1.5-6 s at 0.5-50 N at constant temperature (creep and friction act).
+    "held_grips": replace(IN_USE_FINGERTIP, name="held_grips", role="hold", drift=False,
+                          rest_s=(0.3, 1.0), hold_s=(1.5, 6.0), presses_max=40),
+}
+
+#: Every variant the script can write, by name.
+ALL_VARIANTS: dict[str, Spec] = {**VARIANTS, **IN_USE_VARIANTS}
+
 #: The file ``main`` writes next to the logs: ``{"presses": n, "variants": {name: {"train":
-#: "<name>_A.csv", "other": "<name>_B.csv", "device_seed": s, "temp_coeff_true": [4 floats]}}}``
-#: (file names relative to the manifest).
+#: "<name>_A.csv", "other": "<name>_B.csv", "device_seed": s, "temp_coeff_true": [4 floats],
+#: "presses": n}}}`` (file names relative to the manifest); in-use variants add ``role`` and,
+#: for ramps, ``ramp_K`` and ``ramp_K_per_min``.
 MANIFEST = "foreign.json"
+
+
+def device_seed(name: str) -> int:
+    """The device seed of a variant: its ``device_seed``, else 100 + its index in
+    :data:`VARIANTS`."""
+    spec = ALL_VARIANTS[name]
+    return spec.device_seed if spec.device_seed is not None else 100 + list(VARIANTS).index(name)
 
 
 def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 60) -> Path:
@@ -302,14 +415,20 @@ def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 6
     root.mkdir(parents=True, exist_ok=True)
     entries = {}
     for name in names or list(VARIANTS):
-        spec = VARIANTS[name]
-        seed = 100 + list(VARIANTS).index(name)
+        spec = ALL_VARIANTS[name]
+        seed = device_seed(name)
         dev = device(spec, seed)
+        n_press = min(presses, spec.presses_max or presses)
         for tag, log_seed in (("A", 1), ("B", 2)):
-            write_csv(log(dev, log_seed, presses), root / f"{name}_{tag}.csv", seed=log_seed,
+            write_csv(log(dev, log_seed, n_press), root / f"{name}_{tag}.csv", seed=log_seed,
                       crlf=spec.crlf)
-        entries[name] = {"train": f"{name}_A.csv", "other": f"{name}_B.csv", "device_seed": seed,
-                         "temp_coeff_true": dev.temp_coeff.tolist()}
+        entry = {"train": f"{name}_A.csv", "other": f"{name}_B.csv", "device_seed": seed,
+                 "temp_coeff_true": dev.temp_coeff.tolist(), "presses": n_press}
+        if spec.role:
+            entry["role"] = spec.role
+        if spec.ramp_K_per_min > 0:
+            entry.update(ramp_K=spec.drift_K, ramp_K_per_min=spec.ramp_K_per_min)
+        entries[name] = entry
     path = root / MANIFEST
     path.write_text(json.dumps({"presses": presses, "variants": entries}, indent=1) + "\n")
     return path
@@ -317,16 +436,18 @@ def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 6
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Write foreign calibration logs (two per variant) "
-                                 "and foreign.json, for bench/bench_generalisation.py.")
+                                 "and foreign.json, for bench/bench_generalisation.py and "
+                                 "bench/bench_in_use.py.")
     ap.add_argument("variants", nargs="*", metavar="VARIANT",
-                    help=f"variant names (default: all of {', '.join(VARIANTS)})")
+                    help=f"variant names (default: all of {', '.join(VARIANTS)}; in use: "
+                         f"{', '.join(IN_USE_VARIANTS)})")
     ap.add_argument("--out", required=True, metavar="DIR", help="directory for the logs")
     ap.add_argument("--presses", type=int, default=60, help="presses per log (default 60)")
     args = ap.parse_args(argv)
-    unknown = [v for v in args.variants if v not in VARIANTS]
+    unknown = [v for v in args.variants if v not in ALL_VARIANTS]
     if unknown:
         print(f"foreign.py: unknown variant(s) {', '.join(unknown)}; choose from "
-              f"{', '.join(VARIANTS)}", file=sys.stderr)
+              f"{', '.join(ALL_VARIANTS)}", file=sys.stderr)
         return 2
     if args.presses < 2:
         print("foreign.py: --presses must be at least 2", file=sys.stderr)

@@ -457,7 +457,7 @@ def test_contact_by_force_and_press_delays():
     bins = {tuple(b["range_N"]): (b["n_samples"], b["contact_accuracy"])
             for b in m["contact_by_force"]}
     assert bins[(0.0, 0.5)] == (1, 0.0) and bins[(0.5, 1.0)] == (1, 1.0)
-    assert bins[(2.0, 5.0)] == (1, 0.0) and bins[(10.0, None)] == (1, 1.0)
+    assert bins[(2.0, 5.0)] == (1, 0.0) and bins[(10.0, 20.0)] == (1, 1.0)
     assert bins[(5.0, 10.0)] == (1, 1.0)
     assert m["contact_accuracy_above_1N"] == pytest.approx(3 / 4)
     # Two presses at 1 kHz: the first is detected 1 ms late and released 1 ms late, the

@@ -30,8 +30,9 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     Each recording is run whole (the filter needs its continuous history), then the samples
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
     are scored with :func:`fbgforce.metrics.compute`; the presses of the split also give the
-    onset and release delays (``contact_timing``). ``predictions``: the engine's output on
-    each whole recording (:func:`run_recording`) when the caller has it already.
+    onset and release delays (``contact_timing``) and each recording's rests and holds
+    (``at_rest``, ``holds``: :func:`fbgforce.metrics.use_masks`). ``predictions``: the engine's
+    output on each whole recording (:func:`run_recording`) when the caller has it already.
     """
     from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
@@ -40,7 +41,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     model = fm.load(model_dir) if model is None else model
     seed = int(model.metadata.get("seed", 0)) if seed is None else seed
     ds_list, described = load_datasets(data)
-    preds, truths, onsets, releases = [], [], [], []
+    preds, truths, onsets, releases, uses = [], [], [], [], []
     if predictions is None:
         predictions = [run_recording(engine, model_dir, model, ds, d.get("path"))
                        for ds, d in zip(ds_list, described)]
@@ -55,13 +56,16 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
                                                keep)
         onsets.append(onset)
         releases.append(release)
+        use = fmetrics.use_masks(pred["contact"], ds.contact, ds.force_N, ds.t_s)
+        uses.append({k: v[rows] for k, v in use.items()})
         preds.append({k: np.asarray(pred[k])[rows] for k in ("contact", "force_N", "x_mm", "y_mm")})
         truths.append((np.asarray(ds.contact)[rows], np.asarray(ds.force_N)[rows],
                        np.asarray(ds.x_mm)[rows], np.asarray(ds.y_mm)[rows]))
     pred = {k: np.concatenate([p[k] for p in preds]) for k in preds[0]}
     truth = [np.concatenate([t[i] for t in truths]) for i in range(4)]
     out = fmetrics.compute(pred, *truth, extras=extras, pad_mm=model_pad_mm(model),
-                           delays=(np.concatenate(onsets), np.concatenate(releases)))
+                           delays=(np.concatenate(onsets), np.concatenate(releases)),
+                           use={k: np.concatenate([u[k] for u in uses]) for k in uses[0]})
     out.update({"engine": engine, "model": str(model_dir), "split": split,
                 "data": [d.get("path") or d.get("source") for d in described]})
     return out

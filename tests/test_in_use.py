@@ -1,0 +1,266 @@
+"""Robust in use: the metrics of rests and holds, the in-use foreign logs and their benchmark.
+
+The metrics are checked on hand-made arrays whose answers are counted by hand (rest samples,
+events, force at rest, holds); the in-use variants of tests/foreign.py on short logs (one
+fingertip, ramps at their rate with a lagging reference, holds the metrics find); the
+benchmark end to end on a few presses with the small test model and the C runtime.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+import foreign as fg  # noqa: E402
+
+from fbgforce import metrics  # noqa: E402
+
+NAN = np.full(300, np.nan)
+
+
+def _rest_case():
+    """300 samples at 1 kHz, labelled contact on 100-109; predicted contact on 0-4 (the
+    recording starts on: no event), 20-24, 95-112 and 200-201."""
+    t = np.arange(300) * 1e-3
+    tc = np.zeros(300, bool)
+    tc[100:110] = True
+    pc = np.zeros(300, bool)
+    for a, b in ((0, 5), (20, 25), (95, 113), (200, 202)):
+        pc[a:b] = True
+    force_out = np.full(300, 0.5)
+    force_out[200] = -2.0
+    return t, tc, pc, force_out
+
+
+def test_rest_samples_events_and_force_at_rest():
+    t, tc, pc, force_out = _rest_case()
+    use = metrics.use_masks(pc, tc, np.where(tc, 3.0, 0.0), t)
+    # At least 50 ms (50 samples) from labelled contact: samples 0-50 and 159-299.
+    assert np.array_equal(np.flatnonzero(use["rest"]),
+                          np.r_[np.arange(0, 51), np.arange(159, 300)])
+    assert np.array_equal(np.flatnonzero(use["event"]), [20, 95, 200])
+    m = metrics.compute({"contact": pc, "force_N": force_out, "x_mm": NAN, "y_mm": NAN}, tc,
+                        np.where(tc, 3.0, 0.0), NAN, NAN, use=use)
+    rest = m["at_rest"]
+    # The rise at 95 is 5 ms before the labelled onset: not at rest, so not a false event.
+    assert rest["samples"] == 192 and rest["false_events"] == 2
+    assert rest["seconds"] == pytest.approx(0.192)
+    assert rest["false_events_per_min"] == pytest.approx(2 / 0.192 * 60)
+    assert rest["contact_fraction"] == pytest.approx(12 / 192)
+    # |force output| at rest: 180 zeros, eleven 0.5 N and one 2 N (sample 200, -2 N).
+    assert rest["force_max_N"] == pytest.approx(2.0)
+    assert rest["force_p99_N"] == pytest.approx(0.5)
+
+
+def test_rest_seconds_add_up_over_recordings_of_other_rates():
+    t, tc, pc, force_out = _rest_case()
+    fast = metrics.use_masks(pc, tc, np.zeros(300), t)
+    slow = metrics.use_masks(pc, tc, np.zeros(300), 2 * t)   # 500 Hz: the gap is 25 samples
+    assert np.array_equal(np.flatnonzero(slow["rest"]),
+                          np.r_[np.arange(0, 76), np.arange(134, 300)])
+    use = {k: np.concatenate([fast[k], slow[k]]) for k in metrics.USE_KEYS}
+    pred = {"contact": np.r_[pc, pc], "force_N": np.r_[force_out, force_out],
+            "x_mm": np.r_[NAN, NAN], "y_mm": np.r_[NAN, NAN]}
+    m = metrics.compute(pred, np.r_[tc, tc], np.zeros(600), np.r_[NAN, NAN], np.r_[NAN, NAN],
+                        use=use)
+    assert m["at_rest"]["seconds"] == pytest.approx(0.192 + 2e-3 * 242)
+    assert m["at_rest"]["false_events"] == 4
+
+
+def _press(rise: int, level: float, hold: int, fall: int, rest: int) -> np.ndarray:
+    return np.concatenate([np.zeros(rest), np.linspace(0.0, level, rise, endpoint=False),
+                           np.full(hold, level), np.linspace(level, 0.0, fall)])
+
+
+def test_holds_are_long_steady_contacts():
+    # A 1.5 s hold at 5 N, a 0.6 s one at 2 N (too short), a ramp at 2 N/s for 2 s (not held).
+    force = np.concatenate([_press(300, 5.0, 1500, 300, 200), _press(100, 2.0, 600, 100, 500),
+                            np.zeros(300), np.linspace(0.5, 4.5, 2000), np.zeros(300)])
+    n = force.size
+    t = np.arange(n) * 1e-3
+    tc = force > 0.3
+    use = metrics.use_masks(tc, tc, force, t)
+    assert use["hold_start"].sum() == 1
+    held = np.flatnonzero(use["held"])
+    plateau = np.arange(500, 2000)            # the 5 N samples
+    assert set(held) <= set(plateau) and 1200 < held.size <= 1500
+    pred = {"contact": tc, "force_N": force + 0.1, "x_mm": np.full(n, np.nan),
+            "y_mm": np.full(n, np.nan)}
+    m = metrics.compute(pred, tc, force, np.full(n, np.nan), np.full(n, np.nan), use=use)
+    assert m["holds"]["holds"] == 1 and m["holds"]["samples"] == held.size
+    assert m["holds"]["force_bias_N"] == pytest.approx(0.1)
+    assert m["holds"]["rmse_force_N"] == pytest.approx(0.1)
+    # Load-cell noise is not a change of load: still the same hold.
+    noisy = force + np.random.default_rng(0).normal(0.0, 0.03, n)
+    again = metrics.use_masks(tc, tc, noisy, t)
+    assert again["hold_start"].sum() == 1 and set(np.flatnonzero(again["held"])) <= set(plateau)
+    # No hold at all: the summary says so with nulls, not NaN.
+    free = np.zeros(n, bool)
+    none = metrics.hold_summary(force, force, metrics.use_masks(free, free, np.zeros(n), t))
+    assert none["holds"] == 0 and none["force_bias_N"] is None and none["rmse_force_N"] is None
+
+
+def test_contact_bins_reach_20N():
+    tc = np.ones(4, bool)
+    tf = np.array([0.7, 15.0, 25.0, 60.0])
+    pc = np.array([1, 1, 0, 1], bool)
+    nan = np.full(4, np.nan)
+    m = metrics.compute({"contact": pc, "force_N": tf, "x_mm": nan, "y_mm": nan}, tc, tf, nan,
+                        nan)
+    bins = {tuple(b["range_N"]): (b["n_samples"], b["contact_accuracy"])
+            for b in m["contact_by_force"]}
+    assert bins[(10.0, 20.0)] == (1, 1.0) and bins[(20.0, None)] == (2, 0.5)
+
+
+def _in_use_log(name: str, presses: int):
+    spec = fg.IN_USE_VARIANTS[name]
+    dev = fg.device(spec, fg.device_seed(name))
+    return dev, fg.log(dev, 2, presses)
+
+
+def test_in_use_variants_are_one_fingertip_and_ramps_hold_the_same_presses():
+    devs = [fg.device(s, fg.device_seed(n)) for n, s in fg.IN_USE_VARIANTS.items()]
+    for d in devs[1:]:
+        np.testing.assert_array_equal(d.supports_mm, devs[0].supports_mm)
+        np.testing.assert_array_equal(d.temp_coeff, devs[0].temp_coeff)
+    # Thermal coefficients a few per cent from the reference grating's.
+    assert np.all(np.abs(devs[0].temp_coeff - 1.0) <= fg.IN_USE_FINGERTIP.temp_coeff_spread)
+    _, const = _in_use_log("const_temp", 4)
+    _, ramp = _in_use_log("ramp40K_fast", 4)
+    np.testing.assert_array_equal(const.force_N, ramp.force_N)
+    assert np.all(const.extra["room_C"] == 22.0)
+
+
+def test_ramp_rate_and_lagging_reference_grating():
+    # Without the wander (up to 3 pm, a quarter of the lag's 13 pm) the lag is read cleanly.
+    spec = replace(fg.IN_USE_VARIANTS["ramp40K_fast"], wander_pm=0.0)
+    dev = fg.device(spec, fg.device_seed("ramp40K_fast"))
+    ds = fg.log(dev, 2, 6)
+    temp = ds.extra["room_C"] - 22.0
+    first_press = int(np.argmax(ds.force_N > 0.3))
+    # Constant until the first press (the start-up tare), then 20 K/min.
+    assert np.all(temp[:first_press - 400] == 0.0)
+    rise = np.polyfit(ds.t_s[-5000:], temp[-5000:], 1)[0] * 60.0
+    assert rise == pytest.approx(spec.ramp_K_per_min, rel=1e-6)
+    # The temperature grating trails the ramp by rate x lag once the lag has settled.
+    seen_K = (ds.wl_nm[-2000:, 4] - dev.base_nm[4]) * 1000.0 / dev.temp_pm_per_K
+    trail = np.mean(temp[-2000:] - seen_K)
+    expected = spec.ramp_K_per_min / 60.0 * spec.temp_lag_s
+    assert trail == pytest.approx(expected, rel=0.05)
+
+
+def test_wander_is_slow_and_a_few_pm():
+    spec = fg.IN_USE_VARIANTS["long_rests"]
+    t = np.arange(0, 600, 1e-3)
+    w = fg.wander_pm(spec, np.random.default_rng(3), t)
+    assert w.shape == (t.size, 5)
+    assert np.max(np.abs(w)) <= spec.wander_pm and np.ptp(w, axis=0).min() > 0.5
+    assert np.max(np.abs(np.diff(w, axis=0))) < 1e-3     # pm per ms: slow
+
+
+def test_calibration_log_is_about_1K_with_short_holds():
+    _, ds = _in_use_log("calib_1K", 30)
+    temp = ds.extra["room_C"] - 22.0
+    assert 0.7 < np.ptp(temp) < 1.4
+    assert fg.IN_USE_VARIANTS["calib_1K"].hold_s[1] <= 0.15
+    assert metrics.use_masks(ds.contact, ds.contact, ds.force_N, ds.t_s)["held"].sum() == 0
+
+
+def test_held_grips_are_found_as_holds():
+    spec = fg.IN_USE_VARIANTS["held_grips"]
+    _, ds = _in_use_log("held_grips", 5)
+    use = metrics.use_masks(ds.contact, ds.contact, ds.force_N, ds.t_s)
+    # Every press holds 1.5-6 s: one hold each, lasting most of its plateau.
+    assert use["hold_start"].sum() == 5
+    assert use["held"].sum() > 5 * (spec.hold_s[0] - 0.3) * spec.rate_hz
+
+
+def test_script_writes_in_use_logs_with_roles(tmp_path):
+    assert fg.main(["--out", str(tmp_path), "--presses", "2", "const_temp", "ramp20K",
+                    "long_rests"]) == 0
+    entries = json.loads((tmp_path / fg.MANIFEST).read_text())["variants"]
+    assert entries["const_temp"]["role"] == "constant"
+    assert entries["ramp20K"]["ramp_K"] == 20.0 and entries["ramp20K"]["ramp_K_per_min"] == 10.0
+    assert {e["device_seed"] for e in entries.values()} == {200}
+    assert all((tmp_path / e["other"]).is_file() for e in entries.values())
+    assert fg.main(["--out", str(tmp_path), "nosuchvariant"]) == 2
+
+
+@pytest.fixture(scope="module")
+def in_use_logs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("in_use")
+    fg.write_logs(root, ["const_temp", "ramp40K_fast", "held_grips"], presses=3)
+    return root
+
+
+def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
+    from fbgforce.bench import bench_in_use
+    from fbgforce.trainer.evaluate import evaluate
+
+    assert bench_in_use.main(["--model", str(small_exported_dir), "--logs", str(in_use_logs),
+                              "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    rows = {r["key"]: r for r in res["goals"]}
+    assert set(rows) == {g.key for g in (*bench_in_use.RAMP_GOALS, *bench_in_use.CONSTANT_GOALS,
+                                         *bench_in_use.HOLD_GOALS)}
+    assert res["passed"] + res["failed"] + res["not_measured"] == len(rows)
+    for r in rows.values():
+        assert r["pass"] is None or r["pass"] == (abs(r["value"]) <= r["target"]
+                                                  if r["compare"] == "abs<="
+                                                  else r["value"] <= r["target"]
+                                                  if r["compare"] == "<="
+                                                  else r["value"] >= r["target"])
+    # The ramp's RMSE ratio is against the same presses at constant temperature, each log run
+    # through the fixed-point runtime tared at start-up (what `fbgforce evaluate` does).
+    ramp = evaluate(small_exported_dir, [in_use_logs / "ramp40K_fast_B.csv"], engine="fixed")
+    const = evaluate(small_exported_dir, [in_use_logs / "const_temp_B.csv"], engine="fixed")
+    assert rows["rmse_ratio"]["value"] == pytest.approx(ramp["rmse_force_N"]
+                                                         / const["rmse_force_N"])
+    assert rows["rest_contact"]["value"] == pytest.approx(ramp["at_rest"]["contact_fraction"])
+    assert rows["false_events"]["scored_on"] == ["const_temp"]
+    assert res["scored"]["held_grips"]["holds"]["holds"] == 3
+    assert bench_in_use.main(["--model", str(small_exported_dir), "--logs",
+                              str(in_use_logs)]) == 0
+    assert "| force at rest, 99th percentile | ramp40K_fast |" in capsys.readouterr().out
+
+
+def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_exported_dir,
+                                                         tmp_path):
+    from fbgforce.bench import bench_in_use
+
+    entries = json.loads((in_use_logs / fg.MANIFEST).read_text())["variants"]
+    only = {"const_temp": {**entries["const_temp"],
+                           "other": str(in_use_logs / entries["const_temp"]["other"]),
+                           "train": str(in_use_logs / entries["const_temp"]["train"])}}
+    (tmp_path / fg.MANIFEST).write_text(json.dumps({"variants": only}))
+    res = bench_in_use.score(small_exported_dir, tmp_path)
+    verdict = {r["key"]: (r["value"], r["pass"]) for r in res["goals"]}
+    assert verdict["rest_contact"] == (None, None) and verdict["hold_bias"] == (None, None)
+    assert verdict["false_events"][0] is not None
+    assert res["not_measured"] == 5 and res["calibration_test_rmse_force_N"] is None
+
+
+def test_evaluate_json_reports_rests_and_holds(in_use_logs, small_exported_dir, capsys):
+    from fbgforce.cli import main
+
+    assert main(["evaluate", "--model", str(small_exported_dir), "--data",
+                 str(in_use_logs / "held_grips_B.csv"), "--engine", "fixed", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"samples", "seconds", "contact_fraction", "false_events", "false_events_per_min",
+            "force_p99_N", "force_max_N", "gap_ms"} <= set(out["at_rest"])
+    assert out["holds"]["holds"] == 3 and out["holds"]["rmse_force_N"] is not None
+
+
+def test_bench_bad_logs_exit_2(tmp_path, small_exported_dir, capsys):
+    from fbgforce.bench import bench_in_use
+
+    with pytest.raises(SystemExit) as exc:
+        bench_in_use.main(["--model", str(small_exported_dir), "--logs", str(tmp_path)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("bench_in_use: ") and "\n" not in err
