@@ -24,6 +24,7 @@ STATUS_OVERLOAD = contract.STATUS_FLAG["OVERLOAD"]
 STATUS_SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
 STATUS_BASELINE_LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
+STATUS_OUT_OF_RANGE = contract.STATUS_FLAG["OUT_OF_RANGE"]
 EMA_FRAC = contract.LIMIT["EMA_FRAC"]
 
 __all__ = ["run", "run_recording", "memory_features", "rshift_round", "sat", "sigmoid_q15",
@@ -395,6 +396,8 @@ def _block(q: QModel, wl: np.ndarray, fault: np.ndarray, warm: np.ndarray, base:
     x, c_mem = memory.push(z[rows])
     flag[rows] |= c_mem
     nf = q.n_features
+    outside = np.any((x[:, :nf] < q.in_lo[:nf]) | (x[:, :nf] > q.in_hi[:nf]), axis=1)
+    status[rows] |= np.where(outside, STATUS_OUT_OF_RANGE, 0)
     feats = np.zeros((n, nf + q.n_loc), dtype=np.int64)
     feats[rows] = x
     zf = feats[:, :nf]

@@ -207,13 +207,16 @@ class QModel:
     track_gain: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
     track_step_max_fm: int = 0
     track_limit_fm: int = 0
+    #: OUT_OF_RANGE bounds of the net inputs (fbg_model.in_lo, in_hi): the defaults never flag.
+    in_lo: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], -SAT16, dtype=np.int64))
+    in_hi: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], SAT16, dtype=np.int64))
     #: Version of the library that wrote the blob (fbg_model.writer_version).
     writer_version: int = contract.VERSION_CODE
 
     def __post_init__(self) -> None:
         for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
                      "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width",
-                     "track_gain"):
+                     "track_gain", "in_lo", "in_hi"):
             setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
         for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
                      "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
@@ -569,6 +572,19 @@ def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
             "play_width": padded(widths, contract.MAX_PLAY), "loc_shift": memory.loc_shift}
 
 
+def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, np.ndarray]:
+    """``in_lo``/``in_hi``: the float model's input range in Q(z_frac), rounded outwards (a
+    value the float model accepts is never flagged), +-32767 where it has none."""
+    n = contract.LIMIT["MAX_INPUTS"]
+    lo, hi = np.full(n, -SAT16, dtype=np.int64), np.full(n, SAT16, dtype=np.int64)
+    if model.input_range is not None:
+        nf = model.preprocess.n_features
+        scale = 2.0 ** z_frac
+        lo[:nf] = np.clip(np.floor(model.input_range[0] * scale), -SAT16, SAT16)
+        hi[:nf] = np.clip(np.ceil(model.input_range[1] * scale), -SAT16, SAT16)
+    return {"in_lo": lo, "in_hi": hi}
+
+
 def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
@@ -722,7 +738,7 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
         nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
         stuck_max=stuck_samples, **quantize_memory(pre.memory, z_frac),
-        **quantize_in_use(model.in_use, z_mult, z_shift))
+        **quantize_in_use(model.in_use, z_mult, z_shift), **quantize_input_range(model, z_frac))
     try:
         q.check()
     except ValueError as exc:

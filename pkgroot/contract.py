@@ -115,6 +115,8 @@ STATUS: tuple[Code, ...] = (
     Code("WARMUP", 0x10, "fewer than n_taps samples since init/tare/reset"),
     Code("BASELINE_LIMIT", 0x20, "the at-rest baseline tracker is at its bound: drift beyond "
                                  "what it may correct (re-tare)"),
+    Code("OUT_OF_RANGE", 0x40, "a net input (z or a memory feature) outside the range the "
+                               "calibration data covered, with a margin: the nets extrapolate"),
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
 
@@ -299,6 +301,10 @@ PARAMS: tuple[Field, ...] = (
           doc="largest baseline step of one tracker block (fm)"),
     Field("track_limit_fm", "int32_t", 1, 0, LIMIT["TRACK_LIMIT_MAX_FM"],
           doc="largest |tracked - tared baseline| per channel (fm); BASELINE_LIMIT at it"),
+    Field("in_lo", "int16_t", LIMIT["MAX_INPUTS"], -SAT16, SAT16,
+          doc="OUT_OF_RANGE when a net input j < n_features (z, memory features) < in_lo[j] ..."),
+    Field("in_hi", "int16_t", LIMIT["MAX_INPUTS"], -SAT16, SAT16,
+          doc="... or > in_hi[j] (Q(z_frac); +-32767: never)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -331,6 +337,8 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("track_step_max_pm", "float", doc="per block: corr_i += clamp(sum(filt_i) / "
           "2^track_shift, +-track_step_max_pm)"),
     Field("track_limit_pm", "float", doc="|corr_i| <= track_limit_pm (BASELINE_LIMIT at it)"),
+    Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
+    Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
 )
 
 #: File name of the blob inside a model directory.

@@ -312,6 +312,23 @@ class InUse:
                 and self.contact_rise_samples == 1)
 
 
+#: Beyond each input's calibrated range, the share of that range still accepted without
+#: OUT_OF_RANGE: a press a little beyond the strongest calibration press, a little more
+#: temperature drift than the log had, is not yet an extrapolation worth flagging.
+INPUT_RANGE_MARGIN = 0.1
+#: A float bound no input reaches (the float runtime's "never out of range").
+FLOAT_NEVER = 1e30
+
+
+def input_range_of(x: np.ndarray, margin: float = INPUT_RANGE_MARGIN) -> np.ndarray:
+    """(2, F) the accepted range of each column of the calibration inputs ``x`` (n, F): its
+    smallest and largest value, widened by ``margin`` times its span on either side."""
+    x = np.asarray(x, dtype=np.float64)
+    lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
+    span = hi - lo
+    return np.vstack([lo - margin * span, hi + margin * span])
+
+
 def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
                      state: list[int]) -> np.ndarray:
     """The contact decision over time on consecutive samples, in any units of the margin.
@@ -500,6 +517,10 @@ class HierarchicalModel:
     baseline_nm: np.ndarray
     metadata: dict[str, Any] = field(default_factory=dict)
     in_use: InUse = field(default_factory=InUse)
+    #: (2, F) lowest and highest value of each input of the contact and force nets that the
+    #: runtimes accept without the status flag OUT_OF_RANGE (:func:`input_range_of`); None:
+    #: no such flag.
+    input_range: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.xy_offset = np.asarray(self.xy_offset, dtype=np.float64).reshape(2)
@@ -507,6 +528,10 @@ class HierarchicalModel:
         self.baseline_nm = np.asarray(self.baseline_nm, dtype=np.float64).reshape(N_STRAIN + 1)
         self.force_offset = float(self.force_offset)
         self.force_scale = float(self.force_scale)
+        if self.input_range is not None:
+            self.input_range = np.asarray(self.input_range, dtype=np.float64)
+            if self.input_range.shape != (2, self.preprocess.n_features):
+                raise ValueError(f"input_range must have shape (2, {self.preprocess.n_features})")
         mem = self.preprocess.memory
         for net in contract.NETS:
             name, n_out = net.name, net.float_outputs
@@ -514,6 +539,24 @@ class HierarchicalModel:
             sizes = getattr(self, name).sizes
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
+
+    def out_of_range(self, x: np.ndarray) -> np.ndarray:
+        """(n,) True where a contact/force net input of ``x`` (n, >= F) lies outside
+        :attr:`input_range`."""
+        x = np.asarray(x)
+        if self.input_range is None:
+            return np.zeros(x.shape[0], dtype=bool)
+        z = x[:, :self.preprocess.n_features]
+        return np.any((z < self.input_range[0]) | (z > self.input_range[1]), axis=1)
+
+    def runtime_float_params(self) -> dict[str, Any]:
+        """The ``fbgf_model`` fields of the decision, the tracker and the input range
+        (:data:`fbgforce.contract.FLOAT_PARAMS`), for the generated C and the Python binding."""
+        n, nf = contract.LIMIT["MAX_INPUTS"], self.preprocess.n_features
+        lo, hi = np.full(n, -FLOAT_NEVER), np.full(n, FLOAT_NEVER)
+        if self.input_range is not None:
+            lo[:nf], hi[:nf] = self.input_range
+        return {**self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
 
     @property
     def nets(self) -> dict[str, MLP]:
@@ -629,6 +672,7 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray,
     xy_raw = model.xy_offset + model.xy_scale * uv
     return {
         "contact": contact,
+        "out_of_range": model.out_of_range(x),
         "p_contact": p_contact,
         "force_N": np.where(contact, force_raw, 0.0),
         "x_mm": np.where(contact, xy_raw[:, 0], np.nan),
@@ -731,6 +775,7 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
         "xy_scale": model.xy_scale.tolist(),
         "baseline_nm": model.baseline_nm.tolist(),
         "in_use": model.in_use.to_json(),
+        "input_range": None if model.input_range is None else model.input_range.tolist(),
         "metadata": model.metadata,
     }
     arrays = {}
@@ -791,7 +836,8 @@ def load(directory: str | Path) -> HierarchicalModel:
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],
-            metadata=doc.get("metadata", {}), in_use=InUse(**doc.get("in_use", {})), **nets)
+            metadata=doc.get("metadata", {}), in_use=InUse(**doc.get("in_use", {})),
+            input_range=doc.get("input_range"), **nets)
     except KeyError as exc:
         raise InputError(f"missing entry {exc.args[0]!r}", path=str(root)) from exc
     except ValueError as exc:

@@ -299,7 +299,7 @@ class FloatRuntime(_Base):
             c.ema_shift[k], c.ema_gain[k] = shift, gain
         for k, (width, gain) in enumerate(zip(mem.play_widths, mem.play_gains)):
             c.play_width[k], c.play_gain[k] = width, gain
-        for name, value in m.in_use.float_params().items():
+        for name, value in m.runtime_float_params().items():
             setattr(c, name, value)
         c.n_taps = len(taps_f)
         c.taps = farr(taps_f)

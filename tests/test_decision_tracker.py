@@ -37,6 +37,8 @@ def _drifting_model(random_model_factory, random_walk_factory, in_use: fm.InUse,
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     # About a third of the samples in contact: the decision has both rests and contacts.
     model.contact.biases[-1][1] -= float(np.quantile(logits[:, 1] - logits[:, 0], 0.66))
+    # The first half of the walk is "the calibration": later inputs leave its range.
+    model.input_range = fm.input_range_of(x[:3000, :model.preprocess.n_features], margin=0.0)
     q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
     rng = np.random.default_rng(seed)
     for start in rng.integers(100, wl.shape[0] - 50, 5):
@@ -60,6 +62,8 @@ def test_decision_and_tracker_are_bit_exact(random_model_factory, random_walk_fa
     assert (ref["status"] & LIMIT).any() and not (ref["status"] & LIMIT).all()
     assert (ref["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]).any()
     assert 0.1 < ref["contact"].mean() < 0.9
+    outside = (ref["status"] & contract.STATUS_FLAG["OUT_OF_RANGE"]) != 0
+    assert outside[:3000].mean() < 0.02 and outside[3000:].mean() > 0.3
     rt = Runtime(blob.to_bytes(q), kernel=kernel)
     rt.set_baseline(base.astype(np.int32))
     _equal(rt.run_raw(wl_fm), ref)
@@ -146,5 +150,8 @@ def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory
     rt.set_baseline(model.baseline_nm)
     cf = rt.run(wl)
     assert np.mean(cf["contact"] == flt["contact"]) > 0.995
+    oor = contract.STATUS_FLAG["OUT_OF_RANGE"]
+    assert np.mean(((cf["status"] & oor) != 0) == flt["out_of_range"]) > 0.99
+    assert np.mean(((fixed["status"] & oor) != 0) == flt["out_of_range"]) > 0.98
     both = cf["contact"] & flt["contact"]
     assert np.abs(cf["force_N"][both] - flt["force_N"][both]).max() < 1e-2

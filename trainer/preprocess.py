@@ -41,21 +41,23 @@ def default_sigma(rate_hz: float) -> float:
     return DEFAULT_SIGMA_MS * float(rate_hz) / 1000.0
 
 
-def _block_means(x: np.ndarray, mask: np.ndarray, block: int) -> np.ndarray:
-    """Means of ``block`` consecutive masked samples inside contiguous masked runs."""
-    if block <= 1:
-        return x[mask]
+def _block_means(x: np.ndarray, mask: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """Means of ``block`` consecutive masked samples inside contiguous masked runs, and the
+    number of the run each comes from."""
     idx = np.flatnonzero(mask)
     if idx.size == 0:
-        return np.empty((0,) + x.shape[1:])
+        return np.empty((0,) + x.shape[1:]), np.empty(0, dtype=np.int64)
     # Run boundaries where consecutive masked indices are not adjacent.
     breaks = np.flatnonzero(np.diff(idx) != 1) + 1
-    out = []
-    for run in np.split(idx, breaks):
-        m = run.size // block
+    out, runs = [], []
+    for k, run in enumerate(np.split(idx, breaks)):
+        m = run.size // max(block, 1)
         if m:
             out.append(x[run[:m * block]].reshape(m, block, *x.shape[1:]).mean(axis=1))
-    return np.concatenate(out) if out else np.empty((0,) + x.shape[1:])
+            runs.append(np.full(m, k))
+    if not out:
+        return np.empty((0,) + x.shape[1:]), np.empty(0, dtype=np.int64)
+    return np.concatenate(out), np.concatenate(runs)
 
 
 def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray], *,
@@ -91,15 +93,16 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
         shift seen), ``temp_fit_samples``.
     """
     block = max(1, int(round(0.05 * rate_hz)))
-    xs, ys, noise_t = [], [], []
+    xs, ys, noise_t, runs = [], [], [], []
     for s, m in zip(shifts_pm, masks):
         s = np.asarray(s, dtype=np.float64)
         m = np.asarray(m, dtype=bool)
         if m.sum() < 2:
             continue
-        bm = _block_means(s, m, block)
+        bm, run = _block_means(s, m, block)
         if bm.shape[0] < 2:
             continue
+        runs.append(run + (runs[-1][-1] + 1 if runs else 0))
         # Centred per recording: a tare is itself a noisy estimate, and its constant error
         # must not pass for temperature; only variation within a recording identifies k.
         bm = bm - bm.mean(axis=0)
@@ -125,13 +128,31 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
     sigma2 = np.maximum(np.var(resid, axis=0), 1e-6)
     # ... of which only what lies 3 standard deviations beyond pure noise's energy counts as
     # information, so a file without temperature change gets weight ~0 (k = 1), not noise.
-    info_data = max(sxx - 3.0 * noise_energy_sd, 0.0) / sigma2
+    # A residual that wanders slowly (a grating's own drift, a bond creeping) is not
+    # independent from block to block: its blocks carry the information of fewer, by the
+    # factor (1 - rho) / (1 + rho) of a first-order autoregression with lag-1 correlation
+    # rho. Without it, 3 pm of wander beside 1 K of temperature passed for a 25 % coefficient.
+    info_data = max(sxx - 3.0 * noise_energy_sd, 0.0) / sigma2 * _independent_fraction(resid, np.concatenate(runs))
     info_prior = 1.0 / prior_sd ** 2
     weight = info_data / (info_data + info_prior)
     coeff = 1.0 + weight * (k_ols - 1.0)
     return coeff, {"temp_coeff_identified": weight.tolist(),
                    "temp_ref_range_pm": float(np.percentile(x, 99) - np.percentile(x, 1)),
                    "temp_fit_samples": n_fit}
+
+
+def _independent_fraction(resid: np.ndarray, run: np.ndarray) -> np.ndarray:
+    """Per channel, ``(1 - rho) / (1 + rho)`` for the lag-1 autocorrelation ``rho`` (>= 0) of
+    the block residuals ``resid``, from pairs of neighbouring blocks of one contiguous rest
+    (``run`` numbers them): blocks either side of a press are not neighbours in time."""
+    same = run[1:] == run[:-1]
+    if not same.any():
+        return np.ones(resid.shape[1])
+    r = resid - resid.mean(axis=0)
+    num = np.sum(r[1:][same] * r[:-1][same], axis=0)
+    den = 0.5 * np.sum(r[1:][same] ** 2 + r[:-1][same] ** 2, axis=0)
+    rho = np.clip(num / np.maximum(den, 1e-30), 0.0, 1.0)
+    return (1.0 - rho) / (1.0 + rho)
 
 
 def gaussian_taps(kind: str, sigma: float = DEFAULT_SIGMA, window: int | None = None

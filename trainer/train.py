@@ -637,6 +637,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     t_train = time.perf_counter() - t_start - t_prep
     rate = float(np.median([r.rate_hz for r in data.recordings]))
     model.in_use = fm.InUse.recommended(rate)
+    model.input_range = fm.input_range_of(z[tr])
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
     model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
     model.metadata = {

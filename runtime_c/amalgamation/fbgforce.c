@@ -18,8 +18,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 208u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 224u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -400,8 +400,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 208u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 224u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -495,12 +495,16 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->track_gain[k] = rd_i32(p + 180 + 4u * k);
     m->track_step_max_fm = rd_i32(p + 196);
     m->track_limit_fm = rd_i32(p + 200);
+    for (k = 0; k < 12u; ++k)
+        m->in_lo[k] = rd_i16(p + 204 + 2u * k);
+    for (k = 0; k < 12u; ++k)
+        m->in_hi[k] = rd_i16(p + 228 + 2u * k);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 204u; k < 208u; ++k)
+    for (k = 252u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -612,6 +616,16 @@ fbg_status fbg_params_check(const fbg_model *m)
     }
     { int32_t v = m->track_step_max_fm; if (v < 0) return FBG_ERR_RANGE; }
     { int32_t v = m->track_limit_fm; if (v < 0 || v > 100000000) return FBG_ERR_RANGE; }
+    for (k = 0; k < 12u; ++k) {
+        int16_t v = m->in_lo[k];
+        if (v < -32767)
+            return FBG_ERR_RANGE;
+    }
+    for (k = 0; k < 12u; ++k) {
+        int16_t v = m->in_hi[k];
+        if (v < -32767)
+            return FBG_ERR_RANGE;
+    }
     return FBG_OK;
 }
 
@@ -4587,6 +4601,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (front != FBG_SIMD_FRONT_DONE)
         memory_features(s, m, in, loc, &sat);
 
+    /* 4b. Inputs beyond what the calibration covered: flagged, the nets still run. */
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
+            status |= FBG_STATUS_OUT_OF_RANGE;
+
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
     NET_ACCS(FBG_NET_CONTACT);
@@ -4647,8 +4666,8 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 208u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 224u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
@@ -8705,6 +8724,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
+    for (c = 0; c < FBG_MAX_INPUTS; ++c)
+        if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
+            return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -8930,6 +8952,9 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(filt, a, sizeof a);
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
+            status |= FBG_STATUS_OUT_OF_RANGE;
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return 1;
 }

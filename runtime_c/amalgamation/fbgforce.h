@@ -110,6 +110,7 @@ typedef enum {
 #define FBG_STATUS_SENSOR_FAULT 0x08  /* a peak lost, jumped or stuck: outputs are the safe output */
 #define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
 #define FBG_STATUS_BASELINE_LIMIT 0x20  /* the at-rest baseline tracker is at its bound: drift beyond what it may correct (re-tare) */
+#define FBG_STATUS_OUT_OF_RANGE 0x40  /* a net input (z or a memory feature) outside the range the calibration data covered, with a margin: the nets extrapolate */
 
 /* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */
 #define FBG_OPT_REQUIRE_TARE 0x01  /* fbg_step returns FBG_ERR_NOT_TARED until tared */
@@ -182,6 +183,8 @@ typedef struct {
     uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
     int16_t play_width[4];  /* state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
     uint16_t track_settle;  /* samples of rest (tared, no contact, fault or warm-up) before a tracker block counts */
+    int16_t in_lo[12];  /* OUT_OF_RANGE when a net input j < n_features (z, memory features) < in_lo[j] ... [-32767, 32767] */
+    int16_t in_hi[12];  /* ... or > in_hi[j] (Q(z_frac); +-32767: never) [-32767, 32767] */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
     uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
@@ -404,6 +407,8 @@ typedef struct {
     float contact_off;
     float track_step_max_pm;  /* per block: corr_i += clamp(sum(filt_i) / 2^track_shift, +-track_step_max_pm) */
     float track_limit_pm;  /* |corr_i| <= track_limit_pm (BASELINE_LIMIT at it) */
+    float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
+    float in_hi[12];
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
     uint16_t track_settle;

@@ -88,12 +88,16 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->track_gain[k] = rd_i32(p + 180 + 4u * k);
     m->track_step_max_fm = rd_i32(p + 196);
     m->track_limit_fm = rd_i32(p + 200);
+    for (k = 0; k < 12u; ++k)
+        m->in_lo[k] = rd_i16(p + 204 + 2u * k);
+    for (k = 0; k < 12u; ++k)
+        m->in_hi[k] = rd_i16(p + 228 + 2u * k);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 204u; k < 208u; ++k)
+    for (k = 252u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -205,6 +209,16 @@ fbg_status fbg_params_check(const fbg_model *m)
     }
     { int32_t v = m->track_step_max_fm; if (v < 0) return FBG_ERR_RANGE; }
     { int32_t v = m->track_limit_fm; if (v < 0 || v > 100000000) return FBG_ERR_RANGE; }
+    for (k = 0; k < 12u; ++k) {
+        int16_t v = m->in_lo[k];
+        if (v < -32767)
+            return FBG_ERR_RANGE;
+    }
+    for (k = 0; k < 12u; ++k) {
+        int16_t v = m->in_hi[k];
+        if (v < -32767)
+            return FBG_ERR_RANGE;
+    }
     return FBG_OK;
 }
 

@@ -4,8 +4,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 208u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 224u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */

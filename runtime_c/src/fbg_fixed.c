@@ -598,6 +598,11 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     if (front != FBG_SIMD_FRONT_DONE)
         memory_features(s, m, in, loc, &sat);
 
+    /* 4b. Inputs beyond what the calibration covered: flagged, the nets still run. */
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
+            status |= FBG_STATUS_OUT_OF_RANGE;
+
     /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
     memset(out, 0, sizeof *out);
     NET_ACCS(FBG_NET_CONTACT);

@@ -87,6 +87,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
+    for (c = 0; c < FBG_MAX_INPUTS; ++c)
+        if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
+            return FBG_ERR_RANGE;
     if (model->n_taps < 1u || model->n_taps > FBG_MAX_TAPS)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
@@ -312,6 +315,9 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(filt, a, sizeof a);
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
+            status |= FBG_STATUS_OUT_OF_RANGE;
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return 1;
 }
