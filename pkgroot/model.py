@@ -227,6 +227,19 @@ def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = N
     return MemoryStream(memory, z_rest).push(z)
 
 
+#: The decision's rise threshold: this quantile of the contact net's margin at rest in the
+#: calibration data (docs/runtime.md, "In use").
+REST_MARGIN_QUANTILE = 0.9999
+#: How long the rise condition must hold, s.
+RISE_S = 0.003
+#: The at-rest tracker: time constant, the rest after a release before it learns, the
+#: fastest drift it follows and its bound from the tare.
+TRACK_TIME_CONSTANT_S = 1.0
+TRACK_SETTLE_S = 0.2
+TRACK_RATE_MAX_PM_PER_S = 4.0
+TRACK_LIMIT_PM = 200.0
+
+
 @dataclass
 class InUse:
     """What the runtimes do beyond the nets when they run for hours: the contact decision over
@@ -287,13 +300,26 @@ class InUse:
             raise ValueError(f"track_step_max_pm must be >= 0 and track_limit_pm in [0, {limit_pm}]")
 
     @classmethod
-    def recommended(cls, sample_rate_hz: float = 1000.0) -> "InUse":
-        """The trainer's default (docs/runtime.md, "In use", says how each value was chosen)."""
-        ms = sample_rate_hz / 1000.0
-        return cls(contact_on_margin=0.0, contact_off_margin=0.0, contact_rise_samples=1,
-                   track_shift=max(1, int(round(np.log2(1000.0 * ms)))),
-                   track_settle=int(round(200 * ms)), track_step_max_pm=0.25 / ms,
-                   track_limit_pm=200.0)
+    def recommended(cls, sample_rate_hz: float = 1000.0,
+                    rest_margins: np.ndarray | None = None) -> "InUse":
+        """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
+
+        ``rest_margins``: the contact net's margins on calibration samples at rest; contact
+        rises only past their :data:`REST_MARGIN_QUANTILE` quantile, held for
+        :data:`RISE_S`, and falls below minus half of it. None: the per-sample decision.
+        """
+        per_ms = sample_rate_hz / 1000.0
+        on = 0.0
+        if rest_margins is not None and np.size(rest_margins):
+            on = max(0.0, float(np.quantile(rest_margins, REST_MARGIN_QUANTILE)))
+        return cls(contact_on_margin=on, contact_off_margin=-0.5 * on,
+                   contact_rise_samples=max(1, min(255, int(round(RISE_S * sample_rate_hz))))
+                   if on > 0 else 1,
+                   track_shift=max(1, int(round(np.log2(TRACK_TIME_CONSTANT_S * sample_rate_hz)))),
+                   track_settle=min(0xFFFF, int(round(TRACK_SETTLE_S * sample_rate_hz))),
+                   track_step_max_pm=TRACK_RATE_MAX_PM_PER_S * contract.LIMIT["TRACK_BLOCK"]
+                   / sample_rate_hz,
+                   track_limit_pm=TRACK_LIMIT_PM) if per_ms > 0 else cls()
 
     def to_json(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}

@@ -294,6 +294,22 @@ HOLD_MIN_S = 0.2
 HOLD_BAND = (0.2, 0.03)
 
 
+def _rest_margins(data: Prepared, logits: np.ndarray) -> np.ndarray:
+    """The contact net's margins on the samples of the training and validation presses that
+    are at rest (at least ``fbgforce.metrics.REST_GAP_S`` from any labelled contact, past the filter's
+    warm-up): what noise and drift alone make of it, for the decision's thresholds."""
+    keep = data.row_mask(np.flatnonzero(data.split != 2))
+    margin = logits[:, 1] - logits[:, 0]
+    out = []
+    warm = data.pre.taps.size
+    for r, sl in data.recording_slices():
+        rest = fmetrics.use_masks(data.contact[sl], data.contact[sl], data.force_N[sl],
+                                 np.asarray(r.ds.t_s))["rest"]
+        rest[:warm] = False
+        out.append(margin[sl][rest & keep[sl]])
+    return np.concatenate(out) if out else np.empty(0)
+
+
 def hold_seconds(data: Prepared, rows: np.ndarray | None = None) -> float:
     """Seconds of ``data`` (optionally only ``rows``) inside holds: stretches of at least
     :data:`HOLD_MIN_S` in contact with the load-cell force within :data:`HOLD_BAND`.
@@ -636,7 +652,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
     t_train = time.perf_counter() - t_start - t_prep
     rate = float(np.median([r.rate_hz for r in data.recordings]))
-    model.in_use = fm.InUse.recommended(rate)
+    model.in_use = fm.InUse.recommended(rate, rest_margins=_rest_margins(data, logits))
     model.input_range = fm.input_range_of(z[tr])
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
     model.metadata = {"pad_mm": pad}  # read by evaluate_rows below

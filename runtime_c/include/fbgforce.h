@@ -325,7 +325,9 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len);
  * model and kernel (the state is then unchanged). */
 fbg_status fbg_use_pack(fbg_state *state, const void *packed);
 
-/* Clear the FIR history and the fault tracker (keeps baseline and tare). */
+/* Clear the FIR history, the memory states, the fault tracker, the decision over time and
+ * the at-rest tracker's block (docs/runtime.md, "In use"). Keeps the baseline as the tracker
+ * left it (tare and tared flag too); the tracker's bound counts from it again. */
 fbg_status fbg_reset(fbg_state *state);
 
 /* Tare = average of valid samples between begin and end becomes the baseline. Samples with
@@ -338,7 +340,9 @@ fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], i
 fbg_status fbg_tare_end(fbg_state *state);
 
 /* Set the baseline directly (e.g. stored from a previous tare); every channel must lie in
- * [FBG_WL_MIN_FM, FBG_WL_MAX_FM] (else FBG_ERR_ARG). Resets the FIR history. */
+ * [FBG_WL_MIN_FM, FBG_WL_MAX_FM] (else FBG_ERR_ARG). Resets the FIR history, the decision
+ * and the at-rest tracker (as a tare does). fbg_get_baseline reads the baseline the tracker
+ * has moved it to (store that one to resume after a restart). */
 fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS]);
 fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS]);
 
