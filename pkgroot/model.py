@@ -682,7 +682,8 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray,
     Returns
     -------
     dict
-        ``contact`` (bool), ``p_contact`` (softmax probability of contact), ``force_N``
+        ``contact`` (bool), ``p_contact`` (softmax probability of contact), ``margin`` (the
+        contact net's logit difference), ``out_of_range`` (bool), ``force_N``
         (0 where no contact), ``x_mm``/``y_mm`` (NaN where no contact), and the raw net
         outputs ``force_raw_N``, ``x_raw_mm``, ``y_raw_mm`` (before gating on contact).
     """
@@ -699,6 +700,7 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray,
     return {
         "contact": contact,
         "out_of_range": model.out_of_range(x),
+        "margin": margin,
         "p_contact": p_contact,
         "force_N": np.where(contact, force_raw, 0.0),
         "x_mm": np.where(contact, xy_raw[:, 0], np.nan),
