@@ -43,6 +43,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--qat-epochs", type=int, default=None, help="QAT fine-tuning epochs")
     p.add_argument("--no-target", action="store_true",
                    help="skip the Cortex-M4 instruction counts (fbgforce target-report)")
+    p.add_argument("--decision", metavar="MODEL",
+                   help="instead of the grid of models: the contact decision's curve of this "
+                        "exported model on --data/--scene, false contact events per minute at "
+                        "rest against onset delay over the decision's rise margin and count "
+                        "(decision.json, decision.md, decision.png in --out)")
     add_json_flag(p)
     p.set_defaults(handler=_handler)
     _register_bench_speed(subparsers)
@@ -140,7 +145,38 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
     return res
 
 
+def _decision_handler(args: argparse.Namespace) -> dict[str, Any]:
+    import json
+
+    from fbgforce import dataset
+    from fbgforce.jsonutil import json_default
+    from fbgforce.tradeoff.artifacts import prepare_data
+    from fbgforce.tradeoff.decision import decision_curve, markdown, plot
+
+    out = Path(args.out)
+    model = Path(args.decision)
+    if not (model / "model.fbgm").is_file():
+        raise InputError("no exported model here; run 'fbgforce export --model DIR' first",
+                         path=str(model), column="--decision")
+
+    def log(msg: str) -> None:
+        print(f"tradeoff: {msg}", file=sys.stderr, flush=True)
+
+    paths = prepare_data(args.data, args.scene, out, args.seed, log)
+    res = decision_curve(model, [dataset.load(p) for p in paths])
+    res["data"] = [str(p) for p in paths]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "decision.json").write_text(json.dumps(res, indent=1, default=json_default) + "\n")
+    (out / "decision.md").write_text(markdown(res) + "\n")
+    png = plot(res, out / "decision.png")
+    if not args.json:
+        print(markdown(res))
+    return {"out": str(out), "figure": str(png), **res}
+
+
 def _handler(args: argparse.Namespace) -> dict[str, Any]:
+    if args.decision:
+        return _decision_handler(args)
     # Imported here, not at the top: `fbgforce --help` loads every command module.
     from fbgforce.tradeoff.artifacts import prepare_data
     from fbgforce.tradeoff.grid import ENGINE_SPECS, Settings, quick_settings
