@@ -360,3 +360,23 @@ def test_latency_summary_percentiles_are_within_the_documented_bound():
         assert abs(s.percentile_ns(q) - exact) <= 0.0055 * exact + 1, q
     assert s.n == values.size and s.max_ns == values.max()
     assert s.summary_us()["max"] == round(values.max() / 1000, 1)
+
+
+def test_receivers_count_duplicates_and_publisher_restarts_as_such(tmp_path):
+    """A duplicated datagram is dropped and counted, a publisher that starts again from 0 is a
+    restart: neither adds ~2**32 to "missing" (C and Python receivers alike)."""
+    exe = _compile_receiver(tmp_path)
+    seqs = [7, 8, 9, 9, 10, 12, 13, 0, 1, 1, 2]
+    accepted = [7, 8, 9, 10, 12, 13, 0, 1, 2]
+    frame = P.Frame(3, 3000, (1_546_000_000,) * 5)
+    grams = [bytes(U.encode_datagrams(s, [frame], _est(1))[0]) for s in seqs]
+    for cmd in ([str(exe)], [sys.executable, str(EXAMPLE / "receiver.py")]):
+        port = _free_udp_port()
+        rx = _start_receiver(cmd + ["127.0.0.1", str(port), str(len(accepted))])
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for g in grams:
+                tx.sendto(g, ("127.0.0.1", port))
+        out, err = rx.communicate(timeout=30)
+        assert rx.returncode == 0, err
+        assert [int(line.split(",")[0]) for line in out.splitlines()] == accepted, cmd
+        assert "received 9, bad 0, missing 1, duplicates 2, restarts 1" in err, (cmd, err)
