@@ -93,7 +93,8 @@ typedef enum {
     FBG_ERR_STATE = -12,  /* state not initialised by fbg_init (or corrupted) */
     FBG_ERR_NOT_TARED = -13,  /* fbg_step with FBG_OPT_REQUIRE_TARE before a tare */
     FBG_ERR_TARE = -14,  /* tare_add/tare_end without tare_begin, or no valid sample */
-    FBG_ERR_ARG = -15  /* bad argument value (e.g. baseline outside the window) */
+    FBG_ERR_ARG = -15,  /* bad argument value (e.g. baseline outside the window) */
+    FBG_ERR_MODEL_CHANGED = -16  /* the model was reloaded under the state (its blob_crc differs from fbg_init's): fbg_init again */
 } fbg_status;
 
 /* Output status flags (fbg_output.status; several may be set). */
@@ -183,6 +184,8 @@ typedef struct {
     uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
+    uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
+                              * refuses to step when it differs from fbg_init's */
 } fbg_model;
 
 /* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =
@@ -228,6 +231,7 @@ typedef struct {
     uint8_t mem_primed;                          /* memory states hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
     const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
+    uint32_t model_crc;                          /* model->blob_crc at fbg_init */
 } fbg_state;
 
 /* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was
