@@ -112,7 +112,7 @@ def test_blob_loads_and_error_codes(blob_bytes):
 
 def test_python_exceptions_per_code(blob_bytes, tmp_path):
     codes = {cls.code for cls in ERRORS.values()}
-    assert len(codes) == len(ERRORS) == 15
+    assert len(codes) == len(ERRORS) == 16
     assert all(issubclass(cls, RuntimeCError) for cls in ERRORS.values())
     cases = [(blob_bytes[:10], TruncatedError), (b"XXXX" + blob_bytes[4:], BadMagicError),
              (blob_bytes[:4] + b"\x09" + blob_bytes[5:], VersionError),
