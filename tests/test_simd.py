@@ -611,8 +611,14 @@ def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
     assert r.returncode == 1 and "packed: cannot run here" in r.stdout
 
 
-SWAP_BLOBS = sorted((RUNTIME / "fuzz" / "models").glob("*.fbgm")) + \
-    sorted((RUNTIME / "fuzz" / "corpus" / "fuzz_blob").iterdir())
+def _swap_blobs(work: Path) -> list[Path]:
+    """The committed fuzz blobs: the four models and the fuzz_blob seeds without their mode
+    byte (some load, some are refused early, some are copies of a model)."""
+    seeds = []
+    for p in sorted((RUNTIME / "fuzz" / "corpus" / "fuzz_blob").iterdir()):
+        seeds.append(work / f"seed_{p.name}.fbgm")
+        seeds[-1].write_bytes(p.read_bytes()[1:])
+    return sorted((RUNTIME / "fuzz" / "models").glob("*.fbgm")) + seeds
 
 
 def _model_swap(cc: str, exe: Path, extra: list[str], run: list[str], kernels: list[int]) -> None:
@@ -624,14 +630,14 @@ def _model_swap(cc: str, exe: Path, extra: list[str], run: list[str], kernels: l
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     args = _replay_args(kernels)
-    r = subprocess.run(run + [str(exe), *args, "--", *map(str, SWAP_BLOBS)], capture_output=True,
+    r = subprocess.run(run + [str(exe), *args, "--", *map(str, _swap_blobs(exe.parent))], capture_output=True,
                        text=True, timeout=600, env=dict(os.environ, ASAN_OPTIONS="detect_leaks=1"))
     lines = r.stdout.strip().splitlines()
     assert r.returncode == 0 and len(lines) == len(args) and "ERROR" not in r.stderr, \
         r.stdout + r.stderr
     for line in lines:
         m = re.fullmatch(r"kernel 0x[0-9a-f]+(?: packed)?: (\d+) swaps, (\d+) refused, 0 wrong", line)
-        assert m and int(m.group(1)) >= 90 and int(m.group(2)) >= 25, line
+        assert m and int(m.group(1)) >= 200 and int(m.group(2)) >= 100, line
 
 
 def test_model_reloaded_under_a_state_is_refused_on_every_host_kernel(tmp_path):
