@@ -177,10 +177,10 @@ class GateStats:
     """Counters of a :class:`FrameGate`."""
 
     lost_frames: int = 0  #: sequence gaps between frames delivered (confirmed jumps included)
-    duplicates: int = 0  #: frames whose sequence number was just delivered (dropped)
+    duplicates: int = 0  #: repeats of the last delivered or the held frame (dropped)
     seq_restarts: int = 0  #: confirmed backward jumps (device restarted; not counted lost)
-    seq_jumps: int = 0  #: confirmed forward jumps beyond ``max_seq_step``
-    implausible_frames: int = 0  #: refused: wavelength outside the window, or an unconfirmed jump
+    seq_jumps: int = 0  #: confirmed forward jumps beyond ``max_seq_step`` (their gap is lost)
+    implausible_frames: int = 0  #: refused: wavelength outside the window, or held, never confirmed
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -195,9 +195,10 @@ class FrameGate:
     max_period_us``, and no wavelength moved more than ``d * max_step_nm`` (lost peaks
     excepted).
 
-    Only the next sample is delivered at once: a frame that follows the last delivered one
-    with ``d == 1``. Any other frame (a gap, a restart, a jump, or a damaged counter) is
-    *held*. The next frame *vouches* for the held one when it follows the held frame and does
+    Only a frame *on course* is delivered at once: it follows the last delivered one with
+    ``d == 1``, or, when both have device time and the sample period is known
+    (:attr:`period_us`), with a ``d`` its time step agrees with. Any other frame (a gap
+    without device time, a restart, a jump, a damaged counter or timestamp) is *held*. The next frame *vouches* for the held one when it follows the held frame and does
     not make it out of order (it does not follow the last delivered frame, or the held one lies
     between the two); the held frame is then delivered, its step counted (a restart when the
     counter or the time went backwards, else ``d - 1`` lost frames, and a jump when ``d``
@@ -254,8 +255,8 @@ class FrameGate:
 
     def _on_course(self, a: Frame, b: Frame) -> bool:
         """Whether ``b`` follows ``a`` as a sample delivered at once: a step of one, or, for
-        frames with device time once the period is known, a step its time agrees with (within
-        half a period, so a damaged counter or timestamp cannot pass)."""
+        frames with device time once the period is known, a step its time agrees with within
+        half a period (so a counter that disagrees with the time is held)."""
         d = self._step(a, b)
         if d is None:
             return False
