@@ -28,6 +28,15 @@ def test_corrupted_streams_deliver_no_wrong_frame_and_count_losses_exactly(run):
     assert r["good"] == r["intact"], r
 
 
+def test_fispec_replies_with_one_flipped_bit_deliver_no_wrong_frame():
+    """The audit's stream: FiSpec replies polled once per sample, 1.7 % with one bit flipped
+    anywhere. No frame under a wrong counter, no false restart, lost counts exact (a flipped
+    wavelength bit inside the step rule passes: FiSpec has no checksum)."""
+    r = B.run_fispec_flips(N, 1)
+    assert r["flipped"] > 100 and r["wrong"] == 0 and r["lost_error"] == 0, r
+    assert r["restarts"] == 0 and r["good"] + r["wl_flips_passed"] >= r["intact"], r
+
+
 def test_trailer_only_rule_is_fooled_by_the_same_fispec_stream():
     """The comparison row of the benchmark: the rule readers used before delivers wrong
     samples on this stream, so the test above can fail."""

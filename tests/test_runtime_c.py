@@ -309,6 +309,20 @@ def test_generated_c_int8_random_model(random_model_factory, random_walk_factory
         assert np.array_equal(np.asarray(c_fixed[k], dtype=np.int64), ref[k]), k
 
 
+def test_generated_model_c_carries_its_blob_crc(small_exported_dir):
+    """The generated const model has model.fbgm's CRC in blob_crc, the identity fbg_step checks
+    (FBG_ERR_MODEL_CHANGED), as fbg_model_from_blob gives a loaded one."""
+    crc = int.from_bytes((small_exported_dir / "model.fbgm").read_bytes()[12:16], "little")
+    text = (small_exported_dir / "c" / "fbgforce_model.c").read_text()
+    assert f"/* blob_crc: model.fbgm's */ 0x{crc:08X}u\n}};" in text
+    m = ffi.new("fbg_model *")
+    data = (small_exported_dir / "model.fbgm").read_bytes()
+    buf = ffi.new("uint64_t[]", (len(data) + 7) // 8)
+    ffi.memmove(buf, data, len(data))
+    assert lib.fbg_model_from_blob(m, ffi.cast("uint8_t *", buf), len(data)) == lib.FBG_OK
+    assert m.blob_crc == crc
+
+
 def test_generated_model_c_compiles_as_cxx_and_c99(small_exported_dir):
     """The generated model sources are plain positional initialisers in declaration order, so a
     C++ firmware (which has no C99 designated initialisers before C++20) can compile them."""
