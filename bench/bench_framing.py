@@ -24,6 +24,9 @@ Protocols and faults:
   contains ``Ende`` (in an amplitude) with the reply split right after it, truncated and lost
   replies, junk-only replies. FiSpec frames carry no checksum, so bit flips inside a frame are
   not part of this model (nothing could detect them).
+- ``fispec, 1 bit flipped``: replies polled once per sample, 1.7 % of them with one bit
+  flipped anywhere (the audit's model of a line without a checksum); a flipped wavelength bit
+  the window and step rules cannot see is counted apart (``wl_flips_passed``), not as wrong.
 - ``hyperion``: TCP delivers bytes intact, so the faults are the ones TCP has: messages the
   device drops (serial number gaps), connections cut in mid-message (the reader reconnects and
   starts a fresh decoder), device restarts (serial number back to 0).
@@ -248,6 +251,51 @@ def run_fispec(n: int, seed: int = 0, fault_rate: float = 0.3, gate: bool = True
                   refused_candidates=refused)
 
 
+def run_fispec_flips(n: int, seed: int = 0, flip_rate: float = 0.017) -> dict[str, Any]:
+    """``n`` FiSpec replies polled once per sample (consecutive counters), one random bit of
+    ``flip_rate`` of them flipped anywhere in the frame (the audit's model of a line without
+    a checksum). ``wrong``: delivered frames not what was sent under their counter, except
+    ``wl_flips_passed``: a flipped wavelength bit the window and step rules cannot see (no
+    checksum can be had); ``lost``: counter values missing between delivered frames."""
+    rng = np.random.default_rng([seed, 17])
+    wl_fm = _walk(n, rng)
+    units = wl_fm // (P.FM_PER_NM // P.FISPEC_UNITS_PER_NM)
+    flips = np.flatnonzero(rng.random(n) < flip_rate)
+    bits = rng.integers(0, 8 * P.fispec_frame_size(CHANNELS), size=flips.size)
+    flipped = dict(zip(flips.tolist(), bits.tolist()))
+    gate = P.FrameGate()
+    got: list[P.Frame] = []
+    sent: dict[int, P.Frame] = {}
+    t0 = time.perf_counter()
+    for k in range(n):
+        counter = 1000 + k
+        raw = P.encode_fispec_frame(units[k].tolist(), [12000] * CHANNELS, 2500, counter)
+        sent[counter] = P.Frame(counter, -1, tuple(int(u) * 100 for u in units[k]))
+        if k in flipped:
+            b = bytearray(raw)
+            b[flipped[k] // 8] ^= 1 << (flipped[k] % 8)
+            raw = bytes(b)
+        got += P.FiSpecReply(CHANNELS, gate).feed(raw) or []
+    seconds = time.perf_counter() - t0
+
+    def wl_bit(k: int) -> bool:  # the flipped bit of reply k lies in a wavelength
+        return k in flipped and flipped[k] < 64 * CHANNELS and flipped[k] % 64 < 32
+
+    good = sum(1 for f in got if sent.get(f.seq) == f)
+    wl_passed = sum(1 for f in got if f.seq in sent and sent[f.seq] != f and wl_bit(f.seq - 1000)
+                    and sent[f.seq].seq == f.seq)
+    seqs = [f.seq for f in got if f.seq in sent and (sent[f.seq] == f or wl_bit(f.seq - 1000))]
+    lost_true = max(seqs) - min(seqs) + 1 - len(seqs) if seqs else 0
+    lost = gate.stats.lost_frames
+    return {"frames": n, "intact": n - int(flips.size), "good": good,
+            "wrong": len(got) - good - wl_passed, "wl_flips_passed": wl_passed,
+            "flipped": int(flips.size), "lost_reported": lost, "lost_true": lost_true,
+            "lost_error": lost - lost_true, "seconds": round(seconds, 2),
+            "protocol": "fispec, 1 bit flipped", "crc_errors": 0,
+            "implausible": gate.stats.implausible_frames,
+            "restarts": gate.stats.seq_restarts}
+
+
 # --------------------------------------------------------------------------------------------
 # Hyperion peak stream
 # --------------------------------------------------------------------------------------------
@@ -323,7 +371,8 @@ def run_hyperion(n: int, seed: int = 0, fault_rate: float = 0.3) -> dict[str, An
 
 def run_all(n: int, seed: int = 0) -> list[dict[str, Any]]:
     return [run_native(n, seed, 2), run_native(n, seed, 1), run_native(n, seed, 1, gate=False),
-            run_fispec(n, seed), run_fispec(n, seed, gate=False), run_hyperion(n, seed)]
+            run_fispec(n, seed), run_fispec(n, seed, gate=False), run_fispec_flips(n, seed),
+            run_hyperion(n, seed)]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,6 +389,7 @@ def main(argv: list[str] | None = None) -> int:
                lambda: run_native(args.frames, args.seed, 1, gate=False),
                lambda: run_fispec(args.frames, args.seed),
                lambda: run_fispec(args.frames, args.seed, gate=False),
+               lambda: run_fispec_flips(args.frames, args.seed),
                lambda: run_hyperion(args.frames, args.seed)):
         r = fn()
         rows.append(r)

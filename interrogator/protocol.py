@@ -177,10 +177,10 @@ class GateStats:
     """Counters of a :class:`FrameGate`."""
 
     lost_frames: int = 0  #: sequence gaps between frames delivered (confirmed jumps included)
-    duplicates: int = 0  #: frames whose sequence number was just delivered (dropped)
+    duplicates: int = 0  #: repeats of the last delivered or the held frame (dropped)
     seq_restarts: int = 0  #: confirmed backward jumps (device restarted; not counted lost)
-    seq_jumps: int = 0  #: confirmed forward jumps beyond ``max_seq_step``
-    implausible_frames: int = 0  #: refused: wavelength outside the window, or an unconfirmed jump
+    seq_jumps: int = 0  #: confirmed forward jumps beyond ``max_seq_step`` (their gap is lost)
+    implausible_frames: int = 0  #: refused: wavelength outside the window, or held, never confirmed
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -189,19 +189,34 @@ class GateStats:
 class FrameGate:
     """Decides whether a well-formed frame is a plausible next sample.
 
-    A frame must have every wavelength inside ``window_nm`` (or 0, a lost peak). It *follows*
-    the last delivered frame when its sequence step ``d = (seq - last) mod 2**32`` is
+    A frame must have every wavelength inside ``window_nm`` (or 0, a lost peak). Frame ``b``
+    *follows* frame ``a`` when its sequence step ``d = (b.seq - a.seq) mod 2**32`` is
     ``1..max_seq_step``, its device time (when both have one) advanced by ``1 µs .. d *
     max_period_us``, and no wavelength moved more than ``d * max_step_nm`` (lost peaks
-    excepted). A frame that follows is delivered and ``d - 1`` frames count as lost; ``d == 0``
-    is a duplicate. A frame that does not follow is *held*, not delivered: if the next frame
-    follows the held one (a device restart, or a real jump), both are delivered and the jump
-    counted once (a restart, or ``d - 1`` lost); otherwise the held frame is refused. So one
-    fabricated frame can neither be delivered nor move the counters.
+    excepted).
 
-    :meth:`push` returns the frames to deliver, ``[]`` for a duplicate, or ``None`` when the
-    frame was refused or held (a byte-stream decoder then resumes its hunt one byte further,
-    so a good frame starting inside the refused one's bytes is still found).
+    Only a frame *on course* is delivered at once: it follows the last delivered one with
+    ``d == 1``, or, when both have device time and the sample period is known
+    (:attr:`period_us`), with a ``d`` its time step agrees with. Any other frame (a gap
+    without device time, a restart, a jump, a damaged counter or timestamp) is *held*. The next frame *vouches* for the held one when it follows the held frame and does
+    not make it out of order (it does not follow the last delivered frame, or the held one lies
+    between the two); the held frame is then delivered, its step counted (a restart when the
+    counter or the time went backwards, else ``d - 1`` lost frames, and a jump when ``d``
+    exceeds ``max_seq_step``), and the vouching frame is judged against it in turn. A held
+    frame nobody vouches for is refused. An identical repeat of the last delivered or the held
+    frame is a duplicate. The first frame of a session is held like any other.
+
+    What this keeps under single-bit corruption (docs/protocol.md, "Plausibility gate"): a frame
+    whose counter was damaged is never delivered unless the damaged counter lies strictly
+    between those of its intact neighbours, which needs a gap there (never with consecutive
+    counters); ``lost_frames`` counts exactly the counter values missing between delivered
+    frames, and ``seq_restarts`` and ``seq_jumps`` only confirmed ones.
+
+    :meth:`push` returns the frames to deliver, ``[]`` for a duplicate, or ``None`` when nothing
+    is delivered and the frame was refused or held (:attr:`held` tells which; a byte-stream
+    decoder then resumes its hunt one byte further, so a good frame starting inside the refused
+    one's bytes is still found). A delivered list may start with the frame held before, and
+    ends with the pushed frame unless that one is held in its turn.
     """
 
     MOD = 1 << 32
@@ -217,6 +232,9 @@ class FrameGate:
         self.stats = GateStats()
         self.last: Frame | None = None
         self.held: Frame | None = None
+        #: Device sample period (µs) once two one-sample steps in a row agreed on it.
+        self.period_us: int | None = None
+        self._last_dt: int | None = None
 
     def in_window(self, frame: Frame) -> bool:
         lo, hi = self.lo_fm, self.hi_fm
@@ -235,41 +253,80 @@ class FrameGate:
                 return None
         return d
 
+    def _on_course(self, a: Frame, b: Frame) -> bool:
+        """Whether ``b`` follows ``a`` as a sample delivered at once: a step of one, or, for
+        frames with device time once the period is known, a step its time agrees with within
+        half a period (so a counter that disagrees with the time is held)."""
+        d = self._step(a, b)
+        if d is None:
+            return False
+        p = self.period_us
+        if p is None or a.t_us < 0 or b.t_us < 0:
+            return d == 1
+        return 2 * abs(b.t_us - a.t_us - d * p) <= p
+
+    def _advance(self, frame: Frame) -> None:
+        """Make ``frame`` the last delivered one, learning the period from one-sample steps."""
+        last = self.last
+        if last is not None and last.t_us >= 0 and frame.t_us >= 0 and (
+                frame.seq - last.seq) % self.MOD == 1:
+            dt = frame.t_us - last.t_us
+            prev = self._last_dt
+            if prev is not None and 8 * abs(dt - prev) <= prev:
+                self.period_us = dt
+            self._last_dt = dt
+        self.last = frame
+
+    def _vouches(self, held: Frame, frame: Frame) -> bool:
+        """Whether ``frame`` confirms ``held`` as the sample after :attr:`last`."""
+        if self._step(held, frame) is None:
+            return False
+        last = self.last
+        if last is None or self._step(last, frame) is None:
+            return True
+        # Both follow the last delivered frame: the held one must come between them.
+        return 1 <= (held.seq - last.seq) % self.MOD < (frame.seq - last.seq) % self.MOD
+
+    def _count_course(self, frame: Frame) -> None:
+        """Count the step from :attr:`last` to a confirmed ``frame``."""
+        last, st = self.last, self.stats
+        if last is None:
+            return
+        d = (frame.seq - last.seq) % self.MOD
+        if d == 0 or d >= self.MOD // 2 or (last.t_us >= 0 and 0 <= frame.t_us <= last.t_us):
+            st.seq_restarts += 1
+            return
+        st.lost_frames += d - 1
+        if d > self.max_seq_step:
+            st.seq_jumps += 1
+
     def push(self, frame: Frame) -> list[Frame] | None:
         st = self.stats
         if not self.in_window(frame):
             st.implausible_frames += 1
             return None
-        last = self.last
-        if last is None:
-            self.last = frame
-            return [frame]
-        d = self._step(last, frame)
-        if d is not None:
-            if self.held is not None:
-                st.implausible_frames += 1
-                self.held = None
-            st.lost_frames += d - 1
-            self.last = frame
-            return [frame]
-        if frame.seq == last.seq and frame.t_us == last.t_us:
+        last, held = self.last, self.held
+        if frame == last or frame == held:
             st.duplicates += 1
             return []
-        held = self.held
-        if held is not None and self._step(held, frame) is not None:
-            # Two frames agree on a new course: the device restarted or really jumped.
-            jump = (held.seq - last.seq) % self.MOD
-            if jump >= self.MOD // 2 or (last.t_us >= 0 and held.t_us >= 0
-                                         and held.t_us <= last.t_us):
-                st.seq_restarts += 1
-            else:
-                st.seq_jumps += 1
-                st.lost_frames += jump - 1
-            st.lost_frames += (frame.seq - held.seq) % self.MOD - 1
-            self.held = None
-            self.last = frame
-            return [held, frame]
+        if last is not None and self._on_course(last, frame):
+            if held is not None:
+                st.implausible_frames += 1
+                self.held = None
+            self._count_course(frame)
+            self._advance(frame)
+            return [frame]
         if held is not None:
+            self.held = None
+            if self._vouches(held, frame):
+                self._count_course(held)
+                self._advance(held)
+                if self._on_course(held, frame):
+                    self._count_course(frame)
+                    self._advance(frame)
+                    return [held, frame]
+                self.held = frame
+                return [held]
             st.implausible_frames += 1
         self.held = frame
         return None
@@ -279,6 +336,7 @@ class FrameGate:
         if self.held is not None:
             self.stats.implausible_frames += 1
         self.last = self.held = None
+        self._last_dt = None
 
 
 class FrameDecoder:
@@ -362,20 +420,25 @@ class FrameDecoder:
                 continue
             frame = Frame(seq, t_us, struct.unpack_from(f"<{n}i", buf, pos + HEADER_SIZE))
             if self.gate is not None:
+                before = self.gate.held
                 verdict = self.gate.push(frame)
-                if verdict is None:
-                    # Held or refused: its bytes are discarded one by one while hunting; a held
-                    # frame confirmed later takes its bytes back (see below).
-                    if self.gate.held is frame:
-                        self._held_size = size
-                    self._discard(1)
-                    pos += 1
-                    continue
-                if len(verdict) == 2:
+                if verdict and verdict[0] is before:
+                    # The held frame was confirmed: its bytes, discarded while hunting, count
+                    # as delivered after all.
                     st.discarded_bytes -= self._held_size
                     st.delivered_bytes += self._held_size
                     st.frames += 1
-                self._held_size = 0
+                    self._held_size = 0
+                    out.append(before)
+                    verdict = verdict[1:]
+                if self.gate.held is frame:
+                    self._held_size = size
+                if verdict is None or (not verdict and self.gate.held is frame):
+                    # Held or refused: its bytes are discarded one by one while hunting; a held
+                    # frame confirmed later takes its bytes back (above).
+                    self._discard(1)
+                    pos += 1
+                    continue
             else:
                 verdict = [frame]
             self.version = version
@@ -483,6 +546,10 @@ class FiSpecReply:
     junk and part of the reply; such a candidate is refused unless it is well-formed (empty
     field 0) *and* passes the :class:`FrameGate` (wavelength window, counter and step
     continuity), and reading goes on, so the rest of the reply still completes the right frame.
+    A candidate the gate holds (a counter gap, a restart: its delivery waits for the next
+    reply) completes the reply when it is all the bytes received; after junk, reading goes on
+    in case the rest of the reply completes another candidate, and the held one stands if none
+    does (:attr:`held`).
 
     Parameters
     ----------
@@ -501,10 +568,17 @@ class FiSpecReply:
         self.seq = seq
         self.buf = bytearray()
         self.refused = 0  #: candidates refused while this reply was read
-        self.frame_bytes: bytes | None = None  #: the accepted frame's bytes
+        self.frame_bytes: bytes | None = None  #: the accepted (or held) frame's bytes
+        self.held: Frame | None = None  #: this reply's frame while the gate holds it
+
+    @property
+    def complete(self) -> bool:
+        """Whether the reply holds a frame the gate delivered or still holds."""
+        return self.frame_bytes is not None and (self.held is None or self.gate.held is self.held)
 
     def feed(self, chunk: bytes) -> list[Frame] | None:
-        """Add ``chunk``; the frames to deliver once the reply is accepted, else ``None``."""
+        """Add ``chunk``; the frames to deliver once the reply is accepted (``[]``: nothing yet,
+        a duplicate or a held frame), else ``None``."""
         self.buf += chunk
         if len(self.buf) < self.size or not self.buf.endswith(FISPEC_TRAILER):
             return None
@@ -516,7 +590,13 @@ class FiSpecReply:
         frame = fr.to_frame()
         if self.seq is not None:
             frame = Frame(self.seq, frame.t_us, frame.wl_fm)
+        if self.held is not None:  # an earlier candidate of this reply: this one replaces it
+            self.refused += 1
+            self.held = self.frame_bytes = None
         verdict = self.gate.push(frame)
+        if verdict is None and self.gate.held is frame:
+            self.held, self.frame_bytes = frame, raw
+            return [] if len(self.buf) == self.size else None
         if verdict is None:
             self.refused += 1
             return None

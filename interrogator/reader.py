@@ -356,6 +356,7 @@ class FiSpecReader:
         self.gate = gate or FrameGate()
         self.polls = 0
         self.replies = 0
+        self.frames = 0
         self.bad_replies = 0
         self.timeouts = 0
         self.refused_candidates = 0
@@ -385,8 +386,9 @@ class FiSpecReader:
                            None if self.use_counter else self._synthetic_seq)
 
     def poll(self) -> list[Frame] | None:
-        """One ``P>`` round trip: the frames to deliver (``[]``: a duplicate), or ``None``
-        (timeout / bad reply). The accepted frame's bytes are kept in :attr:`last_reply`."""
+        """One ``P>`` round trip: the frames to deliver (``[]``: a duplicate, or a frame held
+        until the next reply confirms it), or ``None`` (timeout / bad reply). The accepted
+        frame's bytes are kept in :attr:`last_reply`."""
         self.link.discard_input()
         self.polls += 1
         if not self.link.write(CMD_PEAKS):
@@ -418,10 +420,13 @@ class FiSpecReader:
                     break
             if not self.link.is_open:
                 break
+        if verdict is None and reply is not None and reply.complete:
+            verdict = []  # its frame is held: the next reply decides on it
         if reply is not None:
             self.refused_candidates += reply.refused
         if verdict is not None:
             self.replies += 1
+            self.frames += len(verdict)
             self.last_reply = reply.frame_bytes  # type: ignore[union-attr]
             self.discarded_bytes += len(buf) - len(self.last_reply or b"")
             self._synthetic_seq += 1
@@ -455,7 +460,7 @@ class FiSpecReader:
         # Polling sees the device's latest sample: counter gaps are samples measured between
         # polls (skipped_samples), not line losses; a poll without a whole reply is lost.
         g = self.gate.stats
-        d = {"frames": self.replies - g.duplicates, "polls": self.polls,
+        d = {"frames": self.frames, "polls": self.polls,
              "replies": self.replies, "bad_replies": self.bad_replies, "timeouts": self.timeouts,
              "lost_frames": self.bad_replies + self.timeouts,
              "skipped_samples": g.lost_frames, "duplicates": g.duplicates,

@@ -103,6 +103,8 @@ ERRORS: tuple[Code, ...] = (
     Code("ERR_NOT_TARED", -13, "fbg_step with FBG_OPT_REQUIRE_TARE before a tare"),
     Code("ERR_TARE", -14, "tare_add/tare_end without tare_begin, or no valid sample"),
     Code("ERR_ARG", -15, "bad argument value (e.g. baseline outside the window)"),
+    Code("ERR_MODEL_CHANGED", -16, "the model was reloaded under the state (its blob_crc "
+                                   "differs from fbg_init's): fbg_init again"),
 )
 CODE = {c.name: c.value for c in ERRORS}
 CODE_NAME = {c.value: f"FBG_{c.name}" for c in ERRORS}
@@ -515,6 +517,8 @@ def header_sections() -> dict[str, str]:
     x += _struct_fields(PARAMS)
     x += ["    const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */",
           "    fbg_net nets[FBG_N_NETS];",
+          "    uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state",
+          "                              * refuses to step when it differs from fbg_init's */",
           "} fbg_model;", "",
           "/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =",
           " * x_um = y_um = 0. Safe output (SENSOR_FAULT, or an error return): all 0 but status. */",

@@ -160,11 +160,13 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
             bdir = firmware.build_firmware(csrc, build, model_c, f"{ident}_model", golden_c, dsp)
             run = firmware.run_firmware(bdir)
             ok = (run.exit_code == 0 and run.result.get("mismatches") == 0
+                  and run.result.get("model_swap_refused") == 1
                   and run.result.get("steps") == len(steps) and len(run.windows) == len(steps))
             exact &= ok
             sizes = firmware.map_sizes(bdir / "fw_size.map", exclude=("startup.o", "semihost.o", "main_size.o"))
             entry = {"bit_exact": ok, "exit_code": run.exit_code,
                      "mismatches": run.result.get("mismatches"),
+                     "model_swap_refused": run.result.get("model_swap_refused") == 1,
                      **_figures(run, macs, step_contact),
                      **{f"{k}_bytes": v for k, v in sizes.items()},
                      "stack_bytes": run.result.get("stack_bytes"),

@@ -155,3 +155,57 @@ def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory
     assert np.mean(((fixed["status"] & oor) != 0) == flt["out_of_range"]) > 0.98
     both = cf["contact"] & flt["contact"]
     assert np.abs(cf["force_N"][both] - flt["force_N"][both]).max() < 1e-2
+
+
+HOLD_SCENE = """base = "smoke"
+description = "one press held for {minutes} minutes at {force} N"
+seed = 21
+[schedule]
+n_presses = 1
+rest_s = 3.0
+hold_s = {hold_s}
+force_min_N = {force}
+force_max_N = {force}
+tail_s = 1.0
+[effects.temperature]
+offset_K = 0.0
+ramp_K = {ramp}
+ramp_start_s = 3.0
+ramp_duration_s = {hold_s}
+drift_K_per_sqrt_s = 0.0
+"""
+
+
+@pytest.mark.parametrize("ramp_K", [0.0, 20.0], ids=["constant", "ramp"])
+@pytest.mark.parametrize("force", [0.5, 5.0, 50.0])
+def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force, ramp_K):
+    """The tracker learns only while the decision says rest, and the decision holds a held
+    load: through 10 minutes of a grip (at constant temperature, and through a 20 K ramp) the
+    decision stays on, the baseline does not move, and the force reads at the end what it
+    read after the load settled (at constant temperature; through the ramp only the
+    compensation's residual moves it, the tracker adds nothing)."""
+    from fbgforce import sim
+
+    path = tmp_path / "hold.toml"
+    path.write_text(HOLD_SCENE.format(minutes=10, force=force, hold_s=600.0, ramp=ramp_K))
+    ds = sim.simulate(path)
+    rt = Runtime(small_exported_dir)
+    rt.tare(ds.wl_nm[:2000])
+    lead = np.flatnonzero(ds.contact)[0]
+    rt.run(ds.wl_nm[:lead])
+    before = np.asarray(rt.baseline_fm).copy()
+    out = rt.run(ds.wl_nm[lead:])
+    held = np.flatnonzero(np.abs(ds.force_N[lead:] - force) < 1e-6 * max(1.0, force))
+    assert held.size > 590_000
+    assert out["contact"][held].all(), "the decision let go of the held load"
+    # Untouched from the press's first sample to its release.
+    last = lead + held[-1]
+    rt2 = Runtime(small_exported_dir)
+    rt2.tare(ds.wl_nm[:2000])
+    rt2.run(ds.wl_nm[:last + 1])
+    assert np.array_equal(np.asarray(rt2.baseline_fm), before)
+    settled = out["force_N"][held[20_000:30_000]].mean()   # 20-30 s: the memory has settled
+    end = out["force_N"][held[-10_000:]].mean()
+    print(f"{force} N, ramp {ramp_K} K: settled {settled:.3f} N, end {end:.3f} N")
+    if ramp_K == 0.0:
+        assert abs(end - settled) <= 0.1 + 0.01 * force

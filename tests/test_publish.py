@@ -274,3 +274,109 @@ def test_lcm_type_ships_with_the_package():
     m = estimate_t()
     m.force_mN, m.sample_seq = 1234, 2**32 - 1
     assert estimate_t.decode(m.encode()).force_mN == 1234
+
+
+class _SameBatchReader:
+    """A reader that returns the same batch of frames ``batches`` times, then nothing."""
+
+    def __init__(self, batch: list[P.Frame], batches: int) -> None:
+        self.batch, self.left = batch, batches
+
+    def read(self, wait: float = 0.02) -> list[P.Frame]:
+        if self.left <= 0:
+            return []
+        self.left -= 1
+        return self.batch
+
+    def stats(self) -> dict[str, int]:
+        return {"lost_frames": 0}
+
+    def close(self) -> None:
+        pass
+
+
+class _TaredEstimator:
+    """Returns the same estimates for every batch, at once (the stream loop alone is measured)."""
+
+    engine = "fixed"
+    baseline_fm = np.zeros(5, dtype=np.int64)
+    baseline_nm = np.zeros(5)
+    compute_s = 0.0
+    estimated = 0
+
+    def __init__(self, k: int) -> None:
+        self.out = {"contact": np.zeros(k, bool), "p_contact": np.zeros(k),
+                    "force_N": np.zeros(k), "x_mm": np.zeros(k), "y_mm": np.zeros(k),
+                    "status": np.zeros(k, np.uint32)}
+
+    def push(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
+        return self.out
+
+
+class _CountingPublisher:
+    sent = 0
+
+    def publish(self, frames: list[P.Frame], est: dict[str, np.ndarray]) -> None:
+        self.sent += len(frames)
+
+    def stats(self) -> dict[str, int]:
+        return {"sent": self.sent}
+
+
+def test_stream_publish_memory_is_flat_over_a_million_samples():
+    """One million published samples (a quarter hour at 1 kHz) raise the stream loop's peak
+    memory by less than 1 MB: the latency summary is a fixed-size histogram, not a list per sample."""
+    import tracemalloc
+
+    from fbgforce.interrogator.stream import run_stream
+
+    k = 2000
+    batch = [P.Frame(i, i, (1_546_000_000,) * 5) for i in range(k)]
+    pub = _CountingPublisher()
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        summary = run_stream(_SameBatchReader(batch, 500), _TaredEstimator(k), status=False,
+                             publishers=[pub], max_samples=10**6)
+        grown = tracemalloc.get_traced_memory()[1] - base  # the peak, while the loop ran
+    finally:
+        tracemalloc.stop()
+    assert pub.sent == summary["publish_latency_us"]["n"] == 10**6
+    assert grown < 1 << 20, grown
+
+
+def test_latency_summary_percentiles_are_within_the_documented_bound():
+    from fbgforce.interrogator.stream import LatencySummary
+
+    rng = np.random.default_rng(3)
+    values = np.concatenate([rng.lognormal(11, 1.0, 50_000), rng.uniform(0, 3, 20)]).astype(np.int64)
+    s = LatencySummary()
+    for v in values.tolist():
+        s.add(v)
+    s.add(40_000, 7)
+    values = np.concatenate([values, np.full(7, 40_000)])
+    for q in (1, 50, 90, 99, 99.9, 100):
+        exact = float(np.percentile(values, q, method="inverted_cdf"))
+        assert abs(s.percentile_ns(q) - exact) <= 0.0055 * exact + 1, q
+    assert s.n == values.size and s.max_ns == values.max()
+    assert s.summary_us()["max"] == round(values.max() / 1000, 1)
+
+
+def test_receivers_count_duplicates_and_publisher_restarts_as_such(tmp_path):
+    """A duplicated datagram is dropped and counted, a publisher that starts again from 0 is a
+    restart: neither adds ~2**32 to "missing" (C and Python receivers alike)."""
+    exe = _compile_receiver(tmp_path)
+    seqs = [7, 8, 9, 9, 10, 12, 13, 0, 1, 1, 2]
+    accepted = [7, 8, 9, 10, 12, 13, 0, 1, 2]
+    frame = P.Frame(3, 3000, (1_546_000_000,) * 5)
+    grams = [bytes(U.encode_datagrams(s, [frame], _est(1))[0]) for s in seqs]
+    for cmd in ([str(exe)], [sys.executable, str(EXAMPLE / "receiver.py")]):
+        port = _free_udp_port()
+        rx = _start_receiver(cmd + ["127.0.0.1", str(port), str(len(accepted))])
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for g in grams:
+                tx.sendto(g, ("127.0.0.1", port))
+        out, err = rx.communicate(timeout=30)
+        assert rx.returncode == 0, err
+        assert [int(line.split(",")[0]) for line in out.splitlines()] == accepted, cmd
+        assert "received 9, bad 0, missing 1, duplicates 2, restarts 1" in err, (cmd, err)

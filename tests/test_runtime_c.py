@@ -112,7 +112,7 @@ def test_blob_loads_and_error_codes(blob_bytes):
 
 def test_python_exceptions_per_code(blob_bytes, tmp_path):
     codes = {cls.code for cls in ERRORS.values()}
-    assert len(codes) == len(ERRORS) == 15
+    assert len(codes) == len(ERRORS) == 16
     assert all(issubclass(cls, RuntimeCError) for cls in ERRORS.values())
     cases = [(blob_bytes[:10], TruncatedError), (b"XXXX" + blob_bytes[4:], BadMagicError),
              (blob_bytes[:4] + b"\x09" + blob_bytes[5:], VersionError),
@@ -307,6 +307,20 @@ def test_generated_c_int8_random_model(random_model_factory, random_walk_factory
     ref = intref.run(q, wl_fm, base)
     for k in contract.OUTPUT_FIELDS:
         assert np.array_equal(np.asarray(c_fixed[k], dtype=np.int64), ref[k]), k
+
+
+def test_generated_model_c_carries_its_blob_crc(small_exported_dir):
+    """The generated const model has model.fbgm's CRC in blob_crc, the identity fbg_step checks
+    (FBG_ERR_MODEL_CHANGED), as fbg_model_from_blob gives a loaded one."""
+    crc = int.from_bytes((small_exported_dir / "model.fbgm").read_bytes()[12:16], "little")
+    text = (small_exported_dir / "c" / "fbgforce_model.c").read_text()
+    assert f"/* blob_crc: model.fbgm's */ 0x{crc:08X}u\n}};" in text
+    m = ffi.new("fbg_model *")
+    data = (small_exported_dir / "model.fbgm").read_bytes()
+    buf = ffi.new("uint64_t[]", (len(data) + 7) // 8)
+    ffi.memmove(buf, data, len(data))
+    assert lib.fbg_model_from_blob(m, ffi.cast("uint8_t *", buf), len(data)) == lib.FBG_OK
+    assert m.blob_crc == crc
 
 
 def test_generated_model_c_compiles_as_cxx_and_c99(small_exported_dir):

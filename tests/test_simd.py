@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -608,3 +609,49 @@ def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
     # ... and has no packed form (fbg_pack_bytes 0).
     r = subprocess.run([str(exe), hex(lib.FBG_OPT_KERNEL_PORTABLE) + "p"], capture_output=True, text=True)
     assert r.returncode == 1 and "packed: cannot run here" in r.stdout
+
+
+def _swap_blobs(work: Path) -> list[Path]:
+    """The committed fuzz blobs: the four models and the fuzz_blob seeds without their mode
+    byte (some load, some are refused early, some are copies of a model)."""
+    seeds = []
+    for p in sorted((RUNTIME / "fuzz" / "corpus" / "fuzz_blob").iterdir()):
+        seeds.append(work / f"seed_{p.name}.fbgm")
+        seeds[-1].write_bytes(p.read_bytes()[1:])
+    return sorted((RUNTIME / "fuzz" / "models").glob("*.fbgm")) + seeds
+
+
+def _model_swap(cc: str, exe: Path, extra: list[str], run: list[str], kernels: list[int]) -> None:
+    """Build tests/model_swap.c and run it on ``kernels`` (and their packed forms) over the
+    committed fuzz blobs: every reload under a running state is refused or harmless."""
+    cmd = [cc, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic", "-O1", "-g", *extra,
+           f"-I{RUNTIME / 'include'}", *sorted(str(p) for p in (RUNTIME / "src").glob("*.c")),
+           str(ROOT / "tests" / "model_swap.c"), "-o", str(exe)]
+    r = subprocess.run(cmd, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    args = _replay_args(kernels)
+    r = subprocess.run(run + [str(exe), *args, "--", *map(str, _swap_blobs(exe.parent))], capture_output=True,
+                       text=True, timeout=600, env=dict(os.environ, ASAN_OPTIONS="detect_leaks=1"))
+    lines = r.stdout.strip().splitlines()
+    assert r.returncode == 0 and len(lines) == len(args) and "ERROR" not in r.stderr, \
+        r.stdout + r.stderr
+    for line in lines:
+        m = re.fullmatch(r"kernel 0x[0-9a-f]+(?: packed)?: (\d+) swaps, (\d+) refused, 0 wrong", line)
+        assert m and int(m.group(1)) >= 200 and int(m.group(2)) >= 100, line
+
+
+def test_model_reloaded_under_a_state_is_refused_on_every_host_kernel(tmp_path):
+    """fbg_model_from_blob into the model a running state uses, then fbg_step / fbg_run without
+    fbg_init: FBG_ERR_MODEL_CHANGED and the safe output (or, when the model did not change,
+    the same outputs as a state that saw no reload), under AddressSanitizer and UBSan, on the
+    portable, SSE2, AVX2 and packed kernels; then fbg_init on the new model runs it."""
+    _require("cc")
+    kernels = [lib.FBG_OPT_KERNEL_PORTABLE] + [KERNELS[k] for k in host_kernels()]
+    _model_swap("cc", tmp_path / "swap", ["-fsanitize=address,undefined", "-fno-sanitize-recover=all",
+                                          "-fno-omit-frame-pointer"], [], kernels)
+
+
+def test_model_reloaded_under_a_state_is_refused_on_aarch64_neon_under_qemu(tmp_path):
+    _require("aarch64-linux-gnu-gcc", "qemu-aarch64")
+    _model_swap("aarch64-linux-gnu-gcc", tmp_path / "swap.a64", ["-static"], ["qemu-aarch64"],
+                [lib.FBG_OPT_KERNEL_PORTABLE, lib.FBG_OPT_KERNEL_NEON])

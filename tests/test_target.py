@@ -133,6 +133,7 @@ def test_golden_vectors_bit_exact_on_target_both_builds(report):
     for name in ("portable", "dsp"):
         b = report["builds"][name]
         assert b["bit_exact"] and b["exit_code"] == 0 and b["mismatches"] == 0, b
+        assert b["model_swap_refused"] is True, b  # FBG_ERR_MODEL_CHANGED on the target
     assert report["samples"] >= SAMPLES and report["records"] > report["samples"]
 
 

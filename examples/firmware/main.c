@@ -1,11 +1,12 @@
 /* main.c - replay golden vectors through libfbgforce on a bare-metal Cortex-M4 (QEMU mps2-an386)
  * and compare every output bit with the Python integer reference.
  *
+ * Then checks that a state refuses to step on a model changed under it (model_swap_refused).
  * Prints one result line over semihosting:
  *   FBG_RESULT records=R steps=S mismatches=M first_mismatch=I init_status=X stack_bytes=B
- *              state_bytes=N dsp=D
- * and exits with 0 when every record matched, 1 on any mismatch, 2 when fbg_init failed
- * (99 = a CPU fault, from startup.c).
+ *              state_bytes=N dsp=D model_swap_refused=1
+ * and exits with 0 when every record matched and the swap was refused, 1 otherwise, 2 when
+ * fbg_init failed (99 = a CPU fault, from startup.c).
  *
  * Each fbg_step runs inside fw_timed_step() between the empty markers fbg_mark_begin/end, the
  * window the QEMU plugin (insn_window_plugin.c) counts instructions in: exactly one fbg_step
@@ -108,9 +109,28 @@ static void report_mismatch(uint32_t i, const fw_record *r, fbg_status st, int a
     sh_puts("\n");
 }
 
+/* A model reloaded in place under a running state (an update over the air without fbg_init):
+ * fbg_model_from_blob gives the model it fills the new blob's CRC, which a RAM copy of the
+ * linked model stands in for here. 1 if fbg_step refuses it with the safe output. */
+static fbg_model swap_model;
+
+static int model_swap_refused(void)
+{
+    fbg_output out;
+    swap_model = FBG_FW_MODEL_SYM;
+    if (fbg_init(&state, &swap_model, fw_golden_options & FBG_OPT_KERNEL_MASK) != FBG_OK ||
+        fbg_step(&state, swap_model.baseline_fm, &out) != FBG_OK)
+        return 0;
+    swap_model.blob_crc ^= 1u;
+    memset(&out, 0xA5, sizeof out);
+    return fbg_step(&state, swap_model.baseline_fm, &out) == FBG_ERR_MODEL_CHANGED &&
+           out.status == 0u && out.force_mN == 0 && out.contact == 0u;
+}
+
 int main(void)
 {
     uint32_t i, mismatches = 0, steps = 0, first = 0xFFFFFFFFu, stack = 0;
+    int swap_refused;
     fbg_status init_st;
     uint32_t *low = paint_stack();
     uint32_t *sp_main = current_sp();
@@ -157,6 +177,7 @@ int main(void)
         }
     }
     stack = stack_used_below(low, sp_main);
+    swap_refused = model_swap_refused();
 
     sh_puts("FBG_RESULT");
     sh_kv("records", (int32_t)fw_golden_count);
@@ -167,6 +188,7 @@ int main(void)
     sh_kv("stack_bytes", (int32_t)stack);
     sh_kv("state_bytes", (int32_t)sizeof(fbg_state));
     sh_kv("dsp", FBG_USE_DSP);
+    sh_kv("model_swap_refused", swap_refused);
     sh_puts("\n");
-    return mismatches ? 1 : 0;
+    return mismatches || !swap_refused ? 1 : 0;
 }

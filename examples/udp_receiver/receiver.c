@@ -6,7 +6,9 @@
  *     ./receiver 127.0.0.1 9870 [COUNT]
  *
  * Prints one CSV line per valid datagram (seq,sample_seq,t_us,status,contact,conf_q15,
- * force_mN,x_um,y_um) and, on stderr at the end, how many datagrams were bad or missing.
+ * force_mN,x_um,y_um) and, on stderr at the end, how many datagrams were bad, missing
+ * (publication counter gaps), duplicated (the last counter again: dropped) and how often the
+ * publisher restarted (its counter went backwards; counting goes on from there).
  * Fields are read byte by byte as little-endian, so the code is right on any host byte order.
  */
 #define _POSIX_C_SOURCE 200112L
@@ -74,13 +76,30 @@ static int decode(const unsigned char *d, size_t n, fbg_estimate *e)
     return 0;
 }
 
+/* What publication counter seq means after last: FOLLOW_NEXT, a new estimate with *gap
+ * datagrams missing before it (a forward step below 2^31); FOLLOW_DUPLICATE, the last counter
+ * again (drop it); FOLLOW_RESTART, any other backward step: the publisher started again. */
+enum { FOLLOW_NEXT, FOLLOW_DUPLICATE, FOLLOW_RESTART };
+
+static int follow(int have_last, uint32_t last, uint32_t seq, uint32_t *gap)
+{
+    uint32_t step = seq - last;
+
+    *gap = 0;
+    if (!have_last) return FOLLOW_NEXT;
+    if (step == 0u) return FOLLOW_DUPLICATE;
+    if (step >= 0x80000000u) return FOLLOW_RESTART;
+    *gap = step - 1u;
+    return FOLLOW_NEXT;
+}
+
 int main(int argc, char **argv)
 {
     struct sockaddr_in addr;
     unsigned char buf[256];
-    long count, got = 0, bad = 0, missing = 0;
-    uint32_t next = 0;
-    int have_next = 0, fd;
+    long count, got = 0, bad = 0, missing = 0, duplicates = 0, restarts = 0;
+    uint32_t last = 0, gap;
+    int have_last = 0, fd;
 
     if (argc < 3) {
         fprintf(stderr, "usage: %s ADDRESS PORT [COUNT]\n", argv[0]);
@@ -116,9 +135,18 @@ int main(int argc, char **argv)
             bad++;
             continue;
         }
-        if (have_next && e.seq != next) missing += (long)(uint32_t)(e.seq - next);
-        next = e.seq + 1u;
-        have_next = 1;
+        switch (follow(have_last, last, e.seq, &gap)) {
+        case FOLLOW_DUPLICATE:
+            duplicates++;
+            continue;
+        case FOLLOW_RESTART:
+            restarts++;
+            break;
+        default:
+            missing += (long)gap;
+        }
+        last = e.seq;
+        have_last = 1;
         got++;
         printf("%lu,%lu,%lld,%lu,%u,%u,%ld,%ld,%ld\n", (unsigned long)e.seq,
                (unsigned long)e.sample_seq, (long long)e.t_us, (unsigned long)e.status,
@@ -126,7 +154,8 @@ int main(int argc, char **argv)
                (long)e.y_um);
     }
     fflush(stdout);
-    fprintf(stderr, "received %ld, bad %ld, missing %ld\n", got, bad, missing);
+    fprintf(stderr, "received %ld, bad %ld, missing %ld, duplicates %ld, restarts %ld\n", got,
+            bad, missing, duplicates, restarts);
     close(fd);
     return 0;
 }

@@ -4,7 +4,9 @@ numpy: copy it into a controller). Datagram layout: docs/protocol.md, "Estimate 
     python receiver.py 127.0.0.1 9870 [COUNT]
 
 Prints one CSV line per valid datagram (seq,sample_seq,t_us,status,contact,conf_q15,force_mN,
-x_um,y_um) and, on stderr at the end, how many datagrams were bad or missing.
+x_um,y_um) and, on stderr at the end, how many datagrams were bad, missing (publication counter
+gaps), duplicated (the last counter again: dropped) and how often the publisher restarted (its
+counter went backwards; counting goes on from there).
 """
 from __future__ import annotations
 
@@ -44,6 +46,23 @@ def decode(data: bytes) -> Estimate | None:
     return Estimate(seq, sample_seq, t_us, status, contact, conf, force, x, y)
 
 
+def follow(last: int | None, seq: int) -> tuple[str, int]:
+    """What publication counter ``seq`` means after ``last`` (``None``: nothing yet).
+
+    ``("next", gap)``: a new estimate, ``gap`` datagrams missing before it (a forward step of
+    less than 2**31); ``("duplicate", 0)``: the last counter again (drop it); ``("restart", 0)``:
+    any other backward step, the publisher started again.
+    """
+    if last is None:
+        return "next", 0
+    step = (seq - last) & 0xFFFFFFFF
+    if step == 0:
+        return "duplicate", 0
+    if step >= 1 << 31:
+        return "restart", 0
+    return "next", step - 1
+
+
 def main(argv: list[str]) -> int:
     if len(argv) < 3:
         print(f"usage: {argv[0]} ADDRESS PORT [COUNT]", file=sys.stderr)
@@ -53,23 +72,28 @@ def main(argv: list[str]) -> int:
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
     sock.bind((argv[1], int(argv[2])))
     print("listening", file=sys.stderr, flush=True)
-    got = bad = missing = 0
-    expected = None
+    got = bad = missing = duplicates = restarts = 0
+    last = None
     try:
         while count < 0 or got < count:
             e = decode(sock.recv(256))
             if e is None:
                 bad += 1
                 continue
-            if expected is not None and e.seq != expected:
-                missing += (e.seq - expected) & 0xFFFFFFFF
-            expected = (e.seq + 1) & 0xFFFFFFFF
+            what, gap = follow(last, e.seq)
+            if what == "duplicate":
+                duplicates += 1
+                continue
+            restarts += what == "restart"
+            missing += gap
+            last = e.seq
             got += 1
             print(",".join(str(v) for v in e))
     except KeyboardInterrupt:
         pass
     sys.stdout.flush()
-    print(f"received {got}, bad {bad}, missing {missing}", file=sys.stderr)
+    print(f"received {got}, bad {bad}, missing {missing}, duplicates {duplicates}, "
+          f"restarts {restarts}", file=sys.stderr)
     return 0
 
 

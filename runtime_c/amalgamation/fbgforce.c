@@ -328,6 +328,9 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
         return FBG_ERR_ALIGN;
 
     memset(model, 0, sizeof *model);
+    /* First, so that a state whose model this call overwrites, even if it then fails, sees
+     * another model (fbg_step: FBG_ERR_MODEL_CHANGED). */
+    model->blob_crc = rd32(blob + 12);
     fbg_params_decode(model, blob + FBG_BLOB_HEADER_SIZE);
     if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
         return FBG_ERR_RANGE;
@@ -648,6 +651,7 @@ const char *fbg_status_str(int status)
     case FBG_ERR_NOT_TARED: return "FBG_ERR_NOT_TARED";
     case FBG_ERR_TARE: return "FBG_ERR_TARE";
     case FBG_ERR_ARG: return "FBG_ERR_ARG";
+    case FBG_ERR_MODEL_CHANGED: return "FBG_ERR_MODEL_CHANGED";
     default: return "FBG_ERR_UNKNOWN";
     }
 }
@@ -4087,6 +4091,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
         return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
     state->model = model;
+    state->model_crc = model->blob_crc;
     fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
     /* The location averages' rest reference is a model constant: computed here, not per step. */
     for (c = 0; c < FBG_N_STRAIN; ++c)
@@ -4537,6 +4542,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         return st;
     }
     m = s->model;
+    /* The state's history, memory states and packed weights are sized and made for the model
+     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
+    if (m->blob_crc != s->model_crc) {
+        safe_output(out, 0u);
+        return FBG_ERR_MODEL_CHANGED;
+    }
     if (s->track_limited)
         status |= FBG_STATUS_BASELINE_LIMIT;
 

@@ -96,7 +96,8 @@ typedef enum {
     FBG_ERR_STATE = -12,  /* state not initialised by fbg_init (or corrupted) */
     FBG_ERR_NOT_TARED = -13,  /* fbg_step with FBG_OPT_REQUIRE_TARE before a tare */
     FBG_ERR_TARE = -14,  /* tare_add/tare_end without tare_begin, or no valid sample */
-    FBG_ERR_ARG = -15  /* bad argument value (e.g. baseline outside the window) */
+    FBG_ERR_ARG = -15,  /* bad argument value (e.g. baseline outside the window) */
+    FBG_ERR_MODEL_CHANGED = -16  /* the model was reloaded under the state (its blob_crc differs from fbg_init's): fbg_init again */
 } fbg_status;
 
 /* Output status flags (fbg_output.status; several may be set). */
@@ -198,6 +199,8 @@ typedef struct {
     uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
+    uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
+                              * refuses to step when it differs from fbg_init's */
 } fbg_model;
 
 /* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =
@@ -254,6 +257,7 @@ typedef struct {
     uint8_t track_limited;                       /* 1: a channel's drift_fm is at its bound */
     uint16_t rest_run;                           /* samples at rest, saturating */
     const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
+    uint32_t model_crc;                          /* model->blob_crc at fbg_init */
 } fbg_state;
 
 /* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was
@@ -271,7 +275,9 @@ const char *fbg_status_str(int status);
  * blob, which must stay alive and unchanged. Checks, in this order: pointers (NULL), length
  * >= header (TRUNCATED), magic (BAD_MAGIC), version (VERSION), declared length <= len
  * (TRUNCATED), CRC-32 (CRC), then every field (SHAPE, RANGE, SIZE, BOUND) as fbg_model_check.
- * Never reads outside blob[0, len). The blob must be 8-byte aligned (ALIGN). */
+ * Never reads outside blob[0, len). The blob must be 8-byte aligned (ALIGN). Once the
+ * header and CRC are good, model->blob_crc is the blob's CRC whatever follows, so a state
+ * initialised on the model this call overwrites refuses to step (FBG_ERR_MODEL_CHANGED). */
 fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len);
 
 /* Validate a model (shapes, ranges, non-NULL arrays, int64 accumulator bound proof).
@@ -355,8 +361,10 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
  * any change or out-of-window sample; stuck_max 0 = off). A faulty T channel (reference gone)
  * faults the sample too. On a fault: the FIR is fed its last input again (time base kept),
  * the nets are not run, *out is the safe output with FBG_STATUS_SENSOR_FAULT.
- * Returns FBG_OK (the output status says the rest), FBG_ERR_NULL, FBG_ERR_STATE or
- * FBG_ERR_NOT_TARED (with FBG_OPT_REQUIRE_TARE; *out then safe, state unchanged). */
+ * Returns FBG_OK (the output status says the rest), FBG_ERR_NULL, FBG_ERR_STATE,
+ * FBG_ERR_NOT_TARED (with FBG_OPT_REQUIRE_TARE) or FBG_ERR_MODEL_CHANGED (the model's
+ * blob_crc is no longer the one fbg_init saw: it was reloaded in place; fbg_init again); on
+ * the last two *out is the safe output and the state is unchanged. */
 fbg_status fbg_step(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out);
 
 /* Batch: n samples, wl_fm row-major n x 5, out[n]. Same as n calls of fbg_step; stops at

@@ -106,6 +106,9 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
         return FBG_ERR_ALIGN;
 
     memset(model, 0, sizeof *model);
+    /* First, so that a state whose model this call overwrites, even if it then fails, sees
+     * another model (fbg_step: FBG_ERR_MODEL_CHANGED). */
+    model->blob_crc = rd32(blob + 12);
     fbg_params_decode(model, blob + FBG_BLOB_HEADER_SIZE);
     if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
         return FBG_ERR_RANGE;

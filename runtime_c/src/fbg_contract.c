@@ -241,6 +241,7 @@ const char *fbg_status_str(int status)
     case FBG_ERR_NOT_TARED: return "FBG_ERR_NOT_TARED";
     case FBG_ERR_TARE: return "FBG_ERR_TARE";
     case FBG_ERR_ARG: return "FBG_ERR_ARG";
+    case FBG_ERR_MODEL_CHANGED: return "FBG_ERR_MODEL_CHANGED";
     default: return "FBG_ERR_UNKNOWN";
     }
 }

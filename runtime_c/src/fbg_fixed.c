@@ -84,6 +84,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
         return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
     state->model = model;
+    state->model_crc = model->blob_crc;
     fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
     /* The location averages' rest reference is a model constant: computed here, not per step. */
     for (c = 0; c < FBG_N_STRAIN; ++c)
@@ -534,6 +535,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         return st;
     }
     m = s->model;
+    /* The state's history, memory states and packed weights are sized and made for the model
+     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
+    if (m->blob_crc != s->model_crc) {
+        safe_output(out, 0u);
+        return FBG_ERR_MODEL_CHANGED;
+    }
     if (s->track_limited)
         status |= FBG_STATUS_BASELINE_LIMIT;
 
