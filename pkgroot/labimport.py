@@ -49,7 +49,7 @@ CHUNK_ROWS = 50_000
 #: A log is irregular when more than this fraction of its sample intervals lie outside
 #: :data:`REGULAR_BAND` times the median interval.
 IRREGULAR_FRACTION = 0.01
-REGULAR_BAND = (0.5, 1.5)
+REGULAR_BAND = (0.2, 2.0)
 #: Interrogator samples between two stage samples further apart than this many median stage
 #: intervals are dropped (a hole in the stage log: nothing to interpolate from).
 STAGE_GAP_INTERVALS = 3.0
@@ -86,6 +86,8 @@ PRESS_SIGMA_FLOOR_S = 0.0003
 #: around the threshold), and runs shorter than PRESS_MIN_S start no press.
 PRESS_MERGE_GAP_S = 0.05
 PRESS_MIN_S = 0.01
+#: A press's unloading has ended once the load is within this of zero, N.
+REST_BAND_N = 0.1 * fds.CONTACT_THRESHOLD_N
 
 
 # ------------------------------------------------------------------------------ the mapping
@@ -340,14 +342,14 @@ def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
     bad = ~np.isfinite(t)
     if bad.any():
         i = int(np.argmax(bad))
-        raise InputError(f"time is not a finite number ({t[i]!r})", path=path,
+        raise InputError(f"time is not a finite number ({t[i]})", path=path,
                          line=int(line[i]), column="t")
     if t.size < 3:
         raise InputError(f"only {t.size} samples in the {what} log", path=path)
     dt = np.diff(t)
     if (dt <= 0).any():
         i = int(np.argmax(dt <= 0)) + 1
-        raise InputError(f"time not increasing ({t[i]!r} after {t[i - 1]!r}): the {what} "
+        raise InputError(f"time not increasing ({t[i]:.9g} after {t[i - 1]:.9g}): the {what} "
                          "log must be in time order, one row per sample", path=path,
                          line=int(line[i]), column="t")
     med = float(np.median(dt))
@@ -693,13 +695,24 @@ def _press_runs(t: np.ndarray, contact: np.ndarray) -> tuple[np.ndarray, np.ndar
     return starts[long], stops[long]
 
 
-def number_presses(t: np.ndarray, contact: np.ndarray) -> np.ndarray:
-    """Press ids as the simulator gives them: a press is its rest followed by its contact,
-    so the samples from the end of one press's contact to the end of the next one's carry the
-    next id; samples after the last press keep its id. Ids count from 0."""
-    starts, stops = _press_runs(t, contact)
-    ids = np.searchsorted(stops, np.arange(t.size), side="right")
-    return np.minimum(ids, max(starts.size - 1, 0)).astype(np.int64)
+def number_presses(t: np.ndarray, force_N: np.ndarray) -> np.ndarray:
+    """Press ids as the simulator gives them, counting from 0: a press is its rest, its
+    contact and the end of its unloading, which runs past the last contact sample to the
+    first sample where the load stops falling or is within :data:`REST_BAND_N` of zero (the
+    load back at rest). The samples after that carry the next press's id; those after the
+    last press keep its id."""
+    force = np.asarray(force_N, dtype=np.float64)
+    starts, stops = _press_runs(t, label_contact(force))
+    if starts.size == 0:
+        return np.zeros(t.size, dtype=np.int64)
+    # Where the load is back at rest: it stops falling, or it is all but zero.
+    still = np.flatnonzero((force[1:] >= force[:-1]) | (force[1:] <= REST_BAND_N)) + 1
+    k = np.searchsorted(still, stops)
+    ends = np.where(k < still.size, still[np.minimum(k, still.size - 1)], t.size)
+    nxt = np.append(starts[1:], t.size)
+    ends = np.minimum(ends + 1, nxt)                           # the stopping sample included
+    ids = np.searchsorted(ends, np.arange(t.size), side="right")
+    return np.minimum(ids, starts.size - 1).astype(np.int64)
 
 
 # ------------------------------------------------------------------------------ the import
@@ -761,13 +774,12 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
     force, _, _, reason = stage_at(stage, al.to_stage(t_f), gap_s)
     reason[(reason == 0) & ~good] = 4
     keep = reason == 0
-    contact_all = label_contact(force)
-    if not contact_all[keep].any():
+    if not label_contact(force[keep]).any():
         raise InputError("no presses: no interrogator sample meets a load above "
                          f"{fds.CONTACT_THRESHOLD_N:g} N after alignment", path=where)
     press = np.zeros(t_f.size, dtype=np.int64)
-    press[keep] = number_presses(t_f[keep], contact_all[keep])
-    del force, contact_all, proxy
+    press[keep] = number_presses(t_f[keep], force[keep])
+    del force, proxy
     # Pass 2: resample and write chunk by chunk.
     source = (f"import: {fbg.path} + {stage.path} offset={al.offset_s:.6f}s "
               f"drift={al.drift * 1e6:.2f}ppm")

@@ -5,7 +5,7 @@ and its random stream (``crc32("stage_log")``) touches no other.
 
 The stage clock reads ``t_stage = t + offset_s + drift_ppm * 1e-6 * t`` at interrogator time
 ``t`` (the dataset's ``t_s``, from 0), its samples are taken every ``1 / rate_hz`` on its own
-clock with Gaussian jitter and time-stamped where they were taken, and it logs from half a
+clock with Gaussian jitter (clipped to 0.4 periods) and time-stamped where they were taken, and it logs from half a
 second before the interrogator's first sample to half a second after its last.
 """
 from __future__ import annotations
@@ -81,7 +81,10 @@ def write_lab_logs(ds: Dataset, directory: str | Path, *, rate_hz: float = 500.0
     t1 = ds.t_s[-1] + STAGE_MARGIN_S
     s0, s1 = (t0 + offset_s + drift * t0), (t1 + offset_s + drift * t1)
     k = np.arange(int(np.floor((s1 - s0) * rate_hz)) + 1)
-    t_stage = s0 + k / rate_hz + stage_rng(seed).normal(0.0, 1.0, k.size) * jitter_s
+    # Jitter clipped to 0.4 periods keeps the samples in order, as a logger's are.
+    jitter = np.clip(stage_rng(seed).normal(0.0, 1.0, k.size) * jitter_s, -0.4 / rate_hz,
+                     0.4 / rate_hz)
+    t_stage = s0 + k / rate_hz + jitter
     t_true = (t_stage - offset_s) / (1.0 + drift)
     force = np.interp(t_true, ds.t_s, ds.force_N, left=0.0, right=0.0)
     px, py = press_locations(ds)
