@@ -110,7 +110,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         if hold.max() < WANT_HOLD_S:
             missing.append(f"holds of {WANT_HOLD_S:g} s or longer (a held grip will read low)")
     if span_K < WANT_TEMPERATURE_K:
-        missing.append(f"temperature changes beyond {span_K:.1f} K (the temperature grating "
+        missing.append(f"temperature changes beyond {span_K:.2g} K (the temperature grating "
                        f"moved {span_pm:.0f} pm)")
     if rest_longest < WANT_LONG_REST_S:
         missing.append(f"long rests (none over {WANT_LONG_REST_S:g} s: creep recovery, the "
