@@ -278,26 +278,21 @@ def test_coverage_says_what_a_log_lacks(smoke, tmp_path):
     assert json.loads(proc.stdout)["missing"] == cov["missing"]
 
 
-# ------------------------------------------------------------------------------ training
+# ------------------------------------------------------------------------------ scoring
 
-@pytest.mark.slow
-def test_model_trained_on_the_import_scores_like_the_simulators(smoke, tmp_path):
-    """Same seed, same presses: a model trained on the imported dataset scores within 2 % of
-    one trained on the simulator's own file, on the same test presses."""
+def test_a_model_scores_the_import_like_the_simulators_file(small_model_dir, small_dataset_path,
+                                                          tmp_path):
+    """What the labels are worth: one model scored on the imported dataset and on the
+    simulator's own file, every metric within 2 % (training two models instead measures the
+    training's own variance, docs/lab-import.md)."""
     from fbgforce.trainer.evaluate import evaluate
-    from fbgforce.trainer.train import train
-    from fbgforce import model as fm
 
-    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    ds = dataset.load(small_dataset_path)
+    write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
     _import(tmp_path)
-    dataset.save(smoke, tmp_path / "sim.csv")
-    kw = dict(epochs=30, seed=0, progress=False)
-    scores = {}
-    for name, path in (("sim", tmp_path / "sim.csv"), ("imported", tmp_path / "out.csv")):
-        model = train([str(path)], **kw)
-        fm.save(model, tmp_path / name)
-        scores[name] = evaluate(str(tmp_path / name), [str(tmp_path / "sim.csv")],
-                                split="test")
+    own = evaluate(small_model_dir, [small_dataset_path], split="all")
+    imported = evaluate(small_model_dir, [str(tmp_path / "out.csv")], split="all")
+    assert imported["n_samples"] == own["n_samples"]
     for key in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm"):
-        a, b = scores["sim"][key], scores["imported"][key]
-        assert abs(b - a) <= 0.02 * abs(a), (key, a, b)
+        assert abs(imported[key] - own[key]) <= 0.02 * abs(own[key]), (key, own[key],
+                                                                        imported[key])
