@@ -373,7 +373,7 @@ class Alignment:
     one outside its lobe; ``residual_ms`` the weighted RMS of the per-press offsets about the
     line; ``lag_ms`` how much later the loading flanks alone put the stage clock than both
     flanks do (the pad's lag on the full flanks, taken out); ``press_offsets`` the per-press
-    estimates (fbg time, offset, sd, used)."""
+    estimates (fbg time, offset, sd, used on the line, loading-flank offset, its sd)."""
 
     offset_s: float
     drift: float
@@ -650,7 +650,7 @@ def align(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, *,
             np.abs(r - np.median(r))))
         lag_s = float(np.average(r[keep], weights=sig[keep] ** -2))
         a += lag_s
-    table = np.column_stack([arr, use])
+    table = np.column_stack([arr, use, on, on_sd])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
                      residual_ms=rms_ms, lag_ms=lag_s * 1e3, presses_used=int(use.sum()),
                      presses_rejected=len(presses) - int(use.sum()), press_offsets=table)
