@@ -815,9 +815,9 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
 
 def import_files(spec: ImportSpec, *, progress: bool | None = None) -> dict[str, Any]:
     """:func:`import_logs` on the CSV files an :class:`ImportSpec` names."""
-    stage = read_stage_csv(spec.stage, spec.stage_columns, spec.force_unit, spec.position_unit)
-    fbg = CsvFbgLog(spec.fbg, spec.fbg_columns, spec.fbg_unit)
     if spec.out.suffix.lower() != ".csv":
         raise InputError("the imported dataset is written as CSV: give a .csv path",
                          path=str(spec.out), column="--out")
+    stage = read_stage_csv(spec.stage, spec.stage_columns, spec.force_unit, spec.position_unit)
+    fbg = CsvFbgLog(spec.fbg, spec.fbg_columns, spec.fbg_unit)
     return import_logs(fbg, stage, spec.out, max_offset_s=spec.max_offset_s, progress=progress)
