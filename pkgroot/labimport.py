@@ -12,8 +12,10 @@ Steps (:func:`import_logs`):
    shifts of the four strain gratings, summed) is kept with the interrogator's times;
 2. :func:`align` estimates the stage clock against the interrogator's,
    ``t_stage = t_fbg + offset + drift (t_fbg - t_fbg[0])``: a coarse normalised
-   cross-correlation of the load against the proxy, then each press refined on its low-force
-   flanks (where the pad's hysteresis closes) and a weighted straight-line fit;
+   cross-correlation of the load against the proxy, then each press timed on its loading and
+   unloading flanks (a gain per flank, so the pad's friction loop does not bias it), a
+   weighted straight-line fit, and the line's level set from the loading flanks alone (where
+   a viscoelastic pad lags the load least);
 3. force and position are interpolated onto the interrogator's samples (:func:`stage_at`),
    contact is labelled by the dataset's rule (:func:`label_contact`) and presses numbered as
    the simulator numbers them (:func:`number_presses`);
@@ -115,8 +117,9 @@ def parse_columns(value: str | Mapping[str, Any], keys: tuple[str, ...], flag: s
         pairs = []
         for part in value.split(","):
             if "=" not in part:
-                raise InputError(f"expected KEY=COLUMN pairs ({','.join(k + '=COL' for k in keys)}),"
-                                 f" got {part.strip()!r}", path=where, column=flag)
+                wanted = ",".join(k + "=COL" for k in keys)
+                raise InputError(f"expected KEY=COLUMN pairs ({wanted}), got {part.strip()!r}",
+                                 path=where, column=flag)
             k, v = part.split("=", 1)
             pairs.append((k.strip(), v.strip()))
     elif isinstance(value, Mapping):

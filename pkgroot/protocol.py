@@ -103,7 +103,8 @@ def default_program(n_presses: int = 300, *, force_max_N: float = 70.0, groups: 
     light = np.exp(rng.uniform(*np.log(LIGHT_N), n_light))
     # Stratified: one draw in each of n equal slices of the range.
     n_main = n_presses - n_light
-    main = LIGHT_N[1] + (np.arange(n_main) + rng.random(n_main)) * (force_max_N - LIGHT_N[1]) / n_main
+    step = (force_max_N - LIGHT_N[1]) / n_main
+    main = LIGHT_N[1] + (np.arange(n_main) + rng.random(n_main)) * step
     force = rng.permutation(np.concatenate([light, main]))
     ramp = _classes(rng, n_presses, RAMPS)
     hold = _classes(rng, n_presses, HOLDS)

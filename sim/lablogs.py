@@ -5,8 +5,9 @@ and its random stream (``crc32("stage_log")``) touches no other.
 
 The stage clock reads ``t_stage = t + offset_s + drift_ppm * 1e-6 * t`` at interrogator time
 ``t`` (the dataset's ``t_s``, from 0), its samples are taken every ``1 / rate_hz`` on its own
-clock with Gaussian jitter (clipped to 0.4 periods) and time-stamped where they were taken, and it logs from half a
-second before the interrogator's first sample to half a second after its last.
+clock with Gaussian jitter (clipped to 0.4 periods) and time-stamped where they were taken,
+and it logs from half a second before the interrogator's first sample to half a second after
+its last.
 """
 from __future__ import annotations
 

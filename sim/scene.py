@@ -26,8 +26,8 @@ _REGIONS = ("pad", "interior", "boundary")
 
 #: Keys shared by every schedule kind.
 _COMMON = {
-    "contact_threshold_N": Param("float", CONTACT_THRESHOLD_N, "ground-truth contact is force > this, N",
-                                 0, 10),
+    "contact_threshold_N": Param("float", CONTACT_THRESHOLD_N,
+                                 "ground-truth contact is force > this, N", 0, 10),
     "lead_in_s": Param("float", 0.0, "extra rest (no contact) at the start, s", 0, 3600),
     "tail_s": Param("float", 0.0, "rest (no contact) at the end, s", 0, 3600),
 }

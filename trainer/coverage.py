@@ -139,7 +139,8 @@ def coverage_lines(cov: dict[str, Any]) -> list[str]:
         f, s = cov["force_N"], cov["loading_N_per_s"]
         lines.append(f"  force: peaks {f['min']:.2f}-{f['max']:.1f} N; presses by peak: "
                      + ", ".join(f"{k} N {v}" for k, v in cov["force_ranges"].items()))
-        lines.append(f"  loading speed: {s['min']:.3g}-{s['max']:.3g} N/s (median {s['median']:.3g})")
+        lines.append(f"  loading speed: {s['min']:.3g}-{s['max']:.3g} N/s "
+                     f"(median {s['median']:.3g})")
         hd = cov["holds"]
         lines.append(f"  holds: {hd['presses_holding_s']} presses hold >= {HOLD_MIN_S:g} s, "
                      f"{hd[f'presses_holding_{WANT_HOLD_S:g}_s']} >= {WANT_HOLD_S:g} s, longest "
