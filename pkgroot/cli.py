@@ -24,6 +24,7 @@ from fbgforce.errors import InputError
 #: Modules that define subcommands, in the order their commands appear in ``--help``.
 COMMAND_MODULES = (
     "fbgforce.sim.cli",
+    "fbgforce.labcli",
     "fbgforce.trainer.cli",
     "fbgforce.export.cli",
     "fbgforce.tradeoff.cli",

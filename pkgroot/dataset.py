@@ -42,6 +42,9 @@ WL_RANGE_NM = (1000.0, 2000.0)
 #: (noise, drift); such values are genuine data and are kept. Anything more negative means
 #: a sign convention or tare error in the log.
 FORCE_NEGATIVE_LIMIT_N = -0.5
+#: Ground-truth contact is ``force_N`` above this (the simulator's default and the rule
+#: ``fbgforce import`` labels a lab's load-cell log by; docs/dataset.md "Contact and presses").
+CONTACT_THRESHOLD_N = 0.05
 #: CSV number formats per column (npz is lossless). ``%g`` drops trailing zeros, which keeps
 #: files short and loading fast: wavelengths 10 significant digits = 1 fm in 1000-2000 nm,
 #: time 12 digits (1 µs up to 10^6 s), force 8 digits (≤ 10 µN below 1000 N), x/y 0.1 µm.
@@ -562,43 +565,94 @@ def _extra_kind(arr: np.ndarray) -> str:
     return "float64"
 
 
-def _save_csv(ds: Dataset, path: Path) -> None:
-    cols = ds.columns()
-    names = list(cols)
-    fmts = []
-    arrays = []
-    for name in names:
-        arr = cols[name]
-        if name in _CSV_FORMATS:
-            fmt = _CSV_FORMATS[name]
-        else:
-            kind = _extra_kind(arr)
-            fmt = {"bool": "%d", "int64": "%d", "str": "%s", "float64": "%.9g"}[kind]
-            if kind == "str" and any("," in s or "\n" in s for s in arr.tolist()):
+class CsvWriter:
+    """Writes a dataset CSV in pieces: the header once, then each :class:`Dataset` chunk given
+    to :meth:`write` (validated, and later than the chunk before), so a long recording never
+    has to be held whole. :func:`save` writes through it in one piece.
+
+    Parameters
+    ----------
+    path
+        The CSV to write.
+    source
+        :attr:`Dataset.source` recorded in the header comment.
+    extra_kinds
+        Extra column name -> dtype name (``float64``, ``int64``, ``bool``, ``str``), in order;
+        every chunk must carry exactly these extra columns.
+    """
+
+    def __init__(self, path: str | Path, source: str = "",
+                 extra_kinds: dict[str, str] | None = None) -> None:
+        self.path = Path(path)
+        self.extra_kinds = dict(extra_kinds or {})
+        self.rows = 0
+        self._last_t = -np.inf
+        names = list(REQUIRED_COLUMNS) + list(self.extra_kinds)
+        fmts = [_CSV_FORMATS.get(name) or
+                {"bool": "%d", "int64": "%d", "str": "%s", "float64": "%.9g"}[self.extra_kinds[name]]
+                for name in names]
+        self._names = names
+        self._row_fmt = ",".join(fmts)
+        header = [f"# {_MAGIC} v{_VERSION}: peak wavelengths (nm) and ground truth, one row per sample"]
+        if source:
+            header.append("# source: " + source.replace("\n", " "))
+        if self.extra_kinds:
+            header.append(f"# {_DTYPE_COMMENT} "
+                          + " ".join(f"{k}={v}" for k, v in self.extra_kinds.items()))
+        header.append(",".join(names))
+        try:
+            self._fh = open(self.path, "w", encoding="utf-8", newline="\n")
+            self._fh.write("\n".join(header) + "\n")
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror}", path=str(self.path)) from None
+
+    def write(self, ds: Dataset, *, check: bool = True) -> None:
+        """Append one chunk's rows, validated first unless the caller already did
+        (``check=False``)."""
+        if len(ds) == 0:
+            return
+        if list(ds.extra) != list(self.extra_kinds):
+            raise ValueError(f"chunk extras {list(ds.extra)} differ from {list(self.extra_kinds)}")
+        if check:
+            validate(ds, where=f"dataset to save as {self.path}")
+        if ds.t_s[0] <= self._last_t:
+            raise InputError(f"time not increasing between chunks ({ds.t_s[0]!r} after "
+                             f"{self._last_t!r})", path=str(self.path), column="t_s")
+        cols = ds.columns()
+        arrays = []
+        for name in self._names:
+            arr = cols[name]
+            if self.extra_kinds.get(name) == "str" and any("," in v or "\n" in v
+                                                          for v in arr.tolist()):
                 raise InputError("text values must not contain commas or newlines in CSV",
-                                 path=str(path), column=name)
-        if arr.dtype == bool:
-            arr = arr.astype(np.int64)
-        fmts.append(fmt)
-        arrays.append(arr.tolist())
-    row_fmt = ",".join(fmts)
-    extra_types = " ".join(f"{k}={_extra_kind(v)}" for k, v in ds.extra.items())
-    header = [f"# {_MAGIC} v{_VERSION}: peak wavelengths (nm) and ground truth, one row per sample"]
-    if ds.source:
-        header.append("# source: " + ds.source.replace("\n", " "))
-    if extra_types:
-        header.append(f"# {_DTYPE_COMMENT} {extra_types}")
-    header.append(",".join(names))
-    body = "\n".join(row_fmt % row for row in zip(*arrays))
-    # NaN location (no contact) and NaN extras are written as empty fields, as the contract says.
-    body = "\n" + body + "\n"
-    body = body.replace(",nan,", ",,").replace(",nan,", ",,")
-    body = body.replace("\nnan,", "\n,").replace(",nan\n", ",\n")[1:]
-    try:
-        with open(path, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write("\n".join(header) + "\n" + body)
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror}", path=str(path)) from None
+                                 path=str(self.path), column=name)
+            arrays.append((arr.astype(np.int64) if arr.dtype == bool else arr).tolist())
+        body = "\n".join(self._row_fmt % row for row in zip(*arrays))
+        # NaN location (no contact) and NaN extras are written as empty fields, as the contract says.
+        body = "\n" + body + "\n"
+        body = body.replace(",nan,", ",,").replace(",nan,", ",,")
+        body = body.replace("\nnan,", "\n,").replace(",nan\n", ",\n")[1:]
+        try:
+            self._fh.write(body)
+        except OSError as exc:
+            raise InputError(f"cannot write: {exc.strerror}", path=str(self.path)) from None
+        self.rows += len(ds)
+        self._last_t = float(ds.t_s[-1])
+
+    def close(self) -> None:
+        """Finish the file."""
+        self._fh.close()
+
+    def __enter__(self) -> "CsvWriter":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def _save_csv(ds: Dataset, path: Path) -> None:
+    with CsvWriter(path, ds.source, {k: _extra_kind(v) for k, v in ds.extra.items()}) as w:
+        w.write(ds, check=False)
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fbgforce.cli import add_json_flag
+from fbgforce.cli import add_json_flag, non_negative_float, positive_float
 from fbgforce.errors import InputError
 
 
@@ -24,6 +24,18 @@ def register(subparsers: Any) -> None:
     p.add_argument("--device", type=int, default=None,
                    help="override the scene's device number (>= 0): another toleranced device")
     p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--lab-logs", metavar="DIR", default=None,
+                   help="also write the raw files a lab would have: DIR/interrogator.csv, "
+                        "DIR/stage.csv (load cell and position on the stage's own clock) and "
+                        "DIR/import.toml (fbgforce import --map); docs/simulator.md")
+    p.add_argument("--stage-rate-hz", type=positive_float, default=500.0,
+                   help="stage log rate on its own clock (default 500 Hz)")
+    p.add_argument("--stage-offset-s", type=float, default=0.1,
+                   help="stage clock minus interrogator clock at the first sample (default 0.1 s)")
+    p.add_argument("--stage-drift-ppm", type=float, default=80.0,
+                   help="stage clock rate error against the interrogator's (default 80 ppm)")
+    p.add_argument("--stage-jitter-ms", type=non_negative_float, default=0.1,
+                   help="sd of the stage samples' timing jitter (default 0.1 ms)")
     add_json_flag(p)
     p.set_defaults(handler=run)
 
@@ -57,6 +69,14 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     ds = simulate(scene, seed=args.seed, device=args.device, progress=None)
     t_sim = time.perf_counter() - t0
     dataset.save(ds, out)
+    lab_logs = None
+    if args.lab_logs:
+        from fbgforce.sim.lablogs import write_lab_logs
+
+        lab_logs = write_lab_logs(ds, args.lab_logs, rate_hz=args.stage_rate_hz,
+                                  offset_s=args.stage_offset_s, drift_ppm=args.stage_drift_ppm,
+                                  jitter_s=args.stage_jitter_ms * 1e-3,
+                                  seed=scene.seed if args.seed is None else args.seed)
     summary = {
         "scene": scene.name,
         "seed": scene.seed if args.seed is None else args.seed,
@@ -69,6 +89,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "max_force_N": float(ds.force_N.max()),
         "simulate_time_s": round(t_sim, 3),
         "file": str(out),
+        "lab_logs": lab_logs,
     }
     if not args.json:
         print(f"wrote {out}: {len(ds)} samples, {ds.n_presses} presses, "

@@ -17,6 +17,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
+from fbgforce.dataset import CONTACT_THRESHOLD_N
 from fbgforce.errors import InputError
 from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS, RENAMED_EFFECTS, canonical_effect_name
 from fbgforce.sim.params import Param, check_params
@@ -25,7 +26,8 @@ _REGIONS = ("pad", "interior", "boundary")
 
 #: Keys shared by every schedule kind.
 _COMMON = {
-    "contact_threshold_N": Param("float", 0.05, "ground-truth contact is force > this, N", 0, 10),
+    "contact_threshold_N": Param("float", CONTACT_THRESHOLD_N,
+                                 "ground-truth contact is force > this, N", 0, 10),
     "lead_in_s": Param("float", 0.0, "extra rest (no contact) at the start, s", 0, 3600),
     "tail_s": Param("float", 0.0, "rest (no contact) at the end, s", 0, 3600),
 }

@@ -62,6 +62,17 @@ def register(subparsers: Any) -> None:
     p.set_defaults(handler=_train)
 
     p = subparsers.add_parser(
+        "coverage", help="what a calibration log covers and what a model trained on it "
+                         "will not know",
+        description="Force range, a map of press locations, loading speeds, hold lengths, "
+                    "temperature range and rest time of calibration recordings, and what a "
+                    "model trained on them has not seen (docs/lab-import.md).")
+    p.add_argument("--data", nargs="+", required=True, metavar="LOG",
+                   help="calibration recordings (CSV or npz, dataset contract)")
+    add_json_flag(p)
+    p.set_defaults(handler=_coverage)
+
+    p = subparsers.add_parser(
         "evaluate", help="score a model on recordings with one engine",
         description="Run a model on each recording (tared on its own contact-free samples) with "
                     "an engine and print the shared metrics.")
@@ -122,13 +133,29 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
           f"{headline(test)}", file=sys.stderr)
+    from fbgforce.trainer.coverage import coverage_lines
+
+    for line in coverage_lines(md["coverage"]):
+        print(f"fbgforce train: {line}", file=sys.stderr)
     for warning in md.get("warnings", []):
         print(f"fbgforce train: warning: {warning}", file=sys.stderr)
     return {"model": str(args.out), "seconds": md["times_s"]["prepare"] + md["times_s"]["train"],
             "epochs": {k: v["epochs_run"] for k, v in md["training"].items()},
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
             "val": md["metrics"]["val"], "test": md["metrics"]["test"],
-            "warnings": md.get("warnings", [])}
+            "coverage": md["coverage"], "warnings": md.get("warnings", [])}
+
+
+def _coverage(args: argparse.Namespace) -> dict[str, Any]:
+    from fbgforce import dataset
+    from fbgforce.trainer.coverage import coverage, coverage_lines
+
+    _check_files(args.data, "--data")
+    cov = coverage([dataset.load(p) for p in args.data])
+    if not args.json:
+        print("\n".join(coverage_lines(cov)))
+    cov["data"] = list(args.data)
+    return cov
 
 
 def _restarts(spec: str | None) -> int | dict[str, int] | None:

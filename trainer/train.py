@@ -510,6 +510,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     """
     t_start = time.perf_counter()
     ds_list, described = load_datasets(datasets)
+    from fbgforce.trainer.coverage import coverage   # it reads this module's hold band
+
+    data_coverage = coverage(ds_list)
     sources = [d.get("path") or d.get("source") or f"recording {i}"
                for i, d in enumerate(described)]
     init_model = fm.load(init) if isinstance(init, (str, Path)) else init
@@ -667,6 +670,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "sizes": {name: net.sizes for name, net in model.nets.items()},
         "memory": pre.memory.to_json(),
         "train_hold_s": held_s,
+        "coverage": data_coverage,
         "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,

@@ -1,0 +1,826 @@
+"""A lab's calibration from its own files: an interrogator log and a stage/load-cell log, each
+on its own clock, turned into one dataset in the contract (docs/lab-import.md).
+
+The work is done on arrays, so any reader of the two streams plugs in: an interrogator source
+yields chunks of (time, wavelengths in nm, line numbers) and can be read twice (once to align,
+once to write), and the stage log is a :class:`StageLog` of arrays. :class:`CsvFbgLog` and
+:func:`read_stage_csv` are the CSV readers behind ``fbgforce import``.
+
+Steps (:func:`import_logs`):
+
+1. the gratings' strain proxy (:func:`strain_proxy`: the temperature-compensated relative
+   shifts of the four strain gratings, summed) is kept with the interrogator's times;
+2. :func:`align` estimates the stage clock against the interrogator's,
+   ``t_stage = t_fbg + offset + drift (t_fbg - t_fbg[0])``: a coarse normalised
+   cross-correlation of the load against the proxy, then each press timed on its loading and
+   unloading flanks (a gain per flank, so the pad's friction loop does not bias it), a
+   weighted straight-line fit, and the line's level set from the loading flanks alone (where
+   a viscoelastic pad lags the load least);
+3. force and position are interpolated onto the interrogator's samples (:func:`stage_at`),
+   contact is labelled by the dataset's rule (:func:`label_contact`) and presses numbered as
+   the simulator numbers them (:func:`number_presses`);
+4. the dataset is written chunk by chunk (:class:`fbgforce.dataset.CsvWriter`).
+"""
+from __future__ import annotations
+
+import sys
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Protocol
+
+import numpy as np
+
+from fbgforce import dataset as fds
+from fbgforce.errors import InputError
+
+#: Column keys of each log, as given to ``--fbg-columns`` / ``--stage-columns``.
+FBG_KEYS = ("t", "wl1", "wl2", "wl3", "wl4", "wlT")
+STAGE_KEYS = ("t", "force", "x", "y")
+#: Units each log may be in, with the factor to the dataset's unit (nm, N, mm).
+FBG_UNITS = {"nm": 1.0, "pm": 1e-3}
+FORCE_UNITS = {"N": 1.0, "mN": 1e-3}
+POSITION_UNITS = {"mm": 1.0, "um": 1e-3}
+#: Keys of a ``--map`` file: the flags' names without the dashes.
+MAP_KEYS = ("fbg", "fbg-columns", "fbg-unit", "stage", "stage-columns", "force-unit",
+            "position-unit", "out", "max-offset-s")
+
+#: Rows parsed per chunk: bounds the memory of the wavelength table.
+CHUNK_ROWS = 50_000
+#: A log is irregular when more than this fraction of its sample intervals lie outside
+#: :data:`REGULAR_BAND` times the median interval.
+IRREGULAR_FRACTION = 0.01
+REGULAR_BAND = (0.2, 2.0)
+#: Interrogator samples between two stage samples further apart than this many median stage
+#: intervals are dropped (a hole in the stage log: nothing to interpolate from).
+STAGE_GAP_INTERVALS = 3.0
+#: Default bound on the clock offset searched, s.
+MAX_OFFSET_S = 10.0
+#: The coarse alignment works on bins of this width, high-passed over :data:`HIGHPASS_S`.
+COARSE_STEP_S = 0.01
+HIGHPASS_S = 5.0
+#: The two logs must share at least this long (or half the shorter log) at the offset found.
+MIN_OVERLAP_S = 10.0
+#: Refusals: coarse correlation below this; a second peak at least this fraction of the first.
+MIN_CORRELATION = 0.5
+AMBIGUOUS_RATIO = 0.9
+#: Per-press refinement: search ± this around the running estimate, in steps of FINE_STEP_S,
+#: on the flanks (below LOAD_FRACTION / UNLOAD_FRACTION of the press's peak) plus
+#: FLANK_REST_S of rest.
+FINE_WINDOW_S = 0.02
+FINE_STEP_S = 0.0005
+LOAD_FRACTION = 0.5
+UNLOAD_FRACTION = 0.3
+#: The offset itself is taken from the loading flanks alone up to this fraction, where a
+#: viscoelastic pad lags the load least (the unloading flank carries its creep).
+ONSET_FRACTION = 0.3
+FLANK_REST_S = 0.06
+#: Presses lighter than this are not used to align (too little signal above the noise).
+ALIGN_MIN_PEAK_N = 0.5
+MIN_ALIGN_PRESSES = 3
+#: The per-press offsets must sit on one straight line within this (weighted RMS), ms, with
+#: at least half of them within 4 sd of it.
+MAX_RESIDUAL_MS = 10.0
+#: A per-press estimate's uncertainty is never taken below this, s (model error).
+PRESS_SIGMA_FLOOR_S = 0.0003
+#: Press numbering: contact runs closer than this merge into one press (load-cell chatter
+#: around the threshold), and runs shorter than PRESS_MIN_S start no press.
+PRESS_MERGE_GAP_S = 0.05
+PRESS_MIN_S = 0.01
+#: A press's unloading has ended once the load is within this of zero, N.
+REST_BAND_N = 0.1 * fds.CONTACT_THRESHOLD_N
+
+
+# ------------------------------------------------------------------------------ the mapping
+
+@dataclass
+class ImportSpec:
+    """What to import: the two files, their columns and units, the output."""
+
+    fbg: Path
+    fbg_columns: dict[str, str]
+    stage: Path
+    stage_columns: dict[str, str]
+    out: Path
+    fbg_unit: str = "nm"
+    force_unit: str = "N"
+    position_unit: str = "mm"
+    max_offset_s: float = MAX_OFFSET_S
+
+
+def parse_columns(value: str | Mapping[str, Any], keys: tuple[str, ...], flag: str,
+                  where: str | None = None) -> dict[str, str]:
+    """``t=COL,wl1=COL,...`` (or a TOML table) -> ``{key: column name}``; every key of
+    ``keys`` exactly once."""
+    if isinstance(value, str):
+        pairs = []
+        for part in value.split(","):
+            if "=" not in part:
+                wanted = ",".join(k + "=COL" for k in keys)
+                raise InputError(f"expected KEY=COLUMN pairs ({wanted}), got {part.strip()!r}",
+                                 path=where, column=flag)
+            k, v = part.split("=", 1)
+            pairs.append((k.strip(), v.strip()))
+    elif isinstance(value, Mapping):
+        pairs = [(str(k), str(v).strip()) for k, v in value.items()]
+    else:
+        raise InputError("must be a string KEY=COLUMN,... or a table", path=where, column=flag)
+    out: dict[str, str] = {}
+    for k, v in pairs:
+        if k not in keys:
+            raise InputError(f"unknown key {k!r}; keys: {', '.join(keys)}", path=where, column=flag)
+        if k in out:
+            raise InputError(f"key {k!r} given twice", path=where, column=flag)
+        if not v:
+            raise InputError(f"key {k!r} names no column", path=where, column=flag)
+        out[k] = v
+    missing = [k for k in keys if k not in out]
+    if missing:
+        raise InputError(f"missing key(s) {', '.join(missing)}; give all of {', '.join(keys)}",
+                         path=where, column=flag)
+    return out
+
+
+def load_map(path: str | Path) -> dict[str, Any]:
+    """A ``--map`` TOML file: the flags' keys (:data:`MAP_KEYS`); file paths in it are taken
+    relative to the map file."""
+    p = Path(path)
+    try:
+        values = tomllib.loads(p.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise InputError(f"cannot read: {exc.strerror}", path=str(p), column="--map") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"not TOML: {exc}", path=str(p)) from None
+    unknown = [k for k in values if k not in MAP_KEYS]
+    if unknown:
+        raise InputError(f"unknown key(s) {', '.join(unknown)}; allowed: {', '.join(MAP_KEYS)}",
+                         path=str(p))
+    for key in ("fbg", "stage", "out"):
+        if key in values:
+            if not isinstance(values[key], str):
+                raise InputError("must be a file path (a string)", path=str(p), column=key)
+            values[key] = str(p.parent / values[key])
+    return values
+
+
+def make_spec(values: Mapping[str, Any], where: str | None = None) -> ImportSpec:
+    """An :class:`ImportSpec` from the flags' values by key (``None`` = not given; a map
+    file's values fill the rest before this is called)."""
+    for key in ("fbg", "fbg-columns", "stage", "stage-columns", "out"):
+        if values.get(key) is None:
+            raise InputError(f"give --{key}" + (" (or --map)" if where is None else ""),
+                             path=where, column=None if where else f"--{key}")
+    units = {}
+    for key, table, default in (("fbg-unit", FBG_UNITS, "nm"), ("force-unit", FORCE_UNITS, "N"),
+                                ("position-unit", POSITION_UNITS, "mm")):
+        unit = values.get(key) or default
+        if unit not in table:
+            raise InputError(f"unknown unit {unit!r}; one of {', '.join(table)}", path=where,
+                             column=f"--{key}" if where is None else key)
+        units[key] = unit
+    max_offset = values.get("max-offset-s")
+    max_offset = MAX_OFFSET_S if max_offset is None else max_offset
+    if not isinstance(max_offset, (int, float)) or not 0 < max_offset < 1e9:
+        raise InputError(f"must be a number of seconds > 0, not {max_offset!r}", path=where,
+                         column="max-offset-s")
+    return ImportSpec(
+        fbg=Path(values["fbg"]), stage=Path(values["stage"]), out=Path(values["out"]),
+        fbg_columns=parse_columns(values["fbg-columns"], FBG_KEYS,
+                                  "fbg-columns" if where else "--fbg-columns", where),
+        stage_columns=parse_columns(values["stage-columns"], STAGE_KEYS,
+                                    "stage-columns" if where else "--stage-columns", where),
+        fbg_unit=units["fbg-unit"], force_unit=units["force-unit"],
+        position_unit=units["position-unit"], max_offset_s=float(max_offset))
+
+
+# ------------------------------------------------------------------------------ CSV reading
+
+class CsvColumns:
+    """Named numeric columns of a delimited text log, read in chunks of :data:`CHUNK_ROWS`.
+
+    Lines starting with ``#`` and blank lines are skipped; the first other line is the header.
+    The delimiter is the header's: comma, else tab, else semicolon. Iterating yields
+    ``(values (k, len(columns)) float64, line numbers (k,) 1-based)``; every iteration reads
+    the file again.
+    """
+
+    def __init__(self, path: str | Path, columns: Mapping[str, str], flag: str) -> None:
+        self.path = Path(path)
+        self.columns = dict(columns)
+        self.flag = flag
+        if not self.path.is_file():
+            raise InputError("no such file", path=str(self.path), column=f"--{flag}")
+        with self._open() as fh:
+            for line_no, line in enumerate(fh, 1):
+                if line.strip() and not line.lstrip().startswith("#"):
+                    break
+            else:
+                raise InputError("empty file: no header", path=str(self.path))
+        self.header_line = line_no
+        self.delimiter = next((d for d in (",", "\t", ";") if d in line), ",")
+        names = [n.strip().strip('"') for n in line.rstrip("\r\n").split(self.delimiter)]
+        self.n_fields = len(names)
+        missing = [c for c in self.columns.values() if c not in names]
+        if missing:
+            raise InputError(f"no column(s) {', '.join(repr(c) for c in missing)} in the header "
+                             f"(columns: {', '.join(names)}); check --{flag}-columns",
+                             path=str(self.path), line=line_no)
+        self.index = [names.index(c) for c in self.columns.values()]
+
+    def _open(self) -> Any:
+        try:
+            return open(self.path, encoding="utf-8", errors="replace", newline="")
+        except OSError as exc:
+            raise InputError(f"cannot read: {exc.strerror}", path=str(self.path)) from None
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        rows: list[str] = []
+        lines: list[int] = []
+        with self._open() as fh:
+            for line_no, line in enumerate(fh, 1):
+                if line_no <= self.header_line:
+                    continue
+                stripped = line.strip()
+                if not stripped or stripped.startswith("#"):
+                    continue
+                rows.append(stripped)
+                lines.append(line_no)
+                if len(rows) == CHUNK_ROWS:
+                    yield self._parse(rows, lines)
+                    rows, lines = [], []
+        if rows:
+            yield self._parse(rows, lines)
+
+    def _parse(self, rows: list[str], lines: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            values = np.loadtxt(rows, delimiter=self.delimiter, usecols=self.index,
+                                dtype=np.float64, ndmin=2, comments=None)
+            if all(r.count(self.delimiter) == self.n_fields - 1 for r in rows):
+                return values, np.asarray(lines, dtype=np.int64)
+        except ValueError:
+            pass
+        names = list(self.columns.values())
+        for row, line_no in zip(rows, lines):        # find the first bad line to name it
+            fields = row.split(self.delimiter)
+            if len(fields) != self.n_fields:
+                raise InputError(f"{len(fields)} fields, the header has {self.n_fields}",
+                                 path=str(self.path), line=line_no)
+            for name, i in zip(names, self.index):
+                try:
+                    float(fields[i].strip().strip('"'))
+                except ValueError:
+                    raise InputError(f"not a number: {fields[i].strip()!r}", path=str(self.path),
+                                     line=line_no, column=name) from None
+        raise InputError("unreadable rows", path=str(self.path), line=lines[0])  # pragma: no cover
+
+
+@dataclass
+class StageLog:
+    """The stage/load-cell log on its own clock: time (s), force (N), position (mm, pad
+    frame), and where each row came from (``line``: 1-based line of ``path``)."""
+
+    t: np.ndarray
+    force_N: np.ndarray
+    x_mm: np.ndarray
+    y_mm: np.ndarray
+    line: np.ndarray
+    path: str = "<stage>"
+
+
+class FbgSource(Protocol):
+    """An interrogator log: iterating yields ``(t_s, wl_nm (k, 5), line)`` chunks on the
+    interrogator's clock, and can be repeated."""
+
+    path: str
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]: ...
+
+
+class CsvFbgLog:
+    """An interrogator CSV log (:class:`FbgSource`) with its column mapping and unit."""
+
+    def __init__(self, path: str | Path, columns: Mapping[str, str], unit: str = "nm") -> None:
+        self.reader = CsvColumns(path, {k: columns[k] for k in FBG_KEYS}, "fbg")
+        self.path = str(path)
+        self.scale = FBG_UNITS[unit]
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        for values, lines in self.reader:
+            yield values[:, 0], values[:, 1:] * self.scale, lines
+
+
+def read_stage_csv(path: str | Path, columns: Mapping[str, str], force_unit: str = "N",
+                   position_unit: str = "mm") -> StageLog:
+    """The stage log of a CSV (all of it: four numbers a row)."""
+    reader = CsvColumns(path, {k: columns[k] for k in STAGE_KEYS}, "stage")
+    parts = list(reader)
+    if not parts:
+        raise InputError("no data rows after the header", path=str(path))
+    values = np.concatenate([v for v, _ in parts])
+    pos = POSITION_UNITS[position_unit]
+    return StageLog(t=values[:, 0], force_N=values[:, 1] * FORCE_UNITS[force_unit],
+                    x_mm=values[:, 2] * pos, y_mm=values[:, 3] * pos,
+                    line=np.concatenate([ln for _, ln in parts]), path=str(path))
+
+
+# ------------------------------------------------------------------------------ array steps
+
+def strain_proxy(wl_nm: np.ndarray, ref_nm: np.ndarray) -> np.ndarray:
+    """The gratings' load signal: minus the sum over the four strain gratings of their
+    relative shift from ``ref_nm``, in parts per million. Positive under load (the gratings
+    are compressed) and about proportional to the normal force wherever it acts (the beam
+    forces sum to it).
+
+    The temperature grating is not subtracted sample by sample: temperature moves slowly, so
+    the coarse high-pass and the level fitted to each flank take it out, while subtracting it
+    would add its noise four times over (doubling the proxy's noise)."""
+    rel = wl_nm[:, :4] / ref_nm[:4] - 1.0
+    return -rel.sum(axis=1) * 1e6
+
+
+def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
+    """Refuse non-finite, non-increasing or irregular time stamps; return the median
+    sample interval, s."""
+    bad = ~np.isfinite(t)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"time is not a finite number ({t[i]})", path=path,
+                         line=int(line[i]), column="t")
+    if t.size < 3:
+        raise InputError(f"only {t.size} samples in the {what} log", path=path)
+    dt = np.diff(t)
+    if (dt <= 0).any():
+        i = int(np.argmax(dt <= 0)) + 1
+        raise InputError(f"time not increasing ({t[i]:.9g} after {t[i - 1]:.9g}): the {what} "
+                         "log must be in time order, one row per sample", path=path,
+                         line=int(line[i]), column="t")
+    med = float(np.median(dt))
+    off = (dt < REGULAR_BAND[0] * med) | (dt > REGULAR_BAND[1] * med)
+    if off.mean() > IRREGULAR_FRACTION:
+        i = int(np.argmax(off)) + 1
+        raise InputError(
+            f"irregular sampling: {100 * off.mean():.1f} % of the {what} log's intervals lie "
+            f"outside {REGULAR_BAND[0]:g}-{REGULAR_BAND[1]:g} x the median {1e3 * med:.3g} ms "
+            f"(at most {100 * IRREGULAR_FRACTION:g} % may), the first here", path=path,
+            line=int(line[i]), column="t")
+    return med
+
+
+@dataclass
+class Alignment:
+    """The stage clock against the interrogator's:
+    ``t_stage = t_fbg + offset_s + drift * (t_fbg - t_ref_s)``.
+
+    ``correlation`` is the coarse peak's normalised correlation, ``second_peak`` the best
+    one outside its lobe; ``residual_ms`` the weighted RMS of the per-press offsets about the
+    line; ``lag_ms`` how much later the loading flanks alone put the stage clock than both
+    flanks do (the pad's lag on the full flanks, taken out); ``press_offsets`` the per-press
+    estimates (fbg time, offset, sd, used on the line, loading-flank offset, its sd)."""
+
+    offset_s: float
+    drift: float
+    t_ref_s: float
+    correlation: float
+    second_peak: float
+    residual_ms: float
+    lag_ms: float
+    presses_used: int
+    presses_rejected: int
+    press_offsets: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
+
+    def to_stage(self, t_fbg: np.ndarray) -> np.ndarray:
+        """Interrogator times -> stage clock."""
+        return t_fbg + self.offset_s + self.drift * (t_fbg - self.t_ref_s)
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON form (docs/cli.md#import)."""
+        return {"offset_s": self.offset_s, "drift_ppm": self.drift * 1e6,
+                "correlation": self.correlation, "second_peak": self.second_peak,
+                "residual_ms": self.residual_ms, "lag_ms": self.lag_ms,
+                "presses_used": self.presses_used,
+                "presses_rejected": self.presses_rejected}
+
+
+def _binned(t: np.ndarray, v: np.ndarray, t0: float, n: int) -> np.ndarray:
+    """Means of ``v`` in :data:`COARSE_STEP_S` bins from ``t0`` (empty bins interpolated),
+    high-passed by subtracting a centred :data:`HIGHPASS_S` moving mean."""
+    idx = np.clip(((t - t0) / COARSE_STEP_S).astype(np.int64), 0, n - 1)
+    count = np.bincount(idx, minlength=n)
+    mean = np.bincount(idx, v, minlength=n) / np.maximum(count, 1)
+    full = count > 0
+    if not full.all():
+        k = np.arange(n)
+        mean = np.interp(k, k[full], mean[full])
+    w = max(1, int(round(HIGHPASS_S / COARSE_STEP_S)))
+    c = np.concatenate([[0.0], np.cumsum(mean)])
+    lo = np.clip(np.arange(n) - w // 2, 0, n)
+    hi = np.clip(np.arange(n) + w // 2 + 1, 0, n)
+    return mean - (c[hi] - c[lo]) / (hi - lo)
+
+
+def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: float,
+            where: str) -> tuple[float, float, float]:
+    """Coarse offset (stage minus interrogator clock), its correlation and the second peak."""
+    tf0, ts0 = float(t_f[0]), float(stage.t[0])
+    nf = int((t_f[-1] - tf0) / COARSE_STEP_S) + 1
+    ns = int((stage.t[-1] - ts0) / COARSE_STEP_S) + 1
+    f = _binned(t_f, proxy, tf0, nf)
+    s = _binned(stage.t, stage.force_N, ts0, ns)
+    # Lag k pairs fbg bin i with stage bin i + k: offset = ts0 - tf0 + k * step.
+    size = 1 << int(np.ceil(np.log2(nf + ns)))
+    xy = np.fft.irfft(np.fft.rfft(s, size) * np.conj(np.fft.rfft(f, size)), size)
+    ks = np.arange(-(nf - 1), ns)
+    sxy = xy[ks % size]
+    lo = np.maximum(0, -ks)
+    hi = np.minimum(nf, ns - ks)
+    m = (hi - lo).astype(np.float64)
+    cf, cf2 = np.concatenate([[0.0], np.cumsum(f)]), np.concatenate([[0.0], np.cumsum(f * f)])
+    cs, cs2 = np.concatenate([[0.0], np.cumsum(s)]), np.concatenate([[0.0], np.cumsum(s * s)])
+    sf, sff = cf[hi] - cf[lo], cf2[hi] - cf2[lo]
+    ss, sss = cs[hi + ks] - cs[lo + ks], cs2[hi + ks] - cs2[lo + ks]
+    offsets = ts0 - tf0 + ks * COARSE_STEP_S
+    shorter = min(nf, ns) * COARSE_STEP_S
+    need = min(MIN_OVERLAP_S, 0.5 * shorter) / COARSE_STEP_S
+    allowed = (np.abs(offsets) <= max_offset_s) & (m >= need)
+    if not allowed.any():
+        raise InputError(
+            f"no overlap: the interrogator log covers {t_f[0]:.6g}-{t_f[-1]:.6g} s and the stage "
+            f"log {stage.t[0]:.6g}-{stage.t[-1]:.6g} s on their clocks; with offsets up to "
+            f"±{max_offset_s:g} s they share less than {need * COARSE_STEP_S:.3g} s "
+            "(give a larger --max-offset-s if the clocks count from different origins)",
+            path=where)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        den = np.sqrt(np.maximum(sff - sf * sf / m, 0) * np.maximum(sss - ss * ss / m, 0))
+        r = np.where(allowed & (den > 0), (sxy - sf * ss / m) / den, -np.inf)
+    best = int(np.argmax(r))
+    r1 = float(r[best])
+    # The main lobe: out to where the correlation first falls below half the peak.
+    a = best
+    while a > 0 and r[a - 1] > 0.5 * r1:
+        a -= 1
+    b = best
+    while b < r.size - 1 and r[b + 1] > 0.5 * r1:
+        b += 1
+    rest = np.concatenate([r[:a], r[b + 1:]])
+    r2 = float(rest.max()) if rest.size and np.isfinite(rest.max()) else 0.0
+    shift = 0.0
+    if 0 < best < r.size - 1 and np.isfinite(r[best - 1]) and np.isfinite(r[best + 1]):
+        den2 = r[best - 1] - 2 * r1 + r[best + 1]
+        if den2 < 0:
+            shift = 0.5 * (r[best - 1] - r[best + 1]) / den2
+    return float(offsets[best] + shift * COARSE_STEP_S), r1, max(r2, 0.0)
+
+
+@dataclass
+class _Press:
+    on_s: float     # stage clock
+    off_s: float
+    peak_s: float
+    peak_N: float
+
+
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Start and stop (exclusive) indices of the runs of True."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return np.flatnonzero(d == 1), np.flatnonzero(d == -1)
+
+
+def _stage_presses(stage: StageLog) -> list[_Press]:
+    starts, stops = _press_runs(stage.t, label_contact(stage.force_N))
+    out = []
+    for a, b in zip(starts, stops):
+        k = a + int(np.argmax(stage.force_N[a:b]))
+        out.append(_Press(float(stage.t[a]), float(stage.t[b - 1]), float(stage.t[k]),
+                          float(stage.force_N[k])))
+    return out
+
+
+def _fine(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, press: _Press, lo_s: float,
+          hi_s: float, tau0: float, load_fraction: float, unload_fraction: float
+          ) -> tuple[float, float] | None:
+    """One press's offset (stage minus interrogator clock) near ``tau0`` and its sd, from
+    its loading flank below ``load_fraction`` of its peak and its unloading flank below
+    ``unload_fraction`` (0: none) with the rests beside them: a gain per flank (so the pad's
+    friction loop does not bias it) and one level and slope in time; None when the best
+    offset lies on the edge of the search or the press holds too little signal."""
+    i0, i1 = np.searchsorted(t_f, [lo_s - tau0, hi_s - tau0])
+    t, p = t_f[i0:i1], proxy[i0:i1]
+    if t.size < 10:
+        return None
+    steps = np.arange(-FINE_WINDOW_S, FINE_WINDOW_S + FINE_STEP_S / 2, FINE_STEP_S)
+    taus = tau0 + steps
+    force = np.interp(t[None, :] + taus[:, None], stage.t, stage.force_N)
+    centre = force[steps.size // 2]
+    rising = t + tau0 <= press.peak_s
+    load = rising & (centre < load_fraction * press.peak_N)
+    unload = ~rising & (centre < unload_fraction * press.peak_N)
+    if load.sum() < 5 or (unload_fraction > 0 and unload.sum() < 5):
+        return None
+    sel = load | unload
+    # One level and slope in time over the press (temperature, the creep of the press
+    # before), set by the rests on both sides; one gain per flank (the pad's loop). The
+    # nuisance terms are projected out of both sides, leaving a 2x2 problem per offset.
+    tc = t[sel] - t[sel].mean()
+    tt = float(tc @ tc)
+    y = p[sel] - p[sel].mean()
+    y -= tc * (y @ tc) / tt
+    cols = []
+    for m in (load[sel], unload[sel]):
+        x = np.where(m[None, :], force[:, sel], 0.0)
+        x = x - x.mean(axis=1, keepdims=True)
+        x -= np.outer(x @ tc, tc) / tt
+        cols.append(x)
+    g11, g22 = (cols[0] ** 2).sum(axis=1), (cols[1] ** 2).sum(axis=1)
+    g12 = (cols[0] * cols[1]).sum(axis=1)
+    h1, h2 = cols[0] @ y, cols[1] @ y
+    det = g11 * g22 - g12 * g12
+    if unload_fraction == 0:
+        if (g11 <= 1e-12).any():
+            return None
+        rss = float(y @ y) - h1 * h1 / g11
+    else:
+        if (det <= 1e-12 * np.maximum(g11 * g22, 1e-300)).any():
+            return None
+        rss = float(y @ y) - (g22 * h1 * h1 - 2 * g12 * h1 * h2 + g11 * h2 * h2) / det
+    n_used = int(sel.sum())
+    k = int(np.argmin(rss))
+    if k == 0 or k == taus.size - 1:
+        return None
+    curv = (rss[k - 1] - 2 * rss[k] + rss[k + 1]) / FINE_STEP_S**2
+    if curv <= 0:
+        return None
+    shift = 0.5 * (rss[k - 1] - rss[k + 1]) / (rss[k - 1] - 2 * rss[k] + rss[k + 1])
+    sigma2 = max(rss[k], 0.0) / max(n_used - 4, 1)
+    return float(taus[k] + shift * FINE_STEP_S), float(np.sqrt(2 * sigma2 / curv))
+
+
+def _line_fit(c: np.ndarray, tau: np.ndarray, sd: np.ndarray, t_ref: float
+              ) -> tuple[float, float, np.ndarray]:
+    """Weighted straight line ``tau = a + d (c - t_ref)`` with outliers (beyond 4 sd) left
+    out; returns a, d and the mask of the points used."""
+    sig = np.hypot(sd, PRESS_SIGMA_FLOOR_S)
+    use = np.ones(c.size, dtype=bool)
+    a, d = float(np.average(tau, weights=sig**-2)), 0.0
+    for _ in range(6):
+        w = sig[use] ** -2
+        x = c[use] - t_ref
+        if use.sum() >= 3 and np.ptp(x) > 0:
+            d, a = np.polyfit(x, tau[use], 1, w=np.sqrt(w))
+        else:
+            a, d = float(np.average(tau[use], weights=w)), 0.0
+        resid = tau - (a + d * (c - t_ref))
+        new = np.abs(resid) <= 4 * sig
+        if new.sum() < 1 or np.array_equal(new, use):
+            break
+        use = new
+    return float(a), float(d), use
+
+
+def align(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, *,
+          max_offset_s: float = MAX_OFFSET_S, where: str = "<logs>") -> Alignment:
+    """Estimate the stage clock against the interrogator's from the data (module docstring).
+
+    Refuses (:class:`InputError`) logs that share no time, a stage log without presses, a
+    correlation below :data:`MIN_CORRELATION`, a second correlation peak within
+    :data:`AMBIGUOUS_RATIO` of the first (a periodic protocol of equal presses), too few
+    presses to refine, and per-press offsets off a straight line by more than
+    :data:`MAX_RESIDUAL_MS`.
+    """
+    presses = [p for p in _stage_presses(stage) if p.peak_N >= ALIGN_MIN_PEAK_N]
+    if not presses:
+        raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N",
+                         path=stage.path, column="force")
+    offset0, r1, r2 = _coarse(t_f, proxy, stage, max_offset_s, where)
+    if r1 < MIN_CORRELATION:
+        raise InputError(f"alignment failed: the load and the gratings' strain correlate at "
+                         f"best {r1:.2f} (at least {MIN_CORRELATION:g} needed): are these logs "
+                         "of the same session, the columns and units right?", path=where)
+    if r2 >= AMBIGUOUS_RATIO * r1:
+        raise InputError(f"alignment ambiguous: two clock offsets fit almost equally well "
+                         f"(correlation {r1:.3f} and {r2:.3f}); a protocol of identical presses "
+                         "at a fixed period cannot be aligned: vary the forces or the rests "
+                         "(fbgforce protocol)", path=where)
+    t_ref = float(t_f[0])
+    # Refine press by press, outwards from the middle of the log, each one searched around
+    # the line fitted to those already done (so drift is followed over any length).
+    mids = np.array([0.5 * (p.on_s + p.off_s) for p in presses]) - offset0
+    order = np.argsort(np.abs(mids - 0.5 * (t_f[0] + t_f[-1])), kind="stable")
+    bounds = [(p.on_s - FLANK_REST_S, p.off_s + FLANK_REST_S) for p in presses]
+    # Never reach into the neighbouring press: clip to the middle of each rest.
+    for k in range(len(presses) - 1):
+        gap_mid = 0.5 * (presses[k].off_s + presses[k + 1].on_s)
+        bounds[k] = (bounds[k][0], min(bounds[k][1], gap_mid))
+        bounds[k + 1] = (max(bounds[k + 1][0], gap_mid), bounds[k + 1][1])
+    found: list[tuple[float, float, float]] = []
+    onsets: list[float] = []
+    onset_sd: list[float] = []
+    a, d = offset0, 0.0
+    for n_done, k in enumerate(order):
+        if n_done >= 5 and n_done % 5 == 0 and found:
+            arr = np.array(found)
+            a, d, _ = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
+        tau0 = a + d * (mids[k] - t_ref)
+        res = _fine(t_f, proxy, stage, presses[k], *bounds[k], tau0, LOAD_FRACTION,
+                    UNLOAD_FRACTION)
+        if res is not None:
+            found.append((float(mids[k]), res[0], res[1]))
+            onset = _fine(t_f, proxy, stage, presses[k], *bounds[k], res[0], ONSET_FRACTION, 0.0)
+            onsets.append(np.nan if onset is None else onset[0])
+            onset_sd.append(np.nan if onset is None else onset[1])
+    if len(found) < MIN_ALIGN_PRESSES:
+        raise InputError(f"alignment failed: only {len(found)} of {len(presses)} presses could "
+                         f"be timed against the gratings (at least {MIN_ALIGN_PRESSES} needed)",
+                         path=where)
+    arr = np.array(found)
+    a, d, use = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
+    resid = arr[use, 1] - (a + d * (arr[use, 0] - t_ref))
+    w = np.hypot(arr[use, 2], PRESS_SIGMA_FLOOR_S) ** -2
+    rms_ms = float(np.sqrt(np.average(resid**2, weights=w)) * 1e3)
+    if use.sum() < max(MIN_ALIGN_PRESSES, 0.5 * len(found)) or rms_ms > MAX_RESIDUAL_MS:
+        raise InputError(f"alignment ambiguous: the presses' offsets do not follow one clock "
+                         f"(residual {rms_ms:.2g} ms, at most {MAX_RESIDUAL_MS:g}; "
+                         f"{int(use.sum())} of {len(found)} presses agree)", path=where)
+    # Both flanks time each press precisely and give the drift, but a viscoelastic pad lags
+    # the load on them; the loading flanks alone lag least: they set the line's level.
+    on, on_sd = np.array(onsets), np.array(onset_sd)
+    ok = use & np.isfinite(on)
+    lag_s = 0.0
+    if ok.sum() >= MIN_ALIGN_PRESSES:
+        r = on[ok] - (a + d * (arr[ok, 0] - t_ref))
+        sig = np.hypot(on_sd[ok], PRESS_SIGMA_FLOOR_S)
+        keep = np.abs(r - np.median(r)) <= 4 * np.maximum(sig, 1.4826 * np.median(
+            np.abs(r - np.median(r))))
+        lag_s = float(np.average(r[keep], weights=sig[keep] ** -2))
+        a += lag_s
+    table = np.column_stack([arr, use, on, on_sd])
+    return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
+                     residual_ms=rms_ms, lag_ms=lag_s * 1e3, presses_used=int(use.sum()),
+                     presses_rejected=len(presses) - int(use.sum()), press_offsets=table)
+
+
+def stage_at(stage: StageLog, t_stage: np.ndarray, gap_s: float
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Force, x, y interpolated at stage-clock times, and the reason code of each sample
+    (0 kept, 1 before the stage log, 2 after it, 3 in a hole longer than ``gap_s``)."""
+    force = np.interp(t_stage, stage.t, stage.force_N)
+    x = np.interp(t_stage, stage.t, stage.x_mm)
+    y = np.interp(t_stage, stage.t, stage.y_mm)
+    reason = np.zeros(t_stage.size, dtype=np.int8)
+    reason[t_stage < stage.t[0]] = 1
+    reason[t_stage > stage.t[-1]] = 2
+    j = np.clip(np.searchsorted(stage.t, t_stage), 1, stage.t.size - 1)
+    hole = (stage.t[j] - stage.t[j - 1] > gap_s) & (reason == 0)
+    reason[hole] = 3
+    return force, x, y, reason
+
+
+#: Reason codes of :func:`stage_at` and the bad-wavelength code, by JSON key.
+DROP_REASONS = {1: "before_stage_log", 2: "after_stage_log", 3: "stage_gap", 4: "bad_wavelength"}
+
+
+def label_contact(force_N: np.ndarray) -> np.ndarray:
+    """The dataset's contact rule: the load cell above
+    :data:`fbgforce.dataset.CONTACT_THRESHOLD_N` (as the simulator labels)."""
+    return np.asarray(force_N) > fds.CONTACT_THRESHOLD_N
+
+
+def _press_runs(t: np.ndarray, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The presses' contact runs (start, stop exclusive): runs closer than
+    :data:`PRESS_MERGE_GAP_S` merged, runs shorter than :data:`PRESS_MIN_S` left out."""
+    starts, stops = _runs(contact)
+    if starts.size > 1:
+        join = t[starts[1:]] - t[stops[:-1] - 1] < PRESS_MERGE_GAP_S
+        keep_start = np.concatenate([[True], ~join])
+        keep_stop = np.concatenate([~join, [True]])
+        starts, stops = starts[keep_start], stops[keep_stop]
+    long = t[stops - 1] - t[starts] >= PRESS_MIN_S
+    return starts[long], stops[long]
+
+
+def number_presses(t: np.ndarray, force_N: np.ndarray) -> np.ndarray:
+    """Press ids as the simulator gives them, counting from 0: a press is its rest, its
+    contact and the end of its unloading, which runs past the last contact sample to the
+    first sample where the load stops falling or is within :data:`REST_BAND_N` of zero (the
+    load back at rest). The samples after that carry the next press's id; those after the
+    last press keep its id."""
+    force = np.asarray(force_N, dtype=np.float64)
+    starts, stops = _press_runs(t, label_contact(force))
+    if starts.size == 0:
+        return np.zeros(t.size, dtype=np.int64)
+    # Where the load is back at rest: it stops falling, or it is all but zero.
+    still = np.flatnonzero((force[1:] >= force[:-1]) | (force[1:] <= REST_BAND_N)) + 1
+    k = np.searchsorted(still, stops)
+    ends = np.where(k < still.size, still[np.minimum(k, still.size - 1)], t.size)
+    nxt = np.append(starts[1:], t.size)
+    ends = np.minimum(ends + 1, nxt)                           # the stopping sample included
+    ids = np.searchsorted(ends, np.arange(t.size), side="right")
+    return np.minimum(ids, starts.size - 1).astype(np.int64)
+
+
+# ------------------------------------------------------------------------------ the import
+
+def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
+                max_offset_s: float = MAX_OFFSET_S, progress: bool | None = None
+                ) -> dict[str, Any]:
+    """Align, resample, label, number and write (module docstring); return the summary that
+    ``fbgforce import --json`` prints (docs/cli.md#import)."""
+    from tqdm import tqdm
+
+    t_start = time.perf_counter()
+    where = f"{fbg.path} + {stage.path}"
+    stage_dt = check_times(stage.t, stage.line, stage.path, "stage")
+    low = stage.force_N < fds.FORCE_NEGATIVE_LIMIT_N
+    if low.any():
+        i = int(np.argmax(low))
+        raise InputError(f"force {stage.force_N[i]:g} N below {fds.FORCE_NEGATIVE_LIMIT_N:g} N "
+                         "(sign or tare error, or the wrong --force-unit)", path=stage.path,
+                         line=int(stage.line[i]), column="force")
+    rest = float(np.percentile(stage.force_N, 5))
+    if rest > fds.CONTACT_THRESHOLD_N:
+        raise InputError(f"the load cell reads {rest:.3g} N or more for 95 % of the log: tare "
+                         f"it (contact is a force above {fds.CONTACT_THRESHOLD_N:g} N)",
+                         path=stage.path, column="force")
+    # Pass 1: times and the strain proxy (the wavelength table is not kept).
+    ts, proxies, goods, lines = [], [], [], []
+    ref = None
+    bar = tqdm(desc="import: read", unit="row", unit_scale=True, file=sys.stderr,
+               disable=None if progress is None else not progress)
+    for t, wl, line in fbg:
+        ok = np.all(np.isfinite(wl) & (wl >= fds.WL_RANGE_NM[0]) & (wl <= fds.WL_RANGE_NM[1]),
+                    axis=1)
+        if ref is None and ok.any():
+            ref = np.median(wl[ok][:1000], axis=0)
+        ts.append(t)
+        proxies.append(strain_proxy(np.where(ok[:, None], wl, ref if ref is not None else 1.0),
+                                    ref if ref is not None else np.ones(5)))
+        goods.append(ok)
+        lines.append(line)
+        bar.update(t.size)
+    bar.close()
+    if not ts:
+        raise InputError("no data rows after the header", path=fbg.path)
+    t_f, proxy = np.concatenate(ts), np.concatenate(proxies)
+    good, line_f = np.concatenate(goods), np.concatenate(lines)
+    check_times(t_f, line_f, fbg.path, "interrogator")
+    if good.mean() < 0.99:
+        i = int(np.argmax(~good))
+        raise InputError(f"{100 * (1 - good.mean()):.1f} % of the wavelengths are missing or "
+                         f"outside {fds.WL_RANGE_NM[0]:g}-{fds.WL_RANGE_NM[1]:g} nm, the first "
+                         "here: is --fbg-unit right (nm or pm)?", path=fbg.path,
+                         line=int(line_f[i]))
+    if ref is None:  # pragma: no cover - excluded by the 99 % check above
+        raise InputError("no valid wavelength row", path=fbg.path)
+    al = align(t_f, proxy, stage, max_offset_s=max_offset_s, where=where)
+    # Contact and presses over the whole log (one bool and one id per sample).
+    gap_s = STAGE_GAP_INTERVALS * stage_dt
+    force, _, _, reason = stage_at(stage, al.to_stage(t_f), gap_s)
+    reason[(reason == 0) & ~good] = 4
+    keep = reason == 0
+    if not label_contact(force[keep]).any():
+        raise InputError("no presses: no interrogator sample meets a load above "
+                         f"{fds.CONTACT_THRESHOLD_N:g} N after alignment", path=where)
+    press = np.zeros(t_f.size, dtype=np.int64)
+    press[keep] = number_presses(t_f[keep], force[keep])
+    del force, proxy
+    # Pass 2: resample and write chunk by chunk.
+    source = (f"import: {fbg.path} + {stage.path} offset={al.offset_s:.6f}s "
+              f"drift={al.drift * 1e6:.2f}ppm")
+    start = 0
+    bar = tqdm(total=t_f.size, desc="import: write", unit="row", unit_scale=True,
+               file=sys.stderr, disable=None if progress is None else not progress)
+    with fds.CsvWriter(out, source) as writer:
+        for t, wl, _ in fbg:
+            sl = slice(start, start + t.size)
+            start += t.size
+            k = keep[sl]
+            f, x, y, _ = stage_at(stage, al.to_stage(t[k]), gap_s)
+            c = label_contact(f)
+            writer.write(fds.Dataset(t_s=t[k], wl_nm=wl[k], contact=c,
+                                     x_mm=np.where(c, x, np.nan), y_mm=np.where(c, y, np.nan),
+                                     force_N=f, press_id=press[sl][k], source=source))
+            bar.update(t.size)
+    bar.close()
+    dropped = {name: int((reason == code).sum()) for code, name in DROP_REASONS.items()}
+    return {
+        "dataset": str(out), "samples": int(keep.sum()),
+        "presses": int(np.unique(press[keep]).size),
+        "offset_s": al.offset_s, "drift_ppm": al.drift * 1e6,
+        "alignment": al.summary(),
+        "fbg": {"file": fbg.path, "rows": int(t_f.size),
+                "rate_hz": (t_f.size - 1) / float(t_f[-1] - t_f[0])},
+        "stage": {"file": stage.path, "rows": int(stage.t.size),
+                  "rate_hz": (stage.t.size - 1) / float(stage.t[-1] - stage.t[0])},
+        "dropped": dropped,
+        "seconds": round(time.perf_counter() - t_start, 3),
+    }
+
+
+def import_files(spec: ImportSpec, *, progress: bool | None = None) -> dict[str, Any]:
+    """:func:`import_logs` on the CSV files an :class:`ImportSpec` names."""
+    if spec.out.suffix.lower() != ".csv":
+        raise InputError("the imported dataset is written as CSV: give a .csv path",
+                         path=str(spec.out), column="--out")
+    stage = read_stage_csv(spec.stage, spec.stage_columns, spec.force_unit, spec.position_unit)
+    fbg = CsvFbgLog(spec.fbg, spec.fbg_columns, spec.fbg_unit)
+    return import_logs(fbg, stage, spec.out, max_offset_s=spec.max_offset_s, progress=progress)

@@ -1,0 +1,298 @@
+"""fbgforce import / protocol / coverage, tested as a lab would use them: the simulator writes
+the raw logs (interrogator + stage on its own clock), the import must give back the
+simulator's dataset."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fbgforce import dataset, labimport as li
+from fbgforce.errors import InputError
+from fbgforce.sim import simulate
+from fbgforce.sim.lablogs import write_lab_logs
+
+
+@pytest.fixture(scope="module")
+def smoke():
+    return simulate("smoke")
+
+
+def _import(directory, **flags):
+    values = li.load_map(directory / "import.toml") | {"out": str(directory / "out.csv")}
+    values.update(flags)
+    return li.import_files(li.make_spec(values), progress=False)
+
+
+def _clock_error_ms(result, offset_s, drift_ppm, duration_s):
+    """Largest error of the fitted stage clock over the log, ms."""
+    e0 = result["offset_s"] - offset_s
+    e1 = e0 + (result["drift_ppm"] - drift_ppm) * 1e-6 * duration_s
+    return 1e3 * max(abs(e0), abs(e1))
+
+
+def _assert_within_one_sample(imp, ds):
+    """The imported dataset is the simulator's up to one sample of alignment."""
+    assert len(imp) == len(ds)
+    assert np.array_equal(imp.t_s, ds.t_s)
+    assert np.abs(imp.wl_nm - ds.wl_nm).max() < 2e-6
+    f = ds.force_N
+    step = np.maximum(np.abs(np.diff(f, prepend=f[0])), np.abs(np.diff(f, append=f[-1])))
+    assert np.all(np.abs(imp.force_N - f) <= 1.2 * step + 0.02)
+    # Contact differs only next to a contact edge; press ids only next to a change of press
+    # or where the unloading's tail is within a few mN of rest (where the press ends).
+    edge = np.convolve(np.diff(ds.contact.astype(int), prepend=0) != 0, [1, 1, 1], "same") > 0
+    assert not np.any((imp.contact != ds.contact) & ~edge)
+    back = np.convolve(np.diff(ds.press_id, prepend=0) != 0, [1, 1, 1], "same") > 0
+    tail = (f < 2 * li.REST_BAND_N) & ~ds.contact
+    assert not np.any((imp.press_id != ds.press_id) & ~(back | tail))
+    both = imp.contact & ds.contact
+    assert np.abs(imp.x_mm[both] - ds.x_mm[both]).max() < 1e-3
+    assert np.abs(imp.y_mm[both] - ds.y_mm[both]).max() < 1e-3
+
+
+def test_import_gives_back_the_simulators_dataset(smoke, tmp_path):
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    res = _import(tmp_path)
+    assert _clock_error_ms(res, 0.1, 80, smoke.t_s[-1]) <= 1.0
+    assert res["presses"] == smoke.n_presses == 20
+    assert res["dropped"] == {k: 0 for k in li.DROP_REASONS.values()}
+    assert res["alignment"]["correlation"] > 0.9
+    _assert_within_one_sample(dataset.load(tmp_path / "out.csv"), smoke)
+
+
+@pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [
+    (100, 0.1, 80), (2000, 0.1, -80), (500, 2.0, 80), (500, -2.0, -80), (100, -2.0, 80)])
+def test_import_stage_rates_and_offsets(smoke, tmp_path, rate_hz, offset_s, drift_ppm):
+    write_lab_logs(smoke, tmp_path, rate_hz=rate_hz, offset_s=offset_s, drift_ppm=drift_ppm,
+                   jitter_s=0.1 / rate_hz)
+    res = _import(tmp_path)
+    assert _clock_error_ms(res, offset_s, drift_ppm, smoke.t_s[-1]) <= 1.0
+    assert res["stage"]["rate_hz"] == pytest.approx(rate_hz, rel=1e-3)
+    imp = dataset.load(tmp_path / "out.csv")
+    assert len(imp) == len(smoke) and imp.n_presses == 20
+
+
+def test_import_pm_units_other_names_and_order(smoke, tmp_path):
+    """Wavelengths in pm, force in mN, position in µm, columns renamed and shuffled, extra
+    columns, tab-separated stage log: through flags (no map) the same dataset comes back."""
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=-0.05, drift_ppm=40, jitter_s=1e-4)
+    fbg = np.loadtxt(tmp_path / "interrogator.csv", delimiter=",", skiprows=1)
+    st = np.loadtxt(tmp_path / "stage.csv", delimiter=",", skiprows=1)
+    with open(tmp_path / "fbg_pm.csv", "w") as fh:
+        fh.write("# Interrogator export\nstatus,Ch T [pm],Ch 3 [pm],Time [s],Ch 1 [pm],"
+                 "Ch 4 [pm],Ch 2 [pm]\n")
+        for r in fbg:
+            fh.write(f"ok,{r[5] * 1e3:.3f},{r[3] * 1e3:.3f},{r[0]:.9f},{r[1] * 1e3:.3f},"
+                     f"{r[4] * 1e3:.3f},{r[2] * 1e3:.3f}\n")
+    with open(tmp_path / "stage_mn.tsv", "w") as fh:
+        fh.write("y_um\tload_mN\tx_um\tclock\n")
+        for r in st:
+            fh.write(f"{r[3] * 1e3:.1f}\t{r[1] * 1e3:.3f}\t{r[2] * 1e3:.1f}\t{r[0]:.9f}\n")
+    out = tmp_path / "ds.csv"
+    cmd = [sys.executable, "-m", "fbgforce.cli", "import",
+           "--fbg", str(tmp_path / "fbg_pm.csv"),
+           "--fbg-columns", "t=Time [s],wl1=Ch 1 [pm],wl2=Ch 2 [pm],wl3=Ch 3 [pm],"
+                            "wl4=Ch 4 [pm],wlT=Ch T [pm]",
+           "--fbg-unit", "pm",
+           "--stage", str(tmp_path / "stage_mn.tsv"),
+           "--stage-columns", "t=clock,force=load_mN,x=x_um,y=y_um",
+           "--force-unit", "mN", "--position-unit", "um", "--out", str(out), "--json"]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert set(res) >= {"dataset", "samples", "presses", "offset_s", "drift_ppm", "alignment",
+                        "fbg", "stage", "dropped", "seconds"}
+    assert set(res["alignment"]) >= {"correlation", "residual_ms", "presses_used"}
+    assert _clock_error_ms(res, -0.05, 40, smoke.t_s[-1]) <= 1.0
+    _assert_within_one_sample(dataset.load(out), smoke)
+
+
+def test_samples_outside_the_stage_log_are_dropped_and_counted(smoke, tmp_path):
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.0, drift_ppm=0, jitter_s=0)
+    lines = (tmp_path / "stage.csv").read_text().splitlines()
+    # The stage log starts 0.5 s before the interrogator: cut it to start 0.5 s after.
+    keep = [lines[0]] + [ln for ln in lines[1:] if float(ln.split(",")[0]) >= 0.5]
+    (tmp_path / "stage.csv").write_text("\n".join(keep) + "\n")
+    res = _import(tmp_path)
+    assert res["dropped"]["before_stage_log"] == pytest.approx(500, abs=2)
+    assert res["samples"] + res["dropped"]["before_stage_log"] == len(smoke)
+
+
+def _rewrite_stage(directory, fn):
+    st = np.loadtxt(directory / "stage.csv", delimiter=",", skiprows=1)
+    st = fn(st)
+    np.savetxt(directory / "stage.csv", st, fmt="%.9f", delimiter=",", header="time,Fz,X,Y",
+               comments="")
+
+
+@pytest.mark.parametrize("case,expect", [
+    ("no_overlap", "no overlap"),
+    ("no_presses", "no presses"),
+    ("not_increasing", "line 101, column 't': time not increasing"),
+    ("irregular", "irregular sampling"),
+    ("untared", "tare it"),
+])
+def test_import_refuses_what_it_cannot_trust(smoke, tmp_path, case, expect):
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+
+    def change(st):
+        if case == "no_overlap":
+            st[:, 0] += 100.0
+        elif case == "no_presses":
+            st[:, 1] = 0.0
+        elif case == "not_increasing":
+            st[99, 0] = st[98, 0]                 # data row 99 is file line 101
+        elif case == "irregular":
+            st = st[np.random.default_rng(0).random(st.shape[0]) > 0.2]
+        elif case == "untared":
+            st[:, 1] += 0.3
+        return st
+
+    _rewrite_stage(tmp_path, change)
+    with pytest.raises(InputError, match=expect):
+        _import(tmp_path)
+
+
+def test_import_refuses_an_ambiguous_alignment(tmp_path):
+    """Identical presses at one period and one place: every period fits as well."""
+    from fbgforce.sim import load_scene
+
+    scene = load_scene("smoke").replace(schedule={"force_min_N": 30.0, "force_max_N": 30.0,
+                                                  "n_presses": 30, "region": "interior",
+                                                  "band_mm": 10.0})
+    ds = simulate(scene)
+    write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    with pytest.raises(InputError, match="ambiguous"):
+        _import(tmp_path)
+
+
+def test_import_names_a_wrong_unit_and_a_missing_column(smoke, tmp_path):
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    with pytest.raises(InputError, match=r"interrogator.csv, line 2: .*--fbg-unit"):
+        _import(tmp_path, **{"fbg-unit": "pm"})
+    with pytest.raises(InputError, match=r"stage.csv, line 1: no column\(s\) 'Fx'"):
+        _import(tmp_path, **{"stage-columns": "t=time,force=Fx,x=X,y=Y"})
+    with pytest.raises(InputError, match="missing key"):
+        _import(tmp_path, **{"fbg-columns": "t=timestamp,wl1=peak1"})
+
+
+def test_cli_import_bad_input_is_one_line_exit_2(smoke, tmp_path):
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    proc = subprocess.run([sys.executable, "-m", "fbgforce.cli", "import", "--map",
+                           str(tmp_path / "import.toml"), "--out", str(tmp_path / "o.csv"),
+                           "--fbg-unit", "pm"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_press_numbering_follows_the_simulator_and_merges_chatter():
+    t = np.arange(40) * 5e-3
+    f = np.zeros(40)
+    f[5:10] = 1.0
+    f[11:14] = 1.0        # a 5 ms dip below the threshold: the same press
+    f[14:18] = [0.04, 0.02, 0.01, 0.002]   # the end of its unloading, below the threshold
+    f[30:35] = 2.0
+    f[37] = 1.0           # a 1-sample blip after the rest: contact, but no new press
+    contact = li.label_contact(f)
+    ids = li.number_presses(t, f)
+    # The rest before a press carries its id, the unloading's end (to the first sample where
+    # the load stops falling) its own; after the last press its id stays.
+    assert ids.tolist() == [0] * 18 + [1] * 22
+    assert contact[37] and not contact[10] and not contact[14]
+
+
+def test_lab_logs_leave_the_dataset_unchanged(tmp_path):
+    """The stage clock is a logging option: the dataset is the same with it."""
+    from fbgforce.cli import main
+
+    assert main(["simulate", "--scene", "smoke", "--out", str(tmp_path / "a.csv")]) == 0
+    assert main(["simulate", "--scene", "smoke", "--out", str(tmp_path / "b.csv"),
+                 "--lab-logs", str(tmp_path / "lab"), "--stage-rate-hz", "100"]) == 0
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+    assert (tmp_path / "lab" / "stage.csv").is_file()
+
+
+def test_csv_writer_in_chunks_equals_save(smoke, tmp_path):
+    dataset.save(smoke, tmp_path / "one.csv")
+    kinds = {k: "float64" for k in smoke.extra}
+    with dataset.CsvWriter(tmp_path / "chunks.csv", smoke.source, kinds) as w:
+        for a in range(0, len(smoke), 4000):
+            w.write(smoke.subset(slice(a, a + 4000)))
+    assert (tmp_path / "one.csv").read_text() == (tmp_path / "chunks.csv").read_text()
+
+
+# ------------------------------------------------------------------------------ protocol
+
+def test_protocol_default_covers_what_a_model_needs(tmp_path):
+    from fbgforce.cli import main
+    from fbgforce.protocol import COLUMNS
+
+    out = tmp_path / "program.csv"
+    assert main(["protocol", "--out", str(out)]) == 0
+    text = out.read_text()
+    lines = [ln for ln in text.splitlines() if not ln.startswith("#")]
+    assert lines[0].split(",") == list(COLUMNS)
+    rows = np.loadtxt(lines[1:], delimiter=",")
+    col = {name: rows[:, i] for i, name in enumerate(COLUMNS)}
+    assert rows.shape[0] == 300
+    assert col["force_N"].max() > 65 and col["force_N"].max() <= 70 and col["force_N"].min() < 1
+    assert 0.5 <= col["x_mm"].min() and col["x_mm"].max() <= 20.5
+    assert col["y_mm"].min() < 3 and col["y_mm"].max() > 24
+    speed = col["force_N"] / col["ramp_s"]
+    assert speed.max() > 300 and speed.min() < 5             # fast taps and slow ramps
+    long_hold = (col["hold_s"] >= 1.5) & (col["hold_s"] <= 6)
+    assert long_hold.sum() >= 50 and (col["hold_s"] == 0).sum() >= 50
+    assert col["rest_s"].min() >= 0.2
+    assert col["rest_s"][col["rest_s"] >= 10].sum() >= 30    # long rests between groups
+    duration = (col["rest_s"] + 2 * col["ramp_s"] + col["hold_s"]).sum()
+    assert float(text.split("# duration: ")[1].split(" s")[0]) == pytest.approx(duration, abs=0.1)
+    assert "temperature" in text and "kelvin" in text
+
+
+# ------------------------------------------------------------------------------ coverage
+
+def test_coverage_says_what_a_log_lacks(smoke, tmp_path):
+    from fbgforce.trainer.coverage import coverage
+
+    cov = coverage([smoke])
+    assert cov["presses"] == 20
+    assert cov["force_N"]["max"] == pytest.approx(smoke.force_N.max())
+    assert sum(map(sum, cov["location_map"]["counts"])) == 20
+    missing = " ".join(cov["missing"])
+    assert "holds of 1.5 s" in missing and "long rests" in missing and "temperature" in missing
+    from fbgforce.sim import load_scene
+
+    held = simulate(load_scene("smoke").replace(schedule={"hold_s": 2.0, "n_presses": 4}))
+    cov_held = coverage([held])
+    assert cov_held["holds"]["longest_s"] >= 1.9
+    assert "holds of 1.5 s" not in " ".join(cov_held["missing"])
+    dataset.save(smoke, tmp_path / "s.csv")
+    proc = subprocess.run([sys.executable, "-m", "fbgforce.cli", "coverage", "--data",
+                           str(tmp_path / "s.csv"), "--json"], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout)["missing"] == cov["missing"]
+
+
+# ------------------------------------------------------------------------------ scoring
+
+def test_a_model_scores_the_import_like_the_simulators_file(small_model_dir, small_dataset_path,
+                                                          tmp_path):
+    """What the labels are worth: one model scored on the imported dataset and on the
+    simulator's own file, every metric within 2 % (training two models instead measures the
+    training's own variance, docs/lab-import.md)."""
+    from fbgforce.trainer.evaluate import evaluate
+
+    ds = dataset.load(small_dataset_path)
+    write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    _import(tmp_path)
+    own = evaluate(small_model_dir, [small_dataset_path], split="all")
+    imported = evaluate(small_model_dir, [str(tmp_path / "out.csv")], split="all")
+    assert imported["n_samples"] == own["n_samples"]
+    for key in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm"):
+        assert abs(imported[key] - own[key]) <= 0.02 * abs(own[key]), (key, own[key],
+                                                                        imported[key])

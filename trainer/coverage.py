@@ -1,0 +1,161 @@
+"""What a calibration log covers, and what a model trained on it will not know
+(``fbgforce coverage``, and the same lines in ``fbgforce train``; docs/lab-import.md
+"Coverage").
+
+Per press (a run of equal ``press_id`` with contact): its peak force, where it pressed (the
+median contact location), how fast it loaded (10 % to 90 % of its peak over the time taken)
+and how long it held (the longest stretch within the trainer's hold band of its peak). Over the
+log: the temperature grating's span and the time without contact.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce.dataset import Dataset
+from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
+from fbgforce.trainer.train import HOLD_BAND, HOLD_MIN_S
+
+#: Force ranges reported, N (the last open).
+FORCE_BINS_N = (0.0, 2.0, 10.0, 30.0, 50.0, 70.0)
+#: The location map's cells over the pad (x, y).
+MAP_CELLS = (3, 4)
+#: A model knows what it saw: below these it is told what is missing.
+WANT_FORCE_MAX_N = 60.0
+WANT_LIGHT_N = 2.0
+WANT_FAST_N_PER_S = 200.0
+WANT_SLOW_N_PER_S = 20.0
+WANT_HOLD_S = 1.5
+WANT_TEMPERATURE_K = 2.0
+WANT_LONG_REST_S = 5.0
+#: The temperature grating's nominal sensitivity, pm/K (to quote its span in kelvin).
+T_SENSITIVITY_PM_PER_K = BASE_WL_NM[-1] * THERMAL_COEFF_PER_K * 1000.0
+
+
+def _press_table(ds: Dataset) -> np.ndarray:
+    """(presses, 5): peak N, x mm, y mm, loading N/s, hold s, for presses with contact."""
+    rows = []
+    rate = 1.0 / float(np.median(np.diff(ds.t_s))) if len(ds) > 1 else 1000.0
+    order = np.argsort(ds.press_id, kind="stable")
+    ids, starts = np.unique(ds.press_id[order], return_index=True)
+    bounds = np.append(starts, order.size)
+    for k in range(ids.size):
+        idx = order[bounds[k]:bounds[k + 1]]
+        c = idx[ds.contact[idx]]
+        if c.size == 0:
+            continue
+        f = ds.force_N[c]
+        peak = float(f.max())
+        i_peak = int(np.argmax(f))
+        rise = f[:i_peak + 1]
+        t = ds.t_s[c][:i_peak + 1]
+        t10 = t[np.argmax(rise >= 0.1 * peak)]
+        t90 = t[np.argmax(rise >= 0.9 * peak)]
+        speed = 0.8 * peak / max(float(t90 - t10), 1.0 / rate)
+        near = np.abs(f - peak) <= max(HOLD_BAND[0], HOLD_BAND[1] * peak)
+        d = np.diff(np.concatenate([[0], near.astype(np.int8), [0]]))
+        hold = float((np.flatnonzero(d == -1) - np.flatnonzero(d == 1)).max()) / rate
+        rows.append((peak, float(np.median(ds.x_mm[c])), float(np.median(ds.y_mm[c])), speed,
+                     hold))
+    return np.array(rows, dtype=np.float64).reshape(-1, 5)
+
+
+def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
+    """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
+    trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
+    table = np.concatenate([_press_table(ds) for ds in datasets])
+    peak, x, y, speed, hold = table.T if table.size else (np.zeros(0),) * 5
+    w = max(PAD_SIZE_MM[0], float(np.nanmax(x)) if x.size else 0.0)
+    h = max(PAD_SIZE_MM[1], float(np.nanmax(y)) if y.size else 0.0)
+    nx, ny = MAP_CELLS
+    counts = np.zeros((ny, nx), dtype=int)
+    if x.size:
+        cx = np.clip((x / w * nx).astype(int), 0, nx - 1)
+        cy = np.clip((y / h * ny).astype(int), 0, ny - 1)
+        np.add.at(counts, (cy, cx), 1)
+    edges = FORCE_BINS_N
+    by_range = {(f"{lo:g}-{hi:g}" if i < len(edges) - 1 else f">{lo:g}"):
+                int(((peak > lo) & ((peak <= hi) if i < len(edges) - 1 else True)).sum())
+                for i, (lo, hi) in enumerate(zip(edges, edges[1:] + (np.inf,)))}
+    span_pm, rest_total, rest_longest = 0.0, 0.0, 0.0
+    for ds in datasets:
+        dt = float(np.median(np.diff(ds.t_s))) if len(ds) > 1 else 1e-3
+        per_s = max(1, int(round(1.0 / dt)))
+        m = (len(ds) // per_s) * per_s
+        if m:
+            wl_t = ds.wl_nm[:m, 4].reshape(-1, per_s).mean(axis=1)   # 1 s means: no noise
+            span_pm = max(span_pm, float(np.ptp(wl_t)) * 1e3)
+        free = ~ds.contact
+        rest_total += float(free.sum()) * dt
+        d = np.diff(np.concatenate([[0], free.astype(np.int8), [0]]))
+        runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
+        rest_longest = max(rest_longest, float(runs.max()) * dt if runs.size else 0.0)
+    span_K = span_pm / T_SENSITIVITY_PM_PER_K
+    missing = []
+    if peak.size == 0:
+        missing.append("any press: the log has no contact")
+    else:
+        if peak.max() < WANT_FORCE_MAX_N:
+            missing.append(f"forces above {peak.max():.0f} N (it will extrapolate there)")
+        if peak.min() > WANT_LIGHT_N:
+            missing.append(f"light touches (no press peaks below {WANT_LIGHT_N:g} N)")
+        empty = int((counts == 0).sum())
+        if empty:
+            missing.append(f"{empty} of {counts.size} pad cells (no press there: see the map)")
+        if speed.max() < WANT_FAST_N_PER_S:
+            missing.append(f"fast taps (no loading faster than {WANT_FAST_N_PER_S:g} N/s)")
+        if speed.min() > WANT_SLOW_N_PER_S:
+            missing.append(f"slow ramps (no loading slower than {WANT_SLOW_N_PER_S:g} N/s)")
+        if hold.max() < WANT_HOLD_S:
+            missing.append(f"holds of {WANT_HOLD_S:g} s or longer (a held grip will read low)")
+    if span_K < WANT_TEMPERATURE_K:
+        missing.append(f"temperature changes beyond {span_K:.2g} K (the temperature grating "
+                       f"moved {span_pm:.0f} pm)")
+    if rest_longest < WANT_LONG_REST_S:
+        missing.append(f"long rests (none over {WANT_LONG_REST_S:g} s: creep recovery, the "
+                       "zero drifting at rest)")
+    stats = (lambda a: {"min": float(a.min()), "median": float(np.median(a)),
+                        "max": float(a.max())} if a.size else None)
+    return {
+        "presses": int(peak.size),
+        "force_N": stats(peak), "force_ranges": by_range,
+        "location_map": {"cells_x": nx, "cells_y": ny, "pad_mm": [w, h],
+                         "counts": counts.tolist()},
+        "loading_N_per_s": stats(speed),
+        "holds": {"presses_holding_s": int((hold >= HOLD_MIN_S).sum()),
+                  f"presses_holding_{WANT_HOLD_S:g}_s": int((hold >= WANT_HOLD_S).sum()),
+                  "longest_s": float(hold.max()) if hold.size else 0.0},
+        "temperature": {"span_pm": span_pm, "span_K": span_K},
+        "rest": {"total_s": rest_total, "longest_s": rest_longest},
+        "missing": missing,
+    }
+
+
+def coverage_lines(cov: dict[str, Any]) -> list[str]:
+    """The report as text lines (what ``fbgforce coverage`` prints and ``train`` repeats)."""
+    lines = [f"coverage: {cov['presses']} presses"]
+    if cov["force_N"]:
+        f, s = cov["force_N"], cov["loading_N_per_s"]
+        lines.append(f"  force: peaks {f['min']:.2f}-{f['max']:.1f} N; presses by peak: "
+                     + ", ".join(f"{k} N {v}" for k, v in cov["force_ranges"].items()))
+        lines.append(f"  loading speed: {s['min']:.3g}-{s['max']:.3g} N/s "
+                     f"(median {s['median']:.3g})")
+        hd = cov["holds"]
+        lines.append(f"  holds: {hd['presses_holding_s']} presses hold >= {HOLD_MIN_S:g} s, "
+                     f"{hd[f'presses_holding_{WANT_HOLD_S:g}_s']} >= {WANT_HOLD_S:g} s, longest "
+                     f"{hd['longest_s']:.2f} s")
+    lm = cov["location_map"]
+    lines.append(f"  press locations ({lm['cells_x']} x {lm['cells_y']} cells over "
+                 f"{lm['pad_mm'][0]:g} x {lm['pad_mm'][1]:g} mm, top row first):")
+    for row in lm["counts"]:
+        lines.append("    " + " ".join(f"{v:4d}" for v in row))
+    t, r = cov["temperature"], cov["rest"]
+    lines.append(f"  temperature: span {t['span_K']:.2f} K ({t['span_pm']:.0f} pm on the "
+                 f"temperature grating)")
+    lines.append(f"  rest: {r['total_s']:.1f} s without contact, longest {r['longest_s']:.1f} s")
+    if cov["missing"]:
+        lines.append("  a model trained on it will not know: " + "; ".join(cov["missing"]))
+    else:
+        lines.append("  nothing missing by these checks")
+    return lines
