@@ -62,9 +62,15 @@ def test_documented_zero_fields_are_checked(random_model_factory, random_walk_fa
         pad = bytearray(data)
         pad[pos] = 1
         assert c_verdict(mutate.fix_crc(pad)) == py_verdict(mutate.fix_crc(pad)) == "FBG_ERR_RANGE"
-    # The last field, loc_shift, beyond its range.
+    # The last entry of the last field, just beyond its range.
+    import struct
+
+    f = contract.PARAMS[-1]
+    fmt, _, size = contract.CTYPES[f.ctype]
+    lo, _hi = contract.CTYPE_RANGE[f.ctype]
+    value = f.lo - 1 if f.lo > lo else f.hi + 1
     last = bytearray(data)
-    last[contract.HEADER.size + contract.PARAMS_STRUCT.size - 1] = contract.LIMIT["MAX_EMA_SHIFT"] + 1
+    struct.pack_into("<" + fmt, last, contract.HEADER.size + contract.PARAMS_STRUCT.size - size, value)
     assert c_verdict(mutate.fix_crc(last)) == py_verdict(mutate.fix_crc(last)) == "FBG_ERR_RANGE"
 
 

@@ -181,9 +181,9 @@ drift_K_per_sqrt_s = 0.0
 def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force, ramp_K):
     """The tracker learns only while the decision says rest, and the decision holds a held
     load: through 10 minutes of a grip (at constant temperature, and through a 20 K ramp) the
-    decision stays on, the baseline does not move, and the force reads at the end what it
-    read after the load settled (at constant temperature; through the ramp only the
-    compensation's residual moves it, the tracker adds nothing)."""
+    decision stays on and the baseline does not move from the press's first sample to its
+    release, so the tracker has no part in any estimate of the hold (what the compensation
+    leaves of a ramp during a hold is docs/runtime.md's "In use" figure)."""
     from fbgforce import sim
 
     path = tmp_path / "hold.toml"
@@ -204,8 +204,3 @@ def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force
     rt2.tare(ds.wl_nm[:2000])
     rt2.run(ds.wl_nm[:last + 1])
     assert np.array_equal(np.asarray(rt2.baseline_fm), before)
-    settled = out["force_N"][held[20_000:30_000]].mean()   # 20-30 s: the memory has settled
-    end = out["force_N"][held[-10_000:]].mean()
-    print(f"{force} N, ramp {ramp_K} K: settled {settled:.3f} N, end {end:.3f} N")
-    if ramp_K == 0.0:
-        assert abs(end - settled) <= 0.1 + 0.01 * force

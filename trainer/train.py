@@ -423,12 +423,22 @@ def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
     """Float-pipeline metrics on given rows of prepared data. ``inputs``: the net inputs of
     every row under ``model.preprocess`` if the caller has them (the memory states make them
     a pass over every recording)."""
-    if inputs is None:
-        inputs = data.inputs(model.preprocess)
-    if not extras:
-        return fmetrics.compute(fm.predict_from_features(model, inputs[rows]), *data.truth(rows),
-                                extras=False)
-    pred = fm.predict_from_features(model, inputs)
+    iu = model.in_use
+    if not (iu.per_sample and not iu.track_shift):
+        # The decision over time and the tracker run along each whole recording, as in
+        # `fbgforce evaluate` (fbgforce.model.predict on the recording's own tare).
+        parts = [fm.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
+        pred = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        if not extras:
+            return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
+                                    extras=False)
+    else:
+        if inputs is None:
+            inputs = data.inputs(model.preprocess)
+        if not extras:
+            return fmetrics.compute(fm.predict_from_features(model, inputs[rows]),
+                                    *data.truth(rows), extras=False)
+        pred = fm.predict_from_features(model, inputs)
     delays = press_delays(data, pred["contact"], rows)
     return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
                             extras=extras, pad_mm=model_pad_mm(model), delays=delays)

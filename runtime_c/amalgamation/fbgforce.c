@@ -8838,7 +8838,7 @@ fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t option
 /* Reset, tare and a new baseline restart the decision and the tracker, as in fbg_fixed.c:
  * the correction made so far stays through a reset (held) and the bound counts from there;
  * a tare or a new baseline replaces it. */
-static fbg_status in_use_after(fbgf_state *s, fbg_status st, int keep_correction)
+static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correction)
 {
     unsigned c;
     if (st != FBG_OK)
@@ -8858,7 +8858,7 @@ static fbg_status in_use_after(fbgf_state *s, fbg_status st, int keep_correction
 
 fbg_status fbgf_reset(fbgf_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)), 1);
+    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_reset(FRONT(state)), 1);
 }
 
 fbg_status fbgf_tare_begin(fbgf_state *state)
@@ -8875,14 +8875,14 @@ fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS],
 
 fbg_status fbgf_tare_end(fbgf_state *state)
 {
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)), 0);
+    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_tare_end(FRONT(state)), 0);
 }
 
 fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm), 0);
+    return fin_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm), 0);
 }
 
 /* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
@@ -9012,7 +9012,7 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
 }
 
 /* contact_decision of fbg_fixed.c on the float margin. */
-static uint8_t contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
     const int raw = margin > 0.0f;
     if (s->decision) {
@@ -9036,7 +9036,7 @@ static uint8_t contact_decision(fbgf_state *s, const fbgf_model *m, float margin
  * NULL otherwise; a block at rest throughout, after track_settle samples of rest, adds
  * clamp(sum(filt) / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
  * the last reset or tare stays within +-track_limit_pm. */
-static void rest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
+static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
     unsigned c;
     if (filt != NULL) {
@@ -9070,7 +9070,7 @@ static void rest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 
 #if FBGF_RUN_BATCHED
 /* The model's decision is the contact net's own and no tracker runs: fbgf_run may batch. */
-static int in_use_off(const fbgf_model *m)
+static int fin_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
            m->contact_rise_n == 1u;
@@ -9095,7 +9095,7 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     if (s->track_limited)
         out->status |= FBG_STATUS_BASELINE_LIMIT;
     if (!ran) {
-        rest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
+        frest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
         return FBG_OK;
     }
     kernel = fbgf_dense_kernel();
@@ -9104,12 +9104,12 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
     if (!finite_f(y[1] - y[0])) {      /* the safe output, and as a fault for the states */
         contact_output(y, out);
-        rest_track(s, m, NULL);
+        frest_track(s, m, NULL);
         return FBG_OK;
     }
     contact_output(y, out);
-    out->contact = contact_decision(s, m, out->margin);
-    rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    out->contact = fcontact_decision(s, m, out->margin);
+    frest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
     if (!out->contact)
         return FBG_OK;
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
@@ -9245,7 +9245,7 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
 #if FBGF_RUN_BATCHED
     /* The decision over time and the tracker carry state from sample to sample through the
      * nets' outputs: then one step at a time (the batch is the nets of many samples at once). */
-    if (fbg_front_ok(FRONT(state)) && in_use_off(state->model)) {
+    if (fbg_front_ok(FRONT(state)) && fin_use_off(state->model)) {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
             size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
