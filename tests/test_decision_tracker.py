@@ -204,3 +204,18 @@ def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force
     rt2.tare(ds.wl_nm[:2000])
     rt2.run(ds.wl_nm[:last + 1])
     assert np.array_equal(np.asarray(rt2.baseline_fm), before)
+
+
+def test_a_long_run_stays_exact_and_bounded(small_exported_dir):
+    """bench_long_run's checks on a short run: one state through a warm-up, grips, a
+    cool-down and a rest with lost peaks; bit-exact after a reset mid-run, the tracker inside
+    its bound, faults flagged."""
+    from fbgforce.bench.bench_long_run import run
+
+    res = run(small_exported_dir, seconds=240.0, segment_s=60.0, seed=1, exact_s=20.0,
+              progress=False)
+    assert [r["kind"] for r in res["segments"]] == ["warm", "grips", "cool", "rest"]
+    assert res["exact"]["samples"] == 20_000 and res["exact"]["mismatched_values"] == 0
+    assert res["state"]["baseline_limit_samples"] == 0
+    assert res["state"]["largest_tracked_pm"] <= res["state"]["track_limit_pm"]
+    assert all(r["faults"] > 0 for r in res["segments"])
