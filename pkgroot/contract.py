@@ -121,6 +121,7 @@ STATUS: tuple[Code, ...] = (
                                "calibration data covered, with a margin: the nets extrapolate"),
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
+STATUS_ALL = sum(STATUS_FLAG.values())
 
 #: fbg_init options (``#define FBG_OPT_<name>``). The KERNEL_* values (a field under
 #: KERNEL_MASK) choose the dense-layer kernels of the fixed-point build (docs/runtime.md,
@@ -507,6 +508,7 @@ def header_sections() -> dict[str, str]:
     c += ["} fbg_status;", "", "/* Output status flags (fbg_output.status; several may be set). */"]
     for code in STATUS:
         c.append(f"#define FBG_STATUS_{code.name} 0x{code.value:02X}  /* {code.doc} */")
+    c.append(f"#define FBG_STATUS_ALL 0x{STATUS_ALL:02X}  /* every flag above: no other bit is ever set */")
     c += ["", "/* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */"]
     for code in OPTIONS:
         c.append(f"#define FBG_OPT_{code.name} 0x{code.value:02X}  /* {code.doc} */")

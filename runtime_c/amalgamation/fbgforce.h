@@ -112,6 +112,7 @@ typedef enum {
 #define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
 #define FBG_STATUS_BASELINE_LIMIT 0x20  /* the at-rest baseline tracker is at its bound: drift beyond what it may correct (re-tare) */
 #define FBG_STATUS_OUT_OF_RANGE 0x40  /* a net input (z or a memory feature) outside the range the calibration data covered, with a margin: the nets extrapolate */
+#define FBG_STATUS_ALL 0x7F  /* every flag above: no other bit is ever set */
 
 /* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */
 #define FBG_OPT_REQUIRE_TARE 0x01  /* fbg_step returns FBG_ERR_NOT_TARED until tared */

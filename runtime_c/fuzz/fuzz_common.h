@@ -24,13 +24,10 @@
 
 #include "fbgforce.h"
 
-#define HC_STATUS_ALL (FBG_STATUS_NOT_TARED | FBG_STATUS_SATURATED | FBG_STATUS_OVERLOAD | \
-                       FBG_STATUS_SENSOR_FAULT | FBG_STATUS_WARMUP)
-
 /* Returns NULL when *o satisfies the contract, else a short description of the violation. */
 static inline const char *hc_check_output(const fbg_output *o, const fbg_model *m, int tared)
 {
-    if (o->status & ~(uint32_t)HC_STATUS_ALL)
+    if (o->status & ~(uint32_t)FBG_STATUS_ALL)
         return "undefined status bit";
     if (o->contact > 1u)
         return "contact not 0/1";
