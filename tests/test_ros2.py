@@ -256,7 +256,8 @@ def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exporte
     assert len(contact) == n and len(wrench) == n
     assert [r[0] for r in contact] == list(range(n))  # none lost, none reordered
     seqs = np.array([r[1] for r in contact])
-    assert summary["lost_frames"] > 0 and seqs[-1] + 1 - n == summary["lost_frames"]
+    # The reader may have counted losses after the last sample the stream took.
+    assert (np.diff(seqs) >= 1).all() and 0 < seqs[-1] + 1 - n <= summary["lost_frames"]
     scene = sim.simulate("smoke", seed=5)
     off = _offline(small_exported_dir, scene.wl_nm[seqs], summary["baseline_nm"])
     lost = contract.LINK_STATUS[0].value
@@ -333,3 +334,154 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     link = np.array([r[10] for r in contact]) & sum(c.value for c in contract.LINK_STATUS)
     restart = contract.LINK_STATUS[1].value
     assert link[400] == restart and np.count_nonzero(link) == 1
+
+
+# ------------------------------------------------------------------------------------------
+# rosbag2 logs
+# ------------------------------------------------------------------------------------------
+
+def _record_mcap(tmp_path: Path, capsys, *extra: str) -> tuple[Path, dict]:
+    """emulate (Hyperion + load cell) -> record --out rec.mcap; returns the path and summary."""
+    em = _emulate("--scene", "smoke", "--seed", "3", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--loadcell",
+                  "--loadcell-link", str(tmp_path / "ttyLC"), "--linger", "0.5")
+    out = tmp_path / "rec.mcap"
+    try:
+        url = _wait_line(em, "interrogator:")
+        assert main(["record", "--source", url, "--loadcell-port", str(tmp_path / "ttyLC"),
+                     "--out", str(out), "--idle-timeout", "1", "--start-timeout", "30",
+                     "--json", "--quiet", *extra]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        em.communicate(timeout=20)
+    finally:
+        if em.poll() is None:
+            em.kill()
+            em.communicate()
+    return out, summary
+
+
+def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exported_dir, capsys):
+    """record --out rec.mcap --model: rosbags (not the writer's library) reads every sample's
+    peaks, stage line and estimates back, and load_dataset gives the recorded dataset."""
+    _need("rosbags")
+    _need("mcap_ros2")
+    from rosbags.highlevel import AnyReader
+
+    from fbgforce import dataset
+    from fbgforce.pybind import Runtime
+
+    out, summary = _record_mcap(tmp_path, capsys, "--model", str(small_exported_dir))
+    truth = sim.simulate("smoke", seed=3)
+    n = len(truth)
+    assert summary["samples"] == n and summary["lost_frames"] == 0
+    assert summary["topics"] == {t: n for t in ("/fbgforce/peaks", "/fbgforce/stage",
+                                                "/fbgforce/contact", "/fbgforce/wrench")}
+    rows: dict[str, list] = {}
+    with AnyReader([out]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types == {"/fbgforce/peaks": "fbgforce_msgs/msg/Peaks",
+                         "/fbgforce/stage": "fbgforce_msgs/msg/Stage",
+                         "/fbgforce/contact": "fbgforce_msgs/msg/Contact",
+                         "/fbgforce/wrench": "geometry_msgs/msg/WrenchStamped"}
+        for conn, log_time, raw in reader.messages():
+            m = reader.deserialize(raw, conn.msgtype)
+            assert log_time == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            rows.setdefault(conn.topic, []).append(m)
+    peaks, stage, contact = rows["/fbgforce/peaks"], rows["/fbgforce/stage"], rows["/fbgforce/contact"]
+    assert [m.sample_seq for m in peaks] == list(range(n)) == [m.sample_seq for m in stage]
+    wl_fm = np.rint(np.array([m.wavelength for m in peaks]) * 1e15).astype(np.int64)
+    truth_fm = np.rint(truth.wl_nm * 1e6).astype(np.int64)
+    assert np.abs(wl_fm - truth_fm).max() <= 1  # the wire's resolution
+    t_ns = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in peaks])
+    assert np.array_equal(t_ns - t_ns[0], np.round(truth.t_s * 1e9).astype(np.int64))
+    assert np.array_equal([m.contact for m in stage], truth.contact)
+    assert np.array_equal([m.press_id for m in stage], truth.press_id)
+    rt = Runtime(small_exported_dir)
+    base_nm = rt.tare(wl_fm[:200].astype(np.int32))
+    rt.set_baseline(np.asarray(base_nm, dtype=np.float64))
+    off = rt.run(wl_fm.astype(np.int32))
+    assert np.array_equal([m.status for m in contact], off["status"])
+    assert np.array_equal(np.round([m.force * 1000 for m in contact]).astype(np.int64),
+                          off["force_mN"])
+    ds = dataset.load(out)
+    assert ds.source.endswith("(rosbag2)") and len(ds) == n
+    assert np.array_equal(np.rint(ds.wl_nm * 1e6).astype(np.int64), wl_fm)
+    assert np.allclose(ds.t_s, truth.t_s, rtol=0, atol=1e-12)
+    assert np.array_equal(ds.contact, truth.contact)
+    assert np.array_equal(ds.press_id, truth.press_id)
+    assert np.array_equal(ds.force_N, [m.force for m in stage])
+    touch = truth.contact
+    assert np.allclose(ds.x_mm[touch], [m.x * 1000 for m, c in zip(stage, touch) if c],
+                       rtol=0, atol=1e-12)
+    assert np.isnan(ds.x_mm[~touch]).all()
+
+
+def test_load_dataset_reads_another_drivers_bag_with_a_field_map(tmp_path):
+    """A rosbag2 directory (SQLite 3) written by rosbags as another driver would: peaks as a
+    Float64MultiArray without header at 1 kHz, the load cell as WrenchStamped and the stage as
+    PointStamped + Bool at 100 Hz. Rows are the peaks; the others are held from their latest
+    message; the rows before the slow topics spoke are dropped and counted."""
+    _need("rosbags")
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from fbgforce import dataset
+
+    ts = get_typestore(Stores.LATEST)
+    T = ts.types
+    bag = tmp_path / "other_driver"
+    t0 = 1_700_000_000 * 10**9
+    n = 500
+    wl = 1530.0 + np.arange(5) * 8.0 + np.arange(n)[:, None] * 1e-6
+    with Writer(bag, version=8) as w:
+        peaks = w.add_connection("/hyperion/peaks", "std_msgs/msg/Float64MultiArray", typestore=ts)
+        ft = w.add_connection("/ft/wrench", "geometry_msgs/msg/WrenchStamped", typestore=ts)
+        pt = w.add_connection("/stage/point", "geometry_msgs/msg/PointStamped", typestore=ts)
+        ct = w.add_connection("/stage/contact", "std_msgs/msg/Bool", typestore=ts)
+        for i in range(n):
+            t = t0 + 3_000_000 + i * 1_000_000  # peaks start 3 ms in: none before the stage
+            msg = T["std_msgs/msg/Float64MultiArray"](
+                layout=T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0), data=wl[i])
+            w.write(peaks, t, ts.serialize_cdr(msg, msg.__msgtype__))
+        for k in range(n // 10):
+            t = t0 + 5_000_000 + k * 10_000_000  # first stage/load-cell message at 5 ms
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                sec=t // 10**9, nanosec=t % 10**9), frame_id="stage")
+            v3 = T["geometry_msgs/msg/Vector3"]
+            wr = T["geometry_msgs/msg/WrenchStamped"](header=hdr, wrench=T["geometry_msgs/msg/Wrench"](
+                force=v3(x=0.0, y=0.0, z=float(k)), torque=v3(x=0.0, y=0.0, z=0.0)))
+            w.write(ft, t, ts.serialize_cdr(wr, wr.__msgtype__))
+            p = T["geometry_msgs/msg/PointStamped"](header=hdr, point=T["geometry_msgs/msg/Point"](
+                x=0.001 * k, y=0.002, z=0.0))
+            w.write(pt, t, ts.serialize_cdr(p, p.__msgtype__))
+            b = T["std_msgs/msg/Bool"](data=k % 2 == 1)
+            w.write(ct, t, ts.serialize_cdr(b, b.__msgtype__))
+    fields = {**{c: f"/hyperion/peaks:data[{k}]" for k, c in enumerate(
+        ("wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm"))},
+        "force_N": "/ft/wrench:wrench.force.z", "contact": "/stage/contact:data",
+        "x_mm": "/stage/point:point.x*1000", "y_mm": "/stage/point:point.y*1000"}
+    ds = dataset.load(bag, fields=fields)
+    # Peaks at 3, 4, 5, ... ms: the two rows before the first stage message (5 ms) are dropped.
+    assert len(ds) == n - 2 and "2 rows before" in ds.source
+    assert np.allclose(ds.t_s, np.arange(n - 2) / 1000.0, rtol=0, atol=1e-12)
+    assert np.array_equal(ds.wl_nm, np.rint(wl[2:] * 1e6) / 1e6)
+    k = (np.arange(2, n) - 2) // 10  # the stage message held for each row
+    assert np.array_equal(ds.force_N, k.astype(float))
+    assert np.array_equal(ds.contact, k % 2 == 1)
+    assert np.allclose(ds.x_mm[ds.contact], k[k % 2 == 1].astype(float), rtol=0, atol=1e-9)
+    assert np.isnan(ds.x_mm[~ds.contact]).all() and (ds.press_id == 0).all()
+    with pytest.raises(Exception, match=r"no topic /nope.*column 'force_N'|column 'force_N'.*no topic /nope"):
+        dataset.load(bag, fields={**fields, "force_N": "/nope:x"})
+    with pytest.raises(Exception, match="wrench.force.w not readable"):
+        dataset.load(bag, fields={**fields, "force_N": "/ft/wrench:wrench.force.w"})
+    with pytest.raises(Exception, match="lacks x_mm"):
+        dataset.load(bag, fields={k: v for k, v in fields.items() if k != "x_mm"})
+    with pytest.raises(Exception, match="TOPIC:FIELD"):
+        dataset.load(bag, fields={**fields, "force_N": "ft/wrench"})
+
+
+def test_record_bad_mcap_options_exit_2(tmp_path, small_exported_dir, capsys):
+    assert main(["record", "--source", "loop://", "--loadcell-port", "loop://", "--out",
+                 str(tmp_path / "rec.csv"), "--model", str(small_exported_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--model" in err[0] and ".mcap" in err[0]
