@@ -11,12 +11,18 @@ installation) publishes the two topics with the DDS names and types that ROS 2 m
 QoS: reliable, keep last :data:`~fbgforce.interrogator.ros2.HISTORY_DEPTH`, transient local
 (a late subscriber that asks for it gets the last second), ``max_blocking_time`` 0: a write
 never waits for a subscriber, so a slow or vanished one cannot stall the estimator.
+
+The two published types serialise through ``rosbags``' generated CDR code (part of the same
+extra) when it is installed: the same bytes as cyclonedds's generic serialiser (a test checks)
+in a fifteenth of its time (about 2.7 µs instead of 38 µs per message here), time the stream
+loop would otherwise spend between estimates.
 """
 # No `from __future__ import annotations`: cyclonedds reads the field types of the IdlStruct
 # dataclasses at run time and cannot resolve them from strings.
 import time
 from dataclasses import dataclass
-from typing import Any, Sequence
+from functools import lru_cache
+from typing import Any, Optional, Sequence
 
 import numpy as np
 
@@ -64,10 +70,38 @@ class Wrench(IdlStruct, typename=R.dds_type_name("geometry_msgs/msg/Wrench")):
     torque: Vector3
 
 
+@lru_cache(maxsize=None)
+def rosbags_typestore() -> Any | None:
+    """rosbags' type store with the project's messages, or None without rosbags."""
+    try:
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    except ImportError:
+        return None
+    store = get_typestore(Stores.LATEST)
+    store.register(get_types_from_msg(R.msg_text(R.CONTACT_TYPE), R.CONTACT_TYPE))
+    return store
+
+
+def serialise(msg: Any, ros_type: str, generic: Any, buffer: Optional[Any],
+              endianness: Optional[Any], use_version_2: Optional[bool]) -> bytes:
+    """A published message's CDR bytes through rosbags' serialiser for ``ros_type`` (it reads
+    the same attribute names); ``generic`` (cyclonedds's) for anything but plain XCDR1, or
+    without rosbags."""
+    store = rosbags_typestore()
+    if store is None or buffer is not None or endianness is not None or use_version_2:
+        return bytes(generic(buffer, endianness, use_version_2))
+    return bytes(store.serialize_cdr(msg, ros_type))
+
+
 @dataclass
 class WrenchStamped(IdlStruct, typename=R.dds_type_name(R.WRENCH_TYPE)):
     header: Header
     wrench: Wrench
+
+    def serialize(self, buffer: Optional[Any] = None, endianness: Optional[Any] = None,
+                  use_version_2: Optional[bool] = None) -> bytes:
+        return serialise(self, R.WRENCH_TYPE, super().serialize, buffer, endianness,
+                         use_version_2)
 
 
 @dataclass
@@ -83,6 +117,11 @@ class Contact(IdlStruct, typename=R.dds_type_name(R.CONTACT_TYPE)):
     x: T.float64
     y: T.float64
     status: T.uint32
+
+    def serialize(self, buffer: Optional[Any] = None, endianness: Optional[Any] = None,
+                  use_version_2: Optional[bool] = None) -> bytes:
+        return serialise(self, R.CONTACT_TYPE, super().serialize, buffer, endianness,
+                         use_version_2)
 
 
 def writer_qos() -> Any:
