@@ -36,22 +36,10 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce.bench.bench_publish import small_model
+
 LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/>'
             '</Interfaces></General></Domain></CycloneDDS>')
-
-
-def _small_model(tmp: Path) -> Path:
-    from fbgforce import dataset, sim
-    from fbgforce import model as fm
-    from fbgforce.export.exporter import export_model
-    from fbgforce.trainer.train import train
-
-    data = tmp / "smoke.csv"
-    dataset.save(sim.simulate("smoke", seed=0), data)
-    out = tmp / "model"
-    fm.save(train([data], epochs=40, seed=0, filter="causal", progress=False), out)
-    export_model(out)
-    return out
 
 
 def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> None:
@@ -227,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
     results: dict[str, Any] = {"load_average_start": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
-        model = args.model or _small_model(Path(tmp))
+        model = args.model or small_model(Path(tmp))
         print(f"{'ros2':<5} {'samples':>8} {'rate Hz':>8} {'published':>9} {'received':>9} "
               f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
               f"{'step us':>7} {'step cpu':>8} {'compute us':>10}")

@@ -158,23 +158,24 @@ class Ros2Publisher:
         self.send_errors = 0
         self.flagged = {c.name.lower(): 0 for c in contract.LINK_STATUS}
         self._last_sample_seq: int | None = None
+        rosbags_typestore()  # generates the serialisers now rather than at the first estimate
 
     def publish(self, frames: Sequence[Frame], est: dict[str, np.ndarray]) -> None:
         si = R.estimates_si(estimate_integers(est))
         link, self._last_sample_seq = R.link_flags(self._last_sample_seq, [f.seq for f in frames])
         for c in contract.LINK_STATUS:
             self.flagged[c.name.lower()] += int(np.count_nonzero(link & c.value))
-        status = si["status"] | link
-        stamps = R.stamps_ns(frames, time.time_ns())
-        for i, f in enumerate(frames):
-            header = Header(Time(*R.split_stamp(stamps[i])), self.frame_id)
-            force = float(si["force"][i])
-            wrench = WrenchStamped(header, Wrench(
-                Vector3(0.0, 0.0, force),
-                Vector3(float(si["torque_x"][i]), float(si["torque_y"][i]), 0.0)))
-            contact = Contact(header, self.seq & 0xFFFFFFFF, f.seq & 0xFFFFFFFF,
-                              bool(si["contact"][i]), float(si["confidence"][i]), force,
-                              float(si["x"][i]), float(si["y"][i]), int(status[i]))
+        # Python scalars once per batch: indexing numpy arrays per field costs more.
+        rows = zip(frames, R.stamps_ns(frames, time.time_ns()).tolist(),
+                   si["contact"].tolist(), si["confidence"].tolist(), si["force"].tolist(),
+                   si["x"].tolist(), si["y"].tolist(), si["torque_x"].tolist(),
+                   si["torque_y"].tolist(), (si["status"] | link).tolist())
+        for f, stamp, touch, confidence, force, x, y, torque_x, torque_y, status in rows:
+            header = Header(Time(*R.split_stamp(stamp)), self.frame_id)
+            wrench = WrenchStamped(header, Wrench(Vector3(0.0, 0.0, force),
+                                                  Vector3(torque_x, torque_y, 0.0)))
+            contact = Contact(header, self.seq & 0xFFFFFFFF, f.seq & 0xFFFFFFFF, touch,
+                              confidence, force, x, y, status)
             self.seq += 1
             try:
                 self.wrench_writer.write(wrench)

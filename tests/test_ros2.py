@@ -17,11 +17,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from conftest import missing_tool
+from conftest import missing_tool, offline_fixed, start_emulator, wait_for_line
 from fbgforce import contract, sim
 from fbgforce.cli import main
 from fbgforce.interrogator import ros2 as R
-from fbgforce.interrogator.protocol import Frame
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Cyclone DDS on the loopback interface only: containers and CI have no multicast route, and
@@ -134,32 +133,6 @@ def _received(proc: subprocess.Popen) -> dict[str, list]:
     return json.loads(out)
 
 
-def _emulate(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "fbgforce.cli", "emulate", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _wait_line(proc: subprocess.Popen, prefix: str) -> str:
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if line.startswith(prefix):
-            return line.split(":", 1)[1].strip()
-        if not line and proc.poll() is not None:
-            break
-    proc.kill()
-    raise AssertionError(f"emulator did not start: {proc.communicate()[1][-2000:]}")
-
-
-def _offline(model_dir: Path, wl_nm: np.ndarray, baseline_nm: list[float]) -> np.ndarray:
-    from fbgforce.pybind import Runtime
-
-    rt = Runtime(model_dir)
-    rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
-    return rt.run(np.asarray(wl_nm, dtype=np.float64))
-
-
 # ------------------------------------------------------------------------------------------
 # Names, URL, message definitions
 # ------------------------------------------------------------------------------------------
@@ -260,11 +233,11 @@ def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exporte
     n = 3000
     ns = f"/fbgforce_test_{os.getpid()}"
     sub = _start_subscriber(dds, ns, n)
-    em = _emulate("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
                   "--command-port", "0", "--stream-port", "0", "--linger", "0.5",
                   "--faults", "drop=0.02")
     try:
-        url = _wait_line(em, "interrogator:")
+        url = wait_for_line(em, "interrogator:")
         assert main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
                      str(n), "--publish", f"ros2://{ns}?frame_id=tip&domain={dds}",
                      "--start-timeout", "30", "--quiet", "--json"]) == 0
@@ -285,7 +258,7 @@ def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exporte
     # The reader may have counted losses after the last sample the stream took.
     assert (np.diff(seqs) >= 1).all() and 0 < seqs[-1] + 1 - n <= summary["lost_frames"]
     scene = sim.simulate("smoke", seed=5)
-    off = _offline(small_exported_dir, scene.wl_nm[seqs], summary["baseline_nm"])
+    off = offline_fixed(small_exported_dir, scene.wl_nm[seqs], summary["baseline_nm"])
     lost = contract.LINK_STATUS[0].value
     gaps = np.concatenate([[False], np.diff(seqs) > 1])
     status = np.array([r[10] for r in contact])
@@ -367,13 +340,14 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
 # ------------------------------------------------------------------------------------------
 
 def _record_mcap(tmp_path: Path, capsys, *extra: str) -> tuple[Path, dict]:
-    """emulate (Hyperion + load cell) -> record --out rec.mcap; returns the path and summary."""
-    em = _emulate("--scene", "smoke", "--seed", "3", "--rate", "5000", "--protocol", "hyperion",
-                  "--command-port", "0", "--stream-port", "0", "--loadcell",
-                  "--loadcell-link", str(tmp_path / "ttyLC"), "--linger", "0.5")
+    """emulate (Hyperion + load cell, the first 3,000 samples of the smoke scene) -> record
+    --out rec.mcap; returns the path and the summary."""
+    em = start_emulator("--scene", "smoke", "--seed", "3", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--loadcell", "--duration",
+                  "0.6", "--loadcell-link", str(tmp_path / "ttyLC"), "--linger", "0.5")
     out = tmp_path / "rec.mcap"
     try:
-        url = _wait_line(em, "interrogator:")
+        url = wait_for_line(em, "interrogator:")
         assert main(["record", "--source", url, "--loadcell-port", str(tmp_path / "ttyLC"),
                      "--out", str(out), "--idle-timeout", "1", "--start-timeout", "30",
                      "--json", "--quiet", *extra]) == 0
@@ -397,7 +371,7 @@ def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exporte
     from fbgforce.pybind import Runtime
 
     out, summary = _record_mcap(tmp_path, capsys, "--model", str(small_exported_dir))
-    truth = sim.simulate("smoke", seed=3)
+    truth = sim.simulate("smoke", seed=3).subset(slice(0, 3000))
     n = len(truth)
     assert summary["samples"] == n and summary["lost_frames"] == 0
     assert summary["topics"] == {t: n for t in ("/fbgforce/peaks", "/fbgforce/stage",
