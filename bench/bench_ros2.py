@@ -185,7 +185,7 @@ def run_record(minutes: float, tmp: Path) -> dict[str, Any]:
              "x_mm": scene.x_mm[idx], "y_mm": scene.y_mm[idx], "press_id": press}
     out = tmp / "ten_minutes.mcap"
     t0 = time.perf_counter()
-    counts = write_log(out, stamp_ns=stamps_for(t_s, [1_700_000_000_000_000], 0),
+    counts = write_log(out, stamp_ns=stamps_for(t_s, 1_700_000_000_000_000, 0),
                        sample_seq=np.arange(n), wl_fm=wl_fm, stage=stage)
     t1 = time.perf_counter()
     ds = dataset.load(out)

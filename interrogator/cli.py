@@ -297,9 +297,6 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     if args.model is not None:
         from fbgforce.interrogator.stream import LiveEstimator
 
-        if not args.out.lower().endswith(".mcap"):
-            raise InputError("estimates are logged in an .mcap output only", path=args.out,
-                             column="--model")
         estimator = LiveEstimator(args.model, tare_samples=args.tare_samples)
     reader = _open_reader(args)
     loadcell = LoadCellReader(args.loadcell_port, baudrate=args.loadcell_baud)

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -111,9 +111,9 @@ def _write_messages(writer: Any, schemas: dict[str, Any], stamp_ns: np.ndarray,
                                      "written_unix_ns": str(time.time_ns())})
 
 
-def stamps_for(t_s: np.ndarray, t_us: Sequence[int], host_ns: int) -> np.ndarray:
-    """``header.stamp`` of recorded samples, ns: the first sample's device time (the host's
-    when the protocol has none) plus the dataset's ``t_s``, so the log's times and the
-    dataset's agree to the nanosecond."""
-    first = int(t_us[0]) * 1000 if len(t_us) and int(t_us[0]) >= 0 else host_ns
+def stamps_for(t_s: np.ndarray, first_t_us: int, host_ns: int) -> np.ndarray:
+    """``header.stamp`` of recorded samples, ns: the first sample's device time
+    (``first_t_us``; the host's, ``host_ns``, when the protocol has none: -1) plus the
+    dataset's ``t_s``, so the log's times and the dataset's agree to the nanosecond."""
+    first = int(first_t_us) * 1000 if first_t_us >= 0 else host_ns
     return first + np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)

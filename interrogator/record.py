@@ -200,5 +200,5 @@ def _write_mcap(ds: Any, out: Path, *, first_t_us: int, estimator: Any | None
         ints = estimate_integers(est)
     stage = {"contact": ds.contact, "force_N": ds.force_N, "x_mm": ds.x_mm, "y_mm": ds.y_mm,
              "press_id": ds.press_id}
-    return write_log(out, stamp_ns=stamps_for(ds.t_s, [first_t_us], time.time_ns()),
+    return write_log(out, stamp_ns=stamps_for(ds.t_s, first_t_us, time.time_ns()),
                      sample_seq=ds.extra["seq"], wl_fm=wl_fm, stage=stage, estimates=ints)
