@@ -139,8 +139,10 @@ def register(subparsers: Any) -> None:
                             "the model's hyperion_peak_map metadata, else 1:1,...,1:5)")
     p.add_argument("--publish", metavar="URL", action="append", default=[],
                    help="also publish every estimate: udp://HOST:PORT (one datagram per sample, "
-                        "docs/protocol.md) or lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
-                        "extra); may be repeated")
+                        "docs/protocol.md), lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
+                        "extra) or ros2:///NAMESPACE[?frame_id=ID&domain=N] (ROS 2 topics "
+                        "NAMESPACE/wrench and NAMESPACE/contact, needs the [ros2] extra, "
+                        "docs/ros2.md); may be repeated")
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
     p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")

@@ -263,6 +263,7 @@ def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exporte
     gaps = np.concatenate([[False], np.diff(seqs) > 1])
     status = np.array([r[10] for r in contact])
     assert np.array_equal(status, off["status"] | np.where(gaps, lost, 0))
+    assert (status & contract.STATUS_FLAG["WARMUP"]).any()  # the runtime's flags pass through
     assert pub["link_flags"]["samples_lost"] == gaps.sum() > 0
     assert np.array_equal([r[5] for r in contact], off["contact"].astype(int))
     force = np.array([r[7] for r in contact])
