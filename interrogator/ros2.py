@@ -13,6 +13,7 @@ the location as ``x = −torque.y / force.z``, ``y = torque.x / force.z``.
 """
 from __future__ import annotations
 
+import os
 import re
 import time
 from pathlib import Path
@@ -106,11 +107,11 @@ def full_msgdef(msg_type: str) -> str:
     return "\n".join(parts) + "\n"
 
 
-def parse_url(url: str) -> tuple[str, str, int | None]:
+def parse_url(url: str) -> tuple[str, str, int]:
     """``ros2:///NAMESPACE[?frame_id=ID&domain=N]`` -> (namespace, frame_id, domain).
 
     The namespace is ``/`` followed by ROS 2 name tokens (``/robot/left_tip``; empty: the
-    root). The domain defaults to ``None``: ``ROS_DOMAIN_ID``, else 0, as ROS 2 nodes do.
+    root). Without ``domain=`` the domain is :func:`default_domain`, as ROS 2 nodes choose it.
     """
     parts = urlsplit(url)
     if parts.scheme != "ros2" or parts.netloc:
@@ -126,14 +127,20 @@ def parse_url(url: str) -> tuple[str, str, int | None]:
         raise InputError(f"unknown ros2:// option(s) {', '.join(unknown)} (frame_id, domain)",
                          column="--publish")
     frame_id = query.get("frame_id", [DEFAULT_FRAME_ID])[-1]
-    domain = None
-    if "domain" in query:
-        text = query["domain"][-1]
-        if not text.isdigit() or int(text) > 232:
-            raise InputError(f"domain must be an integer 0..232, not {text!r}",
-                             column="--publish")
-        domain = int(text)
+    domain = _domain_id(query["domain"][-1], "domain") if "domain" in query else default_domain()
     return "/" + "/".join(tokens), frame_id, domain
+
+
+def default_domain() -> int:
+    """The DDS domain a ROS 2 node would join: ``ROS_DOMAIN_ID``, else 0."""
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    return _domain_id(text, "ROS_DOMAIN_ID") if text else 0
+
+
+def _domain_id(text: str, name: str) -> int:
+    if not text.isdigit() or int(text) > 232:
+        raise InputError(f"{name} must be an integer 0..232, not {text!r}", column="--publish")
+    return int(text)
 
 
 def topic_in(namespace: str, name: str) -> str:

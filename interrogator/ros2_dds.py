@@ -143,7 +143,7 @@ class Ros2Publisher:
         self.url = url
         self.namespace, self.frame_id, domain = R.parse_url(url)
         try:
-            self.participant = DomainParticipant() if domain is None else DomainParticipant(domain)
+            self.participant = DomainParticipant(domain)
         except DDSException as exc:
             raise InputError(f"cannot join DDS domain {domain}: {exc}", column="--publish") from None
         qos = writer_qos()

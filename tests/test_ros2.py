@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from conftest import missing_tool, offline_fixed, start_emulator, wait_for_line
 from fbgforce import contract, sim
 from fbgforce.cli import main
+from fbgforce.errors import InputError
 from fbgforce.interrogator import ros2 as R
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -137,14 +138,20 @@ def _received(proc: subprocess.Popen) -> dict[str, list]:
 # Names, URL, message definitions
 # ------------------------------------------------------------------------------------------
 
-def test_names_follow_the_ros2_dds_mapping():
+def test_names_follow_the_ros2_dds_mapping(monkeypatch):
     assert R.dds_topic_name("/lab/tip/wrench") == "rt/lab/tip/wrench"
     assert R.dds_type_name("geometry_msgs/msg/WrenchStamped") == \
         "geometry_msgs::msg::dds_::WrenchStamped_"
     assert R.dds_type_name(R.CONTACT_TYPE) == "fbgforce_msgs::msg::dds_::Contact_"
     assert R.parse_url("ros2:///lab/left_tip?frame_id=tip_pad&domain=7") == (
         "/lab/left_tip", "tip_pad", 7)
-    assert R.parse_url("ros2:///") == ("/", R.DEFAULT_FRAME_ID, None)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert R.parse_url("ros2:///") == ("/", R.DEFAULT_FRAME_ID, 42)
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    assert R.parse_url("ros2:///lab")[2] == 0
+    monkeypatch.setenv("ROS_DOMAIN_ID", "lab")
+    with pytest.raises(InputError, match="ROS_DOMAIN_ID"):
+        R.parse_url("ros2:///lab")
     assert R.topic_in("/", "contact") == "/contact"
     assert R.topic_in("/lab", "contact") == "/lab/contact"
 
