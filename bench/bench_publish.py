@@ -27,7 +27,8 @@ from pathlib import Path
 from typing import Any
 
 
-def _small_model(tmp: Path) -> Path:
+def small_model(tmp: Path) -> Path:
+    """A small model trained on the smoke scene and exported into ``tmp`` (about 20 s)."""
     from fbgforce import dataset, sim
     from fbgforce import model as fm
     from fbgforce.export.exporter import export_model
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        model = args.model or _small_model(Path(tmp))
+        model = args.model or small_model(Path(tmp))
         print(f"{'source':<10} {'samples':>8} {'rate Hz':>8} {'lost':>5} {'published':>9} "
               f"{'received':>9} {'p50 us':>8} {'p99 us':>8} {'max us':>8} {'compute us':>10}")
         for source in ("native", "hyperion"):

@@ -139,8 +139,10 @@ def register(subparsers: Any) -> None:
                             "the model's hyperion_peak_map metadata, else 1:1,...,1:5)")
     p.add_argument("--publish", metavar="URL", action="append", default=[],
                    help="also publish every estimate: udp://HOST:PORT (one datagram per sample, "
-                        "docs/protocol.md) or lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
-                        "extra); may be repeated")
+                        "docs/protocol.md), lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
+                        "extra) or ros2:///NAMESPACE[?frame_id=ID&domain=N] (ROS 2 topics "
+                        "NAMESPACE/wrench and NAMESPACE/contact, needs the [ros2] extra, "
+                        "docs/ros2.md); may be repeated")
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
     p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")
@@ -162,7 +164,14 @@ def register(subparsers: Any) -> None:
                    help="interrogator device, URL or hyperion://HOST[:PORT]")
     p.add_argument("--loadcell-port", required=True, metavar="DEV2",
                    help="stage/load-cell device or URL")
-    p.add_argument("--out", required=True, metavar="FILE.csv", help="dataset to write (.csv/.npz)")
+    p.add_argument("--out", required=True, metavar="FILE.csv",
+                   help="dataset to write (.csv/.npz), or a rosbag2 log (.mcap; needs the "
+                        "[ros2] extra)")
+    p.add_argument("--model", metavar="MODEL_DIR",
+                   help="with an .mcap --out: also log the fixed-point runtime's estimates "
+                        "(/fbgforce/contact, /fbgforce/wrench) of the recorded samples")
+    p.add_argument("--tare-samples", type=non_negative_int, default=200,
+                   help="with --model: tare on the first N recorded samples (default 200)")
     p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
                    help="default: hyperion for hyperion:// sources, else native")
     _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
@@ -286,6 +295,11 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.interrogator.reader import LoadCellReader
     from fbgforce.interrogator.record import run_record
 
+    estimator = None
+    if args.model is not None:
+        from fbgforce.interrogator.stream import LiveEstimator
+
+        estimator = LiveEstimator(args.model, tare_samples=args.tare_samples)
     reader = _open_reader(args)
     loadcell = LoadCellReader(args.loadcell_port, baudrate=args.loadcell_baud)
     # Open both now: a device that waits for its clients starts only when both are there.
@@ -296,7 +310,7 @@ def _record(args: argparse.Namespace) -> dict[str, Any]:
         result = run_record(reader, loadcell, args.out, duration=args.duration,
                             max_samples=args.samples, idle_timeout=args.idle_timeout,
                             start_timeout=_start_timeout(args), rate_hz=args.rate,
-                            status=not args.quiet)
+                            status=not args.quiet, estimator=estimator)
     except InputError as exc:
         # Nothing joined: when the interrogator itself was silent, say what was tried there.
         if exc.column == "--port" and reader.stats().get("frames", 0) == 0:

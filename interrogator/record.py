@@ -4,7 +4,9 @@ The interrogator port gives wavelengths tagged with a sample counter; the stage/
 gives one line per sample tagged with the same counter (docs/protocol.md). Samples are joined
 on the counter; a sample that only one side delivered is dropped and counted, never guessed.
 The result is written with :func:`fbgforce.dataset.save`, so it is validated against the
-dataset contract and is ready for ``fbgforce train``.
+dataset contract and is ready for ``fbgforce train``; an ``.mcap`` output is a rosbag2 log of
+the same samples (:mod:`fbgforce.interrogator.mcaplog`), read back by
+:func:`fbgforce.dataset.load`.
 """
 from __future__ import annotations
 
@@ -99,13 +101,25 @@ def pairs_to_dataset(pairs: list[tuple[Frame, LoadCellSample]], *, rate_hz: floa
 def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
                duration: float | None = None, max_samples: int | None = None,
                idle_timeout: float | None = None, start_timeout: float | None = None,
-               rate_hz: float = 1000.0, status: bool = True) -> dict[str, Any]:
-    """Record until a stop condition and write ``out`` (CSV or npz, dataset contract)."""
+               rate_hz: float = 1000.0, status: bool = True,
+               estimator: Any | None = None) -> dict[str, Any]:
+    """Record until a stop condition and write ``out``: CSV or npz (dataset contract), or a
+    rosbag2 MCAP log (:mod:`fbgforce.interrogator.mcaplog`) of the same samples, with the
+    estimates of ``estimator`` (a :class:`~fbgforce.interrogator.stream.LiveEstimator`, fed
+    the recorded samples in order) when one is given."""
     from fbgforce import dataset
 
     out = Path(out)
-    if out.suffix.lower() not in (".csv", ".npz"):
-        raise InputError("output must end in .csv or .npz", path=str(out), column="--out")
+    if out.suffix.lower() not in (".csv", ".npz", ".mcap"):
+        raise InputError("output must end in .csv, .npz or .mcap", path=str(out),
+                         column="--out")
+    if estimator is not None and out.suffix.lower() != ".mcap":
+        raise InputError("estimates are logged in an .mcap output only", path=str(out),
+                         column="--model")
+    if out.suffix.lower() == ".mcap":
+        from fbgforce.interrogator.mcaplog import writer_class
+
+        writer_class(out)  # a missing extra fails now, not after the recording
     join = Joiner()
     started = time.monotonic()
     first = last = None
@@ -145,7 +159,11 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
                          "(check both ports and that the stage tags lines with the sample "
                          "counter)", column="--port")
     ds, invalid = pairs_to_dataset(pairs, rate_hz=rate_hz, source=f"fbgforce record {out.name}")
-    dataset.save(ds, out)
+    if out.suffix.lower() == ".mcap":
+        dataset.validate(ds, where=f"dataset to save as {out}")
+        topics = _write_mcap(ds, out, first_t_us=pairs[0][0].t_us, estimator=estimator)
+    else:
+        dataset.save(ds, out)
     rs, ls = reader.stats(), loadcell.stats()
     return {
         "samples": len(ds),
@@ -161,4 +179,26 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
         "interrupted": interrupted,
         "reader": rs,
         "loadcell": ls,
+        **({"topics": topics} if out.suffix.lower() == ".mcap" else {}),
     }
+
+
+def _write_mcap(ds: Any, out: Path, *, first_t_us: int, estimator: Any | None
+                ) -> dict[str, int]:
+    """The recorded samples (and their estimates) as a rosbag2 MCAP log; messages per topic."""
+    from fbgforce.interrogator.mcaplog import stamps_for, write_log
+    from fbgforce.interrogator.protocol import nm_to_fm
+    from fbgforce.interrogator.publish import estimate_integers
+
+    wl_fm = nm_to_fm(ds.wl_nm)
+    ints = None
+    if estimator is not None:
+        est = estimator.push(wl_fm)
+        if len(est["contact"]) != len(ds):
+            raise InputError(f"{len(ds)} samples recorded, fewer than the tare needs "
+                             f"({estimator.tare_samples})", column="--tare-samples")
+        ints = estimate_integers(est)
+    stage = {"contact": ds.contact, "force_N": ds.force_N, "x_mm": ds.x_mm, "y_mm": ds.y_mm,
+             "press_id": ds.press_id}
+    return write_log(out, stamp_ns=stamps_for(ds.t_s, first_t_us, time.time_ns()),
+                     sample_seq=ds.extra["seq"], wl_fm=wl_fm, stage=stage, estimates=ints)

@@ -12,8 +12,9 @@ nowhere else:
 
 ``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
 ``runtime_c/include/fbgforce.h`` (declarations), ``runtime_c/src/fbg_contract.c`` and ``.h``
-(the blob parameter decoder, the parameter checker and ``fbg_status_str``) and the parameter
-table of ``docs/model-format.md``. The Python side (the blob
+(the blob parameter decoder, the parameter checker and ``fbg_status_str``), the parameter
+table of ``docs/model-format.md`` and the status constants of the ROS 2 message
+``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
 codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
 dtypes of :mod:`fbgforce.pybind`) reads the same tables at import. ``tests/test_contract.py``
 fails when a generated file is stale.
@@ -122,6 +123,15 @@ STATUS: tuple[Code, ...] = (
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
 STATUS_ALL = sum(STATUS_FLAG.values())
+#: Flags a host publisher adds to a published estimate's status (the ROS 2 ``Contact`` message):
+#: they describe the interrogator link, which the runtime never sees, so they sit above the
+#: runtime's bits and never appear in ``fbg_output.status``.
+LINK_STATUS: tuple[Code, ...] = (
+    Code("SAMPLES_LOST", 0x100, "the sample counter skipped: samples were lost just before "
+                                "this one (dropped frames, or a reconnect)"),
+    Code("DEVICE_RESTART", 0x200, "the sample counter went backwards: the interrogator "
+                                  "restarted (or the link reconnected to a restarted device)"),
+)
 
 #: fbg_init options (``#define FBG_OPT_<name>``). The KERNEL_* values (a field under
 #: KERNEL_MASK) choose the dense-layer kernels of the fixed-point build (docs/runtime.md,
@@ -664,6 +674,10 @@ def contract_header_text() -> str:
         "#endif /* FBG_CONTRACT_H */", ""])
 
 
+#: The ROS 2 estimate message; its status constants are generated from STATUS and LINK_STATUS.
+CONTACT_MSG_PATH = ROOT / "interrogator" / "fbgforce_msgs" / "msg" / "Contact.msg"
+MSG_BEGIN = "# BEGIN GENERATED status flags: `python -m fbgforce.contract --write`; do not edit"
+MSG_END = "# END GENERATED status flags"
 DOC_PATH = ROOT / "docs" / "model-format.md"
 DOC_BEGIN = "<!-- BEGIN GENERATED params: `python -m fbgforce.contract --write`; do not edit -->"
 DOC_END = "<!-- END GENERATED params -->"
@@ -693,10 +707,26 @@ def render_doc(text: str) -> str:
     return text[:start] + DOC_BEGIN + "\n" + params_table() + "\n" + DOC_END + text[end:]
 
 
+def status_constants_msg() -> str:
+    """The status flags as ROS 2 ``.msg`` constants (``uint32 STATUS_<NAME>=<value>``)."""
+    rows = []
+    for c in STATUS + LINK_STATUS:
+        # The comment on a line of its own: parsers differ on comments after a constant.
+        rows += [f"# {c.doc}", f"uint32 STATUS_{c.name}={c.value}"]
+    return "\n".join(rows)
+
+
+def render_msg(text: str) -> str:
+    start = text.index(MSG_BEGIN)
+    end = text.index(MSG_END) + len(MSG_END)
+    return text[:start] + MSG_BEGIN + "\n" + status_constants_msg() + "\n" + MSG_END + text[end:]
+
+
 def generated_files() -> dict[Path, str]:
     """Every generated file and its expected full text."""
     return {HEADER_PATH: render_header(HEADER_PATH.read_text()),
             DOC_PATH: render_doc(DOC_PATH.read_text()),
+            CONTACT_MSG_PATH: render_msg(CONTACT_MSG_PATH.read_text()),
             SOURCE_PATH: source_text(),
             SOURCE_PATH.with_suffix(".h"): contract_header_text()}
 

@@ -753,17 +753,36 @@ def _kind(path: Path) -> str:
                      path=str(path))
 
 
-def load(path: str | Path) -> Dataset:
-    """Load and validate a dataset file (``.csv`` or ``.npz``, by suffix).
+def is_bag(path: str | Path) -> bool:
+    """A rosbag2 log: an ``.mcap`` file or a bag directory (with ``metadata.yaml``)."""
+    p = Path(path)
+    return p.suffix.lower() == ".mcap" or (p / "metadata.yaml").is_file()
+
+
+def load(path: str | Path, fields: dict[str, str] | None = None) -> Dataset:
+    """Load and validate a dataset file (``.csv`` or ``.npz``, by suffix) or a rosbag2 log
+    (an ``.mcap`` file or a bag directory, :func:`fbgforce.bag.load_bag`).
+
+    ``fields`` maps dataset columns to bag topics and fields for a log recorded by another
+    driver (:mod:`fbgforce.bag`); by default a bag is read as ``fbgforce record`` writes it.
 
     Raises
     ------
     fbgforce.errors.InputError
         If the file is missing or violates the contract; the message names the file, the
-        1-based line (CSV; header and comments count) or 0-based row (npz), the column and the
-        problem, with how many lines share it.
+        1-based line (CSV; header and comments count) or 0-based row (npz, bags), the column
+        and the problem, with how many lines share it.
     """
     p = Path(path)
+    if is_bag(p):
+        if not p.exists():
+            raise InputError("no such file", path=str(p))
+        from fbgforce.bag import load_bag
+
+        return load_bag(p, fields)
+    if fields is not None:
+        raise InputError("a field map is for rosbag2 logs (.mcap or a bag directory)",
+                         path=str(p), column="fields")
     return _load_csv(p) if _kind(p) == "csv" else _load_npz(p)
 
 

@@ -28,6 +28,43 @@ def require_tools(*tools: str, install: str) -> None:
                      f"--no-install-recommends {install}")
 
 
+def start_emulator(*args: str):
+    """``fbgforce emulate ARGS`` in a child process (read its device lines with
+    :func:`wait_for_line`)."""
+    import subprocess
+    import sys
+
+    return subprocess.Popen([sys.executable, "-m", "fbgforce.cli", "emulate", *args],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def wait_for_line(proc, prefix: str) -> str:
+    """The value of the emulator's first stdout line starting with ``prefix`` (e.g.
+    ``interrogator:``); kills it and fails with its stderr if it exits or stays silent."""
+    import time
+
+    assert proc.stdout is not None
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if line.startswith(prefix):
+            return line.split(":", 1)[1].strip()
+        if not line and proc.poll() is not None:
+            break
+    proc.kill()
+    raise AssertionError(f"emulator did not start: {proc.communicate()[1][-2000:]}")
+
+
+def offline_fixed(model_dir, wl_nm, baseline_nm):
+    """The fixed engine's output records for ``wl_nm`` (n, 5) with the given baseline, as
+    ``run_engine("fixed", ...)`` computes them: what a stream's published estimates must be."""
+    from fbgforce.pybind import Runtime
+
+    rt = Runtime(model_dir)
+    rt.set_baseline(_np.asarray(baseline_nm, dtype=_np.float64))
+    return rt.run(_np.asarray(wl_nm, dtype=_np.float64))
+
+
 #: Seeds of the shared small data set and model (tests may compare against fixed behaviour).
 SMALL_SCENE = "smoke"
 SMALL_SEED = 0

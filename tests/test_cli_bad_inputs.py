@@ -40,6 +40,8 @@ def bad(tmp_path_factory, small_exported_dir, small_dataset_path):
     p["empty_npz"].write_bytes(b"")
     p["garbage_csv"] = root / "garbage.csv"
     p["garbage_csv"].write_text("this,is,not\na,dataset,file\n")
+    p["garbage_mcap"] = root / "garbage.mcap"
+    p["garbage_mcap"].write_bytes(b"\x89MCAP0\r\n not really")
     p["garbage_toml"] = root / "scene.toml"
     p["garbage_toml"].write_text("[scene\nname = ")
 
@@ -77,6 +79,8 @@ CASES = [
     ("train", "truncated npz", ["--data", "{truncated_npz}", "--out", "{out}/m"], "truncated.npz"),
     ("train", "empty npz", ["--data", "{empty_npz}", "--out", "{out}/m"], "empty.npz"),
     ("train", "garbage CSV", ["--data", "{garbage_csv}", "--out", "{out}/m"], "garbage.csv"),
+    ("train", "garbage rosbag2 MCAP", ["--data", "{garbage_mcap}", "--out", "{out}/m"],
+     "garbage.mcap"),
     ("train", "zero restarts", ["--data", "{good_data}", "--out", "{out}/m", "--restarts",
                                 "force=0"], "--restarts"),
     ("train", "restarts of no net", ["--data", "{good_data}", "--out", "{out}/m", "--restarts",
@@ -132,6 +136,12 @@ CASES = [
                                             "--engine", "float", "--start-timeout", "1"], "model.json"),
     ("record", "no interrogator", ["--port", NO_DEVICE, "--loadcell-port", "loop://", "--out",
                                    "{out}/rec.csv", "--start-timeout", "1"], "could not open"),
+    ("stream", "bad ros2:// namespace", ["--port", NO_DEVICE, "--model", "{good_model}",
+                                         "--publish", "ros2:///9lives", "--start-timeout", "1"],
+     "--publish"),
+    ("record", "--model without an .mcap output", ["--port", "loop://", "--loadcell-port",
+                                                   "loop://", "--out", "{out}/rec.csv",
+                                                   "--model", "{good_model}"], "--model"),
     ("record", "bad output suffix", ["--port", "loop://", "--loadcell-port", "loop://", "--out",
                                      "{out}/rec.txt", "--start-timeout", "1"], "rec.txt"),
     ("teleop", "unknown scene", ["--scene", "no_such_scene", "--out", "{out}/tele"], "no_such_scene"),

@@ -45,6 +45,13 @@ def test_scene_files_ship_as_package_data() -> None:
     assert {"calibration.toml", "ideal.toml"} <= names
 
 
+def test_ros2_message_package_ships_as_package_data() -> None:
+    package = importlib.resources.files("fbgforce.interrogator").joinpath("fbgforce_msgs")
+    for name in ("package.xml", "CMakeLists.txt", "msg/Contact.msg", "msg/Peaks.msg",
+                 "msg/Stage.msg"):
+        assert package.joinpath(name).is_file(), name
+
+
 def test_c_extension_loads_and_matches_header_version() -> None:
     from fbgforce import _runtime
 

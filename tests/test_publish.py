@@ -8,12 +8,12 @@ import shutil
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from conftest import offline_fixed, start_emulator, wait_for_line
 from fbgforce import sim
 from fbgforce.cli import main
 from fbgforce.interrogator import protocol as P
@@ -103,33 +103,6 @@ def _receiver_rows(proc: subprocess.Popen, timeout: float = 30) -> np.ndarray:
     return np.loadtxt(out.splitlines(), delimiter=",", dtype=np.int64, ndmin=2)
 
 
-def _emulate(*args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "fbgforce.cli", "emulate", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def _wait_line(proc: subprocess.Popen, prefix: str) -> str:
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if line.startswith(prefix):
-            return line.split(":", 1)[1].strip()
-        if not line and proc.poll() is not None:
-            break
-    proc.kill()
-    raise AssertionError(f"emulator did not start: {proc.communicate()[1][-2000:]}")
-
-
-def _offline(model_dir: Path, wl_nm: np.ndarray, baseline_nm: list[float]) -> np.ndarray:
-    """The fixed engine's records, as ``run_engine("fixed", ...)`` computes them."""
-    from fbgforce.pybind import Runtime
-
-    rt = Runtime(model_dir)
-    rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
-    return rt.run(np.asarray(wl_nm, dtype=np.float64))
-
-
 def test_stream_publishes_10000_datagrams_equal_to_offline_fixed(tmp_path, small_exported_dir,
                                                                  capsys):
     """emulate (Hyperion on TCP) -> stream --source hyperion:// --publish udp:// (twice) -> the
@@ -140,10 +113,10 @@ def test_stream_publishes_10000_datagrams_equal_to_offline_fixed(tmp_path, small
     rx_c = _start_receiver([str(exe), "127.0.0.1", str(port_c), "10000"])
     rx_py = _start_receiver([sys.executable, str(EXAMPLE / "receiver.py"), "127.0.0.1",
                              str(port_py), "10000"])
-    em = _emulate("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
                   "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
     try:
-        url = _wait_line(em, "interrogator:")
+        url = wait_for_line(em, "interrogator:")
         assert url.startswith("hyperion://127.0.0.1:")
         code = main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
                      "10000", "--publish", f"udp://127.0.0.1:{port_c}", "--publish",
@@ -168,7 +141,7 @@ def test_stream_publishes_10000_datagrams_equal_to_offline_fixed(tmp_path, small
     assert rows_c[:, 1].tolist() == list(range(10000))
     t_us = np.round(scene.t_s * 1e6).astype(np.int64) + 1_700_000_000 * 1_000_000
     assert np.array_equal(rows_c[:, 2], t_us)
-    off = _offline(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
+    off = offline_fixed(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
     assert np.array_equal(rows_c[:, 3], off["status"])
     assert np.array_equal(rows_c[:, 4], off["contact"].astype(np.int64))
     assert np.array_equal(rows_c[:, 5], off["contact_conf_q15"])
@@ -213,10 +186,10 @@ def test_lcm_end_to_end_with_lcm_subscriber(tmp_path, small_exported_dir, capsys
     n = 2000
     sub = _start_receiver([sys.executable, "-c", LCM_SUBSCRIBER,
                            lcm_url + "&recv_buf_size=4194304", channel, str(n)])
-    em = _emulate("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
                   "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
     try:
-        url = _wait_line(em, "interrogator:")
+        url = wait_for_line(em, "interrogator:")
         assert main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
                      str(n), "--publish", f"lcm://{channel}?url={lcm_url}", "--start-timeout",
                      "30", "--quiet", "--json"]) == 0
@@ -229,7 +202,7 @@ def test_lcm_end_to_end_with_lcm_subscriber(tmp_path, small_exported_dir, capsys
                 p.communicate()
     assert rows[:, 0].tolist() == list(range(n)) and rows[:, 1].tolist() == list(range(n))
     scene = sim.simulate("smoke", seed=5).subset(np.arange(n))
-    off = _offline(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
+    off = offline_fixed(small_exported_dir, scene.wl_nm, summary["baseline_nm"])
     for col, key in ((3, "status"), (5, "contact_conf_q15"), (6, "force_mN"), (7, "x_um"),
                      (8, "y_um")):
         assert np.array_equal(rows[:, col], off[key]), key

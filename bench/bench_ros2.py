@@ -1,0 +1,251 @@
+"""ROS 2 goals (docs/ros2.md): live topics at 1 kHz and a 10-minute rosbag2 round trip.
+
+    python bench/bench_ros2.py [--model MODEL_DIR] [--seconds 60] [--rate 1000]
+                               [--record-minutes 10] [--json FILE]
+
+1. **Live**: a virtual Hyperion plays the ``calibration`` scene on loopback TCP at ``--rate``
+   in a child process; this process runs ``fbgforce stream``'s loop (fixed-point C runtime)
+   for ``--seconds``, once without publishing and once with ``--publish ros2:///...``, whose
+   ``NAMESPACE/contact`` a ROS 2-typed subscriber in another child process takes (reliable,
+   keep all it gets). Printed per run: samples, published, received, lost (published − received),
+   reordered (a publication counter not above the previous one), ``publish_latency_us`` (p50,
+   p99, max: a sample's arrival to the return of its last write; without ROS 2 an output that
+   sends nothing stands in, so that row is the stream's own latency) and the estimator's step
+   time: the median over the one-sample steps of wall time (``step us``) and of the thread's
+   CPU time (``step cpu``, which preemption by other processes does not inflate), and the
+   stream's own ``compute_us_per_sample`` (wall time, mean over all steps).
+2. **Record**: ``--record-minutes`` of 1 kHz samples (the calibration scene, repeated) are
+   written by the writer ``record --out LOG.mcap`` uses and read back by ``load_dataset``
+   (rosbags); printed: messages, file size, write and read time, samples differing.
+
+Cyclone DDS is kept on the loopback interface unless ``CYCLONEDDS_URI`` is set. Without
+``--model`` a small model is trained and exported first (about 20 s).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import socket
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce.bench.bench_publish import small_model
+
+LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/>'
+            '</Interfaces></General></Domain></CycloneDDS>')
+
+
+def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> None:
+    """Child process: take every Contact on ``topic``; count received and out-of-order."""
+    from cyclonedds.core import Policy, Qos
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from cyclonedds.util import duration
+
+    from fbgforce.interrogator.ros2 import dds_topic_name
+    from fbgforce.interrogator.ros2_dds import Contact
+
+    dp = DomainParticipant(domain)
+    qos = Qos(Policy.Reliability.Reliable(duration(seconds=1)),
+              Policy.History.KeepLast(1_000_000), Policy.Durability.TransientLocal)
+    reader = DataReader(dp, Topic(dp, dds_topic_name(topic), Contact), qos=qos)
+    ready.set()
+    received = reordered = 0
+    last = -1
+    while not stop.is_set():
+        for m in reader.take(N=10_000):
+            if not isinstance(m, Contact):
+                continue
+            received += 1
+            if m.seq <= last:
+                reordered += 1
+            last = m.seq
+        time.sleep(0.002)
+    result[:] = [received, reordered]
+
+
+def _emulate(args: list[str]) -> None:
+    from fbgforce.cli import main
+
+    sys.stdout = open(os.devnull, "w")
+    main(["emulate", *args])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class _NoOutput:
+    """A publisher that sends nothing: the stream's own arrival-to-publication latency."""
+
+    def publish(self, frames: Any, est: Any) -> None:
+        pass
+
+    def stats(self) -> dict[str, Any]:
+        return {"url": "none", "sent": 0, "send_errors": 0}
+
+    def close(self) -> None:
+        pass
+
+
+def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int]]]:
+    """A LiveEstimator whose every push records (samples, wall ns, thread CPU ns)."""
+    from fbgforce.interrogator.stream import LiveEstimator
+
+    steps: list[tuple[int, int, int]] = []
+
+    class Timed(LiveEstimator):
+        def push(self, wl_fm: Any) -> Any:
+            w0, c0 = time.perf_counter_ns(), time.thread_time_ns()
+            out = super().push(wl_fm)
+            if len(out["contact"]):
+                steps.append((len(out["contact"]), time.perf_counter_ns() - w0,
+                              time.thread_time_ns() - c0))
+            return out
+
+    return Timed(model), steps
+
+
+def run_live(model: Path, seconds: float, rate: float, publish: bool) -> dict[str, Any]:
+    from fbgforce.interrogator.hyperion import HyperionReader
+    from fbgforce.interrogator.stream import run_stream
+
+    ctx = mp.get_context("spawn")
+    cmd_port, stream_port = _free_port(), _free_port()
+    emu = ctx.Process(target=_emulate, args=([
+        "--scene", "calibration", "--seed", "0", "--rate", str(rate), "--duration",
+        str(seconds + 1.0), "--linger", "0.5", "--protocol", "hyperion", "--command-port",
+        str(cmd_port), "--stream-port", str(stream_port)],))
+    publishers: list[Any] = [] if publish else [_NoOutput()]
+    sub = None
+    domain = 1 + os.getpid() % 200
+    namespace = f"/fbgforce_bench_{os.getpid()}"
+    if publish:
+        from fbgforce.interrogator.ros2_dds import Ros2Publisher
+
+        ready, stop, result = ctx.Event(), ctx.Event(), ctx.Array("q", 2)
+        sub = ctx.Process(target=_subscribe, args=(domain, namespace + "/contact", ready, stop,
+                                                   result))
+        sub.start()
+        ready.wait(30)
+        publishers.append(Ros2Publisher(f"ros2://{namespace}?domain={domain}"))
+    emu.start()
+    reader = HyperionReader(f"hyperion://127.0.0.1:{cmd_port}?stream={stream_port}")
+    estimator, steps = _timed_estimator(model)
+    try:
+        summary = run_stream(reader, estimator, duration=seconds, start_timeout=60,
+                             idle_timeout=2, status=False, publishers=publishers)
+    finally:
+        reader.close()
+        emu.join(30)
+    single = np.array([(w, c) for k, w, c in steps if k == 1], dtype=np.float64) / 1000.0
+    lat = summary["publish_latency_us"]
+    row: dict[str, Any] = {
+        "ros2": publish, "samples": summary["samples"], "rate_hz": summary["rate_hz"],
+        "lost_frames": summary["lost_frames"], "p50_us": lat["p50"], "p99_us": lat["p99"],
+        "max_us": lat["max"], "compute_us_per_sample": summary["compute_us_per_sample"],
+        "step_wall_us_median": round(float(np.median(single[:, 0])), 1),
+        "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
+        "single_sample_steps": len(single)}
+    if sub is not None:
+        time.sleep(1.0)  # let the subscriber drain
+        stop.set()
+        sub.join(30)
+        for p in publishers:
+            p.close()
+        pub = summary["published"][0]
+        received, reordered = list(result)
+        row.update(published=pub["sent"], send_errors=pub["send_errors"], received=received,
+                   lost=pub["sent"] - received, reordered=reordered)
+    return row
+
+
+def run_record(minutes: float, tmp: Path) -> dict[str, Any]:
+    from fbgforce import dataset, sim
+    from fbgforce.interrogator.mcaplog import stamps_for, write_log
+    from fbgforce.interrogator.protocol import nm_to_fm
+
+    scene = sim.simulate("calibration", seed=0)
+    n = int(round(minutes * 60 * 1000))
+    idx = np.arange(n) % len(scene)
+    t_s = np.arange(n) / 1000.0
+    wl_fm = nm_to_fm(scene.wl_nm[idx])
+    press = scene.press_id[idx] + (np.arange(n) // len(scene)) * (scene.press_id.max() + 1)
+    stage = {"contact": scene.contact[idx], "force_N": scene.force_N[idx],
+             "x_mm": scene.x_mm[idx], "y_mm": scene.y_mm[idx], "press_id": press}
+    out = tmp / "ten_minutes.mcap"
+    t0 = time.perf_counter()
+    counts = write_log(out, stamp_ns=stamps_for(t_s, 1_700_000_000_000_000, 0),
+                       sample_seq=np.arange(n), wl_fm=wl_fm, stage=stage)
+    t1 = time.perf_counter()
+    ds = dataset.load(out)
+    t2 = time.perf_counter()
+    ok = (np.rint(ds.wl_nm * 1e6).astype(np.int64) == wl_fm).all(axis=1)
+    ok &= np.abs(ds.t_s - t_s) < 1e-9
+    ok &= (ds.contact == stage["contact"]) & (ds.force_N == stage["force_N"])
+    ok &= ds.press_id == press
+    for key in ("x_mm", "y_mm"):
+        both = np.isnan(getattr(ds, key)) & np.isnan(stage[key])
+        ok &= both | (np.abs(getattr(ds, key) - stage[key]) < 1e-9)
+    return {"samples": n, "messages": sum(counts.values()), "read_back": len(ds),
+            "differing": int((~ok).sum()) + abs(n - len(ds)),
+            "mbytes": round(out.stat().st_size / 1e6, 1), "write_s": round(t1 - t0, 1),
+            "read_s": round(t2 - t1, 1)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", type=Path, help="exported model directory (default: train one)")
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--rate", type=float, default=1000.0)
+    ap.add_argument("--record-minutes", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=1, help="live runs (off, on) this many times")
+    ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    args = ap.parse_args(argv)
+    os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
+    results: dict[str, Any] = {"load_average_start": os.getloadavg()[0]}
+    with tempfile.TemporaryDirectory() as tmp:
+        model = args.model or small_model(Path(tmp))
+        print(f"{'ros2':<5} {'samples':>8} {'rate Hz':>8} {'published':>9} {'received':>9} "
+              f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
+              f"{'step us':>7} {'step cpu':>8} {'compute us':>10}")
+        live = []
+        for _ in range(args.repeat):
+            for publish in (False, True):
+                r = run_live(model, args.seconds, args.rate, publish)
+                live.append(r)
+                dash = "-"
+                print(f"{'on' if publish else 'off':<5} {r['samples']:>8} {r['rate_hz']:>8.1f} "
+                      f"{r.get('published', dash):>9} {r.get('received', dash):>9} "
+                      f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
+                      f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
+                      f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
+                      f"{r['compute_us_per_sample']:>10.1f}", flush=True)
+        results["live"] = live
+        if args.record_minutes > 0:
+            rec = run_record(args.record_minutes, Path(tmp))
+            results["record"] = rec
+            print(f"record: {rec['samples']} samples, {rec['messages']} messages, "
+                  f"{rec['mbytes']} MB, written in {rec['write_s']} s, read back "
+                  f"{rec['read_back']} in {rec['read_s']} s, {rec['differing']} differing",
+                  flush=True)
+    results["load_average_end"] = os.getloadavg()[0]
+    print(f"load average (1 min): {results['load_average_start']:.1f} at start, "
+          f"{results['load_average_end']:.1f} at end")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,495 @@
+"""ROS 2 (docs/ros2.md): names, the shipped message against the contract, `stream --publish
+ros2://` received by a DDS subscriber whose types are declared here (not imported from
+fbgforce), link faults and an instrument restart in the status, and rosbag2 MCAP logs written
+by `record` read back by rosbags."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from conftest import missing_tool, offline_fixed, start_emulator, wait_for_line
+from fbgforce import contract, sim
+from fbgforce.cli import main
+from fbgforce.errors import InputError
+from fbgforce.interrogator import ros2 as R
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Cyclone DDS on the loopback interface only: containers and CI have no multicast route, and
+#: test traffic stays on this host.
+LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/>'
+            '</Interfaces></General></Domain></CycloneDDS>')
+
+
+def _need(module: str) -> None:
+    try:
+        __import__(module)
+    except ImportError:
+        missing_tool(f"the {module} package is missing: pip install -e '.[ros2]'")
+
+
+@pytest.fixture
+def dds(monkeypatch):
+    """Cyclone DDS on loopback, in a DDS domain of this test run's own (other runs on the
+    machine may publish the same topic names)."""
+    _need("cyclonedds")
+    monkeypatch.setenv("CYCLONEDDS_URI", LOOPBACK)
+    return 1 + os.getpid() % 200
+
+
+SUBSCRIBER = r"""
+# A ROS 2-typed subscriber that knows nothing of fbgforce: the types as ROS 2's rosidl maps
+# them to DDS, declared from the .msg definitions by hand.
+import json, sys, time
+from dataclasses import dataclass
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct, types as t
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: t.int32
+    nanosec: t.uint32
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+@dataclass
+class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
+    x: t.float64
+    y: t.float64
+    z: t.float64
+@dataclass
+class Wrench(IdlStruct, typename="geometry_msgs::msg::dds_::Wrench_"):
+    force: Vector3
+    torque: Vector3
+@dataclass
+class WrenchStamped(IdlStruct, typename="geometry_msgs::msg::dds_::WrenchStamped_"):
+    header: Header
+    wrench: Wrench
+@dataclass
+class Contact(IdlStruct, typename="fbgforce_msgs::msg::dds_::Contact_"):
+    header: Header
+    seq: t.uint32
+    sample_seq: t.uint32
+    contact: bool
+    contact_confidence: t.float32
+    force: t.float64
+    x: t.float64
+    y: t.float64
+    status: t.uint32
+
+domain, namespace, want, timeout = int(sys.argv[1]), sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+dp = DomainParticipant(domain)
+qos = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(1000000),
+          Policy.Durability.TransientLocal)
+readers = {name: DataReader(dp, Topic(dp, "rt" + namespace + "/" + name, typ), qos=qos)
+           for name, typ in (("contact", Contact), ("wrench", WrenchStamped))}
+print("listening", file=sys.stderr, flush=True)
+got = {"contact": [], "wrench": []}
+deadline = time.monotonic() + timeout
+while time.monotonic() < deadline and min(len(v) for v in got.values()) < want:
+    for name, rd in readers.items():
+        for m in rd.take(N=10000):
+            if isinstance(m, Contact):
+                got[name].append([m.seq, m.sample_seq, m.header.stamp.sec, m.header.stamp.nanosec,
+                                  m.header.frame_id, int(m.contact), m.contact_confidence,
+                                  m.force, m.x, m.y, m.status])
+            elif isinstance(m, WrenchStamped):
+                w = m.wrench
+                got[name].append([m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id,
+                                  w.force.x, w.force.y, w.force.z, w.torque.x, w.torque.y,
+                                  w.torque.z])
+    time.sleep(0.005)
+print(json.dumps(got).replace("NaN", "null"))
+"""
+
+
+def _start_subscriber(domain: int, namespace: str, want: int, timeout: float = 60
+                      ) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", SUBSCRIBER, str(domain), namespace,
+                             str(want), str(timeout)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    line = proc.stderr.readline()
+    assert "listening" in line, line + proc.stderr.read()
+    return proc
+
+
+def _received(proc: subprocess.Popen) -> dict[str, list]:
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    return json.loads(out)
+
+
+# ------------------------------------------------------------------------------------------
+# Names, URL, message definitions
+# ------------------------------------------------------------------------------------------
+
+def test_names_follow_the_ros2_dds_mapping(monkeypatch):
+    assert R.dds_topic_name("/lab/tip/wrench") == "rt/lab/tip/wrench"
+    assert R.dds_type_name("geometry_msgs/msg/WrenchStamped") == \
+        "geometry_msgs::msg::dds_::WrenchStamped_"
+    assert R.dds_type_name(R.CONTACT_TYPE) == "fbgforce_msgs::msg::dds_::Contact_"
+    assert R.parse_url("ros2:///lab/left_tip?frame_id=tip_pad&domain=7") == (
+        "/lab/left_tip", "tip_pad", 7)
+    monkeypatch.setenv("ROS_DOMAIN_ID", "42")
+    assert R.parse_url("ros2:///") == ("/", R.DEFAULT_FRAME_ID, 42)
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    assert R.parse_url("ros2:///lab")[2] == 0
+    monkeypatch.setenv("ROS_DOMAIN_ID", "lab")
+    with pytest.raises(InputError, match="ROS_DOMAIN_ID"):
+        R.parse_url("ros2:///lab")
+    assert R.topic_in("/", "contact") == "/contact"
+    assert R.topic_in("/lab", "contact") == "/lab/contact"
+
+
+@pytest.mark.parametrize("url", ["ros2://lab", "ros2:///2lab", "ros2:///lab//tip",
+                                 "ros2:///lab?domain=300", "ros2:///lab?qos=best"])
+def test_bad_ros2_url_exits_2_with_one_line(url, small_exported_dir, capsys):
+    assert main(["stream", "--source", "loop://", "--model", str(small_exported_dir),
+                 "--publish", url]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--publish" in err[0]
+
+
+def test_contact_msg_is_the_dds_type_and_holds_the_contract_flags():
+    """Contact.msg parsed by rosbags (an independent .msg parser) has the DDS type's fields in
+    order and the contract's status flags as constants."""
+    _need("rosbags")
+    _need("cyclonedds")
+    from rosbags.typesys import get_types_from_msg
+
+    from fbgforce.interrogator import ros2_dds
+
+    types = get_types_from_msg(R.msg_text(R.CONTACT_TYPE), R.CONTACT_TYPE)
+    consts, fields = types[R.CONTACT_TYPE]
+    assert [f[0] for f in fields] == list(ros2_dds.Contact.__dataclass_fields__)
+    assert {name: value for name, _, value in consts} == {
+        f"STATUS_{c.name}": c.value for c in contract.STATUS + contract.LINK_STATUS}
+    link_bits = sum(c.value for c in contract.LINK_STATUS)
+    assert link_bits & sum(c.value for c in contract.STATUS) == 0
+    ship = ROOT / "interrogator" / "fbgforce_msgs"
+    assert all((ship / "msg" / f"{n}.msg").is_file() for n in ("Contact", "Peaks", "Stage"))
+    assert "rosidl_generate_interfaces" in (ship / "CMakeLists.txt").read_text()
+
+
+@settings(max_examples=200, deadline=None)
+@given(sec=st.integers(0, 2**31 - 1), nanosec=st.integers(0, 10**9 - 1),
+       frame_id=st.text(st.characters(codec="utf-8", exclude_characters="\x00"), max_size=40),
+       values=st.lists(st.floats(width=64, allow_nan=True), min_size=6, max_size=6),
+       seqs=st.tuples(st.integers(0, 2**32 - 1), st.integers(0, 2**32 - 1)),
+       contact=st.booleans(), confidence=st.floats(0, 1, width=32),
+       status=st.integers(0, 2**32 - 1))
+def test_published_bytes_are_cyclonedds_own(sec, nanosec, frame_id, values, seqs, contact,
+                                            confidence, status):
+    """The published types serialise through rosbags (for speed) to exactly the bytes
+    cyclonedds's generic serialiser gives."""
+    _need("cyclonedds")
+    _need("rosbags")
+    from cyclonedds.idl import IdlStruct
+
+    from fbgforce.interrogator import ros2_dds as D
+
+    header = D.Header(D.Time(sec, nanosec), frame_id)
+    msgs = [D.WrenchStamped(header, D.Wrench(D.Vector3(*values[:3]), D.Vector3(*values[3:]))),
+            D.Contact(header, *seqs, contact, confidence, *values[:3], status)]
+    for m in msgs:
+        assert m.serialize(use_version_2=False) == IdlStruct.serialize(m, use_version_2=False)
+
+
+def test_link_flags_from_sample_counters():
+    lost, restart = (c.value for c in contract.LINK_STATUS)
+    flags, last = R.link_flags(None, [5, 6, 9, 10, 2, 3])
+    assert flags.tolist() == [0, 0, lost, 0, restart, 0] and last == 3
+    flags, last = R.link_flags(0xFFFFFFFE, [0xFFFFFFFF, 0, 2])  # the counter wraps
+    assert flags.tolist() == [0, 0, lost] and last == 2
+
+
+def test_torque_gives_back_the_location():
+    ints = {"contact": np.array([True, False]), "force_mN": np.array([12_500, 0]),
+            "x_um": np.array([9_400, 0]), "y_um": np.array([900, 0]),
+            "contact_conf_q15": np.array([32_000, 10]), "status": np.array([0, 8])}
+    si = R.estimates_si(ints)
+    assert si["force"][0] == 12.5 and np.isnan(si["x"][1]) and si["torque_x"][1] == 0.0
+    assert np.isclose(-si["torque_y"][0] / si["force"][0], 9.4e-3)
+    assert np.isclose(si["torque_x"][0] / si["force"][0], 0.9e-3)
+
+
+# ------------------------------------------------------------------------------------------
+# Live topics
+# ------------------------------------------------------------------------------------------
+
+def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exported_dir, capsys):
+    """emulate (Hyperion, 2 % dropped records) -> stream --publish ros2:// -> a ROS 2-typed
+    subscriber in another process: every estimate arrives, in order, with the offline fixed
+    engine's values in SI units, the torque that gives back the location, the device stamp,
+    and SAMPLES_LOST exactly after each gap."""
+    n = 3000
+    ns = f"/fbgforce_test_{os.getpid()}"
+    sub = _start_subscriber(dds, ns, n)
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--linger", "0.5",
+                  "--faults", "drop=0.02")
+    try:
+        url = wait_for_line(em, "interrogator:")
+        assert main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
+                     str(n), "--publish", f"ros2://{ns}?frame_id=tip&domain={dds}",
+                     "--start-timeout", "30", "--quiet", "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        got = _received(sub)
+    finally:
+        for p in (sub, em):
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    pub = summary["published"][0]
+    assert pub["sent"] == n and pub["send_errors"] == 0
+    assert pub["topics"] == {"wrench": ns + "/wrench", "contact": ns + "/contact"}
+    contact, wrench = got["contact"], got["wrench"]
+    assert len(contact) == n and len(wrench) == n
+    assert [r[0] for r in contact] == list(range(n))  # none lost, none reordered
+    seqs = np.array([r[1] for r in contact])
+    # The reader may have counted losses after the last sample the stream took.
+    assert (np.diff(seqs) >= 1).all() and 0 < seqs[-1] + 1 - n <= summary["lost_frames"]
+    scene = sim.simulate("smoke", seed=5)
+    off = offline_fixed(small_exported_dir, scene.wl_nm[seqs], summary["baseline_nm"])
+    lost = contract.LINK_STATUS[0].value
+    gaps = np.concatenate([[False], np.diff(seqs) > 1])
+    status = np.array([r[10] for r in contact])
+    assert np.array_equal(status, off["status"] | np.where(gaps, lost, 0))
+    assert (status & contract.STATUS_FLAG["WARMUP"]).any()  # the runtime's flags pass through
+    assert pub["link_flags"]["samples_lost"] == gaps.sum() > 0
+    assert np.array_equal([r[5] for r in contact], off["contact"].astype(int))
+    force = np.array([r[7] for r in contact])
+    assert np.array_equal(np.round(force * 1000).astype(np.int64), off["force_mN"])
+    x = np.array([np.nan if r[8] is None else r[8] for r in contact])
+    y = np.array([np.nan if r[9] is None else r[9] for r in contact])
+    touch = off["contact"].astype(bool)
+    assert touch.any() and np.isnan(x[~touch]).all()
+    assert np.array_equal(np.round(x[touch] * 1e6).astype(np.int64), off["x_um"][touch])
+    assert np.array_equal(np.round(y[touch] * 1e6).astype(np.int64), off["y_um"][touch])
+    conf = np.array([r[6] for r in contact])
+    assert np.array_equal(np.round(conf * 32768).astype(np.int64), off["contact_conf_q15"])
+    t_ns = np.array([r[2] * 10**9 + r[3] for r in contact], dtype=np.int64)
+    t_us = np.round(scene.t_s[seqs] * 1e6).astype(np.int64) + 1_700_000_000 * 1_000_000
+    assert np.array_equal(t_ns, t_us * 1000)
+    assert {r[4] for r in contact} == {r[2] for r in wrench} == {"tip"}
+    w = np.array([r[3:] for r in wrench], dtype=float)
+    assert np.array_equal([r[0] * 10**9 + r[1] for r in wrench], t_ns)
+    assert np.array_equal(w[:, 2], force) and not w[:, [0, 1, 5]].any()
+    pressed = touch & (force > 1.0)
+    assert np.allclose(-w[pressed, 4] / w[pressed, 2], x[pressed], atol=1e-12)
+    assert np.allclose(w[pressed, 3] / w[pressed, 2], y[pressed], atol=1e-12)
+
+
+def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
+    """The instrument goes away and comes back counting from zero: the reader reconnects and
+    the first estimate after it carries DEVICE_RESTART; nothing else carries a link flag."""
+    from fbgforce.interrogator import emulator as E
+    from fbgforce.interrogator.hyperion import HyperionReader
+    from fbgforce.interrogator.ros2_dds import Ros2Publisher
+    from fbgforce.interrogator.stream import LiveEstimator, run_stream
+
+    pb = E.load_playback("smoke", None, seed=5, device=None)
+    pb = E.Playback(**{k: (v[:400] if isinstance(v, np.ndarray) else v)
+                       for k, v in pb.__dict__.items()})
+    ns = f"/fbgforce_restart_{os.getpid()}"
+    sub = _start_subscriber(dds, ns, 800)
+    first = E.HyperionEmulator(pb, rate=2000, command_port=0, stream_port=0, linger=0.2).start()
+    ports = (first.command_port, first.stream_port)
+    reader = HyperionReader(first.url)
+    pub = Ros2Publisher(f"ros2://{ns}?domain={dds}")
+    result: dict = {}
+    worker = threading.Thread(target=lambda: result.update(run_stream(
+        reader, LiveEstimator(small_exported_dir), max_samples=800, idle_timeout=10,
+        start_timeout=20, status=False, publishers=[pub])))
+    worker.start()
+    second = None
+    try:
+        deadline = time.monotonic() + 30
+        while first._thread.is_alive() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(0.2)  # away for a while, then back on the same ports
+        second = E.HyperionEmulator(pb, rate=2000, command_port=ports[0], stream_port=ports[1],
+                                    linger=0.2, t0_s=1_700_000_100).start()
+        worker.join(60)
+        got = _received(sub)
+    finally:
+        reader.close()
+        pub.close()
+        first.stop()
+        if second is not None:
+            second.stop()
+        if sub.poll() is None:
+            sub.kill()
+    assert result["samples"] == 800 and result["reader"]["reconnects"] >= 1
+    contact = got["contact"]
+    assert [r[1] for r in contact] == list(range(400)) * 2
+    link = np.array([r[10] for r in contact]) & sum(c.value for c in contract.LINK_STATUS)
+    restart = contract.LINK_STATUS[1].value
+    assert link[400] == restart and np.count_nonzero(link) == 1
+
+
+# ------------------------------------------------------------------------------------------
+# rosbag2 logs
+# ------------------------------------------------------------------------------------------
+
+def _record_mcap(tmp_path: Path, capsys, *extra: str) -> tuple[Path, dict]:
+    """emulate (Hyperion + load cell, the first 3,000 samples of the smoke scene) -> record
+    --out rec.mcap; returns the path and the summary."""
+    em = start_emulator("--scene", "smoke", "--seed", "3", "--rate", "5000", "--protocol", "hyperion",
+                  "--command-port", "0", "--stream-port", "0", "--loadcell", "--duration",
+                  "0.6", "--loadcell-link", str(tmp_path / "ttyLC"), "--linger", "0.5")
+    out = tmp_path / "rec.mcap"
+    try:
+        url = wait_for_line(em, "interrogator:")
+        assert main(["record", "--source", url, "--loadcell-port", str(tmp_path / "ttyLC"),
+                     "--out", str(out), "--idle-timeout", "1", "--start-timeout", "30",
+                     "--json", "--quiet", *extra]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        em.communicate(timeout=20)
+    finally:
+        if em.poll() is None:
+            em.kill()
+            em.communicate()
+    return out, summary
+
+
+def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exported_dir, capsys):
+    """record --out rec.mcap --model: rosbags (not the writer's library) reads every sample's
+    peaks, stage line and estimates back, and load_dataset gives the recorded dataset."""
+    _need("rosbags")
+    _need("mcap_ros2")
+    from rosbags.highlevel import AnyReader
+
+    from fbgforce import dataset
+    from fbgforce.pybind import Runtime
+
+    out, summary = _record_mcap(tmp_path, capsys, "--model", str(small_exported_dir))
+    truth = sim.simulate("smoke", seed=3).subset(slice(0, 3000))
+    n = len(truth)
+    assert summary["samples"] == n and summary["lost_frames"] == 0
+    assert summary["topics"] == {t: n for t in ("/fbgforce/peaks", "/fbgforce/stage",
+                                                "/fbgforce/contact", "/fbgforce/wrench")}
+    rows: dict[str, list] = {}
+    with AnyReader([out]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types == {"/fbgforce/peaks": "fbgforce_msgs/msg/Peaks",
+                         "/fbgforce/stage": "fbgforce_msgs/msg/Stage",
+                         "/fbgforce/contact": "fbgforce_msgs/msg/Contact",
+                         "/fbgforce/wrench": "geometry_msgs/msg/WrenchStamped"}
+        for conn, log_time, raw in reader.messages():
+            m = reader.deserialize(raw, conn.msgtype)
+            assert log_time == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            rows.setdefault(conn.topic, []).append(m)
+    peaks, stage, contact = rows["/fbgforce/peaks"], rows["/fbgforce/stage"], rows["/fbgforce/contact"]
+    assert [m.sample_seq for m in peaks] == list(range(n)) == [m.sample_seq for m in stage]
+    wl_fm = np.rint(np.array([m.wavelength for m in peaks]) * 1e15).astype(np.int64)
+    truth_fm = np.rint(truth.wl_nm * 1e6).astype(np.int64)
+    assert np.abs(wl_fm - truth_fm).max() <= 1  # the wire's resolution
+    t_ns = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in peaks])
+    assert np.array_equal(t_ns - t_ns[0], np.round(truth.t_s * 1e9).astype(np.int64))
+    assert np.array_equal([m.contact for m in stage], truth.contact)
+    assert np.array_equal([m.press_id for m in stage], truth.press_id)
+    rt = Runtime(small_exported_dir)
+    base_nm = rt.tare(wl_fm[:200].astype(np.int32))
+    rt.set_baseline(np.asarray(base_nm, dtype=np.float64))
+    off = rt.run(wl_fm.astype(np.int32))
+    assert np.array_equal([m.status for m in contact], off["status"])
+    assert np.array_equal(np.round([m.force * 1000 for m in contact]).astype(np.int64),
+                          off["force_mN"])
+    ds = dataset.load(out)
+    assert ds.source.endswith("(rosbag2)") and len(ds) == n
+    assert np.array_equal(np.rint(ds.wl_nm * 1e6).astype(np.int64), wl_fm)
+    assert np.allclose(ds.t_s, truth.t_s, rtol=0, atol=1e-12)
+    assert np.array_equal(ds.contact, truth.contact)
+    assert np.array_equal(ds.press_id, truth.press_id)
+    assert np.array_equal(ds.force_N, [m.force for m in stage])
+    touch = truth.contact
+    assert np.allclose(ds.x_mm[touch], [m.x * 1000 for m, c in zip(stage, touch) if c],
+                       rtol=0, atol=1e-12)
+    assert np.isnan(ds.x_mm[~touch]).all()
+
+
+def test_load_dataset_reads_another_drivers_bag_with_a_field_map(tmp_path):
+    """A rosbag2 directory (SQLite 3) written by rosbags as another driver would: peaks as a
+    Float64MultiArray without header at 1 kHz, the load cell as WrenchStamped and the stage as
+    PointStamped + Bool at 100 Hz. Rows are the peaks; the others are held from their latest
+    message; the rows before the slow topics spoke are dropped and counted."""
+    _need("rosbags")
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from fbgforce import dataset
+
+    ts = get_typestore(Stores.LATEST)
+    T = ts.types
+    bag = tmp_path / "other_driver"
+    t0 = 1_700_000_000 * 10**9
+    n = 500
+    wl = 1530.0 + np.arange(5) * 8.0 + np.arange(n)[:, None] * 1e-6
+    with Writer(bag, version=8) as w:
+        peaks = w.add_connection("/hyperion/peaks", "std_msgs/msg/Float64MultiArray", typestore=ts)
+        ft = w.add_connection("/ft/wrench", "geometry_msgs/msg/WrenchStamped", typestore=ts)
+        pt = w.add_connection("/stage/point", "geometry_msgs/msg/PointStamped", typestore=ts)
+        ct = w.add_connection("/stage/contact", "std_msgs/msg/Bool", typestore=ts)
+        for i in range(n):
+            t = t0 + 3_000_000 + i * 1_000_000  # peaks start 3 ms in: none before the stage
+            msg = T["std_msgs/msg/Float64MultiArray"](
+                layout=T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0), data=wl[i])
+            w.write(peaks, t, ts.serialize_cdr(msg, msg.__msgtype__))
+        for k in range(n // 10):
+            t = t0 + 5_000_000 + k * 10_000_000  # first stage/load-cell message at 5 ms
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+                sec=t // 10**9, nanosec=t % 10**9), frame_id="stage")
+            v3 = T["geometry_msgs/msg/Vector3"]
+            wr = T["geometry_msgs/msg/WrenchStamped"](header=hdr, wrench=T["geometry_msgs/msg/Wrench"](
+                force=v3(x=0.0, y=0.0, z=float(k)), torque=v3(x=0.0, y=0.0, z=0.0)))
+            w.write(ft, t, ts.serialize_cdr(wr, wr.__msgtype__))
+            p = T["geometry_msgs/msg/PointStamped"](header=hdr, point=T["geometry_msgs/msg/Point"](
+                x=0.001 * k, y=0.002, z=0.0))
+            w.write(pt, t, ts.serialize_cdr(p, p.__msgtype__))
+            b = T["std_msgs/msg/Bool"](data=k % 2 == 1)
+            w.write(ct, t, ts.serialize_cdr(b, b.__msgtype__))
+    fields = {**{c: f"/hyperion/peaks:data[{k}]" for k, c in enumerate(
+        ("wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm"))},
+        "force_N": "/ft/wrench:wrench.force.z", "contact": "/stage/contact:data",
+        "x_mm": "/stage/point:point.x*1000", "y_mm": "/stage/point:point.y*1000"}
+    ds = dataset.load(bag, fields=fields)
+    # Peaks at 3, 4, 5, ... ms: the two rows before the first stage message (5 ms) are dropped.
+    assert len(ds) == n - 2 and "2 rows before" in ds.source
+    assert np.allclose(ds.t_s, np.arange(n - 2) / 1000.0, rtol=0, atol=1e-12)
+    assert np.array_equal(ds.wl_nm, np.rint(wl[2:] * 1e6) / 1e6)
+    k = (np.arange(2, n) - 2) // 10  # the stage message held for each row
+    assert np.array_equal(ds.force_N, k.astype(float))
+    assert np.array_equal(ds.contact, k % 2 == 1)
+    assert np.allclose(ds.x_mm[ds.contact], k[k % 2 == 1].astype(float), rtol=0, atol=1e-9)
+    assert np.isnan(ds.x_mm[~ds.contact]).all() and (ds.press_id == 0).all()
+    with pytest.raises(Exception, match=r"no topic /nope.*column 'force_N'|column 'force_N'.*no topic /nope"):
+        dataset.load(bag, fields={**fields, "force_N": "/nope:x"})
+    with pytest.raises(Exception, match="wrench.force.w not readable"):
+        dataset.load(bag, fields={**fields, "force_N": "/ft/wrench:wrench.force.w"})
+    with pytest.raises(Exception, match="lacks x_mm"):
+        dataset.load(bag, fields={k: v for k, v in fields.items() if k != "x_mm"})
+    with pytest.raises(Exception, match="TOPIC:FIELD"):
+        dataset.load(bag, fields={**fields, "force_N": "ft/wrench"})
+
+
+def test_record_bad_mcap_options_exit_2(tmp_path, small_exported_dir, capsys):
+    assert main(["record", "--source", "loop://", "--loadcell-port", "loop://", "--out",
+                 str(tmp_path / "rec.csv"), "--model", str(small_exported_dir)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--model" in err[0] and ".mcap" in err[0]
