@@ -37,9 +37,9 @@ def analyse(model: Any, data: Any, edges_n: tuple[float, ...] = EDGES_N) -> dict
         agree, as the shared metrics score location); ``contact``: ``errors``, ``samples``,
         ``missed`` and ``missed_below_N`` (missed contacts per upper edge), ``false``.
     """
-    from fbgforce import model as fm
+    from fbgforce.trainer.train import predict_prepared
 
-    pred = fm.predict_from_features(model, data.inputs(model.preprocess))
+    pred = predict_prepared(model, data)
     rows = data.rows("test")
     tc, tf, tx, ty = data.truth(rows)
     pc = pred["contact"][rows]

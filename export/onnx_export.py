@@ -34,7 +34,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from fbgforce import __version__
 from fbgforce.errors import InputError
-from fbgforce.model import HierarchicalModel, MLP, features
+from fbgforce.model import MLP, FloatPipeline, HierarchicalModel, features, predict_from_features
 
 #: File name of the exported graph inside a model directory.
 ONNX_FILE = "model.onnx"
@@ -305,13 +305,20 @@ def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm:
         ``contact`` (bool), ``p_contact``, ``force_N`` (0 where no contact), ``x_mm``,
         ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool).
     """
-    z = features(model, wl_nm, baseline_nm)
-    raw = run_features(model, z, model_dir)
-    contact = raw["contact"].astype(bool)
-    return {
-        "contact": contact,
-        "p_contact": raw["p_contact"].astype(np.float64),
-        "force_N": np.where(contact, raw["force_N"].astype(np.float64), 0.0),
-        "x_mm": np.where(contact, raw["x_mm"].astype(np.float64), np.nan),
-        "y_mm": np.where(contact, raw["y_mm"].astype(np.float64), np.nan),
-    }
+    def nets(x: np.ndarray, decide: Any) -> dict[str, np.ndarray]:
+        # The graph gates the location net on the net's own contact; the decision over time
+        # differs from it only near its thresholds, where the location is not scored apart.
+        raw = run_features(model, x, model_dir)
+        logits = raw["contact_logits"].astype(np.float64)
+        margin = logits[:, 1] - logits[:, 0]
+        return {"contact": decide(margin), "margin": margin,
+                "p_contact": raw["p_contact"].astype(np.float64),
+                "force_raw_N": raw["force_N"].astype(np.float64),
+                "x_raw_mm": raw["x_mm"].astype(np.float64), "y_raw_mm": raw["y_mm"].astype(np.float64)}
+
+    wl = np.asarray(wl_nm, dtype=np.float64)
+    if not model.runs_in_use:
+        out = predict_from_features(model, features(model, wl, baseline_nm), nets=nets)
+    else:
+        out = FloatPipeline(model, baseline_nm, nets=nets).push(wl)
+    return {k: out[k] for k in ("contact", "p_contact", "force_N", "x_mm", "y_mm")}

@@ -70,9 +70,7 @@ class LiveEstimator:
 
             self._rt = Runtime(self.model_dir)
         else:
-            self._history = np.zeros((0, 5), dtype=np.int64)
-            pre = self.model.preprocess
-            self._memory = fm.MemoryStream(pre.memory, pre.z_rest)
+            self._pipeline: fm.FloatPipeline | None = None
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -84,6 +82,8 @@ class LiveEstimator:
         self.baseline_fm = np.asarray(base_fm, dtype=np.int64)
         if self.engine == "fixed":
             self._rt.set_baseline(self.baseline_fm)  # also starts the filter from zero history
+        else:
+            self._pipeline = fm.FloatPipeline(self.model, fm_to_nm(self.baseline_fm))
 
     def push(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
         """Estimates for the samples that became computable (none while taring)."""
@@ -113,16 +113,11 @@ class LiveEstimator:
         if self.engine == "fixed":
             out = self._rt.run(wl_fm.astype(np.int32))
             return {k: np.asarray(out[k]) for k in OUTPUT_KEYS + RAW_KEYS}
-        # Float: filter (history + batch) and keep the batch's rows; with len(taps) - 1
-        # samples of history the causal FIR sees exactly what it would have seen on the whole
-        # recording. The memory states carry over from batch to batch.
-        pre = self.model.preprocess
-        keep = pre.taps.size - 1
-        rows = np.concatenate([self._history, wl_fm])
-        filt = fm.apply_filter(pre, fm.compensate(self.model, fm_to_nm(rows), self.baseline_nm))
-        z = (filt[len(self._history):] - pre.input_mean) / pre.input_std
-        pred = fm.predict_from_features(self.model, self._memory.push(z))
-        self._history = rows[len(rows) - keep:] if keep else rows[:0]
+        # Float: the reference pipeline fed batch by batch (its filter history, memory,
+        # decision and tracker carry over, so every sample gets what the whole recording
+        # would give it).
+        assert self._pipeline is not None
+        pred = self._pipeline.push(fm_to_nm(wl_fm))
         pred["status"] = np.zeros(len(wl_fm), dtype=np.uint32)
         return {k: np.asarray(pred[k]) for k in OUTPUT_KEYS}
 

@@ -566,6 +566,13 @@ class HierarchicalModel:
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
 
+    @property
+    def runs_in_use(self) -> bool:
+        """Whether :func:`predict` runs the decision over time or the tracker, which carry
+        state along a recording (a centred filter's offline model never does)."""
+        iu = self.in_use
+        return not (iu.per_sample and not iu.track_shift) and self.preprocess.filter_kind != "centred"
+
     def out_of_range(self, x: np.ndarray) -> np.ndarray:
         """(n,) True where a contact/force net input of ``x`` (n, >= F) lies outside
         :attr:`input_range`."""
@@ -670,14 +677,51 @@ def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: in
     return np.column_stack(cols)
 
 
+#: ``nets(x) -> raw outputs``: the three nets on net inputs x (n, F + location averages),
+#: returning ``margin``, ``p_contact``, ``force_raw_N``, ``x_raw_mm``, ``y_raw_mm`` given the
+#: contact decision ``contact`` they were asked for (the location net reads it).
+Nets = Callable[[np.ndarray, Callable[[np.ndarray], np.ndarray]], dict[str, np.ndarray]]
+
+
+def gated_outputs(raw: dict[str, np.ndarray], contact: np.ndarray, out_of_range: np.ndarray
+                  ) -> dict[str, np.ndarray]:
+    """The outputs every float engine reports: no contact -> force 0 and location NaN; the
+    raw net outputs kept as ``*_raw_*``."""
+    return {"contact": contact, "out_of_range": out_of_range, "margin": raw["margin"],
+            "p_contact": raw["p_contact"],
+            "force_N": np.where(contact, raw["force_raw_N"], 0.0),
+            "x_mm": np.where(contact, raw["x_raw_mm"], np.nan),
+            "y_mm": np.where(contact, raw["y_raw_mm"], np.nan),
+            "force_raw_N": raw["force_raw_N"], "x_raw_mm": raw["x_raw_mm"],
+            "y_raw_mm": raw["y_raw_mm"]}
+
+
+def numpy_nets(model: HierarchicalModel) -> Nets:
+    """The model's nets in float64 numpy (:data:`Nets`)."""
+    def nets(x: np.ndarray, decide: Callable[[np.ndarray], np.ndarray]) -> dict[str, np.ndarray]:
+        z = x[:, :model.preprocess.n_features]
+        logits = model.contact.forward(z)
+        margin = logits[:, 1] - logits[:, 0]
+        contact = decide(margin)
+        f = model.force.forward(z)[:, 0]
+        uv = model.location.forward(location_inputs(x, contact, f, model.preprocess.memory.n_loc))
+        xy = model.xy_offset + model.xy_scale * uv
+        return {"contact": contact, "margin": margin,
+                "p_contact": 1.0 / (1.0 + np.exp(-np.clip(margin, -500.0, 500.0))),
+                "force_raw_N": model.force_offset + model.force_scale * f,
+                "x_raw_mm": xy[:, 0], "y_raw_mm": xy[:, 1]}
+    return nets
+
+
 def predict_from_features(model: HierarchicalModel, z: np.ndarray,
-                          decide: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
-                          ) -> dict[str, np.ndarray]:
+                          decide: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                          nets: Nets | None = None) -> dict[str, np.ndarray]:
     """Run the three nets on standardised inputs.
 
     ``decide(raw, margin)`` turns the contact net's own decision (``margin > 0``) and margin
     into the decision the outputs are gated on (the decision over time of
-    :func:`predict`); None takes the net's own.
+    :func:`predict`); None takes the net's own. ``nets``: who runs the nets (default
+    :func:`numpy_nets`; the onnx engine passes onnxruntime's).
 
     Returns
     -------
@@ -688,27 +732,12 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray,
         outputs ``force_raw_N``, ``x_raw_mm``, ``y_raw_mm`` (before gating on contact).
     """
     x = np.asarray(z, dtype=np.float64)
-    z = x[:, :model.preprocess.n_features]
-    logits = model.contact.forward(z)
-    margin = logits[:, 1] - logits[:, 0]
-    contact = margin > 0.0 if decide is None else decide(margin > 0.0, margin)
-    p_contact = 1.0 / (1.0 + np.exp(-np.clip(margin, -500.0, 500.0)))
-    f = model.force.forward(z)[:, 0]
-    uv = model.location.forward(location_inputs(x, contact, f, model.preprocess.memory.n_loc))
-    force_raw = model.force_offset + model.force_scale * f
-    xy_raw = model.xy_offset + model.xy_scale * uv
-    return {
-        "contact": contact,
-        "out_of_range": model.out_of_range(x),
-        "margin": margin,
-        "p_contact": p_contact,
-        "force_N": np.where(contact, force_raw, 0.0),
-        "x_mm": np.where(contact, xy_raw[:, 0], np.nan),
-        "y_mm": np.where(contact, xy_raw[:, 1], np.nan),
-        "force_raw_N": force_raw,
-        "x_raw_mm": xy_raw[:, 0],
-        "y_raw_mm": xy_raw[:, 1],
-    }
+
+    def decision(margin: np.ndarray) -> np.ndarray:
+        return margin > 0.0 if decide is None else decide(margin > 0.0, margin)
+
+    raw = (nets or numpy_nets(model))(x, decision)
+    return gated_outputs(raw, raw["contact"], model.out_of_range(x))
 
 
 def predict(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray | None = None
@@ -721,53 +750,91 @@ def predict(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray
     use"); the first ``len(taps) - 1`` samples (the runtimes' warm-up) are never at rest.
     """
     base = np.array(model.baseline_nm if baseline_nm is None else baseline_nm, dtype=np.float64)
-    iu = model.in_use
-    if (iu.per_sample and not iu.track_shift) or model.preprocess.filter_kind == "centred":
+    if not model.runs_in_use:
         return predict_from_features(model, features(model, wl_nm, base))
-    return _predict_in_use(model, np.asarray(wl_nm, dtype=np.float64).reshape(-1, 5), base)
+    return FloatPipeline(model, base).push(wl_nm)
 
 
-def _predict_in_use(model: HierarchicalModel, wl: np.ndarray, base: np.ndarray
-                    ) -> dict[str, np.ndarray]:
-    """:func:`predict` with the decision over time and the at-rest baseline tracker."""
-    pre, iu = model.preprocess, model.in_use
-    n, taps = wl.shape[0], pre.runtime_taps()
-    state, stream = [0, 0], MemoryStream(pre.memory, pre.z_rest)
-    history = np.zeros((taps.size - 1, N_STRAIN))
-    drift, rest_run = np.zeros(N_STRAIN), 0
-    block = contract.LIMIT["TRACK_BLOCK"] if iu.track_shift else max(n, 1)
+class FloatPipeline:
+    """The float pipeline of ONE continuous recording, fed in pieces of any length: what
+    :func:`predict` computes on the whole, sample for sample (the filter's history, the memory
+    states, the decision over time and the at-rest tracker carry over from piece to piece).
 
-    def decide(raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
-        return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
-                                iu.contact_rise_samples, state)
+    Parameters
+    ----------
+    model
+        The float model (a causal or unfiltered one: the centred filter needs the future).
+    baseline_nm
+        (5,) the tare; the tracker moves the strain gratings' entries (:attr:`baseline_nm`).
+    nets
+        Who runs the nets (:data:`Nets`; default numpy float64).
+    """
 
-    parts = []
-    for a in range(0, n, block):
-        comp = compensate(model, wl[a:a + block], base)
-        seq = np.vstack([history, comp])
-        k = taps.size - 1
-        filt = np.stack([np.convolve(seq[:, c], taps)[k:k + comp.shape[0]]
+    def __init__(self, model: HierarchicalModel, baseline_nm: np.ndarray,
+                 nets: Nets | None = None) -> None:
+        pre = model.preprocess
+        self.model = model
+        self.nets = nets
+        self.baseline_nm = np.array(baseline_nm, dtype=np.float64).reshape(N_STRAIN + 1)
+        self.taps = pre.runtime_taps()
+        self.samples = 0
+        self._history = np.zeros((self.taps.size - 1, N_STRAIN))
+        self._memory = MemoryStream(pre.memory, pre.z_rest)
+        self._decision = [0, 0]
+        self._drift = np.zeros(N_STRAIN)
+        self._track_sum = np.zeros(N_STRAIN)
+        self._rest_run = 0
+
+    def push(self, wl_nm: np.ndarray) -> dict[str, np.ndarray]:
+        """Outputs of :func:`predict_from_features` for the next samples (n, 5) nm."""
+        wl = np.asarray(wl_nm, dtype=np.float64).reshape(-1, N_STRAIN + 1)
+        block = contract.LIMIT["TRACK_BLOCK"] if self.model.in_use.track_shift else 0
+        parts, i = [], 0
+        while i < wl.shape[0] or not parts:
+            # Up to the tracker's next block boundary: the baseline moves only there.
+            m = wl.shape[0] - i if not block else min(wl.shape[0] - i, block - self.samples % block)
+            parts.append(self._run(wl[i:i + m]))
+            i += m
+            if m == 0:
+                break
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def _run(self, wl: np.ndarray) -> dict[str, np.ndarray]:
+        model, pre, iu = self.model, self.model.preprocess, self.model.in_use
+        comp = compensate(model, wl, self.baseline_nm)
+        k = self.taps.size - 1
+        seq = np.vstack([self._history, comp])
+        filt = np.stack([np.convolve(seq[:, c], self.taps)[k:k + comp.shape[0]]
                          for c in range(N_STRAIN)], axis=1)
         if k:
-            history = seq[-k:]
-        out = predict_from_features(model, stream.push((filt - pre.input_mean) / pre.input_std),
-                                    decide)
-        parts.append(out)
-        if not iu.track_shift:
-            continue
-        rest = ~out["contact"] & (np.arange(a, a + comp.shape[0]) >= k)
-        rest_run = min(0xFFFF, rest_run + rest.size if rest.all()
-                       else rest.size - int(np.flatnonzero(~rest)[-1]) - 1)
-        if rest_run >= block + iu.track_settle:
-            # A first-order follower of the filtered shift at rest (time constant
-            # 2^track_shift samples), each step and the whole correction bounded.
-            step = np.clip(filt.sum(axis=0) / 2.0 ** iu.track_shift,
-                           -iu.track_step_max_pm, iu.track_step_max_pm)
-            new = np.clip(drift + step, -iu.track_limit_pm, iu.track_limit_pm)
-            base[:N_STRAIN] += (new - drift) / 1000.0
-            drift = new
-    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]} if parts else \
-        predict_from_features(model, features(model, wl, base))
+            self._history = seq[-k:]
+
+        def decide(raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
+            return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
+                                    iu.contact_rise_samples, self._decision)
+
+        out = predict_from_features(model, self._memory.push((filt - pre.input_mean) / pre.input_std),
+                                    decide, self.nets)
+        n = comp.shape[0]
+        if iu.track_shift and n:
+            # At rest: no contact, past the filter's warm-up (the runtimes' WARMUP).
+            rest = ~out["contact"] & (np.arange(self.samples, self.samples + n) >= k)
+            self._track_sum += filt[rest].sum(axis=0)
+            self._rest_run = min(0xFFFF, self._rest_run + n if rest.all()
+                                 else n - int(np.flatnonzero(~rest)[-1]) - 1)
+        self.samples += n
+        block = contract.LIMIT["TRACK_BLOCK"]
+        if iu.track_shift and n and self.samples % block == 0:
+            if self._rest_run >= block + iu.track_settle:
+                # A first-order follower of the filtered shift at rest (time constant
+                # 2^track_shift samples), each step and the whole correction bounded.
+                step = np.clip(self._track_sum / 2.0 ** iu.track_shift,
+                               -iu.track_step_max_pm, iu.track_step_max_pm)
+                new = np.clip(self._drift + step, -iu.track_limit_pm, iu.track_limit_pm)
+                self.baseline_nm[:N_STRAIN] += (new - self._drift) / 1000.0
+                self._drift = new
+            self._track_sum[:] = 0.0
+        return out
 
 
 # --------------------------------------------------------------------------------------------

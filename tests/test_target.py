@@ -163,8 +163,10 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # 48 KB held until the parameter checks became generated (every field of the contract is
     # range-checked at fbg_init: +1.2 KB of code) and the nets gained memory inputs (+1.7 KB
     # of weights and code at the default memory): 52 KB; the location averages of the default
-    # memory add 0.56 KB of location-net weights and 0.4 KB of code: 54 KB (docs/firmware.md).
-    assert report["flash_bytes"] < 54 * 1024
+    # memory add 0.56 KB of location-net weights and 0.4 KB of code: 54 KB; the decision over
+    # time, the at-rest tracker and the input range check add 1.4 KB of code and parameters:
+    # 56 KB (docs/firmware.md).
+    assert report["flash_bytes"] < 56 * 1024
     assert report["ram_bytes"] < 4 * 1024
 
 

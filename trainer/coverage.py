@@ -64,7 +64,8 @@ def _press_table(ds: Dataset) -> np.ndarray:
 def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
     trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
-    table = np.concatenate([_press_table(ds) for ds in datasets])
+    tables = [_press_table(ds) for ds in datasets]
+    table = np.concatenate(tables) if tables else np.zeros((0, 5))
     peak, x, y, speed, hold = table.T if table.size else (np.zeros(0),) * 5
     w = max(PAD_SIZE_MM[0], float(np.nanmax(x)) if x.size else 0.0)
     h = max(PAD_SIZE_MM[1], float(np.nanmax(y)) if y.size else 0.0)

@@ -25,7 +25,7 @@ from fbgforce.jsonutil import json_default
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.trainer import baseline as bl
-from fbgforce.trainer.train import evaluate_rows, load_datasets, prepare, train
+from fbgforce.trainer.train import evaluate_rows, load_datasets, predict_prepared, prepare, train
 
 #: The paper's numbers (Kim et al. 2019, §V and §VII-A).
 PAPER = {
@@ -110,7 +110,7 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
         t1 = time.perf_counter()
         model = train(ds_list, epochs=epochs, seed=seed, filter=kind, sigma=sigma,
                       prepared=data, progress=progress)
-        preds[kind] = fm.predict_from_features(model, data.inputs(model.preprocess))
+        preds[kind] = predict_prepared(model, data)
         nets[kind] = {"metrics": evaluate_rows(model, data, data.rows("test")),
                       "train_seconds": time.perf_counter() - t1,
                       "group_delay_ms": model.metadata["filter"]["group_delay_ms"]}

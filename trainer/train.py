@@ -418,27 +418,27 @@ def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
     return (float(pad[0]), float(pad[1])) if pad else None
 
 
+def predict_prepared(model: fm.HierarchicalModel, data: Prepared,
+                     inputs: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """The float pipeline's outputs on every row of ``data``, each recording run whole on its
+    own tare as ``fbgforce evaluate`` runs it: through the decision over time and the at-rest
+    tracker when the model has them (:func:`fbgforce.model.predict`), else on the prepared
+    net inputs (``inputs``, if the caller has them: the memory states make them a pass over
+    every recording)."""
+    if model.runs_in_use:
+        parts = [fm.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return fm.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
+                                    else inputs)
+
+
 def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True, inputs: np.ndarray | None = None) -> dict[str, Any]:
-    """Float-pipeline metrics on given rows of prepared data. ``inputs``: the net inputs of
-    every row under ``model.preprocess`` if the caller has them (the memory states make them
-    a pass over every recording)."""
-    iu = model.in_use
-    if not (iu.per_sample and not iu.track_shift):
-        # The decision over time and the tracker run along each whole recording, as in
-        # `fbgforce evaluate` (fbgforce.model.predict on the recording's own tare).
-        parts = [fm.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
-        pred = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        if not extras:
-            return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
-                                    extras=False)
-    else:
-        if inputs is None:
-            inputs = data.inputs(model.preprocess)
-        if not extras:
-            return fmetrics.compute(fm.predict_from_features(model, inputs[rows]),
-                                    *data.truth(rows), extras=False)
-        pred = fm.predict_from_features(model, inputs)
+    """Float-pipeline metrics on given rows of prepared data (:func:`predict_prepared`)."""
+    pred = predict_prepared(model, data, inputs)
+    if not extras:
+        return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
+                                extras=False)
     delays = press_delays(data, pred["contact"], rows)
     return fmetrics.compute({k: v[rows] for k, v in pred.items()}, *data.truth(rows),
                             extras=extras, pad_mm=model_pad_mm(model), delays=delays)
