@@ -219,3 +219,19 @@ def test_a_long_run_stays_exact_and_bounded(small_exported_dir):
     assert res["state"]["baseline_limit_samples"] == 0
     assert res["state"]["largest_tracked_pm"] <= res["state"]["track_limit_pm"]
     assert all(r["faults"] > 0 for r in res["segments"])
+
+
+def test_the_float_pipeline_fed_in_pieces_equals_the_whole(random_model_factory,
+                                                           random_walk_factory):
+    """The live stream feeds the float pipeline batch by batch: pieces of any length, across
+    the tracker's block boundaries, give what the whole recording gives."""
+    model, _, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE)
+    wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)
+    whole = fm.predict(model, wl, model.baseline_nm)
+    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    cuts = np.unique(np.random.default_rng(0).integers(0, wl.shape[0], 40))
+    parts = [pipe.push(wl[a:b]) for a, b in zip(np.r_[0, cuts], np.r_[cuts, wl.shape[0]])]
+    assert np.array_equal(np.concatenate([p["contact"] for p in parts]), whole["contact"])
+    for k in ("force_N", "margin"):    # a batch's size may change a matrix product's last bit
+        np.testing.assert_allclose(np.concatenate([p[k] for p in parts]), whole[k], rtol=0, atol=1e-9)
+    assert not np.array_equal(pipe.baseline_nm, model.baseline_nm)
