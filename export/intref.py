@@ -161,17 +161,6 @@ class _Memory:
         self.primed = True
         return feats, clamped
 
-    def rest_at(self, z0: np.ndarray, r_sum: np.ndarray) -> None:
-        """``rest_memory`` of fbg_fixed.c: the states as their priming sets them, at the
-        block's rounded mean z (``r_sum`` is the block's sum of z - z0)."""
-        q = self.q
-        zm = rshift_round(z0 * contract.LIMIT["TRACK_BLOCK"] + r_sum, contract.LIMIT["TRACK_BLOCK_LOG2"])
-        u = int(sat(rshift_round(np.array([int(zm @ q.mem_mult)]), q.mem_shift), SAT16)[0][0])
-        self.ema = [u << EMA_FRAC for _ in range(q.n_ema)]
-        self.play = [u + int(w) for w in q.play_width[:q.n_play]]
-        if q.n_loc:
-            self.loc = [int(v) << EMA_FRAC for v in sat(zm - z0, SAT16)[0].tolist()]
-
     def _load_features(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         q = self.q
         m = z.shape[0]
@@ -356,8 +345,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         rest, r_sum = _block(q, wl[a:b], fault[a:b], warm[a:b], base, history, last_comp,
                              memory, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        if tracker.end_block(rest & tared, r_sum, base) and memory.primed:
-            memory.rest_at(z_rest, r_sum)
+        if tracker.end_block(rest & tared, r_sum, base):
+            memory.primed = False
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
     if end is not None:

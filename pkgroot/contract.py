@@ -63,7 +63,6 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_MEM_GAIN": (8, "largest memory-feature gain shift"),
     "LOAD_COEFF_LIMIT": (1 << 28, "|load_coeff| below this: the load proxy sum fits int64"),
     "TRACK_BLOCK": (64, "samples per update of the at-rest baseline tracker"),
-    "TRACK_BLOCK_LOG2": (6, "log2 of TRACK_BLOCK"),
     "TRACK_FRAC": (16, "fractional bits of the tracker's carried baseline correction"),
     "TRACK_LIMIT_MAX_FM": (100_000_000, "largest track_limit_fm (100 nm): a tracked baseline "
                            "stays within 100 nm of its tare"),

@@ -169,15 +169,9 @@ class MemoryStream:
             raise ValueError("the location averages need z_rest (Preprocess.z_rest)")
         self.z_rest = None if z_rest is None else np.asarray(z_rest, dtype=np.float64).reshape(N_STRAIN)
 
-    def rest_at(self, z: np.ndarray) -> None:
-        """Set the states as their priming would at ``z`` (4,): a pad long at rest is a pad at
-        rest after a release (the runtimes' at-rest tracker calls this with a block's mean)."""
-        if self.ema is not None:     # else not primed yet: the next sample primes them
-            u = float(np.asarray(z) @ np.asarray(self.memory.weights))
-            self.ema = [u] * len(self.memory.ema_shifts)
-            self.play = [u + w for w in self.memory.play_widths]
-        if self.loc is not None:
-            self.loc = np.asarray(z, dtype=np.float64) - self.z_rest
+    def reprime(self) -> None:
+        """Let the next sample prime the states, as the first one did (a pad long at rest)."""
+        self.ema, self.play, self.loc = None, [], None
 
     def push(self, z: np.ndarray) -> np.ndarray:
         """Net inputs (n, 4 + states + location averages) of the next ``z`` (n, 4) of the
@@ -843,7 +837,7 @@ class FloatPipeline:
                 new = np.clip(self._drift + step, -iu.track_limit_pm, iu.track_limit_pm)
                 self.baseline_nm[:N_STRAIN] += (new - self._drift) / 1000.0
                 self._drift = new
-                self._memory.rest_at((self._track_sum / block - pre.input_mean) / pre.input_std)
+                self._memory.reprime()
             self._track_sum[:] = 0.0
         return out
 

@@ -72,7 +72,6 @@ extern "C" {
 #define FBG_MAX_MEM_GAIN 8  /* largest memory-feature gain shift */
 #define FBG_LOAD_COEFF_LIMIT 268435456  /* |load_coeff| below this: the load proxy sum fits int64 */
 #define FBG_TRACK_BLOCK 64  /* samples per update of the at-rest baseline tracker */
-#define FBG_TRACK_BLOCK_LOG2 6  /* log2 of TRACK_BLOCK */
 #define FBG_TRACK_FRAC 16  /* fractional bits of the tracker's carried baseline correction */
 #define FBG_TRACK_LIMIT_MAX_FM 100000000  /* largest track_limit_fm (100 nm): a tracked baseline stays within 100 nm of its tare */
 #define FBG_BLOB_VERSION 6  /* blob format this library reads and writes */

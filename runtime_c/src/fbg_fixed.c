@@ -432,39 +432,13 @@ static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32
     return s->decision;
 }
 
-/* A pad long at rest is a pad at rest after a release: a settled block at rest sets the
- * memory states as their priming does (fbg_reset), at the block's mean z rather than at one
- * noisy sample. Left alone, the play operators follow the noise's lowest excursions for
- * minutes, a state no calibration rest shows. zm_c = rshift_round(sum of z_c, 6) is within
- * int16 (a mean of int16 values), and so are u and r. */
-static void rest_memory(fbg_state *s, const fbg_model *m)
-{
-    uint32_t ignored = 0u;
-    int64_t acc = 0;
-    int32_t zm[FBG_N_STRAIN], u;
-    unsigned c, k;
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        zm[c] = (int32_t)fbg_rshift_round((int64_t)s->loc_z0[c] * FBG_TRACK_BLOCK + s->track_sum[c],
-                                          FBG_TRACK_BLOCK_LOG2);
-        acc += (int64_t)zm[c] * m->mem_mult[c];
-    }
-    u = fbg_sat16_rshift_round(acc, m->mem_shift, &ignored);
-    for (k = 0; k < m->n_ema; ++k)
-        s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
-    for (k = 0; k < m->n_play; ++k)
-        s->play[k] = u + m->play_width[k];
-    if (m->loc_shift)
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->loc[c] = (int32_t)fbg_sat16_32(zm[c] - s->loc_z0[c], &ignored) * ((int32_t)1 << FBG_EMA_FRAC);
-}
-
 /* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
  * channels of a sample at rest (tared, no fault, no warm-up, decision 0), NULL otherwise.
  * Every FBG_TRACK_BLOCK steps, a block that was at rest throughout and came after
  * track_settle samples of rest moves the strain baselines by its sum of z - z0 times
  * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
  * a carried fraction), each step at most track_step_max_fm and the whole correction at most
- * track_limit_fm from the tare, and the memory states are set as at rest (rest_memory). A load, a fault or a warm-up freezes it: it never learns
+ * track_limit_fm from the tare, and the memory states are primed again on the next sample. A load, a fault or a warm-up freezes it: it never learns
  * from a sample the nets call contact. Bounds: |track_sum| <= 64 * 65534 < 2^23, so the
  * product with |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1)
  * after a step, and |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so
@@ -504,8 +478,10 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
             s->drift_fm[c] = (int32_t)drift;
             s->track_frac[c] = frac;
         }
-        if (s->mem_primed)
-            rest_memory(s, m);
+        /* A pad long at rest is a pad at rest after a release: the next sample primes the
+         * memory states so (fbg_reset's priming). Left alone, the play operators follow the
+         * noise's lowest excursions for minutes, a state no calibration rest shows. */
+        s->mem_primed = 0u;
     }
     memset(s->track_sum, 0, sizeof s->track_sum);
 }

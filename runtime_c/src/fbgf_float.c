@@ -384,25 +384,6 @@ static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margi
     return s->decision;
 }
 
-/* rest_memory of fbg_fixed.c in float: the memory states as their priming sets them, at the
- * block's mean z (track_sum holds the block's sum of filtered shifts). */
-static void frest_memory(fbgf_state *s, const fbgf_model *m)
-{
-    float zm[FBG_N_STRAIN], u = 0.0f;
-    unsigned c, k;
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        zm[c] = (s->track_sum[c] / (float)FBG_TRACK_BLOCK - m->input_mean_pm[c]) / m->input_std_pm[c];
-        u += m->mem_weight[c] * zm[c];
-    }
-    for (k = 0; k < m->n_ema; ++k)
-        s->ema[k] = u;
-    for (k = 0; k < m->n_play; ++k)
-        s->play[k] = u + m->play_width[k];
-    if (m->loc_shift)
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->loc[c] = zm[c] + m->input_mean_pm[c] / m->input_std_pm[c];
-}
-
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
  * NULL otherwise; a block at rest throughout, after track_settle samples of rest, adds
  * clamp(sum(filt) / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
@@ -434,8 +415,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
             }
             s->drift_pm[c] = drift;
         }
-        if (s->mem_primed)
-            frest_memory(s, m);
+        s->mem_primed = 0u;   /* primed again, as in fbg_fixed.c's rest_track */
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->track_sum[c] = 0.0f;
