@@ -248,16 +248,15 @@ class _Tracker:
         self.frac = [0] * 4
         self.limited = False
 
-    def end_block(self, rest: np.ndarray, r_sum: np.ndarray, base: np.ndarray) -> bool:
+    def end_block(self, rest: np.ndarray, r_sum: np.ndarray, base: np.ndarray) -> None:
         """After a block: ``rest`` says which of its samples were at rest (in order),
-        ``r_sum`` is their sum of z - z0; moves ``base[:4]`` in place. Returns True when the
-        block counted (the memory states are then primed again on the next sample)."""
+        ``r_sum`` is their sum of z - z0; moves ``base[:4]`` in place."""
         q = self.q
         # rest_run: samples at rest up to the block's end (saturating at 0xFFFF).
         trailing = int(rest.size - (np.flatnonzero(~rest)[-1] + 1)) if (~rest).any() else None
         self.rest_run = min(0xFFFF, trailing if trailing is not None else self.rest_run + rest.size)
         if q.track_shift == 0 or self.rest_run < contract.LIMIT["TRACK_BLOCK"] + q.track_settle:
-            return False
+            return
         frac_bits = contract.LIMIT["TRACK_FRAC"]
         for c in range(4):
             frac = self.frac[c] + int(r_sum[c]) * int(q.track_gain[c])
@@ -275,7 +274,6 @@ class _Tracker:
             base[c] += drift - self.drift[c]
             self.drift[c] = drift
             self.frac[c] = frac
-        return True
 
 
 def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
@@ -345,8 +343,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         rest, r_sum = _block(q, wl[a:b], fault[a:b], warm[a:b], base, history, last_comp,
                              memory, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        if tracker.end_block(rest & tared, r_sum, base):
-            memory.primed = False
+        tracker.end_block(rest & tared, r_sum, base)
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
     if end is not None:

@@ -169,10 +169,6 @@ class MemoryStream:
             raise ValueError("the location averages need z_rest (Preprocess.z_rest)")
         self.z_rest = None if z_rest is None else np.asarray(z_rest, dtype=np.float64).reshape(N_STRAIN)
 
-    def reprime(self) -> None:
-        """Let the next sample prime the states, as the first one did (a pad long at rest)."""
-        self.ema, self.play, self.loc = None, [], None
-
     def push(self, z: np.ndarray) -> np.ndarray:
         """Net inputs (n, 4 + states + location averages) of the next ``z`` (n, 4) of the
         recording."""
@@ -837,7 +833,6 @@ class FloatPipeline:
                 new = np.clip(self._drift + step, -iu.track_limit_pm, iu.track_limit_pm)
                 self.baseline_nm[:N_STRAIN] += (new - self._drift) / 1000.0
                 self._drift = new
-                self._memory.reprime()
             self._track_sum[:] = 0.0
         return out
 

@@ -4445,7 +4445,7 @@ static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32
  * track_settle samples of rest moves the strain baselines by its sum of z - z0 times
  * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
  * a carried fraction), each step at most track_step_max_fm and the whole correction at most
- * track_limit_fm from the tare, and the memory states are primed again on the next sample. A load, a fault or a warm-up freezes it: it never learns
+ * track_limit_fm from the tare. A load, a fault or a warm-up freezes it: it never learns
  * from a sample the nets call contact. Bounds: |track_sum| <= 64 * 65534 < 2^23, so the
  * product with |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1)
  * after a step, and |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so
@@ -4485,10 +4485,6 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
             s->drift_fm[c] = (int32_t)drift;
             s->track_frac[c] = frac;
         }
-        /* A pad long at rest is a pad at rest after a release: the next sample primes the
-         * memory states so (fbg_reset's priming). Left alone, the play operators follow the
-         * noise's lowest excursions for minutes, a state no calibration rest shows. */
-        s->mem_primed = 0u;
     }
     memset(s->track_sum, 0, sizeof s->track_sum);
 }
@@ -9067,7 +9063,6 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
             }
             s->drift_pm[c] = drift;
         }
-        s->mem_primed = 0u;   /* primed again, as in fbg_fixed.c's rest_track */
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->track_sum[c] = 0.0f;

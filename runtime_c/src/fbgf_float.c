@@ -415,7 +415,6 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
             }
             s->drift_pm[c] = drift;
         }
-        s->mem_primed = 0u;   /* primed again, as in fbg_fixed.c's rest_track */
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->track_sum[c] = 0.0f;
