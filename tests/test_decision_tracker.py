@@ -29,7 +29,7 @@ def _drifting_model(random_model_factory, random_walk_factory, in_use: fm.InUse,
     """A random model with the given in-use parameters, and (n, 5) wavelengths whose strain
     gratings drift away from the temperature compensation, with lost peaks."""
     model = random_model_factory(seed, sizes=((24, 12), (24, 12), (24, 16)), n_taps=9,
-                                 sigma=2.5, memory=fm.Memory(weights=(0.25, 0.25, 0.25, 0.25), ema_shifts=(4,), ema_gains=(2,), play_widths=(0.3,), play_gains=(2,)))
+                                 sigma=2.5, memory=fm.Memory(weights=(0.25, 0.25, 0.25, 0.25), ema_shifts=(4,), ema_gains=(2,), play_widths=(0.3,), play_gains=(2,), loc_shift=3))
     model.in_use = in_use
     wl = random_walk_factory(model, 6000, seed, step_nm=0.0015)
     wl[:, :4] += np.linspace(0.0, 0.02, wl.shape[0])[:, None] * np.array([1.0, -0.5, 0.8, 0.2])
