@@ -67,7 +67,7 @@ class LiveEstimator:
         if engine == "fixed":
             from fbgforce.pybind import Runtime
 
-            self._rt = Runtime(self.model_dir)
+            self._rt = Runtime(self.model_dir, float_model=self.model)
         else:
             self._history = np.zeros((0, 5), dtype=np.int64)
             pre = self.model.preprocess

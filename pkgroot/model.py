@@ -538,10 +538,17 @@ MODEL_JSON = "model.json"
 WEIGHTS_NPZ = "weights.npz"
 
 
-def save(model: HierarchicalModel, directory: str | Path) -> Path:
-    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``."""
+def save(model: HierarchicalModel, directory: str | Path, flag: str | None = None) -> Path:
+    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``.
+
+    Both files are written atomically as a pair (:class:`fbgforce.fileio.Outputs`): a failed
+    write leaves the directory as it was. An export in the directory made from another model
+    is removed (:func:`fbgforce.freshness.remove_stale_export`). ``flag`` names the
+    command-line option of ``directory`` in errors.
+    """
+    from fbgforce import fileio, freshness
+
     out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
     pre = model.preprocess
     doc = {
         "format": FORMAT_NAME,
@@ -569,8 +576,13 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
         for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
             arrays[f"{name}.W{layer}"] = w
             arrays[f"{name}.b{layer}"] = b
-    np.savez(out / WEIGHTS_NPZ, **arrays)
-    (out / MODEL_JSON).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")
+    with fileio.Outputs(flag) as files:
+        files.write_with(out / WEIGHTS_NPZ, lambda fh: np.savez(fh, **arrays))
+        files.write_text(out / MODEL_JSON, json.dumps(doc, indent=2, default=json_default) + "\n")
+    try:
+        freshness.remove_stale_export(out, model)
+    except OSError as exc:
+        raise fileio.write_error(exc, exc.filename or out, flag) from None
     return out
 
 

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce import contract, units
+from fbgforce import contract, freshness, units
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 
@@ -174,6 +174,10 @@ class Runtime(_Base):
     packed
         Run the kernel from weights packed for it (``fbg_pack``) where it has a packed form
         (SSE2, AVX2); the same bits, fewer instructions. :attr:`packed` says whether it does.
+    float_model
+        The directory's float model if the caller has loaded it (saves reading it again): a
+        directory's blob must have been exported from it
+        (:func:`fbgforce.freshness.check_export`, an :class:`InputError` otherwise).
 
     Examples
     --------
@@ -185,7 +189,7 @@ class Runtime(_Base):
     _prefix = "fbg"
 
     def __init__(self, model: str | Path | bytes, *, require_tare: bool = False,
-                 kernel: str = "auto", packed: bool = True) -> None:
+                 kernel: str = "auto", packed: bool = True, float_model: Any = None) -> None:
         if kernel not in KERNELS:
             raise InputError(f"unknown kernel {kernel!r}; one of {', '.join(KERNELS)}")
         if isinstance(model, (bytes, bytearray, memoryview)):
@@ -205,6 +209,8 @@ class Runtime(_Base):
         if status != lib.FBG_OK:
             reason = ERRORS[status].__doc__ if status in ERRORS else "refused by the C loader"
             check(status, f"{where} ({len(data)} bytes): {reason}")
+        if not isinstance(model, (bytes, bytearray, memoryview)) and Path(model).is_dir():
+            freshness.check_export(model, float_model)
         options = (lib.FBG_OPT_REQUIRE_TARE if require_tare else 0) | KERNELS[kernel]
         check(lib.fbg_init(self._state, self._model, options),
               f"fbg_init: kernel {kernel!r} does not run on this CPU or build" if kernel != "auto"

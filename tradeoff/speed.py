@@ -100,15 +100,15 @@ def _fixed_bits(model_dir: Path) -> int | None:
 
 def _check_fixed_dir(model_dir: Path, model: fm.HierarchicalModel, bits: int, option: str) -> None:
     """A directory whose model.fbgm is a current ``bits``-bit export of ``model``."""
-    from fbgforce.export.exporter import check_fresh
+    from fbgforce.freshness import check_export
     from fbgforce.pybind import Runtime
 
-    Runtime(model_dir)  # missing or unreadable blob: InputError naming the file
+    Runtime(model_dir)  # missing, unreadable or stale blob: InputError naming the file
     got = _fixed_bits(model_dir)
     if got is not None and got != bits:
         raise InputError(f"model.fbgm has {got}-bit weights; {option} takes the {bits}-bit export "
                          f"(fbgforce export --bits {bits})", path=str(model_dir), column=option)
-    check_fresh(model_dir, model)
+    check_export(model_dir, model)
 
 
 def contact_window(contact: np.ndarray, warmup: int, n_max: int) -> tuple[int, int] | None:
