@@ -29,6 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 #: Wavelength columns in array order (``wl_nm[:, k]``).
@@ -594,11 +595,7 @@ def _save_csv(ds: Dataset, path: Path) -> None:
     body = "\n" + body + "\n"
     body = body.replace(",nan,", ",,").replace(",nan,", ",,")
     body = body.replace("\nnan,", "\n,").replace(",nan\n", ",\n")[1:]
-    try:
-        with open(path, "w", encoding="utf-8", newline="\n") as fh:
-            fh.write("\n".join(header) + "\n" + body)
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror}", path=str(path)) from None
+    fileio.write_text(path, "\n".join(header) + "\n" + body)
 
 
 # --------------------------------------------------------------------------------------------
@@ -678,11 +675,7 @@ def _save_npz(ds: Dataset, path: Path) -> None:
     }
     for name, arr in ds.extra.items():
         arrays[_EXTRA_PREFIX + name] = arr
-    try:
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror}", path=str(path)) from None
+    fileio.write_with(path, lambda fh: np.savez(fh, **arrays))
 
 
 # --------------------------------------------------------------------------------------------

@@ -29,9 +29,14 @@ def _pyplot() -> Any:
 
 
 def _save(fig: Any, path: Path, title: str) -> dict[str, Any]:
+    from fbgforce import fileio
+
     plt = _pyplot()
-    fig.savefig(path, dpi=DPI)  # no bbox_inches="tight": the pixel size stays SIZE_PX
-    plt.close(fig)
+    try:
+        # No bbox_inches="tight": the pixel size stays SIZE_PX.
+        fileio.write_with(path, lambda fh: fig.savefig(fh, dpi=DPI, format="png"))
+    finally:
+        plt.close(fig)
     return {"path": str(path), "title": title, "width_px": SIZE_PX[0], "height_px": SIZE_PX[1]}
 
 
@@ -201,7 +206,6 @@ def write_demo_figures(out_dir: str | Path, *, ds: Any, test_rows: np.ndarray,
         Pad width and height (mm).
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     pc = np.asarray(pred["contact"], dtype=bool)
     pf = np.where(pc, np.asarray(pred["force_N"], dtype=np.float64), 0.0)
     tc = np.asarray(ds.contact, dtype=bool)

@@ -195,6 +195,15 @@ def check_output_dir(directory: str | Path, flag: str | None = None) -> None:
     _unlink(tmp)
 
 
+def check_input_file(path: str | Path, flag: str | None = None) -> None:
+    """Refuse a file to read that is missing or is a directory, saying which."""
+    p = Path(path)
+    if p.is_dir():
+        raise InputError("is a directory, not a file", path=str(p), column=flag)
+    if not p.is_file():
+        raise InputError("no such file", path=str(p), column=flag)
+
+
 def check_output_file(path: str | Path, flag: str | None = None) -> None:
     """:func:`check_output_dir` for the directory of a file to be written; the file itself
     must not be a directory."""

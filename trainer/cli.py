@@ -9,13 +9,13 @@ from typing import Any
 import numpy as np
 
 from fbgforce.cli import non_negative_float, positive_int
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 
 def _check_files(paths: list[str], flag: str) -> None:
     for p in paths:
-        if not Path(p).is_file():
-            raise InputError("no such file", path=p, column=flag)
+        fileio.check_input_file(p, flag)
 
 
 def register(subparsers: Any) -> None:
@@ -112,11 +112,12 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     _check_files(args.data, "--data")
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
+    fileio.check_output_dir(args.out, "--out")
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
                   memory=args.memory, restarts=_restarts(args.restarts),
                   sigma=args.sigma, window=args.window, init=args.init,
                   train_fraction=args.train_fraction)
-    fm.save(model, args.out)
+    fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}
     from fbgforce.metrics import headline
@@ -166,6 +167,8 @@ def _analyze(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.train import load_datasets, prepare
 
     _check_files(args.data, "--data")
+    if args.plot:
+        fileio.check_output_file(args.plot, "--plot")
     ds_list, described = load_datasets(args.data)
     data = prepare(ds_list, seed=args.seed, sources=[d["path"] for d in described])
     rows = np.flatnonzero(data.contact)
@@ -197,6 +200,8 @@ def _report(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.report import build_report, to_markdown, write
 
     _check_files(args.data, "--data")
+    if args.out:
+        fileio.check_output_dir(args.out, "--out")
     rep = build_report(args.data, model_dir=args.model, epochs=args.epochs, seed=args.seed,
                        sigma=args.sigma)
     if args.out:

@@ -285,10 +285,12 @@ def _delay(stats: dict[str, Any]) -> str:
 
 def write(rep: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
     """Write ``report.md`` and ``report.json`` into ``out_dir``."""
+    from fbgforce import fileio
+
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     md, js = out / "report.md", out / "report.json"
-    md.write_text(to_markdown(rep))
-    js.write_text(json.dumps(rep, indent=2, default=json_default) + "\n")
+    with fileio.Outputs("--out") as files:
+        files.write_text(md, to_markdown(rep))
+        files.write_text(js, json.dumps(rep, indent=2, default=json_default) + "\n")
     return md, js
 
