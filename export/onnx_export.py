@@ -34,7 +34,8 @@ from onnx import TensorProto, helper, numpy_helper
 from fbgforce import __version__
 from fbgforce.errors import InputError
 from fbgforce.freshness import weights_digest
-from fbgforce.model import HierarchicalModel, MLP, features
+from fbgforce.model import HierarchicalModel, MLP, features, safe_output
+from fbgforce.samples import sensor_fault_rows
 
 #: File name of the exported graph inside a model directory.
 ONNX_FILE = "model.onnx"
@@ -292,15 +293,16 @@ def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm:
     -------
     dict
         ``contact`` (bool), ``p_contact``, ``force_N`` (0 where no contact), ``x_mm``,
-        ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool).
+        ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool),
+        ``status`` (``SENSOR_FAULT`` on samples with a lost peak, which get the safe output).
     """
     z = features(model, wl_nm, baseline_nm)
     raw = run_features(model, z, model_dir)
     contact = raw["contact"].astype(bool)
-    return {
+    return safe_output({
         "contact": contact,
         "p_contact": raw["p_contact"].astype(np.float64),
         "force_N": np.where(contact, raw["force_N"].astype(np.float64), 0.0),
         "x_mm": np.where(contact, raw["x_mm"].astype(np.float64), np.nan),
         "y_mm": np.where(contact, raw["y_mm"].astype(np.float64), np.nan),
-    }
+    }, sensor_fault_rows(wl_nm))

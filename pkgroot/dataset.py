@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from fbgforce import fileio
+from fbgforce import fileio, samples
 from fbgforce.errors import InputError
 
 #: Wavelength columns in array order (``wl_nm[:, k]``).
@@ -38,7 +38,7 @@ WL_COLUMNS = ("wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm")
 REQUIRED_COLUMNS = ("t_s",) + WL_COLUMNS + ("contact", "x_mm", "y_mm", "force_N", "press_id")
 #: Accepted peak-wavelength range, nm. FBG interrogators work around 1300 or 1550 nm; a value
 #: outside this range is a unit mistake (µm, pm, m) or a garbled line, not a measurement.
-WL_RANGE_NM = (1000.0, 2000.0)
+WL_RANGE_NM = samples.WL_RANGE_NM
 #: Forces below this are rejected. A tared load cell reads a little below zero at rest
 #: (noise, drift); such values are genuine data and are kept. Anything more negative means
 #: a sign convention or tare error in the log.
@@ -313,8 +313,7 @@ def validate_columns(cols: dict[str, np.ndarray]) -> list[Problem]:
         with np.errstate(invalid="ignore"):
             bad = ~((wl >= lo) & (wl <= hi))
         _check(problems, name, bad,
-               lambda i, wl=wl: (f"wavelength {_num(wl[i])} nm outside {lo:g}-{hi:g} nm, likely a "
-                                 "unit mistake (the column must be in nm)" if np.isfinite(wl[i])
+               lambda i, wl=wl: (samples.unit_hint(wl[i]) if np.isfinite(wl[i])
                                  else "missing wavelength"))
     c = cols["contact"]
     contact_bad = ~((c == 0) | (c == 1))
@@ -625,10 +624,11 @@ def _load_npz(path: Path) -> Dataset:
         raise InputError("empty file: no arrays", path=spath)
     cols: dict[str, np.ndarray] = {}
     if "wl_nm" in arrays:
-        wl = arrays["wl_nm"]
-        if wl.ndim != 2 or wl.shape[1] != len(WL_COLUMNS):
-            raise InputError(f"wl_nm must have shape (n, 5), has {wl.shape}", path=spath,
-                             column="wl_nm")
+        try:
+            # Shape and dtype here; each row's values are checked below, line by line.
+            wl = samples.wavelength_array(arrays["wl_nm"], name="wl_nm", check_unit=False)
+        except InputError as exc:
+            raise InputError(exc.reason, path=spath, column="wl_nm") from None
         for k, name in enumerate(WL_COLUMNS):
             cols[name] = wl[:, k]
     for name in REQUIRED_COLUMNS:

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce import contract
+from fbgforce import contract, samples
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
@@ -473,9 +473,26 @@ def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
 
 
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
-    """Net inputs (n, F) for one continuous recording: standardised channels and memory."""
+    """Net inputs (n, F) for one continuous recording: standardised channels and memory.
+
+    Samples with a lost peak (:func:`fbgforce.samples.sensor_fault_rows`) are handled as the
+    C runtime handles a sensor fault: the filter is fed the last good input again (zeros
+    before any), the memory states skip the sample (they are frozen), and the sample's own
+    row holds zeros in place of memory features (its outputs are the safe output).
+    """
     pre = model.preprocess
-    return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
+    comp = compensate(model, wl_nm, baseline_nm)
+    fault = samples.sensor_fault_rows(wl_nm)
+    if not fault.any():
+        return standardise(pre, apply_filter(pre, comp))
+    good = np.flatnonzero(~fault)
+    last_good = np.maximum.accumulate(np.where(fault, -1, np.arange(fault.size)))
+    held = np.where((last_good >= 0)[:, None], comp[np.maximum(last_good, 0)], 0.0)
+    z = (apply_filter(pre, held) - pre.input_mean) / pre.input_std
+    out = np.zeros((z.shape[0], pre.n_inputs))
+    out[:, :N_STRAIN] = z
+    out[good] = memory_features(pre.memory, z[good], pre.z_rest)
+    return out
 
 
 def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: int = 0
@@ -523,11 +540,57 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray) -> dict[str, 
     }
 
 
-def predict(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray | None = None
-            ) -> dict[str, np.ndarray]:
-    """Full float pipeline on one continuous recording of raw wavelengths (n, 5) in nm."""
-    base = model.baseline_nm if baseline_nm is None else baseline_nm
-    return predict_from_features(model, features(model, wl_nm, base))
+def safe_output(out: dict[str, np.ndarray], fault: np.ndarray) -> dict[str, np.ndarray]:
+    """Give the samples where ``fault`` (n,) is True the runtime's safe output with the
+    ``SENSOR_FAULT`` status bit: no contact, probability 0, 0 N, no location. Adds ``status``
+    (uint32, the C runtime's bits) to ``out`` (in place) and returns it."""
+    fault = np.asarray(fault, dtype=bool)
+    out["contact"] = np.asarray(out["contact"], dtype=bool) & ~fault
+    for key, value in (("p_contact", 0.0), ("force_N", 0.0), ("x_mm", np.nan), ("y_mm", np.nan),
+                       ("force_raw_N", np.nan), ("x_raw_mm", np.nan), ("y_raw_mm", np.nan)):
+        if key in out:
+            out[key] = np.where(fault, value, np.asarray(out[key], dtype=np.float64))
+    out["status"] = np.where(fault, np.uint32(contract.STATUS_FLAG["SENSOR_FAULT"]),
+                             np.uint32(0)).astype(np.uint32)
+    return out
+
+
+def predict(model: HierarchicalModel, wl_nm: Any, baseline_nm: Any = None, *,
+            rate_hz: float | None = None) -> dict[str, np.ndarray]:
+    """Full float pipeline on one continuous recording of raw wavelengths.
+
+    Parameters
+    ----------
+    model
+        The float model.
+    wl_nm
+        (n, 5) peak wavelengths of gratings 1..4 and T in nm, real numbers; validated by
+        :func:`fbgforce.samples.wavelength_array` (wrong shape, dtype or unit: InputError).
+        A sample with a non-finite value or a peak outside 1000-2000 nm is a sensor fault.
+    baseline_nm
+        (5,) unloaded wavelengths to tare against, nm; default the model's training baseline.
+    rate_hz
+        The data's sample rate, if known: refused when it differs from the model's
+        (:func:`fbgforce.samples.check_rate`).
+
+    Returns
+    -------
+    dict
+        :func:`predict_from_features`'s keys, plus ``status`` (uint32): ``SENSOR_FAULT``
+        (0x08) on faulty samples, whose outputs are the safe output (:func:`safe_output`).
+    """
+    wl = samples.wavelength_array(wl_nm, name="wl_nm")
+    if rate_hz is not None:
+        samples.check_rate(model, rate_hz)
+    if baseline_nm is None:
+        base = model.baseline_nm
+    else:
+        base = samples.wavelength_array(baseline_nm, name="baseline_nm", single=True)
+        if base.shape[0] != 1 or samples.sensor_fault_rows(base).any():
+            raise InputError("baseline_nm must be 5 finite wavelengths within 1000-2000 nm")
+        base = base[0]
+    out = predict_from_features(model, features(model, wl, base))
+    return safe_output(out, samples.sensor_fault_rows(wl))
 
 
 # --------------------------------------------------------------------------------------------
