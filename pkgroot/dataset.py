@@ -20,6 +20,7 @@ Validation rules (docs/dataset.md):
 """
 from __future__ import annotations
 
+import csv
 import io
 import zipfile
 import zlib
@@ -205,6 +206,31 @@ def concat(datasets: Iterable[Dataset]) -> Dataset:
         extra=extra,
         source=" + ".join(sources),
     )
+
+
+def resample(ds: Dataset, rate_hz: float) -> Dataset:
+    """The recording on a uniform time grid at ``rate_hz`` from its first sample.
+
+    Wavelengths and force are interpolated linearly; contact, location, press and extra
+    columns are taken from the nearest original sample (a location only where that sample is
+    in contact), so the result keeps the contract.
+    """
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"sample rate must be a positive number, not {rate_hz!r}")
+    t = ds.t_s
+    if len(ds) < 2:
+        return ds.subset(slice(None))
+    grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate_hz + 1e-9)) + 1) / rate_hz
+    wl = np.column_stack([np.interp(grid, t, ds.wl_nm[:, k]) for k in range(ds.wl_nm.shape[1])])
+    right = np.clip(np.searchsorted(t, grid), 1, len(t) - 1)
+    nearest = np.where(grid - t[right - 1] <= t[right] - grid, right - 1, right)
+    contact = ds.contact[nearest]
+    return Dataset(t_s=grid, wl_nm=wl, contact=contact,
+                   x_mm=np.where(contact, ds.x_mm[nearest], np.nan),
+                   y_mm=np.where(contact, ds.y_mm[nearest], np.nan),
+                   force_N=np.interp(grid, t, ds.force_N), press_id=ds.press_id[nearest],
+                   extra={k: v[nearest] for k, v in ds.extra.items()},
+                   source=f"{ds.source} resampled to {rate_hz:g} Hz")
 
 
 def split_by_press(
@@ -417,7 +443,7 @@ def _load_csv(path: Path) -> Dataset:
         raise InputError("empty file: no header row (expected columns "
                          + ", ".join(REQUIRED_COLUMNS) + ")", path=spath)
     header_line = line
-    names = [h.strip() for h in header.split(",")]
+    names = _header_names(header, spath, header_line)
     seen: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
@@ -456,7 +482,8 @@ def _load_csv(path: Path) -> Dataset:
             raise InputError("no data rows after the header", path=spath, line=header_line)
         data = [lines[i] for i in keep]
         line_no = np.asarray(keep, dtype=np.int64) + header_line + 1
-        nfields = np.fromiter((ln.count(",") + 1 for ln in data), dtype=np.int64, count=len(data))
+        fields = _split_rows(data, spath, line_no)
+        nfields = np.fromiter((len(f) for f in fields), dtype=np.int64, count=len(fields))
         bad = np.flatnonzero(nfields != ncol)
         if bad.size:
             i = int(bad[0])
@@ -465,7 +492,7 @@ def _load_csv(path: Path) -> Dataset:
                              path=spath, line=int(line_no[i]))
         matrix = None if text_columns else _parse_numeric_fast("\n".join(data))
         if matrix is None:
-            cols_num, extra_raw = _parse_slow(data, names, line_no, spath, text_columns)
+            cols_num, extra_raw = _parse_slow(fields, names, line_no, spath, text_columns)
         else:
             cols_num = {name: matrix[:, j] for j, name in enumerate(names)}
             extra_raw = {}
@@ -504,12 +531,38 @@ def _parse_numeric_fast(data: str) -> np.ndarray | None:
         return None
 
 
-def _parse_slow(data: list[str], names: list[str], line_no: np.ndarray, spath: str,
+def _header_names(header: str, spath: str, line: int) -> list[str]:
+    """The column names of the header line, read by :mod:`csv` (quoted names allowed); a
+    header separated by another delimiter is refused naming it."""
+    names = [h.strip() for h in next(csv.reader([header]))]
+    if len(names) == 1:
+        for delimiter, label in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+            if delimiter in header:
+                raise InputError(f"the header is separated by {label} ({delimiter!r}); dataset "
+                                 "CSV files are comma-separated (save or export with ',' as the "
+                                 "delimiter and '.' as the decimal point)", path=spath, line=line)
+    return names
+
+
+def _split_rows(data: list[str], spath: str, line_no: np.ndarray) -> list[list[str]]:
+    """The fields of each data line, read by :mod:`csv` (quoted fields allowed)."""
+    try:
+        return list(csv.reader(data, strict=True))
+    except csv.Error:
+        pass
+    for i, ln in enumerate(data):  # again line by line, to name the line at fault
+        try:
+            next(csv.reader([ln], strict=True))
+        except csv.Error as exc:
+            raise InputError(f"not valid CSV: {exc}", path=spath, line=int(line_no[i])) from None
+    raise InputError("not valid CSV", path=spath)
+
+
+def _parse_slow(fields: list[list[str]], names: list[str], line_no: np.ndarray, spath: str,
                 text_columns: set[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Per-field parsing, used only when the fast path cannot be: finds the non-numeric fields
     of required columns (first line and count per column) and keeps text extra columns (and
     those the dtype comment declares text, even if they look numeric) as text."""
-    fields = [ln.split(",") for ln in data]
     problems: list[Problem] = []
     numeric: dict[str, np.ndarray] = {}
     text_extra: dict[str, np.ndarray] = {}

@@ -48,6 +48,9 @@ HIGH_FORCE_N = 5.0
 CONTACT_BINS_N: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0, 10.0)
 #: Force above which the contact goal is "every sample detected" (``contact_accuracy_above_1N``).
 LIGHT_FORCE_N = 1.0
+#: Fewest presses a held-out split should hold for its metrics to mean much: fewer is a
+#: warning (``warnings`` in the JSON of train and evaluate), not an error.
+MIN_SPLIT_PRESSES = 5
 
 
 def _pad_size_mm() -> tuple[float, float]:
@@ -290,3 +293,13 @@ def headline(metrics: Mapping[str, Any]) -> str:
     return (f"acc {fmt(None if acc is None else 100 * acc, '.1f')}% "
             f"F {fmt(metrics.get('rmse_force_N'), '.2f')} N "
             f"x {fmt(metrics.get('rmse_x_mm'), '.2f')} y {fmt(metrics.get('rmse_y_mm'), '.2f')} mm")
+
+
+def few_presses_warning(split: str, n_presses: int) -> str | None:
+    """The warning for a ``split`` ("test", "val") scored on ``n_presses`` presses, or None
+    when they are at least :data:`MIN_SPLIT_PRESSES`."""
+    if n_presses >= MIN_SPLIT_PRESSES:
+        return None
+    return (f"the {split} split holds {n_presses} press{'es' if n_presses != 1 else ''} "
+            f"(fewer than {MIN_SPLIT_PRESSES}): its metrics rest on too little data; record "
+            "more presses (the split is 8:1:1 by press) or score other recordings")

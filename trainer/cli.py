@@ -72,6 +72,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--split", choices=SPLITS, default="all",
                    help="score all samples (default) or one part of the by-press split made "
                         "with the model's seed")
+    p.add_argument("--resample", action="store_true",
+                   help="bring recordings sampled at another rate than the model's to its rate "
+                        "(linear interpolation) instead of refusing them")
     add_json_flag(p)
     p.set_defaults(handler=_evaluate)
 
@@ -156,9 +159,12 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.evaluate import evaluate
 
     _check_files(args.data, "--data")
-    out = evaluate(args.model, args.data, engine=args.engine, split=args.split)
+    out = evaluate(args.model, args.data, engine=args.engine, split=args.split,
+                   resample=args.resample)
     if not args.json:
         print(f"{args.engine}: {headline(out)} (n={out['n_samples']})")
+    for warning in out["warnings"]:
+        print(f"fbgforce evaluate: warning: {warning}", file=sys.stderr)
     return out
 
 
