@@ -314,12 +314,15 @@ def to_markdown(rep: dict[str, Any]) -> str:
         on, off = timing["onset_delay_ms"], timing["release_delay_ms"]
         lines += ["", f"Per press ({timing['presses']} presses, {timing['missed_presses']} "
                   "missed): onset delay " + _delay(on) + "; release delay " + _delay(off) + "."]
-    lines += ["", "## Checks", ""]
-    notes = rep.get("check_notes", {})
-    for k, v in rep["checks"].items():
-        lines.append(f"- {k}: {v}" + (f" ({notes[k]})" if k in notes else ""))
-    lines.append("")
+    lines += ["", "## Checks", "", *check_lines(rep), ""]
     return "\n".join(lines)
+
+
+def check_lines(rep: dict[str, Any]) -> list[str]:
+    """One Markdown list item per check: its value and what it means (``check_notes``)."""
+    notes = rep.get("check_notes", {})
+    return [f"- {k}: {v}" + (f" ({notes[k]})" if k in notes else "")
+            for k, v in rep["checks"].items()]
 
 
 def _delay(stats: dict[str, Any]) -> str:
