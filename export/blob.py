@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -164,10 +165,19 @@ def blob_path(model: str | Path) -> Path:
     return p / FILE_NAME if p.is_dir() else p
 
 
-def load_model_blob(model: str | Path) -> QModel:
-    """Read and parse the blob of a model directory (or a blob file)."""
+def load_model_blob(model: str | Path, float_model: Any = None) -> QModel:
+    """Read and parse the blob of a model directory (or a blob file).
+
+    A directory's blob must have been exported from its float model
+    (:func:`fbgforce.freshness.check_export`; ``float_model``: that model, if loaded already).
+    """
+    from fbgforce.freshness import check_export
+
     p = blob_path(model)
     if not p.is_file():
         raise InputError("no fixed-point model blob; run 'fbgforce export --model DIR' first",
                          path=str(p))
-    return from_bytes(p.read_bytes(), path=str(p))
+    q = from_bytes(p.read_bytes(), path=str(p))
+    if Path(model).is_dir():
+        check_export(model, float_model)
+    return q

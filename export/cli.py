@@ -42,12 +42,14 @@ def register(subparsers: Any) -> None:
         "verify", help="C fixed point vs integer reference vs float on every sample",
         description="Run the C fixed-point runtime, the numpy integer reference and the float model "
                     "on recordings (tared on their contact-free samples) and compare: mismatches "
-                    "(C vs integer reference, any output bit) must be 0; fixed vs float errors and "
-                    "contact disagreements measure the quantisation.")
+                    "(C vs integer reference, any output bit) must be 0, else the exit status is "
+                    "1; fixed vs float errors and contact disagreements measure the "
+                    "quantisation. A model.fbgm exported from another model is refused (exit 2).")
     v.add_argument("--model", required=True, metavar="DIR", help="exported model directory")
     v.add_argument("--data", required=True, nargs="+", metavar="FILE", help="recording(s)")
     v.add_argument("--fail-on-mismatch", action="store_true",
-                   help="exit with status 1 when any sample mismatches")
+                   help="kept for old scripts: verify always exits with status 1 when any "
+                        "sample mismatches")
     add_json_flag(v)
     v.set_defaults(handler=_verify)
 
@@ -88,7 +90,7 @@ def _verify(args: argparse.Namespace) -> dict[str, Any]:
     if not args.json:
         for k, v in res.items():
             print(f"{k}: {v}")
-    if args.fail_on_mismatch and res["mismatches"]:
+    if res["mismatches"]:
         print(f"fbgforce verify: {res['mismatches']} mismatching samples", file=sys.stderr)
         if args.json:
             from fbgforce.cli import emit

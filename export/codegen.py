@@ -165,18 +165,25 @@ def float_source(model: fm.HierarchicalModel, name: str, jump_max_fm: int,
     return hdr, src
 
 
-def write_c(q: QModel, model: fm.HierarchicalModel, out_dir: str | Path, name: str = "fbgforce"
-            ) -> list[Path]:
-    """Write the four files into ``out_dir``; returns their paths."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+def c_sources(q: QModel, model: fm.HierarchicalModel, name: str = "fbgforce") -> dict[str, str]:
+    """The four generated files by name: ``<name>_model.{h,c}`` and ``<name>_model_f32.{h,c}``."""
     ident = c_identifier(name)
     hdr, src = fixed_source(q, ident)
     fhdr, fsrc = float_source(model, ident, q.jump_max_fm, q.overload_mN / 1000.0, q.stuck_max)
-    files = {f"{ident}_model.h": hdr, f"{ident}_model.c": src,
-             f"{ident}_model_f32.h": fhdr, f"{ident}_model_f32.c": fsrc}
+    return {f"{ident}_model.h": hdr, f"{ident}_model.c": src,
+            f"{ident}_model_f32.h": fhdr, f"{ident}_model_f32.c": fsrc}
+
+
+def write_c(q: QModel, model: fm.HierarchicalModel, out_dir: str | Path, name: str = "fbgforce"
+            ) -> list[Path]:
+    """Write the four files of :func:`c_sources` into ``out_dir`` (atomically, all or none);
+    returns their paths."""
+    from fbgforce import fileio
+
+    out = Path(out_dir)
     paths = []
-    for fname, text in files.items():
-        (out / fname).write_text(text)
-        paths.append(out / fname)
+    with fileio.Outputs() as files:
+        for fname, text in c_sources(q, model, name).items():
+            files.write_text(out / fname, text)
+            paths.append(out / fname)
     return paths

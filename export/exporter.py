@@ -8,6 +8,7 @@ calibration data, and the fixed-vs-float error on it).
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -15,45 +16,14 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import fileio, freshness
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
 
-REPORT_FILE = "export_report.json"
-C_DIR = "c"
-
-
-def model_digest(model: fm.HierarchicalModel) -> str:
-    """SHA-256 of everything the fixed-point model is quantised from (nets, output scaling,
-    preprocessing, nominal baseline): recorded at export to recognise a stale model.fbgm."""
-    import hashlib
-
-    from fbgforce.export.onnx_export import weights_digest
-
-    pre = model.preprocess
-    h = hashlib.sha256(weights_digest(model).encode())
-    h.update(pre.filter_kind.encode())
-    for arr in (pre.temp_coeff, pre.taps, pre.input_mean, pre.input_std, model.baseline_nm):
-        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
-    return h.hexdigest()
-
-
-def check_fresh(model_dir: str | Path, model: fm.HierarchicalModel) -> None:
-    """Raise InputError if model.fbgm was exported from other weights than ``model``'s.
-
-    Directories exported before the digest existed (no report key) are accepted.
-    """
-    rep = Path(model_dir) / REPORT_FILE
-    if not rep.is_file():
-        return
-    try:
-        digest = json.loads(rep.read_text()).get("model_digest")
-    except (json.JSONDecodeError, AttributeError):
-        return
-    if digest is not None and digest != model_digest(model):
-        raise InputError("model.fbgm is stale (the model was retrained after export); run "
-                         "'fbgforce export --model DIR' again", path=str(Path(model_dir) / blob.FILE_NAME))
+REPORT_FILE = freshness.REPORT_FILE
+C_DIR = freshness.C_DIR
 
 
 def recording_baseline(ds: Any, path: str | None = None) -> np.ndarray:
@@ -101,14 +71,17 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     q, report = qz.quantize(model, cal, bits=bits, jump_nm=jump_nm, overload_N=overload_N,
                             stuck_samples=stuck_samples, acc32_max_drop=acc32_max_drop)
     data = blob.to_bytes(q)
-    (root / blob.FILE_NAME).write_bytes(data)
-    files = [str(root / blob.FILE_NAME)]
-    files += [str(p) for p in codegen.write_c(q, model, root / C_DIR, name)]
+    # Everything is made in memory first, then written as one atomic set: a failed write (a
+    # full disk) leaves the previous export whole, never a new blob beside an old header.
+    outputs: dict[str, bytes] = {}
     if onnx:
-        from fbgforce.export.onnx_export import export_onnx
+        from fbgforce.export.onnx_export import checked_graph
 
-        export_onnx(model, root / "model.onnx")
-        files.insert(0, str(root / "model.onnx"))
+        outputs[freshness.ONNX_FILE] = checked_graph(model).SerializeToString()
+    outputs[blob.FILE_NAME] = data
+    for fname, text in codegen.c_sources(q, model, name).items():
+        outputs[f"{C_DIR}/{fname}"] = text.encode()
+    files = [str(root / rel) for rel in outputs]
 
     # Measured on the calibration data: the largest accumulators (to set beside the proven
     # bounds) and the fixed-vs-float error.
@@ -129,14 +102,20 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
             info["calib_max_abs_acc"] = trace.get(f"{name_net}.{i}", 0)
     report["fir"]["calib_max_abs_acc"] = trace.get("fir", 0)
     report.update({
-        "model": str(root), "model_digest": model_digest(model), "calibration_files": paths, "files": files, "blob_bytes": len(data),
+        "model": str(root), freshness.DIGEST_KEY: freshness.model_digest(model),
+        freshness.FILES_KEY: {rel: hashlib.sha256(b).hexdigest() for rel, b in outputs.items()},
+        "calibration_files": paths, "files": files, "blob_bytes": len(data),
         "const_bytes": const_bytes(q),
         "state_bytes": _state_bytes(),
         "calibration_check": {"samples": samples, "contact_disagreements": disagree,
                               **{f"max_abs_err_{k}": v for k, v in errs.items()}},
         "seconds": round(time.perf_counter() - t0, 3),
     })
-    (root / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n")
+    with fileio.Outputs("--model") as out:
+        for rel, content in outputs.items():
+            out.write_bytes(root / rel, content)
+        # Written last of the set: whatever happens, the record never names files not there.
+        out.write_text(root / REPORT_FILE, json.dumps(report, indent=2) + "\n")
     return report
 
 

@@ -439,9 +439,6 @@ def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_
                   baseline_nm: np.ndarray) -> dict[str, Any]:
     """Engine ``intref``: the integer reference on ``model_dir/model.fbgm``."""
     from fbgforce.export.blob import load_model_blob
-    from fbgforce.export.exporter import check_fresh
 
-    if model is not None:
-        check_fresh(model_dir, model)
-    q = load_model_blob(model_dir)
+    q = load_model_blob(model_dir, float_model=model)
     return to_engine_dict(run(q, nm_to_fm(wl_nm), nm_to_fm(np.asarray(baseline_nm).reshape(5))))

@@ -23,7 +23,6 @@ whole feature vector, ``[N, F]`` with F = 4 without memory.
 """
 from __future__ import annotations
 
-import hashlib
 import threading
 from pathlib import Path
 from typing import Any
@@ -34,7 +33,10 @@ from onnx import TensorProto, helper, numpy_helper
 
 from fbgforce import __version__
 from fbgforce.errors import InputError
-from fbgforce.model import MLP, FloatPipeline, HierarchicalModel, features, predict_from_features
+from fbgforce.freshness import weights_digest
+from fbgforce.model import (MLP, FloatPipeline, HierarchicalModel, features, predict_from_features,
+                            safe_output)
+from fbgforce.samples import sensor_fault_rows
 
 #: File name of the exported graph inside a model directory.
 ONNX_FILE = "model.onnx"
@@ -44,28 +46,11 @@ IR_VERSION = 8
 INPUT_NAME = "z"
 #: Output names, in graph order.
 OUTPUT_NAMES = ("contact_logits", "contact", "p_contact", "force_N", "x_mm", "y_mm")
-#: Metadata key holding :func:`weights_digest` of the model the graph was made from.
+#: Metadata key holding :func:`fbgforce.freshness.weights_digest` of the model the graph was
+#: made from.
 DIGEST_KEY = "fbgforce.weights_sha256"
 _BATCH = "N"
 _NET_PREFIX = {"contact": "contact_net", "force": "force_net", "location": "location_net"}
-
-
-def weights_digest(model: HierarchicalModel) -> str:
-    """SHA-256 over everything the graph depends on (net weights and output scaling).
-
-    Stored in the graph's metadata so that a stale ``model.onnx`` (the model was retrained
-    into the same directory after export) is recognised instead of silently used.
-    """
-    h = hashlib.sha256()
-    for name, net in model.nets.items():
-        h.update(name.encode())
-        for w, b in zip(net.weights, net.biases):
-            h.update(np.ascontiguousarray(w, dtype="<f8").tobytes())
-            h.update(np.ascontiguousarray(b, dtype="<f8").tobytes())
-    scaling = np.concatenate([[model.force_offset, model.force_scale], model.xy_offset,
-                              model.xy_scale])
-    h.update(np.ascontiguousarray(scaling, dtype="<f8").tobytes())
-    return h.hexdigest()
 
 
 def _mlp_nodes(net: MLP, prefix: str, x: str, out: str, inits: list[onnx.TensorProto],
@@ -215,11 +200,17 @@ def export_onnx(model: HierarchicalModel, path: str | Path) -> onnx.ModelProto:
     onnx.ModelProto
         The graph written, already through ``onnx.checker.check_model(full_check=True)``.
     """
+    from fbgforce import fileio
+
+    proto = checked_graph(model)
+    fileio.write_bytes(path, proto.SerializeToString())
+    return proto
+
+
+def checked_graph(model: HierarchicalModel) -> onnx.ModelProto:
+    """:func:`build_graph` through ``onnx.checker.check_model(full_check=True)``."""
     proto = build_graph(model)
     onnx.checker.check_model(proto, full_check=True)
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    onnx.save(proto, out)
     return proto
 
 
@@ -246,7 +237,7 @@ def session_for(model: HierarchicalModel, model_dir: str | Path | None = None) -
     """The cached onnxruntime ``InferenceSession`` for ``model``.
 
     Uses ``model_dir/model.onnx`` when it exists and was exported from these very weights
-    (checked by :func:`weights_digest`); otherwise builds the graph in memory, so a missing or
+    (checked by :func:`~fbgforce.freshness.weights_digest`); otherwise builds the graph in memory, so a missing or
     stale file never changes the numbers. One session per (file, digest) is kept for the
     life of the process.
     """
@@ -303,7 +294,8 @@ def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm:
     -------
     dict
         ``contact`` (bool), ``p_contact``, ``force_N`` (0 where no contact), ``x_mm``,
-        ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool).
+        ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool),
+        ``status`` (``SENSOR_FAULT`` on samples with a lost peak, which get the safe output).
     """
     def nets(x: np.ndarray, decide: Any) -> dict[str, np.ndarray]:
         # The graph gates the location net on the net's own contact; the decision over time
@@ -317,8 +309,9 @@ def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm:
                 "x_raw_mm": raw["x_mm"].astype(np.float64), "y_raw_mm": raw["y_mm"].astype(np.float64)}
 
     wl = np.asarray(wl_nm, dtype=np.float64)
-    if not model.runs_in_use:
-        out = predict_from_features(model, features(model, wl, baseline_nm), nets=nets)
-    else:
+    if model.runs_in_use:
         out = FloatPipeline(model, baseline_nm, nets=nets).push(wl)
-    return {k: out[k] for k in ("contact", "p_contact", "force_N", "x_mm", "y_mm")}
+    else:
+        out = safe_output(predict_from_features(model, features(model, wl, baseline_nm), nets=nets),
+                          sensor_fault_rows(wl))
+    return {k: out[k] for k in ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")}

@@ -6,6 +6,7 @@ import math
 import sys
 from typing import Any
 
+from fbgforce import signals
 from fbgforce.cli import non_negative_int, positive_float, positive_int
 from fbgforce.errors import InputError
 
@@ -150,7 +151,8 @@ def register(subparsers: Any) -> None:
                    help="tare on the first N samples, fingertip unloaded (default 200 = 0.2 s; "
                         "0 = use the model's training baseline)")
     p.add_argument("--channels", type=positive_int, default=5,
-                   help="gratings per frame (default 5: FBG 1..4 and T)")
+                   help="gratings per frame (default 5: FBG 1..4 and T; with more, the first "
+                        "five are FBG 1..4 and T)")
     _add_stop_options(p)
     add_json_flag(p)
     p.set_defaults(handler=_stream)
@@ -194,10 +196,9 @@ def _emulate(args: argparse.Namespace) -> dict[str, Any]:
     if args.linger < 0:
         raise InputError("must be >= 0", column="--linger")
     if args.data is not None:
-        from pathlib import Path
+        from fbgforce import fileio
 
-        if not Path(args.data).is_file():
-            raise InputError("no such file", path=args.data, column="--data")
+        fileio.check_input_file(args.data, "--data")
     hyperion = args.protocol == "hyperion"
     if hyperion and args.link:
         raise InputError("hyperion serves TCP ports, not a pty: use --command-port/--stream-port",
@@ -228,8 +229,11 @@ def _emulate(args: argparse.Namespace) -> dict[str, Any]:
         print("emulate: waiting for a client on every port (Ctrl-C to stop)", file=sys.stderr,
               flush=True)
     max_samples = None if args.duration is None else math.ceil(args.duration * args.rate)
+    stopped_by = None
     try:
         stats = em.run(max_samples=max_samples)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: how an endless emulator ends
+        stats, stopped_by = em.stats, signals.signal_name(exc)
     finally:
         em.close()
     ports = {"address": em.address, "command_port": em.command_port,
@@ -237,7 +241,7 @@ def _emulate(args: argparse.Namespace) -> dict[str, Any]:
     result = {"protocol": args.protocol, "rate_hz": args.rate, **em.paths, **ports,
               "samples": len(playback), "fault_plan": {
                   name: int((plan == code).sum()) for code, name in enumerate(E.FAULTS) if code},
-              **stats.as_dict()}
+              **stats.as_dict(), "interrupted": stopped_by is not None, "signal": stopped_by}
     if not args.json:
         print(f"emulate: played {stats.samples_played} samples, {stats.frames_sent} intact frames"
               f" ({stats.dropped} dropped, {stats.flipped} flipped, {stats.truncated} truncated, "
@@ -260,8 +264,11 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
 
     from fbgforce.interrogator.nodata import no_data_error
     from fbgforce.interrogator.publish import open_publishers
-    from fbgforce.interrogator.stream import LiveEstimator, run_stream
+    from fbgforce.interrogator.stream import N_GRATINGS, LiveEstimator, run_stream
 
+    if args.channels < N_GRATINGS:
+        raise InputError(f"the model reads {N_GRATINGS} gratings per sample (FBG 1..4 and T); "
+                         f"frames of {args.channels} cannot feed it", column="--channels")
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
     reader = _open_reader(args, args.model, channels=args.channels)
     protocol = _protocol(args)

@@ -13,6 +13,8 @@ from fbgforce.errors import InputError
 #: How long a run with a stop condition (--duration, --samples, --idle-timeout) waits for its
 #: first sample when --start-timeout is not given: such a run is meant to end on its own.
 DEFAULT_START_TIMEOUT_S = 5.0
+#: URL schemes of sources reached over the network (no serial device, no dialout group).
+NETWORK_SCHEMES = ("socket", "rfc2217", "hyperion", "tcp")
 
 
 def start_timeout_for(start_timeout: float | None, duration: float | None,
@@ -44,8 +46,12 @@ def no_data_error(port: str, protocol: str, waited_s: float, stats: dict[str, An
         error = (last_error or "unknown error").replace("\n", " ").strip()
         reason = (f"could not open it ({failures} attempt{'s' if failures != 1 else ''}; "
                   f"last error: {error})")
-        check = ("check the device path or URL, that the interrogator is plugged in and on, "
-                 "and that you may open it (e.g. the dialout group)")
+        if port.split("://", 1)[0] in NETWORK_SCHEMES:
+            check = ("check the host and port, that the instrument is on and reachable from "
+                     "here (ping, firewall) and that it accepts connections on that port")
+        else:
+            check = ("check the device path or URL, that the interrogator is plugged in and "
+                     "on, and that you may open it (e.g. the dialout group)")
     elif nbytes == 0:
         polls = int(stats.get("polls", 0))
         reason = "the port opened but no byte arrived" + (f" ({polls} polls unanswered)" if polls else "")

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce import fileio, signals
 from fbgforce.errors import InputError
 from fbgforce.interrogator.protocol import Frame, LoadCellSample, fm_to_nm
 from fbgforce.interrogator.reader import LoadCellReader, Reader
@@ -120,11 +121,12 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
         from fbgforce.interrogator.mcaplog import writer_class
 
         writer_class(out)  # a missing extra fails now, not after the recording
+    fileio.check_output_file(out, "--out")
     join = Joiner()
     started = time.monotonic()
     first = last = None
     last_report = started
-    interrupted = False
+    stopped_by = None
     try:
         while True:
             frames = reader.read(0.01)
@@ -150,8 +152,10 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
                 break
             if idle_timeout is not None and now - last >= idle_timeout:
                 break
-    except KeyboardInterrupt:
-        interrupted = True  # the operator ends the recording: keep what was joined
+    except KeyboardInterrupt as exc:
+        # The operator (Ctrl-C) or a service manager (SIGTERM) ends the recording: keep what
+        # was joined.
+        stopped_by = signals.signal_name(exc)
     join.finish()
     pairs = join.pairs[:max_samples] if max_samples is not None else join.pairs
     if not pairs:
@@ -176,7 +180,8 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
         "loadcell_lost_lines": ls.get("lost_frames", 0),
         "loadcell_bad_lines": ls.get("bad_lines", 0),
         "out": str(out),
-        "interrupted": interrupted,
+        "interrupted": stopped_by is not None,
+        "signal": stopped_by,
         "reader": rs,
         "loadcell": ls,
         **({"topics": topics} if out.suffix.lower() == ".mcap" else {}),

@@ -15,6 +15,7 @@ summary).
 from __future__ import annotations
 
 import math
+import contextlib
 import sys
 import time
 from pathlib import Path
@@ -22,12 +23,15 @@ from typing import Any, Sequence, TextIO
 
 import numpy as np
 
+from fbgforce import fileio, signals
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.interrogator.protocol import Frame, fm_to_nm, nm_to_fm
 from fbgforce.interrogator.reader import Reader, iter_batches
 
 ENGINES = ("fixed", "float")
+#: Gratings the model reads per sample (FBG 1..4 and T): the first ones of a wider frame.
+N_GRATINGS = 5
 OUTPUT_KEYS = ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")
 #: The fixed-point runtime's integer outputs, also returned by the fixed engine (publishing).
 RAW_KEYS = ("force_mN", "x_um", "y_um", "contact_conf_q15")
@@ -68,7 +72,7 @@ class LiveEstimator:
         if engine == "fixed":
             from fbgforce.pybind import Runtime
 
-            self._rt = Runtime(self.model_dir)
+            self._rt = Runtime(self.model_dir, float_model=self.model)
         else:
             self._pipeline: fm.FloatPipeline | None = None
         if tare_samples == 0:
@@ -191,13 +195,16 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     samples that arrived after the tare (those before wait for the tare by design).
     """
     fh = None
+    # The CSV appears under its name when the stream ends, however it ends (a signal, a lost
+    # device): every estimate made is in it, and a full disk leaves no partial file.
+    files = fileio.Outputs("--out")
+    opened = contextlib.ExitStack()
     if out is not None:
         out = Path(out)
         if out.suffix.lower() != ".csv":
             raise InputError("estimates are written as CSV: use a .csv name", path=str(out),
                              column="--out")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fh = open(out, "w", encoding="utf-8", newline="\n")
+        fh = opened.enter_context(files.open(out, "w", encoding="utf-8", newline="\n"))
         fh.write("# fbgforce stream: raw samples and live estimates; host_s = receive time\n")
         fh.write(",".join(CSV_COLUMNS) + "\n")
     line = StatusLine(enabled=status)
@@ -208,7 +215,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     max_force = 0.0
     last: dict[str, Any] | None = None
     t_first = t_last = None
-    interrupted = False
+    stopped_by = None
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout):
@@ -218,7 +225,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
             t_last = now
             tared = estimator.baseline_fm is not None
             waiting.extend((f, now) for f in batch)
-            est = estimator.push(np.array([f.wl_fm for f in batch], dtype=np.int64))
+            est = estimator.push(np.array([f.wl_fm[:N_GRATINGS] for f in batch], dtype=np.int64))
             k = len(est["contact"])
             if k:
                 done, waiting = waiting[:k], waiting[k:]
@@ -235,12 +242,13 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
                 max_force = max(max_force, float(np.max(est["force_N"])))
                 last = {key: est[key][-1] for key in OUTPUT_KEYS}
             line.update(len(batch), last, reader.stats())
-    except KeyboardInterrupt:
-        interrupted = True  # Ctrl-C is how a live stream normally ends: still summarise
+    except KeyboardInterrupt as exc:
+        # Ctrl-C or SIGTERM is how a live stream normally ends: still write and summarise.
+        stopped_by = signals.signal_name(exc)
     finally:
         line.close()
-        if fh is not None:
-            fh.close()
+        opened.close()
+        files.commit()
     stats = reader.stats()
     span = (t_last - t_first) if t_first is not None and t_last is not None else 0.0
     return {
@@ -257,7 +265,8 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "compute_us_per_sample": 1e6 * estimator.compute_s / estimator.estimated
         if estimator.estimated else None,
         "out": None if out is None else str(out),
-        "interrupted": interrupted,
+        "interrupted": stopped_by is not None,
+        "signal": stopped_by,
         "reader": stats,
         **({"published": [p.stats() for p in publishers],
             "publish_latency_us": latency.summary_us()} if publishers else {}),
@@ -307,7 +316,7 @@ class LatencySummary:
 
 
 def _write_rows(fh: TextIO, frames: list[tuple[Frame, float]], est: dict[str, np.ndarray]) -> None:
-    wl = fm_to_nm(np.array([f.wl_fm for f, _ in frames], dtype=np.int64))
+    wl = fm_to_nm(np.array([f.wl_fm[:N_GRATINGS] for f, _ in frames], dtype=np.int64))
     rows = []
     for i, (f, host) in enumerate(frames):
         x, y = est["x_mm"][i], est["y_mm"][i]

@@ -6,7 +6,9 @@ independent and this file never grows. A subcommand's handler takes the parsed a
 returns a dict (printed as one JSON object with ``--json``) or ``None``.
 
 Conventions (docs/cli.md): progress goes to stderr, ``--json`` prints exactly one JSON object
-on stdout, exit status 0 on success and 2 on bad input with a one-line reason.
+on stdout, exit status 0 on success and 2 on bad input with a one-line reason (with ``--json``
+also ``{"error": ..., "code": 2}`` on stdout). SIGINT and SIGTERM end a command cleanly
+(:mod:`fbgforce.signals`): exit status 130 or 143, after the command's summary if it has one.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import sys
 from typing import Any, Callable, Sequence
 
 from fbgforce.jsonutil import json_default
-from fbgforce import __version__
+from fbgforce import __version__, signals
 from fbgforce.errors import InputError
 
 #: Modules that define subcommands, in the order their commands appear in ``--help``.
@@ -80,9 +82,23 @@ def non_negative_float(text: str) -> float:
     return value
 
 
+class UsageError(Exception):
+    """A command line argparse refuses (its message is argparse's one line)."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a bad command line raises :class:`UsageError` instead of exiting, so that
+    :func:`main` reports it like any other input error (JSON with ``--json``). Subparsers
+    inherit the class."""
+
+    def error(self, message: str) -> Any:
+        self.print_usage(sys.stderr)
+        raise UsageError(f"{self.prog}: error: {message}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Assemble the top-level parser from every module in :data:`COMMAND_MODULES`."""
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="fbgforce",
         description=(
             "Contact, force and contact location from the fibre Bragg gratings of a gripper "
@@ -113,23 +129,46 @@ def emit(result: dict[str, Any] | None, as_json: bool) -> None:
 
 
 
+def fail(line: str, as_json: bool, code: int = 2) -> int:
+    """Report a failure: ``line`` on stderr and, with ``--json``, ``{"error", "code"}`` on
+    stdout (docs/cli.md); returns ``code``."""
+    print(line, file=sys.stderr)
+    if as_json:
+        emit({"error": line, "code": code}, True)
+    return code
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``fbgforce`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except UsageError as exc:
+        return fail(str(exc), "--json" in argv)
     handler: Handler | None = getattr(args, "handler", None)
     if handler is None:
         parser.print_help(sys.stderr)
         return 2
+    as_json = getattr(args, "json", False)
     try:
-        result = handler(args)
+        with signals.stop_on_signals():
+            result = handler(args)
+            emit(result, as_json)
     except InputError as exc:
-        print(f"fbgforce {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"fbgforce {args.command}: interrupted", file=sys.stderr)
-        return 130
-    emit(result, getattr(args, "json", False))
+        return fail(f"fbgforce {args.command}: error: {exc}", as_json)
+    except OSError as exc:
+        # A file problem outside the paths that name their option.
+        where = f"{exc.filename}: " if exc.filename else ""
+        return fail(f"fbgforce {args.command}: error: {where}{exc.strerror or exc}", as_json)
+    except KeyboardInterrupt as exc:
+        name = signals.signal_name(exc)
+        return fail(f"fbgforce {args.command}: stopped by {name}", as_json,
+                    signals.exit_status(name))
+    if isinstance(result, dict) and result.get("interrupted"):
+        # A live command stopped by a signal has written its summary; the exit status still
+        # says it was stopped (130 SIGINT, 143 SIGTERM).
+        return signals.exit_status(result.get("signal") or "SIGINT")
     return 0
 
 

@@ -20,6 +20,7 @@ Validation rules (docs/dataset.md):
 """
 from __future__ import annotations
 
+import csv
 import io
 import zipfile
 import zlib
@@ -29,6 +30,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from fbgforce import fileio, samples
 from fbgforce.errors import InputError
 
 #: Wavelength columns in array order (``wl_nm[:, k]``).
@@ -37,7 +39,7 @@ WL_COLUMNS = ("wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm")
 REQUIRED_COLUMNS = ("t_s",) + WL_COLUMNS + ("contact", "x_mm", "y_mm", "force_N", "press_id")
 #: Accepted peak-wavelength range, nm. FBG interrogators work around 1300 or 1550 nm; a value
 #: outside this range is a unit mistake (µm, pm, m) or a garbled line, not a measurement.
-WL_RANGE_NM = (1000.0, 2000.0)
+WL_RANGE_NM = samples.WL_RANGE_NM
 #: Forces below this are rejected. A tared load cell reads a little below zero at rest
 #: (noise, drift); such values are genuine data and are kept. Anything more negative means
 #: a sign convention or tare error in the log.
@@ -209,6 +211,31 @@ def concat(datasets: Iterable[Dataset]) -> Dataset:
     )
 
 
+def resample(ds: Dataset, rate_hz: float) -> Dataset:
+    """The recording on a uniform time grid at ``rate_hz`` from its first sample.
+
+    Wavelengths and force are interpolated linearly; contact, location, press and extra
+    columns are taken from the nearest original sample (a location only where that sample is
+    in contact), so the result keeps the contract.
+    """
+    if not (np.isfinite(rate_hz) and rate_hz > 0):
+        raise InputError(f"sample rate must be a positive number, not {rate_hz!r}")
+    t = ds.t_s
+    if len(ds) < 2:
+        return ds.subset(slice(None))
+    grid = t[0] + np.arange(int(np.floor((t[-1] - t[0]) * rate_hz + 1e-9)) + 1) / rate_hz
+    wl = np.column_stack([np.interp(grid, t, ds.wl_nm[:, k]) for k in range(ds.wl_nm.shape[1])])
+    right = np.clip(np.searchsorted(t, grid), 1, len(t) - 1)
+    nearest = np.where(grid - t[right - 1] <= t[right] - grid, right - 1, right)
+    contact = ds.contact[nearest]
+    return Dataset(t_s=grid, wl_nm=wl, contact=contact,
+                   x_mm=np.where(contact, ds.x_mm[nearest], np.nan),
+                   y_mm=np.where(contact, ds.y_mm[nearest], np.nan),
+                   force_N=np.interp(grid, t, ds.force_N), press_id=ds.press_id[nearest],
+                   extra={k: v[nearest] for k, v in ds.extra.items()},
+                   source=f"{ds.source} resampled to {rate_hz:g} Hz")
+
+
 def split_by_press(
     ds: Dataset, seed: int = 0, ratios: Sequence[float] = (8, 1, 1)
 ) -> tuple[Dataset, Dataset, Dataset]:
@@ -315,8 +342,7 @@ def validate_columns(cols: dict[str, np.ndarray]) -> list[Problem]:
         with np.errstate(invalid="ignore"):
             bad = ~((wl >= lo) & (wl <= hi))
         _check(problems, name, bad,
-               lambda i, wl=wl: (f"wavelength {_num(wl[i])} nm outside {lo:g}-{hi:g} nm, likely a "
-                                 "unit mistake (the column must be in nm)" if np.isfinite(wl[i])
+               lambda i, wl=wl: (samples.unit_hint(wl[i]) if np.isfinite(wl[i])
                                  else "missing wavelength"))
     c = cols["contact"]
     contact_bad = ~((c == 0) | (c == 1))
@@ -420,7 +446,7 @@ def _load_csv(path: Path) -> Dataset:
         raise InputError("empty file: no header row (expected columns "
                          + ", ".join(REQUIRED_COLUMNS) + ")", path=spath)
     header_line = line
-    names = [h.strip() for h in header.split(",")]
+    names = _header_names(header, spath, header_line)
     seen: dict[str, int] = {}
     for j, name in enumerate(names):
         if not name:
@@ -459,7 +485,8 @@ def _load_csv(path: Path) -> Dataset:
             raise InputError("no data rows after the header", path=spath, line=header_line)
         data = [lines[i] for i in keep]
         line_no = np.asarray(keep, dtype=np.int64) + header_line + 1
-        nfields = np.fromiter((ln.count(",") + 1 for ln in data), dtype=np.int64, count=len(data))
+        fields = _split_rows(data, spath, line_no)
+        nfields = np.fromiter((len(f) for f in fields), dtype=np.int64, count=len(fields))
         bad = np.flatnonzero(nfields != ncol)
         if bad.size:
             i = int(bad[0])
@@ -468,7 +495,7 @@ def _load_csv(path: Path) -> Dataset:
                              path=spath, line=int(line_no[i]))
         matrix = None if text_columns else _parse_numeric_fast("\n".join(data))
         if matrix is None:
-            cols_num, extra_raw = _parse_slow(data, names, line_no, spath, text_columns)
+            cols_num, extra_raw = _parse_slow(fields, names, line_no, spath, text_columns)
         else:
             cols_num = {name: matrix[:, j] for j, name in enumerate(names)}
             extra_raw = {}
@@ -507,12 +534,38 @@ def _parse_numeric_fast(data: str) -> np.ndarray | None:
         return None
 
 
-def _parse_slow(data: list[str], names: list[str], line_no: np.ndarray, spath: str,
+def _header_names(header: str, spath: str, line: int) -> list[str]:
+    """The column names of the header line, read by :mod:`csv` (quoted names allowed); a
+    header separated by another delimiter is refused naming it."""
+    names = [h.strip() for h in next(csv.reader([header]))]
+    if len(names) == 1:
+        for delimiter, label in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+            if delimiter in header:
+                raise InputError(f"the header is separated by {label} ({delimiter!r}); dataset "
+                                 "CSV files are comma-separated (save or export with ',' as the "
+                                 "delimiter and '.' as the decimal point)", path=spath, line=line)
+    return names
+
+
+def _split_rows(data: list[str], spath: str, line_no: np.ndarray) -> list[list[str]]:
+    """The fields of each data line, read by :mod:`csv` (quoted fields allowed)."""
+    try:
+        return list(csv.reader(data, strict=True))
+    except csv.Error:
+        pass
+    for i, ln in enumerate(data):  # again line by line, to name the line at fault
+        try:
+            next(csv.reader([ln], strict=True))
+        except csv.Error as exc:
+            raise InputError(f"not valid CSV: {exc}", path=spath, line=int(line_no[i])) from None
+    raise InputError("not valid CSV", path=spath)
+
+
+def _parse_slow(fields: list[list[str]], names: list[str], line_no: np.ndarray, spath: str,
                 text_columns: set[str]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Per-field parsing, used only when the fast path cannot be: finds the non-numeric fields
     of required columns (first line and count per column) and keeps text extra columns (and
     those the dtype comment declares text, even if they look numeric) as text."""
-    fields = [ln.split(",") for ln in data]
     problems: list[Problem] = []
     numeric: dict[str, np.ndarray] = {}
     text_extra: dict[str, np.ndarray] = {}
@@ -600,11 +653,16 @@ class CsvWriter:
             header.append(f"# {_DTYPE_COMMENT} "
                           + " ".join(f"{k}={v}" for k, v in self.extra_kinds.items()))
         header.append(",".join(names))
+        # Written under a temporary name and renamed by close(): a failed recording or import
+        # leaves whatever the path held before (fbgforce.fileio).
+        self._outputs = fileio.Outputs()
+        self._file: Any = self._outputs.open(self.path, "w", encoding="utf-8", newline="\n")
+        self._fh = self._file.__enter__()
         try:
-            self._fh = open(self.path, "w", encoding="utf-8", newline="\n")
             self._fh.write("\n".join(header) + "\n")
         except OSError as exc:
-            raise InputError(f"cannot write: {exc.strerror}", path=str(self.path)) from None
+            self._abandon()
+            raise fileio.write_error(exc, self.path) from None
 
     def write(self, ds: Dataset, *, check: bool = True) -> None:
         """Append one chunk's rows, validated first unless the caller already did
@@ -635,19 +693,39 @@ class CsvWriter:
         try:
             self._fh.write(body)
         except OSError as exc:
-            raise InputError(f"cannot write: {exc.strerror}", path=str(self.path)) from None
+            self._abandon()
+            raise fileio.write_error(exc, self.path) from None
         self.rows += len(ds)
         self._last_t = float(ds.t_s[-1])
 
     def close(self) -> None:
-        """Finish the file."""
-        self._fh.close()
+        """Finish the file: it appears under its name only now."""
+        if self._file is not None:
+            file, self._file = self._file, None
+            try:
+                file.__exit__(None, None, None)
+            except BaseException:
+                self._outputs.discard()
+                raise
+            self._outputs.commit()
+
+    def _abandon(self) -> None:
+        if self._file is not None:
+            file, self._file = self._file, None
+            try:
+                file.__exit__(None, None, None)
+            except InputError:
+                pass
+        self._outputs.discard()
 
     def __enter__(self) -> "CsvWriter":
         return self
 
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: Any) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self._abandon()
 
 
 def _save_csv(ds: Dataset, path: Path) -> None:
@@ -682,10 +760,11 @@ def _load_npz(path: Path) -> Dataset:
         raise InputError("empty file: no arrays", path=spath)
     cols: dict[str, np.ndarray] = {}
     if "wl_nm" in arrays:
-        wl = arrays["wl_nm"]
-        if wl.ndim != 2 or wl.shape[1] != len(WL_COLUMNS):
-            raise InputError(f"wl_nm must have shape (n, 5), has {wl.shape}", path=spath,
-                             column="wl_nm")
+        try:
+            # Shape and dtype here; each row's values are checked below, line by line.
+            wl = samples.wavelength_array(arrays["wl_nm"], name="wl_nm", check_unit=False)
+        except InputError as exc:
+            raise InputError(exc.reason, path=spath, column="wl_nm") from None
         for k, name in enumerate(WL_COLUMNS):
             cols[name] = wl[:, k]
     for name in REQUIRED_COLUMNS:
@@ -732,11 +811,7 @@ def _save_npz(ds: Dataset, path: Path) -> None:
     }
     for name, arr in ds.extra.items():
         arrays[_EXTRA_PREFIX + name] = arr
-    try:
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
-    except OSError as exc:
-        raise InputError(f"cannot write: {exc.strerror}", path=str(path)) from None
+    fileio.write_with(path, lambda fh: np.savez(fh, **arrays))
 
 
 # --------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fbgforce import model as fm
+from fbgforce import samples
 from fbgforce.errors import InputError
 
 EngineFn = Callable[[Any, fm.HierarchicalModel, np.ndarray, np.ndarray], dict[str, np.ndarray]]
@@ -107,9 +108,7 @@ def run_engine(engine: str, model_dir: str | Path | None, model: fm.Hierarchical
         if model_dir is None:
             raise InputError("run_engine needs a model or a model directory")
         model = fm.load(model_dir)
-    wl = np.asarray(wl_nm, dtype=np.float64)
-    if wl.ndim != 2 or wl.shape[1] != fm.N_STRAIN + 1:
-        raise InputError(f"wavelengths must be shaped (n, 5), got {wl.shape}")
+    wl = samples.wavelength_array(wl_nm, name="wl_nm")
     base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
     out = fn(model_dir, model, wl, base)
     out["contact"] = np.asarray(out["contact"]).astype(bool)

@@ -29,9 +29,14 @@ def _pyplot() -> Any:
 
 
 def _save(fig: Any, path: Path, title: str) -> dict[str, Any]:
+    from fbgforce import fileio
+
     plt = _pyplot()
-    fig.savefig(path, dpi=DPI)  # no bbox_inches="tight": the pixel size stays SIZE_PX
-    plt.close(fig)
+    try:
+        # No bbox_inches="tight": the pixel size stays SIZE_PX.
+        fileio.write_with(path, lambda fh: fig.savefig(fh, dpi=DPI, format="png"))
+    finally:
+        plt.close(fig)
     return {"path": str(path), "title": title, "width_px": SIZE_PX[0], "height_px": SIZE_PX[1]}
 
 
@@ -128,47 +133,65 @@ def contact_by_force(by_force: Sequence[Mapping[str, Any]], false_contact_rate: 
 
 def paper_vs_ours(paper: Mapping[str, Any], ours: Mapping[str, Any], path: Path,
                   ours_label: str) -> dict[str, Any]:
-    """The paper's network results beside ours, as a table."""
+    """The paper's network results beside ours as bars from zero: contact accuracy (%) on the
+    left, the errors (force N, x and y mm) on the right, each value written on its bar."""
     plt = _pyplot()
-    keys = [("contact_accuracy", "contact accuracy", True),
-            ("contact_accuracy_above_5N", "contact accuracy > 5 N", True),
-            ("rmse_force_N", "force RMSE (N)", False),
-            ("rmse_x_mm", "x RMSE (mm)", False), ("rmse_y_mm", "y RMSE (mm)", False)]
-
-    def fmt(v: Any, pct: bool) -> str:
-        if v is None:
-            return "–"
-        return f"{100 * v:.1f} %" if pct else f"{v:.2f}"
-
-    cells = [[name, fmt(paper.get(k), pct), fmt(ours.get(k), pct)] for k, name, pct in keys]
-    fig, ax = plt.subplots(figsize=FIGSIZE_IN)
-    ax.axis("off")
-    table = ax.table(cellText=cells, colLabels=["metric", "paper (Kim et al. 2019)", ours_label],
-                     loc="center", cellLoc="center")
-    table.auto_set_font_size(False)
-    table.set_fontsize(11)
-    table.scale(1.0, 2.0)
-    title = "Paper against ours, test split"
-    ax.set_title(title, fontsize=11)
+    panels = [("correct (%)", [("contact_accuracy", "contact"),
+                               ("contact_accuracy_above_5N", "contact > 5 N")], 100.0),
+              ("RMSE (N or mm)", [("rmse_force_N", "force (N)"), ("rmse_x_mm", "x (mm)"),
+                                  ("rmse_y_mm", "y (mm)")], 1.0)]
+    fig, axes = plt.subplots(1, 2, figsize=FIGSIZE_IN, gridspec_kw={"width_ratios": [2, 3]})
+    width = 0.38
+    for ax, (ylabel, keys, scale) in zip(axes, panels):
+        x = np.arange(len(keys))
+        for offset, source, label, colour in ((-width / 2, paper, "paper (Kim et al. 2019)", "0.6"),
+                                              (width / 2, ours, ours_label, "tab:blue")):
+            values = [source.get(k) for k, _ in keys]
+            heights = [scale * v if v is not None else 0.0 for v in values]
+            bars = ax.bar(x + offset, heights, width, color=colour, label=label)
+            for bar, v in zip(bars, values):
+                text = "–" if v is None else (f"{scale * v:.1f}" if scale != 1.0 else f"{v:.2f}")
+                ax.annotate(text, (bar.get_x() + bar.get_width() / 2, bar.get_height()),
+                            textcoords="offset points", xytext=(0, 2), ha="center", fontsize=8)
+        ax.set_xticks(x, [name for _, name in keys], fontsize=9)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(0, 130 if scale != 1.0 else None)
+        ax.grid(axis="y", alpha=0.3)
+    axes[1].set_ylim(bottom=0)
+    axes[0].legend(fontsize=8, loc="upper center", ncol=1)
+    title = "Paper against ours, test split (bars from zero; lower RMSE is better)"
+    fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path, title)
 
 
 def accuracy_vs_time(points: Sequence[Mapping[str, Any]], path: Path) -> dict[str, Any]:
-    """Force RMSE against host time per sample, one point per engine.
+    """Force RMSE against host time per sample, one point per engine, on an axis from zero;
+    each point is labelled with its RMSE and its difference from the first engine's (the
+    engines usually differ by fractions of a mN, invisible at this scale but not hidden).
 
     ``points``: dicts with ``engine``, ``us_per_sample`` and ``rmse_force_N``.
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=FIGSIZE_IN)
-    for p in points:
-        ax.scatter([p["us_per_sample"]], [p["rmse_force_N"]], s=60)
-        ax.annotate(p["engine"], (p["us_per_sample"], p["rmse_force_N"]),
-                    textcoords="offset points", xytext=(6, 4), fontsize=9)
+    ref = next((p for p in points if p["rmse_force_N"] is not None), None)
+    top = 0.0
+    for i, p in enumerate(points):
+        rmse = p["rmse_force_N"]
+        if rmse is None:
+            continue
+        top = max(top, rmse)
+        ax.scatter([p["us_per_sample"]], [rmse], s=60)
+        diff = "" if p is ref else f", {1000 * (rmse - ref['rmse_force_N']):+.2f} mN"
+        ax.annotate(f"{p['engine']}: {rmse:.4f} N{diff}", (p["us_per_sample"], rmse),
+                    textcoords="offset points", xytext=(6, 4 + 10 * (i % 3)),
+                    fontsize=8)
     ax.set_xscale("log")
+    ax.set_ylim(0, 1.25 * top if top > 0 else 1.0)
     ax.set_xlabel("host time per sample, evaluating the whole recording (µs, log)")
-    ax.set_ylabel("force RMSE, test split (N)")
-    title = "Accuracy against time per sample, by engine (width/filter grid: fbgforce tradeoff)"
+    ax.set_ylabel("force RMSE, test split (N, from zero)")
+    title = ("Accuracy against time per sample, by engine"
+             + (f" (differences from {ref['engine']} in mN)" if ref is not None else ""))
     ax.set_title(title, fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -201,7 +224,6 @@ def write_demo_figures(out_dir: str | Path, *, ds: Any, test_rows: np.ndarray,
         Pad width and height (mm).
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     pc = np.asarray(pred["contact"], dtype=bool)
     pf = np.where(pc, np.asarray(pred["force_N"], dtype=np.float64), 0.0)
     tc = np.asarray(ds.contact, dtype=bool)

@@ -73,6 +73,9 @@ HOLD_BAND_N = 0.2
 HOLD_BAND_FRACTION = 0.05
 #: Keys of :func:`use_masks` (each (n,)).
 USE_KEYS = ("rest", "event", "held", "hold_start", "period_s")
+#: Fewest presses a held-out split should hold for its metrics to mean much: fewer is a
+#: warning (``warnings`` in the JSON of train and evaluate), not an error.
+MIN_SPLIT_PRESSES = 5
 
 
 def _pad_size_mm() -> tuple[float, float]:
@@ -410,3 +413,13 @@ def headline(metrics: Mapping[str, Any]) -> str:
     return (f"acc {fmt(None if acc is None else 100 * acc, '.1f')}% "
             f"F {fmt(metrics.get('rmse_force_N'), '.2f')} N "
             f"x {fmt(metrics.get('rmse_x_mm'), '.2f')} y {fmt(metrics.get('rmse_y_mm'), '.2f')} mm")
+
+
+def few_presses_warning(split: str, n_presses: int) -> str | None:
+    """The warning for a ``split`` ("test", "val") scored on ``n_presses`` presses, or None
+    when they are at least :data:`MIN_SPLIT_PRESSES`."""
+    if n_presses >= MIN_SPLIT_PRESSES:
+        return None
+    return (f"the {split} split holds {n_presses} press{'es' if n_presses != 1 else ''} "
+            f"(fewer than {MIN_SPLIT_PRESSES}): its metrics rest on too little data; record "
+            "more presses (the split is 8:1:1 by press) or score other recordings")

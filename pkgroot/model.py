@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import contract
+from fbgforce import contract, samples
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
@@ -659,9 +659,26 @@ def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
 
 
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
-    """Net inputs (n, F) for one continuous recording: standardised channels and memory."""
+    """Net inputs (n, F) for one continuous recording: standardised channels and memory.
+
+    Samples with a lost peak (:func:`fbgforce.samples.sensor_fault_rows`) are handled as the
+    C runtime handles a sensor fault: the filter is fed the last good input again (zeros
+    before any), the memory states skip the sample (they are frozen), and the sample's own
+    row holds zeros in place of memory features (its outputs are the safe output).
+    """
     pre = model.preprocess
-    return standardise(pre, apply_filter(pre, compensate(model, wl_nm, baseline_nm)))
+    comp = compensate(model, wl_nm, baseline_nm)
+    fault = samples.sensor_fault_rows(wl_nm)
+    if not fault.any():
+        return standardise(pre, apply_filter(pre, comp))
+    good = np.flatnonzero(~fault)
+    last_good = np.maximum.accumulate(np.where(fault, -1, np.arange(fault.size)))
+    held = np.where((last_good >= 0)[:, None], comp[np.maximum(last_good, 0)], 0.0)
+    z = (apply_filter(pre, held) - pre.input_mean) / pre.input_std
+    out = np.zeros((z.shape[0], pre.n_inputs))
+    out[:, :N_STRAIN] = z
+    out[good] = memory_features(pre.memory, z[good], pre.z_rest)
+    return out
 
 
 def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: int = 0
@@ -740,25 +757,74 @@ def predict_from_features(model: HierarchicalModel, z: np.ndarray,
     return gated_outputs(raw, raw["contact"], model.out_of_range(x))
 
 
-def predict(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray | None = None
-            ) -> dict[str, np.ndarray]:
-    """Full float pipeline on one continuous recording of raw wavelengths (n, 5) in nm.
+def safe_output(out: dict[str, np.ndarray], fault: np.ndarray) -> dict[str, np.ndarray]:
+    """Give the samples where ``fault`` (n,) is True the runtime's safe output with the
+    ``SENSOR_FAULT`` status bit: no contact, probability 0, 0 N, no location. Adds ``status``
+    (uint32, the C runtime's bits) to ``out`` (in place) and returns it."""
+    fault = np.asarray(fault, dtype=bool)
+    out["contact"] = np.asarray(out["contact"], dtype=bool) & ~fault
+    for key, value in (("p_contact", 0.0), ("force_N", 0.0), ("x_mm", np.nan), ("y_mm", np.nan),
+                       ("force_raw_N", np.nan), ("x_raw_mm", np.nan), ("y_raw_mm", np.nan)):
+        if key in out:
+            out[key] = np.where(fault, value, np.asarray(out[key], dtype=np.float64))
+    out["status"] = np.where(fault, np.uint32(contract.STATUS_FLAG["SENSOR_FAULT"]),
+                             np.uint32(0)).astype(np.uint32)
+    return out
+
+
+def predict(model: HierarchicalModel, wl_nm: Any, baseline_nm: Any = None, *,
+            rate_hz: float | None = None) -> dict[str, np.ndarray]:
+    """Full float pipeline on one continuous recording of raw wavelengths.
 
     With ``model.in_use`` on, the decision over time gates the outputs and the at-rest
     baseline tracker moves the strain gratings' baseline between blocks of
     ``contract.LIMIT["TRACK_BLOCK"]`` samples, as the runtimes do (docs/runtime.md, "In
     use"); the first ``len(taps) - 1`` samples (the runtimes' warm-up) are never at rest.
+
+    Parameters
+    ----------
+    model
+        The float model.
+    wl_nm
+        (n, 5) peak wavelengths of gratings 1..4 and T in nm, real numbers; validated by
+        :func:`fbgforce.samples.wavelength_array` (wrong shape, dtype or unit: InputError).
+        A sample with a non-finite value or a peak outside 1000-2000 nm is a sensor fault.
+    baseline_nm
+        (5,) unloaded wavelengths to tare against, nm; default the model's training baseline.
+    rate_hz
+        The data's sample rate, if known: refused when it differs from the model's
+        (:func:`fbgforce.samples.check_rate`).
+
+    Returns
+    -------
+    dict
+        :func:`predict_from_features`'s keys, plus ``status`` (uint32): ``SENSOR_FAULT``
+        (0x08) on faulty samples, whose outputs are the safe output (:func:`safe_output`).
     """
-    base = np.array(model.baseline_nm if baseline_nm is None else baseline_nm, dtype=np.float64)
-    if not model.runs_in_use:
-        return predict_from_features(model, features(model, wl_nm, base))
-    return FloatPipeline(model, base).push(wl_nm)
+    wl = samples.wavelength_array(wl_nm, name="wl_nm")
+    if rate_hz is not None:
+        samples.check_rate(model, rate_hz)
+    if baseline_nm is None:
+        base = model.baseline_nm
+    else:
+        base = samples.wavelength_array(baseline_nm, name="baseline_nm", single=True)
+        if base.shape[0] != 1 or samples.sensor_fault_rows(base).any():
+            raise InputError("baseline_nm must be 5 finite wavelengths within 1000-2000 nm")
+        base = base[0]
+    if model.runs_in_use:
+        return FloatPipeline(model, base).push(wl)
+    out = predict_from_features(model, features(model, wl, base))
+    return safe_output(out, samples.sensor_fault_rows(wl))
 
 
 class FloatPipeline:
     """The float pipeline of ONE continuous recording, fed in pieces of any length: what
     :func:`predict` computes on the whole, sample for sample (the filter's history, the memory
     states, the decision over time and the at-rest tracker carry over from piece to piece).
+    A sensor fault (:func:`fbgforce.samples.sensor_fault_rows`) is handled as the runtimes
+    handle it: the filter is fed the last good input again, the memory states, the decision
+    and the tracker skip the sample (the tracker restarts its rest count), and the sample gets
+    the safe output.
 
     Parameters
     ----------
@@ -779,6 +845,7 @@ class FloatPipeline:
         self.taps = pre.runtime_taps()
         self.samples = 0
         self._history = np.zeros((self.taps.size - 1, N_STRAIN))
+        self._last_comp = np.zeros(N_STRAIN)
         self._memory = MemoryStream(pre.memory, pre.z_rest)
         self._decision = [0, 0]
         self._drift = np.zeros(N_STRAIN)
@@ -786,7 +853,7 @@ class FloatPipeline:
         self._rest_run = 0
 
     def push(self, wl_nm: np.ndarray) -> dict[str, np.ndarray]:
-        """Outputs of :func:`predict_from_features` for the next samples (n, 5) nm."""
+        """Outputs of :func:`predict` for the next samples (n, 5) nm."""
         wl = np.asarray(wl_nm, dtype=np.float64).reshape(-1, N_STRAIN + 1)
         block = contract.LIMIT["TRACK_BLOCK"] if self.model.in_use.track_shift else 0
         parts, i = [], 0
@@ -801,11 +868,19 @@ class FloatPipeline:
 
     def _run(self, wl: np.ndarray) -> dict[str, np.ndarray]:
         model, pre, iu = self.model, self.model.preprocess, self.model.in_use
+        n = wl.shape[0]
+        fault = samples.sensor_fault_rows(wl) if n else np.zeros(0, dtype=bool)
+        good = np.flatnonzero(~fault)
         comp = compensate(model, wl, self.baseline_nm)
+        # A faulty sample feeds the filter the last good input again.
+        last = np.maximum.accumulate(np.where(fault, -1, np.arange(n))) if n else np.zeros(0, int)
+        comp = np.where((last >= 0)[:, None], comp[np.maximum(last, 0)], self._last_comp[None, :])
+        if good.size:
+            self._last_comp = comp[good[-1]].copy()
         k = self.taps.size - 1
         seq = np.vstack([self._history, comp])
-        filt = np.stack([np.convolve(seq[:, c], self.taps)[k:k + comp.shape[0]]
-                         for c in range(N_STRAIN)], axis=1)
+        filt = np.stack([np.convolve(seq[:, c], self.taps)[k:k + n] for c in range(N_STRAIN)],
+                        axis=1)
         if k:
             self._history = seq[-k:]
 
@@ -813,12 +888,18 @@ class FloatPipeline:
             return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
                                     iu.contact_rise_samples, self._decision)
 
-        out = predict_from_features(model, self._memory.push((filt - pre.input_mean) / pre.input_std),
-                                    decide, self.nets)
-        n = comp.shape[0]
+        z = (filt - pre.input_mean) / pre.input_std
+        x = np.zeros((n, pre.n_inputs))
+        x[:, :N_STRAIN] = z
+        x[good] = self._memory.push(z[good])
+        ran = predict_from_features(model, x[good], decide, self.nets)
+        out = {key: np.zeros(n, dtype=v.dtype) for key, v in ran.items()}
+        for key, v in ran.items():
+            out[key][good] = v
+        out = safe_output(out, fault)
         if iu.track_shift and n:
-            # At rest: no contact, past the filter's warm-up (the runtimes' WARMUP).
-            rest = ~out["contact"] & (np.arange(self.samples, self.samples + n) >= k)
+            # At rest: no contact, no fault, past the filter's warm-up (the runtimes' WARMUP).
+            rest = ~out["contact"] & ~fault & (np.arange(self.samples, self.samples + n) >= k)
             self._track_sum += filt[rest].sum(axis=0)
             self._rest_run = min(0xFFFF, self._rest_run + n if rest.all()
                                  else n - int(np.flatnonzero(~rest)[-1]) - 1)
@@ -845,10 +926,17 @@ MODEL_JSON = "model.json"
 WEIGHTS_NPZ = "weights.npz"
 
 
-def save(model: HierarchicalModel, directory: str | Path) -> Path:
-    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``."""
+def save(model: HierarchicalModel, directory: str | Path, flag: str | None = None) -> Path:
+    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``.
+
+    Both files are written atomically as a pair (:class:`fbgforce.fileio.Outputs`): a failed
+    write leaves the directory as it was. An export in the directory made from another model
+    is removed (:func:`fbgforce.freshness.remove_stale_export`). ``flag`` names the
+    command-line option of ``directory`` in errors.
+    """
+    from fbgforce import fileio, freshness
+
     out = Path(directory)
-    out.mkdir(parents=True, exist_ok=True)
     pre = model.preprocess
     doc = {
         "format": FORMAT_NAME,
@@ -878,8 +966,13 @@ def save(model: HierarchicalModel, directory: str | Path) -> Path:
         for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
             arrays[f"{name}.W{layer}"] = w
             arrays[f"{name}.b{layer}"] = b
-    np.savez(out / WEIGHTS_NPZ, **arrays)
-    (out / MODEL_JSON).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")
+    with fileio.Outputs(flag) as files:
+        files.write_with(out / WEIGHTS_NPZ, lambda fh: np.savez(fh, **arrays))
+        files.write_text(out / MODEL_JSON, json.dumps(doc, indent=2, default=json_default) + "\n")
+    try:
+        freshness.remove_stale_export(out, model)
+    except OSError as exc:
+        raise fileio.write_error(exc, exc.filename or out, flag) from None
     return out
 
 

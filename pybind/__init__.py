@@ -7,12 +7,13 @@ exception class (:data:`ERRORS`), all subclasses of :class:`RuntimeCError`.
 """
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from fbgforce import contract, units
+from fbgforce import contract, freshness, samples, units
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 
@@ -90,22 +91,17 @@ def check(status: int, what: str = "") -> None:
 
 
 def to_fm(wl: Any) -> np.ndarray:
-    """Wavelengths -> C-contiguous int32 fm: integer input is taken as fm, float as nm."""
-    a = np.asarray(wl)
-    if np.issubdtype(a.dtype, np.integer):
-        if a.size and (a.min() < -2**31 or a.max() > 2**31 - 1):
-            raise InputError("integer wavelengths (fm) outside the int32 range")
+    """Wavelengths (n, 5) or (5,) -> C-contiguous int32 fm rows (n, 5): integer input is taken
+    as fm, float as nm, anything else refused (:func:`fbgforce.samples.wavelength_array`).
+    Non-finite values become 0 fm, a lost peak to the runtime's fault rule."""
+    a = samples.wavelength_array(wl, integers_are_fm=True, single=True)
+    if a.dtype.kind in "iu":
         return np.ascontiguousarray(a, dtype=np.int32)
     return np.ascontiguousarray(units.nm_to_fm(a))
 
 
 def _rows(wl: Any) -> np.ndarray:
-    a = to_fm(wl)
-    if a.ndim == 1:
-        a = a.reshape(1, -1)
-    if a.ndim != 2 or a.shape[1] != 5:
-        raise InputError(f"wavelengths must be shaped (n, 5) or (5,), got {np.shape(wl)}")
-    return np.ascontiguousarray(a)
+    return to_fm(wl)
 
 
 class _Base:
@@ -155,7 +151,7 @@ class _Base:
 
     def step(self, wl: Any) -> np.void:
         """One sample (5,) -> one record of the output dtype."""
-        return self.run(np.asarray(wl).reshape(1, 5))[0]
+        return self.run(to_fm(wl))[0]
 
 
 class Runtime(_Base):
@@ -174,6 +170,10 @@ class Runtime(_Base):
     packed
         Run the kernel from weights packed for it (``fbg_pack``) where it has a packed form
         (SSE2, AVX2); the same bits, fewer instructions. :attr:`packed` says whether it does.
+    float_model
+        The directory's float model if the caller has loaded it (saves reading it again): a
+        directory's blob must have been exported from it
+        (:func:`fbgforce.freshness.check_export`, an :class:`InputError` otherwise).
 
     Examples
     --------
@@ -185,9 +185,12 @@ class Runtime(_Base):
     _prefix = "fbg"
 
     def __init__(self, model: str | Path | bytes, *, require_tare: bool = False,
-                 kernel: str = "auto", packed: bool = True) -> None:
+                 kernel: str = "auto", packed: bool = True, float_model: Any = None) -> None:
         if kernel not in KERNELS:
             raise InputError(f"unknown kernel {kernel!r}; one of {', '.join(KERNELS)}")
+        if not isinstance(model, (str, os.PathLike, bytes, bytearray, memoryview)):
+            raise InputError(f"model must be a model directory, a blob file path or the blob's "
+                             f"bytes, not {type(model).__name__}")
         if isinstance(model, (bytes, bytearray, memoryview)):
             data, where = bytes(model), "<bytes>"
         else:
@@ -205,6 +208,8 @@ class Runtime(_Base):
         if status != lib.FBG_OK:
             reason = ERRORS[status].__doc__ if status in ERRORS else "refused by the C loader"
             check(status, f"{where} ({len(data)} bytes): {reason}")
+        if not isinstance(model, (bytes, bytearray, memoryview)) and Path(model).is_dir():
+            freshness.check_export(model, float_model)
         options = (lib.FBG_OPT_REQUIRE_TARE if require_tare else 0) | KERNELS[kernel]
         check(lib.fbg_init(self._state, self._model, options),
               f"fbg_init: kernel {kernel!r} does not run on this CPU or build" if kernel != "auto"
@@ -228,10 +233,10 @@ class Runtime(_Base):
 
     def step(self, wl: Any) -> np.void:
         """One sample (5,) (nm float or fm int) -> one record of :data:`OUTPUT_DTYPE`."""
-        a = np.asarray(wl)
-        if a.size != 5:
-            raise InputError(f"one sample has 5 wavelengths, got shape {a.shape}")
-        self._in[:] = to_fm(a.reshape(5))
+        a = to_fm(wl)
+        if a.shape[0] != 1:
+            raise InputError(f"one sample has 5 wavelengths, got shape {np.shape(wl)}")
+        self._in[:] = a[0]
         check(lib.fbg_step(self._state, self._in_ptr, self._out), "fbg_step")
         o = self._out
         contact = bool(o.contact)

@@ -22,11 +22,7 @@ def _as_dict(out: np.ndarray) -> dict[str, np.ndarray]:
 def run_fixed(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
               baseline_nm: np.ndarray) -> dict[str, Any]:
     """The fixed-point C runtime on ``model_dir/model.fbgm`` (run ``fbgforce export`` first)."""
-    if model is not None:
-        from fbgforce.export.exporter import check_fresh
-
-        check_fresh(model_dir, model)
-    rt = Runtime(model_dir)
+    rt = Runtime(model_dir, float_model=model)
     rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
     return _as_dict(rt.run(np.asarray(wl_nm, dtype=np.float64)))
 

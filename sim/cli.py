@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from fbgforce.cli import add_json_flag, non_negative_float, positive_float
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 
@@ -64,6 +65,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     for flag, value in (("--seed", args.seed), ("--device", args.device)):
         if value is not None and value < 0:
             raise InputError(f"must be >= 0, got {value}", column=flag)
+    fileio.check_output_file(out, "--out")
     scene = load_scene(args.scene)
     t0 = time.perf_counter()
     ds = simulate(scene, seed=args.seed, device=args.device, progress=None)

@@ -26,7 +26,7 @@ def simulate(scene: str | Path | Scene, seed: int | None = None, device: int | N
     seed, device
         Override the scene's seed / device number.
     progress
-        Show a tqdm bar on stderr (None: only when stderr is a terminal).
+        Show progress on stderr (:func:`fbgforce.progress.bar`; False: none).
 
     Returns
     -------
@@ -44,10 +44,10 @@ def simulate(scene: str | Path | Scene, seed: int | None = None, device: int | N
     extras: dict[str, list[np.ndarray]] = {}
     bar = None
     if progress is not False:
-        from tqdm import tqdm
+        from fbgforce import progress as fprogress
 
-        bar = tqdm(total=n, unit="sample", unit_scale=True, desc=f"simulate {sc.name}",
-                   disable=None if progress is None else not progress)
+        bar = fprogress.bar(total=n, unit="sample", unit_scale=True, desc=f"simulate {sc.name}",
+                            enabled=progress)
     for start in range(0, n, CHUNK):
         sl = slice(start, min(start + CHUNK, n))
         out, ex = ee.process_with_extras(sched.t_s[sl], sched.force_N[sl], sched.x_mm[sl],

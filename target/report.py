@@ -122,12 +122,14 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
 
     t0 = time.perf_counter()
     log = log or (lambda msg: None)
-    toolchain.require_tools()
     root = Path(model_dir)
     if not root.exists():
         raise InputError("no such model directory", path=str(root))
+    # Model and data are read before the tools are looked for: a bad or stale model, or bad
+    # data, is the same one-line error on any machine.
     q, source = load_quantized(root, calib, bits)
     wl, contact, data_src = recording_fm(data, scene, seed, samples)
+    toolchain.require_tools()
     records = golden.golden_session(q, wl, contact, seed=seed)
     steps = [r for r in records if r.op == golden.OP_STEP]
     macs = golden.step_macs(q, records)

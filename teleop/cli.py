@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from fbgforce.cli import add_json_flag
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 FEEDBACK_CHOICES = ("estimator", "true", "none")
@@ -81,7 +82,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     fb = make_feedback(args.feedback, args.model, args.engine, args.delay_ms,
                        args.allow_other_device)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    fileio.check_output_dir(out, "--out")
     result = simulate(scene, fb, run_seeds(args.seed, args.runs), progress=True)
     plot = plot_run(result, out / "fig7.png", 0)
     summary: dict[str, Any] = {
@@ -93,8 +94,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "plot": None if plot is None else str(plot),
         "out": str(out),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    _write_runs_csv(result, out / "runs.csv")
+    with fileio.Outputs("--out") as files:
+        files.write_text(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+        with files.open(out / "runs.csv", "w", newline="") as fh:
+            _write_runs_csv(result, fh)
     check = getattr(fb, "device_check", None)
     if check is not None and check["status"] != "verified":
         print(f"warning: device {check['status']}: {check['detail']}", file=sys.stderr)
@@ -116,17 +119,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return summary
 
 
-def _write_runs_csv(result: Any, path: Path) -> None:
-    """One line per run: seed and outcome."""
+def _write_runs_csv(result: Any, fh: Any) -> None:
+    """One line per run to the text file ``fh``: seed and outcome."""
     o = result.outcomes
     keys = ("seed", "egg_broken", "egg_dropped", "success", "max_force_N",
             "time_in_safe_band_fraction", "estimator_delay_ms", "force_rmse_N", "force_bias_N",
             "contact_noticed_s")
-    with path.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(keys)
-        for k in range(o["seed"].size):
-            w.writerow([_cell(o[key][k]) for key in keys])
+    w = csv.writer(fh)
+    w.writerow(keys)
+    for k in range(o["seed"].size):
+        w.writerow([_cell(o[key][k]) for key in keys])
 
 
 def _cell(v: Any) -> Any:

@@ -12,7 +12,6 @@ One sample of the loop, in the order the hardware runs it:
 """
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -160,10 +159,9 @@ def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
     travel = master.travel_mm
     bar = None
     if progress:
-        from tqdm import tqdm
+        from fbgforce import progress as fprogress
 
-        bar = tqdm(total=n, desc=f"teleop {feedback.name}", unit="sample", file=sys.stderr,
-                   disable=None, mininterval=0.5)
+        bar = fprogress.bar(total=n, desc=f"teleop {feedback.name}", unit="sample")
     for i in range(n):
         t = t_s[i]
         felt = master.force(reported, operator.y, operator.v)

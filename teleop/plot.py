@@ -63,10 +63,13 @@ def plot_run(result: TeleopResult, path: str | Path, k: int = 0, title: str | No
     ax_zoom.legend(loc="upper right", fontsize=7.5)
     ax_zoom.set_xlim(t[0], t[-1])
     fig.tight_layout()
+    from fbgforce import fileio
+
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
+    try:
+        fileio.write_with(out, lambda fh: fig.savefig(fh, dpi=110, format="png"), "--out")
+    finally:
+        plt.close(fig)
     return out
 
 

@@ -87,9 +87,10 @@ def test_no_import_cycles():
 # the layers below it.
 LAYERS = {
     "fbgforce.contract": 0, "fbgforce.units": 0, "fbgforce.errors": 0, "fbgforce.jsonutil": 0,
-    "fbgforce.geometry": 1, "fbgforce.dataset": 1, "fbgforce.bag": 1, "fbgforce.model": 1,
-    "fbgforce.tare": 1, "fbgforce.metrics": 1, "fbgforce._runtime": 1, "fbgforce.labimport": 1,
-    "fbgforce.protocol": 1,
+    "fbgforce.fileio": 0, "fbgforce.signals": 0, "fbgforce.samples": 0, "fbgforce.progress": 0,
+    "fbgforce.freshness": 1, "fbgforce.geometry": 1, "fbgforce.dataset": 1, "fbgforce.bag": 1,
+    "fbgforce.model": 1, "fbgforce.tare": 1, "fbgforce.metrics": 1, "fbgforce._runtime": 1,
+    "fbgforce.labimport": 1, "fbgforce.protocol": 1,
     "fbgforce.pybind": 2,
     "fbgforce.export": 3, "fbgforce.trainer": 3, "fbgforce.sim": 3, "fbgforce.interrogator": 3,
     "fbgforce.engines": 4,

@@ -130,7 +130,7 @@ def test_onnxruntime_matches_float64_on_realistic_recordings(model, exported) ->
         assert np.all(got["force_N"][~got["contact"]] == 0.0)
         assert np.all(np.isnan(got["y_mm"][~got["contact"]]))
         np.testing.assert_allclose(got["force_N"][same], ref["force_N"][same], rtol=0, atol=1e-3)
-        assert set(got) == {"contact", "p_contact", "force_N", "x_mm", "y_mm"}
+        assert set(got) == {"contact", "p_contact", "force_N", "x_mm", "y_mm", "status"}
 
 
 def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.ndarray]) -> None:

@@ -38,15 +38,16 @@ def test_export_and_verify_cli(small_model_dir, small_dataset_path, tmp_path, ca
     res8 = _json(capsys, ["verify", "--model", str(mdir), "--data", str(small_dataset_path), "--json"])
     assert res8["mismatches"] == 0
 
-    # Retrained after export: the fixed engine refuses the stale blob instead of using it.
+    # Retrained after export: saving the new model removes the export it no longer matches.
     from fbgforce import model as fm
 
     m = fm.load(mdir)
     m.force_scale *= 1.01
     fm.save(m, mdir)
+    assert not (mdir / "model.fbgm").exists() and not (mdir / "export_report.json").exists()
     assert main(["evaluate", "--model", str(mdir), "--data", str(small_dataset_path),
                  "--engine", "fixed"]) == 2
-    assert "stale" in capsys.readouterr().err
+    assert "fbgforce export" in capsys.readouterr().err
 
 
 def test_cli_bad_inputs_exit_2(small_model_dir, small_dataset_path, tmp_path, capsys):

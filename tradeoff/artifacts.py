@@ -96,17 +96,17 @@ def export_fixed(model_dir: Path, bits: int, calib: Sequence[str]) -> str | None
     run (the model's training data).
     """
     try:
-        from fbgforce.export.exporter import REPORT_FILE, check_fresh, export_model
+        from fbgforce.export.exporter import REPORT_FILE, export_model
     except ImportError as exc:
         return f"exporter not available ({exc})"
     report = model_dir / REPORT_FILE
     try:
         # A rerun over reused models keeps a blob exported from these weights at these bits.
         if (model_dir / "model.fbgm").is_file() and json.loads(report.read_text()).get("bits") == bits:
-            check_fresh(model_dir, fm.load(model_dir))
             from fbgforce.pybind import Runtime
 
-            Runtime(model_dir)  # and this runtime still reads it (blob format version)
+            # Refuses a stale export, and a blob this runtime no longer reads (format version).
+            Runtime(model_dir)
             return None
     except Exception:  # stale, unreadable or from another blob version: export again
         pass

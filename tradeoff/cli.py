@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 
@@ -127,9 +128,8 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
         print(f"bench-speed: {msg}", file=sys.stderr, flush=True)
 
     out = Path(args.out) if args.out else None
-    if out is not None and not out.parent.is_dir():
-        raise InputError("the directory of the output file does not exist", path=str(out),
-                         column="--out")
+    if out is not None:
+        fileio.check_output_file(out, "--out")
     with tempfile.TemporaryDirectory(prefix="fbgforce-scene-") as tmp:
         data = prepare_data([args.data] if args.data else None, args.scene, Path(tmp), args.seed,
                             log)[0]
@@ -139,7 +139,7 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
     if args.scene:  # the simulated file was temporary: name what made it
         res["data"] = f"scene {args.scene} (seed {args.seed}, simulated)"
     if out is not None:
-        out.write_text(json.dumps(res, indent=1, default=json_default) + "\n")
+        fileio.write_text(out, json.dumps(res, indent=1, default=json_default) + "\n", "--out")
     if not args.json:
         print(markdown_table(res))
     return res
@@ -216,6 +216,7 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
     if args.no_target:
         s.target = False
     out = Path(args.out)
+    fileio.check_output_dir(out, "--out")
 
     def log(msg: str) -> None:
         print(f"tradeoff: {msg}", file=sys.stderr, flush=True)

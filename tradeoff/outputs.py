@@ -198,8 +198,11 @@ def markdown_table(res: dict[str, Any]) -> str:
 
 def write_outputs(res: dict[str, Any], out: Path, log: Callable[[str], None]) -> None:
     """tradeoff.json, tradeoff.csv, tradeoff.md and tradeoff.png in ``out``."""
-    (out / "tradeoff.json").write_text(json.dumps(res, indent=1, default=json_default) + "\n")
-    with open(out / "tradeoff.csv", "w", newline="") as f:
+    from fbgforce import fileio
+
+    fileio.write_text(out / "tradeoff.json", json.dumps(res, indent=1, default=json_default) + "\n",
+                      "--out")
+    with fileio.Outputs("--out") as files, files.open(out / "tradeoff.csv", "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(CSV_COLUMNS)
         for r in res["rows"]:
@@ -213,4 +216,4 @@ def write_outputs(res: dict[str, Any], out: Path, log: Callable[[str], None]) ->
           markdown_table(res), "", res["summary"], ""]
     if res["plot"]:
         md += ["![accuracy against time](tradeoff.png)", ""]
-    (out / "tradeoff.md").write_text("\n".join(md))
+    fileio.write_text(out / "tradeoff.md", "\n".join(md), "--out")

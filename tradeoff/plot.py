@@ -107,6 +107,10 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
         ax.legend(fontsize=8, loc="best")
         ax.set_title("accuracy vs firmware cost (QEMU instruction counts)", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from fbgforce import fileio
+
+    try:
+        fileio.write_with(path, lambda fh: fig.savefig(fh, dpi=110, format="png"), "--out")
+    finally:
+        plt.close(fig)
     return None

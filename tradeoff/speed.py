@@ -100,15 +100,15 @@ def _fixed_bits(model_dir: Path) -> int | None:
 
 def _check_fixed_dir(model_dir: Path, model: fm.HierarchicalModel, bits: int, option: str) -> None:
     """A directory whose model.fbgm is a current ``bits``-bit export of ``model``."""
-    from fbgforce.export.exporter import check_fresh
+    from fbgforce.freshness import check_export
     from fbgforce.pybind import Runtime
 
-    Runtime(model_dir)  # missing or unreadable blob: InputError naming the file
+    Runtime(model_dir)  # missing, unreadable or stale blob: InputError naming the file
     got = _fixed_bits(model_dir)
     if got is not None and got != bits:
         raise InputError(f"model.fbgm has {got}-bit weights; {option} takes the {bits}-bit export "
                          f"(fbgforce export --bits {bits})", path=str(model_dir), column=option)
-    check_fresh(model_dir, model)
+    check_export(model_dir, model)
 
 
 def contact_window(contact: np.ndarray, warmup: int, n_max: int) -> tuple[int, int] | None:
@@ -286,7 +286,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         The int8 export of the same model; by default made here in a temporary copy,
         calibrated on ``data`` (its first presses: :func:`~fbgforce.tradeoff.artifacts.calibration_subset`).
     progress
-        tqdm bar on stderr (None: only on a terminal).
+        progress bar on stderr (None: only on a terminal, where ``log`` is quiet).
     log
         Progress lines.
 
@@ -295,9 +295,8 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     dict
         The keys of docs/cli.md "bench-speed".
     """
-    from tqdm import tqdm
-
     from fbgforce import dataset as fds
+    from fbgforce import progress as fprogress
     from fbgforce.pybind import to_fm
     from fbgforce.tare import tare
     from fbgforce.tradeoff.artifacts import calibration_subset, export_fixed
@@ -321,8 +320,9 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     base_builds = default_builds(s.kernels)
     builds = base_builds + tuple(b for b in s.builds if b not in base_builds)
     n_c = len(builds) * (1 + 3 * (2 if s.callgrind else 1))
-    bar = tqdm(total=2 + (int8_dir is None) + n_c, desc="bench-speed", file=sys.stderr,
-               leave=False, dynamic_ncols=True, disable=None if progress is None else not progress)
+    # Off a terminal the command's stage lines (``log``) say what is going on instead.
+    bar = fprogress.bar(total=2 + (int8_dir is None) + n_c, desc="bench-speed", leave=False,
+                        enabled=sys.stderr.isatty() if progress is None else progress)
 
     def tick(what: str) -> None:
         bar.set_postfix_str(what, refresh=False)

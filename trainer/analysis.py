@@ -86,6 +86,10 @@ def plot_embedding(codes: np.ndarray, force_N: np.ndarray, x_mm: np.ndarray, y_m
         if colour is not None:
             fig.colorbar(sc, ax=ax, shrink=0.6)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from fbgforce import fileio
+
+    try:
+        fileio.write_with(path, lambda fh: fig.savefig(fh, dpi=110, format="png"), "--plot")
+    finally:
+        plt.close(fig)
     return True

@@ -3,19 +3,18 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from fbgforce.cli import non_negative_float, positive_int
+from fbgforce import fileio
 from fbgforce.errors import InputError
 
 
 def _check_files(paths: list[str], flag: str) -> None:
     for p in paths:
-        if not Path(p).is_file():
-            raise InputError("no such file", path=p, column=flag)
+        fileio.check_input_file(p, flag)
 
 
 def register(subparsers: Any) -> None:
@@ -83,6 +82,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--split", choices=SPLITS, default="all",
                    help="score all samples (default) or one part of the by-press split made "
                         "with the model's seed")
+    p.add_argument("--resample", action="store_true",
+                   help="bring recordings sampled at another rate than the model's to its rate "
+                        "(linear interpolation) instead of refusing them")
     add_json_flag(p)
     p.set_defaults(handler=_evaluate)
 
@@ -123,11 +125,12 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     _check_files(args.data, "--data")
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
+    fileio.check_output_dir(args.out, "--out")
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
                   memory=args.memory, restarts=_restarts(args.restarts),
                   sigma=args.sigma, window=args.window, init=args.init,
                   train_fraction=args.train_fraction)
-    fm.save(model, args.out)
+    fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}
     from fbgforce.metrics import headline
@@ -182,9 +185,12 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.evaluate import evaluate
 
     _check_files(args.data, "--data")
-    out = evaluate(args.model, args.data, engine=args.engine, split=args.split)
+    out = evaluate(args.model, args.data, engine=args.engine, split=args.split,
+                   resample=args.resample)
     if not args.json:
         print(f"{args.engine}: {headline(out)} (n={out['n_samples']})")
+    for warning in out["warnings"]:
+        print(f"fbgforce evaluate: warning: {warning}", file=sys.stderr)
     return out
 
 
@@ -193,6 +199,8 @@ def _analyze(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.train import load_datasets, prepare
 
     _check_files(args.data, "--data")
+    if args.plot:
+        fileio.check_output_file(args.plot, "--plot")
     ds_list, described = load_datasets(args.data)
     data = prepare(ds_list, seed=args.seed, sources=[d["path"] for d in described])
     rows = np.flatnonzero(data.contact)
@@ -224,6 +232,8 @@ def _report(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.report import build_report, to_markdown, write
 
     _check_files(args.data, "--data")
+    if args.out:
+        fileio.check_output_dir(args.out, "--out")
     rep = build_report(args.data, model_dir=args.model, epochs=args.epochs, seed=args.seed,
                        sigma=args.sigma)
     if args.out:

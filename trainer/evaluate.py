@@ -23,8 +23,8 @@ def run_recording(engine: str, model_dir: str | Path | None, model: fm.Hierarchi
 
 def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine: str = "float",
              split: str = "all", seed: int | None = None, model: fm.HierarchicalModel | None = None,
-             extras: bool = True, predictions: Sequence[dict[str, np.ndarray]] | None = None
-             ) -> dict[str, Any]:
+             extras: bool = True, predictions: Sequence[dict[str, np.ndarray]] | None = None,
+             resample: bool = False) -> dict[str, Any]:
     """Metrics of ``engine`` over the recordings in ``data``.
 
     Each recording is run whole (the filter needs its continuous history), then the samples
@@ -33,7 +33,14 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     onset and release delays (``contact_timing``) and each recording's rests and holds
     (``at_rest``, ``holds``: :func:`fbgforce.metrics.use_masks`). ``predictions``: the engine's
     output on each whole recording (:func:`run_recording`) when the caller has it already.
+
+    A recording sampled at another rate than the model's is refused
+    (:func:`fbgforce.samples.check_rate`), or with ``resample`` brought to the model's rate
+    first (:func:`fbgforce.dataset.resample`). ``warnings`` in the result lists what makes the
+    numbers weak (a split of fewer than ``MIN_SPLIT_PRESSES`` presses).
     """
+    from fbgforce import dataset as fds
+    from fbgforce import samples
     from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
 
     if split not in SPLITS:
@@ -41,7 +48,16 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     model = fm.load(model_dir) if model is None else model
     seed = int(model.metadata.get("seed", 0)) if seed is None else seed
     ds_list, described = load_datasets(data)
+    trained_hz = samples.model_rate_hz(model)
+    for i, (ds, d) in enumerate(zip(ds_list, described)):
+        where = d.get("path") or d.get("source")
+        if resample and trained_hz is not None:
+            if abs(fbgtare.sample_rate_hz(ds.t_s) - trained_hz) > samples.RATE_TOLERANCE * trained_hz:
+                ds_list[i] = fds.resample(ds, trained_hz)
+        else:
+            samples.check_rate(model, fbgtare.sample_rate_hz(ds.t_s), where)
     preds, truths, onsets, releases, uses = [], [], [], [], []
+    n_presses = 0
     if predictions is None:
         predictions = [run_recording(engine, model_dir, model, ds, d.get("path"))
                        for ds, d in zip(ds_list, described)]
@@ -58,6 +74,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
         releases.append(release)
         use = fmetrics.use_masks(pred["contact"], ds.contact, ds.force_N, ds.t_s)
         uses.append({k: v[rows] for k, v in use.items()})
+        n_presses += int(np.unique(np.asarray(ds.press_id)[rows]).size)
         preds.append({k: np.asarray(pred[k])[rows] for k in ("contact", "force_N", "x_mm", "y_mm")})
         truths.append((np.asarray(ds.contact)[rows], np.asarray(ds.force_N)[rows],
                        np.asarray(ds.x_mm)[rows], np.asarray(ds.y_mm)[rows]))
@@ -66,6 +83,8 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     out = fmetrics.compute(pred, *truth, extras=extras, pad_mm=model_pad_mm(model),
                            delays=(np.concatenate(onsets), np.concatenate(releases)),
                            use={k: np.concatenate([u[k] for u in uses]) for k in uses[0]})
+    few = fmetrics.few_presses_warning(split, n_presses) if split in ("val", "test") else None
     out.update({"engine": engine, "model": str(model_dir), "split": split,
-                "data": [d.get("path") or d.get("source") for d in described]})
+                "data": [d.get("path") or d.get("source") for d in described],
+                "presses": n_presses, "warnings": [few] if few else []})
     return out

@@ -9,7 +9,6 @@ the paper's eq. (8) with the mean over the mini-batch folded into the loss gradi
 from __future__ import annotations
 
 import math
-import sys
 import time
 from typing import Any, Callable, Sequence
 
@@ -231,7 +230,8 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
     val_metrics
         Called after each epoch for extra numbers shown in the progress bar and the history.
     desc, progress
-        Progress bar label; ``progress=None`` shows it only on a terminal (tqdm's rule).
+        Progress bar label; ``progress=False`` hides it (else :func:`fbgforce.progress.bar`:
+        a bar on a terminal or in a notebook, periodic lines on a pipe).
     time_budget_s
         Stop (keeping the best weights) once this much wall time has passed.
 
@@ -241,7 +241,7 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
         ``epochs_run``, ``best_epoch``, ``best_val_loss``, ``seconds``, ``history`` (per epoch:
         loss, val_loss, lr and the ``val_metrics``).
     """
-    from tqdm import tqdm
+    from fbgforce import progress as fprogress
 
     loss_fn = LOSSES[loss]
     rng = rng if rng is not None else np.random.default_rng(0)
@@ -255,8 +255,7 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
     best_epoch = 0
     history = []
     t0 = time.perf_counter()
-    bar = tqdm(range(epochs), desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True,
-               disable=None if progress is None else not progress)
+    bar = fprogress.bar(range(epochs), desc=desc, leave=False, enabled=progress)
     epochs_run = 0
     last_cut = 0
     for epoch in bar:

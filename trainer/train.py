@@ -124,6 +124,15 @@ class Prepared:
         return self.contact[rows], self.force_N[rows], self.x_mm[rows], self.y_mm[rows]
 
 
+def count_presses(data: Prepared, rows: np.ndarray) -> int:
+    """Distinct presses (per recording) among ``rows`` of ``data``."""
+    total = 0
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
+        total += int(np.unique(np.asarray(r.ds.press_id)[sel]).size)
+    return total
+
+
 def file_sha256(path: str | Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
@@ -647,6 +656,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                    val_metrics=loc_val, desc="location net")
 
     warnings = []
+    few = fmetrics.few_presses_warning("test", count_presses(data, te))
+    if few:
+        warnings.append(few)
     held_s = hold_seconds(data, tr)
     if pre.memory.ema_shifts and held_s == 0.0:
         warnings.append(

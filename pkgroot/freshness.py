@@ -1,0 +1,145 @@
+"""What a model directory holds: is its export (``model.fbgm``, ``model.onnx``, ``c/``) made
+from the float model beside it?
+
+``fbgforce export`` records in ``export_report.json`` the digest of the float model it
+quantised (:func:`model_digest`) and the SHA-256 of every file it wrote. Every reader of the
+exported blob (the C runtime binding, the Python blob reader, hence ``stream``, ``verify``,
+``evaluate --engine fixed|intref|cfloat``, ``bench-speed``, ``target-report``) calls
+:func:`check_export` and refuses a blob that another model, or another export, left behind.
+:func:`remove_export` is how saving a model into an exported directory drops the export that
+no longer matches it.
+
+This module sits with the float model contract, below the runtime binding and the exporter,
+so that both can use it (imports run one way).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fbgforce import contract
+from fbgforce.errors import InputError
+
+#: The export's files, relative to the model directory.
+BLOB_FILE = contract.BLOB_FILE
+ONNX_FILE = "model.onnx"
+REPORT_FILE = "export_report.json"
+C_DIR = "c"
+#: Report keys: the float model's digest and the SHA-256 of each file written (by name
+#: relative to the model directory).
+DIGEST_KEY = "model_digest"
+FILES_KEY = "file_sha256"
+
+FIX = "run 'fbgforce export --model {dir}' again"
+
+
+def weights_digest(model: Any) -> str:
+    """SHA-256 over everything the float nets depend on (net weights and output scaling).
+
+    Stored in ``model.onnx``'s metadata so that a stale graph is recognised instead of used.
+    """
+    h = hashlib.sha256()
+    for name, net in model.nets.items():
+        h.update(name.encode())
+        for w, b in zip(net.weights, net.biases):
+            h.update(np.ascontiguousarray(w, dtype="<f8").tobytes())
+            h.update(np.ascontiguousarray(b, dtype="<f8").tobytes())
+    scaling = np.concatenate([[model.force_offset, model.force_scale], model.xy_offset,
+                              model.xy_scale])
+    h.update(np.ascontiguousarray(scaling, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def model_digest(model: Any) -> str:
+    """SHA-256 of everything the fixed-point model is quantised from: the nets and output
+    scaling (:func:`weights_digest`), the preprocessing and the nominal baseline."""
+    pre = model.preprocess
+    h = hashlib.sha256(weights_digest(model).encode())
+    h.update(pre.filter_kind.encode())
+    for arr in (pre.temp_coeff, pre.taps, pre.input_mean, pre.input_std, model.baseline_nm):
+        h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
+    h.update(json.dumps(pre.memory.to_json(), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _read_report(root: Path) -> dict[str, Any] | None:
+    try:
+        doc = json.loads((root / REPORT_FILE).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return doc if isinstance(doc, dict) else None
+
+
+def check_export(model_dir: str | Path, model: Any = None) -> None:
+    """Refuse an exported blob that does not belong to the float model of ``model_dir``.
+
+    Nothing to check (returns) when the directory has no ``model.json`` (a blob shipped on
+    its own) or no ``model.fbgm`` (the reader says to export).
+
+    Parameters
+    ----------
+    model_dir
+        The model directory.
+    model
+        Its float model when the caller has loaded it already (else read here).
+
+    Raises
+    ------
+    InputError
+        One line naming ``model.fbgm`` and the fix: the export has no record of its model, was
+        made from other weights, or its blob is not the one the export wrote.
+    """
+    from fbgforce import model as fm
+
+    root = Path(model_dir)
+    blob = root / BLOB_FILE
+    if not root.is_dir() or not (root / fm.MODEL_JSON).is_file() or not blob.is_file():
+        return
+    fix = FIX.format(dir=root)
+    report = _read_report(root)
+    if report is None or DIGEST_KEY not in report:
+        raise InputError(f"no export record ({REPORT_FILE} missing or unreadable): which model "
+                         f"it was exported from is unknown; {fix}", path=str(blob))
+    if model is None:
+        model = fm.load(root)
+    if report[DIGEST_KEY] != model_digest(model):
+        raise InputError(f"stale: exported from another model than {fm.MODEL_JSON} "
+                         f"(retrained after export); {fix}", path=str(blob))
+    recorded = (report.get(FILES_KEY) or {}).get(BLOB_FILE)
+    if recorded is not None and recorded != file_sha256(blob):
+        raise InputError(f"not the blob its export wrote ({REPORT_FILE} records another); {fix}",
+                         path=str(blob))
+
+
+def remove_stale_export(model_dir: str | Path, model: Any) -> list[str]:
+    """Delete the export of ``model_dir`` (blob, ONNX graph, generated C, report) unless it was
+    made from ``model``; returns the names removed. :func:`fbgforce.model.save` calls it, so
+    retraining into an exported directory never leaves the old export to be run."""
+    root = Path(model_dir)
+    report = _read_report(root)
+    if report is not None and report.get(DIGEST_KEY) == model_digest(model):
+        return []
+    removed = []
+    for name in (BLOB_FILE, ONNX_FILE, REPORT_FILE):
+        if (root / name).is_file():
+            (root / name).unlink()
+            removed.append(name)
+    c_dir = root / C_DIR
+    if c_dir.is_dir():
+        # Only what the exporter generates: other files a user keeps there stay.
+        for pattern in ("*_model.[ch]", "*_model_f32.[ch]"):
+            for path in sorted(c_dir.glob(pattern)):
+                path.unlink()
+                removed.append(f"{C_DIR}/{path.name}")
+        if not any(c_dir.iterdir()):
+            c_dir.rmdir()
+    return removed
