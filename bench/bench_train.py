@@ -8,8 +8,8 @@ Usage::
 Simulates the scene (default ``calibration_paper``, the paper's protocol, 234,300 samples)
 unless ``--data`` is given, then runs :func:`fbgforce.trainer.train.train` with the default
 settings (causal filter, paper sizes, Adam, mini-batch 128, early stopping) and prints a table:
-preparation time, epochs and seconds per net, total wall and process CPU time, test metrics. Goal: < 180 s on the 2-core
-machine (the paper quotes about 20 minutes with TensorFlow).
+preparation time, epochs and seconds per net, total wall and process CPU time, test metrics.
+Goal: < 180 s on the 2-core machine (the paper quotes about 20 minutes with TensorFlow).
 """
 from __future__ import annotations
 
