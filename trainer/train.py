@@ -775,6 +775,23 @@ class Creep:
             out[k] = state
         return out
 
+    def still_to_come(self, force_N: np.ndarray, at: np.ndarray, rate_hz: float) -> np.ndarray:
+        """At samples ``at`` of a recording: how much more the beams would carry if the load
+        stood still from there on, relative to what they carry (``m (F - lag) / (F + m (lag
+        - F))``; 0 without creep)."""
+        if self.magnitude <= 0:
+            return np.zeros(len(at))
+        f, lag = force_N[at], self.lag(force_N, rate_hz)[at]
+        carried = f + self.magnitude * (lag - f)
+        return self.magnitude * (f - lag) / np.maximum(carried, 1e-9)
+
+    def settling(self, n: int, rate_hz: float) -> np.ndarray:
+        """``1 - exp(-k / (tau rate))`` for ``k = 0 .. n-1``: how far the creep has run ``k``
+        samples into a hold (1 without creep)."""
+        if self.magnitude <= 0:
+            return np.ones(n)
+        return 1.0 - np.exp(-np.arange(n) / (self.time_constant_s * rate_hz))
+
 
 def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
     """The pad's creep, fitted on the creep recovery after the releases among ``rows``.
@@ -785,7 +802,7 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
     shifts over the contact samples of ``rows``) minus the force is regressed on
     ``lag(F) - F`` over the first :data:`CREEP_TAIL_S` after each release, for each
     relaxation time of :data:`CREEP_TIME_CONSTANTS_S`; the best fit's slope is the magnitude.
-    On the calibration scene (5 %, 0.08 s simulated) it finds 0.052 and 0.075 s.
+    On the calibration_paper scene (5 % and 0.08 s simulated) it finds 0.050 and 0.083 s.
     """
     keep = data.row_mask(rows)
     comps, forces, tails = [], [], []
@@ -810,10 +827,9 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
         trial = Creep(1.0, tau)
         lag = np.concatenate([trial.lag(force[sl], r.rate_hz) - force[sl]
                               for r, sl in data.recording_slices()])[tail]
-        coef, res, *_ = np.linalg.lstsq(np.column_stack([lag, np.ones(lag.size)]), excess,
-                                        rcond=None)
-        rss = float(res[0]) if res.size else float(np.sum((excess - np.column_stack(
-            [lag, np.ones(lag.size)]) @ coef) ** 2))
+        design = np.column_stack([lag, np.ones(lag.size)])
+        coef, *_ = np.linalg.lstsq(design, excess, rcond=None)
+        rss = float(np.sum((excess - design @ coef) ** 2))
         if best is None or rss < best[0]:
             best = (rss, Creep(float(np.clip(coef[0], 0.0, 0.9)), tau))
     assert best is not None
@@ -829,18 +845,17 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     still: its averages then decay towards the load, a state the nets meet first in a held
     grip. A ``share`` of the presses (drawn per press) gets a hold of
     ``U(*HOLD_AUGMENT_S)`` seconds inserted after its peak sample: the five wavelengths at the
-    mean of the 6 raw samples up to the peak (see the code) plus interrogator noise drawn (one row of all
-    five channels at a time) from the recording's own first differences at rest over √2, the
-    labels those of the peak. Through the hold the pad keeps creeping as ``creep`` says
+    mean of the six raw samples up to the peak, scaled to the peak force, plus interrogator
+    noise drawn (one row of all five channels at a time) from the recording's own first
+    differences at rest over √2, the labels those of the peak. Through the hold the pad keeps creeping as ``creep`` says
     (:func:`fit_creep`): the strain part of the held shifts (temperature and tare untouched)
     rises by ``m (F - lag(F))`` of the force it carried at the peak, with the creep's time
     constant, and the samples after the hold carry what is left of that rise as the lag
     runs down; without it the nets would learn the peak's still-lagging shifts as the held
     load and read a real hold high by that creep (1.8 % on the calibration scene). The
-    inputs are recomputed with ``pre`` over the whole lengthened
-    recording, so the filter and the memory states run through the hold as the runtime's
-    would; the held samples (one every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press
-    after the hold are returned.
+    inputs are recomputed with ``pre`` over the whole lengthened recording, so the filter and
+    the memory states run through the hold as the runtime's would; the held samples (one
+    every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press after the hold are returned.
     """
     inputs, kept = [], []
     for r, sl in data.recording_slices():
@@ -873,22 +888,16 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
         scale = force[peaks] / np.maximum([force[a].mean() for a in around], 1e-12)
         level[:, :fm.N_STRAIN] = (base[:fm.N_STRAIN]
                                   + (level[:, :fm.N_STRAIN] - base[:fm.N_STRAIN]) * scale[:, None])
-        rise = np.zeros(len(peaks))      # creep still to come at the peak, relative
-        decay = np.zeros(0)
-        if creep.magnitude > 0:
-            lag = creep.lag(force, r.rate_hz)
-            f_peak = force[peaks]
-            carried = f_peak + creep.magnitude * (lag[peaks] - f_peak)
-            rise = creep.magnitude * (f_peak - lag[peaks]) / np.maximum(carried, 1e-9)
-            decay = np.exp(-np.arange(1, int(10 * creep.time_constant_s * r.rate_hz) + 1)
-                           / (creep.time_constant_s * r.rate_hz))
+        rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
+        # After the hold the lag runs down from the held load instead of the peak's lagging
+        # value: the rise reached in the hold decays over 10 time constants.
+        tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * r.rate_hz) + 1, r.rate_hz)
         strain = pp.compensated(pre, level, r.baseline_nm) / 1000.0     # nm
         wl = wl.copy()
         ramp = []
         for i, (k, n) in enumerate(zip(peaks, lengths)):
-            settled = 1.0 - np.exp(-np.arange(n) / (max(creep.time_constant_s, 1e-9) * r.rate_hz))
-            ramp.append(rise[i] * settled)
-            left = rise[i] * (settled[-1] if n else 0.0) * decay[:len(wl) - k - 1]
+            ramp.append(rise[i] * creep.settling(n, r.rate_hz))
+            left = ramp[-1][-1] * tail[1:len(wl) - k]
             wl[k + 1:k + 1 + left.size, :fm.N_STRAIN] += left[:, None] * strain[i]
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
