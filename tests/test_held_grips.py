@@ -1,7 +1,9 @@
 """Held grips: the trainer's synthetic holds (a press's peak stretched into a hold, the pad's
-creep continued) against real holds of the simulator, the creep fit, and a small model reading
-holds it was never calibrated on."""
+creep continued) against real holds of the simulator, the creep fit, and the held-grip
+benchmark."""
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
@@ -72,3 +74,27 @@ def test_fit_creep_finds_the_pads_relaxation():
         schedule={"n_presses": 20}, effects={"viscoelastic": {"magnitude": 0.0}})
     ideal_data = T.prepare([sim.simulate(ideal)])
     assert T.fit_creep(ideal_data, ideal_data.pre, ideal_data.rows("all")).magnitude < 0.01
+
+
+def test_bench_held_grips_scores_the_held_samples(tmp_path, small_model_dir, capsys):
+    """bench_held_grips: bias and RMSE over the held samples only, 0 N where the contact
+    decision is off; one JSON object; a missing file is a one-line error (exit 2)."""
+    from fbgforce import dataset
+    from fbgforce.bench import bench_held_grips as B
+
+    held = np.array([False, True, True, True, False])
+    out = B.held_grip_errors(np.array([9.0, 11.0, 10.0, 5.0, 0.0]),
+                             np.array([True, True, True, False, False]),
+                             np.array([0.0, 10.0, 10.0, 10.0, 0.0]), held, 1000.0)
+    assert out["held_samples"] == 3 and out["held_s"] == pytest.approx(0.003)
+    assert out["force_bias_N"] == pytest.approx((1.0 + 0.0 - 10.0) / 3)
+    assert out["force_rmse_N"] == pytest.approx(np.sqrt(101.0 / 3))
+    assert out["contact_missed"] == pytest.approx(1 / 3)
+    path = tmp_path / "holds.npz"
+    dataset.save(sim.simulate(sim.load_scene("long_holds").replace(schedule={"n_presses": 2})), path)
+    assert B.main(["--model", str(small_model_dir), "--data", str(path), "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["held_s"] > 3.0 and np.isfinite(result["force_bias_N"])
+    assert B.main(["--model", str(small_model_dir), "--data", str(tmp_path / "none.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("bench_held_grips:") and err.count("\n") == 1
