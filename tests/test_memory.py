@@ -286,12 +286,11 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     assert T.hold_seconds(held, np.arange(0)) == 0.0
     presses = T.prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
     assert T.hold_seconds(presses) == 0.0
-    md = fm.load(small_model_dir).metadata  # the smoke scene: presses without holds
+    md = fm.load(small_model_dir).metadata  # the smoke scene, trained without synthetic holds
     assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
-    assert md["synthetic_holds"]["samples"]["train"] > 0 and md["warnings"] == []
-    tiny = {net: (4,) for net in T.DEFAULT_SIZES}
-    plain = sim.simulate(small.replace(schedule={"hold_s": 0.0, "n_presses": 10}))
-    md = T.train([plain], epochs=1, sizes=tiny, restarts=1, hold_augment=0.0,
-                 progress=False).metadata
     assert md["synthetic_holds"]["samples"]["train"] == 0
     assert len(md["warnings"]) == 1 and "hold" in md["warnings"][0]
+    tiny = {net: (4,) for net in T.DEFAULT_SIZES}
+    plain = sim.simulate(small.replace(schedule={"hold_s": 0.0, "n_presses": 10}))
+    md = T.train([plain], epochs=1, sizes=tiny, restarts=1, progress=False).metadata
+    assert md["synthetic_holds"]["samples"]["train"] > 0 and md["warnings"] == []
