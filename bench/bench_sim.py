@@ -2,12 +2,13 @@
 
 Times (median of ``--repeat`` runs, one process; wall clock and CPU time):
 
-- simulating the ``calibration`` scene (234,300 samples; goal < 10 s),
+- simulating the ``calibration_paper`` scene (the paper's protocol, 234,300 samples;
+  goal < 10 s),
 - saving and loading it as CSV (load goal < 2 s) and as npz,
 
 and prints a table (``--json`` for one JSON object instead). Run from anywhere::
 
-    python -m fbgforce.bench.bench_sim [--scene calibration] [--repeat 3] [--json]
+    python -m fbgforce.bench.bench_sim [--scene calibration_paper] [--repeat 3] [--json]
 """
 from __future__ import annotations
 
@@ -38,7 +39,7 @@ def _time(fn: Callable[[], Any], repeat: int) -> tuple[float, float, Any]:
     return statistics.median(walls), statistics.median(cpus), result
 
 
-def run(scene: str = "calibration", repeat: int = 3) -> dict[str, Any]:
+def run(scene: str = "calibration_paper", repeat: int = 3) -> dict[str, Any]:
     """Measure and return ``{"scene", "samples", "timings_s": {...}, "goals_s", "file_bytes"}``."""
     from fbgforce import dataset
     from fbgforce.sim import simulate
@@ -66,7 +67,7 @@ def run(scene: str = "calibration", repeat: int = 3) -> dict[str, Any]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="calibration")
+    ap.add_argument("--scene", default="calibration_paper")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)

@@ -40,7 +40,15 @@ SCHEDULES: dict[str, dict[str, Param]] = {
                         "is the taring time", 0.0, 3600),
         "load_s": Param("float", 0.29, "loading time, s", 0.001, 3600),
         "hold_s": Param("float", 0.0, "hold at peak force, s", 0, 3600),
+        "hold_max_s": Param("float", 0.0, "when above hold_s, each holding press holds for a "
+                            "time drawn uniformly in [hold_s, hold_max_s], s", 0, 3600),
+        "hold_fraction": Param("float", 1.0, "share of the presses that hold (each press "
+                               "drawn at random); the others turn round at the peak", 0, 1),
         "unload_s": Param("float", 0.29, "unloading time, s", 0.001, 3600),
+        "speed_spread": Param("float", 1.0, "each press loads and unloads in load_s and "
+                              "unload_s times a factor drawn log-uniformly in "
+                              "[1/speed_spread, speed_spread] (1: every press at one speed)",
+                              1, 100),
         "force_min_N": Param("float", 1.0, "smallest peak force, N", 0, 1000),
         "force_max_N": Param("float", 70.0, "largest peak force, N", 0, 1000, lo_open=True),
         "force_distribution": Param("str", "uniform", "distribution of peak forces",
@@ -204,6 +212,9 @@ def _check_schedule(s: dict[str, Any], path: str | None) -> None:
     if s["kind"] == "presses" and s["force_distribution"] == "loguniform" and s["force_min_N"] <= 0:
         raise InputError("must be > 0 for force_distribution = 'loguniform'", path=path,
                          column="schedule.force_min_N")
+    if s["kind"] == "presses" and 0 < s["hold_max_s"] < s["hold_s"]:
+        raise InputError(f"hold_max_s ({s['hold_max_s']:g}) must be 0 or at least hold_s "
+                         f"({s['hold_s']:g})", path=path, column="schedule.hold_max_s")
     if s["kind"] == "impacts" and s["impulse_min_Ns"] > s["impulse_max_Ns"]:
         raise InputError("impulse_min_Ns must not exceed impulse_max_Ns", path=path,
                          column="schedule.impulse_min_Ns")

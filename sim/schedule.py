@@ -80,6 +80,34 @@ def _samples(seconds: float, rate: float) -> int:
     return int(round(seconds * rate))
 
 
+def _press_variety(s: dict, rng: np.random.Generator, n_p: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Per press: the hold (s) and the factor on the loading and unloading times.
+
+    Drawn after the peaks and locations, and only for the keys a scene sets, so a scene with
+    one hold and one speed for every press keeps its presses draw for draw."""
+    hold = np.full(n_p, s["hold_s"])
+    if s["hold_max_s"] > s["hold_s"]:
+        hold = rng.uniform(s["hold_s"], s["hold_max_s"], n_p)
+    if s["hold_fraction"] < 1.0:
+        hold = np.where(rng.random(n_p) < s["hold_fraction"], hold, 0.0)
+    speed = np.ones(n_p)
+    if s["speed_spread"] > 1.0:
+        spread = math.log(s["speed_spread"])
+        speed = np.exp(rng.uniform(-spread, spread, n_p))
+    return hold, speed
+
+
+def _press_template(s: dict, rate: float, hold_s: float, time_factor: float) -> np.ndarray:
+    """One press's force relative to its peak: rest, load, hold at the peak, unload."""
+    n_rest = _samples(s["rest_s"], rate)
+    n_load = max(1, _samples(s["load_s"] * time_factor, rate))
+    n_unload = max(1, _samples(s["unload_s"] * time_factor, rate))
+    ramp_up = _shape(s["profile"], np.arange(1, n_load + 1) / n_load)
+    ramp_down = _shape(s["profile"], 1.0 - np.arange(1, n_unload + 1) / n_unload)
+    return np.concatenate([np.zeros(n_rest), ramp_up, np.ones(_samples(hold_s, rate)), ramp_down])
+
+
 def build_schedule(scene: Scene) -> Schedule:
     """Per-sample schedule of a scene (see the module and ``docs/simulator.md``)."""
     s = scene.schedule
@@ -94,14 +122,11 @@ def build_schedule(scene: Scene) -> Schedule:
         else:
             peaks = rng.uniform(s["force_min_N"], s["force_max_N"], n_p)
         loc = sample_locations(rng, n_p, s["region"], s["margin_mm"], s["band_mm"])
-        n_rest, n_load = _samples(s["rest_s"], rate), max(1, _samples(s["load_s"], rate))
-        n_hold, n_unload = _samples(s["hold_s"], rate), max(1, _samples(s["unload_s"], rate))
-        ramp_up = _shape(s["profile"], np.arange(1, n_load + 1) / n_load)
-        ramp_down = _shape(s["profile"], 1.0 - np.arange(1, n_unload + 1) / n_unload)
-        template = np.concatenate([np.zeros(n_rest), ramp_up, np.ones(n_hold), ramp_down])
-        per = template.size
-        force = (peaks[:, None] * template[None, :]).ravel()
-        loaded = np.tile(template > 0, n_p)
+        templates = [_press_template(s, rate, hold, speed)
+                     for hold, speed in zip(*_press_variety(s, rng, n_p))]
+        per = np.array([t.size for t in templates])
+        force = np.concatenate([p * t for p, t in zip(peaks, templates)])
+        loaded = np.concatenate(templates) > 0
         x = np.where(loaded, np.repeat(loc[:, 0], per), np.nan)
         y = np.where(loaded, np.repeat(loc[:, 1], per), np.nan)
         press = np.repeat(np.arange(n_p, dtype=np.int64), per)

@@ -85,6 +85,8 @@ CASES = [
                                 "force=0"], "--restarts"),
     ("train", "restarts of no net", ["--data", "{good_data}", "--out", "{out}/m", "--restarts",
                                      "forse=2"], "forse"),
+    ("train", "hold share above 1", ["--data", "{good_data}", "--out", "{out}/m",
+                                     "--hold-augment", "1.5"], "--hold-augment"),
     ("evaluate", "no model dir", ["--model", "{not_a_dir}", "--data", "{good_data}"], "not_a_model"),
     ("evaluate", "truncated npz data", ["--model", "{good_model}", "--data", "{truncated_npz}"], "truncated.npz"),
     ("evaluate", "corrupt model.fbgm, fixed", ["--model", "{corrupt_blob}", "--data", "{good_data}",

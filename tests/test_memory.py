@@ -274,7 +274,8 @@ def test_location_averages_at_their_saturation_bounds(random_model_factory, rand
 
 def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_dir):
     """train() records how long the training presses hold their load; with averages in the
-    memory and no hold it warns (the averages would read a held grip low)."""
+    memory, no hold and the synthetic holds turned off it warns (the averages would read a
+    held grip low); by default the synthetic holds stand in for them."""
     from fbgforce import sim
     from fbgforce.trainer import train as T
 
@@ -285,6 +286,13 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     assert T.hold_seconds(held, np.arange(0)) == 0.0
     presses = T.prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
     assert T.hold_seconds(presses) == 0.0
-    md = fm.load(small_model_dir).metadata  # the smoke scene: presses without holds
+    md = fm.load(small_model_dir).metadata  # the smoke scene, trained without synthetic holds
     assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
-    assert len(md["warnings"]) == 1 and "hold" in md["warnings"][0]
+    assert md["synthetic_holds"]["samples"]["train"] == 0
+    assert sum("held grip" in w for w in md["warnings"]) == 1
+    tiny = {net: (4,) for net in T.DEFAULT_SIZES}
+    plain = sim.simulate(small.replace(schedule={"hold_s": 0.0, "n_presses": 10}))
+    md = T.train([plain], epochs=1, sizes=tiny, restarts=1, progress=False).metadata
+    # (A 10-press log also warns that its test split is small: not about holds.)
+    assert md["synthetic_holds"]["samples"]["train"] > 0
+    assert not any("held grip" in w for w in md["warnings"])

@@ -12,8 +12,9 @@ from fbgforce.cli import main
 from fbgforce.errors import InputError
 from fbgforce.sim import EndEffector, builtin_scenes, build_schedule, load_scene, simulate
 
-SPEC_SCENES = {"calibration", "ideal", "thermal_soak", "impact", "low_force", "boundary",
-               "overload", "two_devices", "smoke", "calibration_holds"}
+SPEC_SCENES = {"calibration", "calibration_paper", "ideal", "thermal_soak", "impact",
+               "low_force", "boundary", "overload", "two_devices", "smoke", "calibration_holds",
+               "long_holds"}
 
 
 def small(name: str, n_presses: int = 12):
@@ -59,7 +60,7 @@ def test_ideal_inverts_exactly_through_the_nominal_model():
 
 
 def test_calibration_full_size_and_shape():
-    ds = simulate("calibration")
+    ds = simulate("calibration_paper")
     assert len(ds) == 234_300 and ds.n_presses == 300
     assert set(ds.extra) == {"temperature_K"}
     c = ds.contact
@@ -83,6 +84,37 @@ def test_calibration_full_size_and_shape():
     per_newton_pm = (shift[centred, :4].sum(axis=1) * 1000 / ds.force_N[centred]).mean()
     expected = EndEffector("calibration").design.shift_per_newton_nm().mean() * 1000
     assert expected < 0 and per_newton_pm == pytest.approx(expected, rel=0.2)
+
+
+def press_phases(sched, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per press of a schedule: seconds at its peak force, seconds from onset to peak."""
+    held, rising = [], []
+    for p in np.unique(sched.press_id):
+        f = sched.force_N[sched.press_id == p]
+        at_peak = np.flatnonzero(np.isclose(f, f.max(), rtol=1e-9))
+        held.append(at_peak.size / rate)
+        rising.append((at_peak[0] - np.flatnonzero(f > 0)[0] + 1) / rate)
+    return np.array(held), np.array(rising)
+
+
+def test_calibration_holds_some_presses_and_spreads_speeds():
+    """The default calibration holds one press in ten at its peak for 1.5-6 s and loads at
+    speeds spread over 4x; `calibration_paper` (the same points and peaks) is the paper's
+    protocol: one speed, no hold; `long_holds` holds every press 1.5-6 s."""
+    cal = build_schedule(load_scene("calibration"))
+    held, rising = press_phases(cal, 1000.0)
+    holding = held > 1.0
+    assert 0.05 < holding.mean() < 0.15
+    assert held[holding].min() >= 1.5 and held[holding].max() <= 6.0 + 1e-3
+    assert np.all(held[~holding] <= 0.002)
+    assert rising.min() < 0.16 and rising.max() > 0.5 and np.all((rising > 0.14) & (rising < 0.59))
+    paper = build_schedule(load_scene("calibration_paper"))
+    held, rising = press_phases(paper, 1000.0)
+    assert np.all(held <= 0.002) and np.all(rising == 0.29)
+    np.testing.assert_array_equal(np.unique(cal.x_mm[cal.contact]),
+                                  np.unique(paper.x_mm[paper.contact]))
+    held, _ = press_phases(build_schedule(load_scene("long_holds")), 1000.0)
+    assert held.min() >= 1.5 and held.max() <= 6.0 + 1e-3
 
 
 def test_nominal_sensitivity_matches_the_paper():
@@ -139,7 +171,7 @@ def test_calibration_pad_loop_strength():
     """The calibration device's pad: at half the peak force, unloading reads 6-12 % more
     than loading (friction gap 0.06 per unit force on developed branches, about 0.055 at the
     half-peak point, plus the viscoelastic lag)."""
-    scene = small("calibration", 8)
+    scene = small("calibration_paper", 8)
     assert scene.effects["friction_hysteresis"]["gap"] == 0.06
     pad_only = {k: scene.effects[k] for k in ("friction_hysteresis", "viscoelastic")}
     gaps = loop_gaps(simulate(scene.replace(effects=pad_only)))
@@ -192,6 +224,10 @@ def test_thermal_soak_has_no_contact_and_a_40K_ramp():
     ('colour = "red"\n[schedule]\nkind = "rest"\n', "colour", "allowed top-level keys"),
     ('[schedule]\nkind = "presses"\nforce_min_N = 9\nforce_max_N = 5\n', "schedule.force_min_N",
      "must not exceed"),
+    ('[schedule]\nkind = "presses"\nhold_s = 2\nhold_max_s = 1\n', "schedule.hold_max_s",
+     "at least hold_s"),
+    ('[schedule]\nkind = "presses"\nspeed_spread = 0.5\n', "schedule.speed_spread",
+     "out of range"),
     ('[schedule]\nkind = "presses"\n[effects.dynamics]\ninternal_rate_hz = 10500\n',
      "effects.dynamics.internal_rate_hz", "integer multiple"),
     ('description = "no schedule"\n', "schedule", "missing [schedule]"),

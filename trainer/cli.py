@@ -57,6 +57,10 @@ def register(subparsers: Any) -> None:
                    help="initialisations tried per net, the lowest validation loss kept: N for "
                         "every net or e.g. 'force=3,location=2' (default contact=1, force=3, "
                         "location=1)")
+    p.add_argument("--hold-augment", type=non_negative_float, default=None, metavar="SHARE",
+                   help="share of the training presses the contact and force nets also see "
+                        "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
+                        "0 = off); docs/trainer.md \"Held grips\"")
     add_json_flag(p)
     p.set_defaults(handler=_train)
 
@@ -126,10 +130,13 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
     fileio.check_output_dir(args.out, "--out")
+    if args.hold_augment is not None and args.hold_augment > 1.0:
+        raise InputError(f"must be in [0, 1], not {args.hold_augment}", column="--hold-augment")
+    holds = {} if args.hold_augment is None else {"hold_augment": args.hold_augment}
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
                   memory=args.memory, restarts=_restarts(args.restarts),
                   sigma=args.sigma, window=args.window, init=args.init,
-                  train_fraction=args.train_fraction)
+                  train_fraction=args.train_fraction, **holds)
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}

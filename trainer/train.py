@@ -48,6 +48,18 @@ DEFAULT_DECAY_SAMPLES: dict[str, float] = {"contact": 0.0, "force": 15.0, "locat
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
 LOCATION_AUGMENT = 3.0
+#: Synthetic holds (:func:`_synthetic_holds`): the contact and force nets also train on this
+#: share of the training presses with their peak stretched into a hold of a length drawn in
+#: :data:`HOLD_AUGMENT_S` (seconds), of which one sample every :data:`HOLD_AUGMENT_STEP_S`
+#: trains (consecutive held samples differ only by noise and the averages' slow decay); 0 turns
+#: this off (docs/trainer.md, "Held grips").
+HOLD_AUGMENT = 0.2
+HOLD_AUGMENT_S = (1.5, 6.0)
+HOLD_AUGMENT_STEP_S = 0.004
+#: Relaxation times (s) tried by :func:`fit_creep`, and how long after a release its samples
+#: show the pad creeping back (the creep recovery the fit reads).
+CREEP_TIME_CONSTANTS_S = tuple(float(t) for t in np.geomspace(0.01, 1.0, 25))
+CREEP_TAIL_S = 0.15
 #: Initialisations tried per net, the one with the lowest validation loss kept
 #: (:func:`_fit_best_of`). The force net lands 0.38-0.42 N from one initialisation to the next
 #: on the calibration scene and its validation loss ranks the draws as the test presses do;
@@ -319,32 +331,41 @@ def _rest_margins(data: Prepared, logits: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.empty(0)
 
 
+def hold_mask(force_N: np.ndarray, contact: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Per sample of one recording: inside a hold, a stretch of at least :data:`HOLD_MIN_S`
+    in ``contact`` with the load-cell force within :data:`HOLD_BAND` (found in 10 ms blocks;
+    a last partial block is never inside)."""
+    block = max(1, int(round(0.01 * rate_hz)))
+    width = max(1, int(round(HOLD_MIN_S * rate_hz / block)))
+    n = np.asarray(force_N).size
+    m = (n // block) * block
+    out = np.zeros(n, dtype=bool)
+    if m // block < width:
+        return out
+    f = np.asarray(force_N, float)[:m].reshape(-1, block)
+    c = np.asarray(contact, bool)[:m].reshape(-1, block).all(axis=1)
+    win = np.lib.stride_tricks.sliding_window_view
+    hi = win(f.max(axis=1), width).max(axis=1)
+    lo = win(f.min(axis=1), width).min(axis=1)
+    still = (hi - lo <= np.maximum(HOLD_BAND[0], HOLD_BAND[1] * hi)) & win(c, width).all(axis=1)
+    # A block is inside a hold when any still window starting in the last `width` blocks
+    # covers it.
+    inside = np.convolve(still, np.ones(width, dtype=int))[:f.shape[0]] > 0
+    out[:m] = np.repeat(inside, block)
+    return out
+
+
 def hold_seconds(data: Prepared, rows: np.ndarray | None = None) -> float:
-    """Seconds of ``data`` (optionally only ``rows``) inside holds: stretches of at least
-    :data:`HOLD_MIN_S` in contact with the load-cell force within :data:`HOLD_BAND`.
+    """Seconds of ``data`` (optionally only ``rows``) inside holds (:func:`hold_mask`).
 
     An average of the load reads a held load as it reads the instant a press turns round; a
     net that never saw a hold takes one for a release (docs/teleop.md measures a grip read
-    1.7 N low), so :func:`train` warns when the training data has none.
+    1.7 N low), which the trainer's synthetic holds (:func:`_synthetic_holds`) teach it.
     """
-    total = 0.0
     keep = data.row_mask(rows) & data.contact
+    total = 0.0
     for r, sl in data.recording_slices():
-        block = max(1, int(round(0.01 * r.rate_hz)))          # 10 ms blocks
-        width = max(1, int(round(HOLD_MIN_S * r.rate_hz / block)))
-        m = ((sl.stop - sl.start) // block) * block
-        f = data.force_N[sl][:m].reshape(-1, block)
-        c = keep[sl][:m].reshape(-1, block).all(axis=1)
-        if f.shape[0] < width:
-            continue
-        win = np.lib.stride_tricks.sliding_window_view
-        hi = win(f.max(axis=1), width).max(axis=1)
-        lo = win(f.min(axis=1), width).min(axis=1)
-        still = (hi - lo <= np.maximum(HOLD_BAND[0], HOLD_BAND[1] * hi)) & win(c, width).all(axis=1)
-        # A block is inside a hold when any still window starting in the last `width` blocks
-        # covers it.
-        inside = np.convolve(still, np.ones(width, dtype=int))[:f.shape[0]] > 0
-        total += float(inside.sum()) * block / r.rate_hz
+        total += float(hold_mask(data.force_N[sl], keep[sl], r.rate_hz).sum()) / r.rate_hz
     return total
 
 
@@ -476,7 +497,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
           train_fraction: float = 1.0, time_budget_s: float | None = None,
           plateau: int | None = None, plateau_factor: float = 0.3,
           weight_decay: float | Mapping[str, float] | None = None,
-          location_augment: float = LOCATION_AUGMENT,
+          location_augment: float = LOCATION_AUGMENT, hold_augment: float = HOLD_AUGMENT,
           memory: fm.Memory | str | None = None,
           restarts: int | Mapping[str, int] | None = None) -> fm.HierarchicalModel:
     """Train the hierarchical model on calibration recordings.
@@ -514,6 +535,10 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     location_augment
         The location net also trains on the training presses pressed up to this many times
         harder (:func:`_scaled_presses`); 1 turns it off.
+    hold_augment
+        The contact and force nets also train on this share of the training (and validation)
+        presses held at their peak for 1.5-6 s (:func:`_synthetic_holds`); 0 turns it off.
+        Only a model with memory states uses it (a memoryless net reads a hold as its peak).
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``--init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
@@ -554,8 +579,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     t_prep = time.perf_counter() - t_start
     tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
     ss = np.random.SeedSequence(seed)
-    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug = (np.random.default_rng(s)
-                                                       for s in ss.spawn(6))
+    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug, rng_hold = (np.random.default_rng(s)
+                                                                 for s in ss.spawn(7))
     if train_fraction < 1.0:
         tr = _subsample_presses(data, tr, train_fraction, rng_sub)
     if tr.size == 0 or not data.contact[tr].any() or data.contact[tr].all():
@@ -601,14 +626,26 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         reports[name].update(weight_decay=wd, train_samples=int(len(x)))
         return net
 
+    # 0. Synthetic holds for the nets that read the load's memory (training and validation
+    #    presses alike, so early stopping and the choice among restarts weigh them too).
+    nf = pre.n_features
+    no_holds = (np.empty((0, pre.n_inputs)), tr[:0])
+    creep = fit_creep(data, pre, tr) if hold_augment > 0 and pre.memory.n_states else Creep()
+    hold_tr, hold_va = (_synthetic_holds(data, pre, rows, hold_augment, creep, rng_hold)
+                        if hold_augment > 0 and pre.memory.n_states else no_holds
+                        for rows in (tr, va))
+
     # 1. Contact: every sample, softmax cross-entropy.
     labels = data.contact.astype(np.int64)
+    zc_tr = np.concatenate([z[tr], hold_tr[0][:, :nf]])
+    zc_va = np.concatenate([z[va], hold_va[0][:, :nf]])
+    yc_tr, yc_va = labels[np.concatenate([tr, hold_tr[1]])], labels[np.concatenate([va, hold_va[1]])]
 
     def contact_val(net: FlatMLP) -> dict[str, float]:
         return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z[va]), 1) == 1)
                                          == data.contact[va])) if va.size else float("nan")}
 
-    cnet = fit_net("contact", rng_c, "xent", z[tr], labels[tr], z[va], labels[va],
+    cnet = fit_net("contact", rng_c, "xent", zc_tr, yc_tr, zc_va, yc_va,
                    val_metrics=contact_val, desc="contact net")
     logits = predict_batched(cnet, z)
     pred_contact = logits[:, 1] > logits[:, 0]
@@ -623,11 +660,23 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
     ft = ((data.force_N - f_off) / f_scale)[:, None]
 
+    def with_holds(rows: np.ndarray, held: tuple[np.ndarray, np.ndarray]
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Force-net inputs and targets of ``rows`` and of the held samples the contact net
+        passes (the same gate as the recorded samples)."""
+        zh = held[0][:, :nf]
+        hl = predict_batched(cnet, zh) if len(zh) else np.empty((0, 2))
+        passed = hl[:, 1] > hl[:, 0]
+        return (np.concatenate([z[rows], zh[passed]]),
+                np.concatenate([ft[rows], ft[held[1][passed]]]))
+
+    (zf_tr, yf_tr), (zf_va, yf_va) = with_holds(ftr, hold_tr), with_holds(fva, hold_va)
+
     def force_val(net: FlatMLP) -> dict[str, float]:
         e = (predict_batched(net, z[fva])[:, 0] * f_scale + f_off) - data.force_N[fva]
         return {"val_rmse_N": float(np.sqrt(np.mean(e * e))) if e.size else float("nan")}
 
-    fnet = fit_net("force", rng_f, "mse", z[ftr], ft[ftr], z[fva], ft[fva],
+    fnet = fit_net("force", rng_f, "mse", zf_tr, yf_tr, zf_va, yf_va,
                    val_metrics=force_val, desc="force net")
     f_raw = predict_batched(fnet, z)[:, 0]
 
@@ -660,11 +709,11 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     if few:
         warnings.append(few)
     held_s = hold_seconds(data, tr)
-    if pre.memory.ema_shifts and held_s == 0.0:
+    if pre.memory.ema_shifts and held_s == 0.0 and not hold_tr[1].size:
         warnings.append(
             "the training presses hold no load (no %.1f s in contact within %.1f N or %d %%): "
             "the memory's averages will read a held grip low; calibrate with holds (scene "
-            "calibration_holds, docs/teleop.md) or train with --memory play"
+            "calibration_holds, docs/teleop.md) or train with synthetic holds (--hold-augment)"
             % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
     # Units weight decay switched off cost multiply-adds in every engine and change no float32
     # output: leave them out of the model.
@@ -693,6 +742,13 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         "memory": pre.memory.to_json(),
         "train_hold_s": held_s,
         "coverage": data_coverage,
+        "synthetic_holds": {"share": hold_augment, "range_s": list(HOLD_AUGMENT_S),
+                            "creep": {"magnitude": creep.magnitude,
+                                      "time_constant_s": creep.time_constant_s},
+                            "presses": {"train": _count_holds(hold_tr[1], data),
+                                        "val": _count_holds(hold_va[1], data)},
+                            "samples": {"train": int(hold_tr[1].size),
+                                        "val": int(hold_va[1].size)}},
         "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
@@ -742,6 +798,174 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
+
+
+@dataclass(frozen=True)
+class Creep:
+    """The pad's viscoelastic creep as a standard linear solid: the beams carry
+    ``F + magnitude * (lag(F) - F)``, ``lag`` a first-order lag of the load with
+    ``time_constant_s`` (0, 0: none found)."""
+
+    magnitude: float = 0.0
+    time_constant_s: float = 0.0
+
+    def lag(self, force_N: np.ndarray, rate_hz: float) -> np.ndarray:
+        """The first-order lag of ``force_N`` (one recording) at ``rate_hz``."""
+        a = 1.0 - np.exp(-1.0 / (rate_hz * self.time_constant_s))
+        out = np.empty(len(force_N))
+        state = 0.0
+        for k, f in enumerate(np.asarray(force_N, float).tolist()):
+            state += a * (f - state)
+            out[k] = state
+        return out
+
+    def still_to_come(self, force_N: np.ndarray, at: np.ndarray, rate_hz: float) -> np.ndarray:
+        """At samples ``at`` of a recording: how much more the beams would carry if the load
+        stood still from there on, relative to what they carry (``m (F - lag) / (F + m (lag
+        - F))``; 0 without creep)."""
+        if self.magnitude <= 0:
+            return np.zeros(len(at))
+        f, lag = force_N[at], self.lag(force_N, rate_hz)[at]
+        carried = f + self.magnitude * (lag - f)
+        return self.magnitude * (f - lag) / np.maximum(carried, 1e-9)
+
+    def settling(self, n: int, rate_hz: float) -> np.ndarray:
+        """``1 - exp(-k / (tau rate))`` for ``k = 0 .. n-1``: how far the creep has run ``k``
+        samples into a hold (1 without creep)."""
+        if self.magnitude <= 0:
+            return np.ones(n)
+        return 1.0 - np.exp(-np.arange(n) / (self.time_constant_s * rate_hz))
+
+
+def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
+    """The pad's creep, fitted on the creep recovery after the releases among ``rows``.
+
+    After a release the rate-independent friction of the pad has let go (its loop closes at
+    zero load), so what the gratings still report there is the viscoelastic lag running
+    down. A load signal ``u`` (least squares of the load-cell force on the compensated
+    shifts over the contact samples of ``rows``) minus the force is regressed on
+    ``lag(F) - F`` over the first :data:`CREEP_TAIL_S` after each release, for each
+    relaxation time of :data:`CREEP_TIME_CONSTANTS_S`; the best fit's slope is the magnitude.
+    On the calibration_paper scene (5 % and 0.08 s simulated) it finds 0.050 and 0.083 s.
+    """
+    keep = data.row_mask(rows)
+    comps, forces, tails = [], [], []
+    for r, sl in data.recording_slices():
+        contact = np.asarray(r.ds.contact, bool)
+        idx = np.arange(contact.size)
+        last = np.maximum.accumulate(np.where(contact, idx, -contact.size))
+        nxt = np.minimum.accumulate(np.where(contact, idx, 2 * contact.size)[::-1])[::-1]
+        tail = int(round(CREEP_TAIL_S * r.rate_hz))
+        tails.append(~contact & (idx - last <= tail) & (nxt - idx > tail // 2) & keep[sl])
+        comps.append(pp.compensated(pre, r.ds.wl_nm, r.baseline_nm))
+        forces.append(np.nan_to_num(np.asarray(r.ds.force_N, float)))
+    comp, force, tail = np.concatenate(comps), np.concatenate(forces), np.concatenate(tails)
+    loaded = keep & data.contact
+    if tail.sum() < 100 or not loaded.any():
+        return Creep()
+    w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
+                            force[loaded], rcond=None)
+    excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
+    best: tuple[float, Creep] | None = None
+    for tau in CREEP_TIME_CONSTANTS_S:
+        trial = Creep(1.0, tau)
+        lag = np.concatenate([trial.lag(force[sl], r.rate_hz) - force[sl]
+                              for r, sl in data.recording_slices()])[tail]
+        design = np.column_stack([lag, np.ones(lag.size)])
+        coef, *_ = np.linalg.lstsq(design, excess, rcond=None)
+        rss = float(np.sum((excess - design @ coef) ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, Creep(float(np.clip(coef[0], 0.0, 0.9)), tau))
+    assert best is not None
+    return best[1] if best[1].magnitude > 0 else Creep()
+
+
+def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+                     creep: Creep, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of presses among ``rows`` held at their peak, and the rows (of ``data``)
+    whose labels they take.
+
+    A calibration stage that turns round at every peak never shows the memory a load standing
+    still: its averages then decay towards the load, a state the nets meet first in a held
+    grip. A ``share`` of the presses (drawn per press) gets a hold of
+    ``U(*HOLD_AUGMENT_S)`` seconds inserted after its peak sample: the five wavelengths at the
+    mean of the six raw samples up to the peak, scaled to the peak force, plus interrogator
+    noise drawn (one row of all five channels at a time) from the recording's own first
+    differences at rest over √2, the labels those of the peak. Through the hold the pad keeps creeping as ``creep`` says
+    (:func:`fit_creep`): the strain part of the held shifts (temperature and tare untouched)
+    rises by ``m (F - lag(F))`` of the force it carried at the peak, with the creep's time
+    constant, and the samples after the hold carry what is left of that rise as the lag
+    runs down; without it the nets would learn the peak's still-lagging shifts as the held
+    load and read a real hold high by that creep (1.8 % on the calibration scene). The
+    inputs are recomputed with ``pre`` over the whole lengthened recording, so the filter and
+    the memory states run through the hold as the runtime's would; the held samples (one
+    every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press after the hold are returned.
+    """
+    inputs, kept = [], []
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
+        contact = np.asarray(r.ds.contact, bool)
+        rest = fbgtare.contact_free_mask(contact, r.ds.t_s)
+        still = rest[1:] & rest[:-1]
+        if not sel.size or not still.any():
+            continue
+        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
+        noise = np.diff(wl, axis=0)[still] / np.sqrt(2.0)
+        pid = np.asarray(r.ds.press_id)[sel]
+        presses = np.unique(pid[contact[sel]])
+        peaks, after = [], np.zeros(len(wl), dtype=bool)
+        for p in presses[rng.random(presses.size) < share]:
+            loaded = sel[(pid == p) & contact[sel]]
+            peak = int(loaded[np.argmax(np.asarray(r.ds.force_N)[loaded])])
+            peaks.append(peak)
+            after[sel[(pid == p) & (sel > peak)]] = True
+        if not peaks:
+            continue
+        lengths = np.round(rng.uniform(*HOLD_AUGMENT_S, len(peaks)) * r.rate_hz).astype(np.int64)
+        # The mean of the 6 samples up to the peak, its strain part scaled by the peak force
+        # over their mean force (the load still rises there). Not the samples after it: past
+        # a turn the pad's friction holds the strain while the load falls.
+        force = np.nan_to_num(np.asarray(r.ds.force_N, float))
+        around = [slice(max(0, k - 5), k + 1) for k in peaks]
+        level = np.array([wl[a].mean(axis=0) for a in around])
+        base = np.asarray(r.baseline_nm, float)
+        scale = force[peaks] / np.maximum([force[a].mean() for a in around], 1e-12)
+        level[:, :fm.N_STRAIN] = (base[:fm.N_STRAIN]
+                                  + (level[:, :fm.N_STRAIN] - base[:fm.N_STRAIN]) * scale[:, None])
+        rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
+        # After the hold the lag runs down from the held load instead of the peak's lagging
+        # value: the rise reached in the hold decays over 10 time constants.
+        tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * r.rate_hz) + 1, r.rate_hz)
+        strain = pp.compensated(pre, level, r.baseline_nm) / 1000.0     # nm
+        wl = wl.copy()
+        ramp = []
+        for i, (k, n) in enumerate(zip(peaks, lengths)):
+            ramp.append(rise[i] * creep.settling(n, r.rate_hz))
+            left = ramp[-1][-1] * tail[1:len(wl) - k]
+            wl[k + 1:k + 1 + left.size, :fm.N_STRAIN] += left[:, None] * strain[i]
+        held = (np.repeat(level, lengths, axis=0)
+                + noise[rng.integers(0, len(noise), int(lengths.sum()))])
+        held[:, :fm.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        at = np.repeat(np.asarray(peaks) + 1, lengths)
+        source = np.insert(np.arange(len(wl)), at, np.repeat(peaks, lengths))
+        in_hold = np.concatenate([np.arange(n) for n in lengths])
+        step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
+        keep = np.insert(after, at, in_hold % step == 0)
+        feats = pp.recording_features(pre, np.insert(wl, at, held, axis=0), r.baseline_nm)
+        inputs.append(fm.standardise(pre, feats)[keep])
+        kept.append(source[keep] + sl.start)
+    if not inputs:
+        return np.empty((0, pre.n_inputs)), rows[:0]
+    return np.concatenate(inputs), np.concatenate(kept)
+
+
+def _count_holds(rows: np.ndarray, data: Prepared) -> int:
+    """How many presses the synthetic-hold ``rows`` (of :func:`_synthetic_holds`) hold."""
+    if not rows.size:
+        return 0
+    pids = np.concatenate([np.asarray(r.ds.press_id) for r in data.recordings])
+    rec = np.searchsorted(np.cumsum([len(r.ds) for r in data.recordings]), rows, side="right")
+    return int(np.unique(np.column_stack([rec, pids[rows]]), axis=0).shape[0])
 
 
 def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,
