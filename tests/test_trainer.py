@@ -511,3 +511,21 @@ def test_scaled_presses_scale_the_strain_features_per_press(synthetic_recording)
         r = ratio[pid == p]
         assert 1.0 <= r.min() and r.max() <= 3.0
         assert np.ptp(r) < 1e-6 * r.mean()
+
+
+def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
+    """On a pipe or in a log the bar draws at its own pace (one line at most every 10 s),
+    also while the epochs update its numbers: not a line per epoch."""
+    import io
+
+    from fbgforce.trainer.nets import FlatMLP, fit
+
+    err = io.StringIO()
+    monkeypatch.setattr("sys.stderr", err)
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(256, 4))
+    y = x @ np.array([[1.0], [0.5], [-0.3], [0.2]])
+    fit(FlatMLP([4, 8, 1], rng), "mse", x, y, x, y, epochs=30, patience=100, progress=True,
+        desc="pipe")
+    lines = [ln for ln in err.getvalue().replace("\r", "\n").splitlines() if "pipe" in ln]
+    assert 1 <= len(lines) <= 3, lines

@@ -283,8 +283,9 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
         if val_metrics is not None:
             row.update(val_metrics(net))
         history.append(row)
+        # refresh=False: the bar's own pace decides when to draw (at most every 10 s on a pipe).
         bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v)
-                         for k, v in row.items() if k not in ("epoch", "lr")})
+                         for k, v in row.items() if k not in ("epoch", "lr")}, refresh=False)
         if val_loss < best_loss * (1.0 - min_delta):
             best_loss, best_epoch = val_loss, epochs_run
             best_theta[...] = net.theta
