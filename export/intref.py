@@ -252,9 +252,7 @@ class _Tracker:
         """After a block: ``rest`` says which of its samples were at rest (in order),
         ``r_sum`` is their sum of z - z0; moves ``base[:4]`` in place."""
         q = self.q
-        # rest_run: samples at rest up to the block's end (saturating at 0xFFFF).
-        trailing = int(rest.size - (np.flatnonzero(~rest)[-1] + 1)) if (~rest).any() else None
-        self.rest_run = min(0xFFFF, trailing if trailing is not None else self.rest_run + rest.size)
+        self.rest_run = fm.rest_run_after(self.rest_run, rest)
         if q.track_shift == 0 or self.rest_run < contract.LIMIT["TRACK_BLOCK"] + q.track_settle:
             return
         frac_bits = contract.LIMIT["TRACK_FRAC"]

@@ -308,7 +308,6 @@ class InUse:
         rises only past their :data:`REST_MARGIN_QUANTILE` quantile, held for
         :data:`RISE_S`, and falls below minus half of it. None: the per-sample decision.
         """
-        per_ms = sample_rate_hz / 1000.0
         on = 0.0
         if rest_margins is not None and np.size(rest_margins):
             on = max(0.0, float(np.quantile(rest_margins, REST_MARGIN_QUANTILE)))
@@ -319,7 +318,7 @@ class InUse:
                    track_settle=min(0xFFFF, int(round(TRACK_SETTLE_S * sample_rate_hz))),
                    track_step_max_pm=TRACK_RATE_MAX_PM_PER_S * contract.LIMIT["TRACK_BLOCK"]
                    / sample_rate_hz,
-                   track_limit_pm=TRACK_LIMIT_PM) if per_ms > 0 else cls()
+                   track_limit_pm=TRACK_LIMIT_PM)
 
     def to_json(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -353,6 +352,15 @@ def input_range_of(x: np.ndarray, margin: float = INPUT_RANGE_MARGIN) -> np.ndar
     lo, hi = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
     span = hi - lo
     return np.vstack([lo - margin * span, hi + margin * span])
+
+
+def rest_run_after(run: int, rest: np.ndarray) -> int:
+    """The runtimes' count of consecutive samples at rest (saturating at 0xFFFF), ``run``
+    before the samples whose rest flags are ``rest`` (in order), after them."""
+    rest = np.asarray(rest, dtype=bool)
+    if rest.all():
+        return min(0xFFFF, run + rest.size)
+    return min(0xFFFF, rest.size - int(np.flatnonzero(~rest)[-1]) - 1)
 
 
 def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
@@ -901,8 +909,7 @@ class FloatPipeline:
             # At rest: no contact, no fault, past the filter's warm-up (the runtimes' WARMUP).
             rest = ~out["contact"] & ~fault & (np.arange(self.samples, self.samples + n) >= k)
             self._track_sum += filt[rest].sum(axis=0)
-            self._rest_run = min(0xFFFF, self._rest_run + n if rest.all()
-                                 else n - int(np.flatnonzero(~rest)[-1]) - 1)
+            self._rest_run = rest_run_after(self._rest_run, rest)
         self.samples += n
         block = contract.LIMIT["TRACK_BLOCK"]
         if iu.track_shift and n and self.samples % block == 0:
