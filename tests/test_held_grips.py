@@ -98,3 +98,32 @@ def test_bench_held_grips_scores_the_held_samples(tmp_path, small_model_dir, cap
     assert B.main(["--model", str(small_model_dir), "--data", str(tmp_path / "none.npz")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("bench_held_grips:") and err.count("\n") == 1
+
+
+def test_synthetic_rest_settles_where_a_real_long_rest_settles():
+    """Each synthetic long rest settles (its last second) within 0.04 standard deviations of
+    the channels of where the same fingertip really resting for 8 s settles, on a pad whose
+    creep recovers slowly (1 s): there the level between two calibration presses still
+    carries up to 0.1 standard deviations of the last press's creep, and a rest held at that
+    level would teach the nets that a light press is no contact. Labels are contact-free."""
+    base = sim.load_scene("calibration_paper")
+    effects = {k: v for k, v in base.to_dict()["effects"].items() if k != "temperature"}
+    effects["viscoelastic"] = {"magnitude": 0.05, "time_constant_s": 1.0}
+    scene = base.replace(schedule={"n_presses": 12}, effects=effects)
+    plain = sim.simulate(scene)
+    data = T.prepare([plain])
+    rested = sim.simulate(scene.replace(schedule={"rest_s": 8.0}))
+    pre, baseline = data.pre, data.recordings[0].baseline_nm
+    std = np.std(pp.recording_features(pre, plain.wl_nm, baseline), axis=0)
+    real = fm.standardise(pre, pp.recording_features(pre, rested.wl_nm, baseline))
+    starts = np.flatnonzero(rested.contact[1:] & ~rested.contact[:-1]) + 1
+    settled = np.mean([real[k - 1000:k - 50].mean(axis=0) for k in starts[1:]], axis=0)
+    x, src = T._synthetic_rests(data, pre, data.rows("all"), 1.0, 10, np.random.default_rng(0))
+    assert not data.contact[src].any()
+    rests = np.unique(src)
+    assert rests.size >= 8
+    synth = np.array([x[src == k][-95:].mean(axis=0) for k in rests])
+    assert (np.abs(synth - settled) / std).max() < 0.04
+    # What the rest would carry, held at the level where it was inserted.
+    level = np.array([plain.wl_nm[k - 5:k + 1].mean(axis=0) for k in rests])
+    assert (np.abs(pp.compensated(pre, level, baseline)) / std).max() > 0.06

@@ -61,6 +61,10 @@ def register(subparsers: Any) -> None:
                    help="share of the training presses the contact and force nets also see "
                         "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
                         "0 = off); docs/trainer.md \"Held grips\"")
+    p.add_argument("--rest-augment", type=non_negative_float, default=None, metavar="SHARE",
+                   help="share of the training presses the contact and force nets also see "
+                        "after a rest of 3-12 s (synthetic long rests; default 0.2, 0 = off); "
+                        "docs/trainer.md \"Long rests\"")
     add_json_flag(p)
     p.set_defaults(handler=_train)
 
@@ -130,13 +134,18 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     if not 0.0 < args.train_fraction <= 1.0:
         raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
     fileio.check_output_dir(args.out, "--out")
-    if args.hold_augment is not None and args.hold_augment > 1.0:
-        raise InputError(f"must be in [0, 1], not {args.hold_augment}", column="--hold-augment")
-    holds = {} if args.hold_augment is None else {"hold_augment": args.hold_augment}
+    augment = {}
+    for flag in ("hold_augment", "rest_augment"):
+        share = getattr(args, flag)
+        if share is not None and share > 1.0:
+            raise InputError(f"must be in [0, 1], not {share}",
+                             column="--" + flag.replace("_", "-"))
+        if share is not None:
+            augment[flag] = share
     model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
                   memory=args.memory, restarts=_restarts(args.restarts),
                   sigma=args.sigma, window=args.window, init=args.init,
-                  train_fraction=args.train_fraction, **holds)
+                  train_fraction=args.train_fraction, **augment)
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}

@@ -56,6 +56,14 @@ LOCATION_AUGMENT = 3.0
 HOLD_AUGMENT = 0.2
 HOLD_AUGMENT_S = (1.5, 6.0)
 HOLD_AUGMENT_STEP_S = 0.004
+#: Synthetic long rests (:func:`_synthetic_rests`): the contact and force nets also train on
+#: rests of a length drawn in :data:`REST_AUGMENT_S` (seconds) inserted before this share of
+#: the training presses, one sample every :data:`REST_AUGMENT_STEP_S`; 0 turns this off
+#: (docs/trainer.md, "Long rests").
+REST_AUGMENT = 0.2
+REST_AUGMENT_S = (3.0, 12.0)
+REST_AUGMENT_STEP_S = 0.01
+REST_AUGMENT_SETTLE_S = 0.5
 #: Relaxation times (s) tried by :func:`fit_creep`, and how long after a release its samples
 #: show the pad creeping back (the creep recovery the fit reads).
 CREEP_TIME_CONSTANTS_S = tuple(float(t) for t in np.geomspace(0.01, 1.0, 25))
@@ -498,7 +506,7 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
           plateau: int | None = None, plateau_factor: float = 0.3,
           weight_decay: float | Mapping[str, float] | None = None,
           location_augment: float = LOCATION_AUGMENT, hold_augment: float = HOLD_AUGMENT,
-          memory: fm.Memory | str | None = None,
+          rest_augment: float = REST_AUGMENT, memory: fm.Memory | str | None = None,
           restarts: int | Mapping[str, int] | None = None) -> fm.HierarchicalModel:
     """Train the hierarchical model on calibration recordings.
 
@@ -539,6 +547,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         The contact and force nets also train on this share of the training (and validation)
         presses held at their peak for 1.5-6 s (:func:`_synthetic_holds`); 0 turns it off.
         Only a model with memory states uses it (a memoryless net reads a hold as its peak).
+    rest_augment
+        The contact and force nets also train on rests of 3-12 s inserted before this share of
+        the training (and validation) presses (:func:`_synthetic_rests`); 0 turns it off.
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``--init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
@@ -579,8 +590,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
     t_prep = time.perf_counter() - t_start
     tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
     ss = np.random.SeedSequence(seed)
-    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug, rng_hold = (np.random.default_rng(s)
-                                                                 for s in ss.spawn(7))
+    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug, rng_hold, rng_rest = (
+        np.random.default_rng(s) for s in ss.spawn(8))
     if train_fraction < 1.0:
         tr = _subsample_presses(data, tr, train_fraction, rng_sub)
     if tr.size == 0 or not data.contact[tr].any() or data.contact[tr].all():
@@ -626,20 +637,27 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         reports[name].update(weight_decay=wd, train_samples=int(len(x)))
         return net
 
-    # 0. Synthetic holds for the nets that read the load's memory (training and validation
-    #    presses alike, so early stopping and the choice among restarts weigh them too).
+    # 0. Synthetic holds for the nets that read the load's memory, and synthetic long rests
+    #    (training and validation presses alike, so early stopping and the choice among
+    #    restarts weigh them too).
     nf = pre.n_features
     no_holds = (np.empty((0, pre.n_inputs)), tr[:0])
     creep = fit_creep(data, pre, tr) if hold_augment > 0 and pre.memory.n_states else Creep()
     hold_tr, hold_va = (_synthetic_holds(data, pre, rows, hold_augment, creep, rng_hold)
                         if hold_augment > 0 and pre.memory.n_states else no_holds
                         for rows in (tr, va))
+    rate = float(np.median([r.rate_hz for r in data.recordings]))
+    step = max(1, int(round(REST_AUGMENT_STEP_S * rate)))
+    rest_tr, rest_va = (_synthetic_rests(data, pre, rows, rest_augment, step, rng_rest)
+                        if rest_augment > 0 else no_holds for rows in (tr, va))
+    synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
 
     # 1. Contact: every sample, softmax cross-entropy.
     labels = data.contact.astype(np.int64)
-    zc_tr = np.concatenate([z[tr], hold_tr[0][:, :nf]])
-    zc_va = np.concatenate([z[va], hold_va[0][:, :nf]])
-    yc_tr, yc_va = labels[np.concatenate([tr, hold_tr[1]])], labels[np.concatenate([va, hold_va[1]])]
+    zc_tr = np.concatenate([z[tr], synth_tr[0][:, :nf]])
+    zc_va = np.concatenate([z[va], synth_va[0][:, :nf]])
+    yc_tr = labels[np.concatenate([tr, synth_tr[1]])]
+    yc_va = labels[np.concatenate([va, synth_va[1]])]
 
     def contact_val(net: FlatMLP) -> dict[str, float]:
         return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z[va]), 1) == 1)
@@ -662,15 +680,15 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
 
     def with_holds(rows: np.ndarray, held: tuple[np.ndarray, np.ndarray]
                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Force-net inputs and targets of ``rows`` and of the held samples the contact net
-        passes (the same gate as the recorded samples)."""
+        """Force-net inputs and targets of ``rows`` and of the synthetic (held, rested)
+        samples the contact net passes (the same gate as the recorded samples)."""
         zh = held[0][:, :nf]
         hl = predict_batched(cnet, zh) if len(zh) else np.empty((0, 2))
         passed = hl[:, 1] > hl[:, 0]
         return (np.concatenate([z[rows], zh[passed]]),
                 np.concatenate([ft[rows], ft[held[1][passed]]]))
 
-    (zf_tr, yf_tr), (zf_va, yf_va) = with_holds(ftr, hold_tr), with_holds(fva, hold_va)
+    (zf_tr, yf_tr), (zf_va, yf_va) = with_holds(ftr, synth_tr), with_holds(fva, synth_va)
 
     def force_val(net: FlatMLP) -> dict[str, float]:
         e = (predict_batched(net, z[fva])[:, 0] * f_scale + f_off) - data.force_N[fva]
@@ -725,8 +743,12 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
     t_train = time.perf_counter() - t_start - t_prep
-    rate = float(np.median([r.rate_hz for r in data.recordings]))
-    model.in_use = fm.InUse.recommended(rate, rest_margins=_rest_margins(data, logits))
+    # The thresholds weigh every sample at rest, the synthetic long rests' included: the
+    # calibration's own rests end within a second of a release, before the memory settles.
+    long_rests = np.concatenate([rest_tr[0], rest_va[0]])[:, :nf]
+    long_logits = predict_batched(cnet, long_rests) if len(long_rests) else np.empty((0, 2))
+    model.in_use = fm.InUse.recommended(rate, rest_margins=np.concatenate(
+        [_rest_margins(data, logits), long_logits[:, 1] - long_logits[:, 0]]))
     model.input_range = fm.input_range_of(z[tr])
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
     model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
@@ -749,6 +771,9 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
                                         "val": _count_holds(hold_va[1], data)},
                             "samples": {"train": int(hold_tr[1].size),
                                         "val": int(hold_va[1].size)}},
+        "synthetic_rests": {"share": rest_augment, "range_s": list(REST_AUGMENT_S),
+                            "seconds": {"train": step * rest_tr[1].size / rate,
+                                        "val": step * rest_va[1].size / rate}},
         "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
@@ -905,12 +930,10 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     for r, sl in data.recording_slices():
         sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
         contact = np.asarray(r.ds.contact, bool)
-        rest = fbgtare.contact_free_mask(contact, r.ds.t_s)
-        still = rest[1:] & rest[:-1]
-        if not sel.size or not still.any():
+        noise = _rest_noise(r)
+        if not sel.size or noise is None:
             continue
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
-        noise = np.diff(wl, axis=0)[still] / np.sqrt(2.0)
         pid = np.asarray(r.ds.press_id)[sel]
         presses = np.unique(pid[contact[sel]])
         peaks, after = [], np.zeros(len(wl), dtype=bool)
@@ -957,6 +980,84 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
+
+
+def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+                     step: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of long rests inserted among the presses of ``rows``, and the rows (of
+    ``data``) whose labels they take.
+
+    A calibration stage that presses again within a second never shows the nets a fingertip
+    that has rested for long: the pad's creep recovered, the at-rest tracker's correction
+    taken (docs/runtime.md, "In use"), the memory's averages settled at zero and its play
+    operators where the last release left them. Nets that never saw that state read its
+    noise as light presses (false contact events at rest). A ``share`` of the presses (drawn
+    per press) gets a rest of ``U(*REST_AUGMENT_S)`` seconds inserted midway between its first
+    contact sample and the previous press's last (when they lie more than ``2 * REST_GAP_S``
+    apart): the five wavelengths of the six samples there, their strain part moved to zero
+    compensated shift (temperature untouched), plus interrogator noise as in
+    :func:`_synthetic_holds`. Zero, not the level there: a short rest still carries the pad's
+    creep recovery, and a long one held at it would teach the nets that a light press is no
+    contact. The inputs are recomputed with ``pre`` over the lengthened recording; returned is
+    one rest sample in ``step`` from :data:`REST_AUGMENT_SETTLE_S` on, past the step down to
+    zero, labelled as the sample where the rest was inserted (contact-free). The press after
+    the rest is not: it would start with a step up from zero to the residual.
+    """
+    inputs, kept = [], []
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
+        contact = np.asarray(r.ds.contact, bool)
+        noise = _rest_noise(r)
+        if not sel.size or noise is None:
+            continue
+        pid = np.asarray(r.ds.press_id)[sel]
+        gap = int(round(fmetrics.REST_GAP_S * r.rate_hz))
+        touched = np.flatnonzero(contact)
+        starts = []
+        for p in np.unique(pid[contact[sel]]):
+            if rng.random() >= share:
+                continue
+            first = int(sel[(pid == p) & contact[sel]].min())
+            before = touched[touched < first]
+            prev = int(before[-1]) if before.size else -gap
+            if first - prev > 2 * gap + 6:
+                starts.append((prev + first) // 2)
+        if not starts:
+            continue
+        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
+        level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
+        level[:, :fm.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
+        lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
+        rest = (np.repeat(level, lengths, axis=0)
+                + noise[rng.integers(0, len(noise), int(lengths.sum()))])
+        at = np.repeat(np.asarray(starts) + 1, lengths)
+        in_rest = np.concatenate([np.arange(n) for n in lengths])
+        settle = int(round(REST_AUGMENT_SETTLE_S * r.rate_hz))
+        keep = np.insert(np.zeros(len(wl), dtype=bool), at,
+                         (in_rest >= settle) & ((in_rest - settle) % step == 0))
+        source = np.insert(np.arange(len(wl)), at, np.repeat(starts, lengths))
+        feats = pp.recording_features(pre, np.insert(wl, at, rest, axis=0), r.baseline_nm)
+        inputs.append(fm.standardise(pre, feats)[keep])
+        kept.append(source[keep] + sl.start)
+    if not inputs:
+        return np.empty((0, pre.n_inputs)), rows[:0]
+    return np.concatenate(inputs), np.concatenate(kept)
+
+
+def _rest_noise(r: Recording) -> np.ndarray | None:
+    """Interrogator noise of recording ``r``: its first differences between contact-free
+    samples over √2 (one row of all five channels each), or None without two in a row."""
+    rest = fbgtare.contact_free_mask(np.asarray(r.ds.contact, bool), r.ds.t_s)
+    still = rest[1:] & rest[:-1]
+    if not still.any():
+        return None
+    return np.diff(np.asarray(r.ds.wl_nm, dtype=np.float64), axis=0)[still] / np.sqrt(2.0)
+
+
+def _joined(*augmented: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Synthetic samples (inputs, rows) of several kinds, one after the other."""
+    return (np.concatenate([a[0] for a in augmented]),
+            np.concatenate([a[1] for a in augmented]))
 
 
 def _count_holds(rows: np.ndarray, data: Prepared) -> int:
