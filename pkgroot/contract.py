@@ -421,16 +421,36 @@ def _memory_states(ctype: str, doc: Callable[[MemoryKind], str]) -> tuple[StateF
 MEMORY_STATES: tuple[str, ...] = tuple(k.name for k in MEMORY_KINDS) + ("loc",)
 
 
+def _front_head(prefix: str, signal: str) -> tuple[StateField, ...]:
+    """The members both states open with (the front end's, fbg_front.h), for the build whose
+    names start with ``prefix`` and whose compensated signal is ``signal``."""
+    return (StateField("magic", "uint32_t", doc=f"set by {prefix}_init"),
+            StateField("options", "uint32_t"),
+            StateField("model", f"const {prefix}_model *"),
+            StateField("baseline_fm", "int32_t", ("N_CHANNELS",)),
+            StateField("prev_fm", "int32_t", ("N_CHANNELS",), "last in-window sample per channel"),
+            StateField("hist", signal, ("MAX_TAPS", "N_STRAIN"), "FIR history (ring buffer)"),
+            StateField("last_comp", signal, ("N_STRAIN",), "held into the FIR during a fault"))
+
+
+#: The front end's counters and flags, in both states.
+_RING_COUNTERS = (
+    StateField("pos", "uint16_t", doc="next write index into hist"),
+    StateField("since_reset", "uint16_t", doc="samples since init/tare, saturating"),
+    StateField("same_run", "uint16_t", ("N_CHANNELS",), "repeats of the identical value"),
+)
+_FRONT_FLAGS = (
+    StateField("tared", "uint8_t"),
+    StateField("tare_active", "uint8_t"),
+    StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
+    StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
+)
+
+
 #: ``fbg_state`` in declaration order: the order is the layout (the int64 arrays just before
 #: ``act`` give it the 8-byte alignment the DSP kernels' LDRD needs, which fbg_fixed.c checks).
 STATE: tuple[StateField, ...] = (
-    StateField("magic", "uint32_t", doc="set by fbg_init"),
-    StateField("options", "uint32_t"),
-    StateField("model", "const fbg_model *"),
-    StateField("baseline_fm", "int32_t", ("N_CHANNELS",)),
-    StateField("prev_fm", "int32_t", ("N_CHANNELS",), "last in-window sample per channel"),
-    StateField("hist", "int32_t", ("MAX_TAPS", "N_STRAIN"), "FIR history (ring buffer)"),
-    StateField("last_comp", "int32_t", ("N_STRAIN",), "held into the FIR during a fault"),
+    *_front_head("fbg", "int32_t"),
     *_memory_states("int32_t", lambda k: f"{k.doc}, {k.q}"),
     StateField("loc", "int32_t", ("N_STRAIN",), "location averages of z - z0, Q(z_frac + FBG_EMA_FRAC)"),
     StateField("track_sum", "int32_t", ("N_STRAIN",),
@@ -444,14 +464,9 @@ STATE: tuple[StateField, ...] = (
                note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
     StateField("tare_count", "uint32_t"),
-    StateField("pos", "uint16_t", doc="next write index into hist"),
-    StateField("since_reset", "uint16_t", doc="samples since init/tare, saturating"),
-    StateField("same_run", "uint16_t", ("N_CHANNELS",), "repeats of the identical value"),
+    *_RING_COUNTERS,
     StateField("loc_z0", "int16_t", ("N_STRAIN",), "z of a zero filtered shift (the model's)"),
-    StateField("tared", "uint8_t"),
-    StateField("tare_active", "uint8_t"),
-    StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
-    StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
+    *_FRONT_FLAGS,
     StateField("loc_z0_clamped", "uint8_t", doc="1: a loc_z0 clamped at +-32767"),
     StateField("decision", "uint8_t", doc="the contact decision of the last step"),
     StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
@@ -465,24 +480,13 @@ STATE: tuple[StateField, ...] = (
 #: ``fbgf_state`` (the float build) in declaration order: the front end's members under the
 #: names of fbg_state's (fbg_front.h reaches both through one view), signals in float.
 FLOAT_STATE: tuple[StateField, ...] = (
-    StateField("magic", "uint32_t", doc="set by fbgf_init"),
-    StateField("options", "uint32_t"),
-    StateField("model", "const fbgf_model *"),
-    StateField("baseline_fm", "int32_t", ("N_CHANNELS",)),
-    StateField("prev_fm", "int32_t", ("N_CHANNELS",), "last in-window sample per channel"),
-    StateField("hist", "float", ("MAX_TAPS", "N_STRAIN"), "FIR history (ring buffer)"),
-    StateField("last_comp", "float", ("N_STRAIN",), "held into the FIR during a fault"),
+    *_front_head("fbgf", "float"),
     *_memory_states("float", lambda k: f"{k.doc}, standardised units"),
     StateField("loc", "float", ("N_STRAIN",), "location averages of z - z_rest"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),
-    StateField("pos", "uint16_t", doc="next write index into hist"),
-    StateField("since_reset", "uint16_t", doc="samples since init/tare, saturating"),
-    StateField("same_run", "uint16_t", ("N_CHANNELS",), "repeats of the identical value"),
-    StateField("tared", "uint8_t"),
-    StateField("tare_active", "uint8_t"),
-    StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
-    StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
+    *_RING_COUNTERS,
+    *_FRONT_FLAGS,
     StateField("track_sum", "float", ("N_STRAIN",),
                note="The decision over time and the at-rest baseline tracker, as fbg_state's: the "
                     "block's sum of filtered shifts (pm); the correction subtracted from the "
