@@ -792,7 +792,7 @@ def source_text() -> str:
             out.append(f"    for (k = 0; k < {f.count}u; ++k)")
             out.append(f"        m->{f.c_lvalue()} = {rd}(p + {off} + {size}u * k);")
         off += size * f.count
-    out += ["}", "", f"int fbg_params_padding_ok(const uint8_t *p)", "{",
+    out += ["}", "", "int fbg_params_padding_ok(const uint8_t *p)", "{",
             "    unsigned k;",
             f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
             "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
