@@ -4163,6 +4163,8 @@ static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
     return 0u;
 }
 
+/* ---- Reset, tare and baseline: the front end's, then in_use_after ---- */
+
 fbg_status fbg_reset(fbg_state *state)
 {
     return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
@@ -4281,9 +4283,9 @@ static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint
 
 /* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
 
-/* The portable reference. Append the memory features to z = in[0..3] and put the location averages (when loc_shift
- * is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load signal's states
- * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+/* The portable reference. Append the memory features to z = in[0..3] and put the location
+ * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
+ * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
  * its force path, which all four beams share): the exponential averages' features, then the
  * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
  * after a release leaves them: the averages at u, the play operators at u + width (the load
@@ -4368,7 +4370,6 @@ static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t 
  * kernels write whole groups of 8 rows into them. */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
-
 
 #if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
