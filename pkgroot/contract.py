@@ -8,11 +8,14 @@ nowhere else:
 - the net table (``NETS``): name, inputs, outputs, loss, output scaling;
 - the fixed-point model's parameter block (``PARAMS``): C type, count, allowed range and the
   error code a violation gives, in blob order; the float model's (``FLOAT_PARAMS``);
-- the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``).
+- the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``);
+- the kinds of memory state (``MEMORY_KINDS``) and the caller-owned streaming states of both
+  builds (``STATE``, ``FLOAT_STATE``).
 
 ``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
-``runtime_c/include/fbgforce.h`` (declarations), ``runtime_c/src/fbg_contract.c`` and ``.h``
-(the blob parameter decoder, the parameter checker and ``fbg_status_str``), the parameter
+``runtime_c/include/fbgforce.h`` (declarations, the state structs included),
+``runtime_c/src/fbg_contract.c`` and ``.h`` (the blob parameter decoder, the parameter checker,
+``fbg_status_str`` and the list of memory states the front end clears), the parameter
 table of ``docs/model-format.md`` and the status constants of the ROS 2 message
 ``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
 codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
@@ -29,8 +32,10 @@ from __future__ import annotations
 import argparse
 import struct
 import sys
+import textwrap
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 #: Library version: the C library (``fbg_version()``), the Python package and the blob's
 #: ``writer_version`` field all report this one.
@@ -40,8 +45,31 @@ VERSION_CODE = (VERSION[0] << 16) | (VERSION[1] << 8) | VERSION[2]
 
 N_CHANNELS = 5
 N_STRAIN = 4
-MAX_EMA = 4
-MAX_PLAY = 4
+
+
+@dataclass(frozen=True)
+class MemoryKind:
+    """A kind of memory state of the load signal u (docs/fixed-point.md, "memory").
+
+    A model holds up to ``limit`` states of each kind (``FBG_MAX_<NAME>``) and uses ``n_<name>``
+    of them, each giving one net input after z. The states are the int32 array ``<name>`` of
+    ``fbg_state`` (generated from ``STATE``), in the Q format ``q``; their parameters are the
+    ``<name>_*`` fields of ``PARAMS``.
+    """
+
+    name: str
+    limit: int
+    doc: str
+    q: str
+
+
+MEMORY_KINDS: tuple[MemoryKind, ...] = (
+    MemoryKind("ema", 4, "exponential-average memory states", "Q(z_frac + FBG_EMA_FRAC)"),
+    MemoryKind("play", 4, "play-operator memory states", "Q(z_frac)"),
+)
+MEMORY_KIND = {k.name: k for k in MEMORY_KINDS}
+MAX_EMA = MEMORY_KIND["ema"].limit
+MAX_PLAY = MEMORY_KIND["play"].limit
 
 #: name -> (value, comment). Emitted as ``#define FBG_<name>``.
 LIMITS: dict[str, tuple[int, str]] = {
@@ -50,9 +78,8 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_TAPS": (64, "causal FIR length"),
     "MAX_WIDTH": (128, "widest layer (inputs or outputs) of any net"),
     "MAX_LAYERS": (8, "layers per net"),
-    "MAX_EMA": (MAX_EMA, "exponential-average memory states"),
-    "MAX_PLAY": (MAX_PLAY, "play-operator memory states"),
-    "MAX_INPUTS": (N_STRAIN + MAX_EMA + MAX_PLAY,
+    **{f"MAX_{k.name.upper()}": (k.limit, k.doc) for k in MEMORY_KINDS},
+    "MAX_INPUTS": (N_STRAIN + sum(k.limit for k in MEMORY_KINDS),
                    "widest net input: z and the memory features"),
     "N_NETS": (3, "contact, force, location (evaluation order)"),
     "WL_MIN_FM": (1_000_000_000, "1000 nm: a peak below this is lost (0, sentinels)"),
@@ -354,6 +381,128 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
 )
 
+
+# ------------------------------------------------------------------------------------------
+# The fixed-point streaming state
+# ------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class StateField:
+    """One member of the caller-owned fixed-point state ``fbg_state``.
+
+    ``dims`` are its array dimensions, each a ``LIMITS`` name (declared as ``FBG_<name>``) or a
+    number; ``note`` is a comment on the group of members it opens.
+    """
+
+    name: str
+    ctype: str
+    dims: tuple[str | int, ...] = ()
+    doc: str = ""
+    note: str = ""
+
+    def count(self) -> int:
+        """Number of elements (1 for a scalar)."""
+        n = 1
+        for d in self.dims:
+            n *= d if isinstance(d, int) else LIMIT[d]
+        return n
+
+
+def _memory_states(ctype: str, doc: Callable[[MemoryKind], str]) -> tuple[StateField, ...]:
+    """The state arrays of the memory kinds, of element type ``ctype``."""
+    return tuple(StateField(k.name, ctype, (f"MAX_{k.name.upper()}",), doc(k),
+                            note="Memory states of the load signal u (docs/fixed-point.md, "
+                                 "\"memory\"), one array per kind of "
+                                 "fbgforce.contract.MEMORY_KINDS." if i == 0 else "")
+                 for i, k in enumerate(MEMORY_KINDS))
+
+
+#: The state members a reset clears as memory: the memory kinds' arrays, the location averages.
+MEMORY_STATES: tuple[str, ...] = tuple(k.name for k in MEMORY_KINDS) + ("loc",)
+
+
+def _front_head(prefix: str, signal: str) -> tuple[StateField, ...]:
+    """The members both states open with (the front end's, fbg_front.h), for the build whose
+    names start with ``prefix`` and whose compensated signal is ``signal``."""
+    return (StateField("magic", "uint32_t", doc=f"set by {prefix}_init"),
+            StateField("options", "uint32_t"),
+            StateField("model", f"const {prefix}_model *"),
+            StateField("baseline_fm", "int32_t", ("N_CHANNELS",)),
+            StateField("prev_fm", "int32_t", ("N_CHANNELS",), "last in-window sample per channel"),
+            StateField("hist", signal, ("MAX_TAPS", "N_STRAIN"), "FIR history (ring buffer)"),
+            StateField("last_comp", signal, ("N_STRAIN",), "held into the FIR during a fault"))
+
+
+#: The front end's counters and flags, in both states.
+_RING_COUNTERS = (
+    StateField("pos", "uint16_t", doc="next write index into hist"),
+    StateField("since_reset", "uint16_t", doc="samples since init/tare, saturating"),
+    StateField("same_run", "uint16_t", ("N_CHANNELS",), "repeats of the identical value"),
+)
+_FRONT_FLAGS = (
+    StateField("tared", "uint8_t"),
+    StateField("tare_active", "uint8_t"),
+    StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
+    StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
+)
+
+
+#: ``fbg_state`` in declaration order: the order is the layout (the int64 arrays just before
+#: ``act`` give it the 8-byte alignment the DSP kernels' LDRD needs, which fbg_fixed.c checks).
+STATE: tuple[StateField, ...] = (
+    *_front_head("fbg", "int32_t"),
+    *_memory_states("int32_t", lambda k: f"{k.doc}, {k.q}"),
+    StateField("loc", "int32_t", ("N_STRAIN",), "location averages of z - z0, Q(z_frac + FBG_EMA_FRAC)"),
+    StateField("track_sum", "int32_t", ("N_STRAIN",),
+               note="At-rest baseline tracker (docs/runtime.md, \"In use\"): the block's sum of z - z0, "
+                    "the correction applied to baseline_fm[0..3] since the tare, and the carried "
+                    "fraction of the next step in Q(FBG_TRACK_FRAC)."),
+    StateField("drift_fm", "int32_t", ("N_STRAIN",)),
+    StateField("track_frac", "int64_t", ("N_STRAIN",)),
+    StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
+    StateField("act", "int16_t", (2, "MAX_WIDTH"), "activation ping-pong buffers",
+               note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
+                    "read the activations with LDRD (no copy to an aligned buffer per layer)."),
+    StateField("tare_count", "uint32_t"),
+    *_RING_COUNTERS,
+    StateField("loc_z0", "int16_t", ("N_STRAIN",), "z of a zero filtered shift (the model's)"),
+    *_FRONT_FLAGS,
+    StateField("loc_z0_clamped", "uint8_t", doc="1: a loc_z0 clamped at +-32767"),
+    StateField("decision", "uint8_t", doc="the contact decision of the last step"),
+    StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
+    StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
+    StateField("track_limited", "uint8_t", doc="1: a channel's drift_fm is at its bound"),
+    StateField("rest_run", "uint16_t", doc="samples at rest, saturating"),
+    StateField("packed", "const void *", doc="fbg_pack / fbg_use_pack buffer, or NULL"),
+    StateField("model_crc", "uint32_t", doc="model->blob_crc at fbg_init"),
+)
+
+#: ``fbgf_state`` (the float build) in declaration order: the front end's members under the
+#: names of fbg_state's (fbg_front.h reaches both through one view), signals in float.
+FLOAT_STATE: tuple[StateField, ...] = (
+    *_front_head("fbgf", "float"),
+    *_memory_states("float", lambda k: f"{k.doc}, standardised units"),
+    StateField("loc", "float", ("N_STRAIN",), "location averages of z - z_rest"),
+    StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
+    StateField("tare_count", "uint32_t"),
+    *_RING_COUNTERS,
+    *_FRONT_FLAGS,
+    StateField("track_sum", "float", ("N_STRAIN",),
+               note="The decision over time and the at-rest baseline tracker, as fbg_state's: the "
+                    "block's sum of filtered shifts (pm); the correction subtracted from the "
+                    "compensated shifts is held_pm (made before the last reset) + drift_pm (since, "
+                    "bounded by track_limit_pm)."),
+    StateField("drift_pm", "float", ("N_STRAIN",)),
+    StateField("held_pm", "float", ("N_STRAIN",)),
+    StateField("rest_run", "uint16_t", doc="samples at rest, saturating"),
+    StateField("decision", "uint8_t", doc="the contact decision of the last step"),
+    StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
+    StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
+    StateField("track_limited", "uint8_t", doc="1: a channel's drift_pm is at its bound"),
+    StateField("reserved_", "uint8_t", (2,)),
+    StateField("act", "float", (2, "MAX_WIDTH"), "activation ping-pong buffers"),
+)
+
 #: File name of the blob inside a model directory.
 BLOB_FILE = "model.fbgm"
 #: Default of the sensor-fault jump rule, nm per sample (the exporter raises it to twice the
@@ -463,7 +612,7 @@ def numpy_dtype(fields: tuple[Field, ...]) -> list[tuple]:
 ROOT = Path(__file__).resolve().parent.parent
 HEADER_PATH = ROOT / "runtime_c" / "include" / "fbgforce.h"
 SOURCE_PATH = ROOT / "runtime_c" / "src" / "fbg_contract.c"
-SECTIONS = ("constants", "fixed", "float")
+SECTIONS = ("constants", "fixed", "state", "float", "float state")
 
 
 def _begin(section: str) -> str:
@@ -501,6 +650,27 @@ def _struct_fields(fields: tuple[Field, ...]) -> list[str]:
     if struct_padding(fields):
         out.append(f"    uint8_t pad_[{struct_padding(fields)}];  /* explicit padding, keep 0 */")
     return out
+
+
+def _comment(text: str, indent: str = "    ", width: int = 96) -> list[str]:
+    """A block comment of ``text`` wrapped within ``width`` columns."""
+    lines = textwrap.wrap(text, width - len(indent) - 6)
+    out = [f"{indent}/* {lines[0]}"] + [f"{indent} * {line}" for line in lines[1:]]
+    out[-1] += " */"
+    return out
+
+
+def _state_decl(f: StateField) -> list[str]:
+    dims = "".join(f"[{d}]" if isinstance(d, int) else f"[FBG_{d}]" for d in f.dims)
+    decl = f"    {f.ctype}{'' if f.ctype.endswith('*') else ' '}{f.name}{dims};"
+    return (_comment(f.note) if f.note else []) + [decl.ljust(48) + f" /* {f.doc} */" if f.doc else decl]
+
+
+def state_section(fields: tuple[StateField, ...], name: str) -> str:
+    """The declaration of the streaming state ``name`` from its ``fields``."""
+    return "\n".join([f"/* Caller-owned streaming state. Treat as opaque; size is sizeof({name}). */",
+                      "typedef struct {"] + [line for f in fields for line in _state_decl(f)]
+                     + [f"}} {name};"])
 
 
 def header_sections() -> dict[str, str]:
@@ -545,7 +715,8 @@ def header_sections() -> dict[str, str]:
            "} fbgf_model;", "", "typedef struct {"]
     fl += [_decl(f) for f in FLOAT_OUTPUT]
     fl += ["} fbgf_output;"]
-    return {"constants": "\n".join(c), "fixed": "\n".join(x), "float": "\n".join(fl)}
+    return {"constants": "\n".join(c), "fixed": "\n".join(x), "state": state_section(STATE, "fbg_state"),
+            "float": "\n".join(fl), "float state": state_section(FLOAT_STATE, "fbgf_state")}
 
 
 def render_header(text: str) -> str:
@@ -621,7 +792,7 @@ def source_text() -> str:
             out.append(f"    for (k = 0; k < {f.count}u; ++k)")
             out.append(f"        m->{f.c_lvalue()} = {rd}(p + {off} + {size}u * k);")
         off += size * f.count
-    out += ["}", "", f"int fbg_params_padding_ok(const uint8_t *p)", "{",
+    out += ["}", "", "int fbg_params_padding_ok(const uint8_t *p)", "{",
             "    unsigned k;",
             f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
             "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
@@ -664,6 +835,12 @@ def contract_header_text() -> str:
         f"#define FBG_PARAMS_SIZE {PARAMS_SIZE}u     /* parameter block bytes, zero-padded */",
         f"#define FBG_PARAMS_END {PARAMS_END}u      /* header + parameter block */",
         f"#define FBG_LAYER_ENTRY {LAYER_ENTRY.size}u       /* bytes per layer-table entry */",
+        "",
+        "/* The memory states of a streaming state, X(s, member) each: the arrays of the memory",
+        " * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h",
+        " * clears them on reset, tare and a new baseline). */",
+        "#define FBG_MEMORY_STATES(X, s) " + " ".join(f"X(s, {m})" for m in MEMORY_STATES),
+        f"#define FBG_N_MEMORY_STATES {len(MEMORY_STATES)}",
         "",
         "/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */",
         "void fbg_params_decode(fbg_model *m, const uint8_t *p);",

@@ -52,6 +52,35 @@ def test_parameter_structs_hold_every_field(struct, fields):
             assert size == contract.CTYPES[f.ctype][2] * f.count, f.name
 
 
+@pytest.mark.parametrize("struct, fields", [("fbg_state", contract.STATE),
+                                            ("fbgf_state", contract.FLOAT_STATE)])
+def test_state_structs_are_the_spec_in_order(struct, fields):
+    """The compiled states hold the spec's members in its order (the order is the layout),
+    each of its type and dimensions, and nothing else: sizes add up to the struct."""
+    c = ffi.new(f"{struct} *")
+    offsets = [ffi.offsetof(struct, f.name) for f in fields]
+    assert offsets == sorted(offsets)
+    end = 0
+    for f in fields:
+        item = ffi.sizeof(f.ctype.replace("const ", "").replace(" *", "*") if f.ctype.endswith("*")
+                          else f.ctype)
+        size = ffi.sizeof(ffi.typeof(getattr(c[0], f.name))) if f.dims else item
+        assert size == item * f.count(), f.name
+        assert ffi.offsetof(struct, f.name) >= end, f.name
+        end = ffi.offsetof(struct, f.name) + size
+    assert ffi.sizeof(struct) - end < 8   # trailing padding only
+    assert ffi.offsetof(struct, "act") % 8 == 0
+
+
+def test_memory_kinds_size_the_limits_and_the_states():
+    assert contract.LIMIT["MAX_INPUTS"] == contract.N_STRAIN + sum(k.limit for k in contract.MEMORY_KINDS)
+    for kind in contract.MEMORY_KINDS:
+        assert getattr(lib, f"FBG_MAX_{kind.name.upper()}") == kind.limit
+        for struct in ("fbg_state", "fbgf_state"):
+            assert ffi.sizeof(ffi.typeof(getattr(ffi.new(f"{struct} *")[0], kind.name))) == 4 * kind.limit
+    assert contract.MEMORY_STATES == tuple(k.name for k in contract.MEMORY_KINDS) + ("loc",)
+
+
 def test_params_codec_round_trip():
     rng = np.random.default_rng(0)
     for _ in range(300):

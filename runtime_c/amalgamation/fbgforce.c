@@ -22,6 +22,12 @@
 #define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
@@ -407,6 +413,12 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 #define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
@@ -682,6 +694,9 @@ const char *fbg_status_str(int status)
  *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
  *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
  *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -1219,6 +1234,94 @@ __attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int1
 #endif /* !FBG_DSP_ASM */
 
 #if FBG_DSP_ASM
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* rows3_asm: one input pair of three rows (r1: x, r0/r10/r11: the rows) into r5:r4, r7:r6, r9:r8;
+ * FBG_ROWS3_PAIR_LOADS leaves out the last SMLALD, for a loop test to go before it. */
+#define FBG_ROWS3_PAIR_LOADS                     \
+        "ldr     r12, [r1], #4\n\t"              \
+        "ldr     r2, [r0], #4\n\t"               \
+        "smlald  r4, r5, r2, r12\n\t"            \
+        "ldr     r2, [r10], #4\n\t"              \
+        "smlald  r6, r7, r2, r12\n\t"            \
+        "ldr     r2, [r11], #4\n\t"
+
+/* The whole pair. */
+#define FBG_ROWS3_PAIR                           \
+        FBG_ROWS3_PAIR_LOADS                     \
+        "smlald  r8, r9, r2, r12\n\t"
+
+/* rows3d_asm: four inputs of three rows, each read with one LDRD. */
+#define FBG_ROWS3_QUAD                           \
+        "ldrd    r2, r3, [r1], #8\n\t"           \
+        "ldrd    r12, lr, [r0], #8\n\t"          \
+        "smlald  r4, r5, r12, r2\n\t"            \
+        "smlald  r4, r5, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r10], #8\n\t"         \
+        "smlald  r6, r7, r12, r2\n\t"            \
+        "smlald  r6, r7, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r11], #8\n\t"         \
+        "smlald  r8, r9, r12, r2\n\t"            \
+        "smlald  r8, r9, lr, r3\n\t"
+
+/* The requantisation and store of one row of rows3_asm and rows3d_asm (accumulator hi:lo). */
+#define FBG_ROWS3_REQUANT(lo, hi)                \
+        "ldr     r11, [r0], #4\n\t"              \
+        "add     " hi ", " hi ", " lo ", lsr #31\n\t" \
+        "smull   r12, " lo ", " lo ", r11\n\t"   \
+        "adds    r12, r12, r1\n\t"               \
+        "adc     " lo ", " lo ", r2\n\t"         \
+        "mla     " lo ", " hi ", r11, " lo "\n\t" \
+        "asr     " lo ", " lo ", lr\n\t"         \
+        "bic     " lo ", " lo ", " lo ", asr #31\n\t" \
+        "usat    r12, #15, " lo "\n\t"           \
+        "strh    r12, [r10], #2\n\t"
+
+/* The end of a group of three rows (job in r3): the next x, the three rows requantised and stored,
+ * the multiplier and output pointers written back. */
+#define FBG_ROWS3_OUT                            \
+        "str     r11, [r3]\n\t"                  \
+        "ldr     r0, [r3, #12]\n\t"              \
+        "ldrd    r1, r2, [r3, #28]\n\t"          \
+        "ldr     lr, [r3, #36]\n\t"              \
+        "ldr     r10, [r3, #16]\n\t"             \
+        FBG_ROWS3_REQUANT("r4", "r5")            \
+        FBG_ROWS3_REQUANT("r6", "r7")            \
+        FBG_ROWS3_REQUANT("r8", "r9")            \
+        "str     r0, [r3, #12]\n\t"              \
+        "str     r10, [r3, #16]\n\t"
+
 /* A hidden layer with shift >= 32, three rows per pass, everything in registers:
  *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
  *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
@@ -1235,10 +1338,7 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "mov     r3, r0\n\t"
         "0:\n\t"
         "ldr     r12, [r3, #8]\n\t"
@@ -1257,33 +1357,10 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "cmp     r1, lr\n\t"
         "beq     2f\n\t"
         "1:\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR_LOADS
         "cmp     r1, lr\n\t"
         "smlald  r8, r9, r2, r12\n\t"
         "bne     1b\n\t"
@@ -1291,30 +1368,12 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "ldr     lr, [r3, #20]\n\t"
         "tst     lr, #4\n\t"
         "beq     3f\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
         "3:\n\t"
         "tst     lr, #2\n\t"
         "beq     4f\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
+        FBG_ROWS3_PAIR
         "4:\n\t"
         "tst     lr, #1\n\t"
         "beq     5f\n\t"
@@ -1326,52 +1385,12 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "ldrsh   r2, [r11], #2\n\t"
         "smlalbb r8, r9, r2, r12\n\t"
         "5:\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r0, [r3, #12]\n\t"
-        "ldrd    r1, r2, [r3, #28]\n\t"
-        "ldr     lr, [r3, #36]\n\t"
-        "ldr     r10, [r3, #16]\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r5, r5, r4, lsr #31\n\t"
-        "smull   r12, r4, r4, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r4, r4, r2\n\t"
-        "mla     r4, r5, r11, r4\n\t"
-        "asr     r4, r4, lr\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r12, #15, r4\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r7, r7, r6, lsr #31\n\t"
-        "smull   r12, r6, r6, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r6, r6, r2\n\t"
-        "mla     r6, r7, r11, r6\n\t"
-        "asr     r6, r6, lr\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r12, #15, r6\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "smull   r12, r8, r8, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r8, r8, r2\n\t"
-        "mla     r8, r9, r11, r8\n\t"
-        "asr     r8, r8, lr\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r12, #15, r8\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "str     r0, [r3, #12]\n\t"
-        "str     r10, [r3, #16]\n\t"
+        FBG_ROWS3_OUT
         "ldr     r12, [r3, #24]\n\t"
         "subs    r12, r12, #1\n\t"
         "str     r12, [r3, #24]\n\t"
         "bne     0b\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r3")
         "bx      lr\n\t");
 }
 
@@ -1387,10 +1406,7 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "sub     sp, sp, #16\n\t"
         "str     r0, [sp]\n\t"
         "ldr     r12, [r0, #24]\n\t"
@@ -1420,46 +1436,10 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "cmp     r1, lr\n\t"
         "beq     2f\n\t"
         "1:\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
         "ldr     r12, [sp, #4]\n\t"
         "cmp     r1, r12\n\t"
         "bne     1b\n\t"
@@ -1467,40 +1447,13 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "ldr     r12, [sp, #8]\n\t"
         "tst     r12, #8\n\t"
         "beq     3f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
         "3:\n\t"
         "ldr     r12, [sp, #8]\n\t"
         "lsls    r12, r12, #30\n\t"
         "bcc     4f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
         "4:\n\t"
         "bpl     5f\n\t"
         "ldr     r2, [r1], #4\n\t"
@@ -1512,54 +1465,28 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r12, r2\n\t"
         "5:\n\t"
         "ldr     r3, [sp]\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r0, [r3, #12]\n\t"
-        "ldrd    r1, r2, [r3, #28]\n\t"
-        "ldr     lr, [r3, #36]\n\t"
-        "ldr     r10, [r3, #16]\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r5, r5, r4, lsr #31\n\t"
-        "smull   r12, r4, r4, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r4, r4, r2\n\t"
-        "mla     r4, r5, r11, r4\n\t"
-        "asr     r4, r4, lr\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r12, #15, r4\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r7, r7, r6, lsr #31\n\t"
-        "smull   r12, r6, r6, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r6, r6, r2\n\t"
-        "mla     r6, r7, r11, r6\n\t"
-        "asr     r6, r6, lr\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r12, #15, r6\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "smull   r12, r8, r8, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r8, r8, r2\n\t"
-        "mla     r8, r9, r11, r8\n\t"
-        "asr     r8, r8, lr\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r12, #15, r8\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "str     r0, [r3, #12]\n\t"
-        "str     r10, [r3, #16]\n\t"
+        FBG_ROWS3_OUT
         "ldr     r12, [sp, #12]\n\t"
         "cmp     r10, r12\n\t"
         "bne     0b\n\t"
         "add     sp, sp, #16\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r3")
         "bx      lr\n\t");
 }
+
+/* first_asm: the requantisation and store of one row (accumulator r9:r8, the rounding constant
+ * on the stack, shift - 32 in r7), then the loop test against the output end r12. */
+#define FBG_FIRST_ROW_OUT                        \
+        "ldr     lr, [r2], #4\n\t"               \
+        "add     r9, r9, r8, lsr #31\n\t"        \
+        "ldrd    r10, r11, [sp]\n\t"             \
+        "smlal   r10, r11, r8, lr\n\t"           \
+        "mla     r11, r9, lr, r11\n\t"           \
+        "asr     r11, r11, r7\n\t"               \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r11, #15, r11\n\t"              \
+        "strh    r11, [r3], #2\n\t"              \
+        "cmp     r3, r12\n\t"
 
 /* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
  * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
@@ -1572,10 +1499,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "sub     sp, sp, #16\n\t"
         "ldrd    r10, r11, [r0, #28]\n\t"
         "strd    r10, r11, [sp]\n\t"
@@ -1600,16 +1524,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "ldrd    r8, r9, [r1], #8\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r4\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     2b\n\t"
         "b       9f\n\t"
         "4:\n\t"
@@ -1618,16 +1533,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r10, r4\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r5\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
@@ -1638,29 +1544,47 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r10, r5\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r6\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     6b\n\t"
         "b       9f\n\t"
         "9:\n\t"
         "ldr     r0, [sp, #8]\n\t"
         "add     sp, sp, #16\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r0, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r0")
         "bx      lr\n\t");
 }
 
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
 
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
  * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
@@ -1700,9 +1624,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
          * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
          * [28] sat; written with one STM */
@@ -1784,51 +1706,28 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "smlad   r11, r10, r5, r11\n\t"
         "smlad   r11, r12, r6, r11\n\t"
         ".endr\n\t"
-        "8:\n\t"
-        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
-        "ldrd    r7, r10, [r4], #8\n\t"
-        "smmulr  r9, r9, r7\n\t"
-        "smmulr  r11, r11, r10\n\t"
-        "bic     r9, r9, r9, asr #31\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r9, #15, r9\n\t"
-        "usat    r11, #15, r11\n\t"
-        "pkhbt   r9, r9, r11, lsl #16\n\t"
-        "str     r9, [r5], #4\n\t"
-        "cmp     r5, r6\n\t"
-        "beq     9f\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "stmia   sp, {r3, r4, r5}\n\t"
-        "mov     r0, r1\n\t"
-        "add     r1, r1, r8\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        "9:\n\t"
-        "ldr     r3, [sp, #28]\n\t"
+        FBG_ROWS2_PASS_END
         "add     sp, sp, #32\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 
-/* The requantisation and store of a pair of rows of the first-layer kernels (first2d32_asm,
- * first2b32_asm): accumulators r9 and r11, their multipliers loaded into ma and mb, the two
- * outputs stored as one word at r3. */
-#define FBG_PAIR_REQUANT(ma, mb)                 \
-        "ldrd    " ma ", " mb ", [r2], #8\n\t"   \
-        "smmulr  r9, r9, " ma "\n\t"             \
-        "smmulr  r11, r11, " mb "\n\t"           \
-        "bic     r9, r9, r9, asr #31\n\t"        \
-        "bic     r11, r11, r11, asr #31\n\t"     \
-        "usat    r9, #15, r9\n\t"                \
-        "usat    r11, #15, r11\n\t"              \
-        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
-        "str     r9, [r3], #4\n\t"
-
 /* The requantisation and store of a pair in first2d32_asm. */
-#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r8", "r10")
+#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3")
+
+/* One pair of a 6-input first layer (inputs in r4-r6). */
+#define FBG_PAIR6                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        FBG_PAIR_OUT
 
 /* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
 #define FBG_PAIR8                                \
@@ -1863,7 +1762,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "ldrd    r10, r12, [r0], #8\n\t"         \
         "smlad   r11, r10, r7, r11\n\t"          \
         "smlad   r11, r12, r8, r11\n\t"          \
-        FBG_PAIR_REQUANT("r10", "r12")
+        FBG_PAIR_REQUANT("r2", "r10", "r12", "r9", "r11", "r3")
 
 /* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
  * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
@@ -1887,15 +1786,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "ldrd    r11, lr, [r0], #8\n\t"          \
         "smlad   r12, r11, r8, r12\n\t"          \
         "smlad   r12, lr, r9, r12\n\t"           \
-        "ldrd    r11, lr, [r2], #8\n\t"          \
-        "smmulr  r10, r10, r11\n\t"              \
-        "smmulr  r12, r12, lr\n\t"               \
-        "bic     r10, r10, r10, asr #31\n\t"     \
-        "bic     r12, r12, r12, asr #31\n\t"     \
-        "usat    r10, #15, r10\n\t"              \
-        "usat    r12, #15, r12\n\t"              \
-        "pkhbt   r10, r10, r12, lsl #16\n\t"     \
-        "str     r10, [r3], #4\n\t"
+        FBG_PAIR_REQUANT("r2", "r11", "lr", "r10", "r12", "r3")
 
 /* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
  * the memory features and location averages), two rows per pass: the inputs stay in registers
@@ -1916,9 +1807,7 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         "sub     sp, sp, #8\n\t"
         "str     r3, [sp, #4]\n\t"
         "mov     r3, r2\n\t"
@@ -1974,27 +1863,9 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        FBG_PAIR_OUT
+        FBG_PAIR6
         "61:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        FBG_PAIR_OUT
+        FBG_PAIR6
         "cmp     r3, r7\n\t"
         "bne     6b\n\t"
         "b       9f\n\t"
@@ -2041,16 +1912,14 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "9:\n\t"
         "ldr     r3, [sp, #4]\n\t"
         "add     sp, sp, #8\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 #undef FBG_PAIR12
 #undef FBG_PAIR10
 #undef FBG_PAIR8
+#undef FBG_PAIR6
 #undef FBG_PAIR_OUT
 
 /* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
@@ -2118,6 +1987,20 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
         "sxtb16  r10, r8, ror #8\n\t" \
         "smlad   r11, r10, r6, r11\n\t"
 
+/* Four inputs of the tail of rows2b32_asm (x words in r3, r4) of rows r0 and r1. */
+#define ROWS2B32_TAIL4                           \
+        "ldrd    r3, r4, [lr], #8\n\t"           \
+        "ldr     r7, [r0], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r9, r10, r3, r9\n\t"            \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r9, r10, r4, r9\n\t"            \
+        "ldr     r7, [r1], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r11, r10, r3, r11\n\t"          \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r11, r10, r4, r11\n\t"
+
 /* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
  * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
  * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
@@ -2140,9 +2023,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
          * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
          * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
@@ -2229,31 +2110,11 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "ldr     pc, [sp, #32]\n\t"
         /* 4 inputs, then to the epilogue */
         "74:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
+        ROWS2B32_TAIL4
         "b       8f\n\t"
         /* 4 + 2 inputs */
         "76:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
+        ROWS2B32_TAIL4
         /* 2 inputs: (x[n-2], x[n-1]) */
         "72:\n\t"
         "ldr     r3, [lr], #4\n\t"
@@ -2265,38 +2126,16 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "ldrsb   r8, [r1], #1\n\t"
         "smlabb  r11, r3, r7, r11\n\t"
         "smlatb  r11, r3, r8, r11\n\t"
-        "8:\n\t"
-        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
-        "ldrd    r7, r10, [r4], #8\n\t"
-        "smmulr  r9, r9, r7\n\t"
-        "smmulr  r11, r11, r10\n\t"
-        "bic     r9, r9, r9, asr #31\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r9, #15, r9\n\t"
-        "usat    r11, #15, r11\n\t"
-        "pkhbt   r9, r9, r11, lsl #16\n\t"
-        "str     r9, [r5], #4\n\t"
-        "cmp     r5, r6\n\t"
-        "beq     9f\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "stmia   sp, {r3, r4, r5}\n\t"
-        "mov     r0, r1\n\t"
-        "add     r1, r1, r8\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        "9:\n\t"
-        "ldr     r3, [sp, #28]\n\t"
+        FBG_ROWS2_PASS_END
         "add     sp, sp, #296\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 
 /* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
 #define FBG_PAIR_OUT8                            \
-        FBG_PAIR_REQUANT("r8", "r10")            \
+        FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3") \
         "cmp     r3, lr\n\t"
 
 /* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
@@ -2397,21 +2236,27 @@ __attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, 
         FBG_PAIR_OUT8
         "bne     8b\n\t"
         "9:\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
+        FBG_Q_READ
         "pop     {r3}\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 #undef FBG_W2
 #undef FBG_W4
 #undef FBG_PAIR_OUT8
-#undef FBG_PAIR_REQUANT
 
 typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
+
+/* One tap of fir4_asm: the tap (LDRSH) times the four history words below P, into the four sums. */
+#define FBG_FIR4_TAP(p)                          \
+        "ldrsh   r12, [r0], #2\n\t"              \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r8, r9, r2, r12\n\t"            \
+        "smlal   r10, r11, r3, r12\n\t"          \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r4, r5, r2, r12\n\t"            \
+        "smlal   r6, r7, r3, r12\n\t"
 
 /* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
  * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
@@ -2443,26 +2288,14 @@ __attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsig
         "mov     r10, #0\n\t"
         "mov     r11, #0\n\t"
         "1:\n\t"
-        "ldrsh   r12, [r0], #2\n\t"
-        "ldmdb   r1!, {r2, r3}\n\t"
-        "smlal   r8, r9, r2, r12\n\t"
-        "smlal   r10, r11, r3, r12\n\t"
-        "ldmdb   r1!, {r2, r3}\n\t"
-        "smlal   r4, r5, r2, r12\n\t"
-        "smlal   r6, r7, r3, r12\n\t"
+        FBG_FIR4_TAP("r1")
         "cmp     r1, lr\n\t"
         "bne     1b\n\t"
         "pop     {r1, lr}\n\t"
         "cmp     lr, r1\n\t"
         "beq     3f\n\t"
         "2:\n\t"
-        "ldrsh   r12, [r0], #2\n\t"
-        "ldmdb   lr!, {r2, r3}\n\t"
-        "smlal   r8, r9, r2, r12\n\t"
-        "smlal   r10, r11, r3, r12\n\t"
-        "ldmdb   lr!, {r2, r3}\n\t"
-        "smlal   r4, r5, r2, r12\n\t"
-        "smlal   r6, r7, r3, r12\n\t"
+        FBG_FIR4_TAP("lr")
         "cmp     lr, r1\n\t"
         "bne     2b\n\t"
         "3:\n\t"
@@ -2471,6 +2304,22 @@ __attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsig
         "pop     {r4-r11, pc}\n\t");
 }
 
+#undef FBG_FIR4_TAP
+#undef ROWS2B32_TAIL4
+#undef ROWS2B32_GROUP
+#undef FBG_PAIR_REQUANT
+#undef FBG_ROWS2_PASS_END
+#undef FBG_FIRST_ROW_OUT
+#undef FBG_ROWS3_OUT
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_PAIR_LOADS
+#undef FBG_SAT_OR_Q
+#undef FBG_Q_RESTORE
+#undef FBG_Q_SAVE_CLEAR
+#undef FBG_Q_CLEAR_PUSH
+#undef FBG_Q_READ
 #endif /* FBG_DSP_ASM */
 
 /* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
@@ -2998,20 +2847,42 @@ typedef int fbg_dsp_unused;
 #endif
 #undef FBG_DSP_BODY_BLOCKS
 #undef FBG_DSP_FIRST_MAX_IN
+#undef FBG_Q_READ
+#undef FBG_Q_SAVE_CLEAR
+#undef FBG_Q_RESTORE
+#undef FBG_Q_CLEAR_PUSH
+#undef FBG_SAT_OR_Q
+#undef FBG_ROWS3_PAIR_LOADS
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_OUT
+#undef FBG_FIRST_ROW_OUT
 #undef FBG_PAIR_REQUANT
+#undef FBG_ROWS2_PASS_END
 #undef FBG_PAIR_OUT
+#undef FBG_PAIR6
 #undef FBG_PAIR8
 #undef FBG_PAIR10
 #undef FBG_PAIR12
 #undef ROWS2B32_GROUP
+#undef ROWS2B32_TAIL4
 #undef FBG_PAIR_OUT8
 #undef FBG_W4
 #undef FBG_W2
+#undef FBG_FIR4_TAP
 #undef FBG_DSP_PAIRS_KIND
 #undef FBG_FIR_TAP
 /* ---- src/fbg_fixed.c ---- */
 /*
  * fbg_fixed.c - the fixed-point pipeline: init, tare, step, batch (docs/fixed-point.md).
+ *
+ * fbg_step runs one sample through stages in the order of export/intref.py's run: the front
+ * (fault rule, tare, temperature compensation), the filter and standardisation, the memory
+ * features, the nets with the contact decision, the outputs. Each stage is a static function
+ * here with a portable reference beside it; where an instruction set has its own variant of
+ * a stage, the stage picks it: at compile time on the target (FBG_USE_DSP, fbg_dsp.c) and by
+ * the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd_x86.c and fbg_simd_neon.c).
  *
  * No float or double in this file (check-nofloat builds it with -mgeneral-regs-only).
  * export/intref.py mirrors every operation here bit for bit.
@@ -3040,6 +2911,31 @@ typedef int fbg_dsp_unused;
 
 #include <string.h>
 
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+
+#endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -3254,12 +3150,9 @@ typedef struct {
     size_t hist_size;
     void *last_comp;             /* the compensated sample held into the FIR during a fault */
     size_t last_comp_size;
-    void *ema;                   /* the memory states, whatever their element type */
-    size_t ema_size;
-    void *play;
-    size_t play_size;
-    void *loc;                   /* the location averages */
-    size_t loc_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -3271,6 +3164,9 @@ typedef struct {
     uint8_t *prev_valid;
 } fbg_front;
 
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
 /* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
  * alike, which is why one initialiser serves both). */
 #define FBG_FRONT_OF(s, magic_val)                                                            \
@@ -3279,8 +3175,8 @@ typedef struct {
                  .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
-                 .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -3307,11 +3203,11 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
 /* Forget the FIR history, the memory states and the fault tracker; baseline and tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
+    unsigned k;
     memset(f.hist, 0, f.hist_size);
     memset(f.last_comp, 0, f.last_comp_size);
-    memset(f.ema, 0, f.ema_size);
-    memset(f.play, 0, f.play_size);
-    memset(f.loc, 0, f.loc_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -3654,11 +3550,6 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
-/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
- * in every build, so that fbg_step reads the same on the builds without it. */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
-
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -3691,7 +3582,7 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
- * AVX2 filter ---- */
+ * AVX2 front stages ---- */
 #if defined(__x86_64__)
 #define FBG_SIMD_X86 1
 #else
@@ -3732,23 +3623,35 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 1 to 4 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
- * wl_fm (its states in s updated as fbg_fault_check updates them): FBG_SIMD_FRONT_FAULT for a
- * faulty sample, nothing else done. For a clean one, FBG_SIMD_FRONT_DONE: the tare
- * difference and the temperature compensation into the ring at s->pos and s->last_comp; the
- * causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order); in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c]; and step 4 (memory_features of
- * fbg_fixed.c): the location averages (s->loc, loc[c]) when the model has them, the load
- * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
- * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
- * for another kernel (the caller runs its loops). */
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat);
+/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
+ * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
+ * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference and the temperature compensation into the ring
+ * at s->pos and s->last_comp.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
 #define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -4065,15 +3968,10 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
 /* The shared front end's view of a fixed-point state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
-/* The kernel a state runs for a requested FBG_OPT_KERNEL_* value; 0 if it cannot run here. */
-static uint32_t resolve_kernel(uint32_t requested)
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
 {
-#if FBG_HOST_SIMD
-    return fbg_simd_resolve(requested);
-#else
-    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
-               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
-#endif
+    return s->options & FBG_OPT_KERNEL_MASK;
 }
 
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
@@ -4086,7 +3984,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     st = fbg_model_check(model);
     if (st != FBG_OK)
         return st;
-    kernel = resolve_kernel(options & FBG_OPT_KERNEL_MASK);
+    kernel = fbg_simd_resolve(options & FBG_OPT_KERNEL_MASK);
     if (kernel == 0u)
         return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
@@ -4105,7 +4003,7 @@ uint32_t fbg_kernel(const fbg_state *state)
 {
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
-    return state->options & FBG_OPT_KERNEL_MASK;
+    return state_kernel(state);
 }
 
 size_t fbg_pack_bytes(const fbg_state *state)
@@ -4113,7 +4011,7 @@ size_t fbg_pack_bytes(const fbg_state *state)
 #if FBG_SIMD_X86
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
-    return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
+    return fbg_simd_pack_bytes(state_kernel(state), state->model);
 #else
     (void)state;
     return 0u;
@@ -4131,7 +4029,7 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
     if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
         return FBG_ERR_ARG;
 #if FBG_SIMD_X86
-    fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
+    fbg_simd_pack(state_kernel(state), state->model, buf);
     state->packed = buf;
 #endif
     return FBG_OK;
@@ -4150,7 +4048,7 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
             return FBG_ERR_ARG;
         memcpy(&h, packed, sizeof h);
         if (h.magic != FBG_PACK_MAGIC || h.model != state->model ||
-            h.kernel != (state->options & FBG_OPT_KERNEL_MASK) ||
+            h.kernel != state_kernel(state) ||
             h.bytes != fbg_simd_pack_bytes(h.kernel, state->model))
             return FBG_ERR_ARG;
 #else
@@ -4160,6 +4058,8 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     state->packed = packed;
     return FBG_OK;
 }
+
+/* ---- The decision over time and the at-rest tracker (docs/runtime.md, "In use") ---- */
 
 /* Reset, tare and a new baseline restart the decision and the tracker. The baseline the
  * tracker reached stays through a reset (it is the best estimate of the unloaded gratings)
@@ -4177,243 +4077,6 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
     memset(s->drift_fm, 0, sizeof s->drift_fm);
     memset(s->track_frac, 0, sizeof s->track_frac);
     return FBG_OK;
-}
-
-fbg_status fbg_reset(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
-}
-
-fbg_status fbg_tare_begin(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
-}
-
-fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
-{
-    if (state == NULL || wl_fm == NULL)
-        return FBG_ERR_NULL;
-    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
-}
-
-fbg_status fbg_tare_end(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
-}
-
-fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
-}
-
-fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
-        return FBG_ERR_STATE;
-    memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
-    return FBG_OK;
-}
-
-/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
- * kernels write whole groups of 8 rows into them. */
-typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
-typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
-
-#if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
- * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
-static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int32_t acc = (int32_t)ly->bias[r];
-    unsigned j;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
- * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
-static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int64_t acc = ly->bias[r];
-    unsigned j;
-    if (ly->acc32)
-        return layer_acc32(ly, r, x);
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-#endif
-
-/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
-static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
-{
-    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
-    return fbg_sat16(v < 0 ? 0 : v, sat);
-}
-
-/* The kernel of a state for an acc32 layer, when it is a host SIMD one (else 0). */
-static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
-{
-#if FBG_HOST_SIMD
-    uint32_t kernel = s->options & FBG_OPT_KERNEL_MASK;
-    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
-#else
-    (void)s;
-    (void)ly;
-    return 0u;
-#endif
-}
-
-/* Run the hidden layers of a net on x; returns the input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
-{
-#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
-    return fbg_dsp_run_hidden(net, x, s->act, sat);
-#else
-    unsigned l, buf = 0u;
-    for (l = 0; l + 1u < net->n_layers; ++l) {
-        const fbg_layer *ly = &net->layers[l];
-        int16_t *y = s->act[buf];
-        unsigned r;
-#if FBG_HOST_SIMD
-        uint32_t kernel = simd_kernel(s, ly);
-        if (kernel != 0u)
-            fbg_simd_hidden(kernel, ly, x, y, sat);
-        else
-#endif
-        {
-            for (r = 0; r < ly->n_out; ++r)
-                y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
-        }
-        x = y;
-        buf ^= 1u;
-    }
-    return x;
-#endif
-}
-
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    unsigned r;
-#if FBG_HOST_SIMD
-    uint32_t kernel = simd_kernel(s, ly);
-    if (kernel != 0u) {
-        int32_t acc32[FBG_MAX_WIDTH];
-        fbg_simd_acc32(kernel, ly, x, acc32);
-        for (r = 0; r < ly->n_out; ++r)
-            acc[r] = acc32[r];
-        return;
-    }
-#else
-    (void)s;
-#endif
-#if FBG_USE_DSP /* every row in one call */
-    (void)r;
-    fbg_dsp_output_accs(ly, x, acc);
-#else
-    for (r = 0; r < ly->n_out; ++r)
-        acc[r] = layer_acc(ly, r, x);
-#endif
-}
-
-/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
- * int32. */
-static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
-{
-#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
-    if (ly->acc32 && ly->shift == 32u)
-        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
-#endif
-    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
-}
-
-/* Append the memory features to z = in[0..3] and put the location averages (when loc_shift
- * is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load signal's states
- * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
- * its force path, which all four beams share): the exponential averages' features, then the
- * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
- * after a release leaves them: the averages at u, the play operators at u + width (the load
- * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
-static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            uint32_t *sat)
-{
-    unsigned c, k, j = FBG_N_STRAIN;
-    int64_t acc = 0;
-    int32_t u;
-    if (m->loc_shift) {
-        /* A local flag: *sat may alias s->loc for the compiler. */
-        uint32_t clamped = s->loc_z0_clamped;
-        const int primed = s->mem_primed;
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
-             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
-             * state stays between its old value and the target r << EMA_FRAC, so both lie
-             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
-             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
-                             ((int32_t)1 << FBG_EMA_FRAC);
-            int32_t e = primed ? s->loc[c] : target;
-            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
-            s->loc[c] = e;
-            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
-            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
-        }
-        *sat |= clamped;
-    }
-    if (m->n_ema == 0u && m->n_play == 0u) {
-        s->mem_primed = 1u;
-        return;
-    }
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. So
-         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
-         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
-        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
-        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
-        s->ema[k] = e;
-        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
-        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = s->play[k];
-        p = p < lo ? lo : (p > hi ? hi : p);
-        s->play[k] = p;
-        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
-    }
 }
 
 /* The contact decision over time (docs/runtime.md, "In use"): a Schmitt trigger on the
@@ -4489,162 +4152,484 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
     memset(s->track_sum, 0, sizeof s->track_sum);
 }
 
+/* Net inputs beyond what the calibration covered (z and the memory features): flagged, the
+ * nets still run. */
+static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
+            return FBG_STATUS_OUT_OF_RANGE;
+    return 0u;
+}
+
+/* ---- Reset, tare and baseline: the front end's, then in_use_after ---- */
+
+fbg_status fbg_reset(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
+}
+
+fbg_status fbg_tare_begin(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
+}
+
+fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
+{
+    if (state == NULL || wl_fm == NULL)
+        return FBG_ERR_NULL;
+    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
+}
+
+fbg_status fbg_tare_end(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
+}
+
+fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
+}
+
+fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
+        return FBG_ERR_STATE;
+    memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
+    return FBG_OK;
+}
+
+/* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
+ * The sample's compensated strain shifts go into the FIR ring at pos and into last_comp; a
+ * faulty sample (SENSOR_FAULT added to *status) feeds the ring the held last_comp again. */
+
+/* The portable reference. */
+static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                       uint32_t *status, uint32_t *sat)
+{
+    int32_t shift[FBG_N_CHANNELS];
+    unsigned c;
+    if (!fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+            s->last_comp[c] = fbg_sat32((int64_t)shift[c] - t, sat);
+        }
+    }
+    memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+}
+
+static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                        uint32_t *status, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+        fbg_avx2_front(s, wl_fm, status, sat);
+        return;
+    }
+#endif
+    compensate(s, m, wl_fm, status, sat);
+}
+
+/* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]
+ * weighting n - k), z = in[0..3] in Q(z_frac) int16, and the input-side overload (the linear
+ * load proxy beyond anything seen in calibration); then the ring moves on. ---- */
+
+#if !FBG_USE_DSP
+/* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
+static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t f = 0;
+        int32_t filt, d;
+        unsigned k, idx = s->pos;
+        for (k = 0; k < m->n_taps; ++k) {
+            f += (int64_t)m->taps[k] * s->hist[idx][c];
+            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
+        }
+        filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
+        d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
+        in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
+        load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
+    }
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+#endif
+
+/* Returns FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int overload;
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
+                  * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
+    int64_t fir[FBG_N_STRAIN];
+    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+    overload = fbg_dsp_standardise(m, fir, in, sat);
+#elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
+    overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
+                                                     : filter_standardise(s, m, in, sat);
+#else
+    overload = filter_standardise(s, m, in, sat);
+#endif
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    return overload ? FBG_STATUS_OVERLOAD : 0u;
+}
+
+/* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
+
+/* The portable reference. Append the memory features to z = in[0..3] and put the location
+ * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
+ * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+ * its force path, which all four beams share): the exponential averages' features, then the
+ * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them: the averages at u, the play operators at u + width (the load
+ * last went down), so the features read what they read at every rest of the calibration
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
+                            uint32_t *sat)
+{
+    unsigned c, k, j = FBG_N_STRAIN;
+    int64_t acc = 0;
+    int32_t u;
+    if (m->loc_shift) {
+        /* A local flag: *sat may alias s->loc for the compiler. */
+        uint32_t clamped = s->loc_z0_clamped;
+        const int primed = s->mem_primed;
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
+             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
+                             ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
+        }
+        *sat |= clamped;
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
+    if (!s->mem_primed) {
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
+         * at most the whole distance, so it stays between its old value and the target. So
+         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
+         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
+        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
+        s->ema[k] = e;
+        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+    }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+    }
+}
+
+static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the location averages and the load signal's states in int32 lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+        fbg_avx2_memory(s, in, loc, sat);
+        return;
+    }
+#endif
+    memory_features(s, m, in, loc, sat);
+}
+
+/* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
+ * (fbg_dsp.c) or the state's host kernel (fbg_simd.h) ---- */
+
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
+ * kernels write whole groups of 8 rows into them. */
+typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
+
+#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    fbg_dsp_output_accs(ly, x, acc);
+}
+#else
+/* The portable reference of a layer. */
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
+ * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
+static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int32_t acc = (int32_t)ly->bias[r];
+    unsigned j;
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
+ * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
+static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int64_t acc = ly->bias[r];
+    unsigned j;
+    if (ly->acc32)
+        return layer_acc32(ly, r, x);
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
+static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
+    return fbg_sat16(v < 0 ? 0 : v, sat);
+}
+
+static void hidden_rows(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
+}
+
+static void output_rows(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = layer_acc(ly, r, x);
+}
+
+#if FBG_HOST_SIMD
+/* The state's host kernel (SSE2, AVX2, NEON: fbg_simd.h) for an acc32 layer; 0 where the
+ * portable reference runs the layer (an int64-accumulator layer, the portable kernel). */
+static inline uint32_t host_kernel(const fbg_state *s, const fbg_layer *ly)
+{
+    uint32_t kernel = state_kernel(s);
+    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
+}
+
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u)
+        fbg_simd_hidden(kernel, ly, x, y, sat);
+    else
+        hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u) {
+        int32_t acc32[FBG_MAX_WIDTH];
+        unsigned r;
+        fbg_simd_acc32(kernel, ly, x, acc32);
+        for (r = 0; r < ly->n_out; ++r)
+            acc[r] = acc32[r];
+    } else {
+        output_rows(ly, x, acc);
+    }
+}
+#else
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    (void)s;
+    hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    output_rows(ly, x, acc);
+}
+#endif
+
+/* Run the hidden layers of a net on x, through the activation buffers in turn; returns the
+ * input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    unsigned l;
+    for (l = 0; l + 1u < net->n_layers; ++l) {
+        int16_t *y = s->act[l & 1u];
+        net_hidden_layer(s, &net->layers[l], x, y, sat);
+        x = y;
+    }
+    return x;
+}
+#endif
+
+/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
+ * int32. */
+static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
+    if (ly->acc32 && ly->shift == 32u)
+        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
+#endif
+    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+}
+
+/* Every layer of net n on the net inputs in: acc = the accumulators of its output layer, which
+ * it returns. Layer by layer, or from packed weights in one call where the state has them
+ * (fbg_pack; x86-64 builds only). */
+static inline const fbg_layer *net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                                        int64_t *acc, uint32_t *sat)
+{
+    const fbg_net *net = &m->nets[n];
+    const fbg_layer *last = &net->layers[net->n_layers - 1u];
+#if FBG_SIMD_X86
+    if (s->packed != NULL &&
+        fbg_simd_net_packed(state_kernel(s), s->packed, n, net->n_layers, in, s->act, acc, sat))
+        return last;
+#endif
+    output_accs(s, last, run_hidden(s, net, in, sat), acc);
+    return last;
+}
+
+/* ---- 5. Outputs ---- */
+
 static void safe_output(fbg_output *out, uint32_t status)
 {
     memset(out, 0, sizeof *out);
     out->status = status;
 }
 
-/* In fbg_step: every layer of net n on the net inputs in; acc = the accumulators of its output
- * layer, last = that layer. Layer by layer (NET_LAYERS), or from packed weights in one call
- * where the state has them (fbg_pack; x86-64 builds only). */
-#define NET_LAST(n) (&m->nets[n].layers[m->nets[n].n_layers - 1u])
-#define NET_LAYERS(n)                                                                        \
-    do {                                                                                     \
-        x = run_hidden(s, &m->nets[n], in, &sat);                                            \
-        last = NET_LAST(n);                                                                  \
-        output_accs(s, last, x, acc);                                                        \
-    } while (0)
-#if FBG_SIMD_X86
-#define NET_ACCS(n)                                                                          \
-    do {                                                                                     \
-        if (s->packed != NULL && fbg_simd_net_packed(s->options & FBG_OPT_KERNEL_MASK, s->packed, \
-                                                     n, m->nets[n].n_layers, in, s->act, acc, &sat)) \
-            last = NET_LAST(n);                                                              \
-        else                                                                                 \
-            NET_LAYERS(n);                                                                   \
-    } while (0)
-#else
-#define NET_ACCS(n) NET_LAYERS(n)
-#endif
+/* The contact net (one output row, the logit margin in Q8; raw contact iff its acc > 0), the
+ * decision over time and the confidence, into a zeroed out. */
+static void contact_outputs(fbg_state *s, const fbg_model *m, const int16_t *in, fbg_output *out,
+                            uint32_t *sat)
+{
+    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+    const fbg_layer *last = net_accs(s, m, FBG_NET_CONTACT, in, acc, sat);
+    out->contact_margin_q8 = output_row(last, 0u, acc[0], sat);
+    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
+    out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+}
+
+/* A contact step's force and location. The force net's output (mN before the offset) feeds
+ * the location net quantised: its inputs are [z1..z4, contact in Q(z_frac), that force in
+ * Q(z_frac), location averages], written over the memory features after z, which are no
+ * longer needed. Returns FBG_STATUS_OVERLOAD when the force exceeds overload_mN, else 0. */
+static uint32_t force_location_outputs(fbg_state *s, const fbg_model *m, int16_t *in,
+                                       const int16_t *loc, fbg_output *out, uint32_t *sat)
+{
+    int64_t acc[2];
+    int32_t force_out;
+    const fbg_layer *last = net_accs(s, m, FBG_NET_FORCE, in, acc, sat);
+    force_out = output_row(last, 0u, acc[0], sat);
+    out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, sat);
+    in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
+    in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, sat);
+    if (m->loc_shift)
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
+    last = net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
+    out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], sat), m->xy_offset_um[0], sat);
+    out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], sat), m->xy_offset_um[1], sat);
+    return out->force_mN > m->overload_mN ? FBG_STATUS_OVERLOAD : 0u;
+}
+
+/* The checks that open a step: FBG_OK with *status = the step's starting flags, or the error
+ * with the safe output in out. */
+static fbg_status step_begin(fbg_state *s, const int32_t *wl_fm, fbg_output *out, uint32_t *status)
+{
+    fbg_status st;
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    st = fbg_front_step_begin(FRONT(s), status);
+    if (st != FBG_OK) {
+        safe_output(out, *status);
+        return st;
+    }
+    /* The state's history, memory states and packed weights are sized and made for the model
+     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
+    if (s->model->blob_crc != s->model_crc) {
+        safe_output(out, 0u);
+        return FBG_ERR_MODEL_CHANGED;
+    }
+    if (s->track_limited)
+        *status |= FBG_STATUS_BASELINE_LIMIT;
+    return FBG_OK;
+}
 
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
     uint32_t status, sat = 0u;
-    int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
     int16_t in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN];
-    const int16_t *x;
-    const fbg_layer *last;
-    unsigned c;
-    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front = 0; /* FBG_SIMD_FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
-#if !FBG_USE_DSP
-    int64_t load = 0;
-#endif
-    fbg_status st;
-
-    if (s == NULL || wl_fm == NULL || out == NULL)
-        return FBG_ERR_NULL;
-    st = fbg_front_step_begin(FRONT(s), &status);
-    if (st != FBG_OK) {
-        safe_output(out, status);
+    const fbg_status st = step_begin(s, wl_fm, out, &status);
+    if (st != FBG_OK)
         return st;
-    }
     m = s->model;
-    /* The state's history, memory states and packed weights are sized and made for the model
-     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
-    if (m->blob_crc != s->model_crc) {
-        safe_output(out, 0u);
-        return FBG_ERR_MODEL_CHANGED;
-    }
-    if (s->track_limited)
-        status |= FBG_STATUS_BASELINE_LIMIT;
 
-    /* 1. Fault rule, tare and temperature compensation (fm). */
-#if FBG_SIMD_X86 /* AVX2: steps 1 to 4 in vectors (fbg_simd_x86.c); same values and states */
-    front = fbg_simd_front(s->options & FBG_OPT_KERNEL_MASK, s, wl_fm, in, loc, &load, &sat);
-    if (front == FBG_SIMD_FRONT_FAULT)
-        status |= FBG_STATUS_SENSOR_FAULT;
-#endif
-    if (front != 0 ? front == FBG_SIMD_FRONT_FAULT
-                   : fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
-        memcpy(comp, s->last_comp, sizeof comp);
-    } else if (front == 0) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
-        }
-        memcpy(s->last_comp, comp, sizeof comp);
-    }
-
-    /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    if (front != FBG_SIMD_FRONT_DONE)
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->hist[s->pos][c] = comp[c];
+    /* 1. Front. A faulty sample ends here with the safe output: the ring moves on, the
+     *    decision holds, the tracker restarts. */
+    front_stage(s, m, wl_fm, &status, &sat);
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
-        safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
-        rest_track(s, m, NULL);   /* a fault: the decision holds, the tracker restarts */
+        safe_output(out, status);
+        rest_track(s, m, NULL);
         return FBG_OK;
     }
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
-                  * step 3 on 32-bit words (fbg_dsp.c says why each is exact) */
-    {
-        int64_t fir[FBG_N_STRAIN];
-        fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-        if (fbg_dsp_standardise(m, fir, in, &sat))
-            status |= FBG_STATUS_OVERLOAD;
-    }
-    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-#else
-    for (c = 0; c < FBG_N_STRAIN && front != FBG_SIMD_FRONT_DONE; ++c) {
-        int64_t f = 0;
-        unsigned k, idx = s->pos;
-        for (k = 0; k < m->n_taps; ++k) {
-            f += (int64_t)m->taps[k] * s->hist[idx][c];
-            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-        }
-        /* 3. Standardise into Q(z_frac) int16. */
-        {
-            int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
-            int32_t d = fbg_sat32((int64_t)filt - m->mean_fm[c], &sat);
-            in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), &sat);
-            load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
-        }
-    }
-    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
-    if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
-        status |= FBG_STATUS_OVERLOAD;
-#endif
+    /* 2. Filter and standardise into z = in[0..3]; 3. the memory features after z. */
+    status |= filter_stage(s, m, in, &sat);
+    memory_stage(s, m, in, loc, &sat);
+    status |= out_of_range(m, in);
 
-    /* 4. Memory features after z. */
-    if (front != FBG_SIMD_FRONT_DONE)
-        memory_features(s, m, in, loc, &sat);
-
-    /* 4b. Inputs beyond what the calibration covered: flagged, the nets still run. */
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
-        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
-            status |= FBG_STATUS_OUT_OF_RANGE;
-
-    /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
+    /* 4. Contact net and the decision, the tracker on samples at rest; on contact the force
+     *    and location nets. */
     memset(out, 0, sizeof *out);
-    NET_ACCS(FBG_NET_CONTACT);
-    out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
-    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
-    out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+    contact_outputs(s, m, in, out, &sat);
     rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-
-    if (out->contact) {
-        /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
-        int32_t force_out;
-        NET_ACCS(FBG_NET_FORCE);
-        force_out = output_row(last, 0u, acc[0], &sat);
-        out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
-        if (out->force_mN > m->overload_mN)
-            status |= FBG_STATUS_OVERLOAD;
-
-        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac),
-         * location averages]: the memory features after z are no longer needed and make
-         * room. */
-        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
-        if (m->loc_shift)
-            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        NET_ACCS(FBG_NET_LOCATION);
-        out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
-    }
+    if (out->contact)
+        status |= force_location_outputs(s, m, in, loc, out, &sat);
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
 }
@@ -4663,9 +4648,6 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
     return FBG_OK;
 }
 #undef FRONT
-#undef NET_LAST
-#undef NET_LAYERS
-#undef NET_ACCS
 /* ---- src/fbg_model.c ---- */
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
@@ -4680,6 +4662,12 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 #define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
 #define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
 
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
@@ -5232,11 +5220,6 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
-/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
- * in every build, so that fbg_step reads the same on the builds without it. */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
-
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -5269,7 +5252,7 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
- * AVX2 filter ---- */
+ * AVX2 front stages ---- */
 #if defined(__x86_64__)
 #define FBG_SIMD_X86 1
 #else
@@ -5310,23 +5293,35 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 1 to 4 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
- * wl_fm (its states in s updated as fbg_fault_check updates them): FBG_SIMD_FRONT_FAULT for a
- * faulty sample, nothing else done. For a clean one, FBG_SIMD_FRONT_DONE: the tare
- * difference and the temperature compensation into the ring at s->pos and s->last_comp; the
- * causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order); in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c]; and step 4 (memory_features of
- * fbg_fixed.c): the location averages (s->loc, loc[c]) when the model has them, the load
- * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
- * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
- * for another kernel (the caller runs its loops). */
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat);
+/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
+ * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
+ * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference and the temperature compensation into the ring
+ * at s->pos and s->last_comp.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
 #define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -5524,11 +5519,11 @@ typedef int fbg_simd_neon_unused;
  *
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
- * interleaved for it, and a whole net runs in one call. AVX2 also runs the front end of a
- * step in one call (fbg_simd_front): the fault rule of the five channels in one vector of
- * int32, the temperature compensation, FIR and standardisation of the four strain channels
- * as vectors of int64, the location averages and the load signal's memory states in vectors
- * of int32.
+ * interleaved for it, and a whole net runs in one call. AVX2 also has its own variants of
+ * fbg_step's front stages (fbg_avx2_front, fbg_avx2_filter, fbg_avx2_memory): the fault rule
+ * of the five channels in one vector of int32, the temperature compensation, FIR and
+ * standardisation of the four strain channels as vectors of int64, the location averages and
+ * the load signal's memory states in vectors of int32.
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -5757,11 +5752,6 @@ static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 
 #endif /* FBG_INTERNAL_H */
 
-/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
- * in every build, so that fbg_step reads the same on the builds without it. */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
-
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -5794,7 +5784,7 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
- * AVX2 filter ---- */
+ * AVX2 front stages ---- */
 #if defined(__x86_64__)
 #define FBG_SIMD_X86 1
 #else
@@ -5835,23 +5825,35 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 1 to 4 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
- * wl_fm (its states in s updated as fbg_fault_check updates them): FBG_SIMD_FRONT_FAULT for a
- * faulty sample, nothing else done. For a clean one, FBG_SIMD_FRONT_DONE: the tare
- * difference and the temperature compensation into the ring at s->pos and s->last_comp; the
- * causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order); in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c]; and step 4 (memory_features of
- * fbg_fixed.c): the location averages (s->loc, loc[c]) when the model has them, the load
- * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
- * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
- * for another kernel (the caller runs its loops). */
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat);
+/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
+ * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
+ * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference and the temperature compensation into the ring
+ * at s->pos and s->last_comp.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
 #define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
@@ -7109,10 +7111,10 @@ AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
  * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
  * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
 AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
-                             int16_t *in, int64_t *load, __m128i *z)
+                             int16_t *in, int64_t *load)
 {
     __m256i flag = _mm256_setzero_si256(), t;
-    __m128i l;
+    __m128i l, z;
     const __m256i fir = fir4_avx2(m->taps, m->n_taps, hist, pos);
     const __m256i filt = clamp64(sra64(_mm256_add_epi64(fir, _mm256_set1_epi64x((int64_t)1 << (m->tap_q - 1u))),
                                        _mm_cvtsi32_si128(m->tap_q)), FBG_SAT32, &flag);
@@ -7122,8 +7124,8 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
     /* The four values' low dwords (each an int16 value) into the low half, narrowed. */
     t = _mm256_permutevar8x32_epi32(t, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6));
-    *z = _mm256_castsi256_si128(t);
-    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(*z, *z));
+    z = _mm256_castsi256_si128(t);
+    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(z, z));
     t = _mm256_mul_epi32(filt, _mm256_cvtepi32_epi64(load128(m->load_coeff)));
     l = _mm_add_epi64(_mm256_castsi256_si128(t), _mm256_extracti128_si256(t, 1));
     l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
@@ -7297,21 +7299,38 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
 typedef char memory4_stores_inside_in[FBG_N_STRAIN + FBG_MAX_EMA + 4 <= FBG_MAX_INPUTS ? 1 : -1];
 typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
 
-/* One AVX2 call for steps 1 to 4: the fault rule; for a clean sample the tare difference
- * (within +-1e9 for in-window values: fbg_front_sample), the compensation, the filter and
- * standardisation, the memory features (location averages, then the load signal's), and
- * the flags of the clamps in each and memory_features' loc_z0_clamped. */
-AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t *loc, int64_t *load,
-                           uint32_t *sat)
+/* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
+ * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
+ * compensation into the ring and last_comp; for a faulty one last_comp into the ring. */
+AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
+{
+    __m256i w;
+    if (fault5_avx2(s, wl_fm, &w)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], load128(s->last_comp));
+        return;
+    }
+    if (comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm))))
+        *sat = 1u;
+}
+
+AVX2 int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat)
 {
     const fbg_model *m = s->model;
-    __m256i w;
-    __m128i z;
-    int clamped;
-    if (fault5_avx2(s, wl, &w))
-        return FBG_SIMD_FRONT_FAULT;
-    clamped = comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm)));
-    clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
+    int64_t load;
+    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, &load))
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+
+/* The memory features from z = in[0..3] (int16 values, widened to int32 lanes): the location
+ * averages, then the load signal's, and the flags of the clamps in each and of
+ * memory_features' loc_z0_clamped. */
+AVX2 void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat)
+{
+    const fbg_model *m = s->model;
+    const __m128i z = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)in));
+    int clamped = 0;
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
     if (m->n_ema != 0u || m->n_play != 0u)
@@ -7319,15 +7338,6 @@ AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t
     s->mem_primed = 1u;
     if (clamped)
         *sat = 1u;
-    return FBG_SIMD_FRONT_DONE;
-}
-
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat)
-{
-    if (kernel != FBG_OPT_KERNEL_AVX2)
-        return 0;
-    return front_avx2(s, wl_fm, in, loc, load, sat);
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)
@@ -8182,6 +8192,31 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 
 #include <string.h>
 
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+
+#endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
 /*
  * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
@@ -8396,12 +8431,9 @@ typedef struct {
     size_t hist_size;
     void *last_comp;             /* the compensated sample held into the FIR during a fault */
     size_t last_comp_size;
-    void *ema;                   /* the memory states, whatever their element type */
-    size_t ema_size;
-    void *play;
-    size_t play_size;
-    void *loc;                   /* the location averages */
-    size_t loc_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -8413,6 +8445,9 @@ typedef struct {
     uint8_t *prev_valid;
 } fbg_front;
 
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
 /* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
  * alike, which is why one initialiser serves both). */
 #define FBG_FRONT_OF(s, magic_val)                                                            \
@@ -8421,8 +8456,8 @@ typedef struct {
                  .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
-                 .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -8449,11 +8484,11 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
 /* Forget the FIR history, the memory states and the fault tracker; baseline and tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
+    unsigned k;
     memset(f.hist, 0, f.hist_size);
     memset(f.last_comp, 0, f.last_comp_size);
-    memset(f.ema, 0, f.ema_size);
-    memset(f.play, 0, f.play_size);
-    memset(f.loc, 0, f.loc_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;

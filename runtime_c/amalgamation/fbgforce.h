@@ -222,6 +222,7 @@ typedef struct {
 } fbg_output;
 /* ---- END GENERATED fixed ---- */
 
+/* ---- BEGIN GENERATED state: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
 /* Caller-owned streaming state. Treat as opaque; size is sizeof(fbg_state). */
 typedef struct {
     uint32_t magic;                              /* set by fbg_init */
@@ -231,11 +232,11 @@ typedef struct {
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
     int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
-    /* Memory states of the load signal u (docs/fixed-point.md, "memory"): exponential
-     * averages in Q(z_frac + FBG_EMA_FRAC), play operators in Q(z_frac). */
-    int32_t ema[FBG_MAX_EMA];
-    int32_t play[FBG_MAX_PLAY];
-    int32_t loc[FBG_N_STRAIN];   /* location averages of z - z0, Q(z_frac + FBG_EMA_FRAC) */
+    /* Memory states of the load signal u (docs/fixed-point.md, "memory"), one array per kind
+     * of fbgforce.contract.MEMORY_KINDS. */
+    int32_t ema[FBG_MAX_EMA];                    /* exponential-average memory states, Q(z_frac + FBG_EMA_FRAC) */
+    int32_t play[FBG_MAX_PLAY];                  /* play-operator memory states, Q(z_frac) */
+    int32_t loc[FBG_N_STRAIN];                   /* location averages of z - z0, Q(z_frac + FBG_EMA_FRAC) */
     /* At-rest baseline tracker (docs/runtime.md, "In use"): the block's sum of z - z0, the
      * correction applied to baseline_fm[0..3] since the tare, and the carried fraction of
      * the next step in Q(FBG_TRACK_FRAC). */
@@ -243,8 +244,8 @@ typedef struct {
     int32_t drift_fm[FBG_N_STRAIN];
     int64_t track_frac[FBG_N_STRAIN];
     int64_t tare_sum[FBG_N_CHANNELS];
-    /* Right after the int64 array, so 8-byte aligned on every ABI: the DSP kernels read
-     * the activations with LDRD (no copy to an aligned buffer per layer). */
+    /* Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels read the
+     * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
     uint32_t tare_count;
     uint16_t pos;                                /* next write index into hist */
@@ -264,6 +265,7 @@ typedef struct {
     const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
     uint32_t model_crc;                          /* model->blob_crc at fbg_init */
 } fbg_state;
+/* ---- END GENERATED state ---- */
 
 /* Library version as (major << 16) | (minor << 8) | patch: FBG_VERSION_* of the header it was
  * built with, the same version as the Python package (fbgforce.contract.VERSION). */
@@ -450,40 +452,45 @@ typedef struct {
 } fbgf_output;
 /* ---- END GENERATED float ---- */
 
+/* ---- BEGIN GENERATED float state: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* Caller-owned streaming state. Treat as opaque; size is sizeof(fbgf_state). */
 typedef struct {
-    uint32_t magic;
+    uint32_t magic;                              /* set by fbgf_init */
     uint32_t options;
     const fbgf_model *model;
     int32_t baseline_fm[FBG_N_CHANNELS];
-    int32_t prev_fm[FBG_N_CHANNELS];
-    float hist[FBG_MAX_TAPS][FBG_N_STRAIN];
-    float last_comp[FBG_N_STRAIN];
-    float ema[FBG_MAX_EMA];
-    float play[FBG_MAX_PLAY];
-    float loc[FBG_N_STRAIN];
+    int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
+    float hist[FBG_MAX_TAPS][FBG_N_STRAIN];      /* FIR history (ring buffer) */
+    float last_comp[FBG_N_STRAIN];               /* held into the FIR during a fault */
+    /* Memory states of the load signal u (docs/fixed-point.md, "memory"), one array per kind
+     * of fbgforce.contract.MEMORY_KINDS. */
+    float ema[FBG_MAX_EMA];                      /* exponential-average memory states, standardised units */
+    float play[FBG_MAX_PLAY];                    /* play-operator memory states, standardised units */
+    float loc[FBG_N_STRAIN];                     /* location averages of z - z_rest */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
-    uint16_t pos;
-    uint16_t since_reset;
-    uint16_t same_run[FBG_N_CHANNELS];
+    uint16_t pos;                                /* next write index into hist */
+    uint16_t since_reset;                        /* samples since init/tare, saturating */
+    uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
     uint8_t tared;
     uint8_t tare_active;
-    uint8_t prev_valid;
-    uint8_t mem_primed;
+    uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
+    uint8_t mem_primed;                          /* memory states hold a sample */
     /* The decision over time and the at-rest baseline tracker, as fbg_state's: the block's
      * sum of filtered shifts (pm); the correction subtracted from the compensated shifts is
      * held_pm (made before the last reset) + drift_pm (since, bounded by track_limit_pm). */
     float track_sum[FBG_N_STRAIN];
     float drift_pm[FBG_N_STRAIN];
     float held_pm[FBG_N_STRAIN];
-    uint16_t rest_run;
-    uint8_t decision;
-    uint8_t rise_run;
-    uint8_t track_pos;
-    uint8_t track_limited;
+    uint16_t rest_run;                           /* samples at rest, saturating */
+    uint8_t decision;                            /* the contact decision of the last step */
+    uint8_t rise_run;                            /* samples of the rise condition so far */
+    uint8_t track_pos;                           /* samples into the tracker's block */
+    uint8_t track_limited;                       /* 1: a channel's drift_pm is at its bound */
     uint8_t reserved_[2];
-    float act[2][FBG_MAX_WIDTH];
+    float act[2][FBG_MAX_WIDTH];                 /* activation ping-pong buffers */
 } fbgf_state;
+/* ---- END GENERATED float state ---- */
 
 fbg_status fbgf_model_check(const fbgf_model *model);
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options);

@@ -8,6 +8,12 @@
 #define FBG_PARAMS_END 272u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */

@@ -24,6 +24,9 @@
  *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
  *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
  *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
  * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
  *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
  *   index per tap; the sum is the same set of exact int64 products.
@@ -298,6 +301,94 @@ __attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int1
 #endif /* !FBG_DSP_ASM */
 
 #if FBG_DSP_ASM
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* rows3_asm: one input pair of three rows (r1: x, r0/r10/r11: the rows) into r5:r4, r7:r6, r9:r8;
+ * FBG_ROWS3_PAIR_LOADS leaves out the last SMLALD, for a loop test to go before it. */
+#define FBG_ROWS3_PAIR_LOADS                     \
+        "ldr     r12, [r1], #4\n\t"              \
+        "ldr     r2, [r0], #4\n\t"               \
+        "smlald  r4, r5, r2, r12\n\t"            \
+        "ldr     r2, [r10], #4\n\t"              \
+        "smlald  r6, r7, r2, r12\n\t"            \
+        "ldr     r2, [r11], #4\n\t"
+
+/* The whole pair. */
+#define FBG_ROWS3_PAIR                           \
+        FBG_ROWS3_PAIR_LOADS                     \
+        "smlald  r8, r9, r2, r12\n\t"
+
+/* rows3d_asm: four inputs of three rows, each read with one LDRD. */
+#define FBG_ROWS3_QUAD                           \
+        "ldrd    r2, r3, [r1], #8\n\t"           \
+        "ldrd    r12, lr, [r0], #8\n\t"          \
+        "smlald  r4, r5, r12, r2\n\t"            \
+        "smlald  r4, r5, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r10], #8\n\t"         \
+        "smlald  r6, r7, r12, r2\n\t"            \
+        "smlald  r6, r7, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r11], #8\n\t"         \
+        "smlald  r8, r9, r12, r2\n\t"            \
+        "smlald  r8, r9, lr, r3\n\t"
+
+/* The requantisation and store of one row of rows3_asm and rows3d_asm (accumulator hi:lo). */
+#define FBG_ROWS3_REQUANT(lo, hi)                \
+        "ldr     r11, [r0], #4\n\t"              \
+        "add     " hi ", " hi ", " lo ", lsr #31\n\t" \
+        "smull   r12, " lo ", " lo ", r11\n\t"   \
+        "adds    r12, r12, r1\n\t"               \
+        "adc     " lo ", " lo ", r2\n\t"         \
+        "mla     " lo ", " hi ", r11, " lo "\n\t" \
+        "asr     " lo ", " lo ", lr\n\t"         \
+        "bic     " lo ", " lo ", " lo ", asr #31\n\t" \
+        "usat    r12, #15, " lo "\n\t"           \
+        "strh    r12, [r10], #2\n\t"
+
+/* The end of a group of three rows (job in r3): the next x, the three rows requantised and stored,
+ * the multiplier and output pointers written back. */
+#define FBG_ROWS3_OUT                            \
+        "str     r11, [r3]\n\t"                  \
+        "ldr     r0, [r3, #12]\n\t"              \
+        "ldrd    r1, r2, [r3, #28]\n\t"          \
+        "ldr     lr, [r3, #36]\n\t"              \
+        "ldr     r10, [r3, #16]\n\t"             \
+        FBG_ROWS3_REQUANT("r4", "r5")            \
+        FBG_ROWS3_REQUANT("r6", "r7")            \
+        FBG_ROWS3_REQUANT("r8", "r9")            \
+        "str     r0, [r3, #12]\n\t"              \
+        "str     r10, [r3, #16]\n\t"
+
 /* A hidden layer with shift >= 32, three rows per pass, everything in registers:
  *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
  *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
@@ -314,10 +405,7 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "mov     r3, r0\n\t"
         "0:\n\t"
         "ldr     r12, [r3, #8]\n\t"
@@ -336,33 +424,10 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "cmp     r1, lr\n\t"
         "beq     2f\n\t"
         "1:\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR_LOADS
         "cmp     r1, lr\n\t"
         "smlald  r8, r9, r2, r12\n\t"
         "bne     1b\n\t"
@@ -370,30 +435,12 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "ldr     lr, [r3, #20]\n\t"
         "tst     lr, #4\n\t"
         "beq     3f\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
         "3:\n\t"
         "tst     lr, #2\n\t"
         "beq     4f\n\t"
-        "ldr     r12, [r1], #4\n\t"
-        "ldr     r2, [r0], #4\n\t"
-        "smlald  r4, r5, r2, r12\n\t"
-        "ldr     r2, [r10], #4\n\t"
-        "smlald  r6, r7, r2, r12\n\t"
-        "ldr     r2, [r11], #4\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
+        FBG_ROWS3_PAIR
         "4:\n\t"
         "tst     lr, #1\n\t"
         "beq     5f\n\t"
@@ -405,52 +452,12 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
         "ldrsh   r2, [r11], #2\n\t"
         "smlalbb r8, r9, r2, r12\n\t"
         "5:\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r0, [r3, #12]\n\t"
-        "ldrd    r1, r2, [r3, #28]\n\t"
-        "ldr     lr, [r3, #36]\n\t"
-        "ldr     r10, [r3, #16]\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r5, r5, r4, lsr #31\n\t"
-        "smull   r12, r4, r4, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r4, r4, r2\n\t"
-        "mla     r4, r5, r11, r4\n\t"
-        "asr     r4, r4, lr\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r12, #15, r4\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r7, r7, r6, lsr #31\n\t"
-        "smull   r12, r6, r6, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r6, r6, r2\n\t"
-        "mla     r6, r7, r11, r6\n\t"
-        "asr     r6, r6, lr\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r12, #15, r6\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "smull   r12, r8, r8, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r8, r8, r2\n\t"
-        "mla     r8, r9, r11, r8\n\t"
-        "asr     r8, r8, lr\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r12, #15, r8\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "str     r0, [r3, #12]\n\t"
-        "str     r10, [r3, #16]\n\t"
+        FBG_ROWS3_OUT
         "ldr     r12, [r3, #24]\n\t"
         "subs    r12, r12, #1\n\t"
         "str     r12, [r3, #24]\n\t"
         "bne     0b\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r3")
         "bx      lr\n\t");
 }
 
@@ -466,10 +473,7 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "sub     sp, sp, #16\n\t"
         "str     r0, [sp]\n\t"
         "ldr     r12, [r0, #24]\n\t"
@@ -499,46 +503,10 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "cmp     r1, lr\n\t"
         "beq     2f\n\t"
         "1:\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
         "ldr     r12, [sp, #4]\n\t"
         "cmp     r1, r12\n\t"
         "bne     1b\n\t"
@@ -546,40 +514,13 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "ldr     r12, [sp, #8]\n\t"
         "tst     r12, #8\n\t"
         "beq     3f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
         "3:\n\t"
         "ldr     r12, [sp, #8]\n\t"
         "lsls    r12, r12, #30\n\t"
         "bcc     4f\n\t"
-        "ldrd    r2, r3, [r1], #8\n\t"
-        "ldrd    r12, lr, [r0], #8\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "smlald  r4, r5, lr, r3\n\t"
-        "ldrd    r12, lr, [r10], #8\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "smlald  r6, r7, lr, r3\n\t"
-        "ldrd    r12, lr, [r11], #8\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "smlald  r8, r9, lr, r3\n\t"
+        FBG_ROWS3_QUAD
         "4:\n\t"
         "bpl     5f\n\t"
         "ldr     r2, [r1], #4\n\t"
@@ -591,54 +532,28 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r12, r2\n\t"
         "5:\n\t"
         "ldr     r3, [sp]\n\t"
-        "str     r11, [r3]\n\t"
-        "ldr     r0, [r3, #12]\n\t"
-        "ldrd    r1, r2, [r3, #28]\n\t"
-        "ldr     lr, [r3, #36]\n\t"
-        "ldr     r10, [r3, #16]\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r5, r5, r4, lsr #31\n\t"
-        "smull   r12, r4, r4, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r4, r4, r2\n\t"
-        "mla     r4, r5, r11, r4\n\t"
-        "asr     r4, r4, lr\n\t"
-        "bic     r4, r4, r4, asr #31\n\t"
-        "usat    r12, #15, r4\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r7, r7, r6, lsr #31\n\t"
-        "smull   r12, r6, r6, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r6, r6, r2\n\t"
-        "mla     r6, r7, r11, r6\n\t"
-        "asr     r6, r6, lr\n\t"
-        "bic     r6, r6, r6, asr #31\n\t"
-        "usat    r12, #15, r6\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "ldr     r11, [r0], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "smull   r12, r8, r8, r11\n\t"
-        "adds    r12, r12, r1\n\t"
-        "adc     r8, r8, r2\n\t"
-        "mla     r8, r9, r11, r8\n\t"
-        "asr     r8, r8, lr\n\t"
-        "bic     r8, r8, r8, asr #31\n\t"
-        "usat    r12, #15, r8\n\t"
-        "strh    r12, [r10], #2\n\t"
-        "str     r0, [r3, #12]\n\t"
-        "str     r10, [r3, #16]\n\t"
+        FBG_ROWS3_OUT
         "ldr     r12, [sp, #12]\n\t"
         "cmp     r10, r12\n\t"
         "bne     0b\n\t"
         "add     sp, sp, #16\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r3, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r3")
         "bx      lr\n\t");
 }
+
+/* first_asm: the requantisation and store of one row (accumulator r9:r8, the rounding constant
+ * on the stack, shift - 32 in r7), then the loop test against the output end r12. */
+#define FBG_FIRST_ROW_OUT                        \
+        "ldr     lr, [r2], #4\n\t"               \
+        "add     r9, r9, r8, lsr #31\n\t"        \
+        "ldrd    r10, r11, [sp]\n\t"             \
+        "smlal   r10, r11, r8, lr\n\t"           \
+        "mla     r11, r9, lr, r11\n\t"           \
+        "asr     r11, r11, r7\n\t"               \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r11, #15, r11\n\t"              \
+        "strh    r11, [r3], #2\n\t"              \
+        "cmp     r3, r12\n\t"
 
 /* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
  * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
@@ -651,10 +566,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
-        "mrs     r12, apsr\n\t"
-        "push    {r4-r12, lr}\n\t"
-        "bic     r12, r12, #0x08000000\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_SAVE_CLEAR
         "sub     sp, sp, #16\n\t"
         "ldrd    r10, r11, [r0, #28]\n\t"
         "strd    r10, r11, [sp]\n\t"
@@ -679,16 +591,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "ldrd    r8, r9, [r1], #8\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r4\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     2b\n\t"
         "b       9f\n\t"
         "4:\n\t"
@@ -697,16 +600,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r10, r4\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r5\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
@@ -717,29 +611,47 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "smlald  r8, r9, r10, r5\n\t"
         "ldr     r10, [r0], #4\n\t"
         "smlald  r8, r9, r10, r6\n\t"
-        "ldr     lr, [r2], #4\n\t"
-        "add     r9, r9, r8, lsr #31\n\t"
-        "ldrd    r10, r11, [sp]\n\t"
-        "smlal   r10, r11, r8, lr\n\t"
-        "mla     r11, r9, lr, r11\n\t"
-        "asr     r11, r11, r7\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r11, #15, r11\n\t"
-        "strh    r11, [r3], #2\n\t"
-        "cmp     r3, r12\n\t"
+        FBG_FIRST_ROW_OUT
         "bne     6b\n\t"
         "b       9f\n\t"
         "9:\n\t"
         "ldr     r0, [sp, #8]\n\t"
         "add     sp, sp, #16\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "str     r12, [r0, #40]\n\t"
-        "pop     {r4-r12, lr}\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_RESTORE("r0")
         "bx      lr\n\t");
 }
 
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
 
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
  * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
@@ -779,9 +691,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
          * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
          * [28] sat; written with one STM */
@@ -863,51 +773,28 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "smlad   r11, r10, r5, r11\n\t"
         "smlad   r11, r12, r6, r11\n\t"
         ".endr\n\t"
-        "8:\n\t"
-        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
-        "ldrd    r7, r10, [r4], #8\n\t"
-        "smmulr  r9, r9, r7\n\t"
-        "smmulr  r11, r11, r10\n\t"
-        "bic     r9, r9, r9, asr #31\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r9, #15, r9\n\t"
-        "usat    r11, #15, r11\n\t"
-        "pkhbt   r9, r9, r11, lsl #16\n\t"
-        "str     r9, [r5], #4\n\t"
-        "cmp     r5, r6\n\t"
-        "beq     9f\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "stmia   sp, {r3, r4, r5}\n\t"
-        "mov     r0, r1\n\t"
-        "add     r1, r1, r8\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        "9:\n\t"
-        "ldr     r3, [sp, #28]\n\t"
+        FBG_ROWS2_PASS_END
         "add     sp, sp, #32\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 
-/* The requantisation and store of a pair of rows of the first-layer kernels (first2d32_asm,
- * first2b32_asm): accumulators r9 and r11, their multipliers loaded into ma and mb, the two
- * outputs stored as one word at r3. */
-#define FBG_PAIR_REQUANT(ma, mb)                 \
-        "ldrd    " ma ", " mb ", [r2], #8\n\t"   \
-        "smmulr  r9, r9, " ma "\n\t"             \
-        "smmulr  r11, r11, " mb "\n\t"           \
-        "bic     r9, r9, r9, asr #31\n\t"        \
-        "bic     r11, r11, r11, asr #31\n\t"     \
-        "usat    r9, #15, r9\n\t"                \
-        "usat    r11, #15, r11\n\t"              \
-        "pkhbt   r9, r9, r11, lsl #16\n\t"       \
-        "str     r9, [r3], #4\n\t"
-
 /* The requantisation and store of a pair in first2d32_asm. */
-#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r8", "r10")
+#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3")
+
+/* One pair of a 6-input first layer (inputs in r4-r6). */
+#define FBG_PAIR6                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        FBG_PAIR_OUT
 
 /* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
 #define FBG_PAIR8                                \
@@ -942,7 +829,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "ldrd    r10, r12, [r0], #8\n\t"         \
         "smlad   r11, r10, r7, r11\n\t"          \
         "smlad   r11, r12, r8, r11\n\t"          \
-        FBG_PAIR_REQUANT("r10", "r12")
+        FBG_PAIR_REQUANT("r2", "r10", "r12", "r9", "r11", "r3")
 
 /* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
  * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
@@ -966,15 +853,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
         "ldrd    r11, lr, [r0], #8\n\t"          \
         "smlad   r12, r11, r8, r12\n\t"          \
         "smlad   r12, lr, r9, r12\n\t"           \
-        "ldrd    r11, lr, [r2], #8\n\t"          \
-        "smmulr  r10, r10, r11\n\t"              \
-        "smmulr  r12, r12, lr\n\t"               \
-        "bic     r10, r10, r10, asr #31\n\t"     \
-        "bic     r12, r12, r12, asr #31\n\t"     \
-        "usat    r10, #15, r10\n\t"              \
-        "usat    r12, #15, r12\n\t"              \
-        "pkhbt   r10, r10, r12, lsl #16\n\t"     \
-        "str     r10, [r3], #4\n\t"
+        FBG_PAIR_REQUANT("r2", "r11", "lr", "r10", "r12", "r3")
 
 /* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
  * the memory features and location averages), two rows per pass: the inputs stay in registers
@@ -995,9 +874,7 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         "sub     sp, sp, #8\n\t"
         "str     r3, [sp, #4]\n\t"
         "mov     r3, r2\n\t"
@@ -1053,27 +930,9 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        FBG_PAIR_OUT
+        FBG_PAIR6
         "61:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r0!, {r8, r10, r12}\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        FBG_PAIR_OUT
+        FBG_PAIR6
         "cmp     r3, r7\n\t"
         "bne     6b\n\t"
         "b       9f\n\t"
@@ -1120,16 +979,14 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
         "9:\n\t"
         "ldr     r3, [sp, #4]\n\t"
         "add     sp, sp, #8\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 #undef FBG_PAIR12
 #undef FBG_PAIR10
 #undef FBG_PAIR8
+#undef FBG_PAIR6
 #undef FBG_PAIR_OUT
 
 /* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
@@ -1197,6 +1054,20 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
         "sxtb16  r10, r8, ror #8\n\t" \
         "smlad   r11, r10, r6, r11\n\t"
 
+/* Four inputs of the tail of rows2b32_asm (x words in r3, r4) of rows r0 and r1. */
+#define ROWS2B32_TAIL4                           \
+        "ldrd    r3, r4, [lr], #8\n\t"           \
+        "ldr     r7, [r0], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r9, r10, r3, r9\n\t"            \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r9, r10, r4, r9\n\t"            \
+        "ldr     r7, [r1], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r11, r10, r3, r11\n\t"          \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r11, r10, r4, r11\n\t"
+
 /* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
  * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
  * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
@@ -1219,9 +1090,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
     (void)y;
     (void)sat;
     __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
+        FBG_Q_CLEAR_PUSH
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
          * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
          * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
@@ -1308,31 +1177,11 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "ldr     pc, [sp, #32]\n\t"
         /* 4 inputs, then to the epilogue */
         "74:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
+        ROWS2B32_TAIL4
         "b       8f\n\t"
         /* 4 + 2 inputs */
         "76:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r9, r10, r3, r9\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r9, r10, r4, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "sxtb16  r10, r7\n\t"
-        "smlad   r11, r10, r3, r11\n\t"
-        "sxtb16  r10, r7, ror #8\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
+        ROWS2B32_TAIL4
         /* 2 inputs: (x[n-2], x[n-1]) */
         "72:\n\t"
         "ldr     r3, [lr], #4\n\t"
@@ -1344,38 +1193,16 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
         "ldrsb   r8, [r1], #1\n\t"
         "smlabb  r11, r3, r7, r11\n\t"
         "smlatb  r11, r3, r8, r11\n\t"
-        "8:\n\t"
-        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t"
-        "ldrd    r7, r10, [r4], #8\n\t"
-        "smmulr  r9, r9, r7\n\t"
-        "smmulr  r11, r11, r10\n\t"
-        "bic     r9, r9, r9, asr #31\n\t"
-        "bic     r11, r11, r11, asr #31\n\t"
-        "usat    r9, #15, r9\n\t"
-        "usat    r11, #15, r11\n\t"
-        "pkhbt   r9, r9, r11, lsl #16\n\t"
-        "str     r9, [r5], #4\n\t"
-        "cmp     r5, r6\n\t"
-        "beq     9f\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "stmia   sp, {r3, r4, r5}\n\t"
-        "mov     r0, r1\n\t"
-        "add     r1, r1, r8\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        "9:\n\t"
-        "ldr     r3, [sp, #28]\n\t"
+        FBG_ROWS2_PASS_END
         "add     sp, sp, #296\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_Q_READ
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 
 /* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
 #define FBG_PAIR_OUT8                            \
-        FBG_PAIR_REQUANT("r8", "r10")            \
+        FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3") \
         "cmp     r3, lr\n\t"
 
 /* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
@@ -1476,21 +1303,27 @@ __attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, 
         FBG_PAIR_OUT8
         "bne     8b\n\t"
         "9:\n\t"
-        "mrs     r12, apsr\n\t"
-        "ubfx    r12, r12, #27, #1\n\t"
+        FBG_Q_READ
         "pop     {r3}\n\t"
-        "ldr     r0, [r3]\n\t"
-        "orr     r0, r0, r12\n\t"
-        "str     r0, [r3]\n\t"
+        FBG_SAT_OR_Q
         "pop     {r4-r11, pc}\n\t");
 }
 #undef FBG_W2
 #undef FBG_W4
 #undef FBG_PAIR_OUT8
-#undef FBG_PAIR_REQUANT
 
 typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
+
+/* One tap of fir4_asm: the tap (LDRSH) times the four history words below P, into the four sums. */
+#define FBG_FIR4_TAP(p)                          \
+        "ldrsh   r12, [r0], #2\n\t"              \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r8, r9, r2, r12\n\t"            \
+        "smlal   r10, r11, r3, r12\n\t"          \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r4, r5, r2, r12\n\t"            \
+        "smlal   r6, r7, r3, r12\n\t"
 
 /* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
  * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
@@ -1522,26 +1355,14 @@ __attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsig
         "mov     r10, #0\n\t"
         "mov     r11, #0\n\t"
         "1:\n\t"
-        "ldrsh   r12, [r0], #2\n\t"
-        "ldmdb   r1!, {r2, r3}\n\t"
-        "smlal   r8, r9, r2, r12\n\t"
-        "smlal   r10, r11, r3, r12\n\t"
-        "ldmdb   r1!, {r2, r3}\n\t"
-        "smlal   r4, r5, r2, r12\n\t"
-        "smlal   r6, r7, r3, r12\n\t"
+        FBG_FIR4_TAP("r1")
         "cmp     r1, lr\n\t"
         "bne     1b\n\t"
         "pop     {r1, lr}\n\t"
         "cmp     lr, r1\n\t"
         "beq     3f\n\t"
         "2:\n\t"
-        "ldrsh   r12, [r0], #2\n\t"
-        "ldmdb   lr!, {r2, r3}\n\t"
-        "smlal   r8, r9, r2, r12\n\t"
-        "smlal   r10, r11, r3, r12\n\t"
-        "ldmdb   lr!, {r2, r3}\n\t"
-        "smlal   r4, r5, r2, r12\n\t"
-        "smlal   r6, r7, r3, r12\n\t"
+        FBG_FIR4_TAP("lr")
         "cmp     lr, r1\n\t"
         "bne     2b\n\t"
         "3:\n\t"
@@ -1550,6 +1371,22 @@ __attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsig
         "pop     {r4-r11, pc}\n\t");
 }
 
+#undef FBG_FIR4_TAP
+#undef ROWS2B32_TAIL4
+#undef ROWS2B32_GROUP
+#undef FBG_PAIR_REQUANT
+#undef FBG_ROWS2_PASS_END
+#undef FBG_FIRST_ROW_OUT
+#undef FBG_ROWS3_OUT
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_PAIR_LOADS
+#undef FBG_SAT_OR_Q
+#undef FBG_Q_RESTORE
+#undef FBG_Q_SAVE_CLEAR
+#undef FBG_Q_CLEAR_PUSH
+#undef FBG_Q_READ
 #endif /* FBG_DSP_ASM */
 
 /* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */

@@ -1,6 +1,13 @@
 /*
  * fbg_fixed.c - the fixed-point pipeline: init, tare, step, batch (docs/fixed-point.md).
  *
+ * fbg_step runs one sample through stages in the order of export/intref.py's run: the front
+ * (fault rule, tare, temperature compensation), the filter and standardisation, the memory
+ * features, the nets with the contact decision, the outputs. Each stage is a static function
+ * here with a portable reference beside it; where an instruction set has its own variant of
+ * a stage, the stage picks it: at compile time on the target (FBG_USE_DSP, fbg_dsp.c) and by
+ * the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd_x86.c and fbg_simd_neon.c).
+ *
  * No float or double in this file (check-nofloat builds it with -mgeneral-regs-only).
  * export/intref.py mirrors every operation here bit for bit.
  */
@@ -58,15 +65,10 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
 /* The shared front end's view of a fixed-point state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
 
-/* The kernel a state runs for a requested FBG_OPT_KERNEL_* value; 0 if it cannot run here. */
-static uint32_t resolve_kernel(uint32_t requested)
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
 {
-#if FBG_HOST_SIMD
-    return fbg_simd_resolve(requested);
-#else
-    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
-               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
-#endif
+    return s->options & FBG_OPT_KERNEL_MASK;
 }
 
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
@@ -79,7 +81,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     st = fbg_model_check(model);
     if (st != FBG_OK)
         return st;
-    kernel = resolve_kernel(options & FBG_OPT_KERNEL_MASK);
+    kernel = fbg_simd_resolve(options & FBG_OPT_KERNEL_MASK);
     if (kernel == 0u)
         return FBG_ERR_ARG;
     memset(state, 0, sizeof *state);
@@ -98,7 +100,7 @@ uint32_t fbg_kernel(const fbg_state *state)
 {
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
-    return state->options & FBG_OPT_KERNEL_MASK;
+    return state_kernel(state);
 }
 
 size_t fbg_pack_bytes(const fbg_state *state)
@@ -106,7 +108,7 @@ size_t fbg_pack_bytes(const fbg_state *state)
 #if FBG_SIMD_X86
     if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
-    return fbg_simd_pack_bytes(state->options & FBG_OPT_KERNEL_MASK, state->model);
+    return fbg_simd_pack_bytes(state_kernel(state), state->model);
 #else
     (void)state;
     return 0u;
@@ -124,7 +126,7 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
     if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
         return FBG_ERR_ARG;
 #if FBG_SIMD_X86
-    fbg_simd_pack(state->options & FBG_OPT_KERNEL_MASK, state->model, buf);
+    fbg_simd_pack(state_kernel(state), state->model, buf);
     state->packed = buf;
 #endif
     return FBG_OK;
@@ -143,7 +145,7 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
             return FBG_ERR_ARG;
         memcpy(&h, packed, sizeof h);
         if (h.magic != FBG_PACK_MAGIC || h.model != state->model ||
-            h.kernel != (state->options & FBG_OPT_KERNEL_MASK) ||
+            h.kernel != state_kernel(state) ||
             h.bytes != fbg_simd_pack_bytes(h.kernel, state->model))
             return FBG_ERR_ARG;
 #else
@@ -153,6 +155,8 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     state->packed = packed;
     return FBG_OK;
 }
+
+/* ---- The decision over time and the at-rest tracker (docs/runtime.md, "In use") ---- */
 
 /* Reset, tare and a new baseline restart the decision and the tracker. The baseline the
  * tracker reached stays through a reset (it is the best estimate of the unloaded gratings)
@@ -170,243 +174,6 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
     memset(s->drift_fm, 0, sizeof s->drift_fm);
     memset(s->track_frac, 0, sizeof s->track_frac);
     return FBG_OK;
-}
-
-fbg_status fbg_reset(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
-}
-
-fbg_status fbg_tare_begin(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
-}
-
-fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
-{
-    if (state == NULL || wl_fm == NULL)
-        return FBG_ERR_NULL;
-    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
-}
-
-fbg_status fbg_tare_end(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
-}
-
-fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
-}
-
-fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
-        return FBG_ERR_STATE;
-    memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
-    return FBG_OK;
-}
-
-/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
- * kernels write whole groups of 8 rows into them. */
-typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
-typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
-
-#if !FBG_USE_DSP /* the DSP build has its own kernels for the rows (fbg_dsp.c) */
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
- * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
-static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int32_t acc = (int32_t)ly->bias[r];
-    unsigned j;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
- * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
-static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int64_t acc = ly->bias[r];
-    unsigned j;
-    if (ly->acc32)
-        return layer_acc32(ly, r, x);
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-#endif
-
-/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
-static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
-{
-    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
-    return fbg_sat16(v < 0 ? 0 : v, sat);
-}
-
-/* The kernel of a state for an acc32 layer, when it is a host SIMD one (else 0). */
-static inline uint32_t simd_kernel(const fbg_state *s, const fbg_layer *ly)
-{
-#if FBG_HOST_SIMD
-    uint32_t kernel = s->options & FBG_OPT_KERNEL_MASK;
-    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
-#else
-    (void)s;
-    (void)ly;
-    return 0u;
-#endif
-}
-
-/* Run the hidden layers of a net on x; returns the input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
-{
-#if FBG_USE_DSP /* SMLAD/SMLALD rows, USAT requantisation (fbg_dsp.c); same bits */
-    return fbg_dsp_run_hidden(net, x, s->act, sat);
-#else
-    unsigned l, buf = 0u;
-    for (l = 0; l + 1u < net->n_layers; ++l) {
-        const fbg_layer *ly = &net->layers[l];
-        int16_t *y = s->act[buf];
-        unsigned r;
-#if FBG_HOST_SIMD
-        uint32_t kernel = simd_kernel(s, ly);
-        if (kernel != 0u)
-            fbg_simd_hidden(kernel, ly, x, y, sat);
-        else
-#endif
-        {
-            for (r = 0; r < ly->n_out; ++r)
-                y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
-        }
-        x = y;
-        buf ^= 1u;
-    }
-    return x;
-#endif
-}
-
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    unsigned r;
-#if FBG_HOST_SIMD
-    uint32_t kernel = simd_kernel(s, ly);
-    if (kernel != 0u) {
-        int32_t acc32[FBG_MAX_WIDTH];
-        fbg_simd_acc32(kernel, ly, x, acc32);
-        for (r = 0; r < ly->n_out; ++r)
-            acc[r] = acc32[r];
-        return;
-    }
-#else
-    (void)s;
-#endif
-#if FBG_USE_DSP /* every row in one call */
-    (void)r;
-    fbg_dsp_output_accs(ly, x, acc);
-#else
-    for (r = 0; r < ly->n_out; ++r)
-        acc[r] = layer_acc(ly, r, x);
-#endif
-}
-
-/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
- * int32. */
-static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
-{
-#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
-    if (ly->acc32 && ly->shift == 32u)
-        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
-#endif
-    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
-}
-
-/* Append the memory features to z = in[0..3] and put the location averages (when loc_shift
- * is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load signal's states
- * follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
- * its force path, which all four beams share): the exponential averages' features, then the
- * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
- * after a release leaves them: the averages at u, the play operators at u + width (the load
- * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
-static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            uint32_t *sat)
-{
-    unsigned c, k, j = FBG_N_STRAIN;
-    int64_t acc = 0;
-    int32_t u;
-    if (m->loc_shift) {
-        /* A local flag: *sat may alias s->loc for the compiler. */
-        uint32_t clamped = s->loc_z0_clamped;
-        const int primed = s->mem_primed;
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
-             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
-             * state stays between its old value and the target r << EMA_FRAC, so both lie
-             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
-             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
-                             ((int32_t)1 << FBG_EMA_FRAC);
-            int32_t e = primed ? s->loc[c] : target;
-            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
-            s->loc[c] = e;
-            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
-            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
-        }
-        *sat |= clamped;
-    }
-    if (m->n_ema == 0u && m->n_play == 0u) {
-        s->mem_primed = 1u;
-        return;
-    }
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. So
-         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
-         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
-        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
-        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
-        s->ema[k] = e;
-        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
-        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = s->play[k];
-        p = p < lo ? lo : (p > hi ? hi : p);
-        s->play[k] = p;
-        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
-    }
 }
 
 /* The contact decision over time (docs/runtime.md, "In use"): a Schmitt trigger on the
@@ -482,162 +249,484 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
     memset(s->track_sum, 0, sizeof s->track_sum);
 }
 
+/* Net inputs beyond what the calibration covered (z and the memory features): flagged, the
+ * nets still run. */
+static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
+            return FBG_STATUS_OUT_OF_RANGE;
+    return 0u;
+}
+
+/* ---- Reset, tare and baseline: the front end's, then in_use_after ---- */
+
+fbg_status fbg_reset(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
+}
+
+fbg_status fbg_tare_begin(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
+}
+
+fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
+{
+    if (state == NULL || wl_fm == NULL)
+        return FBG_ERR_NULL;
+    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
+}
+
+fbg_status fbg_tare_end(fbg_state *state)
+{
+    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
+}
+
+fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
+}
+
+fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (state == NULL || baseline_fm == NULL)
+        return FBG_ERR_NULL;
+    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
+        return FBG_ERR_STATE;
+    memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
+    return FBG_OK;
+}
+
+/* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
+ * The sample's compensated strain shifts go into the FIR ring at pos and into last_comp; a
+ * faulty sample (SENSOR_FAULT added to *status) feeds the ring the held last_comp again. */
+
+/* The portable reference. */
+static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                       uint32_t *status, uint32_t *sat)
+{
+    int32_t shift[FBG_N_CHANNELS];
+    unsigned c;
+    if (!fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+            s->last_comp[c] = fbg_sat32((int64_t)shift[c] - t, sat);
+        }
+    }
+    memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+}
+
+static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                        uint32_t *status, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+        fbg_avx2_front(s, wl_fm, status, sat);
+        return;
+    }
+#endif
+    compensate(s, m, wl_fm, status, sat);
+}
+
+/* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]
+ * weighting n - k), z = in[0..3] in Q(z_frac) int16, and the input-side overload (the linear
+ * load proxy beyond anything seen in calibration); then the ring moves on. ---- */
+
+#if !FBG_USE_DSP
+/* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
+static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t f = 0;
+        int32_t filt, d;
+        unsigned k, idx = s->pos;
+        for (k = 0; k < m->n_taps; ++k) {
+            f += (int64_t)m->taps[k] * s->hist[idx][c];
+            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
+        }
+        filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
+        d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
+        in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
+        load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
+    }
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+#endif
+
+/* Returns FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int overload;
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
+                  * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
+    int64_t fir[FBG_N_STRAIN];
+    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+    overload = fbg_dsp_standardise(m, fir, in, sat);
+#elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
+    overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
+                                                     : filter_standardise(s, m, in, sat);
+#else
+    overload = filter_standardise(s, m, in, sat);
+#endif
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    return overload ? FBG_STATUS_OVERLOAD : 0u;
+}
+
+/* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
+
+/* The portable reference. Append the memory features to z = in[0..3] and put the location
+ * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
+ * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+ * its force path, which all four beams share): the exponential averages' features, then the
+ * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them: the averages at u, the play operators at u + width (the load
+ * last went down), so the features read what they read at every rest of the calibration
+ * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
+                            uint32_t *sat)
+{
+    unsigned c, k, j = FBG_N_STRAIN;
+    int64_t acc = 0;
+    int32_t u;
+    if (m->loc_shift) {
+        /* A local flag: *sat may alias s->loc for the compiler. */
+        uint32_t clamped = s->loc_z0_clamped;
+        const int primed = s->mem_primed;
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
+             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
+                             ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
+        }
+        *sat |= clamped;
+    }
+    if (m->n_ema == 0u && m->n_play == 0u) {
+        s->mem_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
+    if (!s->mem_primed) {
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+        s->mem_primed = 1u;
+    }
+    for (k = 0; k < m->n_ema; ++k, ++j) {
+        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
+         * at most the whole distance, so it stays between its old value and the target. So
+         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
+         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
+        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
+        s->ema[k] = e;
+        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+    }
+    for (k = 0; k < m->n_play; ++k, ++j) {
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+    }
+}
+
+static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the location averages and the load signal's states in int32 lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+        fbg_avx2_memory(s, in, loc, sat);
+        return;
+    }
+#endif
+    memory_features(s, m, in, loc, sat);
+}
+
+/* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
+ * (fbg_dsp.c) or the state's host kernel (fbg_simd.h) ---- */
+
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
+ * kernels write whole groups of 8 rows into them. */
+typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
+
+#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    fbg_dsp_output_accs(ly, x, acc);
+}
+#else
+/* The portable reference of a layer. */
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
+ * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
+static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int32_t acc = (int32_t)ly->bias[r];
+    unsigned j;
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
+ * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
+static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int64_t acc = ly->bias[r];
+    unsigned j;
+    if (ly->acc32)
+        return layer_acc32(ly, r, x);
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    } else {
+        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
+        for (j = 0; j < ly->n_in; ++j)
+            acc += (int32_t)w[j] * (int32_t)x[j];
+    }
+    return acc;
+}
+/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
+static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
+    return fbg_sat16(v < 0 ? 0 : v, sat);
+}
+
+static void hidden_rows(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
+}
+
+static void output_rows(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = layer_acc(ly, r, x);
+}
+
+#if FBG_HOST_SIMD
+/* The state's host kernel (SSE2, AVX2, NEON: fbg_simd.h) for an acc32 layer; 0 where the
+ * portable reference runs the layer (an int64-accumulator layer, the portable kernel). */
+static inline uint32_t host_kernel(const fbg_state *s, const fbg_layer *ly)
+{
+    uint32_t kernel = state_kernel(s);
+    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
+}
+
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u)
+        fbg_simd_hidden(kernel, ly, x, y, sat);
+    else
+        hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u) {
+        int32_t acc32[FBG_MAX_WIDTH];
+        unsigned r;
+        fbg_simd_acc32(kernel, ly, x, acc32);
+        for (r = 0; r < ly->n_out; ++r)
+            acc[r] = acc32[r];
+    } else {
+        output_rows(ly, x, acc);
+    }
+}
+#else
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    (void)s;
+    hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    output_rows(ly, x, acc);
+}
+#endif
+
+/* Run the hidden layers of a net on x, through the activation buffers in turn; returns the
+ * input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    unsigned l;
+    for (l = 0; l + 1u < net->n_layers; ++l) {
+        int16_t *y = s->act[l & 1u];
+        net_hidden_layer(s, &net->layers[l], x, y, sat);
+        x = y;
+    }
+    return x;
+}
+#endif
+
+/* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
+ * int32. */
+static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+#if FBG_USE_DSP /* an int32 row at shift 32: one SMMULR-like product, never clamped */
+    if (ly->acc32 && ly->shift == 32u)
+        return fbg_dsp_rshift32_product((int32_t)acc, ly->mult[r]);
+#endif
+    return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
+}
+
+/* Every layer of net n on the net inputs in: acc = the accumulators of its output layer, which
+ * it returns. Layer by layer, or from packed weights in one call where the state has them
+ * (fbg_pack; x86-64 builds only). */
+static inline const fbg_layer *net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                                        int64_t *acc, uint32_t *sat)
+{
+    const fbg_net *net = &m->nets[n];
+    const fbg_layer *last = &net->layers[net->n_layers - 1u];
+#if FBG_SIMD_X86
+    if (s->packed != NULL &&
+        fbg_simd_net_packed(state_kernel(s), s->packed, n, net->n_layers, in, s->act, acc, sat))
+        return last;
+#endif
+    output_accs(s, last, run_hidden(s, net, in, sat), acc);
+    return last;
+}
+
+/* ---- 5. Outputs ---- */
+
 static void safe_output(fbg_output *out, uint32_t status)
 {
     memset(out, 0, sizeof *out);
     out->status = status;
 }
 
-/* In fbg_step: every layer of net n on the net inputs in; acc = the accumulators of its output
- * layer, last = that layer. Layer by layer (NET_LAYERS), or from packed weights in one call
- * where the state has them (fbg_pack; x86-64 builds only). */
-#define NET_LAST(n) (&m->nets[n].layers[m->nets[n].n_layers - 1u])
-#define NET_LAYERS(n)                                                                        \
-    do {                                                                                     \
-        x = run_hidden(s, &m->nets[n], in, &sat);                                            \
-        last = NET_LAST(n);                                                                  \
-        output_accs(s, last, x, acc);                                                        \
-    } while (0)
-#if FBG_SIMD_X86
-#define NET_ACCS(n)                                                                          \
-    do {                                                                                     \
-        if (s->packed != NULL && fbg_simd_net_packed(s->options & FBG_OPT_KERNEL_MASK, s->packed, \
-                                                     n, m->nets[n].n_layers, in, s->act, acc, &sat)) \
-            last = NET_LAST(n);                                                              \
-        else                                                                                 \
-            NET_LAYERS(n);                                                                   \
-    } while (0)
-#else
-#define NET_ACCS(n) NET_LAYERS(n)
-#endif
+/* The contact net (one output row, the logit margin in Q8; raw contact iff its acc > 0), the
+ * decision over time and the confidence, into a zeroed out. */
+static void contact_outputs(fbg_state *s, const fbg_model *m, const int16_t *in, fbg_output *out,
+                            uint32_t *sat)
+{
+    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
+    const fbg_layer *last = net_accs(s, m, FBG_NET_CONTACT, in, acc, sat);
+    out->contact_margin_q8 = output_row(last, 0u, acc[0], sat);
+    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
+    out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+}
+
+/* A contact step's force and location. The force net's output (mN before the offset) feeds
+ * the location net quantised: its inputs are [z1..z4, contact in Q(z_frac), that force in
+ * Q(z_frac), location averages], written over the memory features after z, which are no
+ * longer needed. Returns FBG_STATUS_OVERLOAD when the force exceeds overload_mN, else 0. */
+static uint32_t force_location_outputs(fbg_state *s, const fbg_model *m, int16_t *in,
+                                       const int16_t *loc, fbg_output *out, uint32_t *sat)
+{
+    int64_t acc[2];
+    int32_t force_out;
+    const fbg_layer *last = net_accs(s, m, FBG_NET_FORCE, in, acc, sat);
+    force_out = output_row(last, 0u, acc[0], sat);
+    out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, sat);
+    in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
+    in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, sat);
+    if (m->loc_shift)
+        memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
+    last = net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
+    out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], sat), m->xy_offset_um[0], sat);
+    out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], sat), m->xy_offset_um[1], sat);
+    return out->force_mN > m->overload_mN ? FBG_STATUS_OVERLOAD : 0u;
+}
+
+/* The checks that open a step: FBG_OK with *status = the step's starting flags, or the error
+ * with the safe output in out. */
+static fbg_status step_begin(fbg_state *s, const int32_t *wl_fm, fbg_output *out, uint32_t *status)
+{
+    fbg_status st;
+    if (s == NULL || wl_fm == NULL || out == NULL)
+        return FBG_ERR_NULL;
+    st = fbg_front_step_begin(FRONT(s), status);
+    if (st != FBG_OK) {
+        safe_output(out, *status);
+        return st;
+    }
+    /* The state's history, memory states and packed weights are sized and made for the model
+     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
+    if (s->model->blob_crc != s->model_crc) {
+        safe_output(out, 0u);
+        return FBG_ERR_MODEL_CHANGED;
+    }
+    if (s->track_limited)
+        *status |= FBG_STATUS_BASELINE_LIMIT;
+    return FBG_OK;
+}
 
 fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_output *out)
 {
     const fbg_model *m;
     uint32_t status, sat = 0u;
-    int32_t comp[FBG_N_STRAIN], shift[FBG_N_CHANNELS];
     int16_t in[FBG_MAX_INPUTS], loc[FBG_N_STRAIN];
-    const int16_t *x;
-    const fbg_layer *last;
-    unsigned c;
-    int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    int front = 0; /* FBG_SIMD_FRONT_DONE: steps 1 to 4 done in vectors (fbg_simd_front) */
-#if !FBG_USE_DSP
-    int64_t load = 0;
-#endif
-    fbg_status st;
-
-    if (s == NULL || wl_fm == NULL || out == NULL)
-        return FBG_ERR_NULL;
-    st = fbg_front_step_begin(FRONT(s), &status);
-    if (st != FBG_OK) {
-        safe_output(out, status);
+    const fbg_status st = step_begin(s, wl_fm, out, &status);
+    if (st != FBG_OK)
         return st;
-    }
     m = s->model;
-    /* The state's history, memory states and packed weights are sized and made for the model
-     * fbg_init saw: a model reloaded in place (another blob) must not be run on them. */
-    if (m->blob_crc != s->model_crc) {
-        safe_output(out, 0u);
-        return FBG_ERR_MODEL_CHANGED;
-    }
-    if (s->track_limited)
-        status |= FBG_STATUS_BASELINE_LIMIT;
 
-    /* 1. Fault rule, tare and temperature compensation (fm). */
-#if FBG_SIMD_X86 /* AVX2: steps 1 to 4 in vectors (fbg_simd_x86.c); same values and states */
-    front = fbg_simd_front(s->options & FBG_OPT_KERNEL_MASK, s, wl_fm, in, loc, &load, &sat);
-    if (front == FBG_SIMD_FRONT_FAULT)
-        status |= FBG_STATUS_SENSOR_FAULT;
-#endif
-    if (front != 0 ? front == FBG_SIMD_FRONT_FAULT
-                   : fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
-        memcpy(comp, s->last_comp, sizeof comp);
-    } else if (front == 0) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            comp[c] = fbg_sat32((int64_t)shift[c] - t, &sat);
-        }
-        memcpy(s->last_comp, comp, sizeof comp);
-    }
-
-    /* 2. Causal FIR over the ring buffer: newest sample at pos, taps[k] weights n - k. */
-    if (front != FBG_SIMD_FRONT_DONE)
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->hist[s->pos][c] = comp[c];
+    /* 1. Front. A faulty sample ends here with the safe output: the ring moves on, the
+     *    decision holds, the tracker restarts. */
+    front_stage(s, m, wl_fm, &status, &sat);
     if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
-        safe_output(out, status | (sat ? FBG_STATUS_SATURATED : 0u));
-        rest_track(s, m, NULL);   /* a fault: the decision holds, the tracker restarts */
+        safe_output(out, status);
+        rest_track(s, m, NULL);
         return FBG_OK;
     }
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap; same int64 sums; then
-                  * step 3 on 32-bit words (fbg_dsp.c says why each is exact) */
-    {
-        int64_t fir[FBG_N_STRAIN];
-        fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-        if (fbg_dsp_standardise(m, fir, in, &sat))
-            status |= FBG_STATUS_OVERLOAD;
-    }
-    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-#else
-    for (c = 0; c < FBG_N_STRAIN && front != FBG_SIMD_FRONT_DONE; ++c) {
-        int64_t f = 0;
-        unsigned k, idx = s->pos;
-        for (k = 0; k < m->n_taps; ++k) {
-            f += (int64_t)m->taps[k] * s->hist[idx][c];
-            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-        }
-        /* 3. Standardise into Q(z_frac) int16. */
-        {
-            int32_t filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), &sat);
-            int32_t d = fbg_sat32((int64_t)filt - m->mean_fm[c], &sat);
-            in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), &sat);
-            load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
-        }
-    }
-    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    /* Input-side overload: the linear load proxy beyond anything seen in calibration. */
-    if (fbg_rshift_round(load, m->load_shift) > m->load_max_mN)
-        status |= FBG_STATUS_OVERLOAD;
-#endif
+    /* 2. Filter and standardise into z = in[0..3]; 3. the memory features after z. */
+    status |= filter_stage(s, m, in, &sat);
+    memory_stage(s, m, in, loc, &sat);
+    status |= out_of_range(m, in);
 
-    /* 4. Memory features after z. */
-    if (front != FBG_SIMD_FRONT_DONE)
-        memory_features(s, m, in, loc, &sat);
-
-    /* 4b. Inputs beyond what the calibration covered: flagged, the nets still run. */
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
-        if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
-            status |= FBG_STATUS_OUT_OF_RANGE;
-
-    /* 5. Contact net: one output row, the logit margin (Q8); contact iff its acc > 0. */
+    /* 4. Contact net and the decision, the tracker on samples at rest; on contact the force
+     *    and location nets. */
     memset(out, 0, sizeof *out);
-    NET_ACCS(FBG_NET_CONTACT);
-    out->contact_margin_q8 = output_row(last, 0u, acc[0], &sat);
-    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
-    out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
+    contact_outputs(s, m, in, out, &sat);
     rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-
-    if (out->contact) {
-        /* 6. Force net -> force_out (mN before offset); its quantised value feeds location. */
-        int32_t force_out;
-        NET_ACCS(FBG_NET_FORCE);
-        force_out = output_row(last, 0u, acc[0], &sat);
-        out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, &sat);
-        if (out->force_mN > m->overload_mN)
-            status |= FBG_STATUS_OVERLOAD;
-
-        /* 7. Location net on [z1..z4, contact in Q(z_frac), force net output in Q(z_frac),
-         * location averages]: the memory features after z are no longer needed and make
-         * room. */
-        in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
-        in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, &sat);
-        if (m->loc_shift)
-            memcpy(in + FBG_N_STRAIN + 2, loc, sizeof loc);
-        NET_ACCS(FBG_NET_LOCATION);
-        out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], &sat), m->xy_offset_um[0], &sat);
-        out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], &sat), m->xy_offset_um[1], &sat);
-    }
+    if (out->contact)
+        status |= force_location_outputs(s, m, in, loc, out, &sat);
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
 }

@@ -19,6 +19,7 @@
 
 #include <string.h>
 
+#include "fbg_contract.h" /* FBG_MEMORY_STATES */
 #include "fbg_internal.h"
 
 /* The front end's view of one state (of either build). */
@@ -33,12 +34,9 @@ typedef struct {
     size_t hist_size;
     void *last_comp;             /* the compensated sample held into the FIR during a fault */
     size_t last_comp_size;
-    void *ema;                   /* the memory states, whatever their element type */
-    size_t ema_size;
-    void *play;
-    size_t play_size;
-    void *loc;                   /* the location averages */
-    size_t loc_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -50,6 +48,9 @@ typedef struct {
     uint8_t *prev_valid;
 } fbg_front;
 
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
 /* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
  * alike, which is why one initialiser serves both). */
 #define FBG_FRONT_OF(s, magic_val)                                                            \
@@ -58,8 +59,8 @@ typedef struct {
                  .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
                  .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
-                 .ema = (s)->ema, .ema_size = sizeof (s)->ema, .play = (s)->play,             \
-                 .play_size = sizeof (s)->play, .loc = (s)->loc, .loc_size = sizeof (s)->loc, \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed,                                              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -86,11 +87,11 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
 /* Forget the FIR history, the memory states and the fault tracker; baseline and tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
+    unsigned k;
     memset(f.hist, 0, f.hist_size);
     memset(f.last_comp, 0, f.last_comp_size);
-    memset(f.ema, 0, f.ema_size);
-    memset(f.play, 0, f.play_size);
-    memset(f.loc, 0, f.loc_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;

@@ -17,11 +17,6 @@
 
 #include "fbg_internal.h"
 
-/* What fbg_simd_front did with a sample (fbg_step's `front`, 0 where it did nothing): defined
- * in every build, so that fbg_step reads the same on the builds without it. */
-#define FBG_SIMD_FRONT_DONE 1
-#define FBG_SIMD_FRONT_FAULT 2
-
 #ifndef FBG_HOST_SIMD
 #if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
     !(defined(FBG_USE_DSP) && FBG_USE_DSP)
@@ -54,7 +49,7 @@ void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int3
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
- * AVX2 filter ---- */
+ * AVX2 front stages ---- */
 #if defined(__x86_64__)
 #define FBG_SIMD_X86 1
 #else
@@ -95,23 +90,35 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* Steps 1 to 4 of fbg_step when the kernel has them in vectors (AVX2). The fault rule on
- * wl_fm (its states in s updated as fbg_fault_check updates them): FBG_SIMD_FRONT_FAULT for a
- * faulty sample, nothing else done. For a clean one, FBG_SIMD_FRONT_DONE: the tare
- * difference and the temperature compensation into the ring at s->pos and s->last_comp; the
- * causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c] exactly in int64 (the
- * same integers in another order); in[c] = its standardised value and *load = the load
- * proxy's sum over c of filt_c * load_coeff[c]; and step 4 (memory_features of
- * fbg_fixed.c): the location averages (s->loc, loc[c]) when the model has them, the load
- * signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]). *sat = 1 where a
- * clamp happened: the values, states and flag of fbg_step's loops. Returns 0, doing nothing,
- * for another kernel (the caller runs its loops). */
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat);
+/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
+ * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
+ * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference and the temperature compensation into the ring
+ * at s->pos and s->last_comp.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
 
 #endif /* FBG_SIMD_X86 */
 #else
 #define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */

@@ -32,11 +32,11 @@
  *
  * From packed weights (fbg_pack; below, "Packed weights") SSE2 and AVX2 need no horizontal
  * sums: each pair of inputs is broadcast and multiplied against four or eight rows' weights
- * interleaved for it, and a whole net runs in one call. AVX2 also runs the front end of a
- * step in one call (fbg_simd_front): the fault rule of the five channels in one vector of
- * int32, the temperature compensation, FIR and standardisation of the four strain channels
- * as vectors of int64, the location averages and the load signal's memory states in vectors
- * of int32.
+ * interleaved for it, and a whole net runs in one call. AVX2 also has its own variants of
+ * fbg_step's front stages (fbg_avx2_front, fbg_avx2_filter, fbg_avx2_memory): the fault rule
+ * of the five channels in one vector of int32, the temperature compensation, FIR and
+ * standardisation of the four strain channels as vectors of int64, the location averages and
+ * the load signal's memory states in vectors of int32.
  *
  * The AVX2 functions carry __attribute__((target("avx2"))), so the file builds without
  * -mavx2 and runs on any x86-64; fbg_simd_resolve only hands them out when the CPU (and the
@@ -1300,10 +1300,10 @@ AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
  * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
  * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
 AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
-                             int16_t *in, int64_t *load, __m128i *z)
+                             int16_t *in, int64_t *load)
 {
     __m256i flag = _mm256_setzero_si256(), t;
-    __m128i l;
+    __m128i l, z;
     const __m256i fir = fir4_avx2(m->taps, m->n_taps, hist, pos);
     const __m256i filt = clamp64(sra64(_mm256_add_epi64(fir, _mm256_set1_epi64x((int64_t)1 << (m->tap_q - 1u))),
                                        _mm_cvtsi32_si128(m->tap_q)), FBG_SAT32, &flag);
@@ -1313,8 +1313,8 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
     /* The four values' low dwords (each an int16 value) into the low half, narrowed. */
     t = _mm256_permutevar8x32_epi32(t, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6));
-    *z = _mm256_castsi256_si128(t);
-    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(*z, *z));
+    z = _mm256_castsi256_si128(t);
+    _mm_storel_epi64((__m128i *)(void *)in, _mm_packs_epi32(z, z));
     t = _mm256_mul_epi32(filt, _mm256_cvtepi32_epi64(load128(m->load_coeff)));
     l = _mm_add_epi64(_mm256_castsi256_si128(t), _mm256_extracti128_si256(t, 1));
     l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
@@ -1488,21 +1488,38 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
 typedef char memory4_stores_inside_in[FBG_N_STRAIN + FBG_MAX_EMA + 4 <= FBG_MAX_INPUTS ? 1 : -1];
 typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
 
-/* One AVX2 call for steps 1 to 4: the fault rule; for a clean sample the tare difference
- * (within +-1e9 for in-window values: fbg_front_sample), the compensation, the filter and
- * standardisation, the memory features (location averages, then the load signal's), and
- * the flags of the clamps in each and memory_features' loc_z0_clamped. */
-AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t *loc, int64_t *load,
-                           uint32_t *sat)
+/* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
+ * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
+ * compensation into the ring and last_comp; for a faulty one last_comp into the ring. */
+AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
+{
+    __m256i w;
+    if (fault5_avx2(s, wl_fm, &w)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], load128(s->last_comp));
+        return;
+    }
+    if (comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm))))
+        *sat = 1u;
+}
+
+AVX2 int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat)
 {
     const fbg_model *m = s->model;
-    __m256i w;
-    __m128i z;
-    int clamped;
-    if (fault5_avx2(s, wl, &w))
-        return FBG_SIMD_FRONT_FAULT;
-    clamped = comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm)));
-    clamped |= filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, load, &z);
+    int64_t load;
+    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, &load))
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+
+/* The memory features from z = in[0..3] (int16 values, widened to int32 lanes): the location
+ * averages, then the load signal's, and the flags of the clamps in each and of
+ * memory_features' loc_z0_clamped. */
+AVX2 void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat)
+{
+    const fbg_model *m = s->model;
+    const __m128i z = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)in));
+    int clamped = 0;
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
     if (m->n_ema != 0u || m->n_play != 0u)
@@ -1510,15 +1527,6 @@ AVX2 static int front_avx2(fbg_state *s, const int32_t *wl, int16_t *in, int16_t
     s->mem_primed = 1u;
     if (clamped)
         *sat = 1u;
-    return FBG_SIMD_FRONT_DONE;
-}
-
-int fbg_simd_front(uint32_t kernel, fbg_state *s, const int32_t *wl_fm, int16_t *in, int16_t *loc,
-                   int64_t *load, uint32_t *sat)
-{
-    if (kernel != FBG_OPT_KERNEL_AVX2)
-        return 0;
-    return front_avx2(s, wl_fm, in, loc, load, sat);
 }
 
 uint32_t fbg_simd_resolve(uint32_t requested)
