@@ -228,10 +228,11 @@ def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = N
 
 
 #: The decision's rise threshold: this quantile of the contact net's margin at rest in the
-#: calibration data (docs/runtime.md, "In use").
+#: calibration data, its synthetic long rests included (docs/runtime.md, "In use").
 REST_MARGIN_QUANTILE = 0.9999
-#: How long the rise condition must hold, s.
-RISE_S = 0.003
+#: How long the rise condition must hold, s: one sample at 1 kHz. Past a threshold set on
+#: settled rests a longer count buys little quiet for its onset delay (docs/tradeoff.md).
+RISE_S = 0.001
 #: The at-rest tracker: time constant, the rest after a release before it learns, the
 #: fastest drift it follows and its bound from the tare.
 TRACK_TIME_CONSTANT_S = 1.0
