@@ -24,7 +24,6 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
-from fbgforce.interrogator.protocol import Frame
 
 #: The message package shipped with fbgforce (a ROS 2 package: package.xml, CMakeLists.txt).
 MSG_PACKAGE = "fbgforce_msgs"
@@ -170,10 +169,10 @@ def link_flags(previous_seq: int | None, seqs: Sequence[int]) -> tuple[np.ndarra
     return flags, prev
 
 
-def stamps_ns(frames: Sequence[Frame], now_ns: int | None = None) -> np.ndarray:
-    """``header.stamp`` of each sample, ns: its device time, or the host's time now when the
-    protocol carries none (FiSpec)."""
-    t_us = np.array([f.t_us for f in frames], dtype=np.int64)
+def stamps_ns(t_us: np.ndarray, now_ns: int | None = None) -> np.ndarray:
+    """``header.stamp`` of each sample, ns, from its device time ``t_us`` (µs), or the host's
+    time now where the protocol carries none (FiSpec: -1)."""
+    t_us = np.asarray(t_us, dtype=np.int64)
     host = time.time_ns() if now_ns is None else now_ns
     return np.where(t_us >= 0, t_us * 1000, host)
 

@@ -14,23 +14,22 @@ never waits for a subscriber, so a slow or vanished one cannot stall the estimat
 
 The two published types serialise through ``rosbags``' generated CDR code (part of the same
 extra) when it is installed: the same bytes as cyclonedds's generic serialiser (a test checks)
-in a fifteenth of its time (about 2.7 µs instead of 38 µs per message here), time the stream
-loop would otherwise spend between estimates.
+in a fifteenth of its time (about 2.7 µs instead of 38 µs per message here). ``fbgforce
+stream`` runs this publisher in its publishing process
+(:class:`~fbgforce.interrogator.publish.PublisherProcess`), away from the estimator.
 """
 # No `from __future__ import annotations`: cyclonedds reads the field types of the IdlStruct
 # dataclasses at run time and cannot resolve them from strings.
 import time
 from dataclasses import dataclass
 from functools import lru_cache
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
 from fbgforce.interrogator import ros2 as R
-from fbgforce.interrogator.protocol import Frame
-from fbgforce.interrogator.publish import estimate_integers
 
 try:
     from cyclonedds.core import DDSException, Policy, Qos
@@ -160,21 +159,23 @@ class Ros2Publisher:
         self._last_sample_seq: int | None = None
         rosbags_typestore()  # generates the serialisers now rather than at the first estimate
 
-    def publish(self, frames: Sequence[Frame], est: dict[str, np.ndarray]) -> None:
-        si = R.estimates_si(estimate_integers(est))
-        link, self._last_sample_seq = R.link_flags(self._last_sample_seq, [f.seq for f in frames])
+    def publish(self, records: np.ndarray) -> None:
+        """Publish a batch of :data:`~fbgforce.interrogator.publish.ESTIMATE_DTYPE` records."""
+        si = R.estimates_si(records)
+        sample_seq = (records["sample_seq"] & 0xFFFFFFFF).tolist()
+        link, self._last_sample_seq = R.link_flags(self._last_sample_seq, sample_seq)
         for c in contract.LINK_STATUS:
             self.flagged[c.name.lower()] += int(np.count_nonzero(link & c.value))
         # Python scalars once per batch: indexing numpy arrays per field costs more.
-        rows = zip(frames, R.stamps_ns(frames, time.time_ns()).tolist(),
+        rows = zip(sample_seq, R.stamps_ns(records["t_us"], time.time_ns()).tolist(),
                    si["contact"].tolist(), si["confidence"].tolist(), si["force"].tolist(),
                    si["x"].tolist(), si["y"].tolist(), si["torque_x"].tolist(),
                    si["torque_y"].tolist(), (si["status"] | link).tolist())
-        for f, stamp, touch, confidence, force, x, y, torque_x, torque_y, status in rows:
+        for sample, stamp, touch, confidence, force, x, y, torque_x, torque_y, status in rows:
             header = Header(Time(*R.split_stamp(stamp)), self.frame_id)
             wrench = WrenchStamped(header, Wrench(Vector3(0.0, 0.0, force),
                                                   Vector3(torque_x, torque_y, 0.0)))
-            contact = Contact(header, self.seq & 0xFFFFFFFF, f.seq & 0xFFFFFFFF, touch,
+            contact = Contact(header, self.seq & 0xFFFFFFFF, sample, touch,
                               confidence, force, x, y, status)
             self.seq += 1
             try:

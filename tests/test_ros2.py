@@ -300,6 +300,7 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     the first estimate after it carries DEVICE_RESTART; nothing else carries a link flag."""
     from fbgforce.interrogator import emulator as E
     from fbgforce.interrogator.hyperion import HyperionReader
+    from fbgforce.interrogator.publish import Outputs
     from fbgforce.interrogator.ros2_dds import Ros2Publisher
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
@@ -315,7 +316,7 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     result: dict = {}
     worker = threading.Thread(target=lambda: result.update(run_stream(
         reader, LiveEstimator(small_exported_dir), max_samples=800, idle_timeout=10,
-        start_timeout=20, status=False, publishers=[pub])))
+        start_timeout=20, status=False, publication=Outputs([pub]))))
     worker.start()
     second = None
     try:
