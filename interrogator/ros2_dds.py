@@ -10,7 +10,9 @@ installation) publishes the two topics with the DDS names and types that ROS 2 m
 
 QoS: reliable, keep last :data:`~fbgforce.interrogator.ros2.HISTORY_DEPTH`, transient local
 (a late subscriber that asks for it gets the last second), ``max_blocking_time`` 0: a write
-never waits for a subscriber, so a slow or vanished one cannot stall the estimator.
+never waits for a subscriber, so a slow or vanished one cannot stall the estimator. Data
+representation XCDR1 (what rmw_cyclonedds's readers accept), and USER_DATA
+``typehash=RIHS01_...;`` as ROS 2 Iron and newer announce it for every endpoint.
 
 The two published types serialise through ``rosbags``' generated CDR code (part of the same
 extra) when it is installed: the same bytes as cyclonedds's generic serialiser (a test checks)
@@ -22,7 +24,6 @@ stream`` runs this publisher in its publishing process
 # dataclasses at run time and cannot resolve them from strings.
 import time
 from dataclasses import dataclass
-from functools import lru_cache
 from typing import Any, Optional
 
 import numpy as np
@@ -69,24 +70,12 @@ class Wrench(IdlStruct, typename=R.dds_type_name("geometry_msgs/msg/Wrench")):
     torque: Vector3
 
 
-@lru_cache(maxsize=None)
-def rosbags_typestore() -> Any | None:
-    """rosbags' type store with the project's messages, or None without rosbags."""
-    try:
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    except ImportError:
-        return None
-    store = get_typestore(Stores.LATEST)
-    store.register(get_types_from_msg(R.msg_text(R.CONTACT_TYPE), R.CONTACT_TYPE))
-    return store
-
-
 def serialise(msg: Any, ros_type: str, generic: Any, buffer: Optional[Any],
               endianness: Optional[Any], use_version_2: Optional[bool]) -> bytes:
     """A published message's CDR bytes through rosbags' serialiser for ``ros_type`` (it reads
     the same attribute names); ``generic`` (cyclonedds's) for anything but plain XCDR1, or
     without rosbags."""
-    store = rosbags_typestore()
+    store = R.rosbags_typestore()
     if store is None or buffer is not None or endianness is not None or use_version_2:
         return bytes(generic(buffer, endianness, use_version_2))
     return bytes(store.serialize_cdr(msg, ros_type))
@@ -123,11 +112,18 @@ class Contact(IdlStruct, typename=R.dds_type_name(R.CONTACT_TYPE)):
                          use_version_2)
 
 
-def writer_qos() -> Any:
-    """The publisher's QoS (module docstring)."""
-    return Qos(Policy.Reliability.Reliable(duration(seconds=0)),
-               Policy.History.KeepLast(R.HISTORY_DEPTH),
-               Policy.Durability.TransientLocal)
+def writer_qos(msg_type: str) -> Any:
+    """The QoS of the writer of ``msg_type`` (module docstring; the same as
+    :data:`~fbgforce.interrogator.ros2.OFFERED_QOS_PROFILES`), with the user data a ROS 2
+    endpoint announces (:func:`~fbgforce.interrogator.ros2.endpoint_user_data`)."""
+    policies = [Policy.Reliability.Reliable(duration(seconds=0)),
+                Policy.History.KeepLast(R.HISTORY_DEPTH), Policy.Durability.TransientLocal,
+                Policy.Liveliness.Automatic(duration(infinite=True)),
+                Policy.DataRepresentation(use_cdrv0_representation=True)]
+    user_data = R.endpoint_user_data(msg_type)
+    if user_data:
+        policies.append(Policy.Userdata(user_data))
+    return Qos(*policies)
 
 
 class Ros2Publisher:
@@ -145,19 +141,20 @@ class Ros2Publisher:
             self.participant = DomainParticipant(domain)
         except DDSException as exc:
             raise InputError(f"cannot join DDS domain {domain}: {exc}", column="--publish") from None
-        qos = writer_qos()
         self.topics = {"wrench": R.topic_in(self.namespace, R.WRENCH_TOPIC),
                        "contact": R.topic_in(self.namespace, R.CONTACT_TOPIC)}
         self.wrench_writer = DataWriter(self.participant, Topic(
-            self.participant, R.dds_topic_name(self.topics["wrench"]), WrenchStamped), qos=qos)
+            self.participant, R.dds_topic_name(self.topics["wrench"]), WrenchStamped),
+            qos=writer_qos(R.WRENCH_TYPE))
         self.contact_writer = DataWriter(self.participant, Topic(
-            self.participant, R.dds_topic_name(self.topics["contact"]), Contact), qos=qos)
+            self.participant, R.dds_topic_name(self.topics["contact"]), Contact),
+            qos=writer_qos(R.CONTACT_TYPE))
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
         self.flagged = {c.name.lower(): 0 for c in contract.LINK_STATUS}
         self._last_sample_seq: int | None = None
-        rosbags_typestore()  # generates the serialisers now rather than at the first estimate
+        R.rosbags_typestore()  # generates the serialisers now rather than at the first estimate
 
     def publish(self, records: np.ndarray) -> None:
         """Publish a batch of :data:`~fbgforce.interrogator.publish.ESTIMATE_DTYPE` records."""
