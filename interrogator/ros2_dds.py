@@ -11,7 +11,7 @@ installation) publishes the two topics with the DDS names and types that ROS 2 m
 QoS: reliable, keep last :data:`~fbgforce.interrogator.ros2.HISTORY_DEPTH`, transient local
 (a late subscriber that asks for it gets the last second), ``max_blocking_time`` 0: a write
 never waits for a subscriber, so a slow or vanished one cannot stall the estimator. Data
-representation XCDR1 (what rmw_cyclonedds's readers accept), and USER_DATA
+representation XCDR1 only (what rmw_cyclonedds's endpoints use), and USER_DATA
 ``typehash=RIHS01_...;`` as ROS 2 Iron and newer announce it for every endpoint.
 
 The two published types serialise through ``rosbags``' generated CDR code (part of the same
