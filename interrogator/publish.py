@@ -58,7 +58,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from fbgforce import contract
+from fbgforce import contract, signals
 from fbgforce.errors import InputError
 from fbgforce.interrogator.protocol import Frame
 
@@ -239,13 +239,19 @@ class LcmPublisher:
 
     def publish(self, records: np.ndarray) -> None:
         now_us = int(time.time() * 1e6)
-        for r in records.tolist():
+        columns = [records[k].tolist() for k in ("sample_seq", "t_us", *ESTIMATE_FIELDS)]
+        for sample_seq, t_us, status, contact, conf_q15, force_mN, x_um, y_um in zip(*columns):
             m = self.msg_type()
             m.utime = now_us
             m.seq = self.seq
-            m.sample_seq, m.t_us, _, m.status, contact, m.contact_conf_q15, m.force_mN, \
-                m.x_um, m.y_um = r
+            m.sample_seq = sample_seq
+            m.t_us = t_us
+            m.status = status
             m.contact = bool(contact)
+            m.contact_conf_q15 = conf_q15
+            m.force_mN = force_mN
+            m.x_um = x_um
+            m.y_um = y_um
             self.seq += 1
             try:
                 self.lc.publish(self.channel, m.encode())
@@ -378,9 +384,9 @@ class PublisherProcess:
     ``publish_dropped``, and a full pipe skips the wake-up (the next one carries a later
     count). The child opens the outputs, wakes on the pipe, publishes every record from its
     last position to the count received, in order, and stores its position in the shared
-    memory. It ignores SIGINT (Ctrl-C reaches the whole process group; the stream ends it
-    when the stream itself stops) and ends when the pipe closes: at :meth:`finish`, or when
-    this process ends in any way.
+    memory. It ignores SIGINT and SIGTERM (Ctrl-C and service managers signal the whole
+    process group; the stream, stopping cleanly on them, then ends the child) and ends when
+    the pipe closes: at :meth:`finish`, or when this process ends in any way.
 
     Raises
     ------
@@ -439,9 +445,9 @@ class PublisherProcess:
         self.written += n
         try:
             os.write(self._wake.fileno(), self.written.to_bytes(8, "little"))
-        except BlockingIOError:
-            pass
-        except OSError:  # the child is gone: what it had not published is lost
+        except OSError:
+            # A full pipe (the child is behind): the next wake-up carries a later count. A
+            # closed one (the child is gone): what it had not published counts as dropped.
             pass
 
     def finish(self, timeout: float = 30.0) -> dict[str, Any]:
@@ -478,7 +484,8 @@ def _end_child(wake: Any, child: Any) -> None:
 def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wake: Any,
                    control: Any) -> None:
     """The child of :class:`PublisherProcess`."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    for signum in signals.STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
     try:
         outputs = Outputs(open_publishers(urls))
     except InputError as exc:

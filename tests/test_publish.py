@@ -447,3 +447,24 @@ def test_publisher_process_reports_an_output_it_cannot_open():
     with pytest.raises(InputError, match="expected udp://HOST:PORT") as err:
         U.PublisherProcess(["udp://no-port"])
     assert err.value.column == "--publish"
+
+
+def test_publisher_process_outlives_the_stop_signals_of_its_process_group():
+    """Ctrl-C and service managers signal the whole process group: the child ignores SIGINT and
+    SIGTERM and publishes everything the stream hands over until the stream ends it."""
+    import signal
+
+    sock, url = _udp_sink()
+    pub = U.PublisherProcess([url])
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            os.kill(pub._child.pid, signum)
+        time.sleep(0.2)
+        pub.publish(_records(0, 10, time.monotonic_ns()))
+        summary = pub.finish()
+        got = _drain_sink(sock, 10)
+    finally:
+        pub.close()
+        sock.close()
+    assert summary["published"][0]["sent"] == 10 and summary["publish_dropped"] == 0
+    assert [int(r["sample_seq"]) for r in got] == list(range(10))
