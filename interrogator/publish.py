@@ -91,7 +91,7 @@ DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 #: and the runtime's integer estimate.
 ESTIMATE_DTYPE = np.dtype([("sample_seq", "<i8"), ("t_us", "<i8"), ("arrived_ns", "<i8")]
                           + [(k, _le(k)) for k in ESTIMATE_FIELDS], align=True)
-#: Records the ring of a :class:`PublisherProcess` holds: a minute at 1 kHz (3.5 MB).
+#: Records the ring of a :class:`PublisherProcess` holds: a minute at 1 kHz (3 MiB).
 RING_RECORDS = 1 << 16
 
 
@@ -297,7 +297,6 @@ def open_publishers(urls: Sequence[str]) -> list[Any]:
     return out
 
 
-
 class LatencySummary:
     """Percentiles of a latency over a whole run in fixed memory (a run may last days).
 
@@ -443,6 +442,8 @@ class PublisherProcess:
         self._ring[i:i + first] = records[:first]
         self._ring[:n - first] = records[first:]
         self.written += n
+        # The count goes through the pipe rather than the shared memory: the pipe's write and
+        # read order the ring's stores before the child's loads on any processor.
         try:
             os.write(self._wake.fileno(), self.written.to_bytes(8, "little"))
         except OSError:
