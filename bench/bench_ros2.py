@@ -9,7 +9,9 @@
    for ``--seconds`` in each mode, the modes alternating ``--repeat`` times so that the
    spread between rounds shows the machine's noise:
 
-   - ``off``: no output;
+   - ``off``: no output, no subscriber;
+   - ``listen``: no output, the subscriber below running (what the subscriber's own work
+     costs the estimator's step on the same machine);
    - ``on``: ``--publish ros2:///...`` as ``fbgforce stream`` does it, the outputs in the
      publishing process (:class:`~fbgforce.interrogator.publish.PublisherProcess`);
    - ``inline``: the same ROS 2 output called in the estimator's thread
@@ -52,7 +54,11 @@ LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo
 
 
 def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> None:
-    """Child process: take every Contact on ``topic``; count received and out-of-order."""
+    """Child process: take every Contact on ``topic``; count received and out-of-order. At
+    normal priority even when the bench runs under ``chrt``: the consumer is not part of the
+    estimator's real-time loop."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     from cyclonedds.core import Policy, Qos
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
@@ -112,7 +118,7 @@ def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int]]]:
     return Timed(model), steps
 
 
-MODES = ("off", "on", "inline")
+MODES = ("off", "listen", "on", "inline")
 
 
 def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, Any]:
@@ -138,8 +144,8 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
                                                    result))
         sub.start()
         ready.wait(30)
-    publication: Any = (None if mode == "off" else PublisherProcess([url]) if mode == "on"
-                        else Outputs([Ros2Publisher(url)]))
+    publication: Any = (None if mode in ("off", "listen") else PublisherProcess([url])
+                        if mode == "on" else Outputs([Ros2Publisher(url)]))
     emu.start()
     reader = HyperionReader(f"hyperion://127.0.0.1:{cmd_port}?stream={stream_port}")
     estimator, steps = _timed_estimator(model)
@@ -158,10 +164,11 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
         "step_wall_us_median": round(float(np.median(single[:, 0])), 1),
         "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
         "single_sample_steps": len(single)}
-    if publication is not None:
+    if sub is not None:
         time.sleep(1.0)  # let the subscriber drain
         stop.set()
         sub.join(30)
+    if publication is not None:
         pub = summary["published"][0]
         received, reordered = list(result)
         row.update(published=pub["sent"], send_errors=pub["send_errors"], received=received,
@@ -171,9 +178,13 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
     return row
 
 
+BASELINES = ("off", "listen")
+
+
 def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]:
-    """Per mode, the rounds' step medians (median, min, max), and each mode's per-round
-    difference from ``off`` (median, min, max), wall and thread CPU."""
+    """Per mode, the rounds' step medians (median, min, max), and its per-round difference
+    from each baseline mode run before it (``minus_off``, ``minus_listen``: median, min,
+    max), wall and thread CPU."""
     out: dict[str, Any] = {}
     for mode in modes:
         rows = [r for r in live if r["mode"] == mode]
@@ -181,10 +192,12 @@ def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]
         for key in ("step_wall_us_median", "step_cpu_us_median"):
             v = np.array([r[key] for r in rows])
             entry[key] = [round(float(np.median(v)), 1), float(v.min()), float(v.max())]
-            if mode != "off" and "off" in modes:
-                base = np.array([r[key] for r in live if r["mode"] == "off"])
-                d = v[:len(base)] - base[:len(v)]
-                entry[key.replace("median", "minus_off")] = [
+            # A baseline compares with the modes after it: listen with off, the rest with both.
+            later = BASELINES[:BASELINES.index(mode)] if mode in BASELINES else BASELINES
+            for base in (b for b in later if b in modes):
+                b = np.array([r[key] for r in live if r["mode"] == base])
+                d = v[:len(b)] - b[:len(v)]
+                entry[key.replace("median", f"minus_{base}")] = [
                     round(float(np.median(d)), 1), round(float(d.min()), 1),
                     round(float(d.max()), 1)]
         out[mode] = entry
@@ -264,10 +277,12 @@ def main(argv: list[str] | None = None) -> int:
             results["step"] = step_summary(live, modes)
             print("step time, median over rounds [min, max] (us): wall | thread CPU")
             for mode, e in results["step"].items():
-                line = (f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']}")
-                if "step_wall_us_minus_off" in e:
-                    line += (f"   minus off, per round: {e['step_wall_us_minus_off']} | "
-                             f"{e['step_cpu_us_minus_off']}")
+                line = f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']}"
+                for base in BASELINES:
+                    if f"step_wall_us_minus_{base}" in e:
+                        line += (f"   minus {base}, per round: "
+                                 f"{e[f'step_wall_us_minus_{base}']} | "
+                                 f"{e[f'step_cpu_us_minus_{base}']}")
                 print(line)
         if args.record_minutes > 0:
             rec = run_record(args.record_minutes, Path(tmp))
