@@ -22,9 +22,11 @@
    (published − received), reordered (a publication counter not above the previous one),
    ``publish_latency_us`` (p50, p99, max: a sample's arrival to the return of its last write)
    and the estimator's step time: the median over the one-sample steps of wall time (``step
-   us``) and of the thread's CPU time (``step cpu``, which preemption by other processes does
-   not inflate). Then per mode the step medians over the rounds (median, min–max) and, per
-   round, each mode's difference from ``off`` of the same round.
+   us``), of the thread's CPU time (``step cpu``, which preemption by other processes does
+   not inflate) and of the wall time inside ``Runtime.run_raw`` (``runtime``: the C call with
+   its cffi buffers; the rest of the step is the Python around it). Then per mode the medians
+   over the rounds (median, min–max) and, per round, each mode's difference from the
+   baselines ``off`` and ``listen`` of the same round.
 2. **Record**: ``--record-minutes`` of 1 kHz samples (the calibration scene, repeated) are
    written by the writer ``record --out LOG.mcap`` uses and read back by ``load_dataset``
    (rosbags); printed: messages, file size, write and read time, samples differing.
@@ -100,19 +102,35 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int]]]:
-    """A LiveEstimator whose every push records (samples, wall ns, thread CPU ns)."""
+def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int, int]]]:
+    """A LiveEstimator whose every push records (samples, wall ns, thread CPU ns, wall ns in
+    ``Runtime.run_raw``: the C runtime's call with its cffi buffers; the rest of the step is
+    the Python around it)."""
     from fbgforce.interrogator.stream import LiveEstimator
 
-    steps: list[tuple[int, int, int]] = []
+    steps: list[tuple[int, int, int, int]] = []
+    in_runtime = [0]
 
     class Timed(LiveEstimator):
+        def __init__(self, model_dir: Path) -> None:
+            super().__init__(model_dir)
+            run_raw = self._rt.run_raw
+
+            def timed_run_raw(wl: Any) -> Any:
+                t0 = time.perf_counter_ns()
+                out = run_raw(wl)
+                in_runtime[0] += time.perf_counter_ns() - t0
+                return out
+
+            self._rt.run_raw = timed_run_raw
+
         def push(self, wl_fm: Any) -> Any:
+            in_runtime[0] = 0
             w0, c0 = time.perf_counter_ns(), time.thread_time_ns()
             out = super().push(wl_fm)
             if len(out["contact"]):
                 steps.append((len(out["contact"]), time.perf_counter_ns() - w0,
-                              time.thread_time_ns() - c0))
+                              time.thread_time_ns() - c0, in_runtime[0]))
             return out
 
     return Timed(model), steps
@@ -155,7 +173,7 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
     finally:
         reader.close()
         emu.join(30)
-    single = np.array([(w, c) for k, w, c in steps if k == 1], dtype=np.float64) / 1000.0
+    single = np.array([(w, c, r) for k, w, c, r in steps if k == 1], dtype=np.float64) / 1000.0
     lat = summary.get("publish_latency_us", dict.fromkeys(("p50", "p99", "max"), "-"))
     row: dict[str, Any] = {
         "mode": mode, "samples": summary["samples"], "rate_hz": summary["rate_hz"],
@@ -163,6 +181,7 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
         "max_us": lat["max"], "compute_us_per_sample": summary["compute_us_per_sample"],
         "step_wall_us_median": round(float(np.median(single[:, 0])), 1),
         "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
+        "runtime_us_median": round(float(np.median(single[:, 2])), 1),
         "single_sample_steps": len(single)}
     if sub is not None:
         time.sleep(1.0)  # let the subscriber drain
@@ -189,7 +208,7 @@ def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]
     for mode in modes:
         rows = [r for r in live if r["mode"] == mode]
         entry: dict[str, Any] = {}
-        for key in ("step_wall_us_median", "step_cpu_us_median"):
+        for key in ("step_wall_us_median", "step_cpu_us_median", "runtime_us_median"):
             v = np.array([r[key] for r in rows])
             entry[key] = [round(float(np.median(v)), 1), float(v.min()), float(v.max())]
             # A baseline compares with the modes after it: listen with off, the rest with both.
@@ -257,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         model = args.model or small_model(Path(tmp))
         print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
               f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
-              f"{'step us':>7} {'step cpu':>8} {'load':>5}")
+              f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'load':>5}")
         live = []
         for i in range(args.repeat):
             for mode in modes:
@@ -271,18 +290,21 @@ def main(argv: list[str] | None = None) -> int:
                       f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
                       f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
                       f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
-                      f"{r['load_average']:>5.1f}", flush=True)
+                      f"{r['runtime_us_median']:>7} {r['load_average']:>5.1f}", flush=True)
         results["live"] = live
         if live:
             results["step"] = step_summary(live, modes)
-            print("step time, median over rounds [min, max] (us): wall | thread CPU")
+            print("step time, median over rounds [min, max] (us): wall | thread CPU | "
+                  "in the runtime's call")
             for mode, e in results["step"].items():
-                line = f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']}"
+                line = (f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']} | "
+                        f"{e['runtime_us_median']}")
                 for base in BASELINES:
                     if f"step_wall_us_minus_{base}" in e:
                         line += (f"   minus {base}, per round: "
                                  f"{e[f'step_wall_us_minus_{base}']} | "
-                                 f"{e[f'step_cpu_us_minus_{base}']}")
+                                 f"{e[f'step_cpu_us_minus_{base}']} | "
+                                 f"{e[f'runtime_us_minus_{base}']}")
                 print(line)
         if args.record_minutes > 0:
             rec = run_record(args.record_minutes, Path(tmp))
