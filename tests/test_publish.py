@@ -438,7 +438,7 @@ def test_publisher_process_never_waits_for_a_stopped_child():
     finally:
         pub.close()
         sock.close()
-    assert slowest < 0.05, slowest
+    assert slowest < 0.5, slowest  # a publish that waited would wait for ever
     assert summary["published"][0]["sent"] == 60 and summary["publish_dropped"] == 940
     assert [int(r["sample_seq"]) for r in got] == list(range(60))
 
