@@ -5,8 +5,9 @@
 For each source (native frames on a pseudo-terminal, a Hyperion peak stream on loopback TCP)
 a virtual interrogator plays the ``smoke`` scene in a child process at ``--rate`` samples/s;
 this process runs the stream (fixed-point C runtime) and publishes every estimate as a UDP
-datagram to a receiver in another child process. Latency is measured per sample from the
-moment the reader handed its batch over to the moment the datagram's send returned (the
+datagram, through the publishing process ``fbgforce stream`` uses, to a receiver in another
+child process. Latency is measured per sample from the moment the reader handed its batch
+over to the moment the publishing process's send of its datagram returned (the
 ``publish_latency_us`` of the stream summary), over the samples after the tare. A sample
 waits in the reader's batch for up to its 20 ms read window only when the line is quiet; at
 1 kHz a batch holds the one or few samples that arrived together.
@@ -67,7 +68,7 @@ def _emulate(args: list[str]) -> None:
 
 def run(source: str, model: Path, seconds: float, rate: float, tmp: Path) -> dict[str, Any]:
     from fbgforce.interrogator.hyperion import HyperionReader
-    from fbgforce.interrogator.publish import UdpPublisher
+    from fbgforce.interrogator.publish import PublisherProcess
     from fbgforce.interrogator.reader import NativeReader
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
@@ -98,11 +99,11 @@ def run(source: str, model: Path, seconds: float, rate: float, tmp: Path) -> dic
         while not link.exists():
             time.sleep(0.01)
         reader = NativeReader(str(link))
-    pub = UdpPublisher(f"udp://127.0.0.1:{udp_port}")
+    pub = PublisherProcess([f"udp://127.0.0.1:{udp_port}"])
     est = LiveEstimator(model)
     try:
         summary = run_stream(reader, est, duration=seconds, start_timeout=30, idle_timeout=2,
-                             status=False, publishers=[pub])
+                             status=False, publication=pub)
     finally:
         reader.close()
         pub.close()

@@ -1,19 +1,32 @@
 """ROS 2 goals (docs/ros2.md): live topics at 1 kHz and a 10-minute rosbag2 round trip.
 
-    python bench/bench_ros2.py [--model MODEL_DIR] [--seconds 60] [--rate 1000]
-                               [--record-minutes 10] [--json FILE]
+    python -m fbgforce.bench.bench_ros2 [--model MODEL_DIR] [--seconds 60] [--rate 1000]
+                                        [--repeat 3] [--modes off,on,inline]
+                                        [--record-minutes 10] [--json FILE]
 
 1. **Live**: a virtual Hyperion plays the ``calibration`` scene on loopback TCP at ``--rate``
    in a child process; this process runs ``fbgforce stream``'s loop (fixed-point C runtime)
-   for ``--seconds``, once without publishing and once with ``--publish ros2:///...``, whose
-   ``NAMESPACE/contact`` a ROS 2-typed subscriber in another child process takes (reliable,
-   keep all it gets). Printed per run: samples, published, received, lost (published − received),
-   reordered (a publication counter not above the previous one), ``publish_latency_us`` (p50,
-   p99, max: a sample's arrival to the return of its last write; without ROS 2 an output that
-   sends nothing stands in, so that row is the stream's own latency) and the estimator's step
-   time: the median over the one-sample steps of wall time (``step us``) and of the thread's
-   CPU time (``step cpu``, which preemption by other processes does not inflate), and the
-   stream's own ``compute_us_per_sample`` (wall time, mean over all steps).
+   for ``--seconds`` in each mode, the modes alternating ``--repeat`` times so that the
+   spread between rounds shows the machine's noise:
+
+   - ``off``: no output, no subscriber;
+   - ``listen``: no output, the subscriber below running (what the subscriber's own work
+     costs the estimator's step on the same machine);
+   - ``on``: ``--publish ros2:///...`` as ``fbgforce stream`` does it, the outputs in the
+     publishing process (:class:`~fbgforce.interrogator.publish.PublisherProcess`);
+   - ``inline``: the same ROS 2 output called in the estimator's thread
+     (:class:`~fbgforce.interrogator.publish.Outputs`), for comparison.
+
+   With ROS 2, a ROS 2-typed subscriber in another child process takes ``NAMESPACE/contact``
+   (reliable, keep all it gets). Printed per run: samples, published, received, lost
+   (published − received), reordered (a publication counter not above the previous one),
+   ``publish_latency_us`` (p50, p99, max: a sample's arrival to the return of its last write)
+   and the estimator's step time: the median over the one-sample steps of wall time (``step
+   us``), of the thread's CPU time (``step cpu``, which preemption by other processes does
+   not inflate) and of the wall time inside ``Runtime.run_raw`` (``runtime``: the C call with
+   its cffi buffers; the rest of the step is the Python around it). Then per mode the medians
+   over the rounds (median, min–max) and, per round, each mode's difference from the
+   baselines ``off`` and ``listen`` of the same round.
 2. **Record**: ``--record-minutes`` of 1 kHz samples (the calibration scene, repeated) are
    written by the writer ``record --out LOG.mcap`` uses and read back by ``load_dataset``
    (rosbags); printed: messages, file size, write and read time, samples differing.
@@ -43,7 +56,11 @@ LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo
 
 
 def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> None:
-    """Child process: take every Contact on ``topic``; count received and out-of-order."""
+    """Child process: take every Contact on ``topic``; count received and out-of-order. At
+    normal priority even when the bench runs under ``chrt``: the consumer is not part of the
+    estimator's real-time loop."""
+    if hasattr(os, "sched_setscheduler"):
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     from cyclonedds.core import Policy, Qos
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
@@ -85,39 +102,48 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-class _NoOutput:
-    """A publisher that sends nothing: the stream's own arrival-to-publication latency."""
-
-    def publish(self, frames: Any, est: Any) -> None:
-        pass
-
-    def stats(self) -> dict[str, Any]:
-        return {"url": "none", "sent": 0, "send_errors": 0}
-
-    def close(self) -> None:
-        pass
-
-
-def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int]]]:
-    """A LiveEstimator whose every push records (samples, wall ns, thread CPU ns)."""
+def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int, int]]]:
+    """A LiveEstimator whose every push records (samples, wall ns, thread CPU ns, wall ns in
+    ``Runtime.run_raw``: the C runtime's call with its cffi buffers; the rest of the step is
+    the Python around it)."""
     from fbgforce.interrogator.stream import LiveEstimator
 
-    steps: list[tuple[int, int, int]] = []
+    steps: list[tuple[int, int, int, int]] = []
+    in_runtime = [0]
 
     class Timed(LiveEstimator):
+        def __init__(self, model_dir: Path) -> None:
+            super().__init__(model_dir)
+            run_raw = self._rt.run_raw
+
+            def timed_run_raw(wl: Any) -> Any:
+                t0 = time.perf_counter_ns()
+                out = run_raw(wl)
+                in_runtime[0] += time.perf_counter_ns() - t0
+                return out
+
+            self._rt.run_raw = timed_run_raw
+
         def push(self, wl_fm: Any) -> Any:
+            in_runtime[0] = 0
             w0, c0 = time.perf_counter_ns(), time.thread_time_ns()
             out = super().push(wl_fm)
             if len(out["contact"]):
                 steps.append((len(out["contact"]), time.perf_counter_ns() - w0,
-                              time.thread_time_ns() - c0))
+                              time.thread_time_ns() - c0, in_runtime[0]))
             return out
 
     return Timed(model), steps
 
 
-def run_live(model: Path, seconds: float, rate: float, publish: bool) -> dict[str, Any]:
+MODES = ("off", "listen", "on", "inline")
+
+
+def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, Any]:
+    """One live run in ``mode`` (:data:`MODES`); the row printed for it."""
     from fbgforce.interrogator.hyperion import HyperionReader
+    from fbgforce.interrogator.publish import Outputs, PublisherProcess
+    from fbgforce.interrogator.ros2_dds import Ros2Publisher
     from fbgforce.interrogator.stream import run_stream
 
     ctx = mp.get_context("spawn")
@@ -126,48 +152,75 @@ def run_live(model: Path, seconds: float, rate: float, publish: bool) -> dict[st
         "--scene", "calibration", "--seed", "0", "--rate", str(rate), "--duration",
         str(seconds + 1.0), "--linger", "0.5", "--protocol", "hyperion", "--command-port",
         str(cmd_port), "--stream-port", str(stream_port)],))
-    publishers: list[Any] = [] if publish else [_NoOutput()]
     sub = None
     domain = 1 + os.getpid() % 200
-    namespace = f"/fbgforce_bench_{os.getpid()}"
-    if publish:
-        from fbgforce.interrogator.ros2_dds import Ros2Publisher
-
+    namespace = f"/fbgforce_bench_{os.getpid()}_{mode}"
+    url = f"ros2://{namespace}?domain={domain}"
+    if mode != "off":
         ready, stop, result = ctx.Event(), ctx.Event(), ctx.Array("q", 2)
         sub = ctx.Process(target=_subscribe, args=(domain, namespace + "/contact", ready, stop,
                                                    result))
         sub.start()
         ready.wait(30)
-        publishers.append(Ros2Publisher(f"ros2://{namespace}?domain={domain}"))
+    publication: Any = (None if mode in ("off", "listen") else PublisherProcess([url])
+                        if mode == "on" else Outputs([Ros2Publisher(url)]))
     emu.start()
     reader = HyperionReader(f"hyperion://127.0.0.1:{cmd_port}?stream={stream_port}")
     estimator, steps = _timed_estimator(model)
     try:
         summary = run_stream(reader, estimator, duration=seconds, start_timeout=60,
-                             idle_timeout=2, status=False, publishers=publishers)
+                             idle_timeout=2, status=False, publication=publication)
     finally:
         reader.close()
         emu.join(30)
-    single = np.array([(w, c) for k, w, c in steps if k == 1], dtype=np.float64) / 1000.0
-    lat = summary["publish_latency_us"]
+    single = np.array([(w, c, r) for k, w, c, r in steps if k == 1], dtype=np.float64) / 1000.0
+    lat = summary.get("publish_latency_us", dict.fromkeys(("p50", "p99", "max"), "-"))
     row: dict[str, Any] = {
-        "ros2": publish, "samples": summary["samples"], "rate_hz": summary["rate_hz"],
+        "mode": mode, "samples": summary["samples"], "rate_hz": summary["rate_hz"],
         "lost_frames": summary["lost_frames"], "p50_us": lat["p50"], "p99_us": lat["p99"],
         "max_us": lat["max"], "compute_us_per_sample": summary["compute_us_per_sample"],
         "step_wall_us_median": round(float(np.median(single[:, 0])), 1),
         "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
+        "runtime_us_median": round(float(np.median(single[:, 2])), 1),
         "single_sample_steps": len(single)}
     if sub is not None:
         time.sleep(1.0)  # let the subscriber drain
         stop.set()
         sub.join(30)
-        for p in publishers:
-            p.close()
+    if publication is not None:
         pub = summary["published"][0]
         received, reordered = list(result)
         row.update(published=pub["sent"], send_errors=pub["send_errors"], received=received,
-                   lost=pub["sent"] - received, reordered=reordered)
+                   lost=pub["sent"] - received, reordered=reordered,
+                   publish_dropped=summary["publish_dropped"])
+        publication.close()
     return row
+
+
+BASELINES = ("off", "listen")
+
+
+def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]:
+    """Per mode, the rounds' step medians (median, min, max), and its per-round difference
+    from each baseline mode run before it (``minus_off``, ``minus_listen``: median, min,
+    max), wall and thread CPU."""
+    out: dict[str, Any] = {}
+    for mode in modes:
+        rows = [r for r in live if r["mode"] == mode]
+        entry: dict[str, Any] = {}
+        for key in ("step_wall_us_median", "step_cpu_us_median", "runtime_us_median"):
+            v = np.array([r[key] for r in rows])
+            entry[key] = [round(float(np.median(v)), 1), float(v.min()), float(v.max())]
+            # A baseline compares with the modes after it: listen with off, the rest with both.
+            later = BASELINES[:BASELINES.index(mode)] if mode in BASELINES else BASELINES
+            for base in (b for b in later if b in modes):
+                b = np.array([r[key] for r in live if r["mode"] == base])
+                d = v[:len(b)] - b[:len(v)]
+                entry[key.replace("median", f"minus_{base}")] = [
+                    round(float(np.median(d)), 1), round(float(d.min()), 1),
+                    round(float(d.max()), 1)]
+        out[mode] = entry
+    return out
 
 
 def run_record(minutes: float, tmp: Path) -> dict[str, Any]:
@@ -209,29 +262,50 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--rate", type=float, default=1000.0)
     ap.add_argument("--record-minutes", type=float, default=10.0)
-    ap.add_argument("--repeat", type=int, default=1, help="live runs (off, on) this many times")
+    ap.add_argument("--repeat", type=int, default=3, help="rounds of live runs, one per mode")
+    ap.add_argument("--modes", default=",".join(MODES),
+                    help=f"live modes in each round, comma-separated ({', '.join(MODES)})")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args(argv)
+    modes = [m for m in args.modes.split(",") if m]
+    if not modes or set(modes) - set(MODES):
+        ap.error(f"--modes: a comma-separated list of {', '.join(MODES)}")
     os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
     results: dict[str, Any] = {"load_average_start": os.getloadavg()[0]}
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model or small_model(Path(tmp))
-        print(f"{'ros2':<5} {'samples':>8} {'rate Hz':>8} {'published':>9} {'received':>9} "
+        print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
               f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
-              f"{'step us':>7} {'step cpu':>8} {'compute us':>10}")
+              f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'load':>5}")
         live = []
-        for _ in range(args.repeat):
-            for publish in (False, True):
-                r = run_live(model, args.seconds, args.rate, publish)
+        for i in range(args.repeat):
+            for mode in modes:
+                r = run_live(model, args.seconds, args.rate, mode)
+                r["round"] = i + 1
+                r["load_average"] = os.getloadavg()[0]
                 live.append(r)
                 dash = "-"
-                print(f"{'on' if publish else 'off':<5} {r['samples']:>8} {r['rate_hz']:>8.1f} "
+                print(f"{i + 1:>5} {mode:<6} {r['samples']:>8} "
                       f"{r.get('published', dash):>9} {r.get('received', dash):>9} "
                       f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
                       f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
                       f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
-                      f"{r['compute_us_per_sample']:>10.1f}", flush=True)
+                      f"{r['runtime_us_median']:>7} {r['load_average']:>5.1f}", flush=True)
         results["live"] = live
+        if live:
+            results["step"] = step_summary(live, modes)
+            print("step time, median over rounds [min, max] (us): wall | thread CPU | "
+                  "in the runtime's call")
+            for mode, e in results["step"].items():
+                line = (f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']} | "
+                        f"{e['runtime_us_median']}")
+                for base in BASELINES:
+                    if f"step_wall_us_minus_{base}" in e:
+                        line += (f"   minus {base}, per round: "
+                                 f"{e[f'step_wall_us_minus_{base}']} | "
+                                 f"{e[f'step_cpu_us_minus_{base}']} | "
+                                 f"{e[f'runtime_us_minus_{base}']}")
+                print(line)
         if args.record_minutes > 0:
             rec = run_record(args.record_minutes, Path(tmp))
             results["record"] = rec

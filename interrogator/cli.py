@@ -263,26 +263,29 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
     from fbgforce.interrogator.nodata import no_data_error
-    from fbgforce.interrogator.publish import open_publishers
+    from fbgforce.interrogator.publish import PublisherProcess
     from fbgforce.interrogator.stream import N_GRATINGS, LiveEstimator, run_stream
 
     if args.channels < N_GRATINGS:
         raise InputError(f"the model reads {N_GRATINGS} gratings per sample (FBG 1..4 and T); "
                          f"frames of {args.channels} cannot feed it", column="--channels")
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
-    reader = _open_reader(args, args.model, channels=args.channels)
-    protocol = _protocol(args)
-    publishers = open_publishers(args.publish)
-    started = time.monotonic()
+    # The outputs are open before the reader: a sample never waits for them to start.
+    publication = PublisherProcess(args.publish) if args.publish else None
     try:
-        result = run_stream(reader, est, out=args.out, duration=args.duration,
-                            max_samples=args.samples, idle_timeout=args.idle_timeout,
-                            start_timeout=_start_timeout(args), status=not args.quiet,
-                            publishers=publishers)
+        reader = _open_reader(args, args.model, channels=args.channels)
+        protocol = _protocol(args)
+        started = time.monotonic()
+        try:
+            result = run_stream(reader, est, out=args.out, duration=args.duration,
+                                max_samples=args.samples, idle_timeout=args.idle_timeout,
+                                start_timeout=_start_timeout(args), status=not args.quiet,
+                                publication=publication)
+        finally:
+            reader.close()
     finally:
-        reader.close()
-        for pub in publishers:
-            pub.close()
+        if publication is not None:
+            publication.close()
     if result["received"] == 0:
         raise no_data_error(args.port, protocol, time.monotonic() - started,
                             reader.stats(), reader.link.last_error, baud=args.baud,

@@ -1,8 +1,11 @@
 """``fbgforce record --out LOG.mcap``: a calibration log as a rosbag2 MCAP file.
 
 Written with ``mcap`` and its ROS 2 support (``mcap-ros2-support``, extra ``[ros2]``): profile
-``ros2``, schemas as ``.msg`` text (encoding ``ros2msg``), messages in CDR, so ``ros2 bag
-info``, ``ros2 bag play`` and Foxglove open it. One message per sample on each topic of
+``ros2``, schemas as ``.msg`` text (encoding ``ros2msg``), messages in CDR, and on every
+channel the metadata rosbag2's MCAP storage writes and reads: ``offered_qos_profiles`` (which
+the MCAP ``ros2`` profile requires; :data:`fbgforce.interrogator.ros2.OFFERED_QOS_PROFILES`)
+and ``topic_type_hash`` (REP-2011), so ``ros2 bag info``, ``ros2 bag play`` and Foxglove open
+it. One message per sample on each topic of
 :data:`TOPICS`, all stamped with the sample's time (docs/ros2.md):
 
 - ``/fbgforce/peaks`` (``fbgforce_msgs/msg/Peaks``): the interrogator's wavelengths, m;
@@ -68,11 +71,23 @@ def write_log(path: str | Path, *, stamp_ns: np.ndarray, sample_seq: np.ndarray,
             schemas = {name: writer.register_msgdef(TOPIC_TYPES[name],
                                                     R.full_msgdef(TOPIC_TYPES[name]))
                        for name in topics}
+            for name in topics:
+                _register_channel(writer, TOPICS[name], schemas[name])
             _write_messages(writer, schemas, stamp_ns, sample_seq, wl_fm, stage, estimates,
                             frame_id)
         finally:
             writer.finish()
     return {TOPICS[name]: n for name in topics}
+
+
+def _register_channel(writer: Any, topic: str, schema: Any) -> None:
+    """Register ``topic``'s channel with rosbag2's channel metadata. mcap-ros2-support's
+    ``write_message`` registers a channel without metadata the first time it meets a topic;
+    registered here first, on the writer's MCAP writer, the channel is the one it then uses."""
+    metadata = {"offered_qos_profiles": R.OFFERED_QOS_PROFILES,
+                "topic_type_hash": R.type_hash(schema.name) or ""}
+    writer._channel_ids[topic] = writer._writer.register_channel(
+        topic=topic, message_encoding="cdr", schema_id=schema.id, metadata=metadata)
 
 
 def _write_messages(writer: Any, schemas: dict[str, Any], stamp_ns: np.ndarray,

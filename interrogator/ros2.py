@@ -16,15 +16,15 @@ from __future__ import annotations
 import os
 import re
 import time
+from functools import lru_cache
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 from urllib.parse import parse_qs, urlsplit
 
 import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
-from fbgforce.interrogator.protocol import Frame
 
 #: The message package shipped with fbgforce (a ROS 2 package: package.xml, CMakeLists.txt).
 MSG_PACKAGE = "fbgforce_msgs"
@@ -40,6 +40,25 @@ STAGE_TYPE = f"{MSG_PACKAGE}/msg/Stage"
 #: Messages the publisher keeps for reliable repair and late transient-local subscribers:
 #: one second at 1 kHz. The writer never blocks: the oldest message makes room.
 HISTORY_DEPTH = 1000
+#: The QoS every topic is offered with (reliable, keep last :data:`HISTORY_DEPTH`, transient
+#: local, automatic liveliness, no deadline, lifespan or lease: 0 s = the default, infinite)
+#: in rosbag2's ``offered_qos_profiles`` form: a YAML list, policies as rmw's enum integers
+#: (metadata version 8), which every rosbag2 from Humble on reads.
+OFFERED_QOS_PROFILES = f"""- history: 1
+  depth: {HISTORY_DEPTH}
+  reliability: 1
+  durability: 1
+  deadline:
+    sec: 0
+    nsec: 0
+  lifespan:
+    sec: 0
+    nsec: 0
+  liveliness: 1
+  liveliness_lease_duration:
+    sec: 0
+    nsec: 0
+  avoid_ros_namespace_conventions: false"""
 
 #: Definitions of the standard messages used, as ROS 2 ships them (without comments).
 STANDARD_MSGS = {
@@ -88,6 +107,34 @@ def _dependencies(msg_type: str) -> list[str]:
         ref_pkg, ref_name = ref.split("/") if "/" in ref else (pkg, ref)
         out.append(f"{ref_pkg}/msg/{ref_name}")
     return out
+
+
+@lru_cache(maxsize=None)
+def rosbags_typestore() -> Any | None:
+    """rosbags' type store (the newest ROS 2 release's standard messages) with the project's
+    messages registered, or None without rosbags (part of the ``[ros2]`` extra)."""
+    try:
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+    except ImportError:
+        return None
+    store = get_typestore(Stores.LATEST)
+    for msg_type in (CONTACT_TYPE, PEAKS_TYPE, STAGE_TYPE):
+        store.register(get_types_from_msg(msg_text(msg_type), msg_type))
+    return store
+
+
+def type_hash(msg_type: str) -> str | None:
+    """The REP-2011 type hash (``RIHS01_`` + 64 hex digits) that ROS 2 from Iron on computes
+    for a message type and announces in discovery and in rosbag2 logs; None without rosbags."""
+    store = rosbags_typestore()
+    return None if store is None else str(store.hash_rihs01(msg_type))
+
+
+def endpoint_user_data(msg_type: str) -> bytes:
+    """The USER_DATA QoS a ROS 2 (Iron or newer) endpoint of ``msg_type`` announces:
+    ``typehash=RIHS01_...;`` (empty without rosbags; Humble sends none either)."""
+    digest = type_hash(msg_type)
+    return b"" if digest is None else f"typehash={digest};".encode("ascii")
 
 
 def full_msgdef(msg_type: str) -> str:
@@ -170,10 +217,10 @@ def link_flags(previous_seq: int | None, seqs: Sequence[int]) -> tuple[np.ndarra
     return flags, prev
 
 
-def stamps_ns(frames: Sequence[Frame], now_ns: int | None = None) -> np.ndarray:
-    """``header.stamp`` of each sample, ns: its device time, or the host's time now when the
-    protocol carries none (FiSpec)."""
-    t_us = np.array([f.t_us for f in frames], dtype=np.int64)
+def stamps_ns(t_us: np.ndarray, now_ns: int | None = None) -> np.ndarray:
+    """``header.stamp`` of each sample, ns, from its device time ``t_us`` (µs), or the host's
+    time now where the protocol carries none (FiSpec: -1)."""
+    t_us = np.asarray(t_us, dtype=np.int64)
     host = time.time_ns() if now_ns is None else now_ns
     return np.where(t_us >= 0, t_us * 1000, host)
 

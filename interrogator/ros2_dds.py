@@ -10,27 +10,27 @@ installation) publishes the two topics with the DDS names and types that ROS 2 m
 
 QoS: reliable, keep last :data:`~fbgforce.interrogator.ros2.HISTORY_DEPTH`, transient local
 (a late subscriber that asks for it gets the last second), ``max_blocking_time`` 0: a write
-never waits for a subscriber, so a slow or vanished one cannot stall the estimator.
+never waits for a subscriber, so a slow or vanished one cannot stall the estimator. Data
+representation XCDR1 only (what rmw_cyclonedds's endpoints use), and USER_DATA
+``typehash=RIHS01_...;`` as ROS 2 Iron and newer announce it for every endpoint.
 
 The two published types serialise through ``rosbags``' generated CDR code (part of the same
 extra) when it is installed: the same bytes as cyclonedds's generic serialiser (a test checks)
-in a fifteenth of its time (about 2.7 µs instead of 38 µs per message here), time the stream
-loop would otherwise spend between estimates.
+in a fifteenth of its time (about 2.7 µs instead of 38 µs per message here). ``fbgforce
+stream`` runs this publisher in its publishing process
+(:class:`~fbgforce.interrogator.publish.PublisherProcess`), away from the estimator.
 """
 # No `from __future__ import annotations`: cyclonedds reads the field types of the IdlStruct
 # dataclasses at run time and cannot resolve them from strings.
 import time
 from dataclasses import dataclass
-from functools import lru_cache
-from typing import Any, Optional, Sequence
+from typing import Any, Optional
 
 import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
 from fbgforce.interrogator import ros2 as R
-from fbgforce.interrogator.protocol import Frame
-from fbgforce.interrogator.publish import estimate_integers
 
 try:
     from cyclonedds.core import DDSException, Policy, Qos
@@ -70,24 +70,12 @@ class Wrench(IdlStruct, typename=R.dds_type_name("geometry_msgs/msg/Wrench")):
     torque: Vector3
 
 
-@lru_cache(maxsize=None)
-def rosbags_typestore() -> Any | None:
-    """rosbags' type store with the project's messages, or None without rosbags."""
-    try:
-        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-    except ImportError:
-        return None
-    store = get_typestore(Stores.LATEST)
-    store.register(get_types_from_msg(R.msg_text(R.CONTACT_TYPE), R.CONTACT_TYPE))
-    return store
-
-
 def serialise(msg: Any, ros_type: str, generic: Any, buffer: Optional[Any],
               endianness: Optional[Any], use_version_2: Optional[bool]) -> bytes:
     """A published message's CDR bytes through rosbags' serialiser for ``ros_type`` (it reads
     the same attribute names); ``generic`` (cyclonedds's) for anything but plain XCDR1, or
     without rosbags."""
-    store = rosbags_typestore()
+    store = R.rosbags_typestore()
     if store is None or buffer is not None or endianness is not None or use_version_2:
         return bytes(generic(buffer, endianness, use_version_2))
     return bytes(store.serialize_cdr(msg, ros_type))
@@ -124,11 +112,18 @@ class Contact(IdlStruct, typename=R.dds_type_name(R.CONTACT_TYPE)):
                          use_version_2)
 
 
-def writer_qos() -> Any:
-    """The publisher's QoS (module docstring)."""
-    return Qos(Policy.Reliability.Reliable(duration(seconds=0)),
-               Policy.History.KeepLast(R.HISTORY_DEPTH),
-               Policy.Durability.TransientLocal)
+def writer_qos(msg_type: str) -> Any:
+    """The QoS of the writer of ``msg_type`` (module docstring; the same as
+    :data:`~fbgforce.interrogator.ros2.OFFERED_QOS_PROFILES`), with the user data a ROS 2
+    endpoint announces (:func:`~fbgforce.interrogator.ros2.endpoint_user_data`)."""
+    policies = [Policy.Reliability.Reliable(duration(seconds=0)),
+                Policy.History.KeepLast(R.HISTORY_DEPTH), Policy.Durability.TransientLocal,
+                Policy.Liveliness.Automatic(duration(infinite=True)),
+                Policy.DataRepresentation(use_cdrv0_representation=True)]
+    user_data = R.endpoint_user_data(msg_type)
+    if user_data:
+        policies.append(Policy.Userdata(user_data))
+    return Qos(*policies)
 
 
 class Ros2Publisher:
@@ -146,35 +141,38 @@ class Ros2Publisher:
             self.participant = DomainParticipant(domain)
         except DDSException as exc:
             raise InputError(f"cannot join DDS domain {domain}: {exc}", column="--publish") from None
-        qos = writer_qos()
         self.topics = {"wrench": R.topic_in(self.namespace, R.WRENCH_TOPIC),
                        "contact": R.topic_in(self.namespace, R.CONTACT_TOPIC)}
         self.wrench_writer = DataWriter(self.participant, Topic(
-            self.participant, R.dds_topic_name(self.topics["wrench"]), WrenchStamped), qos=qos)
+            self.participant, R.dds_topic_name(self.topics["wrench"]), WrenchStamped),
+            qos=writer_qos(R.WRENCH_TYPE))
         self.contact_writer = DataWriter(self.participant, Topic(
-            self.participant, R.dds_topic_name(self.topics["contact"]), Contact), qos=qos)
+            self.participant, R.dds_topic_name(self.topics["contact"]), Contact),
+            qos=writer_qos(R.CONTACT_TYPE))
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
         self.flagged = {c.name.lower(): 0 for c in contract.LINK_STATUS}
         self._last_sample_seq: int | None = None
-        rosbags_typestore()  # generates the serialisers now rather than at the first estimate
+        R.rosbags_typestore()  # generates the serialisers now rather than at the first estimate
 
-    def publish(self, frames: Sequence[Frame], est: dict[str, np.ndarray]) -> None:
-        si = R.estimates_si(estimate_integers(est))
-        link, self._last_sample_seq = R.link_flags(self._last_sample_seq, [f.seq for f in frames])
+    def publish(self, records: np.ndarray) -> None:
+        """Publish a batch of :data:`~fbgforce.interrogator.publish.ESTIMATE_DTYPE` records."""
+        si = R.estimates_si(records)
+        sample_seq = (records["sample_seq"] & 0xFFFFFFFF).tolist()
+        link, self._last_sample_seq = R.link_flags(self._last_sample_seq, sample_seq)
         for c in contract.LINK_STATUS:
             self.flagged[c.name.lower()] += int(np.count_nonzero(link & c.value))
         # Python scalars once per batch: indexing numpy arrays per field costs more.
-        rows = zip(frames, R.stamps_ns(frames, time.time_ns()).tolist(),
+        rows = zip(sample_seq, R.stamps_ns(records["t_us"], time.time_ns()).tolist(),
                    si["contact"].tolist(), si["confidence"].tolist(), si["force"].tolist(),
                    si["x"].tolist(), si["y"].tolist(), si["torque_x"].tolist(),
                    si["torque_y"].tolist(), (si["status"] | link).tolist())
-        for f, stamp, touch, confidence, force, x, y, torque_x, torque_y, status in rows:
+        for sample, stamp, touch, confidence, force, x, y, torque_x, torque_y, status in rows:
             header = Header(Time(*R.split_stamp(stamp)), self.frame_id)
             wrench = WrenchStamped(header, Wrench(Vector3(0.0, 0.0, force),
                                                   Vector3(torque_x, torque_y, 0.0)))
-            contact = Contact(header, self.seq & 0xFFFFFFFF, f.seq & 0xFFFFFFFF, touch,
+            contact = Contact(header, self.seq & 0xFFFFFFFF, sample, touch,
                               confidence, force, x, y, status)
             self.seq += 1
             try:

@@ -14,12 +14,11 @@ summary).
 """
 from __future__ import annotations
 
-import math
 import contextlib
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence, TextIO
+from typing import Any, Protocol, TextIO
 
 import numpy as np
 
@@ -27,6 +26,7 @@ from fbgforce import fileio, signals
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.interrogator.protocol import Frame, fm_to_nm, nm_to_fm
+from fbgforce.interrogator.publish import estimate_records
 from fbgforce.interrogator.reader import Reader, iter_batches
 
 ENGINES = ("fixed", "float")
@@ -182,16 +182,25 @@ class StatusLine:
             self.stream.flush()
 
 
+class Publication(Protocol):
+    """Where the stream's estimates go: :class:`~fbgforce.interrogator.publish.PublisherProcess`
+    (what ``fbgforce stream --publish`` uses) or :class:`~fbgforce.interrogator.publish.Outputs`."""
+
+    def publish(self, records: np.ndarray) -> None: ...
+
+    def finish(self) -> dict[str, Any]: ...
+
+
 def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | None = None,
                duration: float | None = None, max_samples: int | None = None,
                idle_timeout: float | None = None, start_timeout: float | None = None,
-               status: bool = True, publishers: Sequence[Any] = ()) -> dict[str, Any]:
-    """Read, estimate, publish (``publishers``, :mod:`fbgforce.interrogator.publish`) and
+               status: bool = True, publication: Publication | None = None) -> dict[str, Any]:
+    """Read, estimate, publish (``publication``, :mod:`fbgforce.interrogator.publish`) and
     (optionally) write a CSV of estimates until a stop condition.
 
-    Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md). With
-    publishers it holds ``publish_latency_us``: time from a sample's arrival (its batch
-    returned by the reader) to its publication (the last publisher's send returned), over the
+    Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md). With a
+    publication it holds ``publish_latency_us``: time from a sample's arrival (its batch
+    returned by the reader) to its publication (the last output's send returned), over the
     samples that arrived after the tare (those before wait for the tare by design).
     """
     fh = None
@@ -208,8 +217,8 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         fh.write("# fbgforce stream: raw samples and live estimates; host_s = receive time\n")
         fh.write(",".join(CSV_COLUMNS) + "\n")
     line = StatusLine(enabled=status)
-    waiting: list[tuple[Frame, float]] = []  # received, not yet estimated (taring)
-    latency = LatencySummary()
+    # Received, not yet estimated (taring): frame, host time, arrival ns (-1: before the tare).
+    waiting: list[tuple[Frame, float, int]] = []
     n = 0
     contact_n = 0
     max_force = 0.0
@@ -219,22 +228,19 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout):
-            arrived_ns = time.perf_counter_ns()
-            now = time.monotonic()
+            arrived_ns = time.monotonic_ns()
+            now = arrived_ns / 1e9
             t_first = now if t_first is None else t_first
             t_last = now
-            tared = estimator.baseline_fm is not None
-            waiting.extend((f, now) for f in batch)
+            arrival = arrived_ns if estimator.baseline_fm is not None else -1
+            waiting.extend((f, now, arrival) for f in batch)
             est = estimator.push(np.array([f.wl_fm[:N_GRATINGS] for f in batch], dtype=np.int64))
             k = len(est["contact"])
             if k:
                 done, waiting = waiting[:k], waiting[k:]
-                if publishers:
-                    frames = [f for f, _ in done]
-                    for pub in publishers:
-                        pub.publish(frames, est)
-                    if tared:
-                        latency.add(time.perf_counter_ns() - arrived_ns, k)
+                if publication is not None:
+                    publication.publish(estimate_records([f for f, _, _ in done], est,
+                                                         [a for _, _, a in done]))
                 if fh is not None:
                     _write_rows(fh, done, est)
                 n += k
@@ -268,57 +274,15 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "interrupted": stopped_by is not None,
         "signal": stopped_by,
         "reader": stats,
-        **({"published": [p.stats() for p in publishers],
-            "publish_latency_us": latency.summary_us()} if publishers else {}),
+        **(publication.finish() if publication is not None else {}),
     }
 
 
-class LatencySummary:
-    """Percentiles of a latency over a whole run in fixed memory (a run may last days).
-
-    A histogram with logarithmic bins, :attr:`BINS_PER_OCTAVE` per doubling from 1 ns to
-    2**:attr:`OCTAVES` ns; a percentile is the nearest-rank one, reported as its bin's geometric
-    centre (never above the maximum), so it is within 2**(1/128) - 1 = 0.55 % of the exact
-    nearest-rank value. The count and the maximum are exact. Memory: one array of 2,561
-    counters, whatever the number of samples.
-    """
-
-    BINS_PER_OCTAVE = 64
-    OCTAVES = 40  # 2**40 ns: 18 minutes
-
-    def __init__(self) -> None:
-        self.counts = np.zeros(self.BINS_PER_OCTAVE * self.OCTAVES + 1, dtype=np.int64)
-        self.n = 0
-        self.max_ns = 0
-
-    def add(self, latency_ns: int, count: int = 1) -> None:
-        """Record ``count`` samples of ``latency_ns`` (a batch published at once)."""
-        b = 0 if latency_ns < 1 else min(int(math.log2(latency_ns) * self.BINS_PER_OCTAVE) + 1,
-                                         len(self.counts) - 1)
-        self.counts[b] += count
-        self.n += count
-        self.max_ns = max(self.max_ns, latency_ns)
-
-    def percentile_ns(self, q: float) -> float:
-        """The nearest-rank ``q``-th percentile (0 < q <= 100), within 0.55 %."""
-        rank = max(1, math.ceil(q / 100.0 * self.n))
-        b = int(np.searchsorted(np.cumsum(self.counts), rank))
-        centre = 0.0 if b == 0 else 2.0 ** ((b - 0.5) / self.BINS_PER_OCTAVE)
-        return min(centre, float(self.max_ns))
-
-    def summary_us(self) -> dict[str, float | int | None]:
-        """``p50``, ``p99``, ``max`` in µs (0.1 µs) and ``n``, as ``stream --json`` reports."""
-        if not self.n:
-            return {"p50": None, "p99": None, "max": None, "n": 0}
-        return {"p50": round(self.percentile_ns(50) / 1000.0, 1),
-                "p99": round(self.percentile_ns(99) / 1000.0, 1),
-                "max": round(self.max_ns / 1000.0, 1), "n": self.n}
-
-
-def _write_rows(fh: TextIO, frames: list[tuple[Frame, float]], est: dict[str, np.ndarray]) -> None:
-    wl = fm_to_nm(np.array([f.wl_fm[:N_GRATINGS] for f, _ in frames], dtype=np.int64))
+def _write_rows(fh: TextIO, frames: list[tuple[Frame, float, int]], est: dict[str, np.ndarray]
+                ) -> None:
+    wl = fm_to_nm(np.array([f.wl_fm[:N_GRATINGS] for f, _, _ in frames], dtype=np.int64))
     rows = []
-    for i, (f, host) in enumerate(frames):
+    for i, (f, host, _) in enumerate(frames):
         x, y = est["x_mm"][i], est["y_mm"][i]
         rows.append(
             f"{f.seq},{f.t_us},{host:.6f},"

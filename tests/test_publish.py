@@ -8,6 +8,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +17,7 @@ import pytest
 from conftest import offline_fixed, start_emulator, wait_for_line
 from fbgforce import sim
 from fbgforce.cli import main
+from fbgforce.errors import InputError
 from fbgforce.interrogator import protocol as P
 from fbgforce.interrogator import publish as U
 
@@ -48,7 +50,7 @@ def test_datagram_layout_is_the_documented_one():
                        "crc32": 44}
     frames = [P.Frame(0xFFFFFFFF, -1, (0,) * 5), P.Frame(7, 123_456_789_012, (0,) * 5)]
     est = _est(2)
-    d = U.encode_datagrams(5, frames, est)
+    d = U.encode_datagrams(5, U.estimate_records(frames, est))
     assert d[1][:8] == b"FBGO\x01\x00\x30\x00"
     assert d[1][8:12] == (6).to_bytes(4, "little") and d[1][12:16] == (7).to_bytes(4, "little")
     assert d[1][16:24] == (123_456_789_012).to_bytes(8, "little")
@@ -233,7 +235,8 @@ def test_float_engine_estimates_are_rounded_to_the_datagram_units():
     assert ints["contact_conf_q15"].tolist() == [24576, 328]
     assert ints["force_mN"].tolist() == [12346, 0]
     assert ints["x_um"].tolist() == [10000, 0] and ints["y_um"].tolist() == [13501, 0]
-    rec = U.decode_datagram(U.encode_datagrams(0, [P.Frame(3, -1, (0,) * 5)] * 2, est)[1])
+    rec = U.decode_datagram(U.encode_datagrams(
+        0, U.estimate_records([P.Frame(3, -1, (0,) * 5)] * 2, est))[1])
     assert rec is not None and int(rec["status"]) == 8 and int(rec["t_us"]) == -1
 
 
@@ -289,8 +292,8 @@ class _TaredEstimator:
 class _CountingPublisher:
     sent = 0
 
-    def publish(self, frames: list[P.Frame], est: dict[str, np.ndarray]) -> None:
-        self.sent += len(frames)
+    def publish(self, records: np.ndarray) -> None:
+        self.sent += len(records)
 
     def stats(self) -> dict[str, int]:
         return {"sent": self.sent}
@@ -310,7 +313,7 @@ def test_stream_publish_memory_is_flat_over_a_million_samples():
     try:
         base = tracemalloc.get_traced_memory()[0]
         summary = run_stream(_SameBatchReader(batch, 500), _TaredEstimator(k), status=False,
-                             publishers=[pub], max_samples=10**6)
+                             publication=U.Outputs([pub]), max_samples=10**6)
         grown = tracemalloc.get_traced_memory()[1] - base  # the peak, while the loop ran
     finally:
         tracemalloc.stop()
@@ -319,7 +322,7 @@ def test_stream_publish_memory_is_flat_over_a_million_samples():
 
 
 def test_latency_summary_percentiles_are_within_the_documented_bound():
-    from fbgforce.interrogator.stream import LatencySummary
+    from fbgforce.interrogator.publish import LatencySummary
 
     rng = np.random.default_rng(3)
     values = np.concatenate([rng.lognormal(11, 1.0, 50_000), rng.uniform(0, 3, 20)]).astype(np.int64)
@@ -342,7 +345,8 @@ def test_receivers_count_duplicates_and_publisher_restarts_as_such(tmp_path):
     seqs = [7, 8, 9, 9, 10, 12, 13, 0, 1, 1, 2]
     accepted = [7, 8, 9, 10, 12, 13, 0, 1, 2]
     frame = P.Frame(3, 3000, (1_546_000_000,) * 5)
-    grams = [bytes(U.encode_datagrams(s, [frame], _est(1))[0]) for s in seqs]
+    grams = [bytes(U.encode_datagrams(s, U.estimate_records([frame], _est(1)))[0])
+             for s in seqs]
     for cmd in ([str(exe)], [sys.executable, str(EXAMPLE / "receiver.py")]):
         port = _free_udp_port()
         rx = _start_receiver(cmd + ["127.0.0.1", str(port), str(len(accepted))])
@@ -353,3 +357,114 @@ def test_receivers_count_duplicates_and_publisher_restarts_as_such(tmp_path):
         assert rx.returncode == 0, err
         assert [int(line.split(",")[0]) for line in out.splitlines()] == accepted, cmd
         assert "received 9, bad 0, missing 1, duplicates 2, restarts 1" in err, (cmd, err)
+
+
+def _records(first: int, n: int, arrived_ns: int) -> np.ndarray:
+    frames = [P.Frame(s, 1000 * s, (0,) * 5) for s in range(first, first + n)]
+    return U.estimate_records(frames, _est(n), arrived_ns)
+
+
+def _udp_sink() -> tuple[socket.socket, str]:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    sock.bind(("127.0.0.1", 0))
+    sock.settimeout(5)
+    return sock, f"udp://127.0.0.1:{sock.getsockname()[1]}"
+
+
+def _drain_sink(sock: socket.socket, n: int) -> list[np.void]:
+    got = []
+    while len(got) < n:
+        rec = U.decode_datagram(sock.recv(256))
+        assert rec is not None
+        got.append(rec)
+    return got
+
+
+def test_publisher_process_publishes_every_record_it_accepts_in_order():
+    """Batches of 1..7 records through a 64-record ring (it wraps many times): the child sends
+    every accepted record once, in order, with the estimate unchanged; a refused batch is
+    counted, and samples that waited for the tare count in no latency."""
+    sock, url = _udp_sink()
+    rng = np.random.default_rng(1)
+    pub = U.PublisherProcess([url], capacity=64)
+    accepted: list[np.ndarray] = []
+    seq = 0
+    try:
+        while seq < 3000:
+            n = int(rng.integers(1, 8))
+            batch = _records(seq, n, -1 if seq == 0 else time.monotonic_ns())
+            dropped = pub.dropped
+            pub.publish(batch)
+            if pub.dropped == dropped:
+                accepted.append(batch)
+            seq += n
+            if seq % 50 < 7:
+                time.sleep(0.002)  # let the child catch up now and then
+        summary = pub.finish()
+        sent = np.concatenate(accepted)
+        got = _drain_sink(sock, len(sent))
+    finally:
+        pub.close()
+        sock.close()
+    assert summary["published"][0]["sent"] == len(sent)
+    assert summary["publish_dropped"] == seq - len(sent)
+    assert len(sent) > 1000  # the ring was refilled many times over
+    assert [int(r["seq"]) for r in got] == list(range(len(sent)))
+    for k in ("sample_seq", "t_us", *U.ESTIMATE_FIELDS):
+        assert [int(r[k]) for r in got] == sent[k].astype(np.int64).tolist(), k
+    assert summary["publish_latency_us"]["n"] == len(sent) - len(accepted[0])
+
+
+def test_publisher_process_never_waits_for_a_stopped_child():
+    """The child stopped (SIGSTOP): publish returns at once, the ring takes what fits and the
+    rest is refused and counted; the child, continued, publishes what the ring held."""
+    import signal
+
+    sock, url = _udp_sink()
+    pub = U.PublisherProcess([url], capacity=64)
+    slowest = 0.0
+    try:
+        os.kill(pub._child.pid, signal.SIGSTOP)
+        try:
+            for i in range(100):
+                t0 = time.perf_counter()
+                pub.publish(_records(10 * i, 10, time.monotonic_ns()))
+                slowest = max(slowest, time.perf_counter() - t0)
+        finally:
+            os.kill(pub._child.pid, signal.SIGCONT)
+        summary = pub.finish()
+        got = _drain_sink(sock, 60)
+    finally:
+        pub.close()
+        sock.close()
+    assert slowest < 0.5, slowest  # a publish that waited would wait for ever
+    assert summary["published"][0]["sent"] == 60 and summary["publish_dropped"] == 940
+    assert [int(r["sample_seq"]) for r in got] == list(range(60))
+
+
+def test_publisher_process_reports_an_output_it_cannot_open():
+    with pytest.raises(InputError, match="expected udp://HOST:PORT") as err:
+        U.PublisherProcess(["udp://no-port"])
+    assert err.value.column == "--publish"
+
+
+def test_publisher_process_outlives_the_stop_signals_of_its_process_group():
+    """Ctrl-C and service managers signal the whole process group: the child ignores SIGINT and
+    SIGTERM and publishes everything the stream hands over until the stream ends it."""
+    import signal
+
+    sock, url = _udp_sink()
+    pub = U.PublisherProcess([url])
+    try:
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            os.kill(pub._child.pid, signum)
+        time.sleep(0.2)
+        pub.publish(_records(0, 10, time.monotonic_ns()))
+        summary = pub.finish()
+        got = _drain_sink(sock, 10)
+    finally:
+        pub.close()
+        sock.close()
+    assert summary["published"][0]["sent"] == 10 and summary["publish_dropped"] == 0
+    assert [int(r["sample_seq"]) for r in got] == list(range(10))

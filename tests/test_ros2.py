@@ -156,6 +156,72 @@ def test_names_follow_the_ros2_dds_mapping(monkeypatch):
     assert R.topic_in("/lab", "contact") == "/lab/contact"
 
 
+#: REP-2011 type hashes as ROS 2 Jazzy's message packages install them
+#: (share/<pkg>/msg/<Type>.json), quoted alike by several independent public ROS 2 clients.
+JAZZY_TYPE_HASHES = {
+    "builtin_interfaces/msg/Time":
+        "RIHS01_b106235e25a4c5ed35098aa0a61a3ee9c9b18d197f398b0e4206cea9acf9c197",
+    "std_msgs/msg/Header":
+        "RIHS01_f49fb3ae2cf070f793645ff749683ac6b06203e41c891e17701b1cb597ce6a01",
+    "geometry_msgs/msg/Vector3":
+        "RIHS01_cc12fe83e4c02719f1ce8070bfd14aecd40f75a96696a67a2a1f37f7dbb0765d",
+    "geometry_msgs/msg/WrenchStamped":
+        "RIHS01_8dc3deaf06b2ab281f9f9a742a8961c328ca7cec16e3fd6586d3a5c83fa78f77",
+}
+
+
+def test_type_hashes_are_the_ones_ros2_computes():
+    """The type hash announced for each topic is the one ROS 2 computes for the type (the
+    standard types against Jazzy's own), in the USER_DATA form rmw_dds_common parses."""
+    _need("rosbags")
+    for msg_type, digest in JAZZY_TYPE_HASHES.items():
+        assert R.type_hash(msg_type) == digest, msg_type
+    assert R.endpoint_user_data(R.WRENCH_TYPE) == \
+        f"typehash={JAZZY_TYPE_HASHES[R.WRENCH_TYPE]};".encode()
+    contact = R.type_hash(R.CONTACT_TYPE)
+    assert contact is not None and len(contact) == 71 and contact.startswith("RIHS01_")
+    assert contact not in JAZZY_TYPE_HASHES.values()
+
+
+def test_writers_announce_what_ros2_discovery_reads(dds):
+    """What a ROS 2 node learns of the publisher through DDS discovery (the DCPSPublication
+    built-in topic rmw_cyclonedds builds its graph from): the rt/ topics, the dds_ type
+    names, USER_DATA typehash=RIHS01_...; and XCDR1, the one data representation
+    rmw_cyclonedds's readers accept, with the documented QoS."""
+    _need("rosbags")
+    from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+    from cyclonedds.core import Policy
+    from cyclonedds.domain import DomainParticipant
+
+    from fbgforce.interrogator.ros2_dds import Ros2Publisher
+
+    ns = f"/fbgforce_discovery_{os.getpid()}"
+    pub = Ros2Publisher(f"ros2://{ns}?domain={dds}")
+    try:
+        dp = DomainParticipant(dds)
+        reader = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
+        found: dict = {}
+        deadline = time.monotonic() + 20
+        while len(found) < 2 and time.monotonic() < deadline:
+            for ep in reader.take(N=100):
+                if ep.topic_name.startswith(f"rt{ns}/"):
+                    found[ep.topic_name] = ep
+            time.sleep(0.05)
+    finally:
+        pub.close()
+    assert sorted(found) == [f"rt{ns}/contact", f"rt{ns}/wrench"]
+    for topic, msg_type in ((f"rt{ns}/wrench", R.WRENCH_TYPE), (f"rt{ns}/contact", R.CONTACT_TYPE)):
+        ep = found[topic]
+        assert ep.type_name == R.dds_type_name(msg_type)
+        qos = ep.qos
+        assert qos[Policy.Userdata].data == f"typehash={R.type_hash(msg_type)};".encode()
+        rep = qos[Policy.DataRepresentation]
+        assert rep.use_cdrv0_representation and not rep.use_xcdrv2_representation
+        assert qos[Policy.Reliability] == Policy.Reliability.Reliable(max_blocking_time=0)
+        assert qos[Policy.Durability] == Policy.Durability.TransientLocal
+        assert qos[Policy.History] == Policy.History.KeepLast(R.HISTORY_DEPTH)
+
+
 @pytest.mark.parametrize("url", ["ros2://lab", "ros2:///2lab", "ros2:///lab//tip",
                                  "ros2:///lab?domain=300", "ros2:///lab?qos=best"])
 def test_bad_ros2_url_exits_2_with_one_line(url, small_exported_dir, capsys):
@@ -300,6 +366,7 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     the first estimate after it carries DEVICE_RESTART; nothing else carries a link flag."""
     from fbgforce.interrogator import emulator as E
     from fbgforce.interrogator.hyperion import HyperionReader
+    from fbgforce.interrogator.publish import Outputs
     from fbgforce.interrogator.ros2_dds import Ros2Publisher
     from fbgforce.interrogator.stream import LiveEstimator, run_stream
 
@@ -315,7 +382,7 @@ def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     result: dict = {}
     worker = threading.Thread(target=lambda: result.update(run_stream(
         reader, LiveEstimator(small_exported_dir), max_samples=800, idle_timeout=10,
-        start_timeout=20, status=False, publishers=[pub])))
+        start_timeout=20, status=False, publication=Outputs([pub]))))
     worker.start()
     second = None
     try:
@@ -387,6 +454,10 @@ def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exporte
     rows: dict[str, list] = {}
     with AnyReader([out]) as reader:
         types = {c.topic: c.msgtype for c in reader.connections}
+        for c in reader.connections:  # rosbag2's channel metadata, parsed by rosbags
+            (qos,) = c.ext.offered_qos_profiles
+            assert (qos.history.name, qos.depth, qos.reliability.name, qos.durability.name) == \
+                ("KEEP_LAST", R.HISTORY_DEPTH, "RELIABLE", "TRANSIENT_LOCAL"), c.topic
         assert types == {"/fbgforce/peaks": "fbgforce_msgs/msg/Peaks",
                          "/fbgforce/stage": "fbgforce_msgs/msg/Stage",
                          "/fbgforce/contact": "fbgforce_msgs/msg/Contact",
@@ -411,6 +482,17 @@ def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exporte
     assert np.array_equal([m.status for m in contact], off["status"])
     assert np.array_equal(np.round([m.force * 1000 for m in contact]).astype(np.int64),
                           off["force_mN"])
+    with open(out, "rb") as fh:  # what rosbag2's MCAP storage reads besides the messages
+        from mcap.reader import make_reader
+
+        summary_rec = make_reader(fh).get_summary()
+    assert summary_rec is not None and summary_rec.statistics is not None
+    assert summary_rec.statistics.message_count == 4 * n
+    for ch in summary_rec.channels.values():
+        msg_type = summary_rec.schemas[ch.schema_id].name
+        assert ch.metadata["topic_type_hash"] == R.type_hash(msg_type), ch.topic
+        assert ch.metadata["offered_qos_profiles"] == R.OFFERED_QOS_PROFILES
+    assert summary_rec.channels and len(summary_rec.channels) == 4
     ds = dataset.load(out)
     assert ds.source.endswith("(rosbag2)") and len(ds) == n
     assert np.array_equal(np.rint(ds.wl_nm * 1e6).astype(np.int64), wl_fm)
