@@ -87,14 +87,15 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     from fbgforce.trainer.train import train
 
     out = tmp_path_factory.mktemp("small_model") / "model"
-    # One draw per net, no weight decay and no synthetic holds: the model whose fixed-point
+    # One draw per net, no weight decay and no synthetic holds or rests: the model whose fixed-point
     # errors docs/fixed-point.md tabulates and whose in-loop teleop error docs/teleop.md bounds
     # (the default force restarts and decay give another force net; the exporter's bound holds
     # for every draw, and the teleop bound is discussed in docs/teleop.md). Synthetic holds on
     # the 3 of its 16 training presses they would draw make its light touches noisier (a
     # 6.2 N output on the 2.8 N low_force presses, tests/test_hardcases.py).
     fm.save(train([small_dataset_path], epochs=40, seed=SMALL_SEED, filter="causal",
-                  progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0), out)
+                  progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0,
+                  rest_augment=0.0), out)
     return out
 
 
