@@ -15,10 +15,9 @@ Steps (:func:`import_logs`):
    cross-correlation of the load against the gratings' sum; each press timed on its loading
    and unloading flanks (the gratings combined for that press by their gain over their
    noise, a gain per flank so the pad's friction loop does not bias it) and a weighted
-   straight line through the presses; then the pad's lag (a causal response of unknown
-   shape: shares of first-order lags of the load over a range of time constants) fitted
-   over the whole log together with the clock's level, every press timed again against the
-   load through that lag, and the line through them is the clock;
+   straight line through the presses, which gives the drift; the level from the pad's lag
+   (a causal response of unknown shape: non-negative shares of first-order lags of the load
+   over a range of time constants) fitted over the whole log together with it;
 3. force and position are interpolated onto the interrogator's samples (:func:`stage_at`),
    contact is labelled by the dataset's rule (:func:`label_contact`) and presses numbered as
    the simulator numbers them (:func:`number_presses`);
@@ -433,8 +432,9 @@ def _binned(t: np.ndarray, v: np.ndarray, t0: float, n: int) -> np.ndarray:
 
 
 def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: float,
-            where: str) -> tuple[float, float, float]:
-    """Coarse offset (stage minus interrogator clock), its correlation and the second peak."""
+            where: str) -> tuple[float, float, float, float]:
+    """Coarse offset (stage minus interrogator clock), its correlation, the second peak and
+    the most negative correlation (a signal that falls under load)."""
     tf0, ts0 = float(t_f[0]), float(stage.t[0])
     nf = int((t_f[-1] - tf0) / COARSE_STEP_S) + 1
     ns = int((stage.t[-1] - ts0) / COARSE_STEP_S) + 1
@@ -482,7 +482,8 @@ def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: f
         den2 = r[best - 1] - 2 * r1 + r[best + 1]
         if den2 < 0:
             shift = 0.5 * (r[best - 1] - r[best + 1]) / den2
-    return float(offsets[best] + shift * COARSE_STEP_S), r1, max(r2, 0.0)
+    lowest = float(np.min(np.where(np.isfinite(r), r, np.inf)))
+    return float(offsets[best] + shift * COARSE_STEP_S), r1, max(r2, 0.0), lowest
 
 
 @dataclass
@@ -571,6 +572,20 @@ def _flanks(t_stage: np.ndarray, force: np.ndarray, press: _Press, load_fraction
             ~rising & (force < unload_fraction * press.peak_N))
 
 
+def _press_terms(t: np.ndarray, t0: float, creep: bool = True) -> np.ndarray:
+    """An orthonormal basis (columns) of what a press's gratings read besides its own load:
+    a level and a slope in time (temperature) and, with ``creep``, the creep the presses
+    before left in the pad, decaying from ``t0`` (the press's first sample) with each time
+    constant of :data:`LAG_TIME_CONSTANTS_S` (left at the previous press's place, so at a
+    scale of its own)."""
+    el = t - t0
+    taus = LAG_TIME_CONSTANTS_S if creep else ()
+    cols = np.column_stack([np.ones(t.size), el / max(float(el[-1]), 1e-9),
+                            *(np.exp(-el / tau) for tau in taus)])
+    u, sv, _ = np.linalg.svd(cols, full_matrices=False)
+    return u[:, sv > 1e-9 * sv[0]]
+
+
 def _fine(t: np.ndarray, signal: np.ndarray, stage_t: np.ndarray, stage_force: np.ndarray,
           press: _Press, tau0: float) -> tuple[float, float] | None:
     """One press's offset (stage minus interrogator clock) near ``tau0`` and its sd, from its
@@ -592,17 +607,16 @@ def _fine(t: np.ndarray, signal: np.ndarray, stage_t: np.ndarray, stage_force: n
         return None
     sel = load | unload
     # One level and slope in time over the press (temperature, the creep of the press
-    # before), set by the rests on both sides; one gain per flank (the pad's loop). The
-    # nuisance terms are projected out of both sides, leaving a 2x2 problem per offset.
-    tc = t[sel] - t[sel].mean()
-    tt = float(tc @ tc)
-    y = signal[sel] - signal[sel].mean()
-    y -= tc * (y @ tc) / tt
+    # before), set by the rests on both sides, and one gain per flank (the pad's loop). They
+    # are projected out of both sides, leaving a 2x2 problem per offset. (The creep's own
+    # terms would take the lag out here too, at the cost of most of each press's precision:
+    # the drift keeps it, the level is left to _lag_fit.)
+    basis = _press_terms(t[sel], float(t[0]), creep=False)
+    y = signal[sel] - basis @ (basis.T @ signal[sel])
     cols = []
     for m in (load[sel], unload[sel]):
         x = np.where(m[None, :], force[:, sel], 0.0)
-        x = x - x.mean(axis=1, keepdims=True)
-        x -= np.outer(x @ tc, tc) / tt
+        x -= (x @ basis) @ basis.T
         cols.append(x)
     g11, g22 = (cols[0] ** 2).sum(axis=1), (cols[1] ** 2).sum(axis=1)
     g12 = (cols[0] * cols[1]).sum(axis=1)
@@ -619,7 +633,7 @@ def _fine(t: np.ndarray, signal: np.ndarray, stage_t: np.ndarray, stage_force: n
     if curv <= 0:
         return None
     shift = 0.5 * (rss[k - 1] - rss[k + 1]) / (rss[k - 1] - 2 * rss[k] + rss[k + 1])
-    sigma2 = max(rss[k], 0.0) / max(n_used - 4, 1)
+    sigma2 = max(rss[k], 0.0) / max(n_used - basis.shape[1] - 2, 1)
     return float(taus[k] + shift * FINE_STEP_S), float(np.sqrt(2 * sigma2 / curv))
 
 
@@ -645,30 +659,54 @@ def _line_fit(c: np.ndarray, tau: np.ndarray, sd: np.ndarray, t_ref: float
     return float(a), float(d), use
 
 
+def _nonnegative_lstsq(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The non-negative ``x`` minimising ``x @ gram @ x - 2 rhs @ x`` (least squares from its
+    normal equations): every subset of free variables tried, the best feasible one kept
+    (exact, and cheap for the few lag time constants)."""
+    n = rhs.size
+    best, best_gain = np.zeros(n), 0.0
+    for mask in range(1, 1 << n):
+        free = np.array([(mask >> j) & 1 for j in range(n)], dtype=bool)
+        try:
+            x = np.linalg.solve(gram[np.ix_(free, free)], rhs[free])
+        except np.linalg.LinAlgError:
+            continue
+        gain = float(rhs[free] @ x)
+        if (x >= 0).all() and gain > best_gain:
+            best = np.zeros(n)
+            best[free] = x
+            best_gain = gain
+    return best
+
+
 def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a: float,
              d: float, t_ref: float) -> tuple[float, np.ndarray]:
     """The clock's level and the pad's lag, fitted together over every timed press.
 
     The gratings are modelled, press by press, as a gain per flank times the load plus
     shares of the lagged loads ``lags`` (one share each for the whole log: it is one pad),
-    with a level and slope in time per press. The clock's level is shifted over
+    with the press's own terms (:func:`_press_terms`: a level and slope in time, and the
+    creep left by the presses before at a scale of its own). The clock's level is shifted over
     ± :data:`LAG_SEARCH_S` from the line ``a + d (t - t_ref)``; the shift of least weighted
     squares (each press weighted by its residual variance without lag) is returned with the
-    shares. A lag moves a flank as a delay would, but not the start of a press, nor the rest
-    after it (where the creep shows alone): those set the level."""
+    shares. The shares are not negative: the gratings lag the load (their response to a step
+    of load rises to its final value without overshoot), they never lead it. A lag moves a
+    flank as a delay would, but not the start of a press, nor the rest after it (where the
+    creep shows alone): those set the level."""
     shifts = np.arange(-LAG_SEARCH_S, LAG_SEARCH_S + LAG_STEP_S / 2, LAG_STEP_S)
     n_lag = len(lags)
     prepared = []
     for w in windows:
         ts = w.t + a + d * (w.t - t_ref)
         sel = w.load | w.unload
-        tc = w.t[sel] - w.t[sel].mean()
+        basis = _press_terms(w.t[sel], float(w.t[0]))
         # The stage samples this press can reach, copied once: the search interpolates in
         # them many times over.
         j0, j1 = np.searchsorted(stage.t, [ts[0] - 2 * LAG_SEARCH_S, ts[-1] + 2 * LAG_SEARCH_S])
         j0, j1 = max(j0 - 1, 0), min(j1 + 1, stage.t.size)
         local = np.array([stage.t[j0:j1], stage.force_N[j0:j1], *(g[j0:j1] for g in lags)])
-        prepared.append((ts[sel], tc, w.signal[sel], w.load[sel], w.unload[sel], local))
+        y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
+        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local))
     rss = np.empty(shifts.size)
     shares = np.zeros((shifts.size, n_lag))
     weights = np.ones(len(prepared))
@@ -676,21 +714,23 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
         za = np.zeros((n_lag, n_lag))
         zb = np.zeros(n_lag)
         yy = 0.0
-        for k, (ts, tc, y, load, unload, local) in enumerate(prepared):
+        for k, (ts, basis, y, load, unload, local) in enumerate(prepared):
             f = np.interp(ts + shift, local[0], local[1])
-            nuis = np.column_stack([np.ones(tc.size), tc, f * load, f * unload])
-            z = np.column_stack([np.interp(ts + shift, local[0], lag) - f for lag in local[2:]])
-            q, _ = np.linalg.qr(nuis)
+            gains = np.column_stack([f * load, f * unload])
+            gains -= basis @ (basis.T @ gains)
+            q, _ = np.linalg.qr(gains)
             yr = y - q @ (q.T @ y)
+            z = np.column_stack([np.interp(ts + shift, local[0], lag) - f for lag in local[2:]])
+            z -= basis @ (basis.T @ z)
             zr = z - q @ (q.T @ z)
             if i == 0:
-                weights[k] = 1.0 / max(float(yr @ yr) / max(tc.size - 4, 1), 1e-12)
+                dof = max(ts.size - basis.shape[1] - 2, 1)
+                weights[k] = 1.0 / max(float(yr @ yr) / dof, 1e-12)
             za += weights[k] * zr.T @ zr
             zb += weights[k] * zr.T @ yr
             yy += weights[k] * float(yr @ yr)
-        sol = np.linalg.lstsq(za, zb, rcond=1e-10)[0]
-        shares[i] = sol
-        rss[i] = yy - float(zb @ sol)
+        shares[i] = _nonnegative_lstsq(za, zb)
+        rss[i] = yy - float(zb @ shares[i])
     k = int(np.argmin(rss))
     shift = float(shifts[k])
     if 0 < k < shifts.size - 1:
@@ -748,8 +788,13 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
     if not presses:
         raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N",
                          path=stage.path, column="force")
-    offset0, r1, r2 = _coarse(t_f, strain.sum(axis=1, dtype=np.float64), stage, max_offset_s,
-                              where)
+    # Gratings on the beams' other face are stretched by the load, not compressed: then the
+    # sum falls under load, and its negative is what correlates. (Each press combines the
+    # gratings by their own gains, whatever their signs: _press_signal.)
+    total = strain.sum(axis=1, dtype=np.float64)
+    offset0, r1, r2, lowest = _coarse(t_f, total, stage, max_offset_s, where)
+    if -lowest > r1:
+        offset0, r1, r2, _ = _coarse(t_f, -total, stage, max_offset_s, where)
     if r1 < MIN_CORRELATION:
         raise InputError(f"alignment failed: the load and the gratings' strain correlate at "
                          f"best {r1:.2f} (at least {MIN_CORRELATION:g} needed): are these logs "
@@ -777,29 +822,20 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
                          f"be timed against the gratings (at least {MIN_ALIGN_PRESSES} needed)",
                          path=where)
     arr = np.array(found)
-    a_flanks, d, _ = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
-    # The flanks alone time the load as the gratings see it through the pad, late by its lag.
-    # The lag's shares and the clock's level are fitted together over every press, and the
-    # presses are timed again against the load through that lag: the line through them is the
-    # clock, its level and its drift free of the lag whatever its time scale.
-    lags = [first_order_lag(stage.t, stage.force_N, tau) for tau in LAG_TIME_CONSTANTS_S]
-    shift, shares = _lag_fit(windows, stage, lags, a_flanks, d, t_ref)
-    through_pad = stage.force_N + sum(s * (lag - stage.force_N) for s, lag in zip(shares, lags))
-    found, _ = _time_presses(t_f, strain, stage.t, through_pad, presses, bounds, order, mids,
-                             a_flanks + shift, d, t_ref, follow=False)
-    if len(found) < MIN_ALIGN_PRESSES:
-        raise InputError(f"alignment failed: only {len(found)} of {len(presses)} presses could "
-                         f"be timed against the gratings (at least {MIN_ALIGN_PRESSES} needed)",
-                         path=where)
-    arr = np.array(found)
-    a, d, use = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
-    resid = arr[use, 1] - (a + d * (arr[use, 0] - t_ref))
+    a_flanks, d, use = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
+    resid = arr[use, 1] - (a_flanks + d * (arr[use, 0] - t_ref))
     w = np.hypot(arr[use, 2], PRESS_SIGMA_FLOOR_S) ** -2
     rms_ms = float(np.sqrt(np.average(resid**2, weights=w)) * 1e3)
     if use.sum() < max(MIN_ALIGN_PRESSES, 0.5 * len(found)) or rms_ms > MAX_RESIDUAL_MS:
         raise InputError(f"alignment ambiguous: the presses' offsets do not follow one clock "
                          f"(residual {rms_ms:.2g} ms, at most {MAX_RESIDUAL_MS:g}; "
                          f"{int(use.sum())} of {len(found)} presses agree)", path=where)
+    # The flanks time the load as the gratings see it through the pad: late by the pad's
+    # lag, by about as much all through the log, so the line's drift holds and its level
+    # does not. The level comes from the lag's shares fitted with it over every press.
+    lags = [first_order_lag(stage.t, stage.force_N, tau) for tau in LAG_TIME_CONSTANTS_S]
+    shift, shares = _lag_fit(windows, stage, lags, a_flanks, d, t_ref)
+    a = a_flanks + shift
     table = np.column_stack([arr, use])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
                      residual_ms=rms_ms, lag_ms=(a - a_flanks) * 1e3,

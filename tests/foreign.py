@@ -335,6 +335,62 @@ def write_csv(ds: Dataset, path: str | Path, seed: int = 0, crlf: bool = False) 
     return p
 
 
+def write_lab_logs(ds: Dataset, directory: str | Path, *, rate_hz: float = 500.0,
+                   offset_s: float = 0.1, drift_ppm: float = 80.0, jitter_s: float = 1e-4,
+                   seed: int = 0) -> dict[str, str]:
+    """The raw files a lab with this fingertip would have, for ``fbgforce import``: an
+    interrogator export (peaks in pm, its own column names in a shuffled order, a status text
+    column, comment lines) and a tab-separated stage log (load in mN, position in µm) on a
+    clock of its own.
+
+    The stage clock reads ``t + offset_s + drift_ppm * 1e-6 * (t - t[0])`` at interrogator time
+    ``t`` (the log's ``t_s``); it samples every ``1 / rate_hz`` on its own clock with Gaussian
+    jitter (clipped to 0.4 periods), from half a second before the interrogator's first sample
+    to half a second after its last; the load is the log's load cell, the position the press's
+    place, held through the rests. Returns the import's flags by key (``--fbg``,
+    ``--fbg-columns``, ``--fbg-unit``, ``--stage``, ...; the ``--map`` keys)."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    fbg_names = ["Ch 1 [pm]", "Ch 2 [pm]", "Ch 3 [pm]", "Ch 4 [pm]", "Ref [pm]"]
+    order = rng.permutation(6)
+    header = (["Timestamp [s]"] + fbg_names)
+    cols = [[f"{v:.6f}" for v in ds.t_s.tolist()]] + [
+        [f"{v * 1e3:.1f}" for v in ds.wl_nm[:, i].tolist()] for i in range(5)]
+    fbg_path = out / "interrogator.csv"
+    lines = ["# interrogator export, peaks in pm", "status," + ",".join(header[i] for i in order)]
+    lines += ["ok," + ",".join(r) for r in zip(*(cols[i] for i in order))]
+    fbg_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    # The place of each sample's press, held through its rest and after it.
+    x, y = ds.x_mm.copy(), ds.y_mm.copy()
+    for arr in (x, y):
+        ok = np.isfinite(arr)
+        idx = np.where(ok, np.arange(arr.size), 0)
+        np.maximum.accumulate(idx, out=idx)
+        arr[:] = np.where(ok[idx], arr[idx], arr[ok][0])
+    drift = drift_ppm * 1e-6
+    t0 = float(ds.t_s[0])
+    s0 = t0 - 0.5 + offset_s - 0.5 * drift
+    s1 = float(ds.t_s[-1]) + 0.5 + offset_s + drift * (float(ds.t_s[-1]) + 0.5 - t0)
+    k = np.arange(int(np.floor((s1 - s0) * rate_hz)) + 1)
+    jitter = np.clip(rng.normal(0.0, jitter_s, k.size), -0.4 / rate_hz, 0.4 / rate_hz)
+    t_stage = s0 + k / rate_hz + jitter
+    t_true = t0 + (t_stage - offset_s - t0) / (1.0 + drift)
+    force = np.interp(t_true, ds.t_s, ds.force_N, left=0.0, right=0.0)
+    j = np.clip(np.searchsorted(ds.t_s, t_true), 0, len(ds) - 1)
+    stage_path = out / "stage.tsv"
+    rows = [f"{a:.6f}\t{f * 1e3:.2f}\t{px * 1e3:.1f}\t{py * 1e3:.1f}"
+            for a, f, px, py in zip(t_stage.tolist(), force.tolist(), x[j].tolist(),
+                                    y[j].tolist())]
+    stage_path.write_text("clock_s\tFz_mN\tX_um\tY_um\n" + "\n".join(rows) + "\n",
+                          encoding="utf-8")
+    return {"fbg": str(fbg_path), "fbg-unit": "pm",
+            "fbg-columns": "t=Timestamp [s],wl1=Ch 1 [pm],wl2=Ch 2 [pm],wl3=Ch 3 [pm],"
+                           "wl4=Ch 4 [pm],wlT=Ref [pm]",
+            "stage": str(stage_path), "stage-columns": "t=clock_s,force=Fz_mN,x=X_um,y=Y_um",
+            "force-unit": "mN", "position-unit": "um"}
+
+
 #: Named variants: each differs from our simulator's calibration scene in several ways at once.
 VARIANTS: dict[str, Spec] = {
     # 1 kHz, moderate noise, drift, 0.5 N contact threshold, 50 N.
