@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -74,6 +76,40 @@ def test_import_stage_rates_and_offsets(smoke, tmp_path, rate_hz, offset_s, drif
     assert res["stage"]["rate_hz"] == pytest.approx(rate_hz, rel=1e-3)
     imp = dataset.load(tmp_path / "out.csv")
     assert len(imp) == len(smoke) and imp.n_presses == 20
+
+
+@pytest.mark.parametrize("magnitude,time_constant_s", [(0.2, 0.05), (0.15, 0.1)])
+def test_import_clock_is_free_of_the_pads_lag(tmp_path, magnitude, time_constant_s):
+    """A pad whose gratings lag the load far more than the calibration pad's (15-20 % relaxing
+    with 50-100 ms): the flanks alone put the clock 1.3-2.7 ms off; the lag fitted with the
+    clock's level keeps it within 1 ms."""
+    from fbgforce.sim import load_scene
+
+    scene = load_scene("smoke")
+    effects = {k: dict(v) for k, v in scene.effects.items()}
+    effects["viscoelastic"] = {"magnitude": magnitude, "time_constant_s": time_constant_s}
+    ds = simulate(scene.replace(effects=effects))
+    write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    res = _import(tmp_path)
+    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1]) <= 1.0
+    assert res["alignment"]["lag_ms"] > 1.0          # the lag was there, and taken out
+
+
+def test_import_a_foreign_fingertip(tmp_path):
+    """Logs from a fingertip the simulator does not make (tests/foreign.py: gratings stretched
+    by the load, a pad relaxing 8 % with 50 ms and rubbing 12 %, peaks in pm in its own
+    column order, a tab-separated stage log in mN and µm)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS["hysteretic_pad"], load_cell_noise_N=0.005)
+    ds = fg.log(fg.device(spec, fg.device_seed("hysteretic_pad")), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80,
+                              jitter_s=1e-4)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    assert res["presses"] == 40
 
 
 def test_import_pm_units_other_names_and_order(smoke, tmp_path):
