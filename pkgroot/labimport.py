@@ -381,7 +381,9 @@ class Alignment:
 
     ``correlation`` is the coarse peak's normalised correlation, ``second_peak`` the best
     one outside its lobe; ``residual_ms`` the weighted RMS of the per-press offsets about the
-    line; ``lag_ms`` how far the pad's lag moved the clock's level (the lag model's line
+    line; ``line_sd_ms`` the line's standard error at the log's ends, the larger (what the
+    presses' scatter leaves uncertain in the drift and level; the lag's fit adds to it);
+    ``lag_ms`` how far the pad's lag moved the clock's level (the lag model's line
     minus the plain flanks', at ``t_ref_s``); ``lag_shares`` the fitted share of the load
     reaching the gratings through each lag of :data:`LAG_TIME_CONSTANTS_S`;
     ``press_offsets`` the per-press estimates with the lag model (fbg time, offset, sd, used
@@ -393,6 +395,7 @@ class Alignment:
     correlation: float
     second_peak: float
     residual_ms: float
+    line_sd_ms: float
     lag_ms: float
     presses_used: int
     presses_rejected: int
@@ -407,7 +410,8 @@ class Alignment:
         """The JSON form (docs/cli.md#import)."""
         return {"offset_s": self.offset_s, "drift_ppm": self.drift * 1e6,
                 "correlation": self.correlation, "second_peak": self.second_peak,
-                "residual_ms": self.residual_ms, "lag_ms": self.lag_ms,
+                "residual_ms": self.residual_ms, "line_sd_ms": self.line_sd_ms,
+                "lag_ms": self.lag_ms,
                 "lag_shares": {f"{tau:g}": share for tau, share in
                                zip(LAG_TIME_CONSTANTS_S, self.lag_shares)},
                 "presses_used": self.presses_used,
@@ -830,6 +834,13 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
         raise InputError(f"alignment ambiguous: the presses' offsets do not follow one clock "
                          f"(residual {rms_ms:.2g} ms, at most {MAX_RESIDUAL_MS:g}; "
                          f"{int(use.sum())} of {len(found)} presses agree)", path=where)
+    # The line's covariance from the presses' sds, scaled up when they scatter more than
+    # their sds say.
+    design = np.column_stack([np.ones(int(use.sum())), arr[use, 0] - t_ref])
+    chi2 = float(np.sum(w * resid**2)) / max(int(use.sum()) - 2, 1)
+    cov = np.linalg.pinv(design.T @ (design * w[:, None])) * max(chi2, 1.0)
+    ends = np.array([[1.0, 0.0], [1.0, float(t_f[-1]) - t_ref]])
+    line_sd_ms = float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", ends, cov, ends))) * 1e3)
     # The flanks time the load as the gratings see it through the pad: late by the pad's
     # lag, by about as much all through the log, so the line's drift holds and its level
     # does not. The level comes from the lag's shares fitted with it over every press.
@@ -838,7 +849,7 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
     a = a_flanks + shift
     table = np.column_stack([arr, use])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
-                     residual_ms=rms_ms, lag_ms=(a - a_flanks) * 1e3,
+                     residual_ms=rms_ms, line_sd_ms=line_sd_ms, lag_ms=(a - a_flanks) * 1e3,
                      lag_shares=tuple(float(s) for s in shares),
                      presses_used=int(use.sum()),
                      presses_rejected=len(presses) - int(use.sum()), press_offsets=table)
