@@ -30,7 +30,9 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
   several files.
 
 Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
-:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept.
+:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept,
+:func:`write_lab_logs` for the raw interrogator and stage logs a lab would have of it (for
+``fbgforce import``: peaks in pm, another stage clock).
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
 :data:`IN_USE_VARIANTS` are recordings of ONE fingertip (:data:`IN_USE_FINGERTIP`, device
 seed 200) in the conditions it is used in: a calibration log, presses at constant temperature,
