@@ -349,8 +349,8 @@ def write_lab_logs(ds: Dataset, directory: str | Path, *, rate_hz: float = 500.0
     ``t`` (the log's ``t_s``); it samples every ``1 / rate_hz`` on its own clock with Gaussian
     jitter (clipped to 0.4 periods), from half a second before the interrogator's first sample
     to half a second after its last; the load is the log's load cell, the position the press's
-    place, held through the rests. Returns the import's flags by key (``--fbg``,
-    ``--fbg-columns``, ``--fbg-unit``, ``--stage``, ...; the ``--map`` keys)."""
+    place, held through the rests. Writes ``import.toml`` beside them (the ``--map`` that
+    imports them) and returns the same flags by key (``fbg``, ``fbg-columns``, ...)."""
     out = Path(directory)
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
@@ -386,11 +386,16 @@ def write_lab_logs(ds: Dataset, directory: str | Path, *, rate_hz: float = 500.0
                                     y[j].tolist())]
     stage_path.write_text("clock_s\tFz_mN\tX_um\tY_um\n" + "\n".join(rows) + "\n",
                           encoding="utf-8")
-    return {"fbg": str(fbg_path), "fbg-unit": "pm",
-            "fbg-columns": "t=Timestamp [s],wl1=Ch 1 [pm],wl2=Ch 2 [pm],wl3=Ch 3 [pm],"
-                           "wl4=Ch 4 [pm],wlT=Ref [pm]",
-            "stage": str(stage_path), "stage-columns": "t=clock_s,force=Fz_mN,x=X_um,y=Y_um",
-            "force-unit": "mN", "position-unit": "um"}
+    flags = {"fbg": str(fbg_path), "fbg-unit": "pm",
+             "fbg-columns": "t=Timestamp [s],wl1=Ch 1 [pm],wl2=Ch 2 [pm],wl3=Ch 3 [pm],"
+                            "wl4=Ch 4 [pm],wlT=Ref [pm]",
+             "stage": str(stage_path), "stage-columns": "t=clock_s,force=Fz_mN,x=X_um,y=Y_um",
+             "force-unit": "mN", "position-unit": "um"}
+    # The same as a --map file beside the logs (its paths relative to it).
+    (out / "import.toml").write_text("".join(
+        f'{k} = "{Path(v).name if k in ("fbg", "stage") else v}"\n' for k, v in flags.items()),
+        encoding="utf-8")
+    return flags
 
 
 #: Named variants: each differs from our simulator's calibration scene in several ways at once.
@@ -501,6 +506,14 @@ def main(argv: list[str] | None = None) -> int:
                          f"{', '.join(IN_USE_VARIANTS)})")
     ap.add_argument("--out", required=True, metavar="DIR", help="directory for the logs")
     ap.add_argument("--presses", type=int, default=60, help="presses per log (default 60)")
+    ap.add_argument("--lab-logs", action="store_true",
+                    help="write instead, per variant, the raw logs of its first log for "
+                         "fbgforce import (DIR/VARIANT/: interrogator.csv, stage.tsv, "
+                         "import.toml, clock.json with the true stage clock); the load cell "
+                         "with 5 mN of noise (the import labels contact above 50 mN)")
+    ap.add_argument("--stage-rate-hz", type=float, default=500.0)
+    ap.add_argument("--stage-offset-s", type=float, default=0.1)
+    ap.add_argument("--stage-drift-ppm", type=float, default=80.0)
     args = ap.parse_args(argv)
     unknown = [v for v in args.variants if v not in ALL_VARIANTS]
     if unknown:
@@ -510,6 +523,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.presses < 2:
         print("foreign.py: --presses must be at least 2", file=sys.stderr)
         return 2
+    if args.lab_logs:
+        for name in args.variants or list(VARIANTS):
+            spec = replace(ALL_VARIANTS[name], load_cell_noise_N=0.005)
+            n_press = min(args.presses, spec.presses_max or args.presses)
+            ds = log(device(spec, device_seed(name)), 1, n_press)
+            where = Path(args.out) / name
+            write_lab_logs(ds, where, rate_hz=args.stage_rate_hz, offset_s=args.stage_offset_s,
+                           drift_ppm=args.stage_drift_ppm, jitter_s=0.1 / args.stage_rate_hz)
+            (where / "clock.json").write_text(json.dumps(
+                {"offset_s": args.stage_offset_s, "drift_ppm": args.stage_drift_ppm,
+                 "duration_s": float(ds.t_s[-1] - ds.t_s[0]), "presses": n_press}) + "\n")
+            print(where)
+        return 0
     print(write_logs(args.out, args.variants or None, args.presses))
     return 0
 
