@@ -383,11 +383,10 @@ class Alignment:
     one outside its lobe; ``residual_ms`` the weighted RMS of the per-press offsets about the
     line; ``line_sd_ms`` the line's standard error at the log's ends, the larger (what the
     presses' scatter leaves uncertain in the drift and level; the lag's fit adds to it);
-    ``lag_ms`` how far the pad's lag moved the clock's level (the lag model's line
-    minus the plain flanks', at ``t_ref_s``); ``lag_shares`` the fitted share of the load
-    reaching the gratings through each lag of :data:`LAG_TIME_CONSTANTS_S`;
-    ``press_offsets`` the per-press estimates with the lag model (fbg time, offset, sd, used
-    on the line)."""
+    ``lag_ms`` how far the pad's lag moved the clock's level from the flanks' line;
+    ``lag_shares`` the fitted share of the load reaching the gratings through each lag of
+    :data:`LAG_TIME_CONSTANTS_S`; ``press_offsets`` the per-press estimates on the flanks
+    (fbg time, offset, sd, used on the line)."""
 
     offset_s: float
     drift: float
@@ -567,13 +566,14 @@ class _Window:
     unload: np.ndarray
 
 
-def _flanks(t_stage: np.ndarray, force: np.ndarray, press: _Press, load_fraction: float,
-            unload_fraction: float) -> tuple[np.ndarray, np.ndarray]:
-    """Masks of the loading flank below ``load_fraction`` of the peak and the unloading flank
-    below ``unload_fraction`` (the rests beside them included)."""
+def _flanks(t_stage: np.ndarray, force: np.ndarray, press: _Press
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of the loading flank below :data:`LOAD_FRACTION` of the press's peak and the
+    unloading flank below :data:`UNLOAD_FRACTION` (the rests beside them included), at the
+    stage-clock times ``t_stage`` where the load is ``force``."""
     rising = t_stage <= press.peak_s
-    return (rising & (force < load_fraction * press.peak_N),
-            ~rising & (force < unload_fraction * press.peak_N))
+    return (rising & (force < LOAD_FRACTION * press.peak_N),
+            ~rising & (force < UNLOAD_FRACTION * press.peak_N))
 
 
 def _press_terms(t: np.ndarray, t0: float, creep: bool = True) -> np.ndarray:
@@ -590,23 +590,19 @@ def _press_terms(t: np.ndarray, t0: float, creep: bool = True) -> np.ndarray:
     return u[:, sv > 1e-9 * sv[0]]
 
 
-def _fine(t: np.ndarray, signal: np.ndarray, stage_t: np.ndarray, stage_force: np.ndarray,
-          press: _Press, tau0: float) -> tuple[float, float] | None:
+def _fine(t: np.ndarray, signal: np.ndarray, stage: StageLog, press: _Press, tau0: float
+          ) -> tuple[float, float] | None:
     """One press's offset (stage minus interrogator clock) near ``tau0`` and its sd, from its
     loading flank below :data:`LOAD_FRACTION` of its peak and its unloading flank below
     :data:`UNLOAD_FRACTION` with the rests beside them: a gain per flank (so the pad's
     friction loop does not bias it) and one level and slope in time; None when the best
-    offset lies on the edge of the search or the press holds too little signal.
-
-    ``stage_force`` is the load on the stage's samples ``stage_t``, or the load through the
-    pad's fitted lag (:func:`align`)."""
+    offset lies on the edge of the search or the press holds too little signal."""
     if t.size < 10:
         return None
     steps = np.arange(-FINE_WINDOW_S, FINE_WINDOW_S + FINE_STEP_S / 2, FINE_STEP_S)
     taus = tau0 + steps
-    force = np.interp(t[None, :] + taus[:, None], stage_t, stage_force)
-    load, unload = _flanks(t + tau0, force[steps.size // 2], press, LOAD_FRACTION,
-                           UNLOAD_FRACTION)
+    force = np.interp(t[None, :] + taus[:, None], stage.t, stage.force_N)
+    load, unload = _flanks(t + tau0, force[steps.size // 2], press)
     if load.sum() < 5 or unload.sum() < 5:
         return None
     sel = load | unload
@@ -744,19 +740,20 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
     return shift, shares[k]
 
 
-def _time_presses(t_f: np.ndarray, strain: np.ndarray, stage_t: np.ndarray,
-                  stage_force: np.ndarray, presses: list[_Press],
-                  bounds: list[tuple[float, float]], order: np.ndarray, mids: np.ndarray,
-                  a: float, d: float, t_ref: float, follow: bool
-                  ) -> tuple[list[tuple[float, float, float]], list[_Window]]:
-    """Time each press (:func:`_fine`) around the line ``a + d (t - t_ref)``, in ``order``;
-    with ``follow`` the line is refitted every 5 presses to those already done (so drift is
-    followed over any length). Returns (fbg time, offset, sd) per timed press and its
-    window."""
+def _time_presses(t_f: np.ndarray, strain: np.ndarray, stage: StageLog,
+                  presses: list[_Press], bounds: list[tuple[float, float]], offset0: float,
+                  t_ref: float) -> tuple[list[tuple[float, float, float]], list[_Window]]:
+    """Time each press (:func:`_fine`), outwards from the middle of the log, each searched
+    around the line fitted to those already done (refitted every 5 presses, starting from
+    ``offset0`` without drift), so drift is followed over any length. Returns (fbg time,
+    offset, sd) per timed press and its window."""
+    mids = np.array([0.5 * (p.on_s + p.off_s) for p in presses]) - offset0
+    order = np.argsort(np.abs(mids - 0.5 * (t_f[0] + t_f[-1])), kind="stable")
     found: list[tuple[float, float, float]] = []
     windows: list[_Window] = []
+    a, d = offset0, 0.0
     for n_done, k in enumerate(order):
-        if follow and n_done >= 5 and n_done % 5 == 0 and found:
+        if n_done >= 5 and n_done % 5 == 0 and found:
             arr = np.array(found)
             a, d, _ = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
         tau0 = a + d * (mids[k] - t_ref)
@@ -765,14 +762,14 @@ def _time_presses(t_f: np.ndarray, strain: np.ndarray, stage_t: np.ndarray,
         t = t_f[i0:i1]
         if t.size < 10:
             continue
-        signal = _press_signal(t, strain[i0:i1], np.interp(t + tau0, stage_t, stage_force))
+        signal = _press_signal(t, strain[i0:i1], np.interp(t + tau0, stage.t, stage.force_N))
         if signal is None:
             continue
-        res = _fine(t, signal, stage_t, stage_force, presses[k], tau0)
+        res = _fine(t, signal, stage, presses[k], tau0)
         if res is not None:
             found.append((float(mids[k]), res[0], res[1]))
-            load, unload = _flanks(t + res[0], np.interp(t + res[0], stage_t, stage_force),
-                                   presses[k], LOAD_FRACTION, UNLOAD_FRACTION)
+            load, unload = _flanks(t + res[0], np.interp(t + res[0], stage.t, stage.force_N),
+                                   presses[k])
             windows.append(_Window(presses[k], t, signal, load, unload))
     return found, windows
 
@@ -809,18 +806,13 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
                          "at a fixed period cannot be aligned: vary the forces or the rests "
                          "(fbgforce protocol)", path=where)
     t_ref = float(t_f[0])
-    # Presses are timed outwards from the middle of the log, each searched around the line
-    # fitted to those already done.
-    mids = np.array([0.5 * (p.on_s + p.off_s) for p in presses]) - offset0
-    order = np.argsort(np.abs(mids - 0.5 * (t_f[0] + t_f[-1])), kind="stable")
     bounds = [(p.on_s - FLANK_REST_S, p.off_s + FLANK_REST_S) for p in presses]
     # Never reach into the neighbouring press: clip to the middle of each rest.
     for k in range(len(presses) - 1):
         gap_mid = 0.5 * (presses[k].off_s + presses[k + 1].on_s)
         bounds[k] = (bounds[k][0], min(bounds[k][1], gap_mid))
         bounds[k + 1] = (max(bounds[k + 1][0], gap_mid), bounds[k + 1][1])
-    found, windows = _time_presses(t_f, strain, stage.t, stage.force_N, presses, bounds,
-                                   order, mids, offset0, 0.0, t_ref, follow=True)
+    found, windows = _time_presses(t_f, strain, stage, presses, bounds, offset0, t_ref)
     if len(found) < MIN_ALIGN_PRESSES:
         raise InputError(f"alignment failed: only {len(found)} of {len(presses)} presses could "
                          f"be timed against the gratings (at least {MIN_ALIGN_PRESSES} needed)",
@@ -845,11 +837,12 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
     # lag, by about as much all through the log, so the line's drift holds and its level
     # does not. The level comes from the lag's shares fitted with it over every press.
     lags = [first_order_lag(stage.t, stage.force_N, tau) for tau in LAG_TIME_CONSTANTS_S]
-    shift, shares = _lag_fit(windows, stage, lags, a_flanks, d, t_ref)
+    shift, shares = _lag_fit([w for w, u in zip(windows, use) if u], stage, lags, a_flanks,
+                             d, t_ref)
     a = a_flanks + shift
     table = np.column_stack([arr, use])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
-                     residual_ms=rms_ms, line_sd_ms=line_sd_ms, lag_ms=(a - a_flanks) * 1e3,
+                     residual_ms=rms_ms, line_sd_ms=line_sd_ms, lag_ms=shift * 1e3,
                      lag_shares=tuple(float(s) for s in shares),
                      presses_used=int(use.sum()),
                      presses_rejected=len(presses) - int(use.sum()), press_offsets=table)
