@@ -559,7 +559,6 @@ class _Window:
     """One press's interrogator samples used to time it: times, the combined gratings
     (:func:`_press_signal`), and the flanks' samples (loading, unloading) on the line."""
 
-    press: _Press
     t: np.ndarray
     signal: np.ndarray
     load: np.ndarray
@@ -679,6 +678,16 @@ def _nonnegative_lstsq(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return best
 
 
+def _flank_basis(ts: np.ndarray, basis: np.ndarray, load: np.ndarray, unload: np.ndarray,
+                 local: np.ndarray, shift: float) -> np.ndarray:
+    """An orthonormal basis (columns) of a press's flank gains at the shifted stage times
+    ``ts + shift``, its own terms ``basis`` taken out (``local``: its stage times and loads)."""
+    f = np.interp(ts + shift, local[0], local[1])
+    gains = np.column_stack([f * load, f * unload])
+    gains -= basis @ (basis.T @ gains)
+    return np.linalg.qr(gains)[0]
+
+
 def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a: float,
              d: float, t_ref: float) -> tuple[float, np.ndarray]:
     """The clock's level and the pad's lag, fitted together over every timed press.
@@ -706,29 +715,27 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
         j0, j1 = max(j0 - 1, 0), min(j1 + 1, stage.t.size)
         local = np.array([stage.t[j0:j1], stage.force_N[j0:j1], *(g[j0:j1] for g in lags)])
         y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
-        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local))
+        # Weighted by its residual variance on the line without lag.
+        q = _flank_basis(ts[sel], basis, w.load[sel], w.unload[sel], local, 0.0)
+        yr = y - q @ (q.T @ y)
+        weight = 1.0 / max(float(yr @ yr) / max(int(sel.sum()) - basis.shape[1] - 2, 1), 1e-12)
+        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local, weight))
     rss = np.empty(shifts.size)
     shares = np.zeros((shifts.size, n_lag))
-    weights = np.ones(len(prepared))
     for i, shift in enumerate(shifts):
         za = np.zeros((n_lag, n_lag))
         zb = np.zeros(n_lag)
         yy = 0.0
-        for k, (ts, basis, y, load, unload, local) in enumerate(prepared):
+        for ts, basis, y, load, unload, local, weight in prepared:
+            q = _flank_basis(ts, basis, load, unload, local, shift)
             f = np.interp(ts + shift, local[0], local[1])
-            gains = np.column_stack([f * load, f * unload])
-            gains -= basis @ (basis.T @ gains)
-            q, _ = np.linalg.qr(gains)
             yr = y - q @ (q.T @ y)
             z = np.column_stack([np.interp(ts + shift, local[0], lag) - f for lag in local[2:]])
             z -= basis @ (basis.T @ z)
             zr = z - q @ (q.T @ z)
-            if i == 0:
-                dof = max(ts.size - basis.shape[1] - 2, 1)
-                weights[k] = 1.0 / max(float(yr @ yr) / dof, 1e-12)
-            za += weights[k] * zr.T @ zr
-            zb += weights[k] * zr.T @ yr
-            yy += weights[k] * float(yr @ yr)
+            za += weight * zr.T @ zr
+            zb += weight * zr.T @ yr
+            yy += weight * float(yr @ yr)
         shares[i] = _nonnegative_lstsq(za, zb)
         rss[i] = yy - float(zb @ shares[i])
     k = int(np.argmin(rss))
@@ -770,7 +777,7 @@ def _time_presses(t_f: np.ndarray, strain: np.ndarray, stage: StageLog,
             found.append((float(mids[k]), res[0], res[1]))
             load, unload = _flanks(t + res[0], np.interp(t + res[0], stage.t, stage.force_N),
                                    presses[k])
-            windows.append(_Window(presses[k], t, signal, load, unload))
+            windows.append(_Window(t, signal, load, unload))
     return found, windows
 
 
