@@ -82,9 +82,6 @@ FLANK_REST_S = 0.06
 LAG_TIME_CONSTANTS_S = (0.03, 0.1, 0.3, 1.0)
 LAG_SEARCH_S = 0.01
 LAG_STEP_S = 0.0005
-#: The level leaves the flanks' line only when that improves the weighted squares by more
-#: than this (chi-squared with one degree of freedom at 95 %).
-LAG_EVIDENCE = 3.84
 #: Presses lighter than this are not used to align (too little signal above the noise).
 ALIGN_MIN_PEAK_N = 0.5
 MIN_ALIGN_PRESSES = 3
@@ -701,7 +698,7 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
     creep left by the presses before at a scale of its own). The clock's level is shifted over
     ± :data:`LAG_SEARCH_S` from the line ``a + d (t - t_ref)``; the shift of least weighted
     squares (each press weighted by its residual variance without lag) is returned with the
-    shares, or none when it gains less than :data:`LAG_EVIDENCE` over the line. The shares are not negative: the gratings lag the load (their response to a step
+    shares. The shares are not negative: the gratings lag the load (their response to a step
     of load rises to its final value without overshoot), they never lead it. A lag moves a
     flank as a delay would, but not the start of a press, nor the rest after it (where the
     creep shows alone): those set the level."""
@@ -742,11 +739,6 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
         shares[i] = _nonnegative_lstsq(za, zb)
         rss[i] = yy - float(zb @ shares[i])
     k = int(np.argmin(rss))
-    # Each press weighed by its noise, the squares are chi-squared: a level that fits better
-    # by less than chance would (one parameter, 95 %) stays on the flanks' line.
-    on_line = int(np.argmin(np.abs(shifts)))
-    if rss[on_line] - rss[k] < LAG_EVIDENCE:
-        return 0.0, shares[on_line]
     shift = float(shifts[k])
     if 0 < k < shifts.size - 1:
         den = rss[k - 1] - 2 * rss[k] + rss[k + 1]
