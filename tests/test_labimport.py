@@ -81,8 +81,8 @@ def test_import_stage_rates_and_offsets(smoke, tmp_path, rate_hz, offset_s, drif
 @pytest.mark.parametrize("magnitude,time_constant_s", [(0.2, 0.05), (0.15, 0.1)])
 def test_import_clock_is_free_of_the_pads_lag(tmp_path, magnitude, time_constant_s):
     """A pad whose gratings lag the load far more than the calibration pad's (15-20 % relaxing
-    with 50-100 ms): the flanks alone put the clock 1.3-2.7 ms off; the lag fitted with the
-    clock's level keeps it within 1 ms."""
+    with 50-100 ms, which puts the flanks' line several ms early): the lag fitted with the
+    clock's level keeps the clock within 1 ms."""
     from fbgforce.sim import load_scene
 
     scene = load_scene("smoke")
