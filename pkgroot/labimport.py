@@ -8,14 +8,16 @@ once to write), and the stage log is a :class:`StageLog` of arrays. :class:`CsvF
 
 Steps (:func:`import_logs`):
 
-1. the gratings' strain proxy (:func:`strain_proxy`: the temperature-compensated relative
-   shifts of the four strain gratings, summed) is kept with the interrogator's times;
+1. the four strain gratings' relative shifts (:func:`grating_strain`) are kept with the
+   interrogator's times;
 2. :func:`align` estimates the stage clock against the interrogator's,
    ``t_stage = t_fbg + offset + drift (t_fbg - t_fbg[0])``: a coarse normalised
-   cross-correlation of the load against the proxy, then each press timed on its loading and
-   unloading flanks (a gain per flank, so the pad's friction loop does not bias it), a
-   weighted straight-line fit, and the line's level set from the loading flanks alone (where
-   a viscoelastic pad lags the load least);
+   cross-correlation of the load against the gratings' sum; each press timed on its loading
+   and unloading flanks (the gratings combined for that press by their gain over their
+   noise, a gain per flank so the pad's friction loop does not bias it) and a weighted
+   straight line through the presses, which gives the drift; the level from the pad's lag
+   (a causal response of unknown shape: non-negative shares of first-order lags of the load
+   over a range of time constants) fitted over the whole log together with it;
 3. force and position are interpolated onto the interrogator's samples (:func:`stage_at`),
    contact is labelled by the dataset's rule (:func:`label_contact`) and presses numbered as
    the simulator numbers them (:func:`number_presses`);
@@ -72,10 +74,14 @@ FINE_WINDOW_S = 0.02
 FINE_STEP_S = 0.0005
 LOAD_FRACTION = 0.5
 UNLOAD_FRACTION = 0.3
-#: The offset itself is taken from the loading flanks alone up to this fraction, where a
-#: viscoelastic pad lags the load least (the unloading flank carries its creep).
-ONSET_FRACTION = 0.3
 FLANK_REST_S = 0.06
+#: The pad's lag: the gratings follow the load through a causal response of unknown shape,
+#: modelled as the load itself plus first-order lags of it with these time constants (s), each
+#: with a share fitted over the whole log together with the clock's level (searched over
+#: ± LAG_SEARCH_S in steps of LAG_STEP_S around the plain flanks' line).
+LAG_TIME_CONSTANTS_S = (0.03, 0.1, 0.3, 1.0)
+LAG_SEARCH_S = 0.01
+LAG_STEP_S = 0.0005
 #: Presses lighter than this are not used to align (too little signal above the noise).
 ALIGN_MIN_PEAK_N = 0.5
 MIN_ALIGN_PRESSES = 3
@@ -319,24 +325,25 @@ def read_stage_csv(path: str | Path, columns: Mapping[str, str], force_unit: str
         raise InputError("no data rows after the header", path=str(path))
     values = np.concatenate([v for v, _ in parts])
     pos = POSITION_UNITS[position_unit]
-    return StageLog(t=values[:, 0], force_N=values[:, 1] * FORCE_UNITS[force_unit],
+    # Contiguous columns: the alignment interpolates in them press by press.
+    return StageLog(t=np.ascontiguousarray(values[:, 0]),
+                    force_N=values[:, 1] * FORCE_UNITS[force_unit],
                     x_mm=values[:, 2] * pos, y_mm=values[:, 3] * pos,
                     line=np.concatenate([ln for _, ln in parts]), path=str(path))
 
 
 # ------------------------------------------------------------------------------ array steps
 
-def strain_proxy(wl_nm: np.ndarray, ref_nm: np.ndarray) -> np.ndarray:
-    """The gratings' load signal: minus the sum over the four strain gratings of their
-    relative shift from ``ref_nm``, in parts per million. Positive under load (the gratings
-    are compressed) and about proportional to the normal force wherever it acts (the beam
-    forces sum to it).
+def grating_strain(wl_nm: np.ndarray, ref_nm: np.ndarray) -> np.ndarray:
+    """The load signal of each strain grating: minus its relative shift from ``ref_nm``, in
+    parts per million, (n, 4) float32. Positive under load (the gratings are compressed);
+    their sum is about proportional to the normal force wherever it acts (the beam forces sum
+    to it).
 
     The temperature grating is not subtracted sample by sample: temperature moves slowly, so
-    the coarse high-pass and the level fitted to each flank take it out, while subtracting it
-    would add its noise four times over (doubling the proxy's noise)."""
-    rel = wl_nm[:, :4] / ref_nm[:4] - 1.0
-    return -rel.sum(axis=1) * 1e6
+    the coarse high-pass and the level fitted to each press take it out, while subtracting it
+    would add its noise to every grating."""
+    return (-(wl_nm[:, :4] / ref_nm[:4] - 1.0) * 1e6).astype(np.float32)
 
 
 def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
@@ -374,9 +381,12 @@ class Alignment:
 
     ``correlation`` is the coarse peak's normalised correlation, ``second_peak`` the best
     one outside its lobe; ``residual_ms`` the weighted RMS of the per-press offsets about the
-    line; ``lag_ms`` how much later the loading flanks alone put the stage clock than both
-    flanks do (the pad's lag on the full flanks, taken out); ``press_offsets`` the per-press
-    estimates (fbg time, offset, sd, used on the line, loading-flank offset, its sd)."""
+    line; ``line_sd_ms`` the line's standard error at the log's ends, the larger (what the
+    presses' scatter leaves uncertain in the drift and level; the lag's fit adds to it);
+    ``lag_ms`` how far the pad's lag moved the clock's level from the flanks' line;
+    ``lag_shares`` the fitted share of the load reaching the gratings through each lag of
+    :data:`LAG_TIME_CONSTANTS_S`; ``press_offsets`` the per-press estimates on the flanks
+    (fbg time, offset, sd, used on the line)."""
 
     offset_s: float
     drift: float
@@ -384,9 +394,11 @@ class Alignment:
     correlation: float
     second_peak: float
     residual_ms: float
+    line_sd_ms: float
     lag_ms: float
     presses_used: int
     presses_rejected: int
+    lag_shares: tuple[float, ...] = ()
     press_offsets: np.ndarray = field(default_factory=lambda: np.empty((0, 4)))
 
     def to_stage(self, t_fbg: np.ndarray) -> np.ndarray:
@@ -397,7 +409,10 @@ class Alignment:
         """The JSON form (docs/cli.md#import)."""
         return {"offset_s": self.offset_s, "drift_ppm": self.drift * 1e6,
                 "correlation": self.correlation, "second_peak": self.second_peak,
-                "residual_ms": self.residual_ms, "lag_ms": self.lag_ms,
+                "residual_ms": self.residual_ms, "line_sd_ms": self.line_sd_ms,
+                "lag_ms": self.lag_ms,
+                "lag_shares": {f"{tau:g}": share for tau, share in
+                               zip(LAG_TIME_CONSTANTS_S, self.lag_shares)},
                 "presses_used": self.presses_used,
                 "presses_rejected": self.presses_rejected}
 
@@ -420,8 +435,9 @@ def _binned(t: np.ndarray, v: np.ndarray, t0: float, n: int) -> np.ndarray:
 
 
 def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: float,
-            where: str) -> tuple[float, float, float]:
-    """Coarse offset (stage minus interrogator clock), its correlation and the second peak."""
+            where: str) -> tuple[float, float, float, float]:
+    """Coarse offset (stage minus interrogator clock), its correlation, the second peak and
+    the most negative correlation (a signal that falls under load)."""
     tf0, ts0 = float(t_f[0]), float(stage.t[0])
     nf = int((t_f[-1] - tf0) / COARSE_STEP_S) + 1
     ns = int((stage.t[-1] - ts0) / COARSE_STEP_S) + 1
@@ -469,7 +485,8 @@ def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: f
         den2 = r[best - 1] - 2 * r1 + r[best + 1]
         if den2 < 0:
             shift = 0.5 * (r[best - 1] - r[best + 1]) / den2
-    return float(offsets[best] + shift * COARSE_STEP_S), r1, max(r2, 0.0)
+    lowest = float(np.min(np.where(np.isfinite(r), r, np.inf)))
+    return float(offsets[best] + shift * COARSE_STEP_S), r1, max(r2, 0.0), lowest
 
 
 @dataclass
@@ -496,53 +513,117 @@ def _stage_presses(stage: StageLog) -> list[_Press]:
     return out
 
 
-def _fine(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, press: _Press, lo_s: float,
-          hi_s: float, tau0: float, load_fraction: float, unload_fraction: float
+def first_order_lag(t: np.ndarray, x: np.ndarray, tau_s: float) -> np.ndarray:
+    """``x`` sampled at times ``t`` through a first-order lag of time constant ``tau_s``
+    (``y' = (x - y) / tau``, starting at ``x[0]``; one backward step per interval, so
+    irregular intervals are followed exactly for an input held over each interval).
+
+    Vectorised in blocks short enough (:math:`300 \\tau`) that the exponential weights stay
+    within floating point range."""
+    t = np.asarray(t, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    out = np.empty_like(x)
+    decay = np.exp(-np.diff(t, prepend=t[0]) / tau_s)
+    y = float(x[0])
+    start = 0
+    while start < t.size:
+        stop = int(np.searchsorted(t, t[start] + 300.0 * tau_s, side="right"))
+        stop = max(stop, start + 1)
+        # y_n = E_n (y_prev + sum_k (1 - a_k) x_k / E_k), E_n = prod_{k <= n} a_k.
+        e = np.exp(-(t[start:stop] - t[start]) / tau_s) * decay[start]
+        out[start:stop] = e * (y + np.cumsum((1.0 - decay[start:stop]) * x[start:stop] / e))
+        y = float(out[stop - 1])
+        start = stop
+    return out
+
+
+def _press_signal(t: np.ndarray, strain: np.ndarray, force: np.ndarray) -> np.ndarray | None:
+    """The four gratings combined for one press, in newtons: each grating's gain on the load
+    (with a level and slope in time) over its noise variance weights it (the matched
+    combination: a press near one support loads one grating most, and an equal sum would add
+    the noise of the others). None when the gratings do not follow the load."""
+    x = np.column_stack([np.ones(t.size), t - t[0], force])
+    coef, *_ = np.linalg.lstsq(x, strain.astype(np.float64), rcond=None)
+    resid = strain - x @ coef
+    var = np.maximum((resid**2).sum(axis=0) / max(t.size - 3, 1), 1e-12)
+    gain = coef[2]
+    w = gain / var
+    norm = float(w @ gain)
+    if not np.isfinite(norm) or norm <= 0:
+        return None
+    return strain.astype(np.float64) @ (w / norm)
+
+
+@dataclass
+class _Window:
+    """One press's interrogator samples used to time it: times, the combined gratings
+    (:func:`_press_signal`), and the flanks' samples (loading, unloading) on the line."""
+
+    t: np.ndarray
+    signal: np.ndarray
+    load: np.ndarray
+    unload: np.ndarray
+
+
+def _flanks(t_stage: np.ndarray, force: np.ndarray, press: _Press
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Masks of the loading flank below :data:`LOAD_FRACTION` of the press's peak and the
+    unloading flank below :data:`UNLOAD_FRACTION` (the rests beside them included), at the
+    stage-clock times ``t_stage`` where the load is ``force``."""
+    rising = t_stage <= press.peak_s
+    return (rising & (force < LOAD_FRACTION * press.peak_N),
+            ~rising & (force < UNLOAD_FRACTION * press.peak_N))
+
+
+def _press_terms(t: np.ndarray, t0: float, creep: bool = True) -> np.ndarray:
+    """An orthonormal basis (columns) of what a press's gratings read besides its own load:
+    a level and a slope in time (temperature) and, with ``creep``, the creep the presses
+    before left in the pad, decaying from ``t0`` (the press's first sample) with each time
+    constant of :data:`LAG_TIME_CONSTANTS_S` (left at the previous press's place, so at a
+    scale of its own)."""
+    el = t - t0
+    taus = LAG_TIME_CONSTANTS_S if creep else ()
+    cols = np.column_stack([np.ones(t.size), el / max(float(el[-1]), 1e-9),
+                            *(np.exp(-el / tau) for tau in taus)])
+    u, sv, _ = np.linalg.svd(cols, full_matrices=False)
+    return u[:, sv > 1e-9 * sv[0]]
+
+
+def _fine(t: np.ndarray, signal: np.ndarray, stage: StageLog, press: _Press, tau0: float
           ) -> tuple[float, float] | None:
-    """One press's offset (stage minus interrogator clock) near ``tau0`` and its sd, from
-    its loading flank below ``load_fraction`` of its peak and its unloading flank below
-    ``unload_fraction`` (0: none) with the rests beside them: a gain per flank (so the pad's
+    """One press's offset (stage minus interrogator clock) near ``tau0`` and its sd, from its
+    loading flank below :data:`LOAD_FRACTION` of its peak and its unloading flank below
+    :data:`UNLOAD_FRACTION` with the rests beside them: a gain per flank (so the pad's
     friction loop does not bias it) and one level and slope in time; None when the best
     offset lies on the edge of the search or the press holds too little signal."""
-    i0, i1 = np.searchsorted(t_f, [lo_s - tau0, hi_s - tau0])
-    t, p = t_f[i0:i1], proxy[i0:i1]
     if t.size < 10:
         return None
     steps = np.arange(-FINE_WINDOW_S, FINE_WINDOW_S + FINE_STEP_S / 2, FINE_STEP_S)
     taus = tau0 + steps
     force = np.interp(t[None, :] + taus[:, None], stage.t, stage.force_N)
-    centre = force[steps.size // 2]
-    rising = t + tau0 <= press.peak_s
-    load = rising & (centre < load_fraction * press.peak_N)
-    unload = ~rising & (centre < unload_fraction * press.peak_N)
-    if load.sum() < 5 or (unload_fraction > 0 and unload.sum() < 5):
+    load, unload = _flanks(t + tau0, force[steps.size // 2], press)
+    if load.sum() < 5 or unload.sum() < 5:
         return None
     sel = load | unload
     # One level and slope in time over the press (temperature, the creep of the press
-    # before), set by the rests on both sides; one gain per flank (the pad's loop). The
-    # nuisance terms are projected out of both sides, leaving a 2x2 problem per offset.
-    tc = t[sel] - t[sel].mean()
-    tt = float(tc @ tc)
-    y = p[sel] - p[sel].mean()
-    y -= tc * (y @ tc) / tt
+    # before), set by the rests on both sides, and one gain per flank (the pad's loop). They
+    # are projected out of both sides, leaving a 2x2 problem per offset. (The creep's own
+    # terms would take the lag out here too, at the cost of most of each press's precision:
+    # the drift keeps it, the level is left to _lag_fit.)
+    basis = _press_terms(t[sel], float(t[0]), creep=False)
+    y = signal[sel] - basis @ (basis.T @ signal[sel])
     cols = []
     for m in (load[sel], unload[sel]):
         x = np.where(m[None, :], force[:, sel], 0.0)
-        x = x - x.mean(axis=1, keepdims=True)
-        x -= np.outer(x @ tc, tc) / tt
+        x -= (x @ basis) @ basis.T
         cols.append(x)
     g11, g22 = (cols[0] ** 2).sum(axis=1), (cols[1] ** 2).sum(axis=1)
     g12 = (cols[0] * cols[1]).sum(axis=1)
     h1, h2 = cols[0] @ y, cols[1] @ y
     det = g11 * g22 - g12 * g12
-    if unload_fraction == 0:
-        if (g11 <= 1e-12).any():
-            return None
-        rss = float(y @ y) - h1 * h1 / g11
-    else:
-        if (det <= 1e-12 * np.maximum(g11 * g22, 1e-300)).any():
-            return None
-        rss = float(y @ y) - (g22 * h1 * h1 - 2 * g12 * h1 * h2 + g11 * h2 * h2) / det
+    if (det <= 1e-12 * np.maximum(g11 * g22, 1e-300)).any():
+        return None
+    rss = float(y @ y) - (g22 * h1 * h1 - 2 * g12 * h1 * h2 + g11 * h2 * h2) / det
     n_used = int(sel.sum())
     k = int(np.argmin(rss))
     if k == 0 or k == taus.size - 1:
@@ -551,7 +632,7 @@ def _fine(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, press: _Press, lo
     if curv <= 0:
         return None
     shift = 0.5 * (rss[k - 1] - rss[k + 1]) / (rss[k - 1] - 2 * rss[k] + rss[k + 1])
-    sigma2 = max(rss[k], 0.0) / max(n_used - 4, 1)
+    sigma2 = max(rss[k], 0.0) / max(n_used - basis.shape[1] - 2, 1)
     return float(taus[k] + shift * FINE_STEP_S), float(np.sqrt(2 * sigma2 / curv))
 
 
@@ -577,9 +658,133 @@ def _line_fit(c: np.ndarray, tau: np.ndarray, sd: np.ndarray, t_ref: float
     return float(a), float(d), use
 
 
-def align(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, *,
+def _nonnegative_lstsq(gram: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The non-negative ``x`` minimising ``x @ gram @ x - 2 rhs @ x`` (least squares from its
+    normal equations): every subset of free variables tried, the best feasible one kept
+    (exact, and cheap for the few lag time constants)."""
+    n = rhs.size
+    best, best_gain = np.zeros(n), 0.0
+    for mask in range(1, 1 << n):
+        free = np.array([(mask >> j) & 1 for j in range(n)], dtype=bool)
+        try:
+            x = np.linalg.solve(gram[np.ix_(free, free)], rhs[free])
+        except np.linalg.LinAlgError:
+            continue
+        gain = float(rhs[free] @ x)
+        if (x >= 0).all() and gain > best_gain:
+            best = np.zeros(n)
+            best[free] = x
+            best_gain = gain
+    return best
+
+
+def _flank_basis(ts: np.ndarray, basis: np.ndarray, load: np.ndarray, unload: np.ndarray,
+                 local: np.ndarray, shift: float) -> np.ndarray:
+    """An orthonormal basis (columns) of a press's flank gains at the shifted stage times
+    ``ts + shift``, its own terms ``basis`` taken out (``local``: its stage times and loads)."""
+    f = np.interp(ts + shift, local[0], local[1])
+    gains = np.column_stack([f * load, f * unload])
+    gains -= basis @ (basis.T @ gains)
+    return np.linalg.qr(gains)[0]
+
+
+def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a: float,
+             d: float, t_ref: float) -> tuple[float, np.ndarray]:
+    """The clock's level and the pad's lag, fitted together over every timed press.
+
+    The gratings are modelled, press by press, as a gain per flank times the load plus
+    shares of the lagged loads ``lags`` (one share each for the whole log: it is one pad),
+    with the press's own terms (:func:`_press_terms`: a level and slope in time, and the
+    creep left by the presses before at a scale of its own). The clock's level is shifted over
+    ± :data:`LAG_SEARCH_S` from the line ``a + d (t - t_ref)``; the shift of least weighted
+    squares (each press weighted by its residual variance without lag) is returned with the
+    shares. The shares are not negative: the gratings lag the load (their response to a step
+    of load rises to its final value without overshoot), they never lead it. A lag moves a
+    flank as a delay would, but not the start of a press, nor the rest after it (where the
+    creep shows alone): those set the level."""
+    shifts = np.arange(-LAG_SEARCH_S, LAG_SEARCH_S + LAG_STEP_S / 2, LAG_STEP_S)
+    n_lag = len(lags)
+    prepared = []
+    for w in windows:
+        ts = w.t + a + d * (w.t - t_ref)
+        sel = w.load | w.unload
+        basis = _press_terms(w.t[sel], float(w.t[0]))
+        # The stage samples this press can reach, copied once: the search interpolates in
+        # them many times over.
+        j0, j1 = np.searchsorted(stage.t, [ts[0] - 2 * LAG_SEARCH_S, ts[-1] + 2 * LAG_SEARCH_S])
+        j0, j1 = max(j0 - 1, 0), min(j1 + 1, stage.t.size)
+        local = np.array([stage.t[j0:j1], stage.force_N[j0:j1], *(g[j0:j1] for g in lags)])
+        y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
+        # Weighted by its residual variance on the line without lag.
+        q = _flank_basis(ts[sel], basis, w.load[sel], w.unload[sel], local, 0.0)
+        yr = y - q @ (q.T @ y)
+        weight = 1.0 / max(float(yr @ yr) / max(int(sel.sum()) - basis.shape[1] - 2, 1), 1e-12)
+        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local, weight))
+    rss = np.empty(shifts.size)
+    shares = np.zeros((shifts.size, n_lag))
+    for i, shift in enumerate(shifts):
+        za = np.zeros((n_lag, n_lag))
+        zb = np.zeros(n_lag)
+        yy = 0.0
+        for ts, basis, y, load, unload, local, weight in prepared:
+            q = _flank_basis(ts, basis, load, unload, local, shift)
+            f = np.interp(ts + shift, local[0], local[1])
+            yr = y - q @ (q.T @ y)
+            z = np.column_stack([np.interp(ts + shift, local[0], lag) - f for lag in local[2:]])
+            z -= basis @ (basis.T @ z)
+            zr = z - q @ (q.T @ z)
+            za += weight * zr.T @ zr
+            zb += weight * zr.T @ yr
+            yy += weight * float(yr @ yr)
+        shares[i] = _nonnegative_lstsq(za, zb)
+        rss[i] = yy - float(zb @ shares[i])
+    k = int(np.argmin(rss))
+    shift = float(shifts[k])
+    if 0 < k < shifts.size - 1:
+        den = rss[k - 1] - 2 * rss[k] + rss[k + 1]
+        if den > 0:
+            shift += 0.5 * (rss[k - 1] - rss[k + 1]) / den * LAG_STEP_S
+    return shift, shares[k]
+
+
+def _time_presses(t_f: np.ndarray, strain: np.ndarray, stage: StageLog,
+                  presses: list[_Press], bounds: list[tuple[float, float]], offset0: float,
+                  t_ref: float) -> tuple[list[tuple[float, float, float]], list[_Window]]:
+    """Time each press (:func:`_fine`), outwards from the middle of the log, each searched
+    around the line fitted to those already done (refitted every 5 presses, starting from
+    ``offset0`` without drift), so drift is followed over any length. Returns (fbg time,
+    offset, sd) per timed press and its window."""
+    mids = np.array([0.5 * (p.on_s + p.off_s) for p in presses]) - offset0
+    order = np.argsort(np.abs(mids - 0.5 * (t_f[0] + t_f[-1])), kind="stable")
+    found: list[tuple[float, float, float]] = []
+    windows: list[_Window] = []
+    a, d = offset0, 0.0
+    for n_done, k in enumerate(order):
+        if n_done >= 5 and n_done % 5 == 0 and found:
+            arr = np.array(found)
+            a, d, _ = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
+        tau0 = a + d * (mids[k] - t_ref)
+        lo, hi = bounds[k]
+        i0, i1 = np.searchsorted(t_f, [lo - tau0, hi - tau0])
+        t = t_f[i0:i1]
+        if t.size < 10:
+            continue
+        signal = _press_signal(t, strain[i0:i1], np.interp(t + tau0, stage.t, stage.force_N))
+        if signal is None:
+            continue
+        res = _fine(t, signal, stage, presses[k], tau0)
+        if res is not None:
+            found.append((float(mids[k]), res[0], res[1]))
+            load, unload = _flanks(t + res[0], np.interp(t + res[0], stage.t, stage.force_N),
+                                   presses[k])
+            windows.append(_Window(t, signal, load, unload))
+    return found, windows
+
+
+def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
           max_offset_s: float = MAX_OFFSET_S, where: str = "<logs>") -> Alignment:
-    """Estimate the stage clock against the interrogator's from the data (module docstring).
+    """Estimate the stage clock against the interrogator's from the data (module docstring);
+    ``strain`` is :func:`grating_strain` of the interrogator's samples ``t_f``.
 
     Refuses (:class:`InputError`) logs that share no time, a stage log without presses, a
     correlation below :data:`MIN_CORRELATION`, a second correlation peak within
@@ -591,7 +796,13 @@ def align(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, *,
     if not presses:
         raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N",
                          path=stage.path, column="force")
-    offset0, r1, r2 = _coarse(t_f, proxy, stage, max_offset_s, where)
+    # Gratings on the beams' other face are stretched by the load, not compressed: then the
+    # sum falls under load, and its negative is what correlates. (Each press combines the
+    # gratings by their own gains, whatever their signs: _press_signal.)
+    total = strain.sum(axis=1, dtype=np.float64)
+    offset0, r1, r2, lowest = _coarse(t_f, total, stage, max_offset_s, where)
+    if -lowest > r1:
+        offset0, r1, r2, _ = _coarse(t_f, -total, stage, max_offset_s, where)
     if r1 < MIN_CORRELATION:
         raise InputError(f"alignment failed: the load and the gratings' strain correlate at "
                          f"best {r1:.2f} (at least {MIN_CORRELATION:g} needed): are these logs "
@@ -602,60 +813,45 @@ def align(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, *,
                          "at a fixed period cannot be aligned: vary the forces or the rests "
                          "(fbgforce protocol)", path=where)
     t_ref = float(t_f[0])
-    # Refine press by press, outwards from the middle of the log, each one searched around
-    # the line fitted to those already done (so drift is followed over any length).
-    mids = np.array([0.5 * (p.on_s + p.off_s) for p in presses]) - offset0
-    order = np.argsort(np.abs(mids - 0.5 * (t_f[0] + t_f[-1])), kind="stable")
     bounds = [(p.on_s - FLANK_REST_S, p.off_s + FLANK_REST_S) for p in presses]
     # Never reach into the neighbouring press: clip to the middle of each rest.
     for k in range(len(presses) - 1):
         gap_mid = 0.5 * (presses[k].off_s + presses[k + 1].on_s)
         bounds[k] = (bounds[k][0], min(bounds[k][1], gap_mid))
         bounds[k + 1] = (max(bounds[k + 1][0], gap_mid), bounds[k + 1][1])
-    found: list[tuple[float, float, float]] = []
-    onsets: list[float] = []
-    onset_sd: list[float] = []
-    a, d = offset0, 0.0
-    for n_done, k in enumerate(order):
-        if n_done >= 5 and n_done % 5 == 0 and found:
-            arr = np.array(found)
-            a, d, _ = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
-        tau0 = a + d * (mids[k] - t_ref)
-        res = _fine(t_f, proxy, stage, presses[k], *bounds[k], tau0, LOAD_FRACTION,
-                    UNLOAD_FRACTION)
-        if res is not None:
-            found.append((float(mids[k]), res[0], res[1]))
-            onset = _fine(t_f, proxy, stage, presses[k], *bounds[k], res[0], ONSET_FRACTION, 0.0)
-            onsets.append(np.nan if onset is None else onset[0])
-            onset_sd.append(np.nan if onset is None else onset[1])
+    found, windows = _time_presses(t_f, strain, stage, presses, bounds, offset0, t_ref)
     if len(found) < MIN_ALIGN_PRESSES:
         raise InputError(f"alignment failed: only {len(found)} of {len(presses)} presses could "
                          f"be timed against the gratings (at least {MIN_ALIGN_PRESSES} needed)",
                          path=where)
     arr = np.array(found)
-    a, d, use = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
-    resid = arr[use, 1] - (a + d * (arr[use, 0] - t_ref))
+    a_flanks, d, use = _line_fit(arr[:, 0], arr[:, 1], arr[:, 2], t_ref)
+    resid = arr[use, 1] - (a_flanks + d * (arr[use, 0] - t_ref))
     w = np.hypot(arr[use, 2], PRESS_SIGMA_FLOOR_S) ** -2
     rms_ms = float(np.sqrt(np.average(resid**2, weights=w)) * 1e3)
     if use.sum() < max(MIN_ALIGN_PRESSES, 0.5 * len(found)) or rms_ms > MAX_RESIDUAL_MS:
         raise InputError(f"alignment ambiguous: the presses' offsets do not follow one clock "
                          f"(residual {rms_ms:.2g} ms, at most {MAX_RESIDUAL_MS:g}; "
                          f"{int(use.sum())} of {len(found)} presses agree)", path=where)
-    # Both flanks time each press precisely and give the drift, but a viscoelastic pad lags
-    # the load on them; the loading flanks alone lag least: they set the line's level.
-    on, on_sd = np.array(onsets), np.array(onset_sd)
-    ok = use & np.isfinite(on)
-    lag_s = 0.0
-    if ok.sum() >= MIN_ALIGN_PRESSES:
-        r = on[ok] - (a + d * (arr[ok, 0] - t_ref))
-        sig = np.hypot(on_sd[ok], PRESS_SIGMA_FLOOR_S)
-        keep = np.abs(r - np.median(r)) <= 4 * np.maximum(sig, 1.4826 * np.median(
-            np.abs(r - np.median(r))))
-        lag_s = float(np.average(r[keep], weights=sig[keep] ** -2))
-        a += lag_s
-    table = np.column_stack([arr, use, on, on_sd])
+    # The line's covariance from the presses' sds, scaled up when they scatter more than
+    # their sds say.
+    design = np.column_stack([np.ones(int(use.sum())), arr[use, 0] - t_ref])
+    chi2 = float(np.sum(w * resid**2)) / max(int(use.sum()) - 2, 1)
+    cov = np.linalg.pinv(design.T @ (design * w[:, None])) * max(chi2, 1.0)
+    ends = np.array([[1.0, 0.0], [1.0, float(t_f[-1]) - t_ref]])
+    line_sd_ms = float(np.sqrt(np.max(np.einsum("ij,jk,ik->i", ends, cov, ends))) * 1e3)
+    # The flanks time the load as the gratings see it through the pad: late by the pad's
+    # lag, by about as much all through the log, so the line's drift holds and its level
+    # does not. The level comes from the lag's shares fitted with it over every press.
+    lags = [first_order_lag(stage.t, stage.force_N, tau) for tau in LAG_TIME_CONSTANTS_S]
+    shift, shares = _lag_fit([w for w, u in zip(windows, use) if u], stage, lags, a_flanks,
+                             d, t_ref)
+    a = a_flanks + shift
+    table = np.column_stack([arr, use])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,
-                     residual_ms=rms_ms, lag_ms=lag_s * 1e3, presses_used=int(use.sum()),
+                     residual_ms=rms_ms, line_sd_ms=line_sd_ms, lag_ms=shift * 1e3,
+                     lag_shares=tuple(float(s) for s in shares),
+                     presses_used=int(use.sum()),
                      presses_rejected=len(presses) - int(use.sum()), press_offsets=table)
 
 
@@ -742,7 +938,7 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                          f"it (contact is a force above {fds.CONTACT_THRESHOLD_N:g} N)",
                          path=stage.path, column="force")
     # Pass 1: times and the strain proxy (the wavelength table is not kept).
-    ts, proxies, goods, lines = [], [], [], []
+    ts, strains, goods, lines = [], [], [], []
     ref = None
     bar = tqdm(desc="import: read", unit="row", unit_scale=True, file=sys.stderr,
                disable=None if progress is None else not progress)
@@ -752,15 +948,15 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         if ref is None and ok.any():
             ref = np.median(wl[ok][:1000], axis=0)
         ts.append(t)
-        proxies.append(strain_proxy(np.where(ok[:, None], wl, ref if ref is not None else 1.0),
-                                    ref if ref is not None else np.ones(5)))
+        strains.append(grating_strain(np.where(ok[:, None], wl, ref if ref is not None else 1.0),
+                                      ref if ref is not None else np.ones(5)))
         goods.append(ok)
         lines.append(line)
         bar.update(t.size)
     bar.close()
     if not ts:
         raise InputError("no data rows after the header", path=fbg.path)
-    t_f, proxy = np.concatenate(ts), np.concatenate(proxies)
+    t_f, strain = np.concatenate(ts), np.concatenate(strains)
     good, line_f = np.concatenate(goods), np.concatenate(lines)
     check_times(t_f, line_f, fbg.path, "interrogator")
     if good.mean() < 0.99:
@@ -771,7 +967,7 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                          line=int(line_f[i]))
     if ref is None:  # pragma: no cover - excluded by the 99 % check above
         raise InputError("no valid wavelength row", path=fbg.path)
-    al = align(t_f, proxy, stage, max_offset_s=max_offset_s, where=where)
+    al = align(t_f, strain, stage, max_offset_s=max_offset_s, where=where)
     # Contact and presses over the whole log (one bool and one id per sample).
     gap_s = STAGE_GAP_INTERVALS * stage_dt
     force, _, _, reason = stage_at(stage, al.to_stage(t_f), gap_s)
@@ -782,7 +978,7 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                          f"{fds.CONTACT_THRESHOLD_N:g} N after alignment", path=where)
     press = np.zeros(t_f.size, dtype=np.int64)
     press[keep] = number_presses(t_f[keep], force[keep])
-    del force, proxy
+    del force, strain
     # Pass 2: resample and write chunk by chunk.
     source = (f"import: {fbg.path} + {stage.path} offset={al.offset_s:.6f}s "
               f"drift={al.drift * 1e6:.2f}ppm")

@@ -30,7 +30,9 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
   several files.
 
 Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
-:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept.
+:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept,
+:func:`write_lab_logs` for the raw interrogator and stage logs a lab would have of it (for
+``fbgforce import``: peaks in pm, another stage clock).
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
 :data:`IN_USE_VARIANTS` are recordings of ONE fingertip (:data:`IN_USE_FINGERTIP`, device
 seed 200) in the conditions it is used in: a calibration log, presses at constant temperature,
@@ -335,6 +337,67 @@ def write_csv(ds: Dataset, path: str | Path, seed: int = 0, crlf: bool = False) 
     return p
 
 
+def write_lab_logs(ds: Dataset, directory: str | Path, *, rate_hz: float = 500.0,
+                   offset_s: float = 0.1, drift_ppm: float = 80.0, jitter_s: float = 1e-4,
+                   seed: int = 0) -> dict[str, str]:
+    """The raw files a lab with this fingertip would have, for ``fbgforce import``: an
+    interrogator export (peaks in pm, its own column names in a shuffled order, a status text
+    column, comment lines) and a tab-separated stage log (load in mN, position in µm) on a
+    clock of its own.
+
+    The stage clock reads ``t + offset_s + drift_ppm * 1e-6 * (t - t[0])`` at interrogator time
+    ``t`` (the log's ``t_s``); it samples every ``1 / rate_hz`` on its own clock with Gaussian
+    jitter (clipped to 0.4 periods), from half a second before the interrogator's first sample
+    to half a second after its last; the load is the log's load cell, the position the press's
+    place, held through the rests. Writes ``import.toml`` beside them (the ``--map`` that
+    imports them) and returns the same flags by key (``fbg``, ``fbg-columns``, ...)."""
+    out = Path(directory)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    fbg_names = ["Ch 1 [pm]", "Ch 2 [pm]", "Ch 3 [pm]", "Ch 4 [pm]", "Ref [pm]"]
+    order = rng.permutation(6)
+    header = (["Timestamp [s]"] + fbg_names)
+    cols = [[f"{v:.6f}" for v in ds.t_s.tolist()]] + [
+        [f"{v * 1e3:.1f}" for v in ds.wl_nm[:, i].tolist()] for i in range(5)]
+    fbg_path = out / "interrogator.csv"
+    lines = ["# interrogator export, peaks in pm", "status," + ",".join(header[i] for i in order)]
+    lines += ["ok," + ",".join(r) for r in zip(*(cols[i] for i in order))]
+    fbg_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    # The place of each sample's press, held through its rest and after it.
+    x, y = ds.x_mm.copy(), ds.y_mm.copy()
+    for arr in (x, y):
+        ok = np.isfinite(arr)
+        idx = np.where(ok, np.arange(arr.size), 0)
+        np.maximum.accumulate(idx, out=idx)
+        arr[:] = np.where(ok[idx], arr[idx], arr[ok][0])
+    drift = drift_ppm * 1e-6
+    t0 = float(ds.t_s[0])
+    s0 = t0 - 0.5 + offset_s - 0.5 * drift
+    s1 = float(ds.t_s[-1]) + 0.5 + offset_s + drift * (float(ds.t_s[-1]) + 0.5 - t0)
+    k = np.arange(int(np.floor((s1 - s0) * rate_hz)) + 1)
+    jitter = np.clip(rng.normal(0.0, jitter_s, k.size), -0.4 / rate_hz, 0.4 / rate_hz)
+    t_stage = s0 + k / rate_hz + jitter
+    t_true = t0 + (t_stage - offset_s - t0) / (1.0 + drift)
+    force = np.interp(t_true, ds.t_s, ds.force_N, left=0.0, right=0.0)
+    j = np.clip(np.searchsorted(ds.t_s, t_true), 0, len(ds) - 1)
+    stage_path = out / "stage.tsv"
+    rows = [f"{a:.6f}\t{f * 1e3:.2f}\t{px * 1e3:.1f}\t{py * 1e3:.1f}"
+            for a, f, px, py in zip(t_stage.tolist(), force.tolist(), x[j].tolist(),
+                                    y[j].tolist())]
+    stage_path.write_text("clock_s\tFz_mN\tX_um\tY_um\n" + "\n".join(rows) + "\n",
+                          encoding="utf-8")
+    flags = {"fbg": str(fbg_path), "fbg-unit": "pm",
+             "fbg-columns": "t=Timestamp [s],wl1=Ch 1 [pm],wl2=Ch 2 [pm],wl3=Ch 3 [pm],"
+                            "wl4=Ch 4 [pm],wlT=Ref [pm]",
+             "stage": str(stage_path), "stage-columns": "t=clock_s,force=Fz_mN,x=X_um,y=Y_um",
+             "force-unit": "mN", "position-unit": "um"}
+    # The same as a --map file beside the logs (its paths relative to it).
+    (out / "import.toml").write_text("".join(
+        f'{k} = "{Path(v).name if k in ("fbg", "stage") else v}"\n' for k, v in flags.items()),
+        encoding="utf-8")
+    return flags
+
+
 #: Named variants: each differs from our simulator's calibration scene in several ways at once.
 VARIANTS: dict[str, Spec] = {
     # 1 kHz, moderate noise, drift, 0.5 N contact threshold, 50 N.
@@ -443,6 +506,14 @@ def main(argv: list[str] | None = None) -> int:
                          f"{', '.join(IN_USE_VARIANTS)})")
     ap.add_argument("--out", required=True, metavar="DIR", help="directory for the logs")
     ap.add_argument("--presses", type=int, default=60, help="presses per log (default 60)")
+    ap.add_argument("--lab-logs", action="store_true",
+                    help="write instead, per variant, the raw logs of its first log for "
+                         "fbgforce import (DIR/VARIANT/: interrogator.csv, stage.tsv, "
+                         "import.toml, clock.json with the true stage clock); the load cell "
+                         "with 5 mN of noise (the import labels contact above 50 mN)")
+    ap.add_argument("--stage-rate-hz", type=float, default=500.0)
+    ap.add_argument("--stage-offset-s", type=float, default=0.1)
+    ap.add_argument("--stage-drift-ppm", type=float, default=80.0)
     args = ap.parse_args(argv)
     unknown = [v for v in args.variants if v not in ALL_VARIANTS]
     if unknown:
@@ -452,6 +523,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.presses < 2:
         print("foreign.py: --presses must be at least 2", file=sys.stderr)
         return 2
+    if args.lab_logs:
+        for name in args.variants or list(VARIANTS):
+            spec = replace(ALL_VARIANTS[name], load_cell_noise_N=0.005)
+            n_press = min(args.presses, spec.presses_max or args.presses)
+            ds = log(device(spec, device_seed(name)), 1, n_press)
+            where = Path(args.out) / name
+            write_lab_logs(ds, where, rate_hz=args.stage_rate_hz, offset_s=args.stage_offset_s,
+                           drift_ppm=args.stage_drift_ppm, jitter_s=0.1 / args.stage_rate_hz)
+            (where / "clock.json").write_text(json.dumps(
+                {"offset_s": args.stage_offset_s, "drift_ppm": args.stage_drift_ppm,
+                 "duration_s": float(ds.t_s[-1] - ds.t_s[0]), "presses": n_press}) + "\n")
+            print(where)
+        return 0
     print(write_logs(args.out, args.variants or None, args.presses))
     return 0
 

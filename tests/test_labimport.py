@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -74,6 +76,40 @@ def test_import_stage_rates_and_offsets(smoke, tmp_path, rate_hz, offset_s, drif
     assert res["stage"]["rate_hz"] == pytest.approx(rate_hz, rel=1e-3)
     imp = dataset.load(tmp_path / "out.csv")
     assert len(imp) == len(smoke) and imp.n_presses == 20
+
+
+@pytest.mark.parametrize("magnitude,time_constant_s", [(0.2, 0.05), (0.15, 0.1)])
+def test_import_clock_is_free_of_the_pads_lag(tmp_path, magnitude, time_constant_s):
+    """A pad whose gratings lag the load far more than the calibration pad's (15-20 % relaxing
+    with 50-100 ms, which puts the flanks' line several ms early): the lag fitted with the
+    clock's level keeps the clock within 1 ms."""
+    from fbgforce.sim import load_scene
+
+    scene = load_scene("smoke")
+    effects = {k: dict(v) for k, v in scene.effects.items()}
+    effects["viscoelastic"] = {"magnitude": magnitude, "time_constant_s": time_constant_s}
+    ds = simulate(scene.replace(effects=effects))
+    write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    res = _import(tmp_path)
+    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1]) <= 1.0
+    assert res["alignment"]["lag_ms"] > 1.0          # the lag was there, and taken out
+
+
+def test_import_a_foreign_fingertip(tmp_path):
+    """Logs from a fingertip the simulator does not make (tests/foreign.py: gratings stretched
+    by the load, a pad relaxing 8 % with 50 ms and rubbing 12 %, peaks in pm in its own
+    column order, a tab-separated stage log in mN and µm)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS["hysteretic_pad"], load_cell_noise_N=0.005)
+    ds = fg.log(fg.device(spec, fg.device_seed("hysteretic_pad")), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80,
+                              jitter_s=1e-4)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    assert res["presses"] == 40
 
 
 def test_import_pm_units_other_names_and_order(smoke, tmp_path):
@@ -296,3 +332,69 @@ def test_a_model_scores_the_import_like_the_simulators_file(small_model_dir, sma
     for key in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm"):
         assert abs(imported[key] - own[key]) <= 0.02 * abs(own[key]), (key, own[key],
                                                                         imported[key])
+
+
+#: A training set-up whose result follows its labels rather than the optimiser's chance path:
+#: one draw per net, a small learning rate, no augmentation, and the mean over three seeds
+#: (docs/lab-import.md, "A model trained on the import"; a single seed's force RMSE moves by
+#: 3 % when 20 mN of white noise is added to the labels).
+STABLE_TRAINING = {"epochs": 20, "restarts": 1, "weight_decay": 0.0, "hold_augment": 0.0,
+                   "location_augment": 1.0, "learning_rate": 1e-4, "progress": False}
+STABLE_SEEDS = (0, 1, 2)
+METRICS = ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm")
+
+
+def _mean_scores(ds, rows, reference_path, directory):
+    """The metrics on the reference file's test presses, averaged over :data:`STABLE_SEEDS`,
+    of models trained on ``ds`` restricted to ``rows``."""
+    from fbgforce import model as fm
+    from fbgforce.trainer.evaluate import evaluate
+    from fbgforce.trainer.train import train
+
+    scores = []
+    for seed in STABLE_SEEDS:
+        fm.save(train([ds.subset(rows)], seed=seed, **STABLE_TRAINING), directory / f"m{seed}")
+        ev = evaluate(directory / f"m{seed}", [reference_path], split="test")
+        scores.append([ev[key] for key in METRICS])
+    return dict(zip(METRICS, np.mean(scores, axis=0)))
+
+
+@pytest.fixture(scope="module")
+def trained_on_the_simulators_file(small_dataset_path, tmp_path_factory):
+    """The simulator's file, its lab logs imported with the clock found and with the clock
+    10 ms late, the rows all three number alike, and the mean scores of models trained on
+    the simulator's file (those rows)."""
+    from unittest import mock
+
+    directory = tmp_path_factory.mktemp("lab_training")
+    ds = dataset.load(small_dataset_path)
+    write_lab_logs(ds, directory, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    _import(directory, out=str(directory / "aligned.csv"))
+    align = li.align
+
+    def late(*args, **kwargs):
+        found = align(*args, **kwargs)
+        found.offset_s += 0.010
+        return found
+
+    with mock.patch.object(li, "align", late):
+        _import(directory, out=str(directory / "late.csv"))
+    imports = {name: dataset.load(directory / f"{name}.csv") for name in ("aligned", "late")}
+    # The same rows in the same order for every model: the split is by press and the
+    # shuffle by row, so a sample numbered into the next press by one file and not the other
+    # would reorder every batch (they lie at press boundaries, 200 of 15,620).
+    rows = np.logical_and.reduce([imp.press_id == ds.press_id for imp in imports.values()])
+    scores = _mean_scores(ds, rows, small_dataset_path, directory / "own")
+    return imports, rows, scores, directory
+
+
+@pytest.mark.parametrize("name,within", [("aligned", True), ("late", False)])
+def test_a_model_trained_on_the_import_scores_like_one_trained_on_the_simulators_file(
+        trained_on_the_simulators_file, small_dataset_path, name, within):
+    """The issue's goal as written: models trained on the imported dataset score within 2 %
+    of models trained on the simulator's own file, every metric, on the same test presses.
+    With the stage clock 10 ms late the same comparison fails (so it can)."""
+    imports, rows, own, directory = trained_on_the_simulators_file
+    scores = _mean_scores(imports[name], rows, small_dataset_path, directory / name)
+    off = {key: abs(scores[key] - own[key]) / abs(own[key]) for key in METRICS}
+    assert (max(off.values()) <= 0.02) == within, (own, scores)
