@@ -13,7 +13,8 @@ nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float
 Exactly as :func:`fbgforce.model.predict_from_features`, the location net is fed the contact
 flag as 0/1 and the force net's *unscaled* output ``f``. The outputs ``force_N``, ``x_mm`` and
 ``y_mm`` are *ungated*: the graph does not zero the force or blank the location where it says
-"no contact"; the caller gates them with the ``contact`` output (``run_recording`` does). This
+"no contact"; the caller gates them with the ``contact`` output (``run_recording`` does, by
+:func:`fbgforce.units.gate_outputs`, the one rule of every engine). This
 keeps the graph free of NaN constants and lets a user see what the nets say near the threshold.
 
 Tare, temperature compensation, filtering, standardisation and the memory features stay

@@ -42,6 +42,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fbgforce import contract, samples
+from fbgforce.units import gate_outputs
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
@@ -710,13 +711,11 @@ Nets = Callable[[np.ndarray, Callable[[np.ndarray], np.ndarray]], dict[str, np.n
 
 def gated_outputs(raw: dict[str, np.ndarray], contact: np.ndarray, out_of_range: np.ndarray
                   ) -> dict[str, np.ndarray]:
-    """The outputs every float engine reports: no contact -> force 0 and location NaN; the
-    raw net outputs kept as ``*_raw_*``."""
+    """The outputs every float engine reports, gated by :func:`fbgforce.units.gate_outputs`;
+    the raw net outputs kept as ``*_raw_*``."""
+    force_N, x_mm, y_mm = gate_outputs(contact, raw["force_raw_N"], raw["x_raw_mm"], raw["y_raw_mm"])
     return {"contact": contact, "out_of_range": out_of_range, "margin": raw["margin"],
-            "p_contact": raw["p_contact"],
-            "force_N": np.where(contact, raw["force_raw_N"], 0.0),
-            "x_mm": np.where(contact, raw["x_raw_mm"], np.nan),
-            "y_mm": np.where(contact, raw["y_raw_mm"], np.nan),
+            "p_contact": raw["p_contact"], "force_N": force_N, "x_mm": x_mm, "y_mm": y_mm,
             "force_raw_N": raw["force_raw_N"], "x_raw_mm": raw["x_raw_mm"],
             "y_raw_mm": raw["y_raw_mm"]}
 

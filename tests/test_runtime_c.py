@@ -242,6 +242,26 @@ def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
     assert out["status"][10] & lib.FBG_STATUS_SENSOR_FAULT
 
 
+@pytest.mark.parametrize("engine", ["float", "onnx", "fixed", "cfloat", "intref"])
+def test_every_engine_gates_outputs_by_the_one_rule(engine, small_exported_dir, small_dataset_path):
+    """No contact -> force 0 and location NaN, contact -> a finite location, on every engine
+    (fbgforce.units.gate_outputs, the one place the rule is written)."""
+    from fbgforce import dataset
+    from fbgforce.engines import run_engine
+    from fbgforce.export.exporter import recording_baseline
+    from fbgforce.units import gate_outputs
+
+    ds = dataset.load(small_dataset_path).subset(slice(0, 3000))
+    out = run_engine(engine, small_exported_dir, None, ds.wl_nm, recording_baseline(ds))
+    c = out["contact"]
+    assert c.any() and (~c).any()
+    assert np.all(out["force_N"][~c] == 0.0)
+    assert np.all(np.isnan(out["x_mm"][~c])) and np.all(np.isnan(out["y_mm"][~c]))
+    assert np.all(np.isfinite(out["x_mm"][c])) and np.all(np.isfinite(out["y_mm"][c]))
+    assert gate_outputs(False, 3.0, 1.0, 2.0)[0] == 0.0
+    assert gate_outputs(True, 3.0, 1.0, 2.0) == (3.0, 1.0, 2.0)
+
+
 def test_latency_inside_1khz_budget(small_exported_dir, small_dataset_path):
     """Median step time over 10,000 samples, through Python and in C (batch). The figures are
     printed (pytest -s); only the 1 kHz budget (1000 us) is asserted."""
