@@ -10,6 +10,7 @@ import pytest
 from fbgforce import model as fm
 from fbgforce.tradeoff import grid, scoring, timing
 from fbgforce.cli import main
+from fbgforce.errors import InputError
 
 
 def _mlp(rng: np.random.Generator, sizes: list[int]) -> fm.MLP:
@@ -38,33 +39,33 @@ def _wavelengths(n: int, seed: int = 1) -> np.ndarray:
 
 @pytest.mark.parametrize("kind", ["causal", "none"])
 @pytest.mark.parametrize("nets", ["numpy", "onnx"])
-def test_stepper_equals_batch_pipeline(kind: str, nets: str) -> None:
+def test_single_sample_pipeline_equals_batch(kind: str, nets: str) -> None:
     """What the single-sample timing runs is the real pipeline, sample for sample."""
     model = _model(kind)
     wl = _wavelengths(400)
     base = wl[:20].mean(axis=0)
     ref = fm.predict(model, wl, base)
-    st = timing.FloatStepper(model, base, nets)
-    got = [st.step(wl[i]) for i in range(wl.shape[0])]
-    contact = np.array([g["contact"] for g in got])
+    pipe = timing.float_pipeline(model, base, nets)
+    got = [pipe.push(wl[i]) for i in range(wl.shape[0])]
+    contact = np.array([g["contact"][0] for g in got])
     assert 0 < contact.sum() < contact.size  # both branches exercised
     tol = 1e-9 if nets == "numpy" else 2e-3
     if nets == "numpy":
         assert np.array_equal(contact, ref["contact"])
     same = contact == ref["contact"]
     assert same.mean() > 0.99
-    np.testing.assert_allclose(np.array([g["force_N"] for g in got])[same], ref["force_N"][same],
+    np.testing.assert_allclose(np.array([g["force_N"][0] for g in got])[same], ref["force_N"][same],
                                rtol=0, atol=tol * 10)
-    np.testing.assert_allclose(np.array([g["x_mm"] for g in got])[same], ref["x_mm"][same],
+    np.testing.assert_allclose(np.array([g["x_mm"][0] for g in got])[same], ref["x_mm"][same],
                                rtol=0, atol=tol)
 
 
-def test_stepper_refuses_centred_filter() -> None:
+def test_single_sample_pipeline_refuses_centred_filter() -> None:
     model = _model()
     model.preprocess = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
                                      model.preprocess.input_mean, model.preprocess.input_std)
-    with pytest.raises(ValueError, match="centred"):
-        timing.FloatStepper(model, model.baseline_nm)
+    with pytest.raises(InputError, match="centred"):
+        timing.float_pipeline(model, model.baseline_nm)
 
 
 def test_measure_reports_every_engine_and_missing_callables() -> None:

@@ -8,7 +8,7 @@ three kinds of figure:
   runtime's batch (``fbg_run`` / ``fbgf_run`` through cffi on int32 femtometres) and its
   single-sample API (``Runtime.step`` / ``FloatRuntime.step``); numpy float64 and onnxruntime
   float32 (one thread) over the whole pipeline (batch: the engine functions; single:
-  :class:`~fbgforce.tradeoff.timing.FloatStepper`) and over the nets alone (standardised
+  :class:`~fbgforce.model.FloatPipeline`) and over the nets alone (standardised
   features precomputed), onnxruntime's single-row ``session.run`` included;
 - **from C**, per driver build (:mod:`fbgforce.tradeoff.cdriver`): ``*_run`` over all samples
   and one ``*_step`` call per sample, best of ``reps`` passes in CPU time, the fixed-point
@@ -167,10 +167,10 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
     z32 = np.ascontiguousarray(z, dtype=np.float32)
     for name, engine, nets in (("numpy-f64", "float", "numpy"), ("onnx-f32", "onnx", "onnx")):
         fn = get_engine(engine)
-        stepper = timing.FloatStepper(model, base, nets, model_dir)
-        out.append((timing.Timer(name, single=lambda i, s=stepper: s.step(wl[i]),
+        pipe = timing.float_pipeline(model, base, nets, model_dir)
+        out.append((timing.Timer(name, single=lambda i, p=pipe: p.push(wl[i]),
                                  batch=lambda a, b, fn=fn: fn(model_dir, model, wl[a:b], base)),
-                    _row(name, "single", "python", "pipeline", f"FloatStepper ({nets})"),
+                    _row(name, "single", "python", "pipeline", f"FloatPipeline.push ({nets})"),
                     _row(name, "batch", "python", "pipeline",
                          "fbgforce.model.predict" if nets == "numpy"
                          else "numpy preprocessing + onnxruntime nets")))
