@@ -21,6 +21,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
+from fbgforce.units import nm_to_fm, to_engine_dict
 
 REPORT_FILE = freshness.REPORT_FILE
 C_DIR = freshness.C_DIR
@@ -89,7 +90,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     errs = {"force_N": 0.0, "x_mm": 0.0, "y_mm": 0.0}
     disagree = samples = 0
     for wl, base in recs:
-        out = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(base), trace=trace))
+        out = to_engine_dict(intref.run(q, nm_to_fm(wl), nm_to_fm(base), trace=trace))
         ref = fm.predict(model, wl, base)
         both = out["contact"] & ref["contact"]
         disagree += int((out["contact"] != ref["contact"]).sum())

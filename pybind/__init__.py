@@ -231,6 +231,14 @@ class Runtime(_Base):
         self._in_ptr = ffi.cast("int32_t *", ffi.from_buffer(self._in))
         self._out = ffi.new("fbg_output *")
 
+    @property
+    def fault_thresholds(self) -> dict[str, Any]:
+        """The blob's sensor-fault and overload thresholds as :class:`FloatRuntime` takes them
+        (``jump_nm``, ``overload_N``, ``stuck_samples``), so both builds judge a sample alike."""
+        m = self._model
+        return {"jump_nm": m.jump_max_fm * 1e-6, "overload_N": m.overload_mN * 1e-3,
+                "stuck_samples": int(m.stuck_max)}
+
     def step(self, wl: Any) -> np.void:
         """One sample (5,) (nm float or fm int) -> one record of :data:`OUTPUT_DTYPE`."""
         a = to_fm(wl)
