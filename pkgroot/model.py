@@ -591,14 +591,50 @@ class HierarchicalModel:
         z = x[:, :self.preprocess.n_features]
         return np.any((z < self.input_range[0]) | (z > self.input_range[1]), axis=1)
 
-    def runtime_float_params(self) -> dict[str, Any]:
-        """The ``fbgf_model`` fields of the decision, the tracker and the input range
-        (:data:`fbgforce.contract.FLOAT_PARAMS`), for the generated C and the Python binding."""
-        n, nf = contract.LIMIT["MAX_INPUTS"], self.preprocess.n_features
+    def float_params(self, jump_max_fm: int, overload_N: float, stuck_max: int = 0
+                     ) -> dict[str, Any]:
+        """Every parameter field of the float runtime's model (``fbgf_model``,
+        :data:`fbgforce.contract.FLOAT_PARAMS`) by name, as Python numbers and lists (array
+        fields padded with zeros to their length): what the generated float C
+        (:mod:`fbgforce.export.codegen`) and the Python binding (:class:`fbgforce.pybind.FloatRuntime`)
+        both fill it with. The taps and the nets are the struct's arrays, not parameters.
+
+        Parameters
+        ----------
+        jump_max_fm
+            Sensor-fault jump threshold, fm per sample.
+        overload_N
+            OVERLOAD above this force (``inf``: never).
+        stuck_max
+            Sensor fault after this many identical samples on a channel (0: off).
+        """
+        pre, mem = self.preprocess, self.preprocess.memory
+        n, nf = contract.LIMIT["MAX_INPUTS"], pre.n_features
         lo, hi = np.full(n, -FLOAT_NEVER), np.full(n, FLOAT_NEVER)
         if self.input_range is not None:
             lo[:nf], hi[:nf] = self.input_range
-        return {**self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
+
+        def floats(values: Any) -> list[float]:
+            return [float(v) for v in np.asarray(values, dtype=np.float64).ravel()]
+
+        def padded(values: Any, size: int) -> list[Any]:
+            return list(values) + [0] * (size - len(values))
+
+        return {
+            "baseline_fm": [int(v) for v in np.rint(self.baseline_nm * 1e6)],
+            "jump_max_fm": int(jump_max_fm), "stuck_max": int(stuck_max),
+            "n_taps": int(pre.runtime_taps().size), "temp_coeff": floats(pre.temp_coeff),
+            "input_mean_pm": floats(pre.input_mean), "input_std_pm": floats(pre.input_std),
+            "force_offset_N": float(self.force_offset), "force_scale": float(self.force_scale),
+            "xy_offset_mm": floats(self.xy_offset), "xy_scale": floats(self.xy_scale),
+            "overload_N": float(overload_N), "mem_weight": floats(mem.weights),
+            "n_ema": len(mem.ema_shifts), "n_play": len(mem.play_widths),
+            "ema_shift": padded(mem.ema_shifts, contract.MAX_EMA),
+            "ema_gain": padded(mem.ema_gains, contract.MAX_EMA),
+            "play_gain": padded(mem.play_gains, contract.MAX_PLAY),
+            "play_width": padded(floats(mem.play_widths), contract.MAX_PLAY),
+            "loc_shift": int(mem.loc_shift),
+            **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
 
     @property
     def nets(self) -> dict[str, MLP]:

@@ -294,28 +294,10 @@ class FloatRuntime(_Base):
             return a
 
         c = ffi.new("fbgf_model *")
-        c.baseline_fm = [int(v) for v in np.rint(m.baseline_nm * 1e6)]
-        c.jump_max_fm = int(round((contract.DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
-        c.stuck_max = int(stuck_samples)
-        c.temp_coeff = list(map(float, pre.temp_coeff))
-        c.input_mean_pm = list(map(float, pre.input_mean))
-        c.input_std_pm = list(map(float, pre.input_std))
-        c.force_offset_N = m.force_offset
-        c.force_scale = m.force_scale
-        c.xy_offset_mm = list(map(float, m.xy_offset))
-        c.xy_scale = list(map(float, m.xy_scale))
-        c.overload_N = float(np.inf if overload_N is None else overload_N)
-        mem = pre.memory
-        c.n_ema, c.n_play = len(mem.ema_shifts), len(mem.play_widths)
-        c.mem_weight = list(mem.weights)
-        c.loc_shift = mem.loc_shift
-        for k, (shift, gain) in enumerate(zip(mem.ema_shifts, mem.ema_gains)):
-            c.ema_shift[k], c.ema_gain[k] = shift, gain
-        for k, (width, gain) in enumerate(zip(mem.play_widths, mem.play_gains)):
-            c.play_width[k], c.play_gain[k] = width, gain
-        for name, value in m.runtime_float_params().items():
+        jump_max_fm = round((contract.DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6)
+        for name, value in m.float_params(jump_max_fm, np.inf if overload_N is None else overload_N,
+                                          stuck_samples).items():
             setattr(c, name, value)
-        c.n_taps = len(taps_f)
         c.taps = farr(taps_f)
         for n, name in enumerate(fm.NET_NAMES):
             net = m.nets[name]

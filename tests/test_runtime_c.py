@@ -220,6 +220,24 @@ def test_cfloat_matches_float_model(small_exported_dir, small_dataset_path):
     assert np.allclose(out["p_contact"], ref["p_contact"], atol=1e-4)
 
 
+def test_float_params_fill_the_float_model_for_codegen_and_binding(small_exported_dir):
+    """One assembly of the fbgf_model parameters (HierarchicalModel.float_params): every
+    contract field, at its length, and the binding's struct holds exactly those values."""
+    from fbgforce import model as fm
+
+    model = fm.load(small_exported_dir)
+    params = model.float_params(123456, 70.0, 3)
+    assert list(params) == [f.name for f in contract.FLOAT_PARAMS]
+    rt = FloatRuntime(model, jump_nm=0.123456, overload_N=70.0, stuck_samples=3)
+    for f in contract.FLOAT_PARAMS:
+        value = getattr(rt._model, f.name)
+        got = list(value) if f.count > 1 else [value]
+        want = params[f.name] if f.count > 1 else [params[f.name]]
+        assert len(want) == f.count, f.name
+        assert np.allclose(np.asarray(got, dtype=np.float64), np.asarray(want, dtype=np.float64),
+                           rtol=1e-6, atol=0), f.name
+
+
 def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
     from fbgforce import dataset
 
