@@ -556,6 +556,10 @@ class HierarchicalModel:
     #: runtimes accept without the status flag OUT_OF_RANGE (:func:`input_range_of`); None:
     #: no such flag.
     input_range: np.ndarray | None = None
+    #: The recordings the model was trained on, as export quantises and checks against them
+    #: (:class:`CalibrationRecordings`); written beside the weights by :func:`save`, read back
+    #: by :func:`load_calibration` (not by :func:`load`: only export needs them).
+    calibration: "CalibrationRecordings | None" = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.xy_offset = np.asarray(self.xy_offset, dtype=np.float64).reshape(2)
@@ -966,13 +970,102 @@ class FloatPipeline:
 
 MODEL_JSON = "model.json"
 WEIGHTS_NPZ = "weights.npz"
+CALIBRATION_NPZ = "calibration.npz"
+
+
+@dataclass
+class CalibrationRecordings:
+    """The calibration data export needs, kept in the model directory so that export never
+    reopens the training files (which may have moved): each training recording's raw
+    wavelengths, its tare baseline and the true force of its contact samples.
+
+    Attributes
+    ----------
+    recordings
+        ``[(wl_nm (n, 5), baseline_nm (5,)), ...]`` one continuous recording each.
+    contact_force_N
+        True force (N) of each recording's samples in contact.
+    sources
+        Where each recording came from (a path, or a dataset's source).
+    """
+
+    recordings: list[tuple[np.ndarray, np.ndarray]]
+    contact_force_N: list[np.ndarray]
+    sources: list[str]
+
+    def to_arrays(self, data_key: str) -> dict[str, np.ndarray]:
+        """The ``calibration.npz`` arrays; ``data_key`` names the training data they belong to
+        (:func:`training_data_key`)."""
+        return {
+            "wl_nm": np.concatenate([np.asarray(wl, dtype=np.float64) for wl, _ in self.recordings]),
+            "baseline_nm": np.array([np.asarray(b, dtype=np.float64) for _, b in self.recordings]),
+            "lengths": np.array([len(wl) for wl, _ in self.recordings], dtype=np.int64),
+            "contact_force_N": np.concatenate([np.asarray(f, dtype=np.float64)
+                                               for f in self.contact_force_N]),
+            "force_lengths": np.array([len(f) for f in self.contact_force_N], dtype=np.int64),
+            "sources": np.array(self.sources, dtype=str), "data_key": np.array(data_key)}
+
+    @classmethod
+    def from_arrays(cls, a: Any) -> "CalibrationRecordings":
+        """Inverse of :meth:`to_arrays`."""
+        wl = np.split(a["wl_nm"], np.cumsum(a["lengths"])[:-1])
+        forces = np.split(a["contact_force_N"], np.cumsum(a["force_lengths"])[:-1])
+        return cls(list(zip(wl, list(a["baseline_nm"]))), forces, [str(x) for x in a["sources"]])
+
+
+def training_data_key(model: HierarchicalModel) -> str:
+    """What identifies a model's training data: a digest of ``metadata["data"]`` (paths, file
+    digests, sample counts, tare baselines). A ``calibration.npz`` under another key belongs
+    to another model."""
+    import hashlib
+
+    text = json.dumps(model.metadata.get("data"), sort_keys=True, default=json_default)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_calibration(directory: str | Path, model: HierarchicalModel) -> CalibrationRecordings | None:
+    """The calibration recordings :func:`save` kept for ``model`` in ``directory``; None when
+    there are none, or they belong to other training data (:func:`training_data_key`).
+
+    Raises
+    ------
+    InputError
+        If ``calibration.npz`` cannot be read (naming the file).
+    """
+    path = Path(directory) / CALIBRATION_NPZ
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as npz:
+            if str(npz["data_key"]) != training_data_key(model):
+                return None
+            return CalibrationRecordings.from_arrays(npz)
+    except CALIBRATION_READ_ERRORS as exc:
+        raise InputError(f"cannot read calibration recordings (truncated or corrupt?): {exc}",
+                         path=str(path)) from exc
+
+
+#: What reading a damaged ``calibration.npz`` raises.
+CALIBRATION_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def _stored_data_key(path: Path) -> str | None:
+    """The training-data key a ``calibration.npz`` was written under (None: unreadable)."""
+    try:
+        with np.load(path) as npz:
+            return str(npz["data_key"])
+    except CALIBRATION_READ_ERRORS:
+        return None
 
 
 def save(model: HierarchicalModel, directory: str | Path, flag: str | None = None) -> Path:
-    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``.
+    """Write ``model.json`` (readable parameters and metadata), ``weights.npz`` and, when the
+    model carries them, its calibration recordings (``calibration.npz``,
+    :class:`CalibrationRecordings`).
 
-    Both files are written atomically as a pair (:class:`fbgforce.fileio.Outputs`): a failed
-    write leaves the directory as it was. An export in the directory made from another model
+    The files are written atomically as a set (:class:`fbgforce.fileio.Outputs`): a failed
+    write leaves the directory as it was. A ``calibration.npz`` of other training data is
+    removed. An export in the directory made from another model
     is removed (:func:`fbgforce.freshness.remove_stale_export`). ``flag`` names the
     command-line option of ``directory`` in errors.
     """
@@ -1008,9 +1101,19 @@ def save(model: HierarchicalModel, directory: str | Path, flag: str | None = Non
         for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
             arrays[f"{name}.W{layer}"] = w
             arrays[f"{name}.b{layer}"] = b
+    key = training_data_key(model)
     with fileio.Outputs(flag) as files:
         files.write_with(out / WEIGHTS_NPZ, lambda fh: np.savez(fh, **arrays))
+        if model.calibration is not None:
+            cal = model.calibration.to_arrays(key)
+            files.write_with(out / CALIBRATION_NPZ, lambda fh: np.savez_compressed(fh, **cal))
         files.write_text(out / MODEL_JSON, json.dumps(doc, indent=2, default=json_default) + "\n")
+    stale = out / CALIBRATION_NPZ
+    if model.calibration is None and stale.is_file() and _stored_data_key(stale) != key:
+        try:
+            stale.unlink()          # another model's training data: export must not use it
+        except OSError as exc:
+            raise fileio.write_error(exc, stale, flag) from None
     try:
         freshness.remove_stale_export(out, model)
     except OSError as exc:

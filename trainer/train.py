@@ -724,6 +724,10 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         preprocess=pre, contact=mlps["contact"], force=mlps["force"], location=mlps["location"],
         force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
+    model.calibration = fm.CalibrationRecordings(
+        [(np.asarray(r.ds.wl_nm, dtype=np.float64), r.baseline_nm) for r in data.recordings],
+        [np.asarray(r.ds.force_N, dtype=np.float64)[np.asarray(r.ds.contact, dtype=bool)]
+         for r in data.recordings], [d.get("path") or r.source for d, r in zip(described, data.recordings)])
     t_train = time.perf_counter() - t_start - t_prep
     rate = float(np.median([r.rate_hz for r in data.recordings]))
     model.in_use = fm.InUse.recommended(rate, rest_margins=_rest_margins(data, logits))
