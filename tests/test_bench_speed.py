@@ -36,6 +36,7 @@ def result(small_exported_dir, small_dataset_path, tmp_path_factory):
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_every_engine_call_and_caller(result):
     seen = {(r["engine"], r["call"], r["caller"], r["scope"], r["build"]) for r in result["rows"]}
     for engine in ("c-int16", "c-int8", "c-float"):
@@ -58,6 +59,7 @@ def test_every_engine_call_and_caller(result):
     assert result["macs_per_step"] > 0 and result["platform"]["cpus"] >= 1
 
 
+@pytest.mark.slow
 def test_figures_positive_and_ratios_consistent(result):
     ref = [r for r in result["rows"] if (r["engine"], r["call"], r["scope"]) ==
            tuple(result["reference"][k] for k in ("engine", "call", "scope"))]
@@ -69,6 +71,7 @@ def test_figures_positive_and_ratios_consistent(result):
             assert r["bit_exact"] is True, r          # fbg_run from C == the extension's bits
 
 
+@pytest.mark.slow
 def test_callgrind_counts_deterministic(result, small_exported_dir, small_dataset_path, tmp_path):
     _require("valgrind")
     counted = {(r["engine"], r["build"]): r["instructions_per_step"] for r in result["rows"]
@@ -111,6 +114,7 @@ def test_contact_window():
     assert speed.contact_window(np.zeros(5, bool), 0, 2) is None
 
 
+@pytest.mark.slow
 def test_table_lists_every_row(result):
     table = speed.markdown_table(result)
     lines = [ln for ln in table.splitlines() if ln.startswith("| ") and "---" not in ln]
@@ -149,6 +153,7 @@ def test_one_build_per_kernel_the_header_offers(monkeypatch):
                       cdriver.CBuild("kernel-sse2-packed", flags, 0x20, packed=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kernel", ["sse2", "avx2"])
 def test_packed_driver_builds_give_the_extensions_bits(kernel, small_exported_dir, small_dataset_path,
                                                        tmp_path):

@@ -213,6 +213,7 @@ def _cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_stream_no_device_with_duration_ends_with_exit_2(bad):
     """The exact commands that used to succeed with "0 samples" or never return: a real
     process, a wall-clock limit, one line."""

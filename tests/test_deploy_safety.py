@@ -105,6 +105,7 @@ def test_retraining_into_an_exported_directory_removes_the_export(exported_copy,
     assert (exported_copy / "model.fbgm").is_file()
 
 
+@pytest.mark.slow
 def test_export_never_reopens_the_training_files(small_dataset_path, tmp_path, capsys):
     """The model directory keeps its calibration recordings: export runs after the training
     file has moved, and quantises exactly as from that file given with --calib."""
@@ -173,6 +174,7 @@ def _full_disk(monkeypatch):
     monkeypatch.setattr(builtins, "open", open_full)
 
 
+@pytest.mark.slow
 def test_full_disk_keeps_the_previous_files(exported_copy, small_dataset_path, tmp_path,
                                             monkeypatch, capsys):
     out = tmp_path / "sim.csv"
@@ -318,6 +320,7 @@ def _cli(*args: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs POSIX pseudo-terminals")
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signal_ends_stream_and_emulate_cleanly(small_exported_dir, tmp_path, sig, status):

@@ -50,6 +50,7 @@ def _recrc(data: bytearray) -> bytes:
     return bytes(data)
 
 
+@pytest.mark.slow
 def test_make_library_install_and_check_nofloat(tmp_path):
     build = tmp_path / "build"
     r = _make(f"BUILD={build}", "all")
@@ -164,6 +165,7 @@ int main(void) {
 """
 
 
+@pytest.mark.slow
 def test_generated_c_model_matches_blob_and_float(small_exported_dir, small_dataset_path, tmp_path):
     """Firmware path: generated const model + libfbgforce, compiled with the strict flags,
     gives the same bits as the blob through the integer reference; the generated float model
@@ -315,6 +317,7 @@ def test_float_build_has_its_own_objects():
     assert shutil.which("make")
 
 
+@pytest.mark.slow
 def test_generated_c_int8_random_model(random_model_factory, random_walk_factory, tmp_path):
     """int8 weights and odd shapes through the generated-C path, bit-exact."""
     from fbgforce.export import codegen

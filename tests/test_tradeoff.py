@@ -158,6 +158,7 @@ def test_qat_finetune_keeps_model_contract() -> None:
     assert all(isinstance(rep[k]["kept_start"], bool) for k in ("contact", "force", "location"))
 
 
+@pytest.mark.slow
 def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     """``fbgforce tradeoff --quick`` on a small scene: every output written and consistent."""
     sim = pytest.importorskip("fbgforce.sim")

@@ -82,6 +82,7 @@ def test_contact_net_learns_a_nonlinear_boundary():
     assert acc > 0.95
 
 
+@pytest.mark.slow
 def test_force_and_location_nets_learn_regressions():
     rng = np.random.default_rng(2)
     x = rng.uniform(-1, 1, (6000, 6))
@@ -291,6 +292,7 @@ def test_nominal_baseline_inverts_the_nominal_model_and_fit_recovers_a_device():
 
 
 # ------------------------------------------------------------------------------ training
+@pytest.mark.slow
 def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording, tmp_path):
     from fbgforce import dataset
     from fbgforce.trainer.evaluate import evaluate
@@ -322,6 +324,7 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     assert ev["contact_timing"]["presses"] >= 1
 
 
+@pytest.mark.slow
 def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synthetic_recording):
     from fbgforce.trainer.train import train
 
@@ -383,6 +386,7 @@ def test_unread_units_are_dropped_and_float32_outputs_stay():
     assert none == 0 and same.sizes == sizes
 
 
+@pytest.mark.slow
 def test_default_weight_decay_falls_with_the_training_samples(synthetic_recording):
     from fbgforce.trainer.train import DEFAULT_DECAY_SAMPLES, train
 
@@ -419,6 +423,7 @@ def test_default_weight_decay_falls_with_the_training_samples(synthetic_recordin
         assert np.array_equal(wa, wb)
 
 
+@pytest.mark.slow
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
     from fbgforce.trainer.train import train
 
