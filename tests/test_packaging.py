@@ -136,7 +136,7 @@ def test_tradeoff_runs_from_the_installed_package(tmp_path: Path, small_dataset_
     out = tmp_path / "tradeoff"
     result = subprocess.run([sys.executable, "-m", "fbgforce.cli", "tradeoff", "--data",
                              str(small_dataset_path), "--out", str(out), "--quick", "--epochs", "1",
-                             "--engines", "numpy-f64", "c-int16", "--no-target", "--json"],
+                             "--engines", "float", "fixed", "--no-target", "--json"],
                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads(result.stdout.strip().splitlines()[-1])

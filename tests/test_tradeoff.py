@@ -174,7 +174,7 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     rows = res["rows"]
     ok = [r for r in rows if r["status"] == "ok"]
     engines_ok = {r["engine"] for r in ok}
-    assert {"numpy-f64", "onnx-f32"} <= engines_ok
+    assert {"float", "onnx"} <= engines_ok
     # Every engine is either measured or says why not; nothing silently dropped.
     assert {r["engine"] for r in rows} == {s.name for s in grid.ENGINE_SPECS}
     assert all(r["status"] == "ok" or r["status"].startswith(("missing", "n/a")) for r in rows)
@@ -188,8 +188,8 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     # onnxruntime and numpy score the same model alike (float32 vs float64).
     by = {(r["variant"], r["engine"]): r for r in ok}
     for (variant, engine), r in by.items():
-        if engine == "onnx-f32":
-            f64 = by[(variant, "numpy-f64")]
+        if engine == "onnx":
+            f64 = by[(variant, "float")]
             assert abs(r["rmse_force_N"] - f64["rmse_force_N"]) < 0.01 * f64["rmse_force_N"] + 1e-3
     # The shipped causal filter delays; no filter does not; the front is non-empty.
     delays = {r["filter"]: r["filter_delay_ms"] for r in ok}
@@ -199,3 +199,27 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     assert "reference" in res["summary"]
     csv_lines = (out / "tradeoff.csv").read_text().strip().splitlines()
     assert len(csv_lines) == len(rows) + 1
+
+
+def test_engines_take_the_engine_names_and_the_documented_aliases(tmp_path, monkeypatch, capsys) -> None:
+    """One vocabulary: the columns are named as fbgforce.engines names its engines; the names
+    docs/cli.md lists for --engines before are accepted for the same columns."""
+    import fbgforce.tradeoff.artifacts as tart
+    import fbgforce.tradeoff.run as trun
+
+    seen: list[tuple[str, ...]] = []
+    monkeypatch.setattr(tart, "prepare_data", lambda *args: [])
+
+    def capture(paths, out, s, log=print):
+        seen.append(s.engines)
+        raise InputError("stop here", column="--engines")
+
+    monkeypatch.setattr(trun, "run", capture)
+    out = str(tmp_path / "t")
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "float", "fixed-int8"]) == 2
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "numpy-f64", "c-int8", "float"]) == 2
+    assert seen == [("float", "fixed-int8"), ("float", "fixed-int8")]
+    assert {spec.name for spec in grid.ENGINE_SPECS} == {"float", "onnx", "cfloat", "fixed",
+                                                           "fixed-int8", "fixed-int8-qat"}
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "numpy"]) == 2
+    assert "unknown engine(s) numpy" in capsys.readouterr().err
