@@ -26,34 +26,29 @@ def _modules() -> dict[str, Path]:
     return out
 
 
+def _imported(node: ast.AST, known: set[str]) -> set[str]:
+    """The fbgforce modules one statement imports (none for any other statement)."""
+    if isinstance(node, ast.Import):
+        return {a.name for a in node.names if a.name.startswith("fbgforce")}
+    if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
+            and node.module.startswith("fbgforce"):
+        return {node.module} | {f"{node.module}.{a.name}" for a in node.names
+                                if f"{node.module}.{a.name}" in known}
+    return set()
+
+
 def _imports(path: Path, name: str, known: set[str], *, deferred: bool = False) -> set[str]:
     """fbgforce modules imported by one module: at module level only (the imports that make a
     load-time cycle), or with ``deferred`` also those inside functions (an import deferred for
     start-up time or an optional dependency is still a dependency, and runs one way too)."""
     tree = ast.parse(path.read_text())
     found: set[str] = set()
-    if deferred:
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Import):
-                found.update(a.name for a in node.names if a.name.startswith("fbgforce"))
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
-                    and node.module.startswith("fbgforce"):
-                found.add(node.module)
-                found.update(f"{node.module}.{a.name}" for a in node.names
-                             if f"{node.module}.{a.name}" in known)
-        return {m for m in found if m in known and m != name}
 
     def visit(nodes: list[ast.stmt]) -> None:
         for node in nodes:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
-            if isinstance(node, ast.Import):
-                found.update(a.name for a in node.names if a.name.startswith("fbgforce"))
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
-                    and node.module.startswith("fbgforce"):
-                found.add(node.module)
-                found.update(f"{node.module}.{a.name}" for a in node.names
-                             if f"{node.module}.{a.name}" in known)
+            found.update(_imported(node, known))
             for field in ("body", "orelse", "finalbody", "handlers"):
                 inner = getattr(node, field, None)
                 if isinstance(inner, list) and not isinstance(node, ast.ClassDef):
@@ -61,7 +56,11 @@ def _imports(path: Path, name: str, known: set[str], *, deferred: bool = False) 
                 elif isinstance(node, ast.ClassDef) and field == "body":
                     visit(node.body)
 
-    visit(tree.body)
+    if deferred:
+        for node in ast.walk(tree):
+            found.update(_imported(node, known))
+    else:
+        visit(tree.body)
     return {m for m in found if m in known and m != name}
 
 
