@@ -534,3 +534,26 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
         desc="pipe")
     lines = [ln for ln in err.getvalue().replace("\r", "\n").splitlines() if "pipe" in ln]
     assert 1 <= len(lines) <= 3, lines
+
+
+@pytest.mark.parametrize("name,value,column", [
+    ("epochs", 0, "--epochs"), ("epochs", 2.5, "--epochs"), ("filter", "gauss", "--filter"),
+    ("sigma", -1.0, "--sigma"), ("train_fraction", 1.5, "--train-fraction"),
+    ("hold_augment", -0.1, "--hold-augment"), ("hold_augment", float("nan"), "--hold-augment"),
+    ("learning_rate", 0.0, "learning_rate"), ("batch_size", True, "batch_size"),
+    ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor")])
+def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
+    from fbgforce.trainer.train import TrainParams
+
+    with pytest.raises(InputError) as exc:
+        TrainParams(**{name: value})
+    assert exc.value.column == column and repr(value) in str(exc.value)
+
+
+def test_train_takes_params_and_options_and_refuses_unknown_ones(synthetic_recording):
+    from fbgforce.trainer.train import TrainParams, train
+
+    with pytest.raises(TypeError, match="epoch"):
+        train([synthetic_recording], epoch=3)
+    with pytest.raises(InputError, match="--train-fraction"):
+        train([synthetic_recording], TrainParams(epochs=1), train_fraction=0.0)

@@ -124,19 +124,16 @@ def register(subparsers: Any) -> None:
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce import model as fm
-    from fbgforce.trainer.train import train
+    from fbgforce.trainer.train import TrainParams, train
 
     _check_files(args.data, "--data")
-    if not 0.0 < args.train_fraction <= 1.0:
-        raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
-    fileio.check_output_dir(args.out, "--out")
-    if args.hold_augment is not None and args.hold_augment > 1.0:
-        raise InputError(f"must be in [0, 1], not {args.hold_augment}", column="--hold-augment")
     holds = {} if args.hold_augment is None else {"hold_augment": args.hold_augment}
-    model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
-                  memory=args.memory, restarts=_restarts(args.restarts),
-                  sigma=args.sigma, window=args.window, init=args.init,
-                  train_fraction=args.train_fraction, **holds)
+    params = TrainParams(epochs=args.epochs, seed=args.seed, filter=args.filter,
+                         memory=args.memory, restarts=_restarts(args.restarts),
+                         sigma=args.sigma, window=args.window, init=args.init,
+                         train_fraction=args.train_fraction, **holds)
+    fileio.check_output_dir(args.out, "--out")
+    model = train(args.data, params)
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}
