@@ -21,6 +21,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
+from fbgforce.units import nm_to_fm, to_engine_dict
 
 REPORT_FILE = freshness.REPORT_FILE
 C_DIR = freshness.C_DIR
@@ -33,29 +34,26 @@ def recording_baseline(ds: Any, path: str | None = None) -> np.ndarray:
     return tare(ds.wl_nm, ds.contact, ds.t_s, path=path)[0]
 
 
-def calibration_recordings(model: fm.HierarchicalModel, calib: Sequence[str | Path] | None
-                           ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[np.ndarray], list[str]]:
-    """Calibration recordings: ``calib`` files, else the training files in model metadata.
-
-    Returns ``([(wl_nm, baseline_nm), ...], [true force per recording], [paths])``.
-    """
+def calibration_recordings(model_dir: str | Path, model: fm.HierarchicalModel,
+                           calib: Sequence[str | Path] | None) -> fm.CalibrationRecordings:
+    """Calibration recordings: the ``calib`` files, else those the model directory keeps of
+    its training data (:func:`fbgforce.model.load_calibration`; the training files themselves
+    are never reopened, they may have moved)."""
     from fbgforce import dataset as fds
 
-    paths: list[str] = [str(p) for p in calib] if calib else []
-    if not paths:
-        for entry in model.metadata.get("data", []) or []:
-            p = entry.get("path") if isinstance(entry, dict) else entry
-            if p and Path(p).is_file():
-                paths.append(str(p))
-    if not paths:
-        raise InputError("no calibration data: the model's training files are not available; "
-                         "pass --calib FILE (a recording in the dataset format)", column="--calib")
-    recs, forces = [], []
+    if not calib:
+        kept = fm.load_calibration(model_dir, model)
+        if kept is None:
+            raise InputError(f"no calibration data: the model directory has no {fm.CALIBRATION_NPZ} "
+                             "of its training data (train it again with 'fbgforce train'); or pass "
+                             "--calib FILE (a recording in the dataset format)", column="--calib")
+        return kept
+    recs, forces, paths = [], [], [str(p) for p in calib]
     for p in paths:
         ds = fds.load(p)
         recs.append((ds.wl_nm, recording_baseline(ds, p)))
         forces.append(np.asarray(ds.force_N, dtype=np.float64)[np.asarray(ds.contact, dtype=bool)])
-    return recs, forces, paths
+    return fm.CalibrationRecordings(recs, forces, paths)
 
 
 def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str | Path] | None = None,
@@ -66,8 +64,9 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     t0 = time.perf_counter()
     root = Path(model_dir)
     model = fm.load(root)
-    recs, forces, paths = calibration_recordings(model, calib)
-    cal = qz.calibrate(model, recs, forces)
+    kept = calibration_recordings(root, model, calib)
+    recs, paths = kept.recordings, kept.sources
+    cal = qz.calibrate(model, recs, kept.contact_force_N)
     q, report = qz.quantize(model, cal, bits=bits, jump_nm=jump_nm, overload_N=overload_N,
                             stuck_samples=stuck_samples, acc32_max_drop=acc32_max_drop)
     data = blob.to_bytes(q)
@@ -89,7 +88,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     errs = {"force_N": 0.0, "x_mm": 0.0, "y_mm": 0.0}
     disagree = samples = 0
     for wl, base in recs:
-        out = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(base), trace=trace))
+        out = to_engine_dict(intref.run(q, nm_to_fm(wl), nm_to_fm(base), trace=trace))
         ref = fm.predict(model, wl, base)
         both = out["contact"] & ref["contact"]
         disagree += int((out["contact"] != ref["contact"]).sum())

@@ -13,7 +13,8 @@ nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float
 Exactly as :func:`fbgforce.model.predict_from_features`, the location net is fed the contact
 flag as 0/1 and the force net's *unscaled* output ``f``. The outputs ``force_N``, ``x_mm`` and
 ``y_mm`` are *ungated*: the graph does not zero the force or blank the location where it says
-"no contact"; the caller gates them with the ``contact`` output (``run_recording`` does). This
+"no contact"; the caller gates them with the ``contact`` output (``run_recording`` does, by
+:func:`fbgforce.units.gate_outputs`, the one rule of every engine). This
 keeps the graph free of NaN constants and lets a user see what the nets say near the threshold.
 
 Tare, temperature compensation, filtering, standardisation and the memory features stay
@@ -34,8 +35,8 @@ from onnx import TensorProto, helper, numpy_helper
 from fbgforce import __version__
 from fbgforce.errors import InputError
 from fbgforce.freshness import weights_digest
-from fbgforce.model import (MLP, FloatPipeline, HierarchicalModel, features, predict_from_features,
-                            safe_output)
+from fbgforce.model import (MLP, FloatPipeline, HierarchicalModel, Nets, features,
+                            predict_from_features, safe_output)
 from fbgforce.samples import sensor_fault_rows
 
 #: File name of the exported graph inside a model directory.
@@ -274,9 +275,29 @@ def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path 
     return dict(zip(OUTPUT_NAMES, values))
 
 
+def onnx_nets(model: HierarchicalModel, model_dir: str | Path | None = None) -> Nets:
+    """The nets in onnxruntime float32 (:data:`fbgforce.model.Nets`), for the float pipeline
+    (:func:`fbgforce.model.predict_from_features`, :class:`fbgforce.model.FloatPipeline`).
+
+    ``model_dir``: where an exported ``model.onnx`` may be (:func:`session_for`).
+    """
+    def nets(x: np.ndarray, decide: Any) -> dict[str, np.ndarray]:
+        # The graph gates the location net on the net's own contact; the decision over time
+        # differs from it only near its thresholds, where the location is not scored apart.
+        raw = run_features(model, x, model_dir)
+        logits = raw["contact_logits"].astype(np.float64)
+        margin = logits[:, 1] - logits[:, 0]
+        return {"contact": decide(margin), "margin": margin,
+                "p_contact": raw["p_contact"].astype(np.float64),
+                "force_raw_N": raw["force_N"].astype(np.float64),
+                "x_raw_mm": raw["x_mm"].astype(np.float64), "y_raw_mm": raw["y_mm"].astype(np.float64)}
+    return nets
+
+
 def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm: np.ndarray,
                   baseline_nm: np.ndarray) -> dict[str, np.ndarray]:
-    """The ``onnx`` engine: float64 preprocessing in numpy, the nets in onnxruntime float32.
+    """The ``onnx`` engine: float64 preprocessing in numpy, the nets in onnxruntime float32
+    (:func:`onnx_nets`).
 
     Parameters
     ----------
@@ -297,17 +318,7 @@ def run_recording(model_dir: str | Path | None, model: HierarchicalModel, wl_nm:
         ``y_mm`` (NaN where no contact), all float64 arrays of length n (``contact`` bool),
         ``status`` (``SENSOR_FAULT`` on samples with a lost peak, which get the safe output).
     """
-    def nets(x: np.ndarray, decide: Any) -> dict[str, np.ndarray]:
-        # The graph gates the location net on the net's own contact; the decision over time
-        # differs from it only near its thresholds, where the location is not scored apart.
-        raw = run_features(model, x, model_dir)
-        logits = raw["contact_logits"].astype(np.float64)
-        margin = logits[:, 1] - logits[:, 0]
-        return {"contact": decide(margin), "margin": margin,
-                "p_contact": raw["p_contact"].astype(np.float64),
-                "force_raw_N": raw["force_N"].astype(np.float64),
-                "x_raw_mm": raw["x_mm"].astype(np.float64), "y_raw_mm": raw["y_mm"].astype(np.float64)}
-
+    nets = onnx_nets(model, model_dir)
     wl = np.asarray(wl_nm, dtype=np.float64)
     if model.runs_in_use:
         out = FloatPipeline(model, baseline_nm, nets=nets).push(wl)

@@ -42,6 +42,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fbgforce import contract, samples
+from fbgforce.units import gate_outputs
 from fbgforce.jsonutil import json_default
 from fbgforce.errors import InputError
 
@@ -556,6 +557,10 @@ class HierarchicalModel:
     #: runtimes accept without the status flag OUT_OF_RANGE (:func:`input_range_of`); None:
     #: no such flag.
     input_range: np.ndarray | None = None
+    #: The recordings the model was trained on, as export quantises and checks against them
+    #: (:class:`CalibrationRecordings`); written beside the weights by :func:`save`, read back
+    #: by :func:`load_calibration` (not by :func:`load`: only export needs them).
+    calibration: "CalibrationRecordings | None" = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.xy_offset = np.asarray(self.xy_offset, dtype=np.float64).reshape(2)
@@ -591,14 +596,50 @@ class HierarchicalModel:
         z = x[:, :self.preprocess.n_features]
         return np.any((z < self.input_range[0]) | (z > self.input_range[1]), axis=1)
 
-    def runtime_float_params(self) -> dict[str, Any]:
-        """The ``fbgf_model`` fields of the decision, the tracker and the input range
-        (:data:`fbgforce.contract.FLOAT_PARAMS`), for the generated C and the Python binding."""
-        n, nf = contract.LIMIT["MAX_INPUTS"], self.preprocess.n_features
+    def float_params(self, jump_max_fm: int, overload_N: float, stuck_max: int = 0
+                     ) -> dict[str, Any]:
+        """Every parameter field of the float runtime's model (``fbgf_model``,
+        :data:`fbgforce.contract.FLOAT_PARAMS`) by name, as Python numbers and lists (array
+        fields padded with zeros to their length): what the generated float C
+        (:mod:`fbgforce.export.codegen`) and the Python binding (:class:`fbgforce.pybind.FloatRuntime`)
+        both fill it with. The taps and the nets are the struct's arrays, not parameters.
+
+        Parameters
+        ----------
+        jump_max_fm
+            Sensor-fault jump threshold, fm per sample.
+        overload_N
+            OVERLOAD above this force (``inf``: never).
+        stuck_max
+            Sensor fault after this many identical samples on a channel (0: off).
+        """
+        pre, mem = self.preprocess, self.preprocess.memory
+        n, nf = contract.LIMIT["MAX_INPUTS"], pre.n_features
         lo, hi = np.full(n, -FLOAT_NEVER), np.full(n, FLOAT_NEVER)
         if self.input_range is not None:
             lo[:nf], hi[:nf] = self.input_range
-        return {**self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
+
+        def floats(values: Any) -> list[float]:
+            return [float(v) for v in np.asarray(values, dtype=np.float64).ravel()]
+
+        def padded(values: Any, size: int) -> list[Any]:
+            return list(values) + [0] * (size - len(values))
+
+        return {
+            "baseline_fm": [int(v) for v in np.rint(self.baseline_nm * 1e6)],
+            "jump_max_fm": int(jump_max_fm), "stuck_max": int(stuck_max),
+            "n_taps": int(pre.runtime_taps().size), "temp_coeff": floats(pre.temp_coeff),
+            "input_mean_pm": floats(pre.input_mean), "input_std_pm": floats(pre.input_std),
+            "force_offset_N": float(self.force_offset), "force_scale": float(self.force_scale),
+            "xy_offset_mm": floats(self.xy_offset), "xy_scale": floats(self.xy_scale),
+            "overload_N": float(overload_N), "mem_weight": floats(mem.weights),
+            "n_ema": len(mem.ema_shifts), "n_play": len(mem.play_widths),
+            "ema_shift": padded(mem.ema_shifts, contract.MAX_EMA),
+            "ema_gain": padded(mem.ema_gains, contract.MAX_EMA),
+            "play_gain": padded(mem.play_gains, contract.MAX_PLAY),
+            "play_width": padded(floats(mem.play_widths), contract.MAX_PLAY),
+            "loc_shift": int(mem.loc_shift),
+            **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
 
     @property
     def nets(self) -> dict[str, MLP]:
@@ -711,13 +752,11 @@ Nets = Callable[[np.ndarray, Callable[[np.ndarray], np.ndarray]], dict[str, np.n
 
 def gated_outputs(raw: dict[str, np.ndarray], contact: np.ndarray, out_of_range: np.ndarray
                   ) -> dict[str, np.ndarray]:
-    """The outputs every float engine reports: no contact -> force 0 and location NaN; the
-    raw net outputs kept as ``*_raw_*``."""
+    """The outputs every float engine reports, gated by :func:`fbgforce.units.gate_outputs`;
+    the raw net outputs kept as ``*_raw_*``."""
+    force_N, x_mm, y_mm = gate_outputs(contact, raw["force_raw_N"], raw["x_raw_mm"], raw["y_raw_mm"])
     return {"contact": contact, "out_of_range": out_of_range, "margin": raw["margin"],
-            "p_contact": raw["p_contact"],
-            "force_N": np.where(contact, raw["force_raw_N"], 0.0),
-            "x_mm": np.where(contact, raw["x_raw_mm"], np.nan),
-            "y_mm": np.where(contact, raw["y_raw_mm"], np.nan),
+            "p_contact": raw["p_contact"], "force_N": force_N, "x_mm": x_mm, "y_mm": y_mm,
             "force_raw_N": raw["force_raw_N"], "x_raw_mm": raw["x_raw_mm"],
             "y_raw_mm": raw["y_raw_mm"]}
 
@@ -932,13 +971,102 @@ class FloatPipeline:
 
 MODEL_JSON = "model.json"
 WEIGHTS_NPZ = "weights.npz"
+CALIBRATION_NPZ = "calibration.npz"
+
+
+@dataclass
+class CalibrationRecordings:
+    """The calibration data export needs, kept in the model directory so that export never
+    reopens the training files (which may have moved): each training recording's raw
+    wavelengths, its tare baseline and the true force of its contact samples.
+
+    Attributes
+    ----------
+    recordings
+        ``[(wl_nm (n, 5), baseline_nm (5,)), ...]`` one continuous recording each.
+    contact_force_N
+        True force (N) of each recording's samples in contact.
+    sources
+        Where each recording came from (a path, or a dataset's source).
+    """
+
+    recordings: list[tuple[np.ndarray, np.ndarray]]
+    contact_force_N: list[np.ndarray]
+    sources: list[str]
+
+    def to_arrays(self, data_key: str) -> dict[str, np.ndarray]:
+        """The ``calibration.npz`` arrays; ``data_key`` names the training data they belong to
+        (:func:`training_data_key`)."""
+        return {
+            "wl_nm": np.concatenate([np.asarray(wl, dtype=np.float64) for wl, _ in self.recordings]),
+            "baseline_nm": np.array([np.asarray(b, dtype=np.float64) for _, b in self.recordings]),
+            "lengths": np.array([len(wl) for wl, _ in self.recordings], dtype=np.int64),
+            "contact_force_N": np.concatenate([np.asarray(f, dtype=np.float64)
+                                               for f in self.contact_force_N]),
+            "force_lengths": np.array([len(f) for f in self.contact_force_N], dtype=np.int64),
+            "sources": np.array(self.sources, dtype=str), "data_key": np.array(data_key)}
+
+    @classmethod
+    def from_arrays(cls, a: Any) -> "CalibrationRecordings":
+        """Inverse of :meth:`to_arrays`."""
+        wl = np.split(a["wl_nm"], np.cumsum(a["lengths"])[:-1])
+        forces = np.split(a["contact_force_N"], np.cumsum(a["force_lengths"])[:-1])
+        return cls(list(zip(wl, list(a["baseline_nm"]))), forces, [str(x) for x in a["sources"]])
+
+
+def training_data_key(model: HierarchicalModel) -> str:
+    """What identifies a model's training data: a digest of ``metadata["data"]`` (paths, file
+    digests, sample counts, tare baselines). A ``calibration.npz`` under another key belongs
+    to another model."""
+    import hashlib
+
+    text = json.dumps(model.metadata.get("data"), sort_keys=True, default=json_default)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def load_calibration(directory: str | Path, model: HierarchicalModel) -> CalibrationRecordings | None:
+    """The calibration recordings :func:`save` kept for ``model`` in ``directory``; None when
+    there are none, or they belong to other training data (:func:`training_data_key`).
+
+    Raises
+    ------
+    InputError
+        If ``calibration.npz`` cannot be read (naming the file).
+    """
+    path = Path(directory) / CALIBRATION_NPZ
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as npz:
+            if str(npz["data_key"]) != training_data_key(model):
+                return None
+            return CalibrationRecordings.from_arrays(npz)
+    except CALIBRATION_READ_ERRORS as exc:
+        raise InputError(f"cannot read calibration recordings (truncated or corrupt?): {exc}",
+                         path=str(path)) from exc
+
+
+#: What reading a damaged ``calibration.npz`` raises.
+CALIBRATION_READ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def _stored_data_key(path: Path) -> str | None:
+    """The training-data key a ``calibration.npz`` was written under (None: unreadable)."""
+    try:
+        with np.load(path) as npz:
+            return str(npz["data_key"])
+    except CALIBRATION_READ_ERRORS:
+        return None
 
 
 def save(model: HierarchicalModel, directory: str | Path, flag: str | None = None) -> Path:
-    """Write ``model.json`` (readable parameters and metadata) and ``weights.npz``.
+    """Write ``model.json`` (readable parameters and metadata), ``weights.npz`` and, when the
+    model carries them, its calibration recordings (``calibration.npz``,
+    :class:`CalibrationRecordings`).
 
-    Both files are written atomically as a pair (:class:`fbgforce.fileio.Outputs`): a failed
-    write leaves the directory as it was. An export in the directory made from another model
+    The files are written atomically as a set (:class:`fbgforce.fileio.Outputs`): a failed
+    write leaves the directory as it was. A ``calibration.npz`` of other training data is
+    removed. An export in the directory made from another model
     is removed (:func:`fbgforce.freshness.remove_stale_export`). ``flag`` names the
     command-line option of ``directory`` in errors.
     """
@@ -974,9 +1102,19 @@ def save(model: HierarchicalModel, directory: str | Path, flag: str | None = Non
         for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
             arrays[f"{name}.W{layer}"] = w
             arrays[f"{name}.b{layer}"] = b
+    key = training_data_key(model)
     with fileio.Outputs(flag) as files:
         files.write_with(out / WEIGHTS_NPZ, lambda fh: np.savez(fh, **arrays))
+        if model.calibration is not None:
+            cal = model.calibration.to_arrays(key)
+            files.write_with(out / CALIBRATION_NPZ, lambda fh: np.savez_compressed(fh, **cal))
         files.write_text(out / MODEL_JSON, json.dumps(doc, indent=2, default=json_default) + "\n")
+    stale = out / CALIBRATION_NPZ
+    if model.calibration is None and stale.is_file() and _stored_data_key(stale) != key:
+        try:
+            stale.unlink()          # another model's training data: export must not use it
+        except OSError as exc:
+            raise fileio.write_error(exc, stale, flag) from None
     try:
         freshness.remove_stale_export(out, model)
     except OSError as exc:

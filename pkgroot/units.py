@@ -2,6 +2,9 @@
 the contract), so the runtime binding, the exporter and the serial protocols use one rule."""
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
 
 from fbgforce.contract import SAT32
@@ -18,14 +21,43 @@ def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(x), -SAT32, SAT32).astype(np.int32)
 
 
+def gate_outputs(contact: Any, force_N: Any, x_mm: Any, y_mm: Any) -> tuple[Any, Any, Any]:
+    """The output rule of every engine: no contact -> force 0 N and location NaN.
+
+    Parameters
+    ----------
+    contact
+        The contact decision: a bool array (n,), or one sample's bool.
+    force_N, x_mm, y_mm
+        What the nets say, whatever the decision (arrays (n,), or one sample's numbers).
+
+    Returns
+    -------
+    tuple
+        ``(force_N, x_mm, y_mm)`` gated: float64 arrays (n,), or Python floats for one sample
+        (the single-sample path of a 1 kHz loop, which numpy's array calls would slow down).
+    """
+    if np.ndim(contact) == 0:
+        if contact:
+            return float(force_N), float(x_mm), float(y_mm)
+        return 0.0, math.nan, math.nan
+    c = np.asarray(contact, dtype=bool)
+    return (np.where(c, np.asarray(force_N, dtype=np.float64), 0.0),
+            np.where(c, np.asarray(x_mm, dtype=np.float64), np.nan),
+            np.where(c, np.asarray(y_mm, dtype=np.float64), np.nan))
+
+
 def to_engine_dict(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Fixed-point outputs -> the engine keys of fbgforce.engines (SI-ish units, NaN gating)."""
+    """Fixed-point outputs -> the engine keys of fbgforce.engines (SI-ish units, gated by
+    :func:`gate_outputs`)."""
     contact = np.asarray(out["contact"]).astype(bool)
+    force_N, x_mm, y_mm = gate_outputs(
+        contact, np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
+        np.asarray(out["x_um"], dtype=np.float64) / 1000.0,
+        np.asarray(out["y_um"], dtype=np.float64) / 1000.0)
     return {
         "contact": contact,
         "p_contact": np.asarray(out["contact_conf_q15"], dtype=np.float64) / 32768.0,
-        "force_N": np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
-        "x_mm": np.where(contact, np.asarray(out["x_um"], dtype=np.float64) / 1000.0, np.nan),
-        "y_mm": np.where(contact, np.asarray(out["y_um"], dtype=np.float64) / 1000.0, np.nan),
+        "force_N": force_N, "x_mm": x_mm, "y_mm": y_mm,
         "status": np.asarray(out["status"], dtype=np.uint32),
     }

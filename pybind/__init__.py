@@ -231,6 +231,14 @@ class Runtime(_Base):
         self._in_ptr = ffi.cast("int32_t *", ffi.from_buffer(self._in))
         self._out = ffi.new("fbg_output *")
 
+    @property
+    def fault_thresholds(self) -> dict[str, Any]:
+        """The blob's sensor-fault and overload thresholds as :class:`FloatRuntime` takes them
+        (``jump_nm``, ``overload_N``, ``stuck_samples``), so both builds judge a sample alike."""
+        m = self._model
+        return {"jump_nm": m.jump_max_fm * 1e-6, "overload_N": m.overload_mN * 1e-3,
+                "stuck_samples": int(m.stuck_max)}
+
     def step(self, wl: Any) -> np.void:
         """One sample (5,) (nm float or fm int) -> one record of :data:`OUTPUT_DTYPE`."""
         a = to_fm(wl)
@@ -240,8 +248,9 @@ class Runtime(_Base):
         check(lib.fbg_step(self._state, self._in_ptr, self._out), "fbg_step")
         o = self._out
         contact = bool(o.contact)
-        return np.array((contact, o.contact_conf_q15 / 32768.0, o.force_mN / 1000.0,
-                         o.x_um / 1000.0 if contact else np.nan, o.y_um / 1000.0 if contact else np.nan,
+        force_N, x_mm, y_mm = units.gate_outputs(contact, o.force_mN / 1000.0, o.x_um / 1000.0,
+                                                 o.y_um / 1000.0)
+        return np.array((contact, o.contact_conf_q15 / 32768.0, force_N, x_mm, y_mm,
                          o.status, o.force_mN, o.x_um, o.y_um, o.contact_margin_q8, o.contact_conf_q15),
                         dtype=OUTPUT_DTYPE)[()]
 
@@ -285,28 +294,10 @@ class FloatRuntime(_Base):
             return a
 
         c = ffi.new("fbgf_model *")
-        c.baseline_fm = [int(v) for v in np.rint(m.baseline_nm * 1e6)]
-        c.jump_max_fm = int(round((contract.DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6))
-        c.stuck_max = int(stuck_samples)
-        c.temp_coeff = list(map(float, pre.temp_coeff))
-        c.input_mean_pm = list(map(float, pre.input_mean))
-        c.input_std_pm = list(map(float, pre.input_std))
-        c.force_offset_N = m.force_offset
-        c.force_scale = m.force_scale
-        c.xy_offset_mm = list(map(float, m.xy_offset))
-        c.xy_scale = list(map(float, m.xy_scale))
-        c.overload_N = float(np.inf if overload_N is None else overload_N)
-        mem = pre.memory
-        c.n_ema, c.n_play = len(mem.ema_shifts), len(mem.play_widths)
-        c.mem_weight = list(mem.weights)
-        c.loc_shift = mem.loc_shift
-        for k, (shift, gain) in enumerate(zip(mem.ema_shifts, mem.ema_gains)):
-            c.ema_shift[k], c.ema_gain[k] = shift, gain
-        for k, (width, gain) in enumerate(zip(mem.play_widths, mem.play_gains)):
-            c.play_width[k], c.play_gain[k] = width, gain
-        for name, value in m.runtime_float_params().items():
+        jump_max_fm = round((contract.DEFAULT_JUMP_NM if jump_nm is None else jump_nm) * 1e6)
+        for name, value in m.float_params(jump_max_fm, np.inf if overload_N is None else overload_N,
+                                          stuck_samples).items():
             setattr(c, name, value)
-        c.n_taps = len(taps_f)
         c.taps = farr(taps_f)
         for n, name in enumerate(fm.NET_NAMES):
             net = m.nets[name]
@@ -331,9 +322,8 @@ class FloatRuntime(_Base):
         contact = raw["contact"].astype(bool)
         out["contact"] = contact
         out["p_contact"] = raw["p_contact"]
-        out["force_N"] = raw["force_N"]
-        out["x_mm"] = np.where(contact, raw["x_mm"], np.nan)
-        out["y_mm"] = np.where(contact, raw["y_mm"], np.nan)
+        out["force_N"], out["x_mm"], out["y_mm"] = units.gate_outputs(contact, raw["force_N"],
+                                                                     raw["x_mm"], raw["y_mm"])
         out["status"] = raw["status"]
         out["margin"] = raw["margin"]
         return out

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.pybind import FloatRuntime, Runtime
 
@@ -30,14 +31,10 @@ def run_fixed(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: 
 def run_cfloat(model_dir: str | Path | None, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
                baseline_nm: np.ndarray) -> dict[str, Any]:
     """The C float build on the float weights (fault/overload thresholds from the blob if any)."""
-    jump_nm = overload_N = None
-    stuck = 0
-    if model_dir is not None and (Path(model_dir) / "model.fbgm").is_file():
-        from fbgforce.export.blob import load_model_blob
-
-        q = load_model_blob(model_dir)
-        jump_nm, overload_N, stuck = q.jump_max_fm * 1e-6, q.overload_mN * 1e-3, q.stuck_max
+    thresholds: dict[str, Any] = {}
+    if model_dir is not None and (Path(model_dir) / contract.BLOB_FILE).is_file():
+        thresholds = Runtime(model_dir, float_model=model).fault_thresholds
     m = fm.load(model_dir) if model is None else model
-    rt = FloatRuntime(m, jump_nm=jump_nm, overload_N=overload_N, stuck_samples=stuck)
+    rt = FloatRuntime(m, **thresholds)
     rt.set_baseline(np.asarray(baseline_nm, dtype=np.float64))
     return _as_dict(rt.run(np.asarray(wl_nm, dtype=np.float64)))

@@ -32,8 +32,9 @@ def load_quantized(model_dir: Path, calib: Sequence[str] | None = None, bits: in
     from fbgforce.export import quantize as qz
 
     model = fm.load(model_dir)
-    recs, forces, _ = exporter.calibration_recordings(model, calib)
-    q, _ = qz.quantize(model, qz.calibrate(model, recs, forces), bits=bits or 16)
+    kept = exporter.calibration_recordings(model_dir, model, calib)
+    q, _ = qz.quantize(model, qz.calibrate(model, kept.recordings, kept.contact_force_N),
+                       bits=bits or 16)
     return q, f"quantised in memory, int{bits or 16} weights"
 
 

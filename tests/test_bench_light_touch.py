@@ -6,6 +6,9 @@ import pytest
 
 from fbgforce.bench import bench_light_touch as blt
 
+#: Slow (pytest -m slow): trains and scores a model for the benchmark.
+pytestmark = pytest.mark.slow
+
 
 def test_breakdown_adds_up_to_the_shared_metrics(small_model_dir, small_dataset_path, tmp_path, capsys):
     out = tmp_path / "lt.json"

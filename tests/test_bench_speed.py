@@ -36,14 +36,15 @@ def result(small_exported_dir, small_dataset_path, tmp_path_factory):
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow
 def test_every_engine_call_and_caller(result):
     seen = {(r["engine"], r["call"], r["caller"], r["scope"], r["build"]) for r in result["rows"]}
-    for engine in ("c-int16", "c-int8", "c-float"):
+    for engine in ("fixed", "fixed-int8", "cfloat"):
         for call in ("batch", "single"):
             assert (engine, call, "python", "pipeline", None) in seen
             for build in ("O1", "as-extension"):
                 assert (engine, call, "c", "pipeline", build) in seen
-    for engine in ("numpy-f64", "onnx-f32"):
+    for engine in ("float", "onnx"):
         for call in ("batch", "single"):
             for scope in ("pipeline", "nets"):
                 assert (engine, call, "python", scope, None) in seen
@@ -58,6 +59,7 @@ def test_every_engine_call_and_caller(result):
     assert result["macs_per_step"] > 0 and result["platform"]["cpus"] >= 1
 
 
+@pytest.mark.slow
 def test_figures_positive_and_ratios_consistent(result):
     ref = [r for r in result["rows"] if (r["engine"], r["call"], r["scope"]) ==
            tuple(result["reference"][k] for k in ("engine", "call", "scope"))]
@@ -65,10 +67,11 @@ def test_figures_positive_and_ratios_consistent(result):
     for r in result["rows"]:
         assert r["ns_per_sample"] is not None and r["ns_per_sample"] > 0, r
         assert r["ratio"] == pytest.approx(r["ns_per_sample"] / ref[0]["ns_per_sample"])
-        if r["caller"] == "c" and r["engine"] != "c-float" and r["call"] == "batch":
+        if r["caller"] == "c" and r["engine"] != "cfloat" and r["call"] == "batch":
             assert r["bit_exact"] is True, r          # fbg_run from C == the extension's bits
 
 
+@pytest.mark.slow
 def test_callgrind_counts_deterministic(result, small_exported_dir, small_dataset_path, tmp_path):
     _require("valgrind")
     counted = {(r["engine"], r["build"]): r["instructions_per_step"] for r in result["rows"]
@@ -77,7 +80,7 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     # What holds for every build and kernel: every step runs all three nets, so it executes
     # at least one instruction per 16 MACs (the host SIMD kernels run at -O1 too, and the
     # widest, AVX2, does 16 MACs per VPMADDWD).
-    assert counted[("c-int16", "O1")] >= result["macs_per_step"] / 16
+    assert counted[("fixed", "O1")] >= result["macs_per_step"] / 16
     # Counting again gives the same figure: the count is noise-free.
     from fbgforce import dataset as fds
     from fbgforce.pybind import to_fm
@@ -85,7 +88,7 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     from fbgforce.tradeoff.timers import timing_samples
 
     row = next(r for r in result["rows"] if (r["engine"], r["build"], r["call"], r["caller"]) ==
-               ("c-int16", "O1", "single", "c"))
+               ("fixed", "O1", "single", "c"))
     start, n = row["counted_steps"]["start"], row["counted_steps"]["n"]
     assert start >= result["count_warmup"] and 0 < n <= result["count_samples"]
     ds = fds.load(small_dataset_path)
@@ -96,7 +99,7 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
                         cdriver.float_model_source(small_exported_dir))
     again, profile = cdriver.count_instructions(exe, "fixed", small_exported_dir / "model.fbgm",
                                                 tmp_path / "s.bin", start, n)
-    assert again == counted[("c-int16", "O1")]
+    assert again == counted[("fixed", "O1")]
     # The per-function profile adds up to the step (every function, self costs).
     if shutil.which("callgrind_annotate"):
         assert sum(profile.values()) == pytest.approx(again)
@@ -111,6 +114,7 @@ def test_contact_window():
     assert speed.contact_window(np.zeros(5, bool), 0, 2) is None
 
 
+@pytest.mark.slow
 def test_table_lists_every_row(result):
     table = speed.markdown_table(result)
     lines = [ln for ln in table.splitlines() if ln.startswith("| ") and "---" not in ln]
@@ -149,6 +153,7 @@ def test_one_build_per_kernel_the_header_offers(monkeypatch):
                       cdriver.CBuild("kernel-sse2-packed", flags, 0x20, packed=True))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kernel", ["sse2", "avx2"])
 def test_packed_driver_builds_give_the_extensions_bits(kernel, small_exported_dir, small_dataset_path,
                                                        tmp_path):

@@ -121,6 +121,7 @@ def _model_sources(cdir: Path) -> list[Path]:
     return sorted(cdir.glob("*.c"))
 
 
+@pytest.mark.slow
 def test_consumer_cmake_find_package_from_installed_prefix(golden, tmp_path):
     _require("cmake", "cc")
     prefix = tmp_path / "prefix"
@@ -145,6 +146,7 @@ def test_consumer_cmake_find_package_from_installed_prefix(golden, tmp_path):
         assert f"-I{prefix}/lib/pkgconfig/../../include" in flags
 
 
+@pytest.mark.slow
 def test_consumer_pkg_config_over_make_install(golden, tmp_path):
     _require("make", "pkg-config", "cc")
     prefix = tmp_path / "prefix"
@@ -163,6 +165,7 @@ def test_consumer_pkg_config_over_make_install(golden, tmp_path):
     _check_consumer(exe, golden)
 
 
+@pytest.mark.slow
 def test_consumer_amalgamation(golden, tmp_path):
     _require("cc")
     amal = RUNTIME / "amalgamation"
@@ -222,6 +225,7 @@ def test_every_build_compiles_the_same_sources(tmp_path):
     assert [p.name for p in _amalgamate_module().sources()] == expected
 
 
+@pytest.mark.target
 def test_arm_none_eabi_toolchain_file_cross_compiles(tmp_path):
     _require("cmake")
     require_tools("arm-none-eabi-gcc", install="gcc-arm-none-eabi libnewlib-arm-none-eabi")
@@ -264,6 +268,7 @@ def test_header_typical_use_compiles(tmp_path):
           "-o", tmp_path / "use.o"])
 
 
+@pytest.mark.slow
 def test_runtime_md_call_sequence_compiles(golden, tmp_path):
     """The fixed-point call sequence docs/runtime.md shows, with the generated model header."""
     _require("cc")

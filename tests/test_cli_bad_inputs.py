@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fbgforce import model as fm
 from fbgforce.cli import build_parser, main
 
 NO_DEVICE = "/dev/ttyFBG-no-such-device"
@@ -62,8 +63,11 @@ def bad(tmp_path_factory, small_exported_dir, small_dataset_path):
     p["bad_json"] = model_copy("bad_json")
     (p["bad_json"] / "model.json").write_text('{"format": ')
     p["truncated_weights"] = model_copy("truncated_weights")
-    w = next(p["truncated_weights"].glob("*.npz"))
+    w = p["truncated_weights"] / fm.WEIGHTS_NPZ
     w.write_bytes(w.read_bytes()[:200])
+    p["truncated_calibration"] = model_copy("truncated_calibration")
+    c = p["truncated_calibration"] / fm.CALIBRATION_NPZ
+    c.write_bytes(c.read_bytes()[:200])
     p["not_a_dir"] = root / "not_a_model"
     p["file_in_the_way"] = root / "a_file"
     p["file_in_the_way"].write_text("x")
@@ -104,6 +108,8 @@ CASES = [
     ("report", "broken model.json", ["--data", "{good_data}", "--model", "{bad_json}"], "model.json"),
     ("export", "no model dir", ["--model", "{not_a_dir}"], "not_a_model"),
     ("export", "truncated weights", ["--model", "{truncated_weights}"], ".npz"),
+    ("export", "truncated calibration.npz", ["--model", "{truncated_calibration}", "--no-onnx"],
+     "calibration.npz"),
     ("export", "truncated calibration npz", ["--model", "{good_model}", "--calib", "{truncated_npz}",
                                             "--no-onnx"], "truncated.npz"),
     ("verify", "corrupt model.fbgm", ["--model", "{corrupt_blob}", "--data", "{good_data}"], "CRC"),
@@ -207,6 +213,7 @@ def _cli(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
                           text=True, timeout=timeout)
 
 
+@pytest.mark.slow
 def test_stream_no_device_with_duration_ends_with_exit_2(bad):
     """The exact commands that used to succeed with "0 samples" or never return: a real
     process, a wall-clock limit, one line."""

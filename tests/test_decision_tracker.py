@@ -176,6 +176,7 @@ drift_K_per_sqrt_s = 0.0
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("ramp_K", [0.0, 20.0], ids=["constant", "ramp"])
 @pytest.mark.parametrize("force", [0.5, 5.0, 50.0])
 def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force, ramp_K):

@@ -2,6 +2,8 @@
 JSON summary lists the figures, and each PNG is a real image of the announced size."""
 from __future__ import annotations
 
+import pytest
+
 import json
 import struct
 from pathlib import Path
@@ -10,6 +12,9 @@ import numpy as np
 
 from fbgforce import figures
 from fbgforce.cli import main
+
+#: Slow (pytest -m slow): the whole demo chain.
+pytestmark = pytest.mark.slow
 
 EXPECTED_FIGURES = {"force_vs_true.png", "error_map.png", "contact_by_force.png",
                     "paper_vs_ours.png", "accuracy_vs_time.png"}

@@ -105,6 +105,31 @@ def test_retraining_into_an_exported_directory_removes_the_export(exported_copy,
     assert (exported_copy / "model.fbgm").is_file()
 
 
+@pytest.mark.slow
+def test_export_never_reopens_the_training_files(small_dataset_path, tmp_path, capsys):
+    """The model directory keeps its calibration recordings: export runs after the training
+    file has moved, and quantises exactly as from that file given with --calib."""
+    from fbgforce.export.exporter import export_model
+    from fbgforce.trainer.train import train
+
+    data = tmp_path / "cal.csv"
+    shutil.copy(small_dataset_path, data)
+    model_dir = tmp_path / "model"
+    fm.save(train([data], epochs=2, seed=0, progress=False, restarts=1, hold_augment=0.0),
+            model_dir)
+    moved = data.rename(tmp_path / "moved.csv")
+    assert main(["export", "--model", str(model_dir), "--json"]) == 0, capsys.readouterr().err
+    kept = (model_dir / "model.fbgm").read_bytes()
+    export_model(model_dir, calib=[moved], onnx=False)
+    assert (model_dir / "model.fbgm").read_bytes() == kept
+    # A model of other training data saved over it takes its recordings' file with it.
+    other = fm.load(model_dir)
+    other.metadata["data"] = [{"path": None, "source": "elsewhere", "samples": 1}]
+    fm.save(other, model_dir)
+    assert not (model_dir / fm.CALIBRATION_NPZ).exists()
+    _one_line_exit_2(capsys, ["export", "--model", str(model_dir)], "no calibration data")
+
+
 def test_verify_exits_1_on_mismatch(exported_copy, small_dataset_path, monkeypatch, capsys):
     from fbgforce.export import intref
 
@@ -149,6 +174,7 @@ def _full_disk(monkeypatch):
     monkeypatch.setattr(builtins, "open", open_full)
 
 
+@pytest.mark.slow
 def test_full_disk_keeps_the_previous_files(exported_copy, small_dataset_path, tmp_path,
                                             monkeypatch, capsys):
     out = tmp_path / "sim.csv"
@@ -294,6 +320,7 @@ def _cli(*args: str) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not hasattr(os, "openpty"), reason="needs POSIX pseudo-terminals")
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_signal_ends_stream_and_emulate_cleanly(small_exported_dir, tmp_path, sig, status):

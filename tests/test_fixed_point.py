@@ -198,6 +198,7 @@ def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
     assert np.abs(raw["contact_margin_q8"][ran] / 256.0 - margin[ran]).max() <= bounds["contact_margin"]
 
 
+@pytest.mark.slow
 def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
         small_model_dir, small_exported_dir, small_dataset_path, tmp_path):
     """Weight decay leaves a dead unit's weights at 1e-300 and below; the quantiser must treat

@@ -281,11 +281,13 @@ def x86_outputs(case):
     return outs
 
 
+@pytest.mark.slow
 def test_x86_kernels_follow_the_float64_model(case, x86_outputs):
     for name, (_, out) in x86_outputs.items():
         _assert_follows(out, case["ref"], name, 1e-3)
 
 
+@pytest.mark.slow
 def test_x86_simd_differs_from_portable_by_rounding_only(case, x86_outputs):
     portable = x86_outputs["portable"][1]
     for name in ("sse2", "auto"):
@@ -295,6 +297,7 @@ def test_x86_simd_differs_from_portable_by_rounding_only(case, x86_outputs):
     assert not np.array_equal(x86_outputs["sse2"][1]["force_N"], portable["force_N"])
 
 
+@pytest.mark.slow
 def test_batches_in_lanes_give_the_bits_of_batches_in_rows(x86_outputs):
     """fbgf_run with the samples in lanes (AVX2+FMA, the default) and in rows
     (-DFBGF_RUN_LANES=0) runs the same kernel order: the same bytes."""
@@ -302,12 +305,14 @@ def test_batches_in_lanes_give_the_bits_of_batches_in_rows(x86_outputs):
     assert x86_outputs["rows"][1].tobytes() == x86_outputs["auto"][1].tobytes()
 
 
+@pytest.mark.slow
 def test_auto_build_picks_avx2_where_the_cpu_has_it(x86_outputs):
     flags = Path("/proc/cpuinfo").read_text().split() if Path("/proc/cpuinfo").is_file() else []
     expected = "avx2+fma" if {"avx2", "fma"} <= set(flags) else "sse2"
     assert x86_outputs["auto"][0] == expected
 
 
+@pytest.mark.slow
 def test_extension_gives_the_bits_of_the_matching_build(case, x86_outputs):
     """The cffi extension (other flags: -O3, the wrapper) runs the kernel its CPU picks and
     gives the same bytes as the driver build that reports that kernel."""
@@ -344,6 +349,7 @@ def test_avx2_lanes_kernel_gives_each_sample_its_single_bits(tmp_path):
     assert bad == 0, f"{bad} outputs of fbgf_dense_lanes differ from fbgf_dense"
 
 
+@pytest.mark.target
 def test_neon_kernel_under_qemu(case):
     _need("aarch64-linux-gnu-gcc", "qemu-aarch64")
     qemu = dict(runner=["qemu-aarch64"], wl_file="wl_qemu.bin")

@@ -35,6 +35,9 @@ from fbgforce.export import intref
 from fbgforce.export.blob import from_bytes, to_bytes
 from fbgforce.export.quantize import SAT16, SAT32, WL_MAX_FM, WL_MIN_FM
 
+#: Slow (pytest -m slow): sanitizer and valgrind builds of the driver, fuzzers, long runs.
+pytestmark = pytest.mark.slow
+
 ROOT = Path(__file__).resolve().parents[1]
 RUNTIME_C = ROOT / "runtime_c"
 INT32_MIN, INT32_MAX = -2**31, 2**31 - 1

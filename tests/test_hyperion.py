@@ -125,6 +125,7 @@ def test_reader_reconnects_and_counts_an_instrument_restart(playback):
     assert s["disconnects"] >= 1 and s["reconnects"] >= 1
 
 
+@pytest.mark.slow
 def test_record_from_hyperion_source(tmp_path, capsys):
     """emulate --protocol hyperion --loadcell -> record --source hyperion:// -> a dataset equal
     to the scene (peak map given on both sides, FBG T on channel 2)."""

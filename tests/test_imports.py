@@ -1,6 +1,7 @@
-"""Imports run one way: no cycles between fbgforce modules, and each layer imports only the
-layers below it (units and the contract at the bottom, the runtime binding above them, the
-exporter and trainer above that, commands and tools on top; benchmarks import no tests)."""
+"""Imports run one way: no load-time cycles between fbgforce modules, no cycles between its
+subpackages, and each layer imports only the layers below it, counting imports inside
+functions (units and the contract at the bottom, the runtime binding above them, the exporter
+and trainer above that, commands and tools on top; benchmarks import no tests)."""
 from __future__ import annotations
 
 import ast
@@ -25,9 +26,21 @@ def _modules() -> dict[str, Path]:
     return out
 
 
-def _module_level_imports(path: Path, name: str, known: set[str]) -> set[str]:
-    """fbgforce modules imported at module level (not inside functions: those are allowed
-    for optional dependencies and start-up time, and do not make a load-time cycle)."""
+def _imported(node: ast.AST, known: set[str]) -> set[str]:
+    """The fbgforce modules one statement imports (none for any other statement)."""
+    if isinstance(node, ast.Import):
+        return {a.name for a in node.names if a.name.startswith("fbgforce")}
+    if isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
+            and node.module.startswith("fbgforce"):
+        return {node.module} | {f"{node.module}.{a.name}" for a in node.names
+                                if f"{node.module}.{a.name}" in known}
+    return set()
+
+
+def _imports(path: Path, name: str, known: set[str], *, deferred: bool = False) -> set[str]:
+    """fbgforce modules imported by one module: at module level only (the imports that make a
+    load-time cycle), or with ``deferred`` also those inside functions (an import deferred for
+    start-up time or an optional dependency is still a dependency, and runs one way too)."""
     tree = ast.parse(path.read_text())
     found: set[str] = set()
 
@@ -35,13 +48,7 @@ def _module_level_imports(path: Path, name: str, known: set[str]) -> set[str]:
         for node in nodes:
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
-            if isinstance(node, ast.Import):
-                found.update(a.name for a in node.names if a.name.startswith("fbgforce"))
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0 \
-                    and node.module.startswith("fbgforce"):
-                found.add(node.module)
-                found.update(f"{node.module}.{a.name}" for a in node.names
-                             if f"{node.module}.{a.name}" in known)
+            found.update(_imported(node, known))
             for field in ("body", "orelse", "finalbody", "handlers"):
                 inner = getattr(node, field, None)
                 if isinstance(inner, list) and not isinstance(node, ast.ClassDef):
@@ -49,14 +56,18 @@ def _module_level_imports(path: Path, name: str, known: set[str]) -> set[str]:
                 elif isinstance(node, ast.ClassDef) and field == "body":
                     visit(node.body)
 
-    visit(tree.body)
+    if deferred:
+        for node in ast.walk(tree):
+            found.update(_imported(node, known))
+    else:
+        visit(tree.body)
     return {m for m in found if m in known and m != name}
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(*, deferred: bool = False) -> dict[str, set[str]]:
     mods = _modules()
     known = set(mods)
-    return {name: _module_level_imports(path, name, known) for name, path in mods.items()}
+    return {name: _imports(path, name, known, deferred=deferred) for name, path in mods.items()}
 
 
 def test_no_import_cycles():
@@ -110,13 +121,60 @@ def _layer(name: str) -> int:
 
 def test_layers_import_downward_only():
     bad = []
-    for name, deps in _graph().items():
+    for name, deps in _graph(deferred=True).items():
         for dep in deps:
             if name == "fbgforce" or dep == "fbgforce":
                 continue
             if _layer(dep) > _layer(name):
                 bad.append(f"{name} (layer {_layer(name)}) imports {dep} (layer {_layer(dep)})")
     assert not bad, "\n".join(sorted(bad))
+
+
+SUBPACKAGES = ("export", "pybind", "trainer", "tradeoff", "sim", "teleop", "bench", "interrogator",
+               "target", "scenes", "_runtime")
+
+
+def subpackage(name: str) -> str:
+    """The part of the house a module belongs to: a subpackage (``export``, ``pybind``, ...),
+    ``commands`` (every ``cli``/``__main__`` module and the top-level commands of the core
+    package, which sit above everything) or ``core`` (the rest of ``fbgforce``)."""
+    parts = name.split(".")
+    if parts[-1] in ("cli", "__main__") or (len(parts) > 1 and parts[1] not in SUBPACKAGES
+                                             and _layer(name) == 9):
+        return "commands"
+    return parts[1] if len(parts) > 1 and parts[1] in SUBPACKAGES else "core"
+
+
+def subpackage_graph() -> dict[str, set[str]]:
+    """Which part imports which (:func:`subpackage`), counting imports inside functions."""
+    out: dict[str, set[str]] = {}
+    for name, deps in _graph(deferred=True).items():
+        if name == "fbgforce":
+            continue                          # the package's lazy public API re-exports all
+        for dep in deps:
+            a, b = subpackage(name), subpackage(dep)
+            if a != b and dep != "fbgforce":
+                out.setdefault(a, set()).add(b)
+    return out
+
+
+def test_no_cycles_between_subpackages():
+    graph = subpackage_graph()
+    done: set[str] = set()
+
+    def visit(node: str, path: list[str]) -> None:
+        if node in path:
+            raise AssertionError("subpackages import each other: "
+                                 + " -> ".join(path[path.index(node):] + [node]))
+        if node in done:
+            return
+        for dep in sorted(graph.get(node, ())):
+            visit(dep, path + [node])
+        done.add(node)
+
+    for node in sorted(graph):
+        visit(node, [])
+    assert graph["pybind"] == {"core"}
 
 
 def test_benchmarks_do_not_import_tests():

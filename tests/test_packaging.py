@@ -130,12 +130,13 @@ def test_tool_commands_explain_themselves(command: str, option: str, tmp_path: P
     assert option in result.stdout
 
 
+@pytest.mark.slow
 def test_tradeoff_runs_from_the_installed_package(tmp_path: Path, small_dataset_path) -> None:
     """A tiny grid (two engines, one epoch, no target counts) end to end, outputs written."""
     out = tmp_path / "tradeoff"
     result = subprocess.run([sys.executable, "-m", "fbgforce.cli", "tradeoff", "--data",
                              str(small_dataset_path), "--out", str(out), "--quick", "--epochs", "1",
-                             "--engines", "numpy-f64", "c-int16", "--no-target", "--json"],
+                             "--engines", "float", "fixed", "--no-target", "--json"],
                             cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
     summary = json.loads(result.stdout.strip().splitlines()[-1])
@@ -158,6 +159,7 @@ def tiny_model_dir(tmp_path_factory, small_dataset_path) -> Path:
     return out
 
 
+@pytest.mark.target
 def test_target_report_runs_from_the_installed_package(tmp_path: Path, tiny_model_dir: Path) -> None:
     """Bit-exact on the Cortex-M4 from wherever the package is installed, building in a staged
     copy (the installed package gains no build products)."""

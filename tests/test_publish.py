@@ -105,6 +105,7 @@ def _receiver_rows(proc: subprocess.Popen, timeout: float = 30) -> np.ndarray:
     return np.loadtxt(out.splitlines(), delimiter=",", dtype=np.int64, ndmin=2)
 
 
+@pytest.mark.slow
 def test_stream_publishes_10000_datagrams_equal_to_offline_fixed(tmp_path, small_exported_dir,
                                                                  capsys):
     """emulate (Hyperion on TCP) -> stream --source hyperion:// --publish udp:// (twice) -> the
@@ -299,6 +300,7 @@ class _CountingPublisher:
         return {"sent": self.sent}
 
 
+@pytest.mark.slow
 def test_stream_publish_memory_is_flat_over_a_million_samples():
     """One million published samples (a quarter hour at 1 kHz) raise the stream loop's peak
     memory by less than 1 MB: the latency summary is a fixed-size histogram, not a list per sample."""

@@ -50,6 +50,7 @@ def _recrc(data: bytearray) -> bytes:
     return bytes(data)
 
 
+@pytest.mark.slow
 def test_make_library_install_and_check_nofloat(tmp_path):
     build = tmp_path / "build"
     r = _make(f"BUILD={build}", "all")
@@ -164,6 +165,7 @@ int main(void) {
 """
 
 
+@pytest.mark.slow
 def test_generated_c_model_matches_blob_and_float(small_exported_dir, small_dataset_path, tmp_path):
     """Firmware path: generated const model + libfbgforce, compiled with the strict flags,
     gives the same bits as the blob through the integer reference; the generated float model
@@ -220,6 +222,24 @@ def test_cfloat_matches_float_model(small_exported_dir, small_dataset_path):
     assert np.allclose(out["p_contact"], ref["p_contact"], atol=1e-4)
 
 
+def test_float_params_fill_the_float_model_for_codegen_and_binding(small_exported_dir):
+    """One assembly of the fbgf_model parameters (HierarchicalModel.float_params): every
+    contract field, at its length, and the binding's struct holds exactly those values."""
+    from fbgforce import model as fm
+
+    model = fm.load(small_exported_dir)
+    params = model.float_params(123456, 70.0, 3)
+    assert list(params) == [f.name for f in contract.FLOAT_PARAMS]
+    rt = FloatRuntime(model, jump_nm=0.123456, overload_N=70.0, stuck_samples=3)
+    for f in contract.FLOAT_PARAMS:
+        value = getattr(rt._model, f.name)
+        got = list(value) if f.count > 1 else [value]
+        want = params[f.name] if f.count > 1 else [params[f.name]]
+        assert len(want) == f.count, f.name
+        assert np.allclose(np.asarray(got, dtype=np.float64), np.asarray(want, dtype=np.float64),
+                           rtol=1e-6, atol=0), f.name
+
+
 def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
     from fbgforce import dataset
 
@@ -240,6 +260,26 @@ def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
     wl[10, 0] = np.nan
     out = rt.run(wl)
     assert out["status"][10] & lib.FBG_STATUS_SENSOR_FAULT
+
+
+@pytest.mark.parametrize("engine", ["float", "onnx", "fixed", "cfloat", "intref"])
+def test_every_engine_gates_outputs_by_the_one_rule(engine, small_exported_dir, small_dataset_path):
+    """No contact -> force 0 and location NaN, contact -> a finite location, on every engine
+    (fbgforce.units.gate_outputs, the one place the rule is written)."""
+    from fbgforce import dataset
+    from fbgforce.engines import run_engine
+    from fbgforce.export.exporter import recording_baseline
+    from fbgforce.units import gate_outputs
+
+    ds = dataset.load(small_dataset_path).subset(slice(0, 3000))
+    out = run_engine(engine, small_exported_dir, None, ds.wl_nm, recording_baseline(ds))
+    c = out["contact"]
+    assert c.any() and (~c).any()
+    assert np.all(out["force_N"][~c] == 0.0)
+    assert np.all(np.isnan(out["x_mm"][~c])) and np.all(np.isnan(out["y_mm"][~c]))
+    assert np.all(np.isfinite(out["x_mm"][c])) and np.all(np.isfinite(out["y_mm"][c]))
+    assert gate_outputs(False, 3.0, 1.0, 2.0)[0] == 0.0
+    assert gate_outputs(True, 3.0, 1.0, 2.0) == (3.0, 1.0, 2.0)
 
 
 def test_latency_inside_1khz_budget(small_exported_dir, small_dataset_path):
@@ -277,6 +317,7 @@ def test_float_build_has_its_own_objects():
     assert shutil.which("make")
 
 
+@pytest.mark.slow
 def test_generated_c_int8_random_model(random_model_factory, random_walk_factory, tmp_path):
     """int8 weights and odd shapes through the generated-C path, bit-exact."""
     from fbgforce.export import codegen

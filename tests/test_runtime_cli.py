@@ -1,6 +1,8 @@
 """``fbgforce export`` / ``verify`` from the command line, and ``evaluate --engine fixed``."""
 from __future__ import annotations
 
+import pytest
+
 import json
 import shutil
 
@@ -15,6 +17,7 @@ def _json(capsys, argv):
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_export_and_verify_cli(small_model_dir, small_dataset_path, tmp_path, capsys):
     mdir = tmp_path / "model"
     shutil.copytree(small_model_dir, mdir)
@@ -50,6 +53,7 @@ def test_export_and_verify_cli(small_model_dir, small_dataset_path, tmp_path, ca
     assert "fbgforce export" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_bad_inputs_exit_2(small_model_dir, small_dataset_path, tmp_path, capsys):
     mdir = tmp_path / "model"
     shutil.copytree(small_model_dir, mdir)

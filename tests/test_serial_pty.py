@@ -169,6 +169,7 @@ def test_device_disappears_and_comes_back(tmp_path, dropout_recording):
     assert len(seqs) >= 2 * len(pb) - 50
 
 
+@pytest.mark.slow
 def test_stream_10s_at_1khz_no_lost_frames_and_equal_to_offline_fixed(tmp_path, small_exported_dir,
                                                                       capsys, emulate_process):
     from fbgforce import engines
@@ -201,6 +202,7 @@ def test_stream_10s_at_1khz_no_lost_frames_and_equal_to_offline_fixed(tmp_path, 
     assert est["contact"].any() and est["force_N"].max() > 5.0
 
 
+@pytest.mark.slow
 def test_stream_fispec_protocol(tmp_path, small_exported_dir, capsys, emulate_process):
     """stream polls a FiSpec-style device: estimates of the polled samples, scene wavelengths
     to 1e-4 nm, the same as the offline engine on those samples."""
@@ -225,6 +227,7 @@ def test_stream_fispec_protocol(tmp_path, small_exported_dir, capsys, emulate_pr
     assert np.array_equal(off["force_N"], est["force_N"])
 
 
+@pytest.mark.slow
 def test_emulate_record_train_gives_a_working_model(tmp_path, capsys, emulate_process):
     proc, link = emulate_process("--scene", "smoke", "--seed", "3", "--rate", "5000",
                                   "--loadcell", "--loadcell-link", str(tmp_path / "ttyLC"))

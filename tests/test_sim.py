@@ -59,6 +59,7 @@ def test_ideal_inverts_exactly_through_the_nominal_model():
         ds.force_N, np.nan_to_num(ds.x_mm, nan=10.5), np.nan_to_num(ds.y_mm, nan=13.5))[known])
 
 
+@pytest.mark.slow
 def test_calibration_full_size_and_shape():
     ds = simulate("calibration_paper")
     assert len(ds) == 234_300 and ds.n_presses == 300

@@ -556,6 +556,7 @@ def _check_replay(cmd: list[str], args: list[str]) -> None:
         assert line.endswith(", 0 differ"), line
 
 
+@pytest.mark.slow
 def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
     _require("cc")
     kernels = [lib.FBG_OPT_KERNEL_PORTABLE] + [KERNELS[k] for k in host_kernels()]
@@ -565,6 +566,7 @@ def test_golden_sessions_on_every_host_kernel(sessions, tmp_path):
         _check_replay([str(exe)], _replay_args(kernels))
 
 
+@pytest.mark.slow
 def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
     """AddressSanitizer (global redzones around every generated weight array) and UBSan on the
     extreme session: the whole-vector reads past a row's end stay inside the weight array."""
@@ -584,6 +586,7 @@ def test_kernels_read_nothing_outside_the_arrays(sessions, tmp_path):
     assert r.returncode == 0 and "ERROR" not in r.stderr, r.stdout + r.stderr
 
 
+@pytest.mark.target
 def test_golden_sessions_on_aarch64_neon_under_qemu(sessions, tmp_path):
     _require("aarch64-linux-gnu-gcc", "qemu-aarch64")
     for i, session in enumerate(sessions):
@@ -597,6 +600,7 @@ def test_golden_sessions_on_aarch64_neon_under_qemu(sessions, tmp_path):
     assert r.returncode == 1 and "packed: cannot run here" in r.stdout, r.stdout + r.stderr
 
 
+@pytest.mark.slow
 def test_portable_only_build_refuses_simd_kernels(sessions, tmp_path):
     """-DFBG_HOST_SIMD=0 builds the portable C alone: it replays the session and refuses
     every SIMD kernel."""
@@ -640,6 +644,7 @@ def _model_swap(cc: str, exe: Path, extra: list[str], run: list[str], kernels: l
         assert m and int(m.group(1)) >= 200 and int(m.group(2)) >= 100, line
 
 
+@pytest.mark.slow
 def test_model_reloaded_under_a_state_is_refused_on_every_host_kernel(tmp_path):
     """fbg_model_from_blob into the model a running state uses, then fbg_step / fbg_run without
     fbg_init: FBG_ERR_MODEL_CHANGED and the safe output (or, when the model did not change,
@@ -651,6 +656,7 @@ def test_model_reloaded_under_a_state_is_refused_on_every_host_kernel(tmp_path):
                                           "-fno-omit-frame-pointer"], [], kernels)
 
 
+@pytest.mark.target
 def test_model_reloaded_under_a_state_is_refused_on_aarch64_neon_under_qemu(tmp_path):
     _require("aarch64-linux-gnu-gcc", "qemu-aarch64")
     _model_swap("aarch64-linux-gnu-gcc", tmp_path / "swap.a64", ["-static"], ["qemu-aarch64"],

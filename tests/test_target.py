@@ -65,6 +65,7 @@ def test_golden_session_covers_every_status_and_api_call(small_model_dir):
     assert {c["FBG_ERR_ARG"], c["FBG_ERR_TARE"]} <= {r.status for r in recs}
 
 
+@pytest.mark.target
 def test_cross_libraries_build_clean_and_without_float(tools):
     """-Werror builds of the three libraries, and the soft-float symbol scan passes."""
     r = subprocess.run(["make", "-s", "-C", str(ROOT / "runtime_c"), "-f", "target.mk", "target-libs"],
@@ -79,6 +80,7 @@ def test_cross_libraries_build_clean_and_without_float(tools):
     assert "smlald" in dis
 
 
+@pytest.mark.target
 def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
     """The check is not vacuous: a library with one float multiply fails it."""
     src = tmp_path / "f.c"
@@ -94,6 +96,7 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
     assert "__aeabi_fmul" in r.stderr
 
 
+@pytest.mark.target
 @pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
 def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
@@ -128,6 +131,7 @@ def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
     assert 300 < int(fields["standardise_overload"]) < 1200
 
 
+@pytest.mark.target
 def test_golden_vectors_bit_exact_on_target_both_builds(report):
     assert report["bit_exact"] is True
     for name in ("portable", "dsp"):
@@ -137,6 +141,7 @@ def test_golden_vectors_bit_exact_on_target_both_builds(report):
     assert report["samples"] >= SAMPLES and report["records"] > report["samples"]
 
 
+@pytest.mark.target
 def test_instruction_counts_and_figures(report, small_model_dir):
     port, dsp = report["builds"]["portable"], report["builds"]["dsp"]
     assert report["macs_per_step"] > 1000
@@ -170,6 +175,7 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     assert report["ram_bytes"] < 4 * 1024
 
 
+@pytest.mark.target
 def test_cycle_estimate_of_the_worst_step(report):
     """Cycles from the worst step's instruction mix: every executed instruction priced (the
     mix adds up to the worst step's count), more cycles than instructions (loads, LDM, taken
@@ -187,6 +193,7 @@ def test_cycle_estimate_of_the_worst_step(report):
         dsp["cycles_per_step_estimate"] / 168_000, abs=1e-4)
 
 
+@pytest.mark.target
 def test_counts_are_deterministic(report):
     """Two QEMU runs of the same firmware give identical per-step counts."""
     build = report["_build"] / "dsp"
@@ -194,6 +201,7 @@ def test_counts_are_deterministic(report):
     assert a.exit_code == 0 and a.windows == b.windows and len(a.windows) == report["samples"]
 
 
+@pytest.mark.target
 def test_firmware_reports_a_single_flipped_bit(report, small_model_dir):
     """The on-target comparison can fail: expected outputs off by one LSB in one record."""
     q, _ = load_quantized(Path(small_model_dir))
@@ -222,11 +230,13 @@ def test_firmware_reports_a_single_flipped_bit(report, small_model_dir):
     assert f"record={idx}" in run.mismatch_lines[0]
 
 
+@pytest.mark.target
 def test_int8_weights_bit_exact(tools, small_model_dir):
     rep = target_report(small_model_dir, samples=128, bits=8)
     assert rep["bit_exact"] and rep["weight_bits"] == 8
 
 
+@pytest.mark.target
 def test_cli_json(tools, small_model_dir, capsys):
     from fbgforce.cli import main
 
@@ -240,6 +250,7 @@ def test_cli_json(tools, small_model_dir, capsys):
     assert "one instruction per cycle" in out["assumption"]
 
 
+@pytest.mark.target
 def test_cli_bad_model_dir_exits_2(tools, tmp_path, capsys):
     from fbgforce.cli import main
 

@@ -172,6 +172,7 @@ def test_runs_are_seeded_and_independent_of_batch(doc):
     assert a.run_summary(1) == b.run_summary(0)
 
 
+@pytest.mark.slow
 def test_force_feedback_is_what_saves_the_egg(scene):
     """Many operators: with (ideal) force feedback nearly all carry the egg unbroken; without,
     clearly fewer, and they squeeze much harder. Delay makes the stiffening master oscillate."""
@@ -189,6 +190,7 @@ def test_force_feedback_is_what_saves_the_egg(scene):
     assert np.nanmedian(late.outcomes["estimator_delay_ms"]) == 50.0
 
 
+@pytest.mark.slow
 def test_estimator_in_the_loop(doc, small_exported_dir):
     """The simulator + C runtime close the loop: the reported force follows the true one."""
     scene = short_scene(doc)
@@ -212,6 +214,7 @@ def test_estimator_needs_an_exported_model(small_model_dir):
 
 # ------------------------------------------------------------------------------ CLI
 
+@pytest.mark.slow
 def test_cli_json_and_files(tmp_path, capsys):
     out = tmp_path / "run"
     rc = cli_main(["teleop", "--scene", "egg_grasp", "--feedback", "true", "--runs", "3",
@@ -243,6 +246,7 @@ def test_cli_bad_input_exits_2(tmp_path, capsys, argv, message):
     assert message in err and len(err.strip().splitlines()) == 1
 
 
+@pytest.mark.slow
 def test_sensor_prefetch_changes_nothing(doc, small_exported_dir):
     """Computing announced contact-free stretches in blocks gives the same loop, bit for bit."""
     scene = short_scene(doc, duration_s=2.5, lift_s=2.0)
@@ -276,6 +280,7 @@ def offline_test_rmse_up_to(model, force_N: float) -> float:
     return float(np.sqrt(sum(b["rmse_force_N"] ** 2 * b["n_samples"] for b in bins) / n))
 
 
+@pytest.mark.slow
 def test_in_loop_force_error_is_bounded_by_the_offline_test_error(doc, small_exported_dir):
     """The loop's fingertip is the calibrated device, so the reported force is as good in the
     loop as on held-out calibration presses of the same force range. Factor 1.6 for what the
@@ -297,6 +302,7 @@ def test_in_loop_force_error_is_bounded_by_the_offline_test_error(doc, small_exp
     assert summary["force_bias_N"] == pytest.approx(o["force_bias_N"][0], abs=1e-4)
 
 
+@pytest.mark.slow
 def test_a_fingertip_that_is_not_the_calibrated_device_is_refused(doc, small_exported_dir):
     """A fingertip with another bond strain transfer (0.90 against the calibration's 0.48)
     reads about twice the true force: refused, or measured with allow_other_device."""

@@ -10,6 +10,7 @@ import pytest
 from fbgforce import model as fm
 from fbgforce.tradeoff import grid, scoring, timing
 from fbgforce.cli import main
+from fbgforce.errors import InputError
 
 
 def _mlp(rng: np.random.Generator, sizes: list[int]) -> fm.MLP:
@@ -38,33 +39,33 @@ def _wavelengths(n: int, seed: int = 1) -> np.ndarray:
 
 @pytest.mark.parametrize("kind", ["causal", "none"])
 @pytest.mark.parametrize("nets", ["numpy", "onnx"])
-def test_stepper_equals_batch_pipeline(kind: str, nets: str) -> None:
+def test_single_sample_pipeline_equals_batch(kind: str, nets: str) -> None:
     """What the single-sample timing runs is the real pipeline, sample for sample."""
     model = _model(kind)
     wl = _wavelengths(400)
     base = wl[:20].mean(axis=0)
     ref = fm.predict(model, wl, base)
-    st = timing.FloatStepper(model, base, nets)
-    got = [st.step(wl[i]) for i in range(wl.shape[0])]
-    contact = np.array([g["contact"] for g in got])
+    pipe = timing.float_pipeline(model, base, nets)
+    got = [pipe.push(wl[i]) for i in range(wl.shape[0])]
+    contact = np.array([g["contact"][0] for g in got])
     assert 0 < contact.sum() < contact.size  # both branches exercised
     tol = 1e-9 if nets == "numpy" else 2e-3
     if nets == "numpy":
         assert np.array_equal(contact, ref["contact"])
     same = contact == ref["contact"]
     assert same.mean() > 0.99
-    np.testing.assert_allclose(np.array([g["force_N"] for g in got])[same], ref["force_N"][same],
+    np.testing.assert_allclose(np.array([g["force_N"][0] for g in got])[same], ref["force_N"][same],
                                rtol=0, atol=tol * 10)
-    np.testing.assert_allclose(np.array([g["x_mm"] for g in got])[same], ref["x_mm"][same],
+    np.testing.assert_allclose(np.array([g["x_mm"][0] for g in got])[same], ref["x_mm"][same],
                                rtol=0, atol=tol)
 
 
-def test_stepper_refuses_centred_filter() -> None:
+def test_single_sample_pipeline_refuses_centred_filter() -> None:
     model = _model()
     model.preprocess = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
                                      model.preprocess.input_mean, model.preprocess.input_std)
-    with pytest.raises(ValueError, match="centred"):
-        timing.FloatStepper(model, model.baseline_nm)
+    with pytest.raises(InputError, match="centred"):
+        timing.float_pipeline(model, model.baseline_nm)
 
 
 def test_measure_reports_every_engine_and_missing_callables() -> None:
@@ -157,6 +158,7 @@ def test_qat_finetune_keeps_model_contract() -> None:
     assert all(isinstance(rep[k]["kept_start"], bool) for k in ("contact", "force", "location"))
 
 
+@pytest.mark.slow
 def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     """``fbgforce tradeoff --quick`` on a small scene: every output written and consistent."""
     sim = pytest.importorskip("fbgforce.sim")
@@ -172,7 +174,7 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     rows = res["rows"]
     ok = [r for r in rows if r["status"] == "ok"]
     engines_ok = {r["engine"] for r in ok}
-    assert {"numpy-f64", "onnx-f32"} <= engines_ok
+    assert {"float", "onnx"} <= engines_ok
     # Every engine is either measured or says why not; nothing silently dropped.
     assert {r["engine"] for r in rows} == {s.name for s in grid.ENGINE_SPECS}
     assert all(r["status"] == "ok" or r["status"].startswith(("missing", "n/a")) for r in rows)
@@ -186,8 +188,8 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     # onnxruntime and numpy score the same model alike (float32 vs float64).
     by = {(r["variant"], r["engine"]): r for r in ok}
     for (variant, engine), r in by.items():
-        if engine == "onnx-f32":
-            f64 = by[(variant, "numpy-f64")]
+        if engine == "onnx":
+            f64 = by[(variant, "float")]
             assert abs(r["rmse_force_N"] - f64["rmse_force_N"]) < 0.01 * f64["rmse_force_N"] + 1e-3
     # The shipped causal filter delays; no filter does not; the front is non-empty.
     delays = {r["filter"]: r["filter_delay_ms"] for r in ok}
@@ -197,3 +199,27 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     assert "reference" in res["summary"]
     csv_lines = (out / "tradeoff.csv").read_text().strip().splitlines()
     assert len(csv_lines) == len(rows) + 1
+
+
+def test_engines_take_the_engine_names_and_the_documented_aliases(tmp_path, monkeypatch, capsys) -> None:
+    """One vocabulary: the columns are named as fbgforce.engines names its engines; the names
+    docs/cli.md lists for --engines before are accepted for the same columns."""
+    import fbgforce.tradeoff.artifacts as tart
+    import fbgforce.tradeoff.run as trun
+
+    seen: list[tuple[str, ...]] = []
+    monkeypatch.setattr(tart, "prepare_data", lambda *args: [])
+
+    def capture(paths, out, s, log=print):
+        seen.append(s.engines)
+        raise InputError("stop here", column="--engines")
+
+    monkeypatch.setattr(trun, "run", capture)
+    out = str(tmp_path / "t")
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "float", "fixed-int8"]) == 2
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "numpy-f64", "c-int8", "float"]) == 2
+    assert seen == [("float", "fixed-int8"), ("float", "fixed-int8")]
+    assert {spec.name for spec in grid.ENGINE_SPECS} == {"float", "onnx", "cfloat", "fixed",
+                                                           "fixed-int8", "fixed-int8-qat"}
+    assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "numpy"]) == 2
+    assert "unknown engine(s) numpy" in capsys.readouterr().err

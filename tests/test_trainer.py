@@ -82,6 +82,7 @@ def test_contact_net_learns_a_nonlinear_boundary():
     assert acc > 0.95
 
 
+@pytest.mark.slow
 def test_force_and_location_nets_learn_regressions():
     rng = np.random.default_rng(2)
     x = rng.uniform(-1, 1, (6000, 6))
@@ -291,6 +292,7 @@ def test_nominal_baseline_inverts_the_nominal_model_and_fit_recovers_a_device():
 
 
 # ------------------------------------------------------------------------------ training
+@pytest.mark.slow
 def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording, tmp_path):
     from fbgforce import dataset
     from fbgforce.trainer.evaluate import evaluate
@@ -322,6 +324,7 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     assert ev["contact_timing"]["presses"] >= 1
 
 
+@pytest.mark.slow
 def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synthetic_recording):
     from fbgforce.trainer.train import train
 
@@ -383,6 +386,7 @@ def test_unread_units_are_dropped_and_float32_outputs_stay():
     assert none == 0 and same.sizes == sizes
 
 
+@pytest.mark.slow
 def test_default_weight_decay_falls_with_the_training_samples(synthetic_recording):
     from fbgforce.trainer.train import DEFAULT_DECAY_SAMPLES, train
 
@@ -419,6 +423,7 @@ def test_default_weight_decay_falls_with_the_training_samples(synthetic_recordin
         assert np.array_equal(wa, wb)
 
 
+@pytest.mark.slow
 def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_recording, tmp_path):
     from fbgforce.trainer.train import train
 
@@ -529,3 +534,26 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
         desc="pipe")
     lines = [ln for ln in err.getvalue().replace("\r", "\n").splitlines() if "pipe" in ln]
     assert 1 <= len(lines) <= 3, lines
+
+
+@pytest.mark.parametrize("name,value,column", [
+    ("epochs", 0, "--epochs"), ("epochs", 2.5, "--epochs"), ("filter", "gauss", "--filter"),
+    ("sigma", -1.0, "--sigma"), ("train_fraction", 1.5, "--train-fraction"),
+    ("hold_augment", -0.1, "--hold-augment"), ("hold_augment", float("nan"), "--hold-augment"),
+    ("learning_rate", 0.0, "learning_rate"), ("batch_size", True, "batch_size"),
+    ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor")])
+def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
+    from fbgforce.trainer.train import TrainParams
+
+    with pytest.raises(InputError) as exc:
+        TrainParams(**{name: value})
+    assert exc.value.column == column and repr(value) in str(exc.value)
+
+
+def test_train_takes_params_and_options_and_refuses_unknown_ones(synthetic_recording):
+    from fbgforce.trainer.train import TrainParams, train
+
+    with pytest.raises(TypeError, match="epoch"):
+        train([synthetic_recording], epoch=3)
+    with pytest.raises(InputError, match="--train-fraction"):
+        train([synthetic_recording], TrainParams(epochs=1), train_fraction=0.0)

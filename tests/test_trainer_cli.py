@@ -15,6 +15,7 @@ def _run_json(capsys, argv):
     return json.loads(capsys.readouterr().out)
 
 
+@pytest.mark.slow
 def test_train_evaluate_round_trip(capsys, tmp_path, small_dataset_path):
     out = tmp_path / "model"
     res = _run_json(capsys, ["train", "--data", str(small_dataset_path), "--out", str(out),
@@ -72,6 +73,7 @@ def test_analyze_needs_three_features(capsys, tmp_path, small_dataset_path):
         assert (tmp_path / "ae.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_report_runs_end_to_end(capsys, tmp_path, small_dataset_path, small_model_dir):
     res = _run_json(capsys, ["report", "--data", str(small_dataset_path), "--model",
                              str(small_model_dir), "--epochs", "3", "--out", str(tmp_path / "r"),

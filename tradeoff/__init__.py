@@ -12,12 +12,12 @@ Variants
     paper's hidden widths, half and quarter. The default ``star`` grid varies the filter at the
     paper width and the width at the shipped filter (7 models); ``full`` is the product.
 Engines
-    ``numpy-f64`` (fbgforce.model), ``onnx-f32`` (onnxruntime), ``c-float`` (C single
-    precision), ``c-int16`` (C fixed point, int16 weights), ``c-int8`` (int8 weights, same
-    model), ``c-int8-qat`` (int8 weights after quantization-aware fine-tuning,
+    ``float`` (fbgforce.model), ``onnx`` (onnxruntime), ``cfloat`` (C single
+    precision), ``fixed`` (C fixed point, int16 weights), ``fixed-int8`` (int8 weights, same
+    model), ``fixed-int8-qat`` (int8 weights after quantization-aware fine-tuning,
     :mod:`fbgforce.trainer.qat`). Engines not built yet are listed with ``status`` "missing".
 
-The reference row is the paper-width model with the shipped causal filter on ``numpy-f64``.
+The reference row is the paper-width model with the shipped causal filter on ``float``.
 ``error_index`` is the geometric mean of four ratios to it (force, x and y RMSE, contact error
 rate): 1.0 means the reference's accuracy, 1.1 about 10 % worse. A row ``matches`` the
 reference when each RMSE is at most 5 % higher and contact accuracy at most 0.2 points lower.

@@ -40,7 +40,8 @@ def register(subparsers: Any) -> None:
                    help="star: filters at paper width + widths at the shipped filter + memories "
                         "at the shipped configuration; full: product; memory: the memories only")
     p.add_argument("--engines", nargs="+", default=None, metavar="NAME",
-                   help="subset of: numpy-f64 onnx-f32 c-float c-int16 c-int8 c-int8-qat")
+                   help="subset of: float onnx cfloat fixed fixed-int8 fixed-int8-qat "
+                        "(also accepted: numpy-f64 onnx-f32 c-float c-int16 c-int8 c-int8-qat)")
     p.add_argument("--qat-epochs", type=int, default=None, help="QAT fine-tuning epochs")
     p.add_argument("--no-target", action="store_true",
                    help="skip the Cortex-M4 instruction counts (fbgforce target-report)")
@@ -179,7 +180,7 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
         return _decision_handler(args)
     # Imported here, not at the top: `fbgforce --help` loads every command module.
     from fbgforce.tradeoff.artifacts import prepare_data
-    from fbgforce.tradeoff.grid import ENGINE_SPECS, Settings, quick_settings
+    from fbgforce.tradeoff.grid import ENGINE_ALIASES, ENGINE_SPECS, Settings, quick_settings
     from fbgforce.tradeoff.outputs import markdown_table
     from fbgforce.tradeoff.run import run
 
@@ -206,11 +207,12 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
         s.memories = tuple(args.memories)
     if args.engines:
         known = [e.name for e in ENGINE_SPECS]
-        bad = [e for e in args.engines if e not in known]
+        names = [ENGINE_ALIASES.get(e, e) for e in args.engines]
+        bad = [e for e, name in zip(args.engines, names) if name not in known]
         if bad:
             raise InputError(f"unknown engine(s) {', '.join(bad)}; choose from {', '.join(known)}",
                              column="--engines")
-        s.engines = tuple(args.engines)
+        s.engines = tuple(dict.fromkeys(names))
     if args.qat_epochs is not None:
         s.qat_epochs = args.qat_epochs
     if args.no_target:

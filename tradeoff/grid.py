@@ -48,13 +48,19 @@ class EngineSpec:
 
 
 ENGINE_SPECS = (
-    EngineSpec("numpy-f64", "float", "float", None, None, 8),
-    EngineSpec("onnx-f32", "onnx", "float", None, None, 4),
-    EngineSpec("c-float", "cfloat", "float", None, None, 4),
-    EngineSpec("c-int16", "fixed", "float", 16, 16, 2),
-    EngineSpec("c-int8", "fixed", "int8", 8, 16, 1),
-    EngineSpec("c-int8-qat", "fixed", "int8-qat", 8, 16, 1),
+    EngineSpec("float", "float", "float", None, None, 8),
+    EngineSpec("onnx", "onnx", "float", None, None, 4),
+    EngineSpec("cfloat", "cfloat", "float", None, None, 4),
+    EngineSpec("fixed", "fixed", "float", 16, 16, 2),
+    EngineSpec("fixed-int8", "fixed", "int8", 8, 16, 1),
+    EngineSpec("fixed-int8-qat", "fixed", "int8-qat", 8, 16, 1),
 )
+SPECS_BY_NAME = {spec.name: spec for spec in ENGINE_SPECS}
+#: Other names ``fbgforce tradeoff --engines`` accepts for the engine columns (docs/cli.md):
+#: each column is named as ``fbgforce.engines`` names its engine (``float``, ``onnx``,
+#: ``cfloat``, ``fixed``), with the weight format where it is not the export's default int16.
+ENGINE_ALIASES = {"numpy-f64": "float", "onnx-f32": "onnx", "c-float": "cfloat", "c-int16": "fixed",
+                  "c-int8": "fixed-int8", "c-int8-qat": "fixed-int8-qat"}
 
 
 @dataclass

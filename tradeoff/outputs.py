@@ -45,9 +45,9 @@ def summary_paragraph(res: dict[str, Any]) -> str:
                  f" ms delay) in numpy float64: {acc(ref)}, {_ns(ref.get('host_batch_ns'))} per "
                  f"sample batched, {_ns(ref.get('host_single_ns'))} per single-sample call.")
     tag = ref["variant"]
-    for name, what in (("onnx-f32", "onnxruntime float32"), ("c-float", "the C float build"),
-                       ("c-int16", "the C int16 fixed-point runtime"),
-                       ("c-int8", "int8 weights"), ("c-int8-qat", "int8 weights after QAT")):
+    for name, what in (("onnx", "onnxruntime float32"), ("cfloat", "the C float build"),
+                       ("fixed", "the C int16 fixed-point runtime"),
+                       ("fixed-int8", "int8 weights"), ("fixed-int8-qat", "int8 weights after QAT")):
         r = by.get((tag, name))
         if r is None:
             continue
@@ -62,15 +62,15 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             return "–"
         return f"{x:.1f}× slower than" if x >= 1 else f"{1 / x:.1f}× faster than"
 
-    if ratios.get("onnx-f32_over_c-int16_batch"):
+    if ratios.get("onnx_over_fixed_batch"):
         parts.append(
             f"Same model, same run, relative to the C int16 runtime: batched, onnxruntime is "
-            f"{rel(ratios['onnx-f32_over_c-int16_batch'])} it and numpy "
-            f"{rel(ratios['numpy-f64_over_c-int16_batch'])} it; in single-sample calls "
-            f"onnxruntime is {rel(ratios['onnx-f32_over_c-int16_single'])} it and numpy "
-            f"{rel(ratios['numpy-f64_over_c-int16_single'])} it.")
+            f"{rel(ratios['onnx_over_fixed_batch'])} it and numpy "
+            f"{rel(ratios['float_over_fixed_batch'])} it; in single-sample calls "
+            f"onnxruntime is {rel(ratios['onnx_over_fixed_single'])} it and numpy "
+            f"{rel(ratios['float_over_fixed_single'])} it.")
     # Filter: what delay buys.
-    filt = sorted((r for r in rows if r["width"] == "paper" and r["engine"] == "numpy-f64"
+    filt = sorted((r for r in rows if r["width"] == "paper" and r["engine"] == "float"
                    and r.get("memory") == ref.get("memory")),
                   key=lambda r: (not r["causal"], r["filter_delay_ms"]))
     if len(filt) > 1:
@@ -80,7 +80,7 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f"force {r['rmse_force_N']:.2f} N, y {r['rmse_y_mm']:.2f} mm, "
             f"index {r['error_index']:.2f}" for r in filt)
         parts.append(f"Filter delay against accuracy at paper width: {desc}.")
-    widths = sorted((r for r in rows if r["engine"] == "numpy-f64" and r["filter"] == ref["filter"]
+    widths = sorted((r for r in rows if r["engine"] == "float" and r["filter"] == ref["filter"]
                      and r["sigma"] == ref["sigma"] and r.get("memory") == ref.get("memory")),
                     key=lambda r: -r["macs_nets"])
     if len(widths) > 1:
@@ -97,7 +97,7 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f"{_ns(r.get('host_batch_ns'))}" for r in mems)
         parts.append(f"Memory (what the pad's hysteresis costs a memoryless net): {desc}.")
     paper_cfg = next((r for r in rows if not r["causal"] and r["width"] == "paper"
-                      and r["engine"] == "numpy-f64"), None)
+                      and r["engine"] == "float"), None)
     if paper_cfg is not None:
         parts.append(f"The paper's own configuration (paper width, centred Gaussian σ = "
                      f"{paper_cfg['sigma']:g}) reaches error index {paper_cfg['error_index']:.3f} "
@@ -108,7 +108,7 @@ def summary_paragraph(res: dict[str, Any]) -> str:
         parts.append("Deployable Pareto front, error against host compute: " + ", ".join(
             f"{r['variant']}/{r['engine']} ({_ns(r['host_batch_ns'])}, index {r['error_index']:.3f})"
             for r in front) + ".")
-    m4 = [r for r in rows if r["engine"] == "c-int16" and r.get("m4_instructions_per_step")]
+    m4 = [r for r in rows if r["engine"] == "fixed" and r.get("m4_instructions_per_step")]
     if m4:
         desc = "; ".join(
             f"{r['variant']} {r['m4_instructions_per_step']} instructions per step "
@@ -116,7 +116,7 @@ def summary_paragraph(res: dict[str, Any]) -> str:
             f" at one instruction per cycle)"
             for r in sorted(m4, key=lambda r: -r["m4_instructions_per_step"]))
         parts.append(f"On the Cortex-M4 (DSP build, int16, worst step): {desc}.")
-        r16, r8 = by.get((tag, "c-int16")), by.get((tag, "c-int8"))
+        r16, r8 = by.get((tag, "fixed")), by.get((tag, "fixed-int8"))
         if r16 and r8 and r16.get("m4_instructions_per_step") and r8.get("m4_instructions_per_step"):
             parts.append(f"Int8 weights shrink the blob from {r16['model_bytes']} to "
                          f"{r8['model_bytes']} bytes but take {r8['m4_instructions_per_step']} "

@@ -63,7 +63,7 @@ def write_plot(res: dict[str, Any], path: Path) -> str | None:
                             textcoords="offset points", xytext=(8, 10), fontsize=8,
                             arrowprops={"arrowstyle": "-", "lw": 0.6})
         paper = [r for r in rows if not r["causal"] and r["width"] == "paper"
-                 and r["engine"] == "numpy-f64"]
+                 and r["engine"] == "float"]
         for r in paper:
             x = (r["filter_delay_ms"] + (r.get("host_single_ns") or r.get("host_batch_ns") or 0) / 1e6) \
                 if xkey == "total_ms" else r.get("host_batch_ns")

@@ -16,8 +16,8 @@ from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import artifacts, scoring, timing
-from fbgforce.tradeoff.grid import (ENGINE_SPECS, EngineSpec, Settings, Variant, scaled_sizes,
-                                    step_macs, variants)
+from fbgforce.tradeoff.grid import (ENGINE_SPECS, SPECS_BY_NAME, EngineSpec, Settings, Variant,
+                                    scaled_sizes, step_macs, variants)
 from fbgforce.tradeoff.outputs import summary_paragraph, write_outputs
 from fbgforce.tradeoff.timers import make_timer, timing_samples
 
@@ -212,7 +212,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
     for r in rows:
         mdir = r.pop("_dir", None)
         r["m4_instructions_per_step"] = None
-        if s.target and mdir is not None and r["engine"].startswith("c-int"):
+        if s.target and mdir is not None and SPECS_BY_NAME[r["engine"]].engine == "fixed":
             if str(mdir) not in target_cache:
                 log(f"Cortex-M4 counts for {Path(mdir).name} ...")
                 target_cache[str(mdir)] = target_instructions(mdir, Path(sources[0]))

@@ -24,7 +24,7 @@ def reference(rows: list[dict[str, Any]], s: Settings) -> dict[str, Any] | None:
     numpy float64; else the first measured causal row."""
     ref_tag = Variant("causal", s.default_sigma, "paper").tag
     for r in rows:
-        if r["variant"] == ref_tag and r["engine"] == "numpy-f64" and r.get("status") == "ok":
+        if r["variant"] == ref_tag and r["engine"] == "float" and r.get("status") == "ok":
             return r
     ok = [r for r in rows if r.get("status") == "ok" and r["causal"]]
     return ok[0] if ok else None
@@ -103,13 +103,13 @@ def ratios(rows: list[dict[str, Any]], s: Settings) -> dict[str, Any]:
     by = {(r["variant"], r["engine"]): r for r in rows}
     ref_tag = Variant("causal", s.default_sigma, "paper").tag
     out: dict[str, Any] = {"variant": ref_tag}
-    c = by.get((ref_tag, "c-int16"))
-    for other in ("onnx-f32", "numpy-f64", "c-float"):
+    c = by.get((ref_tag, "fixed"))
+    for other in ("onnx", "float", "cfloat"):
         o = by.get((ref_tag, other))
         for mode in ("single", "batch"):
             k = f"host_{mode}_ns"
             if c and o and c.get(k) and o.get(k):
-                out[f"{other}_over_c-int16_{mode}"] = o[k] / c[k]
+                out[f"{other}_over_fixed_{mode}"] = o[k] / c[k]
             else:
-                out[f"{other}_over_c-int16_{mode}"] = None
+                out[f"{other}_over_fixed_{mode}"] = None
     return out

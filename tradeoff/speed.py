@@ -8,7 +8,7 @@ three kinds of figure:
   runtime's batch (``fbg_run`` / ``fbgf_run`` through cffi on int32 femtometres) and its
   single-sample API (``Runtime.step`` / ``FloatRuntime.step``); numpy float64 and onnxruntime
   float32 (one thread) over the whole pipeline (batch: the engine functions; single:
-  :class:`~fbgforce.tradeoff.timing.FloatStepper`) and over the nets alone (standardised
+  :class:`~fbgforce.model.FloatPipeline`) and over the nets alone (standardised
   features precomputed), onnxruntime's single-row ``session.run`` included;
 - **from C**, per driver build (:mod:`fbgforce.tradeoff.cdriver`): ``*_run`` over all samples
   and one ``*_step`` call per sample, best of ``reps`` passes in CPU time, the fixed-point
@@ -37,7 +37,7 @@ from fbgforce.tradeoff.grid import step_macs
 from fbgforce.tradeoff.timers import c_callables, timing_samples
 
 #: The row every ratio divides by: (engine, call, scope).
-REFERENCE = ("onnx-f32", "batch", "nets")
+REFERENCE = ("onnx", "batch", "nets")
 
 
 @dataclass
@@ -153,8 +153,8 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
     from fbgforce.pybind import FloatRuntime, Runtime
 
     out: list[tuple[timing.Timer, dict[str, Any], dict[str, Any]]] = []
-    for name, kind, mdir in (("c-int16", "fixed", model_dir), ("c-int8", "fixed", int8_dir),
-                             ("c-float", "cfloat", model_dir)):
+    for name, kind, mdir in (("fixed", "fixed", model_dir), ("fixed-int8", "fixed", int8_dir),
+                             ("cfloat", "cfloat", model_dir)):
         rt: Any = Runtime(mdir) if kind == "fixed" else FloatRuntime(model)
         rt.set_baseline(base)
         _, batch = c_callables(kind, mdir, model, wl, base)
@@ -165,28 +165,28 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
                     _row(name, "batch", "python", "pipeline", f"{run} through cffi")))
     z = np.ascontiguousarray(fm.features(model, wl, base))
     z32 = np.ascontiguousarray(z, dtype=np.float32)
-    for name, engine, nets in (("numpy-f64", "float", "numpy"), ("onnx-f32", "onnx", "onnx")):
+    for name, engine, nets in (("float", "float", "numpy"), ("onnx", "onnx", "onnx")):
         fn = get_engine(engine)
-        stepper = timing.FloatStepper(model, base, nets, model_dir)
-        out.append((timing.Timer(name, single=lambda i, s=stepper: s.step(wl[i]),
+        pipe = timing.float_pipeline(model, base, nets, model_dir)
+        out.append((timing.Timer(name, single=lambda i, p=pipe: p.push(wl[i]),
                                  batch=lambda a, b, fn=fn: fn(model_dir, model, wl[a:b], base)),
-                    _row(name, "single", "python", "pipeline", f"FloatStepper ({nets})"),
+                    _row(name, "single", "python", "pipeline", f"FloatPipeline.push ({nets})"),
                     _row(name, "batch", "python", "pipeline",
                          "fbgforce.model.predict" if nets == "numpy"
                          else "numpy preprocessing + onnxruntime nets")))
-    out.append((timing.Timer("numpy-f64/nets",
+    out.append((timing.Timer("float/nets",
                              single=lambda i: fm.predict_from_features(model, z[i:i + 1]),
                              batch=lambda a, b: fm.predict_from_features(model, z[a:b])),
-                _row("numpy-f64", "single", "python", "nets", "predict_from_features, one row"),
-                _row("numpy-f64", "batch", "python", "nets", "predict_from_features")))
+                _row("float", "single", "python", "nets", "predict_from_features, one row"),
+                _row("float", "batch", "python", "nets", "predict_from_features")))
     sess = session_for(model, model_dir)
     names = [o.name for o in sess.get_outputs()]
     feed = sess.get_inputs()[0].name
-    out.append((timing.Timer("onnx-f32/nets",
+    out.append((timing.Timer("onnx/nets",
                              single=lambda i: sess.run(names, {feed: z32[i:i + 1]}),
                              batch=lambda a, b: run_features(model, z32[a:b], model_dir)),
-                _row("onnx-f32", "single", "python", "nets", "session.run, one row"),
-                _row("onnx-f32", "batch", "python", "nets", "session.run, 1 thread")))
+                _row("onnx", "single", "python", "nets", "session.run, one row"),
+                _row("onnx", "batch", "python", "nets", "session.run, 1 thread")))
     return out
 
 
@@ -202,7 +202,7 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
     samples = work / "samples.bin"
     cdriver.write_samples(samples, base_fm, wl_fm)
     reference: dict[str, bytes] = {}
-    for name, mdir in (("c-int16", model_dir), ("c-int8", int8_dir)):
+    for name, mdir in (("fixed", model_dir), ("fixed-int8", int8_dir)):
         rt = Runtime(mdir)
         rt.set_baseline(base_fm)
         reference[name] = rt.run_raw(wl_fm).tobytes()
@@ -210,9 +210,9 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
     vg = cdriver.valgrind() if s.callgrind else None
     for b in builds:
         engines: list[tuple[str, str, Path | None]] = [
-            ("c-int16", "fixed", model_dir / "model.fbgm"), ("c-int8", "fixed", int8_dir / "model.fbgm")]
+            ("fixed", "fixed", model_dir / "model.fbgm"), ("fixed-int8", "fixed", int8_dir / "model.fbgm")]
         if float_src is not None and b.init_options is None:  # options: fixed point only
-            engines.append(("c-float", "float", None))
+            engines.append(("cfloat", "float", None))
         try:
             tick(f"compiling the driver ({b.name}: {b.flags or 'no flags'})")
             exe = cdriver.build(b, work / f"build-{len(rows)}", float_src)
@@ -263,7 +263,7 @@ def c_rows(builds: tuple[cdriver.CBuild, ...], work: Path, model_dir: Path, int8
             if window[1] < s.count_samples:
                 single_row["note"] = f"counted over {window[1]} contact steps"
     if not builds:
-        rows.append(_row("c-int16", "single", "c", "pipeline", "fbg_step from C",
+        rows.append(_row("fixed", "single", "c", "pipeline", "fbg_step from C",
                          note="n/a: no C build (runtime_c/build_runtime.py not found; give "
                               "--c-build NAME=FLAGS)"))
     return rows
@@ -387,7 +387,7 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
 
 
 #: Table order: engine, then call, caller and scope (build order kept within).
-ENGINE_ORDER = ("c-int16", "c-int8", "c-float", "numpy-f64", "onnx-f32")
+ENGINE_ORDER = ("fixed", "fixed-int8", "cfloat", "float", "onnx")
 
 
 def _order(r: dict[str, Any]) -> tuple[int, int, int, int]:

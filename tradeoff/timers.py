@@ -64,7 +64,7 @@ def make_timer(spec: EngineSpec, name: str, model_dir: Path, model: fm.Hierarchi
                wl: np.ndarray, base: np.ndarray) -> timing.Timer:
     """Timed callables running the whole pipeline of ``spec`` on recording ``wl``.
 
-    numpy / onnxruntime: single samples through :class:`fbgforce.tradeoff.timing.FloatStepper`,
+    numpy / onnxruntime: single samples through :func:`fbgforce.tradeoff.timing.float_pipeline`,
     batches through the engine function. C: both straight onto the C API (:func:`c_callables`).
     The centred filter cannot stream, so those rows have a batch time only.
     """
@@ -73,9 +73,9 @@ def make_timer(spec: EngineSpec, name: str, model_dir: Path, model: fm.Hierarchi
         fn = fengines.get_engine(spec.engine)
         single: Callable[[int], Any] | None = None
         if streamable:
-            stepper = timing.FloatStepper(model, base, "numpy" if spec.engine == "float" else "onnx",
-                                          model_dir)
-            single = lambda i: stepper.step(wl[i])  # noqa: E731
+            pipe = timing.float_pipeline(model, base, "numpy" if spec.engine == "float" else "onnx",
+                                         model_dir)
+            single = lambda i: pipe.push(wl[i])  # noqa: E731
         return timing.Timer(name, single=single,
                             batch=lambda a, b: fn(model_dir, model, wl[a:b], base))
     single_c, batch_c = c_callables(spec.engine, model_dir, model, wl, base)

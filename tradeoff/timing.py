@@ -5,9 +5,9 @@ out (tare, temperature compensation, FIR, standardisation, three nets, gating), 
 what a 1 kHz controller pays. Two call patterns:
 
 - ``single``: one sample per call through the engine's streaming API (a controller's
-  interrupt). For numpy and onnxruntime this is :class:`FloatStepper` (the float64 pipeline with
-  a ring-buffer FIR, numerically the same as :func:`fbgforce.model.predict`); for the C runtime,
-  ``Runtime.step``. Includes the Python call overhead, which dominates for every engine here.
+  interrupt). For numpy and onnxruntime this is :class:`fbgforce.model.FloatPipeline` fed one
+  sample at a time (:func:`float_pipeline`, what :func:`fbgforce.model.predict` computes); for
+  the C runtime, ``Runtime.step``. Includes the Python call overhead, which dominates for every engine here.
 - ``batch``: one call over ``n`` samples of a continuous recording (offline evaluation, log
   replay), reported per sample.
 
@@ -29,69 +29,32 @@ import numpy as np
 from fbgforce import model as fm
 
 
-class FloatStepper:
-    """Streaming float pipeline, one sample per :meth:`step`, matching :func:`fbgforce.model.predict`.
+def float_pipeline(model: fm.HierarchicalModel, baseline_nm: np.ndarray, nets: str = "numpy",
+                   model_dir: Any = None) -> fm.FloatPipeline:
+    """The streaming float pipeline the single-sample timings step, one sample per
+    :meth:`~fbgforce.model.FloatPipeline.push`: :class:`fbgforce.model.FloatPipeline`, the one
+    float pipeline every engine and command runs (what :func:`fbgforce.model.predict` computes).
 
     Parameters
     ----------
     model
-        The float model (causal or no filter; the centred filter needs future samples).
+        The float model (causal or no filter; the centred filter needs future samples:
+        :class:`~fbgforce.errors.InputError`).
     baseline_nm
         (5,) tare wavelengths.
     nets
-        ``"numpy"`` (float64, :func:`fbgforce.model.predict_from_features`) or ``"onnx"``
-        (float32 onnxruntime session of :mod:`fbgforce.export.onnx_export`).
+        ``"numpy"`` (float64, :func:`fbgforce.model.numpy_nets`) or ``"onnx"`` (float32
+        onnxruntime, :func:`fbgforce.export.onnx_export.onnx_nets`).
     model_dir
         Where an exported ``model.onnx`` may be (for ``nets="onnx"``).
     """
+    if nets == "numpy":
+        return fm.FloatPipeline(model, baseline_nm)
+    if nets == "onnx":
+        from fbgforce.export.onnx_export import onnx_nets
 
-    def __init__(self, model: fm.HierarchicalModel, baseline_nm: np.ndarray, nets: str = "numpy",
-                 model_dir: Any = None) -> None:
-        pre = model.preprocess
-        if pre.filter_kind == "centred":
-            raise ValueError("the centred filter uses future samples and cannot stream")
-        self.model = model
-        self.taps_rev = (np.ones(1) if pre.filter_kind == "none" else pre.taps)[::-1].copy()
-        self.n_taps = self.taps_rev.size
-        # Doubled ring buffer: each sample is written at i and i + L, so the last L samples are
-        # always the contiguous slice [i+1, i+L] (oldest .. newest), with no copy per step.
-        self.buf = np.zeros((2 * self.n_taps, fm.N_STRAIN))
-        self.pos = 0
-        self.base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
-        self.temp_coeff = pre.temp_coeff
-        self.mean, self.inv_std = pre.input_mean, 1.0 / pre.input_std
-        self.memory = fm.MemoryStream(pre.memory, pre.z_rest)
-        if nets == "numpy":
-            self._nets = self._numpy_nets
-        elif nets == "onnx":
-            from fbgforce.export.onnx_export import session_for
-
-            self._sess = session_for(model, model_dir)
-            self._nets = self._onnx_nets
-        else:
-            raise ValueError(f"nets must be 'numpy' or 'onnx', not {nets!r}")
-
-    def step(self, wl_nm: np.ndarray) -> dict[str, Any]:
-        """Process one sample (5,) nm; returns contact, force_N, x_mm, y_mm (gated)."""
-        shift = (wl_nm - self.base) * 1000.0
-        comp = shift[:fm.N_STRAIN] - shift[fm.N_STRAIN] * self.temp_coeff
-        i = self.pos
-        self.buf[i] = comp
-        self.buf[i + self.n_taps] = comp
-        filt = self.taps_rev @ self.buf[i + 1:i + 1 + self.n_taps]
-        self.pos = (i + 1) % self.n_taps
-        return self._nets(self.memory.push(((filt - self.mean) * self.inv_std)[None, :]))
-
-    def _numpy_nets(self, z: np.ndarray) -> dict[str, Any]:
-        out = fm.predict_from_features(self.model, z)
-        return {k: out[k][0] for k in ("contact", "force_N", "x_mm", "y_mm")}
-
-    def _onnx_nets(self, z: np.ndarray) -> dict[str, Any]:
-        contact, force, x, y = self._sess.run(
-            ["contact", "force_N", "x_mm", "y_mm"], {"z": z.astype(np.float32)})
-        c = bool(contact[0])
-        return {"contact": c, "force_N": float(force[0]) if c else 0.0,
-                "x_mm": float(x[0]) if c else float("nan"), "y_mm": float(y[0]) if c else float("nan")}
+        return fm.FloatPipeline(model, baseline_nm, nets=onnx_nets(model, model_dir))
+    raise ValueError(f"nets must be 'numpy' or 'onnx', not {nets!r}")
 
 
 @dataclass

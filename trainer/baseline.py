@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from fbgforce.errors import InputError
+from fbgforce.units import gate_outputs
 
 CONTACT_QUANTILE = 99.5
 
@@ -82,9 +83,9 @@ class BeamModel:
             x = np.clip(x, 0.0, self.pad_mm[0])
             y = np.clip(y, 0.0, self.pad_mm[1])
         contact = force > self.contact_threshold_N
+        force_N, x_mm, y_mm = gate_outputs(contact, force, x, y)
         return {"contact": contact, "p_contact": contact.astype(np.float64),
-                "force_N": np.where(contact, force, 0.0), "x_mm": np.where(contact, x, np.nan),
-                "y_mm": np.where(contact, y, np.nan), "force_raw_N": force}
+                "force_N": force_N, "x_mm": x_mm, "y_mm": y_mm, "force_raw_N": force}
 
     def set_threshold(self, shift_pm_free: np.ndarray) -> None:
         """Contact threshold from contact-free samples' force estimates."""

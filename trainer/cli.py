@@ -128,24 +128,17 @@ def register(subparsers: Any) -> None:
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce import model as fm
-    from fbgforce.trainer.train import train
+    from fbgforce.trainer.train import TrainParams, train
 
     _check_files(args.data, "--data")
-    if not 0.0 < args.train_fraction <= 1.0:
-        raise InputError(f"must be in (0, 1], not {args.train_fraction}", column="--train-fraction")
+    augment = {name: getattr(args, name) for name in ("hold_augment", "rest_augment")
+               if getattr(args, name) is not None}
+    params = TrainParams(epochs=args.epochs, seed=args.seed, filter=args.filter,
+                         memory=args.memory, restarts=_restarts(args.restarts),
+                         sigma=args.sigma, window=args.window, init=args.init,
+                         train_fraction=args.train_fraction, **augment)
     fileio.check_output_dir(args.out, "--out")
-    augment = {}
-    for flag in ("hold_augment", "rest_augment"):
-        share = getattr(args, flag)
-        if share is not None and share > 1.0:
-            raise InputError(f"must be in [0, 1], not {share}",
-                             column="--" + flag.replace("_", "-"))
-        if share is not None:
-            augment[flag] = share
-    model = train(args.data, epochs=args.epochs, seed=args.seed, filter=args.filter,
-                  memory=args.memory, restarts=_restarts(args.restarts),
-                  sigma=args.sigma, window=args.window, init=args.init,
-                  train_fraction=args.train_fraction, **augment)
+    model = train(args.data, params)
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}

@@ -16,7 +16,7 @@ import copy
 import hashlib
 import platform
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
@@ -58,8 +58,9 @@ HOLD_AUGMENT_S = (1.5, 6.0)
 HOLD_AUGMENT_STEP_S = 0.004
 #: Synthetic long rests (:func:`_synthetic_rests`): the contact and force nets also train on
 #: rests of a length drawn in :data:`REST_AUGMENT_S` (seconds) inserted before this share of
-#: the training presses, one sample every :data:`REST_AUGMENT_STEP_S`; 0 turns this off
-#: (docs/trainer.md, "Long rests").
+#: the training presses, one sample every :data:`REST_AUGMENT_STEP_S` from
+#: :data:`REST_AUGMENT_SETTLE_S` into the rest on; 0 turns this off (docs/trainer.md, "Long
+#: rests").
 REST_AUGMENT = 0.2
 REST_AUGMENT_S = (3.0, 12.0)
 REST_AUGMENT_STEP_S = 0.01
@@ -496,25 +497,29 @@ def press_delays(data: Prepared, pred_contact: np.ndarray, rows: np.ndarray
     return np.concatenate(onsets), np.concatenate(releases)
 
 
-def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: str = "causal",
-          sigma: float | None = None, window: int | None = None,
-          init: str | Path | fm.HierarchicalModel | None = None,
-          sizes: Mapping[str, Sequence[int]] | None = None, learning_rate: float = 1e-3,
-          decay: float = 0.97, patience: int = 10, batch_size: int = 128,
-          progress: bool | None = None, prepared: Prepared | None = None,
-          train_fraction: float = 1.0, time_budget_s: float | None = None,
-          plateau: int | None = None, plateau_factor: float = 0.3,
-          weight_decay: float | Mapping[str, float] | None = None,
-          location_augment: float = LOCATION_AUGMENT, hold_augment: float = HOLD_AUGMENT,
-          rest_augment: float = REST_AUGMENT, memory: fm.Memory | str | None = None,
-          restarts: int | Mapping[str, int] | None = None) -> fm.HierarchicalModel:
-    """Train the hierarchical model on calibration recordings.
+_TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "sigma": "--sigma",
+                "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
+                "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
+                "rest_augment": "--rest-augment"}
 
-    Parameters
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) \
+        and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+
+
+@dataclass
+class TrainParams:
+    """What :func:`train` is asked to do, checked when made: a value out of its range is an
+    :class:`~fbgforce.errors.InputError` naming the ``fbgforce train`` option (or the
+    parameter, for those the command does not offer) and the allowed range.
+
+    Attributes
     ----------
-    datasets
-        Paths (CSV/npz in the dataset contract) or ``fbgforce.dataset.Dataset`` objects; each
-        one is a continuous recording of one device.
     epochs, seed, learning_rate, decay, patience, batch_size
         Training loop (see :func:`fbgforce.trainer.nets.fit`); ``seed`` fixes the split, the
         initial weights and the shuffling, so a run is reproducible.
@@ -527,8 +532,8 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         temperature coefficients are fitted on the new data.
     sizes
         Hidden widths per net, e.g. ``{"location": (70, 50, 40)}``; defaults :data:`DEFAULT_SIZES`.
-    prepared
-        Reuse the output of :func:`prepare` (same data, filter and seed) to save time.
+    progress
+        Progress bars on stderr (None: when stderr is a terminal).
     train_fraction
         Use only this fraction of the training presses (transfer study: "how much less data").
     time_budget_s
@@ -552,107 +557,225 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         the training (and validation) presses (:func:`_synthetic_rests`); 0 turns it off.
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
-        ``None``: the ``--init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
+        ``None``: the ``init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
     restarts
         Initialisations tried per net (one value for every net or per net, ``None``:
         :data:`DEFAULT_RESTARTS`); the net with the lowest validation loss is kept. The first
         draw is the one a single initialisation would make. Without validation presses, or
         with ``init`` (every draw would start from the same weights), one is trained.
-
-    Returns
-    -------
-    fbgforce.model.HierarchicalModel
     """
-    t_start = time.perf_counter()
-    ds_list, described = load_datasets(datasets)
-    from fbgforce.trainer.coverage import coverage   # it reads this module's hold band
 
-    data_coverage = coverage(ds_list)
-    sources = [d.get("path") or d.get("source") or f"recording {i}"
-               for i, d in enumerate(described)]
-    init_model = fm.load(init) if isinstance(init, (str, Path)) else init
+    epochs: int = 200
+    seed: int = 0
+    filter: str = "causal"
+    sigma: float | None = None
+    window: int | None = None
+    init: str | Path | fm.HierarchicalModel | None = None
+    sizes: Mapping[str, Sequence[int]] | None = None
+    learning_rate: float = 1e-3
+    decay: float = 0.97
+    patience: int = 10
+    batch_size: int = 128
+    progress: bool | None = None
+    train_fraction: float = 1.0
+    time_budget_s: float | None = None
+    plateau: int | None = None
+    plateau_factor: float = 0.3
+    weight_decay: float | Mapping[str, float] | None = None
+    location_augment: float = LOCATION_AUGMENT
+    hold_augment: float = HOLD_AUGMENT
+    rest_augment: float = REST_AUGMENT
+    memory: fm.Memory | str | None = None
+    restarts: int | Mapping[str, int] | None = None
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, allowed: str) -> None:
+            if not ok:
+                raise InputError(f"must be {allowed}, not {getattr(self, name)!r}",
+                                 column=_TRAIN_FLAGS.get(name, name))
+
+        need(_is_int(self.epochs) and self.epochs >= 1, "epochs", "a whole number >= 1")
+        need(_is_int(self.seed), "seed", "a whole number")
+        need(self.filter in fm.FILTER_KINDS, "filter", "one of " + ", ".join(fm.FILTER_KINDS))
+        need(self.sigma is None or (_is_real(self.sigma) and self.sigma >= 0), "sigma",
+             "a number >= 0 (samples)")
+        need(self.window is None or (_is_int(self.window) and self.window >= 1), "window",
+             "a whole number >= 1")
+        need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "> 0")
+        need(_is_real(self.decay) and 0 < self.decay <= 1, "decay", "in (0, 1]")
+        need(_is_int(self.patience) and self.patience >= 1, "patience", "a whole number >= 1")
+        need(_is_int(self.batch_size) and self.batch_size >= 1, "batch_size", "a whole number >= 1")
+        need(_is_real(self.train_fraction) and 0 < self.train_fraction <= 1, "train_fraction",
+             "in (0, 1]")
+        need(self.time_budget_s is None or (_is_real(self.time_budget_s) and self.time_budget_s > 0),
+             "time_budget_s", "None or > 0 (seconds)")
+        need(self.plateau is None or (_is_int(self.plateau) and self.plateau >= 1), "plateau",
+             "None or a whole number >= 1")
+        need(_is_real(self.plateau_factor) and 0 < self.plateau_factor < 1, "plateau_factor",
+             "in (0, 1)")
+        need(_is_real(self.location_augment) and self.location_augment >= 1, "location_augment",
+             ">= 1 (1: off)")
+        for share in ("hold_augment", "rest_augment"):
+            need(_is_real(getattr(self, share)) and 0 <= getattr(self, share) <= 1, share,
+                 "in [0, 1]")
+
+    def fit_settings(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`fbgforce.trainer.nets.fit` every net shares."""
+        return dict(epochs=self.epochs, batch_size=self.batch_size,
+                    learning_rate=self.learning_rate, decay=self.decay, patience=self.patience,
+                    progress=self.progress, time_budget_s=self.time_budget_s,
+                    plateau=self.plateau, plateau_factor=self.plateau_factor)
+
+
+def _starting_point(params: TrainParams) -> tuple[fm.HierarchicalModel | None, fm.Memory,
+                                                  dict[str, list[int]]]:
+    """The ``init`` model (None without one), the memory states and every net's sizes."""
+    init_model = fm.load(params.init) if isinstance(params.init, (str, Path)) else params.init
+    memory = params.memory
     if memory is None:
         memory = init_model.preprocess.memory if init_model else DEFAULT_MEMORY
     if isinstance(memory, str):
         memory = parse_memory(memory)
-    net_sizes = _sizes(sizes, memory)
+    net_sizes = _sizes(params.sizes, memory)
     if init_model is not None:
         for name, net in init_model.nets.items():
-            if sizes is None:
+            if params.sizes is None:
                 net_sizes[name] = net.sizes
             elif net.sizes != net_sizes[name]:
                 raise InputError(f"--init model's {name} net has sizes {net.sizes}, not "
                                  f"{net_sizes[name]}", column="--init")
-    if prepared is None:
-        prepared = prepare(ds_list, seed=seed, filter=filter, sigma=sigma, window=window,
-                           sources=sources)
-    data = prepared
-    t_prep = time.perf_counter() - t_start
+    return init_model, memory, net_sizes
+
+
+@dataclass
+class _Streams:
+    """The random streams of one training run, one per use, all from ``seed``."""
+
+    init: np.random.Generator
+    contact: np.random.Generator
+    force: np.random.Generator
+    location: np.random.Generator
+    subsample: np.random.Generator
+    location_augment: np.random.Generator
+    holds: np.random.Generator
+    rests: np.random.Generator
+
+    @classmethod
+    def from_seed(cls, seed: int) -> "_Streams":
+        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)))
+
+
+def _split(data: Prepared, params: TrainParams, rng: np.random.Generator
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Training, validation and test rows (the training presses cut to ``train_fraction``)."""
     tr, va, te = data.rows("train"), data.rows("val"), data.rows("test")
-    ss = np.random.SeedSequence(seed)
-    rng_init, rng_c, rng_f, rng_l, rng_sub, rng_aug, rng_hold, rng_rest = (
-        np.random.default_rng(s) for s in ss.spawn(8))
-    if train_fraction < 1.0:
-        tr = _subsample_presses(data, tr, train_fraction, rng_sub)
+    if params.train_fraction < 1.0:
+        tr = _subsample_presses(data, tr, params.train_fraction, rng)
     if tr.size == 0 or not data.contact[tr].any() or data.contact[tr].all():
         raise InputError("training split needs both contact and contact-free samples; "
                          "give more presses or check the contact column", column="contact")
+    return tr, va, te
 
+
+@dataclass
+class _Scaling:
+    """Input standardisation and output scaling (``force_N = offset + scale * f``, x/y alike)."""
+
+    std: pp.Standardisation
+    force_offset: float
+    force_scale: float
+    xy_offset: np.ndarray
+    xy_scale: np.ndarray
+
+
+def _scaling(data: Prepared, tr: np.ndarray, init_model: fm.HierarchicalModel | None) -> _Scaling:
+    """The ``init`` model's scaling (its weights keep their meaning), else fitted on the
+    training rows' contact samples."""
     if init_model is not None:
-        std = pp.Standardisation(init_model.preprocess.input_mean, init_model.preprocess.input_std)
-        f_off, f_scale = init_model.force_offset, init_model.force_scale
-        xy_off, xy_scale = init_model.xy_offset, init_model.xy_scale
-    else:
-        std = pp.Standardisation.fit(data.feats[tr])
-        ctr = tr[data.contact[tr]]
-        f_off, f_scale = float(np.mean(data.force_N[ctr])), float(max(np.std(data.force_N[ctr]), 1e-6))
-        xy = np.column_stack([data.x_mm[ctr], data.y_mm[ctr]])
-        xy_off, xy_scale = np.nanmean(xy, axis=0), np.maximum(np.nanstd(xy, axis=0), 1e-6)
+        return _Scaling(pp.Standardisation(init_model.preprocess.input_mean,
+                                           init_model.preprocess.input_std),
+                        init_model.force_offset, init_model.force_scale,
+                        init_model.xy_offset, init_model.xy_scale)
+    ctr = tr[data.contact[tr]]
+    xy = np.column_stack([data.x_mm[ctr], data.y_mm[ctr]])
+    return _Scaling(pp.Standardisation.fit(data.feats[tr]), float(np.mean(data.force_N[ctr])),
+                    float(max(np.std(data.force_N[ctr]), 1e-6)), np.nanmean(xy, axis=0),
+                    np.maximum(np.nanstd(xy, axis=0), 1e-6))
+
+
+def _model_preprocess(data: Prepared, scaling: _Scaling, init_model: fm.HierarchicalModel | None,
+                      memory: fm.Memory, tr: np.ndarray) -> fm.Preprocess:
+    """The model's preprocessing: the prepared filter with this model's standardisation and
+    memory (the ``init`` model's, else fitted on the training rows)."""
     pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
-    pre.input_mean, pre.input_std = std.mean, std.std
-    if init_model is not None:
-        pre.memory = init_model.preprocess.memory
-    else:
-        pre.memory = fit_memory(memory, pre, data, tr)
-    x_all = data.inputs(pre)
-    z = x_all[:, :pre.n_features]    # what the contact and force nets read
-    n_loc = pre.memory.n_loc
-    common = dict(epochs=epochs, batch_size=batch_size, learning_rate=learning_rate,
-                  decay=decay, patience=patience, progress=progress, time_budget_s=time_budget_s,
-                  plateau=plateau, plateau_factor=plateau_factor)
-    decays = _weight_decays(weight_decay)
-    tries = _per_net(restarts, DEFAULT_RESTARTS, "restarts", int)
-    if va.size == 0 or init_model is not None:
-        tries = {k: 1 for k in tries}
-    reports: dict[str, Any] = {}
+    pre.input_mean, pre.input_std = scaling.std.mean, scaling.std.std
+    pre.memory = init_model.preprocess.memory if init_model is not None \
+        else fit_memory(memory, pre, data, tr)
+    return pre
 
-    def fit_net(name: str, rng_fit: np.random.Generator, loss: str, x: np.ndarray,
-                *args: Any, **kwargs: Any) -> FlatMLP:
-        given = decays[name]
+
+class _NetFitter:
+    """Fits each net as :func:`train` is asked to: the best of its restarts, its weight decay,
+    the shared loop settings; keeps each net's report in :attr:`reports`."""
+
+    def __init__(self, params: TrainParams, net_sizes: Mapping[str, Sequence[int]],
+                 init_model: fm.HierarchicalModel | None, rng_init: np.random.Generator,
+                 has_validation: bool) -> None:
+        self.params, self.net_sizes, self.init_model, self.rng_init = (params, net_sizes,
+                                                                       init_model, rng_init)
+        self.decays = _weight_decays(params.weight_decay)
+        self.tries = _per_net(params.restarts, DEFAULT_RESTARTS, "restarts", int)
+        if not has_validation or init_model is not None:
+            self.tries = {k: 1 for k in self.tries}
+        self.reports: dict[str, Any] = {}
+
+    def __call__(self, name: str, rng_fit: np.random.Generator, loss: str, x: np.ndarray,
+                 *args: Any, **kwargs: Any) -> FlatMLP:
+        given = self.decays[name]
         wd = default_weight_decay(name, len(x)) if given is None else given
-        net, reports[name] = _fit_best_of(
-            tries[name], name, seed, net_sizes[name], rng_init, rng_fit,
-            init_model.nets[name] if init_model else None, loss, x, *args,
-            weight_decay=wd, **kwargs, **common)
-        reports[name].update(weight_decay=wd, train_samples=int(len(x)))
+        net, self.reports[name] = _fit_best_of(
+            self.tries[name], name, self.params.seed, self.net_sizes[name], self.rng_init, rng_fit,
+            self.init_model.nets[name] if self.init_model else None, loss, x, *args,
+            weight_decay=wd, **kwargs, **self.params.fit_settings())
+        self.reports[name].update(weight_decay=wd, train_samples=int(len(x)))
         return net
 
-    # 0. Synthetic holds for the nets that read the load's memory, and synthetic long rests
-    #    (training and validation presses alike, so early stopping and the choice among
-    #    restarts weigh them too).
-    nf = pre.n_features
+
+Held = tuple[np.ndarray, np.ndarray]
+
+
+def _holds(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+           va: np.ndarray, rng: np.random.Generator) -> tuple[Creep, Held, Held]:
+    """Synthetic holds for the nets that read the load's memory, of the training and the
+    validation presses alike (so early stopping and the choice among restarts weigh them
+    too): the pad's creep and ``(inputs, rows)`` of each."""
     no_holds = (np.empty((0, pre.n_inputs)), tr[:0])
-    creep = fit_creep(data, pre, tr) if hold_augment > 0 and pre.memory.n_states else Creep()
-    hold_tr, hold_va = (_synthetic_holds(data, pre, rows, hold_augment, creep, rng_hold)
-                        if hold_augment > 0 and pre.memory.n_states else no_holds
-                        for rows in (tr, va))
+    on = params.hold_augment > 0 and pre.memory.n_states
+    creep = fit_creep(data, pre, tr) if on else Creep()
+    hold_tr, hold_va = (_synthetic_holds(data, pre, rows, params.hold_augment, creep, rng)
+                        if on else no_holds for rows in (tr, va))
+    return creep, hold_tr, hold_va
+
+
+def _rests(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+           va: np.ndarray, rng: np.random.Generator) -> tuple[Held, Held]:
+    """Synthetic long rests of the training and the validation presses: ``(inputs, rows)``
+    of each."""
+    if params.rest_augment <= 0:
+        return (np.empty((0, pre.n_inputs)), tr[:0]), (np.empty((0, pre.n_inputs)), va[:0])
     rate = float(np.median([r.rate_hz for r in data.recordings]))
     step = max(1, int(round(REST_AUGMENT_STEP_S * rate)))
-    rest_tr, rest_va = (_synthetic_rests(data, pre, rows, rest_augment, step, rng_rest)
-                        if rest_augment > 0 else no_holds for rows in (tr, va))
-    synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
+    rest_tr, rest_va = (_synthetic_rests(data, pre, rows, params.rest_augment, step, rng)
+                        for rows in (tr, va))
+    return rest_tr, rest_va
 
-    # 1. Contact: every sample, softmax cross-entropy.
+
+def _fit_contact(fit_net: _NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarray,
+                 va: np.ndarray, synth_tr: Held, synth_va: Held, rng: np.random.Generator
+                 ) -> tuple[FlatMLP, np.ndarray]:
+    """The contact net on every sample and the synthetic ones (softmax cross-entropy);
+    returns it and its logits on every row."""
+    nf = z.shape[1]
     labels = data.contact.astype(np.int64)
     zc_tr = np.concatenate([z[tr], synth_tr[0][:, :nf]])
     zc_va = np.concatenate([z[va], synth_va[0][:, :nf]])
@@ -663,23 +786,28 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z[va]), 1) == 1)
                                          == data.contact[va])) if va.size else float("nan")}
 
-    cnet = fit_net("contact", rng_c, "xent", zc_tr, yc_tr, zc_va, yc_va,
+    cnet = fit_net("contact", rng, "xent", zc_tr, yc_tr, zc_va, yc_va,
                    val_metrics=contact_val, desc="contact net")
-    logits = predict_batched(cnet, z)
-    pred_contact = logits[:, 1] > logits[:, 0]
+    return cnet, predict_batched(cnet, z)
 
-    # 2. Force: the samples the contact net passes (its output is 0 N elsewhere, whatever the
-    #    net says), with the load-cell force as target: where the contact is real this is the
-    #    force the metric scores; on false contacts (light touches below the label threshold,
-    #    pad creep) it teaches ~0 N, which is what a controller should see. Missed contacts
-    #    are left out: their output is gated to 0 N, so fitting them would only spend capacity.
+
+def _fit_force(fit_net: _NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP,
+               pred_contact: np.ndarray, scaling: _Scaling, tr: np.ndarray, va: np.ndarray,
+               synth_tr: Held, synth_va: Held, rng: np.random.Generator) -> FlatMLP:
+    """The force net on the samples the contact net passes (its output is 0 N elsewhere,
+    whatever the net says), with the load-cell force as target: where the contact is real
+    this is the force the metric scores; on false contacts (light touches below the label
+    threshold, pad creep) it teaches ~0 N, which is what a controller should see. Missed
+    contacts are left out: their output is gated to 0 N, so fitting them would only spend
+    capacity."""
+    nf = z.shape[1]
+    f_off, f_scale = scaling.force_offset, scaling.force_scale
     ftr, fva = tr[pred_contact[tr]], va[pred_contact[va]]
     if ftr.size == 0:  # a contact net that never fires: fall back to the true contacts
         ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
     ft = ((data.force_N - f_off) / f_scale)[:, None]
 
-    def with_holds(rows: np.ndarray, held: tuple[np.ndarray, np.ndarray]
-                   ) -> tuple[np.ndarray, np.ndarray]:
+    def with_synthetic(rows: np.ndarray, held: Held) -> tuple[np.ndarray, np.ndarray]:
         """Force-net inputs and targets of ``rows`` and of the synthetic (held, rested)
         samples the contact net passes (the same gate as the recorded samples)."""
         zh = held[0][:, :nf]
@@ -688,40 +816,52 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
         return (np.concatenate([z[rows], zh[passed]]),
                 np.concatenate([ft[rows], ft[held[1][passed]]]))
 
-    (zf_tr, yf_tr), (zf_va, yf_va) = with_holds(ftr, synth_tr), with_holds(fva, synth_va)
+    (zf_tr, yf_tr), (zf_va, yf_va) = with_synthetic(ftr, synth_tr), with_synthetic(fva, synth_va)
 
     def force_val(net: FlatMLP) -> dict[str, float]:
         e = (predict_batched(net, z[fva])[:, 0] * f_scale + f_off) - data.force_N[fva]
         return {"val_rmse_N": float(np.sqrt(np.mean(e * e))) if e.size else float("nan")}
 
-    fnet = fit_net("force", rng_f, "mse", zf_tr, yf_tr, zf_va, yf_va,
+    return fit_net("force", rng, "mse", zf_tr, yf_tr, zf_va, yf_va,
                    val_metrics=force_val, desc="force net")
-    f_raw = predict_batched(fnet, z)[:, 0]
 
-    # 3. Location: samples where true and predicted contact agree (where a location is both
-    #    defined and output), fed the contact net's decision and the force net's OWN estimate.
+
+def _fit_location(fit_net: _NetFitter, data: Prepared, pre: fm.Preprocess, x_all: np.ndarray,
+                  pred_contact: np.ndarray, fnet: FlatMLP, scaling: _Scaling, params: TrainParams,
+                  tr: np.ndarray, va: np.ndarray, streams: _Streams) -> FlatMLP:
+    """The location net on the samples where true and predicted contact agree (where a
+    location is both defined and output), fed the contact net's decision and the force net's
+    OWN estimate, and on the training presses pressed harder (``location_augment``)."""
+    n_loc = pre.memory.n_loc
+    f_raw = predict_batched(fnet, x_all[:, :pre.n_features])[:, 0]
     loc_x = _loc_inputs(x_all, pred_contact, f_raw, n_loc)
-    xy_t = (np.column_stack([data.x_mm, data.y_mm]) - xy_off) / xy_scale
+    xy_t = (np.column_stack([data.x_mm, data.y_mm]) - scaling.xy_offset) / scaling.xy_scale
     ltr = tr[data.contact[tr] & pred_contact[tr]]
     lva = va[data.contact[va] & pred_contact[va]]
 
     def loc_val(net: FlatMLP) -> dict[str, float]:
-        e = (predict_batched(net, loc_x[lva]) - xy_t[lva]) * xy_scale
+        e = (predict_batched(net, loc_x[lva]) - xy_t[lva]) * scaling.xy_scale
         if not e.size:
             return {}
         r = np.sqrt(np.mean(e * e, axis=0))
         return {"val_x_mm": float(r[0]), "val_y_mm": float(r[1])}
 
     loc_train_x, loc_train_y = loc_x[ltr], xy_t[ltr]
-    if location_augment > 1.0:
-        z_aug, rows_aug = _scaled_presses(data, pre, ltr, location_augment, rng_aug)
+    if params.location_augment > 1.0:
+        z_aug, rows_aug = _scaled_presses(data, pre, ltr, params.location_augment,
+                                          streams.location_augment)
         aug_x = _loc_inputs(z_aug, np.ones(rows_aug.size, bool),
                             predict_batched(fnet, z_aug[:, :pre.n_features])[:, 0], n_loc)
         loc_train_x = np.concatenate([loc_train_x, aug_x])
         loc_train_y = np.concatenate([loc_train_y, xy_t[rows_aug]])
-    lnet = fit_net("location", rng_l, "mse", loc_train_x, loc_train_y, loc_x[lva], xy_t[lva],
-                   val_metrics=loc_val, desc="location net")
+    return fit_net("location", streams.location, "mse", loc_train_x, loc_train_y, loc_x[lva],
+                   xy_t[lva], val_metrics=loc_val, desc="location net")
 
+
+def _training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: np.ndarray,
+                       hold_tr: Held) -> tuple[list[str], float]:
+    """What the data leaves the model short of (few test presses, no holds for the memory's
+    averages), and the training presses' held seconds."""
     warnings = []
     few = fmetrics.few_presses_warning("test", count_presses(data, te))
     if few:
@@ -733,66 +873,174 @@ def train(datasets: Sequence[Any], *, epochs: int = 200, seed: int = 0, filter: 
             "the memory's averages will read a held grip low; calibrate with holds (scene "
             "calibration_holds, docs/teleop.md) or train with synthetic holds (--hold-augment)"
             % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
+    return warnings, held_s
+
+
+def _assemble(data: Prepared, pre: fm.Preprocess, scaling: _Scaling,
+              nets: Mapping[str, FlatMLP], reports: dict[str, Any],
+              described: Sequence[Mapping[str, Any]]) -> fm.HierarchicalModel:
+    """The float model of the trained nets, with the calibration recordings export needs."""
     # Units weight decay switched off cost multiply-adds in every engine and change no float32
     # output: leave them out of the model.
     mlps: dict[str, fm.MLP] = {}
-    for name, net in (("contact", cnet), ("force", fnet), ("location", lnet)):
+    for name, net in nets.items():
         mlps[name], reports[name]["dropped_units"] = drop_unread_units(net.to_mlp())
     model = fm.HierarchicalModel(
         preprocess=pre, contact=mlps["contact"], force=mlps["force"], location=mlps["location"],
-        force_offset=f_off, force_scale=f_scale, xy_offset=xy_off, xy_scale=xy_scale,
+        force_offset=scaling.force_offset, force_scale=scaling.force_scale,
+        xy_offset=scaling.xy_offset, xy_scale=scaling.xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
-    t_train = time.perf_counter() - t_start - t_prep
-    # The thresholds weigh every sample at rest, the synthetic long rests' included: the
-    # calibration's own rests end within a second of a release, before the memory settles.
-    long_rests = np.concatenate([rest_tr[0], rest_va[0]])[:, :nf]
-    long_logits = predict_batched(cnet, long_rests) if len(long_rests) else np.empty((0, 2))
+    model.calibration = fm.CalibrationRecordings(
+        [(np.asarray(r.ds.wl_nm, dtype=np.float64), r.baseline_nm) for r in data.recordings],
+        [np.asarray(r.ds.force_N, dtype=np.float64)[np.asarray(r.ds.contact, dtype=bool)]
+         for r in data.recordings], [d.get("path") or r.source for d, r in zip(described, data.recordings)])
+    return model
+
+
+def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
+            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held]) -> None:
+    """Set the model's decision over time, tracker and input range from the training data.
+
+    The decision's thresholds weigh every sample at rest, the synthetic long rests'
+    included: the calibration's own rests end within a second of a release, before the
+    memory settles."""
+    rate = float(np.median([r.rate_hz for r in data.recordings]))
+    rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
+    long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
     model.in_use = fm.InUse.recommended(rate, rest_margins=np.concatenate(
-        [_rest_margins(data, logits), long_logits[:, 1] - long_logits[:, 0]]))
+        [_rest_margins(data, logits), long[:, 1] - long[:, 0]]))
     model.input_range = fm.input_range_of(z[tr])
+
+
+def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
+          prepared: Prepared | None = None, **options: Any) -> fm.HierarchicalModel:
+    """Train the hierarchical model on calibration recordings, step by step: the starting
+    point, the prepared data, the split, the scaling and preprocessing, synthetic holds and
+    rests, the
+    contact, force and location nets, the model and its metadata.
+
+    Parameters
+    ----------
+    datasets
+        Paths (CSV/npz in the dataset contract) or ``fbgforce.dataset.Dataset`` objects; each
+        one is a continuous recording of one device.
+    params
+        What to do (:class:`TrainParams`); default every default.
+    prepared
+        Reuse the output of :func:`prepare` (same data, filter and seed) to save time.
+    **options
+        Fields of :class:`TrainParams` given one by one (over ``params``'), e.g.
+        ``train(files, epochs=50, seed=1)``.
+
+    Returns
+    -------
+    fbgforce.model.HierarchicalModel
+
+    Raises
+    ------
+    InputError
+        A parameter out of its range (naming the option), or data training cannot use.
+    """
+    unknown = sorted(set(options) - {f.name for f in fields(TrainParams)})
+    if unknown:
+        raise TypeError(f"train() got unknown parameters: {', '.join(unknown)}")
+    params = replace(params or TrainParams(), **options)
+    t_start = time.perf_counter()
+    ds_list, described = load_datasets(datasets)
+    from fbgforce.trainer.coverage import coverage   # it reads this module's hold band
+
+    data_coverage = coverage(ds_list)
+    sources = [d.get("path") or d.get("source") or f"recording {i}"
+               for i, d in enumerate(described)]
+    init_model, memory, net_sizes = _starting_point(params)
+    data = prepared if prepared is not None else prepare(
+        ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
+        window=params.window, sources=sources)
+    t_prep = time.perf_counter() - t_start
+    streams = _Streams.from_seed(params.seed)
+    tr, va, te = _split(data, params, streams.subsample)
+    scaling = _scaling(data, tr, init_model)
+    pre = _model_preprocess(data, scaling, init_model, memory, tr)
+    x_all = data.inputs(pre)
+    z = x_all[:, :pre.n_features]    # what the contact and force nets read
+    fit_net = _NetFitter(params, net_sizes, init_model, streams.init, bool(va.size))
+    creep, hold_tr, hold_va = _holds(data, pre, params, tr, va, streams.holds)
+    rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
+    synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
+    cnet, logits = _fit_contact(fit_net, data, z, tr, va, synth_tr, synth_va, streams.contact)
+    pred_contact = logits[:, 1] > logits[:, 0]
+    fnet = _fit_force(fit_net, data, z, cnet, pred_contact, scaling, tr, va, synth_tr, synth_va,
+                      streams.force)
+    lnet = _fit_location(fit_net, data, pre, x_all, pred_contact, fnet, scaling, params, tr, va,
+                         streams)
+    warnings, held_s = _training_warnings(data, pre, tr, te, hold_tr)
+    reports = fit_net.reports
+    model = _assemble(data, pre, scaling, {"contact": cnet, "force": fnet, "location": lnet},
+                      reports, described)
+    t_train = time.perf_counter() - t_start - t_prep
+    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va))
+    model.metadata = _metadata(model, data, params, described, (tr, va, te), x_all, reports,
+                               data_coverage, creep, (hold_tr, hold_va), (rest_tr, rest_va),
+                               held_s, warnings, (t_prep, t_train))
+    return model
+
+
+def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+              described: Sequence[Mapping[str, Any]],
+              rows: tuple[np.ndarray, np.ndarray, np.ndarray], x_all: np.ndarray,
+              reports: Mapping[str, Any], data_coverage: Any, creep: Creep,
+              holds: tuple[Held, Held], rests: tuple[Held, Held], held_s: float,
+              warnings: list[str], times: tuple[float, float]) -> dict[str, Any]:
+    """The facts ``model.json`` records: data, split, sizes, training, metrics, times."""
+    tr, va, te = rows
+    hold_tr, hold_va = holds
+    pre = model.preprocess
+    rate = float(np.median([r.rate_hz for r in data.recordings]))
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
     model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
-    model.metadata = {
+    return {
         "fbgforce_version": __version__,
         "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "data": [{**d, **r.tare_info, "baseline_nm": r.baseline_nm.tolist(),
                   "sample_rate_hz": r.rate_hz} for d, r in zip(described, data.recordings)],
-        "seed": seed,
-        "split": {"by": "press", "ratios": list(SPLIT_RATIOS), "train_fraction": train_fraction,
+        "seed": params.seed,
+        "split": {"by": "press", "ratios": list(SPLIT_RATIOS),
+                  "train_fraction": params.train_fraction,
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
         "memory": pre.memory.to_json(),
         "train_hold_s": held_s,
         "coverage": data_coverage,
-        "synthetic_holds": {"share": hold_augment, "range_s": list(HOLD_AUGMENT_S),
+        "synthetic_holds": {"share": params.hold_augment, "range_s": list(HOLD_AUGMENT_S),
                             "creep": {"magnitude": creep.magnitude,
                                       "time_constant_s": creep.time_constant_s},
                             "presses": {"train": _count_holds(hold_tr[1], data),
                                         "val": _count_holds(hold_va[1], data)},
                             "samples": {"train": int(hold_tr[1].size),
                                         "val": int(hold_va[1].size)}},
-        "synthetic_rests": {"share": rest_augment, "range_s": list(REST_AUGMENT_S),
-                            "seconds": {"train": step * rest_tr[1].size / rate,
-                                        "val": step * rest_va[1].size / rate}},
+        "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
+                            "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
+                                        for name, rest in zip(("train", "val"), rests)}},
         "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
                    "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
                    "sample_rate_hz": rate},
         "temperature": {"temp_coeff": pre.temp_coeff.tolist(), **data.temp_info},
-        "init": str(init) if isinstance(init, (str, Path)) else (None if init is None else "model"),
-        "optimizer": {"name": "adam", "learning_rate": learning_rate, "decay_per_epoch": decay,
-                      "batch_size": batch_size, "max_epochs": epochs, "patience": patience},
+        "init": str(params.init) if isinstance(params.init, (str, Path))
+        else (None if params.init is None else "model"),
+        "optimizer": {"name": "adam", "learning_rate": params.learning_rate,
+                      "decay_per_epoch": params.decay, "batch_size": params.batch_size,
+                      "max_epochs": params.epochs, "patience": params.patience},
         "training": {name: {k: v for k, v in rep.items() if k != "history"}
                      for name, rep in reports.items()},
         "history": {name: rep["history"] for name, rep in reports.items()},
-        "times_s": {"prepare": t_prep, "train": t_train,
+        "times_s": {"prepare": times[0], "train": times[1],
                     **{name: rep["seconds"] for name, rep in reports.items()}},
         "metrics": {"val": evaluate_rows(model, data, va, inputs=x_all) if va.size else None,
                     "test": evaluate_rows(model, data, te, inputs=x_all) if te.size else None},
         "platform": {"python": platform.python_version(), "numpy": np.__version__},
     }
-    return model
 
 
 def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_scale: float,
