@@ -365,19 +365,21 @@ def _block(q: QModel, wl: np.ndarray, fault: np.ndarray, warm: np.ndarray, base:
     t = rshift_round(shift_t[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
     comp, c3 = sat(shift - t, SAT32)
     flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1))
-    # A faulty sample feeds the FIR the last good input again.
-    idx = np.where(ok, np.arange(n), -1)
-    last_ok = np.maximum.accumulate(idx) if n else idx
-    held = np.where((last_ok >= 0)[:, None], comp[np.maximum(last_ok, 0)], last_comp[None, :])
-    if ok.any():
-        last_comp[:] = comp[np.flatnonzero(ok)[-1]]
-
-    # 3. Causal FIR over the carried history, then standardisation into Q(z_frac).
+    # 3. Causal FIR over the carried history, then standardisation into Q(z_frac). A faulty
+    #    sample feeds the FIR the last good sample's filtered shifts (last_comp), so the
+    #    block runs as alternating stretches of good and faulty samples.
     k = q.taps.size - 1
-    seq = np.vstack([history, held])
-    acc = np.stack([np.convolve(seq[:, c], q.taps)[k:k + n] for c in range(4)], axis=1)
-    if k:
-        history[:] = seq[-k:]
+    acc = np.zeros((n, 4), dtype=np.int64)
+    edges = np.flatnonzero(np.diff(ok.astype(np.int8))) + 1 if n else np.zeros(0, dtype=np.int64)
+    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
+        part = comp[a:b] if ok[a] else np.repeat(last_comp[None, :], b - a, axis=0)
+        seq = np.vstack([history, part])
+        acc[a:b] = np.stack([np.convolve(seq[:, c], q.taps)[k:k + b - a] for c in range(4)],
+                            axis=1)
+        if k:
+            history[:] = seq[-k:]
+        if ok[a]:
+            last_comp[:] = sat(rshift_round(acc[b - 1], q.tap_q), SAT32)[0]
     if trace is not None and n:
         trace["fir"] = max(trace.get("fir", 0), int(np.abs(acc[ok]).max(initial=0)))
     filt, c4 = sat(rshift_round(acc, q.tap_q), SAT32)

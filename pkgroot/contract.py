@@ -430,7 +430,8 @@ def _front_head(prefix: str, signal: str) -> tuple[StateField, ...]:
             StateField("baseline_fm", "int32_t", ("N_CHANNELS",)),
             StateField("prev_fm", "int32_t", ("N_CHANNELS",), "last in-window sample per channel"),
             StateField("hist", signal, ("MAX_TAPS", "N_STRAIN"), "FIR history (ring buffer)"),
-            StateField("last_comp", signal, ("N_STRAIN",), "held into the FIR during a fault"))
+            StateField("last_comp", signal, ("N_STRAIN",),
+                       "the last good sample's filtered shifts, held into the FIR during a fault"))
 
 
 #: The front end's counters and flags, in both states.

@@ -231,9 +231,10 @@ def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = N
 #: The decision's rise threshold: this quantile of the contact net's margin at rest in the
 #: calibration data, its synthetic long rests included (docs/runtime.md, "In use").
 REST_MARGIN_QUANTILE = 0.9999
-#: How long the rise condition must hold, s: one sample at 1 kHz. Past a threshold set on
-#: settled rests a longer count buys little quiet for its onset delay (docs/tradeoff.md).
-RISE_S = 0.001
+#: How long the rise condition must hold, s: 3 samples at 1 kHz. On fault-free logs one
+#: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
+#: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
+RISE_S = 0.003
 #: The at-rest tracker: time constant, the rest after a release before it learns, the
 #: fastest drift it follows and its bound from the tare.
 TRACK_TIME_CONSTANT_S = 1.0
@@ -708,13 +709,42 @@ def standardise(pre: Preprocess, filt: np.ndarray) -> np.ndarray:
                            / pre.input_std, pre.z_rest)
 
 
+def filter_through_faults(taps: np.ndarray, comp: np.ndarray, fault: np.ndarray,
+                          history: np.ndarray, last: np.ndarray
+                          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The causal FIR ``taps`` over compensated shifts ``comp`` (n, 4) of one recording, as
+    the runtimes run it through sensor faults: a faulty sample feeds the filter ``last``, the
+    last good sample's filtered shifts (the runtimes' ``last_comp``), so a burst of faults
+    holds the output where it was instead of holding one raw sample's noise.
+
+    Returns the filtered shifts (n, 4), the filter's history (its ``len(taps) - 1`` last
+    inputs) and ``last`` after the samples, to carry into the next call.
+    """
+    n, k = comp.shape[0], taps.size - 1
+    filt = np.zeros((n, N_STRAIN))
+    history, last = np.array(history, dtype=np.float64), np.array(last, dtype=np.float64)
+    edges = np.flatnonzero(np.diff(fault.astype(np.int8))) + 1 if n else np.zeros(0, int)
+    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
+        part = np.repeat(last[None, :], b - a, axis=0) if fault[a] else comp[a:b]
+        seq = np.vstack([history, part])
+        filt[a:b] = np.stack([np.convolve(seq[:, c], taps)[k:k + b - a]
+                              for c in range(N_STRAIN)], axis=1)
+        if k:
+            history = seq[-k:]
+        if not fault[a]:
+            last = filt[b - 1].copy()
+    return filt, history, last
+
+
 def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
     """Net inputs (n, F) for one continuous recording: standardised channels and memory.
 
     Samples with a lost peak (:func:`fbgforce.samples.sensor_fault_rows`) are handled as the
-    C runtime handles a sensor fault: the filter is fed the last good input again (zeros
-    before any), the memory states skip the sample (they are frozen), and the sample's own
-    row holds zeros in place of memory features (its outputs are the safe output).
+    C runtime handles a sensor fault: the filter is fed the last good sample's filtered
+    shifts (:func:`filter_through_faults`; zeros before any), the memory states skip the
+    sample (they are frozen), and the sample's own row holds zeros in place of memory
+    features (its outputs are the safe output). The centred (offline) filter, which no
+    runtime runs, is fed the last good input instead.
     """
     pre = model.preprocess
     comp = compensate(model, wl_nm, baseline_nm)
@@ -722,9 +752,15 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
     if not fault.any():
         return standardise(pre, apply_filter(pre, comp))
     good = np.flatnonzero(~fault)
-    last_good = np.maximum.accumulate(np.where(fault, -1, np.arange(fault.size)))
-    held = np.where((last_good >= 0)[:, None], comp[np.maximum(last_good, 0)], 0.0)
-    z = (apply_filter(pre, held) - pre.input_mean) / pre.input_std
+    if pre.filter_kind == "centred":
+        last_good = np.maximum.accumulate(np.where(fault, -1, np.arange(fault.size)))
+        held = np.where((last_good >= 0)[:, None], comp[np.maximum(last_good, 0)], 0.0)
+        filt = apply_filter(pre, held)
+    else:
+        taps = pre.runtime_taps()
+        filt, _, _ = filter_through_faults(taps, comp, fault, np.zeros((taps.size - 1, N_STRAIN)),
+                                           np.zeros(N_STRAIN))
+    z = (filt - pre.input_mean) / pre.input_std
     out = np.zeros((z.shape[0], pre.n_inputs))
     out[:, :N_STRAIN] = z
     out[good] = memory_features(pre.memory, z[good], pre.z_rest)
@@ -870,7 +906,7 @@ class FloatPipeline:
     :func:`predict` computes on the whole, sample for sample (the filter's history, the memory
     states, the decision over time and the at-rest tracker carry over from piece to piece).
     A sensor fault (:func:`fbgforce.samples.sensor_fault_rows`) is handled as the runtimes
-    handle it: the filter is fed the last good input again, the memory states, the decision
+    handle it: the filter is fed the last good sample's filtered shifts, the memory states, the decision
     and the tracker skip the sample (the tracker restarts its rest count), and the sample gets
     the safe output.
 
@@ -920,17 +956,8 @@ class FloatPipeline:
         fault = samples.sensor_fault_rows(wl) if n else np.zeros(0, dtype=bool)
         good = np.flatnonzero(~fault)
         comp = compensate(model, wl, self.baseline_nm)
-        # A faulty sample feeds the filter the last good input again.
-        last = np.maximum.accumulate(np.where(fault, -1, np.arange(n))) if n else np.zeros(0, int)
-        comp = np.where((last >= 0)[:, None], comp[np.maximum(last, 0)], self._last_comp[None, :])
-        if good.size:
-            self._last_comp = comp[good[-1]].copy()
-        k = self.taps.size - 1
-        seq = np.vstack([self._history, comp])
-        filt = np.stack([np.convolve(seq[:, c], self.taps)[k:k + n] for c in range(N_STRAIN)],
-                        axis=1)
-        if k:
-            self._history = seq[-k:]
+        filt, self._history, self._last_comp = filter_through_faults(
+            self.taps, comp, fault, self._history, self._last_comp)
 
         def decide(raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
             return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
@@ -947,7 +974,8 @@ class FloatPipeline:
         out = safe_output(out, fault)
         if iu.track_shift and n:
             # At rest: no contact, no fault, past the filter's warm-up (the runtimes' WARMUP).
-            rest = ~out["contact"] & ~fault & (np.arange(self.samples, self.samples + n) >= k)
+            warm = self.taps.size - 1
+            rest = ~out["contact"] & ~fault & (np.arange(self.samples, self.samples + n) >= warm)
             self._track_sum += filt[rest].sum(axis=0)
             self._rest_run = rest_run_after(self._rest_run, rest)
         self.samples += n

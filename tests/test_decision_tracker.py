@@ -236,3 +236,34 @@ def test_the_float_pipeline_fed_in_pieces_equals_the_whole(random_model_factory,
     for k in ("force_N", "margin"):    # a batch's size may change a matrix product's last bit
         np.testing.assert_allclose(np.concatenate([p[k] for p in parts]), whole[k], rtol=0, atol=1e-9)
     assert not np.array_equal(pipe.baseline_nm, model.baseline_nm)
+
+
+def test_a_burst_of_lost_peaks_leaves_the_rest_at_rest(small_exported_dir):
+    """30 samples of a lost reference grating right after a 6 pm noise spike, at rest:
+    the filter is fed the last good sample's filtered shifts through the burst, so the
+    decision stays at rest and 100 samples on the contact margin is back within one unit of
+    the same run without the burst, on every kernel. Holding that raw sample in the filter
+    instead read the burst's end as a 6 pm press, which the play operators kept: contact
+    latched on for the rest of the run."""
+    model = fm.load(small_exported_dir)
+    q = blob.load_model_blob(small_exported_dir)
+    rng = np.random.default_rng(0)
+    base = intref.nm_to_fm(model.baseline_nm[None, :])[0]
+    wl = base + np.round(rng.normal(0.0, 1000.0, (3000, contract.N_CHANNELS))).astype(np.int64)
+    wl[1500, :contract.N_STRAIN] += 6000
+    burst = wl.copy()
+    burst[1501:1531, contract.N_STRAIN] = 0
+    after = slice(1531, None)
+    for kernel in ["portable", *host_kernels()]:
+        clean, lost = (Runtime(small_exported_dir, kernel=kernel) for _ in range(2))
+        for rt in (clean, lost):
+            rt.set_baseline(base)
+        a, b = clean.run_raw(wl), lost.run_raw(burst)
+        assert (b["status"][1501:1531] & contract.STATUS_FLAG["SENSOR_FAULT"]).all()
+        assert not b["contact"][after].any(), kernel
+        late = slice(1631, None)
+        assert np.abs(a["contact_margin_q8"][late].astype(np.int64)
+                      - b["contact_margin_q8"][late]).max() < 256, kernel
+        ref = intref.run(q, burst, base)
+        for key in contract.OUTPUT_FIELDS:
+            np.testing.assert_array_equal(b[key], ref[key])

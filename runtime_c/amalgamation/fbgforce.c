@@ -3148,7 +3148,7 @@ typedef struct {
     int32_t *prev_fm;            /* FBG_N_CHANNELS */
     void *hist;                  /* the FIR history, whatever its element type */
     size_t hist_size;
-    void *last_comp;             /* the compensated sample held into the FIR during a fault */
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
     size_t last_comp_size;
     void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
                                             * whatever their element type */
@@ -3291,7 +3291,7 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 }
 
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
- * to *status; the caller feeds the FIR its held last_comp again), else 0 with
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
  * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -3630,9 +3630,10 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
  * sample); for a clean one the tare difference and the temperature compensation into the ring
- * at s->pos and s->last_comp.
+ * at s->pos.
  * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
- * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
  * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
  * load_max_mN.
  * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
@@ -4205,8 +4206,11 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 }
 
 /* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
- * The sample's compensated strain shifts go into the FIR ring at pos and into last_comp; a
- * faulty sample (SENSOR_FAULT added to *status) feeds the ring the held last_comp again. */
+ * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
+ * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
+ * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
+ * where it was, where holding one raw sample would hold its noise for the burst's length,
+ * and the memory's play operators would keep that excursion after it. */
 
 /* The portable reference. */
 static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -4214,13 +4218,14 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
 {
     int32_t shift[FBG_N_CHANNELS];
     unsigned c;
-    if (!fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            s->last_comp[c] = fbg_sat32((int64_t)shift[c] - t, sat);
-        }
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
+        memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+        return;
     }
-    memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+        s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
+    }
 }
 
 static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -4241,7 +4246,7 @@ static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FB
 
 #if !FBG_USE_DSP
 /* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
-static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+static int filter_standardise(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
 {
     int64_t load = 0;
     unsigned c;
@@ -4254,6 +4259,7 @@ static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *i
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
         filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
+        s->last_comp[c] = filt;
         d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
         in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
         load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
@@ -4269,8 +4275,12 @@ static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint
 #if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
                   * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
     int64_t fir[FBG_N_STRAIN];
+    uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
+    unsigned c;
     fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
     overload = fbg_dsp_standardise(m, fir, in, sat);
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->last_comp[c] = fbg_sat32(fbg_rshift_round(fir[c], m->tap_q), &again);
 #elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
     overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
                                                      : filter_standardise(s, m, in, sat);
@@ -5300,9 +5310,10 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
  * sample); for a clean one the tare difference and the temperature compensation into the ring
- * at s->pos and s->last_comp.
+ * at s->pos.
  * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
- * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
  * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
  * load_max_mN.
  * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
@@ -5832,9 +5843,10 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
  * sample); for a clean one the tare difference and the temperature compensation into the ring
- * at s->pos and s->last_comp.
+ * at s->pos.
  * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
- * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
  * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
  * load_max_mN.
  * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
@@ -7111,7 +7123,7 @@ AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
  * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
  * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
 AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
-                             int16_t *in, int64_t *load)
+                             int16_t *in, int32_t *held, int64_t *load)
 {
     __m256i flag = _mm256_setzero_si256(), t;
     __m128i l, z;
@@ -7119,6 +7131,8 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     const __m256i filt = clamp64(sra64(_mm256_add_epi64(fir, _mm256_set1_epi64x((int64_t)1 << (m->tap_q - 1u))),
                                        _mm_cvtsi32_si128(m->tap_q)), FBG_SAT32, &flag);
     const __m256i d = clamp64(_mm256_sub_epi64(filt, _mm256_cvtepi32_epi64(load128(m->mean_fm))), FBG_SAT32, &flag);
+    _mm_storeu_si128((__m128i *)(void *)held, _mm256_castsi256_si128(
+        _mm256_permutevar8x32_epi32(filt, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6))));
     t = _mm256_add_epi64(_mm256_mul_epi32(d, _mm256_cvtepi32_epi64(load128(m->z_mult))),
                          _mm256_set1_epi64x((int64_t)1 << (m->z_shift - 1u)));
     t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
@@ -7225,8 +7239,8 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
 /* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
  * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
  * (VPMULDQ of shift_T, lane 4 of shift broadcast, by the sign-extended coefficients: exact in
- * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos and
- * last_comp. Returns 1 where a lane clamped. */
+ * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos. Returns 1
+ * where a lane clamped. */
 AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
 {
     __m256i flag = _mm256_setzero_si256();
@@ -7237,7 +7251,6 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
     const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(_mm256_castsi256_si128(shift)), t), FBG_SAT32, &flag);
     const __m128i comp = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(c, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6)));
     _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], comp);
-    _mm_storeu_si128((__m128i *)(void *)s->last_comp, comp);
     return !_mm256_testz_si256(flag, flag);
 }
 
@@ -7301,7 +7314,8 @@ typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
 
 /* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
  * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
- * compensation into the ring and last_comp; for a faulty one last_comp into the ring. */
+ * compensation into the ring; for a faulty one last_comp (the last filtered shifts, which
+ * filter4_avx2 keeps) into the ring. */
 AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
 {
     __m256i w;
@@ -7318,7 +7332,7 @@ AVX2 int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat)
 {
     const fbg_model *m = s->model;
     int64_t load;
-    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, &load))
+    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, s->last_comp, &load))
         *sat = 1u;
     return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }
@@ -8429,7 +8443,7 @@ typedef struct {
     int32_t *prev_fm;            /* FBG_N_CHANNELS */
     void *hist;                  /* the FIR history, whatever its element type */
     size_t hist_size;
-    void *last_comp;             /* the compensated sample held into the FIR during a fault */
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
     size_t last_comp_size;
     void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
                                             * whatever their element type */
@@ -8572,7 +8586,7 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 }
 
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
- * to *status; the caller feeds the FIR its held last_comp again), else 0 with
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
  * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -8975,7 +8989,6 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
-        memcpy(s->last_comp, comp, sizeof comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
@@ -8996,6 +9009,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     memcpy(filt, a, sizeof a);
+    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)

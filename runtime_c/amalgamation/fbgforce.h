@@ -231,7 +231,7 @@ typedef struct {
     int32_t baseline_fm[FBG_N_CHANNELS];
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     int32_t hist[FBG_MAX_TAPS][FBG_N_STRAIN];    /* FIR history (ring buffer) */
-    int32_t last_comp[FBG_N_STRAIN];             /* held into the FIR during a fault */
+    int32_t last_comp[FBG_N_STRAIN];             /* the last good sample's filtered shifts, held into the FIR during a fault */
     /* Memory states of the load signal u (docs/fixed-point.md, "memory"), one array per kind
      * of fbgforce.contract.MEMORY_KINDS. */
     int32_t ema[FBG_MAX_EMA];                    /* exponential-average memory states, Q(z_frac + FBG_EMA_FRAC) */
@@ -461,7 +461,7 @@ typedef struct {
     int32_t baseline_fm[FBG_N_CHANNELS];
     int32_t prev_fm[FBG_N_CHANNELS];             /* last in-window sample per channel */
     float hist[FBG_MAX_TAPS][FBG_N_STRAIN];      /* FIR history (ring buffer) */
-    float last_comp[FBG_N_STRAIN];               /* held into the FIR during a fault */
+    float last_comp[FBG_N_STRAIN];               /* the last good sample's filtered shifts, held into the FIR during a fault */
     /* Memory states of the load signal u (docs/fixed-point.md, "memory"), one array per kind
      * of fbgforce.contract.MEMORY_KINDS. */
     float ema[FBG_MAX_EMA];                      /* exponential-average memory states, standardised units */

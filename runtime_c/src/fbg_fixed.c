@@ -302,8 +302,11 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 }
 
 /* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
- * The sample's compensated strain shifts go into the FIR ring at pos and into last_comp; a
- * faulty sample (SENSOR_FAULT added to *status) feeds the ring the held last_comp again. */
+ * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
+ * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
+ * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
+ * where it was, where holding one raw sample would hold its noise for the burst's length,
+ * and the memory's play operators would keep that excursion after it. */
 
 /* The portable reference. */
 static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -311,13 +314,14 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
 {
     int32_t shift[FBG_N_CHANNELS];
     unsigned c;
-    if (!fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-            s->last_comp[c] = fbg_sat32((int64_t)shift[c] - t, sat);
-        }
+    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
+        memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+        return;
     }
-    memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+        s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
+    }
 }
 
 static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
@@ -338,7 +342,7 @@ static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FB
 
 #if !FBG_USE_DSP
 /* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
-static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+static int filter_standardise(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
 {
     int64_t load = 0;
     unsigned c;
@@ -351,6 +355,7 @@ static int filter_standardise(const fbg_state *s, const fbg_model *m, int16_t *i
             idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
         }
         filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
+        s->last_comp[c] = filt;
         d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
         in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
         load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
@@ -366,8 +371,12 @@ static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint
 #if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
                   * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
     int64_t fir[FBG_N_STRAIN];
+    uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
+    unsigned c;
     fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
     overload = fbg_dsp_standardise(m, fir, in, sat);
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->last_comp[c] = fbg_sat32(fbg_rshift_round(fir[c], m->tap_q), &again);
 #elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
     overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
                                                      : filter_standardise(s, m, in, sat);

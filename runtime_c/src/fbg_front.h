@@ -32,7 +32,7 @@ typedef struct {
     int32_t *prev_fm;            /* FBG_N_CHANNELS */
     void *hist;                  /* the FIR history, whatever its element type */
     size_t hist_size;
-    void *last_comp;             /* the compensated sample held into the FIR during a fault */
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
     size_t last_comp_size;
     void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
                                             * whatever their element type */
@@ -175,7 +175,7 @@ static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
 }
 
 /* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
- * to *status; the caller feeds the FIR its held last_comp again), else 0 with
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
  * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
  * FBG_N_STRAIN included (which never clamps: see below). */
 static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],

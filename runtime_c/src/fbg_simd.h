@@ -97,9 +97,10 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
  * sample); for a clean one the tare difference and the temperature compensation into the ring
- * at s->pos and s->last_comp.
+ * at s->pos.
  * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
- * exactly in int64 (the same integers in another order), in[c] = its standardised value;
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
  * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
  * load_max_mN.
  * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model

@@ -1300,7 +1300,7 @@ AVX2 static inline __m256i clamp64(__m256i v, int64_t lim, __m256i *flag)
  * filt * load_coeff added up. The rounding sums stay inside int64 as in the scalar code
  * (|fir| < 2^52, |d * z_mult| < 2^62, 2^(z_shift-1) <= 2^61). */
 AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STRAIN], unsigned pos,
-                             int16_t *in, int64_t *load)
+                             int16_t *in, int32_t *held, int64_t *load)
 {
     __m256i flag = _mm256_setzero_si256(), t;
     __m128i l, z;
@@ -1308,6 +1308,8 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     const __m256i filt = clamp64(sra64(_mm256_add_epi64(fir, _mm256_set1_epi64x((int64_t)1 << (m->tap_q - 1u))),
                                        _mm_cvtsi32_si128(m->tap_q)), FBG_SAT32, &flag);
     const __m256i d = clamp64(_mm256_sub_epi64(filt, _mm256_cvtepi32_epi64(load128(m->mean_fm))), FBG_SAT32, &flag);
+    _mm_storeu_si128((__m128i *)(void *)held, _mm256_castsi256_si128(
+        _mm256_permutevar8x32_epi32(filt, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6))));
     t = _mm256_add_epi64(_mm256_mul_epi32(d, _mm256_cvtepi32_epi64(load128(m->z_mult))),
                          _mm256_set1_epi64x((int64_t)1 << (m->z_shift - 1u)));
     t = clamp64(sra64(t, _mm_cvtsi32_si128(m->z_shift)), FBG_SAT16, &flag);
@@ -1414,8 +1416,8 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
 /* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
  * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
  * (VPMULDQ of shift_T, lane 4 of shift broadcast, by the sign-extended coefficients: exact in
- * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos and
- * last_comp. Returns 1 where a lane clamped. */
+ * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos. Returns 1
+ * where a lane clamped. */
 AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
 {
     __m256i flag = _mm256_setzero_si256();
@@ -1426,7 +1428,6 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
     const __m256i c = clamp64(_mm256_sub_epi64(_mm256_cvtepi32_epi64(_mm256_castsi256_si128(shift)), t), FBG_SAT32, &flag);
     const __m128i comp = _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(c, _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6)));
     _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], comp);
-    _mm_storeu_si128((__m128i *)(void *)s->last_comp, comp);
     return !_mm256_testz_si256(flag, flag);
 }
 
@@ -1490,7 +1491,8 @@ typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
 
 /* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
  * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
- * compensation into the ring and last_comp; for a faulty one last_comp into the ring. */
+ * compensation into the ring; for a faulty one last_comp (the last filtered shifts, which
+ * filter4_avx2 keeps) into the ring. */
 AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
 {
     __m256i w;
@@ -1507,7 +1509,7 @@ AVX2 int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat)
 {
     const fbg_model *m = s->model;
     int64_t load;
-    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, &load))
+    if (filter4_avx2(m, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, in, s->last_comp, &load))
         *sat = 1u;
     return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
 }

@@ -292,7 +292,6 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
-        memcpy(s->last_comp, comp, sizeof comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
@@ -313,6 +312,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     memcpy(filt, a, sizeof a);
+    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
