@@ -1217,14 +1217,11 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
         held[:, :fm.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
-        at = np.repeat(np.asarray(peaks) + 1, lengths)
-        source = np.insert(np.arange(len(wl)), at, np.repeat(peaks, lengths))
         in_hold = np.concatenate([np.arange(n) for n in lengths])
         step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
-        keep = np.insert(after, at, in_hold % step == 0)
-        feats = pp.recording_features(pre, np.insert(wl, at, held, axis=0), r.baseline_nm)
-        inputs.append(fm.standardise(pre, feats)[keep])
-        kept.append(source[keep] + sl.start)
+        x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
+        inputs.append(x)
+        kept.append(src + sl.start)
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
@@ -1278,18 +1275,31 @@ def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
         lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
         rest = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
-        at = np.repeat(np.asarray(starts) + 1, lengths)
         in_rest = np.concatenate([np.arange(n) for n in lengths])
         settle = int(round(REST_AUGMENT_SETTLE_S * r.rate_hz))
-        keep = np.insert(np.zeros(len(wl), dtype=bool), at,
-                         (in_rest >= settle) & ((in_rest - settle) % step == 0))
-        source = np.insert(np.arange(len(wl)), at, np.repeat(starts, lengths))
-        feats = pp.recording_features(pre, np.insert(wl, at, rest, axis=0), r.baseline_nm)
-        inputs.append(fm.standardise(pre, feats)[keep])
-        kept.append(source[keep] + sl.start)
+        x, src = _lengthened_inputs(pre, r, wl, starts, lengths, rest,
+                                    (in_rest >= settle) & ((in_rest - settle) % step == 0),
+                                    np.zeros(len(wl), dtype=bool))
+        inputs.append(x)
+        kept.append(src + sl.start)
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
     return np.concatenate(inputs), np.concatenate(kept)
+
+
+def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
+                       lengths: np.ndarray, inserted: np.ndarray, keep_inserted: np.ndarray,
+                       keep_recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of recording ``r`` (wavelengths ``wl``) lengthened by ``inserted`` (the
+    rows of all insertions, ``lengths[i]`` of them after sample ``points[i]``), recomputed
+    with ``pre`` over the whole lengthened recording as the runtime would run it; returned
+    are the inserted rows ``keep_inserted`` marks and the recorded samples ``keep_recorded``
+    marks, and the samples of ``r`` whose labels they take (an inserted row its point's)."""
+    at = np.repeat(np.asarray(points) + 1, lengths)
+    keep = np.insert(keep_recorded, at, keep_inserted)
+    source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
+    feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
+    return fm.standardise(pre, feats)[keep], source[keep]
 
 
 def _rest_noise(r: Recording) -> np.ndarray | None:
