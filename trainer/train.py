@@ -115,6 +115,11 @@ class Prepared:
         self.x_mm = np.concatenate([np.asarray(r.ds.x_mm, float) for r in recs])
         self.y_mm = np.concatenate([np.asarray(r.ds.y_mm, float) for r in recs])
 
+    @property
+    def rate_hz(self) -> float:
+        """The recordings' median sample rate (the one the model runs at)."""
+        return float(np.median([r.rate_hz for r in self.recordings]))
+
     def inputs(self, pre: fm.Preprocess) -> np.ndarray:
         """Net inputs (n, F) of every sample under ``pre``'s standardisation and memory,
         computed recording by recording (the memory states run along each recording)."""
@@ -763,8 +768,7 @@ def _rests(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarr
     of each."""
     if params.rest_augment <= 0:
         return (np.empty((0, pre.n_inputs)), tr[:0]), (np.empty((0, pre.n_inputs)), va[:0])
-    rate = float(np.median([r.rate_hz for r in data.recordings]))
-    step = max(1, int(round(REST_AUGMENT_STEP_S * rate)))
+    step = max(1, int(round(REST_AUGMENT_STEP_S * data.rate_hz)))
     rest_tr, rest_va = (_synthetic_rests(data, pre, rows, params.rest_augment, step, rng)
                         for rows in (tr, va))
     return rest_tr, rest_va
@@ -904,10 +908,9 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
     memory settles."""
-    rate = float(np.median([r.rate_hz for r in data.recordings]))
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
-    model.in_use = fm.InUse.recommended(rate, rest_margins=np.concatenate(
+    model.in_use = fm.InUse.recommended(data.rate_hz, rest_margins=np.concatenate(
         [_rest_margins(data, logits), long[:, 1] - long[:, 0]]))
     model.input_range = fm.input_range_of(z[tr])
 
@@ -995,7 +998,7 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
     tr, va, te = rows
     hold_tr, hold_va = holds
     pre = model.preprocess
-    rate = float(np.median([r.rate_hz for r in data.recordings]))
+    rate = data.rate_hz
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
     model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
     return {
