@@ -3,7 +3,7 @@
 Usage::
 
     python tests/foreign.py --out DIR --presses 100 calib_1K const_temp ramp20K ramp40K \\
-        ramp40K_fast long_rests held_grips                        # writes the logs
+        ramp40K_fast long_rests held_grips ramp_hold               # writes the logs
     fbgforce train --data DIR/calib_1K_A.csv --out MODEL && fbgforce export --model MODEL
     python -m fbgforce.bench.bench_in_use --model MODEL --logs DIR [--engine fixed|float] [--json]
 
@@ -11,8 +11,8 @@ Usage::
 with :func:`fbgforce.bench.bench_generalisation.load_manifest`; the generator stays a test
 helper). Each variant's ``role`` says what its "other" log (seed 2, never trained on) measures:
 ``constant`` (presses at constant temperature), ``ramp`` (the same presses through a
-temperature ramp), ``rest`` (long rests), ``hold`` (held grips); ``calibration`` logs are not
-scored. Every log is run whole by ``--engine`` (default ``fixed``: the C fixed-point runtime),
+temperature ramp), ``rest`` (long rests), ``hold`` (held grips), ``ramp_hold`` (a grip held
+through a ramp); ``calibration`` logs are not scored. Every log is run whole by ``--engine`` (default ``fixed``: the C fixed-point runtime),
 tared at start-up on its own contact-free samples, through :func:`fbgforce.trainer.evaluate.
 evaluate`, the code path of ``fbgforce evaluate --engine fixed``; the metrics are those of
 ``fbgforce evaluate --json`` (docs/cli.md).
@@ -25,7 +25,8 @@ the field"), with the logs it was scored on:
 - constant temperature (``constant`` and ``rest`` logs together): false contact events per
   minute of rest, median onset delay, detection of contact samples above 1 N;
 - held grips: force bias over the holds, force RMSE over them against the model's own
-  calibration test RMSE (its training logs, test split, same engine).
+  calibration test RMSE (its training logs, test split, same engine);
+- a grip held through a ramp: force bias over the hold (the holds' bound).
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ from fbgforce.jsonutil import json_default
 
 PROG = "bench_in_use"
 #: Roles of manifest entries that are scored, in the order of the table.
-SCORED_ROLES = ("ramp", "constant", "rest", "hold")
+SCORED_ROLES = ("ramp", "constant", "rest", "hold", "ramp_hold")
 
 
 @dataclass(frozen=True)
@@ -95,6 +96,10 @@ CONSTANT_GOALS = (
 HOLD_GOALS = (
     Goal("hold_bias", "force bias over the holds", 0.1, "abs<=", "N"),
     Goal("hold_rmse_ratio", "force RMSE over the holds / calibration test RMSE", 1.2, "<=", "x"),
+)
+#: A grip held through a ramp stays where it belongs: the holds' bound.
+RAMP_HOLD_GOALS = (
+    Goal("ramp_hold_bias", "force bias over a grip held through a ramp", 0.1, "abs<=", "N"),
 )
 
 
@@ -197,6 +202,11 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
         rows += [_row(g, by_role["hold"], values[g.key]) for g in HOLD_GOALS]
     else:
         rows += [_row(g, [], None) for g in HOLD_GOALS]
+    if by_role["ramp_hold"]:
+        m = run(by_role["ramp_hold"])
+        rows += [_row(g, by_role["ramp_hold"], m["holds"]["force_bias_N"]) for g in RAMP_HOLD_GOALS]
+    else:
+        rows += [_row(g, [], None) for g in RAMP_HOLD_GOALS]
     verdicts = [r["pass"] for r in rows]
     return {"model": str(model_dir), "engine": engine, "logs": str(logs),
             "calibration_test_rmse_force_N": cal_rmse, "scored": scored, "goals": rows,
@@ -206,7 +216,7 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
 
 def table(result: dict[str, Any]) -> str:
     """The goals as a markdown table, then one line per scored log with its context."""
-    goals = {g.key: g for g in (*RAMP_GOALS, *CONSTANT_GOALS, *HOLD_GOALS)}
+    goals = {g.key: g for g in (*RAMP_GOALS, *CONSTANT_GOALS, *HOLD_GOALS, *RAMP_HOLD_GOALS)}
     lines = ["| goal | scored on | measured | target | |", "|---|---|---|---|---|"]
     for r in result["goals"]:
         g = goals[r["key"]]

@@ -94,6 +94,7 @@ class Spec:
     hold_s: tuple[float, float] = (0.0, 0.2)
     start_in_contact: int = 0            # samples of a press's tail before the first rest
     presses_max: int | None = None       # most presses a log of this variant holds
+    last_hold_s: float = 0.0             # > 0: the last press holds this long instead
     device_seed: int | None = None       # the fingertip (None: one per variant, see write_logs)
     role: str = ""                       # what the log measures in bench/bench_in_use.py
     crlf: bool = False
@@ -232,10 +233,12 @@ def wander_pm(spec: Spec, rng: np.random.Generator, t: np.ndarray) -> np.ndarray
                                         for k in range(3))
 
 
-def _profile(rng: np.random.Generator, spec: Spec, peak: float) -> np.ndarray:
+def _profile(rng: np.random.Generator, spec: Spec, peak: float, last: bool = False) -> np.ndarray:
     r = spec.rate_hz
     up = int(rng.uniform(*spec.ramp_s) * r)
     hold = int(rng.uniform(*spec.hold_s) * r)
+    if last and spec.last_hold_s > 0:
+        hold = int(spec.last_hold_s * r)
     down = int(rng.uniform(*spec.ramp_s) * r)
     # Indentation at constant speed into a rubber pad: force grows faster than linearly.
     rise = np.linspace(0.0, 1.0, up, endpoint=False) ** 1.4
@@ -263,7 +266,8 @@ def log(dev: Device, seed: int, n_press: int = 40) -> Dataset:
         rest = np.zeros(int(rng.uniform(*spec.rest_s) * spec.rate_hz))
         if p == 0:
             ramp_from = spec.start_in_contact + rest.size
-        f = _profile(rng, spec, rng.uniform(spec.force_min_N, spec.force_max_N))
+        f = _profile(rng, spec, rng.uniform(spec.force_min_N, spec.force_max_N),
+                     last=p == n_press - 1)
         forces.append(np.concatenate([rest, f]))
         n = rest.size + f.size
         xs.append(np.full(n, rng.uniform(1.0, w - 1.0)))
@@ -450,6 +454,10 @@ IN_USE_VARIANTS: dict[str, Spec] = {
     # Rests of 10-30 s at constant temperature: false contact events at rest.
     "long_rests": replace(IN_USE_FINGERTIP, name="long_rests", role="rest", drift=False,
                           rest_s=(10.0, 30.0), hold_s=(0.0, 0.15), presses_max=10),
+    # Sparse presses through a 40 K ramp at 20 K/min, the last one held for 2 minutes: the
+    # ramp goes on for about a minute of the grip and then stops under it.
+    "ramp_hold": replace(_SPARSE, name="ramp_hold", role="ramp_hold", drift=True, drift_K=40.0,
+                         ramp_K_per_min=20.0, last_hold_s=120.0, presses_max=20),
     # Grips held 1.5-6 s at 0.5-50 N at constant temperature (creep and friction act).
     "held_grips": replace(IN_USE_FINGERTIP, name="held_grips", role="hold", drift=False,
                           rest_s=(0.3, 1.0), hold_s=(1.5, 6.0), presses_max=40),

@@ -154,6 +154,18 @@ def test_ramp_rate_and_lagging_reference_grating():
     assert trail == pytest.approx(expected, rel=0.05)
 
 
+def test_a_grip_held_through_a_ramp_holds_while_the_ramp_goes_on_and_stops():
+    spec = replace(fg.IN_USE_VARIANTS["ramp_hold"], last_hold_s=40.0, drift_K=10.0)
+    ds = fg.log(fg.device(spec, fg.device_seed("ramp_hold")), 2, 3)
+    temp = ds.extra["room_C"] - 22.0
+    last = np.flatnonzero(ds.press_id == ds.press_id[-1])
+    last = last[np.asarray(ds.force_N)[last] > 0.5 * np.median(np.asarray(ds.force_N)[last])]
+    # The last press is the long one, and the ramp both goes on and ends under it.
+    assert last.size / spec.rate_hz > spec.last_hold_s
+    t_held = temp[last]
+    assert t_held[0] < spec.drift_K - 1.0 and t_held[-1] == spec.drift_K
+
+
 def test_wander_is_slow_and_a_few_pm():
     spec = fg.IN_USE_VARIANTS["long_rests"]
     t = np.arange(0, 600, 1e-3)
@@ -207,7 +219,8 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     res = json.loads(capsys.readouterr().out)
     rows = {r["key"]: r for r in res["goals"]}
     assert set(rows) == {g.key for g in (*bench_in_use.RAMP_GOALS, *bench_in_use.CONSTANT_GOALS,
-                                         *bench_in_use.HOLD_GOALS)}
+                                         *bench_in_use.HOLD_GOALS, *bench_in_use.RAMP_HOLD_GOALS)}
+    assert rows["ramp_hold_bias"]["pass"] is None     # no ramp_hold log in this directory
     assert res["passed"] + res["failed"] + res["not_measured"] == len(rows)
     for r in rows.values():
         assert r["pass"] is None or r["pass"] == (abs(r["value"]) <= r["target"]
@@ -242,7 +255,7 @@ def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_expo
     verdict = {r["key"]: (r["value"], r["pass"]) for r in res["goals"]}
     assert verdict["rest_contact"] == (None, None) and verdict["hold_bias"] == (None, None)
     assert verdict["false_events"][0] is not None
-    assert res["not_measured"] == 5 and res["calibration_test_rmse_force_N"] is None
+    assert res["not_measured"] == 6 and res["calibration_test_rmse_force_N"] is None
 
 
 def test_evaluate_json_reports_rests_and_holds(in_use_logs, small_exported_dir, capsys):
