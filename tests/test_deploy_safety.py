@@ -79,6 +79,23 @@ def test_stale_export_refused_by_every_reader(exported_copy, other_model, small_
         fbgforce.Runtime(exported_copy)
 
 
+def test_a_decision_changed_after_export_is_stale(exported_copy):
+    """The blob carries the decision over time, the tracker and the input range, so a
+    model.json whose in-use settings were changed after export (a threshold tuned by hand)
+    must not run on the blob made before."""
+    import dataclasses
+
+    model = fm.load(exported_copy)
+    fbgforce.Runtime(exported_copy)
+    model.in_use = dataclasses.replace(model.in_use,
+                                       contact_on_margin=model.in_use.contact_on_margin + 1.0)
+    doc = json.loads((exported_copy / fm.MODEL_JSON).read_text())
+    doc["in_use"] = model.in_use.to_json()
+    (exported_copy / fm.MODEL_JSON).write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="stale"):
+        fbgforce.Runtime(exported_copy)
+
+
 def test_blob_other_than_the_export_wrote_is_refused(exported_copy, small_dataset_path, capsys):
     from fbgforce.export.exporter import export_model
 
