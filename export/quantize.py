@@ -161,6 +161,10 @@ def check_layer(layer: QLayer, relu_inputs: bool, where: str) -> None:
              f"row {r}: accumulator bound exceeds int64")
 
 
+#: Parameter-block fields a QModel does not hold: its taps and nets imply them.
+_IMPLIED_PARAMS = ("n_taps", "n_layers")
+
+
 @dataclass
 class QModel:
     """The fixed-point model (``fbg_model`` in C); see runtime_c/include/fbgforce.h."""
@@ -214,21 +218,21 @@ class QModel:
     writer_version: int = contract.VERSION_CODE
 
     def __post_init__(self) -> None:
-        for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
-                     "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width",
-                     "track_gain", "in_lo", "in_hi"):
-            setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
-        for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
-                     "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
-                     "mem_shift", "n_ema", "n_play", "loc_shift", "writer_version",
-                     "contact_on_q8", "contact_off_q8", "contact_rise_n", "track_shift",
-                     "track_settle", "track_step_max_fm", "track_limit_fm"):
-            setattr(self, name, int(getattr(self, name)))
+        self.taps = np.asarray(self.taps, dtype=np.int64).reshape(-1)
+        for f in contract.PARAMS:
+            if f.name not in _IMPLIED_PARAMS:
+                v = getattr(self, f.name)
+                setattr(self, f.name, np.asarray(v, dtype=np.int64).reshape(-1) if f.count > 1 else int(v))
+
+    @property
+    def n_memory(self) -> int:
+        """Memory states in use, every kind's ``n_<kind>`` together."""
+        return sum(getattr(self, kind.count_field) for kind in contract.MEMORY_KINDS)
 
     @property
     def n_features(self) -> int:
         """Width of the contact and force nets' input (z and memory features)."""
-        return contract.n_features(self.n_ema, self.n_play)
+        return contract.n_features(self.n_memory)
 
     @property
     def n_loc(self) -> int:
@@ -246,7 +250,7 @@ class QModel:
                     ) -> "QModel":
         """The model of a decoded parameter block (:data:`fbgforce.contract.PARAMS` names)
         with its taps and nets; ``n_taps`` and ``n_layers`` are implied by those."""
-        fields = {k: v for k, v in values.items() if k not in ("n_taps", "n_layers")}
+        fields = {k: v for k, v in values.items() if k not in _IMPLIED_PARAMS}
         return cls(taps=taps, nets=nets, **fields)
 
     def params(self) -> dict[str, Any]:
@@ -280,7 +284,7 @@ class QModel:
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
-            n_in = contract.net_inputs(name, self.n_ema, self.n_play, self.n_loc)
+            n_in = contract.net_inputs(name, self.n_memory, self.n_loc)
             need(net[0].n_in == n_in and net[-1].n_out == NET_OUTPUTS[name], "ERR_SHAPE",
                  f"{name}: input/output width {net[0].n_in}/{net[-1].n_out}, expected "
                  f"{n_in}/{NET_OUTPUTS[name]}")
@@ -556,20 +560,11 @@ def even_hidden_widths(weights: Sequence[np.ndarray], biases: Sequence[np.ndarra
 
 def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
     """The memory's integers: the load signal's weights as multipliers and a shift (u keeps
-    the Q(z_frac) of z), shifts and gains as they are, play half-widths in Q(z_frac)."""
-    def padded(values: Sequence[int], size: int) -> np.ndarray:
-        out = np.zeros(size, dtype=np.int64)
-        out[:len(values)] = values
-        return out
-
-    widths = [min(SAT16, int(round(w * 2.0**z_frac))) for w in memory.play_widths]
+    the Q(z_frac) of z), every kind's parameters as they are, a value in standardised units
+    (a play half-width) in Q(z_frac)."""
     mem_shift, mem_mult = choose_shift(memory.weights) if any(memory.weights) else (1, np.zeros(4))
-    return {"mem_mult": mem_mult, "mem_shift": mem_shift,
-            "n_ema": len(memory.ema_shifts), "n_play": len(memory.play_widths),
-            "ema_shift": padded(memory.ema_shifts, contract.MAX_EMA),
-            "ema_gain": padded(memory.ema_gains, contract.MAX_EMA),
-            "play_gain": padded(memory.play_gains, contract.MAX_PLAY),
-            "play_width": padded(widths, contract.MAX_PLAY), "loc_shift": memory.loc_shift}
+    return {"mem_mult": mem_mult, "mem_shift": mem_shift, "loc_shift": memory.loc_shift,
+            **memory.params(lambda v: min(SAT16, int(round(v * 2.0**z_frac))))}
 
 
 def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, np.ndarray]:
@@ -803,11 +798,12 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     # feature is the difference of the two, times its gain; the float play width is rounded to
     # Q(z_frac) too (half an LSB).
     lsb = 2.0**-q.z_frac
-    if q.n_ema + q.n_play:
+    if q.n_memory:
         wts = np.asarray(pre.memory.weights)
         wq = q.mem_mult / 2.0**q.mem_shift
         e_u = e_z @ np.abs(wts) + np.abs(calib.z[:, :fm.N_STRAIN]) @ np.abs(wq - wts) + 0.5 * lsb
-        gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
+        gains = np.concatenate([getattr(q, k.field(k.gain))[:getattr(q, k.count_field)]
+                                for k in contract.MEMORY_KINDS])
         e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
         e_z = np.concatenate([e_z, *e_mem], axis=1)
     # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the

@@ -184,7 +184,7 @@ def test_location_averages_read_zero_at_rest_and_keep_a_press_direction(random_m
     later = a[60].astype(float)                                # 10 samples into the press
     cos = later @ direction / np.linalg.norm(later) / np.linalg.norm(direction)
     assert cos > 0.9999 and np.linalg.norm(later) < np.linalg.norm(direction)
-    assert contract.net_inputs("location", q.n_ema, q.n_play, q.n_loc) == 10 <= contract.LIMIT["MAX_INPUTS"]
+    assert contract.net_inputs("location", q.n_memory, q.n_loc) == 10 <= contract.LIMIT["MAX_INPUTS"]
 
 
 def test_memory_text_and_presets():
@@ -202,6 +202,40 @@ def test_memory_text_and_presets():
                 "loc:3+loc:4"):
         with pytest.raises(InputError):
             parse_memory(bad)
+
+
+@pytest.mark.parametrize("field, index, value, code", [
+    ("n_ema", None, contract.MAX_EMA + 1, "FBG_ERR_SHAPE"),
+    ("n_play", None, contract.MAX_PLAY + 1, "FBG_ERR_SHAPE"),
+    ("ema_shift", 1, 0, "FBG_ERR_RANGE"),
+    ("ema_shift", 0, contract.MAX_EMA_SHIFT + 1, "FBG_ERR_RANGE"),
+    ("ema_gain", 1, contract.MAX_MEM_GAIN + 1, "FBG_ERR_RANGE"),
+    ("play_gain", 3, contract.MAX_MEM_GAIN + 1, "FBG_ERR_RANGE"),
+    ("play_width", 2, -0.5, "FBG_ERR_RANGE"),
+    ("play_width", 0, float("nan"), "FBG_ERR_RANGE"),
+    ("play_width", 3, float("inf"), "FBG_ERR_RANGE"),
+])
+def test_float_build_checks_memory_parameters(random_model_factory, field, index, value, code):
+    """fbgf_model_check refuses a memory parameter of a state in use outside the ranges of
+    fbg_model's, as the fixed-point checker does (the generated fbgf_memory_check)."""
+    from fbgforce._runtime import lib
+
+    rt = FloatRuntime(random_model_factory(1, sizes=((8,), (8,), (8,)), memory=MEMORIES["full"]))
+    assert lib.fbgf_model_check(rt._model) == lib.FBG_OK
+    if index is None:
+        setattr(rt._model, field, value)
+    else:
+        getattr(rt._model, field)[index] = value
+    assert lib.fbgf_model_check(rt._model) == getattr(lib, code)
+
+
+def test_memory_refuses_parameters_outside_the_contract():
+    for bad in (dict(ema_shifts=(0,)), dict(ema_shifts=(16,)), dict(ema_shifts=(3,), ema_gains=(9,)),
+                dict(ema_shifts=(3,), ema_gains=(1, 2)), dict(play_widths=(-0.1,)),
+                dict(play_widths=(float("nan"),)), dict(play_widths=(0.1,) * 5)):
+        with pytest.raises(ValueError):
+            fm.Memory(**bad)
+    assert fm.Memory(play_widths=(0.1, 0.2)).play_gains == (0, 0)
 
 
 @pytest.mark.parametrize("name", ["full", "loc"])
