@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 from fractions import Fraction
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
+from functools import partial
 from typing import Any, Sequence
 
 import numpy as np
@@ -164,9 +165,17 @@ def check_layer(layer: QLayer, relu_inputs: bool, where: str) -> None:
 #: Parameter-block fields a QModel does not hold: its taps and nets imply them.
 _IMPLIED_PARAMS = ("n_taps", "n_layers")
 
+#: The memory kinds' fields of the parameter block (``n_<kind>``, ``<kind>_<param>`` of
+#: ``contract.MEMORY_KINDS``) as keyword-only dataclass fields, zero (no memory) by default:
+#: the base of :class:`QModel`, derived from the contract so that a kind adds no field here.
+QModelMemory = make_dataclass("QModelMemory", [
+    (f.name, np.ndarray, field(default_factory=partial(np.zeros, f.count, dtype=np.int64), kw_only=True))
+    if f.count > 1 else (f.name, int, field(default=0, kw_only=True))
+    for f in contract.memory_params()])
+
 
 @dataclass
-class QModel:
+class QModel(QModelMemory):
     """The fixed-point model (``fbg_model`` in C); see runtime_c/include/fbgforce.h."""
 
     baseline_fm: np.ndarray
@@ -190,15 +199,10 @@ class QModel:
     load_max_mN: int = SAT32
     #: Stuck-peak rule (fbg_model.stuck_max): 0 disables it.
     stuck_max: int = 0
-    #: Memory (fbg_model.mem_mult, n_ema ...): entries beyond n_ema / n_play are 0.
+    #: The memory's load signal (fbg_model.mem_mult, mem_shift); the kinds' fields (n_ema ...)
+    #: are those of :class:`QModelMemory`.
     mem_mult: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
     mem_shift: int = 1
-    n_ema: int = 0
-    n_play: int = 0
-    ema_shift: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
-    ema_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
-    play_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
-    play_width: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
     #: Location averages (fbg_model.loc_shift): 0 is off.
     loc_shift: int = 0
     #: The decision over time and the at-rest baseline tracker (fbg_model.contact_*,

@@ -349,7 +349,7 @@ class Field:
 _I32 = (-SAT32, SAT32)   # INT32_MIN is refused everywhere: negation must not overflow
 
 
-def _memory_params() -> tuple[Field, ...]:
+def memory_params() -> tuple[Field, ...]:
     """The memory kinds' fields of ``PARAMS``: every kind's count, then every kind's parameter
     arrays (entries from the count on must be 0)."""
     return (tuple(Field(k.count_field, "uint8_t", 1, 0, k.limit, "ERR_SHAPE", doc=k.doc)
@@ -358,8 +358,8 @@ def _memory_params() -> tuple[Field, ...]:
                     for k in MEMORY_KINDS for p in k.params))
 
 
-def _float_memory_params() -> tuple[Field, ...]:
-    """The memory kinds' fields of ``FLOAT_PARAMS``, in the order of :func:`_memory_params`
+def floatmemory_params() -> tuple[Field, ...]:
+    """The memory kinds' fields of ``FLOAT_PARAMS``, in the order of :func:`memory_params`
     (their ranges are checked by the generated ``fbgf_memory_check``)."""
     return (tuple(Field(k.count_field, "uint8_t", doc="as fbg_model" if i == 0 else "")
                   for i, k in enumerate(MEMORY_KINDS))
@@ -403,7 +403,7 @@ PARAMS: tuple[Field, ...] = (
           doc="memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a "
               "load signal in Q(z_frac)"),
     Field("mem_shift", "uint8_t", 1, 1, 62, doc="shift of the memory input"),
-    *_memory_params(),
+    *memory_params(),
     Field("loc_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
           doc="location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero "
               "shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location "
@@ -445,7 +445,7 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("xy_scale", "float", 2),
     Field("overload_N", "float"),
     Field("mem_weight", "float", N_STRAIN, doc="memory input u = sum_i mem_weight[i] * z_i"),
-    *_float_memory_params(),
+    *floatmemory_params(),
     Field("loc_shift", "uint8_t", doc="location averages of z - z_rest (0: off): "
           "state += (r - state) / 2^loc_shift"),
     Field("contact_on", "float", doc="decision over time as fbg_model, on the margin"),

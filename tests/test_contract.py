@@ -96,15 +96,15 @@ def test_a_memory_kind_is_described_once(monkeypatch):
     of its limit, ranges, the entries past the count held at 0), the C dispatch over the kinds,
     the feature count and the float build's checks of its parameters."""
     monkeypatch.setattr(contract, "MEMORY_KINDS", contract.MEMORY_KINDS + (THIRD_KIND,))
-    fixed = {f.name: f for f in contract._memory_params()}
+    fixed = {f.name: f for f in contract.memory_params()}
     assert fixed["n_creep"] == contract.Field("n_creep", "uint8_t", 1, 0, 2, "ERR_SHAPE",
                                               doc="creep memory states")
     assert fixed["creep_rate"] == contract.Field("creep_rate", "uint8_t", 2, 1, 9, active="n_creep",
                                                  doc="creep rate")
     assert (fixed["creep_span"].ctype, fixed["creep_span"].hi) == ("int16_t", contract.SAT16)
-    floats = {f.name: f for f in contract._float_memory_params()}
+    floats = {f.name: f for f in contract.floatmemory_params()}
     assert (floats["creep_span"].ctype, floats["creep_span"].count) == ("float", 2)
-    assert [f.name for f in contract._memory_params()] == [f.name for f in contract._float_memory_params()]
+    assert [f.name for f in contract.memory_params()] == [f.name for f in contract.floatmemory_params()]
     header = contract.contract_header_text()
     assert "#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY) X(creep, CREEP)" in header
     assert "(m)->n_creep)" in header
