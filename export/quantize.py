@@ -765,6 +765,39 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     return q, report
 
 
+def _memory_errors(q: QModel, memory: fm.Memory, z: np.ndarray, e_z: np.ndarray, zr: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The error bounds of :func:`error_bounds` carried into the memory: the contact and force
+    nets' inputs (``e_z`` of the standardised channels ``z`` (n, 4), then one column per memory
+    feature) and the location averages' (n, 4 or 0); ``zr`` is the ideal standardisation
+    ratio in Q(z_frac) per fm."""
+    # The load signal u = z . weights carries the inputs' errors through the weights, the
+    # multipliers' residue and its rounding (half an LSB). A memory state is a weighted mean
+    # (or a clamp) of past values of u, so its error is at most the largest error of u plus its
+    # own rounding (one LSB, the average's rounding residues summing to less than that); a
+    # feature is the difference of the two, times its gain; the float play width is rounded to
+    # Q(z_frac) too (half an LSB).
+    lsb = 2.0**-q.z_frac
+    if q.n_memory:
+        wts = np.asarray(memory.weights)
+        wq = q.mem_mult / 2.0**q.mem_shift
+        e_u = e_z @ np.abs(wts) + np.abs(z) @ np.abs(wq - wts) + 0.5 * lsb
+        gains = np.concatenate([getattr(q, k.field(k.gain))[:getattr(q, k.count_field)]
+                                for k in contract.MEMORY_KINDS])
+        e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
+        e_z = np.concatenate([e_z, *e_mem], axis=1)
+    # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the
+    # multiplier's residue, the rounding to Q(z_frac)); an average is a weighted mean of past
+    # r, so its error is at most the largest error of r plus its own rounding, as above.
+    e_loc = np.zeros((e_z.shape[0], 0))
+    if q.n_loc:
+        mean_fm = q.mean_fm.astype(np.float64)
+        e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
+        e_r = e_z[:, :fm.N_STRAIN] + e_z0
+        e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
+    return e_z, e_loc
+
+
 def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> dict[str, float]:
     """Error budget of fixed vs float on every calibration sample; the maxima.
 
@@ -795,30 +828,7 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
     d = np.abs(calib.z[:, :fm.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
     e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-    # The load signal u = z . weights carries the inputs' errors through the weights, the
-    # multipliers' residue and its rounding (half an LSB). A memory state is a weighted mean
-    # (or a clamp) of past values of u, so its error is at most the largest error of u plus its
-    # own rounding (one LSB, the average's rounding residues summing to less than that); a
-    # feature is the difference of the two, times its gain; the float play width is rounded to
-    # Q(z_frac) too (half an LSB).
-    lsb = 2.0**-q.z_frac
-    if q.n_memory:
-        wts = np.asarray(pre.memory.weights)
-        wq = q.mem_mult / 2.0**q.mem_shift
-        e_u = e_z @ np.abs(wts) + np.abs(calib.z[:, :fm.N_STRAIN]) @ np.abs(wq - wts) + 0.5 * lsb
-        gains = np.concatenate([getattr(q, k.field(k.gain))[:getattr(q, k.count_field)]
-                                for k in contract.MEMORY_KINDS])
-        e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
-        e_z = np.concatenate([e_z, *e_mem], axis=1)
-    # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the
-    # multiplier's residue, the rounding to Q(z_frac)); an average is a weighted mean of past
-    # r, so its error is at most the largest error of r plus its own rounding, as above.
-    e_loc = np.zeros((e_z.shape[0], 0))
-    if q.n_loc:
-        mean_fm = q.mean_fm.astype(np.float64)
-        e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-        e_r = e_z[:, :fm.N_STRAIN] + e_z0
-        e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
+    e_z, e_loc = _memory_errors(q, pre.memory, calib.z[:, :fm.N_STRAIN], e_z, zr)
     def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
         """Per-sample bound of output ``row`` in output integer units."""
         acts, masks, injs = [x], [], []

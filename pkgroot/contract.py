@@ -822,6 +822,35 @@ def _range_condition(f: Field) -> str:
     return " || ".join(parts) or "0"
 
 
+def _params_check_lines() -> list[str]:
+    """The body of ``fbg_params_check``: every range of ``PARAMS`` in blob order, the entries of
+    an array past its ``active`` count held at 0."""
+    out: list[str] = []
+    for f in PARAMS:
+        if f.lo is None and not f.active:
+            continue
+        cond = _range_condition(f)
+        if f.count == 1:
+            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
+        elif f.active:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
+            out.append("            if (v != 0)")
+            out.append("                return FBG_ERR_RANGE;")
+            out.append(f"        }} else if ({cond}) {{")
+            out.append(f"            return FBG_{f.code};")
+            out.append("        }")
+            out.append("    }")
+        else:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if ({cond})")
+            out.append(f"            return FBG_{f.code};")
+            out.append("    }")
+    return out
+
+
 def source_text() -> str:
     """runtime_c/src/fbg_contract.c: parameter decoder, checker and status names."""
     out = [
@@ -877,28 +906,7 @@ def source_text() -> str:
             f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
             "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
             "fbg_status fbg_params_check(const fbg_model *m)", "{", "    unsigned k;", "    (void)k;"]
-    for f in PARAMS:
-        if f.lo is None and not f.active:
-            continue
-        cond = _range_condition(f)
-        if f.count == 1:
-            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
-        elif f.active:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
-            out.append("            if (v != 0)")
-            out.append("                return FBG_ERR_RANGE;")
-            out.append(f"        }} else if ({cond}) {{")
-            out.append(f"            return FBG_{f.code};")
-            out.append("        }")
-            out.append("    }")
-        else:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if ({cond})")
-            out.append(f"            return FBG_{f.code};")
-            out.append("    }")
+    out += _params_check_lines()
     out += ["    return FBG_OK;", "}", "", "const char *fbg_status_str(int status)", "{",
             "    switch (status) {"]
     for c in ERRORS:
