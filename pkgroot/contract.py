@@ -9,13 +9,15 @@ nowhere else:
 - the fixed-point model's parameter block (``PARAMS``): C type, count, allowed range and the
   error code a violation gives, in blob order; the float model's (``FLOAT_PARAMS``);
 - the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``);
-- the kinds of memory state (``MEMORY_KINDS``) and the caller-owned streaming states of both
+- the kinds of memory state (``MEMORY_KINDS``: limits, parameters, from which the memory
+  fields of both parameter blocks are made) and the caller-owned streaming states of both
   builds (``STATE``, ``FLOAT_STATE``).
 
 ``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
 ``runtime_c/include/fbgforce.h`` (declarations, the state structs included),
 ``runtime_c/src/fbg_contract.c`` and ``.h`` (the blob parameter decoder, the parameter checker,
-``fbg_status_str`` and the list of memory states the front end clears), the parameter
+``fbg_status_str``, the list of memory states the front end clears and the dispatch over the
+memory kinds), ``runtime_c/src/fbgf_contract.c`` (the float model's memory parameters), the parameter
 table of ``docs/model-format.md`` and the status constants of the ROS 2 message
 ``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
 codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
