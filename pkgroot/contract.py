@@ -360,7 +360,7 @@ def memory_params() -> tuple[Field, ...]:
                     for k in MEMORY_KINDS for p in k.params))
 
 
-def floatmemory_params() -> tuple[Field, ...]:
+def float_memory_params() -> tuple[Field, ...]:
     """The memory kinds' fields of ``FLOAT_PARAMS``, in the order of :func:`memory_params`
     (their ranges are checked by the generated ``fbgf_memory_check``)."""
     return (tuple(Field(k.count_field, "uint8_t", doc="as fbg_model" if i == 0 else "")
@@ -447,7 +447,7 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("xy_scale", "float", 2),
     Field("overload_N", "float"),
     Field("mem_weight", "float", N_STRAIN, doc="memory input u = sum_i mem_weight[i] * z_i"),
-    *floatmemory_params(),
+    *float_memory_params(),
     Field("loc_shift", "uint8_t", doc="location averages of z - z_rest (0: off): "
           "state += (r - state) / 2^loc_shift"),
     Field("contact_on", "float", doc="decision over time as fbg_model, on the margin"),

@@ -148,7 +148,7 @@ class Memory:
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
-        for kind in contract.MEMORY_KINDS:   # the counting parameter first, as written before
+        for kind in contract.MEMORY_KINDS:   # the counting parameter first: model.json key order
             for param in sorted(kind.params, key=lambda p: p is not kind.counted_by):
                 out[memory_attr(kind, param)] = list(getattr(self, memory_attr(kind, param)))
         return {**out, "weights": list(self.weights), "loc_shift": self.loc_shift}

@@ -102,9 +102,9 @@ def test_a_memory_kind_is_described_once(monkeypatch):
     assert fixed["creep_rate"] == contract.Field("creep_rate", "uint8_t", 2, 1, 9, active="n_creep",
                                                  doc="creep rate")
     assert (fixed["creep_span"].ctype, fixed["creep_span"].hi) == ("int16_t", contract.SAT16)
-    floats = {f.name: f for f in contract.floatmemory_params()}
+    floats = {f.name: f for f in contract.float_memory_params()}
     assert (floats["creep_span"].ctype, floats["creep_span"].count) == ("float", 2)
-    assert [f.name for f in contract.memory_params()] == [f.name for f in contract.floatmemory_params()]
+    assert [f.name for f in contract.memory_params()] == [f.name for f in contract.float_memory_params()]
     header = contract.contract_header_text()
     assert "#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY) X(creep, CREEP)" in header
     assert "(m)->n_creep)" in header
