@@ -402,9 +402,11 @@ static unsigned ema_features(fbg_state *s, const fbg_model *m, int32_t u, int pr
      * state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in int32; the
      * feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. Primed at u. */
     const int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = target;
     for (k = 0; k < m->n_ema; ++k) {
-        int32_t e = primed ? s->ema[k] : target;
-        e += fbg_rshift_round32(target - e, m->ema_shift[k]);
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
         s->ema[k] = e;
         f[k] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
     }
@@ -415,12 +417,14 @@ static unsigned play_features(fbg_state *s, const fbg_model *m, int32_t u, int p
                               uint32_t *sat)
 {
     unsigned k;
+    if (!primed)   /* at u + width: the load last went down */
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
     for (k = 0; k < m->n_play; ++k) {
         /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). Primed at u + width:
-         * the load last went down. */
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
         int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = primed ? s->play[k] : hi;
+        int32_t p = s->play[k];
         p = p < lo ? lo : (p > hi ? hi : p);
         s->play[k] = p;
         f[k] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);

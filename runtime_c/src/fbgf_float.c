@@ -131,9 +131,10 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
 {
     unsigned k;
-    for (k = 0; k < m->n_ema; ++k) {
-        if (!primed)
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
             s->ema[k] = u;
+    for (k = 0; k < m->n_ema; ++k) {
         s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
         f[k] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
     }
@@ -143,8 +144,11 @@ static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int 
 static unsigned play_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
 {
     unsigned k;
+    if (!primed)
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
     for (k = 0; k < m->n_play; ++k) {
-        float w = m->play_width[k], p = primed ? s->play[k] : u + w;
+        float w = m->play_width[k], p = s->play[k];
         p = p < u - w ? u - w : (p > u + w ? u + w : p);
         s->play[k] = p;
         f[k] = (u - p) * (float)(1u << m->play_gain[k]);
