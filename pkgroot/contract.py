@@ -147,8 +147,6 @@ MEMORY_KINDS: tuple[MemoryKind, ...] = (
         noun="play operators", label="plays"),
 )
 MEMORY_KIND = {k.name: k for k in MEMORY_KINDS}
-MAX_EMA = MEMORY_KIND["ema"].limit
-MAX_PLAY = MEMORY_KIND["play"].limit
 
 #: name -> (value, comment). Emitted as ``#define FBG_<name>``.
 LIMITS: dict[str, tuple[int, str]] = {

@@ -197,7 +197,7 @@ def test_memory_text_and_presets():
     assert m.play_widths == (0.1,) and m.loc_shift == 5 and m.n_loc == 4
     assert parse_memory("loc:4").n_states == 0
     assert parse_memory("none").n_states == 0
-    assert all(p.n_states <= contract.MAX_EMA + contract.MAX_PLAY for p in MEMORY_PRESETS.values())
+    assert all(p.n_states <= contract.LIMIT["MAX_INPUTS"] - contract.N_STRAIN for p in MEMORY_PRESETS.values())
     for bad in ("ema:0", "play:-1", "lstm:3", "ema:1,2,3,4,5", "loc:0", "loc:16", "loc:3,4",
                 "loc:3+loc:4"):
         with pytest.raises(InputError):
@@ -205,8 +205,8 @@ def test_memory_text_and_presets():
 
 
 @pytest.mark.parametrize("field, index, value, code", [
-    ("n_ema", None, contract.MAX_EMA + 1, "FBG_ERR_SHAPE"),
-    ("n_play", None, contract.MAX_PLAY + 1, "FBG_ERR_SHAPE"),
+    ("n_ema", None, contract.MEMORY_KIND["ema"].limit + 1, "FBG_ERR_SHAPE"),
+    ("n_play", None, contract.MEMORY_KIND["play"].limit + 1, "FBG_ERR_SHAPE"),
     ("ema_shift", 1, 0, "FBG_ERR_RANGE"),
     ("ema_shift", 0, contract.MAX_EMA_SHIFT + 1, "FBG_ERR_RANGE"),
     ("ema_gain", 1, contract.MAX_MEM_GAIN + 1, "FBG_ERR_RANGE"),
