@@ -122,8 +122,8 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     rt.set_baseline(model.baseline_nm)
     st = rt._state
 
-    def states() -> tuple:
-        return (np.array(list(st.ema)), np.array(list(st.play)), np.array(list(st.loc)))
+    def states() -> dict[str, np.ndarray]:
+        return {name: np.array(list(getattr(st, name))) for name in contract.MEMORY_STATES}
 
     rt.run(wl[:500])
     assert st.mem_primed == 1
@@ -133,15 +133,15 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     out = rt.run(bad)
     assert np.all(out["status"] & contract.STATUS_FLAG["SENSOR_FAULT"])
     after = states()
-    assert all(np.array_equal(a, b) for a, b in zip(before, after))   # frozen, not poisoned
+    assert all(np.array_equal(before[k], after[k]) for k in before)   # frozen, not poisoned
     rt.run(wl[530:600])
-    assert not np.array_equal(states()[0], before[0])               # running again
-    assert not np.array_equal(states()[2], before[2])
+    assert not np.array_equal(states()["ema"], before["ema"])       # running again
+    assert not np.array_equal(states()["loc"], before["loc"])
     rt.reset()
-    assert st.mem_primed == 0 and not any(a.any() for a in states())
+    assert st.mem_primed == 0 and not any(a.any() for a in states().values())
     rt.run(wl[600:700])
     rt.tare(wl[:50])
-    assert st.mem_primed == 0 and not any(a.any() for a in states())
+    assert st.mem_primed == 0 and not any(a.any() for a in states().values())
 
 
 def test_first_sample_after_reset_primes_the_states_as_at_rest(random_model_factory,
