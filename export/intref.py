@@ -9,7 +9,7 @@ and require equality of every output bit.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -137,8 +137,8 @@ class _Memory:
     def __init__(self, q: QModel) -> None:
         self.q = q
         self.primed = False
-        self.ema: list[int] = []
-        self.play: list[int] = []
+        #: Every memory kind's states by kind name (contract.MEMORY_KINDS), once primed.
+        self.states: dict[str, list[int]] = {}
         self.loc: list[int] = []
 
     def push(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -155,37 +155,23 @@ class _Memory:
             return feats, clamped
         if q.n_loc:
             feats[:, nf:], clamped = self._location_averages(z)
-        if q.n_ema + q.n_play:
+        if q.n_memory:
             feats[:, 4:nf], c_mem = self._load_features(z)
             clamped |= c_mem
         self.primed = True
         return feats, clamped
 
     def _load_features(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The load signal's features, every kind's in the order of ``contract.MEMORY_KINDS``
+        (before sat16), and per sample whether u or a feature saturated."""
         q = self.q
-        m = z.shape[0]
         u, c_u = sat(rshift_round(z @ q.mem_mult, q.mem_shift), SAT16)
-        shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
-        widths = [int(v) for v in q.play_width[:q.n_play]]
-        if not self.primed:
-            self.ema = [int(u[0]) << EMA_FRAC for _ in shifts]
-            self.play = [int(u[0]) + w for w in widths]
-        ema, play = self.ema, self.play
-        ema_mean = np.zeros((m, q.n_ema), dtype=np.int64)
-        play_state = np.zeros((m, q.n_play), dtype=np.int64)
-        # Python integers, sample by sample: the recursions do not vectorise, and this keeps
-        # the rounding of every step exactly the C code's.
-        for i, ui in enumerate(u.tolist()):
-            target = ui << EMA_FRAC
-            for k, s in enumerate(shifts):
-                ema[k] += (target - ema[k] + (1 << (s - 1))) >> s
-                ema_mean[i, k] = ema[k]
-            for k, w in enumerate(widths):
-                play[k] = min(max(play[k], ui - w), ui + w)
-                play_state[i, k] = play[k]
-        d_ema = (u[:, None] - rshift_round(ema_mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :]
-        d_play = (u[:, None] - play_state) << q.play_gain[:q.n_play][None, :]
-        values, c2 = sat(np.concatenate([d_ema, d_play], axis=1), SAT16)
+        columns = []
+        for kind in contract.MEMORY_KINDS:
+            prev = self.states[kind.name] if self.primed else None
+            values, self.states[kind.name] = INT_MEMORY[kind.name](q, u, prev)
+            columns.append(values)
+        values, c2 = sat(np.concatenate(columns, axis=1), SAT16)
         return values, c_u | c2.any(axis=1)
 
     def _location_averages(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -205,6 +191,50 @@ class _Memory:
                 out[i, c] = state[c]
         # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
         return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
+
+
+# The memory kinds' update rules of fbg_fixed.c (``<kind>_features``) in Python integers,
+# sample by sample: the recursions do not vectorise, and this keeps the rounding of every step
+# exactly the C code's. Each takes the load signal ``u`` (m,) and the states (None: prime them
+# as at rest after a release) and returns the features before sat16 (m, n) and the states.
+
+def _ema_features(q: QModel, u: np.ndarray, states: list[int] | None
+                  ) -> tuple[np.ndarray, list[int]]:
+    """The exponential averages: e += rshift_round((u << EMA_FRAC) - e, shift), feature
+    (u - rshift_round(e, EMA_FRAC)) << gain; primed at u << EMA_FRAC."""
+    shifts = [int(v) for v in q.ema_shift[:q.n_ema]]
+    ema = [int(u[0]) << EMA_FRAC for _ in shifts] if states is None else states
+    mean = np.zeros((u.shape[0], q.n_ema), dtype=np.int64)
+    if shifts:
+        for i, ui in enumerate(u.tolist()):
+            target = ui << EMA_FRAC
+            for k, s in enumerate(shifts):
+                ema[k] += (target - ema[k] + (1 << (s - 1))) >> s
+                mean[i, k] = ema[k]
+    return (u[:, None] - rshift_round(mean, EMA_FRAC)) << q.ema_gain[:q.n_ema][None, :], ema
+
+
+def _play_features(q: QModel, u: np.ndarray, states: list[int] | None
+                   ) -> tuple[np.ndarray, list[int]]:
+    """The play operators: p = clamp(p, u - width, u + width), feature (u - p) << gain; primed
+    at u + width (the load last went down)."""
+    widths = [int(v) for v in q.play_width[:q.n_play]]
+    play = [int(u[0]) + w for w in widths] if states is None else states
+    state = np.zeros((u.shape[0], q.n_play), dtype=np.int64)
+    if widths:
+        for i, ui in enumerate(u.tolist()):
+            for k, w in enumerate(widths):
+                play[k] = min(max(play[k], ui - w), ui + w)
+                state[i, k] = play[k]
+    return (u[:, None] - state) << q.play_gain[:q.n_play][None, :], play
+
+
+#: Every memory kind's update rule in the integer reference (``contract.MEMORY_KINDS`` by
+#: name): ``(q, u, states) -> (features before sat16, states after)``.
+INT_MEMORY: dict[str, Callable[[QModel, np.ndarray, list[int] | None], tuple[np.ndarray, list[int]]]] = {
+    "ema": _ema_features,
+    "play": _play_features,
+}
 
 
 def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import math
 from fractions import Fraction
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
+from functools import partial
 from typing import Any, Sequence
 
 import numpy as np
@@ -161,8 +162,20 @@ def check_layer(layer: QLayer, relu_inputs: bool, where: str) -> None:
              f"row {r}: accumulator bound exceeds int64")
 
 
+#: Parameter-block fields a QModel does not hold: its taps and nets imply them.
+_IMPLIED_PARAMS = ("n_taps", "n_layers")
+
+#: The memory kinds' fields of the parameter block (``n_<kind>``, ``<kind>_<param>`` of
+#: ``contract.MEMORY_KINDS``) as keyword-only dataclass fields, zero (no memory) by default:
+#: the base of :class:`QModel`, derived from the contract so that a kind adds no field here.
+QModelMemory = make_dataclass("QModelMemory", [
+    (f.name, np.ndarray, field(default_factory=partial(np.zeros, f.count, dtype=np.int64), kw_only=True))
+    if f.count > 1 else (f.name, int, field(default=0, kw_only=True))
+    for f in contract.memory_params()])
+
+
 @dataclass
-class QModel:
+class QModel(QModelMemory):
     """The fixed-point model (``fbg_model`` in C); see runtime_c/include/fbgforce.h."""
 
     baseline_fm: np.ndarray
@@ -186,15 +199,10 @@ class QModel:
     load_max_mN: int = SAT32
     #: Stuck-peak rule (fbg_model.stuck_max): 0 disables it.
     stuck_max: int = 0
-    #: Memory (fbg_model.mem_mult, n_ema ...): entries beyond n_ema / n_play are 0.
+    #: The memory's load signal (fbg_model.mem_mult, mem_shift); the kinds' fields (n_ema ...)
+    #: are those of :class:`QModelMemory`.
     mem_mult: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
     mem_shift: int = 1
-    n_ema: int = 0
-    n_play: int = 0
-    ema_shift: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
-    ema_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_EMA, dtype=np.int64))
-    play_gain: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
-    play_width: np.ndarray = field(default_factory=lambda: np.zeros(contract.MAX_PLAY, dtype=np.int64))
     #: Location averages (fbg_model.loc_shift): 0 is off.
     loc_shift: int = 0
     #: The decision over time and the at-rest baseline tracker (fbg_model.contact_*,
@@ -214,21 +222,21 @@ class QModel:
     writer_version: int = contract.VERSION_CODE
 
     def __post_init__(self) -> None:
-        for name in ("baseline_fm", "temp_coeff_q24", "taps", "mean_fm", "z_mult", "xy_offset_um",
-                     "load_coeff", "mem_mult", "ema_shift", "ema_gain", "play_gain", "play_width",
-                     "track_gain", "in_lo", "in_hi"):
-            setattr(self, name, np.asarray(getattr(self, name), dtype=np.int64).reshape(-1))
-        for name in ("jump_max_fm", "tap_q", "z_shift", "z_frac", "fq_mult", "fq_shift",
-                     "force_offset_mN", "overload_mN", "load_shift", "load_max_mN", "stuck_max",
-                     "mem_shift", "n_ema", "n_play", "loc_shift", "writer_version",
-                     "contact_on_q8", "contact_off_q8", "contact_rise_n", "track_shift",
-                     "track_settle", "track_step_max_fm", "track_limit_fm"):
-            setattr(self, name, int(getattr(self, name)))
+        self.taps = np.asarray(self.taps, dtype=np.int64).reshape(-1)
+        for f in contract.PARAMS:
+            if f.name not in _IMPLIED_PARAMS:
+                v = getattr(self, f.name)
+                setattr(self, f.name, np.asarray(v, dtype=np.int64).reshape(-1) if f.count > 1 else int(v))
+
+    @property
+    def n_memory(self) -> int:
+        """Memory states in use, every kind's ``n_<kind>`` together."""
+        return sum(getattr(self, kind.count_field) for kind in contract.MEMORY_KINDS)
 
     @property
     def n_features(self) -> int:
         """Width of the contact and force nets' input (z and memory features)."""
-        return contract.n_features(self.n_ema, self.n_play)
+        return contract.n_features(self.n_memory)
 
     @property
     def n_loc(self) -> int:
@@ -246,7 +254,7 @@ class QModel:
                     ) -> "QModel":
         """The model of a decoded parameter block (:data:`fbgforce.contract.PARAMS` names)
         with its taps and nets; ``n_taps`` and ``n_layers`` are implied by those."""
-        fields = {k: v for k, v in values.items() if k not in ("n_taps", "n_layers")}
+        fields = {k: v for k, v in values.items() if k not in _IMPLIED_PARAMS}
         return cls(taps=taps, nets=nets, **fields)
 
     def params(self) -> dict[str, Any]:
@@ -280,7 +288,7 @@ class QModel:
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
-            n_in = contract.net_inputs(name, self.n_ema, self.n_play, self.n_loc)
+            n_in = contract.net_inputs(name, self.n_memory, self.n_loc)
             need(net[0].n_in == n_in and net[-1].n_out == NET_OUTPUTS[name], "ERR_SHAPE",
                  f"{name}: input/output width {net[0].n_in}/{net[-1].n_out}, expected "
                  f"{n_in}/{NET_OUTPUTS[name]}")
@@ -556,20 +564,11 @@ def even_hidden_widths(weights: Sequence[np.ndarray], biases: Sequence[np.ndarra
 
 def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
     """The memory's integers: the load signal's weights as multipliers and a shift (u keeps
-    the Q(z_frac) of z), shifts and gains as they are, play half-widths in Q(z_frac)."""
-    def padded(values: Sequence[int], size: int) -> np.ndarray:
-        out = np.zeros(size, dtype=np.int64)
-        out[:len(values)] = values
-        return out
-
-    widths = [min(SAT16, int(round(w * 2.0**z_frac))) for w in memory.play_widths]
+    the Q(z_frac) of z), every kind's parameters as they are, a value in standardised units
+    (a play half-width) in Q(z_frac)."""
     mem_shift, mem_mult = choose_shift(memory.weights) if any(memory.weights) else (1, np.zeros(4))
-    return {"mem_mult": mem_mult, "mem_shift": mem_shift,
-            "n_ema": len(memory.ema_shifts), "n_play": len(memory.play_widths),
-            "ema_shift": padded(memory.ema_shifts, contract.MAX_EMA),
-            "ema_gain": padded(memory.ema_gains, contract.MAX_EMA),
-            "play_gain": padded(memory.play_gains, contract.MAX_PLAY),
-            "play_width": padded(widths, contract.MAX_PLAY), "loc_shift": memory.loc_shift}
+    return {"mem_mult": mem_mult, "mem_shift": mem_shift, "loc_shift": memory.loc_shift,
+            **memory.params(lambda v: min(SAT16, int(round(v * 2.0**z_frac))))}
 
 
 def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, np.ndarray]:
@@ -766,6 +765,39 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
     return q, report
 
 
+def _memory_errors(q: QModel, memory: fm.Memory, z: np.ndarray, e_z: np.ndarray, zr: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The error bounds of :func:`error_bounds` carried into the memory: the contact and force
+    nets' inputs (``e_z`` of the standardised channels ``z`` (n, 4), then one column per memory
+    feature) and the location averages' (n, 4 or 0); ``zr`` is the ideal standardisation
+    ratio in Q(z_frac) per fm."""
+    # The load signal u = z . weights carries the inputs' errors through the weights, the
+    # multipliers' residue and its rounding (half an LSB). A memory state is a weighted mean
+    # (or a clamp) of past values of u, so its error is at most the largest error of u plus its
+    # own rounding (one LSB, the average's rounding residues summing to less than that); a
+    # feature is the difference of the two, times its gain; the float play width is rounded to
+    # Q(z_frac) too (half an LSB).
+    lsb = 2.0**-q.z_frac
+    if q.n_memory:
+        wts = np.asarray(memory.weights)
+        wq = q.mem_mult / 2.0**q.mem_shift
+        e_u = e_z @ np.abs(wts) + np.abs(z) @ np.abs(wq - wts) + 0.5 * lsb
+        gains = np.concatenate([getattr(q, k.field(k.gain))[:getattr(q, k.count_field)]
+                                for k in contract.MEMORY_KINDS])
+        e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
+        e_z = np.concatenate([e_z, *e_mem], axis=1)
+    # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the
+    # multiplier's residue, the rounding to Q(z_frac)); an average is a weighted mean of past
+    # r, so its error is at most the largest error of r plus its own rounding, as above.
+    e_loc = np.zeros((e_z.shape[0], 0))
+    if q.n_loc:
+        mean_fm = q.mean_fm.astype(np.float64)
+        e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
+        e_r = e_z[:, :fm.N_STRAIN] + e_z0
+        e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
+    return e_z, e_loc
+
+
 def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> dict[str, float]:
     """Error budget of fixed vs float on every calibration sample; the maxima.
 
@@ -796,29 +828,7 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
     d = np.abs(calib.z[:, :fm.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
     e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-    # The load signal u = z . weights carries the inputs' errors through the weights, the
-    # multipliers' residue and its rounding (half an LSB). A memory state is a weighted mean
-    # (or a clamp) of past values of u, so its error is at most the largest error of u plus its
-    # own rounding (one LSB, the average's rounding residues summing to less than that); a
-    # feature is the difference of the two, times its gain; the float play width is rounded to
-    # Q(z_frac) too (half an LSB).
-    lsb = 2.0**-q.z_frac
-    if q.n_ema + q.n_play:
-        wts = np.asarray(pre.memory.weights)
-        wq = q.mem_mult / 2.0**q.mem_shift
-        e_u = e_z @ np.abs(wts) + np.abs(calib.z[:, :fm.N_STRAIN]) @ np.abs(wq - wts) + 0.5 * lsb
-        gains = np.concatenate([q.ema_gain[:q.n_ema], q.play_gain[:q.n_play]])
-        e_mem = [((e_u + e_u.max() + 1.5 * lsb) * 2.0**g)[:, None] for g in gains]
-        e_z = np.concatenate([e_z, *e_mem], axis=1)
-    # Location averages: r = z - z0 carries z's error and z0's (the rounded mean, the
-    # multiplier's residue, the rounding to Q(z_frac)); an average is a weighted mean of past
-    # r, so its error is at most the largest error of r plus its own rounding, as above.
-    e_loc = np.zeros((e_z.shape[0], 0))
-    if q.n_loc:
-        mean_fm = q.mean_fm.astype(np.float64)
-        e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-        e_r = e_z[:, :fm.N_STRAIN] + e_z0
-        e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
+    e_z, e_loc = _memory_errors(q, pre.memory, calib.z[:, :fm.N_STRAIN], e_z, zr)
     def net_err(layers: list[QLayer], x: np.ndarray, e_in: np.ndarray, row: int) -> np.ndarray:
         """Per-sample bound of output ``row`` in output integer units."""
         acts, masks, injs = [x], [], []

@@ -9,13 +9,15 @@ nowhere else:
 - the fixed-point model's parameter block (``PARAMS``): C type, count, allowed range and the
   error code a violation gives, in blob order; the float model's (``FLOAT_PARAMS``);
 - the blob header and layer-table entry, the output records (``OUTPUT``, ``FLOAT_OUTPUT``);
-- the kinds of memory state (``MEMORY_KINDS``) and the caller-owned streaming states of both
+- the kinds of memory state (``MEMORY_KINDS``: limits, parameters, from which the memory
+  fields of both parameter blocks are made) and the caller-owned streaming states of both
   builds (``STATE``, ``FLOAT_STATE``).
 
 ``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
 ``runtime_c/include/fbgforce.h`` (declarations, the state structs included),
 ``runtime_c/src/fbg_contract.c`` and ``.h`` (the blob parameter decoder, the parameter checker,
-``fbg_status_str`` and the list of memory states the front end clears), the parameter
+``fbg_status_str``, the list of memory states the front end clears and the dispatch over the
+memory kinds), ``runtime_c/src/fbgf_contract.c`` (the float model's memory parameters), the parameter
 table of ``docs/model-format.md`` and the status constants of the ROS 2 message
 ``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
 codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
@@ -47,29 +49,104 @@ N_CHANNELS = 5
 N_STRAIN = 4
 
 
+#: Largest exponential-average shift (``FBG_MAX_EMA_SHIFT``) and memory-feature gain shift
+#: (``FBG_MAX_MEM_GAIN``): bounds of the memory kinds' parameters below.
+MAX_EMA_SHIFT = 15
+MAX_MEM_GAIN = 8
+SAT16 = 32767
+SAT32 = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class MemoryParam:
+    """A per-state parameter of a memory kind: one entry per state, ``limit`` entries.
+
+    It is the array field ``<kind>_<name>`` of both parameter blocks (``PARAMS``, in
+    ``ctype`` within ``[lo, hi]``; ``FLOAT_PARAMS``, in ``float_ctype``) and the tuple
+    ``<kind>_<name>s`` of :class:`fbgforce.model.Memory`. A ``float_ctype`` of ``"float"`` is
+    a value in standardised units: ``float`` in the float build, Q(z_frac) in the fixed one
+    (rounded, at most ``hi``), at least ``lo`` and finite in both. ``optional``: a Memory may
+    leave it out (every entry 0); the kind's first other parameter counts its states.
+    """
+
+    name: str
+    ctype: str
+    lo: int
+    hi: int
+    doc: str
+    float_ctype: str
+    float_doc: str = ""
+    optional: bool = False
+
+    @property
+    def standardised(self) -> bool:
+        """True for a value in standardised units (float in the float build)."""
+        return self.float_ctype == "float"
+
+
 @dataclass(frozen=True)
 class MemoryKind:
     """A kind of memory state of the load signal u (docs/fixed-point.md, "memory").
 
     A model holds up to ``limit`` states of each kind (``FBG_MAX_<NAME>``) and uses ``n_<name>``
     of them, each giving one net input after z. The states are the int32 array ``<name>`` of
-    ``fbg_state`` (generated from ``STATE``), in the Q format ``q``; their parameters are the
-    ``<name>_*`` fields of ``PARAMS``.
+    ``fbg_state`` (generated from ``STATE``), in the Q format ``q``; their parameters
+    (``params``) are the ``<name>_*`` fields of ``PARAMS`` and ``FLOAT_PARAMS``, generated from
+    them. ``noun`` names the states in messages, ``label`` in the teleop ablation's table.
+    The update rule itself is written once per engine, reached by the kind's name:
+    ``<name>_features`` (fbg_fixed.c), ``<name>_features_f`` (fbgf_float.c),
+    ``<name>_features_avx2`` (fbg_simd_x86.c) through ``FBG_MEMORY_KINDS``, and the tables
+    ``fbgforce.model.FLOAT_MEMORY`` and ``fbgforce.export.intref.INT_MEMORY``.
     """
 
     name: str
     limit: int
     doc: str
     q: str
+    params: tuple[MemoryParam, ...]
+    noun: str
+    label: str
+
+    @property
+    def count_field(self) -> str:
+        """The parameter field counting the states in use: ``n_<name>``."""
+        return f"n_{self.name}"
+
+    @property
+    def counted_by(self) -> MemoryParam:
+        """The parameter whose :class:`fbgforce.model.Memory` tuple says how many states."""
+        return next(p for p in self.params if not p.optional)
+
+    @property
+    def gain(self) -> MemoryParam:
+        """The feature's gain shift: every kind's feature is (u - state) << gain, which the
+        trainer fits and the quantiser's error bound reads."""
+        return next(p for p in self.params if p.name == "gain")
+
+    def field(self, param: MemoryParam) -> str:
+        """The parameter-block field of ``param``: ``<kind>_<param>``."""
+        return f"{self.name}_{param.name}"
 
 
+_GAIN_DOC = "feature = sat16((u - {state}) << {kind}_gain[k])"
 MEMORY_KINDS: tuple[MemoryKind, ...] = (
-    MemoryKind("ema", 4, "exponential-average memory states", "Q(z_frac + FBG_EMA_FRAC)"),
-    MemoryKind("play", 4, "play-operator memory states", "Q(z_frac)"),
+    MemoryKind("ema", 4, "exponential-average memory states", "Q(z_frac + FBG_EMA_FRAC)", (
+        MemoryParam("shift", "uint8_t", 1, MAX_EMA_SHIFT,
+                    "state += rshift_round((u << EMA_FRAC) - state, ema_shift[k])", "uint8_t",
+                    "state += (u - state) / 2^ema_shift[k]"),
+        MemoryParam("gain", "uint8_t", 0, MAX_MEM_GAIN,
+                    _GAIN_DOC.format(state="rshift_round(state, EMA_FRAC)", kind="ema"), "uint8_t",
+                    optional=True)),
+        noun="averages", label="averages"),
+    MemoryKind("play", 4, "play-operator memory states", "Q(z_frac)", (
+        MemoryParam("gain", "uint8_t", 0, MAX_MEM_GAIN,
+                    _GAIN_DOC.format(state="state", kind="play"), "uint8_t", optional=True),
+        MemoryParam("width", "int16_t", 0, SAT16,
+                    "state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac)",
+                    "float", "in standardised units")),
+        noun="play operators", label="plays"),
 )
 MEMORY_KIND = {k.name: k for k in MEMORY_KINDS}
-MAX_EMA = MEMORY_KIND["ema"].limit
-MAX_PLAY = MEMORY_KIND["play"].limit
 
 #: name -> (value, comment). Emitted as ``#define FBG_<name>``.
 LIMITS: dict[str, tuple[int, str]] = {
@@ -86,8 +163,8 @@ LIMITS: dict[str, tuple[int, str]] = {
     "WL_MAX_FM": (2_000_000_000, "2000 nm: a peak above this is lost"),
     "TEMP_COEFF_SHIFT": (24, "temperature coefficients are Q24"),
     "EMA_FRAC": (15, "fractional bits of the exponential-average states below Q(z_frac)"),
-    "MAX_EMA_SHIFT": (15, "largest exponential-average shift (time constant 2^15 samples)"),
-    "MAX_MEM_GAIN": (8, "largest memory-feature gain shift"),
+    "MAX_EMA_SHIFT": (MAX_EMA_SHIFT, "largest exponential-average shift (time constant 2^15 samples)"),
+    "MAX_MEM_GAIN": (MAX_MEM_GAIN, "largest memory-feature gain shift"),
     "LOAD_COEFF_LIMIT": (1 << 28, "|load_coeff| below this: the load proxy sum fits int64"),
     "TRACK_BLOCK": (64, "samples per update of the at-rest baseline tracker"),
     "TRACK_FRAC": (16, "fractional bits of the tracker's carried baseline correction"),
@@ -100,8 +177,6 @@ LIMITS: dict[str, tuple[int, str]] = {
     "VERSION_PATCH": (VERSION[2], ""),
 }
 LIMIT = {name: value for name, (value, _doc) in LIMITS.items()}
-SAT16 = 32767
-SAT32 = 2**31 - 1
 
 
 @dataclass(frozen=True)
@@ -202,10 +277,11 @@ NETS: tuple[Net, ...] = (
 NET_NAMES = tuple(n.name for n in NETS)
 
 
-def n_features(n_ema: int, n_play: int) -> int:
+def n_features(n_memory: int) -> int:
     """Width of the feature vector the contact and force nets read: the standardised channels
-    and one feature per memory state (the states follow one load signal, see PARAMS)."""
-    return N_STRAIN + n_ema + n_play
+    and one feature per memory state, ``n_memory`` states of every kind together (the states
+    follow one load signal, see PARAMS)."""
+    return N_STRAIN + n_memory
 
 
 #: Nets that read the load signal's memory features; the location net reads the standardised
@@ -219,11 +295,11 @@ def n_loc(loc_shift: int) -> int:
     return N_STRAIN if loc_shift else 0
 
 
-def net_inputs(net: str, n_ema: int, n_play: int, n_loc: int = 0) -> int:
-    """Input width of a net for a model with the given memory: the location net reads the
-    ``n_loc`` location averages after its extra inputs."""
+def net_inputs(net: str, n_memory: int, n_loc: int = 0) -> int:
+    """Input width of a net for a model with ``n_memory`` memory states: the location net reads
+    the ``n_loc`` location averages after its extra inputs."""
     spec = next(n for n in NETS if n.name == net)
-    base = n_features(n_ema, n_play) if net in MEMORY_NETS else N_STRAIN
+    base = n_features(n_memory) if net in MEMORY_NETS else N_STRAIN
     return base + len(spec.extra_inputs) + (n_loc if net == "location" else 0)
 
 
@@ -272,6 +348,25 @@ class Field:
 
 _I32 = (-SAT32, SAT32)   # INT32_MIN is refused everywhere: negation must not overflow
 
+
+def memory_params() -> tuple[Field, ...]:
+    """The memory kinds' fields of ``PARAMS``: every kind's count, then every kind's parameter
+    arrays (entries from the count on must be 0)."""
+    return (tuple(Field(k.count_field, "uint8_t", 1, 0, k.limit, "ERR_SHAPE", doc=k.doc)
+                  for k in MEMORY_KINDS)
+            + tuple(Field(k.field(p), p.ctype, k.limit, p.lo, p.hi, active=k.count_field, doc=p.doc)
+                    for k in MEMORY_KINDS for p in k.params))
+
+
+def float_memory_params() -> tuple[Field, ...]:
+    """The memory kinds' fields of ``FLOAT_PARAMS``, in the order of :func:`memory_params`
+    (their ranges are checked by the generated ``fbgf_memory_check``)."""
+    return (tuple(Field(k.count_field, "uint8_t", doc="as fbg_model" if i == 0 else "")
+                  for i, k in enumerate(MEMORY_KINDS))
+            + tuple(Field(k.field(p), p.float_ctype, k.limit, doc=p.float_doc)
+                    for k in MEMORY_KINDS for p in k.params))
+
+
 PARAMS: tuple[Field, ...] = (
     Field("writer_version", "uint32_t", doc="VERSION_CODE of the library that wrote the blob "
           "(informational: any value loads)"),
@@ -308,18 +403,7 @@ PARAMS: tuple[Field, ...] = (
           doc="memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a "
               "load signal in Q(z_frac)"),
     Field("mem_shift", "uint8_t", 1, 1, 62, doc="shift of the memory input"),
-    Field("n_ema", "uint8_t", 1, 0, MAX_EMA, "ERR_SHAPE",
-          doc="exponential-average memory states"),
-    Field("n_play", "uint8_t", 1, 0, MAX_PLAY, "ERR_SHAPE",
-          doc="play-operator memory states"),
-    Field("ema_shift", "uint8_t", MAX_EMA, 1, LIMIT["MAX_EMA_SHIFT"], active="n_ema",
-          doc="state += rshift_round((u << EMA_FRAC) - state, ema_shift[k])"),
-    Field("ema_gain", "uint8_t", MAX_EMA, 0, LIMIT["MAX_MEM_GAIN"], active="n_ema",
-          doc="feature = sat16((u - rshift_round(state, EMA_FRAC)) << ema_gain[k])"),
-    Field("play_gain", "uint8_t", MAX_PLAY, 0, LIMIT["MAX_MEM_GAIN"], active="n_play",
-          doc="feature = sat16((u - state) << play_gain[k])"),
-    Field("play_width", "int16_t", MAX_PLAY, 0, SAT16, active="n_play",
-          doc="state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac)"),
+    *memory_params(),
     Field("loc_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
           doc="location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero "
               "shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location "
@@ -361,12 +445,7 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("xy_scale", "float", 2),
     Field("overload_N", "float"),
     Field("mem_weight", "float", N_STRAIN, doc="memory input u = sum_i mem_weight[i] * z_i"),
-    Field("n_ema", "uint8_t", doc="as fbg_model"),
-    Field("n_play", "uint8_t"),
-    Field("ema_shift", "uint8_t", MAX_EMA, doc="state += (u - state) / 2^ema_shift[k]"),
-    Field("ema_gain", "uint8_t", MAX_EMA),
-    Field("play_gain", "uint8_t", MAX_PLAY),
-    Field("play_width", "float", MAX_PLAY, doc="in standardised units"),
+    *float_memory_params(),
     Field("loc_shift", "uint8_t", doc="location averages of z - z_rest (0: off): "
           "state += (r - state) / 2^loc_shift"),
     Field("contact_on", "float", doc="decision over time as fbg_model, on the margin"),
@@ -743,6 +822,35 @@ def _range_condition(f: Field) -> str:
     return " || ".join(parts) or "0"
 
 
+def _params_check_lines() -> list[str]:
+    """The body of ``fbg_params_check``: every range of ``PARAMS`` in blob order, the entries of
+    an array past its ``active`` count held at 0."""
+    out: list[str] = []
+    for f in PARAMS:
+        if f.lo is None and not f.active:
+            continue
+        cond = _range_condition(f)
+        if f.count == 1:
+            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
+        elif f.active:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
+            out.append("            if (v != 0)")
+            out.append("                return FBG_ERR_RANGE;")
+            out.append(f"        }} else if ({cond}) {{")
+            out.append(f"            return FBG_{f.code};")
+            out.append("        }")
+            out.append("    }")
+        else:
+            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
+            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
+            out.append(f"        if ({cond})")
+            out.append(f"            return FBG_{f.code};")
+            out.append("    }")
+    return out
+
+
 def source_text() -> str:
     """runtime_c/src/fbg_contract.c: parameter decoder, checker and status names."""
     out = [
@@ -798,28 +906,7 @@ def source_text() -> str:
             f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
             "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
             "fbg_status fbg_params_check(const fbg_model *m)", "{", "    unsigned k;", "    (void)k;"]
-    for f in PARAMS:
-        if f.lo is None and not f.active:
-            continue
-        cond = _range_condition(f)
-        if f.count == 1:
-            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
-        elif f.active:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
-            out.append("            if (v != 0)")
-            out.append("                return FBG_ERR_RANGE;")
-            out.append(f"        }} else if ({cond}) {{")
-            out.append(f"            return FBG_{f.code};")
-            out.append("        }")
-            out.append("    }")
-        else:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if ({cond})")
-            out.append(f"            return FBG_{f.code};")
-            out.append("    }")
+    out += _params_check_lines()
     out += ["    return FBG_OK;", "}", "", "const char *fbg_status_str(int status)", "{",
             "    switch (status) {"]
     for c in ERRORS:
@@ -843,13 +930,53 @@ def contract_header_text() -> str:
         "#define FBG_MEMORY_STATES(X, s) " + " ".join(f"X(s, {m})" for m in MEMORY_STATES),
         f"#define FBG_N_MEMORY_STATES {len(MEMORY_STATES)}",
         "",
+        "/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:",
+        " * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */",
+        "#define FBG_MEMORY_KINDS(X) " + " ".join(f"X({k.name}, {k.name.upper()})" for k in MEMORY_KINDS),
+        "/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */",
+        "#define FBG_N_MEMORY_FEATURES(m) (" + " + ".join(
+            ["(unsigned)(m)->" + MEMORY_KINDS[0].count_field] + [f"(m)->{k.count_field}" for k in MEMORY_KINDS[1:]])
+        + ")",
+        "",
         "/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */",
         "void fbg_params_decode(fbg_model *m, const uint8_t *p);",
         "/* 1 if the block's padding bytes are all zero. */",
         "int fbg_params_padding_ok(const uint8_t *p);",
         "/* The first parameter out of its range, in blob order: its code; else FBG_OK. */",
-        "fbg_status fbg_params_check(const fbg_model *m);", "",
+        "fbg_status fbg_params_check(const fbg_model *m);",
+        "/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above",
+        " * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range",
+        " * (a value in standardised units: negative or not finite); else FBG_OK. */",
+        "fbg_status fbgf_memory_check(const fbgf_model *m);", "",
         "#endif /* FBG_CONTRACT_H */", ""])
+
+
+FLOAT_SOURCE_PATH = SOURCE_PATH.with_name("fbgf_contract.c")
+
+
+def float_source_text() -> str:
+    """runtime_c/src/fbgf_contract.c: the float model's memory parameter checker (a float
+    source: the fixed-point sources name no float type)."""
+    out = ["/*",
+           " * fbgf_contract.c - GENERATED by `python -m fbgforce.contract --write` from",
+           " * pkgroot/contract.py; do not edit. The float model's memory parameters checked against",
+           " * the ranges of fbg_model's (fbgforce.contract.MEMORY_KINDS).",
+           " */",
+           '#include "fbg_contract.h"', "",
+           "fbg_status fbgf_memory_check(const fbgf_model *m)", "{", "    unsigned k;"]
+    out.append("    if (" + " || ".join(f"m->{k.count_field} > FBG_MAX_{k.name.upper()}"
+                                        for k in MEMORY_KINDS) + ")")
+    out.append("        return FBG_ERR_SHAPE;")
+    for kind in MEMORY_KINDS:
+        out.append(f"    for (k = 0; k < m->{kind.count_field}; ++k) {{")
+        for prm in kind.params:
+            cond = (f"!(v >= {prm.lo}.0f) || v - v != 0.0f" if prm.standardised  # NaN, inf
+                    else _range_condition(Field(prm.name, prm.float_ctype, 1, prm.lo, prm.hi)))
+            out.append(f"        {{ {prm.float_ctype} v = m->{kind.field(prm)}[k]; "
+                       f"if ({cond}) return FBG_ERR_RANGE; }}")
+        out.append("    }")
+    out += ["    return FBG_OK;", "}", ""]
+    return "\n".join(out)
 
 
 #: The ROS 2 estimate message; its status constants are generated from STATUS and LINK_STATUS.
@@ -906,7 +1033,8 @@ def generated_files() -> dict[Path, str]:
             DOC_PATH: render_doc(DOC_PATH.read_text()),
             CONTACT_MSG_PATH: render_msg(CONTACT_MSG_PATH.read_text()),
             SOURCE_PATH: source_text(),
-            SOURCE_PATH.with_suffix(".h"): contract_header_text()}
+            SOURCE_PATH.with_suffix(".h"): contract_header_text(),
+            FLOAT_SOURCE_PATH: float_source_text()}
 
 
 def stale_files() -> list[Path]:

@@ -78,6 +78,10 @@ class Memory:
     load last moved and how far, whatever the speed: the building block of Prandtl-Ishlinskii
     hysteresis models, what a pad's rate-independent (frictional) hysteresis needs. Constant
     work and memory per sample (docs/trainer.md, "memory").
+
+    The tuples are the parameters of ``contract.MEMORY_KINDS``, ``<kind>_<param>s`` each
+    (:func:`memory_attr`), checked against their ranges there; an optional one (the gains)
+    left empty is all 0.
     """
 
     ema_shifts: tuple[int, ...] = ()
@@ -89,32 +93,35 @@ class Memory:
 
     def __post_init__(self) -> None:
         self.loc_shift = int(self.loc_shift)
-        self.ema_shifts = tuple(int(v) for v in self.ema_shifts)
-        self.ema_gains = tuple(int(v) for v in self.ema_gains) or (0,) * len(self.ema_shifts)
-        self.play_widths = tuple(float(v) for v in self.play_widths)
-        self.play_gains = tuple(int(v) for v in self.play_gains) or (0,) * len(self.play_widths)
+        for kind in contract.MEMORY_KINDS:
+            n = len(getattr(self, memory_attr(kind, kind.counted_by)))
+            if n > kind.limit:
+                raise ValueError(f"at most {kind.limit} {kind.noun}")
+            for param in kind.params:
+                name = memory_attr(kind, param)
+                values = tuple((float if param.standardised else int)(v) for v in getattr(self, name))
+                values = values or ((0,) * n if param.optional else ())
+                if len(values) != n:
+                    raise ValueError(f"{name}: one per {kind.noun} ({n}), got {len(values)}")
+                if param.standardised and not all(np.isfinite(v) and v >= param.lo for v in values):
+                    raise ValueError(f"{name} must be finite and >= {param.lo}")
+                if not param.standardised and not all(param.lo <= v <= param.hi for v in values):
+                    raise ValueError(f"{name} must be {param.lo}..{param.hi}")
+                setattr(self, name, values)
         self.weights = tuple(float(v) for v in self.weights)
-        lim = contract.LIMIT
-        if len(self.ema_shifts) > contract.MAX_EMA or len(self.play_widths) > contract.MAX_PLAY:
-            raise ValueError(f"at most {contract.MAX_EMA} averages and {contract.MAX_PLAY} play "
-                             "operators")
-        if len(self.ema_gains) != len(self.ema_shifts) or len(self.play_gains) != len(self.play_widths):
-            raise ValueError("one gain per memory state")
         if len(self.weights) != N_STRAIN or not all(np.isfinite(self.weights)):
             raise ValueError(f"{N_STRAIN} finite memory weights")
-        if not all(1 <= s <= lim["MAX_EMA_SHIFT"] for s in self.ema_shifts):
-            raise ValueError(f"average shifts must be 1..{lim['MAX_EMA_SHIFT']}")
-        if not all(0 <= g <= lim["MAX_MEM_GAIN"] for g in self.ema_gains + self.play_gains):
-            raise ValueError(f"memory gains must be 0..{lim['MAX_MEM_GAIN']}")
-        if not all(np.isfinite(w) and w >= 0 for w in self.play_widths):
-            raise ValueError("play widths must be finite and >= 0")
-        if not 0 <= self.loc_shift <= lim["MAX_EMA_SHIFT"]:
-            raise ValueError(f"location average shift must be 0 (off)..{lim['MAX_EMA_SHIFT']}")
+        if not 0 <= self.loc_shift <= contract.MAX_EMA_SHIFT:
+            raise ValueError(f"location average shift must be 0 (off)..{contract.MAX_EMA_SHIFT}")
+
+    def count(self, kind: contract.MemoryKind) -> int:
+        """States of ``kind`` in use (``n_<kind>`` of the parameter blocks)."""
+        return len(getattr(self, memory_attr(kind, kind.counted_by)))
 
     @property
     def n_states(self) -> int:
-        """Memory states (averages and play operators)."""
-        return len(self.ema_shifts) + len(self.play_widths)
+        """Memory states of every kind (averages and play operators)."""
+        return sum(self.count(kind) for kind in contract.MEMORY_KINDS)
 
     @property
     def n_loc(self) -> int:
@@ -127,10 +134,29 @@ class Memory:
         operator and location average."""
         return self.n_states + self.n_loc
 
-    def to_json(self) -> dict[str, list]:
-        return {"ema_shifts": list(self.ema_shifts), "ema_gains": list(self.ema_gains),
-                "play_widths": list(self.play_widths), "play_gains": list(self.play_gains),
-                "weights": list(self.weights), "loc_shift": self.loc_shift}
+    def params(self, standardised: Callable[[float], Any]) -> dict[str, Any]:
+        """The memory kinds' fields of a parameter block (``contract.PARAMS`` and
+        ``FLOAT_PARAMS`` names): every kind's count, and its parameters padded with zeros to
+        the kind's limit, a value in standardised units through ``standardised``."""
+        out: dict[str, Any] = {kind.count_field: self.count(kind) for kind in contract.MEMORY_KINDS}
+        for kind in contract.MEMORY_KINDS:
+            for param in kind.params:
+                values = getattr(self, memory_attr(kind, param))
+                values = [standardised(v) for v in values] if param.standardised else list(values)
+                out[kind.field(param)] = values + [0] * (kind.limit - len(values))
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for kind in contract.MEMORY_KINDS:   # the counting parameter first: model.json key order
+            for param in sorted(kind.params, key=lambda p: p is not kind.counted_by):
+                out[memory_attr(kind, param)] = list(getattr(self, memory_attr(kind, param)))
+        return {**out, "weights": list(self.weights), "loc_shift": self.loc_shift}
+
+
+def memory_attr(kind: contract.MemoryKind, param: contract.MemoryParam) -> str:
+    """The :class:`Memory` tuple of a memory kind's parameter: ``<kind>_<param>s``."""
+    return f"{kind.field(param)}s"
 
 
 def _exp_average(x: np.ndarray, shift: int, prev: np.ndarray) -> np.ndarray:
@@ -163,8 +189,8 @@ class MemoryStream:
 
     def __init__(self, memory: Memory, z_rest: np.ndarray | None = None) -> None:
         self.memory = memory
-        self.ema: list[float] | None = None     # None until the first sample primes them
-        self.play: list[float] = []
+        #: Every kind's states by kind name; None until the first sample primes them.
+        self.states: dict[str, list[float]] | None = None
         self.loc: np.ndarray | None = None
         if memory.loc_shift and z_rest is None:
             raise ValueError("the location averages need z_rest (Preprocess.z_rest)")
@@ -191,28 +217,57 @@ class MemoryStream:
         return np.concatenate(feats, axis=1) if len(feats) > 1 else z.copy()
 
     def _load_features(self, z: np.ndarray) -> list[np.ndarray]:
-        """The load signal's features (averages, then play operators), one column each."""
-        memory = self.memory
-        n = z.shape[0]
-        u = z @ np.asarray(memory.weights)
-        if self.ema is None:       # primed as at rest after a release (the load came down)
-            self.ema = [float(u[0])] * len(memory.ema_shifts)
-            self.play = [float(u[0]) + w for w in memory.play_widths]
-        feats = []
-        for k, (shift, gain) in enumerate(zip(memory.ema_shifts, memory.ema_gains)):
-            e = _exp_average(u[:, None], shift, np.array([self.ema[k]]))[:, 0]
-            self.ema[k] = float(e[-1])
-            feats.append(((u - e) * 2.0 ** gain)[:, None])
-        for k, (width, gain) in enumerate(zip(memory.play_widths, memory.play_gains)):
-            p = np.empty_like(u)
-            state = self.play[k]
-            lo, hi = (u - width).tolist(), (u + width).tolist()
-            for i in range(n):
-                state = min(max(state, lo[i]), hi[i])
-                p[i] = state
-            self.play[k] = state
-            feats.append(((u - p) * 2.0 ** gain)[:, None])
+        """The load signal's features, every kind's in the order of ``contract.MEMORY_KINDS``,
+        one column each."""
+        u = z @ np.asarray(self.memory.weights)
+        feats: list[np.ndarray] = []
+        states: dict[str, list[float]] = {}
+        for kind in contract.MEMORY_KINDS:
+            prev = None if self.states is None else self.states[kind.name]
+            columns, states[kind.name] = FLOAT_MEMORY[kind.name](self.memory, u, prev)
+            feats += columns
+        self.states = states
         return feats
+
+
+def _ema_features(memory: Memory, u: np.ndarray, states: list[float] | None
+                  ) -> tuple[list[np.ndarray], list[float]]:
+    """The exponential averages of ``u``: features ``(u - e_k) * 2^gain``, one column each,
+    and the states after the last sample (``states`` None: primed at u[0])."""
+    states = [float(u[0])] * len(memory.ema_shifts) if states is None else states
+    feats, after = [], []
+    for state, shift, gain in zip(states, memory.ema_shifts, memory.ema_gains):
+        e = _exp_average(u[:, None], shift, np.array([state]))[:, 0]
+        after.append(float(e[-1]))
+        feats.append(((u - e) * 2.0 ** gain)[:, None])
+    return feats, after
+
+
+def _play_features(memory: Memory, u: np.ndarray, states: list[float] | None
+                   ) -> tuple[list[np.ndarray], list[float]]:
+    """The play operators of ``u``: features ``(u - p_k) * 2^gain``, one column each, and the
+    states after the last sample (``states`` None: primed at u[0] + width, the load last went
+    down)."""
+    states = [float(u[0]) + w for w in memory.play_widths] if states is None else states
+    feats, after = [], []
+    for state, width, gain in zip(states, memory.play_widths, memory.play_gains):
+        p = np.empty_like(u)
+        lo, hi = (u - width).tolist(), (u + width).tolist()
+        for i in range(u.shape[0]):
+            state = min(max(state, lo[i]), hi[i])
+            p[i] = state
+        after.append(state)
+        feats.append(((u - p) * 2.0 ** gain)[:, None])
+    return feats, after
+
+
+#: Every memory kind's update rule in the float reference (``contract.MEMORY_KINDS`` by name):
+#: ``(memory, u, states) -> (feature columns, states after)``.
+FLOAT_MEMORY: dict[str, Callable[[Memory, np.ndarray, list[float] | None],
+                                 tuple[list[np.ndarray], list[float]]]] = {
+    "ema": _ema_features,
+    "play": _play_features,
+}
 
 
 def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = None
@@ -437,7 +492,7 @@ class Preprocess:
     @property
     def n_features(self) -> int:
         """Width of the feature vector the contact and force nets read (its first columns)."""
-        return contract.n_features(len(self.memory.ema_shifts), len(self.memory.play_widths))
+        return contract.n_features(self.memory.n_states)
 
     @property
     def n_inputs(self) -> int:
@@ -576,7 +631,7 @@ class HierarchicalModel:
         mem = self.preprocess.memory
         for net in contract.NETS:
             name, n_out = net.name, net.float_outputs
-            n_in = contract.net_inputs(name, len(mem.ema_shifts), len(mem.play_widths), mem.n_loc)
+            n_in = contract.net_inputs(name, mem.n_states, mem.n_loc)
             sizes = getattr(self, name).sizes
             if sizes[0] != n_in or sizes[-1] != n_out:
                 raise ValueError(f"{name} net must map {n_in} inputs to {n_out} outputs, has {sizes}")
@@ -623,9 +678,6 @@ class HierarchicalModel:
         def floats(values: Any) -> list[float]:
             return [float(v) for v in np.asarray(values, dtype=np.float64).ravel()]
 
-        def padded(values: Any, size: int) -> list[Any]:
-            return list(values) + [0] * (size - len(values))
-
         return {
             "baseline_fm": [int(v) for v in np.rint(self.baseline_nm * 1e6)],
             "jump_max_fm": int(jump_max_fm), "stuck_max": int(stuck_max),
@@ -634,12 +686,7 @@ class HierarchicalModel:
             "force_offset_N": float(self.force_offset), "force_scale": float(self.force_scale),
             "xy_offset_mm": floats(self.xy_offset), "xy_scale": floats(self.xy_scale),
             "overload_N": float(overload_N), "mem_weight": floats(mem.weights),
-            "n_ema": len(mem.ema_shifts), "n_play": len(mem.play_widths),
-            "ema_shift": padded(mem.ema_shifts, contract.MAX_EMA),
-            "ema_gain": padded(mem.ema_gains, contract.MAX_EMA),
-            "play_gain": padded(mem.play_gains, contract.MAX_PLAY),
-            "play_width": padded(floats(mem.play_widths), contract.MAX_PLAY),
-            "loc_shift": int(mem.loc_shift),
+            **mem.params(float), "loc_shift": int(mem.loc_shift),
             **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
 
     @property

@@ -13,6 +13,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from fbgforce import contract
+from fbgforce.model import memory_attr
 from fbgforce.teleop.feedback import Feedback, SensorFeedback, describe
 from fbgforce.teleop.loop import TeleopResult, run_seeds, simulate
 from fbgforce.teleop.scene import TeleopScene
@@ -117,8 +119,8 @@ def estimator_label(fb: SensorFeedback) -> str:
     filt = "no filter" if pre.filter_kind == "none" or pre.taps.size == 1 else (
         f"{pre.filter_kind} sigma {pre.filter_sigma:g}")
     mem = pre.memory
-    parts = ([f"averages {','.join(map(str, mem.ema_shifts))}"] if mem.ema_shifts else []) + (
-        [f"plays {','.join(f'{w:g}' for w in mem.play_widths)}"] if mem.play_widths else [])
+    parts = [f"{kind.label} {','.join(f'{v:g}' for v in getattr(mem, memory_attr(kind, kind.counted_by)))}"
+             for kind in contract.MEMORY_KINDS if mem.count(kind)]
     memory = f"memory {' + '.join(parts)}" if parts else "no memory"
     extra = f" +{fb.extra_delay_ms:g} ms link" if fb.extra_delay_ms else ""
     return f"estimator ({fb.engine}, {filt}, {memory}){extra}"

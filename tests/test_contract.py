@@ -81,6 +81,57 @@ def test_memory_kinds_size_the_limits_and_the_states():
     assert contract.MEMORY_STATES == tuple(k.name for k in contract.MEMORY_KINDS) + ("loc",)
 
 
+#: A third kind of memory state, as a newcomer would describe it in MEMORY_KINDS.
+THIRD_KIND = contract.MemoryKind(
+    "creep", 2, "creep memory states", "Q(z_frac)",
+    (contract.MemoryParam("rate", "uint8_t", 1, 9, "creep rate", "uint8_t"),
+     contract.MemoryParam("gain", "uint8_t", 0, contract.MAX_MEM_GAIN, "feature gain", "uint8_t",
+                          optional=True),
+     contract.MemoryParam("span", "int16_t", 0, contract.SAT16, "span, Q(z_frac)", "float")),
+    noun="creep states", label="creep")
+
+
+def test_a_memory_kind_is_described_once(monkeypatch):
+    """A kind added to MEMORY_KINDS brings its parameter fields (both blocks: count, arrays
+    of its limit, ranges, the entries past the count held at 0), the C dispatch over the kinds,
+    the feature count and the float build's checks of its parameters."""
+    monkeypatch.setattr(contract, "MEMORY_KINDS", contract.MEMORY_KINDS + (THIRD_KIND,))
+    fixed = {f.name: f for f in contract.memory_params()}
+    assert fixed["n_creep"] == contract.Field("n_creep", "uint8_t", 1, 0, 2, "ERR_SHAPE",
+                                              doc="creep memory states")
+    assert fixed["creep_rate"] == contract.Field("creep_rate", "uint8_t", 2, 1, 9, active="n_creep",
+                                                 doc="creep rate")
+    assert (fixed["creep_span"].ctype, fixed["creep_span"].hi) == ("int16_t", contract.SAT16)
+    floats = {f.name: f for f in contract.float_memory_params()}
+    assert (floats["creep_span"].ctype, floats["creep_span"].count) == ("float", 2)
+    assert [f.name for f in contract.memory_params()] == [f.name for f in contract.float_memory_params()]
+    header = contract.contract_header_text()
+    assert "#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY) X(creep, CREEP)" in header
+    assert "(m)->n_creep)" in header
+    source = contract.float_source_text()
+    assert "m->n_creep > FBG_MAX_CREEP" in source
+    assert "{ uint8_t v = m->creep_rate[k]; if (v < 1 || v > 9) return FBG_ERR_RANGE; }" in source
+    assert "{ float v = m->creep_span[k]; if (!(v >= 0.0f) || v - v != 0.0f)" in source
+
+
+def test_every_engine_has_each_kinds_update_rule():
+    """The per-kind arithmetic the dispatch reaches by name exists in every engine: the float
+    reference and the integer reference tables, and the C functions FBG_MEMORY_KINDS calls."""
+    from fbgforce import model as fm
+    from fbgforce.export import intref
+
+    names = [k.name for k in contract.MEMORY_KINDS]
+    assert list(fm.FLOAT_MEMORY) == names and list(intref.INT_MEMORY) == names
+    src = contract.ROOT / "runtime_c" / "src"
+    for kind in contract.MEMORY_KINDS:
+        assert f"static unsigned {kind.name}_features(" in (src / "fbg_fixed.c").read_text()
+        assert f"static unsigned {kind.name}_features_f(" in (src / "fbgf_float.c").read_text()
+        assert f"static unsigned {kind.name}_features_avx2(" in (src / "fbg_simd_x86.c").read_text()
+        assert kind.gain.optional and kind.counted_by.name != "gain"
+        for param in kind.params:
+            assert hasattr(fm.Memory(), fm.memory_attr(kind, param))
+
+
 def test_params_codec_round_trip():
     rng = np.random.default_rng(0)
     for _ in range(300):

@@ -122,8 +122,8 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     rt.set_baseline(model.baseline_nm)
     st = rt._state
 
-    def states() -> tuple:
-        return (np.array(list(st.ema)), np.array(list(st.play)), np.array(list(st.loc)))
+    def states() -> dict[str, np.ndarray]:
+        return {name: np.array(list(getattr(st, name))) for name in contract.MEMORY_STATES}
 
     rt.run(wl[:500])
     assert st.mem_primed == 1
@@ -133,15 +133,15 @@ def test_fault_freezes_and_reset_clears_the_states(random_model_factory, random_
     out = rt.run(bad)
     assert np.all(out["status"] & contract.STATUS_FLAG["SENSOR_FAULT"])
     after = states()
-    assert all(np.array_equal(a, b) for a, b in zip(before, after))   # frozen, not poisoned
+    assert all(np.array_equal(before[k], after[k]) for k in before)   # frozen, not poisoned
     rt.run(wl[530:600])
-    assert not np.array_equal(states()[0], before[0])               # running again
-    assert not np.array_equal(states()[2], before[2])
+    assert not np.array_equal(states()["ema"], before["ema"])       # running again
+    assert not np.array_equal(states()["loc"], before["loc"])
     rt.reset()
-    assert st.mem_primed == 0 and not any(a.any() for a in states())
+    assert st.mem_primed == 0 and not any(a.any() for a in states().values())
     rt.run(wl[600:700])
     rt.tare(wl[:50])
-    assert st.mem_primed == 0 and not any(a.any() for a in states())
+    assert st.mem_primed == 0 and not any(a.any() for a in states().values())
 
 
 def test_first_sample_after_reset_primes_the_states_as_at_rest(random_model_factory,
@@ -184,7 +184,7 @@ def test_location_averages_read_zero_at_rest_and_keep_a_press_direction(random_m
     later = a[60].astype(float)                                # 10 samples into the press
     cos = later @ direction / np.linalg.norm(later) / np.linalg.norm(direction)
     assert cos > 0.9999 and np.linalg.norm(later) < np.linalg.norm(direction)
-    assert contract.net_inputs("location", q.n_ema, q.n_play, q.n_loc) == 10 <= contract.LIMIT["MAX_INPUTS"]
+    assert contract.net_inputs("location", q.n_memory, q.n_loc) == 10 <= contract.LIMIT["MAX_INPUTS"]
 
 
 def test_memory_text_and_presets():
@@ -197,11 +197,45 @@ def test_memory_text_and_presets():
     assert m.play_widths == (0.1,) and m.loc_shift == 5 and m.n_loc == 4
     assert parse_memory("loc:4").n_states == 0
     assert parse_memory("none").n_states == 0
-    assert all(p.n_states <= contract.MAX_EMA + contract.MAX_PLAY for p in MEMORY_PRESETS.values())
+    assert all(p.n_states <= contract.LIMIT["MAX_INPUTS"] - contract.N_STRAIN for p in MEMORY_PRESETS.values())
     for bad in ("ema:0", "play:-1", "lstm:3", "ema:1,2,3,4,5", "loc:0", "loc:16", "loc:3,4",
                 "loc:3+loc:4"):
         with pytest.raises(InputError):
             parse_memory(bad)
+
+
+@pytest.mark.parametrize("field, index, value, code", [
+    ("n_ema", None, contract.MEMORY_KIND["ema"].limit + 1, "FBG_ERR_SHAPE"),
+    ("n_play", None, contract.MEMORY_KIND["play"].limit + 1, "FBG_ERR_SHAPE"),
+    ("ema_shift", 1, 0, "FBG_ERR_RANGE"),
+    ("ema_shift", 0, contract.MAX_EMA_SHIFT + 1, "FBG_ERR_RANGE"),
+    ("ema_gain", 1, contract.MAX_MEM_GAIN + 1, "FBG_ERR_RANGE"),
+    ("play_gain", 3, contract.MAX_MEM_GAIN + 1, "FBG_ERR_RANGE"),
+    ("play_width", 2, -0.5, "FBG_ERR_RANGE"),
+    ("play_width", 0, float("nan"), "FBG_ERR_RANGE"),
+    ("play_width", 3, float("inf"), "FBG_ERR_RANGE"),
+])
+def test_float_build_checks_memory_parameters(random_model_factory, field, index, value, code):
+    """fbgf_model_check refuses a memory parameter of a state in use outside the ranges of
+    fbg_model's, as the fixed-point checker does (the generated fbgf_memory_check)."""
+    from fbgforce._runtime import lib
+
+    rt = FloatRuntime(random_model_factory(1, sizes=((8,), (8,), (8,)), memory=MEMORIES["full"]))
+    assert lib.fbgf_model_check(rt._model) == lib.FBG_OK
+    if index is None:
+        setattr(rt._model, field, value)
+    else:
+        getattr(rt._model, field)[index] = value
+    assert lib.fbgf_model_check(rt._model) == getattr(lib, code)
+
+
+def test_memory_refuses_parameters_outside_the_contract():
+    for bad in (dict(ema_shifts=(0,)), dict(ema_shifts=(16,)), dict(ema_shifts=(3,), ema_gains=(9,)),
+                dict(ema_shifts=(3,), ema_gains=(1, 2)), dict(play_widths=(-0.1,)),
+                dict(play_widths=(float("nan"),)), dict(play_widths=(0.1,) * 5)):
+        with pytest.raises(ValueError):
+            fm.Memory(**bad)
+    assert fm.Memory(play_widths=(0.1, 0.2)).play_gains == (0, 0)
 
 
 @pytest.mark.parametrize("name", ["full", "loc"])

@@ -359,7 +359,7 @@ def test_compensation_clamp_alone_raises_saturated_on_every_kernel():
 
 
 STATE_FIELDS = ("prev_fm", "same_run", "prev_valid", "hist", "last_comp", "pos", "since_reset",
-                "ema", "play", "loc", "mem_primed")
+                *contract.MEMORY_STATES, "mem_primed")
 
 
 def test_load_signal_clamp_alone_raises_saturated_and_states_match_on_every_kernel():

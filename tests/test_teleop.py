@@ -329,3 +329,20 @@ def test_device_check_without_a_known_origin(small_exported_dir, tmp_path):
     model.metadata["data"] = [{"source": "sim:smoke seed=0 device=7"}]
     result = check_device(model, scene)
     assert result["status"] == "mismatch" and "device 7" in result["detail"]
+
+
+@pytest.mark.parametrize("memory, words", [
+    ({"ema_shifts": (4, 7), "play_widths": (0.05, 0.25)}, "memory averages 4,7 + plays 0.05,0.25"),
+    ({"play_widths": (0.1,), "loc_shift": 5}, "memory plays 0.1)"),
+    ({"loc_shift": 5}, "no memory"),
+])
+def test_estimator_label_names_the_memory_kinds(random_model_factory, memory, words):
+    """The ablation table's label lists every kind of memory state the model has."""
+    from types import SimpleNamespace
+
+    from fbgforce import model as fm
+    from fbgforce.teleop.ablation import estimator_label
+
+    model = random_model_factory(0, sizes=((8,), (8,), (8,)), memory=fm.Memory(**memory))
+    label = estimator_label(SimpleNamespace(model=model, engine="fixed", extra_delay_ms=0))
+    assert label.endswith(words + ("" if words.endswith(")") else ")"))

@@ -233,29 +233,26 @@ def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict
         if k not in hidden:
             raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
         hidden[k] = [int(s) for s in v]
-    n_ema, n_play = len(memory.ema_shifts), len(memory.play_widths)
-    return {net.name: [contract.net_inputs(net.name, n_ema, n_play, memory.n_loc), *hidden[net.name],
+    return {net.name: [contract.net_inputs(net.name, memory.n_states, memory.n_loc), *hidden[net.name],
                        net.float_outputs] for net in contract.NETS}
 
 
 def parse_memory(text: str) -> fm.Memory:
-    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``ema:S,S,...``, ``play:W,W,...``
-    and ``loc:S`` joined by ``+`` (average shifts; play half-widths in standardised units; the
-    location averages' shift)."""
+    """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``<kind>:V,V,...`` for a kind of
+    ``contract.MEMORY_KINDS`` (``ema:S,S``: average shifts; ``play:W,W``: play half-widths in
+    standardised units) and ``loc:S`` joined by ``+`` (the location averages' shift)."""
     text = text.strip()
     if text in MEMORY_PRESETS:
         return MEMORY_PRESETS[text]
-    ema: list[int] = []
-    play: list[float] = []
+    states: dict[str, list[float]] = {k.name: [] for k in contract.MEMORY_KINDS}
     loc = 0
     try:
         for part in text.split("+"):
             kind, _, values = part.partition(":")
             nums = [v for v in values.split(",") if v.strip()]
-            if kind.strip() == "ema":
-                ema += [int(v) for v in nums]
-            elif kind.strip() == "play":
-                play += [float(v) for v in nums]
+            if kind.strip() in contract.MEMORY_KIND:
+                spec = contract.MEMORY_KIND[kind.strip()]
+                states[spec.name] += [(float if spec.counted_by.standardised else int)(v) for v in nums]
             elif kind.strip() == "loc":
                 if len(nums) != 1 or loc:
                     raise ValueError("loc takes one shift")
@@ -264,7 +261,8 @@ def parse_memory(text: str) -> fm.Memory:
                     raise ValueError("the loc shift must be at least 1 (leave loc out for none)")
             else:
                 raise ValueError(f"unknown memory kind {kind!r}")
-        return fm.Memory(ema_shifts=tuple(ema), play_widths=tuple(play), loc_shift=loc)
+        return fm.Memory(**{fm.memory_attr(k, k.counted_by): tuple(states[k.name])
+                            for k in contract.MEMORY_KINDS}, loc_shift=loc)
     except ValueError as exc:
         raise InputError(f"bad memory {text!r}: {exc}; use none, "
                          f"{', '.join(MEMORY_PRESETS)}, or e.g. ema:3,6+play:0.1+loc:5",
@@ -299,8 +297,7 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
     if memory.n_states == 0:
         return memory
     loc_shift = memory.loc_shift
-    memory = fm.Memory(memory.ema_shifts, memory.ema_gains, memory.play_widths, memory.play_gains,
-                       memory.weights)
+    memory = replace(memory, loc_shift=0)
     plain = copy.deepcopy(pre)
     plain.memory = fm.Memory()
     z = data.inputs(plain)[rows]
@@ -308,7 +305,8 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
     w, *_ = np.linalg.lstsq(np.column_stack([z, np.ones(len(z))]), force, rcond=None)
     u = z @ w[:fm.N_STRAIN]
     weights = w[:fm.N_STRAIN] / max(float(np.std(u)), 1e-12)
-    trial = fm.Memory(memory.ema_shifts, (), memory.play_widths, (), tuple(weights))
+    gain_of = {k.name: fm.memory_attr(k, k.gain) for k in contract.MEMORY_KINDS}
+    trial = replace(memory, weights=tuple(weights), **{a: () for a in gain_of.values()})
     pre_trial = copy.deepcopy(pre)
     pre_trial.memory = trial
     x = data.inputs(pre_trial)[rows]
@@ -317,9 +315,11 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
         sd = float(np.std(x[:, fm.N_STRAIN + k]))
         g = int(np.floor(np.log2(0.5 / sd))) if sd > 0 else 0
         gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
-    n_ema = len(memory.ema_shifts)
-    return fm.Memory(memory.ema_shifts, tuple(gains[:n_ema]), memory.play_widths,
-                     tuple(gains[n_ema:]), tuple(weights), loc_shift)
+    fitted, start = {}, 0
+    for kind in contract.MEMORY_KINDS:     # the features' order: every kind's in turn
+        fitted[gain_of[kind.name]] = tuple(gains[start:start + trial.count(kind)])
+        start += trial.count(kind)
+    return replace(trial, loc_shift=loc_shift, **fitted)
 
 
 #: A hold: the load standing still under contact for at least this long (within

@@ -28,12 +28,22 @@
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
@@ -419,12 +429,22 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */
 
@@ -2928,12 +2948,22 @@ typedef int fbg_dsp_unused;
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
@@ -4158,7 +4188,7 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
 static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
 {
     unsigned c;
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+    for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
             return FBG_STATUS_OUT_OF_RANGE;
     return 0u;
@@ -4293,24 +4323,68 @@ static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint
 
 /* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
 
+/* The memory kinds' update rules (FBG_MEMORY_KINDS of fbg_contract.h, one function per kind,
+ * docs/fixed-point.md, "memory"): from the load signal u, prime the states (primed == 0) as a
+ * pad at rest after a release leaves them, step them and write their features to f[0 ..];
+ * each returns the number of features it wrote. */
+static unsigned ema_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                             uint32_t *sat)
+{
+    unsigned k;
+    /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by at most
+     * the whole distance, so it stays between its old value and the target. So |target -
+     * state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in int32; the
+     * feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. Primed at u. */
+    const int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = target;
+    for (k = 0; k < m->n_ema; ++k) {
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
+        s->ema[k] = e;
+        f[k] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+    }
+    return m->n_ema;
+}
+
+static unsigned play_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                              uint32_t *sat)
+{
+    unsigned k;
+    if (!primed)   /* at u + width: the load last went down */
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+    for (k = 0; k < m->n_play; ++k) {
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        f[k] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+    }
+    return m->n_play;
+}
+
 /* The portable reference. Append the memory features to z = in[0..3] and put the location
  * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
  * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
- * its force path, which all four beams share): the exponential averages' features, then the
- * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
- * after a release leaves them: the averages at u, the play operators at u + width (the load
- * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+ * its force path, which all four beams share): every kind's features in the order of
+ * FBG_MEMORY_KINDS. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them, so the features read what they read at every rest of the
+ * calibration data. A faulty sample never gets here (fbg_step returns before), so a fault
+ * freezes them. */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
                             uint32_t *sat)
 {
-    unsigned c, k, j = FBG_N_STRAIN;
+    unsigned c;
     int64_t acc = 0;
     int32_t u;
+    int16_t *f = in + FBG_N_STRAIN;
+    const int primed = s->mem_primed;
     if (m->loc_shift) {
         /* A local flag: *sat may alias s->loc for the compiler. */
         uint32_t clamped = s->loc_z0_clamped;
-        const int primed = s->mem_primed;
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
              * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
@@ -4327,39 +4401,17 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
         }
         *sat |= clamped;
     }
-    if (m->n_ema == 0u && m->n_play == 0u) {
+    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
         s->mem_primed = 1u;
         return;
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
     u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. So
-         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
-         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
-        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
-        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
-        s->ema[k] = e;
-        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
-        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = s->play[k];
-        p = p < lo ? lo : (p > hi ? hi : p);
-        s->play[k] = p;
-        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
-    }
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features(s, m, u, primed, f, sat);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    s->mem_primed = 1u;
 }
 
 static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)
@@ -4658,6 +4710,7 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
     return FBG_OK;
 }
 #undef FRONT
+#undef FBG_KIND_FEATURES
 /* ---- src/fbg_model.c ---- */
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
@@ -4679,12 +4732,22 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
@@ -4964,7 +5027,7 @@ fbg_status fbg_model_check(const fbg_model *model)
         return st;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    features = FBG_N_STRAIN + model->n_ema + model->n_play;
+    features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     /* z, contact, force, then the location averages (4 when loc_shift is on) */
@@ -5543,6 +5606,41 @@ typedef int fbg_simd_neon_unused;
  * Integer SIMD only: no floating-point vector type or instruction is used here
  * (check-nofloat scans this file, which -mgeneral-regs-only cannot compile).
  */
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_simd.h ---- */
 /*
  * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
@@ -7254,63 +7352,99 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes),
- * the same operations: u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ:
- * exact int64 products, their sum < 2^48, then the scalar rule), the states primed on the
- * first sample, then the exponential averages in the lanes of one vector, e += (target - e +
- * 2^(shift-1)) >> shift (VPSRAVD: each lane its own shift), feature = sat16((u -
- * rshift_round(e, 15)) << gain) (VPSLLVD), and the play operators in another, p = clamp(p, u -
- * width, u + width), feature = sat16((u - p) << gain): the scalar loop's bounds hold in every
- * lane. The states of lanes k >= n_ema (n_play) stay as they are (blended back); the
- * features go to in[4 ..] (the averages) and in[4 + n_ema ..] (the play operators), whole
- * vectors of four, the entries past the last feature being ones no net reads. Returns 1 where
- * a clamp happened. */
+/* The memory kinds' update rules of fbg_fixed.c (<kind>_features, FBG_MEMORY_KINDS), the
+ * states of a kind in the lanes of one vector, the same operations: the scalar loop's bounds
+ * hold in every lane. The states of lanes k >= n stay as they are (blended back); the features
+ * go to f[0 ..] as a whole vector of four, the entries past the kind's last being overwritten
+ * by the next kind's or ones no net reads. Each returns the number of features of its kind
+ * and sets *clamped where an in-use feature clamped. */
 static const int32_t lane_index4[4] = {0, 1, 2, 3};
-AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
+
+/* All ones in the lanes k < n. */
+AVX2 static __m128i lanes_in_use(unsigned n)
+{
+    return _mm_cmpgt_epi32(_mm_set1_epi32((int)n), load128(lane_index4));
+}
+
+/* sat16 of the features f into out[0..3]; 1 where a lane in use clamped. */
+AVX2 static int store_features4(__m128i f, __m128i used, int16_t *out)
+{
+    const __m128i lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
+    const __m128i flag = _mm_and_si128(used, _mm_or_si128(_mm_cmpgt_epi32(f, lim), _mm_cmpgt_epi32(nlim, f)));
+    f = _mm_max_epi32(_mm_min_epi32(f, lim), nlim);
+    _mm_storel_epi64((__m128i *)(void *)out, _mm_packs_epi32(f, f));
+    return !_mm_testz_si128(flag, flag);
+}
+
+/* The exponential averages: e += (target - e + 2^(shift-1)) >> shift (VPSRAVD: each lane its
+ * own shift), feature = sat16((u - rshift_round(e, 15)) << gain) (VPSLLVD). */
+AVX2 static unsigned ema_features_avx2(fbg_state *s, __m128i u, int primed, int16_t *f, int *clamped)
 {
     const fbg_model *m = s->model;
-    const __m128i idx = load128(lane_index4), lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
-    const __m128i me = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_ema), idx), mp = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_play), idx);
-    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
-    const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
-    __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
-    uint32_t clamped = 0u;
+    const __m128i used = lanes_in_use(m->n_ema), target = _mm_slli_epi32(u, FBG_EMA_FRAC);
+    __m128i e = primed ? load128(s->ema) : target, shift, fe;
     int32_t word;
-    __m128i u, target, e, p, fe, fp, shift, flag;
-    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
-    u = _mm_set1_epi32(fbg_sat16_rshift_round(_mm_cvtsi128_si64(l), m->mem_shift, &clamped));
-    target = _mm_slli_epi32(u, FBG_EMA_FRAC);
-    if (s->mem_primed) {
-        e = load128(s->ema);
-        p = load128(s->play);
-    } else {
-        e = target;
-        p = _mm_add_epi32(u, width);
-    }
     memcpy(&word, m->ema_shift, sizeof word);
     shift = _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word));
     e = _mm_add_epi32(e, _mm_srav_epi32(_mm_add_epi32(_mm_sub_epi32(target, e),
                                                       _mm_srli_epi32(_mm_sllv_epi32(_mm_set1_epi32(1), shift), 1)),
                                        shift));
-    _mm_storeu_si128((__m128i *)(void *)s->ema, _mm_blendv_epi8(load128(s->ema), e, me));
+    _mm_storeu_si128((__m128i *)(void *)s->ema, _mm_blendv_epi8(load128(s->ema), e, used));
     memcpy(&word, m->ema_gain, sizeof word);
     fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
                         _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
-    _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, mp));
-    memcpy(&word, m->play_gain, sizeof word);
-    fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    flag = _mm_or_si128(_mm_and_si128(me, _mm_or_si128(_mm_cmpgt_epi32(fe, lim), _mm_cmpgt_epi32(nlim, fe))),
-                        _mm_and_si128(mp, _mm_or_si128(_mm_cmpgt_epi32(fp, lim), _mm_cmpgt_epi32(nlim, fp))));
-    fe = _mm_max_epi32(_mm_min_epi32(fe, lim), nlim);
-    fp = _mm_max_epi32(_mm_min_epi32(fp, lim), nlim);
-    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN), _mm_packs_epi32(fe, fe));
-    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN + m->n_ema), _mm_packs_epi32(fp, fp));
-    return clamped || !_mm_testz_si128(flag, flag);
+    *clamped |= store_features4(fe, used, f);
+    return m->n_ema;
 }
 
-typedef char memory4_stores_inside_in[FBG_N_STRAIN + FBG_MAX_EMA + 4 <= FBG_MAX_INPUTS ? 1 : -1];
-typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
+/* The play operators: p = clamp(p, u - width, u + width), feature = sat16((u - p) << gain). */
+AVX2 static unsigned play_features_avx2(fbg_state *s, __m128i u, int primed, int16_t *f, int *clamped)
+{
+    const fbg_model *m = s->model;
+    const __m128i used = lanes_in_use(m->n_play);
+    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
+    __m128i p = primed ? load128(s->play) : _mm_add_epi32(u, width);
+    int32_t word;
+    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
+    _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, used));
+    memcpy(&word, m->play_gain, sizeof word);
+    *clamped |= store_features4(_mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word))),
+                                used, f);
+    return m->n_play;
+}
+
+/* Every kind's states fill the four lanes of one vector, and its four features stored from
+ * its offset (at most FBG_N_STRAIN plus the earlier kinds' limits) stay inside in[]. */
+#define FBG_KIND_LANES(kind, KIND) typedef char kind##_lanes_avx2[FBG_MAX_##KIND == 4 ? 1 : -1];
+FBG_MEMORY_KINDS(FBG_KIND_LANES)
+#undef FBG_KIND_LANES
+#define FBG_KIND_LIMIT(kind, KIND) + FBG_MAX_##KIND
+typedef char memory4_stores_inside_in[FBG_N_STRAIN FBG_MEMORY_KINDS(FBG_KIND_LIMIT) <= FBG_MAX_INPUTS ? 1 : -1];
+#undef FBG_KIND_LIMIT
+
+/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes):
+ * u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ: exact int64 products,
+ * their sum < 2^48, then the scalar rule), then every kind's states, primed on the first
+ * sample, and features to in[4 ..] in the order of FBG_MEMORY_KINDS. Returns 1 where a clamp
+ * happened. */
+AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
+{
+    const fbg_model *m = s->model;
+    const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
+    __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
+    const int primed = s->mem_primed;
+    uint32_t sat = 0u;
+    int clamped;
+    int16_t *f = in + FBG_N_STRAIN;
+    __m128i u;
+    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
+    u = _mm_set1_epi32(fbg_sat16_rshift_round(_mm_cvtsi128_si64(l), m->mem_shift, &sat));
+    clamped = sat != 0u;
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features_avx2(s, u, primed, f, &clamped);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    return clamped;
+}
 
 /* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
  * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
@@ -7347,7 +7481,7 @@ AVX2 void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat
     int clamped = 0;
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
-    if (m->n_ema != 0u || m->n_play != 0u)
+    if (FBG_N_MEMORY_FEATURES(m) != 0u)
         clamped |= memory4_avx2(s, z, in);
     s->mem_primed = 1u;
     if (clamped)
@@ -7461,6 +7595,66 @@ typedef int fbg_simd_x86_unused;
 #undef PK8_HIDDEN_OUT
 #undef PK8_HIGH_OUT
 #undef FIR_TAP
+#undef FBG_KIND_LANES
+#undef FBG_KIND_LIMIT
+#undef FBG_KIND_FEATURES
+/* ---- src/fbgf_contract.c ---- */
+/*
+ * fbgf_contract.c - GENERATED by `python -m fbgforce.contract --write` from
+ * pkgroot/contract.py; do not edit. The float model's memory parameters checked against
+ * the ranges of fbg_model's (fbgforce.contract.MEMORY_KINDS).
+ */
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+
+fbg_status fbgf_memory_check(const fbgf_model *m)
+{
+    unsigned k;
+    if (m->n_ema > FBG_MAX_EMA || m->n_play > FBG_MAX_PLAY)
+        return FBG_ERR_SHAPE;
+    for (k = 0; k < m->n_ema; ++k) {
+        { uint8_t v = m->ema_shift[k]; if (v < 1 || v > 15) return FBG_ERR_RANGE; }
+        { uint8_t v = m->ema_gain[k]; if (v > 8) return FBG_ERR_RANGE; }
+    }
+    for (k = 0; k < m->n_play; ++k) {
+        { uint8_t v = m->play_gain[k]; if (v > 8) return FBG_ERR_RANGE; }
+        { float v = m->play_width[k]; if (!(v >= 0.0f) || v - v != 0.0f) return FBG_ERR_RANGE; }
+    }
+    return FBG_OK;
+}
 /* ---- src/fbgf_dense.c ---- */
 /*
  * fbgf_dense.c - dense layers of the float build: a portable C kernel and SIMD kernels
@@ -8223,12 +8417,22 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */
 /* ---- src/fbg_internal.h ---- */
@@ -8757,24 +8961,18 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
     uint16_t net_in[FBG_N_NETS];
     unsigned n, l, c, features;
+    fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
-    if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
-        return FBG_ERR_SHAPE;
-    features = FBG_N_STRAIN + model->n_ema + model->n_play;
+    st = fbgf_memory_check(model);
+    if (st != FBG_OK)
+        return st;
+    features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
     if (model->loc_shift > FBG_MAX_EMA_SHIFT)
         return FBG_ERR_RANGE;
-    for (c = 0; c < model->n_ema; ++c)
-        if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
-            model->ema_gain[c] > FBG_MAX_MEM_GAIN)
-            return FBG_ERR_RANGE;
-    for (c = 0; c < model->n_play; ++c)
-        if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
-            model->play_gain[c] > FBG_MAX_MEM_GAIN)
-            return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
     /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
@@ -8828,13 +9026,45 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 /* The shared front end's view of a float state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
+/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_fixed.c's <kind>_features in float:
+ * from the load signal u, prime the states (primed == 0) as at rest after a release, step them
+ * and write their features to f[0 ..]; each returns the number of features it wrote. */
+static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
+{
+    unsigned k;
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u;
+    for (k = 0; k < m->n_ema; ++k) {
+        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
+        f[k] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
+    }
+    return m->n_ema;
+}
+
+static unsigned play_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
+{
+    unsigned k;
+    if (!primed)
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+    for (k = 0; k < m->n_play; ++k) {
+        float w = m->play_width[k], p = s->play[k];
+        p = p < u - w ? u - w : (p > u + w ? u + w : p);
+        s->play[k] = p;
+        f[k] = (u - p) * (float)(1u << m->play_gain[k]);
+    }
+    return m->n_play;
+}
+
 /* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
  * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
 static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
-    unsigned c, k, j = FBG_N_STRAIN;
-    float u = 0.0f;
+    unsigned c;
+    int primed;
+    float u = 0.0f, *f = in + FBG_N_STRAIN;
     if (m->loc_shift) {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* z_rest = -mean / std: the standardised zero shift */
@@ -8845,29 +9075,17 @@ static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, floa
             loc[c] = s->loc[c];
         }
     }
-    if (m->n_ema == 0u && m->n_play == 0u) {
+    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
         s->mem_primed = 1u;
         return;
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         u += m->mem_weight[c] * in[c];
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u;
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
-        in[j] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        float w = m->play_width[k], p = s->play[k];
-        p = p < u - w ? u - w : (p > u + w ? u + w : p);
-        s->play[k] = p;
-        in[j] = (u - p) * (float)(1u << m->play_gain[k]);
-    }
+    primed = s->mem_primed;
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features_f(s, m, u, primed, f);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    s->mem_primed = 1u;
 }
 
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
@@ -9012,7 +9230,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+    for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
             status |= FBG_STATUS_OUT_OF_RANGE;
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
@@ -9313,3 +9531,4 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     return FBG_OK;
 }
 #undef FRONT
+#undef FBG_KIND_FEATURES

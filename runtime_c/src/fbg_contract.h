@@ -14,11 +14,21 @@
 #define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
 #define FBG_N_MEMORY_STATES 3
 
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
 /* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
 void fbg_params_decode(fbg_model *m, const uint8_t *p);
 /* 1 if the block's padding bytes are all zero. */
 int fbg_params_padding_ok(const uint8_t *p);
 /* The first parameter out of its range, in blob order: its code; else FBG_OK. */
 fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
 
 #endif /* FBG_CONTRACT_H */

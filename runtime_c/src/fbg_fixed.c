@@ -254,7 +254,7 @@ static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
 static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
 {
     unsigned c;
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+    for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (in[c] < m->in_lo[c] || in[c] > m->in_hi[c])
             return FBG_STATUS_OUT_OF_RANGE;
     return 0u;
@@ -389,24 +389,68 @@ static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint
 
 /* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
 
+/* The memory kinds' update rules (FBG_MEMORY_KINDS of fbg_contract.h, one function per kind,
+ * docs/fixed-point.md, "memory"): from the load signal u, prime the states (primed == 0) as a
+ * pad at rest after a release leaves them, step them and write their features to f[0 ..];
+ * each returns the number of features it wrote. */
+static unsigned ema_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                             uint32_t *sat)
+{
+    unsigned k;
+    /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by at most
+     * the whole distance, so it stays between its old value and the target. So |target -
+     * state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in int32; the
+     * feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. Primed at u. */
+    const int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = target;
+    for (k = 0; k < m->n_ema; ++k) {
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
+        s->ema[k] = e;
+        f[k] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+    }
+    return m->n_ema;
+}
+
+static unsigned play_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                              uint32_t *sat)
+{
+    unsigned k;
+    if (!primed)   /* at u + width: the load last went down */
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+    for (k = 0; k < m->n_play; ++k) {
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        f[k] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+    }
+    return m->n_play;
+}
+
 /* The portable reference. Append the memory features to z = in[0..3] and put the location
  * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
  * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
- * its force path, which all four beams share): the exponential averages' features, then the
- * play operators'. The first sample after init/tare/reset primes the states as a pad at rest
- * after a release leaves them: the averages at u, the play operators at u + width (the load
- * last went down), so the features read what they read at every rest of the calibration
- * data. A faulty sample never gets here (fbg_step returns before), so a fault freezes them. */
+ * its force path, which all four beams share): every kind's features in the order of
+ * FBG_MEMORY_KINDS. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them, so the features read what they read at every rest of the
+ * calibration data. A faulty sample never gets here (fbg_step returns before), so a fault
+ * freezes them. */
 static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
                             uint32_t *sat)
 {
-    unsigned c, k, j = FBG_N_STRAIN;
+    unsigned c;
     int64_t acc = 0;
     int32_t u;
+    int16_t *f = in + FBG_N_STRAIN;
+    const int primed = s->mem_primed;
     if (m->loc_shift) {
         /* A local flag: *sat may alias s->loc for the compiler. */
         uint32_t clamped = s->loc_z0_clamped;
-        const int primed = s->mem_primed;
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
              * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
@@ -423,39 +467,17 @@ static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16
         }
         *sat |= clamped;
     }
-    if (m->n_ema == 0u && m->n_play == 0u) {
+    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
         s->mem_primed = 1u;
         return;
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
     u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u * ((int32_t)1 << FBG_EMA_FRAC);
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by
-         * at most the whole distance, so it stays between its old value and the target. So
-         * |target - state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in
-         * int32; the feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. */
-        int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
-        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
-        s->ema[k] = e;
-        in[j] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
-        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = s->play[k];
-        p = p < lo ? lo : (p > hi ? hi : p);
-        s->play[k] = p;
-        in[j] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
-    }
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features(s, m, u, primed, f, sat);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    s->mem_primed = 1u;
 }
 
 static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)

@@ -79,7 +79,7 @@ fbg_status fbg_model_check(const fbg_model *model)
         return st;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    features = FBG_N_STRAIN + model->n_ema + model->n_play;
+    features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     /* z, contact, force, then the location averages (4 when loc_shift is on) */

@@ -45,6 +45,7 @@
  * Integer SIMD only: no floating-point vector type or instruction is used here
  * (check-nofloat scans this file, which -mgeneral-regs-only cannot compile).
  */
+#include "fbg_contract.h" /* FBG_MEMORY_KINDS */
 #include "fbg_simd.h"
 
 #if FBG_HOST_SIMD && defined(__x86_64__)
@@ -1431,63 +1432,99 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes),
- * the same operations: u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ:
- * exact int64 products, their sum < 2^48, then the scalar rule), the states primed on the
- * first sample, then the exponential averages in the lanes of one vector, e += (target - e +
- * 2^(shift-1)) >> shift (VPSRAVD: each lane its own shift), feature = sat16((u -
- * rshift_round(e, 15)) << gain) (VPSLLVD), and the play operators in another, p = clamp(p, u -
- * width, u + width), feature = sat16((u - p) << gain): the scalar loop's bounds hold in every
- * lane. The states of lanes k >= n_ema (n_play) stay as they are (blended back); the
- * features go to in[4 ..] (the averages) and in[4 + n_ema ..] (the play operators), whole
- * vectors of four, the entries past the last feature being ones no net reads. Returns 1 where
- * a clamp happened. */
+/* The memory kinds' update rules of fbg_fixed.c (<kind>_features, FBG_MEMORY_KINDS), the
+ * states of a kind in the lanes of one vector, the same operations: the scalar loop's bounds
+ * hold in every lane. The states of lanes k >= n stay as they are (blended back); the features
+ * go to f[0 ..] as a whole vector of four, the entries past the kind's last being overwritten
+ * by the next kind's or ones no net reads. Each returns the number of features of its kind
+ * and sets *clamped where an in-use feature clamped. */
 static const int32_t lane_index4[4] = {0, 1, 2, 3};
-AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
+
+/* All ones in the lanes k < n. */
+AVX2 static __m128i lanes_in_use(unsigned n)
+{
+    return _mm_cmpgt_epi32(_mm_set1_epi32((int)n), load128(lane_index4));
+}
+
+/* sat16 of the features f into out[0..3]; 1 where a lane in use clamped. */
+AVX2 static int store_features4(__m128i f, __m128i used, int16_t *out)
+{
+    const __m128i lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
+    const __m128i flag = _mm_and_si128(used, _mm_or_si128(_mm_cmpgt_epi32(f, lim), _mm_cmpgt_epi32(nlim, f)));
+    f = _mm_max_epi32(_mm_min_epi32(f, lim), nlim);
+    _mm_storel_epi64((__m128i *)(void *)out, _mm_packs_epi32(f, f));
+    return !_mm_testz_si128(flag, flag);
+}
+
+/* The exponential averages: e += (target - e + 2^(shift-1)) >> shift (VPSRAVD: each lane its
+ * own shift), feature = sat16((u - rshift_round(e, 15)) << gain) (VPSLLVD). */
+AVX2 static unsigned ema_features_avx2(fbg_state *s, __m128i u, int primed, int16_t *f, int *clamped)
 {
     const fbg_model *m = s->model;
-    const __m128i idx = load128(lane_index4), lim = load128(loc_consts[0]), nlim = load128(loc_consts[1]);
-    const __m128i me = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_ema), idx), mp = _mm_cmpgt_epi32(_mm_set1_epi32(m->n_play), idx);
-    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
-    const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
-    __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
-    uint32_t clamped = 0u;
+    const __m128i used = lanes_in_use(m->n_ema), target = _mm_slli_epi32(u, FBG_EMA_FRAC);
+    __m128i e = primed ? load128(s->ema) : target, shift, fe;
     int32_t word;
-    __m128i u, target, e, p, fe, fp, shift, flag;
-    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
-    u = _mm_set1_epi32(fbg_sat16_rshift_round(_mm_cvtsi128_si64(l), m->mem_shift, &clamped));
-    target = _mm_slli_epi32(u, FBG_EMA_FRAC);
-    if (s->mem_primed) {
-        e = load128(s->ema);
-        p = load128(s->play);
-    } else {
-        e = target;
-        p = _mm_add_epi32(u, width);
-    }
     memcpy(&word, m->ema_shift, sizeof word);
     shift = _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word));
     e = _mm_add_epi32(e, _mm_srav_epi32(_mm_add_epi32(_mm_sub_epi32(target, e),
                                                       _mm_srli_epi32(_mm_sllv_epi32(_mm_set1_epi32(1), shift), 1)),
                                        shift));
-    _mm_storeu_si128((__m128i *)(void *)s->ema, _mm_blendv_epi8(load128(s->ema), e, me));
+    _mm_storeu_si128((__m128i *)(void *)s->ema, _mm_blendv_epi8(load128(s->ema), e, used));
     memcpy(&word, m->ema_gain, sizeof word);
     fe = _mm_sllv_epi32(_mm_sub_epi32(u, _mm_srai_epi32(_mm_add_epi32(e, load128(loc_consts[2])), FBG_EMA_FRAC)),
                         _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
-    _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, mp));
-    memcpy(&word, m->play_gain, sizeof word);
-    fp = _mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word)));
-    flag = _mm_or_si128(_mm_and_si128(me, _mm_or_si128(_mm_cmpgt_epi32(fe, lim), _mm_cmpgt_epi32(nlim, fe))),
-                        _mm_and_si128(mp, _mm_or_si128(_mm_cmpgt_epi32(fp, lim), _mm_cmpgt_epi32(nlim, fp))));
-    fe = _mm_max_epi32(_mm_min_epi32(fe, lim), nlim);
-    fp = _mm_max_epi32(_mm_min_epi32(fp, lim), nlim);
-    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN), _mm_packs_epi32(fe, fe));
-    _mm_storel_epi64((__m128i *)(void *)(in + FBG_N_STRAIN + m->n_ema), _mm_packs_epi32(fp, fp));
-    return clamped || !_mm_testz_si128(flag, flag);
+    *clamped |= store_features4(fe, used, f);
+    return m->n_ema;
 }
 
-typedef char memory4_stores_inside_in[FBG_N_STRAIN + FBG_MAX_EMA + 4 <= FBG_MAX_INPUTS ? 1 : -1];
-typedef char memory4_lanes[FBG_MAX_EMA == 4 && FBG_MAX_PLAY == 4 ? 1 : -1];
+/* The play operators: p = clamp(p, u - width, u + width), feature = sat16((u - p) << gain). */
+AVX2 static unsigned play_features_avx2(fbg_state *s, __m128i u, int primed, int16_t *f, int *clamped)
+{
+    const fbg_model *m = s->model;
+    const __m128i used = lanes_in_use(m->n_play);
+    const __m128i width = _mm_cvtepi16_epi32(_mm_loadl_epi64((const __m128i *)(const void *)m->play_width));
+    __m128i p = primed ? load128(s->play) : _mm_add_epi32(u, width);
+    int32_t word;
+    p = _mm_min_epi32(_mm_max_epi32(p, _mm_sub_epi32(u, width)), _mm_add_epi32(u, width));
+    _mm_storeu_si128((__m128i *)(void *)s->play, _mm_blendv_epi8(load128(s->play), p, used));
+    memcpy(&word, m->play_gain, sizeof word);
+    *clamped |= store_features4(_mm_sllv_epi32(_mm_sub_epi32(u, p), _mm_cvtepu8_epi32(_mm_cvtsi32_si128(word))),
+                                used, f);
+    return m->n_play;
+}
+
+/* Every kind's states fill the four lanes of one vector, and its four features stored from
+ * its offset (at most FBG_N_STRAIN plus the earlier kinds' limits) stay inside in[]. */
+#define FBG_KIND_LANES(kind, KIND) typedef char kind##_lanes_avx2[FBG_MAX_##KIND == 4 ? 1 : -1];
+FBG_MEMORY_KINDS(FBG_KIND_LANES)
+#undef FBG_KIND_LANES
+#define FBG_KIND_LIMIT(kind, KIND) + FBG_MAX_##KIND
+typedef char memory4_stores_inside_in[FBG_N_STRAIN FBG_MEMORY_KINDS(FBG_KIND_LIMIT) <= FBG_MAX_INPUTS ? 1 : -1];
+#undef FBG_KIND_LIMIT
+
+/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes):
+ * u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ: exact int64 products,
+ * their sum < 2^48, then the scalar rule), then every kind's states, primed on the first
+ * sample, and features to in[4 ..] in the order of FBG_MEMORY_KINDS. Returns 1 where a clamp
+ * happened. */
+AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
+{
+    const fbg_model *m = s->model;
+    const __m256i prod = _mm256_mul_epi32(_mm256_cvtepi32_epi64(z), _mm256_cvtepi32_epi64(load128(m->mem_mult)));
+    __m128i l = _mm_add_epi64(_mm256_castsi256_si128(prod), _mm256_extracti128_si256(prod, 1));
+    const int primed = s->mem_primed;
+    uint32_t sat = 0u;
+    int clamped;
+    int16_t *f = in + FBG_N_STRAIN;
+    __m128i u;
+    l = _mm_add_epi64(l, _mm_unpackhi_epi64(l, l));
+    u = _mm_set1_epi32(fbg_sat16_rshift_round(_mm_cvtsi128_si64(l), m->mem_shift, &sat));
+    clamped = sat != 0u;
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features_avx2(s, u, primed, f, &clamped);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    return clamped;
+}
 
 /* The stages of fbg_step in AVX2 (fbg_simd.h). The front: the fault rule; for a clean sample
  * the tare difference (within +-1e9 for in-window values: fbg_front_sample) and the
@@ -1524,7 +1561,7 @@ AVX2 void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat
     int clamped = 0;
     if (m->loc_shift)
         clamped |= loc4_avx2(s, m->loc_shift, z, loc) | s->loc_z0_clamped;
-    if (m->n_ema != 0u || m->n_play != 0u)
+    if (FBG_N_MEMORY_FEATURES(m) != 0u)
         clamped |= memory4_avx2(s, z, in);
     s->mem_primed = 1u;
     if (clamped)

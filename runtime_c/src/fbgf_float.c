@@ -60,24 +60,18 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
     uint16_t net_in[FBG_N_NETS];
     unsigned n, l, c, features;
+    fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
-    if (model->n_ema > FBG_MAX_EMA || model->n_play > FBG_MAX_PLAY)
-        return FBG_ERR_SHAPE;
-    features = FBG_N_STRAIN + model->n_ema + model->n_play;
+    st = fbgf_memory_check(model);
+    if (st != FBG_OK)
+        return st;
+    features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);
     net_in[FBG_NET_CONTACT] = (uint16_t)features;
     net_in[FBG_NET_FORCE] = (uint16_t)features;
     net_in[FBG_NET_LOCATION] = (uint16_t)(FBG_N_STRAIN + 2u + (model->loc_shift ? FBG_N_STRAIN : 0u));
     if (model->loc_shift > FBG_MAX_EMA_SHIFT)
         return FBG_ERR_RANGE;
-    for (c = 0; c < model->n_ema; ++c)
-        if (model->ema_shift[c] < 1u || model->ema_shift[c] > FBG_MAX_EMA_SHIFT ||
-            model->ema_gain[c] > FBG_MAX_MEM_GAIN)
-            return FBG_ERR_RANGE;
-    for (c = 0; c < model->n_play; ++c)
-        if (!(model->play_width[c] >= 0.0f) || !finite_f(model->play_width[c]) ||
-            model->play_gain[c] > FBG_MAX_MEM_GAIN)
-            return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
     /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
@@ -131,13 +125,45 @@ fbg_status fbgf_model_check(const fbgf_model *model)
 /* The shared front end's view of a float state (fbg_front.h). */
 #define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
+/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_fixed.c's <kind>_features in float:
+ * from the load signal u, prime the states (primed == 0) as at rest after a release, step them
+ * and write their features to f[0 ..]; each returns the number of features it wrote. */
+static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
+{
+    unsigned k;
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = u;
+    for (k = 0; k < m->n_ema; ++k) {
+        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
+        f[k] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
+    }
+    return m->n_ema;
+}
+
+static unsigned play_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
+{
+    unsigned k;
+    if (!primed)
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+    for (k = 0; k < m->n_play; ++k) {
+        float w = m->play_width[k], p = s->play[k];
+        p = p < u - w ? u - w : (p > u + w ? u + w : p);
+        s->play[k] = p;
+        f[k] = (u - p) * (float)(1u << m->play_gain[k]);
+    }
+    return m->n_play;
+}
+
 /* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
  * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
 static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
-    unsigned c, k, j = FBG_N_STRAIN;
-    float u = 0.0f;
+    unsigned c;
+    int primed;
+    float u = 0.0f, *f = in + FBG_N_STRAIN;
     if (m->loc_shift) {
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             /* z_rest = -mean / std: the standardised zero shift */
@@ -148,29 +174,17 @@ static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, floa
             loc[c] = s->loc[c];
         }
     }
-    if (m->n_ema == 0u && m->n_play == 0u) {
+    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
         s->mem_primed = 1u;
         return;
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         u += m->mem_weight[c] * in[c];
-    if (!s->mem_primed) {
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = u;
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-        s->mem_primed = 1u;
-    }
-    for (k = 0; k < m->n_ema; ++k, ++j) {
-        s->ema[k] += (u - s->ema[k]) / (float)(1u << m->ema_shift[k]);
-        in[j] = (u - s->ema[k]) * (float)(1u << m->ema_gain[k]);
-    }
-    for (k = 0; k < m->n_play; ++k, ++j) {
-        float w = m->play_width[k], p = s->play[k];
-        p = p < u - w ? u - w : (p > u + w ? u + w : p);
-        s->play[k] = p;
-        in[j] = (u - p) * (float)(1u << m->play_gain[k]);
-    }
+    primed = s->mem_primed;
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features_f(s, m, u, primed, f);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    s->mem_primed = 1u;
 }
 
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
@@ -315,7 +329,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
     fmemory_features(s, m, in, loc);
-    for (c = 0; c < FBG_N_STRAIN + (unsigned)m->n_ema + m->n_play; ++c)
+    for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
             status |= FBG_STATUS_OUT_OF_RANGE;
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
