@@ -63,7 +63,7 @@ def register(subparsers: Any) -> None:
                         "0 = off); docs/trainer.md \"Held grips\"")
     p.add_argument("--rest-augment", type=non_negative_float, default=None, metavar="SHARE",
                    help="share of the training presses the contact and force nets also see "
-                        "after a rest of 3-12 s (synthetic long rests; default 0.2, 0 = off); "
+                        "after a rest of 3-60 s (synthetic long rests; default 0.2, 0 = off); "
                         "docs/trainer.md \"Long rests\"")
     add_json_flag(p)
     p.set_defaults(handler=_train)
