@@ -112,6 +112,24 @@ def test_import_a_foreign_fingertip(tmp_path):
     assert res["presses"] == 40
 
 
+@pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [(500, 0.1, 80), (2000, 2.0, -80)])
+def test_import_finds_no_lag_in_a_noisy_pad_without_one(tmp_path, rate_hz, offset_s, drift_ppm):
+    """A foreign fingertip whose gratings follow the load without lag, read by a 500 Hz
+    interrogator with 8 pm of noise (tests/foreign.py ``rate500_nodrift``): the lag's fit
+    must not trade the start and end of each press for a lag the noise suggests."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS["rate500_nodrift"], load_cell_noise_N=0.005)
+    ds = fg.log(fg.device(spec, fg.device_seed("rate500_nodrift")), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=rate_hz, offset_s=offset_s,
+                              drift_ppm=drift_ppm, jitter_s=0.1 / rate_hz)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    assert _clock_error_ms(res, offset_s, drift_ppm, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    assert abs(res["alignment"]["lag_ms"]) < 0.6
+
+
 def test_import_pm_units_other_names_and_order(smoke, tmp_path):
     """Wavelengths in pm, force in mN, position in µm, columns renamed and shuffled, extra
     columns, tab-separated stage log: through flags (no map) the same dataset comes back."""
