@@ -746,12 +746,14 @@ def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a:
         weight = 1.0 / max(float(yr @ yr) / max(int(sel.sum()) - basis.shape[1] - 2, 1), 1e-12)
         decays = None
         if tail_shares is not None:
-            tail = _lag_decays(ts[sel]) @ (_lag_starts(ts[sel], local, 0.0) * tail_shares)
+            decays = _lag_decays(ts[sel])
+            tail = decays @ (_lag_starts(ts[sel], local, 0.0) * tail_shares)
             seen = tail - basis @ (basis.T @ tail)
             if weight * float(seen @ seen) >= TAIL_VISIBLE:
-                decays = _lag_decays(ts[sel])
                 basis = _press_terms(w.t[sel], tail)
                 y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
+            else:
+                decays = None
         prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local, weight, decays))
     rss = np.empty(shifts.size)
     shares = np.zeros((shifts.size, n_lag))
