@@ -82,6 +82,10 @@ FLANK_REST_S = 0.06
 LAG_TIME_CONSTANTS_S = (0.03, 0.1, 0.3, 1.0)
 LAG_SEARCH_S = 0.01
 LAG_STEP_S = 0.0005
+#: The creep the presses before left gets a scale of each press's own only where, at the
+#: press's own scale, its sum of squares is at least this many times the press's noise
+#: variance (:func:`_lag_fit`): a free scale on a tail the noise hides fits the noise.
+TAIL_VISIBLE = 1.0
 #: Presses lighter than this are not used to align (too little signal above the noise).
 ALIGN_MIN_PEAK_N = 0.5
 MIN_ALIGN_PRESSES = 3
@@ -575,16 +579,13 @@ def _flanks(t_stage: np.ndarray, force: np.ndarray, press: _Press
             ~rising & (force < UNLOAD_FRACTION * press.peak_N))
 
 
-def _press_terms(t: np.ndarray, t0: float, creep: bool = True) -> np.ndarray:
+def _press_terms(t: np.ndarray, tail: np.ndarray | None = None) -> np.ndarray:
     """An orthonormal basis (columns) of what a press's gratings read besides its own load:
-    a level and a slope in time (temperature) and, with ``creep``, the creep the presses
-    before left in the pad, decaying from ``t0`` (the press's first sample) with each time
-    constant of :data:`LAG_TIME_CONSTANTS_S` (left at the previous press's place, so at a
-    scale of its own)."""
-    el = t - t0
-    taus = LAG_TIME_CONSTANTS_S if creep else ()
+    a level and a slope in time (temperature) and, when given, ``tail``: the creep the
+    presses before left in the pad (left at another place, so at a scale of its own)."""
+    el = t - t[0]
     cols = np.column_stack([np.ones(t.size), el / max(float(el[-1]), 1e-9),
-                            *(np.exp(-el / tau) for tau in taus)])
+                            *(() if tail is None else (tail,))])
     u, sv, _ = np.linalg.svd(cols, full_matrices=False)
     return u[:, sv > 1e-9 * sv[0]]
 
@@ -607,10 +608,10 @@ def _fine(t: np.ndarray, signal: np.ndarray, stage: StageLog, press: _Press, tau
     sel = load | unload
     # One level and slope in time over the press (temperature, the creep of the press
     # before), set by the rests on both sides, and one gain per flank (the pad's loop). They
-    # are projected out of both sides, leaving a 2x2 problem per offset. (The creep's own
+    # are projected out of both sides, leaving a 2x2 problem per offset. (The lag's own
     # terms would take the lag out here too, at the cost of most of each press's precision:
     # the drift keeps it, the level is left to _lag_fit.)
-    basis = _press_terms(t[sel], float(t[0]), creep=False)
+    basis = _press_terms(t[sel])
     y = signal[sel] - basis @ (basis.T @ signal[sel])
     cols = []
     for m in (load[sel], unload[sel]):
@@ -688,49 +689,85 @@ def _flank_basis(ts: np.ndarray, basis: np.ndarray, load: np.ndarray, unload: np
     return np.linalg.qr(gains)[0]
 
 
+def _lag_decays(ts: np.ndarray) -> np.ndarray:
+    """The free decay of each lag of :data:`LAG_TIME_CONSTANTS_S` over a press's samples
+    ``ts`` (columns), one at its first sample."""
+    return np.exp(-(ts - ts[0])[:, None] / np.asarray(LAG_TIME_CONSTANTS_S))
+
+
+def _lag_starts(ts: np.ndarray, local: np.ndarray, shift: float) -> np.ndarray:
+    """The lagged loads (``local[2:]``) at a press's first sample ``ts[0] + shift``: with
+    :func:`_lag_decays`, what the presses before left in them over the press (a first-order
+    lag is linear: the lagged load is that decay plus its response to the press's own load
+    from rest)."""
+    return np.array([np.interp(ts[0] + shift, local[0], lag) for lag in local[2:]])
+
+
 def _lag_fit(windows: list[_Window], stage: StageLog, lags: list[np.ndarray], a: float,
-             d: float, t_ref: float) -> tuple[float, np.ndarray]:
+             d: float, t_ref: float, tail_shares: np.ndarray | None = None
+             ) -> tuple[float, np.ndarray]:
     """The clock's level and the pad's lag, fitted together over every timed press.
 
     The gratings are modelled, press by press, as a gain per flank times the load plus
     shares of the lagged loads ``lags`` (one share each for the whole log: it is one pad),
-    with the press's own terms (:func:`_press_terms`: a level and slope in time, and the
-    creep left by the presses before at a scale of its own). The clock's level is shifted over
-    ± :data:`LAG_SEARCH_S` from the line ``a + d (t - t_ref)``; the shift of least weighted
-    squares (each press weighted by its residual variance without lag) is returned with the
-    shares. The shares are not negative: the gratings lag the load (their response to a step
-    of load rises to its final value without overshoot), they never lead it. A lag moves a
-    flank as a delay would, but not the start of a press, nor the rest after it (where the
-    creep shows alone): those set the level."""
+    with the press's own level and slope in time (:func:`_press_terms`). The clock's level
+    is shifted over ± :data:`LAG_SEARCH_S` from the line ``a + d (t - t_ref)``; the shift of
+    least weighted squares (each press weighted by its residual variance without lag) is
+    returned with the shares. The shares are not negative: the gratings lag the load (their
+    response to a step of load rises to its final value without overshoot), they never lead
+    it. A lag moves a flank as a delay would, but not the start of a press, nor the rest
+    after it (where the creep shows alone): those set the level.
+
+    The lagged loads run over the whole stage log, so they hold the creep the presses before
+    left, at the press's own scale. Those presses loaded other places, which each press's
+    combination of gratings weighs otherwise: given ``tail_shares`` (the shares of a fit
+    without them), a press on which that creep (the lags' decays from its first sample,
+    :func:`_lag_decays`, weighted by ``tail_shares``) stands above its noise
+    (:data:`TAIL_VISIBLE`) takes it as a term of its own scale, its lagged loads keeping the
+    response to its own load. One term of a known shape and only where it shows: a free
+    decay per time constant on every press takes most of what sets the level from a pad that
+    does not creep (a millisecond of level on a noisy log)."""
     shifts = np.arange(-LAG_SEARCH_S, LAG_SEARCH_S + LAG_STEP_S / 2, LAG_STEP_S)
     n_lag = len(lags)
     prepared = []
     for w in windows:
         ts = w.t + a + d * (w.t - t_ref)
         sel = w.load | w.unload
-        basis = _press_terms(w.t[sel], float(w.t[0]))
         # The stage samples this press can reach, copied once: the search interpolates in
         # them many times over.
         j0, j1 = np.searchsorted(stage.t, [ts[0] - 2 * LAG_SEARCH_S, ts[-1] + 2 * LAG_SEARCH_S])
         j0, j1 = max(j0 - 1, 0), min(j1 + 1, stage.t.size)
         local = np.array([stage.t[j0:j1], stage.force_N[j0:j1], *(g[j0:j1] for g in lags)])
+        basis = _press_terms(w.t[sel])
         y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
         # Weighted by its residual variance on the line without lag.
         q = _flank_basis(ts[sel], basis, w.load[sel], w.unload[sel], local, 0.0)
         yr = y - q @ (q.T @ y)
         weight = 1.0 / max(float(yr @ yr) / max(int(sel.sum()) - basis.shape[1] - 2, 1), 1e-12)
-        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local, weight))
+        decays = None
+        if tail_shares is not None:
+            decays = _lag_decays(ts[sel])
+            tail = decays @ (_lag_starts(ts[sel], local, 0.0) * tail_shares)
+            seen = tail - basis @ (basis.T @ tail)
+            if weight * float(seen @ seen) >= TAIL_VISIBLE:
+                basis = _press_terms(w.t[sel], tail)
+                y = w.signal[sel] - basis @ (basis.T @ w.signal[sel])
+            else:
+                decays = None
+        prepared.append((ts[sel], basis, y, w.load[sel], w.unload[sel], local, weight, decays))
     rss = np.empty(shifts.size)
     shares = np.zeros((shifts.size, n_lag))
     for i, shift in enumerate(shifts):
         za = np.zeros((n_lag, n_lag))
         zb = np.zeros(n_lag)
         yy = 0.0
-        for ts, basis, y, load, unload, local, weight in prepared:
+        for ts, basis, y, load, unload, local, weight, decays in prepared:
             q = _flank_basis(ts, basis, load, unload, local, shift)
             f = np.interp(ts + shift, local[0], local[1])
             yr = y - q @ (q.T @ y)
             z = np.column_stack([np.interp(ts + shift, local[0], lag) - f for lag in local[2:]])
+            if decays is not None:
+                z -= decays * _lag_starts(ts, local, shift)
             z -= basis @ (basis.T @ z)
             zr = z - q @ (q.T @ z)
             za += weight * zr.T @ zr
@@ -844,8 +881,12 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
     # lag, by about as much all through the log, so the line's drift holds and its level
     # does not. The level comes from the lag's shares fitted with it over every press.
     lags = [first_order_lag(stage.t, stage.force_N, tau) for tau in LAG_TIME_CONSTANTS_S]
-    shift, shares = _lag_fit([w for w, u in zip(windows, use) if u], stage, lags, a_flanks,
-                             d, t_ref)
+    # Fitted twice when the pad lags: the creep the presses before left is then known in
+    # shape (the first fit's shares), and takes a scale of each press's own where it shows.
+    on_line = [w for w, u in zip(windows, use) if u]
+    shift, shares = _lag_fit(on_line, stage, lags, a_flanks, d, t_ref)
+    if shares.any():
+        shift, shares = _lag_fit(on_line, stage, lags, a_flanks, d, t_ref, tail_shares=shares)
     a = a_flanks + shift
     table = np.column_stack([arr, use])
     return Alignment(offset_s=a, drift=d, t_ref_s=t_ref, correlation=r1, second_peak=r2,

@@ -522,6 +522,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stage-rate-hz", type=float, default=500.0)
     ap.add_argument("--stage-offset-s", type=float, default=0.1)
     ap.add_argument("--stage-drift-ppm", type=float, default=80.0)
+    ap.add_argument("--seed", type=int, default=1,
+                    help="with --lab-logs: the seed of the log (its presses and noise; "
+                         "default 1, the first log of each variant)")
     args = ap.parse_args(argv)
     unknown = [v for v in args.variants if v not in ALL_VARIANTS]
     if unknown:
@@ -535,7 +538,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in args.variants or list(VARIANTS):
             spec = replace(ALL_VARIANTS[name], load_cell_noise_N=0.005)
             n_press = min(args.presses, spec.presses_max or args.presses)
-            ds = log(device(spec, device_seed(name)), 1, n_press)
+            ds = log(device(spec, device_seed(name)), args.seed, n_press)
             where = Path(args.out) / name
             write_lab_logs(ds, where, rate_hz=args.stage_rate_hz, offset_s=args.stage_offset_s,
                            drift_ppm=args.stage_drift_ppm, jitter_s=0.1 / args.stage_rate_hz)

@@ -112,6 +112,52 @@ def test_import_a_foreign_fingertip(tmp_path):
     assert res["presses"] == 40
 
 
+@pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [(500, 0.1, 80), (2000, 2.0, -80)])
+def test_import_finds_no_lag_in_a_noisy_pad_without_one(tmp_path, rate_hz, offset_s, drift_ppm):
+    """A foreign fingertip whose gratings follow the load without lag, read by a 500 Hz
+    interrogator with 8 pm of noise (tests/foreign.py ``rate500_nodrift``): the lag's fit
+    must not trade the start and end of each press for a lag the noise suggests."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS["rate500_nodrift"], load_cell_noise_N=0.005)
+    ds = fg.log(fg.device(spec, fg.device_seed("rate500_nodrift")), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=rate_hz, offset_s=offset_s,
+                              drift_ppm=drift_ppm, jitter_s=0.1 / rate_hz)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    assert _clock_error_ms(res, offset_s, drift_ppm, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    assert abs(res["alignment"]["lag_ms"]) < 0.6
+
+
+def test_bench_lab_clock_measures_the_import_against_the_true_clock(smoke, tmp_path, capsys):
+    """bench/bench_lab_clock.py: the import's clock error at both ends against clock.json or
+    the flags (the errors the import's own offset and drift give), one line and exit 2 when
+    the true clock is missing."""
+    from fbgforce.bench import bench_lab_clock as bench
+
+    write_lab_logs(smoke, tmp_path / "lab", rate_hz=500, offset_s=0.1, drift_ppm=80,
+                   jitter_s=1e-4)
+    (tmp_path / "lab" / "clock.json").write_text('{"offset_s": 0.1, "drift_ppm": 80}')
+    assert bench.main([str(tmp_path / "lab"), "--json", str(tmp_path / "c.json")]) == 0
+    row = json.loads((tmp_path / "c.json").read_text())["logs"][0]
+    res = _import(tmp_path / "lab")
+    assert row["error_start_ms"] == pytest.approx(1e3 * (res["offset_s"] - 0.1))
+    assert max(abs(row["error_start_ms"]), abs(row["error_end_ms"])) == pytest.approx(
+        _clock_error_ms(res, 0.1, 80, smoke.t_s[-1] - smoke.t_s[0]))
+    assert bench.main([str(tmp_path / "lab"), "--offset-s", "0.101", "--drift-ppm", "80",
+                       "--json", str(tmp_path / "d.json")]) == 0
+    shifted = json.loads((tmp_path / "d.json").read_text())["logs"][0]
+    assert shifted["error_start_ms"] == pytest.approx(row["error_start_ms"] - 1.0)
+    (tmp_path / "lab" / "clock.json").unlink()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        bench.main([str(tmp_path / "lab")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "clock.json" in err[0] and "--offset-s" in err[0]
+
+
 def test_import_pm_units_other_names_and_order(smoke, tmp_path):
     """Wavelengths in pm, force in mN, position in µm, columns renamed and shuffled, extra
     columns, tab-separated stage log: through flags (no map) the same dataset comes back."""
