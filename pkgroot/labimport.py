@@ -19,7 +19,8 @@ Steps (:func:`import_logs`):
    (a causal response of unknown shape: non-negative shares of first-order lags of the load
    over a range of time constants) fitted over the whole log together with it;
 3. force and position are interpolated onto the interrogator's samples (:func:`stage_at`),
-   contact is labelled by the dataset's rule (:func:`label_contact`) and presses numbered as
+   contact is labelled by the dataset's rule, raised above a noisy load cell's noise
+   (:func:`label_contact`, :func:`contact_threshold`), and presses numbered as
    the simulator numbers them (:func:`number_presses`);
 4. the dataset is written chunk by chunk (:class:`fbgforce.dataset.CsvWriter`).
 """
@@ -29,6 +30,7 @@ import sys
 import time
 import tomllib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Iterator, Mapping, Protocol
 
@@ -100,6 +102,10 @@ PRESS_MERGE_GAP_S = 0.05
 PRESS_MIN_S = 0.01
 #: A press's unloading has ended once the load is within this of zero, N.
 REST_BAND_N = 0.1 * fds.CONTACT_THRESHOLD_N
+#: Contact is labelled above the dataset's threshold or this many standard deviations of the
+#: load cell's noise, whichever is higher (:func:`contact_threshold`): at 5 a sample at rest
+#: reads as contact once in 3.5 million.
+LOAD_CELL_NOISE_SIGMAS = 5.0
 
 
 # ------------------------------------------------------------------------------ the mapping
@@ -296,6 +302,19 @@ class StageLog:
     y_mm: np.ndarray
     line: np.ndarray
     path: str = "<stage>"
+
+    @cached_property
+    def noise_N(self) -> float:
+        """The load cell's noise (standard deviation, N), from the second differences of the
+        force: they cancel the slow loads of presses and rests alike, so their median absolute
+        value is the noise's, whatever share of the log is pressed."""
+        d2 = np.diff(np.asarray(self.force_N, dtype=np.float64), 2)
+        return float(1.4826 * np.median(np.abs(d2)) / np.sqrt(6.0)) if d2.size else 0.0
+
+    @property
+    def contact_threshold_N(self) -> float:
+        """:func:`contact_threshold` of this log's load cell."""
+        return contact_threshold(self.noise_N)
 
 
 class FbgSource(Protocol):
@@ -508,7 +527,7 @@ def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _stage_presses(stage: StageLog) -> list[_Press]:
-    starts, stops = _press_runs(stage.t, label_contact(stage.force_N))
+    starts, stops = _press_runs(stage.t, label_contact(stage.force_N, stage.contact_threshold_N))
     out = []
     for a, b in zip(starts, stops):
         k = a + int(np.argmax(stage.force_N[a:b]))
@@ -916,10 +935,19 @@ def stage_at(stage: StageLog, t_stage: np.ndarray, gap_s: float
 DROP_REASONS = {1: "before_stage_log", 2: "after_stage_log", 3: "stage_gap", 4: "bad_wavelength"}
 
 
-def label_contact(force_N: np.ndarray) -> np.ndarray:
-    """The dataset's contact rule: the load cell above
-    :data:`fbgforce.dataset.CONTACT_THRESHOLD_N` (as the simulator labels)."""
-    return np.asarray(force_N) > fds.CONTACT_THRESHOLD_N
+def contact_threshold(noise_N: float) -> float:
+    """The load above which a sample is labelled contact, N: the dataset's rule,
+    :data:`fbgforce.dataset.CONTACT_THRESHOLD_N` (as the simulator labels), raised to
+    :data:`LOAD_CELL_NOISE_SIGMAS` times a noisier load cell's noise ``noise_N``, so that its
+    noise at rest is not labelled as touches."""
+    return max(fds.CONTACT_THRESHOLD_N, LOAD_CELL_NOISE_SIGMAS * float(noise_N))
+
+
+def label_contact(force_N: np.ndarray, threshold_N: float = fds.CONTACT_THRESHOLD_N
+                  ) -> np.ndarray:
+    """Contact where the load cell reads above ``threshold_N`` (default the dataset's rule;
+    the import passes :func:`contact_threshold` of its load cell)."""
+    return np.asarray(force_N) > threshold_N
 
 
 def _press_runs(t: np.ndarray, contact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -935,14 +963,15 @@ def _press_runs(t: np.ndarray, contact: np.ndarray) -> tuple[np.ndarray, np.ndar
     return starts[long], stops[long]
 
 
-def number_presses(t: np.ndarray, force_N: np.ndarray) -> np.ndarray:
+def number_presses(t: np.ndarray, force_N: np.ndarray,
+                   threshold_N: float = fds.CONTACT_THRESHOLD_N) -> np.ndarray:
     """Press ids as the simulator gives them, counting from 0: a press is its rest, its
     contact and the end of its unloading, which runs past the last contact sample to the
     first sample where the load stops falling or is within :data:`REST_BAND_N` of zero (the
     load back at rest). The samples after that carry the next press's id; those after the
-    last press keep its id."""
+    last press keep its id. ``threshold_N``: the contact threshold (:func:`label_contact`)."""
     force = np.asarray(force_N, dtype=np.float64)
-    starts, stops = _press_runs(t, label_contact(force))
+    starts, stops = _press_runs(t, label_contact(force, threshold_N))
     if starts.size == 0:
         return np.zeros(t.size, dtype=np.int64)
     # Where the load is back at rest: it stops falling, or it is all but zero.
@@ -973,10 +1002,11 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         raise InputError(f"force {stage.force_N[i]:g} N below {fds.FORCE_NEGATIVE_LIMIT_N:g} N "
                          "(sign or tare error, or the wrong --force-unit)", path=stage.path,
                          line=int(stage.line[i]), column="force")
+    threshold = stage.contact_threshold_N
     rest = float(np.percentile(stage.force_N, 5))
-    if rest > fds.CONTACT_THRESHOLD_N:
+    if rest > threshold:
         raise InputError(f"the load cell reads {rest:.3g} N or more for 95 % of the log: tare "
-                         f"it (contact is a force above {fds.CONTACT_THRESHOLD_N:g} N)",
+                         f"it (contact is a force above {threshold:.3g} N)",
                          path=stage.path, column="force")
     # Pass 1: times and the strain proxy (the wavelength table is not kept).
     ts, strains, goods, lines = [], [], [], []
@@ -1014,11 +1044,11 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
     force, _, _, reason = stage_at(stage, al.to_stage(t_f), gap_s)
     reason[(reason == 0) & ~good] = 4
     keep = reason == 0
-    if not label_contact(force[keep]).any():
+    if not label_contact(force[keep], threshold).any():
         raise InputError("no presses: no interrogator sample meets a load above "
-                         f"{fds.CONTACT_THRESHOLD_N:g} N after alignment", path=where)
+                         f"{threshold:.3g} N after alignment", path=where)
     press = np.zeros(t_f.size, dtype=np.int64)
-    press[keep] = number_presses(t_f[keep], force[keep])
+    press[keep] = number_presses(t_f[keep], force[keep], threshold)
     del force, strain
     # Pass 2: resample and write chunk by chunk.
     source = (f"import: {fbg.path} + {stage.path} offset={al.offset_s:.6f}s "
@@ -1032,7 +1062,7 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
             start += t.size
             k = keep[sl]
             f, x, y, _ = stage_at(stage, al.to_stage(t[k]), gap_s)
-            c = label_contact(f)
+            c = label_contact(f, threshold)
             writer.write(fds.Dataset(t_s=t[k], wl_nm=wl[k], contact=c,
                                      x_mm=np.where(c, x, np.nan), y_mm=np.where(c, y, np.nan),
                                      force_N=f, press_id=press[sl][k], source=source))
@@ -1049,6 +1079,7 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         "stage": {"file": stage.path, "rows": int(stage.t.size),
                   "rate_hz": (stage.t.size - 1) / float(stage.t[-1] - stage.t[0])},
         "dropped": dropped,
+        "load_cell_noise_N": stage.noise_N, "contact_threshold_N": threshold,
         "seconds": round(time.perf_counter() - t_start, 3),
     }
 

@@ -112,6 +112,34 @@ def test_import_a_foreign_fingertip(tmp_path):
     assert res["presses"] == 40
 
 
+def test_a_noisy_load_cell_labels_no_touch_at_rest(tmp_path):
+    """A load cell with 30 mN of noise (tests/foreign.py's default) reads above the dataset's
+    50 mN on 5 % of the samples at rest; the import raises the contact threshold to five times
+    the noise it measures, so the rests carry no contact label."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS["hysteretic_pad"], load_cell_noise_N=0.03)
+    ds = fg.log(fg.device(spec, fg.device_seed("hysteretic_pad")), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80,
+                              jitter_s=1e-4)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    assert res["load_cell_noise_N"] == pytest.approx(0.03, rel=0.3)
+    assert res["contact_threshold_N"] == pytest.approx(5 * res["load_cell_noise_N"])
+    out = dataset.load(tmp_path / "out.csv")
+    force = np.asarray(out.force_N)
+    # Contact runs away from every press (more than 0.1 s from any load above 0.3 N, ten
+    # times the noise): none, where the dataset's 50 mN labels more than ten.
+    near = np.convolve(force > 0.3, np.ones(2 * int(0.1 * 1000) + 1), "same") > 0
+    assert li._runs(np.asarray(out.contact, dtype=bool) & ~near)[0].size == 0
+    assert li._runs(li.label_contact(force) & ~near)[0].size > 10
+    assert res["presses"] == 40
+    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    # A quiet load cell keeps the dataset's rule.
+    assert li.contact_threshold(0.005) == dataset.CONTACT_THRESHOLD_N
+
+
 @pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [(500, 0.1, 80), (2000, 2.0, -80)])
 def test_import_finds_no_lag_in_a_noisy_pad_without_one(tmp_path, rate_hz, offset_s, drift_ppm):
     """A foreign fingertip whose gratings follow the load without lag, read by a 500 Hz
