@@ -95,20 +95,29 @@ def test_import_clock_is_free_of_the_pads_lag(tmp_path, magnitude, time_constant
     assert res["alignment"]["lag_ms"] > 1.0          # the lag was there, and taken out
 
 
+def _import_foreign(tmp_path: Path, variant: str, load_cell_noise_N: float, *,
+                    rate_hz: float = 500, offset_s: float = 0.1, drift_ppm: float = 80,
+                    jitter_s: float = 1e-4) -> tuple[dict, float]:
+    """Import the lab logs of 40 presses of a tests/foreign.py fingertip (seed 1); returns
+    the import's summary and the clock error (ms, :func:`_clock_error_ms`)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.VARIANTS[variant], load_cell_noise_N=load_cell_noise_N)
+    ds = fg.log(fg.device(spec, fg.device_seed(variant)), 1, 40)
+    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=rate_hz, offset_s=offset_s,
+                              drift_ppm=drift_ppm, jitter_s=jitter_s)
+    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
+                          progress=False)
+    return res, _clock_error_ms(res, offset_s, drift_ppm, ds.t_s[-1] - ds.t_s[0])
+
+
 def test_import_a_foreign_fingertip(tmp_path):
     """Logs from a fingertip the simulator does not make (tests/foreign.py: gratings stretched
     by the load, a pad relaxing 8 % with 50 ms and rubbing 12 %, peaks in pm in its own
     column order, a tab-separated stage log in mN and µm)."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    import foreign as fg
-
-    spec = replace(fg.VARIANTS["hysteretic_pad"], load_cell_noise_N=0.005)
-    ds = fg.log(fg.device(spec, fg.device_seed("hysteretic_pad")), 1, 40)
-    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80,
-                              jitter_s=1e-4)
-    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
-                          progress=False)
-    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    res, clock_ms = _import_foreign(tmp_path, "hysteretic_pad", 0.005)
+    assert clock_ms <= 1.0
     assert res["presses"] == 40
 
 
@@ -116,15 +125,7 @@ def test_a_noisy_load_cell_labels_no_touch_at_rest(tmp_path):
     """A load cell with 30 mN of noise (tests/foreign.py's default) reads above the dataset's
     50 mN on 5 % of the samples at rest; the import raises the contact threshold to five times
     the noise it measures, so the rests carry no contact label."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    import foreign as fg
-
-    spec = replace(fg.VARIANTS["hysteretic_pad"], load_cell_noise_N=0.03)
-    ds = fg.log(fg.device(spec, fg.device_seed("hysteretic_pad")), 1, 40)
-    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80,
-                              jitter_s=1e-4)
-    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
-                          progress=False)
+    res, clock_ms = _import_foreign(tmp_path, "hysteretic_pad", 0.03)
     assert res["load_cell_noise_N"] == pytest.approx(0.03, rel=0.3)
     assert res["contact_threshold_N"] == pytest.approx(5 * res["load_cell_noise_N"])
     out = dataset.load(tmp_path / "out.csv")
@@ -134,8 +135,7 @@ def test_a_noisy_load_cell_labels_no_touch_at_rest(tmp_path):
     near = np.convolve(force > 0.3, np.ones(2 * int(0.1 * 1000) + 1), "same") > 0
     assert li._runs(np.asarray(out.contact, dtype=bool) & ~near)[0].size == 0
     assert li._runs(li.label_contact(force) & ~near)[0].size > 10
-    assert res["presses"] == 40
-    assert _clock_error_ms(res, 0.1, 80, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    assert res["presses"] == 40 and clock_ms <= 1.0
     # A quiet load cell keeps the dataset's rule.
     assert li.contact_threshold(0.005) == dataset.CONTACT_THRESHOLD_N
 
@@ -145,16 +145,10 @@ def test_import_finds_no_lag_in_a_noisy_pad_without_one(tmp_path, rate_hz, offse
     """A foreign fingertip whose gratings follow the load without lag, read by a 500 Hz
     interrogator with 8 pm of noise (tests/foreign.py ``rate500_nodrift``): the lag's fit
     must not trade the start and end of each press for a lag the noise suggests."""
-    sys.path.insert(0, str(Path(__file__).parent))
-    import foreign as fg
-
-    spec = replace(fg.VARIANTS["rate500_nodrift"], load_cell_noise_N=0.005)
-    ds = fg.log(fg.device(spec, fg.device_seed("rate500_nodrift")), 1, 40)
-    flags = fg.write_lab_logs(ds, tmp_path, rate_hz=rate_hz, offset_s=offset_s,
-                              drift_ppm=drift_ppm, jitter_s=0.1 / rate_hz)
-    res = li.import_files(li.make_spec(flags | {"out": str(tmp_path / "out.csv")}),
-                          progress=False)
-    assert _clock_error_ms(res, offset_s, drift_ppm, ds.t_s[-1] - ds.t_s[0]) <= 1.0
+    res, clock_ms = _import_foreign(tmp_path, "rate500_nodrift", 0.005, rate_hz=rate_hz,
+                                    offset_s=offset_s, drift_ppm=drift_ppm,
+                                    jitter_s=0.1 / rate_hz)
+    assert clock_ms <= 1.0
     assert abs(res["alignment"]["lag_ms"]) < 0.6
 
 
