@@ -32,6 +32,7 @@ reproducing its figures; it uses future samples and cannot be exported to the ru
 """
 from __future__ import annotations
 
+import functools
 import json
 import zipfile
 import zlib
@@ -159,18 +160,29 @@ def memory_attr(kind: contract.MemoryKind, param: contract.MemoryParam) -> str:
     return f"{kind.field(param)}s"
 
 
+@functools.lru_cache(maxsize=64)
+def _exp_average_weights(shift: int, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """The closed form's weights for blocks of ``block`` samples (read-only): made once per
+    shift and block length, since a stream fed sample by sample asks for the same ones at
+    every sample."""
+    alpha = 2.0 ** -shift
+    i = np.arange(block)
+    w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
+    decay = (1.0 - alpha) ** (i + 1)
+    w_full.setflags(write=False)
+    decay.setflags(write=False)
+    return w_full, decay
+
+
 def _exp_average(x: np.ndarray, shift: int, prev: np.ndarray) -> np.ndarray:
     """e[n] = e[n-1] + (x[n] - e[n-1]) / 2^shift along axis 0 of ``x`` (n, k) from ``prev``
     (k,): a first-order IIR. A blocked closed form keeps it exact to rounding and fast in
     numpy: within a block of 256 the powers of (1 - a) cannot underflow for the shifts allowed
     here."""
-    alpha = 2.0 ** -shift
     n = x.shape[0]
     e = np.empty_like(x)
     block = min(n, 256)
-    i = np.arange(block)
-    w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
-    decay = (1.0 - alpha) ** (i + 1)
+    w_full, decay = _exp_average_weights(shift, block)
     for start in range(0, n, block):
         seg = x[start:start + block]
         m = seg.shape[0]
