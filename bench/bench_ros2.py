@@ -62,7 +62,7 @@ import numpy as np
 
 from fbgforce.bench.bench_publish import small_model
 from fbgforce.errors import InputError
-from fbgforce.interrogator.publish import separate_cpus
+from fbgforce.interrogator.publish import pin_process, separate_cpus
 
 LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/>'
             '</Interfaces></General></Domain></CycloneDDS>')
@@ -76,7 +76,7 @@ def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any,
     if hasattr(os, "sched_setscheduler"):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     if cpus is not None:
-        os.sched_setaffinity(0, cpus)
+        pin_process(cpus)
     from cyclonedds.core import Policy, Qos
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
@@ -109,7 +109,7 @@ def _emulate(args: list[str], cpus: set[int] | None) -> None:
     from fbgforce.cli import main
 
     if cpus is not None:
-        os.sched_setaffinity(0, cpus)
+        pin_process(cpus)
     sys.stdout = open(os.devnull, "w")
     main(["emulate", *args])
 

@@ -379,6 +379,18 @@ class Outputs:
             pub.close()
 
 
+def pin_process(cpus: Collection[int]) -> None:
+    """Run every thread of this process, and the threads it starts later, on ``cpus`` alone
+    (the library threads already running, e.g. numpy's BLAS pool, keep their own CPUs when
+    only the calling thread is pinned)."""
+    tasks = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]
+    for task in tasks:
+        try:
+            os.sched_setaffinity(int(task), cpus)
+        except ProcessLookupError:  # a thread that ended meanwhile
+            pass
+
+
 def separate_cpus(cpu: int, *, publishing: bool) -> set[int]:
     """Pin the calling process (the estimator) to ``cpu`` and return the CPUs its publishing
     process is to run on: the others this process may use (``fbgforce stream --cpu``).
@@ -399,7 +411,7 @@ def separate_cpus(cpu: int, *, publishing: bool) -> set[int]:
     if publishing and not others:
         raise InputError(f"CPU {cpu} is the only one this process may run on: the publishing "
                          f"process needs another", column="--cpu")
-    os.sched_setaffinity(0, {cpu})
+    pin_process({cpu})
     return others
 
 
@@ -521,7 +533,7 @@ def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wak
     if cpus is not None:
         # Before the outputs open: the threads their libraries start inherit the CPUs.
         try:
-            os.sched_setaffinity(0, cpus)
+            pin_process(cpus)
         except OSError as exc:
             control.send(("error", (f"the publishing process cannot run on CPUs "
                                     f"{sorted(cpus)}: {exc.strerror}", "--cpu")))
