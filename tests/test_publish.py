@@ -374,6 +374,14 @@ def _udp_sink() -> tuple[socket.socket, str]:
     return sock, f"udp://127.0.0.1:{sock.getsockname()[1]}"
 
 
+def _publish_ten(pub: U.PublisherProcess, sock: socket.socket
+                 ) -> tuple[dict, list[np.void]]:
+    """Ten records through ``pub`` to the sink ``sock``: the summary and what arrived."""
+    pub.publish(_records(0, 10, time.monotonic_ns()))
+    summary = pub.finish()
+    return summary, _drain_sink(sock, 10)
+
+
 def _drain_sink(sock: socket.socket, n: int) -> list[np.void]:
     got = []
     while len(got) < n:
@@ -462,9 +470,7 @@ def test_publisher_process_outlives_the_stop_signals_of_its_process_group():
         for signum in (signal.SIGINT, signal.SIGTERM):
             os.kill(pub._child.pid, signum)
         time.sleep(0.2)
-        pub.publish(_records(0, 10, time.monotonic_ns()))
-        summary = pub.finish()
-        got = _drain_sink(sock, 10)
+        summary, got = _publish_ten(pub, sock)
     finally:
         pub.close()
         sock.close()
@@ -496,9 +502,7 @@ def test_publisher_process_runs_on_the_cpus_it_is_given(allowed_cpus):
     pub = U.PublisherProcess([url], cpus={cpu})
     try:
         assert {frozenset(c) for c in _thread_cpus(pub._child.pid)} == {frozenset({cpu})}
-        pub.publish(_records(0, 10, time.monotonic_ns()))
-        summary = pub.finish()
-        got = _drain_sink(sock, 10)
+        summary, got = _publish_ten(pub, sock)
     finally:
         pub.close()
         sock.close()
