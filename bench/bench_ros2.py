@@ -28,8 +28,7 @@
    ``/proc`` (all threads of a process): the CPU time of the stream's process, of the
    publishing process and of the subscriber (``cpu us``: stream/publisher/subscriber), and
    the stream's involuntary context switches (``preempt``: per 1000 samples) and the
-   publishing process's voluntary ones (``wakes``: its wake-ups per sample), and how busy
-   each CPU was over the run (``busy %``, every process on the machine). Then per mode
+   publishing process's voluntary ones (``wakes``: its wake-ups per sample). Then per mode
    the medians over the rounds (median, min–max) and, per round, each mode's difference from
    the baselines ``off`` and ``listen`` of the same round and its ratio to ``off``, beside
    the run-to-run noise of the step without publishing: the differences between successive
@@ -180,18 +179,6 @@ def process_usage(pid: int) -> np.ndarray | None:
     return total
 
 
-def cpu_times() -> np.ndarray:
-    """Busy and total time of each CPU since boot (``/proc/stat``, clock ticks; idle and
-    I/O wait are not busy), shape (CPUs, 2)."""
-    rows = []
-    for line in Path("/proc/stat").read_text().splitlines():
-        name, *ticks = line.split()
-        if name.startswith("cpu") and name != "cpu":
-            t = np.array(ticks[:8], dtype=np.int64)
-            rows.append((t.sum() - t[3] - t[4], t.sum()))
-    return np.array(rows, dtype=np.int64)
-
-
 class _Accounted:
     """A publication whose :meth:`finish` first takes the processes' usage (the publishing
     process is gone after it)."""
@@ -247,7 +234,6 @@ def run_live(model: Path, seconds: float, rate: float, mode: str,
     reader = HyperionReader(f"hyperion://127.0.0.1:{cmd_port}?stream={stream_port}")
     estimator, steps = _timed_estimator(model)
     take_usage()
-    busy0 = cpu_times()
     try:
         summary = run_stream(reader, estimator, duration=seconds, start_timeout=60,
                              idle_timeout=2, status=False,
@@ -258,7 +244,6 @@ def run_live(model: Path, seconds: float, rate: float, mode: str,
         emu.join(30)
     if publication is None:
         take_usage()
-    busy = cpu_times() - busy0
     single = np.array([(w, c, r) for k, w, c, r in steps if k == 1], dtype=np.float64) / 1000.0
     lat = summary.get("publish_latency_us", dict.fromkeys(("p50", "p99", "max"), "-"))
     row: dict[str, Any] = {
@@ -269,10 +254,7 @@ def run_live(model: Path, seconds: float, rate: float, mode: str,
         "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
         "runtime_us_median": round(float(np.median(single[:, 2])), 1),
         "single_sample_steps": len(single),
-        "batch_sizes": dict(sorted(Counter(k for k, *_ in steps).most_common(4))),
-        # Every process's share, this bench's own included: on a shared machine, what the
-        # others ran shows as the busy share beyond the stream's, publisher's and subscriber's.
-        "cpu_busy_percent": [round(100.0 * b / max(t, 1)) for b, t in busy.tolist()]}
+        "batch_sizes": dict(sorted(Counter(k for k, *_ in steps).most_common(4)))}
     per_sample = 1.0 / max(summary["received"], 1)
     for k, (start, end) in ((k, v) for k, v in usage.items() if len(v) == 2):
         if start is not None and end is not None:
@@ -411,7 +393,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
               f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
               f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'cpu us':>15} {'preempt':>7} "
-              f"{'wakes':>5} {'busy %':>7} {'load':>5}")
+              f"{'wakes':>5} {'load':>5}")
         live = []
         for i in range(args.repeat):
             for mode in modes:
@@ -431,7 +413,6 @@ def main(argv: list[str] | None = None) -> int:
                       f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
                       f"{r['runtime_us_median']:>7} {cpu:>15} {preempt:>7.0f} "
                       f"{r.get('publisher_voluntary_switches_per_sample', dash):>5} "
-                      f"{'/'.join(map(str, r['cpu_busy_percent'])):>7} "
                       f"{r['load_average']:>5.1f}", flush=True)
         results["live"] = live
         if live:
