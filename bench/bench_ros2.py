@@ -1,8 +1,8 @@
 """ROS 2 goals (docs/ros2.md): live topics at 1 kHz and a 10-minute rosbag2 round trip.
 
     python -m fbgforce.bench.bench_ros2 [--model MODEL_DIR] [--seconds 60] [--rate 1000]
-                                        [--repeat 3] [--modes off,on,inline]
-                                        [--record-minutes 10] [--json FILE]
+                                        [--repeat 3] [--modes off,listen,on,inline]
+                                        [--cpu N] [--record-minutes 10] [--json FILE]
 
 1. **Live**: a virtual Hyperion plays the ``calibration`` scene on loopback TCP at ``--rate``
    in a child process; this process runs ``fbgforce stream``'s loop (fixed-point C runtime)
@@ -24,9 +24,19 @@
    and the estimator's step time: the median over the one-sample steps of wall time (``step
    us``), of the thread's CPU time (``step cpu``, which preemption by other processes does
    not inflate) and of the wall time inside ``Runtime.run_raw`` (``runtime``: the C call with
-   its cffi buffers; the rest of the step is the Python around it). Then per mode the medians
-   over the rounds (median, min–max) and, per round, each mode's difference from the
-   baselines ``off`` and ``listen`` of the same round.
+   its cffi buffers; the rest of the step is the Python around it). Per sample, from
+   ``/proc`` (all threads of a process): the CPU time of the stream's process, of the
+   publishing process and of the subscriber (``cpu us``: stream/publisher/subscriber), and
+   the stream's involuntary context switches (``preempt``: per 1000 samples) and the
+   publishing process's voluntary ones (``wakes``: its wake-ups per sample). Then per mode
+   the medians over the rounds (median, min–max) and, per round, each mode's difference from
+   the baselines ``off`` and ``listen`` of the same round and its ratio to ``off``, beside
+   the run-to-run noise of the step without publishing: the differences between successive
+   ``off`` runs (``--modes off,on,off`` gives two per round).
+
+   ``--cpu N`` runs the stream (the estimator) on CPU N alone and the publishing process,
+   the subscriber and the emulator on the other CPUs, as ``fbgforce stream --cpu N`` on a
+   host that keeps a core for the estimator.
 2. **Record**: ``--record-minutes`` of 1 kHz samples (the calibration scene, repeated) are
    written by the writer ``record --out LOG.mcap`` uses and read back by ``load_dataset``
    (rosbags); printed: messages, file size, write and read time, samples differing.
@@ -44,23 +54,29 @@ import socket
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from fbgforce.bench.bench_publish import small_model
+from fbgforce.errors import InputError
+from fbgforce.interrogator.publish import pin_process, separate_cpus
 
 LOOPBACK = ('<CycloneDDS><Domain><General><Interfaces><NetworkInterface name="lo"/>'
             '</Interfaces></General></Domain></CycloneDDS>')
 
 
-def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> None:
+def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any,
+               cpus: set[int] | None) -> None:
     """Child process: take every Contact on ``topic``; count received and out-of-order. At
     normal priority even when the bench runs under ``chrt``: the consumer is not part of the
     estimator's real-time loop."""
     if hasattr(os, "sched_setscheduler"):
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if cpus is not None:
+        pin_process(cpus)
     from cyclonedds.core import Policy, Qos
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
@@ -89,9 +105,11 @@ def _subscribe(domain: int, topic: str, ready: Any, stop: Any, result: Any) -> N
     result[:] = [received, reordered]
 
 
-def _emulate(args: list[str]) -> None:
+def _emulate(args: list[str], cpus: set[int] | None) -> None:
     from fbgforce.cli import main
 
+    if cpus is not None:
+        pin_process(cpus)
     sys.stdout = open(os.devnull, "w")
     main(["emulate", *args])
 
@@ -139,8 +157,47 @@ def _timed_estimator(model: Path) -> tuple[Any, list[tuple[int, int, int, int]]]
 MODES = ("off", "listen", "on", "inline")
 
 
-def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, Any]:
-    """One live run in ``mode`` (:data:`MODES`); the row printed for it."""
+def process_usage(pid: int) -> np.ndarray | None:
+    """CPU time (ns), voluntary and involuntary context switches of process ``pid``, summed
+    over its threads (``/proc/PID/task``); ``None`` where there is no such process."""
+    total = np.zeros(3, dtype=np.int64)
+    tick_ns = 1_000_000_000 // os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = os.listdir(f"/proc/{pid}/task")
+    except FileNotFoundError:
+        return None
+    for task in tasks:
+        try:
+            stat = Path(f"/proc/{pid}/task/{task}/stat").read_text().rsplit(")", 1)[1].split()
+            status = Path(f"/proc/{pid}/task/{task}/status").read_text().splitlines()
+        except FileNotFoundError:  # a thread that ended meanwhile
+            continue
+        switches = dict(line.split(":") for line in status if "ctxt_switches" in line)
+        total += (tick_ns * (int(stat[11]) + int(stat[12])),
+                  int(switches["voluntary_ctxt_switches"]),
+                  int(switches["nonvoluntary_ctxt_switches"]))
+    return total
+
+
+class _Accounted:
+    """A publication whose :meth:`finish` first takes the processes' usage (the publishing
+    process is gone after it)."""
+
+    def __init__(self, publication: Any, take: Any) -> None:
+        self.publication, self.take = publication, take
+
+    def publish(self, records: np.ndarray) -> None:
+        self.publication.publish(records)
+
+    def finish(self) -> dict[str, Any]:
+        self.take()
+        return self.publication.finish()
+
+
+def run_live(model: Path, seconds: float, rate: float, mode: str,
+             cpus: set[int] | None = None) -> dict[str, Any]:
+    """One live run in ``mode`` (:data:`MODES`); the row printed for it. ``cpus``: where
+    the emulator, the subscriber and the publishing process run (``--cpu``)."""
     from fbgforce.interrogator.hyperion import HyperionReader
     from fbgforce.interrogator.publish import Outputs, PublisherProcess
     from fbgforce.interrogator.ros2_dds import Ros2Publisher
@@ -151,7 +208,7 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
     emu = ctx.Process(target=_emulate, args=([
         "--scene", "calibration", "--seed", "0", "--rate", str(rate), "--duration",
         str(seconds + 1.0), "--linger", "0.5", "--protocol", "hyperion", "--command-port",
-        str(cmd_port), "--stream-port", str(stream_port)],))
+        str(cmd_port), "--stream-port", str(stream_port)], cpus))
     sub = None
     domain = 1 + os.getpid() % 200
     namespace = f"/fbgforce_bench_{os.getpid()}_{mode}"
@@ -159,20 +216,34 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
     if mode != "off":
         ready, stop, result = ctx.Event(), ctx.Event(), ctx.Array("q", 2)
         sub = ctx.Process(target=_subscribe, args=(domain, namespace + "/contact", ready, stop,
-                                                   result))
+                                                   result, cpus))
         sub.start()
         ready.wait(30)
-    publication: Any = (None if mode in ("off", "listen") else PublisherProcess([url])
-                        if mode == "on" else Outputs([Ros2Publisher(url)]))
+    publication: Any = (None if mode in ("off", "listen") else
+                        PublisherProcess([url], cpus=cpus) if mode == "on" else
+                        Outputs([Ros2Publisher(url)]))
+    pids = {"stream": os.getpid(), "subscriber": None if sub is None else sub.pid,
+            "publisher": publication._child.pid if mode == "on" else None}
+    usage: dict[str, list[Any]] = {k: [] for k, pid in pids.items() if pid is not None}
+
+    def take_usage() -> None:
+        for k in usage:
+            usage[k].append(process_usage(pids[k]))  # type: ignore[arg-type]
+
     emu.start()
     reader = HyperionReader(f"hyperion://127.0.0.1:{cmd_port}?stream={stream_port}")
     estimator, steps = _timed_estimator(model)
+    take_usage()
     try:
         summary = run_stream(reader, estimator, duration=seconds, start_timeout=60,
-                             idle_timeout=2, status=False, publication=publication)
+                             idle_timeout=2, status=False,
+                             publication=None if publication is None else
+                             _Accounted(publication, take_usage))
     finally:
         reader.close()
         emu.join(30)
+    if publication is None:
+        take_usage()
     single = np.array([(w, c, r) for k, w, c, r in steps if k == 1], dtype=np.float64) / 1000.0
     lat = summary.get("publish_latency_us", dict.fromkeys(("p50", "p99", "max"), "-"))
     row: dict[str, Any] = {
@@ -182,7 +253,15 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
         "step_wall_us_median": round(float(np.median(single[:, 0])), 1),
         "step_cpu_us_median": round(float(np.median(single[:, 1])), 1),
         "runtime_us_median": round(float(np.median(single[:, 2])), 1),
-        "single_sample_steps": len(single)}
+        "single_sample_steps": len(single),
+        "batch_sizes": dict(sorted(Counter(k for k, *_ in steps).most_common(4)))}
+    per_sample = 1.0 / max(summary["received"], 1)
+    for k, (start, end) in ((k, v) for k, v in usage.items() if len(v) == 2):
+        if start is not None and end is not None:
+            cpu_ns, voluntary, involuntary = (end - start).tolist()
+            row[f"{k}_cpu_us_per_sample"] = round(cpu_ns / 1000.0 * per_sample, 1)
+            row[f"{k}_voluntary_switches_per_sample"] = round(voluntary * per_sample, 3)
+            row[f"{k}_involuntary_switches_per_sample"] = round(involuntary * per_sample, 3)
     if sub is not None:
         time.sleep(1.0)  # let the subscriber drain
         stop.set()
@@ -198,27 +277,55 @@ def run_live(model: Path, seconds: float, rate: float, mode: str) -> dict[str, A
 
 
 BASELINES = ("off", "listen")
+STEP_KEYS = ("step_wall_us_median", "step_cpu_us_median", "runtime_us_median")
+
+
+def _spread(values: Any, digits: int = 1) -> list[float]:
+    """Median, min and max, rounded."""
+    v = np.asarray(values, dtype=np.float64)
+    return [round(float(np.median(v)), digits), round(float(v.min()), digits),
+            round(float(v.max()), digits)]
+
+
+def off_noise(live: list[dict[str, Any]]) -> dict[str, Any]:
+    """The run-to-run noise of the step without publishing: the differences between
+    successive ``off`` runs' step medians (``step_wall_us_differences``) and the largest of
+    them in size (``largest_us``; ``None`` with fewer than two ``off`` runs)."""
+    noise = np.diff([r["step_wall_us_median"] for r in live if r["mode"] == "off"])
+    return {"step_wall_us_differences": [round(float(d), 1) for d in noise],
+            "largest_us": round(float(np.abs(noise).max()), 1) if len(noise) else None}
 
 
 def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]:
-    """Per mode, the rounds' step medians (median, min, max), and its per-round difference
-    from each baseline mode run before it (``minus_off``, ``minus_listen``: median, min,
-    max), wall and thread CPU."""
+    """Per mode, the rounds' step medians (median, min, max), its per-round difference from
+    each baseline mode run before it (``minus_off``, ``minus_listen``: median, min, max) and
+    its per-round ratio to ``off`` (``step_wall_ratio_to_off``), wall and thread CPU; and
+    ``within_noise``: whether the median difference from ``off`` is no larger than the
+    largest run-to-run difference of ``off`` itself (:func:`off_noise`)."""
     out: dict[str, Any] = {}
-    for mode in modes:
+    largest = off_noise(live)["largest_us"]
+
+    def base_row(base: str, rnd: int) -> dict[str, Any] | None:
+        return next((r for r in live if r["mode"] == base and r["round"] == rnd), None)
+
+    for mode in dict.fromkeys(modes):
         rows = [r for r in live if r["mode"] == mode]
         entry: dict[str, Any] = {}
-        for key in ("step_wall_us_median", "step_cpu_us_median", "runtime_us_median"):
-            v = np.array([r[key] for r in rows])
-            entry[key] = [round(float(np.median(v)), 1), float(v.min()), float(v.max())]
-            # A baseline compares with the modes after it: listen with off, the rest with both.
-            later = BASELINES[:BASELINES.index(mode)] if mode in BASELINES else BASELINES
+        # A baseline compares with the modes after it: listen with off, the rest with both.
+        later = BASELINES[:BASELINES.index(mode)] if mode in BASELINES else BASELINES
+        for key in STEP_KEYS:
+            entry[key] = _spread([r[key] for r in rows])
             for base in (b for b in later if b in modes):
-                b = np.array([r[key] for r in live if r["mode"] == base])
-                d = v[:len(b)] - b[:len(v)]
-                entry[key.replace("median", f"minus_{base}")] = [
-                    round(float(np.median(d)), 1), round(float(d.min()), 1),
-                    round(float(d.max()), 1)]
+                pairs = [(r, base_row(base, r["round"])) for r in rows]
+                entry[key.replace("median", f"minus_{base}")] = _spread(
+                    [r[key] - b[key] for r, b in pairs if b is not None])
+        if mode != "off" and "off" in modes:
+            pairs = [(r, base_row("off", r["round"])) for r in rows]
+            entry["step_wall_ratio_to_off"] = _spread(
+                [r["step_wall_us_median"] / b["step_wall_us_median"] for r, b in pairs
+                 if b is not None], 3)
+            if largest is not None:
+                entry["within_noise"] = abs(entry["step_wall_us_minus_off"][0]) <= largest
         out[mode] = entry
     return out
 
@@ -265,32 +372,48 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--repeat", type=int, default=3, help="rounds of live runs, one per mode")
     ap.add_argument("--modes", default=",".join(MODES),
                     help=f"live modes in each round, comma-separated ({', '.join(MODES)})")
+    ap.add_argument("--cpu", type=int, metavar="N",
+                    help="run the stream on CPU N alone, everything else on the other CPUs")
     ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = ap.parse_args(argv)
     modes = [m for m in args.modes.split(",") if m]
     if not modes or set(modes) - set(MODES):
         ap.error(f"--modes: a comma-separated list of {', '.join(MODES)}")
     os.environ.setdefault("CYCLONEDDS_URI", LOOPBACK)
-    results: dict[str, Any] = {"load_average_start": os.getloadavg()[0]}
+    others = None
+    if args.cpu is not None:
+        try:
+            others = separate_cpus(args.cpu, publishing=True)
+        except InputError as exc:
+            ap.error(str(exc))
+    results: dict[str, Any] = {"load_average_start": os.getloadavg()[0], "cpu": args.cpu,
+                               "other_cpus": None if others is None else sorted(others)}
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model or small_model(Path(tmp))
         print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
               f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
-              f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'load':>5}")
+              f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'cpu us':>15} {'preempt':>7} "
+              f"{'wakes':>5} {'load':>5}")
         live = []
         for i in range(args.repeat):
             for mode in modes:
-                r = run_live(model, args.seconds, args.rate, mode)
+                r = run_live(model, args.seconds, args.rate, mode, others)
                 r["round"] = i + 1
                 r["load_average"] = os.getloadavg()[0]
                 live.append(r)
                 dash = "-"
+                cpu = "/".join(f"{r[f'{k}_cpu_us_per_sample']:.0f}"
+                               if f"{k}_cpu_us_per_sample" in r else dash
+                               for k in ("stream", "publisher", "subscriber"))
+                preempt = 1000 * r.get("stream_involuntary_switches_per_sample", 0)
                 print(f"{i + 1:>5} {mode:<6} {r['samples']:>8} "
                       f"{r.get('published', dash):>9} {r.get('received', dash):>9} "
                       f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
                       f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
                       f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
-                      f"{r['runtime_us_median']:>7} {r['load_average']:>5.1f}", flush=True)
+                      f"{r['runtime_us_median']:>7} {cpu:>15} {preempt:>7.0f} "
+                      f"{r.get('publisher_voluntary_switches_per_sample', dash):>5} "
+                      f"{r['load_average']:>5.1f}", flush=True)
         results["live"] = live
         if live:
             results["step"] = step_summary(live, modes)
@@ -306,6 +429,16 @@ def main(argv: list[str] | None = None) -> int:
                                  f"{e[f'step_cpu_us_minus_{base}']} | "
                                  f"{e[f'runtime_us_minus_{base}']}")
                 print(line)
+            noise = results["step_noise"] = off_noise(live)
+            if noise["largest_us"] is not None:
+                print(f"step without publishing, run to run (successive off runs): "
+                      f"{noise['step_wall_us_differences']} us")
+                for mode, e in results["step"].items():
+                    if "step_wall_ratio_to_off" in e:
+                        print(f"  {mode:<6} minus off {e['step_wall_us_minus_off']} us, "
+                              f"ratio {e['step_wall_ratio_to_off']}: "
+                              f"{'within' if e['within_noise'] else 'beyond'} the noise "
+                              f"(largest {noise['largest_us']} us)")
         if args.record_minutes > 0:
             rec = run_record(args.record_minutes, Path(tmp))
             results["record"] = rec

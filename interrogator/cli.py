@@ -144,6 +144,9 @@ def register(subparsers: Any) -> None:
                         "extra) or ros2:///NAMESPACE[?frame_id=ID&domain=N] (ROS 2 topics "
                         "NAMESPACE/wrench and NAMESPACE/contact, needs the [ros2] extra, "
                         "docs/ros2.md); may be repeated")
+    p.add_argument("--cpu", type=non_negative_int, metavar="N",
+                   help="run the estimator on CPU N alone and the publishing process on the "
+                        "other CPUs, so that they never take turns on one core (docs/ros2.md)")
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
     p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")
@@ -263,15 +266,17 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
     import time
 
     from fbgforce.interrogator.nodata import no_data_error
-    from fbgforce.interrogator.publish import PublisherProcess
+    from fbgforce.interrogator.publish import PublisherProcess, separate_cpus
     from fbgforce.interrogator.stream import N_GRATINGS, LiveEstimator, run_stream
 
     if args.channels < N_GRATINGS:
         raise InputError(f"the model reads {N_GRATINGS} gratings per sample (FBG 1..4 and T); "
                          f"frames of {args.channels} cannot feed it", column="--channels")
+    publish_cpus = None if args.cpu is None else \
+        sorted(separate_cpus(args.cpu, publishing=bool(args.publish)))
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
     # The outputs are open before the reader: a sample never waits for them to start.
-    publication = PublisherProcess(args.publish) if args.publish else None
+    publication = PublisherProcess(args.publish, cpus=publish_cpus) if args.publish else None
     try:
         reader = _open_reader(args, args.model, channels=args.channels)
         protocol = _protocol(args)
@@ -290,7 +295,8 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
         raise no_data_error(args.port, protocol, time.monotonic() - started,
                             reader.stats(), reader.link.last_error, baud=args.baud,
                             interrupted=result["interrupted"])
-    result = {"port": args.port, "protocol": protocol, **result}
+    result = {"port": args.port, "protocol": protocol, **result, "cpu": args.cpu,
+              "publish_cpus": publish_cpus if args.publish else None}
     if not args.json:
         print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
               f"{result['bad_frames']} bad frames" + (f", written to {args.out}" if args.out else ""),

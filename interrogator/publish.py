@@ -42,6 +42,12 @@ send. Nothing of the outputs (Python objects, DDS threads, sockets) then shares 
 estimator's interpreter, its lock or its caches, and a stalled or dead child costs the
 estimator nothing: a full ring refuses the newest records and counts them (``publish_dropped``).
 :class:`Outputs` is the same fan-out run in the caller's thread.
+
+The processes stay apart only if they do not take turns on one core: a core that runs the
+publishing process (and the DDS threads, the subscriber) between two samples hands the
+estimator cold caches, and its step slows by as much as the publishing adds in work
+(docs/ros2.md, "Where the step's time goes"). :func:`separate_cpus` gives the estimator a CPU
+of its own and the publishing process the others (``fbgforce stream --cpu N``).
 """
 from __future__ import annotations
 
@@ -53,7 +59,7 @@ import socket
 import time
 import weakref
 import zlib
-from typing import Any, Protocol, Sequence
+from typing import Any, Collection, Protocol, Sequence
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -373,6 +379,42 @@ class Outputs:
             pub.close()
 
 
+def pin_process(cpus: Collection[int]) -> None:
+    """Run every thread of this process, and the threads it starts later, on ``cpus`` alone
+    (the library threads already running, e.g. numpy's BLAS pool, keep their own CPUs when
+    only the calling thread is pinned)."""
+    tasks = os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else ["0"]
+    for task in tasks:
+        try:
+            os.sched_setaffinity(int(task), cpus)
+        except ProcessLookupError:  # a thread that ended meanwhile
+            pass
+
+
+def separate_cpus(cpu: int, *, publishing: bool) -> set[int]:
+    """Pin the calling process (the estimator) to ``cpu`` and return the CPUs its publishing
+    process is to run on: the others this process may use (``fbgforce stream --cpu``).
+
+    Raises
+    ------
+    InputError
+        ``cpu`` is not one this process may run on, the system cannot pin processes, or
+        (``publishing``) no CPU would be left for the publishing process.
+    """
+    if not hasattr(os, "sched_setaffinity"):
+        raise InputError("this system does not let a process choose its CPUs", column="--cpu")
+    allowed = os.sched_getaffinity(0)
+    if cpu not in allowed:
+        raise InputError(f"CPU {cpu} is not one this process may run on (allowed: "
+                         f"{', '.join(map(str, sorted(allowed)))})", column="--cpu")
+    others = allowed - {cpu}
+    if publishing and not others:
+        raise InputError(f"CPU {cpu} is the only one this process may run on: the publishing "
+                         f"process needs another", column="--cpu")
+    pin_process({cpu})
+    return others
+
+
 class PublisherProcess:
     """The outputs of ``urls`` (:func:`open_publishers`) run by a child process fed through a
     shared-memory ring of :data:`ESTIMATE_DTYPE` records (module docstring).
@@ -385,7 +427,8 @@ class PublisherProcess:
     last position to the count received, in order, and stores its position in the shared
     memory. It ignores SIGINT and SIGTERM (Ctrl-C and service managers signal the whole
     process group; the stream, stopping cleanly on them, then ends the child) and ends when
-    the pipe closes: at :meth:`finish`, or when this process ends in any way.
+    the pipe closes: at :meth:`finish`, or when this process ends in any way. With ``cpus``
+    the child runs on those CPUs alone, its outputs' threads included (:func:`separate_cpus`).
 
     Raises
     ------
@@ -395,7 +438,7 @@ class PublisherProcess:
     """
 
     def __init__(self, urls: Sequence[str], *, capacity: int = RING_RECORDS,
-                 start_timeout: float = 60.0) -> None:
+                 start_timeout: float = 60.0, cpus: Collection[int] | None = None) -> None:
         ctx = mp.get_context("spawn")  # a fork would copy the estimator's threads' state
         self.capacity = capacity
         ring = ctx.RawArray("b", capacity * ESTIMATE_DTYPE.itemsize)
@@ -404,7 +447,7 @@ class PublisherProcess:
         self._control, child_control = ctx.Pipe()
         self._child = ctx.Process(target=_serve_outputs, name="fbgforce-publish", daemon=True,
                                   args=(list(urls), ring, position, capacity, wake_rx,
-                                        child_control))
+                                        child_control, None if cpus is None else set(cpus)))
         self._child.start()
         wake_rx.close()
         child_control.close()
@@ -483,10 +526,18 @@ def _end_child(wake: Any, child: Any) -> None:
 
 
 def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wake: Any,
-                   control: Any) -> None:
+                   control: Any, cpus: set[int] | None) -> None:
     """The child of :class:`PublisherProcess`."""
     for signum in signals.STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
+    if cpus is not None:
+        # Before the outputs open: the threads their libraries start inherit the CPUs.
+        try:
+            pin_process(cpus)
+        except OSError as exc:
+            control.send(("error", (f"the publishing process cannot run on CPUs "
+                                    f"{sorted(cpus)}: {exc.strerror}", "--cpu")))
+            return
     try:
         outputs = Outputs(open_publishers(urls))
     except InputError as exc:

@@ -374,6 +374,14 @@ def _udp_sink() -> tuple[socket.socket, str]:
     return sock, f"udp://127.0.0.1:{sock.getsockname()[1]}"
 
 
+def _publish_ten(pub: U.PublisherProcess, sock: socket.socket
+                 ) -> tuple[dict, list[np.void]]:
+    """Ten records through ``pub`` to the sink ``sock``: the summary and what arrived."""
+    pub.publish(_records(0, 10, time.monotonic_ns()))
+    summary = pub.finish()
+    return summary, _drain_sink(sock, 10)
+
+
 def _drain_sink(sock: socket.socket, n: int) -> list[np.void]:
     got = []
     while len(got) < n:
@@ -462,11 +470,88 @@ def test_publisher_process_outlives_the_stop_signals_of_its_process_group():
         for signum in (signal.SIGINT, signal.SIGTERM):
             os.kill(pub._child.pid, signum)
         time.sleep(0.2)
-        pub.publish(_records(0, 10, time.monotonic_ns()))
-        summary = pub.finish()
-        got = _drain_sink(sock, 10)
+        summary, got = _publish_ten(pub, sock)
     finally:
         pub.close()
         sock.close()
     assert summary["published"][0]["sent"] == 10 and summary["publish_dropped"] == 0
     assert [int(r["sample_seq"]) for r in got] == list(range(10))
+
+
+needs_affinity = pytest.mark.skipif(not hasattr(os, "sched_setaffinity"),
+                                    reason="this system does not let a process choose its CPUs")
+
+
+def _thread_cpus(pid: int | str) -> list[set[int]]:
+    return [os.sched_getaffinity(int(t)) for t in os.listdir(f"/proc/{pid}/task")]
+
+
+@pytest.fixture
+def allowed_cpus():
+    """The CPUs this test process may run on, given back to it after the test (``stream
+    --cpu`` run in-process pins the process)."""
+    cpus = os.sched_getaffinity(0)
+    yield cpus
+    U.pin_process(cpus)
+
+
+@needs_affinity
+def test_publisher_process_runs_on_the_cpus_it_is_given(allowed_cpus):
+    cpu = max(allowed_cpus)
+    sock, url = _udp_sink()
+    pub = U.PublisherProcess([url], cpus={cpu})
+    try:
+        assert {frozenset(c) for c in _thread_cpus(pub._child.pid)} == {frozenset({cpu})}
+        summary, got = _publish_ten(pub, sock)
+    finally:
+        pub.close()
+        sock.close()
+    assert summary["published"][0]["sent"] == 10
+    assert [int(r["sample_seq"]) for r in got] == list(range(10))
+    assert all(c == allowed_cpus for c in _thread_cpus("self"))  # the caller stays as it was
+
+
+@needs_affinity
+def test_stream_cpu_keeps_the_estimator_and_the_publishing_process_apart(
+        allowed_cpus, small_exported_dir, capsys):
+    """``stream --cpu N``: the stream's process ends up on CPU N alone, the publishing process
+    on the other CPUs (both in the summary), and every estimate is published."""
+    if len(allowed_cpus) < 2:
+        pytest.skip("one CPU: nothing to keep apart")
+    cpu = min(allowed_cpus)
+    sock, url = _udp_sink()
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "5000", "--protocol",
+                        "hyperion", "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    try:
+        source = wait_for_line(em, "interrogator:")
+        code = main(["stream", "--source", source, "--model", str(small_exported_dir),
+                     "--samples", "1000", "--publish", url, "--cpu", str(cpu),
+                     "--start-timeout", "30", "--quiet", "--json"])
+        pinned = _thread_cpus("self")
+        summary = json.loads(capsys.readouterr().out)
+        got = _drain_sink(sock, 1000)
+    finally:
+        sock.close()
+        if em.poll() is None:
+            em.kill()
+            em.communicate()
+    assert code == 0 and all(c == {cpu} for c in pinned)
+    assert summary["cpu"] == cpu and summary["publish_cpus"] == sorted(allowed_cpus - {cpu})
+    assert summary["published"][0]["sent"] == 1000 and summary["publish_dropped"] == 0
+    assert [int(r["seq"]) for r in got] == list(range(1000))
+
+
+@needs_affinity
+def test_stream_cpu_it_cannot_use_exits_2_with_one_line(allowed_cpus, small_exported_dir,
+                                                        capsys):
+    model = str(small_exported_dir)
+    assert main(["stream", "--source", "loop://", "--model", model, "--cpu", "4096"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cpu: CPU 4096 is not one this process may run on" in err[0], err
+    assert all(c == allowed_cpus for c in _thread_cpus("self"))  # refused before pinning
+    cpu = min(allowed_cpus)
+    U.pin_process({cpu})
+    assert main(["stream", "--source", "loop://", "--model", model, "--cpu", str(cpu),
+                 "--publish", "udp://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--cpu: CPU {cpu} is the only one" in err[0], err

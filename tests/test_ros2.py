@@ -361,6 +361,44 @@ def test_stream_publishes_every_estimate_to_a_ros2_subscriber(dds, small_exporte
     assert np.allclose(w[pressed, 3] / w[pressed, 2], y[pressed], atol=1e-12)
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"),
+                    reason="this system does not let a process choose its CPUs")
+def test_the_publishing_process_keeps_its_dds_threads_on_its_cpus(dds):
+    """``stream --cpu``'s promise for ROS 2: Cyclone DDS's threads, started by the publishing
+    process, run on its CPUs alone, never on the estimator's."""
+    from fbgforce.interrogator.publish import PublisherProcess
+
+    cpu = max(os.sched_getaffinity(0))
+    pub = PublisherProcess([f"ros2:///fbgforce_cpus_{os.getpid()}?domain={dds}"], cpus={cpu})
+    try:
+        tasks = os.listdir(f"/proc/{pub._child.pid}/task")
+        cpus = [os.sched_getaffinity(int(t)) for t in tasks]
+    finally:
+        pub.close()
+    assert len(tasks) > 2  # the interpreter, and Cyclone DDS's own threads
+    assert cpus == [{cpu}] * len(tasks)
+
+
+def test_bench_judges_the_step_against_the_noise_of_runs_without_publishing():
+    """bench_ros2: per round, ``on`` against the same round's ``off``; the noise is the
+    difference between successive ``off`` runs, whatever their round."""
+    from fbgforce.bench.bench_ros2 import off_noise, step_summary
+
+    def run(rnd: int, mode: str, wall: float) -> dict:
+        return {"round": rnd, "mode": mode, "step_wall_us_median": wall,
+                "step_cpu_us_median": wall - 1, "runtime_us_median": wall / 2}
+
+    live = [run(1, "off", 40.0), run(1, "on", 42.0), run(1, "off", 41.0),
+            run(2, "off", 39.0), run(2, "on", 44.0), run(2, "off", 39.5)]
+    assert off_noise(live) == {"step_wall_us_differences": [1.0, -2.0, 0.5], "largest_us": 2.0}
+    on = step_summary(live, ["off", "on", "off"])["on"]
+    assert on["step_wall_us_minus_off"] == [3.5, 2.0, 5.0]
+    assert on["step_wall_ratio_to_off"] == [1.089, 1.05, 1.128]
+    assert on["within_noise"] is False
+    live[4]["step_wall_us_median"] = 40.0
+    assert step_summary(live, ["off", "on", "off"])["on"]["within_noise"] is True
+
+
 def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     """The instrument goes away and comes back counting from zero: the reader reconnects and
     the first estimate after it carries DEVICE_RESTART; nothing else carries a link flag."""
