@@ -237,6 +237,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -926,6 +951,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
     unsigned c;
     for (c = 0; c < FBG_N_CHANNELS; ++c)
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -3157,6 +3207,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -3569,6 +3644,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -3891,6 +3991,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -4116,21 +4241,8 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
  * > 0 implies acc > 0 (a positive multiplier), and acc > 0 implies margin_q8 >= 0. */
 static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
 {
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
-        return s->decision;
-    }
-    if (raw && margin_q8 >= m->contact_on_q8) {
-        if (s->rise_run < 255u)
-            s->rise_run++;
-    } else {
-        s->rise_run = 0u;
-    }
-    if (s->rise_run >= m->contact_rise_n) {
-        s->decision = 1u;
-        s->rise_run = 0u;
-    }
-    return s->decision;
+    return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
+                      margin_q8 > m->contact_off_q8, m->contact_rise_n);
 }
 
 /* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
@@ -4941,6 +5053,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -5280,6 +5417,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
     unsigned c;
     for (c = 0; c < FBG_N_CHANNELS; ++c)
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -5848,6 +6010,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
     unsigned c;
     for (c = 0; c < FBG_N_CHANNELS; ++c)
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -8626,6 +8813,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -9281,22 +9493,8 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
 /* contact_decision of fbg_fixed.c on the float margin. */
 static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
-    const int raw = margin > 0.0f;
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin > m->contact_off);
-        return s->decision;
-    }
-    if (raw && margin >= m->contact_on) {
-        if (s->rise_run < 255u)
-            s->rise_run++;
-    } else {
-        s->rise_run = 0u;
-    }
-    if (s->rise_run >= m->contact_rise_n) {
-        s->decision = 1u;
-        s->rise_run = 0u;
-    }
-    return s->decision;
+    return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
+                      margin > m->contact_off, m->contact_rise_n);
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,

@@ -182,21 +182,8 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
  * > 0 implies acc > 0 (a positive multiplier), and acc > 0 implies margin_q8 >= 0. */
 static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
 {
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
-        return s->decision;
-    }
-    if (raw && margin_q8 >= m->contact_on_q8) {
-        if (s->rise_run < 255u)
-            s->rise_run++;
-    } else {
-        s->rise_run = 0u;
-    }
-    if (s->rise_run >= m->contact_rise_n) {
-        s->decision = 1u;
-        s->rise_run = 0u;
-    }
-    return s->decision;
+    return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
+                      margin_q8 > m->contact_off_q8, m->contact_rise_n);
 }
 
 /* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised

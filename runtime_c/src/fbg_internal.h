@@ -188,6 +188,31 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;

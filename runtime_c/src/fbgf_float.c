@@ -380,22 +380,8 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
 /* contact_decision of fbg_fixed.c on the float margin. */
 static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
-    const int raw = margin > 0.0f;
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin > m->contact_off);
-        return s->decision;
-    }
-    if (raw && margin >= m->contact_on) {
-        if (s->rise_run < 255u)
-            s->rise_run++;
-    } else {
-        s->rise_run = 0u;
-    }
-    if (s->rise_run >= m->contact_rise_n) {
-        s->decision = 1u;
-        s->rise_run = 0u;
-    }
-    return s->decision;
+    return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
+                      margin > m->contact_off, m->contact_rise_n);
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
