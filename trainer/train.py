@@ -1180,14 +1180,8 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press after the hold are returned.
     """
     inputs, kept = [], []
-    for r, sl in data.recording_slices():
-        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
-        contact = np.asarray(r.ds.contact, bool)
-        noise = _rest_noise(r)
-        if not sel.size or noise is None:
-            continue
+    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
-        pid = np.asarray(r.ds.press_id)[sel]
         presses = np.unique(pid[contact[sel]])
         peaks, after = [], np.zeros(len(wl), dtype=bool)
         for p in presses[rng.random(presses.size) < share]:
@@ -1254,13 +1248,7 @@ def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     the rest is not: it would start with a step up from zero to the residual.
     """
     inputs, kept = [], []
-    for r, sl in data.recording_slices():
-        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
-        contact = np.asarray(r.ds.contact, bool)
-        noise = _rest_noise(r)
-        if not sel.size or noise is None:
-            continue
-        pid = np.asarray(r.ds.press_id)[sel]
+    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
         gap = int(round(fmetrics.REST_GAP_S * r.rate_hz))
         touched = np.flatnonzero(contact)
         starts = []
@@ -1305,6 +1293,22 @@ def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points:
     source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
     feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
     return fm.standardise(pre, feats)[keep], source[keep]
+
+
+def _augmented_recordings(data: Prepared, rows: np.ndarray
+                          ) -> Iterator[tuple[Recording, slice, np.ndarray, np.ndarray,
+                                              np.ndarray, np.ndarray]]:
+    """The recordings synthetic holds and rests are made in: per recording with some of
+    ``rows`` and rest noise to draw from, ``(r, sl, sel, contact, noise, pid)``: the recording,
+    its slice of the prepared rows, its rows among ``rows`` (recording-local), its contact
+    labels, its :func:`_rest_noise` and the press ids of ``sel``."""
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
+        noise = _rest_noise(r)
+        if not sel.size or noise is None:
+            continue
+        yield (r, sl, sel, np.asarray(r.ds.contact, bool), noise,
+               np.asarray(r.ds.press_id)[sel])
 
 
 def _rest_noise(r: Recording) -> np.ndarray | None:
