@@ -128,6 +128,27 @@ def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | No
     return acc, y
 
 
+def reference_average(q: QModel, shift_t: np.ndarray, fault: np.ndarray) -> np.ndarray:
+    """``fbg_ref_update`` of fbg_internal.h on one recording from a fresh state: the
+    temperature reference (n,) that the compensation of each sample without a fault reads.
+    acc = r * 2^ref_shift in fm, primed at the first good sample's shift_T << ref_shift, then
+    acc += shift_T - rshift_round(acc, ref_shift) and r = rshift_round(acc, ref_shift); a
+    faulty sample leaves acc alone (its row keeps its own shift_T, which nothing reads).
+    ref_shift 0 is shift_T itself."""
+    shift_t = np.asarray(shift_t, dtype=np.int64)
+    k = q.ref_shift
+    if k == 0:
+        return shift_t
+    ref = shift_t.copy()
+    acc, half = None, 1 << (k - 1)
+    # Python integers, sample by sample, exactly the C recursion (as the memory's averages).
+    for i in np.flatnonzero(~np.asarray(fault, dtype=bool)).tolist():
+        x = int(shift_t[i])
+        acc = x << k if acc is None else acc + x - ((acc + half) >> k)
+        ref[i] = (acc + half) >> k
+    return ref
+
+
 class _Memory:
     """The memory states of fbg_fixed.c's ``memory_features`` (load-signal averages and play
     operators, location averages), carried from one block of fault-free samples to the next.
@@ -355,6 +376,9 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     fault = np.any(~inwin | jump | stuck, axis=1)
     status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
     warm = np.arange(1, n + 1) < q.taps.size
+    # The temperature reference: the tracker moves only the strain gratings' baseline, so the
+    # reference grating's shift, and its average, is known for the whole recording here.
+    ref = reference_average(q, wl[:, 4] - base[4], fault)
     status |= np.where(warm, STATUS_WARMUP, 0)
 
     out = {k: np.zeros(n, dtype=np.int64) for k in
@@ -368,7 +392,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         b = min(n, a + block)
         if tracker.limited:
             status[a:b] |= STATUS_BASELINE_LIMIT
-        rest, r_sum = _block(q, wl[a:b], fault[a:b], warm[a:b], base, history, last_comp,
+        rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
                              memory, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
         tracker.end_block(rest & tared, r_sum, base)
@@ -379,20 +403,22 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     return out
 
 
-def _block(q: QModel, wl: np.ndarray, fault: np.ndarray, warm: np.ndarray, base: np.ndarray,
+def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
+           base: np.ndarray,
            history: np.ndarray, last_comp: np.ndarray, memory: _Memory, decision: list[int],
            status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
            trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
     ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
-    ``last_comp``, ``memory`` and ``decision``; returns which samples were at rest and their
-    sum of z - z0 (for the tracker)."""
+    ``last_comp``, ``memory`` and ``decision``; ``ref`` is the temperature reference of each
+    sample (:func:`reference_average`). Returns which samples were at rest and their sum of
+    z - z0 (for the tracker)."""
     n = wl.shape[0]
     ok = ~fault
     # 2. Tare and temperature compensation (rows without a fault).
-    shift_t, c1 = sat(wl[:, 4] - base[4], SAT32)
+    _, c1 = sat(wl[:, 4] - base[4], SAT32)    # the compensation reads ref
     shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
-    t = rshift_round(shift_t[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
+    t = rshift_round(ref[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
     comp, c3 = sat(shift - t, SAT32)
     flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1))
     # 3. Causal FIR over the carried history, then standardisation into Q(z_frac). A faulty

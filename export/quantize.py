@@ -205,6 +205,8 @@ class QModel(QModelMemory):
     mem_shift: int = 1
     #: Location averages (fbg_model.loc_shift): 0 is off.
     loc_shift: int = 0
+    #: The temperature reference's average (fbg_model.ref_shift): 0 is the raw reference.
+    ref_shift: int = 0
     #: The decision over time and the at-rest baseline tracker (fbg_model.contact_*,
     #: track_*): the defaults are the per-sample decision on a fixed tare.
     contact_on_q8: int = 0
@@ -736,7 +738,7 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         force_offset_mN=int(round(model.force_offset * 1000.0)),
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
         nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
-        stuck_max=stuck_samples, **quantize_memory(pre.memory, z_frac),
+        stuck_max=stuck_samples, ref_shift=pre.ref_shift, **quantize_memory(pre.memory, z_frac),
         **quantize_in_use(model.in_use, z_mult, z_shift), **quantize_input_range(model, z_frac))
     try:
         q.check()
@@ -812,7 +814,7 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
                  + out_scale * (|acc[r]| * |mult[r] / 2^shift - R[r]| + 1/2)
 
     The input error (proven, per sample): conversion to fm (0.5 fm on wl and baseline), the
-    Q24 coefficient, Q15 taps (their sum is exact to 2^-16, so the tap residue acts only on the
+    temperature reference's average (1 fm), the Q24 coefficient, Q15 taps (their sum is exact to 2^-16, so the tap residue acts only on the
     variation of the signal within the filter window), the standardisation multiplier and
     the Q(z_frac) rounding.
     """
@@ -822,7 +824,10 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     comp_abs = calib.comp_abs_pm * 1000.0
     comp_var = calib.comp_var_pm * 1000.0
     tc_err = np.abs(pre.temp_coeff - q.temp_coeff_q24 / 2.0**TEMP_COEFF_SHIFT)
-    e_comp = 1.0 + np.abs(pre.temp_coeff) + 0.5 + tc_err * comp_abs.max(initial=0.0)
+    # The reference's average adds at most 1 fm to the reference (its rounding, proven in
+    # docs/fixed-point.md), which the coefficient scales.
+    e_ref = 2.0 if q.ref_shift else 1.0
+    e_comp = 1.0 + np.abs(pre.temp_coeff) * e_ref + 0.5 + tc_err * comp_abs.max(initial=0.0)
     e_filt = (e_comp * np.abs(taps_f).sum() + np.abs(dtaps).sum() * comp_var
               + abs(dtaps.sum()) * comp_abs + 0.5)
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)

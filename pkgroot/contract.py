@@ -170,7 +170,9 @@ LIMITS: dict[str, tuple[int, str]] = {
     "TRACK_FRAC": (16, "fractional bits of the tracker's carried baseline correction"),
     "TRACK_LIMIT_MAX_FM": (100_000_000, "largest track_limit_fm (100 nm): a tracked baseline "
                            "stays within 100 nm of its tare"),
-    "BLOB_VERSION": (6, "blob format this library reads and writes"),
+    "MAX_REF_SHIFT": (8, "largest shift of the temperature reference's average (time constant "
+                      "256 samples): its accumulator stays below 2^39 (docs/fixed-point.md)"),
+    "BLOB_VERSION": (7, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -429,6 +431,10 @@ PARAMS: tuple[Field, ...] = (
           doc="OUT_OF_RANGE when a net input j < n_features (z, memory features) < in_lo[j] ..."),
     Field("in_hi", "int16_t", LIMIT["MAX_INPUTS"], -SAT16, SAT16,
           doc="... or > in_hi[j] (Q(z_frac); +-32767: never)"),
+    Field("ref_shift", "uint8_t", 1, 0, LIMIT["MAX_REF_SHIFT"],
+          doc="temperature reference average (0: off): acc += shift_T - rshift_round(acc, "
+              "ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) "
+              "replaces shift_T in temp_coeff_q24's compensation"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -458,6 +464,8 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("track_limit_pm", "float", doc="|corr_i| <= track_limit_pm (BASELINE_LIMIT at it)"),
     Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
+    Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
+          "r += (shift_T - r) / 2^ref_shift"),
 )
 
 
@@ -524,6 +532,7 @@ _FRONT_FLAGS = (
     StateField("tare_active", "uint8_t"),
     StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
     StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
+    StateField("ref_primed", "uint8_t", doc="the temperature reference's average holds a sample"),
 )
 
 
@@ -540,6 +549,8 @@ STATE: tuple[StateField, ...] = (
     StateField("drift_fm", "int32_t", ("N_STRAIN",)),
     StateField("track_frac", "int64_t", ("N_STRAIN",)),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
+    StateField("ref_acc", "int64_t", doc="the temperature reference's average r * 2^ref_shift "
+               "(fm; docs/fixed-point.md, \"temperature reference\")"),
     StateField("act", "int16_t", (2, "MAX_WIDTH"), "activation ping-pong buffers",
                note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
@@ -563,6 +574,7 @@ FLOAT_STATE: tuple[StateField, ...] = (
     *_front_head("fbgf", "float"),
     *_memory_states("float", lambda k: f"{k.doc}, standardised units"),
     StateField("loc", "float", ("N_STRAIN",), "location averages of z - z_rest"),
+    StateField("ref_pm", "float", doc="the temperature reference's average (pm)"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),
     *_RING_COUNTERS,

@@ -56,14 +56,17 @@ def weights_digest(model: Any) -> str:
 
 def model_digest(model: Any) -> str:
     """SHA-256 of everything the fixed-point model is quantised from: the nets and output
-    scaling (:func:`weights_digest`), the preprocessing, the nominal baseline, and what the
-    runtimes do in use (the decision over time, the tracker: ``in_use``; the input range)."""
+    scaling (:func:`weights_digest`), the preprocessing (the temperature reference's average
+    included), the nominal baseline, and what the runtimes do in use (the decision over time,
+    the tracker: ``in_use``; the input range)."""
     pre = model.preprocess
     h = hashlib.sha256(weights_digest(model).encode())
     h.update(pre.filter_kind.encode())
     for arr in (pre.temp_coeff, pre.taps, pre.input_mean, pre.input_std, model.baseline_nm):
         h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
     h.update(json.dumps(pre.memory.to_json(), sort_keys=True).encode())
+    if pre.ref_shift:   # a model without the reference's average keeps the digest it had
+        h.update(f"ref_shift={pre.ref_shift}".encode())
     h.update(json.dumps(model.in_use.to_json(), sort_keys=True).encode())
     if model.input_range is not None:
         h.update(np.ascontiguousarray(model.input_range, dtype="<f8").tobytes())

@@ -9,7 +9,8 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
 
     shift_i[n]  = 1000 * (wl_i[n] - baseline_i)                      # tare, pm
     shift_T[n]  = 1000 * (wl_T[n] - baseline_T)
-    comp_i[n]   = shift_i[n] - temp_coeff_i * shift_T[n]              # temperature compensation
+    r[n]        = r[n-1] + (shift_T[n] - r[n-1]) / 2^ref_shift         # the reference, averaged
+    comp_i[n]   = shift_i[n] - temp_coeff_i * r[n]                     # temperature compensation
     filt_i[n]   = sum_k taps[k] * comp_i[n - k]                        # causal FIR, zero history
     z_i[n]      = (filt_i[n] - input_mean_i) / input_std_i            # standardisation
     u[n]        = sum_i weight_i * z_i[n]                              # memory: a load signal,
@@ -23,6 +24,13 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
     (u, v)      = location_net([z, contact, f, a if loc_shift])        # not the load memory
     x_mm        = xy_offset[0] + xy_scale[0] * u,   y_mm likewise
     outputs: force_N is 0 and x/y are NaN where contact is False.
+
+The reference average ``r`` is primed by the first good sample (``r = shift_T``) of a
+recording, as the runtimes' after init, tare, reset or a new baseline; a sensor-fault sample
+does not update it (held), and ``ref_shift`` 0 gives ``r = shift_T``. Temperature moves
+slowly, so averaging the reference grating over tens of milliseconds costs no lag worth
+having and keeps its own noise out of every compensated channel (docs/trainer.md,
+"Temperature reference").
 
 The memory states are primed by the recording's first sample as a pad at rest after a release
 leaves them (averages at u, play operators at u + width: the load last moved down), as the
@@ -477,6 +485,10 @@ class Preprocess:
         (4,) standardisation of the filtered compensated shifts (pm).
     memory
         The memory states after standardisation (:class:`Memory`; none by default).
+    ref_shift
+        The temperature reference's average (0: off, the raw reference): time constant
+        about 2^ref_shift samples, 0 .. ``contract.LIMIT["MAX_REF_SHIFT"]``
+        (:func:`reference_average`).
     """
 
     temp_coeff: np.ndarray
@@ -486,9 +498,14 @@ class Preprocess:
     input_mean: np.ndarray
     input_std: np.ndarray
     memory: Memory = field(default_factory=Memory)
+    ref_shift: int = 0
 
     def __post_init__(self) -> None:
         self.temp_coeff = np.asarray(self.temp_coeff, dtype=np.float64).reshape(N_STRAIN)
+        if not 0 <= int(self.ref_shift) <= contract.LIMIT["MAX_REF_SHIFT"]:
+            raise ValueError(f"ref_shift must be 0 .. {contract.LIMIT['MAX_REF_SHIFT']}, "
+                             f"not {self.ref_shift}")
+        self.ref_shift = int(self.ref_shift)
         self.taps = np.asarray(self.taps, dtype=np.float64).reshape(-1)
         self.input_mean = np.asarray(self.input_mean, dtype=np.float64).reshape(N_STRAIN)
         self.input_std = np.asarray(self.input_std, dtype=np.float64).reshape(N_STRAIN)
@@ -699,7 +716,8 @@ class HierarchicalModel:
             "xy_offset_mm": floats(self.xy_offset), "xy_scale": floats(self.xy_scale),
             "overload_N": float(overload_N), "mem_weight": floats(mem.weights),
             **mem.params(float), "loc_shift": int(mem.loc_shift),
-            **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist()}
+            **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist(),
+            "ref_shift": pre.ref_shift}
 
     @property
     def nets(self) -> dict[str, MLP]:
@@ -716,7 +734,42 @@ class HierarchicalModel:
 # The float64 reference pipeline
 # --------------------------------------------------------------------------------------------
 
-def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
+def reference_average(shift_t: np.ndarray, ref_shift: int, fault: np.ndarray,
+                      prev: float | None = None) -> tuple[np.ndarray, float | None]:
+    """The temperature reference the compensation subtracts: ``r[n] = r[n-1] + (shift_T[n] -
+    r[n-1]) / 2^ref_shift`` over the samples without a fault, in order.
+
+    Parameters
+    ----------
+    shift_t
+        (n,) the reference grating's shift, pm.
+    ref_shift
+        The average's shift (0: ``r = shift_T``).
+    fault
+        (n,) True for a sensor-fault sample: it leaves the average as it was (its own row
+        gets its raw shift, which no engine reads).
+    prev
+        The average before the first sample; None primes it with the first good sample.
+
+    Returns
+    -------
+    tuple
+        ``r`` (n,) and the average after the samples (``prev`` when none was good), to carry
+        into the next call.
+    """
+    shift_t = np.asarray(shift_t, dtype=np.float64)
+    good = np.flatnonzero(~np.asarray(fault, dtype=bool))
+    if not ref_shift or good.size == 0:
+        return shift_t, prev
+    x = shift_t[good]
+    start = np.array([x[0] if prev is None else prev])
+    r = shift_t.copy()
+    r[good] = _exp_average(x[:, None], ref_shift, start)[:, 0]
+    return r, float(r[good[-1]])
+
+
+def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray,
+               reference: list[float | None] | None = None) -> np.ndarray:
     """Tare and temperature-compensate raw wavelengths.
 
     Parameters
@@ -725,6 +778,11 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
         (n, 5) peak wavelengths of gratings 1..4 and T, nm.
     baseline_nm
         (5,) unloaded wavelengths to tare against, nm.
+    reference
+        ``[r]``: the temperature reference's average before the samples (None: the first good
+        sample primes it), updated in place; None: a recording of its own. Read only when
+        ``preprocess.ref_shift`` is on (:func:`reference_average`; the sensor faults are
+        :func:`fbgforce.samples.sensor_fault_rows`).
 
     Returns
     -------
@@ -732,8 +790,14 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
         (n, 4) compensated strain-grating shifts in pm.
     """
     wl = np.asarray(wl_nm, dtype=np.float64)
+    pre = model.preprocess
     shift_pm = (wl - np.asarray(baseline_nm, dtype=np.float64)) * 1000.0
-    return shift_pm[:, :N_STRAIN] - shift_pm[:, N_STRAIN:] * model.preprocess.temp_coeff
+    ref = shift_pm[:, N_STRAIN]
+    if pre.ref_shift:
+        state = [None] if reference is None else reference
+        ref, state[0] = reference_average(ref, pre.ref_shift, samples.sensor_fault_rows(wl),
+                                          state[0])
+    return shift_pm[:, :N_STRAIN] - ref[:, None] * pre.temp_coeff
 
 
 def apply_filter(pre: Preprocess, x: np.ndarray) -> np.ndarray:
@@ -962,12 +1026,14 @@ def predict(model: HierarchicalModel, wl_nm: Any, baseline_nm: Any = None, *,
 
 class FloatPipeline:
     """The float pipeline of ONE continuous recording, fed in pieces of any length: what
-    :func:`predict` computes on the whole, sample for sample (the filter's history, the memory
-    states, the decision over time and the at-rest tracker carry over from piece to piece).
+    :func:`predict` computes on the whole, sample for sample (the temperature reference's
+    average, the filter's history, the memory states, the decision over time and the at-rest
+    tracker carry over from piece to piece). It starts as the runtimes after a tare: the first
+    good sample primes the reference's average and the memory states.
     A sensor fault (:func:`fbgforce.samples.sensor_fault_rows`) is handled as the runtimes
-    handle it: the filter is fed the last good sample's filtered shifts, the memory states, the decision
-    and the tracker skip the sample (the tracker restarts its rest count), and the sample gets
-    the safe output.
+    handle it: the filter is fed the last good sample's filtered shifts, the reference's
+    average, the memory states, the decision and the tracker skip the sample (the tracker
+    restarts its rest count), and the sample gets the safe output.
 
     Parameters
     ----------
@@ -989,6 +1055,7 @@ class FloatPipeline:
         self.samples = 0
         self._history = np.zeros((self.taps.size - 1, N_STRAIN))
         self._last_comp = np.zeros(N_STRAIN)
+        self._reference: list[float | None] = [None]   # primed by the first good sample
         self._memory = MemoryStream(pre.memory, pre.z_rest)
         self._decision = [0, 0]
         self._drift = np.zeros(N_STRAIN)
@@ -1014,7 +1081,7 @@ class FloatPipeline:
         n = wl.shape[0]
         fault = samples.sensor_fault_rows(wl) if n else np.zeros(0, dtype=bool)
         good = np.flatnonzero(~fault)
-        comp = compensate(model, wl, self.baseline_nm)
+        comp = compensate(model, wl, self.baseline_nm, self._reference)
         filt, self._history, self._last_comp = filter_through_faults(
             self.taps, comp, fault, self._history, self._last_comp)
 
@@ -1172,6 +1239,7 @@ def save(model: HierarchicalModel, directory: str | Path, flag: str | None = Non
             "input_mean": pre.input_mean.tolist(),
             "input_std": pre.input_std.tolist(),
             "memory": pre.memory.to_json(),
+            "ref_shift": pre.ref_shift,
             "group_delay_ms_at_1kHz": pre.group_delay_samples,
         },
         "nets": {name: {"sizes": net.sizes} for name, net in model.nets.items()},
@@ -1253,7 +1321,8 @@ def load(directory: str | Path) -> HierarchicalModel:
                              [arrays[f"{name}.b{i}"] for i in range(n_layers)])
         p = doc["preprocess"]
         pre = Preprocess(p["temp_coeff"], p["filter_kind"], p["filter_sigma"], p["taps"],
-                         p["input_mean"], p["input_std"], Memory(**p.get("memory", {})))
+                         p["input_mean"], p["input_std"], Memory(**p.get("memory", {})),
+                         p.get("ref_shift", 0))   # models trained before it: the raw reference
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],

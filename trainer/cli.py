@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -144,7 +144,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     test = md["metrics"]["test"] or {}
     from fbgforce.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
-          f"{headline(test)}", file=sys.stderr)
+          f"{headline(test)}; {_reference_summary(md['temperature']['reference'])}",
+          file=sys.stderr)
     from fbgforce.trainer.coverage import coverage_lines
 
     for line in coverage_lines(md["coverage"]):
@@ -154,8 +155,20 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     return {"model": str(args.out), "seconds": md["times_s"]["prepare"] + md["times_s"]["train"],
             "epochs": {k: v["epochs_run"] for k, v in md["training"].items()},
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
+            "temperature_reference": md["temperature"]["reference"],
             "val": md["metrics"]["val"], "test": md["metrics"]["test"],
             "coverage": md["coverage"], "warnings": md.get("warnings", [])}
+
+
+def _reference_summary(ref: Mapping[str, Any]) -> str:
+    """The temperature reference's choice (trainer.preprocess.choose_ref_shift) in words."""
+    noise = ref["rest_noise_pm2"]
+    if noise["raw"] is None:
+        return "temperature reference raw (no rest samples to measure its noise)"
+    figures = f"rest noise {noise['raw']:.3g} pm^2 raw, {noise['averaged']:.3g} averaged"
+    if ref["ref_shift"]:
+        return f"temperature reference averaged over 2^{ref['ref_shift']} samples ({figures})"
+    return f"temperature reference raw ({figures} over 2^{ref['candidate']} samples)"
 
 
 def _coverage(args: argparse.Namespace) -> dict[str, Any]:

@@ -7,6 +7,8 @@ The float pipeline itself (``compensate -> apply_filter -> standardise``) is
 - :func:`fit_temp_coeff`: per-channel temperature coefficients by least squares of the strain
   gratings' shifts on the reference grating's shift, over contact-free samples, shrunk toward
   1.0 when the data does not contain enough temperature variation to identify them;
+- :func:`choose_ref_shift`: whether to average the reference grating's shift before it
+  compensates the strain gratings, by the compensated channels' noise at rest with and without;
 - :func:`gaussian_taps`: the Gaussian smoothing filter, causal (half-Gaussian over the last
   ``window`` samples, what ships) or centred (the paper's offline smoothing);
 - :func:`recording_features`: compensated, filtered shifts of one continuous recording, so that
@@ -15,12 +17,13 @@ The float pipeline itself (``compensate -> apply_filter -> standardise``) is
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from types import SimpleNamespace
 from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 
@@ -34,6 +37,15 @@ WINDOW_SIGMAS = 3.0
 #: dynamics (press onsets, grasps) are set in TIME, so a log at another rate gets the same time
 #: constant (10 samples at 2 kHz, 2.5 at 500 Hz), not the same number of samples.
 DEFAULT_SIGMA_MS = DEFAULT_SIGMA
+
+
+#: Time constant of the temperature reference's average, s: temperature moves slowly (20 K/min
+#: is about 3 pm/s), so 32 ms of averaging lags by a small fraction of a pm.
+REF_TIME_CONSTANT_S = 0.032
+#: The average is kept only when it lowers the compensated channels' noise at rest by this
+#: fraction at least: an interrogator whose noise is common to all gratings (a swept laser's
+#: jitter) is better served by the raw reference, whose noise cancels the strain gratings'.
+REF_MIN_GAIN = 0.05
 
 
 def default_sigma(rate_hz: float) -> float:
@@ -183,6 +195,50 @@ def gaussian_taps(kind: str, sigma: float = DEFAULT_SIGMA, window: int | None = 
     k = np.arange(window) if kind == "causal" else np.arange(-window, window + 1)
     taps = np.exp(-0.5 * (k / sigma) ** 2)
     return taps / taps.sum()
+
+
+def rest_noise_pm2(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]
+                   ) -> float | None:
+    """The compensated channels' sample-to-sample noise at rest under ``pre``: the variance of
+    the first differences of :func:`compensated` between consecutive rest samples, summed
+    over the four channels (pm^2), pooled over ``recordings`` = [(wl_nm (n, 5), baseline_nm
+    (5,), rest (n,) bool), ...]. None without two consecutive finite rest samples."""
+    diffs = []
+    for wl, base, rest in recordings:
+        comp = compensated(pre, wl, base)
+        d = np.diff(comp, axis=0)
+        keep = np.asarray(rest[1:] & rest[:-1], dtype=bool) & np.all(np.isfinite(d), axis=1)
+        diffs.append(d[keep])
+    d = np.concatenate(diffs) if diffs else np.empty((0, fm.N_STRAIN))
+    return float(np.var(d, axis=0).sum()) if d.shape[0] > 1 else None
+
+
+def choose_ref_shift(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                     rate_hz: float) -> tuple[int, dict[str, Any]]:
+    """The temperature reference's average for ``pre`` (:attr:`fbgforce.model.Preprocess.ref_shift`).
+
+    The candidates are 0 (the raw reference) and ``round(log2(REF_TIME_CONSTANT_S *
+    rate_hz))`` (clipped to 0 .. ``MAX_REF_SHIFT``); the average is kept when it lowers
+    :func:`rest_noise_pm2` by :data:`REF_MIN_GAIN` or more. ``recordings`` as
+    :func:`rest_noise_pm2` takes them.
+
+    Returns
+    -------
+    tuple
+        The chosen shift and what the model's metadata records of the choice:
+        ``ref_shift``, ``candidate``, ``rest_noise_pm2`` ({"raw", "averaged"}: the summed
+        variances of first differences at rest, None where there is no rest).
+    """
+    candidate = int(np.clip(round(math.log2(max(REF_TIME_CONSTANT_S * float(rate_hz), 1.0))),
+                            0, contract.LIMIT["MAX_REF_SHIFT"]))
+    raw = rest_noise_pm2(replace(pre, ref_shift=0), recordings)
+    averaged = (rest_noise_pm2(replace(pre, ref_shift=candidate), recordings)
+                if candidate else raw)
+    keep = (candidate > 0 and raw is not None and averaged is not None
+            and averaged <= (1.0 - REF_MIN_GAIN) * raw)
+    chosen = candidate if keep else 0
+    return chosen, {"ref_shift": chosen, "candidate": candidate,
+                    "rest_noise_pm2": {"raw": raw, "averaged": averaged}}
 
 
 def make_preprocess(kind: str, sigma: float, temp_coeff: np.ndarray,

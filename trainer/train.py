@@ -204,7 +204,9 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None) -> Prepared:
-    """Tare, fit temperature coefficients, filter every recording, split each by press.
+    """Tare, fit temperature coefficients, choose the temperature reference's average
+    (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), filter every recording, split
+    each by press.
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
     at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz.
@@ -223,6 +225,9 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     if sigma is None:
         sigma = pp.default_sigma(rate)
     pre = pp.make_preprocess(filter, sigma, coeff, window)
+    ref_shift, temp_info["reference"] = pp.choose_ref_shift(
+        pre, [(r.ds.wl_nm, r.baseline_nm, mask) for r, mask in zip(recs, masks)], rate)
+    pre = replace(pre, ref_shift=ref_shift)
     for r in recs:
         r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         r.split = split_rows(r.ds, seed)

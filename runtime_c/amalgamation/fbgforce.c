@@ -262,6 +262,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -559,12 +579,13 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->in_lo[k] = rd_i16(p + 204 + 2u * k);
     for (k = 0; k < 12u; ++k)
         m->in_hi[k] = rd_i16(p + 228 + 2u * k);
+    m->ref_shift = rd_u8(p + 252);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 252u; k < 256u; ++k)
+    for (k = 253u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -686,6 +707,7 @@ fbg_status fbg_params_check(const fbg_model *m)
         if (v < -32767)
             return FBG_ERR_RANGE;
     }
+    { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -976,6 +998,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -3232,6 +3274,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -3259,6 +3321,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
     uint16_t *pos;
@@ -3282,7 +3345,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed,                                              \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -3305,7 +3368,8 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
     *f.magic = f.magic_value;
 }
 
-/* Forget the FIR history, the memory states and the fault tracker; baseline and tare stay. */
+/* Forget the FIR history, the memory states, the temperature reference's average (the next
+ * good sample primes it) and the fault tracker; baseline and tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
     unsigned k;
@@ -3314,6 +3378,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
     memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
@@ -3669,6 +3734,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -4016,6 +4101,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -4348,6 +4453,8 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 }
 
 /* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
+ * The compensation subtracts the reference grating's averaged shift (fbg_ref_update; the raw
+ * shift when ref_shift is 0).
  * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
  * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
  * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
@@ -4358,14 +4465,15 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
                        uint32_t *status, uint32_t *sat)
 {
-    int32_t shift[FBG_N_CHANNELS];
+    int32_t shift[FBG_N_CHANNELS], ref;
     unsigned c;
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
         memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
         return;
     }
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+        int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
         s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
     }
 }
@@ -5078,6 +5186,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -5442,6 +5570,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -6035,6 +6183,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
 }
 
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
@@ -7522,14 +7690,14 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
 }
 
 /* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
- * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
- * (VPMULDQ of shift_T, lane 4 of shift broadcast, by the sign-extended coefficients: exact in
- * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos. Returns 1
- * where a lane clamped. */
-AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
+ * same operations as its loop: comp = sat32(shift_c - rshift_round(ref * coeff_c, 24))
+ * (VPMULDQ of ref, the reference's average that fbg_ref_update gave for this sample,
+ * broadcast, by the sign-extended coefficients: exact in int64, |.| < 2^30 * 2^31), stored
+ * where the loop's values go: the ring at pos. Returns 1 where a lane clamped. */
+AVX2 static int comp4_avx2(fbg_state *s, __m256i shift, int32_t ref)
 {
     __m256i flag = _mm256_setzero_si256();
-    const __m256i p = _mm256_mul_epi32(_mm256_permutevar8x32_epi32(shift, _mm256_set1_epi32(FBG_N_STRAIN)),
+    const __m256i p = _mm256_mul_epi32(_mm256_set1_epi32(ref),
                                        _mm256_cvtepi32_epi64(load128(s->model->temp_coeff_q24)));
     const __m256i t = sra64(_mm256_add_epi64(p, _mm256_set1_epi64x((int64_t)1 << (FBG_TEMP_COEFF_SHIFT - 1))),
                             _mm_cvtsi32_si128(FBG_TEMP_COEFF_SHIFT));
@@ -7639,13 +7807,18 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
  * filter4_avx2 keeps) into the ring. */
 AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
 {
-    __m256i w;
+    __m256i w, shift;
+    int32_t ref;
     if (fault5_avx2(s, wl_fm, &w)) {
         *status |= FBG_STATUS_SENSOR_FAULT;
         _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], load128(s->last_comp));
         return;
     }
-    if (comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm))))
+    shift = _mm256_sub_epi32(w, load5(s->baseline_fm));
+    /* The reference's average is one scalar recursion: it runs before the vector part. */
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, _mm256_extract_epi32(shift, FBG_N_STRAIN),
+                         s->model->ref_shift);
+    if (comp4_avx2(s, shift, ref))
         *sat = 1u;
 }
 
@@ -8838,6 +9011,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;
@@ -8865,6 +9058,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
     uint16_t *pos;
@@ -8888,7 +9082,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed,                                              \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -8911,7 +9105,8 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
     *f.magic = f.magic_value;
 }
 
-/* Forget the FIR history, the memory states and the fault tracker; baseline and tare stay. */
+/* Forget the FIR history, the memory states, the temperature reference's average (the next
+ * good sample primes it) and the fault tracker; baseline and tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
     unsigned k;
@@ -8920,6 +9115,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
     memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
@@ -9201,7 +9397,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm))
+    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm) ||
+        model->ref_shift > FBG_MAX_REF_SHIFT)
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_N_STRAIN; ++c)
         if (!(model->input_std_pm[c] > 0.0f))
@@ -9390,6 +9587,22 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
     a[3] += tap * h[3];
 }
 
+/* The temperature reference of a sample that passed the fault rule (docs/fixed-point.md,
+ * "temperature reference", in float): the exponential average of the reference grating's
+ * shift_t (pm), primed by the first sample after init, tare, reset or a new baseline; the raw
+ * shift when ref_shift is 0. */
+static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
+{
+    if (m->ref_shift == 0u)
+        return shift_t;
+    if (s->ref_primed)
+        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << m->ref_shift));
+    else
+        s->ref_pm = shift_t;
+    s->ref_primed = 1u;
+    return s->ref_pm;
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -9415,7 +9628,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
-        float shift_t = (float)shift[FBG_N_STRAIN] * 1e-3f;
+        float shift_t = ref_update(s, m, (float)shift[FBG_N_STRAIN] * 1e-3f);
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);

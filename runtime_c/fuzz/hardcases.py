@@ -188,7 +188,10 @@ def stress_qmodel(width: int = 128, n_layers: int = 8, w_bits: int = 16, bias: i
         force_offset_mN=1000, xy_offset_um=[0, 0], overload_mN=70_000, nets=nets,
         # The input-side load proxy at its limits too: |coeff| just below 2^28, so the sum of
         # four products of saturated filter outputs is ~2^61.
-        load_coeff=[(1 << 28) - 1] * 4, load_shift=30, load_max_mN=1000)
+        load_coeff=[(1 << 28) - 1] * 4, load_shift=30, load_max_mN=1000,
+        # The temperature reference's average at its longest: its accumulator at its largest
+        # (the reference's shift at +-1e9 fm times 2^8).
+        ref_shift=8)
 
 
 def stress_inputs(q, sign: int = 1, n: int | None = None) -> np.ndarray:

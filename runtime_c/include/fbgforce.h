@@ -70,7 +70,8 @@ extern "C" {
 #define FBG_TRACK_BLOCK 64  /* samples per update of the at-rest baseline tracker */
 #define FBG_TRACK_FRAC 16  /* fractional bits of the tracker's carried baseline correction */
 #define FBG_TRACK_LIMIT_MAX_FM 100000000  /* largest track_limit_fm (100 nm): a tracked baseline stays within 100 nm of its tare */
-#define FBG_BLOB_VERSION 6  /* blob format this library reads and writes */
+#define FBG_MAX_REF_SHIFT 8  /* largest shift of the temperature reference's average (time constant 256 samples): its accumulator stays below 2^39 (docs/fixed-point.md) */
+#define FBG_BLOB_VERSION 7  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -197,7 +198,8 @@ typedef struct {
     uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input rshift_round(loc_i, EMA_FRAC) [0, 15] */
     uint8_t contact_rise_n;  /* consecutive samples of the rise condition before contact rises [1, 255] */
     uint8_t track_shift;  /* at-rest baseline tracker (0: off): time constant 2^track_shift samples [0, 20] */
-    uint8_t pad_[3];  /* explicit padding, keep 0 */
+    uint8_t ref_shift;  /* temperature reference average (0: off): acc += shift_T - rshift_round(acc, ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
+    uint8_t pad_[2];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
     uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
@@ -240,6 +242,7 @@ typedef struct {
     int32_t drift_fm[FBG_N_STRAIN];
     int64_t track_frac[FBG_N_STRAIN];
     int64_t tare_sum[FBG_N_CHANNELS];
+    int64_t ref_acc;                             /* the temperature reference's average r * 2^ref_shift (fm; docs/fixed-point.md, "temperature reference") */
     /* Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels read the
      * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
@@ -252,6 +255,7 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
+    uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
     uint8_t decision;                            /* the contact decision of the last step */
     uint8_t rise_run;                            /* samples of the rise condition so far */
@@ -431,7 +435,7 @@ typedef struct {
     uint8_t loc_shift;  /* location averages of z - z_rest (0: off): state += (r - state) / 2^loc_shift */
     uint8_t contact_rise_n;  /* 1..255 */
     uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
-    uint8_t pad_[1];  /* explicit padding, keep 0 */
+    uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
 } fbgf_model;
@@ -463,6 +467,7 @@ typedef struct {
     float ema[FBG_MAX_EMA];                      /* exponential-average memory states, standardised units */
     float play[FBG_MAX_PLAY];                    /* play-operator memory states, standardised units */
     float loc[FBG_N_STRAIN];                     /* location averages of z - z_rest */
+    float ref_pm;                                /* the temperature reference's average (pm) */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
     uint16_t pos;                                /* next write index into hist */
@@ -472,6 +477,7 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
+    uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
     /* The decision over time and the at-rest baseline tracker, as fbg_state's: the block's
      * sum of filtered shifts (pm); the correction subtracted from the compensated shifts is
      * held_pm (made before the last reset) + drift_pm (since, bounded by track_limit_pm). */

@@ -92,12 +92,13 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
         m->in_lo[k] = rd_i16(p + 204 + 2u * k);
     for (k = 0; k < 12u; ++k)
         m->in_hi[k] = rd_i16(p + 228 + 2u * k);
+    m->ref_shift = rd_u8(p + 252);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 252u; k < 256u; ++k)
+    for (k = 253u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -219,6 +220,7 @@ fbg_status fbg_params_check(const fbg_model *m)
         if (v < -32767)
             return FBG_ERR_RANGE;
     }
+    { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

@@ -289,6 +289,8 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 }
 
 /* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
+ * The compensation subtracts the reference grating's averaged shift (fbg_ref_update; the raw
+ * shift when ref_shift is 0).
  * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
  * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
  * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
@@ -299,14 +301,15 @@ fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CH
 static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
                        uint32_t *status, uint32_t *sat)
 {
-    int32_t shift[FBG_N_CHANNELS];
+    int32_t shift[FBG_N_CHANNELS], ref;
     unsigned c;
     if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
         memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
         return;
     }
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t t = fbg_rshift_round((int64_t)shift[FBG_N_STRAIN] * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+        int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
         s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
     }
 }

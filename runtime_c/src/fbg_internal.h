@@ -213,6 +213,26 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
 static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
 {
     unsigned c;

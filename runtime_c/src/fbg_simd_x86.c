@@ -1415,14 +1415,14 @@ AVX2 static int fault5_avx2(fbg_state *s, const int32_t *wl, __m256i *w)
 }
 
 /* Step 1's temperature compensation of fbg_step in lanes of int64, one channel each, the
- * same operations as its loop: comp = sat32(shift_c - rshift_round(shift_T * coeff_c, 24))
- * (VPMULDQ of shift_T, lane 4 of shift broadcast, by the sign-extended coefficients: exact in
- * int64, |.| < 2^30 * 2^31), stored where the loop's values go: the ring at pos. Returns 1
- * where a lane clamped. */
-AVX2 static int comp4_avx2(fbg_state *s, __m256i shift)
+ * same operations as its loop: comp = sat32(shift_c - rshift_round(ref * coeff_c, 24))
+ * (VPMULDQ of ref, the reference's average that fbg_ref_update gave for this sample,
+ * broadcast, by the sign-extended coefficients: exact in int64, |.| < 2^30 * 2^31), stored
+ * where the loop's values go: the ring at pos. Returns 1 where a lane clamped. */
+AVX2 static int comp4_avx2(fbg_state *s, __m256i shift, int32_t ref)
 {
     __m256i flag = _mm256_setzero_si256();
-    const __m256i p = _mm256_mul_epi32(_mm256_permutevar8x32_epi32(shift, _mm256_set1_epi32(FBG_N_STRAIN)),
+    const __m256i p = _mm256_mul_epi32(_mm256_set1_epi32(ref),
                                        _mm256_cvtepi32_epi64(load128(s->model->temp_coeff_q24)));
     const __m256i t = sra64(_mm256_add_epi64(p, _mm256_set1_epi64x((int64_t)1 << (FBG_TEMP_COEFF_SHIFT - 1))),
                             _mm_cvtsi32_si128(FBG_TEMP_COEFF_SHIFT));
@@ -1532,13 +1532,18 @@ AVX2 static int memory4_avx2(fbg_state *s, __m128i z, int16_t *in)
  * filter4_avx2 keeps) into the ring. */
 AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat)
 {
-    __m256i w;
+    __m256i w, shift;
+    int32_t ref;
     if (fault5_avx2(s, wl_fm, &w)) {
         *status |= FBG_STATUS_SENSOR_FAULT;
         _mm_storeu_si128((__m128i *)(void *)s->hist[s->pos], load128(s->last_comp));
         return;
     }
-    if (comp4_avx2(s, _mm256_sub_epi32(w, load5(s->baseline_fm))))
+    shift = _mm256_sub_epi32(w, load5(s->baseline_fm));
+    /* The reference's average is one scalar recursion: it runs before the vector part. */
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, _mm256_extract_epi32(shift, FBG_N_STRAIN),
+                         s->model->ref_shift);
+    if (comp4_avx2(s, shift, ref))
         *sat = 1u;
 }
 

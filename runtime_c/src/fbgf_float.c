@@ -88,7 +88,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_SHAPE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
-    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm))
+    if (model->jump_max_fm <= 0 || !fbg_baseline_ok(model->baseline_fm) ||
+        model->ref_shift > FBG_MAX_REF_SHIFT)
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_N_STRAIN; ++c)
         if (!(model->input_std_pm[c] > 0.0f))
@@ -277,6 +278,22 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
     a[3] += tap * h[3];
 }
 
+/* The temperature reference of a sample that passed the fault rule (docs/fixed-point.md,
+ * "temperature reference", in float): the exponential average of the reference grating's
+ * shift_t (pm), primed by the first sample after init, tare, reset or a new baseline; the raw
+ * shift when ref_shift is 0. */
+static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
+{
+    if (m->ref_shift == 0u)
+        return shift_t;
+    if (s->ref_primed)
+        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << m->ref_shift));
+    else
+        s->ref_pm = shift_t;
+    s->ref_primed = 1u;
+    return s->ref_pm;
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -302,7 +319,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
-        float shift_t = (float)shift[FBG_N_STRAIN] * 1e-3f;
+        float shift_t = ref_update(s, m, (float)shift[FBG_N_STRAIN] * 1e-3f);
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);

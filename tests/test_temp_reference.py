@@ -1,0 +1,245 @@
+"""The temperature reference's average (``ref_shift``): the reference grating's shift averaged
+before it compensates the strain gratings (docs/fixed-point.md, "Temperature reference").
+
+The C fixed point equals the integer reference bit for bit on every host kernel, through
+faults, tares, resets and new baselines; the float engines (FloatPipeline, the C float build)
+follow the same priming and holding; a model without the field is the model it was, blob
+and all; the trainer keeps the average for independent grating noise and not for noise
+common to all gratings. (The Cortex-M4 builds run it in tests/test_target.py.)
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from conftest import make_random_model, make_random_walk
+from fbgforce import contract
+from fbgforce import model as fm
+from fbgforce.export import blob, intref
+from fbgforce.export import quantize as qz
+from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, Runtime
+from fbgforce.trainer import preprocess as pp
+from test_simd import host_kernels
+
+FIELDS = contract.OUTPUT_FIELDS
+#: Independent interrogator noise per grating, nm (0.5 pm).
+NOISE_NM = 5e-4
+
+
+def _noisy_walk(model: fm.HierarchicalModel, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return make_random_walk(model, n, seed) + rng.normal(0.0, NOISE_NM, (n, 5))
+
+
+def _with_faults(wl: np.ndarray, seed: int) -> np.ndarray:
+    """Lost peaks on the reference grating and on the others, single and in bursts."""
+    rng = np.random.default_rng(seed)
+    wl = wl.copy()
+    for start in rng.integers(50, wl.shape[0] - 50, 8):
+        wl[start:start + int(rng.integers(1, 30)), int(rng.integers(3, 5))] = 0.0
+    return wl
+
+
+def _quantised(ref_shift: int, seed: int = 4, n: int = 2000):
+    """A small random model with the reference's average at ``ref_shift``, its blob model and
+    noisy wavelengths (nm) around its baseline."""
+    model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
+                              memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
+    model.preprocess = dataclasses.replace(model.preprocess, ref_shift=ref_shift)
+    wl = _noisy_walk(model, n, seed)
+    x = fm.features(model, wl, model.baseline_nm)
+    logits = model.contact.forward(x[:, :model.preprocess.n_features])
+    model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
+    q, rep = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
+    q.report = rep
+    return model, q, wl
+
+
+def _assert_equal(c: np.ndarray, ref: dict[str, np.ndarray], what: str) -> None:
+    for k in FIELDS:
+        assert np.array_equal(np.asarray(c[k], dtype=np.int64), ref[k]), (what, k)
+
+
+@pytest.mark.parametrize("ref_shift", [1, 5, 8])
+def test_every_kernel_equals_the_integer_reference(ref_shift):
+    """Portable C and every host kernel (the AVX2 front included), packed or not, equal
+    export/intref.py bit for bit with the reference averaged, faults included; and the
+    average changes the outputs (the test would not notice a runtime that ignored it)."""
+    model, q, wl = _quantised(ref_shift)
+    wl_fm, base = intref.nm_to_fm(_with_faults(wl, 1)), intref.nm_to_fm(model.baseline_nm)
+    ref = intref.run(q, wl_fm, base)
+    assert np.count_nonzero(ref["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]) > 8
+    for kernel in ["portable"] + host_kernels():
+        for packed in ([False, True] if kernel in PACKED_KERNELS else [False]):
+            rt = Runtime(blob.to_bytes(q), kernel=kernel, packed=packed)
+            rt.set_baseline(base.astype(np.int32))
+            _assert_equal(rt.run_raw(wl_fm), ref, f"{kernel} packed={packed}")
+    raw = intref.run(dataclasses.replace(q, ref_shift=0), wl_fm, base)
+    assert not np.array_equal(raw["contact_margin_q8"], ref["contact_margin_q8"])
+
+
+def _expected_acc(shift_t: np.ndarray, good: np.ndarray, k: int) -> int:
+    """The rule of docs/fixed-point.md written out: primed by the first good sample, updated
+    by every later good one, a faulty one leaves it."""
+    acc = None
+    for x, ok in zip(shift_t.tolist(), good.tolist()):
+        if ok:
+            acc = x << k if acc is None else acc + x - ((acc + (1 << (k - 1))) >> k)
+    return acc
+
+
+@pytest.mark.parametrize("kernel", ["portable"] + host_kernels())
+def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
+    """After a reset, a tare and a new baseline the next good sample primes the average again
+    (the C state from there equals a fresh integer reference); a faulty sample leaves
+    ref_acc as it was."""
+    k = 5
+    model, q, wl = _quantised(k)
+    wl_fm = intref.nm_to_fm(_with_faults(wl, 2))
+    base = intref.nm_to_fm(model.baseline_nm)
+    rt = Runtime(blob.to_bytes(q), kernel=kernel)
+    rt.set_baseline(base.astype(np.int32))
+    st = rt._state
+    rt.run_raw(wl_fm[:600])
+    fault = intref.run(q, wl_fm[:600], base)["status"] & contract.STATUS_FLAG["SENSOR_FAULT"] != 0
+    assert fault.any() and st.ref_primed == 1
+    assert st.ref_acc == _expected_acc(wl_fm[:600, 4] - base[4], ~fault, k)
+    # A lost reference peak: the average is held.
+    before = st.ref_acc
+    lost = wl_fm[600:601].copy()
+    lost[0, 4] = 0
+    assert rt.run_raw(lost)["status"][0] & contract.STATUS_FLAG["SENSOR_FAULT"]
+    assert st.ref_acc == before
+    # Reset: re-primed by the next good sample, as a fresh state on the same baseline.
+    rt.reset()
+    assert st.ref_primed == 0
+    _assert_equal(rt.run_raw(wl_fm[601:1000]), intref.run(q, wl_fm[601:1000], base), "reset")
+    # Tare: a new baseline, re-primed.
+    rt.tare(wl_fm[1000:1100])
+    new_base = rt.baseline_fm
+    assert not np.array_equal(new_base, base) and st.ref_primed == 0
+    _assert_equal(rt.run_raw(wl_fm[1100:1500]), intref.run(q, wl_fm[1100:1500], new_base), "tare")
+    # A baseline set directly: re-primed.
+    rt.set_baseline(base.astype(np.int32))
+    assert st.ref_primed == 0
+    _assert_equal(rt.run_raw(wl_fm[1500:]), intref.run(q, wl_fm[1500:], base), "set_baseline")
+
+
+def test_float_engines_prime_hold_and_carry_the_average():
+    """FloatPipeline fed in pieces equals it fed at once (the average carries over), its
+    first good sample primes it and a faulty one holds it (the reference grating's shift of
+    the rule written out); the C float build, fresh after fbgf_reset, fbgf_tare_end or
+    fbgf_set_baseline, follows FloatPipeline started there."""
+    k = 5
+    model, _, wl = _quantised(k)
+    wl = _with_faults(wl, 3)
+    # The first sample and the first after each reset, tare and new baseline faulty: the
+    # next one primes.
+    wl[[0, 1200, 1550, 1800, 1810], 4] = np.nan
+    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    pieces = [pipe.push(wl[a:b]) for a, b in ((0, 1), (1, 333), (333, 1200))]
+    whole = fm.FloatPipeline(model, model.baseline_nm).push(wl[:1200])
+    for key in ("margin", "force_raw_N", "status"):
+        got = np.concatenate([p[key] for p in pieces])
+        assert np.allclose(got, whole[key], atol=1e-12, equal_nan=True), key
+    shift_t = (wl[:1200, 4] - model.baseline_nm[4]) * 1000.0
+    good = np.flatnonzero(~fm.samples.sensor_fault_rows(wl[:1200]))
+    r = shift_t[good[0]]
+    for i in good[1:]:
+        r += (shift_t[i] - r) / 2.0**k
+    assert pipe._reference[0] == pytest.approx(r, abs=1e-9)
+
+    rt = FloatRuntime(model)
+    rt.set_baseline(model.baseline_nm)
+    rt.run(wl[:1200])
+
+    def follows(c: np.ndarray, start: int, stop: int, base: np.ndarray) -> None:
+        flt = fm.FloatPipeline(model, base).push(wl[start:stop])
+        fault = (c["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]) != 0
+        assert np.array_equal(fault, flt["status"] != 0) and fault.any()
+        assert np.abs(c["margin"][~fault] - flt["margin"][~fault]).max() < 1e-3
+
+    rt.reset()
+    follows(rt.run(wl[1200:1500]), 1200, 1500, model.baseline_nm)
+    tared = rt.tare(wl[1500:1550])
+    follows(rt.run(wl[1550:1800]), 1550, 1800, tared)
+    rt.set_baseline(model.baseline_nm)
+    follows(rt.run(wl[1800:]), 1800, 2000, model.baseline_nm)
+
+
+def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
+    """An old model.json (no ref_shift) loads with the raw reference, compensates as
+    shift_i - temp_coeff_i * shift_T exactly, and exports the blob that blob version 6 wrote:
+    the same bytes apart from the header's version and CRC (the field sits in what was the
+    parameter block's padding; the digest below was taken with the version 6 exporter)."""
+    model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
+                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
+    fm.save(model, tmp_path)
+    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
+    del doc["preprocess"]["ref_shift"]
+    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
+    old = fm.load(tmp_path)
+    assert old.preprocess.ref_shift == 0
+    wl = make_random_walk(old, 600, 7)
+    shift = (wl - old.baseline_nm) * 1000.0
+    expected = shift[:, :4] - shift[:, 4:] * old.preprocess.temp_coeff
+    assert np.array_equal(fm.compensate(old, wl, old.baseline_nm), expected)
+    q, _ = qz.quantize(old, qz.calibrate(old, [(wl, old.baseline_nm)]))
+    data = bytearray(blob.to_bytes(q))
+    assert int.from_bytes(data[4:6], "little") == contract.LIMIT["BLOB_VERSION"] == 7
+    assert contract.decode_params(bytes(data[16:contract.PARAMS_END]))["ref_shift"] == 0
+    data[4:6] = b"\0\0"
+    data[12:16] = b"\0\0\0\0"
+    assert hashlib.sha256(bytes(data)).hexdigest() == \
+        "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a7265d057"
+
+
+def test_ref_shift_is_range_checked_by_every_reader():
+    """ref_shift beyond MAX_REF_SHIFT: the blob readers (C and Python) give FBG_ERR_RANGE,
+    the C float build refuses the model, the float model refuses it."""
+    from fbgforce.export import mutate
+
+    model, q, _ = _quantised(3, n=400)
+    bad = blob.to_bytes(dataclasses.replace(q, ref_shift=0))
+    offset = 16 + contract.PARAMS_STRUCT.size - 1          # the last field of the block
+    data = bytearray(bad)
+    data[offset] = contract.LIMIT["MAX_REF_SHIFT"] + 1
+    data = mutate.fix_crc(data)
+    assert mutate.c_verdict(data) == mutate.python_verdict(data) == "FBG_ERR_RANGE"
+    with pytest.raises(ValueError, match="ref_shift"):
+        dataclasses.replace(model.preprocess, ref_shift=contract.LIMIT["MAX_REF_SHIFT"] + 1)
+    model.preprocess.ref_shift = contract.LIMIT["MAX_REF_SHIFT"] + 1   # past the check
+    from fbgforce.pybind import RangeError
+
+    with pytest.raises(RangeError):
+        FloatRuntime(model)
+
+
+def _rest_recording(common: bool, n: int = 6000, seed: int = 0):
+    """Wavelengths at rest (n, 5) around 1530..1550 nm with a slow temperature ramp and 1 pm
+    of interrogator noise, independent per grating or common to all of them."""
+    rng = np.random.default_rng(seed)
+    base = np.array([1530.0, 1535.0, 1540.0, 1545.0, 1550.0])
+    ramp = np.linspace(0.0, 0.01, n)[:, None]                       # 10 pm over 6 s
+    noise = rng.normal(0.0, 1e-3, (n, 1 if common else 5))
+    return base + ramp + noise, base
+
+
+@pytest.mark.parametrize("common, averaged", [(False, True), (True, False)])
+def test_the_trainer_averages_only_independent_noise(common, averaged):
+    """Independent noise on each grating: the average halves the compensated channels'
+    noise at rest and is kept (2^5 samples at 1 kHz); noise common to all gratings: the raw
+    reference cancels it, the average would not, and the raw reference is kept."""
+    wl, base = _rest_recording(common)
+    pre = pp.make_preprocess("causal", 5.0, np.ones(4))
+    shift, info = pp.choose_ref_shift(pre, [(wl, base, np.ones(wl.shape[0], dtype=bool))], 1000.0)
+    noise = info["rest_noise_pm2"]
+    assert info["candidate"] == 5 and shift == info["ref_shift"] == (5 if averaged else 0)
+    if averaged:
+        assert noise["averaged"] < 0.6 * noise["raw"]
+    else:
+        assert noise["averaged"] > 10.0 * noise["raw"]
