@@ -14,6 +14,7 @@ so that both can use it (imports run one way).
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -54,10 +55,16 @@ def weights_digest(model: Any) -> str:
     return h.hexdigest()
 
 
+#: The preprocessing fields model_digest hashes on their own, and filter_sigma, which only
+#: describes the taps (every other field is hashed by name).
+_DIGESTED = ("temp_coeff", "filter_kind", "filter_sigma", "taps", "input_mean", "input_std",
+             "memory")
+
+
 def model_digest(model: Any) -> str:
     """SHA-256 of everything the fixed-point model is quantised from: the nets and output
-    scaling (:func:`weights_digest`), the preprocessing (the temperature reference's average
-    included), the nominal baseline, and what the runtimes do in use (the decision over time,
+    scaling (:func:`weights_digest`), the preprocessing (every field of
+    :class:`fbgforce.model.Preprocess`), the nominal baseline, and what the runtimes do in use (the decision over time,
     the tracker: ``in_use``; the input range)."""
     pre = model.preprocess
     h = hashlib.sha256(weights_digest(model).encode())
@@ -65,8 +72,11 @@ def model_digest(model: Any) -> str:
     for arr in (pre.temp_coeff, pre.taps, pre.input_mean, pre.input_std, model.baseline_nm):
         h.update(np.ascontiguousarray(arr, dtype="<f8").tobytes())
     h.update(json.dumps(pre.memory.to_json(), sort_keys=True).encode())
-    if pre.ref_shift:   # a model without the reference's average keeps the digest it had
-        h.update(f"ref_shift={pre.ref_shift}".encode())
+    # Every other preprocessing parameter (ref_shift, ...) by name, where it differs from its
+    # default: a model that leaves it at the default keeps the digest its export recorded.
+    for f in dataclasses.fields(pre):
+        if f.name not in _DIGESTED and getattr(pre, f.name) != f.default:
+            h.update(f"{f.name}={getattr(pre, f.name)!r}".encode())
     h.update(json.dumps(model.in_use.to_json(), sort_keys=True).encode())
     if model.input_range is not None:
         h.update(np.ascontiguousarray(model.input_range, dtype="<f8").tobytes())

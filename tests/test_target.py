@@ -6,12 +6,16 @@ the apt line to install, except under CI=true, where a missing tool is a FAILURE
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
 
 from conftest import missing_tool
+from fbgforce import contract
+from fbgforce import model as fm
 from fbgforce.target import firmware, golden, sources, toolchain
 from fbgforce.target.report import load_quantized, recording_fm, target_report
 
@@ -234,6 +238,22 @@ def test_firmware_reports_a_single_flipped_bit(report, small_model_dir):
 def test_int8_weights_bit_exact(tools, small_model_dir):
     rep = target_report(small_model_dir, samples=128, bits=8)
     assert rep["bit_exact"] and rep["weight_bits"] == 8
+
+
+@pytest.mark.target
+def test_temperature_reference_average_bit_exact_on_target(tools, small_model_dir, tmp_path):
+    """The temperature reference's average at its longest (ref_shift 8: the largest
+    accumulator) on both Cortex-M4 builds, through the golden session's faults, tares, resets
+    and new baselines."""
+    d = tmp_path / "model"
+    shutil.copytree(small_model_dir, d)
+    model = fm.load(d)
+    model.preprocess = replace(model.preprocess, ref_shift=contract.LIMIT["MAX_REF_SHIFT"])
+    fm.save(model, d)
+    rep = target_report(d, samples=128)
+    assert rep["bit_exact"] is True
+    for name in ("portable", "dsp"):
+        assert rep["builds"][name]["bit_exact"] and rep["builds"][name]["mismatches"] == 0
 
 
 @pytest.mark.target

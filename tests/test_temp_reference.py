@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from conftest import make_random_model, make_random_walk
-from fbgforce import contract
+from fbgforce import contract, freshness
 from fbgforce import model as fm
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
@@ -175,7 +175,8 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
     """An old model.json (no ref_shift) loads with the raw reference, compensates as
     shift_i - temp_coeff_i * shift_T exactly, and exports the blob that blob version 6 wrote:
     the same bytes apart from the header's version and CRC (the field sits in what was the
-    parameter block's padding; the digest below was taken with the version 6 exporter)."""
+    parameter block's padding; the digests below were taken with the version 6 exporter), and
+    keeps the freshness digest its export recorded, which ref_shift > 0 changes."""
     model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
                               memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
     fm.save(model, tmp_path)
@@ -196,6 +197,10 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
     data[12:16] = b"\0\0\0\0"
     assert hashlib.sha256(bytes(data)).hexdigest() == \
         "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a7265d057"
+    digest = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a40c"
+    assert freshness.model_digest(old) == digest
+    old.preprocess = dataclasses.replace(old.preprocess, ref_shift=5)
+    assert freshness.model_digest(old) != digest
 
 
 def test_ref_shift_is_range_checked_by_every_reader():
