@@ -23,7 +23,7 @@ from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, Runtime
 from fbgforce.trainer import preprocess as pp
-from test_simd import host_kernels
+from test_simd import _balance_contact, host_kernels
 
 FIELDS = contract.OUTPUT_FIELDS
 #: Independent interrogator noise per grating, nm (0.5 pm).
@@ -51,9 +51,7 @@ def _quantised(ref_shift: int, seed: int = 4, n: int = 2000):
                               memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
     model.preprocess = dataclasses.replace(model.preprocess, ref_shift=ref_shift)
     wl = _noisy_walk(model, n, seed)
-    x = fm.features(model, wl, model.baseline_nm)
-    logits = model.contact.forward(x[:, :model.preprocess.n_features])
-    model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
+    _balance_contact(model, wl)
     q, rep = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
     q.report = rep
     return model, q, wl
