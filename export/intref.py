@@ -376,10 +376,10 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     fault = np.any(~inwin | jump | stuck, axis=1)
     status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
     warm = np.arange(1, n + 1) < q.taps.size
+    status |= np.where(warm, STATUS_WARMUP, 0)
     # The temperature reference: the tracker moves only the strain gratings' baseline, so the
     # reference grating's shift, and its average, is known for the whole recording here.
     ref = reference_average(q, wl[:, 4] - base[4], fault)
-    status |= np.where(warm, STATUS_WARMUP, 0)
 
     out = {k: np.zeros(n, dtype=np.int64) for k in
            ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
@@ -404,8 +404,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
 
 
 def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
-           base: np.ndarray,
-           history: np.ndarray, last_comp: np.ndarray, memory: _Memory, decision: list[int],
+           base: np.ndarray, history: np.ndarray, last_comp: np.ndarray, memory: _Memory,
+           decision: list[int],
            status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
            trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes

@@ -814,9 +814,9 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
                  + out_scale * (|acc[r]| * |mult[r] / 2^shift - R[r]| + 1/2)
 
     The input error (proven, per sample): conversion to fm (0.5 fm on wl and baseline), the
-    temperature reference's average (1 fm), the Q24 coefficient, Q15 taps (their sum is exact to 2^-16, so the tap residue acts only on the
-    variation of the signal within the filter window), the standardisation multiplier and
-    the Q(z_frac) rounding.
+    temperature reference's average (1 fm), the Q24 coefficient, Q15 taps (their sum is
+    exact to 2^-16, so the tap residue acts only on the variation of the signal within the
+    filter window), the standardisation multiplier and the Q(z_frac) rounding.
     """
     pre = model.preprocess
     taps_f = np.array([1.0]) if pre.filter_kind == "none" else pre.taps

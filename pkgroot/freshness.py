@@ -64,8 +64,8 @@ _DIGESTED = ("temp_coeff", "filter_kind", "filter_sigma", "taps", "input_mean", 
 def model_digest(model: Any) -> str:
     """SHA-256 of everything the fixed-point model is quantised from: the nets and output
     scaling (:func:`weights_digest`), the preprocessing (every field of
-    :class:`fbgforce.model.Preprocess`), the nominal baseline, and what the runtimes do in use (the decision over time,
-    the tracker: ``in_use``; the input range)."""
+    :class:`fbgforce.model.Preprocess`), the nominal baseline, and what the runtimes do in
+    use (the decision over time, the tracker: ``in_use``; the input range)."""
     pre = model.preprocess
     h = hashlib.sha256(weights_digest(model).encode())
     h.update(pre.filter_kind.encode())

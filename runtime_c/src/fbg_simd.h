@@ -96,8 +96,9 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
- * sample); for a clean one the tare difference and the temperature compensation into the ring
- * at s->pos.
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
  * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
  * exactly in int64 (the same integers in another order), its filtered shift into
  * s->last_comp, in[c] = its standardised value;
