@@ -18,13 +18,21 @@ def _run_json(capsys, argv):
 @pytest.mark.slow
 def test_train_evaluate_round_trip(capsys, tmp_path, small_dataset_path):
     out = tmp_path / "model"
-    res = _run_json(capsys, ["train", "--data", str(small_dataset_path), "--out", str(out),
-                             "--epochs", "15", "--seed", "3", "--filter", "causal",
-                             "--sigma", "4", "--json"])
+    assert main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "15",
+                 "--seed", "3", "--filter", "causal", "--sigma", "4", "--json"]) == 0
+    printed = capsys.readouterr()
+    res = json.loads(printed.out)
     model = fm.load(out)
     assert model.preprocess.filter_kind == "causal" and model.preprocess.filter_sigma == 4
     assert res["filter"]["group_delay_ms"] > 0 and res["test"]["n_samples"] > 0
     assert model.metadata["seed"] == 3 and len(model.metadata["data"][0]["sha256"]) == 64
+    # The temperature reference's choice: in the JSON, the metadata, the model and the summary
+    # line (the scene's gratings have independent noise: the average halves it).
+    ref = res["temperature_reference"]
+    assert ref == model.metadata["temperature"]["reference"]
+    assert ref["ref_shift"] == model.preprocess.ref_shift == ref["candidate"] == 5
+    assert ref["rest_noise_pm2"]["averaged"] < 0.6 * ref["rest_noise_pm2"]["raw"]
+    assert "temperature reference averaged over 2^5 samples" in printed.err
     ev = _run_json(capsys, ["evaluate", "--model", str(out), "--data", str(small_dataset_path),
                             "--split", "test", "--json"])
     for key in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"):
