@@ -205,7 +205,7 @@ def rest_noise_pm2(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np
     (5,), rest (n,) bool), ...]. None without two consecutive finite rest samples."""
     diffs = []
     for wl, base, rest in recordings:
-        comp = compensated(pre, wl, base)
+        comp = compensated(pre, wl, base, recording=True)
         d = np.diff(comp, axis=0)
         keep = np.asarray(rest[1:] & rest[:-1], dtype=bool) & np.all(np.isfinite(d), axis=1)
         diffs.append(d[keep])
@@ -255,8 +255,18 @@ def group_delay_ms(pre: fm.Preprocess, rate_hz: float = 1000.0) -> float:
     return pre.group_delay_samples * 1000.0 / rate_hz
 
 
-def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray) -> np.ndarray:
-    """Tared, temperature-compensated shifts (n, 4) in pm via :func:`fbgforce.model.compensate`."""
+def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray, *,
+                recording: bool = False) -> np.ndarray:
+    """Tared, temperature-compensated shifts (n, 4) in pm via :func:`fbgforce.model.compensate`.
+
+    By default every row on its own, with the reference grating's own shift: what a steady
+    level compensates to (the reference's average converges to it), which splits wavelengths
+    into their strain part and the rest (the synthetic holds and rests are made of such
+    levels, one row each). ``recording=True``: the rows are ONE continuous recording, the
+    reference averaged along it as the model does (``pre.ref_shift``).
+    """
+    if not recording:
+        pre = replace(pre, ref_shift=0)
     # compensate() only reads model.preprocess; a namespace avoids building a dummy model.
     return fm.compensate(SimpleNamespace(preprocess=pre), wl_nm, baseline_nm)  # type: ignore[arg-type]
 
@@ -264,7 +274,7 @@ def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray) 
 def recording_features(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray
                        ) -> np.ndarray:
     """Compensated and filtered shifts (n, 4), pm, of ONE continuous recording (unstandardised)."""
-    return fm.apply_filter(pre, compensated(pre, wl_nm, baseline_nm))
+    return fm.apply_filter(pre, compensated(pre, wl_nm, baseline_nm, recording=True))
 
 
 @dataclass
