@@ -246,3 +246,17 @@ def test_the_trainer_averages_only_independent_noise(common, averaged):
         assert noise["averaged"] < 0.6 * noise["raw"]
     else:
         assert noise["averaged"] > 10.0 * noise["raw"]
+
+
+def test_levels_compensate_each_row_on_its_own():
+    """pp.compensated splits rows that are levels, not a recording (the synthetic holds' and
+    rests'), with each row's own reference shift, whatever ref_shift; recording=True averages
+    the reference along the rows as the model does."""
+    wl, base = _rest_recording(False, n=50)
+    pre = dataclasses.replace(pp.make_preprocess("causal", 5.0, np.full(4, 0.9)), ref_shift=5)
+    shift = (wl - base) * 1000.0
+    assert np.array_equal(pp.compensated(pre, wl, base), shift[:, :4] - shift[:, 4:] * 0.9)
+    along = pp.compensated(pre, wl, base, recording=True)
+    model = dataclasses.replace(make_random_model(0), preprocess=pre)
+    assert np.array_equal(along, fm.compensate(model, wl, base))
+    assert not np.allclose(along[1:], shift[1:, :4] - shift[1:, 4:] * 0.9)
