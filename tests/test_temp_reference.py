@@ -16,6 +16,8 @@ import json
 import numpy as np
 import pytest
 
+from fbgforce.errors import InputError
+
 from conftest import make_random_model, make_random_walk
 from fbgforce import contract, freshness
 from fbgforce import model as fm
@@ -246,6 +248,21 @@ def test_the_trainer_averages_only_independent_noise(common, averaged):
         assert noise["averaged"] < 0.6 * noise["raw"]
     else:
         assert noise["averaged"] > 10.0 * noise["raw"]
+
+
+@pytest.mark.parametrize("given", [0, 3])
+def test_a_given_ref_shift_is_taken_as_it_is(given):
+    """``--ref-shift N`` overrides the choice (here against the data, which would average
+    over 2^5) and says so in the metadata; an out-of-range one is refused by name."""
+    from fbgforce.trainer.train import TrainParams
+
+    wl, base = _rest_recording(False)
+    pre = pp.make_preprocess("causal", 5.0, np.ones(4))
+    shift, info = pp.choose_ref_shift(pre, [(wl, base, np.ones(wl.shape[0], dtype=bool))], 1000.0,
+                                      given=given)
+    assert shift == info["ref_shift"] == given and info["given"] is True
+    with pytest.raises(InputError, match="--ref-shift"):
+        TrainParams(ref_shift=contract.LIMIT["MAX_REF_SHIFT"] + 1)
 
 
 def test_levels_compensate_each_row_on_its_own():

@@ -43,6 +43,10 @@ def register(subparsers: Any) -> None:
                         f"data's sample rate: {DEFAULT_SIGMA:g} at 1 kHz; 0 = no filter)")
     p.add_argument("--window", type=positive_int, default=None,
                    help="filter taps (causal) or half-width (centred); default ceil(3 sigma)")
+    p.add_argument("--ref-shift", type=_ref_shift, default=None, metavar="auto|0..8",
+                   help="the temperature grating's average before it compensates: auto "
+                        "(default: 32 ms when that lowers the noise at rest by 5 %% or more, "
+                        "else raw), 0 (raw) or N (2^N samples; docs/trainer.md)")
     p.add_argument("--init", metavar="MODEL_DIR", default=None,
                    help="start from another device's model (transfer learning)")
     p.add_argument("--train-fraction", type=float, default=1.0,
@@ -135,7 +139,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                if getattr(args, name) is not None}
     params = TrainParams(epochs=args.epochs, seed=args.seed, filter=args.filter,
                          memory=args.memory, restarts=_restarts(args.restarts),
-                         sigma=args.sigma, window=args.window, init=args.init,
+                         sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
+                         init=args.init,
                          train_fraction=args.train_fraction, **augment)
     fileio.check_output_dir(args.out, "--out")
     model = train(args.data, params)
@@ -160,8 +165,26 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
             "coverage": md["coverage"], "warnings": md.get("warnings", [])}
 
 
+def _ref_shift(text: str) -> int | None:
+    """argparse type of ``--ref-shift``: ``auto`` (None) or a shift 0 .. MAX_REF_SHIFT."""
+    from fbgforce import contract
+
+    if text == "auto":
+        return None
+    top = contract.LIMIT["MAX_REF_SHIFT"]
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if not 0 <= value <= top:
+        raise argparse.ArgumentTypeError(f"must be auto or 0 .. {top}, not {text}")
+    return value
+
+
 def _reference_summary(ref: Mapping[str, Any]) -> str:
     """The temperature reference's choice (trainer.preprocess.choose_ref_shift) in words."""
+    if ref.get("given"):
+        return f"temperature reference as given: --ref-shift {ref['ref_shift']}"
     noise = ref["rest_noise_pm2"]
     if noise["raw"] is None:
         return "temperature reference raw (no rest samples to measure its noise)"

@@ -214,31 +214,33 @@ def rest_noise_pm2(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np
 
 
 def choose_ref_shift(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
-                     rate_hz: float) -> tuple[int, dict[str, Any]]:
+                     rate_hz: float, given: int | None = None) -> tuple[int, dict[str, Any]]:
     """The temperature reference's average for ``pre`` (:attr:`fbgforce.model.Preprocess.ref_shift`).
 
     The candidates are 0 (the raw reference) and ``round(log2(REF_TIME_CONSTANT_S *
     rate_hz))`` (clipped to 0 .. ``MAX_REF_SHIFT``); the average is kept when it lowers
     :func:`rest_noise_pm2` by :data:`REF_MIN_GAIN` or more. ``recordings`` as
-    :func:`rest_noise_pm2` takes them.
+    :func:`rest_noise_pm2` takes them. ``given`` (``fbgforce train --ref-shift``) is taken
+    as it is, in place of the candidate, and recorded as ``"given": true``.
 
     Returns
     -------
     tuple
         The chosen shift and what the model's metadata records of the choice:
         ``ref_shift``, ``candidate``, ``rest_noise_pm2`` ({"raw", "averaged"}: the summed
-        variances of first differences at rest, None where there is no rest).
+        variances of first differences at rest, None where there is no rest) and ``given``.
     """
     candidate = int(np.clip(round(math.log2(max(REF_TIME_CONSTANT_S * float(rate_hz), 1.0))),
-                            0, contract.LIMIT["MAX_REF_SHIFT"]))
+                            0, contract.LIMIT["MAX_REF_SHIFT"])) if given is None else int(given)
     raw = rest_noise_pm2(replace(pre, ref_shift=0), recordings)
     averaged = (rest_noise_pm2(replace(pre, ref_shift=candidate), recordings)
                 if candidate else raw)
     keep = (candidate > 0 and raw is not None and averaged is not None
             and averaged <= (1.0 - REF_MIN_GAIN) * raw)
-    chosen = candidate if keep else 0
+    chosen = candidate if keep or given is not None else 0
     return chosen, {"ref_shift": chosen, "candidate": candidate,
-                    "rest_noise_pm2": {"raw": raw, "averaged": averaged}}
+                    "rest_noise_pm2": {"raw": raw, "averaged": averaged},
+                    "given": given is not None}
 
 
 def make_preprocess(kind: str, sigma: float, temp_coeff: np.ndarray,

@@ -203,13 +203,14 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
-            sources: Sequence[str] | None = None) -> Prepared:
+            sources: Sequence[str] | None = None, ref_shift: int | None = None) -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), filter every recording, split
     each by press.
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
-    at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz.
+    at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz. ``ref_shift``: None
+    lets the data choose the reference's average, a number sets it.
     """
     if not datasets:
         raise InputError("no training data given", column="--data")
@@ -226,7 +227,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
         sigma = pp.default_sigma(rate)
     pre = pp.make_preprocess(filter, sigma, coeff, window)
     ref_shift, temp_info["reference"] = pp.choose_ref_shift(
-        pre, [(r.ds.wl_nm, r.baseline_nm, mask) for r, mask in zip(recs, masks)], rate)
+        pre, [(r.ds.wl_nm, r.baseline_nm, mask) for r, mask in zip(recs, masks)], rate,
+        given=ref_shift)
     pre = replace(pre, ref_shift=ref_shift)
     for r in recs:
         r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
@@ -512,7 +514,7 @@ def press_delays(data: Prepared, pred_contact: np.ndarray, rows: np.ndarray
 _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "sigma": "--sigma",
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
-                "rest_augment": "--rest-augment"}
+                "rest_augment": "--rest-augment", "ref_shift": "--ref-shift"}
 
 
 def _is_int(value: Any) -> bool:
@@ -538,6 +540,10 @@ class TrainParams:
     filter, sigma, window
         Smoothing: ``causal`` (shipped), ``centred`` (offline, the paper's) or ``none``;
         sigma in samples, default 5 ms at the data's sample rate (5 samples at 1 kHz).
+    ref_shift
+        The temperature reference's average (:attr:`fbgforce.model.Preprocess.ref_shift`):
+        None lets the data choose (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`),
+        0 keeps the raw reference, 1 .. 8 averages over 2^ref_shift samples.
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -582,6 +588,7 @@ class TrainParams:
     filter: str = "causal"
     sigma: float | None = None
     window: int | None = None
+    ref_shift: int | None = None
     init: str | Path | fm.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
@@ -613,6 +620,9 @@ class TrainParams:
              "a number >= 0 (samples)")
         need(self.window is None or (_is_int(self.window) and self.window >= 1), "window",
              "a whole number >= 1")
+        need(self.ref_shift is None or (_is_int(self.ref_shift)
+                                        and 0 <= self.ref_shift <= contract.LIMIT["MAX_REF_SHIFT"]),
+             "ref_shift", f"None or 0 .. {contract.LIMIT['MAX_REF_SHIFT']}")
         need(_is_real(self.learning_rate) and self.learning_rate > 0, "learning_rate", "> 0")
         need(_is_real(self.decay) and 0 < self.decay <= 1, "decay", "in (0, 1]")
         need(_is_int(self.patience) and self.patience >= 1, "patience", "a whole number >= 1")
@@ -965,7 +975,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     init_model, memory, net_sizes = _starting_point(params)
     data = prepared if prepared is not None else prepare(
         ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
-        window=params.window, sources=sources)
+        window=params.window, sources=sources, ref_shift=params.ref_shift)
     t_prep = time.perf_counter() - t_start
     streams = _Streams.from_seed(params.seed)
     tr, va, te = _split(data, params, streams.subsample)
