@@ -303,9 +303,16 @@ def memory_features(memory: Memory, z: np.ndarray, z_rest: np.ndarray | None = N
     return MemoryStream(memory, z_rest).push(z)
 
 
-#: The decision's rise threshold: this quantile of the contact net's margin at rest in the
-#: calibration data, its synthetic long rests included (docs/runtime.md, "In use").
+#: The decision's rise threshold: :data:`REST_MARGIN_FACTOR` times this quantile of the contact
+#: net's margin at rest in the calibration data, its synthetic long rests included
+#: (docs/runtime.md, "In use").
 REST_MARGIN_QUANTILE = 0.9999
+#: A calibration's rests end within half a second of a release, where the margin is still
+#: rising out of the release; in use rests last seconds, and 0.2-1.5 s after a release, as the
+#: load signal's averages settle, it comes higher than any calibration rest shows (on the
+#: hours-of-use run, docs/robustness.md: 3.8 false events per minute at the quantile itself,
+#: 1.2 at 1.5 times it, 0.5 at twice it).
+REST_MARGIN_FACTOR = 2.0
 #: How long the rise condition must hold, s: 3 samples at 1 kHz. On fault-free logs one
 #: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
 #: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
@@ -383,12 +390,14 @@ class InUse:
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
         ``rest_margins``: the contact net's margins on calibration samples at rest; contact
-        rises only past their :data:`REST_MARGIN_QUANTILE` quantile, held for
-        :data:`RISE_S`, and falls below minus half of it. None: the per-sample decision.
+        rises only past :data:`REST_MARGIN_FACTOR` times their :data:`REST_MARGIN_QUANTILE`
+        quantile, held for :data:`RISE_S`, and falls below minus half of it. None: the
+        per-sample decision.
         """
         on = 0.0
         if rest_margins is not None and np.size(rest_margins):
-            on = max(0.0, float(np.quantile(rest_margins, REST_MARGIN_QUANTILE)))
+            on = REST_MARGIN_FACTOR * max(0.0, float(np.quantile(rest_margins,
+                                                                 REST_MARGIN_QUANTILE)))
         return cls(contact_on_margin=on, contact_off_margin=-0.5 * on,
                    contact_rise_samples=max(1, min(255, int(round(RISE_S * sample_rate_hz))))
                    if on > 0 else 1,
