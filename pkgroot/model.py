@@ -778,7 +778,8 @@ def reference_average(shift_t: np.ndarray, ref_shift: int, fault: np.ndarray,
 
 
 def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray,
-               reference: list[float | None] | None = None) -> np.ndarray:
+               reference: list[float | None] | None = None,
+               fault: np.ndarray | None = None) -> np.ndarray:
     """Tare and temperature-compensate raw wavelengths.
 
     Parameters
@@ -790,8 +791,10 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
     reference
         ``[r]``: the temperature reference's average before the samples (None: the first good
         sample primes it), updated in place; None: a recording of its own. Read only when
-        ``preprocess.ref_shift`` is on (:func:`reference_average`; the sensor faults are
-        :func:`fbgforce.samples.sensor_fault_rows`).
+        ``preprocess.ref_shift`` is on (:func:`reference_average`).
+    fault
+        (n,) the samples' sensor faults, :func:`fbgforce.samples.sensor_fault_rows` of
+        ``wl_nm`` (None: found here), which the reference's average skips.
 
     Returns
     -------
@@ -804,8 +807,9 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
     ref = shift_pm[:, N_STRAIN]
     if pre.ref_shift:
         state = [None] if reference is None else reference
-        ref, state[0] = reference_average(ref, pre.ref_shift, samples.sensor_fault_rows(wl),
-                                          state[0])
+        if fault is None:
+            fault = samples.sensor_fault_rows(wl)
+        ref, state[0] = reference_average(ref, pre.ref_shift, fault, state[0])
     return shift_pm[:, :N_STRAIN] - ref[:, None] * pre.temp_coeff
 
 
@@ -879,8 +883,8 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
     runtime runs, is fed the last good input instead.
     """
     pre = model.preprocess
-    comp = compensate(model, wl_nm, baseline_nm)
     fault = samples.sensor_fault_rows(wl_nm)
+    comp = compensate(model, wl_nm, baseline_nm, fault=fault)
     if not fault.any():
         return standardise(pre, apply_filter(pre, comp))
     good = np.flatnonzero(~fault)
@@ -1090,7 +1094,7 @@ class FloatPipeline:
         n = wl.shape[0]
         fault = samples.sensor_fault_rows(wl) if n else np.zeros(0, dtype=bool)
         good = np.flatnonzero(~fault)
-        comp = compensate(model, wl, self.baseline_nm, self._reference)
+        comp = compensate(model, wl, self.baseline_nm, self._reference, fault)
         filt, self._history, self._last_comp = filter_through_faults(
             self.taps, comp, fault, self._history, self._last_comp)
 
