@@ -370,7 +370,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         and for the FIR (``"fir"``), for the export report.
     end
         If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
-        ``fbg_get_baseline`` reads it (the tracker may have moved it).
+        ``fbg_get_baseline`` reads it (the tracker may have moved it), and ``"creep"``: the
+        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any).
 
     Returns
     -------
@@ -419,11 +420,13 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
                              memory, tracker, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        tracker.end_block(rest & tared, r_sum, base)
+        if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
+            tracker.end_block(rest & tared, r_sum, base)
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
     if end is not None:
         end["baseline_fm"] = base.copy()
+        end["creep"] = np.array(tracker.creep or [0] * 4, dtype=np.int64)
     return out
 
 
