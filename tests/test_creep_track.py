@@ -331,3 +331,47 @@ def test_recommended_converts_the_fitted_creep():
     assert fields(creep_magnitude=0.0, creep_time_constant_samples=1000.0) == (0.0, 0)
     assert fields(creep_magnitude=0.05, creep_time_constant_samples=0.0) == (0.0, 0)
     assert fm.InUse.recommended(1000.0, np.array([0.1, 0.2])).track_creep == 0.0
+
+
+def _hardcases():
+    """runtime_c/fuzz/hardcases.py (a script, not a package module), as tests/test_hardcases.py
+    loads it."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "runtime_c" / "fuzz" / "hardcases.py"
+    spec = importlib.util.spec_from_file_location("fbg_hardcases", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_the_creep_term_at_its_bounds_is_exact():
+    """The stress model (every value saturated) with the creep term at its largest
+    magnitude and its slowest average, z0 at +32767 and z swinging from +32767 to -32767: a
+    sample's term reaches -65533, next to the bound 65534 docs/fixed-point.md proves, the
+    block sums times the largest tracker gain come near 2^53, and every host kernel still
+    equals the integer reference bit for bit."""
+    hc = _hardcases()
+    q = dataclasses.replace(
+        hc.stress_qmodel(width=16, n_layers=3, n_taps=8), mean_fm=[-70_000] * 4,
+        track_shift=1, track_settle=0, track_gain=[contract.SAT32] * 4,
+        track_step_max_fm=contract.SAT32, track_limit_fm=contract.LIMIT["TRACK_LIMIT_MAX_FM"],
+        track_creep_q15=contract.LIMIT["MAX_TRACK_CREEP_Q15"],
+        track_creep_shift=contract.LIMIT["MAX_EMA_SHIFT"])
+    z0, _ = q.z_rest()
+    assert z0.tolist() == [contract.SAT16] * 4
+    sat = np.array([[contract.SAT16] * 4] * 40 + [[-contract.SAT16] * 4] * 400, dtype=np.int64)
+    terms = intref._Tracker(q).rest_terms(sat, z0)
+    assert terms.min() == -65533 and np.abs(terms).max() <= 65534
+    wl = np.vstack([hc.stress_inputs(q, 1, 40), hc.stress_inputs(q, -1, 64 * 8)])
+    base = np.asarray(q.baseline_fm, dtype=np.int64)
+    ref, reached = _run_ref(q, wl, base)
+    assert not np.array_equal(reached, base)      # the tracker ran on those sums
+    for kernel in ["portable"] + host_kernels():
+        rt = Runtime(blob.to_bytes(q), kernel=kernel)
+        rt.set_baseline(base.astype(np.int32))
+        _equal(rt.run_raw(wl), ref, kernel)
+        assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), reached), kernel

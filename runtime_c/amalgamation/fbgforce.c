@@ -4387,8 +4387,10 @@ static void creep_update(fbg_state *s, const fbg_model *m, const int16_t *z)
  * from a sample the nets call contact. With the creep term on, each sample at rest adds
  * (z - z0) - corr, corr = rshift_round((creep - (z0 << EMA_FRAC)) * track_creep_q15, 30): the
  * pad's creep still in the grating, not drift. Bounds: |creep - (z0 << EMA_FRAC)| <= 65534 *
- * 2^15 < 2^31 times track_creep_q15 <= 2^14 is below 2^45 (int64), so |corr| <= 32767 and a
- * sample's term is below 2^17; |track_sum| < 64 * 2^17 = 2^23, so the product with
+ * 2^15 < 2^31 times track_creep_q15 <= 2^14 is below 2^45 (int64), so |corr| <= 32767; and
+ * corr is within 1/2 of m * (creep / 2^15 - z0), m <= 1/2, so a sample's term is within 1/2
+ * of z - m * creep / 2^15 - (1 - m) * z0: at most 65534 as without the term
+ * (docs/fixed-point.md). |track_sum| <= 64 * 65534 < 2^23, so the product with
  * |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1) after a step, and
  * |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so wl - baseline stays
  * within +-1.1e9 (int32). */
