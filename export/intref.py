@@ -203,15 +203,22 @@ class _Memory:
         s = q.loc_shift
         if not self.primed:
             self.loc = [int(v) << EMA_FRAC for v in r[0].tolist()]
-        state = self.loc
-        out = np.zeros(r.shape, dtype=np.int64)
-        # Python integers, sample by sample, exactly the C recursion (as the load averages).
-        for i, ri in enumerate(r.tolist()):
-            for c in range(4):
-                state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
-                out[i, c] = state[c]
+        out = _channel_averages(r, self.loc, s)
         # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
         return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
+
+
+def _channel_averages(x: np.ndarray, state: list[int], s: int) -> np.ndarray:
+    """``state[c] += rshift_round((x[i, c] << EMA_FRAC) - state[c], s)`` for the samples of
+    ``x`` (m, 4) in order, in Python integers, exactly the C recursion (as the load averages):
+    the states after each sample (m, 4); ``state`` (4 values, Q(z_frac + EMA_FRAC)) is
+    updated in place."""
+    out = np.zeros(x.shape, dtype=np.int64)
+    for i, xi in enumerate(x.tolist()):
+        for c in range(4):
+            state[c] += ((xi[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
+            out[i, c] = state[c]
+    return out
 
 
 # The memory kinds' update rules of fbg_fixed.c (``<kind>_features``) in Python integers,
@@ -310,18 +317,11 @@ class _Tracker:
         terms = z - z0[None, :]
         if q.track_creep_q15 == 0 or z.shape[0] == 0:
             return terms
-        k, m = q.track_creep_shift, q.track_creep_q15
-        rest0 = [int(v) << EMA_FRAC for v in z0.tolist()]
         if self.creep is None:
             self.creep = [int(v) << EMA_FRAC for v in z[0].tolist()]
-        state = self.creep
-        corr = np.zeros(z.shape, dtype=np.int64)
-        # Python integers, sample by sample, exactly the C recursion (as the memory's averages).
-        for i, zi in enumerate(z.tolist()):
-            for c in range(4):
-                state[c] += ((zi[c] << EMA_FRAC) - state[c] + (1 << (k - 1))) >> k
-                corr[i, c] = ((state[c] - rest0[c]) * m + (1 << 29)) >> 30
-        return terms - corr
+        states = _channel_averages(z, self.creep, q.track_creep_shift)
+        # |states - (z0 << EMA_FRAC)| < 2^31 times track_creep_q15 <= 2^14: int64.
+        return terms - rshift_round((states - (z0[None, :] << EMA_FRAC)) * q.track_creep_q15, 30)
 
     def end_block(self, rest: np.ndarray, r_sum: np.ndarray, base: np.ndarray) -> None:
         """After a block: ``rest`` says which of its samples were at rest (in order),
