@@ -471,14 +471,14 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("track_step_max_pm", "float", doc="per block: corr_i += clamp(sum(filt_i) / "
           "2^track_shift, +-track_step_max_pm)"),
     Field("track_limit_pm", "float", doc="|corr_i| <= track_limit_pm (BASELINE_LIMIT at it)"),
-    Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
-    Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
-    Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
-          "r += (shift_T - r) / 2^ref_shift"),
     Field("track_creep", "float", doc="the tracker's creep term as fbg_model, 0..0.5 (0: off): "
           "per sample at rest it sums filt_i - track_creep * creep_pm_i"),
     Field("track_creep_shift", "uint8_t", doc="creep_pm_i += (filt_i - creep_pm_i) / "
           "2^track_creep_shift on every good sample (1..15 when track_creep > 0)"),
+    Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
+    Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
+    Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
+          "r += (shift_T - r) / 2^ref_shift"),
 )
 
 

@@ -426,9 +426,9 @@ typedef struct {
     float contact_off;
     float track_step_max_pm;  /* per block: corr_i += clamp(sum(filt_i) / 2^track_shift, +-track_step_max_pm) */
     float track_limit_pm;  /* |corr_i| <= track_limit_pm (BASELINE_LIMIT at it) */
+    float track_creep;  /* the tracker's creep term as fbg_model, 0..0.5 (0: off): per sample at rest it sums filt_i - track_creep * creep_pm_i */
     float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
     float in_hi[12];
-    float track_creep;  /* the tracker's creep term as fbg_model, 0..0.5 (0: off): per sample at rest it sums filt_i - track_creep * creep_pm_i */
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
     uint16_t track_settle;
@@ -440,8 +440,8 @@ typedef struct {
     uint8_t loc_shift;  /* location averages of z - z_rest (0: off): state += (r - state) / 2^loc_shift */
     uint8_t contact_rise_n;  /* 1..255 */
     uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
-    uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
     uint8_t track_creep_shift;  /* creep_pm_i += (filt_i - creep_pm_i) / 2^track_creep_shift on every good sample (1..15 when track_creep > 0) */
+    uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
     uint8_t pad_[3];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
