@@ -203,15 +203,22 @@ class _Memory:
         s = q.loc_shift
         if not self.primed:
             self.loc = [int(v) << EMA_FRAC for v in r[0].tolist()]
-        state = self.loc
-        out = np.zeros(r.shape, dtype=np.int64)
-        # Python integers, sample by sample, exactly the C recursion (as the load averages).
-        for i, ri in enumerate(r.tolist()):
-            for c in range(4):
-                state[c] += ((ri[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
-                out[i, c] = state[c]
+        out = _channel_averages(r, self.loc, s)
         # |state| <= 32767 << EMA_FRAC (docs/fixed-point.md): the rounded value needs no clamp.
         return rshift_round(out, EMA_FRAC), c_r.any(axis=1) | c0
+
+
+def _channel_averages(x: np.ndarray, state: list[int], s: int) -> np.ndarray:
+    """``state[c] += rshift_round((x[i, c] << EMA_FRAC) - state[c], s)`` for the samples of
+    ``x`` (m, 4) in order, in Python integers, exactly the C recursion (as the load averages):
+    the states after each sample (m, 4); ``state`` (4 values, Q(z_frac + EMA_FRAC)) is
+    updated in place."""
+    out = np.zeros(x.shape, dtype=np.int64)
+    for i, xi in enumerate(x.tolist()):
+        for c in range(4):
+            state[c] += ((xi[c] << EMA_FRAC) - state[c] + (1 << (s - 1))) >> s
+            out[i, c] = state[c]
+    return out
 
 
 # The memory kinds' update rules of fbg_fixed.c (``<kind>_features``) in Python integers,
@@ -298,10 +305,27 @@ class _Tracker:
         self.drift = [0] * 4
         self.frac = [0] * 4
         self.limited = False
+        #: ``creep_update`` of fbg_fixed.c: the creep states, None until the first good sample.
+        self.creep: list[int] | None = None
+
+    def rest_terms(self, z: np.ndarray, z0: np.ndarray) -> np.ndarray:
+        """What each of the consecutive fault-free samples ``z`` (m, 4) would add to the
+        block's sum at rest: ``z - z0``, less ``rshift_round((creep - (z0 << EMA_FRAC)) *
+        track_creep_q15, 30)`` with the creep term on, the creep states stepped by every
+        sample first (primed at ``z << EMA_FRAC`` by the first)."""
+        q = self.q
+        terms = z - z0[None, :]
+        if q.track_creep_q15 == 0 or z.shape[0] == 0:
+            return terms
+        if self.creep is None:
+            self.creep = [int(v) << EMA_FRAC for v in z[0].tolist()]
+        states = _channel_averages(z, self.creep, q.track_creep_shift)
+        # |states - (z0 << EMA_FRAC)| < 2^31 times track_creep_q15 <= 2^14: int64.
+        return terms - rshift_round((states - (z0[None, :] << EMA_FRAC)) * q.track_creep_q15, 30)
 
     def end_block(self, rest: np.ndarray, r_sum: np.ndarray, base: np.ndarray) -> None:
         """After a block: ``rest`` says which of its samples were at rest (in order),
-        ``r_sum`` is their sum of z - z0; moves ``base[:4]`` in place."""
+        ``r_sum`` is their sum of :meth:`rest_terms`; moves ``base[:4]`` in place."""
         q = self.q
         self.rest_run = fm.rest_run_after(self.rest_run, rest)
         if q.track_shift == 0 or self.rest_run < contract.LIMIT["TRACK_BLOCK"] + q.track_settle:
@@ -346,7 +370,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         and for the FIR (``"fir"``), for the export report.
     end
         If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
-        ``fbg_get_baseline`` reads it (the tracker may have moved it).
+        ``fbg_get_baseline`` reads it (the tracker may have moved it), and ``"creep"``: the
+        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any).
 
     Returns
     -------
@@ -393,26 +418,28 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         if tracker.limited:
             status[a:b] |= STATUS_BASELINE_LIMIT
         rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
-                             memory, decision, status[a:b], flag[a:b],
+                             memory, tracker, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        tracker.end_block(rest & tared, r_sum, base)
+        if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
+            tracker.end_block(rest & tared, r_sum, base)
     status |= np.where(flag, STATUS_SATURATED, 0)
     out["status"] = status
     if end is not None:
         end["baseline_fm"] = base.copy()
+        end["creep"] = np.array(tracker.creep or [0] * 4, dtype=np.int64)
     return out
 
 
 def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
            base: np.ndarray, history: np.ndarray, last_comp: np.ndarray, memory: _Memory,
-           decision: list[int],
+           tracker: _Tracker, decision: list[int],
            status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
            trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
     ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
-    ``last_comp``, ``memory`` and ``decision``; ``ref`` is the temperature reference of each
-    sample (:func:`reference_average`). Returns which samples were at rest and their sum of
-    z - z0 (for the tracker)."""
+    ``last_comp``, ``memory``, the tracker's creep states and ``decision``; ``ref`` is the
+    temperature reference of each sample (:func:`reference_average`). Returns which samples
+    were at rest and their sum of the tracker's terms (:meth:`_Tracker.rest_terms`)."""
     n = wl.shape[0]
     ok = ~fault
     # 2. Tare and temperature compensation (rows without a fault).
@@ -448,6 +475,8 @@ def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: 
 
     rows = np.flatnonzero(ok)
     rest = np.zeros(n, dtype=bool)
+    terms = np.zeros((n, 4), dtype=np.int64)
+    terms[rows] = tracker.rest_terms(z[rows], z_rest)
     # 4. Memory features on the fault-free samples, in order.
     x, c_mem = memory.push(z[rows])
     flag[rows] |= c_mem
@@ -487,8 +516,7 @@ def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: 
             out["y_um"][crow] = y_um
             flag[crow] |= f_c
             status[crow] |= np.where(force_mN > q.overload_mN, STATUS_OVERLOAD, 0)
-    r_sum = (z[rest] - z_rest[None, :]).sum(axis=0) if rest.any() else np.zeros(4, dtype=np.int64)
-    return rest, r_sum
+    return rest, terms[rest].sum(axis=0)
 
 
 def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,

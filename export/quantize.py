@@ -217,6 +217,9 @@ class QModel(QModelMemory):
     track_gain: np.ndarray = field(default_factory=lambda: np.zeros(4, dtype=np.int64))
     track_step_max_fm: int = 0
     track_limit_fm: int = 0
+    #: The tracker's creep term (fbg_model.track_creep_q15, track_creep_shift): 0 is off.
+    track_creep_q15: int = 0
+    track_creep_shift: int = 0
     #: OUT_OF_RANGE bounds of the net inputs (fbg_model.in_lo, in_hi): the defaults never flag.
     in_lo: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], -SAT16, dtype=np.int64))
     in_hi: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], SAT16, dtype=np.int64))
@@ -287,6 +290,8 @@ class QModel(QModelMemory):
         bad = contract.check_params(self.params())
         if bad is not None:
             raise ModelCheckError(*bad)
+        need(self.track_creep_q15 == 0 or self.track_creep_shift >= 1, "ERR_RANGE",
+             "track_creep_shift must be at least 1 when track_creep_q15 is on")
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
@@ -589,6 +594,9 @@ def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, 
 def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
+    The creep magnitude becomes ``track_creep_q15 = round(track_creep * 2^15)``; a magnitude
+    that rounds to 0 turns the creep term off (shift 0 with it).
+
     The tracker's gain turns a block's sum of ``z - z0`` (Q(z_frac) units, whose fm value is
     ``2^z_shift / z_mult``) into fm in Q(TRACK_FRAC), divided by its time constant
     ``2^track_shift``: ``round(2^(TRACK_FRAC + z_shift - track_shift) / z_mult)``, exact in
@@ -605,12 +613,15 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
                 raise InputError(f"tracker gain of channel {c + 1} does not fit int32 (a time "
                                  "constant this short for inputs this coarse)", column="track_shift")
             gain[c] = g
+    creep_q15 = int(round(in_use.track_creep * 2.0**15))
     return {"contact_on_q8": int(round(in_use.contact_on_margin * 256.0)),
             "contact_off_q8": int(round(in_use.contact_off_margin * 256.0)),
             "contact_rise_n": in_use.contact_rise_samples, "track_shift": in_use.track_shift,
             "track_settle": in_use.track_settle, "track_gain": gain,
             "track_step_max_fm": min(SAT32, int(round(in_use.track_step_max_pm * 1000.0))),
-            "track_limit_fm": int(round(in_use.track_limit_pm * 1000.0))}
+            "track_limit_fm": int(round(in_use.track_limit_pm * 1000.0)),
+            "track_creep_q15": creep_q15,
+            "track_creep_shift": in_use.track_creep_shift if creep_q15 else 0}
 
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,

@@ -172,7 +172,9 @@ LIMITS: dict[str, tuple[int, str]] = {
                            "stays within 100 nm of its tare"),
     "MAX_REF_SHIFT": (8, "largest shift of the temperature reference's average (time constant "
                       "256 samples): its accumulator stays below 2^39 (docs/fixed-point.md)"),
-    "BLOB_VERSION": (7, "blob format this library reads and writes"),
+    "MAX_TRACK_CREEP_Q15": (1 << 14, "largest track_creep_q15 (creep magnitude 0.5): the "
+                            "tracker's per-sample term stays below 2^17 (docs/fixed-point.md)"),
+    "BLOB_VERSION": (8, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -435,6 +437,13 @@ PARAMS: tuple[Field, ...] = (
           doc="temperature reference average (0: off): acc += shift_T - rshift_round(acc, "
               "ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) "
               "replaces shift_T in temp_coeff_q24's compensation"),
+    Field("track_creep_q15", "uint16_t", 1, 0, LIMIT["MAX_TRACK_CREEP_Q15"],
+          doc="the tracker's creep term (0: off; needs track_creep_shift >= 1): per sample at rest "
+              "it sums (z_i - z0_i) - rshift_round((creep_i - (z0_i << EMA_FRAC)) * "
+              "track_creep_q15, 30), the pad's creep magnitude in Q15"),
+    Field("track_creep_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
+          doc="creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every "
+              "good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -462,6 +471,10 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("track_step_max_pm", "float", doc="per block: corr_i += clamp(sum(filt_i) / "
           "2^track_shift, +-track_step_max_pm)"),
     Field("track_limit_pm", "float", doc="|corr_i| <= track_limit_pm (BASELINE_LIMIT at it)"),
+    Field("track_creep", "float", doc="the tracker's creep term as fbg_model, 0..0.5 (0: off): "
+          "per sample at rest it sums filt_i - track_creep * creep_pm_i"),
+    Field("track_creep_shift", "uint8_t", doc="creep_pm_i += (filt_i - creep_pm_i) / "
+          "2^track_creep_shift on every good sample (1..15 when track_creep > 0)"),
     Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
     Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
@@ -542,6 +555,8 @@ STATE: tuple[StateField, ...] = (
     *_front_head("fbg", "int32_t"),
     *_memory_states("int32_t", lambda k: f"{k.doc}, {k.q}"),
     StateField("loc", "int32_t", ("N_STRAIN",), "location averages of z - z0, Q(z_frac + FBG_EMA_FRAC)"),
+    StateField("creep", "int32_t", ("N_STRAIN",), "the tracker's creep states: averages of z, "
+               "Q(z_frac + FBG_EMA_FRAC), primed with the memory (mem_primed)"),
     StateField("track_sum", "int32_t", ("N_STRAIN",),
                note="At-rest baseline tracker (docs/runtime.md, \"In use\"): the block's sum of z - z0, "
                     "the correction applied to baseline_fm[0..3] since the tare, and the carried "
@@ -574,6 +589,8 @@ FLOAT_STATE: tuple[StateField, ...] = (
     *_front_head("fbgf", "float"),
     *_memory_states("float", lambda k: f"{k.doc}, standardised units"),
     StateField("loc", "float", ("N_STRAIN",), "location averages of z - z_rest"),
+    StateField("creep_pm", "float", ("N_STRAIN",), "the tracker's creep states: averages of the "
+               "filtered shifts (pm), primed with the memory (mem_primed)"),
     StateField("ref_pm", "float", doc="the temperature reference's average (pm)"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),

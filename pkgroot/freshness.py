@@ -61,6 +61,11 @@ _DIGESTED = ("temp_coeff", "filter_kind", "filter_sigma", "taps", "input_mean", 
              "memory")
 
 
+#: The ``in_use`` fields model_digest hashes as one JSON object (every other field by name).
+_IN_USE_DIGESTED = ("contact_on_margin", "contact_off_margin", "contact_rise_samples",
+                    "track_shift", "track_settle", "track_step_max_pm", "track_limit_pm")
+
+
 def model_digest(model: Any) -> str:
     """SHA-256 of everything the fixed-point model is quantised from: the nets and output
     scaling (:func:`weights_digest`), the preprocessing (every field of
@@ -77,7 +82,14 @@ def model_digest(model: Any) -> str:
     for f in dataclasses.fields(pre):
         if f.name not in _DIGESTED and getattr(pre, f.name) != f.default:
             h.update(f"{f.name}={getattr(pre, f.name)!r}".encode())
-    h.update(json.dumps(model.in_use.to_json(), sort_keys=True).encode())
+    # What the runtimes do in use: the decision's and the tracker's first fields together,
+    # every later one (the creep term, ...) by name where it differs from its default, as above.
+    in_use = model.in_use.to_json()
+    h.update(json.dumps({k: v for k, v in in_use.items() if k in _IN_USE_DIGESTED},
+                        sort_keys=True).encode())
+    for f in dataclasses.fields(model.in_use):
+        if f.name not in _IN_USE_DIGESTED and in_use[f.name] != f.default:
+            h.update(f"in_use.{f.name}={in_use[f.name]!r}".encode())
     if model.input_range is not None:
         h.update(np.ascontiguousarray(model.input_range, dtype="<f8").tobytes())
     return h.hexdigest()

@@ -323,6 +323,10 @@ TRACK_TIME_CONSTANT_S = 1.0
 TRACK_SETTLE_S = 0.2
 TRACK_RATE_MAX_PM_PER_S = 4.0
 TRACK_LIMIT_PM = 200.0
+#: The largest creep magnitude the tracker's creep term takes (its fixed-point bound,
+#: docs/fixed-point.md): a pad that gives back half a press after the release is no longer
+#: one a first-order lag describes.
+CREEP_MAX = contract.LIMIT["MAX_TRACK_CREEP_Q15"] / 2.0**15
 
 
 @dataclass
@@ -354,6 +358,18 @@ class InUse:
     track_limit_pm
         Largest total correction per grating since the tare, pm (then the status flag
         BASELINE_LIMIT asks for a new tare).
+    track_creep
+        The pad's creep magnitude m, 0..0.5 (0: off, what a model saved without the field
+        reads). A viscoelastic pad gives a press's load back for a second or more after the
+        release, and the gratings read ``m`` times a first-order lag of the load meanwhile;
+        the tracker would learn that as drift. With ``m`` > 0 each grating's creep state
+        ``L += (f - L) / 2**track_creep_shift`` follows its filtered shift ``f`` on every
+        sample without a sensor fault (contact, rest and the filter's warm-up alike), primed
+        ``L = f`` by the first one after a tare, reset or new baseline and held through a
+        fault, and the tracker sums ``f - m * L`` at rest instead of ``f``.
+    track_creep_shift
+        The creep's time constant, ``2**track_creep_shift`` samples: 1..15 when
+        ``track_creep`` > 0, 0 when it is 0.
     """
 
     contact_on_margin: float = 0.0
@@ -363,6 +379,8 @@ class InUse:
     track_settle: int = 0
     track_step_max_pm: float = 0.0
     track_limit_pm: float = 0.0
+    track_creep: float = 0.0
+    track_creep_shift: int = 0
 
     def __post_init__(self) -> None:
         self.contact_on_margin = float(self.contact_on_margin)
@@ -372,6 +390,8 @@ class InUse:
         self.track_settle = int(self.track_settle)
         self.track_step_max_pm = float(self.track_step_max_pm)
         self.track_limit_pm = float(self.track_limit_pm)
+        self.track_creep = float(self.track_creep)
+        self.track_creep_shift = int(self.track_creep_shift)
         if self.contact_on_margin < 0 or self.contact_off_margin > 0:
             raise ValueError("contact_on_margin must be >= 0 and contact_off_margin <= 0")
         if not 1 <= self.contact_rise_samples <= 255:
@@ -383,17 +403,35 @@ class InUse:
         limit_pm = contract.LIMIT["TRACK_LIMIT_MAX_FM"] / 1000.0
         if self.track_step_max_pm < 0 or not 0 <= self.track_limit_pm <= limit_pm:
             raise ValueError(f"track_step_max_pm must be >= 0 and track_limit_pm in [0, {limit_pm}]")
+        if not 0.0 <= self.track_creep <= CREEP_MAX:
+            raise ValueError(f"track_creep must be in [0, {CREEP_MAX}]")
+        shifts = (0, 0) if self.track_creep == 0.0 else (1, contract.LIMIT["MAX_EMA_SHIFT"])
+        if not shifts[0] <= self.track_creep_shift <= shifts[1]:
+            raise ValueError(f"track_creep_shift must be in [{shifts[0]}, {shifts[1]}] with "
+                             f"track_creep {self.track_creep}")
 
     @classmethod
     def recommended(cls, sample_rate_hz: float = 1000.0,
-                    rest_margins: np.ndarray | None = None) -> "InUse":
+                    rest_margins: np.ndarray | None = None, *, creep_magnitude: float = 0.0,
+                    creep_time_constant_samples: float = 0.0) -> "InUse":
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
         ``rest_margins``: the contact net's margins on calibration samples at rest; contact
         rises only past :data:`REST_MARGIN_FACTOR` times their :data:`REST_MARGIN_QUANTILE`
         quantile, held for :data:`RISE_S`, and falls below minus half of it. None: the
         per-sample decision.
+
+        ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted
+        (magnitude, first-order time constant in samples); the tracker's creep term takes
+        the magnitude clipped to 0..:data:`CREEP_MAX` and the time constant as the nearest
+        power of two, ``2**k`` with k clipped to 1..15. A magnitude of 0 (or a time constant
+        below one sample) leaves the term off.
         """
+        creep, creep_shift = 0.0, 0
+        if creep_magnitude > 0.0 and creep_time_constant_samples >= 1.0:
+            creep = min(float(creep_magnitude), CREEP_MAX)
+            creep_shift = int(np.clip(round(np.log2(creep_time_constant_samples)), 1,
+                                      contract.LIMIT["MAX_EMA_SHIFT"]))
         on = 0.0
         if rest_margins is not None and np.size(rest_margins):
             on = REST_MARGIN_FACTOR * max(0.0, float(np.quantile(rest_margins,
@@ -405,7 +443,8 @@ class InUse:
                    track_settle=min(0xFFFF, int(round(TRACK_SETTLE_S * sample_rate_hz))),
                    track_step_max_pm=TRACK_RATE_MAX_PM_PER_S * contract.LIMIT["TRACK_BLOCK"]
                    / sample_rate_hz,
-                   track_limit_pm=TRACK_LIMIT_PM)
+                   track_limit_pm=TRACK_LIMIT_PM, track_creep=creep,
+                   track_creep_shift=creep_shift)
 
     def to_json(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -415,7 +454,8 @@ class InUse:
         return {"contact_on": self.contact_on_margin, "contact_off": self.contact_off_margin,
                 "contact_rise_n": self.contact_rise_samples, "track_shift": self.track_shift,
                 "track_settle": self.track_settle, "track_step_max_pm": self.track_step_max_pm,
-                "track_limit_pm": self.track_limit_pm}
+                "track_limit_pm": self.track_limit_pm, "track_creep": self.track_creep,
+                "track_creep_shift": self.track_creep_shift}
 
     @property
     def per_sample(self) -> bool:
@@ -1074,6 +1114,7 @@ class FloatPipeline:
         self._drift = np.zeros(N_STRAIN)
         self._track_sum = np.zeros(N_STRAIN)
         self._rest_run = 0
+        self._creep: np.ndarray | None = None   # the creep states, primed by the first good sample
 
     def push(self, wl_nm: np.ndarray) -> dict[str, np.ndarray]:
         """Outputs of :func:`predict` for the next samples (n, 5) nm."""
@@ -1115,7 +1156,7 @@ class FloatPipeline:
             # At rest: no contact, no fault, past the filter's warm-up (the runtimes' WARMUP).
             warm = self.taps.size - 1
             rest = ~out["contact"] & ~fault & (np.arange(self.samples, self.samples + n) >= warm)
-            self._track_sum += filt[rest].sum(axis=0)
+            self._track_sum += (filt - self._creep_term(filt, good))[rest].sum(axis=0)
             self._rest_run = rest_run_after(self._rest_run, rest)
         self.samples += n
         block = contract.LIMIT["TRACK_BLOCK"]
@@ -1130,6 +1171,19 @@ class FloatPipeline:
                 self._drift = new
             self._track_sum[:] = 0.0
         return out
+
+    def _creep_term(self, filt: np.ndarray, good: np.ndarray) -> np.ndarray | float:
+        """``track_creep`` times the creep states (n, 4) of the rows ``good`` of ``filt``
+        (the states follow every good sample; the other rows are 0), or 0 when the term is off."""
+        iu = self.model.in_use
+        if not iu.track_creep or not good.size:
+            return 0.0
+        if self._creep is None:
+            self._creep = filt[good[0]].copy()
+        states = np.zeros_like(filt)
+        states[good] = _exp_average(filt[good], iu.track_creep_shift, self._creep)
+        self._creep = states[good[-1]].copy()
+        return iu.track_creep * states
 
 
 # --------------------------------------------------------------------------------------------

@@ -257,6 +257,33 @@ def test_temperature_reference_average_bit_exact_on_target(tools, small_model_di
 
 
 @pytest.mark.target
+def test_tracker_creep_term_bit_exact_on_target(tools, small_model_dir, tmp_path):
+    """The at-rest tracker's creep term at its largest magnitude (0.5) on both Cortex-M4
+    builds, with a tracker quick enough to move the baseline within the golden session
+    (which it does differently without the term), through its faults, tares, resets and new
+    baselines."""
+    d = tmp_path / "model"
+    shutil.copytree(small_model_dir, d)
+    model = fm.load(d)
+    model.in_use = replace(model.in_use, track_shift=4, track_settle=0, track_step_max_pm=50.0,
+                           track_creep=0.5, track_creep_shift=3)
+    fm.save(model, d)
+    q, _ = load_quantized(d)
+    samples = 2 * SAMPLES     # the recording's first rest long enough for tracker blocks
+    wl, contact, _ = recording_fm(None, "smoke", 0, samples)
+
+    def steps(qm) -> list[dict[str, int]]:
+        return [r.out for r in golden.golden_session(qm, wl, contact) if r.op == golden.OP_STEP]
+
+    assert q.track_creep_q15 == contract.LIMIT["MAX_TRACK_CREEP_Q15"]
+    assert steps(q) != steps(replace(q, track_creep_q15=0, track_creep_shift=0))
+    rep = target_report(d, samples=samples)
+    assert rep["bit_exact"] is True
+    for name in ("portable", "dsp"):
+        assert rep["builds"][name]["bit_exact"] and rep["builds"][name]["mismatches"] == 0
+
+
+@pytest.mark.target
 def test_cli_json(tools, small_model_dir, capsys):
     from fbgforce.cli import main
 

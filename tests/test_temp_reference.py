@@ -189,18 +189,30 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
     shift = (wl - old.baseline_nm) * 1000.0
     expected = shift[:, :4] - shift[:, 4:] * old.preprocess.temp_coeff
     assert np.array_equal(fm.compensate(old, wl, old.baseline_nm), expected)
+    q = assert_version6_export(old, wl)
+    assert q.ref_shift == 0
+    old.preprocess = dataclasses.replace(old.preprocess, ref_shift=5)
+    assert freshness.model_digest(old) != VERSION6_DIGEST
+
+
+#: The version 6 exporter's blob of the old model above (the header's version and CRC zeroed)
+#: and the freshness digest its export recorded.
+VERSION6_BLOB_SHA = "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a7265d057"
+VERSION6_DIGEST = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a40c"
+
+
+def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> qz.QModel:
+    """``old`` (the old model above, loaded from a model.json without the fields added since
+    blob version 6) quantises on ``wl`` to the version 6 blob apart from the header's version
+    and CRC, and keeps the digest its export recorded; returns its blob model."""
     q, _ = qz.quantize(old, qz.calibrate(old, [(wl, old.baseline_nm)]))
     data = bytearray(blob.to_bytes(q))
-    assert int.from_bytes(data[4:6], "little") == contract.LIMIT["BLOB_VERSION"] == 7
-    assert contract.decode_params(bytes(data[16:contract.PARAMS_END]))["ref_shift"] == 0
+    assert int.from_bytes(data[4:6], "little") == contract.LIMIT["BLOB_VERSION"]
     data[4:6] = b"\0\0"
     data[12:16] = b"\0\0\0\0"
-    assert hashlib.sha256(bytes(data)).hexdigest() == \
-        "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a7265d057"
-    digest = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a40c"
-    assert freshness.model_digest(old) == digest
-    old.preprocess = dataclasses.replace(old.preprocess, ref_shift=5)
-    assert freshness.model_digest(old) != digest
+    assert hashlib.sha256(bytes(data)).hexdigest() == VERSION6_BLOB_SHA
+    assert freshness.model_digest(old) == VERSION6_DIGEST
+    return q
 
 
 def test_ref_shift_is_range_checked_by_every_reader():
@@ -210,7 +222,7 @@ def test_ref_shift_is_range_checked_by_every_reader():
 
     model, q, _ = _quantised(3, n=400)
     bad = blob.to_bytes(dataclasses.replace(q, ref_shift=0))
-    offset = 16 + contract.PARAMS_STRUCT.size - 1          # the last field of the block
+    offset = next(o for o, _, f in mutate.param_slots() if f.name == "ref_shift")
     data = bytearray(bad)
     data[offset] = contract.LIMIT["MAX_REF_SHIFT"] + 1
     data = mutate.fix_crc(data)

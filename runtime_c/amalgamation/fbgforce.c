@@ -580,12 +580,14 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     for (k = 0; k < 12u; ++k)
         m->in_hi[k] = rd_i16(p + 228 + 2u * k);
     m->ref_shift = rd_u8(p + 252);
+    m->track_creep_q15 = rd_u16(p + 253);
+    m->track_creep_shift = rd_u8(p + 255);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 253u; k < 256u; ++k)
+    for (k = 256u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -708,6 +710,8 @@ fbg_status fbg_params_check(const fbg_model *m)
             return FBG_ERR_RANGE;
     }
     { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
+    { uint16_t v = m->track_creep_q15; if (v > 16384) return FBG_ERR_RANGE; }
+    { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -4351,6 +4355,28 @@ static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32
                       margin_q8 > m->contact_off_q8, m->contact_rise_n);
 }
 
+/* The tracker's creep states (docs/fixed-point.md, "In use"), on every sample that passed the
+ * fault rule, z the standardised channels: a viscoelastic pad gives back a press's load for a
+ * second or more after the release, so each state averages z through contact and rest alike
+ * (creep += rshift_round((z << EMA_FRAC) - creep, track_creep_shift)), and rest_track takes
+ * track_creep of it, relative to z0, out of what it learns. Primed at z << EMA_FRAC with the
+ * memory states (the first good sample after init, tare, reset or a new baseline); a fault
+ * never gets here, so it holds them. |creep| <= 32767 * 2^EMA_FRAC < 2^30 as the averages'
+ * states (ema_features): the update and its rounding fit int32. Off (track_creep_q15 0):
+ * nothing runs. */
+static void creep_update(fbg_state *s, const fbg_model *m, const int16_t *z)
+{
+    unsigned c;
+    if (m->track_creep_q15 == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const int32_t target = (int32_t)z[c] * ((int32_t)1 << FBG_EMA_FRAC);
+        s->creep[c] = s->mem_primed
+                          ? s->creep[c] + fbg_rshift_round32(target - s->creep[c], m->track_creep_shift)
+                          : target;
+    }
+}
+
 /* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
  * channels of a sample at rest (tared, no fault, no warm-up, decision 0), NULL otherwise.
  * Every FBG_TRACK_BLOCK steps, a block that was at rest throughout and came after
@@ -4358,18 +4384,29 @@ static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32
  * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
  * a carried fraction), each step at most track_step_max_fm and the whole correction at most
  * track_limit_fm from the tare. A load, a fault or a warm-up freezes it: it never learns
- * from a sample the nets call contact. Bounds: |track_sum| <= 64 * 65534 < 2^23, so the
- * product with |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1)
- * after a step, and |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so
- * wl - baseline stays within +-1.1e9 (int32). */
+ * from a sample the nets call contact. With the creep term on, each sample at rest adds
+ * (z - z0) - corr, corr = rshift_round((creep - (z0 << EMA_FRAC)) * track_creep_q15, 30): the
+ * pad's creep still in the grating, not drift. Bounds: |creep - (z0 << EMA_FRAC)| <= 65534 *
+ * 2^15 < 2^31 times track_creep_q15 <= 2^14 is below 2^45 (int64), so |corr| <= 32767; and
+ * corr is within 1/2 of m * (creep / 2^15 - z0), m <= 1/2, so a sample's term is within 1/2
+ * of z - m * creep / 2^15 - (1 - m) * z0: at most 65534 as without the term
+ * (docs/fixed-point.md). |track_sum| <= 64 * 65534 < 2^23, so the product with
+ * |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1) after a step, and
+ * |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so wl - baseline stays
+ * within +-1.1e9 (int32). */
 static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
 {
     unsigned c;
     if (z != NULL) {
         if (s->rest_run < 0xFFFFu)
             s->rest_run++;
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->track_sum[c] += (int32_t)z[c] - s->loc_z0[c];
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int32_t r = (int32_t)z[c] - s->loc_z0[c];
+            if (m->track_creep_q15 != 0u)
+                r -= (int32_t)fbg_rshift_round(((int64_t)s->creep[c] - (int64_t)s->loc_z0[c] *
+                                                ((int64_t)1 << FBG_EMA_FRAC)) * m->track_creep_q15, 30);
+            s->track_sum[c] += r;
+        }
     } else {
         s->rest_run = 0u;
     }
@@ -4901,8 +4938,10 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
         rest_track(s, m, NULL);
         return FBG_OK;
     }
-    /* 2. Filter and standardise into z = in[0..3]; 3. the memory features after z. */
+    /* 2. Filter and standardise into z = in[0..3], which the tracker's creep states follow
+     *    (before the memory stage marks the states primed); 3. the memory features after z. */
     status |= filter_stage(s, m, in, &sat);
+    creep_update(s, m, in);
     memory_stage(s, m, in, loc, &sat);
     status |= out_of_range(m, in);
 
@@ -5291,6 +5330,9 @@ fbg_status fbg_model_check(const fbg_model *model)
     st = fbg_params_check(model);
     if (st != FBG_OK)
         return st;
+    /* The creep states' update rounds by track_creep_shift, which the rounding rule needs >= 1. */
+    if (model->track_creep_q15 != 0u && model->track_creep_shift == 0u)
+        return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
     features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);
@@ -9390,6 +9432,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
         !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
         model->contact_rise_n < 1u || model->track_shift > 20u ||
+        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -9606,6 +9651,19 @@ static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
     return s->ref_pm;
 }
 
+/* creep_update of fbg_fixed.c in float: the tracker's creep states follow the filtered shifts
+ * (pm) of every sample that passed the fault rule, primed with the memory states. */
+static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
+{
+    unsigned c;
+    if (m->track_creep == 0.0f)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->creep_pm[c] = s->mem_primed ? s->creep_pm[c] + (filt[c] - s->creep_pm[c]) *
+                                             (1.0f / (float)(1u << m->track_creep_shift))
+                                       : filt[c];
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -9657,6 +9715,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(filt, a, sizeof a);
     memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    fcreep_update(s, m, filt);
     fmemory_features(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
@@ -9714,8 +9773,9 @@ static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margi
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
- * NULL otherwise; a block at rest throughout, after track_settle samples of rest, adds
- * clamp(sum(filt) / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
+ * NULL otherwise; each sample adds filt - track_creep * creep_pm (creep_pm is 0 with the term
+ * off); a block at rest throughout, after track_settle samples of rest, adds
+ * clamp(sum / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
  * the last reset or tare stays within +-track_limit_pm. */
 static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
@@ -9724,7 +9784,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
         if (s->rest_run < 0xFFFFu)
             s->rest_run++;
         for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->track_sum[c] += filt[c];
+            s->track_sum[c] += filt[c] - m->track_creep * s->creep_pm[c];
     } else {
         s->rest_run = 0u;
     }

@@ -71,7 +71,8 @@ extern "C" {
 #define FBG_TRACK_FRAC 16  /* fractional bits of the tracker's carried baseline correction */
 #define FBG_TRACK_LIMIT_MAX_FM 100000000  /* largest track_limit_fm (100 nm): a tracked baseline stays within 100 nm of its tare */
 #define FBG_MAX_REF_SHIFT 8  /* largest shift of the temperature reference's average (time constant 256 samples): its accumulator stays below 2^39 (docs/fixed-point.md) */
-#define FBG_BLOB_VERSION 7  /* blob format this library reads and writes */
+#define FBG_MAX_TRACK_CREEP_Q15 16384  /* largest track_creep_q15 (creep magnitude 0.5): the tracker's per-sample term stays below 2^17 (docs/fixed-point.md) */
+#define FBG_BLOB_VERSION 8  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -184,6 +185,7 @@ typedef struct {
     uint16_t track_settle;  /* samples of rest (tared, no contact, fault or warm-up) before a tracker block counts */
     int16_t in_lo[12];  /* OUT_OF_RANGE when a net input j < n_features (z, memory features) < in_lo[j] ... [-32767, 32767] */
     int16_t in_hi[12];  /* ... or > in_hi[j] (Q(z_frac); +-32767: never) [-32767, 32767] */
+    uint16_t track_creep_q15;  /* the tracker's creep term (0: off; needs track_creep_shift >= 1): per sample at rest it sums (z_i - z0_i) - rshift_round((creep_i - (z0_i << EMA_FRAC)) * track_creep_q15, 30), the pad's creep magnitude in Q15 [0, 16384] */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
     uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
@@ -199,7 +201,8 @@ typedef struct {
     uint8_t contact_rise_n;  /* consecutive samples of the rise condition before contact rises [1, 255] */
     uint8_t track_shift;  /* at-rest baseline tracker (0: off): time constant 2^track_shift samples [0, 20] */
     uint8_t ref_shift;  /* temperature reference average (0: off): acc += shift_T - rshift_round(acc, ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
-    uint8_t pad_[2];  /* explicit padding, keep 0 */
+    uint8_t track_creep_shift;  /* creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples [0, 15] */
+    uint8_t pad_[3];  /* explicit padding, keep 0 */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
     uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
@@ -235,6 +238,7 @@ typedef struct {
     int32_t ema[FBG_MAX_EMA];                    /* exponential-average memory states, Q(z_frac + FBG_EMA_FRAC) */
     int32_t play[FBG_MAX_PLAY];                  /* play-operator memory states, Q(z_frac) */
     int32_t loc[FBG_N_STRAIN];                   /* location averages of z - z0, Q(z_frac + FBG_EMA_FRAC) */
+    int32_t creep[FBG_N_STRAIN];                 /* the tracker's creep states: averages of z, Q(z_frac + FBG_EMA_FRAC), primed with the memory (mem_primed) */
     /* At-rest baseline tracker (docs/runtime.md, "In use"): the block's sum of z - z0, the
      * correction applied to baseline_fm[0..3] since the tare, and the carried fraction of
      * the next step in Q(FBG_TRACK_FRAC). */
@@ -422,6 +426,7 @@ typedef struct {
     float contact_off;
     float track_step_max_pm;  /* per block: corr_i += clamp(sum(filt_i) / 2^track_shift, +-track_step_max_pm) */
     float track_limit_pm;  /* |corr_i| <= track_limit_pm (BASELINE_LIMIT at it) */
+    float track_creep;  /* the tracker's creep term as fbg_model, 0..0.5 (0: off): per sample at rest it sums filt_i - track_creep * creep_pm_i */
     float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
     float in_hi[12];
     uint16_t stuck_max;
@@ -435,7 +440,9 @@ typedef struct {
     uint8_t loc_shift;  /* location averages of z - z_rest (0: off): state += (r - state) / 2^loc_shift */
     uint8_t contact_rise_n;  /* 1..255 */
     uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
+    uint8_t track_creep_shift;  /* creep_pm_i += (filt_i - creep_pm_i) / 2^track_creep_shift on every good sample (1..15 when track_creep > 0) */
     uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
+    uint8_t pad_[3];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
 } fbgf_model;
@@ -467,6 +474,7 @@ typedef struct {
     float ema[FBG_MAX_EMA];                      /* exponential-average memory states, standardised units */
     float play[FBG_MAX_PLAY];                    /* play-operator memory states, standardised units */
     float loc[FBG_N_STRAIN];                     /* location averages of z - z_rest */
+    float creep_pm[FBG_N_STRAIN];                /* the tracker's creep states: averages of the filtered shifts (pm), primed with the memory (mem_primed) */
     float ref_pm;                                /* the temperature reference's average (pm) */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;

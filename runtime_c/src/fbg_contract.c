@@ -93,12 +93,14 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     for (k = 0; k < 12u; ++k)
         m->in_hi[k] = rd_i16(p + 228 + 2u * k);
     m->ref_shift = rd_u8(p + 252);
+    m->track_creep_q15 = rd_u16(p + 253);
+    m->track_creep_shift = rd_u8(p + 255);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 253u; k < 256u; ++k)
+    for (k = 256u; k < 256u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -221,6 +223,8 @@ fbg_status fbg_params_check(const fbg_model *m)
             return FBG_ERR_RANGE;
     }
     { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
+    { uint16_t v = m->track_creep_q15; if (v > 16384) return FBG_ERR_RANGE; }
+    { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

@@ -77,6 +77,9 @@ fbg_status fbg_model_check(const fbg_model *model)
     st = fbg_params_check(model);
     if (st != FBG_OK)
         return st;
+    /* The creep states' update rounds by track_creep_shift, which the rounding rule needs >= 1. */
+    if (model->track_creep_q15 != 0u && model->track_creep_shift == 0u)
+        return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
     features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);

@@ -78,6 +78,9 @@ fbg_status fbgf_model_check(const fbgf_model *model)
     if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
         !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
         model->contact_rise_n < 1u || model->track_shift > 20u ||
+        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -294,6 +297,19 @@ static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
     return s->ref_pm;
 }
 
+/* creep_update of fbg_fixed.c in float: the tracker's creep states follow the filtered shifts
+ * (pm) of every sample that passed the fault rule, primed with the memory states. */
+static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
+{
+    unsigned c;
+    if (m->track_creep == 0.0f)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->creep_pm[c] = s->mem_primed ? s->creep_pm[c] + (filt[c] - s->creep_pm[c]) *
+                                             (1.0f / (float)(1u << m->track_creep_shift))
+                                       : filt[c];
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -345,6 +361,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     memcpy(filt, a, sizeof a);
     memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    fcreep_update(s, m, filt);
     fmemory_features(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
@@ -402,8 +419,9 @@ static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margi
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
- * NULL otherwise; a block at rest throughout, after track_settle samples of rest, adds
- * clamp(sum(filt) / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
+ * NULL otherwise; each sample adds filt - track_creep * creep_pm (creep_pm is 0 with the term
+ * off); a block at rest throughout, after track_settle samples of rest, adds
+ * clamp(sum / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
  * the last reset or tare stays within +-track_limit_pm. */
 static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
@@ -412,7 +430,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
         if (s->rest_run < 0xFFFFu)
             s->rest_run++;
         for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->track_sum[c] += filt[c];
+            s->track_sum[c] += filt[c] - m->track_creep * s->creep_pm[c];
     } else {
         s->rest_run = 0u;
     }
