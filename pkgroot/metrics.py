@@ -350,7 +350,10 @@ def press_delays(pred_contact: np.ndarray, contact: np.ndarray, t_s: np.ndarray,
     n = tc.size
     if n < 2:
         return np.empty(0), np.empty(0)
-    dt_ms = 1000.0 * float(np.median(np.diff(np.asarray(t_s, dtype=np.float64))))
+    # The period to the nanosecond: time stamps tens of seconds into a log carry float error
+    # in the last digits (1.000000000057 ms at 1 kHz), which turned a 12-sample onset into
+    # more than 12 ms.
+    dt_ms = float(np.round(np.median(np.diff(np.asarray(t_s, dtype=np.float64))) * 1e9)) / 1e6
     seg_starts = np.concatenate([[0], np.flatnonzero(pid[1:] != pid[:-1]) + 1])
     seg_ends = np.concatenate([seg_starts[1:], [n]])
     presses = []

@@ -479,6 +479,13 @@ def test_contact_by_force_and_press_delays():
     pc3 = np.array([1, 1, 1, 1, 1, 1, 1, 1, 1, 1], bool)
     onset, release = metrics.press_delays(pc3, tc, t, pid, keep=np.arange(10) >= 6)
     assert np.allclose(onset, [-1.0]) and np.allclose(release, [1.0])  # runs to the end
+    # Time stamps 83 s into a log: a 12-sample onset is 12 ms exactly, not a hair over the
+    # in-use goal's 12 ms.
+    tc12, pc12 = np.zeros(40, bool), np.zeros(40, bool)
+    tc12[5:30], pc12[17:30] = True, True
+    late = np.round(83.2717 + np.arange(40) / 1000.0, 6)
+    onset, _ = metrics.press_delays(pc12, tc12, late, np.zeros(40, int))
+    assert onset[0] == 12.0
     s = metrics.timing_summary(np.array([1.0, 3.0, np.nan]), np.array([0.0, 2.0, np.nan]))
     assert s["presses"] == 3 and s["missed_presses"] == 1
     assert s["onset_delay_ms"]["median"] == pytest.approx(2.0)
