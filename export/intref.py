@@ -149,6 +149,37 @@ def reference_average(q: QModel, shift_t: np.ndarray, fault: np.ndarray) -> np.n
     return ref
 
 
+def creep_inverse(q: QModel, comp: np.ndarray, ok: np.ndarray, acc: list[list[int] | None]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``creep_inverse`` of fbg_fixed.c on consecutive samples: the compensated shifts ``comp``
+    (n, 4) fm with the pad's creep taken out of the rows ``ok`` (the others, faulty, keep
+    theirs and leave the state alone). Per grating, ``L = rshift_round(acc, creep_shift)``,
+    ``e = sat32(c + rshift_round((c - L) * creep_q15, 15))``, ``acc += e - L``; ``acc[0]`` is
+    the state (None: the first good sample primes it at ``c << creep_shift``, ``e = c``),
+    updated in place. Returns ``e`` and which rows clamped. ``creep_q15`` 0: ``comp`` itself."""
+    clamped = np.zeros(comp.shape[0], dtype=bool)
+    if q.creep_q15 == 0:
+        return comp, clamped
+    k, g = q.creep_shift, q.creep_q15
+    half = 1 << (k - 1)
+    out = comp.copy()
+    # Python integers, sample by sample, exactly the C recursion (as the memory's averages).
+    for i in np.flatnonzero(ok).tolist():
+        c = [int(v) for v in comp[i].tolist()]
+        if acc[0] is None:
+            acc[0] = [v << k for v in c]
+            continue
+        state = acc[0]
+        for ch in range(4):
+            lag = (state[ch] + half) >> k
+            e = c[ch] + (((c[ch] - lag) * g + (1 << 14)) >> 15)
+            if abs(e) > SAT32:
+                e, clamped[i] = SAT32 if e > 0 else -SAT32, True
+            state[ch] += e - lag
+            out[i, ch] = e
+    return out, clamped
+
+
 class _Memory:
     """The memory states of fbg_fixed.c's ``memory_features`` (load-signal averages and play
     operators, location averages), carried from one block of fault-free samples to the next.
@@ -371,7 +402,8 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     end
         If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
         ``fbg_get_baseline`` reads it (the tracker may have moved it), and ``"creep"``: the
-        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any).
+        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any), and
+        ``"creep_acc"``: the creep inverse's states as ``fbg_state.creep_acc`` (0 before any).
 
     Returns
     -------
@@ -412,13 +444,14 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)   # held FIR inputs before the block
     last_comp = np.zeros(4, dtype=np.int64)                     # zeros before any good sample
     memory, tracker, decision = _Memory(q), _Tracker(q), [0, 0]
+    creep: list[list[int] | None] = [None]                      # the creep inverse's acc
     block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
     for a in range(0, n, block):
         b = min(n, a + block)
         if tracker.limited:
             status[a:b] |= STATUS_BASELINE_LIMIT
         rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
-                             memory, tracker, decision, status[a:b], flag[a:b],
+                             creep, memory, tracker, decision, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
         if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
             tracker.end_block(rest & tared, r_sum, base)
@@ -427,17 +460,19 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     if end is not None:
         end["baseline_fm"] = base.copy()
         end["creep"] = np.array(tracker.creep or [0] * 4, dtype=np.int64)
+        end["creep_acc"] = np.array(creep[0] or [0] * 4, dtype=np.int64)
     return out
 
 
 def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
-           base: np.ndarray, history: np.ndarray, last_comp: np.ndarray, memory: _Memory,
-           tracker: _Tracker, decision: list[int],
+           base: np.ndarray, history: np.ndarray, last_comp: np.ndarray,
+           creep: list[list[int] | None], memory: _Memory, tracker: _Tracker, decision: list[int],
            status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
            trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
     ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
-    ``last_comp``, ``memory``, the tracker's creep states and ``decision``; ``ref`` is the
+    ``last_comp``, the creep inverse's state ``creep`` (:func:`creep_inverse`), ``memory``,
+    the tracker's creep states and ``decision``; ``ref`` is the
     temperature reference of each sample (:func:`reference_average`). Returns which samples
     were at rest and their sum of the tracker's terms (:meth:`_Tracker.rest_terms`)."""
     n = wl.shape[0]
@@ -447,7 +482,8 @@ def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: 
     shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
     t = rshift_round(ref[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
     comp, c3 = sat(shift - t, SAT32)
-    flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1))
+    comp, c_creep = creep_inverse(q, comp, ok, creep)
+    flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1) | c_creep)
     # 3. Causal FIR over the carried history, then standardisation into Q(z_frac). A faulty
     #    sample feeds the FIR the last good sample's filtered shifts (last_comp), so the
     #    block runs as alternating stretches of good and faulty samples.

@@ -207,6 +207,9 @@ class QModel(QModelMemory):
     loc_shift: int = 0
     #: The temperature reference's average (fbg_model.ref_shift): 0 is the raw reference.
     ref_shift: int = 0
+    #: The pad's creep inverse (fbg_model.creep_q15, creep_shift): 0 is off.
+    creep_q15: int = 0
+    creep_shift: int = 0
     #: The decision over time and the at-rest baseline tracker (fbg_model.contact_*,
     #: track_*): the defaults are the per-sample decision on a fixed tare.
     contact_on_q8: int = 0
@@ -292,6 +295,8 @@ class QModel(QModelMemory):
             raise ModelCheckError(*bad)
         need(self.track_creep_q15 == 0 or self.track_creep_shift >= 1, "ERR_RANGE",
              "track_creep_shift must be at least 1 when track_creep_q15 is on")
+        need(self.creep_q15 == 0 or self.creep_shift >= 1, "ERR_RANGE",
+             "creep_shift must be at least 1 when creep_q15 is on")
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
@@ -385,7 +390,9 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
     for wl, base in recordings:
         wl = np.asarray(wl, dtype=np.float64)
         zs.append(fm.features(model, wl, base))
-        comp = fm.compensate(model, wl, base)
+        # What the filter reads: the compensated shifts after the pad's creep inverse.
+        comp = fm.creep_inverse(model.preprocess, fm.compensate(model, wl, base), None,
+                                ~np.isfinite(wl).all(axis=1))
         comp_max = max(comp_max, float(np.abs(comp[np.isfinite(comp)]).max(initial=0.0)))
         # Zero history before the first sample, as the causal filter sees it.
         padded = np.concatenate([np.zeros((n_taps - 1, 4)), comp])
@@ -591,6 +598,14 @@ def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, 
     return {"in_lo": lo, "in_hi": hi}
 
 
+def quantize_creep(pre: fm.Preprocess) -> dict[str, int]:
+    """The creep inverse's integers (fbg_model.creep_q15, creep_shift): ``creep_q15 =
+    round(q * 2^15)`` of its gain :attr:`fbgforce.model.Preprocess.creep_gain`; a gain that
+    rounds to 0 turns it off (shift 0 with it)."""
+    q15 = int(round(pre.creep_gain * 2.0**15))
+    return {"creep_q15": q15, "creep_shift": pre.creep_shift if q15 else 0}
+
+
 def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
@@ -749,7 +764,8 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
         force_offset_mN=int(round(model.force_offset * 1000.0)),
         xy_offset_um=np.round(model.xy_offset * 1000.0), overload_mN=int(round(overload_N * 1000.0)),
         nets=nets, load_coeff=load_coeff, load_shift=load_shift, load_max_mN=load_max_mN,
-        stuck_max=stuck_samples, ref_shift=pre.ref_shift, **quantize_memory(pre.memory, z_frac),
+        stuck_max=stuck_samples, ref_shift=pre.ref_shift, **quantize_creep(pre),
+        **quantize_memory(pre.memory, z_frac),
         **quantize_in_use(model.in_use, z_mult, z_shift), **quantize_input_range(model, z_frac))
     try:
         q.check()
@@ -839,6 +855,13 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     # docs/fixed-point.md), which the coefficient scales.
     e_ref = 2.0 if q.ref_shift else 1.0
     e_comp = 1.0 + np.abs(pre.temp_coeff) * e_ref + 0.5 + tc_err * comp_abs.max(initial=0.0)
+    if q.creep_q15:
+        # The creep inverse (docs/fixed-point.md, "creep inverse"): an input error D becomes at
+        # most (1 + 2q) D + 1.5 q + 1/2 fm, plus the Q15 gain's error times |c - L|, which is
+        # at most |e - L| <= 2 max|e|, twice the largest shift the filter reads (comp_abs).
+        gain = pre.creep_gain
+        e_comp = ((1.0 + 2.0 * gain) * e_comp + 1.5 * gain + 0.5
+                  + abs(gain - q.creep_q15 / 2.0**15) * 2.0 * comp_abs.max(initial=0.0))
     e_filt = (e_comp * np.abs(taps_f).sum() + np.abs(dtaps).sum() * comp_var
               + abs(dtaps.sum()) * comp_abs + 0.5)
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)

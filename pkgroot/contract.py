@@ -174,7 +174,9 @@ LIMITS: dict[str, tuple[int, str]] = {
                       "256 samples): its accumulator stays below 2^39 (docs/fixed-point.md)"),
     "MAX_TRACK_CREEP_Q15": (1 << 14, "largest track_creep_q15 (creep magnitude 0.5): the "
                             "tracker's per-sample term stays below 2^17 (docs/fixed-point.md)"),
-    "BLOB_VERSION": (8, "blob format this library reads and writes"),
+    "MAX_CREEP_Q15": ((1 << 15) - 1, "largest creep_q15: the creep inverse's gain q = kappa / "
+                      "(1 - kappa) stays below 1 for a creep magnitude up to 0.5 (docs/fixed-point.md)"),
+    "BLOB_VERSION": (9, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -444,6 +446,14 @@ PARAMS: tuple[Field, ...] = (
     Field("track_creep_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
           doc="creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every "
               "good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples"),
+    Field("creep_q15", "uint16_t", 1, 0, LIMIT["MAX_CREEP_Q15"],
+          doc="the pad's creep inverse (0: off; needs creep_shift >= 1), on each good sample's "
+              "compensated shift c_i before the FIR: L_i = rshift_round(acc_i, creep_shift), e_i = "
+              "sat32(c_i + rshift_round((c_i - L_i) * creep_q15, 15)) replaces c_i, acc_i += e_i "
+              "- L_i; acc_i primed at c_i << creep_shift. q = kappa / (1 - kappa), kappa = m (1 - "
+              "2^-creep_shift), in Q15"),
+    Field("creep_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
+          doc="the pad's creep time constant 2^creep_shift samples (1..15 when creep_q15 is on)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -479,6 +489,10 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
     Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
           "r += (shift_T - r) / 2^ref_shift"),
+    Field("creep_q", "float", doc="the pad's creep inverse as fbg_model, its gain q = kappa / "
+          "(1 - kappa) itself, 0 <= q < 1 (0: off): e_i = c_i + creep_q * (c_i - creep_lag_pm_i) "
+          "replaces c_i, creep_lag_pm_i += (e_i - creep_lag_pm_i) / 2^creep_shift"),
+    Field("creep_shift", "uint8_t", doc="the pad's creep time constant (1..15 when creep_q > 0)"),
 )
 
 
@@ -546,6 +560,7 @@ _FRONT_FLAGS = (
     StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
     StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
     StateField("ref_primed", "uint8_t", doc="the temperature reference's average holds a sample"),
+    StateField("creep_primed", "uint8_t", doc="the creep inverse's lags hold a sample"),
 )
 
 
@@ -566,6 +581,8 @@ STATE: tuple[StateField, ...] = (
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("ref_acc", "int64_t", doc="the temperature reference's average r * 2^ref_shift "
                "(fm; docs/fixed-point.md, \"temperature reference\")"),
+    StateField("creep_acc", "int64_t", ("N_STRAIN",), "the creep inverse's lags L_i * "
+               "2^creep_shift (fm; docs/fixed-point.md, \"creep inverse\")"),
     StateField("act", "int16_t", (2, "MAX_WIDTH"), "activation ping-pong buffers",
                note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
@@ -592,6 +609,7 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("creep_pm", "float", ("N_STRAIN",), "the tracker's creep states: averages of the "
                "filtered shifts (pm), primed with the memory (mem_primed)"),
     StateField("ref_pm", "float", doc="the temperature reference's average (pm)"),
+    StateField("creep_lag_pm", "float", ("N_STRAIN",), "the creep inverse's lags L_i (pm)"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),
     *_RING_COUNTERS,

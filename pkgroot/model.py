@@ -11,7 +11,9 @@ The pipeline, per sample ``n`` and strain channel ``i`` = 1..4 (docs/trainer.md)
     shift_T[n]  = 1000 * (wl_T[n] - baseline_T)
     r[n]        = r[n-1] + (shift_T[n] - r[n-1]) / 2^ref_shift         # the reference, averaged
     comp_i[n]   = shift_i[n] - temp_coeff_i * r[n]                     # temperature compensation
-    filt_i[n]   = sum_k taps[k] * comp_i[n - k]                        # causal FIR, zero history
+    e_i[n]      = comp_i[n] + q * (comp_i[n] - L_i[n-1])                # the pad's creep inverse
+    L_i[n]      = L_i[n-1] + (e_i[n] - L_i[n-1]) / 2^creep_shift
+    filt_i[n]   = sum_k taps[k] * e_i[n - k]                           # causal FIR, zero history
     z_i[n]      = (filt_i[n] - input_mean_i) / input_std_i            # standardisation
     u[n]        = sum_i weight_i * z_i[n]                              # memory: a load signal,
     e_k[n]      = e_k[n-1] + (u[n] - e_k[n-1]) / 2^ema_shift[k]       # its averages ...
@@ -31,6 +33,18 @@ does not update it (held), and ``ref_shift`` 0 gives ``r = shift_T``. Temperatur
 slowly, so averaging the reference grating over tens of milliseconds costs no lag worth
 having and keeps its own noise out of every compensated channel (docs/trainer.md,
 "Temperature reference").
+
+The creep inverse undoes a viscoelastic pad (a standard linear solid): its gratings read
+``s = (1 - m) e + m lag(e)`` of the elastic strain ``e``, ``lag`` first order with step
+``2^-creep_shift`` (``lag[n] = lag[n-1] + (e[n] - lag[n-1]) / 2^creep_shift``), so
+``s[n] = (1 - kappa) e[n] + kappa lag[n-1]`` with ``kappa = m (1 - 2^-creep_shift)``, and
+``e[n] = s[n] + q (s[n] - lag[n-1])`` with ``q = kappa / (1 - kappa)`` is its exact causal
+inverse (``L`` above is ``lag``). ``m`` is ``creep`` (0 .. 0.5; 0: off, ``e = comp``). ``L`` is
+primed ``L = comp`` (so ``e = comp``) by the first good sample of a recording, as the runtimes'
+after init, tare, reset or a new baseline; a sensor-fault sample leaves it untouched (the
+filter is fed the last good filtered shifts instead). It runs wherever a continuous
+recording's compensated shifts feed the filter (:func:`apply_filter`, :func:`features`,
+:class:`FloatPipeline`), never on rows compensated one by one.
 
 The memory states are primed by the recording's first sample as a pad at rest after a release
 leaves them (averages at u, play operators at u + width: the load last moved down), as the
@@ -169,11 +183,10 @@ def memory_attr(kind: contract.MemoryKind, param: contract.MemoryParam) -> str:
 
 
 @functools.lru_cache(maxsize=64)
-def _exp_average_weights(shift: int, block: int) -> tuple[np.ndarray, np.ndarray]:
+def _first_order_weights(alpha: float, block: int) -> tuple[np.ndarray, np.ndarray]:
     """The closed form's weights for blocks of ``block`` samples (read-only): made once per
-    shift and block length, since a stream fed sample by sample asks for the same ones at
+    step and block length, since a stream fed sample by sample asks for the same ones at
     every sample."""
-    alpha = 2.0 ** -shift
     i = np.arange(block)
     w_full = np.tril((1.0 - alpha) ** (i[:, None] - i[None, :])) * alpha
     decay = (1.0 - alpha) ** (i + 1)
@@ -184,13 +197,19 @@ def _exp_average_weights(shift: int, block: int) -> tuple[np.ndarray, np.ndarray
 
 def _exp_average(x: np.ndarray, shift: int, prev: np.ndarray) -> np.ndarray:
     """e[n] = e[n-1] + (x[n] - e[n-1]) / 2^shift along axis 0 of ``x`` (n, k) from ``prev``
-    (k,): a first-order IIR. A blocked closed form keeps it exact to rounding and fast in
-    numpy: within a block of 256 the powers of (1 - a) cannot underflow for the shifts allowed
-    here."""
+    (k,): a first-order IIR (:func:`_first_order` with step ``2^-shift``)."""
+    return _first_order(x, 2.0 ** -shift, prev)
+
+
+def _first_order(x: np.ndarray, alpha: float, prev: np.ndarray) -> np.ndarray:
+    """e[n] = e[n-1] + alpha * (x[n] - e[n-1]) along axis 0 of ``x`` (n, k) from ``prev``
+    (k,), 0 < alpha <= 1. A blocked closed form keeps it exact to rounding and fast in numpy:
+    within a block of 256 the powers of (1 - alpha) cannot underflow for the steps used here
+    (2^-15 .. 1, :func:`_exp_average` and :func:`creep_inverse`)."""
     n = x.shape[0]
     e = np.empty_like(x)
     block = min(n, 256)
-    w_full, decay = _exp_average_weights(shift, block)
+    w_full, decay = _first_order_weights(float(alpha), block)
     for start in range(0, n, block):
         seg = x[start:start + block]
         m = seg.shape[0]
@@ -538,6 +557,12 @@ class Preprocess:
         The temperature reference's average (0: off, the raw reference): time constant
         about 2^ref_shift samples, 0 .. ``contract.LIMIT["MAX_REF_SHIFT"]``
         (:func:`reference_average`).
+    creep
+        The pad's creep magnitude ``m`` the creep inverse undoes (:func:`creep_inverse`):
+        0 .. 0.5, 0 is off (what a model saved before the field reads).
+    creep_shift
+        The pad's creep time constant as ``2^creep_shift`` samples: 1 .. 15 when ``creep`` is
+        on, 0 when it is off.
     """
 
     temp_coeff: np.ndarray
@@ -548,6 +573,8 @@ class Preprocess:
     input_std: np.ndarray
     memory: Memory = field(default_factory=Memory)
     ref_shift: int = 0
+    creep: float = 0.0
+    creep_shift: int = 0
 
     def __post_init__(self) -> None:
         self.temp_coeff = np.asarray(self.temp_coeff, dtype=np.float64).reshape(N_STRAIN)
@@ -555,6 +582,14 @@ class Preprocess:
             raise ValueError(f"ref_shift must be 0 .. {contract.LIMIT['MAX_REF_SHIFT']}, "
                              f"not {self.ref_shift}")
         self.ref_shift = int(self.ref_shift)
+        self.creep, self.creep_shift = float(self.creep), int(self.creep_shift)
+        if not 0.0 <= self.creep <= 0.5:
+            raise ValueError(f"creep must be 0 .. 0.5, not {self.creep}")
+        top = contract.LIMIT["MAX_EMA_SHIFT"]
+        if self.creep and not 1 <= self.creep_shift <= top:
+            raise ValueError(f"creep_shift must be 1 .. {top} when creep is on, not {self.creep_shift}")
+        if not self.creep and self.creep_shift:
+            raise ValueError(f"creep_shift must be 0 when creep is 0, not {self.creep_shift}")
         self.taps = np.asarray(self.taps, dtype=np.float64).reshape(-1)
         self.input_mean = np.asarray(self.input_mean, dtype=np.float64).reshape(N_STRAIN)
         self.input_std = np.asarray(self.input_std, dtype=np.float64).reshape(N_STRAIN)
@@ -577,6 +612,15 @@ class Preprocess:
         """Width of the whole feature vector: the contact and force nets' inputs, then the
         location averages."""
         return self.n_features + self.memory.n_loc
+
+    @property
+    def creep_gain(self) -> float:
+        """The creep inverse's gain ``q = kappa / (1 - kappa)``, ``kappa = creep * (1 -
+        2^-creep_shift)`` (0 when off; below 1 for ``creep`` up to 0.5)."""
+        if not self.creep:
+            return 0.0
+        kappa = self.creep * (1.0 - 2.0 ** -self.creep_shift)
+        return kappa / (1.0 - kappa)
 
     @property
     def z_rest(self) -> np.ndarray:
@@ -766,7 +810,7 @@ class HierarchicalModel:
             "overload_N": float(overload_N), "mem_weight": floats(mem.weights),
             **mem.params(float), "loc_shift": int(mem.loc_shift),
             **self.in_use.float_params(), "in_lo": lo.tolist(), "in_hi": hi.tolist(),
-            "ref_shift": pre.ref_shift}
+            "ref_shift": pre.ref_shift, "creep_q": pre.creep_gain, "creep_shift": pre.creep_shift}
 
     @property
     def nets(self) -> dict[str, MLP]:
@@ -853,12 +897,62 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
     return shift_pm[:, :N_STRAIN] - ref[:, None] * pre.temp_coeff
 
 
+def creep_inverse(pre: Preprocess, comp: np.ndarray, lag: list[np.ndarray | None] | None = None,
+                  fault: np.ndarray | None = None) -> np.ndarray:
+    """The pad's creep taken out of the compensated shifts of one continuous recording, per
+    strain grating: ``e = c + q (c - L)``, then ``L += (e - L) / 2^creep_shift``
+    (``q`` :attr:`Preprocess.creep_gain`; the module's docstring derives it), i.e. ``L``
+    follows ``c`` with step ``(1 + q) / 2^creep_shift``.
+
+    Parameters
+    ----------
+    pre
+        The preprocessing (``creep`` 0: ``comp`` is returned as it is).
+    comp
+        (n, 4) compensated shifts, pm, in order.
+    lag
+        ``[L]``: the lags (4,) before the samples (None: the first good sample primes them,
+        ``L = c``, so ``e = c`` there), updated in place; None: a recording of its own.
+    fault
+        (n,) True for a sensor-fault sample: it leaves ``L`` as it was and keeps its own row
+        (which no engine filters: the filter is fed the last good filtered shifts). None: no
+        fault.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, 4) the elastic shifts ``e`` that replace ``comp`` before the filter.
+    """
+    comp = np.asarray(comp, dtype=np.float64)
+    if not pre.creep:
+        return comp
+    good = np.arange(comp.shape[0]) if fault is None else np.flatnonzero(~np.asarray(fault, dtype=bool))
+    state = [None] if lag is None else lag
+    if good.size == 0:
+        return comp
+    c = comp[good]
+    prev = c[0].copy() if state[0] is None else np.asarray(state[0], dtype=np.float64)
+    q = pre.creep_gain
+    lags = _first_order(c, (1.0 + q) * 2.0 ** -pre.creep_shift, prev)   # L after each sample
+    before = np.vstack([prev[None, :], lags[:-1]])
+    out = comp.copy()
+    out[good] = c + q * (c - before)
+    state[0] = lags[-1].copy()
+    return out
+
+
 def apply_filter(pre: Preprocess, x: np.ndarray) -> np.ndarray:
-    """Apply the model's FIR along axis 0 of ``x`` (one continuous recording).
+    """The pad's creep inverse (:func:`creep_inverse`, primed by the first sample), then the
+    model's FIR, along axis 0 of the compensated shifts ``x`` of one continuous recording.
 
     Causal: zero history before the first sample, as the runtime after a tare. Centred: edges
     padded with the nearest sample (offline only).
     """
+    return _fir(pre, creep_inverse(pre, x))
+
+
+def _fir(pre: Preprocess, x: np.ndarray) -> np.ndarray:
+    """The model's FIR alone along axis 0 of ``x`` (:func:`apply_filter`)."""
     x = np.asarray(x, dtype=np.float64)
     taps = pre.taps
     if pre.filter_kind == "none" or taps.size == 1:
@@ -928,10 +1022,11 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
     if not fault.any():
         return standardise(pre, apply_filter(pre, comp))
     good = np.flatnonzero(~fault)
+    comp = creep_inverse(pre, comp, fault=fault)
     if pre.filter_kind == "centred":
         last_good = np.maximum.accumulate(np.where(fault, -1, np.arange(fault.size)))
         held = np.where((last_good >= 0)[:, None], comp[np.maximum(last_good, 0)], 0.0)
-        filt = apply_filter(pre, held)
+        filt = _fir(pre, held)
     else:
         taps = pre.runtime_taps()
         filt, _, _ = filter_through_faults(taps, comp, fault, np.zeros((taps.size - 1, N_STRAIN)),
@@ -1109,6 +1204,7 @@ class FloatPipeline:
         self._history = np.zeros((self.taps.size - 1, N_STRAIN))
         self._last_comp = np.zeros(N_STRAIN)
         self._reference: list[float | None] = [None]   # primed by the first good sample
+        self._creep_lag: list[np.ndarray | None] = [None]   # the creep inverse's, likewise
         self._memory = MemoryStream(pre.memory, pre.z_rest)
         self._decision = [0, 0]
         self._drift = np.zeros(N_STRAIN)
@@ -1135,7 +1231,8 @@ class FloatPipeline:
         n = wl.shape[0]
         fault = samples.sensor_fault_rows(wl) if n else np.zeros(0, dtype=bool)
         good = np.flatnonzero(~fault)
-        comp = compensate(model, wl, self.baseline_nm, self._reference, fault)
+        comp = creep_inverse(pre, compensate(model, wl, self.baseline_nm, self._reference, fault),
+                             self._creep_lag, fault)
         filt, self._history, self._last_comp = filter_through_faults(
             self.taps, comp, fault, self._history, self._last_comp)
 
@@ -1307,6 +1404,8 @@ def save(model: HierarchicalModel, directory: str | Path, flag: str | None = Non
             "input_std": pre.input_std.tolist(),
             "memory": pre.memory.to_json(),
             "ref_shift": pre.ref_shift,
+            "creep": pre.creep,
+            "creep_shift": pre.creep_shift,
             "group_delay_ms_at_1kHz": pre.group_delay_samples,
         },
         "nets": {name: {"sizes": net.sizes} for name, net in model.nets.items()},
@@ -1389,7 +1488,8 @@ def load(directory: str | Path) -> HierarchicalModel:
         p = doc["preprocess"]
         pre = Preprocess(p["temp_coeff"], p["filter_kind"], p["filter_sigma"], p["taps"],
                          p["input_mean"], p["input_std"], Memory(**p.get("memory", {})),
-                         p.get("ref_shift", 0))   # models trained before it: the raw reference
+                         p.get("ref_shift", 0),   # models trained before it: the raw reference
+                         p.get("creep", 0.0), p.get("creep_shift", 0))   # ... and no creep inverse
         return HierarchicalModel(
             preprocess=pre, force_offset=doc["force_offset"], force_scale=doc["force_scale"],
             xy_offset=doc["xy_offset"], xy_scale=doc["xy_scale"], baseline_nm=doc["baseline_nm"],

@@ -204,12 +204,20 @@ VERSION6_DIGEST = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a
 def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> qz.QModel:
     """``old`` (the old model above, loaded from a model.json without the fields added since
     blob version 6) quantises on ``wl`` to the version 6 blob apart from the header's version
-    and CRC, and keeps the digest its export recorded; returns its blob model."""
+    and CRC and the creep inverse's fields (blob version 9), which grew the parameter block
+    and hold zeros; it keeps the digest its export recorded; returns its blob model."""
+    from fbgforce.export import mutate
+
     q, _ = qz.quantize(old, qz.calibrate(old, [(wl, old.baseline_nm)]))
     data = bytearray(blob.to_bytes(q))
     assert int.from_bytes(data[4:6], "little") == contract.LIMIT["BLOB_VERSION"]
     data[4:6] = b"\0\0"
     data[12:16] = b"\0\0\0\0"
+    grown = slice(min(o for o, _, f in mutate.param_slots() if f.name.startswith("creep_")),
+                  contract.HEADER.size + contract.PARAMS_SIZE)
+    assert not any(data[grown])
+    del data[grown]
+    data[8:12] = len(data).to_bytes(4, "little")
     assert hashlib.sha256(bytes(data)).hexdigest() == VERSION6_BLOB_SHA
     assert freshness.model_digest(old) == VERSION6_DIGEST
     return q

@@ -18,8 +18,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -464,8 +464,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -582,12 +582,14 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->ref_shift = rd_u8(p + 252);
     m->track_creep_q15 = rd_u16(p + 253);
     m->track_creep_shift = rd_u8(p + 255);
+    m->creep_q15 = rd_u16(p + 256);
+    m->creep_shift = rd_u8(p + 258);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 256u; k < 256u; ++k)
+    for (k = 259u; k < 264u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -712,6 +714,8 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
     { uint16_t v = m->track_creep_q15; if (v > 16384) return FBG_ERR_RANGE; }
     { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { uint16_t v = m->creep_q15; if (v > 32767) return FBG_ERR_RANGE; }
+    { uint8_t v = m->creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -3034,8 +3038,8 @@ typedef int fbg_dsp_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -3326,6 +3330,7 @@ typedef struct {
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
     uint16_t *pos;
@@ -3350,6 +3355,7 @@ typedef struct {
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -3372,8 +3378,9 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
     *f.magic = f.magic_value;
 }
 
-/* Forget the FIR history, the memory states, the temperature reference's average (the next
- * good sample primes it) and the fault tracker; baseline and tare stay. */
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
     unsigned k;
@@ -3383,6 +3390,7 @@ static inline void fbg_front_clear(fbg_front f)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
     memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
@@ -4516,16 +4524,50 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
     }
 }
 
+/* The pad's creep inverse (docs/fixed-point.md, "creep inverse") on the ring entry a good
+ * sample's compensation just wrote, shared by every kernel's front: a viscoelastic pad reads
+ * s = (1 - m) e + m lag(e) of the elastic strain e, and e = c + q (c - L), L the lag of e
+ * (acc = L * 2^creep_shift), undoes it before the FIR. Primed acc = c << creep_shift (e = c)
+ * by the first good sample after init, tare, reset or a new baseline; a faulty sample never
+ * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds: |c| <= SAT32
+ * and L a rounded convex mix of past values of c keep |acc| <= 2^k (2^31 + 1/2) < 2^47 and
+ * |L| <= 2^31 + 1, so (c - L) * creep_q15 < 2^33 * 2^15 fits int64, and e is clamped to int32
+ * (SATURATED). creep_q15 0: nothing runs, the entry is c. */
+static void creep_inverse(fbg_state *s, const fbg_model *m, uint32_t *sat)
+{
+    int32_t *entry = s->hist[s->pos];
+    const unsigned k = m->creep_shift;
+    unsigned c;
+    if (m->creep_q15 == 0u)
+        return;
+    if (!s->creep_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->creep_acc[c] = (int64_t)entry[c] * ((int64_t)1 << k); /* << of a negative is undefined */
+        s->creep_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const int64_t lag = fbg_rshift_round(s->creep_acc[c], k);
+        const int32_t e = fbg_sat32((int64_t)entry[c] +
+                                        fbg_rshift_round(((int64_t)entry[c] - lag) * m->creep_q15, 15),
+                                    sat);
+        s->creep_acc[c] += e - lag;
+        entry[c] = e;
+    }
+}
+
 static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
                         uint32_t *status, uint32_t *sat)
 {
 #if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
-    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2)
         fbg_avx2_front(s, wl_fm, status, sat);
-        return;
-    }
+    else
 #endif
-    compensate(s, m, wl_fm, status, sat);
+        compensate(s, m, wl_fm, status, sat);
+    /* SENSOR_FAULT here is this sample's: the step's status opens without it. */
+    if (!(*status & FBG_STATUS_SENSOR_FAULT))
+        creep_inverse(s, m, sat);
 }
 
 /* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]
@@ -4982,8 +5024,8 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -5332,6 +5374,9 @@ fbg_status fbg_model_check(const fbg_model *model)
         return st;
     /* The creep states' update rounds by track_creep_shift, which the rounding rule needs >= 1. */
     if (model->track_creep_q15 != 0u && model->track_creep_shift == 0u)
+        return FBG_ERR_RANGE;
+    /* So does the creep inverse's lag by creep_shift. */
+    if (model->creep_q15 != 0u && model->creep_shift == 0u)
         return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
@@ -5967,8 +6012,8 @@ typedef int fbg_simd_neon_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -8016,8 +8061,8 @@ typedef int fbg_simd_x86_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -8812,8 +8857,8 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 256u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 272u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 280u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -9104,6 +9149,7 @@ typedef struct {
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
     uint16_t *pos;
@@ -9128,6 +9174,7 @@ typedef struct {
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -9150,8 +9197,9 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
     *f.magic = f.magic_value;
 }
 
-/* Forget the FIR history, the memory states, the temperature reference's average (the next
- * good sample primes it) and the fault tracker; baseline and tare stay. */
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
     unsigned k;
@@ -9161,6 +9209,7 @@ static inline void fbg_front_clear(fbg_front f)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
     memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
@@ -9435,6 +9484,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
         model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -9664,6 +9715,27 @@ static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
                                        : filt[c];
 }
 
+/* creep_inverse of fbg_fixed.c in float: the pad's creep taken out of a good sample's
+ * compensated shifts comp (pm) before they enter the ring, e = c + creep_q (c - L), then
+ * L += (e - L) / 2^creep_shift; primed L = c by the first good sample after init, tare, reset
+ * or a new baseline. */
+static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
+{
+    unsigned c;
+    if (m->creep_q == 0.0f)
+        return;
+    if (!s->creep_primed) {
+        memcpy(s->creep_lag_pm, comp, sizeof s->creep_lag_pm);
+        s->creep_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const float lag = s->creep_lag_pm[c];
+        comp[c] += m->creep_q * (comp[c] - lag);
+        s->creep_lag_pm[c] = lag + (comp[c] - lag) * (1.0f / (float)(1u << m->creep_shift));
+    }
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -9693,6 +9765,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
+        fcreep_inverse(s, m, comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];

@@ -72,7 +72,8 @@ extern "C" {
 #define FBG_TRACK_LIMIT_MAX_FM 100000000  /* largest track_limit_fm (100 nm): a tracked baseline stays within 100 nm of its tare */
 #define FBG_MAX_REF_SHIFT 8  /* largest shift of the temperature reference's average (time constant 256 samples): its accumulator stays below 2^39 (docs/fixed-point.md) */
 #define FBG_MAX_TRACK_CREEP_Q15 16384  /* largest track_creep_q15 (creep magnitude 0.5): the tracker's per-sample term stays below 2^17 (docs/fixed-point.md) */
-#define FBG_BLOB_VERSION 8  /* blob format this library reads and writes */
+#define FBG_MAX_CREEP_Q15 32767  /* largest creep_q15: the creep inverse's gain q = kappa / (1 - kappa) stays below 1 for a creep magnitude up to 0.5 (docs/fixed-point.md) */
+#define FBG_BLOB_VERSION 9  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -186,6 +187,7 @@ typedef struct {
     int16_t in_lo[12];  /* OUT_OF_RANGE when a net input j < n_features (z, memory features) < in_lo[j] ... [-32767, 32767] */
     int16_t in_hi[12];  /* ... or > in_hi[j] (Q(z_frac); +-32767: never) [-32767, 32767] */
     uint16_t track_creep_q15;  /* the tracker's creep term (0: off; needs track_creep_shift >= 1): per sample at rest it sums (z_i - z0_i) - rshift_round((creep_i - (z0_i << EMA_FRAC)) * track_creep_q15, 30), the pad's creep magnitude in Q15 [0, 16384] */
+    uint16_t creep_q15;  /* the pad's creep inverse (0: off; needs creep_shift >= 1), on each good sample's compensated shift c_i before the FIR: L_i = rshift_round(acc_i, creep_shift), e_i = sat32(c_i + rshift_round((c_i - L_i) * creep_q15, 15)) replaces c_i, acc_i += e_i - L_i; acc_i primed at c_i << creep_shift. q = kappa / (1 - kappa), kappa = m (1 - 2^-creep_shift), in Q15 [0, 32767] */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
     uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
@@ -202,7 +204,7 @@ typedef struct {
     uint8_t track_shift;  /* at-rest baseline tracker (0: off): time constant 2^track_shift samples [0, 20] */
     uint8_t ref_shift;  /* temperature reference average (0: off): acc += shift_T - rshift_round(acc, ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
     uint8_t track_creep_shift;  /* creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples [0, 15] */
-    uint8_t pad_[3];  /* explicit padding, keep 0 */
+    uint8_t creep_shift;  /* the pad's creep time constant 2^creep_shift samples (1..15 when creep_q15 is on) [0, 15] */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
     uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
@@ -247,6 +249,7 @@ typedef struct {
     int64_t track_frac[FBG_N_STRAIN];
     int64_t tare_sum[FBG_N_CHANNELS];
     int64_t ref_acc;                             /* the temperature reference's average r * 2^ref_shift (fm; docs/fixed-point.md, "temperature reference") */
+    int64_t creep_acc[FBG_N_STRAIN];             /* the creep inverse's lags L_i * 2^creep_shift (fm; docs/fixed-point.md, "creep inverse") */
     /* Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels read the
      * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
@@ -260,6 +263,7 @@ typedef struct {
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
     uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
+    uint8_t creep_primed;                        /* the creep inverse's lags hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
     uint8_t decision;                            /* the contact decision of the last step */
     uint8_t rise_run;                            /* samples of the rise condition so far */
@@ -429,6 +433,7 @@ typedef struct {
     float track_creep;  /* the tracker's creep term as fbg_model, 0..0.5 (0: off): per sample at rest it sums filt_i - track_creep * creep_pm_i */
     float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
     float in_hi[12];
+    float creep_q;  /* the pad's creep inverse as fbg_model, its gain q = kappa / (1 - kappa) itself, 0 <= q < 1 (0: off): e_i = c_i + creep_q * (c_i - creep_lag_pm_i) replaces c_i, creep_lag_pm_i += (e_i - creep_lag_pm_i) / 2^creep_shift */
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
     uint16_t track_settle;
@@ -442,7 +447,8 @@ typedef struct {
     uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
     uint8_t track_creep_shift;  /* creep_pm_i += (filt_i - creep_pm_i) / 2^track_creep_shift on every good sample (1..15 when track_creep > 0) */
     uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
-    uint8_t pad_[3];  /* explicit padding, keep 0 */
+    uint8_t creep_shift;  /* the pad's creep time constant (1..15 when creep_q > 0) */
+    uint8_t pad_[2];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
     fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */
 } fbgf_model;
@@ -476,6 +482,7 @@ typedef struct {
     float loc[FBG_N_STRAIN];                     /* location averages of z - z_rest */
     float creep_pm[FBG_N_STRAIN];                /* the tracker's creep states: averages of the filtered shifts (pm), primed with the memory (mem_primed) */
     float ref_pm;                                /* the temperature reference's average (pm) */
+    float creep_lag_pm[FBG_N_STRAIN];            /* the creep inverse's lags L_i (pm) */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
     uint16_t pos;                                /* next write index into hist */
@@ -486,6 +493,7 @@ typedef struct {
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
     uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
+    uint8_t creep_primed;                        /* the creep inverse's lags hold a sample */
     /* The decision over time and the at-rest baseline tracker, as fbg_state's: the block's
      * sum of filtered shifts (pm); the correction subtracted from the compensated shifts is
      * held_pm (made before the last reset) + drift_pm (since, bounded by track_limit_pm). */

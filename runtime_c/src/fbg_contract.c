@@ -95,12 +95,14 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->ref_shift = rd_u8(p + 252);
     m->track_creep_q15 = rd_u16(p + 253);
     m->track_creep_shift = rd_u8(p + 255);
+    m->creep_q15 = rd_u16(p + 256);
+    m->creep_shift = rd_u8(p + 258);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 256u; k < 256u; ++k)
+    for (k = 259u; k < 264u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -225,6 +227,8 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint8_t v = m->ref_shift; if (v > 8) return FBG_ERR_RANGE; }
     { uint16_t v = m->track_creep_q15; if (v > 16384) return FBG_ERR_RANGE; }
     { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { uint16_t v = m->creep_q15; if (v > 32767) return FBG_ERR_RANGE; }
+    { uint8_t v = m->creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

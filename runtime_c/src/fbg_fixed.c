@@ -347,16 +347,50 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
     }
 }
 
+/* The pad's creep inverse (docs/fixed-point.md, "creep inverse") on the ring entry a good
+ * sample's compensation just wrote, shared by every kernel's front: a viscoelastic pad reads
+ * s = (1 - m) e + m lag(e) of the elastic strain e, and e = c + q (c - L), L the lag of e
+ * (acc = L * 2^creep_shift), undoes it before the FIR. Primed acc = c << creep_shift (e = c)
+ * by the first good sample after init, tare, reset or a new baseline; a faulty sample never
+ * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds: |c| <= SAT32
+ * and L a rounded convex mix of past values of c keep |acc| <= 2^k (2^31 + 1/2) < 2^47 and
+ * |L| <= 2^31 + 1, so (c - L) * creep_q15 < 2^33 * 2^15 fits int64, and e is clamped to int32
+ * (SATURATED). creep_q15 0: nothing runs, the entry is c. */
+static void creep_inverse(fbg_state *s, const fbg_model *m, uint32_t *sat)
+{
+    int32_t *entry = s->hist[s->pos];
+    const unsigned k = m->creep_shift;
+    unsigned c;
+    if (m->creep_q15 == 0u)
+        return;
+    if (!s->creep_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->creep_acc[c] = (int64_t)entry[c] * ((int64_t)1 << k); /* << of a negative is undefined */
+        s->creep_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const int64_t lag = fbg_rshift_round(s->creep_acc[c], k);
+        const int32_t e = fbg_sat32((int64_t)entry[c] +
+                                        fbg_rshift_round(((int64_t)entry[c] - lag) * m->creep_q15, 15),
+                                    sat);
+        s->creep_acc[c] += e - lag;
+        entry[c] = e;
+    }
+}
+
 static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
                         uint32_t *status, uint32_t *sat)
 {
 #if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
-    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2)
         fbg_avx2_front(s, wl_fm, status, sat);
-        return;
-    }
+    else
 #endif
-    compensate(s, m, wl_fm, status, sat);
+        compensate(s, m, wl_fm, status, sat);
+    /* SENSOR_FAULT here is this sample's: the step's status opens without it. */
+    if (!(*status & FBG_STATUS_SENSOR_FAULT))
+        creep_inverse(s, m, sat);
 }
 
 /* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]

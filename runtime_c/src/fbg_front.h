@@ -39,6 +39,7 @@ typedef struct {
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
     uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
     uint16_t *pos;
@@ -63,6 +64,7 @@ typedef struct {
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
                  .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
                  .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
@@ -85,8 +87,9 @@ static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[F
     *f.magic = f.magic_value;
 }
 
-/* Forget the FIR history, the memory states, the temperature reference's average (the next
- * good sample primes it) and the fault tracker; baseline and tare stay. */
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
 static inline void fbg_front_clear(fbg_front f)
 {
     unsigned k;
@@ -96,6 +99,7 @@ static inline void fbg_front_clear(fbg_front f)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
     *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
     memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);

@@ -80,6 +80,9 @@ fbg_status fbg_model_check(const fbg_model *model)
     /* The creep states' update rounds by track_creep_shift, which the rounding rule needs >= 1. */
     if (model->track_creep_q15 != 0u && model->track_creep_shift == 0u)
         return FBG_ERR_RANGE;
+    /* So does the creep inverse's lag by creep_shift. */
+    if (model->creep_q15 != 0u && model->creep_shift == 0u)
+        return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
     features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);

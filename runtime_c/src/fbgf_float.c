@@ -81,6 +81,8 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
         model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -310,6 +312,27 @@ static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
                                        : filt[c];
 }
 
+/* creep_inverse of fbg_fixed.c in float: the pad's creep taken out of a good sample's
+ * compensated shifts comp (pm) before they enter the ring, e = c + creep_q (c - L), then
+ * L += (e - L) / 2^creep_shift; primed L = c by the first good sample after init, tare, reset
+ * or a new baseline. */
+static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
+{
+    unsigned c;
+    if (m->creep_q == 0.0f)
+        return;
+    if (!s->creep_primed) {
+        memcpy(s->creep_lag_pm, comp, sizeof s->creep_lag_pm);
+        s->creep_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const float lag = s->creep_lag_pm[c];
+        comp[c] += m->creep_q * (comp[c] - lag);
+        s->creep_lag_pm[c] = lag + (comp[c] - lag) * (1.0f / (float)(1u << m->creep_shift));
+    }
+}
+
 /* Everything before the nets: the front end, temperature compensation, FIR, standardisation
  * and memory features into in[], the location averages into loc[] (when the model has them).
  * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
@@ -339,6 +362,7 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
+        fcreep_inverse(s, m, comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
