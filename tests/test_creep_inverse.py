@@ -313,3 +313,22 @@ def test_the_fields_are_range_checked_by_every_reader():
         model.preprocess.creep, model.preprocess.creep_shift = creep, shift   # past the check
         with pytest.raises(RangeError):
             FloatRuntime(model)
+
+
+def test_the_trainers_recordings_take_the_inverse_and_its_levels_do_not():
+    """The trainer's features of a continuous recording (``recording_features``) take the
+    inverse, as the runtimes do; its rows compensated one by one (``compensated``, which
+    makes the synthetic holds and rests from levels) do not."""
+    from fbgforce.trainer import preprocess as pp
+
+    model = _with_creep(make_random_model(0, sizes=((8,), (8,), (8,)), n_taps=5, sigma=1.5),
+                        CREEP, CREEP_SHIFT)
+    pre, base = model.preprocess, model.baseline_nm
+    _, creeping = _creeping_pad(model)
+    comp = fm.compensate(model, creeping, base)
+    assert np.array_equal(pp.compensated(pre, creeping, base), comp)
+    np.testing.assert_allclose(pp.recording_features(pre, creeping, base),
+                               fm.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0),
+                                               fm.creep_inverse(pre, comp)), rtol=0, atol=1e-9)
+    assert np.abs(pp.recording_features(pre, creeping, base)
+                  - fm.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0), comp)).max() > 10.0

@@ -284,6 +284,30 @@ def test_tracker_creep_term_bit_exact_on_target(tools, small_model_dir, tmp_path
 
 
 @pytest.mark.target
+def test_creep_inverse_bit_exact_on_target(tools, small_model_dir, tmp_path):
+    """The pad's creep inverse at its largest gain (magnitude 0.5, time constant 2^15) on both
+    Cortex-M4 builds through the golden session (which it changes), its faults, tares, resets
+    and new baselines re-priming it."""
+    d = tmp_path / "model"
+    shutil.copytree(small_model_dir, d)
+    model = fm.load(d)
+    model.preprocess = replace(model.preprocess, creep=0.5, creep_shift=15)
+    fm.save(model, d)
+    q, _ = load_quantized(d)
+    wl, contact, _ = recording_fm(None, "smoke", 0, SAMPLES)
+
+    def steps(qm) -> list[dict[str, int]]:
+        return [r.out for r in golden.golden_session(qm, wl, contact) if r.op == golden.OP_STEP]
+
+    assert q.creep_q15 == round(model.preprocess.creep_gain * 2**15) > 32000
+    assert steps(q) != steps(replace(q, creep_q15=0, creep_shift=0))
+    rep = target_report(d, samples=SAMPLES)
+    assert rep["bit_exact"] is True
+    for name in ("portable", "dsp"):
+        assert rep["builds"][name]["bit_exact"] and rep["builds"][name]["mismatches"] == 0
+
+
+@pytest.mark.target
 def test_cli_json(tools, small_model_dir, capsys):
     from fbgforce.cli import main
 
