@@ -1011,7 +1011,8 @@ def features(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarra
 
     Samples with a lost peak (:func:`fbgforce.samples.sensor_fault_rows`) are handled as the
     C runtime handles a sensor fault: the filter is fed the last good sample's filtered
-    shifts (:func:`filter_through_faults`; zeros before any), the memory states skip the
+    shifts (:func:`filter_through_faults`; zeros before any), the creep inverse
+    (:func:`creep_inverse`) and the memory states skip the
     sample (they are frozen), and the sample's own row holds zeros in place of memory
     features (its outputs are the safe output). The centred (offline) filter, which no
     runtime runs, is fed the last good input instead.
@@ -1175,12 +1176,13 @@ def predict(model: HierarchicalModel, wl_nm: Any, baseline_nm: Any = None, *,
 class FloatPipeline:
     """The float pipeline of ONE continuous recording, fed in pieces of any length: what
     :func:`predict` computes on the whole, sample for sample (the temperature reference's
-    average, the filter's history, the memory states, the decision over time and the at-rest
-    tracker carry over from piece to piece). It starts as the runtimes after a tare: the first
-    good sample primes the reference's average and the memory states.
+    average, the creep inverse's lags, the filter's history, the memory states, the decision
+    over time and the at-rest tracker carry over from piece to piece). It starts as the
+    runtimes after a tare: the first good sample primes the reference's average, the creep
+    inverse's lags and the memory states.
     A sensor fault (:func:`fbgforce.samples.sensor_fault_rows`) is handled as the runtimes
     handle it: the filter is fed the last good sample's filtered shifts, the reference's
-    average, the memory states, the decision and the tracker skip the sample (the tracker
+    average, the creep inverse's lags, the memory states, the decision and the tracker skip the sample (the tracker
     restarts its rest count), and the sample gets the safe output.
 
     Parameters
