@@ -22,8 +22,9 @@ from fbgforce import contract, freshness
 from fbgforce import model as fm
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
-from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, RangeError, Runtime
-from test_creep_track import QUICK, _equal, _hardcases
+from fbgforce.pybind import FloatRuntime, RangeError, Runtime
+import test_creep_track as creep_track
+from test_creep_track import _equal, _hardcases
 from test_simd import host_kernels
 from test_temp_reference import VERSION6_DIGEST, assert_version6_export
 
@@ -36,33 +37,16 @@ def _with_creep(model: fm.HierarchicalModel, creep: float, creep_shift: int) -> 
 
 
 def _quantised(creep: float, creep_shift: int, seed: int = 3, n: int = 4000):
-    """A small random model with the quick tracker and the creep inverse, its blob model and
-    (n, 5) wavelengths (nm): a walk with about a third of it in contact and lost peaks."""
-    model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
-                              memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
-    model = _with_creep(model, creep, creep_shift)
-    model.in_use = QUICK
-    wl = make_random_walk(model, n, seed, step_nm=0.0015)
-    x = fm.features(model, wl, model.baseline_nm)
-    logits = model.contact.forward(x[:, :model.preprocess.n_features])
-    model.contact.biases[-1][1] -= float(np.quantile(logits[:, 1] - logits[:, 0], 0.66))
-    q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
-    rng = np.random.default_rng(seed)
-    for start in rng.integers(100, n - 50, 6):
-        wl[start:start + int(rng.integers(1, 30)), int(rng.integers(5))] = 0.0
-    return model, q, wl
+    """The creep-term tests' small model (quick tracker, about a third in contact, lost
+    peaks) with the creep inverse instead of the tracker's creep term."""
+    return creep_track._quantised(0.0, 0, seed, n, creep=creep, creep_shift=creep_shift)
 
 
 def _run_ref(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray,
              rt: Runtime | None = None) -> tuple[dict, np.ndarray]:
-    """The integer reference from a fresh state on ``base``: outputs and the end baseline;
-    with ``rt`` (run on the same samples), checks that its creep inverse's states are the
-    reference's."""
-    end: dict = {}
-    out = intref.run(q, wl_fm, base, end=end)
-    if rt is not None:
-        assert list(rt._state.creep_acc) == end["creep_acc"].tolist()
-    return out, end["baseline_fm"]
+    """The integer reference from a fresh state on ``base``, the creep inverse's states of
+    ``rt`` checked against it."""
+    return creep_track._run_ref(q, wl_fm, base, rt, "creep_acc")
 
 
 @pytest.mark.parametrize("creep, creep_shift", [(0.5, 15), (0.05, 10), (0.3, 1)])
@@ -75,15 +59,7 @@ def test_every_kernel_equals_the_integer_reference(creep, creep_shift):
     assert q.creep_q15 == round(model.preprocess.creep_gain * 2**15) > 0
     assert q.creep_shift == creep_shift
     wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
-    ref, reached = _run_ref(q, wl_fm, base)
-    assert np.count_nonzero(ref["status"] & FAULT) > 6 and 0.1 < ref["contact"].mean() < 0.95
-    for kernel in ["portable"] + host_kernels():
-        for packed in ([False, True] if kernel in PACKED_KERNELS else [False]):
-            rt = Runtime(blob.to_bytes(q), kernel=kernel, packed=packed)
-            rt.set_baseline(base.astype(np.int32))
-            _equal(rt.run_raw(wl_fm), ref, f"{kernel} packed={packed}")
-            assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), reached)
-            _run_ref(q, wl_fm, base, rt)
+    ref, _ = creep_track.assert_every_kernel(q, wl_fm, base, "creep_acc")
     off, _ = _run_ref(dataclasses.replace(q, creep_q15=0, creep_shift=0), wl_fm, base)
     assert not np.array_equal(off["force_mN"], ref["force_mN"])
 
@@ -94,34 +70,8 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     and a new baseline the next good sample primes them again (the C state from there equals
     a fresh integer reference: outputs, states and end baseline)."""
     model, q, wl = _quantised(0.5, 8, seed=5)
-    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
-    rt = Runtime(blob.to_bytes(q), kernel=kernel)
-    st = rt._state
-
-    def segment(start: int, stop: int, on: np.ndarray, what: str) -> None:
-        got = rt.run_raw(wl_fm[start:stop])
-        ref, end = _run_ref(q, wl_fm[start:stop], on, rt)
-        _equal(got, ref, what)
-        assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), end), what
-
-    rt.set_baseline(base.astype(np.int32))
-    segment(0, 1500, base, "set_baseline")
-    before = list(st.creep_acc)
-    assert st.creep_primed == 1 and any(before)
-    lost = wl_fm[1500:1501].copy()
-    lost[0, 2] = 0
-    assert rt.run_raw(lost)["status"][0] & FAULT
-    assert list(st.creep_acc) == before
-    reached = np.asarray(rt.baseline_fm, dtype=np.int64)
-    rt.reset()
-    assert st.creep_primed == 0
-    segment(1501, 2500, reached, "reset")
-    rt.tare(wl[2500:2600])
-    assert st.creep_primed == 0
-    segment(2600, 3300, np.asarray(rt.baseline_fm, dtype=np.int64), "tare")
-    rt.set_baseline(base.astype(np.int32))
-    assert st.creep_primed == 0
-    segment(3300, 4000, base, "set_baseline again")
+    creep_track.assert_reprimes(model, q, wl, kernel,
+                                "creep_acc", "creep_primed")
 
 
 def test_the_inverse_at_its_bounds_is_exact():

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from typing import Any
 
 import numpy as np
 import pytest
@@ -33,12 +34,16 @@ QUICK = fm.InUse(contact_on_margin=0.05, contact_off_margin=-0.05, contact_rise_
                  track_shift=5, track_settle=40, track_step_max_pm=20.0, track_limit_pm=60.0)
 
 
-def _quantised(creep: float, creep_shift: int, seed: int = 3, n: int = 4000):
-    """A small random model with the quick tracker and the creep term, its blob model and
-    (n, 5) wavelengths (nm): a walk with about a third of it in contact and lost peaks."""
+def _quantised(track_creep: float, track_creep_shift: int, seed: int = 3, n: int = 4000,
+               **preprocess: Any):
+    """A small random model with the quick tracker and the creep term (and the preprocessing
+    fields ``preprocess``), its blob model and (n, 5) wavelengths (nm): a walk with about a
+    third of it in contact and lost peaks."""
     model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
                               memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
-    model.in_use = dataclasses.replace(QUICK, track_creep=creep, track_creep_shift=creep_shift)
+    model.preprocess = dataclasses.replace(model.preprocess, **preprocess)
+    model.in_use = dataclasses.replace(QUICK, track_creep=track_creep,
+                                       track_creep_shift=track_creep_shift)
     wl = make_random_walk(model, n, seed, step_nm=0.0015)
     x = fm.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
@@ -57,13 +62,14 @@ def _equal(c: dict[str, np.ndarray], ref: dict[str, np.ndarray], what: str) -> N
 
 
 def _run_ref(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray,
-             rt: Runtime | None = None) -> tuple[dict, np.ndarray]:
+             rt: Runtime | None = None, state: str = "creep") -> tuple[dict, np.ndarray]:
     """The integer reference from a fresh state on ``base``: outputs and the end baseline;
-    with ``rt`` (run on the same samples), checks that its creep states are the reference's."""
+    with ``rt`` (run on the same samples), checks that its states ``state`` (``fbg_state``'s
+    member, the reference's ``end`` key) are the reference's."""
     end: dict = {}
     out = intref.run(q, wl_fm, base, end=end)
     if rt is not None:
-        assert list(rt._state.creep) == end["creep"].tolist()
+        assert list(getattr(rt._state, state)) == end[state].tolist()
     return out, end["baseline_fm"]
 
 
@@ -76,6 +82,17 @@ def test_every_kernel_equals_the_integer_reference(creep, creep_shift):
     model, q, wl = _quantised(creep, creep_shift)
     assert q.track_creep_q15 == round(creep * 2**15) and q.track_creep_shift == creep_shift
     wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    _, reached = assert_every_kernel(q, wl_fm, base, "creep")
+    _, untermed = _run_ref(dataclasses.replace(q, track_creep_q15=0, track_creep_shift=0), wl_fm, base)
+    assert not np.array_equal(untermed, reached)
+
+
+def assert_every_kernel(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray, state: str
+                        ) -> tuple[dict, np.ndarray]:
+    """Portable C and every host kernel, packed or not, from a new baseline ``base``: the
+    outputs, the tracked baseline and ``fbg_state``'s ``state`` equal the integer
+    reference's (whose recording must hold faults and a share of contact); returns the
+    reference's outputs and end baseline."""
     ref, reached = _run_ref(q, wl_fm, base)
     assert np.count_nonzero(ref["status"] & FAULT) > 6 and 0.1 < ref["contact"].mean() < 0.95
     for kernel in ["portable"] + host_kernels():
@@ -84,8 +101,8 @@ def test_every_kernel_equals_the_integer_reference(creep, creep_shift):
             rt.set_baseline(base.astype(np.int32))
             _equal(rt.run_raw(wl_fm), ref, f"{kernel} packed={packed}")
             assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), reached)
-    _, untermed = _run_ref(dataclasses.replace(q, track_creep_q15=0, track_creep_shift=0), wl_fm, base)
-    assert not np.array_equal(untermed, reached)
+            _run_ref(q, wl_fm, base, rt, state)
+    return ref, reached
 
 
 @pytest.mark.parametrize("kernel", ["portable"] + host_kernels())
@@ -94,6 +111,14 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     baseline the next good sample primes them again (the C state from there equals a fresh
     integer reference, end baseline included)."""
     model, q, wl = _quantised(0.5, 8, seed=5)
+    assert_reprimes(model, q, wl, kernel, "creep", "mem_primed")
+
+
+def assert_reprimes(model: fm.HierarchicalModel, q: qz.QModel, wl: np.ndarray, kernel: str,
+                    state: str, primed: str) -> None:
+    """On ``kernel``, ``fbg_state``'s ``state`` (primed when ``primed`` is set) holds through
+    a faulty sample and is primed again after a reset, a tare and a new baseline: from each,
+    outputs, states and end baseline equal a fresh integer reference's (:func:`_run_ref`)."""
     wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
     rt = Runtime(blob.to_bytes(q), kernel=kernel)
     st = rt._state
@@ -102,28 +127,28 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
         """The C state on samples start..stop equals a fresh reference on the baseline
         ``on``: outputs, the tracked baseline and the creep states."""
         got = rt.run_raw(wl_fm[start:stop])
-        ref, end = _run_ref(q, wl_fm[start:stop], on, rt)
+        ref, end = _run_ref(q, wl_fm[start:stop], on, rt, state)
         _equal(got, ref, what)
         assert np.array_equal(np.asarray(rt.baseline_fm, dtype=np.int64), end), what
 
     rt.set_baseline(base.astype(np.int32))
     segment(0, 1500, base, "set_baseline")
-    before = list(st.creep)
-    assert st.mem_primed == 1 and any(before)
+    before = list(getattr(st, state))
+    assert getattr(st, primed) == 1 and any(before)
     lost = wl_fm[1500:1501].copy()
     lost[0, 2] = 0
     assert rt.run_raw(lost)["status"][0] & FAULT
-    assert list(st.creep) == before
+    assert list(getattr(st, state)) == before
     # Reset: the baseline the tracker reached stays, the states are primed again.
     reached = np.asarray(rt.baseline_fm, dtype=np.int64)
     rt.reset()
-    assert st.mem_primed == 0
+    assert getattr(st, primed) == 0
     segment(1501, 2500, reached, "reset")
     rt.tare(wl[2500:2600])
-    assert st.mem_primed == 0
+    assert getattr(st, primed) == 0
     segment(2600, 3300, np.asarray(rt.baseline_fm, dtype=np.int64), "tare")
     rt.set_baseline(base.astype(np.int32))
-    assert st.mem_primed == 0
+    assert getattr(st, primed) == 0
     segment(3300, 4000, base, "set_baseline again")
 
 
