@@ -4529,17 +4529,15 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
  * s = (1 - m) e + m lag(e) of the elastic strain e, and e = c + q (c - L), L the lag of e
  * (acc = L * 2^creep_shift), undoes it before the FIR. Primed acc = c << creep_shift (e = c)
  * by the first good sample after init, tare, reset or a new baseline; a faulty sample never
- * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds: |c| <= SAT32
- * and L a rounded convex mix of past values of c keep |acc| <= 2^k (2^31 + 1/2) < 2^47 and
- * |L| <= 2^31 + 1, so (c - L) * creep_q15 < 2^33 * 2^15 fits int64, and e is clamped to int32
- * (SATURATED). creep_q15 0: nothing runs, the entry is c. */
+ * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds (proven in
+ * docs/fixed-point.md): |c| <= SAT32 keeps |acc| <= 2^k (2^31 - 1/2) < 2^47 and |L| <= 2^31,
+ * so (c - L) * creep_q15 < 2^32 * 2^15 fits int64, and e is clamped to int32 (SATURATED).
+ * Called only with creep_q15 > 0 (off, the entry stays c). */
 static void creep_inverse(fbg_state *s, const fbg_model *m, uint32_t *sat)
 {
     int32_t *entry = s->hist[s->pos];
     const unsigned k = m->creep_shift;
     unsigned c;
-    if (m->creep_q15 == 0u)
-        return;
     if (!s->creep_primed) {
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->creep_acc[c] = (int64_t)entry[c] * ((int64_t)1 << k); /* << of a negative is undefined */
@@ -4565,8 +4563,9 @@ static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FB
     else
 #endif
         compensate(s, m, wl_fm, status, sat);
-    /* SENSOR_FAULT here is this sample's: the step's status opens without it. */
-    if (!(*status & FBG_STATUS_SENSOR_FAULT))
+    /* SENSOR_FAULT here is this sample's: the step's status opens without it. Off
+     * (creep_q15 0), nothing runs. */
+    if (m->creep_q15 != 0u && !(*status & FBG_STATUS_SENSOR_FAULT))
         creep_inverse(s, m, sat);
 }
 
