@@ -20,6 +20,7 @@ import pytest
 from conftest import make_random_model, make_random_walk
 from fbgforce import contract, freshness
 from fbgforce import model as fm
+from fbgforce.errors import InputError
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
 from fbgforce.pybind import FloatRuntime, RangeError, Runtime
@@ -237,6 +238,12 @@ def test_a_model_without_the_fields_is_the_model_it_was(tmp_path):
     slots = [o for o, _, f in mutate.param_slots() if f.name.startswith("creep_")]
     differ = [i for i, (a, b) in enumerate(zip(new, plain)) if a != b]
     assert differ and set(differ) - {12, 13, 14, 15} <= set(range(min(slots), max(slots) + 2))
+    # A model.json with a magnitude out of range: one error naming the directory and the field.
+    doc["preprocess"].update(creep=0.7, creep_shift=10)
+    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="creep must be 0 .. 0.5, not 0.7") as err:
+        fm.load(tmp_path)
+    assert err.value.path == str(tmp_path)
 
 
 def test_the_fields_are_range_checked_by_every_reader():
