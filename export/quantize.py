@@ -30,7 +30,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce import contract
+from fbgforce import contract, samples
 from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.units import nm_to_fm
@@ -364,7 +364,7 @@ class Calibration:
     max_step_fm: float          # largest per-sample change of any in-window channel
     max_same_run: int           # longest run of identical consecutive values (fm), any channel
     samples: int
-    max_comp_pm: float = 0.0    # largest |compensated shift| (before the filter)
+    max_comp_pm: float = 0.0    # largest |compensated shift| the filter reads (after the creep inverse)
     #: (n, 4) per sample: |comp[n]| and max_k |comp[n-k] - comp[n]| over the filter window (pm)
     comp_abs_pm: np.ndarray | None = None
     comp_var_pm: np.ndarray | None = None
@@ -392,7 +392,7 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
         zs.append(fm.features(model, wl, base))
         # What the filter reads: the compensated shifts after the pad's creep inverse.
         comp = fm.creep_inverse(model.preprocess, fm.compensate(model, wl, base), None,
-                                ~np.isfinite(wl).all(axis=1))
+                                samples.sensor_fault_rows(wl))
         comp_max = max(comp_max, float(np.abs(comp[np.isfinite(comp)]).max(initial=0.0)))
         # Zero history before the first sample, as the causal filter sees it.
         padded = np.concatenate([np.zeros((n_taps - 1, 4)), comp])
