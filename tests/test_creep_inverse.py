@@ -106,11 +106,7 @@ def test_float_engines_follow_the_same_rule():
     baseline, follows FloatPipeline started there."""
     model, _, wl = _quantised(0.5, 4, seed=6)
     wl[0, 1] = np.nan          # the first sample faulty: the second primes
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
-    cuts = (0, 1, 70, 333, 1000, 2000)
-    pieces = [pipe.push(wl[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
-    whole_pipe = fm.FloatPipeline(model, model.baseline_nm)
-    whole = whole_pipe.push(wl[:2000])
+    pipe, pieces, whole_pipe, whole = creep_track.pushed_in_pieces(model, wl[:2000])
     for key in ("contact", "force_N"):
         np.testing.assert_allclose(np.concatenate([p[key] for p in pieces]), whole[key],
                                    rtol=1e-9, atol=1e-9)

@@ -152,6 +152,17 @@ def assert_reprimes(model: fm.HierarchicalModel, q: qz.QModel, wl: np.ndarray, k
     segment(3300, 4000, base, "set_baseline again")
 
 
+def pushed_in_pieces(model: fm.HierarchicalModel, wl: np.ndarray
+                     ) -> tuple[fm.FloatPipeline, list[dict], fm.FloatPipeline, dict]:
+    """``wl`` (2000 samples) through one FloatPipeline in pieces of 1 to 1000 samples and
+    through another at once: each pipeline and its outputs."""
+    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    cuts = (0, 1, 70, 333, 1000, 2000)
+    pieces = [pipe.push(wl[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
+    whole_pipe = fm.FloatPipeline(model, model.baseline_nm)
+    return pipe, pieces, whole_pipe, whole_pipe.push(wl)
+
+
 def test_float_engines_follow_the_same_rule():
     """FloatPipeline fed in pieces equals it fed at once (the creep states carry over), its
     states are the rule written out (primed by the first good sample, held by a faulty one),
@@ -159,11 +170,7 @@ def test_float_engines_follow_the_same_rule():
     FloatPipeline started there: the same decisions and the same tracked baseline."""
     model, _, wl = _quantised(0.5, 4, seed=6)
     wl[0, 1] = np.nan          # the first sample faulty: the second primes
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
-    cuts = (0, 1, 70, 333, 1000, 2000)
-    pieces = [pipe.push(wl[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
-    whole_pipe = fm.FloatPipeline(model, model.baseline_nm)
-    whole = whole_pipe.push(wl[:2000])
+    pipe, pieces, whole_pipe, whole = pushed_in_pieces(model, wl[:2000])
     assert np.array_equal(np.concatenate([p["contact"] for p in pieces]), whole["contact"])
     np.testing.assert_allclose(pipe.baseline_nm, whole_pipe.baseline_nm, rtol=0, atol=1e-12)
     assert not np.allclose(pipe.baseline_nm, model.baseline_nm, rtol=0, atol=1e-7)
