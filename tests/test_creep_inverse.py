@@ -17,7 +17,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from conftest import make_random_model, make_random_walk
+from conftest import make_random_model
 from fbgforce import contract, freshness
 from fbgforce import model as fm
 from fbgforce.errors import InputError
@@ -27,7 +27,7 @@ from fbgforce.pybind import FloatRuntime, RangeError, Runtime
 import test_creep_track as creep_track
 from test_creep_track import _equal, _hardcases
 from test_simd import host_kernels
-from test_temp_reference import VERSION6_DIGEST, assert_version6_export
+from test_temp_reference import VERSION6_DIGEST, assert_version6_export, version6_model
 
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 
@@ -213,17 +213,8 @@ def test_a_model_without_the_fields_is_the_model_it_was(tmp_path):
     loads with the inverse off and exports the version 6 blob apart from the header and the
     creep inverse's zero bytes, with the freshness digest its export recorded; on, the
     digest changes and only the fields' own bytes (and the header) differ."""
-    model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
-                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
-    fm.save(model, tmp_path)
-    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
-    for key in ("ref_shift", "creep", "creep_shift"):
-        del doc["preprocess"][key]
-    del doc["in_use"]["track_creep"], doc["in_use"]["track_creep_shift"]
-    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
-    old = fm.load(tmp_path)
+    old, wl = version6_model(tmp_path)
     assert old.preprocess.creep == 0.0 and old.preprocess.creep_shift == 0
-    wl = make_random_walk(old, 600, 7)
     q = assert_version6_export(old, wl)
     assert q.creep_q15 == q.creep_shift == 0
     on = _with_creep(old, 0.05, 10)
@@ -236,6 +227,7 @@ def test_a_model_without_the_fields_is_the_model_it_was(tmp_path):
     differ = [i for i, (a, b) in enumerate(zip(new, plain)) if a != b]
     assert differ and set(differ) - {12, 13, 14, 15} <= set(range(min(slots), max(slots) + 2))
     # A model.json with a magnitude out of range: one error naming the directory and the field.
+    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
     doc["preprocess"].update(creep=0.7, creep_shift=10)
     (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
     with pytest.raises(InputError, match="creep must be 0 .. 0.5, not 0.7") as err:

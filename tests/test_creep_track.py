@@ -11,7 +11,6 @@ without the fields is the model it was. (The Cortex-M4 builds run it in tests/te
 from __future__ import annotations
 
 import dataclasses
-import json
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,7 @@ from fbgforce.export import quantize as qz
 from fbgforce.geometry import NOMINAL
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, RangeError, Runtime
 from test_simd import host_kernels
-from test_temp_reference import VERSION6_DIGEST, assert_version6_export
+from test_temp_reference import VERSION6_DIGEST, assert_version6_export, version6_model
 
 FIELDS = contract.OUTPUT_FIELDS
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
@@ -285,16 +284,8 @@ def test_a_model_without_the_fields_is_the_model_it_was(tmp_path):
     version and CRC (the fields sit in what was the parameter block's padding), with the
     freshness digest its export recorded (both taken with that exporter; see
     tests/test_temp_reference.py); the term on changes the digest and only its own bytes."""
-    model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
-                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
-    fm.save(model, tmp_path)
-    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
-    del doc["preprocess"]["ref_shift"]
-    del doc["in_use"]["track_creep"], doc["in_use"]["track_creep_shift"]
-    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
-    old = fm.load(tmp_path)
+    old, wl = version6_model(tmp_path)
     assert old.in_use.track_creep == 0.0 and old.in_use.track_creep_shift == 0
-    wl = make_random_walk(old, 600, 7)
     q = assert_version6_export(old, wl)
     assert q.track_creep_q15 == q.track_creep_shift == 0
     on = dataclasses.replace(old, in_use=dataclasses.replace(old.in_use, track_creep=0.05,

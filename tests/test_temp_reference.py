@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -177,15 +178,8 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
     the same bytes apart from the header's version and CRC (the field sits in what was the
     parameter block's padding; the digests below were taken with the version 6 exporter), and
     keeps the freshness digest its export recorded, which ref_shift > 0 changes."""
-    model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
-                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
-    fm.save(model, tmp_path)
-    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
-    del doc["preprocess"]["ref_shift"]
-    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
-    old = fm.load(tmp_path)
+    old, wl = version6_model(tmp_path)
     assert old.preprocess.ref_shift == 0
-    wl = make_random_walk(old, 600, 7)
     shift = (wl - old.baseline_nm) * 1000.0
     expected = shift[:, :4] - shift[:, 4:] * old.preprocess.temp_coeff
     assert np.array_equal(fm.compensate(old, wl, old.baseline_nm), expected)
@@ -199,6 +193,22 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
 #: and the freshness digest its export recorded.
 VERSION6_BLOB_SHA = "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a7265d057"
 VERSION6_DIGEST = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a40c"
+
+
+def version6_model(directory: Path) -> tuple[fm.HierarchicalModel, np.ndarray]:
+    """The old model above as the version 6 trainer saved it in ``directory`` (its model.json
+    without the fields added since: ``ref_shift``, ``creep``, ``creep_shift``, ``track_creep``,
+    ``track_creep_shift``), loaded, and the 600 wavelengths (nm) its export is taken on."""
+    model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
+                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
+    fm.save(model, directory)
+    doc = json.loads((directory / fm.MODEL_JSON).read_text())
+    for key in ("ref_shift", "creep", "creep_shift"):
+        del doc["preprocess"][key]
+    del doc["in_use"]["track_creep"], doc["in_use"]["track_creep_shift"]
+    (directory / fm.MODEL_JSON).write_text(json.dumps(doc))
+    old = fm.load(directory)
+    return old, make_random_walk(old, 600, 7)
 
 
 def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> qz.QModel:
