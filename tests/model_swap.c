@@ -24,6 +24,7 @@
 #include <string.h>
 
 #include "fbgforce.h"
+#include "../runtime_c/src/fbg_contract.h" /* FBG_PARAMS_SIZE: the blob's parameter block */
 
 #define MAX_BLOBS 32
 #define STEPS 40
@@ -58,7 +59,7 @@ static blob_t read_blob(const char *path)
 static blob_t cut_blob(const blob_t *src)
 {
     blob_t b = {NULL, 0};
-    const size_t keep = 16u + 256u;
+    const size_t keep = FBG_BLOB_HEADER_SIZE + FBG_PARAMS_SIZE;
     uint32_t total, crc;
     if (src->len < keep)
         return b;
