@@ -348,6 +348,18 @@ TRACK_LIMIT_PM = 200.0
 CREEP_MAX = contract.LIMIT["MAX_TRACK_CREEP_Q15"] / 2.0**15
 
 
+def creep_parameters(magnitude: float, time_constant_samples: float) -> tuple[float, int]:
+    """A fitted creep (magnitude, first-order time constant in samples) as the model's
+    parameters ``(m, k)`` (:attr:`Preprocess.creep` / ``creep_shift`` and
+    :attr:`InUse.track_creep` / ``track_creep_shift``): the magnitude clipped to
+    0..:data:`CREEP_MAX`, the time constant as the nearest power of two ``2**k``, k clipped
+    to 1..15. ``(0.0, 0)`` (off) for a magnitude of 0 or a time constant below one sample."""
+    if not (magnitude > 0.0 and time_constant_samples >= 1.0):
+        return 0.0, 0
+    return (min(float(magnitude), CREEP_MAX),
+            int(np.clip(round(np.log2(time_constant_samples)), 1, contract.LIMIT["MAX_EMA_SHIFT"])))
+
+
 @dataclass
 class InUse:
     """What the runtimes do beyond the nets when they run for hours: the contact decision over
@@ -440,17 +452,12 @@ class InUse:
         quantile, held for :data:`RISE_S`, and falls below minus half of it. None: the
         per-sample decision.
 
-        ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted
-        (magnitude, first-order time constant in samples); the tracker's creep term takes
-        the magnitude clipped to 0..:data:`CREEP_MAX` and the time constant as the nearest
-        power of two, ``2**k`` with k clipped to 1..15. A magnitude of 0 (or a time constant
-        below one sample) leaves the term off.
+        ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted,
+        for the tracker's creep term (:func:`creep_parameters`); 0 leaves it off (as for a
+        model that takes the creep out before the filter, :func:`creep_inverse`, where the
+        tracker never sees it).
         """
-        creep, creep_shift = 0.0, 0
-        if creep_magnitude > 0.0 and creep_time_constant_samples >= 1.0:
-            creep = min(float(creep_magnitude), CREEP_MAX)
-            creep_shift = int(np.clip(round(np.log2(creep_time_constant_samples)), 1,
-                                      contract.LIMIT["MAX_EMA_SHIFT"]))
+        creep, creep_shift = creep_parameters(creep_magnitude, creep_time_constant_samples)
         on = 0.0
         if rest_margins is not None and np.size(rest_margins):
             on = REST_MARGIN_FACTOR * max(0.0, float(np.quantile(rest_margins,

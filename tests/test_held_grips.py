@@ -3,6 +3,7 @@ creep continued) against real holds of the simulator, the creep fit, and the hel
 benchmark."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -92,6 +93,29 @@ def test_fit_creep_finds_a_slow_creep_under_a_wandering_zero():
     creep = T.fit_creep(data, data.pre, data.rows("all"))
     assert creep.magnitude == pytest.approx(spec.creep, rel=0.15)
     assert creep.time_constant_s == pytest.approx(spec.creep_s, rel=0.25)
+
+
+@pytest.mark.parametrize("inverse", [False, True])
+def test_the_fitted_creep_goes_to_the_tracker_or_the_inverse(inverse):
+    """prepare() fits the pad's creep and holds it at a time constant the model can hold
+    (2^k samples, the magnitude fitted again for it); ``creep_inverse`` puts it before the
+    filter (the features change), else it stays out of the features and the trainer's
+    _in_use hands it to the at-rest tracker."""
+    spec = foreign.IN_USE_VARIANTS["calib_1K"]
+    ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
+    data = T.prepare([ds], creep_inverse=inverse)
+    assert data.creep.magnitude == pytest.approx(spec.creep, rel=0.3)
+    assert data.creep.time_constant_s == pytest.approx(2.0 ** 10 / 1000.0)
+    assert data.creep_fit.magnitude > 0
+    r = data.recordings[0]
+    raw_pre = dataclasses.replace(data.pre, creep=0.0, creep_shift=0)
+    raw = pp.recording_features(raw_pre, r.ds.wl_nm, r.baseline_nm)
+    if inverse:
+        assert data.pre.creep == data.creep.magnitude and data.pre.creep_shift == 10
+        assert np.abs(r.feats - raw).max() > 1.0   # pm: the recovery after the releases
+    else:
+        assert data.pre.creep == 0.0 and data.pre.creep_shift == 0
+        np.testing.assert_array_equal(r.feats, raw)
 
 
 def test_bench_held_grips_scores_the_held_samples(tmp_path, small_model_dir, capsys):

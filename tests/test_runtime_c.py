@@ -116,7 +116,7 @@ def test_python_exceptions_per_code(blob_bytes, tmp_path):
     assert len(codes) == len(ERRORS) == 16
     assert all(issubclass(cls, RuntimeCError) for cls in ERRORS.values())
     cases = [(blob_bytes[:10], TruncatedError), (b"XXXX" + blob_bytes[4:], BadMagicError),
-             (blob_bytes[:4] + b"\x09" + blob_bytes[5:], VersionError),
+             (blob_bytes[:4] + bytes([contract.LIMIT["BLOB_VERSION"] + 1]) + blob_bytes[5:], VersionError),
              (blob_bytes[:-1] + bytes([blob_bytes[-1] ^ 1]), CrcError)]
     for data, exc in cases:
         with pytest.raises(exc):

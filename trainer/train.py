@@ -103,6 +103,8 @@ class Prepared:
     recordings: list[Recording]
     pre: fm.Preprocess
     temp_info: dict[str, Any]
+    creep: "Creep | None" = None       # the pad's creep as the model undoes it (prepare())
+    creep_fit: "Creep | None" = None   # ... and as fitted
     feats: np.ndarray = field(init=False)
     split: np.ndarray = field(init=False)
     contact: np.ndarray = field(init=False)
@@ -205,10 +207,12 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
-            sources: Sequence[str] | None = None, ref_shift: int | None = None) -> Prepared:
+            sources: Sequence[str] | None = None, ref_shift: int | None = None,
+            creep_inverse: bool = False) -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
-    (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), filter every recording, split
-    each by press.
+    (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
+    (:func:`fit_creep`; with ``creep_inverse`` its inverse runs before the filter), filter
+    every recording, split each by press.
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
     at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz. ``ref_shift``: None
@@ -235,7 +239,28 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     for r in recs:
         r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         r.split = split_rows(r.ds, seed)
-    return Prepared(recs, pre, temp_info)
+    data = Prepared(recs, pre, temp_info)
+    # The pad's creep, fitted on the training presses' releases (on shifts compensated row by
+    # row, which the creep inverse never touches). Taken out before the filter
+    # (creep_inverse), the nets read a pad that recovers at once whatever the rests and holds
+    # in use; otherwise the at-rest tracker discounts its recovery (_in_use).
+    fitted = fit_creep(data, pre, data.rows("train"))
+    m, k = fm.creep_parameters(fitted.magnitude, fitted.time_constant_s * rate)
+    if m > 0:
+        # The magnitude again for the time constant the model can hold (2^k samples): a
+        # shorter one needs more of it to give back what the pad gives back after a release.
+        m, k = fm.creep_parameters(fit_creep(data, pre, data.rows("train"),
+                                             (2.0 ** k / rate,)).magnitude, 2.0 ** k)
+    if m > 0 and creep_inverse:
+        pre = replace(pre, creep=m, creep_shift=k)
+        for r in recs:
+            r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
+        data = Prepared(recs, pre, temp_info)
+    # The creep as the model holds it (its time constant a power of two): the synthetic holds
+    # creep by exactly what the inverse undoes or the tracker discounts.
+    data.creep = Creep(m, 2.0 ** k / rate) if m > 0 else Creep()
+    data.creep_fit = fitted
+    return data
 
 
 def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
@@ -516,7 +541,8 @@ def press_delays(data: Prepared, pred_contact: np.ndarray, rows: np.ndarray
 _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "sigma": "--sigma",
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
-                "rest_augment": "--rest-augment", "ref_shift": "--ref-shift"}
+                "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
+                "creep_inverse": "--creep-inverse"}
 
 
 def _is_int(value: Any) -> bool:
@@ -546,6 +572,10 @@ class TrainParams:
         The temperature reference's average (:attr:`fbgforce.model.Preprocess.ref_shift`):
         None lets the data choose (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`),
         0 keeps the raw reference, 1 .. 8 averages over 2^ref_shift samples.
+    creep_inverse
+        Take the pad's fitted creep out before the filter (:func:`fbgforce.model.creep_inverse`)
+        instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
+        pad's creep in use", measures what each costs).
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -591,6 +621,7 @@ class TrainParams:
     sigma: float | None = None
     window: int | None = None
     ref_shift: int | None = None
+    creep_inverse: bool = False
     init: str | Path | fm.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
@@ -925,15 +956,17 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
-    memory settles. The tracker discounts the creep recovery ``creep`` predicts after a
-    release, which it would otherwise learn as drift (docs/runtime.md, "In use")."""
+    memory settles. The tracker discounts the recovery ``creep`` predicts after a release,
+    which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
+    inverse has already taken it out."""
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
+    left = Creep() if model.preprocess.creep else creep
     model.in_use = fm.InUse.recommended(
         data.rate_hz, rest_margins=np.concatenate(
             [_rest_margins(data, logits), long[:, 1] - long[:, 0]]),
-        creep_magnitude=creep.magnitude,
-        creep_time_constant_samples=creep.time_constant_s * data.rate_hz)
+        creep_magnitude=left.magnitude,
+        creep_time_constant_samples=left.time_constant_s * data.rate_hz)
     model.input_range = fm.input_range_of(z[tr])
 
 
@@ -980,7 +1013,8 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     init_model, memory, net_sizes = _starting_point(params)
     data = prepared if prepared is not None else prepare(
         ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
-        window=params.window, sources=sources, ref_shift=params.ref_shift)
+        window=params.window, sources=sources, ref_shift=params.ref_shift,
+        creep_inverse=params.creep_inverse)
     t_prep = time.perf_counter() - t_start
     streams = _Streams.from_seed(params.seed)
     tr, va, te = _split(data, params, streams.subsample)
@@ -989,9 +1023,9 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     x_all = data.inputs(pre)
     z = x_all[:, :pre.n_features]    # what the contact and force nets read
     fit_net = _NetFitter(params, net_sizes, init_model, streams.init, bool(va.size))
-    # The pad's creep shapes the synthetic holds and tells the at-rest tracker what a
-    # release leaves behind (_in_use).
-    creep = fit_creep(data, pre, tr)
+    # The pad keeps creeping through a synthetic hold as it does through a real one: the
+    # creep inverse then reads both flat.
+    creep = data.creep if data.creep is not None else fit_creep(data, pre, tr)
     hold_tr, hold_va = _holds(data, pre, params, tr, va, creep, streams.holds)
     rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
     synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
@@ -1039,7 +1073,11 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
         "memory": pre.memory.to_json(),
         "train_hold_s": held_s,
         "coverage": data_coverage,
-        "creep": {"magnitude": creep.magnitude, "time_constant_s": creep.time_constant_s},
+        "creep": {"magnitude": creep.magnitude, "time_constant_s": creep.time_constant_s,
+                  "inverse": bool(pre.creep),
+                  **({"fitted": {"magnitude": data.creep_fit.magnitude,
+                                 "time_constant_s": data.creep_fit.time_constant_s}}
+                     if data.creep_fit is not None else {})},
         "synthetic_holds": {"share": params.hold_augment, "range_s": list(HOLD_AUGMENT_S),
                             "presses": {"train": _count_holds(hold_tr[1], data),
                                         "val": _count_holds(hold_va[1], data)},
@@ -1137,7 +1175,8 @@ class Creep:
         return 1.0 - np.exp(-np.arange(n) / (self.time_constant_s * rate_hz))
 
 
-def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
+def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
+              time_constants_s: Sequence[float] = CREEP_TIME_CONSTANTS_S) -> Creep:
     """The pad's creep, fitted on the creep recovery after the releases among ``rows``.
 
     After a release the rate-independent friction of the pad has let go (its loop closes at
@@ -1145,7 +1184,8 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
     down. A load signal ``u`` (least squares of the load-cell force on the compensated
     shifts over the contact samples of ``rows``) minus the force is regressed on
     ``lag(F) - F`` over the first :data:`CREEP_TAIL_S` after each release, for each
-    relaxation time of :data:`CREEP_TIME_CONSTANTS_S`; the best fit's slope is the magnitude.
+    relaxation time of ``time_constants_s`` (:data:`CREEP_TIME_CONSTANTS_S`); the best fit's
+    slope is the magnitude.
     Beside the slope, each :data:`CREEP_ZERO_SPAN_S` of the recording has an offset of its
     own: the unloaded zero wanders (interrogator, fibre mounts), and a slow creep's residual
     (a second's time constant in rests of a fraction of one) is itself nearly an offset,
@@ -1179,7 +1219,7 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> Creep:
                             force[loaded], rcond=None)
     excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
     best: tuple[float, Creep] | None = None
-    for tau in CREEP_TIME_CONSTANTS_S:
+    for tau in time_constants_s:
         trial = Creep(1.0, tau)
         lag = np.concatenate([trial.lag(force[sl], r.rate_hz) - force[sl]
                               for r, sl in data.recording_slices()])[tail]
