@@ -269,14 +269,21 @@ def test_tracker_creep_term_bit_exact_on_target(tools, small_model_dir, tmp_path
                            track_creep=0.5, track_creep_shift=3)
     fm.save(model, d)
     q, _ = load_quantized(d)
-    samples = 2 * SAMPLES     # the recording's first rest long enough for tracker blocks
+    assert q.track_creep_q15 == contract.LIMIT["MAX_TRACK_CREEP_Q15"]
+    # The recording's first rest long enough for tracker blocks.
+    _changes_the_session_and_is_bit_exact(d, q, replace(q, track_creep_q15=0, track_creep_shift=0),
+                                          2 * SAMPLES)
+
+
+def _changes_the_session_and_is_bit_exact(d, q, off, samples: int) -> None:
+    """The model in ``d`` (quantised ``q``) answers the golden session otherwise than ``off``
+    (the same without the stage under test) and both Cortex-M4 builds run it bit-exact."""
     wl, contact, _ = recording_fm(None, "smoke", 0, samples)
 
     def steps(qm) -> list[dict[str, int]]:
         return [r.out for r in golden.golden_session(qm, wl, contact) if r.op == golden.OP_STEP]
 
-    assert q.track_creep_q15 == contract.LIMIT["MAX_TRACK_CREEP_Q15"]
-    assert steps(q) != steps(replace(q, track_creep_q15=0, track_creep_shift=0))
+    assert steps(q) != steps(off)
     rep = target_report(d, samples=samples)
     assert rep["bit_exact"] is True
     for name in ("portable", "dsp"):
@@ -294,17 +301,8 @@ def test_creep_inverse_bit_exact_on_target(tools, small_model_dir, tmp_path):
     model.preprocess = replace(model.preprocess, creep=0.5, creep_shift=15)
     fm.save(model, d)
     q, _ = load_quantized(d)
-    wl, contact, _ = recording_fm(None, "smoke", 0, SAMPLES)
-
-    def steps(qm) -> list[dict[str, int]]:
-        return [r.out for r in golden.golden_session(qm, wl, contact) if r.op == golden.OP_STEP]
-
     assert q.creep_q15 == round(model.preprocess.creep_gain * 2**15) > 32000
-    assert steps(q) != steps(replace(q, creep_q15=0, creep_shift=0))
-    rep = target_report(d, samples=SAMPLES)
-    assert rep["bit_exact"] is True
-    for name in ("portable", "dsp"):
-        assert rep["builds"][name]["bit_exact"] and rep["builds"][name]["mismatches"] == 0
+    _changes_the_session_and_is_bit_exact(d, q, replace(q, creep_q15=0, creep_shift=0), SAMPLES)
 
 
 @pytest.mark.target

@@ -245,22 +245,31 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     # (creep_inverse), the nets read a pad that recovers at once whatever the rests and holds
     # in use; otherwise the at-rest tracker discounts its recovery (_in_use).
     fitted = fit_creep(data, pre, data.rows("train"))
-    m, k = fm.creep_parameters(fitted.magnitude, fitted.time_constant_s * rate)
-    if m > 0:
-        # The magnitude again for the time constant the model can hold (2^k samples): a
-        # shorter one needs more of it to give back what the pad gives back after a release.
-        m, k = fm.creep_parameters(fit_creep(data, pre, data.rows("train"),
-                                             (2.0 ** k / rate,)).magnitude, 2.0 ** k)
-    if m > 0 and creep_inverse:
-        pre = replace(pre, creep=m, creep_shift=k)
+    held = _held_creep(data, pre, fitted)
+    if held.magnitude > 0 and creep_inverse:
+        pre = replace(pre, creep=held.magnitude,
+                      creep_shift=fm.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
         for r in recs:
             r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         data = Prepared(recs, pre, temp_info)
-    # The creep as the model holds it (its time constant a power of two): the synthetic holds
-    # creep by exactly what the inverse undoes or the tracker discounts.
-    data.creep = Creep(m, 2.0 ** k / rate) if m > 0 else Creep()
+    # The synthetic holds creep as the pad does; with the inverse on, by exactly what it undoes,
+    # so that they read flat as a real hold does.
+    data.creep = held if creep_inverse else fitted
     data.creep_fit = fitted
     return data
+
+
+def _held_creep(data: Prepared, pre: fm.Preprocess, fitted: Creep) -> Creep:
+    """``fitted`` at a time constant the model can hold (2^k samples, the nearest:
+    :func:`fbgforce.model.creep_parameters`), its magnitude fitted again for it: a shorter
+    time constant needs more magnitude to give back what the pad gives back after a release.
+    """
+    m, k = fm.creep_parameters(fitted.magnitude, fitted.time_constant_s * data.rate_hz)
+    if m <= 0:
+        return Creep()
+    tau = 2.0 ** k / data.rate_hz
+    m, _ = fm.creep_parameters(fit_creep(data, pre, data.rows("train"), (tau,)).magnitude, 2.0 ** k)
+    return Creep(m, tau) if m > 0 else Creep()
 
 
 def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
@@ -961,7 +970,7 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
     inverse has already taken it out."""
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
-    left = Creep() if model.preprocess.creep else creep
+    left = Creep() if model.preprocess.creep else _held_creep(data, model.preprocess, creep)
     model.in_use = fm.InUse.recommended(
         data.rate_hz, rest_margins=np.concatenate(
             [_rest_margins(data, logits), long[:, 1] - long[:, 0]]),
