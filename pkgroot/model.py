@@ -342,10 +342,23 @@ TRACK_TIME_CONSTANT_S = 1.0
 TRACK_SETTLE_S = 0.2
 TRACK_RATE_MAX_PM_PER_S = 4.0
 TRACK_LIMIT_PM = 200.0
-#: The largest creep magnitude the tracker's creep term takes (its fixed-point bound,
-#: docs/fixed-point.md): a pad that gives back half a press after the release is no longer
-#: one a first-order lag describes.
+#: The largest creep magnitude the tracker's creep term and the creep inverse take (the
+#: term's fixed-point bound, docs/fixed-point.md): a pad that gives back half a press after
+#: the release is no longer one a first-order lag describes.
 CREEP_MAX = contract.LIMIT["MAX_TRACK_CREEP_Q15"] / 2.0**15
+
+
+def _check_creep(magnitude_name: str, magnitude: float, shift_name: str, shift: int) -> None:
+    """The one rule of a creep's parameters (the tracker's creep term, the creep inverse):
+    the magnitude 0..:data:`CREEP_MAX`, 0 being off; the time constant's shift 1..15 when on
+    (the rounding rule needs at least 1), 0 when off."""
+    if not 0.0 <= magnitude <= CREEP_MAX:
+        raise ValueError(f"{magnitude_name} must be 0 .. {CREEP_MAX:g}, not {magnitude}")
+    top = contract.LIMIT["MAX_EMA_SHIFT"]
+    if magnitude and not 1 <= shift <= top:
+        raise ValueError(f"{shift_name} must be 1 .. {top} when {magnitude_name} is on, not {shift}")
+    if not magnitude and shift:
+        raise ValueError(f"{shift_name} must be 0 when {magnitude_name} is 0, not {shift}")
 
 
 def creep_parameters(magnitude: float, time_constant_samples: float) -> tuple[float, int]:
@@ -434,12 +447,7 @@ class InUse:
         limit_pm = contract.LIMIT["TRACK_LIMIT_MAX_FM"] / 1000.0
         if self.track_step_max_pm < 0 or not 0 <= self.track_limit_pm <= limit_pm:
             raise ValueError(f"track_step_max_pm must be >= 0 and track_limit_pm in [0, {limit_pm}]")
-        if not 0.0 <= self.track_creep <= CREEP_MAX:
-            raise ValueError(f"track_creep must be in [0, {CREEP_MAX}]")
-        shifts = (0, 0) if self.track_creep == 0.0 else (1, contract.LIMIT["MAX_EMA_SHIFT"])
-        if not shifts[0] <= self.track_creep_shift <= shifts[1]:
-            raise ValueError(f"track_creep_shift must be in [{shifts[0]}, {shifts[1]}] with "
-                             f"track_creep {self.track_creep}")
+        _check_creep("track_creep", self.track_creep, "track_creep_shift", self.track_creep_shift)
 
     @classmethod
     def recommended(cls, sample_rate_hz: float = 1000.0,
@@ -590,13 +598,7 @@ class Preprocess:
                              f"not {self.ref_shift}")
         self.ref_shift = int(self.ref_shift)
         self.creep, self.creep_shift = float(self.creep), int(self.creep_shift)
-        if not 0.0 <= self.creep <= 0.5:
-            raise ValueError(f"creep must be 0 .. 0.5, not {self.creep}")
-        top = contract.LIMIT["MAX_EMA_SHIFT"]
-        if self.creep and not 1 <= self.creep_shift <= top:
-            raise ValueError(f"creep_shift must be 1 .. {top} when creep is on, not {self.creep_shift}")
-        if not self.creep and self.creep_shift:
-            raise ValueError(f"creep_shift must be 0 when creep is 0, not {self.creep_shift}")
+        _check_creep("creep", self.creep, "creep_shift", self.creep_shift)
         self.taps = np.asarray(self.taps, dtype=np.float64).reshape(-1)
         self.input_mean = np.asarray(self.input_mean, dtype=np.float64).reshape(N_STRAIN)
         self.input_std = np.asarray(self.input_std, dtype=np.float64).reshape(N_STRAIN)
@@ -1219,7 +1221,7 @@ class FloatPipeline:
         self._drift = np.zeros(N_STRAIN)
         self._track_sum = np.zeros(N_STRAIN)
         self._rest_run = 0
-        self._creep: np.ndarray | None = None   # the creep states, primed by the first good sample
+        self._track_creep: np.ndarray | None = None   # the tracker's creep states, likewise
 
     def push(self, wl_nm: np.ndarray) -> dict[str, np.ndarray]:
         """Outputs of :func:`predict` for the next samples (n, 5) nm."""
@@ -1284,11 +1286,11 @@ class FloatPipeline:
         iu = self.model.in_use
         if not iu.track_creep or not good.size:
             return 0.0
-        if self._creep is None:
-            self._creep = filt[good[0]].copy()
+        if self._track_creep is None:
+            self._track_creep = filt[good[0]].copy()
         states = np.zeros_like(filt)
-        states[good] = _exp_average(filt[good], iu.track_creep_shift, self._creep)
-        self._creep = states[good[-1]].copy()
+        states[good] = _exp_average(filt[good], iu.track_creep_shift, self._track_creep)
+        self._track_creep = states[good[-1]].copy()
         return iu.track_creep * states
 
 

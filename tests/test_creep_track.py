@@ -182,14 +182,14 @@ def test_float_engines_follow_the_same_rule():
     f1, f2 = taps[0] * comp[0], taps[0] * comp[1] + taps[1] * comp[0]
     fresh = fm.FloatPipeline(model, model.baseline_nm)
     fresh.push(wl[0:1])
-    assert fresh._creep is None
+    assert fresh._track_creep is None
     fresh.push(wl[1:2])
-    np.testing.assert_allclose(fresh._creep, f1, rtol=1e-12)
+    np.testing.assert_allclose(fresh._track_creep, f1, rtol=1e-12)
     fresh.push(wl[2:3])
-    np.testing.assert_allclose(fresh._creep, f1 + (f2 - f1) / 2.0**k, rtol=1e-12)
-    held = fresh._creep.copy()
+    np.testing.assert_allclose(fresh._track_creep, f1 + (f2 - f1) / 2.0**k, rtol=1e-12)
+    held = fresh._track_creep.copy()
     fresh.push(wl[0:1])
-    assert np.array_equal(fresh._creep, held)
+    assert np.array_equal(fresh._track_creep, held)
 
     rt = FloatRuntime(model)
     rt.set_baseline(model.baseline_nm)
@@ -197,7 +197,7 @@ def test_float_engines_follow_the_same_rule():
     ok = (c["status"] & FAULT) == 0
     assert np.array_equal(ok, whole["status"] == 0)
     assert np.mean(c["contact"][ok] == whole["contact"][ok]) > 0.995
-    np.testing.assert_allclose(list(rt._state.creep_pm), whole_pipe._creep, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(list(rt._state.creep_pm), whole_pipe._track_creep, rtol=1e-4, atol=1e-3)
     moved = (whole_pipe.baseline_nm - model.baseline_nm)[:4] * 1000.0
     np.testing.assert_allclose(_float_correction_pm(rt), moved, rtol=0, atol=2e-3)
 

@@ -103,8 +103,8 @@ class Prepared:
     recordings: list[Recording]
     pre: fm.Preprocess
     temp_info: dict[str, Any]
-    creep: "Creep | None" = None       # the pad's creep as the model undoes it (prepare())
-    creep_fit: "Creep | None" = None   # ... and as fitted
+    creep_fit: "Creep | None" = None    # the pad's creep as fitted (prepare())
+    creep_held: "Creep | None" = None   # ... at a time constant the model can hold (_held_creep)
     feats: np.ndarray = field(init=False)
     split: np.ndarray = field(init=False)
     contact: np.ndarray = field(init=False)
@@ -120,6 +120,12 @@ class Prepared:
         self.force_N = np.concatenate([np.asarray(r.ds.force_N, float) for r in recs])
         self.x_mm = np.concatenate([np.asarray(r.ds.x_mm, float) for r in recs])
         self.y_mm = np.concatenate([np.asarray(r.ds.y_mm, float) for r in recs])
+
+    @property
+    def creep(self) -> "Creep | None":
+        """The creep the synthetic holds carry: the pad's as fitted; with the creep inverse on
+        (``pre.creep``), exactly what it undoes, so that they read flat as a real hold does."""
+        return self.creep_held if self.pre.creep else self.creep_fit
 
     @property
     def rate_hz(self) -> float:
@@ -252,10 +258,7 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
         for r in recs:
             r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         data = Prepared(recs, pre, temp_info)
-    # The synthetic holds creep as the pad does; with the inverse on, by exactly what it undoes,
-    # so that they read flat as a real hold does.
-    data.creep = held if creep_inverse else fitted
-    data.creep_fit = fitted
+    data.creep_fit, data.creep_held = fitted, held
     return data
 
 
@@ -960,17 +963,17 @@ def _assemble(data: Prepared, pre: fm.Preprocess, scaling: _Scaling,
 
 
 def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
-            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], creep: Creep) -> None:
+            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held]) -> None:
     """Set the model's decision over time, tracker and input range from the training data.
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
-    memory settles. The tracker discounts the recovery ``creep`` predicts after a release,
-    which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
-    inverse has already taken it out."""
+    memory settles. The tracker discounts the recovery the pad's creep (``data.creep_held``)
+    predicts after a release, which it would otherwise learn as drift (docs/runtime.md, "In
+    use"), unless the creep inverse has already taken it out."""
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
-    left = Creep() if model.preprocess.creep else _held_creep(data, model.preprocess, creep)
+    left = Creep() if model.preprocess.creep else data.creep_held
     model.in_use = fm.InUse.recommended(
         data.rate_hz, rest_margins=np.concatenate(
             [_rest_margins(data, logits), long[:, 1] - long[:, 0]]),
@@ -1032,9 +1035,10 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     x_all = data.inputs(pre)
     z = x_all[:, :pre.n_features]    # what the contact and force nets read
     fit_net = _NetFitter(params, net_sizes, init_model, streams.init, bool(va.size))
-    # The pad keeps creeping through a synthetic hold as it does through a real one: the
-    # creep inverse then reads both flat.
-    creep = data.creep if data.creep is not None else fit_creep(data, pre, tr)
+    if data.creep_fit is None:    # a Prepared made without prepare()
+        data.creep_fit = fit_creep(data, pre, tr)
+        data.creep_held = _held_creep(data, pre, data.creep_fit)
+    creep = data.creep
     hold_tr, hold_va = _holds(data, pre, params, tr, va, creep, streams.holds)
     rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
     synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
@@ -1049,7 +1053,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     model = _assemble(data, pre, scaling, {"contact": cnet, "force": fnet, "location": lnet},
                       reports, described)
     t_train = time.perf_counter() - t_start - t_prep
-    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), creep)
+    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va))
     model.metadata = _metadata(model, data, params, described, (tr, va, te), x_all, reports,
                                data_coverage, creep, (hold_tr, hold_va), (rest_tr, rest_va),
                                held_s, warnings, (t_prep, t_train))
