@@ -171,3 +171,32 @@ def test_synthetic_rest_settles_where_a_real_long_rest_settles():
     # What the rest would carry, held at the level where it was inserted.
     level = np.array([plain.wl_nm[k - 5:k + 1].mean(axis=0) for k in rests])
     assert (np.abs(pp.compensated(pre, level, baseline)) / std).max() > 0.06
+
+
+def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds):
+    """after_turns marks, per press, the guard's samples right after its last sample at
+    TURN_FRACTION of its peak or more, where the load has started to fall; with
+    turn_guard_s the force net trains on fewer samples by them."""
+    _, data, _ = paired_holds
+    guard_s = 0.015
+    mask = T.after_turns(data, guard_s)
+    n = round(guard_s * data.recordings[0].rate_hz)
+    ds = data.recordings[0].ds
+    force, pid = np.asarray(ds.force_N), np.asarray(ds.press_id)
+    presses = np.unique(pid[np.asarray(ds.contact, bool)])
+    assert mask.sum() == n * presses.size
+    for p in presses:
+        rows = np.flatnonzero((pid == p) & np.asarray(ds.contact, bool))
+        turn = rows[force[rows] >= T.TURN_FRACTION * force[rows].max()][-1]
+        assert mask[turn + 1:turn + 1 + n].all() and not mask[turn]
+        assert (force[turn + 1:turn + 1 + n] < force[turn]).all()
+    assert not T.after_turns(data, 0.0).any()
+
+    def force_samples(turn_guard_s: float) -> int:
+        md = T.train([ds], epochs=1, restarts=1, hold_augment=0.0, rest_augment=0.0,
+                     turn_guard_s=turn_guard_s, progress=False).metadata
+        assert md["turn_guard_s"] == turn_guard_s
+        return md["training"]["force"]["train_samples"]
+
+    left_out = force_samples(0.0) - force_samples(guard_s)
+    assert 0 < left_out <= mask[data.rows("train")].sum()

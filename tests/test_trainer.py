@@ -547,6 +547,7 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
     ("epochs", 0, "--epochs"), ("epochs", 2.5, "--epochs"), ("filter", "gauss", "--filter"),
     ("sigma", -1.0, "--sigma"), ("train_fraction", 1.5, "--train-fraction"),
     ("hold_augment", -0.1, "--hold-augment"), ("hold_augment", float("nan"), "--hold-augment"),
+    ("turn_guard_s", -0.001, "--turn-guard"), ("turn_guard_s", 2.0, "--turn-guard"),
     ("learning_rate", 0.0, "learning_rate"), ("batch_size", True, "batch_size"),
     ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor")])
 def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):

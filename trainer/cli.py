@@ -70,6 +70,11 @@ def register(subparsers: Any) -> None:
                    help="share of the training presses the contact and force nets also see "
                         "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
                         "0 = off); docs/trainer.md \"Held grips\"")
+    p.add_argument("--turn-guard", type=non_negative_float, default=0.0, metavar="MS",
+                   help="the force net leaves out the MS milliseconds after each press's turn, "
+                        "where a held load and an unloading one look alike: held grips read "
+                        "less low, the start of each unloading worse (default 0; 15 is the "
+                        "causal filter's length; docs/trainer.md \"Held grips\")")
     p.add_argument("--rest-augment", type=non_negative_float, default=None, metavar="SHARE",
                    help="share of the training presses the contact and force nets also see "
                         "after a rest of 3-60 s (synthetic long rests; default 0.2, 0 = off); "
@@ -146,7 +151,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          memory=args.memory, restarts=_restarts(args.restarts),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
                          creep_inverse=args.creep_inverse, init=args.init,
-                         train_fraction=args.train_fraction, **augment)
+                         train_fraction=args.train_fraction,
+                         turn_guard_s=args.turn_guard / 1000.0, **augment)
     fileio.check_output_dir(args.out, "--out")
     model = train(args.data, params)
     fm.save(model, args.out, "--out")

@@ -56,6 +56,9 @@ LOCATION_AUGMENT = 3.0
 HOLD_AUGMENT = 0.2
 HOLD_AUGMENT_S = (1.5, 6.0)
 HOLD_AUGMENT_STEP_S = 0.004
+#: A press turns at its last sample at this fraction of its peak force or more
+#: (:func:`after_turns`, ``turn_guard_s``).
+TURN_FRACTION = 0.995
 #: Synthetic long rests (:func:`_synthetic_rests`): the contact and force nets also train on
 #: rests of a length drawn in :data:`REST_AUGMENT_S` (seconds) inserted before this share of
 #: the training presses, one sample every :data:`REST_AUGMENT_STEP_S` from
@@ -554,7 +557,7 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
-                "creep_inverse": "--creep-inverse"}
+                "creep_inverse": "--creep-inverse", "turn_guard_s": "--turn-guard"}
 
 
 def _is_int(value: Any) -> bool:
@@ -617,6 +620,10 @@ class TrainParams:
     rest_augment
         The contact and force nets also train on rests of 3-60 s inserted before this share of
         the training (and validation) presses (:func:`_synthetic_rests`); 0 turns it off.
+    turn_guard_s
+        The force net leaves out the samples within this many seconds after each press's turn
+        (:func:`after_turns`): a held grip then reads less low, the first milliseconds of each
+        unloading worse (docs/trainer.md, "Held grips"); 0 (default) keeps them.
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
@@ -649,6 +656,7 @@ class TrainParams:
     location_augment: float = LOCATION_AUGMENT
     hold_augment: float = HOLD_AUGMENT
     rest_augment: float = REST_AUGMENT
+    turn_guard_s: float = 0.0
     memory: fm.Memory | str | None = None
     restarts: int | Mapping[str, int] | None = None
 
@@ -685,6 +693,8 @@ class TrainParams:
         for share in ("hold_augment", "rest_augment"):
             need(_is_real(getattr(self, share)) and 0 <= getattr(self, share) <= 1, share,
                  "in [0, 1]")
+        need(_is_real(self.turn_guard_s) and 0 <= self.turn_guard_s <= 1, "turn_guard_s",
+             "in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
 
     def fit_settings(self) -> dict[str, Any]:
         """The keyword arguments of :func:`fbgforce.trainer.nets.fit` every net shares."""
@@ -856,6 +866,38 @@ def _fit_contact(fit_net: _NetFitter, data: Prepared, z: np.ndarray, tr: np.ndar
     return cnet, predict_batched(cnet, z)
 
 
+def after_turns(data: Prepared, guard_s: float) -> np.ndarray:
+    """Rows (a mask over every row of ``data``) within ``guard_s`` seconds after each press's
+    turn, the last of its samples at :data:`TURN_FRACTION` of its peak force or more.
+
+    There the load has begun to fall, but the causal filter still averages the samples before
+    the turn, and a pad with friction holds or even raises its strain while the load starts
+    down: the inputs are those of a held load, the labels a few percent lower. No causal
+    estimator can tell the two apart for that long, and a net fitted to both reads every held
+    grip low (docs/trainer.md, "Held grips").
+    """
+    mask = np.zeros(data.split.size, dtype=bool)
+    for r, sl in data.recording_slices():
+        force = np.nan_to_num(np.asarray(r.ds.force_N, dtype=np.float64))
+        loaded = np.flatnonzero(np.asarray(r.ds.contact, dtype=bool))
+        if not loaded.size:
+            continue
+        # The contact rows grouped by press, in time order within each.
+        rows = loaded[np.argsort(np.asarray(r.ds.press_id)[loaded], kind="stable")]
+        pid = np.asarray(r.ds.press_id)[rows]
+        first = np.flatnonzero(np.r_[True, pid[1:] != pid[:-1]])
+        sizes = np.diff(np.r_[first, rows.size])
+        peak = np.maximum.reduceat(force[rows], first)
+        high = np.flatnonzero(force[rows] >= TURN_FRACTION * np.repeat(peak, sizes))
+        last = np.full(first.size, -1)
+        np.maximum.at(last, np.repeat(np.arange(first.size), sizes)[high], high)
+        turns = rows[last[last >= 0]]
+        n = len(r.ds)
+        for k in range(1, int(round(guard_s * r.rate_hz)) + 1):
+            mask[sl.start + turns[turns + k < n] + k] = True
+    return mask
+
+
 def _fit_force(fit_net: _NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP,
                pred_contact: np.ndarray, scaling: _Scaling, tr: np.ndarray, va: np.ndarray,
                synth_tr: Held, synth_va: Held, rng: np.random.Generator) -> FlatMLP:
@@ -864,10 +906,12 @@ def _fit_force(fit_net: _NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP
     this is the force the metric scores; on false contacts (light touches below the label
     threshold, pad creep) it teaches ~0 N, which is what a controller should see. Missed
     contacts are left out: their output is gated to 0 N, so fitting them would only spend
-    capacity."""
+    capacity; so are the samples within ``turn_guard_s`` after each press's turn
+    (:func:`after_turns`), when asked: they teach the net to read every hold low."""
     nf = z.shape[1]
     f_off, f_scale = scaling.force_offset, scaling.force_scale
-    ftr, fva = tr[pred_contact[tr]], va[pred_contact[va]]
+    fit = pred_contact & ~after_turns(data, fit_net.params.turn_guard_s)
+    ftr, fva = tr[fit[tr]], va[fit[va]]
     if ftr.size == 0:  # a contact net that never fires: fall back to the true contacts
         ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
     ft = ((data.force_N - f_off) / f_scale)[:, None]
@@ -1096,6 +1140,7 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
                                         "val": _count_holds(hold_va[1], data)},
                             "samples": {"train": int(hold_tr[1].size),
                                         "val": int(hold_va[1].size)}},
+        "turn_guard_s": params.turn_guard_s,
         "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
                             "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
                                         for name, rest in zip(("train", "val"), rests)}},
