@@ -74,7 +74,7 @@ def register(subparsers: Any) -> None:
                    help="the force net leaves out the MS milliseconds after each press's turn, "
                         "where a held load and an unloading one look alike: held grips read "
                         "less low, the start of each unloading worse (default 0; 15 is the "
-                        "causal filter's length; docs/trainer.md \"Held grips\")")
+                        "causal filter's length; docs/trainer.md \"The turn\")")
     p.add_argument("--rest-augment", type=non_negative_float, default=None, metavar="SHARE",
                    help="share of the training presses the contact and force nets also see "
                         "after a rest of 3-60 s (synthetic long rests; default 0.2, 0 = off); "

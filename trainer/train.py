@@ -623,7 +623,7 @@ class TrainParams:
     turn_guard_s
         The force net leaves out the samples within this many seconds after each press's turn
         (:func:`after_turns`): a held grip then reads less low, the first milliseconds of each
-        unloading worse (docs/trainer.md, "Held grips"); 0 (default) keeps them.
+        unloading worse (docs/trainer.md, "The turn"); 0 (default) keeps them.
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
@@ -874,7 +874,7 @@ def after_turns(data: Prepared, guard_s: float) -> np.ndarray:
     the turn, and a pad with friction holds or even raises its strain while the load starts
     down: the inputs are those of a held load, the labels a few percent lower. No causal
     estimator can tell the two apart for that long, and a net fitted to both reads every held
-    grip low (docs/trainer.md, "Held grips").
+    grip low (docs/trainer.md, "The turn").
     """
     mask = np.zeros(data.split.size, dtype=bool)
     for r, sl in data.recording_slices():
@@ -883,8 +883,9 @@ def after_turns(data: Prepared, guard_s: float) -> np.ndarray:
         if not loaded.size:
             continue
         # The contact rows grouped by press, in time order within each.
-        rows = loaded[np.argsort(np.asarray(r.ds.press_id)[loaded], kind="stable")]
-        pid = np.asarray(r.ds.press_id)[rows]
+        press_id = np.asarray(r.ds.press_id)
+        rows = loaded[np.argsort(press_id[loaded], kind="stable")]
+        pid = press_id[rows]
         first = np.flatnonzero(np.r_[True, pid[1:] != pid[:-1]])
         sizes = np.diff(np.r_[first, rows.size])
         peak = np.maximum.reduceat(force[rows], first)
