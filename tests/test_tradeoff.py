@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -115,6 +116,43 @@ def test_error_index_and_match() -> None:
     assert ref["error_index"] == 1.0 and ref["matches_reference"]
     assert same["matches_reference"] and math.isclose(same["error_index"], 1.04 ** 0.25)
     assert not worse["matches_reference"] and worse["error_index"] > 1.0
+
+
+def test_the_cortex_m4_figures_are_quoted_in_estimated_cycles(monkeypatch) -> None:
+    """target-report's cycle estimate reaches the row, the summary and the table; a report
+    without it falls back to instructions and says it counts one per cycle."""
+    from fbgforce.tradeoff import outputs, run
+
+    report = {"instructions_per_step": 14079, "bit_exact": True, "budget_fraction_at_168MHz": 0.0838,
+              "cycles_per_step_estimate": 27075, "budget_fraction_cycles_at_168MHz": 0.1612,
+              "flash_bytes": 48708, "builds": {"portable": {"instructions_per_step": 98519}}}
+
+    class Done:
+        returncode, stderr = 0, ""
+        stdout = "progress\n" + json.dumps(report) + "\n"
+
+    monkeypatch.setattr(run.subprocess, "run", lambda *a, **k: Done())
+    m4 = run.target_instructions(Path("M"))
+    assert m4["m4_cycles_per_step_estimate"] == 27075
+    assert m4["m4_budget_fraction_cycles_at_168MHz"] == 0.1612
+    assert m4["m4_instructions_portable"] == 98519
+    row = {"status": "ok", "variant": "paper-causal-s5", "engine": "fixed", "width": "paper",
+           "filter": "causal", "sigma": 5.0, "memory": "both", "memory_states": 8,
+           "memory_state_bytes": 32, "causal": True, "contact_accuracy": 0.968,
+           "rmse_force_N": 0.37, "rmse_x_mm": 0.83, "rmse_y_mm": 0.93, "error_index": 1.0,
+           "is_reference": True, "matches_reference": True, "macs": 13840, "macs_nets": 13776,
+           "filter_delay_ms": 3.7, "host_batch_ns": 420.0, "host_single_ns": 1060.0,
+           "model_bytes": 32632, **m4}
+    text = outputs.summary_paragraph({"rows": [row]})
+    assert "14079 instructions per step, 27075 estimated cycles (16.1 % of a 1 kHz period" in text
+    table = outputs.markdown_table({"rows": [row]})
+    header, _, line = table.splitlines()[:3]
+    cells = [c.strip() for c in line.split("|")]
+    assert cells[[c.strip() for c in header.split("|")].index("M4 cycles (est.)")] == "27075"
+    assert "m4_cycles_per_step_estimate" in outputs.CSV_COLUMNS
+    old = {k: v for k, v in row.items() if "cycles" not in k}
+    assert "(8.4 % of a 1 kHz period at 168 MHz at one instruction per cycle)" in \
+        outputs.summary_paragraph({"rows": [old]})
 
 
 def test_qat_recovers_int8_accuracy() -> None:

@@ -111,11 +111,15 @@ def summary_paragraph(res: dict[str, Any]) -> str:
     m4 = [r for r in rows if r["engine"] == "fixed" and r.get("m4_instructions_per_step")]
     if m4:
         desc = "; ".join(
-            f"{r['variant']} {r['m4_instructions_per_step']} instructions per step "
-            f"({100 * r['m4_instructions_per_step'] / 168e3:.1f} % of a 1 kHz period at 168 MHz"
-            f" at one instruction per cycle)"
+            f"{r['variant']} {r['m4_instructions_per_step']} instructions per step"
+            + (f", {r['m4_cycles_per_step_estimate']} estimated cycles "
+               f"({100 * r['m4_budget_fraction_cycles_at_168MHz']:.1f} % of a 1 kHz period at "
+               f"168 MHz)" if r.get("m4_cycles_per_step_estimate") else
+               f" ({100 * r['m4_budget_fraction_at_168MHz']:.1f} % of a 1 kHz period at 168 MHz "
+               f"at one instruction per cycle)")
             for r in sorted(m4, key=lambda r: -r["m4_instructions_per_step"]))
-        parts.append(f"On the Cortex-M4 (DSP build, int16, worst step): {desc}.")
+        parts.append(f"On the Cortex-M4 (DSP build, int16, worst step; cycles estimated from the "
+                     f"executed instruction mix, docs/firmware.md): {desc}.")
         r16, r8 = by.get((tag, "fixed")), by.get((tag, "fixed-int8"))
         if r16 and r8 and r16.get("m4_instructions_per_step") and r8.get("m4_instructions_per_step"):
             parts.append(f"Int8 weights shrink the blob from {r16['model_bytes']} to "
@@ -155,14 +159,15 @@ CSV_COLUMNS = ("variant", "engine", "width", "filter", "sigma", "memory", "memor
                "act_bits", "qat", "status", *METRIC_KEYS, "n_samples", "error_index",
                "matches_reference", "is_reference", "host_single_ns", "host_single_p99_ns",
                "host_batch_ns", "host_batch_min_ns", "m4_instructions_per_step",
-               "m4_instructions_portable", "m4_bit_exact", "filter_taps", "filter_delay_ms",
+               "m4_cycles_per_step_estimate", "m4_instructions_portable", "m4_bit_exact",
+               "filter_taps", "filter_delay_ms",
                "macs", "macs_nets", "model_bytes", "pareto_compute", "pareto_delay")
 
 
 def markdown_table(res: dict[str, Any]) -> str:
     """The grid as a Markdown table, best error index first within each variant group."""
     head = ("| variant | engine | memory | contact % | force N | x mm | y mm | error index | single | "
-            "batch | M4 instr. | delay ms | MACs | state B | bytes | Pareto |")
+            "batch | M4 instr. | M4 cycles (est.) | delay ms | MACs | state B | bytes | Pareto |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in res["rows"]:
         if r.get("status") != "ok":
@@ -181,7 +186,8 @@ def markdown_table(res: dict[str, Any]) -> str:
             r.get("memory", "none"), _fmt(100 * r["contact_accuracy"], ".2f"), _fmt(r["rmse_force_N"], ".3f"),
             _fmt(r["rmse_x_mm"], ".3f"), _fmt(r["rmse_y_mm"], ".3f"), _fmt(r["error_index"], ".3f"),
             _ns(r.get("host_single_ns")), _ns(r.get("host_batch_ns")),
-            _fmt(r.get("m4_instructions_per_step")), _fmt(r["filter_delay_ms"], ".1f"),
+            _fmt(r.get("m4_instructions_per_step")), _fmt(r.get("m4_cycles_per_step_estimate")),
+            _fmt(r["filter_delay_ms"], ".1f"),
             str(r["macs"]), _fmt(r.get("memory_state_bytes")), _fmt(r.get("model_bytes")),
             " ".join(mark)]) + " |")
     missing = [r for r in res["rows"] if r.get("status") != "ok"]

@@ -27,7 +27,9 @@ def target_instructions(model_dir: Path, data: Path | None = None, samples: int 
     """Cortex-M4 instruction counts per step from ``fbgforce target-report``.
 
     Returns ``{"m4_instructions_per_step": worst step of the DSP build (the shipped one),
-    "m4_instructions_portable": worst step of the portable C build, "m4_bit_exact": ...}``,
+    "m4_instructions_portable": worst step of the portable C build,
+    "m4_cycles_per_step_estimate": the DSP worst step's cycles estimated from its instruction
+    mix (docs/firmware.md), "m4_bit_exact": ...}``,
     or ``{"m4_note": why not}`` when the toolchain is missing or the command fails. The report
     runs in a child process, so a hung QEMU is bounded by ``timeout_s``.
     """
@@ -50,6 +52,8 @@ def target_instructions(model_dir: Path, data: Path | None = None, samples: int 
             "m4_instructions_portable": portable.get("instructions_per_step"),
             "m4_bit_exact": rep.get("bit_exact"),
             "m4_budget_fraction_at_168MHz": rep.get("budget_fraction_at_168MHz"),
+            "m4_cycles_per_step_estimate": rep.get("cycles_per_step_estimate"),
+            "m4_budget_fraction_cycles_at_168MHz": rep.get("budget_fraction_cycles_at_168MHz"),
             "m4_flash_bytes": rep.get("flash_bytes")}
 
 
