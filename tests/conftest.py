@@ -84,11 +84,12 @@ def small_dataset_path(tmp_path_factory):
 def small_model_dir(tmp_path_factory, small_dataset_path):
     """A model directory trained on ``small_dataset_path`` (causal filter, seed 0, ~10 s)."""
     from fbgforce import model as fm
-    from fbgforce.trainer.train import train
+    from fbgforce.trainer.train import PAPER_SIZES, train
 
     out = tmp_path_factory.mktemp("small_model") / "model"
-    # One draw per net, no weight decay and no synthetic holds or rests: the model whose fixed-point
-    # errors docs/fixed-point.md tabulates and whose in-loop teleop error docs/teleop.md bounds
+    # The paper's widths, one draw per net, no weight decay and no synthetic holds or rests:
+    # the model whose fixed-point errors docs/fixed-point.md tabulates and whose in-loop
+    # teleop error docs/teleop.md bounds
     # (the default force restarts and decay give another force net; the exporter's bound holds
     # for every draw, and the teleop bound is discussed in docs/teleop.md). Synthetic holds on
     # the 3 of its 16 training presses they would draw make its light touches noisier (a
@@ -97,7 +98,7 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     # give another contact net, one that lets go of a 0.5 N hold (docs/runtime.md, "In use").
     fm.save(train([small_dataset_path], epochs=40, seed=SMALL_SEED, filter="causal",
                   progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0,
-                  rest_augment=0.0, ref_shift=0), out)
+                  rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES), out)
     return out
 
 

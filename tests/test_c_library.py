@@ -292,11 +292,11 @@ def _paper_sized_quantized():
 
     from fbgforce.export import quantize as qz
     from fbgforce.trainer import preprocess as pp
-    from fbgforce.trainer.train import DEFAULT_SIZES
+    from fbgforce.trainer.train import PAPER_SIZES
 
     taps = pp.gaussian_taps("causal", pp.default_sigma(1000.0))
-    model = make_random_model(0, sizes=(DEFAULT_SIZES["contact"], DEFAULT_SIZES["force"],
-                                        DEFAULT_SIZES["location"]), n_taps=taps.size)
+    model = make_random_model(0, sizes=(PAPER_SIZES["contact"], PAPER_SIZES["force"],
+                                        PAPER_SIZES["location"]), n_taps=taps.size)
     model.preprocess.taps = taps
     wl = make_random_walk(model, 1000, seed=0)
     q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]), bits=16)

@@ -549,7 +549,10 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
     ("hold_augment", -0.1, "--hold-augment"), ("hold_augment", float("nan"), "--hold-augment"),
     ("turn_guard_s", -0.001, "--turn-guard"), ("turn_guard_s", 2.0, "--turn-guard"),
     ("learning_rate", 0.0, "learning_rate"), ("batch_size", True, "batch_size"),
-    ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor")])
+    ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor"),
+    ("sizes", {"contact": [129]}, "--sizes"), ("sizes", {"contact": [0, 4]}, "--sizes"),
+    ("sizes", {"force": [8] * 8}, "--sizes"), ("sizes", {"gripper": [8]}, "--sizes"),
+    ("sizes", {"force": []}, "--sizes"), ("sizes", {"force": [8.5]}, "--sizes")])
 def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
     from fbgforce.trainer.train import TrainParams
 
@@ -565,3 +568,23 @@ def test_train_takes_params_and_options_and_refuses_unknown_ones(synthetic_recor
         train([synthetic_recording], epoch=3)
     with pytest.raises(InputError, match="--train-fraction"):
         train([synthetic_recording], TrainParams(epochs=1), train_fraction=0.0)
+
+
+def test_sizes_set_the_hidden_widths_and_leave_the_other_nets_at_the_default(small_dataset_path,
+                                                                             tmp_path):
+    """``fbgforce train --sizes`` reaches the model; nets it does not name keep DEFAULT_SIZES
+    (whose widths the force net's decay may trim, never widen)."""
+    from fbgforce import model as fm
+    from fbgforce.cli import main
+    from fbgforce.trainer.train import DEFAULT_SIZES
+
+    out = tmp_path / "m"
+    code = main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "1",
+                 "--restarts", "1", "--sizes", "contact=12-6,location=10-8-6-4"])
+    assert code == 0
+    nets = fm.load(out).nets
+    assert nets["contact"].sizes[1:-1] == [12, 6]
+    assert nets["location"].sizes[1:-1] == [10, 8, 6, 4]
+    kept = nets["force"].sizes[1:-1]
+    assert len(kept) == len(DEFAULT_SIZES["force"])
+    assert all(0 < k <= d for k, d in zip(kept, DEFAULT_SIZES["force"]))

@@ -66,6 +66,13 @@ def register(subparsers: Any) -> None:
                    help="initialisations tried per net, the lowest validation loss kept: N for "
                         "every net or e.g. 'force=3,location=2' (default contact=1, force=3, "
                         "location=1)")
+    p.add_argument("--sizes", default=None, metavar="SPEC",
+                   help="hidden widths of some nets, e.g. 'contact=70-50-20,location=70-50-40' "
+                        "(default contact=36-26-10, force=50-30-16, location=36-26-20, about "
+                        "half the paper's 70-50-20, 70-50-20, 70-50-40, for 8-9 %% of a "
+                        "168 MHz Cortex-M4 at 1 kHz; the force net's weight decay then switches "
+                        "off units it does not need); docs/trainer.md \"Widths and the "
+                        "Cortex-M4\"")
     p.add_argument("--hold-augment", type=non_negative_float, default=None, metavar="SHARE",
                    help="share of the training presses the contact and force nets also see "
                         "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
@@ -149,6 +156,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                if getattr(args, name) is not None}
     params = TrainParams(epochs=args.epochs, seed=args.seed, filter=args.filter,
                          memory=args.memory, restarts=_restarts(args.restarts),
+                         sizes=_sizes(args.sizes),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
                          creep_inverse=args.creep_inverse, init=args.init,
                          train_fraction=args.train_fraction,
@@ -243,6 +251,19 @@ def _restarts(spec: str | None) -> int | dict[str, int] | None:
     if any(c < 1 for c in counts):
         raise InputError(f"every count must be at least 1, not {spec!r}", column="--restarts")
     return value
+
+
+def _sizes(spec: str | None) -> dict[str, list[int]] | None:
+    """``--sizes``: ``net=W-W-W,net=W-W`` (hidden widths, input to output); InputError naming
+    the option otherwise. The ranges are TrainParams' to check."""
+    if spec is None:
+        return None
+    try:
+        return {k.strip(): [int(w) for w in v.split("-")]
+                for k, v in (part.split("=", 1) for part in spec.split(","))}
+    except ValueError:
+        raise InputError(f"expected net=W-W-W,... (e.g. contact=40-30-16,location=50-36-24), "
+                         f"not {spec!r}", column="--sizes") from None
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:

@@ -31,11 +31,21 @@ from fbgforce.trainer import preprocess as pp
 from fbgforce import tare as fbgtare
 from fbgforce.trainer.nets import FlatMLP, drop_unread_units, fit, predict_batched
 
-#: Hidden-layer widths of the paper's Fig. 4.
-DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
+#: Hidden-layer widths of the paper's Fig. 4 (the `paper` width of ``fbgforce tradeoff``).
+PAPER_SIZES: dict[str, tuple[int, ...]] = {
     "contact": (70, 50, 20),
     "force": (70, 50, 20),
     "location": (70, 50, 40),
+}
+#: Hidden-layer widths the trainer starts from (``--sizes`` changes them; the force net's
+#: weight decay then switches off the units it does not need): about half the paper's, which
+#: brings a contact step within a tenth of a 168 MHz Cortex-M4 at 1 kHz by estimated cycles
+#: at the paper widths' accuracy within the spread of training seeds (docs/trainer.md,
+#: "Widths and the Cortex-M4").
+DEFAULT_SIZES: dict[str, tuple[int, ...]] = {
+    "contact": (36, 26, 10),
+    "force": (50, 30, 16),
+    "location": (36, 26, 20),
 }
 SPLIT_RATIOS = (8, 1, 1)
 #: The default L2 weight decay of each net, as a prior of fixed strength: the decay is this
@@ -280,9 +290,7 @@ def _held_creep(data: Prepared, pre: fm.Preprocess, fitted: Creep) -> Creep:
 
 def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
-    for k, v in (sizes or {}).items():
-        if k not in hidden:
-            raise InputError(f"unknown net {k!r} in sizes; nets are {', '.join(hidden)}")
+    for k, v in (sizes or {}).items():     # checked by TrainParams (_valid_sizes)
         hidden[k] = [int(s) for s in v]
     return {net.name: [contract.net_inputs(net.name, memory.n_states, memory.n_loc), *hidden[net.name],
                        net.float_outputs] for net in contract.NETS}
@@ -557,7 +565,8 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
-                "creep_inverse": "--creep-inverse", "turn_guard_s": "--turn-guard"}
+                "creep_inverse": "--creep-inverse", "turn_guard_s": "--turn-guard",
+                "sizes": "--sizes"}
 
 
 def _is_int(value: Any) -> bool:
@@ -567,6 +576,22 @@ def _is_int(value: Any) -> bool:
 def _is_real(value: Any) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) \
         and not isinstance(value, (bool, np.bool_)) and bool(np.isfinite(value))
+
+
+def _valid_sizes(sizes: Any) -> bool:
+    """Hidden widths the runtime can hold: known nets, each 1 .. MAX_LAYERS - 1 hidden layers
+    (the output layer is one more) of 1 .. MAX_WIDTH units (an odd width is padded to the next
+    even one on export, which stays within the even MAX_WIDTH)."""
+    if not isinstance(sizes, Mapping) or not set(sizes) <= set(DEFAULT_SIZES):
+        return False
+    for widths in sizes.values():
+        if not isinstance(widths, Sequence) or isinstance(widths, str):
+            return False
+        if not 1 <= len(widths) <= contract.LIMIT["MAX_LAYERS"] - 1:
+            return False
+        if not all(_is_int(w) and 1 <= w <= contract.LIMIT["MAX_WIDTH"] for w in widths):
+            return False
+    return True
 
 
 @dataclass
@@ -597,6 +622,8 @@ class TrainParams:
         temperature coefficients are fitted on the new data.
     sizes
         Hidden widths per net, e.g. ``{"location": (70, 50, 40)}``; defaults :data:`DEFAULT_SIZES`.
+        What a smaller net saves on the Cortex-M4 and costs in accuracy: docs/trainer.md,
+        "Networks".
     progress
         Progress bars on stderr (None: when stderr is a terminal).
     train_fraction
@@ -695,6 +722,10 @@ class TrainParams:
                  "in [0, 1]")
         need(_is_real(self.turn_guard_s) and 0 <= self.turn_guard_s <= 1, "turn_guard_s",
              "in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
+        need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
+             f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "
+             f"{contract.LIMIT['MAX_LAYERS'] - 1} layers of 1 .. {contract.LIMIT['MAX_WIDTH']} "
+             f"units (the runtime's limits)")
 
     def fit_settings(self) -> dict[str, Any]:
         """The keyword arguments of :func:`fbgforce.trainer.nets.fit` every net shares."""
