@@ -262,7 +262,7 @@ def _sizes(spec: str | None) -> dict[str, list[int]] | None:
         return {k.strip(): [int(w) for w in v.split("-")]
                 for k, v in (part.split("=", 1) for part in spec.split(","))}
     except ValueError:
-        raise InputError(f"expected net=W-W-W,... (e.g. contact=40-30-16,location=50-36-24), "
+        raise InputError(f"expected net=W-W-W,... (e.g. contact=70-50-20,location=70-50-40), "
                          f"not {spec!r}", column="--sizes") from None
 
 

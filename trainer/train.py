@@ -623,7 +623,7 @@ class TrainParams:
     sizes
         Hidden widths per net, e.g. ``{"location": (70, 50, 40)}``; defaults :data:`DEFAULT_SIZES`.
         What a smaller net saves on the Cortex-M4 and costs in accuracy: docs/trainer.md,
-        "Networks".
+        "Widths and the Cortex-M4".
     progress
         Progress bars on stderr (None: when stderr is a terminal).
     train_fraction
@@ -908,6 +908,8 @@ def after_turns(data: Prepared, guard_s: float) -> np.ndarray:
     grip low (docs/trainer.md, "The turn").
     """
     mask = np.zeros(data.split.size, dtype=bool)
+    if guard_s <= 0:                      # the default: no press needs grouping
+        return mask
     for r, sl in data.recording_slices():
         force = np.nan_to_num(np.asarray(r.ds.force_N, dtype=np.float64))
         loaded = np.flatnonzero(np.asarray(r.ds.contact, dtype=bool))
