@@ -326,6 +326,44 @@ def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) ->
                                state)
 
 
+def _hold(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """``hold_stage`` of fbg_fixed.c (the settled-hold gain, the rule of
+    :func:`fbgforce.model.hold_over_time` in integers) on consecutive fault-free samples: their
+    force (mN, any value where there is no contact) and contact decisions. ``state`` is
+    ``[hold_avg, hold_primed, hold_run]``, carried and updated. Returns the force and where it
+    saturated."""
+    out = np.asarray(force_mN, dtype=np.int64).copy()
+    flag = np.zeros(out.size, dtype=bool)
+    if q.hold_gain_q15 == 0:
+        return out, flag
+    avg, primed, run = state
+    frac, settle, ramp = contract.LIMIT["EMA_FRAC"], q.hold_settle, 1 << q.hold_ramp_shift
+    top = settle + ramp
+    for i, (f, c) in enumerate(zip(out.tolist(), np.asarray(contact, dtype=bool).tolist())):
+        if not c:
+            primed, run = 0, 0
+            continue
+        if primed:
+            avg += (((f << frac) - avg) + (1 << (q.hold_shift - 1))) >> q.hold_shift
+        else:
+            avg, primed = f << frac, 1
+        dev = f - ((avg + (1 << (frac - 1))) >> frac)
+        band = max(q.hold_band_mN, (abs(f) * q.hold_band_q15 + (1 << 14)) >> 15)
+        if abs(dev) <= band:
+            if run < top and run < 0xFFFF:
+                run += 1
+        else:
+            run = 0
+        w = min(max(run - settle, 0), ramp)
+        shift = 15 + q.hold_ramp_shift
+        v = f + ((f * q.hold_gain_q15 * w + (1 << (shift - 1))) >> shift)
+        flag[i] = abs(v) > SAT32
+        out[i] = max(-SAT32, min(SAT32, v))
+    state[0], state[1], state[2] = avg, primed, run
+    return out, flag
+
+
 class _Tracker:
     """``rest_track`` of fbg_fixed.c: the at-rest baseline tracker's state, and its update at
     the end of each TRACK_BLOCK block."""
@@ -443,7 +481,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     z_rest, _ = q.z_rest()
     history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)   # held FIR inputs before the block
     last_comp = np.zeros(4, dtype=np.int64)                     # zeros before any good sample
-    memory, tracker, decision = _Memory(q), _Tracker(q), [0, 0]
+    memory, tracker, decision, hold = _Memory(q), _Tracker(q), [0, 0], [0, 0, 0]
     creep: list[list[int] | None] = [None]                      # the creep inverse's acc
     block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
     for a in range(0, n, block):
@@ -451,7 +489,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
         if tracker.limited:
             status[a:b] |= STATUS_BASELINE_LIMIT
         rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
-                             creep, memory, tracker, decision, status[a:b], flag[a:b],
+                             creep, memory, tracker, decision, hold, status[a:b], flag[a:b],
                              {k: v[a:b] for k, v in out.items()}, trace, z_rest)
         if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
             tracker.end_block(rest & tared, r_sum, base)
@@ -467,12 +505,12 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
 def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
            base: np.ndarray, history: np.ndarray, last_comp: np.ndarray,
            creep: list[list[int] | None], memory: _Memory, tracker: _Tracker, decision: list[int],
-           status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
+           hold: list[int], status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
            trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
     ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
     ``last_comp``, the creep inverse's state ``creep`` (:func:`creep_inverse`), ``memory``,
-    the tracker's creep states and ``decision``; ``ref`` is the
+    the tracker's creep states, ``decision`` and ``hold`` (:func:`_hold`); ``ref`` is the
     temperature reference of each sample (:func:`reference_average`). Returns which samples
     were at rest and their sum of the tracker's terms (:meth:`_Tracker.rest_terms`)."""
     n = wl.shape[0]
@@ -533,7 +571,9 @@ def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: 
         flag[rows] |= f_ok
         rest[rows] = ~contact & ~warm[rows]
         crow = rows[contact]
-        if crow.size:
+        if not crow.size:
+            hold[1], hold[2] = 0, 0      # the settled-hold gain, cleared by no contact
+        else:
             # 6. Force net, 7. location net on [z, contact << z_frac, quantised force,
             #    location averages].
             f_c = np.zeros(crow.size, dtype=bool)
@@ -547,6 +587,14 @@ def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: 
             x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
             y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)
             f_c |= c7 | c8 | c9 | c10
+            if q.hold_gain_q15:
+                # The settled-hold gain runs on every fault-free sample in order: one
+                # without contact clears it.
+                seq = np.zeros(rows.size, dtype=np.int64)
+                seq[contact] = force_mN
+                held, c11 = _hold(q, seq, contact, hold)
+                force_mN = held[contact]
+                f_c |= c11[contact]
             out["force_mN"][crow] = force_mN
             out["x_um"][crow] = x_um
             out["y_um"][crow] = y_um

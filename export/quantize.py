@@ -223,6 +223,13 @@ class QModel(QModelMemory):
     #: The tracker's creep term (fbg_model.track_creep_q15, track_creep_shift): 0 is off.
     track_creep_q15: int = 0
     track_creep_shift: int = 0
+    #: The settled-hold gain (fbg_model.hold_*): 0 is off.
+    hold_gain_q15: int = 0
+    hold_settle: int = 0
+    hold_band_mN: int = 0
+    hold_band_q15: int = 0
+    hold_shift: int = 0
+    hold_ramp_shift: int = 0
     #: OUT_OF_RANGE bounds of the net inputs (fbg_model.in_lo, in_hi): the defaults never flag.
     in_lo: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], -SAT16, dtype=np.int64))
     in_hi: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], SAT16, dtype=np.int64))
@@ -297,6 +304,8 @@ class QModel(QModelMemory):
              "track_creep_shift must be at least 1 when track_creep_q15 is on")
         need(self.creep_q15 == 0 or self.creep_shift >= 1, "ERR_RANGE",
              "creep_shift must be at least 1 when creep_q15 is on")
+        need(self.hold_gain_q15 == 0 or self.hold_shift >= 1, "ERR_RANGE",
+             "hold_shift must be at least 1 when hold_gain_q15 is on")
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
@@ -610,7 +619,9 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
     The creep magnitude becomes ``track_creep_q15 = round(track_creep * 2^15)``; a magnitude
-    that rounds to 0 turns the creep term off (shift 0 with it).
+    that rounds to 0 turns the creep term off (shift 0 with it). The settled-hold gain
+    likewise becomes ``hold_gain_q15 = round(hold_gain * 2^15)`` (0 turns the stage off, its
+    other fields 0 with it), its band ``hold_band_mN`` and ``hold_band_q15``.
 
     The tracker's gain turns a block's sum of ``z - z0`` (Q(z_frac) units, whose fm value is
     ``2^z_shift / z_mult``) into fm in Q(TRACK_FRAC), divided by its time constant
@@ -636,7 +647,20 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
             "track_step_max_fm": min(SAT32, int(round(in_use.track_step_max_pm * 1000.0))),
             "track_limit_fm": int(round(in_use.track_limit_pm * 1000.0)),
             "track_creep_q15": creep_q15,
-            "track_creep_shift": in_use.track_creep_shift if creep_q15 else 0}
+            "track_creep_shift": in_use.track_creep_shift if creep_q15 else 0,
+            **quantize_hold(in_use)}
+
+
+def quantize_hold(in_use: fm.InUse) -> dict[str, int]:
+    """The settled-hold gain's integers (fbg_model.hold_*), all 0 when its gain rounds to 0."""
+    gain_q15 = int(round(in_use.hold_gain * 2.0**15))
+    if not gain_q15:
+        return {k: 0 for k in ("hold_gain_q15", "hold_settle", "hold_band_mN", "hold_band_q15",
+                               "hold_shift", "hold_ramp_shift")}
+    return {"hold_gain_q15": gain_q15, "hold_settle": in_use.hold_settle,
+            "hold_band_mN": min(SAT32, int(round(in_use.hold_band_N * 1000.0))),
+            "hold_band_q15": int(round(in_use.hold_band_frac * 2.0**15)),
+            "hold_shift": in_use.hold_shift, "hold_ramp_shift": in_use.hold_ramp_shift}
 
 
 def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,

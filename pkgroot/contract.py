@@ -176,7 +176,10 @@ LIMITS: dict[str, tuple[int, str]] = {
                             "tracker's per-sample term stays below 2^17 (docs/fixed-point.md)"),
     "MAX_CREEP_Q15": ((1 << 15) - 1, "largest creep_q15: the creep inverse's gain q = kappa / "
                       "(1 - kappa) stays below 1 for a creep magnitude up to 0.5 (docs/fixed-point.md)"),
-    "BLOB_VERSION": (9, "blob format this library reads and writes"),
+    "MAX_HOLD_GAIN_Q15": (1 << 12, "largest |hold_gain_q15| (12.5 %): the hold stage's product "
+                          "stays below 2^56 (docs/fixed-point.md)"),
+    "MAX_HOLD_RAMP_SHIFT": (12, "largest hold_ramp_shift (the gain ramps in over 4096 samples)"),
+    "BLOB_VERSION": (10, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -454,6 +457,22 @@ PARAMS: tuple[Field, ...] = (
               "2^-creep_shift), in Q15"),
     Field("creep_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
           doc="the pad's creep time constant 2^creep_shift samples (1..15 when creep_q15 is on)"),
+    Field("hold_gain_q15", "int16_t", 1, -LIMIT["MAX_HOLD_GAIN_Q15"], LIMIT["MAX_HOLD_GAIN_Q15"],
+          doc="the settled-hold gain (0: off; needs hold_shift >= 1): on a contact sample, "
+              "force_mN += rshift_round(force_mN * hold_gain_q15 * w, 15 + hold_ramp_shift), w = "
+              "clamp(hold_run - hold_settle, 0, 2^hold_ramp_shift)"),
+    Field("hold_settle", "uint16_t",
+          doc="steady contact samples before the settled-hold gain starts to ramp in"),
+    Field("hold_band_mN", "int32_t", 1, 0, SAT32,
+          doc="a contact sample is steady when |force_mN - rshift_round(hold_avg, EMA_FRAC)| <= "
+              "max(hold_band_mN, rshift_round(|force_mN| * hold_band_q15, 15)) ..."),
+    Field("hold_band_q15", "uint16_t", 1, 0, 1 << 15,
+          doc="... (hold_avg += rshift_round((force_mN << EMA_FRAC) - hold_avg, hold_shift), primed "
+              "at the first contact sample after no contact); hold_run counts steady samples"),
+    Field("hold_shift", "uint8_t", 1, 0, LIMIT["MAX_EMA_SHIFT"],
+          doc="time constant 2^hold_shift samples of the hold stage's average of force_mN"),
+    Field("hold_ramp_shift", "uint8_t", 1, 0, LIMIT["MAX_HOLD_RAMP_SHIFT"],
+          doc="the settled-hold gain ramps in over 2^hold_ramp_shift samples"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -485,6 +504,14 @@ FLOAT_PARAMS: tuple[Field, ...] = (
           "per sample at rest it sums filt_i - track_creep * creep_pm_i"),
     Field("track_creep_shift", "uint8_t", doc="creep_pm_i += (filt_i - creep_pm_i) / "
           "2^track_creep_shift on every good sample (1..15 when track_creep > 0)"),
+    Field("hold_gain", "float", doc="the settled-hold gain as fbg_model, its excess over 1 itself, "
+          "|hold_gain| <= 0.125 (0: off): force_N *= 1 + hold_gain * w / 2^hold_ramp_shift"),
+    Field("hold_settle", "uint16_t"),
+    Field("hold_band_N", "float", doc="steady: |force_N - hold_avg_N| <= max(hold_band_N, "
+          "hold_band_frac * |force_N|), hold_avg_N += (force_N - hold_avg_N) / 2^hold_shift"),
+    Field("hold_band_frac", "float", doc="0..1"),
+    Field("hold_shift", "uint8_t", doc="1..15 when hold_gain is on"),
+    Field("hold_ramp_shift", "uint8_t", doc="0..FBG_MAX_HOLD_RAMP_SHIFT"),
     Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
     Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
@@ -583,6 +610,8 @@ STATE: tuple[StateField, ...] = (
                "(fm; docs/fixed-point.md, \"temperature reference\")"),
     StateField("creep_acc", "int64_t", ("N_STRAIN",), "the creep inverse's lags L_i * "
                "2^creep_shift (fm; docs/fixed-point.md, \"creep inverse\")"),
+    StateField("hold_avg", "int64_t", doc="the hold stage's average of force_mN, Q(FBG_EMA_FRAC) "
+               "(docs/fixed-point.md, \"settled-hold gain\")"),
     StateField("act", "int16_t", (2, "MAX_WIDTH"), "activation ping-pong buffers",
                note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
@@ -596,6 +625,8 @@ STATE: tuple[StateField, ...] = (
     StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
     StateField("track_limited", "uint8_t", doc="1: a channel's drift_fm is at its bound"),
     StateField("rest_run", "uint16_t", doc="samples at rest, saturating"),
+    StateField("hold_run", "uint16_t", doc="steady contact samples so far, saturating"),
+    StateField("hold_primed", "uint8_t", doc="hold_avg holds a contact sample's force"),
     StateField("packed", "const void *", doc="fbg_pack / fbg_use_pack buffer, or NULL"),
     StateField("model_crc", "uint32_t", doc="model->blob_crc at fbg_init"),
 )
@@ -609,6 +640,7 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("creep_pm", "float", ("N_STRAIN",), "the tracker's creep states: averages of the "
                "filtered shifts (pm), primed with the memory (mem_primed)"),
     StateField("ref_pm", "float", doc="the temperature reference's average (pm)"),
+    StateField("hold_avg_N", "float", doc="the hold stage's average of force_N"),
     StateField("creep_lag_pm", "float", ("N_STRAIN",), "the creep inverse's lags L_i (pm)"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),
@@ -626,7 +658,9 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
     StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
     StateField("track_limited", "uint8_t", doc="1: a channel's drift_pm is at its bound"),
-    StateField("reserved_", "uint8_t", (2,)),
+    StateField("hold_run", "uint16_t", doc="steady contact samples so far, saturating"),
+    StateField("hold_primed", "uint8_t", doc="hold_avg_N holds a contact sample's force"),
+    StateField("reserved_", "uint8_t", (7,)),
     StateField("act", "float", (2, "MAX_WIDTH"), "activation ping-pong buffers"),
 )
 

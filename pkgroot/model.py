@@ -342,6 +342,19 @@ TRACK_TIME_CONSTANT_S = 1.0
 TRACK_SETTLE_S = 0.2
 TRACK_RATE_MAX_PM_PER_S = 4.0
 TRACK_LIMIT_PM = 200.0
+#: The settled-hold gain (docs/runtime.md, "In use"): a contact sample is steady when the
+#: force lies within HOLD_BAND_N or HOLD_BAND_FRACTION of it (the larger) of its own average
+#: over HOLD_AVERAGE_S; after HOLD_SETTLE_S of steady samples (longer than a calibration
+#: press stands at its peak, 0.15 s, and than the 10-130 ms after a turn that a causal
+#: estimator cannot tell from a hold) the gain ramps in over HOLD_RAMP_S. The band lets a
+#: held grip's creep and the nets' noise through and stops at a press's slopes.
+HOLD_SETTLE_S = 0.2
+HOLD_AVERAGE_S = 0.128
+HOLD_BAND_N = 0.5
+HOLD_BAND_FRACTION = 0.03
+HOLD_RAMP_S = 0.256
+#: The largest |hold_gain| (the fixed-point stage's bound, docs/fixed-point.md).
+HOLD_GAIN_MAX = contract.LIMIT["MAX_HOLD_GAIN_Q15"] / 2.0**15
 #: The largest creep magnitude the tracker's creep term and the creep inverse take (the
 #: term's fixed-point bound, docs/fixed-point.md): a pad that gives back half a press after
 #: the release is no longer one a first-order lag describes.
@@ -414,6 +427,24 @@ class InUse:
     track_creep_shift
         The creep's time constant, ``2**track_creep_shift`` samples: 1..15 when
         ``track_creep`` > 0, 0 when it is 0.
+    hold_gain
+        The settled-hold gain's excess over 1, ``|hold_gain| <=`` :data:`HOLD_GAIN_MAX` (0:
+        off, what a model saved without the field reads). On each contact sample the force's
+        average ``a += (f - a) / 2**hold_shift`` (primed ``a = f`` by the first contact sample
+        after none) gives the sample as steady when ``|f - a| <= max(hold_band_N,
+        hold_band_frac * |f|)``; ``hold_run`` counts steady samples (any other sets it to 0)
+        and the force becomes ``f * (1 + hold_gain * w / 2**hold_ramp_shift)``, ``w =
+        clamp(hold_run - hold_settle, 0, 2**hold_ramp_shift)``. A sample without contact, a
+        reset, tare or new baseline clears the stage; a sensor fault leaves it as it was.
+    hold_settle
+        Steady contact samples before the gain ramps in.
+    hold_band_N, hold_band_frac
+        The steadiness band, N and a fraction of the force (0..1).
+    hold_shift
+        The force average's time constant, ``2**hold_shift`` samples: 1..15 when
+        ``hold_gain`` is on.
+    hold_ramp_shift
+        The gain ramps in over ``2**hold_ramp_shift`` samples (0..12).
     """
 
     contact_on_margin: float = 0.0
@@ -425,6 +456,12 @@ class InUse:
     track_limit_pm: float = 0.0
     track_creep: float = 0.0
     track_creep_shift: int = 0
+    hold_gain: float = 0.0
+    hold_settle: int = 0
+    hold_band_N: float = 0.0
+    hold_band_frac: float = 0.0
+    hold_shift: int = 0
+    hold_ramp_shift: int = 0
 
     def __post_init__(self) -> None:
         self.contact_on_margin = float(self.contact_on_margin)
@@ -448,11 +485,30 @@ class InUse:
         if self.track_step_max_pm < 0 or not 0 <= self.track_limit_pm <= limit_pm:
             raise ValueError(f"track_step_max_pm must be >= 0 and track_limit_pm in [0, {limit_pm}]")
         _check_creep("track_creep", self.track_creep, "track_creep_shift", self.track_creep_shift)
+        self.hold_gain = float(self.hold_gain)
+        self.hold_settle = int(self.hold_settle)
+        self.hold_band_N = float(self.hold_band_N)
+        self.hold_band_frac = float(self.hold_band_frac)
+        self.hold_shift = int(self.hold_shift)
+        self.hold_ramp_shift = int(self.hold_ramp_shift)
+        if not abs(self.hold_gain) <= HOLD_GAIN_MAX:
+            raise ValueError(f"hold_gain must be within +-{HOLD_GAIN_MAX:g}, not {self.hold_gain}")
+        if not 0 <= self.hold_settle <= 0xFFFF:
+            raise ValueError("hold_settle must be in [0, 65535]")
+        if not (np.isfinite(self.hold_band_N) and self.hold_band_N >= 0
+                and 0 <= self.hold_band_frac <= 1):
+            raise ValueError("hold_band_N must be >= 0 and hold_band_frac in [0, 1]")
+        top = contract.LIMIT["MAX_EMA_SHIFT"]
+        if not 0 <= self.hold_shift <= top or (self.hold_gain and not self.hold_shift):
+            raise ValueError(f"hold_shift must be 1 .. {top} when hold_gain is on, not "
+                             f"{self.hold_shift}")
+        if not 0 <= self.hold_ramp_shift <= contract.LIMIT["MAX_HOLD_RAMP_SHIFT"]:
+            raise ValueError(f"hold_ramp_shift must be in [0, {contract.LIMIT['MAX_HOLD_RAMP_SHIFT']}]")
 
     @classmethod
     def recommended(cls, sample_rate_hz: float = 1000.0,
                     rest_margins: np.ndarray | None = None, *, creep_magnitude: float = 0.0,
-                    creep_time_constant_samples: float = 0.0) -> "InUse":
+                    creep_time_constant_samples: float = 0.0, hold_gain: float = 0.0) -> "InUse":
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
         ``rest_margins``: the contact net's margins on calibration samples at rest; contact
@@ -464,8 +520,20 @@ class InUse:
         for the tracker's creep term (:func:`creep_parameters`); 0 leaves it off (as for a
         model that takes the creep out before the filter, :func:`creep_inverse`, where the
         tracker never sees it).
+
+        ``hold_gain``: the settled-hold gain's excess over 1 as the trainer measured it on its
+        synthetic holds, clipped to :data:`HOLD_GAIN_MAX`; 0 leaves the stage off.
         """
         creep, creep_shift = creep_parameters(creep_magnitude, creep_time_constant_samples)
+        hold_gain = float(np.clip(hold_gain, -HOLD_GAIN_MAX, HOLD_GAIN_MAX))
+        hold = {} if not hold_gain else {
+            "hold_gain": hold_gain,
+            "hold_settle": min(0xFFFF, int(round(HOLD_SETTLE_S * sample_rate_hz))),
+            "hold_band_N": HOLD_BAND_N, "hold_band_frac": HOLD_BAND_FRACTION,
+            "hold_shift": min(contract.LIMIT["MAX_EMA_SHIFT"],
+                              max(1, int(round(np.log2(HOLD_AVERAGE_S * sample_rate_hz))))),
+            "hold_ramp_shift": min(contract.LIMIT["MAX_HOLD_RAMP_SHIFT"],
+                                   max(0, int(round(np.log2(HOLD_RAMP_S * sample_rate_hz)))))}
         on = 0.0
         if rest_margins is not None and np.size(rest_margins):
             on = REST_MARGIN_FACTOR * max(0.0, float(np.quantile(rest_margins,
@@ -478,7 +546,7 @@ class InUse:
                    track_step_max_pm=TRACK_RATE_MAX_PM_PER_S * contract.LIMIT["TRACK_BLOCK"]
                    / sample_rate_hz,
                    track_limit_pm=TRACK_LIMIT_PM, track_creep=creep,
-                   track_creep_shift=creep_shift)
+                   track_creep_shift=creep_shift, **hold)
 
     def to_json(self) -> dict[str, float | int]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -489,7 +557,10 @@ class InUse:
                 "contact_rise_n": self.contact_rise_samples, "track_shift": self.track_shift,
                 "track_settle": self.track_settle, "track_step_max_pm": self.track_step_max_pm,
                 "track_limit_pm": self.track_limit_pm, "track_creep": self.track_creep,
-                "track_creep_shift": self.track_creep_shift}
+                "track_creep_shift": self.track_creep_shift, "hold_gain": self.hold_gain,
+                "hold_settle": self.hold_settle, "hold_band_N": self.hold_band_N,
+                "hold_band_frac": self.hold_band_frac, "hold_shift": self.hold_shift,
+                "hold_ramp_shift": self.hold_ramp_shift}
 
     @property
     def per_sample(self) -> bool:
@@ -545,6 +616,37 @@ def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float,
                 decision, rise = 1, 0
         out[i] = decision
     state[0], state[1] = decision, rise
+    return out
+
+
+def hold_over_time(force: np.ndarray, contact: np.ndarray, gain: float, settle: int,
+                   band: float, band_frac: float, shift: int, ramp_shift: int,
+                   state: list[Any]) -> np.ndarray:
+    """The settled-hold gain (:class:`InUse`) on consecutive fault-free samples, in float.
+
+    ``force`` and ``contact`` are the samples' outputs; ``state`` is ``[average, primed,
+    hold_run]`` of the previous sample, carried and updated. Returns the force with the gain.
+    The C float runtime runs this rule (``fhold_stage`` in fbgf_float.c); the fixed-point
+    one its integer form (``hold_stage`` in fbg_fixed.c, ``fbgforce.export.intref``).
+    """
+    out = np.asarray(force, dtype=np.float64).copy()
+    if not gain:
+        return out
+    avg, primed, run = state
+    ramp = 1 << ramp_shift
+    alpha = 1.0 / (1 << shift)
+    for i, (f, c) in enumerate(zip(out.tolist(), np.asarray(contact, dtype=bool).tolist())):
+        if not c:
+            primed, run = 0, 0
+            continue
+        if primed:
+            avg += (f - avg) * alpha
+        else:
+            avg, primed = f, 1
+        run = min(run + 1, settle + ramp, 0xFFFF) if abs(f - avg) <= max(band, band_frac * abs(f)) else 0
+        w = min(max(run - settle, 0), ramp)
+        out[i] = f + f * gain * (w / ramp)
+    state[0], state[1], state[2] = avg, primed, run
     return out
 
 
@@ -772,7 +874,8 @@ class HierarchicalModel:
         """Whether :func:`predict` runs the decision over time or the tracker, which carry
         state along a recording (a centred filter's offline model never does)."""
         iu = self.in_use
-        return not (iu.per_sample and not iu.track_shift) and self.preprocess.filter_kind != "centred"
+        return (not (iu.per_sample and not iu.track_shift and not iu.hold_gain)
+                and self.preprocess.filter_kind != "centred")
 
     def out_of_range(self, x: np.ndarray) -> np.ndarray:
         """(n,) True where a contact/force net input of ``x`` (n, >= F) lies outside
@@ -1218,6 +1321,7 @@ class FloatPipeline:
         self._creep_lag: list[np.ndarray | None] = [None]   # the creep inverse's, likewise
         self._memory = MemoryStream(pre.memory, pre.z_rest)
         self._decision = [0, 0]
+        self._hold: list[Any] = [0.0, 0, 0]
         self._drift = np.zeros(N_STRAIN)
         self._track_sum = np.zeros(N_STRAIN)
         self._rest_run = 0
@@ -1256,6 +1360,9 @@ class FloatPipeline:
         x[:, :N_STRAIN] = z
         x[good] = self._memory.push(z[good])
         ran = predict_from_features(model, x[good], decide, self.nets)
+        ran["force_N"] = hold_over_time(ran["force_N"], ran["contact"], iu.hold_gain,
+                                        iu.hold_settle, iu.hold_band_N, iu.hold_band_frac,
+                                        iu.hold_shift, iu.hold_ramp_shift, self._hold)
         out = {key: np.zeros(n, dtype=v.dtype) for key, v in ran.items()}
         for key, v in ran.items():
             out[key][good] = v

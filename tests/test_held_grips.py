@@ -120,6 +120,66 @@ def test_the_fitted_creep_goes_to_the_tracker_or_the_inverse(inverse):
         np.testing.assert_array_equal(r.feats, raw)
 
 
+def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
+    """By default (``creep_inverse`` None) the inverse goes to a creep of at least
+    CREEP_INVERSE_MIN slower than the memory's longest average, the tracker's term to any
+    other; the turn guard follows the inverse unless it is given."""
+    memory_s = T.memory_time_constant_s(T.MEMORY_PRESETS["both"], 1000.0)
+    assert memory_s == pytest.approx(0.128)
+    assert T.memory_time_constant_s(T.MEMORY_PRESETS["play"], 1000.0) == 0.0
+    assert T.takes_creep_out(T.Creep(0.05, 1.024), memory_s)           # the foreign fingertip
+    assert not T.takes_creep_out(T.Creep(0.063, 0.064), memory_s)      # the calibration scene
+    assert not T.takes_creep_out(T.Creep(0.005, 4.0), memory_s)        # a fit's noise
+    assert not T.takes_creep_out(T.Creep(0.05, 1.024), 0.0)            # no averages
+    spec = foreign.IN_USE_VARIANTS["calib_1K"]
+    ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
+    assert T.prepare([ds], creep_inverse=None, memory_s=memory_s).pre.creep > 0
+    assert T.prepare([ds], creep_inverse=None, memory_s=2.0).pre.creep == 0.0
+    md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
+    assert md["creep"]["inverse"] and md["turn_guard_s"] == T.TURN_GUARD_S
+    md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False,
+                 turn_guard_s=0.0, creep_inverse=False).metadata
+    assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
+
+
+def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(paired_holds):
+    """train.hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1
+    (so the bias after it is smaller than before and no other gain fits better), recorded in
+    the metadata and set on the model's in-use stage; no synthetic holds, no gain."""
+    _, data, _ = paired_holds
+    ds = data.recordings[0].ds
+    model = T.train([ds], epochs=3, restarts=1, rest_augment=0.0, hold_augment=1.0,
+                    progress=False)
+    settled = model.metadata["synthetic_holds"]["settled_gain"]
+    assert settled["holds"] >= T.HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
+    assert model.in_use.hold_gain == pytest.approx(settled["gain"]) != 0.0
+    assert abs(settled["bias_after_N"]) < abs(settled["bias_before_N"])
+    assert model.in_use.hold_settle == round(fm.HOLD_SETTLE_S * 1000)
+    # Written out again: a held sample's place in its hold, one every HOLD_AUGMENT_STEP_S.
+    mdata = T.prepare([ds], creep_inverse=model.metadata["creep"]["inverse"])
+    x, src = T._synthetic_holds(mdata, model.preprocess, mdata.rows("all"), 1.0, mdata.creep,
+                                np.random.default_rng(1))
+    fit = T.hold_gain(model, mdata, [(x, src)])
+    place = np.zeros(src.size, dtype=int)
+    for i in range(1, src.size):
+        place[i] = place[i - 1] + 1 if src[i] == src[i - 1] else 0
+    held = np.zeros(src.size, dtype=bool)
+    for i in range(src.size - 1, -1, -1):
+        held[i] = place[i] > 0 or (i + 1 < src.size and held[i + 1] and place[i + 1] > 0)
+    settled = held & (place * T.HOLD_AUGMENT_STEP_S >= fm.HOLD_SETTLE_S - 1e-9)
+    assert settled.sum() == fit["samples"]
+    f = fm.predict_from_features(model, x[settled])["force_raw_N"]
+    y = mdata.force_N[src[settled]]
+
+    def sse(g: float) -> float:
+        return float(np.sum((f * (1 + g) - y) ** 2))
+    assert sse(fit["gain"]) < min(sse(fit["gain"] - 1e-3), sse(fit["gain"] + 1e-3), sse(0.0))
+    assert T.hold_gain(model, mdata, [])["gain"] == 0.0
+    plain = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0,
+                    progress=False)
+    assert plain.in_use.hold_gain == 0.0 and plain.metadata["synthetic_holds"]["settled_gain"]["holds"] == 0
+
+
 def test_bench_held_grips_scores_the_held_samples(tmp_path, small_model_dir, capsys):
     """bench_held_grips: bias and RMSE over the held samples only, 0 N where the contact
     decision is off; one JSON object; a missing file is a one-line error (exit 2)."""

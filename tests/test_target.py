@@ -306,6 +306,22 @@ def test_creep_inverse_bit_exact_on_target(tools, small_model_dir, tmp_path):
 
 
 @pytest.mark.target
+def test_settled_hold_gain_bit_exact_on_target(tools, small_model_dir, tmp_path):
+    """The settled-hold gain at its largest (12.5 %), quick to settle and with the whole band,
+    on both Cortex-M4 builds through the golden session (which it changes), its faults,
+    tares and resets clearing it."""
+    d = tmp_path / "model"
+    shutil.copytree(small_model_dir, d)
+    model = fm.load(d)
+    model.in_use = replace(model.in_use, hold_gain=fm.HOLD_GAIN_MAX, hold_settle=2,
+                           hold_band_N=1000.0, hold_band_frac=1.0, hold_shift=3, hold_ramp_shift=2)
+    fm.save(model, d)
+    q, _ = load_quantized(d)
+    assert q.hold_gain_q15 == contract.LIMIT["MAX_HOLD_GAIN_Q15"]
+    _changes_the_session_and_is_bit_exact(d, q, replace(q, hold_gain_q15=0), SAMPLES)
+
+
+@pytest.mark.target
 def test_cli_json(tools, small_model_dir, capsys):
     from fbgforce.cli import main
 

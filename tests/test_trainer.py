@@ -588,3 +588,22 @@ def test_sizes_set_the_hidden_widths_and_leave_the_other_nets_at_the_default(sma
     kept = nets["force"].sizes[1:-1]
     assert len(kept) == len(DEFAULT_SIZES["force"])
     assert all(0 < k <= d for k, d in zip(kept, DEFAULT_SIZES["force"]))
+
+
+@pytest.mark.parametrize("flags, inverse, guard_s", [
+    ([], False, 0.0),                                   # the smoke pad's creep is fast
+    (["--creep-inverse"], True, 0.015),
+    (["--creep-inverse", "--turn-guard", "4"], True, 0.004),
+    (["--no-creep-inverse", "--turn-guard", "15"], False, 0.015)])
+def test_creep_and_turn_guard_flags_reach_the_model(small_dataset_path, tmp_path, flags, inverse,
+                                                    guard_s):
+    """``--creep-inverse`` / ``--no-creep-inverse`` override the trainer's choice, and the
+    turn guard follows the inverse unless ``--turn-guard`` sets it."""
+    from fbgforce import model as fm
+    from fbgforce.cli import main
+
+    out = tmp_path / "m"
+    assert main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "1",
+                 "--restarts", "1", *flags]) == 0
+    md = fm.load(out).metadata
+    assert md["creep"]["inverse"] is inverse and md["turn_guard_s"] == pytest.approx(guard_s)

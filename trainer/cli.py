@@ -47,11 +47,12 @@ def register(subparsers: Any) -> None:
                    help="the temperature grating's average before it compensates: auto "
                         "(default: 32 ms when that lowers the noise at rest by 5 %% or more, "
                         "else raw), 0 (raw) or N (2^N samples; docs/trainer.md)")
-    p.add_argument("--creep-inverse", action="store_true",
-                   help="take the pad's fitted creep out before the filter instead of letting "
-                        "the at-rest tracker discount its recovery: on the in-use benchmark's "
-                        "fingertip a quarter less force error, about one false contact event "
-                        "a minute at rest instead of none (docs/trainer.md)")
+    p.add_argument("--creep-inverse", action=argparse.BooleanOptionalAction, default=None,
+                   help="take the pad's fitted creep out before the filter (--creep-inverse) or "
+                        "let the at-rest tracker discount its recovery (--no-creep-inverse); "
+                        "default: the inverse when the pad creeps more slowly than the memory's "
+                        "longest average, which then cannot see it (docs/trainer.md \"The "
+                        "pad's creep in use\")")
     p.add_argument("--init", metavar="MODEL_DIR", default=None,
                    help="start from another device's model (transfer learning)")
     p.add_argument("--train-fraction", type=float, default=1.0,
@@ -77,11 +78,12 @@ def register(subparsers: Any) -> None:
                    help="share of the training presses the contact and force nets also see "
                         "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
                         "0 = off); docs/trainer.md \"Held grips\"")
-    p.add_argument("--turn-guard", type=non_negative_float, default=0.0, metavar="MS",
+    p.add_argument("--turn-guard", type=non_negative_float, default=None, metavar="MS",
                    help="the force net leaves out the MS milliseconds after each press's turn, "
                         "where a held load and an unloading one look alike: held grips read "
-                        "less low, the start of each unloading worse (default 0; 15 is the "
-                        "causal filter's length; docs/trainer.md \"The turn\")")
+                        "less low, the start of each unloading worse (default 15, the causal "
+                        "filter's length, with the creep inverse, else 0; docs/trainer.md "
+                        "\"The turn\")")
     p.add_argument("--rest-augment", type=non_negative_float, default=None, metavar="SHARE",
                    help="share of the training presses the contact and force nets also see "
                         "after a rest of 3-60 s (synthetic long rests; default 0.2, 0 = off); "
@@ -160,7 +162,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
                          creep_inverse=args.creep_inverse, init=args.init,
                          train_fraction=args.train_fraction,
-                         turn_guard_s=args.turn_guard / 1000.0, **augment)
+                         turn_guard_s=None if args.turn_guard is None else args.turn_guard / 1000.0,
+                         **augment)
     fileio.check_output_dir(args.out, "--out")
     model = train(args.data, params)
     fm.save(model, args.out, "--out")

@@ -69,6 +69,9 @@ HOLD_AUGMENT_STEP_S = 0.004
 #: A press turns at its last sample at this fraction of its peak force or more
 #: (:func:`after_turns`, ``turn_guard_s``).
 TURN_FRACTION = 0.995
+#: The turn guard a model that takes the pad's creep out before the filter trains with by
+#: default (``turn_guard_s`` None): the causal filter's length (docs/trainer.md, "The turn").
+TURN_GUARD_S = 0.015
 #: Synthetic long rests (:func:`_synthetic_rests`): the contact and force nets also train on
 #: rests of a length drawn in :data:`REST_AUGMENT_S` (seconds) inserted before this share of
 #: the training presses, one sample every :data:`REST_AUGMENT_STEP_S` from
@@ -227,11 +230,14 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
-            creep_inverse: bool = False) -> Prepared:
+            creep_inverse: bool | None = False, memory_s: float = 0.0) -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
     (:func:`fit_creep`; with ``creep_inverse`` its inverse runs before the filter), filter
     every recording, split each by press.
+
+    ``creep_inverse`` None lets the creep choose (:func:`takes_creep_out`): the inverse when the
+    pad creeps more slowly than ``memory_s``, the longest time constant of the nets' memory.
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
     at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz. ``ref_shift``: None
@@ -265,6 +271,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     # in use; otherwise the at-rest tracker discounts its recovery (_in_use).
     fitted = fit_creep(data, pre, data.rows("train"))
     held = _held_creep(data, pre, fitted)
+    if creep_inverse is None:
+        creep_inverse = takes_creep_out(held, memory_s)
     if held.magnitude > 0 and creep_inverse:
         pre = replace(pre, creep=held.magnitude,
                       creep_shift=fm.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
@@ -273,6 +281,38 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
         data = Prepared(recs, pre, temp_info)
     data.creep_fit, data.creep_held = fitted, held
     return data
+
+
+#: The smallest creep magnitude the trainer takes out before the filter by itself
+#: (:func:`takes_creep_out`): the fit finds up to 0.5 % on a pad without creep (the synthetic
+#: device of tests/conftest.py: 0.5 % with a 4 s time constant), the pads that creep 5 %.
+CREEP_INVERSE_MIN = 0.02
+
+
+def _median_rate_hz(datasets: Sequence[Any]) -> float:
+    """The recordings' median sample rate, as :func:`prepare` takes it."""
+    return float(np.median([fbgtare.sample_rate_hz(ds.t_s) for ds in datasets]))
+
+
+def takes_creep_out(creep: Creep, memory_s: float) -> bool:
+    """Whether a model whose memory's longest average has the time constant ``memory_s``
+    (seconds, 0 without averages) should take the pad's ``creep`` out before the filter.
+
+    A creep faster than the memory's averages is one the nets see whole in their inputs: they
+    learn it from the calibration's presses, and the inverse only adds its fit's error. A
+    slower one outlasts every average: the nets read the part a press leaves behind as load,
+    after a long hold as a light press (the flicker after each release of docs/trainer.md
+    "The pad's creep in use"), and only the inverse takes it out. A model without averages
+    keeps the at-rest tracker's creep term, and so does a creep below
+    :data:`CREEP_INVERSE_MIN`.
+    """
+    return (creep.magnitude >= CREEP_INVERSE_MIN and memory_s > 0
+            and creep.time_constant_s > memory_s)
+
+
+def memory_time_constant_s(memory: fm.Memory, rate_hz: float) -> float:
+    """The longest time constant of ``memory``'s averages, seconds (0 without averages)."""
+    return 2.0 ** max(memory.ema_shifts) / rate_hz if memory.ema_shifts else 0.0
 
 
 def _held_creep(data: Prepared, pre: fm.Preprocess, fitted: Creep) -> Creep:
@@ -615,7 +655,8 @@ class TrainParams:
     creep_inverse
         Take the pad's fitted creep out before the filter (:func:`fbgforce.model.creep_inverse`)
         instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
-        pad's creep in use", measures what each costs).
+        pad's creep in use", measures what each costs); None (default): the inverse when the
+        fitted creep is slower than the memory's longest average (:func:`takes_creep_out`).
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -650,7 +691,8 @@ class TrainParams:
     turn_guard_s
         The force net leaves out the samples within this many seconds after each press's turn
         (:func:`after_turns`): a held grip then reads less low, the first milliseconds of each
-        unloading worse (docs/trainer.md, "The turn"); 0 (default) keeps them.
+        unloading worse (docs/trainer.md, "The turn"); 0 keeps them; None (default):
+        :data:`TURN_GUARD_S` with the creep inverse, else 0.
     memory
         The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
@@ -667,7 +709,7 @@ class TrainParams:
     sigma: float | None = None
     window: int | None = None
     ref_shift: int | None = None
-    creep_inverse: bool = False
+    creep_inverse: bool | None = None
     init: str | Path | fm.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
@@ -683,7 +725,7 @@ class TrainParams:
     location_augment: float = LOCATION_AUGMENT
     hold_augment: float = HOLD_AUGMENT
     rest_augment: float = REST_AUGMENT
-    turn_guard_s: float = 0.0
+    turn_guard_s: float | None = None
     memory: fm.Memory | str | None = None
     restarts: int | Mapping[str, int] | None = None
 
@@ -720,8 +762,9 @@ class TrainParams:
         for share in ("hold_augment", "rest_augment"):
             need(_is_real(getattr(self, share)) and 0 <= getattr(self, share) <= 1, share,
                  "in [0, 1]")
-        need(_is_real(self.turn_guard_s) and 0 <= self.turn_guard_s <= 1, "turn_guard_s",
-             "in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
+        need(self.turn_guard_s is None or (_is_real(self.turn_guard_s) and 0 <= self.turn_guard_s <= 1),
+             "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
+        need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
         need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
              f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "
              f"{contract.LIMIT['MAX_LAYERS'] - 1} layers of 1 .. {contract.LIMIT['MAX_WIDTH']} "
@@ -767,10 +810,12 @@ class _Streams:
     location_augment: np.random.Generator
     holds: np.random.Generator
     rests: np.random.Generator
+    hold_gain: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "_Streams":
-        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(8)))
+        # spawn(n)'s first children do not depend on n: a stream added last leaves the others.
+        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(9)))
 
 
 def _split(data: Prepared, params: TrainParams, rng: np.random.Generator
@@ -1040,15 +1085,64 @@ def _assemble(data: Prepared, pre: fm.Preprocess, scaling: _Scaling,
     return model
 
 
+#: The settled-hold gain is measured on at least this many synthetic holds, else left off.
+HOLD_GAIN_MIN_HOLDS = 3
+
+
+def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]) -> dict[str, Any]:
+    """The settled-hold gain (:class:`fbgforce.model.InUse`) the trained nets need: their
+    least-squares gain on the samples of the synthetic ``holds`` (:func:`_synthetic_holds`)
+    at least :data:`fbgforce.model.HOLD_SETTLE_S` into each hold, minus 1.
+
+    The nets read a hold a little low (docs/trainer.md, "The turn": a causal estimator cannot
+    tell a load that stands from one that has just begun to fall, and they compromise); once
+    a load has stood still longer than a turn lasts the runtime may take that compromise
+    back, by as much as the nets leave on the holds they were trained with.
+
+    Returns
+    -------
+    dict
+        ``gain`` (0.0 with fewer than :data:`HOLD_GAIN_MIN_HOLDS` holds), ``holds``,
+        ``samples``, and the force bias over those samples (N) ``bias_before_N`` and
+        ``bias_after_N``.
+    """
+    x = np.concatenate([h[0] for h in holds]) if holds else np.empty((0, 0))
+    src = np.concatenate([h[1] for h in holds]) if holds else np.empty(0, dtype=np.int64)
+    if src.size < 2:
+        return {"gain": 0.0, "holds": 0, "samples": 0, "bias_before_N": None, "bias_after_N": None}
+    # A hold is a run of samples that take one row's labels (each sample after it takes its
+    # own); HOLD_AUGMENT_STEP_S apart.
+    new_run = np.r_[True, src[1:] != src[:-1]]
+    starts = np.flatnonzero(new_run)
+    lengths = np.diff(np.r_[starts, src.size])
+    position = np.arange(src.size) - np.repeat(starts, lengths)
+    step_s = max(1, int(round(HOLD_AUGMENT_STEP_S * data.rate_hz))) / data.rate_hz
+    held = np.repeat(lengths > 1, lengths)
+    settled = held & (position * step_s >= fm.HOLD_SETTLE_S)
+    label = data.force_N[src]
+    settled &= np.isfinite(label) & (label > 0)
+    n_holds = int(np.unique(src[settled]).size)
+    if n_holds < HOLD_GAIN_MIN_HOLDS:
+        return {"gain": 0.0, "holds": n_holds, "samples": int(settled.sum()),
+                "bias_before_N": None, "bias_after_N": None}
+    f = fm.predict_from_features(model, x[settled])["force_raw_N"]
+    y = label[settled]
+    gain = float(np.clip(np.dot(y, f) / max(float(np.dot(f, f)), 1e-12) - 1.0,
+                         -fm.HOLD_GAIN_MAX, fm.HOLD_GAIN_MAX))
+    return {"gain": gain, "holds": n_holds, "samples": int(settled.sum()),
+            "bias_before_N": float(np.mean(f - y)), "bias_after_N": float(np.mean(f * (1 + gain) - y))}
+
+
 def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
-            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held]) -> None:
+            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float) -> None:
     """Set the model's decision over time, tracker and input range from the training data.
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
     memory settles. The tracker discounts the recovery the pad's creep (``data.creep_held``)
     predicts after a release, which it would otherwise learn as drift (docs/runtime.md, "In
-    use"), unless the creep inverse has already taken it out."""
+    use"), unless the creep inverse has already taken it out. ``gain``: the settled-hold
+    gain (:func:`hold_gain`)."""
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
     left = Creep() if model.preprocess.creep else data.creep_held
@@ -1056,7 +1150,7 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
         data.rate_hz, rest_margins=np.concatenate(
             [_rest_margins(data, logits), long[:, 1] - long[:, 0]]),
         creep_magnitude=left.magnitude,
-        creep_time_constant_samples=left.time_constant_s * data.rate_hz)
+        creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain)
     model.input_range = fm.input_range_of(z[tr])
 
 
@@ -1104,7 +1198,10 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     data = prepared if prepared is not None else prepare(
         ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
         window=params.window, sources=sources, ref_shift=params.ref_shift,
-        creep_inverse=params.creep_inverse)
+        creep_inverse=params.creep_inverse,
+        memory_s=memory_time_constant_s(memory, _median_rate_hz(ds_list)))
+    if params.turn_guard_s is None:
+        params = replace(params, turn_guard_s=TURN_GUARD_S if data.pre.creep else 0.0)
     t_prep = time.perf_counter() - t_start
     streams = _Streams.from_seed(params.seed)
     tr, va, te = _split(data, params, streams.subsample)
@@ -1131,10 +1228,16 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     model = _assemble(data, pre, scaling, {"contact": cnet, "force": fnet, "location": lnet},
                       reports, described)
     t_train = time.perf_counter() - t_start - t_prep
-    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va))
+    # The gain is measured on holds of every training and validation press, drawn apart
+    # from the ones the nets trained on: the nets fit those, and would promise too little.
+    settled = hold_gain(model, data, [_synthetic_holds(
+        data, pre, np.sort(np.concatenate([tr, va])), 1.0, creep, streams.hold_gain)]
+        if hold_tr[1].size else [])
+    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), settled["gain"])
     model.metadata = _metadata(model, data, params, described, (tr, va, te), x_all, reports,
                                data_coverage, creep, (hold_tr, hold_va), (rest_tr, rest_va),
                                held_s, warnings, (t_prep, t_train))
+    model.metadata["synthetic_holds"]["settled_gain"] = settled
     return model
 
 

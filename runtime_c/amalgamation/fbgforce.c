@@ -18,8 +18,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -262,6 +262,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -464,8 +483,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -584,12 +603,18 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->track_creep_shift = rd_u8(p + 255);
     m->creep_q15 = rd_u16(p + 256);
     m->creep_shift = rd_u8(p + 258);
+    m->hold_gain_q15 = rd_i16(p + 259);
+    m->hold_settle = rd_u16(p + 261);
+    m->hold_band_mN = rd_i32(p + 263);
+    m->hold_band_q15 = rd_u16(p + 267);
+    m->hold_shift = rd_u8(p + 269);
+    m->hold_ramp_shift = rd_u8(p + 270);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 259u; k < 264u; ++k)
+    for (k = 271u; k < 272u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -716,6 +741,11 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     { uint16_t v = m->creep_q15; if (v > 32767) return FBG_ERR_RANGE; }
     { uint8_t v = m->creep_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { int16_t v = m->hold_gain_q15; if (v < -4096 || v > 4096) return FBG_ERR_RANGE; }
+    { int32_t v = m->hold_band_mN; if (v < 0) return FBG_ERR_RANGE; }
+    { uint16_t v = m->hold_band_q15; if (v > 32768) return FBG_ERR_RANGE; }
+    { uint8_t v = m->hold_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { uint8_t v = m->hold_ramp_shift; if (v > 12) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -1006,6 +1036,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
@@ -3038,8 +3087,8 @@ typedef int fbg_dsp_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -3280,6 +3329,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
@@ -3746,6 +3814,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -4114,6 +4201,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -4347,6 +4453,8 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
+    s->hold_run = 0u;
+    s->hold_primed = 0u;
     memset(s->track_sum, 0, sizeof s->track_sum);
     memset(s->drift_fm, 0, sizeof s->drift_fm);
     memset(s->track_frac, 0, sizeof s->track_frac);
@@ -4916,6 +5024,36 @@ static void contact_outputs(fbg_state *s, const fbg_model *m, const int16_t *in,
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 }
 
+/* The settled-hold gain (docs/runtime.md, "In use"; docs/fixed-point.md, "settled-hold
+ * gain"): the nets read a grip held still a little low, because a causal estimator cannot tell
+ * a load that stands from one that has just begun to fall; once force_mN has stayed within its
+ * band of its own average for hold_settle samples, no turn is left to mistake, and the trainer's
+ * gain, measured on its synthetic holds, ramps in over 2^hold_ramp_shift samples. Bounds:
+ * |force_mN| < 2^31, so hold_avg < 2^46; |hold_gain_q15| <= 2^12 and w <= 2^12, so the product
+ * stays below 2^55. */
+static int32_t hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat)
+{
+    const int64_t f = force_mN;
+    int64_t dev, band;
+    uint32_t w;
+    if (m->hold_gain_q15 == 0)
+        return force_mN;
+    if (!s->hold_primed) {
+        s->hold_avg = f * ((int64_t)1 << FBG_EMA_FRAC);
+        s->hold_primed = 1u;
+    } else {
+        s->hold_avg += fbg_rshift_round(f * ((int64_t)1 << FBG_EMA_FRAC) - s->hold_avg, m->hold_shift);
+    }
+    dev = f - fbg_rshift_round(s->hold_avg, FBG_EMA_FRAC);
+    band = fbg_rshift_round((f < 0 ? -f : f) * (int64_t)m->hold_band_q15, 15u);
+    if (band < m->hold_band_mN)
+        band = m->hold_band_mN;
+    w = fbg_hold_weight(&s->hold_run, (dev < 0 ? -dev : dev) <= band, m->hold_settle,
+                        m->hold_ramp_shift);
+    return fbg_sat32(f + fbg_rshift_round(f * m->hold_gain_q15 * (int64_t)w,
+                                          15u + m->hold_ramp_shift), sat);
+}
+
 /* A contact step's force and location. The force net's output (mN before the offset) feeds
  * the location net quantised: its inputs are [z1..z4, contact in Q(z_frac), that force in
  * Q(z_frac), location averages], written over the memory features after z, which are no
@@ -4935,6 +5073,7 @@ static uint32_t force_location_outputs(fbg_state *s, const fbg_model *m, int16_t
     last = net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
     out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], sat), m->xy_offset_um[0], sat);
     out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], sat), m->xy_offset_um[1], sat);
+    out->force_mN = hold_stage(s, m, out->force_mN, sat);
     return out->force_mN > m->overload_mN ? FBG_STATUS_OVERLOAD : 0u;
 }
 
@@ -4991,8 +5130,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     memset(out, 0, sizeof *out);
     contact_outputs(s, m, in, out, &sat);
     rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-    if (out->contact)
+    if (out->contact) {
         status |= force_location_outputs(s, m, in, loc, out, &sat);
+    } else {
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
+    }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
 }
@@ -5023,8 +5166,8 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -5267,6 +5410,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -5376,6 +5538,9 @@ fbg_status fbg_model_check(const fbg_model *model)
         return FBG_ERR_RANGE;
     /* So does the creep inverse's lag by creep_shift. */
     if (model->creep_q15 != 0u && model->creep_shift == 0u)
+        return FBG_ERR_RANGE;
+    /* And the settled-hold average by hold_shift. */
+    if (model->hold_gain_q15 != 0 && model->hold_shift == 0u)
         return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
@@ -5657,6 +5822,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
@@ -6011,8 +6195,8 @@ typedef int fbg_simd_neon_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -6271,6 +6455,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
@@ -8060,8 +8263,8 @@ typedef int fbg_simd_x86_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -8856,8 +9059,8 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 264u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 280u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 288u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -9098,6 +9301,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
         *rise_run = 0u;
     }
     return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
@@ -9485,6 +9707,11 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
         !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
         model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -9627,7 +9854,33 @@ static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correctio
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
+    s->hold_run = 0u;
+    s->hold_primed = 0u;
     return FBG_OK;
+}
+
+/* hold_stage of fbg_fixed.c in float: force_N of a contact sample times 1 + hold_gain * w /
+ * 2^hold_ramp_shift once it has been steady for hold_settle samples. */
+static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
+{
+    const float ramp = (float)(1ul << m->hold_ramp_shift);
+    float band, dev;
+    uint32_t w;
+    if (m->hold_gain == 0.0f)
+        return force_N;
+    if (!s->hold_primed) {
+        s->hold_avg_N = force_N;
+        s->hold_primed = 1u;
+    } else {
+        s->hold_avg_N += (force_N - s->hold_avg_N) / (float)(1ul << m->hold_shift);
+    }
+    dev = force_N - s->hold_avg_N;
+    band = m->hold_band_frac * (force_N < 0.0f ? -force_N : force_N);
+    if (band < m->hold_band_N)
+        band = m->hold_band_N;
+    w = fbg_hold_weight(&s->hold_run, (dev < 0.0f ? -dev : dev) <= band, m->hold_settle,
+                        m->hold_ramp_shift);
+    return force_N + force_N * m->hold_gain * ((float)w / ramp);
 }
 
 fbg_status fbgf_reset(fbgf_state *state)
@@ -9886,7 +10139,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 static int fin_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
-           m->contact_rise_n == 1u;
+           m->contact_rise_n == 1u && m->hold_gain == 0.0f;
 }
 #endif
 
@@ -9923,12 +10176,23 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     contact_output(y, out);
     out->contact = fcontact_decision(s, m, out->margin);
     frest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
-    if (!out->contact)
+    if (!out->contact) {
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
         return FBG_OK;
+    }
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
+    if (!out->contact) {             /* a non-finite output: the safe one */
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
+    } else if (m->hold_gain != 0.0f) {
+        out->force_N = fhold_stage(s, m, out->force_N);
+        if (out->force_N > m->overload_N)
+            out->status |= FBG_STATUS_OVERLOAD;
+    }
     return FBG_OK;
 }
 

@@ -73,7 +73,9 @@ extern "C" {
 #define FBG_MAX_REF_SHIFT 8  /* largest shift of the temperature reference's average (time constant 256 samples): its accumulator stays below 2^39 (docs/fixed-point.md) */
 #define FBG_MAX_TRACK_CREEP_Q15 16384  /* largest track_creep_q15 (creep magnitude 0.5): the tracker's per-sample term stays below 2^17 (docs/fixed-point.md) */
 #define FBG_MAX_CREEP_Q15 32767  /* largest creep_q15: the creep inverse's gain q = kappa / (1 - kappa) stays below 1 for a creep magnitude up to 0.5 (docs/fixed-point.md) */
-#define FBG_BLOB_VERSION 9  /* blob format this library reads and writes */
+#define FBG_MAX_HOLD_GAIN_Q15 4096  /* largest |hold_gain_q15| (12.5 %): the hold stage's product stays below 2^56 (docs/fixed-point.md) */
+#define FBG_MAX_HOLD_RAMP_SHIFT 12  /* largest hold_ramp_shift (the gain ramps in over 4096 samples) */
+#define FBG_BLOB_VERSION 10  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -180,6 +182,7 @@ typedef struct {
     int32_t track_gain[4];  /* per TRACK_BLOCK at rest: corr_i += sum(z_i - z0_i) * track_gain[i] (fm in Q(TRACK_FRAC)) */
     int32_t track_step_max_fm;  /* largest baseline step of one tracker block (fm) [0, 2147483647] */
     int32_t track_limit_fm;  /* largest |tracked - tared baseline| per channel (fm); BASELINE_LIMIT at it [0, 100000000] */
+    int32_t hold_band_mN;  /* a contact sample is steady when |force_mN - rshift_round(hold_avg, EMA_FRAC)| <= max(hold_band_mN, rshift_round(|force_mN| * hold_band_q15, 15)) ... [0, 2147483647] */
     uint16_t n_taps;  /* causal FIR length [1, 64] */
     uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
     int16_t play_width[4];  /* state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
@@ -188,6 +191,9 @@ typedef struct {
     int16_t in_hi[12];  /* ... or > in_hi[j] (Q(z_frac); +-32767: never) [-32767, 32767] */
     uint16_t track_creep_q15;  /* the tracker's creep term (0: off; needs track_creep_shift >= 1): per sample at rest it sums (z_i - z0_i) - rshift_round((creep_i - (z0_i << EMA_FRAC)) * track_creep_q15, 30), the pad's creep magnitude in Q15 [0, 16384] */
     uint16_t creep_q15;  /* the pad's creep inverse (0: off; needs creep_shift >= 1), on each good sample's compensated shift c_i before the FIR: L_i = rshift_round(acc_i, creep_shift), e_i = sat32(c_i + rshift_round((c_i - L_i) * creep_q15, 15)) replaces c_i, acc_i += e_i - L_i; acc_i primed at c_i << creep_shift. q = kappa / (1 - kappa), kappa = m (1 - 2^-creep_shift), in Q15 [0, 32767] */
+    int16_t hold_gain_q15;  /* the settled-hold gain (0: off; needs hold_shift >= 1): on a contact sample, force_mN += rshift_round(force_mN * hold_gain_q15 * w, 15 + hold_ramp_shift), w = clamp(hold_run - hold_settle, 0, 2^hold_ramp_shift) [-4096, 4096] */
+    uint16_t hold_settle;  /* steady contact samples before the settled-hold gain starts to ramp in */
+    uint16_t hold_band_q15;  /* ... (hold_avg += rshift_round((force_mN << EMA_FRAC) - hold_avg, hold_shift), primed at the first contact sample after no contact); hold_run counts steady samples [0, 32768] */
     uint8_t tap_q;  /* FIR taps are int16 in Q(tap_q) [1, 15] */
     uint8_t z_frac;  /* net inputs are int16 in Q(z_frac) [0, 14] */
     uint8_t z_shift;  /* shift of the standardisation (with z_mult) [1, 62] */
@@ -205,6 +211,8 @@ typedef struct {
     uint8_t ref_shift;  /* temperature reference average (0: off): acc += shift_T - rshift_round(acc, ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
     uint8_t track_creep_shift;  /* creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples [0, 15] */
     uint8_t creep_shift;  /* the pad's creep time constant 2^creep_shift samples (1..15 when creep_q15 is on) [0, 15] */
+    uint8_t hold_shift;  /* time constant 2^hold_shift samples of the hold stage's average of force_mN [0, 15] */
+    uint8_t hold_ramp_shift;  /* the settled-hold gain ramps in over 2^hold_ramp_shift samples [0, 12] */
     const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */
     fbg_net nets[FBG_N_NETS];
     uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state
@@ -250,6 +258,7 @@ typedef struct {
     int64_t tare_sum[FBG_N_CHANNELS];
     int64_t ref_acc;                             /* the temperature reference's average r * 2^ref_shift (fm; docs/fixed-point.md, "temperature reference") */
     int64_t creep_acc[FBG_N_STRAIN];             /* the creep inverse's lags L_i * 2^creep_shift (fm; docs/fixed-point.md, "creep inverse") */
+    int64_t hold_avg;                            /* the hold stage's average of force_mN, Q(FBG_EMA_FRAC) (docs/fixed-point.md, "settled-hold gain") */
     /* Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels read the
      * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
@@ -270,6 +279,8 @@ typedef struct {
     uint8_t track_pos;                           /* samples into the tracker's block */
     uint8_t track_limited;                       /* 1: a channel's drift_fm is at its bound */
     uint16_t rest_run;                           /* samples at rest, saturating */
+    uint16_t hold_run;                           /* steady contact samples so far, saturating */
+    uint8_t hold_primed;                         /* hold_avg holds a contact sample's force */
     const void *packed;                          /* fbg_pack / fbg_use_pack buffer, or NULL */
     uint32_t model_crc;                          /* model->blob_crc at fbg_init */
 } fbg_state;
@@ -431,12 +442,16 @@ typedef struct {
     float track_step_max_pm;  /* per block: corr_i += clamp(sum(filt_i) / 2^track_shift, +-track_step_max_pm) */
     float track_limit_pm;  /* |corr_i| <= track_limit_pm (BASELINE_LIMIT at it) */
     float track_creep;  /* the tracker's creep term as fbg_model, 0..0.5 (0: off): per sample at rest it sums filt_i - track_creep * creep_pm_i */
+    float hold_gain;  /* the settled-hold gain as fbg_model, its excess over 1 itself, |hold_gain| <= 0.125 (0: off): force_N *= 1 + hold_gain * w / 2^hold_ramp_shift */
+    float hold_band_N;  /* steady: |force_N - hold_avg_N| <= max(hold_band_N, hold_band_frac * |force_N|), hold_avg_N += (force_N - hold_avg_N) / 2^hold_shift */
+    float hold_band_frac;  /* 0..1 */
     float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
     float in_hi[12];
     float creep_q;  /* the pad's creep inverse as fbg_model, its gain q = kappa / (1 - kappa) itself, 0 <= q < 1 (0: off): e_i = c_i + creep_q * (c_i - creep_lag_pm_i) replaces c_i, creep_lag_pm_i += (e_i - creep_lag_pm_i) / 2^creep_shift */
     uint16_t stuck_max;
     uint16_t n_taps;  /* 1..FBG_MAX_TAPS */
     uint16_t track_settle;
+    uint16_t hold_settle;
     uint8_t n_ema;  /* as fbg_model */
     uint8_t n_play;
     uint8_t ema_shift[4];  /* state += (u - state) / 2^ema_shift[k] */
@@ -446,6 +461,8 @@ typedef struct {
     uint8_t contact_rise_n;  /* 1..255 */
     uint8_t track_shift;  /* at-rest baseline tracker as fbg_model (0: off) */
     uint8_t track_creep_shift;  /* creep_pm_i += (filt_i - creep_pm_i) / 2^track_creep_shift on every good sample (1..15 when track_creep > 0) */
+    uint8_t hold_shift;  /* 1..15 when hold_gain is on */
+    uint8_t hold_ramp_shift;  /* 0..FBG_MAX_HOLD_RAMP_SHIFT */
     uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
     uint8_t creep_shift;  /* the pad's creep time constant (1..15 when creep_q > 0) */
     uint8_t pad_[2];  /* explicit padding, keep 0 */
@@ -482,6 +499,7 @@ typedef struct {
     float loc[FBG_N_STRAIN];                     /* location averages of z - z_rest */
     float creep_pm[FBG_N_STRAIN];                /* the tracker's creep states: averages of the filtered shifts (pm), primed with the memory (mem_primed) */
     float ref_pm;                                /* the temperature reference's average (pm) */
+    float hold_avg_N;                            /* the hold stage's average of force_N */
     float creep_lag_pm[FBG_N_STRAIN];            /* the creep inverse's lags L_i (pm) */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
@@ -505,7 +523,9 @@ typedef struct {
     uint8_t rise_run;                            /* samples of the rise condition so far */
     uint8_t track_pos;                           /* samples into the tracker's block */
     uint8_t track_limited;                       /* 1: a channel's drift_pm is at its bound */
-    uint8_t reserved_[2];
+    uint16_t hold_run;                           /* steady contact samples so far, saturating */
+    uint8_t hold_primed;                         /* hold_avg_N holds a contact sample's force */
+    uint8_t reserved_[7];
     float act[2][FBG_MAX_WIDTH];                 /* activation ping-pong buffers */
 } fbgf_state;
 /* ---- END GENERATED float state ---- */

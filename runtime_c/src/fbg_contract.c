@@ -97,12 +97,18 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->track_creep_shift = rd_u8(p + 255);
     m->creep_q15 = rd_u16(p + 256);
     m->creep_shift = rd_u8(p + 258);
+    m->hold_gain_q15 = rd_i16(p + 259);
+    m->hold_settle = rd_u16(p + 261);
+    m->hold_band_mN = rd_i32(p + 263);
+    m->hold_band_q15 = rd_u16(p + 267);
+    m->hold_shift = rd_u8(p + 269);
+    m->hold_ramp_shift = rd_u8(p + 270);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 259u; k < 264u; ++k)
+    for (k = 271u; k < 272u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -229,6 +235,11 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint8_t v = m->track_creep_shift; if (v > 15) return FBG_ERR_RANGE; }
     { uint16_t v = m->creep_q15; if (v > 32767) return FBG_ERR_RANGE; }
     { uint8_t v = m->creep_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { int16_t v = m->hold_gain_q15; if (v < -4096 || v > 4096) return FBG_ERR_RANGE; }
+    { int32_t v = m->hold_band_mN; if (v < 0) return FBG_ERR_RANGE; }
+    { uint16_t v = m->hold_band_q15; if (v > 32768) return FBG_ERR_RANGE; }
+    { uint8_t v = m->hold_shift; if (v > 15) return FBG_ERR_RANGE; }
+    { uint8_t v = m->hold_ramp_shift; if (v > 12) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

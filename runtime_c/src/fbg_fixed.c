@@ -170,6 +170,8 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
+    s->hold_run = 0u;
+    s->hold_primed = 0u;
     memset(s->track_sum, 0, sizeof s->track_sum);
     memset(s->drift_fm, 0, sizeof s->drift_fm);
     memset(s->track_frac, 0, sizeof s->track_frac);
@@ -739,6 +741,36 @@ static void contact_outputs(fbg_state *s, const fbg_model *m, const int16_t *in,
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
 }
 
+/* The settled-hold gain (docs/runtime.md, "In use"; docs/fixed-point.md, "settled-hold
+ * gain"): the nets read a grip held still a little low, because a causal estimator cannot tell
+ * a load that stands from one that has just begun to fall; once force_mN has stayed within its
+ * band of its own average for hold_settle samples, no turn is left to mistake, and the trainer's
+ * gain, measured on its synthetic holds, ramps in over 2^hold_ramp_shift samples. Bounds:
+ * |force_mN| < 2^31, so hold_avg < 2^46; |hold_gain_q15| <= 2^12 and w <= 2^12, so the product
+ * stays below 2^55. */
+static int32_t hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat)
+{
+    const int64_t f = force_mN;
+    int64_t dev, band;
+    uint32_t w;
+    if (m->hold_gain_q15 == 0)
+        return force_mN;
+    if (!s->hold_primed) {
+        s->hold_avg = f * ((int64_t)1 << FBG_EMA_FRAC);
+        s->hold_primed = 1u;
+    } else {
+        s->hold_avg += fbg_rshift_round(f * ((int64_t)1 << FBG_EMA_FRAC) - s->hold_avg, m->hold_shift);
+    }
+    dev = f - fbg_rshift_round(s->hold_avg, FBG_EMA_FRAC);
+    band = fbg_rshift_round((f < 0 ? -f : f) * (int64_t)m->hold_band_q15, 15u);
+    if (band < m->hold_band_mN)
+        band = m->hold_band_mN;
+    w = fbg_hold_weight(&s->hold_run, (dev < 0 ? -dev : dev) <= band, m->hold_settle,
+                        m->hold_ramp_shift);
+    return fbg_sat32(f + fbg_rshift_round(f * m->hold_gain_q15 * (int64_t)w,
+                                          15u + m->hold_ramp_shift), sat);
+}
+
 /* A contact step's force and location. The force net's output (mN before the offset) feeds
  * the location net quantised: its inputs are [z1..z4, contact in Q(z_frac), that force in
  * Q(z_frac), location averages], written over the memory features after z, which are no
@@ -758,6 +790,7 @@ static uint32_t force_location_outputs(fbg_state *s, const fbg_model *m, int16_t
     last = net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
     out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], sat), m->xy_offset_um[0], sat);
     out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], sat), m->xy_offset_um[1], sat);
+    out->force_mN = hold_stage(s, m, out->force_mN, sat);
     return out->force_mN > m->overload_mN ? FBG_STATUS_OVERLOAD : 0u;
 }
 
@@ -814,8 +847,12 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     memset(out, 0, sizeof *out);
     contact_outputs(s, m, in, out, &sat);
     rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-    if (out->contact)
+    if (out->contact) {
         status |= force_location_outputs(s, m, in, loc, out, &sat);
+    } else {
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
+    }
     out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
     return FBG_OK;
 }

@@ -213,6 +213,25 @@ static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, 
     return *decision;
 }
 
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline

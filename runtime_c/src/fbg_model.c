@@ -83,6 +83,9 @@ fbg_status fbg_model_check(const fbg_model *model)
     /* So does the creep inverse's lag by creep_shift. */
     if (model->creep_q15 != 0u && model->creep_shift == 0u)
         return FBG_ERR_RANGE;
+    /* And the settled-hold average by hold_shift. */
+    if (model->hold_gain_q15 != 0 && model->hold_shift == 0u)
+        return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
     features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);

@@ -83,6 +83,11 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
         !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
         model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
         !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
         !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
         return FBG_ERR_RANGE;
@@ -225,7 +230,33 @@ static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correctio
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
+    s->hold_run = 0u;
+    s->hold_primed = 0u;
     return FBG_OK;
+}
+
+/* hold_stage of fbg_fixed.c in float: force_N of a contact sample times 1 + hold_gain * w /
+ * 2^hold_ramp_shift once it has been steady for hold_settle samples. */
+static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
+{
+    const float ramp = (float)(1ul << m->hold_ramp_shift);
+    float band, dev;
+    uint32_t w;
+    if (m->hold_gain == 0.0f)
+        return force_N;
+    if (!s->hold_primed) {
+        s->hold_avg_N = force_N;
+        s->hold_primed = 1u;
+    } else {
+        s->hold_avg_N += (force_N - s->hold_avg_N) / (float)(1ul << m->hold_shift);
+    }
+    dev = force_N - s->hold_avg_N;
+    band = m->hold_band_frac * (force_N < 0.0f ? -force_N : force_N);
+    if (band < m->hold_band_N)
+        band = m->hold_band_N;
+    w = fbg_hold_weight(&s->hold_run, (dev < 0.0f ? -dev : dev) <= band, m->hold_settle,
+                        m->hold_ramp_shift);
+    return force_N + force_N * m->hold_gain * ((float)w / ramp);
 }
 
 fbg_status fbgf_reset(fbgf_state *state)
@@ -484,7 +515,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 static int fin_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
-           m->contact_rise_n == 1u;
+           m->contact_rise_n == 1u && m->hold_gain == 0.0f;
 }
 #endif
 
@@ -521,12 +552,23 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     contact_output(y, out);
     out->contact = fcontact_decision(s, m, out->margin);
     frest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
-    if (!out->contact)
+    if (!out->contact) {
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
         return FBG_OK;
+    }
     y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
     y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
+    if (!out->contact) {             /* a non-finite output: the safe one */
+        s->hold_primed = 0u;
+        s->hold_run = 0u;
+    } else if (m->hold_gain != 0.0f) {
+        out->force_N = fhold_stage(s, m, out->force_N);
+        if (out->force_N > m->overload_N)
+            out->status |= FBG_STATUS_OVERLOAD;
+    }
     return FBG_OK;
 }
 
