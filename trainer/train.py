@@ -1097,7 +1097,7 @@ def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]
     The nets read a hold a little low (docs/trainer.md, "The turn": a causal estimator cannot
     tell a load that stands from one that has just begun to fall, and they compromise); once
     a load has stood still longer than a turn lasts the runtime may take that compromise
-    back, by as much as the nets leave on the holds they were trained with.
+    back, by as much as the nets leave on synthetic holds.
 
     Returns
     -------
@@ -1235,9 +1235,8 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
         if hold_tr[1].size else [])
     _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), settled["gain"])
     model.metadata = _metadata(model, data, params, described, (tr, va, te), x_all, reports,
-                               data_coverage, creep, (hold_tr, hold_va), (rest_tr, rest_va),
-                               held_s, warnings, (t_prep, t_train))
-    model.metadata["synthetic_holds"]["settled_gain"] = settled
+                               data_coverage, creep, (hold_tr, hold_va, settled),
+                               (rest_tr, rest_va), held_s, warnings, (t_prep, t_train))
     return model
 
 
@@ -1245,11 +1244,11 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
               described: Sequence[Mapping[str, Any]],
               rows: tuple[np.ndarray, np.ndarray, np.ndarray], x_all: np.ndarray,
               reports: Mapping[str, Any], data_coverage: Any, creep: Creep,
-              holds: tuple[Held, Held], rests: tuple[Held, Held], held_s: float,
+              holds: tuple[Held, Held, dict[str, Any]], rests: tuple[Held, Held], held_s: float,
               warnings: list[str], times: tuple[float, float]) -> dict[str, Any]:
     """The facts ``model.json`` records: data, split, sizes, training, metrics, times."""
     tr, va, te = rows
-    hold_tr, hold_va = holds
+    hold_tr, hold_va, settled = holds
     pre = model.preprocess
     rate = data.rate_hz
     pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
@@ -1276,7 +1275,8 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
                             "presses": {"train": _count_holds(hold_tr[1], data),
                                         "val": _count_holds(hold_va[1], data)},
                             "samples": {"train": int(hold_tr[1].size),
-                                        "val": int(hold_va[1].size)}},
+                                        "val": int(hold_va[1].size)},
+                            "settled_gain": settled},
         "turn_guard_s": params.turn_guard_s,
         "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
                             "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
