@@ -871,8 +871,9 @@ class HierarchicalModel:
 
     @property
     def runs_in_use(self) -> bool:
-        """Whether :func:`predict` runs the decision over time or the tracker, which carry
-        state along a recording (a centred filter's offline model never does)."""
+        """Whether :func:`predict` runs the decision over time, the tracker or the settled-hold
+        gain, which carry state along a recording (a centred filter's offline model never
+        does)."""
         iu = self.in_use
         return (not (iu.per_sample and not iu.track_shift and not iu.hold_gain)
                 and self.preprocess.filter_kind != "centred")
@@ -1244,7 +1245,8 @@ def predict(model: HierarchicalModel, wl_nm: Any, baseline_nm: Any = None, *,
             rate_hz: float | None = None) -> dict[str, np.ndarray]:
     """Full float pipeline on one continuous recording of raw wavelengths.
 
-    With ``model.in_use`` on, the decision over time gates the outputs and the at-rest
+    With ``model.in_use`` on, the decision over time gates the outputs, the settled-hold gain
+    scales a force that has stood still, and the at-rest
     baseline tracker moves the strain gratings' baseline between blocks of
     ``contract.LIMIT["TRACK_BLOCK"]`` samples, as the runtimes do (docs/runtime.md, "In
     use"); the first ``len(taps) - 1`` samples (the runtimes' warm-up) are never at rest.
@@ -1289,13 +1291,15 @@ class FloatPipeline:
     """The float pipeline of ONE continuous recording, fed in pieces of any length: what
     :func:`predict` computes on the whole, sample for sample (the temperature reference's
     average, the creep inverse's lags, the filter's history, the memory states, the decision
-    over time and the at-rest tracker carry over from piece to piece). It starts as the
+    over time, the settled-hold gain and the at-rest tracker carry over from piece to piece).
+    It starts as the
     runtimes after a tare: the first good sample primes the reference's average, the creep
     inverse's lags and the memory states.
     A sensor fault (:func:`fbgforce.samples.sensor_fault_rows`) is handled as the runtimes
     handle it: the filter is fed the last good sample's filtered shifts, the reference's
-    average, the creep inverse's lags, the memory states, the decision and the tracker skip the sample (the tracker
-    restarts its rest count), and the sample gets the safe output.
+    average, the creep inverse's lags, the memory states, the decision, the settled-hold gain
+    and the tracker skip the sample (the tracker restarts its rest count), and the sample gets
+    the safe output.
 
     Parameters
     ----------
