@@ -655,8 +655,7 @@ def quantize_hold(in_use: fm.InUse) -> dict[str, int]:
     """The settled-hold gain's integers (fbg_model.hold_*), all 0 when its gain rounds to 0."""
     gain_q15 = int(round(in_use.hold_gain * 2.0**15))
     if not gain_q15:
-        return {k: 0 for k in ("hold_gain_q15", "hold_settle", "hold_band_mN", "hold_band_q15",
-                               "hold_shift", "hold_ramp_shift")}
+        return {f.name: 0 for f in contract.PARAMS if f.name.startswith("hold_")}
     return {"hold_gain_q15": gain_q15, "hold_settle": in_use.hold_settle,
             "hold_band_mN": min(SAT32, int(round(in_use.hold_band_N * 1000.0))),
             "hold_band_q15": int(round(in_use.hold_band_frac * 2.0**15)),

@@ -619,10 +619,9 @@ def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float,
     return out
 
 
-def hold_over_time(force: np.ndarray, contact: np.ndarray, gain: float, settle: int,
-                   band: float, band_frac: float, shift: int, ramp_shift: int,
+def hold_over_time(force: np.ndarray, contact: np.ndarray, iu: InUse,
                    state: list[Any]) -> np.ndarray:
-    """The settled-hold gain (:class:`InUse`) on consecutive fault-free samples, in float.
+    """The settled-hold gain of ``iu`` on consecutive fault-free samples, in float.
 
     ``force`` and ``contact`` are the samples' outputs; ``state`` is ``[average, primed,
     hold_run]`` of the previous sample, carried and updated. Returns the force with the gain.
@@ -630,11 +629,10 @@ def hold_over_time(force: np.ndarray, contact: np.ndarray, gain: float, settle: 
     one its integer form (``hold_stage`` in fbg_fixed.c, ``fbgforce.export.intref``).
     """
     out = np.asarray(force, dtype=np.float64).copy()
-    if not gain:
+    if not iu.hold_gain:
         return out
     avg, primed, run = state
-    ramp = 1 << ramp_shift
-    alpha = 1.0 / (1 << shift)
+    settle, ramp, alpha = iu.hold_settle, 1 << iu.hold_ramp_shift, 1.0 / (1 << iu.hold_shift)
     for i, (f, c) in enumerate(zip(out.tolist(), np.asarray(contact, dtype=bool).tolist())):
         if not c:
             primed, run = 0, 0
@@ -643,9 +641,10 @@ def hold_over_time(force: np.ndarray, contact: np.ndarray, gain: float, settle: 
             avg += (f - avg) * alpha
         else:
             avg, primed = f, 1
-        run = min(run + 1, settle + ramp, 0xFFFF) if abs(f - avg) <= max(band, band_frac * abs(f)) else 0
+        steady = abs(f - avg) <= max(iu.hold_band_N, iu.hold_band_frac * abs(f))
+        run = min(run + 1, settle + ramp, 0xFFFF) if steady else 0
         w = min(max(run - settle, 0), ramp)
-        out[i] = f + f * gain * (w / ramp)
+        out[i] = f + f * iu.hold_gain * (w / ramp)
     state[0], state[1], state[2] = avg, primed, run
     return out
 
@@ -1364,9 +1363,7 @@ class FloatPipeline:
         x[:, :N_STRAIN] = z
         x[good] = self._memory.push(z[good])
         ran = predict_from_features(model, x[good], decide, self.nets)
-        ran["force_N"] = hold_over_time(ran["force_N"], ran["contact"], iu.hold_gain,
-                                        iu.hold_settle, iu.hold_band_N, iu.hold_band_frac,
-                                        iu.hold_shift, iu.hold_ramp_shift, self._hold)
+        ran["force_N"] = hold_over_time(ran["force_N"], ran["contact"], iu, self._hold)
         out = {key: np.zeros(n, dtype=v.dtype) for key, v in ran.items()}
         for key, v in ran.items():
             out[key][good] = v

@@ -133,8 +133,10 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     assert not T.takes_creep_out(T.Creep(0.05, 1.024), 0.0)            # no averages
     spec = foreign.IN_USE_VARIANTS["calib_1K"]
     ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
-    assert T.prepare([ds], creep_inverse=None, memory_s=memory_s).pre.creep > 0
-    assert T.prepare([ds], creep_inverse=None, memory_s=2.0).pre.creep == 0.0
+    assert T.prepare([ds], creep_inverse=None, memory=T.MEMORY_PRESETS["both"]).pre.creep > 0
+    slow = fm.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
+    assert T.prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
+    assert T.prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
     md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
     assert md["creep"]["inverse"] and md["turn_guard_s"] == T.TURN_GUARD_S
     md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False,

@@ -22,9 +22,9 @@ from fbgforce import model as fm
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, RangeError, Runtime
+from test_creep_track import _equal, _hardcases
 from test_simd import host_kernels
 
-FIELDS = contract.OUTPUT_FIELDS
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 #: A stage that acts within a short recording: 40 samples to settle, a 32-sample ramp, a
 #: gain near its bound so that every step of it shows in mN.
@@ -64,12 +64,6 @@ def _quantised(seed: int = 3, n: int = 4000, **hold):
 
 def _off(q: qz.QModel) -> qz.QModel:
     return dataclasses.replace(q, **qz.quantize_hold(fm.InUse()))
-
-
-def _equal(c: dict[str, np.ndarray], ref: dict[str, np.ndarray], what: str) -> None:
-    for k in FIELDS:
-        bad = np.flatnonzero(np.asarray(c[k], dtype=np.int64) != ref[k])
-        assert bad.size == 0, f"{what}: {k} differs at {bad[:5]}"
 
 
 def test_every_kernel_equals_the_integer_reference():
@@ -233,7 +227,6 @@ def test_the_stage_at_its_bounds_is_exact(gain_q15):
     way, the slowest average, the whole band and the longest ramp: the product reaches
     2^31 * 2^12 * 2^12 = 2^55, under the 2^63 docs/fixed-point.md proves, the force saturates
     and is flagged, and every host kernel equals the integer reference bit for bit."""
-    from test_creep_track import _hardcases
     hc = _hardcases()
     ramp_shift = contract.LIMIT["MAX_HOLD_RAMP_SHIFT"]
     q = dataclasses.replace(

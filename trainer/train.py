@@ -230,14 +230,14 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
-            creep_inverse: bool | None = False, memory_s: float = 0.0) -> Prepared:
+            creep_inverse: bool | None = False, memory: fm.Memory | None = None) -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
     (:func:`fit_creep`; with ``creep_inverse`` its inverse runs before the filter), filter
     every recording, split each by press.
 
     ``creep_inverse`` None lets the creep choose (:func:`takes_creep_out`): the inverse when the
-    pad creeps more slowly than ``memory_s``, the longest time constant of the nets' memory.
+    pad creeps more slowly than the longest average of ``memory``, the nets' memory states.
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
     at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz. ``ref_shift``: None
@@ -272,7 +272,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     fitted = fit_creep(data, pre, data.rows("train"))
     held = _held_creep(data, pre, fitted)
     if creep_inverse is None:
-        creep_inverse = takes_creep_out(held, memory_s)
+        creep_inverse = takes_creep_out(
+            held, memory_time_constant_s(memory, rate) if memory is not None else 0.0)
     if held.magnitude > 0 and creep_inverse:
         pre = replace(pre, creep=held.magnitude,
                       creep_shift=fm.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
@@ -287,11 +288,6 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
 #: (:func:`takes_creep_out`): the fit finds up to 0.5 % on a pad without creep (the synthetic
 #: device of tests/conftest.py: 0.5 % with a 4 s time constant), the pads that creep 5 %.
 CREEP_INVERSE_MIN = 0.02
-
-
-def _median_rate_hz(datasets: Sequence[Any]) -> float:
-    """The recordings' median sample rate, as :func:`prepare` takes it."""
-    return float(np.median([fbgtare.sample_rate_hz(ds.t_s) for ds in datasets]))
 
 
 def takes_creep_out(creep: Creep, memory_s: float) -> bool:
@@ -1198,8 +1194,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     data = prepared if prepared is not None else prepare(
         ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
         window=params.window, sources=sources, ref_shift=params.ref_shift,
-        creep_inverse=params.creep_inverse,
-        memory_s=memory_time_constant_s(memory, _median_rate_hz(ds_list)))
+        creep_inverse=params.creep_inverse, memory=memory)
     if params.turn_guard_s is None:
         params = replace(params, turn_guard_s=TURN_GUARD_S if data.pre.creep else 0.0)
     t_prep = time.perf_counter() - t_start
