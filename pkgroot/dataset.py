@@ -49,9 +49,13 @@ FORCE_NEGATIVE_LIMIT_N = -0.5
 CONTACT_THRESHOLD_N = 0.05
 #: CSV number formats per column (npz is lossless). ``%g`` drops trailing zeros, which keeps
 #: files short and loading fast: wavelengths 10 significant digits = 1 fm in 1000-2000 nm,
-#: time 12 digits (1 µs up to 10^6 s), force 8 digits (≤ 10 µN below 1000 N), x/y 0.1 µm.
+#: force 8 digits (≤ 10 µN below 1000 N), x/y 0.1 µm. Time is written as the shortest decimal
+#: that reads back as the same float64 (``%r`` of a Python float): a fixed count of
+#: significant digits has a resolution that depends on the magnitude (12 digits are 10 ms on
+#: a Unix-epoch clock near 1.8e9 s, where 1 ms samples would collide), the shortest exact
+#: form keeps whatever resolution the clock had, and a simulator's 0.001 s steps stay short.
 _CSV_FORMATS = {
-    "t_s": "%.12g",
+    "t_s": "%r",
     **{c: "%.10g" for c in WL_COLUMNS},
     "contact": "%d",
     "x_mm": "%.4f",
@@ -926,9 +930,11 @@ def validate(ds: Dataset, where: str = "<dataset>") -> None:
 def save(ds: Dataset, path: str | Path) -> None:
     """Validate ``ds`` and write it as CSV or npz (by suffix).
 
-    CSV stores fixed resolutions (t 12 significant digits, wavelengths 1 fm, force 8 significant
-    digits, x/y 0.1 µm; float extras 9 significant digits) and records extra-column dtypes in a comment so that they load back
-    as written; npz is lossless. Refuses to write data :func:`load` would reject.
+    CSV stores time exactly (the shortest decimal that reads back as the same float64, at
+    any magnitude: Unix-epoch clocks included) and the rest at fixed resolutions
+    (wavelengths 1 fm, force 8 significant digits, x/y 0.1 µm; float extras 9 significant
+    digits), and records extra-column dtypes in a comment so that they load back as written;
+    npz is lossless. Refuses to write data :func:`load` would reject.
     """
     p = Path(path)
     kind = _kind(p)

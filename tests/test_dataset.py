@@ -74,6 +74,30 @@ def test_csv_round_trip_keeps_resolution_and_extras(tmp_path):
     assert body(tmp_path / "d.csv") == body(tmp_path / "d2.csv")
 
 
+@pytest.mark.parametrize("start_s,step_s", [(1764100000.0, 1e-3),      # Unix seconds, 1 kHz
+                                            (1764100000.123, 5e-5),    # 20 kHz, off the second
+                                            (3.0e5, 1e-3),             # a long-running clock
+                                            (0.0, 1e-3)])
+def test_csv_round_trips_time_exactly_at_any_magnitude(tmp_path, start_s, step_s):
+    """Times come back bit for bit, so a clock in Unix seconds (1.76e9 s, where twelve
+    significant digits are 10 ms) keeps its 1 ms steps and the file loads again; random
+    float64 times too, not only round decimals."""
+    ds = make_ds()
+    ds.t_s = start_s + np.arange(len(ds)) * step_s
+    D.save(ds, tmp_path / "d.csv")
+    back = D.load(tmp_path / "d.csv")
+    np.testing.assert_array_equal(back.t_s, ds.t_s)
+    assert np.all(np.diff(back.t_s) > 0)
+    # Arbitrary doubles: the shortest exact decimal, not a resolution.
+    jitter = np.random.default_rng(1).uniform(0.1, 0.9, len(ds)) * step_s
+    ds.t_s = start_s + np.cumsum(jitter)
+    with D.CsvWriter(tmp_path / "chunks.csv", extra_kinds={k: D._extra_kind(v)
+                                                           for k, v in ds.extra.items()}) as w:
+        for a in range(0, len(ds), 70):
+            w.write(ds.subset(slice(a, a + 70)))
+    np.testing.assert_array_equal(D.load(tmp_path / "chunks.csv").t_s, ds.t_s)
+
+
 def test_csv_empty_location_without_contact(tmp_path):
     ds = make_ds()
     D.save(ds, tmp_path / "d.csv")
