@@ -315,15 +315,15 @@ def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) -> np.ndarray:
-    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples (the rule of
-    :func:`fbgforce.model.decide_over_time` on the Q8 margins); ``state`` is
-    ``[decision, rise_run]``, carried and updated."""
-    if q.contact_on_q8 == 0 and q.contact_off_q8 == 0 and q.contact_rise_n == 1:
-        if raw.size:
-            state[0], state[1] = int(raw[-1]), 0
-        return raw.astype(bool)       # the per-sample rule itself (fbg_fixed.c says why)
+    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples: the rule of
+    :func:`fbgforce.model.decide_over_time` on the Q8 margins, in Python integers (exact).
+    ``raw`` is ``acc > 0`` and ``margin`` the output row as computed, whatever the sign of its
+    multiplier: the rule reads both as C does, with no shortcut for the per-sample setting
+    (which equals ``raw`` only when the multiplier is positive). ``state`` is ``[decision,
+    rise_run, cusum_q8]``, carried and updated."""
     return fm.decide_over_time(raw, margin, q.contact_on_q8, q.contact_off_q8, q.contact_rise_n,
-                               state)
+                               state, cusum=(q.contact_cusum_h_q8, q.contact_cusum_k_q8,
+                                             q.contact_cusum_lo_q8, q.contact_cusum_hi_q8))
 
 
 def _hold(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
@@ -481,7 +481,7 @@ def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
     z_rest, _ = q.z_rest()
     history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)   # held FIR inputs before the block
     last_comp = np.zeros(4, dtype=np.int64)                     # zeros before any good sample
-    memory, tracker, decision, hold = _Memory(q), _Tracker(q), [0, 0], [0, 0, 0]
+    memory, tracker, decision, hold = _Memory(q), _Tracker(q), [0, 0, 0], [0, 0, 0]
     creep: list[list[int] | None] = [None]                      # the creep inverse's acc
     block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
     for a in range(0, n, block):

@@ -230,6 +230,11 @@ class QModel(QModelMemory):
     hold_band_q15: int = 0
     hold_shift: int = 0
     hold_ramp_shift: int = 0
+    #: The decision's CUSUM rise (fbg_model.contact_cusum_*): h 0 is off (the Schmitt trigger).
+    contact_cusum_h_q8: int = 0
+    contact_cusum_k_q8: int = 0
+    contact_cusum_lo_q8: int = 0
+    contact_cusum_hi_q8: int = 0
     #: OUT_OF_RANGE bounds of the net inputs (fbg_model.in_lo, in_hi): the defaults never flag.
     in_lo: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], -SAT16, dtype=np.int64))
     in_hi: np.ndarray = field(default_factory=lambda: np.full(contract.LIMIT["MAX_INPUTS"], SAT16, dtype=np.int64))
@@ -306,6 +311,15 @@ class QModel(QModelMemory):
              "creep_shift must be at least 1 when creep_q15 is on")
         need(self.hold_gain_q15 == 0 or self.hold_shift >= 1, "ERR_RANGE",
              "hold_shift must be at least 1 when hold_gain_q15 is on")
+        if self.contact_cusum_h_q8 == 0:
+            need(self.contact_cusum_k_q8 == 0 and self.contact_cusum_lo_q8 == 0
+                 and self.contact_cusum_hi_q8 == 0, "ERR_RANGE",
+                 "contact_cusum_k_q8, _lo_q8 and _hi_q8 must be 0 when contact_cusum_h_q8 is off")
+        else:
+            need(self.contact_cusum_lo_q8 <= self.contact_cusum_hi_q8 and self.contact_on_q8 == 0
+                 and self.contact_rise_n == 1, "ERR_RANGE",
+                 "with contact_cusum_h_q8 on, contact_cusum_lo_q8 <= contact_cusum_hi_q8, "
+                 "contact_on_q8 0 and contact_rise_n 1")
         need(self.taps.size >= 1 and bool(np.all(np.abs(self.taps) <= 32768)), "ERR_RANGE",
              "taps must be int16")
         for name, net in zip(NET_NAMES, self.nets):
@@ -618,6 +632,8 @@ def quantize_creep(pre: fm.Preprocess) -> dict[str, int]:
 def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
+    The decision's CUSUM rise: :func:`quantize_cusum`.
+
     The creep magnitude becomes ``track_creep_q15 = round(track_creep * 2^15)``; a magnitude
     that rounds to 0 turns the creep term off (shift 0 with it). The settled-hold gain
     likewise becomes ``hold_gain_q15 = round(hold_gain * 2^15)`` (0 turns the stage off, its
@@ -648,7 +664,23 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
             "track_limit_fm": int(round(in_use.track_limit_pm * 1000.0)),
             "track_creep_q15": creep_q15,
             "track_creep_shift": in_use.track_creep_shift if creep_q15 else 0,
-            **quantize_hold(in_use)}
+            **quantize_hold(in_use), **quantize_cusum(in_use)}
+
+
+def quantize_cusum(in_use: fm.InUse) -> dict[str, int]:
+    """The decision's CUSUM rise in Q8 margin units (fbg_model.contact_cusum_*): each value
+    ``round(v * 256)``, clamped to the contract's ``MAX_CUSUM_Q8``; a threshold that would round
+    to 0 stays on at 1 (the float model has it on). All 0 when the CUSUM is off."""
+    if not in_use.contact_cusum_h:
+        return {f.name: 0 for f in contract.PARAMS if f.name.startswith("contact_cusum_")}
+    top = contract.LIMIT["MAX_CUSUM_Q8"]
+
+    def q8(v: float) -> int:
+        return int(np.clip(round(v * 256.0), -top, top))
+    return {"contact_cusum_h_q8": max(1, q8(in_use.contact_cusum_h)),
+            "contact_cusum_k_q8": q8(in_use.contact_cusum_k),
+            "contact_cusum_lo_q8": q8(in_use.contact_cusum_lo),
+            "contact_cusum_hi_q8": q8(in_use.contact_cusum_hi)}
 
 
 def quantize_hold(in_use: fm.InUse) -> dict[str, int]:

@@ -179,7 +179,9 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_HOLD_GAIN_Q15": (1 << 12, "largest |hold_gain_q15| (12.5 %): the hold stage's product "
                           "stays below 2^56 (docs/fixed-point.md)"),
     "MAX_HOLD_RAMP_SHIFT": (12, "largest hold_ramp_shift (the gain ramps in over 4096 samples)"),
-    "BLOB_VERSION": (10, "blob format this library reads and writes"),
+    "MAX_CUSUM_Q8": (1 << 29, "largest contact_cusum_h_q8 and |contact_cusum_k_q8|, |_lo_q8|, "
+                     "|_hi_q8|: the CUSUM's sum stays inside int32 (docs/fixed-point.md)"),
+    "BLOB_VERSION": (11, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
     "VERSION_MINOR": (VERSION[1], ""),
@@ -473,6 +475,16 @@ PARAMS: tuple[Field, ...] = (
           doc="time constant 2^hold_shift samples of the hold stage's average of force_mN"),
     Field("hold_ramp_shift", "uint8_t", 1, 0, LIMIT["MAX_HOLD_RAMP_SHIFT"],
           doc="the settled-hold gain ramps in over 2^hold_ramp_shift samples"),
+    Field("contact_cusum_h_q8", "int32_t", 1, 0, LIMIT["MAX_CUSUM_Q8"],
+          doc="the decision's CUSUM rise (0: off, the Schmitt trigger with its count; on: needs "
+              "contact_on_q8 0, contact_rise_n 1, lo <= hi): out of contact S = max(0, S + "
+              "clamp(margin_q8, lo, hi) - k), contact rises when S >= h (S = 0 then)"),
+    Field("contact_cusum_k_q8", "int32_t", 1, -LIMIT["MAX_CUSUM_Q8"], LIMIT["MAX_CUSUM_Q8"],
+          doc="the CUSUM's drift k (Q8 margin; 0 when the CUSUM is off)"),
+    Field("contact_cusum_lo_q8", "int32_t", 1, -LIMIT["MAX_CUSUM_Q8"], LIMIT["MAX_CUSUM_Q8"],
+          doc="the CUSUM's clip of the margin, lower end (0 when off)"),
+    Field("contact_cusum_hi_q8", "int32_t", 1, -LIMIT["MAX_CUSUM_Q8"], LIMIT["MAX_CUSUM_Q8"],
+          doc="the CUSUM's clip of the margin, upper end (0 when off)"),
 )
 
 FLOAT_PARAMS: tuple[Field, ...] = (
@@ -512,6 +524,12 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("hold_band_frac", "float", doc="0..1"),
     Field("hold_shift", "uint8_t", doc="1..15 when hold_gain is on"),
     Field("hold_ramp_shift", "uint8_t", doc="0..FBG_MAX_HOLD_RAMP_SHIFT"),
+    Field("contact_cusum_h", "float", doc="the decision's CUSUM rise as fbg_model, on the margin "
+          "(0: off; on: contact_on 0, contact_rise_n 1, lo <= hi): S = max(0, S + clamp(margin, "
+          "lo, hi) - k), contact rises when S >= h"),
+    Field("contact_cusum_k", "float"),
+    Field("contact_cusum_lo", "float"),
+    Field("contact_cusum_hi", "float"),
     Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
     Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
@@ -616,6 +634,8 @@ STATE: tuple[StateField, ...] = (
                note="Right after the int64 arrays, so 8-byte aligned on every ABI: the DSP kernels "
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
     StateField("tare_count", "uint32_t"),
+    StateField("cusum_q8", "int32_t", doc="the decision's CUSUM S (Q8 margin), in [0, "
+               "contact_cusum_h_q8) out of contact, 0 in contact"),
     *_RING_COUNTERS,
     StateField("loc_z0", "int16_t", ("N_STRAIN",), "z of a zero filtered shift (the model's)"),
     *_FRONT_FLAGS,
@@ -644,6 +664,7 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("creep_lag_pm", "float", ("N_STRAIN",), "the creep inverse's lags L_i (pm)"),
     StateField("tare_sum", "int64_t", ("N_CHANNELS",)),
     StateField("tare_count", "uint32_t"),
+    StateField("cusum", "float", doc="the decision's CUSUM S (margin), as fbg_state's cusum_q8"),
     *_RING_COUNTERS,
     *_FRONT_FLAGS,
     StateField("track_sum", "float", ("N_STRAIN",),
@@ -660,7 +681,7 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("track_limited", "uint8_t", doc="1: a channel's drift_pm is at its bound"),
     StateField("hold_run", "uint16_t", doc="steady contact samples so far, saturating"),
     StateField("hold_primed", "uint8_t", doc="hold_avg_N holds a contact sample's force"),
-    StateField("reserved_", "uint8_t", (7,)),
+    StateField("reserved_", "uint8_t", (3,)),
     StateField("act", "float", (2, "MAX_WIDTH"), "activation ping-pong buffers"),
 )
 

@@ -336,6 +336,20 @@ REST_MARGIN_FACTOR = 2.0
 #: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
 #: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
 RISE_S = 0.003
+#: Largest magnitude of every CUSUM value of :class:`InUse` (margin units): the contract's
+#: ``MAX_CUSUM_Q8`` in Q8.
+CUSUM_MAX = contract.LIMIT["MAX_CUSUM_Q8"] / 256.0
+#: The CUSUM rise's false events per minute at rest that :func:`cusum_parameters` aims at: an
+#: average run length at rest of 10 minutes, ten times below the goal of 1 per minute, for what
+#: a calibration's rests cannot show (the margin rising 0.2-1.5 s after a release in use).
+CUSUM_FALSE_PER_MIN = 0.1
+#: Fewest excursion peaks for the tail fit above their 90th percentile (fewer: all of them).
+CUSUM_TAIL_MIN = 20
+#: The exponential fit of the excursion peaks' tail reads correlated rests too light: on
+#: two minutes of AR(1) rest margins (correlation 0.5 to 0.98 per sample) the rate observed
+#: over 30 minutes at the fitted threshold was up to 5 times the fit. The threshold is set
+#: where the fit gives the target divided by this.
+CUSUM_FIT_MARGIN = 5.0
 #: The at-rest tracker: time constant, the rest after a release before it learns, the
 #: fastest drift it follows and its bound from the tare.
 TRACK_TIME_CONSTANT_S = 1.0
@@ -445,6 +459,21 @@ class InUse:
         ``hold_gain`` is on.
     hold_ramp_shift
         The gain ramps in over ``2**hold_ramp_shift`` samples (0..12).
+    contact_cusum_h
+        The decision's quickest-detection rise (0: off, the Schmitt trigger above; what a
+        model saved without the field reads): a one-sided CUSUM on the margin, ``S = max(0, S
+        + clip(margin, contact_cusum_lo, contact_cusum_hi) - contact_cusum_k)`` out of
+        contact, contact rising when ``S >= contact_cusum_h`` (margin x samples) and ``S``
+        restarting at 0; contact stays as above (margin positive or above
+        ``contact_off_margin``). On, it replaces the Schmitt trigger's rise:
+        ``contact_on_margin`` 0 and ``contact_rise_samples`` 1. :meth:`recommended` with
+        ``decision="cusum"`` sets it from the calibration's rests (:func:`cusum_parameters`).
+    contact_cusum_k
+        The CUSUM's drift: a sample adds its margin's excess over ``k`` (0 when off).
+    contact_cusum_lo, contact_cusum_hi
+        The CUSUM's clip of the margin, ``lo <= hi`` (0 when off): ``hi`` bounds what one
+        sample adds, so no single spike raises contact; ``lo`` what one sample takes away.
+        Every CUSUM value within ``+-MAX_CUSUM_Q8 / 256`` (:data:`CUSUM_MAX`).
     """
 
     contact_on_margin: float = 0.0
@@ -462,6 +491,10 @@ class InUse:
     hold_band_frac: float = 0.0
     hold_shift: int = 0
     hold_ramp_shift: int = 0
+    contact_cusum_h: float = 0.0
+    contact_cusum_k: float = 0.0
+    contact_cusum_lo: float = 0.0
+    contact_cusum_hi: float = 0.0
 
     def __post_init__(self) -> None:
         self.contact_on_margin = float(self.contact_on_margin)
@@ -504,17 +537,49 @@ class InUse:
                              f"{self.hold_shift}")
         if not 0 <= self.hold_ramp_shift <= contract.LIMIT["MAX_HOLD_RAMP_SHIFT"]:
             raise ValueError(f"hold_ramp_shift must be in [0, {contract.LIMIT['MAX_HOLD_RAMP_SHIFT']}]")
+        self._check_cusum()
+
+    def _check_cusum(self) -> None:
+        names = ("contact_cusum_h", "contact_cusum_k", "contact_cusum_lo", "contact_cusum_hi")
+        for name in names:
+            setattr(self, name, float(getattr(self, name)))
+            if not abs(getattr(self, name)) <= CUSUM_MAX:
+                raise ValueError(f"{name} must be within +-{CUSUM_MAX:g}, not {getattr(self, name)}")
+        h, k, lo, hi = self.cusum
+        if h < 0:
+            raise ValueError(f"contact_cusum_h must be >= 0 (0: off), not {h}")
+        if not h and (k or lo or hi):
+            raise ValueError("contact_cusum_k, _lo and _hi must be 0 while contact_cusum_h is 0 (off)")
+        if h and not lo <= hi:
+            raise ValueError(f"contact_cusum_lo ({lo}) must be <= contact_cusum_hi ({hi})")
+        if h and (self.contact_on_margin or self.contact_rise_samples != 1):
+            raise ValueError("with contact_cusum_h on, contact_on_margin must be 0 and "
+                             "contact_rise_samples 1 (the CUSUM is the rise rule)")
+
+    @property
+    def cusum(self) -> tuple[float, float, float, float]:
+        """``(h, k, lo, hi)`` of the CUSUM rise (h 0: off), as :func:`decide_over_time` takes
+        them."""
+        return (self.contact_cusum_h, self.contact_cusum_k, self.contact_cusum_lo,
+                self.contact_cusum_hi)
 
     @classmethod
     def recommended(cls, sample_rate_hz: float = 1000.0,
                     rest_margins: np.ndarray | None = None, *, creep_magnitude: float = 0.0,
-                    creep_time_constant_samples: float = 0.0, hold_gain: float = 0.0) -> "InUse":
+                    creep_time_constant_samples: float = 0.0, hold_gain: float = 0.0,
+                    decision: str = "schmitt", contact_margins: np.ndarray | None = None
+                    ) -> "InUse":
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
-        ``rest_margins``: the contact net's margins on calibration samples at rest; contact
+        ``rest_margins``: the contact net's margins on calibration samples at rest, in the
+        order of the recording; contact
         rises only past :data:`REST_MARGIN_FACTOR` times their :data:`REST_MARGIN_QUANTILE`
         quantile, held for :data:`RISE_S`, and falls below minus half of it. None: the
         per-sample decision.
+
+        ``decision``: ``"schmitt"`` for that rule, ``"cusum"`` for the CUSUM rise of
+        :func:`cusum_parameters` on ``rest_margins`` (and ``contact_margins``, the margins on
+        labelled contact samples, for its drift), falling below minus its drift.
 
         ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted,
         for the tracker's creep term (:func:`creep_parameters`); 0 leaves it off (as for a
@@ -534,11 +599,19 @@ class InUse:
                               max(1, int(round(np.log2(HOLD_AVERAGE_S * sample_rate_hz))))),
             "hold_ramp_shift": min(contract.LIMIT["MAX_HOLD_RAMP_SHIFT"],
                                    max(0, int(round(np.log2(HOLD_RAMP_S * sample_rate_hz)))))}
+        if decision not in ("schmitt", "cusum"):
+            raise ValueError(f"decision must be 'schmitt' or 'cusum', not {decision!r}")
         on = 0.0
-        if rest_margins is not None and np.size(rest_margins):
+        rise: dict[str, float | int] = {}
+        if decision == "cusum" and rest_margins is not None and np.size(rest_margins):
+            cs = cusum_parameters(rest_margins, sample_rate_hz, contact_margins)
+            rise = {"contact_off_margin": -cs["k"], "contact_cusum_h": cs["h"],
+                    "contact_cusum_k": cs["k"], "contact_cusum_lo": cs["lo"],
+                    "contact_cusum_hi": cs["hi"]}
+        elif rest_margins is not None and np.size(rest_margins):
             on = REST_MARGIN_FACTOR * max(0.0, float(np.quantile(rest_margins,
                                                                  REST_MARGIN_QUANTILE)))
-        return cls(contact_on_margin=on, contact_off_margin=-0.5 * on,
+        return cls(contact_on_margin=on, **{"contact_off_margin": -0.5 * on, **rise},
                    contact_rise_samples=max(1, min(255, int(round(RISE_S * sample_rate_hz))))
                    if on > 0 else 1,
                    track_shift=max(1, int(round(np.log2(TRACK_TIME_CONSTANT_S * sample_rate_hz)))),
@@ -560,13 +633,15 @@ class InUse:
                 "track_creep_shift": self.track_creep_shift, "hold_gain": self.hold_gain,
                 "hold_settle": self.hold_settle, "hold_band_N": self.hold_band_N,
                 "hold_band_frac": self.hold_band_frac, "hold_shift": self.hold_shift,
-                "hold_ramp_shift": self.hold_ramp_shift}
+                "hold_ramp_shift": self.hold_ramp_shift, "contact_cusum_h": self.contact_cusum_h,
+                "contact_cusum_k": self.contact_cusum_k, "contact_cusum_lo": self.contact_cusum_lo,
+                "contact_cusum_hi": self.contact_cusum_hi}
 
     @property
     def per_sample(self) -> bool:
         """True when the decision is the contact net's own, sample by sample."""
         return (self.contact_on_margin == 0.0 and self.contact_off_margin == 0.0
-                and self.contact_rise_samples == 1)
+                and self.contact_rise_samples == 1 and self.contact_cusum_h == 0.0)
 
 
 #: Beyond each input's calibrated range, the share of that range still accepted without
@@ -596,27 +671,127 @@ def rest_run_after(run: int, rest: np.ndarray) -> int:
 
 
 def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
-                     state: list[int]) -> np.ndarray:
+                     state: list[Any], cusum: tuple[float, float, float, float] | None = None
+                     ) -> np.ndarray:
     """The contact decision over time on consecutive samples, in any units of the margin.
 
-    Contact rises after ``rise_n`` consecutive samples with ``raw`` (the net's own decision)
-    and ``margin >= on``; it stays while ``raw`` or ``margin > off``. ``state`` is
-    ``[decision, rise_run]`` of the previous sample, carried and updated. The C runtimes run
-    this rule (``contact_decision`` in fbg_fixed.c and fbgf_float.c).
+    Contact stays while ``raw`` (the net's own decision) or ``margin > off``. It rises by one
+    of two rules. With ``cusum`` None or its threshold ``h`` 0: after ``rise_n`` consecutive
+    samples with ``raw`` and ``margin >= on`` (a Schmitt trigger with a count). Else
+    ``cusum = (h, k, lo, hi)``, a one-sided CUSUM: out of contact ``S = max(0, S +
+    clip(margin, lo, hi) - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it
+    stays 0 in contact). ``state`` is ``[decision, rise_run, S]`` of the previous sample,
+    carried and updated. Integer arguments give the integer rule exactly (Python integers);
+    the C runtimes run this rule (``contact_decision`` in fbg_fixed.c, ``fcontact_decision``
+    in fbgf_float.c).
     """
     raw = np.asarray(raw, dtype=bool)
     out = np.zeros(raw.size, dtype=bool)
-    decision, rise = state
+    decision, rise, s = state
+    h, k, lo, hi = cusum if cusum is not None else (0, 0, 0, 0)
     for i, (r, mg) in enumerate(zip(raw.tolist(), np.asarray(margin).tolist())):
         if decision:
             decision = int(r or mg > off)
+        elif h:
+            s = max(s + (min(max(mg, lo), hi) - k), 0)
+            if s >= h:
+                decision, s = 1, 0
         else:
             rise = min(rise + 1, 255) if (r and mg >= on) else 0
             if rise >= rise_n:
                 decision, rise = 1, 0
         out[i] = decision
-    state[0], state[1] = decision, rise
+    state[0], state[1], state[2] = decision, rise, s
     return out
+
+
+def cusum_path(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float = CUSUM_MAX
+               ) -> np.ndarray:
+    """S of the CUSUM rise over consecutive margins, never rising (no threshold): ``S_t =
+    max(0, S_{t-1} + clip(m_t, lo, hi) - k)``, from ``S = 0``, in closed form (Lindley: the
+    walk of the increments less its running minimum, 0 included)."""
+    d = np.clip(np.asarray(margins, dtype=np.float64).ravel(), lo, hi) - k
+    walk = np.cumsum(d)
+    return walk - np.minimum(np.minimum.accumulate(walk), 0.0) if walk.size else walk
+
+
+def cusum_peaks(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float = CUSUM_MAX
+                ) -> np.ndarray:
+    """The highest S of each excursion of :func:`cusum_path` above 0: a CUSUM with threshold
+    ``h`` raises one false event per excursion whose peak reaches ``h``."""
+    s = cusum_path(margins, k, lo, hi)
+    up = s > 0
+    if not up.any():
+        return np.empty(0)
+    starts = np.flatnonzero(up & ~np.concatenate([[False], up[:-1]]))
+    return np.maximum.reduceat(np.where(up, s, 0.0), starts)
+
+
+def cusum_false_rate(peaks: np.ndarray, minutes: float, h: float) -> float:
+    """False events per minute at rest of a CUSUM with threshold ``h``, estimated from the
+    excursion peaks (:func:`cusum_peaks`) of ``minutes`` of rest: the peaks' upper tail as an
+    exponential, ``rate(h) = r_u exp(-(h - u) / beta)`` (a random walk with a negative drift
+    has excursion maxima with such a tail), ``u`` the peaks' 90th percentile (0 with fewer than
+    :data:`CUSUM_TAIL_MIN` peaks), ``r_u`` the rate of the peaks above it, ``beta`` their mean
+    excess. Past the highest observed peak only the fit counts; below it, the larger of the
+    fit and the observed rate."""
+    p = np.asarray(peaks, dtype=np.float64)
+    if not p.size or minutes <= 0:
+        return 0.0
+    u = float(np.quantile(p, 0.9)) if p.size >= CUSUM_TAIL_MIN else 0.0
+    tail = p[p > u]
+    if not tail.size:
+        return 0.0
+    rate_u, beta = tail.size / minutes, max(float(np.mean(tail - u)), 1e-12)
+    fit = rate_u * float(np.exp(-(h - u) / beta)) if h > u else rate_u
+    return max(fit, float(np.sum(p >= h)) / minutes)
+
+
+def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
+                     contact_margins: np.ndarray | None = None,
+                     false_per_min: float | None = None, k: float | None = None
+                     ) -> dict[str, float]:
+    """The CUSUM rise the trainer sets from the calibration's rests (docs/runtime.md, "In
+    use").
+
+    ``k``, the drift, unless given: the rests' :data:`REST_MARGIN_QUANTILE` quantile (the level
+    rest noise almost never passes; at least 0), or, given ``contact_margins`` whose 10th
+    percentile lies above it, the midpoint of the two. ``h``: the smallest threshold at which the false events
+    at rest estimated from the rests' excursion peaks (:func:`cusum_false_rate`, ``rest_margins``
+    in recording order) stay at ``false_per_min`` (:data:`CUSUM_FALSE_PER_MIN`, an average run
+    length at rest of 10 minutes) divided by :data:`CUSUM_FIT_MARGIN`, above every observed peak (no false event on the calibration
+    itself), and at least what today's rule asks of a rise (:data:`RISE_S` of samples at
+    ``max(k, 0.5)`` above ``k``). ``hi = k + h / 2``: no single sample raises contact, and the
+    clip only lowers the peaks the estimate counted; ``lo`` the contract's lowest (no clip).
+
+    Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``
+    and the ``rest_minutes`` it rests on.
+    """
+    rest = np.asarray(rest_margins, dtype=np.float64).ravel()
+    rest = rest[np.isfinite(rest)]
+    target = (CUSUM_FALSE_PER_MIN if false_per_min is None else float(false_per_min)) \
+        / CUSUM_FIT_MARGIN
+    q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
+    given = k is not None
+    k = float(k) if k is not None else q
+    if not given and contact_margins is not None and np.size(contact_margins):
+        c10 = float(np.quantile(np.asarray(contact_margins, dtype=np.float64), 0.1))
+        if c10 > q:
+            k = 0.5 * (q + c10)
+    minutes = rest.size / sample_rate_hz / 60.0
+    peaks = cusum_peaks(rest, k)
+    h = max(1.0, RISE_S * sample_rate_hz) * max(k, 0.5)
+    if peaks.size:
+        h = max(h, float(np.nextafter(peaks.max(), np.inf)))
+        u = float(np.quantile(peaks, 0.9)) if peaks.size >= CUSUM_TAIL_MIN else 0.0
+        tail = peaks[peaks > u]
+        if tail.size and tail.size / minutes > target:
+            beta = max(float(np.mean(tail - u)), 1e-12)
+            h = max(h, u + beta * float(np.log(tail.size / minutes / target)))
+    h = min(h, CUSUM_MAX)
+    k = float(np.clip(k, -CUSUM_MAX, CUSUM_MAX))
+    return {"h": h, "k": k, "lo": -CUSUM_MAX, "hi": min(k + 0.5 * h, CUSUM_MAX),
+            "false_per_min": cusum_false_rate(peaks, minutes, h), "rest_minutes": minutes}
 
 
 def hold_over_time(force: np.ndarray, contact: np.ndarray, iu: InUse,
@@ -1323,7 +1498,7 @@ class FloatPipeline:
         self._reference: list[float | None] = [None]   # primed by the first good sample
         self._creep_lag: list[np.ndarray | None] = [None]   # the creep inverse's, likewise
         self._memory = MemoryStream(pre.memory, pre.z_rest)
-        self._decision = [0, 0]
+        self._decision: list[Any] = [0, 0, 0.0]
         self._hold: list[Any] = [0.0, 0, 0]
         self._drift = np.zeros(N_STRAIN)
         self._track_sum = np.zeros(N_STRAIN)
@@ -1356,7 +1531,7 @@ class FloatPipeline:
 
         def decide(raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
             return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
-                                    iu.contact_rise_samples, self._decision)
+                                    iu.contact_rise_samples, self._decision, iu.cusum)
 
         z = (filt - pre.input_mean) / pre.input_std
         x = np.zeros((n, pre.n_inputs))

@@ -18,8 +18,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -483,8 +483,8 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -609,12 +609,16 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->hold_band_q15 = rd_u16(p + 267);
     m->hold_shift = rd_u8(p + 269);
     m->hold_ramp_shift = rd_u8(p + 270);
+    m->contact_cusum_h_q8 = rd_i32(p + 271);
+    m->contact_cusum_k_q8 = rd_i32(p + 275);
+    m->contact_cusum_lo_q8 = rd_i32(p + 279);
+    m->contact_cusum_hi_q8 = rd_i32(p + 283);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 271u; k < 272u; ++k)
+    for (k = 287u; k < 288u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -746,6 +750,10 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint16_t v = m->hold_band_q15; if (v > 32768) return FBG_ERR_RANGE; }
     { uint8_t v = m->hold_shift; if (v > 15) return FBG_ERR_RANGE; }
     { uint8_t v = m->hold_ramp_shift; if (v > 12) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_h_q8; if (v < 0 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_k_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_lo_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_hi_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 
@@ -3087,8 +3095,8 @@ typedef int fbg_dsp_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -4450,6 +4458,7 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
         return st;   /* refused: nothing was cleared */
     s->decision = 0u;
     s->rise_run = 0u;
+    s->cusum_q8 = 0;
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
@@ -4461,14 +4470,39 @@ static fbg_status in_use_after(fbg_state *s, fbg_status st)
     return FBG_OK;
 }
 
-/* The contact decision over time (docs/runtime.md, "In use"): a Schmitt trigger on the
- * contact net's margin with a count before rising. raw is the net's own decision (acc > 0).
- * With contact_on_q8 = contact_off_q8 = 0 and contact_rise_n = 1 it is raw itself: margin_q8
- * > 0 implies acc > 0 (a positive multiplier), and acc > 0 implies margin_q8 >= 0. */
+/* The contact decision over time (docs/runtime.md, "In use"; docs/fixed-point.md). raw is the
+ * net's own decision (acc > 0), margin_q8 the output row as computed, the sign of its
+ * multiplier included: every engine reads both as they are, so a negative multiplier gives
+ * the same (inverted) decision everywhere. Contact stays while raw or margin_q8 >
+ * contact_off_q8. It rises by one of two rules:
+ * - contact_cusum_h_q8 = 0: a Schmitt trigger with a count, after contact_rise_n consecutive
+ *   samples of raw and margin_q8 >= contact_on_q8 (with on = off = 0, rise_n = 1 and a
+ *   positive multiplier that is raw itself: margin_q8 > 0 implies acc > 0, acc > 0 implies
+ *   margin_q8 >= 0);
+ * - else a one-sided CUSUM: S = max(0, S + clamp(margin_q8, lo, hi) - k), contact rises when
+ *   S >= h, and S restarts at 0. Bound: S < h <= 2^29 before the update (it rises, and
+ *   restarts, on reaching h; it is 0 in contact and after init, reset, tare or a new
+ *   baseline) and |clamp - k| <= 2^30 (every parameter within +-FBG_MAX_CUSUM_Q8), so S + d
+ *   lies in [-2^30, 2^29 + 2^30): int32. A fault never gets here, so it holds S. */
 static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
 {
-    return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
-                      margin_q8 > m->contact_off_q8, m->contact_rise_n);
+    int32_t d;
+    if (m->contact_cusum_h_q8 == 0)
+        return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
+                          margin_q8 > m->contact_off_q8, m->contact_rise_n);
+    if (s->decision) {
+        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
+        return s->decision;
+    }
+    d = margin_q8 < m->contact_cusum_lo_q8 ? m->contact_cusum_lo_q8
+      : (margin_q8 > m->contact_cusum_hi_q8 ? m->contact_cusum_hi_q8 : margin_q8);
+    d -= m->contact_cusum_k_q8;
+    s->cusum_q8 = s->cusum_q8 + d > 0 ? s->cusum_q8 + d : 0;
+    if (s->cusum_q8 >= m->contact_cusum_h_q8) {
+        s->decision = 1u;
+        s->cusum_q8 = 0;
+    }
+    return s->decision;
 }
 
 /* The tracker's creep states (docs/fixed-point.md, "In use"), on every sample that passed the
@@ -5166,8 +5200,8 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -5541,6 +5575,14 @@ fbg_status fbg_model_check(const fbg_model *model)
         return FBG_ERR_RANGE;
     /* And the settled-hold average by hold_shift. */
     if (model->hold_gain_q15 != 0 && model->hold_shift == 0u)
+        return FBG_ERR_RANGE;
+    /* The decision's CUSUM rise: off, its fields are 0; on, it replaces the Schmitt trigger's
+     * rise (contact_on_q8 0, contact_rise_n 1) and clips the margin to a range. */
+    if (model->contact_cusum_h_q8 == 0
+            ? (model->contact_cusum_k_q8 != 0 || model->contact_cusum_lo_q8 != 0 ||
+               model->contact_cusum_hi_q8 != 0)
+            : (model->contact_cusum_lo_q8 > model->contact_cusum_hi_q8 ||
+               model->contact_on_q8 != 0 || model->contact_rise_n != 1u))
         return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
@@ -6195,8 +6237,8 @@ typedef int fbg_simd_neon_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -8263,8 +8305,8 @@ typedef int fbg_simd_x86_unused;
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -9059,8 +9101,8 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory
@@ -9705,6 +9747,18 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
         model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        (model->contact_cusum_h == 0.0f
+             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                model->contact_cusum_hi != 0.0f)
+             : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
         !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
         model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
         !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
@@ -9851,6 +9905,7 @@ static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correctio
     }
     s->decision = 0u;
     s->rise_run = 0u;
+    s->cusum = 0.0f;
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
@@ -10090,11 +10145,28 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
     }
 }
 
-/* contact_decision of fbg_fixed.c on the float margin. */
+/* contact_decision of fbg_fixed.c on the float margin: the Schmitt trigger with its count, or
+ * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
+ * when S >= h (S = 0 then). */
 static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
-    return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
-                      margin > m->contact_off, m->contact_rise_n);
+    float d;
+    if (m->contact_cusum_h == 0.0f)
+        return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
+                          margin > m->contact_off, m->contact_rise_n);
+    if (s->decision) {
+        s->decision = (uint8_t)(margin > 0.0f || margin > m->contact_off);
+        return s->decision;
+    }
+    d = margin < m->contact_cusum_lo ? m->contact_cusum_lo
+      : (margin > m->contact_cusum_hi ? m->contact_cusum_hi : margin);
+    d = s->cusum + (d - m->contact_cusum_k);
+    s->cusum = d > 0.0f ? d : 0.0f;
+    if (s->cusum >= m->contact_cusum_h) {
+        s->decision = 1u;
+        s->cusum = 0.0f;
+    }
+    return s->decision;
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
@@ -10139,7 +10211,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 static int fin_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
-           m->contact_rise_n == 1u && m->hold_gain == 0.0f;
+           m->contact_rise_n == 1u && m->contact_cusum_h == 0.0f && m->hold_gain == 0.0f;
 }
 #endif
 

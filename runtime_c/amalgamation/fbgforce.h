@@ -79,7 +79,8 @@ extern "C" {
 #define FBG_MAX_CREEP_Q15 32767  /* largest creep_q15: the creep inverse's gain q = kappa / (1 - kappa) stays below 1 for a creep magnitude up to 0.5 (docs/fixed-point.md) */
 #define FBG_MAX_HOLD_GAIN_Q15 4096  /* largest |hold_gain_q15| (12.5 %): the hold stage's product stays below 2^56 (docs/fixed-point.md) */
 #define FBG_MAX_HOLD_RAMP_SHIFT 12  /* largest hold_ramp_shift (the gain ramps in over 4096 samples) */
-#define FBG_BLOB_VERSION 10  /* blob format this library reads and writes */
+#define FBG_MAX_CUSUM_Q8 536870912  /* largest contact_cusum_h_q8 and |contact_cusum_k_q8|, |_lo_q8|, |_hi_q8|: the CUSUM's sum stays inside int32 (docs/fixed-point.md) */
+#define FBG_BLOB_VERSION 11  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
 #define FBG_VERSION_MINOR 2
@@ -187,6 +188,10 @@ typedef struct {
     int32_t track_step_max_fm;  /* largest baseline step of one tracker block (fm) [0, 2147483647] */
     int32_t track_limit_fm;  /* largest |tracked - tared baseline| per channel (fm); BASELINE_LIMIT at it [0, 100000000] */
     int32_t hold_band_mN;  /* a contact sample is steady when |force_mN - rshift_round(hold_avg, EMA_FRAC)| <= max(hold_band_mN, rshift_round(|force_mN| * hold_band_q15, 15)) ... [0, 2147483647] */
+    int32_t contact_cusum_h_q8;  /* the decision's CUSUM rise (0: off, the Schmitt trigger with its count; on: needs contact_on_q8 0, contact_rise_n 1, lo <= hi): out of contact S = max(0, S + clamp(margin_q8, lo, hi) - k), contact rises when S >= h (S = 0 then) [0, 536870912] */
+    int32_t contact_cusum_k_q8;  /* the CUSUM's drift k (Q8 margin; 0 when the CUSUM is off) [-536870912, 536870912] */
+    int32_t contact_cusum_lo_q8;  /* the CUSUM's clip of the margin, lower end (0 when off) [-536870912, 536870912] */
+    int32_t contact_cusum_hi_q8;  /* the CUSUM's clip of the margin, upper end (0 when off) [-536870912, 536870912] */
     uint16_t n_taps;  /* causal FIR length [1, 64] */
     uint16_t stuck_max;  /* SENSOR_FAULT after this many identical samples on a channel; 0 disables the rule */
     int16_t play_width[4];  /* state = clamp(state, u - play_width[k], u + play_width[k]), Q(z_frac) [0, 32767] for k < n_play, else 0 */
@@ -267,6 +272,7 @@ typedef struct {
      * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
     uint32_t tare_count;
+    int32_t cusum_q8;                            /* the decision's CUSUM S (Q8 margin), in [0, contact_cusum_h_q8) out of contact, 0 in contact */
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
     uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
@@ -449,6 +455,10 @@ typedef struct {
     float hold_gain;  /* the settled-hold gain as fbg_model, its excess over 1 itself, |hold_gain| <= 0.125 (0: off): force_N *= 1 + hold_gain * w / 2^hold_ramp_shift */
     float hold_band_N;  /* steady: |force_N - hold_avg_N| <= max(hold_band_N, hold_band_frac * |force_N|), hold_avg_N += (force_N - hold_avg_N) / 2^hold_shift */
     float hold_band_frac;  /* 0..1 */
+    float contact_cusum_h;  /* the decision's CUSUM rise as fbg_model, on the margin (0: off; on: contact_on 0, contact_rise_n 1, lo <= hi): S = max(0, S + clamp(margin, lo, hi) - k), contact rises when S >= h */
+    float contact_cusum_k;
+    float contact_cusum_lo;
+    float contact_cusum_hi;
     float in_lo[12];  /* OUT_OF_RANGE as fbg_model, standardised units */
     float in_hi[12];
     float creep_q;  /* the pad's creep inverse as fbg_model, its gain q = kappa / (1 - kappa) itself, 0 <= q < 1 (0: off): e_i = c_i + creep_q * (c_i - creep_lag_pm_i) replaces c_i, creep_lag_pm_i += (e_i - creep_lag_pm_i) / 2^creep_shift */
@@ -507,6 +517,7 @@ typedef struct {
     float creep_lag_pm[FBG_N_STRAIN];            /* the creep inverse's lags L_i (pm) */
     int64_t tare_sum[FBG_N_CHANNELS];
     uint32_t tare_count;
+    float cusum;                                 /* the decision's CUSUM S (margin), as fbg_state's cusum_q8 */
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
     uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
@@ -529,7 +540,7 @@ typedef struct {
     uint8_t track_limited;                       /* 1: a channel's drift_pm is at its bound */
     uint16_t hold_run;                           /* steady contact samples so far, saturating */
     uint8_t hold_primed;                         /* hold_avg_N holds a contact sample's force */
-    uint8_t reserved_[7];
+    uint8_t reserved_[3];
     float act[2][FBG_MAX_WIDTH];                 /* activation ping-pong buffers */
 } fbgf_state;
 /* ---- END GENERATED float state ---- */

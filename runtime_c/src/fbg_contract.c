@@ -103,12 +103,16 @@ void fbg_params_decode(fbg_model *m, const uint8_t *p)
     m->hold_band_q15 = rd_u16(p + 267);
     m->hold_shift = rd_u8(p + 269);
     m->hold_ramp_shift = rd_u8(p + 270);
+    m->contact_cusum_h_q8 = rd_i32(p + 271);
+    m->contact_cusum_k_q8 = rd_i32(p + 275);
+    m->contact_cusum_lo_q8 = rd_i32(p + 279);
+    m->contact_cusum_hi_q8 = rd_i32(p + 283);
 }
 
 int fbg_params_padding_ok(const uint8_t *p)
 {
     unsigned k;
-    for (k = 271u; k < 272u; ++k)
+    for (k = 287u; k < 288u; ++k)
         if (p[k] != 0u)
             return 0;
     return 1;
@@ -240,6 +244,10 @@ fbg_status fbg_params_check(const fbg_model *m)
     { uint16_t v = m->hold_band_q15; if (v > 32768) return FBG_ERR_RANGE; }
     { uint8_t v = m->hold_shift; if (v > 15) return FBG_ERR_RANGE; }
     { uint8_t v = m->hold_ramp_shift; if (v > 12) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_h_q8; if (v < 0 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_k_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_lo_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
+    { int32_t v = m->contact_cusum_hi_q8; if (v < -536870912 || v > 536870912) return FBG_ERR_RANGE; }
     return FBG_OK;
 }
 

@@ -4,8 +4,8 @@
 
 #include "fbgforce.h"
 
-#define FBG_PARAMS_SIZE 272u     /* parameter block bytes, zero-padded */
-#define FBG_PARAMS_END 288u      /* header + parameter block */
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
 #define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
 
 /* The memory states of a streaming state, X(s, member) each: the arrays of the memory

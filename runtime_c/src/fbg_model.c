@@ -86,6 +86,14 @@ fbg_status fbg_model_check(const fbg_model *model)
     /* And the settled-hold average by hold_shift. */
     if (model->hold_gain_q15 != 0 && model->hold_shift == 0u)
         return FBG_ERR_RANGE;
+    /* The decision's CUSUM rise: off, its fields are 0; on, it replaces the Schmitt trigger's
+     * rise (contact_on_q8 0, contact_rise_n 1) and clips the margin to a range. */
+    if (model->contact_cusum_h_q8 == 0
+            ? (model->contact_cusum_k_q8 != 0 || model->contact_cusum_lo_q8 != 0 ||
+               model->contact_cusum_hi_q8 != 0)
+            : (model->contact_cusum_lo_q8 > model->contact_cusum_hi_q8 ||
+               model->contact_on_q8 != 0 || model->contact_rise_n != 1u))
+        return FBG_ERR_RANGE;
     if (model->taps == NULL)
         return FBG_ERR_NULL;
     features = FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(model);

@@ -81,6 +81,18 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
         model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
         (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+        (model->contact_cusum_h == 0.0f
+             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                model->contact_cusum_hi != 0.0f)
+             : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
         !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
         model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
         !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
@@ -227,6 +239,7 @@ static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correctio
     }
     s->decision = 0u;
     s->rise_run = 0u;
+    s->cusum = 0.0f;
     s->rest_run = 0u;
     s->track_pos = 0u;
     s->track_limited = 0u;
@@ -466,11 +479,28 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
     }
 }
 
-/* contact_decision of fbg_fixed.c on the float margin. */
+/* contact_decision of fbg_fixed.c on the float margin: the Schmitt trigger with its count, or
+ * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
+ * when S >= h (S = 0 then). */
 static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
-    return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
-                      margin > m->contact_off, m->contact_rise_n);
+    float d;
+    if (m->contact_cusum_h == 0.0f)
+        return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
+                          margin > m->contact_off, m->contact_rise_n);
+    if (s->decision) {
+        s->decision = (uint8_t)(margin > 0.0f || margin > m->contact_off);
+        return s->decision;
+    }
+    d = margin < m->contact_cusum_lo ? m->contact_cusum_lo
+      : (margin > m->contact_cusum_hi ? m->contact_cusum_hi : margin);
+    d = s->cusum + (d - m->contact_cusum_k);
+    s->cusum = d > 0.0f ? d : 0.0f;
+    if (s->cusum >= m->contact_cusum_h) {
+        s->decision = 1u;
+        s->cusum = 0.0f;
+    }
+    return s->decision;
 }
 
 /* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
@@ -515,7 +545,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 static int fin_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
-           m->contact_rise_n == 1u && m->hold_gain == 0.0f;
+           m->contact_rise_n == 1u && m->contact_cusum_h == 0.0f && m->hold_gain == 0.0f;
 }
 #endif
 

@@ -1,0 +1,319 @@
+"""The contact decision's CUSUM rise, and the decision on a contact net with a negative output
+multiplier.
+
+The rule on hand-made margins; the C fixed point bit-exact with the integer reference on every
+host kernel (with faults, parameters at their bounds and saturated margins); reset, tare and
+fault semantics of the CUSUM's state; the float build against the float model; the loaders'
+one verdict on the rules across its fields; and C = integer reference on a contact net whose
+output multiplier is negative, for the Schmitt trigger's per-sample setting and the CUSUM.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fbgforce import contract
+from fbgforce import model as fm
+from fbgforce.export import blob, intref, mutate
+from fbgforce.export import quantize as qz
+from fbgforce.pybind import FloatRuntime, Runtime
+
+from test_decision_tracker import _drifting_model, _equal
+from test_simd import host_kernels
+
+TOP = contract.LIMIT["MAX_CUSUM_Q8"]
+FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
+#: A CUSUM rise with the tracker of test_decision_tracker's AGGRESSIVE.
+CUSUM = fm.InUse(contact_off_margin=-1.0, track_shift=5, track_settle=40, track_step_max_pm=0.3,
+                 track_limit_pm=2.0, contact_cusum_h=1.5, contact_cusum_k=0.25,
+                 contact_cusum_lo=-0.5, contact_cusum_hi=1.0)
+
+
+def _cusum(q: qz.QModel, h: int, k: int, lo: int, hi: int) -> qz.QModel:
+    return dataclasses.replace(q, contact_on_q8=0, contact_rise_n=1, contact_cusum_h_q8=h,
+                               contact_cusum_k_q8=k, contact_cusum_lo_q8=lo, contact_cusum_hi_q8=hi)
+
+
+def _run_both(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray, kernel: str = "auto"):
+    rt = Runtime(blob.to_bytes(q), kernel=kernel)
+    rt.set_baseline(base.astype(np.int32))
+    return rt.run_raw(wl_fm), intref.run(q, wl_fm, base), rt
+
+
+def test_the_cusum_rule_on_hand_made_margins():
+    # h 10, k 2, margins clipped to [-3, 6]: S = max(0, S + clip(m) - 2).
+    cusum = (10, 2, -3, 6)
+    margin = np.array([1, 3, 5, 100, -100, 3, 4, 4, 4, -1, -50, -50, 7, 7, 1, -200])
+    raw = margin > 0
+    # S: 0, 1, 4, 8, 3 (-5 clipped to -3 - 2), 4, 6, 8, 10 -> contact, S 0; stays while the
+    # margin is positive or above off = -20: falls at -50 (S untouched); then 0, 4, 8, 7, 2.
+    want = np.array([0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0], dtype=bool)
+    state = [0, 0, 0]
+    got = fm.decide_over_time(raw, margin, 0, -20, 1, state, cusum)
+    assert np.array_equal(got, want)
+    assert state == [0, 0, 2]
+    # The state carries from one call to the next exactly as one call; S is carried.
+    state = [0, 0, 0]
+    parts = [fm.decide_over_time(raw[a:b], margin[a:b], 0, -20, 1, state, cusum)
+             for a, b in ((0, 3), (3, 13), (13, 16))]
+    assert np.array_equal(np.concatenate(parts), want)
+    state = [0, 0, 0]
+    fm.decide_over_time(raw[:14], margin[:14], 0, -20, 1, state, cusum)
+    assert state == [0, 0, 8]
+    # The integer reference runs exactly this rule on the blob's fields.
+    q = qz.QModel.__new__(qz.QModel)
+    q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 0, -20, 1
+    q.contact_cusum_h_q8, q.contact_cusum_k_q8, q.contact_cusum_lo_q8, q.contact_cusum_hi_q8 = cusum
+    assert np.array_equal(intref._decide(q, raw, margin, [0, 0, 0]), want)
+
+
+def test_a_single_spike_cannot_raise_contact_under_the_clip():
+    """hi - k < h: one sample, however high its margin, leaves S below h."""
+    margin = np.array([-5.0, 1e6, -5.0, -5.0, 1e6, 1e6])
+    got = fm.decide_over_time(margin > 0, margin, 0.0, 0.0, 1, [0, 0, 0.0], (2.0, 0.5, -1.0, 1.6))
+    assert np.array_equal(got, [0, 0, 0, 0, 0, 1])
+
+
+@pytest.mark.parametrize("kernel", ["portable", *host_kernels()])
+def test_the_cusum_is_bit_exact(random_model_factory, random_walk_factory, kernel):
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM)
+    assert q.contact_cusum_h_q8 == 384 and q.contact_cusum_k_q8 == 64
+    assert (q.contact_cusum_lo_q8, q.contact_cusum_hi_q8) == (-128, 256)
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    c, ref, _ = _run_both(q, wl_fm, base, kernel)
+    assert (ref["status"] & FAULT).any()
+    assert 0.1 < ref["contact"].mean() < 0.9
+    _equal(c, ref)
+    # The CUSUM, not the per-sample rule, decided: some rises come after positive margins
+    # that the per-sample rule would have called contact at once.
+    ok = (ref["status"] & FAULT) == 0
+    late = ok & (ref["contact_margin_q8"] > 0) & (ref["contact"] == 0)
+    assert late.sum() > 10
+
+
+@pytest.mark.parametrize("shift_down", [0, 28], ids=["margins", "saturated_margins"])
+@pytest.mark.parametrize("params", [
+    (TOP, TOP, -TOP, TOP),        # d = clip - 2^29 in [-2^30, 0]: S stays 0
+    (TOP, -TOP, -TOP, TOP),       # d in [0, 2^30]: S + d up to 2^29 - 1 + 2^30
+    (TOP, 0, -TOP, TOP),          # d = the clipped margin itself, +-2^29
+    (1, 0, -TOP, TOP),            # the smallest threshold: any positive margin rises
+    (TOP, -TOP + 1, TOP, TOP),    # lo = hi: a constant step of 2^30 - 1
+    (TOP, TOP, -TOP, -TOP),       # d = -2^30 on every sample
+], ids=["k_top", "k_bottom", "k_zero", "h_one", "lo_is_hi", "d_bottom"])
+def test_the_cusum_at_its_bounds_is_bit_exact(random_model_factory, random_walk_factory,
+                                              params, shift_down):
+    """Every parameter at the contract's bounds; with the contact output layer's shift
+    lowered by 28 the margins saturate at +-2^31 and the clip takes them to +-2^29."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM, seed=5)
+    q = _cusum(q, *params)
+    if shift_down:
+        last = q.nets[0][-1]
+        q.nets[0][-1] = dataclasses.replace(last, shift=last.shift - shift_down)
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    c, ref, _ = _run_both(q, wl_fm, base)
+    if shift_down:
+        m = np.abs(ref["contact_margin_q8"])
+        assert (m > TOP).mean() > 0.5 and (m == 2**31 - 1).any()
+    _equal(c, ref)
+
+
+def test_reset_tare_and_faults_on_the_cusum_state(random_model_factory, random_walk_factory):
+    """S stays in [0, h) and is 0 in contact; a faulty sample holds it; a reset, a tare and a
+    new baseline clear it (after a reset the runtime continues as the reference started
+    afresh on the baseline the tracker reached)."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM, seed=4)
+    q = _cusum(q, 8 * 256, 0, -128, 256)     # a high threshold: S stays up for long stretches
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    rt = Runtime(blob.to_bytes(q))
+    rt.set_baseline(base.astype(np.int32))
+    lost = wl_fm[0].copy()
+    lost[2] = 0
+    seen, held, i = [], 0, 2000
+    rt.run_raw(wl_fm[:i])
+
+    def step(sample: np.ndarray) -> np.void:
+        before = int(rt._state.cusum_q8)
+        out = rt.step(sample)
+        after = int(rt._state.cusum_q8)
+        assert 0 <= after < q.contact_cusum_h_q8
+        assert after == 0 or not out["contact"]
+        if out["status"] & FAULT:
+            assert after == before
+        return out
+
+    while i < 3500 or held < 3:
+        out = step(wl_fm[i])
+        seen.append(int(rt._state.cusum_q8))
+        if seen[-1] > 0 and held < 3:
+            s = seen[-1]
+            assert step(lost)["status"] & FAULT
+            assert rt._state.cusum_q8 == s
+            held += 1
+        i += 1
+    assert max(seen) > 256
+    while rt._state.cusum_q8 == 0:
+        rt.step(wl_fm[i])
+        i += 1
+    reached = np.asarray(rt.baseline_fm, dtype=np.int64)
+    rt.reset()
+    assert rt._state.cusum_q8 == 0
+    _equal(rt.run_raw(wl_fm[i:i + 1000]), intref.run(q, wl_fm[i:i + 1000], reached))
+    for restart in ("tare", "baseline"):
+        rt.set_baseline(base.astype(np.int32))
+        i = 2000
+        while rt._state.cusum_q8 == 0:
+            rt.step(wl_fm[i])
+            i += 1
+        if restart == "tare":
+            rt.tare(wl[i:i + 100])
+        else:
+            rt.set_baseline(base.astype(np.int32))
+        assert rt._state.cusum_q8 == 0
+
+
+def test_the_float_build_and_model_run_the_same_cusum(random_model_factory, random_walk_factory):
+    """The float model and the C float build agree with each other as closely as on the
+    Schmitt trigger (docs/fixed-point.md, "the float engines"), and with the fixed point
+    but at the margin; both hold S through nothing but their own arithmetic."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM)
+    wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)     # no faults: the float model has no rule
+    fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
+    flt = fm.predict(model, wl, model.baseline_nm)
+    assert 0.1 < flt["contact"].mean() < 0.9
+    assert np.mean(flt["contact"] == fixed["contact"]) > 0.98
+    rt = FloatRuntime(model)
+    rt.set_baseline(model.baseline_nm)
+    cf = rt.run(wl)
+    assert np.mean(cf["contact"] == flt["contact"]) > 0.995
+    # Without the CUSUM the float model decides otherwise: the test sees the rule.
+    schmitt = fm.predict(dataclasses.replace(model, in_use=fm.InUse()), wl, model.baseline_nm)
+    assert np.mean(schmitt["contact"] != flt["contact"]) > 0.005
+
+
+def test_in_use_checks_the_cusum_fields():
+    fm.InUse(contact_cusum_h=2.0, contact_cusum_k=0.5, contact_cusum_lo=-1.0, contact_cusum_hi=1.0)
+    for bad in ({"contact_cusum_h": -1.0},
+                {"contact_cusum_k": 1.0},                                   # off: the rest is 0
+                {"contact_cusum_h": 1.0, "contact_cusum_lo": 2.0, "contact_cusum_hi": 1.0},
+                {"contact_cusum_h": 1.0, "contact_on_margin": 0.5},         # two rise rules
+                {"contact_cusum_h": 1.0, "contact_rise_samples": 3},
+                {"contact_cusum_h": fm.CUSUM_MAX * 2},
+                {"contact_cusum_h": float("nan")}):
+        with pytest.raises(ValueError):
+            fm.InUse(**bad)
+    iu = fm.InUse(contact_cusum_h=1e-4, contact_cusum_k=fm.CUSUM_MAX, contact_cusum_lo=-3.0,
+                  contact_cusum_hi=-3.0)
+    got = qz.quantize_cusum(iu)
+    assert got == {"contact_cusum_h_q8": 1, "contact_cusum_k_q8": TOP,
+                   "contact_cusum_lo_q8": -768, "contact_cusum_hi_q8": -768}
+    assert set(qz.quantize_cusum(fm.InUse()).values()) == {0}
+
+
+@pytest.mark.parametrize("fields", [
+    {"contact_cusum_k_q8": 5},                                            # off, k set
+    {"contact_cusum_h_q8": 10, "contact_cusum_lo_q8": 3, "contact_cusum_hi_q8": 2},
+    {"contact_cusum_h_q8": 10, "contact_on_q8": 1},
+    {"contact_cusum_h_q8": 10, "contact_rise_n": 2},
+    {"contact_cusum_h_q8": TOP + 1},
+    {"contact_cusum_h_q8": 10, "contact_cusum_hi_q8": -TOP - 1},
+])
+def test_both_loaders_refuse_a_bad_cusum_alike(random_model_factory, random_walk_factory, fields):
+    model, q, _ = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    bad = dataclasses.replace(q, **fields)
+    with pytest.raises(qz.ModelCheckError):
+        bad.check()
+    bad.check = lambda: None          # serialise it anyway: the loaders must refuse it
+    data = blob.to_bytes(bad)
+    assert mutate.c_verdict(data) == mutate.python_verdict(data) == "FBG_ERR_RANGE"
+
+
+@pytest.mark.parametrize("decision", ["per_sample", "schmitt", "cusum"])
+def test_a_negative_output_multiplier_decides_alike_in_c_and_the_reference(
+        random_model_factory, random_walk_factory, decision):
+    """The contact net's output row with a negative multiplier: the margin has the opposite
+    sign of acc. Both loaders accept it, and every engine computes the rule of
+    contact_decision on acc > 0 and the margin as they are (docs/runtime.md, "In use")."""
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    if decision == "schmitt":
+        q = dataclasses.replace(q, contact_on_q8=64, contact_off_q8=-128, contact_rise_n=2)
+    elif decision == "cusum":
+        q = _cusum(q, 256, -128, -1024, 1024)
+    last = q.nets[0][-1]
+    q.nets[0][-1] = dataclasses.replace(last, mult=-last.mult)
+    data = blob.to_bytes(q)
+    assert mutate.c_verdict(data) == mutate.python_verdict(data) == "FBG_OK"
+    wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
+    for kernel in ("portable", *host_kernels()):
+        c, ref, _ = _run_both(q, wl_fm, base, kernel)
+        _equal(c, ref)
+    ok = (ref["status"] & FAULT) == 0
+    contact, m = ref["contact"][ok], ref["contact_margin_q8"][ok]
+    assert 0 < contact.mean() or decision == "schmitt"   # acc > 0 and margin >= 64: never
+    if decision == "per_sample":
+        # The rule is not the net's own decision here (acc > 0 is margin < 0): the reference
+        # that took acc > 0 for it disagreed with C.
+        assert np.any(contact[m < 0] == 0) or np.any(contact[m > 0] == 1)
+
+
+def _ar1(rng: np.random.Generator, n: int, mean: float, rho: float = 0.9, sd: float = 0.3
+         ) -> np.ndarray:
+    e = rng.normal(0.0, sd, n)
+    x, acc = np.empty(n), 0.0
+    for i in range(n):
+        acc = rho * acc + e[i]
+        x[i] = acc
+    return x + mean
+
+
+def test_cusum_path_is_the_recursion():
+    rng = np.random.default_rng(3)
+    m = rng.normal(-0.5, 1.0, 2000)
+    s, want = 0.0, []
+    for v in m:
+        s = max(0.0, s + min(max(v, -1.0), 2.0) - 0.25)
+        want.append(s)
+    assert np.allclose(fm.cusum_path(m, 0.25, -1.0, 2.0), want, atol=1e-9)
+    peaks = fm.cusum_peaks(m, 0.25, -1.0, 2.0)
+    w = np.asarray(want)
+    assert peaks.size == np.sum((w > 0) & (np.concatenate([[0.0], w[:-1]]) == 0))
+    assert peaks.max() == pytest.approx(w.max())
+
+
+@pytest.mark.slow
+def test_the_trainers_cusum_keeps_false_events_at_rest_rare():
+    """Two minutes of correlated rest margins set h; 30 independent minutes of the same
+    process then raise well under one false event per minute, with a drift low enough that
+    the tail fit, not the floor, sets h."""
+    rng = np.random.default_rng(2)
+    calib = _ar1(rng, 120_000, -1.0)
+    cs = fm.cusum_parameters(calib, 1000.0, k=0.0)
+    floor = fm.RISE_S * 1000.0 * 0.5
+    assert cs["h"] > 10 * floor and cs["hi"] == pytest.approx(0.5 * cs["h"])
+    later = _ar1(rng, 1_800_000, -1.0)
+    events = np.sum(fm.cusum_peaks(later, cs["k"], cs["lo"], cs["hi"]) >= cs["h"])
+    assert events / 30.0 <= 0.3
+    # Fitted at the goal itself, without the margin, the same rests give a lower threshold.
+    loose = fm.cusum_parameters(calib, 1000.0, k=0.0, false_per_min=fm.CUSUM_FIT_MARGIN * 0.1)
+    assert loose["h"] < cs["h"]
+
+
+def test_recommended_sets_a_valid_cusum_from_the_rests():
+    rng = np.random.default_rng(4)
+    rest = _ar1(rng, 60_000, -2.0)
+    iu = fm.InUse.recommended(1000.0, rest, decision="cusum")
+    cs = fm.cusum_parameters(rest, 1000.0)
+    q = float(np.quantile(rest, fm.REST_MARGIN_QUANTILE))
+    assert iu.contact_on_margin == 0.0 and iu.contact_rise_samples == 1
+    assert iu.cusum == (cs["h"], cs["k"], cs["lo"], cs["hi"]) and cs["k"] == pytest.approx(max(q, 0))
+    assert iu.contact_off_margin == -cs["k"]
+    # No rest excursion of the calibration reaches h: it raises no false event on itself.
+    assert np.all(fm.cusum_peaks(rest, cs["k"], cs["lo"], cs["hi"]) < cs["h"])
+    # Contact margins well above the rests move the drift to the midpoint.
+    contact = rng.normal(6.0, 0.5, 5000)
+    mid = fm.cusum_parameters(rest, 1000.0, contact)
+    assert mid["k"] == pytest.approx(0.5 * (max(q, 0.0) + np.quantile(contact, 0.1)))
+    with pytest.raises(ValueError):
+        fm.InUse.recommended(1000.0, rest, decision="sprt")
+    assert fm.InUse.recommended(1000.0, rest).contact_cusum_h == 0.0
