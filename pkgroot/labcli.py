@@ -11,7 +11,8 @@ from fbgforce.cli import add_json_flag, non_negative_int, positive_float, positi
 
 def register(subparsers: Any) -> None:
     """Add ``import`` and ``protocol`` to the ``fbgforce`` command."""
-    from fbgforce.labimport import FBG_UNITS, FORCE_UNITS, MAX_OFFSET_S, POSITION_UNITS
+    from fbgforce.labimport import (FBG_UNITS, FORCE_UNITS, MAX_OFFSET_S, POSITION_UNITS,
+                                    TIME_UNITS)
 
     p = subparsers.add_parser(
         "import", help="a lab's interrogator log + stage/load-cell log -> one dataset",
@@ -24,12 +25,18 @@ def register(subparsers: Any) -> None:
                         "given as well override it")
     p.add_argument("--fbg", metavar="FBG.csv", help="the interrogator log")
     p.add_argument("--fbg-columns", metavar="t=COL,wl1=COL,wl2=COL,wl3=COL,wl4=COL,wlT=COL",
-                   help="its time column (s) and the five peak-wavelength columns")
+                   help="its time column (seconds unless --fbg-time-unit) and the five "
+                        "peak-wavelength columns")
     p.add_argument("--fbg-unit", choices=tuple(FBG_UNITS), default=None,
                    help="wavelength unit of the log (default nm)")
+    p.add_argument("--fbg-time-unit", choices=tuple(TIME_UNITS), default=None,
+                   help="unit of its time column (default s)")
     p.add_argument("--stage", metavar="STAGE.csv", help="the stage/load-cell log")
     p.add_argument("--stage-columns", metavar="t=COL,force=COL,x=COL,y=COL",
-                   help="its time column (s), the load-cell force and the position (pad frame)")
+                   help="its time column (seconds unless --stage-time-unit), the load-cell "
+                        "force and the position (pad frame)")
+    p.add_argument("--stage-time-unit", choices=tuple(TIME_UNITS), default=None,
+                   help="unit of its time column (default s)")
     p.add_argument("--force-unit", choices=tuple(FORCE_UNITS), default=None,
                    help="force unit of the stage log (default N)")
     p.add_argument("--position-unit", choices=tuple(POSITION_UNITS), default=None,
@@ -57,11 +64,10 @@ def register(subparsers: Any) -> None:
 
 
 def _import(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.labimport import import_files, load_map, make_spec
+    from fbgforce.labimport import MAP_KEYS, import_files, load_map, make_spec
 
     values: dict[str, Any] = load_map(args.map) if args.map else {}
-    for key in ("fbg", "fbg-columns", "fbg-unit", "stage", "stage-columns", "force-unit",
-                "position-unit", "out", "max-offset-s"):
+    for key in MAP_KEYS:
         given = getattr(args, key.replace("-", "_"))
         if given is not None:
             values[key] = given
@@ -73,7 +79,8 @@ def _import(args: argparse.Namespace) -> dict[str, Any]:
               f"presses; stage clock offset {al['offset_s'] * 1e3:.2f} ms, drift "
               f"{al['drift_ppm']:.1f} ppm (correlation {al['correlation']:.3f}, residual "
               f"{al['residual_ms']:.2f} ms over {al['presses_used']} presses); dropped "
-              + ", ".join(f"{k} {v}" for k, v in result["dropped"].items()), file=sys.stderr)
+              + ", ".join(f"{k} {v}" for k, v in result["dropped"].items())
+              + f"; stage rows without a reading {result['stage']['bad_rows']}", file=sys.stderr)
     return result
 
 

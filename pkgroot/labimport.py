@@ -46,9 +46,44 @@ STAGE_KEYS = ("t", "force", "x", "y")
 FBG_UNITS = {"nm": 1.0, "pm": 1e-3}
 FORCE_UNITS = {"N": 1.0, "mN": 1e-3}
 POSITION_UNITS = {"mm": 1.0, "um": 1e-3}
+#: Units of each log's clock, with the divisor to seconds (a divisor, not a factor: an
+#: integer count of ms or ns divided by 10^k is the float nearest the time it stands for).
+TIME_UNITS = {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}
 #: Keys of a ``--map`` file: the flags' names without the dashes.
-MAP_KEYS = ("fbg", "fbg-columns", "fbg-unit", "stage", "stage-columns", "force-unit",
-            "position-unit", "out", "max-offset-s")
+MAP_KEYS = ("fbg", "fbg-columns", "fbg-unit", "fbg-time-unit", "stage", "stage-columns",
+            "stage-time-unit", "force-unit", "position-unit", "out", "max-offset-s")
+
+# Plausibility of the units (docs/lab-import.md, "Units"): each bound is what a fingertip's
+# calibration can physically show, and a value beyond it is a unit flag set wrong, which the
+# refusal names. The two units of each flag differ by 1000, so a wrong flag lands three
+# orders of magnitude off and the bounds leave room on both sides of real logs.
+#: Sample rates a log may have, Hz. Below 10 Hz a stage log cannot follow the fastest presses
+#: a calibration holds (fbgforce protocol's taps load in 50-100 ms) nor an interrogator the
+#: load: a 1 kHz log whose clock counts ms reads 1 Hz. The interrogators and stage
+#: controllers of a fingertip's calibration log at 0.1-20 kHz (the trainer's models run at the
+#: interrogator's rate, 1 kHz by default); above 50 kHz is a clock in seconds read as ms
+#: (a 100 Hz stage log then reads 100 kHz). A 10-50 Hz log read as ms stays inside and is
+#: refused later, as logs that do not overlap or align.
+SAMPLE_RATE_RANGE_HZ = (10.0, 50e3)
+#: The largest load a fingertip's load cell reads in a calibration, N. The paper's pad is
+#: calibrated to 70 N and a gripper's fingertip load cells reach a few hundred newtons (a
+#: human grip is about 500 N); a log in mN read as N puts a 2 N press at 2000 N.
+LOAD_CELL_MAX_N = 1000.0
+#: The spread of the contact locations over a calibration (the larger of their x and y
+#: extents), mm. A fingertip pad is 5-100 mm across (the paper's 21 x 27 mm, a gripper jaw's
+#: pad under 100 mm) and a calibration presses over it (fbgforce protocol: the whole pad but
+#: 0.5 mm at each edge); presses within 2 mm of each other over a whole log are µm read as mm
+#: (or a calibration that cannot teach the location net anything), beyond 150 mm mm read as µm.
+CONTACT_SPREAD_RANGE_MM = (2.0, 150.0)
+#: A stage row whose force or position lies beyond what the largest plausible value reads in
+#: the smallest unit its flag offers (1000 N as mN, 150 mm as µm), or is not a finite number,
+#: holds no reading at all (a logger's error code, an overflow): such rows are dropped and
+#: counted, as interrogator rows with bad wavelengths are.
+NOT_A_FORCE_N = LOAD_CELL_MAX_N / min(FORCE_UNITS.values())
+NOT_A_POSITION_MM = CONTACT_SPREAD_RANGE_MM[1] / min(POSITION_UNITS.values())
+#: At most this share of either log's rows may be dropped for bad values; more is refused,
+#: naming the first (a wrong unit or column, not a few glitches).
+MAX_BAD_FRACTION = 0.01
 
 #: Rows parsed per chunk: bounds the memory of the wavelength table.
 CHUNK_ROWS = 50_000
@@ -123,6 +158,8 @@ class ImportSpec:
     force_unit: str = "N"
     position_unit: str = "mm"
     max_offset_s: float = MAX_OFFSET_S
+    fbg_time_unit: str = "s"
+    stage_time_unit: str = "s"
 
 
 def parse_columns(value: str | Mapping[str, Any], keys: tuple[str, ...], flag: str,
@@ -189,7 +226,9 @@ def make_spec(values: Mapping[str, Any], where: str | None = None) -> ImportSpec
                              path=where, column=None if where else f"--{key}")
     units = {}
     for key, table, default in (("fbg-unit", FBG_UNITS, "nm"), ("force-unit", FORCE_UNITS, "N"),
-                                ("position-unit", POSITION_UNITS, "mm")):
+                                ("position-unit", POSITION_UNITS, "mm"),
+                                ("fbg-time-unit", TIME_UNITS, "s"),
+                                ("stage-time-unit", TIME_UNITS, "s")):
         unit = values.get(key) or default
         if unit not in table:
             raise InputError(f"unknown unit {unit!r}; one of {', '.join(table)}", path=where,
@@ -207,7 +246,8 @@ def make_spec(values: Mapping[str, Any], where: str | None = None) -> ImportSpec
         stage_columns=parse_columns(values["stage-columns"], STAGE_KEYS,
                                     "stage-columns" if where else "--stage-columns", where),
         fbg_unit=units["fbg-unit"], force_unit=units["force-unit"],
-        position_unit=units["position-unit"], max_offset_s=float(max_offset))
+        position_unit=units["position-unit"], max_offset_s=float(max_offset),
+        fbg_time_unit=units["fbg-time-unit"], stage_time_unit=units["stage-time-unit"])
 
 
 # ------------------------------------------------------------------------------ CSV reading
@@ -294,7 +334,10 @@ class CsvColumns:
 @dataclass
 class StageLog:
     """The stage/load-cell log on its own clock: time (s), force (N), position (mm, pad
-    frame), and where each row came from (``line``: 1-based line of ``path``)."""
+    frame), and where each row came from (``line``: 1-based line of ``path``).
+
+    ``time_flag``, ``force_flag`` and ``position_flag`` name the options that set the units,
+    for the plausibility refusals (:func:`check_stage_units`)."""
 
     t: np.ndarray
     force_N: np.ndarray
@@ -302,6 +345,16 @@ class StageLog:
     y_mm: np.ndarray
     line: np.ndarray
     path: str = "<stage>"
+    time_flag: str = "--stage-time-unit"
+    force_flag: str = "--force-unit"
+    position_flag: str = "--position-unit"
+
+    def subset(self, keep: np.ndarray) -> "StageLog":
+        """The rows where ``keep`` is True (a new log: its noise is measured again)."""
+        return StageLog(t=np.ascontiguousarray(self.t[keep]), force_N=self.force_N[keep],
+                        x_mm=self.x_mm[keep], y_mm=self.y_mm[keep], line=self.line[keep],
+                        path=self.path, time_flag=self.time_flag, force_flag=self.force_flag,
+                        position_flag=self.position_flag)
 
     @cached_property
     def noise_N(self) -> float:
@@ -327,20 +380,27 @@ class FbgSource(Protocol):
 
 
 class CsvFbgLog:
-    """An interrogator CSV log (:class:`FbgSource`) with its column mapping and unit."""
+    """An interrogator CSV log (:class:`FbgSource`) with its column mapping and units."""
 
-    def __init__(self, path: str | Path, columns: Mapping[str, str], unit: str = "nm") -> None:
+    #: The options that set its units, for the plausibility refusals.
+    time_flag = "--fbg-time-unit"
+    unit_flag = "--fbg-unit"
+
+    def __init__(self, path: str | Path, columns: Mapping[str, str], unit: str = "nm",
+                 time_unit: str = "s") -> None:
         self.reader = CsvColumns(path, {k: columns[k] for k in FBG_KEYS}, "fbg")
         self.path = str(path)
         self.scale = FBG_UNITS[unit]
+        self.time_divisor = TIME_UNITS[time_unit]
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         for values, lines in self.reader:
-            yield values[:, 0], values[:, 1:] * self.scale, lines
+            t = values[:, 0] if self.time_divisor == 1.0 else values[:, 0] / self.time_divisor
+            yield t, values[:, 1:] * self.scale, lines
 
 
 def read_stage_csv(path: str | Path, columns: Mapping[str, str], force_unit: str = "N",
-                   position_unit: str = "mm") -> StageLog:
+                   position_unit: str = "mm", time_unit: str = "s") -> StageLog:
     """The stage log of a CSV (all of it: four numbers a row)."""
     reader = CsvColumns(path, {k: columns[k] for k in STAGE_KEYS}, "stage")
     parts = list(reader)
@@ -348,8 +408,9 @@ def read_stage_csv(path: str | Path, columns: Mapping[str, str], force_unit: str
         raise InputError("no data rows after the header", path=str(path))
     values = np.concatenate([v for v, _ in parts])
     pos = POSITION_UNITS[position_unit]
+    t = values[:, 0] if time_unit == "s" else values[:, 0] / TIME_UNITS[time_unit]
     # Contiguous columns: the alignment interpolates in them press by press.
-    return StageLog(t=np.ascontiguousarray(values[:, 0]),
+    return StageLog(t=np.ascontiguousarray(t),
                     force_N=values[:, 1] * FORCE_UNITS[force_unit],
                     x_mm=values[:, 2] * pos, y_mm=values[:, 3] * pos,
                     line=np.concatenate([ln for _, ln in parts]), path=str(path))
@@ -369,9 +430,16 @@ def grating_strain(wl_nm: np.ndarray, ref_nm: np.ndarray) -> np.ndarray:
     return (-(wl_nm[:, :4] / ref_nm[:4] - 1.0) * 1e6).astype(np.float32)
 
 
-def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
-    """Refuse non-finite, non-increasing or irregular time stamps; return the median
-    sample interval, s."""
+def _time(t: float) -> str:
+    """A time as read (every digit float64 holds: an epoch clock's milliseconds included)."""
+    return repr(float(t))
+
+
+def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str,
+                flag: str | None = None) -> float:
+    """Refuse non-finite, non-increasing or irregular time stamps, and a sample rate outside
+    :data:`SAMPLE_RATE_RANGE_HZ` (a clock in another unit than ``flag``, the option of its
+    time unit, says); return the median sample interval, s."""
     bad = ~np.isfinite(t)
     if bad.any():
         i = int(np.argmax(bad))
@@ -382,10 +450,18 @@ def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
     dt = np.diff(t)
     if (dt <= 0).any():
         i = int(np.argmax(dt <= 0)) + 1
-        raise InputError(f"time not increasing ({t[i]:.9g} after {t[i - 1]:.9g}): the {what} "
-                         "log must be in time order, one row per sample", path=path,
+        raise InputError(f"time not increasing ({_time(t[i])} after {_time(t[i - 1])}): the "
+                         f"{what} log must be in time order, one row per sample", path=path,
                          line=int(line[i]), column="t")
     med = float(np.median(dt))
+    lo, hi = SAMPLE_RATE_RANGE_HZ
+    if not lo <= 1.0 / med <= hi:
+        i = int(np.argmin(np.abs(dt - med))) + 1
+        raise InputError(
+            f"the {what} log's median step reads {med:.4g} s ({1.0 / med:.4g} Hz) in its time "
+            f"unit, where {what} logs run at {lo:g} Hz to {hi / 1e3:g} kHz: is "
+            f"{flag or 'its time unit'} right (s, ms, us or ns)?", path=path,
+            line=int(line[i]), column="t")
     off = (dt < REGULAR_BAND[0] * med) | (dt > REGULAR_BAND[1] * med)
     if off.mean() > IRREGULAR_FRACTION:
         i = int(np.argmax(off)) + 1
@@ -395,6 +471,64 @@ def check_times(t: np.ndarray, line: np.ndarray, path: str, what: str) -> float:
             f"(at most {100 * IRREGULAR_FRACTION:g} % may), the first here", path=path,
             line=int(line[i]), column="t")
     return med
+
+
+def drop_bad_stage_rows(stage: StageLog) -> tuple[StageLog, int]:
+    """The stage log without its rows holding no reading (a force or position that is not a
+    finite number, or beyond :data:`NOT_A_FORCE_N` / :data:`NOT_A_POSITION_MM`), and how many
+    were dropped. More than :data:`MAX_BAD_FRACTION` of the rows is refused, naming the first
+    with its column (as the interrogator's bad wavelengths are)."""
+    columns = (("force", stage.force_N, NOT_A_FORCE_N, stage.force_flag),
+               ("x", stage.x_mm, NOT_A_POSITION_MM, stage.position_flag),
+               ("y", stage.y_mm, NOT_A_POSITION_MM, stage.position_flag))
+    bads = []
+    for _, values, limit, _ in columns:
+        with np.errstate(invalid="ignore"):
+            bads.append(~(np.abs(values) <= limit))       # NaN fails the comparison too
+    bad = np.logical_or.reduce(bads)
+    n_bad = int(bad.sum())
+    if n_bad == 0:
+        return stage, 0
+    if n_bad > MAX_BAD_FRACTION * bad.size:
+        i = int(np.argmax(bad))
+        k = next(j for j, b in enumerate(bads) if b[i])
+        name, values, limit, flag = columns[k]
+        raise InputError(f"{100 * n_bad / bad.size:.1f} % of the stage rows hold a value that is "
+                         f"no reading ({float(values[i])!r}: not a number or beyond {limit:g}), the "
+                         f"first here (at most {100 * MAX_BAD_FRACTION:g} % are dropped): is "
+                         f"{flag} or --stage-columns right?", path=stage.path,
+                         line=int(stage.line[i]), column=name)
+    return stage.subset(~bad), n_bad
+
+
+def check_stage_units(stage: StageLog, threshold_N: float) -> None:
+    """Refuse a stage log whose force or position unit cannot be right: its largest load
+    above :data:`LOAD_CELL_MAX_N` or below :data:`ALIGN_MIN_PEAK_N` (no press), or its contact
+    locations (where the load is above ``threshold_N``) spread less or more than
+    :data:`CONTACT_SPREAD_RANGE_MM`; each refusal names the unit's option."""
+    i = int(np.argmax(stage.force_N))
+    peak = float(stage.force_N[i])
+    if peak > LOAD_CELL_MAX_N:
+        raise InputError(f"the load cell reads {peak:.4g} N, more than a fingertip's load cell "
+                         f"measures (up to {LOAD_CELL_MAX_N:g} N): is {stage.force_flag} right "
+                         "(N or mN)?", path=stage.path, line=int(stage.line[i]), column="force")
+    if peak < ALIGN_MIN_PEAK_N:
+        raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N (its "
+                         f"largest reading {peak:.3g} N; a calibration presses to several "
+                         f"newtons): is {stage.force_flag} right (N or mN)?", path=stage.path,
+                         line=int(stage.line[i]), column="force")
+    touch = stage.force_N > threshold_N
+    if not touch.any():
+        return
+    extents = {"x": float(np.ptp(stage.x_mm[touch])), "y": float(np.ptp(stage.y_mm[touch]))}
+    axis = max(extents, key=lambda k: extents[k])
+    spread = extents[axis]
+    lo, hi = CONTACT_SPREAD_RANGE_MM
+    if not lo <= spread <= hi:
+        raise InputError(f"the contact locations span {spread:.3g} mm in {axis} (the larger "
+                         f"extent) over {int(touch.sum())} rows in contact; a fingertip pad's "
+                         f"presses span {lo:g}-{hi:g} mm: is {stage.position_flag} right "
+                         "(mm or um)?", path=stage.path, column=axis)
 
 
 @dataclass
@@ -484,8 +618,8 @@ def _coarse(t_f: np.ndarray, proxy: np.ndarray, stage: StageLog, max_offset_s: f
     allowed = (np.abs(offsets) <= max_offset_s) & (m >= need)
     if not allowed.any():
         raise InputError(
-            f"no overlap: the interrogator log covers {t_f[0]:.6g}-{t_f[-1]:.6g} s and the stage "
-            f"log {stage.t[0]:.6g}-{stage.t[-1]:.6g} s on their clocks; with offsets up to "
+            f"no overlap: the interrogator log covers {_time(t_f[0])}-{_time(t_f[-1])} s and the "
+            f"stage log {_time(stage.t[0])}-{_time(stage.t[-1])} s on their clocks; with offsets up to "
             f"±{max_offset_s:g} s they share less than {need * COARSE_STEP_S:.3g} s "
             "(give a larger --max-offset-s if the clocks count from different origins)",
             path=where)
@@ -850,7 +984,8 @@ def align(t_f: np.ndarray, strain: np.ndarray, stage: StageLog, *,
     """
     presses = [p for p in _stage_presses(stage) if p.peak_N >= ALIGN_MIN_PEAK_N]
     if not presses:
-        raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N",
+        raise InputError(f"no presses: the load cell never exceeds {ALIGN_MIN_PEAK_N:g} N "
+                         f"(is {stage.force_flag} right: N or mN?)",
                          path=stage.path, column="force")
     # Gratings on the beams' other face are stretched by the load, not compressed: then the
     # sum falls under load, and its negative is what correlates. (Each press combines the
@@ -995,14 +1130,18 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
 
     t_start = time.perf_counter()
     where = f"{fbg.path} + {stage.path}"
-    stage_dt = check_times(stage.t, stage.line, stage.path, "stage")
+    stage_dt = check_times(stage.t, stage.line, stage.path, "stage", stage.time_flag)
+    stage_rows = int(stage.t.size)
+    stage_rate = (stage.t.size - 1) / float(stage.t[-1] - stage.t[0])
+    stage, stage_bad = drop_bad_stage_rows(stage)
     low = stage.force_N < fds.FORCE_NEGATIVE_LIMIT_N
     if low.any():
         i = int(np.argmax(low))
         raise InputError(f"force {stage.force_N[i]:g} N below {fds.FORCE_NEGATIVE_LIMIT_N:g} N "
-                         "(sign or tare error, or the wrong --force-unit)", path=stage.path,
-                         line=int(stage.line[i]), column="force")
+                         f"(sign or tare error, or the wrong {stage.force_flag})",
+                         path=stage.path, line=int(stage.line[i]), column="force")
     threshold = stage.contact_threshold_N
+    check_stage_units(stage, threshold)
     rest = float(np.percentile(stage.force_N, 5))
     if rest > threshold:
         raise InputError(f"the load cell reads {rest:.3g} N or more for 95 % of the log: tare "
@@ -1029,13 +1168,14 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         raise InputError("no data rows after the header", path=fbg.path)
     t_f, strain = np.concatenate(ts), np.concatenate(strains)
     good, line_f = np.concatenate(goods), np.concatenate(lines)
-    check_times(t_f, line_f, fbg.path, "interrogator")
-    if good.mean() < 0.99:
+    check_times(t_f, line_f, fbg.path, "interrogator",
+                getattr(fbg, "time_flag", "--fbg-time-unit"))
+    if good.mean() < 1.0 - MAX_BAD_FRACTION:
         i = int(np.argmax(~good))
         raise InputError(f"{100 * (1 - good.mean()):.1f} % of the wavelengths are missing or "
                          f"outside {fds.WL_RANGE_NM[0]:g}-{fds.WL_RANGE_NM[1]:g} nm, the first "
-                         "here: is --fbg-unit right (nm or pm)?", path=fbg.path,
-                         line=int(line_f[i]))
+                         f"here: is {getattr(fbg, 'unit_flag', '--fbg-unit')} right (nm or pm)?",
+                         path=fbg.path, line=int(line_f[i]))
     if ref is None:  # pragma: no cover - excluded by the 99 % check above
         raise InputError("no valid wavelength row", path=fbg.path)
     al = align(t_f, strain, stage, max_offset_s=max_offset_s, where=where)
@@ -1076,8 +1216,8 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         "alignment": al.summary(),
         "fbg": {"file": fbg.path, "rows": int(t_f.size),
                 "rate_hz": (t_f.size - 1) / float(t_f[-1] - t_f[0])},
-        "stage": {"file": stage.path, "rows": int(stage.t.size),
-                  "rate_hz": (stage.t.size - 1) / float(stage.t[-1] - stage.t[0])},
+        "stage": {"file": stage.path, "rows": stage_rows, "bad_rows": stage_bad,
+                  "rate_hz": stage_rate},
         "dropped": dropped,
         "load_cell_noise_N": stage.noise_N, "contact_threshold_N": threshold,
         "seconds": round(time.perf_counter() - t_start, 3),
@@ -1089,6 +1229,7 @@ def import_files(spec: ImportSpec, *, progress: bool | None = None) -> dict[str,
     if spec.out.suffix.lower() != ".csv":
         raise InputError("the imported dataset is written as CSV: give a .csv path",
                          path=str(spec.out), column="--out")
-    stage = read_stage_csv(spec.stage, spec.stage_columns, spec.force_unit, spec.position_unit)
-    fbg = CsvFbgLog(spec.fbg, spec.fbg_columns, spec.fbg_unit)
+    stage = read_stage_csv(spec.stage, spec.stage_columns, spec.force_unit, spec.position_unit,
+                           spec.stage_time_unit)
+    fbg = CsvFbgLog(spec.fbg, spec.fbg_columns, spec.fbg_unit, spec.fbg_time_unit)
     return import_logs(fbg, stage, spec.out, max_offset_s=spec.max_offset_s, progress=progress)

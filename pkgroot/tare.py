@@ -18,13 +18,30 @@ GUARD_S = 0.1
 #: Fewest contact-free samples at the start of a recording for a start-only tare.
 MIN_START_SAMPLES = 20
 
+#: A clock whose float64 spacing exceeds this fraction of its median step has its step
+#: averaged over the regular steps (:func:`sample_rate_hz`).
+STEP_ROUNDING_LIMIT = 1e-6
+
+
 def sample_rate_hz(t_s: np.ndarray) -> float:
-    """Sample rate from the median time step (robust to gaps and dropped samples)."""
+    """Sample rate from the median time step (robust to gaps and dropped samples).
+
+    float64 holds a time near 1.8e9 s (a Unix-epoch clock) to 0.24 µs, so each single step
+    of a 1 kHz log is off by up to 240 ppm and their median is one of them. Where that
+    rounding exceeds :data:`STEP_ROUNDING_LIMIT` of the step, the step is the mean of the
+    regular ones (within half a step of the median), which averages the rounding away; a
+    clock counting from zero stays below the limit for 10^6 s at 1 kHz and keeps the median.
+    """
     t = np.asarray(t_s, dtype=np.float64)
     if t.size < 2:
         return 1000.0
-    dt = float(np.median(np.diff(t)))
-    return 1.0 / dt if dt > 0 else 1000.0
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    if not dt > 0:
+        return 1000.0
+    if np.spacing(float(np.max(np.abs(t)))) > STEP_ROUNDING_LIMIT * dt:
+        dt = float(np.mean(steps[np.abs(steps - dt) < 0.5 * dt]))
+    return 1.0 / dt
 
 
 def rest_guard_s(contact: np.ndarray, t_s: np.ndarray | None = None) -> float:

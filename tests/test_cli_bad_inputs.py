@@ -71,7 +71,32 @@ def bad(tmp_path_factory, small_exported_dir, small_dataset_path):
     p["not_a_dir"] = root / "not_a_model"
     p["file_in_the_way"] = root / "a_file"
     p["file_in_the_way"].write_text("x")
+    p.update(_lab_logs_in_other_units(root / "lab", small_dataset_path))
     return p
+
+
+def _lab_logs_in_other_units(lab: Path, data: Path) -> dict[str, Path]:
+    """The simulator's lab logs of ``data`` (s, N, mm: ``lab_map`` imports them) and copies
+    with one log's column in the unit a thousand times smaller (clocks in ms, force in mN,
+    positions in µm), which the default flags read 1000 times too large."""
+    from fbgforce import dataset
+    from fbgforce.sim.lablogs import write_lab_logs
+
+    write_lab_logs(dataset.load(data), lab, rate_hz=500, offset_s=0.1, drift_ppm=80,
+                   jitter_s=1e-4)
+    out = {"lab_map": lab / "import.toml"}
+    for name, log, columns in (("fbg_ms", "interrogator.csv", (0,)), ("stage_ms", "stage.csv", (0,)),
+                               ("stage_mN", "stage.csv", (1,)), ("stage_um", "stage.csv", (2, 3))):
+        lines = (lab / log).read_text().splitlines()
+        rows = [lines[0]]
+        for ln in lines[1:]:
+            fields = ln.split(",")
+            for j in columns:
+                fields[j] = repr(float(fields[j]) * 1000.0)
+            rows.append(",".join(fields))
+        out[name] = lab / f"{name}.csv"
+        out[name].write_text("\n".join(rows) + "\n")
+    return out
 
 
 # (subcommand, id, argv after the subcommand with {placeholders} from `bad`, expected words)
@@ -173,6 +198,24 @@ CASES = [
                                          "--stage", "{good_data}", "--stage-columns",
                                          "t=t_s,force=force_N,x=wl1_nm,y=wl2_nm", "--out",
                                          "{out}/imp.csv"], "'time'"),
+    ("import", "positions in mm read as um", ["--map", "{lab_map}", "--position-unit", "um",
+                                              "--out", "{out}/imp.csv"], "--position-unit"),
+    ("import", "positions in um read as mm", ["--map", "{lab_map}", "--stage", "{stage_um}",
+                                              "--out", "{out}/imp.csv"], "--position-unit"),
+    ("import", "force in N read as mN", ["--map", "{lab_map}", "--force-unit", "mN", "--out",
+                                         "{out}/imp.csv"], "--force-unit"),
+    ("import", "force in mN read as N", ["--map", "{lab_map}", "--stage", "{stage_mN}",
+                                         "--out", "{out}/imp.csv"], "--force-unit"),
+    ("import", "stage clock in ms read as s", ["--map", "{lab_map}", "--stage", "{stage_ms}",
+                                               "--out", "{out}/imp.csv"], "--stage-time-unit"),
+    ("import", "stage clock in s read as ms", ["--map", "{lab_map}", "--stage-time-unit", "ms",
+                                               "--out", "{out}/imp.csv"], "--stage-time-unit"),
+    ("import", "interrogator clock in ms read as s", ["--map", "{lab_map}", "--fbg",
+                                                      "{fbg_ms}", "--out", "{out}/imp.csv"],
+     "--fbg-time-unit"),
+    ("import", "interrogator clock in s read as ms", ["--map", "{lab_map}", "--fbg-time-unit",
+                                                      "ms", "--out", "{out}/imp.csv"],
+     "--fbg-time-unit"),
     ("protocol", "fewer presses than groups", ["--out", "{out}/prog.csv", "--presses", "2"],
      "--presses"),
     ("coverage", "missing file", ["--data", "{missing}"], "no such file"),
