@@ -123,6 +123,21 @@ def test_epoch_stamped_logs_import_and_train(smoke, tmp_path):
                  "--epochs", "1"]) == 0
 
 
+def test_sample_rate_of_an_epoch_clock():
+    """float64 rounds each 1 ms step of a Unix-epoch clock by up to 0.24 µs, so the median step
+    reads the rate 72 ppm off (1000.07 Hz); the mean of the regular steps reads it to 1 ppm,
+    gaps and dropped samples left out as the median leaves them. A clock from zero keeps the
+    median's rate, bit for bit."""
+    from fbgforce import tare
+
+    t = float(EPOCH_S) + np.arange(20000) / 1000.0
+    t = np.delete(t, np.arange(500, 20000, 997))           # dropped samples
+    t[12000:] += 0.5                                          # a gap
+    assert tare.sample_rate_hz(t) == pytest.approx(1000.0, rel=1e-6)
+    small = np.arange(20000) / 1000.0
+    assert tare.sample_rate_hz(small) == 1.0 / float(np.median(np.diff(small)))
+
+
 @pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [
     (100, 0.1, 80), (2000, 0.1, -80), (500, 2.0, 80), (500, -2.0, -80), (100, -2.0, 80)])
 def test_import_stage_rates_and_offsets(smoke, tmp_path, rate_hz, offset_s, drift_ppm):
