@@ -4,29 +4,41 @@ The graph holds the part of :mod:`fbgforce.model`'s pipeline after preprocessing
 nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float32::
 
     z [N,F] ─► contact_net ─► contact_logits [N,2] ─► hierarchy/contact (logit1 > logit0)
-      │                                                    │
+      │                                                  ─► contact [N], p_contact [N]
       ├──────► force_net ─► f [N,1] ──► hierarchy/force_scale ─► force_N [N]
-      │                       │                            │
-      └──────────────► hierarchy/location_input = [z[:, :4], contact, f] ─► location_net
-                                                 ─► hierarchy/xy_scale ─► x_mm [N], y_mm [N]
+      │                       │
+    contact_decision [N] ─────┤
+      │                       │
+      └──────────────► hierarchy/location_input = [z[:, :4], contact_decision, f]
+                                 ─► location_net ─► hierarchy/xy_scale ─► x_mm [N], y_mm [N]
 
-Exactly as :func:`fbgforce.model.predict_from_features`, the location net is fed the contact
-flag as 0/1 and the force net's *unscaled* output ``f``. The outputs ``force_N``, ``x_mm`` and
-``y_mm`` are *ungated*: the graph does not zero the force or blank the location where it says
-"no contact"; the caller gates them with the ``contact`` output (``run_recording`` does, by
-:func:`fbgforce.units.gate_outputs`, the one rule of every engine). This
-keeps the graph free of NaN constants and lets a user see what the nets say near the threshold.
+The location net reads the contact *decision* as 0/1, and the decision is a second input,
+``contact_decision``, because the decision the float model gates on is not the contact net's
+own: with the model's in-use parameters it is the decision over time
+(:func:`fbgforce.model.decide_over_time`, a Schmitt trigger with a rise count whose state runs
+from sample to sample), which one evaluation of a feed-forward graph cannot give. The caller
+decides from the graph's ``contact_logits`` and runs the location with that decision
+(:func:`onnx_nets` does it in two runs, the second on the samples decided "contact" only).
+The location net also reads the force net's *unscaled* output ``f``, as trained.
+
+The outputs ``force_N``, ``x_mm`` and ``y_mm`` are *ungated*: the graph does not zero the force
+or blank the location; the caller gates them with the decision it fed (``run_recording`` does,
+by :func:`fbgforce.units.gate_outputs`, the one rule of every engine). This keeps the graph
+free of NaN constants and lets a user see what the nets say near the threshold.
 
 Tare, temperature compensation, filtering, standardisation and the memory features stay
 outside the graph: they are recording-level (recursive) operations done in float64 by
 :mod:`fbgforce.model` (the C runtime does them in fixed point); the graph's input ``z`` is the
-whole feature vector, ``[N, F]`` with F = 4 without memory.
+whole feature vector, ``[N, F]`` with F = 4 without memory. So do the stages after the nets
+(the decision over time, the settled-hold gain, the at-rest tracker), whose parameters the
+graph's metadata carries (``fbgforce.in_use``).
 """
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import onnx
@@ -45,11 +57,21 @@ OPSET = 17
 #: IR version 8 is what opset 17 was released with; every onnxruntime >= 1.14 reads it.
 IR_VERSION = 8
 INPUT_NAME = "z"
+#: The second input: the contact decision (bool [N]) the location net reads.
+DECISION_NAME = "contact_decision"
+#: Input names, in graph order.
+INPUT_NAMES = (INPUT_NAME, DECISION_NAME)
 #: Output names, in graph order.
 OUTPUT_NAMES = ("contact_logits", "contact", "p_contact", "force_N", "x_mm", "y_mm")
 #: Metadata key holding :func:`fbgforce.freshness.weights_digest` of the model the graph was
 #: made from.
 DIGEST_KEY = "fbgforce.weights_sha256"
+#: Metadata key of the graph's layout (its inputs, outputs and their meaning) and the layout
+#: this module writes and runs. A graph without the key, or with another value, has other
+#: inputs (without ``contact_decision`` its location net read the contact net's own decision):
+#: :func:`session_for` never runs it.
+LAYOUT_KEY = "fbgforce.graph_layout"
+GRAPH_LAYOUT = "2"
 _BATCH = "N"
 _NET_PREFIX = {"contact": "contact_net", "force": "force_net", "location": "location_net"}
 
@@ -112,18 +134,20 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     margin = node("Sub", [l1, l0], "hierarchy/margin", "hierarchy/margin")
     zero = const("hierarchy/zero", 0.0)
     contact_2d = node("Greater", [margin, zero], "hierarchy/contact_2d", "hierarchy/contact")
-    contact_f = node("Cast", [contact_2d], "hierarchy/contact_f", "hierarchy/contact_as_float",
-                     to=TensorProto.FLOAT)
     node("Squeeze", [contact_2d, axis1], "contact", "hierarchy/contact_out")
     p_2d = node("Sigmoid", [margin], "hierarchy/p_contact_2d", "hierarchy/p_contact")
     node("Squeeze", [p_2d, axis1], "p_contact", "hierarchy/p_contact_out")
 
-    # Location net input [z, contact, f, location averages]: the force net's unscaled output,
-    # as trained. The location net reads the four standardised channels, not the load
-    # signal's memory features.
+    # Location net input [z, decision, f, location averages]: the decision the caller gates
+    # on (an input: see the module docstring) and the force net's unscaled output, as trained.
+    # The location net reads the four standardised channels, not the load signal's memory
+    # features.
+    decision_f = node("Cast", [node("Unsqueeze", [DECISION_NAME, axis1], "hierarchy/decision_2d",
+                                    "hierarchy/decision_column")],
+                      "hierarchy/decision_f", "hierarchy/decision_as_float", to=TensorProto.FLOAT)
     z4 = node("Slice", [z, const("hierarchy/z_begin", [0], np.int64), const("hierarchy/z_end", [4], np.int64),
                         const("hierarchy/z_axis", [1], np.int64)], "hierarchy/z4", "hierarchy/z4")
-    loc_parts = [z4, contact_f, "force_net/out"]
+    loc_parts = [z4, decision_f, "force_net/out"]
     if n_loc:
         loc_parts.append(node("Slice", [INPUT_NAME, const("hierarchy/loc_begin", [pre.n_features], np.int64),
                                         const("hierarchy/loc_end", [pre.n_inputs], np.int64), axis_1],
@@ -152,25 +176,33 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
         INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_inputs],
         doc_string="net inputs: standardised features (filtered compensated shift - input_mean) / "
                    "input_std, then the memory features and the location averages "
-                   "(fbgforce.model.memory_features)")]
+                   "(fbgforce.model.memory_features)"),
+        helper.make_tensor_value_info(
+            DECISION_NAME, TensorProto.BOOL, [_BATCH],
+            doc_string="the contact decision the location net reads (as 0/1) and the caller "
+                       "gates force_N, x_mm, y_mm with; see metadata fbgforce.contact_decision")]
     outputs = [
         helper.make_tensor_value_info("contact_logits", TensorProto.FLOAT, [_BATCH, 2],
                                       doc_string="contact net logits; index 1 is 'contact'"),
         helper.make_tensor_value_info("contact", TensorProto.BOOL, [_BATCH],
-                                      doc_string="logit1 > logit0"),
+                                      doc_string="logit1 > logit0: the contact net's own "
+                                                 "decision, sample by sample"),
         helper.make_tensor_value_info("p_contact", TensorProto.FLOAT, [_BATCH],
                                       doc_string="sigmoid(logit1 - logit0)"),
         helper.make_tensor_value_info("force_N", TensorProto.FLOAT, [_BATCH],
-                                      doc_string="force, N, NOT gated by contact"),
+                                      doc_string="force, N, NOT gated by the decision"),
         helper.make_tensor_value_info("x_mm", TensorProto.FLOAT, [_BATCH],
-                                      doc_string="x in the pad frame, mm, NOT gated by contact"),
+                                      doc_string="x in the pad frame, mm, given contact_decision; "
+                                                 "NOT gated by it"),
         helper.make_tensor_value_info("y_mm", TensorProto.FLOAT, [_BATCH],
-                                      doc_string="y in the pad frame, mm, NOT gated by contact"),
+                                      doc_string="y in the pad frame, mm, given contact_decision; "
+                                                 "NOT gated by it"),
     ]
     graph = helper.make_graph(
         nodes, "fbgforce_hierarchical_net", inputs, outputs, inits,
         doc_string="Hierarchical network of Kim et al. RA-L 2019 Fig. 4: contact -> force -> "
-                   "location. Outputs are ungated; gate force/x/y with 'contact'.")
+                   "location. The location net reads the input 'contact_decision'; outputs are "
+                   "ungated: gate force/x/y with the decision fed.")
     proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
                               ir_version=IR_VERSION, producer_name="fbgforce",
                               producer_version=__version__,
@@ -178,12 +210,27 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     sizes = {name: net.sizes for name, net in model.nets.items()}
     helper.set_model_props(proto, {
         DIGEST_KEY: weights_digest(model),
+        LAYOUT_KEY: GRAPH_LAYOUT,
         "fbgforce.net_sizes": str(sizes),
         "fbgforce.outputs_gated": "false",
-        "fbgforce.location_input": "[z1, z2, z3, z4, contact (0/1), force_net raw output"
+        "fbgforce.location_input": f"[z1, z2, z3, z4, {DECISION_NAME} (0/1), force_net raw output"
                                    + (", location averages a1..a4]" if n_loc else "]"),
+        "fbgforce.contact_decision": CONTACT_DECISION_HOW,
+        "fbgforce.per_sample_decision": str(model.in_use.per_sample).lower(),
+        "fbgforce.in_use": json.dumps(model.in_use.to_json(), sort_keys=True),
     })
     return proto
+
+
+#: How to feed ``contact_decision`` (metadata ``fbgforce.contact_decision``).
+CONTACT_DECISION_HOW = (
+    "bool [N]. Feed the decision the outputs are gated on. With the per-sample decision "
+    "(fbgforce.per_sample_decision = true) it is the output 'contact'; otherwise it is the "
+    "decision over time of the parameters in "
+    "fbgforce.in_use on the margin m = logit1 - logit0 of consecutive samples "
+    "(fbgforce.model.decide_over_time; docs/runtime.md, 'In use'). Either way the margin comes "
+    "first: run with contact_decision all false, decide, then run the samples "
+    "decided true again with true and take their x_mm, y_mm from that run.")
 
 
 def export_onnx(model: HierarchicalModel, path: str | Path) -> onnx.ModelProto:
@@ -234,13 +281,30 @@ def _session_options() -> Any:
     return so
 
 
+def stale_reason(props: dict[str, str], model: HierarchicalModel) -> str | None:
+    """Why a stored graph with metadata ``props`` must not run as ``model``'s nets, or None.
+
+    A graph is current when it was exported from these very weights
+    (:func:`~fbgforce.freshness.weights_digest`, :data:`DIGEST_KEY`) in this module's layout
+    (:data:`LAYOUT_KEY`): a graph of another layout has other inputs, and fed by this module it
+    would either fail or compute the location from another contact input.
+    """
+    layout = props.get(LAYOUT_KEY)
+    if layout != GRAPH_LAYOUT:
+        return (f"graph layout {layout or 'without ' + LAYOUT_KEY}, not {GRAPH_LAYOUT} (its inputs "
+                f"differ: run 'fbgforce export' again)")
+    if props.get(DIGEST_KEY) != weights_digest(model):
+        return "exported from other weights (retrained after export: run 'fbgforce export' again)"
+    return None
+
+
 def session_for(model: HierarchicalModel, model_dir: str | Path | None = None) -> Any:
     """The cached onnxruntime ``InferenceSession`` for ``model``.
 
-    Uses ``model_dir/model.onnx`` when it exists and was exported from these very weights
-    (checked by :func:`~fbgforce.freshness.weights_digest`); otherwise builds the graph in memory, so a missing or
-    stale file never changes the numbers. One session per (file, digest) is kept for the
-    life of the process.
+    Uses ``model_dir/model.onnx`` when it exists and is current (:func:`stale_reason`: these
+    very weights, this layout); otherwise builds the graph in memory, so a missing or stale
+    file never changes the numbers. One session per (file, digest) is kept for the life of
+    the process.
     """
     import onnxruntime as ort
 
@@ -257,8 +321,7 @@ def session_for(model: HierarchicalModel, model_dir: str | Path | None = None) -
                     stored = onnx.load(source, load_external_data=False)
                 except Exception as exc:  # protobuf raises several types for a corrupt file
                     raise InputError(f"cannot read ONNX graph: {exc}", path=source) from exc
-                props = {p.key: p.value for p in stored.metadata_props}
-                if props.get(DIGEST_KEY) == digest:
+                if stale_reason({p.key: p.value for p in stored.metadata_props}, model) is None:
                     payload = source
             sess = ort.InferenceSession(payload, sess_options=_session_options(),
                                         providers=["CPUExecutionProvider"])
@@ -266,28 +329,70 @@ def session_for(model: HierarchicalModel, model_dir: str | Path | None = None) -
         return sess
 
 
-def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path | None = None
-                 ) -> dict[str, np.ndarray]:
-    """Run the graph on standardised features ``z`` (n, 4); returns the raw (ungated) outputs."""
-    sess = session_for(model, model_dir)
-    z32 = np.ascontiguousarray(np.asarray(z).reshape(-1, model.preprocess.n_inputs), dtype=np.float32)
-    values = sess.run(list(OUTPUT_NAMES), {INPUT_NAME: z32})
+def _as_input(model: HierarchicalModel, z: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(z).reshape(-1, model.preprocess.n_inputs),
+                                dtype=np.float32)
+
+
+def _run(sess: Any, z32: np.ndarray, decision: np.ndarray) -> dict[str, np.ndarray]:
+    values = sess.run(list(OUTPUT_NAMES), {INPUT_NAME: z32, DECISION_NAME: decision})
     return dict(zip(OUTPUT_NAMES, values))
+
+
+def _decided(sess: Any, z32: np.ndarray, decide: Callable[[np.ndarray], np.ndarray]
+             ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The graph's outputs with the location of the decision ``decide(margin)``; also that
+    decision and the margin (float64 of the float32 logits).
+
+    The decision needs the contact net's margin, so it cannot be fed in the run that computes
+    it: the first run feeds "no contact" everywhere, and the rows decided "contact" run again
+    with "contact" for their location. Every row's location, the ungated ``x_raw_mm`` and
+    ``y_raw_mm`` of rows without contact included, is then the one the float model computes
+    for it. "No contact" first because most samples of a gripper in use are at rest: a stream
+    of single samples runs the graph once at rest and twice in contact. ``decide`` is called
+    once (the decision over time carries its state from call to call).
+    """
+    n = z32.shape[0]
+    out = _run(sess, z32, np.zeros(n, dtype=bool))
+    logits = out["contact_logits"].astype(np.float64)
+    margin = logits[:, 1] - logits[:, 0]
+    decision = np.asarray(decide(margin), dtype=bool).reshape(n)
+    rows = np.flatnonzero(decision)
+    if rows.size:
+        again = _run(sess, z32[rows], np.ones(rows.size, dtype=bool))
+        for key in ("x_mm", "y_mm"):
+            out[key][rows] = again[key]
+    return out, decision, margin
+
+
+def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path | None = None,
+                 decision: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Run the graph on net inputs ``z`` (n, F + location averages); returns the raw (ungated)
+    outputs :data:`OUTPUT_NAMES`.
+
+    ``decision``: (n,) the contact decision the location net reads (one run); None: the
+    contact net's own, ``margin > 0`` (the ``contact`` output; two runs, :func:`_decided`),
+    as :func:`fbgforce.model.predict_from_features` without ``decide``.
+    """
+    sess = session_for(model, model_dir)
+    z32 = _as_input(model, z)
+    if decision is not None:
+        return _run(sess, z32, np.asarray(decision, dtype=bool).reshape(z32.shape[0]))
+    return _decided(sess, z32, lambda margin: margin > 0.0)[0]
 
 
 def onnx_nets(model: HierarchicalModel, model_dir: str | Path | None = None) -> Nets:
     """The nets in onnxruntime float32 (:data:`fbgforce.model.Nets`), for the float pipeline
-    (:func:`fbgforce.model.predict_from_features`, :class:`fbgforce.model.FloatPipeline`).
+    (:func:`fbgforce.model.predict_from_features`, :class:`fbgforce.model.FloatPipeline`):
+    the location net reads the decision ``decide`` returns, as in
+    :func:`fbgforce.model.numpy_nets`, so every stage after the nets (the decision over time,
+    the settled-hold gain, the tracker) sees what it sees in the float model.
 
     ``model_dir``: where an exported ``model.onnx`` may be (:func:`session_for`).
     """
-    def nets(x: np.ndarray, decide: Any) -> dict[str, np.ndarray]:
-        # The graph gates the location net on the net's own contact; the decision over time
-        # differs from it only near its thresholds, where the location is not scored apart.
-        raw = run_features(model, x, model_dir)
-        logits = raw["contact_logits"].astype(np.float64)
-        margin = logits[:, 1] - logits[:, 0]
-        return {"contact": decide(margin), "margin": margin,
+    def nets(x: np.ndarray, decide: Callable[[np.ndarray], np.ndarray]) -> dict[str, np.ndarray]:
+        raw, contact, margin = _decided(session_for(model, model_dir), _as_input(model, x), decide)
+        return {"contact": contact, "margin": margin,
                 "p_contact": raw["p_contact"].astype(np.float64),
                 "force_raw_N": raw["force_N"].astype(np.float64),
                 "x_raw_mm": raw["x_mm"].astype(np.float64), "y_raw_mm": raw["y_mm"].astype(np.float64)}

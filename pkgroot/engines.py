@@ -9,6 +9,10 @@ and returns the keys of :func:`fbgforce.model.predict_from_features` that the me
 where no contact). ``model_dir`` is the model directory (engines that need exported files read
 them from there); ``model`` the loaded :class:`fbgforce.model.HierarchicalModel`.
 
+Every engine runs the float model's stages after the nets (the decision over time, the
+settled-hold gain, the at-rest tracker) and gives its outputs within the engine's tolerance
+(docs/export-onnx.md, "Every engine against the float model"; tests/test_engine_agreement.py).
+
 Engines other than ``float`` live in the parts that own their runtimes and are imported lazily
 from :data:`ENGINES`, so this module works (and says clearly what is missing) before they exist.
 """

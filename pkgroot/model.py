@@ -1339,9 +1339,12 @@ def location_inputs(x: np.ndarray, contact: np.ndarray, f: np.ndarray, n_loc: in
     return np.column_stack(cols)
 
 
-#: ``nets(x) -> raw outputs``: the three nets on net inputs x (n, F + location averages),
-#: returning ``margin``, ``p_contact``, ``force_raw_N``, ``x_raw_mm``, ``y_raw_mm`` given the
-#: contact decision ``contact`` they were asked for (the location net reads it).
+#: ``nets(x, decide) -> raw outputs``: the three nets on net inputs x (n, F + location
+#: averages), returning ``margin``, ``contact = decide(margin)`` (called once: the decision over
+#: time carries its state from call to call), ``p_contact``, ``force_raw_N``, ``x_raw_mm``,
+#: ``y_raw_mm``. The location net reads ``contact``, the decision the outputs are gated on, on
+#: every row (:func:`location_inputs`): an engine that fed it another decision would report
+#: another location wherever the two differ.
 Nets = Callable[[np.ndarray, Callable[[np.ndarray], np.ndarray]], dict[str, np.ndarray]]
 
 

@@ -7,8 +7,8 @@ import pytest
 
 from fbgforce.errors import InputError
 from fbgforce.export import onnx_export as ox
-from fbgforce.model import (MLP, HierarchicalModel, Memory, Preprocess, features, predict,
-                            predict_from_features)
+from fbgforce.model import (MLP, HierarchicalModel, Memory, Preprocess, features, numpy_nets,
+                            predict, predict_from_features)
 from fbgforce.model import location_inputs as fm_location_inputs
 
 EPS32 = float(np.finfo(np.float32).eps)
@@ -89,7 +89,15 @@ def test_checker_opset_and_dynamic_batch(exported) -> None:
     assert [o.version for o in loaded.opset_import if o.domain in ("", "ai.onnx")] == [17]
     dims = loaded.graph.input[0].type.tensor_type.shape.dim
     assert dims[0].dim_param == "N" and dims[1].dim_value == 4
+    assert [i.name for i in loaded.graph.input] == list(ox.INPUT_NAMES)
+    decision = loaded.graph.input[1].type.tensor_type
+    assert decision.elem_type == onnx.TensorProto.BOOL
+    assert [d.dim_param for d in decision.shape.dim] == ["N"]
     assert [o.name for o in loaded.graph.output] == list(ox.OUTPUT_NAMES)
+    props = {p.key: p.value for p in loaded.metadata_props}
+    assert props[ox.LAYOUT_KEY] == ox.GRAPH_LAYOUT and ox.DECISION_NAME in props["fbgforce.location_input"]
+    assert props["fbgforce.contact_decision"] == ox.CONTACT_DECISION_HOW
+    assert props["fbgforce.per_sample_decision"] == "true"
 
 
 def test_node_names_read_like_fig4(exported) -> None:
@@ -101,7 +109,11 @@ def test_node_names_read_like_fig4(exported) -> None:
         assert [n.name for n in gemms] == [f"{net}/fc{k}" for k in range(1, n_layers + 1)]
         assert all(n.op_type == "Gemm" for n in gemms)
     concat = next(n for n in proto.graph.node if n.name == "hierarchy/location_input")
-    assert concat.input[1] == "hierarchy/contact_f" and concat.input[2] == "force_net/out"
+    assert concat.input[1] == "hierarchy/decision_f" and concat.input[2] == "force_net/out"
+    # The location net reads the decision input, not the contact net's own decision.
+    cast = next(n for n in proto.graph.node if n.output[0] == "hierarchy/decision_f")
+    column = next(n for n in proto.graph.node if n.output[0] == cast.input[0])
+    assert column.op_type == "Unsqueeze" and column.input[0] == ox.DECISION_NAME
 
 
 @pytest.mark.parametrize("width", [1.0, 0.25])
@@ -147,7 +159,18 @@ def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.
     assert np.all(np.abs(got["force_N"] - ref["force_raw_N"]) <= fb)
     # Location: compare where the contact input agrees (it is 0/1 and steers the net).
     ok = ~flipped
-    loc_in = fm_location_inputs(x, ref["contact"], model.force.forward(z)[:, 0],
+    _check_location(model, x, ref["contact"], ok, (got["x_mm"], got["y_mm"]),
+                    (ref["x_raw_mm"], ref["y_raw_mm"]))
+    np.testing.assert_allclose(got["p_contact"], ref["p_contact"], rtol=0, atol=1e-5 + lb.sum(axis=1).max())
+
+
+def _check_location(model: HierarchicalModel, x: np.ndarray, contact: np.ndarray, ok: np.ndarray,
+                    got: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray, np.ndarray]) -> None:
+    """float32 ``got`` (x, y) against float64 ``ref`` on the rows ``ok``, the location net fed
+    ``contact``: within the float32 bound of the location net and of the force net's error
+    it reads."""
+    z = x[:, :model.preprocess.n_features]
+    loc_in = fm_location_inputs(x, contact, model.force.forward(z)[:, 0],
                                 model.preprocess.memory.n_loc)[ok]
     lbound = _bound(model.location, loc_in)
     # The force input carries the force net's own float32 error into the location net; a ReLU
@@ -156,11 +179,97 @@ def _check_agreement(model: HierarchicalModel, z: np.ndarray, got: dict[str, np.
     for w in model.location.weights[1:]:
         err_prop = err_prop @ np.abs(w).T
     xy_bound = lbound + err_prop
-    for k, key in enumerate(("x_mm", "y_mm")):
-        err = np.abs(got[key][ok] - ref[key.replace("_mm", "_raw_mm")][ok])
-        assert np.all(err <= abs(model.xy_scale[k]) * xy_bound[:, k]
-                      + 4 * EPS32 * np.abs(ref[key.replace("_mm", "_raw_mm")][ok]))
-    np.testing.assert_allclose(got["p_contact"], ref["p_contact"], rtol=0, atol=1e-5 + lb.sum(axis=1).max())
+    for k in range(2):
+        err = np.abs(got[k][ok] - ref[k][ok])
+        assert np.all(err <= abs(model.xy_scale[k]) * xy_bound[:, k] + 4 * EPS32 * np.abs(ref[k][ok]))
+
+
+def _loc_model() -> HierarchicalModel:
+    return _model(seed=6, width=0.5, memory=Memory(ema_shifts=(3,), play_widths=(0.1,),
+                                                   weights=(0.3, 0.2, 0.4, 0.1), loc_shift=5))
+
+
+def test_location_reads_the_decision_fed(tmp_path) -> None:
+    """x_mm and y_mm are the location of the decision fed, whatever the contact net says; and
+    onnx_nets feeds the decision its caller's ``decide`` returns, as the float64 nets do, on
+    the rows where that decision is not the net's own too."""
+    model = _loc_model()
+    ox.export_onnx(model, tmp_path / ox.ONNX_FILE)
+    wl, base = _recording(0)
+    x = features(model, wl, base)
+    everywhere = np.ones(x.shape[0], dtype=bool)
+    for decision in (everywhere, ~everywhere):
+        ref = numpy_nets(model)(x, lambda margin: decision)
+        got = ox.run_features(model, x, tmp_path, decision=decision)
+        _check_location(model, x, decision, everywhere, (got["x_mm"], got["y_mm"]),
+                        (ref["x_raw_mm"], ref["y_raw_mm"]))
+    # A decision that differs from the net's own on every fifth sample (as the decision over
+    # time does where it holds a contact through the release, or has not yet risen).
+    flip = np.arange(x.shape[0]) % 5 == 0
+
+    def decide(margin: np.ndarray) -> np.ndarray:
+        return (margin > 0.0) ^ flip
+
+    ref = numpy_nets(model)(x, decide)
+    got = ox.onnx_nets(model, tmp_path)(x, decide)
+    same = got["contact"] == ref["contact"]
+    assert same.mean() > 0.99 and ref["contact"].any() and not ref["contact"].all()
+    assert np.array_equal(got["contact"], (got["margin"] > 0.0) ^ flip)
+    _check_location(model, x, ref["contact"], same, (got["x_raw_mm"], got["y_raw_mm"]),
+                    (ref["x_raw_mm"], ref["y_raw_mm"]))
+    # The check can fail: the location of the net's own decision is another one on those rows.
+    own = ox.run_features(model, x, tmp_path, decision=got["margin"] > 0.0)
+    assert np.abs(own["x_mm"][flip & same] - ref["x_raw_mm"][flip & same]).max() > 0.1
+
+
+def _old_layout(proto: onnx.ModelProto) -> onnx.ModelProto:
+    """``proto`` as a graph without the decision input and without the layout key: its
+    location net reads the contact net's own decision (``hierarchy/contact_2d``)."""
+    old = onnx.ModelProto()
+    old.CopyFrom(proto)
+    del old.graph.input[1]
+    column = next(n for n in old.graph.node if n.output[0] == "hierarchy/decision_2d")
+    column.op_type = "Identity"
+    del column.input[:]
+    column.input.append("hierarchy/contact_2d")
+    keep = [p for p in old.metadata_props if p.key != ox.LAYOUT_KEY]
+    del old.metadata_props[:]
+    old.metadata_props.extend(keep)
+    onnx.checker.check_model(old, full_check=True)
+    return old
+
+
+def test_graph_of_another_layout_is_not_used(tmp_path) -> None:
+    """A model.onnx from these very weights but without the decision input (no layout key)
+    is stale: the engine builds the current graph in memory and gives the float model's
+    location, where the file would give the location of the net's own decision."""
+    import onnxruntime as ort
+
+    model = _loc_model()
+    (tmp_path / ox.ONNX_FILE).write_bytes(_old_layout(ox.build_graph(model)).SerializeToString())
+    props = {p.key: p.value for p in onnx.load(tmp_path / ox.ONNX_FILE).metadata_props}
+    assert props[ox.DIGEST_KEY] == ox.weights_digest(model)
+    assert "layout" in ox.stale_reason(props, model)
+    assert ox.stale_reason({**props, ox.LAYOUT_KEY: ox.GRAPH_LAYOUT}, model) is None
+    assert "weights" in ox.stale_reason({**props, ox.LAYOUT_KEY: ox.GRAPH_LAYOUT},
+                                        _model(seed=7, width=0.5, memory=model.preprocess.memory))
+    sess = ox.session_for(model, tmp_path)
+    assert [i.name for i in sess.get_inputs()] == list(ox.INPUT_NAMES)
+    wl, base = _recording(1)
+    x = features(model, wl, base)
+    flip = np.arange(x.shape[0]) % 4 == 0
+
+    def decide(margin: np.ndarray) -> np.ndarray:
+        return (margin > 0.0) ^ flip
+
+    ref = numpy_nets(model)(x, decide)
+    got = ox.onnx_nets(model, tmp_path)(x, decide)
+    same = got["contact"] == ref["contact"]
+    _check_location(model, x, ref["contact"], same, (got["x_raw_mm"], got["y_raw_mm"]),
+                    (ref["x_raw_mm"], ref["y_raw_mm"]))
+    stale = ort.InferenceSession(str(tmp_path / ox.ONNX_FILE), providers=["CPUExecutionProvider"])
+    old_x = stale.run(["x_mm"], {ox.INPUT_NAME: x.astype(np.float32)})[0]
+    assert np.abs(old_x[same & flip] - ref["x_raw_mm"][same & flip]).max() > 0.1
 
 
 def test_batch_sizes_one_and_many(model, exported) -> None:
@@ -216,7 +325,7 @@ def test_memory_and_location_averages_reach_the_nets_they_belong_to(tmp_path) ->
     dim = proto.graph.input[0].type.tensor_type.shape.dim[1].dim_value
     assert dim == model.preprocess.n_inputs == 4 + 2 + 4
     concat = next(n for n in proto.graph.node if n.name == "hierarchy/location_input")
-    assert list(concat.input[1:]) == ["hierarchy/contact_f", "force_net/out",
+    assert list(concat.input[1:]) == ["hierarchy/decision_f", "force_net/out",
                                       "hierarchy/location_averages"]
     for seed in range(2):
         wl, base = _recording(seed)

@@ -149,7 +149,7 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
                   base: np.ndarray) -> list[tuple[timing.Timer, dict[str, Any], dict[str, Any]]]:
     """The in-process timers and, for each, the rows its single and batch figures fill."""
     from fbgforce.engines import get_engine
-    from fbgforce.export.onnx_export import run_features, session_for
+    from fbgforce.export.onnx_export import DECISION_NAME, INPUT_NAME, run_features, session_for
     from fbgforce.pybind import FloatRuntime, Runtime
 
     out: list[tuple[timing.Timer, dict[str, Any], dict[str, Any]]] = []
@@ -181,10 +181,14 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
                 _row("float", "batch", "python", "nets", "predict_from_features")))
     sess = session_for(model, model_dir)
     names = [o.name for o in sess.get_outputs()]
-    feed = sess.get_inputs()[0].name
+    # The nets alone: one run of the graph, its location fed the nets' own decision (the
+    # engine runs the samples it decides in contact a second time, onnx_export.onnx_nets).
+    decided = np.ascontiguousarray(fm.predict_from_features(model, z)["contact"], dtype=bool)
     out.append((timing.Timer("onnx/nets",
-                             single=lambda i: sess.run(names, {feed: z32[i:i + 1]}),
-                             batch=lambda a, b: run_features(model, z32[a:b], model_dir)),
+                             single=lambda i: sess.run(names, {INPUT_NAME: z32[i:i + 1],
+                                                               DECISION_NAME: decided[i:i + 1]}),
+                             batch=lambda a, b: run_features(model, z32[a:b], model_dir,
+                                                             decision=decided[a:b])),
                 _row("onnx", "single", "python", "nets", "session.run, one row"),
                 _row("onnx", "batch", "python", "nets", "session.run, 1 thread")))
     return out
