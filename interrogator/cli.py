@@ -144,6 +144,9 @@ def register(subparsers: Any) -> None:
                         "extra) or ros2:///NAMESPACE[?frame_id=ID&domain=N] (ROS 2 topics "
                         "NAMESPACE/wrench and NAMESPACE/contact, needs the [ros2] extra, "
                         "docs/ros2.md); may be repeated")
+    p.add_argument("--control", metavar="udp://HOST:PORT", default=None,
+                   help="also take tare and reset commands on this UDP port (control datagrams, "
+                        "docs/protocol.md; port 0 = any free port, printed on stderr)")
     p.add_argument("--cpu", type=non_negative_int, metavar="N",
                    help="run the estimator on CPU N alone and the publishing process on the "
                         "other CPUs, so that they never take turns on one core (docs/ros2.md)")
@@ -152,7 +155,8 @@ def register(subparsers: Any) -> None:
                    help="fixed (C fixed-point runtime, default) or float (numpy reference)")
     p.add_argument("--tare-samples", type=non_negative_int, default=200,
                    help="tare on the first N samples, fingertip unloaded (default 200 = 0.2 s; "
-                        "0 = use the model's training baseline)")
+                        "0 = use the model's training baseline); a tare or reset command "
+                        "averages as many (200 with 0)")
     p.add_argument("--channels", type=positive_int, default=5,
                    help="gratings per frame (default 5: FBG 1..4 and T; with more, the first "
                         "five are FBG 1..4 and T)")
@@ -275,9 +279,17 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
     publish_cpus = None if args.cpu is None else \
         sorted(separate_cpus(args.cpu, publishing=bool(args.publish)))
     est = LiveEstimator(args.model, engine=args.engine, tare_samples=args.tare_samples)
-    # The outputs are open before the reader: a sample never waits for them to start.
-    publication = PublisherProcess(args.publish, cpus=publish_cpus) if args.publish else None
+    control = None
+    if args.control is not None:
+        from fbgforce.interrogator.control import ControlServer
+
+        control = ControlServer(args.control)
+        print(f"stream: control on {control.url}", file=sys.stderr, flush=True)
+    publication = None
     try:
+        # The outputs are open before the reader: a sample never waits for them to start.
+        publication = PublisherProcess(args.publish, cpus=publish_cpus) if args.publish else None
+        sources: list[Any] = [s for s in (control, publication) if s is not None]
         reader = _open_reader(args, args.model, channels=args.channels)
         protocol = _protocol(args)
         started = time.monotonic()
@@ -285,18 +297,21 @@ def _stream(args: argparse.Namespace) -> dict[str, Any]:
             result = run_stream(reader, est, out=args.out, duration=args.duration,
                                 max_samples=args.samples, idle_timeout=args.idle_timeout,
                                 start_timeout=_start_timeout(args), status=not args.quiet,
-                                publication=publication)
+                                publication=publication, commands=sources)
         finally:
             reader.close()
     finally:
         if publication is not None:
             publication.close()
+        if control is not None:
+            control.close()
     if result["received"] == 0:
         raise no_data_error(args.port, protocol, time.monotonic() - started,
                             reader.stats(), reader.link.last_error, baud=args.baud,
                             interrupted=result["interrupted"])
     result = {"port": args.port, "protocol": protocol, **result, "cpu": args.cpu,
-              "publish_cpus": publish_cpus if args.publish else None}
+              "publish_cpus": publish_cpus if args.publish else None,
+              "control": None if control is None else control.stats()}
     if not args.json:
         print(f"stream: {result['samples']} samples estimated, {result['lost_frames']} lost, "
               f"{result['bad_frames']} bad frames" + (f", written to {args.out}" if args.out else ""),

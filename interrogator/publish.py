@@ -51,11 +51,14 @@ of its own and the publishing process the others (``fbgforce stream --cpu N``).
 """
 from __future__ import annotations
 
+import json
 import math
 import multiprocessing as mp
 import os
+import select
 import signal
 import socket
+import sys
 import time
 import weakref
 import zlib
@@ -92,6 +95,8 @@ DATAGRAM_DTYPE = np.dtype({
 DATAGRAM_SIZE = DATAGRAM_DTYPE.itemsize
 CRC_OFFSET = DATAGRAM_DTYPE.fields["crc32"][1]  # type: ignore[index]
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+#: An ``lcm://CHANNEL`` output publishes its status records on ``CHANNEL`` + this.
+STATUS_CHANNEL_SUFFIX = "_STATUS"
 #: One estimate as the stream hands it to the outputs: the sample's counter and device time,
 #: its arrival (``time.monotonic_ns()``; -1: it waited for the tare and counts in no latency)
 #: and the runtime's integer estimate.
@@ -99,6 +104,9 @@ ESTIMATE_DTYPE = np.dtype([("sample_seq", "<i8"), ("t_us", "<i8"), ("arrived_ns"
                           + [(k, _le(k)) for k in ESTIMATE_FIELDS], align=True)
 #: Records the ring of a :class:`PublisherProcess` holds: a minute at 1 kHz (3 MiB).
 RING_RECORDS = 1 << 16
+#: Seconds between two polls of the outputs that serve commands (ROS 2 services) while the
+#: publishing process has nothing else to do.
+COMMAND_POLL_S = 0.01
 
 
 def estimate_integers(est: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -168,8 +176,72 @@ def decode_datagram(data: bytes) -> np.void | None:
     return rec
 
 
+STATUS_MAGIC = b"FBGS"
+STATUS_VERSION = 1
+#: Status flag counters of a status record, one per flag bit (``fbg_output.status`` bit k).
+STATUS_FLAG_SLOTS = 8
+#: The 1 Hz status record of a ``udp://`` output (docs/protocol.md, "Status record"): the
+#: stream's health (:mod:`fbgforce.interrogator.health`) in 92 bytes, little-endian.
+STATUS_DTYPE = np.dtype({
+    "names": ["magic", "version", "size", "seq", "level", "reserved", "received", "lost",
+              "reconnects", "rate_mhz", "silent_ms", "flags", "tracker_offset_fm",
+              "tracker_bound_fm", "tares", "resets", "failed", "digest", "crc32"],
+    "formats": ["S4", "<u2", "<u2", "<u4", "u1", "V3", "<u8", "<u8", "<u4", "<u4", "<u4",
+                ("<u2", (STATUS_FLAG_SLOTS,)), "<i4", "<i4", "<u4", "<u4", "<u4", "S8", "<u4"],
+    "offsets": [0, 4, 6, 8, 12, 13, 16, 24, 32, 36, 40, 44, 60, 64, 68, 72, 76, 80, 88],
+    "itemsize": 92,
+})
+STATUS_SIZE = STATUS_DTYPE.itemsize
+STATUS_CRC_OFFSET = STATUS_DTYPE.fields["crc32"][1]  # type: ignore[index]
+_STATUS_BITS = {c.name: c.value.bit_length() - 1 for c in contract.STATUS}
+
+
+def _sat(value: float, bits: int) -> int:
+    return int(min(max(round(value), 0), (1 << bits) - 1))
+
+
+def encode_status(seq: int, health: dict[str, Any]) -> bytes:
+    """The status datagram of a health snapshot (:meth:`fbgforce.interrogator.health.Health.
+    snapshot`); counters saturate at their field's largest value."""
+    rec = np.zeros(1, dtype=STATUS_DTYPE)[0]
+    rec["magic"], rec["version"], rec["size"] = STATUS_MAGIC, STATUS_VERSION, STATUS_SIZE
+    rec["seq"] = seq & 0xFFFFFFFF
+    rec["level"] = health["level"]
+    rec["received"], rec["lost"] = health["received"], health["lost"]
+    rec["reconnects"] = _sat(health["reconnects"], 32)
+    rec["rate_mhz"] = _sat(health["rate_hz"] * 1000.0, 32)
+    rec["silent_ms"] = _sat(health["silent_s"] * 1000.0, 32)
+    flags = np.zeros(STATUS_FLAG_SLOTS, dtype=np.uint16)
+    for name, count in health["flags_last_s"].items():
+        flags[_STATUS_BITS[name]] = _sat(count, 16)
+    rec["flags"] = flags
+    rec["tracker_offset_fm"] = _sat(health["tracker_offset_pm"] * 1000.0, 31)
+    rec["tracker_bound_fm"] = _sat(health["tracker_bound_pm"] * 1000.0, 31)
+    commands = health.get("commands", {})
+    for field_name, key in (("tares", "tare"), ("resets", "reset"), ("failed", "failed")):
+        rec[field_name] = _sat(commands.get(key, 0), 32)
+    rec["digest"] = bytes.fromhex(health["model_digest"][:16])
+    body = rec.tobytes()[:STATUS_CRC_OFFSET]
+    return body + (zlib.crc32(body) & 0xFFFFFFFF).to_bytes(4, "little")
+
+
+def decode_status(data: bytes) -> np.void | None:
+    """A status datagram as a record of :data:`STATUS_DTYPE`; ``None`` if its magic, version,
+    size or CRC is wrong."""
+    if len(data) != STATUS_SIZE or not data.startswith(STATUS_MAGIC):
+        return None
+    rec = np.frombuffer(data, dtype=STATUS_DTYPE)[0]
+    if rec["version"] != STATUS_VERSION or rec["size"] != STATUS_SIZE:
+        return None
+    if zlib.crc32(data[:STATUS_CRC_OFFSET]) & 0xFFFFFFFF != int(rec["crc32"]):
+        return None
+    return rec
+
+
 class Publisher(Protocol):
-    """An output: UDP, LCM or ROS 2 (:func:`open_publishers`)."""
+    """An output: UDP, LCM or ROS 2 (:func:`open_publishers`). An output may also implement
+    ``publish_status(health)`` (the 1 Hz health record), and ``poll_commands()`` /
+    ``answer(token, answer)`` (commands it serves: the ROS 2 services)."""
 
     def publish(self, records: np.ndarray) -> None:
         """Send a batch of :data:`ESTIMATE_DTYPE` records; never waits for a receiver."""
@@ -195,6 +267,7 @@ class UdpPublisher:
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
+        self.status_sent = 0
 
     def publish(self, records: np.ndarray) -> None:
         for d in encode_datagrams(self.seq, records):
@@ -205,8 +278,17 @@ class UdpPublisher:
                 self.send_errors += 1
         self.seq += len(records)
 
+    def publish_status(self, health: dict[str, Any]) -> None:
+        """Send the status record (:func:`encode_status`) to the same address."""
+        try:
+            self.sock.sendto(encode_status(self.status_sent, health), self.address)
+            self.status_sent += 1
+        except OSError:
+            self.send_errors += 1
+
     def stats(self) -> dict[str, Any]:
-        return {"url": self.url, "sent": self.sent, "send_errors": self.send_errors}
+        return {"url": self.url, "sent": self.sent, "send_errors": self.send_errors,
+                "status_sent": self.status_sent}
 
     def close(self) -> None:
         self.sock.close()
@@ -225,6 +307,7 @@ class LcmPublisher:
             raise InputError("lcm:// needs the lcm package: pip install 'fbgforce[lcm]'",
                              column="--publish") from None
         from fbgforce.interrogator.lcmtypes.estimate_t import estimate_t
+        from fbgforce.interrogator.lcmtypes.status_t import status_t
 
         parts = urlsplit(url)
         if parts.scheme != "lcm" or not parts.netloc:
@@ -239,9 +322,11 @@ class LcmPublisher:
         except (RuntimeError, OSError) as exc:
             raise InputError(f"cannot open LCM {self.lcm_url}: {exc}", column="--publish") from None
         self.msg_type = estimate_t
+        self.status_type = status_t
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
+        self.status_sent = 0
 
     def publish(self, records: np.ndarray) -> None:
         now_us = int(time.time() * 1e6)
@@ -265,8 +350,35 @@ class LcmPublisher:
             except (OSError, IOError):
                 self.send_errors += 1
 
+    def publish_status(self, health: dict[str, Any]) -> None:
+        """Publish ``fbgforce.status_t`` (the health snapshot) on ``CHANNEL_STATUS``."""
+        m = self.status_type()
+        m.utime = int(time.time() * 1e6)
+        m.seq = self.status_sent
+        m.level = health["level"]
+        m.message = health["message"]
+        m.received, m.lost = health["received"], health["lost"]
+        m.reconnects = health["reconnects"]
+        m.rate_hz, m.silent_s = float(health["rate_hz"]), float(health["silent_s"])
+        flags = [0] * STATUS_FLAG_SLOTS
+        for name, count in health["flags_last_s"].items():
+            flags[_STATUS_BITS[name]] = min(int(count), 2**31 - 1)
+        m.flags = flags
+        m.tracker_offset_pm = float(health["tracker_offset_pm"])
+        m.tracker_bound_pm = float(health["tracker_bound_pm"])
+        commands = health.get("commands", {})
+        m.tares, m.resets = commands.get("tare", 0), commands.get("reset", 0)
+        m.failed = commands.get("failed", 0)
+        m.model_digest = health["model_digest"]
+        try:
+            self.lc.publish(self.channel + STATUS_CHANNEL_SUFFIX, m.encode())
+            self.status_sent += 1
+        except (OSError, IOError):
+            self.send_errors += 1
+
     def stats(self) -> dict[str, Any]:
-        return {"url": self.url, "sent": self.sent, "send_errors": self.send_errors}
+        return {"url": self.url, "sent": self.sent, "send_errors": self.send_errors,
+                "status_sent": self.status_sent}
 
     def close(self) -> None:
         self.lc = None
@@ -368,6 +480,28 @@ class Outputs:
             pub.publish(records)
         self.latency.add_batch(records["arrived_ns"], time.monotonic_ns())
 
+    def status(self, health: dict[str, Any]) -> None:
+        """Hand the health snapshot to every output that publishes one."""
+        for pub in self.publishers:
+            if hasattr(pub, "publish_status"):
+                pub.publish_status(health)
+
+    def poll_commands(self) -> list[tuple[int, str, Any]]:
+        """Commands the outputs received: (output index, name, the output's token)."""
+        out = []
+        for i, pub in enumerate(self.publishers):
+            if hasattr(pub, "poll_commands"):
+                out.extend((i, name, token) for name, token in pub.poll_commands())
+        return out
+
+    def answer(self, index: int, token: Any, answer: dict[str, Any]) -> None:
+        """Give output ``index`` the answer to a command it received."""
+        self.publishers[index].answer(token, answer)
+
+    @property
+    def serves_commands(self) -> bool:
+        return any(hasattr(pub, "poll_commands") for pub in self.publishers)
+
     def finish(self) -> dict[str, Any]:
         """The stream summary's publishing keys: ``published`` (each output's stats),
         ``publish_latency_us`` and ``publish_dropped`` (records no output was given)."""
@@ -443,18 +577,32 @@ class PublisherProcess:
         self.capacity = capacity
         ring = ctx.RawArray("b", capacity * ESTIMATE_DTYPE.itemsize)
         position = ctx.RawArray("q", 1)
+        # Each output's sent and send_errors, kept by the child after every batch: what a
+        # child that dies without a word had sent is still known here.
+        counters = ctx.RawArray("q", 2 * len(urls))
         wake_rx, self._wake = ctx.Pipe(duplex=False)
+        # Health snapshots and command answers to the child: framed messages shorter than
+        # PIPE_BUF through a non-blocking pipe, each written whole or not at all.
+        status_rx, self._status = ctx.Pipe(duplex=False)
         self._control, child_control = ctx.Pipe()
         self._child = ctx.Process(target=_serve_outputs, name="fbgforce-publish", daemon=True,
                                   args=(list(urls), ring, position, capacity, wake_rx,
-                                        child_control, None if cpus is None else set(cpus)))
+                                        child_control, None if cpus is None else set(cpus),
+                                        counters, status_rx))
         self._child.start()
         wake_rx.close()
+        status_rx.close()
         child_control.close()
+        self.status_skipped = 0
         self._ring = np.frombuffer(ring, dtype=ESTIMATE_DTYPE)
         self._position = np.frombuffer(position, dtype=np.int64)
+        self._counters = np.frombuffer(counters, dtype=np.int64)
+        self.urls = list(urls)
         self.written = 0
         self.dropped = 0
+        #: The child's exit code once it died before the stream ended it (None: alive).
+        self.died: int | None = None
+        self._report = sys.stderr
         self._summary: dict[str, Any] | None = None
         # Closing the pipe at exit ends the child before multiprocessing joins it.
         self._finalizer = weakref.finalize(self, _end_child, self._wake, self._child)
@@ -472,6 +620,7 @@ class PublisherProcess:
                              f"the publishing process ended before opening its outputs "
                              f"(exit code {self._child.exitcode})", column="--publish")
         os.set_blocking(self._wake.fileno(), False)
+        os.set_blocking(self._status.fileno(), False)
 
     def publish(self, records: np.ndarray) -> None:
         n = len(records)
@@ -489,24 +638,102 @@ class PublisherProcess:
         # read order the ring's stores before the child's loads on any processor.
         try:
             os.write(self._wake.fileno(), self.written.to_bytes(8, "little"))
+        except BrokenPipeError:
+            # The child is gone: what it had not published counts as dropped.
+            self.check()
         except OSError:
-            # A full pipe (the child is behind): the next wake-up carries a later count. A
-            # closed one (the child is gone): what it had not published counts as dropped.
+            pass  # a full pipe (the child is behind): the next wake-up carries a later count
+
+    def _to_child(self, message: Any) -> None:
+        """Send a framed message to the child; never waits (a full pipe skips it, counted)."""
+        if self.died is not None or self._status.closed:
+            return
+        data = json.dumps(message, separators=(",", ":")).encode()
+        if len(data) + 4 > select.PIPE_BUF:
+            raise ValueError(f"a message to the publishing process exceeds {select.PIPE_BUF} bytes")
+        try:
+            os.write(self._status.fileno(), len(data).to_bytes(4, "little") + data)
+        except BlockingIOError:
+            self.status_skipped += 1
+        except OSError:
+            self.check()
+
+    def status(self, health: dict[str, Any]) -> None:
+        """Hand the health snapshot to the outputs (their 1 Hz status records); also notices a
+        dead child (:meth:`check`)."""
+        if self.check():
+            self._to_child(["health", health])
+
+    def poll(self) -> list[tuple[str, Any]]:
+        """Commands the outputs received (the ROS 2 services), as (name, token)."""
+        out = []
+        try:
+            while self._summary is None and self._control.poll(0):
+                msg = self._control.recv()
+                if msg[0] == "command":
+                    out.append((msg[2], (msg[1], msg[3])))
+        except (EOFError, OSError):
             pass
+        return out
+
+    def answer(self, cmd: Any) -> None:
+        """Send a command's answer to the output that received it."""
+        index, token = cmd.token
+        self._to_child(["answer", index, token, command_answer(cmd)])
+
+    def check(self) -> bool:
+        """Whether the child is alive; the first time it is found dead, say so on stderr
+        (what each output had sent, and that publishing stops while the stream goes on)."""
+        if self.died is not None:
+            return False
+        code = self._child.exitcode
+        if code is None:
+            if self._child.is_alive():
+                return True
+            self._child.join(1.0)
+            code = self._child.exitcode if self._child.exitcode is not None else -1
+        self.died = code
+        sent = ", ".join(f"{url}: {int(self._counters[2 * i])} sent"
+                         for i, url in enumerate(self.urls))
+        self._report.write(f"stream: the publishing process died ({_exit_text(code)}); {sent}; "
+                           f"nothing more is published, estimation and --out go on\n")
+        self._report.flush()
+        return False
+
+    def _dead_entries(self) -> list[dict[str, Any]]:
+        """``published`` of a child that died: each output's counters as it last stored them."""
+        return [{"url": url, "sent": int(self._counters[2 * i]),
+                 "send_errors": int(self._counters[2 * i + 1]), "died": True,
+                 "exit_code": self.died} for i, url in enumerate(self.urls)]
 
     def finish(self, timeout: float = 30.0) -> dict[str, Any]:
         """Let the child publish what the ring holds, end it, and return the summary keys of
         :meth:`Outputs.finish` (``publish_dropped``: refused here, and in the ring when
         the child ended)."""
         if self._summary is None:
+            self.check()
+            self._status.close()
             self._wake.close()
-            try:
-                reply = self._control.recv() if self._control.poll(timeout) else None
-            except EOFError:
-                reply = None
-            summary = reply[1] if reply is not None and reply[0] == "summary" else \
-                {"published": [], "publish_latency_us": LatencySummary().summary_us(),
-                 "publish_dropped": 0}
+            reply = None
+            if self.died is None:
+                try:
+                    while reply is None or reply[0] != "summary":
+                        reply = self._control.recv() if self._control.poll(timeout) else None
+                        if reply is None:
+                            break
+                except (EOFError, OSError):
+                    reply = None
+            if reply is not None and reply[0] == "summary":
+                summary = reply[1]
+                for entry in summary["published"]:
+                    entry["died"] = False
+            else:
+                if self.died is None:  # it ended without its summary: died as it was told to end
+                    self._child.join(timeout)
+                    self.died = -1 if self._child.exitcode is None else self._child.exitcode
+                summary = {"published": self._dead_entries(),
+                           "publish_latency_us": LatencySummary().summary_us(),
+                           "publish_dropped": 0}
             lost = self.written - int(self._position[0])
             summary["publish_dropped"] = self.dropped + lost
             self._summary = summary
@@ -515,6 +742,23 @@ class PublisherProcess:
 
     def close(self) -> None:
         self._finalizer()
+
+
+def _exit_text(code: int) -> str:
+    """``killed by SIGKILL`` or ``exit code 1`` from a process's exit code."""
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exit code {code}"
+
+
+def command_answer(cmd: Any) -> dict[str, Any]:
+    """The answer of an answered :class:`~fbgforce.interrogator.stream.Command` as the outputs
+    take it."""
+    return {"command": cmd.name, "ok": bool(cmd.ok), "message": cmd.message,
+            "change_pm": [float(v) for v in cmd.change_pm], "samples": int(cmd.samples)}
 
 
 def _end_child(wake: Any, child: Any) -> None:
@@ -526,7 +770,7 @@ def _end_child(wake: Any, child: Any) -> None:
 
 
 def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wake: Any,
-                   control: Any, cpus: set[int] | None) -> None:
+                   control: Any, cpus: set[int] | None, counters: Any, status: Any) -> None:
     """The child of :class:`PublisherProcess`."""
     for signum in signals.STOP_SIGNALS:
         signal.signal(signum, signal.SIG_IGN)
@@ -548,12 +792,36 @@ def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wak
         return
     records = np.frombuffer(ring, dtype=ESTIMATE_DTYPE)
     done_count = np.frombuffer(position, dtype=np.int64)
+    sent = np.frombuffer(counters, dtype=np.int64)
     control.send(("ready", None))
     done = 0
     pending = b""
+    framed = b""
+    wake_fd, status_fd = wake.fileno(), status.fileno()
+    watch = [wake_fd, status_fd]
+    # Outputs that serve commands (ROS 2 services) are polled this often while idle.
+    poll_s = COMMAND_POLL_S if outputs.serves_commands else None
     try:
         while True:
-            data = pending + os.read(wake.fileno(), 1 << 16)
+            ready = select.select(watch, [], [], poll_s)[0]
+            if status_fd in ready:
+                chunk = os.read(status_fd, 1 << 16)
+                if not chunk:
+                    watch.remove(status_fd)
+                framed += chunk
+                while len(framed) >= 4 and len(framed) >= 4 + int.from_bytes(framed[:4], "little"):
+                    size = int.from_bytes(framed[:4], "little")
+                    msg, framed = json.loads(framed[4:4 + size]), framed[4 + size:]
+                    if msg[0] == "health":
+                        outputs.status(msg[1])
+                    elif msg[0] == "answer":
+                        outputs.answer(msg[1], msg[2], msg[3])
+            if poll_s is not None:
+                for index, name, token in outputs.poll_commands():
+                    control.send(("command", index, name, token))
+            if wake_fd not in ready:
+                continue
+            data = pending + os.read(wake_fd, 1 << 16)
             if len(data) == len(pending):
                 break  # the pipe closed: the stream has ended
             whole = len(data) - len(data) % 8
@@ -568,6 +836,8 @@ def _serve_outputs(urls: list[str], ring: Any, position: Any, capacity: int, wak
                 outputs.publish(records[i:i + m].copy())
                 done += m
                 done_count[0] = done
+                for k, pub in enumerate(outputs.publishers):
+                    sent[2 * k], sent[2 * k + 1] = pub.sent, pub.send_errors
     finally:
         try:
             control.send(("summary", outputs.finish()))

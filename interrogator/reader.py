@@ -513,8 +513,8 @@ def open_reader(url: str, protocol: str | None = None, *, channels: int | None =
 
 def iter_batches(reader: Reader, *, duration: float | None = None, max_samples: int | None = None,
                  idle_timeout: float | None = None, start_timeout: float | None = None,
-                 wait: float = 0.02) -> Iterator[list[Frame]]:
-    """Yield non-empty batches of frames until a stop condition.
+                 wait: float = 0.02, empty: bool = False) -> Iterator[list[Frame]]:
+    """Yield batches of frames until a stop condition (non-empty ones unless ``empty``).
 
     Parameters
     ----------
@@ -527,6 +527,9 @@ def iter_batches(reader: Reader, *, duration: float | None = None, max_samples: 
         there yet is waited for, one that went away is given this long to come back).
     start_timeout
         Stop if the first frame has not arrived after this long.
+    empty
+        Also yield an empty batch after a read that returned nothing (at most ``wait``
+        seconds apart): the caller gets its turn while the device is silent.
     """
     first = None
     started = last = time.monotonic()
@@ -542,6 +545,8 @@ def iter_batches(reader: Reader, *, duration: float | None = None, max_samples: 
                 yield batch[:max_samples - n]
                 return
             n += len(batch)
+            yield batch
+        elif empty:
             yield batch
         if first is None:
             if start_timeout is not None and now - started >= start_timeout:

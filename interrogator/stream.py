@@ -11,20 +11,33 @@ gives on the same samples with the same baseline::
 Lost frames are not filled in: the filter sees the samples that arrived (a gap of a few
 samples shifts the filter's time base by as much; the count is in the status line and the
 summary).
+
+While it streams, :meth:`LiveEstimator.tare` and :meth:`LiveEstimator.reset` take a new
+baseline (docs/serial.md, "Tare, reset and health while streaming"; docs/protocol.md, the UDP
+control datagram): a tare averages the next ``tare_samples`` samples (the
+window) and takes their mean as the baseline, from the sample after the window on; a sensor
+fault inside the window (or a window that does not fill within ``command_timeout`` seconds)
+fails it and keeps the baseline. A reset first starts the runtime's state afresh (filter
+history, memory, decision, fault and at-rest trackers, the baseline back to the last tare's)
+and then tares the same way. Commands are applied in the order given, between two samples,
+never inside one; every one is answered once (:class:`Command`).
 """
 from __future__ import annotations
 
 import contextlib
 import sys
 import time
+from collections import deque
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, TextIO
+from typing import Any, Protocol, Sequence, TextIO
 
 import numpy as np
 
-from fbgforce import fileio, signals
+from fbgforce import contract, fileio, freshness, signals
 from fbgforce import model as fm
 from fbgforce.errors import InputError
+from fbgforce.interrogator.health import Health
 from fbgforce.interrogator.protocol import Frame, fm_to_nm, nm_to_fm
 from fbgforce.interrogator.publish import estimate_records
 from fbgforce.interrogator.reader import Reader, iter_batches
@@ -37,6 +50,53 @@ OUTPUT_KEYS = ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")
 RAW_KEYS = ("force_mN", "x_um", "y_um", "contact_conf_q15")
 CSV_COLUMNS = ("seq", "t_us", "host_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm",
                *OUTPUT_KEYS)
+COMMANDS = ("tare", "reset")
+#: Samples a tare command averages when the stream started on the model's baseline
+#: (``tare_samples`` 0).
+DEFAULT_TARE_SAMPLES = 200
+#: Seconds a command's window may take to fill before it fails (no samples: a silent link).
+COMMAND_TIMEOUT_S = 5.0
+#: Commands waiting for their turn at most; one more is refused at once ("busy").
+MAX_QUEUED_COMMANDS = 64
+_SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
+_FM_MIN, _FM_MAX = 1_000_000_000, 2_000_000_000
+
+
+@dataclass
+class Command:
+    """A tare or reset given to a :class:`LiveEstimator` and, once applied, its answer.
+
+    Attributes
+    ----------
+    name
+        ``"tare"`` or ``"reset"``.
+    token
+        Whatever the caller gave to route the answer (a UDP sender, a ROS 2 request).
+    done
+        Answered: ``ok`` and ``message`` hold the answer.
+    ok
+        The new baseline was taken; False: the baseline is the one before.
+    message
+        What was done (the baseline's change per grating in pm) or why not.
+    change_pm
+        The baseline's change (new - old) per grating (FBG 1..4, T), pm; zeros on failure.
+    samples
+        Samples averaged for the new baseline (0 on failure).
+    faults
+        Samples of the window with a sensor fault (a failure when > 0).
+    """
+
+    name: str
+    token: Any = None
+    done: bool = False
+    ok: bool = False
+    message: str = ""
+    change_pm: list[float] = field(default_factory=lambda: [0.0] * N_GRATINGS)
+    samples: int = 0
+    faults: int = 0
+    requested_s: float = 0.0
+    started_s: float | None = None
+    answered_s: float | None = None
 
 
 class LiveEstimator:
@@ -51,11 +111,14 @@ class LiveEstimator:
         pipeline of :mod:`fbgforce.model`, for machines without the C extension.
     tare_samples
         Samples to tare on (their mean, as the C runtime's tare computes it). 0 = use the
-        model's training baseline.
+        model's training baseline. A tare or reset command averages as many (or
+        :data:`DEFAULT_TARE_SAMPLES` when 0).
+    command_timeout
+        Seconds a tare's window may take to fill before the tare fails (module docstring).
     """
 
-    def __init__(self, model_dir: str | Path, *, engine: str = "fixed", tare_samples: int = 200
-                 ) -> None:
+    def __init__(self, model_dir: str | Path, *, engine: str = "fixed", tare_samples: int = 200,
+                 command_timeout: float = COMMAND_TIMEOUT_S) -> None:
         if engine not in ENGINES:
             raise InputError(f"engine must be one of {', '.join(ENGINES)}", column="--engine")
         if tare_samples < 0:
@@ -69,6 +132,18 @@ class LiveEstimator:
         self.baseline_fm: np.ndarray | None = None
         self.compute_s = 0.0
         self.estimated = 0
+        self.command_timeout = command_timeout
+        self.window_samples = tare_samples or DEFAULT_TARE_SAMPLES
+        #: Baseline of the last tare (the tracker moves :attr:`baseline_fm` from it).
+        self.tared_fm: np.ndarray | None = None
+        self._queue: deque[Command] = deque()
+        self._active: Command | None = None
+        self._window: list[np.ndarray] = []
+        self._window_n = 0
+        self._window_faults = 0
+        self._answered: list[Command] = []
+        #: Commands applied and failed, by name (``tare``, ``reset``, ``failed``).
+        self.command_counts = {"tare": 0, "reset": 0, "failed": 0}
         if engine == "fixed":
             from fbgforce.pybind import Runtime
 
@@ -84,22 +159,177 @@ class LiveEstimator:
 
     def _set_baseline(self, base_fm: np.ndarray) -> None:
         self.baseline_fm = np.asarray(base_fm, dtype=np.int64)
+        self.tared_fm = self.baseline_fm.copy()
         if self.engine == "fixed":
             self._rt.set_baseline(self.baseline_fm)  # also starts the filter from zero history
         else:
             self._pipeline = fm.FloatPipeline(self.model, fm_to_nm(self.baseline_fm))
 
+    @property
+    def tracker_offset_pm(self) -> float:
+        """The largest correction the at-rest tracker has made to a strain grating's baseline
+        since the last tare, pm (the runtime flags BASELINE_LIMIT at its bound)."""
+        if self.tared_fm is None:
+            return 0.0
+        if self.engine == "fixed":
+            now = self._rt.baseline_fm
+        else:
+            assert self._pipeline is not None
+            now = nm_to_fm(self._pipeline.baseline_nm)
+        return float(np.max(np.abs(now[:N_GRATINGS - 1] - self.tared_fm[:N_GRATINGS - 1]))) / 1000
+
+    @property
+    def tracker_bound_pm(self) -> float:
+        """The tracker's bound on that correction, pm (0: no tracker)."""
+        iu = self.model.in_use
+        return float(iu.track_limit_pm) if iu.track_shift else 0.0
+
+    def digest(self) -> str:
+        """The model's digest (:func:`fbgforce.freshness.model_digest`; the one its export
+        recorded)."""
+        return freshness.model_digest(self.model)
+
+    def tare(self, token: Any = None) -> Command:
+        """Tare while streaming: the mean of the next ``tare_samples`` samples becomes the
+        baseline (module docstring). Returns the command; it is answered (``done``) by the
+        :meth:`push` that completes its window, or by :meth:`expire`."""
+        return self._give("tare", token)
+
+    def reset(self, token: Any = None) -> Command:
+        """Start the runtime's state afresh (the baseline back to the last tare's), then tare
+        as :meth:`tare` does."""
+        return self._give("reset", token)
+
+    def _give(self, name: str, token: Any) -> Command:
+        cmd = Command(name, token, requested_s=time.monotonic())
+        if len(self._queue) >= MAX_QUEUED_COMMANDS:
+            self._answer(cmd, False, f"busy: {MAX_QUEUED_COMMANDS} commands already waiting")
+        else:
+            self._queue.append(cmd)
+        return cmd
+
+    def answered(self) -> list[Command]:
+        """The commands answered since the last call, in the order answered."""
+        out, self._answered = self._answered, []
+        return out
+
+    @property
+    def busy(self) -> bool:
+        """A command is being applied or waits."""
+        return self._active is not None or bool(self._queue)
+
+    def expire(self, now: float | None = None) -> None:
+        """Fail a command whose window has not filled ``command_timeout`` seconds after it
+        was given (a silent link); the baseline stays. The next one starts afresh."""
+        now = time.monotonic() if now is None else now
+        cmd = self._active
+        if cmd is not None and now - cmd.requested_s >= self.command_timeout:
+            self._answer(cmd, False, f"only {self._window_n} of {self.window_samples} samples "
+                                     f"arrived within {self.command_timeout:g} s; baseline kept")
+            self._active = None
+        while self._queue and now - self._queue[0].requested_s >= self.command_timeout:
+            cmd = self._queue.popleft()
+            self._answer(cmd, False, f"no sample within {self.command_timeout:g} s; "
+                                     f"baseline kept")
+
+    def cancel(self, reason: str) -> None:
+        """Fail every command not yet answered (the stream ends); the baseline stays."""
+        pending = ([self._active] if self._active is not None else []) + list(self._queue)
+        self._active = None
+        self._queue.clear()
+        for cmd in pending:
+            self._answer(cmd, False, f"{reason}; baseline kept")
+
+    def _answer(self, cmd: Command, ok: bool, message: str) -> None:
+        cmd.done, cmd.ok, cmd.message = True, ok, message
+        cmd.answered_s = time.monotonic()
+        if ok:
+            self.command_counts[cmd.name] += 1
+        else:
+            self.command_counts["failed"] += 1
+        self._answered.append(cmd)
+
+    def _start_command(self) -> None:
+        """Between two samples: take the next command and open its window."""
+        if self._active is not None or not self._queue or self.baseline_fm is None:
+            return
+        cmd = self._active = self._queue.popleft()
+        cmd.started_s = time.monotonic()
+        self._window, self._window_n, self._window_faults = [], 0, 0
+        if cmd.name == "reset":
+            assert self.tared_fm is not None
+            self._set_baseline(self.tared_fm)  # every state afresh, the tare's baseline
+            if self.engine == "fixed":
+                self._rt.reset()
+
+    def _close_window(self) -> None:
+        cmd = self._active
+        assert cmd is not None and self.baseline_fm is not None
+        self._active = None
+        rows = np.concatenate(self._window)
+        self._window = []
+        cmd.faults = self._window_faults
+        if self._window_faults:
+            self._answer(cmd, False, f"sensor fault on {self._window_faults} of {len(rows)} "
+                                     f"samples of the tare window; baseline kept"
+                         + (" (the state was reset)" if cmd.name == "reset" else ""))
+            return
+        old = self.baseline_fm.copy()
+        self._tare(rows)
+        cmd.change_pm = [round(float(v) / 1000.0, 3) for v in (self.baseline_fm - old)]
+        cmd.samples = len(rows)
+        self._answer(cmd, True, f"{cmd.name}: new baseline from {len(rows)} samples, change "
+                                + " ".join(f"{v:+.1f}" for v in cmd.change_pm)
+                                + " pm (FBG 1..4, T)")
+
     def push(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
-        """Estimates for the samples that became computable (none while taring)."""
+        """Estimates for the samples that became computable (none while taring at start)."""
         wl_fm = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
         if self.baseline_fm is None:
             self._pending.append(wl_fm)
             self._n_pending += len(wl_fm)
             if self._n_pending < self.tare_samples:
                 return _empty()
-            wl_fm = np.concatenate(self._pending)
+            rows = np.concatenate(self._pending)
             self._pending = []
-            self._tare(wl_fm[:self.tare_samples])
+            self._tare(rows[:self.tare_samples])
+            # The samples of earlier batches came before any command given meanwhile.
+            earlier = self._timed(rows[:len(rows) - len(wl_fm)])
+            now = self._commanded(wl_fm)
+            return {k: np.concatenate([earlier[k], now[k]]) for k in now}
+        return self._commanded(wl_fm)
+
+    def _commanded(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
+        """Estimates of a batch, the commands applied between its samples."""
+        self._start_command()
+        if self._active is None:
+            return self._timed(wl_fm)
+        # A window ends inside this batch: the samples after it run on the new baseline.
+        parts = []
+        i = 0
+        while i < len(wl_fm):
+            self._start_command()
+            if self._active is None:
+                parts.append(self._timed(wl_fm[i:]))
+                break
+            take = min(len(wl_fm) - i, self.window_samples - self._window_n)
+            rows = wl_fm[i:i + take]
+            out = self._timed(rows)
+            parts.append(out)
+            bad = (np.asarray(out["status"], dtype=np.uint32) & _SENSOR_FAULT) != 0
+            bad |= ((rows < _FM_MIN) | (rows > _FM_MAX)).any(axis=1)
+            self._window.append(rows)
+            self._window_n += take
+            self._window_faults += int(np.count_nonzero(bad))
+            i += take
+            if self._window_n >= self.window_samples:
+                self._close_window()
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def _timed(self, wl_fm: np.ndarray) -> dict[str, np.ndarray]:
+        if not len(wl_fm):
+            return {k: np.zeros(0) for k in OUTPUT_KEYS + (RAW_KEYS if self.engine == "fixed"
+                                                            else ())}
         t0 = time.perf_counter()
         out = self._run(wl_fm)
         self.compute_s += time.perf_counter() - t0
@@ -184,19 +414,39 @@ class StatusLine:
 
 class Publication(Protocol):
     """Where the stream's estimates go: :class:`~fbgforce.interrogator.publish.PublisherProcess`
-    (what ``fbgforce stream --publish`` uses) or :class:`~fbgforce.interrogator.publish.Outputs`."""
+    (what ``fbgforce stream --publish`` uses) or :class:`~fbgforce.interrogator.publish.Outputs`.
+    ``status`` takes the health snapshot of every second (:mod:`fbgforce.interrogator.health`)."""
 
     def publish(self, records: np.ndarray) -> None: ...
 
+    def status(self, health: dict[str, Any]) -> None: ...
+
     def finish(self) -> dict[str, Any]: ...
+
+
+class CommandSource(Protocol):
+    """Where tare and reset commands come from while streaming: the UDP control port
+    (:class:`~fbgforce.interrogator.control.ControlServer`) or the outputs that serve commands
+    (through the publishing process). :meth:`poll` returns the new commands as (name, token) pairs,
+    :meth:`answer` gets each one's answer, once."""
+
+    def poll(self) -> list[tuple[str, Any]]: ...
+
+    def answer(self, cmd: Command) -> None: ...
 
 
 def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | None = None,
                duration: float | None = None, max_samples: int | None = None,
                idle_timeout: float | None = None, start_timeout: float | None = None,
-               status: bool = True, publication: Publication | None = None) -> dict[str, Any]:
+               status: bool = True, publication: Publication | None = None,
+               commands: Sequence[CommandSource] = ()) -> dict[str, Any]:
     """Read, estimate, publish (``publication``, :mod:`fbgforce.interrogator.publish`) and
     (optionally) write a CSV of estimates until a stop condition.
+
+    Between two batches it takes the tare and reset commands of ``commands``, gives them to
+    the estimator and hands back their answers; once a second it takes the stream's health
+    (:class:`~fbgforce.interrogator.health.Health`) and hands it to the publication, also
+    while the device is silent.
 
     Returns the summary printed by ``fbgforce stream --json`` (keys in docs/cli.md). With a
     publication it holds ``publish_latency_us``: time from a sample's arrival (its batch
@@ -225,11 +475,35 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     last: dict[str, Any] | None = None
     t_first = t_last = None
     stopped_by = None
+    health = Health(estimator.digest(), estimator.tracker_bound_pm)
+    failed_at_tick = 0
+    last_health: dict[str, Any] | None = None
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
-                                  idle_timeout=idle_timeout, start_timeout=start_timeout):
+                                  idle_timeout=idle_timeout, start_timeout=start_timeout,
+                                  empty=True):
             arrived_ns = time.monotonic_ns()
             now = arrived_ns / 1e9
+            for source in commands:
+                for name, token in source.poll():
+                    give = estimator.reset if name == "reset" else estimator.tare
+                    give((source, token))
+            estimator.expire(now)
+            for cmd in estimator.answered():
+                src, cmd.token = cmd.token
+                src.answer(cmd)
+            if health.due(now):
+                counts = dict(estimator.command_counts)
+                counts["failed_last_s"] = counts["failed"] - failed_at_tick
+                failed_at_tick = counts["failed"]
+                last_health = health.snapshot(now, reader.stats(), estimator.tracker_offset_pm,
+                                              counts)
+                if publication is not None:
+                    publication.status(last_health)
+            if not batch:
+                line.update(0, last, reader.stats())
+                continue
+            health.samples(len(batch), now)
             t_first = now if t_first is None else t_first
             t_last = now
             arrival = arrived_ns if estimator.baseline_fm is not None else -1
@@ -244,6 +518,7 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
                 if fh is not None:
                     _write_rows(fh, done, est)
                 n += k
+                health.estimates(est["status"])
                 contact_n += int(np.count_nonzero(est["contact"]))
                 max_force = max(max_force, float(np.max(est["force_N"])))
                 last = {key: est[key][-1] for key in OUTPUT_KEYS}
@@ -257,6 +532,14 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         files.commit()
     stats = reader.stats()
     span = (t_last - t_first) if t_first is not None and t_last is not None else 0.0
+    estimator.cancel("the stream ended before the window filled")
+    for cmd in estimator.answered():  # answered by the last batch, after the loop's turn
+        src, cmd.token = cmd.token
+        src.answer(cmd)
+    if last_health is None:  # a run shorter than a second: its health so far
+        counts = {**estimator.command_counts, "failed_last_s": 0}
+        last_health = health.snapshot(time.monotonic(), stats, estimator.tracker_offset_pm,
+                                      counts, advance=False)
     return {
         "samples": n,
         "received": n + len(waiting),
@@ -274,6 +557,8 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         "interrupted": stopped_by is not None,
         "signal": stopped_by,
         "reader": stats,
+        "health": last_health,
+        "commands": dict(estimator.command_counts),
         **(publication.finish() if publication is not None else {}),
     }
 

@@ -211,15 +211,47 @@ def test_lcm_end_to_end_with_lcm_subscriber(tmp_path, small_exported_dir, capsys
         assert np.array_equal(rows[:, col], off[key]), key
 
 
-def test_lcm_type_is_generated_from_its_lcm_file(tmp_path):
-    """estimate_t.py is lcm-gen's output for estimate_t.lcm (stale check)."""
+@pytest.mark.parametrize("name", ["estimate_t", "status_t"])
+def test_lcm_type_is_generated_from_its_lcm_file(tmp_path, name):
+    """estimate_t.py and status_t.py are lcm-gen's output for their .lcm files (stale check)."""
     _need_lcm()
     gen = shutil.which("lcm-gen") or str(Path(sys.executable).parent / "lcm-gen")
     src = ROOT / "interrogator" / "lcmtypes"
-    subprocess.run([gen, "-p", "--ppath", str(tmp_path), str(src / "estimate_t.lcm")], check=True,
+    subprocess.run([gen, "-p", "--ppath", str(tmp_path), str(src / f"{name}.lcm")], check=True,
                    capture_output=True)
-    assert (tmp_path / "fbgforce" / "estimate_t.py").read_text() == (
-        src / "estimate_t.py").read_text(), "regenerate: lcm-gen -p estimate_t.lcm"
+    assert (tmp_path / "fbgforce" / f"{name}.py").read_text() == (
+        src / f"{name}.py").read_text(), f"regenerate: lcm-gen -p {name}.lcm"
+
+
+def test_lcm_status_record_carries_the_health():
+    """An lcm:// output publishes the health snapshot as fbgforce.status_t on CHANNEL_STATUS."""
+    _need_lcm()
+    import lcm
+
+    from fbgforce.interrogator.health import Health
+    from fbgforce.interrogator.lcmtypes.status_t import status_t
+
+    lcm_url = f"udpm://239.255.76.67:{_free_udp_port()}?ttl=0"
+    channel = f"FBGFORCE_STATUS_TEST_{os.getpid()}"
+    got: list = []
+    rx = lcm.LCM(lcm_url)
+    rx.subscribe(channel + U.STATUS_CHANNEL_SUFFIX, lambda ch, data: got.append(
+        status_t.decode(data)))
+    pub = U.LcmPublisher(f"lcm://{channel}?url={lcm_url}")
+    health = Health("fe" * 32, 200.0, now=0.0)
+    health.samples(10, 0.9)
+    health.estimates(np.array([0x08] * 10, dtype=np.uint32))
+    snap = health.snapshot(1.0, {"lost_frames": 4, "reconnects": 0}, 3.0, {"tare": 2})
+    pub.publish_status(snap)
+    deadline = time.monotonic() + 5
+    while not got and time.monotonic() < deadline:
+        rx.handle_timeout(100)
+    pub.close()
+    assert got, "no status_t arrived"
+    m = got[0]
+    assert m.level == 2 and "sensor fault on 10 of 10 samples" in m.message
+    assert (m.received, m.lost, m.tares, m.flags[3]) == (10, 4, 2, 10)
+    assert m.model_digest == "fe" * 32 and m.tracker_bound_pm == 200.0
 
 
 def test_publish_bad_url_exits_2(tmp_path, small_exported_dir, capsys):
@@ -273,13 +305,29 @@ class _SameBatchReader:
 
 
 class _TaredEstimator:
-    """Returns the same estimates for every batch, at once (the stream loop alone is measured)."""
+    """Returns the same estimates for every batch, at once (the stream loop alone is measured);
+    never given a command."""
 
     engine = "fixed"
     baseline_fm = np.zeros(5, dtype=np.int64)
     baseline_nm = np.zeros(5)
     compute_s = 0.0
     estimated = 0
+    tracker_offset_pm = 0.0
+    tracker_bound_pm = 200.0
+    command_counts = {"tare": 0, "reset": 0, "failed": 0}
+
+    def digest(self) -> str:
+        return "0" * 64
+
+    def expire(self, now: float) -> None:
+        pass
+
+    def cancel(self, reason: str) -> None:
+        pass
+
+    def answered(self) -> list:
+        return []
 
     def __init__(self, k: int) -> None:
         self.out = {"contact": np.zeros(k, bool), "p_contact": np.zeros(k),
@@ -555,3 +603,57 @@ def test_stream_cpu_it_cannot_use_exits_2_with_one_line(allowed_cpus, small_expo
                  "--publish", "udp://127.0.0.1:9"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"--cpu: CPU {cpu} is the only one" in err[0], err
+
+
+def test_a_publisher_killed_mid_run_stays_in_the_summary_with_what_it_sent(small_exported_dir,
+                                                                           capsys):
+    """The publishing process killed (SIGKILL) while the stream runs: the stream goes on, says
+    so on stderr when it happens, and its summary still lists the output with the datagrams it
+    sent before dying and says that it died."""
+    import multiprocessing as mp
+    import signal
+    import threading
+
+    sock, url = _udp_sink()
+    received: list[int] = []
+    killed: list[int] = []
+
+    def kill_after_500() -> None:
+        while len(received) < 500:
+            try:
+                rec = U.decode_datagram(sock.recv(256))
+            except OSError:
+                return
+            if rec is not None:
+                received.append(int(rec["seq"]))
+        for child in mp.active_children():
+            if child.name == "fbgforce-publish":
+                os.kill(child.pid, signal.SIGKILL)
+                killed.append(child.pid)
+
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "1000", "--protocol",
+                        "hyperion", "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    watcher = threading.Thread(target=kill_after_500, daemon=True)
+    try:
+        source = wait_for_line(em, "interrogator:")
+        watcher.start()
+        code = main(["stream", "--source", source, "--model", str(small_exported_dir),
+                     "--samples", "3000", "--publish", url, "--start-timeout", "30",
+                     "--quiet", "--json"])
+        captured = capsys.readouterr()
+        watcher.join(10)
+    finally:
+        sock.close()
+        if em.poll() is None:
+            em.kill()
+            em.communicate()
+    assert killed, "the publishing process was never killed"
+    summary = json.loads(captured.out)
+    assert code == 0 and summary["samples"] == 3000
+    (entry,) = summary["published"]
+    assert entry["url"] == url and entry["died"] is True and entry["exit_code"] == -signal.SIGKILL
+    # The counts as the child stored them after its last whole batch (a few ms of samples).
+    assert 400 <= entry["sent"] < 3000
+    assert summary["publish_dropped"] >= 3000 - entry["sent"] - 100
+    lines = [ln for ln in captured.err.splitlines() if "publishing process died" in ln]
+    assert len(lines) == 1 and "killed by SIGKILL" in lines[0] and url in lines[0], captured.err

@@ -8,7 +8,9 @@
  * Prints one CSV line per valid datagram (seq,sample_seq,t_us,status,contact,conf_q15,
  * force_mN,x_um,y_um) and, on stderr at the end, how many datagrams were bad, missing
  * (publication counter gaps), duplicated (the last counter again: dropped) and how often the
- * publisher restarted (its counter went backwards; counting goes on from there).
+ * publisher restarted (its counter went backwards; counting goes on from there). The stream's
+ * status record (once a second, docs/protocol.md "Status record") is printed on stderr as it
+ * arrives and counted.
  * Fields are read byte by byte as little-endian, so the code is right on any host byte order.
  */
 #define _POSIX_C_SOURCE 200112L
@@ -23,6 +25,8 @@
 
 #define DATAGRAM_SIZE 48
 #define CRC_OFFSET 44
+#define STATUS_SIZE 92
+#define STATUS_CRC_OFFSET 88
 
 typedef struct {
     uint32_t seq;          /* publication counter */
@@ -76,6 +80,27 @@ static int decode(const unsigned char *d, size_t n, fbg_estimate *e)
     return 0;
 }
 
+static uint64_t le64(const unsigned char *p)
+{
+    return (uint64_t)le32(p) | ((uint64_t)le32(p + 4) << 32);
+}
+
+/* 0 and the status record printed on stderr; -1 if the datagram is not a valid version-1
+ * status record. */
+static int status_record(const unsigned char *d, size_t n)
+{
+    static const char *const levels[4] = {"OK", "WARN", "ERROR", "STALE"};
+    if (n != STATUS_SIZE || memcmp(d, "FBGS", 4) != 0) return -1;
+    if (le16(d + 4) != 1 || le16(d + 6) != STATUS_SIZE) return -1;
+    if (crc32(d, STATUS_CRC_OFFSET) != le32(d + STATUS_CRC_OFFSET)) return -1;
+    fprintf(stderr, "status %lu: %s, %.1f Hz, received %llu, lost %llu, reconnects %lu, "
+            "silent %lu ms\n", (unsigned long)le32(d + 8), levels[d[12] < 3 ? d[12] : 3],
+            le32(d + 36) / 1000.0, (unsigned long long)le64(d + 16),
+            (unsigned long long)le64(d + 24), (unsigned long)le32(d + 32),
+            (unsigned long)le32(d + 40));
+    return 0;
+}
+
 /* What publication counter seq means after last: FOLLOW_NEXT, a new estimate with *gap
  * datagrams missing before it (a forward step below 2^31); FOLLOW_DUPLICATE, the last counter
  * again (drop it); FOLLOW_RESTART, any other backward step: the publisher started again. */
@@ -97,7 +122,7 @@ int main(int argc, char **argv)
 {
     struct sockaddr_in addr;
     unsigned char buf[256];
-    long count, got = 0, bad = 0, missing = 0, duplicates = 0, restarts = 0;
+    long count, got = 0, bad = 0, missing = 0, duplicates = 0, restarts = 0, statuses = 0;
     uint32_t last = 0, gap;
     int have_last = 0, fd;
 
@@ -132,7 +157,10 @@ int main(int argc, char **argv)
             break;
         }
         if (decode(buf, (size_t)n, &e) != 0) {
-            bad++;
+            if (status_record(buf, (size_t)n) == 0)
+                statuses++;
+            else
+                bad++;
             continue;
         }
         switch (follow(have_last, last, e.seq, &gap)) {
@@ -154,8 +182,8 @@ int main(int argc, char **argv)
                (long)e.y_um);
     }
     fflush(stdout);
-    fprintf(stderr, "received %ld, bad %ld, missing %ld, duplicates %ld, restarts %ld\n", got,
-            bad, missing, duplicates, restarts);
+    fprintf(stderr, "received %ld, bad %ld, missing %ld, duplicates %ld, restarts %ld, "
+            "status records %ld\n", got, bad, missing, duplicates, restarts, statuses);
     close(fd);
     return 0;
 }
