@@ -322,6 +322,26 @@ def test_settled_hold_gain_bit_exact_on_target(tools, small_model_dir, tmp_path)
 
 
 @pytest.mark.target
+def test_cusum_decision_bit_exact_on_target(tools, small_model_dir, tmp_path):
+    """The decision's CUSUM rise with a low threshold and a narrow clip on both Cortex-M4
+    builds through the golden session (which it changes), its faults holding S and its tares
+    and resets clearing it."""
+    d = tmp_path / "model"
+    shutil.copytree(small_model_dir, d)
+    model = fm.load(d)
+    own = model.in_use
+    model.in_use = replace(own, contact_on_margin=0.0, contact_rise_samples=1,
+                           contact_cusum_h=4.0, contact_cusum_k=0.5, contact_cusum_lo=-2.0,
+                           contact_cusum_hi=2.5)
+    fm.save(model, d)
+    q, _ = load_quantized(d)
+    assert (q.contact_cusum_h_q8, q.contact_cusum_k_q8) == (1024, 128)
+    off = replace(q, contact_cusum_h_q8=0, contact_cusum_k_q8=0, contact_cusum_lo_q8=0,
+                  contact_cusum_hi_q8=0)
+    _changes_the_session_and_is_bit_exact(d, q, off, SAMPLES)
+
+
+@pytest.mark.target
 def test_cli_json(tools, small_model_dir, capsys):
     from fbgforce.cli import main
 

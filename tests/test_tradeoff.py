@@ -261,3 +261,39 @@ def test_engines_take_the_engine_names_and_the_documented_aliases(tmp_path, monk
                                                            "fixed-int8", "fixed-int8-qat"}
     assert main(["tradeoff", "--quick", "--scene", "smoke", "--out", out, "--engines", "numpy"]) == 2
     assert "unknown engine(s) numpy" in capsys.readouterr().err
+
+
+def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_path, tmp_path) -> None:
+    """``fbgforce tradeoff --decision``'s rows: the Schmitt trigger's and the CUSUM's, scored
+    through the C runtime; a threshold no press reaches detects nothing, a low one detects."""
+    from fbgforce import dataset
+    from fbgforce.tradeoff import decision
+
+    ds = dataset.load(small_dataset_path)
+    res = decision.decision_curve(small_exported_dir, [ds], on_scales=(1.0,), rise_counts=(3,),
+                                  h_scales=(1.0, 1e6))
+    rules = [r["rule"] for r in res["rows"]]
+    assert rules == ["schmitt", "cusum", "cusum"]
+    low, high = res["rows"][1], res["rows"][2]
+    assert low["cusum_h"] == pytest.approx(res["cusum_base"]["h"])
+    assert low["cusum_hi"] == pytest.approx(low["cusum_k"] + 0.5 * low["cusum_h"])
+    assert low["detected_above_1N"] > 0.9 and high["detected_above_1N"] == 0.0
+    assert res["rows"][0]["default"] and not low["default"]
+    csv = decision.csv_text(res).splitlines()
+    assert csv[0].split(",") == list(decision.CSV_COLUMNS) and len(csv) == 4
+    assert csv[2].startswith("cusum,,,") and csv[1].startswith("schmitt,")
+    md = decision.markdown(res)
+    assert "| cusum |" in md and "| schmitt (default) |" in md
+    assert decision.plot(res, tmp_path / "d.png").stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_tradeoff_decision_cli_writes_the_csv(small_exported_dir, small_dataset_path, tmp_path,
+                                              capsys) -> None:
+    out = tmp_path / "dec"
+    assert main(["tradeoff", "--decision", str(small_exported_dir), "--data",
+                 str(small_dataset_path), "--out", str(out), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    assert {r["rule"] for r in res["rows"]} == {"schmitt", "cusum"}
+    for name in ("decision.json", "decision.md", "decision.csv", "decision.png"):
+        assert (out / name).is_file()

@@ -48,8 +48,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--decision", metavar="MODEL",
                    help="instead of the grid of models: the contact decision's curve of this "
                         "exported model on --data/--scene, false contact events per minute at "
-                        "rest against onset delay over the decision's rise margin and count "
-                        "(decision.json, decision.md, decision.png in --out)")
+                        "rest against onset delay over the Schmitt trigger's rise margin and "
+                        "count and the CUSUM's threshold (decision.json, decision.md, "
+                        "decision.csv, decision.png in --out)")
     add_json_flag(p)
     p.set_defaults(handler=_handler)
     _register_bench_speed(subparsers)
@@ -152,7 +153,7 @@ def _decision_handler(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce import dataset
     from fbgforce.jsonutil import json_default
     from fbgforce.tradeoff.artifacts import prepare_data
-    from fbgforce.tradeoff.decision import decision_curve, markdown, plot
+    from fbgforce.tradeoff.decision import csv_text, decision_curve, markdown, plot
 
     out = Path(args.out)
     model = Path(args.decision)
@@ -169,6 +170,7 @@ def _decision_handler(args: argparse.Namespace) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     (out / "decision.json").write_text(json.dumps(res, indent=1, default=json_default) + "\n")
     (out / "decision.md").write_text(markdown(res) + "\n")
+    (out / "decision.csv").write_text(csv_text(res))
     png = plot(res, out / "decision.png")
     if not args.json:
         print(markdown(res))

@@ -1,13 +1,16 @@
 """What a quiet contact decision costs in onset delay: ``fbgforce tradeoff --decision MODEL``.
 
-The decision over time (docs/runtime.md, "In use") rises once the contact net's margin has
-stayed at or above ``contact_on_margin`` for ``contact_rise_samples`` samples and falls below
-``contact_off_margin`` (half the rise threshold, negated). Higher thresholds and longer counts
-raise fewer false contact events at rest and detect a press later (and the lightest touches
-not at all). This module runs one exported model through the C fixed-point runtime on the
-given recordings for a grid of those two parameters, everything else as exported, and scores
-each with the keys of ``fbgforce evaluate --json``: false contact events per minute at rest,
-onset delay (median and 90th percentile) and the detection rate by force bin.
+The decision over time (docs/runtime.md, "In use") rises by one of two rules. The Schmitt
+trigger rises once the contact net's margin has stayed at or above ``contact_on_margin`` for
+``contact_rise_samples`` samples; the CUSUM once the margin's clipped excess over the drift
+``k``, summed and never below 0, reaches ``h``. Both fall below ``contact_off_margin``.
+Higher thresholds, longer counts and larger ``h`` raise fewer false contact events at rest and
+detect a press later (and the lightest touches not at all). This module runs one exported
+model through the C fixed-point runtime on the given recordings for a grid of each rule's
+parameters, everything else as exported, and scores each with the keys of ``fbgforce evaluate
+--json``: false contact events per minute at rest, onset delay (median and 90th percentile) and
+the detection rate by force bin. The Schmitt rows sweep the rise margin (a factor of the
+model's own) for a few counts, the CUSUM rows its threshold ``h``.
 """
 from __future__ import annotations
 
@@ -28,6 +31,25 @@ from fbgforce.pybind import Runtime
 ON_SCALES = (0.0, 0.5, 1.0, 1.5, 2.0)
 #: Rise counts, in samples.
 RISE_COUNTS = (1, 3, 6)
+#: CUSUM thresholds as multiples of the base ``h`` (:func:`cusum_base`).
+H_SCALES = (0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: The columns of ``decision.csv``, one row per setting.
+CSV_COLUMNS = ("rule", "contact_on_margin", "contact_rise_samples", "cusum_h", "cusum_k",
+               "cusum_lo", "cusum_hi", "default", "false_events_per_min", "rest_s",
+               "onset_median_ms", "onset_p90_ms", "detected_above_1N")
+
+
+def cusum_base(own: fm.InUse, sample_rate_hz: float = 1000.0) -> tuple[float, float, float]:
+    """``(h, k, lo)`` the CUSUM rows sweep around: the model's own when it has the CUSUM on;
+    else ``k`` its rest quantile (``contact_on_margin / REST_MARGIN_FACTOR``, the level the
+    trainer's :func:`fbgforce.model.cusum_parameters` takes as the drift) and ``h`` what the
+    Schmitt trigger asks of a rise above it (``contact_rise_samples`` samples of ``max(k,
+    0.5)``, the trainer's least ``h``), ``lo`` unclipped."""
+    if own.contact_cusum_h:
+        return own.contact_cusum_h, own.contact_cusum_k, own.contact_cusum_lo
+    k = own.contact_on_margin / fm.REST_MARGIN_FACTOR
+    rise = max(own.contact_rise_samples, int(round(fm.RISE_S * sample_rate_hz)))
+    return rise * max(k, 0.5), k, -fm.CUSUM_MAX
 
 
 def _score(q: Any, recordings: Sequence[Any]) -> dict[str, Any]:
@@ -66,58 +88,106 @@ def _score(q: Any, recordings: Sequence[Any]) -> dict[str, Any]:
 
 def decision_curve(model_dir: str | Path, recordings: Sequence[Any],
                    on_scales: Sequence[float] = ON_SCALES,
-                   rise_counts: Sequence[int] = RISE_COUNTS) -> dict[str, Any]:
-    """The grid's rows (``contact_on_margin``, ``contact_rise_samples`` and the scores), the
-    model's own setting marked ``default``."""
+                   rise_counts: Sequence[int] = RISE_COUNTS,
+                   h_scales: Sequence[float] = H_SCALES) -> dict[str, Any]:
+    """The grid's rows (``rule``, its parameters and the scores), the model's own setting
+    marked ``default``: the Schmitt trigger over ``on_scales`` times the model's rise margin
+    (the factor the trainer sets) and ``rise_counts``, the CUSUM over ``h_scales`` times
+    :func:`cusum_base`'s ``h`` with its ``k``, ``lo`` and ``hi = k + h / 2``. Both keep the
+    model's ``contact_off_margin``."""
     model = fm.load(model_dir)
     q0 = blob.load_model_blob(model_dir)
     own = model.in_use
+    schmitt = dataclasses.replace(own, contact_cusum_h=0.0, contact_cusum_k=0.0,
+                                  contact_cusum_lo=0.0, contact_cusum_hi=0.0)
     base_on = own.contact_on_margin
+    if own.contact_cusum_h:       # a CUSUM model: its Schmitt rows around its drift
+        base_on = fm.REST_MARGIN_FACTOR * own.contact_cusum_k
     rows = []
     for scale in on_scales:
         for rise in rise_counts:
             on = scale * base_on
-            iu = dataclasses.replace(own, contact_on_margin=on, contact_off_margin=-0.5 * on,
+            iu = dataclasses.replace(schmitt, contact_on_margin=on, contact_off_margin=-0.5 * on,
                                      contact_rise_samples=rise)
             q = dataclasses.replace(q0, **quantize_in_use(iu, q0.z_mult, q0.z_shift))
-            rows.append({"contact_on_margin": on, "contact_rise_samples": rise,
-                         "default": scale == 1.0 and rise == own.contact_rise_samples,
+            rows.append({"rule": "schmitt", "contact_on_margin": on, "contact_rise_samples": rise,
+                         "default": (not own.contact_cusum_h and scale == 1.0
+                                     and rise == own.contact_rise_samples),
                          **_score(q, recordings)})
-    return {"model": str(model_dir), "model_on_margin": base_on, "rows": rows}
+    h0, k, lo = cusum_base(own)
+    for scale in h_scales:
+        h = scale * h0
+        hi = own.contact_cusum_hi if (own.contact_cusum_h and scale == 1.0) else k + 0.5 * h
+        iu = dataclasses.replace(schmitt, contact_on_margin=0.0, contact_rise_samples=1,
+                                 contact_off_margin=own.contact_off_margin, contact_cusum_h=h,
+                                 contact_cusum_k=k, contact_cusum_lo=lo, contact_cusum_hi=hi)
+        q = dataclasses.replace(q0, **quantize_in_use(iu, q0.z_mult, q0.z_shift))
+        rows.append({"rule": "cusum", "cusum_h": h, "cusum_k": k, "cusum_lo": lo, "cusum_hi": hi,
+                     "default": bool(own.contact_cusum_h) and scale == 1.0,
+                     **_score(q, recordings)})
+    return {"model": str(model_dir), "model_on_margin": own.contact_on_margin,
+            "cusum_base": {"h": h0, "k": k, "lo": lo}, "rows": rows}
+
+
+def _fmt(v: Any, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
 
 
 def markdown(res: dict[str, Any]) -> str:
-    lines = ["| rise margin | rise samples | false events /min at rest | onset median ms | "
-             "onset p90 ms | detected > 1 N |", "|---|---|---|---|---|---|"]
+    lines = ["| rule | rise margin or k | rise samples or h | false events /min at rest | "
+             "onset median ms | onset p90 ms | detected > 1 N |", "|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         mark = " (default)" if r["default"] else ""
-
-        def f(v: Any, fmt: str) -> str:
-            return "-" if v is None else format(v, fmt)
-        lines.append(f"| {r['contact_on_margin']:.2f}{mark} | {r['contact_rise_samples']} | "
-                     f"{f(r['false_events_per_min'], '.2f')} | {f(r['onset_median_ms'], '.1f')} | "
-                     f"{f(r['onset_p90_ms'], '.1f')} | "
-                     f"{f(None if r['detected_above_1N'] is None else 100 * r['detected_above_1N'], '.2f')} % |")
+        if r["rule"] == "cusum":
+            a, b = f"{r['cusum_k']:.2f}", f"{r['cusum_h']:.2f}"
+        else:
+            a, b = f"{r['contact_on_margin']:.2f}", f"{r['contact_rise_samples']}"
+        det = r["detected_above_1N"]
+        lines.append(f"| {r['rule']}{mark} | {a} | {b} | {_fmt(r['false_events_per_min'], '.2f')} | "
+                     f"{_fmt(r['onset_median_ms'], '.1f')} | {_fmt(r['onset_p90_ms'], '.1f')} | "
+                     f"{_fmt(None if det is None else 100 * det, '.2f')} % |")
     return "\n".join(lines)
 
 
+def csv_text(res: dict[str, Any]) -> str:
+    """``decision.csv``: one line per row of the grid, :data:`CSV_COLUMNS` (empty where a
+    column is not the row's rule's)."""
+    lines = [",".join(CSV_COLUMNS)]
+    for r in res["rows"]:
+        cells = []
+        for c in CSV_COLUMNS:
+            v = r.get(c)
+            cells.append("" if v is None else (str(int(v)) if isinstance(v, bool) else
+                                                format(v, ".6g") if isinstance(v, float) else str(v)))
+        lines.append(",".join(cells))
+    return "\n".join(lines) + "\n"
+
+
 def plot(res: dict[str, Any], path: Path) -> Path:
-    """False events per minute against median onset delay, one line per rise count."""
+    """False events per minute against median onset delay: one line per rise count of the
+    Schmitt trigger (labels: its rise margin), one for the CUSUM (labels: its ``h``)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2))
-    for rise in sorted({r["contact_rise_samples"] for r in res["rows"]}):
-        pts = [(r["onset_median_ms"], r["false_events_per_min"], r["contact_on_margin"])
-               for r in res["rows"] if r["contact_rise_samples"] == rise
-               and r["onset_median_ms"] is not None and r["false_events_per_min"] is not None]
+    curves: list[tuple[str, list[dict[str, Any]], str]] = [
+        (f"Schmitt, rise after {rise} sample(s)",
+         [r for r in res["rows"] if r["rule"] == "schmitt" and r["contact_rise_samples"] == rise],
+         "contact_on_margin")
+        for rise in sorted({r["contact_rise_samples"] for r in res["rows"] if r["rule"] == "schmitt"})]
+    curves.append(("CUSUM, k = {:.2f} (labels: h)".format(res.get("cusum_base", {}).get("k", 0.0)),
+                   [r for r in res["rows"] if r["rule"] == "cusum"], "cusum_h"))
+    for label, rows, key in curves:
+        pts = [(r["onset_median_ms"], r["false_events_per_min"], r[key]) for r in rows
+               if r["onset_median_ms"] is not None and r["false_events_per_min"] is not None]
         if not pts:
             continue
-        x, y, on = zip(*pts)
-        ax.plot(x, np.maximum(y, 0.05), marker="o", label=f"rise after {rise} sample(s)")
-        for xi, yi, oi in zip(x, y, on):
-            ax.annotate(f"{oi:.1f}", (xi, max(yi, 0.05)), textcoords="offset points",
+        x, y, par = zip(*pts)
+        ax.plot(x, np.maximum(y, 0.05), marker="s" if key == "cusum_h" else "o",
+                ls="-" if key == "cusum_h" else "--", label=label)
+        for xi, yi, pi in zip(x, y, par):
+            ax.annotate(f"{pi:.1f}", (xi, max(yi, 0.05)), textcoords="offset points",
                         xytext=(4, 3), fontsize=7)
     for r in res["rows"]:
         if r["default"] and r["onset_median_ms"] is not None:
@@ -127,7 +197,7 @@ def plot(res: dict[str, Any], path: Path) -> Path:
     ax.set_yscale("log")
     ax.set_xlabel("median onset delay, ms (first labelled contact sample to detection)")
     ax.set_ylabel("false contact events per minute at rest (0 drawn at 0.05)")
-    ax.set_title("A quiet decision costs onset delay (labels: rise margin)")
+    ax.set_title("A quiet decision costs onset delay: Schmitt trigger and CUSUM")
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
