@@ -2,10 +2,21 @@
 
 Every file a command writes goes through :class:`Outputs`: each file is first written under a
 temporary name in its own directory, flushed and fsynced, and only when every file of the set
-is complete are they renamed over their final names (``os.replace``, atomic on POSIX). A full
-disk, a permission problem or an exception half-way leaves what was there before and no
-temporary file; the ``OSError`` becomes one :class:`~fbgforce.errors.InputError` line naming
-the file (exit status 2 in the CLI).
+is complete are they put in place (:meth:`Outputs.commit`). A full disk, a permission problem
+or an exception half-way leaves what was there before and no temporary file; the ``OSError``
+becomes one :class:`~fbgforce.errors.InputError` line naming the file (exit status 2 in the
+CLI).
+
+The commit of a set of files is not one atomic step: ``os.replace`` swaps one file at a time.
+So that a process killed between two renames never leaves files of two sets side by side
+(an old ``model.json`` with new ``weights.npz`` would load as a model nobody trained), a set
+of several files first removes every old file it replaces, in the reverse of the order it
+renames them (so a model's ``model.json``, written last, goes first), and only then renames
+the new files in, in order. A reader therefore sees, at every moment: the complete old set;
+an incomplete set (a file missing, which every loader refuses naming it); or the complete new
+set. A killed commit can leave the incomplete set (and temporary files, which no command
+reads) for good: the command is run again. One file alone is replaced by one ``os.replace``:
+old or new, never missing (docs/cli.md, "What a reader sees during a commit").
 
 :func:`check_output_dir` and :func:`check_output_file` try the location before long work
 starts (training, reports), so that a read-only or impossible ``--out`` fails at once rather
@@ -125,16 +136,29 @@ class Outputs:
             writer(fh)
 
     def commit(self) -> None:
-        """Rename every finished file over its final name."""
+        """Put every finished file in place (module docstring): one file by ``os.replace``;
+        several by removing the old files they replace, the last to be renamed first, and
+        then renaming them in, in the order they were opened. The directories are fsynced
+        after each phase, so that a power loss keeps the order too."""
         pending, self._pending = self._pending, []
-        for i, (tmp, final) in enumerate(pending):
-            try:
+        done = 0
+        final = pending[0][1] if pending else Path()
+        try:
+            for tmp, final in pending:
                 os.chmod(tmp, 0o666 & ~_UMASK)
+            if len(pending) > 1:
+                for _, final in reversed(pending):
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(final)
+                _fsync_dirs(pending)
+            for tmp, final in pending:
                 os.replace(tmp, final)
-            except OSError as exc:
-                for rest, _ in pending[i:]:
-                    _unlink(rest)
-                raise write_error(exc, final, self.flag) from None
+                done += 1
+            _fsync_dirs(pending)
+        except OSError as exc:
+            for rest, _ in pending[done:]:
+                _unlink(rest)
+            raise write_error(exc, final, self.flag) from None
 
     def discard(self) -> None:
         """Remove every temporary file (the final names keep what they held)."""
@@ -146,6 +170,22 @@ class Outputs:
 def _unlink(path: str) -> None:
     with contextlib.suppress(OSError):
         os.unlink(path)
+
+
+def _fsync_dirs(pending: list[tuple[str, Path]]) -> None:
+    """fsync the directories of ``pending``'s files (their entries: removals and renames);
+    a file system that cannot fsync a directory is left as it is."""
+    for directory in dict.fromkeys(final.parent for _, final in pending):
+        try:
+            fd = os.open(directory, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            os.fsync(fd)
+        except OSError:
+            pass
+        finally:
+            os.close(fd)
 
 
 def write_text(path: str | Path, text: str, flag: str | None = None) -> None:

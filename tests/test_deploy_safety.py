@@ -210,6 +210,110 @@ def test_full_disk_keeps_the_previous_files(exported_copy, small_dataset_path, t
     _no_temp_files(tmp_path)
 
 
+class _Killed(BaseException):
+    """The process stopped at a step of a commit: nothing after it runs, nothing cleans up."""
+
+
+def _two_models(model_dir):
+    """The model of ``model_dir`` and another one differing in ``weights.npz`` and in
+    ``model.json``, so that a directory holding one file of each loads as neither."""
+    old = fm.load(model_dir)
+    new = fm.load(model_dir)
+    new.force.weights[0][0, 0] += 0.5
+    new.force_scale *= 1.01
+    return old, new
+
+
+def _what_a_loader_sees(directory, old, new) -> str:
+    """``old`` or ``new`` (the complete model), ``refused`` (one line naming a file), or
+    ``mixed`` (it loads, as neither)."""
+    from fbgforce import freshness
+
+    try:
+        loaded = fm.load(directory)
+    except InputError as exc:
+        assert "\n" not in str(exc) and str(directory) in str(exc)
+        return "refused"
+    digest = freshness.model_digest(loaded)
+    return {freshness.model_digest(old): "old", freshness.model_digest(new): "new"}.get(
+        digest, "mixed")
+
+
+def test_a_crash_at_every_step_of_a_commit_never_mixes_two_models(small_model_dir, tmp_path,
+                                                                  monkeypatch):
+    """A model saved over another, stopped before each file operation of the commit in turn
+    (every ``os.unlink`` and ``os.replace``, the renames included): a loader finds the old
+    model, the new one, or a refusal naming a missing file; never one file of each (renamed
+    one at a time, weights.npz first, an old model.json beside new weights loaded as a model
+    nobody trained)."""
+    old, new = _two_models(small_model_dir)
+    seen = []
+    for k in range(40):
+        directory = tmp_path / f"m{k}"
+        shutil.copytree(small_model_dir, directory)
+        steps: list[tuple[str, str]] = []
+        with monkeypatch.context() as m:
+            for name in ("unlink", "replace"):
+                def step(path, *args, _real=getattr(os, name), _name=name, **kwargs):
+                    if len(steps) == k:
+                        raise _Killed
+                    steps.append((_name, Path(path).name))
+                    return _real(path, *args, **kwargs)
+                m.setattr(os, name, step)
+            try:
+                fm.save(new, directory)
+                finished = True
+            except _Killed:
+                finished = False
+        seen.append(_what_a_loader_sees(directory, old, new))
+        assert seen[-1] != "mixed", (k, steps)
+        if finished:
+            break
+    assert finished and seen[0] == "old" and seen[-1] == "new" and "refused" in seen, seen
+    assert [s for s in seen if s != "refused"] == ["old", "new"], seen
+
+
+_KILL_AT_STEP = """
+import os, signal, sys
+from fbgforce import model as fm
+
+model = fm.load(sys.argv[1])
+k, steps = int(sys.argv[3]), [0]
+for name in ("unlink", "replace"):
+    def step(path, *args, _real=getattr(os, name), **kwargs):
+        if steps[0] == k:
+            os.kill(os.getpid(), signal.SIGKILL)
+        steps[0] += 1
+        return _real(path, *args, **kwargs)
+    setattr(os, name, step)
+fm.save(model, sys.argv[2])
+"""
+
+
+@pytest.mark.slow
+def test_a_kill_at_every_step_of_a_commit_never_mixes_two_models(small_model_dir, tmp_path):
+    """``kill -9`` of a process saving a model over another, at each file operation of the
+    commit in turn (a hook on ``os.unlink`` and ``os.replace`` sends the SIGKILL: the
+    renames themselves are hit, where kills from outside during training landed before any
+    file was replaced): what it leaves loads as the old model, the new one, or is refused."""
+    old, new = _two_models(small_model_dir)
+    fm.save(new, tmp_path / "new")
+    seen = []
+    for k in range(40):
+        directory = tmp_path / f"m{k}"
+        shutil.copytree(small_model_dir, directory)
+        proc = subprocess.run([sys.executable, "-c", _KILL_AT_STEP, str(tmp_path / "new"),
+                               str(directory), str(k)], capture_output=True, text=True,
+                              timeout=120)
+        assert proc.returncode in (0, -signal.SIGKILL), proc.stderr
+        seen.append(_what_a_loader_sees(directory, old, new))
+        assert seen[-1] != "mixed", (k, seen)
+        if proc.returncode == 0:
+            break
+    assert seen[0] == "old" and seen[-1] == "new" and "refused" in seen, seen
+    assert [s for s in seen if s != "refused"] == ["old", "new"], seen
+
+
 def test_bad_output_location_fails_before_the_work(small_dataset_path, tmp_path, capsys,
                                                    monkeypatch):
     from fbgforce.trainer import train as tr
