@@ -123,6 +123,28 @@ def test_epoch_stamped_logs_import_and_train(smoke, tmp_path):
                  "--epochs", "1"]) == 0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("unit,per_s,start", [("ms", 1000, "0"), ("ns", 10**9, EPOCH_S)])
+def test_clocks_in_other_units_import_with_their_flags(smoke, tmp_path, unit, per_s, start):
+    """Both clocks counting ms (from zero) or ns (Unix epoch: 1.764e18, beyond float64's
+    integers): with --fbg-time-unit and --stage-time-unit the clock is found as in seconds."""
+    from decimal import Decimal
+
+    write_lab_logs(smoke, tmp_path, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
+    for name in ("interrogator.csv", "stage.csv"):
+        lines = (tmp_path / name).read_text().splitlines()
+        rows = [lines[0]]
+        for ln in lines[1:]:
+            t, rest = ln.split(",", 1)
+            rows.append(f"{((Decimal(t) + Decimal(start)) * per_s).normalize():f},{rest}")
+        (tmp_path / name).write_text("\n".join(rows) + "\n")
+    res = _import(tmp_path, **{"fbg-time-unit": unit, "stage-time-unit": unit})
+    assert _clock_error_ms(res, 0.1, 80, smoke.t_s[-1]) <= 1.0
+    assert res["fbg"]["rate_hz"] == pytest.approx(1000.0, rel=1e-6)
+    imp = dataset.load(tmp_path / "out.csv")
+    assert np.abs(imp.t_s - (float(start) + smoke.t_s)).max() < 1e-6
+
+
 def test_sample_rate_of_an_epoch_clock():
     """float64 rounds each 1 ms step of a Unix-epoch clock by up to 0.24 µs, so the median step
     reads the rate 72 ppm off (1000.07 Hz); the mean of the regular steps reads it to 1 ppm,
