@@ -146,7 +146,8 @@ def register(subparsers: Any) -> None:
                         "docs/ros2.md); may be repeated")
     p.add_argument("--control", metavar="udp://HOST:PORT", default=None,
                    help="also take tare and reset commands on this UDP port (control datagrams, "
-                        "docs/protocol.md; port 0 = any free port, printed on stderr)")
+                        "docs/protocol.md; port 0 = any free port, printed on stderr); "
+                        "ros2:// outputs serve NAMESPACE/tare and NAMESPACE/reset without it")
     p.add_argument("--cpu", type=non_negative_int, metavar="N",
                    help="run the estimator on CPU N alone and the publishing process on the "
                         "other CPUs, so that they never take turns on one core (docs/ros2.md)")

@@ -33,6 +33,14 @@ DEFAULT_FRAME_ID = "fbgforce_pad"
 #: Topics of ``stream --publish ros2:///NAMESPACE``, below the namespace.
 WRENCH_TOPIC = "wrench"
 CONTACT_TOPIC = "contact"
+#: The health, once a second (``diagnostic_msgs``' conventional topic, outside the namespace).
+DIAGNOSTICS_TOPIC = "/diagnostics"
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+DIAGNOSTIC_STATUS_TYPE = "diagnostic_msgs/msg/DiagnosticStatus"
+KEY_VALUE_TYPE = "diagnostic_msgs/msg/KeyValue"
+#: Services of ``stream --publish ros2:///NAMESPACE``, below the namespace.
+SERVICES = ("tare", "reset")
+TRIGGER_TYPE = "std_srvs/srv/Trigger"
 WRENCH_TYPE = "geometry_msgs/msg/WrenchStamped"
 CONTACT_TYPE = f"{MSG_PACKAGE}/msg/Contact"
 PEAKS_TYPE = f"{MSG_PACKAGE}/msg/Peaks"
@@ -83,6 +91,20 @@ def dds_type_name(msg_type: str) -> str:
     """The DDS type of a ROS 2 message type: ``pkg/msg/Name`` -> ``pkg::msg::dds_::Name_``."""
     pkg, kind, name = msg_type.split("/")
     return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def dds_service_type_name(srv_type: str, part: str) -> str:
+    """The DDS type of a service's ``Request`` or ``Response``: ``pkg/srv/Name`` ->
+    ``pkg::srv::dds_::Name_Request_``."""
+    pkg, kind, name = srv_type.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_{part}_"
+
+
+def dds_service_topics(service: str) -> tuple[str, str]:
+    """The DDS request and reply topics of a ROS 2 service, as rmw_cyclonedds names them:
+    ``/a/tare`` -> (``rq/a/tareRequest``, ``rr/a/tareReply``)."""
+    name = service.lstrip("/")
+    return f"rq/{name}Request", f"rr/{name}Reply"
 
 
 def msg_text(msg_type: str) -> str:

@@ -14,7 +14,7 @@ summary).
 
 While it streams, :meth:`LiveEstimator.tare` and :meth:`LiveEstimator.reset` take a new
 baseline (docs/serial.md, "Tare, reset and health while streaming"; docs/protocol.md, the UDP
-control datagram): a tare averages the next ``tare_samples`` samples (the
+control datagram; docs/ros2.md, the ROS 2 services): a tare averages the next ``tare_samples`` samples (the
 window) and takes their mean as the baseline, from the sample after the window on; a sensor
 fault inside the window (or a window that does not fill within ``command_timeout`` seconds)
 fails it and keeps the baseline. A reset first starts the runtime's state afresh (filter
@@ -426,8 +426,8 @@ class Publication(Protocol):
 
 class CommandSource(Protocol):
     """Where tare and reset commands come from while streaming: the UDP control port
-    (:class:`~fbgforce.interrogator.control.ControlServer`) or the outputs that serve commands
-    (through the publishing process). :meth:`poll` returns the new commands as (name, token) pairs,
+    (:class:`~fbgforce.interrogator.control.ControlServer`) or the ROS 2 services (through the
+    publishing process). :meth:`poll` returns the new commands as (name, token) pairs,
     :meth:`answer` gets each one's answer, once."""
 
     def poll(self) -> list[tuple[str, Any]]: ...

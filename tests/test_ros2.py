@@ -613,3 +613,194 @@ def test_record_bad_mcap_options_exit_2(tmp_path, small_exported_dir, capsys):
                  str(tmp_path / "rec.csv"), "--model", str(small_exported_dir)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--model" in err[0] and ".mcap" in err[0]
+
+
+# ------------------------------------------------------------------------------------------
+# Health on /diagnostics, tare and reset services
+# ------------------------------------------------------------------------------------------
+
+SERVICE_CLIENT = r"""
+# A ROS 2 client on the DDS wire that knows nothing of fbgforce: /diagnostics and the
+# std_srvs/srv/Trigger services as rmw_cyclonedds lays them out (the request header, client
+# GUID as int64 and sequence number, before the request; the reply echoes it).
+import json, os, sys, time
+from dataclasses import dataclass
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct, types as t
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: t.int32
+    nanosec: t.uint32
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+@dataclass
+class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
+    key: str
+    value: str
+@dataclass
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
+    level: t.byte
+    name: str
+    message: str
+    hardware_id: str
+    values: t.sequence[KeyValue]
+@dataclass
+class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
+    header: Header
+    status: t.sequence[DiagnosticStatus]
+@dataclass
+class Request(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Request_"):
+    guid: t.int64
+    seq: t.int64
+    structure_needs_at_least_one_member: t.uint8
+@dataclass
+class Response(IdlStruct, typename="std_srvs::srv::dds_::Trigger_Response_"):
+    guid: t.int64
+    seq: t.int64
+    success: bool
+    message: str
+
+domain, ns, plan = int(sys.argv[1]), sys.argv[2], json.loads(sys.argv[3])
+dp = DomainParticipant(domain)
+svc = Qos(Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(10),
+          Policy.Durability.Volatile)
+diag = DataReader(dp, Topic(dp, "rt/diagnostics", DiagnosticArray), qos=Qos(
+    Policy.Reliability.Reliable(duration(seconds=1)), Policy.History.KeepLast(100)))
+calls = {}
+for name in ("tare", "reset"):
+    calls[name] = (DataWriter(dp, Topic(dp, f"rq{ns}/{name}Request", Request), qos=svc),
+                   DataReader(dp, Topic(dp, f"rr{ns}/{name}Reply", Response), qos=svc))
+guid = int.from_bytes(os.urandom(8), "little", signed=True)
+print("listening", file=sys.stderr, flush=True)
+got = {"diagnostics": [], "replies": [], "available_after_s": None}
+start = time.monotonic()
+def drain():
+    for m in diag.take(N=100):
+        if isinstance(m, DiagnosticArray):
+            s = m.status[0]
+            got["diagnostics"].append([time.monotonic() - start, int.from_bytes(s.level, "little")
+                                       if isinstance(s.level, bytes) else int(s.level), s.name,
+                                       s.message, s.hardware_id,
+                                       {kv.key: kv.value for kv in s.values}])
+# Wait for the service, as a ROS 2 client does: a matched request reader and reply writer.
+while time.monotonic() - start < 60 and not all(
+        w.get_matched_subscriptions() and r.get_matched_publications() for w, r in calls.values()):
+    time.sleep(0.01)
+got["available_after_s"] = time.monotonic() - start
+def received():
+    return int(got["diagnostics"][-1][5]["samples_received"]) if got["diagnostics"] else 0
+seq = 0
+for at_samples, name in plan["calls"]:
+    while received() < at_samples and time.monotonic() - start < plan["until_s"]:
+        drain(); time.sleep(0.01)
+    seq += 1
+    writer, reader = calls[name]
+    sent = time.monotonic()
+    writer.write(Request(guid, seq, 0))
+    if name == "tare" and seq == 1:
+        writer.write(Request(guid, seq, 0))  # the same request twice: answered once
+    reply = None
+    while reply is None and time.monotonic() - sent < 10:
+        for r in reader.take(N=10):
+            if isinstance(r, Response) and r.guid == guid and r.seq == seq:
+                reply = r
+        drain(); time.sleep(0.002)
+    got["replies"].append([name, seq, None if reply is None else reply.success,
+                           None if reply is None else reply.message, time.monotonic() - sent])
+# Until the stream has ended: no record for 3 s.
+while time.monotonic() - start < plan["until_s"] and (
+        not got["diagnostics"] or time.monotonic() - start - got["diagnostics"][-1][0] < 3.0):
+    drain(); time.sleep(0.01)
+print(json.dumps(got))
+"""
+
+
+def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_exported_dir,
+                                                                   tmp_path, capsys):
+    """stream --publish ros2:///NS -> a ROS 2-typed client in another process: /diagnostics
+    arrives once a second with the documented key-values, turns ERROR while the instrument is
+    silent and OK again when it is back; a tare and a reset called as std_srvs/srv/Trigger
+    services are answered (the same request sent twice: applied once) with the baseline's
+    change, and the preload step is taken out."""
+    import dataclasses
+    import signal
+
+    from fbgforce import dataset
+    from fbgforce.interrogator.stream import LiveEstimator
+
+    scene = sim.simulate("smoke", seed=5)
+    rest = scene.wl_nm[:200]
+    rng = np.random.default_rng(0)
+    n = 9000
+    wl = rest.mean(axis=0) + rng.normal(0.0, rest.std(axis=0), (n, 5))
+    wl[400:, :4] += 0.060  # a +60 pm preload on every strain grating, after the first tare
+    data = tmp_path / "preload.csv"
+    dataset.save(dataclasses.replace(scene.subset(np.arange(n)), wl_nm=wl), data)
+    ns = f"/fbgforce_srv_{os.getpid()}"
+    plan = {"calls": [[1500, "tare"], [3000, "reset"]], "until_s": 60.0}
+    client = subprocess.Popen([sys.executable, "-c", SERVICE_CLIENT, str(dds), ns,
+                               json.dumps(plan)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True)
+    assert client.stderr is not None and "listening" in client.stderr.readline()
+    em = start_emulator("--data", str(data), "--rate", "1000", "--protocol", "hyperion",
+                        "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    stops: list[float] = []
+
+    def silence() -> None:  # the instrument goes quiet for 2.5 s, 7 s after the start
+        time.sleep(7.0)
+        stops.append(time.monotonic())
+        os.kill(em.pid, signal.SIGSTOP)
+        time.sleep(2.5)
+        os.kill(em.pid, signal.SIGCONT)
+
+    try:
+        url = wait_for_line(em, "interrogator:")
+        threading.Thread(target=silence, daemon=True).start()
+        code = main(["stream", "--source", url, "--model", str(small_exported_dir),
+                     "--samples", str(n), "--idle-timeout", "5",
+                     "--publish", f"ros2://{ns}?frame_id=tip&domain={dds}",
+                     "--start-timeout", "30", "--quiet", "--json"])
+        summary = json.loads(capsys.readouterr().out)
+        out, err = client.communicate(timeout=60)
+    finally:
+        for p in (client, em):
+            if p.poll() is None:
+                os.kill(p.pid, signal.SIGCONT)
+                p.kill()
+                p.communicate()
+    assert code == 0 and client.returncode == 0, err
+    got = json.loads(out)
+    (tare, reset) = got["replies"]
+    # Answered once the 200-sample window is in (0.2 s at 1 kHz); bench/bench_control.py
+    # measures the delay, here a loaded machine gets some slack.
+    assert tare[:3] == ["tare", 1, True] and "change +6" in tare[3] and tare[4] < 1.5, tare
+    assert reset[:3] == ["reset", 2, True] and reset[4] < 1.5, reset
+    assert summary["commands"] == {"tare": 1, "reset": 1, "failed": 0}
+    pub = summary["published"][0]
+    assert pub["services"] == {"tare": ns + "/tare", "reset": ns + "/reset"}
+    assert pub["requests"] == {"tare": 1, "reset": 1}
+    diags = got["diagnostics"]
+    assert {d[2] for d in diags} == {ns} and {d[4] for d in diags} == {"fbgforce tip"}
+    keys = diags[-1][5]
+    for k in ("rate_hz", "samples_received", "samples_lost", "reconnects", "sensor_fault_last_s",
+              "baseline_limit_last_s", "tracker_offset_pm", "tracker_bound_pm", "model_digest"):
+        assert k in keys, k
+    assert keys["model_digest"] == LiveEstimator(small_exported_dir).digest()
+    times = np.array([d[0] for d in diags])
+    gaps = np.diff(times)
+    assert np.median(gaps) == pytest.approx(1.0, abs=0.2), gaps
+    levels = [d[1] for d in diags]
+    silent = [i for i, d in enumerate(diags) if "no sample for" in d[3]]
+    assert silent and max(levels[i] for i in silent) == 2, [(d[1], d[3]) for d in diags]
+    assert levels[-1] == 0 and diags[-1][3] == "OK", diags[-1]
+    # ERROR within 2 s of the silence: the first record that says so comes at most 2 s late.
+    first_quiet = diags[silent[0]]
+    assert float(first_quiet[5]["silent_s"]) <= 2.0

@@ -5,8 +5,8 @@ DO NOT MODIFY BY HAND!!!!
 
 """
 The stream's health once a second, as published by `fbgforce stream --publish lcm://CHANNEL`
-on CHANNEL_STATUS. Same content as the UDP status record (docs/protocol.md); the level
-rules: docs/serial.md, "Health".
+on CHANNEL_STATUS. Same content as the UDP status record (docs/protocol.md) and the ROS 2
+/diagnostics status (docs/ros2.md); the level rules: docs/serial.md, "Health".
 Generated into status_t.py by `lcm-gen -p` (tests/test_publish.py checks it is current).
 """
 
