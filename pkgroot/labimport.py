@@ -8,6 +8,10 @@ once to write), and the stage log is a :class:`StageLog` of arrays. :class:`CsvF
 
 Steps (:func:`import_logs`):
 
+0. each log's times are checked (finite, increasing, regular, a sample rate that fits the
+   time unit given: :func:`check_times`), stage rows holding no reading are dropped and
+   counted (:func:`drop_bad_stage_rows`), and the force and position units are checked
+   against what a calibration can show (:func:`check_stage_units`);
 1. the four strain gratings' relative shifts (:func:`grating_strain`) are kept with the
    interrogator's times;
 2. :func:`align` estimates the stage clock against the interrogator's,
