@@ -26,16 +26,20 @@ from fbgforce.export.exporter import export_model, recording_baseline
 from fbgforce.trainer.evaluate import evaluate
 
 ENGINES = ("float", "onnx", "cfloat", "fixed")
+#: The metric keys every engine shares (docs/cli.md); the fixed-point engine is held to these.
+SHARED = (".contact_accuracy", ".rmse_force_N", ".rmse_x_mm", ".rmse_y_mm", ".n_samples")
 #: Per engine, against the float model (docs/export-onnx.md): the share of samples whose
-#: contact decision may differ, the relative difference of every metric of
-#: :func:`fbgforce.trainer.evaluate.evaluate` but the onset and release delays
-#: (``contact_timing``), their difference in ms, and the per-sample rule (see
-#: :func:`_per_sample_bounds`).
+#: contact decision may differ (on this recording, for the fixed-point engine), the relative
+#: difference of the metrics of :func:`fbgforce.trainer.evaluate.evaluate` (``keys``: which;
+#: None, every number but the onset and release delays of ``contact_timing``), their
+#: difference in ms, and the per-sample rule (see :func:`_per_sample_bounds`).
 TOLERANCE: dict[str, dict[str, Any]] = {
-    "float": {"contact": 0.0, "metrics": 0.0, "timing_ms": 0.0, "samples": "equal"},
-    "onnx": {"contact": 0.0, "metrics": 1e-3, "timing_ms": 0.0, "samples": "float32"},
-    "cfloat": {"contact": 0.0, "metrics": 1e-3, "timing_ms": 0.0, "samples": "float32"},
-    "fixed": {"contact": 1e-3, "metrics": 2e-2, "timing_ms": 1.0, "samples": "error_bounds"},
+    "float": {"contact": 0.0, "metrics": 0.0, "keys": None, "timing_ms": 0.0, "samples": "equal"},
+    "onnx": {"contact": 0.0, "metrics": 1e-3, "keys": None, "timing_ms": 0.0, "samples": "float32"},
+    "cfloat": {"contact": 0.0, "metrics": 1e-3, "keys": None, "timing_ms": 0.0,
+               "samples": "float32"},
+    "fixed": {"contact": 1e-3, "metrics": 2e-2, "keys": SHARED, "timing_ms": 1.0,
+              "samples": "error_bounds"},
 }
 #: float32 engines: force, x and y within this share of the output's scale, max(1, max |out|);
 #: p_contact within it absolutely.
@@ -160,15 +164,31 @@ def _clear_of_thresholds(model: fm.HierarchicalModel, pred: dict[str, np.ndarray
     assert min(gaps) > FLOAT32_CLEAR, f"a steady test lies {min(gaps):.2g} N from its band"
 
 
+def _differences_begin_near_a_threshold(model: fm.HierarchicalModel, in_use_dir,
+                                        ref: dict[str, np.ndarray], differ: np.ndarray) -> None:
+    """Every run of differing decisions begins at, or within the rise count after, a sample
+    whose float margin lies within the export's margin bound of a threshold (0, the rise or
+    the release margin)."""
+    eb = json.loads((in_use_dir / "export_report.json").read_text())["error_bounds"]
+    iu = model.in_use
+    thresholds = np.array([0.0, iu.contact_on_margin, iu.contact_off_margin])
+    near = (np.abs(ref["margin"][:, None] - thresholds).min(axis=1) <= eb["contact_margin"])
+    for start in np.flatnonzero(differ & ~np.concatenate([[False], differ[:-1]])):
+        window = near[max(0, start - iu.contact_rise_samples + 1):start + 1]
+        assert window.any(), f"a decision differs at sample {start}, far from every threshold"
+
+
 def _against_float(name: str, model: fm.HierarchicalModel, in_use_dir, runs_out: dict[str, Any]
                    ) -> None:
     tol = TOLERANCE[name]
     ref, got = runs_out["float"]["pred"], runs_out[name]["pred"]
     if tol["samples"] == "float32":
         _clear_of_thresholds(model, ref)
-    _metrics_agree(name, "float", runs_out, tol["metrics"], tol["timing_ms"])
+    _metrics_agree(name, "float", runs_out, tol["metrics"], tol["timing_ms"], tol["keys"])
     differ = got["contact"] != ref["contact"]
     assert differ.mean() <= tol["contact"], f"{name}: {differ.sum()} contact decisions differ"
+    if tol["samples"] == "error_bounds":
+        _differences_begin_near_a_threshold(model, in_use_dir, ref, differ)
     both = got["contact"] & ref["contact"]
     assert np.array_equal(np.isnan(got["x_mm"][both]), np.isnan(ref["x_mm"][both]))
     bounds = _per_sample_bounds(name, model, in_use_dir, ref)
@@ -185,9 +205,14 @@ def _against_float(name: str, model: fm.HierarchicalModel, in_use_dir, runs_out:
         np.testing.assert_allclose(got["p_contact"], ref["p_contact"], rtol=0, atol=FLOAT32_REL)
 
 
-def _metrics_agree(a: str, b: str, runs_out: dict[str, Any], rel: float, timing_ms: float) -> None:
+def _metrics_agree(a: str, b: str, runs_out: dict[str, Any], rel: float, timing_ms: float,
+                   keys: tuple[str, ...] | None) -> None:
     ma, mb = (_metric_numbers(runs_out[n]["metrics"]) for n in (a, b))
     assert ma.keys() == mb.keys()
+    if keys is not None:
+        assert set(keys) <= ma.keys()
+        ma, mb = ({k: m[k] for k in m if k in keys or k.startswith(".contact_timing.")}
+                  for m in (ma, mb))
 
     def off(k: str) -> bool:
         if k.startswith(".contact_timing."):
@@ -221,5 +246,7 @@ def test_every_pair_of_engines(runs, in_use_dir, a, b):
         err = np.abs(pa[key] - pb[key])[both]
         bound = np.broadcast_to(np.add(ba[key], bb[key]), ref[key].shape)[both]
         assert np.all(err <= bound), f"{a} against {b}: {key} beyond the summed bound"
+    keys = [TOLERANCE[n]["keys"] for n in (a, b) if TOLERANCE[n]["keys"] is not None]
     _metrics_agree(a, b, out, TOLERANCE[a]["metrics"] + TOLERANCE[b]["metrics"],
-                   TOLERANCE[a]["timing_ms"] + TOLERANCE[b]["timing_ms"])
+                   TOLERANCE[a]["timing_ms"] + TOLERANCE[b]["timing_ms"],
+                   keys[0] if keys else None)
