@@ -477,7 +477,6 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     stopped_by = None
     health = Health(estimator.digest(), estimator.tracker_bound_pm)
     failed_at_tick = 0
-    last_health: dict[str, Any] | None = None
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout,
@@ -496,10 +495,10 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
                 counts = dict(estimator.command_counts)
                 counts["failed_last_s"] = counts["failed"] - failed_at_tick
                 failed_at_tick = counts["failed"]
-                last_health = health.snapshot(now, reader.stats(), estimator.tracker_offset_pm,
-                                              counts)
+                snapshot = health.snapshot(now, reader.stats(), estimator.tracker_offset_pm,
+                                           counts)
                 if publication is not None:
-                    publication.status(last_health)
+                    publication.status(snapshot)
             if not batch:
                 line.update(0, last, reader.stats())
                 continue
@@ -536,10 +535,11 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     for cmd in estimator.answered():  # answered by the last batch, after the loop's turn
         src, cmd.token = cmd.token
         src.answer(cmd)
-    if last_health is None:  # a run shorter than a second: its health so far
-        counts = {**estimator.command_counts, "failed_last_s": 0}
-        last_health = health.snapshot(time.monotonic(), stats, estimator.tracker_offset_pm,
-                                      counts, advance=False)
+    # The health at the end: the period since the last snapshot, not yet judged.
+    counts = {**estimator.command_counts,
+              "failed_last_s": estimator.command_counts["failed"] - failed_at_tick}
+    last_health = health.snapshot(time.monotonic(), stats, estimator.tracker_offset_pm,
+                                  counts, advance=False)
     return {
         "samples": n,
         "received": n + len(waiting),
