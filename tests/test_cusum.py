@@ -178,6 +178,43 @@ def test_reset_tare_and_faults_on_the_cusum_state(random_model_factory, random_w
         assert rt._state.cusum_q8 == 0
 
 
+def test_the_float_build_holds_and_clears_its_cusum(random_model_factory, random_walk_factory):
+    """fbgf_state.cusum as fbg_state.cusum_q8: in [0, h), 0 in contact, held through a lost
+    peak, cleared by a reset, a tare and a new baseline."""
+    model, _, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM, seed=4)
+    model.in_use = dataclasses.replace(CUSUM, contact_cusum_h=8.0, contact_cusum_k=0.0,
+                                       contact_cusum_lo=-0.5, contact_cusum_hi=1.0)
+    wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)
+    rt = FloatRuntime(model)
+    rt.set_baseline(model.baseline_nm)
+    rt.run(wl[:2000])
+    lost = wl[0].copy()
+    lost[2] = 0.0
+    peak, held, i = 0.0, 0, 2000
+    for restart in ("fault", "fault", "reset", "tare", "baseline"):
+        while rt._state.cusum == 0.0:
+            out = rt.run(wl[i:i + 1])
+            assert 0.0 <= rt._state.cusum < 8.0 and (rt._state.cusum == 0.0 or not out["contact"][0])
+            i += 1
+        s = float(rt._state.cusum)
+        peak = max(peak, s)
+        if restart == "fault":
+            assert rt.run(lost[None, :])["status"][0] & FAULT
+            assert rt._state.cusum == s
+            held += 1
+            rt.run(wl[i:i + 50])       # past the fault, on to the next rise
+            i += 50
+            continue
+        if restart == "reset":
+            rt.reset()
+        elif restart == "tare":
+            rt.tare(wl[i:i + 100])
+        else:
+            rt.set_baseline(model.baseline_nm)
+        assert rt._state.cusum == 0.0
+    assert held == 2 and peak > 0.5
+
+
 def test_the_float_build_and_model_run_the_same_cusum(random_model_factory, random_walk_factory):
     """The float model and the C float build agree with each other as closely as on the
     Schmitt trigger (docs/fixed-point.md, "the float engines"), and with the fixed point
