@@ -84,6 +84,9 @@ class Command:
         Samples averaged for the new baseline (0 on failure).
     faults
         Samples of the window with a sensor fault (a failure when > 0).
+    requested_s, started_s, answered_s
+        When it was given, when its window opened and when it was answered
+        (``time.monotonic()``; None until then).
     """
 
     name: str
@@ -500,7 +503,8 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
                 if publication is not None:
                     publication.status(snapshot)
             if not batch:
-                line.update(0, last, reader.stats())
+                if t_first is not None:  # a silent device shows as a falling rate
+                    line.update(0, last, reader.stats())
                 continue
             health.samples(len(batch), now)
             t_first = now if t_first is None else t_first
