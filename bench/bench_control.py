@@ -14,7 +14,9 @@ while streaming", measured end to end (loopback only).
    reads before the tare (median, and the share of samples in contact), the tare's answer and the time from its request to its answer, the rest force
    after the tare (99th percentile of |F| from the window's end to the press), the press's
    force RMSE against the scene's load cell (beside the same press without the step run
-   offline, tared at the start: what the model reads at best), the reset's answer, delay and rest p99 after it,
+   offline, tared at the start: what the model reads at best; and with the step but no tare,
+   offline: what the tare saves; the at-rest tracker's offset when the tare was asked for),
+   the reset's answer, delay and rest p99 after it,
    and from ``/diagnostics`` (a DDS reader in this process): the period of the records
    (median, min, max), the time from the instrument's silence to the first WARN or ERROR
    record and from its return to the first OK one.
@@ -237,6 +239,16 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
     rt.tare(where["clean_wl_nm"][:200])
     clean = rt.run(where["clean_wl_nm"])["force_N"][p0:p1]
     rmse_clean = float(np.sqrt(np.mean((clean - where["force"][p0:p1]) ** 2)))
+    # The same press with the step and no tare after it (offline, the first tare only).
+    stepped = where["clean_wl_nm"].copy()
+    stepped[step:, :4] += STEP_PM / 1000.0
+    rt = Runtime(model)
+    rt.tare(stepped[:200])
+    untared = rt.run(stepped)["force_N"]
+    rmse_untared = float(np.sqrt(np.mean((untared[p0:p1] - where["force"][p0:p1]) ** 2)))
+    # What the at-rest tracker had taken of the step when the tare was asked for.
+    tare_t = res["tare"][2]
+    offset = [float(d[3]["tracker_offset_pm"]) for d in diags if d[0] <= tare_t]
     reset_rest = force[(seq > p1 + 1400) & (seq < where["n"] - 4600)]
     # The model's own rest before the step (after the stream's first tare): what a tare can
     # give back at best.
@@ -256,6 +268,10 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
         "rest_after_tare_n": int(len(tare_rest)),
         "press_peak_N": float(truth.max()), "press_rmse_N": rmse,
         "press_rmse_no_step_offline_N": rmse_clean,
+        "press_rmse_step_untared_offline_N": rmse_untared,
+        "untared_rest_after_step_p99_N": float(np.percentile(np.abs(
+            untared[step + 2100:p0]), 99)),
+        "tracker_offset_at_tare_pm": offset[-1] if offset else None,
         "reset": {"result": client_mod.RESULTS[reset_ack.result],
                   "message": reset_ack.message, "answered_s": round(reset_s, 3)},
         "rest_after_reset_p99_N": float(np.percentile(np.abs(reset_rest), 99)),
@@ -492,9 +508,13 @@ def main(argv: list[str] | None = None) -> int:
                   f"({r['tare']['message']})")
             print(f"   rest after the tare: p99 |F| {r['rest_after_tare_p99_N']:.3f} N over "
                   f"{r['rest_after_tare_n']} samples")
+            print(f"   tracker offset when the tare was asked for: "
+                  f"{r['tracker_offset_at_tare_pm']} pm")
             print(f"   press (peak {r['press_peak_N']:.1f} N): RMSE {r['press_rmse_N']:.3f} N "
                   f"(the same press without the step, offline: "
-                  f"{r['press_rmse_no_step_offline_N']:.3f} N)")
+                  f"{r['press_rmse_no_step_offline_N']:.3f} N; with the step and no tare, "
+                  f"offline: {r['press_rmse_step_untared_offline_N']:.3f} N, its rest p99 "
+                  f"{r['untared_rest_after_step_p99_N']:.3f} N)")
             print(f"   reset: {r['reset']['result']} in {r['reset']['answered_s']:.3f} s; rest "
                   f"after it: p99 |F| {r['rest_after_reset_p99_N']:.3f} N over "
                   f"{r['rest_after_reset_n']} samples")
