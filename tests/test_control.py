@@ -461,3 +461,18 @@ def test_stream_takes_commands_over_udp_end_to_end(tmp_path, small_exported_dir,
     assert abs(len(times) - summary["duration_s"]) <= 1.5, (len(times), summary["duration_s"])
     assert [r for _, _, r in seen["status"]] == sorted(r for _, _, r in seen["status"])
     assert summary["published"][0]["status_sent"] == len(seen["status"])
+
+
+def test_stream_control_url_it_cannot_use_exits_2_with_one_line(small_exported_dir, capsys):
+    model = str(small_exported_dir)
+    assert main(["stream", "--source", "loop://", "--model", model, "--control",
+                 "tcp://127.0.0.1:9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--control: expected udp://HOST:PORT" in err[0], err
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        assert main(["stream", "--source", "loop://", "--model", model, "--control",
+                     f"udp://127.0.0.1:{port}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"--control: cannot listen on 127.0.0.1:{port}" in err[0], err

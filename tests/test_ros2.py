@@ -804,3 +804,46 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     # ERROR within 2 s of the silence: the first record that says so comes at most 2 s late.
     first_quiet = diags[silent[0]]
     assert float(first_quiet[5]["silent_s"]) <= 2.0
+
+
+def test_a_ros2_publisher_killed_mid_run_stays_in_the_summary(dds, small_exported_dir, capsys):
+    """``--publish ros2:///...`` and its publishing process killed while the stream runs: the
+    summary keeps the output with the messages it had sent and says it died; stderr said so
+    when it happened."""
+    import multiprocessing as mp
+    import signal
+
+    killed: list[int] = []
+
+    def kill_later() -> None:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not killed:
+            for child in mp.active_children():
+                if child.name == "fbgforce-publish":
+                    time.sleep(2.5)  # the outputs are open and publishing
+                    os.kill(child.pid, signal.SIGKILL)
+                    killed.append(child.pid)
+                    return
+            time.sleep(0.05)
+
+    em = start_emulator("--scene", "smoke", "--seed", "5", "--rate", "1000", "--protocol",
+                        "hyperion", "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
+    watcher = threading.Thread(target=kill_later, daemon=True)
+    try:
+        url = wait_for_line(em, "interrogator:")
+        watcher.start()
+        code = main(["stream", "--source", url, "--model", str(small_exported_dir), "--samples",
+                     "5000", "--publish", f"ros2:///fbgforce_kill_{os.getpid()}?domain={dds}",
+                     "--start-timeout", "30", "--quiet", "--json"])
+        captured = capsys.readouterr()
+        watcher.join(10)
+    finally:
+        if em.poll() is None:
+            em.kill()
+            em.communicate()
+    assert killed and code == 0
+    summary = json.loads(captured.out)
+    (entry,) = summary["published"]
+    assert entry["url"].startswith("ros2:///fbgforce_kill_") and entry["died"] is True
+    assert entry["exit_code"] == -signal.SIGKILL and 0 < entry["sent"] < 5000
+    assert "publishing process died (killed by SIGKILL)" in captured.err
