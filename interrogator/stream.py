@@ -14,8 +14,9 @@ summary).
 
 While it streams, :meth:`LiveEstimator.tare` and :meth:`LiveEstimator.reset` take a new
 baseline (docs/serial.md, "Tare, reset and health while streaming"; docs/protocol.md, the UDP
-control datagram; docs/ros2.md, the ROS 2 services): a tare averages the next ``tare_samples`` samples (the
-window) and takes their mean as the baseline, from the sample after the window on; a sensor
+control datagram; docs/ros2.md, the ROS 2 services): a tare averages the next
+``tare_samples`` samples (the window) and takes their mean as the baseline, from the sample
+after the window on; a sensor
 fault inside the window (or a window that does not fill within ``command_timeout`` seconds)
 fails it and keeps the baseline. A reset first starts the runtime's state afresh (filter
 history, memory, decision, fault and at-rest trackers, the baseline back to the last tare's)
@@ -50,7 +51,6 @@ OUTPUT_KEYS = ("contact", "p_contact", "force_N", "x_mm", "y_mm", "status")
 RAW_KEYS = ("force_mN", "x_um", "y_um", "contact_conf_q15")
 CSV_COLUMNS = ("seq", "t_us", "host_s", "wl1_nm", "wl2_nm", "wl3_nm", "wl4_nm", "wlT_nm",
                *OUTPUT_KEYS)
-COMMANDS = ("tare", "reset")
 #: Samples a tare command averages when the stream started on the model's baseline
 #: (``tare_samples`` 0).
 DEFAULT_TARE_SAMPLES = 200
@@ -59,7 +59,8 @@ COMMAND_TIMEOUT_S = 5.0
 #: Commands waiting for their turn at most; one more is refused at once ("busy").
 MAX_QUEUED_COMMANDS = 64
 _SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
-_FM_MIN, _FM_MAX = 1_000_000_000, 2_000_000_000
+#: A peak outside these (fm) is lost: the runtime's tare skips such a sample.
+_FM_MIN, _FM_MAX = contract.LIMIT["WL_MIN_FM"], contract.LIMIT["WL_MAX_FM"]
 
 
 @dataclass
