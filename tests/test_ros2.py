@@ -739,7 +739,7 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     scene = sim.simulate("smoke", seed=5)
     rest = scene.wl_nm[:200]
     rng = np.random.default_rng(0)
-    n = 9000
+    n = 14000  # at least 3 s of samples after the silence, whatever the start took
     wl = rest.mean(axis=0) + rng.normal(0.0, rest.std(axis=0), (n, 5))
     wl[400:, :4] += 0.060  # a +60 pm preload on every strain grating, after the first tare
     data = tmp_path / "preload.csv"
