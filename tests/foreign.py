@@ -10,7 +10,8 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
 - per-channel sensitivities ±30 %, a quadratic beam response (±8 % at full load) and linear
   cross-talk between channels (up to 5 %), optional viscoelastic creep, optional
   rate-independent pad friction (a Duhem/Dahl-type model with smooth, exponential reversals:
-  not the simulator's play operators);
+  not the simulator's play operators), optional rate-dependent hysteresis (a damper beside
+  the beams: no creep);
 - base wavelengths anywhere in 1510–1590 nm; sample rates 500 / 1000 / 2000 Hz; white noise
   2–15 pm quantised to 0.1 pm;
 - temperature: a slow ramp plus a wander seen by every grating with its own coefficient, or
@@ -36,13 +37,18 @@ Use :func:`device` for a device (seeded), :func:`log` for one recording of it, a
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
 :data:`IN_USE_VARIANTS` are recordings of ONE fingertip (:data:`IN_USE_FINGERTIP`, device
 seed 200) in the conditions it is used in: a calibration log, presses at constant temperature,
-thermal ramps, long rests and held grips; each carries a ``role`` for the in-use benchmark
-(bench/bench_in_use.py, docs/robustness.md "Use in the field").
+thermal ramps, long rests, held grips and light presses; each carries a ``role`` for the
+in-use benchmark (bench/bench_in_use.py, docs/robustness.md "Use in the field").
+:data:`FAMILY` are fingertips that differ from that one in exactly one piece of the physics the
+in-use stages assume (creep absent or at other time constants, friction or a rate-dependent
+damper alone, interrogator noise, the reference grating's lag, thermal mismatch);
+:func:`write_family` records each in :data:`FAMILY_VARIANTS` (``--family``).
 
 As a script it writes the logs the generalisation and in-use benchmarks score
 (bench/bench_generalisation.py and bench/bench_in_use.py read them; neither imports this file)::
 
     python tests/foreign.py --out DIR [--presses 60] [VARIANT ...]
+    python tests/foreign.py --out DIR --family [--presses 100] [MEMBER ...]
 
 For each variant (default all of :data:`VARIANTS`; the in-use ones by name): a device (the
 variant's ``device_seed``, else seed 100 + its index in :data:`VARIANTS`), two logs of it (seeds
@@ -89,6 +95,9 @@ class Spec:
     friction: float = 0.0                # pad friction: loading/unloading gap at equal load,
                                          # as a fraction of that load (0 = none)
     friction_sharpness: float = 4.0      # how fast a reversal slips (higher: sharper corner)
+    viscous_s: float = 0.0               # rate-dependent (Kelvin-Voigt) hysteresis: the beams
+                                         # carry F - viscous_s * dF/dt, s (0 = none); it acts
+                                         # only while the load moves, so it leaves no creep
     rest_s: tuple[float, float] = (0.15, 0.4)
     ramp_s: tuple[float, float] = (0.15, 0.35)
     hold_s: tuple[float, float] = (0.0, 0.2)
@@ -177,9 +186,13 @@ def pad_friction(beam: np.ndarray, gap: float, sharpness: float) -> np.ndarray:
 
 
 def strain_pm(dev: Device, force: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Noise-free strain-grating shifts (n, 4), pm: shares, (pad friction,) quadratic beams,
-    cross-talk."""
+    """Noise-free strain-grating shifts (n, 4), pm: shares, (a rate-dependent damper, pad
+    friction,) quadratic beams, cross-talk."""
     beam = force[:, None] * shares(dev, x, y)
+    if dev.spec.viscous_s > 0:
+        # A damper in parallel with the beams takes up part of the load while it moves:
+        # loading reads low and unloading high, by more the faster the press.
+        beam = beam - dev.spec.viscous_s * dev.spec.rate_hz * np.gradient(beam, axis=0)
     if dev.spec.friction > 0:
         beam = pad_friction(beam, dev.spec.friction, dev.spec.friction_sharpness)
     full = dev.spec.force_max_N / 2.0  # a beam rarely carries more than half the load
@@ -461,7 +474,30 @@ IN_USE_VARIANTS: dict[str, Spec] = {
     # Grips held 1.5-6 s at 0.5-50 N at constant temperature (creep and friction act).
     "held_grips": replace(IN_USE_FINGERTIP, name="held_grips", role="hold", drift=False,
                           rest_s=(0.3, 1.0), hold_s=(1.5, 6.0), presses_max=40),
+    # Light presses of 0.2-3 N at constant temperature, 0.5-2 s apart: the contact decision
+    # where the margin is thin.
+    "light_presses": replace(_SPARSE, name="light_presses", role="light", force_min_N=0.2,
+                             force_max_N=3.0, rest_s=(0.5, 2.0), presses_max=60),
 }
+
+#: The in-use family: fingertips that differ from :data:`IN_USE_FINGERTIP` (the member
+#: ``in_use``) in exactly one piece of the physics the in-use stages assume, each recorded in
+#: the conditions of :data:`FAMILY_VARIANTS`. Every in-use default is chosen by the family's
+#: worst member (docs/robustness.md, "The family of fingertips").
+FAMILY: dict[str, dict[str, float]] = {
+    "in_use": {},                                       # creep 5 % at 1 s, friction 5 %
+    "no_creep": {"creep": 0.0},                         # friction alone
+    "creep_50ms": {"creep_s": 0.05},
+    "creep_5s": {"creep_s": 5.0},
+    "viscous": {"creep": 0.0, "friction": 0.0, "viscous_s": 0.004},   # rate-dependent only
+    "noise_2pm": {"noise_pm": 2.0},
+    "noise_10pm": {"noise_pm": 10.0},
+    "ref_no_lag": {"temp_lag_s": 0.0},                  # the reference grating keeps up
+    "thermal_8pct": {"temp_coeff_spread": 0.08},        # strain gratings' coefficients +-8 %
+}
+#: The recordings of each family member: what it is calibrated with and what it is scored on.
+FAMILY_VARIANTS = ("calib_1K", "const_temp", "ramp40K", "long_rests", "held_grips",
+                   "light_presses")
 
 #: Every variant the script can write, by name.
 ALL_VARIANTS: dict[str, Spec] = {**VARIANTS, **IN_USE_VARIANTS}
@@ -471,6 +507,9 @@ ALL_VARIANTS: dict[str, Spec] = {**VARIANTS, **IN_USE_VARIANTS}
 #: "presses": n}}}`` (file names relative to the manifest); in-use variants add ``role`` and,
 #: for ramps, ``ramp_K`` and ``ramp_K_per_min``.
 MANIFEST = "foreign.json"
+#: The file :func:`write_family` writes: ``{"presses": n, "members": {member: {"manifest":
+#: "<member>/foreign.json", "physics": {Spec field: value}}}}``.
+FAMILY_MANIFEST = "family.json"
 
 
 def device_seed(name: str) -> int:
@@ -480,13 +519,16 @@ def device_seed(name: str) -> int:
     return spec.device_seed if spec.device_seed is not None else 100 + list(VARIANTS).index(name)
 
 
-def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 60) -> Path:
-    """Two logs per variant of one device each, and the manifest; returns the manifest's path."""
+def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 60,
+               physics: dict[str, float] | None = None) -> Path:
+    """Two logs per variant of one device each, and the manifest; returns the manifest's path.
+    ``physics``: fields of :class:`Spec` that replace every variant's (a :data:`FAMILY`
+    member's)."""
     root = Path(out)
     root.mkdir(parents=True, exist_ok=True)
     entries = {}
     for name in names or list(VARIANTS):
-        spec = ALL_VARIANTS[name]
+        spec = replace(ALL_VARIANTS[name], **(physics or {}))
         seed = device_seed(name)
         dev = device(spec, seed)
         n_press = min(presses, spec.presses_max or presses)
@@ -501,7 +543,25 @@ def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 6
             entry.update(ramp_K=spec.drift_K, ramp_K_per_min=spec.ramp_K_per_min)
         entries[name] = entry
     path = root / MANIFEST
-    path.write_text(json.dumps({"presses": presses, "variants": entries}, indent=1) + "\n")
+    extra = {"physics": physics} if physics is not None else {}
+    path.write_text(json.dumps({"presses": presses, **extra, "variants": entries}, indent=1)
+                    + "\n")
+    return path
+
+
+def write_family(out: str | Path, members: list[str] | None = None, presses: int = 100) -> Path:
+    """The logs of :data:`FAMILY_VARIANTS` for each member of :data:`FAMILY` (default all),
+    each in ``out/<member>/`` with its manifest, and ``out/family.json`` naming the members
+    and their physics; returns that file's path."""
+    root = Path(out)
+    chosen = members or list(FAMILY)
+    for member in chosen:
+        print(f"foreign.py: family member {member}", file=sys.stderr)
+        write_logs(root / member, list(FAMILY_VARIANTS), presses, FAMILY[member])
+    path = root / FAMILY_MANIFEST
+    path.write_text(json.dumps({"presses": presses, "members": {
+        m: {"manifest": f"{m}/{MANIFEST}", "physics": FAMILY[m]} for m in chosen}}, indent=1)
+        + "\n")
     return path
 
 
@@ -522,10 +582,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stage-rate-hz", type=float, default=500.0)
     ap.add_argument("--stage-offset-s", type=float, default=0.1)
     ap.add_argument("--stage-drift-ppm", type=float, default=80.0)
+    ap.add_argument("--family", action="store_true",
+                    help="write instead the in-use family: for each member (default all of "
+                         f"{', '.join(FAMILY)}; name some as VARIANT) the logs "
+                         f"{', '.join(FAMILY_VARIANTS)} in DIR/MEMBER/, and DIR/family.json "
+                         "(for bench_in_use --family)")
     ap.add_argument("--seed", type=int, default=1,
                     help="with --lab-logs: the seed of the log (its presses and noise; "
                          "default 1, the first log of each variant)")
     args = ap.parse_args(argv)
+    if args.family:
+        unknown = [v for v in args.variants if v not in FAMILY]
+        if unknown:
+            print(f"foreign.py: unknown family member(s) {', '.join(unknown)}; choose from "
+                  f"{', '.join(FAMILY)}", file=sys.stderr)
+            return 2
+        print(write_family(args.out, args.variants or None, args.presses))
+        return 0
     unknown = [v for v in args.variants if v not in ALL_VARIANTS]
     if unknown:
         print(f"foreign.py: unknown variant(s) {', '.join(unknown)}; choose from "

@@ -218,9 +218,13 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
                               "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     rows = {r["key"]: r for r in res["goals"]}
-    assert set(rows) == {g.key for g in (*bench_in_use.RAMP_GOALS, *bench_in_use.CONSTANT_GOALS,
-                                         *bench_in_use.HOLD_GOALS, *bench_in_use.RAMP_HOLD_GOALS)}
+    assert set(rows) == set(bench_in_use.GOALS)
     assert rows["ramp_hold_bias"]["pass"] is None     # no ramp_hold log in this directory
+    assert rows["light_accuracy"]["pass"] is None     # nor light presses
+    # The calibration's own test presses: contact errors of the same engine on its test split.
+    cal = evaluate(small_exported_dir, [d["path"] for d in res_model_data(small_exported_dir)],
+                   engine="fixed", split="test")
+    assert rows["test_contact_errors"]["value"] == pytest.approx(1.0 - cal["contact_accuracy"])
     assert res["passed"] + res["failed"] + res["not_measured"] == len(rows)
     for r in rows.values():
         assert r["pass"] is None or r["pass"] == (abs(r["value"]) <= r["target"]
@@ -255,7 +259,84 @@ def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_expo
     verdict = {r["key"]: (r["value"], r["pass"]) for r in res["goals"]}
     assert verdict["rest_contact"] == (None, None) and verdict["hold_bias"] == (None, None)
     assert verdict["false_events"][0] is not None
-    assert res["not_measured"] == 6 and res["calibration_test_rmse_force_N"] is None
+    # Ramps (3), holds (2), the grip through a ramp and light presses are not measured; the
+    # calibration's test presses are, from the model's own training logs.
+    assert res["not_measured"] == 7 and verdict["test_contact_errors"][0] is not None
+
+
+def res_model_data(model_dir):
+    return json.loads((model_dir / "model.json").read_text())["metadata"]["data"]
+
+
+def test_family_members_differ_in_their_physics_only(tmp_path):
+    # Every member is the in-use fingertip's device with one piece of its physics changed.
+    assert set(fg.FAMILY) >= {"in_use", "no_creep", "creep_50ms", "creep_5s", "viscous"}
+    base = fg.device(fg.IN_USE_FINGERTIP, 200)
+    for member, physics in fg.FAMILY.items():
+        dev = fg.device(replace(fg.IN_USE_FINGERTIP, **physics), 200)
+        np.testing.assert_array_equal(dev.supports_mm, base.supports_mm)
+        np.testing.assert_array_equal(dev.gain_pm_per_N, base.gain_pm_per_N)
+        assert set(physics) <= {"creep", "creep_s", "friction", "viscous_s", "noise_pm",
+                                "temp_lag_s", "temp_coeff_spread"}, member
+    assert fg.main(["--out", str(tmp_path), "--family", "--presses", "2", "no_creep"]) == 0
+    listed = json.loads((tmp_path / fg.FAMILY_MANIFEST).read_text())["members"]
+    assert list(listed) == ["no_creep"] and listed["no_creep"]["physics"] == {"creep": 0.0}
+    roles = {e["role"] for e in json.loads(
+        (tmp_path / "no_creep" / fg.MANIFEST).read_text())["variants"].values()}
+    assert roles == {"calibration", "constant", "ramp", "rest", "hold", "light"}
+    assert fg.main(["--out", str(tmp_path), "--family", "nosuchmember"]) == 2
+
+
+def test_viscous_pad_reads_rate_not_creep():
+    # The damper reads a press's loading low and its unloading high, by more the faster the
+    # load moves, and nothing once it stands: a hold reads the load, with no creep after it.
+    spec = replace(fg.IN_USE_FINGERTIP, creep=0.0, friction=0.0, viscous_s=0.004)
+    plain = replace(spec, viscous_s=0.0)
+    dev, dev0 = fg.device(spec, 200), fg.device(plain, 200)
+    f = np.concatenate([np.linspace(0, 20, 200), np.full(500, 20.0), np.linspace(20, 0, 100),
+                        np.zeros(300)])
+    x, y = np.full(f.size, 15.0), np.full(f.size, 20.0)
+    s, s0 = fg.strain_pm(dev, f, x, y).sum(axis=1), fg.strain_pm(dev0, f, x, y).sum(axis=1)
+    assert np.all(s[20:190] < s0[20:190]) and np.all(s[720:790] > s0[720:790])
+    # Unloading is twice as fast as loading: twice the gap.
+    gap_up, gap_down = np.median(s0[50:150] - s[50:150]), np.median(s[720:780] - s0[720:780])
+    assert gap_down / gap_up == pytest.approx(2.0 * s0[720:780].mean() / s0[50:150].mean(),
+                                              rel=0.35)
+    np.testing.assert_allclose(s[250:650], s0[250:650], atol=1e-9)
+    np.testing.assert_allclose(s[850:], s0[850:], atol=1e-9)
+
+
+def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tmp_path, capsys):
+    import shutil
+
+    from fbgforce.bench import bench_in_use
+
+    # Two members on the same logs, their models already in --work (scored as they are): the
+    # worst of each goal is the larger (smaller for >=) of the two.
+    root = tmp_path / "fam"
+    members = {}
+    for member in ("a", "b"):
+        shutil.copytree(in_use_logs, root / member)
+        shutil.copytree(small_exported_dir, tmp_path / "work" / member / "model")
+        members[member] = {"manifest": f"{member}/{fg.MANIFEST}", "physics": {}}
+    (root / fg.FAMILY_MANIFEST).write_text(json.dumps({"members": members}))
+    assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work"),
+                              "--without", "hold_gain", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out)
+    rows = {r["key"]: r for r in res["goals"]}
+    bias = rows["hold_bias"]
+    assert set(bias["values"]) == {"a", "b"} and bias["worst"] == bias["values"]["a"]
+    assert bias["pass"] == (abs(bias["worst"]) <= 0.1)
+    # Without the settled-hold gain the holds read what the nets read.
+    held = res["members"]["a"]["without"]["scored"]["held_grips"]["holds"]
+    assert held["holds"] == 3 and "values_without" in bias
+    copy = json.loads((tmp_path / "work" / "a" / "without_hold_gain" / "model.json").read_text())
+    assert copy["in_use"]["hold_gain"] == 0.0
+    assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work")]) == 0
+    assert "| force bias over the holds | within ±0.1 N |" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        bench_in_use.main(["--family", str(root)])
+    assert exc.value.code == 2
 
 
 def test_evaluate_json_reports_rests_and_holds(in_use_logs, small_exported_dir, capsys):

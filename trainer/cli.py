@@ -47,6 +47,13 @@ def register(subparsers: Any) -> None:
                    help="the temperature grating's average before it compensates: auto "
                         "(default: 32 ms when that lowers the noise at rest by 5 %% or more, "
                         "else raw), 0 (raw) or N (2^N samples; docs/trainer.md)")
+    p.add_argument("--creep", choices=("auto", "on", "off"), default="auto",
+                   help="correct for the pad's fitted creep (its inverse or the tracker's term, "
+                        "and creeping synthetic holds) only where the calibration establishes "
+                        "it: a relaxation time clear of a rate effect, explained on held-out "
+                        "releases, beyond what the noise fits (auto, default); wherever the "
+                        "fit finds one (on); never (off). docs/trainer.md \"Evidence before "
+                        "correction\"")
     p.add_argument("--creep-inverse", action=argparse.BooleanOptionalAction, default=None,
                    help="take the pad's fitted creep out before the filter (--creep-inverse) or "
                         "let the at-rest tracker discount its recovery (--no-creep-inverse); "
@@ -160,7 +167,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          memory=args.memory, restarts=_restarts(args.restarts),
                          sizes=_sizes(args.sizes),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
-                         creep_inverse=args.creep_inverse, init=args.init,
+                         creep_inverse=args.creep_inverse, creep=args.creep, init=args.init,
                          train_fraction=args.train_fraction,
                          turn_guard_s=None if args.turn_guard is None else args.turn_guard / 1000.0,
                          **augment)
@@ -175,6 +182,9 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
           f"{_creep_summary(md['creep'], model.preprocess)}", file=sys.stderr)
     from fbgforce.trainer.coverage import coverage_lines
 
+    for c in md.get("corrections", []):
+        print(f"fbgforce train: correction {c['name']}: {'on' if c['applied'] else 'off'} "
+              f"({c['why']})", file=sys.stderr)
     for line in coverage_lines(md["coverage"]):
         print(f"fbgforce train: {line}", file=sys.stderr)
     for warning in md.get("warnings", []):
@@ -184,7 +194,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
             "filter": md["filter"], "temp_coeff": md["temperature"]["temp_coeff"],
             "temperature_reference": md["temperature"]["reference"],
             "val": md["metrics"]["val"], "test": md["metrics"]["test"],
-            "coverage": md["coverage"], "warnings": md.get("warnings", [])}
+            "coverage": md["coverage"], "corrections": md.get("corrections", []),
+            "warnings": md.get("warnings", [])}
 
 
 def _ref_shift(text: str) -> int | None:
@@ -216,13 +227,20 @@ def _reference_summary(ref: Mapping[str, Any]) -> str:
     return f"temperature reference raw ({figures} over 2^{ref['candidate']} samples)"
 
 
-def _creep_summary(creep: Mapping[str, float], pre: Any) -> str:
-    """The pad's fitted creep (trainer.train.fit_creep) and its inverse in words."""
+def _creep_summary(creep: Mapping[str, Any], pre: Any) -> str:
+    """The pad's fitted creep (trainer.train.fit_creep), whether the model corrects for it and
+    why (trainer.train.creep_choice), in words."""
+    found = creep.get("fitted", creep)
+    evidence = creep.get("evidence") or {}
     if not creep["magnitude"]:
-        return "no pad creep found"
+        if not found.get("magnitude"):
+            return "no pad creep found"
+        return (f"pad creep fitted at {100 * found['magnitude']:.1f} % over "
+                f"{found['time_constant_s']:.2g} s, not corrected for: "
+                f"{evidence.get('why', 'not established')}")
     what = "taken out before the filter" if pre.creep else "discounted by the at-rest tracker"
     return (f"pad creep {100 * creep['magnitude']:.1f} % over {creep['time_constant_s']:.2g} s, "
-            f"{what}")
+            f"{what} ({evidence.get('why', 'established')})")
 
 
 def _coverage(args: argparse.Namespace) -> dict[str, Any]:

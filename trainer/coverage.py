@@ -116,6 +116,20 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     if rest_longest < WANT_LONG_REST_S:
         missing.append(f"long rests (none over {WANT_LONG_REST_S:g} s: creep recovery, the "
                        "zero drifting at rest)")
+    # Physical hypotheses the trainer may correct for only where the log can test them
+    # (docs/trainer.md, "Evidence before correction").
+    unknown = []
+    longest_hold = float(hold.max()) if hold.size else 0.0
+    if longest_hold < WANT_HOLD_S:
+        unknown.append(f"how the pad behaves under a held load: no hold of {WANT_HOLD_S:g} s "
+                       f"(longest {longest_hold:.2f} s), so held grips are extrapolated and a "
+                       "creep is read from the releases alone")
+    if rest_longest < WANT_LONG_REST_S:
+        unknown.append(f"a creep slower than its rests (longest {rest_longest:.1f} s): a slow "
+                       "recovery after a release looks like the zero wandering")
+    if span_K < WANT_TEMPERATURE_K:
+        unknown.append(f"the temperature grating's lag behind the strain gratings (the "
+                       f"temperature spans {span_K:.2g} K)")
     stats = (lambda a: {"min": float(a.min()), "median": float(np.median(a)),
                         "max": float(a.max())} if a.size else None)
     return {
@@ -130,6 +144,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         "temperature": {"span_pm": span_pm, "span_K": span_K},
         "rest": {"total_s": rest_total, "longest_s": rest_longest},
         "missing": missing,
+        "cannot_establish": unknown,
     }
 
 
@@ -159,4 +174,6 @@ def coverage_lines(cov: dict[str, Any]) -> list[str]:
         lines.append("  a model trained on it will not know: " + "; ".join(cov["missing"]))
     else:
         lines.append("  nothing missing by these checks")
+    if cov.get("cannot_establish"):
+        lines.append("  it cannot establish: " + "; ".join(cov["cannot_establish"]))
     return lines

@@ -119,8 +119,10 @@ class Prepared:
     recordings: list[Recording]
     pre: fm.Preprocess
     temp_info: dict[str, Any]
-    creep_fit: "Creep | None" = None    # the pad's creep as fitted (prepare())
+    creep_fit: "Creep | None" = None    # the pad's creep the model corrects for (prepare())
     creep_held: "Creep | None" = None   # ... at a time constant the model can hold (_held_creep)
+    creep_found: "Creep | None" = None  # what the fit found, established or not
+    creep_evidence: dict[str, Any] | None = None   # creep_evidence() on it, and the choice
     feats: np.ndarray = field(init=False)
     split: np.ndarray = field(init=False)
     contact: np.ndarray = field(init=False)
@@ -230,11 +232,16 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
-            creep_inverse: bool | None = False, memory: fm.Memory | None = None) -> Prepared:
+            creep_inverse: bool | None = False, memory: fm.Memory | None = None,
+            creep: str = "auto") -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
     (:func:`fit_creep`; with ``creep_inverse`` its inverse runs before the filter), filter
     every recording, split each by press.
+
+    ``creep`` (:data:`CREEP_MODES`): ``auto`` corrects for the fitted creep only where the
+    calibration establishes it (:func:`creep_evidence`), ``on`` wherever the fit finds one,
+    ``off`` never.
 
     ``creep_inverse`` None lets the creep choose (:func:`takes_creep_out`): the inverse when the
     pad creeps more slowly than the longest average of ``memory``, the nets' memory states.
@@ -269,7 +276,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     # row, which the creep inverse never touches). Taken out before the filter
     # (creep_inverse), the nets read a pad that recovers at once whatever the rests and holds
     # in use; otherwise the at-rest tracker discounts its recovery (_in_use).
-    fitted = fit_creep(data, pre, data.rows("train"))
+    found, evidence = creep_choice(data, pre, data.rows("train"), creep, seed)
+    fitted = found if evidence["applied"] else Creep()
     held = _held_creep(data, pre, fitted)
     if creep_inverse is None:
         creep_inverse = takes_creep_out(
@@ -281,7 +289,34 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         data = Prepared(recs, pre, temp_info)
     data.creep_fit, data.creep_held = fitted, held
+    data.creep_found, data.creep_evidence = found, evidence
     return data
+
+
+#: What ``creep`` (``fbgforce train --creep``) may say: correct for the fitted creep where the
+#: calibration establishes it, wherever the fit finds one, or never.
+CREEP_MODES = ("auto", "on", "off")
+
+
+def creep_choice(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, mode: str,
+                 seed: int = 0) -> tuple[Creep, dict[str, Any]]:
+    """The creep :func:`fit_creep` finds on the releases among ``rows``, and
+    :func:`creep_evidence` on it with whether the model corrects for it in ``mode``
+    (:data:`CREEP_MODES`): ``applied`` (bool) and ``mode`` beside the evidence's keys; ``why``
+    says why it is applied or not."""
+    if mode not in CREEP_MODES:
+        raise InputError(f"must be one of {', '.join(CREEP_MODES)}, not {mode!r}",
+                         column="--creep")
+    tails = CreepTails.of(data, pre, rows)
+    found = creep_of(tails)
+    if mode == "off":
+        return found, {"applied": False, "mode": mode, "established": None, "tests": {},
+                       "why": "--creep off"}
+    evidence = creep_evidence(tails, found, seed)
+    applied = found.magnitude > 0 and (mode == "on" or evidence["established"])
+    why = evidence["why"] if mode == "auto" or not found.magnitude else (
+        f"--creep on (established: {evidence['established']}; {evidence['why']})")
+    return found, {**evidence, "applied": applied, "mode": mode, "why": why}
 
 
 #: The smallest creep magnitude the trainer takes out before the filter by itself
@@ -601,8 +636,8 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
-                "creep_inverse": "--creep-inverse", "turn_guard_s": "--turn-guard",
-                "sizes": "--sizes"}
+                "creep_inverse": "--creep-inverse", "creep": "--creep",
+                "turn_guard_s": "--turn-guard", "sizes": "--sizes"}
 
 
 def _is_int(value: Any) -> bool:
@@ -653,6 +688,10 @@ class TrainParams:
         instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
         pad's creep in use", measures what each costs); None (default): the inverse when the
         fitted creep is slower than the memory's longest average (:func:`takes_creep_out`).
+    creep
+        ``auto`` (default): correct for the fitted creep (the synthetic holds' creep, the
+        inverse or the tracker's term) only where the calibration establishes it
+        (:func:`creep_evidence`); ``on``: wherever the fit finds one; ``off``: never.
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -706,6 +745,7 @@ class TrainParams:
     window: int | None = None
     ref_shift: int | None = None
     creep_inverse: bool | None = None
+    creep: str = "auto"
     init: str | Path | fm.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
@@ -761,6 +801,7 @@ class TrainParams:
         need(self.turn_guard_s is None or (_is_real(self.turn_guard_s) and 0 <= self.turn_guard_s <= 1),
              "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
         need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
+        need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
         need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
              f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "
              f"{contract.LIMIT['MAX_LAYERS'] - 1} layers of 1 .. {contract.LIMIT['MAX_WIDTH']} "
@@ -1194,7 +1235,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     data = prepared if prepared is not None else prepare(
         ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
         window=params.window, sources=sources, ref_shift=params.ref_shift,
-        creep_inverse=params.creep_inverse, memory=memory)
+        creep_inverse=params.creep_inverse, memory=memory, creep=params.creep)
     if params.turn_guard_s is None:
         params = replace(params, turn_guard_s=TURN_GUARD_S if data.pre.creep else 0.0)
     t_prep = time.perf_counter() - t_start
@@ -1206,7 +1247,9 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     z = x_all[:, :pre.n_features]    # what the contact and force nets read
     fit_net = _NetFitter(params, net_sizes, init_model, streams.init, bool(va.size))
     if data.creep_fit is None:    # a Prepared made without prepare()
-        data.creep_fit = fit_creep(data, pre, tr)
+        data.creep_found, data.creep_evidence = creep_choice(data, pre, tr, params.creep,
+                                                             params.seed)
+        data.creep_fit = data.creep_found if data.creep_evidence["applied"] else Creep()
         data.creep_held = _held_creep(data, pre, data.creep_fit)
     creep = data.creep
     hold_tr, hold_va = _holds(data, pre, params, tr, va, creep, streams.holds)
@@ -1233,6 +1276,42 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
                                data_coverage, creep, (hold_tr, hold_va, settled),
                                (rest_tr, rest_va), held_s, warnings, (t_prep, t_train))
     return model
+
+
+def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+                settled: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Each correction beyond the nets the model makes, whether it is on, and why: what
+    ``fbgforce train`` prints and ``model.json`` records (``metadata.corrections``)."""
+    iu, pre = model.in_use, model.preprocess
+    evidence = data.creep_evidence or {}
+    creep = data.creep_fit or Creep()
+    how = ("taken out before the filter" if pre.creep else
+           "discounted by the at-rest tracker" if iu.track_creep else "carried by the holds")
+    holds = params.hold_augment > 0 and model.preprocess.memory.n_states > 0
+    return [
+        {"name": "creep", "applied": bool(creep.magnitude > 0),
+         "why": (f"{100 * creep.magnitude:.1f} % over {creep.time_constant_s:.2g} s, {how}: "
+                 if creep.magnitude > 0 else "") + evidence.get("why", "not fitted")},
+        {"name": "synthetic_holds", "applied": holds,
+         "why": (f"{100 * params.hold_augment:g} % of the presses held {HOLD_AUGMENT_S[0]:g}-"
+                 f"{HOLD_AUGMENT_S[1]:g} s" + (", creeping as fitted" if creep.magnitude > 0
+                                              else ", flat (no creep established)"))
+         if holds else "--hold-augment 0 or a memoryless model"},
+        {"name": "settled_hold_gain", "applied": bool(iu.hold_gain),
+         "why": (f"{iu.hold_gain:+.4f}, the nets' gain on {settled.get('holds', 0)} held-out "
+                 "synthetic holds" if iu.hold_gain else
+                 f"off: {settled.get('holds', 0)} synthetic holds to measure it on (at least "
+                 f"{HOLD_GAIN_MIN_HOLDS} needed)" if not settled.get("gain") else "off")},
+        {"name": "turn_guard", "applied": bool(params.turn_guard_s),
+         "why": f"{1000 * params.turn_guard_s:g} ms after each turn left out of the force net"
+         if params.turn_guard_s else "off (on with the creep inverse)"},
+        {"name": "decision_over_time", "applied": not iu.per_sample,
+         "why": "contact rises past the margins at rest" if not iu.per_sample
+         else "per sample (no rest to set its thresholds from)"},
+        {"name": "at_rest_tracker", "applied": bool(iu.track_shift),
+         "why": f"time constant 2^{iu.track_shift} samples, at most "
+                f"{iu.track_limit_pm:g} pm" if iu.track_shift else "off"},
+    ]
 
 
 def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
@@ -1263,9 +1342,10 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
         "coverage": data_coverage,
         "creep": {"magnitude": creep.magnitude, "time_constant_s": creep.time_constant_s,
                   "inverse": bool(pre.creep),
-                  **({"fitted": {"magnitude": data.creep_fit.magnitude,
-                                 "time_constant_s": data.creep_fit.time_constant_s}}
-                     if data.creep_fit is not None else {})},
+                  **({"fitted": {"magnitude": data.creep_found.magnitude,
+                                 "time_constant_s": data.creep_found.time_constant_s}}
+                     if data.creep_found is not None else {}),
+                  **({"evidence": data.creep_evidence} if data.creep_evidence else {})},
         "synthetic_holds": {"share": params.hold_augment, "range_s": list(HOLD_AUGMENT_S),
                             "presses": {"train": _count_holds(hold_tr[1], data),
                                         "val": _count_holds(hold_va[1], data)},
@@ -1273,6 +1353,7 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
                                         "val": int(hold_va[1].size)},
                             "settled_gain": settled},
         "turn_guard_s": params.turn_guard_s,
+        "corrections": corrections(model, data, params, settled),
         "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
                             "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
                                         for name, rest in zip(("train", "val"), rests)}},
@@ -1365,6 +1446,104 @@ class Creep:
         return 1.0 - np.exp(-np.arange(n) / (self.time_constant_s * rate_hz))
 
 
+@dataclass
+class CreepTails:
+    """What the creep fit reads: the samples just after the releases among some rows.
+
+    Every :data:`CREEP_ZERO_SPAN_S` span of the recordings has an offset of its own, so the
+    fits below work on values less their span's mean (which is what a least-squares fit with
+    one indicator column per span does to the other columns).
+
+    Attributes
+    ----------
+    excess
+        (m,) the load signal minus the load-cell force on those samples, N.
+    span
+        (m,) the span of each sample (0 ..).
+    release
+        (m,) which release each sample follows (0 .., numbered across recordings).
+    lags
+        (m, len(time_constants_s)) ``lag(F) - F`` at each relaxation time.
+    time_constants_s
+        The relaxation times of ``lags``' columns.
+    """
+
+    excess: np.ndarray
+    span: np.ndarray
+    release: np.ndarray
+    lags: np.ndarray
+    time_constants_s: tuple[float, ...]
+
+    @classmethod
+    def of(cls, data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
+           time_constants_s: Sequence[float] = CREEP_TIME_CONSTANTS_S) -> "CreepTails | None":
+        """The tails of the releases among ``rows``; None when they hold fewer than 100
+        samples or ``rows`` no contact."""
+        keep = data.row_mask(rows)
+        comps, forces, tails, spans, releases = [], [], [], [], []
+        for r, sl in data.recording_slices():
+            contact = np.asarray(r.ds.contact, bool)
+            idx = np.arange(contact.size)
+            last = np.maximum.accumulate(np.where(contact, idx, -contact.size))
+            nxt = np.minimum.accumulate(np.where(contact, idx, 2 * contact.size)[::-1])[::-1]
+            tail = int(round(CREEP_TAIL_S * r.rate_hz))
+            tails.append(~contact & (idx - last <= tail) & (nxt - idx > tail // 2) & keep[sl])
+            comps.append(pp.compensated(pre, r.ds.wl_nm, r.baseline_nm))
+            forces.append(np.nan_to_num(np.asarray(r.ds.force_N, float)))
+            # Numbered across recordings: each recording's zero wanders on its own.
+            first = spans[-1][-1] + 1 if spans else 0
+            spans.append(first + idx // max(1, int(round(CREEP_ZERO_SPAN_S * r.rate_hz))))
+            releases.append(last + (releases[-1].max() + contact.size + 1 if releases else 0))
+        comp, force, tail = np.concatenate(comps), np.concatenate(forces), np.concatenate(tails)
+        loaded = keep & data.contact
+        if tail.sum() < 100 or not loaded.any():
+            return None
+        _, span = np.unique(np.concatenate(spans)[tail], return_inverse=True)
+        _, release = np.unique(np.concatenate(releases)[tail], return_inverse=True)
+        w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
+                                force[loaded], rcond=None)
+        excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
+        lags = np.column_stack([
+            np.concatenate([Creep(1.0, tau).lag(force[sl], r.rate_hz) - force[sl]
+                            for r, sl in data.recording_slices()])[tail]
+            for tau in time_constants_s])
+        return cls(excess, span, release, lags, tuple(time_constants_s))
+
+    def subset(self, mask: np.ndarray) -> "CreepTails":
+        """The samples of ``mask``."""
+        return CreepTails(self.excess[mask], np.unique(self.span[mask], return_inverse=True)[1],
+                          self.release[mask], self.lags[mask], self.time_constants_s)
+
+    def _centred(self, x: np.ndarray) -> np.ndarray:
+        """``x`` (m,) or (m, k) less its span's mean, column by column."""
+        n = np.bincount(self.span).astype(float)
+        cols = x.reshape(x.shape[0], -1)
+        means = np.stack([np.bincount(self.span, weights=c) for c in cols.T], axis=1) / n[:, None]
+        return (cols - means[self.span]).reshape(x.shape)
+
+    def rss_offsets(self) -> float:
+        """The residual of the offsets alone (no creep)."""
+        return float(np.sum(self._centred(self.excess) ** 2))
+
+    def fit(self, lags: np.ndarray | None = None) -> tuple[float, Creep]:
+        """The best relaxation time's residual and creep (slope clipped to 0 .. 0.9) on these
+        samples; ``lags`` replaces :attr:`lags` (the sign-flip test's)."""
+        e = self._centred(self.excess)
+        g = self._centred(self.lags if lags is None else lags)
+        gg = np.maximum(np.einsum("ij,ij->j", g, g), 1e-300)
+        ge = g.T @ e
+        rss = float(e @ e) - ge ** 2 / gg
+        j = int(np.argmin(rss))
+        return float(rss[j]), Creep(float(np.clip(ge[j] / gg[j], 0.0, 0.9)),
+                                    self.time_constants_s[j])
+
+    def rss_with(self, creep: Creep) -> float:
+        """The residual on these samples of ``creep`` as given (only the offsets fitted)."""
+        j = int(np.argmin(np.abs(np.log(np.asarray(self.time_constants_s)
+                                         / creep.time_constant_s))))
+        return float(np.sum(self._centred(self.excess - creep.magnitude * self.lags[:, j]) ** 2))
+
+
 def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
               time_constants_s: Sequence[float] = CREEP_TIME_CONSTANTS_S) -> Creep:
     """The pad's creep, fitted on the creep recovery after the releases among ``rows``.
@@ -1375,7 +1554,7 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
     shifts over the contact samples of ``rows``) minus the force is regressed on
     ``lag(F) - F`` over the first :data:`CREEP_TAIL_S` after each release, for each
     relaxation time of ``time_constants_s`` (:data:`CREEP_TIME_CONSTANTS_S`); the best fit's
-    slope is the magnitude.
+    slope is the magnitude (:class:`CreepTails`).
     Beside the slope, each :data:`CREEP_ZERO_SPAN_S` of the recording has an offset of its
     own: the unloaded zero wanders (interrogator, fibre mounts), and a slow creep's residual
     (a second's time constant in rests of a fraction of one) is itself nearly an offset,
@@ -1383,43 +1562,93 @@ def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
     scene (5 % and 0.08 s simulated) it finds 0.051 and 0.083 s; on tests/foreign.py's in-use
     fingertip (5 %, 1 s) 0.046 and 0.83 s, 0.052 and 1.0 s on its two calibration logs, where
     one offset found 0.031 and 0.56 s on the first.
+
+    A fit is a hypothesis: :func:`creep_evidence` says whether the calibration establishes it.
     """
-    keep = data.row_mask(rows)
-    comps, forces, tails, spans = [], [], [], []
-    for r, sl in data.recording_slices():
-        contact = np.asarray(r.ds.contact, bool)
-        idx = np.arange(contact.size)
-        last = np.maximum.accumulate(np.where(contact, idx, -contact.size))
-        nxt = np.minimum.accumulate(np.where(contact, idx, 2 * contact.size)[::-1])[::-1]
-        tail = int(round(CREEP_TAIL_S * r.rate_hz))
-        tails.append(~contact & (idx - last <= tail) & (nxt - idx > tail // 2) & keep[sl])
-        comps.append(pp.compensated(pre, r.ds.wl_nm, r.baseline_nm))
-        forces.append(np.nan_to_num(np.asarray(r.ds.force_N, float)))
-        # Spans numbered across recordings: each recording's zero wanders on its own.
-        first = spans[-1][-1] + 1 if spans else 0
-        spans.append(first + idx // max(1, int(round(CREEP_ZERO_SPAN_S * r.rate_hz))))
-    comp, force, tail = np.concatenate(comps), np.concatenate(forces), np.concatenate(tails)
-    _, span = np.unique(np.concatenate(spans)[tail], return_inverse=True)
-    offsets = np.zeros((span.size, int(span.max()) + 1 if span.size else 0))
-    offsets[np.arange(span.size), span] = 1.0
-    loaded = keep & data.contact
-    if tail.sum() < 100 or not loaded.any():
+    return creep_of(CreepTails.of(data, pre, rows, time_constants_s))
+
+
+def creep_of(tails: CreepTails | None) -> Creep:
+    """:func:`fit_creep` on tails already gathered (none: no creep)."""
+    if tails is None:
         return Creep()
-    w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
-                            force[loaded], rcond=None)
-    excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
-    best: tuple[float, Creep] | None = None
-    for tau in time_constants_s:
-        trial = Creep(1.0, tau)
-        lag = np.concatenate([trial.lag(force[sl], r.rate_hz) - force[sl]
-                              for r, sl in data.recording_slices()])[tail]
-        design = np.column_stack([lag, offsets])
-        coef, *_ = np.linalg.lstsq(design, excess, rcond=None)
-        rss = float(np.sum((excess - design @ coef) ** 2))
-        if best is None or rss < best[0]:
-            best = (rss, Creep(float(np.clip(coef[0], 0.0, 0.9)), tau))
-    assert best is not None
-    return best[1] if best[1].magnitude > 0 else Creep()
+    creep = tails.fit()[1]
+    return creep if creep.magnitude > 0 else Creep()
+
+
+#: The creep a calibration must establish before the trainer corrects for it
+#: (:func:`creep_evidence`): a relaxation time clear of the fit's shortest (a rate effect at
+#: the release, a damper's, reads as a creep there), and more of the tails' residual removed,
+#: in sample and on releases the fit never saw, than the fit removes from any of
+#: :data:`CREEP_EVIDENCE_DRAWS` sign-flipped draws of the noise.
+CREEP_EVIDENCE_MIN_TAU_S = 0.02
+CREEP_EVIDENCE_DRAWS = 19
+
+
+def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0) -> dict[str, Any]:
+    """Whether the releases whose ``tails`` (:class:`CreepTails`) :func:`fit_creep` read
+    establish the creep ``fitted`` on them.
+
+    Three tests:
+
+    - the relaxation time: above :data:`CREEP_EVIDENCE_MIN_TAU_S`. At the shortest times of
+      the fit's grid a creep is indistinguishable from a rate-dependent hysteresis (a
+      damper's, which lets go the moment the load stands still): the release's last
+      milliseconds read as a creep that a hold would never show;
+    - against the noise: the share of the residual the fit removes must exceed what it
+      removes from each of :data:`CREEP_EVIDENCE_DRAWS` draws in which every release's
+      ``lag(F) - F`` has its sign flipped at random (a draw keeps the noise, the wander and
+      the offsets, and breaks any creep), a test at the 5 % level;
+    - held out: the releases are split in two halves (every other release); the creep fitted
+      on each half must lower the other half's residual (beside its offsets) by a larger
+      share than the noise's largest.
+
+    Returns
+    -------
+    dict
+        ``established`` (bool), ``why`` (one line), ``tests`` (each test's figures).
+    """
+    if fitted.magnitude <= 0:
+        return {"established": False, "why": "the fit found no creep", "tests": {}}
+    if tails is None:
+        return {"established": False, "why": "too few samples after releases to test a creep",
+                "tests": {}}
+    tests: dict[str, Any] = {"time_constant_s": fitted.time_constant_s}
+    fails = []
+    if fitted.time_constant_s < CREEP_EVIDENCE_MIN_TAU_S:
+        fails.append(f"its time constant ({1000 * fitted.time_constant_s:.0f} ms) is at the "
+                     "fit's shortest, where a rate-dependent hysteresis reads the same")
+    half = tails.release % 2 == 0
+    gains = []
+    for fit_on, check in ((half, ~half), (~half, half)):
+        if not fit_on.any() or not check.any():
+            gains.append(0.0)
+            continue
+        held = tails.subset(check)
+        creep = tails.subset(fit_on).fit()[1]
+        gains.append(1.0 - held.rss_with(creep) / max(held.rss_offsets(), 1e-300))
+    rss0 = tails.rss_offsets()
+    removed = rss0 - tails.fit()[0]
+    rng = np.random.default_rng(seed)
+    null = []
+    for _ in range(CREEP_EVIDENCE_DRAWS):
+        sign = rng.choice([-1.0, 1.0], int(tails.release.max()) + 1)[tails.release]
+        null.append(rss0 - tails.fit(tails.lags * sign[:, None])[0])
+    noise = float(max(null) / max(rss0, 1e-300))
+    tests.update(removed_share=float(removed / max(rss0, 1e-300)), noise_removed_share_max=noise,
+                 held_out_gain=[float(g) for g in gains])
+    if removed <= max(null):
+        fails.append(f"it removes {100 * tests['removed_share']:.2f} % of the residual, no "
+                     f"more than sign-flipped noise does ({100 * noise:.2f} %)")
+    if min(gains) <= noise:
+        fails.append(f"fitted on half the releases it explains {100 * min(gains):.2f} % of the "
+                     f"other half's residual, no more than noise does ({100 * noise:.2f} %)")
+    if fails:
+        return {"established": False, "why": "; ".join(fails), "tests": tests}
+    return {"established": True,
+            "why": (f"held out it explains {100 * min(gains):.1f}-{100 * max(gains):.1f} % of "
+                    f"the residual after releases, noise at most {100 * noise:.2f} %"),
+            "tests": tests}
 
 
 def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,

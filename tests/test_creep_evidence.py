@@ -1,0 +1,88 @@
+"""Evidence before correction: the trainer corrects for a fitted creep only where the
+calibration's own releases establish it (trainer.train.creep_evidence)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbgforce.trainer import train as T
+
+RATE = 1000.0
+
+
+def _tails(creep: T.Creep, noise_N: float, seed: int = 0, rate_effect: float = 0.0,
+           releases: int = 80) -> T.CreepTails:
+    """Tails of ``releases`` presses (0.2 s ramps to 5-40 N, 0.15 s tails read), the excess
+    the creep leaves there, a rate effect at the release (the last 10 ms of the unloading),
+    wandering offsets and white noise."""
+    rng = np.random.default_rng(seed)
+    taus = T.CREEP_TIME_CONSTANTS_S
+    tail_n = int(T.CREEP_TAIL_S * RATE)
+    force, is_tail, release = [], [], []
+    for k in range(releases):
+        peak = rng.uniform(5.0, 40.0)
+        press = np.r_[np.linspace(0, peak, 200), np.linspace(peak, 0, 200)[1:]]
+        force += [press, np.zeros(tail_n + 50)]
+        is_tail += [np.zeros(press.size, bool), np.r_[np.ones(tail_n, bool), np.zeros(50, bool)]]
+        release += [np.full(press.size + tail_n + 50, k)]
+    f, tail, rel = np.concatenate(force), np.concatenate(is_tail), np.concatenate(release)
+    lags = np.column_stack([(T.Creep(1.0, tau).lag(f, RATE) - f)[tail] for tau in taus])
+    span = (np.arange(f.size) // int(T.CREEP_ZERO_SPAN_S * RATE))[tail]
+    truth = (creep.magnitude * (creep.lag(f, RATE) - f) if creep.magnitude else 0 * f)[tail]
+    fast = rate_effect * (T.Creep(1.0, 0.002).lag(f, RATE) - f)[tail]
+    excess = truth + fast + rng.normal(0.0, 0.05, span.max() + 1)[span] \
+        + rng.normal(0.0, noise_N, tail.sum())
+    return T.CreepTails(excess, np.unique(span, return_inverse=True)[1],
+                        np.unique(rel[tail], return_inverse=True)[1], lags, tuple(taus))
+
+
+@pytest.mark.parametrize("tau", [0.05, 1.0])
+def test_a_creep_the_releases_show_is_established(tau):
+    tails = _tails(T.Creep(0.05, tau), noise_N=0.05)
+    found = T.creep_of(tails)
+    assert found.magnitude == pytest.approx(0.05, rel=0.3)
+    ev = T.creep_evidence(tails, found)
+    assert ev["established"], ev["why"]
+    assert min(ev["tests"]["held_out_gain"]) > ev["tests"]["noise_removed_share_max"]
+
+
+def test_noise_alone_establishes_nothing():
+    for seed in range(3):
+        tails = _tails(T.Creep(), noise_N=0.05, seed=seed)
+        found = T.creep_of(tails)
+        ev = T.creep_evidence(tails, found, seed=seed)
+        assert not ev["established"], (seed, found)
+
+
+def test_a_rate_effect_at_the_release_is_not_taken_for_a_creep():
+    # A damper's last milliseconds of unloading fit as a creep at the grid's shortest time
+    # constant; the evidence says so and the trainer leaves it alone.
+    tails = _tails(T.Creep(), noise_N=0.02, rate_effect=0.3)
+    found = T.creep_of(tails)
+    assert found.magnitude > 0 and found.time_constant_s < T.CREEP_EVIDENCE_MIN_TAU_S
+    ev = T.creep_evidence(tails, found)
+    assert not ev["established"] and "shortest" in ev["why"]
+
+
+def test_the_fit_is_the_least_squares_fit_with_one_offset_per_span():
+    # The span means taken out first give what the indicator columns in lstsq give.
+    tails = _tails(T.Creep(0.04, 0.3), noise_N=0.05)
+    offsets = np.eye(tails.span.max() + 1)[tails.span]
+    best = None
+    for j, tau in enumerate(tails.time_constants_s):
+        design = np.column_stack([tails.lags[:, j], offsets])
+        coef, *_ = np.linalg.lstsq(design, tails.excess, rcond=None)
+        rss = float(np.sum((tails.excess - design @ coef) ** 2))
+        if best is None or rss < best[0]:
+            best = (rss, coef[0], tau)
+    rss, creep = tails.fit()
+    assert rss == pytest.approx(best[0], rel=1e-9)
+    assert creep.magnitude == pytest.approx(best[1], rel=1e-9) and creep.time_constant_s == best[2]
+    assert tails.rss_offsets() == pytest.approx(
+        np.sum((tails.excess - offsets @ np.linalg.lstsq(offsets, tails.excess, rcond=None)[0]) ** 2))
+
+
+def test_creep_modes():
+    with pytest.raises(T.InputError, match="--creep"):
+        T.TrainParams(creep="sometimes")
+    assert T.TrainParams().creep == "auto"
