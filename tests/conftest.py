@@ -96,9 +96,11 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     # 6.2 N output on the 2.8 N low_force presses, tests/test_hardcases.py). The raw
     # temperature reference keeps it the model those pages measured: averaged, its 16 presses
     # give another contact net, one that lets go of a 0.5 N hold (docs/runtime.md, "In use").
+    # The Schmitt trigger's decision, with its rise count and release hysteresis, is the one
+    # those pages and tests/test_engine_agreement.py measure (tests/test_cusum.py the CUSUM's).
     fm.save(train([small_dataset_path], epochs=40, seed=SMALL_SEED, filter="causal",
                   progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0,
-                  rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES), out)
+                  rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES, decision="schmitt"), out)
     return out
 
 

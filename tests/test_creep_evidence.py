@@ -86,3 +86,56 @@ def test_creep_modes():
     with pytest.raises(T.InputError, match="--creep"):
         T.TrainParams(creep="sometimes")
     assert T.TrainParams().creep == "auto"
+
+
+def test_the_presses_do_not_stand_in_for_the_noise_test():
+    tails = _tails(T.Creep(), noise_N=0.05)
+    found = T.Creep(0.04, 3.8)
+    better = {"presses": 80, "better": 60, "p_value": 1e-5, "rmse_N": 0.54,
+              "rmse_inverse_N": 0.52, "passes": True}
+    worse = {**better, "better": 40, "p_value": 0.55, "passes": False}
+    # The noise test still applies: a creep the tails do not show at all stays unproven,
+    # whatever the presses say.
+    assert not T.creep_evidence(tails, found, presses=better)["established"]
+    assert not T.creep_evidence(tails, found, presses=worse)["established"]
+    assert T.creep_evidence(tails, found, presses=better)["tests"]["presses"]["better"] == 60
+
+
+@pytest.mark.slow
+def test_press_check_on_a_slow_creeping_pad():
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = replace(fg.IN_USE_VARIANTS["calib_1K"], **fg.FAMILY["creep_5s"])
+    ds = fg.log(fg.device(spec, 200), 1, 60)
+    data = T.prepare([ds], seed=0, creep="off")
+    slow = T.creep_press_check(data, data.pre, data.rows("train"), T.Creep(0.05, 4.0))
+    assert slow["presses"] >= 40 and slow["rmse_inverse_N"] < slow["rmse_N"]
+    assert slow["better"] > slow["presses"] / 2
+    # No creep to take out: nothing to test.
+    assert not T.creep_press_check(data, data.pre, data.rows("train"), T.Creep())["passes"]
+
+
+def test_coverage_names_what_a_log_cannot_establish():
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    from fbgforce.trainer.coverage import coverage, coverage_lines
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    import foreign as fg
+
+    spec = fg.IN_USE_VARIANTS["calib_1K"]
+    short = coverage([fg.log(fg.device(spec, 200), 1, 6)])
+    assert any("held load" in u for u in short["cannot_establish"])
+    assert any("slower than its rests" in u for u in short["cannot_establish"])
+    assert any(line.startswith("  it cannot establish: ") for line in coverage_lines(short))
+    held = replace(spec, hold_s=(2.0, 2.5), rest_s=(6.0, 7.0))
+    long = coverage([fg.log(fg.device(held, 200), 1, 3)])
+    assert not any("held load" in u or "slower than its rests" in u
+                   for u in long["cannot_establish"])

@@ -54,6 +54,11 @@ def register(subparsers: Any) -> None:
                         "releases, beyond what the noise fits (auto, default); wherever the "
                         "fit finds one (on); never (off). docs/trainer.md \"Evidence before "
                         "correction\"")
+    p.add_argument("--decision", choices=("cusum", "schmitt"), default="cusum",
+                   help="the contact decision's rise: a CUSUM on the contact net's margin "
+                        "(cusum, default) or a Schmitt trigger with a rise count (schmitt), "
+                        "each set from the calibration's rests (docs/runtime.md \"In use\"); "
+                        "model.json keeps the other's fields in metadata.decision_rules")
     p.add_argument("--creep-inverse", action=argparse.BooleanOptionalAction, default=None,
                    help="take the pad's fitted creep out before the filter (--creep-inverse) or "
                         "let the at-rest tracker discount its recovery (--no-creep-inverse); "
@@ -167,7 +172,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          memory=args.memory, restarts=_restarts(args.restarts),
                          sizes=_sizes(args.sizes),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
-                         creep_inverse=args.creep_inverse, creep=args.creep, init=args.init,
+                         creep_inverse=args.creep_inverse, creep=args.creep,
+                         decision=args.decision, init=args.init,
                          train_fraction=args.train_fraction,
                          turn_guard_s=None if args.turn_guard is None else args.turn_guard / 1000.0,
                          **augment)

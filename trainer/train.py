@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import math
 import platform
 import time
 from dataclasses import dataclass, field, fields, replace
@@ -312,7 +313,7 @@ def creep_choice(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, mode: str
     if mode == "off":
         return found, {"applied": False, "mode": mode, "established": None, "tests": {},
                        "why": "--creep off"}
-    evidence = creep_evidence(tails, found, seed)
+    evidence = creep_evidence(tails, found, seed, creep_press_check(data, pre, rows, found))
     applied = found.magnitude > 0 and (mode == "on" or evidence["established"])
     why = evidence["why"] if mode == "auto" or not found.magnitude else (
         f"--creep on (established: {evidence['established']}; {evidence['why']})")
@@ -636,7 +637,7 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
-                "creep_inverse": "--creep-inverse", "creep": "--creep",
+                "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
                 "turn_guard_s": "--turn-guard", "sizes": "--sizes"}
 
 
@@ -688,6 +689,11 @@ class TrainParams:
         instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
         pad's creep in use", measures what each costs); None (default): the inverse when the
         fitted creep is slower than the memory's longest average (:func:`takes_creep_out`).
+    decision
+        The contact decision's rule (:data:`DECISION_RULES`): ``cusum`` (default: quicker
+        and quieter than the Schmitt trigger on the worst member of the family of fingertips,
+        docs/robustness.md) or ``schmitt``; the fields the other would set are kept in
+        ``metadata.decision_rules``.
     creep
         ``auto`` (default): correct for the fitted creep (the synthetic holds' creep, the
         inverse or the tracker's term) only where the calibration establishes it
@@ -746,6 +752,7 @@ class TrainParams:
     ref_shift: int | None = None
     creep_inverse: bool | None = None
     creep: str = "auto"
+    decision: str = "cusum"
     init: str | Path | fm.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
@@ -802,6 +809,7 @@ class TrainParams:
              "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
         need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
         need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
+        need(self.decision in DECISION_RULES, "decision", "one of " + ", ".join(DECISION_RULES))
         need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
              f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "
              f"{contract.LIMIT['MAX_LAYERS'] - 1} layers of 1 .. {contract.LIMIT['MAX_WIDTH']} "
@@ -1170,9 +1178,17 @@ def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]
             "bias_before_N": float(np.mean(f - y)), "bias_after_N": float(np.mean(f * (1 + gain) - y))}
 
 
+#: The contact decision's rules the trainer can set (``fbgforce train --decision``): the
+#: Schmitt trigger with a rise count, or the CUSUM rise (docs/runtime.md, "In use").
+DECISION_RULES = ("schmitt", "cusum")
+
+
 def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
-            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float) -> None:
-    """Set the model's decision over time, tracker and input range from the training data.
+            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float,
+            decision: str) -> dict[str, dict[str, Any]]:
+    """Set the model's decision over time (by the rule ``decision``), tracker and input range
+    from the training data; return the decision's fields of every rule of
+    :data:`DECISION_RULES` (``metadata.decision_rules``: what the others would have set).
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
@@ -1183,12 +1199,20 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
     left = Creep() if model.preprocess.creep else data.creep_held
-    model.in_use = fm.InUse.recommended(
-        data.rate_hz, rest_margins=np.concatenate(
-            [_rest_margins(data, logits), long[:, 1] - long[:, 0]]),
-        creep_magnitude=left.magnitude,
-        creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain)
+    calibration_rests = _rest_margins(data, logits)
+    # The Schmitt trigger's threshold weighs the synthetic long rests too; the CUSUM's false
+    # events are estimated from excursions along the recordings' own rests, in their order,
+    # which spliced-in synthetic stretches would not keep.
+    rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
+                    "cusum": calibration_rests}
+    rules = {rule: fm.InUse.recommended(
+        data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
+        creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain,
+        decision=rule) for rule in DECISION_RULES}
+    model.in_use = rules[decision]
     model.input_range = fm.input_range_of(z[tr])
+    return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
+            for rule, iu in rules.items()}
 
 
 def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
@@ -1271,10 +1295,12 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     settled = hold_gain(model, data, [_synthetic_holds(
         data, pre, np.sort(np.concatenate([tr, va])), 1.0, creep, streams.hold_gain)]
         if hold_tr[1].size else [])
-    _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), settled["gain"])
+    rules = _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), settled["gain"],
+                    params.decision)
     model.metadata = _metadata(model, data, params, described, (tr, va, te), x_all, reports,
                                data_coverage, creep, (hold_tr, hold_va, settled),
                                (rest_tr, rest_va), held_s, warnings, (t_prep, t_train))
+    model.metadata["decision_rules"] = rules
     return model
 
 
@@ -1585,9 +1611,77 @@ CREEP_EVIDENCE_MIN_TAU_S = 0.02
 CREEP_EVIDENCE_DRAWS = 19
 
 
-def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0) -> dict[str, Any]:
+#: Folds of the training presses for :func:`creep_press_check`, and the one-sided level of
+#: its sign test.
+CREEP_PRESS_FOLDS = 5
+CREEP_PRESS_LEVEL = 0.05
+
+
+def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, creep: Creep
+                      ) -> dict[str, Any]:
+    """Whether taking ``creep`` out of the shifts reads held-out presses better.
+
+    A least-squares load signal (the force on the compensated shifts of the contact samples,
+    with an offset) is fitted on all but one of :data:`CREEP_PRESS_FOLDS` folds of the
+    presses among ``rows`` and scored on the fold left out, once on the shifts as recorded and
+    once after the creep inverse (:func:`fbgforce.model.creep_inverse` with ``creep`` at a
+    time constant the model can hold). A creep that outlasts the rests leaves a load-history
+    offset on every press that the inverse takes away, and which the release tails, whose
+    10 s offsets absorb it, cannot show. Each press's mean squared error counts as better or
+    worse; a one-sided sign test at :data:`CREEP_PRESS_LEVEL` says whether the inverse reads
+    more held-out presses better than chance would.
+
+    Returns
+    -------
+    dict
+        ``presses``, ``better`` (presses read better with the inverse), ``p_value``,
+        ``rmse_N`` and ``rmse_inverse_N`` (over the held-out contact samples), ``passes``.
+    """
+    m, k = fm.creep_parameters(creep.magnitude, creep.time_constant_s * data.rate_hz)
+    keep = data.row_mask(rows) & data.contact & np.isfinite(data.force_N)
+    if m <= 0 or not keep.any():
+        return {"presses": 0, "better": 0, "p_value": 1.0, "rmse_N": None,
+                "rmse_inverse_N": None, "passes": False}
+    inv_pre = replace(pre, creep=m, creep_shift=k)
+    plain, inverted, pids = [], [], []
+    for r, sl in data.recording_slices():
+        comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm, recording=True)
+        plain.append(comp)
+        inverted.append(fm.creep_inverse(inv_pre, comp))
+        pids.append(np.asarray(r.ds.press_id))
+    force = data.force_N[keep]
+    press = np.unique(np.concatenate(pids)[keep], return_inverse=True)[1]
+    fold = press % CREEP_PRESS_FOLDS
+    errors = []
+    for shifts in (plain, inverted):
+        x = np.column_stack([np.concatenate(shifts)[keep], np.ones(keep.sum())])
+        err = np.empty(force.size)
+        for f in range(CREEP_PRESS_FOLDS):
+            out = fold == f
+            if out.all() or not out.any():
+                err[out] = np.nan
+                continue
+            w, *_ = np.linalg.lstsq(x[~out], force[~out], rcond=None)
+            err[out] = x[out] @ w - force[out]
+        errors.append(err)
+    n = int(press.max()) + 1
+    per_press = [np.bincount(press, weights=np.nan_to_num(e) ** 2, minlength=n) for e in errors]
+    better, worse = int(np.sum(per_press[1] < per_press[0])), int(np.sum(per_press[1] > per_press[0]))
+    # One-sided sign test: the chance of this many better presses or more if better and worse
+    # were equally likely.
+    trials = better + worse
+    p = float(sum(math.comb(trials, j) for j in range(better, trials + 1)) / 2.0 ** trials) \
+        if trials else 1.0
+    rmse = [float(np.sqrt(np.nanmean(e ** 2))) for e in errors]
+    return {"presses": n, "better": better, "p_value": p, "rmse_N": rmse[0],
+            "rmse_inverse_N": rmse[1], "passes": bool(p < CREEP_PRESS_LEVEL and rmse[1] < rmse[0])}
+
+
+def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0,
+                   presses: dict[str, Any] | None = None) -> dict[str, Any]:
     """Whether the releases whose ``tails`` (:class:`CreepTails`) :func:`fit_creep` read
-    establish the creep ``fitted`` on them.
+    establish the creep ``fitted`` on them, or, for the held-out check, the presses
+    (``presses``: :func:`creep_press_check` of the same creep).
 
     Three tests:
 
@@ -1601,7 +1695,9 @@ def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0) -> di
       the offsets, and breaks any creep), a test at the 5 % level;
     - held out: the releases are split in two halves (every other release); the creep fitted
       on each half must lower the other half's residual (beside its offsets) by a larger
-      share than the noise's largest.
+      share than the noise's largest; or, where the releases cannot show it (a creep slower
+      than the rests is an offset 150 ms into one), taking it out must read the calibration's
+      held-out presses better (``presses``, :func:`creep_press_check`).
 
     Returns
     -------
@@ -1640,15 +1736,25 @@ def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0) -> di
     if removed <= max(null):
         fails.append(f"it removes {100 * tests['removed_share']:.2f} % of the residual, no "
                      f"more than sign-flipped noise does ({100 * noise:.2f} %)")
-    if min(gains) <= noise:
+    if presses is not None:
+        tests["presses"] = presses
+    by_presses = presses is not None and presses["passes"]
+    if min(gains) <= noise and not by_presses:
         fails.append(f"fitted on half the releases it explains {100 * min(gains):.2f} % of the "
-                     f"other half's residual, no more than noise does ({100 * noise:.2f} %)")
+                     f"other half's residual, no more than noise does ({100 * noise:.2f} %)"
+                     + (f", and taking it out reads {presses['better']} of {presses['presses']}"
+                        f" held-out presses better (p = {presses['p_value']:.2g})"
+                        if presses is not None else ""))
     if fails:
         return {"established": False, "why": "; ".join(fails), "tests": tests}
-    return {"established": True,
-            "why": (f"held out it explains {100 * min(gains):.1f}-{100 * max(gains):.1f} % of "
-                    f"the residual after releases, noise at most {100 * noise:.2f} %"),
-            "tests": tests}
+    if min(gains) > noise:
+        why = (f"held out it explains {100 * min(gains):.1f}-{100 * max(gains):.1f} % of the "
+               f"residual after releases, noise at most {100 * noise:.2f} %")
+    else:
+        why = (f"taking it out reads {presses['better']} of {presses['presses']} held-out "
+               f"presses better (p = {presses['p_value']:.2g}; load signal RMSE "
+               f"{presses['rmse_N']:.3f} -> {presses['rmse_inverse_N']:.3f} N)")
+    return {"established": True, "why": why, "tests": tests}
 
 
 def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
