@@ -7,6 +7,9 @@ Usage::
     fbgforce train --data DIR/calib_1K_A.csv --out MODEL && fbgforce export --model MODEL
     python -m fbgforce.bench.bench_in_use --model MODEL --logs DIR [--engine fixed|float] [--json]
 
+    python tests/foreign.py --out FAM --family                      # the family of fingertips
+    python -m fbgforce.bench.bench_in_use --family FAM --work WORK [--without STAGE ...]
+
 ``--logs`` is a directory holding ``foreign.json``, the manifest tests/foreign.py writes (read
 with :func:`fbgforce.bench.bench_generalisation.load_manifest`; the generator stays a test
 helper). Each variant's ``role`` says what its "other" log (seed 2, never trained on) measures:
@@ -26,7 +29,17 @@ the field"), with the logs it was scored on:
   minute of rest, median onset delay, detection of contact samples above 1 N;
 - held grips: force bias over the holds, force RMSE over them against the model's own
   calibration test RMSE (its training logs, test split, same engine);
-- a grip held through a ramp: force bias over the hold (the holds' bound).
+- a grip held through a ramp: force bias over the hold (the holds' bound);
+- light presses (0.2-3 N): contact accuracy;
+- the calibration's own test presses: contact errors.
+
+With ``--family`` it does this for every member of a family of fingertips
+(``tests/foreign.py --family``: pads that differ in one piece of in-use physics each), each
+member's model trained by the default ``fbgforce train`` on its calibration log and exported
+(into ``--work``, reused when there), and prints the goals by member with the worst member
+beside each target (:func:`family`); ``--without STAGE`` scores beside each model a copy with
+one in-use stage off, or the contact decision's other rule (docs/robustness.md, "The family
+of fingertips").
 """
 from __future__ import annotations
 
@@ -35,7 +48,7 @@ import json
 import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from fbgforce.bench.bench_generalisation import fail, load_manifest
 from fbgforce.errors import InputError
@@ -137,8 +150,10 @@ def calibration_test(model_dir: Path, model: Any, engine: str) -> dict[str, Any]
     return evaluate(model_dir, paths, engine=engine, split="test", model=model)
 
 
-def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
+def score(model_dir: Path, logs: Path, engine: str = "fixed",
+          loaded: dict[str, Any] | None = None) -> dict[str, Any]:
     """Every goal on the logs of ``logs/foreign.json``; see the module docstring.
+    ``loaded``: logs already read, by path (filled in as they are read).
 
     Returns
     -------
@@ -173,7 +188,10 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed") -> dict[str, Any]:
             if n not in runs:
                 path = manifest[n]["other"]
                 print(f"{PROG}: {engine} on {path}", file=sys.stderr)
-                ds = dataset.load(path)
+                cache = {} if loaded is None else loaded
+                if str(path) not in cache:
+                    cache[str(path)] = dataset.load(path)
+                ds = cache[str(path)]
                 runs[n] = (ds, run_recording(engine, model_dir, model, ds, str(path)))
         return evaluate(model_dir, [runs[n][0] for n in names], engine=engine, model=model,
                         predictions=[runs[n][1] for n in names])
@@ -272,8 +290,13 @@ WITHOUT: dict[str, dict[str, Any]] = {
     "creep_term": {"track_creep": 0.0, "track_creep_shift": 0},
     "tracker": {"track_shift": 0, "track_settle": 0, "track_step_max_pm": 0.0,
                 "track_limit_pm": 0.0, "track_creep": 0.0, "track_creep_shift": 0},
-    "decision": {"contact_on_margin": 0.0, "contact_off_margin": 0.0, "contact_rise_samples": 1},
+    "decision": {"contact_on_margin": 0.0, "contact_off_margin": 0.0, "contact_rise_samples": 1,
+                 "contact_cusum_h": 0.0, "contact_cusum_k": 0.0, "contact_cusum_lo": 0.0,
+                 "contact_cusum_hi": 0.0},
 }
+#: The decision's rules ``--without`` may also name: the model's own fields for that rule
+#: (``metadata.decision_rules``), scored beside the default.
+RULES = ("schmitt", "cusum")
 #: The file ``family.json`` that ``python tests/foreign.py --family`` writes.
 FAMILY_MANIFEST = "family.json"
 
@@ -316,8 +339,9 @@ def member_model(logs: Path, model_dir: Path, seed: int, train_options: list[str
 
 
 def without(model_dir: Path, stage: str, out: Path) -> Path:
-    """A copy of ``model_dir`` in ``out`` with the in-use ``stage`` off (:data:`WITHOUT`),
-    exported."""
+    """A copy of ``model_dir`` in ``out`` with the in-use ``stage`` off (:data:`WITHOUT`), or
+    with the decision's rule ``stage`` of ``metadata.decision_rules`` (``fbgforce train
+    --decision``) when ``stage`` is one of those, exported."""
     import shutil
     from dataclasses import replace
 
@@ -328,29 +352,36 @@ def without(model_dir: Path, stage: str, out: Path) -> Path:
         if f.is_file():
             shutil.copy2(f, out / f.name)
     model = fm.load(out)
-    model.in_use = replace(model.in_use, **WITHOUT[stage])
+    if stage in WITHOUT:
+        fields = WITHOUT[stage]
+    else:
+        fields = model.metadata.get("decision_rules", {}).get(stage)
+        if fields is None:
+            fail(f"{model_dir}: the model records no decision rule {stage!r} "
+                 "(metadata.decision_rules; train it again)", PROG)
+    model.in_use = replace(model.in_use, **fields)
     fm.save(model, out)
     _cli(["export", "--model", str(out)])
     return out
 
 
 def family(root: Path, work: Path, engine: str = "fixed", seed: int = 0,
-           train_options: list[str] | None = None, stage: str | None = None,
+           train_options: list[str] | None = None, stages: list[str] | None = None,
            members: list[str] | None = None) -> dict[str, Any]:
     """Every goal on every member of ``root/family.json``, and the worst member of each.
 
     Each member's model is ``work/MEMBER/model`` (trained and exported by
-    :func:`member_model` when missing), scored by :func:`score` on the member's logs; with
-    ``stage``, a copy without that in-use stage (:data:`WITHOUT`) is scored beside it.
+    :func:`member_model` when missing), scored by :func:`score` on the member's logs; for
+    each of ``stages`` a copy of it (:func:`without`) is scored beside it on the same logs.
 
     Returns
     -------
     dict
-        ``members`` (member -> its :func:`score` result, and ``without`` -> the copy's when
-        ``stage``), ``goals`` (rows: ``key``, ``label``, ``target``, ``values`` by member,
-        ``worst_member``, ``worst``, ``pass``, and with ``stage`` ``values_without``,
-        ``worst_member_without``, ``worst_without``, ``pass_without``), ``stage``, ``engine``,
-        ``passed``, ``failed``, ``not_measured`` (of the worst members' values).
+        ``members`` (member -> its :func:`score` result, with ``without`` -> {stage: the
+        copy's result}), ``goals`` (rows: ``key``, ``label``, ``target``, ``values`` by member,
+        ``worst_member``, ``worst``, ``pass``, and ``without`` -> {stage: ``values``,
+        ``worst_member``, ``worst``, ``pass``}), ``stages``, ``engine``, ``passed``,
+        ``failed``, ``not_measured`` (of the worst members' values, default model).
     """
     path = root / FAMILY_MANIFEST
     try:
@@ -362,56 +393,75 @@ def family(root: Path, work: Path, engine: str = "fixed", seed: int = 0,
     unknown = [m for m in chosen if m not in listed]
     if unknown:
         fail(f"{path}: no member {', '.join(unknown)}; it has {', '.join(listed)}", PROG)
+    stages = list(stages or [])
     results: dict[str, Any] = {}
     for member in chosen:
         logs = (path.parent / listed[member]["manifest"]).parent
         model_dir = member_model(logs, work / member / "model", seed, train_options or [])
-        results[member] = score(model_dir, logs, engine)
-        if stage:
-            results[member]["without"] = score(
-                without(model_dir, stage, work / member / f"without_{stage}"), logs, engine)
+        loaded: dict[str, Any] = {}      # each log read once for the model and its copies
+        results[member] = score(model_dir, logs, engine, loaded)
+        results[member]["without"] = {
+            stage: score(without(model_dir, stage, work / member / f"without_{stage}"), logs,
+                         engine, loaded) for stage in stages}
+    return summarise(results, stages, str(path), engine)
+
+
+def summarise(results: dict[str, Any], stages: list[str], family_path: str = "",
+              engine: str = "fixed") -> dict[str, Any]:
+    """:func:`family`'s result from its members' :func:`score` results (each with ``without``
+    -> {stage: result} for every stage of ``stages``)."""
+    def summary(goal: Goal, pick: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
+        values = {m: next(g["value"] for g in pick(r)["goals"] if g["key"] == goal.key)
+                  for m, r in results.items()}
+        member, value = worst(goal, values)
+        return {"values": values, "worst_member": member, "worst": value,
+                "pass": goal.passes(value)}
+
     rows = []
     for key, goal in GOALS.items():
-        row: dict[str, Any] = {"key": key, "label": goal.label, "target": goal.target}
-        for suffix, pick in (("", lambda r: r), ("_without", lambda r: r.get("without"))):
-            if suffix and not stage:
-                continue
-            values = {m: next(g["value"] for g in pick(r)["goals"] if g["key"] == key)
-                      for m, r in results.items()}
-            member, value = worst(goal, values)
-            row.update({f"values{suffix}": values, f"worst_member{suffix}": member,
-                        f"worst{suffix}": value, f"pass{suffix}": goal.passes(value)})
+        row = {"key": key, "label": goal.label, "target": goal.target,
+               **summary(goal, lambda r: r)}
+        row["without"] = {stage: summary(goal, lambda r, st=stage: r["without"][st])
+                          for stage in stages}
         rows.append(row)
     verdicts = [r["pass"] for r in rows]
-    return {"family": str(path), "engine": engine, "stage": stage, "members": results,
+    return {"family": family_path, "engine": engine, "stages": stages, "members": results,
             "goals": rows, "passed": verdicts.count(True), "failed": verdicts.count(False),
             "not_measured": verdicts.count(None)}
 
 
-def family_table(result: dict[str, Any]) -> str:
-    """The goals by member as a markdown table, the worst member last (with ``--without``:
-    each cell ``default / without``)."""
+def family_table(result: dict[str, Any], stage: str | None = None) -> str:
+    """The goals by member as a markdown table, the worst member last; with ``stage`` (one of
+    ``result["stages"]``) each cell reads ``default / the copy``."""
     members = list(result["members"])
-    stage = result["stage"]
     head = "| goal | target | " + " | ".join(members) + " | worst | |"
     lines = [head, "|" + "---|" * (len(members) + 4)]
     for r in result["goals"]:
         g = GOALS[r["key"]]
+        other = r["without"][stage] if stage else None
 
         def cell(member: str) -> str:
             text = g.show(r["values"][member])
-            return text + (f" / {g.show(r['values_without'][member])}" if stage else "")
+            return text + (f" / {g.show(other['values'][member])}" if other else "")
         worst_text = (f"{g.show(r['worst'])} ({r['worst_member']})" if r["worst_member"]
                       else "–")
-        if stage:
-            worst_text += (f" / {g.show(r['worst_without'])} ({r['worst_member_without']})"
-                           if r["worst_member_without"] else " / –")
-        verdict = {True: "pass", False: "FAIL", None: "not measured"}[r["pass"]]
+        if other:
+            worst_text += (f" / {g.show(other['worst'])} ({other['worst_member']})"
+                           if other["worst_member"] else " / –")
+        words = {True: "pass", False: "FAIL", None: "not measured"}
+        verdict = words[r["pass"]] + (f" / {words[other['pass']]}" if other else "")
         lines.append(f"| {g.label} | {g.show_target()} | " + " | ".join(map(cell, members))
                      + f" | {worst_text} | {verdict} |")
     if stage:
-        lines += ["", f"Each cell: the default / the same model without {stage}."]
+        what = (f"with the {stage} decision rule" if stage in RULES else f"without {stage}")
+        lines += ["", f"Each cell: the default / the same model {what}."]
     return "\n".join(lines)
+
+
+def family_tables(result: dict[str, Any]) -> str:
+    """:func:`family_table` of the defaults, then one per stage of ``result["stages"]``."""
+    return "\n\n".join([family_table(result)]
+                        + [family_table(result, stage) for stage in result["stages"]])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -434,14 +484,36 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-option", action="append", default=[], metavar="OPT",
                     help="with --family: an option for fbgforce train, e.g. "
                          "--train-option=--hold-augment=0 (repeatable; use a --work of its own)")
-    ap.add_argument("--without", choices=sorted(WITHOUT), metavar="STAGE",
+    ap.add_argument("--without", action="append", choices=sorted(WITHOUT) + list(RULES),
+                    metavar="STAGE",
                     help="with --family: also score a copy of each model with this in-use "
-                         f"stage off ({', '.join(sorted(WITHOUT))}), side by side")
+                         f"stage off ({', '.join(sorted(WITHOUT))}), or with the contact "
+                         f"decision's other rule ({', '.join(RULES)}: the fields the trainer "
+                         "recorded for it), side by side (repeatable: a table each)")
     ap.add_argument("--engine", choices=("fixed", "float"), default="fixed",
                     help="fixed (the C fixed-point runtime, default) or float (numpy)")
+    ap.add_argument("--combine", nargs="+", type=Path, metavar="JSON",
+                    help="instead: the tables of several --family --json outputs (members "
+                         "scored in separate runs, with the same --without stages) as one")
     ap.add_argument("--json", action="store_true",
                     help="print one JSON object on stdout instead of the table")
     args = ap.parse_args(argv)
+    if args.combine:
+        members: dict[str, Any] = {}
+        stages: list[str] | None = None
+        for f in args.combine:
+            try:
+                part = json.loads(f.read_text())
+                members.update(part["members"])
+                stages = part.get("stages", []) if stages is None else stages
+                if part.get("stages", []) != stages:
+                    fail(f"{f}: scored with --without {part.get('stages')}, not {stages}", PROG)
+            except (OSError, ValueError, KeyError, TypeError) as exc:
+                fail(f"{f}: not a bench_in_use --family --json output "
+                     f"({type(exc).__name__}: {exc})", PROG)
+        result = summarise(members, stages or [])
+        print(json.dumps(result, default=json_default) if args.json else family_tables(result))
+        return 0
     if args.family is not None:
         if args.work is None:
             fail("--family needs --work DIR (where the members' models go)", PROG)
@@ -450,7 +522,7 @@ def main(argv: list[str] | None = None) -> int:
                             args.without, args.member)
         except InputError as exc:
             fail(str(exc), PROG)
-        print(json.dumps(result, default=json_default) if args.json else family_table(result))
+        print(json.dumps(result, default=json_default) if args.json else family_tables(result))
         return 0
     if args.model is None or args.logs is None:
         fail("give --model and --logs, or --family and --work", PROG)

@@ -328,12 +328,22 @@ def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tm
     assert set(bias["values"]) == {"a", "b"} and bias["worst"] == bias["values"]["a"]
     assert bias["pass"] == (abs(bias["worst"]) <= 0.1)
     # Without the settled-hold gain the holds read what the nets read.
-    held = res["members"]["a"]["without"]["scored"]["held_grips"]["holds"]
-    assert held["holds"] == 3 and "values_without" in bias
+    held = res["members"]["a"]["without"]["hold_gain"]["scored"]["held_grips"]["holds"]
+    assert held["holds"] == 3 and set(bias["without"]["hold_gain"]["values"]) == {"a", "b"}
     copy = json.loads((tmp_path / "work" / "a" / "without_hold_gain" / "model.json").read_text())
     assert copy["in_use"]["hold_gain"] == 0.0
     assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work")]) == 0
     assert "| force bias over the holds | within ±0.1 N |" in capsys.readouterr().out
+    # Members scored in separate runs combine into the same table.
+    for member in ("a", "b"):
+        assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work"),
+                                  "--member", member, "--without", "hold_gain", "--json"]) == 0
+        (tmp_path / f"{member}.json").write_text(capsys.readouterr().out)
+    assert bench_in_use.main(["--combine", str(tmp_path / "a.json"), str(tmp_path / "b.json"),
+                              "--json"]) == 0
+    both = json.loads(capsys.readouterr().out)
+    assert {r["key"]: r["worst"] for r in both["goals"]} == {r["key"]: r["worst"]
+                                                             for r in res["goals"]}
     with pytest.raises(SystemExit) as exc:
         bench_in_use.main(["--family", str(root)])
     assert exc.value.code == 2
