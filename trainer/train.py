@@ -1330,10 +1330,14 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
                  f"{HOLD_GAIN_MIN_HOLDS} needed)" if not settled.get("gain") else "off")},
         {"name": "turn_guard", "applied": bool(params.turn_guard_s),
          "why": f"{1000 * params.turn_guard_s:g} ms after each turn left out of the force net"
-         if params.turn_guard_s else "off (on with the creep inverse)"},
+         if params.turn_guard_s else "by default only with the creep inverse"},
         {"name": "decision_over_time", "applied": not iu.per_sample,
-         "why": "contact rises past the margins at rest" if not iu.per_sample
-         else "per sample (no rest to set its thresholds from)"},
+         "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
+                 f"{iu.contact_cusum_k:.3g}, from the calibration's rests"
+                 if iu.contact_cusum_h else
+                 f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "
+                 f"{iu.contact_rise_samples} samples, from the rests")
+         if not iu.per_sample else "per sample: the calibration's rests set no threshold above 0"},
         {"name": "at_rest_tracker", "applied": bool(iu.track_shift),
          "why": f"time constant 2^{iu.track_shift} samples, at most "
                 f"{iu.track_limit_pm:g} pm" if iu.track_shift else "off"},
