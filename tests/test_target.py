@@ -174,8 +174,9 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # of weights and code at the default memory): 52 KB; the location averages of the default
     # memory add 0.56 KB of location-net weights and 0.4 KB of code: 54 KB; the decision over
     # time, the at-rest tracker and the input range check add 1.4 KB of code and parameters:
-    # 56 KB (docs/firmware.md).
-    assert report["flash_bytes"] < 56 * 1024
+    # 56 KB; the CUSUM rise of the contact decision and the generated checks of its four
+    # parameters took it to 57,566 B: 58 KB (docs/firmware.md).
+    assert report["flash_bytes"] < 58 * 1024
     assert report["ram_bytes"] < 4 * 1024
 
 
