@@ -428,7 +428,10 @@ def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_reco
     from fbgforce.trainer.train import train
 
     ds = synthetic_recording(n_press=30, seed=2, noise_pm=3.0)
-    model = train([ds], epochs=12, seed=0, progress=False)
+    # Trained until it knows the device (40 epochs: 0.17 N on its test presses); one stopped
+    # at 20 epochs (0.67 N) or fewer starts the other device closer or not by the luck of
+    # its draw.
+    model = train([ds], epochs=40, seed=0, progress=False)
     test = model.metadata["metrics"]["test"]
     assert test["contact_accuracy"] > 0.95
     assert test["rmse_force_N"] < 3.0 and test["rmse_x_mm"] < 2.0 and test["rmse_y_mm"] < 2.5
