@@ -1676,7 +1676,11 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
     trials = better + worse
     p = float(sum(math.comb(trials, j) for j in range(better, trials + 1)) / 2.0 ** trials) \
         if trials else 1.0
-    rmse = [float(np.sqrt(np.nanmean(e ** 2))) for e in errors]
+    scored = np.isfinite(errors[0])
+    if not scored.any():      # the presses fall in one fold: nothing is held out
+        return {"presses": n, "better": 0, "p_value": 1.0, "rmse_N": None,
+                "rmse_inverse_N": None, "passes": False}
+    rmse = [float(np.sqrt(np.mean(e[scored] ** 2))) for e in errors]
     return {"presses": n, "better": better, "p_value": p, "rmse_N": rmse[0],
             "rmse_inverse_N": rmse[1], "passes": bool(p < CREEP_PRESS_LEVEL and rmse[1] < rmse[0])}
 
