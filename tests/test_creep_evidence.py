@@ -96,9 +96,16 @@ def test_the_presses_do_not_stand_in_for_the_noise_test():
     worse = {**better, "better": 40, "p_value": 0.55, "passes": False}
     # The noise test still applies: a creep the tails do not show at all stays unproven,
     # whatever the presses say.
-    assert not T.creep_evidence(tails, found, presses=better)["established"]
-    assert not T.creep_evidence(tails, found, presses=worse)["established"]
-    assert T.creep_evidence(tails, found, presses=better)["tests"]["presses"]["better"] == 60
+    assert not T.creep_evidence(tails, found, presses=lambda: better)["established"]
+    assert not T.creep_evidence(tails, found, presses=lambda: worse)["established"]
+    # ... and the press check is not even run then.
+    assert "presses" not in T.creep_evidence(tails, found, presses=lambda: better)["tests"]
+    # Releases that show the creep on held-out halves need no press check.
+    shown = _tails(T.Creep(0.05, 1.0), noise_N=0.05)
+
+    def unexpected():
+        raise AssertionError("the press check ran though the releases establish the creep")
+    assert T.creep_evidence(shown, T.creep_of(shown), presses=unexpected)["established"]
 
 
 @pytest.mark.slow

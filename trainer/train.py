@@ -313,7 +313,8 @@ def creep_choice(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, mode: str
     if mode == "off":
         return found, {"applied": False, "mode": mode, "established": None, "tests": {},
                        "why": "--creep off"}
-    evidence = creep_evidence(tails, found, seed, creep_press_check(data, pre, rows, found))
+    evidence = creep_evidence(tails, found, seed,
+                              lambda: creep_press_check(data, pre, rows, found))
     applied = found.magnitude > 0 and (mode == "on" or evidence["established"])
     why = evidence["why"] if mode == "auto" or not found.magnitude else (
         f"--creep on (established: {evidence['established']}; {evidence['why']})")
@@ -1686,10 +1687,11 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
 
 
 def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0,
-                   presses: dict[str, Any] | None = None) -> dict[str, Any]:
+                   presses: Callable[[], dict[str, Any]] | None = None) -> dict[str, Any]:
     """Whether the releases whose ``tails`` (:class:`CreepTails`) :func:`fit_creep` read
     establish the creep ``fitted`` on them, or, for the held-out check, the presses
-    (``presses``: :func:`creep_press_check` of the same creep).
+    (``presses()``: :func:`creep_press_check` of the same creep, run only when the held-out
+    releases do not show it).
 
     Three tests:
 
@@ -1705,7 +1707,8 @@ def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0,
       on each half must lower the other half's residual (beside its offsets) by a larger
       share than the noise's largest; or, where the releases cannot show it (a creep slower
       than the rests is an offset 150 ms into one), taking it out must read the calibration's
-      held-out presses better (``presses``, :func:`creep_press_check`).
+      held-out presses better (``presses``, :func:`creep_press_check`, run only then and
+      only when the other tests pass).
 
     Returns
     -------
@@ -1744,24 +1747,25 @@ def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0,
     if removed <= max(null):
         fails.append(f"it removes {100 * tests['removed_share']:.2f} % of the residual, no "
                      f"more than sign-flipped noise does ({100 * noise:.2f} %)")
-    if presses is not None:
-        tests["presses"] = presses
-    by_presses = presses is not None and presses["passes"]
-    if min(gains) <= noise and not by_presses:
+    held_out = min(gains) > noise
+    checked = presses() if presses is not None and not held_out and not fails else None
+    if checked is not None:
+        tests["presses"] = checked
+    if not held_out and not (checked is not None and checked["passes"]):
         fails.append(f"fitted on half the releases it explains {100 * min(gains):.2f} % of the "
                      f"other half's residual, no more than noise does ({100 * noise:.2f} %)"
-                     + (f", and taking it out reads {presses['better']} of {presses['presses']}"
-                        f" held-out presses better (p = {presses['p_value']:.2g})"
-                        if presses is not None else ""))
+                     + (f", and taking it out reads {checked['better']} of {checked['presses']}"
+                        f" held-out presses better (p = {checked['p_value']:.2g})"
+                        if checked is not None else ""))
     if fails:
         return {"established": False, "why": "; ".join(fails), "tests": tests}
-    if min(gains) > noise:
+    if held_out:
         why = (f"held out it explains {100 * min(gains):.1f}-{100 * max(gains):.1f} % of the "
                f"residual after releases, noise at most {100 * noise:.2f} %")
     else:
-        why = (f"taking it out reads {presses['better']} of {presses['presses']} held-out "
-               f"presses better (p = {presses['p_value']:.2g}; load signal RMSE "
-               f"{presses['rmse_N']:.3f} -> {presses['rmse_inverse_N']:.3f} N)")
+        why = (f"taking it out reads {checked['better']} of {checked['presses']} held-out "
+               f"presses better (p = {checked['p_value']:.2g}; load signal RMSE "
+               f"{checked['rmse_N']:.3f} -> {checked['rmse_inverse_N']:.3f} N)")
     return {"established": True, "why": why, "tests": tests}
 
 
