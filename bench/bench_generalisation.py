@@ -13,7 +13,7 @@ listed the same way). The generator stays a test helper: this benchmark reads on
 
 For each variant (default all in the manifest): ``train`` with the default settings on the
 training log, then the shared metrics on its held-out test presses and on the whole other log
-(``evaluate``). Prints one table; docs/trainer.md ("Generalisation") quotes it.
+(``evaluate``). Prints one table; docs/measurements/trainer.md ("Generalisation") quotes it.
 """
 from __future__ import annotations
 

@@ -11,7 +11,8 @@ own start like the runtime, and scores the samples inside holds
 (:func:`fbgforce.trainer.train.hold_mask`: at least 0.2 s in contact with the load within
 max(0.2 N, 3 %)): the force bias (mean of estimate minus load cell) and RMSE there, with the
 contact net's decision counted as 0 N where it says no contact, as every engine outputs it.
-docs/trainer.md ("Held grips") quotes it for models trained with and without synthetic holds.
+docs/measurements/trainer.md ("Held grips") quotes it for models trained with and without
+synthetic holds.
 """
 from __future__ import annotations
 

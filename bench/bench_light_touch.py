@@ -8,9 +8,9 @@ Re-prepares ``--data`` (one recording of the model's device; the model's own see
 same split by press as its training) and scores the float model on the held-out test presses:
 per range of true force, the samples, the location RMSE and that range's share of the summed
 squared location error; the contact errors split into missed contacts (by true force) and
-false ones. docs/trainer.md ("What limits contact and location") quotes it: a few per cent of
-the samples, the touches below 1 N where the four beams' signals are a few noise deviations,
-carry most of the squared location error and most missed contacts.
+false ones. docs/measurements/trainer.md ("With memory: where the remaining error is") quotes
+it: a few per cent of the samples, the touches below 1 N where the four beams' signals are a
+few noise deviations, carry most of the squared location error and most missed contacts.
 """
 from __future__ import annotations
 

@@ -29,7 +29,8 @@ Prints a table (contact accuracy overall and above 1 N, force, x, y RMSE, median
 release delay, training time), then x and y of all three on the test samples that all three
 and the truth call contact (:func:`fbgforce.metrics.common_location`: like for like, since each
 estimator's own x/y leave out the touches it misses), and optionally writes it as JSON. Foreign data: write CSVs with
-``tests/foreign.py`` (docs/trainer.md, "Against scikit-learn") and pass them with ``--data``.
+``tests/foreign.py`` (docs/measurements/trainer.md, "Against scikit-learn") and pass them with
+``--data``.
 """
 from __future__ import annotations
 

@@ -50,7 +50,7 @@ ffibuilder.set_source(
     # sources are held to -std=c99 -Wall -Wextra -Werror -pedantic by runtime_c/Makefile,
     # which the test suite runs. -O3 lets GCC vectorise the int16 x int16 -> int64 MAC loops
     # (exact integer arithmetic, so the bits do not change): 8.2 -> 3.4 us per sample on the
-    # host for the paper-sized model (docs/runtime.md).
+    # host for the paper-sized model (docs/measurements/runtime.md).
     extra_compile_args=["-O3"],
 )
 

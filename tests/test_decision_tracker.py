@@ -185,7 +185,7 @@ def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force
     load: through 10 minutes of a grip (at constant temperature, and through a 20 K ramp) the
     decision stays on and the baseline does not move from the press's first sample to its
     release, so the tracker has no part in any estimate of the hold (what the compensation
-    leaves of a ramp during a hold is docs/runtime.md's "In use" figure)."""
+    leaves of a ramp during a hold is docs/measurements/runtime.md's "In use" figure)."""
     from fbgforce import sim
 
     path = tmp_path / "hold.toml"

@@ -28,7 +28,8 @@ from fbgforce.trainer.train import train  # noqa: E402
 #: Slow (pytest -m slow): trains a model per foreign log.
 pytestmark = pytest.mark.slow
 
-#: Short training for the test (full figures: docs/trainer.md, 120 presses, default settings).
+#: Short training for the test (full figures: docs/measurements/trainer.md, 120 presses,
+#: default settings).
 QUICK = dict(epochs=10, batch_size=512, learning_rate=3e-3, progress=False)
 N_PRESS_TRAIN, N_PRESS_OTHER = 24, 10
 

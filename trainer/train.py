@@ -54,7 +54,7 @@ SPLIT_RATIOS = (8, 1, 1)
 #: with a fixed Gaussian prior on the weights weighs it so against a loss averaged over n
 #: samples, and so a short calibration log is regularised harder than a long one: 1.1e-4 for
 #: the force net on the calibration scene (132,000 samples), 4.7e-4 on a 60-press log
-#: (docs/trainer.md, "What limits training" and "Restarts and force weight decay").
+#: (docs/measurements/trainer.md, "What limits training" and "Restarts and force weight decay").
 DEFAULT_DECAY_SAMPLES: dict[str, float] = {"contact": 0.0, "force": 15.0, "location": 0.0}
 #: The location net also trains on copies of the training presses scaled by a factor drawn
 #: per press from [1, LOCATION_AUGMENT] (see :func:`_scaled_presses`); 1 turns this off.
