@@ -4,54 +4,57 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from fbgforce.cli import add_json_flag
+from fbgforce.cliargs import add_data, add_model, command, emit
 from fbgforce.errors import InputError
 
 
 def register(subparsers: Any) -> None:
-    p = subparsers.add_parser(
-        "export", help="write model.onnx, model.fbgm, generated C and an export report",
-        description="Quantise a trained model directory for the fixed-point C runtime and write "
-                    "its artifacts into the directory: model.onnx (float reference), model.fbgm "
-                    "(blob the runtime loads), c/<name>_model.{c,h} and c/<name>_model_f32.{c,h} "
-                    "(const models firmware links in) and export_report.json (scales and "
-                    "accumulator bounds). Scales come from calibration data: --calib files, or "
-                    "else the training recordings named in model.json.")
-    p.add_argument("--model", required=True, metavar="DIR", help="model directory (fbgforce train)")
-    p.add_argument("--bits", type=int, choices=(16, 8), default=16,
-                   help="weight width of the nets (activations stay int16); default 16")
-    p.add_argument("--calib", nargs="+", metavar="FILE",
-                   help="calibration recording(s) (dataset CSV/npz); default: training files")
-    p.add_argument("--name", default="fbgforce", help="C symbol prefix: <name>_model (default fbgforce)")
-    p.add_argument("--jump-nm", type=float, default=2.0,
-                   help="sensor-fault threshold: largest plausible change per sample, nm (default 2)")
-    p.add_argument("--overload-N", type=float, default=None,
-                   help="OVERLOAD flag threshold, N (default: largest calibration force)")
-    p.add_argument("--stuck-samples", type=int, default=None, metavar="N",
-                   help="sensor fault after N identical consecutive values of a channel (0 = off; "
-                        "default: 4x the longest run in the calibration data, at least 25)")
-    p.add_argument("--acc32-max-drop", type=float, default=None, metavar="BITS",
-                   help="int32 accumulators: bits of weight resolution a layer may give up so "
-                        "that its proven worst case fits int32 (default 6; negative: int64 "
-                        "everywhere, as blob version 2 did)")
-    p.add_argument("--no-onnx", action="store_true", help="skip model.onnx")
-    add_json_flag(p)
-    p.set_defaults(handler=_export)
+    """Add ``export`` and ``verify``."""
+    with command(subparsers, "export", _export,
+                 help="write model.onnx, model.fbgm, generated C and an export report",
+                 description="Quantise a trained model directory for the fixed-point C runtime "
+                             "and write its artifacts into the directory: model.onnx (float "
+                             "reference), model.fbgm (blob the runtime loads), "
+                             "c/<name>_model.{c,h} and c/<name>_model_f32.{c,h} (const models "
+                             "firmware links in) and export_report.json (scales and "
+                             "accumulator bounds). Scales come from calibration data: --calib "
+                             "files, or else the training recordings named in model.json."
+                 ) as p:
+        add_model(p, "model directory (fbgforce train)", metavar="DIR")
+        p.add_argument("--bits", type=int, choices=(16, 8), default=16,
+                       help="weight width of the nets (activations stay int16); default 16")
+        p.add_argument("--calib", nargs="+", metavar="FILE",
+                       help="calibration recording(s) (dataset CSV/npz); default: training files")
+        p.add_argument("--name", default="fbgforce",
+                       help="C symbol prefix: <name>_model (default fbgforce)")
+        p.add_argument("--jump-nm", type=float, default=2.0,
+                       help="sensor-fault threshold: largest plausible change per sample, nm "
+                            "(default 2)")
+        p.add_argument("--overload-N", type=float, default=None,
+                       help="OVERLOAD flag threshold, N (default: largest calibration force)")
+        p.add_argument("--stuck-samples", type=int, default=None, metavar="N",
+                       help="sensor fault after N identical consecutive values of a channel "
+                            "(0 = off; default: 4x the longest run in the calibration data, "
+                            "at least 25)")
+        p.add_argument("--acc32-max-drop", type=float, default=None, metavar="BITS",
+                       help="int32 accumulators: bits of weight resolution a layer may give up "
+                            "so that its proven worst case fits int32 (default 6; negative: "
+                            "int64 everywhere, as blob version 2 did)")
+        p.add_argument("--no-onnx", action="store_true", help="skip model.onnx")
 
-    v = subparsers.add_parser(
-        "verify", help="C fixed point vs integer reference vs float on every sample",
-        description="Run the C fixed-point runtime, the numpy integer reference and the float model "
-                    "on recordings (tared on their contact-free samples) and compare: mismatches "
-                    "(C vs integer reference, any output bit) must be 0, else the exit status is "
-                    "1; fixed vs float errors and contact disagreements measure the "
-                    "quantisation. A model.fbgm exported from another model is refused (exit 2).")
-    v.add_argument("--model", required=True, metavar="DIR", help="exported model directory")
-    v.add_argument("--data", required=True, nargs="+", metavar="FILE", help="recording(s)")
-    v.add_argument("--fail-on-mismatch", action="store_true",
-                   help="kept for old scripts: verify always exits with status 1 when any "
-                        "sample mismatches")
-    add_json_flag(v)
-    v.set_defaults(handler=_verify)
+    with command(subparsers, "verify", _verify,
+                 help="C fixed point vs integer reference vs float on every sample",
+                 description="Run the C fixed-point runtime, the numpy integer reference and "
+                             "the float model on recordings (tared on their contact-free "
+                             "samples) and compare: mismatches (C vs integer reference, any "
+                             "output bit) must be 0, else the exit status is 1; fixed vs float "
+                             "errors and contact disagreements measure the quantisation. A "
+                             "model.fbgm exported from another model is refused (exit 2).") as v:
+        add_model(v, "exported model directory", metavar="DIR")
+        add_data(v, "recording(s)")
+        v.add_argument("--fail-on-mismatch", action="store_true",
+                       help="kept for old scripts: verify always exits with status 1 when any "
+                            "sample mismatches")
 
 
 def _export(args: argparse.Namespace) -> dict[str, Any]:
@@ -92,9 +95,6 @@ def _verify(args: argparse.Namespace) -> dict[str, Any]:
             print(f"{k}: {v}")
     if res["mismatches"]:
         print(f"fbgforce verify: {res['mismatches']} mismatching samples", file=sys.stderr)
-        if args.json:
-            from fbgforce.cli import emit
-
-            emit(res, True)
+        emit(res, args.json)
         sys.exit(1)
     return res

@@ -7,7 +7,8 @@ import sys
 from typing import Any
 
 from fbgforce import signals
-from fbgforce.cli import non_negative_int, positive_float, positive_int
+from fbgforce.cliargs import (add_data, add_model, add_seed, command, non_negative_int,
+                               positive_float, positive_int)
 from fbgforce.errors import InputError
 
 
@@ -75,41 +76,52 @@ def _open_reader(args: argparse.Namespace, model_dir: str | None = None, **kw: A
 
 def register(subparsers: Any) -> None:
     """Add ``emulate``, ``stream`` and ``record``."""
-    from fbgforce.cli import add_json_flag
+    _register_emulate(subparsers)
+    _register_stream(subparsers)
+    _register_record(subparsers)
 
-    p = subparsers.add_parser(
-        "emulate", help="virtual interrogator on a pseudo-terminal or TCP (plays a scene in real "
-                        "time)",
-        description="Play a simulated scene (or a dataset file) in real time as an FBG "
-                    "interrogator would: on a pseudo-terminal, native frames pushed at --rate or "
-                    "FiSpec-style answers to '?>'/'P>' polls; on TCP (--protocol hyperion), a "
-                    "Luna/Micron Optics Hyperion's command port and peak stream. The scene's "
-                    "dropout effect becomes real line faults. Prints the device path(s) or URL; "
-                    "playback starts when every port has a client. Protocols: docs/protocol.md.")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--scene", help="built-in scene name or scene TOML path")
-    src.add_argument("--data", metavar="FILE", help="play a dataset file (CSV/npz) instead")
-    p.add_argument("--pty", action="store_true", default=True,
-                   help="serve on a new pseudo-terminal (the transport of native and fispec)")
-    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default="native",
-                   help="native frames, FiSpec polls (pty) or a Hyperion instrument (TCP)")
-    p.add_argument("--address", default="127.0.0.1",
-                   help="hyperion: address to listen on (default 127.0.0.1)")
-    p.add_argument("--command-port", type=non_negative_int, default=51971,
-                   help="hyperion: command port (default 51971; 0 = any free port)")
-    p.add_argument("--stream-port", type=non_negative_int, default=51972,
-                   help="hyperion: peak stream port (default 51972; 0 = any free port)")
-    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
-                            "(default 1:1,1:2,1:3,1:4,1:5)")
-    p.add_argument("--rate", type=positive_float, default=1000.0,
-                   help="samples per second of playback (default 1000)")
-    p.add_argument("--loadcell", action="store_true",
-                   help="open a second pty with the stage/load-cell line protocol")
-    p.add_argument("--seed", type=non_negative_int, default=None,
-                   help="scene seed (default: the scene's); also seeds the fault details")
-    p.add_argument("--device", type=non_negative_int, default=None, help="scene device number")
-    p.add_argument("--duration", type=positive_float, metavar="S",
-                   help="play at most S seconds (default: the whole recording)")
+
+def _register_emulate(subparsers: Any) -> None:
+    with command(subparsers, "emulate", _emulate,
+                 help="virtual interrogator on a pseudo-terminal or TCP (plays a scene in real "
+                      "time)",
+                 description="Play a simulated scene (or a dataset file) in real time as an FBG "
+                             "interrogator would: on a pseudo-terminal, native frames pushed at "
+                             "--rate or FiSpec-style answers to '?>'/'P>' polls; on TCP "
+                             "(--protocol hyperion), a Luna/Micron Optics Hyperion's command "
+                             "port and peak stream. The scene's dropout effect becomes real "
+                             "line faults. Prints the device path(s) or URL; playback starts "
+                             "when every port has a client. Protocols: docs/protocol.md.") as p:
+        src = p.add_mutually_exclusive_group(required=True)
+        src.add_argument("--scene", help="built-in scene name or scene TOML path")
+        add_data(src, "play a dataset file (CSV/npz) instead", nargs=None, required=False)
+        p.add_argument("--pty", action="store_true", default=True,
+                       help="serve on a new pseudo-terminal (the transport of native and fispec)")
+        p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default="native",
+                       help="native frames, FiSpec polls (pty) or a Hyperion instrument (TCP)")
+        p.add_argument("--address", default="127.0.0.1",
+                       help="hyperion: address to listen on (default 127.0.0.1)")
+        p.add_argument("--command-port", type=non_negative_int, default=51971,
+                       help="hyperion: command port (default 51971; 0 = any free port)")
+        p.add_argument("--stream-port", type=non_negative_int, default=51972,
+                       help="hyperion: peak stream port (default 51972; 0 = any free port)")
+        _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
+                                "(default 1:1,1:2,1:3,1:4,1:5)")
+        p.add_argument("--rate", type=positive_float, default=1000.0,
+                       help="samples per second of playback (default 1000)")
+        p.add_argument("--loadcell", action="store_true",
+                       help="open a second pty with the stage/load-cell line protocol")
+        add_seed(p, "scene seed (default: the scene's); also seeds the fault details",
+                 type=non_negative_int, default=None)
+        p.add_argument("--device", type=non_negative_int, default=None,
+                       help="scene device number")
+        p.add_argument("--duration", type=positive_float, metavar="S",
+                       help="play at most S seconds (default: the whole recording)")
+        _add_playback_options(p)
+
+
+def _add_playback_options(p: argparse.ArgumentParser) -> None:
+    """``emulate``'s line faults, links and how playback starts and ends."""
     p.add_argument("--faults", metavar="SPEC", default=None,
                    help="extra line faults per sample, e.g. drop=0.01,flip=0.01,truncate=0.005,"
                         "garbage=0.005 (on top of the scene's dropout column)")
@@ -121,23 +133,39 @@ def register(subparsers: Any) -> None:
                    help="after the last sample keep the ports open until clients close, at "
                         "most S seconds (default 2)")
     p.add_argument("--loop", action="store_true", help="repeat the recording until stopped")
-    add_json_flag(p)
-    p.set_defaults(handler=_emulate)
 
-    p = subparsers.add_parser(
-        "stream", help="live estimation from an interrogator through the C runtime",
-        description="Read an interrogator (device path or pyserial URL), tare on the first "
-                    "samples, estimate contact, force and location for every sample with the "
-                    "fixed-point C runtime, show a one-line live status on stderr and optionally "
-                    "write the estimates as CSV.")
-    p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
-                   help="device path, pyserial URL (/dev/ttyUSB0, socket://host:port, loop://) "
-                        "or hyperion://HOST[:PORT]")
-    p.add_argument("--model", required=True, metavar="MODEL_DIR")
-    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
-                   help="default: hyperion for hyperion:// sources, else native")
-    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T (default: "
-                            "the model's hyperion_peak_map metadata, else 1:1,...,1:5)")
+
+def _register_stream(subparsers: Any) -> None:
+    with command(subparsers, "stream", _stream,
+                 help="live estimation from an interrogator through the C runtime",
+                 description="Read an interrogator (device path or pyserial URL), tare on the "
+                             "first samples, estimate contact, force and location for every "
+                             "sample with the fixed-point C runtime, show a one-line live status "
+                             "on stderr and optionally write the estimates as CSV.") as p:
+        p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
+                       help="device path, pyserial URL (/dev/ttyUSB0, socket://host:port, "
+                            "loop://) or hyperion://HOST[:PORT]")
+        add_model(p)
+        p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
+                       help="default: hyperion for hyperion:// sources, else native")
+        _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
+                                "(default: the model's hyperion_peak_map metadata, else "
+                                "1:1,...,1:5)")
+        _add_output_options(p)
+        p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
+                       help="fixed (C fixed-point runtime, default) or float (numpy reference)")
+        p.add_argument("--tare-samples", type=non_negative_int, default=200,
+                       help="tare on the first N samples, fingertip unloaded (default 200 = "
+                            "0.2 s; 0 = use the model's training baseline); a tare or reset "
+                            "command averages as many (200 with 0)")
+        p.add_argument("--channels", type=positive_int, default=5,
+                       help="gratings per frame (default 5: FBG 1..4 and T; with more, the "
+                            "first five are FBG 1..4 and T)")
+        _add_stop_options(p)
+
+
+def _add_output_options(p: argparse.ArgumentParser) -> None:
+    """Where ``stream`` sends its estimates and takes its commands, and on which CPUs."""
     p.add_argument("--publish", metavar="URL", action="append", default=[],
                    help="also publish every estimate: udp://HOST:PORT (one datagram per sample, "
                         "docs/protocol.md), lcm://CHANNEL[?url=LCM_URL] (needs the [lcm] "
@@ -152,46 +180,35 @@ def register(subparsers: Any) -> None:
                    help="run the estimator on CPU N alone and the publishing process on the "
                         "other CPUs, so that they never take turns on one core (docs/ros2.md)")
     p.add_argument("--out", metavar="FILE.csv", help="write samples and estimates as CSV")
-    p.add_argument("--engine", choices=("fixed", "float"), default="fixed",
-                   help="fixed (C fixed-point runtime, default) or float (numpy reference)")
-    p.add_argument("--tare-samples", type=non_negative_int, default=200,
-                   help="tare on the first N samples, fingertip unloaded (default 200 = 0.2 s; "
-                        "0 = use the model's training baseline); a tare or reset command "
-                        "averages as many (200 with 0)")
-    p.add_argument("--channels", type=positive_int, default=5,
-                   help="gratings per frame (default 5: FBG 1..4 and T; with more, the first "
-                        "five are FBG 1..4 and T)")
-    _add_stop_options(p)
-    add_json_flag(p)
-    p.set_defaults(handler=_stream)
 
-    p = subparsers.add_parser(
-        "record", help="record a calibration log (interrogator + stage/load cell) as a dataset",
-        description="Read the interrogator and the stage/load-cell port, join the samples on the "
-                    "sample counter and write a dataset file (docs/dataset.md) ready for "
-                    "'fbgforce train'.")
-    p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
-                   help="interrogator device, URL or hyperion://HOST[:PORT]")
-    p.add_argument("--loadcell-port", required=True, metavar="DEV2",
-                   help="stage/load-cell device or URL")
-    p.add_argument("--out", required=True, metavar="FILE.csv",
-                   help="dataset to write (.csv/.npz), or a rosbag2 log (.mcap; needs the "
-                        "[ros2] extra)")
-    p.add_argument("--model", metavar="MODEL_DIR",
-                   help="with an .mcap --out: also log the fixed-point runtime's estimates "
-                        "(/fbgforce/contact, /fbgforce/wrench) of the recorded samples")
-    p.add_argument("--tare-samples", type=non_negative_int, default=200,
-                   help="with --model: tare on the first N recorded samples (default 200)")
-    p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
-                   help="default: hyperion for hyperion:// sources, else native")
-    _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
-                            "(default 1:1,1:2,1:3,1:4,1:5)")
-    p.add_argument("--rate", type=positive_float, default=1000.0,
-                   help="device sample rate, for time stamps when the protocol has none (fispec)")
-    p.add_argument("--loadcell-baud", type=positive_int, default=115200)
-    _add_stop_options(p)
-    add_json_flag(p)
-    p.set_defaults(handler=_record)
+
+def _register_record(subparsers: Any) -> None:
+    with command(subparsers, "record", _record,
+                 help="record a calibration log (interrogator + stage/load cell) as a dataset",
+                 description="Read the interrogator and the stage/load-cell port, join the "
+                             "samples on the sample counter and write a dataset file "
+                             "(docs/dataset.md) ready for 'fbgforce train'.") as p:
+        p.add_argument("--port", "--source", dest="port", required=True, metavar="DEV",
+                       help="interrogator device, URL or hyperion://HOST[:PORT]")
+        p.add_argument("--loadcell-port", required=True, metavar="DEV2",
+                       help="stage/load-cell device or URL")
+        p.add_argument("--out", required=True, metavar="FILE.csv",
+                       help="dataset to write (.csv/.npz), or a rosbag2 log (.mcap; needs the "
+                            "[ros2] extra)")
+        add_model(p, "with an .mcap --out: also log the fixed-point runtime's estimates "
+                     "(/fbgforce/contact, /fbgforce/wrench) of the recorded samples",
+                  required=False)
+        p.add_argument("--tare-samples", type=non_negative_int, default=200,
+                       help="with --model: tare on the first N recorded samples (default 200)")
+        p.add_argument("--protocol", choices=("native", "fispec", "hyperion"), default=None,
+                       help="default: hyperion for hyperion:// sources, else native")
+        _add_peak_map_option(p, "hyperion: which channel and peak carries FBG 1..4 and T "
+                                "(default 1:1,1:2,1:3,1:4,1:5)")
+        p.add_argument("--rate", type=positive_float, default=1000.0,
+                       help="device sample rate, for time stamps when the protocol has none "
+                            "(fispec)")
+        p.add_argument("--loadcell-baud", type=positive_int, default=115200)
+        _add_stop_options(p)
 
 
 def _emulate(args: argparse.Namespace) -> dict[str, Any]:

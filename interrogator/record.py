@@ -111,51 +111,11 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
     from fbgforce import dataset
 
     out = Path(out)
-    if out.suffix.lower() not in (".csv", ".npz", ".mcap"):
-        raise InputError("output must end in .csv, .npz or .mcap", path=str(out),
-                         column="--out")
-    if estimator is not None and out.suffix.lower() != ".mcap":
-        raise InputError("estimates are logged in an .mcap output only", path=str(out),
-                         column="--model")
-    if out.suffix.lower() == ".mcap":
-        from fbgforce.interrogator.mcaplog import writer_class
-
-        writer_class(out)  # a missing extra fails now, not after the recording
-    fileio.check_output_file(out, "--out")
+    _check_output(out, estimator)
     join = Joiner()
-    started = time.monotonic()
-    first = last = None
-    last_report = started
-    stopped_by = None
-    try:
-        while True:
-            frames = reader.read(0.01)
-            lines = loadcell.read(0.0)
-            now = time.monotonic()
-            if frames or lines:
-                first = now if first is None else first
-                last = now
-                join.add(frames, lines)
-            # Nothing to report before the first sample (a silent port ends in one error line).
-            if status and first is not None and now - last_report >= 1.0:
-                last_report = now
-                print(f"record: {len(join.pairs)} samples, lost "
-                      f"{reader.stats().get('lost_frames', 0)} frames, unmatched "
-                      f"{join.unmatched_frames}/{join.unmatched_lines}", file=sys.stderr, flush=True)
-            if max_samples is not None and len(join.pairs) >= max_samples:
-                break
-            if first is None:
-                if start_timeout is not None and now - started >= start_timeout:
-                    break
-                continue
-            if duration is not None and now - first >= duration:
-                break
-            if idle_timeout is not None and now - last >= idle_timeout:
-                break
-    except KeyboardInterrupt as exc:
-        # The operator (Ctrl-C) or a service manager (SIGTERM) ends the recording: keep what
-        # was joined.
-        stopped_by = signals.signal_name(exc)
+    stopped_by = _join_until_stopped(reader, loadcell, join, duration=duration,
+                                     max_samples=max_samples, idle_timeout=idle_timeout,
+                                     start_timeout=start_timeout, status=status)
     join.finish()
     pairs = join.pairs[:max_samples] if max_samples is not None else join.pairs
     if not pairs:
@@ -186,6 +146,62 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
         "loadcell": ls,
         **({"topics": topics} if out.suffix.lower() == ".mcap" else {}),
     }
+
+
+def _check_output(out: Path, estimator: Any | None) -> None:
+    """Refuse an output the recording could not be written to, before it starts."""
+    if out.suffix.lower() not in (".csv", ".npz", ".mcap"):
+        raise InputError("output must end in .csv, .npz or .mcap", path=str(out),
+                         column="--out")
+    if estimator is not None and out.suffix.lower() != ".mcap":
+        raise InputError("estimates are logged in an .mcap output only", path=str(out),
+                         column="--model")
+    if out.suffix.lower() == ".mcap":
+        from fbgforce.interrogator.mcaplog import writer_class
+
+        writer_class(out)  # a missing extra fails now, not after the recording
+    fileio.check_output_file(out, "--out")
+
+
+def _join_until_stopped(reader: Reader, loadcell: LoadCellReader, join: Joiner, *,
+                        duration: float | None, max_samples: int | None,
+                        idle_timeout: float | None, start_timeout: float | None,
+                        status: bool) -> str | None:
+    """Read both ports into ``join`` until a stop condition; the signal that stopped the
+    recording, if one did."""
+    started = time.monotonic()
+    first = last = None
+    last_report = started
+    try:
+        while True:
+            frames = reader.read(0.01)
+            lines = loadcell.read(0.0)
+            now = time.monotonic()
+            if frames or lines:
+                first = now if first is None else first
+                last = now
+                join.add(frames, lines)
+            # Nothing to report before the first sample (a silent port ends in one error line).
+            if status and first is not None and now - last_report >= 1.0:
+                last_report = now
+                print(f"record: {len(join.pairs)} samples, lost "
+                      f"{reader.stats().get('lost_frames', 0)} frames, unmatched "
+                      f"{join.unmatched_frames}/{join.unmatched_lines}", file=sys.stderr, flush=True)
+            if max_samples is not None and len(join.pairs) >= max_samples:
+                break
+            if first is None:
+                if start_timeout is not None and now - started >= start_timeout:
+                    break
+                continue
+            if duration is not None and now - first >= duration:
+                break
+            if idle_timeout is not None and now - last >= idle_timeout:
+                break
+    except KeyboardInterrupt as exc:
+        # The operator (Ctrl-C) or a service manager (SIGTERM) ends the recording: keep what
+        # was joined.
+        return signals.signal_name(exc)
+    return None
 
 
 def _write_mcap(ds: Any, out: Path, *, first_t_us: int, estimator: Any | None

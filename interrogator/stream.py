@@ -439,6 +439,31 @@ class CommandSource(Protocol):
     def answer(self, cmd: Command) -> None: ...
 
 
+@dataclass
+class _Tally:
+    """What a stream has received and estimated so far."""
+
+    #: Received, not yet estimated (taring): frame, host time, arrival ns (-1: before the tare).
+    waiting: list[tuple[Frame, float, int]] = field(default_factory=list)
+    estimated: int = 0
+    contact: int = 0
+    max_force_N: float = 0.0
+    last: dict[str, Any] | None = None
+    t_first: float | None = None
+    t_last: float | None = None
+    #: Failed commands counted at the last health snapshot.
+    failed_at_tick: int = 0
+
+    def command_counts(self, estimator: LiveEstimator, advance: bool = True) -> dict[str, int]:
+        """The estimator's command counts with the failures since the last snapshot; with
+        ``advance`` the next snapshot counts from here."""
+        counts = dict(estimator.command_counts)
+        counts["failed_last_s"] = counts["failed"] - self.failed_at_tick
+        if advance:
+            self.failed_at_tick = counts["failed"]
+        return counts
+
+
 def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | None = None,
                duration: float | None = None, max_samples: int | None = None,
                idle_timeout: float | None = None, start_timeout: float | None = None,
@@ -457,76 +482,34 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
     returned by the reader) to its publication (the last output's send returned), over the
     samples that arrived after the tare (those before wait for the tare by design).
     """
-    fh = None
     # The CSV appears under its name when the stream ends, however it ends (a signal, a lost
     # device): every estimate made is in it, and a full disk leaves no partial file.
     files = fileio.Outputs("--out")
     opened = contextlib.ExitStack()
-    if out is not None:
-        out = Path(out)
-        if out.suffix.lower() != ".csv":
-            raise InputError("estimates are written as CSV: use a .csv name", path=str(out),
-                             column="--out")
-        fh = opened.enter_context(files.open(out, "w", encoding="utf-8", newline="\n"))
-        fh.write("# fbgforce stream: raw samples and live estimates; host_s = receive time\n")
-        fh.write(",".join(CSV_COLUMNS) + "\n")
+    out = None if out is None else Path(out)
+    fh = None if out is None else _open_estimates_csv(out, files, opened)
     line = StatusLine(enabled=status)
-    # Received, not yet estimated (taring): frame, host time, arrival ns (-1: before the tare).
-    waiting: list[tuple[Frame, float, int]] = []
-    n = 0
-    contact_n = 0
-    max_force = 0.0
-    last: dict[str, Any] | None = None
-    t_first = t_last = None
+    tally = _Tally()
     stopped_by = None
     health = Health(estimator.digest(), estimator.tracker_bound_pm)
-    failed_at_tick = 0
     try:
         for batch in iter_batches(reader, duration=duration, max_samples=max_samples,
                                   idle_timeout=idle_timeout, start_timeout=start_timeout,
                                   empty=True):
             arrived_ns = time.monotonic_ns()
             now = arrived_ns / 1e9
-            for source in commands:
-                for name, token in source.poll():
-                    give = estimator.reset if name == "reset" else estimator.tare
-                    give((source, token))
-            estimator.expire(now)
-            for cmd in estimator.answered():
-                src, cmd.token = cmd.token
-                src.answer(cmd)
+            _take_commands(commands, estimator, now)
             if health.due(now):
-                counts = dict(estimator.command_counts)
-                counts["failed_last_s"] = counts["failed"] - failed_at_tick
-                failed_at_tick = counts["failed"]
                 snapshot = health.snapshot(now, reader.stats(), estimator.tracker_offset_pm,
-                                           counts)
+                                           tally.command_counts(estimator))
                 if publication is not None:
                     publication.status(snapshot)
             if not batch:
-                if t_first is not None:  # a silent device shows as a falling rate
-                    line.update(0, last, reader.stats())
+                if tally.t_first is not None:  # a silent device shows as a falling rate
+                    line.update(0, tally.last, reader.stats())
                 continue
-            health.samples(len(batch), now)
-            t_first = now if t_first is None else t_first
-            t_last = now
-            arrival = arrived_ns if estimator.baseline_fm is not None else -1
-            waiting.extend((f, now, arrival) for f in batch)
-            est = estimator.push(np.array([f.wl_fm[:N_GRATINGS] for f in batch], dtype=np.int64))
-            k = len(est["contact"])
-            if k:
-                done, waiting = waiting[:k], waiting[k:]
-                if publication is not None:
-                    publication.publish(estimate_records([f for f, _, _ in done], est,
-                                                         [a for _, _, a in done]))
-                if fh is not None:
-                    _write_rows(fh, done, est)
-                n += k
-                health.estimates(est["status"])
-                contact_n += int(np.count_nonzero(est["contact"]))
-                max_force = max(max_force, float(np.max(est["force_N"])))
-                last = {key: est[key][-1] for key in OUTPUT_KEYS}
-            line.update(len(batch), last, reader.stats())
+            _estimate_batch(batch, arrived_ns, now, estimator, tally, health, publication, fh)
+            line.update(len(batch), tally.last, reader.stats())
     except KeyboardInterrupt as exc:
         # Ctrl-C or SIGTERM is how a live stream normally ends: still write and summarise.
         stopped_by = signals.signal_name(exc)
@@ -534,28 +517,88 @@ def run_stream(reader: Reader, estimator: LiveEstimator, *, out: str | Path | No
         line.close()
         opened.close()
         files.commit()
-    stats = reader.stats()
-    span = (t_last - t_first) if t_first is not None and t_last is not None else 0.0
-    estimator.cancel("the stream ended before the window filled")
-    for cmd in estimator.answered():  # answered by the last batch, after the loop's turn
+    return _stream_summary(reader, estimator, tally, health, publication, out, stopped_by)
+
+
+def _open_estimates_csv(out: Path, files: fileio.Outputs, opened: contextlib.ExitStack
+                        ) -> TextIO:
+    """The estimates' CSV, its header written; ``files`` gives it its name when it commits."""
+    if out.suffix.lower() != ".csv":
+        raise InputError("estimates are written as CSV: use a .csv name", path=str(out),
+                         column="--out")
+    fh = opened.enter_context(files.open(out, "w", encoding="utf-8", newline="\n"))
+    fh.write("# fbgforce stream: raw samples and live estimates; host_s = receive time\n")
+    fh.write(",".join(CSV_COLUMNS) + "\n")
+    return fh
+
+
+def _take_commands(commands: Sequence[CommandSource], estimator: LiveEstimator,
+                   now: float) -> None:
+    """Give the estimator the sources' new commands and hand back the answered ones."""
+    for source in commands:
+        for name, token in source.poll():
+            give = estimator.reset if name == "reset" else estimator.tare
+            give((source, token))
+    estimator.expire(now)
+    _hand_back_answers(estimator)
+
+
+def _hand_back_answers(estimator: LiveEstimator) -> None:
+    for cmd in estimator.answered():
         src, cmd.token = cmd.token
         src.answer(cmd)
+
+
+def _estimate_batch(batch: list[Frame], arrived_ns: int, now: float, estimator: LiveEstimator,
+                    tally: _Tally, health: Health, publication: Publication | None,
+                    fh: TextIO | None) -> None:
+    """Estimate one batch; publish and write the samples it completes."""
+    health.samples(len(batch), now)
+    tally.t_first = now if tally.t_first is None else tally.t_first
+    tally.t_last = now
+    arrival = arrived_ns if estimator.baseline_fm is not None else -1
+    tally.waiting.extend((f, now, arrival) for f in batch)
+    est = estimator.push(np.array([f.wl_fm[:N_GRATINGS] for f in batch], dtype=np.int64))
+    k = len(est["contact"])
+    if not k:
+        return
+    done, tally.waiting = tally.waiting[:k], tally.waiting[k:]
+    if publication is not None:
+        publication.publish(estimate_records([f for f, _, _ in done], est,
+                                             [a for _, _, a in done]))
+    if fh is not None:
+        _write_rows(fh, done, est)
+    tally.estimated += k
+    health.estimates(est["status"])
+    tally.contact += int(np.count_nonzero(est["contact"]))
+    tally.max_force_N = max(tally.max_force_N, float(np.max(est["force_N"])))
+    tally.last = {key: est[key][-1] for key in OUTPUT_KEYS}
+
+
+def _stream_summary(reader: Reader, estimator: LiveEstimator, tally: _Tally, health: Health,
+                    publication: Publication | None, out: Path | None,
+                    stopped_by: str | None) -> dict[str, Any]:
+    """The stream's summary once it ended (keys in docs/cli.md, ``stream``)."""
+    stats = reader.stats()
+    span = (tally.t_last - tally.t_first) \
+        if tally.t_first is not None and tally.t_last is not None else 0.0
+    estimator.cancel("the stream ended before the window filled")
+    _hand_back_answers(estimator)  # answered by the last batch, after the loop's turn
     # The health at the end: the period since the last snapshot, not yet judged.
-    counts = {**estimator.command_counts,
-              "failed_last_s": estimator.command_counts["failed"] - failed_at_tick}
     last_health = health.snapshot(time.monotonic(), stats, estimator.tracker_offset_pm,
-                                  counts, advance=False)
+                                  tally.command_counts(estimator, advance=False), advance=False)
+    n, received = tally.estimated, tally.estimated + len(tally.waiting)
     return {
         "samples": n,
-        "received": n + len(waiting),
+        "received": received,
         "duration_s": round(span, 3),
-        "rate_hz": round((n + len(waiting) - 1) / span, 1) if span > 0 else 0.0,
+        "rate_hz": round((received - 1) / span, 1) if span > 0 else 0.0,
         "lost_frames": stats.get("lost_frames", 0),
         "bad_frames": _bad_frames(stats),
         "engine": estimator.engine,
         "baseline_nm": None if estimator.baseline_nm is None else estimator.baseline_nm.tolist(),
-        "contact_fraction": contact_n / n if n else 0.0,
-        "max_force_N": max_force,
+        "contact_fraction": tally.contact / n if n else 0.0,
+        "max_force_N": tally.max_force_N,
         "compute_us_per_sample": 1e6 * estimator.compute_s / estimator.estimated
         if estimator.estimated else None,
         "out": None if out is None else str(out),

@@ -14,13 +14,11 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
-import math
 import sys
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
-from fbgforce.jsonutil import json_default
 from fbgforce import __version__, signals
+from fbgforce.cliargs import Handler, emit, fail
 from fbgforce.errors import InputError
 
 #: Modules that define subcommands, in the order their commands appear in ``--help``.
@@ -35,51 +33,6 @@ COMMAND_MODULES = (
     "fbgforce.teleop.cli",
     "fbgforce.demo",
 )
-
-Handler = Callable[[argparse.Namespace], "dict[str, Any] | None"]
-
-
-def add_json_flag(parser: argparse.ArgumentParser) -> None:
-    """Give a subcommand the shared ``--json`` flag."""
-    parser.add_argument(
-        "--json",
-        action="store_true",
-        help="print one JSON object on stdout (keys in docs/cli.md); progress stays on stderr",
-    )
-
-
-# Argument types shared by every subcommand, so a bad number reads the same everywhere.
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, not {text}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0."""
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, not {text}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    """argparse type: a finite number > 0."""
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, not {text}")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    """argparse type: a finite number >= 0."""
-    value = float(text)
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, not {text}")
-    return value
 
 
 class UsageError(Exception):
@@ -119,23 +72,6 @@ def build_parser() -> argparse.ArgumentParser:
             raise
         module.register(subparsers)
     return parser
-
-
-def emit(result: dict[str, Any] | None, as_json: bool) -> None:
-    """Print a handler's result: JSON on stdout with ``--json``, else nothing more."""
-    if as_json and result is not None:
-        json.dump(result, sys.stdout, indent=None, sort_keys=False, default=json_default)
-        sys.stdout.write("\n")
-
-
-
-def fail(line: str, as_json: bool, code: int = 2) -> int:
-    """Report a failure: ``line`` on stderr and, with ``--json``, ``{"error", "code"}`` on
-    stdout (docs/cli.md); returns ``code``."""
-    print(line, file=sys.stderr)
-    if as_json:
-        emit({"error": line, "code": code}, True)
-    return code
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce.cli import add_json_flag, positive_int
+from fbgforce.cliargs import add_json_flag, positive_int
 from fbgforce.errors import InputError
 
 

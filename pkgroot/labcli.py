@@ -6,7 +6,7 @@ import argparse
 import sys
 from typing import Any
 
-from fbgforce.cli import add_json_flag, non_negative_int, positive_float, positive_int
+from fbgforce.cliargs import add_json_flag, non_negative_int, positive_float, positive_int
 
 
 def register(subparsers: Any) -> None:

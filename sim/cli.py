@@ -6,39 +6,38 @@ import time
 from pathlib import Path
 from typing import Any
 
-from fbgforce.cli import add_json_flag, non_negative_float, positive_float
 from fbgforce import fileio
+from fbgforce.cliargs import add_seed, at_least, command, non_negative_float, positive_float
 from fbgforce.errors import InputError
 
 
 def register(subparsers: Any) -> None:
     """Add the ``simulate`` subcommand."""
-    p = subparsers.add_parser(
-        "simulate",
-        help="simulate a scene and write a dataset (CSV or npz)",
-        description="Run a scene (built-in name or TOML path) through the end-effector "
-                    "simulator and write the samples in the dataset format (docs/dataset.md).",
-    )
-    p.add_argument("--scene", help="built-in scene name or path to a scene TOML file")
-    p.add_argument("--out", help="output file, .csv or .npz")
-    p.add_argument("--seed", type=int, default=None, help="override the scene's seed (>= 0)")
-    p.add_argument("--device", type=int, default=None,
-                   help="override the scene's device number (>= 0): another toleranced device")
-    p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
-    p.add_argument("--lab-logs", metavar="DIR", default=None,
-                   help="also write the raw files a lab would have: DIR/interrogator.csv, "
-                        "DIR/stage.csv (load cell and position on the stage's own clock) and "
-                        "DIR/import.toml (fbgforce import --map); docs/simulator.md")
-    p.add_argument("--stage-rate-hz", type=positive_float, default=500.0,
-                   help="stage log rate on its own clock (default 500 Hz)")
-    p.add_argument("--stage-offset-s", type=float, default=0.1,
-                   help="stage clock minus interrogator clock at the first sample (default 0.1 s)")
-    p.add_argument("--stage-drift-ppm", type=float, default=80.0,
-                   help="stage clock rate error against the interrogator's (default 80 ppm)")
-    p.add_argument("--stage-jitter-ms", type=non_negative_float, default=0.1,
-                   help="sd of the stage samples' timing jitter (default 0.1 ms)")
-    add_json_flag(p)
-    p.set_defaults(handler=run)
+    with command(subparsers, "simulate", run,
+                 help="simulate a scene and write a dataset (CSV or npz)",
+                 description="Run a scene (built-in name or TOML path) through the end-effector "
+                             "simulator and write the samples in the dataset format "
+                             "(docs/dataset.md).") as p:
+        p.add_argument("--scene", help="built-in scene name or path to a scene TOML file")
+        p.add_argument("--out", help="output file, .csv or .npz")
+        add_seed(p, "override the scene's seed (>= 0)", default=None)
+        p.add_argument("--device", type=int, default=None,
+                       help="override the scene's device number (>= 0): another toleranced "
+                            "device")
+        p.add_argument("--list", action="store_true", help="list the built-in scenes and exit")
+        p.add_argument("--lab-logs", metavar="DIR", default=None,
+                       help="also write the raw files a lab would have: DIR/interrogator.csv, "
+                            "DIR/stage.csv (load cell and position on the stage's own clock) "
+                            "and DIR/import.toml (fbgforce import --map); docs/simulator.md")
+        p.add_argument("--stage-rate-hz", type=positive_float, default=500.0,
+                       help="stage log rate on its own clock (default 500 Hz)")
+        p.add_argument("--stage-offset-s", type=float, default=0.1,
+                       help="stage clock minus interrogator clock at the first sample (default "
+                            "0.1 s)")
+        p.add_argument("--stage-drift-ppm", type=float, default=80.0,
+                       help="stage clock rate error against the interrogator's (default 80 ppm)")
+        p.add_argument("--stage-jitter-ms", type=non_negative_float, default=0.1,
+                       help="sd of the stage samples' timing jitter (default 0.1 ms)")
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
@@ -62,9 +61,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out = Path(args.out)
     if out.suffix.lower() not in (".csv", ".npz"):
         raise InputError("output must end in .csv or .npz", path=str(out), column="--out")
-    for flag, value in (("--seed", args.seed), ("--device", args.device)):
-        if value is not None and value < 0:
-            raise InputError(f"must be >= 0, got {value}", column=flag)
+    at_least(args.seed, 0, "--seed")
+    at_least(args.device, 0, "--device")
     fileio.check_output_file(out, "--out")
     scene = load_scene(args.scene)
     t0 = time.perf_counter()

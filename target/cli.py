@@ -9,6 +9,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Sequence
 
+from fbgforce.cliargs import add_data, add_model, add_seed, command
 from fbgforce.errors import InputError
 from fbgforce.target import toolchain
 from fbgforce.target.report import target_report
@@ -17,30 +18,28 @@ from fbgforce.target.sources import CSourcesMissing
 
 def register(subparsers: Any) -> None:
     """Add the ``target-report`` subcommand."""
-    from fbgforce.cli import add_json_flag
-
-    p = subparsers.add_parser(
-        "target-report", help="Cortex-M4 (QEMU): bit-exact golden vectors, instructions, size",
-        description="Cross-compile libfbgforce for Cortex-M4 (portable and DSP-extension "
-                    "builds), replay golden vectors from the integer reference on QEMU "
-                    "mps2-an386 comparing every output bit, count the instructions of every "
-                    "fbg_step exactly (TCG plugin) and measure flash/RAM. Needs: " + toolchain.APT_LINE)
-    p.add_argument("--model", required=True, metavar="DIR",
-                   help="model directory (its model.fbgm if exported, else quantised in memory)")
-    p.add_argument("--data", metavar="FILE", help="recording for the golden vectors "
-                   "(default: the simulated --scene)")
-    p.add_argument("--scene", default="smoke", help="scene simulated when --data is not given")
-    p.add_argument("--samples", type=int, default=600, help="recording samples replayed (edge "
-                   "cases and API calls are added)")
-    p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration data when the "
-                   "model is not exported yet (default: its training files)")
-    p.add_argument("--bits", type=int, choices=(16, 8), default=None,
-                   help="quantise in memory with int16 or int8 weights instead of using model.fbgm")
-    p.add_argument("--seed", type=int, default=0, help="simulation and edge-case seed")
-    p.add_argument("--build-dir", metavar="DIR", help="keep the build here (default: a "
-                   "temporary directory, removed afterwards)")
-    add_json_flag(p)
-    p.set_defaults(handler=_handler)
+    with command(subparsers, "target-report", _handler,
+                 help="Cortex-M4 (QEMU): bit-exact golden vectors, instructions, size",
+                 description="Cross-compile libfbgforce for Cortex-M4 (portable and DSP-extension "
+                             "builds), replay golden vectors from the integer reference on QEMU "
+                             "mps2-an386 comparing every output bit, count the instructions of "
+                             "every fbg_step exactly (TCG plugin) and measure flash/RAM. Needs: "
+                             + toolchain.APT_LINE) as p:
+        add_model(p, "model directory (its model.fbgm if exported, else quantised in memory)",
+                  metavar="DIR")
+        add_data(p, "recording for the golden vectors (default: the simulated --scene)",
+                 nargs=None, required=False)
+        p.add_argument("--scene", default="smoke", help="scene simulated when --data is not given")
+        p.add_argument("--samples", type=int, default=600, help="recording samples replayed (edge "
+                       "cases and API calls are added)")
+        p.add_argument("--calib", nargs="+", metavar="FILE", help="calibration data when the "
+                       "model is not exported yet (default: its training files)")
+        p.add_argument("--bits", type=int, choices=(16, 8), default=None,
+                       help="quantise in memory with int16 or int8 weights instead of using "
+                            "model.fbgm")
+        add_seed(p, "simulation and edge-case seed")
+        p.add_argument("--build-dir", metavar="DIR", help="keep the build here (default: a "
+                       "temporary directory, removed afterwards)")
 
 
 def _handler(args: argparse.Namespace) -> dict[str, Any]:

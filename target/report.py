@@ -3,10 +3,11 @@ MACs, flash, RAM and the share of a 1 kHz period."""
 from __future__ import annotations
 
 import bisect
+import contextlib
 import tempfile
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
@@ -136,14 +137,7 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
     macs = golden.step_macs(q, records)
     step_contact = [bool(r.out["contact"]) for r in steps]
 
-    tmp = None
-    if build_dir is None:
-        tmp = tempfile.TemporaryDirectory(prefix="fbg-target-")
-        build = Path(tmp.name)
-    else:
-        build = Path(build_dir).resolve()
-        build.mkdir(parents=True, exist_ok=True)
-    try:
+    with _build_directory(build_dir) as build:
         ident = "target"
         hdr, src = codegen.fixed_source(q, ident)
         (build / f"{ident}_model.h").write_text(hdr)
@@ -156,60 +150,17 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
         csrc = sources.stage(build / "src")
         libs = firmware.build_libraries(csrc)
         builds: dict[str, Any] = {}
-        exact = True
         for dsp in (False, True):
             name = "dsp" if dsp else "portable"
             log(f"firmware ({name}): build and run on QEMU mps2-an386")
             bdir = firmware.build_firmware(csrc, build, model_c, f"{ident}_model", golden_c, dsp)
-            run = firmware.run_firmware(bdir)
-            ok = (run.exit_code == 0 and run.result.get("mismatches") == 0
-                  and run.result.get("model_swap_refused") == 1
-                  and run.result.get("steps") == len(steps) and len(run.windows) == len(steps))
-            exact &= ok
-            sizes = firmware.map_sizes(bdir / "fw_size.map", exclude=("startup.o", "semihost.o", "main_size.o"))
-            entry = {"bit_exact": ok, "exit_code": run.exit_code,
-                     "mismatches": run.result.get("mismatches"),
-                     "model_swap_refused": run.result.get("model_swap_refused") == 1,
-                     **_figures(run, macs, step_contact),
-                     **{f"{k}_bytes": v for k, v in sizes.items()},
-                     "stack_bytes": run.result.get("stack_bytes"),
-                     "state_bytes": run.result.get("state_bytes")}
-            entry.update(_cycle_figures(run, bdir / "fw.elf"))
-            # Instructions per replayed step by function (init and tare calls included: they
-            # are a few hundred instructions in all), largest first.
-            entry["profile_per_step"] = {k: round(v / max(len(steps), 1), 1)
-                                         for k, v in list(run.profile.items())[:12]}
-            if run.mismatch_lines:
-                entry["first_mismatches"] = run.mismatch_lines[:3]
-            if not run.result:
-                entry["console"] = run.console[-2000:]
-            builds[name] = entry
-        best = builds["dsp"]
-        full = [m for m, cc in zip(macs, step_contact) if cc and m > 0]
-        report = {
-            "bit_exact": exact,
+            builds[name] = _replay(bdir, macs, step_contact, len(steps))
+        headline = _headline_figures(builds, macs, step_contact)
+        return {
+            "bit_exact": all(b["bit_exact"] for b in builds.values()),
             "samples": len(steps),
             "records": len(records),
-            "instructions_per_step": best["instructions_per_step"],
-            "macs_per_step": max(full) if full else max(macs, default=0),
-            "instructions_per_mac": best["instructions_per_mac"],
-            "text_bytes": best["text_bytes"],
-            "rodata_bytes": best["rodata_bytes"],
-            "data_bytes": best["data_bytes"],
-            "bss_bytes": best["bss_bytes"],
-            "flash_bytes": best["text_bytes"] + best["rodata_bytes"] + best["data_bytes"],
-            "ram_bytes": best["data_bytes"] + best["bss_bytes"] + (best["state_bytes"] or 0)
-                         + (best["stack_bytes"] or 0),
-            "state_bytes": best["state_bytes"],
-            "stack_bytes": best["stack_bytes"],
-            "budget_fraction_at_168MHz": best["budget_fraction_at_168MHz"],
-            "cycles_per_step_estimate": best.get("cycles_per_step_estimate"),
-            "budget_fraction_cycles_at_168MHz": best.get("budget_fraction_cycles_at_168MHz"),
-            "assumption": "budget_fraction_at_168MHz: one instruction per cycle (QEMU counts "
-                          "instructions, not cycles); budget_fraction_cycles_at_168MHz: cycles "
-                          "estimated from the worst step's executed instruction mix with the "
-                          "Cortex-M4 TRM timings, zero-wait-state memory (fbgforce.target.cycles); "
-                          "instructions_per_step is the worst step (contact: all three nets)",
+            **headline,
             "builds": builds,
             "model": source,
             "weight_bits": int(q.w_bits),
@@ -217,7 +168,72 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
             "nofloat_ok": libs["nofloat_ok"],
             "seconds": round(time.perf_counter() - t0, 2),
         }
-        return report
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
+
+
+@contextlib.contextmanager
+def _build_directory(build_dir: str | Path | None) -> Iterator[Path]:
+    """``build_dir``, made if missing, or else a temporary directory removed afterwards."""
+    if build_dir is None:
+        with tempfile.TemporaryDirectory(prefix="fbg-target-") as tmp:
+            yield Path(tmp)
+        return
+    build = Path(build_dir).resolve()
+    build.mkdir(parents=True, exist_ok=True)
+    yield build
+
+
+def _replay(bdir: Path, macs: list[int], step_contact: list[bool], n_steps: int
+            ) -> dict[str, Any]:
+    """Run one firmware build on QEMU: whether it replayed every step bit-exactly, its
+    instructions, cycles and sizes."""
+    run = firmware.run_firmware(bdir)
+    ok = (run.exit_code == 0 and run.result.get("mismatches") == 0
+          and run.result.get("model_swap_refused") == 1
+          and run.result.get("steps") == n_steps and len(run.windows) == n_steps)
+    sizes = firmware.map_sizes(bdir / "fw_size.map", exclude=("startup.o", "semihost.o", "main_size.o"))
+    entry = {"bit_exact": ok, "exit_code": run.exit_code,
+             "mismatches": run.result.get("mismatches"),
+             "model_swap_refused": run.result.get("model_swap_refused") == 1,
+             **_figures(run, macs, step_contact),
+             **{f"{k}_bytes": v for k, v in sizes.items()},
+             "stack_bytes": run.result.get("stack_bytes"),
+             "state_bytes": run.result.get("state_bytes")}
+    entry.update(_cycle_figures(run, bdir / "fw.elf"))
+    # Instructions per replayed step by function (init and tare calls included: they
+    # are a few hundred instructions in all), largest first.
+    entry["profile_per_step"] = {k: round(v / max(n_steps, 1), 1)
+                                 for k, v in list(run.profile.items())[:12]}
+    if run.mismatch_lines:
+        entry["first_mismatches"] = run.mismatch_lines[:3]
+    if not run.result:
+        entry["console"] = run.console[-2000:]
+    return entry
+
+
+def _headline_figures(builds: dict[str, Any], macs: list[int], step_contact: list[bool]
+                      ) -> dict[str, Any]:
+    """The report's headline figures: the DSP build's, the one firmware ships."""
+    best = builds["dsp"]
+    full = [m for m, cc in zip(macs, step_contact) if cc and m > 0]
+    return {
+        "instructions_per_step": best["instructions_per_step"],
+        "macs_per_step": max(full) if full else max(macs, default=0),
+        "instructions_per_mac": best["instructions_per_mac"],
+        "text_bytes": best["text_bytes"],
+        "rodata_bytes": best["rodata_bytes"],
+        "data_bytes": best["data_bytes"],
+        "bss_bytes": best["bss_bytes"],
+        "flash_bytes": best["text_bytes"] + best["rodata_bytes"] + best["data_bytes"],
+        "ram_bytes": best["data_bytes"] + best["bss_bytes"] + (best["state_bytes"] or 0)
+                     + (best["stack_bytes"] or 0),
+        "state_bytes": best["state_bytes"],
+        "stack_bytes": best["stack_bytes"],
+        "budget_fraction_at_168MHz": best["budget_fraction_at_168MHz"],
+        "cycles_per_step_estimate": best.get("cycles_per_step_estimate"),
+        "budget_fraction_cycles_at_168MHz": best.get("budget_fraction_cycles_at_168MHz"),
+        "assumption": "budget_fraction_at_168MHz: one instruction per cycle (QEMU counts "
+                      "instructions, not cycles); budget_fraction_cycles_at_168MHz: cycles "
+                      "estimated from the worst step's executed instruction mix with the "
+                      "Cortex-M4 TRM timings, zero-wait-state memory (fbgforce.target.cycles); "
+                      "instructions_per_step is the worst step (contact: all three nets)",
+    }

@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fbgforce.cli import add_json_flag
 from fbgforce import fileio
+from fbgforce.cliargs import add_model, add_seed, at_least, command
 from fbgforce.errors import InputError
 
 FEEDBACK_CHOICES = ("estimator", "true", "none")
@@ -17,36 +17,35 @@ FEEDBACK_CHOICES = ("estimator", "true", "none")
 
 def register(subparsers: Any) -> None:
     """Add the ``teleop`` subcommand."""
-    p = subparsers.add_parser(
-        "teleop",
-        help="closed-loop teleoperation: pick up an egg with force feedback (paper Fig. 7)",
-        description="Simulate the 1 kHz bilateral loop of the paper's §VI: an operator on a "
-                    "Touch-like haptic master closes a two-finger gripper on an egg, the "
-                    "fingertip (simulator + runtime) reports the force, the master's stiffness "
-                    "follows it, and the arm then lifts and carries the egg. Writes the Fig. 7 "
-                    "plot (run 0), summary.json and runs.csv to --out.",
-    )
-    p.add_argument("--scene", default="egg_grasp",
-                   help="built-in teleop scene name or TOML path (default egg_grasp)")
-    p.add_argument("--model", help="model directory (needed for --feedback estimator; the "
-                   "fixed engine needs 'fbgforce export' first)")
-    p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of run 0 (operator, egg, noise); run k uses seed + k (default 0)")
-    p.add_argument("--runs", type=int, default=1,
-                   help="number of seeded runs (operators); rates over all, plot of run 0")
-    p.add_argument("--feedback", choices=FEEDBACK_CHOICES, default="estimator",
-                   help="what sets the master's stiffness: the runtime's estimate (default), "
-                        "the true force, or nothing")
-    p.add_argument("--engine", choices=("fixed", "cfloat"), default="fixed",
-                   help="runtime for --feedback estimator: C fixed point (default) or C float")
-    p.add_argument("--delay-ms", type=float, default=0.0,
-                   help="extra transport delay between the force source and the master, ms")
-    p.add_argument("--allow-other-device", action="store_true",
-                   help="run the estimator even if the scene's fingertip is not the device the "
-                        "model was calibrated on (default: refuse; to measure what it costs)")
-    add_json_flag(p)
-    p.set_defaults(handler=run)
+    with command(subparsers, "teleop", run,
+                 help="closed-loop teleoperation: pick up an egg with force feedback (paper "
+                      "Fig. 7)",
+                 description="Simulate the 1 kHz bilateral loop of the paper's §VI: an operator "
+                             "on a Touch-like haptic master closes a two-finger gripper on an "
+                             "egg, the fingertip (simulator + runtime) reports the force, the "
+                             "master's stiffness follows it, and the arm then lifts and carries "
+                             "the egg. Writes the Fig. 7 plot (run 0), summary.json and runs.csv "
+                             "to --out.") as p:
+        p.add_argument("--scene", default="egg_grasp",
+                       help="built-in teleop scene name or TOML path (default egg_grasp)")
+        add_model(p, "model directory (needed for --feedback estimator; the fixed engine needs "
+                     "'fbgforce export' first)", metavar=None, required=False)
+        p.add_argument("--out", required=True, help="output directory")
+        add_seed(p, "seed of run 0 (operator, egg, noise); run k uses seed + k (default 0)")
+        p.add_argument("--runs", type=int, default=1,
+                       help="number of seeded runs (operators); rates over all, plot of run 0")
+        p.add_argument("--feedback", choices=FEEDBACK_CHOICES, default="estimator",
+                       help="what sets the master's stiffness: the runtime's estimate "
+                            "(default), the true force, or nothing")
+        p.add_argument("--engine", choices=("fixed", "cfloat"), default="fixed",
+                       help="runtime for --feedback estimator: C fixed point (default) or C "
+                            "float")
+        p.add_argument("--delay-ms", type=float, default=0.0,
+                       help="extra transport delay between the force source and the master, ms")
+        p.add_argument("--allow-other-device", action="store_true",
+                       help="run the estimator even if the scene's fingertip is not the device "
+                            "the model was calibrated on (default: refuse; to measure what it "
+                            "costs)")
 
 
 def make_feedback(kind: str, model: str | None, engine: str, delay_ms: float,
@@ -74,10 +73,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.teleop.plot import plot_run
     from fbgforce.teleop.scene import load_teleop_scene
 
-    if args.runs < 1:
-        raise InputError(f"must be >= 1, got {args.runs}", column="--runs")
-    if args.seed < 0:
-        raise InputError(f"must be >= 0, got {args.seed}", column="--seed")
+    at_least(args.runs, 1, "--runs")
+    at_least(args.seed, 0, "--seed")
     scene = load_teleop_scene(args.scene)
     fb = make_feedback(args.feedback, args.model, args.engine, args.delay_ms,
                        args.allow_other_device)

@@ -99,6 +99,7 @@ def test_no_import_cycles():
 LAYERS = {
     "fbgforce.contract": 0, "fbgforce.units": 0, "fbgforce.errors": 0, "fbgforce.jsonutil": 0,
     "fbgforce.fileio": 0, "fbgforce.signals": 0, "fbgforce.samples": 0, "fbgforce.progress": 0,
+    "fbgforce.cliargs": 0,
     "fbgforce.freshness": 1, "fbgforce.geometry": 1, "fbgforce.dataset": 1, "fbgforce.bag": 1,
     "fbgforce.model": 1, "fbgforce.tare": 1, "fbgforce.metrics": 1, "fbgforce._runtime": 1,
     "fbgforce.labimport": 1, "fbgforce.protocol": 1,

@@ -7,27 +7,56 @@ from pathlib import Path
 from typing import Any
 
 from fbgforce import fileio
+from fbgforce.cliargs import add_data, add_model, add_seed, command, positive_int
 from fbgforce.errors import InputError
 
 
 def register(subparsers: Any) -> None:
     """Add the ``tradeoff`` and ``bench-speed`` subcommands."""
-    from fbgforce.cli import add_json_flag
+    with command(subparsers, "tradeoff", _handler,
+                 help="accuracy against compute time and filter delay over a grid",
+                 description="Train (or reuse) models over filters x network widths, run every "
+                             "engine (numpy float64, onnxruntime, C float, C int16, C int8 "
+                             "with/without QAT) on the same held-out presses, time them in one "
+                             "interleaved run, and write tradeoff.json, tradeoff.csv, "
+                             "tradeoff.md and tradeoff.png to --out.") as p:
+        _add_source(p, "recording(s) in the dataset contract", nargs="+")
+        p.add_argument("--out", required=True, metavar="DIR", help="output directory (models are "
+                       "kept in DIR/models and reused by a later run with the same settings)")
+        p.add_argument("--quick", action="store_true",
+                       help="small grid, few epochs, short timing: the CI smoke run (< 60 s)")
+        add_seed(p, "split, training and simulation seed")
+        _add_grid_options(p)
+    with command(subparsers, "bench-speed", _bench_speed_handler,
+                 help="every engine timed side by side in one run, with ratios",
+                 description="Time one model in every engine on the same contact samples in one "
+                             "run: the C runtime int16, int8 and float (batch and single-sample, "
+                             "from Python through cffi and from C through a compiled driver), "
+                             "numpy float64 and onnxruntime float32 (whole pipeline and nets "
+                             "only, batch and single-sample); per-sample CPU time, the ratio to "
+                             "onnxruntime's batch over the nets, and instructions per step "
+                             "counted by callgrind (valgrind). Prints a Markdown table; --out "
+                             "writes the JSON (keys in docs/cli.md).") as p:
+        add_model(p, "trained model directory with its int16 export (fbgforce export)",
+                  metavar="DIR")
+        p.add_argument("--int8", metavar="DIR", help="the int8 export of the same model "
+                       "(fbgforce export --bits 8 on a copy); default: exported here, calibrated "
+                       "on the data")
+        _add_source(p, "recording in the dataset contract", nargs=None)
+        add_seed(p, "simulation seed for --scene")
+        _add_bench_speed_options(p)
+        p.add_argument("--out", metavar="FILE", help="write the JSON result here")
 
-    p = subparsers.add_parser(
-        "tradeoff", help="accuracy against compute time and filter delay over a grid",
-        description="Train (or reuse) models over filters x network widths, run every engine "
-                    "(numpy float64, onnxruntime, C float, C int16, C int8 with/without QAT) on "
-                    "the same held-out presses, time them in one interleaved run, and write "
-                    "tradeoff.json, tradeoff.csv, tradeoff.md and tradeoff.png to --out.")
+
+def _add_source(p: argparse.ArgumentParser, data_help: str, nargs: str | None) -> None:
+    """``--data`` or ``--scene``, one of them required."""
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", nargs="+", metavar="FILE", help="recording(s) in the dataset contract")
+    add_data(src, data_help, nargs=nargs, required=False)
     src.add_argument("--scene", metavar="NAME", help="simulate this scene (name or TOML path)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (models are "
-                   "kept in DIR/models and reused by a later run with the same settings)")
-    p.add_argument("--quick", action="store_true",
-                   help="small grid, few epochs, short timing: the CI smoke run (< 60 s)")
-    p.add_argument("--seed", type=int, default=0, help="split, training and simulation seed")
+
+
+def _add_grid_options(p: argparse.ArgumentParser) -> None:
+    """The ``tradeoff`` grid: its training, its axes, its engines."""
     p.add_argument("--epochs", type=int, default=None, help="max training epochs per net")
     p.add_argument("--time-budget", type=float, default=None, metavar="S",
                    help="wall-time cap per net in seconds (keeps the best weights so far)")
@@ -51,31 +80,10 @@ def register(subparsers: Any) -> None:
                         "rest against onset delay over the Schmitt trigger's rise margin and "
                         "count and the CUSUM's threshold (decision.json, decision.md, "
                         "decision.csv, decision.png in --out)")
-    add_json_flag(p)
-    p.set_defaults(handler=_handler)
-    _register_bench_speed(subparsers)
 
 
-def _register_bench_speed(subparsers: Any) -> None:
-    from fbgforce.cli import add_json_flag, positive_int
-
-    p = subparsers.add_parser(
-        "bench-speed", help="every engine timed side by side in one run, with ratios",
-        description="Time one model in every engine on the same contact samples in one run: "
-                    "the C runtime int16, int8 and float (batch and single-sample, from Python "
-                    "through cffi and from C through a compiled driver), numpy float64 and "
-                    "onnxruntime float32 (whole pipeline and nets only, batch and single-sample); "
-                    "per-sample CPU time, the ratio to onnxruntime's batch over the nets, and "
-                    "instructions per step counted by callgrind (valgrind). Prints a Markdown "
-                    "table; --out writes the JSON (keys in docs/cli.md).")
-    p.add_argument("--model", required=True, metavar="DIR",
-                   help="trained model directory with its int16 export (fbgforce export)")
-    p.add_argument("--int8", metavar="DIR", help="the int8 export of the same model (fbgforce "
-                   "export --bits 8 on a copy); default: exported here, calibrated on the data")
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", metavar="FILE", help="recording in the dataset contract")
-    src.add_argument("--scene", metavar="NAME", help="simulate this scene (name or TOML path)")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed for --scene")
+def _add_bench_speed_options(p: argparse.ArgumentParser) -> None:
+    """What ``bench-speed`` times, how long, and which builds."""
     p.add_argument("--samples", type=positive_int, default=5000,
                    help="contact samples timed (default 5000)")
     p.add_argument("--batch", type=positive_int, default=2000,
@@ -100,9 +108,6 @@ def _register_bench_speed(subparsers: Any) -> None:
     p.add_argument("--no-kernels", action="store_true",
                    help="skip the builds per dense-layer kernel (FBG_OPT_KERNEL_*)")
     p.add_argument("--no-callgrind", action="store_true", help="skip the instruction counts")
-    p.add_argument("--out", metavar="FILE", help="write the JSON result here")
-    add_json_flag(p)
-    p.set_defaults(handler=_bench_speed_handler)
 
 
 def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:

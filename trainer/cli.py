@@ -7,8 +7,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from fbgforce.cli import non_negative_float, positive_int
 from fbgforce import fileio
+from fbgforce.cliargs import (add_data, add_model, add_seed, command, non_negative_float,
+                               positive_int)
 from fbgforce.errors import InputError
 
 
@@ -18,24 +19,37 @@ def _check_files(paths: list[str], flag: str) -> None:
 
 
 def register(subparsers: Any) -> None:
-    """Add ``train``, ``evaluate``, ``analyze`` and ``report`` to the ``fbgforce`` command."""
-    from fbgforce.cli import add_json_flag
-    from fbgforce.engines import ENGINES
+    """Add ``train``, ``coverage``, ``evaluate``, ``analyze`` and ``report`` to the
+    ``fbgforce`` command."""
+    _register_train(subparsers)
+    _register_coverage(subparsers)
+    _register_evaluate(subparsers)
+    _register_analyze(subparsers)
+    _register_report(subparsers)
+
+
+def _register_train(subparsers: Any) -> None:
+    with command(subparsers, "train", _train,
+                 help="train the hierarchical contact/force/location nets",
+                 description="Fit preprocessing (tare, temperature coefficients, Gaussian "
+                             "filter), split 8:1:1 by press, train the contact, force and "
+                             "location nets (numpy, Adam, early stopping) and write a model "
+                             "directory.") as p:
+        add_data(p, "calibration recordings (CSV or npz, dataset contract), one device")
+        p.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
+        p.add_argument("--epochs", type=positive_int, default=200,
+                       help="maximum epochs per net (early stopping usually ends sooner; default "
+                            "200)")
+        add_seed(p, "split, initialisation and shuffling seed")
+        _add_preprocess_options(p)
+        _add_net_options(p)
+
+
+def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
+    """``train``'s filter, temperature reference, creep correction and contact decision."""
     from fbgforce.model import FILTER_KINDS
-    from fbgforce.trainer.evaluate import SPLITS
     from fbgforce.trainer.preprocess import DEFAULT_SIGMA, DEFAULT_SIGMA_MS
 
-    p = subparsers.add_parser(
-        "train", help="train the hierarchical contact/force/location nets",
-        description="Fit preprocessing (tare, temperature coefficients, Gaussian filter), split "
-                    "8:1:1 by press, train the contact, force and location nets (numpy, Adam, "
-                    "early stopping) and write a model directory.")
-    p.add_argument("--data", nargs="+", required=True, metavar="FILE",
-                   help="calibration recordings (CSV or npz, dataset contract), one device")
-    p.add_argument("--out", required=True, metavar="MODEL_DIR", help="model directory to write")
-    p.add_argument("--epochs", type=positive_int, default=200,
-                   help="maximum epochs per net (early stopping usually ends sooner; default 200)")
-    p.add_argument("--seed", type=int, default=0, help="split, initialisation and shuffling seed")
     p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
                    help="smoothing: causal (shipped, default), centred (offline, paper) or none")
     p.add_argument("--sigma", type=non_negative_float, default=None,
@@ -65,6 +79,10 @@ def register(subparsers: Any) -> None:
                         "default: the inverse when the pad creeps more slowly than the memory's "
                         "longest average, which then cannot see it (docs/trainer.md \"The "
                         "pad's creep in use\")")
+
+
+def _add_net_options(p: argparse.ArgumentParser) -> None:
+    """``train``'s starting point, memory, widths and synthetic recordings."""
     p.add_argument("--init", metavar="MODEL_DIR", default=None,
                    help="start from another device's model (transfer learning)")
     p.add_argument("--train-fraction", type=float, default=1.0,
@@ -100,65 +118,71 @@ def register(subparsers: Any) -> None:
                    help="share of the training presses the contact and force nets also see "
                         "after a rest of 3-60 s (synthetic long rests; default 0.2, 0 = off); "
                         "docs/trainer.md \"Long rests\"")
-    add_json_flag(p)
-    p.set_defaults(handler=_train)
 
-    p = subparsers.add_parser(
-        "coverage", help="what a calibration log covers and what a model trained on it "
-                         "will not know",
-        description="Force range, a map of press locations, loading speeds, hold lengths, "
-                    "temperature range and rest time of calibration recordings, and what a "
-                    "model trained on them has not seen (docs/lab-import.md).")
-    p.add_argument("--data", nargs="+", required=True, metavar="LOG",
-                   help="calibration recordings (CSV or npz, dataset contract)")
-    add_json_flag(p)
-    p.set_defaults(handler=_coverage)
 
-    p = subparsers.add_parser(
-        "evaluate", help="score a model on recordings with one engine",
-        description="Run a model on each recording (tared on its own contact-free samples) with "
-                    "an engine and print the shared metrics.")
-    p.add_argument("--model", required=True, metavar="MODEL_DIR")
-    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
-    p.add_argument("--engine", choices=tuple(ENGINES), default="float",
-                   help="float (numpy float64, default), onnx, fixed, cfloat, intref")
-    p.add_argument("--split", choices=SPLITS, default="all",
-                   help="score all samples (default) or one part of the by-press split made "
-                        "with the model's seed")
-    p.add_argument("--resample", action="store_true",
-                   help="bring recordings sampled at another rate than the model's to its rate "
-                        "(linear interpolation) instead of refusing them")
-    add_json_flag(p)
-    p.set_defaults(handler=_evaluate)
+def _register_coverage(subparsers: Any) -> None:
+    with command(subparsers, "coverage", _coverage,
+                 help="what a calibration log covers and what a model trained on it "
+                      "will not know",
+                 description="Force range, a map of press locations, loading speeds, hold "
+                             "lengths, temperature range and rest time of calibration "
+                             "recordings, and what a model trained on them has not seen "
+                             "(docs/lab-import.md).") as p:
+        add_data(p, "calibration recordings (CSV or npz, dataset contract)", metavar="LOG")
 
-    p = subparsers.add_parser(
-        "analyze", help="auto-encoder study: how many features the four channels hold",
-        description="Train 4->k->4 auto-encoders (k = 1, 2, 3) on the compensated, filtered "
-                    "contact samples and print their reconstruction RMSE (paper §VII-D).")
-    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
-    p.add_argument("--plot", metavar="PNG", default=None,
-                   help="write the 3-feature embedding (paper Fig. 10); needs matplotlib")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--epochs", type=positive_int, default=30)
-    add_json_flag(p)
-    p.set_defaults(handler=_analyze)
 
-    p = subparsers.add_parser(
-        "report", help="the paper's results side by side with ours",
-        description="Model-based (nominal, fitted) vs network (causal, centred, unfiltered) on "
-                    "the held-out test presses; contact success overall and above 5 N; errors "
-                    "by force range and at the boundary. Writes report.md and report.json.")
-    p.add_argument("--data", nargs="+", required=True, metavar="FILE")
-    p.add_argument("--model", metavar="MODEL_DIR", default=None,
-                   help="use this model for the causal network instead of training one")
-    p.add_argument("--out", metavar="DIR", default=None, help="write report.md and report.json")
-    p.add_argument("--epochs", type=positive_int, default=200)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--sigma", type=non_negative_float, default=None,
-                   help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
-                        "data's sample rate)")
-    add_json_flag(p)
-    p.set_defaults(handler=_report)
+def _register_evaluate(subparsers: Any) -> None:
+    from fbgforce.engines import ENGINES
+    from fbgforce.trainer.evaluate import SPLITS
+
+    with command(subparsers, "evaluate", _evaluate,
+                 help="score a model on recordings with one engine",
+                 description="Run a model on each recording (tared on its own contact-free "
+                             "samples) with an engine and print the shared metrics.") as p:
+        add_model(p)
+        add_data(p)
+        p.add_argument("--engine", choices=tuple(ENGINES), default="float",
+                       help="float (numpy float64, default), onnx, fixed, cfloat, intref")
+        p.add_argument("--split", choices=SPLITS, default="all",
+                       help="score all samples (default) or one part of the by-press split made "
+                            "with the model's seed")
+        p.add_argument("--resample", action="store_true",
+                       help="bring recordings sampled at another rate than the model's to its "
+                            "rate (linear interpolation) instead of refusing them")
+
+
+def _register_analyze(subparsers: Any) -> None:
+    with command(subparsers, "analyze", _analyze,
+                 help="auto-encoder study: how many features the four channels hold",
+                 description="Train 4->k->4 auto-encoders (k = 1, 2, 3) on the compensated, "
+                             "filtered contact samples and print their reconstruction RMSE "
+                             "(paper §VII-D).") as p:
+        add_data(p)
+        p.add_argument("--plot", metavar="PNG", default=None,
+                       help="write the 3-feature embedding (paper Fig. 10); needs matplotlib")
+        add_seed(p)
+        p.add_argument("--epochs", type=positive_int, default=30)
+
+
+def _register_report(subparsers: Any) -> None:
+    from fbgforce.trainer.preprocess import DEFAULT_SIGMA_MS
+
+    with command(subparsers, "report", _report,
+                 help="the paper's results side by side with ours",
+                 description="Model-based (nominal, fitted) vs network (causal, centred, "
+                             "unfiltered) on the held-out test presses; contact success overall "
+                             "and above 5 N; errors by force range and at the boundary. Writes "
+                             "report.md and report.json.") as p:
+        add_data(p)
+        add_model(p, "use this model for the causal network instead of training one",
+                  required=False)
+        p.add_argument("--out", metavar="DIR", default=None,
+                       help="write report.md and report.json")
+        p.add_argument("--epochs", type=positive_int, default=200)
+        add_seed(p)
+        p.add_argument("--sigma", type=non_negative_float, default=None,
+                       help=f"Gaussian sigma in samples (default {DEFAULT_SIGMA_MS:g} ms at the "
+                            "data's sample rate)")
 
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
