@@ -15,7 +15,7 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce import model as fm
-from fbgforce.export.quantize import SAT16, SAT32, TEMP_COEFF_SHIFT, WL_MAX_FM, WL_MIN_FM, QLayer, QModel
+from fbgforce.export.qmodel import SAT16, SAT32, QLayer, QModel
 from fbgforce.units import nm_to_fm, to_engine_dict
 
 STATUS_NOT_TARED = contract.STATUS_FLAG["NOT_TARED"]
@@ -26,6 +26,9 @@ STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
 STATUS_BASELINE_LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
 STATUS_OUT_OF_RANGE = contract.STATUS_FLAG["OUT_OF_RANGE"]
 EMA_FRAC = contract.LIMIT["EMA_FRAC"]
+TEMP_COEFF_SHIFT = contract.LIMIT["TEMP_COEFF_SHIFT"]
+WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
+WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
 
 __all__ = ["run", "run_recording", "memory_features", "rshift_round", "sat", "sigmoid_q15",
            "nm_to_fm", "to_engine_dict"]
