@@ -386,7 +386,7 @@ def test_the_creep_term_at_its_bounds_is_exact():
     z0, _ = q.z_rest()
     assert z0.tolist() == [contract.SAT16] * 4
     sat = np.array([[contract.SAT16] * 4] * 40 + [[-contract.SAT16] * 4] * 400, dtype=np.int64)
-    terms = intref._Tracker(q).rest_terms(sat, z0)
+    terms = intref._RestTracker(q).rest_terms(sat, z0)
     assert terms.min() == -65533 and np.abs(terms).max() <= 65534
     wl = np.vstack([hc.stress_inputs(q, 1, 40), hc.stress_inputs(q, -1, 64 * 8)])
     base = np.asarray(q.baseline_fm, dtype=np.int64)

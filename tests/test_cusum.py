@@ -67,7 +67,7 @@ def test_the_cusum_rule_on_hand_made_margins():
     q = QModel.__new__(QModel)
     q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 0, -20, 1
     q.contact_cusum_h_q8, q.contact_cusum_k_q8, q.contact_cusum_lo_q8, q.contact_cusum_hi_q8 = cusum
-    assert np.array_equal(intref._decide(q, raw, margin, [0, 0, 0]), want)
+    assert np.array_equal(intref._contact_decision(q, raw, margin, [0, 0, 0]), want)
 
 
 def test_a_single_spike_cannot_raise_contact_under_the_clip():

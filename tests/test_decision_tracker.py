@@ -115,11 +115,11 @@ def test_the_decision_rule_on_hand_made_margins():
     # the second restarts the count.
     want = np.array([0, 1, 1, 1, 0, 0, 0, 0, 1, 1, 0, 0], dtype=bool)
     state = [0, 0, 0]
-    assert np.array_equal(intref._decide(q, raw, margin, state), want)
+    assert np.array_equal(intref._contact_decision(q, raw, margin, state), want)
     assert state == [0, 0, 0]
     # The state carries from one call to the next exactly as one call.
     state = [0, 0, 0]
-    parts = [intref._decide(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
+    parts = [intref._contact_decision(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
     assert np.array_equal(np.concatenate(parts), want)
 
 
