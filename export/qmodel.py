@@ -48,7 +48,8 @@ class QLayer:
     shift: int
     info: dict[str, Any] = field(default_factory=dict)
     #: Exporter-only float scales (not in the blob): w_scale (n_out,), in_scale, out_ratio
-    #: (n_out,) = output integer units per real accumulator unit; used by error_bounds().
+    #: (n_out,) = output integer units per real accumulator unit; used by
+    #: :func:`fbgforce.export.quantize.error_bounds`.
     scales: dict[str, Any] = field(default_factory=dict, repr=False)
     #: int32 accumulator (``fbg_layer.acc32``): allowed only when :meth:`acc_bound` fits int32,
     #: so the int32 sum equals the int64 one (docs/fixed-point.md, "int32 layers").
