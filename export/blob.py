@@ -30,7 +30,7 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
-from fbgforce.export.quantize import NET_NAMES, ModelCheckError, QLayer, QModel
+from fbgforce.export.qmodel import NET_NAMES, ModelCheckError, QLayer, QModel
 
 MAGIC = contract.MAGIC
 VERSION = contract.LIMIT["BLOB_VERSION"]

@@ -21,7 +21,7 @@ import numpy as np
 from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob
-from fbgforce.export.quantize import NET_NAMES, QModel
+from fbgforce.export.qmodel import NET_NAMES, QModel
 
 _PER_LINE = 12
 

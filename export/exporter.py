@@ -21,6 +21,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.units import nm_to_fm, to_engine_dict
 
 REPORT_FILE = freshness.REPORT_FILE
@@ -118,7 +119,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     return report
 
 
-def const_bytes(q: qz.QModel) -> int:
+def const_bytes(q: QModel) -> int:
     """Bytes of constant arrays a generated C model puts in flash: weights, per-row bias
     (int64) and multiplier (int32), FIR taps (int16). docs/runtime.md quotes it."""
     weight_bytes = sum(ly.w.size * ly.w_bits // 8 + ly.n_out * 12 for net in q.nets for ly in net)

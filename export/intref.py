@@ -15,7 +15,7 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce import model as fm
-from fbgforce.export.quantize import SAT16, SAT32, TEMP_COEFF_SHIFT, WL_MAX_FM, WL_MIN_FM, QLayer, QModel
+from fbgforce.export.qmodel import SAT16, SAT32, QLayer, QModel
 from fbgforce.units import nm_to_fm, to_engine_dict
 
 STATUS_NOT_TARED = contract.STATUS_FLAG["NOT_TARED"]
@@ -26,6 +26,9 @@ STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
 STATUS_BASELINE_LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
 STATUS_OUT_OF_RANGE = contract.STATUS_FLAG["OUT_OF_RANGE"]
 EMA_FRAC = contract.LIMIT["EMA_FRAC"]
+TEMP_COEFF_SHIFT = contract.LIMIT["TEMP_COEFF_SHIFT"]
+WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
+WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
 
 __all__ = ["run", "run_recording", "memory_features", "rshift_round", "sat", "sigmoid_q15",
            "nm_to_fm", "to_engine_dict"]
@@ -72,8 +75,159 @@ def sigmoid_q15(x_q8: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-# The pipeline
+# The step: fbg_step's stages in its order (front end, filter, memory, nets with the
+# decision and the rest tracker, hold), each below under its C name
 # --------------------------------------------------------------------------------------------
+
+def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
+        trace: dict[str, int] | None = None, end: dict[str, Any] | None = None
+        ) -> dict[str, np.ndarray]:
+    """Run the fixed-point pipeline on one continuous recording from a fresh state.
+
+    Equivalent to ``fbg_init`` then (if ``baseline_fm`` is given) ``fbg_set_baseline`` and
+    ``fbg_step`` on every row. With the at-rest baseline tracker on (``q.track_shift``) the
+    recording runs in blocks of TRACK_BLOCK samples, between which the tracker may move the
+    baseline, as the C state does; otherwise in one block.
+
+    Parameters
+    ----------
+    wl_fm
+        (n, 5) int32 femtometres.
+    baseline_fm
+        (5,) tare baseline; None runs on the model's nominal baseline (status NOT_TARED).
+    trace
+        If a dict, receives the largest ``|accumulator|`` seen per layer (``"net.layer"``)
+        and for the FIR (``"fir"``), for the export report.
+    end
+        If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
+        ``fbg_get_baseline`` reads it (the tracker may have moved it), and ``"creep"``: the
+        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any), and
+        ``"creep_acc"``: the creep inverse's states as ``fbg_state.creep_acc`` (0 before any).
+
+    Returns
+    -------
+    dict
+        int arrays named as ``fbg_output``: force_mN, x_um, y_um, contact_margin_q8, status,
+        contact_conf_q15, contact.
+    """
+    wl = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
+    n = wl.shape[0]
+    tared = baseline_fm is not None
+    base = np.array(q.baseline_fm if baseline_fm is None else baseline_fm, dtype=np.int64).reshape(5)
+    status = np.full(n, 0 if tared else STATUS_NOT_TARED, dtype=np.int64)
+    flag = np.zeros(n, dtype=bool)
+    # The front end's parts that read the wavelengths only, never the baseline the tracker
+    # moves, run on the whole recording at once: the fault rule, the warm-up and the
+    # temperature reference (the tracker moves only the strain gratings' baseline).
+    fault = _sensor_faults(q, wl)
+    status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
+    warm = np.arange(1, n + 1) < q.taps.size
+    status |= np.where(warm, STATUS_WARMUP, 0)
+    ref = reference_average(q, wl[:, 4] - base[4], fault)
+
+    out = {k: np.zeros(n, dtype=np.int64) for k in
+           ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
+    state = _State(q, trace)
+    block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
+    for a in range(0, n, block):
+        b = min(n, a + block)
+        if state.tracker.limited:
+            status[a:b] |= STATUS_BASELINE_LIMIT
+        rest, r_sum = _block(q, state, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base,
+                             status[a:b], flag[a:b], {k: v[a:b] for k, v in out.items()})
+        if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
+            state.tracker.end_block(rest & tared, r_sum, base)
+    status |= np.where(flag, STATUS_SATURATED, 0)
+    out["status"] = status
+    if end is not None:
+        end["baseline_fm"] = base.copy()
+        end["creep"] = np.array(state.tracker.creep or [0] * 4, dtype=np.int64)
+        end["creep_acc"] = np.array(state.creep[0] or [0] * 4, dtype=np.int64)
+    return out
+
+
+class _State:
+    """What ``fbg_state`` carries from one block of samples to the next: the FIR's held
+    inputs and the last good sample's filtered shifts, the creep inverse's states, the
+    memory, the rest tracker, the decision's and the hold's states; and the constant ``z0``
+    the tracker measures from and the accumulator ``trace`` of :func:`run`."""
+
+    def __init__(self, q: QModel, trace: dict[str, int] | None) -> None:
+        self.trace = trace
+        #: Held FIR inputs before the block, and the filtered shifts a faulty sample feeds it
+        #: (zeros before any good sample).
+        self.history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)
+        self.last_comp = np.zeros(4, dtype=np.int64)
+        #: The creep inverse's acc (:func:`creep_inverse`), None until the first good sample.
+        self.creep: list[list[int] | None] = [None]
+        self.memory = _MemoryStage(q)
+        self.tracker = _RestTracker(q)
+        #: ``[decision, rise_run, cusum_q8]`` (:func:`_contact_decision`) and ``[hold_avg,
+        #: hold_primed, hold_run]`` (:func:`_hold_stage`).
+        self.decision = [0, 0, 0]
+        self.hold = [0, 0, 0]
+        self.z_rest, _ = q.z_rest()
+
+
+def _block(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray,
+           warm: np.ndarray, base: np.ndarray, status: np.ndarray, flag: np.ndarray,
+           out: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The stages of ``fbg_step`` after the fault rule, on consecutive samples that share one
+    baseline, in its order: front end, filter, memory, nets with the decision, hold. Writes
+    ``status``, ``flag`` and ``out`` (views of the block) and carries ``state``; ``ref`` is
+    the temperature reference of each sample (:func:`reference_average`). Returns which
+    samples were at rest and their sum of the tracker's terms
+    (:meth:`_RestTracker.rest_terms`), for the tracker's update at the block's end."""
+    n = wl.shape[0]
+    ok = ~fault
+    comp = _front_stage(q, state, wl, ref, base, ok, flag)
+    z = _filter_stage(q, state, comp, ok, status, flag)
+    rows = np.flatnonzero(ok)
+    terms = np.zeros((n, 4), dtype=np.int64)
+    terms[rows] = state.tracker.rest_terms(z[rows], state.z_rest)
+    feats = _memory_stage(q, state, z, rows, status, flag)
+    rest = np.zeros(n, dtype=bool)
+    if rows.size:
+        contact = _contact_outputs(q, state, feats, rows, flag, out)
+        rest[rows] = ~contact & ~warm[rows]
+        if contact.any():
+            _force_location_outputs(q, state, feats, rows, contact, status, flag, out)
+        else:
+            state.hold[1], state.hold[2] = 0, 0      # the settled-hold gain, cleared by no contact
+    return rest, terms[rest].sum(axis=0)
+
+
+def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
+                  baseline_nm: np.ndarray) -> dict[str, Any]:
+    """Engine ``intref``: the integer reference on ``model_dir/model.fbgm``."""
+    from fbgforce.export.blob import load_model_blob
+
+    q = load_model_blob(model_dir, float_model=model)
+    return to_engine_dict(run(q, nm_to_fm(wl_nm), nm_to_fm(np.asarray(baseline_nm).reshape(5))))
+
+
+# --------------------------------------------------------------------------------------------
+# Front end (front_stage): fault rule, tare, temperature compensation, creep inverse
+# --------------------------------------------------------------------------------------------
+
+def _sensor_faults(q: QModel, wl: np.ndarray) -> np.ndarray:
+    """The front end's fault rule (``fbg_front_sample`` of fbg_front.h) on a whole recording
+    (n, 5): per sample, whether a channel is outside the wavelength window, jumped more than
+    ``jump_max_fm`` from its last in-window value, or repeated that value ``stuck_max`` times
+    in a row (a uint16 count, saturating; 0 turns the stuck-peak rule off)."""
+    n = wl.shape[0]
+    inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
+    prev, has_prev = _prev_in_window(wl, inwin)
+    jump = inwin & has_prev & (np.abs(wl - prev) > q.jump_max_fm)
+    # The stuck-peak run: consecutive samples equal to the previous in-window value,
+    # restarted by any change or out-of-window sample.
+    same = inwin & has_prev & (wl == prev)
+    steps = np.arange(n)[:, None]
+    last_reset = np.maximum.accumulate(np.where(same, -1, steps), axis=0) if n else steps
+    run_len = np.minimum(steps - last_reset, 0xFFFF)
+    stuck = (run_len >= q.stuck_max) if q.stuck_max else np.zeros_like(inwin)
+    return np.any(~inwin | jump | stuck, axis=1)
+
 
 def _prev_in_window(wl: np.ndarray, inwin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per sample and channel: the last in-window value strictly before it, and whether any."""
@@ -85,47 +239,19 @@ def _prev_in_window(wl: np.ndarray, inwin: np.ndarray) -> tuple[np.ndarray, np.n
     return prev, prev_idx >= 0
 
 
-def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
-    """The layer's accumulators. For an int32 layer (``acc32``) the sum is taken in int32, as
-    the C code does. It equals the int64 sum because the bound below (the loader's proof,
-    inputs are sat16 values, and ReLU outputs >= 0 after the first layer) keeps every partial
-    sum inside int32; numpy would wrap silently otherwise, hence the check."""
-    if not layer.acc32:
-        return x @ layer.w.T + layer.bias
-    # The proof that applies to these inputs: the ReLU-input bound needs x >= 0.
-    nonneg = x.size == 0 or int(x.min()) >= 0
-    if (relu_inputs and not nonneg) or (x.size and int(np.abs(x).max()) > SAT16) \
-            or int(layer.acc32_bound(nonneg).max()) > SAT32:
-        raise ValueError("int32 accumulator without the int32 bound proof")
-    acc = x.astype(np.int32) @ layer.w.T.astype(np.int32) + layer.bias.astype(np.int32)
-    return acc.astype(np.int64)
-
-
-def _hidden(layer: QLayer, x: np.ndarray, flag: np.ndarray, relu_inputs: bool = False
-            ) -> np.ndarray:
-    acc = _acc(layer, x, relu_inputs)
-    y = rshift_round(acc * layer.mult, layer.shift)
-    y, clamped = sat(np.maximum(y, 0), SAT16)
-    flag |= clamped.any(axis=1)
-    return y
-
-
-def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | None, name: str
-         ) -> tuple[np.ndarray, np.ndarray]:
-    """Hidden layers then the output layer's accumulator and sat32 output (per row)."""
-    for i, layer in enumerate(layers[:-1]):
-        if trace is not None and x.size:
-            trace[f"{name}.{i}"] = max(trace.get(f"{name}.{i}", 0),
-                                       int(np.abs(_acc(layer, x, i > 0)).max()))
-        x = _hidden(layer, x, flag, i > 0)
-    last = layers[-1]
-    acc = _acc(last, x, len(layers) > 1)
-    if trace is not None and x.size:
-        key = f"{name}.{len(layers) - 1}"
-        trace[key] = max(trace.get(key, 0), int(np.abs(acc).max()))
-    y, clamped = sat(rshift_round(acc * last.mult, last.shift), SAT32)
-    flag |= clamped.any(axis=1)
-    return acc, y
+def _front_stage(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, base: np.ndarray,
+                 ok: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    """``front_stage`` of fbg_fixed.c after the fault rule: tare, temperature compensation by
+    the reference ``ref`` and the creep inverse, on the rows ``ok`` without a fault (the
+    others' values are never read). Returns the compensated shifts (m, 4) fm; flags where a
+    value saturated."""
+    _, c1 = sat(wl[:, 4] - base[4], SAT32)    # the compensation reads ref
+    shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
+    t = rshift_round(ref[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
+    comp, c3 = sat(shift - t, SAT32)
+    comp, c_creep = creep_inverse(q, comp, ok, state.creep)
+    flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1) | c_creep)
+    return comp
 
 
 def reference_average(q: QModel, shift_t: np.ndarray, fault: np.ndarray) -> np.ndarray:
@@ -180,7 +306,67 @@ def creep_inverse(q: QModel, comp: np.ndarray, ok: np.ndarray, acc: list[list[in
     return out, clamped
 
 
-class _Memory:
+# --------------------------------------------------------------------------------------------
+# Filter (filter_stage): the causal FIR, the standardisation, the load proxy
+# --------------------------------------------------------------------------------------------
+
+def _fir(q: QModel, state: _State, comp: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The causal FIR's accumulators (m, 4) over the carried history. A faulty sample feeds
+    the FIR the last good sample's filtered shifts (``state.last_comp``), as the C ring does,
+    so the block runs as alternating stretches of good and faulty samples."""
+    n = comp.shape[0]
+    k = q.taps.size - 1
+    acc = np.zeros((n, 4), dtype=np.int64)
+    edges = np.flatnonzero(np.diff(ok.astype(np.int8))) + 1 if n else np.zeros(0, dtype=np.int64)
+    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
+        part = comp[a:b] if ok[a] else np.repeat(state.last_comp[None, :], b - a, axis=0)
+        seq = np.vstack([state.history, part])
+        acc[a:b] = np.stack([np.convolve(seq[:, c], q.taps)[k:k + b - a] for c in range(4)],
+                            axis=1)
+        if k:
+            state.history[:] = seq[-k:]
+        if ok[a]:
+            state.last_comp[:] = sat(rshift_round(acc[b - 1], q.tap_q), SAT32)[0]
+    return acc
+
+
+def _filter_stage(q: QModel, state: _State, comp: np.ndarray, ok: np.ndarray,
+                  status: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    """``filter_stage`` of fbg_fixed.c: the FIR (:func:`_fir`), the standardisation into
+    Q(z_frac) and the input-side overload of the linear load proxy (|coeff| < 2^28, so its
+    sum stays < 2^61). Returns z (m, 4); flags saturation and OVERLOAD on the rows ``ok``."""
+    acc = _fir(q, state, comp, ok)
+    if state.trace is not None and comp.shape[0]:
+        state.trace["fir"] = max(state.trace.get("fir", 0), int(np.abs(acc[ok]).max(initial=0)))
+    filt, c4 = sat(rshift_round(acc, q.tap_q), SAT32)
+    d, c5 = sat(filt - q.mean_fm, SAT32)
+    z, c6 = sat(rshift_round(d * q.z_mult, q.z_shift), SAT16)
+    flag |= ok & (c4 | c5 | c6).any(axis=1)
+    load = rshift_round(filt @ q.load_coeff, q.load_shift)
+    status |= np.where(ok & (load > q.load_max_mN), STATUS_OVERLOAD, 0)
+    return z
+
+
+# --------------------------------------------------------------------------------------------
+# Memory (memory_stage): the memory features and the location averages
+# --------------------------------------------------------------------------------------------
+
+def _memory_stage(q: QModel, state: _State, z: np.ndarray, rows: np.ndarray,
+                  status: np.ndarray, flag: np.ndarray) -> np.ndarray:
+    """``memory_stage`` of fbg_fixed.c, then its OUT_OF_RANGE rule: the net inputs (m, F +
+    location averages) of the fault-free ``rows`` in order (zeros on the others, which no
+    net reads); flags saturation and inputs outside ``[in_lo, in_hi]``."""
+    x, c_mem = state.memory.push(z[rows])
+    flag[rows] |= c_mem
+    nf = q.n_features
+    outside = np.any((x[:, :nf] < q.in_lo[:nf]) | (x[:, :nf] > q.in_hi[:nf]), axis=1)
+    status[rows] |= np.where(outside, STATUS_OUT_OF_RANGE, 0)
+    feats = np.zeros((z.shape[0], nf + q.n_loc), dtype=np.int64)
+    feats[rows] = x
+    return feats
+
+
+class _MemoryStage:
     """The memory states of fbg_fixed.c's ``memory_features`` (load-signal averages and play
     operators, location averages), carried from one block of fault-free samples to the next.
     The first sample primes them as at rest after a release; a faulty sample never reaches
@@ -304,17 +490,118 @@ def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns the net inputs (m, F + location averages) and, per sample, whether a value
     saturated.
     """
-    return _Memory(q).push(z)
+    return _MemoryStage(q).push(z)
 
 
 def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The location averages of fbg_fixed.c's ``memory_features`` on consecutive fault-free
     ``z`` (m, 4), primed by the first: the Q(z_frac) inputs (m, 4) and where r or z0
     saturated."""
-    return _Memory(q)._location_averages(np.asarray(z, dtype=np.int64).reshape(-1, 4))
+    return _MemoryStage(q)._location_averages(np.asarray(z, dtype=np.int64).reshape(-1, 4))
 
 
-def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) -> np.ndarray:
+# --------------------------------------------------------------------------------------------
+# Nets (contact_outputs, force_location_outputs): the three nets in integers
+# --------------------------------------------------------------------------------------------
+
+def _contact_outputs(q: QModel, state: _State, feats: np.ndarray, rows: np.ndarray,
+                     flag: np.ndarray, out: dict[str, np.ndarray]) -> np.ndarray:
+    """``contact_outputs`` of fbg_fixed.c on the fault-free ``rows``: the contact net's margin
+    (Q8), the decision over time (:func:`_contact_decision`) and the confidence. Returns the
+    decision per row."""
+    f_ok = np.zeros(rows.size, dtype=bool)
+    acc_c, margin = _net(q.nets[0], feats[rows, :q.n_features], f_ok, state.trace, "contact")
+    contact = _contact_decision(q, acc_c[:, 0] > 0, margin[:, 0], state.decision)
+    out["contact_margin_q8"][rows] = margin[:, 0]
+    out["contact_conf_q15"][rows] = sigmoid_q15(margin[:, 0])
+    out["contact"][rows] = contact
+    flag[rows] |= f_ok
+    return contact
+
+
+def _force_location_outputs(q: QModel, state: _State, feats: np.ndarray, rows: np.ndarray,
+                            contact: np.ndarray, status: np.ndarray, flag: np.ndarray,
+                            out: dict[str, np.ndarray]) -> None:
+    """``force_location_outputs`` of fbg_fixed.c on the ``rows`` decided ``contact``: the
+    force net, then the location net on [z, contact << z_frac, the force in Q(z_frac),
+    location averages], then the settled-hold gain (:func:`_hold_stage`), which runs on every
+    fault-free sample in order because one without contact clears it. Flags saturation and
+    OVERLOAD above ``overload_mN``."""
+    crow = rows[contact]
+    nf = q.n_features
+    f_c = np.zeros(crow.size, dtype=bool)
+    _, force_out = _net(q.nets[1], feats[crow, :nf], f_c, state.trace, "force")
+    force_out = force_out[:, 0]
+    force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
+    fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
+    loc_in = np.column_stack([feats[crow, :4], np.full(crow.size, 1 << q.z_frac), fq,
+                              feats[crow, nf:]])
+    _, xy = _net(q.nets[2], loc_in, f_c, state.trace, "location")
+    x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
+    y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)
+    f_c |= c7 | c8 | c9 | c10
+    if q.hold_gain_q15:
+        seq = np.zeros(rows.size, dtype=np.int64)
+        seq[contact] = force_mN
+        held, c11 = _hold_stage(q, seq, contact, state.hold)
+        force_mN = held[contact]
+        f_c |= c11[contact]
+    out["force_mN"][crow] = force_mN
+    out["x_um"][crow] = x_um
+    out["y_um"][crow] = y_um
+    flag[crow] |= f_c
+    status[crow] |= np.where(force_mN > q.overload_mN, STATUS_OVERLOAD, 0)
+
+
+def _net(layers: list[QLayer], x: np.ndarray, flag: np.ndarray, trace: dict | None, name: str
+         ) -> tuple[np.ndarray, np.ndarray]:
+    """Hidden layers then the output layer's accumulator and sat32 output (per row)."""
+    for i, layer in enumerate(layers[:-1]):
+        if trace is not None and x.size:
+            trace[f"{name}.{i}"] = max(trace.get(f"{name}.{i}", 0),
+                                       int(np.abs(_acc(layer, x, i > 0)).max()))
+        x = _hidden(layer, x, flag, i > 0)
+    last = layers[-1]
+    acc = _acc(last, x, len(layers) > 1)
+    if trace is not None and x.size:
+        key = f"{name}.{len(layers) - 1}"
+        trace[key] = max(trace.get(key, 0), int(np.abs(acc).max()))
+    y, clamped = sat(rshift_round(acc * last.mult, last.shift), SAT32)
+    flag |= clamped.any(axis=1)
+    return acc, y
+
+
+def _hidden(layer: QLayer, x: np.ndarray, flag: np.ndarray, relu_inputs: bool = False
+            ) -> np.ndarray:
+    acc = _acc(layer, x, relu_inputs)
+    y = rshift_round(acc * layer.mult, layer.shift)
+    y, clamped = sat(np.maximum(y, 0), SAT16)
+    flag |= clamped.any(axis=1)
+    return y
+
+
+def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
+    """The layer's accumulators. For an int32 layer (``acc32``) the sum is taken in int32, as
+    the C code does. It equals the int64 sum because the bound below (the loader's proof,
+    inputs are sat16 values, and ReLU outputs >= 0 after the first layer) keeps every partial
+    sum inside int32; numpy would wrap silently otherwise, hence the check."""
+    if not layer.acc32:
+        return x @ layer.w.T + layer.bias
+    # The proof that applies to these inputs: the ReLU-input bound needs x >= 0.
+    nonneg = x.size == 0 or int(x.min()) >= 0
+    if (relu_inputs and not nonneg) or (x.size and int(np.abs(x).max()) > SAT16) \
+            or int(layer.acc32_bound(nonneg).max()) > SAT32:
+        raise ValueError("int32 accumulator without the int32 bound proof")
+    acc = x.astype(np.int32) @ layer.w.T.astype(np.int32) + layer.bias.astype(np.int32)
+    return acc.astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# Decision (contact_decision): contact over time
+# --------------------------------------------------------------------------------------------
+
+def _contact_decision(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]
+                      ) -> np.ndarray:
     """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples: the rule of
     :func:`fbgforce.model.decide_over_time` on the Q8 margins, in Python integers (exact).
     ``raw`` is ``acc > 0`` and ``margin`` the output row as computed, whatever the sign of its
@@ -326,45 +613,11 @@ def _decide(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]) ->
                                              q.contact_cusum_lo_q8, q.contact_cusum_hi_q8))
 
 
-def _hold(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
-          ) -> tuple[np.ndarray, np.ndarray]:
-    """``hold_stage`` of fbg_fixed.c (the settled-hold gain, the rule of
-    :func:`fbgforce.model.hold_over_time` in integers) on consecutive fault-free samples: their
-    force (mN, any value where there is no contact) and contact decisions. ``state`` is
-    ``[hold_avg, hold_primed, hold_run]``, carried and updated. Returns the force and where it
-    saturated."""
-    out = np.asarray(force_mN, dtype=np.int64).copy()
-    flag = np.zeros(out.size, dtype=bool)
-    if q.hold_gain_q15 == 0:
-        return out, flag
-    avg, primed, run = state
-    frac, settle, ramp = contract.LIMIT["EMA_FRAC"], q.hold_settle, 1 << q.hold_ramp_shift
-    top = settle + ramp
-    for i, (f, c) in enumerate(zip(out.tolist(), np.asarray(contact, dtype=bool).tolist())):
-        if not c:
-            primed, run = 0, 0
-            continue
-        if primed:
-            avg += (((f << frac) - avg) + (1 << (q.hold_shift - 1))) >> q.hold_shift
-        else:
-            avg, primed = f << frac, 1
-        dev = f - ((avg + (1 << (frac - 1))) >> frac)
-        band = max(q.hold_band_mN, (abs(f) * q.hold_band_q15 + (1 << 14)) >> 15)
-        if abs(dev) <= band:
-            if run < top and run < 0xFFFF:
-                run += 1
-        else:
-            run = 0
-        w = min(max(run - settle, 0), ramp)
-        shift = 15 + q.hold_ramp_shift
-        v = f + ((f * q.hold_gain_q15 * w + (1 << (shift - 1))) >> shift)
-        flag[i] = abs(v) > SAT32
-        out[i] = max(-SAT32, min(SAT32, v))
-    state[0], state[1], state[2] = avg, primed, run
-    return out, flag
+# --------------------------------------------------------------------------------------------
+# Rest tracker (rest_track): the at-rest baseline tracker
+# --------------------------------------------------------------------------------------------
 
-
-class _Tracker:
+class _RestTracker:
     """``rest_track`` of fbg_fixed.c: the at-rest baseline tracker's state, and its update at
     the end of each TRACK_BLOCK block."""
 
@@ -418,195 +671,43 @@ class _Tracker:
             self.frac[c] = frac
 
 
-def run(q: QModel, wl_fm: np.ndarray, baseline_fm: np.ndarray | None = None, *,
-        trace: dict[str, int] | None = None, end: dict[str, Any] | None = None
-        ) -> dict[str, np.ndarray]:
-    """Run the fixed-point pipeline on one continuous recording from a fresh state.
+# --------------------------------------------------------------------------------------------
+# Hold (hold_stage): the settled-hold gain
+# --------------------------------------------------------------------------------------------
 
-    Equivalent to ``fbg_init`` then (if ``baseline_fm`` is given) ``fbg_set_baseline`` and
-    ``fbg_step`` on every row. With the at-rest baseline tracker on (``q.track_shift``) the
-    recording runs in blocks of TRACK_BLOCK samples, between which the tracker may move the
-    baseline, as the C state does; otherwise in one block.
-
-    Parameters
-    ----------
-    wl_fm
-        (n, 5) int32 femtometres.
-    baseline_fm
-        (5,) tare baseline; None runs on the model's nominal baseline (status NOT_TARED).
-    trace
-        If a dict, receives the largest ``|accumulator|`` seen per layer (``"net.layer"``)
-        and for the FIR (``"fir"``), for the export report.
-    end
-        If a dict, receives ``"baseline_fm"``: the (5,) baseline after the last sample, as
-        ``fbg_get_baseline`` reads it (the tracker may have moved it), and ``"creep"``: the
-        tracker's creep states (4,) as ``fbg_state.creep`` holds them (0 before any), and
-        ``"creep_acc"``: the creep inverse's states as ``fbg_state.creep_acc`` (0 before any).
-
-    Returns
-    -------
-    dict
-        int arrays named as ``fbg_output``: force_mN, x_um, y_um, contact_margin_q8, status,
-        contact_conf_q15, contact.
-    """
-    wl = np.asarray(wl_fm, dtype=np.int64).reshape(-1, 5)
-    n = wl.shape[0]
-    tared = baseline_fm is not None
-    base = np.array(q.baseline_fm if baseline_fm is None else baseline_fm, dtype=np.int64).reshape(5)
-    status = np.full(n, 0 if tared else STATUS_NOT_TARED, dtype=np.int64)
-    flag = np.zeros(n, dtype=bool)
-
-    # 1. Fault rule: it reads the wavelengths only, never the baseline, so it runs on the
-    #    whole recording at once.
-    inwin = (wl >= WL_MIN_FM) & (wl <= WL_MAX_FM)
-    prev, has_prev = _prev_in_window(wl, inwin)
-    jump = inwin & has_prev & (np.abs(wl - prev) > q.jump_max_fm)
-    # Stuck-peak rule: run of consecutive samples equal to the previous in-window value,
-    # restarted by any change or out-of-window sample (uint16 counter, saturating).
-    same = inwin & has_prev & (wl == prev)
-    steps = np.arange(n)[:, None]
-    last_reset = np.maximum.accumulate(np.where(same, -1, steps), axis=0) if n else steps
-    run_len = np.minimum(steps - last_reset, 0xFFFF)
-    stuck = (run_len >= q.stuck_max) if q.stuck_max else np.zeros_like(inwin)
-    fault = np.any(~inwin | jump | stuck, axis=1)
-    status |= np.where(fault, STATUS_SENSOR_FAULT, 0)
-    warm = np.arange(1, n + 1) < q.taps.size
-    status |= np.where(warm, STATUS_WARMUP, 0)
-    # The temperature reference: the tracker moves only the strain gratings' baseline, so the
-    # reference grating's shift, and its average, is known for the whole recording here.
-    ref = reference_average(q, wl[:, 4] - base[4], fault)
-
-    out = {k: np.zeros(n, dtype=np.int64) for k in
-           ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact_conf_q15", "contact")}
-    z_rest, _ = q.z_rest()
-    history = np.zeros((q.taps.size - 1, 4), dtype=np.int64)   # held FIR inputs before the block
-    last_comp = np.zeros(4, dtype=np.int64)                     # zeros before any good sample
-    memory, tracker, decision, hold = _Memory(q), _Tracker(q), [0, 0, 0], [0, 0, 0]
-    creep: list[list[int] | None] = [None]                      # the creep inverse's acc
-    block = contract.LIMIT["TRACK_BLOCK"] if (q.track_shift and tared) else max(n, 1)
-    for a in range(0, n, block):
-        b = min(n, a + block)
-        if tracker.limited:
-            status[a:b] |= STATUS_BASELINE_LIMIT
-        rest, r_sum = _block(q, wl[a:b], ref[a:b], fault[a:b], warm[a:b], base, history, last_comp,
-                             creep, memory, tracker, decision, hold, status[a:b], flag[a:b],
-                             {k: v[a:b] for k, v in out.items()}, trace, z_rest)
-        if b - a == block:   # a block cut short by the recording's end moves nothing (C: track_pos)
-            tracker.end_block(rest & tared, r_sum, base)
-    status |= np.where(flag, STATUS_SATURATED, 0)
-    out["status"] = status
-    if end is not None:
-        end["baseline_fm"] = base.copy()
-        end["creep"] = np.array(tracker.creep or [0] * 4, dtype=np.int64)
-        end["creep_acc"] = np.array(creep[0] or [0] * 4, dtype=np.int64)
-    return out
-
-
-def _block(q: QModel, wl: np.ndarray, ref: np.ndarray, fault: np.ndarray, warm: np.ndarray,
-           base: np.ndarray, history: np.ndarray, last_comp: np.ndarray,
-           creep: list[list[int] | None], memory: _Memory, tracker: _Tracker, decision: list[int],
-           hold: list[int], status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray],
-           trace: dict[str, int] | None, z_rest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Steps 2 to 7 of ``fbg_step`` on consecutive samples that share one baseline. Writes
-    ``status``, ``flag`` and ``out`` (views of the block) and carries ``history``,
-    ``last_comp``, the creep inverse's state ``creep`` (:func:`creep_inverse`), ``memory``,
-    the tracker's creep states, ``decision`` and ``hold`` (:func:`_hold`); ``ref`` is the
-    temperature reference of each sample (:func:`reference_average`). Returns which samples
-    were at rest and their sum of the tracker's terms (:meth:`_Tracker.rest_terms`)."""
-    n = wl.shape[0]
-    ok = ~fault
-    # 2. Tare and temperature compensation (rows without a fault).
-    _, c1 = sat(wl[:, 4] - base[4], SAT32)    # the compensation reads ref
-    shift, c2 = sat(wl[:, :4] - base[:4], SAT32)
-    t = rshift_round(ref[:, None] * q.temp_coeff_q24[None, :], TEMP_COEFF_SHIFT)
-    comp, c3 = sat(shift - t, SAT32)
-    comp, c_creep = creep_inverse(q, comp, ok, creep)
-    flag |= ok & (c1 | c2.any(axis=1) | c3.any(axis=1) | c_creep)
-    # 3. Causal FIR over the carried history, then standardisation into Q(z_frac). A faulty
-    #    sample feeds the FIR the last good sample's filtered shifts (last_comp), so the
-    #    block runs as alternating stretches of good and faulty samples.
-    k = q.taps.size - 1
-    acc = np.zeros((n, 4), dtype=np.int64)
-    edges = np.flatnonzero(np.diff(ok.astype(np.int8))) + 1 if n else np.zeros(0, dtype=np.int64)
-    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [n]])):
-        part = comp[a:b] if ok[a] else np.repeat(last_comp[None, :], b - a, axis=0)
-        seq = np.vstack([history, part])
-        acc[a:b] = np.stack([np.convolve(seq[:, c], q.taps)[k:k + b - a] for c in range(4)],
-                            axis=1)
-        if k:
-            history[:] = seq[-k:]
-        if ok[a]:
-            last_comp[:] = sat(rshift_round(acc[b - 1], q.tap_q), SAT32)[0]
-    if trace is not None and n:
-        trace["fir"] = max(trace.get("fir", 0), int(np.abs(acc[ok]).max(initial=0)))
-    filt, c4 = sat(rshift_round(acc, q.tap_q), SAT32)
-    d, c5 = sat(filt - q.mean_fm, SAT32)
-    z, c6 = sat(rshift_round(d * q.z_mult, q.z_shift), SAT16)
-    flag |= ok & (c4 | c5 | c6).any(axis=1)
-    # Input-side overload: the linear load proxy (|coeff| < 2^28, so the sum stays < 2^61).
-    load = rshift_round(filt @ q.load_coeff, q.load_shift)
-    status |= np.where(ok & (load > q.load_max_mN), STATUS_OVERLOAD, 0)
-
-    rows = np.flatnonzero(ok)
-    rest = np.zeros(n, dtype=bool)
-    terms = np.zeros((n, 4), dtype=np.int64)
-    terms[rows] = tracker.rest_terms(z[rows], z_rest)
-    # 4. Memory features on the fault-free samples, in order.
-    x, c_mem = memory.push(z[rows])
-    flag[rows] |= c_mem
-    nf = q.n_features
-    outside = np.any((x[:, :nf] < q.in_lo[:nf]) | (x[:, :nf] > q.in_hi[:nf]), axis=1)
-    status[rows] |= np.where(outside, STATUS_OUT_OF_RANGE, 0)
-    feats = np.zeros((n, nf + q.n_loc), dtype=np.int64)
-    feats[rows] = x
-    zf = feats[:, :nf]
-    if rows.size:
-        # 5. Contact net, then the decision over time.
-        f_ok = np.zeros(rows.size, dtype=bool)
-        acc_c, margin = _net(q.nets[0], zf[rows], f_ok, trace, "contact")
-        contact = _decide(q, acc_c[:, 0] > 0, margin[:, 0], decision)
-        out["contact_margin_q8"][rows] = margin[:, 0]
-        out["contact_conf_q15"][rows] = sigmoid_q15(margin[:, 0])
-        out["contact"][rows] = contact
-        flag[rows] |= f_ok
-        rest[rows] = ~contact & ~warm[rows]
-        crow = rows[contact]
-        if not crow.size:
-            hold[1], hold[2] = 0, 0      # the settled-hold gain, cleared by no contact
+def _hold_stage(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """``hold_stage`` of fbg_fixed.c (the settled-hold gain, the rule of
+    :func:`fbgforce.model.hold_over_time` in integers) on consecutive fault-free samples: their
+    force (mN, any value where there is no contact) and contact decisions. ``state`` is
+    ``[hold_avg, hold_primed, hold_run]``, carried and updated. Returns the force and where it
+    saturated."""
+    out = np.asarray(force_mN, dtype=np.int64).copy()
+    flag = np.zeros(out.size, dtype=bool)
+    if q.hold_gain_q15 == 0:
+        return out, flag
+    avg, primed, run = state
+    frac, settle, ramp = contract.LIMIT["EMA_FRAC"], q.hold_settle, 1 << q.hold_ramp_shift
+    top = settle + ramp
+    for i, (f, c) in enumerate(zip(out.tolist(), np.asarray(contact, dtype=bool).tolist())):
+        if not c:
+            primed, run = 0, 0
+            continue
+        if primed:
+            avg += (((f << frac) - avg) + (1 << (q.hold_shift - 1))) >> q.hold_shift
         else:
-            # 6. Force net, 7. location net on [z, contact << z_frac, quantised force,
-            #    location averages].
-            f_c = np.zeros(crow.size, dtype=bool)
-            _, force_out = _net(q.nets[1], zf[crow], f_c, trace, "force")
-            force_out = force_out[:, 0]
-            force_mN, c7 = sat(force_out + q.force_offset_mN, SAT32)
-            fq, c8 = sat(rshift_round(force_out * q.fq_mult, q.fq_shift), SAT16)
-            loc_in = np.column_stack([zf[crow][:, :4], np.full(crow.size, 1 << q.z_frac), fq,
-                                      feats[crow, nf:]])
-            _, xy = _net(q.nets[2], loc_in, f_c, trace, "location")
-            x_um, c9 = sat(xy[:, 0] + q.xy_offset_um[0], SAT32)
-            y_um, c10 = sat(xy[:, 1] + q.xy_offset_um[1], SAT32)
-            f_c |= c7 | c8 | c9 | c10
-            if q.hold_gain_q15:
-                # The settled-hold gain runs on every fault-free sample in order: one
-                # without contact clears it.
-                seq = np.zeros(rows.size, dtype=np.int64)
-                seq[contact] = force_mN
-                held, c11 = _hold(q, seq, contact, hold)
-                force_mN = held[contact]
-                f_c |= c11[contact]
-            out["force_mN"][crow] = force_mN
-            out["x_um"][crow] = x_um
-            out["y_um"][crow] = y_um
-            flag[crow] |= f_c
-            status[crow] |= np.where(force_mN > q.overload_mN, STATUS_OVERLOAD, 0)
-    return rest, terms[rest].sum(axis=0)
-
-
-def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
-                  baseline_nm: np.ndarray) -> dict[str, Any]:
-    """Engine ``intref``: the integer reference on ``model_dir/model.fbgm``."""
-    from fbgforce.export.blob import load_model_blob
-
-    q = load_model_blob(model_dir, float_model=model)
-    return to_engine_dict(run(q, nm_to_fm(wl_nm), nm_to_fm(np.asarray(baseline_nm).reshape(5))))
+            avg, primed = f << frac, 1
+        dev = f - ((avg + (1 << (frac - 1))) >> frac)
+        band = max(q.hold_band_mN, (abs(f) * q.hold_band_q15 + (1 << 14)) >> 15)
+        if abs(dev) <= band:
+            if run < top and run < 0xFFFF:
+                run += 1
+        else:
+            run = 0
+        w = min(max(run - settle, 0), ramp)
+        shift = 15 + q.hold_ramp_shift
+        v = f + ((f * q.hold_gain_q15 * w + (1 << (shift - 1))) >> shift)
+        flag[i] = abs(v) > SAT32
+        out[i] = max(-SAT32, min(SAT32, v))
+    state[0], state[1], state[2] = avg, primed, run
+    return out, flag

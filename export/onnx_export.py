@@ -76,103 +76,141 @@ _BATCH = "N"
 _NET_PREFIX = {"contact": "contact_net", "force": "force_net", "location": "location_net"}
 
 
-def _mlp_nodes(net: MLP, prefix: str, x: str, out: str, inits: list[onnx.TensorProto],
-               nodes: list[onnx.NodeProto]) -> None:
-    """Append Gemm/Relu nodes named ``prefix/fc1``, ``prefix/relu1``, ... computing ``net(x)``."""
-    last = len(net.weights) - 1
-    prev = x
-    for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
-        k = layer + 1
-        w_name, b_name = f"{prefix}/fc{k}/W", f"{prefix}/fc{k}/b"
-        inits.append(numpy_helper.from_array(w.astype(np.float32), w_name))
-        inits.append(numpy_helper.from_array(b.astype(np.float32), b_name))
-        gemm_out = out if layer == last else f"{prefix}/fc{k}/out"
-        # transB=1: weights stay (n_out, n_in) as in fbgforce.model and the C runtime.
-        nodes.append(helper.make_node(
-            "Gemm", [prev, w_name, b_name], [gemm_out], name=f"{prefix}/fc{k}", transB=1,
-            doc_string=f"{w.shape[1]} -> {w.shape[0]}" + ("" if layer == last else ", ReLU next")))
-        if layer != last:
-            prev = f"{prefix}/h{k}"
-            nodes.append(helper.make_node("Relu", [gemm_out], [prev], name=f"{prefix}/relu{k}"))
+class _Graph:
+    """The nodes and initialisers of a graph being built, kept in the order they are added:
+    the order the file stores them in, so the same model always gives the same bytes."""
+
+    def __init__(self) -> None:
+        self.nodes: list[onnx.NodeProto] = []
+        self.inits: list[onnx.TensorProto] = []
+
+    def const(self, name: str, value: Any, dtype: type = np.float32) -> str:
+        """Add an initialiser; returns its name."""
+        self.inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
+        return name
+
+    def node(self, op: str, inputs: list[str], output: str, name: str, **attrs: Any) -> str:
+        """Add a node with one output; returns the output's name."""
+        self.nodes.append(helper.make_node(op, inputs, [output], name=name, **attrs))
+        return output
+
+    def mlp(self, net: MLP, prefix: str, x: str, out: str) -> None:
+        """Add Gemm/Relu nodes named ``prefix/fc1``, ``prefix/relu1``, ... computing ``net(x)``."""
+        last = len(net.weights) - 1
+        prev = x
+        for layer, (w, b) in enumerate(zip(net.weights, net.biases)):
+            k = layer + 1
+            w_name = self.const(f"{prefix}/fc{k}/W", w)
+            b_name = self.const(f"{prefix}/fc{k}/b", b)
+            gemm_out = out if layer == last else f"{prefix}/fc{k}/out"
+            # transB=1: weights stay (n_out, n_in) as in fbgforce.model and the C runtime.
+            self.node("Gemm", [prev, w_name, b_name], gemm_out, f"{prefix}/fc{k}", transB=1,
+                      doc_string=f"{w.shape[1]} -> {w.shape[0]}" + ("" if layer == last else ", ReLU next"))
+            if layer != last:
+                prev = self.node("Relu", [gemm_out], f"{prefix}/h{k}", f"{prefix}/relu{k}")
 
 
 def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
     """Build (without saving) the ONNX model of ``model``'s nets; see the module docstring."""
-    nodes: list[onnx.NodeProto] = []
-    inits: list[onnx.TensorProto] = []
+    g = _Graph()
+    z, axis_1 = _net_features(g, model)
+    g.mlp(model.contact, _NET_PREFIX["contact"], z, "contact_logits")
+    g.mlp(model.force, _NET_PREFIX["force"], z, "force_net/out")
+    columns = _contact_nodes(g)
+    _location_nodes(g, model, z, axis_1, columns["axis1"])
+    _output_nodes(g, model, columns)
+    graph = helper.make_graph(
+        g.nodes, "fbgforce_hierarchical_net", _graph_inputs(model), _graph_outputs(), g.inits,
+        doc_string="Hierarchical network of Kim et al. RA-L 2019 Fig. 4: contact -> force -> "
+                   "location. The location net reads the input 'contact_decision'; outputs are "
+                   "ungated: gate force/x/y with the decision fed.")
+    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
+                              ir_version=IR_VERSION, producer_name="fbgforce",
+                              producer_version=__version__,
+                              doc_string="fbgforce float model after preprocessing (float32)")
+    helper.set_model_props(proto, _metadata(model))
+    return proto
 
-    def const(name: str, value: Any, dtype: type = np.float32) -> str:
-        inits.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
 
-    def node(op: str, inputs: list[str], output: str, name: str, **attrs: Any) -> str:
-        nodes.append(helper.make_node(op, inputs, [output], name=name, **attrs))
-        return output
-
-    z = INPUT_NAME
+def _net_features(g: _Graph, model: HierarchicalModel) -> tuple[str, str]:
+    """The contact and force nets' input, and the name of the axis-1 constant ("" without
+    location averages). With location averages the graph's input ends with them, and the
+    two nets read the columns before them."""
     pre = model.preprocess
-    n_loc = pre.memory.n_loc
-    axis_1 = ""
-    if n_loc:
-        axis_1 = const("hierarchy/axis_1", [1], np.int64)
-        # The input ends with the location averages; the contact and force nets read the
-        # columns before them.
-        z = node("Slice", [INPUT_NAME, const("hierarchy/features_begin", [0], np.int64),
-                           const("hierarchy/features_end", [pre.n_features], np.int64), axis_1],
-                 "hierarchy/features", "hierarchy/features")
-    _mlp_nodes(model.contact, _NET_PREFIX["contact"], z, "contact_logits", inits, nodes)
-    _mlp_nodes(model.force, _NET_PREFIX["force"], z, "force_net/out", inits, nodes)
+    if not pre.memory.n_loc:
+        return INPUT_NAME, ""
+    axis_1 = g.const("hierarchy/axis_1", [1], np.int64)
+    z = g.node("Slice", [INPUT_NAME, g.const("hierarchy/features_begin", [0], np.int64),
+                         g.const("hierarchy/features_end", [pre.n_features], np.int64), axis_1],
+               "hierarchy/features", "hierarchy/features")
+    return z, axis_1
 
-    # Contact decision: margin = logit1 - logit0 > 0, as fbgforce.model (strict inequality).
-    starts0, starts1 = const("hierarchy/idx0", [0], np.int64), const("hierarchy/idx1", [1], np.int64)
-    ends1, ends2 = starts1, const("hierarchy/idx2", [2], np.int64)
-    axis1 = const("hierarchy/axis1", [1], np.int64)
-    l0 = node("Slice", ["contact_logits", starts0, ends1, axis1], "hierarchy/logit0",
-              "hierarchy/logit0")
-    l1 = node("Slice", ["contact_logits", starts1, ends2, axis1], "hierarchy/logit1",
-              "hierarchy/logit1")
-    margin = node("Sub", [l1, l0], "hierarchy/margin", "hierarchy/margin")
-    zero = const("hierarchy/zero", 0.0)
-    contact_2d = node("Greater", [margin, zero], "hierarchy/contact_2d", "hierarchy/contact")
-    node("Squeeze", [contact_2d, axis1], "contact", "hierarchy/contact_out")
-    p_2d = node("Sigmoid", [margin], "hierarchy/p_contact_2d", "hierarchy/p_contact")
-    node("Squeeze", [p_2d, axis1], "p_contact", "hierarchy/p_contact_out")
 
-    # Location net input [z, decision, f, location averages]: the decision the caller gates
-    # on (an input: see the module docstring) and the force net's unscaled output, as trained.
-    # The location net reads the four standardised channels, not the load signal's memory
-    # features.
-    decision_f = node("Cast", [node("Unsqueeze", [DECISION_NAME, axis1], "hierarchy/decision_2d",
-                                    "hierarchy/decision_column")],
-                      "hierarchy/decision_f", "hierarchy/decision_as_float", to=TensorProto.FLOAT)
-    z4 = node("Slice", [z, const("hierarchy/z_begin", [0], np.int64), const("hierarchy/z_end", [4], np.int64),
-                        const("hierarchy/z_axis", [1], np.int64)], "hierarchy/z4", "hierarchy/z4")
+def _contact_nodes(g: _Graph) -> dict[str, str]:
+    """The contact net's own decision, sample by sample: margin = logit1 - logit0 > 0, as
+    :mod:`fbgforce.model` decides (strict inequality), and its sigmoid. Returns the names of
+    the column-slicing constants, which the output nodes use again."""
+    starts0, starts1 = g.const("hierarchy/idx0", [0], np.int64), g.const("hierarchy/idx1", [1], np.int64)
+    ends1, ends2 = starts1, g.const("hierarchy/idx2", [2], np.int64)
+    axis1 = g.const("hierarchy/axis1", [1], np.int64)
+    l0 = g.node("Slice", ["contact_logits", starts0, ends1, axis1], "hierarchy/logit0",
+                "hierarchy/logit0")
+    l1 = g.node("Slice", ["contact_logits", starts1, ends2, axis1], "hierarchy/logit1",
+                "hierarchy/logit1")
+    margin = g.node("Sub", [l1, l0], "hierarchy/margin", "hierarchy/margin")
+    zero = g.const("hierarchy/zero", 0.0)
+    contact_2d = g.node("Greater", [margin, zero], "hierarchy/contact_2d", "hierarchy/contact")
+    g.node("Squeeze", [contact_2d, axis1], "contact", "hierarchy/contact_out")
+    p_2d = g.node("Sigmoid", [margin], "hierarchy/p_contact_2d", "hierarchy/p_contact")
+    g.node("Squeeze", [p_2d, axis1], "p_contact", "hierarchy/p_contact_out")
+    return {"starts0": starts0, "ends1": ends1, "starts1": starts1, "ends2": ends2, "axis1": axis1}
+
+
+def _location_nodes(g: _Graph, model: HierarchicalModel, z: str, axis_1: str, axis1: str) -> None:
+    """The location net on [z, decision, f, location averages]: the decision the caller gates
+    on (an input: see the module docstring) and the force net's unscaled output, as trained.
+    The location net reads the four standardised channels, not the load signal's memory
+    features."""
+    pre = model.preprocess
+    decision_f = g.node("Cast", [g.node("Unsqueeze", [DECISION_NAME, axis1], "hierarchy/decision_2d",
+                                        "hierarchy/decision_column")],
+                        "hierarchy/decision_f", "hierarchy/decision_as_float", to=TensorProto.FLOAT)
+    z4 = g.node("Slice", [z, g.const("hierarchy/z_begin", [0], np.int64),
+                          g.const("hierarchy/z_end", [4], np.int64),
+                          g.const("hierarchy/z_axis", [1], np.int64)], "hierarchy/z4", "hierarchy/z4")
     loc_parts = [z4, decision_f, "force_net/out"]
-    if n_loc:
-        loc_parts.append(node("Slice", [INPUT_NAME, const("hierarchy/loc_begin", [pre.n_features], np.int64),
-                                        const("hierarchy/loc_end", [pre.n_inputs], np.int64), axis_1],
-                              "hierarchy/location_averages", "hierarchy/location_averages"))
-    loc_in = node("Concat", loc_parts, "hierarchy/location_input", "hierarchy/location_input",
-                  axis=1)
-    _mlp_nodes(model.location, _NET_PREFIX["location"], loc_in, "location_net/out", inits, nodes)
+    if pre.memory.n_loc:
+        loc_parts.append(g.node("Slice", [INPUT_NAME, g.const("hierarchy/loc_begin", [pre.n_features], np.int64),
+                                          g.const("hierarchy/loc_end", [pre.n_inputs], np.int64), axis_1],
+                                "hierarchy/location_averages", "hierarchy/location_averages"))
+    loc_in = g.node("Concat", loc_parts, "hierarchy/location_input", "hierarchy/location_input",
+                    axis=1)
+    g.mlp(model.location, _NET_PREFIX["location"], loc_in, "location_net/out")
 
-    # Output scaling, in float64 on the host then rounded once to float32 constants.
-    f_scaled = node("Add", [node("Mul", ["force_net/out", const("hierarchy/force_scale",
-                                                                 [model.force_scale])],
-                                 "hierarchy/force_times_scale", "hierarchy/force_times_scale"),
-                            const("hierarchy/force_offset", [model.force_offset])],
-                    "hierarchy/force_N_2d", "hierarchy/force_scale")
-    node("Squeeze", [f_scaled, axis1], "force_N", "hierarchy/force_N_out")
-    xy = node("Add", [node("Mul", ["location_net/out", const("hierarchy/xy_scale", model.xy_scale)],
-                           "hierarchy/xy_times_scale", "hierarchy/xy_times_scale"),
-                      const("hierarchy/xy_offset", model.xy_offset)],
-              "hierarchy/xy_mm", "hierarchy/xy_scale")
-    x2 = node("Slice", [xy, starts0, ends1, axis1], "hierarchy/x_2d", "hierarchy/x")
-    y2 = node("Slice", [xy, starts1, ends2, axis1], "hierarchy/y_2d", "hierarchy/y")
-    node("Squeeze", [x2, axis1], "x_mm", "hierarchy/x_out")
-    node("Squeeze", [y2, axis1], "y_mm", "hierarchy/y_out")
 
-    inputs = [helper.make_tensor_value_info(
+def _output_nodes(g: _Graph, model: HierarchicalModel, columns: dict[str, str]) -> None:
+    """The outputs in the model's units (force_N, x_mm, y_mm): the scales and offsets, taken
+    in float64 on the host then rounded once to float32 constants."""
+    axis1 = columns["axis1"]
+    f_scaled = g.node("Add", [g.node("Mul", ["force_net/out", g.const("hierarchy/force_scale",
+                                                                     [model.force_scale])],
+                                     "hierarchy/force_times_scale", "hierarchy/force_times_scale"),
+                              g.const("hierarchy/force_offset", [model.force_offset])],
+                      "hierarchy/force_N_2d", "hierarchy/force_scale")
+    g.node("Squeeze", [f_scaled, axis1], "force_N", "hierarchy/force_N_out")
+    xy = g.node("Add", [g.node("Mul", ["location_net/out", g.const("hierarchy/xy_scale", model.xy_scale)],
+                               "hierarchy/xy_times_scale", "hierarchy/xy_times_scale"),
+                        g.const("hierarchy/xy_offset", model.xy_offset)],
+                "hierarchy/xy_mm", "hierarchy/xy_scale")
+    x2 = g.node("Slice", [xy, columns["starts0"], columns["ends1"], axis1], "hierarchy/x_2d", "hierarchy/x")
+    y2 = g.node("Slice", [xy, columns["starts1"], columns["ends2"], axis1], "hierarchy/y_2d", "hierarchy/y")
+    g.node("Squeeze", [x2, axis1], "x_mm", "hierarchy/x_out")
+    g.node("Squeeze", [y2, axis1], "y_mm", "hierarchy/y_out")
+
+
+def _graph_inputs(model: HierarchicalModel) -> list[onnx.ValueInfoProto]:
+    """The graph's inputs, z and the contact decision, with what a caller feeds them."""
+    return [helper.make_tensor_value_info(
         INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_inputs],
         doc_string="net inputs: standardised features (filtered compensated shift - input_mean) / "
                    "input_std, then the memory features and the location averages "
@@ -181,7 +219,11 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
             DECISION_NAME, TensorProto.BOOL, [_BATCH],
             doc_string="the contact decision the location net reads (as 0/1) and the caller "
                        "gates force_N, x_mm, y_mm with; see metadata fbgforce.contact_decision")]
-    outputs = [
+
+
+def _graph_outputs() -> list[onnx.ValueInfoProto]:
+    """The graph's outputs (:data:`OUTPUT_NAMES`), with their meaning."""
+    return [
         helper.make_tensor_value_info("contact_logits", TensorProto.FLOAT, [_BATCH, 2],
                                       doc_string="contact net logits; index 1 is 'contact'"),
         helper.make_tensor_value_info("contact", TensorProto.BOOL, [_BATCH],
@@ -198,28 +240,24 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
                                       doc_string="y in the pad frame, mm, given contact_decision; "
                                                  "NOT gated by it"),
     ]
-    graph = helper.make_graph(
-        nodes, "fbgforce_hierarchical_net", inputs, outputs, inits,
-        doc_string="Hierarchical network of Kim et al. RA-L 2019 Fig. 4: contact -> force -> "
-                   "location. The location net reads the input 'contact_decision'; outputs are "
-                   "ungated: gate force/x/y with the decision fed.")
-    proto = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)],
-                              ir_version=IR_VERSION, producer_name="fbgforce",
-                              producer_version=__version__,
-                              doc_string="fbgforce float model after preprocessing (float32)")
+
+
+def _metadata(model: HierarchicalModel) -> dict[str, str]:
+    """The graph's metadata: the weights it was made from and its layout (what
+    :func:`stale_reason` checks), the nets' sizes, how to feed the decision, and the in-use
+    stages' parameters, which run outside the graph."""
     sizes = {name: net.sizes for name, net in model.nets.items()}
-    helper.set_model_props(proto, {
+    return {
         DIGEST_KEY: weights_digest(model),
         LAYOUT_KEY: GRAPH_LAYOUT,
         "fbgforce.net_sizes": str(sizes),
         "fbgforce.outputs_gated": "false",
         "fbgforce.location_input": f"[z1, z2, z3, z4, {DECISION_NAME} (0/1), force_net raw output"
-                                   + (", location averages a1..a4]" if n_loc else "]"),
+                                   + (", location averages a1..a4]" if model.preprocess.memory.n_loc else "]"),
         "fbgforce.contact_decision": CONTACT_DECISION_HOW,
         "fbgforce.per_sample_decision": str(model.in_use.per_sample).lower(),
         "fbgforce.in_use": json.dumps(model.in_use.to_json(), sort_keys=True),
-    })
-    return proto
+    }
 
 
 #: How to feed ``contact_decision`` (metadata ``fbgforce.contact_decision``).
@@ -274,8 +312,9 @@ def _session_options() -> Any:
     import onnxruntime as ort
 
     so = ort.SessionOptions()
-    # One thread: on these 2-core machines it is faster for both single samples and batches
-    # (shared/recipes B), and timing figures stay comparable with the single-threaded C runtime.
+    # One thread: on the 2-core machines the project runs on it is faster than two for single
+    # samples and batches alike (docs/export-onnx.md), and timing figures stay comparable with
+    # the single-threaded C runtime.
     so.intra_op_num_threads = 1
     so.inter_op_num_threads = 1
     return so

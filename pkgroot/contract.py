@@ -20,7 +20,7 @@ nowhere else:
 memory kinds), ``runtime_c/src/fbgf_contract.c`` (the float model's memory parameters), the parameter
 table of ``docs/model-format.md`` and the status constants of the ROS 2 message
 ``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
-codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.quantize`, the numpy
+codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.qmodel`, the numpy
 dtypes of :mod:`fbgforce.pybind`) reads the same tables at import. ``tests/test_contract.py``
 fails when a generated file is stale.
 

@@ -23,6 +23,7 @@ from fbgforce import model as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.pybind import FloatRuntime, RangeError, Runtime
 import test_creep_track as creep_track
 from test_creep_track import _equal, _hardcases
@@ -43,7 +44,7 @@ def _quantised(creep: float, creep_shift: int, seed: int = 3, n: int = 4000):
     return creep_track._quantised(0.0, 0, seed, n, creep=creep, creep_shift=creep_shift)
 
 
-def _run_ref(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray,
+def _run_ref(q: QModel, wl_fm: np.ndarray, base: np.ndarray,
              rt: Runtime | None = None) -> tuple[dict, np.ndarray]:
     """The integer reference from a fresh state on ``base``, the creep inverse's states of
     ``rt`` checked against it."""

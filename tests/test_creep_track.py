@@ -21,6 +21,7 @@ from fbgforce import contract, freshness
 from fbgforce import model as fm
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.geometry import NOMINAL
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, RangeError, Runtime
 from test_simd import host_kernels
@@ -60,7 +61,7 @@ def _equal(c: dict[str, np.ndarray], ref: dict[str, np.ndarray], what: str) -> N
         assert bad.size == 0, f"{what}: {k} differs at {bad[:5]}"
 
 
-def _run_ref(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray,
+def _run_ref(q: QModel, wl_fm: np.ndarray, base: np.ndarray,
              rt: Runtime | None = None, state: str = "creep") -> tuple[dict, np.ndarray]:
     """The integer reference from a fresh state on ``base``: outputs and the end baseline;
     with ``rt`` (run on the same samples), checks that its states ``state`` (``fbg_state``'s
@@ -86,7 +87,7 @@ def test_every_kernel_equals_the_integer_reference(creep, creep_shift):
     assert not np.array_equal(untermed, reached)
 
 
-def assert_every_kernel(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray, state: str
+def assert_every_kernel(q: QModel, wl_fm: np.ndarray, base: np.ndarray, state: str
                         ) -> tuple[dict, np.ndarray]:
     """Portable C and every host kernel, packed or not, from a new baseline ``base``: the
     outputs, the tracked baseline and ``fbg_state``'s ``state`` equal the integer
@@ -113,7 +114,7 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     assert_reprimes(model, q, wl, kernel, "creep", "mem_primed")
 
 
-def assert_reprimes(model: fm.HierarchicalModel, q: qz.QModel, wl: np.ndarray, kernel: str,
+def assert_reprimes(model: fm.HierarchicalModel, q: QModel, wl: np.ndarray, kernel: str,
                     state: str, primed: str) -> None:
     """On ``kernel``, ``fbg_state``'s ``state`` (primed when ``primed`` is set) holds through
     a faulty sample and is primed again after a reset, a tare and a new baseline: from each,
@@ -385,7 +386,7 @@ def test_the_creep_term_at_its_bounds_is_exact():
     z0, _ = q.z_rest()
     assert z0.tolist() == [contract.SAT16] * 4
     sat = np.array([[contract.SAT16] * 4] * 40 + [[-contract.SAT16] * 4] * 400, dtype=np.int64)
-    terms = intref._Tracker(q).rest_terms(sat, z0)
+    terms = intref._RestTracker(q).rest_terms(sat, z0)
     assert terms.min() == -65533 and np.abs(terms).max() <= 65534
     wl = np.vstack([hc.stress_inputs(q, 1, 40), hc.stress_inputs(q, -1, 64 * 8)])
     base = np.asarray(q.baseline_fm, dtype=np.int64)

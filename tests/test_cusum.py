@@ -18,6 +18,7 @@ from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import ModelCheckError, QModel
 from fbgforce.pybind import FloatRuntime, Runtime
 
 from test_decision_tracker import _drifting_model, _equal
@@ -31,12 +32,12 @@ CUSUM = fm.InUse(contact_off_margin=-1.0, track_shift=5, track_settle=40, track_
                  contact_cusum_lo=-0.5, contact_cusum_hi=1.0)
 
 
-def _cusum(q: qz.QModel, h: int, k: int, lo: int, hi: int) -> qz.QModel:
+def _cusum(q: QModel, h: int, k: int, lo: int, hi: int) -> QModel:
     return dataclasses.replace(q, contact_on_q8=0, contact_rise_n=1, contact_cusum_h_q8=h,
                                contact_cusum_k_q8=k, contact_cusum_lo_q8=lo, contact_cusum_hi_q8=hi)
 
 
-def _run_both(q: qz.QModel, wl_fm: np.ndarray, base: np.ndarray, kernel: str = "auto"):
+def _run_both(q: QModel, wl_fm: np.ndarray, base: np.ndarray, kernel: str = "auto"):
     rt = Runtime(blob.to_bytes(q), kernel=kernel)
     rt.set_baseline(base.astype(np.int32))
     return rt.run_raw(wl_fm), intref.run(q, wl_fm, base), rt
@@ -63,10 +64,10 @@ def test_the_cusum_rule_on_hand_made_margins():
     fm.decide_over_time(raw[:14], margin[:14], 0, -20, 1, state, cusum)
     assert state == [0, 0, 8]
     # The integer reference runs exactly this rule on the blob's fields.
-    q = qz.QModel.__new__(qz.QModel)
+    q = QModel.__new__(QModel)
     q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 0, -20, 1
     q.contact_cusum_h_q8, q.contact_cusum_k_q8, q.contact_cusum_lo_q8, q.contact_cusum_hi_q8 = cusum
-    assert np.array_equal(intref._decide(q, raw, margin, [0, 0, 0]), want)
+    assert np.array_equal(intref._contact_decision(q, raw, margin, [0, 0, 0]), want)
 
 
 def test_a_single_spike_cannot_raise_contact_under_the_clip():
@@ -264,7 +265,7 @@ def test_in_use_checks_the_cusum_fields():
 def test_both_loaders_refuse_a_bad_cusum_alike(random_model_factory, random_walk_factory, fields):
     model, q, _ = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
     bad = dataclasses.replace(q, **fields)
-    with pytest.raises(qz.ModelCheckError):
+    with pytest.raises(ModelCheckError):
         bad.check()
     bad.check = lambda: None          # serialise it anyway: the loaders must refuse it
     data = blob.to_bytes(bad)

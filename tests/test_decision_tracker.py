@@ -16,6 +16,7 @@ from fbgforce import model as fm
 from fbgforce.export import blob
 from fbgforce.export import intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.pybind import FloatRuntime, Runtime
 
 from test_simd import host_kernels
@@ -105,7 +106,7 @@ def test_off_is_the_per_sample_rule(random_model_factory, random_walk_factory):
 
 
 def test_the_decision_rule_on_hand_made_margins():
-    q = qz.QModel.__new__(qz.QModel)
+    q = QModel.__new__(QModel)
     q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 100, -50, 2
     q.contact_cusum_h_q8 = q.contact_cusum_k_q8 = q.contact_cusum_lo_q8 = q.contact_cusum_hi_q8 = 0
     margin = np.array([150, 150, 0, -40, -60, 120, 99, 120, 101, 1, -51, -60])
@@ -114,11 +115,11 @@ def test_the_decision_rule_on_hand_made_margins():
     # the second restarts the count.
     want = np.array([0, 1, 1, 1, 0, 0, 0, 0, 1, 1, 0, 0], dtype=bool)
     state = [0, 0, 0]
-    assert np.array_equal(intref._decide(q, raw, margin, state), want)
+    assert np.array_equal(intref._contact_decision(q, raw, margin, state), want)
     assert state == [0, 0, 0]
     # The state carries from one call to the next exactly as one call.
     state = [0, 0, 0]
-    parts = [intref._decide(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
+    parts = [intref._contact_decision(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
     assert np.array_equal(np.concatenate(parts), want)
 
 

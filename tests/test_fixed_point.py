@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from fbgforce import model as fm
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import NET_NAMES, QModel
 from fbgforce.pybind import ArgError, NotTaredError, Runtime, TareError, ffi, lib
 
 FIELDS = contract.OUTPUT_FIELDS
@@ -122,7 +123,7 @@ def test_bitexact_hypothesis(exported, data):
         wl = np.array(vals, dtype=np.int64).reshape(n, 5)
     b_off = data.draw(st.lists(st.integers(-20_000_000, 20_000_000), min_size=5, max_size=5))
     tared = data.draw(st.booleans(), label="tared")
-    baseline = np.clip(base + np.array(b_off), qz.WL_MIN_FM, qz.WL_MAX_FM) if tared else None
+    baseline = np.clip(base + np.array(b_off), contract.LIMIT["WL_MIN_FM"], contract.LIMIT["WL_MAX_FM"]) if tared else None
     _assert_bitexact(q, blob_bytes, wl, baseline)
 
 
@@ -258,7 +259,7 @@ def test_a_faint_row_is_zeroed_rather_than_taking_its_layer_to_int64():
     w[2], b[2] = 1e-7 * rng.normal(0.0, 1.0, 8), 1.0
     wq, bq, mult, shift, info = qz._quantize_layer(w, b, in_scale, out_ratio, 16,
                                                    qz.ACC32_MAX_DROP, relu_inputs=True)
-    reach = np.abs(w[2]).sum() * qz.SAT16 * in_scale * out_ratio[2]
+    reach = np.abs(w[2]).sum() * contract.SAT16 * in_scale * out_ratio[2]
     assert reach <= qz.FAINT_ROW_LSB
     assert info["acc32"] and shift == 32
     assert not wq[2].any() and bq[2] != 0
@@ -297,7 +298,7 @@ def test_accumulator_bounds_hold_and_are_enforced(exported):
     model, wl, q, data, rep = exported
     trace: dict[str, int] = {}
     intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm), trace=trace)
-    for name, net in zip(qz.NET_NAMES, q.nets):
+    for name, net in zip(NET_NAMES, q.nets):
         for i, layer in enumerate(net):
             bound = layer.acc_bound()
             assert rep["nets"][name][i]["acc_bound"] == int(bound.max())
@@ -317,12 +318,12 @@ def test_accumulator_bounds_hold_and_are_enforced(exported):
 
 
 def _unchecked_bytes(q):
-    orig = qz.QModel.check
+    orig = QModel.check
     try:
-        qz.QModel.check = lambda self: None
+        QModel.check = lambda self: None
         return blob.to_bytes(q)
     finally:
-        qz.QModel.check = orig
+        QModel.check = orig
 
 
 def test_fault_rule_and_safe_output(exported):

@@ -14,6 +14,7 @@ import pytest
 from fbgforce.errors import InputError
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import NET_NAMES, QLayer, QModel
 from fbgforce.export.exporter import export_model
 from fbgforce.pybind import ffi, lib
 
@@ -32,7 +33,7 @@ def _recrc(data: bytearray) -> bytes:
     return bytes(data)
 
 
-def _entry_offsets(q: qz.QModel) -> list[tuple[int, int, int]]:
+def _entry_offsets(q: QModel) -> list[tuple[int, int, int]]:
     """(net, layer, byte offset of its layer-table entry)."""
     out, off = [], blob.PARAMS_END
     for n, net in enumerate(q.nets):
@@ -65,7 +66,7 @@ def test_default_export_proves_every_int32_layer(small_exported_dir):
     q = blob.load_model_blob(small_exported_dir)
     report = json.loads((small_exported_dir / "export_report.json").read_text())
     n32 = 0
-    for name, net in zip(qz.NET_NAMES, q.nets):
+    for name, net in zip(NET_NAMES, q.nets):
         for i, ly in enumerate(net):
             info = report["nets"][name][i]
             assert info["acc32"] == ly.acc32
@@ -128,7 +129,7 @@ def test_relu_input_rule_applies_only_after_a_nets_first_layer(small_exported_di
     loader must refuse it as int32; after a ReLU it must accept it."""
     q = blob.load_model_blob(small_exported_dir)
     row = np.array([32767, 32767, -32767, -32767])
-    monkeypatch.setattr(qz.QModel, "check", lambda self: None)  # write what the exporter never would
+    monkeypatch.setattr(QModel, "check", lambda self: None)  # write what the exporter never would
     first = q.nets[0][0]
     first.w = first.w.copy()
     first.w[0] = 0
@@ -153,7 +154,7 @@ def test_relu_input_rule_applies_only_after_a_nets_first_layer(small_exported_di
 
 def test_intref_sums_int32_only_with_the_proof():
     w = np.array([[32767, 32767, -32767, -32767]])
-    ly = qz.QLayer(w, 16, [0], [1 << 20], 32, acc32=True)
+    ly = QLayer(w, 16, [0], [1 << 20], 32, acc32=True)
     x_pos = np.array([[32767, 32767, 0, 0]])
     assert intref._acc(ly, x_pos, True)[0, 0] == 2 * 32767 * 32767
     with pytest.raises(ValueError, match="proof"):

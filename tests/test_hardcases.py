@@ -33,7 +33,7 @@ import pytest
 
 from fbgforce.export import intref
 from fbgforce.export.blob import from_bytes, to_bytes
-from fbgforce.export.quantize import SAT16, SAT32, WL_MAX_FM, WL_MIN_FM
+from fbgforce.export.qmodel import SAT16, SAT32
 
 #: Slow (pytest -m slow): sanitizer and valgrind builds of the driver, fuzzers, long runs.
 pytestmark = pytest.mark.slow
@@ -42,6 +42,8 @@ ROOT = Path(__file__).resolve().parents[1]
 RUNTIME_C = ROOT / "runtime_c"
 INT32_MIN, INT32_MAX = -2**31, 2**31 - 1
 INT64_MAX = 2**63 - 1
+WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
+WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
 FIELDS = contract.OUTPUT_FIELDS
 FAULT, SATURATED, OVERLOAD = (intref.STATUS_SENSOR_FAULT, intref.STATUS_SATURATED,
                               intref.STATUS_OVERLOAD)

@@ -21,6 +21,7 @@ from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, RangeError, Runtime
 from test_creep_track import _equal, _hardcases
 from test_simd import host_kernels
@@ -62,7 +63,7 @@ def _quantised(seed: int = 3, n: int = 4000, **hold):
     return model, q, wl
 
 
-def _off(q: qz.QModel) -> qz.QModel:
+def _off(q: QModel) -> QModel:
     return dataclasses.replace(q, **qz.quantize_hold(fm.InUse()))
 
 

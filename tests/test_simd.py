@@ -26,6 +26,7 @@ from fbgforce import contract
 from fbgforce import model as fm
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QLayer, QModel
 from fbgforce.pybind import KERNEL_NAME, KERNELS, PACKED_KERNELS, ArgError, Runtime, ffi, lib
 from fbgforce.target import golden
 from fbgforce.target.report import load_quantized, recording_fm
@@ -64,7 +65,7 @@ def _balance_contact(model: fm.HierarchicalModel, wl: np.ndarray) -> None:
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
 
 
-def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool) -> qz.QLayer:
+def _extreme_layer(rng: np.random.Generator, layer: QLayer, relu_inputs: bool) -> QLayer:
     """A layer of the same shape whose rows sit at the edge of the int32 proof: int16 rows
     holding -32768 and 32767 (twice over after a ReLU, where the proof bounds the positive and
     the negative weights apart), random rows spending most of the budget, the extremes in
@@ -94,7 +95,7 @@ def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool
             w[r] = np.clip(np.trunc(v / np.abs(v).sum() * budget), lo, hi)
             if kind == 2:
                 w[r, -1] = hi
-    probe = qz.QLayer(w=w, w_bits=layer.w_bits, bias=np.zeros(n_out, dtype=np.int64),
+    probe = QLayer(w=w, w_bits=layer.w_bits, bias=np.zeros(n_out, dtype=np.int64),
                       mult=np.ones(n_out, dtype=np.int64), shift=30, acc32=True)
     room = INT32_MAX - probe.acc32_bound(relu_inputs)
     assert (room >= 0).all()
@@ -104,10 +105,10 @@ def _extreme_layer(rng: np.random.Generator, layer: qz.QLayer, relu_inputs: bool
     # (shift <= 32, |mult| <= 2^(shift-1)) or in int64 ones.
     shift = int(rng.choice([30, 40]))
     mult = mult << (shift - 30)
-    return qz.QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=shift, acc32=True)
+    return QLayer(w=w, w_bits=layer.w_bits, bias=bias, mult=mult, shift=shift, acc32=True)
 
 
-def _edge_multipliers(layer: qz.QLayer, sign: int) -> qz.QLayer:
+def _edge_multipliers(layer: QLayer, sign: int) -> QLayer:
     """``layer`` at shift 31 (the same scales) with row 0's multiplier at ``sign`` * 2^30, the
     edge of the packed AVX2 kernel's requantisation at shift 32: -2^30 * 2^(32-31) = -2^31 is
     an int32 (that layer requantises from the high dword), +2^31 is not (that layer takes the
@@ -115,11 +116,11 @@ def _edge_multipliers(layer: qz.QLayer, sign: int) -> qz.QLayer:
     mult = np.array([int(m) << (31 - layer.shift) if layer.shift <= 31 else int(m) >> (layer.shift - 31)
                      for m in layer.mult], dtype=np.int64)
     mult[0] = sign << 30
-    return qz.QLayer(w=layer.w, w_bits=layer.w_bits, bias=layer.bias, mult=mult, shift=31, acc32=True)
+    return QLayer(w=layer.w, w_bits=layer.w_bits, bias=layer.bias, mult=mult, shift=31, acc32=True)
 
 
 def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory,
-                   edge: bool = False) -> tuple[qz.QModel, np.ndarray]:
+                   edge: bool = False) -> tuple[QModel, np.ndarray]:
     """A quantised random model whose hidden layers are replaced by :func:`_extreme_layer`
     ones (``edge``: then given :func:`_edge_multipliers`, +2^30 and -2^30 in turn), and a
     stream for it: a random walk with strain excursions large enough to saturate the net
@@ -145,11 +146,11 @@ def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory,
     return q, np.vstack([wl_fm, wl_fm[:200]])
 
 
-def _edge_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+def _edge_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
     return _extreme_model(seed, sizes, bits, memory, edge=True)
 
 
-def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
     """A quantised random model as the exporter makes it (acc32 where proven) and its stream."""
     model = make_random_model(seed, sizes=sizes, memory=memory)
     wl = make_random_walk(model, 1500, seed=seed)
@@ -159,7 +160,7 @@ def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz
     return q, intref.nm_to_fm(wl)
 
 
-def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
     """:func:`_realistic_model` with the units weight decay leaves in the force and location
     nets: a third of each hidden layer's outputs unread (the next layer's column all zero),
     half of those with all-zero weights too (a bias alone), the force net's first layer wholly
@@ -185,7 +186,7 @@ def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[q
     return q, wl_fm
 
 
-def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[qz.QModel, np.ndarray]:
+def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
     """:func:`_realistic_model` with every other layer (hidden and output ones, alternating
     between the nets) on int64 accumulators, which run the portable C between SIMD layers
     and are left out of the packed form."""
@@ -501,7 +502,7 @@ def test_pack_refuses_bad_buffers_and_states():
 
 # ---- golden sessions replayed by a C driver, natively and on aarch64 ------------------------
 
-def _golden_sources(out: Path, q: qz.QModel, wl_fm: np.ndarray, contact: np.ndarray | None) -> list[Path]:
+def _golden_sources(out: Path, q: QModel, wl_fm: np.ndarray, contact: np.ndarray | None) -> list[Path]:
     """replay_model.{c,h} and golden_vectors.c for the session of ``q`` on ``wl_fm``."""
     hdr, src = codegen.fixed_source(q, "replay")
     (out / "replay_model.h").write_text(hdr)

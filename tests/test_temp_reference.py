@@ -24,6 +24,7 @@ from fbgforce import contract, freshness
 from fbgforce import model as fm
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
+from fbgforce.export.qmodel import QModel
 from fbgforce.pybind import PACKED_KERNELS, FloatRuntime, Runtime
 from fbgforce.trainer import preprocess as pp
 from test_simd import _balance_contact, host_kernels
@@ -211,7 +212,7 @@ def version6_model(directory: Path) -> tuple[fm.HierarchicalModel, np.ndarray]:
     return old, make_random_walk(old, 600, 7)
 
 
-def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> qz.QModel:
+def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> QModel:
     """``old`` (the old model above, loaded from a model.json without the fields added since
     blob version 6) quantises on ``wl`` to the version 6 blob apart from the header's version
     and CRC and the creep inverse's fields (blob version 9), which grew the parameter block

@@ -151,7 +151,7 @@ def stress_qmodel(width: int = 128, n_layers: int = 8, w_bits: int = 16, bias: i
     INT32_MAX -> OVERLOAD), location x row positive, y row negative (x, y clamp to +-INT32_MAX).
     The load proxy (input-side overload rule) has the largest coefficients the loader accepts.
     """
-    from fbgforce.export.quantize import QLayer, QModel
+    from fbgforce.export.qmodel import QLayer, QModel
 
     qmax = 127 if w_bits == 8 else SAT16
     half = width // 2
@@ -198,10 +198,11 @@ def stress_inputs(q, sign: int = 1, n: int | None = None) -> np.ndarray:
     """Constant samples that saturate the stress model's compensated shifts with ``sign``:
     strain gratings at the window edge, the reference grating at the other (no jump faults
     after the first sample, which has no predecessor)."""
-    from fbgforce.export.quantize import WL_MAX_FM, WL_MIN_FM
+    from fbgforce.contract import LIMIT
 
+    lo, hi = LIMIT["WL_MIN_FM"], LIMIT["WL_MAX_FM"]
     n = q.taps.size + 8 if n is None else n
-    row = np.array([WL_MAX_FM] * 4 + [WL_MIN_FM] if sign > 0 else [WL_MIN_FM] * 4 + [WL_MAX_FM])
+    row = np.array([hi] * 4 + [lo] if sign > 0 else [lo] * 4 + [hi])
     return np.tile(row, (n, 1)).astype(np.int64)
 
 
