@@ -54,7 +54,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -147,8 +147,8 @@ def _diagnostics_reader(domain: int, got: list, stop: threading.Event) -> None:
 
 
 def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
-    """Part 1 (module docstring)."""
-    from fbgforce.cli import main
+    """The preload run (module docstring, 1.)."""
+    from fbgforce.cli import main as cli_main
     from fbgforce.interrogator import stream as S
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples" / "udp_receiver"))
@@ -170,45 +170,11 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
     em, source = _emulator(data, 1000.0)
     res: dict[str, Any] = {}
     errors: list[BaseException] = []
-
-    def until(sample: int) -> None:
-        from fbgforce.interrogator.publish import decode_datagram
-
-        while True:
-            rec = decode_datagram(sink.recv(256))
-            if rec is not None and int(rec["sample_seq"]) >= sample:
-                return
-
-    def controller() -> None:
-        try:
-            client = client_mod.Client("127.0.0.1", port)
-            until(where["step"] + 1500)
-            t0 = time.monotonic()
-            ack = client.send("tare")
-            res["tare"] = (ack, time.monotonic() - t0, t0)
-            until(where["press"][1] + 800)
-            t0 = time.monotonic()
-            ack = client.send("reset")
-            res["reset"] = (ack, time.monotonic() - t0, t0)
-            until(where["n"] - 4500)
-            res["silence"] = time.monotonic()
-            os.kill(em.pid, signal.SIGSTOP)
-            time.sleep(3.0)
-            res["back"] = time.monotonic()
-            os.kill(em.pid, signal.SIGCONT)
-        except BaseException as exc:
-            errors.append(exc)
-
-    ctl = threading.Thread(target=controller, daemon=True)
+    ctl = threading.Thread(target=_preload_controller,
+                           args=(client_mod, port, sink, where, em, res, errors), daemon=True)
     ctl.start()
     try:
-        with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
-            code = main(["stream", "--source", source, "--model", str(model), "--samples",
-                         str(where["n"]), "--idle-timeout", "10", "--control",
-                         f"udp://127.0.0.1:{port}", "--publish",
-                         f"udp://127.0.0.1:{sink.getsockname()[1]}", "--publish",
-                         f"ros2:///bench?domain={domain}", "--out", str(out_csv),
-                         "--start-timeout", "30", "--quiet", "--json"])
+        code = _stream_preload(cli_main, source, model, where["n"], port, sink, domain, out_csv)
         ctl.join(30)
         time.sleep(1.5)
     finally:
@@ -217,10 +183,110 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
         _end(em)
     if errors:
         raise errors[0]
-    est = S.load_estimates(out_csv)
+    return _preload_result(code, S.load_estimates(out_csv), where, res, diags, client_mod, model)
+
+
+def _wait_for_sample(sink: socket.socket, sample: int) -> None:
+    """Returns once the stream has published sample ``sample`` (or a later one) to ``sink``."""
+    from fbgforce.interrogator.publish import decode_datagram
+
+    while True:
+        rec = decode_datagram(sink.recv(256))
+        if rec is not None and int(rec["sample_seq"]) >= sample:
+            return
+
+
+def _preload_controller(client_mod: Any, port: int, sink: socket.socket, where: dict[str, Any],
+                        em: subprocess.Popen, res: dict[str, Any],
+                        errors: list[BaseException]) -> None:
+    """The operator of the preload run, paced by the published samples: a tare 1.5 s after
+    the step, a reset after the press, then the instrument stopped for 3 s near the end.
+    Each command's answer, delay and send time go to ``res``, with when the silence began and
+    ended; an exception goes to ``errors`` for the main thread to raise."""
+    try:
+        client = client_mod.Client("127.0.0.1", port)
+        _wait_for_sample(sink, where["step"] + 1500)
+        t0 = time.monotonic()
+        ack = client.send("tare")
+        res["tare"] = (ack, time.monotonic() - t0, t0)
+        _wait_for_sample(sink, where["press"][1] + 800)
+        t0 = time.monotonic()
+        ack = client.send("reset")
+        res["reset"] = (ack, time.monotonic() - t0, t0)
+        _wait_for_sample(sink, where["n"] - 4500)
+        res["silence"] = time.monotonic()
+        os.kill(em.pid, signal.SIGSTOP)
+        time.sleep(3.0)
+        res["back"] = time.monotonic()
+        os.kill(em.pid, signal.SIGCONT)
+    except BaseException as exc:
+        errors.append(exc)
+
+
+def _stream_preload(cli_main: Callable[[list[str]], int], source: str, model: Path,
+                    samples: int, port: int, sink: socket.socket, domain: int,
+                    out_csv: Path) -> int:
+    """``fbgforce stream`` on the preload playback, in this process and quiet: commands on
+    UDP ``port``, estimates to ``sink`` and ``out_csv``, diagnostics on DDS ``domain``;
+    returns its exit code."""
+    with open(os.devnull, "w") as quiet, contextlib.redirect_stdout(quiet):
+        return cli_main(["stream", "--source", source, "--model", str(model), "--samples",
+                         str(samples), "--idle-timeout", "10", "--control",
+                         f"udp://127.0.0.1:{port}", "--publish",
+                         f"udp://127.0.0.1:{sink.getsockname()[1]}", "--publish",
+                         f"ros2:///bench?domain={domain}", "--out", str(out_csv),
+                         "--start-timeout", "30", "--quiet", "--json"])
+
+
+def _offline_press(model: Path, where: dict[str, Any]) -> tuple[float, np.ndarray, float]:
+    """What the model reads offline: the press RMSE without the step (tared on the first 200
+    samples: the best it reads), and the forces and press RMSE with the step and no tare
+    after it (the first tare only: what the tare saves)."""
+    from fbgforce.pybind import Runtime
+
+    p0, p1 = where["press"]
+    rt = Runtime(model)
+    rt.tare(where["clean_wl_nm"][:200])
+    clean = rt.run(where["clean_wl_nm"])["force_N"][p0:p1]
+    rmse_clean = float(np.sqrt(np.mean((clean - where["force"][p0:p1]) ** 2)))
+    stepped = where["clean_wl_nm"].copy()
+    stepped[where["step"]:, :4] += STEP_PM / 1000.0
+    rt = Runtime(model)
+    rt.tare(stepped[:200])
+    untared = rt.run(stepped)["force_N"]
+    rmse_untared = float(np.sqrt(np.mean((untared[p0:p1] - where["force"][p0:p1]) ** 2)))
+    return rmse_clean, untared, rmse_untared
+
+
+def _diagnostics_figures(diags: list, res: dict[str, Any]) -> dict[str, Any]:
+    """What ``/diagnostics`` said: how many records, their period, whether they carry the
+    lost-samples key, how soon the instrument's silence turned them WARN or ERROR and its
+    return turned them OK again, and the worst level during the silence."""
+    times = np.array([d[0] for d in diags])
+    levels = [d[1] for d in diags]
+    first_bad = next((t for t, lv, _, _ in diags if t >= res["silence"] and lv >= 1), None)
+    first_ok = next((t for t, lv, _, _ in diags if t >= res["back"] and lv == 0), None)
+    return {
+        "diagnostics": len(diags),
+        "diag_period_s": [float(np.median(np.diff(times))), float(np.diff(times).min()),
+                          float(np.diff(times).max())] if len(times) > 2 else None,
+        "diag_lost_key": bool(diags) and "samples_lost" in diags[-1][3],
+        "silence_to_warn_s": None if first_bad is None else round(first_bad - res["silence"], 3),
+        "silence_level": max(levels[i] for i, t in enumerate(times) if res["silence"] <= t
+                             <= res["back"]) if diags else None,
+        "back_to_ok_s": None if first_ok is None else round(first_ok - res["back"], 3),
+    }
+
+
+def _preload_result(code: int, est: dict[str, np.ndarray], where: dict[str, Any],
+                    res: dict[str, Any], diags: list, client_mod: Any, model: Path
+                    ) -> dict[str, Any]:
+    """The preload figures (module docstring, part 1) from the stream's estimates, the
+    commands' answers, the offline references and the diagnostics; the windows each rest
+    figure is taken over keep clear of the tare's and the reset's own windows."""
     seq = est["seq"]
     force = est["force_N"]
-    tare_ack, tare_s, _ = res["tare"]
+    tare_ack, tare_s, tare_t = res["tare"]
     reset_ack, reset_s, reset_t = res["reset"]
     step, (p0, p1) = where["step"], where["press"]
     # The tare is sent when sample step + 1500 is out and answered some 250 samples later:
@@ -231,32 +297,13 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
     in_press = (seq >= p0) & (seq < p1)
     truth = where["force"][seq[in_press]]
     rmse = float(np.sqrt(np.mean((force[in_press] - truth) ** 2)))
-    # The same press without the step, offline, tared on the first 200 samples: what the
-    # model reads of it at best.
-    from fbgforce.pybind import Runtime
-
-    rt = Runtime(model)
-    rt.tare(where["clean_wl_nm"][:200])
-    clean = rt.run(where["clean_wl_nm"])["force_N"][p0:p1]
-    rmse_clean = float(np.sqrt(np.mean((clean - where["force"][p0:p1]) ** 2)))
-    # The same press with the step and no tare after it (offline, the first tare only).
-    stepped = where["clean_wl_nm"].copy()
-    stepped[step:, :4] += STEP_PM / 1000.0
-    rt = Runtime(model)
-    rt.tare(stepped[:200])
-    untared = rt.run(stepped)["force_N"]
-    rmse_untared = float(np.sqrt(np.mean((untared[p0:p1] - where["force"][p0:p1]) ** 2)))
+    rmse_clean, untared, rmse_untared = _offline_press(model, where)
     # What the at-rest tracker had taken of the step when the tare was asked for.
-    tare_t = res["tare"][2]
     offset = [float(d[3]["tracker_offset_pm"]) for d in diags if d[0] <= tare_t]
     reset_rest = force[(seq > p1 + 1400) & (seq < where["n"] - 4600)]
     # The model's own rest before the step (after the stream's first tare): what a tare can
     # give back at best.
     own_rest = force[(seq > 300) & (seq < step)]
-    times = np.array([d[0] for d in diags])
-    levels = [d[1] for d in diags]
-    first_bad = next((t for t, lv, _, _ in diags if t >= res["silence"] and lv >= 1), None)
-    first_ok = next((t for t, lv, _, _ in diags if t >= res["back"] and lv == 0), None)
     return {
         "exit_code": code,
         "step_force_median_N": float(np.median(before)),
@@ -276,14 +323,7 @@ def run_preload(model: Path, tmp: Path) -> dict[str, Any]:
                   "message": reset_ack.message, "answered_s": round(reset_s, 3)},
         "rest_after_reset_p99_N": float(np.percentile(np.abs(reset_rest), 99)),
         "rest_after_reset_n": int(len(reset_rest)),
-        "diagnostics": len(diags),
-        "diag_period_s": [float(np.median(np.diff(times))), float(np.diff(times).min()),
-                          float(np.diff(times).max())] if len(times) > 2 else None,
-        "diag_lost_key": bool(diags) and "samples_lost" in diags[-1][3],
-        "silence_to_warn_s": None if first_bad is None else round(first_bad - res["silence"], 3),
-        "silence_level": max(levels[i] for i, t in enumerate(times) if res["silence"] <= t
-                             <= res["back"]) if diags else None,
-        "back_to_ok_s": None if first_ok is None else round(first_ok - res["back"], 3),
+        **_diagnostics_figures(diags, res),
         "reset_request_t": reset_t,
     }
 

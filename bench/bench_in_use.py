@@ -165,78 +165,22 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
         ``pass``; every goal has a row, ``value`` and ``pass`` null where the logs of its role
         are missing), ``passed``, ``failed``, ``not_measured``.
     """
-    from fbgforce import dataset
     from fbgforce import model as fm
-    from fbgforce.trainer.evaluate import evaluate, run_recording
 
     model = fm.load(model_dir)
     manifest = load_manifest(logs, PROG)
-    by_role: dict[str, list[str]] = {role: [] for role in SCORED_ROLES}
-    for name, entry in manifest.items():
-        if entry.get("role") in by_role:
-            by_role[entry["role"]].append(name)
-    if not any(by_role.values()):
-        fail(f"{logs}: no variant with a role among {', '.join(SCORED_ROLES)}; write them with "
-             "python tests/foreign.py --out DIR const_temp ramp40K long_rests held_grips ...",
-             PROG)
-
-    runs: dict[str, tuple[Any, dict[str, Any]]] = {}
-
-    def run(names: list[str]) -> dict[str, Any]:
-        """Metrics over the other logs of ``names``, each log loaded and run only once."""
-        for n in names:
-            if n not in runs:
-                path = manifest[n]["other"]
-                print(f"{PROG}: {engine} on {path}", file=sys.stderr)
-                cache = {} if loaded is None else loaded
-                if str(path) not in cache:
-                    cache[str(path)] = dataset.load(path)
-                ds = cache[str(path)]
-                runs[n] = (ds, run_recording(engine, model_dir, model, ds, str(path)))
-        return evaluate(model_dir, [runs[n][0] for n in names], engine=engine, model=model,
-                        predictions=[runs[n][1] for n in names])
-
+    by_role = _logs_by_role(manifest, logs)
+    run = _LogRuns(model_dir, model, engine, manifest, loaded)
     scored: dict[str, Any] = {}
     for role in SCORED_ROLES:
         for name in by_role[role]:
             scored[name] = {"role": role, **run([name]),
                             "data": [str(manifest[name]["other"])]}
-    rows = []
-    for name in by_role["ramp"]:
-        seed = manifest[name].get("device_seed")
-        twins = [n for n in by_role["constant"] if manifest[n].get("device_seed") == seed]
-        const = run(twins)["rmse_force_N"] if twins else None
-        m = scored[name]
-        values = {"rest_contact": m["at_rest"]["contact_fraction"],
-                  "rest_force_p99": m["at_rest"]["force_p99_N"],
-                  "rmse_ratio": _ratio(m["rmse_force_N"], const)}
-        rows += [_row(g, [name] + (twins if g.key == "rmse_ratio" else []), values[g.key])
-                 for g in RAMP_GOALS]
-    if not by_role["ramp"]:
-        rows += [_row(g, [], None) for g in RAMP_GOALS]
-    constant = by_role["constant"] + by_role["rest"]
-    if constant:
-        m = run(constant)
-        scored["constant+rest"] = {"role": "constant+rest", **m,
-                                   "data": [str(manifest[n]["other"]) for n in constant]}
-        values = {"false_events": m["at_rest"]["false_events_per_min"],
-                  "onset_median": m["contact_timing"]["onset_delay_ms"]["median"],
-                  "detected_above_1N": m["contact_accuracy_above_1N"]}
-        rows += [_row(g, constant, values[g.key]) for g in CONSTANT_GOALS]
-    else:
-        rows += [_row(g, [], None) for g in CONSTANT_GOALS]
+    rows = _ramp_rows(by_role, manifest, scored, run)
+    rows += _constant_rows(by_role, manifest, scored, run)
     cal = calibration_test(model_dir, model, engine)
     cal_rmse = cal["rmse_force_N"] if cal is not None else None
-    if by_role["hold"]:
-        if cal is None:
-            fail(f"{model_dir}: the model's training logs are not all readable; the held-grip "
-                 "goal compares with their test presses", PROG)
-        m = run(by_role["hold"])
-        values = {"hold_bias": m["holds"]["force_bias_N"],
-                  "hold_rmse_ratio": _ratio(m["holds"]["rmse_force_N"], cal_rmse)}
-        rows += [_row(g, by_role["hold"], values[g.key]) for g in HOLD_GOALS]
-    else:
-        rows += [_row(g, [], None) for g in HOLD_GOALS]
+    rows += _hold_rows(by_role["hold"], cal, cal_rmse, model_dir, run)
     if by_role["ramp_hold"]:
         m = run(by_role["ramp_hold"])
         rows += [_row(g, by_role["ramp_hold"], m["holds"]["force_bias_N"]) for g in RAMP_HOLD_GOALS]
@@ -254,6 +198,101 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
             "calibration_test_rmse_force_N": cal_rmse, "scored": scored, "goals": rows,
             "passed": verdicts.count(True), "failed": verdicts.count(False),
             "not_measured": verdicts.count(None)}
+
+
+def _logs_by_role(manifest: dict[str, Any], logs: Path) -> dict[str, list[str]]:
+    """The manifest's variants grouped by the role they are scored in (other roles, such as
+    ``calibration``, left out); stops the bench when no variant has a scored role."""
+    by_role: dict[str, list[str]] = {role: [] for role in SCORED_ROLES}
+    for name, entry in manifest.items():
+        if entry.get("role") in by_role:
+            by_role[entry["role"]].append(name)
+    if not any(by_role.values()):
+        fail(f"{logs}: no variant with a role among {', '.join(SCORED_ROLES)}; write them with "
+             "python tests/foreign.py --out DIR const_temp ramp40K long_rests held_grips ...",
+             PROG)
+    return by_role
+
+
+class _LogRuns:
+    """The engine's runs of the variants' other logs, each log loaded and run only once;
+    calling it with variant names gives the ``fbgforce evaluate --json`` metrics over their
+    logs together."""
+
+    def __init__(self, model_dir: Path, model: Any, engine: str, manifest: dict[str, Any],
+                 loaded: dict[str, Any] | None) -> None:
+        self.model_dir, self.model, self.engine = model_dir, model, engine
+        self.manifest, self.loaded = manifest, loaded
+        self.runs: dict[str, tuple[Any, dict[str, Any]]] = {}
+
+    def __call__(self, names: list[str]) -> dict[str, Any]:
+        """Metrics over the other logs of ``names``, each log loaded and run only once."""
+        from fbgforce import dataset
+        from fbgforce.trainer.evaluate import evaluate, run_recording
+
+        for n in names:
+            if n not in self.runs:
+                path = self.manifest[n]["other"]
+                print(f"{PROG}: {self.engine} on {path}", file=sys.stderr)
+                cache = {} if self.loaded is None else self.loaded
+                if str(path) not in cache:
+                    cache[str(path)] = dataset.load(path)
+                ds = cache[str(path)]
+                self.runs[n] = (ds, run_recording(self.engine, self.model_dir, self.model, ds,
+                                                  str(path)))
+        return evaluate(self.model_dir, [self.runs[n][0] for n in names], engine=self.engine,
+                        model=self.model, predictions=[self.runs[n][1] for n in names])
+
+
+def _ramp_rows(by_role: dict[str, list[str]], manifest: dict[str, Any], scored: dict[str, Any],
+               run: _LogRuns) -> list[dict[str, Any]]:
+    """The ramp goals of every ramp log: its rest contact and rest force, and its force RMSE
+    over the constant-temperature logs of the same device (none there: no ratio)."""
+    rows = []
+    for name in by_role["ramp"]:
+        seed = manifest[name].get("device_seed")
+        twins = [n for n in by_role["constant"] if manifest[n].get("device_seed") == seed]
+        const = run(twins)["rmse_force_N"] if twins else None
+        m = scored[name]
+        values = {"rest_contact": m["at_rest"]["contact_fraction"],
+                  "rest_force_p99": m["at_rest"]["force_p99_N"],
+                  "rmse_ratio": _ratio(m["rmse_force_N"], const)}
+        rows += [_row(g, [name] + (twins if g.key == "rmse_ratio" else []), values[g.key])
+                 for g in RAMP_GOALS]
+    if not by_role["ramp"]:
+        rows += [_row(g, [], None) for g in RAMP_GOALS]
+    return rows
+
+
+def _constant_rows(by_role: dict[str, list[str]], manifest: dict[str, Any],
+                   scored: dict[str, Any], run: _LogRuns) -> list[dict[str, Any]]:
+    """The constant-temperature goals, scored on the ``constant`` and ``rest`` logs together
+    (added to ``scored`` as ``constant+rest``)."""
+    constant = by_role["constant"] + by_role["rest"]
+    if not constant:
+        return [_row(g, [], None) for g in CONSTANT_GOALS]
+    m = run(constant)
+    scored["constant+rest"] = {"role": "constant+rest", **m,
+                               "data": [str(manifest[n]["other"]) for n in constant]}
+    values = {"false_events": m["at_rest"]["false_events_per_min"],
+              "onset_median": m["contact_timing"]["onset_delay_ms"]["median"],
+              "detected_above_1N": m["contact_accuracy_above_1N"]}
+    return [_row(g, constant, values[g.key]) for g in CONSTANT_GOALS]
+
+
+def _hold_rows(holds: list[str], cal: dict[str, Any] | None, cal_rmse: float | None,
+               model_dir: Path, run: _LogRuns) -> list[dict[str, Any]]:
+    """The held-grip goals: the bias over the holds, and their RMSE over the calibration's
+    test RMSE, which needs the model's training logs (without them the bench stops)."""
+    if not holds:
+        return [_row(g, [], None) for g in HOLD_GOALS]
+    if cal is None:
+        fail(f"{model_dir}: the model's training logs are not all readable; the held-grip "
+             "goal compares with their test presses", PROG)
+    m = run(holds)
+    values = {"hold_bias": m["holds"]["force_bias_N"],
+              "hold_rmse_ratio": _ratio(m["holds"]["rmse_force_N"], cal_rmse)}
+    return [_row(g, holds, values[g.key]) for g in HOLD_GOALS]
 
 
 def table(result: dict[str, Any]) -> str:

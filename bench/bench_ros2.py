@@ -364,17 +364,7 @@ def run_record(minutes: float, tmp: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--model", type=Path, help="exported model directory (default: train one)")
-    ap.add_argument("--seconds", type=float, default=60.0)
-    ap.add_argument("--rate", type=float, default=1000.0)
-    ap.add_argument("--record-minutes", type=float, default=10.0)
-    ap.add_argument("--repeat", type=int, default=3, help="rounds of live runs, one per mode")
-    ap.add_argument("--modes", default=",".join(MODES),
-                    help=f"live modes in each round, comma-separated ({', '.join(MODES)})")
-    ap.add_argument("--cpu", type=int, metavar="N",
-                    help="run the stream on CPU N alone, everything else on the other CPUs")
-    ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    ap = _parser()
     args = ap.parse_args(argv)
     modes = [m for m in args.modes.split(",") if m]
     if not modes or set(modes) - set(MODES):
@@ -390,55 +380,12 @@ def main(argv: list[str] | None = None) -> int:
                                "other_cpus": None if others is None else sorted(others)}
     with tempfile.TemporaryDirectory() as tmp:
         model = args.model or small_model(Path(tmp))
-        print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
-              f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
-              f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'cpu us':>15} {'preempt':>7} "
-              f"{'wakes':>5} {'load':>5}")
-        live = []
-        for i in range(args.repeat):
-            for mode in modes:
-                r = run_live(model, args.seconds, args.rate, mode, others)
-                r["round"] = i + 1
-                r["load_average"] = os.getloadavg()[0]
-                live.append(r)
-                dash = "-"
-                cpu = "/".join(f"{r[f'{k}_cpu_us_per_sample']:.0f}"
-                               if f"{k}_cpu_us_per_sample" in r else dash
-                               for k in ("stream", "publisher", "subscriber"))
-                preempt = 1000 * r.get("stream_involuntary_switches_per_sample", 0)
-                print(f"{i + 1:>5} {mode:<6} {r['samples']:>8} "
-                      f"{r.get('published', dash):>9} {r.get('received', dash):>9} "
-                      f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
-                      f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
-                      f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
-                      f"{r['runtime_us_median']:>7} {cpu:>15} {preempt:>7.0f} "
-                      f"{r.get('publisher_voluntary_switches_per_sample', dash):>5} "
-                      f"{r['load_average']:>5.1f}", flush=True)
+        live = _live_rounds(model, args, modes, others)
         results["live"] = live
         if live:
             results["step"] = step_summary(live, modes)
-            print("step time, median over rounds [min, max] (us): wall | thread CPU | "
-                  "in the runtime's call")
-            for mode, e in results["step"].items():
-                line = (f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']} | "
-                        f"{e['runtime_us_median']}")
-                for base in BASELINES:
-                    if f"step_wall_us_minus_{base}" in e:
-                        line += (f"   minus {base}, per round: "
-                                 f"{e[f'step_wall_us_minus_{base}']} | "
-                                 f"{e[f'step_cpu_us_minus_{base}']} | "
-                                 f"{e[f'runtime_us_minus_{base}']}")
-                print(line)
-            noise = results["step_noise"] = off_noise(live)
-            if noise["largest_us"] is not None:
-                print(f"step without publishing, run to run (successive off runs): "
-                      f"{noise['step_wall_us_differences']} us")
-                for mode, e in results["step"].items():
-                    if "step_wall_ratio_to_off" in e:
-                        print(f"  {mode:<6} minus off {e['step_wall_us_minus_off']} us, "
-                              f"ratio {e['step_wall_ratio_to_off']}: "
-                              f"{'within' if e['within_noise'] else 'beyond'} the noise "
-                              f"(largest {noise['largest_us']} us)")
+            results["step_noise"] = off_noise(live)
+            _print_step_summary(results["step"], results["step_noise"])
         if args.record_minutes > 0:
             rec = run_record(args.record_minutes, Path(tmp))
             results["record"] = rec
@@ -452,6 +399,85 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1))
     return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The bench's options (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--model", type=Path, help="exported model directory (default: train one)")
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--rate", type=float, default=1000.0)
+    ap.add_argument("--record-minutes", type=float, default=10.0)
+    ap.add_argument("--repeat", type=int, default=3, help="rounds of live runs, one per mode")
+    ap.add_argument("--modes", default=",".join(MODES),
+                    help=f"live modes in each round, comma-separated ({', '.join(MODES)})")
+    ap.add_argument("--cpu", type=int, metavar="N",
+                    help="run the stream on CPU N alone, everything else on the other CPUs")
+    ap.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    return ap
+
+
+def _live_rounds(model: Path, args: argparse.Namespace, modes: list[str],
+                 others: set[int] | None) -> list[dict[str, Any]]:
+    """The live runs: ``--repeat`` rounds, each running every mode once in the order given
+    (so the rounds' spread shows the machine's noise), each run printed as it ends."""
+    print(f"{'round':>5} {'mode':<6} {'samples':>8} {'published':>9} {'received':>9} "
+          f"{'lost':>5} {'reord':>5} {'p50 us':>7} {'p99 us':>8} {'max us':>8} "
+          f"{'step us':>7} {'step cpu':>8} {'runtime':>7} {'cpu us':>15} {'preempt':>7} "
+          f"{'wakes':>5} {'load':>5}")
+    live = []
+    for i in range(args.repeat):
+        for mode in modes:
+            r = run_live(model, args.seconds, args.rate, mode, others)
+            r["round"] = i + 1
+            r["load_average"] = os.getloadavg()[0]
+            live.append(r)
+            _print_live_row(r)
+    return live
+
+
+def _print_live_row(r: dict[str, Any]) -> None:
+    """One live run's line of the table, a dash where the mode has no such figure."""
+    dash = "-"
+    cpu = "/".join(f"{r[f'{k}_cpu_us_per_sample']:.0f}"
+                   if f"{k}_cpu_us_per_sample" in r else dash
+                   for k in ("stream", "publisher", "subscriber"))
+    preempt = 1000 * r.get("stream_involuntary_switches_per_sample", 0)
+    print(f"{r['round']:>5} {r['mode']:<6} {r['samples']:>8} "
+          f"{r.get('published', dash):>9} {r.get('received', dash):>9} "
+          f"{r.get('lost', dash):>5} {r.get('reordered', dash):>5} "
+          f"{r['p50_us']:>7} {r['p99_us']:>8} {r['max_us']:>8} "
+          f"{r['step_wall_us_median']:>7} {r['step_cpu_us_median']:>8} "
+          f"{r['runtime_us_median']:>7} {cpu:>15} {preempt:>7.0f} "
+          f"{r.get('publisher_voluntary_switches_per_sample', dash):>5} "
+          f"{r['load_average']:>5.1f}", flush=True)
+
+
+def _print_step_summary(step: dict[str, Any], noise: dict[str, Any]) -> None:
+    """Per mode, the step time over the rounds and its difference from the baselines; then,
+    when there are two ``off`` runs to tell the noise by, whether each mode's difference
+    from ``off`` lies within it."""
+    print("step time, median over rounds [min, max] (us): wall | thread CPU | "
+          "in the runtime's call")
+    for mode, e in step.items():
+        line = (f"  {mode:<6} {e['step_wall_us_median']} | {e['step_cpu_us_median']} | "
+                f"{e['runtime_us_median']}")
+        for base in BASELINES:
+            if f"step_wall_us_minus_{base}" in e:
+                line += (f"   minus {base}, per round: "
+                         f"{e[f'step_wall_us_minus_{base}']} | "
+                         f"{e[f'step_cpu_us_minus_{base}']} | "
+                         f"{e[f'runtime_us_minus_{base}']}")
+        print(line)
+    if noise["largest_us"] is not None:
+        print(f"step without publishing, run to run (successive off runs): "
+              f"{noise['step_wall_us_differences']} us")
+        for mode, e in step.items():
+            if "step_wall_ratio_to_off" in e:
+                print(f"  {mode:<6} minus off {e['step_wall_us_minus_off']} us, "
+                      f"ratio {e['step_wall_ratio_to_off']}: "
+                      f"{'within' if e['within_noise'] else 'beyond'} the noise "
+                      f"(largest {noise['largest_us']} us)")
 
 
 if __name__ == "__main__":

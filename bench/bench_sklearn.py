@@ -175,23 +175,7 @@ def table(results: dict[str, dict[str, Any]]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="python -m fbgforce.bench.bench_sklearn",
-        description="Compare fbgforce's trainer with scikit-learn's MLPs and the fitted linear "
-                    "baseline on identical inputs and the same split by press.")
-    src = ap.add_mutually_exclusive_group()
-    src.add_argument("--data", nargs="+", metavar="FILE",
-                     help="recordings of one device (CSV/npz, dataset contract)")
-    src.add_argument("--scene", default="calibration",
-                     help="scene to simulate when no --data is given (default calibration)")
-    ap.add_argument("--presses", type=int, default=None,
-                    help="simulate only this many presses of the scene (default: the scene's)")
-    ap.add_argument("--seed", type=int, default=0, help="split, initialisation, shuffling")
-    ap.add_argument("--epochs", type=int, default=200, help="fbgforce: maximum epochs per net")
-    ap.add_argument("--max-iter", type=int, default=200,
-                    help="scikit-learn: maximum epochs per net (its default 200)")
-    ap.add_argument("--json", metavar="OUT", help="also write the results to this JSON file")
-    args = ap.parse_args(argv)
+    args = _parser().parse_args(argv)
     try:
         import sklearn
     except ImportError:
@@ -204,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
     from fbgforce.errors import InputError
-    from fbgforce.trainer.train import prepare, train
+    from fbgforce.trainer.train import prepare
 
     try:
         ds_list, names = load_data(args)
@@ -215,36 +199,13 @@ def main(argv: list[str] | None = None) -> int:
     tr, te = data.rows("train"), data.rows("test")
     print(f"data: {', '.join(names)}: {data.split.size} samples; "
           f"train {tr.size}, test {te.size} samples", file=sys.stderr)
-
-    results: dict[str, dict[str, Any]] = {}
-    print("fbgforce trainer ...", file=sys.stderr)
-    t0 = time.perf_counter()
-    model = train(ds_list, seed=args.seed, epochs=args.epochs, prepared=data)
-    t_fbg = time.perf_counter() - t0
-    z = data.inputs(model.preprocess)  # the fbgforce nets' own inputs (standardised, memory)
-    from fbgforce import model as fm
-
-    preds = {"fbgforce": fm.predict_from_features(model, z)}
-    results["fbgforce"] = {"metrics": score(data, preds["fbgforce"], te),
-                           "train_s": t_fbg,
-                           "epochs": {k: v["epochs_run"] for k, v in
-                                      model.metadata["training"].items()}}
-    print(f"scikit-learn {sklearn.__version__} ...", file=sys.stderr)
-    t0 = time.perf_counter()
-    preds["scikit-learn"], seconds = sklearn_hierarchy(z, data, tr, model, seed=args.seed,
-                                                       max_iter=args.max_iter)
-    results["scikit-learn"] = {"metrics": score(data, preds["scikit-learn"], te),
-                               "train_s": time.perf_counter() - t0, "seconds": seconds}
-    preds["linear (fitted)"], t_lin = linear_baseline(data, tr)
-    results["linear (fitted)"] = {"metrics": score(data, preds["linear (fitted)"], te),
-                                  "train_s": t_lin}
+    results, preds, model, z = _fit_and_score(ds_list, data, tr, te, args, sklearn.__version__)
     from fbgforce import metrics as fmetrics
 
     # Each estimator's own x/y are scored where it detects contact; these are like for like.
     common_xy = fmetrics.common_location({k: {c: np.asarray(v)[te] for c, v in p.items()}
                                        for k, p in preds.items()},
                                       data.contact[te], data.x_mm[te], data.y_mm[te])
-
     print(f"{z.shape[1]} net inputs (memory: {model.metadata.get('memory')})")
     print(table(results))
     f, s = results["fbgforce"]["metrics"], results["scikit-learn"]["metrics"]
@@ -266,6 +227,61 @@ def main(argv: list[str] | None = None) -> int:
 
         Path(args.json).write_text(json.dumps(doc, indent=2, default=json_default) + "\n")
     return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The bench's options (module docstring)."""
+    ap = argparse.ArgumentParser(
+        prog="python -m fbgforce.bench.bench_sklearn",
+        description="Compare fbgforce's trainer with scikit-learn's MLPs and the fitted linear "
+                    "baseline on identical inputs and the same split by press.")
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--data", nargs="+", metavar="FILE",
+                     help="recordings of one device (CSV/npz, dataset contract)")
+    src.add_argument("--scene", default="calibration",
+                     help="scene to simulate when no --data is given (default calibration)")
+    ap.add_argument("--presses", type=int, default=None,
+                    help="simulate only this many presses of the scene (default: the scene's)")
+    ap.add_argument("--seed", type=int, default=0, help="split, initialisation, shuffling")
+    ap.add_argument("--epochs", type=int, default=200, help="fbgforce: maximum epochs per net")
+    ap.add_argument("--max-iter", type=int, default=200,
+                    help="scikit-learn: maximum epochs per net (its default 200)")
+    ap.add_argument("--json", metavar="OUT", help="also write the results to this JSON file")
+    return ap
+
+
+def _fit_and_score(ds_list: list[Any], data: Any, tr: np.ndarray, te: np.ndarray,
+                   args: argparse.Namespace, sklearn_version: str
+                   ) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, np.ndarray]], Any,
+                              np.ndarray]:
+    """The three estimators trained on the training presses and scored on the test presses,
+    in this order: fbgforce's trainer, scikit-learn's hierarchy on the trainer's own net
+    inputs, the fitted linear baseline. Returns their results and whole-data predictions,
+    the fbgforce model and its net inputs."""
+    from fbgforce import model as fm
+    from fbgforce.trainer.train import train
+
+    results: dict[str, dict[str, Any]] = {}
+    print("fbgforce trainer ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    model = train(ds_list, seed=args.seed, epochs=args.epochs, prepared=data)
+    t_fbg = time.perf_counter() - t0
+    z = data.inputs(model.preprocess)  # the fbgforce nets' own inputs (standardised, memory)
+    preds = {"fbgforce": fm.predict_from_features(model, z)}
+    results["fbgforce"] = {"metrics": score(data, preds["fbgforce"], te),
+                           "train_s": t_fbg,
+                           "epochs": {k: v["epochs_run"] for k, v in
+                                      model.metadata["training"].items()}}
+    print(f"scikit-learn {sklearn_version} ...", file=sys.stderr)
+    t0 = time.perf_counter()
+    preds["scikit-learn"], seconds = sklearn_hierarchy(z, data, tr, model, seed=args.seed,
+                                                       max_iter=args.max_iter)
+    results["scikit-learn"] = {"metrics": score(data, preds["scikit-learn"], te),
+                               "train_s": time.perf_counter() - t0, "seconds": seconds}
+    preds["linear (fitted)"], t_lin = linear_baseline(data, tr)
+    results["linear (fitted)"] = {"metrics": score(data, preds["linear (fitted)"], te),
+                                  "train_s": t_lin}
+    return results, preds, model, z
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ FUZZ_CC       ?= clang
 HARD_WARN     := -std=c99 -Wall -Wextra -Werror -pedantic
 # The suite selection the sanitized / valgrind runs execute (pytest node ids or paths).
 # (the valgrind and fuzz tests are left out: these targets ARE those runs, suite-wide).
-HARDCASE_TESTS ?= tests/test_hardcases.py -k "not valgrind_memcheck and not fuzzers_bounded"
+HARDCASE_TESTS ?= tests/test_hardcases_inputs.py tests/test_hardcases_bounds.py -k "not valgrind_memcheck and not fuzzers_bounded"
 
 SAN_FLAGS     := -g -O1 -fno-omit-frame-pointer -fsanitize=address,undefined \
                  -fno-sanitize-recover=all -fsanitize=float-divide-by-zero,float-cast-overflow

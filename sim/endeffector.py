@@ -117,45 +117,42 @@ class EndEffector:
             ``wl_nm`` (n, 5); ``extras`` holds ``temperature_K`` (with ``temperature``) and
             ``dropout`` flags (with ``dropout``).
         """
-        t = np.asarray(t_s, float).reshape(-1)
-        n = t.size
-        f = np.asarray(force_N, float).reshape(-1)
-        x = np.asarray(x_mm, float).reshape(-1)
-        y = np.asarray(y_mm, float).reshape(-1)
-        j = np.zeros(n) if impulse_Ns is None else np.asarray(impulse_Ns, float).reshape(-1)
-        for name, a in (("force_N", f), ("x_mm", x), ("y_mm", y), ("impulse_Ns", j)):
-            if a.size != n:
-                raise ValueError(f"{name} has {a.size} samples, t_s has {n}")
-        if contact is not None and np.asarray(contact).size != n:
-            raise ValueError(f"contact has {np.asarray(contact).size} samples, t_s has {n}")
-        if not np.all(np.isfinite(f)) or not np.all(np.isfinite(j)):
-            raise ValueError("force_N and impulse_Ns must be finite")
-        located = np.isfinite(x) & np.isfinite(y)
-        if np.any(((f != 0) | (j != 0)) & ~located):
-            raise ValueError("x_mm/y_mm must be finite wherever a force or impulse acts")
-        # Unloaded samples have no location; any point gives zero beam forces.
-        x = np.where(located, x, PAD_SIZE_MM[0] / 2)
-        y = np.where(located, y, PAD_SIZE_MM[1] / 2)
-        fx = self.effects
-        extras: dict[str, np.ndarray] = {}
+        t, f, x, y, j = _checked_inputs(t_s, force_N, x_mm, y_mm, contact, impulse_Ns)
+        wl, extras = self._readout(self._beam_forces(f, x, y, j, impulse_phase), t)
+        self.n_processed += t.size
+        return wl, extras
 
+    def _beam_forces(self, f: np.ndarray, x: np.ndarray, y: np.ndarray, j: np.ndarray,
+                     impulse_phase: np.ndarray | None) -> np.ndarray:
+        """The beams' forces (n, 5) under the load as the pad passes it on: where an edge
+        contact moves the load, then the pad's friction and lag, then (with ``dynamics``) the
+        mass-spring response with the impulses kicked in at their phase; without ``dynamics``
+        an impulse acts as its mean force over its sample."""
+        fx = self.effects
         if "edge_contact" in fx:
             x, y = fx["edge_contact"].location(x, y)  # type: ignore[attr-defined]
         design = self.design
-        if "dynamics" in fx:
-            bf = self._pad(design.beam_forces(f, x, y))
-            dyn = fx["dynamics"]
-            kicks = design.beam_forces(j, x, y) if np.any(j) else None
-            steps = None
-            if kicks is not None:
-                ph = (np.full(n, 0.5) if impulse_phase is None
-                      else np.asarray(impulse_phase, float).reshape(-1))
-                steps = np.minimum((dyn.substeps * (1.0 - ph)).astype(int),  # type: ignore[attr-defined]
-                                   dyn.substeps - 1)  # type: ignore[attr-defined]
-            bf = dyn.process(bf, kicks, steps)  # type: ignore[attr-defined]
-        else:
+        if "dynamics" not in fx:
             load = f + j * self.ctx.rate_hz if np.any(j) else f
-            bf = self._pad(design.beam_forces(load, x, y))
+            return self._pad(design.beam_forces(load, x, y))
+        bf = self._pad(design.beam_forces(f, x, y))
+        dyn = fx["dynamics"]
+        kicks = design.beam_forces(j, x, y) if np.any(j) else None
+        steps = None
+        if kicks is not None:
+            ph = (np.full(j.size, 0.5) if impulse_phase is None
+                  else np.asarray(impulse_phase, float).reshape(-1))
+            steps = np.minimum((dyn.substeps * (1.0 - ph)).astype(int),  # type: ignore[attr-defined]
+                               dyn.substeps - 1)  # type: ignore[attr-defined]
+        return dyn.process(bf, kicks, steps)  # type: ignore[attr-defined]
+
+    def _readout(self, bf: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """The wavelengths the interrogator reports for the beams' forces: the gratings'
+        response, then temperature, noise (scaled by the strain signal), quantisation and
+        dropout, in that order, and the extras the temperature and dropout effects report."""
+        fx = self.effects
+        design = self.design
+        extras: dict[str, np.ndarray] = {}
         wl = design.wavelengths(bf)
         signal = wl - design.base_wl_nm
         if "temperature" in fx:
@@ -168,6 +165,33 @@ class EndEffector:
         if "quantization" in fx:
             wl = fx["quantization"].process(wl)  # type: ignore[attr-defined]
         if "dropout" in fx:
-            extras["dropout"] = fx["dropout"].process(n)  # type: ignore[attr-defined]
-        self.n_processed += n
+            extras["dropout"] = fx["dropout"].process(t.size)  # type: ignore[attr-defined]
         return wl, extras
+
+
+def _checked_inputs(t_s: np.ndarray, force_N: np.ndarray, x_mm: np.ndarray, y_mm: np.ndarray,
+                    contact: np.ndarray | None, impulse_Ns: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The inputs of :meth:`EndEffector.process_with_extras` as flat float arrays (no impulse:
+    zeros): refuses arrays of different lengths, a force or impulse that is not finite, and a
+    load without a location; an unloaded sample's missing location becomes the pad's centre."""
+    t = np.asarray(t_s, float).reshape(-1)
+    n = t.size
+    f = np.asarray(force_N, float).reshape(-1)
+    x = np.asarray(x_mm, float).reshape(-1)
+    y = np.asarray(y_mm, float).reshape(-1)
+    j = np.zeros(n) if impulse_Ns is None else np.asarray(impulse_Ns, float).reshape(-1)
+    for name, a in (("force_N", f), ("x_mm", x), ("y_mm", y), ("impulse_Ns", j)):
+        if a.size != n:
+            raise ValueError(f"{name} has {a.size} samples, t_s has {n}")
+    if contact is not None and np.asarray(contact).size != n:
+        raise ValueError(f"contact has {np.asarray(contact).size} samples, t_s has {n}")
+    if not np.all(np.isfinite(f)) or not np.all(np.isfinite(j)):
+        raise ValueError("force_N and impulse_Ns must be finite")
+    located = np.isfinite(x) & np.isfinite(y)
+    if np.any(((f != 0) | (j != 0)) & ~located):
+        raise ValueError("x_mm/y_mm must be finite wherever a force or impulse acts")
+    # Unloaded samples have no location; any point gives zero beam forces.
+    x = np.where(located, x, PAD_SIZE_MM[0] / 2)
+    y = np.where(located, y, PAD_SIZE_MM[1] / 2)
+    return t, f, x, y, j

@@ -118,6 +118,20 @@ def measure_delay_ms(true_N: np.ndarray, reported_N: np.ndarray, dt: float) -> f
     return float(np.argmin(errs)) * dt * 1e3
 
 
+@dataclass
+class _Loop:
+    """The loop's parts for ``B`` runs, built from one scene and one seed per run."""
+
+    master: HapticMaster
+    gripper: Gripper
+    egg: Egg
+    operator: Operator
+    chain: Any
+    load: np.ndarray
+    egg_params: dict[str, np.ndarray]
+    op_params: dict[str, np.ndarray]
+
+
 def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
              progress: bool = False) -> TeleopResult:
     """Run the closed loop for one seeded run per entry of ``seeds``.
@@ -134,85 +148,113 @@ def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
         Print a progress bar on stderr.
     """
     n_runs = len(seeds)
-    dt = scene.dt
     n = int(round(scene.duration_s * scene.rate_hz))
-    t_s = np.arange(n) * dt
-    streams = [_streams(s) for s in seeds]
-    op_params = scene.draw("operator", [s["operator"] for s in streams])
-    egg_params = scene.draw("egg", [s["egg"] for s in streams])
-    noise = np.stack([s["motor_noise"].standard_normal(n + 1) for s in streams], axis=1)
-
-    master = HapticMaster(scene)
-    gripper = Gripper(scene, n_runs)
-    egg = Egg(egg_params, scene)
-    operator = Operator(op_params, scene, noise, feedback.renders_force)
-    chain = gripper.chain_stiffness(egg.k_shell)
-    load = arm_load_acceleration(scene, t_s)
+    t_s = np.arange(n) * scene.dt
     lift_s = scene.lift_s
+    loop = _build_loop(scene, feedback, seeds, t_s)
     feedback.start(scene, list(seeds))
-
     names = ("force_true_N", "force_reported_N", "opening_mm", "command_mm", "master_mm",
              "felt_N", "felt_excess_N")
     tr = {k: np.zeros((n, n_runs)) for k in names}
     tr["contact"] = np.zeros((n, n_runs), dtype=bool)
     reported = np.zeros(n_runs)
-    travel = master.travel_mm
     bar = None
     if progress:
         from fbgforce import progress as fprogress
 
         bar = fprogress.bar(total=n, desc=f"teleop {feedback.name}", unit="sample")
     for i in range(n):
-        t = t_s[i]
-        felt = master.force(reported, operator.y, operator.v)
-        operator.step(i, t, tr, egg.width_mm, felt)
-        # The stylus stops at the ends of the device's travel.
-        hit = (operator.y < 0.0) | (operator.y > travel)
-        operator.y = np.clip(operator.y, 0.0, travel)
-        operator.v[hit] = 0.0
-        opening = gripper.step(operator.y)
-        force = egg.squeeze(opening, chain)
-        carried = t >= lift_s
-        egg.step(force, load[i], carried)
-        force = np.where(egg.present, force, 0.0)
-        contact = force > 0.0
-        # Samples after this one that cannot see contact: the gripper closes at most
-        # max_step_mm per sample (one step of margin against rounding); a gone egg never does.
-        reach = np.floor((opening - egg.width_mm) / gripper.max_step_mm) - 1.0
-        free = np.where(egg.present, np.maximum(reach, 0.0), np.inf)
-        free = np.minimum(free, n - 1 - i)
-        reported = feedback.step(t, force, contact, egg_params["contact_x_mm"],
-                                 egg_params["contact_y_mm"], free)
-        tr["force_true_N"][i] = force
-        tr["force_reported_N"][i] = reported
-        tr["opening_mm"][i] = opening
-        tr["command_mm"][i] = gripper.command(operator.y)
-        tr["master_mm"][i] = operator.y
-        tr["felt_N"][i] = felt
-        tr["felt_excess_N"][i] = felt - master.base_force(operator.y)
-        tr["contact"][i] = contact
+        reported = _loop_sample(i, t_s[i], n, lift_s, loop, feedback, reported, tr)
         if bar is not None and i % 100 == 99:
             bar.update(100)
     if bar is not None:
         bar.close()
-
     lo = scene.fixed("egg", "safe_band_low_N")
     hi = scene.fixed("egg", "safe_band_high_N")
     carried = t_s >= lift_s
+    outcomes = _outcomes(scene, feedback, seeds, loop, tr, carried, (lo, hi))
+    tr["required_N"] = np.where(carried[:, None], loop.egg.required_grip_N(loop.load[:, None]),
+                                np.nan)
+    return TeleopResult(t_s=t_s, traces=tr, outcomes=outcomes, feedback=feedback.name,
+                        lift_s=lift_s, safe_band_N=(lo, hi),
+                        extra={"break_force_N": loop.egg.break_N, "egg_params": loop.egg_params,
+                               "operator_params": loop.op_params})
+
+
+def _build_loop(scene: TeleopScene, feedback: Feedback, seeds: list[int], t_s: np.ndarray
+                ) -> _Loop:
+    """The loop's parts: each run's operator, egg and motor noise drawn from its own seed's
+    streams, and the arm's load over the whole run."""
+    n = t_s.size
+    streams = [_streams(s) for s in seeds]
+    op_params = scene.draw("operator", [s["operator"] for s in streams])
+    egg_params = scene.draw("egg", [s["egg"] for s in streams])
+    noise = np.stack([s["motor_noise"].standard_normal(n + 1) for s in streams], axis=1)
+    master = HapticMaster(scene)
+    gripper = Gripper(scene, len(seeds))
+    egg = Egg(egg_params, scene)
+    operator = Operator(op_params, scene, noise, feedback.renders_force)
+    return _Loop(master=master, gripper=gripper, egg=egg, operator=operator,
+                 chain=gripper.chain_stiffness(egg.k_shell), load=arm_load_acceleration(scene, t_s),
+                 egg_params=egg_params, op_params=op_params)
+
+
+def _loop_sample(i: int, t: float, n: int, lift_s: float, loop: _Loop, feedback: Feedback,
+                 reported: np.ndarray, tr: dict[str, np.ndarray]) -> np.ndarray:
+    """Sample ``i`` of the loop in the hardware's order (module docstring), its traces written
+    into row ``i`` of ``tr``; returns the force the fingertip reports, which the master renders
+    next sample."""
+    master, gripper, egg, operator = loop.master, loop.gripper, loop.egg, loop.operator
+    felt = master.force(reported, operator.y, operator.v)
+    operator.step(i, t, tr, egg.width_mm, felt)
+    # The stylus stops at the ends of the device's travel.
+    travel = master.travel_mm
+    hit = (operator.y < 0.0) | (operator.y > travel)
+    operator.y = np.clip(operator.y, 0.0, travel)
+    operator.v[hit] = 0.0
+    opening = gripper.step(operator.y)
+    force = egg.squeeze(opening, loop.chain)
+    egg.step(force, loop.load[i], t >= lift_s)
+    force = np.where(egg.present, force, 0.0)
+    contact = force > 0.0
+    # Samples after this one that cannot see contact: the gripper closes at most
+    # max_step_mm per sample (one step of margin against rounding); a gone egg never does.
+    reach = np.floor((opening - egg.width_mm) / gripper.max_step_mm) - 1.0
+    free = np.where(egg.present, np.maximum(reach, 0.0), np.inf)
+    free = np.minimum(free, n - 1 - i)
+    reported = feedback.step(t, force, contact, loop.egg_params["contact_x_mm"],
+                             loop.egg_params["contact_y_mm"], free)
+    tr["force_true_N"][i] = force
+    tr["force_reported_N"][i] = reported
+    tr["opening_mm"][i] = opening
+    tr["command_mm"][i] = gripper.command(operator.y)
+    tr["master_mm"][i] = operator.y
+    tr["felt_N"][i] = felt
+    tr["felt_excess_N"][i] = felt - master.base_force(operator.y)
+    tr["contact"][i] = contact
+    return reported
+
+
+def _outcomes(scene: TeleopScene, feedback: Feedback, seeds: list[int], loop: _Loop,
+              tr: dict[str, np.ndarray], carried: np.ndarray, band: tuple[float, float]
+              ) -> dict[str, np.ndarray]:
+    """Each run's outcome: what became of the egg, how long the grip stayed in the safe band
+    once carried, and (when the master renders the reported force) how late and how far off
+    that force was; NaN where nothing was rendered."""
+    n_runs = len(seeds)
     f = tr["force_true_N"]
-    in_band = (f >= lo) & (f <= hi)
+    in_band = (f >= band[0]) & (f <= band[1])
     frac = in_band[carried].mean(axis=0) if carried.any() else np.zeros(n_runs)
     if feedback.renders_force:
-        delays = np.array([measure_delay_ms(f[:, k], tr["force_reported_N"][:, k], dt)
+        delays = np.array([measure_delay_ms(f[:, k], tr["force_reported_N"][:, k], scene.dt)
                            for k in range(n_runs)])
-    else:
-        delays = np.full(n_runs, np.nan)
-    if feedback.renders_force:
         rmse, bias = force_error(f, tr["force_reported_N"],
                                  float(scene.sim_scene.schedule["contact_threshold_N"]))
     else:
+        delays = np.full(n_runs, np.nan)
         rmse = bias = np.full(n_runs, np.nan)
-    outcomes = {
+    egg = loop.egg
+    return {
         "seed": np.asarray(seeds),
         "egg_broken": egg.broken.copy(),
         "egg_dropped": egg.dropped.copy(),
@@ -222,10 +264,5 @@ def simulate(scene: TeleopScene, feedback: Feedback, seeds: list[int],
         "estimator_delay_ms": delays,
         "force_rmse_N": rmse,
         "force_bias_N": bias,
-        "contact_noticed_s": operator.contact_time_s,
+        "contact_noticed_s": loop.operator.contact_time_s,
     }
-    tr["required_N"] = np.where(carried[:, None], egg.required_grip_N(load[:, None]), np.nan)
-    return TeleopResult(t_s=t_s, traces=tr, outcomes=outcomes, feedback=feedback.name,
-                        lift_s=lift_s, safe_band_N=(lo, hi),
-                        extra={"break_force_N": egg.break_N, "egg_params": egg_params,
-                               "operator_params": op_params})

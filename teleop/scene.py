@@ -213,40 +213,62 @@ def parse_scene(doc: dict[str, Any], path: str, name: str) -> TeleopScene:
         if top not in SCHEMA:
             raise InputError(f"unknown table; allowed: {', '.join(SCHEMA)}", path=path,
                              column=f"teleop.{top}")
-    tables: dict[str, dict[str, float | tuple[float, float]]] = {}
-    for table, keys in SCHEMA.items():
-        given = tele.get(table)
-        if not isinstance(given, dict):
-            raise InputError("missing table", path=path, column=f"teleop.{table}")
-        extra = set(given) - set(keys) - ({"moves"} if table == "arm" else set())
-        if extra:
-            raise InputError(f"unknown key; allowed: {', '.join(keys)}", path=path,
-                             column=f"teleop.{table}.{sorted(extra)[0]}")
-        tables[table] = {}
-        for key, (lo, hi, may_range) in keys.items():
-            where = f"teleop.{table}.{key}"
-            if key not in given:
-                raise InputError("missing key", path=path, column=where)
-            value = given[key]
-            if isinstance(value, list):
-                if not may_range:
-                    raise InputError("must be a single number (it is not drawn per run)",
-                                     path=path, column=where)
-                if len(value) != 2:
-                    raise InputError("a range must be [low, high]", path=path, column=where)
-                low, high = (_number(v, where, path) for v in value)
-                if low > high:
-                    raise InputError(f"range [{low:g}, {high:g}] has low > high",
-                                     path=path, column=where)
-                for v in (low, high):
-                    _check_range(v, lo, hi, where, path)
-                tables[table][key] = (low, high)
-            else:
-                v = _number(value, where, path)
-                _check_range(v, lo, hi, where, path)
-                tables[table][key] = v
+    tables = {table: _parse_table(tele, table, keys, path) for table, keys in SCHEMA.items()}
+    moves = _parse_moves(tele["arm"].get("moves", []), path)
+    _check_between_keys(tables, path)
+    return TeleopScene(name=name, path=path, sim_scene=sim_scene, tables=tables, moves=moves)
+
+
+def _parse_table(tele: dict[str, Any], table: str, keys: dict[str, tuple[float, float, bool]],
+                 path: str) -> dict[str, float | tuple[float, float]]:
+    """One ``[teleop.<table>]``: every key of the schema present and nothing else (the arm may
+    also hold its moves), each value a number or, where the schema lets it be drawn per run,
+    a ``[low, high]`` range, within the schema's bounds."""
+    given = tele.get(table)
+    if not isinstance(given, dict):
+        raise InputError("missing table", path=path, column=f"teleop.{table}")
+    extra = set(given) - set(keys) - ({"moves"} if table == "arm" else set())
+    if extra:
+        raise InputError(f"unknown key; allowed: {', '.join(keys)}", path=path,
+                         column=f"teleop.{table}.{sorted(extra)[0]}")
+    out: dict[str, float | tuple[float, float]] = {}
+    for key, (lo, hi, may_range) in keys.items():
+        where = f"teleop.{table}.{key}"
+        if key not in given:
+            raise InputError("missing key", path=path, column=where)
+        value = given[key]
+        if isinstance(value, list):
+            out[key] = _parse_range(value, lo, hi, may_range, where, path)
+        else:
+            v = _number(value, where, path)
+            _check_range(v, lo, hi, where, path)
+            out[key] = v
+    return out
+
+
+def _parse_range(value: list[Any], lo: float, hi: float, may_range: bool, where: str,
+                 path: str) -> tuple[float, float]:
+    """A ``[low, high]`` range of a key that may be drawn per run: two numbers, low not above
+    high, both within ``[lo, hi]``."""
+    if not may_range:
+        raise InputError("must be a single number (it is not drawn per run)",
+                         path=path, column=where)
+    if len(value) != 2:
+        raise InputError("a range must be [low, high]", path=path, column=where)
+    low, high = (_number(v, where, path) for v in value)
+    if low > high:
+        raise InputError(f"range [{low:g}, {high:g}] has low > high",
+                         path=path, column=where)
+    for v in (low, high):
+        _check_range(v, lo, hi, where, path)
+    return (low, high)
+
+
+def _parse_moves(given: list[Any], path: str) -> list[Move]:
+    """The arm's moves: tables with every key of :data:`MOVE_KEYS` within its bounds, in
+    order of start, none starting before the previous one ends."""
     moves = []
-    for i, m in enumerate(tele["arm"].get("moves", [])):
+    for i, m in enumerate(given):
         where = f"teleop.arm.moves[{i}]"
         if not isinstance(m, dict):
             raise InputError("must be a table with " + ", ".join(MOVE_KEYS), path=path, column=where)
@@ -266,6 +288,13 @@ def parse_scene(doc: dict[str, Any], path: str, name: str) -> TeleopScene:
         if b.start_s < a.start_s + a.duration_s:
             raise InputError(f"move at {b.start_s:g} s starts before the previous one ends",
                              path=path, column="teleop.arm.moves")
+    return moves
+
+
+def _check_between_keys(tables: dict[str, dict[str, float | tuple[float, float]]],
+                        path: str) -> None:
+    """The bounds one key sets another: the master's stiffest spring at least its base one,
+    the egg's safe band not empty."""
     m = tables["master"]
     if m["max_stiffness_N_per_m"] < m["base_stiffness_N_per_m"]:  # type: ignore[operator]
         raise InputError("must be at least teleop.master.base_stiffness_N_per_m", path=path,
@@ -274,7 +303,6 @@ def parse_scene(doc: dict[str, Any], path: str, name: str) -> TeleopScene:
     if e["safe_band_high_N"] <= e["safe_band_low_N"]:  # type: ignore[operator]
         raise InputError("must be above teleop.egg.safe_band_low_N", path=path,
                          column="teleop.egg.safe_band_high_N")
-    return TeleopScene(name=name, path=path, sim_scene=sim_scene, tables=tables, moves=moves)
 
 
 def load_teleop_scene(name_or_path: str | Path) -> TeleopScene:

@@ -93,7 +93,7 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     # (the default force restarts and decay give another force net; the exporter's bound holds
     # for every draw, and the teleop bound is discussed in docs/teleop.md). Synthetic holds on
     # the 3 of its 16 training presses they would draw make its light touches noisier (a
-    # 6.2 N output on the 2.8 N low_force presses, tests/test_hardcases.py). The raw
+    # 6.2 N output on the 2.8 N low_force presses, tests/test_hardcases_inputs.py). The raw
     # temperature reference keeps it the model those pages measured: averaged, its 16 presses
     # give another contact net, one that lets go of a 0.5 N hold (docs/runtime.md, "In use").
     # The Schmitt trigger's decision, with its rise count and release hysteresis, is the one

@@ -356,6 +356,81 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
+class _EstimateSink:
+    """The test's end of ``--publish udp://``: what it has seen of the stream so far (the
+    samples flagged as sensor faults, the status records, the last sample) and the command
+    answers the controller got."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(10)
+        self.seen: dict[str, list] = {"faults": [], "status": [], "answers": [], "last": [-1]}
+
+    def wait_sample(self, cond) -> None:
+        """Reads the published records until a sample satisfies ``cond``, noting every status
+        record and every faulty sample on the way."""
+        seen = self.seen
+        while True:
+            d = self.sock.recv(256)
+            rec = U.decode_datagram(d)
+            if rec is None:
+                st = U.decode_status(d)
+                assert st is not None
+                seen["status"].append((time.monotonic(), int(st["level"]), int(st["received"])))
+                continue
+            seen["last"][0] = int(rec["sample_seq"])
+            if int(rec["status"]) & 0x08:
+                seen["faults"].append(int(rec["sample_seq"]))
+            if cond(rec):
+                return
+
+
+def _send_commands(sink: _EstimateSink, py_client, c_client: Path, control_port: int, n: int,
+                   errors: list[BaseException]) -> None:
+    """The controller, paced by the published samples: a tare during the stuck peak, a tare
+    from the C client after it, 2000 garbage datagrams, then one reset sent twice under the
+    same sequence number; an exception goes to ``errors`` for the test's thread."""
+    try:
+        client = py_client.Client("127.0.0.1", control_port)
+        sink.wait_sample(lambda r: int(r["status"]) & 0x08)  # during the fault
+        sink.seen["answers"].append(("fault", client.send("tare")))
+        sink.wait_sample(lambda r: int(r["sample_seq"]) >= 1600)
+        res = subprocess.run([str(c_client), "127.0.0.1", str(control_port), "tare"],
+                             capture_output=True, text=True, timeout=30)
+        sink.seen["answers"].append(("c", res))
+        junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        rng = np.random.default_rng(3)
+        for i in range(2000):
+            junk.sendto(rng.bytes(int(rng.integers(0, 130))), ("127.0.0.1", control_port))
+            if i % 100 == 99:
+                time.sleep(0.01)  # within what the socket's buffer holds between turns
+        junk.close()
+        sink.wait_sample(lambda r: int(r["sample_seq"]) >= 1900)
+        ack = client.send("reset")
+        client.seq -= 1  # the same command again: answered again, not applied again
+        again = client.send("reset")
+        sink.seen["answers"].append(("reset", ack, again))
+        sink.wait_sample(lambda r: int(r["sample_seq"]) >= n - 1)
+    except BaseException as exc:  # reported by the test's thread
+        errors.append(exc)
+
+
+def _assert_answers(seen: dict[str, list]) -> None:
+    """The tare during the fault failed; the C client's tare took the +60 pm step; the reset
+    sent twice was answered the same both times."""
+    assert seen["faults"], "the stuck peak never showed as a sensor fault"
+    (_, fault), (_, c_res), (_, reset, again) = seen["answers"]
+    assert fault.result == 1 and "sensor fault" in fault.message, fault
+    assert c_res.returncode == 0, c_res.stderr
+    seq, result, command, *change = c_res.stdout.strip().split(",", 9)
+    assert result == "DONE" and command == "1"
+    change_fm = [int(v) for v in change[:5]]
+    assert all(abs(v - STEP_PM * 1000) < 2000 for v in change_fm[:4]), change_fm
+    assert reset.result == 0 and again == reset
+
+
 def test_stream_takes_commands_over_udp_end_to_end(tmp_path, small_exported_dir, capsys):
     """emulate (Hyperion) plays a preload step, then a stuck peak, then a press -> stream
     --control --publish udp://: a tare sent during the fault fails and keeps the baseline; a
@@ -369,83 +444,32 @@ def test_stream_takes_commands_over_udp_end_to_end(tmp_path, small_exported_dir,
     data = tmp_path / "step.csv"
     dataset.save(dataclasses.replace(base, wl_nm=wl), data)
     n = len(wl)
-    sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sink.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
-    sink.bind(("127.0.0.1", 0))
-    sink.settimeout(10)
+    sink = _EstimateSink()
     control_port = _free_udp_port()
-    seen: dict[str, list] = {"faults": [], "status": [], "answers": [], "last": [-1]}
     errors: list[BaseException] = []
-
-    def wait_sample(cond) -> None:
-        while True:
-            d = sink.recv(256)
-            rec = U.decode_datagram(d)
-            if rec is None:
-                st = U.decode_status(d)
-                assert st is not None
-                seen["status"].append((time.monotonic(), int(st["level"]), int(st["received"])))
-                continue
-            seen["last"][0] = int(rec["sample_seq"])
-            if int(rec["status"]) & 0x08:
-                seen["faults"].append(int(rec["sample_seq"]))
-            if cond(rec):
-                return
-
-    def controller() -> None:
-        try:
-            client = py_client.Client("127.0.0.1", control_port)
-            wait_sample(lambda r: int(r["status"]) & 0x08)  # during the fault
-            seen["answers"].append(("fault", client.send("tare")))
-            wait_sample(lambda r: int(r["sample_seq"]) >= 1600)
-            res = subprocess.run([str(c_client), "127.0.0.1", str(control_port), "tare"],
-                                 capture_output=True, text=True, timeout=30)
-            seen["answers"].append(("c", res))
-            junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            rng = np.random.default_rng(3)
-            for i in range(2000):
-                junk.sendto(rng.bytes(int(rng.integers(0, 130))), ("127.0.0.1", control_port))
-                if i % 100 == 99:
-                    time.sleep(0.01)  # within what the socket's buffer holds between turns
-            junk.close()
-            wait_sample(lambda r: int(r["sample_seq"]) >= 1900)
-            ack = client.send("reset")
-            client.seq -= 1  # the same command again: answered again, not applied again
-            again = client.send("reset")
-            seen["answers"].append(("reset", ack, again))
-            wait_sample(lambda r: int(r["sample_seq"]) >= n - 1)
-        except BaseException as exc:  # reported by the test's thread
-            errors.append(exc)
-
     em = start_emulator("--data", str(data), "--rate", "1000", "--protocol", "hyperion",
                         "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
-    thread = threading.Thread(target=controller, daemon=True)
+    thread = threading.Thread(target=_send_commands, daemon=True,
+                              args=(sink, py_client, c_client, control_port, n, errors))
     try:
         source = wait_for_line(em, "interrogator:")
         thread.start()
         code = main(["stream", "--source", source, "--model", str(small_exported_dir),
                      "--samples", str(n), "--control", f"udp://127.0.0.1:{control_port}",
-                     "--publish", f"udp://127.0.0.1:{sink.getsockname()[1]}",
+                     "--publish", f"udp://127.0.0.1:{sink.sock.getsockname()[1]}",
                      "--start-timeout", "30", "--quiet", "--json"])
         captured = capsys.readouterr()
         thread.join(30)
     finally:
-        sink.close()
+        sink.sock.close()
         if em.poll() is None:
             em.kill()
             em.communicate()
     assert not errors, errors
     assert code == 0, captured.err
     summary = json.loads(captured.out)
-    assert seen["faults"], "the stuck peak never showed as a sensor fault"
-    (_, fault), (_, c_res), (_, reset, again) = seen["answers"]
-    assert fault.result == 1 and "sensor fault" in fault.message, fault
-    assert c_res.returncode == 0, c_res.stderr
-    seq, result, command, *change = c_res.stdout.strip().split(",", 9)
-    assert result == "DONE" and command == "1"
-    change_fm = [int(v) for v in change[:5]]
-    assert all(abs(v - STEP_PM * 1000) < 2000 for v in change_fm[:4]), change_fm
-    assert reset.result == 0 and again == reset
+    seen = sink.seen
+    _assert_answers(seen)
     assert summary["commands"] == {"tare": 1, "reset": 1, "failed": 1}
     ctl = summary["control"]
     assert ctl["bad"] == 2000 and ctl["commands"] == 3 and ctl["answered"] == 3

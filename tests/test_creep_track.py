@@ -356,7 +356,7 @@ def test_recommended_converts_the_fitted_creep():
 
 
 def _hardcases():
-    """runtime_c/fuzz/hardcases.py (a script, not a package module), as tests/test_hardcases.py
+    """runtime_c/fuzz/hardcases.py (a script, not a package module), as tests/hardcase_support.py
     loads it."""
     import importlib.util
     import sys

@@ -723,6 +723,56 @@ print(json.dumps(got))
 """
 
 
+def _preload_recording(path: Path, n: int) -> None:
+    """``n`` samples of the smoke scene's unloaded fingertip (its noise) with a +60 pm preload
+    on every strain grating from sample 400 on (after the first tare), saved to ``path``."""
+    import dataclasses
+
+    from fbgforce import dataset
+
+    scene = sim.simulate("smoke", seed=5)
+    rest = scene.wl_nm[:200]
+    rng = np.random.default_rng(0)
+    wl = rest.mean(axis=0) + rng.normal(0.0, rest.std(axis=0), (n, 5))
+    wl[400:, :4] += 0.060  # a +60 pm preload on every strain grating, after the first tare
+    dataset.save(dataclasses.replace(scene.subset(np.arange(n)), wl_nm=wl), path)
+
+
+def _silence(em: subprocess.Popen, stops: list[float]) -> None:
+    """The instrument goes quiet for 2.5 s, 7 s after the start (when, noted in ``stops``)."""
+    import signal
+
+    time.sleep(7.0)
+    stops.append(time.monotonic())
+    os.kill(em.pid, signal.SIGSTOP)
+    time.sleep(2.5)
+    os.kill(em.pid, signal.SIGCONT)
+
+
+def _assert_diagnostics(diags: list, ns: str, model_dir: Path) -> None:
+    """/diagnostics named after the namespace and the frame, with the documented key-values
+    and the model's digest, once a second; ERROR while the instrument was silent (said within
+    2 s of the silence) and OK at the end."""
+    from fbgforce.interrogator.stream import LiveEstimator
+
+    assert {d[2] for d in diags} == {ns} and {d[4] for d in diags} == {"fbgforce tip"}
+    keys = diags[-1][5]
+    for k in ("rate_hz", "samples_received", "samples_lost", "reconnects", "sensor_fault_last_s",
+              "baseline_limit_last_s", "tracker_offset_pm", "tracker_bound_pm", "model_digest"):
+        assert k in keys, k
+    assert keys["model_digest"] == LiveEstimator(model_dir).digest()
+    times = np.array([d[0] for d in diags])
+    gaps = np.diff(times)
+    assert np.median(gaps) == pytest.approx(1.0, abs=0.2), gaps
+    levels = [d[1] for d in diags]
+    silent = [i for i, d in enumerate(diags) if "no sample for" in d[3]]
+    assert silent and max(levels[i] for i in silent) == 2, [(d[1], d[3]) for d in diags]
+    assert levels[-1] == 0 and diags[-1][3] == "OK", diags[-1]
+    # ERROR within 2 s of the silence: the first record that says so comes at most 2 s late.
+    first_quiet = diags[silent[0]]
+    assert float(first_quiet[5]["silent_s"]) <= 2.0
+
+
 def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_exported_dir,
                                                                    tmp_path, capsys):
     """stream --publish ros2:///NS -> a ROS 2-typed client in another process: /diagnostics
@@ -730,20 +780,11 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     silent and OK again when it is back; a tare and a reset called as std_srvs/srv/Trigger
     services are answered (the same request sent twice: applied once) with the baseline's
     change, and the preload step is taken out."""
-    import dataclasses
     import signal
 
-    from fbgforce import dataset
-    from fbgforce.interrogator.stream import LiveEstimator
-
-    scene = sim.simulate("smoke", seed=5)
-    rest = scene.wl_nm[:200]
-    rng = np.random.default_rng(0)
     n = 14000  # at least 3 s of samples after the silence, whatever the start took
-    wl = rest.mean(axis=0) + rng.normal(0.0, rest.std(axis=0), (n, 5))
-    wl[400:, :4] += 0.060  # a +60 pm preload on every strain grating, after the first tare
     data = tmp_path / "preload.csv"
-    dataset.save(dataclasses.replace(scene.subset(np.arange(n)), wl_nm=wl), data)
+    _preload_recording(data, n)
     ns = f"/fbgforce_srv_{os.getpid()}"
     plan = {"calls": [[1500, "tare"], [3000, "reset"]], "until_s": 60.0}
     client = subprocess.Popen([sys.executable, "-c", SERVICE_CLIENT, str(dds), ns,
@@ -753,17 +794,9 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     em = start_emulator("--data", str(data), "--rate", "1000", "--protocol", "hyperion",
                         "--command-port", "0", "--stream-port", "0", "--linger", "0.5")
     stops: list[float] = []
-
-    def silence() -> None:  # the instrument goes quiet for 2.5 s, 7 s after the start
-        time.sleep(7.0)
-        stops.append(time.monotonic())
-        os.kill(em.pid, signal.SIGSTOP)
-        time.sleep(2.5)
-        os.kill(em.pid, signal.SIGCONT)
-
     try:
         url = wait_for_line(em, "interrogator:")
-        threading.Thread(target=silence, daemon=True).start()
+        threading.Thread(target=_silence, args=(em, stops), daemon=True).start()
         code = main(["stream", "--source", url, "--model", str(small_exported_dir),
                      "--samples", str(n), "--idle-timeout", "5",
                      "--publish", f"ros2://{ns}?frame_id=tip&domain={dds}",
@@ -787,23 +820,7 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     pub = summary["published"][0]
     assert pub["services"] == {"tare": ns + "/tare", "reset": ns + "/reset"}
     assert pub["requests"] == {"tare": 1, "reset": 1}
-    diags = got["diagnostics"]
-    assert {d[2] for d in diags} == {ns} and {d[4] for d in diags} == {"fbgforce tip"}
-    keys = diags[-1][5]
-    for k in ("rate_hz", "samples_received", "samples_lost", "reconnects", "sensor_fault_last_s",
-              "baseline_limit_last_s", "tracker_offset_pm", "tracker_bound_pm", "model_digest"):
-        assert k in keys, k
-    assert keys["model_digest"] == LiveEstimator(small_exported_dir).digest()
-    times = np.array([d[0] for d in diags])
-    gaps = np.diff(times)
-    assert np.median(gaps) == pytest.approx(1.0, abs=0.2), gaps
-    levels = [d[1] for d in diags]
-    silent = [i for i, d in enumerate(diags) if "no sample for" in d[3]]
-    assert silent and max(levels[i] for i in silent) == 2, [(d[1], d[3]) for d in diags]
-    assert levels[-1] == 0 and diags[-1][3] == "OK", diags[-1]
-    # ERROR within 2 s of the silence: the first record that says so comes at most 2 s late.
-    first_quiet = diags[silent[0]]
-    assert float(first_quiet[5]["silent_s"]) <= 2.0
+    _assert_diagnostics(got["diagnostics"], ns, small_exported_dir)
 
 
 def test_a_ros2_publisher_killed_mid_run_stays_in_the_summary(dds, small_exported_dir, capsys):

@@ -299,74 +299,31 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
     dict
         The keys of docs/cli.md "bench-speed".
     """
-    from fbgforce import dataset as fds
     from fbgforce import progress as fprogress
     from fbgforce.pybind import to_fm
-    from fbgforce.tare import tare
-    from fbgforce.tradeoff.artifacts import calibration_subset, export_fixed
 
     t_start = time.perf_counter()
-    model_dir = Path(model_dir)
-    if not model_dir.is_dir():
-        raise InputError("no such model directory", path=str(model_dir), column="--model")
-    model = fm.load(model_dir)
-    _check_fixed_dir(model_dir, model, 16, "--model")
-    if int8_dir is not None:
-        int8_dir = Path(int8_dir)
-        if not int8_dir.is_dir():
-            raise InputError("no such model directory", path=str(int8_dir), column="--int8")
-        _check_fixed_dir(int8_dir, model, 8, "--int8")
-    ds = fds.load(data)
-    base = tare(ds.wl_nm, ds.contact, ds.t_s, path=str(data))[0]
-    wl = timing_samples(ds)[:s.samples]
-    if wl.shape[0] < 2:
-        raise InputError("fewer than 2 samples to time", path=str(data))
+    model_dir, model, int8_dir = _speed_models(model_dir, int8_dir)
+    ds, base, wl = _speed_samples(data, s)
     base_builds = default_builds(s.kernels)
     builds = base_builds + tuple(b for b in s.builds if b not in base_builds)
     n_c = len(builds) * (1 + 3 * (2 if s.callgrind else 1))
     # Off a terminal the command's stage lines (``log``) say what is going on instead.
     bar = fprogress.bar(total=2 + (int8_dir is None) + n_c, desc="bench-speed", leave=False,
                         enabled=sys.stderr.isatty() if progress is None else progress)
-
-    def tick(what: str) -> None:
-        bar.set_postfix_str(what, refresh=False)
-        bar.update(1)
-        log(what)
-
+    tick = _ticker(bar, log)
     with tempfile.TemporaryDirectory(prefix="fbgforce-bench-") as tmp:
         work = Path(tmp)
         made_int8 = int8_dir is None
         if int8_dir is None:
             tick("exporting the int8 model")
-            int8_dir = work / "int8"
-            fm.save(model, int8_dir)
-            err = export_fixed(int8_dir, 8, calibration_subset([ds], [str(data)], work))
-            if err:
-                raise InputError(err, path=str(model_dir))
+            int8_dir = _export_int8(model, model_dir, ds, data, work)
         tick("timing from Python (interleaved)")
-        timers = python_timers(model_dir, int8_dir, model, wl, base)
-        blas = timing.limit_blas_threads(1)
-        # One batch length for every engine: a Python engine's per-call cost is spread over
-        # as many samples as a C engine's, so the batch figures compare the engines, not the
-        # lengths (measure() would otherwise size each engine's batch to a fixed time).
-        batch = min(s.batch, wl.shape[0])
-        times = timing.measure([t for t, _, _ in timers], wl.shape[0], single_calls=s.single_calls,
-                               batch_size=batch, batch_reps=s.batch_reps, rounds=s.rounds,
-                               min_batch=batch)
-        rows: list[dict[str, Any]] = []
-        for t, single, batch in timers:
-            single["ns_per_sample"] = times[t.name]["single_ns"]
-            batch["ns_per_sample"] = times[t.name]["batch_ns"]
-            batch["batch_size"] = times[t.name]["batch_size"]
-            rows += [batch, single]
+        rows, blas = _python_rows(python_timers(model_dir, int8_dir, model, wl, base), wl, s)
         tick("timing from C")
         rows += c_rows(builds, work, model_dir, int8_dir, to_fm(base), to_fm(wl), s, tick)
         bar.close()
-    rows.sort(key=_order)
-    ref = next(r for r in rows if (r["engine"], r["call"], r["scope"]) == REFERENCE)
-    for r in rows:
-        if r["ns_per_sample"] is not None and ref["ns_per_sample"]:
-            r["ratio"] = r["ns_per_sample"] / ref["ns_per_sample"]
+    _set_ratios(rows)
     return {
         "date_utc": time.strftime("%Y-%m-%d %H:%M", time.gmtime()),
         "model": str(model_dir),
@@ -388,6 +345,92 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
         "settings": {k: v for k, v in s.__dict__.items() if k != "builds"},
         "seconds": round(time.perf_counter() - t_start, 1),
     }
+
+
+def _speed_models(model_dir: str | Path, int8_dir: str | Path | None
+                  ) -> tuple[Path, fm.HierarchicalModel, Path | None]:
+    """The model and its exports to time: refuses a missing directory or an export of the
+    wrong width (``--model`` int16, ``--int8`` int8) before anything is measured."""
+    model_dir = Path(model_dir)
+    if not model_dir.is_dir():
+        raise InputError("no such model directory", path=str(model_dir), column="--model")
+    model = fm.load(model_dir)
+    _check_fixed_dir(model_dir, model, 16, "--model")
+    if int8_dir is not None:
+        int8_dir = Path(int8_dir)
+        if not int8_dir.is_dir():
+            raise InputError("no such model directory", path=str(int8_dir), column="--int8")
+        _check_fixed_dir(int8_dir, model, 8, "--int8")
+    return model_dir, model, int8_dir
+
+
+def _speed_samples(data: Path, s: SpeedSettings) -> tuple[Any, np.ndarray, np.ndarray]:
+    """The recording, its tare baseline and the samples to time (its contact samples, at most
+    ``s.samples``); refuses fewer than two."""
+    from fbgforce import dataset as fds
+    from fbgforce.tare import tare
+
+    ds = fds.load(data)
+    base = tare(ds.wl_nm, ds.contact, ds.t_s, path=str(data))[0]
+    wl = timing_samples(ds)[:s.samples]
+    if wl.shape[0] < 2:
+        raise InputError("fewer than 2 samples to time", path=str(data))
+    return ds, base, wl
+
+
+def _ticker(bar: Any, log: Callable[[str], None]) -> Callable[[str], None]:
+    """One call per finished stage: advances the progress bar and logs the stage's name."""
+    def tick(what: str) -> None:
+        bar.set_postfix_str(what, refresh=False)
+        bar.update(1)
+        log(what)
+
+    return tick
+
+
+def _export_int8(model: fm.HierarchicalModel, model_dir: Path, ds: Any, data: Path,
+                 work: Path) -> Path:
+    """The int8 export when none was given: a copy of the model in ``work``, calibrated on the
+    first presses of ``data``; an export failure stops the run."""
+    from fbgforce.tradeoff.artifacts import calibration_subset, export_fixed
+
+    int8_dir = work / "int8"
+    fm.save(model, int8_dir)
+    err = export_fixed(int8_dir, 8, calibration_subset([ds], [str(data)], work))
+    if err:
+        raise InputError(err, path=str(model_dir))
+    return int8_dir
+
+
+def _python_rows(timers: list[tuple[Any, dict[str, Any], dict[str, Any]]], wl: np.ndarray,
+                 s: SpeedSettings) -> tuple[list[dict[str, Any]], Any]:
+    """The rows timed from Python, in one interleaved run on one BLAS thread, and the thread
+    count found before it."""
+    blas = timing.limit_blas_threads(1)
+    # One batch length for every engine: a Python engine's per-call cost is spread over
+    # as many samples as a C engine's, so the batch figures compare the engines, not the
+    # lengths (measure() would otherwise size each engine's batch to a fixed time).
+    batch = min(s.batch, wl.shape[0])
+    times = timing.measure([t for t, _, _ in timers], wl.shape[0], single_calls=s.single_calls,
+                           batch_size=batch, batch_reps=s.batch_reps, rounds=s.rounds,
+                           min_batch=batch)
+    rows: list[dict[str, Any]] = []
+    for t, single, batch_row in timers:
+        single["ns_per_sample"] = times[t.name]["single_ns"]
+        batch_row["ns_per_sample"] = times[t.name]["batch_ns"]
+        batch_row["batch_size"] = times[t.name]["batch_size"]
+        rows += [batch_row, single]
+    return rows, blas
+
+
+def _set_ratios(rows: list[dict[str, Any]]) -> None:
+    """Sorts the rows into table order and gives each timed row its time over the reference
+    row's (:data:`REFERENCE`)."""
+    rows.sort(key=_order)
+    ref = next(r for r in rows if (r["engine"], r["call"], r["scope"]) == REFERENCE)
+    for r in rows:
+        if r["ns_per_sample"] is not None and ref["ns_per_sample"]:
+            r["ratio"] = r["ns_per_sample"] / ref["ns_per_sample"]
 
 
 #: Table order: engine, then call, caller and scope (build order kept within).

@@ -105,10 +105,26 @@ def measure(timers: list[Timer], n_samples: int, *, single_calls: int = 2000,
     batch_size = max(1, min(batch_size, n_samples))
     per_round_single = max(1, single_calls // rounds)
     per_round_batch = max(1, -(-batch_reps // rounds))
-    clock = time.perf_counter_ns
-    # Batches are timed in this thread's CPU time: every engine runs on the calling thread
-    # (onnxruntime and OpenBLAS set to one thread), so this is the compute time, without the
-    # time slices a busy shared machine gives to other processes in the middle of a call.
+    sizes = _warm_up_and_size_batches(timers, n_samples, warmup, batch_size, min_batch,
+                                      batch_target_ms)
+    pos_single = {t.name: warmup for t in timers}
+    pos_batch = {t.name: 0 for t in timers}
+    for _ in range(rounds):
+        for t in timers:
+            if t.single is not None:
+                pos_single[t.name] = _time_single_calls(t, pos_single[t.name], per_round_single,
+                                                        n_samples)
+            if t.batch is not None:
+                pos_batch[t.name] = _time_batches(t, pos_batch[t.name], sizes[t.name],
+                                                  per_round_batch, n_samples)
+    return {t.name: _summary(t, sizes.get(t.name)) for t in timers}
+
+
+def _warm_up_and_size_batches(timers: list[Timer], n_samples: int, warmup: int, batch_size: int,
+                              min_batch: int, batch_target_ms: float) -> dict[str, int]:
+    """Warms every engine up and decides each one's batch length: the number of samples one
+    call works through in about ``batch_target_ms`` of CPU time, between ``min_batch`` and
+    ``batch_size``, from the fastest of three probe calls."""
     cpu_clock = time.thread_time_ns
     sizes: dict[str, int] = {}
     for t in timers:
@@ -126,48 +142,59 @@ def measure(timers: list[Timer], n_samples: int, *, single_calls: int = 2000,
             per_sample = max(min(est), 1.0)
             sizes[t.name] = int(min(batch_size, max(min(min_batch, batch_size),
                                                     batch_target_ms * 1e6 / per_sample)))
-    pos_single = {t.name: warmup for t in timers}
-    pos_batch = {t.name: 0 for t in timers}
-    for _ in range(rounds):
-        for t in timers:
-            if t.single is not None:
-                k = pos_single[t.name]
-                fn = t.single
-                out = t.single_ns
-                for _ in range(per_round_single):
-                    t0 = clock()
-                    fn(k % n_samples)
-                    out.append(clock() - t0)
-                    k += 1
-                pos_single[t.name] = k
-            if t.batch is not None:
-                size = sizes[t.name]
-                for _ in range(per_round_batch):
-                    start = pos_batch[t.name]
-                    if start + size > n_samples:
-                        start = 0
-                    t0 = cpu_clock()
-                    t.batch(start, start + size)
-                    t.batch_ns_per_sample.append((cpu_clock() - t0) / size)
-                    pos_batch[t.name] = start + size
-    result: dict[str, dict[str, float | None]] = {}
-    for t in timers:
-        single = sorted(t.single_ns)
-        result[t.name] = {
-            "single_ns": float(statistics.median(single)) if single else None,
-            "single_p99_ns": float(single[min(len(single) - 1, int(0.99 * len(single)))])
-            if single else None,
-            "batch_ns": float(statistics.median(t.batch_ns_per_sample))
-            if t.batch_ns_per_sample else None,
-            # The fastest repetition: the figure least disturbed by other processes on a
-            # shared machine (the median is the headline; both are reported).
-            "single_min_ns": float(single[0]) if single else None,
-            "batch_min_ns": float(min(t.batch_ns_per_sample)) if t.batch_ns_per_sample else None,
-            "single_calls": len(single),
-            "batch_calls": len(t.batch_ns_per_sample),
-            "batch_size": sizes.get(t.name),
-        }
-    return result
+    return sizes
+
+
+def _time_single_calls(t: Timer, k: int, calls: int, n_samples: int) -> int:
+    """One round of ``t``'s single-sample calls on the wall clock, from sample ``k`` on
+    (wrapping around the recording); returns where the next round continues."""
+    clock = time.perf_counter_ns
+    fn = t.single
+    out = t.single_ns
+    for _ in range(calls):
+        t0 = clock()
+        fn(k % n_samples)
+        out.append(clock() - t0)
+        k += 1
+    return k
+
+
+def _time_batches(t: Timer, start: int, size: int, calls: int, n_samples: int) -> int:
+    """One round of ``t``'s batch calls in CPU time, consecutive batches of ``size`` samples
+    from ``start`` on, back to the first sample when a batch would run past the recording's
+    end; returns where the next round continues."""
+    # Batches are timed in this thread's CPU time: every engine runs on the calling thread
+    # (onnxruntime and OpenBLAS set to one thread), so this is the compute time, without the
+    # time slices a busy shared machine gives to other processes in the middle of a call.
+    cpu_clock = time.thread_time_ns
+    for _ in range(calls):
+        if start + size > n_samples:
+            start = 0
+        t0 = cpu_clock()
+        t.batch(start, start + size)
+        t.batch_ns_per_sample.append((cpu_clock() - t0) / size)
+        start += size
+    return start
+
+
+def _summary(t: Timer, batch_size: int | None) -> dict[str, float | None]:
+    """The figures one engine reports: medians as the headline, the 99th percentile of the
+    single calls and the fastest repetitions beside them."""
+    single = sorted(t.single_ns)
+    return {
+        "single_ns": float(statistics.median(single)) if single else None,
+        "single_p99_ns": float(single[min(len(single) - 1, int(0.99 * len(single)))])
+        if single else None,
+        "batch_ns": float(statistics.median(t.batch_ns_per_sample))
+        if t.batch_ns_per_sample else None,
+        # The fastest repetition: the figure least disturbed by other processes on a
+        # shared machine (the median is the headline; both are reported).
+        "single_min_ns": float(single[0]) if single else None,
+        "batch_min_ns": float(min(t.batch_ns_per_sample)) if t.batch_ns_per_sample else None,
+        "single_calls": len(single),
+        "batch_calls": len(t.batch_ns_per_sample),
+        "batch_size": batch_size,
+    }
 
 
 def limit_blas_threads(n: int = 1) -> int | None:

@@ -3,7 +3,7 @@
  * (docs/robustness.md). Test code only: never linked into libfbgforce.
  *
  * hc_check_output() is the executable form of the output contract of fbgforce.h, the same
- * invariants tests/test_hardcases.py asserts on every sample:
+ * invariants tests/hardcase_support.py asserts on every sample:
  *   - only the defined FBG_STATUS_* bits;
  *   - contact is 0 or 1, contact_conf_q15 in [0, 32767];
  *   - no int32 output is INT32_MIN (saturation is symmetric, so a wrap would show here);

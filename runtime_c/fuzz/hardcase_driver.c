@@ -1,7 +1,7 @@
 /*
  * hardcase_driver.c - runs the hard-case suite's operation streams through libfbgforce as a
  * plain C program, so the suite can run under AddressSanitizer + UndefinedBehaviorSanitizer
- * and valgrind memcheck (runtime_c/hardening.mk; docs/robustness.md). tests/test_hardcases.py
+ * and valgrind memcheck (runtime_c/hardening.mk; docs/robustness.md). tests/test_hardcases_*.py
  * writes the streams and compares this program's output with the cffi module and with the
  * numpy integer reference, bit for bit.
  *

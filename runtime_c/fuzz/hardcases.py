@@ -1,7 +1,7 @@
 """Python side of the hardening tools (docs/robustness.md).
 
 - The operation-stream protocol of ``hardcase_driver`` (:func:`encode_ops`, :func:`decode_out`,
-  :func:`run_driver`), used by tests/test_hardcases.py to run every hard case through the
+  :func:`run_driver`), used by tests/test_hardcases_*.py to run every hard case through the
   driver built with sanitizers or under valgrind.
 - :func:`stress_qmodel`: a fixed-point model at the edge of what ``fbg_model_check`` accepts,
   built so that a saturated input drives EVERY layer's accumulator exactly to its proven
