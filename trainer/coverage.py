@@ -15,7 +15,7 @@ import numpy as np
 
 from fbgforce.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
-from fbgforce.trainer.train import HOLD_BAND, HOLD_MIN_S
+from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
 
 #: Force ranges reported, N (the last open).
 FORCE_BINS_N = (0.0, 2.0, 10.0, 30.0, 50.0, 70.0)

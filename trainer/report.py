@@ -25,7 +25,9 @@ from fbgforce.jsonutil import json_default
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.trainer import baseline as bl
-from fbgforce.trainer.train import evaluate_rows, load_datasets, predict_prepared, prepare, train
+from fbgforce.trainer.data import load_datasets
+from fbgforce.trainer.scoring import evaluate_rows, predict_prepared
+from fbgforce.trainer.train import prepare, train
 
 #: The paper's numbers (Kim et al. 2019, §V and §VII-A).
 PAPER = {
