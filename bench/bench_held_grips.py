@@ -49,7 +49,7 @@ def measure(model_dir: str, data: Sequence[str], engine: str = "float") -> dict[
     from fbgforce import model as fm
     from fbgforce import tare as fbgtare
     from fbgforce.trainer.evaluate import run_recording
-    from fbgforce.trainer.train import hold_mask, load_datasets
+    from fbgforce.trainer.data import hold_mask, load_datasets
 
     model = fm.load(model_dir)
     ds_list, described = load_datasets(data)

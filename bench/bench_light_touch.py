@@ -37,7 +37,7 @@ def analyse(model: Any, data: Any, edges_n: tuple[float, ...] = EDGES_N) -> dict
         agree, as the shared metrics score location); ``contact``: ``errors``, ``samples``,
         ``missed`` and ``missed_below_N`` (missed contacts per upper edge), ``false``.
     """
-    from fbgforce.trainer.train import predict_prepared
+    from fbgforce.trainer.scoring import predict_prepared
 
     pred = predict_prepared(model, data)
     rows = data.rows("test")

@@ -88,7 +88,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
     from sklearn.neural_network import MLPClassifier, MLPRegressor
 
     from fbgforce import model as fm
-    from fbgforce.trainer.train import DEFAULT_SIZES
+    from fbgforce.trainer.params import DEFAULT_SIZES
 
     common = dict(max_iter=max_iter, random_state=seed)
     seconds = {}
@@ -146,7 +146,7 @@ def linear_baseline(data: Any, tr: np.ndarray) -> tuple[dict[str, np.ndarray], f
 def score(data: Any, pred: dict[str, np.ndarray], rows: np.ndarray) -> dict[str, Any]:
     """Shared metrics of whole-data predictions on ``rows`` (with contact timing)."""
     from fbgforce import metrics as fmetrics
-    from fbgforce.trainer.train import press_delays
+    from fbgforce.trainer.scoring import press_delays
 
     full = fmetrics.compute({k: np.asarray(v)[rows] for k, v in pred.items()}, *data.truth(rows),
                             delays=press_delays(data, np.asarray(pred["contact"]), rows))

@@ -84,7 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     from fbgforce import dataset
     from fbgforce import model as fm
     from fbgforce.sim import simulate
-    from fbgforce.trainer.train import evaluate_rows, prepare, train
+    from fbgforce.trainer.scoring import evaluate_rows
+    from fbgforce.trainer.train import prepare, train
 
     ds_a = dataset.load(args.data_a) if args.data_a else simulate("calibration")
     ds_b = dataset.load(args.data_b) if args.data_b else simulate("two_devices")

@@ -68,7 +68,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.sim import simulate
     from fbgforce.trainer.evaluate import SPLITS, evaluate, run_recording
     from fbgforce.trainer.report import PAPER, build_report, to_markdown, write
-    from fbgforce.trainer.train import model_pad_mm, split_rows, train
+    from fbgforce.trainer.data import split_rows
+    from fbgforce.trainer.scoring import model_pad_mm
+    from fbgforce.trainer.train import train
 
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", column="--seed")

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import tempfile
 from pathlib import Path
@@ -251,3 +252,12 @@ def check_output_file(path: str | Path, flag: str | None = None) -> None:
     if p.is_dir():
         raise InputError("is a directory; give a file name", path=str(p), column=flag)
     check_output_dir(p.parent, flag)
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes (read in pieces of 1 MiB), as hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

@@ -24,6 +24,7 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
+from fbgforce.fileio import file_sha256
 
 #: The export's files, relative to the model directory.
 BLOB_FILE = contract.BLOB_FILE
@@ -93,11 +94,6 @@ def model_digest(model: Any) -> str:
     if model.input_range is not None:
         h.update(np.ascontiguousarray(model.input_range, dtype="<f8").tobytes())
     return h.hexdigest()
-
-
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's bytes."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def _read_report(root: Path) -> dict[str, Any] | None:

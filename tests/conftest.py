@@ -84,7 +84,8 @@ def small_dataset_path(tmp_path_factory):
 def small_model_dir(tmp_path_factory, small_dataset_path):
     """A model directory trained on ``small_dataset_path`` (causal filter, seed 0, ~10 s)."""
     from fbgforce import model as fm
-    from fbgforce.trainer.train import PAPER_SIZES, train
+    from fbgforce.trainer.params import PAPER_SIZES
+    from fbgforce.trainer.train import train
 
     out = tmp_path_factory.mktemp("small_model") / "model"
     # The paper's widths, one draw per net, no weight decay and no synthetic holds or rests:

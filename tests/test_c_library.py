@@ -292,7 +292,7 @@ def _paper_sized_quantized():
 
     from fbgforce.export import quantize as qz
     from fbgforce.trainer import preprocess as pp
-    from fbgforce.trainer.train import PAPER_SIZES
+    from fbgforce.trainer.params import PAPER_SIZES
 
     taps = pp.gaussian_taps("causal", pp.default_sigma(1000.0))
     model = make_random_model(0, sizes=(PAPER_SIZES["contact"], PAPER_SIZES["force"],

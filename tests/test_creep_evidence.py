@@ -1,23 +1,30 @@
 """Evidence before correction: the trainer corrects for a fitted creep only where the
-calibration's own releases establish it (trainer.train.creep_evidence)."""
+calibration's own releases establish it (trainer.creep_evidence)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fbgforce.trainer import train as T
+from fbgforce.errors import InputError
+from fbgforce.trainer.creep import Creep
+from fbgforce.trainer.creep_evidence import (CREEP_EVIDENCE_MIN_TAU_S, creep_evidence,
+                                             creep_press_check)
+from fbgforce.trainer.creep_fit import (CREEP_TAIL_S, CREEP_TIME_CONSTANTS_S, CREEP_ZERO_SPAN_S,
+                                        CreepTails, creep_of)
+from fbgforce.trainer.params import TrainParams
+from fbgforce.trainer.train import prepare
 
 RATE = 1000.0
 
 
-def _tails(creep: T.Creep, noise_N: float, seed: int = 0, rate_effect: float = 0.0,
-           releases: int = 80) -> T.CreepTails:
+def _tails(creep: Creep, noise_N: float, seed: int = 0, rate_effect: float = 0.0,
+           releases: int = 80) -> CreepTails:
     """Tails of ``releases`` presses (0.2 s ramps to 5-40 N, 0.15 s tails read), the excess
     the creep leaves there, a rate effect at the release (the last 10 ms of the unloading),
     wandering offsets and white noise."""
     rng = np.random.default_rng(seed)
-    taus = T.CREEP_TIME_CONSTANTS_S
-    tail_n = int(T.CREEP_TAIL_S * RATE)
+    taus = CREEP_TIME_CONSTANTS_S
+    tail_n = int(CREEP_TAIL_S * RATE)
     force, is_tail, release = [], [], []
     for k in range(releases):
         peak = rng.uniform(5.0, 40.0)
@@ -26,47 +33,47 @@ def _tails(creep: T.Creep, noise_N: float, seed: int = 0, rate_effect: float = 0
         is_tail += [np.zeros(press.size, bool), np.r_[np.ones(tail_n, bool), np.zeros(50, bool)]]
         release += [np.full(press.size + tail_n + 50, k)]
     f, tail, rel = np.concatenate(force), np.concatenate(is_tail), np.concatenate(release)
-    lags = np.column_stack([(T.Creep(1.0, tau).lag(f, RATE) - f)[tail] for tau in taus])
-    span = (np.arange(f.size) // int(T.CREEP_ZERO_SPAN_S * RATE))[tail]
+    lags = np.column_stack([(Creep(1.0, tau).lag(f, RATE) - f)[tail] for tau in taus])
+    span = (np.arange(f.size) // int(CREEP_ZERO_SPAN_S * RATE))[tail]
     truth = (creep.magnitude * (creep.lag(f, RATE) - f) if creep.magnitude else 0 * f)[tail]
-    fast = rate_effect * (T.Creep(1.0, 0.002).lag(f, RATE) - f)[tail]
+    fast = rate_effect * (Creep(1.0, 0.002).lag(f, RATE) - f)[tail]
     excess = truth + fast + rng.normal(0.0, 0.05, span.max() + 1)[span] \
         + rng.normal(0.0, noise_N, tail.sum())
-    return T.CreepTails(excess, np.unique(span, return_inverse=True)[1],
+    return CreepTails(excess, np.unique(span, return_inverse=True)[1],
                         np.unique(rel[tail], return_inverse=True)[1], lags, tuple(taus))
 
 
 @pytest.mark.parametrize("tau", [0.05, 1.0])
 def test_a_creep_the_releases_show_is_established(tau):
-    tails = _tails(T.Creep(0.05, tau), noise_N=0.05)
-    found = T.creep_of(tails)
+    tails = _tails(Creep(0.05, tau), noise_N=0.05)
+    found = creep_of(tails)
     assert found.magnitude == pytest.approx(0.05, rel=0.3)
-    ev = T.creep_evidence(tails, found)
+    ev = creep_evidence(tails, found)
     assert ev["established"], ev["why"]
     assert min(ev["tests"]["held_out_gain"]) > ev["tests"]["noise_removed_share_max"]
 
 
 def test_noise_alone_establishes_nothing():
     for seed in range(3):
-        tails = _tails(T.Creep(), noise_N=0.05, seed=seed)
-        found = T.creep_of(tails)
-        ev = T.creep_evidence(tails, found, seed=seed)
+        tails = _tails(Creep(), noise_N=0.05, seed=seed)
+        found = creep_of(tails)
+        ev = creep_evidence(tails, found, seed=seed)
         assert not ev["established"], (seed, found)
 
 
 def test_a_rate_effect_at_the_release_is_not_taken_for_a_creep():
     # A damper's last milliseconds of unloading fit as a creep at the grid's shortest time
     # constant; the evidence says so and the trainer leaves it alone.
-    tails = _tails(T.Creep(), noise_N=0.02, rate_effect=0.3)
-    found = T.creep_of(tails)
-    assert found.magnitude > 0 and found.time_constant_s < T.CREEP_EVIDENCE_MIN_TAU_S
-    ev = T.creep_evidence(tails, found)
+    tails = _tails(Creep(), noise_N=0.02, rate_effect=0.3)
+    found = creep_of(tails)
+    assert found.magnitude > 0 and found.time_constant_s < CREEP_EVIDENCE_MIN_TAU_S
+    ev = creep_evidence(tails, found)
     assert not ev["established"] and "shortest" in ev["why"]
 
 
 def test_the_fit_is_the_least_squares_fit_with_one_offset_per_span():
     # The span means taken out first give what the indicator columns in lstsq give.
-    tails = _tails(T.Creep(0.04, 0.3), noise_N=0.05)
+    tails = _tails(Creep(0.04, 0.3), noise_N=0.05)
     offsets = np.eye(tails.span.max() + 1)[tails.span]
     best = None
     for j, tau in enumerate(tails.time_constants_s):
@@ -83,29 +90,29 @@ def test_the_fit_is_the_least_squares_fit_with_one_offset_per_span():
 
 
 def test_creep_modes():
-    with pytest.raises(T.InputError, match="--creep"):
-        T.TrainParams(creep="sometimes")
-    assert T.TrainParams().creep == "auto"
+    with pytest.raises(InputError, match="--creep"):
+        TrainParams(creep="sometimes")
+    assert TrainParams().creep == "auto"
 
 
 def test_the_presses_do_not_stand_in_for_the_noise_test():
-    tails = _tails(T.Creep(), noise_N=0.05)
-    found = T.Creep(0.04, 3.8)
+    tails = _tails(Creep(), noise_N=0.05)
+    found = Creep(0.04, 3.8)
     better = {"presses": 80, "better": 60, "p_value": 1e-5, "rmse_N": 0.54,
               "rmse_inverse_N": 0.52, "passes": True}
     worse = {**better, "better": 40, "p_value": 0.55, "passes": False}
     # The noise test still applies: a creep the tails do not show at all stays unproven,
     # whatever the presses say.
-    assert not T.creep_evidence(tails, found, presses=lambda: better)["established"]
-    assert not T.creep_evidence(tails, found, presses=lambda: worse)["established"]
+    assert not creep_evidence(tails, found, presses=lambda: better)["established"]
+    assert not creep_evidence(tails, found, presses=lambda: worse)["established"]
     # ... and the press check is not even run then.
-    assert "presses" not in T.creep_evidence(tails, found, presses=lambda: better)["tests"]
+    assert "presses" not in creep_evidence(tails, found, presses=lambda: better)["tests"]
     # Releases that show the creep on held-out halves need no press check.
-    shown = _tails(T.Creep(0.05, 1.0), noise_N=0.05)
+    shown = _tails(Creep(0.05, 1.0), noise_N=0.05)
 
     def unexpected():
         raise AssertionError("the press check ran though the releases establish the creep")
-    assert T.creep_evidence(shown, T.creep_of(shown), presses=unexpected)["established"]
+    assert creep_evidence(shown, creep_of(shown), presses=unexpected)["established"]
 
 
 @pytest.mark.slow
@@ -119,12 +126,12 @@ def test_press_check_on_a_slow_creeping_pad():
 
     spec = replace(fg.IN_USE_VARIANTS["calib_1K"], **fg.FAMILY["creep_5s"])
     ds = fg.log(fg.device(spec, 200), 1, 60)
-    data = T.prepare([ds], seed=0, creep="off")
-    slow = T.creep_press_check(data, data.pre, data.rows("train"), T.Creep(0.05, 4.0))
+    data = prepare([ds], seed=0, creep="off")
+    slow = creep_press_check(data, data.pre, data.rows("train"), Creep(0.05, 4.0))
     assert slow["presses"] >= 40 and slow["rmse_inverse_N"] < slow["rmse_N"]
     assert slow["better"] > slow["presses"] / 2
     # No creep to take out: nothing to test.
-    assert not T.creep_press_check(data, data.pre, data.rows("train"), T.Creep())["passes"]
+    assert not creep_press_check(data, data.pre, data.rows("train"), Creep())["passes"]
 
 
 def test_coverage_names_what_a_log_cannot_establish():

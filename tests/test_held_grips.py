@@ -17,7 +17,15 @@ import foreign  # noqa: E402
 from fbgforce import model as fm  # noqa: E402
 from fbgforce import sim  # noqa: E402
 from fbgforce.trainer import preprocess as pp  # noqa: E402
-from fbgforce.trainer import train as T  # noqa: E402
+from fbgforce.trainer.creep import Creep  # noqa: E402
+from fbgforce.trainer.creep_evidence import takes_creep_out  # noqa: E402
+from fbgforce.trainer.creep_fit import fit_creep  # noqa: E402
+from fbgforce.trainer.fit_nets import TURN_FRACTION, TURN_GUARD_S, after_turns  # noqa: E402
+from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS, hold_gain  # noqa: E402
+from fbgforce.trainer.memory import MEMORY_PRESETS, memory_time_constant_s  # noqa: E402
+from fbgforce.trainer.synthetic import (HOLD_AUGMENT_STEP_S, synthetic_holds,  # noqa: E402
+                                        synthetic_rests)
+from fbgforce.trainer.train import prepare, train  # noqa: E402
 
 
 def _peak_level(z: np.ndarray, pre: fm.Preprocess) -> np.ndarray:
@@ -32,7 +40,7 @@ def paired_holds():
     scene = sim.load_scene("calibration_paper").replace(schedule={"n_presses": 12})
     plain = sim.simulate(scene)
     held = sim.simulate(scene.replace(schedule={"hold_s": 2.0}))
-    return scene, T.prepare([plain]), held
+    return scene, prepare([plain]), held
 
 
 def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
@@ -44,14 +52,14 @@ def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
     scene, data, held = paired_holds
     pre = data.pre
     visco = scene.effects["viscoelastic"]
-    true_creep = T.Creep(visco["magnitude"], visco["time_constant_s"])
+    true_creep = Creep(visco["magnitude"], visco["time_constant_s"])
     rows = data.rows("all")
     feats = pp.recording_features(pre, held.wl_nm, data.recordings[0].baseline_nm)
     real = _peak_level(fm.standardise(pre, feats), pre)
     plain = data.recordings[0].ds
     errors = {}
-    for name, creep in (("creep", true_creep), ("none", T.Creep())):
-        x, src = T._synthetic_holds(data, pre, rows, 1.0, creep, np.random.default_rng(0))
+    for name, creep in (("creep", true_creep), ("none", Creep())):
+        x, src = synthetic_holds(data, pre, rows, 1.0, creep, np.random.default_rng(0))
         synth = _peak_level(x, pre)
         rel = []
         for p in np.unique(plain.press_id[plain.contact]):
@@ -72,15 +80,15 @@ def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
 def test_fit_creep_finds_the_pads_relaxation():
     """The creep recovery after 60 releases gives the simulated pad's 5 % and 0.08 s."""
     scene = sim.load_scene("calibration_paper").replace(schedule={"n_presses": 60})
-    data = T.prepare([sim.simulate(scene)])
-    creep = T.fit_creep(data, data.pre, data.rows("all"))
+    data = prepare([sim.simulate(scene)])
+    creep = fit_creep(data, data.pre, data.rows("all"))
     visco = scene.effects["viscoelastic"]
     assert creep.magnitude == pytest.approx(visco["magnitude"], rel=0.2)
     assert creep.time_constant_s == pytest.approx(visco["time_constant_s"], rel=0.3)
     ideal = sim.load_scene("calibration_paper").replace(
         schedule={"n_presses": 20}, effects={"viscoelastic": {"magnitude": 0.0}})
-    ideal_data = T.prepare([sim.simulate(ideal)])
-    assert T.fit_creep(ideal_data, ideal_data.pre, ideal_data.rows("all")).magnitude < 0.01
+    ideal_data = prepare([sim.simulate(ideal)])
+    assert fit_creep(ideal_data, ideal_data.pre, ideal_data.rows("all")).magnitude < 0.01
 
 
 def test_fit_creep_finds_a_slow_creep_under_a_wandering_zero():
@@ -89,8 +97,8 @@ def test_fit_creep_finds_a_slow_creep_under_a_wandering_zero():
     creep as a nearly constant residual, which only offsets of their own per span of the
     log tell apart from the wander (one offset for the log fits 0.031 and 0.56 s)."""
     spec = foreign.IN_USE_VARIANTS["calib_1K"]
-    data = T.prepare([foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 100)])
-    creep = T.fit_creep(data, data.pre, data.rows("all"))
+    data = prepare([foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 100)])
+    creep = fit_creep(data, data.pre, data.rows("all"))
     assert creep.magnitude == pytest.approx(spec.creep, rel=0.15)
     assert creep.time_constant_s == pytest.approx(spec.creep_s, rel=0.25)
 
@@ -103,7 +111,7 @@ def test_the_fitted_creep_goes_to_the_tracker_or_the_inverse(inverse):
     the at-rest tracker) and the synthetic holds creep as fitted."""
     spec = foreign.IN_USE_VARIANTS["calib_1K"]
     ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
-    data = T.prepare([ds], creep_inverse=inverse)
+    data = prepare([ds], creep_inverse=inverse)
     assert data.creep.magnitude == pytest.approx(spec.creep, rel=0.3)
     if inverse:
         assert data.creep.time_constant_s == pytest.approx(2.0 ** 10 / 1000.0)
@@ -124,51 +132,51 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     """By default (``creep_inverse`` None) the inverse goes to a creep of at least
     CREEP_INVERSE_MIN slower than the memory's longest average, the tracker's term to any
     other; the turn guard follows the inverse unless it is given."""
-    memory_s = T.memory_time_constant_s(T.MEMORY_PRESETS["both"], 1000.0)
+    memory_s = memory_time_constant_s(MEMORY_PRESETS["both"], 1000.0)
     assert memory_s == pytest.approx(0.128)
-    assert T.memory_time_constant_s(T.MEMORY_PRESETS["play"], 1000.0) == 0.0
-    assert T.takes_creep_out(T.Creep(0.05, 1.024), memory_s)           # the foreign fingertip
-    assert not T.takes_creep_out(T.Creep(0.063, 0.064), memory_s)      # the calibration scene
-    assert not T.takes_creep_out(T.Creep(0.005, 4.0), memory_s)        # a fit's noise
-    assert not T.takes_creep_out(T.Creep(0.05, 1.024), 0.0)            # no averages
+    assert memory_time_constant_s(MEMORY_PRESETS["play"], 1000.0) == 0.0
+    assert takes_creep_out(Creep(0.05, 1.024), memory_s)           # the foreign fingertip
+    assert not takes_creep_out(Creep(0.063, 0.064), memory_s)      # the calibration scene
+    assert not takes_creep_out(Creep(0.005, 4.0), memory_s)        # a fit's noise
+    assert not takes_creep_out(Creep(0.05, 1.024), 0.0)            # no averages
     spec = foreign.IN_USE_VARIANTS["calib_1K"]
     ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
-    assert T.prepare([ds], creep_inverse=None, memory=T.MEMORY_PRESETS["both"]).pre.creep > 0
+    assert prepare([ds], creep_inverse=None, memory=MEMORY_PRESETS["both"]).pre.creep > 0
     slow = fm.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
-    assert T.prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
-    assert T.prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
-    md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
-    assert md["creep"]["inverse"] and md["turn_guard_s"] == T.TURN_GUARD_S
-    md = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False,
+    assert prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
+    assert prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
+    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
+    assert md["creep"]["inverse"] and md["turn_guard_s"] == TURN_GUARD_S
+    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False,
                  turn_guard_s=0.0, creep_inverse=False).metadata
     assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
 
 
 def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(paired_holds):
-    """train.hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1
+    """hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1
     (so the bias after it is smaller than before and no other gain fits better), recorded in
     the metadata and set on the model's in-use stage; no synthetic holds, no gain."""
     _, data, _ = paired_holds
     ds = data.recordings[0].ds
-    model = T.train([ds], epochs=3, restarts=1, rest_augment=0.0, hold_augment=1.0,
+    model = train([ds], epochs=3, restarts=1, rest_augment=0.0, hold_augment=1.0,
                     progress=False)
     settled = model.metadata["synthetic_holds"]["settled_gain"]
-    assert settled["holds"] >= T.HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
+    assert settled["holds"] >= HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
     assert model.in_use.hold_gain == pytest.approx(settled["gain"]) != 0.0
     assert abs(settled["bias_after_N"]) < abs(settled["bias_before_N"])
     assert model.in_use.hold_settle == round(fm.HOLD_SETTLE_S * 1000)
     # Written out again: a held sample's place in its hold, one every HOLD_AUGMENT_STEP_S.
-    mdata = T.prepare([ds], creep_inverse=model.metadata["creep"]["inverse"])
-    x, src = T._synthetic_holds(mdata, model.preprocess, mdata.rows("all"), 1.0, mdata.creep,
+    mdata = prepare([ds], creep_inverse=model.metadata["creep"]["inverse"])
+    x, src = synthetic_holds(mdata, model.preprocess, mdata.rows("all"), 1.0, mdata.creep,
                                 np.random.default_rng(1))
-    fit = T.hold_gain(model, mdata, [(x, src)])
+    fit = hold_gain(model, mdata, [(x, src)])
     place = np.zeros(src.size, dtype=int)
     for i in range(1, src.size):
         place[i] = place[i - 1] + 1 if src[i] == src[i - 1] else 0
     held = np.zeros(src.size, dtype=bool)
     for i in range(src.size - 1, -1, -1):
         held[i] = place[i] > 0 or (i + 1 < src.size and held[i + 1] and place[i + 1] > 0)
-    settled = held & (place * T.HOLD_AUGMENT_STEP_S >= fm.HOLD_SETTLE_S - 1e-9)
+    settled = held & (place * HOLD_AUGMENT_STEP_S >= fm.HOLD_SETTLE_S - 1e-9)
     assert settled.sum() == fit["samples"]
     f = fm.predict_from_features(model, x[settled])["force_raw_N"]
     y = mdata.force_N[src[settled]]
@@ -176,8 +184,8 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     def sse(g: float) -> float:
         return float(np.sum((f * (1 + g) - y) ** 2))
     assert sse(fit["gain"]) < min(sse(fit["gain"] - 1e-3), sse(fit["gain"] + 1e-3), sse(0.0))
-    assert T.hold_gain(model, mdata, [])["gain"] == 0.0
-    plain = T.train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0,
+    assert hold_gain(model, mdata, [])["gain"] == 0.0
+    plain = train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0,
                     progress=False)
     assert plain.in_use.hold_gain == 0.0 and plain.metadata["synthetic_holds"]["settled_gain"]["holds"] == 0
 
@@ -217,14 +225,14 @@ def test_synthetic_rest_settles_where_a_real_long_rest_settles():
     effects["viscoelastic"] = {"magnitude": 0.05, "time_constant_s": 1.0}
     scene = base.replace(schedule={"n_presses": 12}, effects=effects)
     plain = sim.simulate(scene)
-    data = T.prepare([plain])
+    data = prepare([plain])
     rested = sim.simulate(scene.replace(schedule={"rest_s": 8.0}))
     pre, baseline = data.pre, data.recordings[0].baseline_nm
     std = np.std(pp.recording_features(pre, plain.wl_nm, baseline), axis=0)
     real = fm.standardise(pre, pp.recording_features(pre, rested.wl_nm, baseline))
     starts = np.flatnonzero(rested.contact[1:] & ~rested.contact[:-1]) + 1
     settled = np.mean([real[k - 1000:k - 50].mean(axis=0) for k in starts[1:]], axis=0)
-    x, src = T._synthetic_rests(data, pre, data.rows("all"), 1.0, 10, np.random.default_rng(0))
+    x, src = synthetic_rests(data, pre, data.rows("all"), 1.0, 10, np.random.default_rng(0))
     assert not data.contact[src].any()
     rests = np.unique(src)
     assert rests.size >= 8
@@ -241,7 +249,7 @@ def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds)
     turn_guard_s the force net trains on fewer samples by them."""
     _, data, _ = paired_holds
     guard_s = 0.015
-    mask = T.after_turns(data, guard_s)
+    mask = after_turns(data, guard_s)
     n = round(guard_s * data.recordings[0].rate_hz)
     ds = data.recordings[0].ds
     force, pid = np.asarray(ds.force_N), np.asarray(ds.press_id)
@@ -249,13 +257,13 @@ def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds)
     assert mask.sum() == n * presses.size
     for p in presses:
         rows = np.flatnonzero((pid == p) & np.asarray(ds.contact, bool))
-        turn = rows[force[rows] >= T.TURN_FRACTION * force[rows].max()][-1]
+        turn = rows[force[rows] >= TURN_FRACTION * force[rows].max()][-1]
         assert mask[turn + 1:turn + 1 + n].all() and not mask[turn]
         assert (force[turn + 1:turn + 1 + n] < force[turn]).all()
-    assert not T.after_turns(data, 0.0).any()
+    assert not after_turns(data, 0.0).any()
 
     def force_samples(turn_guard_s: float) -> int:
-        md = T.train([ds], epochs=1, restarts=1, hold_augment=0.0, rest_augment=0.0,
+        md = train([ds], epochs=1, restarts=1, hold_augment=0.0, rest_augment=0.0,
                      turn_guard_s=turn_guard_s, progress=False).metadata
         assert md["turn_guard_s"] == turn_guard_s
         return md["training"]["force"]["train_samples"]

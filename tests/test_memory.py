@@ -189,7 +189,7 @@ def test_location_averages_read_zero_at_rest_and_keep_a_press_direction(random_m
 
 def test_memory_text_and_presets():
     from fbgforce.errors import InputError
-    from fbgforce.trainer.train import MEMORY_PRESETS, parse_memory
+    from fbgforce.trainer.memory import MEMORY_PRESETS, parse_memory
 
     m = parse_memory("ema:3,6+play:0.1")
     assert m.ema_shifts == (3, 6) and m.play_widths == (0.1,) and m.loc_shift == 0
@@ -311,22 +311,24 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     memory, no hold and the synthetic holds turned off it warns (the averages would read a
     held grip low); by default the synthetic holds stand in for them."""
     from fbgforce import sim
-    from fbgforce.trainer import train as T
+    from fbgforce.trainer.data import hold_seconds
+    from fbgforce.trainer.params import DEFAULT_SIZES
+    from fbgforce.trainer.train import prepare, train
 
     small = sim.load_scene("calibration_holds").replace(schedule={"n_presses": 3})
-    held = T.prepare([sim.simulate(small)])
+    held = prepare([sim.simulate(small)])
     # 3 presses holding 0.5 s each, found in 10 ms blocks.
-    assert T.hold_seconds(held) == pytest.approx(1.5, abs=0.1)
-    assert T.hold_seconds(held, np.arange(0)) == 0.0
-    presses = T.prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
-    assert T.hold_seconds(presses) == 0.0
+    assert hold_seconds(held) == pytest.approx(1.5, abs=0.1)
+    assert hold_seconds(held, np.arange(0)) == 0.0
+    presses = prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
+    assert hold_seconds(presses) == 0.0
     md = fm.load(small_model_dir).metadata  # the smoke scene, trained without synthetic holds
     assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
     assert md["synthetic_holds"]["samples"]["train"] == 0
     assert sum("held grip" in w for w in md["warnings"]) == 1
-    tiny = {net: (4,) for net in T.DEFAULT_SIZES}
+    tiny = {net: (4,) for net in DEFAULT_SIZES}
     plain = sim.simulate(small.replace(schedule={"hold_s": 0.0, "n_presses": 10}))
-    md = T.train([plain], epochs=1, sizes=tiny, restarts=1, progress=False).metadata
+    md = train([plain], epochs=1, sizes=tiny, restarts=1, progress=False).metadata
     # (A 10-press log also warns that its test split is small: not about holds.)
     assert md["synthetic_holds"]["samples"]["train"] > 0
     assert not any("held grip" in w for w in md["warnings"])

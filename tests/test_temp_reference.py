@@ -285,7 +285,7 @@ def test_the_trainer_averages_only_independent_noise(common, averaged):
 def test_a_given_ref_shift_is_taken_as_it_is(given):
     """``--ref-shift N`` overrides the choice (here against the data, which would average
     over 2^5) and says so in the metadata; an out-of-range one is refused by name."""
-    from fbgforce.trainer.train import TrainParams
+    from fbgforce.trainer.params import TrainParams
 
     wl, base = _rest_recording(False)
     pre = pp.make_preprocess("causal", 5.0, np.ones(4))

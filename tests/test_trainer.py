@@ -388,7 +388,8 @@ def test_unread_units_are_dropped_and_float32_outputs_stay():
 
 @pytest.mark.slow
 def test_default_weight_decay_falls_with_the_training_samples(synthetic_recording):
-    from fbgforce.trainer.train import DEFAULT_DECAY_SAMPLES, train
+    from fbgforce.trainer.fit_nets import DEFAULT_DECAY_SAMPLES
+    from fbgforce.trainer.train import train
 
     kw = dict(epochs=2, seed=5, progress=False, restarts=1,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
@@ -510,13 +511,14 @@ def test_weight_decay_shrinks_weights():
 
 
 def test_scaled_presses_scale_the_strain_features_per_press(synthetic_recording):
-    from fbgforce.trainer.train import _scaled_presses, prepare
+    from fbgforce.trainer.synthetic import scaled_presses
+    from fbgforce.trainer.train import prepare
 
     ds = synthetic_recording(n_press=6, seed=3, noise_pm=0.0, temp_ramp_pm=50.0)
     data = prepare([ds], seed=0)
     pre = data.pre  # unit standardisation and no memory: the inputs are the filtered shifts
     rows = np.flatnonzero(data.contact & (data.force_N > 10.0))
-    z, kept = _scaled_presses(data, pre, rows, 3.0, np.random.default_rng(0))
+    z, kept = scaled_presses(data, pre, rows, 3.0, np.random.default_rng(0))
     assert np.array_equal(kept, rows) and z.shape == (rows.size, data.inputs(pre).shape[1])
     # Deep inside a press the (linear) filter has forgotten the previous press: the strain
     # inputs are the original ones times the press's own factor in [1, 3].
@@ -557,7 +559,7 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
     ("sizes", {"force": [8] * 8}, "--sizes"), ("sizes", {"gripper": [8]}, "--sizes"),
     ("sizes", {"force": []}, "--sizes"), ("sizes", {"force": [8.5]}, "--sizes")])
 def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
-    from fbgforce.trainer.train import TrainParams
+    from fbgforce.trainer.params import TrainParams
 
     with pytest.raises(InputError) as exc:
         TrainParams(**{name: value})
@@ -565,7 +567,8 @@ def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value,
 
 
 def test_train_takes_params_and_options_and_refuses_unknown_ones(synthetic_recording):
-    from fbgforce.trainer.train import TrainParams, train
+    from fbgforce.trainer.params import TrainParams
+    from fbgforce.trainer.train import train
 
     with pytest.raises(TypeError, match="epoch"):
         train([synthetic_recording], epoch=3)
@@ -579,7 +582,7 @@ def test_sizes_set_the_hidden_widths_and_leave_the_other_nets_at_the_default(sma
     (whose widths the force net's decay may trim, never widen)."""
     from fbgforce import model as fm
     from fbgforce.cli import main
-    from fbgforce.trainer.train import DEFAULT_SIZES
+    from fbgforce.trainer.params import DEFAULT_SIZES
 
     out = tmp_path / "m"
     code = main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "1",

@@ -38,7 +38,7 @@ def prepare_data(data: Sequence[str | Path] | None, scene: str | None, out: Path
 
 
 def data_digest(paths: Sequence[Path]) -> str:
-    from fbgforce.trainer.train import file_sha256
+    from fbgforce.fileio import file_sha256
 
     return hashlib.sha256("".join(file_sha256(p) for p in paths).encode()).hexdigest()[:16]
 

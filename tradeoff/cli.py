@@ -207,7 +207,7 @@ def _handler(args: argparse.Namespace) -> dict[str, Any]:
             s.default_sigma = s.sigmas[0]
     s.grid = args.grid
     if args.memories:
-        from fbgforce.trainer.train import parse_memory
+        from fbgforce.trainer.memory import parse_memory
 
         for spec in args.memories:
             parse_memory(spec)                 # refuse a bad spec before any training

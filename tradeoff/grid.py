@@ -124,7 +124,7 @@ def variants(s: Settings) -> list[Variant]:
 
 def scaled_sizes(width: str) -> dict[str, list[int]]:
     """Hidden widths of every net, the paper's scaled by the width factor (at least 2)."""
-    from fbgforce.trainer.train import PAPER_SIZES
+    from fbgforce.trainer.params import PAPER_SIZES
 
     f = WIDTHS[width]
     return {k: [max(2, int(round(h * f))) for h in v] for k, v in PAPER_SIZES.items()}

@@ -81,10 +81,11 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
     """Train or reuse every variant, evaluate every engine, time them, write the outputs."""
     from fbgforce.tare import sample_rate_hz
     from fbgforce.trainer import train as tr
+    from fbgforce.trainer.data import load_datasets
 
     t_run = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
-    ds_list, described = tr.load_datasets([str(p) for p in paths])
+    ds_list, described = load_datasets([str(p) for p in paths])
     sources = [str(p) for p in paths]
     digest = artifacts.data_digest(paths)
     rate_hz = float(np.median([sample_rate_hz(ds.t_s) for ds in ds_list]))

@@ -187,7 +187,8 @@ def _register_report(subparsers: Any) -> None:
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce import model as fm
-    from fbgforce.trainer.train import TrainParams, train
+    from fbgforce.trainer.params import TrainParams
+    from fbgforce.trainer.train import train
 
     _check_files(args.data, "--data")
     augment = {name: getattr(args, name) for name in ("hold_augment", "rest_augment")
@@ -333,7 +334,8 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
 
 def _analyze(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.analysis import autoencoder_study, plot_embedding
-    from fbgforce.trainer.train import load_datasets, prepare
+    from fbgforce.trainer.data import load_datasets
+    from fbgforce.trainer.train import prepare
 
     _check_files(args.data, "--data")
     if args.plot:

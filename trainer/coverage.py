@@ -15,7 +15,7 @@ import numpy as np
 
 from fbgforce.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
-from fbgforce.trainer.train import HOLD_BAND, HOLD_MIN_S
+from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
 
 #: Force ranges reported, N (the last open).
 FORCE_BINS_N = (0.0, 2.0, 10.0, 30.0, 50.0, 70.0)
@@ -61,12 +61,10 @@ def _press_table(ds: Dataset) -> np.ndarray:
     return np.array(rows, dtype=np.float64).reshape(-1, 5)
 
 
-def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
-    """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
-    trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
-    tables = [_press_table(ds) for ds in datasets]
-    table = np.concatenate(tables) if tables else np.zeros((0, 5))
-    peak, x, y, speed, hold = table.T if table.size else (np.zeros(0),) * 5
+def _location_map(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Presses per cell of :data:`MAP_CELLS` over the pad (rows y, columns x) from their
+    median locations ``x``, ``y``, and the pad's size: the nominal one, or larger where the
+    presses reached beyond it."""
     w = max(PAD_SIZE_MM[0], float(np.nanmax(x)) if x.size else 0.0)
     h = max(PAD_SIZE_MM[1], float(np.nanmax(y)) if y.size else 0.0)
     nx, ny = MAP_CELLS
@@ -75,10 +73,12 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         cx = np.clip((x / w * nx).astype(int), 0, nx - 1)
         cy = np.clip((y / h * ny).astype(int), 0, ny - 1)
         np.add.at(counts, (cy, cx), 1)
-    edges = FORCE_BINS_N
-    by_range = {(f"{lo:g}-{hi:g}" if i < len(edges) - 1 else f">{lo:g}"):
-                int(((peak > lo) & ((peak <= hi) if i < len(edges) - 1 else True)).sum())
-                for i, (lo, hi) in enumerate(zip(edges, edges[1:] + (np.inf,)))}
+    return counts, w, h
+
+
+def _temperature_and_rests(datasets: Sequence[Dataset]) -> tuple[float, float, float]:
+    """The temperature grating's largest span over the recordings (pm, of 1 s means, clear of
+    the noise), their time without contact and its longest stretch (s)."""
     span_pm, rest_total, rest_longest = 0.0, 0.0, 0.0
     for ds in datasets:
         dt = float(np.median(np.diff(ds.t_s))) if len(ds) > 1 else 1e-3
@@ -92,24 +92,48 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         d = np.diff(np.concatenate([[0], free.astype(np.int8), [0]]))
         runs = np.flatnonzero(d == -1) - np.flatnonzero(d == 1)
         rest_longest = max(rest_longest, float(runs.max()) * dt if runs.size else 0.0)
-    span_K = span_pm / T_SENSITIVITY_PM_PER_K
+    return span_pm, rest_total, rest_longest
+
+
+def _missing_presses(peak: np.ndarray, speed: np.ndarray, hold: np.ndarray,
+                     counts: np.ndarray) -> list[str]:
+    """What the presses (their peaks, loading speeds, holds and location map) leave a model
+    short of, in words (the first lines of ``missing``)."""
     missing = []
     if peak.size == 0:
         missing.append("any press: the log has no contact")
-    else:
-        if peak.max() < WANT_FORCE_MAX_N:
-            missing.append(f"forces above {peak.max():.0f} N (it will extrapolate there)")
-        if peak.min() > WANT_LIGHT_N:
-            missing.append(f"light touches (no press peaks below {WANT_LIGHT_N:g} N)")
-        empty = int((counts == 0).sum())
-        if empty:
-            missing.append(f"{empty} of {counts.size} pad cells (no press there: see the map)")
-        if speed.max() < WANT_FAST_N_PER_S:
-            missing.append(f"fast taps (no loading faster than {WANT_FAST_N_PER_S:g} N/s)")
-        if speed.min() > WANT_SLOW_N_PER_S:
-            missing.append(f"slow ramps (no loading slower than {WANT_SLOW_N_PER_S:g} N/s)")
-        if hold.max() < WANT_HOLD_S:
-            missing.append(f"holds of {WANT_HOLD_S:g} s or longer (a held grip will read low)")
+        return missing
+    if peak.max() < WANT_FORCE_MAX_N:
+        missing.append(f"forces above {peak.max():.0f} N (it will extrapolate there)")
+    if peak.min() > WANT_LIGHT_N:
+        missing.append(f"light touches (no press peaks below {WANT_LIGHT_N:g} N)")
+    empty = int((counts == 0).sum())
+    if empty:
+        missing.append(f"{empty} of {counts.size} pad cells (no press there: see the map)")
+    if speed.max() < WANT_FAST_N_PER_S:
+        missing.append(f"fast taps (no loading faster than {WANT_FAST_N_PER_S:g} N/s)")
+    if speed.min() > WANT_SLOW_N_PER_S:
+        missing.append(f"slow ramps (no loading slower than {WANT_SLOW_N_PER_S:g} N/s)")
+    if hold.max() < WANT_HOLD_S:
+        missing.append(f"holds of {WANT_HOLD_S:g} s or longer (a held grip will read low)")
+    return missing
+
+
+def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
+    """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
+    trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
+    tables = [_press_table(ds) for ds in datasets]
+    table = np.concatenate(tables) if tables else np.zeros((0, 5))
+    peak, x, y, speed, hold = table.T if table.size else (np.zeros(0),) * 5
+    counts, w, h = _location_map(x, y)
+    ny, nx = counts.shape
+    edges = FORCE_BINS_N
+    by_range = {(f"{lo:g}-{hi:g}" if i < len(edges) - 1 else f">{lo:g}"):
+                int(((peak > lo) & ((peak <= hi) if i < len(edges) - 1 else True)).sum())
+                for i, (lo, hi) in enumerate(zip(edges, edges[1:] + (np.inf,)))}
+    span_pm, rest_total, rest_longest = _temperature_and_rests(datasets)
+    span_K = span_pm / T_SENSITIVITY_PM_PER_K
+    missing = _missing_presses(peak, speed, hold, counts)
     if span_K < WANT_TEMPERATURE_K:
         missing.append(f"temperature changes beyond {span_K:.2g} K (the temperature grating "
                        f"moved {span_pm:.0f} pm)")

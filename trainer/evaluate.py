@@ -41,7 +41,8 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     """
     from fbgforce import dataset as fds
     from fbgforce import samples
-    from fbgforce.trainer.train import load_datasets, model_pad_mm, split_rows
+    from fbgforce.trainer.data import load_datasets, split_rows
+    from fbgforce.trainer.scoring import model_pad_mm
 
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -192,6 +193,79 @@ def predict_batched(net: FlatMLP, x: np.ndarray, batch: int = 65536) -> np.ndarr
     return np.concatenate([net.forward(x[i:i + batch]) for i in range(0, x.shape[0], batch)])
 
 
+def _train_epoch(net: FlatMLP, opt: AdamOptimizer,
+                 loss_fn: Callable[[np.ndarray, np.ndarray], tuple[float, np.ndarray]],
+                 x: np.ndarray, y: np.ndarray, batch_size: int, weight_decay: float,
+                 input_noise: float, rng: np.random.Generator) -> float:
+    """One pass over the training samples in an order drawn from ``rng``, an Adam step per
+    mini-batch (inputs noised by ``input_noise``, weights decayed by ``weight_decay``);
+    returns the mean training loss."""
+    n = x.shape[0]
+    order = rng.permutation(n)
+    total = 0.0
+    for start in range(0, n, batch_size):
+        idx = order[start:start + batch_size]
+        xb = x[idx]
+        if input_noise > 0.0:
+            xb = xb + rng.normal(0.0, input_noise, xb.shape)
+        out = net.forward(xb, keep=True)
+        batch_loss, dout = loss_fn(out, y[idx])
+        net.backward(dout)
+        if weight_decay > 0.0:
+            for w, g in zip(net.W, net.gW):
+                g += weight_decay * w
+        opt.update_params(net.theta, net.grad)
+        total += batch_loss * idx.size
+    opt.epoch_ends()
+    return total / n
+
+
+def _record_epoch(history: list[dict[str, Any]], bar: Any, row: dict[str, Any], net: FlatMLP,
+                  val_metrics: Callable[[FlatMLP], dict[str, float]] | None) -> None:
+    """Add one epoch's ``row`` of the history, with the ``val_metrics`` of ``net``, and show
+    it on the progress ``bar``."""
+    if val_metrics is not None:
+        row.update(val_metrics(net))
+    history.append(row)
+    # refresh=False: the bar's own pace decides when to draw (at most every 10 s on a pipe).
+    bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v)
+                     for k, v in row.items() if k not in ("epoch", "lr")}, refresh=False)
+
+
+@dataclass
+class _EarlyStopping:
+    """The best weights so far (``best_theta``, at ``best_epoch`` with ``best_loss``) and
+    when :func:`fit` stops: after ``patience`` epochs without a relative improvement of
+    ``min_delta``; with ``plateau``, it first goes back to the best weights at a learning rate
+    ``plateau_factor`` smaller after that many."""
+
+    best_theta: np.ndarray
+    patience: int
+    min_delta: float
+    plateau: int | None
+    plateau_factor: float
+    best_loss: float = np.inf
+    best_epoch: int = 0
+    last_cut: int = 0
+
+    def stops(self, epoch: int, val_loss: float, net: FlatMLP, opt: AdamOptimizer) -> bool:
+        """Whether training stops after ``epoch`` (1 ..) with ``val_loss``."""
+        if val_loss < self.best_loss * (1.0 - self.min_delta):
+            self.best_loss, self.best_epoch = val_loss, epoch
+            self.best_theta[...] = net.theta
+            self.last_cut = epoch
+        elif epoch - self.best_epoch >= self.patience:
+            return True
+        elif (self.plateau is not None
+              and epoch - max(self.best_epoch, self.last_cut) >= self.plateau):
+            # Smaller steps from the best point so far: a noisy plateau of the validation loss
+            # is Adam's step size, not the end of what the net can learn.
+            net.theta[...] = self.best_theta
+            opt.scale_learning_rate(self.plateau_factor)
+            self.last_cut = epoch
+        return False
+
+
 def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray | None = None,
         y_val: np.ndarray | None = None, *, epochs: int = 100, batch_size: int = 128,
         learning_rate: float = 1e-3, decay: float = 0.97, patience: int = 10,
@@ -246,61 +320,28 @@ def fit(net: FlatMLP, loss: str, x: np.ndarray, y: np.ndarray, x_val: np.ndarray
     loss_fn = LOSSES[loss]
     rng = rng if rng is not None else np.random.default_rng(0)
     opt = AdamOptimizer(net.n_params, learning_rate, decay)
-    n = x.shape[0]
-    if n == 0:
+    if x.shape[0] == 0:
         raise ValueError(f"{desc}: no training samples")
     use_val = x_val is not None and y_val is not None and x_val.shape[0] > 0
-    best_theta = net.theta.copy()
-    best_loss = np.inf
-    best_epoch = 0
+    stopping = _EarlyStopping(net.theta.copy(), patience, min_delta, plateau, plateau_factor)
     history = []
     t0 = time.perf_counter()
     bar = fprogress.bar(range(epochs), desc=desc, leave=False, enabled=progress)
     epochs_run = 0
-    last_cut = 0
     for epoch in bar:
-        order = rng.permutation(n)
-        total = 0.0
-        for start in range(0, n, batch_size):
-            idx = order[start:start + batch_size]
-            xb = x[idx]
-            if input_noise > 0.0:
-                xb = xb + rng.normal(0.0, input_noise, xb.shape)
-            out = net.forward(xb, keep=True)
-            batch_loss, dout = loss_fn(out, y[idx])
-            net.backward(dout)
-            if weight_decay > 0.0:
-                for w, g in zip(net.W, net.gW):
-                    g += weight_decay * w
-            opt.update_params(net.theta, net.grad)
-            total += batch_loss * idx.size
-        opt.epoch_ends()
+        train_loss = _train_epoch(net, opt, loss_fn, x, y, batch_size, weight_decay, input_noise,
+                                  rng)
         epochs_run = epoch + 1
-        train_loss = total / n
         val_loss = loss_fn(predict_batched(net, x_val), y_val)[0] if use_val else train_loss
-        row: dict[str, Any] = {"epoch": epochs_run, "loss": train_loss, "val_loss": val_loss,
-                               "lr": opt.learning_rate}
-        if val_metrics is not None:
-            row.update(val_metrics(net))
-        history.append(row)
-        # refresh=False: the bar's own pace decides when to draw (at most every 10 s on a pipe).
-        bar.set_postfix({k: (f"{v:.4g}" if isinstance(v, float) else v)
-                         for k, v in row.items() if k not in ("epoch", "lr")}, refresh=False)
-        if val_loss < best_loss * (1.0 - min_delta):
-            best_loss, best_epoch = val_loss, epochs_run
-            best_theta[...] = net.theta
-            last_cut = epochs_run
-        elif epochs_run - best_epoch >= patience:
+        _record_epoch(history, bar, {"epoch": epochs_run, "loss": train_loss,
+                                     "val_loss": val_loss, "lr": opt.learning_rate},
+                      net, val_metrics)
+        if stopping.stops(epochs_run, val_loss, net, opt):
             break
-        elif plateau is not None and epochs_run - max(best_epoch, last_cut) >= plateau:
-            # Smaller steps from the best point so far: a noisy plateau of the validation loss
-            # is Adam's step size, not the end of what the net can learn.
-            net.theta[...] = best_theta
-            opt.scale_learning_rate(plateau_factor)
-            last_cut = epochs_run
         if time_budget_s is not None and time.perf_counter() - t0 > time_budget_s:
             break
     bar.close()
-    net.theta[...] = best_theta
-    return {"epochs_run": epochs_run, "best_epoch": best_epoch, "best_val_loss": float(best_loss),
-            "seconds": time.perf_counter() - t0, "history": history}
+    net.theta[...] = stopping.best_theta
+    return {"epochs_run": epochs_run, "best_epoch": stopping.best_epoch,
+            "best_val_loss": float(stopping.best_loss), "seconds": time.perf_counter() - t0,
+            "history": history}

@@ -119,6 +119,45 @@ def _targets(model: fm.HierarchicalModel, force_N: np.ndarray, x_mm: np.ndarray,
     return f, xy
 
 
+def _tune(net: FakeQuantMLP, loss: str, x: np.ndarray, y: np.ndarray, xv: np.ndarray | None,
+          yv: np.ndarray | None, name: str, settings: dict[str, Any],
+          report: dict[str, Any]) -> None:
+    """Fine-tune one fake-quantised net (:func:`~fbgforce.trainer.nets.fit` with
+    ``settings``), recording how in ``report[name]``.
+
+    The starting weights are kept unless fine-tuning lowers the quantised net's validation
+    loss (without validation samples, its training loss): QAT must never make the shipped
+    int8 model worse than plain quantisation.
+    """
+    ex, ey = (xv, yv) if xv is not None and xv.shape[0] else (x, y)
+    start_theta = net.theta.copy()
+    start = LOSSES[loss](predict_batched(net, ex), ey)[0]
+    r = fit(net, loss, x, y, xv, yv, desc=f"qat {name}", **settings)
+    kept = not r["best_val_loss"] < start
+    if kept:
+        net.theta[...] = start_theta
+    report[name] = {"epochs_run": r["epochs_run"], "best_epoch": r["best_epoch"],
+                    "start_val_loss": float(start), "best_val_loss": r["best_val_loss"],
+                    "kept_start": kept}
+
+
+def _location_rows(cnet: FakeQuantMLP, z: np.ndarray, contact: np.ndarray) -> np.ndarray:
+    """Where the location net trains, as in the trainer: the samples where true and
+    (quantised) predicted contact agree."""
+    logits = cnet.forward(z)
+    return contact & (logits[:, 1] > logits[:, 0])
+
+
+def _location_inputs(cnet: FakeQuantMLP, fnet: FakeQuantMLP, x: np.ndarray, nf: int,
+                     n_loc: int) -> np.ndarray:
+    """What the runtime feeds the location net: the (quantised) contact and force nets' own
+    decision and output on the first ``nf`` columns of ``x``, beside the location averages."""
+    zz = x[:, :nf]
+    logits = cnet.forward(zz)
+    pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
+    return fm.location_inputs(x, pred_c, fnet.forward(zz)[:, 0], n_loc)
+
+
 def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, force_N: np.ndarray,
              x_mm: np.ndarray, y_mm: np.ndarray, *, val: tuple[np.ndarray, ...] | None = None,
              weight_bits: int = 8, act_bits: int = 16, epochs: int = 3,
@@ -165,48 +204,23 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
         vf, vxy = _targets(model, *(np.asarray(v, float) for v in val[2:5]))
     report: dict[str, Any] = {"weight_bits": weight_bits, "act_bits": act_bits}
 
-    def tune(net: FakeQuantMLP, loss: str, x: np.ndarray, y: np.ndarray,
-             xv: np.ndarray | None, yv: np.ndarray | None, name: str) -> None:
-        # Keep the starting weights unless fine-tuning lowers the quantised net's validation
-        # loss: QAT must never make the shipped int8 model worse than plain quantisation.
-        ex, ey = (xv, yv) if xv is not None and xv.shape[0] else (x, y)
-        start_theta = net.theta.copy()
-        start = LOSSES[loss](predict_batched(net, ex), ey)[0]
-        r = fit(net, loss, x, y, xv, yv, desc=f"qat {name}", **kw)
-        kept = not r["best_val_loss"] < start
-        if kept:
-            net.theta[...] = start_theta
-        report[name] = {"epochs_run": r["epochs_run"], "best_epoch": r["best_epoch"],
-                        "start_val_loss": float(start), "best_val_loss": r["best_val_loss"],
-                        "kept_start": kept}
-
     cnet = FakeQuantMLP(model.contact, weight_bits, act_bits, z)
-    tune(cnet, "xent", z, c.astype(np.int64), vz if val else None,
-         vc.astype(np.int64) if val else None, "contact")
+    _tune(cnet, "xent", z, c.astype(np.int64), vz if val else None,
+          vc.astype(np.int64) if val else None, "contact", kw, report)
 
     fnet = FakeQuantMLP(model.force, weight_bits, act_bits, z[c])
-    tune(fnet, "mse", z[c], f_t[c], vz[vc] if val else None, vf[vc] if val else None, "force")
+    _tune(fnet, "mse", z[c], f_t[c], vz[vc] if val else None, vf[vc] if val else None, "force",
+          kw, report)
 
-    def loc_inputs(xx: np.ndarray) -> np.ndarray:
-        # What the runtime feeds the location net: the (quantised) nets' own decisions/outputs.
-        zz = xx[:, :nf]
-        logits = cnet.forward(zz)
-        pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
-        return fm.location_inputs(xx, pred_c, fnet.forward(zz)[:, 0], n_loc)
-
-    # As the trainer: location on samples where true and predicted contact agree.
-    def loc_rows(zz: np.ndarray, cc: np.ndarray) -> np.ndarray:
-        logits = cnet.forward(zz)
-        return cc & (logits[:, 1] > logits[:, 0])
-
-    lt = loc_rows(z, c)
-    lx = loc_inputs(x_full[lt])
+    lt = _location_rows(cnet, z, c)
+    lx = _location_inputs(cnet, fnet, x_full[lt], nf, n_loc)
     lnet = FakeQuantMLP(model.location, weight_bits, act_bits, lx)
     if val:
-        lv = loc_rows(vz, vc)
-        tune(lnet, "mse", lx, xy_t[lt], loc_inputs(vx_full[lv]), vxy[lv], "location")
+        lv = _location_rows(cnet, vz, vc)
+        _tune(lnet, "mse", lx, xy_t[lt], _location_inputs(cnet, fnet, vx_full[lv], nf, n_loc),
+              vxy[lv], "location", kw, report)
     else:
-        tune(lnet, "mse", lx, xy_t[lt], None, None, "location")
+        _tune(lnet, "mse", lx, xy_t[lt], None, None, "location", kw, report)
 
     meta = dict(model.metadata)
     meta["qat"] = report

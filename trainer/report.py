@@ -25,7 +25,9 @@ from fbgforce.jsonutil import json_default
 from fbgforce import metrics as fmetrics
 from fbgforce import model as fm
 from fbgforce.trainer import baseline as bl
-from fbgforce.trainer.train import evaluate_rows, load_datasets, predict_prepared, prepare, train
+from fbgforce.trainer.data import load_datasets
+from fbgforce.trainer.scoring import evaluate_rows, predict_prepared
+from fbgforce.trainer.train import prepare, train
 
 #: The paper's numbers (Kim et al. 2019, §V and §VII-A).
 PAPER = {
@@ -100,50 +102,30 @@ def _ratio(a: float | None, b: float | None) -> float | None:
     return None if a is None or b is None or b == 0 else a / b
 
 
-def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = None,
-                 epochs: int = 200, seed: int = 0, sigma: float | None = None,
-                 progress: bool | None = None) -> dict[str, Any]:
-    """Run every comparison and return the report as a dict (see module docstring)."""
-    t0 = time.perf_counter()
-    ds_list, described = load_datasets(data_paths)
-    sources = [d.get("path") or d.get("source") or "" for d in described]
-    prepared = {kind: prepare(ds_list, seed=seed, filter=kind, sigma=sigma, sources=sources)
-                for kind in ("causal", "centred", "none")}
-    te = prepared["causal"].rows("test")
-    nets: dict[str, Any] = {}
-    preds: dict[str, dict[str, np.ndarray]] = {}  # each network's output on every row
-    for kind, data in prepared.items():
-        if kind == "causal" and model_dir is not None:
-            model = fm.load(model_dir)
-            # Run the given model's own preprocessing on each whole recording, then score
-            # the test presses of the same split.
-            from fbgforce.trainer.evaluate import evaluate, run_recording
-            runs = [run_recording("float", model_dir, model, ds, d.get("path"))
-                    for ds, d in zip(ds_list, described)]
-            m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model,
-                         predictions=runs)
-            preds[kind] = {k: np.concatenate([np.asarray(r[k]) for r in runs])
-                           for k in ("contact", "force_N", "x_mm", "y_mm")}
-            nets[kind] = {"metrics": m, "model": str(model_dir),
-                          "train_seconds": model.metadata.get("times_s", {}).get("train"),
-                          "group_delay_ms": model.metadata.get("filter", {}).get("group_delay_ms")}
-            continue
-        t1 = time.perf_counter()
-        model = train(ds_list, epochs=epochs, seed=seed, filter=kind, sigma=sigma,
-                      prepared=data, progress=progress)
-        preds[kind] = predict_prepared(model, data)
-        nets[kind] = {"metrics": evaluate_rows(model, data, data.rows("test")),
-                      "train_seconds": time.perf_counter() - t1,
-                      "group_delay_ms": model.metadata["filter"]["group_delay_ms"]}
-    # The causal and unfiltered nets on the test rows: the baselines are compared with the
-    # first, and smoothing on/off like for like (the unfiltered net misses more light touches,
-    # so its own x/y come from heavier ones).
-    test_preds = {kind: {k: np.asarray(v)[te] for k, v in preds[kind].items()}
-                  for kind in ("causal", "none")}
-    base = baselines(prepared["causal"], test_preds["causal"])
-    truth = prepared["causal"].truth(te)
-    smoothing_common = fmetrics.common_location(test_preds, truth[0], truth[2], truth[3])
-    ours = nets["causal"]["metrics"]
+def _given_model(model_dir: str | Path, ds_list: Sequence[Any],
+                 described: Sequence[dict[str, Any]], seed: int
+                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The given model in place of the causal net: its float outputs on every row, each
+    recording run whole through its own preprocessing, and its entry of ``network`` (the
+    test presses of the same split scored)."""
+    from fbgforce.trainer.evaluate import evaluate, run_recording
+
+    model = fm.load(model_dir)
+    runs = [run_recording("float", model_dir, model, ds, d.get("path"))
+            for ds, d in zip(ds_list, described)]
+    m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model, predictions=runs)
+    preds = {k: np.concatenate([np.asarray(r[k]) for r in runs])
+             for k in ("contact", "force_N", "x_mm", "y_mm")}
+    return preds, {"metrics": m, "model": str(model_dir),
+                   "train_seconds": model.metadata.get("times_s", {}).get("train"),
+                   "group_delay_ms": model.metadata.get("filter", {}).get("group_delay_ms")}
+
+
+def _checks(ours: dict[str, Any], base: dict[str, Any], nets: dict[str, Any],
+            smoothing_common: dict[str, Any]) -> tuple[dict[str, Any], dict[str, str]]:
+    """The report's checks (:data:`CHECK_MEANING`) on the causal net's test metrics ``ours``
+    against the model-based baselines and the other filters, and a note on each: what it
+    means and, where it fails, on what."""
     nominal = base["nominal"]["metrics"]
     checks = {
         "network_beats_nominal_3x_y": (_ratio(nominal["rmse_y_mm"], ours["rmse_y_mm"]) or 0) >= 3,
@@ -167,9 +149,46 @@ def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = No
             nets["causal"]["metrics"], nets["none"]["metrics"], smoothing_common, "causal",
             "none", strict=False),
     }
-    check_notes = {k: CHECK_MEANING[k] + (f" Not met on: {'; '.join(failed_on[k])}."
-                                          if failed_on.get(k) else "")
-                   for k in checks}
+    notes = {k: CHECK_MEANING[k] + (f" Not met on: {'; '.join(failed_on[k])}."
+                                    if failed_on.get(k) else "")
+             for k in checks}
+    return checks, notes
+
+
+def build_report(data_paths: Sequence[Any], *, model_dir: str | Path | None = None,
+                 epochs: int = 200, seed: int = 0, sigma: float | None = None,
+                 progress: bool | None = None) -> dict[str, Any]:
+    """Run every comparison and return the report as a dict (see module docstring)."""
+    t0 = time.perf_counter()
+    ds_list, described = load_datasets(data_paths)
+    sources = [d.get("path") or d.get("source") or "" for d in described]
+    prepared = {kind: prepare(ds_list, seed=seed, filter=kind, sigma=sigma, sources=sources)
+                for kind in ("causal", "centred", "none")}
+    te = prepared["causal"].rows("test")
+    nets: dict[str, Any] = {}
+    preds: dict[str, dict[str, np.ndarray]] = {}  # each network's output on every row
+    for kind, data in prepared.items():
+        if kind == "causal" and model_dir is not None:
+            preds[kind], nets[kind] = _given_model(model_dir, ds_list, described, seed)
+            continue
+        t1 = time.perf_counter()
+        model = train(ds_list, epochs=epochs, seed=seed, filter=kind, sigma=sigma,
+                      prepared=data, progress=progress)
+        preds[kind] = predict_prepared(model, data)
+        nets[kind] = {"metrics": evaluate_rows(model, data, data.rows("test")),
+                      "train_seconds": time.perf_counter() - t1,
+                      "group_delay_ms": model.metadata["filter"]["group_delay_ms"]}
+    # The causal and unfiltered nets on the test rows: the baselines are compared with the
+    # first, and smoothing on/off like for like (the unfiltered net misses more light touches,
+    # so its own x/y come from heavier ones).
+    test_preds = {kind: {k: np.asarray(v)[te] for k, v in preds[kind].items()}
+                  for kind in ("causal", "none")}
+    base = baselines(prepared["causal"], test_preds["causal"])
+    truth = prepared["causal"].truth(te)
+    smoothing_common = fmetrics.common_location(test_preds, truth[0], truth[2], truth[3])
+    ours = nets["causal"]["metrics"]
+    nominal = base["nominal"]["metrics"]
+    checks, check_notes = _checks(ours, base, nets, smoothing_common)
     return {
         "data": described,
         "seed": seed,

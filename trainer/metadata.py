@@ -1,0 +1,156 @@
+"""What ``model.json`` records of a training (:func:`model_metadata`): the data, the split,
+the sizes, the corrections beyond the nets and why (:func:`corrections`), the metrics."""
+from __future__ import annotations
+
+import platform
+import time
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from fbgforce import __version__
+from fbgforce import metrics as fmetrics
+from fbgforce import model as fm
+from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.creep import Creep
+from fbgforce.trainer.data import (HOLD_BAND, HOLD_MIN_S, SPLIT_RATIOS, Prepared, count_presses,
+                                   hold_seconds)
+from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS
+from fbgforce.trainer.params import TrainParams
+from fbgforce.trainer.scoring import evaluate_rows, pad_extent_mm
+from fbgforce.trainer.synthetic import HOLD_AUGMENT_S, REST_AUGMENT_S, REST_AUGMENT_STEP_S, Held
+
+
+def training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: np.ndarray,
+                      hold_tr: Held) -> tuple[list[str], float]:
+    """What the data leaves the model short of (few test presses, no holds for the memory's
+    averages), and the training presses' held seconds."""
+    warnings = []
+    few = fmetrics.few_presses_warning("test", count_presses(data, te))
+    if few:
+        warnings.append(few)
+    held_s = hold_seconds(data, tr)
+    if pre.memory.ema_shifts and held_s == 0.0 and not hold_tr[1].size:
+        warnings.append(
+            "the training presses hold no load (no %.1f s in contact within %.1f N or %d %%): "
+            "the memory's averages will read a held grip low; calibrate with holds (scene "
+            "calibration_holds, docs/teleop.md) or train with synthetic holds (--hold-augment)"
+            % (HOLD_MIN_S, HOLD_BAND[0], round(100 * HOLD_BAND[1])))
+    return warnings, held_s
+
+
+def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+                settled: Mapping[str, Any]) -> list[dict[str, Any]]:
+    """Each correction beyond the nets the model makes, whether it is on, and why: what
+    ``fbgforce train`` prints and ``model.json`` records (``metadata.corrections``)."""
+    iu, pre = model.in_use, model.preprocess
+    evidence = data.creep_evidence or {}
+    creep = data.creep_fit or Creep()
+    how = ("taken out before the filter" if pre.creep else
+           "discounted by the at-rest tracker" if iu.track_creep else "carried by the holds")
+    holds = params.hold_augment > 0 and model.preprocess.memory.n_states > 0
+    return [
+        {"name": "creep", "applied": bool(creep.magnitude > 0),
+         "why": (f"{100 * creep.magnitude:.1f} % over {creep.time_constant_s:.2g} s, {how}: "
+                 if creep.magnitude > 0 else "") + evidence.get("why", "not fitted")},
+        {"name": "synthetic_holds", "applied": holds,
+         "why": (f"{100 * params.hold_augment:g} % of the presses held {HOLD_AUGMENT_S[0]:g}-"
+                 f"{HOLD_AUGMENT_S[1]:g} s" + (", creeping as fitted" if creep.magnitude > 0
+                                              else ", flat (no creep established)"))
+         if holds else "--hold-augment 0 or a memoryless model"},
+        {"name": "settled_hold_gain", "applied": bool(iu.hold_gain),
+         "why": (f"{iu.hold_gain:+.4f}, the nets' gain on {settled.get('holds', 0)} held-out "
+                 "synthetic holds" if iu.hold_gain else
+                 f"off: {settled.get('holds', 0)} synthetic holds to measure it on (at least "
+                 f"{HOLD_GAIN_MIN_HOLDS} needed)" if not settled.get("gain") else "off")},
+        {"name": "turn_guard", "applied": bool(params.turn_guard_s),
+         "why": f"{1000 * params.turn_guard_s:g} ms after each turn left out of the force net"
+         if params.turn_guard_s else "by default only with the creep inverse"},
+        {"name": "decision_over_time", "applied": not iu.per_sample,
+         "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
+                 f"{iu.contact_cusum_k:.3g}, from the calibration's rests"
+                 if iu.contact_cusum_h else
+                 f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "
+                 f"{iu.contact_rise_samples} samples, from the rests")
+         if not iu.per_sample else "per sample: the calibration's rests set no threshold above 0"},
+        {"name": "at_rest_tracker", "applied": bool(iu.track_shift),
+         "why": f"time constant 2^{iu.track_shift} samples, at most "
+                f"{iu.track_limit_pm:g} pm" if iu.track_shift else "off"},
+    ]
+
+
+def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+                   described: Sequence[Mapping[str, Any]],
+                   rows: tuple[np.ndarray, np.ndarray, np.ndarray], x_all: np.ndarray,
+                   reports: Mapping[str, Any], data_coverage: Any, creep: Creep,
+                   holds: tuple[Held, Held, dict[str, Any]], rests: tuple[Held, Held],
+                   held_s: float, warnings: list[str], times: tuple[float, float]
+                   ) -> dict[str, Any]:
+    """The facts ``model.json`` records: data, split, sizes, training, metrics, times."""
+    tr, va, te = rows
+    hold_tr, hold_va, settled = holds
+    pre = model.preprocess
+    rate = data.rate_hz
+    pad = list(pad_extent_mm(data.x_mm[tr], data.y_mm[tr]))
+    model.metadata = {"pad_mm": pad}  # read by evaluate_rows below
+    return {
+        "fbgforce_version": __version__,
+        "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "data": [{**d, **r.tare_info, "baseline_nm": r.baseline_nm.tolist(),
+                  "sample_rate_hz": r.rate_hz} for d, r in zip(described, data.recordings)],
+        "seed": params.seed,
+        "split": {"by": "press", "ratios": list(SPLIT_RATIOS),
+                  "train_fraction": params.train_fraction,
+                  "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
+        "sizes": {name: net.sizes for name, net in model.nets.items()},
+        "memory": pre.memory.to_json(),
+        "train_hold_s": held_s,
+        "coverage": data_coverage,
+        "creep": {"magnitude": creep.magnitude, "time_constant_s": creep.time_constant_s,
+                  "inverse": bool(pre.creep),
+                  **({"fitted": {"magnitude": data.creep_found.magnitude,
+                                 "time_constant_s": data.creep_found.time_constant_s}}
+                     if data.creep_found is not None else {}),
+                  **({"evidence": data.creep_evidence} if data.creep_evidence else {})},
+        "synthetic_holds": {"share": params.hold_augment, "range_s": list(HOLD_AUGMENT_S),
+                            "presses": {"train": _count_holds(hold_tr[1], data),
+                                        "val": _count_holds(hold_va[1], data)},
+                            "samples": {"train": int(hold_tr[1].size),
+                                        "val": int(hold_va[1].size)},
+                            "settled_gain": settled},
+        "turn_guard_s": params.turn_guard_s,
+        "corrections": corrections(model, data, params, settled),
+        "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
+                            "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
+                                        for name, rest in zip(("train", "val"), rests)}},
+        "warnings": warnings,
+        "pad_mm": pad,
+        "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,
+                   "taps": int(pre.taps.size), "group_delay_ms": pp.group_delay_ms(pre, rate),
+                   "sample_rate_hz": rate},
+        "temperature": {"temp_coeff": pre.temp_coeff.tolist(), **data.temp_info},
+        "init": str(params.init) if isinstance(params.init, (str, Path))
+        else (None if params.init is None else "model"),
+        "optimizer": {"name": "adam", "learning_rate": params.learning_rate,
+                      "decay_per_epoch": params.decay, "batch_size": params.batch_size,
+                      "max_epochs": params.epochs, "patience": params.patience},
+        "training": {name: {k: v for k, v in rep.items() if k != "history"}
+                     for name, rep in reports.items()},
+        "history": {name: rep["history"] for name, rep in reports.items()},
+        "times_s": {"prepare": times[0], "train": times[1],
+                    **{name: rep["seconds"] for name, rep in reports.items()}},
+        "metrics": {"val": evaluate_rows(model, data, va, inputs=x_all) if va.size else None,
+                    "test": evaluate_rows(model, data, te, inputs=x_all) if te.size else None},
+        "platform": {"python": platform.python_version(), "numpy": np.__version__},
+    }
+
+
+def _count_holds(rows: np.ndarray, data: Prepared) -> int:
+    """How many presses the synthetic-hold ``rows`` (of
+    :func:`~fbgforce.trainer.synthetic.synthetic_holds`) hold."""
+    if not rows.size:
+        return 0
+    pids = np.concatenate([np.asarray(r.ds.press_id) for r in data.recordings])
+    rec = np.searchsorted(np.cumsum([len(r.ds) for r in data.recordings]), rows, side="right")
+    return int(np.unique(np.column_stack([rec, pids[rows]]), axis=0).shape[0])

@@ -1,0 +1,245 @@
+"""Synthetic recordings the nets also train on: the calibration's presses held at their peak
+(:func:`synthetic_holds`), long rests inserted before them (:func:`synthetic_rests`) and
+pressed harder (:func:`scaled_presses`), each recomputed through the model's preprocessing
+over the whole lengthened recording as the runtime would run it."""
+from __future__ import annotations
+
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from fbgforce import metrics as fmetrics
+from fbgforce import model as fm
+from fbgforce import tare as fbgtare
+from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.creep import Creep
+from fbgforce.trainer.data import Prepared, Recording
+
+
+#: The location net also trains on copies of the training presses scaled by a factor drawn
+#: per press from [1, LOCATION_AUGMENT] (see :func:`scaled_presses`); 1 turns this off.
+LOCATION_AUGMENT = 3.0
+
+
+#: Synthetic holds (:func:`synthetic_holds`): the contact and force nets also train on this
+#: share of the training presses with their peak stretched into a hold of a length drawn in
+#: :data:`HOLD_AUGMENT_S` (seconds), of which one sample every :data:`HOLD_AUGMENT_STEP_S`
+#: trains (consecutive held samples differ only by noise and the averages' slow decay); 0 turns
+#: this off (docs/trainer.md, "Held grips").
+HOLD_AUGMENT = 0.2
+HOLD_AUGMENT_S = (1.5, 6.0)
+HOLD_AUGMENT_STEP_S = 0.004
+
+
+#: Synthetic long rests (:func:`synthetic_rests`): the contact and force nets also train on
+#: rests of a length drawn in :data:`REST_AUGMENT_S` (seconds) inserted before this share of
+#: the training presses, one sample every :data:`REST_AUGMENT_STEP_S` from
+#: :data:`REST_AUGMENT_SETTLE_S` into the rest on; 0 turns this off (docs/trainer.md, "Long
+#: rests"). Up to a minute: the play operators' states keep creeping with the noise's extremes
+#: for minutes of rest; one sample in 50 ms trains as many samples per rest as one in 10 ms
+#: over 12 s did.
+REST_AUGMENT = 0.2
+REST_AUGMENT_S = (3.0, 60.0)
+REST_AUGMENT_STEP_S = 0.05
+REST_AUGMENT_SETTLE_S = 0.5
+
+
+#: Synthetic samples: their net inputs and the rows (of the prepared data) whose labels they take.
+Held = tuple[np.ndarray, np.ndarray]
+
+
+def synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+                    creep: Creep, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of presses among ``rows`` held at their peak, and the rows (of ``data``)
+    whose labels they take.
+
+    A calibration stage that turns round at every peak never shows the memory a load standing
+    still: its averages then decay towards the load, a state the nets meet first in a held grip.
+    A ``share`` of the presses (drawn per press) gets a hold of ``U(*HOLD_AUGMENT_S)`` seconds
+    inserted after its peak sample: the five wavelengths at the mean of the six raw samples up
+    to the peak, scaled to the peak force, plus interrogator noise drawn (one row of all five
+    channels at a time) from the recording's own first differences at rest over √2, the labels
+    those of the peak. Through the hold the pad keeps creeping as ``creep`` says
+    (:func:`~fbgforce.trainer.creep_fit.fit_creep`): the strain part of the held shifts
+    (temperature and tare untouched) rises by ``m (F - lag(F))`` of the force it carried at the
+    peak, with the creep's time constant, and the samples after the hold carry what is left of
+    that rise as the lag runs down; without it the nets would learn the peak's still-lagging
+    shifts as the held load and read a real hold high by that creep (1.8 % on the calibration
+    scene). The inputs are recomputed with ``pre`` over the whole lengthened recording, so the
+    filter and the memory states run through the hold as the runtime's would; the held samples
+    (one every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press after the hold are
+    returned.
+    """
+    inputs, kept = [], []
+    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
+        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
+        presses = np.unique(pid[contact[sel]])
+        peaks, after = [], np.zeros(len(wl), dtype=bool)
+        for p in presses[rng.random(presses.size) < share]:
+            loaded = sel[(pid == p) & contact[sel]]
+            peak = int(loaded[np.argmax(np.asarray(r.ds.force_N)[loaded])])
+            peaks.append(peak)
+            after[sel[(pid == p) & (sel > peak)]] = True
+        if not peaks:
+            continue
+        lengths = np.round(rng.uniform(*HOLD_AUGMENT_S, len(peaks)) * r.rate_hz).astype(np.int64)
+        # The mean of the 6 samples up to the peak, its strain part scaled by the peak force
+        # over their mean force (the load still rises there). Not the samples after it: past
+        # a turn the pad's friction holds the strain while the load falls.
+        force = np.nan_to_num(np.asarray(r.ds.force_N, float))
+        around = [slice(max(0, k - 5), k + 1) for k in peaks]
+        level = np.array([wl[a].mean(axis=0) for a in around])
+        base = np.asarray(r.baseline_nm, float)
+        scale = force[peaks] / np.maximum([force[a].mean() for a in around], 1e-12)
+        level[:, :fm.N_STRAIN] = (base[:fm.N_STRAIN]
+                                  + (level[:, :fm.N_STRAIN] - base[:fm.N_STRAIN]) * scale[:, None])
+        rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
+        # After the hold the lag runs down from the held load instead of the peak's lagging
+        # value: the rise reached in the hold decays over 10 time constants.
+        tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * r.rate_hz) + 1, r.rate_hz)
+        strain = pp.compensated(pre, level, r.baseline_nm) / 1000.0     # nm
+        wl = wl.copy()
+        ramp = []
+        for i, (k, n) in enumerate(zip(peaks, lengths)):
+            ramp.append(rise[i] * creep.settling(n, r.rate_hz))
+            left = ramp[-1][-1] * tail[1:len(wl) - k]
+            wl[k + 1:k + 1 + left.size, :fm.N_STRAIN] += left[:, None] * strain[i]
+        held = (np.repeat(level, lengths, axis=0)
+                + noise[rng.integers(0, len(noise), int(lengths.sum()))])
+        held[:, :fm.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        in_hold = np.concatenate([np.arange(n) for n in lengths])
+        step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
+        x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
+        inputs.append(x)
+        kept.append(src + sl.start)
+    return _stacked(inputs, kept, pre, rows)
+
+
+def synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+                    step: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of long rests inserted among the presses of ``rows``, and the rows (of
+    ``data``) whose labels they take.
+
+    A calibration stage that presses again within a second never shows the nets a fingertip
+    that has rested for long: the pad's creep recovered, the at-rest tracker's correction
+    taken (docs/runtime.md, "In use"), the memory's averages settled at zero and its play
+    operators where the last release left them. Nets that never saw that state read its
+    noise as light presses (false contact events at rest). A ``share`` of the presses (drawn
+    per press) gets a rest of ``U(*REST_AUGMENT_S)`` seconds inserted midway between its first
+    contact sample and the previous press's last (when they lie more than ``2 * REST_GAP_S``
+    apart): the five wavelengths of the six samples there, their strain part moved to zero
+    compensated shift (temperature untouched), plus interrogator noise as in
+    :func:`synthetic_holds`. Zero, not the level there: a short rest still carries the pad's
+    creep recovery, and a long one held at it would teach the nets that a light press is no
+    contact. The inputs are recomputed with ``pre`` over the lengthened recording; returned is
+    one rest sample in ``step`` from :data:`REST_AUGMENT_SETTLE_S` on, past the step down to
+    zero, labelled as the sample where the rest was inserted (contact-free). The press after
+    the rest is not: it would start with a step up from zero to the residual.
+    """
+    inputs, kept = [], []
+    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
+        gap = int(round(fmetrics.REST_GAP_S * r.rate_hz))
+        touched = np.flatnonzero(contact)
+        starts = []
+        for p in np.unique(pid[contact[sel]]):
+            if rng.random() >= share:
+                continue
+            first = int(sel[(pid == p) & contact[sel]].min())
+            before = touched[touched < first]
+            prev = int(before[-1]) if before.size else -gap
+            if first - prev > 2 * gap + 6:
+                starts.append((prev + first) // 2)
+        if not starts:
+            continue
+        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
+        level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
+        level[:, :fm.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
+        lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
+        rest = (np.repeat(level, lengths, axis=0)
+                + noise[rng.integers(0, len(noise), int(lengths.sum()))])
+        in_rest = np.concatenate([np.arange(n) for n in lengths])
+        settle = int(round(REST_AUGMENT_SETTLE_S * r.rate_hz))
+        x, src = _lengthened_inputs(pre, r, wl, starts, lengths, rest,
+                                    (in_rest >= settle) & ((in_rest - settle) % step == 0),
+                                    np.zeros(len(wl), dtype=bool))
+        inputs.append(x)
+        kept.append(src + sl.start)
+    return _stacked(inputs, kept, pre, rows)
+
+
+def scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_scale: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
+    per press, and the rows (of ``data``) they stand for.
+
+    Where a press lands does not depend on how hard: the strain part of every grating's
+    compensated shift is scaled by ``k`` (temperature and tare untouched) and the inputs are
+    recomputed with the model's own preprocessing ``pre`` (filter, standardisation, memory) on
+    the whole recording, so the memory states see a consistent time series. The location net
+    then sees each spot at forces the calibration did not reach there; without it, it
+    interpolates between the few presses that reached high force (docs/trainer.md).
+    """
+    inputs, kept = [], []
+    for r, sl in data.recording_slices():
+        start = sl.start
+        sel = rows[(rows >= start) & (rows < sl.stop)] - start
+        if sel.size:
+            _, inverse = np.unique(np.asarray(r.ds.press_id), return_inverse=True)
+            k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
+            comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm)
+            wl = np.array(r.ds.wl_nm, dtype=np.float64, copy=True)
+            wl[:, :fm.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
+            feats = pp.recording_features(pre, wl, r.baseline_nm)
+            inputs.append(fm.standardise(pre, feats)[sel])
+            kept.append(sel + start)
+    return _stacked(inputs, kept, pre, rows)
+
+
+def _stacked(inputs: list[np.ndarray], kept: list[np.ndarray], pre: fm.Preprocess,
+             rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The synthetic samples of every recording, ``(inputs, rows)`` one after the other; none
+    made, empty arrays of ``pre``'s input width and ``rows``' type."""
+    if not inputs:
+        return np.empty((0, pre.n_inputs)), rows[:0]
+    return np.concatenate(inputs), np.concatenate(kept)
+
+
+def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
+                       lengths: np.ndarray, inserted: np.ndarray, keep_inserted: np.ndarray,
+                       keep_recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of recording ``r`` (wavelengths ``wl``) lengthened by ``inserted`` (the
+    rows of all insertions, ``lengths[i]`` of them after sample ``points[i]``), recomputed
+    with ``pre`` over the whole lengthened recording as the runtime would run it; returned
+    are the inserted rows ``keep_inserted`` marks and the recorded samples ``keep_recorded``
+    marks, and the samples of ``r`` whose labels they take (an inserted row its point's)."""
+    at = np.repeat(np.asarray(points) + 1, lengths)
+    keep = np.insert(keep_recorded, at, keep_inserted)
+    source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
+    feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
+    return fm.standardise(pre, feats)[keep], source[keep]
+
+
+def _augmented_recordings(data: Prepared, rows: np.ndarray
+                          ) -> Iterator[tuple[Recording, slice, np.ndarray, np.ndarray,
+                                              np.ndarray, np.ndarray]]:
+    """The recordings synthetic holds and rests are made in: per recording with some of
+    ``rows`` and rest noise to draw from, ``(r, sl, sel, contact, noise, pid)``: the recording,
+    its slice of the prepared rows, its rows among ``rows`` (recording-local), its contact
+    labels, its :func:`_rest_noise` and the press ids of ``sel``."""
+    for r, sl in data.recording_slices():
+        sel = rows[(rows >= sl.start) & (rows < sl.stop)] - sl.start
+        noise = _rest_noise(r)
+        if not sel.size or noise is None:
+            continue
+        yield (r, sl, sel, np.asarray(r.ds.contact, bool), noise,
+               np.asarray(r.ds.press_id)[sel])
+
+
+def _rest_noise(r: Recording) -> np.ndarray | None:
+    """Interrogator noise of recording ``r``: its first differences between contact-free
+    samples over √2 (one row of all five channels each), or None without two in a row."""
+    rest = fbgtare.contact_free_mask(np.asarray(r.ds.contact, bool), r.ds.t_s)
+    still = rest[1:] & rest[:-1]
+    if not still.any():
+        return None
+    return np.diff(np.asarray(r.ds.wl_nm, dtype=np.float64), axis=0)[still] / np.sqrt(2.0)
