@@ -259,8 +259,8 @@ def _reference_summary(ref: Mapping[str, Any]) -> str:
 
 
 def _creep_summary(creep: Mapping[str, Any], pre: Any) -> str:
-    """The pad's fitted creep (trainer.train.fit_creep), whether the model corrects for it and
-    why (trainer.train.creep_choice), in words."""
+    """The pad's fitted creep (trainer.creep_fit.fit_creep), whether the model corrects for it and
+    why (trainer.creep_evidence.creep_choice), in words."""
     found = creep.get("fitted", creep)
     evidence = creep.get("evidence") or {}
     if not creep["magnitude"]:
