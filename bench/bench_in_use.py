@@ -165,8 +165,8 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
         ``pass``; every goal has a row, ``value`` and ``pass`` null where the logs of its role
         are missing), ``passed``, ``failed``, ``not_measured``.
     """
-    from fbgforce import dataset
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.model import modeldir as fm
     from fbgforce.trainer.evaluate import evaluate, run_recording
 
     model = fm.load(model_dir)
@@ -345,7 +345,7 @@ def without(model_dir: Path, stage: str, out: Path) -> Path:
     import shutil
     from dataclasses import replace
 
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
 
     out.mkdir(parents=True, exist_ok=True)
     for f in model_dir.iterdir():

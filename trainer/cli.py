@@ -20,8 +20,8 @@ def _check_files(paths: list[str], flag: str) -> None:
 def register(subparsers: Any) -> None:
     """Add ``train``, ``evaluate``, ``analyze`` and ``report`` to the ``fbgforce`` command."""
     from fbgforce.cli import add_json_flag
-    from fbgforce.engines import ENGINES
-    from fbgforce.model import FILTER_KINDS
+    from fbgforce.evaluation.engines import ENGINES
+    from fbgforce.model.artifact import FILTER_KINDS
     from fbgforce.trainer.evaluate import SPLITS
     from fbgforce.trainer.preprocess import DEFAULT_SIGMA, DEFAULT_SIGMA_MS
 
@@ -162,7 +162,7 @@ def register(subparsers: Any) -> None:
 
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.trainer.train import TrainParams, train
 
     _check_files(args.data, "--data")
@@ -182,7 +182,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}
-    from fbgforce.metrics import headline
+    from fbgforce.evaluation.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
           f"{headline(test)}; {_reference_summary(md['temperature']['reference'])}; "
           f"{_creep_summary(md['creep'], model.preprocess)}", file=sys.stderr)
@@ -250,7 +250,7 @@ def _creep_summary(creep: Mapping[str, Any], pre: Any) -> str:
 
 
 def _coverage(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.trainer.coverage import coverage, coverage_lines
 
     _check_files(args.data, "--data")
@@ -294,7 +294,7 @@ def _sizes(spec: str | None) -> dict[str, list[int]] | None:
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.metrics import headline
+    from fbgforce.evaluation.metrics import headline
     from fbgforce.trainer.evaluate import evaluate
 
     _check_files(args.data, "--data")

@@ -3,7 +3,7 @@
 ``train(datasets, ...)`` fits preprocessing (tare per recording, temperature coefficients,
 Gaussian filter, standardisation), splits every recording 8:1:1 BY PRESS, trains the contact,
 force and location nets in that order with Adam and early stopping, and returns a
-:class:`fbgforce.model.HierarchicalModel` whose metadata records the data (files and sha256),
+:class:`fbgforce.model.artifact.HierarchicalModel` whose metadata records the data (files and sha256),
 the seed, the sizes, the validation and test metrics and the times.
 
 Why by press: consecutive samples at 1 kHz are nearly identical (the same press, a few µN and
@@ -25,11 +25,11 @@ import numpy as np
 
 from fbgforce import __version__
 from fbgforce import contract
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
-from fbgforce import tare as fbgtare
+from fbgforce.recordings import tare as fbgtare
 from fbgforce.trainer.nets import FlatMLP, drop_unread_units, fit, predict_batched
 
 #: Hidden-layer widths of the paper's Fig. 4 (the `paper` width of ``fbgforce tradeoff``).
@@ -118,7 +118,7 @@ class Prepared:
     """All recordings with a fitted preprocessing, ready to index by split."""
 
     recordings: list[Recording]
-    pre: fm.Preprocess
+    pre: artifact.Preprocess
     temp_info: dict[str, Any]
     creep_fit: "Creep | None" = None    # the pad's creep the model corrects for (prepare())
     creep_held: "Creep | None" = None   # ... at a time constant the model can hold (_held_creep)
@@ -151,10 +151,10 @@ class Prepared:
         """The recordings' median sample rate (the one the model runs at)."""
         return float(np.median([r.rate_hz for r in self.recordings]))
 
-    def inputs(self, pre: fm.Preprocess) -> np.ndarray:
+    def inputs(self, pre: artifact.Preprocess) -> np.ndarray:
         """Net inputs (n, F) of every sample under ``pre``'s standardisation and memory,
         computed recording by recording (the memory states run along each recording)."""
-        return np.concatenate([fm.standardise(pre, r.feats) for r in self.recordings])
+        return np.concatenate([floatref.standardise(pre, r.feats) for r in self.recordings])
 
     def rows(self, part: str) -> np.ndarray:
         """Sample indices of ``"train"``, ``"val"``, ``"test"`` or ``"all"``."""
@@ -200,7 +200,7 @@ def file_sha256(path: str | Path) -> str:
 
 def load_datasets(datasets: Sequence[Any]) -> tuple[list[Any], list[dict[str, Any]]]:
     """Datasets from paths or objects, with a description (path, sha256) of each."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     out, described = [], []
     for item in datasets:
@@ -217,7 +217,7 @@ def load_datasets(datasets: Sequence[Any]) -> tuple[list[Any], list[dict[str, An
 
 def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.ndarray:
     """Per-sample split label (0 train, 1 val, 2 test) of one recording, by press."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     rows = np.arange(len(ds), dtype=np.int64)
     tagged = ds.subset(np.ones(len(ds), dtype=bool))
@@ -233,7 +233,7 @@ def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.n
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
-            creep_inverse: bool | None = False, memory: fm.Memory | None = None,
+            creep_inverse: bool | None = False, memory: artifact.Memory | None = None,
             creep: str = "auto") -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
@@ -285,7 +285,7 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             held, memory_time_constant_s(memory, rate) if memory is not None else 0.0)
     if held.magnitude > 0 and creep_inverse:
         pre = replace(pre, creep=held.magnitude,
-                      creep_shift=fm.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
+                      creep_shift=artifact.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
         for r in recs:
             r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         data = Prepared(recs, pre, temp_info)
@@ -299,7 +299,7 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
 CREEP_MODES = ("auto", "on", "off")
 
 
-def creep_choice(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, mode: str,
+def creep_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mode: str,
                  seed: int = 0) -> tuple[Creep, dict[str, Any]]:
     """The creep :func:`fit_creep` finds on the releases among ``rows``, and
     :func:`creep_evidence` on it with whether the model corrects for it in ``mode``
@@ -343,25 +343,25 @@ def takes_creep_out(creep: Creep, memory_s: float) -> bool:
             and creep.time_constant_s > memory_s)
 
 
-def memory_time_constant_s(memory: fm.Memory, rate_hz: float) -> float:
+def memory_time_constant_s(memory: artifact.Memory, rate_hz: float) -> float:
     """The longest time constant of ``memory``'s averages, seconds (0 without averages)."""
     return 2.0 ** max(memory.ema_shifts) / rate_hz if memory.ema_shifts else 0.0
 
 
-def _held_creep(data: Prepared, pre: fm.Preprocess, fitted: Creep) -> Creep:
+def _held_creep(data: Prepared, pre: artifact.Preprocess, fitted: Creep) -> Creep:
     """``fitted`` at a time constant the model can hold (2^k samples, the nearest:
-    :func:`fbgforce.model.creep_parameters`), its magnitude fitted again for it: a shorter
+    :func:`fbgforce.model.artifact.creep_parameters`), its magnitude fitted again for it: a shorter
     time constant needs more magnitude to give back what the pad gives back after a release.
     """
-    m, k = fm.creep_parameters(fitted.magnitude, fitted.time_constant_s * data.rate_hz)
+    m, k = artifact.creep_parameters(fitted.magnitude, fitted.time_constant_s * data.rate_hz)
     if m <= 0:
         return Creep()
     tau = 2.0 ** k / data.rate_hz
-    m, _ = fm.creep_parameters(fit_creep(data, pre, data.rows("train"), (tau,)).magnitude, 2.0 ** k)
+    m, _ = artifact.creep_parameters(fit_creep(data, pre, data.rows("train"), (tau,)).magnitude, 2.0 ** k)
     return Creep(m, tau) if m > 0 else Creep()
 
 
-def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
+def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: artifact.Memory) -> dict[str, list[int]]:
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
     for k, v in (sizes or {}).items():     # checked by TrainParams (_valid_sizes)
         hidden[k] = [int(s) for s in v]
@@ -369,7 +369,7 @@ def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict
                        net.float_outputs] for net in contract.NETS}
 
 
-def parse_memory(text: str) -> fm.Memory:
+def parse_memory(text: str) -> artifact.Memory:
     """``none``, a preset name of :data:`MEMORY_PRESETS`, or ``<kind>:V,V,...`` for a kind of
     ``contract.MEMORY_KINDS`` (``ema:S,S``: average shifts; ``play:W,W``: play half-widths in
     standardised units) and ``loc:S`` joined by ``+`` (the location averages' shift)."""
@@ -393,7 +393,7 @@ def parse_memory(text: str) -> fm.Memory:
                     raise ValueError("the loc shift must be at least 1 (leave loc out for none)")
             else:
                 raise ValueError(f"unknown memory kind {kind!r}")
-        return fm.Memory(**{fm.memory_attr(k, k.counted_by): tuple(states[k.name])
+        return artifact.Memory(**{artifact.memory_attr(k, k.counted_by): tuple(states[k.name])
                             for k in contract.MEMORY_KINDS}, loc_shift=loc)
     except ValueError as exc:
         raise InputError(f"bad memory {text!r}: {exc}; use none, "
@@ -407,18 +407,18 @@ def parse_memory(text: str) -> fm.Memory:
 #: widths even, which the Cortex-M4 kernels take in pairs. The default, ``both``, also gives
 #: the location net the location averages of about 32 ms (``loc:5``; shifts 4 and 6 were
 #: worse on the calibration scene, docs/trainer.md).
-MEMORY_PRESETS: dict[str, fm.Memory] = {
-    "none": fm.Memory(),
-    "ema": fm.Memory(ema_shifts=(4, 7)),
-    "play": fm.Memory(play_widths=(0.05, 0.25)),
-    "loc": fm.Memory(loc_shift=5),
-    "both": fm.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25), loc_shift=5),
+MEMORY_PRESETS: dict[str, artifact.Memory] = {
+    "none": artifact.Memory(),
+    "ema": artifact.Memory(ema_shifts=(4, 7)),
+    "play": artifact.Memory(play_widths=(0.05, 0.25)),
+    "loc": artifact.Memory(loc_shift=5),
+    "both": artifact.Memory(ema_shifts=(4, 7), play_widths=(0.05, 0.25), loc_shift=5),
 }
 DEFAULT_MEMORY = "both"
 
 
-def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np.ndarray
-               ) -> fm.Memory:
+def fit_memory(memory: artifact.Memory, pre: artifact.Preprocess, data: "Prepared", rows: np.ndarray
+               ) -> artifact.Memory:
     """The memory's load signal and gains, fitted on the training ``rows``.
 
     Weights: least squares of the load-cell force (0 at rest) on the standardised channels,
@@ -431,20 +431,20 @@ def fit_memory(memory: fm.Memory, pre: fm.Preprocess, data: "Prepared", rows: np
     loc_shift = memory.loc_shift
     memory = replace(memory, loc_shift=0)
     plain = copy.deepcopy(pre)
-    plain.memory = fm.Memory()
+    plain.memory = artifact.Memory()
     z = data.inputs(plain)[rows]
     force = np.where(data.contact[rows], np.nan_to_num(data.force_N[rows]), 0.0)
     w, *_ = np.linalg.lstsq(np.column_stack([z, np.ones(len(z))]), force, rcond=None)
-    u = z @ w[:fm.N_STRAIN]
-    weights = w[:fm.N_STRAIN] / max(float(np.std(u)), 1e-12)
-    gain_of = {k.name: fm.memory_attr(k, k.gain) for k in contract.MEMORY_KINDS}
+    u = z @ w[:artifact.N_STRAIN]
+    weights = w[:artifact.N_STRAIN] / max(float(np.std(u)), 1e-12)
+    gain_of = {k.name: artifact.memory_attr(k, k.gain) for k in contract.MEMORY_KINDS}
     trial = replace(memory, weights=tuple(weights), **{a: () for a in gain_of.values()})
     pre_trial = copy.deepcopy(pre)
     pre_trial.memory = trial
     x = data.inputs(pre_trial)[rows]
     gains = []
     for k in range(trial.n_states):
-        sd = float(np.std(x[:, fm.N_STRAIN + k]))
+        sd = float(np.std(x[:, artifact.N_STRAIN + k]))
         g = int(np.floor(np.log2(0.5 / sd))) if sd > 0 else 0
         gains.append(int(np.clip(g, 0, contract.LIMIT["MAX_MEM_GAIN"])))
     fitted, start = {}, 0
@@ -463,7 +463,7 @@ HOLD_BAND = (0.2, 0.03)
 
 def _rest_margins(data: Prepared, logits: np.ndarray) -> np.ndarray:
     """The contact net's margins on the samples of the training and validation presses that
-    are at rest (at least ``fbgforce.metrics.REST_GAP_S`` from any labelled contact, past the filter's
+    are at rest (at least ``fbgforce.evaluation.metrics.REST_GAP_S`` from any labelled contact, past the filter's
     warm-up): what noise and drift alone make of it, for the decision's thresholds."""
     keep = data.row_mask(np.flatnonzero(data.split != 2))
     margin = logits[:, 1] - logits[:, 0]
@@ -561,7 +561,7 @@ def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
             r_init, r_fit = rng_init, rng_fit
         else:
             r_init, r_fit = (np.random.default_rng(s) for s in
-                             np.random.SeedSequence([seed, fm.NET_NAMES.index(name), i]).spawn(2))
+                             np.random.SeedSequence([seed, artifact.NET_NAMES.index(name), i]).spawn(2))
         net = FlatMLP(sizes, r_init, init=init)
         rep = fit(net, *args, desc=desc if tries == 1 else f"{desc} {i + 1}/{tries}",
                   rng=r_fit, **kwargs)
@@ -574,8 +574,8 @@ def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
 
 
 def _loc_inputs(x: np.ndarray, contact: np.ndarray, f_raw: np.ndarray, n_loc: int) -> np.ndarray:
-    """Location-net input exactly as :func:`fbgforce.model.predict_from_features` builds it."""
-    return fm.location_inputs(x, contact, f_raw, n_loc)
+    """Location-net input exactly as :func:`fbgforce.model.floatref.predict_from_features` builds it."""
+    return floatref.location_inputs(x, contact, f_raw, n_loc)
 
 
 def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:
@@ -588,27 +588,27 @@ def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:
     return max(float(PAD_SIZE_MM[0]), xmax), max(float(PAD_SIZE_MM[1]), ymax)
 
 
-def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
+def model_pad_mm(model: artifact.HierarchicalModel) -> tuple[float, float] | None:
     """The pad size a model was calibrated on (metadata ``pad_mm``), None for older models."""
     pad = model.metadata.get("pad_mm") if model.metadata else None
     return (float(pad[0]), float(pad[1])) if pad else None
 
 
-def predict_prepared(model: fm.HierarchicalModel, data: Prepared,
+def predict_prepared(model: artifact.HierarchicalModel, data: Prepared,
                      inputs: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The float pipeline's outputs on every row of ``data``, each recording run whole on its
     own tare as ``fbgforce evaluate`` runs it: through the decision over time and the at-rest
-    tracker when the model has them (:func:`fbgforce.model.predict`), else on the prepared
+    tracker when the model has them (:func:`fbgforce.model.floatref.predict`), else on the prepared
     net inputs (``inputs``, if the caller has them: the memory states make them a pass over
     every recording)."""
     if model.runs_in_use:
-        parts = [fm.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
+        parts = [floatref.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    return fm.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
+    return floatref.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
                                     else inputs)
 
 
-def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
+def evaluate_rows(model: artifact.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True, inputs: np.ndarray | None = None) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data (:func:`predict_prepared`)."""
     pred = predict_prepared(model, data, inputs)
@@ -682,11 +682,11 @@ class TrainParams:
         Smoothing: ``causal`` (shipped), ``centred`` (offline, the paper's) or ``none``;
         sigma in samples, default 5 ms at the data's sample rate (5 samples at 1 kHz).
     ref_shift
-        The temperature reference's average (:attr:`fbgforce.model.Preprocess.ref_shift`):
+        The temperature reference's average (:attr:`fbgforce.model.artifact.Preprocess.ref_shift`):
         None lets the data choose (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`),
         0 keeps the raw reference, 1 .. 8 averages over 2^ref_shift samples.
     creep_inverse
-        Take the pad's fitted creep out before the filter (:func:`fbgforce.model.creep_inverse`)
+        Take the pad's fitted creep out before the filter (:func:`fbgforce.model.floatref.creep_inverse`)
         instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
         pad's creep in use", measures what each costs); None (default): the inverse when the
         fitted creep is slower than the memory's longest average (:func:`takes_creep_out`).
@@ -736,7 +736,7 @@ class TrainParams:
         unloading worse (docs/trainer.md, "The turn"); 0 keeps them; None (default):
         :data:`TURN_GUARD_S` with the creep inverse, else 0.
     memory
-        The memory states (:class:`fbgforce.model.Memory`, or text for :func:`parse_memory`);
+        The memory states (:class:`fbgforce.model.artifact.Memory`, or text for :func:`parse_memory`);
         ``None``: the ``init`` model's, else :data:`DEFAULT_MEMORY`. Gains are fitted.
     restarts
         Initialisations tried per net (one value for every net or per net, ``None``:
@@ -754,7 +754,7 @@ class TrainParams:
     creep_inverse: bool | None = None
     creep: str = "auto"
     decision: str = "cusum"
-    init: str | Path | fm.HierarchicalModel | None = None
+    init: str | Path | artifact.HierarchicalModel | None = None
     sizes: Mapping[str, Sequence[int]] | None = None
     learning_rate: float = 1e-3
     decay: float = 0.97
@@ -770,7 +770,7 @@ class TrainParams:
     hold_augment: float = HOLD_AUGMENT
     rest_augment: float = REST_AUGMENT
     turn_guard_s: float | None = None
-    memory: fm.Memory | str | None = None
+    memory: artifact.Memory | str | None = None
     restarts: int | Mapping[str, int] | None = None
 
     def __post_init__(self) -> None:
@@ -781,7 +781,7 @@ class TrainParams:
 
         need(_is_int(self.epochs) and self.epochs >= 1, "epochs", "a whole number >= 1")
         need(_is_int(self.seed), "seed", "a whole number")
-        need(self.filter in fm.FILTER_KINDS, "filter", "one of " + ", ".join(fm.FILTER_KINDS))
+        need(self.filter in artifact.FILTER_KINDS, "filter", "one of " + ", ".join(artifact.FILTER_KINDS))
         need(self.sigma is None or (_is_real(self.sigma) and self.sigma >= 0), "sigma",
              "a number >= 0 (samples)")
         need(self.window is None or (_is_int(self.window) and self.window >= 1), "window",
@@ -824,10 +824,10 @@ class TrainParams:
                     plateau=self.plateau, plateau_factor=self.plateau_factor)
 
 
-def _starting_point(params: TrainParams) -> tuple[fm.HierarchicalModel | None, fm.Memory,
+def _starting_point(params: TrainParams) -> tuple[artifact.HierarchicalModel | None, artifact.Memory,
                                                   dict[str, list[int]]]:
     """The ``init`` model (None without one), the memory states and every net's sizes."""
-    init_model = fm.load(params.init) if isinstance(params.init, (str, Path)) else params.init
+    init_model = modeldir.load(params.init) if isinstance(params.init, (str, Path)) else params.init
     memory = params.memory
     if memory is None:
         memory = init_model.preprocess.memory if init_model else DEFAULT_MEMORY
@@ -887,7 +887,7 @@ class _Scaling:
     xy_scale: np.ndarray
 
 
-def _scaling(data: Prepared, tr: np.ndarray, init_model: fm.HierarchicalModel | None) -> _Scaling:
+def _scaling(data: Prepared, tr: np.ndarray, init_model: artifact.HierarchicalModel | None) -> _Scaling:
     """The ``init`` model's scaling (its weights keep their meaning), else fitted on the
     training rows' contact samples."""
     if init_model is not None:
@@ -902,8 +902,8 @@ def _scaling(data: Prepared, tr: np.ndarray, init_model: fm.HierarchicalModel | 
                     np.maximum(np.nanstd(xy, axis=0), 1e-6))
 
 
-def _model_preprocess(data: Prepared, scaling: _Scaling, init_model: fm.HierarchicalModel | None,
-                      memory: fm.Memory, tr: np.ndarray) -> fm.Preprocess:
+def _model_preprocess(data: Prepared, scaling: _Scaling, init_model: artifact.HierarchicalModel | None,
+                      memory: artifact.Memory, tr: np.ndarray) -> artifact.Preprocess:
     """The model's preprocessing: the prepared filter with this model's standardisation and
     memory (the ``init`` model's, else fitted on the training rows)."""
     pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
@@ -918,7 +918,7 @@ class _NetFitter:
     the shared loop settings; keeps each net's report in :attr:`reports`."""
 
     def __init__(self, params: TrainParams, net_sizes: Mapping[str, Sequence[int]],
-                 init_model: fm.HierarchicalModel | None, rng_init: np.random.Generator,
+                 init_model: artifact.HierarchicalModel | None, rng_init: np.random.Generator,
                  has_validation: bool) -> None:
         self.params, self.net_sizes, self.init_model, self.rng_init = (params, net_sizes,
                                                                        init_model, rng_init)
@@ -943,7 +943,7 @@ class _NetFitter:
 Held = tuple[np.ndarray, np.ndarray]
 
 
-def _holds(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+def _holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
            va: np.ndarray, creep: Creep, rng: np.random.Generator) -> tuple[Held, Held]:
     """Synthetic holds for the nets that read the load's memory, of the training and the
     validation presses alike (so early stopping and the choice among restarts weigh them
@@ -955,7 +955,7 @@ def _holds(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarr
     return hold_tr, hold_va
 
 
-def _rests(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+def _rests(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
            va: np.ndarray, rng: np.random.Generator) -> tuple[Held, Held]:
     """Synthetic long rests of the training and the validation presses: ``(inputs, rows)``
     of each."""
@@ -1060,7 +1060,7 @@ def _fit_force(fit_net: _NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP
                    val_metrics=force_val, desc="force net")
 
 
-def _fit_location(fit_net: _NetFitter, data: Prepared, pre: fm.Preprocess, x_all: np.ndarray,
+def _fit_location(fit_net: _NetFitter, data: Prepared, pre: artifact.Preprocess, x_all: np.ndarray,
                   pred_contact: np.ndarray, fnet: FlatMLP, scaling: _Scaling, params: TrainParams,
                   tr: np.ndarray, va: np.ndarray, streams: _Streams) -> FlatMLP:
     """The location net on the samples where true and predicted contact agree (where a
@@ -1092,7 +1092,7 @@ def _fit_location(fit_net: _NetFitter, data: Prepared, pre: fm.Preprocess, x_all
                    xy_t[lva], val_metrics=loc_val, desc="location net")
 
 
-def _training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: np.ndarray,
+def _training_warnings(data: Prepared, pre: artifact.Preprocess, tr: np.ndarray, te: np.ndarray,
                        hold_tr: Held) -> tuple[list[str], float]:
     """What the data leaves the model short of (few test presses, no holds for the memory's
     averages), and the training presses' held seconds."""
@@ -1110,21 +1110,21 @@ def _training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: n
     return warnings, held_s
 
 
-def _assemble(data: Prepared, pre: fm.Preprocess, scaling: _Scaling,
+def _assemble(data: Prepared, pre: artifact.Preprocess, scaling: _Scaling,
               nets: Mapping[str, FlatMLP], reports: dict[str, Any],
-              described: Sequence[Mapping[str, Any]]) -> fm.HierarchicalModel:
+              described: Sequence[Mapping[str, Any]]) -> artifact.HierarchicalModel:
     """The float model of the trained nets, with the calibration recordings export needs."""
     # Units weight decay switched off cost multiply-adds in every engine and change no float32
     # output: leave them out of the model.
-    mlps: dict[str, fm.MLP] = {}
+    mlps: dict[str, artifact.MLP] = {}
     for name, net in nets.items():
         mlps[name], reports[name]["dropped_units"] = drop_unread_units(net.to_mlp())
-    model = fm.HierarchicalModel(
+    model = artifact.HierarchicalModel(
         preprocess=pre, contact=mlps["contact"], force=mlps["force"], location=mlps["location"],
         force_offset=scaling.force_offset, force_scale=scaling.force_scale,
         xy_offset=scaling.xy_offset, xy_scale=scaling.xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
-    model.calibration = fm.CalibrationRecordings(
+    model.calibration = artifact.CalibrationRecordings(
         [(np.asarray(r.ds.wl_nm, dtype=np.float64), r.baseline_nm) for r in data.recordings],
         [np.asarray(r.ds.force_N, dtype=np.float64)[np.asarray(r.ds.contact, dtype=bool)]
          for r in data.recordings], [d.get("path") or r.source for d, r in zip(described, data.recordings)])
@@ -1135,10 +1135,10 @@ def _assemble(data: Prepared, pre: fm.Preprocess, scaling: _Scaling,
 HOLD_GAIN_MIN_HOLDS = 3
 
 
-def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]) -> dict[str, Any]:
-    """The settled-hold gain (:class:`fbgforce.model.InUse`) the trained nets need: their
+def hold_gain(model: artifact.HierarchicalModel, data: Prepared, holds: Sequence[Held]) -> dict[str, Any]:
+    """The settled-hold gain (:class:`fbgforce.model.artifact.InUse`) the trained nets need: their
     least-squares gain on the samples of the synthetic ``holds`` (:func:`_synthetic_holds`)
-    at least :data:`fbgforce.model.HOLD_SETTLE_S` into each hold, minus 1.
+    at least :data:`fbgforce.model.artifact.HOLD_SETTLE_S` into each hold, minus 1.
 
     The nets read a hold a little low (docs/trainer.md, "The turn": a causal estimator cannot
     tell a load that stands from one that has just begun to fall, and they compromise); once
@@ -1164,17 +1164,17 @@ def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]
     position = np.arange(src.size) - np.repeat(starts, lengths)
     step_s = max(1, int(round(HOLD_AUGMENT_STEP_S * data.rate_hz))) / data.rate_hz
     held = np.repeat(lengths > 1, lengths)
-    settled = held & (position * step_s >= fm.HOLD_SETTLE_S)
+    settled = held & (position * step_s >= artifact.HOLD_SETTLE_S)
     label = data.force_N[src]
     settled &= np.isfinite(label) & (label > 0)
     n_holds = int(np.unique(src[settled]).size)
     if n_holds < HOLD_GAIN_MIN_HOLDS:
         return {"gain": 0.0, "holds": n_holds, "samples": int(settled.sum()),
                 "bias_before_N": None, "bias_after_N": None}
-    f = fm.predict_from_features(model, x[settled])["force_raw_N"]
+    f = floatref.predict_from_features(model, x[settled])["force_raw_N"]
     y = label[settled]
     gain = float(np.clip(np.dot(y, f) / max(float(np.dot(f, f)), 1e-12) - 1.0,
-                         -fm.HOLD_GAIN_MAX, fm.HOLD_GAIN_MAX))
+                         -artifact.HOLD_GAIN_MAX, artifact.HOLD_GAIN_MAX))
     return {"gain": gain, "holds": n_holds, "samples": int(settled.sum()),
             "bias_before_N": float(np.mean(f - y)), "bias_after_N": float(np.mean(f * (1 + gain) - y))}
 
@@ -1184,7 +1184,7 @@ def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]
 DECISION_RULES = ("schmitt", "cusum")
 
 
-def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
+def _in_use(model: artifact.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
             tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float,
             decision: str) -> dict[str, dict[str, Any]]:
     """Set the model's decision over time (by the rule ``decision``), tracker and input range
@@ -1206,18 +1206,18 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
     # which spliced-in synthetic stretches would not keep.
     rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
                     "cusum": calibration_rests}
-    rules = {rule: fm.InUse.recommended(
+    rules = {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain,
         decision=rule) for rule in DECISION_RULES}
     model.in_use = rules[decision]
-    model.input_range = fm.input_range_of(z[tr])
+    model.input_range = artifact.input_range_of(z[tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
             for rule, iu in rules.items()}
 
 
 def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
-          prepared: Prepared | None = None, **options: Any) -> fm.HierarchicalModel:
+          prepared: Prepared | None = None, **options: Any) -> artifact.HierarchicalModel:
     """Train the hierarchical model on calibration recordings, step by step: the starting
     point, the prepared data, the split, the scaling and preprocessing, synthetic holds and
     rests, the
@@ -1226,7 +1226,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     Parameters
     ----------
     datasets
-        Paths (CSV/npz in the dataset contract) or ``fbgforce.dataset.Dataset`` objects; each
+        Paths (CSV/npz in the dataset contract) or ``fbgforce.recordings.dataset.Dataset`` objects; each
         one is a continuous recording of one device.
     params
         What to do (:class:`TrainParams`); default every default.
@@ -1238,7 +1238,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
 
     Returns
     -------
-    fbgforce.model.HierarchicalModel
+    fbgforce.model.artifact.HierarchicalModel
 
     Raises
     ------
@@ -1305,7 +1305,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     return model
 
 
-def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+def corrections(model: artifact.HierarchicalModel, data: Prepared, params: TrainParams,
                 settled: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Each correction beyond the nets the model makes, whether it is on, and why: what
     ``fbgforce train`` prints and ``model.json`` records (``metadata.corrections``)."""
@@ -1345,7 +1345,7 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
     ]
 
 
-def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
+def _metadata(model: artifact.HierarchicalModel, data: Prepared, params: TrainParams,
               described: Sequence[Mapping[str, Any]],
               rows: tuple[np.ndarray, np.ndarray, np.ndarray], x_all: np.ndarray,
               reports: Mapping[str, Any], data_coverage: Any, creep: Creep,
@@ -1410,7 +1410,7 @@ def _metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
     }
 
 
-def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_scale: float,
+def _scaled_presses(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, max_scale: float,
                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
     per press, and the rows (of ``data``) they stand for.
@@ -1431,9 +1431,9 @@ def _scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sc
             k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
             comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm)
             wl = np.array(r.ds.wl_nm, dtype=np.float64, copy=True)
-            wl[:, :fm.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
+            wl[:, :artifact.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
             feats = pp.recording_features(pre, wl, r.baseline_nm)
-            inputs.append(fm.standardise(pre, feats)[sel])
+            inputs.append(floatref.standardise(pre, feats)[sel])
             kept.append(sel + start)
     if not inputs:
         return np.empty((0, pre.n_inputs)), rows[:0]
@@ -1506,7 +1506,7 @@ class CreepTails:
     time_constants_s: tuple[float, ...]
 
     @classmethod
-    def of(cls, data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
+    def of(cls, data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
            time_constants_s: Sequence[float] = CREEP_TIME_CONSTANTS_S) -> "CreepTails | None":
         """The tails of the releases among ``rows``; None when they hold fewer than 100
         samples or ``rows`` no contact."""
@@ -1533,7 +1533,7 @@ class CreepTails:
         _, release = np.unique(np.concatenate(releases)[tail], return_inverse=True)
         w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
                                 force[loaded], rcond=None)
-        excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
+        excess = (comp @ w[:artifact.N_STRAIN] + w[artifact.N_STRAIN] - force)[tail]
         lags = np.column_stack([
             np.concatenate([Creep(1.0, tau).lag(force[sl], r.rate_hz) - force[sl]
                             for r, sl in data.recording_slices()])[tail]
@@ -1575,7 +1575,7 @@ class CreepTails:
         return float(np.sum(self._centred(self.excess - creep.magnitude * self.lags[:, j]) ** 2))
 
 
-def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
+def fit_creep(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
               time_constants_s: Sequence[float] = CREEP_TIME_CONSTANTS_S) -> Creep:
     """The pad's creep, fitted on the creep recovery after the releases among ``rows``.
 
@@ -1622,14 +1622,14 @@ CREEP_PRESS_FOLDS = 5
 CREEP_PRESS_LEVEL = 0.05
 
 
-def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, creep: Creep
+def creep_press_check(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, creep: Creep
                       ) -> dict[str, Any]:
     """Whether taking ``creep`` out of the shifts reads held-out presses better.
 
     A least-squares load signal (the force on the compensated shifts of the contact samples,
     with an offset) is fitted on all but one of :data:`CREEP_PRESS_FOLDS` folds of the
     presses among ``rows`` and scored on the fold left out, once on the shifts as recorded and
-    once after the creep inverse (:func:`fbgforce.model.creep_inverse` with ``creep`` at a
+    once after the creep inverse (:func:`fbgforce.model.floatref.creep_inverse` with ``creep`` at a
     time constant the model can hold). A creep that outlasts the rests leaves a load-history
     offset on every press that the inverse takes away, and which the release tails, whose
     10 s offsets absorb it, cannot show. Each press's mean squared error counts as better or
@@ -1642,7 +1642,7 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
         ``presses``, ``better`` (presses read better with the inverse), ``p_value``,
         ``rmse_N`` and ``rmse_inverse_N`` (over the held-out contact samples), ``passes``.
     """
-    m, k = fm.creep_parameters(creep.magnitude, creep.time_constant_s * data.rate_hz)
+    m, k = artifact.creep_parameters(creep.magnitude, creep.time_constant_s * data.rate_hz)
     keep = data.row_mask(rows) & data.contact & np.isfinite(data.force_N)
     if m <= 0 or not keep.any():
         return {"presses": 0, "better": 0, "p_value": 1.0, "rmse_N": None,
@@ -1652,7 +1652,7 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
     for r, sl in data.recording_slices():
         comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm, recording=True)
         plain.append(comp)
-        inverted.append(fm.creep_inverse(inv_pre, comp))
+        inverted.append(floatref.creep_inverse(inv_pre, comp))
         pids.append(np.asarray(r.ds.press_id))
     force = data.force_N[keep]
     press = np.unique(np.concatenate(pids)[keep], return_inverse=True)[1]
@@ -1769,7 +1769,7 @@ def creep_evidence(tails: CreepTails | None, fitted: Creep, seed: int = 0,
     return {"established": True, "why": why, "tests": tests}
 
 
-def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+def _synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
                      creep: Creep, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of presses among ``rows`` held at their peak, and the rows (of ``data``)
     whose labels they take.
@@ -1811,8 +1811,8 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
         level = np.array([wl[a].mean(axis=0) for a in around])
         base = np.asarray(r.baseline_nm, float)
         scale = force[peaks] / np.maximum([force[a].mean() for a in around], 1e-12)
-        level[:, :fm.N_STRAIN] = (base[:fm.N_STRAIN]
-                                  + (level[:, :fm.N_STRAIN] - base[:fm.N_STRAIN]) * scale[:, None])
+        level[:, :artifact.N_STRAIN] = (base[:artifact.N_STRAIN]
+                                  + (level[:, :artifact.N_STRAIN] - base[:artifact.N_STRAIN]) * scale[:, None])
         rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
         # After the hold the lag runs down from the held load instead of the peak's lagging
         # value: the rise reached in the hold decays over 10 time constants.
@@ -1823,10 +1823,10 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
         for i, (k, n) in enumerate(zip(peaks, lengths)):
             ramp.append(rise[i] * creep.settling(n, r.rate_hz))
             left = ramp[-1][-1] * tail[1:len(wl) - k]
-            wl[k + 1:k + 1 + left.size, :fm.N_STRAIN] += left[:, None] * strain[i]
+            wl[k + 1:k + 1 + left.size, :artifact.N_STRAIN] += left[:, None] * strain[i]
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
-        held[:, :fm.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        held[:, :artifact.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
         in_hold = np.concatenate([np.arange(n) for n in lengths])
         step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
         x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
@@ -1837,7 +1837,7 @@ def _synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     return np.concatenate(inputs), np.concatenate(kept)
 
 
-def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+def _synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
                      step: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of long rests inserted among the presses of ``rows``, and the rows (of
     ``data``) whose labels they take.
@@ -1875,7 +1875,7 @@ def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
             continue
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
         level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
-        level[:, :fm.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
+        level[:, :artifact.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
         lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
         rest = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
@@ -1891,7 +1891,7 @@ def _synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share
     return np.concatenate(inputs), np.concatenate(kept)
 
 
-def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
+def _lengthened_inputs(pre: artifact.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
                        lengths: np.ndarray, inserted: np.ndarray, keep_inserted: np.ndarray,
                        keep_recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of recording ``r`` (wavelengths ``wl``) lengthened by ``inserted`` (the
@@ -1903,7 +1903,7 @@ def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points:
     keep = np.insert(keep_recorded, at, keep_inserted)
     source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
     feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
-    return fm.standardise(pre, feats)[keep], source[keep]
+    return floatref.standardise(pre, feats)[keep], source[keep]
 
 
 def _augmented_recordings(data: Prepared, rows: np.ndarray

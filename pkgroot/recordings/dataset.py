@@ -26,11 +26,13 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from fbgforce import fileio, samples
+from fbgforce.recordings.bag import read_bag_columns
+from fbgforce.units import nm_to_fm
 from fbgforce.errors import InputError
 
 #: Wavelength columns in array order (``wl_nm[:, k]``).
@@ -840,10 +842,10 @@ def is_bag(path: str | Path) -> bool:
 
 def load(path: str | Path, fields: dict[str, str] | None = None) -> Dataset:
     """Load and validate a dataset file (``.csv`` or ``.npz``, by suffix) or a rosbag2 log
-    (an ``.mcap`` file or a bag directory, :func:`fbgforce.bag.load_bag`).
+    (an ``.mcap`` file or a bag directory, :func:`fbgforce.recordings.dataset.load_bag`).
 
     ``fields`` maps dataset columns to bag topics and fields for a log recorded by another
-    driver (:mod:`fbgforce.bag`); by default a bag is read as ``fbgforce record`` writes it.
+    driver (:mod:`fbgforce.recordings.bag`); by default a bag is read as ``fbgforce record`` writes it.
 
     Raises
     ------
@@ -856,13 +858,46 @@ def load(path: str | Path, fields: dict[str, str] | None = None) -> Dataset:
     if is_bag(p):
         if not p.exists():
             raise InputError("no such file", path=str(p))
-        from fbgforce.bag import load_bag
-
         return load_bag(p, fields)
     if fields is not None:
         raise InputError("a field map is for rosbag2 logs (.mcap or a bag directory)",
                          path=str(p), column="fields")
     return _load_csv(p) if _kind(p) == "csv" else _load_npz(p)
+
+
+def load_bag(path: str | Path, fields: Mapping[str, str] | None = None) -> Dataset:
+    """A :class:`Dataset` from a rosbag2 log, validated like any file.
+
+    ``fields`` is the field map (default :data:`FBGFORCE_FIELDS`). Rows before every joined
+    topic has spoken are dropped (the count is in the dataset's ``source``) and ``t_s`` counts
+    from the first row kept. The extra column ``stamp_ns`` keeps each row's stamp.
+    """
+    path = Path(path)
+    cols = read_bag_columns(path, fields)
+    keep = cols["complete"]
+    dropped = int((~keep).sum())
+    cols = {k: v[keep] for k, v in cols.items()}
+    contact = cols["contact"]
+    wl = np.column_stack([cols[c] for c in WL_COLUMNS])
+    wl = np.where(np.isfinite(wl), nm_to_fm(wl) / 1e6, wl)
+    where = str(path) + (f" (rosbag2; {dropped} rows before the first message of every "
+                         f"joined topic dropped)" if dropped else " (rosbag2)")
+    gate = contact == 1
+    stamp = cols["stamp_ns"]
+    ds = Dataset(
+        t_s=(stamp - stamp[0]) / 1e9 if len(stamp) else stamp, wl_nm=wl, contact=gate,
+        x_mm=np.where(gate, cols["x_mm"], np.nan), y_mm=np.where(gate, cols["y_mm"], np.nan),
+        force_N=cols["force_N"],
+        press_id=cols["press_id"].astype(np.int64) if "press_id" in cols
+        else np.zeros(len(contact), dtype=np.int64),
+        extra={"stamp_ns": cols["stamp_ns"]}, source=where)
+    bad = ~np.isin(contact, (0.0, 1.0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"row {i}: contact must be 0 or 1, got {contact[i]!r} "
+                         f"({int(bad.sum())} rows like this)", path=str(path), column="contact")
+    validate(ds, where=str(path))
+    return ds
 
 
 # --------------------------------------------------------------------------------------------

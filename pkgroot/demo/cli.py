@@ -3,7 +3,7 @@
 simulate the paper's calibration protocol → train the hierarchical nets (causal filter) →
 export ONNX, the fixed-point blob and C source → verify the C runtime against the integer
 reference and the float model on every sample → score every engine → report against the
-paper's numbers → draw the figures (``fbgforce.figures``) into ``<out>/figures/``.
+paper's numbers → draw the figures (``fbgforce.evaluation.figures``) into ``<out>/figures/``.
 Every step is an ordinary subcommand; this one only strings them together so a newcomer sees
 the product work end to end, and prints the commands it ran so they can be repeated one by one.
 """
@@ -58,13 +58,13 @@ def _step(title: str, command: str | None) -> float:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``fbgforce demo``."""
-    from fbgforce import dataset
-    from fbgforce import figures
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.evaluation import figures
+    from fbgforce.model import modeldir as fm
     from fbgforce.geometry import PAD_SIZE_MM
     from fbgforce.export.exporter import export_model
     from fbgforce.export.verify import verify
-    from fbgforce.metrics import headline
+    from fbgforce.evaluation.metrics import headline
     from fbgforce.sim import simulate
     from fbgforce.trainer.evaluate import SPLITS, evaluate, run_recording
     from fbgforce.trainer.report import PAPER, build_report, to_markdown, write

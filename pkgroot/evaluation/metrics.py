@@ -404,7 +404,7 @@ def timing_summary(onset_ms: np.ndarray, release_ms: np.ndarray) -> dict[str, An
 
 
 def from_dataset(pred: Mapping[str, np.ndarray], ds: Any, **kwargs: Any) -> dict[str, Any]:
-    """:func:`compute` with the ground truth of a ``fbgforce.dataset.Dataset``."""
+    """:func:`compute` with the ground truth of a ``fbgforce.recordings.dataset.Dataset``."""
     return compute(pred, ds.contact, ds.force_N, ds.x_mm, ds.y_mm, **kwargs)
 
 
