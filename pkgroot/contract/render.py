@@ -8,11 +8,10 @@ from __future__ import annotations
 import textwrap
 from pathlib import Path
 
-from fbgforce.contract import (CTYPE_RANGE, CTYPES, ERRORS, Field, FLOAT_OUTPUT, FLOAT_PARAMS,
-                               FLOAT_STATE, HEADER, I32_RANGE, LAYER_ENTRY, LIMITS, LINK_STATUS,
-                               MEMORY_KINDS, MEMORY_STATES, NETS, OPTIONS, OUTPUT, PARAMS,
-                               PARAMS_END, PARAMS_SIZE, PARAMS_STRUCT, STATE, StateField, STATUS,
-                               STATUS_ALL)
+# The tables are read through the module, so that a kind added to contract.MEMORY_KINDS at run
+# time (tests/test_contract.py) reaches the generator too.
+from fbgforce import contract
+
 
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -30,28 +29,28 @@ def _end(section: str) -> str:
     return f"/* ---- END GENERATED {section} ---- */"
 
 
-def _decl(f: Field, indent: str = "    ") -> str:
+def _decl(f: contract.Field, indent: str = "    ") -> str:
     arr = f"[{f.count}]" if f.count > 1 else ""
     rng = ""
-    if f.lo is not None and (f.lo, f.hi) != I32_RANGE:
+    if f.lo is not None and (f.lo, f.hi) != contract.I32_RANGE:
         rng = f" [{f.lo}, {f.hi}]" + (f" for k < {f.active}, else 0" if f.active else "")
     doc = f"{f.doc}{rng}".strip()
     return f"{indent}{f.ctype} {f.name}{arr};" + (f"  /* {doc} */" if doc else "")
 
 
-def struct_order(fields: tuple[Field, ...]) -> list[Field]:
+def struct_order(fields: tuple[contract.Field, ...]) -> list[contract.Field]:
     """Declaration order of a parameter struct: 4-byte fields, then 2, then 1 (no implicit
     padding). Generated initialisers list values in this order."""
     return [f for width in (4, 2, 1) for f in fields
-            if CTYPES[f.ctype][2] == width and f.c_member is None]
+            if contract.CTYPES[f.ctype][2] == width and f.c_member is None]
 
 
-def struct_padding(fields: tuple[Field, ...]) -> int:
+def struct_padding(fields: tuple[contract.Field, ...]) -> int:
     """Bytes of explicit padding (``pad_``) after the parameters of a struct."""
-    return -sum(CTYPES[f.ctype][2] * f.count for f in struct_order(fields)) % 4
+    return -sum(contract.CTYPES[f.ctype][2] * f.count for f in struct_order(fields)) % 4
 
 
-def _struct_fields(fields: tuple[Field, ...]) -> list[str]:
+def _struct_fields(fields: tuple[contract.Field, ...]) -> list[str]:
     out = [_decl(f) for f in struct_order(fields)]
     if struct_padding(fields):
         out.append(f"    uint8_t pad_[{struct_padding(fields)}];  /* explicit padding, keep 0 */")
@@ -66,13 +65,13 @@ def _comment(text: str, indent: str = "    ", width: int = 96) -> list[str]:
     return out
 
 
-def _state_decl(f: StateField) -> list[str]:
+def _state_decl(f: contract.StateField) -> list[str]:
     dims = "".join(f"[{d}]" if isinstance(d, int) else f"[FBG_{d}]" for d in f.dims)
     decl = f"    {f.ctype}{'' if f.ctype.endswith('*') else ' '}{f.name}{dims};"
     return (_comment(f.note) if f.note else []) + [decl.ljust(48) + f" /* {f.doc} */" if f.doc else decl]
 
 
-def state_section(fields: tuple[StateField, ...], name: str) -> str:
+def state_section(fields: tuple[contract.StateField, ...], name: str) -> str:
     """The declaration of the streaming state ``name`` from its ``fields``."""
     return "\n".join([f"/* Caller-owned streaming state. Treat as opaque; size is sizeof({name}). */",
                       "typedef struct {"] + [line for f in fields for line in _state_decl(f)]
@@ -82,27 +81,27 @@ def state_section(fields: tuple[StateField, ...], name: str) -> str:
 def header_sections() -> dict[str, str]:
     """The generated parts of fbgforce.h, by section name."""
     c = []
-    for name, (value, doc) in LIMITS.items():
+    for name, (value, doc) in contract.LIMITS.items():
         c.append(f"#define FBG_{name} {value}" + (f"  /* {doc} */" if doc else ""))
-    for i, net in enumerate(NETS):
+    for i, net in enumerate(contract.NETS):
         c.append(f"#define FBG_NET_{net.name.upper()} {i}")
     c += ["", "/* Return codes: 0 is success, every error has its own negative code. */",
           "typedef enum {"]
-    for i, code in enumerate(ERRORS):
-        comma = "," if i + 1 < len(ERRORS) else ""
+    for i, code in enumerate(contract.ERRORS):
+        comma = "," if i + 1 < len(contract.ERRORS) else ""
         c.append(f"    FBG_{code.name} = {code.value}{comma}  /* {code.doc} */")
     c += ["} fbg_status;", "", "/* Output status flags (fbg_output.status; several may be set). */"]
-    for code in STATUS:
+    for code in contract.STATUS:
         c.append(f"#define FBG_STATUS_{code.name} 0x{code.value:02X}  /* {code.doc} */")
-    c.append(f"#define FBG_STATUS_ALL 0x{STATUS_ALL:02X}  /* every flag above: no other bit is ever set */")
+    c.append(f"#define FBG_STATUS_ALL 0x{contract.STATUS_ALL:02X}  /* every flag above: no other bit is ever set */")
     c += ["", "/* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */"]
-    for code in OPTIONS:
+    for code in contract.OPTIONS:
         c.append(f"#define FBG_OPT_{code.name} 0x{code.value:02X}  /* {code.doc} */")
 
     x = ["/* Fixed-point model. The parameters are those of the blob (docs/model-format.md),",
          " * declared grouped by size so that the struct has no implicit padding. */",
          "typedef struct {"]
-    x += _struct_fields(PARAMS)
+    x += _struct_fields(contract.PARAMS)
     x += ["    const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */",
           "    fbg_net nets[FBG_N_NETS];",
           "    uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state",
@@ -111,18 +110,19 @@ def header_sections() -> dict[str, str]:
           "/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =",
           " * x_um = y_um = 0. Safe output (SENSOR_FAULT, or an error return): all 0 but status. */",
           "typedef struct {"]
-    x += [_decl(f) for f in OUTPUT]
+    x += [_decl(f) for f in contract.OUTPUT]
     x += ["} fbg_output;"]
 
     fl = ["/* Float model: the same pipeline in single precision. */", "typedef struct {"]
-    fl += _struct_fields(FLOAT_PARAMS)
+    fl += _struct_fields(contract.FLOAT_PARAMS)
     fl += ["    const float *taps;       /* taps[k] weights sample n - k */",
            "    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */",
            "} fbgf_model;", "", "typedef struct {"]
-    fl += [_decl(f) for f in FLOAT_OUTPUT]
+    fl += [_decl(f) for f in contract.FLOAT_OUTPUT]
     fl += ["} fbgf_output;"]
-    return {"constants": "\n".join(c), "fixed": "\n".join(x), "state": state_section(STATE, "fbg_state"),
-            "float": "\n".join(fl), "float state": state_section(FLOAT_STATE, "fbgf_state")}
+    return {"constants": "\n".join(c), "fixed": "\n".join(x),
+            "state": state_section(contract.STATE, "fbg_state"), "float": "\n".join(fl),
+            "float state": state_section(contract.FLOAT_STATE, "fbgf_state")}
 
 
 def render_header(text: str) -> str:
@@ -134,12 +134,12 @@ def render_header(text: str) -> str:
     return text
 
 
-def _range_condition(f: Field) -> str:
+def _range_condition(f: contract.Field) -> str:
     """C condition of "v is outside [lo, hi]", without comparisons the type makes constant
     (-Wtype-limits)."""
     if f.lo is None:
         return "0"
-    tmin, tmax = CTYPE_RANGE[f.ctype]
+    tmin, tmax = contract.CTYPE_RANGE[f.ctype]
     parts = []
     if f.lo > tmin:
         parts.append(f"v < {f.lo}")
@@ -152,7 +152,7 @@ def _params_check_lines() -> list[str]:
     """The body of ``fbg_params_check``: every range of ``PARAMS`` in blob order, the entries of
     an array past its ``active`` count held at 0."""
     out: list[str] = []
-    for f in PARAMS:
+    for f in contract.PARAMS:
         if f.lo is None and not f.active:
             continue
         cond = _range_condition(f)
@@ -218,8 +218,8 @@ def source_text() -> str:
     reader = {"int32_t": "rd_i32", "uint32_t": "rd_u32", "uint16_t": "rd_u16",
               "int16_t": "rd_i16", "uint8_t": "rd_u8"}
     off = 0
-    for f in PARAMS:
-        size = CTYPES[f.ctype][2]
+    for f in contract.PARAMS:
+        size = contract.CTYPES[f.ctype][2]
         rd = reader[f.ctype]
         if f.count == 1:
             out.append(f"    m->{f.c_lvalue()} = {rd}(p + {off});")
@@ -229,13 +229,13 @@ def source_text() -> str:
         off += size * f.count
     out += ["}", "", "int fbg_params_padding_ok(const uint8_t *p)", "{",
             "    unsigned k;",
-            f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
+            f"    for (k = {contract.PARAMS_STRUCT.size}u; k < {contract.PARAMS_SIZE}u; ++k)",
             "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
             "fbg_status fbg_params_check(const fbg_model *m)", "{", "    unsigned k;", "    (void)k;"]
     out += _params_check_lines()
     out += ["    return FBG_OK;", "}", "", "const char *fbg_status_str(int status)", "{",
             "    switch (status) {"]
-    for c in ERRORS:
+    for c in contract.ERRORS:
         out.append(f"    case FBG_{c.name}: return \"FBG_{c.name}\";")
     out += ["    default: return \"FBG_ERR_UNKNOWN\";", "    }", "}", ""]
     return "\n".join(out)
@@ -246,22 +246,22 @@ def contract_header_text() -> str:
     return "\n".join([
         "/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */",
         "#ifndef FBG_CONTRACT_H", "#define FBG_CONTRACT_H", "", '#include "fbgforce.h"', "",
-        f"#define FBG_PARAMS_SIZE {PARAMS_SIZE}u     /* parameter block bytes, zero-padded */",
-        f"#define FBG_PARAMS_END {PARAMS_END}u      /* header + parameter block */",
-        f"#define FBG_LAYER_ENTRY {LAYER_ENTRY.size}u       /* bytes per layer-table entry */",
+        f"#define FBG_PARAMS_SIZE {contract.PARAMS_SIZE}u     /* parameter block bytes, zero-padded */",
+        f"#define FBG_PARAMS_END {contract.PARAMS_END}u      /* header + parameter block */",
+        f"#define FBG_LAYER_ENTRY {contract.LAYER_ENTRY.size}u       /* bytes per layer-table entry */",
         "",
         "/* The memory states of a streaming state, X(s, member) each: the arrays of the memory",
         " * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h",
         " * clears them on reset, tare and a new baseline). */",
-        "#define FBG_MEMORY_STATES(X, s) " + " ".join(f"X(s, {m})" for m in MEMORY_STATES),
-        f"#define FBG_N_MEMORY_STATES {len(MEMORY_STATES)}",
+        "#define FBG_MEMORY_STATES(X, s) " + " ".join(f"X(s, {m})" for m in contract.MEMORY_STATES),
+        f"#define FBG_N_MEMORY_STATES {len(contract.MEMORY_STATES)}",
         "",
         "/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:",
         " * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */",
-        "#define FBG_MEMORY_KINDS(X) " + " ".join(f"X({k.name}, {k.name.upper()})" for k in MEMORY_KINDS),
+        "#define FBG_MEMORY_KINDS(X) " + " ".join(f"X({k.name}, {k.name.upper()})" for k in contract.MEMORY_KINDS),
         "/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */",
         "#define FBG_N_MEMORY_FEATURES(m) (" + " + ".join(
-            ["(unsigned)(m)->" + MEMORY_KINDS[0].count_field] + [f"(m)->{k.count_field}" for k in MEMORY_KINDS[1:]])
+            ["(unsigned)(m)->" + contract.MEMORY_KINDS[0].count_field] + [f"(m)->{k.count_field}" for k in contract.MEMORY_KINDS[1:]])
         + ")",
         "",
         "/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */",
@@ -291,13 +291,13 @@ def float_source_text() -> str:
            '#include "fbg_contract.h"', "",
            "fbg_status fbgf_memory_check(const fbgf_model *m)", "{", "    unsigned k;"]
     out.append("    if (" + " || ".join(f"m->{k.count_field} > FBG_MAX_{k.name.upper()}"
-                                        for k in MEMORY_KINDS) + ")")
+                                        for k in contract.MEMORY_KINDS) + ")")
     out.append("        return FBG_ERR_SHAPE;")
-    for kind in MEMORY_KINDS:
+    for kind in contract.MEMORY_KINDS:
         out.append(f"    for (k = 0; k < m->{kind.count_field}; ++k) {{")
         for prm in kind.params:
             cond = (f"!(v >= {prm.lo}.0f) || v - v != 0.0f" if prm.standardised  # NaN, inf
-                    else _range_condition(Field(prm.name, prm.float_ctype, 1, prm.lo, prm.hi)))
+                    else _range_condition(contract.Field(prm.name, prm.float_ctype, 1, prm.lo, prm.hi)))
             out.append(f"        {{ {prm.float_ctype} v = m->{kind.field(prm)}[k]; "
                        f"if ({cond}) return FBG_ERR_RANGE; }}")
         out.append("    }")
@@ -317,9 +317,9 @@ DOC_END = "<!-- END GENERATED params -->"
 def params_table() -> str:
     """The parameter block as a Markdown table (docs/model-format.md)."""
     rows = ["| offset | type | field | allowed | else |", "|---|---|---|---|---|"]
-    off = HEADER.size
-    for f in PARAMS:
-        size = CTYPES[f.ctype][2]
+    off = contract.HEADER.size
+    for f in contract.PARAMS:
+        size = contract.CTYPES[f.ctype][2]
         typ = f"{f.ctype}[{f.count}]" if f.count > 1 else f.ctype
         allowed = "any" if f.lo is None else f"{f.lo} .. {f.hi}"
         if f.active:
@@ -328,7 +328,7 @@ def params_table() -> str:
         rows.append(f"| {off} | {typ} | `{f.name}`: {doc} | {allowed} | "
                     f"{'' if f.lo is None and not f.active else 'FBG_' + f.code} |")
         off += size * f.count
-    rows.append(f"| {off} | | zero padding to {PARAMS_END} | 0 | FBG_ERR_RANGE |")
+    rows.append(f"| {off} | | zero padding to {contract.PARAMS_END} | 0 | FBG_ERR_RANGE |")
     return "\n".join(rows)
 
 
@@ -341,7 +341,7 @@ def render_doc(text: str) -> str:
 def status_constants_msg() -> str:
     """The status flags as ROS 2 ``.msg`` constants (``uint32 STATUS_<NAME>=<value>``)."""
     rows = []
-    for c in STATUS + LINK_STATUS:
+    for c in contract.STATUS + contract.LINK_STATUS:
         # The comment on a line of its own: parsers differ on comments after a constant.
         rows += [f"# {c.doc}", f"uint32 STATUS_{c.name}={c.value}"]
     return "\n".join(rows)
