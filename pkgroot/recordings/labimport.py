@@ -43,8 +43,8 @@ import numpy as np
 
 from fbgforce.recordings import dataset as fds
 from fbgforce.errors import InputError
-from fbgforce.recordings.stagelog import (ALIGN_MIN_PEAK_N, MAX_OFFSET_S, StageLog, align,
-                                          label_contact, press_runs, time_text)
+from fbgforce.recordings.stagelog import (ALIGN_MIN_PEAK_N, MAX_OFFSET_S, Alignment, StageLog,
+                                          align, label_contact, press_runs, time_text)
 
 #: Column keys of each log, as given to ``--fbg-columns`` / ``--stage-columns``.
 FBG_KEYS = ("t", "wl1", "wl2", "wl3", "wl4", "wlT")
@@ -497,14 +497,38 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                 ) -> dict[str, Any]:
     """Align, resample, label, number and write (module docstring); return the summary that
     ``fbgforce import --json`` prints (docs/cli.md#import)."""
-    from tqdm import tqdm
-
     t_start = time.perf_counter()
     where = f"{fbg.path} + {stage.path}"
     stage_dt = check_times(stage.t, stage.line, stage.path, "stage", stage.time_flag)
     stage_rows = int(stage.t.size)
     stage_rate = (stage.t.size - 1) / float(stage.t[-1] - stage.t[0])
     stage, stage_bad = drop_bad_stage_rows(stage)
+    threshold = _check_stage_load(stage)
+    t_f, strain, good = _read_strain(fbg, progress)
+    al = align(t_f, strain, stage, max_offset_s=max_offset_s, where=where)
+    del strain
+    gap_s = STAGE_GAP_INTERVALS * stage_dt
+    keep, press, reason = _presses(stage, al, t_f, good, gap_s, threshold, where)
+    _write_dataset(fbg, stage, al, out, keep, press, gap_s, threshold, progress)
+    dropped = {name: int((reason == code).sum()) for code, name in DROP_REASONS.items()}
+    return {
+        "dataset": str(out), "samples": int(keep.sum()),
+        "presses": int(np.unique(press[keep]).size),
+        "offset_s": al.offset_s, "drift_ppm": al.drift * 1e6,
+        "alignment": al.summary(),
+        "fbg": {"file": fbg.path, "rows": int(t_f.size),
+                "rate_hz": (t_f.size - 1) / float(t_f[-1] - t_f[0])},
+        "stage": {"file": stage.path, "rows": stage_rows, "bad_rows": stage_bad,
+                  "rate_hz": stage_rate},
+        "dropped": dropped,
+        "load_cell_noise_N": stage.noise_N, "contact_threshold_N": threshold,
+        "seconds": round(time.perf_counter() - t_start, 3),
+    }
+
+
+def _check_stage_load(stage: StageLog) -> float:
+    """Refuse a load cell that reads below the dataset's floor or is not tared; return the
+    contact threshold of its noise."""
     low = stage.force_N < fds.FORCE_NEGATIVE_LIMIT_N
     if low.any():
         i = int(np.argmax(low))
@@ -518,7 +542,15 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
         raise InputError(f"the load cell reads {rest:.3g} N or more for 95 % of the log: tare "
                          f"it (contact is a force above {threshold:.3g} N)",
                          path=stage.path, column="force")
-    # Pass 1: times and the strain proxy (the wavelength table is not kept).
+    return threshold
+
+
+def _read_strain(fbg: FbgSource, progress: bool | None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pass 1 over the interrogator log: its times, the gratings' strain proxy and which rows
+    hold valid wavelengths (the wavelength table is not kept), its times checked."""
+    from tqdm import tqdm
+
     ts, strains, goods, lines = [], [], [], []
     ref = None
     bar = tqdm(desc="import: read", unit="row", unit_scale=True, file=sys.stderr,
@@ -549,9 +581,13 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                          path=fbg.path, line=int(line_f[i]))
     if ref is None:  # pragma: no cover - excluded by the 99 % check above
         raise InputError("no valid wavelength row", path=fbg.path)
-    al = align(t_f, strain, stage, max_offset_s=max_offset_s, where=where)
-    # Contact and presses over the whole log (one bool and one id per sample).
-    gap_s = STAGE_GAP_INTERVALS * stage_dt
+    return t_f, strain, good
+
+
+def _presses(stage: StageLog, al: Alignment, t_f: np.ndarray, good: np.ndarray, gap_s: float,
+             threshold: float, where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Contact and presses over the whole log (one bool and one id per sample): the samples
+    kept, their press ids and each sample's drop reason (0: kept, :data:`DROP_REASONS`)."""
     force, _, _, reason = stage_at(stage, al.to_stage(t_f), gap_s)
     reason[(reason == 0) & ~good] = 4
     keep = reason == 0
@@ -560,12 +596,20 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                          f"{threshold:.3g} N after alignment", path=where)
     press = np.zeros(t_f.size, dtype=np.int64)
     press[keep] = number_presses(t_f[keep], force[keep], threshold)
-    del force, strain
-    # Pass 2: resample and write chunk by chunk.
+    return keep, press, reason
+
+
+def _write_dataset(fbg: FbgSource, stage: StageLog, al: Alignment, out: str | Path,
+                   keep: np.ndarray, press: np.ndarray, gap_s: float, threshold: float,
+                   progress: bool | None) -> None:
+    """Pass 2 over the interrogator log: resample the stage onto the samples kept and write
+    the dataset chunk by chunk."""
+    from tqdm import tqdm
+
     source = (f"import: {fbg.path} + {stage.path} offset={al.offset_s:.6f}s "
               f"drift={al.drift * 1e6:.2f}ppm")
     start = 0
-    bar = tqdm(total=t_f.size, desc="import: write", unit="row", unit_scale=True,
+    bar = tqdm(total=keep.size, desc="import: write", unit="row", unit_scale=True,
                file=sys.stderr, disable=None if progress is None else not progress)
     with fds.CsvWriter(out, source) as writer:
         for t, wl, _ in fbg:
@@ -579,20 +623,6 @@ def import_logs(fbg: FbgSource, stage: StageLog, out: str | Path, *,
                                      force_N=f, press_id=press[sl][k], source=source))
             bar.update(t.size)
     bar.close()
-    dropped = {name: int((reason == code).sum()) for code, name in DROP_REASONS.items()}
-    return {
-        "dataset": str(out), "samples": int(keep.sum()),
-        "presses": int(np.unique(press[keep]).size),
-        "offset_s": al.offset_s, "drift_ppm": al.drift * 1e6,
-        "alignment": al.summary(),
-        "fbg": {"file": fbg.path, "rows": int(t_f.size),
-                "rate_hz": (t_f.size - 1) / float(t_f[-1] - t_f[0])},
-        "stage": {"file": stage.path, "rows": stage_rows, "bad_rows": stage_bad,
-                  "rate_hz": stage_rate},
-        "dropped": dropped,
-        "load_cell_noise_N": stage.noise_N, "contact_threshold_N": threshold,
-        "seconds": round(time.perf_counter() - t_start, 3),
-    }
 
 
 def import_files(spec: ImportSpec, *, progress: bool | None = None) -> dict[str, Any]:
