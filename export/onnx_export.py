@@ -177,7 +177,7 @@ def build_graph(model: HierarchicalModel) -> onnx.ModelProto:
         INPUT_NAME, TensorProto.FLOAT, [_BATCH, model.preprocess.n_inputs],
         doc_string="net inputs: standardised features (filtered compensated shift - input_mean) / "
                    "input_std, then the memory features and the location averages "
-                   "(fbgforce.model.floatref.memory_features)"),
+                   "(fbgforce.model.memory_features)"),
         helper.make_tensor_value_info(
             DECISION_NAME, TensorProto.BOOL, [_BATCH],
             doc_string="the contact decision the location net reads (as 0/1) and the caller "
@@ -229,7 +229,7 @@ CONTACT_DECISION_HOW = (
     "(fbgforce.per_sample_decision = true) it is the output 'contact'; otherwise it is the "
     "decision over time of the parameters in "
     "fbgforce.in_use on the margin m = logit1 - logit0 of consecutive samples "
-    "(fbgforce.model.decision.decide_over_time; docs/runtime.md, 'In use'). Either way the margin comes "
+    "(fbgforce.model.decide_over_time; docs/runtime.md, 'In use'). Either way the margin comes "
     "first: run with contact_decision all false, decide, then run the samples "
     "decided true again with true and take their x_mm, y_mm from that run.")
 
