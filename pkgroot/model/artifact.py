@@ -247,13 +247,15 @@ class InUse:
         restarting at 0; contact stays as above (margin positive or above
         ``contact_off_margin``). On, it replaces the Schmitt trigger's rise:
         ``contact_on_margin`` 0 and ``contact_rise_samples`` 1. :meth:`recommended` with
-        ``decision="cusum"`` sets it from the calibration's rests (:func:`cusum_parameters`).
+        ``decision="cusum"`` sets it from the calibration's rests
+        (:func:`~fbgforce.model.decision.cusum_parameters`).
     contact_cusum_k
         The CUSUM's drift: a sample adds its margin's excess over ``k`` (0 when off).
     contact_cusum_lo, contact_cusum_hi
         The CUSUM's clip of the margin, ``lo <= hi`` (0 when off): ``hi`` bounds what one
         sample adds, so no single spike raises contact; ``lo`` what one sample takes away.
-        Every CUSUM value within ``+-MAX_CUSUM_Q8 / 256`` (:data:`CUSUM_MAX`).
+        Every CUSUM value within ``+-MAX_CUSUM_Q8 / 256``
+        (:data:`~fbgforce.model.decision.CUSUM_MAX`).
     """
 
     contact_on_margin: float = 0.0
@@ -338,7 +340,8 @@ class InUse:
 
     @property
     def cusum(self) -> tuple[float, float, float, float]:
-        """``(h, k, lo, hi)`` of the CUSUM rise (h 0: off), as :func:`decide_over_time` takes
+        """``(h, k, lo, hi)`` of the CUSUM rise (h 0: off), as
+        :func:`~fbgforce.model.decision.decide_over_time` takes
         them."""
         return (self.contact_cusum_h, self.contact_cusum_k, self.contact_cusum_lo,
                 self.contact_cusum_hi)
@@ -353,17 +356,21 @@ class InUse:
 
         ``rest_margins``: the contact net's margins on calibration samples at rest, in the
         order of the recording; contact
-        rises only past :data:`REST_MARGIN_FACTOR` times their :data:`REST_MARGIN_QUANTILE`
-        quantile, held for :data:`RISE_S`, and falls below minus half of it. None: the
+        rises only past :data:`~fbgforce.model.decision.REST_MARGIN_FACTOR` times their
+        :data:`~fbgforce.model.decision.REST_MARGIN_QUANTILE`
+        quantile, held for :data:`~fbgforce.model.decision.RISE_S`, and falls below minus half of
+        it. None: the
         per-sample decision.
 
         ``decision``: ``"schmitt"`` for that rule, ``"cusum"`` for the CUSUM rise of
-        :func:`cusum_parameters` on ``rest_margins`` (and ``contact_margins``, the margins on
+        :func:`~fbgforce.model.decision.cusum_parameters` on ``rest_margins`` (and
+        ``contact_margins``, the margins on
         labelled contact samples, for its drift), falling below minus its drift.
 
         ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted,
         for the tracker's creep term (:func:`creep_parameters`); 0 leaves it off (as for a
-        model that takes the creep out before the filter, :func:`creep_inverse`, where the
+        model that takes the creep out before the filter,
+        :func:`~fbgforce.model.floatref.creep_inverse`, where the
         tracker never sees it).
 
         ``hold_gain``: the settled-hold gain's excess over 1 as the trainer measured it on its
@@ -464,9 +471,10 @@ class Preprocess:
     ref_shift
         The temperature reference's average (0: off, the raw reference): time constant
         about 2^ref_shift samples, 0 .. ``contract.LIMIT["MAX_REF_SHIFT"]``
-        (:func:`reference_average`).
+        (:func:`~fbgforce.model.floatref.reference_average`).
     creep
-        The pad's creep magnitude ``m`` the creep inverse undoes (:func:`creep_inverse`):
+        The pad's creep magnitude ``m`` the creep inverse undoes
+        (:func:`~fbgforce.model.floatref.creep_inverse`):
         0 .. 0.5, 0 is off (what a model saved before the field reads).
     creep_shift
         The pad's creep time constant as ``2^creep_shift`` samples: 1 .. 15 when ``creep`` is
@@ -638,8 +646,10 @@ class HierarchicalModel:
     #: no such flag.
     input_range: np.ndarray | None = None
     #: The recordings the model was trained on, as export quantises and checks against them
-    #: (:class:`CalibrationRecordings`); written beside the weights by :func:`save`, read back
-    #: by :func:`load_calibration` (not by :func:`load`: only export needs them).
+    #: (:class:`CalibrationRecordings`); written beside the weights by
+    #: :func:`~fbgforce.model.modeldir.save`, read back
+    #: by :func:`~fbgforce.model.modeldir.load_calibration` (not by
+    #: :func:`~fbgforce.model.modeldir.load`: only export needs them).
     calibration: "CalibrationRecordings | None" = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -662,7 +672,8 @@ class HierarchicalModel:
 
     @property
     def runs_in_use(self) -> bool:
-        """Whether :func:`predict` runs the decision over time, the tracker or the settled-hold
+        """Whether :func:`~fbgforce.model.floatref.predict` runs the decision over time, the
+        tracker or the settled-hold
         gain, which carry state along a recording (a centred filter's offline model never
         does)."""
         iu = self.in_use
@@ -749,7 +760,7 @@ class CalibrationRecordings:
 
     def to_arrays(self, data_key: str) -> dict[str, np.ndarray]:
         """The ``calibration.npz`` arrays; ``data_key`` names the training data they belong to
-        (:func:`training_data_key`)."""
+        (:func:`~fbgforce.model.modeldir.training_data_key`)."""
         return {
             "wl_nm": np.concatenate([np.asarray(wl, dtype=np.float64) for wl, _ in self.recordings]),
             "baseline_nm": np.array([np.asarray(b, dtype=np.float64) for _, b in self.recordings]),

@@ -24,7 +24,8 @@ REST_MARGIN_FACTOR = 2.0
 #: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
 #: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
 RISE_S = 0.003
-#: Largest magnitude of every CUSUM value of :class:`InUse` (margin units): the contract's
+#: Largest magnitude of every CUSUM value of :class:`~fbgforce.model.artifact.InUse` (margin
+#: units): the contract's
 #: ``MAX_CUSUM_Q8`` in Q8.
 CUSUM_MAX = contract.LIMIT["MAX_CUSUM_Q8"] / 256.0
 #: The CUSUM rise's false events per minute at rest that :func:`cusum_parameters` aims at: an

@@ -189,7 +189,8 @@ def creep_inverse(pre: Preprocess, comp: np.ndarray, lag: list[np.ndarray | None
                   fault: np.ndarray | None = None) -> np.ndarray:
     """The pad's creep taken out of the compensated shifts of one continuous recording, per
     strain grating: ``e = c + q (c - L)``, then ``L += (e - L) / 2^creep_shift``
-    (``q`` :attr:`Preprocess.creep_gain`; the module's docstring derives it), i.e. ``L``
+    (``q`` :attr:`~fbgforce.model.artifact.Preprocess.creep_gain`; the module's docstring derives
+    it), i.e. ``L``
     follows ``c`` with step ``(1 + q) / 2^creep_shift``.
 
     Parameters
@@ -306,7 +307,8 @@ class MemoryStream:
     """The memory states of one continuous recording, fed in pieces: ``push(z)`` on
     consecutive pieces gives what :func:`memory_features` gives on the whole.
 
-    ``z_rest`` (4,): the standardised channels at rest (:attr:`Preprocess.z_rest`), needed by
+    ``z_rest`` (4,): the standardised channels at rest
+    (:attr:`~fbgforce.model.artifact.Preprocess.z_rest`), needed by
     the location averages (``memory.loc_shift``)."""
 
     def __init__(self, memory: Memory, z_rest: np.ndarray | None = None) -> None:

@@ -74,7 +74,7 @@ def _stored_data_key(path: Path) -> str | None:
 def save(model: HierarchicalModel, directory: str | Path, flag: str | None = None) -> Path:
     """Write ``model.json`` (readable parameters and metadata), ``weights.npz`` and, when the
     model carries them, its calibration recordings (``calibration.npz``,
-    :class:`CalibrationRecordings`).
+    :class:`~fbgforce.model.artifact.CalibrationRecordings`).
 
     The files are written atomically as a set (:class:`fbgforce.fileio.Outputs`): a failed
     write leaves the directory as it was. A ``calibration.npz`` of other training data is
