@@ -17,10 +17,15 @@ The researcher's API (docs/python-api.md), all from ``import fbgforce``:
 ``Dataset``             the recording type (``fbgforce.recordings.dataset.Dataset``)
 ======================  ==================================================================
 
-Subpackages live in sibling top-level directories of the repository and are mapped onto this
-namespace by ``pyproject.toml``: ``fbgforce.sim`` (simulator), ``fbgforce.trainer`` (numpy
-training), ``fbgforce.export`` (ONNX and fixed-point export), ``fbgforce.pybind`` (the cffi
-binding of the C runtime), ``fbgforce.interrogator`` (serial I/O), ``fbgforce.teleop``.
+The core, in this directory, follows the data: ``fbgforce.recordings`` (the dataset format and
+every way into it), ``fbgforce.model`` (the model directory and the float reference engine),
+``fbgforce.evaluation`` (metrics, every engine by name, figures), above base modules
+(``contract``, ``units``, ``errors``, ``fileio``, ``jsonutil``, ``signals``, ``samples``,
+``progress``, ``geometry``). The other parts live in sibling top-level directories of the
+repository and are mapped onto this namespace by ``pyproject.toml``: ``fbgforce.sim``
+(simulator), ``fbgforce.trainer`` (numpy training), ``fbgforce.export`` (ONNX and fixed-point
+export), ``fbgforce.pybind`` (the cffi binding of the C runtime), ``fbgforce.interrogator``
+(serial I/O), ``fbgforce.teleop``.
 """
 from __future__ import annotations
 
