@@ -15,8 +15,7 @@ TARGET_SOURCES = runpy.run_path(str(ROOT / PACKAGE_DIR["fbgforce.target"] / "sou
 
 packages = list(PACKAGE_DIR)
 for name, directory in PACKAGE_DIR.items():
-    if name != "fbgforce":
-        packages += [f"{name}.{sub}" for sub in find_packages(directory)]
+    packages += [f"{name}.{sub}" for sub in find_packages(directory)]
 
 
 class BuildPyWithCSources(build_py):

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from fbgforce import model as fm
+from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.export import blob, mutate
 from fbgforce.export.quantize import calibrate, quantize

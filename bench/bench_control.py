@@ -96,7 +96,8 @@ def _end(proc: subprocess.Popen) -> None:
 
 def preload_playback(tmp: Path, seconds_rest: float = 5.0) -> tuple[Path, dict[str, Any]]:
     """The preload scenario as a dataset file, and where its parts are (sample indices)."""
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
 
     scene = sim.simulate("smoke", seed=5)
     rest = scene.wl_nm[:200]
@@ -397,7 +398,8 @@ def _garbage(port: int, n: int, seed: int, counts: dict[str, int]) -> None:
 
 def run_commands(model: Path, tmp: Path, n: int, garbage: int) -> dict[str, Any]:
     """Part 2 (module docstring)."""
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
 
     data = tmp / "smoke.csv"
     if not data.exists():
@@ -479,7 +481,8 @@ def _run_commands_stream(model: Path, data: Path, port: int, n: int, garbage: in
 
 def run_step_time(model: Path, tmp: Path, rounds: int, seconds: float) -> dict[str, Any]:
     """Part 3 (module docstring)."""
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
     from fbgforce.interrogator import control as C
     from fbgforce.interrogator.hyperion import HyperionReader
     from fbgforce.interrogator.stream import LiveEstimator, run_stream

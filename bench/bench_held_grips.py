@@ -46,8 +46,8 @@ def held_grip_errors(pred_force_N: np.ndarray, pred_contact: np.ndarray, force_N
 
 def measure(model_dir: str, data: Sequence[str], engine: str = "float") -> dict[str, Any]:
     """:func:`held_grip_errors` of ``engine`` over the holds of every recording in ``data``."""
-    from fbgforce import model as fm
-    from fbgforce import tare as fbgtare
+    from fbgforce.model import modeldir as fm
+    from fbgforce.recordings import tare as fbgtare
     from fbgforce.trainer.evaluate import run_recording
     from fbgforce.trainer.data import hold_mask, load_datasets
 

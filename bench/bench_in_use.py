@@ -165,7 +165,7 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
         ``pass``; every goal has a row, ``value`` and ``pass`` null where the logs of its role
         are missing), ``passed``, ``failed``, ``not_measured``.
     """
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
 
     model = fm.load(model_dir)
     manifest = load_manifest(logs, PROG)
@@ -227,7 +227,7 @@ class _LogRuns:
 
     def __call__(self, names: list[str]) -> dict[str, Any]:
         """Metrics over the other logs of ``names``, each log loaded and run only once."""
-        from fbgforce import dataset
+        from fbgforce.recordings import dataset
         from fbgforce.trainer.evaluate import evaluate, run_recording
 
         for n in names:
@@ -384,7 +384,7 @@ def without(model_dir: Path, stage: str, out: Path) -> Path:
     import shutil
     from dataclasses import replace
 
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
 
     out.mkdir(parents=True, exist_ok=True)
     for f in model_dir.iterdir():

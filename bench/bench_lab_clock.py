@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from fbgforce import labimport as li
+from fbgforce.recordings import labimport as li
 from fbgforce.bench.bench_generalisation import fail
 from fbgforce.errors import InputError
 

@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", metavar="OUT", help="also write the breakdown to this JSON file")
     args = ap.parse_args(argv)
 
-    from fbgforce import dataset, model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.model import modeldir as fm
     from fbgforce.errors import InputError
     from fbgforce.trainer import preprocess as pp, train as T
 

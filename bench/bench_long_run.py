@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import metrics as fmetrics
+from fbgforce.evaluation import metrics as fmetrics
 from fbgforce import sim
 from fbgforce.bench.bench_generalisation import fail
 from fbgforce.errors import InputError

@@ -30,8 +30,9 @@ from typing import Any
 
 def small_model(tmp: Path) -> Path:
     """A small model trained on the smoke scene and exported into ``tmp`` (about 20 s)."""
-    from fbgforce import dataset, sim
-    from fbgforce import model as fm
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
+    from fbgforce.model import modeldir as fm
     from fbgforce.export.exporter import export_model
     from fbgforce.trainer.train import train
 

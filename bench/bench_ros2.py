@@ -331,7 +331,8 @@ def step_summary(live: list[dict[str, Any]], modes: list[str]) -> dict[str, Any]
 
 
 def run_record(minutes: float, tmp: Path) -> dict[str, Any]:
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
     from fbgforce.interrogator.mcaplog import stamps_for, write_log
     from fbgforce.interrogator.protocol import nm_to_fm
 

@@ -17,7 +17,7 @@ import numpy as np
 
 
 def _synthetic(n: int):
-    from fbgforce.dataset import Dataset
+    from fbgforce.recordings.dataset import Dataset
 
     t = np.arange(n) / 1000.0
     wl = 1530.0 + 8.0 * np.arange(5) + 0.01 * np.sin(t[:, None] * np.arange(1, 6))

@@ -41,7 +41,7 @@ def _time(fn: Callable[[], Any], repeat: int) -> tuple[float, float, Any]:
 
 def run(scene: str = "calibration_paper", repeat: int = 3) -> dict[str, Any]:
     """Measure and return ``{"scene", "samples", "timings_s": {...}, "goals_s", "file_bytes"}``."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.sim import simulate
 
     timings: dict[str, float] = {}

@@ -9,7 +9,7 @@ Needs the optional ``bench`` extra (``pip install "fbgforce[bench]"``: scikit-le
 
 One preparation (:func:`fbgforce.trainer.train.prepare`: tare, temperature fit, filter, and
 whatever features the model's preprocessing computes) and one split by press feed three
-estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-out test presses:
+estimators, all scored with :func:`fbgforce.evaluation.metrics.compute` on the same held-out test presses:
 
 - **fbgforce**: :func:`fbgforce.trainer.train.train` with its defaults;
 - **scikit-learn**: ``MLPClassifier`` (contact) -> ``MLPRegressor`` (force) -> ``MLPRegressor``
@@ -20,14 +20,14 @@ estimators, all scored with :func:`fbgforce.metrics.compute` on the same held-ou
   memory features, ``Prepared.inputs``); the force and location nets are fitted on the true-contact
   training samples, with targets scaled like the trainer's (``force_offset``/``force_scale``,
   ``xy_offset``/``xy_scale``); the location net gets the same inputs as the fbgforce location net
-  (``fbgforce.model.location_inputs``: channels, contact decision, force output), from its own
+  (``fbgforce.model.floatref.location_inputs``: channels, contact decision, force output), from its own
   contact and force nets;
 - **linear (fitted)**: the fitted beam model of :mod:`fbgforce.trainer.baseline` on the
   filtered, compensated shifts (the first four feature columns).
 
 Prints a table (contact accuracy overall and above 1 N, force, x, y RMSE, median onset and
 release delay, training time), then x and y of all three on the test samples that all three
-and the truth call contact (:func:`fbgforce.metrics.common_location`: like for like, since each
+and the truth call contact (:func:`fbgforce.evaluation.metrics.common_location`: like for like, since each
 estimator's own x/y leave out the touches it misses), and optionally writes it as JSON. Foreign data: write CSVs with
 ``tests/foreign.py`` (docs/measurements/trainer.md, "Against scikit-learn") and pass them with
 ``--data``.
@@ -59,7 +59,7 @@ SUMMARY_KEYS = ("contact_accuracy", "contact_accuracy_above_1N", "contact_accura
 
 def load_data(args: argparse.Namespace) -> tuple[list[Any], list[str]]:
     """The recordings to compare on: ``--data`` files or a simulated scene."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     if args.data:
         return [dataset.load(p) for p in args.data], list(args.data)
@@ -87,7 +87,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
     from sklearn.exceptions import ConvergenceWarning
     from sklearn.neural_network import MLPClassifier, MLPRegressor
 
-    from fbgforce import model as fm
+    from fbgforce.model import floatref as fm
     from fbgforce.trainer.params import DEFAULT_SIZES
 
     common = dict(max_iter=max_iter, random_state=seed)
@@ -132,7 +132,7 @@ def sklearn_hierarchy(z: np.ndarray, data: Any, tr: np.ndarray, model: Any, *, s
 
 def linear_baseline(data: Any, tr: np.ndarray) -> tuple[dict[str, np.ndarray], float]:
     """The fitted beam model on the filtered, compensated shifts; predictions for every row."""
-    from fbgforce import model as fm
+    from fbgforce.model import artifact as fm
     from fbgforce.trainer import baseline as bl
 
     t0 = time.perf_counter()
@@ -145,7 +145,7 @@ def linear_baseline(data: Any, tr: np.ndarray) -> tuple[dict[str, np.ndarray], f
 
 def score(data: Any, pred: dict[str, np.ndarray], rows: np.ndarray) -> dict[str, Any]:
     """Shared metrics of whole-data predictions on ``rows`` (with contact timing)."""
-    from fbgforce import metrics as fmetrics
+    from fbgforce.evaluation import metrics as fmetrics
     from fbgforce.trainer.scoring import press_delays
 
     full = fmetrics.compute({k: np.asarray(v)[rows] for k, v in pred.items()}, *data.truth(rows),
@@ -200,7 +200,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"data: {', '.join(names)}: {data.split.size} samples; "
           f"train {tr.size}, test {te.size} samples", file=sys.stderr)
     results, preds, model, z = _fit_and_score(ds_list, data, tr, te, args, sklearn.__version__)
-    from fbgforce import metrics as fmetrics
+    from fbgforce.evaluation import metrics as fmetrics
 
     # Each estimator's own x/y are scored where it detects contact; these are like for like.
     common_xy = fmetrics.common_location({k: {c: np.asarray(v)[te] for c, v in p.items()}
@@ -258,7 +258,7 @@ def _fit_and_score(ds_list: list[Any], data: Any, tr: np.ndarray, te: np.ndarray
     in this order: fbgforce's trainer, scikit-learn's hierarchy on the trainer's own net
     inputs, the fitted linear baseline. Returns their results and whole-data predictions,
     the fbgforce model and its net inputs."""
-    from fbgforce import model as fm
+    from fbgforce.model import floatref as fm
     from fbgforce.trainer.train import train
 
     results: dict[str, dict[str, Any]] = {}

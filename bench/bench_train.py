@@ -30,8 +30,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="also write the figures to this JSON file")
     args = ap.parse_args(argv)
 
-    from fbgforce import dataset
-    from fbgforce.metrics import headline
+    from fbgforce.recordings import dataset
+    from fbgforce.evaluation.metrics import headline
     from fbgforce.trainer.train import train
 
     if args.data:

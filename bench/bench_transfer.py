@@ -81,8 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", help="write the figures to this JSON file")
     args = ap.parse_args(argv)
 
-    from fbgforce import dataset
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.model import modeldir as fm
     from fbgforce.sim import simulate
     from fbgforce.trainer.scoring import evaluate_rows
     from fbgforce.trainer.train import prepare, train

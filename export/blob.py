@@ -169,9 +169,9 @@ def load_model_blob(model: str | Path, float_model: Any = None) -> QModel:
     """Read and parse the blob of a model directory (or a blob file).
 
     A directory's blob must have been exported from its float model
-    (:func:`fbgforce.freshness.check_export`; ``float_model``: that model, if loaded already).
+    (:func:`fbgforce.model.modeldir.check_export`; ``float_model``: that model, if loaded already).
     """
-    from fbgforce.freshness import check_export
+    from fbgforce.model.modeldir import check_export
 
     p = blob_path(model)
     if not p.is_file():

@@ -19,7 +19,8 @@ from typing import Iterable
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.contract import render
+from fbgforce.model import artifact as fm
 from fbgforce.export import blob
 from fbgforce.export.qmodel import NET_NAMES, QModel
 
@@ -75,8 +76,8 @@ def _value(v: object, ctype: str) -> str:
 def _params_init(fields: tuple[contract.Field, ...], values: dict[str, object]) -> list[str]:
     """Positional initialisers of a parameter struct in declaration order (C99 and C++ alike:
     C++ has no designated initialisers before C++20 and wants them in order after)."""
-    lines = [f"    /* {f.name} */ {_value(values[f.name], f.ctype)}," for f in contract.struct_order(fields)]
-    if contract.struct_padding(fields):
+    lines = [f"    /* {f.name} */ {_value(values[f.name], f.ctype)}," for f in render.struct_order(fields)]
+    if render.struct_padding(fields):
         lines.append("    /* pad_ */ {0},")
     return lines
 

@@ -16,8 +16,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce import fileio, freshness
-from fbgforce import model as fm
+from fbgforce import fileio
+from fbgforce.model import freshness
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
@@ -30,22 +31,22 @@ C_DIR = freshness.C_DIR
 
 def recording_baseline(ds: Any, path: str | None = None) -> np.ndarray:
     """The tare baseline of a recording, the same rule evaluate/verify use (trainer's tare)."""
-    from fbgforce.tare import tare
+    from fbgforce.recordings.tare import tare
 
     return tare(ds.wl_nm, ds.contact, ds.t_s, path=path)[0]
 
 
-def calibration_recordings(model_dir: str | Path, model: fm.HierarchicalModel,
-                           calib: Sequence[str | Path] | None) -> fm.CalibrationRecordings:
+def calibration_recordings(model_dir: str | Path, model: artifact.HierarchicalModel,
+                           calib: Sequence[str | Path] | None) -> artifact.CalibrationRecordings:
     """Calibration recordings: the ``calib`` files, else those the model directory keeps of
-    its training data (:func:`fbgforce.model.load_calibration`; the training files themselves
+    its training data (:func:`fbgforce.model.modeldir.load_calibration`; the training files themselves
     are never reopened, they may have moved)."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     if not calib:
-        kept = fm.load_calibration(model_dir, model)
+        kept = modeldir.load_calibration(model_dir, model)
         if kept is None:
-            raise InputError(f"no calibration data: the model directory has no {fm.CALIBRATION_NPZ} "
+            raise InputError(f"no calibration data: the model directory has no {modeldir.CALIBRATION_NPZ} "
                              "of its training data (train it again with 'fbgforce train'); or pass "
                              "--calib FILE (a recording in the dataset format)", column="--calib")
         return kept
@@ -54,7 +55,7 @@ def calibration_recordings(model_dir: str | Path, model: fm.HierarchicalModel,
         ds = fds.load(p)
         recs.append((ds.wl_nm, recording_baseline(ds, p)))
         forces.append(np.asarray(ds.force_N, dtype=np.float64)[np.asarray(ds.contact, dtype=bool)])
-    return fm.CalibrationRecordings(recs, forces, paths)
+    return artifact.CalibrationRecordings(recs, forces, paths)
 
 
 def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str | Path] | None = None,
@@ -64,7 +65,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     """Quantise and write every artifact; returns the export report (also written)."""
     t0 = time.perf_counter()
     root = Path(model_dir)
-    model = fm.load(root)
+    model = modeldir.load(root)
     kept = calibration_recordings(root, model, calib)
     recs, paths = kept.recordings, kept.sources
     cal = qz.calibrate(model, recs, kept.contact_force_N)
@@ -90,7 +91,7 @@ def export_model(model_dir: str | Path, *, bits: int = 16, calib: Sequence[str |
     disagree = samples = 0
     for wl, base in recs:
         out = to_engine_dict(intref.run(q, nm_to_fm(wl), nm_to_fm(base), trace=trace))
-        ref = fm.predict(model, wl, base)
+        ref = floatref.predict(model, wl, base)
         both = out["contact"] & ref["contact"]
         disagree += int((out["contact"] != ref["contact"]).sum())
         samples += len(wl)

@@ -14,7 +14,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, decision, floatref
 from fbgforce.export.qmodel import SAT16, SAT32, QLayer, QModel
 from fbgforce.units import nm_to_fm, to_engine_dict
 
@@ -197,7 +197,7 @@ def _block(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, fault: np.
     return rest, terms[rest].sum(axis=0)
 
 
-def run_recording(model_dir: str | Path, model: fm.HierarchicalModel | None, wl_nm: np.ndarray,
+def run_recording(model_dir: str | Path, model: artifact.HierarchicalModel | None, wl_nm: np.ndarray,
                   baseline_nm: np.ndarray) -> dict[str, Any]:
     """Engine ``intref``: the integer reference on ``model_dir/model.fbgm``."""
     from fbgforce.export.blob import load_model_blob
@@ -603,12 +603,12 @@ def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
 def _contact_decision(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]
                       ) -> np.ndarray:
     """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples: the rule of
-    :func:`fbgforce.model.decide_over_time` on the Q8 margins, in Python integers (exact).
+    :func:`fbgforce.model.decision.decide_over_time` on the Q8 margins, in Python integers (exact).
     ``raw`` is ``acc > 0`` and ``margin`` the output row as computed, whatever the sign of its
     multiplier: the rule reads both as C does, with no shortcut for the per-sample setting
     (which equals ``raw`` only when the multiplier is positive). ``state`` is ``[decision,
     rise_run, cusum_q8]``, carried and updated."""
-    return fm.decide_over_time(raw, margin, q.contact_on_q8, q.contact_off_q8, q.contact_rise_n,
+    return decision.decide_over_time(raw, margin, q.contact_on_q8, q.contact_off_q8, q.contact_rise_n,
                                state, cusum=(q.contact_cusum_h_q8, q.contact_cusum_k_q8,
                                              q.contact_cusum_lo_q8, q.contact_cusum_hi_q8))
 
@@ -649,7 +649,7 @@ class _RestTracker:
         """After a block: ``rest`` says which of its samples were at rest (in order),
         ``r_sum`` is their sum of :meth:`rest_terms`; moves ``base[:4]`` in place."""
         q = self.q
-        self.rest_run = fm.rest_run_after(self.rest_run, rest)
+        self.rest_run = floatref.rest_run_after(self.rest_run, rest)
         if q.track_shift == 0 or self.rest_run < contract.LIMIT["TRACK_BLOCK"] + q.track_settle:
             return
         frac_bits = contract.LIMIT["TRACK_FRAC"]
@@ -678,7 +678,7 @@ class _RestTracker:
 def _hold_stage(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
           ) -> tuple[np.ndarray, np.ndarray]:
     """``hold_stage`` of fbg_fixed.c (the settled-hold gain, the rule of
-    :func:`fbgforce.model.hold_over_time` in integers) on consecutive fault-free samples: their
+    :func:`fbgforce.model.floatref.hold_over_time` in integers) on consecutive fault-free samples: their
     force (mN, any value where there is no contact) and contact decisions. ``state`` is
     ``[hold_avg, hold_primed, hold_run]``, carried and updated. Returns the force and where it
     saturated."""

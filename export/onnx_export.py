@@ -15,7 +15,7 @@ nets of the paper's Fig. 4 and their hierarchy, in one graph, evaluated in float
 The location net reads the contact *decision* as 0/1, and the decision is a second input,
 ``contact_decision``, because the decision the float model gates on is not the contact net's
 own: with the model's in-use parameters it is the decision over time
-(:func:`fbgforce.model.decide_over_time`, a Schmitt trigger with a rise count whose state runs
+(:func:`fbgforce.model.decision.decide_over_time`, a Schmitt trigger with a rise count whose state runs
 from sample to sample), which one evaluation of a feed-forward graph cannot give. The caller
 decides from the graph's ``contact_logits`` and runs the location with that decision
 (:func:`onnx_nets` does it in two runs, the second on the samples decided "contact" only).
@@ -46,9 +46,10 @@ from onnx import TensorProto, helper, numpy_helper
 
 from fbgforce import __version__
 from fbgforce.errors import InputError
-from fbgforce.freshness import weights_digest
-from fbgforce.model import (MLP, FloatPipeline, HierarchicalModel, Nets, features,
-                            predict_from_features, safe_output)
+from fbgforce.model.freshness import weights_digest
+from fbgforce.model.artifact import HierarchicalModel, MLP
+from fbgforce.model.floatref import (features, FloatPipeline, Nets, predict_from_features,
+                                     safe_output)
 from fbgforce.samples import sensor_fault_rows
 
 #: File name of the exported graph inside a model directory.
@@ -63,7 +64,7 @@ DECISION_NAME = "contact_decision"
 INPUT_NAMES = (INPUT_NAME, DECISION_NAME)
 #: Output names, in graph order.
 OUTPUT_NAMES = ("contact_logits", "contact", "p_contact", "force_N", "x_mm", "y_mm")
-#: Metadata key holding :func:`fbgforce.freshness.weights_digest` of the model the graph was
+#: Metadata key holding :func:`fbgforce.model.freshness.weights_digest` of the model the graph was
 #: made from.
 DIGEST_KEY = "fbgforce.weights_sha256"
 #: Metadata key of the graph's layout (its inputs, outputs and their meaning) and the layout
@@ -324,7 +325,7 @@ def stale_reason(props: dict[str, str], model: HierarchicalModel) -> str | None:
     """Why a stored graph with metadata ``props`` must not run as ``model``'s nets, or None.
 
     A graph is current when it was exported from these very weights
-    (:func:`~fbgforce.freshness.weights_digest`, :data:`DIGEST_KEY`) in this module's layout
+    (:func:`~fbgforce.model.freshness.weights_digest`, :data:`DIGEST_KEY`) in this module's layout
     (:data:`LAYOUT_KEY`): a graph of another layout has other inputs, and fed by this module it
     would either fail or compute the location from another contact input.
     """
@@ -411,7 +412,7 @@ def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path 
 
     ``decision``: (n,) the contact decision the location net reads (one run); None: the
     contact net's own, ``margin > 0`` (the ``contact`` output; two runs, :func:`_decided`),
-    as :func:`fbgforce.model.predict_from_features` without ``decide``.
+    as :func:`fbgforce.model.floatref.predict_from_features` without ``decide``.
     """
     sess = session_for(model, model_dir)
     z32 = _as_input(model, z)
@@ -421,10 +422,10 @@ def run_features(model: HierarchicalModel, z: np.ndarray, model_dir: str | Path 
 
 
 def onnx_nets(model: HierarchicalModel, model_dir: str | Path | None = None) -> Nets:
-    """The nets in onnxruntime float32 (:data:`fbgforce.model.Nets`), for the float pipeline
-    (:func:`fbgforce.model.predict_from_features`, :class:`fbgforce.model.FloatPipeline`):
+    """The nets in onnxruntime float32 (:data:`fbgforce.model.floatref.Nets`), for the float pipeline
+    (:func:`fbgforce.model.floatref.predict_from_features`, :class:`fbgforce.model.floatref.FloatPipeline`):
     the location net reads the decision ``decide`` returns, as in
-    :func:`fbgforce.model.numpy_nets`, so every stage after the nets (the decision over time,
+    :func:`fbgforce.model.floatref.numpy_nets`, so every stage after the nets (the decision over time,
     the settled-hold gain, the tracker) sees what it sees in the float model.
 
     ``model_dir``: where an exported ``model.onnx`` may be (:func:`session_for`).

@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fbgforce import contract, samples
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.export.qmodel import NET_NAMES, SAT16, SAT32, QLayer, QModel
 from fbgforce.units import nm_to_fm
@@ -90,16 +90,16 @@ class Calibration:
     comp_var_pm: np.ndarray | None = None
 
 
-def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray, np.ndarray]],
+def calibrate(model: artifact.HierarchicalModel, recordings: Sequence[tuple[np.ndarray, np.ndarray]],
               true_force_N: Sequence[np.ndarray] | None = None) -> Calibration:
     """Run the float pipeline on ``recordings`` = [(wl_nm (n,5), baseline_nm (5,)), ...]."""
     zs, steps, comp_max, c_abs, c_var, same_run = [], [0.0], 0.0, [], [], 0
     n_taps = model.preprocess.taps.size
     for wl, base in recordings:
         wl = np.asarray(wl, dtype=np.float64)
-        zs.append(fm.features(model, wl, base))
+        zs.append(floatref.features(model, wl, base))
         # What the filter reads: the compensated shifts after the pad's creep inverse.
-        comp = fm.creep_inverse(model.preprocess, fm.compensate(model, wl, base), None,
+        comp = floatref.creep_inverse(model.preprocess, floatref.compensate(model, wl, base), None,
                                 samples.sensor_fault_rows(wl))
         comp_max = max(comp_max, float(np.abs(comp[np.isfinite(comp)]).max(initial=0.0)))
         # Zero history before the first sample, as the causal filter sees it.
@@ -119,7 +119,7 @@ def calibrate(model: fm.HierarchicalModel, recordings: Sequence[tuple[np.ndarray
     z = np.concatenate(zs)
     finite = np.all(np.isfinite(z), axis=1)
     z = z[finite]
-    pred = fm.predict_from_features(model, z)
+    pred = floatref.predict_from_features(model, z)
     f = model.force.forward(z[:, :model.preprocess.n_features])[:, 0]
     truth = None
     if true_force_N is not None:
@@ -147,7 +147,7 @@ def _longest_same_run(wl_nm: np.ndarray) -> int:
 # Quantisation: quantize() and its steps, in the order it takes them
 # --------------------------------------------------------------------------------------------
 
-def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
+def quantize(model: artifact.HierarchicalModel, calib: Calibration, *, bits: int = 16,
              jump_nm: float = DEFAULT_JUMP_NM, overload_N: float | None = None,
              stuck_samples: int | None = None, acc32_max_drop: float = ACC32_MAX_DROP,
              even_widths: bool = True) -> tuple[QModel, dict[str, Any]]:
@@ -208,7 +208,7 @@ def quantize(model: fm.HierarchicalModel, calib: Calibration, *, bits: int = 16,
                               load_info)
 
 
-def choose_input_format(pre: fm.Preprocess, calib: Calibration) -> tuple[int, float]:
+def choose_input_format(pre: artifact.Preprocess, calib: Calibration) -> tuple[int, float]:
     """``z_frac``, the one Q format of every net input, and the largest calibration input it
     was chosen from.
 
@@ -218,12 +218,12 @@ def choose_input_format(pre: fm.Preprocess, calib: Calibration) -> tuple[int, fl
     first layer treat its inputs alike. It is the finest format (at most 14 fractional bits)
     in which Z_HEADROOM times the largest of them fits int16.
     """
-    u = calib.z[:, :fm.N_STRAIN] @ np.asarray(pre.memory.weights) if pre.memory.n_states else calib.f[:0]
+    u = calib.z[:, :artifact.N_STRAIN] @ np.asarray(pre.memory.weights) if pre.memory.n_states else calib.f[:0]
     # The location averages' input r = z - z_rest (and so the averages, which stay within its
     # range) must fit too, but without the headroom of z: r differs from z by the rest value
     # |z_rest|, small beside the range of z, and taking it as is would cost every input a bit
     # whenever it crosses a power of two. Beyond the calibration range it saturates (SATURATED).
-    r = calib.z[:, :fm.N_STRAIN] - pre.z_rest if pre.memory.n_loc else calib.f[:0]
+    r = calib.z[:, :artifact.N_STRAIN] - pre.z_rest if pre.memory.n_loc else calib.f[:0]
     zmax = float(max(np.abs(calib.z[:, :pre.n_features]).max(initial=0.0),
                      np.abs(calib.f).max(initial=0.0), np.abs(u).max(initial=0.0),
                      np.abs(r).max(initial=0.0) / Z_HEADROOM, 1e-6))
@@ -231,7 +231,7 @@ def choose_input_format(pre: fm.Preprocess, calib: Calibration) -> tuple[int, fl
     return z_frac, zmax
 
 
-def quantize_front(model: fm.HierarchicalModel, z_frac: int) -> dict[str, Any]:
+def quantize_front(model: artifact.HierarchicalModel, z_frac: int) -> dict[str, Any]:
     """The integers of the front end and of the standardisation (``QModel`` fields):
     ``temp_coeff_q24``, ``mean_fm``, ``z_mult``/``z_shift`` (filtered fm to Q(z_frac)) and
     ``fq_mult``/``fq_shift`` (the force net's output to Q(z_frac), for the location net).
@@ -254,7 +254,7 @@ def quantize_front(model: fm.HierarchicalModel, z_frac: int) -> dict[str, Any]:
             "fq_mult": int(fq_mult[0]), "fq_shift": fq_shift}
 
 
-def quantize_taps(pre: fm.Preprocess) -> tuple[np.ndarray, int]:
+def quantize_taps(pre: artifact.Preprocess) -> tuple[np.ndarray, int]:
     """Causal FIR taps as int16 in Q15 (Q14 if a tap reaches 1), DC gain kept exactly."""
     taps = pre.runtime_taps()
     peak = float(np.abs(taps).max())
@@ -273,7 +273,7 @@ def quantize_taps(pre: fm.Preprocess) -> tuple[np.ndarray, int]:
     return t, q
 
 
-def quantize_nets(model: fm.HierarchicalModel, calib: Calibration, z_frac: int, bits: int,
+def quantize_nets(model: artifact.HierarchicalModel, calib: Calibration, z_frac: int, bits: int,
                   acc32_max_drop: float, even_widths: bool
                   ) -> tuple[list[list[QLayer]], dict[str, list[dict[str, Any]]]]:
     """The three nets' layers in the runtime's order (contact, force, location) and each
@@ -282,12 +282,12 @@ def quantize_nets(model: fm.HierarchicalModel, calib: Calibration, z_frac: int, 
     Every net reads its inputs in Q(z_frac), so its first layer's input scale is
     ``2^-z_frac``; the calibration activations each layer is scaled on are the float nets' on
     the calibration samples: z and the memory features for the contact and force nets, the
-    location net's own input (:func:`fbgforce.model.location_inputs`) for the location net.
+    location net's own input (:func:`fbgforce.model.floatref.location_inputs`) for the location net.
     """
     pre = model.preprocess
     zf = calib.z[:, :pre.n_features]
     inputs = {"contact": zf, "force": zf,
-              "location": fm.location_inputs(calib.z, calib.contact, calib.f, pre.memory.n_loc)}
+              "location": floatref.location_inputs(calib.z, calib.contact, calib.f, pre.memory.n_loc)}
     nets: list[list[QLayer]] = []
     report: dict[str, list[dict[str, Any]]] = {}
     for name in NET_NAMES:
@@ -297,7 +297,7 @@ def quantize_nets(model: fm.HierarchicalModel, calib: Calibration, z_frac: int, 
     return nets, report
 
 
-def quantize_net(model: fm.HierarchicalModel, name: str, x: np.ndarray, in_scale: float,
+def quantize_net(model: artifact.HierarchicalModel, name: str, x: np.ndarray, in_scale: float,
                  bits: int, acc32_max_drop: float, even_widths: bool
                  ) -> tuple[list[QLayer], list[dict[str, Any]]]:
     """One net's quantised layers and their reports, layer by layer: each layer's output
@@ -332,7 +332,7 @@ def quantize_net(model: fm.HierarchicalModel, name: str, x: np.ndarray, in_scale
     return layers, infos
 
 
-def layer_output_scale(model: fm.HierarchicalModel, name: str, last: bool, a: np.ndarray,
+def layer_output_scale(model: artifact.HierarchicalModel, name: str, last: bool, a: np.ndarray,
                        n_rows: int) -> tuple[float, np.ndarray]:
     """A layer's output scale (real units per output integer) and ``out_ratio`` per row
     (output integer units per real unit), from its calibration activations ``a``.
@@ -495,7 +495,7 @@ def choose_overload_mN(calib: Calibration, overload_N: float | None) -> int:
     return int(round(overload_N * 1000.0))
 
 
-def fit_load_proxy(model: fm.HierarchicalModel, calib: Calibration
+def fit_load_proxy(model: artifact.HierarchicalModel, calib: Calibration
                    ) -> tuple[np.ndarray, int, int, dict[str, Any]]:
     """The input-side overload rule: a linear force proxy on the filtered shifts.
 
@@ -509,7 +509,7 @@ def fit_load_proxy(model: fm.HierarchicalModel, calib: Calibration
     Returns ``(load_coeff (4,), load_shift, load_max_mN, info)``.
     """
     pre = model.preprocess
-    filt_fm = (calib.z[:, :fm.N_STRAIN] * pre.input_std + pre.input_mean) * 1000.0
+    filt_fm = (calib.z[:, :artifact.N_STRAIN] * pre.input_std + pre.input_mean) * 1000.0
     sel = calib.contact
     if sel.sum() < 8:
         return np.zeros(4, dtype=np.int64), 1, SAT32, {"fitted": False}
@@ -540,15 +540,15 @@ def choose_fault_rules(calib: Calibration, jump_nm: float, stuck_samples: int | 
     return {"jump_max_fm": min(jump_fm, SAT32), "stuck_max": stuck_samples}
 
 
-def quantize_creep(pre: fm.Preprocess) -> dict[str, int]:
+def quantize_creep(pre: artifact.Preprocess) -> dict[str, int]:
     """The creep inverse's integers (fbg_model.creep_q15, creep_shift): ``creep_q15 =
-    round(q * 2^15)`` of its gain :attr:`fbgforce.model.Preprocess.creep_gain`; a gain that
+    round(q * 2^15)`` of its gain :attr:`fbgforce.model.artifact.Preprocess.creep_gain`; a gain that
     rounds to 0 turns it off (shift 0 with it)."""
     q15 = int(round(pre.creep_gain * 2.0**15))
     return {"creep_q15": q15, "creep_shift": pre.creep_shift if q15 else 0}
 
 
-def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
+def quantize_memory(memory: artifact.Memory, z_frac: int) -> dict[str, Any]:
     """The memory's integers: the load signal's weights as multipliers and a shift (u keeps
     the Q(z_frac) of z), every kind's parameters as they are, a value in standardised units
     (a play half-width) in Q(z_frac)."""
@@ -557,7 +557,7 @@ def quantize_memory(memory: fm.Memory, z_frac: int) -> dict[str, Any]:
             **memory.params(lambda v: min(SAT16, int(round(v * 2.0**z_frac))))}
 
 
-def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
+def quantize_in_use(in_use: artifact.InUse, z_mult: np.ndarray, z_shift: int) -> dict[str, Any]:
     """The decision's and the tracker's integers (fbg_model.contact_*, track_*).
 
     The decision's CUSUM rise: :func:`quantize_cusum`.
@@ -572,7 +572,7 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
     ``2^track_shift``: ``round(2^(TRACK_FRAC + z_shift - track_shift) / z_mult)``, exact in
     Python integers.
     """
-    gain = np.zeros(fm.N_STRAIN, dtype=np.int64)
+    gain = np.zeros(artifact.N_STRAIN, dtype=np.int64)
     if in_use.track_shift:
         for c, mult in enumerate(int(v) for v in z_mult):
             if mult == 0:
@@ -595,7 +595,7 @@ def quantize_in_use(in_use: fm.InUse, z_mult: np.ndarray, z_shift: int) -> dict[
             **quantize_hold(in_use), **quantize_cusum(in_use)}
 
 
-def quantize_cusum(in_use: fm.InUse) -> dict[str, int]:
+def quantize_cusum(in_use: artifact.InUse) -> dict[str, int]:
     """The decision's CUSUM rise in Q8 margin units (fbg_model.contact_cusum_*): each value
     ``round(v * 256)``, clamped to the contract's ``MAX_CUSUM_Q8``; a threshold that would round
     to 0 stays on at 1 (the float model has it on). All 0 when the CUSUM is off."""
@@ -611,7 +611,7 @@ def quantize_cusum(in_use: fm.InUse) -> dict[str, int]:
             "contact_cusum_hi_q8": q8(in_use.contact_cusum_hi)}
 
 
-def quantize_hold(in_use: fm.InUse) -> dict[str, int]:
+def quantize_hold(in_use: artifact.InUse) -> dict[str, int]:
     """The settled-hold gain's integers (fbg_model.hold_*), all 0 when its gain rounds to 0."""
     gain_q15 = int(round(in_use.hold_gain * 2.0**15))
     if not gain_q15:
@@ -622,7 +622,7 @@ def quantize_hold(in_use: fm.InUse) -> dict[str, int]:
             "hold_shift": in_use.hold_shift, "hold_ramp_shift": in_use.hold_ramp_shift}
 
 
-def quantize_input_range(model: fm.HierarchicalModel, z_frac: int) -> dict[str, np.ndarray]:
+def quantize_input_range(model: artifact.HierarchicalModel, z_frac: int) -> dict[str, np.ndarray]:
     """``in_lo``/``in_hi``: the float model's input range in Q(z_frac), rounded outwards (a
     value the float model accepts is never flagged), +-32767 where it has none."""
     n = contract.LIMIT["MAX_INPUTS"]
@@ -666,7 +666,7 @@ def quantize_report(q: QModel, calib: Calibration, bits: int, zmax: float,
 # Error bounds: how far the integers can take an output from the float model
 # --------------------------------------------------------------------------------------------
 
-def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> dict[str, float]:
+def error_bounds(model: artifact.HierarchicalModel, q: QModel, calib: Calibration) -> dict[str, float]:
     """Error budget of fixed vs float on every calibration sample; the maxima.
 
     (docs/fixed-point.md, "Error bounds".) Each rounding of the integer pipeline injects a
@@ -685,7 +685,7 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     filter window), the standardisation multiplier and the Q(z_frac) rounding.
     """
     e_z, zr = _standardised_errors(model, q, calib)
-    e_z, e_loc = _memory_errors(q, model.preprocess.memory, calib.z[:, :fm.N_STRAIN], e_z, zr)
+    e_z, e_loc = _memory_errors(q, model.preprocess.memory, calib.z[:, :artifact.N_STRAIN], e_z, zr)
     z = calib.z[:, :q.n_features]
     e_margin = _net_errors(q.nets[0], z, e_z, 0) / 256.0
     out = {"contact_margin": float(e_margin.max(initial=0.0)), "input_z": float(e_z.max(initial=0.0))}
@@ -694,7 +694,7 @@ def error_bounds(model: fm.HierarchicalModel, q: QModel, calib: Calibration) -> 
     return out
 
 
-def _filter_errors(pre: fm.Preprocess, q: QModel, calib: Calibration) -> np.ndarray:
+def _filter_errors(pre: artifact.Preprocess, q: QModel, calib: Calibration) -> np.ndarray:
     """The error bound of the filtered shifts (n, 4) in fm: the front end's roundings (the
     conversion to fm, the temperature reference's average, the Q24 coefficient, the creep
     inverse) carried through the filter, plus the Q15 taps' residue on the signal the filter
@@ -719,7 +719,7 @@ def _filter_errors(pre: fm.Preprocess, q: QModel, calib: Calibration) -> np.ndar
             + abs(dtaps.sum()) * comp_abs + 0.5)
 
 
-def _standardised_errors(model: fm.HierarchicalModel, q: QModel, calib: Calibration
+def _standardised_errors(model: artifact.HierarchicalModel, q: QModel, calib: Calibration
                          ) -> tuple[np.ndarray, np.ndarray]:
     """The error bound of the standardised channels z (n, 4), in standardised units: the
     filtered shifts' (:func:`_filter_errors`) and the mean's rounding through the ideal
@@ -728,12 +728,12 @@ def _standardised_errors(model: fm.HierarchicalModel, q: QModel, calib: Calibrat
     pre = model.preprocess
     e_filt = _filter_errors(pre, q, calib)
     zr = 2.0**q.z_frac / (1000.0 * pre.input_std)
-    d = np.abs(calib.z[:, :fm.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
+    d = np.abs(calib.z[:, :artifact.N_STRAIN]) * 1000.0 * pre.input_std + e_filt + 0.5
     e_z = ((e_filt + 0.5) * zr + d * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
     return e_z, zr
 
 
-def _memory_errors(q: QModel, memory: fm.Memory, z: np.ndarray, e_z: np.ndarray, zr: np.ndarray
+def _memory_errors(q: QModel, memory: artifact.Memory, z: np.ndarray, e_z: np.ndarray, zr: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
     """The error bounds of :func:`error_bounds` carried into the memory: the contact and force
     nets' inputs (``e_z`` of the standardised channels ``z`` (n, 4), then one column per memory
@@ -761,12 +761,12 @@ def _memory_errors(q: QModel, memory: fm.Memory, z: np.ndarray, e_z: np.ndarray,
     if q.n_loc:
         mean_fm = q.mean_fm.astype(np.float64)
         e_z0 = (0.5 * zr + np.abs(mean_fm) * np.abs(q.z_mult / 2.0**q.z_shift - zr) + 0.5) / 2.0**q.z_frac
-        e_r = e_z[:, :fm.N_STRAIN] + e_z0
+        e_r = e_z[:, :artifact.N_STRAIN] + e_z0
         e_loc = np.broadcast_to(e_r.max(axis=0, initial=0.0) + 1.5 * lsb, e_r.shape)
     return e_z, e_loc
 
 
-def _force_location_errors(model: fm.HierarchicalModel, q: QModel, calib: Calibration,
+def _force_location_errors(model: artifact.HierarchicalModel, q: QModel, calib: Calibration,
                            e_z: np.ndarray, e_loc: np.ndarray) -> dict[str, float]:
     """The force's and the location's error bounds on the calibration samples decided
     contact (the only ones the runtime computes them on), in N and mm. The location net
@@ -781,8 +781,8 @@ def _force_location_errors(model: fm.HierarchicalModel, q: QModel, calib: Calibr
     force_out = np.abs(calib.f[c]) * 1000.0 * abs(model.force_scale) + e_force_mN
     e_fq = ((e_force_mN + 0.5) * abs(fq_ratio) + force_out * abs(q.fq_mult / 2.0**q.fq_shift - fq_ratio)
             + 0.5) / 2.0**q.z_frac
-    loc_x = fm.location_inputs(xc, np.ones(zc.shape[0]), calib.f[c], q.n_loc)
-    loc_e = np.column_stack([ezc[:, :fm.N_STRAIN], np.zeros(zc.shape[0]), e_fq, e_loc[c]])
+    loc_x = floatref.location_inputs(xc, np.ones(zc.shape[0]), calib.f[c], q.n_loc)
+    loc_e = np.column_stack([ezc[:, :artifact.N_STRAIN], np.zeros(zc.shape[0]), e_fq, e_loc[c]])
     return {"force_N": float((e_force_mN.max() + 0.5) / 1000.0),
             "x_mm": float((_net_errors(q.nets[2], loc_x, loc_e, 0).max() + 0.5) / 1000.0),
             "y_mm": float((_net_errors(q.nets[2], loc_x, loc_e, 1).max() + 0.5) / 1000.0)}

@@ -15,7 +15,7 @@ import numpy as np
 
 from fbgforce import contract
 
-from fbgforce import model as fm
+from fbgforce.model import floatref, modeldir
 from fbgforce.export import intref
 from fbgforce.export.blob import load_model_blob
 from fbgforce.export.exporter import recording_baseline
@@ -25,10 +25,10 @@ RAW_FIELDS = contract.OUTPUT_FIELDS
 
 def verify(model_dir: str | Path, data: Sequence[str | Path]) -> dict[str, Any]:
     """Compare the three implementations on every sample of the recordings in ``data``."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce.pybind import Runtime
 
-    model = fm.load(model_dir)
+    model = modeldir.load(model_dir)
     q = load_model_blob(model_dir)
     res = {"samples": 0, "mismatches": 0, "contact_disagreements": 0, "max_abs_err_force_N": 0.0,
            "max_abs_err_x_mm": 0.0, "max_abs_err_y_mm": 0.0,
@@ -46,9 +46,9 @@ def verify(model_dir: str | Path, data: Sequence[str | Path]) -> dict[str, Any]:
         for k in RAW_FIELDS:
             differs |= np.asarray(c_out[k], dtype=np.int64) != ref[k]
         fixed = intref.to_engine_dict(ref)
-        flt = fm.predict(model, ds.wl_nm, base)
+        flt = floatref.predict(model, ds.wl_nm, base)
         logits = model.contact.forward(
-            fm.features(model, ds.wl_nm, base)[:, :model.preprocess.n_features])
+            floatref.features(model, ds.wl_nm, base)[:, :model.preprocess.n_features])
         margin = logits[:, 1] - logits[:, 0]
         dis = fixed["contact"] != flt["contact"]
         both = fixed["contact"] & flt["contact"]

@@ -83,7 +83,7 @@ class Playback:
 
     @classmethod
     def from_dataset(cls, ds: Any) -> "Playback":
-        """From a :class:`fbgforce.dataset.Dataset` (or anything with the same fields)."""
+        """From a :class:`fbgforce.recordings.dataset.Dataset` (or anything with the same fields)."""
         t_us = np.round(np.asarray(ds.t_s, dtype=np.float64) * 1e6).astype(np.int64)
         extra = getattr(ds, "extra", None) or {}
         dropout = extra.get("dropout")
@@ -522,7 +522,7 @@ def load_playback(scene: str | None = None, data: str | None = None, *, seed: in
     if (scene is None) == (data is None):
         raise ValueError("give exactly one of scene or data")
     if data is not None:
-        from fbgforce import dataset
+        from fbgforce.recordings import dataset
 
         return Playback.from_dataset(dataset.load(data))
     from fbgforce import sim

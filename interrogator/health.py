@@ -39,7 +39,7 @@ class Health:
     Parameters
     ----------
     model_digest
-        The model's digest (:func:`fbgforce.freshness.model_digest`), reported as it is.
+        The model's digest (:func:`fbgforce.model.freshness.model_digest`), reported as it is.
     tracker_bound_pm
         The at-rest tracker's bound on its correction of a grating's baseline, pm (0: no
         tracker).

@@ -13,7 +13,7 @@ it. One message per sample on each topic of
 - with a model, ``/fbgforce/contact`` and ``/fbgforce/wrench``: the estimates, as
   ``stream --publish ros2://`` publishes them.
 
-:func:`fbgforce.bag.load_bag` reads such a file back into the dataset contract.
+:func:`fbgforce.recordings.dataset.load_bag` reads such a file back into the dataset contract.
 """
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce.bag import FBGFORCE_TOPICS as TOPICS
+from fbgforce.recordings.bag import FBGFORCE_TOPICS as TOPICS
 from fbgforce.errors import InputError
 from fbgforce.interrogator import ros2 as R
 

@@ -29,7 +29,7 @@ from typing import Sequence
 import numpy as np
 
 from fbgforce import units
-from fbgforce.dataset import WL_RANGE_NM
+from fbgforce.recordings.dataset import WL_RANGE_NM
 
 # --------------------------------------------------------------------------------------------
 # Shared

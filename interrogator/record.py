@@ -3,10 +3,10 @@
 The interrogator port gives wavelengths tagged with a sample counter; the stage/load-cell port
 gives one line per sample tagged with the same counter (docs/protocol.md). Samples are joined
 on the counter; a sample that only one side delivered is dropped and counted, never guessed.
-The result is written with :func:`fbgforce.dataset.save`, so it is validated against the
+The result is written with :func:`fbgforce.recordings.dataset.save`, so it is validated against the
 dataset contract and is ready for ``fbgforce train``; an ``.mcap`` output is a rosbag2 log of
 the same samples (:mod:`fbgforce.interrogator.mcaplog`), read back by
-:func:`fbgforce.dataset.load`.
+:func:`fbgforce.recordings.dataset.load`.
 """
 from __future__ import annotations
 
@@ -74,9 +74,9 @@ class Joiner:
 
 def pairs_to_dataset(pairs: list[tuple[Frame, LoadCellSample]], *, rate_hz: float,
                      source: str) -> tuple[Any, int]:
-    """Build a :class:`fbgforce.dataset.Dataset`; returns it and the rows dropped for a lost
+    """Build a :class:`fbgforce.recordings.dataset.Dataset`; returns it and the rows dropped for a lost
     peak (a wavelength outside 1000–2000 nm, which the contract rejects)."""
-    from fbgforce.dataset import Dataset
+    from fbgforce.recordings.dataset import Dataset
 
     seq = np.array([f.seq for f, _ in pairs], dtype=np.int64)
     t_us = np.array([f.t_us for f, _ in pairs], dtype=np.int64)
@@ -108,7 +108,7 @@ def run_record(reader: Reader, loadcell: LoadCellReader, out: str | Path, *,
     rosbag2 MCAP log (:mod:`fbgforce.interrogator.mcaplog`) of the same samples, with the
     estimates of ``estimator`` (a :class:`~fbgforce.interrogator.stream.LiveEstimator`, fed
     the recorded samples in order) when one is given."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     out = Path(out)
     _check_output(out, estimator)

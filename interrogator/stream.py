@@ -6,7 +6,7 @@ unloaded when the stream starts, as at the start of every calibration file); tho
 are then run too, so the estimates of the whole stream are exactly what the offline engine
 gives on the same samples with the same baseline::
 
-    fbgforce.engines.run_engine("fixed", model_dir, model, wl_nm, baseline_nm)
+    fbgforce.evaluation.engines.run_engine("fixed", model_dir, model, wl_nm, baseline_nm)
 
 Lost frames are not filled in: the filter sees the samples that arrived (a gap of a few
 samples shifts the filter's time base by as much; the count is in the status line and the
@@ -35,8 +35,9 @@ from typing import Any, Protocol, Sequence, TextIO
 
 import numpy as np
 
-from fbgforce import contract, fileio, freshness, signals
-from fbgforce import model as fm
+from fbgforce import contract, fileio, signals
+from fbgforce.model import freshness
+from fbgforce.model import floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.interrogator.health import Health
 from fbgforce.interrogator.protocol import Frame, fm_to_nm, nm_to_fm
@@ -128,7 +129,7 @@ class LiveEstimator:
         if tare_samples < 0:
             raise InputError("must be >= 0", column="--tare-samples")
         self.model_dir = Path(model_dir)
-        self.model = fm.load(model_dir)
+        self.model = modeldir.load(model_dir)
         self.engine = engine
         self.tare_samples = tare_samples
         self._pending: list[np.ndarray] = []
@@ -153,7 +154,7 @@ class LiveEstimator:
 
             self._rt = Runtime(self.model_dir, float_model=self.model)
         else:
-            self._pipeline: fm.FloatPipeline | None = None
+            self._pipeline: floatref.FloatPipeline | None = None
         if tare_samples == 0:
             self._set_baseline(nm_to_fm(self.model.baseline_nm))
 
@@ -167,7 +168,7 @@ class LiveEstimator:
         if self.engine == "fixed":
             self._rt.set_baseline(self.baseline_fm)  # also starts the filter from zero history
         else:
-            self._pipeline = fm.FloatPipeline(self.model, fm_to_nm(self.baseline_fm))
+            self._pipeline = floatref.FloatPipeline(self.model, fm_to_nm(self.baseline_fm))
 
     @property
     def tracker_offset_pm(self) -> float:
@@ -189,7 +190,7 @@ class LiveEstimator:
         return float(iu.track_limit_pm) if iu.track_shift else 0.0
 
     def digest(self) -> str:
-        """The model's digest (:func:`fbgforce.freshness.model_digest`; the one its export
+        """The model's digest (:func:`fbgforce.model.freshness.model_digest`; the one its export
         recorded)."""
         return freshness.model_digest(self.model)
 

@@ -4,8 +4,8 @@ The researcher's API (docs/python-api.md), all from ``import fbgforce``:
 
 ======================  ==================================================================
 ``simulate``            a recording from the built-in simulator (``fbgforce.sim.simulate``)
-``load_dataset``        a recording from a CSV or npz file (``fbgforce.dataset.load``)
-``save_dataset``        write one (``fbgforce.dataset.save``)
+``load_dataset``        a recording from a CSV or npz file (``fbgforce.recordings.dataset.load``)
+``save_dataset``        write one (``fbgforce.recordings.dataset.save``)
 ``to_dataframe``        a recording as a pandas DataFrame (needs pandas)
 ``from_dataframe``      a recording from a DataFrame, validated like a file (needs pandas)
 ``train``               train the three nets (``fbgforce.trainer.train.train``)
@@ -14,13 +14,18 @@ The researcher's API (docs/python-api.md), all from ``import fbgforce``:
 ``save_model``          write a model directory; ``load_model`` reads one
 ``export_model``        ONNX, the fixed-point blob and C source of a model directory
 ``Runtime``             the fixed-point C runtime (``fbgforce.pybind.Runtime``)
-``Dataset``             the recording type (``fbgforce.dataset.Dataset``)
+``Dataset``             the recording type (``fbgforce.recordings.dataset.Dataset``)
 ======================  ==================================================================
 
-Subpackages live in sibling top-level directories of the repository and are mapped onto this
-namespace by ``pyproject.toml``: ``fbgforce.sim`` (simulator), ``fbgforce.trainer`` (numpy
-training), ``fbgforce.export`` (ONNX and fixed-point export), ``fbgforce.pybind`` (the cffi
-binding of the C runtime), ``fbgforce.interrogator`` (serial I/O), ``fbgforce.teleop``.
+The core, in this directory, follows the data: ``fbgforce.recordings`` (the dataset format and
+every way into it), ``fbgforce.model`` (the model directory and the float reference engine),
+``fbgforce.evaluation`` (metrics, every engine by name, figures), above base modules
+(``contract``, ``units``, ``errors``, ``fileio``, ``jsonutil``, ``signals``, ``samples``,
+``progress``, ``geometry``). The other parts live in sibling top-level directories of the
+repository and are mapped onto this namespace by ``pyproject.toml``: ``fbgforce.sim``
+(simulator), ``fbgforce.trainer`` (numpy training), ``fbgforce.export`` (ONNX and fixed-point
+export), ``fbgforce.pybind`` (the cffi binding of the C runtime), ``fbgforce.interrogator``
+(serial I/O), ``fbgforce.teleop``.
 """
 from __future__ import annotations
 
@@ -33,16 +38,16 @@ from fbgforce.contract import VERSION_STR as __version__
 #: cheap for the CLI and simulation/training work where the C extension is not built.
 _API = {
     "simulate": "fbgforce.sim:simulate",
-    "load_dataset": "fbgforce.dataset:load",
-    "save_dataset": "fbgforce.dataset:save",
-    "to_dataframe": "fbgforce.dataset:to_dataframe",
-    "from_dataframe": "fbgforce.dataset:from_dataframe",
-    "Dataset": "fbgforce.dataset:Dataset",
+    "load_dataset": "fbgforce.recordings.dataset:load",
+    "save_dataset": "fbgforce.recordings.dataset:save",
+    "to_dataframe": "fbgforce.recordings.dataset:to_dataframe",
+    "from_dataframe": "fbgforce.recordings.dataset:from_dataframe",
+    "Dataset": "fbgforce.recordings.dataset:Dataset",
     "train": "fbgforce.trainer.train:train",
-    "predict": "fbgforce.model:predict",
+    "predict": "fbgforce.model.floatref:predict",
     "evaluate": "fbgforce.trainer.evaluate:evaluate",
-    "save_model": "fbgforce.model:save",
-    "load_model": "fbgforce.model:load",
+    "save_model": "fbgforce.model.modeldir:save",
+    "load_model": "fbgforce.model.modeldir:load",
     "export_model": "fbgforce.export.exporter:export_model",
     "Runtime": "fbgforce.pybind:Runtime",
 }

@@ -24,14 +24,14 @@ from fbgforce.errors import InputError
 #: Modules that define subcommands, in the order their commands appear in ``--help``.
 COMMAND_MODULES = (
     "fbgforce.sim.cli",
-    "fbgforce.labcli",
+    "fbgforce.recordings.cli",
     "fbgforce.trainer.cli",
     "fbgforce.export.cli",
     "fbgforce.tradeoff.cli",
     "fbgforce.target.cli",
     "fbgforce.interrogator.cli",
     "fbgforce.teleop.cli",
-    "fbgforce.demo",
+    "fbgforce.demo.cli",
 )
 
 

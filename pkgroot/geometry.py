@@ -183,7 +183,7 @@ class Design:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(force_N, x_mm, y_mm)`` from (n, 5) wavelengths, tared against ``baseline_nm``
         (default: this design's base wavelengths). The T grating is not used (no temperature
-        compensation here: see ``fbgforce.model.compensate`` for that step)."""
+        compensation here: see ``fbgforce.model.floatref.compensate`` for that step)."""
         wl = np.asarray(wl_nm, float)
         base = self.base_wl_nm if baseline_nm is None else np.asarray(baseline_nm, float)
         shift_pm = (wl[:, :N_BEAMS] - base[:N_BEAMS]) * 1000.0

@@ -159,4 +159,4 @@ def check_rate(model: Any, rate_hz: float, where: str | None = None) -> None:
     if abs(rate_hz - trained) > RATE_TOLERANCE * trained:
         raise InputError(f"sampled at {rate_hz:.6g} Hz but the model was trained at "
                          f"{trained:.6g} Hz; resample the data (evaluate --resample, "
-                         "fbgforce.dataset.resample) or train a model at this rate", path=where)
+                         "fbgforce.recordings.dataset.resample) or train a model at this rate", path=where)

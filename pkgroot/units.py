@@ -48,7 +48,7 @@ def gate_outputs(contact: Any, force_N: Any, x_mm: Any, y_mm: Any) -> tuple[Any,
 
 
 def to_engine_dict(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """Fixed-point outputs -> the engine keys of fbgforce.engines (SI-ish units, gated by
+    """Fixed-point outputs -> the engine keys of fbgforce.evaluation.engines (SI-ish units, gated by
     :func:`gate_outputs`)."""
     contact = np.asarray(out["contact"]).astype(bool)
     force_N, x_mm, y_mm = gate_outputs(

@@ -13,8 +13,9 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce import contract, freshness, samples, units
-from fbgforce import model as fm
+from fbgforce import contract, samples, units
+from fbgforce.model import modeldir as freshness
+from fbgforce.model import artifact, modeldir
 from fbgforce.errors import InputError
 
 try:
@@ -173,7 +174,7 @@ class Runtime(_Base):
     float_model
         The directory's float model if the caller has loaded it (saves reading it again): a
         directory's blob must have been exported from it
-        (:func:`fbgforce.freshness.check_export`, an :class:`InputError` otherwise).
+        (:func:`fbgforce.model.modeldir.check_export`, an :class:`InputError` otherwise).
 
     Examples
     --------
@@ -280,10 +281,10 @@ class FloatRuntime(_Base):
 
     _prefix = "fbgf"
 
-    def __init__(self, model: str | Path | fm.HierarchicalModel, *, jump_nm: float | None = None,
+    def __init__(self, model: str | Path | artifact.HierarchicalModel, *, jump_nm: float | None = None,
                  overload_N: float | None = None, stuck_samples: int = 0,
                  require_tare: bool = False) -> None:
-        m = fm.load(model) if isinstance(model, (str, Path)) else model
+        m = modeldir.load(model) if isinstance(model, (str, Path)) else model
         pre = m.preprocess
         taps_f = pre.runtime_taps()
         keep: list[Any] = []
@@ -299,7 +300,7 @@ class FloatRuntime(_Base):
                                           stuck_samples).items():
             setattr(c, name, value)
         c.taps = farr(taps_f)
-        for n, name in enumerate(fm.NET_NAMES):
+        for n, name in enumerate(artifact.NET_NAMES):
             net = m.nets[name]
             c.nets[n].n_layers = len(net.weights)
             for i, (w, b) in enumerate(zip(net.weights, net.biases)):

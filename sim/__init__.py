@@ -1,6 +1,6 @@
 """Scene-driven physics simulator of the FBG end-effector (stands in for the gripper).
 
-Public API: :func:`simulate` (scene → :class:`fbgforce.dataset.Dataset`), :func:`load_scene`,
+Public API: :func:`simulate` (scene → :class:`fbgforce.recordings.dataset.Dataset`), :func:`load_scene`,
 :class:`Scene`, :class:`EndEffector` (streaming, for closed-loop use), :data:`EFFECT_ORDER`.
 Physics and effects: docs/simulator.md.
 """

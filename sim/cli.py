@@ -44,7 +44,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``fbgforce simulate``."""
     import sys
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.sim import builtin_scenes, load_scene, simulate
 
     if args.list:

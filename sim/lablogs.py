@@ -17,9 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce.dataset import Dataset
+from fbgforce.recordings.dataset import Dataset
 from fbgforce.errors import InputError
-from fbgforce.labimport import FBG_KEYS, STAGE_KEYS
+from fbgforce.recordings.labimport import FBG_KEYS, STAGE_KEYS
 
 #: Column names of the written logs (deliberately not the dataset's).
 FBG_LOG_COLUMNS = ("timestamp", "peak1", "peak2", "peak3", "peak4", "peak_ref")

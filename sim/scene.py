@@ -17,7 +17,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
-from fbgforce.dataset import CONTACT_THRESHOLD_N
+from fbgforce.recordings.dataset import CONTACT_THRESHOLD_N
 from fbgforce.errors import InputError
 from fbgforce.sim.effects import EFFECT_ORDER, EFFECTS, RENAMED_EFFECTS, canonical_effect_name
 from fbgforce.sim.params import Param, check_params

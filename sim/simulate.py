@@ -1,11 +1,11 @@
-"""Scene → ground-truth schedule → :class:`EndEffector` → :class:`fbgforce.dataset.Dataset`."""
+"""Scene → ground-truth schedule → :class:`EndEffector` → :class:`fbgforce.recordings.dataset.Dataset`."""
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
 
-from fbgforce.dataset import Dataset
+from fbgforce.recordings.dataset import Dataset
 from fbgforce.sim.endeffector import EndEffector
 from fbgforce.sim.scene import Scene, load_scene
 from fbgforce.sim.schedule import build_schedule

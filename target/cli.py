@@ -98,8 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _train_small(tmp: Path) -> Path:
     """A small model on the simulated ``smoke`` scene (what the test fixtures use)."""
-    from fbgforce import dataset as fds
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset as fds
+    from fbgforce.model import modeldir as fm
     from fbgforce import sim
     from fbgforce.trainer.train import train
 

@@ -28,7 +28,7 @@ def load_quantized(model_dir: Path, calib: Sequence[str] | None = None, bits: in
 
     if bits is None and (model_dir / blob.FILE_NAME).is_file():
         return blob.load_model_blob(model_dir), str(model_dir / blob.FILE_NAME)
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.export import exporter
     from fbgforce.export import quantize as qz
 
@@ -42,7 +42,7 @@ def load_quantized(model_dir: Path, calib: Sequence[str] | None = None, bits: in
 def recording_fm(data: str | None, scene: str, seed: int, samples: int) -> tuple[np.ndarray, np.ndarray, str]:
     """``samples`` consecutive samples (int32 fm) and their contact flags: from ``data`` or a
     simulated ``scene``; the window starts shortly before the first contact."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce.export import intref
 
     if data:

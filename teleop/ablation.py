@@ -14,7 +14,7 @@ from typing import Any, Callable
 import numpy as np
 
 from fbgforce import contract
-from fbgforce.model import memory_attr
+from fbgforce.model.artifact import memory_attr
 from fbgforce.teleop.feedback import Feedback, SensorFeedback, describe
 from fbgforce.teleop.loop import TeleopResult, run_seeds, simulate
 from fbgforce.teleop.scene import TeleopScene

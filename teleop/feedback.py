@@ -141,7 +141,7 @@ class SensorFeedback:
     def __init__(self, model_dir: str | Path, engine: str = "fixed", extra_delay_ms: float = 0.0,
                  label: str | None = None, prefetch: bool = True,
                  allow_other_device: bool = False) -> None:
-        from fbgforce import model as model_mod
+        from fbgforce.model import modeldir as model_mod
         from fbgforce.teleop.sensor import ENGINE_NAMES
 
         if engine not in ENGINE_NAMES:

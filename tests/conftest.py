@@ -73,7 +73,8 @@ SMALL_SEED = 0
 @_pytest.fixture(scope="session")
 def small_dataset_path(tmp_path_factory):
     """Path of a CSV holding the simulator's small ``smoke`` scene (seed 0)."""
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
 
     path = tmp_path_factory.mktemp("small_data") / "smoke.csv"
     dataset.save(sim.simulate(SMALL_SCENE, seed=SMALL_SEED), path)
@@ -83,7 +84,7 @@ def small_dataset_path(tmp_path_factory):
 @_pytest.fixture(scope="session")
 def small_model_dir(tmp_path_factory, small_dataset_path):
     """A model directory trained on ``small_dataset_path`` (causal filter, seed 0, ~10 s)."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.trainer.params import PAPER_SIZES
     from fbgforce.trainer.train import train
 
@@ -112,7 +113,7 @@ def make_synthetic_recording(n_press: int = 40, seed: int = 0, noise_pm: float =
     points (0.3 s rest, 0.6 s half-sine load up to 70 N), white noise, an optional linear
     temperature ramp seen by the reference grating and, scaled by ``temp_coeff``, by the others.
     """
-    from fbgforce.dataset import Dataset
+    from fbgforce.recordings.dataset import Dataset
     from fbgforce.geometry import NOMINAL, PAD_SIZE_MM
 
     rng = _np.random.default_rng(seed)
@@ -152,10 +153,10 @@ def synthetic_recording():
 def make_random_model(seed: int = 0, sizes=((70, 50, 20), (70, 50, 20), (70, 50, 40)),
                       n_taps: int = 16, sigma: float = 4.0, filter_kind: str = "causal",
                       memory=None):
-    """A :class:`fbgforce.model.HierarchicalModel` with random He-scaled weights, a causal
+    """A :class:`fbgforce.model.artifact.HierarchicalModel` with random He-scaled weights, a causal
     Gaussian filter, standardisation of a few hundred pm, the nominal baseline and the given
-    memory (a :class:`fbgforce.model.Memory`; none by default)."""
-    from fbgforce import model as fm
+    memory (a :class:`fbgforce.model.artifact.Memory`; none by default)."""
+    from fbgforce.model import artifact as fm
 
     rng = _np.random.default_rng(seed)
 

@@ -31,7 +31,7 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
   several files.
 
 Use :func:`device` for a device (seeded), :func:`log` for one recording of it, and
-:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.dataset.load`` must accept,
+:func:`write_csv` to write a messy-but-valid CSV that ``fbgforce.recordings.dataset.load`` must accept,
 :func:`write_lab_logs` for the raw interrogator and stage logs a lab would have of it (for
 ``fbgforce import``: peaks in pm, another stage clock).
 :data:`VARIANTS` are the named cases the generalisation tests and docs/trainer.md use.
@@ -67,7 +67,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbgforce.dataset import Dataset
+from fbgforce.recordings.dataset import Dataset
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ def test_breakdown_adds_up_to_the_shared_metrics(small_model_dir, small_dataset_
     shares_x = [r["share_sq_err_x"] for r in loc if r["n_samples"]]
     assert sum(shares_x) == pytest.approx(1.0)
     # The ranges partition the scored samples: their pooled RMSE is the model's test RMSE.
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     test = fm.load(small_model_dir).metadata["metrics"]["test"]
     n = sum(r["n_samples"] for r in loc)
     pooled = np.sqrt(sum(r["rmse_x_mm"] ** 2 * r["n_samples"] for r in loc if r["n_samples"]) / n)

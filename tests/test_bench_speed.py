@@ -82,9 +82,9 @@ def test_callgrind_counts_deterministic(result, small_exported_dir, small_datase
     # widest, AVX2, does 16 MACs per VPMADDWD).
     assert counted[("fixed", "O1")] >= result["macs_per_step"] / 16
     # Counting again gives the same figure: the count is noise-free.
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce.pybind import to_fm
-    from fbgforce.tare import tare
+    from fbgforce.recordings.tare import tare
     from fbgforce.tradeoff.timers import timing_samples
 
     row = next(r for r in result["rows"] if (r["engine"], r["build"], r["call"], r["caller"]) ==
@@ -160,9 +160,9 @@ def test_packed_driver_builds_give_the_extensions_bits(kernel, small_exported_di
     """The driver's packed runs (fbg_pack into its own buffer, fbg_use_pack after every
     restart) give the extension's fbg_run bits."""
     _require("gcc")
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce.pybind import KERNELS, ArgError, Runtime, to_fm
-    from fbgforce.tare import tare
+    from fbgforce.recordings.tare import tare
     from fbgforce.tradeoff.timers import timing_samples
 
     try:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact as fm
 from fbgforce.export import blob, mutate
 from fbgforce.export.quantize import calibrate, quantize
 

@@ -85,7 +85,7 @@ target_link_libraries(consumer PRIVATE fbgforce::fbgforce)
 @pytest.fixture(scope="module")
 def golden(small_exported_dir, small_dataset_path):
     """(input bytes for the consumer, integer-reference outputs, generated C directory)."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.export.exporter import recording_baseline
 
     ds = dataset.load(small_dataset_path).subset(slice(0, SAMPLES))

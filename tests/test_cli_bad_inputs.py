@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbgforce import model as fm
+from fbgforce.model import modeldir as fm
 from fbgforce.cli import build_parser, main
 
 NO_DEVICE = "/dev/ttyFBG-no-such-device"
@@ -26,7 +26,7 @@ NO_DEVICE = "/dev/ttyFBG-no-such-device"
 @pytest.fixture(scope="module")
 def bad(tmp_path_factory, small_exported_dir, small_dataset_path):
     """Paths of good and deliberately broken inputs (one directory, built once)."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     root = tmp_path_factory.mktemp("bad_inputs")
     p = {"good_model": small_exported_dir, "good_data": small_dataset_path,
@@ -79,7 +79,7 @@ def _lab_logs_in_other_units(lab: Path, data: Path) -> dict[str, Path]:
     """The simulator's lab logs of ``data`` (s, N, mm: ``lab_map`` imports them) and copies
     with one log's column in the unit a thousand times smaller (clocks in ms, force in mN,
     positions in µm), which the default flags read 1000 times too large."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.sim.lablogs import write_lab_logs
 
     write_lab_logs(dataset.load(data), lab, rate_hz=500, offset_s=0.1, drift_ppm=80,

@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
+from fbgforce.contract import render
 from fbgforce._runtime import ffi, lib
 
 
 def test_generated_files_are_fresh():
-    stale = contract.stale_files()
+    stale = render.stale_files()
     assert not stale, f"regenerate with `python -m fbgforce.contract --write`: {stale}"
 
 
@@ -105,10 +106,10 @@ def test_a_memory_kind_is_described_once(monkeypatch):
     floats = {f.name: f for f in contract.float_memory_params()}
     assert (floats["creep_span"].ctype, floats["creep_span"].count) == ("float", 2)
     assert [f.name for f in contract.memory_params()] == [f.name for f in contract.float_memory_params()]
-    header = contract.contract_header_text()
+    header = render.contract_header_text()
     assert "#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY) X(creep, CREEP)" in header
     assert "(m)->n_creep)" in header
-    source = contract.float_source_text()
+    source = render.float_source_text()
     assert "m->n_creep > FBG_MAX_CREEP" in source
     assert "{ uint8_t v = m->creep_rate[k]; if (v < 1 || v > 9) return FBG_ERR_RANGE; }" in source
     assert "{ float v = m->creep_span[k]; if (!(v >= 0.0f) || v - v != 0.0f)" in source
@@ -117,19 +118,19 @@ def test_a_memory_kind_is_described_once(monkeypatch):
 def test_every_engine_has_each_kinds_update_rule():
     """The per-kind arithmetic the dispatch reaches by name exists in every engine: the float
     reference and the integer reference tables, and the C functions FBG_MEMORY_KINDS calls."""
-    from fbgforce import model as fm
+    from fbgforce.model import artifact, floatref
     from fbgforce.export import intref
 
     names = [k.name for k in contract.MEMORY_KINDS]
-    assert list(fm.FLOAT_MEMORY) == names and list(intref.INT_MEMORY) == names
-    src = contract.ROOT / "runtime_c" / "src"
+    assert list(floatref.FLOAT_MEMORY) == names and list(intref.INT_MEMORY) == names
+    src = render.ROOT / "runtime_c" / "src"
     for kind in contract.MEMORY_KINDS:
         assert f"static unsigned {kind.name}_features(" in (src / "fbg_fixed.c").read_text()
         assert f"static unsigned {kind.name}_features_f(" in (src / "fbgf_float.c").read_text()
         assert f"static unsigned {kind.name}_features_avx2(" in (src / "fbg_simd_x86.c").read_text()
         assert kind.gain.optional and kind.counted_by.name != "gain"
         for param in kind.params:
-            assert hasattr(fm.Memory(), fm.memory_attr(kind, param))
+            assert hasattr(artifact.Memory(), artifact.memory_attr(kind, param))
 
 
 def test_params_codec_round_trip():

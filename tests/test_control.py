@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 
 from conftest import start_emulator, wait_for_line
-from fbgforce import dataset, sim
+from fbgforce import sim
+from fbgforce.recordings import dataset
 from fbgforce.cli import main
 from fbgforce.errors import InputError
 from fbgforce.interrogator import control as C

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from conftest import make_random_model
-from fbgforce import contract, freshness
-from fbgforce import model as fm
+from fbgforce import contract
+from fbgforce.model import freshness
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
@@ -33,7 +34,7 @@ from test_temp_reference import VERSION6_DIGEST, assert_version6_export, version
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 
 
-def _with_creep(model: fm.HierarchicalModel, creep: float, creep_shift: int) -> fm.HierarchicalModel:
+def _with_creep(model: artifact.HierarchicalModel, creep: float, creep_shift: int) -> artifact.HierarchicalModel:
     return dataclasses.replace(model, preprocess=dataclasses.replace(
         model.preprocess, creep=creep, creep_shift=creep_shift))
 
@@ -116,8 +117,8 @@ def test_float_engines_follow_the_same_rule():
     # one primes L = c (e = c), the next gives e = c + q (c - L) and steps L, a faulty one holds.
     pre, k = model.preprocess, model.preprocess.creep_shift
     q = pre.creep_gain
-    c = fm.compensate(model, wl[1:3], model.baseline_nm, [None], np.zeros(2, dtype=bool))
-    fresh = fm.FloatPipeline(model, model.baseline_nm)
+    c = floatref.compensate(model, wl[1:3], model.baseline_nm, [None], np.zeros(2, dtype=bool))
+    fresh = floatref.FloatPipeline(model, model.baseline_nm)
     fresh.push(wl[0:1])
     assert fresh._creep_lag[0] is None
     fresh.push(wl[1:2])
@@ -130,10 +131,10 @@ def test_float_engines_follow_the_same_rule():
     assert np.array_equal(fresh._creep_lag[0], held)
     # The float model's whole-recording features take the same inverse (faults and all).
     off = _with_creep(model, 0.0, 0)
-    feats = fm.features(model, wl[:2000], model.baseline_nm)
-    assert not np.allclose(feats, fm.features(off, wl[:2000], model.baseline_nm))
-    np.testing.assert_allclose(fm.predict(model, wl[:2000], model.baseline_nm)["force_N"],
-                               fm.FloatPipeline(model, model.baseline_nm).push(wl[:2000])["force_N"],
+    feats = floatref.features(model, wl[:2000], model.baseline_nm)
+    assert not np.allclose(feats, floatref.features(off, wl[:2000], model.baseline_nm))
+    np.testing.assert_allclose(floatref.predict(model, wl[:2000], model.baseline_nm)["force_N"],
+                               floatref.FloatPipeline(model, model.baseline_nm).push(wl[:2000])["force_N"],
                                rtol=1e-9, atol=1e-9)
 
     rt = FloatRuntime(model)
@@ -146,7 +147,7 @@ def test_float_engines_follow_the_same_rule():
 
     def follows(start: int, stop: int, base: np.ndarray) -> None:
         held = np.array(list(rt._state.held_pm))
-        flt_pipe = fm.FloatPipeline(model, base + np.r_[held, 0.0] / 1000.0)
+        flt_pipe = floatref.FloatPipeline(model, base + np.r_[held, 0.0] / 1000.0)
         flt = flt_pipe.push(wl[start:stop])
         c_out = rt.run(wl[start:stop])
         assert rt._state.creep_primed == 1
@@ -169,7 +170,7 @@ def test_float_engines_follow_the_same_rule():
 CREEP, CREEP_SHIFT = 0.05, 10
 
 
-def _creeping_pad(model: fm.HierarchicalModel) -> tuple[np.ndarray, np.ndarray]:
+def _creeping_pad(model: artifact.HierarchicalModel) -> tuple[np.ndarray, np.ndarray]:
     """(n, 5) wavelengths (nm) of a square load at the tare, without drift or noise, as the
     elastic strain gives them (``e``) and as a creeping pad's gratings read them: every
     strain grating's shift ``(1 - m) e + m lag(e)``, lag first order with step 2^-CREEP_SHIFT
@@ -195,10 +196,10 @@ def test_the_inverse_takes_the_pads_creep_out():
     model = _with_creep(make_random_model(0, sizes=((8,), (8,), (8,)), n_taps=5, sigma=1.5),
                         CREEP, CREEP_SHIFT)
     elastic, creeping = _creeping_pad(model)
-    truth = fm.compensate(model, elastic, model.baseline_nm)
-    comp = fm.compensate(model, creeping, model.baseline_nm)
+    truth = floatref.compensate(model, elastic, model.baseline_nm)
+    comp = floatref.compensate(model, creeping, model.baseline_nm)
     assert np.abs(comp - truth).max() > 10.0
-    inverted = fm.creep_inverse(model.preprocess, comp)
+    inverted = floatref.creep_inverse(model.preprocess, comp)
     assert np.abs(inverted - truth).max() < 1e-6
     # The fixed point on the same shifts in fm: the gain's Q15 and the roundings, a few fm.
     fixed = SimpleNamespace(**qz.quantize_creep(model.preprocess))   # all the rule reads
@@ -228,11 +229,11 @@ def test_a_model_without_the_fields_is_the_model_it_was(tmp_path):
     differ = [i for i, (a, b) in enumerate(zip(new, plain)) if a != b]
     assert differ and set(differ) - {12, 13, 14, 15} <= set(range(min(slots), max(slots) + 2))
     # A model.json with a magnitude out of range: one error naming the directory and the field.
-    doc = json.loads((tmp_path / fm.MODEL_JSON).read_text())
+    doc = json.loads((tmp_path / modeldir.MODEL_JSON).read_text())
     doc["preprocess"].update(creep=0.7, creep_shift=10)
-    (tmp_path / fm.MODEL_JSON).write_text(json.dumps(doc))
+    (tmp_path / modeldir.MODEL_JSON).write_text(json.dumps(doc))
     with pytest.raises(InputError, match="creep must be 0 .. 0.5, not 0.7") as err:
-        fm.load(tmp_path)
+        modeldir.load(tmp_path)
     assert err.value.path == str(tmp_path)
 
 
@@ -272,10 +273,10 @@ def test_the_trainers_recordings_take_the_inverse_and_its_levels_do_not():
                         CREEP, CREEP_SHIFT)
     pre, base = model.preprocess, model.baseline_nm
     _, creeping = _creeping_pad(model)
-    comp = fm.compensate(model, creeping, base)
+    comp = floatref.compensate(model, creeping, base)
     assert np.array_equal(pp.compensated(pre, creeping, base), comp)
     np.testing.assert_allclose(pp.recording_features(pre, creeping, base),
-                               fm.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0),
-                                               fm.creep_inverse(pre, comp)), rtol=0, atol=1e-9)
+                               floatref.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0),
+                                               floatref.creep_inverse(pre, comp)), rtol=0, atol=1e-9)
     assert np.abs(pp.recording_features(pre, creeping, base)
-                  - fm.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0), comp)).max() > 10.0
+                  - floatref.apply_filter(dataclasses.replace(pre, creep=0.0, creep_shift=0), comp)).max() > 10.0

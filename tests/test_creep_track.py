@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from conftest import make_random_model, make_random_walk
-from fbgforce import contract, freshness
-from fbgforce import model as fm
+from fbgforce import contract
+from fbgforce.model import freshness
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import QModel
@@ -30,7 +31,7 @@ from test_temp_reference import VERSION6_DIGEST, assert_version6_export, version
 FIELDS = contract.OUTPUT_FIELDS
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 #: A tracker that learns within a short recording (short settle, fast, a few pm of bound).
-QUICK = fm.InUse(contact_on_margin=0.05, contact_off_margin=-0.05, contact_rise_samples=3,
+QUICK = artifact.InUse(contact_on_margin=0.05, contact_off_margin=-0.05, contact_rise_samples=3,
                  track_shift=5, track_settle=40, track_step_max_pm=20.0, track_limit_pm=60.0)
 
 
@@ -40,12 +41,12 @@ def _quantised(track_creep: float, track_creep_shift: int, seed: int = 3, n: int
     fields ``preprocess``), its blob model and (n, 5) wavelengths (nm): a walk with about a
     third of it in contact and lost peaks."""
     model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
-                              memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
+                              memory=artifact.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
     model.preprocess = dataclasses.replace(model.preprocess, **preprocess)
     model.in_use = dataclasses.replace(QUICK, track_creep=track_creep,
                                        track_creep_shift=track_creep_shift)
     wl = make_random_walk(model, n, seed, step_nm=0.0015)
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.quantile(logits[:, 1] - logits[:, 0], 0.66))
     q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
@@ -114,7 +115,7 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     assert_reprimes(model, q, wl, kernel, "creep", "mem_primed")
 
 
-def assert_reprimes(model: fm.HierarchicalModel, q: QModel, wl: np.ndarray, kernel: str,
+def assert_reprimes(model: artifact.HierarchicalModel, q: QModel, wl: np.ndarray, kernel: str,
                     state: str, primed: str) -> None:
     """On ``kernel``, ``fbg_state``'s ``state`` (primed when ``primed`` is set) holds through
     a faulty sample and is primed again after a reset, a tare and a new baseline: from each,
@@ -152,14 +153,14 @@ def assert_reprimes(model: fm.HierarchicalModel, q: QModel, wl: np.ndarray, kern
     segment(3300, 4000, base, "set_baseline again")
 
 
-def pushed_in_pieces(model: fm.HierarchicalModel, wl: np.ndarray
-                     ) -> tuple[fm.FloatPipeline, list[dict], fm.FloatPipeline, dict]:
+def pushed_in_pieces(model: artifact.HierarchicalModel, wl: np.ndarray
+                     ) -> tuple[floatref.FloatPipeline, list[dict], floatref.FloatPipeline, dict]:
     """``wl`` (2000 samples) through one FloatPipeline in pieces of 1 to 1000 samples and
     through another at once: each pipeline and its outputs."""
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    pipe = floatref.FloatPipeline(model, model.baseline_nm)
     cuts = (0, 1, 70, 333, 1000, 2000)
     pieces = [pipe.push(wl[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
-    whole_pipe = fm.FloatPipeline(model, model.baseline_nm)
+    whole_pipe = floatref.FloatPipeline(model, model.baseline_nm)
     return pipe, pieces, whole_pipe, whole_pipe.push(wl)
 
 
@@ -179,9 +180,9 @@ def test_float_engines_follow_the_same_rule():
     # faulty one holds it.
     k, taps = 4, model.preprocess.runtime_taps()
     good = wl[1:3]
-    comp = fm.compensate(model, good, model.baseline_nm, [None], np.zeros(2, dtype=bool))
+    comp = floatref.compensate(model, good, model.baseline_nm, [None], np.zeros(2, dtype=bool))
     f1, f2 = taps[0] * comp[0], taps[0] * comp[1] + taps[1] * comp[0]
-    fresh = fm.FloatPipeline(model, model.baseline_nm)
+    fresh = floatref.FloatPipeline(model, model.baseline_nm)
     fresh.push(wl[0:1])
     assert fresh._track_creep is None
     fresh.push(wl[1:2])
@@ -206,7 +207,7 @@ def test_float_engines_follow_the_same_rule():
         """The C float build from here is FloatPipeline started on ``base`` (the tare, and
         the correction the build holds through a reset)."""
         held = np.array(list(rt._state.held_pm))
-        flt_pipe = fm.FloatPipeline(model, base + np.r_[held, 0.0] / 1000.0)
+        flt_pipe = floatref.FloatPipeline(model, base + np.r_[held, 0.0] / 1000.0)
         flt = flt_pipe.push(wl[start:stop])
         got = rt.run(wl[start:stop])
         assert np.mean(got["contact"] == flt["contact"]) > 0.995
@@ -231,7 +232,7 @@ def _float_correction_pm(rt: FloatRuntime) -> np.ndarray:
 CREEP, CREEP_SHIFT = 0.05, 10
 
 
-def _creeping_presses(model: fm.HierarchicalModel, force_N: float = 20.0, cycles: int = 12
+def _creeping_presses(model: artifact.HierarchicalModel, force_N: float = 20.0, cycles: int = 12
                       ) -> np.ndarray:
     """(n, 5) wavelengths (nm) of a square load on the nominal pad at its tare, without drift:
     2 s rests and 1 s presses of ``force_N``, whose gratings read ``(1 - m) * F + m *
@@ -256,7 +257,7 @@ def test_the_creep_term_keeps_the_tracked_baseline_at_the_true_zero(small_export
     # inverse (on in the trainer's models) is turned off here. These nets were trained with
     # it, so they read the first part of each recovery as a light load: contact lasts
     # longer than the 1 s presses (half the samples, a third of them pressed).
-    loaded = fm.load(small_exported_dir)
+    loaded = modeldir.load(small_exported_dir)
     model = dataclasses.replace(loaded, preprocess=dataclasses.replace(
         loaded.preprocess, creep=0.0, creep_shift=0))
     q = dataclasses.replace(blob.load_model_blob(small_exported_dir), creep_q15=0, creep_shift=0)
@@ -276,7 +277,7 @@ def test_the_creep_term_keeps_the_tracked_baseline_at_the_true_zero(small_export
     assert np.all(np.abs(moved[True]) < 0.2), moved
     flt_model = dataclasses.replace(model, in_use=dataclasses.replace(
         model.in_use, track_creep=CREEP, track_creep_shift=CREEP_SHIFT))
-    pipe = fm.FloatPipeline(flt_model, model.baseline_nm)
+    pipe = floatref.FloatPipeline(flt_model, model.baseline_nm)
     pipe.push(wl)
     assert np.all(np.abs(pipe.baseline_nm - model.baseline_nm)[:4] * 1000.0 < 0.2)
     rt = FloatRuntime(flt_model)
@@ -330,7 +331,7 @@ def test_the_fields_are_range_checked_by_every_reader():
                 {"track_creep": 0.05, "track_creep_shift": 16},
                 {"track_creep": 0.0, "track_creep_shift": 3}):
         with pytest.raises(ValueError, match="track_creep"):
-            fm.InUse(**bad)
+            artifact.InUse(**bad)
     for creep, shift in ((0.6, 10), (0.05, 0), (0.05, 16)):
         model.in_use.track_creep, model.in_use.track_creep_shift = creep, shift  # past the check
         with pytest.raises(RangeError):
@@ -342,7 +343,7 @@ def test_recommended_converts_the_fitted_creep():
     place: the magnitude clipped to 0..0.5, the time constant the nearest power of two with
     k in 1..15; no creep leaves the term off, and the positional arguments are as before."""
     def fields(**kw):
-        iu = fm.InUse.recommended(1000.0, None, **kw)
+        iu = artifact.InUse.recommended(1000.0, None, **kw)
         return iu.track_creep, iu.track_creep_shift
 
     assert fields() == (0.0, 0)
@@ -352,7 +353,7 @@ def test_recommended_converts_the_fitted_creep():
     assert fields(creep_magnitude=0.05, creep_time_constant_samples=1.2) == (0.05, 1)
     assert fields(creep_magnitude=0.0, creep_time_constant_samples=1000.0) == (0.0, 0)
     assert fields(creep_magnitude=0.05, creep_time_constant_samples=0.0) == (0.0, 0)
-    assert fm.InUse.recommended(1000.0, np.array([0.1, 0.2])).track_creep == 0.0
+    assert artifact.InUse.recommended(1000.0, np.array([0.1, 0.2])).track_creep == 0.0
 
 
 def _hardcases():

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, decision as fm_decision, floatref
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import ModelCheckError, QModel
@@ -27,7 +27,7 @@ from test_simd import host_kernels
 TOP = contract.LIMIT["MAX_CUSUM_Q8"]
 FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 #: A CUSUM rise with the tracker of test_decision_tracker's AGGRESSIVE.
-CUSUM = fm.InUse(contact_off_margin=-1.0, track_shift=5, track_settle=40, track_step_max_pm=0.3,
+CUSUM = artifact.InUse(contact_off_margin=-1.0, track_shift=5, track_settle=40, track_step_max_pm=0.3,
                  track_limit_pm=2.0, contact_cusum_h=1.5, contact_cusum_k=0.25,
                  contact_cusum_lo=-0.5, contact_cusum_hi=1.0)
 
@@ -52,16 +52,16 @@ def test_the_cusum_rule_on_hand_made_margins():
     # margin is positive or above off = -20: falls at -50 (S untouched); then 0, 4, 8, 7, 2.
     want = np.array([0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0], dtype=bool)
     state = [0, 0, 0]
-    got = fm.decide_over_time(raw, margin, 0, -20, 1, state, cusum)
+    got = fm_decision.decide_over_time(raw, margin, 0, -20, 1, state, cusum)
     assert np.array_equal(got, want)
     assert state == [0, 0, 2]
     # The state carries from one call to the next exactly as one call; S is carried.
     state = [0, 0, 0]
-    parts = [fm.decide_over_time(raw[a:b], margin[a:b], 0, -20, 1, state, cusum)
+    parts = [fm_decision.decide_over_time(raw[a:b], margin[a:b], 0, -20, 1, state, cusum)
              for a, b in ((0, 3), (3, 13), (13, 16))]
     assert np.array_equal(np.concatenate(parts), want)
     state = [0, 0, 0]
-    fm.decide_over_time(raw[:14], margin[:14], 0, -20, 1, state, cusum)
+    fm_decision.decide_over_time(raw[:14], margin[:14], 0, -20, 1, state, cusum)
     assert state == [0, 0, 8]
     # The integer reference runs exactly this rule on the blob's fields.
     q = QModel.__new__(QModel)
@@ -73,7 +73,7 @@ def test_the_cusum_rule_on_hand_made_margins():
 def test_a_single_spike_cannot_raise_contact_under_the_clip():
     """hi - k < h: one sample, however high its margin, leaves S below h."""
     margin = np.array([-5.0, 1e6, -5.0, -5.0, 1e6, 1e6])
-    got = fm.decide_over_time(margin > 0, margin, 0.0, 0.0, 1, [0, 0, 0.0], (2.0, 0.5, -1.0, 1.6))
+    got = fm_decision.decide_over_time(margin > 0, margin, 0.0, 0.0, 1, [0, 0, 0.0], (2.0, 0.5, -1.0, 1.6))
     assert np.array_equal(got, [0, 0, 0, 0, 0, 1])
 
 
@@ -223,7 +223,7 @@ def test_the_float_build_and_model_run_the_same_cusum(random_model_factory, rand
     model, q, wl = _drifting_model(random_model_factory, random_walk_factory, CUSUM)
     wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)     # no faults: the float model has no rule
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
-    flt = fm.predict(model, wl, model.baseline_nm)
+    flt = floatref.predict(model, wl, model.baseline_nm)
     assert 0.1 < flt["contact"].mean() < 0.9
     assert np.mean(flt["contact"] == fixed["contact"]) > 0.98
     rt = FloatRuntime(model)
@@ -231,27 +231,27 @@ def test_the_float_build_and_model_run_the_same_cusum(random_model_factory, rand
     cf = rt.run(wl)
     assert np.mean(cf["contact"] == flt["contact"]) > 0.995
     # Without the CUSUM the float model decides otherwise: the test sees the rule.
-    schmitt = fm.predict(dataclasses.replace(model, in_use=fm.InUse()), wl, model.baseline_nm)
+    schmitt = floatref.predict(dataclasses.replace(model, in_use=artifact.InUse()), wl, model.baseline_nm)
     assert np.mean(schmitt["contact"] != flt["contact"]) > 0.005
 
 
 def test_in_use_checks_the_cusum_fields():
-    fm.InUse(contact_cusum_h=2.0, contact_cusum_k=0.5, contact_cusum_lo=-1.0, contact_cusum_hi=1.0)
+    artifact.InUse(contact_cusum_h=2.0, contact_cusum_k=0.5, contact_cusum_lo=-1.0, contact_cusum_hi=1.0)
     for bad in ({"contact_cusum_h": -1.0},
                 {"contact_cusum_k": 1.0},                                   # off: the rest is 0
                 {"contact_cusum_h": 1.0, "contact_cusum_lo": 2.0, "contact_cusum_hi": 1.0},
                 {"contact_cusum_h": 1.0, "contact_on_margin": 0.5},         # two rise rules
                 {"contact_cusum_h": 1.0, "contact_rise_samples": 3},
-                {"contact_cusum_h": fm.CUSUM_MAX * 2},
+                {"contact_cusum_h": fm_decision.CUSUM_MAX * 2},
                 {"contact_cusum_h": float("nan")}):
         with pytest.raises(ValueError):
-            fm.InUse(**bad)
-    iu = fm.InUse(contact_cusum_h=1e-4, contact_cusum_k=fm.CUSUM_MAX, contact_cusum_lo=-3.0,
+            artifact.InUse(**bad)
+    iu = artifact.InUse(contact_cusum_h=1e-4, contact_cusum_k=fm_decision.CUSUM_MAX, contact_cusum_lo=-3.0,
                   contact_cusum_hi=-3.0)
     got = qz.quantize_cusum(iu)
     assert got == {"contact_cusum_h_q8": 1, "contact_cusum_k_q8": TOP,
                    "contact_cusum_lo_q8": -768, "contact_cusum_hi_q8": -768}
-    assert set(qz.quantize_cusum(fm.InUse()).values()) == {0}
+    assert set(qz.quantize_cusum(artifact.InUse()).values()) == {0}
 
 
 @pytest.mark.parametrize("fields", [
@@ -263,7 +263,7 @@ def test_in_use_checks_the_cusum_fields():
     {"contact_cusum_h_q8": 10, "contact_cusum_hi_q8": -TOP - 1},
 ])
 def test_both_loaders_refuse_a_bad_cusum_alike(random_model_factory, random_walk_factory, fields):
-    model, q, _ = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    model, q, _ = _drifting_model(random_model_factory, random_walk_factory, artifact.InUse())
     bad = dataclasses.replace(q, **fields)
     with pytest.raises(ModelCheckError):
         bad.check()
@@ -278,7 +278,7 @@ def test_a_negative_output_multiplier_decides_alike_in_c_and_the_reference(
     """The contact net's output row with a negative multiplier: the margin has the opposite
     sign of acc. Both loaders accept it, and every engine computes the rule of
     contact_decision on acc > 0 and the margin as they are (docs/runtime.md, "In use")."""
-    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, artifact.InUse())
     if decision == "schmitt":
         q = dataclasses.replace(q, contact_on_q8=64, contact_off_q8=-128, contact_rise_n=2)
     elif decision == "cusum":
@@ -317,8 +317,8 @@ def test_cusum_path_is_the_recursion():
     for v in m:
         s = max(0.0, s + min(max(v, -1.0), 2.0) - 0.25)
         want.append(s)
-    assert np.allclose(fm.cusum_path(m, 0.25, -1.0, 2.0), want, atol=1e-9)
-    peaks = fm.cusum_peaks(m, 0.25, -1.0, 2.0)
+    assert np.allclose(fm_decision.cusum_path(m, 0.25, -1.0, 2.0), want, atol=1e-9)
+    peaks = fm_decision.cusum_peaks(m, 0.25, -1.0, 2.0)
     w = np.asarray(want)
     assert peaks.size == np.sum((w > 0) & (np.concatenate([[0.0], w[:-1]]) == 0))
     assert peaks.max() == pytest.approx(w.max())
@@ -331,32 +331,32 @@ def test_the_trainers_cusum_keeps_false_events_at_rest_rare():
     the tail fit, not the floor, sets h."""
     rng = np.random.default_rng(2)
     calib = _ar1(rng, 120_000, -1.0)
-    cs = fm.cusum_parameters(calib, 1000.0, k=0.0)
-    floor = fm.RISE_S * 1000.0 * 0.5
+    cs = fm_decision.cusum_parameters(calib, 1000.0, k=0.0)
+    floor = fm_decision.RISE_S * 1000.0 * 0.5
     assert cs["h"] > 10 * floor and cs["hi"] == pytest.approx(0.5 * cs["h"])
     later = _ar1(rng, 1_800_000, -1.0)
-    events = np.sum(fm.cusum_peaks(later, cs["k"], cs["lo"], cs["hi"]) >= cs["h"])
+    events = np.sum(fm_decision.cusum_peaks(later, cs["k"], cs["lo"], cs["hi"]) >= cs["h"])
     assert events / 30.0 <= 0.3
     # Fitted at the goal itself, without the margin, the same rests give a lower threshold.
-    loose = fm.cusum_parameters(calib, 1000.0, k=0.0, false_per_min=fm.CUSUM_FIT_MARGIN * 0.1)
+    loose = fm_decision.cusum_parameters(calib, 1000.0, k=0.0, false_per_min=fm_decision.CUSUM_FIT_MARGIN * 0.1)
     assert loose["h"] < cs["h"]
 
 
 def test_recommended_sets_a_valid_cusum_from_the_rests():
     rng = np.random.default_rng(4)
     rest = _ar1(rng, 60_000, -2.0)
-    iu = fm.InUse.recommended(1000.0, rest, decision="cusum")
-    cs = fm.cusum_parameters(rest, 1000.0)
-    q = float(np.quantile(rest, fm.REST_MARGIN_QUANTILE))
+    iu = artifact.InUse.recommended(1000.0, rest, decision="cusum")
+    cs = fm_decision.cusum_parameters(rest, 1000.0)
+    q = float(np.quantile(rest, fm_decision.REST_MARGIN_QUANTILE))
     assert iu.contact_on_margin == 0.0 and iu.contact_rise_samples == 1
     assert iu.cusum == (cs["h"], cs["k"], cs["lo"], cs["hi"]) and cs["k"] == pytest.approx(max(q, 0))
     assert iu.contact_off_margin == -cs["k"]
     # No rest excursion of the calibration reaches h: it raises no false event on itself.
-    assert np.all(fm.cusum_peaks(rest, cs["k"], cs["lo"], cs["hi"]) < cs["h"])
+    assert np.all(fm_decision.cusum_peaks(rest, cs["k"], cs["lo"], cs["hi"]) < cs["h"])
     # Contact margins well above the rests move the drift to the midpoint.
     contact = rng.normal(6.0, 0.5, 5000)
-    mid = fm.cusum_parameters(rest, 1000.0, contact)
+    mid = fm_decision.cusum_parameters(rest, 1000.0, contact)
     assert mid["k"] == pytest.approx(0.5 * (max(q, 0.0) + np.quantile(contact, 0.1)))
     with pytest.raises(ValueError):
-        fm.InUse.recommended(1000.0, rest, decision="sprt")
-    assert fm.InUse.recommended(1000.0, rest).contact_cusum_h == 0.0
+        artifact.InUse.recommended(1000.0, rest, decision="sprt")
+    assert artifact.InUse.recommended(1000.0, rest).contact_cusum_h == 0.0

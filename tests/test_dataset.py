@@ -1,10 +1,10 @@
-"""The dataset contract: CSV/npz round trips, validation errors, splits (fbgforce.dataset)."""
+"""The dataset contract: CSV/npz round trips, validation errors, splits (fbgforce.recordings.dataset)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from fbgforce import dataset as D
+from fbgforce.recordings import dataset as D
 from fbgforce.errors import InputError
 from fbgforce.geometry import NOMINAL
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.export import blob
 from fbgforce.export import intref
 from fbgforce.export import quantize as qz
@@ -22,24 +22,24 @@ from fbgforce.pybind import FloatRuntime, Runtime
 from test_simd import host_kernels
 
 LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
-AGGRESSIVE = fm.InUse(contact_on_margin=0.5, contact_off_margin=-1.0, contact_rise_samples=3,
+AGGRESSIVE = artifact.InUse(contact_on_margin=0.5, contact_off_margin=-1.0, contact_rise_samples=3,
                       track_shift=5, track_settle=40, track_step_max_pm=0.3, track_limit_pm=2.0)
 
 
-def _drifting_model(random_model_factory, random_walk_factory, in_use: fm.InUse, seed: int = 3):
+def _drifting_model(random_model_factory, random_walk_factory, in_use: artifact.InUse, seed: int = 3):
     """A random model with the given in-use parameters, and (n, 5) wavelengths whose strain
     gratings drift away from the temperature compensation, with lost peaks."""
     model = random_model_factory(seed, sizes=((24, 12), (24, 12), (24, 16)), n_taps=9,
-                                 sigma=2.5, memory=fm.Memory(weights=(0.25, 0.25, 0.25, 0.25), ema_shifts=(4,), ema_gains=(2,), play_widths=(0.3,), play_gains=(2,), loc_shift=3))
+                                 sigma=2.5, memory=artifact.Memory(weights=(0.25, 0.25, 0.25, 0.25), ema_shifts=(4,), ema_gains=(2,), play_widths=(0.3,), play_gains=(2,), loc_shift=3))
     model.in_use = in_use
     wl = random_walk_factory(model, 6000, seed, step_nm=0.0015)
     wl[:, :4] += np.linspace(0.0, 0.02, wl.shape[0])[:, None] * np.array([1.0, -0.5, 0.8, 0.2])
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     # About a third of the samples in contact: the decision has both rests and contacts.
     model.contact.biases[-1][1] -= float(np.quantile(logits[:, 1] - logits[:, 0], 0.66))
     # The first half of the walk is "the calibration": later inputs leave its range.
-    model.input_range = fm.input_range_of(x[:3000, :model.preprocess.n_features], margin=0.0)
+    model.input_range = artifact.input_range_of(x[:3000, :model.preprocess.n_features], margin=0.0)
     q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
     rng = np.random.default_rng(seed)
     for start in rng.integers(100, wl.shape[0] - 50, 5):
@@ -92,7 +92,7 @@ def test_reset_and_tare_restart_the_decision_and_tracker(random_model_factory, r
 
 def test_off_is_the_per_sample_rule(random_model_factory, random_walk_factory):
     """With the defaults the decision is the net's own (acc > 0) and no baseline moves."""
-    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, fm.InUse())
+    model, q, wl = _drifting_model(random_model_factory, random_walk_factory, artifact.InUse())
     wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
     rt = Runtime(blob.to_bytes(q))
     rt.set_baseline(base.astype(np.int32))
@@ -126,12 +126,12 @@ def test_the_decision_rule_on_hand_made_margins():
 def test_in_use_round_trips_through_the_model_directory(tmp_path, random_model_factory):
     model = random_model_factory(1)
     model.in_use = AGGRESSIVE
-    fm.save(model, tmp_path)
-    assert fm.load(tmp_path).in_use == AGGRESSIVE
+    modeldir.save(model, tmp_path)
+    assert modeldir.load(tmp_path).in_use == AGGRESSIVE
     for bad in ({"contact_on_margin": -1.0}, {"contact_rise_samples": 0}, {"track_shift": 21},
                 {"track_limit_pm": 1e6}):
         with pytest.raises(ValueError):
-            fm.InUse(**bad)
+            artifact.InUse(**bad)
 
 
 def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory,
@@ -141,8 +141,8 @@ def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory
     model, q, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE)
     wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)     # no faults: the float model has no rule
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
-    flt = fm.predict(model, wl, model.baseline_nm)
-    untracked = fm.predict(dataclasses.replace(model, in_use=fm.InUse()), wl, model.baseline_nm)
+    flt = floatref.predict(model, wl, model.baseline_nm)
+    untracked = floatref.predict(dataclasses.replace(model, in_use=artifact.InUse()), wl, model.baseline_nm)
     assert 0.1 < flt["contact"].mean() < 0.9
     agree = np.mean(flt["contact"] == fixed["contact"])
     assert agree > 0.98
@@ -230,8 +230,8 @@ def test_the_float_pipeline_fed_in_pieces_equals_the_whole(random_model_factory,
     the tracker's block boundaries, give what the whole recording gives."""
     model, _, wl = _drifting_model(random_model_factory, random_walk_factory, AGGRESSIVE)
     wl = np.where(wl == 0.0, np.roll(wl, 40, axis=0), wl)
-    whole = fm.predict(model, wl, model.baseline_nm)
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    whole = floatref.predict(model, wl, model.baseline_nm)
+    pipe = floatref.FloatPipeline(model, model.baseline_nm)
     cuts = np.unique(np.random.default_rng(0).integers(0, wl.shape[0], 40))
     parts = [pipe.push(wl[a:b]) for a, b in zip(np.r_[0, cuts], np.r_[cuts, wl.shape[0]])]
     assert np.array_equal(np.concatenate([p["contact"] for p in parts]), whole["contact"])
@@ -247,7 +247,7 @@ def test_a_burst_of_lost_peaks_leaves_the_rest_at_rest(small_exported_dir):
     the same run without the burst, on every kernel. Holding that raw sample in the filter
     instead read the burst's end as a 6 pm press, which the play operators kept: contact
     latched on for the rest of the run."""
-    model = fm.load(small_exported_dir)
+    model = modeldir.load(small_exported_dir)
     q = blob.load_model_blob(small_exported_dir)
     rng = np.random.default_rng(0)
     base = intref.nm_to_fm(model.baseline_nm[None, :])[0]

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbgforce import figures
+from fbgforce.evaluation import figures
 from fbgforce.cli import main
 
 #: Slow (pytest -m slow): the whole demo chain.

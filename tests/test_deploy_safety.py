@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import fbgforce
-from fbgforce import dataset as fds
-from fbgforce import model as fm
+from fbgforce.recordings import dataset as fds
+from fbgforce.model import modeldir as fm
 from fbgforce.cli import main
 from fbgforce.errors import InputError
 
@@ -227,7 +227,7 @@ def _two_models(model_dir):
 def _what_a_loader_sees(directory, old, new) -> str:
     """``old`` or ``new`` (the complete model), ``refused`` (one line naming a file), or
     ``mixed`` (it loads, as neither)."""
-    from fbgforce import freshness
+    from fbgforce.model import freshness
 
     try:
         loaded = fm.load(directory)
@@ -349,7 +349,7 @@ def test_predict_refuses_pm_and_wrong_shape(small_model_dir, small_dataset_path)
 
 
 def test_nan_sample_is_a_sensor_fault_in_every_engine(small_exported_dir, small_dataset_path):
-    from fbgforce import engines
+    from fbgforce.evaluation import engines
     from fbgforce.export.exporter import recording_baseline
 
     ds = fds.load(small_dataset_path)
@@ -373,7 +373,7 @@ def test_nan_sample_is_a_sensor_fault_in_every_engine(small_exported_dir, small_
 def test_float_fault_handling_matches_the_c_rule(small_exported_dir, small_dataset_path):
     """Lost peaks in the float engine follow the fixed-point runtime: same flags, and after
     the fault the same contact decisions (the filter held, the memory frozen)."""
-    from fbgforce import engines
+    from fbgforce.evaluation import engines
     from fbgforce.export.exporter import recording_baseline
 
     ds = fds.load(small_dataset_path)
@@ -534,7 +534,7 @@ def test_progress_shows_as_lines_off_a_terminal(monkeypatch):
 
 
 def test_demo_figures_start_at_zero_and_draw_no_table(tmp_path, monkeypatch):
-    from fbgforce import figures
+    from fbgforce.evaluation import figures
     from fbgforce.trainer.report import PAPER
 
     seen = {}

@@ -18,9 +18,9 @@ from typing import Any, Iterator
 import numpy as np
 import pytest
 
-from fbgforce import engines
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import engines
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, modeldir
 from fbgforce import sim
 from fbgforce.export.exporter import export_model, recording_baseline
 from fbgforce.trainer.evaluate import evaluate
@@ -63,9 +63,9 @@ def in_use_dir(small_model_dir, tmp_path_factory):
     and whose tracker is on) with the settled-hold gain on, exported."""
     out = tmp_path_factory.mktemp("in_use") / "model"
     shutil.copytree(small_model_dir, out)
-    model = fm.load(out)
+    model = modeldir.load(out)
     model.in_use = dataclasses.replace(model.in_use, **HOLD)
-    fm.save(model, out)
+    modeldir.save(model, out)
     export_model(out)
     return out
 
@@ -82,7 +82,7 @@ def recording():
 @pytest.fixture(scope="module")
 def runs(in_use_dir, recording):
     """Every engine's output on the recording, its metrics, and the model."""
-    model = fm.load(in_use_dir)
+    model = modeldir.load(in_use_dir)
     base = recording_baseline(recording)
     out = {}
     for name in ENGINES:
@@ -127,7 +127,7 @@ def test_the_recording_exercises_every_stage(runs, recording):
     assert 0.5 < pred["contact"].mean() < 0.95
 
 
-def _per_sample_bounds(name: str, model: fm.HierarchicalModel, in_use_dir, ref: dict[str, np.ndarray]
+def _per_sample_bounds(name: str, model: artifact.HierarchicalModel, in_use_dir, ref: dict[str, np.ndarray]
                        ) -> dict[str, np.ndarray | float]:
     """The bound of ``name`` against the float model on each sample both call contact: force,
     x and y (each (n,) or a number)."""
@@ -144,7 +144,7 @@ def _per_sample_bounds(name: str, model: fm.HierarchicalModel, in_use_dir, ref: 
             "force_N_most": (1.0 + g) * eb["force_N"], "x_mm": eb["x_mm"], "y_mm": eb["y_mm"]}
 
 
-def _clear_of_thresholds(model: fm.HierarchicalModel, pred: dict[str, np.ndarray]) -> None:
+def _clear_of_thresholds(model: artifact.HierarchicalModel, pred: dict[str, np.ndarray]) -> None:
     """The float model's margins and steady tests lie farther than :data:`FLOAT32_CLEAR` from
     every threshold they meet, so a float32 engine must decide as it does on every sample."""
     iu = model.in_use
@@ -164,7 +164,7 @@ def _clear_of_thresholds(model: fm.HierarchicalModel, pred: dict[str, np.ndarray
     assert min(gaps) > FLOAT32_CLEAR, f"a steady test lies {min(gaps):.2g} N from its band"
 
 
-def _differences_begin_near_a_threshold(model: fm.HierarchicalModel, in_use_dir,
+def _differences_begin_near_a_threshold(model: artifact.HierarchicalModel, in_use_dir,
                                         ref: dict[str, np.ndarray], differ: np.ndarray) -> None:
     """Every run of differing decisions begins at, or within the rise count after, a sample
     whose float margin lies within the export's margin bound of a threshold (0, the rise or
@@ -178,7 +178,7 @@ def _differences_begin_near_a_threshold(model: fm.HierarchicalModel, in_use_dir,
         assert window.any(), f"a decision differs at sample {start}, far from every threshold"
 
 
-def _against_float(name: str, model: fm.HierarchicalModel, in_use_dir, runs_out: dict[str, Any]
+def _against_float(name: str, model: artifact.HierarchicalModel, in_use_dir, runs_out: dict[str, Any]
                    ) -> None:
     tol = TOLERANCE[name]
     ref, got = runs_out["float"]["pred"], runs_out[name]["pred"]

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import NET_NAMES, QModel
@@ -22,7 +22,7 @@ FIELDS = contract.OUTPUT_FIELDS
 
 def _balance_contact(model, wl):
     """Shift the contact logit so that about half of ``wl`` is "contact" (both paths run)."""
-    logits = model.contact.forward(fm.features(model, wl, model.baseline_nm)[:, :model.preprocess.n_features])
+    logits = model.contact.forward(floatref.features(model, wl, model.baseline_nm)[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     return model
 
@@ -132,7 +132,8 @@ def test_bitexact_on_scenes(small_exported_dir, small_dataset_path):
     scene (forces beyond calibration: saturation and overload flags)."""
     import dataclasses
 
-    from fbgforce import dataset, sim
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
     from fbgforce.export.exporter import recording_baseline
 
     mdir = small_exported_dir
@@ -158,17 +159,17 @@ def test_fixed_vs_float_within_bounds(small_exported_dir, small_dataset_path):
     differ only where the float margin is within 0.1 of the threshold (memory features carry
     the input rounding times their gain, up to 16x); and every difference within the error
     budget the exporter proved for the model."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.export.exporter import recording_baseline
 
     mdir = small_exported_dir
-    model = fm.load(mdir)
+    model = modeldir.load(mdir)
     q = blob.load_model_blob(mdir)
     ds = dataset.load(small_dataset_path)
     base = recording_baseline(ds)
     raw = intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base))
     fixed = intref.to_engine_dict(raw)
-    flt = fm.predict(model, ds.wl_nm, base)
+    flt = floatref.predict(model, ds.wl_nm, base)
     margin = flt["margin"]        # on the float tracker's baseline
     both = fixed["contact"] & flt["contact"]
     assert both.sum() > 1000
@@ -209,22 +210,22 @@ def test_a_row_switched_off_by_weight_decay_exports_and_stays_within_bounds(
     import subprocess
     from pathlib import Path
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.export.exporter import export_model, recording_baseline
 
     mdir = tmp_path / "model"
     shutil.copytree(small_model_dir, mdir)
-    model = fm.load(mdir)
+    model = modeldir.load(mdir)
     w0 = model.force.weights[0]
     w0[3] = np.array([7e-319, -1e-318, 1e-250] + [0.0] * (w0.shape[1] - 3))
     model.force.weights[1][5] *= 1e-300
-    fm.save(model, mdir)
+    modeldir.save(model, mdir)
     export_model(mdir, onnx=False)
     q = blob.load_model_blob(mdir)
     ds = dataset.load(small_dataset_path)
     base = recording_baseline(ds)
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(ds.wl_nm), intref.nm_to_fm(base)))
-    flt = fm.predict(model, ds.wl_nm, base)
+    flt = floatref.predict(model, ds.wl_nm, base)
     both = fixed["contact"] & flt["contact"]
     report = json.loads((mdir / "export_report.json").read_text())
     assert both.sum() > 1000
@@ -384,15 +385,15 @@ def test_quantizer_rejects_unexportable_models(random_model_factory):
     from fbgforce.errors import InputError
 
     model = random_model_factory(5)
-    cen = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
+    cen = artifact.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
                         model.preprocess.input_mean, model.preprocess.input_std)
     with pytest.raises(InputError, match="centred"):
         qz.quantize_taps(cen)
-    long = fm.Preprocess(model.preprocess.temp_coeff, "causal", 30.0, np.ones(100) / 100,
+    long = artifact.Preprocess(model.preprocess.temp_coeff, "causal", 30.0, np.ones(100) / 100,
                          model.preprocess.input_mean, model.preprocess.input_std)
     with pytest.raises(InputError, match="taps"):
         qz.quantize_taps(long)
-    t, q = qz.quantize_taps(fm.Preprocess(model.preprocess.temp_coeff, "none", 0.0, [1.0],
+    t, q = qz.quantize_taps(artifact.Preprocess(model.preprocess.temp_coeff, "none", 0.0, [1.0],
                                           model.preprocess.input_mean, model.preprocess.input_std))
     assert t.tolist() == [16384] and q == 14
     # DC gain exact for a normal Gaussian.

@@ -8,7 +8,7 @@ with memory features over a random walk (contact and no contact). For every buil
   batches the nets of up to 16 samples);
 * the bits do not depend on where the weights sit in memory (the same model copied to
   addresses off by one float gives the same bytes), nor on the run (two runs agree);
-* the outputs follow the float64 model (``fbgforce.model.predict``) within the tolerance the
+* the outputs follow the float64 model (``fbgforce.model.floatref.predict``) within the tolerance the
   float build is held to (docs/runtime.md, "Float build: speed"): contact decisions agree on
   all but 0.1 % of samples, force and location within 1e-3 of the output's scale, p_contact
   within 1e-4;
@@ -34,7 +34,7 @@ import pytest
 
 from conftest import require_tools
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.export.codegen import float_source
 from fbgforce.pybind import _C_FOUTPUT, FloatRuntime, to_fm
 
@@ -186,7 +186,7 @@ def _need(*tools: str) -> None:
     require_tools(*tools, install="gcc gcc-aarch64-linux-gnu qemu-user")
 
 
-def _float32_parameters(model: fm.HierarchicalModel) -> None:
+def _float32_parameters(model: artifact.HierarchicalModel) -> None:
     """Round every float parameter to a float32 value, so that the generated C (decimal
     literals) and the cffi wrapper (binary conversion) hold the same float32 numbers."""
     def f32(a):
@@ -210,13 +210,13 @@ def case(random_model_factory, random_walk_factory, tmp_path_factory):
     walk and the float64 model's outputs on it."""
     # 10 net inputs (and 10 for the location net, with the location averages): the AVX2
     # kernel for first layers takes them as one full and one partial block of eight.
-    memory = fm.Memory(ema_shifts=(2, 4, 7), ema_gains=(1, 1, 0), play_widths=(0.03, 0.1, 0.3),
+    memory = artifact.Memory(ema_shifts=(2, 4, 7), ema_gains=(1, 1, 0), play_widths=(0.03, 0.1, 0.3),
                        play_gains=(2, 1, 0), loc_shift=3)
     model = random_model_factory(seed=3, memory=memory)
     wl = random_walk_factory(model, SAMPLES, seed=4)
     base = np.asarray(model.baseline_nm, dtype=np.float64)
     # Contact on about half of the samples: both branches of the step run.
-    x = fm.features(model, wl, base)
+    x = floatref.features(model, wl, base)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     _float32_parameters(model)
@@ -228,7 +228,7 @@ def case(random_model_factory, random_walk_factory, tmp_path_factory):
     rows = np.vstack([to_fm(base[None, :]), to_fm(wl)]).astype("<i4")
     rows.tofile(d / "wl.bin")
     rows[:QEMU_SAMPLES + 1].tofile(d / "wl_qemu.bin")
-    ref = fm.predict(model, wl, base)
+    ref = floatref.predict(model, wl, base)
     assert 0.1 < ref["contact"].mean() < 0.9, "the walk should give contact and no contact"
     return {"model": model, "wl": wl, "base": base, "dir": d, "ref": ref}
 

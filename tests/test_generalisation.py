@@ -19,9 +19,9 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import foreign as fg  # noqa: E402
 
-from fbgforce import dataset  # noqa: E402
+from fbgforce.recordings import dataset  # noqa: E402
 from fbgforce.trainer import preprocess as pp  # noqa: E402
-from fbgforce import tare as fbgtare  # noqa: E402
+from fbgforce.recordings import tare as fbgtare  # noqa: E402
 from fbgforce.trainer.evaluate import evaluate  # noqa: E402
 from fbgforce.trainer.train import train  # noqa: E402
 
@@ -109,7 +109,7 @@ def test_trains_and_generalises_to_another_log(foreign_files, name):
     ds_b = dataset.load(b)
     far = ds_b.contact & (ds_b.y_mm > 30) & (ds_b.force_N > 10)
     if far.any():
-        from fbgforce import model as fm
+        from fbgforce.model import floatref as fm
         pred = fm.predict(model, ds_b.wl_nm, fbgtare.tare(ds_b.wl_nm, ds_b.contact, ds_b.t_s)[0])
         # Not squeezed into our 27 mm: a good part of these far presses is placed beyond it.
         assert np.nanpercentile(pred["y_mm"][far], 90) > 27.0

@@ -188,7 +188,7 @@ def to_bytes_unchecked(q) -> bytes:
 def test_float_overflow_in_nets_gives_safe_output(models):
     """Finite but huge weights overflow float32 inside the nets (inf, then inf - inf = NaN):
     the C float build returns the safe output with SATURATED, never NaN/inf."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.pybind import FloatRuntime
 
     model = fm.load(models["small16"].path)

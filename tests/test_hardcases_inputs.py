@@ -145,7 +145,7 @@ def test_thermal_soak_40K_no_false_contact(models, driver, tmp_path):
     With coefficients calibrated on the first 20 K of the ramp (12 s to +40 K) (trainer.preprocess.fit_temp_coeff,
     as a thermal calibration would), the ramp adds no false contacts beyond the model's rate
     at rest and the force stays near zero over the full 40 K."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce import sim
     from fbgforce.export.exporter import export_model
     from fbgforce.trainer.preprocess import fit_temp_coeff
@@ -415,8 +415,8 @@ def test_hypothesis_random_int32_streams(models, driver, key):
 def tiny_model(tmp_path_factory, press_fm) -> Model:
     """A narrow model (hidden width 8) trained briefly on the press recording: the long run
     tests the streaming state, which does not depend on the nets' width, at ~1 us per step."""
-    from fbgforce import dataset
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.model import artifact, modeldir
     from fbgforce.export.exporter import export_model
     from fbgforce.trainer.train import train
 
@@ -428,8 +428,8 @@ def tiny_model(tmp_path_factory, press_fm) -> Model:
     # The per-sample decision on a fixed tare: then the state after 10^7 steps must equal a
     # fresh one's bit for bit. The at-rest tracker legitimately carries what it learned
     # (tests/test_decision_tracker.py runs it for hours of simulated use).
-    model.in_use = fm.InUse()
-    fm.save(model, d / "model")
+    model.in_use = artifact.InUse()
+    modeldir.save(model, d / "model")
     export_model(d / "model", calib=[d / "data.npz"], onnx=False)
     blob = (d / "model" / "model.fbgm").read_bytes()
     return Model(blob, from_bytes(blob), None, d / "model")
@@ -560,7 +560,7 @@ def test_float_model_with_nonfinite_parameter(models, where, value):
     """A float model holding NaN/inf (a corrupt or diverged model) must be refused by
     fbgf_model_check (FBG_ERR_RANGE) rather than produce NaN outputs or reach the
     float->int conversion in fbgf_exp with a NaN (undefined behaviour)."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.pybind import FloatRuntime, RangeError
 
     model = fm.load(models["small16"].path)

@@ -14,7 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import foreign  # noqa: E402
 
-from fbgforce import model as fm  # noqa: E402
+from fbgforce.model import artifact, floatref  # noqa: E402
 from fbgforce import sim  # noqa: E402
 from fbgforce.trainer import preprocess as pp  # noqa: E402
 from fbgforce.trainer.creep import Creep  # noqa: E402
@@ -28,9 +28,9 @@ from fbgforce.trainer.synthetic import (HOLD_AUGMENT_STEP_S, synthetic_holds,  #
 from fbgforce.trainer.train import prepare, train  # noqa: E402
 
 
-def _peak_level(z: np.ndarray, pre: fm.Preprocess) -> np.ndarray:
+def _peak_level(z: np.ndarray, pre: artifact.Preprocess) -> np.ndarray:
     """Rest-referenced standardised channels: what a net reads of the load."""
-    return z[..., :fm.N_STRAIN] - (-pre.input_mean / pre.input_std)
+    return z[..., :artifact.N_STRAIN] - (-pre.input_mean / pre.input_std)
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +55,7 @@ def test_synthetic_hold_reads_as_a_real_hold(paired_holds):
     true_creep = Creep(visco["magnitude"], visco["time_constant_s"])
     rows = data.rows("all")
     feats = pp.recording_features(pre, held.wl_nm, data.recordings[0].baseline_nm)
-    real = _peak_level(fm.standardise(pre, feats), pre)
+    real = _peak_level(floatref.standardise(pre, feats), pre)
     plain = data.recordings[0].ds
     errors = {}
     for name, creep in (("creep", true_creep), ("none", Creep())):
@@ -142,7 +142,7 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     spec = foreign.IN_USE_VARIANTS["calib_1K"]
     ds = foreign.log(foreign.device(spec, foreign.device_seed("calib_1K")), 1, 40)
     assert prepare([ds], creep_inverse=None, memory=MEMORY_PRESETS["both"]).pre.creep > 0
-    slow = fm.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
+    slow = artifact.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
     assert prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
     assert prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
     md = train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
@@ -164,7 +164,7 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     assert settled["holds"] >= HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
     assert model.in_use.hold_gain == pytest.approx(settled["gain"]) != 0.0
     assert abs(settled["bias_after_N"]) < abs(settled["bias_before_N"])
-    assert model.in_use.hold_settle == round(fm.HOLD_SETTLE_S * 1000)
+    assert model.in_use.hold_settle == round(artifact.HOLD_SETTLE_S * 1000)
     # Written out again: a held sample's place in its hold, one every HOLD_AUGMENT_STEP_S.
     mdata = prepare([ds], creep_inverse=model.metadata["creep"]["inverse"])
     x, src = synthetic_holds(mdata, model.preprocess, mdata.rows("all"), 1.0, mdata.creep,
@@ -176,9 +176,9 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     held = np.zeros(src.size, dtype=bool)
     for i in range(src.size - 1, -1, -1):
         held[i] = place[i] > 0 or (i + 1 < src.size and held[i + 1] and place[i + 1] > 0)
-    settled = held & (place * HOLD_AUGMENT_STEP_S >= fm.HOLD_SETTLE_S - 1e-9)
+    settled = held & (place * HOLD_AUGMENT_STEP_S >= artifact.HOLD_SETTLE_S - 1e-9)
     assert settled.sum() == fit["samples"]
-    f = fm.predict_from_features(model, x[settled])["force_raw_N"]
+    f = floatref.predict_from_features(model, x[settled])["force_raw_N"]
     y = mdata.force_N[src[settled]]
 
     def sse(g: float) -> float:
@@ -193,7 +193,7 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
 def test_bench_held_grips_scores_the_held_samples(tmp_path, small_model_dir, capsys):
     """bench_held_grips: bias and RMSE over the held samples only, 0 N where the contact
     decision is off; one JSON object; a missing file is a one-line error (exit 2)."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.bench import bench_held_grips as B
 
     held = np.array([False, True, True, True, False])
@@ -229,7 +229,7 @@ def test_synthetic_rest_settles_where_a_real_long_rest_settles():
     rested = sim.simulate(scene.replace(schedule={"rest_s": 8.0}))
     pre, baseline = data.pre, data.recordings[0].baseline_nm
     std = np.std(pp.recording_features(pre, plain.wl_nm, baseline), axis=0)
-    real = fm.standardise(pre, pp.recording_features(pre, rested.wl_nm, baseline))
+    real = floatref.standardise(pre, pp.recording_features(pre, rested.wl_nm, baseline))
     starts = np.flatnonzero(rested.contact[1:] & ~rested.contact[:-1]) + 1
     settled = np.mean([real[k - 1000:k - 50].mean(axis=0) for k in starts[1:]], axis=0)
     x, src = synthetic_rests(data, pre, data.rows("all"), 1.0, 10, np.random.default_rng(0))

@@ -18,7 +18,7 @@ import pytest
 
 from conftest import make_random_model, make_random_walk
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.export import blob, intref, mutate
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import QModel
@@ -41,17 +41,17 @@ def _quantised(seed: int = 3, n: int = 4000, **hold):
     walk with about a third of it in contact, stretches where it stands still (:data:`STILL`)
     and a few lost peaks (one inside a still stretch)."""
     model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
-                              memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
-    model.in_use = fm.InUse(contact_rise_samples=1, **{**QUICK, **hold})
+                              memory=artifact.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
+    model.in_use = artifact.InUse(contact_rise_samples=1, **{**QUICK, **hold})
     wl = make_random_walk(model, n, seed, step_nm=0.0015)
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     margin = logits[:, 1] - logits[:, 0]
     for start, length in STILL:
         # Stand still where the nets read contact, whatever the walk did there.
         at = start + int(np.argmax(margin[start:start + 200]))
         wl[start:start + length] = wl[at]
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     margin = logits[:, 1] - logits[:, 0]
     still = min(float(margin[start + 20:start + length].min()) for start, length in STILL)
@@ -64,7 +64,7 @@ def _quantised(seed: int = 3, n: int = 4000, **hold):
 
 
 def _off(q: QModel) -> QModel:
-    return dataclasses.replace(q, **qz.quantize_hold(fm.InUse()))
+    return dataclasses.replace(q, **qz.quantize_hold(artifact.InUse()))
 
 
 def test_every_kernel_equals_the_integer_reference():
@@ -149,15 +149,15 @@ def test_float_engines_follow_the_same_rule():
     """FloatPipeline fed in pieces equals it fed at once (the stage carries over), takes the
     gain where the fixed point does, and the C float build follows it."""
     model, q, wl = _quantised(seed=6)
-    flt = fm.FloatPipeline(model, model.baseline_nm).push(wl)
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    flt = floatref.FloatPipeline(model, model.baseline_nm).push(wl)
+    pipe = floatref.FloatPipeline(model, model.baseline_nm)
     cuts = (0, 1, 70, 650, 1000, 2400, 4000)
     pieces = [pipe.push(wl[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
     # (Equal but for the last bit: numpy's matrix products round by the batch's shape.)
     np.testing.assert_allclose(np.concatenate([p["force_N"] for p in pieces]), flt["force_N"],
                                rtol=1e-12, atol=0)
     plain = dataclasses.replace(model, in_use=dataclasses.replace(model.in_use, hold_gain=0.0))
-    flt_off = fm.FloatPipeline(plain, model.baseline_nm).push(wl)
+    flt_off = floatref.FloatPipeline(plain, model.baseline_nm).push(wl)
     start, length = STILL[2]
     late = slice(start + length - 100, start + length)
     np.testing.assert_allclose(flt["force_N"][late], 1.1 * flt_off["force_N"][late], rtol=1e-12)
@@ -198,7 +198,7 @@ def test_the_fields_are_range_checked_by_every_reader():
                 {"hold_gain": 0.01, "hold_shift": 7, "hold_ramp_shift": 13},
                 {"hold_band_frac": 1.5}, {"hold_band_N": -1.0}):
         with pytest.raises(ValueError, match="hold_"):
-            fm.InUse(**bad)
+            artifact.InUse(**bad)
     model.in_use.hold_gain = 0.2      # past the check
     with pytest.raises(RangeError):
         FloatRuntime(model)
@@ -208,15 +208,15 @@ def test_recommended_sets_the_stage_from_the_gain():
     """The trainer's gain turns the stage on with the documented settle, band, average and
     ramp at the model's rate (clipped to the bound); no gain leaves every field 0, and a model
     saved without the fields loads with the stage off."""
-    on = fm.InUse.recommended(1000.0, hold_gain=0.008)
+    on = artifact.InUse.recommended(1000.0, hold_gain=0.008)
     assert (on.hold_gain, on.hold_settle, on.hold_band_N, on.hold_band_frac, on.hold_shift,
-            on.hold_ramp_shift) == (0.008, 200, fm.HOLD_BAND_N, fm.HOLD_BAND_FRACTION, 7, 8)
-    assert fm.InUse.recommended(500.0, hold_gain=0.008).hold_settle == 100
-    assert fm.InUse.recommended(1000.0, hold_gain=1.0).hold_gain == fm.HOLD_GAIN_MAX
-    off = fm.InUse.recommended(1000.0)
+            on.hold_ramp_shift) == (0.008, 200, artifact.HOLD_BAND_N, artifact.HOLD_BAND_FRACTION, 7, 8)
+    assert artifact.InUse.recommended(500.0, hold_gain=0.008).hold_settle == 100
+    assert artifact.InUse.recommended(1000.0, hold_gain=1.0).hold_gain == artifact.HOLD_GAIN_MAX
+    off = artifact.InUse.recommended(1000.0)
     assert not any(getattr(off, k) for k in QUICK)
     saved = {k: v for k, v in on.to_json().items() if not k.startswith("hold_")}
-    assert fm.InUse(**saved).hold_gain == 0.0
+    assert artifact.InUse(**saved).hold_gain == 0.0
     assert qz.quantize_hold(off) == {k: 0 for k in qz.quantize_hold(off)}
     assert qz.quantize_hold(on)["hold_gain_q15"] == round(0.008 * 2**15)
 

@@ -11,7 +11,8 @@ import time
 import numpy as np
 import pytest
 
-from fbgforce import dataset, sim
+from fbgforce import sim
+from fbgforce.recordings import dataset
 from fbgforce.cli import main
 from fbgforce.interrogator import emulator as E
 from fbgforce.interrogator import hyperion as H

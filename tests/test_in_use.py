@@ -18,7 +18,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 import foreign as fg  # noqa: E402
 
-from fbgforce import metrics  # noqa: E402
+from fbgforce.evaluation import metrics  # noqa: E402
 
 NAN = np.full(300, np.nan)
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbgforce import dataset, labimport as li
+from fbgforce.recordings import dataset, labimport as li, stagelog
 from fbgforce.errors import InputError
 from fbgforce.sim import simulate
 from fbgforce.sim.lablogs import write_lab_logs
@@ -150,7 +150,7 @@ def test_sample_rate_of_an_epoch_clock():
     reads the rate 72 ppm off (1000.07 Hz); the mean of the regular steps reads it to 1 ppm,
     gaps and dropped samples left out as the median leaves them. A clock from zero keeps the
     median's rate, bit for bit."""
-    from fbgforce import tare
+    from fbgforce.recordings import tare
 
     t = float(EPOCH_S) + np.arange(20000) / 1000.0
     t = np.delete(t, np.arange(500, 20000, 997))           # dropped samples
@@ -227,11 +227,11 @@ def test_a_noisy_load_cell_labels_no_touch_at_rest(tmp_path):
     # Contact runs away from every press (more than 0.1 s from any load above 0.3 N, ten
     # times the noise): none, where the dataset's 50 mN labels more than ten.
     near = np.convolve(force > 0.3, np.ones(2 * int(0.1 * 1000) + 1), "same") > 0
-    assert li._runs(np.asarray(out.contact, dtype=bool) & ~near)[0].size == 0
-    assert li._runs(li.label_contact(force) & ~near)[0].size > 10
+    assert stagelog.runs(np.asarray(out.contact, dtype=bool) & ~near)[0].size == 0
+    assert stagelog.runs(stagelog.label_contact(force) & ~near)[0].size > 10
     assert res["presses"] == 40 and clock_ms <= 1.0
     # A quiet load cell keeps the dataset's rule.
-    assert li.contact_threshold(0.005) == dataset.CONTACT_THRESHOLD_N
+    assert stagelog.contact_threshold(0.005) == dataset.CONTACT_THRESHOLD_N
 
 
 @pytest.mark.parametrize("rate_hz,offset_s,drift_ppm", [(500, 0.1, 80), (2000, 2.0, -80)])
@@ -441,7 +441,7 @@ def test_press_numbering_follows_the_simulator_and_merges_chatter():
     f[14:18] = [0.04, 0.02, 0.01, 0.002]   # the end of its unloading, below the threshold
     f[30:35] = 2.0
     f[37] = 1.0           # a 1-sample blip after the rest: contact, but no new press
-    contact = li.label_contact(f)
+    contact = stagelog.label_contact(f)
     ids = li.number_presses(t, f)
     # The rest before a press carries its id, the unloading's end (to the first sample where
     # the load stops falling) its own; after the last press its id stays.
@@ -473,7 +473,7 @@ def test_csv_writer_in_chunks_equals_save(smoke, tmp_path):
 
 def test_protocol_default_covers_what_a_model_needs(tmp_path):
     from fbgforce.cli import main
-    from fbgforce.protocol import COLUMNS
+    from fbgforce.recordings.protocol import COLUMNS
 
     out = tmp_path / "program.csv"
     assert main(["protocol", "--out", str(out)]) == 0
@@ -560,7 +560,7 @@ def _mean_scores(ds, rows, reference_path, directory):
     accuracy by 2-4 % between the import and the file)."""
     from dataclasses import replace
 
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.trainer.evaluate import evaluate
     from fbgforce.trainer.train import train
 
@@ -586,7 +586,7 @@ def trained_on_the_simulators_file(small_dataset_path, tmp_path_factory):
     ds = dataset.load(small_dataset_path)
     write_lab_logs(ds, directory, rate_hz=500, offset_s=0.1, drift_ppm=80, jitter_s=1e-4)
     _import(directory, out=str(directory / "aligned.csv"))
-    align = li.align
+    align = stagelog.align
 
     def late(*args, **kwargs):
         found = align(*args, **kwargs)

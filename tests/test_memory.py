@@ -7,24 +7,24 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
 from fbgforce.pybind import FloatRuntime, Runtime
 
 MEMORIES = {
-    "ema": fm.Memory(ema_shifts=(2, 9), ema_gains=(3, 0), weights=(0.4, 0.3, -0.1, 0.2)),
-    "play": fm.Memory(play_widths=(0.02, 0.4), play_gains=(5, 1), weights=(0.25, 0.25, 0.25, 0.25)),
-    "full": fm.Memory(ema_shifts=(1, 4, 8, 15), ema_gains=(8, 2, 1, 0),
+    "ema": artifact.Memory(ema_shifts=(2, 9), ema_gains=(3, 0), weights=(0.4, 0.3, -0.1, 0.2)),
+    "play": artifact.Memory(play_widths=(0.02, 0.4), play_gains=(5, 1), weights=(0.25, 0.25, 0.25, 0.25)),
+    "full": artifact.Memory(ema_shifts=(1, 4, 8, 15), ema_gains=(8, 2, 1, 0),
                       play_widths=(0.0, 0.05, 0.3, 2.0), play_gains=(0, 4, 2, 0),
                       weights=(1.0, -0.5, 0.7, 0.1), loc_shift=5),
-    "loc": fm.Memory(loc_shift=2),
-    "loc15": fm.Memory(ema_shifts=(3,), ema_gains=(2,), loc_shift=15),
+    "loc": artifact.Memory(loc_shift=2),
+    "loc15": artifact.Memory(ema_shifts=(3,), ema_gains=(2,), loc_shift=15),
 }
 Z_REST = np.array([-0.3, 0.5, -1.2, 0.1])
 
 
-def naive_memory(memory: fm.Memory, z: np.ndarray, z_rest: np.ndarray) -> np.ndarray:
+def naive_memory(memory: artifact.Memory, z: np.ndarray, z_rest: np.ndarray) -> np.ndarray:
     """The float recursion written sample by sample, as the C float build runs it."""
     u = z @ np.asarray(memory.weights)
     feats = [z]
@@ -54,10 +54,10 @@ def naive_memory(memory: fm.Memory, z: np.ndarray, z_rest: np.ndarray) -> np.nda
 def test_float_reference_equals_the_naive_recursion(name):
     rng = np.random.default_rng(3)
     z = np.cumsum(rng.normal(0, 0.05, (2000, 4)), axis=0)
-    got = fm.memory_features(MEMORIES[name], z, Z_REST)
+    got = floatref.memory_features(MEMORIES[name], z, Z_REST)
     assert got.shape == (2000, 4 + MEMORIES[name].n_states + MEMORIES[name].n_loc)
     assert np.allclose(got, naive_memory(MEMORIES[name], z, Z_REST), atol=1e-9)
-    stream = fm.MemoryStream(MEMORIES[name], Z_REST)          # fed in pieces: the same
+    stream = floatref.MemoryStream(MEMORIES[name], Z_REST)          # fed in pieces: the same
     pieces = np.concatenate([stream.push(z[a:b]) for a, b in ((0, 1), (1, 700), (700, 2000))])
     assert np.allclose(pieces, got, atol=1e-9)
 
@@ -66,7 +66,7 @@ def _model(random_model_factory, random_walk_factory, memory, seed=2):
     model = random_model_factory(seed, sizes=((24, 12), (24, 12), (24, 16)), n_taps=9,
                                  sigma=2.5, memory=memory)
     wl = random_walk_factory(model, 3000, seed)
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
     q, rep = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
@@ -101,7 +101,7 @@ def test_c_fixed_point_equals_the_integer_reference(random_model_factory, random
 @pytest.mark.parametrize("name", sorted(MEMORIES))
 def test_fixed_and_c_float_follow_the_float_model(random_model_factory, random_walk_factory, name):
     model, wl, q = _model(random_model_factory, random_walk_factory, MEMORIES[name])
-    flt = fm.predict(model, wl, model.baseline_nm)
+    flt = floatref.predict(model, wl, model.baseline_nm)
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
     rt = FloatRuntime(model)
     rt.set_baseline(model.baseline_nm)
@@ -158,7 +158,7 @@ def test_first_sample_after_reset_primes_the_states_as_at_rest(random_model_fact
     z0, _ = q.z_rest()
     assert np.array_equal(x[0, 4 + q.n_ema + q.n_play:], np.clip(z[0] - z0, -32767, 32767))
     mem = MEMORIES["full"]
-    f = fm.memory_features(mem, np.zeros((1, 4)), Z_REST)
+    f = floatref.memory_features(mem, np.zeros((1, 4)), Z_REST)
     assert np.allclose(f[0, 4 + 4:4 + 8], -np.array(mem.play_widths) * 2.0 ** np.array(mem.play_gains))
     assert np.allclose(f[0, 4 + 8:], -Z_REST)                  # the average starts at r = z - z0
 
@@ -234,8 +234,8 @@ def test_memory_refuses_parameters_outside_the_contract():
                 dict(ema_shifts=(3,), ema_gains=(1, 2)), dict(play_widths=(-0.1,)),
                 dict(play_widths=(float("nan"),)), dict(play_widths=(0.1,) * 5)):
         with pytest.raises(ValueError):
-            fm.Memory(**bad)
-    assert fm.Memory(play_widths=(0.1, 0.2)).play_gains == (0, 0)
+            artifact.Memory(**bad)
+    assert artifact.Memory(play_widths=(0.1, 0.2)).play_gains == (0, 0)
 
 
 @pytest.mark.parametrize("name", ["full", "loc"])
@@ -322,7 +322,7 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     assert hold_seconds(held, np.arange(0)) == 0.0
     presses = prepare([sim.simulate(small.replace(schedule={"hold_s": 0.0}))])
     assert hold_seconds(presses) == 0.0
-    md = fm.load(small_model_dir).metadata  # the smoke scene, trained without synthetic holds
+    md = modeldir.load(small_model_dir).metadata  # the smoke scene, trained without synthetic holds
     assert md["train_hold_s"] == 0.0 and md["memory"]["ema_shifts"]
     assert md["synthetic_holds"]["samples"]["train"] == 0
     assert sum("held grip" in w for w in md["warnings"]) == 1

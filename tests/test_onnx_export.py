@@ -7,9 +7,9 @@ import pytest
 
 from fbgforce.errors import InputError
 from fbgforce.export import onnx_export as ox
-from fbgforce.model import (MLP, HierarchicalModel, Memory, Preprocess, features, numpy_nets,
-                            predict, predict_from_features)
-from fbgforce.model import location_inputs as fm_location_inputs
+from fbgforce.model.artifact import HierarchicalModel, Memory, MLP, Preprocess
+from fbgforce.model.floatref import features, numpy_nets, predict, predict_from_features
+from fbgforce.model.floatref import location_inputs as fm_location_inputs
 
 EPS32 = float(np.finfo(np.float32).eps)
 
@@ -133,7 +133,7 @@ def test_onnxruntime_matches_float64_on_realistic_recordings(model, exported) ->
         wl, base = _recording(seed)
         z = features(model, wl, base)
         _check_agreement(model, z, ox.run_features(model, z, d))
-        # The engine entry point gates exactly like fbgforce.model.predict.
+        # The engine entry point gates exactly like fbgforce.model.floatref.predict.
         got = ox.run_recording(d, model, wl, base)
         ref = predict(model, wl, base)
         same = got["contact"] == ref["contact"]
@@ -301,9 +301,9 @@ def test_corrupt_file_is_refused(tmp_path) -> None:
 
 def test_trained_model_on_simulated_recording(small_model_dir, small_dataset_path, tmp_path) -> None:
     """A model the trainer produced, on the simulator's recording: onnxruntime == float64."""
-    from fbgforce import dataset as fds
-    from fbgforce.model import load
-    from fbgforce.tare import tare
+    from fbgforce.recordings import dataset as fds
+    from fbgforce.model.modeldir import load
+    from fbgforce.recordings.tare import tare
 
     model = load(small_model_dir)
     ds = fds.load(small_dataset_path)

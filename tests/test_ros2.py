@@ -480,7 +480,7 @@ def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exporte
     _need("mcap_ros2")
     from rosbags.highlevel import AnyReader
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.pybind import Runtime
 
     out, summary = _record_mcap(tmp_path, capsys, "--model", str(small_exported_dir))
@@ -553,7 +553,7 @@ def test_load_dataset_reads_another_drivers_bag_with_a_field_map(tmp_path):
     from rosbags.rosbag2 import Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     ts = get_typestore(Stores.LATEST)
     T = ts.types
@@ -728,7 +728,7 @@ def _preload_recording(path: Path, n: int) -> None:
     on every strain grating from sample 400 on (after the first tare), saved to ``path``."""
     import dataclasses
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     scene = sim.simulate("smoke", seed=5)
     rest = scene.wl_nm[:200]

@@ -170,7 +170,7 @@ def test_generated_c_model_matches_blob_and_float(small_exported_dir, small_data
     """Firmware path: generated const model + libfbgforce, compiled with the strict flags,
     gives the same bits as the blob through the integer reference; the generated float model
     gives what the float build gives through the wrapper."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.export.exporter import recording_baseline
 
     cdir = small_exported_dir / "c"
@@ -204,14 +204,14 @@ def test_generated_c_model_matches_blob_and_float(small_exported_dir, small_data
 
 
 def test_cfloat_matches_float_model(small_exported_dir, small_dataset_path):
-    from fbgforce import dataset
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.model import floatref, modeldir
     from fbgforce.export.exporter import recording_baseline
 
     ds = dataset.load(small_dataset_path)
     base = recording_baseline(ds)
-    model = fm.load(small_exported_dir)
-    ref = fm.predict(model, ds.wl_nm, base)
+    model = modeldir.load(small_exported_dir)
+    ref = floatref.predict(model, ds.wl_nm, base)
     fr = FloatRuntime(model)
     fr.set_baseline(base)
     out = fr.run(ds.wl_nm)
@@ -225,7 +225,7 @@ def test_cfloat_matches_float_model(small_exported_dir, small_dataset_path):
 def test_float_params_fill_the_float_model_for_codegen_and_binding(small_exported_dir):
     """One assembly of the fbgf_model parameters (HierarchicalModel.float_params): every
     contract field, at its length, and the binding's struct holds exactly those values."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
 
     model = fm.load(small_exported_dir)
     params = model.float_params(123456, 70.0, 3)
@@ -241,7 +241,7 @@ def test_float_params_fill_the_float_model_for_codegen_and_binding(small_exporte
 
 
 def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     ds = dataset.load(small_dataset_path).subset(slice(0, 1500))
     rt = Runtime(small_exported_dir)
@@ -266,8 +266,8 @@ def test_wrapper_units_and_step(small_exported_dir, small_dataset_path):
 def test_every_engine_gates_outputs_by_the_one_rule(engine, small_exported_dir, small_dataset_path):
     """No contact -> force 0 and location NaN, contact -> a finite location, on every engine
     (fbgforce.units.gate_outputs, the one place the rule is written)."""
-    from fbgforce import dataset
-    from fbgforce.engines import run_engine
+    from fbgforce.recordings import dataset
+    from fbgforce.evaluation.engines import run_engine
     from fbgforce.export.exporter import recording_baseline
     from fbgforce.units import gate_outputs
 
@@ -285,7 +285,7 @@ def test_every_engine_gates_outputs_by_the_one_rule(engine, small_exported_dir, 
 def test_latency_inside_1khz_budget(small_exported_dir, small_dataset_path):
     """Median step time over 10,000 samples, through Python and in C (batch). The figures are
     printed (pytest -s); only the 1 kHz budget (1000 us) is asserted."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
 
     ds = dataset.load(small_dataset_path)
     wl = intref.nm_to_fm(ds.wl_nm[:10_000])

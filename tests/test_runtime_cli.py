@@ -42,7 +42,7 @@ def test_export_and_verify_cli(small_model_dir, small_dataset_path, tmp_path, ca
     assert res8["mismatches"] == 0
 
     # Retrained after export: saving the new model removes the export it no longer matches.
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
 
     m = fm.load(mdir)
     m.force_scale *= 1.01

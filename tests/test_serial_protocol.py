@@ -242,8 +242,9 @@ def test_link_to_missing_device_does_not_raise():
 def test_live_estimator_in_chunks_equals_offline_engine(engine, small_exported_dir,
                                                         small_dataset_path):
     """Tare on the first samples, then any chunking gives the offline engine's estimates."""
-    from fbgforce import dataset, engines
-    from fbgforce import model as fm
+    from fbgforce.recordings import dataset
+    from fbgforce.evaluation import engines
+    from fbgforce.model import modeldir as fm
     from fbgforce.interrogator.stream import LiveEstimator
 
     wl_fm = P.nm_to_fm(dataset.load(small_dataset_path).wl_nm[:3000])

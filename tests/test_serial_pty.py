@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbgforce import dataset, sim
+from fbgforce import sim
+from fbgforce.recordings import dataset
 from fbgforce.cli import main
 from fbgforce.interrogator import emulator as E
 from fbgforce.interrogator import protocol as P
@@ -172,8 +173,8 @@ def test_device_disappears_and_comes_back(tmp_path, dropout_recording):
 @pytest.mark.slow
 def test_stream_10s_at_1khz_no_lost_frames_and_equal_to_offline_fixed(tmp_path, small_exported_dir,
                                                                       capsys, emulate_process):
-    from fbgforce import engines
-    from fbgforce import model as fm
+    from fbgforce.evaluation import engines
+    from fbgforce.model import modeldir as fm
     from fbgforce.interrogator.stream import load_estimates
 
     proc, link = emulate_process("--scene", "smoke", "--seed", "5", "--duration", "10",
@@ -206,7 +207,7 @@ def test_stream_10s_at_1khz_no_lost_frames_and_equal_to_offline_fixed(tmp_path, 
 def test_stream_fispec_protocol(tmp_path, small_exported_dir, capsys, emulate_process):
     """stream polls a FiSpec-style device: estimates of the polled samples, scene wavelengths
     to 1e-4 nm, the same as the offline engine on those samples."""
-    from fbgforce import engines
+    from fbgforce.evaluation import engines
     from fbgforce.interrogator.stream import load_estimates
 
     proc, link = emulate_process("--scene", "smoke", "--seed", "5", "--duration", "4",

@@ -7,7 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from fbgforce import dataset, geometry
+from fbgforce import geometry
+from fbgforce.recordings import dataset
 from fbgforce.cli import main
 from fbgforce.errors import InputError
 from fbgforce.sim import EndEffector, builtin_scenes, build_schedule, load_scene, simulate

@@ -23,7 +23,7 @@ import pytest
 
 from conftest import make_random_model, make_random_walk, require_tools
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.export import blob, codegen, intref
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import QLayer, QModel
@@ -58,9 +58,9 @@ def _require(*tools: str) -> None:
     require_tools(*tools, install="gcc qemu-user gcc-aarch64-linux-gnu libc6-dev-arm64-cross")
 
 
-def _balance_contact(model: fm.HierarchicalModel, wl: np.ndarray) -> None:
+def _balance_contact(model: artifact.HierarchicalModel, wl: np.ndarray) -> None:
     """Shift the contact logit so that about half of ``wl`` is contact (every net runs)."""
-    x = fm.features(model, wl, model.baseline_nm)
+    x = floatref.features(model, wl, model.baseline_nm)
     logits = model.contact.forward(x[:, :model.preprocess.n_features])
     model.contact.biases[-1][1] -= float(np.median(logits[:, 1] - logits[:, 0]))
 
@@ -119,7 +119,7 @@ def _edge_multipliers(layer: QLayer, sign: int) -> QLayer:
     return QLayer(w=layer.w, w_bits=layer.w_bits, bias=layer.bias, mult=mult, shift=31, acc32=True)
 
 
-def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory,
+def _extreme_model(seed: int, sizes, bits: int, memory: artifact.Memory,
                    edge: bool = False) -> tuple[QModel, np.ndarray]:
     """A quantised random model whose hidden layers are replaced by :func:`_extreme_layer`
     ones (``edge``: then given :func:`_edge_multipliers`, +2^30 and -2^30 in turn), and a
@@ -146,11 +146,11 @@ def _extreme_model(seed: int, sizes, bits: int, memory: fm.Memory,
     return q, np.vstack([wl_fm, wl_fm[:200]])
 
 
-def _edge_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
+def _edge_model(seed: int, sizes, bits: int, memory: artifact.Memory) -> tuple[QModel, np.ndarray]:
     return _extreme_model(seed, sizes, bits, memory, edge=True)
 
 
-def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
+def _realistic_model(seed: int, sizes, bits: int, memory: artifact.Memory) -> tuple[QModel, np.ndarray]:
     """A quantised random model as the exporter makes it (acc32 where proven) and its stream."""
     model = make_random_model(seed, sizes=sizes, memory=memory)
     wl = make_random_walk(model, 1500, seed=seed)
@@ -160,7 +160,7 @@ def _realistic_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QM
     return q, intref.nm_to_fm(wl)
 
 
-def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
+def _dead_units_model(seed: int, sizes, bits: int, memory: artifact.Memory) -> tuple[QModel, np.ndarray]:
     """:func:`_realistic_model` with the units weight decay leaves in the force and location
     nets: a third of each hidden layer's outputs unread (the next layer's column all zero),
     half of those with all-zero weights too (a bias alone), the force net's first layer wholly
@@ -186,7 +186,7 @@ def _dead_units_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[Q
     return q, wl_fm
 
 
-def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QModel, np.ndarray]:
+def _mixed_acc_model(seed: int, sizes, bits: int, memory: artifact.Memory) -> tuple[QModel, np.ndarray]:
     """:func:`_realistic_model` with every other layer (hidden and output ones, alternating
     between the nets) on int64 accumulators, which run the portable C between SIMD layers
     and are left out of the packed form."""
@@ -201,17 +201,17 @@ def _mixed_acc_model(seed: int, sizes, bits: int, memory: fm.Memory) -> tuple[QM
 PAPER = ((70, 50, 20), (70, 50, 20), (70, 50, 40))
 ODD = ((13, 7, 3), (1, 9, 17), (33, 5, 2))
 WIDE = ((128, 3, 127), (31, 128, 1), (9, 16, 24))
-MEM8 = fm.Memory(ema_shifts=(3, 6), ema_gains=(2, 1), play_widths=(0.2, 0.5), play_gains=(1, 2))
-MEM5 = fm.Memory(ema_shifts=(4,), ema_gains=(1,))
+MEM8 = artifact.Memory(ema_shifts=(3, 6), ema_gains=(2, 1), play_widths=(0.2, 0.5), play_gains=(1, 2))
+MEM5 = artifact.Memory(ema_shifts=(4,), ema_gains=(1,))
 # With the location averages, which the AVX2 front end updates in vectors.
-MEMLOC = fm.Memory(ema_shifts=(3,), ema_gains=(2,), play_widths=(0.2,), play_gains=(1,), loc_shift=3)
+MEMLOC = artifact.Memory(ema_shifts=(3,), ema_gains=(2,), play_widths=(0.2,), play_gains=(1,), loc_shift=3)
 CASES = {
     "paper-int16": (_realistic_model, 1, PAPER, 16, MEM8),
     "odd-int16": (_realistic_model, 2, ODD, 16, MEM5),
     "paper-int8": (_realistic_model, 3, PAPER, 8, MEM8),
     "extreme-paper-int16": (_extreme_model, 4, PAPER, 16, MEM8),
     "extreme-odd-int16": (_extreme_model, 5, ODD, 16, MEM5),
-    "extreme-wide-int16": (_extreme_model, 6, WIDE, 16, fm.Memory()),
+    "extreme-wide-int16": (_extreme_model, 6, WIDE, 16, artifact.Memory()),
     "extreme-odd-int8": (_extreme_model, 7, ODD, 8, MEM5),
     "extreme-edge-mult-odd-int16": (_edge_model, 10, ODD, 16, MEM5),
     "extreme-edge-mult-paper-int16": (_edge_model, 11, PAPER, 16, MEM8),
@@ -261,7 +261,7 @@ def test_location_average_clamp_alone_raises_saturated_on_every_kernel():
     integer reference (the AVX2 front end updates the averages in vectors)."""
     import dataclasses
 
-    model = make_random_model(21, sizes=PAPER, memory=fm.Memory(loc_shift=3))
+    model = make_random_model(21, sizes=PAPER, memory=artifact.Memory(loc_shift=3))
     wl = make_random_walk(model, 600, seed=21)
     q, _ = qz.quantize(model, qz.calibrate(model, [(wl, model.baseline_nm)]))
     for net in q.nets:
@@ -332,7 +332,7 @@ def test_compensation_clamp_alone_raises_saturated_on_every_kernel():
     layers that output 0. SATURATED then comes from the compensation alone, on some steps
     and not on others, and every kernel, packed or not, equals the integer reference (the AVX2
     front end compensates in int64 lanes)."""
-    q, _ = _realistic_model(16, ODD, 16, fm.Memory())
+    q, _ = _realistic_model(16, ODD, 16, artifact.Memory())
     for net in q.nets:
         for layer in net[:-1]:
             layer.mult = np.zeros_like(layer.mult)
@@ -370,7 +370,7 @@ def test_load_signal_clamp_alone_raises_saturated_and_states_match_on_every_kern
     SATURATED then comes from u alone, on some steps and not on others; every kernel, packed
     or not, equals the integer reference, and its state after the stream equals the portable
     C's field by field (the AVX2 front end stores only the n_ema / n_play states it has)."""
-    q, wl_fm = _realistic_model(17, ODD, 16, fm.Memory(play_widths=(0.2,), play_gains=(0,)))
+    q, wl_fm = _realistic_model(17, ODD, 16, artifact.Memory(play_widths=(0.2,), play_gains=(0,)))
     for net in q.nets:
         for layer in net[:-1]:
             layer.mult = np.zeros_like(layer.mult)
@@ -412,7 +412,7 @@ def test_packed_form_leaves_out_unused_units():
 
 
 def test_kernel_selection():
-    q, _ = _realistic_model(8, ODD, 16, fm.Memory())
+    q, _ = _realistic_model(8, ODD, 16, artifact.Memory())
     data = blob.to_bytes(q)
     assert Runtime(data, kernel="portable").kernel == "portable"
     best = host_kernels()

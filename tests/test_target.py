@@ -15,7 +15,7 @@ import pytest
 
 from conftest import missing_tool
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, modeldir
 from fbgforce.target import firmware, golden, sources, toolchain
 from fbgforce.target.report import load_quantized, recording_fm, target_report
 
@@ -248,9 +248,9 @@ def test_temperature_reference_average_bit_exact_on_target(tools, small_model_di
     and new baselines."""
     d = tmp_path / "model"
     shutil.copytree(small_model_dir, d)
-    model = fm.load(d)
+    model = modeldir.load(d)
     model.preprocess = replace(model.preprocess, ref_shift=contract.LIMIT["MAX_REF_SHIFT"])
-    fm.save(model, d)
+    modeldir.save(model, d)
     rep = target_report(d, samples=128)
     assert rep["bit_exact"] is True
     for name in ("portable", "dsp"):
@@ -265,10 +265,10 @@ def test_tracker_creep_term_bit_exact_on_target(tools, small_model_dir, tmp_path
     baselines."""
     d = tmp_path / "model"
     shutil.copytree(small_model_dir, d)
-    model = fm.load(d)
+    model = modeldir.load(d)
     model.in_use = replace(model.in_use, track_shift=4, track_settle=0, track_step_max_pm=50.0,
                            track_creep=0.5, track_creep_shift=3)
-    fm.save(model, d)
+    modeldir.save(model, d)
     q, _ = load_quantized(d)
     assert q.track_creep_q15 == contract.LIMIT["MAX_TRACK_CREEP_Q15"]
     # The recording's first rest long enough for tracker blocks.
@@ -298,9 +298,9 @@ def test_creep_inverse_bit_exact_on_target(tools, small_model_dir, tmp_path):
     and new baselines re-priming it."""
     d = tmp_path / "model"
     shutil.copytree(small_model_dir, d)
-    model = fm.load(d)
+    model = modeldir.load(d)
     model.preprocess = replace(model.preprocess, creep=0.5, creep_shift=15)
-    fm.save(model, d)
+    modeldir.save(model, d)
     q, _ = load_quantized(d)
     assert q.creep_q15 == round(model.preprocess.creep_gain * 2**15) > 32000
     _changes_the_session_and_is_bit_exact(d, q, replace(q, creep_q15=0, creep_shift=0), SAMPLES)
@@ -313,10 +313,10 @@ def test_settled_hold_gain_bit_exact_on_target(tools, small_model_dir, tmp_path)
     tares and resets clearing it."""
     d = tmp_path / "model"
     shutil.copytree(small_model_dir, d)
-    model = fm.load(d)
-    model.in_use = replace(model.in_use, hold_gain=fm.HOLD_GAIN_MAX, hold_settle=2,
+    model = modeldir.load(d)
+    model.in_use = replace(model.in_use, hold_gain=artifact.HOLD_GAIN_MAX, hold_settle=2,
                            hold_band_N=1000.0, hold_band_frac=1.0, hold_shift=3, hold_ramp_shift=2)
-    fm.save(model, d)
+    modeldir.save(model, d)
     q, _ = load_quantized(d)
     assert q.hold_gain_q15 == contract.LIMIT["MAX_HOLD_GAIN_Q15"]
     _changes_the_session_and_is_bit_exact(d, q, replace(q, hold_gain_q15=0), SAMPLES)
@@ -329,12 +329,12 @@ def test_cusum_decision_bit_exact_on_target(tools, small_model_dir, tmp_path):
     and resets clearing it."""
     d = tmp_path / "model"
     shutil.copytree(small_model_dir, d)
-    model = fm.load(d)
+    model = modeldir.load(d)
     own = model.in_use
     model.in_use = replace(own, contact_on_margin=0.0, contact_rise_samples=1,
                            contact_cusum_h=4.0, contact_cusum_k=0.5, contact_cusum_lo=-2.0,
                            contact_cusum_hi=2.5)
-    fm.save(model, d)
+    modeldir.save(model, d)
     q, _ = load_quantized(d)
     assert (q.contact_cusum_h_q8, q.contact_cusum_k_q8) == (1024, 128)
     off = replace(q, contact_cusum_h_q8=0, contact_cusum_k_q8=0, contact_cusum_lo_q8=0,

@@ -318,7 +318,7 @@ def test_a_fingertip_that_is_not_the_calibrated_device_is_refused(doc, small_exp
 
 
 def test_device_check_without_a_known_origin(small_exported_dir, tmp_path):
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.teleop.sensor import check_device
 
     model = fm.load(small_exported_dir)
@@ -340,7 +340,7 @@ def test_estimator_label_names_the_memory_kinds(random_model_factory, memory, wo
     """The ablation table's label lists every kind of memory state the model has."""
     from types import SimpleNamespace
 
-    from fbgforce import model as fm
+    from fbgforce.model import artifact as fm
     from fbgforce.teleop.ablation import estimator_label
 
     model = random_model_factory(0, sizes=((8,), (8,), (8,)), memory=fm.Memory(**memory))

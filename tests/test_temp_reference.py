@@ -20,8 +20,9 @@ import pytest
 from fbgforce.errors import InputError
 
 from conftest import make_random_model, make_random_walk
-from fbgforce import contract, freshness
-from fbgforce import model as fm
+from fbgforce import contract
+from fbgforce.model import freshness
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.export import blob, intref
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import QModel
@@ -34,7 +35,7 @@ FIELDS = contract.OUTPUT_FIELDS
 NOISE_NM = 5e-4
 
 
-def _noisy_walk(model: fm.HierarchicalModel, n: int, seed: int) -> np.ndarray:
+def _noisy_walk(model: artifact.HierarchicalModel, n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return make_random_walk(model, n, seed) + rng.normal(0.0, NOISE_NM, (n, 5))
 
@@ -52,7 +53,7 @@ def _quantised(ref_shift: int, seed: int = 4, n: int = 2000):
     """A small random model with the reference's average at ``ref_shift``, its blob model and
     noisy wavelengths (nm) around its baseline."""
     model = make_random_model(seed, sizes=((16, 8), (16, 8), (16, 8)), n_taps=7, sigma=2.0,
-                              memory=fm.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
+                              memory=artifact.Memory(ema_shifts=(4,), play_widths=(0.1,), loc_shift=3))
     model.preprocess = dataclasses.replace(model.preprocess, ref_shift=ref_shift)
     wl = _noisy_walk(model, n, seed)
     _balance_contact(model, wl)
@@ -142,14 +143,14 @@ def test_float_engines_prime_hold_and_carry_the_average():
     # The first sample and the first after each reset, tare and new baseline faulty: the
     # next one primes.
     wl[[0, 1200, 1550, 1800, 1810], 4] = np.nan
-    pipe = fm.FloatPipeline(model, model.baseline_nm)
+    pipe = floatref.FloatPipeline(model, model.baseline_nm)
     pieces = [pipe.push(wl[a:b]) for a, b in ((0, 1), (1, 333), (333, 1200))]
-    whole = fm.FloatPipeline(model, model.baseline_nm).push(wl[:1200])
+    whole = floatref.FloatPipeline(model, model.baseline_nm).push(wl[:1200])
     for key in ("margin", "force_raw_N", "status"):
         got = np.concatenate([p[key] for p in pieces])
         assert np.allclose(got, whole[key], atol=1e-12, equal_nan=True), key
     shift_t = (wl[:1200, 4] - model.baseline_nm[4]) * 1000.0
-    good = np.flatnonzero(~fm.samples.sensor_fault_rows(wl[:1200]))
+    good = np.flatnonzero(~floatref.samples.sensor_fault_rows(wl[:1200]))
     r = shift_t[good[0]]
     for i in good[1:]:
         r += (shift_t[i] - r) / 2.0**k
@@ -160,7 +161,7 @@ def test_float_engines_prime_hold_and_carry_the_average():
     rt.run(wl[:1200])
 
     def follows(c: np.ndarray, start: int, stop: int, base: np.ndarray) -> None:
-        flt = fm.FloatPipeline(model, base).push(wl[start:stop])
+        flt = floatref.FloatPipeline(model, base).push(wl[start:stop])
         fault = (c["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]) != 0
         assert np.array_equal(fault, flt["status"] != 0) and fault.any()
         assert np.abs(c["margin"][~fault] - flt["margin"][~fault]).max() < 1e-3
@@ -183,7 +184,7 @@ def test_a_model_without_the_field_is_the_model_it_was(tmp_path):
     assert old.preprocess.ref_shift == 0
     shift = (wl - old.baseline_nm) * 1000.0
     expected = shift[:, :4] - shift[:, 4:] * old.preprocess.temp_coeff
-    assert np.array_equal(fm.compensate(old, wl, old.baseline_nm), expected)
+    assert np.array_equal(floatref.compensate(old, wl, old.baseline_nm), expected)
     q = assert_version6_export(old, wl)
     assert q.ref_shift == 0
     old.preprocess = dataclasses.replace(old.preprocess, ref_shift=5)
@@ -196,23 +197,23 @@ VERSION6_BLOB_SHA = "641c75ee3a8604f40754188dfe8ca226779f0b2f5bdbf0d04fc29d9a726
 VERSION6_DIGEST = "8bf64e49ac2845e39ea93a1c561840b27883d59a00b7897efa3d88f52a19a40c"
 
 
-def version6_model(directory: Path) -> tuple[fm.HierarchicalModel, np.ndarray]:
+def version6_model(directory: Path) -> tuple[artifact.HierarchicalModel, np.ndarray]:
     """The old model above as the version 6 trainer saved it in ``directory`` (its model.json
     without the fields added since: ``ref_shift``, ``creep``, ``creep_shift``, ``track_creep``,
     ``track_creep_shift``), loaded, and the 600 wavelengths (nm) its export is taken on."""
     model = make_random_model(7, sizes=((12,), (12,), (12,)), n_taps=5, sigma=1.5,
-                              memory=fm.Memory(ema_shifts=(3,), play_widths=(0.2,)))
-    fm.save(model, directory)
-    doc = json.loads((directory / fm.MODEL_JSON).read_text())
+                              memory=artifact.Memory(ema_shifts=(3,), play_widths=(0.2,)))
+    modeldir.save(model, directory)
+    doc = json.loads((directory / modeldir.MODEL_JSON).read_text())
     for key in ("ref_shift", "creep", "creep_shift"):
         del doc["preprocess"][key]
     del doc["in_use"]["track_creep"], doc["in_use"]["track_creep_shift"]
-    (directory / fm.MODEL_JSON).write_text(json.dumps(doc))
-    old = fm.load(directory)
+    (directory / modeldir.MODEL_JSON).write_text(json.dumps(doc))
+    old = modeldir.load(directory)
     return old, make_random_walk(old, 600, 7)
 
 
-def assert_version6_export(old: fm.HierarchicalModel, wl: np.ndarray) -> QModel:
+def assert_version6_export(old: artifact.HierarchicalModel, wl: np.ndarray) -> QModel:
     """``old`` (the old model above, loaded from a model.json without the fields added since
     blob version 6) quantises on ``wl`` to the version 6 blob apart from the header's version
     and CRC and the creep inverse's fields (blob version 9), which grew the parameter block
@@ -306,5 +307,5 @@ def test_levels_compensate_each_row_on_its_own():
     assert np.array_equal(pp.compensated(pre, wl, base), shift[:, :4] - shift[:, 4:] * 0.9)
     along = pp.compensated(pre, wl, base, recording=True)
     model = dataclasses.replace(make_random_model(0), preprocess=pre)
-    assert np.array_equal(along, fm.compensate(model, wl, base))
+    assert np.array_equal(along, floatref.compensate(model, wl, base))
     assert not np.allclose(along[1:], shift[1:, :4] - shift[1:, 4:] * 0.9)

@@ -8,23 +8,23 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.tradeoff import grid, scoring, timing
 from fbgforce.cli import main
 from fbgforce.errors import InputError
 
 
-def _mlp(rng: np.random.Generator, sizes: list[int]) -> fm.MLP:
-    return fm.MLP([rng.standard_normal((b, a)) * np.sqrt(2.0 / a) for a, b in zip(sizes[:-1], sizes[1:])],
+def _mlp(rng: np.random.Generator, sizes: list[int]) -> artifact.MLP:
+    return artifact.MLP([rng.standard_normal((b, a)) * np.sqrt(2.0 / a) for a, b in zip(sizes[:-1], sizes[1:])],
                   [rng.standard_normal(b) * 0.1 for b in sizes[1:]])
 
 
-def _model(kind: str = "causal", seed: int = 0) -> fm.HierarchicalModel:
+def _model(kind: str = "causal", seed: int = 0) -> artifact.HierarchicalModel:
     rng = np.random.default_rng(seed)
     taps = {"causal": np.exp(-0.5 * (np.arange(16) / 5.0) ** 2), "none": np.ones(1)}[kind]
-    pre = fm.Preprocess([1.01, 0.99, 1.0, 1.02], kind, 5.0 if kind == "causal" else 0.0,
+    pre = artifact.Preprocess([1.01, 0.99, 1.0, 1.02], kind, 5.0 if kind == "causal" else 0.0,
                         taps / taps.sum(), [3.0, -2.0, 1.0, 0.5], [40.0, 30.0, 50.0, 45.0])
-    return fm.HierarchicalModel(pre, _mlp(rng, [4, 20, 10, 2]), _mlp(rng, [4, 20, 10, 1]),
+    return artifact.HierarchicalModel(pre, _mlp(rng, [4, 20, 10, 2]), _mlp(rng, [4, 20, 10, 1]),
                                 _mlp(rng, [6, 20, 12, 2]), 10.0, 12.0, [10.5, 13.5], [5.0, 7.0],
                                 [1530.0, 1538.0, 1546.0, 1554.0, 1562.0])
 
@@ -45,7 +45,7 @@ def test_single_sample_pipeline_equals_batch(kind: str, nets: str) -> None:
     model = _model(kind)
     wl = _wavelengths(400)
     base = wl[:20].mean(axis=0)
-    ref = fm.predict(model, wl, base)
+    ref = floatref.predict(model, wl, base)
     pipe = timing.float_pipeline(model, base, nets)
     got = [pipe.push(wl[i]) for i in range(wl.shape[0])]
     contact = np.array([g["contact"][0] for g in got])
@@ -63,7 +63,7 @@ def test_single_sample_pipeline_equals_batch(kind: str, nets: str) -> None:
 
 def test_single_sample_pipeline_refuses_centred_filter() -> None:
     model = _model()
-    model.preprocess = fm.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
+    model.preprocess = artifact.Preprocess(model.preprocess.temp_coeff, "centred", 2.0, np.ones(5) / 5,
                                      model.preprocess.input_mean, model.preprocess.input_std)
     with pytest.raises(InputError, match="centred"):
         timing.float_pipeline(model, model.baseline_nm)
@@ -240,7 +240,7 @@ def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
 
 
 def test_engines_take_the_engine_names_and_the_documented_aliases(tmp_path, monkeypatch, capsys) -> None:
-    """One vocabulary: the columns are named as fbgforce.engines names its engines; the names
+    """One vocabulary: the columns are named as fbgforce.evaluation.engines names its engines; the names
     docs/cli.md lists for --engines before are accepted for the same columns."""
     import fbgforce.tradeoff.artifacts as tart
     import fbgforce.tradeoff.run as trun
@@ -266,7 +266,7 @@ def test_engines_take_the_engine_names_and_the_documented_aliases(tmp_path, monk
 def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_path, tmp_path) -> None:
     """``fbgforce tradeoff --decision``'s rows: the Schmitt trigger's and the CUSUM's, scored
     through the C runtime; a threshold no press reaches detects nothing, a low one detects."""
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.tradeoff import decision
 
     ds = dataset.load(small_dataset_path)

@@ -4,12 +4,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbgforce import engines, metrics
-from fbgforce import model as fm
+from fbgforce.evaluation import engines, metrics
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.trainer import baseline as bl
 from fbgforce.trainer import preprocess as pp
-from fbgforce import tare as fbgtare  # noqa: E402
+from fbgforce.recordings import tare as fbgtare  # noqa: E402
 from fbgforce.trainer.nets import FlatMLP, fit, mse, predict_batched, softmax_xent
 from fbgforce.trainer.optim import AdamOptimizer
 
@@ -118,11 +118,11 @@ def test_causal_filter_uses_no_future_sample(sigma):
     pre = pp.make_preprocess("causal", sigma, np.ones(4))
     rng = np.random.default_rng(0)
     x = rng.standard_normal((500, 4))
-    y = fm.apply_filter(pre, x)
+    y = floatref.apply_filter(pre, x)
     for n0 in (0, 1, 137, 499):
         x2 = x.copy()
         x2[n0:] += rng.standard_normal(x2[n0:].shape) * 100
-        y2 = fm.apply_filter(pre, x2)
+        y2 = floatref.apply_filter(pre, x2)
         assert np.array_equal(y2[:n0], y[:n0])
         assert not np.allclose(y2[n0], y[n0])
     # Group delay of a half-Gaussian ~ sigma * sqrt(2/pi), reported in ms at the sample rate.
@@ -241,7 +241,7 @@ def _tiny_model(rng):
     pre = pp.make_preprocess("causal", 2.0, np.ones(4))
     nets = {name: FlatMLP(s, rng).to_mlp() for name, s in
             (("contact", [4, 8, 2]), ("force", [4, 8, 1]), ("location", [6, 8, 2]))}
-    return fm.HierarchicalModel(preprocess=pre, force_offset=1.0, force_scale=2.0,
+    return artifact.HierarchicalModel(preprocess=pre, force_offset=1.0, force_scale=2.0,
                                 xy_offset=[10, 13], xy_scale=[3, 4],
                                 baseline_nm=[1530, 1538, 1546, 1554, 1562], **nets)
 
@@ -251,10 +251,10 @@ def test_float_engine_and_errors(tmp_path):
     model = _tiny_model(rng)
     wl = model.baseline_nm + rng.normal(0, 0.05, (200, 5))
     out = engines.run_engine("float", None, model, wl, model.baseline_nm)
-    ref = fm.predict(model, wl, model.baseline_nm)
+    ref = floatref.predict(model, wl, model.baseline_nm)
     for k in ("contact", "force_N", "p_contact"):
         assert np.array_equal(out[k], ref[k])
-    fm.save(model, tmp_path / "m")
+    modeldir.save(model, tmp_path / "m")
     again = engines.run_engine("float", tmp_path / "m", None, wl, model.baseline_nm)
     assert np.allclose(again["force_N"], ref["force_N"])
     with pytest.raises(InputError, match="unknown engine"):
@@ -294,7 +294,7 @@ def test_nominal_baseline_inverts_the_nominal_model_and_fit_recovers_a_device():
 # ------------------------------------------------------------------------------ training
 @pytest.mark.slow
 def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording, tmp_path):
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.trainer.evaluate import evaluate
     from fbgforce.trainer.train import train
 
@@ -305,7 +305,7 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     a = train([path], **kw)
     b = train([ds], **kw)
-    for name in fm.NET_NAMES:
+    for name in artifact.NET_NAMES:
         for wa, wb in zip(a.nets[name].weights, b.nets[name].weights):
             assert np.array_equal(wa, wb)
     md = a.metadata
@@ -313,9 +313,9 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     # The location net reads the four channels, the contact flag and the force, not the
     # load signal's memory features, then the location averages of the default memory
     # (fbgforce.contract.net_inputs).
-    assert md["sizes"]["location"] == [fm.N_STRAIN + 2 + fm.N_STRAIN, 16, 8, 2]
+    assert md["sizes"]["location"] == [artifact.N_STRAIN + 2 + artifact.N_STRAIN, 16, 8, 2]
     assert md["split"]["samples"]["train"] > 5 * md["split"]["samples"]["test"] > 0
-    fm.save(a, tmp_path / "m")
+    modeldir.save(a, tmp_path / "m")
     ev = evaluate(tmp_path / "m", [path], split="test")
     for k in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"):
         assert ev[k] == pytest.approx(md["metrics"]["test"][k], rel=1e-9)
@@ -347,7 +347,7 @@ def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synth
 
 
 def test_unread_units_are_dropped_and_float32_outputs_stay():
-    from fbgforce.model import MLP
+    from fbgforce.model.artifact import MLP
     from fbgforce.trainer.nets import drop_unread_units
 
     rng = np.random.default_rng(4)
@@ -522,7 +522,7 @@ def test_scaled_presses_scale_the_strain_features_per_press(synthetic_recording)
     assert np.array_equal(kept, rows) and z.shape == (rows.size, data.inputs(pre).shape[1])
     # Deep inside a press the (linear) filter has forgotten the previous press: the strain
     # inputs are the original ones times the press's own factor in [1, 3].
-    ratio = z[:, :fm.N_STRAIN] / data.inputs(pre)[rows, :fm.N_STRAIN]
+    ratio = z[:, :artifact.N_STRAIN] / data.inputs(pre)[rows, :artifact.N_STRAIN]
     pid = np.asarray(ds.press_id)[rows]
     for p in np.unique(pid):
         r = ratio[pid == p]
@@ -580,7 +580,7 @@ def test_sizes_set_the_hidden_widths_and_leave_the_other_nets_at_the_default(sma
                                                                              tmp_path):
     """``fbgforce train --sizes`` reaches the model; nets it does not name keep DEFAULT_SIZES
     (whose widths the force net's decay may trim, never widen)."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.cli import main
     from fbgforce.trainer.params import DEFAULT_SIZES
 
@@ -605,7 +605,7 @@ def test_creep_and_turn_guard_flags_reach_the_model(small_dataset_path, tmp_path
                                                     guard_s):
     """``--creep-inverse`` / ``--no-creep-inverse`` override the trainer's choice, and the
     turn guard follows the inverse unless ``--turn-guard`` sets it."""
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.cli import main
 
     out = tmp_path / "m"

@@ -6,7 +6,7 @@ import json
 import numpy as np
 import pytest
 
-from fbgforce import model as fm
+from fbgforce.model import modeldir as fm
 from fbgforce.cli import main
 
 

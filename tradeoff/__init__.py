@@ -1,7 +1,7 @@
 """``fbgforce tradeoff``: what accuracy costs in time, on a grid of models x engines.
 
 For every trained variant (filter x network width) and every engine that can run it, the
-same test presses are scored with :mod:`fbgforce.metrics`, and the cost is measured: host time
+same test presses are scored with :mod:`fbgforce.evaluation.metrics`, and the cost is measured: host time
 per sample (single-sample streaming calls and batches, all engines interleaved in one run,
 :mod:`fbgforce.tradeoff.timing`), the filter's delay, multiply-accumulates, model bytes and, when
 the Cortex-M4 toolchain is there, instructions per step on target (:mod:`fbgforce.target`).

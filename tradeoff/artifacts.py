@@ -10,7 +10,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, modeldir
 from fbgforce.errors import InputError
 
 def prepare_data(data: Sequence[str | Path] | None, scene: str | None, out: Path, seed: int,
@@ -24,7 +24,7 @@ def prepare_data(data: Sequence[str | Path] | None, scene: str | None, out: Path
         return paths
     if not scene:
         raise InputError("give --data FILE or --scene NAME")
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce.sim import simulate
     from fbgforce.sim.scene import load_scene
 
@@ -43,20 +43,20 @@ def data_digest(paths: Sequence[Path]) -> str:
     return hashlib.sha256("".join(file_sha256(p) for p in paths).encode()).hexdigest()[:16]
 
 
-def reusable_model(model_dir: Path, key: dict[str, Any]) -> fm.HierarchicalModel | None:
+def reusable_model(model_dir: Path, key: dict[str, Any]) -> artifact.HierarchicalModel | None:
     marker = model_dir / "tradeoff-key.json"
     try:
         if json.loads(marker.read_text()) == key:
-            return fm.load(model_dir)
+            return modeldir.load(model_dir)
     except (OSError, ValueError, InputError):
         return None
     return None
 
 
-def save_with_key(model: fm.HierarchicalModel, model_dir: Path, key: dict[str, Any]) -> None:
+def save_with_key(model: artifact.HierarchicalModel, model_dir: Path, key: dict[str, Any]) -> None:
     if model_dir.exists():
         shutil.rmtree(model_dir)
-    fm.save(model, model_dir)
+    modeldir.save(model, model_dir)
     (model_dir / "tradeoff-key.json").write_text(json.dumps(key, indent=1) + "\n")
 
 
@@ -75,7 +75,7 @@ def calibration_subset(ds_list: Sequence[Any], sources: Sequence[str], out: Path
     ds = ds_list[0]
     if sum(len(d) for d in ds_list) <= CALIB_MAX_SAMPLES:
         return list(sources)
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     pid = np.asarray(ds.press_id)
     cut = CALIB_MAX_SAMPLES

@@ -155,7 +155,7 @@ def _bench_speed_handler(args: argparse.Namespace) -> dict[str, Any]:
 def _decision_handler(args: argparse.Namespace) -> dict[str, Any]:
     import json
 
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.jsonutil import json_default
     from fbgforce.tradeoff.artifacts import prepare_data
     from fbgforce.tradeoff.decision import csv_text, decision_curve, markdown, plot

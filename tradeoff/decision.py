@@ -20,9 +20,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
-from fbgforce import tare as ftare
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, decision, modeldir
+from fbgforce.recordings import tare as ftare
 from fbgforce.export import blob
 from fbgforce.export.quantize import quantize_in_use
 from fbgforce.pybind import Runtime
@@ -39,17 +39,17 @@ CSV_COLUMNS = ("rule", "contact_on_margin", "contact_rise_samples", "cusum_h", "
                "onset_median_ms", "onset_p90_ms", "detected_above_1N")
 
 
-def cusum_base(own: fm.InUse, sample_rate_hz: float = 1000.0) -> tuple[float, float, float]:
+def cusum_base(own: artifact.InUse, sample_rate_hz: float = 1000.0) -> tuple[float, float, float]:
     """``(h, k, lo)`` the CUSUM rows sweep around: the model's own when it has the CUSUM on;
     else ``k`` its rest quantile (``contact_on_margin / REST_MARGIN_FACTOR``, the level the
-    trainer's :func:`fbgforce.model.cusum_parameters` takes as the drift) and ``h`` what the
+    trainer's :func:`fbgforce.model.decision.cusum_parameters` takes as the drift) and ``h`` what the
     Schmitt trigger asks of a rise above it (``contact_rise_samples`` samples of ``max(k,
     0.5)``, the trainer's least ``h``), ``lo`` unclipped."""
     if own.contact_cusum_h:
         return own.contact_cusum_h, own.contact_cusum_k, own.contact_cusum_lo
-    k = own.contact_on_margin / fm.REST_MARGIN_FACTOR
-    rise = max(own.contact_rise_samples, int(round(fm.RISE_S * sample_rate_hz)))
-    return rise * max(k, 0.5), k, -fm.CUSUM_MAX
+    k = own.contact_on_margin / decision.REST_MARGIN_FACTOR
+    rise = max(own.contact_rise_samples, int(round(decision.RISE_S * sample_rate_hz)))
+    return rise * max(k, 0.5), k, -decision.CUSUM_MAX
 
 
 def _score(q: Any, recordings: Sequence[Any]) -> dict[str, Any]:
@@ -95,14 +95,14 @@ def decision_curve(model_dir: str | Path, recordings: Sequence[Any],
     (the factor the trainer sets) and ``rise_counts``, the CUSUM over ``h_scales`` times
     :func:`cusum_base`'s ``h`` with its ``k``, ``lo`` and ``hi = k + h / 2``. Both keep the
     model's ``contact_off_margin``."""
-    model = fm.load(model_dir)
+    model = modeldir.load(model_dir)
     q0 = blob.load_model_blob(model_dir)
     own = model.in_use
     schmitt = dataclasses.replace(own, contact_cusum_h=0.0, contact_cusum_k=0.0,
                                   contact_cusum_lo=0.0, contact_cusum_hi=0.0)
     base_on = own.contact_on_margin
     if own.contact_cusum_h:       # a CUSUM model: its Schmitt rows around its drift
-        base_on = fm.REST_MARGIN_FACTOR * own.contact_cusum_k
+        base_on = decision.REST_MARGIN_FACTOR * own.contact_cusum_k
     rows = []
     for scale in on_scales:
         for rise in rise_counts:

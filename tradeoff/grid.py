@@ -37,7 +37,7 @@ class Variant:
 
 @dataclass(frozen=True)
 class EngineSpec:
-    """An engine column: which ``fbgforce.engines`` engine on which model artifact."""
+    """An engine column: which ``fbgforce.evaluation.engines`` engine on which model artifact."""
 
     name: str
     engine: str
@@ -57,7 +57,7 @@ ENGINE_SPECS = (
 )
 SPECS_BY_NAME = {spec.name: spec for spec in ENGINE_SPECS}
 #: Other names ``fbgforce tradeoff --engines`` accepts for the engine columns (docs/cli.md):
-#: each column is named as ``fbgforce.engines`` names its engine (``float``, ``onnx``,
+#: each column is named as ``fbgforce.evaluation.engines`` names its engine (``float``, ``onnx``,
 #: ``cfloat``, ``fixed``), with the weight format where it is not the export's default int16.
 ENGINE_ALIASES = {"numpy-f64": "float", "onnx-f32": "onnx", "c-float": "cfloat", "c-int16": "fixed",
                   "c-int8": "fixed-int8", "c-int8-qat": "fixed-int8-qat"}

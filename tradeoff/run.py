@@ -11,9 +11,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fbgforce import engines as fengines
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import engines as fengines
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import artifacts, scoring, timing
 from fbgforce.tradeoff.grid import (ENGINE_SPECS, SPECS_BY_NAME, EngineSpec, Settings, Variant,
@@ -79,7 +79,7 @@ def _filter_delay_ms(model: fm.HierarchicalModel, rate_hz: float) -> float:
 def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None] = print
         ) -> dict[str, Any]:
     """Train or reuse every variant, evaluate every engine, time them, write the outputs."""
-    from fbgforce.tare import sample_rate_hz
+    from fbgforce.recordings.tare import sample_rate_hz
     from fbgforce.trainer import train as tr
     from fbgforce.trainer.data import load_datasets
 

@@ -8,7 +8,7 @@ three kinds of figure:
   runtime's batch (``fbg_run`` / ``fbgf_run`` through cffi on int32 femtometres) and its
   single-sample API (``Runtime.step`` / ``FloatRuntime.step``); numpy float64 and onnxruntime
   float32 (one thread) over the whole pipeline (batch: the engine functions; single:
-  :class:`~fbgforce.model.FloatPipeline`) and over the nets alone (standardised
+  :class:`~fbgforce.model.floatref.FloatPipeline`) and over the nets alone (standardised
   features precomputed), onnxruntime's single-row ``session.run`` included;
 - **from C**, per driver build (:mod:`fbgforce.tradeoff.cdriver`): ``*_run`` over all samples
   and one ``*_step`` call per sample, best of ``reps`` passes in CPU time, the fixed-point
@@ -30,7 +30,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref, modeldir
 from fbgforce.errors import InputError
 from fbgforce.tradeoff import cdriver, timing
 from fbgforce.tradeoff.grid import step_macs
@@ -98,9 +98,9 @@ def _fixed_bits(model_dir: Path) -> int | None:
         return None
 
 
-def _check_fixed_dir(model_dir: Path, model: fm.HierarchicalModel, bits: int, option: str) -> None:
+def _check_fixed_dir(model_dir: Path, model: artifact.HierarchicalModel, bits: int, option: str) -> None:
     """A directory whose model.fbgm is a current ``bits``-bit export of ``model``."""
-    from fbgforce.freshness import check_export
+    from fbgforce.model.modeldir import check_export
     from fbgforce.pybind import Runtime
 
     Runtime(model_dir)  # missing, unreadable or stale blob: InputError naming the file
@@ -145,10 +145,10 @@ def _row(engine: str, call: str, caller: str, scope: str, how: str, *, build: st
             "note": note}
 
 
-def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, wl: np.ndarray,
+def python_timers(model_dir: Path, int8_dir: Path, model: artifact.HierarchicalModel, wl: np.ndarray,
                   base: np.ndarray) -> list[tuple[timing.Timer, dict[str, Any], dict[str, Any]]]:
     """The in-process timers and, for each, the rows its single and batch figures fill."""
-    from fbgforce.engines import get_engine
+    from fbgforce.evaluation.engines import get_engine
     from fbgforce.export.onnx_export import DECISION_NAME, INPUT_NAME, run_features, session_for
     from fbgforce.pybind import FloatRuntime, Runtime
 
@@ -163,7 +163,7 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
         out.append((timing.Timer(name, single=lambda i, rt=rt: rt.step(wl[i]), batch=batch),
                     _row(name, "single", "python", "pipeline", api),
                     _row(name, "batch", "python", "pipeline", f"{run} through cffi")))
-    z = np.ascontiguousarray(fm.features(model, wl, base))
+    z = np.ascontiguousarray(floatref.features(model, wl, base))
     z32 = np.ascontiguousarray(z, dtype=np.float32)
     for name, engine, nets in (("float", "float", "numpy"), ("onnx", "onnx", "onnx")):
         fn = get_engine(engine)
@@ -172,18 +172,18 @@ def python_timers(model_dir: Path, int8_dir: Path, model: fm.HierarchicalModel, 
                                  batch=lambda a, b, fn=fn: fn(model_dir, model, wl[a:b], base)),
                     _row(name, "single", "python", "pipeline", f"FloatPipeline.push ({nets})"),
                     _row(name, "batch", "python", "pipeline",
-                         "fbgforce.model.predict" if nets == "numpy"
+                         "fbgforce.model.floatref.predict" if nets == "numpy"
                          else "numpy preprocessing + onnxruntime nets")))
     out.append((timing.Timer("float/nets",
-                             single=lambda i: fm.predict_from_features(model, z[i:i + 1]),
-                             batch=lambda a, b: fm.predict_from_features(model, z[a:b])),
+                             single=lambda i: floatref.predict_from_features(model, z[i:i + 1]),
+                             batch=lambda a, b: floatref.predict_from_features(model, z[a:b])),
                 _row("float", "single", "python", "nets", "predict_from_features, one row"),
                 _row("float", "batch", "python", "nets", "predict_from_features")))
     sess = session_for(model, model_dir)
     names = [o.name for o in sess.get_outputs()]
     # The nets alone: one run of the graph, its location fed the nets' own decision (the
     # engine runs the samples it decides in contact a second time, onnx_export.onnx_nets).
-    decided = np.ascontiguousarray(fm.predict_from_features(model, z)["contact"], dtype=bool)
+    decided = np.ascontiguousarray(floatref.predict_from_features(model, z)["contact"], dtype=bool)
     out.append((timing.Timer("onnx/nets",
                              single=lambda i: sess.run(names, {INPUT_NAME: z32[i:i + 1],
                                                                DECISION_NAME: decided[i:i + 1]}),
@@ -348,13 +348,13 @@ def bench_speed(model_dir: str | Path, data: Path, s: SpeedSettings, *,
 
 
 def _speed_models(model_dir: str | Path, int8_dir: str | Path | None
-                  ) -> tuple[Path, fm.HierarchicalModel, Path | None]:
+                  ) -> tuple[Path, artifact.HierarchicalModel, Path | None]:
     """The model and its exports to time: refuses a missing directory or an export of the
     wrong width (``--model`` int16, ``--int8`` int8) before anything is measured."""
     model_dir = Path(model_dir)
     if not model_dir.is_dir():
         raise InputError("no such model directory", path=str(model_dir), column="--model")
-    model = fm.load(model_dir)
+    model = modeldir.load(model_dir)
     _check_fixed_dir(model_dir, model, 16, "--model")
     if int8_dir is not None:
         int8_dir = Path(int8_dir)
@@ -367,8 +367,8 @@ def _speed_models(model_dir: str | Path, int8_dir: str | Path | None
 def _speed_samples(data: Path, s: SpeedSettings) -> tuple[Any, np.ndarray, np.ndarray]:
     """The recording, its tare baseline and the samples to time (its contact samples, at most
     ``s.samples``); refuses fewer than two."""
-    from fbgforce import dataset as fds
-    from fbgforce.tare import tare
+    from fbgforce.recordings import dataset as fds
+    from fbgforce.recordings.tare import tare
 
     ds = fds.load(data)
     base = tare(ds.wl_nm, ds.contact, ds.t_s, path=str(data))[0]
@@ -388,14 +388,14 @@ def _ticker(bar: Any, log: Callable[[str], None]) -> Callable[[str], None]:
     return tick
 
 
-def _export_int8(model: fm.HierarchicalModel, model_dir: Path, ds: Any, data: Path,
+def _export_int8(model: artifact.HierarchicalModel, model_dir: Path, ds: Any, data: Path,
                  work: Path) -> Path:
     """The int8 export when none was given: a copy of the model in ``work``, calibrated on the
     first presses of ``data``; an export failure stops the run."""
     from fbgforce.tradeoff.artifacts import calibration_subset, export_fixed
 
     int8_dir = work / "int8"
-    fm.save(model, int8_dir)
+    modeldir.save(model, int8_dir)
     err = export_fixed(int8_dir, 8, calibration_subset([ds], [str(data)], work))
     if err:
         raise InputError(err, path=str(model_dir))

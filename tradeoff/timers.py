@@ -7,8 +7,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import engines as fengines
-from fbgforce import model as fm
+from fbgforce.evaluation import engines as fengines
+from fbgforce.model import artifact as fm
 from fbgforce.tradeoff import timing
 from fbgforce.tradeoff.grid import EngineSpec
 

@@ -5,8 +5,8 @@ out (tare, temperature compensation, FIR, standardisation, three nets, gating), 
 what a 1 kHz controller pays. Two call patterns:
 
 - ``single``: one sample per call through the engine's streaming API (a controller's
-  interrupt). For numpy and onnxruntime this is :class:`fbgforce.model.FloatPipeline` fed one
-  sample at a time (:func:`float_pipeline`, what :func:`fbgforce.model.predict` computes); for
+  interrupt). For numpy and onnxruntime this is :class:`fbgforce.model.floatref.FloatPipeline` fed one
+  sample at a time (:func:`float_pipeline`, what :func:`fbgforce.model.floatref.predict` computes); for
   the C runtime, ``Runtime.step``. Includes the Python call overhead, which dominates for every engine here.
 - ``batch``: one call over ``n`` samples of a continuous recording (offline evaluation, log
   replay), reported per sample.
@@ -26,14 +26,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 
 
-def float_pipeline(model: fm.HierarchicalModel, baseline_nm: np.ndarray, nets: str = "numpy",
-                   model_dir: Any = None) -> fm.FloatPipeline:
+def float_pipeline(model: artifact.HierarchicalModel, baseline_nm: np.ndarray, nets: str = "numpy",
+                   model_dir: Any = None) -> floatref.FloatPipeline:
     """The streaming float pipeline the single-sample timings step, one sample per
-    :meth:`~fbgforce.model.FloatPipeline.push`: :class:`fbgforce.model.FloatPipeline`, the one
-    float pipeline every engine and command runs (what :func:`fbgforce.model.predict` computes).
+    :meth:`~fbgforce.model.floatref.FloatPipeline.push`: :class:`fbgforce.model.floatref.FloatPipeline`, the one
+    float pipeline every engine and command runs (what :func:`fbgforce.model.floatref.predict` computes).
 
     Parameters
     ----------
@@ -43,17 +43,17 @@ def float_pipeline(model: fm.HierarchicalModel, baseline_nm: np.ndarray, nets: s
     baseline_nm
         (5,) tare wavelengths.
     nets
-        ``"numpy"`` (float64, :func:`fbgforce.model.numpy_nets`) or ``"onnx"`` (float32
+        ``"numpy"`` (float64, :func:`fbgforce.model.floatref.numpy_nets`) or ``"onnx"`` (float32
         onnxruntime, :func:`fbgforce.export.onnx_export.onnx_nets`).
     model_dir
         Where an exported ``model.onnx`` may be (for ``nets="onnx"``).
     """
     if nets == "numpy":
-        return fm.FloatPipeline(model, baseline_nm)
+        return floatref.FloatPipeline(model, baseline_nm)
     if nets == "onnx":
         from fbgforce.export.onnx_export import onnx_nets
 
-        return fm.FloatPipeline(model, baseline_nm, nets=onnx_nets(model, model_dir))
+        return floatref.FloatPipeline(model, baseline_nm, nets=onnx_nets(model, model_dir))
     raise ValueError(f"nets must be 'numpy' or 'onnx', not {nets!r}")
 
 

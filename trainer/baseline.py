@@ -68,7 +68,7 @@ class BeamModel:
     def predict(self, shift_pm: np.ndarray) -> dict[str, np.ndarray]:
         """Contact, force and location from compensated (and optionally filtered) shifts.
 
-        Returns the keys of :func:`fbgforce.model.predict_from_features` that the metrics
+        Returns the keys of :func:`fbgforce.model.floatref.predict_from_features` that the metrics
         read: ``contact``, ``force_N`` (0 where no contact), ``x_mm``/``y_mm`` (NaN there),
         plus ``force_raw_N``.
         """

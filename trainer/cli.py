@@ -47,7 +47,7 @@ def _register_train(subparsers: Any) -> None:
 
 def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
     """``train``'s filter, temperature reference, creep correction and contact decision."""
-    from fbgforce.model import FILTER_KINDS
+    from fbgforce.model.artifact import FILTER_KINDS
     from fbgforce.trainer.preprocess import DEFAULT_SIGMA, DEFAULT_SIGMA_MS
 
     p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
@@ -132,7 +132,7 @@ def _register_coverage(subparsers: Any) -> None:
 
 
 def _register_evaluate(subparsers: Any) -> None:
-    from fbgforce.engines import ENGINES
+    from fbgforce.evaluation.engines import ENGINES
     from fbgforce.trainer.evaluate import SPLITS
 
     with command(subparsers, "evaluate", _evaluate,
@@ -186,7 +186,7 @@ def _register_report(subparsers: Any) -> None:
 
 
 def _train(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce import model as fm
+    from fbgforce.model import modeldir as fm
     from fbgforce.trainer.params import TrainParams
     from fbgforce.trainer.train import train
 
@@ -207,7 +207,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     fm.save(model, args.out, "--out")
     md = model.metadata
     test = md["metrics"]["test"] or {}
-    from fbgforce.metrics import headline
+    from fbgforce.evaluation.metrics import headline
     print(f"fbgforce train: wrote {args.out} in {md['times_s']['train']:.1f} s; test: "
           f"{headline(test)}; {_reference_summary(md['temperature']['reference'])}; "
           f"{_creep_summary(md['creep'], model.preprocess)}", file=sys.stderr)
@@ -275,7 +275,7 @@ def _creep_summary(creep: Mapping[str, Any], pre: Any) -> str:
 
 
 def _coverage(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce import dataset
+    from fbgforce.recordings import dataset
     from fbgforce.trainer.coverage import coverage, coverage_lines
 
     _check_files(args.data, "--data")
@@ -319,7 +319,7 @@ def _sizes(spec: str | None) -> dict[str, list[int]] | None:
 
 
 def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.metrics import headline
+    from fbgforce.evaluation.metrics import headline
     from fbgforce.trainer.evaluate import evaluate
 
     _check_files(args.data, "--data")

@@ -13,7 +13,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce.dataset import Dataset
+from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
 

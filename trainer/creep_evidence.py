@@ -9,7 +9,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
@@ -22,7 +22,7 @@ from fbgforce.trainer.data import Prepared
 CREEP_MODES = ("auto", "on", "off")
 
 
-def creep_choice(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, mode: str,
+def creep_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mode: str,
                  seed: int = 0) -> tuple[Creep, dict[str, Any]]:
     """The creep :func:`~fbgforce.trainer.creep_fit.fit_creep` finds on the releases among
     ``rows``, and :func:`creep_evidence` on it with whether the model corrects for it in
@@ -59,14 +59,14 @@ CREEP_PRESS_FOLDS = 5
 CREEP_PRESS_LEVEL = 0.05
 
 
-def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, creep: Creep
+def creep_press_check(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, creep: Creep
                       ) -> dict[str, Any]:
     """Whether taking ``creep`` out of the shifts reads held-out presses better.
 
     A least-squares load signal (the force on the compensated shifts of the contact samples,
     with an offset) is fitted on all but one of :data:`CREEP_PRESS_FOLDS` folds of the
     presses among ``rows`` and scored on the fold left out, once on the shifts as recorded and
-    once after the creep inverse (:func:`fbgforce.model.creep_inverse` with ``creep`` at a
+    once after the creep inverse (:func:`fbgforce.model.floatref.creep_inverse` with ``creep`` at a
     time constant the model can hold). A creep that outlasts the rests leaves a load-history
     offset on every press that the inverse takes away, and which the release tails, whose
     10 s offsets absorb it, cannot show. Each press's mean squared error counts as better or
@@ -79,7 +79,7 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
         ``presses``, ``better`` (presses read better with the inverse), ``p_value``,
         ``rmse_N`` and ``rmse_inverse_N`` (over the held-out contact samples), ``passes``.
     """
-    m, k = fm.creep_parameters(creep.magnitude, creep.time_constant_s * data.rate_hz)
+    m, k = artifact.creep_parameters(creep.magnitude, creep.time_constant_s * data.rate_hz)
     keep = data.row_mask(rows) & data.contact & np.isfinite(data.force_N)
     if m <= 0 or not keep.any():
         return {"presses": 0, "better": 0, "p_value": 1.0, "rmse_N": None,
@@ -89,7 +89,7 @@ def creep_press_check(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, cree
     for r, sl in data.recording_slices():
         comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm, recording=True)
         plain.append(comp)
-        inverted.append(fm.creep_inverse(inv_pre, comp))
+        inverted.append(floatref.creep_inverse(inv_pre, comp))
         pids.append(np.asarray(r.ds.press_id))
     force = data.force_N[keep]
     press = np.unique(np.concatenate(pids)[keep], return_inverse=True)[1]

@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact as fm
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.data import Prepared
@@ -155,7 +155,7 @@ def creep_of(tails: CreepTails | None) -> Creep:
 
 def held_creep(data: Prepared, pre: fm.Preprocess, fitted: Creep) -> Creep:
     """``fitted`` at a time constant the model can hold (2^k samples, the nearest:
-    :func:`fbgforce.model.creep_parameters`), its magnitude fitted again for it: a shorter
+    :func:`fbgforce.model.artifact.creep_parameters`), its magnitude fitted again for it: a shorter
     time constant needs more magnitude to give back what the pad gives back after a release.
     """
     m, k = fm.creep_parameters(fitted.magnitude, fitted.time_constant_s * data.rate_hz)

@@ -14,7 +14,7 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.fileio import file_sha256
 from fbgforce.trainer.creep import Creep
 
@@ -41,7 +41,7 @@ class Prepared:
     """All recordings with a fitted preprocessing, ready to index by split."""
 
     recordings: list[Recording]
-    pre: fm.Preprocess
+    pre: artifact.Preprocess
     temp_info: dict[str, Any]
     creep_fit: "Creep | None" = None    # the pad's creep the model corrects for (prepare())
     creep_held: "Creep | None" = None   # ... at a time constant the model can hold (held_creep)
@@ -74,10 +74,10 @@ class Prepared:
         """The recordings' median sample rate (the one the model runs at)."""
         return float(np.median([r.rate_hz for r in self.recordings]))
 
-    def inputs(self, pre: fm.Preprocess) -> np.ndarray:
+    def inputs(self, pre: artifact.Preprocess) -> np.ndarray:
         """Net inputs (n, F) of every sample under ``pre``'s standardisation and memory,
         computed recording by recording (the memory states run along each recording)."""
-        return np.concatenate([fm.standardise(pre, r.feats) for r in self.recordings])
+        return np.concatenate([floatref.standardise(pre, r.feats) for r in self.recordings])
 
     def rows(self, part: str) -> np.ndarray:
         """Sample indices of ``"train"``, ``"val"``, ``"test"`` or ``"all"``."""
@@ -115,7 +115,7 @@ def count_presses(data: Prepared, rows: np.ndarray) -> int:
 
 def load_datasets(datasets: Sequence[Any]) -> tuple[list[Any], list[dict[str, Any]]]:
     """Datasets from paths or objects, with a description (path, sha256) of each."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     out, described = [], []
     for item in datasets:
@@ -132,7 +132,7 @@ def load_datasets(datasets: Sequence[Any]) -> tuple[list[Any], list[dict[str, An
 
 def split_rows(ds: Any, seed: int, ratios: Sequence[int] = SPLIT_RATIOS) -> np.ndarray:
     """Per-sample split label (0 train, 1 val, 2 test) of one recording, by press."""
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
 
     rows = np.arange(len(ds), dtype=np.int64)
     tagged = ds.subset(np.ones(len(ds), dtype=bool))

@@ -6,15 +6,15 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce import engines
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
-from fbgforce import tare as fbgtare
+from fbgforce.evaluation import engines
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, modeldir
+from fbgforce.recordings import tare as fbgtare
 
 SPLITS = ("all", "train", "val", "test")
 
 
-def run_recording(engine: str, model_dir: str | Path | None, model: fm.HierarchicalModel,
+def run_recording(engine: str, model_dir: str | Path | None, model: artifact.HierarchicalModel,
                   ds: Any, source: str | None = None) -> dict[str, np.ndarray]:
     """Tare one continuous recording on its own contact-free samples, then run ``engine``."""
     base, _ = fbgtare.tare(ds.wl_nm, ds.contact, ds.t_s, path=source)
@@ -22,31 +22,31 @@ def run_recording(engine: str, model_dir: str | Path | None, model: fm.Hierarchi
 
 
 def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine: str = "float",
-             split: str = "all", seed: int | None = None, model: fm.HierarchicalModel | None = None,
+             split: str = "all", seed: int | None = None, model: artifact.HierarchicalModel | None = None,
              extras: bool = True, predictions: Sequence[dict[str, np.ndarray]] | None = None,
              resample: bool = False) -> dict[str, Any]:
     """Metrics of ``engine`` over the recordings in ``data``.
 
     Each recording is run whole (the filter needs its continuous history), then the samples
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
-    are scored with :func:`fbgforce.metrics.compute`; the presses of the split also give the
+    are scored with :func:`fbgforce.evaluation.metrics.compute`; the presses of the split also give the
     onset and release delays (``contact_timing``) and each recording's rests and holds
-    (``at_rest``, ``holds``: :func:`fbgforce.metrics.use_masks`). ``predictions``: the engine's
+    (``at_rest``, ``holds``: :func:`fbgforce.evaluation.metrics.use_masks`). ``predictions``: the engine's
     output on each whole recording (:func:`run_recording`) when the caller has it already.
 
     A recording sampled at another rate than the model's is refused
     (:func:`fbgforce.samples.check_rate`), or with ``resample`` brought to the model's rate
-    first (:func:`fbgforce.dataset.resample`). ``warnings`` in the result lists what makes the
+    first (:func:`fbgforce.recordings.dataset.resample`). ``warnings`` in the result lists what makes the
     numbers weak (a split of fewer than ``MIN_SPLIT_PRESSES`` presses).
     """
-    from fbgforce import dataset as fds
+    from fbgforce.recordings import dataset as fds
     from fbgforce import samples
     from fbgforce.trainer.data import load_datasets, split_rows
     from fbgforce.trainer.scoring import model_pad_mm
 
     if split not in SPLITS:
         raise ValueError(f"split must be one of {SPLITS}")
-    model = fm.load(model_dir) if model is None else model
+    model = modeldir.load(model_dir) if model is None else model
     seed = int(model.metadata.get("seed", 0)) if seed is None else seed
     ds_list, described = load_datasets(data)
     trained_hz = samples.model_rate_hz(model)

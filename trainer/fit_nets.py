@@ -8,7 +8,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.data import Prepared
@@ -92,7 +92,7 @@ def _fit_best_of(tries: int, name: str, seed: int, sizes: Sequence[int],
             r_init, r_fit = rng_init, rng_fit
         else:
             r_init, r_fit = (np.random.default_rng(s) for s in
-                             np.random.SeedSequence([seed, fm.NET_NAMES.index(name), i]).spawn(2))
+                             np.random.SeedSequence([seed, artifact.NET_NAMES.index(name), i]).spawn(2))
         net = FlatMLP(sizes, r_init, init=init)
         rep = fit(net, *args, desc=desc if tries == 1 else f"{desc} {i + 1}/{tries}",
                   rng=r_fit, **kwargs)
@@ -110,7 +110,7 @@ class NetFitter:
     :attr:`reports`."""
 
     def __init__(self, params: TrainParams, net_sizes: Mapping[str, Sequence[int]],
-                 init_model: fm.HierarchicalModel | None, rng_init: np.random.Generator,
+                 init_model: artifact.HierarchicalModel | None, rng_init: np.random.Generator,
                  has_validation: bool) -> None:
         self.params, self.net_sizes, self.init_model, self.rng_init = (params, net_sizes,
                                                                        init_model, rng_init)
@@ -237,11 +237,11 @@ def fit_force(fit_net: NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP,
 
 
 def _loc_inputs(x: np.ndarray, contact: np.ndarray, f_raw: np.ndarray, n_loc: int) -> np.ndarray:
-    """Location-net input exactly as :func:`fbgforce.model.predict_from_features` builds it."""
-    return fm.location_inputs(x, contact, f_raw, n_loc)
+    """Location-net input exactly as :func:`fbgforce.model.floatref.predict_from_features` builds it."""
+    return floatref.location_inputs(x, contact, f_raw, n_loc)
 
 
-def fit_location(fit_net: NetFitter, data: Prepared, pre: fm.Preprocess, x_all: np.ndarray,
+def fit_location(fit_net: NetFitter, data: Prepared, pre: artifact.Preprocess, x_all: np.ndarray,
                  pred_contact: np.ndarray, fnet: FlatMLP, scaling: Scaling, params: TrainParams,
                  tr: np.ndarray, va: np.ndarray, rng: np.random.Generator,
                  rng_augment: np.random.Generator) -> FlatMLP:

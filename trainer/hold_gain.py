@@ -1,4 +1,4 @@
-"""The settled-hold gain (:class:`fbgforce.model.InUse`) the trained nets need, measured on
+"""The settled-hold gain (:class:`fbgforce.model.artifact.InUse`) the trained nets need, measured on
 synthetic holds (:func:`hold_gain`)."""
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.trainer.data import Prepared
 from fbgforce.trainer.synthetic import HOLD_AUGMENT_STEP_S, Held
 
@@ -15,11 +15,11 @@ from fbgforce.trainer.synthetic import HOLD_AUGMENT_STEP_S, Held
 HOLD_GAIN_MIN_HOLDS = 3
 
 
-def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]) -> dict[str, Any]:
-    """The settled-hold gain (:class:`fbgforce.model.InUse`) the trained nets need: their
+def hold_gain(model: artifact.HierarchicalModel, data: Prepared, holds: Sequence[Held]) -> dict[str, Any]:
+    """The settled-hold gain (:class:`fbgforce.model.artifact.InUse`) the trained nets need: their
     least-squares gain on the samples of the synthetic ``holds``
     (:func:`~fbgforce.trainer.synthetic.synthetic_holds`) at least
-    :data:`fbgforce.model.HOLD_SETTLE_S` into each hold, minus 1.
+    :data:`fbgforce.model.artifact.HOLD_SETTLE_S` into each hold, minus 1.
 
     The nets read a hold a little low (docs/trainer.md, "The turn": a causal estimator cannot
     tell a load that stands from one that has just begun to fall, and they compromise); once
@@ -45,16 +45,16 @@ def hold_gain(model: fm.HierarchicalModel, data: Prepared, holds: Sequence[Held]
     position = np.arange(src.size) - np.repeat(starts, lengths)
     step_s = max(1, int(round(HOLD_AUGMENT_STEP_S * data.rate_hz))) / data.rate_hz
     held = np.repeat(lengths > 1, lengths)
-    settled = held & (position * step_s >= fm.HOLD_SETTLE_S)
+    settled = held & (position * step_s >= artifact.HOLD_SETTLE_S)
     label = data.force_N[src]
     settled &= np.isfinite(label) & (label > 0)
     n_holds = int(np.unique(src[settled]).size)
     if n_holds < HOLD_GAIN_MIN_HOLDS:
         return {"gain": 0.0, "holds": n_holds, "samples": int(settled.sum()),
                 "bias_before_N": None, "bias_after_N": None}
-    f = fm.predict_from_features(model, x[settled])["force_raw_N"]
+    f = floatref.predict_from_features(model, x[settled])["force_raw_N"]
     y = label[settled]
     gain = float(np.clip(np.dot(y, f) / max(float(np.dot(f, f)), 1e-12) - 1.0,
-                         -fm.HOLD_GAIN_MAX, fm.HOLD_GAIN_MAX))
+                         -artifact.HOLD_GAIN_MAX, artifact.HOLD_GAIN_MAX))
     return {"gain": gain, "holds": n_holds, "samples": int(settled.sum()),
             "bias_before_N": float(np.mean(f - y)), "bias_after_N": float(np.mean(f * (1 + gain) - y))}

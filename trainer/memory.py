@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer.data import Prepared
 

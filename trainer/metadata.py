@@ -10,8 +10,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from fbgforce import __version__
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact as fm
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.data import (HOLD_BAND, HOLD_MIN_S, SPLIT_RATIOS, Prepared, count_presses,

@@ -1,6 +1,6 @@
 """Vectorised numpy MLPs for training: forward, backward, losses and the mini-batch loop.
 
-Layout follows :class:`fbgforce.model.MLP` (``W[l]`` shaped ``(n_out, n_in)``, ``a @ W.T + b``)
+Layout follows :class:`fbgforce.model.artifact.MLP` (``W[l]`` shaped ``(n_out, n_in)``, ``a @ W.T + b``)
 so a trained net converts to the model contract without transposes. All weights and biases of a
 net live in ONE flat vector (``theta``) of which the per-layer arrays are views, and likewise
 the gradient; the optimizer then updates everything in a few numpy calls. The backward pass is
@@ -15,7 +15,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from fbgforce.model import MLP
+from fbgforce.model.artifact import MLP
 from fbgforce.trainer.optim import AdamOptimizer
 
 HIDDEN_ACTIVATIONS = ("relu", "linear")
@@ -147,7 +147,7 @@ class FlatMLP:
         return dz
 
     def to_mlp(self) -> MLP:
-        """A copy of the current weights as the model contract's :class:`~fbgforce.model.MLP`."""
+        """A copy of the current weights as the model contract's :class:`~fbgforce.model.artifact.MLP`."""
         return MLP([w.copy() for w in self.W], [b.copy() for b in self.b])
 
 

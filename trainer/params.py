@@ -9,7 +9,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer.creep_evidence import CREEP_MODES
 from fbgforce.trainer.synthetic import HOLD_AUGMENT, LOCATION_AUGMENT, REST_AUGMENT
@@ -88,11 +88,11 @@ class TrainParams:
         Smoothing: ``causal`` (shipped), ``centred`` (offline, the paper's) or ``none``;
         sigma in samples, default 5 ms at the data's sample rate (5 samples at 1 kHz).
     ref_shift
-        The temperature reference's average (:attr:`fbgforce.model.Preprocess.ref_shift`):
+        The temperature reference's average (:attr:`fbgforce.model.artifact.Preprocess.ref_shift`):
         None lets the data choose (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`),
         0 keeps the raw reference, 1 .. 8 averages over 2^ref_shift samples.
     creep_inverse
-        Take the pad's fitted creep out before the filter (:func:`fbgforce.model.creep_inverse`)
+        Take the pad's fitted creep out before the filter (:func:`fbgforce.model.floatref.creep_inverse`)
         instead of letting the at-rest tracker discount its recovery (docs/trainer.md, "The
         pad's creep in use", measures what each costs); None (default): the inverse when the
         fitted creep is slower than the memory's longest average
@@ -148,7 +148,7 @@ class TrainParams:
         None (default): :data:`~fbgforce.trainer.fit_nets.TURN_GUARD_S` with the creep inverse,
         else 0.
     memory
-        The memory states (:class:`fbgforce.model.Memory`, or text for
+        The memory states (:class:`fbgforce.model.artifact.Memory`, or text for
         :func:`~fbgforce.trainer.memory.parse_memory`); ``None``: the ``init`` model's, else
         :data:`~fbgforce.trainer.memory.DEFAULT_MEMORY`. Gains are fitted.
     restarts

@@ -1,8 +1,8 @@
-"""Fitting the preprocessing parameters of :class:`fbgforce.model.Preprocess`.
+"""Fitting the preprocessing parameters of :class:`fbgforce.model.artifact.Preprocess`.
 
 The float pipeline itself (``compensate -> apply_filter -> standardise``) is
 :mod:`fbgforce.model`; this module only *fits* its parameters from calibration recordings (taring a recording is
-:mod:`fbgforce.tare`):
+:mod:`fbgforce.recordings.tare`):
 
 - :func:`fit_temp_coeff`: per-channel temperature coefficients by least squares of the strain
   gratings' shifts on the reference grating's shift, over contact-free samples, shrunk toward
@@ -24,7 +24,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 
 #: Prior standard deviation of a temperature coefficient around 1.0 (gratings on one steel part
@@ -118,14 +118,14 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
         # Centred per recording: a tare is itself a noisy estimate, and its constant error
         # must not pass for temperature; only variation within a recording identifies k.
         bm = bm - bm.mean(axis=0)
-        xs.append(bm[:, fm.N_STRAIN])
-        ys.append(bm[:, :fm.N_STRAIN])
-        free_t = s[m, fm.N_STRAIN]
+        xs.append(bm[:, artifact.N_STRAIN])
+        ys.append(bm[:, :artifact.N_STRAIN])
+        free_t = s[m, artifact.N_STRAIN]
         # White-noise variance of one sample from first differences, then of a block mean.
         noise_t.append((np.var(np.diff(free_t)) / 2.0 / block, bm.shape[0] - 1))
     n_fit = int(sum(x.size for x in xs))
     if n_fit < 3:
-        return np.ones(fm.N_STRAIN), {"temp_coeff_identified": [0.0] * fm.N_STRAIN,
+        return np.ones(artifact.N_STRAIN), {"temp_coeff_identified": [0.0] * artifact.N_STRAIN,
                                       "temp_ref_range_pm": 0.0, "temp_fit_samples": n_fit}
     x = np.concatenate(xs)
     y = np.concatenate(ys)
@@ -134,7 +134,7 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
     # Energy of the reference shift that noise does not explain (errors in variables) ...
     sxx = max(float(x @ x) - noise_energy, 0.0)
     sxy = x @ y
-    k_ols = sxy / sxx if sxx > 0 else np.ones(fm.N_STRAIN)
+    k_ols = sxy / sxx if sxx > 0 else np.ones(artifact.N_STRAIN)
     resid = y - np.outer(x, k_ols)
     # Residual variance per channel, floored so a noiseless synthetic file stays well posed.
     sigma2 = np.maximum(np.var(resid, axis=0), 1e-6)
@@ -186,7 +186,7 @@ def gaussian_taps(kind: str, sigma: float = DEFAULT_SIGMA, window: int | None = 
     if kind == "none" or sigma <= 0:
         return np.ones(1)
     if kind not in ("causal", "centred"):
-        raise InputError(f"filter must be one of {fm.FILTER_KINDS}, not {kind!r}",
+        raise InputError(f"filter must be one of {artifact.FILTER_KINDS}, not {kind!r}",
                          column="--filter")
     if window is None:
         window = int(math.ceil(WINDOW_SIGMAS * sigma)) + (1 if kind == "causal" else 0)
@@ -197,7 +197,7 @@ def gaussian_taps(kind: str, sigma: float = DEFAULT_SIGMA, window: int | None = 
     return taps / taps.sum()
 
 
-def rest_noise_pm2(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]
+def rest_noise_pm2(pre: artifact.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]]
                    ) -> float | None:
     """The compensated channels' sample-to-sample noise at rest under ``pre``: the variance of
     the first differences of :func:`compensated` between consecutive rest samples, summed
@@ -209,13 +209,13 @@ def rest_noise_pm2(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np
         d = np.diff(comp, axis=0)
         keep = np.asarray(rest[1:] & rest[:-1], dtype=bool) & np.all(np.isfinite(d), axis=1)
         diffs.append(d[keep])
-    d = np.concatenate(diffs) if diffs else np.empty((0, fm.N_STRAIN))
+    d = np.concatenate(diffs) if diffs else np.empty((0, artifact.N_STRAIN))
     return float(np.var(d, axis=0).sum()) if d.shape[0] > 1 else None
 
 
-def choose_ref_shift(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
+def choose_ref_shift(pre: artifact.Preprocess, recordings: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]],
                      rate_hz: float, given: int | None = None) -> tuple[int, dict[str, Any]]:
-    """The temperature reference's average for ``pre`` (:attr:`fbgforce.model.Preprocess.ref_shift`).
+    """The temperature reference's average for ``pre`` (:attr:`fbgforce.model.artifact.Preprocess.ref_shift`).
 
     The candidates are 0 (the raw reference) and ``round(log2(REF_TIME_CONSTANT_S *
     rate_hz))`` (clipped to 0 .. ``MAX_REF_SHIFT``); the average is kept when it lowers
@@ -244,22 +244,22 @@ def choose_ref_shift(pre: fm.Preprocess, recordings: Sequence[tuple[np.ndarray, 
 
 
 def make_preprocess(kind: str, sigma: float, temp_coeff: np.ndarray,
-                    window: int | None = None) -> fm.Preprocess:
-    """A :class:`~fbgforce.model.Preprocess` with unit standardisation (fit it afterwards)."""
+                    window: int | None = None) -> artifact.Preprocess:
+    """A :class:`~fbgforce.model.artifact.Preprocess` with unit standardisation (fit it afterwards)."""
     kind = "none" if sigma <= 0 else kind
-    return fm.Preprocess(temp_coeff=temp_coeff, filter_kind=kind, filter_sigma=float(sigma),
-                         taps=gaussian_taps(kind, sigma, window), input_mean=np.zeros(fm.N_STRAIN),
-                         input_std=np.ones(fm.N_STRAIN))
+    return artifact.Preprocess(temp_coeff=temp_coeff, filter_kind=kind, filter_sigma=float(sigma),
+                         taps=gaussian_taps(kind, sigma, window), input_mean=np.zeros(artifact.N_STRAIN),
+                         input_std=np.ones(artifact.N_STRAIN))
 
 
-def group_delay_ms(pre: fm.Preprocess, rate_hz: float = 1000.0) -> float:
+def group_delay_ms(pre: artifact.Preprocess, rate_hz: float = 1000.0) -> float:
     """Delay the filter adds to a slowly varying signal, in milliseconds."""
     return pre.group_delay_samples * 1000.0 / rate_hz
 
 
-def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray, *,
+def compensated(pre: artifact.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray, *,
                 recording: bool = False) -> np.ndarray:
-    """Tared, temperature-compensated shifts (n, 4) in pm via :func:`fbgforce.model.compensate`.
+    """Tared, temperature-compensated shifts (n, 4) in pm via :func:`fbgforce.model.floatref.compensate`.
 
     By default every row on its own, with the reference grating's own shift: what a steady
     level compensates to (the reference's average converges to it), which splits wavelengths
@@ -270,13 +270,13 @@ def compensated(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray, 
     if not recording:
         pre = replace(pre, ref_shift=0)
     # compensate() only reads model.preprocess; a namespace avoids building a dummy model.
-    return fm.compensate(SimpleNamespace(preprocess=pre), wl_nm, baseline_nm)  # type: ignore[arg-type]
+    return floatref.compensate(SimpleNamespace(preprocess=pre), wl_nm, baseline_nm)  # type: ignore[arg-type]
 
 
-def recording_features(pre: fm.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray
+def recording_features(pre: artifact.Preprocess, wl_nm: np.ndarray, baseline_nm: np.ndarray
                        ) -> np.ndarray:
     """Compensated and filtered shifts (n, 4), pm, of ONE continuous recording (unstandardised)."""
-    return fm.apply_filter(pre, compensated(pre, wl_nm, baseline_nm, recording=True))
+    return floatref.apply_filter(pre, compensated(pre, wl_nm, baseline_nm, recording=True))
 
 
 @dataclass

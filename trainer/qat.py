@@ -16,7 +16,7 @@ The hierarchy is kept: the location net is fine-tuned on the contact decision an
 output of the already fine-tuned, fake-quantised contact and force nets, as the runtime feeds it.
 A net keeps its starting weights when fine-tuning does not lower its fake-quantised validation
 loss, so QAT never makes the int8 model worse on the split it is judged by. The result is a
-float :class:`~fbgforce.model.HierarchicalModel` (the shadow weights) that the normal exporter
+float :class:`~fbgforce.model.artifact.HierarchicalModel` (the shadow weights) that the normal exporter
 quantises.
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce import model as fm
+from fbgforce.model import artifact, floatref
 from fbgforce.trainer.nets import LOSSES, FlatMLP, fit, predict_batched
 
 
@@ -64,7 +64,7 @@ class FakeQuantMLP(FlatMLP):
         Inputs on which the activation ranges (hence scales) are measured with the float net.
     """
 
-    def __init__(self, init: fm.MLP, weight_bits: int, act_bits: int, calib_x: np.ndarray) -> None:
+    def __init__(self, init: artifact.MLP, weight_bits: int, act_bits: int, calib_x: np.ndarray) -> None:
         super().__init__(init.sizes, init=init)
         self.weight_bits = int(weight_bits)
         self.act_bits = int(act_bits)
@@ -112,7 +112,7 @@ class FakeQuantMLP(FlatMLP):
                 w[...] = s
 
 
-def _targets(model: fm.HierarchicalModel, force_N: np.ndarray, x_mm: np.ndarray,
+def _targets(model: artifact.HierarchicalModel, force_N: np.ndarray, x_mm: np.ndarray,
              y_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     f = ((force_N - model.force_offset) / model.force_scale)[:, None]
     xy = (np.column_stack([x_mm, y_mm]) - model.xy_offset) / model.xy_scale
@@ -155,14 +155,14 @@ def _location_inputs(cnet: FakeQuantMLP, fnet: FakeQuantMLP, x: np.ndarray, nf: 
     zz = x[:, :nf]
     logits = cnet.forward(zz)
     pred_c = (logits[:, 1] > logits[:, 0]).astype(np.float64)
-    return fm.location_inputs(x, pred_c, fnet.forward(zz)[:, 0], n_loc)
+    return floatref.location_inputs(x, pred_c, fnet.forward(zz)[:, 0], n_loc)
 
 
-def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, force_N: np.ndarray,
+def finetune(model: artifact.HierarchicalModel, z: np.ndarray, contact: np.ndarray, force_N: np.ndarray,
              x_mm: np.ndarray, y_mm: np.ndarray, *, val: tuple[np.ndarray, ...] | None = None,
              weight_bits: int = 8, act_bits: int = 16, epochs: int = 3,
              learning_rate: float = 2e-4, decay: float = 0.8, batch_size: int = 128,
-             seed: int = 0, progress: bool | None = None) -> tuple[fm.HierarchicalModel, dict[str, Any]]:
+             seed: int = 0, progress: bool | None = None) -> tuple[artifact.HierarchicalModel, dict[str, Any]]:
     """Fine-tune all three nets with fake quantisation; return a new model and a report.
 
     Parameters
@@ -170,7 +170,7 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
     model
         The trained float model (its preprocessing and output scaling are kept unchanged).
     z
-        (n, 4) standardised features of the training samples (``fbgforce.model.features`` of
+        (n, 4) standardised features of the training samples (``fbgforce.model.floatref.features`` of
         each continuous recording, restricted to the training split).
     contact, force_N, x_mm, y_mm
         Ground truth of those samples. As in the trainer, the force net trains on true-contact
@@ -190,7 +190,7 @@ def finetune(model: fm.HierarchicalModel, z: np.ndarray, contact: np.ndarray, fo
     """
     rng = np.random.default_rng(seed)
     # The contact and force nets read the first n_features columns; the location net also
-    # the location averages at the end (fbgforce.model.location_inputs).
+    # the location averages at the end (fbgforce.model.floatref.location_inputs).
     nf, n_loc = model.preprocess.n_features, model.preprocess.memory.n_loc
     x_full, z = z, z[:, :nf]
     vx_full = val[0] if val is not None else None

@@ -1,7 +1,7 @@
 """``fbgforce report``: the paper's results section (§V, §VII) side by side with ours.
 
 Everything is measured on the held-out test presses (split 8:1:1 by press with the given seed)
-of the recordings given, with the shared metric definitions of :mod:`fbgforce.metrics`:
+of the recordings given, with the shared metric definitions of :mod:`fbgforce.evaluation.metrics`:
 
 - model-based baseline, nominal and fitted (:mod:`fbgforce.trainer.baseline`), on the same
   compensated, causally filtered shifts the network sees;
@@ -22,8 +22,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from fbgforce.jsonutil import json_default
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, modeldir
 from fbgforce.trainer import baseline as bl
 from fbgforce.trainer.data import load_datasets
 from fbgforce.trainer.scoring import evaluate_rows, predict_prepared
@@ -66,7 +66,7 @@ def baselines(data: Any, network_test: dict[str, np.ndarray] | None = None) -> d
 
     With ``network_test`` (the network's output on the test rows of ``data``), each baseline also
     gets ``common_with_network``: its x/y and the network's on the test samples both detect
-    (:func:`fbgforce.metrics.common_location`), since a baseline that misses the light touches
+    (:func:`fbgforce.evaluation.metrics.common_location`), since a baseline that misses the light touches
     is otherwise scored on easier samples.
     """
     tr, te = data.rows("train"), data.rows("test")
@@ -76,7 +76,7 @@ def baselines(data: Any, network_test: dict[str, np.ndarray] | None = None) -> d
     base_nm = np.median([r.baseline_nm for r in data.recordings], axis=0)
     # The beam model reads the filtered, compensated shifts: the first feature columns
     # (features with memory, if any, come after them).
-    shifts = data.feats[:, :fm.N_STRAIN]
+    shifts = data.feats[:, :artifact.N_STRAIN]
     models = {"nominal": bl.nominal(base_nm),
               "fitted": bl.fit(shifts[ctr], data.force_N[ctr], data.x_mm[ctr], data.y_mm[ctr])}
     truth = data.truth(te)
@@ -110,7 +110,7 @@ def _given_model(model_dir: str | Path, ds_list: Sequence[Any],
     test presses of the same split scored)."""
     from fbgforce.trainer.evaluate import evaluate, run_recording
 
-    model = fm.load(model_dir)
+    model = modeldir.load(model_dir)
     runs = [run_recording("float", model_dir, model, ds, d.get("path"))
             for ds, d in zip(ds_list, described)]
     m = evaluate(model_dir, ds_list, split="test", seed=seed, model=model, predictions=runs)
@@ -210,7 +210,7 @@ def _not_better(a: dict[str, Any], b: dict[str, Any], common: dict[str, Any],
                 a_name: str, b_name: str, *, strict: bool) -> list[str]:
     """The metrics on which estimator ``a`` is worse than ``b`` (not better, if ``strict``),
     with both values: contact and force as scored (``a``/``b`` metrics), x and y on the
-    samples both detect (``common``, :func:`fbgforce.metrics.common_location` of ``a_name``
+    samples both detect (``common``, :func:`fbgforce.evaluation.metrics.common_location` of ``a_name``
     and ``b_name``). Empty when ``a`` wins everywhere."""
     if not common.get("n_samples"):
         return ["location (no sample that both detect)"]

@@ -7,8 +7,8 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, floatref
 from fbgforce.geometry import PAD_SIZE_MM
 from fbgforce.trainer.data import Prepared
 
@@ -21,27 +21,27 @@ def pad_extent_mm(x_mm: np.ndarray, y_mm: np.ndarray) -> tuple[float, float]:
     return max(float(PAD_SIZE_MM[0]), xmax), max(float(PAD_SIZE_MM[1]), ymax)
 
 
-def model_pad_mm(model: fm.HierarchicalModel) -> tuple[float, float] | None:
+def model_pad_mm(model: artifact.HierarchicalModel) -> tuple[float, float] | None:
     """The pad size a model was calibrated on (metadata ``pad_mm``), None for older models."""
     pad = model.metadata.get("pad_mm") if model.metadata else None
     return (float(pad[0]), float(pad[1])) if pad else None
 
 
-def predict_prepared(model: fm.HierarchicalModel, data: Prepared,
+def predict_prepared(model: artifact.HierarchicalModel, data: Prepared,
                      inputs: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The float pipeline's outputs on every row of ``data``, each recording run whole on its
     own tare as ``fbgforce evaluate`` runs it: through the decision over time and the at-rest
-    tracker when the model has them (:func:`fbgforce.model.predict`), else on the prepared
+    tracker when the model has them (:func:`fbgforce.model.floatref.predict`), else on the prepared
     net inputs (``inputs``, if the caller has them: the memory states make them a pass over
     every recording)."""
     if model.runs_in_use:
-        parts = [fm.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
+        parts = [floatref.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-    return fm.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
+    return floatref.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
                                     else inputs)
 
 
-def evaluate_rows(model: fm.HierarchicalModel, data: Prepared, rows: np.ndarray,
+def evaluate_rows(model: artifact.HierarchicalModel, data: Prepared, rows: np.ndarray,
                   extras: bool = True, inputs: np.ndarray | None = None) -> dict[str, Any]:
     """Float-pipeline metrics on given rows of prepared data (:func:`predict_prepared`)."""
     pred = predict_prepared(model, data, inputs)

@@ -8,9 +8,9 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
-from fbgforce import tare as fbgtare
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, floatref
+from fbgforce.recordings import tare as fbgtare
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.data import Prepared, Recording
@@ -48,7 +48,7 @@ REST_AUGMENT_SETTLE_S = 0.5
 Held = tuple[np.ndarray, np.ndarray]
 
 
-def synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
                     creep: Creep, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of presses among ``rows`` held at their peak, and the rows (of ``data``)
     whose labels they take.
@@ -91,8 +91,8 @@ def synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share:
         level = np.array([wl[a].mean(axis=0) for a in around])
         base = np.asarray(r.baseline_nm, float)
         scale = force[peaks] / np.maximum([force[a].mean() for a in around], 1e-12)
-        level[:, :fm.N_STRAIN] = (base[:fm.N_STRAIN]
-                                  + (level[:, :fm.N_STRAIN] - base[:fm.N_STRAIN]) * scale[:, None])
+        level[:, :artifact.N_STRAIN] = (base[:artifact.N_STRAIN]
+                                  + (level[:, :artifact.N_STRAIN] - base[:artifact.N_STRAIN]) * scale[:, None])
         rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
         # After the hold the lag runs down from the held load instead of the peak's lagging
         # value: the rise reached in the hold decays over 10 time constants.
@@ -103,10 +103,10 @@ def synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share:
         for i, (k, n) in enumerate(zip(peaks, lengths)):
             ramp.append(rise[i] * creep.settling(n, r.rate_hz))
             left = ramp[-1][-1] * tail[1:len(wl) - k]
-            wl[k + 1:k + 1 + left.size, :fm.N_STRAIN] += left[:, None] * strain[i]
+            wl[k + 1:k + 1 + left.size, :artifact.N_STRAIN] += left[:, None] * strain[i]
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
-        held[:, :fm.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        held[:, :artifact.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
         in_hold = np.concatenate([np.arange(n) for n in lengths])
         step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
         x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
@@ -115,7 +115,7 @@ def synthetic_holds(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share:
     return _stacked(inputs, kept, pre, rows)
 
 
-def synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share: float,
+def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
                     step: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of long rests inserted among the presses of ``rows``, and the rows (of
     ``data``) whose labels they take.
@@ -153,7 +153,7 @@ def synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share:
             continue
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
         level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
-        level[:, :fm.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
+        level[:, :artifact.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
         lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
         rest = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
@@ -167,7 +167,7 @@ def synthetic_rests(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, share:
     return _stacked(inputs, kept, pre, rows)
 
 
-def scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_scale: float,
+def scaled_presses(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, max_scale: float,
                    rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of the training presses pressed ``k`` times harder, ``k ~ U(1, max_scale)``
     per press, and the rows (of ``data``) they stand for.
@@ -188,14 +188,14 @@ def scaled_presses(data: Prepared, pre: fm.Preprocess, rows: np.ndarray, max_sca
             k = rng.uniform(1.0, max_scale, inverse.max() + 1)[inverse]
             comp = pp.compensated(pre, r.ds.wl_nm, r.baseline_nm)
             wl = np.array(r.ds.wl_nm, dtype=np.float64, copy=True)
-            wl[:, :fm.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
+            wl[:, :artifact.N_STRAIN] += (k[:, None] - 1.0) * comp / 1000.0
             feats = pp.recording_features(pre, wl, r.baseline_nm)
-            inputs.append(fm.standardise(pre, feats)[sel])
+            inputs.append(floatref.standardise(pre, feats)[sel])
             kept.append(sel + start)
     return _stacked(inputs, kept, pre, rows)
 
 
-def _stacked(inputs: list[np.ndarray], kept: list[np.ndarray], pre: fm.Preprocess,
+def _stacked(inputs: list[np.ndarray], kept: list[np.ndarray], pre: artifact.Preprocess,
              rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The synthetic samples of every recording, ``(inputs, rows)`` one after the other; none
     made, empty arrays of ``pre``'s input width and ``rows``' type."""
@@ -204,7 +204,7 @@ def _stacked(inputs: list[np.ndarray], kept: list[np.ndarray], pre: fm.Preproces
     return np.concatenate(inputs), np.concatenate(kept)
 
 
-def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
+def _lengthened_inputs(pre: artifact.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
                        lengths: np.ndarray, inserted: np.ndarray, keep_inserted: np.ndarray,
                        keep_recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of recording ``r`` (wavelengths ``wl``) lengthened by ``inserted`` (the
@@ -216,7 +216,7 @@ def _lengthened_inputs(pre: fm.Preprocess, r: Recording, wl: np.ndarray, points:
     keep = np.insert(keep_recorded, at, keep_inserted)
     source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
     feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
-    return fm.standardise(pre, feats)[keep], source[keep]
+    return floatref.standardise(pre, feats)[keep], source[keep]
 
 
 def _augmented_recordings(data: Prepared, rows: np.ndarray

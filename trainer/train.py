@@ -4,7 +4,7 @@
 Gaussian filter, standardisation; :func:`prepare`), splits every recording 8:1:1 BY PRESS
 (:mod:`fbgforce.trainer.data`), trains the contact, force and location nets in that order with
 Adam and early stopping (:mod:`fbgforce.trainer.fit_nets`), and returns a
-:class:`fbgforce.model.HierarchicalModel` whose metadata records the data (files and sha256),
+:class:`fbgforce.model.artifact.HierarchicalModel` whose metadata records the data (files and sha256),
 the seed, the sizes, the validation and test metrics and the times
 (:mod:`fbgforce.trainer.metadata`).
 """
@@ -19,9 +19,9 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from fbgforce import contract
-from fbgforce import metrics as fmetrics
-from fbgforce import model as fm
-from fbgforce import tare as fbgtare
+from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.model import artifact, modeldir
+from fbgforce.recordings import tare as fbgtare
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.coverage import coverage
@@ -42,7 +42,7 @@ from fbgforce.trainer.synthetic import REST_AUGMENT_STEP_S, Held, synthetic_hold
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
-            creep_inverse: bool | None = False, memory: fm.Memory | None = None,
+            creep_inverse: bool | None = False, memory: artifact.Memory | None = None,
             creep: str = "auto") -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
@@ -96,7 +96,7 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             held, memory_time_constant_s(memory, rate) if memory is not None else 0.0)
     if held.magnitude > 0 and creep_inverse:
         pre = replace(pre, creep=held.magnitude,
-                      creep_shift=fm.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
+                      creep_shift=artifact.creep_parameters(held.magnitude, held.time_constant_s * rate)[1])
         for r in recs:
             r.feats = pp.recording_features(pre, r.ds.wl_nm, r.baseline_nm)
         data = Prepared(recs, pre, temp_info)
@@ -105,7 +105,7 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
     return data
 
 
-def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict[str, list[int]]:
+def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: artifact.Memory) -> dict[str, list[int]]:
     """Every net's layer sizes: its inputs under ``memory``, the hidden widths
     (:data:`~fbgforce.trainer.params.DEFAULT_SIZES`, ``sizes`` over them) and its outputs."""
     hidden = {k: list(v) for k, v in DEFAULT_SIZES.items()}
@@ -115,10 +115,10 @@ def _sizes(sizes: Mapping[str, Sequence[int]] | None, memory: fm.Memory) -> dict
                        net.float_outputs] for net in contract.NETS}
 
 
-def _starting_point(params: TrainParams) -> tuple[fm.HierarchicalModel | None, fm.Memory,
+def _starting_point(params: TrainParams) -> tuple[artifact.HierarchicalModel | None, artifact.Memory,
                                                   dict[str, list[int]]]:
     """The ``init`` model (None without one), the memory states and every net's sizes."""
-    init_model = fm.load(params.init) if isinstance(params.init, (str, Path)) else params.init
+    init_model = modeldir.load(params.init) if isinstance(params.init, (str, Path)) else params.init
     memory = params.memory
     if memory is None:
         memory = init_model.preprocess.memory if init_model else DEFAULT_MEMORY
@@ -181,7 +181,7 @@ def _subsample_presses(data: Prepared, rows: np.ndarray, fraction: float,
     return np.concatenate(keep) if keep else rows[:0]
 
 
-def _scaling(data: Prepared, tr: np.ndarray, init_model: fm.HierarchicalModel | None) -> Scaling:
+def _scaling(data: Prepared, tr: np.ndarray, init_model: artifact.HierarchicalModel | None) -> Scaling:
     """The ``init`` model's scaling (its weights keep their meaning), else fitted on the
     training rows' contact samples."""
     if init_model is not None:
@@ -196,8 +196,8 @@ def _scaling(data: Prepared, tr: np.ndarray, init_model: fm.HierarchicalModel | 
                    np.maximum(np.nanstd(xy, axis=0), 1e-6))
 
 
-def _model_preprocess(data: Prepared, scaling: Scaling, init_model: fm.HierarchicalModel | None,
-                      memory: fm.Memory, tr: np.ndarray) -> fm.Preprocess:
+def _model_preprocess(data: Prepared, scaling: Scaling, init_model: artifact.HierarchicalModel | None,
+                      memory: artifact.Memory, tr: np.ndarray) -> artifact.Preprocess:
     """The model's preprocessing: the prepared filter with this model's standardisation and
     memory (the ``init`` model's, else fitted on the training rows)."""
     pre = copy.deepcopy(data.pre)  # a shared Prepared must not see this model's scaling
@@ -207,7 +207,7 @@ def _model_preprocess(data: Prepared, scaling: Scaling, init_model: fm.Hierarchi
     return pre
 
 
-def _holds(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+def _holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
            va: np.ndarray, creep: Creep, rng: np.random.Generator) -> tuple[Held, Held]:
     """Synthetic holds for the nets that read the load's memory, of the training and the
     validation presses alike (so early stopping and the choice among restarts weigh them
@@ -219,7 +219,7 @@ def _holds(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarr
     return hold_tr, hold_va
 
 
-def _rests(data: Prepared, pre: fm.Preprocess, params: TrainParams, tr: np.ndarray,
+def _rests(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
            va: np.ndarray, rng: np.random.Generator) -> tuple[Held, Held]:
     """Synthetic long rests of the training and the validation presses: ``(inputs, rows)``
     of each."""
@@ -239,7 +239,7 @@ def _joined(*augmented: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.n
 
 def _rest_margins(data: Prepared, logits: np.ndarray) -> np.ndarray:
     """The contact net's margins on the samples of the training and validation presses that
-    are at rest (at least ``fbgforce.metrics.REST_GAP_S`` from any labelled contact, past the filter's
+    are at rest (at least ``fbgforce.evaluation.metrics.REST_GAP_S`` from any labelled contact, past the filter's
     warm-up): what noise and drift alone make of it, for the decision's thresholds."""
     keep = data.row_mask(np.flatnonzero(data.split != 2))
     margin = logits[:, 1] - logits[:, 0]
@@ -253,28 +253,28 @@ def _rest_margins(data: Prepared, logits: np.ndarray) -> np.ndarray:
     return np.concatenate(out) if out else np.empty(0)
 
 
-def _assemble(data: Prepared, pre: fm.Preprocess, scaling: Scaling,
+def _assemble(data: Prepared, pre: artifact.Preprocess, scaling: Scaling,
               nets: Mapping[str, FlatMLP], reports: dict[str, Any],
-              described: Sequence[Mapping[str, Any]]) -> fm.HierarchicalModel:
+              described: Sequence[Mapping[str, Any]]) -> artifact.HierarchicalModel:
     """The float model of the trained nets, with the calibration recordings export needs."""
     # Units weight decay switched off cost multiply-adds in every engine and change no float32
     # output: leave them out of the model.
-    mlps: dict[str, fm.MLP] = {}
+    mlps: dict[str, artifact.MLP] = {}
     for name, net in nets.items():
         mlps[name], reports[name]["dropped_units"] = drop_unread_units(net.to_mlp())
-    model = fm.HierarchicalModel(
+    model = artifact.HierarchicalModel(
         preprocess=pre, contact=mlps["contact"], force=mlps["force"], location=mlps["location"],
         force_offset=scaling.force_offset, force_scale=scaling.force_scale,
         xy_offset=scaling.xy_offset, xy_scale=scaling.xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
-    model.calibration = fm.CalibrationRecordings(
+    model.calibration = artifact.CalibrationRecordings(
         [(np.asarray(r.ds.wl_nm, dtype=np.float64), r.baseline_nm) for r in data.recordings],
         [np.asarray(r.ds.force_N, dtype=np.float64)[np.asarray(r.ds.contact, dtype=bool)]
          for r in data.recordings], [d.get("path") or r.source for d, r in zip(described, data.recordings)])
     return model
 
 
-def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
+def _in_use(model: artifact.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
             tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float,
             decision: str) -> dict[str, dict[str, Any]]:
     """Set the model's decision over time (by the rule ``decision``), tracker and input range
@@ -297,12 +297,12 @@ def _in_use(model: fm.HierarchicalModel, data: Prepared, logits: np.ndarray, z: 
     # which spliced-in synthetic stretches would not keep.
     rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
                     "cusum": calibration_rests}
-    rules = {rule: fm.InUse.recommended(
+    rules = {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain,
         decision=rule) for rule in DECISION_RULES}
     model.in_use = rules[decision]
-    model.input_range = fm.input_range_of(z[tr])
+    model.input_range = artifact.input_range_of(z[tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
             for rule, iu in rules.items()}
 
@@ -317,7 +317,7 @@ def _asked(params: TrainParams | None, options: Mapping[str, Any]) -> TrainParam
 
 
 def _prepared(ds_list: Sequence[Any], described: Sequence[Mapping[str, Any]],
-              params: TrainParams, memory: fm.Memory) -> Prepared:
+              params: TrainParams, memory: artifact.Memory) -> Prepared:
     """The recordings prepared as ``params`` asks (:func:`prepare`), each named by its path
     or source in the tare's messages."""
     sources = [d.get("path") or d.get("source") or f"recording {i}"
@@ -327,7 +327,7 @@ def _prepared(ds_list: Sequence[Any], described: Sequence[Mapping[str, Any]],
                    creep_inverse=params.creep_inverse, memory=memory, creep=params.creep)
 
 
-def _creep_of_prepared(data: Prepared, pre: fm.Preprocess, tr: np.ndarray,
+def _creep_of_prepared(data: Prepared, pre: artifact.Preprocess, tr: np.ndarray,
                        params: TrainParams) -> Creep:
     """The creep the synthetic holds carry (:attr:`~fbgforce.trainer.data.Prepared.creep`); for
     a :class:`~fbgforce.trainer.data.Prepared` made without :func:`prepare`, chosen first on the
@@ -340,7 +340,7 @@ def _creep_of_prepared(data: Prepared, pre: fm.Preprocess, tr: np.ndarray,
     return data.creep
 
 
-def _settled_gain(model: fm.HierarchicalModel, data: Prepared, pre: fm.Preprocess,
+def _settled_gain(model: artifact.HierarchicalModel, data: Prepared, pre: artifact.Preprocess,
                   rows: np.ndarray, creep: Creep, trained_holds: bool,
                   rng: np.random.Generator) -> dict[str, Any]:
     """The settled-hold gain (:func:`~fbgforce.trainer.hold_gain.hold_gain`), measured when
@@ -352,7 +352,7 @@ def _settled_gain(model: fm.HierarchicalModel, data: Prepared, pre: fm.Preproces
 
 
 def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
-          prepared: Prepared | None = None, **options: Any) -> fm.HierarchicalModel:
+          prepared: Prepared | None = None, **options: Any) -> artifact.HierarchicalModel:
     """Train the hierarchical model on calibration recordings, step by step: the starting
     point, the prepared data, the split, the scaling and preprocessing, synthetic holds and
     rests, the contact, force and location nets, the model and its metadata.
@@ -360,7 +360,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     Parameters
     ----------
     datasets
-        Paths (CSV/npz in the dataset contract) or ``fbgforce.dataset.Dataset`` objects; each
+        Paths (CSV/npz in the dataset contract) or ``fbgforce.recordings.dataset.Dataset`` objects; each
         one is a continuous recording of one device.
     params
         What to do (:class:`~fbgforce.trainer.params.TrainParams`); default every default.
@@ -372,7 +372,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
 
     Returns
     -------
-    fbgforce.model.HierarchicalModel
+    fbgforce.model.artifact.HierarchicalModel
 
     Raises
     ------

@@ -217,8 +217,9 @@ CORPUS_DIR = HERE / "corpus"
 def trained_blobs(tmp: Path) -> dict[str, bytes]:
     """Blobs of a small model trained on the ``smoke`` scene (as tests/conftest.py's
     ``small_model_dir``), exported with 16- and 8-bit weights."""
-    from fbgforce import dataset, sim
-    from fbgforce import model as fm
+    from fbgforce import sim
+    from fbgforce.recordings import dataset
+    from fbgforce.model import modeldir as fm
     from fbgforce.export.exporter import export_model
     from fbgforce.trainer.train import train
 

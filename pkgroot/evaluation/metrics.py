@@ -152,6 +152,25 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
     out = _core(pc, pf, px, py, tc, tf, tx, ty)
     if not extras:
         return out
+    out.update(_contact_extras(pc, tc, tf))
+    truth, pred_ = (tc, tf, tx, ty), (pc, pf, px, py)
+    out["by_force"] = _by_force(pred_, truth, force_bins_N)
+    out.update(_by_edge(pred_, truth, boundary_mm, pad_mm))
+    if delays is not None:
+        out["contact_timing"] = timing_summary(*delays)
+    if use is not None:
+        masks = {k: np.asarray(use[k]).reshape(-1) for k in USE_KEYS}
+        for k, arr in masks.items():
+            if arr.size != n:
+                raise ValueError(f"use {k} has {arr.size} samples, contact has {n}")
+        out["at_rest"] = rest_summary(pc, pf, masks)
+        out["holds"] = hold_summary(pf, tf, masks)
+    return out
+
+
+def _contact_extras(pc: np.ndarray, tc: np.ndarray, tf: np.ndarray) -> dict[str, Any]:
+    """The contact decision's accuracy above 5 N and 1 N, by force and its false contacts."""
+    out: dict[str, Any] = {}
     high = tc & (tf > HIGH_FORCE_N)
     out["contact_accuracy_above_5N"] = float(np.mean(pc[high])) if high.any() else None
     above_1 = tc & (tf > LIGHT_FORCE_N)
@@ -166,6 +185,13 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
                                  "contact_accuracy": float(np.mean(pc[sel])) if sel.any() else None})
     out["contact_by_force"] = contact_by_force
     out["false_contact_rate"] = float(np.mean(pc[~tc])) if (~tc).any() else None
+    return out
+
+
+def _by_force(pred: tuple[np.ndarray, ...], truth: tuple[np.ndarray, ...],
+              force_bins_N: Sequence[float]) -> list[dict[str, Any]]:
+    """The shared metrics of the true contacts in each force range."""
+    (pc, pf, px, py), (tc, tf, tx, ty) = pred, truth
     edges = [0.0, *map(float, force_bins_N), np.inf]
     by_force = []
     for lo, hi in zip(edges[:-1], edges[1:]):
@@ -173,24 +199,23 @@ def compute(pred: Mapping[str, np.ndarray], contact: np.ndarray, force_N: np.nda
         row = _core(pc[sel], pf[sel], px[sel], py[sel], tc[sel], tf[sel], tx[sel], ty[sel])
         row["range_N"] = [lo, None if np.isinf(hi) else hi]
         by_force.append(row)
-    out["by_force"] = by_force
+    return by_force
+
+
+def _by_edge(pred: tuple[np.ndarray, ...], truth: tuple[np.ndarray, ...], boundary_mm: float,
+             pad_mm: tuple[float, float] | None) -> dict[str, dict[str, Any]]:
+    """The shared metrics of the true contacts within ``boundary_mm`` of the pad's edge
+    (``boundary``) and further in (``interior``)."""
+    (pc, pf, px, py), (tc, tf, tx, ty) = pred, truth
     w, h = pad_mm if pad_mm is not None else _pad_size_mm()
     with np.errstate(invalid="ignore"):
         edge_dist = np.minimum.reduce([tx, w - tx, ty, h - ty])
         near = tc & (edge_dist < boundary_mm)
+    out = {}
     for key, sel in (("boundary", near), ("interior", tc & ~near)):
         row = _core(pc[sel], pf[sel], px[sel], py[sel], tc[sel], tf[sel], tx[sel], ty[sel])
         row["within_mm"] = boundary_mm
         out[key] = row
-    if delays is not None:
-        out["contact_timing"] = timing_summary(*delays)
-    if use is not None:
-        masks = {k: np.asarray(use[k]).reshape(-1) for k in USE_KEYS}
-        for k, arr in masks.items():
-            if arr.size != n:
-                raise ValueError(f"use {k} has {arr.size} samples, contact has {n}")
-        out["at_rest"] = rest_summary(pc, pf, masks)
-        out["holds"] = hold_summary(pf, tf, masks)
     return out
 
 
@@ -404,7 +429,7 @@ def timing_summary(onset_ms: np.ndarray, release_ms: np.ndarray) -> dict[str, An
 
 
 def from_dataset(pred: Mapping[str, np.ndarray], ds: Any, **kwargs: Any) -> dict[str, Any]:
-    """:func:`compute` with the ground truth of a ``fbgforce.dataset.Dataset``."""
+    """:func:`compute` with the ground truth of a ``fbgforce.recordings.dataset.Dataset``."""
     return compute(pred, ds.contact, ds.force_N, ds.x_mm, ds.y_mm, **kwargs)
 
 

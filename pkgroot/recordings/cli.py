@@ -11,8 +11,8 @@ from fbgforce.cliargs import add_json_flag, non_negative_int, positive_float, po
 
 def register(subparsers: Any) -> None:
     """Add ``import`` and ``protocol`` to the ``fbgforce`` command."""
-    from fbgforce.labimport import (FBG_UNITS, FORCE_UNITS, MAX_OFFSET_S, POSITION_UNITS,
-                                    TIME_UNITS)
+    from fbgforce.recordings.labimport import FBG_UNITS, FORCE_UNITS, POSITION_UNITS, TIME_UNITS
+    from fbgforce.recordings.stagelog import MAX_OFFSET_S
 
     p = subparsers.add_parser(
         "import", help="a lab's interrogator log + stage/load-cell log -> one dataset",
@@ -64,7 +64,7 @@ def register(subparsers: Any) -> None:
 
 
 def _import(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.labimport import MAP_KEYS, import_files, load_map, make_spec
+    from fbgforce.recordings.labimport import import_files, load_map, make_spec, MAP_KEYS
 
     values: dict[str, Any] = load_map(args.map) if args.map else {}
     for key in MAP_KEYS:
@@ -85,7 +85,7 @@ def _import(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _protocol(args: argparse.Namespace) -> dict[str, Any]:
-    from fbgforce.protocol import default_program, write_program
+    from fbgforce.recordings.protocol import default_program, write_program
 
     program = default_program(args.presses, force_max_N=args.force_max, groups=args.groups,
                               seed=args.seed)

@@ -4,46 +4,71 @@ An engine runs the whole shipped pipeline on ONE continuous recording::
 
     fn(model_dir, model, wl_nm (n, 5) nm, baseline_nm (5,) nm) -> dict
 
-and returns the keys of :func:`fbgforce.model.predict_from_features` that the metrics need:
+and returns the keys of :func:`fbgforce.model.floatref.predict_from_features` that the metrics need:
 ``contact`` (bool), ``p_contact``, ``force_N`` (0 where no contact), ``x_mm``, ``y_mm`` (NaN
 where no contact). ``model_dir`` is the model directory (engines that need exported files read
-them from there); ``model`` the loaded :class:`fbgforce.model.HierarchicalModel`.
+them from there); ``model`` the loaded :class:`fbgforce.model.artifact.HierarchicalModel`.
 
 Every engine runs the float model's stages after the nets (the decision over time, the
 settled-hold gain, the at-rest tracker) and gives its outputs within the engine's tolerance
 (docs/export-onnx.md, "Every engine against the float model"; tests/test_engine_agreement.py).
 
-Engines other than ``float`` live in the parts that own their runtimes and are imported lazily
-from :data:`ENGINES`, so this module works (and says clearly what is missing) before they exist.
+Engines other than ``float`` live in the parts that own their runtimes (the exporter, the
+runtime binding), which this module sits above; each is imported when first asked for
+(:data:`ENGINES`), so this module works, and says clearly what is missing, before they are
+built or installed.
 """
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
-from fbgforce import model as fm
 from fbgforce import samples
 from fbgforce.errors import InputError
+from fbgforce.model import artifact, floatref, modeldir
 
-EngineFn = Callable[[Any, fm.HierarchicalModel, np.ndarray, np.ndarray], dict[str, np.ndarray]]
-
-#: Engine name -> "module:function". ``float`` is the float64 numpy reference below.
-ENGINES: dict[str, str] = {
-    "float": "fbgforce.engines:run_float",
-    "onnx": "fbgforce.export.onnx_export:run_recording",
-    "fixed": "fbgforce.pybind.engines:run_fixed",
-    "cfloat": "fbgforce.pybind.engines:run_cfloat",
-    "intref": "fbgforce.export.intref:run_recording",
-}
+EngineFn = Callable[[Any, artifact.HierarchicalModel, np.ndarray, np.ndarray],
+                    dict[str, np.ndarray]]
 
 
-def run_float(model_dir: str | Path | None, model: fm.HierarchicalModel, wl_nm: np.ndarray,
+def run_float(model_dir: str | Path | None, model: artifact.HierarchicalModel, wl_nm: np.ndarray,
               baseline_nm: np.ndarray) -> dict[str, np.ndarray]:
-    """The float64 reference: :func:`fbgforce.model.predict` with the given tare baseline."""
-    return fm.predict(model, wl_nm, baseline_nm)
+    """The float64 reference: :func:`fbgforce.model.floatref.predict` with the given tare
+    baseline."""
+    return floatref.predict(model, wl_nm, baseline_nm)
+
+
+def _onnx() -> EngineFn:
+    from fbgforce.export.onnx_export import run_recording
+    return run_recording
+
+
+def _fixed() -> EngineFn:
+    from fbgforce.pybind.engines import run_fixed
+    return run_fixed
+
+
+def _cfloat() -> EngineFn:
+    from fbgforce.pybind.engines import run_cfloat
+    return run_cfloat
+
+
+def _intref() -> EngineFn:
+    from fbgforce.export.intref import run_recording
+    return run_recording
+
+
+#: Engine name -> its loader (which imports the engine's part; ImportError when that part is not
+#: installed or built). ``float`` is the float64 numpy reference above.
+ENGINES: dict[str, Callable[[], EngineFn]] = {
+    "float": lambda: run_float,
+    "onnx": _onnx,
+    "fixed": _fixed,
+    "cfloat": _cfloat,
+    "intref": _intref,
+}
 
 
 def get_engine(engine: str) -> EngineFn:
@@ -54,21 +79,15 @@ def get_engine(engine: str) -> EngineFn:
     InputError
         For an unknown name, or an engine whose module is not installed or built yet.
     """
-    target = ENGINES.get(engine)
-    if target is None:
+    load = ENGINES.get(engine)
+    if load is None:
         raise InputError(f"unknown engine {engine!r}; choose one of {', '.join(ENGINES)}",
                          column="--engine")
-    module_name, func_name = target.split(":")
     try:
-        module = importlib.import_module(module_name)
+        return load()
     except ImportError as exc:
-        raise InputError(f"engine {engine!r} is not available ({module_name} cannot be imported: "
-                         f"{exc}); build or install that part first", column="--engine") from exc
-    fn = getattr(module, func_name, None)
-    if fn is None:
-        raise InputError(f"engine {engine!r} is not available ({module_name} has no "
-                         f"{func_name})", column="--engine")
-    return fn
+        raise InputError(f"engine {engine!r} is not available ({exc}); build or install that "
+                         f"part first", column="--engine") from exc
 
 
 def available() -> dict[str, bool]:
@@ -83,8 +102,9 @@ def available() -> dict[str, bool]:
     return out
 
 
-def run_engine(engine: str, model_dir: str | Path | None, model: fm.HierarchicalModel | None,
-               wl_nm: np.ndarray, baseline_nm: np.ndarray) -> dict[str, np.ndarray]:
+def run_engine(engine: str, model_dir: str | Path | None,
+               model: artifact.HierarchicalModel | None, wl_nm: np.ndarray,
+               baseline_nm: np.ndarray) -> dict[str, np.ndarray]:
     """Run ``engine`` on one continuous recording, tared with ``baseline_nm``.
 
     Parameters
@@ -99,7 +119,7 @@ def run_engine(engine: str, model_dir: str | Path | None, model: fm.Hierarchical
     wl_nm
         (n, 5) wavelengths of gratings 1..4 and T, nm, one continuous recording.
     baseline_nm
-        (5,) unloaded wavelengths to tare against (see ``fbgforce.tare.tare``).
+        (5,) unloaded wavelengths to tare against (see ``fbgforce.recordings.tare.tare``).
 
     Returns
     -------
@@ -111,9 +131,9 @@ def run_engine(engine: str, model_dir: str | Path | None, model: fm.Hierarchical
     if model is None:
         if model_dir is None:
             raise InputError("run_engine needs a model or a model directory")
-        model = fm.load(model_dir)
+        model = modeldir.load(model_dir)
     wl = samples.wavelength_array(wl_nm, name="wl_nm")
-    base = np.asarray(baseline_nm, dtype=np.float64).reshape(fm.N_STRAIN + 1)
+    base = np.asarray(baseline_nm, dtype=np.float64).reshape(artifact.N_STRAIN + 1)
     out = fn(model_dir, model, wl, base)
     out["contact"] = np.asarray(out["contact"]).astype(bool)
     return out

@@ -3,7 +3,7 @@
 simulate the paper's calibration protocol → train the hierarchical nets (causal filter) →
 export ONNX, the fixed-point blob and C source → verify the C runtime against the integer
 reference and the float model on every sample → score every engine → report against the
-paper's numbers → draw the figures (``fbgforce.figures``) into ``<out>/figures/``.
+paper's numbers → draw the figures (``fbgforce.evaluation.figures``) into ``<out>/figures/``.
 Every step is an ordinary subcommand; this one only strings them together so a newcomer sees
 the product work end to end, and prints the commands it ran so they can be repeated one by one.
 """
@@ -58,20 +58,6 @@ def _step(title: str, command: str | None) -> float:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Handler of ``fbgforce demo``."""
-    from fbgforce import dataset
-    from fbgforce import figures
-    from fbgforce import model as fm
-    from fbgforce.geometry import PAD_SIZE_MM
-    from fbgforce.export.exporter import export_model
-    from fbgforce.export.verify import verify
-    from fbgforce.metrics import headline
-    from fbgforce.sim import simulate
-    from fbgforce.trainer.evaluate import SPLITS, evaluate, run_recording
-    from fbgforce.trainer.report import PAPER, build_report, to_markdown, write
-    from fbgforce.trainer.data import split_rows
-    from fbgforce.trainer.scoring import model_pad_mm
-    from fbgforce.trainer.train import train
-
     if args.seed < 0:
         raise InputError(f"must be >= 0, got {args.seed}", column="--seed")
     out = Path(args.out)
@@ -84,67 +70,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     model_dir = out / "model"
     seconds: dict[str, float] = {}
 
-    t = _step("simulate", f"fbgforce simulate --scene {scene} --seed {args.seed} --out {data_path}")
-    ds = simulate(scene, seed=args.seed)
-    dataset.save(ds, data_path)
-    seconds["simulate"] = time.perf_counter() - t
-    print(f"   {len(ds)} samples, {len(set(ds.press_id.tolist()))} presses", file=sys.stderr)
-
-    t = _step("train", f"fbgforce train --data {data_path} --out {model_dir} --epochs {epochs} "
-                       f"--seed {args.seed} --filter causal")
-    model = train([data_path], epochs=epochs, seed=args.seed, filter="causal")
-    fm.save(model, model_dir)
-    seconds["train"] = time.perf_counter() - t
-
-    t = _step("export", f"fbgforce export --model {model_dir}")
-    exported = export_model(model_dir)
-    seconds["export"] = time.perf_counter() - t
-    print(f"   blob {exported['blob_bytes']} B, files: "
-          + ", ".join(Path(f).name for f in exported["files"]), file=sys.stderr)
-
-    t = _step("verify", f"fbgforce verify --model {model_dir} --data {data_path} --json")
-    verified = verify(model_dir, [data_path])
-    seconds["verify"] = time.perf_counter() - t
-    print(f"   {verified['samples']} samples, {verified['mismatches']} C/integer-reference "
-          f"mismatches, {verified['contact_disagreements']} fixed/float contact disagreements",
-          file=sys.stderr)
-
-    # Each engine runs the whole recording (loaded once, so the time is the engine's and the
-    # scoring's, not the CSV parser's) and is scored on the test presses.
-    recording = dataset.load(data_path)
-    engines: dict[str, Any] = {}
-    timings = []
-    for engine in ENGINES_SCORED:
-        t = _step(f"evaluate ({engine})", f"fbgforce evaluate --model {model_dir} --data "
-                                          f"{data_path} --engine {engine} --split test")
-        m = evaluate(model_dir, [recording], engine=engine, split="test", seed=args.seed,
-                     model=model)
-        run_s = time.perf_counter() - t
-        m.update({"data": [str(data_path)], "us_per_sample": 1e6 * run_s / len(recording)})
-        engines[engine] = m
-        timings.append({"engine": engine, "us_per_sample": m["us_per_sample"],
-                        "rmse_force_N": m["rmse_force_N"]})
-        seconds[f"evaluate_{engine}"] = run_s
-        print(f"   test split: {headline(m)}; {m['us_per_sample']:.2f} us/sample", file=sys.stderr)
-
-    t = _step("report", f"fbgforce report --data {data_path} --model {model_dir} "
-                        f"--epochs {epochs} --out {out / 'report'}")
-    rep = build_report([data_path], model_dir=model_dir, epochs=epochs, seed=args.seed)
-    write(rep, out / "report")
-    seconds["report"] = time.perf_counter() - t
-
-    t = _step("figures", None)
-    shown = "fixed"  # what the firmware would compute
-    pngs = figures.write_demo_figures(
-        out / "figures", ds=recording,
-        test_rows=np.flatnonzero(split_rows(recording, args.seed) == SPLITS.index("test") - 1),
-        pred=run_recording(shown, model_dir, model, recording, str(data_path)), engine=shown,
-        metrics=engines[shown], paper=PAPER["network"], timings=timings,
-        pad_mm=model_pad_mm(model) or PAD_SIZE_MM)
-    seconds["figures"] = time.perf_counter() - t
-    for f in pngs:
-        print(f"   {f['path']}: {f['title']}", file=sys.stderr)
+    _simulate(scene, args.seed, data_path, seconds)
+    model, verified = _train_export_verify(args.seed, epochs, data_path, model_dir, seconds)
+    recording, engines, timings = _evaluate_engines(args.seed, model, data_path, model_dir,
+                                                    seconds)
+    rep = _report(args.seed, epochs, data_path, model_dir, out / "report", seconds)
+    pngs = _figures(args.seed, out / "figures", model, model_dir, recording, data_path,
+                    engines, timings, seconds)
     if not args.json:
+        from fbgforce.trainer.report import to_markdown
+
         print(to_markdown(rep))
     if verified["mismatches"]:
         print(f"fbgforce demo: WARNING: {verified['mismatches']} samples where the C runtime "
@@ -160,3 +95,112 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "checks": rep["checks"],
         "seconds": seconds,
     }
+
+
+# The steps import their parts when they run: ``fbgforce --help`` loads every command module.
+
+def _simulate(scene: str, seed: int, data_path: Path, seconds: dict[str, float]) -> None:
+    """Simulate the scene into ``data_path``."""
+    from fbgforce.recordings import dataset
+    from fbgforce.sim import simulate
+
+    t = _step("simulate", f"fbgforce simulate --scene {scene} --seed {seed} --out {data_path}")
+    ds = simulate(scene, seed=seed)
+    dataset.save(ds, data_path)
+    seconds["simulate"] = time.perf_counter() - t
+    print(f"   {len(ds)} samples, {len(set(ds.press_id.tolist()))} presses", file=sys.stderr)
+
+
+def _train_export_verify(seed: int, epochs: int, data_path: Path, model_dir: Path,
+                         seconds: dict[str, float]) -> tuple[Any, dict[str, Any]]:
+    """Train into ``model_dir``, export and verify: the float model and the verdict."""
+    from fbgforce.export.exporter import export_model
+    from fbgforce.export.verify import verify
+    from fbgforce.model import modeldir
+    from fbgforce.trainer.train import train
+
+    t = _step("train", f"fbgforce train --data {data_path} --out {model_dir} --epochs {epochs} "
+                       f"--seed {seed} --filter causal")
+    model = train([data_path], epochs=epochs, seed=seed, filter="causal")
+    modeldir.save(model, model_dir)
+    seconds["train"] = time.perf_counter() - t
+
+    t = _step("export", f"fbgforce export --model {model_dir}")
+    exported = export_model(model_dir)
+    seconds["export"] = time.perf_counter() - t
+    print(f"   blob {exported['blob_bytes']} B, files: "
+          + ", ".join(Path(f).name for f in exported["files"]), file=sys.stderr)
+
+    t = _step("verify", f"fbgforce verify --model {model_dir} --data {data_path} --json")
+    verified = verify(model_dir, [data_path])
+    seconds["verify"] = time.perf_counter() - t
+    print(f"   {verified['samples']} samples, {verified['mismatches']} C/integer-reference "
+          f"mismatches, {verified['contact_disagreements']} fixed/float contact disagreements",
+          file=sys.stderr)
+    return model, verified
+
+
+def _evaluate_engines(seed: int, model: Any, data_path: Path, model_dir: Path,
+                      seconds: dict[str, float]) -> tuple[Any, dict[str, Any], list[dict]]:
+    """Score every engine of :data:`ENGINES_SCORED` on the test presses: the recording, the
+    metrics by engine and the timings."""
+    from fbgforce.evaluation.metrics import headline
+    from fbgforce.recordings import dataset
+    from fbgforce.trainer.evaluate import evaluate
+
+    # Each engine runs the whole recording (loaded once, so the time is the engine's and the
+    # scoring's, not the CSV parser's) and is scored on the test presses.
+    recording = dataset.load(data_path)
+    engines: dict[str, Any] = {}
+    timings = []
+    for engine in ENGINES_SCORED:
+        t = _step(f"evaluate ({engine})", f"fbgforce evaluate --model {model_dir} --data "
+                                          f"{data_path} --engine {engine} --split test")
+        m = evaluate(model_dir, [recording], engine=engine, split="test", seed=seed,
+                     model=model)
+        run_s = time.perf_counter() - t
+        m.update({"data": [str(data_path)], "us_per_sample": 1e6 * run_s / len(recording)})
+        engines[engine] = m
+        timings.append({"engine": engine, "us_per_sample": m["us_per_sample"],
+                        "rmse_force_N": m["rmse_force_N"]})
+        seconds[f"evaluate_{engine}"] = run_s
+        print(f"   test split: {headline(m)}; {m['us_per_sample']:.2f} us/sample", file=sys.stderr)
+    return recording, engines, timings
+
+
+def _report(seed: int, epochs: int, data_path: Path, model_dir: Path, report_dir: Path,
+            seconds: dict[str, float]) -> dict[str, Any]:
+    """The report against the paper's numbers, written to ``report_dir``."""
+    from fbgforce.trainer.report import build_report, write
+
+    t = _step("report", f"fbgforce report --data {data_path} --model {model_dir} "
+                        f"--epochs {epochs} --out {report_dir}")
+    rep = build_report([data_path], model_dir=model_dir, epochs=epochs, seed=seed)
+    write(rep, report_dir)
+    seconds["report"] = time.perf_counter() - t
+    return rep
+
+
+def _figures(seed: int, figures_dir: Path, model: Any, model_dir: Path, recording: Any,
+             data_path: Path, engines: dict[str, Any], timings: list[dict],
+             seconds: dict[str, float]) -> list[dict[str, Any]]:
+    """The figures of the fixed-point engine's outputs, what the firmware would compute."""
+    from fbgforce.evaluation import figures
+    from fbgforce.geometry import PAD_SIZE_MM
+    from fbgforce.trainer.evaluate import SPLITS, run_recording
+    from fbgforce.trainer.report import PAPER
+    from fbgforce.trainer.data import split_rows
+    from fbgforce.trainer.scoring import model_pad_mm
+
+    t = _step("figures", None)
+    shown = "fixed"
+    pngs = figures.write_demo_figures(
+        figures_dir, ds=recording,
+        test_rows=np.flatnonzero(split_rows(recording, seed) == SPLITS.index("test") - 1),
+        pred=run_recording(shown, model_dir, model, recording, str(data_path)), engine=shown,
+        metrics=engines[shown], paper=PAPER["network"], timings=timings,
+        pad_mm=model_pad_mm(model) or PAD_SIZE_MM)
+    seconds["figures"] = time.perf_counter() - t
+    for f in pngs:
+        print(f"   {f['path']}: {f['title']}", file=sys.stderr)
+    return pngs

@@ -208,14 +208,14 @@ def write_demo_figures(out_dir: str | Path, *, ds: Any, test_rows: np.ndarray,
     Parameters
     ----------
     ds
-        The recording (``fbgforce.dataset.Dataset``) the predictions were made on.
+        The recording (``fbgforce.recordings.dataset.Dataset``) the predictions were made on.
     test_rows
         Row indices of its test split.
     pred
         One engine's predictions on the whole recording (``contact``, ``force_N``, ``x_mm``,
         ``y_mm``), named ``engine``.
     metrics
-        That engine's test-split metrics (``fbgforce.metrics.compute`` with extras).
+        That engine's test-split metrics (``fbgforce.evaluation.metrics.compute`` with extras).
     paper
         The paper's network figures (``fbgforce.trainer.report.PAPER["network"]``).
     timings

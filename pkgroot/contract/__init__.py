@@ -13,30 +13,26 @@ nowhere else:
   fields of both parameter blocks are made) and the caller-owned streaming states of both
   builds (``STATE``, ``FLOAT_STATE``).
 
-``python -m fbgforce.contract --write`` regenerates the derived text: the marked sections of
-``runtime_c/include/fbgforce.h`` (declarations, the state structs included),
-``runtime_c/src/fbg_contract.c`` and ``.h`` (the blob parameter decoder, the parameter checker,
-``fbg_status_str``, the list of memory states the front end clears and the dispatch over the
-memory kinds), ``runtime_c/src/fbgf_contract.c`` (the float model's memory parameters), the parameter
-table of ``docs/model-format.md`` and the status constants of the ROS 2 message
-``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side (the blob
-codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.qmodel`, the numpy
-dtypes of :mod:`fbgforce.pybind`) reads the same tables at import. ``tests/test_contract.py``
-fails when a generated file is stale.
+``python -m fbgforce.contract --write`` regenerates the derived text
+(:mod:`fbgforce.contract.render`): the marked sections of ``runtime_c/include/fbgforce.h``
+(declarations, the state structs included), ``runtime_c/src/fbg_contract.c`` and ``.h`` (the
+blob parameter decoder, the parameter checker, ``fbg_status_str``, the list of memory states the
+front end clears and the dispatch over the memory kinds), ``runtime_c/src/fbgf_contract.c`` (the
+float model's memory parameters), the parameter table of ``docs/model-format.md`` and the status
+constants of the ROS 2 message ``interrogator/fbgforce_msgs/msg/Contact.msg``. The Python side
+(the blob codec in :mod:`fbgforce.export.blob`, the checker in :mod:`fbgforce.export.qmodel`,
+the numpy dtypes of :mod:`fbgforce.pybind`) reads the same tables at import.
+``tests/test_contract.py`` fails when a generated file is stale.
 
-A Python module rather than a schema file: every consumer but the C compiler is Python, so a
-schema would need a parser and still a Python generator; here the spec is data that the tests,
-the codecs and the generator import directly, with no dependency at all (this module imports
-nothing from fbgforce, so anything may import it).
+Python rather than a schema file: every consumer but the C compiler is Python, so a schema would
+need a parser and still a Python generator; here the spec is data that the tests, the codecs and
+the generator import directly, with no dependency at all (this package's tables import nothing
+from fbgforce, so anything may import them).
 """
 from __future__ import annotations
 
-import argparse
 import struct
-import sys
-import textwrap
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 #: Library version: the C library (``fbg_version()``), the Python package and the blob's
@@ -63,7 +59,7 @@ class MemoryParam:
 
     It is the array field ``<kind>_<name>`` of both parameter blocks (``PARAMS``, in
     ``ctype`` within ``[lo, hi]``; ``FLOAT_PARAMS``, in ``float_ctype``) and the tuple
-    ``<kind>_<name>s`` of :class:`fbgforce.model.Memory`. A ``float_ctype`` of ``"float"`` is
+    ``<kind>_<name>s`` of :class:`fbgforce.model.artifact.Memory`. A ``float_ctype`` of ``"float"`` is
     a value in standardised units: ``float`` in the float build, Q(z_frac) in the fixed one
     (rounded, at most ``hi``), at least ``lo`` and finite in both. ``optional``: a Memory may
     leave it out (every entry 0); the kind's first other parameter counts its states.
@@ -96,7 +92,7 @@ class MemoryKind:
     The update rule itself is written once per engine, reached by the kind's name:
     ``<name>_features`` (fbg_fixed.c), ``<name>_features_f`` (fbgf_float.c),
     ``<name>_features_avx2`` (fbg_simd_x86.c) through ``FBG_MEMORY_KINDS``, and the tables
-    ``fbgforce.model.FLOAT_MEMORY`` and ``fbgforce.export.intref.INT_MEMORY``.
+    ``fbgforce.model.floatref.FLOAT_MEMORY`` and ``fbgforce.export.intref.INT_MEMORY``.
     """
 
     name: str
@@ -114,7 +110,7 @@ class MemoryKind:
 
     @property
     def counted_by(self) -> MemoryParam:
-        """The parameter whose :class:`fbgforce.model.Memory` tuple says how many states."""
+        """The parameter whose :class:`fbgforce.model.artifact.Memory` tuple says how many states."""
         return next(p for p in self.params if not p.optional)
 
     @property
@@ -357,7 +353,7 @@ class Field:
         return f"{self.name}[{index}]" if self.count > 1 else self.name
 
 
-_I32 = (-SAT32, SAT32)   # INT32_MIN is refused everywhere: negation must not overflow
+I32_RANGE = (-SAT32, SAT32)   # INT32_MIN is refused everywhere: negation must not overflow
 
 
 def memory_params() -> tuple[Field, ...]:
@@ -385,21 +381,21 @@ PARAMS: tuple[Field, ...] = (
           doc="nominal unloaded wavelengths (fm): the baseline before any tare"),
     Field("jump_max_fm", "int32_t", 1, 1, SAT32,
           doc="SENSOR_FAULT when |wl - previous in-window wl| > jump_max_fm on any channel"),
-    Field("temp_coeff_q24", "int32_t", N_STRAIN, *_I32,
+    Field("temp_coeff_q24", "int32_t", N_STRAIN, *I32_RANGE,
           doc="comp_i = shift_i - rshift_round(shift_T * temp_coeff_q24[i], 24)  (fm)"),
-    Field("mean_fm", "int32_t", N_STRAIN, *_I32,
+    Field("mean_fm", "int32_t", N_STRAIN, *I32_RANGE,
           doc="z_i = sat16(rshift_round(sat32(filt_i - mean_fm[i]) * z_mult[i], z_shift))"),
-    Field("z_mult", "int32_t", N_STRAIN, *_I32, doc="standardisation multipliers"),
-    Field("fq_mult", "int32_t", 1, *_I32,
+    Field("z_mult", "int32_t", N_STRAIN, *I32_RANGE, doc="standardisation multipliers"),
+    Field("fq_mult", "int32_t", 1, *I32_RANGE,
           doc="location input: f_q = sat16(rshift_round(force_out * fq_mult, fq_shift))"),
-    Field("force_offset_mN", "int32_t", 1, *_I32, doc="force_mN = sat32(force_out + offset)"),
-    Field("xy_offset_um", "int32_t", 2, *_I32, doc="x_um, y_um likewise"),
-    Field("overload_mN", "int32_t", 1, *_I32, doc="OVERLOAD when contact and force_mN > this"),
+    Field("force_offset_mN", "int32_t", 1, *I32_RANGE, doc="force_mN = sat32(force_out + offset)"),
+    Field("xy_offset_um", "int32_t", 2, *I32_RANGE, doc="x_um, y_um likewise"),
+    Field("overload_mN", "int32_t", 1, *I32_RANGE, doc="OVERLOAD when contact and force_mN > this"),
     Field("load_coeff", "int32_t", N_STRAIN, -(LIMIT["LOAD_COEFF_LIMIT"] - 1),
           LIMIT["LOAD_COEFF_LIMIT"] - 1,
           doc="input-side overload: load_mN = rshift_round(sum_i load_coeff[i] * filt_i, "
               "load_shift)"),
-    Field("load_max_mN", "int32_t", 1, *_I32, doc="OVERLOAD when load_mN > load_max_mN"),
+    Field("load_max_mN", "int32_t", 1, *I32_RANGE, doc="OVERLOAD when load_mN > load_max_mN"),
     Field("n_taps", "uint16_t", 1, 1, LIMIT["MAX_TAPS"], "ERR_SHAPE", doc="causal FIR length"),
     Field("stuck_max", "uint16_t", doc="SENSOR_FAULT after this many identical samples on a "
           "channel; 0 disables the rule"),
@@ -410,7 +406,7 @@ PARAMS: tuple[Field, ...] = (
     Field("load_shift", "uint8_t", 1, 1, 62, doc="shift of the load proxy"),
     Field("n_layers", "uint8_t", 3, 1, LIMIT["MAX_LAYERS"], "ERR_SHAPE",
           doc="layers of the contact, force and location nets", c_member="nets[k].n_layers"),
-    Field("mem_mult", "int32_t", N_STRAIN, *_I32,
+    Field("mem_mult", "int32_t", N_STRAIN, *I32_RANGE,
           doc="memory input u = sat16(rshift_round(sum_i mem_mult[i] * z_i, mem_shift)): a "
               "load signal in Q(z_frac)"),
     Field("mem_shift", "uint8_t", 1, 1, 62, doc="shift of the memory input"),
@@ -429,7 +425,7 @@ PARAMS: tuple[Field, ...] = (
           doc="at-rest baseline tracker (0: off): time constant 2^track_shift samples"),
     Field("track_settle", "uint16_t",
           doc="samples of rest (tared, no contact, fault or warm-up) before a tracker block counts"),
-    Field("track_gain", "int32_t", N_STRAIN, *_I32,
+    Field("track_gain", "int32_t", N_STRAIN, *I32_RANGE,
           doc="per TRACK_BLOCK at rest: corr_i += sum(z_i - z0_i) * track_gain[i] (fm in "
               "Q(TRACK_FRAC))"),
     Field("track_step_max_fm", "int32_t", 1, 0, SAT32,
@@ -785,382 +781,3 @@ def numpy_dtype(fields: tuple[Field, ...]) -> list[tuple]:
     records above are laid out so that none is needed, which a test checks with cffi)."""
     return [(f.name, CTYPES[f.ctype][1]) if f.count == 1 else (f.name, CTYPES[f.ctype][1], f.count)
             for f in fields]
-
-
-# ------------------------------------------------------------------------------------------
-# C generation
-# ------------------------------------------------------------------------------------------
-
-ROOT = Path(__file__).resolve().parent.parent
-HEADER_PATH = ROOT / "runtime_c" / "include" / "fbgforce.h"
-SOURCE_PATH = ROOT / "runtime_c" / "src" / "fbg_contract.c"
-SECTIONS = ("constants", "fixed", "state", "float", "float state")
-
-
-def _begin(section: str) -> str:
-    return (f"/* ---- BEGIN GENERATED {section}: `python -m fbgforce.contract --write` from "
-            f"pkgroot/contract.py; do not edit ---- */")
-
-
-def _end(section: str) -> str:
-    return f"/* ---- END GENERATED {section} ---- */"
-
-
-def _decl(f: Field, indent: str = "    ") -> str:
-    arr = f"[{f.count}]" if f.count > 1 else ""
-    rng = ""
-    if f.lo is not None and (f.lo, f.hi) != _I32:
-        rng = f" [{f.lo}, {f.hi}]" + (f" for k < {f.active}, else 0" if f.active else "")
-    doc = f"{f.doc}{rng}".strip()
-    return f"{indent}{f.ctype} {f.name}{arr};" + (f"  /* {doc} */" if doc else "")
-
-
-def struct_order(fields: tuple[Field, ...]) -> list[Field]:
-    """Declaration order of a parameter struct: 4-byte fields, then 2, then 1 (no implicit
-    padding). Generated initialisers list values in this order."""
-    return [f for width in (4, 2, 1) for f in fields
-            if CTYPES[f.ctype][2] == width and f.c_member is None]
-
-
-def struct_padding(fields: tuple[Field, ...]) -> int:
-    """Bytes of explicit padding (``pad_``) after the parameters of a struct."""
-    return -sum(CTYPES[f.ctype][2] * f.count for f in struct_order(fields)) % 4
-
-
-def _struct_fields(fields: tuple[Field, ...]) -> list[str]:
-    out = [_decl(f) for f in struct_order(fields)]
-    if struct_padding(fields):
-        out.append(f"    uint8_t pad_[{struct_padding(fields)}];  /* explicit padding, keep 0 */")
-    return out
-
-
-def _comment(text: str, indent: str = "    ", width: int = 96) -> list[str]:
-    """A block comment of ``text`` wrapped within ``width`` columns."""
-    lines = textwrap.wrap(text, width - len(indent) - 6)
-    out = [f"{indent}/* {lines[0]}"] + [f"{indent} * {line}" for line in lines[1:]]
-    out[-1] += " */"
-    return out
-
-
-def _state_decl(f: StateField) -> list[str]:
-    dims = "".join(f"[{d}]" if isinstance(d, int) else f"[FBG_{d}]" for d in f.dims)
-    decl = f"    {f.ctype}{'' if f.ctype.endswith('*') else ' '}{f.name}{dims};"
-    return (_comment(f.note) if f.note else []) + [decl.ljust(48) + f" /* {f.doc} */" if f.doc else decl]
-
-
-def state_section(fields: tuple[StateField, ...], name: str) -> str:
-    """The declaration of the streaming state ``name`` from its ``fields``."""
-    return "\n".join([f"/* Caller-owned streaming state. Treat as opaque; size is sizeof({name}). */",
-                      "typedef struct {"] + [line for f in fields for line in _state_decl(f)]
-                     + [f"}} {name};"])
-
-
-def header_sections() -> dict[str, str]:
-    """The generated parts of fbgforce.h, by section name."""
-    c = []
-    for name, (value, doc) in LIMITS.items():
-        c.append(f"#define FBG_{name} {value}" + (f"  /* {doc} */" if doc else ""))
-    for i, net in enumerate(NETS):
-        c.append(f"#define FBG_NET_{net.name.upper()} {i}")
-    c += ["", "/* Return codes: 0 is success, every error has its own negative code. */",
-          "typedef enum {"]
-    for i, code in enumerate(ERRORS):
-        comma = "," if i + 1 < len(ERRORS) else ""
-        c.append(f"    FBG_{code.name} = {code.value}{comma}  /* {code.doc} */")
-    c += ["} fbg_status;", "", "/* Output status flags (fbg_output.status; several may be set). */"]
-    for code in STATUS:
-        c.append(f"#define FBG_STATUS_{code.name} 0x{code.value:02X}  /* {code.doc} */")
-    c.append(f"#define FBG_STATUS_ALL 0x{STATUS_ALL:02X}  /* every flag above: no other bit is ever set */")
-    c += ["", "/* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */"]
-    for code in OPTIONS:
-        c.append(f"#define FBG_OPT_{code.name} 0x{code.value:02X}  /* {code.doc} */")
-
-    x = ["/* Fixed-point model. The parameters are those of the blob (docs/model-format.md),",
-         " * declared grouped by size so that the struct has no implicit padding. */",
-         "typedef struct {"]
-    x += _struct_fields(PARAMS)
-    x += ["    const int16_t *taps;     /* n_taps FIR taps in Q(tap_q), taps[k] weights n - k */",
-          "    fbg_net nets[FBG_N_NETS];",
-          "    uint32_t blob_crc;       /* the blob's CRC-32 (fbg_model_from_blob, generated C); a state",
-          "                              * refuses to step when it differs from fbg_init's */",
-          "} fbg_model;", "",
-          "/* Per-sample result of the fixed-point pipeline. When contact == 0: force_mN =",
-          " * x_um = y_um = 0. Safe output (SENSOR_FAULT, or an error return): all 0 but status. */",
-          "typedef struct {"]
-    x += [_decl(f) for f in OUTPUT]
-    x += ["} fbg_output;"]
-
-    fl = ["/* Float model: the same pipeline in single precision. */", "typedef struct {"]
-    fl += _struct_fields(FLOAT_PARAMS)
-    fl += ["    const float *taps;       /* taps[k] weights sample n - k */",
-           "    fbgf_net nets[FBG_N_NETS];   /* contact net has 2 outputs (logits) */",
-           "} fbgf_model;", "", "typedef struct {"]
-    fl += [_decl(f) for f in FLOAT_OUTPUT]
-    fl += ["} fbgf_output;"]
-    return {"constants": "\n".join(c), "fixed": "\n".join(x), "state": state_section(STATE, "fbg_state"),
-            "float": "\n".join(fl), "float state": state_section(FLOAT_STATE, "fbgf_state")}
-
-
-def render_header(text: str) -> str:
-    """``text`` (fbgforce.h) with every generated section replaced by the spec's."""
-    for name, body in header_sections().items():
-        start = text.index(_begin(name))
-        end = text.index(_end(name)) + len(_end(name))
-        text = text[:start] + _begin(name) + "\n" + body + "\n" + _end(name) + text[end:]
-    return text
-
-
-def _range_condition(f: Field) -> str:
-    """C condition of "v is outside [lo, hi]", without comparisons the type makes constant
-    (-Wtype-limits)."""
-    if f.lo is None:
-        return "0"
-    tmin, tmax = CTYPE_RANGE[f.ctype]
-    parts = []
-    if f.lo > tmin:
-        parts.append(f"v < {f.lo}")
-    if f.hi < tmax:
-        parts.append(f"v > {f.hi}")
-    return " || ".join(parts) or "0"
-
-
-def _params_check_lines() -> list[str]:
-    """The body of ``fbg_params_check``: every range of ``PARAMS`` in blob order, the entries of
-    an array past its ``active`` count held at 0."""
-    out: list[str] = []
-    for f in PARAMS:
-        if f.lo is None and not f.active:
-            continue
-        cond = _range_condition(f)
-        if f.count == 1:
-            out.append(f"    {{ {f.ctype} v = m->{f.c_lvalue()}; if ({cond}) return FBG_{f.code}; }}")
-        elif f.active:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if (k >= (unsigned)m->{f.active}) {{")
-            out.append("            if (v != 0)")
-            out.append("                return FBG_ERR_RANGE;")
-            out.append(f"        }} else if ({cond}) {{")
-            out.append(f"            return FBG_{f.code};")
-            out.append("        }")
-            out.append("    }")
-        else:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k) {{")
-            out.append(f"        {f.ctype} v = m->{f.c_lvalue()};")
-            out.append(f"        if ({cond})")
-            out.append(f"            return FBG_{f.code};")
-            out.append("    }")
-    return out
-
-
-def source_text() -> str:
-    """runtime_c/src/fbg_contract.c: parameter decoder, checker and status names."""
-    out = [
-        "/*",
-        " * fbg_contract.c - GENERATED by `python -m fbgforce.contract --write` from",
-        " * pkgroot/contract.py; do not edit. The blob parameter block decoder, the parameter",
-        " * range checker (the same rules, in the same order, as fbgforce.contract.check_params)",
-        " * and the names of the return codes.",
-        " */",
-        '#include "fbg_contract.h"', "",
-        "static int32_t rd_i32(const uint8_t *p)",
-        "{",
-        "    uint32_t u = (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);",
-        "    /* Two's-complement reinterpretation without implementation-defined conversion. */",
-        "    return (u & 0x80000000u) ? -(int32_t)(~u) - 1 : (int32_t)u;",
-        "}", "",
-        "static uint32_t rd_u32(const uint8_t *p)",
-        "{",
-        "    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);",
-        "}", "",
-        "static uint16_t rd_u16(const uint8_t *p)",
-        "{",
-        "    return (uint16_t)(p[0] | (p[1] << 8));",
-        "}", "",
-        "static int16_t rd_i16(const uint8_t *p)",
-        "{",
-        "    uint16_t u = rd_u16(p);",
-        "    return (u & 0x8000u) ? (int16_t)(-(int32_t)(uint16_t)~u - 1) : (int16_t)u;",
-        "}", "",
-        "static uint8_t rd_u8(const uint8_t *p)",
-        "{",
-        "    return p[0];",
-        "}", "",
-        "void fbg_params_decode(fbg_model *m, const uint8_t *p)",
-        "{",
-        "    unsigned k;",
-        "    (void)k;",
-    ]
-    reader = {"int32_t": "rd_i32", "uint32_t": "rd_u32", "uint16_t": "rd_u16",
-              "int16_t": "rd_i16", "uint8_t": "rd_u8"}
-    off = 0
-    for f in PARAMS:
-        size = CTYPES[f.ctype][2]
-        rd = reader[f.ctype]
-        if f.count == 1:
-            out.append(f"    m->{f.c_lvalue()} = {rd}(p + {off});")
-        else:
-            out.append(f"    for (k = 0; k < {f.count}u; ++k)")
-            out.append(f"        m->{f.c_lvalue()} = {rd}(p + {off} + {size}u * k);")
-        off += size * f.count
-    out += ["}", "", "int fbg_params_padding_ok(const uint8_t *p)", "{",
-            "    unsigned k;",
-            f"    for (k = {PARAMS_STRUCT.size}u; k < {PARAMS_SIZE}u; ++k)",
-            "        if (p[k] != 0u)", "            return 0;", "    return 1;", "}", "",
-            "fbg_status fbg_params_check(const fbg_model *m)", "{", "    unsigned k;", "    (void)k;"]
-    out += _params_check_lines()
-    out += ["    return FBG_OK;", "}", "", "const char *fbg_status_str(int status)", "{",
-            "    switch (status) {"]
-    for c in ERRORS:
-        out.append(f"    case FBG_{c.name}: return \"FBG_{c.name}\";")
-    out += ["    default: return \"FBG_ERR_UNKNOWN\";", "    }", "}", ""]
-    return "\n".join(out)
-
-
-def contract_header_text() -> str:
-    """runtime_c/src/fbg_contract.h (internal): declarations of the generated functions."""
-    return "\n".join([
-        "/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */",
-        "#ifndef FBG_CONTRACT_H", "#define FBG_CONTRACT_H", "", '#include "fbgforce.h"', "",
-        f"#define FBG_PARAMS_SIZE {PARAMS_SIZE}u     /* parameter block bytes, zero-padded */",
-        f"#define FBG_PARAMS_END {PARAMS_END}u      /* header + parameter block */",
-        f"#define FBG_LAYER_ENTRY {LAYER_ENTRY.size}u       /* bytes per layer-table entry */",
-        "",
-        "/* The memory states of a streaming state, X(s, member) each: the arrays of the memory",
-        " * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h",
-        " * clears them on reset, tare and a new baseline). */",
-        "#define FBG_MEMORY_STATES(X, s) " + " ".join(f"X(s, {m})" for m in MEMORY_STATES),
-        f"#define FBG_N_MEMORY_STATES {len(MEMORY_STATES)}",
-        "",
-        "/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:",
-        " * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */",
-        "#define FBG_MEMORY_KINDS(X) " + " ".join(f"X({k.name}, {k.name.upper()})" for k in MEMORY_KINDS),
-        "/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */",
-        "#define FBG_N_MEMORY_FEATURES(m) (" + " + ".join(
-            ["(unsigned)(m)->" + MEMORY_KINDS[0].count_field] + [f"(m)->{k.count_field}" for k in MEMORY_KINDS[1:]])
-        + ")",
-        "",
-        "/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */",
-        "void fbg_params_decode(fbg_model *m, const uint8_t *p);",
-        "/* 1 if the block's padding bytes are all zero. */",
-        "int fbg_params_padding_ok(const uint8_t *p);",
-        "/* The first parameter out of its range, in blob order: its code; else FBG_OK. */",
-        "fbg_status fbg_params_check(const fbg_model *m);",
-        "/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above",
-        " * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range",
-        " * (a value in standardised units: negative or not finite); else FBG_OK. */",
-        "fbg_status fbgf_memory_check(const fbgf_model *m);", "",
-        "#endif /* FBG_CONTRACT_H */", ""])
-
-
-FLOAT_SOURCE_PATH = SOURCE_PATH.with_name("fbgf_contract.c")
-
-
-def float_source_text() -> str:
-    """runtime_c/src/fbgf_contract.c: the float model's memory parameter checker (a float
-    source: the fixed-point sources name no float type)."""
-    out = ["/*",
-           " * fbgf_contract.c - GENERATED by `python -m fbgforce.contract --write` from",
-           " * pkgroot/contract.py; do not edit. The float model's memory parameters checked against",
-           " * the ranges of fbg_model's (fbgforce.contract.MEMORY_KINDS).",
-           " */",
-           '#include "fbg_contract.h"', "",
-           "fbg_status fbgf_memory_check(const fbgf_model *m)", "{", "    unsigned k;"]
-    out.append("    if (" + " || ".join(f"m->{k.count_field} > FBG_MAX_{k.name.upper()}"
-                                        for k in MEMORY_KINDS) + ")")
-    out.append("        return FBG_ERR_SHAPE;")
-    for kind in MEMORY_KINDS:
-        out.append(f"    for (k = 0; k < m->{kind.count_field}; ++k) {{")
-        for prm in kind.params:
-            cond = (f"!(v >= {prm.lo}.0f) || v - v != 0.0f" if prm.standardised  # NaN, inf
-                    else _range_condition(Field(prm.name, prm.float_ctype, 1, prm.lo, prm.hi)))
-            out.append(f"        {{ {prm.float_ctype} v = m->{kind.field(prm)}[k]; "
-                       f"if ({cond}) return FBG_ERR_RANGE; }}")
-        out.append("    }")
-    out += ["    return FBG_OK;", "}", ""]
-    return "\n".join(out)
-
-
-#: The ROS 2 estimate message; its status constants are generated from STATUS and LINK_STATUS.
-CONTACT_MSG_PATH = ROOT / "interrogator" / "fbgforce_msgs" / "msg" / "Contact.msg"
-MSG_BEGIN = "# BEGIN GENERATED status flags: `python -m fbgforce.contract --write`; do not edit"
-MSG_END = "# END GENERATED status flags"
-DOC_PATH = ROOT / "docs" / "model-format.md"
-DOC_BEGIN = "<!-- BEGIN GENERATED params: `python -m fbgforce.contract --write`; do not edit -->"
-DOC_END = "<!-- END GENERATED params -->"
-
-
-def params_table() -> str:
-    """The parameter block as a Markdown table (docs/model-format.md)."""
-    rows = ["| offset | type | field | allowed | else |", "|---|---|---|---|---|"]
-    off = HEADER.size
-    for f in PARAMS:
-        size = CTYPES[f.ctype][2]
-        typ = f"{f.ctype}[{f.count}]" if f.count > 1 else f.ctype
-        allowed = "any" if f.lo is None else f"{f.lo} .. {f.hi}"
-        if f.active:
-            allowed += f" (entries from `{f.active}` on: 0)"
-        doc = f.doc.replace("|", "\\|")
-        rows.append(f"| {off} | {typ} | `{f.name}`: {doc} | {allowed} | "
-                    f"{'' if f.lo is None and not f.active else 'FBG_' + f.code} |")
-        off += size * f.count
-    rows.append(f"| {off} | | zero padding to {PARAMS_END} | 0 | FBG_ERR_RANGE |")
-    return "\n".join(rows)
-
-
-def render_doc(text: str) -> str:
-    start = text.index(DOC_BEGIN)
-    end = text.index(DOC_END) + len(DOC_END)
-    return text[:start] + DOC_BEGIN + "\n" + params_table() + "\n" + DOC_END + text[end:]
-
-
-def status_constants_msg() -> str:
-    """The status flags as ROS 2 ``.msg`` constants (``uint32 STATUS_<NAME>=<value>``)."""
-    rows = []
-    for c in STATUS + LINK_STATUS:
-        # The comment on a line of its own: parsers differ on comments after a constant.
-        rows += [f"# {c.doc}", f"uint32 STATUS_{c.name}={c.value}"]
-    return "\n".join(rows)
-
-
-def render_msg(text: str) -> str:
-    start = text.index(MSG_BEGIN)
-    end = text.index(MSG_END) + len(MSG_END)
-    return text[:start] + MSG_BEGIN + "\n" + status_constants_msg() + "\n" + MSG_END + text[end:]
-
-
-def generated_files() -> dict[Path, str]:
-    """Every generated file and its expected full text."""
-    return {HEADER_PATH: render_header(HEADER_PATH.read_text()),
-            DOC_PATH: render_doc(DOC_PATH.read_text()),
-            CONTACT_MSG_PATH: render_msg(CONTACT_MSG_PATH.read_text()),
-            SOURCE_PATH: source_text(),
-            SOURCE_PATH.with_suffix(".h"): contract_header_text(),
-            FLOAT_SOURCE_PATH: float_source_text()}
-
-
-def stale_files() -> list[Path]:
-    """Generated files whose text differs from what the spec gives."""
-    return [p for p, t in generated_files().items() if not p.is_file() or p.read_text() != t]
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m fbgforce.contract",
-                                 description="Check or regenerate the C text derived from the "
-                                             "runtime contract (fbgforce.contract).")
-    ap.add_argument("--write", action="store_true", help="rewrite stale files (default: check)")
-    args = ap.parse_args(argv)
-    stale = stale_files()
-    if args.write:
-        for p, t in generated_files().items():
-            if p in stale:
-                p.write_text(t)
-                print(f"wrote {p}")
-        return 0
-    for p in stale:
-        print(f"stale: {p} (run python -m fbgforce.contract --write)", file=sys.stderr)
-    return 1 if stale else 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -5,12 +5,12 @@ from the float model beside it?
 quantised (:func:`model_digest`) and the SHA-256 of every file it wrote. Every reader of the
 exported blob (the C runtime binding, the Python blob reader, hence ``stream``, ``verify``,
 ``evaluate --engine fixed|intref|cfloat``, ``bench-speed``, ``target-report``) calls
-:func:`check_export` and refuses a blob that another model, or another export, left behind.
-:func:`remove_export` is how saving a model into an exported directory drops the export that
-no longer matches it.
+:func:`fbgforce.model.modeldir.check_export` and refuses a blob that another model, or another
+export, left behind. :func:`remove_stale_export` is how saving a model into an exported
+directory drops the export that no longer matches it.
 
-This module sits with the float model contract, below the runtime binding and the exporter,
-so that both can use it (imports run one way).
+This module needs no model type, only the model's parts, so the model directory's reader and
+writer (:mod:`fbgforce.model.modeldir`), the runtime binding and the exporter can all use it.
 """
 from __future__ import annotations
 
@@ -23,8 +23,6 @@ from typing import Any
 import numpy as np
 
 from fbgforce import contract
-from fbgforce.errors import InputError
-from fbgforce.fileio import file_sha256
 
 #: The export's files, relative to the model directory.
 BLOB_FILE = contract.BLOB_FILE
@@ -70,7 +68,7 @@ _IN_USE_DIGESTED = ("contact_on_margin", "contact_off_margin", "contact_rise_sam
 def model_digest(model: Any) -> str:
     """SHA-256 of everything the fixed-point model is quantised from: the nets and output
     scaling (:func:`weights_digest`), the preprocessing (every field of
-    :class:`fbgforce.model.Preprocess`), the nominal baseline, and what the runtimes do in
+    :class:`fbgforce.model.artifact.Preprocess`), the nominal baseline, and what the runtimes do in
     use (the decision over time, the tracker: ``in_use``; the input range)."""
     pre = model.preprocess
     h = hashlib.sha256(weights_digest(model).encode())
@@ -96,7 +94,8 @@ def model_digest(model: Any) -> str:
     return h.hexdigest()
 
 
-def _read_report(root: Path) -> dict[str, Any] | None:
+def read_report(root: Path) -> dict[str, Any] | None:
+    """The export report of the model directory ``root`` (None: missing or unreadable)."""
     try:
         doc = json.loads((root / REPORT_FILE).read_text())
     except (OSError, json.JSONDecodeError):
@@ -104,53 +103,12 @@ def _read_report(root: Path) -> dict[str, Any] | None:
     return doc if isinstance(doc, dict) else None
 
 
-def check_export(model_dir: str | Path, model: Any = None) -> None:
-    """Refuse an exported blob that does not belong to the float model of ``model_dir``.
-
-    Nothing to check (returns) when the directory has no ``model.json`` (a blob shipped on
-    its own) or no ``model.fbgm`` (the reader says to export).
-
-    Parameters
-    ----------
-    model_dir
-        The model directory.
-    model
-        Its float model when the caller has loaded it already (else read here).
-
-    Raises
-    ------
-    InputError
-        One line naming ``model.fbgm`` and the fix: the export has no record of its model, was
-        made from other weights, or its blob is not the one the export wrote.
-    """
-    from fbgforce import model as fm
-
-    root = Path(model_dir)
-    blob = root / BLOB_FILE
-    if not root.is_dir() or not (root / fm.MODEL_JSON).is_file() or not blob.is_file():
-        return
-    fix = FIX.format(dir=root)
-    report = _read_report(root)
-    if report is None or DIGEST_KEY not in report:
-        raise InputError(f"no export record ({REPORT_FILE} missing or unreadable): which model "
-                         f"it was exported from is unknown; {fix}", path=str(blob))
-    if model is None:
-        model = fm.load(root)
-    if report[DIGEST_KEY] != model_digest(model):
-        raise InputError(f"stale: exported from another model than {fm.MODEL_JSON} "
-                         f"(retrained after export); {fix}", path=str(blob))
-    recorded = (report.get(FILES_KEY) or {}).get(BLOB_FILE)
-    if recorded is not None and recorded != file_sha256(blob):
-        raise InputError(f"not the blob its export wrote ({REPORT_FILE} records another); {fix}",
-                         path=str(blob))
-
-
 def remove_stale_export(model_dir: str | Path, model: Any) -> list[str]:
     """Delete the export of ``model_dir`` (blob, ONNX graph, generated C, report) unless it was
-    made from ``model``; returns the names removed. :func:`fbgforce.model.save` calls it, so
+    made from ``model``; returns the names removed. :func:`fbgforce.model.modeldir.save` calls it, so
     retraining into an exported directory never leaves the old export to be run."""
     root = Path(model_dir)
-    report = _read_report(root)
+    report = read_report(root)
     if report is not None and report.get(DIGEST_KEY) == model_digest(model):
         return []
     removed = []

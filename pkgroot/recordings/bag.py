@@ -1,4 +1,5 @@
-"""rosbag2 logs (MCAP or SQLite 3) into the dataset contract (docs/ros2.md).
+"""rosbag2 logs (MCAP or SQLite 3) read into the columns of the dataset contract
+(docs/ros2.md); :func:`fbgforce.recordings.dataset.load_bag` makes a dataset of them.
 
 Read with ``rosbags`` (extra ``[ros2]``), which decodes any ROS 2 message from the definitions
 stored in the bag. Which message field feeds which dataset column is a *field map*: column ->
@@ -192,41 +193,3 @@ def read_bag_columns(path: str | Path, fields: Mapping[str, str] | None = None
             out[f.column] = rows[:, k]
     out["complete"] = complete
     return out
-
-
-def load_bag(path: str | Path, fields: Mapping[str, str] | None = None) -> Any:
-    """A :class:`fbgforce.dataset.Dataset` from a rosbag2 log, validated like any file.
-
-    ``fields`` is the field map (default :data:`FBGFORCE_FIELDS`). Rows before every joined
-    topic has spoken are dropped (the count is in the dataset's ``source``) and ``t_s`` counts
-    from the first row kept. The extra column ``stamp_ns`` keeps each row's stamp.
-    """
-    from fbgforce import dataset
-    from fbgforce.units import nm_to_fm
-
-    path = Path(path)
-    cols = read_bag_columns(path, fields)
-    keep = cols["complete"]
-    dropped = int((~keep).sum())
-    cols = {k: v[keep] for k, v in cols.items()}
-    contact = cols["contact"]
-    wl = np.column_stack([cols[c] for c in _WL])
-    wl = np.where(np.isfinite(wl), nm_to_fm(wl) / 1e6, wl)
-    where = str(path) + (f" (rosbag2; {dropped} rows before the first message of every "
-                         f"joined topic dropped)" if dropped else " (rosbag2)")
-    gate = contact == 1
-    stamp = cols["stamp_ns"]
-    ds = dataset.Dataset(
-        t_s=(stamp - stamp[0]) / 1e9 if len(stamp) else stamp, wl_nm=wl, contact=gate,
-        x_mm=np.where(gate, cols["x_mm"], np.nan), y_mm=np.where(gate, cols["y_mm"], np.nan),
-        force_N=cols["force_N"],
-        press_id=cols["press_id"].astype(np.int64) if "press_id" in cols
-        else np.zeros(len(contact), dtype=np.int64),
-        extra={"stamp_ns": cols["stamp_ns"]}, source=where)
-    bad = ~np.isin(contact, (0.0, 1.0))
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        raise InputError(f"row {i}: contact must be 0 or 1, got {contact[i]!r} "
-                         f"({int(bad.sum())} rows like this)", path=str(path), column="contact")
-    dataset.validate(ds, where=str(path))
-    return ds

@@ -26,11 +26,13 @@ import zipfile
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from fbgforce import fileio, samples
+from fbgforce.recordings.bag import read_bag_columns
+from fbgforce.units import nm_to_fm
 from fbgforce.errors import InputError
 
 #: Wavelength columns in array order (``wl_nm[:, k]``).
@@ -428,6 +430,30 @@ def _load_csv(path: Path) -> Dataset:
     if "\r" in text:
         text = text.replace("\r\n", "\n").replace("\r", "\n")
     spath = str(path)
+    comments, names, header_line, pos = _csv_header(text, spath)
+    body = text[pos:].rstrip("\n")
+    cols_num, extra_raw, line_no = _csv_columns(body, names, header_line, comments, spath)
+    dtypes = _parse_dtype_comment(comments)
+    required = {c: cols_num[c] for c in REQUIRED_COLUMNS}
+    # An empty field parses as NaN; outside x/y the checks report it as a missing value.
+    problems = validate_columns(required)
+    if problems:
+        for p in problems:
+            p.line = int(line_no[p.first_row])
+        raise DatasetError(problems, path=spath)
+
+    extra: dict[str, np.ndarray] = {}
+    for name in names:
+        if name in REQUIRED_COLUMNS:
+            continue
+        values = extra_raw.get(name, cols_num.get(name))
+        extra[name] = _typed_extra(values, dtypes.get(name))
+    return _dataset_from_columns(required, extra, spath)
+
+
+def _csv_header(text: str, spath: str) -> tuple[list[str], list[str], int, int]:
+    """The comments before the header, the header's column names (checked: none empty, none
+    twice, every required one), its 1-based line and where the data begin in ``text``."""
     # Header: the first line that is neither blank nor a comment. Scanned line by line only
     # up to the header, so a large file is never split into Python strings on the fast path.
     pos, line = 0, 0
@@ -464,9 +490,14 @@ def _load_csv(path: Path) -> Dataset:
         raise InputError(f"missing required column{'s' if len(missing) > 1 else ''} "
                          f"{', '.join(missing)} (header has: {', '.join(names)})",
                          path=spath, line=header_line, column=missing[0])
-    ncol = len(names)
-    body = text[pos:].rstrip("\n")
+    return comments, names, header_line, pos
 
+
+def _csv_columns(body: str, names: list[str], header_line: int, comments: list[str], spath: str
+                 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+    """The data rows after the header: numeric columns by name, text columns by name and each
+    row's file line. Comments among the rows are added to ``comments``."""
+    ncol = len(names)
     matrix = None
     text_columns = {k for k, v in _parse_dtype_comment(comments).items() if v == "str"}
     if body and "#" not in body and "\n\n" not in body and not text_columns:
@@ -477,48 +508,29 @@ def _load_csv(path: Path) -> Dataset:
             matrix = None
     if matrix is not None:
         line_no = np.arange(matrix.shape[0], dtype=np.int64) + header_line + 1
-        cols_num = {name: matrix[:, j] for j, name in enumerate(names)}
-        extra_raw: dict[str, np.ndarray] = {}
-    else:
-        # Slow path (comments or blank lines among the data, text columns, or a bad field):
-        # keep every data line's file line number so each error points at the real line.
-        lines = body.split("\n")
-        keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
-        comments += [ln.strip() for ln in lines if ln.lstrip().startswith("#")]
-        if not keep:
-            raise InputError("no data rows after the header", path=spath, line=header_line)
-        data = [lines[i] for i in keep]
-        line_no = np.asarray(keep, dtype=np.int64) + header_line + 1
-        fields = _split_rows(data, spath, line_no)
-        nfields = np.fromiter((len(f) for f in fields), dtype=np.int64, count=len(fields))
-        bad = np.flatnonzero(nfields != ncol)
-        if bad.size:
-            i = int(bad[0])
-            raise InputError(f"expected {ncol} comma-separated fields (as in the header), found "
-                             f"{nfields[i]}" + (f" ({bad.size} lines like this)" if bad.size > 1 else ""),
-                             path=spath, line=int(line_no[i]))
-        matrix = None if text_columns else _parse_numeric_fast("\n".join(data))
-        if matrix is None:
-            cols_num, extra_raw = _parse_slow(fields, names, line_no, spath, text_columns)
-        else:
-            cols_num = {name: matrix[:, j] for j, name in enumerate(names)}
-            extra_raw = {}
-    dtypes = _parse_dtype_comment(comments)
-    required = {c: cols_num[c] for c in REQUIRED_COLUMNS}
-    # An empty field parses as NaN; outside x/y the checks report it as a missing value.
-    problems = validate_columns(required)
-    if problems:
-        for p in problems:
-            p.line = int(line_no[p.first_row])
-        raise DatasetError(problems, path=spath)
-
-    extra: dict[str, np.ndarray] = {}
-    for name in names:
-        if name in REQUIRED_COLUMNS:
-            continue
-        values = extra_raw.get(name, cols_num.get(name))
-        extra[name] = _typed_extra(values, dtypes.get(name))
-    return _dataset_from_columns(required, extra, spath)
+        return {name: matrix[:, j] for j, name in enumerate(names)}, {}, line_no
+    # Slow path (comments or blank lines among the data, text columns, or a bad field):
+    # keep every data line's file line number so each error points at the real line.
+    lines = body.split("\n")
+    keep = [i for i, ln in enumerate(lines) if ln.strip() and not ln.lstrip().startswith("#")]
+    comments.extend(ln.strip() for ln in lines if ln.lstrip().startswith("#"))
+    if not keep:
+        raise InputError("no data rows after the header", path=spath, line=header_line)
+    data = [lines[i] for i in keep]
+    line_no = np.asarray(keep, dtype=np.int64) + header_line + 1
+    fields = _split_rows(data, spath, line_no)
+    nfields = np.fromiter((len(f) for f in fields), dtype=np.int64, count=len(fields))
+    bad = np.flatnonzero(nfields != ncol)
+    if bad.size:
+        i = int(bad[0])
+        raise InputError(f"expected {ncol} comma-separated fields (as in the header), found "
+                         f"{nfields[i]}" + (f" ({bad.size} lines like this)" if bad.size > 1 else ""),
+                         path=spath, line=int(line_no[i]))
+    matrix = None if text_columns else _parse_numeric_fast("\n".join(data))
+    if matrix is None:
+        cols_num, extra_raw = _parse_slow(fields, names, line_no, spath, text_columns)
+        return cols_num, extra_raw, line_no
+    return {name: matrix[:, j] for j, name in enumerate(names)}, {}, line_no
 
 
 def _parse_numeric_fast(data: str) -> np.ndarray | None:
@@ -840,10 +852,10 @@ def is_bag(path: str | Path) -> bool:
 
 def load(path: str | Path, fields: dict[str, str] | None = None) -> Dataset:
     """Load and validate a dataset file (``.csv`` or ``.npz``, by suffix) or a rosbag2 log
-    (an ``.mcap`` file or a bag directory, :func:`fbgforce.bag.load_bag`).
+    (an ``.mcap`` file or a bag directory, :func:`fbgforce.recordings.dataset.load_bag`).
 
     ``fields`` maps dataset columns to bag topics and fields for a log recorded by another
-    driver (:mod:`fbgforce.bag`); by default a bag is read as ``fbgforce record`` writes it.
+    driver (:mod:`fbgforce.recordings.bag`); by default a bag is read as ``fbgforce record`` writes it.
 
     Raises
     ------
@@ -856,13 +868,46 @@ def load(path: str | Path, fields: dict[str, str] | None = None) -> Dataset:
     if is_bag(p):
         if not p.exists():
             raise InputError("no such file", path=str(p))
-        from fbgforce.bag import load_bag
-
         return load_bag(p, fields)
     if fields is not None:
         raise InputError("a field map is for rosbag2 logs (.mcap or a bag directory)",
                          path=str(p), column="fields")
     return _load_csv(p) if _kind(p) == "csv" else _load_npz(p)
+
+
+def load_bag(path: str | Path, fields: Mapping[str, str] | None = None) -> Dataset:
+    """A :class:`Dataset` from a rosbag2 log, validated like any file.
+
+    ``fields`` is the field map (default :data:`FBGFORCE_FIELDS`). Rows before every joined
+    topic has spoken are dropped (the count is in the dataset's ``source``) and ``t_s`` counts
+    from the first row kept. The extra column ``stamp_ns`` keeps each row's stamp.
+    """
+    path = Path(path)
+    cols = read_bag_columns(path, fields)
+    keep = cols["complete"]
+    dropped = int((~keep).sum())
+    cols = {k: v[keep] for k, v in cols.items()}
+    contact = cols["contact"]
+    wl = np.column_stack([cols[c] for c in WL_COLUMNS])
+    wl = np.where(np.isfinite(wl), nm_to_fm(wl) / 1e6, wl)
+    where = str(path) + (f" (rosbag2; {dropped} rows before the first message of every "
+                         f"joined topic dropped)" if dropped else " (rosbag2)")
+    gate = contact == 1
+    stamp = cols["stamp_ns"]
+    ds = Dataset(
+        t_s=(stamp - stamp[0]) / 1e9 if len(stamp) else stamp, wl_nm=wl, contact=gate,
+        x_mm=np.where(gate, cols["x_mm"], np.nan), y_mm=np.where(gate, cols["y_mm"], np.nan),
+        force_N=cols["force_N"],
+        press_id=cols["press_id"].astype(np.int64) if "press_id" in cols
+        else np.zeros(len(contact), dtype=np.int64),
+        extra={"stamp_ns": cols["stamp_ns"]}, source=where)
+    bad = ~np.isin(contact, (0.0, 1.0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise InputError(f"row {i}: contact must be 0 or 1, got {contact[i]!r} "
+                         f"({int(bad.sum())} rows like this)", path=str(path), column="contact")
+    validate(ds, where=str(path))
+    return ds
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,0 +1,1 @@
+"""``fbgforce demo``: the whole chain on the built-in simulator (:mod:`fbgforce.demo.cli`)."""

@@ -1,0 +1,12 @@
+"""Evaluation: one definition of the metrics, every inference engine behind one signature,
+and the figures.
+
+==================  ============================================================================
+``metrics``         the accuracy metrics every command and benchmark scores with
+``engines``         the engines (``float``, ``onnx``, ``fixed``, ``cfloat``, ``intref``) by name
+``figures``         the pictures ``fbgforce demo`` ends with
+==================  ============================================================================
+
+``engines`` sits above the exporter and the runtime binding whose engines it names; ``metrics``
+and ``figures`` need neither, so the trainer can score with them.
+"""

@@ -1,0 +1,165 @@
+"""The contact decision over time and its calibration: the rule every engine runs after the
+contact net (the C runtimes' ``contact_decision``), a Schmitt trigger with a count or a
+one-sided CUSUM on the net's margin, and how the trainer sets either from the calibration's
+rests (docs/runtime.md, "In use")."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from fbgforce import contract
+
+#: The decision's rise threshold: :data:`REST_MARGIN_FACTOR` times this quantile of the contact
+#: net's margin at rest in the calibration data, its synthetic long rests included
+#: (docs/runtime.md, "In use").
+REST_MARGIN_QUANTILE = 0.9999
+#: A calibration's rests end within half a second of a release, where the margin is still
+#: rising out of the release; in use rests last seconds, and 0.2-1.5 s after a release, as the
+#: load signal's averages settle, it comes higher than any calibration rest shows (on the
+#: hours-of-use run, docs/robustness.md: 3.8 false events per minute at the quantile itself,
+#: 1.2 at 1.5 times it, 0.5 at twice it).
+REST_MARGIN_FACTOR = 2.0
+#: How long the rise condition must hold, s: 3 samples at 1 kHz. On fault-free logs one
+#: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
+#: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
+RISE_S = 0.003
+#: Largest magnitude of every CUSUM value of :class:`~fbgforce.model.artifact.InUse` (margin
+#: units): the contract's
+#: ``MAX_CUSUM_Q8`` in Q8.
+CUSUM_MAX = contract.LIMIT["MAX_CUSUM_Q8"] / 256.0
+#: The CUSUM rise's false events per minute at rest that :func:`cusum_parameters` aims at: an
+#: average run length at rest of 10 minutes, ten times below the goal of 1 per minute, for what
+#: a calibration's rests cannot show (the margin rising 0.2-1.5 s after a release in use).
+CUSUM_FALSE_PER_MIN = 0.1
+#: Fewest excursion peaks for the tail fit above their 90th percentile (fewer: all of them).
+CUSUM_TAIL_MIN = 20
+#: The exponential fit of the excursion peaks' tail reads correlated rests too light: on
+#: two minutes of AR(1) rest margins (correlation 0.5 to 0.98 per sample) the rate observed
+#: over 30 minutes at the fitted threshold was up to 5 times the fit. The threshold is set
+#: where the fit gives the target divided by this.
+CUSUM_FIT_MARGIN = 5.0
+
+
+def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
+                     state: list[Any], cusum: tuple[float, float, float, float] | None = None
+                     ) -> np.ndarray:
+    """The contact decision over time on consecutive samples, in any units of the margin.
+
+    Contact stays while ``raw`` (the net's own decision) or ``margin > off``. It rises by one
+    of two rules. With ``cusum`` None or its threshold ``h`` 0: after ``rise_n`` consecutive
+    samples with ``raw`` and ``margin >= on`` (a Schmitt trigger with a count). Else
+    ``cusum = (h, k, lo, hi)``, a one-sided CUSUM: out of contact ``S = max(0, S +
+    clip(margin, lo, hi) - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it
+    stays 0 in contact). ``state`` is ``[decision, rise_run, S]`` of the previous sample,
+    carried and updated. Integer arguments give the integer rule exactly (Python integers);
+    the C runtimes run this rule (``contact_decision`` in fbg_fixed.c, ``fcontact_decision``
+    in fbgf_float.c).
+    """
+    raw = np.asarray(raw, dtype=bool)
+    out = np.zeros(raw.size, dtype=bool)
+    decision, rise, s = state
+    h, k, lo, hi = cusum if cusum is not None else (0, 0, 0, 0)
+    for i, (r, mg) in enumerate(zip(raw.tolist(), np.asarray(margin).tolist())):
+        if decision:
+            decision = int(r or mg > off)
+        elif h:
+            s = max(s + (min(max(mg, lo), hi) - k), 0)
+            if s >= h:
+                decision, s = 1, 0
+        else:
+            rise = min(rise + 1, 255) if (r and mg >= on) else 0
+            if rise >= rise_n:
+                decision, rise = 1, 0
+        out[i] = decision
+    state[0], state[1], state[2] = decision, rise, s
+    return out
+
+
+def cusum_path(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float = CUSUM_MAX
+               ) -> np.ndarray:
+    """S of the CUSUM rise over consecutive margins, never rising (no threshold): ``S_t =
+    max(0, S_{t-1} + clip(m_t, lo, hi) - k)``, from ``S = 0``, in closed form (Lindley: the
+    walk of the increments less its running minimum, 0 included)."""
+    d = np.clip(np.asarray(margins, dtype=np.float64).ravel(), lo, hi) - k
+    walk = np.cumsum(d)
+    return walk - np.minimum(np.minimum.accumulate(walk), 0.0) if walk.size else walk
+
+
+def cusum_peaks(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float = CUSUM_MAX
+                ) -> np.ndarray:
+    """The highest S of each excursion of :func:`cusum_path` above 0: a CUSUM with threshold
+    ``h`` raises one false event per excursion whose peak reaches ``h``."""
+    s = cusum_path(margins, k, lo, hi)
+    up = s > 0
+    if not up.any():
+        return np.empty(0)
+    starts = np.flatnonzero(up & ~np.concatenate([[False], up[:-1]]))
+    return np.maximum.reduceat(np.where(up, s, 0.0), starts)
+
+
+def cusum_false_rate(peaks: np.ndarray, minutes: float, h: float) -> float:
+    """False events per minute at rest of a CUSUM with threshold ``h``, estimated from the
+    excursion peaks (:func:`cusum_peaks`) of ``minutes`` of rest: the peaks' upper tail as an
+    exponential, ``rate(h) = r_u exp(-(h - u) / beta)`` (a random walk with a negative drift
+    has excursion maxima with such a tail), ``u`` the peaks' 90th percentile (0 with fewer than
+    :data:`CUSUM_TAIL_MIN` peaks), ``r_u`` the rate of the peaks above it, ``beta`` their mean
+    excess. Past the highest observed peak only the fit counts; below it, the larger of the
+    fit and the observed rate."""
+    p = np.asarray(peaks, dtype=np.float64)
+    if not p.size or minutes <= 0:
+        return 0.0
+    u = float(np.quantile(p, 0.9)) if p.size >= CUSUM_TAIL_MIN else 0.0
+    tail = p[p > u]
+    if not tail.size:
+        return 0.0
+    rate_u, beta = tail.size / minutes, max(float(np.mean(tail - u)), 1e-12)
+    fit = rate_u * float(np.exp(-(h - u) / beta)) if h > u else rate_u
+    return max(fit, float(np.sum(p >= h)) / minutes)
+
+
+def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
+                     contact_margins: np.ndarray | None = None,
+                     false_per_min: float | None = None, k: float | None = None
+                     ) -> dict[str, float]:
+    """The CUSUM rise the trainer sets from the calibration's rests (docs/runtime.md, "In
+    use").
+
+    ``k``, the drift, unless given: the rests' :data:`REST_MARGIN_QUANTILE` quantile (the level
+    rest noise almost never passes; at least 0), or, given ``contact_margins`` whose 10th
+    percentile lies above it, the midpoint of the two. ``h``: the smallest threshold at which the false events
+    at rest estimated from the rests' excursion peaks (:func:`cusum_false_rate`, ``rest_margins``
+    in recording order) stay at ``false_per_min`` (:data:`CUSUM_FALSE_PER_MIN`, an average run
+    length at rest of 10 minutes) divided by :data:`CUSUM_FIT_MARGIN`, above every observed peak (no false event on the calibration
+    itself), and at least what today's rule asks of a rise (:data:`RISE_S` of samples at
+    ``max(k, 0.5)`` above ``k``). ``hi = k + h / 2``: no single sample raises contact, and the
+    clip only lowers the peaks the estimate counted; ``lo`` the contract's lowest (no clip).
+
+    Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``
+    and the ``rest_minutes`` it rests on.
+    """
+    rest = np.asarray(rest_margins, dtype=np.float64).ravel()
+    rest = rest[np.isfinite(rest)]
+    target = (CUSUM_FALSE_PER_MIN if false_per_min is None else float(false_per_min)) \
+        / CUSUM_FIT_MARGIN
+    q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
+    given = k is not None
+    k = float(k) if k is not None else q
+    if not given and contact_margins is not None and np.size(contact_margins):
+        c10 = float(np.quantile(np.asarray(contact_margins, dtype=np.float64), 0.1))
+        if c10 > q:
+            k = 0.5 * (q + c10)
+    minutes = rest.size / sample_rate_hz / 60.0
+    peaks = cusum_peaks(rest, k)
+    h = max(1.0, RISE_S * sample_rate_hz) * max(k, 0.5)
+    if peaks.size:
+        h = max(h, float(np.nextafter(peaks.max(), np.inf)))
+        u = float(np.quantile(peaks, 0.9)) if peaks.size >= CUSUM_TAIL_MIN else 0.0
+        tail = peaks[peaks > u]
+        if tail.size and tail.size / minutes > target:
+            beta = max(float(np.mean(tail - u)), 1e-12)
+            h = max(h, u + beta * float(np.log(tail.size / minutes / target)))
+    h = min(h, CUSUM_MAX)
+    k = float(np.clip(k, -CUSUM_MAX, CUSUM_MAX))
+    return {"h": h, "k": k, "lo": -CUSUM_MAX, "hi": min(k + 0.5 * h, CUSUM_MAX),
+            "false_per_min": cusum_false_rate(peaks, minutes, h), "rest_minutes": minutes}
