@@ -782,7 +782,15 @@ const char *fbg_status_str(int status)
 }
 /* ---- src/fbg_dsp.c ---- */
 /*
- * fbg_dsp.c - Cortex-M4 DSP-extension inner loops (FBG_USE_DSP=1); see fbg_dsp.h.
+ * fbg_dsp.c - which Cortex-M4 DSP kernel runs each layer (fbg_dsp.h): the int32 pair
+ * kernels for the layers the exporter writes, the int64, int8 and odd-height kernels for the rest,
+ * and the output layers' rows.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
  * Why the results are bit-identical to the portable C of fbg_fixed.c:
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
@@ -817,6 +825,9 @@ const char *fbg_status_str(int status)
  *   32-bit words; the comments at each step give the bound that makes the narrower
  *   arithmetic exact.
  */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
 /* ---- src/fbg_dsp.h ---- */
 /*
  * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
@@ -1251,21 +1262,829 @@ static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
     return y;
 }
 
-int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
 {
-    int64_t acc2 = 0;
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
     unsigned j = 0;
-    for (; j + 4u <= n; j += 4u) {
-        acc = __smlald(ld2(w + j), ld2(x + j), acc);
-        acc2 = __smlald(ld2(w + j + 2u), ld2(x + j + 2u), acc2);
-    }
-    if (j + 2u <= n) {
-        acc = __smlald(ld2(w + j), ld2(x + j), acc);
-        j += 2u;
-    }
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
     if (j < n)
         acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc + acc2;
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
+ * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
+#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
+typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
+                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
+
+/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
+ * writes) with n even, at least two rows, the weights and y word-aligned and, beyond
+ * FBG_DSP_FIRST_MAX_IN inputs (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
+ * give. The fields are read two words at a time: this runs for every layer of every step. */
+static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
+                             unsigned *n_out)
+{
+    uint32_t dims, kind;
+    unsigned n;
+    memcpy(&dims, &ly->n_in, sizeof dims);
+    memcpy(&kind, &ly->w_bits, sizeof kind);
+    n = dims & 0xFFFFu;
+    *n_out = dims >> 16;
+    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
+           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > FBG_DSP_FIRST_MAX_IN ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
+}
+
+/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
+static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                                   uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
+        run_pairs32(ly, x, y, ly->n_in, sat);
+        fbg_dsp_hidden16_32(ly, x, y, m - 1u, sat);
+    }
+#if FBG_DSP_ASM
+    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
+             (ly->n_in & 1u) == 0u && ((uintptr_t)y & 3u) == 0u &&
+             (ly->n_in <= 8u || ((uintptr_t)x & 3u) == 0u)) {
+        /* int8 weights (int32 by construction), shift 32: the pairs in first2b32_asm (n <= 8)
+         * or rows2b32_asm, the last row of an odd layer with dot8_32. */
+        if (ly->n_in <= 8u)
+            fbg_dsp_first2b32_asm(ly, x, y, sat);
+        else
+            fbg_dsp_rows2b32_asm(ly, x, y, sat);
+        if (m & 1u) {
+            uint32_t clamped = 0u;
+            y[m - 1u] = (int16_t)relu_usat15(
+                smmulr(fbg_dsp_dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
+                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
+            *sat |= clamped != 0u;
+        }
+    }
+#endif
+    else if (ly->w_bits == 16u && ly->acc32)
+        fbg_dsp_hidden16_32(ly, x, y, 0u, sat);
+    else if (ly->w_bits == 16u)
+        fbg_dsp_hidden16(ly, x, y, sat);
+    else
+        fbg_dsp_hidden8(ly, x, y, sat);
+}
+
+static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
+        run_pairs32(ly, x, y, ly->n_in, sat);
+    else
+        hidden_other(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    hidden_layer(ly, x, y, sat);
+}
+
+/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
+typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
+
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
+{
+    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
+     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
+     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
+    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
+    uintptr_t x_odd = (uintptr_t)x & 3u;
+    unsigned buf = 0u;
+    for (; ly != end; ++ly, buf ^= 1u) {
+        int16_t *const y = act[buf];
+        uint32_t dims, kind;
+        unsigned n;
+        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
+        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
+        n = dims & 0xFFFFu;
+        /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
+        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u)) == 0u &&
+            (n <= FBG_DSP_FIRST_MAX_IN || x_odd == 0u))
+            run_pairs32(ly, x, y, n, sat);
+        else
+            hidden_other(ly, x, y, sat);
+        x = y;
+        x_odd = 0u;
+    }
+    return x;
+}
+
+
+/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
+static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * n;
+#if FBG_DSP_ASM
+        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
+            return fbg_dsp_dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+#endif
+        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
+    }
+    return fbg_dsp_dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
+}
+
+static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->acc32)
+        return row_acc32(ly, r, x);
+    if (ly->w_bits == 16u)
+        return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
+    return fbg_dsp_row_acc8(ly, r, x);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    return row_acc(ly, r, x);
+}
+
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+#if FBG_DSP_ASM
+    const unsigned n = ly->n_in;
+    if (ly->acc32 && ly->w_bits == 16u &&
+        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
+        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
+        const int16_t *w = ly->w16;
+        for (r = 0; r < ly->n_out; ++r, w += n)
+            acc[r] = fbg_dsp_dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+        return;
+    }
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = row_acc(ly, r, x);
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_unused;
+#endif
+#undef FBG_DSP_PAIRS_KIND
+/* ---- src/fbg_dsp_fir.c ---- */
+/*
+ * fbg_dsp_fir.c - the filter stage on the Cortex-M4 DSP extension: the FIR of the four strain
+ * channels (SMLAL, fir4_asm) and the standardisation after it on 32-bit words.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
 }
 
 /* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
@@ -1295,13 +2114,1018 @@ typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_d
 typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
                                    offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
 
-/* ---- The kernels in C with ACLE intrinsics: the FBG_DSP_ASM=0 versions of the assembly
- * further down, same jobs, same bits (any alignment: LDR may be unaligned on ARMv7E-M). With
- * GCC 12 they cost more instructions per step than the assembly, which therefore stays the
- * default (docs/firmware.md has the figures): GCC forms no LDRD from two word loads, advances
- * every row pointer with its own ADD and keeps ReLU as ASR + BIC. ---- */
-#if !FBG_DSP_ASM
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
 
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
+
+#if FBG_DSP_ASM
+/* One tap of fir4_asm: the tap (LDRSH) times the four history words below P, into the four sums. */
+#define FBG_FIR4_TAP(p)                          \
+        "ldrsh   r12, [r0], #2\n\t"              \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r8, r9, r2, r12\n\t"            \
+        "smlal   r10, r11, r3, r12\n\t"          \
+        "ldmdb   " p "!, {r2, r3}\n\t"           \
+        "smlal   r4, r5, r2, r12\n\t"            \
+        "smlal   r6, r7, r3, r12\n\t"
+
+/* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
+ * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
+ * newest sample) and four SMLAL (32 x 32 -> 64, exact: the same int64 products as the C),
+ * 9 instructions with the loop test; the ring is walked as two contiguous runs, rows pos..0
+ * then n_taps-1..pos+1. */
+__attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsigned n_taps,
+                                                      const int32_t (*hist)[FBG_N_STRAIN],
+                                                      unsigned pos, int64_t f[FBG_N_STRAIN])
+{
+    (void)taps;
+    (void)n_taps;
+    (void)hist;
+    (void)pos;
+    (void)f;
+    __asm__ volatile(
+        "push    {r4-r11, lr}\n\t"
+        "add     r12, r2, r1, lsl #4\n\t"
+        "add     r1, r2, r3, lsl #4\n\t"
+        "add     r1, r1, #16\n\t"
+        "push    {r1, r12}\n\t"
+        "mov     lr, r2\n\t"
+        "movs    r4, #0\n\t"
+        "movs    r5, #0\n\t"
+        "movs    r6, #0\n\t"
+        "movs    r7, #0\n\t"
+        "mov     r8, #0\n\t"
+        "mov     r9, #0\n\t"
+        "mov     r10, #0\n\t"
+        "mov     r11, #0\n\t"
+        "1:\n\t"
+        FBG_FIR4_TAP("r1")
+        "cmp     r1, lr\n\t"
+        "bne     1b\n\t"
+        "pop     {r1, lr}\n\t"
+        "cmp     lr, r1\n\t"
+        "beq     3f\n\t"
+        "2:\n\t"
+        FBG_FIR4_TAP("lr")
+        "cmp     lr, r1\n\t"
+        "bne     2b\n\t"
+        "3:\n\t"
+        "ldr     r0, [sp, #36]\n\t"
+        "stmia   r0, {r4-r11}\n\t"
+        "pop     {r4-r11, pc}\n\t");
+}
+
+#undef FBG_FIR4_TAP
+#endif /* FBG_DSP_ASM */
+
+/* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
+static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
+{
+    /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
+    if (hi != ((int32_t)lo >> 31) || lo == 0x80000000u) {
+        *clamped = 1u;
+        return hi < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    return (int32_t)lo;
+}
+
+/* sat16 of an int32 with the flag of fbg_sat16 (*clamped != 0 iff it clamped): SSAT to
+ * [-32768, 32767], then -32768 up to -32767. */
+static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
+{
+    int32_t y = __ssat(v, 16);
+    y = y < -FBG_SAT16 ? -FBG_SAT16 : y;
+    *clamped |= (uint32_t)(v ^ y);
+    return y;
+}
+
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat)
+{
+    const unsigned tq = m->tap_q, zs = m->z_shift;
+    const uint32_t fround = 1u << (tq - 1u);
+    /* 2^(zs-1), zs <= 62, built so that one of its words is visibly zero. */
+    const int64_t zround = zs > 32u ? (int64_t)((uint64_t)(1u << (zs - 33u)) << 32)
+                                    : (int64_t)(uint32_t)(1u << (zs - 1u));
+    uint32_t clamped = 0u;
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
+         * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
+         * arithmetic shift of the 64-bit sum is two words shifted and joined. */
+        const int64_t g = f[c] + (int64_t)fround;
+        const uint32_t glo = (uint32_t)g;
+        const int32_t ghi = (int32_t)(g >> 32);
+        int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
+        int32_t d, v;
+        int64_t p;
+        /* d = sat32(filt - mean): on int32 overflow the true difference has filt's sign. */
+        if (__builtin_sub_overflow(filt, m->mean_fm[c], &d)) {
+            clamped = 1u;
+            d = filt < 0 ? -FBG_SAT32 : FBG_SAT32;
+        } else if (d == INT32_MIN) {
+            clamped = 1u;
+            d = -FBG_SAT32;
+        }
+        /* |d * z_mult| < 2^62 and 2^(zs-1) <= 2^61: p is exact in int64. */
+        p = smlal(zround, d, m->z_mult[c]);
+        if (zs >= 32u) {
+            v = (int32_t)(p >> 32) >> (zs - 32u); /* floor(p / 2^zs), |.| < 2^31 */
+        } else {
+            int64_t q = p >> zs;
+            /* Beyond int32 the outcome of sat16 is already decided; keep the sign. */
+            v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+        }
+        z[c] = (int16_t)sat16_32(v, &clamped);
+        load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
+    }
+    if (clamped != 0u)
+        *sat = 1u;
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN])
+{
+#if FBG_DSP_ASM
+    fir4_asm(taps, n_taps, hist, pos, f);
+#else
+    int64_t f0 = 0, f1 = 0, f2 = 0, f3 = 0;
+    unsigned k = 0, i;
+    /* Newest first: ring index pos, pos-1, ..., 0 (taps 0..pos), then n_taps-1, ..., pos+1. */
+#define FBG_FIR_TAP(row)                 \
+    do {                                 \
+        const int32_t *h_ = (row);       \
+        int32_t t_ = taps[k++];          \
+        f0 += (int64_t)t_ * h_[0];       \
+        f1 += (int64_t)t_ * h_[1];       \
+        f2 += (int64_t)t_ * h_[2];       \
+        f3 += (int64_t)t_ * h_[3];       \
+    } while (0)
+    for (i = pos + 1u; i-- > 0u;)
+        FBG_FIR_TAP(hist[i]);
+    for (i = n_taps; i-- > pos + 1u;)
+        FBG_FIR_TAP(hist[i]);
+#undef FBG_FIR_TAP
+    f[0] = f0;
+    f[1] = f1;
+    f[2] = f2;
+    f[3] = f3;
+#endif
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_fir_unused;
+#endif
+#undef FBG_FIR4_TAP
+#undef FBG_FIR_TAP
+/* ---- src/fbg_dsp_rows16.c ---- */
+/*
+ * fbg_dsp_rows16.c - int16-weight layers with int64 accumulators on the Cortex-M4 DSP extension:
+ * three rows per pass (rows3_asm, rows3d_asm), the first layers with inputs in registers
+ * (first_asm), their ACLE C versions, and the per-row SMLALD dot product.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
+{
+    int64_t acc2 = 0;
+    unsigned j = 0;
+    for (; j + 4u <= n; j += 4u) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        acc2 = __smlald(ld2(w + j + 2u), ld2(x + j + 2u), acc2);
+    }
+    if (j + 2u <= n) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        j += 2u;
+    }
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc + acc2;
+}
+
+#if !FBG_DSP_ASM
 /* Requantise an int64 row with shift >= 32 (rounded_product_hi), ReLU, USAT #15. */
 static inline int32_t requant64(int64_t acc, int32_t mult, int64_t round, unsigned s32,
                                 uint32_t *clamped)
@@ -1384,66 +3208,9 @@ __attribute__((noinline)) static void first_c(fbg_dsp_job *job)
     else
         first_n(job, 6u);
 }
-
-/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
- * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
-__attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int16_t *x,
-                                                 int16_t *y, uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
-    const int16_t *w = ly->w16;
-    uint32_t clamped = 0u;
-    unsigned r;
-    for (r = 0; r < m2; r += 2u, w += 2u * n) {
-        const int16_t *w1 = w + n;
-        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
-        unsigned j;
-        for (j = 0; j < n; j += 2u) {
-            int16x2_t xv = ld2(x + j);
-            a0 = __smlad(ld2(w + j), xv, a0);
-            a1 = __smlad(ld2(w1 + j), xv, a1);
-        }
-        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
-        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
-    }
-    *sat |= clamped != 0u;
-}
 #endif /* !FBG_DSP_ASM */
 
 #if FBG_DSP_ASM
-/* The sticky Q flag (set by a USAT that clamped) into r12. */
-#define FBG_Q_READ                               \
-        "mrs     r12, apsr\n\t"                  \
-        "ubfx    r12, r12, #27, #1\n\t"
-
-/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
-#define FBG_Q_SAVE_CLEAR                         \
-        "mrs     r12, apsr\n\t"                  \
-        "push    {r4-r12, lr}\n\t"               \
-        "bic     r12, r12, #0x08000000\n\t"      \
-        "msr     APSR_nzcvq, r12\n\t"
-
-/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
- * caller's APSR back. */
-#define FBG_Q_RESTORE(job)                       \
-        FBG_Q_READ                               \
-        "str     r12, [" job ", #40]\n\t"        \
-        "pop     {r4-r12, lr}\n\t"               \
-        "msr     APSR_nzcvq, r12\n\t"
-
-/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
- * undefined across a call). */
-#define FBG_Q_CLEAR_PUSH                         \
-        "push    {r4-r11, lr}\n\t"               \
-        "mov     r12, #0\n\t"                    \
-        "msr     APSR_nzcvq, r12\n\t"
-
-/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
-#define FBG_SAT_OR_Q                             \
-        "ldr     r0, [r3]\n\t"                   \
-        "orr     r0, r0, r12\n\t"                \
-        "str     r0, [r3]\n\t"
-
 /* rows3_asm: one input pair of three rows (r1: x, r0/r10/r11: the rows) into r5:r4, r7:r6, r9:r8;
  * FBG_ROWS3_PAIR_LOADS leaves out the last SMLALD, for a loop test to go before it. */
 #define FBG_ROWS3_PAIR_LOADS                     \
@@ -1511,7 +3278,7 @@ __attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int1
  *         job->clamped on exit, and the caller's APSR restored.
  * GCC's own code for this spilled the accumulators around every row group (about 30
  * instructions per row against 10 here), hence hand-allocated registers in a naked function. */
-__attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
+__attribute__((naked, noinline)) void fbg_dsp_rows3_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
@@ -1579,7 +3346,7 @@ __attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
  * output live on the stack (computed once per layer; the group loop ends at the last output). Then 8, 4 and 2 inputs for n % 16. Same
  * arithmetic, same requantisation as rows3_asm. (LDRD needs word alignment: the caller
  * checks it, the unaligned case stays with rows3_asm.) */
-__attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
+__attribute__((naked, noinline)) void fbg_dsp_rows3d_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
@@ -1672,7 +3439,7 @@ __attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
  * test: 16 instructions per row for 4 inputs against about 27 through rows3_asm, whose
  * bookkeeping per three rows is written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
  * the number of ROWS here. */
-__attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
+__attribute__((naked, noinline)) void fbg_dsp_first_asm(fbg_dsp_job *job)
 {
     (void)job;
     __asm__ volatile(
@@ -1731,6 +3498,706 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
+#undef FBG_FIRST_ROW_OUT
+#undef FBG_ROWS3_OUT
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_PAIR_LOADS
+#endif /* FBG_DSP_ASM */
+
+/* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
+static void run_rows3(fbg_dsp_job *job, int aligned)
+{
+#if FBG_DSP_ASM
+    if (aligned)
+        fbg_dsp_rows3d_asm(job);
+    else
+        fbg_dsp_rows3_asm(job);
+#else
+    (void)aligned;
+    rows3_c(job);
+#endif
+}
+
+static void run_first(fbg_dsp_job *job)
+{
+#if FBG_DSP_ASM
+    fbg_dsp_first_asm(job);
+#else
+    first_c(job);
+#endif
+}
+
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int16_t *w = ly->w16;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    uint32_t clamped = 0u;
+    unsigned r = 0;
+
+    if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
+        fbg_dsp_job job;
+        job.w = w;
+        job.x = x;
+        job.bias = ly->bias;
+        job.mult = ly->mult;
+        job.y = y;
+        job.n = n;
+        job.groups = m;
+        job.round_lo = (uint32_t)round;
+        job.round_hi = (uint32_t)(round >> 32);
+        job.s32 = shift - 32u;
+        job.clamped = 0u;
+        run_first(&job);
+        if (job.clamped)
+            *sat = 1u;
+        return;
+    }
+    if (shift >= 32u && m >= 3u) {
+        /* rows3d_asm needs word-aligned rows and inputs. Generated models and blobs give
+         * 8-byte-aligned weights; the input (an activation buffer inside fbg_state, whose
+         * layout may change) is copied to an aligned buffer when it is not: n/2 word moves
+         * against about a quarter of the MAC loop saved. */
+        union {
+            int16_t v[FBG_MAX_WIDTH];
+            int64_t align;
+        } xbuf;
+        int aligned = ((uintptr_t)w & 3u) == 0u && (n & 1u) == 0u;
+        fbg_dsp_job job;
+        if (aligned && ((uintptr_t)x & 3u) != 0u) {
+            memcpy(xbuf.v, x, n * sizeof *x); /* the libc's word-wise copy */
+            x = xbuf.v;
+        }
+        job.w = w;
+        job.x = x;
+        job.bias = ly->bias;
+        job.mult = ly->mult;
+        job.y = y;
+        job.n = n;
+        job.groups = m / 3u;
+        job.round_lo = (uint32_t)round;
+        job.round_hi = (uint32_t)(round >> 32);
+        job.s32 = shift - 32u;
+        job.clamped = 0u;
+        run_rows3(&job, aligned);
+        clamped = job.clamped;
+        r = 3u * (m / 3u);
+        if (m - r == 2u) {
+            /* Two rows left: one more pass over the LAST three rows (the first of them is
+             * recomputed, to the same value) is cheaper than two rows in C. */
+            job.w = ly->w16 + (size_t)(m - 3u) * n;
+            job.bias = ly->bias + (m - 3u);
+            job.mult = ly->mult + (m - 3u);
+            job.y = y + (m - 3u);
+            job.groups = 1u;
+            job.clamped = 0u;
+            run_rows3(&job, aligned);
+            clamped |= job.clamped;
+            r = m;
+        }
+        w += (size_t)r * n;
+    }
+    /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
+     * exporter for int16 layers in practice, but valid): SMLALD per row, C requantisation. */
+    for (; r < m; ++r, w += n)
+        y[r] = (int16_t)relu_sat16(fbg_dsp_dot16(w, x, n, ly->bias[r]), ly->mult[r], shift, round,
+                                   &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_rows16_unused;
+#endif
+#undef FBG_ROWS3_PAIR_LOADS
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_OUT
+#undef FBG_FIRST_ROW_OUT
+/* ---- src/fbg_dsp_rows32.c ---- */
+/*
+ * fbg_dsp_rows32.c - int16-weight layers with int32 accumulators (fbg_layer.acc32) on the Cortex-M4
+ * DSP extension: two rows per pass with SMLAD and SMMULR (rows2d32_asm, first2d32_asm, their
+ * ACLE C version), the output rows (dot32_asm) and the rows the pair kernels do not take.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
 
 /* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
  * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
@@ -1762,7 +4229,91 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "ldr     pc, [sp, #24]\n\t"              \
         "9:\n\t"                                 \
         "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
 
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+#if !FBG_DSP_ASM
+/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
+ * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
+__attribute__((noinline)) void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x,
+                                                 int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
+    const int16_t *w = ly->w16;
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = 0; r < m2; r += 2u, w += 2u * n) {
+        const int16_t *w1 = w + n;
+        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
+        unsigned j;
+        for (j = 0; j < n; j += 2u) {
+            int16x2_t xv = ld2(x + j);
+            a0 = __smlad(ld2(w + j), xv, a0);
+            a1 = __smlad(ld2(w1 + j), xv, a1);
+        }
+        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
+        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
+    }
+    *sat |= clamped != 0u;
+}
+#endif /* !FBG_DSP_ASM */
+
+#if FBG_DSP_ASM
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
  * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
  * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
@@ -1793,7 +4344,7 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
  * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
  * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
  * instructions. */
-__attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, const int16_t *x,
+__attribute__((naked, noinline)) void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                           int16_t *y, uint32_t *sat)
 {
     (void)ly;
@@ -1976,7 +4527,7 @@ __attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, c
  * on, where the end is read from the stack, 43 per 32 and 51 per 40 (two loads per row at
  * n = 10: three registers are left for weights). n = 12 runs one pair per test, 31
  * instructions per 24 MACs. Weights and y word-aligned (the caller checks). */
-__attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
+__attribute__((naked, noinline)) void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
     (void)ly;
@@ -2102,7 +4653,7 @@ __attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, 
 /* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
  * fbg_dsp_row_acc), w and x word-aligned, n even: 8 inputs per LDM pair and four SMLAD
  * (8 instructions per 8 MACs with the loop test), then the n % 8 inputs two at a time. */
-__attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, const int16_t *x,
+__attribute__((naked, noinline)) int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x,
                                                           unsigned n, int32_t acc)
 {
     (void)w;
@@ -2138,7 +4689,703 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
         "pop     {r4-r11}\n\t"
         "bx      lr\n\t");
 }
+#endif /* FBG_DSP_ASM */
 
+/* An int32 int16-weight hidden layer that the pair kernels do not take (see
+ * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
+                        uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = r0; r < m; ++r)
+        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
+                                   ly->mult[r], shift, round, &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_rows32_unused;
+#endif
+#undef FBG_PAIR_OUT
+#undef FBG_PAIR6
+#undef FBG_PAIR8
+#undef FBG_PAIR10
+#undef FBG_PAIR12
+/* ---- src/fbg_dsp_rows8.c ---- */
+/*
+ * fbg_dsp_rows8.c - int8-weight layers on the Cortex-M4 DSP extension: SXTB16 widens four weights
+ * into two int16 pairs; two rows per pass in assembly for int32 layers at shift 32
+ * (rows2b32_asm, first2b32_asm), in C with SMLALD otherwise (hidden8), and single rows.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+#if FBG_DSP_ASM
 /* One group of rows2b32_asm's loop: 8 inputs (x words in r3-r6) of rows r0 and r1, int8
  * weights widened by SXTB16 into the accumulators r9 and r11. */
 #define ROWS2B32_GROUP \
@@ -2192,7 +5439,7 @@ __attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, cons
  * with the natural pair), entered through a per-layer address in the frame. Requantisation,
  * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
  * comes from USAT). */
-__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16_t *x,
+__attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x,
                                                           int16_t *y, uint32_t *sat)
 {
     (void)ly;
@@ -2337,7 +5584,7 @@ __attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, c
  * weights and 2 LDRSB + SMLABB + SMLATB per two, the requantisation of first2d32_asm and the
  * loop test (output end in lr): 20, 22, 30 and 32 instructions for 4, 8, 12 and 16 MACs.
  * y word-aligned (the caller checks). */
-__attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, const int16_t *x,
+__attribute__((naked, noinline)) void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
     (void)ly;
@@ -2423,269 +5670,14 @@ __attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, 
 #undef FBG_PAIR_OUT8
 
 typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
-typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
-
-/* One tap of fir4_asm: the tap (LDRSH) times the four history words below P, into the four sums. */
-#define FBG_FIR4_TAP(p)                          \
-        "ldrsh   r12, [r0], #2\n\t"              \
-        "ldmdb   " p "!, {r2, r3}\n\t"           \
-        "smlal   r8, r9, r2, r12\n\t"            \
-        "smlal   r10, r11, r3, r12\n\t"          \
-        "ldmdb   " p "!, {r2, r3}\n\t"           \
-        "smlal   r4, r5, r2, r12\n\t"            \
-        "smlal   r6, r7, r3, r12\n\t"
-
-/* fir4_asm: fbg_dsp_fir4 with the four int64 sums in registers (r4:r5 ... r10:r11): per tap
- * one LDRSH of the tap, two LDMDB of two history words (walking the ring down from the
- * newest sample) and four SMLAL (32 x 32 -> 64, exact: the same int64 products as the C),
- * 9 instructions with the loop test; the ring is walked as two contiguous runs, rows pos..0
- * then n_taps-1..pos+1. */
-__attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsigned n_taps,
-                                                      const int32_t (*hist)[FBG_N_STRAIN],
-                                                      unsigned pos, int64_t f[FBG_N_STRAIN])
-{
-    (void)taps;
-    (void)n_taps;
-    (void)hist;
-    (void)pos;
-    (void)f;
-    __asm__ volatile(
-        "push    {r4-r11, lr}\n\t"
-        "add     r12, r2, r1, lsl #4\n\t"
-        "add     r1, r2, r3, lsl #4\n\t"
-        "add     r1, r1, #16\n\t"
-        "push    {r1, r12}\n\t"
-        "mov     lr, r2\n\t"
-        "movs    r4, #0\n\t"
-        "movs    r5, #0\n\t"
-        "movs    r6, #0\n\t"
-        "movs    r7, #0\n\t"
-        "mov     r8, #0\n\t"
-        "mov     r9, #0\n\t"
-        "mov     r10, #0\n\t"
-        "mov     r11, #0\n\t"
-        "1:\n\t"
-        FBG_FIR4_TAP("r1")
-        "cmp     r1, lr\n\t"
-        "bne     1b\n\t"
-        "pop     {r1, lr}\n\t"
-        "cmp     lr, r1\n\t"
-        "beq     3f\n\t"
-        "2:\n\t"
-        FBG_FIR4_TAP("lr")
-        "cmp     lr, r1\n\t"
-        "bne     2b\n\t"
-        "3:\n\t"
-        "ldr     r0, [sp, #36]\n\t"
-        "stmia   r0, {r4-r11}\n\t"
-        "pop     {r4-r11, pc}\n\t");
-}
-
-#undef FBG_FIR4_TAP
 #undef ROWS2B32_TAIL4
 #undef ROWS2B32_GROUP
-#undef FBG_PAIR_REQUANT
-#undef FBG_ROWS2_PASS_END
-#undef FBG_FIRST_ROW_OUT
-#undef FBG_ROWS3_OUT
-#undef FBG_ROWS3_REQUANT
-#undef FBG_ROWS3_QUAD
-#undef FBG_ROWS3_PAIR
-#undef FBG_ROWS3_PAIR_LOADS
-#undef FBG_SAT_OR_Q
-#undef FBG_Q_RESTORE
-#undef FBG_Q_SAVE_CLEAR
-#undef FBG_Q_CLEAR_PUSH
-#undef FBG_Q_READ
 #endif /* FBG_DSP_ASM */
-
-/* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
-static void run_rows3(fbg_dsp_job *job, int aligned)
-{
-#if FBG_DSP_ASM
-    if (aligned)
-        rows3d_asm(job);
-    else
-        rows3_asm(job);
-#else
-    (void)aligned;
-    rows3_c(job);
-#endif
-}
-
-static void run_first(fbg_dsp_job *job)
-{
-#if FBG_DSP_ASM
-    first_asm(job);
-#else
-    first_c(job);
-#endif
-}
-
-/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
- * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
- * iff a row clamped. */
-static void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
-                        uint32_t *sat)
-{
-#if FBG_DSP_ASM
-    if (n <= FBG_DSP_FIRST_MAX_IN)
-        first2d32_asm(ly, x, y, sat);
-    else
-        rows2d32_asm(ly, x, y, sat);
-#else
-    (void)n;
-    rows2_32_c(ly, x, y, sat);
-#endif
-}
-
-/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
-static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
-{
-    unsigned j = 0;
-    for (; j + 2u <= n; j += 2u)
-        acc = __smlad(ld2(w + j), ld2(x + j), acc);
-    if (j < n)
-        acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc;
-}
-
-/* An int32 int16-weight hidden layer that the pair kernels do not take (see
- * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
-static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
-                        uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int64_t round = (int64_t)1 << (shift - 1u);
-    uint32_t clamped = 0u;
-    unsigned r;
-    for (r = r0; r < m; ++r)
-        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
-                                   ly->mult[r], shift, round, &clamped);
-    if (clamped)
-        *sat = 1u;
-}
-
-static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int16_t *w = ly->w16;
-    const int64_t round = (int64_t)1 << (shift - 1u);
-    uint32_t clamped = 0u;
-    unsigned r = 0;
-
-    if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
-        fbg_dsp_job job;
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
-        run_first(&job);
-        if (job.clamped)
-            *sat = 1u;
-        return;
-    }
-    if (shift >= 32u && m >= 3u) {
-        /* rows3d_asm needs word-aligned rows and inputs. Generated models and blobs give
-         * 8-byte-aligned weights; the input (an activation buffer inside fbg_state, whose
-         * layout may change) is copied to an aligned buffer when it is not: n/2 word moves
-         * against about a quarter of the MAC loop saved. */
-        union {
-            int16_t v[FBG_MAX_WIDTH];
-            int64_t align;
-        } xbuf;
-        int aligned = ((uintptr_t)w & 3u) == 0u && (n & 1u) == 0u;
-        fbg_dsp_job job;
-        if (aligned && ((uintptr_t)x & 3u) != 0u) {
-            memcpy(xbuf.v, x, n * sizeof *x); /* the libc's word-wise copy */
-            x = xbuf.v;
-        }
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m / 3u;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
-        run_rows3(&job, aligned);
-        clamped = job.clamped;
-        r = 3u * (m / 3u);
-        if (m - r == 2u) {
-            /* Two rows left: one more pass over the LAST three rows (the first of them is
-             * recomputed, to the same value) is cheaper than two rows in C. */
-            job.w = ly->w16 + (size_t)(m - 3u) * n;
-            job.bias = ly->bias + (m - 3u);
-            job.mult = ly->mult + (m - 3u);
-            job.y = y + (m - 3u);
-            job.groups = 1u;
-            job.clamped = 0u;
-            run_rows3(&job, aligned);
-            clamped |= job.clamped;
-            r = m;
-        }
-        w += (size_t)r * n;
-    }
-    /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
-     * exporter for int16 layers in practice, but valid): SMLALD per row, C requantisation. */
-    for (; r < m; ++r, w += n)
-        y[r] = (int16_t)relu_sat16(fbg_dsp_dot16(w, x, n, ly->bias[r]), ly->mult[r], shift, round,
-                                   &clamped);
-    if (clamped)
-        *sat = 1u;
-}
-
-/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
- * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
- * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
-static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
-
-static inline int16x2_t pair16(int16_t lo, int16_t hi)
-{
-    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
-}
-
-static inline int8x4_t ld4_8(const int8_t *p)
-{
-    int8x4_t v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-
-/* Two adjacent int16 inputs as one unsigned word. */
-static inline uint32_t ld2u(const int16_t *p)
-{
-    uint32_t v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-
-/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
- * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
-static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
-{
-    unsigned j;
-    for (j = 0; j < n4; j += 4u, xp += 2) {
-        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
-        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
-        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
-    }
-}
 
 /* One row of an int32 layer with int8 weights (the output layers' rows): no re-paired copy
  * of x; the two SXTB16 halves (w0, w2), (w1, w3) are re-packed into (w0, w1), (w2, w3) to meet
  * the inputs as they lie (two PKH per four weights). */
-static int32_t dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
 {
     unsigned j;
     for (j = 0; j + 4u <= n; j += 4u) {
@@ -2720,7 +5712,7 @@ static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsi
  * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C: relu_sat16, or for an
  * int32 layer at shift 32 (int8 weights always prove int32: 128 * 127 * 32767 < 2^29) one
  * SMMULR; SMLALD costs what SMLAD does, so the MAC loop is shared. */
-static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
+__attribute__((noinline)) void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
                                               uint32_t *sat)
 {
     const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
@@ -2761,112 +5753,8 @@ static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t
         *sat = 1u;
 }
 
-/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
- * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
-#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
-typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
-                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
-
-/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
- * writes) with n even, at least two rows, the weights and y word-aligned and, beyond
- * FBG_DSP_FIRST_MAX_IN inputs (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
- * give. The fields are read two words at a time: this runs for every layer of every step. */
-static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
-                             unsigned *n_out)
-{
-    uint32_t dims, kind;
-    unsigned n;
-    memcpy(&dims, &ly->n_in, sizeof dims);
-    memcpy(&kind, &ly->w_bits, sizeof kind);
-    n = dims & 0xFFFFu;
-    *n_out = dims >> 16;
-    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
-           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > FBG_DSP_FIRST_MAX_IN ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
-}
-
-/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
-static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
-                                                   uint32_t *sat)
-{
-    unsigned m;
-    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
-        run_pairs32(ly, x, y, ly->n_in, sat);
-        hidden16_32(ly, x, y, m - 1u, sat);
-    }
-#if FBG_DSP_ASM
-    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
-             (ly->n_in & 1u) == 0u && ((uintptr_t)y & 3u) == 0u &&
-             (ly->n_in <= 8u || ((uintptr_t)x & 3u) == 0u)) {
-        /* int8 weights (int32 by construction), shift 32: the pairs in first2b32_asm (n <= 8)
-         * or rows2b32_asm, the last row of an odd layer with dot8_32. */
-        if (ly->n_in <= 8u)
-            first2b32_asm(ly, x, y, sat);
-        else
-            rows2b32_asm(ly, x, y, sat);
-        if (m & 1u) {
-            uint32_t clamped = 0u;
-            y[m - 1u] = (int16_t)relu_usat15(
-                smmulr(dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
-                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
-            *sat |= clamped != 0u;
-        }
-    }
-#endif
-    else if (ly->w_bits == 16u && ly->acc32)
-        hidden16_32(ly, x, y, 0u, sat);
-    else if (ly->w_bits == 16u)
-        hidden16(ly, x, y, sat);
-    else
-        hidden8(ly, x, y, sat);
-}
-
-static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    unsigned m;
-    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
-        run_pairs32(ly, x, y, ly->n_in, sat);
-    else
-        hidden_other(ly, x, y, sat);
-}
-
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    hidden_layer(ly, x, y, sat);
-}
-
-/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
-typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
-
-const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
-                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
-{
-    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
-     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
-     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
-    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
-    uintptr_t x_odd = (uintptr_t)x & 3u;
-    unsigned buf = 0u;
-    for (; ly != end; ++ly, buf ^= 1u) {
-        int16_t *const y = act[buf];
-        uint32_t dims, kind;
-        unsigned n;
-        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
-        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
-        n = dims & 0xFFFFu;
-        /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
-        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u)) == 0u &&
-            (n <= FBG_DSP_FIRST_MAX_IN || x_odd == 0u))
-            run_pairs32(ly, x, y, n, sat);
-        else
-            hidden_other(ly, x, y, sat);
-        x = y;
-        x_odd = 0u;
-    }
-    return x;
-}
-
 /* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
-static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x)
+__attribute__((noinline)) int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
     const unsigned n = ly->n_in;
     int16x2_t xp[FBG_MAX_WIDTH / 2];
@@ -2874,182 +5762,15 @@ static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned 
     return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
 }
 
-/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
-static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    const unsigned n = ly->n_in;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * n;
-#if FBG_DSP_ASM
-        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
-            return dot32_asm(w, x, n, (int32_t)ly->bias[r]);
-#endif
-        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
-    }
-    return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
-}
-
-static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    if (ly->acc32)
-        return row_acc32(ly, r, x);
-    if (ly->w_bits == 16u)
-        return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
-    return row_acc8(ly, r, x);
-}
-
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    return row_acc(ly, r, x);
-}
-
-void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    unsigned r;
-#if FBG_DSP_ASM
-    const unsigned n = ly->n_in;
-    if (ly->acc32 && ly->w_bits == 16u &&
-        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
-        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
-        const int16_t *w = ly->w16;
-        for (r = 0; r < ly->n_out; ++r, w += n)
-            acc[r] = dot32_asm(w, x, n, (int32_t)ly->bias[r]);
-        return;
-    }
-#endif
-    for (r = 0; r < ly->n_out; ++r)
-        acc[r] = row_acc(ly, r, x);
-}
-
-/* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
-static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
-{
-    /* Fits int32 iff hi is lo's sign extension; INT32_MIN itself clamps (symmetric rule). */
-    if (hi != ((int32_t)lo >> 31) || lo == 0x80000000u) {
-        *clamped = 1u;
-        return hi < 0 ? -FBG_SAT32 : FBG_SAT32;
-    }
-    return (int32_t)lo;
-}
-
-/* sat16 of an int32 with the flag of fbg_sat16 (*clamped != 0 iff it clamped): SSAT to
- * [-32768, 32767], then -32768 up to -32767. */
-static inline int32_t sat16_32(int32_t v, uint32_t *clamped)
-{
-    int32_t y = __ssat(v, 16);
-    y = y < -FBG_SAT16 ? -FBG_SAT16 : y;
-    *clamped |= (uint32_t)(v ^ y);
-    return y;
-}
-
-int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
-                        uint32_t *sat)
-{
-    const unsigned tq = m->tap_q, zs = m->z_shift;
-    const uint32_t fround = 1u << (tq - 1u);
-    /* 2^(zs-1), zs <= 62, built so that one of its words is visibly zero. */
-    const int64_t zround = zs > 32u ? (int64_t)((uint64_t)(1u << (zs - 33u)) << 32)
-                                    : (int64_t)(uint32_t)(1u << (zs - 1u));
-    uint32_t clamped = 0u;
-    int64_t load = 0;
-    unsigned c;
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        /* filt = sat32(rshift_round(f, tq)) with 1 <= tq <= 15 (fbg_params_check): |f| < 2^53
-         * (64 taps of |int16| * |int32|), so f + 2^(tq-1) is exact, and with tq < 32 the
-         * arithmetic shift of the 64-bit sum is two words shifted and joined. */
-        const int64_t g = f[c] + (int64_t)fround;
-        const uint32_t glo = (uint32_t)g;
-        const int32_t ghi = (int32_t)(g >> 32);
-        int32_t filt = sat32_words(ghi >> tq, (glo >> tq) | ((uint32_t)ghi << (32u - tq)), &clamped);
-        int32_t d, v;
-        int64_t p;
-        /* d = sat32(filt - mean): on int32 overflow the true difference has filt's sign. */
-        if (__builtin_sub_overflow(filt, m->mean_fm[c], &d)) {
-            clamped = 1u;
-            d = filt < 0 ? -FBG_SAT32 : FBG_SAT32;
-        } else if (d == INT32_MIN) {
-            clamped = 1u;
-            d = -FBG_SAT32;
-        }
-        /* |d * z_mult| < 2^62 and 2^(zs-1) <= 2^61: p is exact in int64. */
-        p = smlal(zround, d, m->z_mult[c]);
-        if (zs >= 32u) {
-            v = (int32_t)(p >> 32) >> (zs - 32u); /* floor(p / 2^zs), |.| < 2^31 */
-        } else {
-            int64_t q = p >> zs;
-            /* Beyond int32 the outcome of sat16 is already decided; keep the sign. */
-            v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
-        }
-        z[c] = (int16_t)sat16_32(v, &clamped);
-        load = smlal(load, filt, m->load_coeff[c]); /* |.| < 2^59 each (fbg_model_check) */
-    }
-    if (clamped != 0u)
-        *sat = 1u;
-    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
-}
-
-void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
-                  unsigned pos, int64_t f[FBG_N_STRAIN])
-{
-#if FBG_DSP_ASM
-    fir4_asm(taps, n_taps, hist, pos, f);
-#else
-    int64_t f0 = 0, f1 = 0, f2 = 0, f3 = 0;
-    unsigned k = 0, i;
-    /* Newest first: ring index pos, pos-1, ..., 0 (taps 0..pos), then n_taps-1, ..., pos+1. */
-#define FBG_FIR_TAP(row)                 \
-    do {                                 \
-        const int32_t *h_ = (row);       \
-        int32_t t_ = taps[k++];          \
-        f0 += (int64_t)t_ * h_[0];       \
-        f1 += (int64_t)t_ * h_[1];       \
-        f2 += (int64_t)t_ * h_[2];       \
-        f3 += (int64_t)t_ * h_[3];       \
-    } while (0)
-    for (i = pos + 1u; i-- > 0u;)
-        FBG_FIR_TAP(hist[i]);
-    for (i = n_taps; i-- > pos + 1u;)
-        FBG_FIR_TAP(hist[i]);
-#undef FBG_FIR_TAP
-    f[0] = f0;
-    f[1] = f1;
-    f[2] = f2;
-    f[3] = f3;
-#endif
-}
-
 #else
 /* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
-typedef int fbg_dsp_unused;
+typedef int fbg_dsp_rows8_unused;
 #endif
-#undef FBG_DSP_BODY_BLOCKS
-#undef FBG_DSP_FIRST_MAX_IN
-#undef FBG_Q_READ
-#undef FBG_Q_SAVE_CLEAR
-#undef FBG_Q_RESTORE
-#undef FBG_Q_CLEAR_PUSH
-#undef FBG_SAT_OR_Q
-#undef FBG_ROWS3_PAIR_LOADS
-#undef FBG_ROWS3_PAIR
-#undef FBG_ROWS3_QUAD
-#undef FBG_ROWS3_REQUANT
-#undef FBG_ROWS3_OUT
-#undef FBG_FIRST_ROW_OUT
-#undef FBG_PAIR_REQUANT
-#undef FBG_ROWS2_PASS_END
-#undef FBG_PAIR_OUT
-#undef FBG_PAIR6
-#undef FBG_PAIR8
-#undef FBG_PAIR10
-#undef FBG_PAIR12
 #undef ROWS2B32_GROUP
 #undef ROWS2B32_TAIL4
 #undef FBG_PAIR_OUT8
 #undef FBG_W4
 #undef FBG_W2
-#undef FBG_FIR4_TAP
-#undef FBG_DSP_PAIRS_KIND
-#undef FBG_FIR_TAP
 /* ---- src/fbg_fixed.c ---- */
 /*
  * fbg_fixed.c - the fixed-point pipeline: init, tare, step, batch (docs/fixed-point.md).
