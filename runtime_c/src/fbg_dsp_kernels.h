@@ -211,6 +211,17 @@ static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
 
 #if FBG_DSP_ASM
 /* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
 /* The sticky Q flag (set by a USAT that clamped) into r12. */
 #define FBG_Q_READ                               \
         "mrs     r12, apsr\n\t"                  \

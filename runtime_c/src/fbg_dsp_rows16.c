@@ -317,6 +317,15 @@ __attribute__((naked, noinline)) void fbg_dsp_rows3d_asm(fbg_dsp_job *job)
         "bx      lr\n\t");
 }
 
+/* first_asm: a row's int64 accumulator r9:r8 from its bias (one LDRD). */
+#define FBG_FIRST_ROW_BIAS                       \
+        "ldrd    r8, r9, [r1], #8\n\t"
+
+/* first_asm: one pair of weights (LDR) against the input pair in register X, into r9:r8. */
+#define FBG_FIRST_PAIR(x)                        \
+        "ldr     r10, [r0], #4\n\t"              \
+        "smlald  r8, r9, r10, " x "\n\t"
+
 /* first_asm: the requantisation and store of one row (accumulator r9:r8, the rounding constant
  * on the stack, shift - 32 in r7), then the loop test against the output end r12. */
 #define FBG_FIRST_ROW_OUT                        \
@@ -364,29 +373,23 @@ __attribute__((naked, noinline)) void fbg_dsp_first_asm(fbg_dsp_job *job)
         "ldr     r6, [r10, #8]\n\t"
         "b       6f\n\t"
         "2:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
         FBG_FIRST_ROW_OUT
         "bne     2b\n\t"
         "b       9f\n\t"
         "4:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r5\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
+        FBG_FIRST_PAIR("r5")
         FBG_FIRST_ROW_OUT
         "bne     4b\n\t"
         "b       9f\n\t"
         "6:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r5\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r6\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
+        FBG_FIRST_PAIR("r5")
+        FBG_FIRST_PAIR("r6")
         FBG_FIRST_ROW_OUT
         "bne     6b\n\t"
         "b       9f\n\t"
@@ -398,12 +401,32 @@ __attribute__((naked, noinline)) void fbg_dsp_first_asm(fbg_dsp_job *job)
 }
 
 #undef FBG_FIRST_ROW_OUT
+#undef FBG_FIRST_PAIR
+#undef FBG_FIRST_ROW_BIAS
 #undef FBG_ROWS3_OUT
 #undef FBG_ROWS3_REQUANT
 #undef FBG_ROWS3_QUAD
 #undef FBG_ROWS3_PAIR
 #undef FBG_ROWS3_PAIR_LOADS
 #endif /* FBG_DSP_ASM */
+
+/* The job of a layer with shift >= 32 from its first row on: input x, output y, GROUPS the
+ * groups of three rows (first_asm: the rows), round = 2^(shift-1). */
+static inline void job_start(fbg_dsp_job *job, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                             uint32_t groups, int64_t round)
+{
+    job->w = ly->w16;
+    job->x = x;
+    job->bias = ly->bias;
+    job->mult = ly->mult;
+    job->y = y;
+    job->n = ly->n_in;
+    job->groups = groups;
+    job->round_lo = (uint32_t)round;
+    job->round_hi = (uint32_t)(round >> 32);
+    job->s32 = ly->shift - 32u;
+    job->clamped = 0u;
+}
 
 /* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
 static void run_rows3(fbg_dsp_job *job, int aligned)
@@ -438,17 +461,7 @@ void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_
 
     if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
         fbg_dsp_job job;
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
+        job_start(&job, ly, x, y, m, round);
         run_first(&job);
         if (job.clamped)
             *sat = 1u;
@@ -469,17 +482,7 @@ void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_
             memcpy(xbuf.v, x, n * sizeof *x); /* the libc's word-wise copy */
             x = xbuf.v;
         }
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m / 3u;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
+        job_start(&job, ly, x, y, m / 3u, round);
         run_rows3(&job, aligned);
         clamped = job.clamped;
         r = 3u * (m / 3u);

@@ -34,6 +34,93 @@ __attribute__((noinline)) void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int
 #endif /* !FBG_DSP_ASM */
 
 #if FBG_DSP_ASM
+/* rows2d32_asm's entry: the frame ([sp] bias, [4] mult, [8] out, [12] out end after the last
+ * pair, [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
+ * [28] sat; written with one STM), the first pair's biases and the jump into its first pass. */
+#define FBG_ROWS2D32_FRAME                       \
+        "sub     sp, sp, #32\n\t"                \
+        "mov     r10, r3\n\t"                    \
+        "ldr     r11, [r0]\n\t"                  \
+        "ldrd    r3, r4, [r0, #16]\n\t"          \
+        "ldr     r0, [r0, #8]\n\t"               \
+        "mov     r5, r2\n\t"                     \
+        "lsr     r6, r11, #16\n\t"               \
+        "bic     r6, r6, #1\n\t"                 \
+        "add     r6, r2, r6, lsl #1\n\t"         \
+        "uxth    r11, r11\n\t"                   \
+        "lsl     r7, r11, #1\n\t"                \
+        "mov     r8, r1\n\t"                     \
+        "mov     lr, r1\n\t"                     \
+        "add     r1, r0, r7\n\t"                 \
+        "adr.w   r2, 8f\n\t"                     \
+        "lsr     r12, r11, #3\n\t"               \
+        "mov     r9, #44\n\t"                    \
+        "mls     r2, r12, r9, r2\n\t"            \
+        "orr     r2, r2, #1\n\t"                 \
+        "mov     r9, r2\n\t"                     \
+        "ands    r12, r11, #6\n\t"               \
+        "beq     1f\n\t"                         \
+        "adr.w   r9, 72f\n\t"                    \
+        "cmp     r12, #2\n\t"                    \
+        "beq     0f\n\t"                         \
+        "adr.w   r9, 74f\n\t"                    \
+        "cmp     r12, #4\n\t"                    \
+        "beq     0f\n\t"                         \
+        "adr.w   r9, 76f\n\t"                    \
+        "0:\n\t"                                 \
+        "orr     r9, r9, #1\n\t"                 \
+        "1:\n\t"                                 \
+        "add     r3, r3, #16\n\t"                \
+        "stm     sp, {r3-r10}\n\t"               \
+        "ldmdb   r3, {r9-r12}\n\t"               \
+        "ldr     pc, [sp, #24]\n\t"
+
+/* rows2d32_asm's tails: 2, 4 or 6 inputs, then into the body (r2). */
+#define FBG_ROWS2D32_TAILS                       \
+        "72:\n\t"                                \
+        "ldr     r3, [lr], #4\n\t"               \
+        "ldr     r7, [r0], #4\n\t"               \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "ldr     r7, [r1], #4\n\t"               \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "bx      r2\n\t"                         \
+        "74:\n\t"                                \
+        "ldrd    r3, r4, [lr], #8\n\t"           \
+        "ldrd    r7, r8, [r0], #8\n\t"           \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "ldrd    r7, r8, [r1], #8\n\t"           \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "bx      r2\n\t"                         \
+        "76:\n\t"                                \
+        "ldmia.w lr!, {r3-r5}\n\t"               \
+        "ldmia.w r0!, {r7, r8, r10}\n\t"         \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "ldmia.w r1!, {r7, r8, r10}\n\t"         \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "bx      r2\n\t"
+
+/* rows2d32_asm's body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit). */
+#define FBG_ROWS2D32_BODY                        \
+        ".rept   16\n\t"                         \
+        "ldmia.w lr!, {r3-r6}\n\t"               \
+        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"    \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"    \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        ".endr\n\t"
+
 /* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
  * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
  * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
@@ -67,98 +154,15 @@ __attribute__((noinline)) void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int
 __attribute__((naked, noinline)) void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                           int16_t *y, uint32_t *sat)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
+    FBG_DSP_PAIR_ARGS_USED;
     __asm__ volatile(
         FBG_Q_CLEAR_PUSH
-        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
-         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
-         * [28] sat; written with one STM */
-        "sub     sp, sp, #32\n\t"
-        "mov     r10, r3\n\t"
-        "ldr     r11, [r0]\n\t"
-        "ldrd    r3, r4, [r0, #16]\n\t"
-        "ldr     r0, [r0, #8]\n\t"
-        "mov     r5, r2\n\t"
-        "lsr     r6, r11, #16\n\t"
-        "bic     r6, r6, #1\n\t"
-        "add     r6, r2, r6, lsl #1\n\t"
-        "uxth    r11, r11\n\t"
-        "lsl     r7, r11, #1\n\t"
-        "mov     r8, r1\n\t"
-        "mov     lr, r1\n\t"
-        "add     r1, r0, r7\n\t"
-        "adr.w   r2, 8f\n\t"
-        "lsr     r12, r11, #3\n\t"
-        "mov     r9, #44\n\t"
-        "mls     r2, r12, r9, r2\n\t"
-        "orr     r2, r2, #1\n\t"
-        "mov     r9, r2\n\t"
-        "ands    r12, r11, #6\n\t"
-        "beq     1f\n\t"
-        "adr.w   r9, 72f\n\t"
-        "cmp     r12, #2\n\t"
-        "beq     0f\n\t"
-        "adr.w   r9, 74f\n\t"
-        "cmp     r12, #4\n\t"
-        "beq     0f\n\t"
-        "adr.w   r9, 76f\n\t"
-        "0:\n\t"
-        "orr     r9, r9, #1\n\t"
-        "1:\n\t"
-        "add     r3, r3, #16\n\t"
-        "stm     sp, {r3-r10}\n\t"
-        "ldmdb   r3, {r9-r12}\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        /* tails: 2, 4, 6 inputs, then into the body */
-        "72:\n\t"
-        "ldr     r3, [lr], #4\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "bx      r2\n\t"
-        "74:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldrd    r7, r8, [r0], #8\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "ldrd    r7, r8, [r1], #8\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "bx      r2\n\t"
-        "76:\n\t"
-        "ldmia.w lr!, {r3-r5}\n\t"
-        "ldmia.w r0!, {r7, r8, r10}\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "ldmia.w r1!, {r7, r8, r10}\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "bx      r2\n\t"
+        FBG_ROWS2D32_FRAME
+        FBG_ROWS2D32_TAILS
         /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
-        ".rept   16\n\t"
-        "ldmia.w lr!, {r3-r6}\n\t"
-        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        ".endr\n\t"
+        FBG_ROWS2D32_BODY
         FBG_ROWS2_PASS_END
-        "add     sp, sp, #32\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
+        FBG_PAIR_KERNEL_EXIT("32"));
 }
 
 /* The requantisation and store of a pair in first2d32_asm. */
@@ -236,6 +240,45 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2d32_asm(const fbg_layer *ly, 
         "smlad   r12, lr, r9, r12\n\t"           \
         FBG_PAIR_REQUANT("r2", "r11", "lr", "r10", "r12", "r3")
 
+/* first2d32_asm's entry: the frame ([sp] the output end, [4] sat), the inputs into r4-r9 as
+ * far as n needs them, and the jump to the loop for n (entering the two-pair loops of n = 6,
+ * 8 and 10 at the pair that leaves an even number of pairs). */
+#define FBG_FIRST2D32_ENTRY                      \
+        "sub     sp, sp, #8\n\t"                 \
+        "str     r3, [sp, #4]\n\t"               \
+        "mov     r3, r2\n\t"                     \
+        "ldrh    r9, [r0, #2]\n\t"               \
+        "bic     r7, r9, #1\n\t"                 \
+        "add     r7, r3, r7, lsl #1\n\t"         \
+        "str     r7, [sp]\n\t"                   \
+        "mov     r10, r1\n\t"                    \
+        "ldr     r1, [r0, #16]\n\t"              \
+        "ldr     r2, [r0, #20]\n\t"              \
+        "ldrh    r12, [r0]\n\t"                  \
+        "ldr     r0, [r0, #8]\n\t"               \
+        "ldr     r4, [r10]\n\t"                  \
+        "cmp     r12, #4\n\t"                    \
+        "blo     2f\n\t"                         \
+        "ldr     r5, [r10, #4]\n\t"              \
+        "beq     4f\n\t"                         \
+        "ldr     r6, [r10, #8]\n\t"              \
+        "cmp     r12, #6\n\t"                    \
+        "bne     7f\n\t"                         \
+        "tst     r9, #2\n\t"                     \
+        "bne     61f\n\t"                        \
+        "b       6f\n\t"                         \
+        "7:\n\t"                                 \
+        "ldr     r7, [r10, #12]\n\t"             \
+        "ubfx    r11, r9, #1, #2\n\t"            \
+        "cmp     r12, #8\n\t"                    \
+        "bne     10f\n\t"                        \
+        "cmp     r11, #2\n\t"                    \
+        "beq     83f\n\t"                        \
+        "bhi     82f\n\t"                        \
+        "cmp     r11, #1\n\t"                    \
+        "beq     84f\n\t"                        \
+        "b       8f\n\t"
+
 /* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
  * the memory features and location averages), two rows per pass: the inputs stay in registers
  * (r4-r9 as int16 pairs, read once with LDR, which may be unaligned); the two rows are
@@ -250,46 +293,10 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2d32_asm(const fbg_layer *ly, 
 __attribute__((naked, noinline)) void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
+    FBG_DSP_PAIR_ARGS_USED;
     __asm__ volatile(
         FBG_Q_CLEAR_PUSH
-        "sub     sp, sp, #8\n\t"
-        "str     r3, [sp, #4]\n\t"
-        "mov     r3, r2\n\t"
-        "ldrh    r9, [r0, #2]\n\t"
-        "bic     r7, r9, #1\n\t"
-        "add     r7, r3, r7, lsl #1\n\t"
-        "str     r7, [sp]\n\t"
-        "mov     r10, r1\n\t"
-        "ldr     r1, [r0, #16]\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "ldrh    r12, [r0]\n\t"
-        "ldr     r0, [r0, #8]\n\t"
-        "ldr     r4, [r10]\n\t"
-        "cmp     r12, #4\n\t"
-        "blo     2f\n\t"
-        "ldr     r5, [r10, #4]\n\t"
-        "beq     4f\n\t"
-        "ldr     r6, [r10, #8]\n\t"
-        "cmp     r12, #6\n\t"
-        "bne     7f\n\t"
-        "tst     r9, #2\n\t"
-        "bne     61f\n\t"
-        "b       6f\n\t"
-        "7:\n\t"
-        "ldr     r7, [r10, #12]\n\t"
-        "ubfx    r11, r9, #1, #2\n\t"
-        "cmp     r12, #8\n\t"
-        "bne     10f\n\t"
-        "cmp     r11, #2\n\t"
-        "beq     83f\n\t"
-        "bhi     82f\n\t"
-        "cmp     r11, #1\n\t"
-        "beq     84f\n\t"
-        "b       8f\n\t"
+        FBG_FIRST2D32_ENTRY
         "2:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
         "ldrd    r8, r10, [r0], #8\n\t"
@@ -359,10 +366,7 @@ __attribute__((naked, noinline)) void fbg_dsp_first2d32_asm(const fbg_layer *ly,
         "bne     120b\n\t"
         "9:\n\t"
         "ldr     r3, [sp, #4]\n\t"
-        "add     sp, sp, #8\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
+        FBG_PAIR_KERNEL_EXIT("8"));
 }
 #undef FBG_PAIR12
 #undef FBG_PAIR10

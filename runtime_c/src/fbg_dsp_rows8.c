@@ -47,6 +47,83 @@
         "sxtb16  r10, r7, ror #8\n\t"            \
         "smlad   r11, r10, r4, r11\n\t"
 
+/* rows2b32_asm: x (word-aligned) re-paired into xp at sp + 40: LDM of 8 inputs, PKHBT/PKHTB, STM. */
+#define FBG_ROWS2B32_REPAIR_X                    \
+        "add     r12, sp, #40\n\t"               \
+        "bic     r7, r8, #7\n\t"                 \
+        "add     r7, r1, r7, lsl #1\n\t"         \
+        "cmp     r1, r7\n\t"                     \
+        "beq     2f\n\t"                         \
+        "1:\n\t"                                 \
+        "ldmia   r1!, {r3-r6}\n\t"               \
+        "pkhbt   r9, r3, r4, lsl #16\n\t"        \
+        "pkhtb   r10, r4, r3, asr #16\n\t"       \
+        "pkhbt   r11, r5, r6, lsl #16\n\t"       \
+        "pkhtb   lr, r6, r5, asr #16\n\t"        \
+        "stmia   r12!, {r9, r10, r11, lr}\n\t"   \
+        "cmp     r1, r7\n\t"                     \
+        "bne     1b\n\t"                         \
+        "2:\n\t"                                 \
+        "tst     r8, #4\n\t"                     \
+        "beq     3f\n\t"                         \
+        "ldmia   r1!, {r3, r4}\n\t"              \
+        "pkhbt   r9, r3, r4, lsl #16\n\t"        \
+        "pkhtb   r10, r4, r3, asr #16\n\t"       \
+        "stmia   r12!, {r9, r10}\n\t"            \
+        "3:\n\t"                                 \
+        "tst     r8, #2\n\t"                     \
+        "itt     ne\n\t"                         \
+        "ldrne   r3, [r1]\n\t"                   \
+        "strne   r3, [r12]\n\t"
+
+/* rows2b32_asm's frame after the re-pairing, the first pair's biases, the tail's address ([32]:
+ * none, 2, 4 or 4 + 2 inputs) and the loop's entry ([24]: two 8-input groups per loop test,
+ * entered at the second for an odd count), then the jump into the first pass. */
+#define FBG_ROWS2B32_FRAME                                                               \
+        "add     r1, sp, #40\n\t"                                                        \
+        "ldrh    r6, [r0, #2]\n\t"                                                       \
+        "str     r8, [sp, #16]\n\t"                                                      \
+        "str     r1, [sp, #20]\n\t"                                                      \
+        "mov     lr, r1\n\t"                                                             \
+        "str     r2, [sp, #8]\n\t"                                                       \
+        "bic     r6, r6, #1\n\t"                                                         \
+        "add     r6, r2, r6, lsl #1\n\t"                                                 \
+        "str     r6, [sp, #12]\n\t"                                                      \
+        "bic     r7, r8, #7\n\t"                                                         \
+        "add     r2, r1, r7, lsl #1\n\t"                                                 \
+        "ldr     r3, [r0, #16]\n\t"                                                      \
+        "ldmia   r3!, {r9-r12}\n\t"                                                      \
+        "str     r3, [sp]\n\t"                                                           \
+        "ldr     r3, [r0, #20]\n\t"                                                      \
+        "str     r3, [sp, #4]\n\t"                                                       \
+        "ldr     r0, [r0, #12]\n\t"                                                      \
+        "add     r1, r0, r8\n\t"                                                         \
+        /* the tail: none, 2, 4 or 4 + 2 inputs */                                       \
+        "and     r7, r8, #6\n\t"                                                         \
+        "adr.w   r3, 8f\n\t"                                                             \
+        "cmp     r7, #2\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 72f\n\t"                                                            \
+        "cmp     r7, #4\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 74f\n\t"                                                            \
+        "cmp     r7, #6\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 76f\n\t"                                                            \
+        "orr     r3, r3, #1\n\t"                                                         \
+        "str     r3, [sp, #32]\n\t"                                                      \
+        /* 8-input groups: two per loop test, entered at the second for an odd count */  \
+        "cmp     r8, #8\n\t"                                                             \
+        "blo     0f\n\t"                                                                 \
+        "tst     r8, #8\n\t"                                                             \
+        "ite     ne\n\t"                                                                 \
+        "adrne.w r3, 10f\n\t"                                                            \
+        "adreq.w r3, 1f\n\t"                                                             \
+        "orr     r3, r3, #1\n\t"                                                         \
+        "0:\n\t"                                                                         \
+        "str     r3, [sp, #24]\n\t"                                                      \
+        "bx      r3\n\t"
+
 /* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
  * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
  * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
@@ -64,10 +141,7 @@
 __attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x,
                                                           int16_t *y, uint32_t *sat)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
+    FBG_DSP_PAIR_ARGS_USED;
     __asm__ volatile(
         FBG_Q_CLEAR_PUSH
         /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
@@ -77,76 +151,8 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, 
         "sub     sp, sp, #296\n\t"
         "str     r3, [sp, #28]\n\t"
         "ldrh    r8, [r0]\n\t"
-        /* x (word-aligned) re-paired into xp: LDM of 8 inputs, PKHBT/PKHTB, STM */
-        "add     r12, sp, #40\n\t"
-        "bic     r7, r8, #7\n\t"
-        "add     r7, r1, r7, lsl #1\n\t"
-        "cmp     r1, r7\n\t"
-        "beq     2f\n\t"
-        "1:\n\t"
-        "ldmia   r1!, {r3-r6}\n\t"
-        "pkhbt   r9, r3, r4, lsl #16\n\t"
-        "pkhtb   r10, r4, r3, asr #16\n\t"
-        "pkhbt   r11, r5, r6, lsl #16\n\t"
-        "pkhtb   lr, r6, r5, asr #16\n\t"
-        "stmia   r12!, {r9, r10, r11, lr}\n\t"
-        "cmp     r1, r7\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "tst     r8, #4\n\t"
-        "beq     3f\n\t"
-        "ldmia   r1!, {r3, r4}\n\t"
-        "pkhbt   r9, r3, r4, lsl #16\n\t"
-        "pkhtb   r10, r4, r3, asr #16\n\t"
-        "stmia   r12!, {r9, r10}\n\t"
-        "3:\n\t"
-        "tst     r8, #2\n\t"
-        "itt     ne\n\t"
-        "ldrne   r3, [r1]\n\t"
-        "strne   r3, [r12]\n\t"
-        "add     r1, sp, #40\n\t"
-        "ldrh    r6, [r0, #2]\n\t"
-        "str     r8, [sp, #16]\n\t"
-        "str     r1, [sp, #20]\n\t"
-        "mov     lr, r1\n\t"
-        "str     r2, [sp, #8]\n\t"
-        "bic     r6, r6, #1\n\t"
-        "add     r6, r2, r6, lsl #1\n\t"
-        "str     r6, [sp, #12]\n\t"
-        "bic     r7, r8, #7\n\t"
-        "add     r2, r1, r7, lsl #1\n\t"
-        "ldr     r3, [r0, #16]\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "str     r3, [sp]\n\t"
-        "ldr     r3, [r0, #20]\n\t"
-        "str     r3, [sp, #4]\n\t"
-        "ldr     r0, [r0, #12]\n\t"
-        "add     r1, r0, r8\n\t"
-        /* the tail: none, 2, 4 or 4 + 2 inputs */
-        "and     r7, r8, #6\n\t"
-        "adr.w   r3, 8f\n\t"
-        "cmp     r7, #2\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 72f\n\t"
-        "cmp     r7, #4\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 74f\n\t"
-        "cmp     r7, #6\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 76f\n\t"
-        "orr     r3, r3, #1\n\t"
-        "str     r3, [sp, #32]\n\t"
-        /* 8-input groups: two per loop test, entered at the second for an odd count */
-        "cmp     r8, #8\n\t"
-        "blo     0f\n\t"
-        "tst     r8, #8\n\t"
-        "ite     ne\n\t"
-        "adrne.w r3, 10f\n\t"
-        "adreq.w r3, 1f\n\t"
-        "orr     r3, r3, #1\n\t"
-        "0:\n\t"
-        "str     r3, [sp, #24]\n\t"
-        "bx      r3\n\t"
+        FBG_ROWS2B32_REPAIR_X
+        FBG_ROWS2B32_FRAME
         "1:\n\t"
         ROWS2B32_GROUP
         "10:\n\t"
@@ -173,10 +179,7 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, 
         "smlabb  r11, r3, r7, r11\n\t"
         "smlatb  r11, r3, r8, r11\n\t"
         FBG_ROWS2_PASS_END
-        "add     sp, sp, #296\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
+        FBG_PAIR_KERNEL_EXIT("296"));
 }
 
 /* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
@@ -198,6 +201,38 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, 
         "smlabb  " acc ", " xw ", r10, " acc "\n\t" \
         "smlatb  " acc ", " xw ", r12, " acc "\n\t"
 
+/* first2b32_asm's entry: sat kept on the stack, Q cleared, the output end in lr, the inputs
+ * re-paired into r4-r7 as far as n needs them, and the jump to the loop for n. */
+#define FBG_FIRST2B32_ENTRY                      \
+        "push    {r3-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"            \
+        "mov     r3, r2\n\t"                     \
+        "ldrh    r9, [r0, #2]\n\t"               \
+        "bic     lr, r9, #1\n\t"                 \
+        "add     lr, r3, lr, lsl #1\n\t"         \
+        "ldr     r2, [r0, #20]\n\t"              \
+        "ldrh    r12, [r0]\n\t"                  \
+        "mov     r10, r1\n\t"                    \
+        "ldr     r1, [r0, #16]\n\t"              \
+        "ldr     r0, [r0, #12]\n\t"              \
+        "ldr     r4, [r10]\n\t"                  \
+        "cmp     r12, #4\n\t"                    \
+        "blo     2f\n\t"                         \
+        "ldr     r5, [r10, #4]\n\t"              \
+        "pkhbt   r8, r4, r5, lsl #16\n\t"        \
+        "pkhtb   r5, r5, r4, asr #16\n\t"        \
+        "mov     r4, r8\n\t"                     \
+        "beq     4f\n\t"                         \
+        "ldr     r6, [r10, #8]\n\t"              \
+        "cmp     r12, #6\n\t"                    \
+        "beq     6f\n\t"                         \
+        "ldr     r7, [r10, #12]\n\t"             \
+        "pkhbt   r8, r6, r7, lsl #16\n\t"        \
+        "pkhtb   r7, r7, r6, asr #16\n\t"        \
+        "mov     r6, r8\n\t"                     \
+        "b       8f\n\t"
+
 /* first2b32_asm: an int8-weight int32 first layer (shift 32) of n = 2, 4, 6 or 8 inputs, two
  * rows per pass, the inputs re-paired once into registers (r4-r7: (x0, x2), (x1, x3) per four,
  * the natural pair for the last two when n % 4 == 2; LDR, which may be unaligned, and
@@ -209,39 +244,9 @@ __attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, 
 __attribute__((naked, noinline)) void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x,
                                                            int16_t *y, uint32_t *sat)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
+    FBG_DSP_PAIR_ARGS_USED;
     __asm__ volatile(
-        "push    {r3-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "mov     r3, r2\n\t"
-        "ldrh    r9, [r0, #2]\n\t"
-        "bic     lr, r9, #1\n\t"
-        "add     lr, r3, lr, lsl #1\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "ldrh    r12, [r0]\n\t"
-        "mov     r10, r1\n\t"
-        "ldr     r1, [r0, #16]\n\t"
-        "ldr     r0, [r0, #12]\n\t"
-        "ldr     r4, [r10]\n\t"
-        "cmp     r12, #4\n\t"
-        "blo     2f\n\t"
-        "ldr     r5, [r10, #4]\n\t"
-        "pkhbt   r8, r4, r5, lsl #16\n\t"
-        "pkhtb   r5, r5, r4, asr #16\n\t"
-        "mov     r4, r8\n\t"
-        "beq     4f\n\t"
-        "ldr     r6, [r10, #8]\n\t"
-        "cmp     r12, #6\n\t"
-        "beq     6f\n\t"
-        "ldr     r7, [r10, #12]\n\t"
-        "pkhbt   r8, r6, r7, lsl #16\n\t"
-        "pkhtb   r7, r7, r6, asr #16\n\t"
-        "mov     r6, r8\n\t"
-        "b       8f\n\t"
+        FBG_FIRST2B32_ENTRY
         "2:\n\t"
         "ldmia   r1!, {r9-r12}\n\t"
         FBG_W2("r9", "r4")
