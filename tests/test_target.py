@@ -103,7 +103,7 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
 @pytest.mark.target
 @pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
 def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
-    """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
+    """fbg_dsp*.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
     extreme multipliers, rounding ties, saturation, random FIR ring positions, the hidden-layer
     loop, the output rows' rounded product and the standardisation; the assembly kernels and
     (FBG_DSP_ASM=0) their ACLE C versions."""

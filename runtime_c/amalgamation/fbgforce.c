@@ -398,32 +398,102 @@ static fbg_status take(const uint8_t *blob, size_t total, size_t *off, size_t nb
 
 /* The check order below is the contract: export/blob.py follows it step for step, so both
  * readers give every blob the same verdict and code (tests/test_blob_verdict.py). */
-fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+/* The blob's header: size, magic, version, CRC, byte order and alignment; *total = the size
+ * the header gives. */
+static fbg_status header_check(const uint8_t *blob, size_t len, size_t *total)
 {
-    size_t total, off;
-    unsigned n, l;
-    fbg_status st;
-    const void *where;
-
-    if (model == NULL || blob == NULL)
-        return FBG_ERR_NULL;
     if (len < FBG_BLOB_HEADER_SIZE)
         return FBG_ERR_TRUNCATED;
     if (memcmp(blob, "FBGM", 4) != 0)
         return FBG_ERR_BAD_MAGIC;
     if (rd16(blob + 4) != FBG_BLOB_VERSION || rd16(blob + 6) != 0u)
         return FBG_ERR_VERSION;
-    total = (size_t)rd32(blob + 8);
-    if (total > len)
+    *total = (size_t)rd32(blob + 8);
+    if (*total > len)
         return FBG_ERR_TRUNCATED;
-    if (total < FBG_PARAMS_END)
+    if (*total < FBG_PARAMS_END)
         return FBG_ERR_SIZE;
-    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
+    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, *total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
         return FBG_ERR_CRC;
     if (!host_is_little_endian())
         return FBG_ERR_ENDIAN;
     if (((uintptr_t)(const void *)blob & 7u) != 0u)
         return FBG_ERR_ALIGN;
+    return FBG_OK;
+}
+
+/* The layer table after the parameters: every layer's shape and kind; *off = its end. */
+static fbg_status layer_table(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    *off = FBG_PARAMS_END;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            const size_t at = *off;
+            if (at + FBG_LAYER_ENTRY > total)
+                return FBG_ERR_SIZE;
+            ly->n_in = rd16(blob + at);
+            ly->n_out = rd16(blob + at + 2);
+            ly->w_bits = blob[at + 4];
+            ly->shift = blob[at + 5];
+            ly->acc32 = blob[at + 6];
+            if (blob[at + 7] != 0u || ly->acc32 > 1u)
+                return FBG_ERR_RANGE;
+            *off = at + FBG_LAYER_ENTRY;
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (ly->w_bits != 8u && ly->w_bits != 16u)
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+/* The arrays after the table, each at an 8-aligned offset from *off on; sizes are bounded
+ * (<= 128*128*2 bytes each), so these sums cannot overflow size_t before they are compared
+ * with total. */
+static fbg_status arrays(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    fbg_status st;
+    const void *where;
+    if ((st = take(blob, total, off, 0u, &where)) != FBG_OK)   /* the table's padding */
+        return st;
+    if ((st = take(blob, total, off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
+        return st;
+    model->taps = (const int16_t *)where;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
+            if ((st = take(blob, total, off, nw, &where)) != FBG_OK)
+                return st;
+            if (ly->w_bits == 16u)
+                ly->w16 = (const int16_t *)where;
+            else
+                ly->w8 = (const int8_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
+                return st;
+            ly->bias = (const int64_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
+                return st;
+            ly->mult = (const int32_t *)where;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+{
+    size_t total = 0u, off = 0u;
+    fbg_status st;
+
+    if (model == NULL || blob == NULL)
+        return FBG_ERR_NULL;
+    st = header_check(blob, len, &total);
+    if (st != FBG_OK)
+        return st;
 
     memset(model, 0, sizeof *model);
     /* First, so that a state whose model this call overwrites, even if it then fails, sees
@@ -433,56 +503,12 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
     if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
         return FBG_ERR_RANGE;
     st = fbg_params_check(model);
+    if (st == FBG_OK)
+        st = layer_table(model, blob, total, &off);
+    if (st == FBG_OK)
+        st = arrays(model, blob, total, &off);
     if (st != FBG_OK)
         return st;
-
-    /* Layer table. */
-    off = FBG_PARAMS_END;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            if (off + FBG_LAYER_ENTRY > total)
-                return FBG_ERR_SIZE;
-            ly->n_in = rd16(blob + off);
-            ly->n_out = rd16(blob + off + 2);
-            ly->w_bits = blob[off + 4];
-            ly->shift = blob[off + 5];
-            ly->acc32 = blob[off + 6];
-            if (blob[off + 7] != 0u || ly->acc32 > 1u)
-                return FBG_ERR_RANGE;
-            off += FBG_LAYER_ENTRY;
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (ly->w_bits != 8u && ly->w_bits != 16u)
-                return FBG_ERR_RANGE;
-        }
-    }
-
-    /* Arrays, each at an 8-aligned offset; sizes are bounded (<= 128*128*2 bytes each), so
-     * these sums cannot overflow size_t before they are compared with total. */
-    if ((st = take(blob, total, &off, 0u, &where)) != FBG_OK)   /* the table's padding */
-        return st;
-    if ((st = take(blob, total, &off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
-        return st;
-    model->taps = (const int16_t *)where;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
-            if ((st = take(blob, total, &off, nw, &where)) != FBG_OK)
-                return st;
-            if (ly->w_bits == 16u)
-                ly->w16 = (const int16_t *)where;
-            else
-                ly->w8 = (const int8_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
-                return st;
-            ly->bias = (const int64_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
-                return st;
-            ly->mult = (const int32_t *)where;
-        }
-    }
     if (off != total)
         return FBG_ERR_SIZE;
     return fbg_model_check(model);
@@ -810,7 +836,7 @@ const char *fbg_status_str(int status)
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -853,7 +879,7 @@ const char *fbg_status_str(int status)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -1242,7 +1268,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -1288,7 +1314,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -1664,7 +1690,7 @@ typedef int fbg_dsp_unused;
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -1707,7 +1733,7 @@ typedef int fbg_dsp_unused;
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -2096,7 +2122,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -2142,7 +2168,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -2527,7 +2553,7 @@ typedef int fbg_dsp_fir_unused;
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -2570,7 +2596,7 @@ typedef int fbg_dsp_fir_unused;
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -2959,7 +2985,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -3005,7 +3031,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -3740,7 +3766,7 @@ typedef int fbg_dsp_rows16_unused;
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -3783,7 +3809,7 @@ typedef int fbg_dsp_rows16_unused;
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -4172,7 +4198,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -4218,7 +4244,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -4875,7 +4901,7 @@ typedef int fbg_dsp_rows32_unused;
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -4918,7 +4944,7 @@ typedef int fbg_dsp_rows32_unused;
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -5307,7 +5333,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -5353,7 +5379,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -5993,11 +6019,12 @@ typedef int fbg_dsp_rows8_unused;
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -6588,7 +6615,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -6906,7 +6933,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -6951,9 +6978,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -6993,7 +7020,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -8141,7 +8168,7 @@ fbg_status fbg_model_check(const fbg_model *model)
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -8459,7 +8486,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -8504,9 +8531,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -8804,7 +8831,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -9122,7 +9149,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -9167,9 +9194,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -9397,7 +9424,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -9715,7 +9742,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -9760,9 +9787,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -10259,7 +10286,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -10577,7 +10604,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -10622,9 +10649,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -11452,7 +11479,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -11770,7 +11797,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -11815,9 +11842,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -12246,7 +12273,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -12564,7 +12591,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -12609,9 +12636,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -12827,7 +12854,7 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The location averages of memory_features (fbg_fixed.c) from z = in[0..3] as int32 lanes,
+/* The location averages of memory_features (fbg_stage_memory.c) from z = in[0..3] as int32 lanes,
  * the same operations lane by lane: r = sat16(z - z0) (VPMINSD/VPMAXSD; a lane that moved
  * clamped), target = r * 2^15, the state primed at the target on the first sample, state +=
  * rshift_round(target - state, shift) with the arithmetic shift VPSRAD (the scalar loop's
@@ -12934,7 +12961,7 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift, int32_t ref)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The memory kinds' update rules of fbg_fixed.c (<kind>_features, FBG_MEMORY_KINDS), the
+/* The memory kinds' update rules of fbg_stage_memory.c (<kind>_features, FBG_MEMORY_KINDS), the
  * states of a kind in the lanes of one vector, the same operations: the scalar loop's bounds
  * hold in every lane. The states of lanes k >= n stay as they are (blended back); the features
  * go to f[0 ..] as a whole vector of four, the entries past the kind's last being overwritten
@@ -13004,7 +13031,7 @@ FBG_MEMORY_KINDS(FBG_KIND_LANES)
 typedef char memory4_stores_inside_in[FBG_N_STRAIN FBG_MEMORY_KINDS(FBG_KIND_LIMIT) <= FBG_MAX_INPUTS ? 1 : -1];
 #undef FBG_KIND_LIMIT
 
-/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes):
+/* The load signal's memory features of memory_features (fbg_stage_memory.c) from z (int32 lanes):
  * u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ: exact int64 products,
  * their sum < 2^48, then the scalar rule), then every kind's states, primed on the first
  * sample, and features to in[4 ..] in the order of FBG_MEMORY_KINDS. Returns 1 where a clamp
@@ -13113,11 +13140,12 @@ typedef int fbg_simd_x86_stages_unused;
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -13708,7 +13736,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -14026,7 +14054,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -14071,9 +14099,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -14113,7 +14141,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -14550,11 +14578,12 @@ uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t 
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -15145,7 +15174,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -15463,7 +15492,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -15508,9 +15537,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -15550,7 +15579,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -15956,7 +15985,7 @@ uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_
 {
     int overload;
 #if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
-                  * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
+                  * standardisation on 32-bit words (fbg_dsp_kernels.h says why each is exact) */
     int64_t fir[FBG_N_STRAIN];
     uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
     unsigned c;
@@ -16003,11 +16032,12 @@ uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -16598,7 +16628,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -16916,7 +16946,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -16961,9 +16991,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -17003,7 +17033,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -17476,11 +17506,12 @@ void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -18071,7 +18102,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -18389,7 +18420,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -18434,9 +18465,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -18476,7 +18507,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -18908,11 +18939,12 @@ int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint3
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -19503,7 +19535,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -19821,7 +19853,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -19866,9 +19898,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -19908,7 +19940,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -20416,11 +20448,12 @@ void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *lo
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -21011,7 +21044,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -21329,7 +21362,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -21374,9 +21407,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -21416,7 +21449,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -21790,14 +21823,14 @@ int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint3
 #endif /* FBG_STAGES_H */
 
 /* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
- * (fbg_dsp.c) or the state's host kernel (fbg_simd.h) ---- */
+ * (fbg_dsp.h) or the state's host kernel (fbg_simd.h) ---- */
 
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
  * kernels write whole groups of 8 rows into them. */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
 
-#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
+#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.h): the same bits */
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {
@@ -21984,11 +22017,12 @@ const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, cons
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -22579,7 +22613,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -22897,7 +22931,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -22942,9 +22976,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -22984,7 +23018,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -24219,11 +24253,12 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -24929,11 +24964,70 @@ static int all_finite(const float *x, size_t n)
     return 1;
 }
 
-fbg_status fbgf_model_check(const fbgf_model *model)
+/* 1 when a parameter of the decision over time, the tracker, the creep inverse or the hold lies
+ * outside the ranges of fbg_model's (fbg_contract.c). */
+static int in_use_params_out_of_range(const fbgf_model *model)
+{
+    return (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
+           !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
+           model->contact_rise_n < 1u || model->track_shift > 20u ||
+           !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+           model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+           (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+           !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           (model->contact_cusum_h == 0.0f
+                ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                   model->contact_cusum_hi != 0.0f)
+                : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                   model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
+           !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+           model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+           !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+           model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+           model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+           !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+           !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
+           !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
+           !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f));
+}
+
+/* Each net's shape (inputs as the model's features give them, outputs as its role needs),
+ * every layer's pointers and finite weights. */
+static fbg_status nets_check(const fbgf_model *model, const uint16_t net_in[FBG_N_NETS])
 {
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
+    unsigned n, l;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbgf_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            const fbgf_layer *ly = &net->layers[l];
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            if (ly->w == NULL || ly->b == NULL)
+                return FBG_ERR_NULL;
+            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbgf_model_check(const fbgf_model *model)
+{
     uint16_t net_in[FBG_N_NETS];
-    unsigned n, l, c, features;
+    unsigned c, features;
     fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
@@ -24948,34 +25042,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
-    /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
-    if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
-        !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
-        model->contact_rise_n < 1u || model->track_shift > 20u ||
-        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
-        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
-        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
-        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        (model->contact_cusum_h == 0.0f
-             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
-                model->contact_cusum_hi != 0.0f)
-             : (model->contact_cusum_lo > model->contact_cusum_hi ||
-                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
-        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
-        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
-        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
-        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
-        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
-        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
-        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
-        !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
-        !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
+    if (in_use_params_out_of_range(model))
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_MAX_INPUTS; ++c)
         if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
@@ -24998,25 +25065,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !finite_f(model->force_scale) || model->overload_N != model->overload_N ||
         !all_finite(model->taps, model->n_taps))
         return FBG_ERR_RANGE;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        const fbgf_net *net = &model->nets[n];
-        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
-        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
-            return FBG_ERR_SHAPE;
-        for (l = 0; l < net->n_layers; ++l) {
-            const fbgf_layer *ly = &net->layers[l];
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
-                return FBG_ERR_SHAPE;
-            if (ly->w == NULL || ly->b == NULL)
-                return FBG_ERR_NULL;
-            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
-                return FBG_ERR_RANGE;
-        }
-    }
-    return FBG_OK;
+    return nets_check(model, net_in);
 }
 
 /* The shared front end's view of a float state (fbg_front.h). */

@@ -2,7 +2,7 @@
  * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
  * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -89,7 +89,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -135,7 +135,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;

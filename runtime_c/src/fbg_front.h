@@ -1,10 +1,11 @@
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different

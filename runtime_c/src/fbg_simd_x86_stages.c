@@ -92,7 +92,7 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The location averages of memory_features (fbg_fixed.c) from z = in[0..3] as int32 lanes,
+/* The location averages of memory_features (fbg_stage_memory.c) from z = in[0..3] as int32 lanes,
  * the same operations lane by lane: r = sat16(z - z0) (VPMINSD/VPMAXSD; a lane that moved
  * clamped), target = r * 2^15, the state primed at the target on the first sample, state +=
  * rshift_round(target - state, shift) with the arithmetic shift VPSRAD (the scalar loop's
@@ -199,7 +199,7 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift, int32_t ref)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The memory kinds' update rules of fbg_fixed.c (<kind>_features, FBG_MEMORY_KINDS), the
+/* The memory kinds' update rules of fbg_stage_memory.c (<kind>_features, FBG_MEMORY_KINDS), the
  * states of a kind in the lanes of one vector, the same operations: the scalar loop's bounds
  * hold in every lane. The states of lanes k >= n stay as they are (blended back); the features
  * go to f[0 ..] as a whole vector of four, the entries past the kind's last being overwritten
@@ -269,7 +269,7 @@ FBG_MEMORY_KINDS(FBG_KIND_LANES)
 typedef char memory4_stores_inside_in[FBG_N_STRAIN FBG_MEMORY_KINDS(FBG_KIND_LIMIT) <= FBG_MAX_INPUTS ? 1 : -1];
 #undef FBG_KIND_LIMIT
 
-/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes):
+/* The load signal's memory features of memory_features (fbg_stage_memory.c) from z (int32 lanes):
  * u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ: exact int64 products,
  * their sum < 2^48, then the scalar rule), then every kind's states, primed on the first
  * sample, and features to in[4 ..] in the order of FBG_MEMORY_KINDS. Returns 1 where a clamp

@@ -37,7 +37,7 @@ uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_
 {
     int overload;
 #if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
-                  * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
+                  * standardisation on 32-bit words (fbg_dsp_kernels.h says why each is exact) */
     int64_t fir[FBG_N_STRAIN];
     uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
     unsigned c;

@@ -6,14 +6,14 @@
 #include "fbg_stages.h"
 
 /* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
- * (fbg_dsp.c) or the state's host kernel (fbg_simd.h) ---- */
+ * (fbg_dsp.h) or the state's host kernel (fbg_simd.h) ---- */
 
 /* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
  * kernels write whole groups of 8 rows into them. */
 typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
 typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
 
-#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
+#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.h): the same bits */
 /* Run the hidden layers of a net on x; returns the input of the output layer. */
 static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
 {

@@ -55,11 +55,70 @@ static int all_finite(const float *x, size_t n)
     return 1;
 }
 
-fbg_status fbgf_model_check(const fbgf_model *model)
+/* 1 when a parameter of the decision over time, the tracker, the creep inverse or the hold lies
+ * outside the ranges of fbg_model's (fbg_contract.c). */
+static int in_use_params_out_of_range(const fbgf_model *model)
+{
+    return (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
+           !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
+           model->contact_rise_n < 1u || model->track_shift > 20u ||
+           !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+           model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+           (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+           !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           (model->contact_cusum_h == 0.0f
+                ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                   model->contact_cusum_hi != 0.0f)
+                : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                   model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
+           !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+           model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+           !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+           model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+           model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+           !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+           !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
+           !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
+           !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f));
+}
+
+/* Each net's shape (inputs as the model's features give them, outputs as its role needs),
+ * every layer's pointers and finite weights. */
+static fbg_status nets_check(const fbgf_model *model, const uint16_t net_in[FBG_N_NETS])
 {
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
+    unsigned n, l;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbgf_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            const fbgf_layer *ly = &net->layers[l];
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            if (ly->w == NULL || ly->b == NULL)
+                return FBG_ERR_NULL;
+            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbgf_model_check(const fbgf_model *model)
+{
     uint16_t net_in[FBG_N_NETS];
-    unsigned n, l, c, features;
+    unsigned c, features;
     fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
@@ -74,34 +133,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
-    /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
-    if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
-        !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
-        model->contact_rise_n < 1u || model->track_shift > 20u ||
-        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
-        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
-        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
-        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        (model->contact_cusum_h == 0.0f
-             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
-                model->contact_cusum_hi != 0.0f)
-             : (model->contact_cusum_lo > model->contact_cusum_hi ||
-                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
-        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
-        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
-        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
-        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
-        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
-        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
-        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
-        !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
-        !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
+    if (in_use_params_out_of_range(model))
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_MAX_INPUTS; ++c)
         if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
@@ -124,25 +156,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !finite_f(model->force_scale) || model->overload_N != model->overload_N ||
         !all_finite(model->taps, model->n_taps))
         return FBG_ERR_RANGE;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        const fbgf_net *net = &model->nets[n];
-        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
-        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
-            return FBG_ERR_SHAPE;
-        for (l = 0; l < net->n_layers; ++l) {
-            const fbgf_layer *ly = &net->layers[l];
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
-                return FBG_ERR_SHAPE;
-            if (ly->w == NULL || ly->b == NULL)
-                return FBG_ERR_NULL;
-            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
-                return FBG_ERR_RANGE;
-        }
-    }
-    return FBG_OK;
+    return nets_check(model, net_in);
 }
 
 /* The shared front end's view of a float state (fbg_front.h). */
