@@ -21845,21 +21845,28 @@ static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *
 }
 #else
 /* The portable reference of a layer. */
+/* ACC += sum_j w[r][j] * x[j] over row R of layer LY (int16 or int8 weights; J the index), in
+ * ACC's type: the same loops for the int32 and the int64 accumulator. */
+#define FBG_ROW_SUM(acc, ly, r, x, j)                                                        \
+    do {                                                                                     \
+        if ((ly)->w_bits == 16u) {                                                           \
+            const int16_t *w_ = (ly)->w16 + (size_t)(r) * (ly)->n_in;                        \
+            for ((j) = 0; (j) < (ly)->n_in; ++(j))                                           \
+                (acc) += (int32_t)w_[j] * (int32_t)(x)[j];                                   \
+        } else {                                                                             \
+            const int8_t *w_ = (ly)->w8 + (size_t)(r) * (ly)->n_in;                          \
+            for ((j) = 0; (j) < (ly)->n_in; ++(j))                                           \
+                (acc) += (int32_t)w_[j] * (int32_t)(x)[j];                                   \
+        }                                                                                    \
+    } while (0)
+
 /* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
  * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
 static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
 {
     int32_t acc = (int32_t)ly->bias[r];
     unsigned j;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
+    FBG_ROW_SUM(acc, ly, r, x, j);
     return acc;
 }
 
@@ -21871,15 +21878,7 @@ static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
     unsigned j;
     if (ly->acc32)
         return layer_acc32(ly, r, x);
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
+    FBG_ROW_SUM(acc, ly, r, x, j);
     return acc;
 }
 /* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
@@ -21987,6 +21986,7 @@ const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, cons
     output_accs(s, last, run_hidden(s, net, in, sat), acc);
     return last;
 }
+#undef FBG_ROW_SUM
 /* ---- src/fbg_stage_tracker.c ---- */
 /*
  * fbg_stage_tracker.c - the at-rest baseline tracker of fbg_step and its creep states
