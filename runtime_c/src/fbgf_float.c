@@ -1,7 +1,10 @@
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
  * build for FPU targets). Mirrors fbgforce.model's float64 reference operation by operation;
- * only this file uses float (check-nofloat leaves it out).
+ * only this file uses float (check-nofloat leaves it out). Its stages carry the names of the
+ * fixed-point build's (fbg_stages.h) with its own prefix: fbgf_front_stage, fbgf_filter_stage,
+ * fbgf_memory_stage, fbgf_contact_decision, fbgf_creep_update, fbgf_rest_track,
+ * fbgf_hold_stage; reset, tare and baseline are the front end's (FBG_FRONT_API, fbg_front.h).
  */
 #include <string.h>
 
