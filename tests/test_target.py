@@ -160,8 +160,8 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # unaligned fallback, and no input is copied. The exporter proves int32 accumulators for
     # this model's layers, so the SMLAD/SMMULR kernels run (docs/fixed-point.md).
     prof = dsp["profile_per_step"]
-    assert "rows2d32_asm" in prof and "rows3_asm" not in prof
-    assert "first2d32_asm" in prof  # first layers (<= 12 inputs): inputs held in registers
+    assert "fbg_dsp_rows2d32_asm" in prof and "fbg_dsp_rows3_asm" not in prof
+    assert "fbg_dsp_first2d32_asm" in prof  # first layers (<= 12 inputs): inputs held in registers
     assert "memcpy" not in prof
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]

@@ -7441,9 +7441,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     fbg_status st;
     uint32_t kernel, clamped = 0u;
     unsigned c;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbg_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbg_model_check(model);
     if (st != FBG_OK)
         return st;
     kernel = fbg_simd_resolve(options & FBG_OPT_KERNEL_MASK);
@@ -25139,9 +25137,7 @@ static void fbgf_memory_stage(fbgf_state *s, const fbgf_model *m, float *in, flo
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
 {
     fbg_status st;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbgf_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbgf_model_check(model);
     if (st != FBG_OK)
         return st;
     memset(state, 0, sizeof *state);

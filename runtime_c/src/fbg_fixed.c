@@ -60,9 +60,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     fbg_status st;
     uint32_t kernel, clamped = 0u;
     unsigned c;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbg_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbg_model_check(model);
     if (st != FBG_OK)
         return st;
     kernel = fbg_simd_resolve(options & FBG_OPT_KERNEL_MASK);

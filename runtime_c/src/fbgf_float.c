@@ -230,9 +230,7 @@ static void fbgf_memory_stage(fbgf_state *s, const fbgf_model *m, float *in, flo
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
 {
     fbg_status st;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbgf_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbgf_model_check(model);
     if (st != FBG_OK)
         return st;
     memset(state, 0, sizeof *state);
