@@ -5,7 +5,7 @@
 # Targets (everything goes to build/cm4*/, the host build is never touched):
 #   target-lib            build/cm4/libfbgforce.a: fixed-point library, portable C,
 #                         -mcpu=cortex-m4 -mthumb -mfloat-abi=soft
-#   target-lib-dsp        build/cm4-dsp/libfbgforce.a: the same with FBG_USE_DSP=1 (src/fbg_dsp.c:
+#   target-lib-dsp        build/cm4-dsp/libfbgforce.a: the same with FBG_USE_DSP=1 (src/fbg_dsp*.c:
 #                         SMLALD/SMLAL/USAT inner loops of the MLP layers and the FIR)
 #   target-lib-float      build/cm4f/libfbgforce_float.a: the float pipeline, hard float
 #                         -mfpu=fpv4-sp-d16 -mfloat-abi=hard

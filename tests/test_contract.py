@@ -125,9 +125,9 @@ def test_every_engine_has_each_kinds_update_rule():
     assert list(floatref.FLOAT_MEMORY) == names and list(intref.INT_MEMORY) == names
     src = render.ROOT / "runtime_c" / "src"
     for kind in contract.MEMORY_KINDS:
-        assert f"static unsigned {kind.name}_features(" in (src / "fbg_fixed.c").read_text()
+        assert f"static unsigned {kind.name}_features(" in (src / "fbg_stage_memory.c").read_text()
         assert f"static unsigned {kind.name}_features_f(" in (src / "fbgf_float.c").read_text()
-        assert f"static unsigned {kind.name}_features_avx2(" in (src / "fbg_simd_x86.c").read_text()
+        assert f"static unsigned {kind.name}_features_avx2(" in (src / "fbg_simd_x86_stages.c").read_text()
         assert kind.gain.optional and kind.counted_by.name != "gain"
         for param in kind.params:
             assert hasattr(artifact.Memory(), artifact.memory_attr(kind, param))

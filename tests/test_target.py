@@ -103,7 +103,7 @@ def test_nofloat_check_catches_a_float_helper(tools, tmp_path):
 @pytest.mark.target
 @pytest.mark.parametrize("dsp_asm", ["1", "0"], ids=["assembly", "acle-c"])
 def test_dsp_kernels_equal_the_rules_on_random_layers(tools, tmp_path, dsp_asm):
-    """fbg_dsp.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
+    """fbg_dsp*.c against docs/fixed-point.md on QEMU: odd widths, unaligned rows, all shifts,
     extreme multipliers, rounding ties, saturation, random FIR ring positions, the hidden-layer
     loop, the output rows' rounded product and the standardisation; the assembly kernels and
     (FBG_DSP_ASM=0) their ACLE C versions."""
@@ -160,8 +160,8 @@ def test_instruction_counts_and_figures(report, small_model_dir):
     # unaligned fallback, and no input is copied. The exporter proves int32 accumulators for
     # this model's layers, so the SMLAD/SMMULR kernels run (docs/fixed-point.md).
     prof = dsp["profile_per_step"]
-    assert "rows2d32_asm" in prof and "rows3_asm" not in prof
-    assert "first2d32_asm" in prof  # first layers (<= 12 inputs): inputs held in registers
+    assert "fbg_dsp_rows2d32_asm" in prof and "fbg_dsp_rows3_asm" not in prof
+    assert "fbg_dsp_first2d32_asm" in prof  # first layers (<= 12 inputs): inputs held in registers
     assert "memcpy" not in prof
     # A step without contact runs only the contact net: far cheaper than the worst step.
     assert dsp["instructions_per_step_no_contact_max"] < 0.6 * dsp["instructions_per_step"]

@@ -1,4 +1,4 @@
-/* dsp_kernel_test.c - the DSP-extension kernels of runtime_c/src/fbg_dsp.c against the
+/* dsp_kernel_test.c - the DSP-extension kernels of runtime_c/src/fbg_dsp*.c against the
  * arithmetic rules of docs/fixed-point.md, on random layers the golden vectors of one model
  * never reach: int16 and int8 weights, odd widths, rows starting at odd halfwords (unaligned words), every shift
  * 1..62, the largest multipliers the int64 bound proof allows (both signs), saturating and
@@ -39,7 +39,7 @@ static int16_t rnd16(void)
     return (int16_t)(v == -32768 ? -32767 : v); /* symmetric int16, as sat16 produces */
 }
 
-/* The rules, written from docs/fixed-point.md (not from fbg_fixed.c). */
+/* The rules, written from docs/fixed-point.md (not from the C stages). */
 static int64_t ref_rshift_round(int64_t x, unsigned s) { return (x + ((int64_t)1 << (s - 1u))) >> s; }
 
 static void ref_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
@@ -336,7 +336,7 @@ int main(void)
         first += !bits8 && shift >= 32u && (n == 2u || n == 4u || n == 6u);
         if (!bits8 && shift >= 32u && m >= 3u && !(n == 2u || n == 4u || n == 6u)) {
             ++fast;
-            /* The condition under which fbg_dsp.c takes the LDRD variant (rows3d_asm; a
+            /* The condition under which fbg_dsp_rows16.c takes the LDRD variant (rows3d_asm; a
              * misaligned input is copied to an aligned buffer first). */
             fast_aligned += (((uintptr_t)(W + off) & 3u) == 0u && (n & 1u) == 0u);
         }

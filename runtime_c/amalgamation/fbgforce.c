@@ -281,6 +281,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -380,32 +398,102 @@ static fbg_status take(const uint8_t *blob, size_t total, size_t *off, size_t nb
 
 /* The check order below is the contract: export/blob.py follows it step for step, so both
  * readers give every blob the same verdict and code (tests/test_blob_verdict.py). */
-fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+/* The blob's header: size, magic, version, CRC, byte order and alignment; *total = the size
+ * the header gives. */
+static fbg_status header_check(const uint8_t *blob, size_t len, size_t *total)
 {
-    size_t total, off;
-    unsigned n, l;
-    fbg_status st;
-    const void *where;
-
-    if (model == NULL || blob == NULL)
-        return FBG_ERR_NULL;
     if (len < FBG_BLOB_HEADER_SIZE)
         return FBG_ERR_TRUNCATED;
     if (memcmp(blob, "FBGM", 4) != 0)
         return FBG_ERR_BAD_MAGIC;
     if (rd16(blob + 4) != FBG_BLOB_VERSION || rd16(blob + 6) != 0u)
         return FBG_ERR_VERSION;
-    total = (size_t)rd32(blob + 8);
-    if (total > len)
+    *total = (size_t)rd32(blob + 8);
+    if (*total > len)
         return FBG_ERR_TRUNCATED;
-    if (total < FBG_PARAMS_END)
+    if (*total < FBG_PARAMS_END)
         return FBG_ERR_SIZE;
-    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
+    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, *total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
         return FBG_ERR_CRC;
     if (!host_is_little_endian())
         return FBG_ERR_ENDIAN;
     if (((uintptr_t)(const void *)blob & 7u) != 0u)
         return FBG_ERR_ALIGN;
+    return FBG_OK;
+}
+
+/* The layer table after the parameters: every layer's shape and kind; *off = its end. */
+static fbg_status layer_table(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    *off = FBG_PARAMS_END;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            const size_t at = *off;
+            if (at + FBG_LAYER_ENTRY > total)
+                return FBG_ERR_SIZE;
+            ly->n_in = rd16(blob + at);
+            ly->n_out = rd16(blob + at + 2);
+            ly->w_bits = blob[at + 4];
+            ly->shift = blob[at + 5];
+            ly->acc32 = blob[at + 6];
+            if (blob[at + 7] != 0u || ly->acc32 > 1u)
+                return FBG_ERR_RANGE;
+            *off = at + FBG_LAYER_ENTRY;
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (ly->w_bits != 8u && ly->w_bits != 16u)
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+/* The arrays after the table, each at an 8-aligned offset from *off on; sizes are bounded
+ * (<= 128*128*2 bytes each), so these sums cannot overflow size_t before they are compared
+ * with total. */
+static fbg_status arrays(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    fbg_status st;
+    const void *where;
+    if ((st = take(blob, total, off, 0u, &where)) != FBG_OK)   /* the table's padding */
+        return st;
+    if ((st = take(blob, total, off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
+        return st;
+    model->taps = (const int16_t *)where;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
+            if ((st = take(blob, total, off, nw, &where)) != FBG_OK)
+                return st;
+            if (ly->w_bits == 16u)
+                ly->w16 = (const int16_t *)where;
+            else
+                ly->w8 = (const int8_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
+                return st;
+            ly->bias = (const int64_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
+                return st;
+            ly->mult = (const int32_t *)where;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+{
+    size_t total = 0u, off = 0u;
+    fbg_status st;
+
+    if (model == NULL || blob == NULL)
+        return FBG_ERR_NULL;
+    st = header_check(blob, len, &total);
+    if (st != FBG_OK)
+        return st;
 
     memset(model, 0, sizeof *model);
     /* First, so that a state whose model this call overwrites, even if it then fails, sees
@@ -415,56 +503,12 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
     if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
         return FBG_ERR_RANGE;
     st = fbg_params_check(model);
+    if (st == FBG_OK)
+        st = layer_table(model, blob, total, &off);
+    if (st == FBG_OK)
+        st = arrays(model, blob, total, &off);
     if (st != FBG_OK)
         return st;
-
-    /* Layer table. */
-    off = FBG_PARAMS_END;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            if (off + FBG_LAYER_ENTRY > total)
-                return FBG_ERR_SIZE;
-            ly->n_in = rd16(blob + off);
-            ly->n_out = rd16(blob + off + 2);
-            ly->w_bits = blob[off + 4];
-            ly->shift = blob[off + 5];
-            ly->acc32 = blob[off + 6];
-            if (blob[off + 7] != 0u || ly->acc32 > 1u)
-                return FBG_ERR_RANGE;
-            off += FBG_LAYER_ENTRY;
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (ly->w_bits != 8u && ly->w_bits != 16u)
-                return FBG_ERR_RANGE;
-        }
-    }
-
-    /* Arrays, each at an 8-aligned offset; sizes are bounded (<= 128*128*2 bytes each), so
-     * these sums cannot overflow size_t before they are compared with total. */
-    if ((st = take(blob, total, &off, 0u, &where)) != FBG_OK)   /* the table's padding */
-        return st;
-    if ((st = take(blob, total, &off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
-        return st;
-    model->taps = (const int16_t *)where;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
-            if ((st = take(blob, total, &off, nw, &where)) != FBG_OK)
-                return st;
-            if (ly->w_bits == 16u)
-                ly->w16 = (const int16_t *)where;
-            else
-                ly->w8 = (const int8_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
-                return st;
-            ly->bias = (const int64_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
-                return st;
-            ly->mult = (const int32_t *)where;
-        }
-    }
     if (off != total)
         return FBG_ERR_SIZE;
     return fbg_model_check(model);
@@ -782,9 +826,17 @@ const char *fbg_status_str(int status)
 }
 /* ---- src/fbg_dsp.c ---- */
 /*
- * fbg_dsp.c - Cortex-M4 DSP-extension inner loops (FBG_USE_DSP=1); see fbg_dsp.h.
+ * fbg_dsp.c - which Cortex-M4 DSP kernel runs each layer (fbg_dsp.h): the int32 pair
+ * kernels for the layers the exporter writes, the int64, int8 and odd-height kernels for the rest,
+ * and the output layers' rows.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
  *
- * Why the results are bit-identical to the portable C of fbg_fixed.c:
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
  * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
  *   and associative as long as nothing overflows, and fbg_model_check proved
  *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
@@ -817,6 +869,9 @@ const char *fbg_status_str(int status)
  *   32-bit words; the comments at each step give the bound that makes the narrower
  *   arithmetic exact.
  */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
 /* ---- src/fbg_dsp.h ---- */
 /*
  * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
@@ -824,7 +879,7 @@ const char *fbg_status_str(int status)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -1065,6 +1120,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -1195,7 +1268,7 @@ static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t roun
     return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
 }
 
-/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_fixed.c; *clamped != 0 iff it clamped.
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
  * round = 2^(shift-1). */
 static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
                                  uint32_t *clamped)
@@ -1241,7 +1314,7 @@ static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
 #endif
 }
 
-/* sat16(max(v, 0)) with the flag of fbg_fixed.c (USAT after the ReLU, as the assembly). */
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
 static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
 {
     int32_t y;
@@ -1249,23 +1322,6 @@ static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
     y = __usat(v, 15);
     *clamped |= (uint32_t)(v - y);
     return y;
-}
-
-int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
-{
-    int64_t acc2 = 0;
-    unsigned j = 0;
-    for (; j + 4u <= n; j += 4u) {
-        acc = __smlald(ld2(w + j), ld2(x + j), acc);
-        acc2 = __smlald(ld2(w + j + 2u), ld2(x + j + 2u), acc2);
-    }
-    if (j + 2u <= n) {
-        acc = __smlald(ld2(w + j), ld2(x + j), acc);
-        j += 2u;
-    }
-    if (j < n)
-        acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc + acc2;
 }
 
 /* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
@@ -1295,122 +1351,56 @@ typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_d
 typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
                                    offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
 
-/* ---- The kernels in C with ACLE intrinsics: the FBG_DSP_ASM=0 versions of the assembly
- * further down, same jobs, same bits (any alignment: LDR may be unaligned on ARMv7E-M). With
- * GCC 12 they cost more instructions per step than the assembly, which therefore stays the
- * default (docs/firmware.md has the figures): GCC forms no LDRD from two word loads, advances
- * every row pointer with its own ADD and keeps ReLU as ASR + BIC. ---- */
-#if !FBG_DSP_ASM
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
 
-/* Requantise an int64 row with shift >= 32 (rounded_product_hi), ReLU, USAT #15. */
-static inline int32_t requant64(int64_t acc, int32_t mult, int64_t round, unsigned s32,
-                                uint32_t *clamped)
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
 {
-    return relu_usat15(rounded_product_hi(acc, mult, round) >> s32, clamped);
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
 }
 
-static inline int64_t job_round(const fbg_dsp_job *job)
+static inline int8x4_t ld4_8(const int8_t *p)
 {
-    return (int64_t)(((uint64_t)job->round_hi << 32) | job->round_lo);
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
 }
 
-/* Three int64 rows per pass (rows3_asm, rows3d_asm). */
-__attribute__((noinline)) static void rows3_c(fbg_dsp_job *job)
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
 {
-    const unsigned n = job->n, s32 = job->s32;
-    const int64_t round = job_round(job);
-    const int16_t *w = job->w, *x = job->x;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y;
-    uint32_t clamped = 0u, g;
-    for (g = job->groups; g > 0u; --g, w += 3u * n, bias += 3, mult += 3, y += 3) {
-        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n;
-        int64_t a0 = bias[0], a1 = bias[1], a2 = bias[2];
-        unsigned j = 0;
-        for (; j + 2u <= n; j += 2u) {
-            int16x2_t xv = ld2(x + j);
-            a0 = __smlald(ld2(w0 + j), xv, a0);
-            a1 = __smlald(ld2(w1 + j), xv, a1);
-            a2 = __smlald(ld2(w2 + j), xv, a2);
-        }
-        if (j < n) {
-            a0 += (int32_t)w0[j] * (int32_t)x[j];
-            a1 += (int32_t)w1[j] * (int32_t)x[j];
-            a2 += (int32_t)w2[j] * (int32_t)x[j];
-        }
-        y[0] = (int16_t)requant64(a0, mult[0], round, s32, &clamped);
-        y[1] = (int16_t)requant64(a1, mult[1], round, s32, &clamped);
-        y[2] = (int16_t)requant64(a2, mult[2], round, s32, &clamped);
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
     }
-    job->clamped = clamped != 0u;
 }
-
-/* A first layer of n = 2, 4 or 6 inputs held in registers, int64 rows (first_asm); n is a
- * constant at each call, so the row loop carries no test on it. */
-static inline void first_n(fbg_dsp_job *job, unsigned n)
-{
-    const int64_t round = job_round(job);
-    const unsigned s32 = job->s32;
-    const int16_t *w = job->w;
-    const int64_t *bias = job->bias;
-    const int32_t *mult = job->mult;
-    int16_t *y = job->y, *end = job->y + job->groups;
-    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
-                    x2 = n > 4u ? ld2(job->x + 4) : 0;
-    uint32_t clamped = 0u;
-    while (y != end) {
-        int64_t a = __smlald(ld2(w), x0, *bias++);
-        w += 2;
-        if (n > 2u) {
-            a = __smlald(ld2(w), x1, a);
-            w += 2;
-        }
-        if (n > 4u) {
-            a = __smlald(ld2(w), x2, a);
-            w += 2;
-        }
-        *y++ = (int16_t)requant64(a, *mult++, round, s32, &clamped);
-    }
-    job->clamped = clamped != 0u;
-}
-
-__attribute__((noinline)) static void first_c(fbg_dsp_job *job)
-{
-    if (job->n == 2u)
-        first_n(job, 2u);
-    else if (job->n == 4u)
-        first_n(job, 4u);
-    else
-        first_n(job, 6u);
-}
-
-/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
- * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
-__attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int16_t *x,
-                                                 int16_t *y, uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
-    const int16_t *w = ly->w16;
-    uint32_t clamped = 0u;
-    unsigned r;
-    for (r = 0; r < m2; r += 2u, w += 2u * n) {
-        const int16_t *w1 = w + n;
-        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
-        unsigned j;
-        for (j = 0; j < n; j += 2u) {
-            int16x2_t xv = ld2(x + j);
-            a0 = __smlad(ld2(w + j), xv, a0);
-            a1 = __smlad(ld2(w1 + j), xv, a1);
-        }
-        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
-        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
-    }
-    *sat |= clamped != 0u;
-}
-#endif /* !FBG_DSP_ASM */
 
 #if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
 /* The sticky Q flag (set by a USAT that clamped) into r12. */
 #define FBG_Q_READ                               \
         "mrs     r12, apsr\n\t"                  \
@@ -1444,293 +1434,859 @@ __attribute__((noinline)) static void rows2_32_c(const fbg_layer *ly, const int1
         "orr     r0, r0, r12\n\t"                \
         "str     r0, [r3]\n\t"
 
-/* rows3_asm: one input pair of three rows (r1: x, r0/r10/r11: the rows) into r5:r4, r7:r6, r9:r8;
- * FBG_ROWS3_PAIR_LOADS leaves out the last SMLALD, for a loop test to go before it. */
-#define FBG_ROWS3_PAIR_LOADS                     \
-        "ldr     r12, [r1], #4\n\t"              \
-        "ldr     r2, [r0], #4\n\t"               \
-        "smlald  r4, r5, r2, r12\n\t"            \
-        "ldr     r2, [r10], #4\n\t"              \
-        "smlald  r6, r7, r2, r12\n\t"            \
-        "ldr     r2, [r11], #4\n\t"
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
 
-/* The whole pair. */
-#define FBG_ROWS3_PAIR                           \
-        FBG_ROWS3_PAIR_LOADS                     \
-        "smlald  r8, r9, r2, r12\n\t"
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
 
-/* rows3d_asm: four inputs of three rows, each read with one LDRD. */
-#define FBG_ROWS3_QUAD                           \
-        "ldrd    r2, r3, [r1], #8\n\t"           \
-        "ldrd    r12, lr, [r0], #8\n\t"          \
-        "smlald  r4, r5, r12, r2\n\t"            \
-        "smlald  r4, r5, lr, r3\n\t"             \
-        "ldrd    r12, lr, [r10], #8\n\t"         \
-        "smlald  r6, r7, r12, r2\n\t"            \
-        "smlald  r6, r7, lr, r3\n\t"             \
-        "ldrd    r12, lr, [r11], #8\n\t"         \
-        "smlald  r8, r9, r12, r2\n\t"            \
-        "smlald  r8, r9, lr, r3\n\t"
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
 
-/* The requantisation and store of one row of rows3_asm and rows3d_asm (accumulator hi:lo). */
-#define FBG_ROWS3_REQUANT(lo, hi)                \
-        "ldr     r11, [r0], #4\n\t"              \
-        "add     " hi ", " hi ", " lo ", lsr #31\n\t" \
-        "smull   r12, " lo ", " lo ", r11\n\t"   \
-        "adds    r12, r12, r1\n\t"               \
-        "adc     " lo ", " lo ", r2\n\t"         \
-        "mla     " lo ", " hi ", r11, " lo "\n\t" \
-        "asr     " lo ", " lo ", lr\n\t"         \
-        "bic     " lo ", " lo ", " lo ", asr #31\n\t" \
-        "usat    r12, #15, " lo "\n\t"           \
-        "strh    r12, [r10], #2\n\t"
-
-/* The end of a group of three rows (job in r3): the next x, the three rows requantised and stored,
- * the multiplier and output pointers written back. */
-#define FBG_ROWS3_OUT                            \
-        "str     r11, [r3]\n\t"                  \
-        "ldr     r0, [r3, #12]\n\t"              \
-        "ldrd    r1, r2, [r3, #28]\n\t"          \
-        "ldr     lr, [r3, #36]\n\t"              \
-        "ldr     r10, [r3, #16]\n\t"             \
-        FBG_ROWS3_REQUANT("r4", "r5")            \
-        FBG_ROWS3_REQUANT("r6", "r7")            \
-        FBG_ROWS3_REQUANT("r8", "r9")            \
-        "str     r0, [r3, #12]\n\t"              \
-        "str     r10, [r3, #16]\n\t"
-
-/* A hidden layer with shift >= 32, three rows per pass, everything in registers:
- *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
- *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
- *         pairs: 30 instructions per 24 MACs; then 2, 1 pairs and 1 element for n % 8.
- *   requantisation per row (10 instructions): H = hi + bit31(lo); SMULL lo * mult, add
- *         2^(shift-1) (ADDS/ADC), MLA H * mult into the high word = floor(p / 2^32) (see
- *         rounded_product_hi), ASR by shift - 32, ReLU (BIC with ASR #31), USAT #15, STRH.
- *         USAT sets the sticky Q flag exactly when a (non-negative) value exceeds 32767, i.e.
- *         when the portable sat16 raises its flag: Q is cleared on entry, read into
- *         job->clamped on exit, and the caller's APSR restored.
- * GCC's own code for this spilled the accumulators around every row group (about 30
- * instructions per row against 10 here), hence hand-allocated registers in a naked function. */
-__attribute__((naked, noinline)) static void rows3_asm(fbg_dsp_job *job)
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
 {
-    (void)job;
-    __asm__ volatile(
-        FBG_Q_SAVE_CLEAR
-        "mov     r3, r0\n\t"
-        "0:\n\t"
-        "ldr     r12, [r3, #8]\n\t"
-        "ldrd    r4, r5, [r12]\n\t"
-        "ldrd    r6, r7, [r12, #8]\n\t"
-        "ldrd    r8, r9, [r12, #16]\n\t"
-        "add     r12, r12, #24\n\t"
-        "str     r12, [r3, #8]\n\t"
-        "ldr     r0, [r3]\n\t"
-        "ldr     r12, [r3, #20]\n\t"
-        "add     r10, r0, r12, lsl #1\n\t"
-        "add     r11, r10, r12, lsl #1\n\t"
-        "ldr     r1, [r3, #4]\n\t"
-        "bic     lr, r12, #7\n\t"
-        "add     lr, r1, lr, lsl #1\n\t"
-        "cmp     r1, lr\n\t"
-        "beq     2f\n\t"
-        "1:\n\t"
-        FBG_ROWS3_PAIR
-        FBG_ROWS3_PAIR
-        FBG_ROWS3_PAIR
-        FBG_ROWS3_PAIR_LOADS
-        "cmp     r1, lr\n\t"
-        "smlald  r8, r9, r2, r12\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "ldr     lr, [r3, #20]\n\t"
-        "tst     lr, #4\n\t"
-        "beq     3f\n\t"
-        FBG_ROWS3_PAIR
-        FBG_ROWS3_PAIR
-        "3:\n\t"
-        "tst     lr, #2\n\t"
-        "beq     4f\n\t"
-        FBG_ROWS3_PAIR
-        "4:\n\t"
-        "tst     lr, #1\n\t"
-        "beq     5f\n\t"
-        "ldrsh   r12, [r1]\n\t"
-        "ldrsh   r2, [r0]\n\t"
-        "smlalbb r4, r5, r2, r12\n\t"
-        "ldrsh   r2, [r10]\n\t"
-        "smlalbb r6, r7, r2, r12\n\t"
-        "ldrsh   r2, [r11], #2\n\t"
-        "smlalbb r8, r9, r2, r12\n\t"
-        "5:\n\t"
-        FBG_ROWS3_OUT
-        "ldr     r12, [r3, #24]\n\t"
-        "subs    r12, r12, #1\n\t"
-        "str     r12, [r3, #24]\n\t"
-        "bne     0b\n\t"
-        FBG_Q_RESTORE("r3")
-        "bx      lr\n\t");
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
 }
 
-/* rows3_asm for word-aligned inputs and rows (x and w 4-byte aligned, n even), the usual case
- * (activation buffers in fbg_state, generated arrays and blob arrays are word-aligned): LDRD
- * fetches four inputs or four weights of a row in one instruction, so sixteen inputs of
- * three rows cost 4 x (1 + 3 x 3) + 3 = 43 instructions per 48 MACs (0.90) instead of 60;
- * with all four temporaries in use, the job pointer, the loop end, n and the end of the
- * output live on the stack (computed once per layer; the group loop ends at the last output). Then 8, 4 and 2 inputs for n % 16. Same
- * arithmetic, same requantisation as rows3_asm. (LDRD needs word alignment: the caller
- * checks it, the unaligned case stays with rows3_asm.) */
-__attribute__((naked, noinline)) static void rows3d_asm(fbg_dsp_job *job)
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
 {
-    (void)job;
-    __asm__ volatile(
-        FBG_Q_SAVE_CLEAR
-        "sub     sp, sp, #16\n\t"
-        "str     r0, [sp]\n\t"
-        "ldr     r12, [r0, #24]\n\t"
-        "ldr     r1, [r0, #16]\n\t"
-        "add     r12, r12, r12, lsl #1\n\t"
-        "add     r12, r1, r12, lsl #1\n\t"
-        "str     r12, [sp, #12]\n\t"
-        "ldr     r12, [r0, #20]\n\t"
-        "str     r12, [sp, #8]\n\t"
-        "ldr     r1, [r0, #4]\n\t"
-        "bic     r12, r12, #15\n\t"
-        "add     r12, r1, r12, lsl #1\n\t"
-        "str     r12, [sp, #4]\n\t"
-        "0:\n\t"
-        "ldr     r3, [sp]\n\t"
-        "ldr     r12, [r3, #8]\n\t"
-        "ldrd    r4, r5, [r12], #8\n\t"
-        "ldrd    r6, r7, [r12], #8\n\t"
-        "ldrd    r8, r9, [r12], #8\n\t"
-        "str     r12, [r3, #8]\n\t"
-        "ldr     r0, [r3]\n\t"
-        "ldr     r12, [sp, #8]\n\t"
-        "add     r10, r0, r12, lsl #1\n\t"
-        "add     r11, r10, r12, lsl #1\n\t"
-        "ldr     r1, [r3, #4]\n\t"
-        "ldr     lr, [sp, #4]\n\t"
-        "cmp     r1, lr\n\t"
-        "beq     2f\n\t"
-        "1:\n\t"
-        FBG_ROWS3_QUAD
-        FBG_ROWS3_QUAD
-        FBG_ROWS3_QUAD
-        FBG_ROWS3_QUAD
-        "ldr     r12, [sp, #4]\n\t"
-        "cmp     r1, r12\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "ldr     r12, [sp, #8]\n\t"
-        "tst     r12, #8\n\t"
-        "beq     3f\n\t"
-        FBG_ROWS3_QUAD
-        FBG_ROWS3_QUAD
-        "3:\n\t"
-        "ldr     r12, [sp, #8]\n\t"
-        "lsls    r12, r12, #30\n\t"
-        "bcc     4f\n\t"
-        FBG_ROWS3_QUAD
-        "4:\n\t"
-        "bpl     5f\n\t"
-        "ldr     r2, [r1], #4\n\t"
-        "ldr     r12, [r0], #4\n\t"
-        "smlald  r4, r5, r12, r2\n\t"
-        "ldr     r12, [r10], #4\n\t"
-        "smlald  r6, r7, r12, r2\n\t"
-        "ldr     r12, [r11], #4\n\t"
-        "smlald  r8, r9, r12, r2\n\t"
-        "5:\n\t"
-        "ldr     r3, [sp]\n\t"
-        FBG_ROWS3_OUT
-        "ldr     r12, [sp, #12]\n\t"
-        "cmp     r10, r12\n\t"
-        "bne     0b\n\t"
-        "add     sp, sp, #16\n\t"
-        FBG_Q_RESTORE("r3")
-        "bx      lr\n\t");
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
 }
 
-/* first_asm: the requantisation and store of one row (accumulator r9:r8, the rounding constant
- * on the stack, shift - 32 in r7), then the loop test against the output end r12. */
-#define FBG_FIRST_ROW_OUT                        \
-        "ldr     lr, [r2], #4\n\t"               \
-        "add     r9, r9, r8, lsr #31\n\t"        \
-        "ldrd    r10, r11, [sp]\n\t"             \
-        "smlal   r10, r11, r8, lr\n\t"           \
-        "mla     r11, r9, lr, r11\n\t"           \
-        "asr     r11, r11, r7\n\t"               \
-        "bic     r11, r11, r11, asr #31\n\t"     \
-        "usat    r11, #15, r11\n\t"              \
-        "strh    r11, [r3], #2\n\t"              \
-        "cmp     r3, r12\n\t"
+#endif /* FBG_USE_DSP */
 
-/* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
- * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
- * LDRD of its bias, one LDR + SMLALD per input pair, the requantisation of rows3_asm (with
- * the rounding constant kept on the stack, read with one LDRD: 9 instructions) and the loop
- * test: 16 instructions per row for 4 inputs against about 27 through rows3_asm, whose
- * bookkeeping per three rows is written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
- * the number of ROWS here. */
-__attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
+ * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
+#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
+typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
+                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
+
+/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
+ * writes) with n even, at least two rows, the weights and y word-aligned and, beyond
+ * FBG_DSP_FIRST_MAX_IN inputs (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
+ * give. The fields are read two words at a time: this runs for every layer of every step. */
+static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
+                             unsigned *n_out)
 {
-    (void)job;
-    __asm__ volatile(
-        FBG_Q_SAVE_CLEAR
-        "sub     sp, sp, #16\n\t"
-        "ldrd    r10, r11, [r0, #28]\n\t"
-        "strd    r10, r11, [sp]\n\t"
-        "str     r0, [sp, #8]\n\t"
-        "ldr     r7, [r0, #36]\n\t"
-        "ldr     r3, [r0, #16]\n\t"
-        "ldr     r12, [r0, #24]\n\t"
-        "add     r12, r3, r12, lsl #1\n\t"
-        "ldr     r1, [r0, #8]\n\t"
-        "ldr     r2, [r0, #12]\n\t"
-        "ldr     lr, [r0, #20]\n\t"
-        "ldr     r10, [r0, #4]\n\t"
-        "ldr     r0, [r0]\n\t"
-        "ldr     r4, [r10]\n\t"
-        "cmp     lr, #4\n\t"
-        "blo     2f\n\t"
-        "ldr     r5, [r10, #4]\n\t"
-        "beq     4f\n\t"
-        "ldr     r6, [r10, #8]\n\t"
-        "b       6f\n\t"
-        "2:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
-        FBG_FIRST_ROW_OUT
-        "bne     2b\n\t"
-        "b       9f\n\t"
-        "4:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r5\n\t"
-        FBG_FIRST_ROW_OUT
-        "bne     4b\n\t"
-        "b       9f\n\t"
-        "6:\n\t"
-        "ldrd    r8, r9, [r1], #8\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r4\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r5\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        "smlald  r8, r9, r10, r6\n\t"
-        FBG_FIRST_ROW_OUT
-        "bne     6b\n\t"
-        "b       9f\n\t"
-        "9:\n\t"
-        "ldr     r0, [sp, #8]\n\t"
-        "add     sp, sp, #16\n\t"
-        FBG_Q_RESTORE("r0")
-        "bx      lr\n\t");
+    uint32_t dims, kind;
+    unsigned n;
+    memcpy(&dims, &ly->n_in, sizeof dims);
+    memcpy(&kind, &ly->w_bits, sizeof kind);
+    n = dims & 0xFFFFu;
+    *n_out = dims >> 16;
+    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
+           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > FBG_DSP_FIRST_MAX_IN ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
 }
 
+/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
+static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                                   uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
+        run_pairs32(ly, x, y, ly->n_in, sat);
+        fbg_dsp_hidden16_32(ly, x, y, m - 1u, sat);
+    }
+#if FBG_DSP_ASM
+    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
+             (ly->n_in & 1u) == 0u && ((uintptr_t)y & 3u) == 0u &&
+             (ly->n_in <= 8u || ((uintptr_t)x & 3u) == 0u)) {
+        /* int8 weights (int32 by construction), shift 32: the pairs in first2b32_asm (n <= 8)
+         * or rows2b32_asm, the last row of an odd layer with dot8_32. */
+        if (ly->n_in <= 8u)
+            fbg_dsp_first2b32_asm(ly, x, y, sat);
+        else
+            fbg_dsp_rows2b32_asm(ly, x, y, sat);
+        if (m & 1u) {
+            uint32_t clamped = 0u;
+            y[m - 1u] = (int16_t)relu_usat15(
+                smmulr(fbg_dsp_dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
+                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
+            *sat |= clamped != 0u;
+        }
+    }
+#endif
+    else if (ly->w_bits == 16u && ly->acc32)
+        fbg_dsp_hidden16_32(ly, x, y, 0u, sat);
+    else if (ly->w_bits == 16u)
+        fbg_dsp_hidden16(ly, x, y, sat);
+    else
+        fbg_dsp_hidden8(ly, x, y, sat);
+}
+
+static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned m;
+    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
+        run_pairs32(ly, x, y, ly->n_in, sat);
+    else
+        hidden_other(ly, x, y, sat);
+}
+
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    hidden_layer(ly, x, y, sat);
+}
+
+/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
+typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
+
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
+{
+    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
+     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
+     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
+    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
+    uintptr_t x_odd = (uintptr_t)x & 3u;
+    unsigned buf = 0u;
+    for (; ly != end; ++ly, buf ^= 1u) {
+        int16_t *const y = act[buf];
+        uint32_t dims, kind;
+        unsigned n;
+        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
+        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
+        n = dims & 0xFFFFu;
+        /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
+        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u)) == 0u &&
+            (n <= FBG_DSP_FIRST_MAX_IN || x_odd == 0u))
+            run_pairs32(ly, x, y, n, sat);
+        else
+            hidden_other(ly, x, y, sat);
+        x = y;
+        x_odd = 0u;
+    }
+    return x;
+}
+
+
+/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
+static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    const unsigned n = ly->n_in;
+    if (ly->w_bits == 16u) {
+        const int16_t *w = ly->w16 + (size_t)r * n;
+#if FBG_DSP_ASM
+        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
+            return fbg_dsp_dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+#endif
+        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
+    }
+    return fbg_dsp_dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
+}
+
+static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    if (ly->acc32)
+        return row_acc32(ly, r, x);
+    if (ly->w_bits == 16u)
+        return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
+    return fbg_dsp_row_acc8(ly, r, x);
+}
+
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    return row_acc(ly, r, x);
+}
+
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+#if FBG_DSP_ASM
+    const unsigned n = ly->n_in;
+    if (ly->acc32 && ly->w_bits == 16u &&
+        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
+        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
+        const int16_t *w = ly->w16;
+        for (r = 0; r < ly->n_out; ++r, w += n)
+            acc[r] = fbg_dsp_dot32_asm(w, x, n, (int32_t)ly->bias[r]);
+        return;
+    }
+#endif
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = row_acc(ly, r, x);
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_unused;
+#endif
+#undef FBG_DSP_PAIRS_KIND
+/* ---- src/fbg_dsp_fir.c ---- */
+/*
+ * fbg_dsp_fir.c - the filter stage on the Cortex-M4 DSP extension: the FIR of the four strain
+ * channels (SMLAL, fir4_asm) and the standardisation after it on 32-bit words.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
 
 /* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
  * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
@@ -1762,669 +2318,67 @@ __attribute__((naked, noinline)) static void first_asm(fbg_dsp_job *job)
         "ldr     pc, [sp, #24]\n\t"              \
         "9:\n\t"                                 \
         "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
 
-/* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
- * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
- * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
- * 16x16 products added to a 32-bit accumulator, which cannot overflow here and so never sets
- * Q) gives the same number as the int64 sum, in ONE register per row; and
- * rshift_round(acc * mult, 32) is exactly SMMULR (the high word of acc * mult + 2^31).
- *
- * Both kernels below take the layer itself (fbg_layer offsets checked above), run TWO rows
- * per pass over every pair of rows (n_out & ~1; the caller runs the last row of an odd layer)
- * and finish a pass with the same 9-instruction requantisation of the pair: LDRD of the two
- * multipliers, SMMULR x 2, ReLU as BIC with ASR #31 x 2, USAT #15 x 2 (Q set exactly when a
- * non-negative value exceeds 32767, i.e. when the portable sat16 raises its flag), PKHBT and
- * one STR of both outputs (y word-aligned, row r in the low half: little-endian). The pair's
- * two int32 biases come with one LDM of the int64 pair {lo, hi, lo, hi} (the high words land
- * in scratch registers). Q is cleared on entry and ORed into *sat on exit (1 iff a row
- * clamped); the AAPCS leaves Q and the condition flags undefined across calls, so the
- * caller's are not restored.
- *
- * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
- * 8-input block, fully unrolled,
- *     LDM x!, {4 words}; LDM rowA!, {4 words}; SMLAD x 4; LDM rowB!, {4 words}; SMLAD x 4
- * = 11 instructions per 16 MACs (0.69) with no loop test: every block is 44 bytes, so a layer
- * of n inputs enters the body n / 8 blocks before its end (computed once per layer, kept in
- * r2), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX r2) when there
- * is one. Fourteen registers are live in the body (two row pointers, x in lr, four inputs,
- * four weights, two accumulators, the entry); the bias, multiplier and output pointers, the
- * output end, the row length and the start of x live in a stack frame, read with one LDM
- * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
- * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
- * instructions. */
-__attribute__((naked, noinline)) static void rows2d32_asm(const fbg_layer *ly, const int16_t *x,
-                                                          int16_t *y, uint32_t *sat)
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
-    __asm__ volatile(
-        FBG_Q_CLEAR_PUSH
-        /* frame: [sp] bias, [4] mult, [8] out, [12] out end (after the last pair),
-         * [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
-         * [28] sat; written with one STM */
-        "sub     sp, sp, #32\n\t"
-        "mov     r10, r3\n\t"
-        "ldr     r11, [r0]\n\t"
-        "ldrd    r3, r4, [r0, #16]\n\t"
-        "ldr     r0, [r0, #8]\n\t"
-        "mov     r5, r2\n\t"
-        "lsr     r6, r11, #16\n\t"
-        "bic     r6, r6, #1\n\t"
-        "add     r6, r2, r6, lsl #1\n\t"
-        "uxth    r11, r11\n\t"
-        "lsl     r7, r11, #1\n\t"
-        "mov     r8, r1\n\t"
-        "mov     lr, r1\n\t"
-        "add     r1, r0, r7\n\t"
-        "adr.w   r2, 8f\n\t"
-        "lsr     r12, r11, #3\n\t"
-        "mov     r9, #44\n\t"
-        "mls     r2, r12, r9, r2\n\t"
-        "orr     r2, r2, #1\n\t"
-        "mov     r9, r2\n\t"
-        "ands    r12, r11, #6\n\t"
-        "beq     1f\n\t"
-        "adr.w   r9, 72f\n\t"
-        "cmp     r12, #2\n\t"
-        "beq     0f\n\t"
-        "adr.w   r9, 74f\n\t"
-        "cmp     r12, #4\n\t"
-        "beq     0f\n\t"
-        "adr.w   r9, 76f\n\t"
-        "0:\n\t"
-        "orr     r9, r9, #1\n\t"
-        "1:\n\t"
-        "add     r3, r3, #16\n\t"
-        "stm     sp, {r3-r10}\n\t"
-        "ldmdb   r3, {r9-r12}\n\t"
-        "ldr     pc, [sp, #24]\n\t"
-        /* tails: 2, 4, 6 inputs, then into the body */
-        "72:\n\t"
-        "ldr     r3, [lr], #4\n\t"
-        "ldr     r7, [r0], #4\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "ldr     r7, [r1], #4\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "bx      r2\n\t"
-        "74:\n\t"
-        "ldrd    r3, r4, [lr], #8\n\t"
-        "ldrd    r7, r8, [r0], #8\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "ldrd    r7, r8, [r1], #8\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "bx      r2\n\t"
-        "76:\n\t"
-        "ldmia.w lr!, {r3-r5}\n\t"
-        "ldmia.w r0!, {r7, r8, r10}\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "ldmia.w r1!, {r7, r8, r10}\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "bx      r2\n\t"
-        /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
-        ".rept   16\n\t"
-        "ldmia.w lr!, {r3-r6}\n\t"
-        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"
-        "smlad   r9, r7, r3, r9\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r9, r10, r5, r9\n\t"
-        "smlad   r9, r12, r6, r9\n\t"
-        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"
-        "smlad   r11, r7, r3, r11\n\t"
-        "smlad   r11, r8, r4, r11\n\t"
-        "smlad   r11, r10, r5, r11\n\t"
-        "smlad   r11, r12, r6, r11\n\t"
-        ".endr\n\t"
-        FBG_ROWS2_PASS_END
-        "add     sp, sp, #32\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
-}
-
-/* The requantisation and store of a pair in first2d32_asm. */
-#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3")
-
-/* One pair of a 6-input first layer (inputs in r4-r6). */
-#define FBG_PAIR6                                \
-        "ldmia   r1!, {r9-r12}\n\t"              \
-        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
-        "smlad   r9, r8, r4, r9\n\t"             \
-        "smlad   r9, r10, r5, r9\n\t"            \
-        "smlad   r9, r12, r6, r9\n\t"            \
-        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
-        "smlad   r11, r8, r4, r11\n\t"           \
-        "smlad   r11, r10, r5, r11\n\t"          \
-        "smlad   r11, r12, r6, r11\n\t"          \
-        FBG_PAIR_OUT
-
-/* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
-#define FBG_PAIR8                                \
-        "ldmia   r1!, {r9-r12}\n\t"              \
-        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
-        "smlad   r9, r8, r4, r9\n\t"             \
-        "smlad   r9, r10, r5, r9\n\t"            \
-        "smlad   r9, r12, r6, r9\n\t"            \
-        "smlad   r9, lr, r7, r9\n\t"             \
-        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
-        "smlad   r11, r8, r4, r11\n\t"           \
-        "smlad   r11, r10, r5, r11\n\t"          \
-        "smlad   r11, r12, r6, r11\n\t"          \
-        "smlad   r11, lr, r7, r11\n\t"           \
-        FBG_PAIR_OUT
-
-/* One pair of a 10-input first layer: inputs in r4-r8, accumulators r9 and r11, three
- * registers left for the weights (an LDM of 3 and one of 2 words per row). */
-#define FBG_PAIR10                               \
-        "ldmia   r1!, {r9-r12}\n\t"              \
-        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
-        "smlad   r9, r10, r4, r9\n\t"            \
-        "smlad   r9, r12, r5, r9\n\t"            \
-        "smlad   r9, lr, r6, r9\n\t"             \
-        "ldrd    r10, r12, [r0], #8\n\t"         \
-        "smlad   r9, r10, r7, r9\n\t"            \
-        "smlad   r9, r12, r8, r9\n\t"            \
-        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
-        "smlad   r11, r10, r4, r11\n\t"          \
-        "smlad   r11, r12, r5, r11\n\t"          \
-        "smlad   r11, lr, r6, r11\n\t"           \
-        "ldrd    r10, r12, [r0], #8\n\t"         \
-        "smlad   r11, r10, r7, r11\n\t"          \
-        "smlad   r11, r12, r8, r11\n\t"          \
-        FBG_PAIR_REQUANT("r2", "r10", "r12", "r9", "r11", "r3")
-
-/* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
- * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
-#define FBG_PAIR12                               \
-        "ldmia   r1!, {r10-r12, lr}\n\t"         \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r10, r11, r4, r10\n\t"          \
-        "smlad   r10, lr, r5, r10\n\t"           \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r10, r11, r6, r10\n\t"          \
-        "smlad   r10, lr, r7, r10\n\t"           \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r10, r11, r8, r10\n\t"          \
-        "smlad   r10, lr, r9, r10\n\t"           \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r12, r11, r4, r12\n\t"          \
-        "smlad   r12, lr, r5, r12\n\t"           \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r12, r11, r6, r12\n\t"          \
-        "smlad   r12, lr, r7, r12\n\t"           \
-        "ldrd    r11, lr, [r0], #8\n\t"          \
-        "smlad   r12, r11, r8, r12\n\t"          \
-        "smlad   r12, lr, r9, r12\n\t"           \
-        FBG_PAIR_REQUANT("r2", "r11", "lr", "r10", "r12", "r3")
-
-/* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
- * the memory features and location averages), two rows per pass: the inputs stay in registers
- * (r4-r9 as int16 pairs, read once with LDR, which may be unaligned); the two rows are
- * adjacent in memory, so one pointer walks both (one LDRD or LDM per row, or one LDM for both
- * at n = 4). Per pair: LDM of the biases, the weights, n SMLAD, the 9-instruction
- * requantisation and the loop test (CMP with the output end, held in r7 for n <= 6): 15 and 17
- * instructions for 4 and 8 MACs. The n = 6, 8 and 10 loops run two pairs per test (entered at
- * their second pair for an odd number of pairs): 38 instructions per 24 MACs, and from n = 8
- * on, where the end is read from the stack, 43 per 32 and 51 per 40 (two loads per row at
- * n = 10: three registers are left for weights). n = 12 runs one pair per test, 31
- * instructions per 24 MACs. Weights and y word-aligned (the caller checks). */
-__attribute__((naked, noinline)) static void first2d32_asm(const fbg_layer *ly, const int16_t *x,
-                                                           int16_t *y, uint32_t *sat)
-{
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
-    __asm__ volatile(
-        FBG_Q_CLEAR_PUSH
-        "sub     sp, sp, #8\n\t"
-        "str     r3, [sp, #4]\n\t"
-        "mov     r3, r2\n\t"
-        "ldrh    r9, [r0, #2]\n\t"
-        "bic     r7, r9, #1\n\t"
-        "add     r7, r3, r7, lsl #1\n\t"
-        "str     r7, [sp]\n\t"
-        "mov     r10, r1\n\t"
-        "ldr     r1, [r0, #16]\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "ldrh    r12, [r0]\n\t"
-        "ldr     r0, [r0, #8]\n\t"
-        "ldr     r4, [r10]\n\t"
-        "cmp     r12, #4\n\t"
-        "blo     2f\n\t"
-        "ldr     r5, [r10, #4]\n\t"
-        "beq     4f\n\t"
-        "ldr     r6, [r10, #8]\n\t"
-        "cmp     r12, #6\n\t"
-        "bne     7f\n\t"
-        "tst     r9, #2\n\t"
-        "bne     61f\n\t"
-        "b       6f\n\t"
-        "7:\n\t"
-        "ldr     r7, [r10, #12]\n\t"
-        "ubfx    r11, r9, #1, #2\n\t"
-        "cmp     r12, #8\n\t"
-        "bne     10f\n\t"
-        "cmp     r11, #2\n\t"
-        "beq     83f\n\t"
-        "bhi     82f\n\t"
-        "cmp     r11, #1\n\t"
-        "beq     84f\n\t"
-        "b       8f\n\t"
-        "2:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldrd    r8, r10, [r0], #8\n\t"
-        "smlad   r9, r8, r4, r9\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
-        FBG_PAIR_OUT
-        "cmp     r3, r7\n\t"
-        "bne     2b\n\t"
-        "b       9f\n\t"
-        "4:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldmia.w r0!, {r6, r8, r10, r12}\n\t"
-        "smlad   r9, r6, r4, r9\n\t"
-        "smlad   r9, r8, r5, r9\n\t"
-        "smlad   r11, r10, r4, r11\n\t"
-        "smlad   r11, r12, r5, r11\n\t"
-        FBG_PAIR_OUT
-        "cmp     r3, r7\n\t"
-        "bne     4b\n\t"
-        "b       9f\n\t"
-        "6:\n\t"
-        FBG_PAIR6
-        "61:\n\t"
-        FBG_PAIR6
-        "cmp     r3, r7\n\t"
-        "bne     6b\n\t"
-        "b       9f\n\t"
-        "8:\n\t"
-        FBG_PAIR8
-        "82:\n\t"
-        FBG_PAIR8
-        "83:\n\t"
-        FBG_PAIR8
-        "84:\n\t"
-        FBG_PAIR8
-        "ldr     r8, [sp]\n\t"
-        "cmp     r3, r8\n\t"
-        "bne     8b\n\t"
-        "b       9f\n\t"
-        "10:\n\t"
-        "ldr     r8, [r10, #16]\n\t"
-        "cmp     r12, #10\n\t"
-        "bne     12f\n\t"
-        "cmp     r11, #2\n\t"
-        "beq     103f\n\t"
-        "bhi     102f\n\t"
-        "cmp     r11, #1\n\t"
-        "beq     104f\n\t"
-        "100:\n\t"
-        FBG_PAIR10
-        "102:\n\t"
-        FBG_PAIR10
-        "103:\n\t"
-        FBG_PAIR10
-        "104:\n\t"
-        FBG_PAIR10
-        "ldr     r12, [sp]\n\t"
-        "cmp     r3, r12\n\t"
-        "bne     100b\n\t"
-        "b       9f\n\t"
-        "12:\n\t"
-        "ldr     r9, [r10, #20]\n\t"
-        "120:\n\t"
-        FBG_PAIR12
-        "ldr     r11, [sp]\n\t"
-        "cmp     r3, r11\n\t"
-        "bne     120b\n\t"
-        "9:\n\t"
-        "ldr     r3, [sp, #4]\n\t"
-        "add     sp, sp, #8\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
-}
-#undef FBG_PAIR12
-#undef FBG_PAIR10
-#undef FBG_PAIR8
-#undef FBG_PAIR6
-#undef FBG_PAIR_OUT
-
-/* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
- * fbg_dsp_row_acc), w and x word-aligned, n even: 8 inputs per LDM pair and four SMLAD
- * (8 instructions per 8 MACs with the loop test), then the n % 8 inputs two at a time. */
-__attribute__((naked, noinline)) static int32_t dot32_asm(const int16_t *w, const int16_t *x,
-                                                          unsigned n, int32_t acc)
-{
-    (void)w;
-    (void)x;
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
     (void)n;
-    (void)acc;
-    __asm__ volatile(
-        "push    {r4-r11}\n\t"
-        "bic     r12, r2, #7\n\t"
-        "add     r12, r0, r12, lsl #1\n\t"
-        "cmp     r0, r12\n\t"
-        "beq     2f\n\t"
-        "1:\n\t"
-        "ldmia   r1!, {r4-r7}\n\t"
-        "ldmia   r0!, {r8-r11}\n\t"
-        "smlad   r3, r8, r4, r3\n\t"
-        "smlad   r3, r9, r5, r3\n\t"
-        "smlad   r3, r10, r6, r3\n\t"
-        "smlad   r3, r11, r7, r3\n\t"
-        "cmp     r0, r12\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "ands    r2, r2, #7\n\t"
-        "beq     4f\n\t"
-        "3:\n\t"
-        "ldr     r4, [r1], #4\n\t"
-        "ldr     r8, [r0], #4\n\t"
-        "smlad   r3, r8, r4, r3\n\t"
-        "subs    r2, r2, #2\n\t"
-        "bne     3b\n\t"
-        "4:\n\t"
-        "mov     r0, r3\n\t"
-        "pop     {r4-r11}\n\t"
-        "bx      lr\n\t");
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
 }
 
-/* One group of rows2b32_asm's loop: 8 inputs (x words in r3-r6) of rows r0 and r1, int8
- * weights widened by SXTB16 into the accumulators r9 and r11. */
-#define ROWS2B32_GROUP \
-        "ldmia.w lr!, {r3-r6}\n\t" \
-        "ldr     r7, [r0], #4\n\t" \
-        "ldr     r8, [r0], #4\n\t" \
-        "sxtb16  r10, r7\n\t" \
-        "smlad   r9, r10, r3, r9\n\t" \
-        "sxtb16  r10, r7, ror #8\n\t" \
-        "smlad   r9, r10, r4, r9\n\t" \
-        "sxtb16  r10, r8\n\t" \
-        "smlad   r9, r10, r5, r9\n\t" \
-        "sxtb16  r10, r8, ror #8\n\t" \
-        "smlad   r9, r10, r6, r9\n\t" \
-        "ldr     r7, [r1], #4\n\t" \
-        "ldr     r8, [r1], #4\n\t" \
-        "sxtb16  r10, r7\n\t" \
-        "smlad   r11, r10, r3, r11\n\t" \
-        "sxtb16  r10, r7, ror #8\n\t" \
-        "smlad   r11, r10, r4, r11\n\t" \
-        "sxtb16  r10, r8\n\t" \
-        "smlad   r11, r10, r5, r11\n\t" \
-        "sxtb16  r10, r8, ror #8\n\t" \
-        "smlad   r11, r10, r6, r11\n\t"
-
-/* Four inputs of the tail of rows2b32_asm (x words in r3, r4) of rows r0 and r1. */
-#define ROWS2B32_TAIL4                           \
-        "ldrd    r3, r4, [lr], #8\n\t"           \
-        "ldr     r7, [r0], #4\n\t"               \
-        "sxtb16  r10, r7\n\t"                    \
-        "smlad   r9, r10, r3, r9\n\t"            \
-        "sxtb16  r10, r7, ror #8\n\t"            \
-        "smlad   r9, r10, r4, r9\n\t"            \
-        "ldr     r7, [r1], #4\n\t"               \
-        "sxtb16  r10, r7\n\t"                    \
-        "smlad   r11, r10, r3, r11\n\t"          \
-        "sxtb16  r10, r7, ror #8\n\t"            \
-        "smlad   r11, r10, r4, r11\n\t"
-
-/* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
- * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
- * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
- * (as hidden8 does, 8 inputs per LDM, two PKHBT, two PKHTB, STM): per group of four
- * (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
- * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
- * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
- *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD)
- * = 21 instructions per 16 MACs, two such groups per loop test (CMP, BNE; an odd number of
- * groups enters the loop at its second). The n % 8 inputs after the loop: four (LDRD of two input
- * words, per row LDR + 2 SXTB16 + 2 SMLAD) and/or two (per row two LDRSB and SMLABB, SMLATB
- * with the natural pair), entered through a per-layer address in the frame. Requantisation,
- * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
- * comes from USAT). */
-__attribute__((naked, noinline)) static void rows2b32_asm(const fbg_layer *ly, const int16_t *x,
-                                                          int16_t *y, uint32_t *sat)
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
 {
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
-    __asm__ volatile(
-        FBG_Q_CLEAR_PUSH
-        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
-         * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
-         * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
-         * MAC loop */
-        "sub     sp, sp, #296\n\t"
-        "str     r3, [sp, #28]\n\t"
-        "ldrh    r8, [r0]\n\t"
-        /* x (word-aligned) re-paired into xp: LDM of 8 inputs, PKHBT/PKHTB, STM */
-        "add     r12, sp, #40\n\t"
-        "bic     r7, r8, #7\n\t"
-        "add     r7, r1, r7, lsl #1\n\t"
-        "cmp     r1, r7\n\t"
-        "beq     2f\n\t"
-        "1:\n\t"
-        "ldmia   r1!, {r3-r6}\n\t"
-        "pkhbt   r9, r3, r4, lsl #16\n\t"
-        "pkhtb   r10, r4, r3, asr #16\n\t"
-        "pkhbt   r11, r5, r6, lsl #16\n\t"
-        "pkhtb   lr, r6, r5, asr #16\n\t"
-        "stmia   r12!, {r9, r10, r11, lr}\n\t"
-        "cmp     r1, r7\n\t"
-        "bne     1b\n\t"
-        "2:\n\t"
-        "tst     r8, #4\n\t"
-        "beq     3f\n\t"
-        "ldmia   r1!, {r3, r4}\n\t"
-        "pkhbt   r9, r3, r4, lsl #16\n\t"
-        "pkhtb   r10, r4, r3, asr #16\n\t"
-        "stmia   r12!, {r9, r10}\n\t"
-        "3:\n\t"
-        "tst     r8, #2\n\t"
-        "itt     ne\n\t"
-        "ldrne   r3, [r1]\n\t"
-        "strne   r3, [r12]\n\t"
-        "add     r1, sp, #40\n\t"
-        "ldrh    r6, [r0, #2]\n\t"
-        "str     r8, [sp, #16]\n\t"
-        "str     r1, [sp, #20]\n\t"
-        "mov     lr, r1\n\t"
-        "str     r2, [sp, #8]\n\t"
-        "bic     r6, r6, #1\n\t"
-        "add     r6, r2, r6, lsl #1\n\t"
-        "str     r6, [sp, #12]\n\t"
-        "bic     r7, r8, #7\n\t"
-        "add     r2, r1, r7, lsl #1\n\t"
-        "ldr     r3, [r0, #16]\n\t"
-        "ldmia   r3!, {r9-r12}\n\t"
-        "str     r3, [sp]\n\t"
-        "ldr     r3, [r0, #20]\n\t"
-        "str     r3, [sp, #4]\n\t"
-        "ldr     r0, [r0, #12]\n\t"
-        "add     r1, r0, r8\n\t"
-        /* the tail: none, 2, 4 or 4 + 2 inputs */
-        "and     r7, r8, #6\n\t"
-        "adr.w   r3, 8f\n\t"
-        "cmp     r7, #2\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 72f\n\t"
-        "cmp     r7, #4\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 74f\n\t"
-        "cmp     r7, #6\n\t"
-        "it      eq\n\t"
-        "adreq.w r3, 76f\n\t"
-        "orr     r3, r3, #1\n\t"
-        "str     r3, [sp, #32]\n\t"
-        /* 8-input groups: two per loop test, entered at the second for an odd count */
-        "cmp     r8, #8\n\t"
-        "blo     0f\n\t"
-        "tst     r8, #8\n\t"
-        "ite     ne\n\t"
-        "adrne.w r3, 10f\n\t"
-        "adreq.w r3, 1f\n\t"
-        "orr     r3, r3, #1\n\t"
-        "0:\n\t"
-        "str     r3, [sp, #24]\n\t"
-        "bx      r3\n\t"
-        "1:\n\t"
-        ROWS2B32_GROUP
-        "10:\n\t"
-        ROWS2B32_GROUP
-        "cmp     lr, r2\n\t"
-        "bne     1b\n\t"
-        "ldr     pc, [sp, #32]\n\t"
-        /* 4 inputs, then to the epilogue */
-        "74:\n\t"
-        ROWS2B32_TAIL4
-        "b       8f\n\t"
-        /* 4 + 2 inputs */
-        "76:\n\t"
-        ROWS2B32_TAIL4
-        /* 2 inputs: (x[n-2], x[n-1]) */
-        "72:\n\t"
-        "ldr     r3, [lr], #4\n\t"
-        "ldrsb   r7, [r0], #1\n\t"
-        "ldrsb   r8, [r0], #1\n\t"
-        "smlabb  r9, r3, r7, r9\n\t"
-        "smlatb  r9, r3, r8, r9\n\t"
-        "ldrsb   r7, [r1], #1\n\t"
-        "ldrsb   r8, [r1], #1\n\t"
-        "smlabb  r11, r3, r7, r11\n\t"
-        "smlatb  r11, r3, r8, r11\n\t"
-        FBG_ROWS2_PASS_END
-        "add     sp, sp, #296\n\t"
-        FBG_Q_READ
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
 }
 
-/* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
-#define FBG_PAIR_OUT8                            \
-        FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3") \
-        "cmp     r3, lr\n\t"
+#endif /* FBG_USE_DSP */
 
-/* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
-#define FBG_W4(acc, xa, xb)                      \
-        "sxtb16  r8, r10\n\t"                    \
-        "smlad   " acc ", r8, " xa ", " acc "\n\t" \
-        "sxtb16  r8, r10, ror #8\n\t"            \
-        "smlad   " acc ", r8, " xb ", " acc "\n\t"
+#endif /* FBG_DSP_KERNELS_H */
 
-/* Two int8 weights (two LDRSB) against the natural input pair XW, into ACC. */
-#define FBG_W2(acc, xw)                          \
-        "ldrsb   r10, [r0], #1\n\t"              \
-        "ldrsb   r12, [r0], #1\n\t"              \
-        "smlabb  " acc ", " xw ", r10, " acc "\n\t" \
-        "smlatb  " acc ", " xw ", r12, " acc "\n\t"
-
-/* first2b32_asm: an int8-weight int32 first layer (shift 32) of n = 2, 4, 6 or 8 inputs, two
- * rows per pass, the inputs re-paired once into registers (r4-r7: (x0, x2), (x1, x3) per four,
- * the natural pair for the last two when n % 4 == 2; LDR, which may be unaligned, and
- * PKHBT/PKHTB); the rows are adjacent, one pointer walks both (single LDR/LDRSB, any
- * alignment). Per pair: LDM of the biases, per row one LDR + 2 SXTB16 + 2 SMLAD per four
- * weights and 2 LDRSB + SMLABB + SMLATB per two, the requantisation of first2d32_asm and the
- * loop test (output end in lr): 20, 22, 30 and 32 instructions for 4, 8, 12 and 16 MACs.
- * y word-aligned (the caller checks). */
-__attribute__((naked, noinline)) static void first2b32_asm(const fbg_layer *ly, const int16_t *x,
-                                                           int16_t *y, uint32_t *sat)
-{
-    (void)ly;
-    (void)x;
-    (void)y;
-    (void)sat;
-    __asm__ volatile(
-        "push    {r3-r11, lr}\n\t"
-        "mov     r12, #0\n\t"
-        "msr     APSR_nzcvq, r12\n\t"
-        "mov     r3, r2\n\t"
-        "ldrh    r9, [r0, #2]\n\t"
-        "bic     lr, r9, #1\n\t"
-        "add     lr, r3, lr, lsl #1\n\t"
-        "ldr     r2, [r0, #20]\n\t"
-        "ldrh    r12, [r0]\n\t"
-        "mov     r10, r1\n\t"
-        "ldr     r1, [r0, #16]\n\t"
-        "ldr     r0, [r0, #12]\n\t"
-        "ldr     r4, [r10]\n\t"
-        "cmp     r12, #4\n\t"
-        "blo     2f\n\t"
-        "ldr     r5, [r10, #4]\n\t"
-        "pkhbt   r8, r4, r5, lsl #16\n\t"
-        "pkhtb   r5, r5, r4, asr #16\n\t"
-        "mov     r4, r8\n\t"
-        "beq     4f\n\t"
-        "ldr     r6, [r10, #8]\n\t"
-        "cmp     r12, #6\n\t"
-        "beq     6f\n\t"
-        "ldr     r7, [r10, #12]\n\t"
-        "pkhbt   r8, r6, r7, lsl #16\n\t"
-        "pkhtb   r7, r7, r6, asr #16\n\t"
-        "mov     r6, r8\n\t"
-        "b       8f\n\t"
-        "2:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        FBG_W2("r9", "r4")
-        FBG_W2("r11", "r4")
-        FBG_PAIR_OUT8
-        "bne     2b\n\t"
-        "b       9f\n\t"
-        "4:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r9", "r4", "r5")
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r11", "r4", "r5")
-        FBG_PAIR_OUT8
-        "bne     4b\n\t"
-        "b       9f\n\t"
-        "6:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r9", "r4", "r5")
-        FBG_W2("r9", "r6")
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r11", "r4", "r5")
-        FBG_W2("r11", "r6")
-        FBG_PAIR_OUT8
-        "bne     6b\n\t"
-        "b       9f\n\t"
-        "8:\n\t"
-        "ldmia   r1!, {r9-r12}\n\t"
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r9", "r4", "r5")
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r9", "r6", "r7")
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r11", "r4", "r5")
-        "ldr     r10, [r0], #4\n\t"
-        FBG_W4("r11", "r6", "r7")
-        FBG_PAIR_OUT8
-        "bne     8b\n\t"
-        "9:\n\t"
-        FBG_Q_READ
-        "pop     {r3}\n\t"
-        FBG_SAT_OR_Q
-        "pop     {r4-r11, pc}\n\t");
-}
-#undef FBG_W2
-#undef FBG_W4
-#undef FBG_PAIR_OUT8
-
-typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
+#if FBG_USE_DSP
 typedef char fbg_dsp_fir_four[FBG_N_STRAIN == 4 ? 1 : -1]; /* rows of 16 bytes in fir4_asm */
 
+#if FBG_DSP_ASM
 /* One tap of fir4_asm: the tap (LDRSH) times the four history words below P, into the four sums. */
 #define FBG_FIR4_TAP(p)                          \
         "ldrsh   r12, [r0], #2\n\t"              \
@@ -2482,444 +2436,7 @@ __attribute__((naked, noinline)) static void fir4_asm(const int16_t *taps, unsig
 }
 
 #undef FBG_FIR4_TAP
-#undef ROWS2B32_TAIL4
-#undef ROWS2B32_GROUP
-#undef FBG_PAIR_REQUANT
-#undef FBG_ROWS2_PASS_END
-#undef FBG_FIRST_ROW_OUT
-#undef FBG_ROWS3_OUT
-#undef FBG_ROWS3_REQUANT
-#undef FBG_ROWS3_QUAD
-#undef FBG_ROWS3_PAIR
-#undef FBG_ROWS3_PAIR_LOADS
-#undef FBG_SAT_OR_Q
-#undef FBG_Q_RESTORE
-#undef FBG_Q_SAVE_CLEAR
-#undef FBG_Q_CLEAR_PUSH
-#undef FBG_Q_READ
 #endif /* FBG_DSP_ASM */
-
-/* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
-static void run_rows3(fbg_dsp_job *job, int aligned)
-{
-#if FBG_DSP_ASM
-    if (aligned)
-        rows3d_asm(job);
-    else
-        rows3_asm(job);
-#else
-    (void)aligned;
-    rows3_c(job);
-#endif
-}
-
-static void run_first(fbg_dsp_job *job)
-{
-#if FBG_DSP_ASM
-    first_asm(job);
-#else
-    first_c(job);
-#endif
-}
-
-/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
- * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
- * iff a row clamped. */
-static void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
-                        uint32_t *sat)
-{
-#if FBG_DSP_ASM
-    if (n <= FBG_DSP_FIRST_MAX_IN)
-        first2d32_asm(ly, x, y, sat);
-    else
-        rows2d32_asm(ly, x, y, sat);
-#else
-    (void)n;
-    rows2_32_c(ly, x, y, sat);
-#endif
-}
-
-/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
-static int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
-{
-    unsigned j = 0;
-    for (; j + 2u <= n; j += 2u)
-        acc = __smlad(ld2(w + j), ld2(x + j), acc);
-    if (j < n)
-        acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc;
-}
-
-/* An int32 int16-weight hidden layer that the pair kernels do not take (see
- * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
-static void hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
-                        uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int64_t round = (int64_t)1 << (shift - 1u);
-    uint32_t clamped = 0u;
-    unsigned r;
-    for (r = r0; r < m; ++r)
-        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
-                                   ly->mult[r], shift, round, &clamped);
-    if (clamped)
-        *sat = 1u;
-}
-
-static void hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
-    const int16_t *w = ly->w16;
-    const int64_t round = (int64_t)1 << (shift - 1u);
-    uint32_t clamped = 0u;
-    unsigned r = 0;
-
-    if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
-        fbg_dsp_job job;
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
-        run_first(&job);
-        if (job.clamped)
-            *sat = 1u;
-        return;
-    }
-    if (shift >= 32u && m >= 3u) {
-        /* rows3d_asm needs word-aligned rows and inputs. Generated models and blobs give
-         * 8-byte-aligned weights; the input (an activation buffer inside fbg_state, whose
-         * layout may change) is copied to an aligned buffer when it is not: n/2 word moves
-         * against about a quarter of the MAC loop saved. */
-        union {
-            int16_t v[FBG_MAX_WIDTH];
-            int64_t align;
-        } xbuf;
-        int aligned = ((uintptr_t)w & 3u) == 0u && (n & 1u) == 0u;
-        fbg_dsp_job job;
-        if (aligned && ((uintptr_t)x & 3u) != 0u) {
-            memcpy(xbuf.v, x, n * sizeof *x); /* the libc's word-wise copy */
-            x = xbuf.v;
-        }
-        job.w = w;
-        job.x = x;
-        job.bias = ly->bias;
-        job.mult = ly->mult;
-        job.y = y;
-        job.n = n;
-        job.groups = m / 3u;
-        job.round_lo = (uint32_t)round;
-        job.round_hi = (uint32_t)(round >> 32);
-        job.s32 = shift - 32u;
-        job.clamped = 0u;
-        run_rows3(&job, aligned);
-        clamped = job.clamped;
-        r = 3u * (m / 3u);
-        if (m - r == 2u) {
-            /* Two rows left: one more pass over the LAST three rows (the first of them is
-             * recomputed, to the same value) is cheaper than two rows in C. */
-            job.w = ly->w16 + (size_t)(m - 3u) * n;
-            job.bias = ly->bias + (m - 3u);
-            job.mult = ly->mult + (m - 3u);
-            job.y = y + (m - 3u);
-            job.groups = 1u;
-            job.clamped = 0u;
-            run_rows3(&job, aligned);
-            clamped |= job.clamped;
-            r = m;
-        }
-        w += (size_t)r * n;
-    }
-    /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
-     * exporter for int16 layers in practice, but valid): SMLALD per row, C requantisation. */
-    for (; r < m; ++r, w += n)
-        y[r] = (int16_t)relu_sat16(fbg_dsp_dot16(w, x, n, ly->bias[r]), ly->mult[r], shift, round,
-                                   &clamped);
-    if (clamped)
-        *sat = 1u;
-}
-
-/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
- * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
- * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
-static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
-
-static inline int16x2_t pair16(int16_t lo, int16_t hi)
-{
-    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
-}
-
-static inline int8x4_t ld4_8(const int8_t *p)
-{
-    int8x4_t v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-
-/* Two adjacent int16 inputs as one unsigned word. */
-static inline uint32_t ld2u(const int16_t *p)
-{
-    uint32_t v;
-    memcpy(&v, p, sizeof v);
-    return v;
-}
-
-/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
- * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
-static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
-{
-    unsigned j;
-    for (j = 0; j < n4; j += 4u, xp += 2) {
-        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
-        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
-        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
-    }
-}
-
-/* One row of an int32 layer with int8 weights (the output layers' rows): no re-paired copy
- * of x; the two SXTB16 halves (w0, w2), (w1, w3) are re-packed into (w0, w1), (w2, w3) to meet
- * the inputs as they lie (two PKH per four weights). */
-static int32_t dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
-{
-    unsigned j;
-    for (j = 0; j + 4u <= n; j += 4u) {
-        uint32_t v;
-        uint32_t e, o;
-        memcpy(&v, w + j, sizeof v);
-        e = (uint32_t)__sxtb16((int8x4_t)v);
-        o = (uint32_t)__sxtb16((int8x4_t)ror8(v));
-        acc = __smlad((int16x2_t)((e & 0xFFFFu) | (o << 16)), ld2(x + j), acc);
-        acc = __smlad((int16x2_t)((o & 0xFFFF0000u) | (e >> 16)), ld2(x + j + 2u), acc);
-    }
-    for (; j < n; ++j)
-        acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc;
-}
-
-/* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
-static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
-{
-    unsigned j, n4 = n & ~3u;
-    for (j = 0; j < n4; j += 4u, xp += 2) {
-        int8x4_t v = ld4_8(w + j);
-        acc = __smlald(__sxtb16(v), xp[0], acc);
-        acc = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v)), xp[1], acc);
-    }
-    for (; j < n; ++j)
-        acc += (int32_t)w[j] * (int32_t)x[j];
-    return acc;
-}
-
-/* A hidden layer with int8 weights: two rows per pass share the re-paired inputs; per four
- * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C: relu_sat16, or for an
- * int32 layer at shift 32 (int8 weights always prove int32: 128 * 127 * 32767 < 2^29) one
- * SMMULR; SMLALD costs what SMLAD does, so the MAC loop is shared. */
-static __attribute__((noinline)) void hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
-                                              uint32_t *sat)
-{
-    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
-    const int64_t round = (int64_t)1 << (shift - 1u);
-    const int fast32 = ly->acc32 && shift == 32u;
-    int16x2_t xp[FBG_MAX_WIDTH / 2];
-    uint32_t clamped = 0u;
-    unsigned j, r = 0;
-    repair8(x, n4, xp);
-    for (; r + 2u <= m; r += 2u) {
-        const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
-        const int16x2_t *pp = xp;
-        int64_t a0 = ly->bias[r], a1 = ly->bias[r + 1u];
-        for (j = 0; j < n4; j += 4u, pp += 2) {
-            int8x4_t v0 = ld4_8(w0 + j), v1 = ld4_8(w1 + j);
-            a0 = __smlald(__sxtb16(v0), pp[0], a0);
-            a1 = __smlald(__sxtb16(v1), pp[0], a1);
-            a0 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v0)), pp[1], a0);
-            a1 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v1)), pp[1], a1);
-        }
-        for (; j < n; ++j) {
-            a0 += (int32_t)w0[j] * (int32_t)x[j];
-            a1 += (int32_t)w1[j] * (int32_t)x[j];
-        }
-        if (fast32) {
-            /* An int32 layer: a0, a1 fit int32 (the proof), so SMMULR is the rounding rule. */
-            y[r] = (int16_t)relu_usat15(smmulr((int32_t)a0, ly->mult[r]), &clamped);
-            y[r + 1u] = (int16_t)relu_usat15(smmulr((int32_t)a1, ly->mult[r + 1u]), &clamped);
-        } else {
-            y[r] = (int16_t)relu_sat16(a0, ly->mult[r], shift, round, &clamped);
-            y[r + 1u] = (int16_t)relu_sat16(a1, ly->mult[r + 1u], shift, round, &clamped);
-        }
-    }
-    if (r < m)
-        y[r] = (int16_t)relu_sat16(dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]),
-                                   ly->mult[r], shift, round, &clamped);
-    if (clamped)
-        *sat = 1u;
-}
-
-/* w_bits, shift, acc32 of an fbg_layer read as one little-endian word (bytes 4..6): the layers
- * the pair kernels take (16-bit weights, shift 32, int32 accumulators). */
-#define FBG_DSP_PAIRS_KIND (16u | (32u << 8) | (1u << 16))
-typedef char fbg_dsp_kind_layout[(offsetof(fbg_layer, w_bits) == 4 && offsetof(fbg_layer, shift) == 5 &&
-                                  offsetof(fbg_layer, acc32) == 6 && offsetof(fbg_layer, n_in) == 0) ? 1 : -1];
-
-/* Whether the pair kernels take this layer: an int32 layer at shift 32 (what the exporter
- * writes) with n even, at least two rows, the weights and y word-aligned and, beyond
- * FBG_DSP_FIRST_MAX_IN inputs (read with LDM), x too - as generated models, blobs and the activation buffers of fbg_state
- * give. The fields are read two words at a time: this runs for every layer of every step. */
-static inline int pairs32_ok(const fbg_layer *ly, const int16_t *x, const int16_t *y,
-                             unsigned *n_out)
-{
-    uint32_t dims, kind;
-    unsigned n;
-    memcpy(&dims, &ly->n_in, sizeof dims);
-    memcpy(&kind, &ly->w_bits, sizeof kind);
-    n = dims & 0xFFFFu;
-    *n_out = dims >> 16;
-    return (kind & 0xFFFFFFu) == FBG_DSP_PAIRS_KIND && *n_out >= 2u && n <= 8u * FBG_DSP_BODY_BLOCKS &&
-           ((((uintptr_t)ly->w16 | (uintptr_t)y | (n > FBG_DSP_FIRST_MAX_IN ? (uintptr_t)x : 0u)) & 3u) | (n & 1u)) == 0u;
-}
-
-/* Every layer the even-height fast path of fbg_dsp_hidden does not take. */
-static __attribute__((noinline)) void hidden_other(const fbg_layer *ly, const int16_t *x, int16_t *y,
-                                                   uint32_t *sat)
-{
-    unsigned m;
-    if (pairs32_ok(ly, x, y, &m)) { /* an odd number of rows: the last one in C */
-        run_pairs32(ly, x, y, ly->n_in, sat);
-        hidden16_32(ly, x, y, m - 1u, sat);
-    }
-#if FBG_DSP_ASM
-    else if (ly->w_bits == 8u && ly->acc32 && ly->shift == 32u && (m = ly->n_out) >= 2u &&
-             (ly->n_in & 1u) == 0u && ((uintptr_t)y & 3u) == 0u &&
-             (ly->n_in <= 8u || ((uintptr_t)x & 3u) == 0u)) {
-        /* int8 weights (int32 by construction), shift 32: the pairs in first2b32_asm (n <= 8)
-         * or rows2b32_asm, the last row of an odd layer with dot8_32. */
-        if (ly->n_in <= 8u)
-            first2b32_asm(ly, x, y, sat);
-        else
-            rows2b32_asm(ly, x, y, sat);
-        if (m & 1u) {
-            uint32_t clamped = 0u;
-            y[m - 1u] = (int16_t)relu_usat15(
-                smmulr(dot8_32(ly->w8 + (size_t)(m - 1u) * ly->n_in, x, ly->n_in,
-                               (int32_t)ly->bias[m - 1u]), ly->mult[m - 1u]), &clamped);
-            *sat |= clamped != 0u;
-        }
-    }
-#endif
-    else if (ly->w_bits == 16u && ly->acc32)
-        hidden16_32(ly, x, y, 0u, sat);
-    else if (ly->w_bits == 16u)
-        hidden16(ly, x, y, sat);
-    else
-        hidden8(ly, x, y, sat);
-}
-
-static inline void hidden_layer(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    unsigned m;
-    if (pairs32_ok(ly, x, y, &m) && (m & 1u) == 0u)
-        run_pairs32(ly, x, y, ly->n_in, sat);
-    else
-        hidden_other(ly, x, y, sat);
-}
-
-void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    hidden_layer(ly, x, y, sat);
-}
-
-/* Rows of FBG_MAX_WIDTH int16 keep act[1] word-aligned when act[0] is. */
-typedef char fbg_dsp_act_rows_aligned[(FBG_MAX_WIDTH % 2) == 0 ? 1 : -1];
-
-const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
-                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat)
-{
-    /* The layer test of fbg_dsp_hidden, less what holds by construction here: y and every
-     * input after the first are rows of act (word-aligned), n_in <= FBG_MAX_WIDTH <= the
-     * unrolled body and n_out >= 1 (fbg_model_check), so an even n_out is at least 2. */
-    const fbg_layer *ly = net->layers, *end = ly + net->n_layers - 1u;
-    uintptr_t x_odd = (uintptr_t)x & 3u;
-    unsigned buf = 0u;
-    for (; ly != end; ++ly, buf ^= 1u) {
-        int16_t *const y = act[buf];
-        uint32_t dims, kind;
-        unsigned n;
-        memcpy(&dims, &ly->n_in, sizeof dims);  /* n_in, n_out */
-        memcpy(&kind, &ly->w_bits, sizeof kind); /* w_bits, shift, acc32 */
-        n = dims & 0xFFFFu;
-        /* (kind ^ FBG_DSP_PAIRS_KIND) << 8 is zero iff the low three bytes match */
-        if ((((kind ^ FBG_DSP_PAIRS_KIND) << 8) | (dims & 0x10001u) | ((uintptr_t)ly->w16 & 3u)) == 0u &&
-            (n <= FBG_DSP_FIRST_MAX_IN || x_odd == 0u))
-            run_pairs32(ly, x, y, n, sat);
-        else
-            hidden_other(ly, x, y, sat);
-        x = y;
-        x_odd = 0u;
-    }
-    return x;
-}
-
-/* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
-static __attribute__((noinline)) int64_t row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    const unsigned n = ly->n_in;
-    int16x2_t xp[FBG_MAX_WIDTH / 2];
-    repair8(x, n & ~3u, xp);
-    return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
-}
-
-/* Row r's accumulator of an int32 layer (ly->acc32: every partial sum fits int32). */
-static inline int32_t row_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    const unsigned n = ly->n_in;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * n;
-#if FBG_DSP_ASM
-        if (((((uintptr_t)w | (uintptr_t)x) & 3u) | (n & 1u)) == 0u)
-            return dot32_asm(w, x, n, (int32_t)ly->bias[r]);
-#endif
-        return dot16_32(w, x, n, (int32_t)ly->bias[r]);
-    }
-    return dot8_32(ly->w8 + (size_t)r * n, x, n, (int32_t)ly->bias[r]);
-}
-
-static inline int64_t row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    if (ly->acc32)
-        return row_acc32(ly, r, x);
-    if (ly->w_bits == 16u)
-        return fbg_dsp_dot16(ly->w16 + (size_t)r * ly->n_in, x, ly->n_in, ly->bias[r]);
-    return row_acc8(ly, r, x);
-}
-
-int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    return row_acc(ly, r, x);
-}
-
-void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    unsigned r;
-#if FBG_DSP_ASM
-    const unsigned n = ly->n_in;
-    if (ly->acc32 && ly->w_bits == 16u &&
-        ((((uintptr_t)ly->w16 | (uintptr_t)x) & 3u) | (n & 1u)) == 0u) {
-        /* The test of row_acc32 once for the layer: with n even every row is word-aligned. */
-        const int16_t *w = ly->w16;
-        for (r = 0; r < ly->n_out; ++r, w += n)
-            acc[r] = dot32_asm(w, x, n, (int32_t)ly->bias[r]);
-        return;
-    }
-#endif
-    for (r = 0; r < ly->n_out; ++r)
-        acc[r] = row_acc(ly, r, x);
-}
 
 /* sat32 of a 64-bit value given as its two words (|hi:lo| any); *clamped != 0 if it clamps. */
 static inline int32_t sat32_words(int32_t hi, uint32_t lo, uint32_t *clamped)
@@ -3020,60 +2537,3494 @@ void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FB
 
 #else
 /* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
-typedef int fbg_dsp_unused;
+typedef int fbg_dsp_fir_unused;
 #endif
-#undef FBG_DSP_BODY_BLOCKS
-#undef FBG_DSP_FIRST_MAX_IN
-#undef FBG_Q_READ
-#undef FBG_Q_SAVE_CLEAR
-#undef FBG_Q_RESTORE
-#undef FBG_Q_CLEAR_PUSH
-#undef FBG_SAT_OR_Q
+#undef FBG_FIR4_TAP
+#undef FBG_FIR_TAP
+/* ---- src/fbg_dsp_rows16.c ---- */
+/*
+ * fbg_dsp_rows16.c - int16-weight layers with int64 accumulators on the Cortex-M4 DSP extension:
+ * three rows per pass (rows3_asm, rows3d_asm), the first layers with inputs in registers
+ * (first_asm), their ACLE C versions, and the per-row SMLALD dot product.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t acc)
+{
+    int64_t acc2 = 0;
+    unsigned j = 0;
+    for (; j + 4u <= n; j += 4u) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        acc2 = __smlald(ld2(w + j + 2u), ld2(x + j + 2u), acc2);
+    }
+    if (j + 2u <= n) {
+        acc = __smlald(ld2(w + j), ld2(x + j), acc);
+        j += 2u;
+    }
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc + acc2;
+}
+
+#if !FBG_DSP_ASM
+/* Requantise an int64 row with shift >= 32 (rounded_product_hi), ReLU, USAT #15. */
+static inline int32_t requant64(int64_t acc, int32_t mult, int64_t round, unsigned s32,
+                                uint32_t *clamped)
+{
+    return relu_usat15(rounded_product_hi(acc, mult, round) >> s32, clamped);
+}
+
+static inline int64_t job_round(const fbg_dsp_job *job)
+{
+    return (int64_t)(((uint64_t)job->round_hi << 32) | job->round_lo);
+}
+
+/* Three int64 rows per pass (rows3_asm, rows3d_asm). */
+__attribute__((noinline)) static void rows3_c(fbg_dsp_job *job)
+{
+    const unsigned n = job->n, s32 = job->s32;
+    const int64_t round = job_round(job);
+    const int16_t *w = job->w, *x = job->x;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y;
+    uint32_t clamped = 0u, g;
+    for (g = job->groups; g > 0u; --g, w += 3u * n, bias += 3, mult += 3, y += 3) {
+        const int16_t *w0 = w, *w1 = w0 + n, *w2 = w1 + n;
+        int64_t a0 = bias[0], a1 = bias[1], a2 = bias[2];
+        unsigned j = 0;
+        for (; j + 2u <= n; j += 2u) {
+            int16x2_t xv = ld2(x + j);
+            a0 = __smlald(ld2(w0 + j), xv, a0);
+            a1 = __smlald(ld2(w1 + j), xv, a1);
+            a2 = __smlald(ld2(w2 + j), xv, a2);
+        }
+        if (j < n) {
+            a0 += (int32_t)w0[j] * (int32_t)x[j];
+            a1 += (int32_t)w1[j] * (int32_t)x[j];
+            a2 += (int32_t)w2[j] * (int32_t)x[j];
+        }
+        y[0] = (int16_t)requant64(a0, mult[0], round, s32, &clamped);
+        y[1] = (int16_t)requant64(a1, mult[1], round, s32, &clamped);
+        y[2] = (int16_t)requant64(a2, mult[2], round, s32, &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+/* A first layer of n = 2, 4 or 6 inputs held in registers, int64 rows (first_asm); n is a
+ * constant at each call, so the row loop carries no test on it. */
+static inline void first_n(fbg_dsp_job *job, unsigned n)
+{
+    const int64_t round = job_round(job);
+    const unsigned s32 = job->s32;
+    const int16_t *w = job->w;
+    const int64_t *bias = job->bias;
+    const int32_t *mult = job->mult;
+    int16_t *y = job->y, *end = job->y + job->groups;
+    const int16x2_t x0 = ld2(job->x), x1 = n > 2u ? ld2(job->x + 2) : 0,
+                    x2 = n > 4u ? ld2(job->x + 4) : 0;
+    uint32_t clamped = 0u;
+    while (y != end) {
+        int64_t a = __smlald(ld2(w), x0, *bias++);
+        w += 2;
+        if (n > 2u) {
+            a = __smlald(ld2(w), x1, a);
+            w += 2;
+        }
+        if (n > 4u) {
+            a = __smlald(ld2(w), x2, a);
+            w += 2;
+        }
+        *y++ = (int16_t)requant64(a, *mult++, round, s32, &clamped);
+    }
+    job->clamped = clamped != 0u;
+}
+
+__attribute__((noinline)) static void first_c(fbg_dsp_job *job)
+{
+    if (job->n == 2u)
+        first_n(job, 2u);
+    else if (job->n == 4u)
+        first_n(job, 4u);
+    else
+        first_n(job, 6u);
+}
+#endif /* !FBG_DSP_ASM */
+
+#if FBG_DSP_ASM
+/* rows3_asm: one input pair of three rows (r1: x, r0/r10/r11: the rows) into r5:r4, r7:r6, r9:r8;
+ * FBG_ROWS3_PAIR_LOADS leaves out the last SMLALD, for a loop test to go before it. */
+#define FBG_ROWS3_PAIR_LOADS                     \
+        "ldr     r12, [r1], #4\n\t"              \
+        "ldr     r2, [r0], #4\n\t"               \
+        "smlald  r4, r5, r2, r12\n\t"            \
+        "ldr     r2, [r10], #4\n\t"              \
+        "smlald  r6, r7, r2, r12\n\t"            \
+        "ldr     r2, [r11], #4\n\t"
+
+/* The whole pair. */
+#define FBG_ROWS3_PAIR                           \
+        FBG_ROWS3_PAIR_LOADS                     \
+        "smlald  r8, r9, r2, r12\n\t"
+
+/* rows3d_asm: four inputs of three rows, each read with one LDRD. */
+#define FBG_ROWS3_QUAD                           \
+        "ldrd    r2, r3, [r1], #8\n\t"           \
+        "ldrd    r12, lr, [r0], #8\n\t"          \
+        "smlald  r4, r5, r12, r2\n\t"            \
+        "smlald  r4, r5, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r10], #8\n\t"         \
+        "smlald  r6, r7, r12, r2\n\t"            \
+        "smlald  r6, r7, lr, r3\n\t"             \
+        "ldrd    r12, lr, [r11], #8\n\t"         \
+        "smlald  r8, r9, r12, r2\n\t"            \
+        "smlald  r8, r9, lr, r3\n\t"
+
+/* The requantisation and store of one row of rows3_asm and rows3d_asm (accumulator hi:lo). */
+#define FBG_ROWS3_REQUANT(lo, hi)                \
+        "ldr     r11, [r0], #4\n\t"              \
+        "add     " hi ", " hi ", " lo ", lsr #31\n\t" \
+        "smull   r12, " lo ", " lo ", r11\n\t"   \
+        "adds    r12, r12, r1\n\t"               \
+        "adc     " lo ", " lo ", r2\n\t"         \
+        "mla     " lo ", " hi ", r11, " lo "\n\t" \
+        "asr     " lo ", " lo ", lr\n\t"         \
+        "bic     " lo ", " lo ", " lo ", asr #31\n\t" \
+        "usat    r12, #15, " lo "\n\t"           \
+        "strh    r12, [r10], #2\n\t"
+
+/* The end of a group of three rows (job in r3): the next x, the three rows requantised and stored,
+ * the multiplier and output pointers written back. */
+#define FBG_ROWS3_OUT                            \
+        "str     r11, [r3]\n\t"                  \
+        "ldr     r0, [r3, #12]\n\t"              \
+        "ldrd    r1, r2, [r3, #28]\n\t"          \
+        "ldr     lr, [r3, #36]\n\t"              \
+        "ldr     r10, [r3, #16]\n\t"             \
+        FBG_ROWS3_REQUANT("r4", "r5")            \
+        FBG_ROWS3_REQUANT("r6", "r7")            \
+        FBG_ROWS3_REQUANT("r8", "r9")            \
+        "str     r0, [r3, #12]\n\t"              \
+        "str     r10, [r3, #16]\n\t"
+
+/* A hidden layer with shift >= 32, three rows per pass, everything in registers:
+ *   MACs: r5:r4, r7:r6, r9:r8 = the three int64 accumulators (from the bias); per input pair
+ *         one LDR of x, three LDR of weights (post-increment), three SMLALD; unrolled by four
+ *         pairs: 30 instructions per 24 MACs; then 2, 1 pairs and 1 element for n % 8.
+ *   requantisation per row (10 instructions): H = hi + bit31(lo); SMULL lo * mult, add
+ *         2^(shift-1) (ADDS/ADC), MLA H * mult into the high word = floor(p / 2^32) (see
+ *         rounded_product_hi), ASR by shift - 32, ReLU (BIC with ASR #31), USAT #15, STRH.
+ *         USAT sets the sticky Q flag exactly when a (non-negative) value exceeds 32767, i.e.
+ *         when the portable sat16 raises its flag: Q is cleared on entry, read into
+ *         job->clamped on exit, and the caller's APSR restored.
+ * GCC's own code for this spilled the accumulators around every row group (about 30
+ * instructions per row against 10 here), hence hand-allocated registers in a naked function. */
+__attribute__((naked, noinline)) void fbg_dsp_rows3_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        FBG_Q_SAVE_CLEAR
+        "mov     r3, r0\n\t"
+        "0:\n\t"
+        "ldr     r12, [r3, #8]\n\t"
+        "ldrd    r4, r5, [r12]\n\t"
+        "ldrd    r6, r7, [r12, #8]\n\t"
+        "ldrd    r8, r9, [r12, #16]\n\t"
+        "add     r12, r12, #24\n\t"
+        "str     r12, [r3, #8]\n\t"
+        "ldr     r0, [r3]\n\t"
+        "ldr     r12, [r3, #20]\n\t"
+        "add     r10, r0, r12, lsl #1\n\t"
+        "add     r11, r10, r12, lsl #1\n\t"
+        "ldr     r1, [r3, #4]\n\t"
+        "bic     lr, r12, #7\n\t"
+        "add     lr, r1, lr, lsl #1\n\t"
+        "cmp     r1, lr\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR_LOADS
+        "cmp     r1, lr\n\t"
+        "smlald  r8, r9, r2, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ldr     lr, [r3, #20]\n\t"
+        "tst     lr, #4\n\t"
+        "beq     3f\n\t"
+        FBG_ROWS3_PAIR
+        FBG_ROWS3_PAIR
+        "3:\n\t"
+        "tst     lr, #2\n\t"
+        "beq     4f\n\t"
+        FBG_ROWS3_PAIR
+        "4:\n\t"
+        "tst     lr, #1\n\t"
+        "beq     5f\n\t"
+        "ldrsh   r12, [r1]\n\t"
+        "ldrsh   r2, [r0]\n\t"
+        "smlalbb r4, r5, r2, r12\n\t"
+        "ldrsh   r2, [r10]\n\t"
+        "smlalbb r6, r7, r2, r12\n\t"
+        "ldrsh   r2, [r11], #2\n\t"
+        "smlalbb r8, r9, r2, r12\n\t"
+        "5:\n\t"
+        FBG_ROWS3_OUT
+        "ldr     r12, [r3, #24]\n\t"
+        "subs    r12, r12, #1\n\t"
+        "str     r12, [r3, #24]\n\t"
+        "bne     0b\n\t"
+        FBG_Q_RESTORE("r3")
+        "bx      lr\n\t");
+}
+
+/* rows3_asm for word-aligned inputs and rows (x and w 4-byte aligned, n even), the usual case
+ * (activation buffers in fbg_state, generated arrays and blob arrays are word-aligned): LDRD
+ * fetches four inputs or four weights of a row in one instruction, so sixteen inputs of
+ * three rows cost 4 x (1 + 3 x 3) + 3 = 43 instructions per 48 MACs (0.90) instead of 60;
+ * with all four temporaries in use, the job pointer, the loop end, n and the end of the
+ * output live on the stack (computed once per layer; the group loop ends at the last output). Then 8, 4 and 2 inputs for n % 16. Same
+ * arithmetic, same requantisation as rows3_asm. (LDRD needs word alignment: the caller
+ * checks it, the unaligned case stays with rows3_asm.) */
+__attribute__((naked, noinline)) void fbg_dsp_rows3d_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        FBG_Q_SAVE_CLEAR
+        "sub     sp, sp, #16\n\t"
+        "str     r0, [sp]\n\t"
+        "ldr     r12, [r0, #24]\n\t"
+        "ldr     r1, [r0, #16]\n\t"
+        "add     r12, r12, r12, lsl #1\n\t"
+        "add     r12, r1, r12, lsl #1\n\t"
+        "str     r12, [sp, #12]\n\t"
+        "ldr     r12, [r0, #20]\n\t"
+        "str     r12, [sp, #8]\n\t"
+        "ldr     r1, [r0, #4]\n\t"
+        "bic     r12, r12, #15\n\t"
+        "add     r12, r1, r12, lsl #1\n\t"
+        "str     r12, [sp, #4]\n\t"
+        "0:\n\t"
+        "ldr     r3, [sp]\n\t"
+        "ldr     r12, [r3, #8]\n\t"
+        "ldrd    r4, r5, [r12], #8\n\t"
+        "ldrd    r6, r7, [r12], #8\n\t"
+        "ldrd    r8, r9, [r12], #8\n\t"
+        "str     r12, [r3, #8]\n\t"
+        "ldr     r0, [r3]\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "add     r10, r0, r12, lsl #1\n\t"
+        "add     r11, r10, r12, lsl #1\n\t"
+        "ldr     r1, [r3, #4]\n\t"
+        "ldr     lr, [sp, #4]\n\t"
+        "cmp     r1, lr\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        "ldr     r12, [sp, #4]\n\t"
+        "cmp     r1, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "tst     r12, #8\n\t"
+        "beq     3f\n\t"
+        FBG_ROWS3_QUAD
+        FBG_ROWS3_QUAD
+        "3:\n\t"
+        "ldr     r12, [sp, #8]\n\t"
+        "lsls    r12, r12, #30\n\t"
+        "bcc     4f\n\t"
+        FBG_ROWS3_QUAD
+        "4:\n\t"
+        "bpl     5f\n\t"
+        "ldr     r2, [r1], #4\n\t"
+        "ldr     r12, [r0], #4\n\t"
+        "smlald  r4, r5, r12, r2\n\t"
+        "ldr     r12, [r10], #4\n\t"
+        "smlald  r6, r7, r12, r2\n\t"
+        "ldr     r12, [r11], #4\n\t"
+        "smlald  r8, r9, r12, r2\n\t"
+        "5:\n\t"
+        "ldr     r3, [sp]\n\t"
+        FBG_ROWS3_OUT
+        "ldr     r12, [sp, #12]\n\t"
+        "cmp     r10, r12\n\t"
+        "bne     0b\n\t"
+        "add     sp, sp, #16\n\t"
+        FBG_Q_RESTORE("r3")
+        "bx      lr\n\t");
+}
+
+/* first_asm: a row's int64 accumulator r9:r8 from its bias (one LDRD). */
+#define FBG_FIRST_ROW_BIAS                       \
+        "ldrd    r8, r9, [r1], #8\n\t"
+
+/* first_asm: one pair of weights (LDR) against the input pair in register X, into r9:r8. */
+#define FBG_FIRST_PAIR(x)                        \
+        "ldr     r10, [r0], #4\n\t"              \
+        "smlald  r8, r9, r10, " x "\n\t"
+
+/* first_asm: the requantisation and store of one row (accumulator r9:r8, the rounding constant
+ * on the stack, shift - 32 in r7), then the loop test against the output end r12. */
+#define FBG_FIRST_ROW_OUT                        \
+        "ldr     lr, [r2], #4\n\t"               \
+        "add     r9, r9, r8, lsr #31\n\t"        \
+        "ldrd    r10, r11, [sp]\n\t"             \
+        "smlal   r10, r11, r8, lr\n\t"           \
+        "mla     r11, r9, lr, r11\n\t"           \
+        "asr     r11, r11, r7\n\t"               \
+        "bic     r11, r11, r11, asr #31\n\t"     \
+        "usat    r11, #15, r11\n\t"              \
+        "strh    r11, [r3], #2\n\t"              \
+        "cmp     r3, r12\n\t"
+
+/* A first layer (2, 4 or 6 inputs: the nets' z1..z4 and the location net's six inputs) with
+ * shift >= 32: the inputs stay in registers (r4-r6 as int16 pairs) and each row costs one
+ * LDRD of its bias, one LDR + SMLALD per input pair, the requantisation of rows3_asm (with
+ * the rounding constant kept on the stack, read with one LDRD: 9 instructions) and the loop
+ * test: 16 instructions per row for 4 inputs against about 27 through rows3_asm, whose
+ * bookkeeping per three rows is written for long rows. Same arithmetic, same Q-flag saturation report; job->groups holds
+ * the number of ROWS here. */
+__attribute__((naked, noinline)) void fbg_dsp_first_asm(fbg_dsp_job *job)
+{
+    (void)job;
+    __asm__ volatile(
+        FBG_Q_SAVE_CLEAR
+        "sub     sp, sp, #16\n\t"
+        "ldrd    r10, r11, [r0, #28]\n\t"
+        "strd    r10, r11, [sp]\n\t"
+        "str     r0, [sp, #8]\n\t"
+        "ldr     r7, [r0, #36]\n\t"
+        "ldr     r3, [r0, #16]\n\t"
+        "ldr     r12, [r0, #24]\n\t"
+        "add     r12, r3, r12, lsl #1\n\t"
+        "ldr     r1, [r0, #8]\n\t"
+        "ldr     r2, [r0, #12]\n\t"
+        "ldr     lr, [r0, #20]\n\t"
+        "ldr     r10, [r0, #4]\n\t"
+        "ldr     r0, [r0]\n\t"
+        "ldr     r4, [r10]\n\t"
+        "cmp     lr, #4\n\t"
+        "blo     2f\n\t"
+        "ldr     r5, [r10, #4]\n\t"
+        "beq     4f\n\t"
+        "ldr     r6, [r10, #8]\n\t"
+        "b       6f\n\t"
+        "2:\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
+        FBG_FIRST_ROW_OUT
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
+        FBG_FIRST_PAIR("r5")
+        FBG_FIRST_ROW_OUT
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        FBG_FIRST_ROW_BIAS
+        FBG_FIRST_PAIR("r4")
+        FBG_FIRST_PAIR("r5")
+        FBG_FIRST_PAIR("r6")
+        FBG_FIRST_ROW_OUT
+        "bne     6b\n\t"
+        "b       9f\n\t"
+        "9:\n\t"
+        "ldr     r0, [sp, #8]\n\t"
+        "add     sp, sp, #16\n\t"
+        FBG_Q_RESTORE("r0")
+        "bx      lr\n\t");
+}
+
+#undef FBG_FIRST_ROW_OUT
+#undef FBG_FIRST_PAIR
+#undef FBG_FIRST_ROW_BIAS
+#undef FBG_ROWS3_OUT
+#undef FBG_ROWS3_REQUANT
+#undef FBG_ROWS3_QUAD
+#undef FBG_ROWS3_PAIR
+#undef FBG_ROWS3_PAIR_LOADS
+#endif /* FBG_DSP_ASM */
+
+/* The job of a layer with shift >= 32 from its first row on: input x, output y, GROUPS the
+ * groups of three rows (first_asm: the rows), round = 2^(shift-1). */
+static inline void job_start(fbg_dsp_job *job, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                             uint32_t groups, int64_t round)
+{
+    job->w = ly->w16;
+    job->x = x;
+    job->bias = ly->bias;
+    job->mult = ly->mult;
+    job->y = y;
+    job->n = ly->n_in;
+    job->groups = groups;
+    job->round_lo = (uint32_t)round;
+    job->round_hi = (uint32_t)(round >> 32);
+    job->s32 = ly->shift - 32u;
+    job->clamped = 0u;
+}
+
+/* The kernels hidden16 and hidden16_32 call: the assembly (FBG_DSP_ASM) or its ACLE C. */
+static void run_rows3(fbg_dsp_job *job, int aligned)
+{
+#if FBG_DSP_ASM
+    if (aligned)
+        fbg_dsp_rows3d_asm(job);
+    else
+        fbg_dsp_rows3_asm(job);
+#else
+    (void)aligned;
+    rows3_c(job);
+#endif
+}
+
+static void run_first(fbg_dsp_job *job)
+{
+#if FBG_DSP_ASM
+    fbg_dsp_first_asm(job);
+#else
+    first_c(job);
+#endif
+}
+
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int16_t *w = ly->w16;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    uint32_t clamped = 0u;
+    unsigned r = 0;
+
+    if (shift >= 32u && (n == 2u || n == 4u || n == 6u)) {
+        fbg_dsp_job job;
+        job_start(&job, ly, x, y, m, round);
+        run_first(&job);
+        if (job.clamped)
+            *sat = 1u;
+        return;
+    }
+    if (shift >= 32u && m >= 3u) {
+        /* rows3d_asm needs word-aligned rows and inputs. Generated models and blobs give
+         * 8-byte-aligned weights; the input (an activation buffer inside fbg_state, whose
+         * layout may change) is copied to an aligned buffer when it is not: n/2 word moves
+         * against about a quarter of the MAC loop saved. */
+        union {
+            int16_t v[FBG_MAX_WIDTH];
+            int64_t align;
+        } xbuf;
+        int aligned = ((uintptr_t)w & 3u) == 0u && (n & 1u) == 0u;
+        fbg_dsp_job job;
+        if (aligned && ((uintptr_t)x & 3u) != 0u) {
+            memcpy(xbuf.v, x, n * sizeof *x); /* the libc's word-wise copy */
+            x = xbuf.v;
+        }
+        job_start(&job, ly, x, y, m / 3u, round);
+        run_rows3(&job, aligned);
+        clamped = job.clamped;
+        r = 3u * (m / 3u);
+        if (m - r == 2u) {
+            /* Two rows left: one more pass over the LAST three rows (the first of them is
+             * recomputed, to the same value) is cheaper than two rows in C. */
+            job.w = ly->w16 + (size_t)(m - 3u) * n;
+            job.bias = ly->bias + (m - 3u);
+            job.mult = ly->mult + (m - 3u);
+            job.y = y + (m - 3u);
+            job.groups = 1u;
+            job.clamped = 0u;
+            run_rows3(&job, aligned);
+            clamped |= job.clamped;
+            r = m;
+        }
+        w += (size_t)r * n;
+    }
+    /* The last one or two rows, and layers whose shift is below 32 (not chosen by the
+     * exporter for int16 layers in practice, but valid): SMLALD per row, C requantisation. */
+    for (; r < m; ++r, w += n)
+        y[r] = (int16_t)relu_sat16(fbg_dsp_dot16(w, x, n, ly->bias[r]), ly->mult[r], shift, round,
+                                   &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_rows16_unused;
+#endif
 #undef FBG_ROWS3_PAIR_LOADS
 #undef FBG_ROWS3_PAIR
 #undef FBG_ROWS3_QUAD
 #undef FBG_ROWS3_REQUANT
 #undef FBG_ROWS3_OUT
+#undef FBG_FIRST_ROW_BIAS
+#undef FBG_FIRST_PAIR
 #undef FBG_FIRST_ROW_OUT
-#undef FBG_PAIR_REQUANT
-#undef FBG_ROWS2_PASS_END
+/* ---- src/fbg_dsp_rows32.c ---- */
+/*
+ * fbg_dsp_rows32.c - int16-weight layers with int32 accumulators (fbg_layer.acc32) on the Cortex-M4
+ * DSP extension: two rows per pass with SMLAD and SMMULR (rows2d32_asm, first2d32_asm, their
+ * ACLE C version), the output rows (dot32_asm) and the rows the pair kernels do not take.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+#if !FBG_DSP_ASM
+/* Two int32 rows per pass, SMLAD and SMMULR (rows2d32_asm, first2d32_asm): every pair of
+ * rows of the layer (n_out & ~1 rows), n even, y word-aligned; *sat |= 1 iff a row clamped. */
+__attribute__((noinline)) void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x,
+                                                 int16_t *y, uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m2 = ly->n_out & ~1u;
+    const int16_t *w = ly->w16;
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = 0; r < m2; r += 2u, w += 2u * n) {
+        const int16_t *w1 = w + n;
+        int32_t a0 = (int32_t)ly->bias[r], a1 = (int32_t)ly->bias[r + 1u];
+        unsigned j;
+        for (j = 0; j < n; j += 2u) {
+            int16x2_t xv = ld2(x + j);
+            a0 = __smlad(ld2(w + j), xv, a0);
+            a1 = __smlad(ld2(w1 + j), xv, a1);
+        }
+        y[r] = (int16_t)relu_usat15(smmulr(a0, ly->mult[r]), &clamped);
+        y[r + 1u] = (int16_t)relu_usat15(smmulr(a1, ly->mult[r + 1u]), &clamped);
+    }
+    *sat |= clamped != 0u;
+}
+#endif /* !FBG_DSP_ASM */
+
+#if FBG_DSP_ASM
+/* rows2d32_asm's entry: the frame ([sp] bias, [4] mult, [8] out, [12] out end after the last
+ * pair, [16] row bytes, [20] x, [24] where a pass starts (tail or body entry, Thumb bit),
+ * [28] sat; written with one STM), the first pair's biases and the jump into its first pass. */
+#define FBG_ROWS2D32_FRAME                       \
+        "sub     sp, sp, #32\n\t"                \
+        "mov     r10, r3\n\t"                    \
+        "ldr     r11, [r0]\n\t"                  \
+        "ldrd    r3, r4, [r0, #16]\n\t"          \
+        "ldr     r0, [r0, #8]\n\t"               \
+        "mov     r5, r2\n\t"                     \
+        "lsr     r6, r11, #16\n\t"               \
+        "bic     r6, r6, #1\n\t"                 \
+        "add     r6, r2, r6, lsl #1\n\t"         \
+        "uxth    r11, r11\n\t"                   \
+        "lsl     r7, r11, #1\n\t"                \
+        "mov     r8, r1\n\t"                     \
+        "mov     lr, r1\n\t"                     \
+        "add     r1, r0, r7\n\t"                 \
+        "adr.w   r2, 8f\n\t"                     \
+        "lsr     r12, r11, #3\n\t"               \
+        "mov     r9, #44\n\t"                    \
+        "mls     r2, r12, r9, r2\n\t"            \
+        "orr     r2, r2, #1\n\t"                 \
+        "mov     r9, r2\n\t"                     \
+        "ands    r12, r11, #6\n\t"               \
+        "beq     1f\n\t"                         \
+        "adr.w   r9, 72f\n\t"                    \
+        "cmp     r12, #2\n\t"                    \
+        "beq     0f\n\t"                         \
+        "adr.w   r9, 74f\n\t"                    \
+        "cmp     r12, #4\n\t"                    \
+        "beq     0f\n\t"                         \
+        "adr.w   r9, 76f\n\t"                    \
+        "0:\n\t"                                 \
+        "orr     r9, r9, #1\n\t"                 \
+        "1:\n\t"                                 \
+        "add     r3, r3, #16\n\t"                \
+        "stm     sp, {r3-r10}\n\t"               \
+        "ldmdb   r3, {r9-r12}\n\t"               \
+        "ldr     pc, [sp, #24]\n\t"
+
+/* rows2d32_asm's tails: 2, 4 or 6 inputs, then into the body (r2). */
+#define FBG_ROWS2D32_TAILS                       \
+        "72:\n\t"                                \
+        "ldr     r3, [lr], #4\n\t"               \
+        "ldr     r7, [r0], #4\n\t"               \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "ldr     r7, [r1], #4\n\t"               \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "bx      r2\n\t"                         \
+        "74:\n\t"                                \
+        "ldrd    r3, r4, [lr], #8\n\t"           \
+        "ldrd    r7, r8, [r0], #8\n\t"           \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "ldrd    r7, r8, [r1], #8\n\t"           \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "bx      r2\n\t"                         \
+        "76:\n\t"                                \
+        "ldmia.w lr!, {r3-r5}\n\t"               \
+        "ldmia.w r0!, {r7, r8, r10}\n\t"         \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "ldmia.w r1!, {r7, r8, r10}\n\t"         \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "bx      r2\n\t"
+
+/* rows2d32_asm's body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit). */
+#define FBG_ROWS2D32_BODY                        \
+        ".rept   16\n\t"                         \
+        "ldmia.w lr!, {r3-r6}\n\t"               \
+        "ldmia.w r0!, {r7, r8, r10, r12}\n\t"    \
+        "smlad   r9, r7, r3, r9\n\t"             \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "ldmia.w r1!, {r7, r8, r10, r12}\n\t"    \
+        "smlad   r11, r7, r3, r11\n\t"           \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        ".endr\n\t"
+
+/* int32 layers (fbg_layer.acc32, shift 32): the exporter proved that every partial sum of a
+ * row fits int32 (fbg_model_check re-proves it: sum|w| * 32767 + |bias| <= INT32_MAX bounds
+ * the bias plus ANY subset of the products, so the order of summation is free), so SMLAD (two
+ * 16x16 products added to a 32-bit accumulator, which cannot overflow here and so never sets
+ * Q) gives the same number as the int64 sum, in ONE register per row; and
+ * rshift_round(acc * mult, 32) is exactly SMMULR (the high word of acc * mult + 2^31).
+ *
+ * Both kernels below take the layer itself (fbg_layer offsets checked above), run TWO rows
+ * per pass over every pair of rows (n_out & ~1; the caller runs the last row of an odd layer)
+ * and finish a pass with the same 9-instruction requantisation of the pair: LDRD of the two
+ * multipliers, SMMULR x 2, ReLU as BIC with ASR #31 x 2, USAT #15 x 2 (Q set exactly when a
+ * non-negative value exceeds 32767, i.e. when the portable sat16 raises its flag), PKHBT and
+ * one STR of both outputs (y word-aligned, row r in the low half: little-endian). The pair's
+ * two int32 biases come with one LDM of the int64 pair {lo, hi, lo, hi} (the high words land
+ * in scratch registers). Q is cleared on entry and ORed into *sat on exit (1 iff a row
+ * clamped); the AAPCS leaves Q and the condition flags undefined across calls, so the
+ * caller's are not restored.
+ *
+ * rows2d32_asm (n even, w, x and y word-aligned): the MAC body is sixteen copies of an
+ * 8-input block, fully unrolled,
+ *     LDM x!, {4 words}; LDM rowA!, {4 words}; SMLAD x 4; LDM rowB!, {4 words}; SMLAD x 4
+ * = 11 instructions per 16 MACs (0.69) with no loop test: every block is 44 bytes, so a layer
+ * of n inputs enters the body n / 8 blocks before its end (computed once per layer, kept in
+ * r2), after a tail of n % 8 = 2, 4 or 6 inputs (5, 7 or 9 instructions + BX r2) when there
+ * is one. Fourteen registers are live in the body (two row pointers, x in lr, four inputs,
+ * four weights, two accumulators, the entry); the bias, multiplier and output pointers, the
+ * output end, the row length and the start of x live in a stack frame, read with one LDM
+ * (which also rewinds x) and written back with one STM per pair. Per pair beyond the MACs:
+ * 9 (requantisation) + 8 (frame, loop test, biases, next rows, dispatch) + 1 (a tail's BX)
+ * instructions. */
+__attribute__((naked, noinline)) void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                          int16_t *y, uint32_t *sat)
+{
+    FBG_DSP_PAIR_ARGS_USED;
+    __asm__ volatile(
+        FBG_Q_CLEAR_PUSH
+        FBG_ROWS2D32_FRAME
+        FBG_ROWS2D32_TAILS
+        /* the body: 16 blocks of 8 inputs, 44 bytes each (every instruction 32-bit) */
+        FBG_ROWS2D32_BODY
+        FBG_ROWS2_PASS_END
+        FBG_PAIR_KERNEL_EXIT("32"));
+}
+
+/* The requantisation and store of a pair in first2d32_asm. */
+#define FBG_PAIR_OUT FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3")
+
+/* One pair of a 6-input first layer (inputs in r4-r6). */
+#define FBG_PAIR6                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "ldmia.w r0!, {r8, r10, r12}\n\t"        \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        FBG_PAIR_OUT
+
+/* One pair of an 8-input first layer (all four input registers r4-r7 in use). */
+#define FBG_PAIR8                                \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r9, r8, r4, r9\n\t"             \
+        "smlad   r9, r10, r5, r9\n\t"            \
+        "smlad   r9, r12, r6, r9\n\t"            \
+        "smlad   r9, lr, r7, r9\n\t"             \
+        "ldmia.w r0!, {r8, r10, r12, lr}\n\t"    \
+        "smlad   r11, r8, r4, r11\n\t"           \
+        "smlad   r11, r10, r5, r11\n\t"          \
+        "smlad   r11, r12, r6, r11\n\t"          \
+        "smlad   r11, lr, r7, r11\n\t"           \
+        FBG_PAIR_OUT
+
+/* One pair of a 10-input first layer: inputs in r4-r8, accumulators r9 and r11, three
+ * registers left for the weights (an LDM of 3 and one of 2 words per row). */
+#define FBG_PAIR10                               \
+        "ldmia   r1!, {r9-r12}\n\t"              \
+        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
+        "smlad   r9, r10, r4, r9\n\t"            \
+        "smlad   r9, r12, r5, r9\n\t"            \
+        "smlad   r9, lr, r6, r9\n\t"             \
+        "ldrd    r10, r12, [r0], #8\n\t"         \
+        "smlad   r9, r10, r7, r9\n\t"            \
+        "smlad   r9, r12, r8, r9\n\t"            \
+        "ldmia.w r0!, {r10, r12, lr}\n\t"        \
+        "smlad   r11, r10, r4, r11\n\t"          \
+        "smlad   r11, r12, r5, r11\n\t"          \
+        "smlad   r11, lr, r6, r11\n\t"           \
+        "ldrd    r10, r12, [r0], #8\n\t"         \
+        "smlad   r11, r10, r7, r11\n\t"          \
+        "smlad   r11, r12, r8, r11\n\t"          \
+        FBG_PAIR_REQUANT("r2", "r10", "r12", "r9", "r11", "r3")
+
+/* One pair of a 12-input first layer: inputs in r4-r9, the biases' low words (r10, r12) are
+ * the accumulators, their high words' registers (r11, lr) take the weights two at a time. */
+#define FBG_PAIR12                               \
+        "ldmia   r1!, {r10-r12, lr}\n\t"         \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r4, r10\n\t"          \
+        "smlad   r10, lr, r5, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r6, r10\n\t"          \
+        "smlad   r10, lr, r7, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r10, r11, r8, r10\n\t"          \
+        "smlad   r10, lr, r9, r10\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r4, r12\n\t"          \
+        "smlad   r12, lr, r5, r12\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r6, r12\n\t"          \
+        "smlad   r12, lr, r7, r12\n\t"           \
+        "ldrd    r11, lr, [r0], #8\n\t"          \
+        "smlad   r12, r11, r8, r12\n\t"          \
+        "smlad   r12, lr, r9, r12\n\t"           \
+        FBG_PAIR_REQUANT("r2", "r11", "lr", "r10", "r12", "r3")
+
+/* first2d32_asm's entry: the frame ([sp] the output end, [4] sat), the inputs into r4-r9 as
+ * far as n needs them, and the jump to the loop for n (entering the two-pair loops of n = 6,
+ * 8 and 10 at the pair that leaves an even number of pairs). */
+#define FBG_FIRST2D32_ENTRY                      \
+        "sub     sp, sp, #8\n\t"                 \
+        "str     r3, [sp, #4]\n\t"               \
+        "mov     r3, r2\n\t"                     \
+        "ldrh    r9, [r0, #2]\n\t"               \
+        "bic     r7, r9, #1\n\t"                 \
+        "add     r7, r3, r7, lsl #1\n\t"         \
+        "str     r7, [sp]\n\t"                   \
+        "mov     r10, r1\n\t"                    \
+        "ldr     r1, [r0, #16]\n\t"              \
+        "ldr     r2, [r0, #20]\n\t"              \
+        "ldrh    r12, [r0]\n\t"                  \
+        "ldr     r0, [r0, #8]\n\t"               \
+        "ldr     r4, [r10]\n\t"                  \
+        "cmp     r12, #4\n\t"                    \
+        "blo     2f\n\t"                         \
+        "ldr     r5, [r10, #4]\n\t"              \
+        "beq     4f\n\t"                         \
+        "ldr     r6, [r10, #8]\n\t"              \
+        "cmp     r12, #6\n\t"                    \
+        "bne     7f\n\t"                         \
+        "tst     r9, #2\n\t"                     \
+        "bne     61f\n\t"                        \
+        "b       6f\n\t"                         \
+        "7:\n\t"                                 \
+        "ldr     r7, [r10, #12]\n\t"             \
+        "ubfx    r11, r9, #1, #2\n\t"            \
+        "cmp     r12, #8\n\t"                    \
+        "bne     10f\n\t"                        \
+        "cmp     r11, #2\n\t"                    \
+        "beq     83f\n\t"                        \
+        "bhi     82f\n\t"                        \
+        "cmp     r11, #1\n\t"                    \
+        "beq     84f\n\t"                        \
+        "b       8f\n\t"
+
+/* first2d32_asm: a first layer of n = 2, 4, 6, 8, 10 or 12 inputs (the nets' inputs with or without
+ * the memory features and location averages), two rows per pass: the inputs stay in registers
+ * (r4-r9 as int16 pairs, read once with LDR, which may be unaligned); the two rows are
+ * adjacent in memory, so one pointer walks both (one LDRD or LDM per row, or one LDM for both
+ * at n = 4). Per pair: LDM of the biases, the weights, n SMLAD, the 9-instruction
+ * requantisation and the loop test (CMP with the output end, held in r7 for n <= 6): 15 and 17
+ * instructions for 4 and 8 MACs. The n = 6, 8 and 10 loops run two pairs per test (entered at
+ * their second pair for an odd number of pairs): 38 instructions per 24 MACs, and from n = 8
+ * on, where the end is read from the stack, 43 per 32 and 51 per 40 (two loads per row at
+ * n = 10: three registers are left for weights). n = 12 runs one pair per test, 31
+ * instructions per 24 MACs. Weights and y word-aligned (the caller checks). */
+__attribute__((naked, noinline)) void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x,
+                                                           int16_t *y, uint32_t *sat)
+{
+    FBG_DSP_PAIR_ARGS_USED;
+    __asm__ volatile(
+        FBG_Q_CLEAR_PUSH
+        FBG_FIRST2D32_ENTRY
+        "2:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldrd    r8, r10, [r0], #8\n\t"
+        "smlad   r9, r8, r4, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldmia.w r0!, {r6, r8, r10, r12}\n\t"
+        "smlad   r9, r6, r4, r9\n\t"
+        "smlad   r9, r8, r5, r9\n\t"
+        "smlad   r11, r10, r4, r11\n\t"
+        "smlad   r11, r12, r5, r11\n\t"
+        FBG_PAIR_OUT
+        "cmp     r3, r7\n\t"
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        FBG_PAIR6
+        "61:\n\t"
+        FBG_PAIR6
+        "cmp     r3, r7\n\t"
+        "bne     6b\n\t"
+        "b       9f\n\t"
+        "8:\n\t"
+        FBG_PAIR8
+        "82:\n\t"
+        FBG_PAIR8
+        "83:\n\t"
+        FBG_PAIR8
+        "84:\n\t"
+        FBG_PAIR8
+        "ldr     r8, [sp]\n\t"
+        "cmp     r3, r8\n\t"
+        "bne     8b\n\t"
+        "b       9f\n\t"
+        "10:\n\t"
+        "ldr     r8, [r10, #16]\n\t"
+        "cmp     r12, #10\n\t"
+        "bne     12f\n\t"
+        "cmp     r11, #2\n\t"
+        "beq     103f\n\t"
+        "bhi     102f\n\t"
+        "cmp     r11, #1\n\t"
+        "beq     104f\n\t"
+        "100:\n\t"
+        FBG_PAIR10
+        "102:\n\t"
+        FBG_PAIR10
+        "103:\n\t"
+        FBG_PAIR10
+        "104:\n\t"
+        FBG_PAIR10
+        "ldr     r12, [sp]\n\t"
+        "cmp     r3, r12\n\t"
+        "bne     100b\n\t"
+        "b       9f\n\t"
+        "12:\n\t"
+        "ldr     r9, [r10, #20]\n\t"
+        "120:\n\t"
+        FBG_PAIR12
+        "ldr     r11, [sp]\n\t"
+        "cmp     r3, r11\n\t"
+        "bne     120b\n\t"
+        "9:\n\t"
+        "ldr     r3, [sp, #4]\n\t"
+        FBG_PAIR_KERNEL_EXIT("8"));
+}
+#undef FBG_PAIR12
+#undef FBG_PAIR10
+#undef FBG_PAIR8
+#undef FBG_PAIR6
+#undef FBG_PAIR_OUT
+
+/* dot32_asm: acc + sum_j w[j] * x[j] for one row of an int32 layer (the output layers' rows,
+ * fbg_dsp_row_acc), w and x word-aligned, n even: 8 inputs per LDM pair and four SMLAD
+ * (8 instructions per 8 MACs with the loop test), then the n % 8 inputs two at a time. */
+__attribute__((naked, noinline)) int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x,
+                                                          unsigned n, int32_t acc)
+{
+    (void)w;
+    (void)x;
+    (void)n;
+    (void)acc;
+    __asm__ volatile(
+        "push    {r4-r11}\n\t"
+        "bic     r12, r2, #7\n\t"
+        "add     r12, r0, r12, lsl #1\n\t"
+        "cmp     r0, r12\n\t"
+        "beq     2f\n\t"
+        "1:\n\t"
+        "ldmia   r1!, {r4-r7}\n\t"
+        "ldmia   r0!, {r8-r11}\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "smlad   r3, r9, r5, r3\n\t"
+        "smlad   r3, r10, r6, r3\n\t"
+        "smlad   r3, r11, r7, r3\n\t"
+        "cmp     r0, r12\n\t"
+        "bne     1b\n\t"
+        "2:\n\t"
+        "ands    r2, r2, #7\n\t"
+        "beq     4f\n\t"
+        "3:\n\t"
+        "ldr     r4, [r1], #4\n\t"
+        "ldr     r8, [r0], #4\n\t"
+        "smlad   r3, r8, r4, r3\n\t"
+        "subs    r2, r2, #2\n\t"
+        "bne     3b\n\t"
+        "4:\n\t"
+        "mov     r0, r3\n\t"
+        "pop     {r4-r11}\n\t"
+        "bx      lr\n\t");
+}
+#endif /* FBG_DSP_ASM */
+
+/* An int32 int16-weight hidden layer that the pair kernels do not take (see
+ * fbg_dsp_hidden): SMLAD rows with C requantisation, any shift and alignment; from row r0 on. */
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0,
+                        uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    uint32_t clamped = 0u;
+    unsigned r;
+    for (r = r0; r < m; ++r)
+        y[r] = (int16_t)relu_sat16(dot16_32(ly->w16 + (size_t)r * n, x, n, (int32_t)ly->bias[r]),
+                                   ly->mult[r], shift, round, &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_rows32_unused;
+#endif
+#undef FBG_ROWS2D32_FRAME
+#undef FBG_ROWS2D32_TAILS
+#undef FBG_ROWS2D32_BODY
 #undef FBG_PAIR_OUT
 #undef FBG_PAIR6
 #undef FBG_PAIR8
 #undef FBG_PAIR10
 #undef FBG_PAIR12
+#undef FBG_FIRST2D32_ENTRY
+/* ---- src/fbg_dsp_rows8.c ---- */
+/*
+ * fbg_dsp_rows8.c - int8-weight layers on the Cortex-M4 DSP extension: SXTB16 widens four weights
+ * into two int16 pairs; two rows per pass in assembly for int32 layers at shift 32
+ * (rows2b32_asm, first2b32_asm), in C with SMLALD otherwise (hidden8), and single rows.
+ * See fbg_dsp_kernels.h for why the results equal the portable C bit for bit.
+ */
+/* ---- src/fbg_dsp_kernels.h ---- */
+/*
+ * fbg_dsp_kernels.h - what the Cortex-M4 DSP kernels (fbg_dsp*.c) share: the exact helpers,
+ * the rows3 job, the assembly fragments of several kernels, and the kernels' declarations.
+ *
+ * Why the results are bit-identical to the portable C of the stages (fbg_stages.h):
+ * - SMLALD adds two exact 16x16 products to a 64-bit accumulator; int64 addition is exact
+ *   and associative as long as nothing overflows, and fbg_model_check proved
+ *   |acc| <= sum|w| * 32767 + |bias| with acc * mult + 2^(shift-1) inside int64 (every partial
+ *   sum obeys the same bound). So summing in pairs, three rows at a time, gives the same int64
+ *   as the portable row-by-row loop.
+ * - Requantisation needs p = acc * mult + 2^(shift-1), exact in int64 by the same proof; for
+ *   shift >= 32 only floor(p / 2^32) matters (rounded_product_hi: one SMULL/SMLAL and one MLA
+ *   instead of a 64x64 multiply), then >> (shift - 32) gives floor(p / 2^shift), which fits
+ *   int32 because |p| < 2^63. ReLU is v & ~(v >> 31); USAT #15 clamps to [0, 32767] = sat16
+ *   of a non-negative value and saturates exactly when the portable sat16 raises its flag
+ *   (seen as v - usat(v) != 0 in C, as the sticky Q flag in the assembly).
+ * - Everything is C with ACLE intrinsics (__smlad, __smlald, __sxtb16 for int8 weights,
+ *   __usat) except the hand-written assembly kernels (FBG_DSP_ASM, below; docs/firmware.md
+ *   has the instructions per step): for int64 layers with shift >= 32, rows3d_asm
+ *   (word-aligned, LDRD), rows3_asm (any alignment) and first_asm (2, 4 or 6 inputs held in
+ *   registers); for int32 layers (fbg_layer.acc32, proven by the loader: every partial sum
+ *   fits int32; SMLAD and SMMULR instead) at shift 32, two rows per pass: rows2d32_asm (LDM-fed,
+ *   fully unrolled body entered at a computed offset), first2d32_asm (n <= 12, inputs in
+ *   registers), and with int8 weights rows2b32_asm and first2b32_asm (SXTB16); dot32_asm for
+ *   the output layers' rows and fir4_asm for the FIR. The int16 kernels have ACLE C versions
+ *   (rows3_c, first_c, rows2_32_c; the FIR and row loops in C) that FBG_DSP_ASM=0 builds
+ *   instead; with int8 weights that build runs the C pairs of hidden8.
+ * - The assembly kernels share their recurring fragments as string-literal macros (the Q-flag
+ *   entry and exit, a pair or quad of MACs, a row's or a pair's requantisation): the compiler
+ *   pastes them back, so the object code is what the written-out instructions gave.
+ * - The FIR uses SMLAL (32x16 -> 64-bit accumulate; the history is int32, too wide for the
+ *   16-bit dual MACs) and walks the ring buffer as two contiguous runs instead of wrapping the
+ *   index per tap; the sum is the same set of exact int64 products.
+ * - The standardisation after it (fbg_dsp_standardise) computes the same int64 values on
+ *   32-bit words; the comments at each step give the bound that makes the narrower
+ *   arithmetic exact.
+ */
+#ifndef FBG_DSP_KERNELS_H
+#define FBG_DSP_KERNELS_H
+
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+
+#if FBG_USE_DSP
+#include <arm_acle.h>
+#include <stddef.h>
+#include <string.h>
+
+/* FBG_DSP_ASM=1 (the default with GCC): the hand-written assembly kernels, kept where
+ * they measurably beat the ACLE C (instructions per step, docs/firmware.md); 0: ACLE C only,
+ * for any compiler with arm_acle.h, clang included (the kernel test runs both). */
+#ifndef FBG_DSP_ASM
+#if defined(__GNUC__) && !defined(__clang__) /* naked functions of GNU assembly */
+#define FBG_DSP_ASM 1
+#else
+#define FBG_DSP_ASM 0
+#endif
+#endif
+
+/* Blocks of 8 inputs in the unrolled MAC body of rows2d32_asm (its .rept count): room for
+ * the widest layer the loader accepts. */
+#define FBG_DSP_BODY_BLOCKS 16u
+/* Most inputs first2d32_asm holds in registers (six words: r4-r9): every first layer. */
+#define FBG_DSP_FIRST_MAX_IN 12u
+typedef char fbg_dsp_body_fits[FBG_MAX_WIDTH <= 8 * 16 ? 1 : -1];
+
+/* Two adjacent int16 as one word: a single LDR (ARMv7E-M allows unaligned LDR; LDRD/LDM
+ * would fault on the 2-byte-aligned rows of an odd-width layer, hence rows3d_asm only after
+ * an alignment check). */
+static inline int16x2_t ld2(const int16_t *p)
+{
+    int16x2_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* floor((acc * mult + 2^(shift-1)) / 2^32) for shift >= 32, i.e. the high word of the
+ * rounded product, without a 64x64-bit multiply: with acc = H * 2^32 + (int32)lo, where
+ * H = hi + bit 31 of lo, p = (int32)lo * mult + round (one SMLAL, exact in int64 since
+ * |lo * mult| < 2^62 and round <= 2^61) plus H * mult * 2^32. Only the high word of p is
+ * needed and p fits int64 (the model's bound proof), so adding H * mult to it modulo 2^32
+ * (one MLA) gives exactly floor(p / 2^32). */
+static inline int32_t rounded_product_hi(int64_t acc, int32_t mult, int64_t round)
+{
+    uint32_t lo = (uint32_t)acc;
+    uint32_t big = (uint32_t)(acc >> 32) + (lo >> 31);
+    int64_t t = (int64_t)(int32_t)lo * mult + round;
+    /* Unsigned arithmetic wraps as intended; the conversion back is the identity on the
+     * two's-complement targets this file compiles for (the DSP extension implies ARM). */
+    return (int32_t)((uint32_t)(t >> 32) + big * (uint32_t)mult);
+}
+
+/* sat16(max(rshift_round(acc * mult, shift), 0)) of fbg_stage_nets.c; *clamped != 0 iff it clamped.
+ * round = 2^(shift-1). */
+static inline int32_t relu_sat16(int64_t acc, int32_t mult, unsigned shift, int64_t round,
+                                 uint32_t *clamped)
+{
+    int32_t v, y;
+    if (shift >= 32u) {
+        /* floor(p / 2^shift) = floor(floor(p / 2^32) / 2^(shift-32)); fits int32 as |p| < 2^63. */
+        v = rounded_product_hi(acc, mult, round) >> (shift - 32u);
+    } else {
+        int64_t q = fbg_rshift_round(acc * mult, shift);
+        /* Beyond int32 the outcome of relu + sat16 is already decided; keep the sign. */
+        v = q > INT32_MAX ? INT32_MAX : (q < -INT32_MAX ? -INT32_MAX : (int32_t)q);
+    }
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult: SMMULR, the high word of
+ * acc * mult + 2^31, exactly the rounding rule at shift 32. */
+static inline int32_t smmulr(int32_t acc, int32_t mult)
+{
+#if FBG_DSP_ASM /* ACLE has no SMMULR; the C below costs three instructions (SMLAL) */
+    int32_t r;
+    __asm__("smmulr %0, %1, %2" : "=r"(r) : "r"(acc), "r"(mult));
+    return r;
+#else
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+#endif
+}
+
+/* acc + a * b, exact (the caller bounds the sum inside int64). SMLAL in assembly: GCC folds
+ * an int32 chosen by a branch (a saturated value) into a 64-bit phi and then multiplies
+ * 64 x 64 bits (MUL, MLA, UMULL and the carries) where one SMLAL does. */
+static inline int64_t smlal(int64_t acc, int32_t a, int32_t b)
+{
+#if FBG_DSP_ASM
+    __asm__("smlal %Q0, %R0, %1, %2" : "+r"(acc) : "r"(a), "r"(b));
+    return acc;
+#else
+    return acc + (int64_t)a * b;
+#endif
+}
+
+/* sat16(max(v, 0)) with the flag of fbg_stage_nets.c (USAT after the ReLU, as the assembly). */
+static inline int32_t relu_usat15(int32_t v, uint32_t *clamped)
+{
+    int32_t y;
+    v &= ~(v >> 31);
+    y = __usat(v, 15);
+    *clamped |= (uint32_t)(v - y);
+    return y;
+}
+
+/* Work order of rows3_asm (field offsets are used by the assembly; checked below). */
+typedef struct {
+    const int16_t *w;     /*  0: first weight row of the next group of three rows */
+    const int16_t *x;     /*  4: layer input */
+    const int64_t *bias;  /*  8: bias of the next group */
+    const int32_t *mult;  /* 12: multiplier of the next group */
+    int16_t *y;           /* 16: output of the next group */
+    uint32_t n;           /* 20: n_in */
+    uint32_t groups;      /* 24: groups of three rows left, >= 1 */
+    uint32_t round_lo;    /* 28: 2^(shift-1), low word */
+    uint32_t round_hi;    /* 32: and high word */
+    uint32_t s32;         /* 36: shift - 32 (shift >= 32) */
+    uint32_t clamped;     /* 40: out: 1 iff a row clamped at 32767 (the Q flag) */
+} fbg_dsp_job;
+
+typedef char fbg_dsp_job_layout[(offsetof(fbg_dsp_job, x) == 4 && offsetof(fbg_dsp_job, bias) == 8 &&
+                                  offsetof(fbg_dsp_job, mult) == 12 && offsetof(fbg_dsp_job, y) == 16 &&
+                                  offsetof(fbg_dsp_job, n) == 20 && offsetof(fbg_dsp_job, groups) == 24 &&
+                                  offsetof(fbg_dsp_job, round_lo) == 28 &&
+                                  offsetof(fbg_dsp_job, s32) == 36 &&
+                                  offsetof(fbg_dsp_job, clamped) == 40) ? 1 : -1];
+
+
+/* Field offsets of fbg_layer read by the pair kernels' assembly. */
+typedef char fbg_dsp_layer_layout[(offsetof(fbg_layer, n_out) == 2 && offsetof(fbg_layer, w16) == 8 &&
+                                   offsetof(fbg_layer, bias) == 16 && offsetof(fbg_layer, mult) == 20) ? 1 : -1];
+
+/* The inputs re-paired for int8 weights: SXTB16 splits a word of four int8 weights
+ * (w0, w1, w2, w3) into the int16 pairs (w0, w2) and, rotated by 8, (w1, w3); so the inputs
+ * are stored once per layer as (x0, x2), (x1, x3) for every group of four. */
+static inline uint32_t ror8(uint32_t v) { return (v >> 8) | (v << 24); }
+
+static inline int16x2_t pair16(int16_t lo, int16_t hi)
+{
+    return (int16x2_t)((uint32_t)(uint16_t)lo | ((uint32_t)(uint16_t)hi << 16));
+}
+
+static inline int8x4_t ld4_8(const int8_t *p)
+{
+    int8x4_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* Two adjacent int16 inputs as one unsigned word. */
+static inline uint32_t ld2u(const int16_t *p)
+{
+    uint32_t v;
+    memcpy(&v, p, sizeof v);
+    return v;
+}
+
+/* xp[] = x re-paired for SXTB16 over the first n4 inputs (n4 % 4 == 0): (x0, x2), (x1, x3)
+ * per group of four, two word loads and two packs (PKHBT, PKHTB) per group. */
+static inline void repair8(const int16_t *x, unsigned n4, int16x2_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        uint32_t a = ld2u(x + j), b = ld2u(x + j + 2u);
+        xp[0] = (int16x2_t)((a & 0xFFFFu) | (b << 16));
+        xp[1] = (int16x2_t)((a >> 16) | (b & 0xFFFF0000u));
+    }
+}
+
+#if FBG_DSP_ASM
+/* Assembly fragments that more than one kernel file pastes (string literals). */
+/* The pair kernels' parameters (layer, input, output, flag), which their assembly reads from
+ * r0-r3, as used for C. */
+#define FBG_DSP_PAIR_ARGS_USED (void)ly, (void)x, (void)y, (void)sat
+
+/* The pair kernels' exit after a frame of FRAME bytes: *sat |= Q, r4-r11 back, return. */
+#define FBG_PAIR_KERNEL_EXIT(frame)              \
+        "add     sp, sp, #" frame "\n\t"         \
+        FBG_Q_READ                               \
+        FBG_SAT_OR_Q                             \
+        "pop     {r4-r11, pc}\n\t"
+
+/* The sticky Q flag (set by a USAT that clamped) into r12. */
+#define FBG_Q_READ                               \
+        "mrs     r12, apsr\n\t"                  \
+        "ubfx    r12, r12, #27, #1\n\t"
+
+/* Entry of the int64 kernels: the caller's APSR saved with r4-r12 and lr, then Q cleared. */
+#define FBG_Q_SAVE_CLEAR                         \
+        "mrs     r12, apsr\n\t"                  \
+        "push    {r4-r12, lr}\n\t"               \
+        "bic     r12, r12, #0x08000000\n\t"      \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit before the return: Q into job->clamped (JOB names the register holding job), the
+ * caller's APSR back. */
+#define FBG_Q_RESTORE(job)                       \
+        FBG_Q_READ                               \
+        "str     r12, [" job ", #40]\n\t"        \
+        "pop     {r4-r12, lr}\n\t"               \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Entry of the int32 kernels: r4-r11 and lr saved, Q cleared (the AAPCS leaves the caller's Q
+ * undefined across a call). */
+#define FBG_Q_CLEAR_PUSH                         \
+        "push    {r4-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"
+
+/* Their exit, with Q in r12 (FBG_Q_READ) and the sat pointer in r3: *sat |= Q. */
+#define FBG_SAT_OR_Q                             \
+        "ldr     r0, [r3]\n\t"                   \
+        "orr     r0, r0, r12\n\t"                \
+        "str     r0, [r3]\n\t"
+
+/* The requantisation and store of a pair of rows of the int32 kernels: accumulators A and B,
+ * their multipliers read from MULT (post-incremented) into MA and MB, SMMULR, ReLU as BIC with
+ * ASR #31, USAT #15, both outputs packed into one word and stored at OUT (post-incremented). */
+#define FBG_PAIR_REQUANT(mult, ma, mb, a, b, out)                \
+        "ldrd    " ma ", " mb ", [" mult "], #8\n\t"             \
+        "smmulr  " a ", " a ", " ma "\n\t"                       \
+        "smmulr  " b ", " b ", " mb "\n\t"                       \
+        "bic     " a ", " a ", " a ", asr #31\n\t"               \
+        "bic     " b ", " b ", " b ", asr #31\n\t"               \
+        "usat    " a ", #15, " a "\n\t"                          \
+        "usat    " b ", #15, " b "\n\t"                          \
+        "pkhbt   " a ", " a ", " b ", lsl #16\n\t"               \
+        "str     " a ", [" out "], #4\n\t"
+
+/* The end of a pass of rows2d32_asm and rows2b32_asm ("8:"): the requantisation and store of the
+ * pair (LDRD of both multipliers, SMMULR, ReLU, USAT, PKHBT, STR), the next pair's biases and
+ * rows and the jump to where a pass starts; after the last pair ("9:") the sat pointer into r3. */
+#define FBG_ROWS2_PASS_END                       \
+        "8:\n\t"                                 \
+        "ldm     sp, {r3, r4, r5, r6, r8, lr}\n\t" \
+        FBG_PAIR_REQUANT("r4", "r7", "r10", "r9", "r11", "r5") \
+        "cmp     r5, r6\n\t"                     \
+        "beq     9f\n\t"                         \
+        "ldmia   r3!, {r9-r12}\n\t"              \
+        "stmia   sp, {r3, r4, r5}\n\t"           \
+        "mov     r0, r1\n\t"                     \
+        "add     r1, r1, r8\n\t"                 \
+        "ldr     pc, [sp, #24]\n\t"              \
+        "9:\n\t"                                 \
+        "ldr     r3, [sp, #28]\n\t"
+#endif /* FBG_DSP_ASM */
+
+/* The kernels, one file per family: fbg_dsp_rows16.c (int16 weights, int64 sums),
+ * fbg_dsp_rows32.c (int16 weights, int32 sums), fbg_dsp_rows8.c (int8 weights); the filter is
+ * in fbg_dsp_fir.c and the choice of kernel per layer in fbg_dsp.c. Every layer kernel takes
+ * the layer, its input and output and the saturation flag (*sat = 1 when a row clamped), except
+ * the int64 three-row kernels, which take a job (above) built once per layer. */
+#if FBG_DSP_ASM
+void fbg_dsp_rows3_asm(fbg_dsp_job *job);
+void fbg_dsp_rows3d_asm(fbg_dsp_job *job);
+void fbg_dsp_first_asm(fbg_dsp_job *job);
+void fbg_dsp_rows2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2d32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot32_asm(const int16_t *w, const int16_t *x, unsigned n, int32_t acc);
+#else
+void fbg_dsp_rows2_32_c(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+#endif
+void fbg_dsp_hidden16(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+void fbg_dsp_hidden16_32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned r0, uint32_t *sat);
+void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc);
+int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* The pairs of rows of an int32 layer at shift 32: the first-layer kernel (inputs in
+ * registers) for n <= FBG_DSP_FIRST_MAX_IN, else the unrolled one (x word-aligned); *sat |= 1
+ * iff a row clamped. */
+static inline void run_pairs32(const fbg_layer *ly, const int16_t *x, int16_t *y, unsigned n,
+                               uint32_t *sat)
+{
+#if FBG_DSP_ASM
+    if (n <= FBG_DSP_FIRST_MAX_IN)
+        fbg_dsp_first2d32_asm(ly, x, y, sat);
+    else
+        fbg_dsp_rows2d32_asm(ly, x, y, sat);
+#else
+    (void)n;
+    fbg_dsp_rows2_32_c(ly, x, y, sat);
+#endif
+}
+
+/* acc + sum_j w[j] * x[j] with SMLAD (an int32 layer: no partial sum overflows). */
+static inline int32_t dot16_32(const int16_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j = 0;
+    for (; j + 2u <= n; j += 2u)
+        acc = __smlad(ld2(w + j), ld2(x + j), acc);
+    if (j < n)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+#endif /* FBG_USE_DSP */
+
+#endif /* FBG_DSP_KERNELS_H */
+
+#if FBG_USE_DSP
+#if FBG_DSP_ASM
+/* One group of rows2b32_asm's loop: 8 inputs (x words in r3-r6) of rows r0 and r1, int8
+ * weights widened by SXTB16 into the accumulators r9 and r11. */
+#define ROWS2B32_GROUP \
+        "ldmia.w lr!, {r3-r6}\n\t" \
+        "ldr     r7, [r0], #4\n\t" \
+        "ldr     r8, [r0], #4\n\t" \
+        "sxtb16  r10, r7\n\t" \
+        "smlad   r9, r10, r3, r9\n\t" \
+        "sxtb16  r10, r7, ror #8\n\t" \
+        "smlad   r9, r10, r4, r9\n\t" \
+        "sxtb16  r10, r8\n\t" \
+        "smlad   r9, r10, r5, r9\n\t" \
+        "sxtb16  r10, r8, ror #8\n\t" \
+        "smlad   r9, r10, r6, r9\n\t" \
+        "ldr     r7, [r1], #4\n\t" \
+        "ldr     r8, [r1], #4\n\t" \
+        "sxtb16  r10, r7\n\t" \
+        "smlad   r11, r10, r3, r11\n\t" \
+        "sxtb16  r10, r7, ror #8\n\t" \
+        "smlad   r11, r10, r4, r11\n\t" \
+        "sxtb16  r10, r8\n\t" \
+        "smlad   r11, r10, r5, r11\n\t" \
+        "sxtb16  r10, r8, ror #8\n\t" \
+        "smlad   r11, r10, r6, r11\n\t"
+
+/* Four inputs of the tail of rows2b32_asm (x words in r3, r4) of rows r0 and r1. */
+#define ROWS2B32_TAIL4                           \
+        "ldrd    r3, r4, [lr], #8\n\t"           \
+        "ldr     r7, [r0], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r9, r10, r3, r9\n\t"            \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r9, r10, r4, r9\n\t"            \
+        "ldr     r7, [r1], #4\n\t"               \
+        "sxtb16  r10, r7\n\t"                    \
+        "smlad   r11, r10, r3, r11\n\t"          \
+        "sxtb16  r10, r7, ror #8\n\t"            \
+        "smlad   r11, r10, r4, r11\n\t"
+
+/* rows2b32_asm: x (word-aligned) re-paired into xp at sp + 40: LDM of 8 inputs, PKHBT/PKHTB, STM. */
+#define FBG_ROWS2B32_REPAIR_X                    \
+        "add     r12, sp, #40\n\t"               \
+        "bic     r7, r8, #7\n\t"                 \
+        "add     r7, r1, r7, lsl #1\n\t"         \
+        "cmp     r1, r7\n\t"                     \
+        "beq     2f\n\t"                         \
+        "1:\n\t"                                 \
+        "ldmia   r1!, {r3-r6}\n\t"               \
+        "pkhbt   r9, r3, r4, lsl #16\n\t"        \
+        "pkhtb   r10, r4, r3, asr #16\n\t"       \
+        "pkhbt   r11, r5, r6, lsl #16\n\t"       \
+        "pkhtb   lr, r6, r5, asr #16\n\t"        \
+        "stmia   r12!, {r9, r10, r11, lr}\n\t"   \
+        "cmp     r1, r7\n\t"                     \
+        "bne     1b\n\t"                         \
+        "2:\n\t"                                 \
+        "tst     r8, #4\n\t"                     \
+        "beq     3f\n\t"                         \
+        "ldmia   r1!, {r3, r4}\n\t"              \
+        "pkhbt   r9, r3, r4, lsl #16\n\t"        \
+        "pkhtb   r10, r4, r3, asr #16\n\t"       \
+        "stmia   r12!, {r9, r10}\n\t"            \
+        "3:\n\t"                                 \
+        "tst     r8, #2\n\t"                     \
+        "itt     ne\n\t"                         \
+        "ldrne   r3, [r1]\n\t"                   \
+        "strne   r3, [r12]\n\t"
+
+/* rows2b32_asm's frame after the re-pairing, the first pair's biases, the tail's address ([32]:
+ * none, 2, 4 or 4 + 2 inputs) and the loop's entry ([24]: two 8-input groups per loop test,
+ * entered at the second for an odd count), then the jump into the first pass. */
+#define FBG_ROWS2B32_FRAME                                                               \
+        "add     r1, sp, #40\n\t"                                                        \
+        "ldrh    r6, [r0, #2]\n\t"                                                       \
+        "str     r8, [sp, #16]\n\t"                                                      \
+        "str     r1, [sp, #20]\n\t"                                                      \
+        "mov     lr, r1\n\t"                                                             \
+        "str     r2, [sp, #8]\n\t"                                                       \
+        "bic     r6, r6, #1\n\t"                                                         \
+        "add     r6, r2, r6, lsl #1\n\t"                                                 \
+        "str     r6, [sp, #12]\n\t"                                                      \
+        "bic     r7, r8, #7\n\t"                                                         \
+        "add     r2, r1, r7, lsl #1\n\t"                                                 \
+        "ldr     r3, [r0, #16]\n\t"                                                      \
+        "ldmia   r3!, {r9-r12}\n\t"                                                      \
+        "str     r3, [sp]\n\t"                                                           \
+        "ldr     r3, [r0, #20]\n\t"                                                      \
+        "str     r3, [sp, #4]\n\t"                                                       \
+        "ldr     r0, [r0, #12]\n\t"                                                      \
+        "add     r1, r0, r8\n\t"                                                         \
+        /* the tail: none, 2, 4 or 4 + 2 inputs */                                       \
+        "and     r7, r8, #6\n\t"                                                         \
+        "adr.w   r3, 8f\n\t"                                                             \
+        "cmp     r7, #2\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 72f\n\t"                                                            \
+        "cmp     r7, #4\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 74f\n\t"                                                            \
+        "cmp     r7, #6\n\t"                                                             \
+        "it      eq\n\t"                                                                 \
+        "adreq.w r3, 76f\n\t"                                                            \
+        "orr     r3, r3, #1\n\t"                                                         \
+        "str     r3, [sp, #32]\n\t"                                                      \
+        /* 8-input groups: two per loop test, entered at the second for an odd count */  \
+        "cmp     r8, #8\n\t"                                                             \
+        "blo     0f\n\t"                                                                 \
+        "tst     r8, #8\n\t"                                                             \
+        "ite     ne\n\t"                                                                 \
+        "adrne.w r3, 10f\n\t"                                                            \
+        "adreq.w r3, 1f\n\t"                                                             \
+        "orr     r3, r3, #1\n\t"                                                         \
+        "0:\n\t"                                                                         \
+        "str     r3, [sp, #24]\n\t"                                                      \
+        "bx      r3\n\t"
+
+/* rows2b32_asm: the pairs of rows of an int32 layer at shift 32 with int8 weights (int8
+ * weights always prove int32) and n even; any alignment of the rows (single LDR, which may be
+ * unaligned), x and y word-aligned. First x is re-paired for SXTB16 into xp on the stack
+ * (as hidden8 does, 8 inputs per LDM, two PKHBT, two PKHTB, STM): per group of four
+ * (x0, x2), (x1, x3); then, when n % 4 == 2, the last two as (x[n-2], x[n-1]).
+ * SXTB16 splits a word of four weights into the int16 pairs (w0, w2) and, rotated by 8,
+ * (w1, w3), each one SMLAD with its input pair: per 8 inputs and two rows
+ *     LDM xp!, {4 words}; 2 x (2 LDR, 4 SXTB16, 4 SMLAD)
+ * = 21 instructions per 16 MACs, two such groups per loop test (CMP, BNE; an odd number of
+ * groups enters the loop at its second). The n % 8 inputs after the loop: four (LDRD of two input
+ * words, per row LDR + 2 SXTB16 + 2 SMLAD) and/or two (per row two LDRSB and SMLABB, SMLATB
+ * with the natural pair), entered through a per-layer address in the frame. Requantisation,
+ * frame and flag as rows2d32_asm (SMLAD, SMLABB and SMLATB never overflow here, so Q only
+ * comes from USAT). */
+__attribute__((naked, noinline)) void fbg_dsp_rows2b32_asm(const fbg_layer *ly, const int16_t *x,
+                                                          int16_t *y, uint32_t *sat)
+{
+    FBG_DSP_PAIR_ARGS_USED;
+    __asm__ volatile(
+        FBG_Q_CLEAR_PUSH
+        /* frame: [sp] bias, [4] mult, [8] out, [12] out end, [16] row bytes (n), [20] xp,
+         * [24] where a pass starts (loop or tail), [28] sat, [32] the tail after the loop;
+         * [40..] xp (FBG_MAX_WIDTH / 2 words); r2 = end of the 8-input groups of xp in the
+         * MAC loop */
+        "sub     sp, sp, #296\n\t"
+        "str     r3, [sp, #28]\n\t"
+        "ldrh    r8, [r0]\n\t"
+        FBG_ROWS2B32_REPAIR_X
+        FBG_ROWS2B32_FRAME
+        "1:\n\t"
+        ROWS2B32_GROUP
+        "10:\n\t"
+        ROWS2B32_GROUP
+        "cmp     lr, r2\n\t"
+        "bne     1b\n\t"
+        "ldr     pc, [sp, #32]\n\t"
+        /* 4 inputs, then to the epilogue */
+        "74:\n\t"
+        ROWS2B32_TAIL4
+        "b       8f\n\t"
+        /* 4 + 2 inputs */
+        "76:\n\t"
+        ROWS2B32_TAIL4
+        /* 2 inputs: (x[n-2], x[n-1]) */
+        "72:\n\t"
+        "ldr     r3, [lr], #4\n\t"
+        "ldrsb   r7, [r0], #1\n\t"
+        "ldrsb   r8, [r0], #1\n\t"
+        "smlabb  r9, r3, r7, r9\n\t"
+        "smlatb  r9, r3, r8, r9\n\t"
+        "ldrsb   r7, [r1], #1\n\t"
+        "ldrsb   r8, [r1], #1\n\t"
+        "smlabb  r11, r3, r7, r11\n\t"
+        "smlatb  r11, r3, r8, r11\n\t"
+        FBG_ROWS2_PASS_END
+        FBG_PAIR_KERNEL_EXIT("296"));
+}
+
+/* The requantisation and store of a pair in first2b32_asm, then the loop test against lr. */
+#define FBG_PAIR_OUT8                            \
+        FBG_PAIR_REQUANT("r2", "r8", "r10", "r9", "r11", "r3") \
+        "cmp     r3, lr\n\t"
+
+/* Four int8 weights (one LDR into r10) against two re-paired input words, into ACC. */
+#define FBG_W4(acc, xa, xb)                      \
+        "sxtb16  r8, r10\n\t"                    \
+        "smlad   " acc ", r8, " xa ", " acc "\n\t" \
+        "sxtb16  r8, r10, ror #8\n\t"            \
+        "smlad   " acc ", r8, " xb ", " acc "\n\t"
+
+/* Two int8 weights (two LDRSB) against the natural input pair XW, into ACC. */
+#define FBG_W2(acc, xw)                          \
+        "ldrsb   r10, [r0], #1\n\t"              \
+        "ldrsb   r12, [r0], #1\n\t"              \
+        "smlabb  " acc ", " xw ", r10, " acc "\n\t" \
+        "smlatb  " acc ", " xw ", r12, " acc "\n\t"
+
+/* first2b32_asm's entry: sat kept on the stack, Q cleared, the output end in lr, the inputs
+ * re-paired into r4-r7 as far as n needs them, and the jump to the loop for n. */
+#define FBG_FIRST2B32_ENTRY                      \
+        "push    {r3-r11, lr}\n\t"               \
+        "mov     r12, #0\n\t"                    \
+        "msr     APSR_nzcvq, r12\n\t"            \
+        "mov     r3, r2\n\t"                     \
+        "ldrh    r9, [r0, #2]\n\t"               \
+        "bic     lr, r9, #1\n\t"                 \
+        "add     lr, r3, lr, lsl #1\n\t"         \
+        "ldr     r2, [r0, #20]\n\t"              \
+        "ldrh    r12, [r0]\n\t"                  \
+        "mov     r10, r1\n\t"                    \
+        "ldr     r1, [r0, #16]\n\t"              \
+        "ldr     r0, [r0, #12]\n\t"              \
+        "ldr     r4, [r10]\n\t"                  \
+        "cmp     r12, #4\n\t"                    \
+        "blo     2f\n\t"                         \
+        "ldr     r5, [r10, #4]\n\t"              \
+        "pkhbt   r8, r4, r5, lsl #16\n\t"        \
+        "pkhtb   r5, r5, r4, asr #16\n\t"        \
+        "mov     r4, r8\n\t"                     \
+        "beq     4f\n\t"                         \
+        "ldr     r6, [r10, #8]\n\t"              \
+        "cmp     r12, #6\n\t"                    \
+        "beq     6f\n\t"                         \
+        "ldr     r7, [r10, #12]\n\t"             \
+        "pkhbt   r8, r6, r7, lsl #16\n\t"        \
+        "pkhtb   r7, r7, r6, asr #16\n\t"        \
+        "mov     r6, r8\n\t"                     \
+        "b       8f\n\t"
+
+/* first2b32_asm: an int8-weight int32 first layer (shift 32) of n = 2, 4, 6 or 8 inputs, two
+ * rows per pass, the inputs re-paired once into registers (r4-r7: (x0, x2), (x1, x3) per four,
+ * the natural pair for the last two when n % 4 == 2; LDR, which may be unaligned, and
+ * PKHBT/PKHTB); the rows are adjacent, one pointer walks both (single LDR/LDRSB, any
+ * alignment). Per pair: LDM of the biases, per row one LDR + 2 SXTB16 + 2 SMLAD per four
+ * weights and 2 LDRSB + SMLABB + SMLATB per two, the requantisation of first2d32_asm and the
+ * loop test (output end in lr): 20, 22, 30 and 32 instructions for 4, 8, 12 and 16 MACs.
+ * y word-aligned (the caller checks). */
+__attribute__((naked, noinline)) void fbg_dsp_first2b32_asm(const fbg_layer *ly, const int16_t *x,
+                                                           int16_t *y, uint32_t *sat)
+{
+    FBG_DSP_PAIR_ARGS_USED;
+    __asm__ volatile(
+        FBG_FIRST2B32_ENTRY
+        "2:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        FBG_W2("r9", "r4")
+        FBG_W2("r11", "r4")
+        FBG_PAIR_OUT8
+        "bne     2b\n\t"
+        "b       9f\n\t"
+        "4:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        FBG_PAIR_OUT8
+        "bne     4b\n\t"
+        "b       9f\n\t"
+        "6:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        FBG_W2("r9", "r6")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        FBG_W2("r11", "r6")
+        FBG_PAIR_OUT8
+        "bne     6b\n\t"
+        "b       9f\n\t"
+        "8:\n\t"
+        "ldmia   r1!, {r9-r12}\n\t"
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r9", "r6", "r7")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r4", "r5")
+        "ldr     r10, [r0], #4\n\t"
+        FBG_W4("r11", "r6", "r7")
+        FBG_PAIR_OUT8
+        "bne     8b\n\t"
+        "9:\n\t"
+        FBG_Q_READ
+        "pop     {r3}\n\t"
+        FBG_SAT_OR_Q
+        "pop     {r4-r11, pc}\n\t");
+}
+#undef FBG_W2
+#undef FBG_W4
+#undef FBG_PAIR_OUT8
+
+typedef char fbg_dsp_xp_fits[FBG_MAX_WIDTH * 2 <= 256 ? 1 : -1]; /* xp in rows2b32_asm's frame */
+#undef ROWS2B32_TAIL4
+#undef ROWS2B32_GROUP
+#endif /* FBG_DSP_ASM */
+
+/* One row of an int32 layer with int8 weights (the output layers' rows): no re-paired copy
+ * of x; the two SXTB16 halves (w0, w2), (w1, w3) are re-packed into (w0, w1), (w2, w3) to meet
+ * the inputs as they lie (two PKH per four weights). */
+int32_t fbg_dsp_dot8_32(const int8_t *w, const int16_t *x, unsigned n, int32_t acc)
+{
+    unsigned j;
+    for (j = 0; j + 4u <= n; j += 4u) {
+        uint32_t v;
+        uint32_t e, o;
+        memcpy(&v, w + j, sizeof v);
+        e = (uint32_t)__sxtb16((int8x4_t)v);
+        o = (uint32_t)__sxtb16((int8x4_t)ror8(v));
+        acc = __smlad((int16x2_t)((e & 0xFFFFu) | (o << 16)), ld2(x + j), acc);
+        acc = __smlad((int16x2_t)((o & 0xFFFF0000u) | (e >> 16)), ld2(x + j + 2u), acc);
+    }
+    for (; j < n; ++j)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+/* One row of int8 weights: acc = bias + sum_j w[j] x[j]; xp = the re-paired inputs. */
+static int64_t dot8(const int8_t *w, const int16_t *x, const int16x2_t *xp, unsigned n, int64_t acc)
+{
+    unsigned j, n4 = n & ~3u;
+    for (j = 0; j < n4; j += 4u, xp += 2) {
+        int8x4_t v = ld4_8(w + j);
+        acc = __smlald(__sxtb16(v), xp[0], acc);
+        acc = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v)), xp[1], acc);
+    }
+    for (; j < n; ++j)
+        acc += (int32_t)w[j] * (int32_t)x[j];
+    return acc;
+}
+
+/* A hidden layer with int8 weights: two rows per pass share the re-paired inputs; per four
+ * inputs and row one LDR, two SXTB16, two SMLALD. Requantisation in C: relu_sat16, or for an
+ * int32 layer at shift 32 (int8 weights always prove int32: 128 * 127 * 32767 < 2^29) one
+ * SMMULR; SMLALD costs what SMLAD does, so the MAC loop is shared. */
+__attribute__((noinline)) void fbg_dsp_hidden8(const fbg_layer *ly, const int16_t *x, int16_t *y,
+                                              uint32_t *sat)
+{
+    const unsigned n = ly->n_in, m = ly->n_out, shift = ly->shift, n4 = n & ~3u;
+    const int64_t round = (int64_t)1 << (shift - 1u);
+    const int fast32 = ly->acc32 && shift == 32u;
+    int16x2_t xp[FBG_MAX_WIDTH / 2];
+    uint32_t clamped = 0u;
+    unsigned j, r = 0;
+    repair8(x, n4, xp);
+    for (; r + 2u <= m; r += 2u) {
+        const int8_t *w0 = ly->w8 + (size_t)r * n, *w1 = w0 + n;
+        const int16x2_t *pp = xp;
+        int64_t a0 = ly->bias[r], a1 = ly->bias[r + 1u];
+        for (j = 0; j < n4; j += 4u, pp += 2) {
+            int8x4_t v0 = ld4_8(w0 + j), v1 = ld4_8(w1 + j);
+            a0 = __smlald(__sxtb16(v0), pp[0], a0);
+            a1 = __smlald(__sxtb16(v1), pp[0], a1);
+            a0 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v0)), pp[1], a0);
+            a1 = __smlald(__sxtb16((int8x4_t)ror8((uint32_t)v1)), pp[1], a1);
+        }
+        for (; j < n; ++j) {
+            a0 += (int32_t)w0[j] * (int32_t)x[j];
+            a1 += (int32_t)w1[j] * (int32_t)x[j];
+        }
+        if (fast32) {
+            /* An int32 layer: a0, a1 fit int32 (the proof), so SMMULR is the rounding rule. */
+            y[r] = (int16_t)relu_usat15(smmulr((int32_t)a0, ly->mult[r]), &clamped);
+            y[r + 1u] = (int16_t)relu_usat15(smmulr((int32_t)a1, ly->mult[r + 1u]), &clamped);
+        } else {
+            y[r] = (int16_t)relu_sat16(a0, ly->mult[r], shift, round, &clamped);
+            y[r + 1u] = (int16_t)relu_sat16(a1, ly->mult[r + 1u], shift, round, &clamped);
+        }
+    }
+    if (r < m)
+        y[r] = (int16_t)relu_sat16(dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]),
+                                   ly->mult[r], shift, round, &clamped);
+    if (clamped)
+        *sat = 1u;
+}
+
+/* Separate (noinline) so that the int16 path does not carry its 256-byte buffer on the stack. */
+__attribute__((noinline)) int64_t fbg_dsp_row_acc8(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    const unsigned n = ly->n_in;
+    int16x2_t xp[FBG_MAX_WIDTH / 2];
+    repair8(x, n & ~3u, xp);
+    return dot8(ly->w8 + (size_t)r * n, x, xp, n, ly->bias[r]);
+}
+
+#else
+/* ISO C forbids an empty translation unit: the portable build compiles this file to nothing. */
+typedef int fbg_dsp_rows8_unused;
+#endif
 #undef ROWS2B32_GROUP
 #undef ROWS2B32_TAIL4
+#undef FBG_ROWS2B32_REPAIR_X
+#undef FBG_ROWS2B32_FRAME
 #undef FBG_PAIR_OUT8
 #undef FBG_W4
 #undef FBG_W2
-#undef FBG_FIR4_TAP
-#undef FBG_DSP_PAIRS_KIND
-#undef FBG_FIR_TAP
+#undef FBG_FIRST2B32_ENTRY
 /* ---- src/fbg_fixed.c ---- */
 /*
- * fbg_fixed.c - the fixed-point pipeline: init, tare, step, batch (docs/fixed-point.md).
+ * fbg_fixed.c - the fixed-point pipeline's API: init, tare, step, batch (docs/fixed-point.md).
  *
- * fbg_step runs one sample through stages in the order of export/intref.py's run: the front
- * (fault rule, tare, temperature compensation), the filter and standardisation, the memory
- * features, the nets with the contact decision, the outputs. Each stage is a static function
- * here with a portable reference beside it; where an instruction set has its own variant of
- * a stage, the stage picks it: at compile time on the target (FBG_USE_DSP, fbg_dsp.c) and by
- * the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd_x86.c and fbg_simd_neon.c).
+ * fbg_step runs one sample through the stages of fbg_stages.h (one file each) in the order of
+ * export/intref.py's run: the front (fault rule, tare, temperature compensation), the filter
+ * and standardisation, the memory features, the nets with the contact decision, the tracker,
+ * the outputs with the settled-hold gain.
  *
  * No float or double in this file (check-nofloat builds it with -mgeneral-regs-only).
- * export/intref.py mirrors every operation here bit for bit.
  */
 #include <string.h>
+
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
 
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -3358,6 +6309,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -3587,6 +6556,52 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
     return 0;
 }
 
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
 #endif /* FBG_FRONT_H */
 /* ---- src/fbg_simd.h ---- */
 /*
@@ -3600,7 +6615,7 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -3841,6 +6856,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -3900,7 +6933,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -3945,9 +6978,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -3979,7 +7012,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
 #endif /* FBG_HOST_SIMD */
 
 #endif /* FBG_SIMD_H */
-#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.c, docs/firmware.md) */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
 /* ---- src/fbg_dsp.h ---- */
 /*
  * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
@@ -3987,7 +7020,7 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H
@@ -4228,6 +7261,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -4310,6 +7361,38 @@ void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FB
 #endif /* FBG_DSP_H */
 #endif
 
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
 /* round(32768 / (1 + exp(-x))) for x = -8, -7.875, ..., 8, clamped to 32767
  * (docs/fixed-point.md; export/intref.py holds the same table and a test compares them). */
 static const uint16_t sigmoid_table[129] = {
@@ -4353,23 +7436,12 @@ int32_t fbg_sigmoid_q15(int32_t x_q8)
     return lo + (((hi - lo) * frac + 16) >> 5);
 }
 
-/* The shared front end's view of a fixed-point state (fbg_front.h). */
-#define FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
-
-/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
-static inline uint32_t state_kernel(const fbg_state *s)
-{
-    return s->options & FBG_OPT_KERNEL_MASK;
-}
-
 fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 {
     fbg_status st;
     uint32_t kernel, clamped = 0u;
     unsigned c;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbg_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbg_model_check(model);
     if (st != FBG_OK)
         return st;
     kernel = fbg_simd_resolve(options & FBG_OPT_KERNEL_MASK);
@@ -4378,7 +7450,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
     memset(state, 0, sizeof *state);
     state->model = model;
     state->model_crc = model->blob_crc;
-    fbg_front_init(FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
+    fbg_front_init(FBG_FRONT(state), model->baseline_fm, (options & ~(uint32_t)FBG_OPT_KERNEL_MASK) | kernel);
     /* The location averages' rest reference is a model constant: computed here, not per step. */
     for (c = 0; c < FBG_N_STRAIN; ++c)
         state->loc_z0[c] = fbg_sat16_rshift_round((int64_t)-model->mean_fm[c] * model->z_mult[c],
@@ -4389,7 +7461,7 @@ fbg_status fbg_init(fbg_state *state, const fbg_model *model, uint32_t options)
 
 uint32_t fbg_kernel(const fbg_state *state)
 {
-    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+    if (state == NULL || !fbg_front_ok(FBG_FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
     return state_kernel(state);
 }
@@ -4397,7 +7469,7 @@ uint32_t fbg_kernel(const fbg_state *state)
 size_t fbg_pack_bytes(const fbg_state *state)
 {
 #if FBG_SIMD_X86
-    if (state == NULL || !fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read */
+    if (state == NULL || !fbg_front_ok(FBG_FRONT((fbg_state *)state))) /* the view is only read */
         return 0u;
     return fbg_simd_pack_bytes(state_kernel(state), state->model);
 #else
@@ -4411,7 +7483,7 @@ fbg_status fbg_pack(fbg_state *state, void *buf, size_t len)
     size_t need;
     if (state == NULL || buf == NULL)
         return FBG_ERR_NULL;
-    if (!fbg_front_ok(FRONT(state)))
+    if (!fbg_front_ok(FBG_FRONT(state)))
         return FBG_ERR_STATE;
     need = fbg_pack_bytes(state);
     if (need == 0u || len < need || ((uintptr_t)buf % FBG_PACK_ALIGN) != 0u)
@@ -4427,7 +7499,7 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
 {
     if (state == NULL)
         return FBG_ERR_NULL;
-    if (!fbg_front_ok(FRONT(state)))
+    if (!fbg_front_ok(FBG_FRONT(state)))
         return FBG_ERR_STATE;
     if (packed != NULL) {
 #if FBG_SIMD_X86
@@ -4447,145 +7519,23 @@ fbg_status fbg_use_pack(fbg_state *state, const void *packed)
     return FBG_OK;
 }
 
-/* ---- The decision over time and the at-rest tracker (docs/runtime.md, "In use") ---- */
+/* ---- The step's restart (docs/runtime.md, "In use") ---- */
 
 /* Reset, tare and a new baseline restart the decision and the tracker. The baseline the
  * tracker reached stays through a reset (it is the best estimate of the unloaded gratings)
- * and becomes the reference of its bound, as a new baseline would; a tare replaces it. */
-static fbg_status in_use_after(fbg_state *s, fbg_status st)
+ * and becomes the reference of its bound, as a new baseline would; a tare replaces it: so a
+ * reset is no different here. */
+static fbg_status fbg_in_use_after(fbg_state *s, fbg_status st, int reset)
 {
+    (void)reset;
     if (st != FBG_OK)
         return st;   /* refused: nothing was cleared */
-    s->decision = 0u;
-    s->rise_run = 0u;
+    FBG_RESTART_IN_USE(s);
     s->cusum_q8 = 0;
-    s->rest_run = 0u;
-    s->track_pos = 0u;
-    s->track_limited = 0u;
-    s->hold_run = 0u;
-    s->hold_primed = 0u;
     memset(s->track_sum, 0, sizeof s->track_sum);
     memset(s->drift_fm, 0, sizeof s->drift_fm);
     memset(s->track_frac, 0, sizeof s->track_frac);
     return FBG_OK;
-}
-
-/* The contact decision over time (docs/runtime.md, "In use"; docs/fixed-point.md). raw is the
- * net's own decision (acc > 0), margin_q8 the output row as computed, the sign of its
- * multiplier included: every engine reads both as they are, so a negative multiplier gives
- * the same (inverted) decision everywhere. Contact stays while raw or margin_q8 >
- * contact_off_q8. It rises by one of two rules:
- * - contact_cusum_h_q8 = 0: a Schmitt trigger with a count, after contact_rise_n consecutive
- *   samples of raw and margin_q8 >= contact_on_q8 (with on = off = 0, rise_n = 1 and a
- *   positive multiplier that is raw itself: margin_q8 > 0 implies acc > 0, acc > 0 implies
- *   margin_q8 >= 0);
- * - else a one-sided CUSUM: S = max(0, S + clamp(margin_q8, lo, hi) - k), contact rises when
- *   S >= h, and S restarts at 0. Bound: S < h <= 2^29 before the update (it rises, and
- *   restarts, on reaching h; it is 0 in contact and after init, reset, tare or a new
- *   baseline) and |clamp - k| <= 2^30 (every parameter within +-FBG_MAX_CUSUM_Q8), so S + d
- *   lies in [-2^30, 2^29 + 2^30): int32. A fault never gets here, so it holds S. */
-static uint8_t contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
-{
-    int32_t d;
-    if (m->contact_cusum_h_q8 == 0)
-        return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
-                          margin_q8 > m->contact_off_q8, m->contact_rise_n);
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
-        return s->decision;
-    }
-    d = margin_q8 < m->contact_cusum_lo_q8 ? m->contact_cusum_lo_q8
-      : (margin_q8 > m->contact_cusum_hi_q8 ? m->contact_cusum_hi_q8 : margin_q8);
-    d -= m->contact_cusum_k_q8;
-    s->cusum_q8 = s->cusum_q8 + d > 0 ? s->cusum_q8 + d : 0;
-    if (s->cusum_q8 >= m->contact_cusum_h_q8) {
-        s->decision = 1u;
-        s->cusum_q8 = 0;
-    }
-    return s->decision;
-}
-
-/* The tracker's creep states (docs/fixed-point.md, "In use"), on every sample that passed the
- * fault rule, z the standardised channels: a viscoelastic pad gives back a press's load for a
- * second or more after the release, so each state averages z through contact and rest alike
- * (creep += rshift_round((z << EMA_FRAC) - creep, track_creep_shift)), and rest_track takes
- * track_creep of it, relative to z0, out of what it learns. Primed at z << EMA_FRAC with the
- * memory states (the first good sample after init, tare, reset or a new baseline); a fault
- * never gets here, so it holds them. |creep| <= 32767 * 2^EMA_FRAC < 2^30 as the averages'
- * states (ema_features): the update and its rounding fit int32. Off (track_creep_q15 0):
- * nothing runs. */
-static void creep_update(fbg_state *s, const fbg_model *m, const int16_t *z)
-{
-    unsigned c;
-    if (m->track_creep_q15 == 0u)
-        return;
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        const int32_t target = (int32_t)z[c] * ((int32_t)1 << FBG_EMA_FRAC);
-        s->creep[c] = s->mem_primed
-                          ? s->creep[c] + fbg_rshift_round32(target - s->creep[c], m->track_creep_shift)
-                          : target;
-    }
-}
-
-/* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
- * channels of a sample at rest (tared, no fault, no warm-up, decision 0), NULL otherwise.
- * Every FBG_TRACK_BLOCK steps, a block that was at rest throughout and came after
- * track_settle samples of rest moves the strain baselines by its sum of z - z0 times
- * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
- * a carried fraction), each step at most track_step_max_fm and the whole correction at most
- * track_limit_fm from the tare. A load, a fault or a warm-up freezes it: it never learns
- * from a sample the nets call contact. With the creep term on, each sample at rest adds
- * (z - z0) - corr, corr = rshift_round((creep - (z0 << EMA_FRAC)) * track_creep_q15, 30): the
- * pad's creep still in the grating, not drift. Bounds: |creep - (z0 << EMA_FRAC)| <= 65534 *
- * 2^15 < 2^31 times track_creep_q15 <= 2^14 is below 2^45 (int64), so |corr| <= 32767; and
- * corr is within 1/2 of m * (creep / 2^15 - z0), m <= 1/2, so a sample's term is within 1/2
- * of z - m * creep / 2^15 - (1 - m) * z0: at most 65534 as without the term
- * (docs/fixed-point.md). |track_sum| <= 64 * 65534 < 2^23, so the product with
- * |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1) after a step, and
- * |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so wl - baseline stays
- * within +-1.1e9 (int32). */
-static void rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
-{
-    unsigned c;
-    if (z != NULL) {
-        if (s->rest_run < 0xFFFFu)
-            s->rest_run++;
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int32_t r = (int32_t)z[c] - s->loc_z0[c];
-            if (m->track_creep_q15 != 0u)
-                r -= (int32_t)fbg_rshift_round(((int64_t)s->creep[c] - (int64_t)s->loc_z0[c] *
-                                                ((int64_t)1 << FBG_EMA_FRAC)) * m->track_creep_q15, 30);
-            s->track_sum[c] += r;
-        }
-    } else {
-        s->rest_run = 0u;
-    }
-    if (++s->track_pos < FBG_TRACK_BLOCK)
-        return;
-    s->track_pos = 0u;
-    if (m->track_shift != 0u && s->rest_run >= (uint32_t)FBG_TRACK_BLOCK + m->track_settle) {
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            int64_t frac = s->track_frac[c] + (int64_t)s->track_sum[c] * m->track_gain[c];
-            int64_t step = fbg_rshift_round(frac, FBG_TRACK_FRAC);
-            int64_t drift;
-            if (step > m->track_step_max_fm || step < -(int64_t)m->track_step_max_fm) {
-                step = step > 0 ? m->track_step_max_fm : -(int64_t)m->track_step_max_fm;
-                frac = 0;   /* no wind-up: the clamped remainder is not carried */
-            } else {
-                frac -= step * ((int64_t)1 << FBG_TRACK_FRAC);
-            }
-            drift = (int64_t)s->drift_fm[c] + step;
-            if (drift > m->track_limit_fm || drift < -(int64_t)m->track_limit_fm) {
-                drift = drift > 0 ? m->track_limit_fm : -(int64_t)m->track_limit_fm;
-                frac = 0;
-                s->track_limited = 1u;
-            }
-            s->baseline_fm[c] += (int32_t)(drift - s->drift_fm[c]);
-            s->drift_fm[c] = (int32_t)drift;
-            s->track_frac[c] = frac;
-        }
-    }
-    memset(s->track_sum, 0, sizeof s->track_sum);
 }
 
 /* Net inputs beyond what the calibration covered (z and the memory features): flagged, the
@@ -4599,416 +7549,21 @@ static uint32_t out_of_range(const fbg_model *m, const int16_t *in)
     return 0u;
 }
 
-/* ---- Reset, tare and baseline: the front end's, then in_use_after ---- */
+/* ---- Reset, tare and baseline: the front end's, then fbg_in_use_after ---- */
 
-fbg_status fbg_reset(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_reset(FRONT(state)));
-}
-
-fbg_status fbg_tare_begin(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
-}
-
-fbg_status fbg_tare_add(fbg_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
-{
-    if (state == NULL || wl_fm == NULL)
-        return FBG_ERR_NULL;
-    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
-}
-
-fbg_status fbg_tare_end(fbg_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : in_use_after(state, fbg_front_tare_end(FRONT(state)));
-}
-
-fbg_status fbg_set_baseline(fbg_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    return in_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm));
-}
+FBG_FRONT_API(fbg, fbg_state, FBG_STATE_MAGIC, fbg_in_use_after)
 
 fbg_status fbg_get_baseline(const fbg_state *state, int32_t baseline_fm[FBG_N_CHANNELS])
 {
     if (state == NULL || baseline_fm == NULL)
         return FBG_ERR_NULL;
-    if (!fbg_front_ok(FRONT((fbg_state *)state))) /* the view is only read here */
+    if (!fbg_front_ok(FBG_FRONT((fbg_state *)state))) /* the view is only read here */
         return FBG_ERR_STATE;
     memcpy(baseline_fm, state->baseline_fm, sizeof state->baseline_fm);
     return FBG_OK;
 }
 
-/* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
- * The compensation subtracts the reference grating's averaged shift (fbg_ref_update; the raw
- * shift when ref_shift is 0).
- * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
- * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
- * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
- * where it was, where holding one raw sample would hold its noise for the burst's length,
- * and the memory's play operators would keep that excursion after it. */
-
-/* The portable reference. */
-static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
-                       uint32_t *status, uint32_t *sat)
-{
-    int32_t shift[FBG_N_CHANNELS], ref;
-    unsigned c;
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
-        memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
-        return;
-    }
-    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
-        s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
-    }
-}
-
-/* The pad's creep inverse (docs/fixed-point.md, "creep inverse") on the ring entry a good
- * sample's compensation just wrote, shared by every kernel's front: a viscoelastic pad reads
- * s = (1 - m) e + m lag(e) of the elastic strain e, and e = c + q (c - L), L the lag of e
- * (acc = L * 2^creep_shift), undoes it before the FIR. Primed acc = c << creep_shift (e = c)
- * by the first good sample after init, tare, reset or a new baseline; a faulty sample never
- * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds (proven in
- * docs/fixed-point.md): |c| <= SAT32 keeps |acc| <= 2^k (2^31 - 1/2) < 2^47 and |L| <= 2^31,
- * so (c - L) * creep_q15 < 2^32 * 2^15 fits int64, and e is clamped to int32 (SATURATED).
- * Called only with creep_q15 > 0 (off, the entry stays c). */
-static void creep_inverse(fbg_state *s, const fbg_model *m, uint32_t *sat)
-{
-    int32_t *entry = s->hist[s->pos];
-    const unsigned k = m->creep_shift;
-    unsigned c;
-    if (!s->creep_primed) {
-        for (c = 0; c < FBG_N_STRAIN; ++c)
-            s->creep_acc[c] = (int64_t)entry[c] * ((int64_t)1 << k); /* << of a negative is undefined */
-        s->creep_primed = 1u;
-        return;
-    }
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        const int64_t lag = fbg_rshift_round(s->creep_acc[c], k);
-        const int32_t e = fbg_sat32((int64_t)entry[c] +
-                                        fbg_rshift_round(((int64_t)entry[c] - lag) * m->creep_q15, 15),
-                                    sat);
-        s->creep_acc[c] += e - lag;
-        entry[c] = e;
-    }
-}
-
-static void front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
-                        uint32_t *status, uint32_t *sat)
-{
-#if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
-    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2)
-        fbg_avx2_front(s, wl_fm, status, sat);
-    else
-#endif
-        compensate(s, m, wl_fm, status, sat);
-    /* SENSOR_FAULT here is this sample's: the step's status opens without it. Off
-     * (creep_q15 0), nothing runs. */
-    if (m->creep_q15 != 0u && !(*status & FBG_STATUS_SENSOR_FAULT))
-        creep_inverse(s, m, sat);
-}
-
-/* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]
- * weighting n - k), z = in[0..3] in Q(z_frac) int16, and the input-side overload (the linear
- * load proxy beyond anything seen in calibration); then the ring moves on. ---- */
-
-#if !FBG_USE_DSP
-/* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
-static int filter_standardise(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
-{
-    int64_t load = 0;
-    unsigned c;
-    for (c = 0; c < FBG_N_STRAIN; ++c) {
-        int64_t f = 0;
-        int32_t filt, d;
-        unsigned k, idx = s->pos;
-        for (k = 0; k < m->n_taps; ++k) {
-            f += (int64_t)m->taps[k] * s->hist[idx][c];
-            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
-        }
-        filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
-        s->last_comp[c] = filt;
-        d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
-        in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
-        load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
-    }
-    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
-}
-#endif
-
-/* Returns FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
-static uint32_t filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
-{
-    int overload;
-#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
-                  * standardisation on 32-bit words (fbg_dsp.c says why each is exact) */
-    int64_t fir[FBG_N_STRAIN];
-    uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
-    unsigned c;
-    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
-    overload = fbg_dsp_standardise(m, fir, in, sat);
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        s->last_comp[c] = fbg_sat32(fbg_rshift_round(fir[c], m->tap_q), &again);
-#elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
-    overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
-                                                     : filter_standardise(s, m, in, sat);
-#else
-    overload = filter_standardise(s, m, in, sat);
-#endif
-    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    return overload ? FBG_STATUS_OVERLOAD : 0u;
-}
-
-/* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
-
-/* The memory kinds' update rules (FBG_MEMORY_KINDS of fbg_contract.h, one function per kind,
- * docs/fixed-point.md, "memory"): from the load signal u, prime the states (primed == 0) as a
- * pad at rest after a release leaves them, step them and write their features to f[0 ..];
- * each returns the number of features it wrote. */
-static unsigned ema_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
-                             uint32_t *sat)
-{
-    unsigned k;
-    /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by at most
-     * the whole distance, so it stays between its old value and the target. So |target -
-     * state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in int32; the
-     * feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. Primed at u. */
-    const int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
-    if (!primed)
-        for (k = 0; k < m->n_ema; ++k)
-            s->ema[k] = target;
-    for (k = 0; k < m->n_ema; ++k) {
-        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
-        s->ema[k] = e;
-        f[k] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
-    }
-    return m->n_ema;
-}
-
-static unsigned play_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
-                              uint32_t *sat)
-{
-    unsigned k;
-    if (!primed)   /* at u + width: the load last went down */
-        for (k = 0; k < m->n_play; ++k)
-            s->play[k] = u + m->play_width[k];
-    for (k = 0; k < m->n_play; ++k) {
-        /* The state stays within play_width of the current u: |state| < 2^16, and the
-         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
-        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
-        int32_t p = s->play[k];
-        p = p < lo ? lo : (p > hi ? hi : p);
-        s->play[k] = p;
-        f[k] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
-    }
-    return m->n_play;
-}
-
-/* The portable reference. Append the memory features to z = in[0..3] and put the location
- * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
- * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
- * its force path, which all four beams share): every kind's features in the order of
- * FBG_MEMORY_KINDS. The first sample after init/tare/reset primes the states as a pad at rest
- * after a release leaves them, so the features read what they read at every rest of the
- * calibration data. A faulty sample never gets here (fbg_step returns before), so a fault
- * freezes them. */
-static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
-                            uint32_t *sat)
-{
-    unsigned c;
-    int64_t acc = 0;
-    int32_t u;
-    int16_t *f = in + FBG_N_STRAIN;
-    const int primed = s->mem_primed;
-    if (m->loc_shift) {
-        /* A local flag: *sat may alias s->loc for the compiler. */
-        uint32_t clamped = s->loc_z0_clamped;
-        for (c = 0; c < FBG_N_STRAIN; ++c) {
-            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
-             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
-             * state stays between its old value and the target r << EMA_FRAC, so both lie
-             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
-             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
-            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
-                             ((int32_t)1 << FBG_EMA_FRAC);
-            int32_t e = primed ? s->loc[c] : target;
-            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
-            s->loc[c] = e;
-            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
-            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
-        }
-        *sat |= clamped;
-    }
-    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
-        s->mem_primed = 1u;
-        return;
-    }
-    for (c = 0; c < FBG_N_STRAIN; ++c)
-        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
-    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
-#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features(s, m, u, primed, f, sat);
-    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
-#undef FBG_KIND_FEATURES
-    s->mem_primed = 1u;
-}
-
-static void memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)
-{
-#if FBG_SIMD_X86 /* AVX2: the location averages and the load signal's states in int32 lanes */
-    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
-        fbg_avx2_memory(s, in, loc, sat);
-        return;
-    }
-#endif
-    memory_features(s, m, in, loc, sat);
-}
-
-/* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
- * (fbg_dsp.c) or the state's host kernel (fbg_simd.h) ---- */
-
-/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
- * kernels write whole groups of 8 rows into them. */
-typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
-typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
-
-#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.c): the same bits */
-/* Run the hidden layers of a net on x; returns the input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
-{
-    return fbg_dsp_run_hidden(net, x, s->act, sat);
-}
-
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    (void)s;
-    fbg_dsp_output_accs(ly, x, acc);
-}
-#else
-/* The portable reference of a layer. */
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
- * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
-static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int32_t acc = (int32_t)ly->bias[r];
-    unsigned j;
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-
-/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
- * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
-static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
-{
-    int64_t acc = ly->bias[r];
-    unsigned j;
-    if (ly->acc32)
-        return layer_acc32(ly, r, x);
-    if (ly->w_bits == 16u) {
-        const int16_t *w = ly->w16 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    } else {
-        const int8_t *w = ly->w8 + (size_t)r * ly->n_in;
-        for (j = 0; j < ly->n_in; ++j)
-            acc += (int32_t)w[j] * (int32_t)x[j];
-    }
-    return acc;
-}
-/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
-static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
-{
-    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
-    return fbg_sat16(v < 0 ? 0 : v, sat);
-}
-
-static void hidden_rows(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    unsigned r;
-    for (r = 0; r < ly->n_out; ++r)
-        y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
-}
-
-static void output_rows(const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    unsigned r;
-    for (r = 0; r < ly->n_out; ++r)
-        acc[r] = layer_acc(ly, r, x);
-}
-
-#if FBG_HOST_SIMD
-/* The state's host kernel (SSE2, AVX2, NEON: fbg_simd.h) for an acc32 layer; 0 where the
- * portable reference runs the layer (an int64-accumulator layer, the portable kernel). */
-static inline uint32_t host_kernel(const fbg_state *s, const fbg_layer *ly)
-{
-    uint32_t kernel = state_kernel(s);
-    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
-}
-
-static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
-                         uint32_t *sat)
-{
-    uint32_t kernel = host_kernel(s, ly);
-    if (kernel != 0u)
-        fbg_simd_hidden(kernel, ly, x, y, sat);
-    else
-        hidden_rows(ly, x, y, sat);
-}
-
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    uint32_t kernel = host_kernel(s, ly);
-    if (kernel != 0u) {
-        int32_t acc32[FBG_MAX_WIDTH];
-        unsigned r;
-        fbg_simd_acc32(kernel, ly, x, acc32);
-        for (r = 0; r < ly->n_out; ++r)
-            acc[r] = acc32[r];
-    } else {
-        output_rows(ly, x, acc);
-    }
-}
-#else
-static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
-                         uint32_t *sat)
-{
-    (void)s;
-    hidden_rows(ly, x, y, sat);
-}
-
-/* The accumulators of every row of a net's output layer. */
-static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
-{
-    (void)s;
-    output_rows(ly, x, acc);
-}
-#endif
-
-/* Run the hidden layers of a net on x, through the activation buffers in turn; returns the
- * input of the output layer. */
-static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
-{
-    unsigned l;
-    for (l = 0; l + 1u < net->n_layers; ++l) {
-        int16_t *y = s->act[l & 1u];
-        net_hidden_layer(s, &net->layers[l], x, y, sat);
-        x = y;
-    }
-    return x;
-}
-#endif
+/* ---- Outputs ---- */
 
 /* Output row r of a net's last layer in its physical unit from its accumulator, saturated to
  * int32. */
@@ -5020,25 +7575,6 @@ static inline int32_t output_row(const fbg_layer *ly, unsigned r, int64_t acc, u
 #endif
     return fbg_sat32(fbg_rshift_round(acc * ly->mult[r], ly->shift), sat);
 }
-
-/* Every layer of net n on the net inputs in: acc = the accumulators of its output layer, which
- * it returns. Layer by layer, or from packed weights in one call where the state has them
- * (fbg_pack; x86-64 builds only). */
-static inline const fbg_layer *net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
-                                        int64_t *acc, uint32_t *sat)
-{
-    const fbg_net *net = &m->nets[n];
-    const fbg_layer *last = &net->layers[net->n_layers - 1u];
-#if FBG_SIMD_X86
-    if (s->packed != NULL &&
-        fbg_simd_net_packed(state_kernel(s), s->packed, n, net->n_layers, in, s->act, acc, sat))
-        return last;
-#endif
-    output_accs(s, last, run_hidden(s, net, in, sat), acc);
-    return last;
-}
-
-/* ---- 5. Outputs ---- */
 
 static void safe_output(fbg_output *out, uint32_t status)
 {
@@ -5052,40 +7588,10 @@ static void contact_outputs(fbg_state *s, const fbg_model *m, const int16_t *in,
                             uint32_t *sat)
 {
     int64_t acc[2]; /* an output layer has 1 or 2 rows (fbg_model_check) */
-    const fbg_layer *last = net_accs(s, m, FBG_NET_CONTACT, in, acc, sat);
+    const fbg_layer *last = fbg_net_accs(s, m, FBG_NET_CONTACT, in, acc, sat);
     out->contact_margin_q8 = output_row(last, 0u, acc[0], sat);
-    out->contact = contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
+    out->contact = fbg_contact_decision(s, m, acc[0] > 0, out->contact_margin_q8);
     out->contact_conf_q15 = (uint16_t)fbg_sigmoid_q15(out->contact_margin_q8);
-}
-
-/* The settled-hold gain (docs/runtime.md, "In use"; docs/fixed-point.md, "settled-hold
- * gain"): the nets read a grip held still a little low, because a causal estimator cannot tell
- * a load that stands from one that has just begun to fall; once force_mN has stayed within its
- * band of its own average for hold_settle samples, no turn is left to mistake, and the trainer's
- * gain, measured on its synthetic holds, ramps in over 2^hold_ramp_shift samples. Bounds:
- * |force_mN| < 2^31, so hold_avg < 2^46; |hold_gain_q15| <= 2^12 and w <= 2^12, so the product
- * stays below 2^55. */
-static int32_t hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat)
-{
-    const int64_t f = force_mN;
-    int64_t dev, band;
-    uint32_t w;
-    if (m->hold_gain_q15 == 0)
-        return force_mN;
-    if (!s->hold_primed) {
-        s->hold_avg = f * ((int64_t)1 << FBG_EMA_FRAC);
-        s->hold_primed = 1u;
-    } else {
-        s->hold_avg += fbg_rshift_round(f * ((int64_t)1 << FBG_EMA_FRAC) - s->hold_avg, m->hold_shift);
-    }
-    dev = f - fbg_rshift_round(s->hold_avg, FBG_EMA_FRAC);
-    band = fbg_rshift_round((f < 0 ? -f : f) * (int64_t)m->hold_band_q15, 15u);
-    if (band < m->hold_band_mN)
-        band = m->hold_band_mN;
-    w = fbg_hold_weight(&s->hold_run, (dev < 0 ? -dev : dev) <= band, m->hold_settle,
-                        m->hold_ramp_shift);
-    return fbg_sat32(f + fbg_rshift_round(f * m->hold_gain_q15 * (int64_t)w,
-                                          15u + m->hold_ramp_shift), sat);
 }
 
 /* A contact step's force and location. The force net's output (mN before the offset) feeds
@@ -5097,17 +7603,17 @@ static uint32_t force_location_outputs(fbg_state *s, const fbg_model *m, int16_t
 {
     int64_t acc[2];
     int32_t force_out;
-    const fbg_layer *last = net_accs(s, m, FBG_NET_FORCE, in, acc, sat);
+    const fbg_layer *last = fbg_net_accs(s, m, FBG_NET_FORCE, in, acc, sat);
     force_out = output_row(last, 0u, acc[0], sat);
     out->force_mN = fbg_sat32_add(force_out, m->force_offset_mN, sat);
     in[FBG_N_STRAIN] = (int16_t)(1 << m->z_frac);
     in[FBG_N_STRAIN + 1] = fbg_sat16_rshift_round((int64_t)force_out * m->fq_mult, m->fq_shift, sat);
     if (m->loc_shift)
         memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
-    last = net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
+    last = fbg_net_accs(s, m, FBG_NET_LOCATION, in, acc, sat);
     out->x_um = fbg_sat32_add(output_row(last, 0u, acc[0], sat), m->xy_offset_um[0], sat);
     out->y_um = fbg_sat32_add(output_row(last, 1u, acc[1], sat), m->xy_offset_um[1], sat);
-    out->force_mN = hold_stage(s, m, out->force_mN, sat);
+    out->force_mN = fbg_hold_stage(s, m, out->force_mN, sat);
     return out->force_mN > m->overload_mN ? FBG_STATUS_OVERLOAD : 0u;
 }
 
@@ -5118,7 +7624,7 @@ static fbg_status step_begin(fbg_state *s, const int32_t *wl_fm, fbg_output *out
     fbg_status st;
     if (s == NULL || wl_fm == NULL || out == NULL)
         return FBG_ERR_NULL;
-    st = fbg_front_step_begin(FRONT(s), status);
+    st = fbg_front_step_begin(FBG_FRONT(s), status);
     if (st != FBG_OK) {
         safe_output(out, *status);
         return st;
@@ -5146,24 +7652,24 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
 
     /* 1. Front. A faulty sample ends here with the safe output: the ring moves on, the
      *    decision holds, the tracker restarts. */
-    front_stage(s, m, wl_fm, &status, &sat);
-    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
+    fbg_front_stage(s, m, wl_fm, &status, &sat);
+    if (fbg_front_push_done(FBG_FRONT(s), m->n_taps, &status)) {
         safe_output(out, status);
-        rest_track(s, m, NULL);
+        fbg_rest_track(s, m, NULL);
         return FBG_OK;
     }
     /* 2. Filter and standardise into z = in[0..3], which the tracker's creep states follow
      *    (before the memory stage marks the states primed); 3. the memory features after z. */
-    status |= filter_stage(s, m, in, &sat);
-    creep_update(s, m, in);
-    memory_stage(s, m, in, loc, &sat);
+    status |= fbg_filter_stage(s, m, in, &sat);
+    fbg_creep_update(s, m, in);
+    fbg_memory_stage(s, m, in, loc, &sat);
     status |= out_of_range(m, in);
 
     /* 4. Contact net and the decision, the tracker on samples at rest; on contact the force
      *    and location nets. */
     memset(out, 0, sizeof *out);
     contact_outputs(s, m, in, out, &sat);
-    rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
+    fbg_rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
     if (out->contact) {
         status |= force_location_outputs(s, m, in, loc, out, &sat);
     } else {
@@ -5187,8 +7693,6 @@ fbg_status fbg_run(fbg_state *state, const int32_t *wl_fm, size_t n, fbg_output 
     }
     return FBG_OK;
 }
-#undef FRONT
-#undef FBG_KIND_FEATURES
 /* ---- src/fbg_model.c ---- */
 /*
  * fbg_model.c - validation of a fixed-point model, including the accumulator bound proof.
@@ -5463,6 +7967,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -5644,7 +8166,7 @@ fbg_status fbg_model_check(const fbg_model *model)
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -5885,6 +8407,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -5944,7 +8484,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -5989,9 +8529,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -6184,7 +8724,11 @@ typedef int fbg_simd_neon_unused;
 #undef NEON_W8
 /* ---- src/fbg_simd_x86.c ---- */
 /*
- * fbg_simd_x86.c - SSE2 and AVX2 dense-layer kernels for x86-64 (see fbg_simd.h).
+ * fbg_simd_x86.c - the x86-64 host kernels (fbg_simd.h): which one runs, and why they are exact.
+ *
+ * The kernels, one file per family: fbg_simd_x86_sse2.c and fbg_simd_x86_avx2.c (dense layers),
+ * fbg_simd_x86_pack.c (packed weights), fbg_simd_x86_stages.c (AVX2 front, filter, memory);
+ * what they share is in fbg_simd_x86.h.
  *
  * PMADDWD (_mm_madd_epi16 / _mm256_madd_epi16) multiplies int16 pairs and adds adjacent
  * products into int32 lanes; PADDD and PHADDD add lanes. All of them wrap modulo 2^32, so
@@ -6230,6 +8774,14 @@ typedef int fbg_simd_neon_unused;
  * Integer SIMD only: no floating-point vector type or instruction is used here
  * (check-nofloat scans this file, which -mgeneral-regs-only cannot compile).
  */
+/* ---- src/fbg_simd_x86.h ---- */
+/*
+ * fbg_simd_x86.h - what the x86-64 host kernels (fbg_simd_x86*.c) share: loads, the vector
+ * types, the input padding and the AVX2 requantisation, and the layer kernels' declarations.
+ */
+#ifndef FBG_SIMD_X86_H
+#define FBG_SIMD_X86_H
+
 /* ---- src/fbg_contract.h ---- */
 /* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
 #ifndef FBG_CONTRACT_H
@@ -6277,7 +8829,7 @@ fbg_status fbgf_memory_check(const fbgf_model *m);
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -6518,6 +9070,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -6577,7 +9147,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -6622,9 +9192,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
@@ -6666,81 +9236,6 @@ static inline uint32_t fbg_simd_resolve(uint32_t requested)
 #define AVX2 __attribute__((target("avx2")))
 #define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
 
-/* The rows past n_out of a layer's last group. */
-static const int16_t zero_row16[ROW_LEN];
-static const int8_t zero_row8[ROW_LEN];
-
-/* One layer's rows: the first n_safe can be read in place for npad entries, n_in rounded up
- * to a multiple of vec (8 or 16). */
-typedef struct {
-    const fbg_layer *ly;
-    unsigned n, npad, n_safe;
-} rows_view;
-
-static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
-{
-    size_t total = (size_t)ly->n_out * ly->n_in;
-    v->ly = ly;
-    v->n = ly->n_in;
-    v->npad = (ly->n_in + vec - 1u) & ~(vec - 1u);
-    /* Row r stays inside the weight array iff r * n + npad <= total; a read of npad entries
-     * overruns the last ceil((npad - n) / n) rows (no division for the common n >= npad - n). */
-    if (v->npad == v->n)
-        v->n_safe = ly->n_out;
-    else if (v->n >= v->npad - v->n)
-        v->n_safe = ly->n_out - 1u;
-    else
-        v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
-}
-
-/* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
- * into buf. */
-static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
-{
-    unsigned i, j;
-    if (r + k <= v->n_safe) {
-        const int16_t *p = v->ly->w16 + (size_t)r * v->n;
-        for (i = 0; i < k; ++i, p += v->n)
-            w[i] = p;
-        return;
-    }
-    for (i = 0; i < k; ++i, ++r) {
-        if (r < v->n_safe) {
-            w[i] = v->ly->w16 + (size_t)r * v->n;
-        } else if (r >= v->ly->n_out) {
-            w[i] = zero_row16;
-        } else {
-            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
-            w[i] = buf[i];
-        }
-    }
-}
-
-static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
-{
-    unsigned i, j;
-    if (r + k <= v->n_safe) {
-        const int8_t *p = v->ly->w8 + (size_t)r * v->n;
-        for (i = 0; i < k; ++i, p += v->n)
-            w[i] = p;
-        return;
-    }
-    for (i = 0; i < k; ++i, ++r) {
-        if (r < v->n_safe) {
-            w[i] = v->ly->w8 + (size_t)r * v->n;
-        } else if (r >= v->ly->n_out) {
-            w[i] = zero_row8;
-        } else {
-            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
-            for (j = v->n; j < v->npad; ++j)
-                buf[i][j] = 0;
-            w[i] = buf[i];
-        }
-    }
-}
-
 /* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
 static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
 {
@@ -6751,182 +9246,22 @@ static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
         xp[ly->n_in + j] = 0;
 }
 
-/* bias[r .. r+k-1] as int32 (|bias| <= INT32_MAX in an acc32 layer), 0 beyond k. */
-static void bias32(const fbg_layer *ly, unsigned r, unsigned k, int32_t *b)
-{
-    unsigned i;
-    for (i = 0; i < k; ++i)
-        b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
-}
-
-/* ---- SSE2: four rows per group ------------------------------------------------------- */
-
 static inline __m128i load128(const void *p)
 {
     return _mm_loadu_si128((const __m128i *)p);
 }
 
-/* 8 int8 weights sign-extended to int16 (each byte doubled, then shifted down arithmetically). */
-static inline __m128i load8x8(const int8_t *p)
-{
-    __m128i b = _mm_loadl_epi64((const __m128i *)(const void *)p);
-    return _mm_srai_epi16(_mm_unpacklo_epi8(b, b), 8);
-}
-
-/* [sum of a's lanes, sum of b's, sum of c's, sum of d's]. */
-static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
-{
-    __m128i ab = _mm_add_epi32(_mm_unpacklo_epi32(a, b), _mm_unpackhi_epi32(a, b));
-    __m128i cd = _mm_add_epi32(_mm_unpacklo_epi32(c, d), _mm_unpackhi_epi32(c, d));
-    return _mm_add_epi32(_mm_unpacklo_epi64(ab, cd), _mm_unpackhi_epi64(ab, cd));
-}
-
-/* The MACs of four rows; W(i, j) loads 8 weights of row i at column j as int16. */
-#define SSE2_DOT4(W)                                                                 \
-    do {                                                                             \
-        __m128i a0 = _mm_setzero_si128(), a1 = a0, a2 = a0, a3 = a0;                \
-        for (j = 0; j < v.npad; j += 8u) {                                           \
-            __m128i xv = load128(xp + j);                                           \
-            a0 = _mm_add_epi32(a0, _mm_madd_epi16(W(0, j), xv));                    \
-            a1 = _mm_add_epi32(a1, _mm_madd_epi16(W(1, j), xv));                    \
-            a2 = _mm_add_epi32(a2, _mm_madd_epi16(W(2, j), xv));                    \
-            a3 = _mm_add_epi32(a3, _mm_madd_epi16(W(3, j), xv));                    \
-        }                                                                            \
-        sums = _mm_add_epi32(sum4_lanes(a0, a1, a2, a3), load128(b));                \
-    } while (0)
-#define SSE2_W16(i, j) load128(w16[i] + (j))
-#define SSE2_W8(i, j) load8x8(w8[i] + (j))
-
-/* acc[r] for every row of a layer of fewer than 8 inputs (int32), x padded. */
-static void acc32_sse2_padded(const fbg_layer *ly, const int16_t *x, int32_t *acc)
-{
-    int16_t xp[ROW_LEN];
-    int16_t buf16[4][ROW_LEN];
-    int8_t buf8[4][ROW_LEN];
-    int32_t b[4], t[4];
-    rows_view v;
-    unsigned r, j;
-    pad_x(ly, x, xp);
-    rows_view_init(&v, ly, 8u);
-    for (r = 0; r < ly->n_out; r += 4u) {
-        __m128i sums;
-        bias32(ly, r, 4u, b);
-        if (ly->w_bits == 16u) {
-            const int16_t *w16[4];
-            rows16(&v, r, 4u, w16, buf16);
-            SSE2_DOT4(SSE2_W16);
-        } else {
-            const int8_t *w8[4];
-            rows8(&v, r, 4u, w8, buf8);
-            SSE2_DOT4(SSE2_W8);
-        }
-        if (r + 4u <= ly->n_out) {
-            _mm_storeu_si128((__m128i *)(void *)(acc + r), sums);
-        } else {
-            _mm_storeu_si128((__m128i *)(void *)t, sums);
-            memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
-        }
-    }
-}
-
-/* SSE2, layers of at least 8 inputs: rows and x read in place, as AVX2 does with 16 columns
- * (wide_avx2): the last 8 columns of every row against x[n-8 .. n) with the columns of the
- * whole vectors masked to zero first, then whole vectors of 8 columns; four rows per group,
- * the last n_out mod 4 rows one by one. */
 typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
-static const int16_t tail_lanes8[16] = {0, 0, 0, 0, 0, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, -1};
-#define SSE2_IN16(i, j) load128(w16 + (size_t)(i) * n + (j))
-#define SSE2_IN8(i, j) load8x8(w8 + (size_t)(i) * n + (j))
-#define SSE2_MADD(a, wv, xv) a += (lanes32x4)_mm_madd_epi16(wv, xv)
-#define SSE2_ROWS4(W)                                                                        \
-    do {                                                                                     \
-        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail),                       \
-                  a1 = (lanes32x4)_mm_madd_epi16(W(1, n - 8u), xtail),                       \
-                  a2 = (lanes32x4)_mm_madd_epi16(W(2, n - 8u), xtail),                       \
-                  a3 = (lanes32x4)_mm_madd_epi16(W(3, n - 8u), xtail);                       \
-        for (j = 0; j < n8; j += 8u) {                                                       \
-            __m128i xv = load128(x + j);                                                     \
-            SSE2_MADD(a0, W(0, j), xv);                                                      \
-            SSE2_MADD(a1, W(1, j), xv);                                                      \
-            SSE2_MADD(a2, W(2, j), xv);                                                      \
-            SSE2_MADD(a3, W(3, j), xv);                                                      \
-        }                                                                                    \
-        sums = sum4_lanes((__m128i)a0, (__m128i)a1, (__m128i)a2, (__m128i)a3);               \
-    } while (0)
-#define SSE2_ROW1(W)                                                                         \
-    do {                                                                                     \
-        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail);                       \
-        __m128i t;                                                                           \
-        for (j = 0; j < n8; j += 8u)                                                         \
-            SSE2_MADD(a0, W(0, j), load128(x + j));                                          \
-        t = _mm_add_epi32((__m128i)a0, _mm_shuffle_epi32((__m128i)a0, 0x4e));                \
-        t = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0xb1));                                    \
-        acc[r] = (int32_t)((uint32_t)_mm_cvtsi128_si32(t) + (uint32_t)ly->bias[r]);          \
-    } while (0)
-
-static void acc32_sse2(const fbg_layer *ly, const int16_t *x, int32_t *acc)
-{
-    const size_t n = ly->n_in;
-    const unsigned n8 = ly->n_in & ~7u;
-    __m128i xtail;
-    unsigned r, j;
-    if (ly->n_in < 8u) {
-        acc32_sse2_padded(ly, x, acc);
-        return;
-    }
-    xtail = _mm_and_si128(load128(x + n - 8u), load128(tail_lanes8 + (n & 7u)));
-    for (r = 0; r + 4u <= ly->n_out; r += 4u) {
-        int32_t b[4];
-        __m128i sums;
-        bias32(ly, r, 4u, b);
-        if (ly->w_bits == 16u) {
-            const int16_t *w16 = ly->w16 + (size_t)r * n;
-            SSE2_ROWS4(SSE2_IN16);
-        } else {
-            const int8_t *w8 = ly->w8 + (size_t)r * n;
-            SSE2_ROWS4(SSE2_IN8);
-        }
-        _mm_storeu_si128((__m128i *)(void *)(acc + r), _mm_add_epi32(sums, load128(b)));
-    }
-    for (; r < ly->n_out; ++r) {
-        if (ly->w_bits == 16u) {
-            const int16_t *w16 = ly->w16 + (size_t)r * n;
-            SSE2_ROW1(SSE2_IN16);
-        } else {
-            const int8_t *w8 = ly->w8 + (size_t)r * n;
-            SSE2_ROW1(SSE2_IN8);
-        }
-    }
-}
-
-static void hidden_sse2(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    int32_t acc[FBG_MAX_WIDTH];
-    unsigned r;
-    acc32_sse2(ly, x, acc);
-    for (r = 0; r < ly->n_out; ++r) {
-        int64_t v = fbg_rshift_round((int64_t)acc[r] * ly->mult[r], ly->shift);
-        y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
-    }
-}
-
-/* ---- AVX2: eight rows per group, vector requantisation -------------------------------- */
 
 AVX2 static inline __m256i load256(const void *p)
 {
     return _mm256_loadu_si256((const __m256i *)p);
 }
 
-/* [sum of a0's lanes, ..., sum of a7's lanes]. */
-AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256i a3, __m256i a4,
-                                      __m256i a5, __m256i a6, __m256i a7)
-{
-    /* Within each 128-bit half: [a0 a1 a2 a3] and [a4 a5 a6 a7] partial sums. */
-    __m256i h0123 = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
-    __m256i h4567 = _mm256_hadd_epi32(_mm256_hadd_epi32(a4, a5), _mm256_hadd_epi32(a6, a7));
-    return _mm256_add_epi32(_mm256_permute2x128_si256(h0123, h4567, 0x20),
-                            _mm256_permute2x128_si256(h0123, h4567, 0x31));
-}
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+
 
 /* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
  * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
@@ -6951,6 +9286,647 @@ AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __
     /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
     out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
     return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* acc += the products of wv and xv, pairwise summed (VPMADDWD). */
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* The dense layers of one family each (fbg_simd_acc32 and fbg_simd_hidden pick one). */
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc);
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                         uint32_t *sat);
+
+#endif /* FBG_HOST_SIMD && __x86_64__ */
+
+#endif /* FBG_SIMD_X86_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    int avx2;
+    __builtin_cpu_init();
+    /* GCC's and Clang's runtimes report AVX2 only if the OS saves the YMM state (XGETBV). */
+    avx2 = __builtin_cpu_supports("avx2") != 0;
+    switch (requested) {
+    case FBG_OPT_KERNEL_AUTO:
+        return avx2 ? FBG_OPT_KERNEL_AVX2 : FBG_OPT_KERNEL_SSE2;
+    case FBG_OPT_KERNEL_PORTABLE:
+    case FBG_OPT_KERNEL_SSE2:
+        return requested;
+    case FBG_OPT_KERNEL_AVX2:
+        return avx2 ? requested : 0u;
+    default:
+        return 0u;
+    }
+}
+
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        fbg_avx2_layer(ly, x, acc, NULL, NULL);
+    else
+        fbg_sse2_acc32(ly, x, acc);
+}
+
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    if (kernel == FBG_OPT_KERNEL_AVX2)
+        fbg_avx2_layer(ly, x, NULL, y, sat);
+    else
+        fbg_sse2_hidden(ly, x, y, sat);
+}
+
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_x86_unused;
+#endif
+/* ---- src/fbg_simd_x86_avx2.c ---- */
+/*
+ * fbg_simd_x86_avx2.c - AVX2 dense layers, eight rows per group, vector requantisation.
+ * How the kernels stay exact: fbg_simd_x86.c.
+ */
+/* ---- src/fbg_simd_x86.h ---- */
+/*
+ * fbg_simd_x86.h - what the x86-64 host kernels (fbg_simd_x86*.c) share: loads, the vector
+ * types, the input padding and the AVX2 requantisation, and the layer kernels' declarations.
+ */
+#ifndef FBG_SIMD_X86_H
+#define FBG_SIMD_X86_H
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+#include <emmintrin.h>
+#include <immintrin.h>
+#include <stddef.h>
+#include <string.h>
+
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+}
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
+
+AVX2 static inline __m256i load256(const void *p)
+{
+    return _mm256_loadu_si256((const __m256i *)p);
+}
+
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
+{
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
+    int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
+    for (k = 0; k < 2; ++k) {
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
+    }
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* acc += the products of wv and xv, pairwise summed (VPMADDWD). */
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* The dense layers of one family each (fbg_simd_acc32 and fbg_simd_hidden pick one). */
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc);
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                         uint32_t *sat);
+
+#endif /* FBG_HOST_SIMD && __x86_64__ */
+
+#endif /* FBG_SIMD_X86_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+/* ---- AVX2: eight rows per group, vector requantisation -------------------------------- */
+
+/* [sum of a0's lanes, ..., sum of a7's lanes]. */
+AVX2 static inline __m256i sum8_lanes(__m256i a0, __m256i a1, __m256i a2, __m256i a3, __m256i a4,
+                                      __m256i a5, __m256i a6, __m256i a7)
+{
+    /* Within each 128-bit half: [a0 a1 a2 a3] and [a4 a5 a6 a7] partial sums. */
+    __m256i h0123 = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    __m256i h4567 = _mm256_hadd_epi32(_mm256_hadd_epi32(a4, a5), _mm256_hadd_epi32(a6, a7));
+    return _mm256_add_epi32(_mm256_permute2x128_si256(h0123, h4567, 0x20),
+                            _mm256_permute2x128_si256(h0123, h4567, 0x31));
 }
 
 /* Rows r .. r+k-1 (k <= 8) of a layer's bias, as int32 (|bias| <= INT32_MAX in an acc32
@@ -7032,10 +10008,6 @@ AVX2 static inline void finish_rows(layer_out *o, unsigned r, unsigned k, __m256
 /* Row i of a group starting at row pointer w, columns j .. j+15, as int16. */
 #define WIDE_W16(i, j) load256(w + (size_t)(i) * n + (j))
 #define WIDE_W8(i, j) _mm256_cvtepi8_epi16(load128(w + (size_t)(i) * n + (j)))
-/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
- * accumulators GCC copies every one of them once per loop iteration. */
-typedef uint32_t lanes32 __attribute__((vector_size(32)));
-#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
 #define WIDE_ROW(i, W) lanes32 a##i = (lanes32)_mm256_madd_epi16(W(i, n - 16u), xtail)
 #define WIDE_ROWS1(W) WIDE_ROW(0, W)
 #define WIDE_ROWS2(W) WIDE_ROWS1(W); WIDE_ROW(1, W)
@@ -7061,26 +10033,6 @@ typedef uint32_t lanes32 __attribute__((vector_size(32)));
         j += 16u;                                                                            \
     } while (j < n16)
 
-/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
-AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
-{
-    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
-    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
-}
-
-AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
-{
-    __m256i h = _mm256_hadd_epi32(a0, a1);
-    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
-    return _mm_hadd_epi32(s, s);
-}
-
-AVX2 static inline __m128i sum1_row(__m256i a0)
-{
-    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
-    s = _mm_hadd_epi32(s, s);
-    return _mm_hadd_epi32(s, s);
-}
 
 /* -1 in the last t of 16 lanes read from tail_lanes + t (t = n mod 16). */
 static const int16_t tail_lanes[32] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0,
@@ -7225,7 +10177,7 @@ AVX2 static void narrow_avx2(layer_out *o, const int16_t *x)
 
 /* The int32 accumulators (acc != NULL) or the requantised hidden outputs (y) of every row,
  * in one pass over the rows. */
-AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
                             uint32_t *sat)
 {
     layer_out o;
@@ -7244,6 +10196,588 @@ AVX2 static void layer_avx2(const fbg_layer *ly, const int16_t *x, int32_t *acc,
         *sat = 1u;
 }
 
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_x86_avx2_unused;
+#endif
+#undef WIDE_W16
+#undef WIDE_W8
+#undef WIDE_ROW
+#undef WIDE_ROWS1
+#undef WIDE_ROWS2
+#undef WIDE_ROWS4
+#undef WIDE_ROWS8
+#undef WIDE_STEP1
+#undef WIDE_STEP2
+#undef WIDE_STEP4
+#undef WIDE_STEP8
+#undef WIDE_DOT
+#undef WIDE_LAYER
+#undef NARROW_COPY
+#undef NARROW_W16
+#undef NARROW_W8
+#undef NARROW_PAIR
+#undef NARROW_PAIR16
+#undef NARROW8_SUMS
+#undef NARROW16_W16
+#undef NARROW16_W8
+#undef NARROW16_SUMS
+#undef NARROW_SUMS
+#undef NARROW_LAYER
+/* ---- src/fbg_simd_x86_pack.c ---- */
+/*
+ * fbg_simd_x86_pack.c - packed weights (fbg_pack) and the SSE2 and AVX2 nets that run from them.
+ * How the kernels stay exact: fbg_simd_x86.c.
+ */
+/* ---- src/fbg_simd_x86.h ---- */
+/*
+ * fbg_simd_x86.h - what the x86-64 host kernels (fbg_simd_x86*.c) share: loads, the vector
+ * types, the input padding and the AVX2 requantisation, and the layer kernels' declarations.
+ */
+#ifndef FBG_SIMD_X86_H
+#define FBG_SIMD_X86_H
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+#include <emmintrin.h>
+#include <immintrin.h>
+#include <stddef.h>
+#include <string.h>
+
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+}
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
+
+AVX2 static inline __m256i load256(const void *p)
+{
+    return _mm256_loadu_si256((const __m256i *)p);
+}
+
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
+{
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
+    int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
+    for (k = 0; k < 2; ++k) {
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
+    }
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* acc += the products of wv and xv, pairwise summed (VPMADDWD). */
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* The dense layers of one family each (fbg_simd_acc32 and fbg_simd_hidden pick one). */
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc);
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                         uint32_t *sat);
+
+#endif /* FBG_HOST_SIMD && __x86_64__ */
+
+#endif /* FBG_SIMD_X86_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
 /* ---- Packed weights (fbg_pack): no row sums to add up across a vector ------------------- */
 
 /* A packed layer: this head, then its output rows in groups of `rows` (8 for AVX2, 4 for
@@ -7847,6 +11381,1390 @@ int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigne
     return 1;
 }
 
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_x86_pack_unused;
+#endif
+#undef PACK_PASS
+#undef HEAD_U16
+#undef HEAD_I64
+#undef HEAD_U32
+#undef PACK_HEADER_BYTES
+#undef DOT_ROWS
+#undef DOT_WIDTH
+#undef PK_LIST1
+#undef PK_LIST2
+#undef PK_LIST3
+#undef PK_LIST4
+#undef PK_LIST5
+#undef PK_LIST6
+#undef PK_LIST7
+#undef PK_LIST8
+#undef PK_LIST9
+#undef PK_PASS
+#undef PK_LAYER
+#undef PK_BEGIN
+#undef PK4_BCAST
+#undef PK4_BCAST_LAST
+#undef PK4_ACC
+#undef PK4_MADD
+#undef PK4_ACC_OUT
+#undef PK4_HIDDEN_OUT
+#undef PK8_BCAST
+#undef PK8_BCAST_LAST
+#undef PK8_ACC
+#undef PK8_MADD
+#undef PK8_ACC_OUT
+#undef PK8_HIDDEN_OUT
+#undef PK8_HIGH_OUT
+/* ---- src/fbg_simd_x86_sse2.c ---- */
+/*
+ * fbg_simd_x86_sse2.c - SSE2 dense layers, four rows per group (fbg_simd_acc32, fbg_simd_hidden).
+ * How the kernels stay exact: fbg_simd_x86.c.
+ */
+/* ---- src/fbg_simd_x86.h ---- */
+/*
+ * fbg_simd_x86.h - what the x86-64 host kernels (fbg_simd_x86*.c) share: loads, the vector
+ * types, the input padding and the AVX2 requantisation, and the layer kernels' declarations.
+ */
+#ifndef FBG_SIMD_X86_H
+#define FBG_SIMD_X86_H
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+#include <emmintrin.h>
+#include <immintrin.h>
+#include <stddef.h>
+#include <string.h>
+
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+}
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
+
+AVX2 static inline __m256i load256(const void *p)
+{
+    return _mm256_loadu_si256((const __m256i *)p);
+}
+
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
+{
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
+    int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
+    for (k = 0; k < 2; ++k) {
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
+    }
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* acc += the products of wv and xv, pairwise summed (VPMADDWD). */
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* The dense layers of one family each (fbg_simd_acc32 and fbg_simd_hidden pick one). */
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc);
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                         uint32_t *sat);
+
+#endif /* FBG_HOST_SIMD && __x86_64__ */
+
+#endif /* FBG_SIMD_X86_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+/* The rows past n_out of a layer's last group. */
+static const int16_t zero_row16[ROW_LEN];
+static const int8_t zero_row8[ROW_LEN];
+
+/* One layer's rows: the first n_safe can be read in place for npad entries, n_in rounded up
+ * to a multiple of vec (8 or 16). */
+typedef struct {
+    const fbg_layer *ly;
+    unsigned n, npad, n_safe;
+} rows_view;
+
+static void rows_view_init(rows_view *v, const fbg_layer *ly, unsigned vec)
+{
+    size_t total = (size_t)ly->n_out * ly->n_in;
+    v->ly = ly;
+    v->n = ly->n_in;
+    v->npad = (ly->n_in + vec - 1u) & ~(vec - 1u);
+    /* Row r stays inside the weight array iff r * n + npad <= total; a read of npad entries
+     * overruns the last ceil((npad - n) / n) rows (no division for the common n >= npad - n). */
+    if (v->npad == v->n)
+        v->n_safe = ly->n_out;
+    else if (v->n >= v->npad - v->n)
+        v->n_safe = ly->n_out - 1u;
+    else
+        v->n_safe = total < v->npad ? 0u : (unsigned)((total - v->npad) / v->n) + 1u;
+}
+
+/* Pointers to rows r .. r+k-1 (int16 weights), copying the ones that cannot be read in place
+ * into buf. */
+static inline void rows16(const rows_view *v, unsigned r, unsigned k, const int16_t **w, int16_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int16_t *p = v->ly->w16 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w16 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row16;
+        } else {
+            memcpy(buf[i], v->ly->w16 + (size_t)r * v->n, v->n * sizeof **buf);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+static inline void rows8(const rows_view *v, unsigned r, unsigned k, const int8_t **w, int8_t (*buf)[ROW_LEN])
+{
+    unsigned i, j;
+    if (r + k <= v->n_safe) {
+        const int8_t *p = v->ly->w8 + (size_t)r * v->n;
+        for (i = 0; i < k; ++i, p += v->n)
+            w[i] = p;
+        return;
+    }
+    for (i = 0; i < k; ++i, ++r) {
+        if (r < v->n_safe) {
+            w[i] = v->ly->w8 + (size_t)r * v->n;
+        } else if (r >= v->ly->n_out) {
+            w[i] = zero_row8;
+        } else {
+            memcpy(buf[i], v->ly->w8 + (size_t)r * v->n, v->n);
+            for (j = v->n; j < v->npad; ++j)
+                buf[i][j] = 0;
+            w[i] = buf[i];
+        }
+    }
+}
+
+/* bias[r .. r+k-1] as int32 (|bias| <= INT32_MAX in an acc32 layer), 0 beyond k. */
+static void bias32(const fbg_layer *ly, unsigned r, unsigned k, int32_t *b)
+{
+    unsigned i;
+    for (i = 0; i < k; ++i)
+        b[i] = r + i < ly->n_out ? (int32_t)ly->bias[r + i] : 0;
+}
+
+/* ---- SSE2: four rows per group ------------------------------------------------------- */
+
+/* 8 int8 weights sign-extended to int16 (each byte doubled, then shifted down arithmetically). */
+static inline __m128i load8x8(const int8_t *p)
+{
+    __m128i b = _mm_loadl_epi64((const __m128i *)(const void *)p);
+    return _mm_srai_epi16(_mm_unpacklo_epi8(b, b), 8);
+}
+
+/* [sum of a's lanes, sum of b's, sum of c's, sum of d's]. */
+static inline __m128i sum4_lanes(__m128i a, __m128i b, __m128i c, __m128i d)
+{
+    __m128i ab = _mm_add_epi32(_mm_unpacklo_epi32(a, b), _mm_unpackhi_epi32(a, b));
+    __m128i cd = _mm_add_epi32(_mm_unpacklo_epi32(c, d), _mm_unpackhi_epi32(c, d));
+    return _mm_add_epi32(_mm_unpacklo_epi64(ab, cd), _mm_unpackhi_epi64(ab, cd));
+}
+
+/* The MACs of four rows; W(i, j) loads 8 weights of row i at column j as int16. */
+#define SSE2_DOT4(W)                                                                 \
+    do {                                                                             \
+        __m128i a0 = _mm_setzero_si128(), a1 = a0, a2 = a0, a3 = a0;                \
+        for (j = 0; j < v.npad; j += 8u) {                                           \
+            __m128i xv = load128(xp + j);                                           \
+            a0 = _mm_add_epi32(a0, _mm_madd_epi16(W(0, j), xv));                    \
+            a1 = _mm_add_epi32(a1, _mm_madd_epi16(W(1, j), xv));                    \
+            a2 = _mm_add_epi32(a2, _mm_madd_epi16(W(2, j), xv));                    \
+            a3 = _mm_add_epi32(a3, _mm_madd_epi16(W(3, j), xv));                    \
+        }                                                                            \
+        sums = _mm_add_epi32(sum4_lanes(a0, a1, a2, a3), load128(b));                \
+    } while (0)
+#define SSE2_W16(i, j) load128(w16[i] + (j))
+#define SSE2_W8(i, j) load8x8(w8[i] + (j))
+
+/* acc[r] for every row of a layer of fewer than 8 inputs (int32), x padded. */
+static void acc32_sse2_padded(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    int16_t xp[ROW_LEN];
+    int16_t buf16[4][ROW_LEN];
+    int8_t buf8[4][ROW_LEN];
+    int32_t b[4], t[4];
+    rows_view v;
+    unsigned r, j;
+    pad_x(ly, x, xp);
+    rows_view_init(&v, ly, 8u);
+    for (r = 0; r < ly->n_out; r += 4u) {
+        __m128i sums;
+        bias32(ly, r, 4u, b);
+        if (ly->w_bits == 16u) {
+            const int16_t *w16[4];
+            rows16(&v, r, 4u, w16, buf16);
+            SSE2_DOT4(SSE2_W16);
+        } else {
+            const int8_t *w8[4];
+            rows8(&v, r, 4u, w8, buf8);
+            SSE2_DOT4(SSE2_W8);
+        }
+        if (r + 4u <= ly->n_out) {
+            _mm_storeu_si128((__m128i *)(void *)(acc + r), sums);
+        } else {
+            _mm_storeu_si128((__m128i *)(void *)t, sums);
+            memcpy(acc + r, t, (ly->n_out - r) * sizeof *acc);
+        }
+    }
+}
+
+/* SSE2, layers of at least 8 inputs: rows and x read in place, as AVX2 does with 16 columns
+ * (wide_avx2): the last 8 columns of every row against x[n-8 .. n) with the columns of the
+ * whole vectors masked to zero first, then whole vectors of 8 columns; four rows per group,
+ * the last n_out mod 4 rows one by one. */
+static const int16_t tail_lanes8[16] = {0, 0, 0, 0, 0, 0, 0, 0, -1, -1, -1, -1, -1, -1, -1, -1};
+#define SSE2_IN16(i, j) load128(w16 + (size_t)(i) * n + (j))
+#define SSE2_IN8(i, j) load8x8(w8 + (size_t)(i) * n + (j))
+#define SSE2_MADD(a, wv, xv) a += (lanes32x4)_mm_madd_epi16(wv, xv)
+#define SSE2_ROWS4(W)                                                                        \
+    do {                                                                                     \
+        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail),                       \
+                  a1 = (lanes32x4)_mm_madd_epi16(W(1, n - 8u), xtail),                       \
+                  a2 = (lanes32x4)_mm_madd_epi16(W(2, n - 8u), xtail),                       \
+                  a3 = (lanes32x4)_mm_madd_epi16(W(3, n - 8u), xtail);                       \
+        for (j = 0; j < n8; j += 8u) {                                                       \
+            __m128i xv = load128(x + j);                                                     \
+            SSE2_MADD(a0, W(0, j), xv);                                                      \
+            SSE2_MADD(a1, W(1, j), xv);                                                      \
+            SSE2_MADD(a2, W(2, j), xv);                                                      \
+            SSE2_MADD(a3, W(3, j), xv);                                                      \
+        }                                                                                    \
+        sums = sum4_lanes((__m128i)a0, (__m128i)a1, (__m128i)a2, (__m128i)a3);               \
+    } while (0)
+#define SSE2_ROW1(W)                                                                         \
+    do {                                                                                     \
+        lanes32x4 a0 = (lanes32x4)_mm_madd_epi16(W(0, n - 8u), xtail);                       \
+        __m128i t;                                                                           \
+        for (j = 0; j < n8; j += 8u)                                                         \
+            SSE2_MADD(a0, W(0, j), load128(x + j));                                          \
+        t = _mm_add_epi32((__m128i)a0, _mm_shuffle_epi32((__m128i)a0, 0x4e));                \
+        t = _mm_add_epi32(t, _mm_shuffle_epi32(t, 0xb1));                                    \
+        acc[r] = (int32_t)((uint32_t)_mm_cvtsi128_si32(t) + (uint32_t)ly->bias[r]);          \
+    } while (0)
+
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc)
+{
+    const size_t n = ly->n_in;
+    const unsigned n8 = ly->n_in & ~7u;
+    __m128i xtail;
+    unsigned r, j;
+    if (ly->n_in < 8u) {
+        acc32_sse2_padded(ly, x, acc);
+        return;
+    }
+    xtail = _mm_and_si128(load128(x + n - 8u), load128(tail_lanes8 + (n & 7u)));
+    for (r = 0; r + 4u <= ly->n_out; r += 4u) {
+        int32_t b[4];
+        __m128i sums;
+        bias32(ly, r, 4u, b);
+        if (ly->w_bits == 16u) {
+            const int16_t *w16 = ly->w16 + (size_t)r * n;
+            SSE2_ROWS4(SSE2_IN16);
+        } else {
+            const int8_t *w8 = ly->w8 + (size_t)r * n;
+            SSE2_ROWS4(SSE2_IN8);
+        }
+        _mm_storeu_si128((__m128i *)(void *)(acc + r), _mm_add_epi32(sums, load128(b)));
+    }
+    for (; r < ly->n_out; ++r) {
+        if (ly->w_bits == 16u) {
+            const int16_t *w16 = ly->w16 + (size_t)r * n;
+            SSE2_ROW1(SSE2_IN16);
+        } else {
+            const int8_t *w8 = ly->w8 + (size_t)r * n;
+            SSE2_ROW1(SSE2_IN8);
+        }
+    }
+}
+
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    int32_t acc[FBG_MAX_WIDTH];
+    unsigned r;
+    fbg_sse2_acc32(ly, x, acc);
+    for (r = 0; r < ly->n_out; ++r) {
+        int64_t v = fbg_rshift_round((int64_t)acc[r] * ly->mult[r], ly->shift);
+        y[r] = fbg_sat16(v < 0 ? 0 : v, sat);
+    }
+}
+
+#else
+/* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
+typedef int fbg_simd_x86_sse2_unused;
+#endif
+#undef SSE2_DOT4
+#undef SSE2_W16
+#undef SSE2_W8
+#undef SSE2_IN16
+#undef SSE2_IN8
+#undef SSE2_MADD
+#undef SSE2_ROWS4
+#undef SSE2_ROW1
+/* ---- src/fbg_simd_x86_stages.c ---- */
+/*
+ * fbg_simd_x86_stages.c - the AVX2 variants of fbg_step's front, filter and memory stages.
+ * How the kernels stay exact: fbg_simd_x86.c.
+ */
+/* ---- src/fbg_simd_x86.h ---- */
+/*
+ * fbg_simd_x86.h - what the x86-64 host kernels (fbg_simd_x86*.c) share: loads, the vector
+ * types, the input padding and the AVX2 requantisation, and the layer kernels' declarations.
+ */
+#ifndef FBG_SIMD_X86_H
+#define FBG_SIMD_X86_H
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
+#include <emmintrin.h>
+#include <immintrin.h>
+#include <stddef.h>
+#include <string.h>
+
+#define AVX2 __attribute__((target("avx2")))
+#define ROW_LEN (FBG_MAX_WIDTH + FBG_SIMD_XPAD)
+
+/* x into xp, zero from n_in for FBG_SIMD_XPAD entries (past any npad). */
+static inline void pad_x(const fbg_layer *ly, const int16_t *x, int16_t *xp)
+{
+    unsigned j;
+    for (j = 0; j < ly->n_in; ++j) /* a plain loop: the compiler vectorises it, no call */
+        xp[j] = x[j];
+    for (j = 0; j < FBG_SIMD_XPAD; ++j)
+        xp[ly->n_in + j] = 0;
+}
+
+static inline __m128i load128(const void *p)
+{
+    return _mm_loadu_si128((const __m128i *)p);
+}
+
+typedef uint32_t lanes32x4 __attribute__((vector_size(16)));
+
+AVX2 static inline __m256i load256(const void *p)
+{
+    return _mm256_loadu_si256((const __m256i *)p);
+}
+
+/* Accumulators as a vector of uint32 lanes (addition modulo 2^32, like VPADDD): with __m256i
+ * accumulators GCC copies every one of them once per loop iteration. */
+typedef uint32_t lanes32 __attribute__((vector_size(32)));
+
+
+/* y = sat16(max(rshift_round(acc * mult, shift), 0)) for eight rows: t = acc * mult + round
+ * (VPMULDQ: exact int64 products of the even dwords, then of the odd ones), clamped to
+ * [0, top] with top = 32768 * 2^shift - 1 (or INT64_MAX if that overflows, when no row can
+ * clamp), then shifted right: a logical shift is the arithmetic one on t >= 0, and
+ * top >> shift = 32767. *big collects the rows that clamped at the top (fbg_sat16's flag) as
+ * lanes with every bit but the sign set. */
+AVX2 static inline __m128i requant8(__m256i acc, __m256i mult, __m256i round, __m256i top,
+                                    __m128i shift, __m256i *big)
+{
+    const __m256i zero = _mm256_setzero_si256();
+    __m256i t[2], out;
+    int k;
+    t[0] = _mm256_mul_epi32(acc, mult);
+    t[1] = _mm256_mul_epi32(_mm256_srli_epi64(acc, 32), _mm256_srli_epi64(mult, 32));
+    for (k = 0; k < 2; ++k) {
+        __m256i v = _mm256_add_epi64(t[k], round);
+        __m256i neg = _mm256_cmpgt_epi64(zero, v), over = _mm256_cmpgt_epi64(v, top);
+        *big = _mm256_or_si256(*big, _mm256_srli_epi32(over, 1)); /* >= 0 for requant8_high's max */
+        t[k] = _mm256_srl_epi64(_mm256_andnot_si256(neg, _mm256_blendv_epi8(v, top, over)), shift);
+    }
+    /* Each 64-bit lane: the even row in its low dword, the odd row in its high one. */
+    out = _mm256_or_si256(t[0], _mm256_slli_epi64(t[1], 32));
+    return _mm_packs_epi32(_mm256_castsi256_si128(out), _mm256_extracti128_si256(out, 1));
+}
+
+/* acc += the products of wv and xv, pairwise summed (VPMADDWD). */
+#define MADD(a, wv, xv) a += (lanes32)_mm256_madd_epi16(wv, xv)
+
+/* A sum of K rows' int32 lanes into lanes 0 .. K-1 (K = 4, 2, 1) of a 128-bit vector. */
+AVX2 static inline __m128i sum4_rows(__m256i a0, __m256i a1, __m256i a2, __m256i a3)
+{
+    __m256i h = _mm256_hadd_epi32(_mm256_hadd_epi32(a0, a1), _mm256_hadd_epi32(a2, a3));
+    return _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+}
+
+AVX2 static inline __m128i sum2_rows(__m256i a0, __m256i a1)
+{
+    __m256i h = _mm256_hadd_epi32(a0, a1);
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(h), _mm256_extracti128_si256(h, 1));
+    return _mm_hadd_epi32(s, s);
+}
+
+AVX2 static inline __m128i sum1_row(__m256i a0)
+{
+    __m128i s = _mm_add_epi32(_mm256_castsi256_si128(a0), _mm256_extracti128_si256(a0, 1));
+    s = _mm_hadd_epi32(s, s);
+    return _mm_hadd_epi32(s, s);
+}
+
+/* The dense layers of one family each (fbg_simd_acc32 and fbg_simd_hidden pick one). */
+void fbg_sse2_acc32(const fbg_layer *ly, const int16_t *x, int32_t *acc);
+void fbg_sse2_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+AVX2 void fbg_avx2_layer(const fbg_layer *ly, const int16_t *x, int32_t *acc, int16_t *y,
+                         uint32_t *sat);
+
+#endif /* FBG_HOST_SIMD && __x86_64__ */
+
+#endif /* FBG_SIMD_X86_H */
+
+#if FBG_HOST_SIMD && defined(__x86_64__)
 /* ---- AVX2 filter: the four channels in one vector of int64 --------------------------- */
 
 /* Each tap: the four int32 history values sign-extended to int64 (VPMOVSXDQ), times the tap
@@ -7934,7 +12852,7 @@ AVX2 static int filter4_avx2(const fbg_model *m, const int32_t (*hist)[FBG_N_STR
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The location averages of memory_features (fbg_fixed.c) from z = in[0..3] as int32 lanes,
+/* The location averages of memory_features (fbg_stage_memory.c) from z = in[0..3] as int32 lanes,
  * the same operations lane by lane: r = sat16(z - z0) (VPMINSD/VPMAXSD; a lane that moved
  * clamped), target = r * 2^15, the state primed at the target on the first sample, state +=
  * rshift_round(target - state, shift) with the arithmetic shift VPSRAD (the scalar loop's
@@ -8041,7 +12959,7 @@ AVX2 static int comp4_avx2(fbg_state *s, __m256i shift, int32_t ref)
     return !_mm256_testz_si256(flag, flag);
 }
 
-/* The memory kinds' update rules of fbg_fixed.c (<kind>_features, FBG_MEMORY_KINDS), the
+/* The memory kinds' update rules of fbg_stage_memory.c (<kind>_features, FBG_MEMORY_KINDS), the
  * states of a kind in the lanes of one vector, the same operations: the scalar loop's bounds
  * hold in every lane. The states of lanes k >= n stay as they are (blended back); the features
  * go to f[0 ..] as a whole vector of four, the entries past the kind's last being overwritten
@@ -8111,7 +13029,7 @@ FBG_MEMORY_KINDS(FBG_KIND_LANES)
 typedef char memory4_stores_inside_in[FBG_N_STRAIN FBG_MEMORY_KINDS(FBG_KIND_LIMIT) <= FBG_MAX_INPUTS ? 1 : -1];
 #undef FBG_KIND_LIMIT
 
-/* The load signal's memory features of memory_features (fbg_fixed.c) from z (int32 lanes):
+/* The load signal's memory features of memory_features (fbg_stage_memory.c) from z (int32 lanes):
  * u = sat16(rshift_round(sum_c z_c * mem_mult_c, mem_shift)) (VPMULDQ: exact int64 products,
  * their sum < 2^48, then the scalar rule), then every kind's states, primed on the first
  * sample, and features to in[4 ..] in the order of FBG_MEMORY_KINDS. Returns 1 where a clamp
@@ -8182,116 +13100,10374 @@ AVX2 void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat
         *sat = 1u;
 }
 
-uint32_t fbg_simd_resolve(uint32_t requested)
-{
-    int avx2;
-    __builtin_cpu_init();
-    /* GCC's and Clang's runtimes report AVX2 only if the OS saves the YMM state (XGETBV). */
-    avx2 = __builtin_cpu_supports("avx2") != 0;
-    switch (requested) {
-    case FBG_OPT_KERNEL_AUTO:
-        return avx2 ? FBG_OPT_KERNEL_AVX2 : FBG_OPT_KERNEL_SSE2;
-    case FBG_OPT_KERNEL_PORTABLE:
-    case FBG_OPT_KERNEL_SSE2:
-        return requested;
-    case FBG_OPT_KERNEL_AVX2:
-        return avx2 ? requested : 0u;
-    default:
-        return 0u;
-    }
-}
-
-void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc)
-{
-    if (kernel == FBG_OPT_KERNEL_AVX2)
-        layer_avx2(ly, x, acc, NULL, NULL);
-    else
-        acc32_sse2(ly, x, acc);
-}
-
-void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
-{
-    if (kernel == FBG_OPT_KERNEL_AVX2)
-        layer_avx2(ly, x, NULL, y, sat);
-    else
-        hidden_sse2(ly, x, y, sat);
-}
-
 #else
 /* ISO C forbids an empty translation unit: other targets compile this file to nothing. */
-typedef int fbg_simd_x86_unused;
+typedef int fbg_simd_x86_stages_unused;
 #endif
-#undef AVX2
-#undef ROW_LEN
-#undef SSE2_DOT4
-#undef SSE2_W16
-#undef SSE2_W8
-#undef SSE2_IN16
-#undef SSE2_IN8
-#undef SSE2_MADD
-#undef SSE2_ROWS4
-#undef SSE2_ROW1
-#undef WIDE_W16
-#undef WIDE_W8
-#undef MADD
-#undef WIDE_ROW
-#undef WIDE_ROWS1
-#undef WIDE_ROWS2
-#undef WIDE_ROWS4
-#undef WIDE_ROWS8
-#undef WIDE_STEP1
-#undef WIDE_STEP2
-#undef WIDE_STEP4
-#undef WIDE_STEP8
-#undef WIDE_DOT
-#undef WIDE_LAYER
-#undef NARROW_COPY
-#undef NARROW_W16
-#undef NARROW_W8
-#undef NARROW_PAIR
-#undef NARROW_PAIR16
-#undef NARROW8_SUMS
-#undef NARROW16_W16
-#undef NARROW16_W8
-#undef NARROW16_SUMS
-#undef NARROW_SUMS
-#undef NARROW_LAYER
-#undef PACK_PASS
-#undef HEAD_U16
-#undef HEAD_I64
-#undef HEAD_U32
-#undef PACK_HEADER_BYTES
-#undef DOT_ROWS
-#undef DOT_WIDTH
-#undef PK_LIST1
-#undef PK_LIST2
-#undef PK_LIST3
-#undef PK_LIST4
-#undef PK_LIST5
-#undef PK_LIST6
-#undef PK_LIST7
-#undef PK_LIST8
-#undef PK_LIST9
-#undef PK_PASS
-#undef PK_LAYER
-#undef PK_BEGIN
-#undef PK4_BCAST
-#undef PK4_BCAST_LAST
-#undef PK4_ACC
-#undef PK4_MADD
-#undef PK4_ACC_OUT
-#undef PK4_HIDDEN_OUT
-#undef PK8_BCAST
-#undef PK8_BCAST_LAST
-#undef PK8_ACC
-#undef PK8_MADD
-#undef PK8_ACC_OUT
-#undef PK8_HIDDEN_OUT
-#undef PK8_HIGH_OUT
 #undef FIR_TAP
 #undef FBG_KIND_LANES
 #undef FBG_KIND_LIMIT
 #undef FBG_KIND_FEATURES
+/* ---- src/fbg_stage_decision.c ---- */
+/*
+ * fbg_stage_decision.c - stage 5 of fbg_step: the contact decision over time
+ * (docs/runtime.md, "In use").
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* The contact decision over time (docs/runtime.md, "In use"; docs/fixed-point.md). raw is the
+ * net's own decision (acc > 0), margin_q8 the output row as computed, the sign of its
+ * multiplier included: every engine reads both as they are, so a negative multiplier gives
+ * the same (inverted) decision everywhere. Contact stays while raw or margin_q8 >
+ * contact_off_q8. It rises by one of two rules:
+ * - contact_cusum_h_q8 = 0: a Schmitt trigger with a count, after contact_rise_n consecutive
+ *   samples of raw and margin_q8 >= contact_on_q8 (with on = off = 0, rise_n = 1 and a
+ *   positive multiplier that is raw itself: margin_q8 > 0 implies acc > 0, acc > 0 implies
+ *   margin_q8 >= 0);
+ * - else a one-sided CUSUM: S = max(0, S + clamp(margin_q8, lo, hi) - k), contact rises when
+ *   S >= h, and S restarts at 0. Bound: S < h <= 2^29 before the update (it rises, and
+ *   restarts, on reaching h; it is 0 in contact and after init, reset, tare or a new
+ *   baseline) and |clamp - k| <= 2^30 (every parameter within +-FBG_MAX_CUSUM_Q8), so S + d
+ *   lies in [-2^30, 2^29 + 2^30): int32. A fault never gets here, so it holds S. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
+{
+    int32_t d;
+    if (m->contact_cusum_h_q8 == 0)
+        return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
+                          margin_q8 > m->contact_off_q8, m->contact_rise_n);
+    if (s->decision) {
+        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
+        return s->decision;
+    }
+    d = margin_q8 < m->contact_cusum_lo_q8 ? m->contact_cusum_lo_q8
+      : (margin_q8 > m->contact_cusum_hi_q8 ? m->contact_cusum_hi_q8 : margin_q8);
+    d -= m->contact_cusum_k_q8;
+    s->cusum_q8 = s->cusum_q8 + d > 0 ? s->cusum_q8 + d : 0;
+    if (s->cusum_q8 >= m->contact_cusum_h_q8) {
+        s->decision = 1u;
+        s->cusum_q8 = 0;
+    }
+    return s->decision;
+}
+/* ---- src/fbg_stage_filter.c ---- */
+/*
+ * fbg_stage_filter.c - stage 2 of fbg_step: the causal FIR, the standardisation and
+ * the input-side overload (docs/fixed-point.md).
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* ---- 2. Filter and standardise: the causal FIR over the ring (newest sample at pos, taps[k]
+ * weighting n - k), z = in[0..3] in Q(z_frac) int16, and the input-side overload (the linear
+ * load proxy beyond anything seen in calibration); then the ring moves on. ---- */
+
+#if !FBG_USE_DSP
+/* The portable reference; returns 1 when the load proxy exceeds load_max_mN. */
+static int filter_standardise(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int64_t load = 0;
+    unsigned c;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t f = 0;
+        int32_t filt, d;
+        unsigned k, idx = s->pos;
+        for (k = 0; k < m->n_taps; ++k) {
+            f += (int64_t)m->taps[k] * s->hist[idx][c];
+            idx = idx == 0u ? (unsigned)m->n_taps - 1u : idx - 1u;
+        }
+        filt = fbg_sat32(fbg_rshift_round(f, m->tap_q), sat);
+        s->last_comp[c] = filt;
+        d = fbg_sat32((int64_t)filt - m->mean_fm[c], sat);
+        in[c] = fbg_sat16(fbg_rshift_round((int64_t)d * m->z_mult[c], m->z_shift), sat);
+        load += (int64_t)filt * m->load_coeff[c]; /* |.| < 2^59 each (fbg_model_check) */
+    }
+    return fbg_rshift_round(load, m->load_shift) > m->load_max_mN;
+}
+#endif
+
+/* Returns FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat)
+{
+    int overload;
+#if FBG_USE_DSP /* all four channels per tap, no per-tap index wrap, the same int64 sums; the
+                  * standardisation on 32-bit words (fbg_dsp_kernels.h says why each is exact) */
+    int64_t fir[FBG_N_STRAIN];
+    uint32_t again = 0u; /* the clamp is flagged once, by the standardisation */
+    unsigned c;
+    fbg_dsp_fir4(m->taps, m->n_taps, (const int32_t(*)[FBG_N_STRAIN])s->hist, s->pos, fir);
+    overload = fbg_dsp_standardise(m, fir, in, sat);
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        s->last_comp[c] = fbg_sat32(fbg_rshift_round(fir[c], m->tap_q), &again);
+#elif FBG_SIMD_X86 /* AVX2: the four channels in int64 lanes */
+    overload = state_kernel(s) == FBG_OPT_KERNEL_AVX2 ? fbg_avx2_filter(s, in, sat)
+                                                     : filter_standardise(s, m, in, sat);
+#else
+    overload = filter_standardise(s, m, in, sat);
+#endif
+    s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
+    return overload ? FBG_STATUS_OVERLOAD : 0u;
+}
+/* ---- src/fbg_stage_front.c ---- */
+/*
+ * fbg_stage_front.c - stage 1 of fbg_step: the fault rule, the tare difference, the
+ * temperature compensation and the pad's creep inverse (docs/fixed-point.md).
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* ---- 1. Front: the fault rule, the tare difference, the temperature compensation ----
+ * The compensation subtracts the reference grating's averaged shift (fbg_ref_update; the raw
+ * shift when ref_shift is 0).
+ * The sample's compensated strain shifts go into the FIR ring at pos; a faulty sample
+ * (SENSOR_FAULT added to *status) feeds the ring last_comp, the filtered shifts of the last
+ * good sample (the filter stage keeps them): a burst of faults then holds the filter's output
+ * where it was, where holding one raw sample would hold its noise for the burst's length,
+ * and the memory's play operators would keep that excursion after it. */
+
+/* The portable reference. */
+static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                       uint32_t *status, uint32_t *sat)
+{
+    int32_t shift[FBG_N_CHANNELS], ref;
+    unsigned c;
+    if (fbg_front_sample(FBG_FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
+        memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
+        return;
+    }
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
+        s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
+    }
+}
+
+/* The pad's creep inverse (docs/fixed-point.md, "creep inverse") on the ring entry a good
+ * sample's compensation just wrote, shared by every kernel's front: a viscoelastic pad reads
+ * s = (1 - m) e + m lag(e) of the elastic strain e, and e = c + q (c - L), L the lag of e
+ * (acc = L * 2^creep_shift), undoes it before the FIR. Primed acc = c << creep_shift (e = c)
+ * by the first good sample after init, tare, reset or a new baseline; a faulty sample never
+ * gets here (its entry is last_comp, already filtered), so it holds acc. Bounds (proven in
+ * docs/fixed-point.md): |c| <= SAT32 keeps |acc| <= 2^k (2^31 - 1/2) < 2^47 and |L| <= 2^31,
+ * so (c - L) * creep_q15 < 2^32 * 2^15 fits int64, and e is clamped to int32 (SATURATED).
+ * Called only with creep_q15 > 0 (off, the entry stays c). */
+static void creep_inverse(fbg_state *s, const fbg_model *m, uint32_t *sat)
+{
+    int32_t *entry = s->hist[s->pos];
+    const unsigned k = m->creep_shift;
+    unsigned c;
+    if (!s->creep_primed) {
+        for (c = 0; c < FBG_N_STRAIN; ++c)
+            s->creep_acc[c] = (int64_t)entry[c] * ((int64_t)1 << k); /* << of a negative is undefined */
+        s->creep_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const int64_t lag = fbg_rshift_round(s->creep_acc[c], k);
+        const int32_t e = fbg_sat32((int64_t)entry[c] +
+                                        fbg_rshift_round(((int64_t)entry[c] - lag) * m->creep_q15, 15),
+                                    sat);
+        s->creep_acc[c] += e - lag;
+        entry[c] = e;
+    }
+}
+
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                        uint32_t *status, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the five channels' fault rule in one vector, the compensation in lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2)
+        fbg_avx2_front(s, wl_fm, status, sat);
+    else
+#endif
+        compensate(s, m, wl_fm, status, sat);
+    /* SENSOR_FAULT here is this sample's: the step's status opens without it. Off
+     * (creep_q15 0), nothing runs. */
+    if (m->creep_q15 != 0u && !(*status & FBG_STATUS_SENSOR_FAULT))
+        creep_inverse(s, m, sat);
+}
+/* ---- src/fbg_stage_hold.c ---- */
+/*
+ * fbg_stage_hold.c - the settled-hold gain of fbg_step's force (docs/fixed-point.md,
+ * "settled-hold gain").
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* The settled-hold gain (docs/runtime.md, "In use"; docs/fixed-point.md, "settled-hold
+ * gain"): the nets read a grip held still a little low, because a causal estimator cannot tell
+ * a load that stands from one that has just begun to fall; once force_mN has stayed within its
+ * band of its own average for hold_settle samples, no turn is left to mistake, and the trainer's
+ * gain, measured on its synthetic holds, ramps in over 2^hold_ramp_shift samples. Bounds:
+ * |force_mN| < 2^31, so hold_avg < 2^46; |hold_gain_q15| <= 2^12 and w <= 2^12, so the product
+ * stays below 2^55. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat)
+{
+    const int64_t f = force_mN;
+    int64_t dev, band;
+    uint32_t w;
+    if (m->hold_gain_q15 == 0)
+        return force_mN;
+    if (!s->hold_primed) {
+        s->hold_avg = f * ((int64_t)1 << FBG_EMA_FRAC);
+        s->hold_primed = 1u;
+    } else {
+        s->hold_avg += fbg_rshift_round(f * ((int64_t)1 << FBG_EMA_FRAC) - s->hold_avg, m->hold_shift);
+    }
+    dev = f - fbg_rshift_round(s->hold_avg, FBG_EMA_FRAC);
+    band = fbg_rshift_round((f < 0 ? -f : f) * (int64_t)m->hold_band_q15, 15u);
+    if (band < m->hold_band_mN)
+        band = m->hold_band_mN;
+    w = fbg_hold_weight(&s->hold_run, (dev < 0 ? -dev : dev) <= band, m->hold_settle,
+                        m->hold_ramp_shift);
+    return fbg_sat32(f + fbg_rshift_round(f * m->hold_gain_q15 * (int64_t)w,
+                                          15u + m->hold_ramp_shift), sat);
+}
+/* ---- src/fbg_stage_memory.c ---- */
+/*
+ * fbg_stage_memory.c - stage 3 of fbg_step: the memory features after z and the location
+ * averages (docs/fixed-point.md, "memory").
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* ---- 3. Memory: the features after z in in[4 ..], the location averages in loc ---- */
+
+/* The memory kinds' update rules (FBG_MEMORY_KINDS of fbg_contract.h, one function per kind,
+ * docs/fixed-point.md, "memory"): from the load signal u, prime the states (primed == 0) as a
+ * pad at rest after a release leaves them, step them and write their features to f[0 ..];
+ * each returns the number of features it wrote. */
+static unsigned ema_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                             uint32_t *sat)
+{
+    unsigned k;
+    /* |state| <= 32767 * 2^EMA_FRAC < 2^30: each update moves it towards the target by at most
+     * the whole distance, so it stays between its old value and the target. So |target -
+     * state| <= 2^31 - 2^16 and, with ema_shift <= 15, the rounding stays in int32; the
+     * feature is |u - (state >> 15)| <= 65534 times 2^gain <= 2^8: < 2^25. Primed at u. */
+    const int32_t target = u * ((int32_t)1 << FBG_EMA_FRAC);
+    if (!primed)
+        for (k = 0; k < m->n_ema; ++k)
+            s->ema[k] = target;
+    for (k = 0; k < m->n_ema; ++k) {
+        int32_t e = s->ema[k] + fbg_rshift_round32(target - s->ema[k], m->ema_shift[k]);
+        s->ema[k] = e;
+        f[k] = fbg_sat16_32((u - fbg_rshift_round32(e, FBG_EMA_FRAC)) * ((int32_t)1 << m->ema_gain[k]), sat);
+    }
+    return m->n_ema;
+}
+
+static unsigned play_features(fbg_state *s, const fbg_model *m, int32_t u, int primed, int16_t *f,
+                              uint32_t *sat)
+{
+    unsigned k;
+    if (!primed)   /* at u + width: the load last went down */
+        for (k = 0; k < m->n_play; ++k)
+            s->play[k] = u + m->play_width[k];
+    for (k = 0; k < m->n_play; ++k) {
+        /* The state stays within play_width of the current u: |state| < 2^16, and the
+         * feature is |u - state| <= 32767 times 2^gain <= 2^8 (int32). */
+        int32_t lo = u - m->play_width[k], hi = u + m->play_width[k];
+        int32_t p = s->play[k];
+        p = p < lo ? lo : (p > hi ? hi : p);
+        s->play[k] = p;
+        f[k] = fbg_sat16_32((u - p) * ((int32_t)1 << m->play_gain[k]), sat);
+    }
+    return m->n_play;
+}
+
+/* The portable reference. Append the memory features to z = in[0..3] and put the location
+ * averages (when loc_shift is on) in loc[0..3] (docs/fixed-point.md, "memory"). The load
+ * signal's states follow one load signal u, a fixed linear combination of z (the pad's hysteresis lives in
+ * its force path, which all four beams share): every kind's features in the order of
+ * FBG_MEMORY_KINDS. The first sample after init/tare/reset primes the states as a pad at rest
+ * after a release leaves them, so the features read what they read at every rest of the
+ * calibration data. A faulty sample never gets here (fbg_step returns before), so a fault
+ * freezes them. */
+static void memory_features(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc,
+                            uint32_t *sat)
+{
+    unsigned c;
+    int64_t acc = 0;
+    int32_t u;
+    int16_t *f = in + FBG_N_STRAIN;
+    const int primed = s->mem_primed;
+    if (m->loc_shift) {
+        /* A local flag: *sat may alias s->loc for the compiler. */
+        uint32_t clamped = s->loc_z0_clamped;
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            /* r = z - z0, z0 the standardisation of a zero filtered shift (loc_z0, set by
+             * fbg_init; when it clamped, every step flags saturation): 0 at rest. The
+             * state stays between its old value and the target r << EMA_FRAC, so both lie
+             * within +-(2^30 - 2^15) and the update fits int32: |target - state| < 2^31 - 2^16,
+             * plus at most 2^14 for the rounding (docs/fixed-point.md). */
+            int32_t target = (int32_t)fbg_sat16_32((int32_t)in[c] - s->loc_z0[c], &clamped) *
+                             ((int32_t)1 << FBG_EMA_FRAC);
+            int32_t e = primed ? s->loc[c] : target;
+            e += (target - e + ((int32_t)1 << (m->loc_shift - 1u))) >> m->loc_shift;
+            s->loc[c] = e;
+            /* |e| <= 32767 * 2^15, so the rounded value is within int16: no clamp. */
+            loc[c] = (int16_t)((e + ((int32_t)1 << (FBG_EMA_FRAC - 1))) >> FBG_EMA_FRAC);
+        }
+        *sat |= clamped;
+    }
+    if (FBG_N_MEMORY_FEATURES(m) == 0u) {
+        s->mem_primed = 1u;
+        return;
+    }
+    for (c = 0; c < FBG_N_STRAIN; ++c)
+        acc += (int64_t)in[c] * m->mem_mult[c];   /* |.| < 4 * 2^15 * 2^31 = 2^48 */
+    u = fbg_sat16_rshift_round(acc, m->mem_shift, sat);
+#define FBG_KIND_FEATURES(kind, KIND) f += kind##_features(s, m, u, primed, f, sat);
+    FBG_MEMORY_KINDS(FBG_KIND_FEATURES)
+#undef FBG_KIND_FEATURES
+    s->mem_primed = 1u;
+}
+
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat)
+{
+#if FBG_SIMD_X86 /* AVX2: the location averages and the load signal's states in int32 lanes */
+    if (state_kernel(s) == FBG_OPT_KERNEL_AVX2) {
+        fbg_avx2_memory(s, in, loc, sat);
+        return;
+    }
+#endif
+    memory_features(s, m, in, loc, sat);
+}
+#undef FBG_KIND_FEATURES
+/* ---- src/fbg_stage_nets.c ---- */
+/*
+ * fbg_stage_nets.c - stage 4 of fbg_step: the nets, layer by layer by the portable
+ * reference, the DSP kernels (fbg_dsp.h) or the state's host kernel (fbg_simd.h), or from
+ * packed weights in one call.
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* ---- 4. The nets: each layer's rows by the portable reference (layer_acc), the DSP kernels
+ * (fbg_dsp.h) or the state's host kernel (fbg_simd.h) ---- */
+
+/* The activation buffers are read with LDRD by the DSP kernels (fbgforce.h); the packed
+ * kernels write whole groups of 8 rows into them. */
+typedef char fbg_state_act_aligned[(offsetof(fbg_state, act) % 8u) == 0u ? 1 : -1];
+typedef char fbg_state_act_groups[(FBG_MAX_WIDTH % 8) == 0 ? 1 : -1];
+
+#if FBG_USE_DSP /* the rows in SMLAD/SMLALD, requantised with USAT (fbg_dsp.h): the same bits */
+/* Run the hidden layers of a net on x; returns the input of the output layer. */
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    return fbg_dsp_run_hidden(net, x, s->act, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    fbg_dsp_output_accs(ly, x, acc);
+}
+#else
+/* The portable reference of a layer. */
+/* ACC += sum_j w[r][j] * x[j] over row R of layer LY (int16 or int8 weights; J the index), in
+ * ACC's type: the same loops for the int32 and the int64 accumulator. */
+#define FBG_ROW_SUM(acc, ly, r, x, j)                                                        \
+    do {                                                                                     \
+        if ((ly)->w_bits == 16u) {                                                           \
+            const int16_t *w_ = (ly)->w16 + (size_t)(r) * (ly)->n_in;                        \
+            for ((j) = 0; (j) < (ly)->n_in; ++(j))                                           \
+                (acc) += (int32_t)w_[j] * (int32_t)(x)[j];                                   \
+        } else {                                                                             \
+            const int8_t *w_ = (ly)->w8 + (size_t)(r) * (ly)->n_in;                          \
+            for ((j) = 0; (j) < (ly)->n_in; ++(j))                                           \
+                (acc) += (int32_t)w_[j] * (int32_t)(x)[j];                                   \
+        }                                                                                    \
+    } while (0)
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int32 for an acc32 layer: fbg_model_check proved
+ * sum_j |w[r][j]| * 32767 + |bias[r]| <= INT32_MAX, which bounds every partial sum too. */
+static int32_t layer_acc32(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int32_t acc = (int32_t)ly->bias[r];
+    unsigned j;
+    FBG_ROW_SUM(acc, ly, r, x, j);
+    return acc;
+}
+
+/* acc = bias[r] + sum_j w[r][j] * x[j] in int64. Products of int16 (or int8) by int16 fit
+ * int32; fbg_model_check proved |acc| * |mult| + 2^(shift-1) < 2^63. */
+static int64_t layer_acc(const fbg_layer *ly, unsigned r, const int16_t *x)
+{
+    int64_t acc = ly->bias[r];
+    unsigned j;
+    if (ly->acc32)
+        return layer_acc32(ly, r, x);
+    FBG_ROW_SUM(acc, ly, r, x, j);
+    return acc;
+}
+/* Hidden-layer output of row r from its accumulator: ReLU, then sat16. */
+static inline int16_t hidden_value(const fbg_layer *ly, unsigned r, int64_t acc, uint32_t *sat)
+{
+    int64_t v = fbg_rshift_round(acc * ly->mult[r], ly->shift);
+    return fbg_sat16(v < 0 ? 0 : v, sat);
+}
+
+static void hidden_rows(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        y[r] = hidden_value(ly, r, layer_acc(ly, r, x), sat);
+}
+
+static void output_rows(const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    unsigned r;
+    for (r = 0; r < ly->n_out; ++r)
+        acc[r] = layer_acc(ly, r, x);
+}
+
+#if FBG_HOST_SIMD
+/* The state's host kernel (SSE2, AVX2, NEON: fbg_simd.h) for an acc32 layer; 0 where the
+ * portable reference runs the layer (an int64-accumulator layer, the portable kernel). */
+static inline uint32_t host_kernel(const fbg_state *s, const fbg_layer *ly)
+{
+    uint32_t kernel = state_kernel(s);
+    return ly->acc32 && kernel != FBG_OPT_KERNEL_PORTABLE ? kernel : 0u;
+}
+
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u)
+        fbg_simd_hidden(kernel, ly, x, y, sat);
+    else
+        hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    uint32_t kernel = host_kernel(s, ly);
+    if (kernel != 0u) {
+        int32_t acc32[FBG_MAX_WIDTH];
+        unsigned r;
+        fbg_simd_acc32(kernel, ly, x, acc32);
+        for (r = 0; r < ly->n_out; ++r)
+            acc[r] = acc32[r];
+    } else {
+        output_rows(ly, x, acc);
+    }
+}
+#else
+static void net_hidden_layer(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int16_t *y,
+                         uint32_t *sat)
+{
+    (void)s;
+    hidden_rows(ly, x, y, sat);
+}
+
+/* The accumulators of every row of a net's output layer. */
+static void output_accs(const fbg_state *s, const fbg_layer *ly, const int16_t *x, int64_t *acc)
+{
+    (void)s;
+    output_rows(ly, x, acc);
+}
+#endif
+
+/* Run the hidden layers of a net on x, through the activation buffers in turn; returns the
+ * input of the output layer. Out of line, as when its three callers were the step's: inlined
+ * into fbg_net_accs, its loop costs the portable Cortex-M4 build about 600 instructions per
+ * step more. */
+#if defined(__GNUC__)
+__attribute__((noinline))
+#endif
+static const int16_t *run_hidden(fbg_state *s, const fbg_net *net, const int16_t *x, uint32_t *sat)
+{
+    unsigned l;
+    for (l = 0; l + 1u < net->n_layers; ++l) {
+        int16_t *y = s->act[l & 1u];
+        net_hidden_layer(s, &net->layers[l], x, y, sat);
+        x = y;
+    }
+    return x;
+}
+#endif
+
+/* Every layer of net n on the net inputs in: acc = the accumulators of its output layer, which
+ * it returns. Layer by layer, or from packed weights in one call where the state has them
+ * (fbg_pack; x86-64 builds only). */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                                        int64_t *acc, uint32_t *sat)
+{
+    const fbg_net *net = &m->nets[n];
+    const fbg_layer *last = &net->layers[net->n_layers - 1u];
+#if FBG_SIMD_X86
+    if (s->packed != NULL &&
+        fbg_simd_net_packed(state_kernel(s), s->packed, n, net->n_layers, in, s->act, acc, sat))
+        return last;
+#endif
+    output_accs(s, last, run_hidden(s, net, in, sat), acc);
+    return last;
+}
+#undef FBG_ROW_SUM
+/* ---- src/fbg_stage_tracker.c ---- */
+/*
+ * fbg_stage_tracker.c - the at-rest baseline tracker of fbg_step and its creep states
+ * (docs/fixed-point.md, "In use").
+ */
+/* ---- src/fbg_stages.h ---- */
+/*
+ * fbg_stages.h - the stages of the fixed-point step (not installed), one file each, in the
+ * order fbg_step (fbg_fixed.c) runs them, which is export/intref.py's:
+ *   fbg_stage_front.c     the fault rule, tare difference, temperature compensation, creep inverse
+ *   fbg_stage_filter.c    the FIR over the ring, the standardisation, the input-side overload
+ *   fbg_stage_memory.c    the memory features after z and the location averages
+ *   fbg_stage_nets.c      the nets' layers: the accumulators of a net's output layer
+ *   fbg_stage_decision.c  the contact decision over time
+ *   fbg_stage_tracker.c   the creep states and the at-rest baseline tracker
+ *   fbg_stage_hold.c      the settled-hold gain
+ * Each stage is one function with a portable reference beside it; where an instruction set has
+ * its own variant of a stage, the stage picks it: at compile time on the target (FBG_USE_DSP,
+ * fbg_dsp.h) and by the state's kernel on the host (FBG_OPT_KERNEL_*, fbg_simd.h). The float
+ * build (fbgf_float.c) names its stages alike, with its fbgf_ prefix.
+ *
+ * No float or double in the stages (check-nofloat builds them with -mgeneral-regs-only);
+ * export/intref.py mirrors every operation bit for bit.
+ */
+#ifndef FBG_STAGES_H
+#define FBG_STAGES_H
+
+/* ---- src/fbg_front.h ---- */
+/*
+ * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
+ *
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
+ * -mgeneral-regs-only.
+ *
+ * fbg_state and fbgf_state hold the front end's fields under the same names but at different
+ * offsets (the FIR history is int32 in one and float in the other, the activation buffers sit
+ * elsewhere), so the front end reaches them through an fbg_front view that FBG_FRONT_OF makes
+ * from either state. The functions are static inline: each build gets them folded into its
+ * own code, the view's pointers become fixed offsets from the state, and the fixed-point
+ * step pays nothing for the indirection.
+ */
+#ifndef FBG_FRONT_H
+#define FBG_FRONT_H
+
+#include <string.h>
+
+/* ---- src/fbg_contract.h ---- */
+/* fbg_contract.h - GENERATED by `python -m fbgforce.contract --write`; do not edit. */
+#ifndef FBG_CONTRACT_H
+#define FBG_CONTRACT_H
+
+#include "fbgforce.h"
+
+#define FBG_PARAMS_SIZE 288u     /* parameter block bytes, zero-padded */
+#define FBG_PARAMS_END 304u      /* header + parameter block */
+#define FBG_LAYER_ENTRY 8u       /* bytes per layer-table entry */
+
+/* The memory states of a streaming state, X(s, member) each: the arrays of the memory
+ * kinds and the location averages (fbg_state and fbgf_state name them alike; fbg_front.h
+ * clears them on reset, tare and a new baseline). */
+#define FBG_MEMORY_STATES(X, s) X(s, ema) X(s, play) X(s, loc)
+#define FBG_N_MEMORY_STATES 3
+
+/* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
+ * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+#define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
+/* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
+#define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
+
+/* Fill the parameter fields of *m from the block at p (PARAMS_SIZE bytes). */
+void fbg_params_decode(fbg_model *m, const uint8_t *p);
+/* 1 if the block's padding bytes are all zero. */
+int fbg_params_padding_ok(const uint8_t *p);
+/* The first parameter out of its range, in blob order: its code; else FBG_OK. */
+fbg_status fbg_params_check(const fbg_model *m);
+/* The float model's memory parameters (fbgf_contract.c): FBG_ERR_SHAPE for a count above
+ * its limit, FBG_ERR_RANGE for a parameter of a state in use outside fbg_model's range
+ * (a value in standardised units: negative or not finite); else FBG_OK. */
+fbg_status fbgf_memory_check(const fbgf_model *m);
+
+#endif /* FBG_CONTRACT_H */
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+/* The front end's view of one state (of either build). */
+typedef struct {
+    uint32_t magic_value;        /* FBG_STATE_MAGIC or FBGF_STATE_MAGIC */
+    int model_set;               /* state->model != NULL when the view was made */
+    uint32_t *magic;
+    uint32_t *options;
+    int32_t *baseline_fm;        /* FBG_N_CHANNELS */
+    int32_t *prev_fm;            /* FBG_N_CHANNELS */
+    void *hist;                  /* the FIR history, whatever its element type */
+    size_t hist_size;
+    void *last_comp;             /* the last filtered shifts, held into the FIR during a fault */
+    size_t last_comp_size;
+    void *mem[FBG_N_MEMORY_STATES];        /* the memory states (FBG_MEMORY_STATES of fbg_contract.h),
+                                            * whatever their element type */
+    size_t mem_size[FBG_N_MEMORY_STATES];
+    uint8_t *mem_primed;
+    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
+    int64_t *tare_sum;           /* FBG_N_CHANNELS */
+    uint32_t *tare_count;
+    uint16_t *pos;
+    uint16_t *since_reset;
+    uint16_t *same_run;          /* FBG_N_CHANNELS */
+    uint8_t *tared;
+    uint8_t *tare_active;
+    uint8_t *prev_valid;
+} fbg_front;
+
+#define FBG_FRONT_MEM(s, member) (s)->member,
+#define FBG_FRONT_MEM_SIZE(s, member) sizeof (s)->member,
+
+/* The view of state s (a non-NULL fbg_state * or fbgf_state *; both name these fields
+ * alike, which is why one initialiser serves both). */
+#define FBG_FRONT_OF(s, magic_val)                                                            \
+    ((fbg_front){.magic_value = (magic_val),                                                  \
+                 .model_set = (s)->model != NULL, .magic = &(s)->magic,                       \
+                 .options = &(s)->options, .baseline_fm = (s)->baseline_fm,                   \
+                 .prev_fm = (s)->prev_fm, .hist = (s)->hist, .hist_size = sizeof (s)->hist,   \
+                 .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
+                 .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
+                 .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
+                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .creep_primed = &(s)->creep_primed,                                          \
+                 .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
+                 .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
+                 .tared = &(s)->tared, .tare_active = &(s)->tare_active,                      \
+                 .prev_valid = &(s)->prev_valid})
+
+/* Initialised by fbg_init / fbgf_init, and not overwritten since. */
+static inline int fbg_front_ok(fbg_front f)
+{
+    return *f.magic == f.magic_value && f.model_set;
+}
+
+/* fbg_init after the model check, on a state the caller has zeroed (before making the view,
+ * which reads state->model) and gives its typed model pointer: the model's nominal baseline,
+ * the options, the magic. */
+static inline void fbg_front_init(fbg_front f, const int32_t model_baseline_fm[FBG_N_CHANNELS],
+                                  uint32_t options)
+{
+    *f.options = options;
+    memcpy(f.baseline_fm, model_baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.magic = f.magic_value;
+}
+
+/* Forget the FIR history, the memory states, the temperature reference's average and the
+ * creep inverse's lags (the next good sample primes them) and the fault tracker; baseline and
+ * tare stay. */
+static inline void fbg_front_clear(fbg_front f)
+{
+    unsigned k;
+    memset(f.hist, 0, f.hist_size);
+    memset(f.last_comp, 0, f.last_comp_size);
+    for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
+        memset(f.mem[k], 0, f.mem_size[k]);
+    *f.mem_primed = 0u;
+    *f.ref_primed = 0u;
+    *f.creep_primed = 0u;
+    memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
+    *f.prev_valid = 0u;
+    memset(f.same_run, 0, FBG_N_CHANNELS * sizeof *f.same_run);
+    *f.pos = 0u;
+    *f.since_reset = 0u;
+}
+
+static inline fbg_status fbg_front_reset(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_begin(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    memset(f.tare_sum, 0, FBG_N_CHANNELS * sizeof *f.tare_sum);
+    *f.tare_count = 0u;
+    *f.tare_active = 1u;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_add(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                            int *accepted)
+{
+    int ok;
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    ok = fbg_tare_accept(wl_fm, f.tare_sum, f.tare_count);
+    if (accepted != NULL)
+        *accepted = ok;
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_tare_end(fbg_front f)
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!*f.tare_active)
+        return FBG_ERR_TARE;
+    *f.tare_active = 0u;
+    if (*f.tare_count == 0u)
+        return FBG_ERR_TARE;
+    fbg_tare_mean(f.tare_sum, *f.tare_count, f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+static inline fbg_status fbg_front_set_baseline(fbg_front f,
+                                                const int32_t baseline_fm[FBG_N_CHANNELS])
+{
+    if (!fbg_front_ok(f))
+        return FBG_ERR_STATE;
+    if (!fbg_baseline_ok(baseline_fm))
+        return FBG_ERR_ARG;
+    memcpy(f.baseline_fm, baseline_fm, FBG_N_CHANNELS * sizeof *f.baseline_fm);
+    *f.tared = 1u;
+    fbg_front_clear(f);
+    return FBG_OK;
+}
+
+/* The checks that open a step. FBG_OK with *status = the step's starting flags (NOT_TARED
+ * before a tare); otherwise the step's error, and *status is what its safe output carries. */
+static inline fbg_status fbg_front_step_begin(fbg_front f, uint32_t *status)
+{
+    if (!fbg_front_ok(f)) {
+        *status = 0u;
+        return FBG_ERR_STATE;
+    }
+    *status = *f.tared ? 0u : FBG_STATUS_NOT_TARED;
+    if ((*f.options & FBG_OPT_REQUIRE_TARE) && !*f.tared)
+        return FBG_ERR_NOT_TARED;
+    return FBG_OK;
+}
+
+/* The fault rule, then the tare difference: returns 1 for a faulty sample (SENSOR_FAULT added
+ * to *status; the caller feeds the FIR its held last_comp), else 0 with
+ * shift_fm[c] = sat32(wl_fm[c] - baseline_fm[c]) for every channel, the reference channel
+ * FBG_N_STRAIN included (which never clamps: see below). */
+static inline int fbg_front_sample(fbg_front f, const int32_t wl_fm[FBG_N_CHANNELS],
+                                   int32_t jump_max_fm, uint16_t stuck_max, uint32_t *status,
+                                   int32_t shift_fm[FBG_N_CHANNELS])
+{
+    unsigned c;
+    if (fbg_fault_check(wl_fm, f.prev_fm, f.prev_valid, f.same_run, jump_max_fm, stuck_max)) {
+        *status |= FBG_STATUS_SENSOR_FAULT;
+        return 1;
+    }
+    /* A sample that passed the fault rule is in the window [1e9, 2e9] fm, and so is every
+     * baseline (the model's is checked at init, fbg_set_baseline checks, a tare mean is the
+     * mean of in-window samples): the difference is within +-1e9, exact in int32, and sat32
+     * of docs/fixed-point.md never clamps here. */
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        shift_fm[c] = wl_fm[c] - f.baseline_fm[c];
+    return 0;
+}
+
+/* After the caller has written the new sample into hist[*pos]: count it towards the warm-up
+ * (WARMUP while fewer than n_taps samples since init, reset or tare). Returns 1 when the
+ * sample is faulty: the ring then moves on here and the step ends with the safe output;
+ * otherwise the caller runs the FIR from *pos and moves the ring on itself. */
+static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *status)
+{
+    if (*f.since_reset < 0xFFFFu)
+        (*f.since_reset)++;
+    if (*f.since_reset < n_taps)
+        *status |= FBG_STATUS_WARMUP;
+    if (*status & FBG_STATUS_SENSOR_FAULT) {
+        *f.pos = (uint16_t)((*f.pos + 1u) % n_taps);
+        return 1;
+    }
+    return 0;
+}
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
+#endif /* FBG_FRONT_H */
+/* ---- src/fbg_simd.h ---- */
+/*
+ * fbg_simd.h - host SIMD kernels of the fixed-point dense layers (not installed).
+ *
+ * x86-64: SSE2 (every x86-64 CPU has it) and AVX2 (chosen at run time when the CPU has it);
+ * aarch64: NEON (every AArch64 CPU has it). Each kernel computes the int32 accumulators of
+ * an acc32 layer, acc[r] = bias[r] + sum_j w[r][j] * x[j], with int16 or int8 weights, and
+ * a hidden layer's outputs from them by the one rounding and saturation rule
+ * (docs/fixed-point.md) on whole vectors of rows. Why the sums
+ * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
+ * kernels". int64-accumulator layers run the portable C.
+ *
+ * This header has no intrinsics, so the stage files stay general-register translation units
+ * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
+ */
+#ifndef FBG_SIMD_H
+#define FBG_SIMD_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_HOST_SIMD
+#if (defined(__x86_64__) || defined(__aarch64__)) && defined(__GNUC__) && \
+    !(defined(FBG_USE_DSP) && FBG_USE_DSP)
+#define FBG_HOST_SIMD 1
+#else
+#define FBG_HOST_SIMD 0
+#endif
+#endif
+
+#if FBG_HOST_SIMD
+#if !(defined(__x86_64__) || defined(__aarch64__)) || !defined(__GNUC__)
+#error "FBG_HOST_SIMD=1 needs GCC or Clang on x86-64 or aarch64"
+#endif
+
+/* Inputs are copied into a zero-padded buffer of this many int16 beyond FBG_MAX_WIDTH, so a
+ * kernel reads whole vectors of x (the widest vector holds 16 int16). */
+#define FBG_SIMD_XPAD 16u
+
+/* The kernel fbg_init stores for a requested FBG_OPT_KERNEL_* value: AUTO becomes the best
+ * kernel this CPU runs, any other value itself if this CPU runs it; 0 if it cannot run. The
+ * CPU is asked once (the answer is cached; asking again gives the same answer). */
+uint32_t fbg_simd_resolve(uint32_t requested);
+
+/* acc[r] = bias[r] + sum_j w[r][j] * x[j] for every row of an acc32 layer (ly->acc32 == 1),
+ * with a resolved kernel other than FBG_OPT_KERNEL_PORTABLE. x has ly->n_in entries. */
+void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
+
+/* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
+void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
+ * AVX2 front stages ---- */
+#if defined(__x86_64__)
+#define FBG_SIMD_X86 1
+#else
+#define FBG_SIMD_X86 0
+#endif
+
+#if FBG_SIMD_X86
+/*
+ * A packed buffer starts with this header; net_off[n] is the byte offset from the header of
+ * net n's packed layers (one block per layer, in order, back to back), 0 for a net that is
+ * not packed: one with an int64-accumulator layer, which runs layer by layer as without
+ * packing. */
+typedef struct {
+    uint32_t magic;               /* FBG_PACK_MAGIC once packed */
+    uint32_t kernel;              /* the FBG_OPT_KERNEL_* value it was packed for */
+    const fbg_model *model;       /* the model it was packed from */
+    size_t bytes;                 /* the whole buffer as fbg_simd_pack_bytes counted it */
+    uint32_t net_off[FBG_N_NETS];
+} fbg_pack_header;
+
+#define FBG_PACK_MAGIC 0x4B504246u /* "FBPK" */
+
+/* Bytes of the packed form of a (checked) model for a resolved kernel; 0 if the kernel has
+ * no packed form. */
+size_t fbg_simd_pack_bytes(uint32_t kernel, const fbg_model *m);
+
+/* Write the packed form into buf (fbg_simd_pack_bytes(kernel, m) bytes, FBG_PACK_ALIGN
+ * aligned); the header last, so a buffer is marked packed only when it is. */
+void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
+
+/* Every layer of net n (n_layers of them) from a buffer packed for this kernel, in one call:
+ * the hidden layers
+ * through act[0], act[1], ... (each written up to its n_out rounded up to the kernel's row
+ * group, 8 for AVX2 and 4 for SSE2, the rows past n_out 0; FBG_MAX_WIDTH, a multiple of 8,
+ * holds that), then acc[r] = bias[r] + sum_j w[r][j] * x[j] of the output layer's rows;
+ * *sat = 1 if a hidden row clamped (the same outputs and flag as the row kernels). Returns 0,
+ * doing nothing, if the net is not packed. */
+int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
+                        const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
+
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+ * that runs AVX2.
+ * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
+ * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty
+ * sample); for a clean one the tare difference, the temperature reference's average
+ * (fbg_ref_update, the state's ref_acc) and the temperature compensation into the ring at
+ * s->pos.
+ * fbg_avx2_filter: the causal FIR from s->pos, sum_k taps[k] * hist[(pos - k) mod n_taps][c]
+ * exactly in int64 (the same integers in another order), its filtered shift into
+ * s->last_comp, in[c] = its standardised value;
+ * returns 1 when the load proxy rshift_round(sum_c filt_c * load_coeff[c], load_shift) exceeds
+ * load_max_mN.
+ * fbg_avx2_memory: from z = in[0..3], the location averages (s->loc, loc[c]) when the model
+ * has them, the load signal's states (s->ema, s->play, s->mem_primed) and features (in[4 ..]).
+ * Each sets *sat = 1 where a clamp happened. */
+void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, uint32_t *sat);
+int fbg_avx2_filter(fbg_state *s, int16_t *in, uint32_t *sat);
+void fbg_avx2_memory(fbg_state *s, int16_t *in, int16_t *loc, uint32_t *sat);
+
+#endif /* FBG_SIMD_X86 */
+#else
+#define FBG_SIMD_X86 0
+
+/* A build without host kernels runs the portable C only: AUTO and PORTABLE resolve to it. */
+static inline uint32_t fbg_simd_resolve(uint32_t requested)
+{
+    return requested == FBG_OPT_KERNEL_AUTO || requested == FBG_OPT_KERNEL_PORTABLE
+               ? (uint32_t)FBG_OPT_KERNEL_PORTABLE : 0u;
+}
+#endif /* FBG_HOST_SIMD */
+
+#endif /* FBG_SIMD_H */
+#if FBG_USE_DSP /* Cortex-M4 DSP-extension inner loops (fbg_dsp.h, docs/firmware.md) */
+/* ---- src/fbg_dsp.h ---- */
+/*
+ * fbg_dsp.h - Cortex-M4 DSP-extension inner loops of the fixed-point pipeline (not installed).
+ *
+ * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
+ * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
+ * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * why each step is exact), which the golden vectors check on the target for both builds.
+ */
+#ifndef FBG_DSP_H
+#define FBG_DSP_H
+
+/* ---- src/fbg_internal.h ---- */
+/*
+ * fbg_internal.h - integer helpers shared by the fixed-point and float builds (not installed).
+ *
+ * The ONE rounding rule and the ONE saturation rule of docs/fixed-point.md live here:
+ *   rshift_round(x, s) = (x + 2^(s-1)) >> s       arithmetic shift: round half up, s >= 1
+ *                                                  (int64; int32 where a bound allows)
+ *   sat16(x) = clamp(x, -32767, 32767)             symmetric: negation never overflows
+ *   sat32(x) = clamp(x, -2147483647, 2147483647)   symmetric likewise
+ * export/intref.py implements exactly the same functions in numpy.
+ */
+#ifndef FBG_INTERNAL_H
+#define FBG_INTERNAL_H
+
+#include "fbgforce.h"
+
+/* The rounding rule needs an arithmetic right shift of negative values, which C99 leaves
+ * implementation-defined: refuse to compile where it is not (array size -1). */
+typedef char fbg_require_arithmetic_shift[(((int64_t)-5 >> 1) == -3) ? 1 : -1];
+typedef char fbg_require_arithmetic_shift32[(((int32_t)-5 >> 1) == -3) ? 1 : -1];
+
+#define FBG_STATE_MAGIC 0x46424753u  /* "FBGS" */
+#define FBGF_STATE_MAGIC 0x46424746u /* "FBGF" */
+#define FBG_SAT16 32767
+#define FBG_SAT32 2147483647
+
+static inline int64_t fbg_rshift_round(int64_t x, unsigned s)
+{
+    return (x + ((int64_t)1 << (s - 1u))) >> s;
+}
+
+/* The same rule in int32, for a caller that has bounded |x| + 2^(s-1) below 2^31 (then the
+ * result equals fbg_rshift_round's, with 32-bit instead of 64-bit shifts). */
+static inline int32_t fbg_rshift_round32(int32_t x, unsigned s)
+{
+    return (x + ((int32_t)1 << (s - 1u))) >> s;
+}
+
+/* flag accumulates "a clamp happened" for FBG_STATUS_SATURATED. */
+static inline int16_t fbg_sat16(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)FBG_SAT16;
+    }
+    if (x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)-FBG_SAT16;
+    }
+    return (int16_t)x;
+}
+
+static inline int32_t fbg_sat32(int64_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)FBG_SAT32;
+    }
+    if (x < -(int64_t)FBG_SAT32) {
+        *flag = 1u;
+        return (int32_t)-FBG_SAT32;
+    }
+    return (int32_t)x;
+}
+
+/* fbg_sat16 of an int32: the same clamp with 32-bit compares. */
+static inline int16_t fbg_sat16_32(int32_t x, uint32_t *flag)
+{
+    if (x > FBG_SAT16 || x < -FBG_SAT16) {
+        *flag = 1u;
+        return (int16_t)(x > 0 ? FBG_SAT16 : -FBG_SAT16);
+    }
+    return (int16_t)x;
+}
+
+/* fbg_sat16(fbg_rshift_round(x, s)) for 1 <= s <= 62 and x + 2^(s-1) inside int64. A 32-bit
+ * core shifts a 64-bit value by a variable amount in about ten instructions whatever s is;
+ * here each range of s takes a few 32-bit operations on the two words of the sum. */
+static inline int16_t fbg_sat16_rshift_round(int64_t x, unsigned s, uint32_t *flag)
+{
+#if UINTPTR_MAX > 0xFFFFFFFFu /* a 64-bit core: one shift */
+    return fbg_sat16(fbg_rshift_round(x, s), flag);
+#else
+    if (s > 32u) {
+        /* 2^(s-1) has a zero low word, so only the high word of the sum moves; floor(sum /
+         * 2^s) is that word shifted by s - 32, an int32. */
+        const int32_t hi = (int32_t)(x >> 32) + ((int32_t)1 << (s - 33u));
+        return fbg_sat16_32(hi >> (s - 32u), flag);
+    } else {
+        const int64_t g = x + (int64_t)(uint32_t)(1u << (s - 1u));
+        const uint32_t lo = (uint32_t)g;
+        const int32_t hi = (int32_t)(g >> 32);
+        const int32_t qhi = s == 32u ? hi >> 31 : hi >> s;
+        const uint32_t qlo = s == 32u ? (uint32_t)hi : (lo >> s) | ((uint32_t)hi << (32u - s));
+        if (qhi != ((int32_t)qlo >> 31)) { /* beyond int32: clamps, with the sign of qhi */
+            *flag = 1u;
+            return (int16_t)(qhi < 0 ? -FBG_SAT16 : FBG_SAT16);
+        }
+        return fbg_sat16_32((int32_t)qlo, flag);
+    }
+#endif
+}
+
+/* fbg_sat32((int64_t)a + b): on int32 overflow the true sum has the sign of a (and b). */
+static inline int32_t fbg_sat32_add(int32_t a, int32_t b, uint32_t *flag)
+{
+#if defined(__GNUC__) /* GCC and clang: one ADDS and a branch on V instead of 64-bit compares */
+    int32_t r;
+    if (__builtin_add_overflow(a, b, &r)) {
+        *flag = 1u;
+        return a < 0 ? -FBG_SAT32 : FBG_SAT32;
+    }
+    if (r == INT32_MIN) {
+        *flag = 1u;
+        return -FBG_SAT32;
+    }
+    return r;
+#else
+    return fbg_sat32((int64_t)a + b, flag);
+#endif
+}
+
+static inline int fbg_wl_in_window(int32_t wl)
+{
+    return wl >= FBG_WL_MIN_FM && wl <= FBG_WL_MAX_FM;
+}
+
+/* Apply the sensor-fault rule of fbg_step to one sample; updates prev/prev_valid and the
+ * identical-value run counters. Returns 1 if the sample is faulty. Integer only (shared with
+ * the float build). */
+static inline int fbg_fault_check(const int32_t wl[FBG_N_CHANNELS], int32_t prev[FBG_N_CHANNELS],
+                                  uint8_t *prev_valid, uint16_t run[FBG_N_CHANNELS],
+                                  int32_t jump_max_fm, uint16_t stuck_max)
+{
+    int fault = 0;
+    unsigned c, valid = *prev_valid; /* one load and one store: uint8_t aliases everything */
+    for (c = 0; c < FBG_N_CHANNELS; ++c) {
+        const int32_t w = wl[c];
+        unsigned n;
+        if (!fbg_wl_in_window(w)) {
+            fault = 1;
+            run[c] = 0u;
+            continue;
+        }
+        n = 0u;
+        if (valid & (1u << c)) {
+            /* prev[c] is only ever an in-window sample, like w: both in [1e9, 2e9], so the
+             * difference is within +-1e9 and exact in int32; jump_max_fm >= 1 is an int32, so
+             * is its negation. */
+            const int32_t d = w - prev[c];
+            if (d > jump_max_fm || d < -jump_max_fm)
+                fault = 1;
+            if (d == 0)
+                n = run[c] < 0xFFFFu ? run[c] + 1u : 0xFFFFu;
+        }
+        run[c] = (uint16_t)n;
+        if (stuck_max != 0u && n >= stuck_max)
+            fault = 1;
+        prev[c] = w;
+        valid |= 1u << c;
+    }
+    *prev_valid = (uint8_t)valid;
+    return fault;
+}
+
+/* Tare accumulation shared by both builds. */
+static inline int fbg_tare_accept(const int32_t wl[FBG_N_CHANNELS], int64_t sum[FBG_N_CHANNELS],
+                                  uint32_t *count)
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(wl[c]))
+            return 0;
+    if (*count == 0xFFFFFFFFu)
+        return 0;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        sum[c] += wl[c];
+    *count += 1u;
+    return 1;
+}
+
+/* Mean of the tare samples, rounded half up: floor((sum + count/2) / count) on non-negative
+ * sums (all samples are in the window, so sums are positive). */
+static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t count,
+                                 int32_t out[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
+}
+
+/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
+ * trigger with a count before rising. raw is the contact net's own decision; rising says the
+ * margin is at least contact_on, staying that it is above contact_off (each build compares
+ * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
+ * raw and rising, and stays while raw or staying. */
+static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
+                                 int staying, uint8_t rise_n)
+{
+    if (*decision) {
+        *decision = (uint8_t)(raw || staying);
+        return *decision;
+    }
+    if (raw && rising) {
+        if (*rise_run < 255u)
+            (*rise_run)++;
+    } else {
+        *rise_run = 0u;
+    }
+    if (*rise_run >= rise_n) {
+        *decision = 1u;
+        *rise_run = 0u;
+    }
+    return *decision;
+}
+
+/* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
+ * sample lies within the band of the force's average (each build compares in its own units).
+ * Returns the gain's weight w in [0, 2^ramp_shift]: 0 until settle steady samples in a row,
+ * then rising by one per steady sample; an unsteady sample sets the count back to 0. */
+static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settle,
+                                       unsigned ramp_shift)
+{
+    const uint32_t ramp = 1ul << ramp_shift;
+    uint32_t w;
+    if (steady) {
+        if (*run < settle + ramp && *run < 0xFFFFu)
+            (*run)++;
+    } else {
+        *run = 0u;
+    }
+    w = *run > settle ? (uint32_t)*run - settle : 0u;
+    return w > ramp ? ramp : w;
+}
+
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
+/* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
+ * reference"): the exponential average r of the reference grating's shift shift_t, kept as
+ * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
+ * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
+ * is the raw shift and leaves the state alone. r stays between the smallest and largest
+ * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
+ * that passed the fault rule: a faulty one holds the average. */
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+{
+    if (k == 0u)
+        return shift_t;
+    if (*primed)
+        *acc += shift_t - fbg_rshift_round(*acc, k);
+    else
+        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
+    *primed = 1u;
+    return (int32_t)fbg_rshift_round(*acc, k);
+}
+
+static inline int fbg_baseline_ok(const int32_t b[FBG_N_CHANNELS])
+{
+    unsigned c;
+    for (c = 0; c < FBG_N_CHANNELS; ++c)
+        if (!fbg_wl_in_window(b[c]))
+            return 0;
+    return 1;
+}
+
+#endif /* FBG_INTERNAL_H */
+
+#ifndef FBG_USE_DSP
+#define FBG_USE_DSP 0
+#endif
+
+#if FBG_USE_DSP
+#if !defined(__ARM_FEATURE_DSP) || !defined(__ARM_FEATURE_SAT)
+#error "FBG_USE_DSP=1 needs a core with the DSP extension (e.g. -mcpu=cortex-m4)"
+#endif
+
+/* One hidden layer (int16 or int8 weights): y[r] = sat16(max(rshift_round(acc[r] * mult[r],
+ * shift), 0)) with acc[r] = bias[r] + sum_j w[r][j] * x[j] (int64); *sat = 1 if any row
+ * clamped at 32767. */
+void fbg_dsp_hidden(const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
+
+/* The hidden layers of net on x (fbg_dsp_hidden each), outputs alternately in act[0] and
+ * act[1]; returns the input of the output layer (x itself for a net of one layer). */
+const int16_t *fbg_dsp_run_hidden(const fbg_net *net, const int16_t *x,
+                                  int16_t (*act)[FBG_MAX_WIDTH], uint32_t *sat);
+
+/* acc[r] = fbg_dsp_row_acc(ly, r, x) for every row r of ly. */
+void fbg_dsp_output_accs(const fbg_layer *ly, const int16_t *x, int64_t *acc);
+
+/* Row r's accumulator bias[r] + sum_j w[r][j] * x[j] (int64), int16 or int8 weights. */
+int64_t fbg_dsp_row_acc(const fbg_layer *ly, unsigned r, const int16_t *x);
+
+/* rshift_round(acc * mult, 32) for int32 acc and mult (an output row of an int32 layer at
+ * shift 32): |acc * mult + 2^31| < 2^62, so the result is below 2^30 in magnitude and sat32
+ * never clamps it. GCC makes it SMULL and an ADDS/ADC (or SMLAL) on Cortex-M4. */
+static inline int32_t fbg_dsp_rshift32_product(int32_t acc, int32_t mult)
+{
+    return (int32_t)(((int64_t)acc * mult + ((int64_t)1 << 31)) >> 32);
+}
+
+/* Steps 3 of fbg_step after the FIR sums f: z[c] = sat16(rshift_round(sat32(filt_c - mean_fm[c])
+ * * z_mult[c], z_shift)) with filt_c = sat32(rshift_round(f[c], tap_q)); returns 1 when the
+ * load proxy rshift_round(sum_c load_coeff[c] * filt_c, load_shift) exceeds load_max_mN. */
+int fbg_dsp_standardise(const fbg_model *m, const int64_t f[FBG_N_STRAIN], int16_t z[FBG_N_STRAIN],
+                        uint32_t *sat);
+
+/* acc = bias + sum_j w[j] * x[j] over n int16 inputs (int64), one row of int16 weights. */
+int64_t fbg_dsp_dot16(const int16_t *w, const int16_t *x, unsigned n, int64_t bias);
+
+/* The causal FIR of all four strain channels at once: f[c] = sum_k taps[k] * hist[(pos-k) mod
+ * n_taps][c] (int64), taps[k] weighting sample n - k as in fbg_step. */
+void fbg_dsp_fir4(const int16_t *taps, unsigned n_taps, const int32_t (*hist)[FBG_N_STRAIN],
+                  unsigned pos, int64_t f[FBG_N_STRAIN]);
+#endif
+
+#endif /* FBG_DSP_H */
+#endif
+
+/* The shared front end's view of a fixed-point state (fbg_front.h). */
+#define FBG_FRONT(s) FBG_FRONT_OF(s, FBG_STATE_MAGIC)
+
+/* The FBG_OPT_KERNEL_* value an initialised state runs: it picks the host variants. */
+static inline uint32_t state_kernel(const fbg_state *s)
+{
+    return s->options & FBG_OPT_KERNEL_MASK;
+}
+
+/* 1. Front: a sample's compensated strain shifts into the FIR ring at s->pos (the last good
+ *    filtered shifts for a faulty one, SENSOR_FAULT then added to *status). */
+void fbg_front_stage(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                     uint32_t *status, uint32_t *sat);
+/* 2. Filter: z = in[0..3]; FBG_STATUS_OVERLOAD for an input-side overload, else 0. */
+uint32_t fbg_filter_stage(fbg_state *s, const fbg_model *m, int16_t *in, uint32_t *sat);
+/* 3. Memory: the memory features after z in in[4 ..], the location averages in loc. */
+void fbg_memory_stage(fbg_state *s, const fbg_model *m, int16_t *in, int16_t *loc, uint32_t *sat);
+/* 4. Nets: every layer of net n on the net inputs in; acc = the accumulators of its output
+ *    layer, which it returns. */
+const fbg_layer *fbg_net_accs(fbg_state *s, const fbg_model *m, unsigned n, const int16_t *in,
+                              int64_t *acc, uint32_t *sat);
+/* 5. Decision: the contact decision over time from the net's raw decision and margin. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8);
+/* The tracker: the creep states on every good sample (z), the baseline on samples at rest
+ * (z, or NULL for a sample that is not). */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z);
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z);
+/* The hold: the settled-hold gain applied to a contact step's force. */
+int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint32_t *sat);
+
+#endif /* FBG_STAGES_H */
+
+/* The tracker's creep states (docs/fixed-point.md, "In use"), on every sample that passed the
+ * fault rule, z the standardised channels: a viscoelastic pad gives back a press's load for a
+ * second or more after the release, so each state averages z through contact and rest alike
+ * (creep += rshift_round((z << EMA_FRAC) - creep, track_creep_shift)), and rest_track takes
+ * track_creep of it, relative to z0, out of what it learns. Primed at z << EMA_FRAC with the
+ * memory states (the first good sample after init, tare, reset or a new baseline); a fault
+ * never gets here, so it holds them. |creep| <= 32767 * 2^EMA_FRAC < 2^30 as the averages'
+ * states (ema_features): the update and its rounding fit int32. Off (track_creep_q15 0):
+ * nothing runs. */
+void fbg_creep_update(fbg_state *s, const fbg_model *m, const int16_t *z)
+{
+    unsigned c;
+    if (m->track_creep_q15 == 0u)
+        return;
+    for (c = 0; c < FBG_N_STRAIN; ++c) {
+        const int32_t target = (int32_t)z[c] * ((int32_t)1 << FBG_EMA_FRAC);
+        s->creep[c] = s->mem_primed
+                          ? s->creep[c] + fbg_rshift_round32(target - s->creep[c], m->track_creep_shift)
+                          : target;
+    }
+}
+
+/* The at-rest baseline tracker, once per step that returns FBG_OK. z is the standardised
+ * channels of a sample at rest (tared, no fault, no warm-up, decision 0), NULL otherwise.
+ * Every FBG_TRACK_BLOCK steps, a block that was at rest throughout and came after
+ * track_settle samples of rest moves the strain baselines by its sum of z - z0 times
+ * track_gain (a first-order follower with time constant 2^track_shift samples, in fm with
+ * a carried fraction), each step at most track_step_max_fm and the whole correction at most
+ * track_limit_fm from the tare. A load, a fault or a warm-up freezes it: it never learns
+ * from a sample the nets call contact. With the creep term on, each sample at rest adds
+ * (z - z0) - corr, corr = rshift_round((creep - (z0 << EMA_FRAC)) * track_creep_q15, 30): the
+ * pad's creep still in the grating, not drift. Bounds: |creep - (z0 << EMA_FRAC)| <= 65534 *
+ * 2^15 < 2^31 times track_creep_q15 <= 2^14 is below 2^45 (int64), so |corr| <= 32767; and
+ * corr is within 1/2 of m * (creep / 2^15 - z0), m <= 1/2, so a sample's term is within 1/2
+ * of z - m * creep / 2^15 - (1 - m) * z0: at most 65534 as without the term
+ * (docs/fixed-point.md). |track_sum| <= 64 * 65534 < 2^23, so the product with
+ * |track_gain| < 2^31 stays below 2^54; |track_frac| < 2^(TRACK_FRAC - 1) after a step, and
+ * |drift_fm| <= 1e8 keeps the baseline within 1e8 fm of the tare, so wl - baseline stays
+ * within +-1.1e9 (int32). */
+void fbg_rest_track(fbg_state *s, const fbg_model *m, const int16_t *z)
+{
+    unsigned c;
+    int block;
+    if (z != NULL) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int32_t r = (int32_t)z[c] - s->loc_z0[c];
+            if (m->track_creep_q15 != 0u)
+                r -= (int32_t)fbg_rshift_round(((int64_t)s->creep[c] - (int64_t)s->loc_z0[c] *
+                                                ((int64_t)1 << FBG_EMA_FRAC)) * m->track_creep_q15, 30);
+            s->track_sum[c] += r;
+        }
+    }
+    block = fbg_track_block(&s->rest_run, &s->track_pos, z != NULL, m->track_shift, m->track_settle);
+    if (block < 0)
+        return;
+    if (block) {
+        for (c = 0; c < FBG_N_STRAIN; ++c) {
+            int64_t frac = s->track_frac[c] + (int64_t)s->track_sum[c] * m->track_gain[c];
+            int64_t step = fbg_rshift_round(frac, FBG_TRACK_FRAC);
+            int64_t drift;
+            if (step > m->track_step_max_fm || step < -(int64_t)m->track_step_max_fm) {
+                step = step > 0 ? m->track_step_max_fm : -(int64_t)m->track_step_max_fm;
+                frac = 0;   /* no wind-up: the clamped remainder is not carried */
+            } else {
+                frac -= step * ((int64_t)1 << FBG_TRACK_FRAC);
+            }
+            drift = (int64_t)s->drift_fm[c] + step;
+            if (drift > m->track_limit_fm || drift < -(int64_t)m->track_limit_fm) {
+                drift = drift > 0 ? m->track_limit_fm : -(int64_t)m->track_limit_fm;
+                frac = 0;
+                s->track_limited = 1u;
+            }
+            s->baseline_fm[c] += (int32_t)(drift - s->drift_fm[c]);
+            s->drift_fm[c] = (int32_t)drift;
+            s->track_frac[c] = frac;
+        }
+    }
+    memset(s->track_sum, 0, sizeof s->track_sum);
+}
 /* ---- src/fbgf_contract.c ---- */
 /*
  * fbgf_contract.c - GENERATED by `python -m fbgforce.contract --write` from
@@ -9068,18 +24244,22 @@ void fbgf_dense(fbgf_kernel kernel, const fbgf_layer *ly, const float *x, size_t
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
  * build for FPU targets). Mirrors fbgforce.model's float64 reference operation by operation;
- * only this file uses float (check-nofloat leaves it out).
+ * only this file uses float (check-nofloat leaves it out). Its stages carry the names of the
+ * fixed-point build's (fbg_stages.h) with its own prefix: fbgf_front_stage, fbgf_filter_stage,
+ * fbgf_memory_stage, fbgf_contact_decision, fbgf_creep_update, fbgf_rest_track,
+ * fbgf_hold_stage; reset, tare and baseline are the front end's (FBG_FRONT_API, fbg_front.h).
  */
 #include <string.h>
 
 /* ---- src/fbg_front.h ---- */
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -9364,6 +24544,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
@@ -9593,6 +24791,52 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
     return 0;
 }
 
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
+
 #endif /* FBG_FRONT_H */
 /* ---- src/fbgf_dense.h ---- */
 /*
@@ -9721,11 +24965,70 @@ static int all_finite(const float *x, size_t n)
     return 1;
 }
 
-fbg_status fbgf_model_check(const fbgf_model *model)
+/* 1 when a parameter of the decision over time, the tracker, the creep inverse or the hold lies
+ * outside the ranges of fbg_model's (fbg_contract.c). */
+static int in_use_params_out_of_range(const fbgf_model *model)
+{
+    return (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
+           !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
+           model->contact_rise_n < 1u || model->track_shift > 20u ||
+           !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+           model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+           (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+           !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           (model->contact_cusum_h == 0.0f
+                ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                   model->contact_cusum_hi != 0.0f)
+                : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                   model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
+           !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+           model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+           !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+           model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+           model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+           !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+           !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
+           !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
+           !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f));
+}
+
+/* Each net's shape (inputs as the model's features give them, outputs as its role needs),
+ * every layer's pointers and finite weights. */
+static fbg_status nets_check(const fbgf_model *model, const uint16_t net_in[FBG_N_NETS])
 {
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
+    unsigned n, l;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbgf_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            const fbgf_layer *ly = &net->layers[l];
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            if (ly->w == NULL || ly->b == NULL)
+                return FBG_ERR_NULL;
+            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbgf_model_check(const fbgf_model *model)
+{
     uint16_t net_in[FBG_N_NETS];
-    unsigned n, l, c, features;
+    unsigned c, features;
     fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
@@ -9740,34 +25043,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
-    /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
-    if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
-        !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
-        model->contact_rise_n < 1u || model->track_shift > 20u ||
-        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
-        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
-        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
-        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        (model->contact_cusum_h == 0.0f
-             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
-                model->contact_cusum_hi != 0.0f)
-             : (model->contact_cusum_lo > model->contact_cusum_hi ||
-                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
-        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
-        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
-        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
-        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
-        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
-        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
-        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
-        !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
-        !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
+    if (in_use_params_out_of_range(model))
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_MAX_INPUTS; ++c)
         if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
@@ -9790,31 +25066,13 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !finite_f(model->force_scale) || model->overload_N != model->overload_N ||
         !all_finite(model->taps, model->n_taps))
         return FBG_ERR_RANGE;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        const fbgf_net *net = &model->nets[n];
-        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
-        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
-            return FBG_ERR_SHAPE;
-        for (l = 0; l < net->n_layers; ++l) {
-            const fbgf_layer *ly = &net->layers[l];
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
-                return FBG_ERR_SHAPE;
-            if (ly->w == NULL || ly->b == NULL)
-                return FBG_ERR_NULL;
-            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
-                return FBG_ERR_RANGE;
-        }
-    }
-    return FBG_OK;
+    return nets_check(model, net_in);
 }
 
 /* The shared front end's view of a float state (fbg_front.h). */
-#define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
+#define FBGF_FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
-/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_fixed.c's <kind>_features in float:
+/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_stage_memory.c's <kind>_features in float:
  * from the load signal u, prime the states (primed == 0) as at rest after a release, step them
  * and write their features to f[0 ..]; each returns the number of features it wrote. */
 static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
@@ -9845,10 +25103,10 @@ static unsigned play_features_f(fbgf_state *s, const fbgf_model *m, float u, int
     return m->n_play;
 }
 
-/* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
+/* Memory features after z, as fbg_memory_stage in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
  * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
-static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
+static void fbgf_memory_stage(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
     unsigned c;
     int primed;
@@ -9879,44 +25137,36 @@ static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, floa
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
 {
     fbg_status st;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbgf_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbgf_model_check(model);
     if (st != FBG_OK)
         return st;
     memset(state, 0, sizeof *state);
     state->model = model;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    fbg_front_init(FBGF_FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
-/* Reset, tare and a new baseline restart the decision and the tracker, as in fbg_fixed.c:
- * the correction made so far stays through a reset (held) and the bound counts from there;
- * a tare or a new baseline replaces it. */
-static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correction)
+/* Reset, tare and a new baseline restart the decision and the tracker, as fbg_in_use_after
+ * does: the correction made so far stays through a reset (held) and the bound counts from
+ * there; a tare or a new baseline replaces it. */
+static fbg_status fbgf_in_use_after(fbgf_state *s, fbg_status st, int reset)
 {
     unsigned c;
     if (st != FBG_OK)
         return st;
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        s->held_pm[c] = keep_correction ? s->held_pm[c] + s->drift_pm[c] : 0.0f;
+        s->held_pm[c] = reset ? s->held_pm[c] + s->drift_pm[c] : 0.0f;
         s->drift_pm[c] = 0.0f;
         s->track_sum[c] = 0.0f;
     }
-    s->decision = 0u;
-    s->rise_run = 0u;
+    FBG_RESTART_IN_USE(s);
     s->cusum = 0.0f;
-    s->rest_run = 0u;
-    s->track_pos = 0u;
-    s->track_limited = 0u;
-    s->hold_run = 0u;
-    s->hold_primed = 0u;
     return FBG_OK;
 }
 
-/* hold_stage of fbg_fixed.c in float: force_N of a contact sample times 1 + hold_gain * w /
+/* fbg_hold_stage in float: force_N of a contact sample times 1 + hold_gain * w /
  * 2^hold_ramp_shift once it has been steady for hold_settle samples. */
-static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
+static float fbgf_hold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
 {
     const float ramp = (float)(1ul << m->hold_ramp_shift);
     float band, dev;
@@ -9938,38 +25188,11 @@ static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
     return force_N + force_N * m->hold_gain * ((float)w / ramp);
 }
 
-fbg_status fbgf_reset(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_reset(FRONT(state)), 1);
-}
-
-fbg_status fbgf_tare_begin(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
-}
-
-fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
-{
-    if (state == NULL || wl_fm == NULL)
-        return FBG_ERR_NULL;
-    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
-}
-
-fbg_status fbgf_tare_end(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_tare_end(FRONT(state)), 0);
-}
-
-fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    return fin_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm), 0);
-}
+FBG_FRONT_API(fbgf, fbgf_state, FBGF_STATE_MAGIC, fbgf_in_use_after)
 
 /* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
  * n rows of FBG_MAX_WIDTH. Returns the output rows (stride FBG_MAX_WIDTH, inside a). */
-static const float *fnet(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
+static const float *fbgf_net_outputs(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
                          size_t n, float *a[2])
 {
     unsigned l, buf = 0u;
@@ -10009,9 +25232,9 @@ static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
     return s->ref_pm;
 }
 
-/* creep_update of fbg_fixed.c in float: the tracker's creep states follow the filtered shifts
+/* fbg_creep_update in float: the tracker's creep states follow the filtered shifts
  * (pm) of every sample that passed the fault rule, primed with the memory states. */
-static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
+static void fbgf_creep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
     unsigned c;
     if (m->track_creep == 0.0f)
@@ -10022,11 +25245,11 @@ static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
                                        : filt[c];
 }
 
-/* creep_inverse of fbg_fixed.c in float: the pad's creep taken out of a good sample's
+/* The creep inverse of fbg_front_stage in float: the pad's creep taken out of a good sample's
  * compensated shifts comp (pm) before they enter the ring, e = c + creep_q (c - L), then
  * L += (e - L) / 2^creep_shift; primed L = c by the first good sample after init, tare, reset
  * or a new baseline. */
-static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
+static void fbgf_creep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
 {
     unsigned c;
     if (m->creep_q == 0.0f)
@@ -10043,28 +25266,16 @@ static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
     }
 }
 
-/* Everything before the nets: the front end, temperature compensation, FIR, standardisation
- * and memory features into in[], the location averages into loc[] (when the model has them).
- * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
- * final (*st is what the step returns). */
-static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
-                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], float filt[FBG_N_STRAIN],
-                       fbg_status *st)
+/* 1. Front, as fbg_front_stage: the fault rule, the temperature compensation (less the
+ * tracker's correction) and the creep inverse of a sample into the FIR ring at s->pos; a
+ * faulty sample feeds the ring the last good filtered shifts. */
+static void fbgf_front_stage(fbgf_state *s, const fbgf_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                             uint32_t *status)
 {
-    const fbgf_model *m;
-    uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], a[FBG_N_STRAIN];
+    float comp[FBG_N_STRAIN];
     int32_t shift[FBG_N_CHANNELS];
-    unsigned c, k, idx;
-
-    memset(out, 0, sizeof *out);
-    *st = fbg_front_step_begin(FRONT(s), &status);
-    if (*st != FBG_OK) {
-        out->status = status;
-        return 0;
-    }
-    m = s->model;
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
+    unsigned c;
+    if (fbg_front_sample(FBGF_FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
@@ -10072,17 +25283,21 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
-        fcreep_inverse(s, m, comp);
+        fbgf_creep_inverse(s, m, comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
-    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
-        out->status = status;
-        return 0;
-    }
-    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
-     * and the four independent sums can share vector instructions. The ring is walked as two
-     * straight runs (pos down to 0, then the top down to pos + 1). */
+}
+
+/* 2. Filter, as fbg_filter_stage: the FIR into filt (pm) and z = in[0..3]; then the ring
+ * moves on. Taps outer, channels inner: each channel sums its taps in order (newest sample
+ * first), and the four independent sums can share vector instructions. The ring is walked as
+ * two straight runs (pos down to 0, then the top down to pos + 1). */
+static void fbgf_filter_stage(fbgf_state *s, const fbgf_model *m, float in[FBG_MAX_INPUTS],
+                              float filt[FBG_N_STRAIN])
+{
+    float a[FBG_N_STRAIN];
+    unsigned c, k, idx;
     for (c = 0; c < FBG_N_STRAIN; ++c)
         a[c] = 0.0f;
     k = 0u;
@@ -10093,14 +25308,40 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     memcpy(filt, a, sizeof a);
-    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
+    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    fcreep_update(s, m, filt);
-    fmemory_features(s, m, in, loc);
+}
+
+/* Everything before the nets: the front, filter and memory stages into in[], the location
+ * averages into loc[] (when the model has them). Returns 1 when the nets must run (out->status
+ * then holds the status so far), 0 when out is final (*st is what the step returns). */
+static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], float filt[FBG_N_STRAIN],
+                       fbg_status *st)
+{
+    const fbgf_model *m;
+    uint32_t status;
+    unsigned c;
+
+    memset(out, 0, sizeof *out);
+    *st = fbg_front_step_begin(FBGF_FRONT(s), &status);
+    if (*st != FBG_OK) {
+        out->status = status;
+        return 0;
+    }
+    m = s->model;
+    fbgf_front_stage(s, m, wl_fm, &status);
+    if (fbg_front_push_done(FBGF_FRONT(s), m->n_taps, &status)) {
+        out->status = status;
+        return 0;
+    }
+    fbgf_filter_stage(s, m, in, filt);
+    fbgf_creep_update(s, m, filt);
+    fbgf_memory_stage(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
             status |= FBG_STATUS_OUT_OF_RANGE;
-    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    out->status = status;
     return 1;
 }
 
@@ -10145,10 +25386,10 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
     }
 }
 
-/* contact_decision of fbg_fixed.c on the float margin: the Schmitt trigger with its count, or
+/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or
  * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
  * when S >= h (S = 0 then). */
-static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
     float d;
     if (m->contact_cusum_h == 0.0f)
@@ -10169,26 +25410,22 @@ static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margi
     return s->decision;
 }
 
-/* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
+/* fbg_rest_track in float: filt is the filtered shifts (pm) of a sample at rest,
  * NULL otherwise; each sample adds filt - track_creep * creep_pm (creep_pm is 0 with the term
  * off); a block at rest throughout, after track_settle samples of rest, adds
  * clamp(sum / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
  * the last reset or tare stays within +-track_limit_pm. */
-static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
+static void fbgf_rest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
     unsigned c;
-    if (filt != NULL) {
-        if (s->rest_run < 0xFFFFu)
-            s->rest_run++;
+    int block;
+    if (filt != NULL)
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->track_sum[c] += filt[c] - m->track_creep * s->creep_pm[c];
-    } else {
-        s->rest_run = 0u;
-    }
-    if (++s->track_pos < FBG_TRACK_BLOCK)
+    block = fbg_track_block(&s->rest_run, &s->track_pos, filt != NULL, m->track_shift, m->track_settle);
+    if (block < 0)
         return;
-    s->track_pos = 0u;
-    if (m->track_shift != 0u && s->rest_run >= (uint32_t)FBG_TRACK_BLOCK + m->track_settle) {
+    if (block) {
         const float scale = 1.0f / (float)(1ul << m->track_shift);
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             float step = s->track_sum[c] * scale, drift;
@@ -10208,7 +25445,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 
 #if FBGF_RUN_BATCHED
 /* The model's decision is the contact net's own and no tracker runs: fbgf_run may batch. */
-static int fin_use_off(const fbgf_model *m)
+static int in_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
            m->contact_rise_n == 1u && m->contact_cusum_h == 0.0f && m->hold_gain == 0.0f;
@@ -10233,35 +25470,35 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     if (s->track_limited)
         out->status |= FBG_STATUS_BASELINE_LIMIT;
     if (!ran) {
-        frest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
+        fbgf_rest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
         return FBG_OK;
     }
     kernel = fbgf_dense_kernel();
     act[0] = s->act[0];
     act[1] = s->act[1];
-    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
     if (!finite_f(y[1] - y[0])) {      /* the safe output, and as a fault for the states */
         contact_output(y, out);
-        frest_track(s, m, NULL);
+        fbgf_rest_track(s, m, NULL);
         return FBG_OK;
     }
     contact_output(y, out);
-    out->contact = fcontact_decision(s, m, out->margin);
-    frest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    out->contact = fbgf_contact_decision(s, m, out->margin);
+    fbgf_rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
     if (!out->contact) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
         return FBG_OK;
     }
-    y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
-    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
     if (!out->contact) {             /* a non-finite output: the safe one */
         s->hold_primed = 0u;
         s->hold_run = 0u;
     } else if (m->hold_gain != 0.0f) {
-        out->force_N = fhold_stage(s, m, out->force_N);
+        out->force_N = fbgf_hold_stage(s, m, out->force_N);
         if (out->force_N > m->overload_N)
             out->status |= FBG_STATUS_OVERLOAD;
     }
@@ -10285,9 +25522,9 @@ static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float 
             x[j * FBGF_RUN_CHUNK + k] = k < n ? in[k][j] : 0.0f;
 }
 
-/* fnet for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
+/* fbgf_net_outputs for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
  * r of sample k at [r * FBGF_RUN_CHUNK + k]. */
-static const float *fnet_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
+static const float *fbgf_net_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
 {
     const unsigned n_vec = (unsigned)((n + 7u) / 8u);
     unsigned l, buf = 0u;
@@ -10310,7 +25547,7 @@ static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
     size_t k, n_contact = 0u, row[FBGF_RUN_CHUNK];
     const float *y;
     to_lanes(in, n_run, m->nets[FBG_NET_CONTACT].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
     for (k = 0; k < n_run; ++k) {
         y2[0] = y[k];
         y2[1] = y[FBGF_RUN_CHUNK + k];
@@ -10323,11 +25560,11 @@ static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
     if (n_contact == 0u)
         return;
     to_lanes(in, n_contact, m->nets[FBG_NET_FORCE].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         force_output(m, y[k], out + who[row[k]], in[k], loc[row[k]]);
     to_lanes(in, n_contact, m->nets[FBG_NET_LOCATION].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
     for (k = 0; k < n_contact; ++k) {
         y2[0] = y[k];
         y2[1] = y[FBGF_RUN_CHUNK + k];
@@ -10366,7 +25603,7 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
         return st;
     }
 #endif
-    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
             memcpy(in2[n_contact], in[k], sizeof in[k]);
@@ -10375,10 +25612,10 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
         }
     if (n_contact == 0u)
         return st;
-    y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
-    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);
     return st;
@@ -10394,7 +25631,7 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
 #if FBGF_RUN_BATCHED
     /* The decision over time and the tracker carry state from sample to sample through the
      * nets' outputs: then one step at a time (the batch is the nets of many samples at once). */
-    if (fbg_front_ok(FRONT(state)) && fin_use_off(state->model)) {
+    if (fbg_front_ok(FBGF_FRONT(state)) && in_use_off(state->model)) {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
             size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
@@ -10412,5 +25649,5 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
     }
     return FBG_OK;
 }
-#undef FRONT
+#undef FBGF_FRONT
 #undef FBG_KIND_FEATURES

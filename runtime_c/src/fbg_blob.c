@@ -78,32 +78,102 @@ static fbg_status take(const uint8_t *blob, size_t total, size_t *off, size_t nb
 
 /* The check order below is the contract: export/blob.py follows it step for step, so both
  * readers give every blob the same verdict and code (tests/test_blob_verdict.py). */
-fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+/* The blob's header: size, magic, version, CRC, byte order and alignment; *total = the size
+ * the header gives. */
+static fbg_status header_check(const uint8_t *blob, size_t len, size_t *total)
 {
-    size_t total, off;
-    unsigned n, l;
-    fbg_status st;
-    const void *where;
-
-    if (model == NULL || blob == NULL)
-        return FBG_ERR_NULL;
     if (len < FBG_BLOB_HEADER_SIZE)
         return FBG_ERR_TRUNCATED;
     if (memcmp(blob, "FBGM", 4) != 0)
         return FBG_ERR_BAD_MAGIC;
     if (rd16(blob + 4) != FBG_BLOB_VERSION || rd16(blob + 6) != 0u)
         return FBG_ERR_VERSION;
-    total = (size_t)rd32(blob + 8);
-    if (total > len)
+    *total = (size_t)rd32(blob + 8);
+    if (*total > len)
         return FBG_ERR_TRUNCATED;
-    if (total < FBG_PARAMS_END)
+    if (*total < FBG_PARAMS_END)
         return FBG_ERR_SIZE;
-    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
+    if (fbg_crc32(blob + FBG_BLOB_HEADER_SIZE, *total - FBG_BLOB_HEADER_SIZE) != rd32(blob + 12))
         return FBG_ERR_CRC;
     if (!host_is_little_endian())
         return FBG_ERR_ENDIAN;
     if (((uintptr_t)(const void *)blob & 7u) != 0u)
         return FBG_ERR_ALIGN;
+    return FBG_OK;
+}
+
+/* The layer table after the parameters: every layer's shape and kind; *off = its end. */
+static fbg_status layer_table(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    *off = FBG_PARAMS_END;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            const size_t at = *off;
+            if (at + FBG_LAYER_ENTRY > total)
+                return FBG_ERR_SIZE;
+            ly->n_in = rd16(blob + at);
+            ly->n_out = rd16(blob + at + 2);
+            ly->w_bits = blob[at + 4];
+            ly->shift = blob[at + 5];
+            ly->acc32 = blob[at + 6];
+            if (blob[at + 7] != 0u || ly->acc32 > 1u)
+                return FBG_ERR_RANGE;
+            *off = at + FBG_LAYER_ENTRY;
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (ly->w_bits != 8u && ly->w_bits != 16u)
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+/* The arrays after the table, each at an 8-aligned offset from *off on; sizes are bounded
+ * (<= 128*128*2 bytes each), so these sums cannot overflow size_t before they are compared
+ * with total. */
+static fbg_status arrays(fbg_model *model, const uint8_t *blob, size_t total, size_t *off)
+{
+    unsigned n, l;
+    fbg_status st;
+    const void *where;
+    if ((st = take(blob, total, off, 0u, &where)) != FBG_OK)   /* the table's padding */
+        return st;
+    if ((st = take(blob, total, off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
+        return st;
+    model->taps = (const int16_t *)where;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        for (l = 0; l < model->nets[n].n_layers; ++l) {
+            fbg_layer *ly = &model->nets[n].layers[l];
+            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
+            if ((st = take(blob, total, off, nw, &where)) != FBG_OK)
+                return st;
+            if (ly->w_bits == 16u)
+                ly->w16 = (const int16_t *)where;
+            else
+                ly->w8 = (const int8_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
+                return st;
+            ly->bias = (const int64_t *)where;
+            if ((st = take(blob, total, off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
+                return st;
+            ly->mult = (const int32_t *)where;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len)
+{
+    size_t total = 0u, off = 0u;
+    fbg_status st;
+
+    if (model == NULL || blob == NULL)
+        return FBG_ERR_NULL;
+    st = header_check(blob, len, &total);
+    if (st != FBG_OK)
+        return st;
 
     memset(model, 0, sizeof *model);
     /* First, so that a state whose model this call overwrites, even if it then fails, sees
@@ -113,56 +183,12 @@ fbg_status fbg_model_from_blob(fbg_model *model, const uint8_t *blob, size_t len
     if (!fbg_params_padding_ok(blob + FBG_BLOB_HEADER_SIZE))
         return FBG_ERR_RANGE;
     st = fbg_params_check(model);
+    if (st == FBG_OK)
+        st = layer_table(model, blob, total, &off);
+    if (st == FBG_OK)
+        st = arrays(model, blob, total, &off);
     if (st != FBG_OK)
         return st;
-
-    /* Layer table. */
-    off = FBG_PARAMS_END;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            if (off + FBG_LAYER_ENTRY > total)
-                return FBG_ERR_SIZE;
-            ly->n_in = rd16(blob + off);
-            ly->n_out = rd16(blob + off + 2);
-            ly->w_bits = blob[off + 4];
-            ly->shift = blob[off + 5];
-            ly->acc32 = blob[off + 6];
-            if (blob[off + 7] != 0u || ly->acc32 > 1u)
-                return FBG_ERR_RANGE;
-            off += FBG_LAYER_ENTRY;
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (ly->w_bits != 8u && ly->w_bits != 16u)
-                return FBG_ERR_RANGE;
-        }
-    }
-
-    /* Arrays, each at an 8-aligned offset; sizes are bounded (<= 128*128*2 bytes each), so
-     * these sums cannot overflow size_t before they are compared with total. */
-    if ((st = take(blob, total, &off, 0u, &where)) != FBG_OK)   /* the table's padding */
-        return st;
-    if ((st = take(blob, total, &off, (size_t)model->n_taps * 2u, &where)) != FBG_OK)
-        return st;
-    model->taps = (const int16_t *)where;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        for (l = 0; l < model->nets[n].n_layers; ++l) {
-            fbg_layer *ly = &model->nets[n].layers[l];
-            size_t nw = (size_t)ly->n_in * ly->n_out * (ly->w_bits / 8u);
-            if ((st = take(blob, total, &off, nw, &where)) != FBG_OK)
-                return st;
-            if (ly->w_bits == 16u)
-                ly->w16 = (const int16_t *)where;
-            else
-                ly->w8 = (const int8_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 8u, &where)) != FBG_OK)
-                return st;
-            ly->bias = (const int64_t *)where;
-            if ((st = take(blob, total, &off, (size_t)ly->n_out * 4u, &where)) != FBG_OK)
-                return st;
-            ly->mult = (const int32_t *)where;
-        }
-    }
     if (off != total)
         return FBG_ERR_SIZE;
     return fbg_model_check(model);

@@ -4,7 +4,7 @@
  * Compiled only with -DFBG_USE_DSP=1 on a core with the DSP extension (__ARM_FEATURE_DSP:
  * Cortex-M4/M7/M33 with DSP); runtime_c/target.mk builds that variant as
  * build/cm4-dsp/libfbgforce.a. Every function here returns exactly the bits of the portable C
- * in fbg_fixed.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
+ * in fbg_stage_nets.c and fbg_stage_filter.c (same int64 sums, same rounding and saturation rule; docs/firmware.md says
  * why each step is exact), which the golden vectors check on the target for both builds.
  */
 #ifndef FBG_DSP_H

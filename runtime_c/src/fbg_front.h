@@ -1,10 +1,11 @@
 /*
  * fbg_front.h - the integer front end of both builds (not installed): state checks, tare,
- * baseline, the fault rule, the tare difference and the FIR ring bookkeeping. fbg_fixed.c
- * and fbgf_float.c run these same functions; only what follows the tare difference (the
- * temperature compensation, the FIR sums, the nets) is written per build.
+ * baseline, the fault rule, the tare difference and the FIR ring bookkeeping, and the API
+ * wrappers around them (FBG_FRONT_API). The fixed-point stages and fbgf_float.c run these
+ * same functions; only what follows the tare difference (the temperature compensation, the
+ * FIR sums, the nets) is written per build.
  *
- * Integer only: fbg_fixed.c includes it, and check-nofloat compiles that file with
+ * Integer only: the fixed-point sources include it, and check-nofloat compiles them with
  * -mgeneral-regs-only.
  *
  * fbg_state and fbgf_state hold the front end's fields under the same names but at different
@@ -219,5 +220,51 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
     }
     return 0;
 }
+
+/* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
+ * the decision over time, the tracker's block and the settled-hold count. */
+#define FBG_RESTART_IN_USE(s)                                                                 \
+    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
+     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+
+/* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
+ * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
+ * (whose initialised magic is MAGIC). Each checks its pointers and runs the front end; reset,
+ * tare end and a new baseline then hand the front end's status to RESTART(state, status,
+ * reset), the build's restart of its decision, tracker and hold (reset 1 for a reset, 0 for
+ * a tare or a new baseline), which returns the status. */
+#define FBG_FRONT_API(prefix, state_t, magic, restart)                                         \
+    fbg_status prefix##_reset(state_t *state)                                                  \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_reset(FBG_FRONT_OF(state, magic)), 1); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_begin(state_t *state)                                             \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FBG_FRONT_OF(state, magic)); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_add(state_t *state, const int32_t wl_fm[FBG_N_CHANNELS],          \
+                                 int *accepted)                                                \
+    {                                                                                          \
+        if (state == NULL || wl_fm == NULL)                                                    \
+            return FBG_ERR_NULL;                                                               \
+        return fbg_front_tare_add(FBG_FRONT_OF(state, magic), wl_fm, accepted);                \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_tare_end(state_t *state)                                               \
+    {                                                                                          \
+        return state == NULL ? FBG_ERR_NULL                                                    \
+                             : restart(state, fbg_front_tare_end(FBG_FRONT_OF(state, magic)), 0); \
+    }                                                                                          \
+                                                                                               \
+    fbg_status prefix##_set_baseline(state_t *state,                                           \
+                                     const int32_t baseline_fm[FBG_N_CHANNELS])                \
+    {                                                                                          \
+        if (state == NULL || baseline_fm == NULL)                                              \
+            return FBG_ERR_NULL;                                                               \
+        return restart(state, fbg_front_set_baseline(FBG_FRONT_OF(state, magic), baseline_fm), 0); \
+    }
 
 #endif /* FBG_FRONT_H */

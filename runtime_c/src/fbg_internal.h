@@ -232,6 +232,24 @@ static inline uint32_t fbg_hold_weight(uint16_t *run, int steady, uint16_t settl
     return w > ramp ? ramp : w;
 }
 
+/* The at-rest tracker's block of both builds (docs/runtime.md, "In use"): a sample at rest
+ * counts towards rest_run (saturating), any other sample restarts it, and every
+ * FBG_TRACK_BLOCK samples a block ends. Returns 1 when this sample ends a block that moves
+ * the baseline (the tracker is on, track_shift != 0, and the block was at rest throughout,
+ * after settle samples of rest), 0 when it ends one that does not, -1 inside a block. */
+static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at_rest,
+                                  unsigned track_shift, unsigned settle)
+{
+    if (!at_rest)
+        *rest_run = 0u;
+    else if (*rest_run < 0xFFFFu)
+        (*rest_run)++;
+    if (++*track_pos < FBG_TRACK_BLOCK)
+        return -1;
+    *track_pos = 0u;
+    return track_shift != 0u && *rest_run >= (uint32_t)FBG_TRACK_BLOCK + settle;
+}
+
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
  * reference"): the exponential average r of the reference grating's shift shift_t, kept as
  * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline

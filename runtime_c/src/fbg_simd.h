@@ -9,7 +9,7 @@
  * are the portable C's bits in any summation order: docs/fixed-point.md, "Host SIMD
  * kernels". int64-accumulator layers run the portable C.
  *
- * This header has no intrinsics, so fbg_fixed.c stays a general-register translation unit
+ * This header has no intrinsics, so the stage files stay general-register translation units
  * (check-nofloat). FBG_HOST_SIMD=0 builds the portable C only.
  */
 #ifndef FBG_SIMD_H
@@ -45,7 +45,7 @@ uint32_t fbg_simd_resolve(uint32_t requested);
 void fbg_simd_acc32(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int32_t *acc);
 
 /* A hidden acc32 layer: y[r] = sat16(max(rshift_round(acc[r] * mult[r], shift), 0)) with
- * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_fixed.c). */
+ * acc as above; *sat = 1 if any row clamped at 32767 (the rule of fbg_stage_nets.c). */
 void fbg_simd_hidden(uint32_t kernel, const fbg_layer *ly, const int16_t *x, int16_t *y, uint32_t *sat);
 
 /* ---- x86-64 only: packed weights (fbg_pack; docs/runtime.md, "Packed weights") and the
@@ -90,9 +90,9 @@ void fbg_simd_pack(uint32_t kernel, const fbg_model *m, void *buf);
 int fbg_simd_net_packed(uint32_t kernel, const void *packed, unsigned n, unsigned n_layers,
                         const int16_t *x, int16_t (*act)[FBG_MAX_WIDTH], int64_t *acc, uint32_t *sat);
 
-/* The AVX2 variants of fbg_step's front, filter and memory stages (front_stage, filter_stage
- * and memory_stage of fbg_fixed.c, whose portable references they equal in every value, state
- * and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
+/* The AVX2 variants of fbg_step's front, filter and memory stages (fbg_front_stage,
+ * fbg_filter_stage and fbg_memory_stage of fbg_stages.h, whose portable references they equal
+ * in every value, state and flag): called only for a state whose kernel is FBG_OPT_KERNEL_AVX2, so only on a CPU
  * that runs AVX2.
  * fbg_avx2_front: the fault rule on wl_fm (its states in s updated as fbg_fault_check updates
  * them; SENSOR_FAULT added to *status and last_comp into the ring at s->pos for a faulty

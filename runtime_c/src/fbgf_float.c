@@ -1,7 +1,10 @@
 /*
  * fbgf_float.c - the same pipeline in single-precision float (the "cfloat" engine and the
  * build for FPU targets). Mirrors fbgforce.model's float64 reference operation by operation;
- * only this file uses float (check-nofloat leaves it out).
+ * only this file uses float (check-nofloat leaves it out). Its stages carry the names of the
+ * fixed-point build's (fbg_stages.h) with its own prefix: fbgf_front_stage, fbgf_filter_stage,
+ * fbgf_memory_stage, fbgf_contact_decision, fbgf_creep_update, fbgf_rest_track,
+ * fbgf_hold_stage; reset, tare and baseline are the front end's (FBG_FRONT_API, fbg_front.h).
  */
 #include <string.h>
 
@@ -55,11 +58,70 @@ static int all_finite(const float *x, size_t n)
     return 1;
 }
 
-fbg_status fbgf_model_check(const fbgf_model *model)
+/* 1 when a parameter of the decision over time, the tracker, the creep inverse or the hold lies
+ * outside the ranges of fbg_model's (fbg_contract.c). */
+static int in_use_params_out_of_range(const fbgf_model *model)
+{
+    return (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
+           !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
+           model->contact_rise_n < 1u || model->track_shift > 20u ||
+           !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
+           model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
+           (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
+           !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
+             model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
+           (model->contact_cusum_h == 0.0f
+                ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
+                   model->contact_cusum_hi != 0.0f)
+                : (model->contact_cusum_lo > model->contact_cusum_hi ||
+                   model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
+           !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
+           model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
+           !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
+           model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
+           model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
+           !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
+           !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
+           !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
+           !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f));
+}
+
+/* Each net's shape (inputs as the model's features give them, outputs as its role needs),
+ * every layer's pointers and finite weights. */
+static fbg_status nets_check(const fbgf_model *model, const uint16_t net_in[FBG_N_NETS])
 {
     static const uint16_t net_out[FBG_N_NETS] = {2u, 1u, 2u};
+    unsigned n, l;
+    for (n = 0; n < FBG_N_NETS; ++n) {
+        const fbgf_net *net = &model->nets[n];
+        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
+            return FBG_ERR_SHAPE;
+        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
+            return FBG_ERR_SHAPE;
+        for (l = 0; l < net->n_layers; ++l) {
+            const fbgf_layer *ly = &net->layers[l];
+            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
+                return FBG_ERR_SHAPE;
+            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
+                return FBG_ERR_SHAPE;
+            if (ly->w == NULL || ly->b == NULL)
+                return FBG_ERR_NULL;
+            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
+                return FBG_ERR_RANGE;
+        }
+    }
+    return FBG_OK;
+}
+
+fbg_status fbgf_model_check(const fbgf_model *model)
+{
     uint16_t net_in[FBG_N_NETS];
-    unsigned n, l, c, features;
+    unsigned c, features;
     fbg_status st;
     if (model == NULL)
         return FBG_ERR_NULL;
@@ -74,34 +136,7 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         return FBG_ERR_RANGE;
     if (!all_finite(model->mem_weight, FBG_N_STRAIN))
         return FBG_ERR_RANGE;
-    /* The decision over time and the tracker: the ranges of fbg_model's (fbg_contract.c). */
-    if (!(model->contact_on >= 0.0f) || !finite_f(model->contact_on) ||
-        !(model->contact_off <= 0.0f) || !finite_f(model->contact_off) ||
-        model->contact_rise_n < 1u || model->track_shift > 20u ||
-        !(model->track_creep >= 0.0f && model->track_creep <= 0.5f) ||
-        model->track_creep_shift > FBG_MAX_EMA_SHIFT ||
-        (model->track_creep != 0.0f && model->track_creep_shift == 0u) ||
-        !(model->contact_cusum_h >= 0.0f && model->contact_cusum_h <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_k >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_k <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_lo >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_lo <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        !(model->contact_cusum_hi >= -FBG_MAX_CUSUM_Q8 / 256.0f &&
-          model->contact_cusum_hi <= FBG_MAX_CUSUM_Q8 / 256.0f) ||
-        (model->contact_cusum_h == 0.0f
-             ? (model->contact_cusum_k != 0.0f || model->contact_cusum_lo != 0.0f ||
-                model->contact_cusum_hi != 0.0f)
-             : (model->contact_cusum_lo > model->contact_cusum_hi ||
-                model->contact_on != 0.0f || model->contact_rise_n != 1u)) ||
-        !(model->creep_q >= 0.0f && model->creep_q < 1.0f) ||
-        model->creep_shift > FBG_MAX_EMA_SHIFT || (model->creep_q != 0.0f && model->creep_shift == 0u) ||
-        !(model->hold_gain >= -0.125f && model->hold_gain <= 0.125f) ||
-        model->hold_shift > FBG_MAX_EMA_SHIFT || (model->hold_gain != 0.0f && model->hold_shift == 0u) ||
-        model->hold_ramp_shift > FBG_MAX_HOLD_RAMP_SHIFT ||
-        !(model->hold_band_N >= 0.0f) || !finite_f(model->hold_band_N) ||
-        !(model->hold_band_frac >= 0.0f && model->hold_band_frac <= 1.0f) ||
-        !(model->track_step_max_pm >= 0.0f) || !finite_f(model->track_step_max_pm) ||
-        !(model->track_limit_pm >= 0.0f) || !(model->track_limit_pm <= FBG_TRACK_LIMIT_MAX_FM * 1e-3f))
+    if (in_use_params_out_of_range(model))
         return FBG_ERR_RANGE;
     for (c = 0; c < FBG_MAX_INPUTS; ++c)
         if (!(model->in_lo[c] <= model->in_hi[c]))   /* NaN or crossed bounds */
@@ -124,31 +159,13 @@ fbg_status fbgf_model_check(const fbgf_model *model)
         !finite_f(model->force_scale) || model->overload_N != model->overload_N ||
         !all_finite(model->taps, model->n_taps))
         return FBG_ERR_RANGE;
-    for (n = 0; n < FBG_N_NETS; ++n) {
-        const fbgf_net *net = &model->nets[n];
-        if (net->n_layers < 1u || net->n_layers > FBG_MAX_LAYERS)
-            return FBG_ERR_SHAPE;
-        if (net->layers[0].n_in != net_in[n] || net->layers[net->n_layers - 1u].n_out != net_out[n])
-            return FBG_ERR_SHAPE;
-        for (l = 0; l < net->n_layers; ++l) {
-            const fbgf_layer *ly = &net->layers[l];
-            if (ly->n_in < 1u || ly->n_in > FBG_MAX_WIDTH || ly->n_out < 1u || ly->n_out > FBG_MAX_WIDTH)
-                return FBG_ERR_SHAPE;
-            if (l > 0u && ly->n_in != net->layers[l - 1u].n_out)
-                return FBG_ERR_SHAPE;
-            if (ly->w == NULL || ly->b == NULL)
-                return FBG_ERR_NULL;
-            if (!all_finite(ly->w, (size_t)ly->n_in * ly->n_out) || !all_finite(ly->b, ly->n_out))
-                return FBG_ERR_RANGE;
-        }
-    }
-    return FBG_OK;
+    return nets_check(model, net_in);
 }
 
 /* The shared front end's view of a float state (fbg_front.h). */
-#define FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
+#define FBGF_FRONT(s) FBG_FRONT_OF(s, FBGF_STATE_MAGIC)
 
-/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_fixed.c's <kind>_features in float:
+/* The memory kinds' update rules (FBG_MEMORY_KINDS), as fbg_stage_memory.c's <kind>_features in float:
  * from the load signal u, prime the states (primed == 0) as at rest after a release, step them
  * and write their features to f[0 ..]; each returns the number of features it wrote. */
 static unsigned ema_features_f(fbgf_state *s, const fbgf_model *m, float u, int primed, float *f)
@@ -179,10 +196,10 @@ static unsigned play_features_f(fbgf_state *s, const fbgf_model *m, float u, int
     return m->n_play;
 }
 
-/* Memory features after z, as fbg_fixed.c's memory_features in float (the states follow the
+/* Memory features after z, as fbg_memory_stage in float (the states follow the
  * load signal u, are primed by the first sample after a reset as at rest after a release,
  * and are frozen during a fault); loc[] gets the location averages of z - z_rest. */
-static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
+static void fbgf_memory_stage(fbgf_state *s, const fbgf_model *m, float *in, float *loc)
 {
     unsigned c;
     int primed;
@@ -213,44 +230,36 @@ static void fmemory_features(fbgf_state *s, const fbgf_model *m, float *in, floa
 fbg_status fbgf_init(fbgf_state *state, const fbgf_model *model, uint32_t options)
 {
     fbg_status st;
-    if (state == NULL || model == NULL)
-        return FBG_ERR_NULL;
-    st = fbgf_model_check(model);
+    st = state == NULL || model == NULL ? FBG_ERR_NULL : fbgf_model_check(model);
     if (st != FBG_OK)
         return st;
     memset(state, 0, sizeof *state);
     state->model = model;
-    fbg_front_init(FRONT(state), model->baseline_fm, options);
+    fbg_front_init(FBGF_FRONT(state), model->baseline_fm, options);
     return FBG_OK;
 }
 
-/* Reset, tare and a new baseline restart the decision and the tracker, as in fbg_fixed.c:
- * the correction made so far stays through a reset (held) and the bound counts from there;
- * a tare or a new baseline replaces it. */
-static fbg_status fin_use_after(fbgf_state *s, fbg_status st, int keep_correction)
+/* Reset, tare and a new baseline restart the decision and the tracker, as fbg_in_use_after
+ * does: the correction made so far stays through a reset (held) and the bound counts from
+ * there; a tare or a new baseline replaces it. */
+static fbg_status fbgf_in_use_after(fbgf_state *s, fbg_status st, int reset)
 {
     unsigned c;
     if (st != FBG_OK)
         return st;
     for (c = 0; c < FBG_N_STRAIN; ++c) {
-        s->held_pm[c] = keep_correction ? s->held_pm[c] + s->drift_pm[c] : 0.0f;
+        s->held_pm[c] = reset ? s->held_pm[c] + s->drift_pm[c] : 0.0f;
         s->drift_pm[c] = 0.0f;
         s->track_sum[c] = 0.0f;
     }
-    s->decision = 0u;
-    s->rise_run = 0u;
+    FBG_RESTART_IN_USE(s);
     s->cusum = 0.0f;
-    s->rest_run = 0u;
-    s->track_pos = 0u;
-    s->track_limited = 0u;
-    s->hold_run = 0u;
-    s->hold_primed = 0u;
     return FBG_OK;
 }
 
-/* hold_stage of fbg_fixed.c in float: force_N of a contact sample times 1 + hold_gain * w /
+/* fbg_hold_stage in float: force_N of a contact sample times 1 + hold_gain * w /
  * 2^hold_ramp_shift once it has been steady for hold_settle samples. */
-static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
+static float fbgf_hold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
 {
     const float ramp = (float)(1ul << m->hold_ramp_shift);
     float band, dev;
@@ -272,38 +281,11 @@ static float fhold_stage(fbgf_state *s, const fbgf_model *m, float force_N)
     return force_N + force_N * m->hold_gain * ((float)w / ramp);
 }
 
-fbg_status fbgf_reset(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_reset(FRONT(state)), 1);
-}
-
-fbg_status fbgf_tare_begin(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fbg_front_tare_begin(FRONT(state));
-}
-
-fbg_status fbgf_tare_add(fbgf_state *state, const int32_t wl_fm[FBG_N_CHANNELS], int *accepted)
-{
-    if (state == NULL || wl_fm == NULL)
-        return FBG_ERR_NULL;
-    return fbg_front_tare_add(FRONT(state), wl_fm, accepted);
-}
-
-fbg_status fbgf_tare_end(fbgf_state *state)
-{
-    return state == NULL ? FBG_ERR_NULL : fin_use_after(state, fbg_front_tare_end(FRONT(state)), 0);
-}
-
-fbg_status fbgf_set_baseline(fbgf_state *state, const int32_t baseline_fm[FBG_N_CHANNELS])
-{
-    if (state == NULL || baseline_fm == NULL)
-        return FBG_ERR_NULL;
-    return fin_use_after(state, fbg_front_set_baseline(FRONT(state), baseline_fm), 0);
-}
+FBG_FRONT_API(fbgf, fbgf_state, FBGF_STATE_MAGIC, fbgf_in_use_after)
 
 /* Dense ReLU MLP over n samples (rows x + i * x_stride); a[0] and a[1] are ping-pong buffers of
  * n rows of FBG_MAX_WIDTH. Returns the output rows (stride FBG_MAX_WIDTH, inside a). */
-static const float *fnet(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
+static const float *fbgf_net_outputs(fbgf_kernel kernel, const fbgf_net *net, const float *x, size_t x_stride,
                          size_t n, float *a[2])
 {
     unsigned l, buf = 0u;
@@ -343,9 +325,9 @@ static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
     return s->ref_pm;
 }
 
-/* creep_update of fbg_fixed.c in float: the tracker's creep states follow the filtered shifts
+/* fbg_creep_update in float: the tracker's creep states follow the filtered shifts
  * (pm) of every sample that passed the fault rule, primed with the memory states. */
-static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
+static void fbgf_creep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
     unsigned c;
     if (m->track_creep == 0.0f)
@@ -356,11 +338,11 @@ static void fcreep_update(fbgf_state *s, const fbgf_model *m, const float *filt)
                                        : filt[c];
 }
 
-/* creep_inverse of fbg_fixed.c in float: the pad's creep taken out of a good sample's
+/* The creep inverse of fbg_front_stage in float: the pad's creep taken out of a good sample's
  * compensated shifts comp (pm) before they enter the ring, e = c + creep_q (c - L), then
  * L += (e - L) / 2^creep_shift; primed L = c by the first good sample after init, tare, reset
  * or a new baseline. */
-static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
+static void fbgf_creep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
 {
     unsigned c;
     if (m->creep_q == 0.0f)
@@ -377,28 +359,16 @@ static void fcreep_inverse(fbgf_state *s, const fbgf_model *m, float *comp)
     }
 }
 
-/* Everything before the nets: the front end, temperature compensation, FIR, standardisation
- * and memory features into in[], the location averages into loc[] (when the model has them).
- * Returns 1 when the nets must run (out->status then holds the status so far), 0 when out is
- * final (*st is what the step returns). */
-static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
-                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], float filt[FBG_N_STRAIN],
-                       fbg_status *st)
+/* 1. Front, as fbg_front_stage: the fault rule, the temperature compensation (less the
+ * tracker's correction) and the creep inverse of a sample into the FIR ring at s->pos; a
+ * faulty sample feeds the ring the last good filtered shifts. */
+static void fbgf_front_stage(fbgf_state *s, const fbgf_model *m, const int32_t wl_fm[FBG_N_CHANNELS],
+                             uint32_t *status)
 {
-    const fbgf_model *m;
-    uint32_t status, sat = 0u;
-    float comp[FBG_N_STRAIN], a[FBG_N_STRAIN];
+    float comp[FBG_N_STRAIN];
     int32_t shift[FBG_N_CHANNELS];
-    unsigned c, k, idx;
-
-    memset(out, 0, sizeof *out);
-    *st = fbg_front_step_begin(FRONT(s), &status);
-    if (*st != FBG_OK) {
-        out->status = status;
-        return 0;
-    }
-    m = s->model;
-    if (fbg_front_sample(FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, &status, shift)) {
+    unsigned c;
+    if (fbg_front_sample(FBGF_FRONT(s), wl_fm, m->jump_max_fm, m->stuck_max, status, shift)) {
         memcpy(comp, s->last_comp, sizeof comp);
     } else {
         /* The integer difference is exact; as float it keeps 24 bits (exact below 16.7 nm). */
@@ -406,17 +376,21 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
         for (c = 0; c < FBG_N_STRAIN; ++c)
             comp[c] = (float)shift[c] * 1e-3f - m->temp_coeff[c] * shift_t -
                       (s->held_pm[c] + s->drift_pm[c]);
-        fcreep_inverse(s, m, comp);
+        fbgf_creep_inverse(s, m, comp);
     }
     for (c = 0; c < FBG_N_STRAIN; ++c)
         s->hist[s->pos][c] = comp[c];
-    if (fbg_front_push_done(FRONT(s), m->n_taps, &status)) {
-        out->status = status;
-        return 0;
-    }
-    /* Taps outer, channels inner: each channel sums its taps in order (newest sample first),
-     * and the four independent sums can share vector instructions. The ring is walked as two
-     * straight runs (pos down to 0, then the top down to pos + 1). */
+}
+
+/* 2. Filter, as fbg_filter_stage: the FIR into filt (pm) and z = in[0..3]; then the ring
+ * moves on. Taps outer, channels inner: each channel sums its taps in order (newest sample
+ * first), and the four independent sums can share vector instructions. The ring is walked as
+ * two straight runs (pos down to 0, then the top down to pos + 1). */
+static void fbgf_filter_stage(fbgf_state *s, const fbgf_model *m, float in[FBG_MAX_INPUTS],
+                              float filt[FBG_N_STRAIN])
+{
+    float a[FBG_N_STRAIN];
+    unsigned c, k, idx;
     for (c = 0; c < FBG_N_STRAIN; ++c)
         a[c] = 0.0f;
     k = 0u;
@@ -427,14 +401,40 @@ static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_
     for (c = 0; c < FBG_N_STRAIN; ++c)
         in[c] = (a[c] - m->input_mean_pm[c]) / m->input_std_pm[c];
     memcpy(filt, a, sizeof a);
-    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault (fbg_fixed.c) */
+    memcpy(s->last_comp, a, sizeof a); /* held into the ring through a fault */
     s->pos = (uint16_t)((s->pos + 1u) % m->n_taps);
-    fcreep_update(s, m, filt);
-    fmemory_features(s, m, in, loc);
+}
+
+/* Everything before the nets: the front, filter and memory stages into in[], the location
+ * averages into loc[] (when the model has them). Returns 1 when the nets must run (out->status
+ * then holds the status so far), 0 when out is final (*st is what the step returns). */
+static int step_inputs(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_output *out,
+                       float in[FBG_MAX_INPUTS], float loc[FBG_N_STRAIN], float filt[FBG_N_STRAIN],
+                       fbg_status *st)
+{
+    const fbgf_model *m;
+    uint32_t status;
+    unsigned c;
+
+    memset(out, 0, sizeof *out);
+    *st = fbg_front_step_begin(FBGF_FRONT(s), &status);
+    if (*st != FBG_OK) {
+        out->status = status;
+        return 0;
+    }
+    m = s->model;
+    fbgf_front_stage(s, m, wl_fm, &status);
+    if (fbg_front_push_done(FBGF_FRONT(s), m->n_taps, &status)) {
+        out->status = status;
+        return 0;
+    }
+    fbgf_filter_stage(s, m, in, filt);
+    fbgf_creep_update(s, m, filt);
+    fbgf_memory_stage(s, m, in, loc);
     for (c = 0; c < FBG_N_STRAIN + FBG_N_MEMORY_FEATURES(m); ++c)
         if (!(in[c] >= m->in_lo[c] && in[c] <= m->in_hi[c]))
             status |= FBG_STATUS_OUT_OF_RANGE;
-    out->status = status | (sat ? FBG_STATUS_SATURATED : 0u);
+    out->status = status;
     return 1;
 }
 
@@ -479,10 +479,10 @@ static void location_output(const fbgf_model *m, const float *y, fbgf_output *ou
     }
 }
 
-/* contact_decision of fbg_fixed.c on the float margin: the Schmitt trigger with its count, or
+/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or
  * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
  * when S >= h (S = 0 then). */
-static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
     float d;
     if (m->contact_cusum_h == 0.0f)
@@ -503,26 +503,22 @@ static uint8_t fcontact_decision(fbgf_state *s, const fbgf_model *m, float margi
     return s->decision;
 }
 
-/* rest_track of fbg_fixed.c in float: filt is the filtered shifts (pm) of a sample at rest,
+/* fbg_rest_track in float: filt is the filtered shifts (pm) of a sample at rest,
  * NULL otherwise; each sample adds filt - track_creep * creep_pm (creep_pm is 0 with the term
  * off); a block at rest throughout, after track_settle samples of rest, adds
  * clamp(sum / 2^track_shift, +-track_step_max_pm) to the correction, whose part since
  * the last reset or tare stays within +-track_limit_pm. */
-static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
+static void fbgf_rest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 {
     unsigned c;
-    if (filt != NULL) {
-        if (s->rest_run < 0xFFFFu)
-            s->rest_run++;
+    int block;
+    if (filt != NULL)
         for (c = 0; c < FBG_N_STRAIN; ++c)
             s->track_sum[c] += filt[c] - m->track_creep * s->creep_pm[c];
-    } else {
-        s->rest_run = 0u;
-    }
-    if (++s->track_pos < FBG_TRACK_BLOCK)
+    block = fbg_track_block(&s->rest_run, &s->track_pos, filt != NULL, m->track_shift, m->track_settle);
+    if (block < 0)
         return;
-    s->track_pos = 0u;
-    if (m->track_shift != 0u && s->rest_run >= (uint32_t)FBG_TRACK_BLOCK + m->track_settle) {
+    if (block) {
         const float scale = 1.0f / (float)(1ul << m->track_shift);
         for (c = 0; c < FBG_N_STRAIN; ++c) {
             float step = s->track_sum[c] * scale, drift;
@@ -542,7 +538,7 @@ static void frest_track(fbgf_state *s, const fbgf_model *m, const float *filt)
 
 #if FBGF_RUN_BATCHED
 /* The model's decision is the contact net's own and no tracker runs: fbgf_run may batch. */
-static int fin_use_off(const fbgf_model *m)
+static int in_use_off(const fbgf_model *m)
 {
     return m->track_shift == 0u && m->contact_on == 0.0f && m->contact_off == 0.0f &&
            m->contact_rise_n == 1u && m->contact_cusum_h == 0.0f && m->hold_gain == 0.0f;
@@ -567,35 +563,35 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     if (s->track_limited)
         out->status |= FBG_STATUS_BASELINE_LIMIT;
     if (!ran) {
-        frest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
+        fbgf_rest_track(s, m, NULL);    /* a fault: the decision holds, the tracker restarts */
         return FBG_OK;
     }
     kernel = fbgf_dense_kernel();
     act[0] = s->act[0];
     act[1] = s->act[1];
-    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_CONTACT], in, FBG_MAX_INPUTS, 1u, act);
     if (!finite_f(y[1] - y[0])) {      /* the safe output, and as a fault for the states */
         contact_output(y, out);
-        frest_track(s, m, NULL);
+        fbgf_rest_track(s, m, NULL);
         return FBG_OK;
     }
     contact_output(y, out);
-    out->contact = fcontact_decision(s, m, out->margin);
-    frest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    out->contact = fbgf_contact_decision(s, m, out->margin);
+    fbgf_rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
     if (!out->contact) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
         return FBG_OK;
     }
-    y = fnet(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
-    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
     location_output(m, y, out);
     if (!out->contact) {             /* a non-finite output: the safe one */
         s->hold_primed = 0u;
         s->hold_run = 0u;
     } else if (m->hold_gain != 0.0f) {
-        out->force_N = fhold_stage(s, m, out->force_N);
+        out->force_N = fbgf_hold_stage(s, m, out->force_N);
         if (out->force_N > m->overload_N)
             out->status |= FBG_STATUS_OVERLOAD;
     }
@@ -619,9 +615,9 @@ static void to_lanes(float in[][FBG_MAX_INPUTS], size_t n, unsigned n_in, float 
             x[j * FBGF_RUN_CHUNK + k] = k < n ? in[k][j] : 0.0f;
 }
 
-/* fnet for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
+/* fbgf_net_outputs for samples in lanes: `x` holds the net's inputs (to_lanes); returns the outputs, output
  * r of sample k at [r * FBGF_RUN_CHUNK + k]. */
-static const float *fnet_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
+static const float *fbgf_net_lanes(const fbgf_net *net, const float *x, size_t n, float *a[2])
 {
     const unsigned n_vec = (unsigned)((n + 7u) / 8u);
     unsigned l, buf = 0u;
@@ -644,7 +640,7 @@ static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
     size_t k, n_contact = 0u, row[FBGF_RUN_CHUNK];
     const float *y;
     to_lanes(in, n_run, m->nets[FBG_NET_CONTACT].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_CONTACT], x, n_run, act);
     for (k = 0; k < n_run; ++k) {
         y2[0] = y[k];
         y2[1] = y[FBGF_RUN_CHUNK + k];
@@ -657,11 +653,11 @@ static void run_nets_lanes(const fbgf_model *m, float in[][FBG_MAX_INPUTS],
     if (n_contact == 0u)
         return;
     to_lanes(in, n_contact, m->nets[FBG_NET_FORCE].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_FORCE], x, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         force_output(m, y[k], out + who[row[k]], in[k], loc[row[k]]);
     to_lanes(in, n_contact, m->nets[FBG_NET_LOCATION].layers[0].n_in, x);
-    y = fnet_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
+    y = fbgf_net_lanes(&m->nets[FBG_NET_LOCATION], x, n_contact, act);
     for (k = 0; k < n_contact; ++k) {
         y2[0] = y[k];
         y2[1] = y[FBGF_RUN_CHUNK + k];
@@ -700,7 +696,7 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
         return st;
     }
 #endif
-    y = fnet(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_CONTACT], &in[0][0], FBG_MAX_INPUTS, n_run, act);
     for (k = 0; k < n_run; ++k)
         if (contact_output(y + k * FBG_MAX_WIDTH, out + who[k])) {
             memcpy(in2[n_contact], in[k], sizeof in[k]);
@@ -709,10 +705,10 @@ static fbg_status run_chunk(fbgf_state *s, fbgf_kernel kernel, const int32_t *wl
         }
     if (n_contact == 0u)
         return st;
-    y = fnet(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         force_output(m, y[k * FBG_MAX_WIDTH], out + touched[k], in2[k], loc[row[k]]);
-    y = fnet(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
+    y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], &in2[0][0], FBG_MAX_INPUTS, n_contact, act);
     for (k = 0; k < n_contact; ++k)
         location_output(m, y + k * FBG_MAX_WIDTH, out + touched[k]);
     return st;
@@ -728,7 +724,7 @@ fbg_status fbgf_run(fbgf_state *state, const int32_t *wl_fm, size_t n, fbgf_outp
 #if FBGF_RUN_BATCHED
     /* The decision over time and the tracker carry state from sample to sample through the
      * nets' outputs: then one step at a time (the batch is the nets of many samples at once). */
-    if (fbg_front_ok(FRONT(state)) && fin_use_off(state->model)) {
+    if (fbg_front_ok(FBGF_FRONT(state)) && in_use_off(state->model)) {
         const fbgf_kernel kernel = fbgf_dense_kernel();
         for (i = 0; i < n; i += FBGF_RUN_CHUNK) {
             size_t len = n - i < FBGF_RUN_CHUNK ? n - i : FBGF_RUN_CHUNK;
