@@ -1,6 +1,7 @@
 """The numpy INTEGER reference of the fixed-point runtime: the C code, bit for bit.
 
-Every operation of runtime_c/src/fbg_fixed.c is written here once more with the same rounding
+Every operation of the C fixed-point step (runtime_c/src/fbg_fixed.c and its stages,
+fbg_stage_*.c) is written here once more with the same rounding
 rule, the same saturation rule and the same order, in int64 numpy arithmetic (vectorised over
 samples; exact because every intermediate is proven to stay inside int64, see
 docs/fixed-point.md). ``fbgforce verify`` and the tests compare the C output with this one
@@ -241,7 +242,7 @@ def _prev_in_window(wl: np.ndarray, inwin: np.ndarray) -> tuple[np.ndarray, np.n
 
 def _front_stage(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, base: np.ndarray,
                  ok: np.ndarray, flag: np.ndarray) -> np.ndarray:
-    """``front_stage`` of fbg_fixed.c after the fault rule: tare, temperature compensation by
+    """``fbg_front_stage`` of fbg_stage_front.c after the fault rule: tare, temperature compensation by
     the reference ``ref`` and the creep inverse, on the rows ``ok`` without a fault (the
     others' values are never read). Returns the compensated shifts (m, 4) fm; flags where a
     value saturated."""
@@ -277,7 +278,7 @@ def reference_average(q: QModel, shift_t: np.ndarray, fault: np.ndarray) -> np.n
 
 def creep_inverse(q: QModel, comp: np.ndarray, ok: np.ndarray, acc: list[list[int] | None]
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """``creep_inverse`` of fbg_fixed.c on consecutive samples: the compensated shifts ``comp``
+    """``creep_inverse`` of fbg_stage_front.c on consecutive samples: the compensated shifts ``comp``
     (n, 4) fm with the pad's creep taken out of the rows ``ok`` (the others, faulty, keep
     theirs and leave the state alone). Per grating, ``L = rshift_round(acc, creep_shift)``,
     ``e = sat32(c + rshift_round((c - L) * creep_q15, 15))``, ``acc += e - L``; ``acc[0]`` is
@@ -332,7 +333,7 @@ def _fir(q: QModel, state: _State, comp: np.ndarray, ok: np.ndarray) -> np.ndarr
 
 def _filter_stage(q: QModel, state: _State, comp: np.ndarray, ok: np.ndarray,
                   status: np.ndarray, flag: np.ndarray) -> np.ndarray:
-    """``filter_stage`` of fbg_fixed.c: the FIR (:func:`_fir`), the standardisation into
+    """``fbg_filter_stage`` of fbg_stage_filter.c: the FIR (:func:`_fir`), the standardisation into
     Q(z_frac) and the input-side overload of the linear load proxy (|coeff| < 2^28, so its
     sum stays < 2^61). Returns z (m, 4); flags saturation and OVERLOAD on the rows ``ok``."""
     acc = _fir(q, state, comp, ok)
@@ -353,7 +354,7 @@ def _filter_stage(q: QModel, state: _State, comp: np.ndarray, ok: np.ndarray,
 
 def _memory_stage(q: QModel, state: _State, z: np.ndarray, rows: np.ndarray,
                   status: np.ndarray, flag: np.ndarray) -> np.ndarray:
-    """``memory_stage`` of fbg_fixed.c, then its OUT_OF_RANGE rule: the net inputs (m, F +
+    """``fbg_memory_stage`` of fbg_stage_memory.c, then its OUT_OF_RANGE rule: the net inputs (m, F +
     location averages) of the fault-free ``rows`` in order (zeros on the others, which no
     net reads); flags saturation and inputs outside ``[in_lo, in_hi]``."""
     x, c_mem = state.memory.push(z[rows])
@@ -367,7 +368,7 @@ def _memory_stage(q: QModel, state: _State, z: np.ndarray, rows: np.ndarray,
 
 
 class _MemoryStage:
-    """The memory states of fbg_fixed.c's ``memory_features`` (load-signal averages and play
+    """The memory states of fbg_stage_memory.c's ``memory_features`` (load-signal averages and play
     operators, location averages), carried from one block of fault-free samples to the next.
     The first sample primes them as at rest after a release; a faulty sample never reaches
     them, so a fault freezes them."""
@@ -438,7 +439,7 @@ def _channel_averages(x: np.ndarray, state: list[int], s: int) -> np.ndarray:
     return out
 
 
-# The memory kinds' update rules of fbg_fixed.c (``<kind>_features``) in Python integers,
+# The memory kinds' update rules of fbg_stage_memory.c (``<kind>_features``) in Python integers,
 # sample by sample: the recursions do not vectorise, and this keeps the rounding of every step
 # exactly the C code's. Each takes the load signal ``u`` (m,) and the states (None: prime them
 # as at rest after a release) and returns the features before sat16 (m, n) and the states.
@@ -483,7 +484,7 @@ INT_MEMORY: dict[str, Callable[[QModel, np.ndarray, list[int] | None], tuple[np.
 
 
 def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``memory_features`` of fbg_fixed.c on the consecutive fault-free samples ``z`` (m, 4)
+    """``memory_features`` of fbg_stage_memory.c on the consecutive fault-free samples ``z`` (m, 4)
     of one recording (the states are primed by the first as at rest after a release, and
     never see a faulty sample).
 
@@ -494,7 +495,7 @@ def memory_features(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The location averages of fbg_fixed.c's ``memory_features`` on consecutive fault-free
+    """The location averages of fbg_stage_memory.c's ``memory_features`` on consecutive fault-free
     ``z`` (m, 4), primed by the first: the Q(z_frac) inputs (m, 4) and where r or z0
     saturated."""
     return _MemoryStage(q)._location_averages(np.asarray(z, dtype=np.int64).reshape(-1, 4))
@@ -602,7 +603,7 @@ def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
 
 def _contact_decision(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]
                       ) -> np.ndarray:
-    """``contact_decision`` of fbg_fixed.c on consecutive fault-free samples: the rule of
+    """``fbg_contact_decision`` of fbg_stage_decision.c on consecutive fault-free samples: the rule of
     :func:`fbgforce.model.decision.decide_over_time` on the Q8 margins, in Python integers (exact).
     ``raw`` is ``acc > 0`` and ``margin`` the output row as computed, whatever the sign of its
     multiplier: the rule reads both as C does, with no shortcut for the per-sample setting
@@ -618,7 +619,7 @@ def _contact_decision(q: QModel, raw: np.ndarray, margin: np.ndarray, state: lis
 # --------------------------------------------------------------------------------------------
 
 class _RestTracker:
-    """``rest_track`` of fbg_fixed.c: the at-rest baseline tracker's state, and its update at
+    """``fbg_rest_track`` of fbg_stage_tracker.c: the at-rest baseline tracker's state, and its update at
     the end of each TRACK_BLOCK block."""
 
     def __init__(self, q: QModel) -> None:
@@ -627,7 +628,7 @@ class _RestTracker:
         self.drift = [0] * 4
         self.frac = [0] * 4
         self.limited = False
-        #: ``creep_update`` of fbg_fixed.c: the creep states, None until the first good sample.
+        #: ``fbg_creep_update`` of fbg_stage_tracker.c: the creep states, None until the first good sample.
         self.creep: list[int] | None = None
 
     def rest_terms(self, z: np.ndarray, z0: np.ndarray) -> np.ndarray:
@@ -677,7 +678,7 @@ class _RestTracker:
 
 def _hold_stage(q: QModel, force_mN: np.ndarray, contact: np.ndarray, state: list[int]
           ) -> tuple[np.ndarray, np.ndarray]:
-    """``hold_stage`` of fbg_fixed.c (the settled-hold gain, the rule of
+    """``fbg_hold_stage`` of fbg_stage_hold.c (the settled-hold gain, the rule of
     :func:`fbgforce.model.floatref.hold_over_time` in integers) on consecutive fault-free samples: their
     force (mN, any value where there is no contact) and contact decisions. ``state`` is
     ``[hold_avg, hold_primed, hold_run]``, carried and updated. Returns the force and where it

@@ -217,7 +217,7 @@ class QModel(QModelMemory):
         return contract.n_loc(self.loc_shift)
 
     def z_rest(self) -> tuple[np.ndarray, bool]:
-        """(4,) ``z0``, the standardisation of a zero filtered shift as fbg_fixed.c computes it,
+        """(4,) ``z0``, the standardisation of a zero filtered shift as fbg_init (fbg_fixed.c) computes it,
         and whether it saturated."""
         z0 = ((-self.mean_fm * self.z_mult) + (1 << (self.z_shift - 1))) >> self.z_shift
         return np.clip(z0, -SAT16, SAT16), bool(np.any(np.abs(z0) > SAT16))

@@ -90,8 +90,8 @@ class MemoryKind:
     (``params``) are the ``<name>_*`` fields of ``PARAMS`` and ``FLOAT_PARAMS``, generated from
     them. ``noun`` names the states in messages, ``label`` in the teleop ablation's table.
     The update rule itself is written once per engine, reached by the kind's name:
-    ``<name>_features`` (fbg_fixed.c), ``<name>_features_f`` (fbgf_float.c),
-    ``<name>_features_avx2`` (fbg_simd_x86.c) through ``FBG_MEMORY_KINDS``, and the tables
+    ``<name>_features`` (fbg_stage_memory.c), ``<name>_features_f`` (fbgf_float.c),
+    ``<name>_features_avx2`` (fbg_simd_x86_stages.c) through ``FBG_MEMORY_KINDS``, and the tables
     ``fbgforce.model.floatref.FLOAT_MEMORY`` and ``fbgforce.export.intref.INT_MEMORY``.
     """
 

@@ -53,8 +53,8 @@ def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float,
     clip(margin, lo, hi) - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it
     stays 0 in contact). ``state`` is ``[decision, rise_run, S]`` of the previous sample,
     carried and updated. Integer arguments give the integer rule exactly (Python integers);
-    the C runtimes run this rule (``contact_decision`` in fbg_fixed.c, ``fcontact_decision``
-    in fbgf_float.c).
+    the C runtimes run this rule (``fbg_contact_decision`` in fbg_stage_decision.c,
+    ``fbgf_contact_decision`` in fbgf_float.c).
     """
     raw = np.asarray(raw, dtype=bool)
     out = np.zeros(raw.size, dtype=bool)

@@ -546,8 +546,8 @@ def hold_over_time(force: np.ndarray, contact: np.ndarray, iu: InUse,
 
     ``force`` and ``contact`` are the samples' outputs; ``state`` is ``[average, primed,
     hold_run]`` of the previous sample, carried and updated. Returns the force with the gain.
-    The C float runtime runs this rule (``fhold_stage`` in fbgf_float.c); the fixed-point
-    one its integer form (``hold_stage`` in fbg_fixed.c, ``fbgforce.export.intref``).
+    The C float runtime runs this rule (``fbgf_hold_stage`` in fbgf_float.c); the fixed-point
+    one its integer form (``fbg_hold_stage`` in fbg_stage_hold.c, ``fbgforce.export.intref``).
     """
     out = np.asarray(force, dtype=np.float64).copy()
     if not iu.hold_gain:

@@ -50,7 +50,7 @@
 extern "C" {
 #endif
 
-/* ---- BEGIN GENERATED constants: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* ---- BEGIN GENERATED constants: `python -m fbgforce.contract --write` from pkgroot/contract/; do not edit ---- */
 #define FBG_N_CHANNELS 5  /* wl1..wl4 (strain), wlT (temperature reference) */
 #define FBG_N_STRAIN 4  /* strain gratings */
 #define FBG_MAX_TAPS 64  /* causal FIR length */
@@ -161,7 +161,7 @@ typedef struct {
     fbg_layer layers[FBG_MAX_LAYERS];
 } fbg_net;
 
-/* ---- BEGIN GENERATED fixed: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* ---- BEGIN GENERATED fixed: `python -m fbgforce.contract --write` from pkgroot/contract/; do not edit ---- */
 /* Fixed-point model. The parameters are those of the blob (docs/model-format.md),
  * declared grouped by size so that the struct has no implicit padding. */
 typedef struct {
@@ -238,7 +238,7 @@ typedef struct {
 } fbg_output;
 /* ---- END GENERATED fixed ---- */
 
-/* ---- BEGIN GENERATED state: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* ---- BEGIN GENERATED state: `python -m fbgforce.contract --write` from pkgroot/contract/; do not edit ---- */
 /* Caller-owned streaming state. Treat as opaque; size is sizeof(fbg_state). */
 typedef struct {
     uint32_t magic;                              /* set by fbg_init */
@@ -428,7 +428,7 @@ typedef struct {
     fbgf_layer layers[FBG_MAX_LAYERS];
 } fbgf_net;
 
-/* ---- BEGIN GENERATED float: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* ---- BEGIN GENERATED float: `python -m fbgforce.contract --write` from pkgroot/contract/; do not edit ---- */
 /* Float model: the same pipeline in single precision. */
 typedef struct {
     int32_t baseline_fm[5];
@@ -492,7 +492,7 @@ typedef struct {
 } fbgf_output;
 /* ---- END GENERATED float ---- */
 
-/* ---- BEGIN GENERATED float state: `python -m fbgforce.contract --write` from pkgroot/contract.py; do not edit ---- */
+/* ---- BEGIN GENERATED float state: `python -m fbgforce.contract --write` from pkgroot/contract/; do not edit ---- */
 /* Caller-owned streaming state. Treat as opaque; size is sizeof(fbgf_state). */
 typedef struct {
     uint32_t magic;                              /* set by fbgf_init */

@@ -15,7 +15,7 @@
 #define FBG_N_MEMORY_STATES 3
 
 /* The memory kinds (fbgforce.contract.MEMORY_KINDS) in feature order, X(kind, KIND) each:
- * each engine reaches a kind's update rule by its name (fbg_fixed.c <kind>_features, ...). */
+ * each engine reaches a kind's update rule by its name (fbg_stage_memory.c <kind>_features, ...). */
 #define FBG_MEMORY_KINDS(X) X(ema, EMA) X(play, PLAY)
 /* Memory features of a model (fbg_model or fbgf_model): one per state in use, every kind. */
 #define FBG_N_MEMORY_FEATURES(m) ((unsigned)(m)->n_ema + (m)->n_play)
