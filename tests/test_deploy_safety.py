@@ -275,7 +275,7 @@ def test_a_crash_at_every_step_of_a_commit_never_mixes_two_models(small_model_di
 
 _KILL_AT_STEP = """
 import os, signal, sys
-from fbgforce import model as fm
+from fbgforce.model import modeldir as fm
 
 model = fm.load(sys.argv[1])
 k, steps = int(sys.argv[3]), [0]
