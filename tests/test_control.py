@@ -432,6 +432,7 @@ def _assert_answers(seen: dict[str, list]) -> None:
     assert reset.result == 0 and again == reset
 
 
+@pytest.mark.slow
 def test_stream_takes_commands_over_udp_end_to_end(tmp_path, small_exported_dir, capsys):
     """emulate (Hyperion) plays a preload step, then a stuck peak, then a press -> stream
     --control --publish udp://: a tare sent during the fault fails and keeps the baseline; a

@@ -209,6 +209,7 @@ def test_a_ten_minute_hold_is_never_absorbed(small_exported_dir, tmp_path, force
     assert np.array_equal(np.asarray(rt2.baseline_fm), before)
 
 
+@pytest.mark.slow
 def test_a_long_run_stays_exact_and_bounded(small_exported_dir):
     """bench_long_run's checks on a short run: one state through a warm-up, grips, a
     cool-down and a rest with lost peaks; bit-exact after a reset mid-run, the tracker inside

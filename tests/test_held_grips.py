@@ -128,6 +128,7 @@ def test_the_fitted_creep_goes_to_the_tracker_or_the_inverse(inverse):
         np.testing.assert_array_equal(r.feats, raw)
 
 
+@pytest.mark.slow
 def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     """By default (``creep_inverse`` None) the inverse goes to a creep of at least
     CREEP_INVERSE_MIN slower than the memory's longest average, the tracker's term to any
@@ -152,6 +153,7 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
 
 
+@pytest.mark.slow
 def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(paired_holds):
     """hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1
     (so the bias after it is smaller than before and no other gain fits better), recorded in

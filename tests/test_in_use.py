@@ -192,6 +192,7 @@ def test_held_grips_are_found_as_holds():
     assert use["held"].sum() > 5 * (spec.hold_s[0] - 0.3) * spec.rate_hz
 
 
+@pytest.mark.slow
 def test_script_writes_in_use_logs_with_roles(tmp_path):
     assert fg.main(["--out", str(tmp_path), "--presses", "2", "const_temp", "ramp20K",
                     "long_rests"]) == 0
@@ -268,6 +269,7 @@ def res_model_data(model_dir):
     return json.loads((model_dir / "model.json").read_text())["metadata"]["data"]
 
 
+@pytest.mark.slow
 def test_family_members_differ_in_their_physics_only(tmp_path):
     # Every member is the in-use fingertip's device with one piece of its physics changed.
     assert set(fg.FAMILY) >= {"in_use", "no_creep", "creep_50ms", "creep_5s", "viscous"}
@@ -306,6 +308,7 @@ def test_viscous_pad_reads_rate_not_creep():
     np.testing.assert_allclose(s[850:], s0[850:], atol=1e-9)
 
 
+@pytest.mark.slow
 def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tmp_path, capsys):
     import shutil
 

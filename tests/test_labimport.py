@@ -610,6 +610,7 @@ def trained_on_the_simulators_file(small_dataset_path, tmp_path_factory):
 @pytest.mark.parametrize("name,tolerance,within", [
     ("aligned", 0.02, True), ("late", 0.02, False),
     pytest.param("epoch", 0.03, True, marks=pytest.mark.slow)])
+@pytest.mark.slow
 def test_a_model_trained_on_the_import_scores_like_one_trained_on_the_simulators_file(
         trained_on_the_simulators_file, small_dataset_path, name, tolerance, within):
     """The issue's goal as written: models trained on the imported dataset score within 2 %

@@ -605,6 +605,7 @@ def test_stream_cpu_it_cannot_use_exits_2_with_one_line(allowed_cpus, small_expo
     assert len(err) == 1 and f"--cpu: CPU {cpu} is the only one" in err[0], err
 
 
+@pytest.mark.slow
 def test_a_publisher_killed_mid_run_stays_in_the_summary_with_what_it_sent(small_exported_dir,
                                                                            capsys):
     """The publishing process killed (SIGKILL) while the stream runs: the stream goes on, says

@@ -399,6 +399,7 @@ def test_bench_judges_the_step_against_the_noise_of_runs_without_publishing():
     assert step_summary(live, ["off", "on", "off"])["on"]["within_noise"] is True
 
 
+@pytest.mark.slow
 def test_an_instrument_restart_shows_in_the_status(dds, small_exported_dir):
     """The instrument goes away and comes back counting from zero: the reader reconnects and
     the first estimate after it carries DEVICE_RESTART; nothing else carries a link flag."""
@@ -473,6 +474,7 @@ def _record_mcap(tmp_path: Path, capsys, *extra: str) -> tuple[Path, dict]:
     return out, summary
 
 
+@pytest.mark.slow
 def test_record_mcap_is_a_rosbag2_log_that_rosbags_reads(tmp_path, small_exported_dir, capsys):
     """record --out rec.mcap --model: rosbags (not the writer's library) reads every sample's
     peaks, stage line and estimates back, and load_dataset gives the recorded dataset."""
@@ -773,6 +775,7 @@ def _assert_diagnostics(diags: list, ns: str, model_dir: Path) -> None:
     assert float(first_quiet[5]["silent_s"]) <= 2.0
 
 
+@pytest.mark.slow
 def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_exported_dir,
                                                                    tmp_path, capsys):
     """stream --publish ros2:///NS -> a ROS 2-typed client in another process: /diagnostics
@@ -823,6 +826,7 @@ def test_stream_serves_diagnostics_and_the_tare_and_reset_services(dds, small_ex
     _assert_diagnostics(got["diagnostics"], ns, small_exported_dir)
 
 
+@pytest.mark.slow
 def test_a_ros2_publisher_killed_mid_run_stays_in_the_summary(dds, small_exported_dir, capsys):
     """``--publish ros2:///...`` and its publishing process killed while the stream runs: the
     summary keeps the output with the messages it had sent and says it died; stderr said so
