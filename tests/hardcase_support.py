@@ -36,10 +36,8 @@ import pytest
 
 from fbgforce.export import intref
 from fbgforce.export.blob import from_bytes, to_bytes
+from fbgforce.export.intref import WL_MAX_FM, WL_MIN_FM
 from fbgforce.export.qmodel import SAT32
-
-WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
-WL_MAX_FM = contract.LIMIT["WL_MAX_FM"]
 
 ROOT = Path(__file__).resolve().parents[1]
 RUNTIME_C = ROOT / "runtime_c"

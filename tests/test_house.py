@@ -1,12 +1,12 @@
 """The size of the rooms: hand-written modules, C files and functions stay short enough to find
-one's way in (docs/changing.md, "The house in figures"). ``python tests/test_house.py`` prints
-the counts the limits below hold."""
+one's way in. ``python tests/test_house.py`` prints the counts the limits below hold."""
 from __future__ import annotations
 
 import ast
 import re
 import sys
 import tomllib
+from collections.abc import Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -45,22 +45,21 @@ def long_python_functions(limit: int = FUNCTION_LINES) -> list[tuple[int, str]]:
     decorators and docstring included, nested functions counted with their parent."""
     out = []
     for path in python_files():
-        tree = ast.parse(path.read_text())
-        for node in ast.walk(tree):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                first = min([node.lineno] + [d.lineno for d in node.decorator_list])
-                n = node.end_lineno - first + 1
-                if n > limit and not _nested(tree, node):
-                    out.append((n, f"{path.relative_to(ROOT)}:{node.name}"))
+        for node in _outermost_functions(ast.parse(path.read_text())):
+            first = min([node.lineno] + [d.lineno for d in node.decorator_list])
+            n = node.end_lineno - first + 1
+            if n > limit:
+                out.append((n, f"{path.relative_to(ROOT)}:{node.name}"))
     return sorted(out, reverse=True)
 
 
-def _nested(tree: ast.AST, fn: ast.AST) -> bool:
-    for node in ast.walk(tree):
-        if node is not fn and isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-            if any(child is fn for child in ast.walk(node)):
-                return True
-    return False
+def _outermost_functions(node: ast.AST) -> Iterator[ast.FunctionDef | ast.AsyncFunctionDef]:
+    """The functions and methods below ``node`` that no other function encloses."""
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            yield child
+        else:
+            yield from _outermost_functions(child)
 
 
 _TOKEN = re.compile(r'"(?:\\.|[^"\\])*"|\'(?:\\.|[^\'\\])*\'|/\*.*?\*/|//[^\n]*|[{}]', re.S)

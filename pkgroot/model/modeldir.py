@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from fbgforce import fileio
-from fbgforce.fileio import file_sha256
 from fbgforce.errors import InputError
 from fbgforce.jsonutil import json_default
 from fbgforce.model.artifact import (NET_NAMES, MLP, CalibrationRecordings, HierarchicalModel,
@@ -226,6 +225,6 @@ def check_export(model_dir: str | Path, model: Any = None) -> None:
         raise InputError(f"stale: exported from another model than {MODEL_JSON} "
                          f"(retrained after export); {fix}", path=str(blob))
     recorded = (report.get(FILES_KEY) or {}).get(BLOB_FILE)
-    if recorded is not None and recorded != file_sha256(blob):
+    if recorded is not None and recorded != fileio.file_sha256(blob):
         raise InputError(f"not the blob its export wrote ({REPORT_FILE} records another); "
                          f"{fix}", path=str(blob))
