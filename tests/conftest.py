@@ -100,9 +100,12 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     # give another contact net, one that lets go of a 0.5 N hold (docs/runtime.md, "In use").
     # The Schmitt trigger's decision, with its rise count and release hysteresis, is the one
     # those pages and tests/test_engine_agreement.py measure (tests/test_cusum.py the CUSUM's).
+    # The nets learn the recording as tared (tests/test_tracked_calibration.py trains through
+    # the tracker).
     fm.save(train([small_dataset_path], epochs=40, seed=SMALL_SEED, filter="causal",
                   progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0,
-                  rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES, decision="schmitt"), out)
+                  rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES, decision="schmitt",
+                  track_calibration=False), out)
     return out
 
 

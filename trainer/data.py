@@ -34,6 +34,14 @@ class Recording:
     shift_pm: np.ndarray
     feats: np.ndarray | None = None
     split: np.ndarray | None = None  # 0 train, 1 val, 2 test per sample
+    #: The recording as recorded, where ``ds`` is the at-rest tracker's view of it that the
+    #: nets learn (:mod:`fbgforce.trainer.tracked`); None: ``ds`` itself.
+    recorded: Any = None
+
+    @property
+    def as_recorded(self) -> Any:
+        """The recording as the runtime will meet it: what scoring and export run."""
+        return self.ds if self.recorded is None else self.recorded
 
 
 @dataclass

@@ -41,7 +41,8 @@ def training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: np
 
 
 def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
-                settled: Mapping[str, Any]) -> list[dict[str, Any]]:
+                settled: Mapping[str, Any], tracking: Mapping[str, Any] | None = None
+                ) -> list[dict[str, Any]]:
     """Each correction beyond the nets the model makes, whether it is on, and why: what
     ``fbgforce train`` prints and ``model.json`` records (``metadata.corrections``)."""
     iu, pre = model.in_use, model.preprocess
@@ -77,7 +78,20 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
         {"name": "at_rest_tracker", "applied": bool(iu.track_shift),
          "why": f"time constant 2^{iu.track_shift} samples, at most "
                 f"{iu.track_limit_pm:g} pm" if iu.track_shift else "off"},
+        {"name": "tracked_calibration", "applied": tracking is not None,
+         "why": _tracking_why(tracking) if tracking is not None
+         else "--track-calibration off: the nets learned the recordings as tared"},
     ]
+
+
+def _tracking_why(tracking: Mapping[str, Any]) -> str:
+    """One line on the tracker's corrections over the calibration the nets trained on."""
+    recs = tracking.get("recordings", [])
+    mean = max((abs(v) for r in recs for v in r["mean_pm"]), default=0.0)
+    peak = max((v for r in recs for v in r["max_abs_pm"]), default=0.0)
+    return (f"the nets learned the calibration as the at-rest tracker hands it on: it moved "
+            f"the zero by up to {peak:.1f} pm, {mean:.1f} pm on average on the grating that "
+            f"wandered most")
 
 
 def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainParams,
@@ -85,9 +99,11 @@ def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainPar
                    rows: tuple[np.ndarray, np.ndarray, np.ndarray], x_all: np.ndarray,
                    reports: Mapping[str, Any], data_coverage: Any, creep: Creep,
                    holds: tuple[Held, Held, dict[str, Any]], rests: tuple[Held, Held],
-                   held_s: float, warnings: list[str], times: tuple[float, float]
-                   ) -> dict[str, Any]:
-    """The facts ``model.json`` records: data, split, sizes, training, metrics, times."""
+                   held_s: float, warnings: list[str], times: tuple[float, float],
+                   tracking: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The facts ``model.json`` records: data, split, sizes, training, metrics, times, and
+    the tracker's corrections of the calibration (``tracking``,
+    :func:`fbgforce.trainer.tracked.drift_summary`; None: the nets learned it as tared)."""
     tr, va, te = rows
     hold_tr, hold_va, settled = holds
     pre = model.preprocess
@@ -120,7 +136,8 @@ def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainPar
                                         "val": int(hold_va[1].size)},
                             "settled_gain": settled},
         "turn_guard_s": params.turn_guard_s,
-        "corrections": corrections(model, data, params, settled),
+        "corrections": corrections(model, data, params, settled, tracking),
+        "tracked_calibration": None if tracking is None else dict(tracking),
         "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
                             "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
                                         for name, rest in zip(("train", "val"), rests)}},

@@ -45,7 +45,8 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
                 "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
-                "turn_guard_s": "--turn-guard", "sizes": "--sizes"}
+                "turn_guard_s": "--turn-guard", "sizes": "--sizes",
+                "track_calibration": "--track-calibration"}
 
 
 def _is_int(value: Any) -> bool:
@@ -107,6 +108,13 @@ class TrainParams:
         inverse or the tracker's term) only where the calibration establishes it
         (:func:`~fbgforce.trainer.creep_evidence.creep_evidence`); ``on``: wherever the fit
         finds one; ``off``: never.
+    track_calibration
+        Train the nets on the calibration as the at-rest tracker hands it on (default True):
+        the tracker, driven by a contact net and decision fitted first, runs over each
+        recording, and the nets learn its wavelengths less the tracker's correction, so they
+        read loads from the zero the runtime will hold, not from the calibration's wandering
+        one (:mod:`fbgforce.trainer.tracked`; docs/trainer.md, "The tracker's zero"). False
+        trains on the recordings as tared.
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -186,6 +194,7 @@ class TrainParams:
     turn_guard_s: float | None = None
     memory: fm.Memory | str | None = None
     restarts: int | Mapping[str, int] | None = None
+    track_calibration: bool = True
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, allowed: str) -> None:
@@ -224,6 +233,8 @@ class TrainParams:
              "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
         need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
         need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
+        need(isinstance(self.track_calibration, (bool, np.bool_)), "track_calibration",
+             "True or False")
         need(self.decision in DECISION_RULES, "decision", "one of " + ", ".join(DECISION_RULES))
         need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
              f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "

@@ -30,12 +30,13 @@ def model_pad_mm(model: artifact.HierarchicalModel) -> tuple[float, float] | Non
 def predict_prepared(model: artifact.HierarchicalModel, data: Prepared,
                      inputs: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The float pipeline's outputs on every row of ``data``, each recording run whole on its
-    own tare as ``fbgforce evaluate`` runs it: through the decision over time and the at-rest
-    tracker when the model has them (:func:`fbgforce.model.floatref.predict`), else on the prepared
+    own tare as ``fbgforce evaluate`` runs it (as recorded, not as the tracker handed it to
+    the nets): through the decision over time and the at-rest tracker when the model has them (:func:`fbgforce.model.floatref.predict`), else on the prepared
     net inputs (``inputs``, if the caller has them: the memory states make them a pass over
     every recording)."""
     if model.runs_in_use:
-        parts = [floatref.predict(model, r.ds.wl_nm, r.baseline_nm) for r in data.recordings]
+        parts = [floatref.predict(model, r.as_recorded.wl_nm, r.baseline_nm)
+                 for r in data.recordings]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     return floatref.predict_from_features(model, data.inputs(model.preprocess) if inputs is None
                                     else inputs)

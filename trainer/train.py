@@ -24,6 +24,7 @@ from fbgforce.model import artifact, modeldir
 from fbgforce.recordings import tare as fbgtare
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer import tracked
 from fbgforce.trainer.coverage import coverage
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.creep_evidence import creep_choice, takes_creep_out
@@ -268,41 +269,49 @@ def _assemble(data: Prepared, pre: artifact.Preprocess, scaling: Scaling,
         xy_offset=scaling.xy_offset, xy_scale=scaling.xy_scale,
         baseline_nm=np.median([r.baseline_nm for r in data.recordings], axis=0))
     model.calibration = artifact.CalibrationRecordings(
-        [(np.asarray(r.ds.wl_nm, dtype=np.float64), r.baseline_nm) for r in data.recordings],
+        [(np.asarray(r.as_recorded.wl_nm, dtype=np.float64), r.baseline_nm)
+         for r in data.recordings],
         [np.asarray(r.ds.force_N, dtype=np.float64)[np.asarray(r.ds.contact, dtype=bool)]
          for r in data.recordings], [d.get("path") or r.source for d, r in zip(described, data.recordings)])
     return model
 
 
-def _in_use(model: artifact.HierarchicalModel, data: Prepared, logits: np.ndarray, z: np.ndarray,
-            tr: np.ndarray, cnet: FlatMLP, rests: tuple[Held, Held], gain: float,
-            decision: str) -> dict[str, dict[str, Any]]:
-    """Set the model's decision over time (by the rule ``decision``), tracker and input range
-    from the training data; return the decision's fields of every rule of
-    :data:`~fbgforce.trainer.params.DECISION_RULES` (``metadata.decision_rules``: what the
-    others would have set).
+def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
+                    cnet: FlatMLP, rests: tuple[Held, Held], gain: float
+                    ) -> dict[str, artifact.InUse]:
+    """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
+    set from the training data: its decision over time, the tracker and the settled-hold
+    ``gain`` (:func:`~fbgforce.trainer.hold_gain.hold_gain`).
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
     memory settles. The tracker discounts the recovery the pad's creep (``data.creep_held``)
     predicts after a release, which it would otherwise learn as drift (docs/runtime.md, "In
-    use"), unless the creep inverse has already taken it out. ``gain``: the settled-hold
-    gain (:func:`~fbgforce.trainer.hold_gain.hold_gain`)."""
-    rested = np.concatenate([rests[0][0], rests[1][0]])[:, :z.shape[1]]
+    use"), unless the creep inverse has already taken it out."""
+    rested = np.concatenate([rests[0][0], rests[1][0]])[:, :pre.n_features]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
-    left = Creep() if model.preprocess.creep else data.creep_held
+    left = Creep() if pre.creep else data.creep_held
     calibration_rests = _rest_margins(data, logits)
     # The Schmitt trigger's threshold weighs the synthetic long rests too; the CUSUM's false
     # events are estimated from excursions along the recordings' own rests, in their order,
     # which spliced-in synthetic stretches would not keep.
     rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
                     "cusum": calibration_rests}
-    rules = {rule: artifact.InUse.recommended(
+    return {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain,
         decision=rule) for rule in DECISION_RULES}
+
+
+def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactStage",
+            gain: float, decision: str) -> dict[str, dict[str, Any]]:
+    """Set the model's in-use stages (:func:`_decision_rules`, by the rule ``decision``) and
+    input range from the training data; return the decision's fields of every rule
+    (``metadata.decision_rules``: what the others would have set)."""
+    rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
+                            (stage.rest_tr, stage.rest_va), gain)
     model.in_use = rules[decision]
-    model.input_range = artifact.input_range_of(z[tr])
+    model.input_range = artifact.input_range_of(stage.z[stage.tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
             for rule, iu in rules.items()}
 
@@ -385,9 +394,67 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     data_coverage = coverage(ds_list)
     init_model, memory, net_sizes = _starting_point(params)
     data = prepared if prepared is not None else _prepared(ds_list, described, params, memory)
+    tracking = None
+    if params.track_calibration:
+        data, tracking = _tracked_calibration(data, described, params, init_model, memory,
+                                              net_sizes)
     if params.turn_guard_s is None:
         params = replace(params, turn_guard_s=TURN_GUARD_S if data.pre.creep else 0.0)
     t_prep = time.perf_counter() - t_start
+    stage = _contact_stage(data, params, init_model, memory, net_sizes)
+    tr, va, te, pre, fit_net = stage.tr, stage.va, stage.te, stage.pre, stage.fit_net
+    pred_contact = stage.logits[:, 1] > stage.logits[:, 0]
+    fnet = fit_force(fit_net, data, stage.z, stage.cnet, pred_contact, stage.scaling, tr, va,
+                     stage.synth_tr, stage.synth_va, stage.streams.force)
+    lnet = fit_location(fit_net, data, pre, stage.x_all, pred_contact, fnet, stage.scaling,
+                        params, tr, va, stage.streams.location, stage.streams.location_augment)
+    warnings, held_s = training_warnings(data, pre, tr, te, stage.hold_tr)
+    reports = fit_net.reports
+    model = _assemble(data, pre, stage.scaling,
+                      {"contact": stage.cnet, "force": fnet, "location": lnet}, reports, described)
+    t_train = time.perf_counter() - t_start - t_prep
+    settled = _settled_gain(model, data, pre, np.concatenate([tr, va]), stage.creep,
+                            bool(stage.hold_tr[1].size), stage.streams.hold_gain)
+    rules = _in_use(model, data, stage, settled["gain"], params.decision)
+    model.metadata = model_metadata(model, data, params, described, (tr, va, te), stage.x_all,
+                                    reports, data_coverage, stage.creep,
+                                    (stage.hold_tr, stage.hold_va, settled),
+                                    (stage.rest_tr, stage.rest_va), held_s, warnings,
+                                    (t_prep, t_train), tracking)
+    model.metadata["decision_rules"] = rules
+    return model
+
+
+@dataclass
+class _ContactStage:
+    """A training run up to its contact net: the split, the scaling and preprocessing, the
+    synthetic holds and rests, the contact net and its logits on every row, and what the
+    force and location nets go on with (the fitter, the random streams)."""
+
+    tr: np.ndarray
+    va: np.ndarray
+    te: np.ndarray
+    scaling: Scaling
+    pre: artifact.Preprocess
+    x_all: np.ndarray
+    z: np.ndarray
+    fit_net: NetFitter
+    streams: _Streams
+    creep: Creep
+    hold_tr: Held
+    hold_va: Held
+    rest_tr: Held
+    rest_va: Held
+    synth_tr: Held
+    synth_va: Held
+    cnet: FlatMLP
+    logits: np.ndarray
+
+
+def _contact_stage(data: Prepared, params: TrainParams,
+                   init_model: artifact.HierarchicalModel | None, memory: artifact.Memory,
+                   net_sizes: dict[str, list[int]]) -> _ContactStage:
+    """Train on ``data`` as ``params`` asks up to the contact net (:class:`_ContactStage`)."""
     streams = _Streams.from_seed(params.seed)
     tr, va, te = _split(data, params, streams.subsample)
     scaling = _scaling(data, tr, init_model)
@@ -400,22 +467,33 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
     synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
     cnet, logits = fit_contact(fit_net, data, z, tr, va, synth_tr, synth_va, streams.contact)
-    pred_contact = logits[:, 1] > logits[:, 0]
-    fnet = fit_force(fit_net, data, z, cnet, pred_contact, scaling, tr, va, synth_tr, synth_va,
-                     streams.force)
-    lnet = fit_location(fit_net, data, pre, x_all, pred_contact, fnet, scaling, params, tr, va,
-                        streams.location, streams.location_augment)
-    warnings, held_s = training_warnings(data, pre, tr, te, hold_tr)
-    reports = fit_net.reports
-    model = _assemble(data, pre, scaling, {"contact": cnet, "force": fnet, "location": lnet},
-                      reports, described)
-    t_train = time.perf_counter() - t_start - t_prep
-    settled = _settled_gain(model, data, pre, np.concatenate([tr, va]), creep,
-                            bool(hold_tr[1].size), streams.hold_gain)
-    rules = _in_use(model, data, logits, z, tr, cnet, (rest_tr, rest_va), settled["gain"],
-                    params.decision)
-    model.metadata = model_metadata(model, data, params, described, (tr, va, te), x_all, reports,
-                                    data_coverage, creep, (hold_tr, hold_va, settled),
-                                    (rest_tr, rest_va), held_s, warnings, (t_prep, t_train))
-    model.metadata["decision_rules"] = rules
-    return model
+    return _ContactStage(tr, va, te, scaling, pre, x_all, z, fit_net, streams, creep, hold_tr,
+                         hold_va, rest_tr, rest_va, synth_tr, synth_va, cnet, logits)
+
+
+def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
+                         params: TrainParams, init_model: artifact.HierarchicalModel | None,
+                         memory: artifact.Memory, net_sizes: dict[str, list[int]]
+                         ) -> tuple[Prepared, dict[str, Any] | None]:
+    """The calibration prepared as the at-rest tracker hands it to the nets
+    (:mod:`fbgforce.trainer.tracked`), the tracker driven by a contact net and decision
+    trained on ``data`` as tared; and what ``model.json`` records of the tracker's
+    corrections. ``data`` itself, and None, for a model that runs no tracker (an offline
+    model's centred filter, a decision without one)."""
+    if data.pre.filter_kind == "centred":
+        return data, None
+    t_start = time.perf_counter()
+    stage = _contact_stage(data, params, init_model, memory, net_sizes)
+    in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
+                             (stage.rest_tr, stage.rest_va), 0.0)[params.decision]
+    if not in_use.track_shift:
+        return data, None
+    model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,
+                                  artifact.input_range_of(stage.z[stage.tr]),
+                                  np.median([r.baseline_nm for r in data.recordings], axis=0))
+    drifts = [tracked.tracker_drift_nm(model, r.ds, r.baseline_nm) for r in data.recordings]
+    seen = _prepared([tracked.tracked_dataset(r.ds, d) for r, d in zip(data.recordings, drifts)],
+                     described, params, memory)
+    for mine, recorded in zip(seen.recordings, data.recordings):
+        mine.recorded = recorded.as_recorded
+    return seen, {**tracked.drift_summary(drifts), "seconds": time.perf_counter() - t_start}

@@ -775,3 +775,19 @@ class FloatPipeline:
         states[good] = _exp_average(filt[good], iu.track_creep_shift, self._track_creep)
         self._track_creep = states[good[-1]].copy()
         return iu.track_creep * states
+
+
+def tracked_baselines(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray
+                      ) -> np.ndarray:
+    """(n, 5) the baseline the float pipeline holds at each sample of one continuous
+    recording tared at ``baseline_nm``: the tare, with the at-rest tracker's correction of
+    the strain gratings' entries as it stands when the sample arrives (it moves only at the
+    tracker's block boundaries)."""
+    wl = np.asarray(wl_nm, dtype=np.float64).reshape(-1, N_STRAIN + 1)
+    pipe = FloatPipeline(model, baseline_nm)
+    block = contract.LIMIT["TRACK_BLOCK"]
+    out = np.empty_like(wl)
+    for start in range(0, wl.shape[0], block):
+        out[start:start + block] = pipe.baseline_nm
+        pipe.push(wl[start:start + block])
+    return out
