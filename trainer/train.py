@@ -492,8 +492,11 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
                                   artifact.input_range_of(stage.z[stage.tr]),
                                   np.median([r.baseline_nm for r in data.recordings], axis=0))
     drifts = [tracked.tracker_drift_nm(model, r.ds, r.baseline_nm) for r in data.recordings]
+    summary = tracked.drift_summary(drifts)
+    if not any(np.any(d) for d in drifts):    # the tracker never moved: the data as tared
+        return data, {**summary, "seconds": time.perf_counter() - t_start}
     seen = _prepared([tracked.tracked_dataset(r.ds, d) for r, d in zip(data.recordings, drifts)],
                      described, params, memory)
     for mine, recorded in zip(seen.recordings, data.recordings):
         mine.recorded = recorded.as_recorded
-    return seen, {**tracked.drift_summary(drifts), "seconds": time.perf_counter() - t_start}
+    return seen, {**summary, "seconds": time.perf_counter() - t_start}
