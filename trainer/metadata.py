@@ -80,7 +80,9 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
                 f"{iu.track_limit_pm:g} pm" if iu.track_shift else "off"},
         {"name": "tracked_calibration", "applied": tracking is not None,
          "why": _tracking_why(tracking) if tracking is not None
-         else "--track-calibration off: the nets learned the recordings as tared"},
+         else "off: the nets learned the recordings as tared ("
+         + ("the model runs no tracker)" if params.track_calibration
+            else "--track-calibration off)")},
     ]
 
 

@@ -31,9 +31,9 @@ def predict_prepared(model: artifact.HierarchicalModel, data: Prepared,
                      inputs: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """The float pipeline's outputs on every row of ``data``, each recording run whole on its
     own tare as ``fbgforce evaluate`` runs it (as recorded, not as the tracker handed it to
-    the nets): through the decision over time and the at-rest tracker when the model has them (:func:`fbgforce.model.floatref.predict`), else on the prepared
-    net inputs (``inputs``, if the caller has them: the memory states make them a pass over
-    every recording)."""
+    the nets): through the decision over time and the at-rest tracker when the model has them
+    (:func:`fbgforce.model.floatref.predict`), else on the prepared net inputs (``inputs``, if
+    the caller has them: the memory states make them a pass over every recording)."""
     if model.runs_in_use:
         parts = [floatref.predict(model, r.as_recorded.wl_nm, r.baseline_nm)
                  for r in data.recordings]

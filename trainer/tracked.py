@@ -69,4 +69,4 @@ def drift_summary(drifts_nm: Sequence[np.ndarray]) -> dict[str, Any]:
     largest magnitude, pm."""
     return {"recordings": [{"mean_pm": np.round(1000.0 * d.mean(axis=0), 3).tolist(),
                             "max_abs_pm": np.round(1000.0 * np.abs(d).max(axis=0), 3).tolist()}
-                           for d in drifts_nm if d.size]}
+                           for d in drifts_nm]}
