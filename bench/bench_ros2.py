@@ -189,6 +189,9 @@ class _Accounted:
     def publish(self, records: np.ndarray) -> None:
         self.publication.publish(records)
 
+    def status(self, snapshot: Any) -> None:
+        self.publication.status(snapshot)
+
     def finish(self) -> dict[str, Any]:
         self.take()
         return self.publication.finish()

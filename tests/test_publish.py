@@ -371,6 +371,32 @@ def test_stream_publish_memory_is_flat_over_a_million_samples():
     assert grown < 1 << 20, grown
 
 
+class _StatusCountingPublisher(_CountingPublisher):
+    statuses = 0
+
+    def publish_status(self, health: dict) -> None:
+        self.statuses += 1
+
+
+def test_bench_ros2s_accounted_publication_takes_what_a_stream_hands_it(monkeypatch):
+    """bench_ros2 wraps the publication to take the processes' usage before it finishes: the
+    wrapper passes on the batches and every second's health snapshot (the stream hands both)
+    and takes the usage once, before the summary."""
+    from fbgforce.bench.bench_ros2 import _Accounted
+    from fbgforce.interrogator import health
+    from fbgforce.interrogator.stream import run_stream
+
+    monkeypatch.setattr(health, "PERIOD_S", 0.0)     # a snapshot between every two batches
+    k = 20
+    batch = [P.Frame(i, i, (1_546_000_000,) * 5) for i in range(k)]
+    pub, taken = _StatusCountingPublisher(), []
+    summary = run_stream(_SameBatchReader(batch, 5), _TaredEstimator(k), status=False,
+                         publication=_Accounted(U.Outputs([pub]), lambda: taken.append(pub.sent)),
+                         max_samples=5 * k, idle_timeout=0.2)
+    assert pub.sent == summary["publish_latency_us"]["n"] == 5 * k
+    assert pub.statuses >= 5 and taken == [5 * k]
+
+
 def test_latency_summary_percentiles_are_within_the_documented_bound():
     from fbgforce.interrogator.publish import LatencySummary
 
