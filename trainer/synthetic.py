@@ -82,6 +82,7 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
             after[sel[(pid == p) & (sel > peak)]] = True
         if not peaks:
             continue
+        peaks = sorted(peaks)
         lengths = np.round(rng.uniform(*HOLD_AUGMENT_S, len(peaks)) * r.rate_hz).astype(np.int64)
         # The mean of the 6 samples up to the peak, its strain part scaled by the peak force
         # over their mean force (the load still rises there). Not the samples after it: past
@@ -94,25 +95,42 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
         level[:, :artifact.N_STRAIN] = (base[:artifact.N_STRAIN]
                                   + (level[:, :artifact.N_STRAIN] - base[:artifact.N_STRAIN]) * scale[:, None])
         rise = creep.still_to_come(force, np.asarray(peaks), r.rate_hz)
-        # After the hold the lag runs down from the held load instead of the peak's lagging
-        # value: the rise reached in the hold decays over 10 time constants.
-        tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * r.rate_hz) + 1, r.rate_hz)
         strain = pp.compensated(pre, level, r.baseline_nm) / 1000.0     # nm
-        wl = wl.copy()
-        ramp = []
-        for i, (k, n) in enumerate(zip(peaks, lengths)):
-            ramp.append(rise[i] * creep.settling(n, r.rate_hz))
-            left = ramp[-1][-1] * tail[1:len(wl) - k]
-            wl[k + 1:k + 1 + left.size, :artifact.N_STRAIN] += left[:, None] * strain[i]
+        ramp = [rise[i] * creep.settling(n, r.rate_hz) for i, n in enumerate(lengths)]
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
         held[:, :artifact.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        wl, held = _creep_left_after_holds(wl, held, peaks, lengths, ramp, strain, creep,
+                                           r.rate_hz)
         in_hold = np.concatenate([np.arange(n) for n in lengths])
         step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
         x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
         inputs.append(x)
         kept.append(src + sl.start)
     return _stacked(inputs, kept, pre, rows)
+
+
+def _creep_left_after_holds(wl: np.ndarray, held: np.ndarray, peaks: Sequence[int],
+                            lengths: np.ndarray, ramp: Sequence[np.ndarray], strain: np.ndarray,
+                            creep: Creep, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """The recorded wavelengths ``wl`` and the held rows ``held`` (the holds of ``peaks``, in
+    order, ``lengths[i]`` rows after ``peaks[i]``) with what the creep each hold reached
+    (``ramp[i][-1]`` of its strain shifts ``strain[i]``) leaves as its lag runs down after the
+    hold: over 10 time constants, on every later sample of the lengthened recording, the
+    later holds' rows included. A hold that starts while an earlier one's creep still runs
+    down holds that residue too, and keeps it running down; levelled without it, its rows
+    would step down from the samples before it by the residue (the nets would learn a held
+    load read low by it, up to a few percent with a creep of seconds)."""
+    inserted = np.insert(np.zeros(len(wl), dtype=bool), np.repeat(np.asarray(peaks) + 1, lengths),
+                         True)
+    out = np.empty((inserted.size, wl.shape[1]))
+    out[~inserted], out[inserted] = wl, held
+    tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * rate_hz) + 1, rate_hz)
+    ends = np.asarray(peaks) + 1 + np.cumsum(lengths)      # first sample after each hold
+    for end, r, s in zip(ends, ramp, strain):
+        left = r[-1] * tail[1:1 + out.shape[0] - end]
+        out[end:end + left.size, :artifact.N_STRAIN] += left[:, None] * s
+    return out[~inserted], out[inserted]
 
 
 def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
