@@ -144,10 +144,10 @@ class Scaling:
 
 
 def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarray,
-                va: np.ndarray, synth_tr: Held, synth_va: Held, rng: np.random.Generator
-                ) -> tuple[FlatMLP, np.ndarray]:
+                va: np.ndarray, synth_tr: Held, synth_va: Held, rng: np.random.Generator,
+                desc: str = "contact net") -> tuple[FlatMLP, np.ndarray]:
     """The contact net on every sample and the synthetic ones (softmax cross-entropy);
-    returns it and its logits on every row."""
+    returns it and its logits on every row. ``desc`` names it on the progress bar."""
     nf = z.shape[1]
     labels = data.contact.astype(np.int64)
     zc_tr = np.concatenate([z[tr], synth_tr[0][:, :nf]])
@@ -160,7 +160,7 @@ def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarra
                                          == data.contact[va])) if va.size else float("nan")}
 
     cnet = fit_net("contact", rng, "xent", zc_tr, yc_tr, zc_va, yc_va,
-                   val_metrics=contact_val, desc="contact net")
+                   val_metrics=contact_val, desc=desc)
     return cnet, predict_batched(cnet, z)
 
 

@@ -453,8 +453,9 @@ class _ContactStage:
 
 def _contact_stage(data: Prepared, params: TrainParams,
                    init_model: artifact.HierarchicalModel | None, memory: artifact.Memory,
-                   net_sizes: dict[str, list[int]]) -> _ContactStage:
-    """Train on ``data`` as ``params`` asks up to the contact net (:class:`_ContactStage`)."""
+                   net_sizes: dict[str, list[int]], desc: str = "contact net") -> _ContactStage:
+    """Train on ``data`` as ``params`` asks up to the contact net (:class:`_ContactStage`;
+    ``desc`` names the net on the progress bar)."""
     streams = _Streams.from_seed(params.seed)
     tr, va, te = _split(data, params, streams.subsample)
     scaling = _scaling(data, tr, init_model)
@@ -466,7 +467,8 @@ def _contact_stage(data: Prepared, params: TrainParams,
     hold_tr, hold_va = _holds(data, pre, params, tr, va, creep, streams.holds)
     rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
     synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
-    cnet, logits = fit_contact(fit_net, data, z, tr, va, synth_tr, synth_va, streams.contact)
+    cnet, logits = fit_contact(fit_net, data, z, tr, va, synth_tr, synth_va, streams.contact,
+                               desc)
     return _ContactStage(tr, va, te, scaling, pre, x_all, z, fit_net, streams, creep, hold_tr,
                          hold_va, rest_tr, rest_va, synth_tr, synth_va, cnet, logits)
 
@@ -483,7 +485,8 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     if data.pre.filter_kind == "centred":
         return data, None
     t_start = time.perf_counter()
-    stage = _contact_stage(data, params, init_model, memory, net_sizes)
+    stage = _contact_stage(data, params, init_model, memory, net_sizes,
+                           "the tracker's contact net")
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
                              (stage.rest_tr, stage.rest_va), 0.0)[params.decision]
     if not in_use.track_shift:
