@@ -82,7 +82,7 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
             after[sel[(pid == p) & (sel > peak)]] = True
         if not peaks:
             continue
-        peaks = sorted(peaks)
+        peaks = sorted(peaks)        # in time order: a hold's creep runs on into the later ones
         lengths = np.round(rng.uniform(*HOLD_AUGMENT_S, len(peaks)) * r.rate_hz).astype(np.int64)
         # The mean of the 6 samples up to the peak, its strain part scaled by the peak force
         # over their mean force (the load still rises there). Not the samples after it: past
@@ -127,9 +127,9 @@ def _creep_left_after_holds(wl: np.ndarray, held: np.ndarray, peaks: Sequence[in
     out[~inserted], out[inserted] = wl, held
     tail = 1.0 - creep.settling(int(10 * creep.time_constant_s * rate_hz) + 1, rate_hz)
     ends = np.asarray(peaks) + 1 + np.cumsum(lengths)      # first sample after each hold
-    for end, r, s in zip(ends, ramp, strain):
-        left = r[-1] * tail[1:1 + out.shape[0] - end]
-        out[end:end + left.size, :artifact.N_STRAIN] += left[:, None] * s
+    for end, reached, shifts in zip(ends, ramp, strain):
+        left = reached[-1] * tail[1:1 + out.shape[0] - end]
+        out[end:end + left.size, :artifact.N_STRAIN] += left[:, None] * shifts
     return out[~inserted], out[inserted]
 
 
