@@ -271,7 +271,7 @@ def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_pat
 
     ds = dataset.load(small_dataset_path)
     res = decision.decision_curve(small_exported_dir, [ds], on_scales=(1.0,), rise_counts=(3,),
-                                  h_scales=(1.0, 1e6))
+                                  h_scales=(1.0, 1e6), k_offsets=(0.0,))
     rules = [r["rule"] for r in res["rows"]]
     assert rules == ["schmitt", "cusum", "cusum"]
     low, high = res["rows"][1], res["rows"][2]
@@ -285,6 +285,28 @@ def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_pat
     md = decision.markdown(res)
     assert "| cusum |" in md and "| schmitt (default) |" in md
     assert decision.plot(res, tmp_path / "d.png").stat().st_size > 1000
+
+
+def test_the_quickest_quiet_setting_is_the_earliest_onset_within_the_false_event_rate() -> None:
+    """Each rule's quickest row among those quiet enough; a quicker noisy row is passed over,
+    a tie goes to the better detection, and a rule with no quiet row says so (None)."""
+    from fbgforce.tradeoff import decision
+
+    def row(rule: str, false: float | None, onset: float | None, det: float | None) -> dict:
+        return {"rule": rule, "false_events_per_min": false, "onset_median_ms": onset,
+                "onset_p90_ms": None, "detected_above_1N": det, "default": False, "cusum_k": 1.0,
+                "cusum_h": 3.0, "contact_on_margin": 1.0, "contact_rise_samples": 3}
+
+    rows = [row("cusum", 4.0, 8.0, 1.0), row("cusum", 0.5, 12.0, 0.99),
+            row("cusum", 1.0, 12.0, 0.999), row("cusum", 0.0, 15.0, 1.0),
+            row("schmitt", 2.0, 9.0, 1.0), row("schmitt", None, None, None)]
+    best = decision.quickest_quiet(rows)
+    assert best["cusum"] is rows[2] and best["schmitt"] is None
+    assert decision.quickest_quiet(rows, per_min=5.0)["cusum"] is rows[0]
+    md = decision.markdown({"rows": rows[:5], "quickest": best})
+    assert "quickest cusum within 1 false event(s) per minute at rest: CUSUM k 1.00, h 3.00, " \
+           "1.00 /min, onset 12.0 ms" in md
+    assert "- schmitt: no setting of the grid stays within 1" in md
 
 
 @pytest.mark.slow

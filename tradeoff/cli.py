@@ -78,7 +78,8 @@ def _add_grid_options(p: argparse.ArgumentParser) -> None:
                    help="instead of the grid of models: the contact decision's curve of this "
                         "exported model on --data/--scene, false contact events per minute at "
                         "rest against onset delay over the Schmitt trigger's rise margin and "
-                        "count and the CUSUM's threshold (decision.json, decision.md, "
+                        "count and the CUSUM's threshold and drift, with each rule's quickest "
+                        "setting within 1 false event per minute (decision.json, decision.md, "
                         "decision.csv, decision.png in --out)")
 
 
