@@ -151,17 +151,13 @@ def quickest_quiet(rows: Sequence[dict[str, Any]], per_min: float = QUIET_PER_MI
     false contact events per minute at rest (ties: the higher detection above 1 N), or None
     when no row of the rule is that quiet: how quick the decision can be on these recordings
     at that quiet, whatever the trainer would set."""
-    best: dict[str, dict[str, Any] | None] = {}
-    for r in rows:
-        best.setdefault(r["rule"], None)
-        if (r["false_events_per_min"] is None or r["onset_median_ms"] is None
-                or r["false_events_per_min"] > per_min):
-            continue
-        b = best[r["rule"]]
-        key = (r["onset_median_ms"], -(r["detected_above_1N"] or 0.0))
-        if b is None or key < (b["onset_median_ms"], -(b["detected_above_1N"] or 0.0)):
-            best[r["rule"]] = r
-    return best
+    def quiet(r: dict[str, Any]) -> bool:
+        return (r["false_events_per_min"] is not None and r["onset_median_ms"] is not None
+                and r["false_events_per_min"] <= per_min)
+
+    return {rule: min((r for r in rows if r["rule"] == rule and quiet(r)), default=None,
+                      key=lambda r: (r["onset_median_ms"], -(r["detected_above_1N"] or 0.0)))
+            for rule in dict.fromkeys(r["rule"] for r in rows)}
 
 
 def _fmt(v: Any, fmt: str) -> str:
