@@ -10,7 +10,7 @@ from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.creep_evidence import (CREEP_EVIDENCE_MIN_TAU_S, creep_evidence,
                                              creep_press_check)
 from fbgforce.trainer.creep_fit import (CREEP_TAIL_S, CREEP_TIME_CONSTANTS_S, CREEP_ZERO_SPAN_S,
-                                        CreepTails, creep_of)
+                                        RATE_EFFECT_TIME_CONSTANT_S, CreepTails, creep_of)
 from fbgforce.trainer.params import TrainParams
 from fbgforce.trainer.train import prepare
 
@@ -18,10 +18,11 @@ RATE = 1000.0
 
 
 def _tails(creep: Creep, noise_N: float, seed: int = 0, rate_effect: float = 0.0,
-           releases: int = 80) -> CreepTails:
+           releases: int = 80, rate_term: bool = False, rate_tau: float = 0.002) -> CreepTails:
     """Tails of ``releases`` presses (0.2 s ramps to 5-40 N, 0.15 s tails read), the excess
-    the creep leaves there, a rate effect at the release (the last 10 ms of the unloading),
-    wandering offsets and white noise."""
+    the creep leaves there, a rate effect at the release (a relaxation over ``rate_tau``),
+    wandering offsets and white noise; ``rate_term``: the fit's rate term beside them, as
+    ``CreepTails.of`` gathers it."""
     rng = np.random.default_rng(seed)
     taus = CREEP_TIME_CONSTANTS_S
     tail_n = int(CREEP_TAIL_S * RATE)
@@ -36,11 +37,12 @@ def _tails(creep: Creep, noise_N: float, seed: int = 0, rate_effect: float = 0.0
     lags = np.column_stack([(Creep(1.0, tau).lag(f, RATE) - f)[tail] for tau in taus])
     span = (np.arange(f.size) // int(CREEP_ZERO_SPAN_S * RATE))[tail]
     truth = (creep.magnitude * (creep.lag(f, RATE) - f) if creep.magnitude else 0 * f)[tail]
-    fast = rate_effect * (Creep(1.0, 0.002).lag(f, RATE) - f)[tail]
+    fast = rate_effect * (Creep(1.0, rate_tau).lag(f, RATE) - f)[tail]
     excess = truth + fast + rng.normal(0.0, 0.05, span.max() + 1)[span] \
         + rng.normal(0.0, noise_N, tail.sum())
+    rate = (Creep(1.0, RATE_EFFECT_TIME_CONSTANT_S).lag(f, RATE) - f)[tail] if rate_term else None
     return CreepTails(excess, np.unique(span, return_inverse=True)[1],
-                        np.unique(rel[tail], return_inverse=True)[1], lags, tuple(taus))
+                      np.unique(rel[tail], return_inverse=True)[1], lags, tuple(taus), rate)
 
 
 @pytest.mark.parametrize("tau", [0.05, 1.0])
@@ -69,6 +71,31 @@ def test_a_rate_effect_at_the_release_is_not_taken_for_a_creep():
     assert found.magnitude > 0 and found.time_constant_s < CREEP_EVIDENCE_MIN_TAU_S
     ev = creep_evidence(tails, found)
     assert not ev["established"] and "shortest" in ev["why"]
+
+
+def test_a_rate_effect_beside_a_fast_creep_does_not_inflate_it():
+    # The release's rate effect overlaps a 50 ms creep's first milliseconds: fitted alone,
+    # the creep takes it up; beside the rate term, it is read at its own size.
+    truth = Creep(0.05, 0.05)
+    alone = creep_of(_tails(truth, noise_N=0.02, rate_effect=0.1, rate_tau=0.01))
+    beside = _tails(truth, noise_N=0.02, rate_effect=0.1, rate_tau=0.01, rate_term=True)
+    found = creep_of(beside)
+    assert alone.magnitude > 1.3 * truth.magnitude
+    assert found.magnitude == pytest.approx(truth.magnitude, rel=0.2)
+    assert found.time_constant_s == pytest.approx(truth.time_constant_s, rel=0.3)
+    assert creep_evidence(beside, found)["established"]
+
+
+def test_the_rate_term_alone_establishes_no_creep():
+    # A rate effect and no creep: the fit still names the grid's shortest time, and the rate
+    # term, fitted beside the offsets whatever the creep, leaves it nothing to remove.
+    tails = _tails(Creep(), noise_N=0.02, rate_effect=0.3, rate_term=True)
+    found = creep_of(tails)
+    ev = creep_evidence(tails, found)
+    assert not ev["established"] and "shortest" in ev["why"]
+    for seed in range(3):
+        noise = _tails(Creep(), noise_N=0.05, seed=seed, rate_term=True)
+        assert not creep_evidence(noise, creep_of(noise), seed=seed)["established"]
 
 
 def test_the_fit_is_the_least_squares_fit_with_one_offset_per_span():

@@ -13,7 +13,7 @@ from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
-from fbgforce.trainer.creep_fit import CreepTails, creep_of
+from fbgforce.trainer.creep_fit import CREEP_EVIDENCE_MIN_TAU_S, CreepTails, creep_of
 from fbgforce.trainer.data import Prepared
 
 
@@ -45,11 +45,11 @@ def creep_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mod
 
 
 #: The creep a calibration must establish before the trainer corrects for it
-#: (:func:`creep_evidence`): a relaxation time clear of the fit's shortest (a rate effect at
-#: the release, a damper's, reads as a creep there), and more of the tails' residual removed,
-#: in sample and on releases the fit never saw, than the fit removes from any of
-#: :data:`CREEP_EVIDENCE_DRAWS` sign-flipped draws of the noise.
-CREEP_EVIDENCE_MIN_TAU_S = 0.02
+#: (:func:`creep_evidence`): a relaxation time clear of the fit's shortest
+#: (:data:`~fbgforce.trainer.creep_fit.CREEP_EVIDENCE_MIN_TAU_S`: a rate effect at the release,
+#: a damper's, reads as a creep there), and more of the tails' residual removed beside the
+#: offsets and that rate effect, in sample and on releases the fit never saw, than the fit
+#: removes from any of :data:`CREEP_EVIDENCE_DRAWS` sign-flipped draws of the noise.
 CREEP_EVIDENCE_DRAWS = 19
 
 
