@@ -86,6 +86,19 @@ def test_a_rate_effect_beside_a_fast_creep_does_not_inflate_it():
     assert creep_evidence(beside, found)["established"]
 
 
+def test_the_rate_term_is_kept_only_where_the_tails_show_the_rate_effect():
+    # A pad that lets go of 10 % over 10 ms at the release shows it beside its creep; one that
+    # does not keeps the fit it had alone, whatever the noise's draw. (A creep between two of
+    # the grid's time constants leaves a residue the term takes up, significant where the
+    # noise is this low: the one on the grid here keeps the test on the rate effect.)
+    creep = Creep(0.05, CREEP_TIME_CONSTANTS_S[11])
+    assert _tails(creep, noise_N=0.02, rate_effect=0.1, rate_tau=0.01,
+                  rate_term=True).shows_rate_effect()
+    for seed in range(5):
+        assert not _tails(creep, noise_N=0.05, seed=seed, rate_term=True).shows_rate_effect(), seed
+    assert not _tails(creep, noise_N=0.05).shows_rate_effect()
+
+
 def test_the_rate_term_alone_establishes_no_creep():
     # A rate effect and no creep: the fit still names the grid's shortest time, and the rate
     # term, fitted beside the offsets whatever the creep, leaves it nothing to remove.
