@@ -21,10 +21,10 @@ CREEP_TIME_CONSTANTS_S = tuple(0.01 * 10.0 ** (k / 12) for k in range(32))
 CREEP_TAIL_S = 0.15
 CREEP_ZERO_SPAN_S = 10.0
 
-#: The release's rate effect, fitted beside every creep: a relaxation at the grid's shortest
-#: time (the unloading's last milliseconds, where a damper's or the friction's rate effect
-#: reads as a creep), and the shortest time constant a creep must have to be told apart
-#: from it (:func:`~fbgforce.trainer.creep_evidence.creep_evidence`'s first test).
+#: The release's rate effect, fitted beside the creep where the tails show it: a relaxation
+#: at the grid's shortest time (the unloading's last milliseconds, where a damper's or the
+#: friction's rate effect reads as a creep), and the shortest time constant a creep must have
+#: to be told apart from it (:func:`~fbgforce.trainer.creep_evidence.creep_evidence`'s first test).
 RATE_EFFECT_TIME_CONSTANT_S = CREEP_TIME_CONSTANTS_S[0]
 CREEP_EVIDENCE_MIN_TAU_S = 0.02
 #: The rate term is fitted only where the calibration shows the rate effect: its coefficient
@@ -57,7 +57,8 @@ class CreepTails:
         The relaxation times of ``lags``' columns.
     rate_lag
         (m,) ``lag(F) - F`` at :data:`RATE_EFFECT_TIME_CONSTANT_S`: the release's rate effect,
-        fitted beside every creep as the offsets are (None: no rate term).
+        fitted beside the creep as the offsets are (None: no rate term; :meth:`of` leaves it
+        out where the tails do not show the effect, :meth:`shows_rate_effect`).
     """
 
     excess: np.ndarray
