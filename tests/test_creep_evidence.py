@@ -10,7 +10,8 @@ from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.creep_evidence import (CREEP_EVIDENCE_MIN_TAU_S, creep_evidence,
                                              creep_press_check)
 from fbgforce.trainer.creep_fit import (CREEP_TAIL_S, CREEP_TIME_CONSTANTS_S, CREEP_ZERO_SPAN_S,
-                                        RATE_EFFECT_TIME_CONSTANT_S, CreepTails, creep_of)
+                                        RATE_EFFECT_MIN_Z, RATE_EFFECT_TIME_CONSTANT_S, CreepTails,
+                                        creep_of)
 from fbgforce.trainer.params import TrainParams
 from fbgforce.trainer.train import prepare
 
@@ -97,6 +98,20 @@ def test_the_rate_term_is_kept_only_where_the_tails_show_the_rate_effect():
     for seed in range(5):
         assert not _tails(creep, noise_N=0.05, seed=seed, rate_term=True).shows_rate_effect(), seed
     assert not _tails(creep, noise_N=0.05).shows_rate_effect()
+
+
+def test_the_rate_effects_test_gives_its_figures():
+    # What model.json records: the term's coefficient (10 % simulated), its standard error
+    # clustered by release, and z against the one-sided 5 % level.
+    creep = Creep(0.05, CREEP_TIME_CONSTANTS_S[11])
+    shown = _tails(creep, noise_N=0.02, rate_effect=0.1, rate_tau=0.01,
+                   rate_term=True).rate_effect_test()
+    assert shown["fitted"] and shown["z"] > RATE_EFFECT_MIN_Z == shown["min_z"]
+    assert shown["coefficient"] == pytest.approx(0.1, rel=0.2)
+    assert shown["z"] == pytest.approx(shown["coefficient"] / shown["standard_error"])
+    none = _tails(creep, noise_N=0.05, rate_term=True).rate_effect_test()
+    assert not none["fitted"] and none["z"] <= RATE_EFFECT_MIN_Z
+    assert _tails(creep, noise_N=0.05).rate_effect_test()["z"] is None
 
 
 def test_the_rate_term_alone_establishes_no_creep():

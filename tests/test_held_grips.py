@@ -112,6 +112,11 @@ def test_fit_creep_finds_the_pads_relaxation():
     visco = scene.effects["viscoelastic"]
     assert creep.magnitude == pytest.approx(visco["magnitude"], rel=0.2)
     assert creep.time_constant_s == pytest.approx(visco["time_constant_s"], rel=0.3)
+    # The scene's pad has no friction: its tails show no rate effect (z 0.25), and the
+    # model's metadata says so.
+    rate = data.creep_evidence["rate_effect"]
+    assert not rate["fitted"] and rate["z"] < rate["min_z"]
+    assert "rate effect" not in data.creep_evidence["why"]
     ideal = sim.load_scene("calibration_paper").replace(
         schedule={"n_presses": 20}, effects={"viscoelastic": {"magnitude": 0.0}})
     ideal_data = prepare([sim.simulate(ideal)])
@@ -128,6 +133,11 @@ def test_fit_creep_finds_a_slow_creep_under_a_wandering_zero():
     creep = fit_creep(data, data.pre, data.rows("all"))
     assert creep.magnitude == pytest.approx(spec.creep, rel=0.15)
     assert creep.time_constant_s == pytest.approx(spec.creep_s, rel=0.25)
+    # Its friction lets go over the release's last milliseconds (10.5 % at 10 ms, z 2.4):
+    # the creep is fitted beside that, and the reason train prints says so.
+    rate = data.creep_evidence["rate_effect"]
+    assert rate["fitted"] and rate["z"] > rate["min_z"]
+    assert "fitted beside the release's rate effect" in data.creep_evidence["why"]
 
 
 @pytest.mark.parametrize("inverse", [False, True])

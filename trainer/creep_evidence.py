@@ -13,7 +13,8 @@ from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
-from fbgforce.trainer.creep_fit import CREEP_EVIDENCE_MIN_TAU_S, CreepTails, creep_of
+from fbgforce.trainer.creep_fit import (CREEP_EVIDENCE_MIN_TAU_S, RATE_EFFECT_TIME_CONSTANT_S,
+                                        CreepTails, creep_of)
 from fbgforce.trainer.data import Prepared
 
 
@@ -26,22 +27,29 @@ def creep_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mod
                  seed: int = 0) -> tuple[Creep, dict[str, Any]]:
     """The creep :func:`~fbgforce.trainer.creep_fit.fit_creep` finds on the releases among
     ``rows``, and :func:`creep_evidence` on it with whether the model corrects for it in
-    ``mode`` (:data:`CREEP_MODES`): ``applied`` (bool) and ``mode`` beside the evidence's keys;
-    ``why`` says why it is applied or not."""
+    ``mode`` (:data:`CREEP_MODES`): ``applied`` (bool), ``mode`` and ``rate_effect`` (the
+    tails' :meth:`~fbgforce.trainer.creep_fit.CreepTails.rate_effect_test`, None without
+    tails) beside the evidence's keys; ``why`` says why it is applied or not, and whether the
+    creep was fitted beside the release's rate effect."""
     if mode not in CREEP_MODES:
         raise InputError(f"must be one of {', '.join(CREEP_MODES)}, not {mode!r}",
                          column="--creep")
     tails = CreepTails.of(data, pre, rows)
     found = creep_of(tails)
+    rate = tails.rate_effect if tails is not None else None
     if mode == "off":
         return found, {"applied": False, "mode": mode, "established": None, "tests": {},
-                       "why": "--creep off"}
+                       "rate_effect": rate, "why": "--creep off"}
     evidence = creep_evidence(tails, found, seed,
                               lambda: creep_press_check(data, pre, rows, found))
     applied = found.magnitude > 0 and (mode == "on" or evidence["established"])
     why = evidence["why"] if mode == "auto" or not found.magnitude else (
         f"--creep on (established: {evidence['established']}; {evidence['why']})")
-    return found, {**evidence, "applied": applied, "mode": mode, "why": why}
+    if rate is not None and rate["fitted"] and found.time_constant_s >= CREEP_EVIDENCE_MIN_TAU_S:
+        why += (f"; fitted beside the release's rate effect ({100 * rate['coefficient']:.1f} % "
+                f"at {1000 * RATE_EFFECT_TIME_CONSTANT_S:.0f} ms, z {rate['z']:.1f})")
+    return found, {**evidence, "applied": applied, "mode": mode, "rate_effect": rate,
+                   "why": why}
 
 
 #: The creep a calibration must establish before the trainer corrects for it

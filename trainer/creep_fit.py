@@ -4,7 +4,7 @@ after a calibration's releases (:func:`fit_creep`), and at a time constant the m
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -59,6 +59,9 @@ class CreepTails:
         (m,) ``lag(F) - F`` at :data:`RATE_EFFECT_TIME_CONSTANT_S`: the release's rate effect,
         fitted beside the creep as the offsets are (None: no rate term; :meth:`of` leaves it
         out where the tails do not show the effect, :meth:`shows_rate_effect`).
+    rate_effect
+        The rate effect's test on the whole grid, when :meth:`of` judged it
+        (:meth:`rate_effect_test`): what the model's metadata records.
     """
 
     excess: np.ndarray
@@ -67,6 +70,7 @@ class CreepTails:
     lags: np.ndarray
     time_constants_s: tuple[float, ...]
     rate_lag: np.ndarray | None = None
+    rate_effect: dict[str, Any] | None = None
 
     @classmethod
     def of(cls, data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
@@ -106,16 +110,17 @@ class CreepTails:
                             for r, sl in data.recording_slices()])[tail]
             for tau in (RATE_EFFECT_TIME_CONSTANT_S, *taus, *extra)])
         mine = lags[:, 1:1 + len(taus)]
-        judged = cls(excess, span, release, lags[:, 1 + len(taus):] if extra else mine,
-                     extra or taus, lags[:, 0])
+        test = cls(excess, span, release, lags[:, 1 + len(taus):] if extra else mine,
+                   extra or taus, lags[:, 0]).rate_effect_test()
         return cls(excess, span, release, mine, taus,
-                   lags[:, 0] if judged.shows_rate_effect() else None)
+                   lags[:, 0] if test["fitted"] else None, test)
 
     def subset(self, mask: np.ndarray) -> "CreepTails":
         """The samples of ``mask``."""
         return CreepTails(self.excess[mask], np.unique(self.span[mask], return_inverse=True)[1],
                           self.release[mask], self.lags[mask], self.time_constants_s,
-                          None if self.rate_lag is None else self.rate_lag[mask])
+                          None if self.rate_lag is None else self.rate_lag[mask],
+                          self.rate_effect)
 
     def _centred(self, x: np.ndarray) -> np.ndarray:
         """``x`` (m,) or (m, k) less its span's mean, column by column."""
@@ -179,12 +184,26 @@ class CreepTails:
         return np.where(taus >= CREEP_EVIDENCE_MIN_TAU_S, rss2, np.inf), slope, rate
 
     def shows_rate_effect(self) -> bool:
+        """Whether these tails show the release's rate effect (:meth:`rate_effect_test`)."""
+        return self.rate_effect_test()["fitted"]
+
+    def rate_effect_test(self) -> dict[str, Any]:
         """Whether these tails show the release's rate effect: beside the best creep of at
         least :data:`CREEP_EVIDENCE_MIN_TAU_S`, the rate term's coefficient lies above zero by
-        :data:`RATE_EFFECT_MIN_Z` standard errors clustered by release."""
+        :data:`RATE_EFFECT_MIN_Z` standard errors clustered by release.
+
+        Returns
+        -------
+        dict
+            ``coefficient`` (the term's share of the force, as a creep's magnitude),
+            ``standard_error``, ``z`` (None where there is nothing to test: no term, or no
+            relaxation time long enough), ``min_z`` and ``fitted`` (bool).
+        """
+        out: dict[str, Any] = {"coefficient": None, "standard_error": None, "z": None,
+                               "min_z": RATE_EFFECT_MIN_Z, "fitted": False}
         if self.rate_lag is None or not np.any(np.asarray(self.time_constants_s)
                                                >= CREEP_EVIDENCE_MIN_TAU_S):
-            return False
+            return out
         e, g, r = self._centred(self.excess), self._centred(self.lags), self._centred(self.rate_lag)
         rss2, slope, rate = self._beside_rate(e, g)
         j = int(np.argmin(rss2))
@@ -196,7 +215,10 @@ class CreepTails:
                           axis=1)
         cov = bread @ (scores.T @ scores) @ bread
         se = float(np.sqrt(max(cov[0, 0], 0.0)))
-        return bool(rate[j] > RATE_EFFECT_MIN_Z * se) if se > 0 else False
+        coef = float(rate[j])
+        z = coef / se if se > 0 else None
+        return {**out, "coefficient": coef, "standard_error": se, "z": z,
+                "fitted": bool(se > 0 and coef > RATE_EFFECT_MIN_Z * se)}
 
     def rss_with(self, creep: Creep) -> float:
         """The residual on these samples of ``creep`` as given (only the offsets, and the rate

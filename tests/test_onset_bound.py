@@ -1,0 +1,86 @@
+"""The information bound on onset delay (bench/bench_onset_bound.py) against presses whose
+sensitivity, noise and force profile are known."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fbgforce.bench.bench_onset_bound import (FORCE_FLOOR_N, main, press_bounds,
+                                              rest_noise_covariance)
+from fbgforce.recordings.dataset import Dataset, save
+
+RATE = 1000.0
+SENSITIVITY = np.array([8.0, 8.0, 4.5, 9.0, 0.0])     # pm/N per grating, the last the reference
+
+
+def _presses(noise_pm: float, slope_N: float = 0.02, presses: int = 40, seed: int = 0
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shifts (pm), force and contact label of presses ramped at ``slope_N`` per sample to
+    5 N, held, released, with 300-sample rests between, under white noise of ``noise_pm``."""
+    rng = np.random.default_rng(seed)
+    ramp = np.arange(1, int(5.0 / slope_N) + 1) * slope_N
+    one = np.r_[np.zeros(300), ramp, np.full(100, 5.0), ramp[::-1]]
+    force = np.tile(one, presses)
+    wl = force[:, None] * SENSITIVITY + rng.normal(0.0, noise_pm, (force.size, 5)) + 1.5e6
+    return wl, force, force > 0.3
+
+
+def _expected_ms(noise_pm: float, slope_N: float, per_min: float = 1.0) -> float:
+    """The bound in closed form: the delay after the label at which the evidence of the
+    noise-free ramp, with the true sensitivity and noise, reaches log(60 * rate / per_min)."""
+    q = float(SENSITIVITY @ SENSITIVITY) / noise_pm ** 2
+    tau = np.arange(1, 1000)
+    f = tau * slope_N
+    evidence = 0.5 * q * np.cumsum(np.where(f > FORCE_FLOOR_N, f, 0.0) ** 2)
+    reached = int(tau[np.argmax(evidence >= math.log(60.0 * RATE / per_min))])
+    return (reached - int(tau[np.argmax(f > 0.3)])) * 1000.0 / RATE
+
+
+@pytest.mark.parametrize("noise_pm", [2.0, 10.0])
+def test_the_bound_is_the_closed_form_of_known_presses(noise_pm):
+    wl, force, contact = _presses(noise_pm)
+    cov = rest_noise_covariance(wl, contact)
+    assert np.sqrt(np.diag(cov)) == pytest.approx(noise_pm, rel=0.05)
+    got = press_bounds(wl, force, contact, cov, RATE)
+    assert len(got) == 40          # every press has its rest before it
+    bound = np.median([p["onset_bound_ms"] for p in got])
+    assert bound == pytest.approx(max(_expected_ms(noise_pm, 0.02), 0.0), abs=1.0)
+    noise = np.median([p["force_noise_N"] for p in got])
+    assert noise == pytest.approx(noise_pm / np.linalg.norm(SENSITIVITY), rel=0.05)
+
+
+def test_more_noise_or_fewer_false_events_take_longer_and_a_slow_press_gives_its_own_bound():
+    wl, force, contact = _presses(5.0)
+    cov = rest_noise_covariance(wl, contact)
+    base = np.median([p["onset_bound_ms"] for p in press_bounds(wl, force, contact, cov, RATE)])
+    quieter = np.median([p["onset_bound_ms"]
+                         for p in press_bounds(wl, force, contact, cov, RATE, per_min=0.01)])
+    noisier = np.median([p["onset_bound_ms"]
+                         for p in press_bounds(wl, force, contact, 4.0 * cov, RATE)])
+    assert 0 < base < quieter and base < noisier
+    # A press four times as slow gives evidence for four times as long before its label (the
+    # release before it none: it starts from the last unloaded sample).
+    slow = _presses(5.0, slope_N=0.005)
+    slower = np.median([p["onset_bound_ms"] for p in press_bounds(*slow, cov, RATE)])
+    assert slower == pytest.approx(_expected_ms(5.0, 0.005), abs=1.5)
+
+
+def test_the_command_prints_the_bound_and_refuses_a_log_without_rests(tmp_path, capsys):
+    wl, force, contact = _presses(10.0, presses=8)
+    n = force.size
+    xy = np.where(contact, 0.0, np.nan)
+    ds = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=contact, x_mm=xy,
+                 y_mm=xy, force_N=force, press_id=np.cumsum(np.r_[0, np.diff(contact.astype(int)) == 1]))
+    save(ds, tmp_path / "presses.npz")
+    assert main(["--data", str(tmp_path / "presses.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "8 presses" in out and f"{_expected_ms(10.0, 0.02):.0f}" in out
+    always = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
+                     x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
+                     press_id=np.zeros(n, int))
+    save(always, tmp_path / "held.npz")
+    assert main(["--data", str(tmp_path / "held.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "held.npz" in err and "rest" in err
