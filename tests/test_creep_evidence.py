@@ -94,10 +94,11 @@ def test_the_rate_term_is_kept_only_where_the_tails_show_the_rate_effect():
     # noise is this low: the one on the grid here keeps the test on the rate effect.)
     creep = Creep(0.05, CREEP_TIME_CONSTANTS_S[11])
     assert _tails(creep, noise_N=0.02, rate_effect=0.1, rate_tau=0.01,
-                  rate_term=True).shows_rate_effect()
+                  rate_term=True).rate_effect_test()["fitted"]
     for seed in range(5):
-        assert not _tails(creep, noise_N=0.05, seed=seed, rate_term=True).shows_rate_effect(), seed
-    assert not _tails(creep, noise_N=0.05).shows_rate_effect()
+        assert not _tails(creep, noise_N=0.05, seed=seed,
+                          rate_term=True).rate_effect_test()["fitted"], seed
+    assert not _tails(creep, noise_N=0.05).rate_effect_test()["fitted"]
 
 
 def test_the_rate_effects_test_gives_its_figures():

@@ -58,7 +58,7 @@ class CreepTails:
     rate_lag
         (m,) ``lag(F) - F`` at :data:`RATE_EFFECT_TIME_CONSTANT_S`: the release's rate effect,
         fitted beside the creep as the offsets are (None: no rate term; :meth:`of` leaves it
-        out where the tails do not show the effect, :meth:`shows_rate_effect`).
+        out where the tails do not show the effect, :meth:`rate_effect_test`).
     rate_effect
         The rate effect's test on the whole grid, when :meth:`of` judged it
         (:meth:`rate_effect_test`): what the model's metadata records.
@@ -154,38 +154,32 @@ class CreepTails:
         e = self._centred(self.excess)
         g = self._centred(self.lags if lags is None else lags)
         taus = np.asarray(self.time_constants_s)
-        gg = np.maximum(np.einsum("ij,ij->j", g, g), 1e-300)
-        ge = g.T @ e
+        gg, ge = _projections(g, e)
         rss = float(e @ e) - ge ** 2 / gg
         j = int(np.argmin(rss))
         alone = self.rate_lag is None or (lags is None and taus[j] < CREEP_EVIDENCE_MIN_TAU_S)
         if alone or not np.any(taus >= CREEP_EVIDENCE_MIN_TAU_S):
             return float(rss[j]), Creep(float(np.clip(ge[j] / gg[j], 0.0, 0.9)), float(taus[j]))
-        rss2, slope, _ = self._beside_rate(e, g)
+        rss2, slope, _ = self._beside_rate(e, g, gg, ge)
         j = int(np.argmin(rss2))
         return float(rss2[j]), Creep(float(np.clip(slope[j], 0.0, 0.9)), float(taus[j]))
 
-    def _beside_rate(self, e: np.ndarray, g: np.ndarray
+    def _beside_rate(self, e: np.ndarray, g: np.ndarray, gg: np.ndarray, ge: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each relaxation time's fit beside the rate term (centred ``e`` on centred ``g``'s
-        column and the term; the 2x2 normal equations of all at once): the residual (inf
-        below :data:`CREEP_EVIDENCE_MIN_TAU_S`; the term alone where the creep would run
-        backwards), the creep's slope and the term's."""
+        column and the term, ``gg`` and ``ge`` their :func:`_projections`; the 2x2 normal
+        equations of all at once): the residual (inf below :data:`CREEP_EVIDENCE_MIN_TAU_S`;
+        the term alone where the creep would run backwards), the creep's slope and the
+        term's."""
         r = self._rate()
         assert r is not None
         taus = np.asarray(self.time_constants_s)
-        gg = np.maximum(np.einsum("ij,ij->j", g, g), 1e-300)
-        ge = g.T @ e
         rr, re, rg = float(r @ r), float(r @ e), r @ g
         det = np.maximum(rr * gg - rg ** 2, 1e-300)
         rate, slope = (gg * re - rg * ge) / det, (rr * ge - rg * re) / det
         ee = float(e @ e)
         rss2 = np.where(slope > 0, ee - rate * re - slope * ge, ee - re ** 2 / max(rr, 1e-300))
         return np.where(taus >= CREEP_EVIDENCE_MIN_TAU_S, rss2, np.inf), slope, rate
-
-    def shows_rate_effect(self) -> bool:
-        """Whether these tails show the release's rate effect (:meth:`rate_effect_test`)."""
-        return self.rate_effect_test()["fitted"]
 
     def rate_effect_test(self) -> dict[str, Any]:
         """Whether these tails show the release's rate effect: beside the best creep of at
@@ -205,7 +199,7 @@ class CreepTails:
                                                >= CREEP_EVIDENCE_MIN_TAU_S):
             return out
         e, g, r = self._centred(self.excess), self._centred(self.lags), self._centred(self.rate_lag)
-        rss2, slope, rate = self._beside_rate(e, g)
+        rss2, slope, rate = self._beside_rate(e, g, *_projections(g, e))
         j = int(np.argmin(rss2))
         x = np.column_stack([r, g[:, j]])
         resid = e - x @ np.array([rate[j], slope[j]])
@@ -226,6 +220,13 @@ class CreepTails:
         j = int(np.argmin(np.abs(np.log(np.asarray(self.time_constants_s)
                                          / creep.time_constant_s))))
         return self._rss_beside_rate(self._centred(self.excess - creep.magnitude * self.lags[:, j]))
+
+
+def _projections(g: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each column of ``g``'s squared norm (kept off 0) and its product with ``e``: the
+    single-column least-squares fits of ``e`` on ``g``'s columns, and what the fits beside
+    the rate term build on."""
+    return np.maximum(np.einsum("ij,ij->j", g, g), 1e-300), g.T @ e
 
 
 def fit_creep(data: Prepared, pre: fm.Preprocess, rows: np.ndarray,
