@@ -76,13 +76,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
+    from fbgforce.cliargs import fail
     from fbgforce.errors import InputError
 
     try:
         out = measure(args.model, args.data, args.engine)
     except (InputError, OSError, ValueError, KeyError) as exc:
-        print(f"bench_held_grips: {exc}", file=sys.stderr)
-        return 2
+        return fail(f"bench_held_grips: {exc}", args.json)
     if args.json:
         print(json.dumps(out))
     elif not out["held_samples"]:

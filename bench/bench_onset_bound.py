@@ -19,7 +19,8 @@ and force profile in advance. Any decision that must learn them from the signal,
 net's included, comes later.
 
 ``C`` is half the covariance of the rests' first differences (white noise doubles in a
-difference; the zero's wander and the temperature's drift vanish from it), ``s`` each press's
+difference; the zero's wander and the temperature's drift vanish from it; the rests those of
+the tare, :func:`fbgforce.recordings.tare.contact_free_mask`), ``s`` each press's
 least-squares shift per newton over its samples above 1 N, from the rest before it.
 docs/tradeoff.md ("How quick the decision can be") quotes the bound beside the frontier of
 ``fbgforce tradeoff --decision`` on the foreign family.
@@ -36,8 +37,6 @@ import numpy as np
 
 #: Unloaded samples before a press that give its zero for the sensitivity fit.
 ZERO_SAMPLES = 50
-#: A rest sample enters the noise estimate this many samples away from any contact.
-REST_GUARD = 50
 #: Force below which the load cell's own noise is all there is (its squares would add
 #: evidence the press never gave), N.
 FORCE_FLOOR_N = 0.05
@@ -45,11 +44,15 @@ FORCE_FLOOR_N = 0.05
 SENSITIVITY_MIN_N = 1.0
 
 
-def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray) -> np.ndarray | None:
+def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray,
+                          t_s: np.ndarray | None = None) -> np.ndarray | None:
     """Half the covariance of consecutive rest samples' differences, pm^2 (None with fewer
-    than 100 pairs); rest samples lie :data:`REST_GUARD` samples or more from any contact."""
-    near = np.convolve(np.asarray(contact, float), np.ones(2 * REST_GUARD + 1), "same") > 0
-    pair = ~near[1:] & ~near[:-1]
+    than 100 pairs); the rest samples are the tare's
+    (:func:`fbgforce.recordings.tare.contact_free_mask`)."""
+    from fbgforce.recordings.tare import contact_free_mask
+
+    rest = contact_free_mask(contact, t_s)
+    pair = rest[1:] & rest[:-1]
     if pair.sum() < 100:
         return None
     d = np.diff(wl_pm, axis=0)[pair]
@@ -118,11 +121,11 @@ def measure(data: Sequence[str], per_min: float = 1.0) -> dict[str, Any]:
 
     recs = [dataset.load(p) for p in data]
     shifts = [1000.0 * np.asarray(ds.wl_nm, float) for ds in recs]
-    covs = [rest_noise_covariance(w, ds.contact) for w, ds in zip(shifts, recs)]
+    covs = [rest_noise_covariance(w, ds.contact, ds.t_s) for w, ds in zip(shifts, recs)]
     known = [c for c in covs if c is not None]
     if not known:
-        raise InputError(f"no rest of 100 samples {REST_GUARD} samples or more from contact to "
-                         "measure the noise on", path=", ".join(map(str, data)))
+        raise InputError("no 100 samples of rest clear of contact to measure the noise on",
+                         path=", ".join(map(str, data)))
     pooled = np.mean(known, axis=0)
     presses = []
     for w, ds, cov in zip(shifts, recs, covs):
@@ -148,20 +151,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
+    from fbgforce.cliargs import fail
     from fbgforce.errors import InputError
 
     if not args.per_min > 0:
-        print("bench_onset_bound: --per-min must be above 0", file=sys.stderr)
-        return 2
+        return fail("bench_onset_bound: --per-min must be above 0", args.json)
     try:
         out = measure(args.data, args.per_min)
     except (InputError, OSError, ValueError) as exc:
-        print(f"bench_onset_bound: {exc}", file=sys.stderr)
-        return 2
+        return fail(f"bench_onset_bound: {exc}", args.json)
     if args.json:
         print(json.dumps(out))
     elif not out["presses"]:
-        print("no press with a rest of 50 samples before it and 5 samples above 1 N")
+        print(f"no press with {ZERO_SAMPLES} unloaded samples before it and 5 above "
+              f"{SENSITIVITY_MIN_N:g} N")
     else:
         b = out["onset_bound_ms"]
         print(f"{out['presses']} presses, noise {out['noise_pm']:.1f} pm per grating, force "
