@@ -84,21 +84,20 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
         ``force_noise_N`` (the per-sample noise of a force read by the matched filter at the
         press's location, ``1 / sqrt(s' C^-1 s)``).
     """
+    from fbgforce.recordings.stagelog import runs
+
     contact = np.asarray(contact, bool)
     f = np.where(np.asarray(force_N, float) > FORCE_FLOOR_N, np.asarray(force_N, float), 0.0)
     threshold = math.log(60.0 * rate_hz / per_min)
     inv = np.linalg.pinv(noise_cov)
-    starts = np.flatnonzero(contact[1:] & ~contact[:-1]) + 1
-    ends = np.flatnonzero(~contact[1:] & contact[:-1]) + 1
+    starts, stops = runs(contact)
     out = []
-    for t_on in starts:
-        after = ends[ends > t_on]
-        t_off = int(after[0]) if after.size else contact.size
-        before = np.flatnonzero(contact[:t_on])
-        rest_from = int(before[-1]) + 1 if before.size else 0
-        # From the last unloaded sample: the tail of the release before counts for nothing.
-        unloaded = np.flatnonzero(f[:t_on] == 0.0)
-        start = int(unloaded[-1]) if unloaded.size else 0
+    for i, (t_on, t_off) in enumerate(zip(starts.tolist(), stops.tolist())):
+        rest_from = stops[i - 1] if i else 0
+        # From the last unloaded sample of the rest: the tail of the release before counts
+        # for nothing.
+        unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
+        start = rest_from + int(unloaded[-1]) if unloaded.size else rest_from - 1
         loaded = np.arange(t_on, t_off)[f[t_on:t_off] > SENSITIVITY_MIN_N]
         if start + 1 - rest_from < ZERO_SAMPLES or loaded.size < 5:
             continue

@@ -160,19 +160,19 @@ class CreepTails:
         alone = self.rate_lag is None or (lags is None and taus[j] < CREEP_EVIDENCE_MIN_TAU_S)
         if alone or not np.any(taus >= CREEP_EVIDENCE_MIN_TAU_S):
             return float(rss[j]), Creep(float(np.clip(ge[j] / gg[j], 0.0, 0.9)), float(taus[j]))
-        rss2, slope, _ = self._beside_rate(e, g, gg, ge)
+        r = self._rate()
+        assert r is not None
+        rss2, slope, _ = self._beside_rate(e, g, gg, ge, r)
         j = int(np.argmin(rss2))
         return float(rss2[j]), Creep(float(np.clip(slope[j], 0.0, 0.9)), float(taus[j]))
 
-    def _beside_rate(self, e: np.ndarray, g: np.ndarray, gg: np.ndarray, ge: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _beside_rate(self, e: np.ndarray, g: np.ndarray, gg: np.ndarray, ge: np.ndarray,
+                     r: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Each relaxation time's fit beside the rate term (centred ``e`` on centred ``g``'s
-        column and the term, ``gg`` and ``ge`` their :func:`_projections`; the 2x2 normal
-        equations of all at once): the residual (inf below :data:`CREEP_EVIDENCE_MIN_TAU_S`;
-        the term alone where the creep would run backwards), the creep's slope and the
-        term's."""
-        r = self._rate()
-        assert r is not None
+        column and the centred term ``r``, ``gg`` and ``ge`` their :func:`_projections`; the
+        2x2 normal equations of all at once): the residual (inf below
+        :data:`CREEP_EVIDENCE_MIN_TAU_S`; the term alone where the creep would run backwards),
+        the creep's slope and the term's."""
         taus = np.asarray(self.time_constants_s)
         rr, re, rg = float(r @ r), float(r @ e), r @ g
         det = np.maximum(rr * gg - rg ** 2, 1e-300)
@@ -195,11 +195,11 @@ class CreepTails:
         """
         out: dict[str, Any] = {"coefficient": None, "standard_error": None, "z": None,
                                "min_z": RATE_EFFECT_MIN_Z, "fitted": False}
-        if self.rate_lag is None or not np.any(np.asarray(self.time_constants_s)
-                                               >= CREEP_EVIDENCE_MIN_TAU_S):
+        r = self._rate()
+        if r is None or not np.any(np.asarray(self.time_constants_s) >= CREEP_EVIDENCE_MIN_TAU_S):
             return out
-        e, g, r = self._centred(self.excess), self._centred(self.lags), self._centred(self.rate_lag)
-        rss2, slope, rate = self._beside_rate(e, g, *_projections(g, e))
+        e, g = self._centred(self.excess), self._centred(self.lags)
+        rss2, slope, rate = self._beside_rate(e, g, *_projections(g, e), r)
         j = int(np.argmin(rss2))
         x = np.column_stack([r, g[:, j]])
         resid = e - x @ np.array([rate[j], slope[j]])
