@@ -92,15 +92,15 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     inv = np.linalg.pinv(noise_cov)
     starts, stops = runs(contact)
     out = []
-    for i, (t_on, t_off) in enumerate(zip(starts.tolist(), stops.tolist())):
-        rest_from = stops[i - 1] if i else 0
+    rests_from = [0, *stops[:-1].tolist()]
+    for t_on, t_off, rest_from in zip(starts.tolist(), stops.tolist(), rests_from):
         # From the last unloaded sample of the rest: the tail of the release before counts
         # for nothing.
         unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
-        start = rest_from + int(unloaded[-1]) if unloaded.size else rest_from - 1
         loaded = np.arange(t_on, t_off)[f[t_on:t_off] > SENSITIVITY_MIN_N]
-        if start + 1 - rest_from < ZERO_SAMPLES or loaded.size < 5:
+        if not unloaded.size or unloaded[-1] + 1 < ZERO_SAMPLES or loaded.size < 5:
             continue
+        start = rest_from + int(unloaded[-1])
         zero = wl_pm[start + 1 - ZERO_SAMPLES:start + 1].mean(axis=0)
         s = (f[loaded] @ (wl_pm[loaded] - zero)) / float(f[loaded] @ f[loaded])
         q = float(s @ inv @ s)
