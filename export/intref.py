@@ -26,6 +26,7 @@ STATUS_SENSOR_FAULT = contract.STATUS_FLAG["SENSOR_FAULT"]
 STATUS_WARMUP = contract.STATUS_FLAG["WARMUP"]
 STATUS_BASELINE_LIMIT = contract.STATUS_FLAG["BASELINE_LIMIT"]
 STATUS_OUT_OF_RANGE = contract.STATUS_FLAG["OUT_OF_RANGE"]
+STATUS_RELEASING = contract.STATUS_FLAG["RELEASING"]
 EMA_FRAC = contract.LIMIT["EMA_FRAC"]
 TEMP_COEFF_SHIFT = contract.LIMIT["TEMP_COEFF_SHIFT"]
 WL_MIN_FM = contract.LIMIT["WL_MIN_FM"]
@@ -163,9 +164,9 @@ class _State:
         self.creep: list[list[int] | None] = [None]
         self.memory = _MemoryStage(q)
         self.tracker = _RestTracker(q)
-        #: ``[decision, rise_run, cusum_q8]`` (:func:`_contact_decision`) and ``[hold_avg,
-        #: hold_primed, hold_run]`` (:func:`_hold_stage`).
-        self.decision = [0, 0, 0]
+        #: ``[decision, rise_run, cusum_q8, released, release_run]`` (:func:`_contact_decision`)
+        #: and ``[hold_avg, hold_primed, hold_run]`` (:func:`_hold_stage`).
+        self.decision = [0, 0, 0, 0, 0]
         self.hold = [0, 0, 0]
         self.z_rest, _ = q.z_rest()
 
@@ -189,10 +190,10 @@ def _block(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, fault: np.
     feats = _memory_stage(q, state, z, rows, status, flag)
     rest = np.zeros(n, dtype=bool)
     if rows.size:
-        contact = _contact_outputs(q, state, feats, rows, flag, out)
-        rest[rows] = ~contact & ~warm[rows]
-        if contact.any():
-            _force_location_outputs(q, state, feats, rows, contact, status, flag, out)
+        held = _contact_outputs(q, state, feats, rows, status, flag, out)
+        rest[rows] = ~held & ~warm[rows]
+        if held.any():
+            _force_location_outputs(q, state, feats, rows, held, status, flag, out)
         else:
             state.hold[1], state.hold[2] = 0, 0      # the settled-hold gain, cleared by no contact
     return rest, terms[rest].sum(axis=0)
@@ -506,24 +507,27 @@ def _location_averages(q: QModel, z: np.ndarray) -> tuple[np.ndarray, np.ndarray
 # --------------------------------------------------------------------------------------------
 
 def _contact_outputs(q: QModel, state: _State, feats: np.ndarray, rows: np.ndarray,
-                     flag: np.ndarray, out: dict[str, np.ndarray]) -> np.ndarray:
+                     status: np.ndarray, flag: np.ndarray, out: dict[str, np.ndarray]) -> np.ndarray:
     """``contact_outputs`` of fbg_fixed.c on the fault-free ``rows``: the contact net's margin
-    (Q8), the decision over time (:func:`_contact_decision`) and the confidence. Returns the
-    decision per row."""
+    (Q8), the decision over time (:func:`_contact_decision`) and the confidence; RELEASING in
+    the release band. Returns where the decision holds, per row (contact and its release
+    band: where the force and location run)."""
     f_ok = np.zeros(rows.size, dtype=bool)
     acc_c, margin = _net(q.nets[0], feats[rows, :q.n_features], f_ok, state.trace, "contact")
-    contact = _contact_decision(q, acc_c[:, 0] > 0, margin[:, 0], state.decision)
+    contact, held = _contact_decision(q, acc_c[:, 0] > 0, margin[:, 0], state.decision)
     out["contact_margin_q8"][rows] = margin[:, 0]
     out["contact_conf_q15"][rows] = sigmoid_q15(margin[:, 0])
     out["contact"][rows] = contact
+    status[rows] |= np.where(held & ~contact, STATUS_RELEASING, 0).astype(status.dtype)
     flag[rows] |= f_ok
-    return contact
+    return held
 
 
 def _force_location_outputs(q: QModel, state: _State, feats: np.ndarray, rows: np.ndarray,
                             contact: np.ndarray, status: np.ndarray, flag: np.ndarray,
                             out: dict[str, np.ndarray]) -> None:
-    """``force_location_outputs`` of fbg_fixed.c on the ``rows`` decided ``contact``: the
+    """``force_location_outputs`` of fbg_fixed.c on the ``rows`` where the decision holds
+    (``contact``: contact and its release band): the
     force net, then the location net on [z, contact << z_frac, the force in Q(z_frac),
     location averages], then the settled-hold gain (:func:`_hold_stage`), which runs on every
     fault-free sample in order because one without contact clears it. Flags saturation and
@@ -602,13 +606,14 @@ def _acc(layer: QLayer, x: np.ndarray, relu_inputs: bool) -> np.ndarray:
 # --------------------------------------------------------------------------------------------
 
 def _contact_decision(q: QModel, raw: np.ndarray, margin: np.ndarray, state: list[int]
-                      ) -> np.ndarray:
+                      ) -> tuple[np.ndarray, np.ndarray]:
     """``fbg_contact_decision`` of fbg_stage_decision.c on consecutive fault-free samples: the rule of
     :func:`fbgforce.model.decision.decide_over_time` on the Q8 margins, in Python integers (exact).
     ``raw`` is ``acc > 0`` and ``margin`` the output row as computed, whatever the sign of its
     multiplier: the rule reads both as C does, with no shortcut for the per-sample setting
     (which equals ``raw`` only when the multiplier is positive). ``state`` is ``[decision,
-    rise_run, cusum_q8]``, carried and updated."""
+    rise_run, cusum_q8, released, release_run]``, carried and updated. Returns the contact shown
+    and where the decision holds."""
     return decision.decide_over_time(raw, margin, q.contact_on_q8, q.contact_off_q8, q.contact_rise_n,
                                state, cusum=(q.contact_cusum_h_q8, q.contact_cusum_k_q8,
                                              q.contact_cusum_lo_q8, q.contact_cusum_hi_q8))

@@ -7,7 +7,9 @@ from typing import Any
 
 import numpy as np
 
-from fbgforce.contract import SAT32
+from fbgforce.contract import SAT32, STATUS_FLAG
+
+_RELEASING = STATUS_FLAG["RELEASING"]
 
 
 def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
@@ -21,13 +23,24 @@ def nm_to_fm(wl_nm: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(x), -SAT32, SAT32).astype(np.int32)
 
 
-def gate_outputs(contact: Any, force_N: Any, x_mm: Any, y_mm: Any) -> tuple[Any, Any, Any]:
-    """The output rule of every engine: no contact -> force 0 N and location NaN.
+def estimate_shown(contact: Any, status: Any) -> Any:
+    """Where an engine shows a force and location: in contact, and in the release band after it
+    (status RELEASING: contact has ended at the contact net's own margin while the decision
+    still holds, and the estimate follows the falling load). A bool array (n,) from arrays, or
+    one sample's bool."""
+    if np.ndim(contact) == 0:
+        return bool(contact) or bool(int(status) & _RELEASING)
+    return np.asarray(contact, dtype=bool) | ((np.asarray(status).astype(np.uint32) & _RELEASING) != 0)
+
+
+def gate_outputs(shown: Any, force_N: Any, x_mm: Any, y_mm: Any) -> tuple[Any, Any, Any]:
+    """The output rule of every engine: where no estimate is shown (no contact and no release
+    band, :func:`estimate_shown`) force 0 N and location NaN.
 
     Parameters
     ----------
-    contact
-        The contact decision: a bool array (n,), or one sample's bool.
+    shown
+        Where the estimate is shown: a bool array (n,), or one sample's bool.
     force_N, x_mm, y_mm
         What the nets say, whatever the decision (arrays (n,), or one sample's numbers).
 
@@ -37,11 +50,11 @@ def gate_outputs(contact: Any, force_N: Any, x_mm: Any, y_mm: Any) -> tuple[Any,
         ``(force_N, x_mm, y_mm)`` gated: float64 arrays (n,), or Python floats for one sample
         (the single-sample path of a 1 kHz loop, which numpy's array calls would slow down).
     """
-    if np.ndim(contact) == 0:
-        if contact:
+    if np.ndim(shown) == 0:
+        if shown:
             return float(force_N), float(x_mm), float(y_mm)
         return 0.0, math.nan, math.nan
-    c = np.asarray(contact, dtype=bool)
+    c = np.asarray(shown, dtype=bool)
     return (np.where(c, np.asarray(force_N, dtype=np.float64), 0.0),
             np.where(c, np.asarray(x_mm, dtype=np.float64), np.nan),
             np.where(c, np.asarray(y_mm, dtype=np.float64), np.nan))
@@ -52,7 +65,7 @@ def to_engine_dict(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     :func:`gate_outputs`)."""
     contact = np.asarray(out["contact"]).astype(bool)
     force_N, x_mm, y_mm = gate_outputs(
-        contact, np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
+        estimate_shown(contact, out["status"]), np.asarray(out["force_mN"], dtype=np.float64) / 1000.0,
         np.asarray(out["x_um"], dtype=np.float64) / 1000.0,
         np.asarray(out["y_um"], dtype=np.float64) / 1000.0)
     return {

@@ -249,7 +249,8 @@ class Runtime(_Base):
         check(lib.fbg_step(self._state, self._in_ptr, self._out), "fbg_step")
         o = self._out
         contact = bool(o.contact)
-        force_N, x_mm, y_mm = units.gate_outputs(contact, o.force_mN / 1000.0, o.x_um / 1000.0,
+        force_N, x_mm, y_mm = units.gate_outputs(units.estimate_shown(contact, o.status),
+                                                 o.force_mN / 1000.0, o.x_um / 1000.0,
                                                  o.y_um / 1000.0)
         return np.array((contact, o.contact_conf_q15 / 32768.0, force_N, x_mm, y_mm,
                          o.status, o.force_mN, o.x_um, o.y_um, o.contact_margin_q8, o.contact_conf_q15),
@@ -323,8 +324,8 @@ class FloatRuntime(_Base):
         contact = raw["contact"].astype(bool)
         out["contact"] = contact
         out["p_contact"] = raw["p_contact"]
-        out["force_N"], out["x_mm"], out["y_mm"] = units.gate_outputs(contact, raw["force_N"],
-                                                                     raw["x_mm"], raw["y_mm"])
+        out["force_N"], out["x_mm"], out["y_mm"] = units.gate_outputs(
+            units.estimate_shown(contact, raw["status"]), raw["force_N"], raw["x_mm"], raw["y_mm"])
         out["status"] = raw["status"]
         out["margin"] = raw["margin"]
         return out

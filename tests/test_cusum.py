@@ -43,37 +43,68 @@ def _run_both(q: QModel, wl_fm: np.ndarray, base: np.ndarray, kernel: str = "aut
     return rt.run_raw(wl_fm), intref.run(q, wl_fm, base), rt
 
 
+def _bits(*runs: tuple[int, int]) -> list[int]:
+    """A 0/1 list from (value, count) runs."""
+    return [v for v, n in runs for _ in range(n)]
+
+
 def test_the_cusum_rule_on_hand_made_margins():
     # h 10, k 2, margins clipped to [-3, 6]: S = max(0, S + clip(m) - 2).
     cusum = (10, 2, -3, 6)
-    margin = np.array([1, 3, 5, 100, -100, 3, 4, 4, 4, -1, -50, -50, 7, 7, 1, -200])
+    d = fm_decision.RELEASE_DWELL
+    margin = np.array([1, 3, 5, 100, -100, 3, 4, 4, 4] + [-1] * (d - 1) + [4] + [-1] * d
+                      + [-50, -50, 7, 7, 1, -200])
     raw = margin > 0
-    # S: 0, 1, 4, 8, 3 (-5 clipped to -3 - 2), 4, 6, 8, 10 -> contact, S 0; stays while the
-    # margin is positive or above off = -20: falls at -50 (S untouched); then 0, 4, 8, 7, 2.
-    want = np.array([0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 0, 0, 0, 0, 0, 0], dtype=bool)
-    state = [0, 0, 0]
+    # S: 0, 1, 4, 8, 3 (-5 clipped to -3 - 2), 4, 6, 8, 10 -> contact, S 0. d - 1 samples at
+    # -1 do not release it (the 4 restarts the count); d more do, on the last of them; the
+    # decision holds while above off = -20 and ends at -50 (S untouched); then S 0, 4, 8, 7, 2.
+    want = np.array(_bits((0, 8), (1, 1 + (d - 1) + 1 + (d - 1)), (0, 1 + 6)), dtype=bool)
+    held = np.array(_bits((0, 8), (1, 1 + (d - 1) + 1 + d), (0, 6)), dtype=bool)
+    state = [0, 0, 0, 0, 0]
     got = fm_decision.decide_over_time(raw, margin, 0, -20, 1, state, cusum)
-    assert np.array_equal(got, want)
-    assert state == [0, 0, 2]
-    # The state carries from one call to the next exactly as one call; S is carried.
-    state = [0, 0, 0]
-    parts = [fm_decision.decide_over_time(raw[a:b], margin[a:b], 0, -20, 1, state, cusum)
-             for a, b in ((0, 3), (3, 13), (13, 16))]
+    assert np.array_equal(got[0], want) and np.array_equal(got[1], held)
+    assert state == [0, 0, 2, 0, 0]
+    # The state carries from one call to the next exactly as one call; S and the release
+    # count are carried.
+    state = [0, 0, 0, 0, 0]
+    cuts = (0, 3, 9 + d // 2, 9 + d + 3, margin.size)
+    parts = [fm_decision.decide_over_time(raw[a:b], margin[a:b], 0, -20, 1, state, cusum)[0]
+             for a, b in zip(cuts, cuts[1:])]
     assert np.array_equal(np.concatenate(parts), want)
-    state = [0, 0, 0]
-    fm_decision.decide_over_time(raw[:14], margin[:14], 0, -20, 1, state, cusum)
-    assert state == [0, 0, 8]
+    state = [0, 0, 0, 0, 0]
+    fm_decision.decide_over_time(raw[:-2], margin[:-2], 0, -20, 1, state, cusum)
+    assert state == [0, 0, 8, 0, 0]
     # The integer reference runs exactly this rule on the blob's fields.
     q = QModel.__new__(QModel)
     q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 0, -20, 1
     q.contact_cusum_h_q8, q.contact_cusum_k_q8, q.contact_cusum_lo_q8, q.contact_cusum_hi_q8 = cusum
-    assert np.array_equal(intref._contact_decision(q, raw, margin, [0, 0, 0]), want)
+    got = intref._contact_decision(q, raw, margin, [0, 0, 0, 0, 0])
+    assert np.array_equal(got[0], want) and np.array_equal(got[1], held)
+
+
+def test_contact_rises_again_within_the_release_band():
+    """Released after the dwell, contact shows again only by the CUSUM's rise, from S = 0; the
+    decision holds until the margin falls to off."""
+    cusum = (10, 2, -3, 6)
+    d = fm_decision.RELEASE_DWELL
+    margin = np.array([6, 6, 6] + [-1] * d + [6, 6, 6] + [-5] * d + [-30, 6])
+    state = [0, 0, 0, 0, 0]
+    contact, held = fm_decision.decide_over_time(margin > 0, margin, 0, -20, 1, state, cusum)
+    # S 4, 8, 12: contact; the d-th -1 releases it; in the band S 4, 8, 12: contact again; the
+    # d-th -5 releases it, -30 ends the band; then S 4.
+    assert contact.astype(int).tolist() == _bits((0, 2), (1, d), (0, 3), (1, d), (0, 3))
+    assert held.astype(int).tolist() == _bits((0, 2), (1, 1 + d + 3 + d), (0, 2))
+    assert state == [0, 0, 4, 0, 0]
+    # With the band empty (off = 0) the margin at -1 ends the decision itself, at once.
+    contact, held = fm_decision.decide_over_time(margin > 0, margin, 0, 0, 1, [0, 0, 0, 0, 0], cusum)
+    assert np.array_equal(contact, held) and contact.astype(int).tolist()[:4] == [0, 0, 1, 0]
 
 
 def test_a_single_spike_cannot_raise_contact_under_the_clip():
     """hi - k < h: one sample, however high its margin, leaves S below h."""
     margin = np.array([-5.0, 1e6, -5.0, -5.0, 1e6, 1e6])
-    got = fm_decision.decide_over_time(margin > 0, margin, 0.0, 0.0, 1, [0, 0, 0.0], (2.0, 0.5, -1.0, 1.6))
+    got, _ = fm_decision.decide_over_time(margin > 0, margin, 0.0, 0.0, 1, [0, 0, 0.0, 0, 0],
+                                          (2.0, 0.5, -1.0, 1.6))
     assert np.array_equal(got, [0, 0, 0, 0, 0, 1])
 
 

@@ -12,12 +12,13 @@ import numpy as np
 import pytest
 
 from fbgforce import contract
-from fbgforce.model import artifact, floatref, modeldir
+from fbgforce.model import artifact, decision, floatref, modeldir
 from fbgforce.export import blob
 from fbgforce.export import intref
 from fbgforce.export import quantize as qz
 from fbgforce.export.qmodel import QModel
 from fbgforce.pybind import FloatRuntime, Runtime
+from fbgforce.units import estimate_shown
 
 from test_simd import host_kernels
 
@@ -59,10 +60,12 @@ def test_decision_and_tracker_are_bit_exact(random_model_factory, random_walk_fa
     assert q.track_shift == 5 and q.contact_rise_n == 3 and q.track_gain.any()
     wl_fm, base = intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)
     ref = intref.run(q, wl_fm, base)
-    # The stream exercises every branch: rests long enough to track, the bound, faults.
+    # The stream exercises every branch: rests long enough to track, the bound, faults, the
+    # release band.
     assert (ref["status"] & LIMIT).any() and not (ref["status"] & LIMIT).all()
     assert (ref["status"] & contract.STATUS_FLAG["SENSOR_FAULT"]).any()
-    assert 0.1 < ref["contact"].mean() < 0.9
+    releasing = (ref["status"] & contract.STATUS_FLAG["RELEASING"]) != 0
+    assert 0.1 < (ref["contact"].astype(bool) | releasing).mean() < 0.9 and releasing.any()
     outside = (ref["status"] & contract.STATUS_FLAG["OUT_OF_RANGE"]) != 0
     assert outside[:3000].mean() < 0.02 and outside[3000:].mean() > 0.3
     rt = Runtime(blob.to_bytes(q), kernel=kernel)
@@ -109,18 +112,32 @@ def test_the_decision_rule_on_hand_made_margins():
     q = QModel.__new__(QModel)
     q.contact_on_q8, q.contact_off_q8, q.contact_rise_n = 100, -50, 2
     q.contact_cusum_h_q8 = q.contact_cusum_k_q8 = q.contact_cusum_lo_q8 = q.contact_cusum_hi_q8 = 0
-    margin = np.array([150, 150, 0, -40, -60, 120, 99, 120, 101, 1, -51, -60])
+    d = decision.RELEASE_DWELL
+    margin = np.array([150, 150] + [0] * (d - 1) + [120] + [-40] * d
+                      + [-60, 120, 99, 120, 101, 1, -51, -60])
     raw = margin > 0
-    # Two samples at or above 100 to rise; stays while above -50; a sample below 100 before
-    # the second restarts the count.
-    want = np.array([0, 1, 1, 1, 0, 0, 0, 0, 1, 1, 0, 0], dtype=bool)
-    state = [0, 0, 0]
-    assert np.array_equal(intref._contact_decision(q, raw, margin, state), want)
-    assert state == [0, 0, 0]
+    # Two samples at or above 100 to rise. Contact shows until the margin has not been
+    # positive for d samples (d - 1 at 0 do not release it, the 120 restarts the count); the
+    # decision holds while above -50 (the release band); a sample below 100 before the
+    # second restarts the rise count.
+    want = np.array([0, 1] + [1] * (d - 1) + [1] + [1] * (d - 1) + [0] + [0, 0, 0, 0, 1, 1, 0, 0],
+                    dtype=bool)
+    held = np.array([0, 1] + [1] * (d - 1) + [1] + [1] * d + [0, 0, 0, 0, 1, 1, 0, 0], dtype=bool)
+    state = [0, 0, 0, 0, 0]
+    got = intref._contact_decision(q, raw, margin, state)
+    assert np.array_equal(got[0], want) and np.array_equal(got[1], held)
+    assert state == [0, 0, 0, 0, 0]
     # The state carries from one call to the next exactly as one call.
-    state = [0, 0, 0]
-    parts = [intref._contact_decision(q, raw[a:b], margin[a:b], state) for a, b in ((0, 1), (1, 7), (7, 12))]
-    assert np.array_equal(np.concatenate(parts), want)
+    state = [0, 0, 0, 0, 0]
+    cuts = (0, 1, 2 + d // 2, 2 + d + 3, margin.size)
+    parts = [intref._contact_decision(q, raw[a:b], margin[a:b], state) for a, b in zip(cuts, cuts[1:])]
+    assert np.array_equal(np.concatenate([p[0] for p in parts]), want)
+    assert np.array_equal(np.concatenate([p[1] for p in parts]), held)
+    # In the band the Schmitt trigger's rise shows contact again (two samples at 100 or more).
+    margin = np.array([150, 150] + [0] * d + [120, 130, -40, -60])
+    got = intref._contact_decision(q, margin > 0, margin, [0, 0, 0, 0, 0])
+    assert got[0].astype(int).tolist() == [0, 1] + [1] * (d - 1) + [0] + [0, 1, 1, 0]
+    assert got[1].astype(int).tolist() == [0, 1] + [1] * d + [1, 1, 1, 0]
 
 
 def test_in_use_round_trips_through_the_model_directory(tmp_path, random_model_factory):
@@ -143,7 +160,7 @@ def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory
     fixed = intref.to_engine_dict(intref.run(q, intref.nm_to_fm(wl), intref.nm_to_fm(model.baseline_nm)))
     flt = floatref.predict(model, wl, model.baseline_nm)
     untracked = floatref.predict(dataclasses.replace(model, in_use=artifact.InUse()), wl, model.baseline_nm)
-    assert 0.1 < flt["contact"].mean() < 0.9
+    assert 0.1 < estimate_shown(flt["contact"], flt["status"]).mean() < 0.9
     agree = np.mean(flt["contact"] == fixed["contact"])
     assert agree > 0.98
     assert np.mean(untracked["contact"] == fixed["contact"]) < agree - 0.05
@@ -155,7 +172,7 @@ def test_the_float_model_runs_the_same_decision_and_tracker(random_model_factory
     oor = contract.STATUS_FLAG["OUT_OF_RANGE"]
     assert np.mean(((cf["status"] & oor) != 0) == flt["out_of_range"]) > 0.99
     assert np.mean(((fixed["status"] & oor) != 0) == flt["out_of_range"]) > 0.98
-    both = cf["contact"] & flt["contact"]
+    both = estimate_shown(cf["contact"], cf["status"]) & estimate_shown(flt["contact"], flt["status"])
     assert np.abs(cf["force_N"][both] - flt["force_N"][both]).max() < 1e-2
 
 

@@ -177,6 +177,8 @@ LIMITS: dict[str, tuple[int, str]] = {
     "MAX_HOLD_RAMP_SHIFT": (12, "largest hold_ramp_shift (the gain ramps in over 4096 samples)"),
     "MAX_CUSUM_Q8": (1 << 29, "largest contact_cusum_h_q8 and |contact_cusum_k_q8|, |_lo_q8|, "
                      "|_hi_q8|: the CUSUM's sum stays inside int32 (docs/fixed-point.md)"),
+    "RELEASE_DWELL": (8, "consecutive samples with the contact net's margin at or below 0 "
+                      "before contact is released inside the decision's hold"),
     "BLOB_VERSION": (11, "blob format this library reads and writes"),
     "BLOB_HEADER_SIZE": (16, "magic, version, flags, total length, CRC-32"),
     "VERSION_MAJOR": (VERSION[0], "library version"),
@@ -229,6 +231,10 @@ STATUS: tuple[Code, ...] = (
                                  "what it may correct (re-tare)"),
     Code("OUT_OF_RANGE", 0x40, "a net input (z or a memory feature) outside the range the "
                                "calibration data covered, with a margin: the nets extrapolate"),
+    Code("RELEASING", 0x80, "contact has ended: the contact net's margin has stayed at or "
+                            "below 0 for FBG_RELEASE_DWELL samples; the force and location "
+                            "still follow the falling load until the decision's release band "
+                            "ends"),
 )
 STATUS_FLAG = {c.name: c.value for c in STATUS}
 STATUS_ALL = sum(STATUS_FLAG.values())
@@ -631,12 +637,16 @@ STATE: tuple[StateField, ...] = (
                     "read the activations with LDRD (no copy to an aligned buffer per layer)."),
     StateField("tare_count", "uint32_t"),
     StateField("cusum_q8", "int32_t", doc="the decision's CUSUM S (Q8 margin), in [0, "
-               "contact_cusum_h_q8) out of contact, 0 in contact"),
+               "contact_cusum_h_q8) out of contact and in the release band, 0 while contact is shown"),
     *_RING_COUNTERS,
     StateField("loc_z0", "int16_t", ("N_STRAIN",), "z of a zero filtered shift (the model's)"),
     *_FRONT_FLAGS,
     StateField("loc_z0_clamped", "uint8_t", doc="1: a loc_z0 clamped at +-32767"),
-    StateField("decision", "uint8_t", doc="the contact decision of the last step"),
+    StateField("decision", "uint8_t", doc="the contact decision of the last step, held through "
+               "the release band"),
+    StateField("released", "uint8_t", doc="1: in the release band, contact no longer shown"),
+    StateField("release_run", "uint8_t", doc="samples with the margin at or below 0 so far, "
+               "in contact (up to FBG_RELEASE_DWELL)"),
     StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
     StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
     StateField("track_limited", "uint8_t", doc="1: a channel's drift_fm is at its bound"),
@@ -671,13 +681,17 @@ FLOAT_STATE: tuple[StateField, ...] = (
     StateField("drift_pm", "float", ("N_STRAIN",)),
     StateField("held_pm", "float", ("N_STRAIN",)),
     StateField("rest_run", "uint16_t", doc="samples at rest, saturating"),
-    StateField("decision", "uint8_t", doc="the contact decision of the last step"),
+    StateField("decision", "uint8_t", doc="the contact decision of the last step, held through "
+               "the release band"),
+    StateField("released", "uint8_t", doc="1: in the release band, contact no longer shown"),
+    StateField("release_run", "uint8_t", doc="samples with the margin at or below 0 so far, "
+               "in contact (up to FBG_RELEASE_DWELL)"),
     StateField("rise_run", "uint8_t", doc="samples of the rise condition so far"),
     StateField("track_pos", "uint8_t", doc="samples into the tracker's block"),
     StateField("track_limited", "uint8_t", doc="1: a channel's drift_pm is at its bound"),
     StateField("hold_run", "uint16_t", doc="steady contact samples so far, saturating"),
     StateField("hold_primed", "uint8_t", doc="hold_avg_N holds a contact sample's force"),
-    StateField("reserved_", "uint8_t", (3,)),
+    StateField("reserved_", "uint8_t", (1,)),
     StateField("act", "float", (2, "MAX_WIDTH"), "activation ping-pong buffers"),
 )
 

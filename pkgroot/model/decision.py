@@ -39,41 +39,68 @@ CUSUM_TAIL_MIN = 20
 #: over 30 minutes at the fitted threshold was up to 5 times the fit. The threshold is set
 #: where the fit gives the target divided by this.
 CUSUM_FIT_MARGIN = 5.0
+#: Consecutive samples of the margin at or below 0 before contact is released inside the
+#: decision's hold (the contract's, as the C runtimes read it).
+RELEASE_DWELL = contract.LIMIT["RELEASE_DWELL"]
 
 
 def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float, rise_n: int,
                      state: list[Any], cusum: tuple[float, float, float, float] | None = None
-                     ) -> np.ndarray:
+                     ) -> tuple[np.ndarray, np.ndarray]:
     """The contact decision over time on consecutive samples, in any units of the margin.
 
-    Contact stays while ``raw`` (the net's own decision) or ``margin > off``. It rises by one
-    of two rules. With ``cusum`` None or its threshold ``h`` 0: after ``rise_n`` consecutive
-    samples with ``raw`` and ``margin >= on`` (a Schmitt trigger with a count). Else
-    ``cusum = (h, k, lo, hi)``, a one-sided CUSUM: out of contact ``S = max(0, S +
-    clip(margin, lo, hi) - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it
-    stays 0 in contact). ``state`` is ``[decision, rise_run, S]`` of the previous sample,
-    carried and updated. Integer arguments give the integer rule exactly (Python integers);
-    the C runtimes run this rule (``fbg_contact_decision`` in fbg_stage_decision.c,
+    The decision holds while ``raw`` (the net's own decision) or ``margin > off``. Within a
+    hold, contact is shown until ``raw`` or ``margin > 0`` has failed on ``RELEASE_DWELL``
+    consecutive samples (the contract's; a count kept in the state); from there to the hold's
+    end (the release band, where ``off < 0``) it is not, the force and location still follow
+    the falling load, and contact shows again only by a new rise. It rises by one of two
+    rules, which run out of the hold and in the release band, never on the sample the hold ends
+    or contact is released. With ``cusum`` None or its threshold ``h`` 0: after ``rise_n``
+    consecutive samples with ``raw`` and ``margin >= on`` (a Schmitt trigger with a count).
+    Else ``cusum = (h, k, lo, hi)``, a one-sided CUSUM: ``S = max(0, S + clip(margin, lo, hi)
+    - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it stays 0 while contact is
+    shown). ``state`` is ``[decision, rise_run, S, released, release_run]`` of the previous
+    sample, carried
+    and updated. Integer arguments give the integer rule exactly (Python integers); the C
+    runtimes run this rule (``fbg_contact_decision`` in fbg_stage_decision.c,
     ``fbgf_contact_decision`` in fbgf_float.c).
+
+    Returns
+    -------
+    tuple
+        ``(contact, held)``, bool (n,) each: the contact shown, and the decision held (contact
+        and its release band), on which the force, the location, the settled-hold gain and the
+        tracker's rests run.
     """
     raw = np.asarray(raw, dtype=bool)
-    out = np.zeros(raw.size, dtype=bool)
-    decision, rise, s = state
+    contact = np.zeros(raw.size, dtype=bool)
+    held = np.zeros(raw.size, dtype=bool)
+    decision, rise, s, released, release_run = state
     h, k, lo, hi = cusum if cusum is not None else (0, 0, 0, 0)
     for i, (r, mg) in enumerate(zip(raw.tolist(), np.asarray(margin).tolist())):
-        if decision:
-            decision = int(r or mg > off)
-        elif h:
-            s = max(s + (min(max(mg, lo), hi) - k), 0)
-            if s >= h:
-                decision, s = 1, 0
+        if decision and not (r or mg > off):
+            decision = released = release_run = 0
+        elif decision and not released:
+            release_run = 0 if (r or mg > 0) else release_run + 1
+            if release_run >= RELEASE_DWELL:
+                released, release_run = 1, 0
         else:
-            rise = min(rise + 1, 255) if (r and mg >= on) else 0
-            if rise >= rise_n:
-                decision, rise = 1, 0
-        out[i] = decision
-    state[0], state[1], state[2] = decision, rise, s
-    return out
+            if h:
+                s = max(s + (min(max(mg, lo), hi) - k), 0)
+                rises = s >= h
+                if rises:
+                    s = 0
+            else:
+                rise = min(rise + 1, 255) if (r and mg >= on) else 0
+                rises = rise >= rise_n
+                if rises:
+                    rise = 0
+            if rises:
+                decision, released = 1, 0
+        held[i] = decision
+        contact[i] = decision and not released
+    state[:] = [decision, rise, s, released, release_run]
+    return contact, held
 
 
 def cusum_path(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float = CUSUM_MAX

@@ -69,6 +69,9 @@ from fbgforce.model.artifact import N_STRAIN, HierarchicalModel, InUse, Memory, 
 from fbgforce.model.decision import decide_over_time
 from fbgforce.units import gate_outputs
 
+#: The status bit of the release band (:func:`fbgforce.units.estimate_shown`).
+RELEASING = contract.STATUS_FLAG["RELEASING"]
+
 
 # --------------------------------------------------------------------------------------------
 # First-order recursions in closed form
@@ -666,7 +669,8 @@ class FloatPipeline:
         self._reference: list[float | None] = [None]   # primed by the first good sample
         self._creep_lag: list[np.ndarray | None] = [None]   # the creep inverse's, likewise
         self._memory = MemoryStream(pre.memory, pre.z_rest)
-        self._decision: list[Any] = [0, 0, 0.0]
+        self._decision: list[Any] = [0, 0, 0.0, 0, 0]
+        self._shown = np.zeros(0, dtype=bool)   # the contact the last decision showed
         self._hold: list[Any] = [0.0, 0, 0]
         self._drift = np.zeros(N_STRAIN)
         self._track_sum = np.zeros(N_STRAIN)
@@ -694,15 +698,22 @@ class FloatPipeline:
         good = np.flatnonzero(~fault)
         filt = self._filter_stage(self._front_stage(wl, fault), fault)
         x = self._memory_stage(filt, good)
+        # The nets' outputs are gated on where the decision holds; the contact shown is the
+        # decision's other output.
+        self._shown = np.zeros(0, dtype=bool)
         ran = predict_from_features(self.model, x[good], self._contact_decision, self.nets)
+        held = np.zeros(n, dtype=bool)
+        held[good] = ran["contact"]
         ran["force_N"] = self._hold_stage(ran["force_N"], ran["contact"])
+        ran["contact"] = self._shown
         out = {key: np.zeros(n, dtype=v.dtype) for key, v in ran.items()}
         for key, v in ran.items():
             out[key][good] = v
         out = safe_output(out, fault)
+        out["status"] |= np.where(held & ~out["contact"], np.uint32(RELEASING), np.uint32(0))
         track = self.model.in_use.track_shift and n
         if track:
-            self._rest_track(filt, out["contact"], fault, good)
+            self._rest_track(filt, held, fault, good)
         self.samples += n
         if track and self.samples % contract.LIMIT["TRACK_BLOCK"] == 0:
             self._rest_track_block()
@@ -731,10 +742,13 @@ class FloatPipeline:
         return x
 
     def _contact_decision(self, raw: np.ndarray, margin: np.ndarray) -> np.ndarray:
-        """The decision over time (:func:`fbgforce.model.decision.decide_over_time`)."""
+        """The decision over time (:func:`fbgforce.model.decision.decide_over_time`): returns
+        where it holds (what the nets' outputs are gated on), keeps the contact shown."""
         iu = self.model.in_use
-        return decide_over_time(raw, margin, iu.contact_on_margin, iu.contact_off_margin,
-                                iu.contact_rise_samples, self._decision, iu.cusum)
+        self._shown, held = decide_over_time(raw, margin, iu.contact_on_margin,
+                                             iu.contact_off_margin, iu.contact_rise_samples,
+                                             self._decision, iu.cusum)
+        return held
 
     def _hold_stage(self, force: np.ndarray, contact: np.ndarray) -> np.ndarray:
         """The settled-hold gain (:func:`hold_over_time`)."""

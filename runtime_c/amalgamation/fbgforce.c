@@ -237,29 +237,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -1076,29 +1097,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -1930,29 +1972,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -2793,29 +2856,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -4006,29 +4090,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -5141,29 +5246,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -6265,29 +6391,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -6559,8 +6706,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -6812,29 +6960,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -7217,29 +7386,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -7665,13 +7855,15 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     fbg_memory_stage(s, m, in, loc, &sat);
     status |= out_of_range(m, in);
 
-    /* 4. Contact net and the decision, the tracker on samples at rest; on contact the force
-     *    and location nets. */
+    /* 4. Contact net and the decision, the tracker on samples at rest; while the decision
+     *    holds (contact, and the release band after it) the force and location nets. */
     memset(out, 0, sizeof *out);
     contact_outputs(s, m, in, out, &sat);
-    fbg_rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-    if (out->contact) {
+    fbg_rest_track(s, m, s->decision || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
+    if (s->decision) {
         status |= force_location_outputs(s, m, in, loc, out, &sat);
+        if (s->released)
+            status |= FBG_STATUS_RELEASING;
     } else {
         s->hold_primed = 0u;
         s->hold_run = 0u;
@@ -7923,29 +8115,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -8363,29 +8576,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -9026,29 +9260,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -9619,29 +9874,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -10481,29 +10757,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -11674,29 +11971,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -12468,29 +12786,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -13384,29 +13723,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -13678,8 +14038,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -13931,29 +14292,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -14336,29 +14718,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -14512,39 +14915,47 @@ int32_t fbg_hold_stage(fbg_state *s, const fbg_model *m, int32_t force_mN, uint3
 
 #endif /* FBG_STAGES_H */
 
-/* The contact decision over time (docs/runtime.md, "In use"; docs/fixed-point.md). raw is the
- * net's own decision (acc > 0), margin_q8 the output row as computed, the sign of its
- * multiplier included: every engine reads both as they are, so a negative multiplier gives
- * the same (inverted) decision everywhere. Contact stays while raw or margin_q8 >
- * contact_off_q8. It rises by one of two rules:
+/* One sample of the rise out of contact (and in the release band), by one of two rules; 1 when
+ * contact rises. raw is the net's own decision (acc > 0), margin_q8 the output row as computed,
+ * the sign of its multiplier included: every engine reads both as they are, so a negative
+ * multiplier gives the same (inverted) decision everywhere.
  * - contact_cusum_h_q8 = 0: a Schmitt trigger with a count, after contact_rise_n consecutive
  *   samples of raw and margin_q8 >= contact_on_q8 (with on = off = 0, rise_n = 1 and a
  *   positive multiplier that is raw itself: margin_q8 > 0 implies acc > 0, acc > 0 implies
  *   margin_q8 >= 0);
  * - else a one-sided CUSUM: S = max(0, S + clamp(margin_q8, lo, hi) - k), contact rises when
  *   S >= h, and S restarts at 0. Bound: S < h <= 2^29 before the update (it rises, and
- *   restarts, on reaching h; it is 0 in contact and after init, reset, tare or a new
- *   baseline) and |clamp - k| <= 2^30 (every parameter within +-FBG_MAX_CUSUM_Q8), so S + d
- *   lies in [-2^30, 2^29 + 2^30): int32. A fault never gets here, so it holds S. */
-uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
+ *   restarts, on reaching h; it is 0 while contact is shown and after init, reset, tare or a
+ *   new baseline) and |clamp - k| <= 2^30 (every parameter within +-FBG_MAX_CUSUM_Q8), so
+ *   S + d lies in [-2^30, 2^29 + 2^30): int32. A fault never gets here, so it holds S. */
+static int contact_rises(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
 {
     int32_t d;
     if (m->contact_cusum_h_q8 == 0)
-        return fbg_decide(&s->decision, &s->rise_run, raw, margin_q8 >= m->contact_on_q8,
-                          margin_q8 > m->contact_off_q8, m->contact_rise_n);
-    if (s->decision) {
-        s->decision = (uint8_t)(raw || margin_q8 > m->contact_off_q8);
-        return s->decision;
-    }
+        return fbg_rise_count(&s->rise_run, raw && margin_q8 >= m->contact_on_q8,
+                              m->contact_rise_n);
     d = margin_q8 < m->contact_cusum_lo_q8 ? m->contact_cusum_lo_q8
       : (margin_q8 > m->contact_cusum_hi_q8 ? m->contact_cusum_hi_q8 : margin_q8);
     d -= m->contact_cusum_k_q8;
     s->cusum_q8 = s->cusum_q8 + d > 0 ? s->cusum_q8 + d : 0;
-    if (s->cusum_q8 >= m->contact_cusum_h_q8) {
+    if (s->cusum_q8 < m->contact_cusum_h_q8)
+        return 0;
+    s->cusum_q8 = 0;
+    return 1;
+}
+
+/* The contact decision over time (docs/runtime.md, "In use"; docs/fixed-point.md): the hold and
+ * the release band of fbg_decision_wants_rise, the rise of contact_rises. Returns the contact
+ * shown. */
+uint8_t fbg_contact_decision(fbg_state *s, const fbg_model *m, int raw, int32_t margin_q8)
+{
+    if (fbg_decision_wants_rise(&s->decision, &s->released, &s->release_run,
+                                raw || margin_q8 > 0, raw || margin_q8 > m->contact_off_q8)
+        && contact_rises(s, m, raw, margin_q8)) {
         s->decision = 1u;
-        s->cusum_q8 = 0;
+        s->released = 0u;
     }
-    return s->decision;
+    return (uint8_t)(s->decision && !s->released);
 }
 /* ---- src/fbg_stage_filter.c ---- */
 /*
@@ -14822,29 +15233,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -15116,8 +15548,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -15369,29 +15802,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -15774,29 +16228,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -16276,29 +16751,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -16570,8 +17066,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -16823,29 +17320,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -17228,29 +17746,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -17750,29 +18289,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -18044,8 +18604,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -18297,29 +18858,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -18702,29 +19284,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -19183,29 +19786,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -19477,8 +20101,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -19730,29 +20355,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -20135,29 +20781,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -20692,29 +21359,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -20986,8 +21674,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -21239,29 +21928,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -21644,29 +22354,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -22261,29 +22992,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -22555,8 +23307,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -22808,29 +23561,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -23213,29 +23987,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -24500,29 +25295,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the
@@ -24794,8 +25610,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T
@@ -25375,39 +26192,51 @@ static void force_output(const fbgf_model *m, float f, fbgf_output *out, float i
         memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
 }
 
-static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
+/* The location from the location net's outputs y. Returns 0 for a non-finite output, which
+ * becomes the safe one. */
+static int location_output(const fbgf_model *m, const float *y, fbgf_output *out)
 {
     out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
     out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
     if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
         uint32_t status = out->status;
         memset(out, 0, sizeof *out);
-        out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
+        out->status = (status & ~(uint32_t)(FBG_STATUS_OVERLOAD | FBG_STATUS_RELEASING))
+                    | FBG_STATUS_SATURATED;
+        return 0;
     }
+    return 1;
 }
 
-/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or
- * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
- * when S >= h (S = 0 then). */
-static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or with
+ * contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact when
+ * S >= h (S = 0 then); the hold and the release band of fbg_decision_wants_rise. Returns the
+ * contact shown. */
+static int fbgf_contact_rises(fbgf_state *s, const fbgf_model *m, float margin)
 {
     float d;
     if (m->contact_cusum_h == 0.0f)
-        return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
-                          margin > m->contact_off, m->contact_rise_n);
-    if (s->decision) {
-        s->decision = (uint8_t)(margin > 0.0f || margin > m->contact_off);
-        return s->decision;
-    }
+        return fbg_rise_count(&s->rise_run, margin > 0.0f && margin >= m->contact_on,
+                              m->contact_rise_n);
     d = margin < m->contact_cusum_lo ? m->contact_cusum_lo
       : (margin > m->contact_cusum_hi ? m->contact_cusum_hi : margin);
     d = s->cusum + (d - m->contact_cusum_k);
     s->cusum = d > 0.0f ? d : 0.0f;
-    if (s->cusum >= m->contact_cusum_h) {
+    if (s->cusum < m->contact_cusum_h)
+        return 0;
+    s->cusum = 0.0f;
+    return 1;
+}
+
+static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+{
+    if (fbg_decision_wants_rise(&s->decision, &s->released, &s->release_run, margin > 0.0f,
+                                margin > 0.0f || margin > m->contact_off)
+        && fbgf_contact_rises(s, m, margin)) {
         s->decision = 1u;
-        s->cusum = 0.0f;
+        s->released = 0u;
     }
-    return s->decision;
+    return (uint8_t)(s->decision && !s->released);
 }
 
 /* fbg_rest_track in float: filt is the filtered shifts (pm) of a sample at rest,
@@ -25484,17 +26313,18 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     contact_output(y, out);
     out->contact = fbgf_contact_decision(s, m, out->margin);
-    fbgf_rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
-    if (!out->contact) {
+    fbgf_rest_track(s, m, s->decision || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    if (!s->decision) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
         return FBG_OK;
     }
+    if (s->released)
+        out->status |= FBG_STATUS_RELEASING;
     y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
     y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
-    location_output(m, y, out);
-    if (!out->contact) {             /* a non-finite output: the safe one */
+    if (!location_output(m, y, out)) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
     } else if (m->hold_gain != 0.0f) {

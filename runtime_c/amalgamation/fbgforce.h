@@ -80,6 +80,7 @@ extern "C" {
 #define FBG_MAX_HOLD_GAIN_Q15 4096  /* largest |hold_gain_q15| (12.5 %): the hold stage's product stays below 2^56 (docs/fixed-point.md) */
 #define FBG_MAX_HOLD_RAMP_SHIFT 12  /* largest hold_ramp_shift (the gain ramps in over 4096 samples) */
 #define FBG_MAX_CUSUM_Q8 536870912  /* largest contact_cusum_h_q8 and |contact_cusum_k_q8|, |_lo_q8|, |_hi_q8|: the CUSUM's sum stays inside int32 (docs/fixed-point.md) */
+#define FBG_RELEASE_DWELL 8  /* consecutive samples with the contact net's margin at or below 0 before contact is released inside the decision's hold */
 #define FBG_BLOB_VERSION 11  /* blob format this library reads and writes */
 #define FBG_BLOB_HEADER_SIZE 16  /* magic, version, flags, total length, CRC-32 */
 #define FBG_VERSION_MAJOR 0  /* library version */
@@ -118,7 +119,8 @@ typedef enum {
 #define FBG_STATUS_WARMUP 0x10  /* fewer than n_taps samples since init/tare/reset */
 #define FBG_STATUS_BASELINE_LIMIT 0x20  /* the at-rest baseline tracker is at its bound: drift beyond what it may correct (re-tare) */
 #define FBG_STATUS_OUT_OF_RANGE 0x40  /* a net input (z or a memory feature) outside the range the calibration data covered, with a margin: the nets extrapolate */
-#define FBG_STATUS_ALL 0x7F  /* every flag above: no other bit is ever set */
+#define FBG_STATUS_RELEASING 0x80  /* contact has ended: the contact net's margin has stayed at or below 0 for FBG_RELEASE_DWELL samples; the force and location still follow the falling load until the decision's release band ends */
+#define FBG_STATUS_ALL 0xFF  /* every flag above: no other bit is ever set */
 
 /* fbg_init options: flags, and one FBG_OPT_KERNEL_* value. */
 #define FBG_OPT_REQUIRE_TARE 0x01  /* fbg_step returns FBG_ERR_NOT_TARED until tared */
@@ -272,7 +274,7 @@ typedef struct {
      * activations with LDRD (no copy to an aligned buffer per layer). */
     int16_t act[2][FBG_MAX_WIDTH];               /* activation ping-pong buffers */
     uint32_t tare_count;
-    int32_t cusum_q8;                            /* the decision's CUSUM S (Q8 margin), in [0, contact_cusum_h_q8) out of contact, 0 in contact */
+    int32_t cusum_q8;                            /* the decision's CUSUM S (Q8 margin), in [0, contact_cusum_h_q8) out of contact and in the release band, 0 while contact is shown */
     uint16_t pos;                                /* next write index into hist */
     uint16_t since_reset;                        /* samples since init/tare, saturating */
     uint16_t same_run[FBG_N_CHANNELS];           /* repeats of the identical value */
@@ -284,7 +286,9 @@ typedef struct {
     uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
     uint8_t creep_primed;                        /* the creep inverse's lags hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
-    uint8_t decision;                            /* the contact decision of the last step */
+    uint8_t decision;                            /* the contact decision of the last step, held through the release band */
+    uint8_t released;                            /* 1: in the release band, contact no longer shown */
+    uint8_t release_run;                         /* samples with the margin at or below 0 so far, in contact (up to FBG_RELEASE_DWELL) */
     uint8_t rise_run;                            /* samples of the rise condition so far */
     uint8_t track_pos;                           /* samples into the tracker's block */
     uint8_t track_limited;                       /* 1: a channel's drift_fm is at its bound */
@@ -534,13 +538,15 @@ typedef struct {
     float drift_pm[FBG_N_STRAIN];
     float held_pm[FBG_N_STRAIN];
     uint16_t rest_run;                           /* samples at rest, saturating */
-    uint8_t decision;                            /* the contact decision of the last step */
+    uint8_t decision;                            /* the contact decision of the last step, held through the release band */
+    uint8_t released;                            /* 1: in the release band, contact no longer shown */
+    uint8_t release_run;                         /* samples with the margin at or below 0 so far, in contact (up to FBG_RELEASE_DWELL) */
     uint8_t rise_run;                            /* samples of the rise condition so far */
     uint8_t track_pos;                           /* samples into the tracker's block */
     uint8_t track_limited;                       /* 1: a channel's drift_pm is at its bound */
     uint16_t hold_run;                           /* steady contact samples so far, saturating */
     uint8_t hold_primed;                         /* hold_avg_N holds a contact sample's force */
-    uint8_t reserved_[3];
+    uint8_t reserved_[1];
     float act[2][FBG_MAX_WIDTH];                 /* activation ping-pong buffers */
 } fbgf_state;
 /* ---- END GENERATED float state ---- */

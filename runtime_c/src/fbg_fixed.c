@@ -284,13 +284,15 @@ fbg_status fbg_step(fbg_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbg_outpu
     fbg_memory_stage(s, m, in, loc, &sat);
     status |= out_of_range(m, in);
 
-    /* 4. Contact net and the decision, the tracker on samples at rest; on contact the force
-     *    and location nets. */
+    /* 4. Contact net and the decision, the tracker on samples at rest; while the decision
+     *    holds (contact, and the release band after it) the force and location nets. */
     memset(out, 0, sizeof *out);
     contact_outputs(s, m, in, out, &sat);
-    fbg_rest_track(s, m, out->contact || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
-    if (out->contact) {
+    fbg_rest_track(s, m, s->decision || !s->tared || (status & FBG_STATUS_WARMUP) ? NULL : in);
+    if (s->decision) {
         status |= force_location_outputs(s, m, in, loc, out, &sat);
+        if (s->released)
+            status |= FBG_STATUS_RELEASING;
     } else {
         s->hold_primed = 0u;
         s->hold_run = 0u;

@@ -224,8 +224,9 @@ static inline int fbg_front_push_done(fbg_front f, uint16_t n_taps, uint32_t *st
 /* What a reset, a tare and a new baseline restart in both builds' states, beyond the front end:
  * the decision over time, the tracker's block and the settled-hold count. */
 #define FBG_RESTART_IN_USE(s)                                                                 \
-    ((s)->decision = 0u, (s)->rise_run = 0u, (s)->rest_run = 0u, (s)->track_pos = 0u,         \
-     (s)->track_limited = 0u, (s)->hold_run = 0u, (s)->hold_primed = 0u)
+    ((s)->decision = 0u, (s)->released = 0u, (s)->release_run = 0u, (s)->rise_run = 0u,       \
+     (s)->rest_run = 0u, (s)->track_pos = 0u, (s)->track_limited = 0u, (s)->hold_run = 0u,    \
+     (s)->hold_primed = 0u)
 
 /* The front-end half of a build's API, defined once for both builds: PREFIX_reset,
  * PREFIX_tare_begin, PREFIX_tare_add, PREFIX_tare_end and PREFIX_set_baseline on STATE_T

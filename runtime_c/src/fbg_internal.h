@@ -188,29 +188,50 @@ static inline void fbg_tare_mean(const int64_t sum[FBG_N_CHANNELS], uint32_t cou
         out[c] = (int32_t)((sum[c] + (int64_t)(count / 2u)) / (int64_t)count);
 }
 
-/* The contact decision over time of both builds (docs/runtime.md, "In use"): a Schmitt
- * trigger with a count before rising. raw is the contact net's own decision; rising says the
- * margin is at least contact_on, staying that it is above contact_off (each build compares
- * its own margin with its own thresholds). Contact rises after rise_n consecutive samples of
- * raw and rising, and stays while raw or staying. */
-static inline uint8_t fbg_decide(uint8_t *decision, uint8_t *rise_run, int raw, int rising,
-                                 int staying, uint8_t rise_n)
+/* The contact decision over time of both builds (docs/runtime.md, "In use"). decision is held
+ * while the net's own decision or staying (the margin above contact_off) says so; within that
+ * hold, contact is shown until positive (the net's own decision, or the margin above 0) has
+ * failed on FBG_RELEASE_DWELL consecutive samples (counted in release_run): from there to the
+ * hold's end (the release band) released is 1, the force and location still follow the
+ * falling load, and contact shows again only by a new rise. The dwell keeps contact through
+ * the margin's noise on a light held load, which the band alone used to. Returns 1 when the
+ * build's rise rule is to run this sample (out of the hold, or in the release band): it does
+ * not on the sample the hold ends or contact is released, as it does not on the sample
+ * contact rises. */
+static inline int fbg_decision_wants_rise(uint8_t *decision, uint8_t *released,
+                                          uint8_t *release_run, int positive, int staying)
 {
-    if (*decision) {
-        *decision = (uint8_t)(raw || staying);
-        return *decision;
+    if (*decision && !staying) {
+        *decision = 0u;
+        *released = 0u;
+        *release_run = 0u;
+        return 0;
     }
-    if (raw && rising) {
-        if (*rise_run < 255u)
-            (*rise_run)++;
-    } else {
+    if (*decision && !*released) {
+        *release_run = positive ? 0u : (uint8_t)(*release_run + 1u);
+        if (*release_run >= FBG_RELEASE_DWELL) {
+            *released = 1u;
+            *release_run = 0u;
+        }
+        return 0;
+    }
+    return 1;
+}
+
+/* The Schmitt trigger's rise count of both builds: 1, and the count restarts, when cond has
+ * held for rise_n consecutive samples. */
+static inline int fbg_rise_count(uint8_t *rise_run, int cond, uint8_t rise_n)
+{
+    if (!cond) {
         *rise_run = 0u;
+        return 0;
     }
-    if (*rise_run >= rise_n) {
-        *decision = 1u;
-        *rise_run = 0u;
-    }
-    return *decision;
+    if (*rise_run < 255u)
+        (*rise_run)++;
+    if (*rise_run < rise_n)
+        return 0;
+    *rise_run = 0u;
+    return 1;
 }
 
 /* The settled-hold gain's count of both builds (docs/runtime.md, "In use"): steady says the

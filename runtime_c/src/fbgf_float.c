@@ -468,39 +468,51 @@ static void force_output(const fbgf_model *m, float f, fbgf_output *out, float i
         memcpy(in + FBG_N_STRAIN + 2, loc, FBG_N_STRAIN * sizeof *loc);
 }
 
-static void location_output(const fbgf_model *m, const float *y, fbgf_output *out)
+/* The location from the location net's outputs y. Returns 0 for a non-finite output, which
+ * becomes the safe one. */
+static int location_output(const fbgf_model *m, const float *y, fbgf_output *out)
 {
     out->x_mm = m->xy_offset_mm[0] + m->xy_scale[0] * y[0];
     out->y_mm = m->xy_offset_mm[1] + m->xy_scale[1] * y[1];
     if (!finite_f(out->force_N) || !finite_f(out->x_mm) || !finite_f(out->y_mm)) {
         uint32_t status = out->status;
         memset(out, 0, sizeof *out);
-        out->status = (status & ~(uint32_t)FBG_STATUS_OVERLOAD) | FBG_STATUS_SATURATED;
+        out->status = (status & ~(uint32_t)(FBG_STATUS_OVERLOAD | FBG_STATUS_RELEASING))
+                    | FBG_STATUS_SATURATED;
+        return 0;
     }
+    return 1;
 }
 
-/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or
- * with contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact
- * when S >= h (S = 0 then). */
-static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or with
+ * contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact when
+ * S >= h (S = 0 then); the hold and the release band of fbg_decision_wants_rise. Returns the
+ * contact shown. */
+static int fbgf_contact_rises(fbgf_state *s, const fbgf_model *m, float margin)
 {
     float d;
     if (m->contact_cusum_h == 0.0f)
-        return fbg_decide(&s->decision, &s->rise_run, margin > 0.0f, margin >= m->contact_on,
-                          margin > m->contact_off, m->contact_rise_n);
-    if (s->decision) {
-        s->decision = (uint8_t)(margin > 0.0f || margin > m->contact_off);
-        return s->decision;
-    }
+        return fbg_rise_count(&s->rise_run, margin > 0.0f && margin >= m->contact_on,
+                              m->contact_rise_n);
     d = margin < m->contact_cusum_lo ? m->contact_cusum_lo
       : (margin > m->contact_cusum_hi ? m->contact_cusum_hi : margin);
     d = s->cusum + (d - m->contact_cusum_k);
     s->cusum = d > 0.0f ? d : 0.0f;
-    if (s->cusum >= m->contact_cusum_h) {
+    if (s->cusum < m->contact_cusum_h)
+        return 0;
+    s->cusum = 0.0f;
+    return 1;
+}
+
+static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
+{
+    if (fbg_decision_wants_rise(&s->decision, &s->released, &s->release_run, margin > 0.0f,
+                                margin > 0.0f || margin > m->contact_off)
+        && fbgf_contact_rises(s, m, margin)) {
         s->decision = 1u;
-        s->cusum = 0.0f;
+        s->released = 0u;
     }
-    return s->decision;
+    return (uint8_t)(s->decision && !s->released);
 }
 
 /* fbg_rest_track in float: filt is the filtered shifts (pm) of a sample at rest,
@@ -577,17 +589,18 @@ fbg_status fbgf_step(fbgf_state *s, const int32_t wl_fm[FBG_N_CHANNELS], fbgf_ou
     }
     contact_output(y, out);
     out->contact = fbgf_contact_decision(s, m, out->margin);
-    fbgf_rest_track(s, m, out->contact || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
-    if (!out->contact) {
+    fbgf_rest_track(s, m, s->decision || !s->tared || (out->status & FBG_STATUS_WARMUP) ? NULL : filt);
+    if (!s->decision) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
         return FBG_OK;
     }
+    if (s->released)
+        out->status |= FBG_STATUS_RELEASING;
     y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_FORCE], in, FBG_MAX_INPUTS, 1u, act);
     force_output(m, y[0], out, in, loc);
     y = fbgf_net_outputs(kernel, &m->nets[FBG_NET_LOCATION], in, FBG_MAX_INPUTS, 1u, act);
-    location_output(m, y, out);
-    if (!out->contact) {             /* a non-finite output: the safe one */
+    if (!location_output(m, y, out)) {
         s->hold_primed = 0u;
         s->hold_run = 0u;
     } else if (m->hold_gain != 0.0f) {
