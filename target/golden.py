@@ -11,6 +11,7 @@ import numpy as np
 from fbgforce import contract
 from fbgforce.errors import InputError
 from fbgforce.target.sources import header_constants
+from fbgforce.units import estimate_shown
 
 
 # Ops of examples/firmware/fw_golden.h.
@@ -167,8 +168,8 @@ def write_golden_c(records: Sequence[Record], path: Path, options: int = 0) -> N
 
 def step_macs(q: Any, records: Sequence[Record]) -> list[int]:
     """MACs each step record performs in the C pipeline: the FIR (4 channels x taps) and every
-    layer of the nets that run (contact always; force and location only on contact); a sensor
-    fault runs neither."""
+    layer of the nets that run (contact always; force and location where the decision holds:
+    contact, or RELEASING, :func:`fbgforce.units.estimate_shown`); a sensor fault runs neither."""
     fault = header_constants()["FBG_STATUS_SENSOR_FAULT"]
     fir = 4 * int(q.taps.size)
     net = [sum(ly.n_in * ly.n_out for ly in layers) for layers in q.nets]
@@ -179,5 +180,6 @@ def step_macs(q: Any, records: Sequence[Record]) -> list[int]:
         if r.out["status"] & fault:
             macs.append(0)
         else:
-            macs.append(fir + net[0] + (net[1] + net[2] if r.out["contact"] else 0))
+            shown = estimate_shown(r.out["contact"], r.out["status"])
+            macs.append(fir + net[0] + (net[1] + net[2] if shown else 0))
     return macs

@@ -13,6 +13,7 @@ import numpy as np
 
 from fbgforce.errors import InputError
 from fbgforce.target import cycles, firmware, golden, sources, toolchain
+from fbgforce.units import estimate_shown
 
 #: Clock the budget fraction is quoted for, and the controller period.
 CLOCK_HZ = 168_000_000
@@ -135,7 +136,8 @@ def target_report(model_dir: str | Path, *, data: str | None = None, scene: str 
     records = golden.golden_session(q, wl, contact, seed=seed)
     steps = [r for r in records if r.op == golden.OP_STEP]
     macs = golden.step_macs(q, records)
-    step_contact = [bool(r.out["contact"]) for r in steps]
+    # The steps that run the force and location nets: contact, and the release band after it.
+    step_contact = [estimate_shown(r.out["contact"], r.out["status"]) for r in steps]
 
     with _build_directory(build_dir) as build:
         ident = "target"

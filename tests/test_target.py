@@ -69,6 +69,18 @@ def test_golden_session_covers_every_status_and_api_call(small_model_dir):
     assert {c["FBG_ERR_ARG"], c["FBG_ERR_TARE"]} <= {r.status for r in recs}
 
 
+def test_step_macs_count_the_nets_of_the_release_band(small_model_dir):
+    """The force and location nets run in contact and in the release band after it (contact 0,
+    RELEASING): both count their MACs; a rest runs the contact net alone, a fault nothing."""
+    q, _ = load_quantized(Path(small_model_dir))
+    flag = contract.STATUS_FLAG
+    outs = [{"contact": 1, "status": 0}, {"contact": 0, "status": flag["RELEASING"]},
+            {"contact": 0, "status": 0}, {"contact": 0, "status": flag["SENSOR_FAULT"]}]
+    macs = golden.step_macs(q, [golden.Record(golden.OP_STEP, out=o) for o in outs])
+    fir, nets = 4 * int(q.taps.size), [sum(ly.n_in * ly.n_out for ly in n) for n in q.nets]
+    assert macs == [fir + sum(nets), fir + sum(nets), fir + nets[0], 0]
+
+
 @pytest.mark.target
 def test_cross_libraries_build_clean_and_without_float(tools):
     """-Werror builds of the three libraries, and the soft-float symbol scan passes."""

@@ -60,9 +60,8 @@ def decide_over_time(raw: np.ndarray, margin: np.ndarray, on: float, off: float,
     Else ``cusum = (h, k, lo, hi)``, a one-sided CUSUM: ``S = max(0, S + clip(margin, lo, hi)
     - k)``, contact rises when ``S >= h`` and ``S`` restarts at 0 (it stays 0 while contact is
     shown). ``state`` is ``[decision, rise_run, S, released, release_run]`` of the previous
-    sample, carried
-    and updated. Integer arguments give the integer rule exactly (Python integers); the C
-    runtimes run this rule (``fbg_contact_decision`` in fbg_stage_decision.c,
+    sample, carried and updated. Integer arguments give the integer rule exactly (Python
+    integers); the C runtimes run this rule (``fbg_contact_decision`` in fbg_stage_decision.c,
     ``fbgf_contact_decision`` in fbgf_float.c).
 
     Returns
