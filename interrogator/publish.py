@@ -17,7 +17,7 @@ offset size field          meaning
 29     1    reserved       0
 30     2    contact_conf_q15 contact confidence, 1/32768
 32     4    force_mN       normal force, mN
-36     4    x_um           contact location in the pad frame, µm (meaningful when contact)
+36     4    x_um           location in the pad frame, µm (with contact or RELEASING)
 40     4    y_um
 44     4    crc32          CRC-32 (zlib) of bytes 0..43
 ====== ==== ============== ==============================================================
@@ -112,7 +112,7 @@ COMMAND_POLL_S = 0.01
 def estimate_integers(est: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The datagram's estimate fields from a :class:`~fbgforce.interrogator.stream.LiveEstimator`
     batch: the runtime's integers when it has them (fixed engine), else the float estimates
-    rounded to the same units (x/y 0 where there is no contact)."""
+    rounded to the same units (x/y 0 where neither contact nor RELEASING is set)."""
     n = len(est["contact"])
     out = {"status": np.asarray(est["status"]), "contact": np.asarray(est["contact"], dtype=bool)}
     if "force_mN" in est:

@@ -25,6 +25,7 @@ import numpy as np
 
 from fbgforce import contract
 from fbgforce.errors import InputError
+from fbgforce.units import estimate_shown
 
 #: The message package shipped with fbgforce (a ROS 2 package: package.xml, CMakeLists.txt).
 MSG_PACKAGE = "fbgforce_msgs"
@@ -256,14 +257,16 @@ def split_stamp(ns: int) -> tuple[int, int]:
 def estimates_si(ints: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The published estimate in SI units from the runtime's integers
     (:func:`fbgforce.interrogator.publish.estimate_integers`): ``contact`` (bool),
-    ``confidence`` (0..1), ``force`` (N), ``x``, ``y`` (m, NaN without contact) and the torque
-    about the pad origin ``torque_x``, ``torque_y`` (N·m, 0 without contact)."""
+    ``confidence`` (0..1), ``force`` (N), ``x``, ``y`` (m, NaN where no estimate is shown:
+    neither contact nor RELEASING, :func:`fbgforce.units.estimate_shown`) and the torque about
+    the pad origin ``torque_x``, ``torque_y`` (N·m, 0 there)."""
     contact = np.asarray(ints["contact"], dtype=bool)
+    shown = estimate_shown(contact, ints["status"])
     force = np.asarray(ints["force_mN"], dtype=np.float64) / 1000.0
-    x0 = np.where(contact, np.asarray(ints["x_um"], dtype=np.float64) / 1e6, 0.0)
-    y0 = np.where(contact, np.asarray(ints["y_um"], dtype=np.float64) / 1e6, 0.0)
+    x0 = np.where(shown, np.asarray(ints["x_um"], dtype=np.float64) / 1e6, 0.0)
+    y0 = np.where(shown, np.asarray(ints["y_um"], dtype=np.float64) / 1e6, 0.0)
     return {"contact": contact,
             "confidence": np.asarray(ints["contact_conf_q15"], dtype=np.float64) / 32768.0,
-            "force": force, "x": np.where(contact, x0, np.nan), "y": np.where(contact, y0, np.nan),
+            "force": force, "x": np.where(shown, x0, np.nan), "y": np.where(shown, y0, np.nan),
             "torque_x": y0 * force, "torque_y": -x0 * force,
             "status": np.asarray(ints["status"], dtype=np.uint32)}

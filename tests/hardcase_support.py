@@ -47,6 +47,7 @@ FIELDS = contract.OUTPUT_FIELDS
 FAULT, SATURATED, OVERLOAD = (intref.STATUS_SENSOR_FAULT, intref.STATUS_SATURATED,
                               intref.STATUS_OVERLOAD)
 NOT_TARED, WARMUP = intref.STATUS_NOT_TARED, intref.STATUS_WARMUP
+RELEASING = intref.STATUS_RELEASING
 ALL_FLAGS = contract.STATUS_ALL
 TARE_ROWS = 150  # every scene below starts with >= 0.2 s at rest
 
@@ -253,11 +254,15 @@ def assert_contract(out: dict[str, np.ndarray], q, wl: np.ndarray, tared: bool) 
                                   "SENSOR_FAULT vs the rule")
     for k in ("force_mN", "x_um", "y_um", "contact_margin_q8", "contact", "contact_conf_q15"):
         assert not np.any(out[k][fault]), f"faulty samples must give the safe output ({k})"
-    none = out["contact"] == 0
+    # Force and location where the decision holds: contact, or the release band after it
+    # (contact 0 with RELEASING, which never comes with contact).
+    releasing = (st & RELEASING) != 0
+    assert not np.any(releasing & (out["contact"] == 1)), "RELEASING with contact"
+    none = (out["contact"] == 0) & ~releasing
     for k in ("force_mN", "x_um", "y_um"):
-        assert not np.any(out[k][none]), f"{k} without contact"
+        assert not np.any(out[k][none]), f"{k} without contact or RELEASING"
     # OVERLOAD: the estimate above overload_mN, or the input-side load rule (contact or not).
-    over = (out["contact"] == 1) & (out["force_mN"] > q.overload_mN)
+    over = ((out["contact"] == 1) | releasing) & (out["force_mN"] > q.overload_mN)
     assert ((st[over] & OVERLOAD) != 0).all(), "force above overload_mN without OVERLOAD"
     assert not np.any(st[fault] & OVERLOAD), "OVERLOAD on a faulty sample"
     ok = ~fault

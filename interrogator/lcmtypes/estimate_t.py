@@ -72,7 +72,7 @@ class estimate_t(object):
 
         self.x_um = 0
         """
-        contact location in the pad frame, micrometres (meaningful when contact)
+        contact location in the pad frame, micrometres (meaningful when contact or RELEASING)
         LCM Type: int32_t
         """
 

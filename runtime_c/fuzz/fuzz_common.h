@@ -48,9 +48,13 @@ static inline const char *hc_check_output(const fbg_output *o, const fbg_model *
             return "OVERLOAD on a faulty sample";
         return NULL;
     }
-    if (!o->contact && (o->force_mN || o->x_um || o->y_um))
-        return "force/location without contact";
-    if (o->contact && o->force_mN > m->overload_mN && !(o->status & FBG_STATUS_OVERLOAD))
+    /* Force and location where the decision holds: contact, or the release band after it. */
+    if (o->contact && (o->status & FBG_STATUS_RELEASING))
+        return "RELEASING with contact";
+    if (!o->contact && !(o->status & FBG_STATUS_RELEASING) && (o->force_mN || o->x_um || o->y_um))
+        return "force/location without contact or RELEASING";
+    if ((o->contact || (o->status & FBG_STATUS_RELEASING)) && o->force_mN > m->overload_mN
+        && !(o->status & FBG_STATUS_OVERLOAD))
         return "force_mN > overload_mN without OVERLOAD";
     if ((int32_t)o->contact_conf_q15 != fbg_sigmoid_q15(o->contact_margin_q8))
         return "contact_conf_q15 is not sigmoid(margin)";
