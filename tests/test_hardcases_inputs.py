@@ -524,7 +524,8 @@ def _nan_rows(base_nm: np.ndarray) -> np.ndarray:
 def test_nan_inf_into_float_paths(models, driver):
     """Wavelengths in nm (float) go through the one nm->fm rule: NaN/inf -> 0 fm -> a lost
     peak -> SENSOR_FAULT and the safe output; the fixed and the C float runtime never return
-    NaN/inf (x/y are NaN only where there is no contact, the documented convention)."""
+    NaN/inf (x/y are NaN only where neither contact nor RELEASING is set, the documented
+    convention)."""
     from fbgforce.pybind import FloatRuntime, Runtime
 
     m = models["small16"]
