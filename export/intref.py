@@ -195,7 +195,7 @@ def _block(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, fault: np.
         if held.any():
             _force_location_outputs(q, state, feats, rows, held, status, flag, out)
         else:
-            state.hold[1], state.hold[2] = 0, 0      # the settled-hold gain, cleared by no contact
+            state.hold[1], state.hold[2] = 0, 0      # the settled-hold gain, cleared out of the hold
     return rest, terms[rest].sum(axis=0)
 
 

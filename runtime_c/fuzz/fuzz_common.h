@@ -27,6 +27,7 @@
 /* Returns NULL when *o satisfies the contract, else a short description of the violation. */
 static inline const char *hc_check_output(const fbg_output *o, const fbg_model *m, int tared)
 {
+    const int releasing = (o->status & FBG_STATUS_RELEASING) != 0u;
     if (o->status & ~(uint32_t)FBG_STATUS_ALL)
         return "undefined status bit";
     if (o->contact > 1u)
@@ -49,11 +50,11 @@ static inline const char *hc_check_output(const fbg_output *o, const fbg_model *
         return NULL;
     }
     /* Force and location where the decision holds: contact, or the release band after it. */
-    if (o->contact && (o->status & FBG_STATUS_RELEASING))
+    if (o->contact && releasing)
         return "RELEASING with contact";
-    if (!o->contact && !(o->status & FBG_STATUS_RELEASING) && (o->force_mN || o->x_um || o->y_um))
+    if (!o->contact && !releasing && (o->force_mN || o->x_um || o->y_um))
         return "force/location without contact or RELEASING";
-    if ((o->contact || (o->status & FBG_STATUS_RELEASING)) && o->force_mN > m->overload_mN
+    if ((o->contact || releasing) && o->force_mN > m->overload_mN
         && !(o->status & FBG_STATUS_OVERLOAD))
         return "force_mN > overload_mN without OVERLOAD";
     if ((int32_t)o->contact_conf_q15 != fbg_sigmoid_q15(o->contact_margin_q8))

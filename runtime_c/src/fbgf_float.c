@@ -484,10 +484,9 @@ static int location_output(const fbgf_model *m, const float *y, fbgf_output *out
     return 1;
 }
 
-/* fbg_contact_decision on the float margin: the Schmitt trigger with its count, or with
- * contact_cusum_h > 0 the CUSUM rise S = max(0, S + clamp(margin, lo, hi) - k), contact when
- * S >= h (S = 0 then); the hold and the release band of fbg_decision_wants_rise. Returns the
- * contact shown. */
+/* contact_rises of fbg_stage_decision.c on the float margin, 1 when contact rises: the
+ * Schmitt trigger with its count, or with contact_cusum_h > 0 the CUSUM rise S = max(0, S +
+ * clamp(margin, lo, hi) - k), contact when S >= h (S = 0 then). */
 static int fbgf_contact_rises(fbgf_state *s, const fbgf_model *m, float margin)
 {
     float d;
@@ -504,6 +503,8 @@ static int fbgf_contact_rises(fbgf_state *s, const fbgf_model *m, float margin)
     return 1;
 }
 
+/* fbg_contact_decision on the float margin: the hold and the release band of
+ * fbg_decision_wants_rise, the rise of fbgf_contact_rises. Returns the contact shown. */
 static uint8_t fbgf_contact_decision(fbgf_state *s, const fbgf_model *m, float margin)
 {
     if (fbg_decision_wants_rise(&s->decision, &s->released, &s->release_run, margin > 0.0f,
