@@ -21,7 +21,7 @@ from fbgforce.trainer.creep import Creep  # noqa: E402
 from fbgforce.trainer.creep_evidence import takes_creep_out  # noqa: E402
 from fbgforce.trainer.creep_fit import fit_creep  # noqa: E402
 from fbgforce.trainer.fit_nets import TURN_FRACTION, TURN_GUARD_S, after_turns  # noqa: E402
-from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS, hold_gain  # noqa: E402
+from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS, hold_gain, hold_noise  # noqa: E402
 from fbgforce.trainer.memory import MEMORY_PRESETS, memory_time_constant_s  # noqa: E402
 from fbgforce.trainer import synthetic  # noqa: E402
 from fbgforce.trainer.synthetic import (HOLD_AUGMENT_STEP_S, synthetic_holds,  # noqa: E402
@@ -190,6 +190,25 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
 
 
+def test_hold_noise_is_the_scatter_about_each_holds_own_line():
+    """hold_noise: the scatter of a held load's force about each hold's own straight line (its
+    level and creep are no part of it), pooled over holds with the degrees of freedom the lines
+    take; a hold of two samples, which a line fits exactly, adds nothing."""
+    rng = np.random.default_rng(5)
+    sd, parts, labels = 0.3, [], []
+    for k, (level, slope, n) in enumerate(((3.0, 0.0, 400), (25.0, 0.004, 900), (48.0, -0.002, 250))):
+        parts.append(level + slope * np.arange(n) + rng.normal(0.0, sd, n))
+        labels.append(np.full(n, k))
+    parts.append(np.array([7.0, 9.0]))
+    labels.append(np.full(2, 3))
+    f, hold = np.concatenate(parts), np.concatenate(labels)
+    assert hold_noise(f, hold) == pytest.approx(sd, rel=0.05)
+    # The lines take out level and trend: the same scatter on other lines reads the same.
+    lifted = f + np.where(hold == 1, 0.01 * np.arange(f.size), 0.0)
+    assert hold_noise(lifted, hold) == pytest.approx(hold_noise(f, hold), rel=1e-9)
+    assert hold_noise(f[-2:], hold[-2:]) == 0.0
+
+
 @pytest.mark.slow
 def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(paired_holds):
     """hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1
@@ -202,6 +221,10 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     settled = model.metadata["synthetic_holds"]["settled_gain"]
     assert settled["holds"] >= HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
     assert model.in_use.hold_gain == pytest.approx(settled["gain"]) != 0.0
+    assert settled["noise_N"] > 0.0 and model.in_use.hold_band_N == pytest.approx(
+        max(artifact.HOLD_BAND_N, artifact.HOLD_BAND_NOISE * settled["noise_N"]))
+    why = {c["name"]: c for c in model.metadata["corrections"]}["settled_hold_gain"]["why"]
+    assert f"within {model.in_use.hold_band_N:.2g} N" in why
     assert abs(settled["bias_after_N"]) < abs(settled["bias_before_N"])
     assert model.in_use.hold_settle == round(artifact.HOLD_SETTLE_S * 1000)
     # Written out again: a held sample's place in its hold, one every HOLD_AUGMENT_STEP_S.
@@ -223,6 +246,7 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     def sse(g: float) -> float:
         return float(np.sum((f * (1 + g) - y) ** 2))
     assert sse(fit["gain"]) < min(sse(fit["gain"] - 1e-3), sse(fit["gain"] + 1e-3), sse(0.0))
+    assert fit["noise_N"] == pytest.approx(hold_noise(f, src[settled]))
     assert hold_gain(model, mdata, [])["gain"] == 0.0
     plain = train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0,
                     progress=False)

@@ -206,12 +206,20 @@ def test_the_fields_are_range_checked_by_every_reader():
 
 def test_recommended_sets_the_stage_from_the_gain():
     """The trainer's gain turns the stage on with the documented settle, band, average and
-    ramp at the model's rate (clipped to the bound); no gain leaves every field 0, and a model
+    ramp at the model's rate (clipped to the bound), the band widened to a multiple of the
+    nets' scatter on held loads where that is larger; no gain leaves every field 0, and a model
     saved without the fields loads with the stage off."""
     on = artifact.InUse.recommended(1000.0, hold_gain=0.008)
     assert (on.hold_gain, on.hold_settle, on.hold_band_N, on.hold_band_frac, on.hold_shift,
             on.hold_ramp_shift) == (0.008, 200, artifact.HOLD_BAND_N, artifact.HOLD_BAND_FRACTION, 7, 8)
     assert artifact.InUse.recommended(500.0, hold_gain=0.008).hold_settle == 100
+    # A pad whose nets scatter more on a held load gets a band that scatter rarely leaves.
+    noisy = artifact.InUse.recommended(1000.0, hold_gain=0.008, hold_noise_N=0.3)
+    assert artifact.HOLD_BAND_NOISE * 0.3 > artifact.HOLD_BAND_N
+    assert noisy.hold_band_N == pytest.approx(artifact.HOLD_BAND_NOISE * 0.3)
+    assert artifact.InUse.recommended(1000.0, hold_gain=0.008,
+                                      hold_noise_N=0.05).hold_band_N == artifact.HOLD_BAND_N
+    assert artifact.InUse.recommended(1000.0, hold_noise_N=0.3).hold_band_N == 0.0
     assert artifact.InUse.recommended(1000.0, hold_gain=1.0).hold_gain == artifact.HOLD_GAIN_MAX
     off = artifact.InUse.recommended(1000.0)
     assert not any(getattr(off, k) for k in QUICK)

@@ -62,7 +62,10 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          if holds else "--hold-augment 0 or a memoryless model"},
         {"name": "settled_hold_gain", "applied": bool(iu.hold_gain),
          "why": (f"{iu.hold_gain:+.4f}, the nets' gain on {settled.get('holds', 0)} held-out "
-                 "synthetic holds" if iu.hold_gain else
+                 f"synthetic holds, once the force has stood within {iu.hold_band_N:.2g} N "
+                 f"({fm.HOLD_BAND_NOISE:g} times the nets' {settled.get('noise_N') or 0.0:.2g} N "
+                 f"scatter there, at least {fm.HOLD_BAND_N:g} N) or {100 * iu.hold_band_frac:g} % "
+                 f"for {iu.hold_settle} samples" if iu.hold_gain else
                  f"off: {settled.get('holds', 0)} synthetic holds to measure it on (at least "
                  f"{HOLD_GAIN_MIN_HOLDS} needed)" if not settled.get("gain") else "off")},
         {"name": "turn_guard", "applied": bool(params.turn_guard_s),

@@ -277,11 +277,12 @@ def _assemble(data: Prepared, pre: artifact.Preprocess, scaling: Scaling,
 
 
 def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
-                    cnet: FlatMLP, rests: tuple[Held, Held], gain: float
+                    cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any]
                     ) -> dict[str, artifact.InUse]:
     """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
     set from the training data: its decision over time, the tracker and the settled-hold
-    ``gain`` (:func:`~fbgforce.trainer.hold_gain.hold_gain`).
+    gain with its steadiness band (``settled``, what
+    :func:`~fbgforce.trainer.hold_gain.hold_gain` measured; empty: the stage off).
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
@@ -299,17 +300,18 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
                     "cusum": calibration_rests}
     return {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
-        creep_time_constant_samples=left.time_constant_s * data.rate_hz, hold_gain=gain,
+        creep_time_constant_samples=left.time_constant_s * data.rate_hz,
+        hold_gain=settled.get("gain", 0.0), hold_noise_N=settled.get("noise_N") or 0.0,
         decision=rule) for rule in DECISION_RULES}
 
 
 def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactStage",
-            gain: float, decision: str) -> dict[str, dict[str, Any]]:
+            settled: Mapping[str, Any], decision: str) -> dict[str, dict[str, Any]]:
     """Set the model's in-use stages (:func:`_decision_rules`, by the rule ``decision``) and
     input range from the training data; return the decision's fields of every rule
     (``metadata.decision_rules``: what the others would have set)."""
     rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
-                            (stage.rest_tr, stage.rest_va), gain)
+                            (stage.rest_tr, stage.rest_va), settled)
     model.in_use = rules[decision]
     model.input_range = artifact.input_range_of(stage.z[stage.tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
@@ -415,7 +417,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     t_train = time.perf_counter() - t_start - t_prep
     settled = _settled_gain(model, data, pre, np.concatenate([tr, va]), stage.creep,
                             bool(stage.hold_tr[1].size), stage.streams.hold_gain)
-    rules = _in_use(model, data, stage, settled["gain"], params.decision)
+    rules = _in_use(model, data, stage, settled, params.decision)
     model.metadata = model_metadata(model, data, params, described, (tr, va, te), stage.x_all,
                                     reports, data_coverage, stage.creep,
                                     (stage.hold_tr, stage.hold_va, settled),
@@ -488,7 +490,7 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     stage = _contact_stage(data, params, init_model, memory, net_sizes,
                            "the tracker's contact net")
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
-                             (stage.rest_tr, stage.rest_va), 0.0)[params.decision]
+                             (stage.rest_tr, stage.rest_va), {})[params.decision]
     if not in_use.track_shift:
         return data, None
     model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,

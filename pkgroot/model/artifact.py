@@ -146,6 +146,12 @@ HOLD_SETTLE_S = 0.2
 HOLD_AVERAGE_S = 0.128
 HOLD_BAND_N = 0.5
 HOLD_BAND_FRACTION = 0.03
+#: The band is at least this many times the nets' scatter on a load that stands still, as the
+#: trainer measures it on its synthetic holds (``hold_noise_N``): a steady hold's sample then
+#: passes it but for about one in 16,000 (Gaussian), so the settle and the ramp, 456 samples
+#: of a scatter the filter correlates over a few, rarely restart; 0.5 N alone, on a pad whose
+#: nets scatter 0.25 N, keeps the gain off on most holds below 15 N.
+HOLD_BAND_NOISE = 4.0
 HOLD_RAMP_S = 0.256
 #: The largest |hold_gain| (the fixed-point stage's bound, docs/fixed-point.md).
 HOLD_GAIN_MAX = contract.LIMIT["MAX_HOLD_GAIN_Q15"] / 2.0**15
@@ -350,8 +356,8 @@ class InUse:
     def recommended(cls, sample_rate_hz: float = 1000.0,
                     rest_margins: np.ndarray | None = None, *, creep_magnitude: float = 0.0,
                     creep_time_constant_samples: float = 0.0, hold_gain: float = 0.0,
-                    decision: str = "schmitt", contact_margins: np.ndarray | None = None
-                    ) -> "InUse":
+                    hold_noise_N: float = 0.0, decision: str = "schmitt",
+                    contact_margins: np.ndarray | None = None) -> "InUse":
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
         ``rest_margins``: the contact net's margins on calibration samples at rest, in the
@@ -375,13 +381,16 @@ class InUse:
 
         ``hold_gain``: the settled-hold gain's excess over 1 as the trainer measured it on its
         synthetic holds, clipped to :data:`HOLD_GAIN_MAX`; 0 leaves the stage off.
+        ``hold_noise_N``: the nets' scatter on those holds (N); the steadiness band is
+        :data:`HOLD_BAND_N` or :data:`HOLD_BAND_NOISE` times it, the larger.
         """
         creep, creep_shift = creep_parameters(creep_magnitude, creep_time_constant_samples)
         hold_gain = float(np.clip(hold_gain, -HOLD_GAIN_MAX, HOLD_GAIN_MAX))
         hold = {} if not hold_gain else {
             "hold_gain": hold_gain,
             "hold_settle": min(0xFFFF, int(round(HOLD_SETTLE_S * sample_rate_hz))),
-            "hold_band_N": HOLD_BAND_N, "hold_band_frac": HOLD_BAND_FRACTION,
+            "hold_band_N": max(HOLD_BAND_N, HOLD_BAND_NOISE * float(hold_noise_N)),
+            "hold_band_frac": HOLD_BAND_FRACTION,
             "hold_shift": min(contract.LIMIT["MAX_EMA_SHIFT"],
                               max(1, int(round(np.log2(HOLD_AVERAGE_S * sample_rate_hz))))),
             "hold_ramp_shift": min(contract.LIMIT["MAX_HOLD_RAMP_SHIFT"],
