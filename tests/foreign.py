@@ -48,7 +48,7 @@ As a script it writes the logs the generalisation and in-use benchmarks score
 (bench/bench_generalisation.py and bench/bench_in_use.py read them; neither imports this file)::
 
     python tests/foreign.py --out DIR [--presses 60] [VARIANT ...]
-    python tests/foreign.py --out DIR --family [--presses 100] [MEMBER ...]
+    python tests/foreign.py --out DIR --family [--presses 100] [MEMBER ...]   # defaults shown
 
 For each variant (default all of :data:`VARIANTS`; the in-use ones by name): a device (the
 variant's ``device_seed``, else seed 100 + its index in :data:`VARIANTS`), two logs of it (seeds
@@ -507,6 +507,10 @@ ALL_VARIANTS: dict[str, Spec] = {**VARIANTS, **IN_USE_VARIANTS}
 #: "presses": n}}}`` (file names relative to the manifest); in-use variants add ``role`` and,
 #: for ramps, ``ramp_K`` and ``ramp_K_per_min``.
 MANIFEST = "foreign.json"
+#: Presses per log of the variants by default, and of the family (docs/robustness.md's tables
+#: were measured on that many: its calibration test split holds 10 presses).
+VARIANT_PRESSES = 60
+FAMILY_PRESSES = 100
 #: The file :func:`write_family` writes: ``{"presses": n, "members": {member: {"manifest":
 #: "<member>/foreign.json", "physics": {Spec field: value}}}}``.
 FAMILY_MANIFEST = "family.json"
@@ -519,7 +523,7 @@ def device_seed(name: str) -> int:
     return spec.device_seed if spec.device_seed is not None else 100 + list(VARIANTS).index(name)
 
 
-def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 60,
+def write_logs(out: str | Path, names: list[str] | None = None, presses: int = VARIANT_PRESSES,
                physics: dict[str, float] | None = None) -> Path:
     """Two logs per variant of one device each, and the manifest; returns the manifest's path.
     ``physics``: fields of :class:`Spec` that replace every variant's (a :data:`FAMILY`
@@ -549,7 +553,8 @@ def write_logs(out: str | Path, names: list[str] | None = None, presses: int = 6
     return path
 
 
-def write_family(out: str | Path, members: list[str] | None = None, presses: int = 100) -> Path:
+def write_family(out: str | Path, members: list[str] | None = None,
+                 presses: int = FAMILY_PRESSES) -> Path:
     """The logs of :data:`FAMILY_VARIANTS` for each member of :data:`FAMILY` (default all),
     each in ``out/<member>/`` with its manifest, and ``out/family.json`` naming the members
     and their physics; returns that file's path."""
@@ -573,7 +578,9 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"variant names (default: all of {', '.join(VARIANTS)}; in use: "
                          f"{', '.join(IN_USE_VARIANTS)})")
     ap.add_argument("--out", required=True, metavar="DIR", help="directory for the logs")
-    ap.add_argument("--presses", type=int, default=60, help="presses per log (default 60)")
+    ap.add_argument("--presses", type=int, default=None,
+                    help=f"presses per log (default {VARIANT_PRESSES}; with --family "
+                         f"{FAMILY_PRESSES}, what docs/robustness.md measured on)")
     ap.add_argument("--lab-logs", action="store_true",
                     help="write instead, per variant, the raw logs of its first log for "
                          "fbgforce import (DIR/VARIANT/: interrogator.csv, stage.tsv, "
@@ -591,6 +598,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="with --lab-logs: the seed of the log (its presses and noise; "
                          "default 1, the first log of each variant)")
     args = ap.parse_args(argv)
+    if args.presses is None:
+        args.presses = FAMILY_PRESSES if args.family else VARIANT_PRESSES
+    if args.presses < 2:
+        print("foreign.py: --presses must be at least 2", file=sys.stderr)
+        return 2
     if args.family:
         unknown = [v for v in args.variants if v not in FAMILY]
         if unknown:
@@ -603,9 +615,6 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"foreign.py: unknown variant(s) {', '.join(unknown)}; choose from "
               f"{', '.join(ALL_VARIANTS)}", file=sys.stderr)
-        return 2
-    if args.presses < 2:
-        print("foreign.py: --presses must be at least 2", file=sys.stderr)
         return 2
     if args.lab_logs:
         for name in args.variants or list(VARIANTS):

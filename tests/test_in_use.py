@@ -289,6 +289,20 @@ def test_family_members_differ_in_their_physics_only(tmp_path):
     assert fg.main(["--out", str(tmp_path), "--family", "nosuchmember"]) == 2
 
 
+def test_family_cli_writes_as_many_presses_as_the_tables_were_measured_on(tmp_path, monkeypatch):
+    # Without --presses the family gets the count docs/robustness.md was measured on, the
+    # variants theirs; a count below 2 is refused for both.
+    asked = []
+    monkeypatch.setattr(fg, "write_family", lambda out, members, presses: asked.append(presses))
+    monkeypatch.setattr(fg, "write_logs", lambda out, names, presses: asked.append(presses))
+    assert fg.main(["--out", str(tmp_path), "--family"]) == 0
+    assert fg.main(["--out", str(tmp_path), "--family", "--presses", "7"]) == 0
+    assert fg.main(["--out", str(tmp_path), "const_temp"]) == 0
+    assert asked == [fg.FAMILY_PRESSES, 7, fg.VARIANT_PRESSES]
+    assert fg.FAMILY_PRESSES == 100
+    assert fg.main(["--out", str(tmp_path), "--family", "--presses", "1"]) == 2
+
+
 def test_viscous_pad_reads_rate_not_creep():
     # The damper reads a press's loading low and its unloading high, by more the faster the
     # load moves, and nothing once it stands: a hold reads the load, with no creep after it.

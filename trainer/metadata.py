@@ -12,6 +12,7 @@ import numpy as np
 from fbgforce import __version__
 from fbgforce.evaluation import metrics as fmetrics
 from fbgforce.model import artifact as fm
+from fbgforce.model.decision import REST_EXTEND_MINUTES
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.data import (HOLD_BAND, HOLD_MIN_S, SPLIT_RATIOS, Prepared, count_presses,
@@ -73,7 +74,8 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          if params.turn_guard_s else "by default only with the creep inverse"},
         {"name": "decision_over_time", "applied": not iu.per_sample,
          "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
-                 f"{iu.contact_cusum_k:.3g}, from the calibration's rests"
+                 f"{iu.contact_cusum_k:.3g}, from the calibration's rests extended to "
+                 f"{REST_EXTEND_MINUTES:g} minutes"
                  if iu.contact_cusum_h else
                  f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "
                  f"{iu.contact_rise_samples} samples, from the rests")
