@@ -423,6 +423,9 @@ def test_extended_rests_keep_the_margins_spread_and_their_correlation():
     np.testing.assert_array_equal(ext, fm_decision.extended_rests(rest, 1000.0, minutes=5.0))
     np.testing.assert_array_equal(fm_decision.extended_rests(rest, 1000.0, minutes=0.1), rest)
     np.testing.assert_array_equal(fm_decision.extended_rests(rest[:1000], 1000.0), rest[:1000])
+    # Rests whose top percent ties leave no tail to fit, and are kept as they are.
+    flat = np.where(rest > np.quantile(rest, 0.5), 1.0, rest)
+    np.testing.assert_array_equal(fm_decision.extended_rests(flat, 1000.0), flat)
 
 
 @pytest.mark.slow

@@ -199,7 +199,8 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
                    minutes: float = REST_EXTEND_MINUTES) -> np.ndarray:
     """``minutes`` of rest margins like the calibration's, for a false-event rate its own
     rests are too short to show; the rests themselves when they are that long already, or
-    too few (under ``CUSUM_TAIL_MIN / (1 - REST_TAIL_QUANTILE)`` samples) to model.
+    when fewer than :data:`CUSUM_TAIL_MIN` of them lie above their
+    :data:`REST_TAIL_QUANTILE` quantile to model the tail on.
 
     The margins' ranks become normal scores, an AR(:data:`REST_AR_ORDER`) fitted to those is
     run for ``minutes`` (seed :data:`REST_EXTEND_SEED`), and its scores are mapped back
@@ -215,6 +216,10 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     n_out = int(round(minutes * 60.0 * sample_rate_hz))
     if rest.size >= n_out or rest.size * (1.0 - REST_TAIL_QUANTILE) < CUSUM_TAIL_MIN:
         return rest
+    u = float(np.quantile(rest, REST_TAIL_QUANTILE))
+    excess = rest[rest > u] - u
+    if excess.size < CUSUM_TAIL_MIN:   # ties at the quantile: no tail to fit
+        return rest
     phi, innovation_var = _autoregression(_normal_scores(rest), REST_AR_ORDER)
     z = _ar_noise(phi, innovation_var, n_out, np.random.default_rng(REST_EXTEND_SEED))
     # Upper tail probabilities of the simulated scores, from a table of erfc (exact far out).
@@ -223,8 +228,7 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     upper = np.exp(np.interp(z, grid, log_upper))
     ordered = np.sort(rest)
     body = np.interp((1.0 - upper) * rest.size - 0.5, np.arange(rest.size), ordered)
-    u = float(np.quantile(rest, REST_TAIL_QUANTILE))
-    beta = float(np.mean(rest[rest > u] - u))
+    beta = float(np.mean(excess))
     tail = u + beta * (np.log(1.0 - REST_TAIL_QUANTILE) - np.log(upper))
     return np.where(upper < 1.0 - REST_TAIL_QUANTILE, tail, body)
 
