@@ -395,6 +395,66 @@ def test_recommended_sets_a_valid_cusum_from_the_rests():
     assert artifact.InUse.recommended(1000.0, rest).contact_cusum_h == 0.0
 
 
+def test_mean_onset_counts_from_the_label_to_the_rise():
+    step = np.concatenate([np.full(10, -3.0), np.full(20, 10.0)])
+    # S: 10, 20, 30 from the label on: h 25 rises on its third sample, two after the label.
+    assert fm_decision.mean_onset_samples([(step, 10)], 25.0, 0.0, -100.0, 100.0) == 2.0
+    # A window that never rises counts its length after the label; the mean is over presses.
+    never = np.full(30, -3.0)
+    assert fm_decision.mean_onset_samples([(step, 10), (never, 10)], 25.0, 0.0, -100.0,
+                                          100.0) == pytest.approx(0.5 * (2 + 20))
+    assert fm_decision.mean_onset_samples([], 25.0, 0.0, -100.0, 100.0) == 0.0
+
+
+def test_long_rests_raise_the_threshold_only_where_they_need_it():
+    """The threshold holds the aim on the long rests as on the calibration's: noisier long
+    rests raise it (and 10 independent minutes of them then stay within the goal), quieter
+    ones leave it as the calibration's rests set it."""
+    rng = np.random.default_rng(5)
+    rest = _ar1(rng, 20_000, -2.0)
+    alone = fm_decision.cusum_parameters(rest, 1000.0)
+    noisy = _ar1(rng, 180_000, -1.0)
+    both = fm_decision.cusum_parameters(rest, 1000.0, long_rests=noisy)
+    assert both["k"] == alone["k"] and both["h"] > alone["h"]
+    assert both["long_minutes"] == pytest.approx(3.0) and alone["long_minutes"] == 0.0
+    later = _ar1(rng, 600_000, -1.0)
+    assert np.sum(fm_decision.cusum_peaks(later, both["k"], both["lo"], both["hi"])
+                  >= both["h"]) / 10.0 <= 1.0
+    assert np.sum(fm_decision.cusum_peaks(later, alone["k"], alone["lo"], alone["hi"])
+                  >= alone["h"]) / 10.0 > 1.0
+    quiet = _ar1(rng, 120_000, -4.0)
+    assert fm_decision.cusum_parameters(rest, 1000.0, long_rests=quiet)["h"] == alone["h"]
+
+
+def _rising_presses(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, int]]:
+    """Windows of presses whose margin climbs from rest to 8 at 0.4 a sample, with noise."""
+    return [(np.concatenate([_ar1(rng, 100, -2.0), np.minimum(-2.0 + 0.4 * np.arange(1, 61), 8.0)
+                             + rng.normal(0.0, 0.5, 60)]), 100) for _ in range(n)]
+
+
+def test_the_drift_is_the_one_that_finds_the_calibrations_presses_soonest():
+    """Given the calibration's presses, the drift is chosen at or above the rests' quantile,
+    at the threshold that keeps the false events at their aim, where those presses rise
+    soonest; on presses it never saw it is as quick as the quantile's drift or quicker.
+    Long rests noisier than the calibration's make the quantile's drift wait for a high sum."""
+    rng = np.random.default_rng(6)
+    rest, long = _ar1(rng, 30_000, -2.0), _ar1(rng, 180_000, -1.0)
+    seen, unseen = _rising_presses(rng, 20), _rising_presses(rng, 20)
+    plain = fm_decision.cusum_parameters(rest, 1000.0, long_rests=long)
+    chosen = fm_decision.cusum_parameters(rest, 1000.0, long_rests=long, presses=seen)
+    assert plain["onset_samples"] is None and chosen["k"] > plain["k"]
+
+    def onset(cs: dict, presses: list) -> float:
+        return fm_decision.mean_onset_samples(presses, cs["h"], cs["k"], cs["lo"], cs["hi"])
+
+    assert chosen["onset_samples"] == pytest.approx(onset(chosen, seen))
+    assert onset(chosen, seen) < onset(plain, seen)
+    assert onset(chosen, unseen) < onset(plain, unseen)
+    highest = fm_decision.cusum_parameters(rest, 1000.0, k=fm_decision.CUSUM_DRIFT_MAX,
+                                           long_rests=long)
+    assert onset(highest, seen) >= onset(chosen, seen)
+
+
 def _logistic_rests(rng: np.random.Generator, n: int) -> np.ndarray:
     """Rest margins with a contact net's spread and memory: an AR(1) of correlation 0.93 per
     sample (the family's rests), its values mapped to a logistic distribution about -6, whose

@@ -26,7 +26,9 @@ from fbgforce.trainer.memory import MEMORY_PRESETS, memory_time_constant_s  # no
 from fbgforce.trainer import synthetic  # noqa: E402
 from fbgforce.trainer.synthetic import (HOLD_AUGMENT_STEP_S, synthetic_holds,  # noqa: E402
                                         synthetic_rests)
-from fbgforce.trainer.train import prepare, train  # noqa: E402
+from fbgforce.evaluation.metrics import REST_GAP_S  # noqa: E402
+from fbgforce.trainer.train import (ONSET_LEAD_S, ONSET_WINDOW_S, _press_windows,  # noqa: E402
+                                    prepare, train)
 
 
 def _peak_level(z: np.ndarray, pre: artifact.Preprocess) -> np.ndarray:
@@ -304,6 +306,35 @@ def test_synthetic_rest_settles_where_a_real_long_rest_settles():
     # What the rest would carry, held at the level where it was inserted.
     level = np.array([plain.wl_nm[k - 5:k + 1].mean(axis=0) for k in rests])
     assert (np.abs(pp.compensated(pre, level, baseline)) / std).max() > 0.06
+
+
+def test_the_decisions_long_rests_and_press_windows():
+    """The CUSUM's threshold reads every sample of its long rests (neighbours differ by the
+    noise, not by the fifty samples the nets' rests skip), and its drift windows of the
+    training and validation presses only: each from where the rest before it starts
+    (REST_GAP_S past the previous press's contact, at most ONSET_LEAD_S) to ONSET_WINDOW_S
+    past its first labelled contact sample, which it points at."""
+    scene = sim.load_scene("calibration_paper").replace(schedule={"n_presses": 12})
+    data = prepare([sim.simulate(scene)])
+    rows = np.flatnonzero(data.split != 2)
+    every = synthetic.decision_rests(data, data.pre, rows, np.random.default_rng(0))
+    sparse, _ = synthetic_rests(data, data.pre, rows, 1.0, 50, np.random.default_rng(0))
+    assert len(every) > 1000
+    step = np.median(np.abs(np.diff(every, axis=0)), axis=0)
+    assert np.all(step < np.median(np.abs(np.diff(sparse, axis=0)), axis=0))
+    rng = np.random.default_rng(1)
+    logits = rng.normal(size=(len(data.contact), 2))
+    windows = _press_windows(data, logits)
+    contact, margin = data.contact, logits[:, 1] - logits[:, 0]
+    firsts = np.flatnonzero(contact & ~np.concatenate([[False], contact[:-1]]))
+    kept = [f for f in firsts if data.split[f] != 2]
+    assert len(windows) == len(kept) and len(kept) < len(firsts)
+    rate = data.rate_hz
+    for (w, label), first in zip(windows, kept):
+        start = first - label
+        assert np.array_equal(w, margin[start:first + round(ONSET_WINDOW_S * rate)])
+        assert 0 < label <= round(ONSET_LEAD_S * rate)
+        assert not contact[max(0, start - round(REST_GAP_S * rate) + 1):first].any()
 
 
 def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds):

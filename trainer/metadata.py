@@ -74,8 +74,9 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          if params.turn_guard_s else "by default only with the creep inverse"},
         {"name": "decision_over_time", "applied": not iu.per_sample,
          "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
-                 f"{iu.contact_cusum_k:.3g}, from the calibration's rests extended to "
-                 f"{REST_EXTEND_MINUTES:g} minutes"
+                 f"{iu.contact_cusum_k:.3g}: the threshold from the calibration's rests and "
+                 f"synthetic long rests, each extended to {REST_EXTEND_MINUTES:g} minutes, "
+                 f"the drift where the calibration's presses rise soonest"
                  if iu.contact_cusum_h else
                  f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "
                  f"{iu.contact_rise_samples} samples, from the rests")

@@ -43,6 +43,16 @@ REST_AUGMENT_S = (3.0, 60.0)
 REST_AUGMENT_STEP_S = 0.05
 REST_AUGMENT_SETTLE_S = 0.5
 
+#: Synthetic long rests the contact decision's threshold is read on (:func:`decision_rests`):
+#: every sample of rests of a length drawn in :data:`DECISION_REST_S` inserted before this
+#: share of the calibration's training and validation presses, drawn apart from those the
+#: nets train on. A calibration's rests end within half a second of a release; in use the
+#: margin's tail 1-20 s into a rest lies past theirs (on a 60-press calibration its 99.99 %
+#: quantile 3.2 against 0.3), and these rests read it within a fifth (docs/tradeoff.md,
+#: "Long rests for the threshold"). 3-12 s: past the memory's settling, and many presses'
+#: states in a few minutes of rest.
+DECISION_REST_SHARE = 0.3
+DECISION_REST_S = (3.0, 12.0)
 
 #: Synthetic samples: their net inputs and the rows (of the prepared data) whose labels they take.
 Held = tuple[np.ndarray, np.ndarray]
@@ -134,7 +144,9 @@ def _creep_left_after_holds(wl: np.ndarray, held: np.ndarray, peaks: Sequence[in
 
 
 def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
-                    step: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+                    step: int, rng: np.random.Generator,
+                    lengths_s: tuple[float, float] = REST_AUGMENT_S
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of long rests inserted among the presses of ``rows``, and the rows (of
     ``data``) whose labels they take.
 
@@ -143,7 +155,7 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
     taken (docs/runtime.md, "In use"), the memory's averages settled at zero and its play
     operators where the last release left them. Nets that never saw that state read its
     noise as light presses (false contact events at rest). A ``share`` of the presses (drawn
-    per press) gets a rest of ``U(*REST_AUGMENT_S)`` seconds inserted midway between its first
+    per press) gets a rest of ``U(*lengths_s)`` seconds inserted midway between its first
     contact sample and the previous press's last (when they lie more than ``2 * REST_GAP_S``
     apart): the five wavelengths of the six samples there, their strain part moved to zero
     compensated shift (temperature untouched), plus interrogator noise as in
@@ -172,7 +184,7 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
         level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
         level[:, :artifact.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
-        lengths = np.round(rng.uniform(*REST_AUGMENT_S, len(starts)) * r.rate_hz).astype(np.int64)
+        lengths = np.round(rng.uniform(*lengths_s, len(starts)) * r.rate_hz).astype(np.int64)
         rest = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
         in_rest = np.concatenate([np.arange(n) for n in lengths])
@@ -183,6 +195,15 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
         inputs.append(x)
         kept.append(src + sl.start)
     return _stacked(inputs, kept, pre, rows)
+
+
+def decision_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
+                   rng: np.random.Generator) -> np.ndarray:
+    """Net inputs of every sample of synthetic long rests (:func:`synthetic_rests`) inserted
+    before :data:`DECISION_REST_SHARE` of the presses of ``rows``, each
+    ``U(*DECISION_REST_S)`` seconds long, in time order: what the contact decision's threshold
+    is read on beside the calibration's own rests."""
+    return synthetic_rests(data, pre, rows, DECISION_REST_SHARE, 1, rng, DECISION_REST_S)[0]
 
 
 def scaled_presses(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, max_scale: float,

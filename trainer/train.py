@@ -37,7 +37,8 @@ from fbgforce.trainer.memory import DEFAULT_MEMORY, fit_memory, memory_time_cons
 from fbgforce.trainer.metadata import model_metadata, training_warnings
 from fbgforce.trainer.nets import FlatMLP, drop_unread_units, predict_batched
 from fbgforce.trainer.params import DECISION_RULES, DEFAULT_SIZES, TrainParams
-from fbgforce.trainer.synthetic import REST_AUGMENT_STEP_S, Held, synthetic_holds, synthetic_rests
+from fbgforce.trainer.synthetic import (REST_AUGMENT_STEP_S, Held, decision_rests, synthetic_holds,
+                                        synthetic_rests)
 
 
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
@@ -149,11 +150,12 @@ class _Streams:
     holds: np.random.Generator
     rests: np.random.Generator
     hold_gain: np.random.Generator
+    decision_rests: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "_Streams":
         # spawn(n)'s first children do not depend on n: a stream added last leaves the others.
-        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(9)))
+        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(10)))
 
 
 def _split(data: Prepared, params: TrainParams, rng: np.random.Generator
@@ -276,9 +278,44 @@ def _assemble(data: Prepared, pre: artifact.Preprocess, scaling: Scaling,
     return model
 
 
+#: The window of each calibration press the CUSUM's drift is chosen on (:func:`_press_windows`):
+#: from this long before its first labelled contact sample, where the sum is back at 0 but for
+#: rare excursions, ...
+ONSET_LEAD_S = 0.1
+#: ... to this long after it: longer than any onset the goals allow, and what a press that
+#: never rises counts.
+ONSET_WINDOW_S = 0.1
+
+
+def _press_windows(data: Prepared, logits: np.ndarray) -> list[tuple[np.ndarray, int]]:
+    """The contact net's margins around each training and validation press's first labelled
+    contact sample, for the CUSUM's drift (:func:`fbgforce.model.decision.mean_onset_samples`):
+    from :data:`ONSET_LEAD_S` before it (no nearer than ``REST_GAP_S`` to the previous
+    press's contact, past the filter's warm-up) to :data:`ONSET_WINDOW_S` after it, with its
+    index in the window."""
+    margin = logits[:, 1] - logits[:, 0]
+    lead = max(1, int(round(ONSET_LEAD_S * data.rate_hz)))
+    after = max(1, int(round(ONSET_WINDOW_S * data.rate_hz)))
+    gap = max(1, int(round(fmetrics.REST_GAP_S * data.rate_hz)))
+    windows = []
+    for r, sl in data.recording_slices():
+        contact = data.contact[sl]
+        firsts = np.flatnonzero(contact & ~np.concatenate([[False], contact[:-1]]))
+        lasts = np.flatnonzero(contact & ~np.concatenate([contact[1:], [False]]))
+        for first in firsts:
+            if data.split[sl.start + first] == 2:
+                continue
+            before = lasts[lasts < first]
+            start = max(first - lead, int(before[-1]) + gap if before.size else 0,
+                        data.pre.taps.size)
+            if start < first:
+                windows.append((margin[sl][start:first + after], int(first - start)))
+    return windows
+
+
 def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
-                    cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any]
-                    ) -> dict[str, artifact.InUse]:
+                    cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any],
+                    rng: np.random.Generator) -> dict[str, artifact.InUse]:
     """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
     set from the training data: its decision over time, the tracker and the settled-hold
     gain with its steadiness band (``settled``, what
@@ -286,23 +323,29 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
-    memory settles. The tracker discounts the recovery the pad's creep (``data.creep_held``)
-    predicts after a release, which it would otherwise learn as drift (docs/runtime.md, "In
-    use"), unless the creep inverse has already taken it out."""
+    memory settles. The CUSUM reads its threshold on the calibration's rests and on long
+    rests of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`, drawn with ``rng``),
+    and its drift on the calibration's presses (:func:`_press_windows`). The tracker
+    discounts the recovery the pad's creep (``data.creep_held``) predicts after a release,
+    which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
+    inverse has already taken it out."""
     rested = np.concatenate([rests[0][0], rests[1][0]])[:, :pre.n_features]
     long = predict_batched(cnet, rested) if len(rested) else np.empty((0, 2))
     left = Creep() if pre.creep else data.creep_held
     calibration_rests = _rest_margins(data, logits)
     # The Schmitt trigger's threshold weighs the synthetic long rests too; the CUSUM's false
-    # events are estimated from excursions along the recordings' own rests, in their order,
-    # which spliced-in synthetic stretches would not keep.
+    # events are estimated from excursions in time order, on the recordings' own rests and on
+    # long rests whose every sample is kept, which the training's sparse samples are not.
     rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
                     "cusum": calibration_rests}
+    inputs = decision_rests(data, pre, np.flatnonzero(data.split != 2), rng)
+    lg = predict_batched(cnet, inputs[:, :pre.n_features]) if len(inputs) else np.empty((0, 2))
+    cusum = {"long_rests": lg[:, 1] - lg[:, 0], "presses": _press_windows(data, logits)}
     return {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz,
         hold_gain=settled.get("gain", 0.0), hold_noise_N=settled.get("noise_N") or 0.0,
-        decision=rule) for rule in DECISION_RULES}
+        decision=rule, **(cusum if rule == "cusum" else {})) for rule in DECISION_RULES}
 
 
 def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactStage",
@@ -311,7 +354,7 @@ def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactS
     input range from the training data; return the decision's fields of every rule
     (``metadata.decision_rules``: what the others would have set)."""
     rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
-                            (stage.rest_tr, stage.rest_va), settled)
+                            (stage.rest_tr, stage.rest_va), settled, stage.streams.decision_rests)
     model.in_use = rules[decision]
     model.input_range = artifact.input_range_of(stage.z[stage.tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
@@ -490,7 +533,8 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     stage = _contact_stage(data, params, init_model, memory, net_sizes,
                            "the tracker's contact net")
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
-                             (stage.rest_tr, stage.rest_va), {})[params.decision]
+                             (stage.rest_tr, stage.rest_va), {},
+                             stage.streams.decision_rests)[params.decision]
     if not in_use.track_shift:
         return data, None
     model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,

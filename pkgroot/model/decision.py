@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -36,6 +36,14 @@ CUSUM_MAX = contract.LIMIT["MAX_CUSUM_Q8"] / 256.0
 #: contact up to 2 ms later on a 100-press calibration, for a worst rate of 0.35 against 0.53
 #: a minute on a 60-press one (docs/tradeoff.md, "A short calibration's rests").
 CUSUM_FALSE_PER_MIN = 0.5
+#: The drifts :func:`cusum_parameters` tries above the rests' quantile, margin units: steps of
+#: this up to :data:`CUSUM_DRIFT_MAX`. Past the quantile a higher drift lets rest noise add
+#: less, so a lower threshold holds the same false events; which finds presses sooner depends
+#: on how the margin rises, which the calibration's presses show.
+CUSUM_DRIFT_STEP = 0.25
+#: The highest drift :func:`cusum_parameters` tries (margin units; the contact net's margin at
+#: rest spreads about 2, under contact it reaches 10 and more).
+CUSUM_DRIFT_MAX = 4.0
 #: Fewest excursion peaks for the tail fit above their 90th percentile (fewer: all of them).
 CUSUM_TAIL_MIN = 20
 #: A calibration holds a few tenths of a minute of rest in pieces under a second long; a
@@ -233,46 +241,20 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     return np.where(upper < 1.0 - REST_TAIL_QUANTILE, tail, body)
 
 
-def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
-                     contact_margins: np.ndarray | None = None,
-                     false_per_min: float | None = None, k: float | None = None
-                     ) -> dict[str, float]:
-    """The CUSUM rise the trainer sets from the calibration's rests (docs/runtime.md, "In
-    use").
-
-    ``k``, the drift, unless given: the rests' :data:`REST_MARGIN_QUANTILE` quantile (the
-    level rest noise almost never passes; at least 0), or, given ``contact_margins`` whose 10th
-    percentile lies above it, the midpoint of the two. ``h``: the smallest threshold at which
-    the false events at rest, read on the rests extended to :data:`REST_EXTEND_MINUTES`
-    (:func:`extended_rests`) from their excursion peaks (:func:`cusum_false_rate`: the fit,
-    and the peaks counted where there are more than it says), stay at ``false_per_min``
-    (:data:`CUSUM_FALSE_PER_MIN`, an average run length at rest of 2 minutes); above every
-    peak of the calibration's own rests (no false event on the calibration itself), and at
-    least what today's rule asks of a rise (:data:`RISE_S` of samples at ``max(k, 0.5)`` above
-    ``k``). ``hi = k + h / 2``: no single sample raises contact, and the clip only lowers the
-    peaks the estimate counted; ``lo`` the contract's lowest (no clip).
-
-    Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``,
-    the ``rest_minutes`` of the calibration and the ``extended_minutes`` it was read on.
-    """
-    rest = np.asarray(rest_margins, dtype=np.float64).ravel()
-    rest = rest[np.isfinite(rest)]
-    target = CUSUM_FALSE_PER_MIN if false_per_min is None else float(false_per_min)
-    extended = extended_rests(rest, sample_rate_hz)
-    q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
-    given = k is not None
-    k = float(k) if k is not None else q
-    if not given and contact_margins is not None and np.size(contact_margins):
-        c10 = float(np.quantile(np.asarray(contact_margins, dtype=np.float64), 0.1))
-        if c10 > q:
-            k = 0.5 * (q + c10)
+def _cusum_threshold(extended: np.ndarray, own: np.ndarray, k: float, target: float,
+                     sample_rate_hz: float) -> float:
+    """The least ``h`` at which the CUSUM of drift ``k`` raises at most ``target`` false events
+    a minute on ``extended`` (the rests :func:`extended_rests` made of ``own``): where the
+    exponential fit of the excursion peaks above their 90th percentile, and their count where
+    there are more than it says, fall to ``target``; above every peak of ``own`` and at least
+    what the Schmitt trigger asks of a rise (:data:`RISE_S` of samples at ``max(k, 0.5)``)."""
     minutes = extended.size / sample_rate_hz / 60.0
-    peaks = cusum_peaks(extended, k)
-    own = cusum_peaks(rest, k)
     h = max(1.0, RISE_S * sample_rate_hz) * max(k, 0.5)
-    if own.size:
-        h = max(h, float(np.nextafter(own.max(), np.inf)))
-    if peaks.size:
+    own_peaks = cusum_peaks(own, k)
+    if own_peaks.size:
+        h = max(h, float(np.nextafter(own_peaks.max(), np.inf)))
+    peaks = cusum_peaks(extended, k)
+    if peaks.size and minutes > 0:
         u = float(np.quantile(peaks, 0.9)) if peaks.size >= CUSUM_TAIL_MIN else 0.0
         tail = peaks[peaks > u]
         if tail.size and tail.size / minutes > target:
@@ -282,8 +264,88 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
         allowed = int(target * minutes)
         if peaks.size > allowed:
             h = max(h, float(np.nextafter(np.sort(peaks)[-(allowed + 1)], np.inf)))
-    h = min(h, CUSUM_MAX)
+    return min(h, CUSUM_MAX)
+
+
+def mean_onset_samples(presses: Sequence[tuple[np.ndarray, int]], h: float, k: float,
+                       lo: float, hi: float) -> float:
+    """Mean delay, in samples, from each press's first labelled contact sample to the CUSUM's
+    rise (``S`` from 0 at the window's start; a window that never rises counts its length
+    after the label). ``presses``: ``(margins, label)``, the contact net's margins over a
+    window around one press and the index of its first labelled contact sample in it."""
+    delays = []
+    for margins, label in presses:
+        crossed = np.flatnonzero(cusum_path(margins, k, lo, hi) >= h)
+        delays.append((crossed[0] if crossed.size else margins.size) - label)
+    return float(np.mean(delays)) if delays else 0.0
+
+
+def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
+                     contact_margins: np.ndarray | None = None,
+                     false_per_min: float | None = None, k: float | None = None,
+                     long_rests: np.ndarray | None = None,
+                     presses: Sequence[tuple[np.ndarray, int]] | None = None
+                     ) -> dict[str, float]:
+    """The CUSUM rise the trainer sets from the calibration's rests (docs/runtime.md, "In
+    use").
+
+    ``h`` for a drift ``k``: the least threshold at which the false events at rest stay at
+    ``false_per_min`` (:data:`CUSUM_FALSE_PER_MIN`, an average run length at rest of 2
+    minutes) on the calibration's rests extended to :data:`REST_EXTEND_MINUTES`
+    (:func:`extended_rests`) and, given ``long_rests`` (the net's margins on every sample of
+    synthetic long rests, in time order), on those extended alike: the larger of the two
+    (:func:`_cusum_threshold`). ``k``, unless given: the rests' :data:`REST_MARGIN_QUANTILE`
+    quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
+    (:func:`mean_onset_samples`), the drift of ``q`` and the grid of :data:`CUSUM_DRIFT_STEP`
+    up to :data:`CUSUM_DRIFT_MAX` above it whose ``h`` finds those presses soonest on average
+    (ties: the lower ``h``); given ``contact_margins`` whose 10th percentile lies above ``q``
+    (and no ``presses``), the midpoint of the two. ``hi = k + h / 2``: no single sample
+    raises contact, and the clip only lowers the peaks the estimate counted; ``lo`` the
+    contract's lowest (no clip).
+
+    Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``
+    on the calibration's rests extended, the ``rest_minutes`` of the calibration, the
+    ``extended_minutes`` it was read on, the ``long_minutes`` of ``long_rests`` (0 without)
+    and the ``onset_samples`` of ``presses`` at the choice (None without).
+    """
+    rest = np.asarray(rest_margins, dtype=np.float64).ravel()
+    rest = rest[np.isfinite(rest)]
+    target = CUSUM_FALSE_PER_MIN if false_per_min is None else float(false_per_min)
+    series = [(extended_rests(rest, sample_rate_hz), rest)]
+    long = np.empty(0) if long_rests is None else np.asarray(long_rests, np.float64).ravel()
+    long = long[np.isfinite(long)]
+    if long.size:
+        series.append((extended_rests(long, sample_rate_hz), long))
+
+    def threshold(drift: float) -> float:
+        return max(_cusum_threshold(ext, own, drift, target, sample_rate_hz)
+                   for ext, own in series)
+
+    q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
+    onset = None
+    if k is not None:
+        k = float(k)
+    elif presses:
+        grid = [q] + [CUSUM_DRIFT_STEP * i for i in range(1, int(CUSUM_DRIFT_MAX
+                                                                / CUSUM_DRIFT_STEP) + 1)
+                      if CUSUM_DRIFT_STEP * i > q]
+        scored = []
+        for drift in grid:
+            h = threshold(drift)
+            scored.append((mean_onset_samples(presses, h, drift, -CUSUM_MAX,
+                                              min(drift + 0.5 * h, CUSUM_MAX)), h, drift))
+        onset, _, k = min(scored)
+    else:
+        k = q
+        if contact_margins is not None and np.size(contact_margins):
+            c10 = float(np.quantile(np.asarray(contact_margins, dtype=np.float64), 0.1))
+            if c10 > q:
+                k = 0.5 * (q + c10)
     k = float(np.clip(k, -CUSUM_MAX, CUSUM_MAX))
+    h = threshold(k)
+    extended = series[0][0]
+    minutes = extended.size / sample_rate_hz / 60.0
     return {"h": h, "k": k, "lo": -CUSUM_MAX, "hi": min(k + 0.5 * h, CUSUM_MAX),
-            "false_per_min": cusum_false_rate(peaks, minutes, h),
-            "rest_minutes": rest.size / sample_rate_hz / 60.0, "extended_minutes": minutes}
+            "false_per_min": cusum_false_rate(cusum_peaks(extended, k), minutes, h),
+            "rest_minutes": rest.size / sample_rate_hz / 60.0, "extended_minutes": minutes,
+            "long_minutes": long.size / sample_rate_hz / 60.0, "onset_samples": onset}
