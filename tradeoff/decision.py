@@ -52,8 +52,8 @@ CSV_COLUMNS = ("rule", "contact_on_margin", "contact_rise_samples", "cusum_h", "
 
 def cusum_base(own: artifact.InUse, sample_rate_hz: float = 1000.0) -> tuple[float, float, float]:
     """``(h, k, lo)`` the CUSUM rows sweep around: the model's own when it has the CUSUM on;
-    else ``k`` its rest quantile (``contact_on_margin / REST_MARGIN_FACTOR``, the level the
-    trainer's :func:`fbgforce.model.decision.cusum_parameters` takes as the drift) and ``h`` what the
+    else ``k`` its rest quantile (``contact_on_margin / REST_MARGIN_FACTOR``, the lowest drift
+    the trainer's :func:`fbgforce.model.decision.cusum_parameters` tries) and ``h`` what the
     Schmitt trigger asks of a rise above it (``contact_rise_samples`` samples of ``max(k,
     0.5)``, the trainer's least ``h``), ``lo`` unclipped."""
     if own.contact_cusum_h:
