@@ -409,7 +409,8 @@ def test_mean_onset_counts_from_the_label_to_the_rise():
 def test_long_rests_raise_the_threshold_only_where_they_need_it():
     """The threshold holds the aim on the long rests as on the calibration's: noisier long
     rests raise it (and 10 independent minutes of them then stay within the goal), quieter
-    ones leave it as the calibration's rests set it."""
+    ones leave it as the calibration's rests set it, and ones that are no rest to the net are
+    left out."""
     rng = np.random.default_rng(5)
     rest = _ar1(rng, 20_000, -2.0)
     alone = fm_decision.cusum_parameters(rest, 1000.0)
@@ -424,6 +425,11 @@ def test_long_rests_raise_the_threshold_only_where_they_need_it():
                   >= alone["h"]) / 10.0 > 1.0
     quiet = _ar1(rng, 120_000, -4.0)
     assert fm_decision.cusum_parameters(rest, 1000.0, long_rests=quiet)["h"] == alone["h"]
+    # Long rests the net reads as contact (their median past the rests' 99th percentile) are
+    # no rest to it: left out, where they would have asked for a threshold no press reaches.
+    contact_like = _ar1(rng, 60_000, 8.0)
+    left_out = fm_decision.cusum_parameters(rest, 1000.0, long_rests=contact_like)
+    assert left_out["h"] == alone["h"] and left_out["long_minutes"] == 0.0
 
 
 def _rising_presses(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, int]]:

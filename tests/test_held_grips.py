@@ -320,6 +320,14 @@ def test_the_decisions_long_rests_and_press_windows():
     every = synthetic.decision_rests(data, data.pre, rows, np.random.default_rng(0))
     sparse, _ = synthetic_rests(data, data.pre, rows, 1.0, 50, np.random.default_rng(0))
     assert len(every) > 1000
+    # A long calibration gets fewer of them: never more than DECISION_REST_MINUTES on average.
+    mean_s = float(np.mean(synthetic.DECISION_REST_S))
+    assert synthetic.decision_rest_share(12) == synthetic.DECISION_REST_SHARE
+    for presses in (100, 1000, 10_000):
+        minutes = synthetic.decision_rest_share(presses) * presses * mean_s / 60.0
+        assert minutes <= synthetic.DECISION_REST_MINUTES + 1e-9
+    assert synthetic.decision_rest_share(1000) * 1000 * mean_s / 60.0 == pytest.approx(
+        synthetic.DECISION_REST_MINUTES)
     step = np.median(np.abs(np.diff(every, axis=0)), axis=0)
     assert np.all(step < np.median(np.abs(np.diff(sparse, axis=0)), axis=0))
     rng = np.random.default_rng(1)

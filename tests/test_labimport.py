@@ -555,9 +555,9 @@ METRICS = ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm")
 def _mean_scores(ds, rows, reference_path, directory):
     """The metrics on the reference file's test presses, averaged over :data:`STABLE_SEEDS`,
     of models trained on ``ds`` restricted to ``rows``, each scored with the contact net's own
-    decision: the decision over time rises at a multiple of a far quantile of the margin at
-    rest, which two such short trainings place apart whatever their labels (it moved contact
-    accuracy by 2-4 % between the import and the file)."""
+    decision: the decision over time rises past a far quantile of the margin at rest (and the
+    CUSUM at a drift chosen on a grid), which two such short trainings place apart whatever
+    their labels (it moved contact accuracy by 2-4 % between the import and the file)."""
     from dataclasses import replace
 
     from fbgforce.model import modeldir as fm
@@ -568,7 +568,8 @@ def _mean_scores(ds, rows, reference_path, directory):
     for seed in STABLE_SEEDS:
         model = train([ds.subset(rows)], seed=seed, **STABLE_TRAINING)
         model.in_use = replace(model.in_use, contact_on_margin=0.0, contact_off_margin=0.0,
-                               contact_rise_samples=1)
+                               contact_rise_samples=1, contact_cusum_h=0.0, contact_cusum_k=0.0,
+                               contact_cusum_lo=0.0, contact_cusum_hi=0.0)
         fm.save(model, directory / f"m{seed}")
         ev = evaluate(directory / f"m{seed}", [reference_path], split="test")
         scores.append([ev[key] for key in METRICS])

@@ -53,6 +53,9 @@ REST_AUGMENT_SETTLE_S = 0.5
 #: states in a few minutes of rest.
 DECISION_REST_SHARE = 0.3
 DECISION_REST_S = (3.0, 12.0)
+#: At most this many minutes of them, whatever the calibration's length (the share falls on
+#: longer ones): on 100 presses the share gives 3.4, whose net inputs take 22 MB.
+DECISION_REST_MINUTES = 4.0
 
 #: Synthetic samples: their net inputs and the rows (of the prepared data) whose labels they take.
 Held = tuple[np.ndarray, np.ndarray]
@@ -200,10 +203,22 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
 def decision_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
                    rng: np.random.Generator) -> np.ndarray:
     """Net inputs of every sample of synthetic long rests (:func:`synthetic_rests`) inserted
-    before :data:`DECISION_REST_SHARE` of the presses of ``rows``, each
+    before :data:`DECISION_REST_SHARE` of the presses of ``rows`` (fewer on a calibration so
+    long that they would last past :data:`DECISION_REST_MINUTES`), each
     ``U(*DECISION_REST_S)`` seconds long, in time order: what the contact decision's threshold
     is read on beside the calibration's own rests."""
-    return synthetic_rests(data, pre, rows, DECISION_REST_SHARE, 1, rng, DECISION_REST_S)[0]
+    presses = sum(np.unique(pid[contact[sel]]).size
+                  for _, _, sel, contact, _, pid in _augmented_recordings(data, rows))
+    return synthetic_rests(data, pre, rows, decision_rest_share(presses), 1, rng,
+                           DECISION_REST_S)[0]
+
+
+def decision_rest_share(presses: int) -> float:
+    """The share of ``presses`` :func:`decision_rests` inserts a rest before:
+    :data:`DECISION_REST_SHARE`, or less where their rests' mean length would add up past
+    :data:`DECISION_REST_MINUTES`."""
+    return min(DECISION_REST_SHARE, DECISION_REST_MINUTES * 60.0
+               / (max(presses, 1) * float(np.mean(DECISION_REST_S))))
 
 
 def scaled_presses(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, max_scale: float,

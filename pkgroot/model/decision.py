@@ -44,6 +44,11 @@ CUSUM_DRIFT_STEP = 0.25
 #: The highest drift :func:`cusum_parameters` tries (margin units; the contact net's margin at
 #: rest spreads about 2, under contact it reaches 10 and more).
 CUSUM_DRIFT_MAX = 4.0
+#: Synthetic long rests whose median margin lies above this quantile of the calibration's rests
+#: are not rest to the contact net (a net that never learned them, a calibration whose rests
+#: wander off the zero they are made at) and cannot set the threshold: on such a calibration
+#: they asked for an ``h`` of 800,000, no press rose, and the tracker took the loads for drift.
+LONG_REST_BODY_QUANTILE = 0.99
 #: Fewest excursion peaks for the tail fit above their 90th percentile (fewer: all of them).
 CUSUM_TAIL_MIN = 20
 #: A calibration holds a few tenths of a minute of rest in pieces under a second long; a
@@ -294,7 +299,8 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     minutes) on the calibration's rests extended to :data:`REST_EXTEND_MINUTES`
     (:func:`extended_rests`) and, given ``long_rests`` (the net's margins on every sample of
     synthetic long rests, in time order), on those extended alike: the larger of the two
-    (:func:`_cusum_threshold`). ``k``, unless given: the rests' :data:`REST_MARGIN_QUANTILE`
+    (:func:`_cusum_threshold`); long rests whose median lies above the rests'
+    :data:`LONG_REST_BODY_QUANTILE` quantile are left out. ``k``, unless given: the rests' :data:`REST_MARGIN_QUANTILE`
     quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
     (:func:`mean_onset_samples`), the drift of ``q`` and the grid of :data:`CUSUM_DRIFT_STEP`
     up to :data:`CUSUM_DRIFT_MAX` above it whose ``h`` finds those presses soonest on average
@@ -305,8 +311,9 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
 
     Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``
     on the calibration's rests extended, the ``rest_minutes`` of the calibration, the
-    ``extended_minutes`` it was read on, the ``long_minutes`` of ``long_rests`` (0 without)
-    and the ``onset_samples`` of ``presses`` at the choice (None without).
+    ``extended_minutes`` it was read on, the ``long_minutes`` of ``long_rests`` (0 without,
+    or left out) and the ``onset_samples`` of ``presses`` at the choice (None
+    without).
     """
     rest = np.asarray(rest_margins, dtype=np.float64).ravel()
     rest = rest[np.isfinite(rest)]
@@ -314,6 +321,8 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     series = [(extended_rests(rest, sample_rate_hz), rest)]
     long = np.empty(0) if long_rests is None else np.asarray(long_rests, np.float64).ravel()
     long = long[np.isfinite(long)]
+    if long.size and rest.size and np.median(long) > np.quantile(rest, LONG_REST_BODY_QUANTILE):
+        long = long[:0]
     if long.size:
         series.append((extended_rests(long, sample_rate_hz), long))
 
