@@ -395,6 +395,15 @@ def test_recommended_sets_a_valid_cusum_from_the_rests():
     assert artifact.InUse.recommended(1000.0, rest).contact_cusum_h == 0.0
 
 
+def test_the_rank_interpolation_is_numpys_bit_for_bit():
+    rng = np.random.default_rng(7)
+    values = np.sort(rng.logistic(-6.0, 1.0, 5000))
+    x = np.concatenate([rng.uniform(-2.0, 5003.0, 20_000), np.arange(-1.0, 5002.0),
+                        np.nextafter(np.arange(5000.0), np.inf)])
+    assert np.array_equal(fm_decision._interp_on_ranks(x, values),
+                          np.interp(x, np.arange(values.size), values))
+
+
 def test_mean_onset_counts_from_the_label_to_the_rise():
     step = np.concatenate([np.full(10, -3.0), np.full(20, 10.0)])
     # S: 10, 20, 30 from the label on: h 25 rises on its third sample, two after the label.
