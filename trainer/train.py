@@ -22,6 +22,7 @@ from fbgforce import contract
 from fbgforce.evaluation import metrics as fmetrics
 from fbgforce.model import artifact, modeldir
 from fbgforce.recordings import tare as fbgtare
+from fbgforce.recordings.stagelog import runs
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer import tracked
@@ -298,15 +299,13 @@ def _press_windows(data: Prepared, logits: np.ndarray) -> list[tuple[np.ndarray,
     after = max(1, int(round(ONSET_WINDOW_S * data.rate_hz)))
     gap = max(1, int(round(fmetrics.REST_GAP_S * data.rate_hz)))
     windows = []
-    for r, sl in data.recording_slices():
-        contact = data.contact[sl]
-        firsts = np.flatnonzero(contact & ~np.concatenate([[False], contact[:-1]]))
-        lasts = np.flatnonzero(contact & ~np.concatenate([contact[1:], [False]]))
+    for _, sl in data.recording_slices():
+        firsts, stops = runs(data.contact[sl])
         for first in firsts:
             if data.split[sl.start + first] == 2:
                 continue
-            before = lasts[lasts < first]
-            start = max(first - lead, int(before[-1]) + gap if before.size else 0,
+            before = stops[stops <= first]
+            start = max(first - lead, int(before[-1]) - 1 + gap if before.size else 0,
                         data.pre.taps.size)
             if start < first:
                 windows.append((margin[sl][start:first + after], int(first - start)))

@@ -222,9 +222,9 @@ def _interp_on_ranks(x: np.ndarray, values: np.ndarray) -> np.ndarray:
     ``x`` instead of a search through ``values`` (a third of the time on an hour of
     samples)."""
     last = values.size - 1
-    j = np.clip(np.floor(x), 0, max(last - 1, 0)).astype(np.int64)
     if last < 1:
         return np.full(x.shape, values[0] if values.size else np.nan)
+    j = np.clip(np.floor(x), 0, last - 1).astype(np.int64)
     slope = values[1:] - values[:-1]
     out = slope[j] * (x - j) + values[j]
     out = np.where(x == j, values[j], out)
@@ -324,8 +324,8 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     (:func:`extended_rests`) and, given ``long_rests`` (the net's margins on every sample of
     synthetic long rests, in time order), on those extended alike: the larger of the two
     (:func:`_cusum_threshold`); long rests whose median lies above the rests'
-    :data:`LONG_REST_BODY_QUANTILE` quantile are left out. ``k``, unless given: the rests' :data:`REST_MARGIN_QUANTILE`
-    quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
+    :data:`LONG_REST_BODY_QUANTILE` quantile are left out. ``k``, unless given: the rests'
+    :data:`REST_MARGIN_QUANTILE` quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
     (:func:`mean_onset_samples`), the drift of ``q`` and the grid of :data:`CUSUM_DRIFT_STEP`
     up to :data:`CUSUM_DRIFT_MAX` above it whose ``h`` finds those presses soonest on average
     (ties: the lower ``h``); given ``contact_margins`` whose 10th percentile lies above ``q``
