@@ -404,6 +404,27 @@ def test_the_rank_interpolation_is_numpys_bit_for_bit():
                           np.interp(x, np.arange(values.size), values))
 
 
+def test_the_drift_grids_peaks_are_the_whole_series_within_its_rounding():
+    """The threshold search reads each higher drift's excursion peaks within the lowest
+    drift's excursions; they are :func:`cusum_peaks`' on the whole series, as many and equal
+    to within the rounding of a walk summed over an hour, and so is the threshold."""
+    rng = np.random.default_rng(11)
+    rest = np.convolve(rng.normal(0.0, 1.0, 20_000), np.ones(8) / 3.0, "same") - 2.0
+    extended = fm_decision.extended_rests(rest)
+    q = float(np.quantile(rest, fm_decision.REST_MARGIN_QUANTILE))
+    excursions = fm_decision._Excursions(extended, q)
+    assert excursions.rows is not None and excursions.rows.size < extended.size / 100
+    for k in (q, q + 0.1, q + 0.6, q + 1.5):
+        whole, within = fm_decision.cusum_peaks(extended, k), excursions.peaks(k)
+        assert whole.size == within.size and whole.size > 0
+        np.testing.assert_allclose(within, whole, rtol=0, atol=1e-7)
+        assert fm_decision._cusum_threshold(within, 60.0, rest, k, 0.5, 1000.0) == pytest.approx(
+            fm_decision._cusum_threshold(whole, 60.0, rest, k, 0.5, 1000.0), rel=1e-9)
+        assert np.array_equal(excursions.exact_peaks(k), whole)
+    # Below the lowest drift the stretches do not hold its excursions: the whole series.
+    assert np.array_equal(excursions.peaks(q - 0.5), fm_decision.cusum_peaks(extended, q - 0.5))
+
+
 def test_mean_onset_counts_from_the_label_to_the_rise():
     step = np.concatenate([np.full(10, -3.0), np.full(20, 10.0)])
     # S: 10, 20, 30 from the label on: h 25 rises on its third sample, two after the label.

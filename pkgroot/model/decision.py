@@ -146,7 +146,11 @@ def cusum_peaks(margins: np.ndarray, k: float, lo: float = -CUSUM_MAX, hi: float
                 ) -> np.ndarray:
     """The highest S of each excursion of :func:`cusum_path` above 0: a CUSUM with threshold
     ``h`` raises one false event per excursion whose peak reaches ``h``."""
-    s = cusum_path(margins, k, lo, hi)
+    return _peaks_of_path(cusum_path(margins, k, lo, hi))
+
+
+def _peaks_of_path(s: np.ndarray) -> np.ndarray:
+    """The highest value of each run of a CUSUM path above 0."""
     up = s > 0
     if not up.any():
         return np.empty(0)
@@ -270,19 +274,72 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     return np.where(upper < 1.0 - REST_TAIL_QUANTILE, tail, body)
 
 
-def _cusum_threshold(extended: np.ndarray, own: np.ndarray, k: float, target: float,
-                     sample_rate_hz: float) -> float:
+class _Excursions:
+    """Rest margins and the CUSUM excursions of their lowest drift ``k0``, for the peaks of
+    every drift at or above it (:meth:`peaks`, :func:`cusum_peaks`' on the same margins).
+
+    A higher drift's ``S`` is 0 wherever ``k0``'s is, so its excursions lie within ``k0``'s,
+    and each of those starts from ``S = 0``: the drift grid the trainer searches scans those
+    stretches, a few thousand samples, instead of the hour :func:`extended_rests` makes. Each
+    stretch is its own row (padded with the clip's floor, where ``S`` is 0), so its walk sums
+    only its own samples; the peaks are the whole series' to within its rounding. The drift
+    chosen has its peaks walked over the whole series (:meth:`exact_peaks`): a threshold set
+    just above a peak sits as near it as the rounding, and a model trained through the
+    tracker follows which side of it the calibration's own excursions fall."""
+
+    def __init__(self, margins: np.ndarray, k0: float) -> None:
+        self.margins = np.asarray(margins, dtype=np.float64).ravel()
+        self.k0 = float(k0)
+        s = cusum_path(self.margins, self.k0)
+        self.lowest = _peaks_of_path(s)
+        self._exact: dict[float, np.ndarray] = {}
+        up = np.r_[False, s > 0, False]
+        starts = np.flatnonzero(up[1:] & ~up[:-1])
+        lengths = np.flatnonzero(~up[1:] & up[:-1]) - starts
+        self.rows: np.ndarray | None = None
+        if starts.size and starts.size * (lengths.max() + 1) <= self.margins.size:
+            rows = np.full((starts.size, int(lengths.max()) + 1), -CUSUM_MAX)
+            row = np.repeat(np.arange(starts.size), lengths)
+            col = np.arange(row.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+            rows[row, col] = np.clip(self.margins[starts[row] + col], -CUSUM_MAX, CUSUM_MAX)
+            self.rows = rows
+
+    def exact_peaks(self, k: float) -> np.ndarray:
+        """:func:`cusum_peaks` of the margins at drift ``k``, bit for bit."""
+        if k == self.k0:
+            return self.lowest
+        if k not in self._exact:
+            self._exact[k] = cusum_peaks(self.margins, k)
+        return self._exact[k]
+
+    def peaks(self, k: float) -> np.ndarray:
+        """:func:`cusum_peaks` of the margins at drift ``k`` to within the rounding of its walk
+        over the whole series (the whole series below ``k0``, or where the stretches would take
+        more room than it)."""
+        if k == self.k0:
+            return self.lowest
+        if k < self.k0 or self.rows is None:
+            return cusum_peaks(self.margins, k)
+        walk = np.cumsum(self.rows - k, axis=1)
+        low = np.minimum.accumulate(walk, axis=1)
+        np.minimum(low, 0.0, out=low)
+        walk -= low
+        walk[:, -1] = 0.0          # the pad: no excursion runs on into the next row
+        return _peaks_of_path(walk.ravel())
+
+
+def _cusum_threshold(peaks: np.ndarray, minutes: float, own: np.ndarray, k: float,
+                     target: float, sample_rate_hz: float) -> float:
     """The least ``h`` at which the CUSUM of drift ``k`` raises at most ``target`` false events
-    a minute on ``extended`` (the rests :func:`extended_rests` made of ``own``): where the
-    exponential fit of the excursion peaks above their 90th percentile, and their count where
-    there are more than it says, fall to ``target``; above every peak of ``own`` and at least
-    what the Schmitt trigger asks of a rise (:data:`RISE_S` of samples at ``max(k, 0.5)``)."""
-    minutes = extended.size / sample_rate_hz / 60.0
+    a minute on ``minutes`` of rests :func:`extended_rests` made of ``own``, whose excursions
+    peak at ``peaks``: where the exponential fit of the peaks above their 90th percentile, and
+    their count where there are more than it says, fall to ``target``; above every peak of
+    ``own`` and at least what the Schmitt trigger asks of a rise (:data:`RISE_S` of samples at
+    ``max(k, 0.5)``)."""
     h = max(1.0, RISE_S * sample_rate_hz) * max(k, 0.5)
     own_peaks = cusum_peaks(own, k)
     if own_peaks.size:
         h = max(h, float(np.nextafter(own_peaks.max(), np.inf)))
-    peaks = cusum_peaks(extended, k)
     if peaks.size and minutes > 0:
         u = float(np.quantile(peaks, 0.9)) if peaks.size >= CUSUM_TAIL_MIN else 0.0
         tail = peaks[peaks > u]
@@ -342,47 +399,57 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     rest = np.asarray(rest_margins, dtype=np.float64).ravel()
     rest = rest[np.isfinite(rest)]
     target = CUSUM_FALSE_PER_MIN if false_per_min is None else float(false_per_min)
-    series = [(extended_rests(rest, sample_rate_hz), rest)]
     long = np.empty(0) if long_rests is None else np.asarray(long_rests, np.float64).ravel()
     long = long[np.isfinite(long)]
     if long.size and rest.size and np.median(long) > np.quantile(rest, LONG_REST_BODY_QUANTILE):
         long = long[:0]
-    if long.size:
-        series.append((extended_rests(long, sample_rate_hz), long))
-
-    thresholds: dict[float, float] = {}
-
-    def threshold(drift: float) -> float:
-        if drift not in thresholds:
-            thresholds[drift] = max(_cusum_threshold(ext, own, drift, target, sample_rate_hz)
-                                    for ext, own in series)
-        return thresholds[drift]
 
     q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
-    onset = None
+    searched = k is None and bool(presses)
     if k is not None:
-        k = float(k)
-    elif presses:
+        grid = [float(k)]
+    elif searched:
         grid = [q] + [CUSUM_DRIFT_STEP * i for i in range(1, int(CUSUM_DRIFT_MAX
                                                                 / CUSUM_DRIFT_STEP) + 1)
                       if CUSUM_DRIFT_STEP * i > q]
-        scored = []
-        for drift in grid:
-            h = threshold(drift)
-            scored.append((mean_onset_samples(presses, h, drift, -CUSUM_MAX,
-                                              min(drift + 0.5 * h, CUSUM_MAX)), h, drift))
-        onset, _, k = min(scored)
     else:
-        k = q
+        grid = [q]
         if contact_margins is not None and np.size(contact_margins):
             c10 = float(np.quantile(np.asarray(contact_margins, dtype=np.float64), 0.1))
             if c10 > q:
-                k = 0.5 * (q + c10)
-    k = float(np.clip(k, -CUSUM_MAX, CUSUM_MAX))
-    h = threshold(k)
-    extended = series[0][0]
-    minutes = extended.size / sample_rate_hz / 60.0
+                grid = [0.5 * (q + c10)]
+    grid = [float(np.clip(drift, -CUSUM_MAX, CUSUM_MAX)) for drift in grid]
+    series = [(_Excursions(extended_rests(own, sample_rate_hz), grid[0]), own)
+              for own in (rest, long) if own is rest or own.size]
+
+    minutes = series[0][0].margins.size / sample_rate_hz / 60.0
+    thresholds: dict[float, float] = {}
+
+    def threshold(drift: float, exact: bool = False) -> float:
+        """``h`` at ``drift``, the larger of the two series'; ``exact``: from the excursions
+        walked over the whole hour, bit for bit what the grid's stretches give to within their
+        rounding (the trainer's models are reproducible from one release to the next)."""
+        if exact or drift not in thresholds:
+            found = max(_cusum_threshold(ext.exact_peaks(drift) if exact else ext.peaks(drift),
+                                         ext.margins.size / sample_rate_hz / 60.0, own, drift,
+                                         target, sample_rate_hz) for ext, own in series)
+            if exact:
+                return found
+            thresholds[drift] = found
+        return thresholds[drift]
+
+    if searched:
+        # The drift that finds the presses soonest, by the stretches; then its threshold, and
+        # so the presses' onset, on the whole hour.
+        k = min((mean_onset_samples(presses, threshold(drift), drift, -CUSUM_MAX,
+                                    min(drift + 0.5 * threshold(drift), CUSUM_MAX)),
+                 threshold(drift), drift) for drift in grid)[2]
+    else:
+        k = grid[0]
+    h = threshold(k, exact=True)
+    onset = (mean_onset_samples(presses, h, k, -CUSUM_MAX, min(k + 0.5 * h, CUSUM_MAX))
+             if searched else None)
     return {"h": h, "k": k, "lo": -CUSUM_MAX, "hi": min(k + 0.5 * h, CUSUM_MAX),
-            "false_per_min": cusum_false_rate(cusum_peaks(extended, k), minutes, h),
+            "false_per_min": cusum_false_rate(series[0][0].exact_peaks(k), minutes, h),
             "rest_minutes": rest.size / sample_rate_hz / 60.0, "extended_minutes": minutes,
             "long_minutes": long.size / sample_rate_hz / 60.0, "onset_samples": onset}
