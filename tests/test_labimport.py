@@ -543,11 +543,14 @@ def test_a_model_scores_the_import_like_the_simulators_file(small_model_dir, sma
 
 
 #: A training set-up whose result follows its labels rather than the optimiser's chance path:
-#: one draw per net, a small learning rate, no augmentation, and the mean over three seeds
-#: (docs/lab-import.md, "A model trained on the import"; a single seed's force RMSE moves by
-#: 3 % when 20 mN of white noise is added to the labels).
+#: one draw per net, a small learning rate, no augmentation, the nets trained on the
+#: recording as tared (the tracker's pass trains a contact net and a decision of its own, a
+#: second path for label noise to move), and the mean over three seeds (docs/lab-import.md,
+#: "A model trained on the import"; a single seed's force RMSE moves by 3 % when 20 mN of
+#: white noise is added to the labels).
 STABLE_TRAINING = {"epochs": 20, "restarts": 1, "weight_decay": 0.0, "hold_augment": 0.0,
-                   "location_augment": 1.0, "learning_rate": 1e-4, "progress": False}
+                   "location_augment": 1.0, "learning_rate": 1e-4, "progress": False,
+                   "track_calibration": False}
 STABLE_SEEDS = (0, 1, 2)
 METRICS = ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm")
 
@@ -618,7 +621,7 @@ def test_a_model_trained_on_the_import_scores_like_one_trained_on_the_simulators
     of models trained on the simulator's own file, every metric, on the same test presses.
     With the stage clock 10 ms late the same comparison fails (so it can). The same logs
     with both clocks in Unix seconds (``epoch``) import to a dataset whose models score within
-    3 % (the goal for epoch clocks; measured +2.0 % in force RMSE, the rest within 0.5 %: the
+    3 % (the goal for epoch clocks; measured 1.2 % in force RMSE, the rest within 0.8 %: the
     epoch's 0.24 µs float64 steps move the fitted clock by microseconds, and the trainer's
     path amplifies such label changes, docs/lab-import.md)."""
     imports, rows, own, directory = trained_on_the_simulators_file

@@ -16,6 +16,7 @@ import numpy as np
 from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
+from fbgforce.trainer.preprocess import TEMP_MIN_SPAN_PM
 
 #: Force ranges reported, N (the last open).
 FORCE_BINS_N = (0.0, 2.0, 10.0, 30.0, 50.0, 70.0)
@@ -154,6 +155,10 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     if span_K < WANT_TEMPERATURE_K:
         unknown.append(f"the temperature grating's lag behind the strain gratings (the "
                        f"temperature spans {span_K:.2g} K)")
+    if span_pm < TEMP_MIN_SPAN_PM:
+        unknown.append(f"how each strain grating's thermal response differs from the "
+                       f"temperature grating's (it moved {span_pm:.0f} pm, under "
+                       f"{TEMP_MIN_SPAN_PM:g}: the reference is subtracted as it is)")
     stats = (lambda a: {"min": float(a.min()), "median": float(np.median(a)),
                         "max": float(a.max())} if a.size else None)
     return {

@@ -53,6 +53,10 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
            "discounted by the at-rest tracker" if iu.track_creep else "carried by the holds")
     holds = params.hold_augment > 0 and model.preprocess.memory.n_states > 0
     return [
+        {"name": "temperature_coefficients",
+         "applied": bool(np.any(np.asarray(data.temp_info.get("temp_coeff_identified", [0.0]))
+                                > 0.0)),
+         "why": _temperature_why(pre.temp_coeff, data.temp_info)},
         {"name": "creep", "applied": bool(creep.magnitude > 0),
          "why": (f"{100 * creep.magnitude:.1f} % over {creep.time_constant_s:.2g} s, {how}: "
                  if creep.magnitude > 0 else "") + evidence.get("why", "not fitted")},
@@ -90,6 +94,16 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          + ("the model runs no tracker)" if params.track_calibration
             else "--track-calibration off)")},
     ]
+
+
+def _temperature_why(coeff: np.ndarray, info: Mapping[str, Any]) -> str:
+    """One line on the strain gratings' temperature coefficients and the span that set them
+    (:func:`fbgforce.trainer.preprocess.fit_temp_coeff`)."""
+    span = float(info.get("temp_ref_range_pm") or 0.0)
+    return (f"{', '.join(f'{k:.3f}' for k in coeff)} against the reference: fitted only from "
+            f"rests whose temperature spans {pp.TEMP_MIN_SPAN_PM:g} pm or more (these span "
+            f"{span:.0f} pm), else 1, the reference subtracted as it is and the at-rest "
+            f"tracker carrying the difference")
 
 
 def _tracking_why(tracking: Mapping[str, Any]) -> str:

@@ -30,6 +30,15 @@ from fbgforce.errors import InputError
 #: Prior standard deviation of a temperature coefficient around 1.0 (gratings on one steel part
 #: differ by a few percent; their base wavelengths by up to ~2 %): the ridge toward 1.
 TEMP_PRIOR_SD = 0.25
+#: Least spread of the temperature grating's shift over the rests (pm, 1st to 99th
+#: percentile of their block means) from which a strain grating's own temperature coefficient
+#: is fitted. Gratings wander on their own by a few pm over tens of seconds (interrogator,
+#: bonds, a pad settling), which over a short log is a trend like the temperature's: beside
+#: a kelvin or so of calibration it fitted coefficients 30-70 % off, on either half of the
+#: rests alike (docs/measurements/trainer.md, "Temperature coefficients"), and
+#: those leave the at-rest tracker 120-280 pm over a 40 K ramp. Over 30 pm a 3 pm wander is
+#: a 10 % error at most; below it the reference is subtracted as it is (coefficient 1).
+TEMP_MIN_SPAN_PM = 30.0
 #: Default Gaussian sigma in samples AT 1 kHz, and the window in sigmas.
 DEFAULT_SIGMA = 5.0
 WINDOW_SIGMAS = 3.0
@@ -73,8 +82,8 @@ def _block_means(x: np.ndarray, mask: np.ndarray, block: int) -> tuple[np.ndarra
 
 
 def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray], *,
-                   rate_hz: float = 1000.0, prior_sd: float = TEMP_PRIOR_SD
-                   ) -> tuple[np.ndarray, dict[str, Any]]:
+                   rate_hz: float = 1000.0, prior_sd: float = TEMP_PRIOR_SD,
+                   min_span_pm: float = TEMP_MIN_SPAN_PM) -> tuple[np.ndarray, dict[str, Any]]:
     """Per-channel temperature coefficients ``k_i`` in ``shift_i ~ k_i * shift_T``.
 
     Least squares over contact-free samples of all recordings (shifts relative to each
@@ -88,7 +97,13 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
       estimate gets the weight ``info / (info + 1/prior_sd^2)`` with ``info`` the reference
       signal energy beyond what noise alone would give (over the residual variance), so with
       little temperature variation the estimate moves smoothly to 1.0 (plain reference
-      subtraction) instead of to noise.
+      subtraction) instead of to noise;
+    - evidence before correction: coefficients other than 1 only from rests whose temperature
+      spans ``min_span_pm`` (:data:`TEMP_MIN_SPAN_PM`) or more; below it every channel stays
+      at 1.0. The gratings' own slow wander beside the kelvin or so a
+      calibration spans passes the noise test, on each half of the rests alike, and fits
+      coefficients 30-70 % off; in use the at-rest tracker then carries that error times the
+      temperature change.
 
     Parameters
     ----------
@@ -101,8 +116,9 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
     -------
     temp_coeff, info
         ``info``: ``temp_coeff_identified`` (0..1 per channel, the data's weight against the
-        prior: ~0 means "fell back to 1.0"), ``temp_ref_range_pm`` (spread of the reference
-        shift seen), ``temp_fit_samples``.
+        prior, 0 where the span is too short: ~0 means "fell back to 1.0"),
+        ``temp_ref_range_pm`` (spread of the reference shift seen, 1st to 99th percentile of
+        the block means), ``temp_fit_samples``.
     """
     block = max(1, int(round(0.05 * rate_hz)))
     xs, ys, noise_t, runs = [], [], [], []
@@ -146,10 +162,12 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
     # rho. Without it, 3 pm of wander beside 1 K of temperature passed for a 25 % coefficient.
     info_data = max(sxx - 3.0 * noise_energy_sd, 0.0) / sigma2 * _independent_fraction(resid, np.concatenate(runs))
     info_prior = 1.0 / prior_sd ** 2
+    span = float(np.percentile(x, 99) - np.percentile(x, 1))
     weight = info_data / (info_data + info_prior)
+    if span < min_span_pm:
+        weight = np.zeros_like(weight)
     coeff = 1.0 + weight * (k_ols - 1.0)
-    return coeff, {"temp_coeff_identified": weight.tolist(),
-                   "temp_ref_range_pm": float(np.percentile(x, 99) - np.percentile(x, 1)),
+    return coeff, {"temp_coeff_identified": weight.tolist(), "temp_ref_range_pm": span,
                    "temp_fit_samples": n_fit}
 
 

@@ -46,7 +46,8 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
             sigma: float | None = None, window: int | None = None,
             sources: Sequence[str] | None = None, ref_shift: int | None = None,
             creep_inverse: bool | None = False, memory: artifact.Memory | None = None,
-            creep: str = "auto") -> Prepared:
+            creep: str = "auto",
+            temperature: tuple[np.ndarray, Mapping[str, Any]] | None = None) -> Prepared:
     """Tare, fit temperature coefficients, choose the temperature reference's average
     (:func:`~fbgforce.trainer.preprocess.choose_ref_shift`), fit the pad's creep
     (:func:`~fbgforce.trainer.creep_fit.fit_creep`; with ``creep_inverse`` its inverse runs
@@ -63,7 +64,11 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
 
     ``sigma`` is in samples; ``None`` means :data:`~fbgforce.trainer.preprocess.DEFAULT_SIGMA_MS`
     at the recordings' (median) sample rate, i.e. 5 samples at 1 kHz. ``ref_shift``: None
-    lets the data choose the reference's average, a number sets it.
+    lets the data choose the reference's average, a number sets it. ``temperature``: the
+    coefficients and what :func:`~fbgforce.trainer.preprocess.fit_temp_coeff` found, taken
+    as they are instead of fitted (the calibration as the tracker hands it on: its zero was
+    read through the coefficients fitted on the recordings as tared, and has taken out part
+    of what a fit would read as temperature).
     """
     if not datasets:
         raise InputError("no training data given", column="--data")
@@ -75,7 +80,10 @@ def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
         recs.append(Recording(ds, src, base, info, fbgtare.sample_rate_hz(ds.t_s), shift))
     rate = float(np.median([r.rate_hz for r in recs]))
     masks = [fbgtare.contact_free_mask(r.ds.contact, r.ds.t_s) for r in recs]
-    coeff, temp_info = pp.fit_temp_coeff([r.shift_pm for r in recs], masks, rate_hz=rate)
+    if temperature is None:
+        coeff, temp_info = pp.fit_temp_coeff([r.shift_pm for r in recs], masks, rate_hz=rate)
+    else:
+        coeff, temp_info = np.asarray(temperature[0], dtype=np.float64), dict(temperature[1])
     if sigma is None:
         sigma = pp.default_sigma(rate)
     pre = pp.make_preprocess(filter, sigma, coeff, window)
@@ -370,14 +378,16 @@ def _asked(params: TrainParams | None, options: Mapping[str, Any]) -> TrainParam
 
 
 def _prepared(ds_list: Sequence[Any], described: Sequence[Mapping[str, Any]],
-              params: TrainParams, memory: artifact.Memory) -> Prepared:
-    """The recordings prepared as ``params`` asks (:func:`prepare`), each named by its path
-    or source in the tare's messages."""
+              params: TrainParams, memory: artifact.Memory,
+              temperature: tuple[np.ndarray, Mapping[str, Any]] | None = None) -> Prepared:
+    """The recordings prepared as ``params`` asks (:func:`prepare`; ``temperature`` as it
+    takes it), each named by its path or source in the tare's messages."""
     sources = [d.get("path") or d.get("source") or f"recording {i}"
                for i, d in enumerate(described)]
     return prepare(ds_list, seed=params.seed, filter=params.filter, sigma=params.sigma,
                    window=params.window, sources=sources, ref_shift=params.ref_shift,
-                   creep_inverse=params.creep_inverse, memory=memory, creep=params.creep)
+                   creep_inverse=params.creep_inverse, memory=memory, creep=params.creep,
+                   temperature=temperature)
 
 
 def _creep_of_prepared(data: Prepared, pre: artifact.Preprocess, tr: np.ndarray,
@@ -544,7 +554,7 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     if not any(np.any(d) for d in drifts):    # the tracker never moved: the data as tared
         return data, {**summary, "seconds": time.perf_counter() - t_start}
     seen = _prepared([tracked.tracked_dataset(r.ds, d) for r, d in zip(data.recordings, drifts)],
-                     described, params, memory)
+                     described, params, memory, (data.pre.temp_coeff, data.temp_info))
     for mine, recorded in zip(seen.recordings, data.recordings):
         mine.recorded = recorded.as_recorded
     return seen, {**summary, "seconds": time.perf_counter() - t_start}
