@@ -170,8 +170,8 @@ def _calibration_fit(dev, n_press: int = 60):
 
 def test_a_wandering_pad_beside_a_kelvin_keeps_the_reference_subtraction():
     """The in-use fingertip's calibration (about 1 K, gratings wandering 3 pm over tens of
-    seconds, a 5 s creep): the wander passes the noise test and fits coefficients 30-70 %
-    off, which a 40 K ramp would turn into 120-280 pm for the tracker. Its rests span under
+    seconds, a 5 s creep): the wander passes the noise test and fits coefficients over 30 %
+    off, which a 40 K ramp would turn into over 120 pm for the tracker. Its rests span under
     :data:`TEMP_MIN_SPAN_PM`, so each stays 1, within the gratings' 4 % of the truth."""
     dev = fg.device(replace(fg.IN_USE_VARIANTS["calib_1K"], creep_s=5.0), 200)
     (k, info), (loose, _) = _calibration_fit(dev)

@@ -34,9 +34,9 @@ TEMP_PRIOR_SD = 0.25
 #: percentile of their block means) from which a strain grating's own temperature coefficient
 #: is fitted. Gratings wander on their own by a few pm over tens of seconds (interrogator,
 #: bonds, a pad settling), which over a short log is a trend like the temperature's: beside
-#: a kelvin or so of calibration it fitted coefficients 30-70 % off, on either half of the
+#: a kelvin or so of calibration it fitted coefficients up to 63 % off, on either half of the
 #: rests alike (docs/measurements/trainer.md, "Temperature coefficients"), and
-#: those leave the at-rest tracker 120-280 pm over a 40 K ramp. Over 30 pm a 3 pm wander is
+#: those leave the at-rest tracker up to 250 pm over a 40 K ramp. Over 30 pm a 3 pm wander is
 #: a 10 % error at most; below it the reference is subtracted as it is (coefficient 1).
 TEMP_MIN_SPAN_PM = 30.0
 #: Default Gaussian sigma in samples AT 1 kHz, and the window in sigmas.
@@ -102,7 +102,7 @@ def fit_temp_coeff(shifts_pm: Sequence[np.ndarray], masks: Sequence[np.ndarray],
       spans ``min_span_pm`` (:data:`TEMP_MIN_SPAN_PM`) or more; below it every channel stays
       at 1.0. The gratings' own slow wander beside the kelvin or so a
       calibration spans passes the noise test, on each half of the rests alike, and fits
-      coefficients 30-70 % off; in use the at-rest tracker then carries that error times the
+      coefficients up to 63 % off; in use the at-rest tracker then carries that error times the
       temperature change.
 
     Parameters
