@@ -425,6 +425,16 @@ def test_the_drift_grids_peaks_are_the_whole_series_within_its_rounding():
     assert np.array_equal(excursions.peaks(q - 0.5), fm_decision.cusum_peaks(extended, q - 0.5))
 
 
+def test_the_grid_interpolation_is_numpys_bit_for_bit():
+    rng = np.random.default_rng(8)
+    grid = np.linspace(-8.0, 8.0, 3201)
+    log_tail = np.log(0.5 * np.exp(-0.5 * grid ** 2) + 1e-300)
+    z = np.concatenate([rng.normal(0.0, 3.0, 50_000), grid, np.nextafter(grid, np.inf),
+                        np.nextafter(grid, -np.inf), [-9.0, 9.0]])
+    assert np.array_equal(fm_decision._interp_on_grid(z, grid, log_tail),
+                          np.interp(z, grid, log_tail))
+
+
 def test_mean_onset_counts_from_the_label_to_the_rise():
     step = np.concatenate([np.full(10, -3.0), np.full(20, 10.0)])
     # S: 10, 20, 30 from the label on: h 25 rises on its third sample, two after the label.

