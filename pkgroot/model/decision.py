@@ -439,33 +439,31 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
               for own in (rest, long) if own is rest or own.size]
 
     minutes = series[0][0].margins.size / sample_rate_hz / 60.0
-    thresholds: dict[float, float] = {}
 
     def threshold(drift: float, exact: bool = False) -> float:
         """``h`` at ``drift``, the larger of the two series'; ``exact``: from the excursions
         walked over the whole hour, bit for bit what the grid's stretches give to within their
         rounding (the trainer's models are reproducible from one release to the next)."""
-        if exact or drift not in thresholds:
-            found = max(_cusum_threshold(ext.exact_peaks(drift) if exact else ext.peaks(drift),
-                                         ext.margins.size / sample_rate_hz / 60.0, own, drift,
-                                         target, sample_rate_hz) for ext, own in series)
-            if exact:
-                return found
-            thresholds[drift] = found
-        return thresholds[drift]
+        return max(_cusum_threshold((ext.exact_peaks if exact else ext.peaks)(drift),
+                                    ext.margins.size / sample_rate_hz / 60.0, own, drift,
+                                    target, sample_rate_hz) for ext, own in series)
 
+    def onset(drift: float, h: float) -> float:
+        """Mean onset of ``presses``, in samples, at ``drift`` and ``h``."""
+        return mean_onset_samples(presses, h, drift, -CUSUM_MAX, min(drift + 0.5 * h, CUSUM_MAX))
+
+    k = grid[0]
     if searched:
-        # The drift that finds the presses soonest, by the stretches; then its threshold, and
-        # so the presses' onset, on the whole hour.
-        k = min((mean_onset_samples(presses, threshold(drift), drift, -CUSUM_MAX,
-                                    min(drift + 0.5 * threshold(drift), CUSUM_MAX)),
-                 threshold(drift), drift) for drift in grid)[2]
-    else:
-        k = grid[0]
+        # The drift that finds the presses soonest, by the stretches (ties: the lower h); then
+        # its threshold, and so the presses' onset, on the whole hour.
+        scored = []
+        for drift in grid:
+            h = threshold(drift)
+            scored.append((onset(drift, h), h, drift))
+        k = min(scored)[2]
     h = threshold(k, exact=True)
-    onset = (mean_onset_samples(presses, h, k, -CUSUM_MAX, min(k + 0.5 * h, CUSUM_MAX))
-             if searched else None)
     return {"h": h, "k": k, "lo": -CUSUM_MAX, "hi": min(k + 0.5 * h, CUSUM_MAX),
             "false_per_min": cusum_false_rate(series[0][0].exact_peaks(k), minutes, h),
             "rest_minutes": rest.size / sample_rate_hz / 60.0, "extended_minutes": minutes,
-            "long_minutes": long.size / sample_rate_hz / 60.0, "onset_samples": onset}
+            "long_minutes": long.size / sample_rate_hz / 60.0,
+            "onset_samples": onset(k, h) if searched else None}
