@@ -27,6 +27,8 @@ the field"), with the logs it was scored on:
   against the constant-temperature logs of the same device;
 - constant temperature (``constant`` and ``rest`` logs together): false contact events per
   minute of rest, median onset delay, detection of contact samples above 1 N;
+- an idle pad at those logs' interrogator noise (:mod:`fbgforce.bench.bench_idle`): false
+  contact events per minute, the worst of 20 one-minute draws;
 - held grips: force bias over the holds, force RMSE over them against the model's own
   calibration test RMSE (its training logs, test split, same engine);
 - a grip held through a ramp: force bias over the hold (the holds' bound);
@@ -119,6 +121,12 @@ CALIBRATION_GOALS = (
     Goal("test_contact_errors", "contact errors on the calibration's test presses", 0.019, "<=",
          "%"),
 )
+#: An idle pad: tared, then left alone, nothing but the interrogator's noise at the tare
+#: (:mod:`fbgforce.bench.bench_idle`, the worst of its draws).
+IDLE_GOALS = (
+    Goal("idle_false_events", "false contact events per minute on an idle pad (worst of 20 "
+         "one-minute draws)", 1.0, "<=", "/min"),
+)
 #: A grip held through a ramp stays where it belongs: the holds' bound.
 RAMP_HOLD_GOALS = (
     Goal("ramp_hold_bias", "force bias over a grip held through a ramp", 0.1, "abs<=", "N"),
@@ -126,8 +134,9 @@ RAMP_HOLD_GOALS = (
 
 
 #: Every goal by key, in the order of the tables.
-GOALS: dict[str, Goal] = {g.key: g for g in (*RAMP_GOALS, *CONSTANT_GOALS, *HOLD_GOALS,
-                                             *RAMP_HOLD_GOALS, *LIGHT_GOALS, *CALIBRATION_GOALS)}
+GOALS: dict[str, Goal] = {g.key: g for g in (*RAMP_GOALS, *CONSTANT_GOALS, *IDLE_GOALS,
+                                             *HOLD_GOALS, *RAMP_HOLD_GOALS, *LIGHT_GOALS,
+                                             *CALIBRATION_GOALS)}
 
 
 def _ratio(num: float | None, den: float | None) -> float | None:
@@ -178,6 +187,7 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
                             "data": [str(manifest[name]["other"])]}
     rows = _ramp_rows(by_role, manifest, scored, run)
     rows += _constant_rows(by_role, manifest, scored, run)
+    rows += _idle_rows(by_role["constant"] + by_role["rest"], model_dir, engine, run)
     cal = calibration_test(model_dir, model, engine)
     cal_rmse = cal["rmse_force_N"] if cal is not None else None
     rows += _hold_rows(by_role["hold"], cal, cal_rmse, model_dir, run)
@@ -278,6 +288,26 @@ def _constant_rows(by_role: dict[str, list[str]], manifest: dict[str, Any],
               "onset_median": m["contact_timing"]["onset_delay_ms"]["median"],
               "detected_above_1N": m["contact_accuracy_above_1N"]}
     return [_row(g, constant, values[g.key]) for g in CONSTANT_GOALS]
+
+
+def _idle_rows(names: list[str], model_dir: Path, engine: str, run: _LogRuns
+               ) -> list[dict[str, Any]]:
+    """The idle pad's goal at the interrogator noise of the constant-temperature logs' rests
+    (the median grating's, :func:`fbgforce.bench.bench_onset_bound.rest_noise_covariance`);
+    not measured without those logs."""
+    import numpy as np
+
+    from fbgforce.bench.bench_idle import idle_events
+    from fbgforce.bench.bench_onset_bound import rest_noise_covariance
+
+    covs = [rest_noise_covariance(1000.0 * np.asarray(ds.wl_nm, dtype=np.float64), ds.contact,
+                                  ds.t_s) for ds, _ in (run.runs[n] for n in names)]
+    known = [c for c in covs if c is not None]
+    if not known:
+        return [_row(g, [], None) for g in IDLE_GOALS]
+    noise_pm = float(np.median(np.sqrt(np.diag(np.mean(known, axis=0)))))
+    idle = idle_events(str(model_dir), noise_pm=noise_pm, engine=engine)
+    return [_row(g, [f"idle at {noise_pm:.1f} pm"], idle["worst_per_min"]) for g in IDLE_GOALS]
 
 
 def _hold_rows(holds: list[str], cal: dict[str, Any] | None, cal_rmse: float | None,

@@ -259,20 +259,22 @@ def _front_stage(q: QModel, state: _State, wl: np.ndarray, ref: np.ndarray, base
 def reference_average(q: QModel, shift_t: np.ndarray, fault: np.ndarray) -> np.ndarray:
     """``fbg_ref_update`` of fbg_internal.h on one recording from a fresh state: the
     temperature reference (n,) that the compensation of each sample without a fault reads.
-    acc = r * 2^ref_shift in fm, primed at the first good sample's shift_T << ref_shift, then
-    acc += shift_T - rshift_round(acc, ref_shift) and r = rshift_round(acc, ref_shift); a
-    faulty sample leaves acc alone (its row keeps its own shift_T, which nothing reads).
-    ref_shift 0 is shift_T itself."""
+    acc = r * 2^ref_shift in fm: the first good sample sets it to shift_T << ref_shift, the
+    n-th adds (shift_T - rshift_round(acc, ref_shift)) << (ref_shift - s), s =
+    :func:`fbgforce.model.floatref.reference_gain_shift` (n, ref_shift); r =
+    rshift_round(acc, ref_shift); a faulty sample leaves acc alone (its row keeps its own
+    shift_T, which nothing reads). ref_shift 0 is shift_T itself."""
     shift_t = np.asarray(shift_t, dtype=np.int64)
     k = q.ref_shift
     if k == 0:
         return shift_t
     ref = shift_t.copy()
-    acc, half = None, 1 << (k - 1)
+    acc, half = 0, 1 << (k - 1)
     # Python integers, sample by sample, exactly the C recursion (as the memory's averages).
-    for i in np.flatnonzero(~np.asarray(fault, dtype=bool)).tolist():
+    for n, i in enumerate(np.flatnonzero(~np.asarray(fault, dtype=bool)).tolist(), start=1):
         x = int(shift_t[i])
-        acc = x << k if acc is None else acc + x - ((acc + half) >> k)
+        step = k - floatref.reference_gain_shift(n, k)
+        acc = x << k if n == 1 else acc + ((x - ((acc + half) >> k)) << step)
         ref[i] = (acc + half) >> k
     return ref
 

@@ -213,6 +213,9 @@ def in_use_logs(tmp_path_factory):
 
 def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     from fbgforce.bench import bench_in_use
+    from fbgforce.bench.bench_idle import idle_events
+    from fbgforce.bench.bench_onset_bound import rest_noise_covariance
+    from fbgforce.recordings import dataset
     from fbgforce.trainer.evaluate import evaluate
 
     assert bench_in_use.main(["--model", str(small_exported_dir), "--logs", str(in_use_logs),
@@ -241,6 +244,15 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
                                                          / const["rmse_force_N"])
     assert rows["rest_contact"]["value"] == pytest.approx(ramp["at_rest"]["contact_fraction"])
     assert rows["false_events"]["scored_on"] == ["const_temp"]
+    # The idle pad at the constant-temperature logs' interrogator noise, tests/foreign.py's
+    # in-use fingertip's 5 pm: the worst draw of bench_idle, the same engine.
+    ds = dataset.load(in_use_logs / "const_temp_B.csv")
+    noise = float(np.median(np.sqrt(np.diag(rest_noise_covariance(
+        1000.0 * np.asarray(ds.wl_nm), ds.contact, ds.t_s)))))
+    assert noise == pytest.approx(5.0, abs=0.2)
+    assert rows["idle_false_events"]["scored_on"] == [f"idle at {noise:.1f} pm"]
+    assert rows["idle_false_events"]["value"] == idle_events(
+        str(small_exported_dir), noise_pm=noise)["worst_per_min"]
     assert res["scored"]["held_grips"]["holds"]["holds"] == 3
     assert bench_in_use.main(["--model", str(small_exported_dir), "--logs",
                               str(in_use_logs)]) == 0

@@ -85,14 +85,49 @@ def test_every_kernel_equals_the_integer_reference(ref_shift):
     assert not np.array_equal(raw["contact_margin_q8"], ref["contact_margin_q8"])
 
 
+def _gain_shift(n: int, k: int) -> int:
+    """min(k, floor(log2 n)), written out."""
+    s = 0
+    while s < k and 2 ** (s + 1) <= n:
+        s += 1
+    return s
+
+
 def _expected_acc(shift_t: np.ndarray, good: np.ndarray, k: int) -> int:
-    """The rule of docs/fixed-point.md written out: primed by the first good sample, updated
-    by every later good one, a faulty one leaves it."""
-    acc = None
+    """The rule of docs/fixed-point.md written out: the n-th good sample moves r by
+    (shift_T - r) / 2^min(k, floor(log2 n)) (the first sets it), a faulty one leaves it."""
+    acc, n = 0, 0
     for x, ok in zip(shift_t.tolist(), good.tolist()):
         if ok:
-            acc = x << k if acc is None else acc + x - ((acc + (1 << (k - 1))) >> k)
+            n += 1
+            r = (acc + (1 << (k - 1))) >> k
+            acc = x << k if n == 1 else acc + (x - r) * 2 ** (k - _gain_shift(n, k))
     return acc
+
+
+def test_the_first_samples_average_to_their_mean_not_to_the_first():
+    """Over its first 2^k good samples the average is their running mean to within a factor
+    of two in each weight (every engine: the integer reference here, the C kernels equal it
+    above): one noisy first sample is no step on every compensated grating for 2^k samples.
+    Primed with the first sample and then 2^-k, that sample still weighed (1 - 2^-k)^(2^k - 1),
+    about 0.37, at the 2^k-th."""
+    k = 5
+    model, q, _ = _quantised(k)
+    n = 1 << k
+    for first in (10**6, -(10**6)):       # a 1 nm step in the first sample alone
+        shift_t = np.zeros(3 * n, dtype=np.int64)
+        shift_t[0] = first
+        r = intref.reference_average(q, shift_t, np.zeros(3 * n, dtype=bool))
+        weight = r / first
+        count = np.arange(1, 3 * n + 1)
+        assert weight[0] == 1.0
+        assert np.all(weight[:n] <= 2.0 / count[:n] + 1e-6) and weight[n - 1] < 0.04
+        # From there the plain average: the weight decays by (1 - 2^-k) a sample.
+        assert weight[-1] == pytest.approx(weight[n - 1] * (1 - 2.0**-k) ** (2 * n), rel=1e-3)
+    # The float model's average follows the same rule (1 nm = 1000 pm).
+    r_pm, (avg, count) = floatref.reference_average(shift_t / 1000.0, k, np.zeros(3 * n, bool))
+    assert count == min(3 * n, floatref.REFERENCE_COUNT_MAX) and avg == r_pm[-1]
+    assert np.allclose(r_pm, r / 1000.0, atol=1e-3)
 
 
 @pytest.mark.parametrize("kernel", ["portable"] + host_kernels())
@@ -109,7 +144,7 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     st = rt._state
     rt.run_raw(wl_fm[:600])
     fault = intref.run(q, wl_fm[:600], base)["status"] & contract.STATUS_FLAG["SENSOR_FAULT"] != 0
-    assert fault.any() and st.ref_primed == 1
+    assert fault.any() and st.ref_count == min(int(np.sum(~fault)), 255)
     assert st.ref_acc == _expected_acc(wl_fm[:600, 4] - base[4], ~fault, k)
     # A lost reference peak: the average is held.
     before = st.ref_acc
@@ -119,23 +154,23 @@ def test_tare_reset_and_baseline_reprime_and_faults_hold(kernel):
     assert st.ref_acc == before
     # Reset: re-primed by the next good sample, as a fresh state on the same baseline.
     rt.reset()
-    assert st.ref_primed == 0
+    assert st.ref_count == 0
     _assert_equal(rt.run_raw(wl_fm[601:1000]), intref.run(q, wl_fm[601:1000], base), "reset")
     # Tare: a new baseline, re-primed.
     rt.tare(wl_fm[1000:1100])
     new_base = rt.baseline_fm
-    assert not np.array_equal(new_base, base) and st.ref_primed == 0
+    assert not np.array_equal(new_base, base) and st.ref_count == 0
     _assert_equal(rt.run_raw(wl_fm[1100:1500]), intref.run(q, wl_fm[1100:1500], new_base), "tare")
     # A baseline set directly: re-primed.
     rt.set_baseline(base.astype(np.int32))
-    assert st.ref_primed == 0
+    assert st.ref_count == 0
     _assert_equal(rt.run_raw(wl_fm[1500:]), intref.run(q, wl_fm[1500:], base), "set_baseline")
 
 
 def test_float_engines_prime_hold_and_carry_the_average():
-    """FloatPipeline fed in pieces equals it fed at once (the average carries over), its
-    first good sample primes it and a faulty one holds it (the reference grating's shift of
-    the rule written out); the C float build, fresh after fbgf_reset, fbgf_tare_end or
+    """FloatPipeline fed in pieces equals it fed at once (the average and its count carry
+    over), its first good sample primes it, the next ones follow the falling gain and a faulty
+    one holds it (the reference grating's shift of the rule written out); the C float build, fresh after fbgf_reset, fbgf_tare_end or
     fbgf_set_baseline, follows FloatPipeline started there."""
     k = 5
     model, _, wl = _quantised(k)
@@ -152,9 +187,10 @@ def test_float_engines_prime_hold_and_carry_the_average():
     shift_t = (wl[:1200, 4] - model.baseline_nm[4]) * 1000.0
     good = np.flatnonzero(~floatref.samples.sensor_fault_rows(wl[:1200]))
     r = shift_t[good[0]]
-    for i in good[1:]:
-        r += (shift_t[i] - r) / 2.0**k
-    assert pipe._reference[0] == pytest.approx(r, abs=1e-9)
+    for n, i in enumerate(good[1:], start=2):
+        r += (shift_t[i] - r) / 2.0**_gain_shift(n, k)
+    assert pipe._reference[0][0] == pytest.approx(r, abs=1e-9)
+    assert pipe._reference[0][1] == min(good.size, floatref.REFERENCE_COUNT_MAX)
 
     rt = FloatRuntime(model)
     rt.set_baseline(model.baseline_nm)

@@ -443,9 +443,10 @@ PARAMS: tuple[Field, ...] = (
     Field("in_hi", "int16_t", LIMIT["MAX_INPUTS"], -SAT16, SAT16,
           doc="... or > in_hi[j] (Q(z_frac); +-32767: never)"),
     Field("ref_shift", "uint8_t", 1, 0, LIMIT["MAX_REF_SHIFT"],
-          doc="temperature reference average (0: off): acc += shift_T - rshift_round(acc, "
-              "ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) "
-              "replaces shift_T in temp_coeff_q24's compensation"),
+          doc="temperature reference average (0: off): from acc = 0, the n-th good sample "
+              "adds (shift_T - rshift_round(acc, ref_shift)) * 2^(ref_shift - s), s = min(ref_shift, "
+              "floor(log2 n)); r = rshift_round(acc, ref_shift) replaces shift_T in "
+              "temp_coeff_q24's compensation"),
     Field("track_creep_q15", "uint16_t", 1, 0, LIMIT["MAX_TRACK_CREEP_Q15"],
           doc="the tracker's creep term (0: off; needs track_creep_shift >= 1): per sample at rest "
               "it sums (z_i - z0_i) - rshift_round((creep_i - (z0_i << EMA_FRAC)) * "
@@ -535,7 +536,7 @@ FLOAT_PARAMS: tuple[Field, ...] = (
     Field("in_lo", "float", LIMIT["MAX_INPUTS"], doc="OUT_OF_RANGE as fbg_model, standardised units"),
     Field("in_hi", "float", LIMIT["MAX_INPUTS"]),
     Field("ref_shift", "uint8_t", doc="temperature reference average as fbg_model (0: off): "
-          "r += (shift_T - r) / 2^ref_shift"),
+          "r += (shift_T - r) / 2^s, s = min(ref_shift, floor(log2 n)) at the n-th good sample"),
     Field("creep_q", "float", doc="the pad's creep inverse as fbg_model, its gain q = kappa / "
           "(1 - kappa) itself, 0 <= q < 1 (0: off): e_i = c_i + creep_q * (c_i - creep_lag_pm_i) "
           "replaces c_i, creep_lag_pm_i += (e_i - creep_lag_pm_i) / 2^creep_shift"),
@@ -606,7 +607,8 @@ _FRONT_FLAGS = (
     StateField("tare_active", "uint8_t"),
     StateField("prev_valid", "uint8_t", doc="bit c: prev_fm[c] holds a sample"),
     StateField("mem_primed", "uint8_t", doc="memory states hold a sample"),
-    StateField("ref_primed", "uint8_t", doc="the temperature reference's average holds a sample"),
+    StateField("ref_count", "uint8_t", doc="good samples in the temperature reference's average "
+               "(up to 255: its gain has reached 2^-ref_shift by 2^ref_shift <= 256)"),
     StateField("creep_primed", "uint8_t", doc="the creep inverse's lags hold a sample"),
 )
 

@@ -118,10 +118,27 @@ def _first_order(x: np.ndarray, alpha: float, prev: np.ndarray) -> np.ndarray:
 # Front stage: tare, temperature compensation, creep inverse
 # --------------------------------------------------------------------------------------------
 
+#: Good samples after which the temperature reference's gain no longer falls: its count
+#: saturates there (``fbg_state.ref_count``, uint8; 2^MAX_REF_SHIFT = 256 needs no more).
+REFERENCE_COUNT_MAX = 255
+
+
+def reference_gain_shift(n: int, ref_shift: int) -> int:
+    """``s`` of the n-th good sample's step ``(shift_T - r) / 2^s`` of the temperature
+    reference's average: ``min(ref_shift, floor(log2 n))``, n >= 1. Over the first 2^ref_shift
+    samples the average is (nearly) their running mean: primed by the first sample alone, it
+    kept that sample's noise for about 2^ref_shift samples, a step on all four compensated
+    gratings at once that the memory's play operators then held while the pad rested
+    (docs/fixed-point.md, "Temperature reference")."""
+    return min(ref_shift, int(n).bit_length() - 1)
+
+
 def reference_average(shift_t: np.ndarray, ref_shift: int, fault: np.ndarray,
-                      prev: float | None = None) -> tuple[np.ndarray, float | None]:
-    """The temperature reference the compensation subtracts: ``r[n] = r[n-1] + (shift_T[n] -
-    r[n-1]) / 2^ref_shift`` over the samples without a fault, in order.
+                      prev: tuple[float, int] | None = None
+                      ) -> tuple[np.ndarray, tuple[float, int] | None]:
+    """The temperature reference the compensation subtracts: the n-th sample without a fault
+    (in order since the state was fresh) moves ``r`` by ``(shift_T[n] - r) / 2^s``, ``s =``
+    :func:`reference_gain_shift` ``(n, ref_shift)`` (the first sets ``r = shift_T``).
 
     Parameters
     ----------
@@ -133,12 +150,13 @@ def reference_average(shift_t: np.ndarray, ref_shift: int, fault: np.ndarray,
         (n,) True for a sensor-fault sample: it leaves the average as it was (its own row
         gets its raw shift, which no engine reads).
     prev
-        The average before the first sample; None primes it with the first good sample.
+        ``(r, count)``: the average and the good samples it holds (counted up to
+        :data:`REFERENCE_COUNT_MAX`) before the first sample; None: a fresh state.
 
     Returns
     -------
     tuple
-        ``r`` (n,) and the average after the samples (``prev`` when none was good), to carry
+        ``r`` (n,) and the state after the samples (``prev`` when none was good), to carry
         into the next call.
     """
     shift_t = np.asarray(shift_t, dtype=np.float64)
@@ -146,14 +164,24 @@ def reference_average(shift_t: np.ndarray, ref_shift: int, fault: np.ndarray,
     if not ref_shift or good.size == 0:
         return shift_t, prev
     x = shift_t[good]
-    start = np.array([x[0] if prev is None else prev])
+    avg, count = (0.0, 0) if prev is None else prev
+    out = np.empty_like(x)
+    # While the gain still falls, sample by sample (at most 2^ref_shift of them); then the
+    # plain exponential average.
+    ramp = min(x.size, max(0, (1 << ref_shift) - 1 - count))
+    for i in range(ramp):
+        n = count + 1 + i
+        avg = x[i] if n == 1 else avg + (x[i] - avg) / 2.0 ** reference_gain_shift(n, ref_shift)
+        out[i] = avg
+    if ramp < x.size:
+        out[ramp:] = _exp_average(x[ramp:, None], ref_shift, np.array([avg]))[:, 0]
     r = shift_t.copy()
-    r[good] = _exp_average(x[:, None], ref_shift, start)[:, 0]
-    return r, float(r[good[-1]])
+    r[good] = out
+    return r, (float(out[-1]), min(count + x.size, REFERENCE_COUNT_MAX))
 
 
 def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndarray,
-               reference: list[float | None] | None = None,
+               reference: list[tuple[float, int] | None] | None = None,
                fault: np.ndarray | None = None) -> np.ndarray:
     """Tare and temperature-compensate raw wavelengths.
 
@@ -164,8 +192,9 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
     baseline_nm
         (5,) unloaded wavelengths to tare against, nm.
     reference
-        ``[r]``: the temperature reference's average before the samples (None: the first good
-        sample primes it), updated in place; None: a recording of its own. Read only when
+        ``[state]``: the temperature reference's average before the samples
+        (:func:`reference_average`'s ``prev``; None: a fresh one), updated in place; None: a
+        recording of its own. Read only when
         ``preprocess.ref_shift`` is on (:func:`reference_average`).
     fault
         (n,) the samples' sensor faults, :func:`fbgforce.samples.sensor_fault_rows` of
@@ -666,7 +695,7 @@ class FloatPipeline:
         self.samples = 0
         self._history = np.zeros((self.taps.size - 1, N_STRAIN))
         self._last_comp = np.zeros(N_STRAIN)
-        self._reference: list[float | None] = [None]   # primed by the first good sample
+        self._reference: list[tuple[float, int] | None] = [None]   # fresh: no good sample yet
         self._creep_lag: list[np.ndarray | None] = [None]   # the creep inverse's, likewise
         self._memory = MemoryStream(pre.memory, pre.z_rest)
         self._decision: list[Any] = [0, 0, 0.0, 0, 0]

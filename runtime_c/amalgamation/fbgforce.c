@@ -321,22 +321,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -1181,22 +1196,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -2056,22 +2086,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -2940,22 +2985,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -4174,22 +4234,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -5330,22 +5405,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -6475,22 +6565,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -6521,7 +6626,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -6546,7 +6651,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -6581,7 +6686,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -7044,22 +7149,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -7470,22 +7590,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -8199,22 +8334,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -8660,22 +8810,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -9344,22 +9509,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -9958,22 +10138,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -10841,22 +11036,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -12055,22 +12265,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -12870,22 +13095,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -13407,7 +13647,7 @@ AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, u
     }
     shift = _mm256_sub_epi32(w, load5(s->baseline_fm));
     /* The reference's average is one scalar recursion: it runs before the vector part. */
-    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, _mm256_extract_epi32(shift, FBG_N_STRAIN),
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_count, _mm256_extract_epi32(shift, FBG_N_STRAIN),
                          s->model->ref_shift);
     if (comp4_avx2(s, shift, ref))
         *sat = 1u;
@@ -13807,22 +14047,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -13853,7 +14108,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -13878,7 +14133,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -13913,7 +14168,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -14376,22 +14631,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -14802,22 +15072,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -15317,22 +15602,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -15363,7 +15663,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -15388,7 +15688,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -15423,7 +15723,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -15886,22 +16186,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -16312,22 +16627,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -16835,22 +17165,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -16881,7 +17226,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -16906,7 +17251,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -16941,7 +17286,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -17404,22 +17749,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -17830,22 +18190,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -17962,7 +18337,7 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
         memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
         return;
     }
-    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_count, shift[FBG_N_STRAIN], m->ref_shift);
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
         s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);
@@ -18373,22 +18748,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -18419,7 +18809,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -18444,7 +18834,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -18479,7 +18869,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -18942,22 +19332,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -19368,22 +19773,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -19870,22 +20290,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -19916,7 +20351,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -19941,7 +20376,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -19976,7 +20411,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -20439,22 +20874,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -20865,22 +21315,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -21443,22 +21908,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -21489,7 +21969,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -21514,7 +21994,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -21549,7 +22029,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -22012,22 +22492,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -22438,22 +22933,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -23076,22 +23586,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -23122,7 +23647,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -23147,7 +23672,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -23182,7 +23707,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -23645,22 +24170,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -24071,22 +24611,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -25379,22 +25934,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 
@@ -25425,7 +25995,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -25450,7 +26020,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -25485,7 +26055,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;
@@ -26034,18 +26604,26 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
 }
 
 /* The temperature reference of a sample that passed the fault rule (docs/fixed-point.md,
- * "temperature reference", in float): the exponential average of the reference grating's
- * shift_t (pm), primed by the first sample after init, tare, reset or a new baseline; the raw
- * shift when ref_shift is 0. */
+ * "temperature reference", in float): the average of the reference grating's shift_t (pm),
+ * the n-th good sample after init, tare, reset or a new baseline moving it by
+ * (shift_t - r) / 2^min(ref_shift, floor(log2 n)); the raw shift when ref_shift is 0. */
 static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
 {
-    if (m->ref_shift == 0u)
+    unsigned n, k = m->ref_shift, shift = k;
+    if (k == 0u)
         return shift_t;
-    if (s->ref_primed)
-        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << m->ref_shift));
-    else
+    n = (unsigned)s->ref_count + 1u;
+    if (n < (1u << k)) {
+        shift = 0u;
+        while ((2u << shift) <= n)
+            ++shift;
+    }
+    if (s->ref_count == 0u)
         s->ref_pm = shift_t;
-    s->ref_primed = 1u;
+    else
+        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << shift));
+    if (s->ref_count < 255u)
+        ++s->ref_count;
     return s->ref_pm;
 }
 

@@ -219,7 +219,7 @@ typedef struct {
     uint8_t loc_shift;  /* location averages (0: off): r_i = sat16(z_i - z0_i), z0_i the standardised zero shift; loc_i += rshift_round((r_i << EMA_FRAC) - loc_i, loc_shift); location input rshift_round(loc_i, EMA_FRAC) [0, 15] */
     uint8_t contact_rise_n;  /* consecutive samples of the rise condition before contact rises [1, 255] */
     uint8_t track_shift;  /* at-rest baseline tracker (0: off): time constant 2^track_shift samples [0, 20] */
-    uint8_t ref_shift;  /* temperature reference average (0: off): acc += shift_T - rshift_round(acc, ref_shift), primed at shift_T << ref_shift; r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
+    uint8_t ref_shift;  /* temperature reference average (0: off): from acc = 0, the n-th good sample adds (shift_T - rshift_round(acc, ref_shift)) * 2^(ref_shift - s), s = min(ref_shift, floor(log2 n)); r = rshift_round(acc, ref_shift) replaces shift_T in temp_coeff_q24's compensation [0, 8] */
     uint8_t track_creep_shift;  /* creep_i += rshift_round((z_i << EMA_FRAC) - creep_i, track_creep_shift) on every good sample, primed at z_i << EMA_FRAC: the creep's time constant 2^k samples [0, 15] */
     uint8_t creep_shift;  /* the pad's creep time constant 2^creep_shift samples (1..15 when creep_q15 is on) [0, 15] */
     uint8_t hold_shift;  /* time constant 2^hold_shift samples of the hold stage's average of force_mN [0, 15] */
@@ -283,7 +283,7 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
-    uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
+    uint8_t ref_count;                           /* good samples in the temperature reference's average (up to 255: its gain has reached 2^-ref_shift by 2^ref_shift <= 256) */
     uint8_t creep_primed;                        /* the creep inverse's lags hold a sample */
     uint8_t loc_z0_clamped;                      /* 1: a loc_z0 clamped at +-32767 */
     uint8_t decision;                            /* the contact decision of the last step, held through the release band */
@@ -481,7 +481,7 @@ typedef struct {
     uint8_t track_creep_shift;  /* creep_pm_i += (filt_i - creep_pm_i) / 2^track_creep_shift on every good sample (1..15 when track_creep > 0) */
     uint8_t hold_shift;  /* 1..15 when hold_gain is on */
     uint8_t hold_ramp_shift;  /* 0..FBG_MAX_HOLD_RAMP_SHIFT */
-    uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^ref_shift */
+    uint8_t ref_shift;  /* temperature reference average as fbg_model (0: off): r += (shift_T - r) / 2^s, s = min(ref_shift, floor(log2 n)) at the n-th good sample */
     uint8_t creep_shift;  /* the pad's creep time constant (1..15 when creep_q > 0) */
     uint8_t pad_[2];  /* explicit padding, keep 0 */
     const float *taps;       /* taps[k] weights sample n - k */
@@ -529,7 +529,7 @@ typedef struct {
     uint8_t tare_active;
     uint8_t prev_valid;                          /* bit c: prev_fm[c] holds a sample */
     uint8_t mem_primed;                          /* memory states hold a sample */
-    uint8_t ref_primed;                          /* the temperature reference's average holds a sample */
+    uint8_t ref_count;                           /* good samples in the temperature reference's average (up to 255: its gain has reached 2^-ref_shift by 2^ref_shift <= 256) */
     uint8_t creep_primed;                        /* the creep inverse's lags hold a sample */
     /* The decision over time and the at-rest baseline tracker, as fbg_state's: the block's
      * sum of filtered shifts (pm); the correction subtracted from the compensated shifts is

@@ -39,7 +39,7 @@ typedef struct {
                                             * whatever their element type */
     size_t mem_size[FBG_N_MEMORY_STATES];
     uint8_t *mem_primed;
-    uint8_t *ref_primed;         /* the temperature reference's average, whatever its type */
+    uint8_t *ref_count;          /* the temperature reference's average, whatever its type */
     uint8_t *creep_primed;       /* the creep inverse's lags, whatever their type */
     int64_t *tare_sum;           /* FBG_N_CHANNELS */
     uint32_t *tare_count;
@@ -64,7 +64,7 @@ typedef struct {
                  .last_comp = (s)->last_comp, .last_comp_size = sizeof (s)->last_comp,        \
                  .mem = {FBG_MEMORY_STATES(FBG_FRONT_MEM, s)},                                \
                  .mem_size = {FBG_MEMORY_STATES(FBG_FRONT_MEM_SIZE, s)},                      \
-                 .mem_primed = &(s)->mem_primed, .ref_primed = &(s)->ref_primed,              \
+                 .mem_primed = &(s)->mem_primed, .ref_count = &(s)->ref_count,                \
                  .creep_primed = &(s)->creep_primed,                                          \
                  .tare_sum = (s)->tare_sum, .tare_count = &(s)->tare_count, .pos = &(s)->pos, \
                  .since_reset = &(s)->since_reset, .same_run = (s)->same_run,                 \
@@ -99,7 +99,7 @@ static inline void fbg_front_clear(fbg_front f)
     for (k = 0; k < FBG_N_MEMORY_STATES; ++k)
         memset(f.mem[k], 0, f.mem_size[k]);
     *f.mem_primed = 0u;
-    *f.ref_primed = 0u;
+    *f.ref_count = 0u;
     *f.creep_primed = 0u;
     memset(f.prev_fm, 0, FBG_N_CHANNELS * sizeof *f.prev_fm);
     *f.prev_valid = 0u;

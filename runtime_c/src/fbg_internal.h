@@ -272,22 +272,37 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
 }
 
 /* The fixed-point build's temperature reference (docs/fixed-point.md, "temperature
- * reference"): the exponential average r of the reference grating's shift shift_t, kept as
- * acc = r * 2^k in fm, primed by the first sample after init, tare, reset or a new baseline
- * (*primed == 0), and r = rshift_round(acc, k). k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0
- * is the raw shift and leaves the state alone. r stays between the smallest and largest
- * shift_t seen since the priming, so |r| < 2^30 and |acc| < 2^(k+31): the compensation's
+ * reference"): the average r of the reference grating's shift shift_t, kept as acc = r * 2^k
+ * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
+ * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
+ * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
+ * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
+ * step on all four compensated gratings at once that the memory's play operators then held
+ * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
+ * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
+ * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
  * product with temp_coeff_q24 keeps the bound it has with shift_t. Called only for a sample
  * that passed the fault rule: a faulty one holds the average. */
-static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *primed, int32_t shift_t, unsigned k)
+static inline int32_t fbg_ref_update(int64_t *acc, uint8_t *count, int32_t shift_t, unsigned k)
 {
+    unsigned n, s = k;
     if (k == 0u)
         return shift_t;
-    if (*primed)
-        *acc += shift_t - fbg_rshift_round(*acc, k);
+    n = (unsigned)*count + 1u;
+    if (n < (1u << k)) { /* floor(log2 n) < k: the gain still falls */
+        s = 0u;
+        while ((2u << s) <= n)
+            ++s;
+    }
+    /* multiplies: << of a negative is undefined */
+    if (*count == 0u)
+        *acc = (int64_t)shift_t * ((int64_t)1 << k);
     else
-        *acc = (int64_t)shift_t * ((int64_t)1 << k); /* a multiply: << of a negative is undefined */
-    *primed = 1u;
+        *acc += ((int64_t)shift_t - fbg_rshift_round(*acc, k)) * ((int64_t)1 << (k - s));
+    if (*count < 255u)
+        ++*count;
     return (int32_t)fbg_rshift_round(*acc, k);
 }
 

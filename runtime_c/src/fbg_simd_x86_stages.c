@@ -308,7 +308,7 @@ AVX2 void fbg_avx2_front(fbg_state *s, const int32_t *wl_fm, uint32_t *status, u
     }
     shift = _mm256_sub_epi32(w, load5(s->baseline_fm));
     /* The reference's average is one scalar recursion: it runs before the vector part. */
-    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, _mm256_extract_epi32(shift, FBG_N_STRAIN),
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_count, _mm256_extract_epi32(shift, FBG_N_STRAIN),
                          s->model->ref_shift);
     if (comp4_avx2(s, shift, ref))
         *sat = 1u;

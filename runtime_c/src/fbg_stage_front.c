@@ -23,7 +23,7 @@ static void compensate(fbg_state *s, const fbg_model *m, const int32_t wl_fm[FBG
         memcpy(s->hist[s->pos], s->last_comp, sizeof s->last_comp);
         return;
     }
-    ref = fbg_ref_update(&s->ref_acc, &s->ref_primed, shift[FBG_N_STRAIN], m->ref_shift);
+    ref = fbg_ref_update(&s->ref_acc, &s->ref_count, shift[FBG_N_STRAIN], m->ref_shift);
     for (c = 0; c < FBG_N_STRAIN; ++c) {
         int64_t t = fbg_rshift_round((int64_t)ref * m->temp_coeff_q24[c], FBG_TEMP_COEFF_SHIFT);
         s->hist[s->pos][c] = fbg_sat32((int64_t)shift[c] - t, sat);

@@ -310,18 +310,26 @@ static void fir_tap(float a[FBG_N_STRAIN], float tap, const float h[FBG_N_STRAIN
 }
 
 /* The temperature reference of a sample that passed the fault rule (docs/fixed-point.md,
- * "temperature reference", in float): the exponential average of the reference grating's
- * shift_t (pm), primed by the first sample after init, tare, reset or a new baseline; the raw
- * shift when ref_shift is 0. */
+ * "temperature reference", in float): the average of the reference grating's shift_t (pm),
+ * the n-th good sample after init, tare, reset or a new baseline moving it by
+ * (shift_t - r) / 2^min(ref_shift, floor(log2 n)); the raw shift when ref_shift is 0. */
 static float ref_update(fbgf_state *s, const fbgf_model *m, float shift_t)
 {
-    if (m->ref_shift == 0u)
+    unsigned n, k = m->ref_shift, shift = k;
+    if (k == 0u)
         return shift_t;
-    if (s->ref_primed)
-        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << m->ref_shift));
-    else
+    n = (unsigned)s->ref_count + 1u;
+    if (n < (1u << k)) {
+        shift = 0u;
+        while ((2u << shift) <= n)
+            ++shift;
+    }
+    if (s->ref_count == 0u)
         s->ref_pm = shift_t;
-    s->ref_primed = 1u;
+    else
+        s->ref_pm += (shift_t - s->ref_pm) * (1.0f / (float)(1u << shift));
+    if (s->ref_count < 255u)
+        ++s->ref_count;
     return s->ref_pm;
 }
 
