@@ -126,10 +126,10 @@ REFERENCE_COUNT_MAX = 255
 def reference_gain_shift(n: int, ref_shift: int) -> int:
     """``s`` of the n-th good sample's step ``(shift_T - r) / 2^s`` of the temperature
     reference's average: ``min(ref_shift, floor(log2 n))``, n >= 1. Over the first 2^ref_shift
-    samples the average is (nearly) their running mean: primed by the first sample alone, it
-    kept that sample's noise for about 2^ref_shift samples, a step on all four compensated
-    gratings at once that the memory's play operators then held while the pad rested
-    (docs/fixed-point.md, "Temperature reference")."""
+    samples the average is (nearly) their running mean. A gain of 2^-ref_shift from the second
+    sample on would keep the first sample's noise for about 2^ref_shift samples: a step on all
+    four compensated gratings at once, which the memory's play operators hold while the pad
+    rests (docs/fixed-point.md, "Temperature reference")."""
     return min(ref_shift, int(n).bit_length() - 1)
 
 

@@ -325,10 +325,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -1200,10 +1200,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -2090,10 +2090,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -2989,10 +2989,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -4238,10 +4238,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -5409,10 +5409,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -6569,10 +6569,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -7153,10 +7153,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -7594,10 +7594,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -8338,10 +8338,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -8814,10 +8814,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -9513,10 +9513,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -10142,10 +10142,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -11040,10 +11040,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -12269,10 +12269,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -13099,10 +13099,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -14051,10 +14051,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -14635,10 +14635,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -15076,10 +15076,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -15606,10 +15606,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -16190,10 +16190,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -16631,10 +16631,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -17169,10 +17169,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -17753,10 +17753,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -18194,10 +18194,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -18752,10 +18752,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -19336,10 +19336,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -19777,10 +19777,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -20294,10 +20294,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -20878,10 +20878,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -21319,10 +21319,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -21912,10 +21912,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -22496,10 +22496,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -22937,10 +22937,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -23590,10 +23590,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -24174,10 +24174,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -24615,10 +24615,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
@@ -25938,10 +25938,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's

@@ -276,10 +276,10 @@ static inline int fbg_track_block(uint16_t *rest_run, uint8_t *track_pos, int at
  * in fm, r = rshift_round(acc, k). The n-th good sample after init, tare, reset or a new
  * baseline (*count == n - 1, saturating at 255) moves r by (shift_t - r) / 2^s, s = min(k,
  * floor(log2 n)): the first sets r to shift_t, the next ones give (nearly) the running mean
- * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). Priming with the
- * first sample alone, then 2^-k, kept that one sample's noise in r for about 2^k samples, a
- * step on all four compensated gratings at once that the memory's play operators then held
- * for as long as the pad rested. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
+ * of the samples so far until the gain reaches 2^-k (by n = 2^k <= 256). A gain of 2^-k
+ * from the second sample on would keep the first sample's noise in r for about 2^k samples:
+ * a step on all four compensated gratings at once, which the memory's play operators hold for
+ * as long as the pad rests. k = ref_shift <= FBG_MAX_REF_SHIFT; k == 0 is the raw shift
  * and leaves the state alone. r stays between the smallest and largest shift_t seen since the
  * first sample (each step moves it towards shift_t by at most shift_t - r), so |r| < 2^30 and
  * |acc| < 2^(k+31), and a step's addend |shift_t - r| * 2^(k - s) < 2^(31+k): the compensation's
