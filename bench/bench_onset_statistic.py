@@ -40,20 +40,15 @@ DRIFT_SDS = (0.0, 0.5, 1.0, 2.0)
 STATISTICS = {"margin": "margin", "force": "force_raw_N"}
 
 
-def runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``(start, stop)`` of each run of True in ``mask``."""
-    d = np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
-
-
 def rest_peaks(recordings: Sequence[dict[str, Any]], stat: str, k: float, lo: float,
                hi: float) -> tuple[np.ndarray, float]:
     """The CUSUM's excursion peaks over every run of rest samples, and the rest's minutes."""
     from fbgforce.model.decision import cusum_peaks
+    from fbgforce.recordings.stagelog import runs
 
     peaks, minutes = [np.empty(0)], 0.0
     for r in recordings:
-        for a, b in runs(r["rest"]):
+        for a, b in zip(*runs(r["rest"])):
             peaks.append(cusum_peaks(r[stat][a:b], k, lo, hi))
             minutes += (b - a) / r["rate_hz"] / 60.0
     return np.concatenate(peaks), minutes
@@ -72,11 +67,12 @@ def onsets_ms(recordings: Sequence[dict[str, Any]], stat: str, k: float, lo: flo
     """Each press's onset delay at ``(k, lo, hi, h)``, ms (inf where ``S`` never reaches ``h``
     before the label ends)."""
     from fbgforce.model.decision import cusum_path
+    from fbgforce.recordings.stagelog import runs
 
     out = []
     for r in recordings:
         s = r[stat]
-        for on, end in runs(r["contact"]):
+        for on, end in zip(*runs(r["contact"])):
             start = max(0, on - BEFORE_SAMPLES)
             early = np.flatnonzero(cusum_path(s[start:on], k, lo, hi) >= h)
             if early.size:           # an alarm at rest before the press: S starts again
