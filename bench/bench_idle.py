@@ -13,7 +13,9 @@ draw of the noise is a pad left idle once; the false events a minute differ from
 because what the first samples leave in the pipeline's states stays there for as long as the
 pad rests (docs/fixed-point.md, "Temperature reference"). The rests of a recording never
 last this long: the presses between them put the states back. A first second (the filter's
-and the averages' start) runs before the minutes counted.
+and the averages' start) runs before the minutes counted. The trainer reads the CUSUM's
+threshold on idle pads of its own too (two minutes each of the calibration's rest noise,
+docs/runtime.md, "In use"); these are other draws, at the noise given here.
 """
 from __future__ import annotations
 
@@ -24,9 +26,6 @@ from typing import Any
 
 import numpy as np
 
-#: Samples at the start that are not counted: the filter's warm-up and the averages' start.
-SKIP_S = 1.0
-
 
 def idle_events(model_dir: str, noise_pm: float = 5.0, minutes: float = 1.0, draws: int = 20,
                 engine: str = "fixed", seed: int = 0) -> dict[str, Any]:
@@ -35,10 +34,12 @@ def idle_events(model_dir: str, noise_pm: float = 5.0, minutes: float = 1.0, dra
     from fbgforce import samples
     from fbgforce.evaluation import engines
     from fbgforce.model import modeldir
+    from fbgforce.trainer.synthetic import IDLE_WARMUP_S
 
     model = modeldir.load(model_dir)
     rate = samples.model_rate_hz(model) or 1000.0
-    skip = int(round(SKIP_S * rate))
+    # Not counted, as the trainer's idle pads are not: the filter's warm-up, the averages' start.
+    skip = int(round(IDLE_WARMUP_S * rate))
     n = skip + int(round(minutes * 60.0 * rate))
     base = np.asarray(model.baseline_nm, dtype=np.float64)
     rng = np.random.default_rng(seed)

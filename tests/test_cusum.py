@@ -472,6 +472,41 @@ def test_long_rests_raise_the_threshold_only_where_they_need_it():
     assert left_out["h"] == alone["h"] and left_out["long_minutes"] == 0.0
 
 
+def _creeping_idle(rng: np.random.Generator, minutes: float, end: float) -> np.ndarray:
+    """An idle pad's margins: rest noise whose level climbs from -2 towards ``end`` with the
+    log of the time, as the memory's play operators follow the noise's record lows."""
+    n = int(minutes * 60_000)
+    return _ar1(rng, n, 0.0) - 2.0 + (end + 2.0) * np.log1p(np.arange(n)) / np.log(n)
+
+
+def test_idle_pads_hold_each_draw_within_the_aim():
+    """A threshold read on rests that never last reaches below what a pad left alone for
+    minutes comes to: there every idle draw raises many events. Given the idle draws, no draw
+    raises more than the aim allows in its minutes (one in two minutes at half a minute),
+    the threshold is never below the rests' alone, and idle draws quieter than the rests
+    leave it where the rests set it."""
+    rng = np.random.default_rng(8)
+    rest = _ar1(rng, 20_000, -2.0)
+    alone = fm_decision.cusum_parameters(rest, 1000.0)
+    idle = [_creeping_idle(rng, 2.0, -0.5) for _ in range(3)]
+    both = fm_decision.cusum_parameters(rest, 1000.0, idle=idle)
+    assert both["k"] == alone["k"] and both["h"] > alone["h"]
+    assert both["idle_minutes"] == pytest.approx(6.0) and alone["idle_minutes"] == 0.0
+
+    def events(cs: dict, margins: np.ndarray) -> int:
+        return int(np.sum(fm_decision.cusum_peaks(margins, cs["k"], cs["lo"], cs["hi"])
+                          >= cs["h"]))
+
+    assert max(events(alone, m) for m in idle) > 1
+    assert max(events(both, m) for m in idle) <= 1
+    # The least such threshold: just below it, one draw raises a second event.
+    assert fm_decision.idle_threshold(idle, both["k"], 0.5, 1000.0) == both["h"]
+    lower = {**both, "h": float(np.nextafter(both["h"], 0.0))}
+    assert max(events({**lower, "hi": fm_decision.CUSUM_MAX}, m) for m in idle) > 1
+    quiet = [_ar1(rng, 120_000, -4.0) for _ in range(2)]
+    assert fm_decision.cusum_parameters(rest, 1000.0, idle=quiet)["h"] == alone["h"]
+
+
 def _rising_presses(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, int]]:
     """Windows of presses whose margin climbs from rest to 8 at 0.4 a sample, with noise."""
     return [(np.concatenate([_ar1(rng, 100, -2.0), np.minimum(-2.0 + 0.4 * np.arange(1, 61), 8.0)

@@ -15,6 +15,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import foreign  # noqa: E402
 
 from fbgforce.model import artifact, floatref  # noqa: E402
+from fbgforce.recordings import tare as fbgtare  # noqa: E402
 from fbgforce import sim  # noqa: E402
 from fbgforce.trainer import preprocess as pp  # noqa: E402
 from fbgforce.trainer.creep import Creep  # noqa: E402
@@ -343,6 +344,32 @@ def test_the_decisions_long_rests_and_press_windows():
         assert np.array_equal(w, margin[start:first + round(ONSET_WINDOW_S * rate)])
         assert 0 < label <= round(ONSET_LEAD_S * rate)
         assert not contact[max(0, start - round(REST_GAP_S * rate) + 1):first].any()
+
+
+def test_idle_pads_are_the_calibrations_rest_noise_at_its_tare():
+    """Each idle draw is a fresh start at the calibration's tare followed by nothing but its
+    own rest noise, through the model's preprocessing: minutes long less the warm-up, the
+    contact net's inputs as that wavelength series gives them (the location averages, which
+    it does not read, left out), and independent from draw to draw."""
+    scene = sim.load_scene("calibration_paper").replace(schedule={"n_presses": 12})
+    data = prepare([sim.simulate(scene)])
+    rows = np.flatnonzero(data.split != 2)
+    draws = synthetic.idle_rests(data, data.pre, rows, np.random.default_rng(0), 3, 0.1)
+    rate = data.rate_hz
+    assert len(draws) == 3
+    assert all(d.shape == (round(0.1 * 60 * rate), data.pre.n_features) for d in draws)
+    assert not np.array_equal(draws[0], draws[1])
+    # The same draw again, from the wavelengths it stands for.
+    again = synthetic.idle_rests(data, data.pre, rows, np.random.default_rng(0), 1, 0.1)[0]
+    assert np.array_equal(again, draws[0])
+    r = data.recordings[0]
+    rest = fbgtare.contact_free_mask(np.asarray(r.ds.contact, bool), r.ds.t_s)
+    noise = np.diff(np.asarray(r.ds.wl_nm, np.float64), axis=0)[rest[1:] & rest[:-1]]
+    skip = round(synthetic.IDLE_WARMUP_S * rate)
+    wl = r.baseline_nm + noise[np.random.default_rng(0).integers(
+        0, len(noise), skip + round(0.1 * 60 * rate))] / np.sqrt(2.0)
+    inputs = floatref.standardise(data.pre, pp.recording_features(data.pre, wl, r.baseline_nm))
+    assert np.array_equal(inputs[skip:, :data.pre.n_features], draws[0])
 
 
 def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds):

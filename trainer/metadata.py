@@ -20,7 +20,8 @@ from fbgforce.trainer.data import (HOLD_BAND, HOLD_MIN_S, SPLIT_RATIOS, Prepared
 from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS
 from fbgforce.trainer.params import TrainParams
 from fbgforce.trainer.scoring import evaluate_rows, pad_extent_mm
-from fbgforce.trainer.synthetic import HOLD_AUGMENT_S, REST_AUGMENT_S, REST_AUGMENT_STEP_S, Held
+from fbgforce.trainer.synthetic import (HOLD_AUGMENT_S, IDLE_DRAWS, IDLE_MINUTES, REST_AUGMENT_S,
+                                        REST_AUGMENT_STEP_S, Held)
 
 
 def training_warnings(data: Prepared, pre: fm.Preprocess, tr: np.ndarray, te: np.ndarray,
@@ -80,6 +81,7 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
                  f"{iu.contact_cusum_k:.3g}: the threshold from the calibration's rests and "
                  f"synthetic long rests, each extended to {REST_EXTEND_MINUTES:g} minutes, "
+                 f"and from {IDLE_DRAWS} idle pads of {IDLE_MINUTES:g} minutes each; "
                  f"the drift where the calibration's presses rise soonest"
                  if iu.contact_cusum_h else
                  f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "

@@ -1,9 +1,11 @@
 """Synthetic recordings the nets also train on: the calibration's presses held at their peak
 (:func:`synthetic_holds`), long rests inserted before them (:func:`synthetic_rests`) and
-pressed harder (:func:`scaled_presses`), each recomputed through the model's preprocessing
+pressed harder (:func:`scaled_presses`), and idle pads the contact decision is set on
+(:func:`idle_rests`), each recomputed through the model's preprocessing
 over the whole lengthened recording as the runtime would run it."""
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Iterator, Sequence
 
 import numpy as np
@@ -56,6 +58,18 @@ DECISION_REST_S = (3.0, 12.0)
 #: At most this many minutes of them, whatever the calibration's length (the share falls on
 #: longer ones): on 100 presses the share gives 3.4, whose net inputs take 22 MB.
 DECISION_REST_MINUTES = 4.0
+
+#: Idle pads the contact decision's threshold is also read on (:func:`idle_rests`): this many
+#: draws, each this many minutes of the calibration's own rest noise at its tare, from a fresh
+#: start, their first :data:`IDLE_WARMUP_S` seconds (the filter's warm-up and the averages'
+#: start) not scored. The threshold is aimed at half an event a minute: one event a draw.
+#: What a draw leaves in the memory varies a great deal, so it takes many: on the family's
+#: worst member 9 % of idle minutes still raised more than one event at the threshold 20
+#: draws set, 2 % at the one 40 set. One-minute draws allowed none cost the quiet members'
+#: onset too (docs/design-history.md, "The CUSUM's threshold: on idle pads too").
+IDLE_DRAWS = 40
+IDLE_MINUTES = 2.0
+IDLE_WARMUP_S = 1.0
 
 #: Synthetic samples: their net inputs and the rows (of the prepared data) whose labels they take.
 Held = tuple[np.ndarray, np.ndarray]
@@ -211,6 +225,36 @@ def decision_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
                   for _, _, sel, contact, _, pid in _augmented_recordings(data, rows))
     return synthetic_rests(data, pre, rows, decision_rest_share(presses), 1, rng,
                            DECISION_REST_S)[0]
+
+
+def idle_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
+               rng: np.random.Generator, draws: int = IDLE_DRAWS,
+               minutes: float = IDLE_MINUTES) -> list[np.ndarray]:
+    """The contact net's inputs (``pre.n_features`` columns) on ``draws`` idle pads: a fresh
+    start at the tare of the first recording of ``rows`` with rest noise, then ``minutes`` of
+    nothing but that noise (rows of :func:`_rest_noise`, all five channels together, drawn
+    with replacement from every such recording of ``rows``), computed with ``pre`` as the
+    runtime would run them; each draw's samples from :data:`IDLE_WARMUP_S` on, in time order;
+    none without rest noise.
+
+    A calibration's rests are broken by its presses; a pad left alone for minutes is not, and
+    what the noise's record lows leave in the memory then stays (docs/robustness.md, "An idle
+    pad")."""
+    found = [(r, noise) for r, _, _, _, noise, _ in _augmented_recordings(data, rows)]
+    if not found:
+        return []
+    noise = np.concatenate([n for _, n in found])
+    base = np.asarray(found[0][0].baseline_nm, dtype=np.float64)
+    skip = int(round(IDLE_WARMUP_S * data.rate_hz))
+    n = skip + int(round(minutes * 60.0 * data.rate_hz))
+    # The contact net reads none of the location averages: a third of the time, left out.
+    contact_only = replace(pre, memory=replace(pre.memory, loc_shift=0))
+    out = []
+    for _ in range(draws):
+        wl = base + noise[rng.integers(0, len(noise), n)]
+        x = floatref.standardise(contact_only, pp.recording_features(contact_only, wl, base))
+        out.append(x[skip:, :pre.n_features])
+    return out
 
 
 def decision_rest_share(presses: int) -> float:

@@ -38,8 +38,8 @@ from fbgforce.trainer.memory import DEFAULT_MEMORY, fit_memory, memory_time_cons
 from fbgforce.trainer.metadata import model_metadata, training_warnings
 from fbgforce.trainer.nets import FlatMLP, drop_unread_units, predict_batched
 from fbgforce.trainer.params import DECISION_RULES, DEFAULT_SIZES, TrainParams
-from fbgforce.trainer.synthetic import (REST_AUGMENT_STEP_S, Held, decision_rests, synthetic_holds,
-                                        synthetic_rests)
+from fbgforce.trainer.synthetic import (REST_AUGMENT_STEP_S, Held, decision_rests, idle_rests,
+                                        synthetic_holds, synthetic_rests)
 
 
 def prepare(datasets: Sequence[Any], *, seed: int = 0, filter: str = "causal",
@@ -160,11 +160,12 @@ class _Streams:
     rests: np.random.Generator
     hold_gain: np.random.Generator
     decision_rests: np.random.Generator
+    idle_rests: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "_Streams":
         # spawn(n)'s first children do not depend on n: a stream added last leaves the others.
-        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(10)))
+        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(11)))
 
 
 def _split(data: Prepared, params: TrainParams, rng: np.random.Generator
@@ -322,7 +323,7 @@ def _press_windows(data: Prepared, logits: np.ndarray) -> list[tuple[np.ndarray,
 
 def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
                     cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any],
-                    rng: np.random.Generator) -> dict[str, artifact.InUse]:
+                    streams: _Streams, idle_pads: bool = True) -> dict[str, artifact.InUse]:
     """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
     set from the training data: its decision over time, the tracker and the settled-hold
     gain with its steadiness band (``settled``, what
@@ -330,9 +331,10 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
-    memory settles. The CUSUM reads its threshold on the calibration's rests and on long
-    rests of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`, drawn with ``rng``),
-    and its drift on the calibration's presses (:func:`_press_windows`). The tracker
+    memory settles. The CUSUM reads its threshold on the calibration's rests, on long rests
+    of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`) and, with
+    ``idle_pads``, on idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`), drawn with
+    ``streams``, and its drift on the calibration's presses (:func:`_press_windows`). The tracker
     discounts the recovery the pad's creep (``data.creep_held``) predicts after a release,
     which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
     inverse has already taken it out."""
@@ -345,9 +347,13 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
     # long rests whose every sample is kept, which the training's sparse samples are not.
     rest_margins = {"schmitt": np.concatenate([calibration_rests, long[:, 1] - long[:, 0]]),
                     "cusum": calibration_rests}
-    inputs = decision_rests(data, pre, np.flatnonzero(data.split != 2), rng)
+    rows = np.flatnonzero(data.split != 2)
+    inputs = decision_rests(data, pre, rows, streams.decision_rests)
     lg = predict_batched(cnet, inputs[:, :pre.n_features]) if len(inputs) else np.empty((0, 2))
-    cusum = {"long_rests": lg[:, 1] - lg[:, 0], "presses": _press_windows(data, logits)}
+    idle = [np.diff(predict_batched(cnet, x), axis=1).ravel()
+            for x in (idle_rests(data, pre, rows, streams.idle_rests) if idle_pads else [])]
+    cusum = {"long_rests": lg[:, 1] - lg[:, 0], "presses": _press_windows(data, logits),
+             "idle": idle}
     return {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz,
@@ -361,7 +367,7 @@ def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactS
     input range from the training data; return the decision's fields of every rule
     (``metadata.decision_rules``: what the others would have set)."""
     rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
-                            (stage.rest_tr, stage.rest_va), settled, stage.streams.decision_rests)
+                            (stage.rest_tr, stage.rest_va), settled, stage.streams)
     model.in_use = rules[decision]
     model.input_range = artifact.input_range_of(stage.z[stage.tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
@@ -541,9 +547,11 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     t_start = time.perf_counter()
     stage = _contact_stage(data, params, init_model, memory, net_sizes,
                            "the tracker's contact net")
+    # Without the idle pads: they guard minutes of unbroken rest, which a calibration never
+    # holds, and the tracker's pass over it then finds the rests the calibration itself sets.
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
                              (stage.rest_tr, stage.rest_va), {},
-                             stage.streams.decision_rests)[params.decision]
+                             stage.streams, idle_pads=False)[params.decision]
     if not in_use.track_shift:
         return data, None
     model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,

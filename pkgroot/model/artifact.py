@@ -359,7 +359,8 @@ class InUse:
                     hold_noise_N: float = 0.0, decision: str = "schmitt",
                     contact_margins: np.ndarray | None = None,
                     long_rests: np.ndarray | None = None,
-                    presses: Sequence[tuple[np.ndarray, int]] | None = None) -> "InUse":
+                    presses: Sequence[tuple[np.ndarray, int]] | None = None,
+                    idle: Sequence[np.ndarray] = ()) -> "InUse":
         """The trainer's default (docs/runtime.md, "In use", says how each value was chosen).
 
         ``rest_margins``: the contact net's margins on calibration samples at rest, in the
@@ -374,9 +375,9 @@ class InUse:
         :func:`~fbgforce.model.decision.cusum_parameters` on ``rest_margins`` (and
         ``contact_margins``, the margins on
         labelled contact samples, for its drift; ``long_rests``, its margins on synthetic long
-        rests, every sample in time order, for its threshold; ``presses``, windows of its
-        margins around the calibration's presses, for its drift), falling below minus its
-        drift.
+        rests, every sample in time order, and ``idle``, its margins on idle pads, one array
+        each, for its threshold; ``presses``, windows of its margins around the calibration's
+        presses, for its drift), falling below minus its drift.
 
         ``creep_magnitude`` and ``creep_time_constant_samples``: the pad's creep as fitted,
         for the tracker's creep term (:func:`creep_parameters`); 0 leaves it off (as for a
@@ -406,7 +407,7 @@ class InUse:
         rise: dict[str, float | int] = {}
         if decision == "cusum" and rest_margins is not None and np.size(rest_margins):
             cs = cusum_parameters(rest_margins, sample_rate_hz, contact_margins,
-                                  long_rests=long_rests, presses=presses)
+                                  long_rests=long_rests, presses=presses, idle=idle)
             rise = {"contact_off_margin": -cs["k"], "contact_cusum_h": cs["h"],
                     "contact_cusum_k": cs["k"], "contact_cusum_lo": cs["lo"],
                     "contact_cusum_hi": cs["hi"]}

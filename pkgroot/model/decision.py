@@ -369,6 +369,27 @@ def _cusum_threshold(peaks: np.ndarray, minutes: float, own: np.ndarray, k: floa
     return min(h, CUSUM_MAX)
 
 
+def idle_threshold(draws: Sequence[np.ndarray], k: float, target: float,
+                   sample_rate_hz: float) -> float:
+    """The least ``h`` at which the CUSUM of drift ``k`` raises at most
+    ``floor(target * minutes)`` false events on each of the idle pads ``draws`` (the contact
+    net's margins on each, in time order; 0 without).
+
+    An idle pad's rest does not extend as the calibration's do: its memory's play operators
+    follow the noise's record low, so the margin creeps up with the log of the rest's length
+    (docs/robustness.md, "An idle pad"), and a threshold read on rests of seconds extended to
+    an hour sits below what a pad left alone for minutes reaches. So each draw is scored as
+    it is, whole, and the worst one counts. Unclipped, as the rests' peaks are: the clip only
+    lowers them."""
+    h = 0.0
+    for margins in draws:
+        peaks = np.sort(cusum_peaks(margins, k))
+        allowed = int(target * np.size(margins) / sample_rate_hz / 60.0)
+        if peaks.size > allowed:
+            h = max(h, float(np.nextafter(peaks[-(allowed + 1)], np.inf)))
+    return min(h, CUSUM_MAX)
+
+
 def mean_onset_samples(presses: Sequence[tuple[np.ndarray, int]], h: float, k: float,
                        lo: float, hi: float) -> float:
     """Mean delay, in samples, from each press's first labelled contact sample to the CUSUM's
@@ -386,8 +407,8 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
                      contact_margins: np.ndarray | None = None,
                      false_per_min: float | None = None, k: float | None = None,
                      long_rests: np.ndarray | None = None,
-                     presses: Sequence[tuple[np.ndarray, int]] | None = None
-                     ) -> dict[str, float]:
+                     presses: Sequence[tuple[np.ndarray, int]] | None = None,
+                     idle: Sequence[np.ndarray] = ()) -> dict[str, float]:
     """The CUSUM rise the trainer sets from the calibration's rests (docs/runtime.md, "In
     use").
 
@@ -397,7 +418,9 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     (:func:`extended_rests`) and, given ``long_rests`` (the net's margins on every sample of
     synthetic long rests, in time order), on those extended alike: the larger of the two
     (:func:`_cusum_threshold`); long rests whose median lies above the rests'
-    :data:`LONG_REST_BODY_QUANTILE` quantile are left out. ``k``, unless given: the rests'
+    :data:`LONG_REST_BODY_QUANTILE` quantile are left out; given ``idle`` (its margins on
+    idle pads, one array each, :func:`idle_threshold`), at least what keeps each of those
+    within the aim. ``k``, unless given: the rests'
     :data:`REST_MARGIN_QUANTILE` quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
     (:func:`mean_onset_samples`), the drift of ``q`` and the grid of :data:`CUSUM_DRIFT_STEP`
     up to :data:`CUSUM_DRIFT_MAX` above it whose ``h`` finds those presses soonest on average
@@ -409,8 +432,8 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     Returns ``h``, ``k``, ``lo``, ``hi`` (margin units), the fitted ``false_per_min`` at ``h``
     on the calibration's rests extended, the ``rest_minutes`` of the calibration, the
     ``extended_minutes`` it was read on, the ``long_minutes`` of ``long_rests`` (0 without,
-    or left out) and the ``onset_samples`` of ``presses`` at the choice (None
-    without).
+    or left out), the ``idle_minutes`` of ``idle`` and the ``onset_samples`` of ``presses``
+    at the choice (None without).
     """
     rest = np.asarray(rest_margins, dtype=np.float64).ravel()
     rest = rest[np.isfinite(rest)]
@@ -441,12 +464,14 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     minutes = series[0][0].margins.size / sample_rate_hz / 60.0
 
     def threshold(drift: float, exact: bool = False) -> float:
-        """``h`` at ``drift``, the larger of the two series'; ``exact``: from the excursions
-        walked over the whole hour, bit for bit what the grid's stretches give to within their
-        rounding (the trainer's models are reproducible from one release to the next)."""
-        return max(_cusum_threshold((ext.exact_peaks if exact else ext.peaks)(drift),
-                                    ext.margins.size / sample_rate_hz / 60.0, own, drift,
-                                    target, sample_rate_hz) for ext, own in series)
+        """``h`` at ``drift``, the largest of the series' and the idle pads'; ``exact``: from
+        the excursions walked over the whole hour, bit for bit what the grid's stretches give
+        to within their rounding (the trainer's models are reproducible from one release to
+        the next)."""
+        return max([_cusum_threshold((ext.exact_peaks if exact else ext.peaks)(drift),
+                                     ext.margins.size / sample_rate_hz / 60.0, own, drift,
+                                     target, sample_rate_hz) for ext, own in series]
+                   + [idle_threshold(idle, drift, target, sample_rate_hz)])
 
     def onset(drift: float, h: float) -> float:
         """Mean onset of ``presses``, in samples, at ``drift`` and ``h``."""
@@ -466,4 +491,5 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
             "false_per_min": cusum_false_rate(series[0][0].exact_peaks(k), minutes, h),
             "rest_minutes": rest.size / sample_rate_hz / 60.0, "extended_minutes": minutes,
             "long_minutes": long.size / sample_rate_hz / 60.0,
+            "idle_minutes": sum(np.size(m) for m in idle) / sample_rate_hz / 60.0,
             "onset_samples": onset(k, h) if searched else None}

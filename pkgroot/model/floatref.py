@@ -407,14 +407,32 @@ def _play_features(memory: Memory, u: np.ndarray, states: list[float] | None
     states = [float(u[0]) + w for w in memory.play_widths] if states is None else states
     feats, after = [], []
     for state, width, gain in zip(states, memory.play_widths, memory.play_gains):
-        p = np.empty_like(u)
-        lo, hi = (u - width).tolist(), (u + width).tolist()
-        for i in range(u.shape[0]):
-            state = min(max(state, lo[i]), hi[i])
-            p[i] = state
-        after.append(state)
+        p = play_path(float(state), u - width, u + width)
+        after.append(float(p[-1]) if p.size else float(state))
         feats.append(((u - p) * 2.0 ** gain)[:, None])
     return feats, after
+
+
+def play_path(state: float, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``p_i = min(max(p_{i-1}, lo_i), hi_i)`` from ``p_{-1} = state`` (``lo <= hi``), bit for
+    bit what that loop gives, without it.
+
+    Clamps compose into clamps: clamping into ``[a, b]`` after ``[A, B]`` is clamping into
+    ``[min(max(A, a), b), min(max(B, a), b)]``. So the clamps of every prefix come from a scan
+    that doubles its span each step (log2 n passes over the arrays), and each ``p_i`` is
+    ``state`` clamped by its prefix's. Only ``min`` and ``max`` are taken, which round
+    nothing: every ``p_i`` is the loop's."""
+    a = np.array(lo, dtype=np.float64)
+    b = np.array(hi, dtype=np.float64)
+    span = 1
+    while span < a.size:
+        # The clamp of samples (i - 2 span, i]: those of (i - span, i] after those before.
+        later_a, later_b = a[span:], b[span:]
+        first_a = np.minimum(np.maximum(a[:-span], later_a), later_b)
+        first_b = np.minimum(np.maximum(b[:-span], later_a), later_b)
+        a[span:], b[span:] = first_a, first_b
+        span *= 2
+    return np.minimum(np.maximum(state, a), b)
 
 
 #: Every memory kind's update rule in the float reference (``contract.MEMORY_KINDS`` by name):
