@@ -483,8 +483,9 @@ def test_idle_pads_hold_each_draw_within_the_aim():
     """A threshold read on rests that never last reaches below what a pad left alone for
     minutes comes to: there every idle draw raises many events. Given the idle draws, no draw
     raises more than the aim allows in its minutes (one in two minutes at half a minute),
-    the threshold is never below the rests' alone, and idle draws quieter than the rests
-    leave it where the rests set it."""
+    the threshold is never below the rests' alone, idle draws quieter than the rests leave it
+    where the rests set it, and ones read as contact, which would hide the presses, are left
+    out."""
     rng = np.random.default_rng(8)
     rest = _ar1(rng, 20_000, -2.0)
     alone = fm_decision.cusum_parameters(rest, 1000.0)
@@ -505,6 +506,15 @@ def test_idle_pads_hold_each_draw_within_the_aim():
     assert max(events({**lower, "hi": fm_decision.CUSUM_MAX}, m) for m in idle) > 1
     quiet = [_ar1(rng, 120_000, -4.0) for _ in range(2)]
     assert fm_decision.cusum_parameters(rest, 1000.0, idle=quiet)["h"] == alone["h"]
+    # Idle pads the net reads as contact (a calibration whose rests never lasted) ask for a
+    # threshold no press reaches: given the presses, left out.
+    presses = _rising_presses(rng, 20)
+    contact_like = [_ar1(rng, 120_000, fm_decision.CUSUM_DRIFT_MAX, sd=1.0)]
+    left_out = fm_decision.cusum_parameters(rest, 1000.0, idle=contact_like, presses=presses)
+    plain = fm_decision.cusum_parameters(rest, 1000.0, presses=presses)
+    assert left_out["h"] == plain["h"] and left_out["idle_minutes"] == 0.0
+    kept = fm_decision.cusum_parameters(rest, 1000.0, idle=idle, presses=presses)
+    assert kept["idle_minutes"] == pytest.approx(6.0) and kept["h"] >= plain["h"]
 
 
 def _rising_presses(rng: np.random.Generator, n: int) -> list[tuple[np.ndarray, int]]:

@@ -420,7 +420,9 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     (:func:`_cusum_threshold`); long rests whose median lies above the rests'
     :data:`LONG_REST_BODY_QUANTILE` quantile are left out; given ``idle`` (its margins on
     idle pads, one array each, :func:`idle_threshold`), at least what keeps each of those
-    within the aim. ``k``, unless given: the rests'
+    within the aim, unless even at the highest drift tried that lies past the CUSUM's peak
+    on half of ``presses``: then the net reads a long rest as contact, which no threshold
+    mends (a calibration whose rests never lasted), and they are left out. ``k``, unless given: the rests'
     :data:`REST_MARGIN_QUANTILE` quantile ``q`` (the level rest noise almost never passes; at least 0); given ``presses``
     (:func:`mean_onset_samples`), the drift of ``q`` and the grid of :data:`CUSUM_DRIFT_STEP`
     up to :data:`CUSUM_DRIFT_MAX` above it whose ``h`` finds those presses soonest on average
@@ -442,6 +444,7 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
     long = long[np.isfinite(long)]
     if long.size and rest.size and np.median(long) > np.quantile(rest, LONG_REST_BODY_QUANTILE):
         long = long[:0]
+    idle = [np.asarray(m, np.float64).ravel() for m in idle]
 
     q = max(0.0, float(np.quantile(rest, REST_MARGIN_QUANTILE))) if rest.size else 0.0
     searched = k is None and bool(presses)
@@ -458,6 +461,9 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
             if c10 > q:
                 grid = [0.5 * (q + c10)]
     grid = [float(np.clip(drift, -CUSUM_MAX, CUSUM_MAX)) for drift in grid]
+    if idle and presses and (idle_threshold(idle, max(grid), target, sample_rate_hz)
+                             > np.median([cusum_path(m, max(grid)).max() for m, _ in presses])):
+        idle = []
     series = [(_Excursions(extended_rests(own, sample_rate_hz), grid[0]), own)
               for own in (rest, long) if own is rest or own.size]
 
