@@ -461,9 +461,17 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
             if c10 > q:
                 grid = [0.5 * (q + c10)]
     grid = [float(np.clip(drift, -CUSUM_MAX, CUSUM_MAX)) for drift in grid]
-    if idle and presses and (idle_threshold(idle, max(grid), target, sample_rate_hz)
+    idle_h: dict[float, float] = {}     # by drift: the search and the final walk share them
+
+    def idle_at(drift: float) -> float:
+        if drift not in idle_h:
+            idle_h[drift] = idle_threshold(idle, drift, target, sample_rate_hz)
+        return idle_h[drift]
+
+    if idle and presses and (idle_at(max(grid))
                              > np.median([cusum_path(m, max(grid)).max() for m, _ in presses])):
         idle = []
+        idle_h.clear()
     series = [(_Excursions(extended_rests(own, sample_rate_hz), grid[0]), own)
               for own in (rest, long) if own is rest or own.size]
 
@@ -477,7 +485,7 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
         return max([_cusum_threshold((ext.exact_peaks if exact else ext.peaks)(drift),
                                      ext.margins.size / sample_rate_hz / 60.0, own, drift,
                                      target, sample_rate_hz) for ext, own in series]
-                   + [idle_threshold(idle, drift, target, sample_rate_hz)])
+                   + [idle_at(drift)])
 
     def onset(drift: float, h: float) -> float:
         """Mean onset of ``presses``, in samples, at ``drift`` and ``h``."""
