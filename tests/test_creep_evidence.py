@@ -205,8 +205,11 @@ def test_coverage_names_what_a_log_cannot_establish():
     assert any("held load" in u for u in short["cannot_establish"])
     assert any("slower than its rests" in u for u in short["cannot_establish"])
     assert any("thermal response" in u for u in short["cannot_establish"])
+    assert any("left alone for minutes" in u for u in short["cannot_establish"])
     assert any(line.startswith("  it cannot establish: ") for line in coverage_lines(short))
     held = replace(spec, hold_s=(2.0, 2.5), rest_s=(6.0, 7.0), drift_K=6.0)
     long = coverage([fg.log(fg.device(held, 200), 1, 3)])
     assert not any("held load" in u or "slower than its rests" in u or "thermal response" in u
                    for u in long["cannot_establish"])
+    idle = coverage([fg.log(fg.device(replace(spec, rest_s=(121.0, 122.0)), 200), 1, 2)])
+    assert not any("left alone" in u for u in idle["cannot_establish"])

@@ -132,7 +132,8 @@ def test_export_never_reopens_the_training_files(small_dataset_path, tmp_path, c
     data = tmp_path / "cal.csv"
     shutil.copy(small_dataset_path, data)
     model_dir = tmp_path / "model"
-    fm.save(train([data], epochs=2, seed=0, progress=False, restarts=1, hold_augment=0.0),
+    fm.save(train([data], epochs=2, seed=0, progress=False, restarts=1, hold_augment=0.0,
+                  idle_pads=0),
             model_dir)
     moved = data.rename(tmp_path / "moved.csv")
     assert main(["export", "--model", str(model_dir), "--json"]) == 0, capsys.readouterr().err
@@ -316,12 +317,16 @@ def test_a_kill_at_every_step_of_a_commit_never_mixes_two_models(small_model_dir
 
 def test_bad_output_location_fails_before_the_work(small_dataset_path, tmp_path, capsys,
                                                    monkeypatch):
+    from fbgforce.trainer import report as rp
     from fbgforce.trainer import train as tr
 
     def no_training(*args, **kwargs):
         raise AssertionError("trained although the output location is impossible")
 
+    # The report binds train when first imported: imported above, before the patch, and
+    # patched where it looks, so no later test inherits the stand-in.
     monkeypatch.setattr(tr, "train", no_training)
+    monkeypatch.setattr(rp, "train", no_training)
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     data = str(small_dataset_path)

@@ -200,7 +200,7 @@ def test_cli_several_files_of_one_device(foreign_files, tmp_path, capsys):
     a2 = fg.write_csv(fg.log(dev, 3, 12), tmp_path / "a2.csv", seed=3)
     out = tmp_path / "model"
     assert main(["train", "--data", str(a), str(a2), "--out", str(out), "--epochs", "6",
-                 "--json"]) == 0
+                 "--idle-pads", "0", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
     assert res["filter"]["sample_rate_hz"] == pytest.approx(500.0)
     assert main(["evaluate", "--model", str(out), "--data", str(b), "--json"]) == 0

@@ -186,9 +186,9 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     slow = artifact.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
     assert prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
     assert prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
-    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False).metadata
+    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, idle_pads=0, progress=False).metadata
     assert md["creep"]["inverse"] and md["turn_guard_s"] == TURN_GUARD_S
-    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, progress=False,
+    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, idle_pads=0, progress=False,
                  turn_guard_s=0.0, creep_inverse=False).metadata
     assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
 
@@ -219,7 +219,7 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     the metadata and set on the model's in-use stage; no synthetic holds, no gain."""
     _, data, _ = paired_holds
     ds = data.recordings[0].ds
-    model = train([ds], epochs=3, restarts=1, rest_augment=0.0, hold_augment=1.0,
+    model = train([ds], epochs=3, restarts=1, rest_augment=0.0, hold_augment=1.0, idle_pads=0,
                     progress=False)
     settled = model.metadata["synthetic_holds"]["settled_gain"]
     assert settled["holds"] >= HOLD_GAIN_MIN_HOLDS and settled["samples"] > 1000
@@ -251,7 +251,7 @@ def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(
     assert sse(fit["gain"]) < min(sse(fit["gain"] - 1e-3), sse(fit["gain"] + 1e-3), sse(0.0))
     assert fit["noise_N"] == pytest.approx(hold_noise(f, src[settled]))
     assert hold_gain(model, mdata, [])["gain"] == 0.0
-    plain = train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0,
+    plain = train([ds], epochs=1, restarts=1, rest_augment=0.0, hold_augment=0.0, idle_pads=0,
                     progress=False)
     assert plain.in_use.hold_gain == 0.0 and plain.metadata["synthetic_holds"]["settled_gain"]["holds"] == 0
 
@@ -392,10 +392,33 @@ def test_the_force_net_leaves_out_the_samples_just_after_each_turn(paired_holds)
     assert not after_turns(data, 0.0).any()
 
     def force_samples(turn_guard_s: float) -> int:
-        md = train([ds], epochs=1, restarts=1, hold_augment=0.0, rest_augment=0.0,
+        md = train([ds], epochs=1, restarts=1, hold_augment=0.0, rest_augment=0.0, idle_pads=0,
                      turn_guard_s=turn_guard_s, progress=False).metadata
         assert md["turn_guard_s"] == turn_guard_s
         return md["training"]["force"]["train_samples"]
 
     left_out = force_samples(0.0) - force_samples(guard_s)
     assert 0 < left_out <= mask[data.rows("train")].sum()
+
+
+def test_idle_pads_change_only_the_cusum_and_are_recorded():
+    """``idle_pads`` changes nothing the nets learn and no in-use stage but the CUSUM (its
+    threshold, and so the drift at which the presses rise soonest); the model records how many
+    pads it read and says so."""
+    scene = sim.load_scene("calibration_paper").replace(schedule={"n_presses": 12})
+    rec = sim.simulate(scene)
+    tiny = {name: (6,) for name in ("contact", "force", "location")}
+    models = {n: train([rec], epochs=3, progress=False, idle_pads=n, sizes=tiny)
+              for n in (0, 3)}
+    for name in ("contact", "force", "location"):
+        a, b = getattr(models[0], name), getattr(models[3], name)
+        assert all(np.array_equal(u, v) for u, v in zip(a.weights + a.biases,
+                                                         b.weights + b.biases))
+    others = [{k: v for k, v in m.in_use.to_json().items() if not k.startswith("contact_")}
+              for m in models.values()]
+    assert others[0] == others[1] and all(m.in_use.contact_cusum_h > 0 for m in models.values())
+    for n, model in models.items():
+        assert model.metadata["idle_pads"] == {"count": n, "minutes": synthetic.IDLE_MINUTES}
+    why = {n: next(c["why"] for c in m.metadata["corrections"]
+                   if c["name"] == "decision_over_time") for n, m in models.items()}
+    assert "no idle pads (--idle-pads 0)" in why[0] and "from 3 idle pads of 2 minutes" in why[3]

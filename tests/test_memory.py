@@ -345,7 +345,7 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     assert sum("held grip" in w for w in md["warnings"]) == 1
     tiny = {net: (4,) for net in DEFAULT_SIZES}
     plain = sim.simulate(small.replace(schedule={"hold_s": 0.0, "n_presses": 10}))
-    md = train([plain], epochs=1, sizes=tiny, restarts=1, progress=False).metadata
+    md = train([plain], epochs=1, sizes=tiny, restarts=1, idle_pads=0, progress=False).metadata
     # (A 10-press log also warns that its test split is small: not about holds.)
     assert md["synthetic_holds"]["samples"]["train"] > 0
     assert not any("held grip" in w for w in md["warnings"])

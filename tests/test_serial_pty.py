@@ -253,7 +253,7 @@ def test_emulate_record_train_gives_a_working_model(tmp_path, capsys, emulate_pr
     # The recorded log trains a model that works on another recording of the same device.
     model_dir = tmp_path / "model"
     assert main(["train", "--data", str(rec), "--out", str(model_dir), "--epochs", "20",
-                 "--json"]) == 0
+                 "--idle-pads", "0", "--json"]) == 0
     capsys.readouterr()
     test_csv = tmp_path / "other.csv"
     dataset.save(sim.simulate("smoke", seed=11), test_csv)

@@ -91,7 +91,7 @@ def _wandering_calibration(wander_pm: float) -> object:
 @pytest.mark.slow
 def test_a_wandering_calibration_is_learned_from_the_zero_the_tracker_holds():
     ds = _wandering_calibration(6.0)
-    common = dict(epochs=25, seed=0, progress=False, restarts=1, hold_augment=0.0,
+    common = dict(epochs=25, seed=0, progress=False, restarts=1, hold_augment=0.0, idle_pads=0,
                   rest_augment=0.0, sizes={"contact": (16, 8), "force": (16, 8),
                                            "location": (8,)})
     as_tared = train([ds], track_calibration=False, **common)

@@ -301,7 +301,7 @@ def test_train_is_reproducible_and_metadata_matches_evaluate(synthetic_recording
     ds = synthetic_recording(n_press=30, seed=1, temp_ramp_pm=100.0)
     path = tmp_path / "rec.npz"
     dataset.save(ds, path)
-    kw = dict(epochs=4, seed=7, progress=False,
+    kw = dict(epochs=4, seed=7, progress=False, idle_pads=0,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     a = train([path], **kw)
     b = train([ds], **kw)
@@ -329,7 +329,7 @@ def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synth
     from fbgforce.trainer.train import train
 
     ds = synthetic_recording(n_press=30, seed=3)
-    kw = dict(epochs=3, seed=5, progress=False,
+    kw = dict(epochs=3, seed=5, progress=False, idle_pads=0,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     one = train([ds], restarts=1, **kw)
     three = train([ds], restarts={"force": 3}, **kw)
@@ -391,7 +391,7 @@ def test_default_weight_decay_falls_with_the_training_samples(synthetic_recordin
     from fbgforce.trainer.fit_nets import DEFAULT_DECAY_SAMPLES
     from fbgforce.trainer.train import train
 
-    kw = dict(epochs=2, seed=5, progress=False, restarts=1,
+    kw = dict(epochs=2, seed=5, progress=False, restarts=1, idle_pads=0,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     short_log = synthetic_recording(n_press=20, seed=3)
     short = train([short_log], **kw)
@@ -432,13 +432,13 @@ def test_train_learns_synthetic_device_and_transfer_starts_closer(synthetic_reco
     # Trained until it knows the device (40 epochs: 0.17 N on its test presses); one stopped
     # at 20 epochs (0.67 N) or fewer starts the other device closer or not by the luck of
     # its draw.
-    model = train([ds], epochs=40, seed=0, progress=False)
+    model = train([ds], epochs=40, seed=0, progress=False, idle_pads=0)
     test = model.metadata["metrics"]["test"]
     assert test["contact_accuracy"] > 0.95
     assert test["rmse_force_N"] < 3.0 and test["rmse_x_mm"] < 2.0 and test["rmse_y_mm"] < 2.5
     other = synthetic_recording(n_press=20, seed=3, base_nm=[1531, 1539, 1545, 1553, 1561])
-    fresh = train([other], epochs=1, seed=0, progress=False)
-    warm = train([other], epochs=1, seed=0, progress=False, init=model)
+    fresh = train([other], epochs=1, seed=0, progress=False, idle_pads=0)
+    warm = train([other], epochs=1, seed=0, progress=False, idle_pads=0, init=model)
     f_loss = fresh.metadata["history"]["force"][0]["val_loss"]
     w_loss = warm.metadata["history"]["force"][0]["val_loss"]
     assert w_loss < f_loss
@@ -557,7 +557,8 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
     ("location_augment", 0.5, "location_augment"), ("plateau_factor", 1.0, "plateau_factor"),
     ("sizes", {"contact": [129]}, "--sizes"), ("sizes", {"contact": [0, 4]}, "--sizes"),
     ("sizes", {"force": [8] * 8}, "--sizes"), ("sizes", {"gripper": [8]}, "--sizes"),
-    ("sizes", {"force": []}, "--sizes"), ("sizes", {"force": [8.5]}, "--sizes")])
+    ("sizes", {"force": []}, "--sizes"), ("sizes", {"force": [8.5]}, "--sizes"),
+    ("idle_pads", -1, "--idle-pads"), ("idle_pads", 2.0, "--idle-pads")])
 def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
     from fbgforce.trainer.params import TrainParams
 
@@ -586,7 +587,8 @@ def test_sizes_set_the_hidden_widths_and_leave_the_other_nets_at_the_default(sma
 
     out = tmp_path / "m"
     code = main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "1",
-                 "--restarts", "1", "--sizes", "contact=12-6,location=10-8-6-4"])
+                 "--restarts", "1", "--idle-pads", "0",
+                 "--sizes", "contact=12-6,location=10-8-6-4"])
     assert code == 0
     nets = fm.load(out).nets
     assert nets["contact"].sizes[1:-1] == [12, 6]
@@ -610,6 +612,6 @@ def test_creep_and_turn_guard_flags_reach_the_model(small_dataset_path, tmp_path
 
     out = tmp_path / "m"
     assert main(["train", "--data", str(small_dataset_path), "--out", str(out), "--epochs", "1",
-                 "--restarts", "1", *flags]) == 0
+                 "--restarts", "1", "--idle-pads", "0", *flags]) == 0
     md = fm.load(out).metadata
     assert md["creep"]["inverse"] is inverse and md["turn_guard_s"] == pytest.approx(guard_s)

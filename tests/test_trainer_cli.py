@@ -33,6 +33,7 @@ def test_train_evaluate_round_trip(capsys, tmp_path, small_dataset_path):
     assert ref["ref_shift"] == model.preprocess.ref_shift == ref["candidate"] == 5
     assert ref["rest_noise_pm2"]["averaged"] < 0.6 * ref["rest_noise_pm2"]["raw"]
     assert "temperature reference averaged over 2^5 samples" in printed.err
+    assert "from 40 idle pads of 2 minutes each" in printed.err
     ev = _run_json(capsys, ["evaluate", "--model", str(out), "--data", str(small_dataset_path),
                             "--split", "test", "--json"])
     for key in ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm", "n_samples"):

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from fbgforce import contract
+from fbgforce.trainer.synthetic import IDLE_DRAWS
 
 WIDTHS = {"paper": 1.0, "half": 0.5, "quarter": 0.25}
 #: The memory axis: none, and the shipped memory (trainer DEFAULT_MEMORY, "both": two averages
@@ -86,6 +87,8 @@ class Settings:
     #: Run the int8 engines (export, QAT) on every causal variant, or only on the reference
     #: variant (quick mode: each export costs seconds).
     int8_all_variants: bool = True
+    #: Idle pads each training reads the CUSUM's threshold on (``TrainParams.idle_pads``).
+    idle_pads: int = IDLE_DRAWS
 
 
 def quick_settings(seed: int = 0) -> Settings:
@@ -93,7 +96,7 @@ def quick_settings(seed: int = 0) -> Settings:
     return Settings(seed=seed, epochs=4, time_budget_s=5.0, sigmas=(5.0,), widths=("paper", "quarter"),
                     memories=("none", DEFAULT_MEMORY),
                     qat_epochs=1, single_calls=300, batch_size=500, batch_reps=15, rounds=3,
-                    target=False, int8_all_variants=False)
+                    target=False, int8_all_variants=False, idle_pads=4)
 
 
 def variants(s: Settings) -> list[Variant]:

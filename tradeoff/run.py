@@ -105,7 +105,7 @@ def run(paths: Sequence[Path], out: Path, s: Settings, log: Callable[[str], None
         prep = prepared_cache[key_pf]
         key = {"variant": v.tag, "filter": v.filter, "sigma": v.sigma, "memory": v.memory,
                "sizes": scaled_sizes(v.width), "seed": s.seed, "epochs": s.epochs,
-               "time_budget_s": s.time_budget_s, "data": digest}
+               "time_budget_s": s.time_budget_s, "idle_pads": s.idle_pads, "data": digest}
         model_dir = out / "models" / v.tag
         model = _variant_model(v, key, model_dir, prep, sources, s, log, train_seconds)
         dirs, export_err = _variant_artifacts(v, key, model, model_dir, prep, specs, calib, out,
@@ -155,7 +155,8 @@ def _variant_model(v: Variant, key: dict[str, Any], model_dir: Path, prep: Any,
         t0 = time.perf_counter()
         model = tr.train(sources, epochs=s.epochs, seed=s.seed, filter=v.filter,
                          sigma=v.sigma, sizes={k: h for k, h in key["sizes"].items()},
-                         prepared=prep, time_budget_s=s.time_budget_s, memory=v.memory)
+                         prepared=prep, time_budget_s=s.time_budget_s, memory=v.memory,
+                         idle_pads=s.idle_pads)
         train_seconds[v.tag] = time.perf_counter() - t0
         artifacts.save_with_key(model, model_dir, key)
     else:

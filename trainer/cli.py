@@ -9,7 +9,7 @@ import numpy as np
 
 from fbgforce import fileio
 from fbgforce.cliargs import (add_data, add_model, add_seed, command, non_negative_float,
-                               positive_int)
+                               non_negative_int, positive_int)
 from fbgforce.errors import InputError
 
 
@@ -49,6 +49,7 @@ def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
     """``train``'s filter, temperature reference, creep correction and contact decision."""
     from fbgforce.model.artifact import FILTER_KINDS
     from fbgforce.trainer.preprocess import DEFAULT_SIGMA, DEFAULT_SIGMA_MS
+    from fbgforce.trainer.synthetic import IDLE_DRAWS, IDLE_MINUTES
 
     p.add_argument("--filter", choices=FILTER_KINDS, default="causal",
                    help="smoothing: causal (shipped, default), centred (offline, paper) or none")
@@ -73,6 +74,14 @@ def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
                         "(cusum, default) or a Schmitt trigger with a rise count (schmitt), "
                         "each set from the calibration's rests (docs/runtime.md \"In use\"); "
                         "model.json keeps the other's fields in metadata.decision_rules")
+    p.add_argument("--idle-pads", type=non_negative_int, default=None, metavar="N",
+                   help=f"idle pads ({IDLE_MINUTES:g} minutes each of the calibration's rest "
+                        "noise, no "
+                        "press) the CUSUM's threshold is also read on, so a pad left alone "
+                        "for minutes raises no more false events than the rests allow "
+                        f"(default {IDLE_DRAWS}; 0 = the rests alone; fewer train faster and "
+                        "guard the idle pad's rare bad minutes less well); docs/robustness.md "
+                        "\"An idle pad\"")
     p.add_argument("--track-calibration", choices=("on", "off"), default="on",
                    help="train the nets on the calibration as the at-rest tracker hands it on, "
                         "the tracker driven by a contact net fitted first, so they read loads "
@@ -197,7 +206,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
     from fbgforce.trainer.train import train
 
     _check_files(args.data, "--data")
-    augment = {name: getattr(args, name) for name in ("hold_augment", "rest_augment")
+    augment = {name: getattr(args, name) for name in ("hold_augment", "rest_augment", "idle_pads")
                if getattr(args, name) is not None}
     params = TrainParams(epochs=args.epochs, seed=args.seed, filter=args.filter,
                          memory=args.memory, restarts=_restarts(args.restarts),

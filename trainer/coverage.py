@@ -17,6 +17,7 @@ from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
 from fbgforce.trainer.preprocess import TEMP_MIN_SPAN_PM
+from fbgforce.trainer.synthetic import IDLE_MINUTES
 
 #: Force ranges reported, N (the last open).
 FORCE_BINS_N = (0.0, 2.0, 10.0, 30.0, 50.0, 70.0)
@@ -152,6 +153,11 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     if rest_longest < WANT_LONG_REST_S:
         unknown.append(f"a creep slower than its rests (longest {rest_longest:.1f} s): a slow "
                        "recovery after a release looks like the zero wandering")
+    if rest_longest < 60.0 * IDLE_MINUTES:
+        unknown.append(f"how the contact decision holds on a pad left alone for minutes: no "
+                       f"rest of {IDLE_MINUTES:g} minutes (longest {rest_longest:.1f} s), so "
+                       "the idle pads its threshold is read on are the rest noise drawn "
+                       "again, without the pad's slow wander")
     if span_K < WANT_TEMPERATURE_K:
         unknown.append(f"the temperature grating's lag behind the strain gratings (the "
                        f"temperature spans {span_K:.2g} K)")

@@ -20,7 +20,7 @@ from fbgforce.trainer.data import (HOLD_BAND, HOLD_MIN_S, SPLIT_RATIOS, Prepared
 from fbgforce.trainer.hold_gain import HOLD_GAIN_MIN_HOLDS
 from fbgforce.trainer.params import TrainParams
 from fbgforce.trainer.scoring import evaluate_rows, pad_extent_mm
-from fbgforce.trainer.synthetic import (HOLD_AUGMENT_S, IDLE_DRAWS, IDLE_MINUTES, REST_AUGMENT_S,
+from fbgforce.trainer.synthetic import (HOLD_AUGMENT_S, IDLE_MINUTES, REST_AUGMENT_S,
                                         REST_AUGMENT_STEP_S, Held)
 
 
@@ -81,8 +81,9 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
          "why": (f"CUSUM rise, threshold {iu.contact_cusum_h:.3g} over a drift of "
                  f"{iu.contact_cusum_k:.3g}: the threshold from the calibration's rests and "
                  f"synthetic long rests, each extended to {REST_EXTEND_MINUTES:g} minutes, "
-                 f"and from {IDLE_DRAWS} idle pads of {IDLE_MINUTES:g} minutes each; "
-                 f"the drift where the calibration's presses rise soonest"
+                 + (f"and from {params.idle_pads} idle pads of {IDLE_MINUTES:g} minutes each; "
+                    if params.idle_pads else "and no idle pads (--idle-pads 0); ")
+                 + "the drift where the calibration's presses rise soonest"
                  if iu.contact_cusum_h else
                  f"Schmitt trigger at a margin of {iu.contact_on_margin:.3g} for "
                  f"{iu.contact_rise_samples} samples, from the rests")
@@ -165,6 +166,7 @@ def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainPar
         "synthetic_rests": {"share": params.rest_augment, "range_s": list(REST_AUGMENT_S),
                             "seconds": {name: REST_AUGMENT_STEP_S * rest[1].size
                                         for name, rest in zip(("train", "val"), rests)}},
+        "idle_pads": {"count": params.idle_pads, "minutes": IDLE_MINUTES},
         "warnings": warnings,
         "pad_mm": pad,
         "filter": {"kind": pre.filter_kind, "sigma_samples": pre.filter_sigma,

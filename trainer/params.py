@@ -12,7 +12,7 @@ from fbgforce import contract
 from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer.creep_evidence import CREEP_MODES
-from fbgforce.trainer.synthetic import HOLD_AUGMENT, LOCATION_AUGMENT, REST_AUGMENT
+from fbgforce.trainer.synthetic import HOLD_AUGMENT, IDLE_DRAWS, LOCATION_AUGMENT, REST_AUGMENT
 
 
 #: Hidden-layer widths of the paper's Fig. 4 (the `paper` width of ``fbgforce tradeoff``).
@@ -46,7 +46,7 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
                 "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
                 "turn_guard_s": "--turn-guard", "sizes": "--sizes",
-                "track_calibration": "--track-calibration"}
+                "track_calibration": "--track-calibration", "idle_pads": "--idle-pads"}
 
 
 def _is_int(value: Any) -> bool:
@@ -159,6 +159,13 @@ class TrainParams:
         The memory states (:class:`fbgforce.model.artifact.Memory`, or text for
         :func:`~fbgforce.trainer.memory.parse_memory`); ``None``: the ``init`` model's, else
         :data:`~fbgforce.trainer.memory.DEFAULT_MEMORY`. Gains are fitted.
+    idle_pads
+        Idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`, each
+        :data:`~fbgforce.trainer.synthetic.IDLE_MINUTES` minutes of the calibration's rest
+        noise) the CUSUM's threshold is also read on, so that a pad left alone for minutes
+        raises no more false events than the aim (docs/robustness.md, "An idle pad"); 0 reads
+        it on the rests alone. Fewer pads train faster and guard the idle pad's rare
+        heavy-tailed minutes less well.
     restarts
         Initialisations tried per net (one value for every net or per net, ``None``:
         :data:`~fbgforce.trainer.fit_nets.DEFAULT_RESTARTS`); the net with the lowest validation
@@ -195,6 +202,7 @@ class TrainParams:
     memory: fm.Memory | str | None = None
     restarts: int | Mapping[str, int] | None = None
     track_calibration: bool = True
+    idle_pads: int = IDLE_DRAWS
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, allowed: str) -> None:
@@ -235,6 +243,8 @@ class TrainParams:
         need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
         need(isinstance(self.track_calibration, (bool, np.bool_)), "track_calibration",
              "True or False")
+        need(_is_int(self.idle_pads) and self.idle_pads >= 0, "idle_pads",
+             "a whole number >= 0 (0: the rests alone)")
         need(self.decision in DECISION_RULES, "decision", "one of " + ", ".join(DECISION_RULES))
         need(self.sizes is None or _valid_sizes(self.sizes), "sizes",
              f"hidden widths per net ({', '.join(DEFAULT_SIZES)}): 1 .. "

@@ -323,7 +323,7 @@ def _press_windows(data: Prepared, logits: np.ndarray) -> list[tuple[np.ndarray,
 
 def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
                     cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any],
-                    streams: _Streams, idle_pads: bool = True) -> dict[str, artifact.InUse]:
+                    streams: _Streams, idle_pads: int) -> dict[str, artifact.InUse]:
     """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
     set from the training data: its decision over time, the tracker and the settled-hold
     gain with its steadiness band (``settled``, what
@@ -333,7 +333,7 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
     included: the calibration's own rests end within a second of a release, before the
     memory settles. The CUSUM reads its threshold on the calibration's rests, on long rests
     of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`) and, with
-    ``idle_pads``, on idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`), drawn with
+    on ``idle_pads`` idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`), drawn with
     ``streams``, and its drift on the calibration's presses (:func:`_press_windows`). The tracker
     discounts the recovery the pad's creep (``data.creep_held``) predicts after a release,
     which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
@@ -351,7 +351,7 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
     inputs = decision_rests(data, pre, rows, streams.decision_rests)
     lg = predict_batched(cnet, inputs[:, :pre.n_features]) if len(inputs) else np.empty((0, 2))
     idle = [np.diff(predict_batched(cnet, x), axis=1).ravel()
-            for x in (idle_rests(data, pre, rows, streams.idle_rests) if idle_pads else [])]
+            for x in idle_rests(data, pre, rows, streams.idle_rests, idle_pads)]
     cusum = {"long_rests": lg[:, 1] - lg[:, 0], "presses": _press_windows(data, logits),
              "idle": idle}
     return {rule: artifact.InUse.recommended(
@@ -362,12 +362,14 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
 
 
 def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactStage",
-            settled: Mapping[str, Any], decision: str) -> dict[str, dict[str, Any]]:
-    """Set the model's in-use stages (:func:`_decision_rules`, by the rule ``decision``) and
+            settled: Mapping[str, Any], decision: str, idle_pads: int
+            ) -> dict[str, dict[str, Any]]:
+    """Set the model's in-use stages (:func:`_decision_rules`, by the rule ``decision``, with
+    ``idle_pads`` idle pads) and
     input range from the training data; return the decision's fields of every rule
     (``metadata.decision_rules``: what the others would have set)."""
     rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
-                            (stage.rest_tr, stage.rest_va), settled, stage.streams)
+                            (stage.rest_tr, stage.rest_va), settled, stage.streams, idle_pads)
     model.in_use = rules[decision]
     model.input_range = artifact.input_range_of(stage.z[stage.tr])
     return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
@@ -475,7 +477,7 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     t_train = time.perf_counter() - t_start - t_prep
     settled = _settled_gain(model, data, pre, np.concatenate([tr, va]), stage.creep,
                             bool(stage.hold_tr[1].size), stage.streams.hold_gain)
-    rules = _in_use(model, data, stage, settled, params.decision)
+    rules = _in_use(model, data, stage, settled, params.decision, params.idle_pads)
     model.metadata = model_metadata(model, data, params, described, (tr, va, te), stage.x_all,
                                     reports, data_coverage, stage.creep,
                                     (stage.hold_tr, stage.hold_va, settled),
@@ -551,7 +553,7 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     # holds, and the tracker's pass over it then finds the rests the calibration itself sets.
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
                              (stage.rest_tr, stage.rest_va), {},
-                             stage.streams, idle_pads=False)[params.decision]
+                             stage.streams, idle_pads=0)[params.decision]
     if not in_use.track_shift:
         return data, None
     model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,
