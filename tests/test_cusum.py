@@ -423,6 +423,11 @@ def test_the_drift_grids_peaks_are_the_whole_series_within_its_rounding():
         assert np.array_equal(excursions.exact_peaks(k), whole)
     # Below the lowest drift the stretches do not hold its excursions: the whole series.
     assert np.array_equal(excursions.peaks(q - 0.5), fm_decision.cusum_peaks(extended, q - 0.5))
+    # Rests that never rise at the lowest drift rise at no higher one: nothing is walked.
+    quiet = fm_decision._Excursions(extended, float(extended.max()) + 1.0)
+    assert quiet.lowest.size == 0 and quiet.rows is not None and quiet.rows.size == 0
+    for k in (extended.max() + 1.0, extended.max() + 5.0):
+        assert quiet.peaks(k).size == 0 == fm_decision.cusum_peaks(extended, k).size
 
 
 def test_the_grid_interpolation_is_numpys_bit_for_bit():

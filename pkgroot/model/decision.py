@@ -313,8 +313,10 @@ class _Excursions:
         starts = np.flatnonzero(up[1:] & ~up[:-1])
         lengths = np.flatnonzero(~up[1:] & up[:-1]) - starts
         self.rows: np.ndarray | None = None
-        if starts.size and starts.size * (lengths.max() + 1) <= self.margins.size:
-            rows = np.full((starts.size, int(lengths.max()) + 1), -CUSUM_MAX)
+        # No excursion at k0 leaves none at any higher drift: no rows, nothing to walk.
+        width = int(lengths.max()) + 1 if lengths.size else 1
+        if starts.size * width <= self.margins.size:
+            rows = np.full((starts.size, width), -CUSUM_MAX)
             row = np.repeat(np.arange(starts.size), lengths)
             col = np.arange(row.size) - np.repeat(np.cumsum(lengths) - lengths, lengths)
             rows[row, col] = np.clip(self.margins[starts[row] + col], -CUSUM_MAX, CUSUM_MAX)
