@@ -329,7 +329,7 @@ def test_restarts_keep_the_lowest_validation_loss_and_leave_the_first_draw(synth
     from fbgforce.trainer.train import train
 
     ds = synthetic_recording(n_press=30, seed=3)
-    kw = dict(epochs=3, seed=5, progress=False, idle_pads=0,
+    kw = dict(epochs=3, seed=5, progress=False, idle_pads=0, track_calibration=False,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     one = train([ds], restarts=1, **kw)
     three = train([ds], restarts={"force": 3}, **kw)
@@ -392,6 +392,7 @@ def test_default_weight_decay_falls_with_the_training_samples(synthetic_recordin
     from fbgforce.trainer.train import train
 
     kw = dict(epochs=2, seed=5, progress=False, restarts=1, idle_pads=0,
+              track_calibration=False,
               sizes={"contact": [16, 8], "force": [16, 8], "location": [16, 8]})
     short_log = synthetic_recording(n_press=20, seed=3)
     short = train([short_log], **kw)

@@ -76,9 +76,8 @@ def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
                         "model.json keeps the other's fields in metadata.decision_rules")
     p.add_argument("--idle-pads", type=non_negative_int, default=None, metavar="N",
                    help=f"idle pads ({IDLE_MINUTES:g} minutes each of the calibration's rest "
-                        "noise, no "
-                        "press) the CUSUM's threshold is also read on, so a pad left alone "
-                        "for minutes raises no more false events than the rests allow "
+                        "noise, no press) the CUSUM's threshold is also read on, so a pad left "
+                        "alone for minutes raises no more false events than the rests allow "
                         f"(default {IDLE_DRAWS}; 0 = the rests alone; fewer train faster and "
                         "guard the idle pad's rare bad minutes less well); docs/robustness.md "
                         "\"An idle pad\"")

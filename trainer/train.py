@@ -332,8 +332,8 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
     memory settles. The CUSUM reads its threshold on the calibration's rests, on long rests
-    of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`) and, with
-    on ``idle_pads`` idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`), drawn with
+    of its own (:func:`~fbgforce.trainer.synthetic.decision_rests`) and on ``idle_pads``
+    idle pads (:func:`~fbgforce.trainer.synthetic.idle_rests`), drawn with
     ``streams``, and its drift on the calibration's presses (:func:`_press_windows`). The tracker
     discounts the recovery the pad's creep (``data.creep_held``) predicts after a release,
     which it would otherwise learn as drift (docs/runtime.md, "In use"), unless the creep
