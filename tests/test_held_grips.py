@@ -186,10 +186,11 @@ def test_the_trainer_takes_out_a_creep_slower_than_the_memory():
     slow = artifact.Memory(ema_shifts=(11,))        # an average of 2 s outlasts the pad's creep
     assert prepare([ds], creep_inverse=None, memory=slow).pre.creep == 0.0
     assert prepare([ds], creep_inverse=None).pre.creep == 0.0       # no memory given
-    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, idle_pads=0, progress=False).metadata
+    quick = dict(epochs=1, restarts=1, rest_augment=0.0, idle_pads=0, track_calibration=False,
+                 progress=False)
+    md = train([ds], **quick).metadata
     assert md["creep"]["inverse"] and md["turn_guard_s"] == TURN_GUARD_S
-    md = train([ds], epochs=1, restarts=1, rest_augment=0.0, idle_pads=0, progress=False,
-                 turn_guard_s=0.0, creep_inverse=False).metadata
+    md = train([ds], turn_guard_s=0.0, creep_inverse=False, **quick).metadata
     assert not md["creep"]["inverse"] and md["turn_guard_s"] == 0.0
 
 
