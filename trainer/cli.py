@@ -78,9 +78,9 @@ def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
                    help=f"idle pads ({IDLE_MINUTES:g} minutes each of the calibration's rest "
                         "noise, no press) the CUSUM's threshold is also read on, so a pad left "
                         "alone for minutes raises no more false events than the rests allow "
-                        f"(default {IDLE_DRAWS}; 0 = the rests alone; fewer train faster and "
-                        "guard the idle pad's rare bad minutes less well); docs/robustness.md "
-                        "\"An idle pad\"")
+                        f"(default {IDLE_DRAWS}; 0 = the rests alone; fewer train faster, "
+                        "guard the idle pad's rare bad minutes less well and may miss a net "
+                        "that reads a long rest as contact); docs/robustness.md \"An idle pad\"")
     p.add_argument("--track-calibration", choices=("on", "off"), default="on",
                    help="train the nets on the calibration as the at-rest tracker hands it on, "
                         "the tracker driven by a contact net fitted first, so they read loads "

@@ -164,8 +164,10 @@ class TrainParams:
         :data:`~fbgforce.trainer.synthetic.IDLE_MINUTES` minutes of the calibration's rest
         noise) the CUSUM's threshold is also read on, so that a pad left alone for minutes
         raises no more false events than the aim (docs/robustness.md, "An idle pad"); 0 reads
-        it on the rests alone. Fewer pads train faster and guard the idle pad's rare
-        heavy-tailed minutes less well.
+        it on the rests alone. Fewer pads train faster, guard the idle pad's rare
+        heavy-tailed minutes less well, and may miss a contact net that reads a long rest as
+        contact, whose pads the trainer leaves out (on ``short_rests`` of tests/foreign.py 40
+        pads showed it, 4 did not).
     restarts
         Initialisations tried per net (one value for every net or per net, ``None``:
         :data:`~fbgforce.trainer.fit_nets.DEFAULT_RESTARTS`); the net with the lowest validation
