@@ -365,10 +365,16 @@ def _cusum_threshold(peaks: np.ndarray, minutes: float, own: np.ndarray, k: floa
             beta = max(float(np.mean(tail - u)), 1e-12)
             h = max(h, u + beta * float(np.log(tail.size / minutes / target)))
         # Where the peaks' tail is heavier than the fit, their count itself is the bound.
-        allowed = int(target * minutes)
-        if peaks.size > allowed:
-            h = max(h, float(np.nextafter(np.sort(peaks)[-(allowed + 1)], np.inf)))
+        h = max(h, _above_all_but(peaks, int(target * minutes)))
     return min(h, CUSUM_MAX)
+
+
+def _above_all_but(peaks: np.ndarray, allowed: int) -> float:
+    """The least ``h`` that at most ``allowed`` of the excursion ``peaks`` reach (0 when there
+    are no more than that many)."""
+    if peaks.size <= allowed:
+        return 0.0
+    return float(np.nextafter(np.sort(peaks)[-(allowed + 1)], np.inf))
 
 
 def idle_threshold(draws: Sequence[np.ndarray], k: float, target: float,
@@ -383,12 +389,9 @@ def idle_threshold(draws: Sequence[np.ndarray], k: float, target: float,
     an hour sits below what a pad left alone for minutes reaches. So each draw is scored as
     it is, whole, and the worst one counts. Unclipped, as the rests' peaks are: the clip only
     lowers them."""
-    h = 0.0
-    for margins in draws:
-        peaks = np.sort(cusum_peaks(margins, k))
-        allowed = int(target * np.size(margins) / sample_rate_hz / 60.0)
-        if peaks.size > allowed:
-            h = max(h, float(np.nextafter(peaks[-(allowed + 1)], np.inf)))
+    h = max([_above_all_but(cusum_peaks(margins, k),
+                            int(target * np.size(margins) / sample_rate_hz / 60.0))
+             for margins in draws], default=0.0)
     return min(h, CUSUM_MAX)
 
 
