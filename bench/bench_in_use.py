@@ -293,12 +293,12 @@ def _constant_rows(by_role: dict[str, list[str]], manifest: dict[str, Any],
 def _idle_rows(names: list[str], model_dir: Path, engine: str, run: _LogRuns
                ) -> list[dict[str, Any]]:
     """The idle pad's goal at the interrogator noise of the constant-temperature logs' rests
-    (the median grating's, :func:`fbgforce.bench.bench_onset_bound.rest_noise_covariance`);
+    (the median grating's, :func:`fbgforce.evaluation.onset_bound.rest_noise_covariance`);
     not measured without those logs."""
     import numpy as np
 
     from fbgforce.bench.bench_idle import idle_events
-    from fbgforce.bench.bench_onset_bound import rest_noise_covariance
+    from fbgforce.evaluation.onset_bound import rest_noise_covariance
 
     covs = [rest_noise_covariance(1000.0 * np.asarray(ds.wl_nm, dtype=np.float64), ds.contact,
                                   ds.t_s) for ds, _ in (run.runs[n] for n in names)]

@@ -214,7 +214,7 @@ def in_use_logs(tmp_path_factory):
 def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     from fbgforce.bench import bench_in_use
     from fbgforce.bench.bench_idle import idle_events
-    from fbgforce.bench.bench_onset_bound import rest_noise_covariance
+    from fbgforce.evaluation.onset_bound import rest_noise_covariance
     from fbgforce.recordings import dataset
     from fbgforce.trainer.evaluate import evaluate
 

@@ -1,5 +1,5 @@
-"""The information bound on onset delay (bench/bench_onset_bound.py) against presses whose
-sensitivity, noise and force profile are known."""
+"""The information bound on onset delay (fbgforce.evaluation.onset_bound, and the bench that
+prints it) against presses whose sensitivity, noise and force profile are known."""
 from __future__ import annotations
 
 import math
@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from fbgforce.bench.bench_onset_bound import (FORCE_FLOOR_N, main, press_bounds,
-                                              rest_noise_covariance)
+from fbgforce.bench.bench_onset_bound import main
+from fbgforce.evaluation.onset_bound import FORCE_FLOOR_N, press_bounds, rest_noise_covariance
 from fbgforce.recordings.dataset import Dataset, save
 
 RATE = 1000.0
@@ -27,15 +27,21 @@ def _presses(noise_pm: float, slope_N: float = 0.02, presses: int = 40, seed: in
     return wl, force, force > 0.3
 
 
-def _expected_ms(noise_pm: float, slope_N: float, per_min: float = 1.0) -> float:
-    """The bound in closed form: the delay after the label at which the evidence of the
-    noise-free ramp, with the true sensitivity and noise, reaches log(60 * rate / per_min)."""
+def _reached(noise_pm: float, slope_N: float, per_min: float = 1.0) -> int:
+    """The sample of the noise-free ramp (1 its first loaded one) at which its evidence, with
+    the true sensitivity and noise, reaches log(60 * rate / per_min)."""
     q = float(SENSITIVITY @ SENSITIVITY) / noise_pm ** 2
     tau = np.arange(1, 1000)
     f = tau * slope_N
     evidence = 0.5 * q * np.cumsum(np.where(f > FORCE_FLOOR_N, f, 0.0) ** 2)
-    reached = int(tau[np.argmax(evidence >= math.log(60.0 * RATE / per_min))])
-    return (reached - int(tau[np.argmax(f > 0.3)])) * 1000.0 / RATE
+    return int(tau[np.argmax(evidence >= math.log(60.0 * RATE / per_min))])
+
+
+def _expected_ms(noise_pm: float, slope_N: float, per_min: float = 1.0) -> float:
+    """The bound in closed form: the delay after the label (the ramp's first sample above
+    0.3 N) at which the evidence reaches log(60 * rate / per_min)."""
+    label = int(np.argmax(np.arange(1, 1000) * slope_N > 0.3)) + 1
+    return (_reached(noise_pm, slope_N, per_min) - label) * 1000.0 / RATE
 
 
 @pytest.mark.parametrize("noise_pm", [2.0, 10.0])
@@ -77,6 +83,7 @@ def test_the_command_prints_the_bound_and_refuses_a_log_without_rests(tmp_path, 
     assert main(["--data", str(tmp_path / "presses.npz")]) == 0
     out = capsys.readouterr().out
     assert "8 presses" in out and f"{_expected_ms(10.0, 0.02):.0f}" in out
+    assert "% of their samples above 1 N" in out
     always = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
                      x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
                      press_id=np.zeros(n, int))
@@ -84,3 +91,58 @@ def test_the_command_prints_the_bound_and_refuses_a_log_without_rests(tmp_path, 
     assert main(["--data", str(tmp_path / "held.npz")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "held.npz" in err and "rest" in err
+
+
+def test_the_samples_above_1N_before_the_bound_are_the_ones_no_decision_finds():
+    # 30 pm and one false event in 100 minutes: the bound lies past the ramp's 1 N.
+    wl, force, contact = _presses(30.0)
+    cov = rest_noise_covariance(wl, contact)
+    got = press_bounds(wl, force, contact, cov, RATE, per_min=0.01)
+    first_above = int(1.0 / 0.02) + 1              # the ramp's first sample above 1 N
+    missed = _reached(30.0, 0.02, 0.01) - first_above
+    assert missed > 0
+    above = int((force[:force.size // 40] > 1.0).sum())
+    assert all(p["above_1N"] == above for p in got)
+    # Each press misses its samples above 1 N up to its own bound (the label at the ramp's
+    # 16th sample, its first above 0.3 N) ...
+    label = int(0.3 / 0.02) + 1
+    for p in got:
+        found = label + round(p["onset_bound_ms"] * RATE / 1000.0)
+        assert p["missed_above_1N"] == max(found - first_above, 0)
+    # ... which lies near the closed form's (the sensitivity and the noise estimated at 30 pm).
+    assert np.median([p["missed_above_1N"] for p in got]) == pytest.approx(missed, abs=3)
+    # At 2 pm and one a minute the evidence is there before 1 N: nothing missed.
+    quiet = _presses(2.0)
+    assert all(p["missed_above_1N"] == 0
+               for p in press_bounds(*quiet, rest_noise_covariance(quiet[0], quiet[2]), RATE))
+
+
+def _dataset(wl: np.ndarray, force: np.ndarray, contact: np.ndarray) -> Dataset:
+    n = force.size
+    xy = np.where(contact, 0.0, np.nan)
+    return Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=contact, x_mm=xy,
+                   y_mm=xy, force_N=force,
+                   press_id=np.cumsum(np.r_[0, np.diff(contact.astype(int)) == 1]))
+
+
+def test_coverage_says_what_the_calibrations_noise_allows():
+    from fbgforce.trainer.coverage import coverage, coverage_lines
+
+    wl, force, contact = _presses(10.0, presses=20)
+    cov = coverage([_dataset(wl, force, contact)])
+    allows = cov["noise_allows"]
+    assert allows["presses"] == 20 and allows["noise_pm"] == pytest.approx(10.0, rel=0.05)
+    assert allows["onset_bound_ms"]["median"] == pytest.approx(_expected_ms(10.0, 0.02), abs=1.5)
+    assert 0.0 < allows["detected_above_1N"] <= 1.0
+    line = coverage_lines(cov)[-1]
+    assert line.startswith(f"  the noise allows: {allows['noise_pm']:.1f} pm per grating")
+    assert f"{allows['onset_bound_ms']['median']:.1f} ms after the label" in line
+    # No rest to measure the noise on: said, not guessed.
+    n = force.size
+    held = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
+                   x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
+                   press_id=np.zeros(n, int))
+    none = coverage([held])
+    assert none["noise_allows"] is None
+    assert coverage_lines(none)[-1] == ("  the noise allows: not measured (no rest to measure "
+                                        "the noise on)")

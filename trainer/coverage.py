@@ -5,7 +5,9 @@
 Per press (a run of equal ``press_id`` with contact): its peak force, where it pressed (the
 median contact location), how fast it loaded (10 % to 90 % of its peak over the time taken)
 and how long it held (the longest stretch within the trainer's hold band of its peak). Over the
-log: the temperature grating's span and the time without contact.
+log: the temperature grating's span and the time without contact. And what the log's own
+noise allows any contact decision on its presses (:mod:`fbgforce.evaluation.onset_bound`): a
+model's onset is to be read against that, not against a number from another pad.
 """
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce.evaluation import onset_bound
 from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
@@ -180,6 +183,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         "rest": {"total_s": rest_total, "longest_s": rest_longest},
         "missing": missing,
         "cannot_establish": unknown,
+        "noise_allows": onset_bound.bound(datasets),
     }
 
 
@@ -211,4 +215,24 @@ def coverage_lines(cov: dict[str, Any]) -> list[str]:
         lines.append("  nothing missing by these checks")
     if cov.get("cannot_establish"):
         lines.append("  it cannot establish: " + "; ".join(cov["cannot_establish"]))
+    lines += _noise_allows_lines(cov.get("noise_allows"))
     return lines
+
+
+def _noise_allows_lines(b: dict[str, Any] | None) -> list[str]:
+    """What the log's noise allows any contact decision (:func:`onset_bound.bound`), in words."""
+    if b is None:
+        return ["  the noise allows: not measured (no rest to measure the noise on)"]
+    head = (f"  the noise allows: {b['noise_pm']:.1f} pm per grating")
+    if not b["presses"]:
+        return [head + f"; no press with a rest before it and 5 samples above "
+                f"{onset_bound.SENSITIVITY_MIN_N:g} N to bound the onset on"]
+    o = b["onset_bound_ms"]
+    ms = (lambda v: "never" if v is None else f"{v:.1f} ms")
+    noise = ("" if b["force_noise_N"] is None
+             else f", a force noise of {b['force_noise_N']:.3f} N a sample at best")
+    return [head + f"{noise}; no contact decision within {b['per_min']:g} false event a minute "
+            f"at rest finds its {b['presses']} presses sooner than {ms(o['median'])} after the "
+            f"label (median; p90 {ms(o['p90'])}), nor more than "
+            f"{100 * b['detected_above_1N']:.2f} % of their samples above "
+            f"{onset_bound.SENSITIVITY_MIN_N:g} N"]

@@ -1,0 +1,156 @@
+"""How early any contact decision could find a recording's presses: the information bound on
+onset delay, from the interrogator's noise and the pad's sensitivity.
+
+A detector that raises at most ``per_min`` false contact events a minute at rest has an
+average run length at rest of ``gamma = 60 * rate / per_min`` samples, and cannot, on
+average, find a change before the log-likelihood ratio of what it has seen since the change
+reaches ``log(gamma)`` (Lorden 1971 for a fixed change, Lai 1998 for one that grows, as a
+press does; asymptotically in ``gamma``). For a press of force ``f(t)`` on a pad whose shifts
+move by ``f * s`` (``s``, pm/N per grating, the press's own location) under white noise of
+covariance ``C`` (pm^2), each sample adds ``f(t)^2 * s' C^-1 s / 2`` to that ratio. The bound
+is the delay after the contact label's onset at which the sum from the press's first loaded
+sample reaches ``log(gamma)`` (0 where it does so before the label): the quickest median onset
+of a detector that knew the press's location and force profile in advance. Any decision that
+must learn them from the signal, the contact net's included, comes later. The samples above
+1 N that such a detector has not yet found are the fewest any decision misses, on average.
+
+``C`` is half the covariance of the rests' first differences (white noise doubles in a
+difference; the zero's wander and the temperature's drift vanish from it; the rests those of
+the tare, :func:`fbgforce.recordings.tare.contact_free_mask`), ``s`` each press's least-squares
+shift per newton over its samples above 1 N, from the rest before it.
+
+Used by ``fbgforce coverage`` (what a calibration's noise allows) and
+``python -m fbgforce.bench.bench_onset_bound`` (any labelled recordings).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+
+from fbgforce.recordings.dataset import Dataset
+from fbgforce.recordings.stagelog import runs
+from fbgforce.recordings.tare import contact_free_mask, sample_rate_hz
+
+#: Unloaded samples before a press that give its zero for the sensitivity fit.
+ZERO_SAMPLES = 50
+#: Force below which the load cell's own noise is all there is (its squares would add
+#: evidence the press never gave), N.
+FORCE_FLOOR_N = 0.05
+#: Force above which a press's samples give its sensitivity, and above which its samples
+#: count as ones a decision should find (the ``contact_accuracy_above_1N`` of the metrics), N.
+SENSITIVITY_MIN_N = 1.0
+#: Rest sample pairs needed to measure the noise on.
+MIN_REST_PAIRS = 100
+
+
+def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray,
+                          t_s: np.ndarray | None = None) -> np.ndarray | None:
+    """Half the covariance of consecutive rest samples' differences, pm^2 (None with fewer
+    than ``MIN_REST_PAIRS`` pairs); the rest samples are the tare's
+    (:func:`fbgforce.recordings.tare.contact_free_mask`)."""
+    rest = contact_free_mask(contact, t_s)
+    pair = rest[1:] & rest[:-1]
+    if pair.sum() < MIN_REST_PAIRS:
+        return None
+    d = np.diff(wl_pm, axis=0)[pair]
+    return np.cov(d, rowvar=False) / 2.0
+
+
+def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
+                 noise_cov: np.ndarray, rate_hz: float, per_min: float = 1.0
+                 ) -> list[dict[str, float]]:
+    """The bound for every press of one recording with a rest before it.
+
+    Parameters
+    ----------
+    wl_pm
+        (n, m) the gratings' shifts, pm (any common offset).
+    force_N, contact
+        (n,) the load cell and the contact label.
+    noise_cov
+        (m, m) the noise covariance per sample, pm^2 (:func:`rest_noise_covariance`).
+    rate_hz
+        Sample rate.
+    per_min
+        False events per minute at rest the detector may raise.
+
+    Returns
+    -------
+    list of dict
+        Per press: ``onset_bound_ms`` (inf where the press never gives enough evidence),
+        ``force_noise_N`` (the per-sample noise of a force read by the matched filter at the
+        press's location, ``1 / sqrt(s' C^-1 s)``), ``above_1N`` (its labelled contact
+        samples above 1 N) and ``missed_above_1N`` (those of them before the bound).
+    """
+    contact = np.asarray(contact, bool)
+    f = np.where(np.asarray(force_N, float) > FORCE_FLOOR_N, np.asarray(force_N, float), 0.0)
+    threshold = math.log(60.0 * rate_hz / per_min)
+    inv = np.linalg.pinv(noise_cov)
+    starts, stops = runs(contact)
+    out = []
+    rests_from = [0, *stops[:-1].tolist()]
+    for t_on, t_off, rest_from in zip(starts.tolist(), stops.tolist(), rests_from):
+        # From the last unloaded sample of the rest: the tail of the release before counts
+        # for nothing.
+        unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
+        loaded = np.arange(t_on, t_off)[f[t_on:t_off] > SENSITIVITY_MIN_N]
+        if not unloaded.size or unloaded[-1] + 1 < ZERO_SAMPLES or loaded.size < 5:
+            continue
+        start = rest_from + int(unloaded[-1])
+        zero = wl_pm[start + 1 - ZERO_SAMPLES:start + 1].mean(axis=0)
+        s = (f[loaded] @ (wl_pm[loaded] - zero)) / float(f[loaded] @ f[loaded])
+        q = float(s @ inv @ s)
+        evidence = 0.5 * q * np.cumsum(f[start:t_off] ** 2)
+        reached = np.flatnonzero(evidence >= threshold)
+        delay = (start + int(reached[0]) - int(t_on)) if reached.size else math.inf
+        found_from = t_on + max(delay, 0) if reached.size else t_off
+        out.append({"onset_bound_ms": max(delay, 0) * 1000.0 / rate_hz,
+                    "force_noise_N": 1.0 / math.sqrt(q) if q > 0 else math.inf,
+                    "above_1N": int(loaded.size),
+                    "missed_above_1N": int((loaded < found_from).sum())})
+    return out
+
+
+def bound(datasets: Sequence[Dataset], per_min: float = 1.0) -> dict[str, Any] | None:
+    """:func:`press_bounds` over recordings (the noise from each one's own rests, or pooled
+    over the others where one has too few); None when none has ``MIN_REST_PAIRS`` rest pairs.
+
+    Returns
+    -------
+    dict or None
+        ``per_min``, ``presses`` (how many had a rest before them and 5 samples above 1 N),
+        ``noise_pm`` (the median grating's noise per sample), ``force_noise_N`` (median over
+        the presses), ``onset_bound_ms`` (``median`` and ``p90``, each None where that share
+        of the presses never gives the evidence) and ``detected_above_1N`` (the share of the
+        presses' samples above 1 N found by the bound's detector); the last three None with
+        no press.
+    """
+    shifts = [1000.0 * np.asarray(ds.wl_nm, float) for ds in datasets]
+    covs = [rest_noise_covariance(w, ds.contact, ds.t_s) for w, ds in zip(shifts, datasets)]
+    known = [c for c in covs if c is not None]
+    if not known:
+        return None
+    pooled = np.mean(known, axis=0)
+    presses: list[dict[str, float]] = []
+    for w, ds, cov in zip(shifts, datasets, covs):
+        presses += press_bounds(w, ds.force_N, ds.contact, pooled if cov is None else cov,
+                                sample_rate_hz(ds.t_s), per_min)
+    delays = np.array([p["onset_bound_ms"] for p in presses])
+    noise = np.array([p["force_noise_N"] for p in presses])
+    above = sum(p["above_1N"] for p in presses)
+    missed = sum(p["missed_above_1N"] for p in presses)
+    return {"per_min": per_min, "presses": len(presses),
+            "noise_pm": float(np.sqrt(np.median(np.diag(pooled)))),
+            "force_noise_N": _finite(np.median(noise)) if noise.size else None,
+            "onset_bound_ms": ({"median": _finite(np.median(delays)),
+                                "p90": _finite(np.percentile(delays, 90))}
+                               if delays.size else None),
+            "detected_above_1N": 1.0 - missed / above if above else None}
+
+
+def _finite(value: float) -> float | None:
+    """A float, or None for the presses that never give the evidence (inf, or the NaN two of
+    them interpolate to): what JSON can hold."""
+    return float(value) if math.isfinite(value) else None
