@@ -146,3 +146,28 @@ def test_coverage_says_what_the_calibrations_noise_allows():
     assert none["noise_allows"] is None
     assert coverage_lines(none)[-1] == ("  the noise allows: not measured (no rest to measure "
                                         "the noise on)")
+
+
+def test_evaluate_reports_the_bound_on_the_presses_it_scores(capsys, small_model_dir,
+                                                             small_dataset_path):
+    from fbgforce.cli import main as cli
+    from fbgforce.evaluation.onset_bound import bound
+    from fbgforce.recordings import dataset
+    from fbgforce.trainer.data import split_rows
+    from fbgforce.trainer.evaluate import evaluate
+
+    ds = dataset.load(small_dataset_path)
+    for split, keep in (("all", None), ("test", split_rows(ds, 0) == 2)):
+        out = evaluate(small_model_dir, [small_dataset_path], split=split)
+        allows = out["noise_allows"]
+        assert allows == bound([ds], keeps=[keep])
+        # The test split's presses only: those with a rest before them, of those it scores.
+        assert 0 < allows["presses"] <= out["contact_timing"]["presses"]
+    assert "noise_allows" not in evaluate(small_model_dir, [small_dataset_path], extras=False)
+    assert cli(["evaluate", "--model", str(small_model_dir), "--data",
+                str(small_dataset_path), "--split", "test"]) == 0
+    line = capsys.readouterr().out.splitlines()[1]
+    median = out["contact_timing"]["onset_delay_ms"]["median"]
+    assert line.startswith(f"onset: median {median:.1f} ms after the label; the noise (")
+    assert f"sooner than {allows['onset_bound_ms']['median']:.1f} ms on these " \
+           f"{allows['presses']} presses" in line

@@ -342,9 +342,30 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
                    resample=args.resample)
     if not args.json:
         print(f"{args.engine}: {headline(out)} (n={out['n_samples']})")
+        line = _onset_against_bound(out)
+        if line:
+            print(line)
     for warning in out["warnings"]:
         print(f"fbgforce evaluate: warning: {warning}", file=sys.stderr)
     return out
+
+
+def _onset_against_bound(out: dict[str, Any]) -> str | None:
+    """The median onset beside the quickest the recordings' noise allows on the same presses
+    (``noise_allows``), or None when either is not there."""
+    timing, allows = out.get("contact_timing"), out.get("noise_allows")
+    onset = (timing or {}).get("onset_delay_ms", {}).get("median")
+    if onset is None or not allows or not allows.get("onset_bound_ms"):
+        return None
+    best = allows["onset_bound_ms"]["median"]
+    above = out.get("contact_accuracy_above_1N")
+    return (f"onset: median {onset:.1f} ms after the label; the noise "
+            f"({allows['noise_pm']:.1f} pm) allows no decision sooner than "
+            + ("never" if best is None else f"{best:.1f} ms")
+            + f" on these {allows['presses']} presses"
+            + ("" if above is None or allows["detected_above_1N"] is None else
+               f"; samples above 1 N found {100 * above:.2f} %, at best "
+               f"{100 * allows['detected_above_1N']:.2f} %"))
 
 
 def _analyze(args: argparse.Namespace) -> dict[str, Any]:

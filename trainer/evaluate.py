@@ -8,6 +8,7 @@ import numpy as np
 
 from fbgforce.evaluation import engines
 from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.evaluation import onset_bound
 from fbgforce.model import artifact, modeldir
 from fbgforce.recordings import tare as fbgtare
 
@@ -30,8 +31,10 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
     Each recording is run whole (the filter needs its continuous history), then the samples
     of the requested split (by press, with the model's training seed unless ``seed`` is given)
     are scored with :func:`fbgforce.evaluation.metrics.compute`; the presses of the split also give the
-    onset and release delays (``contact_timing``) and each recording's rests and holds
-    (``at_rest``, ``holds``: :func:`fbgforce.evaluation.metrics.use_masks`). ``predictions``: the engine's
+    onset and release delays (``contact_timing``), what the recordings' noise allows any
+    decision on those presses (``noise_allows``, :func:`fbgforce.evaluation.onset_bound.bound`)
+    and each recording's rests and holds (``at_rest``, ``holds``:
+    :func:`fbgforce.evaluation.metrics.use_masks`). ``predictions``: the engine's
     output on each whole recording (:func:`run_recording`) when the caller has it already.
 
     A recording sampled at another rate than the model's is refused
@@ -57,7 +60,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
                 ds_list[i] = fds.resample(ds, trained_hz)
         else:
             samples.check_rate(model, fbgtare.sample_rate_hz(ds.t_s), where)
-    preds, truths, onsets, releases, uses = [], [], [], [], []
+    preds, truths, onsets, releases, uses, keeps = [], [], [], [], [], []
     n_presses = 0
     if predictions is None:
         predictions = [run_recording(engine, model_dir, model, ds, d.get("path"))
@@ -73,6 +76,7 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
                                                keep)
         onsets.append(onset)
         releases.append(release)
+        keeps.append(keep)
         use = fmetrics.use_masks(pred["contact"], ds.contact, ds.force_N, ds.t_s)
         uses.append({k: v[rows] for k, v in use.items()})
         n_presses += int(np.unique(np.asarray(ds.press_id)[rows]).size)
@@ -85,6 +89,8 @@ def evaluate(model_dir: str | Path, data: Sequence[str | Path | Any], *, engine:
                            delays=(np.concatenate(onsets), np.concatenate(releases)),
                            use={k: np.concatenate([u[k] for u in uses]) for k in uses[0]})
     few = fmetrics.few_presses_warning(split, n_presses) if split in ("val", "test") else None
+    if extras:
+        out["noise_allows"] = onset_bound.bound(ds_list, keeps=keeps)
     out.update({"engine": engine, "model": str(model_dir), "split": split,
                 "data": [d.get("path") or d.get("source") for d in described],
                 "presses": n_presses, "warnings": [few] if few else []})

@@ -19,8 +19,9 @@ difference; the zero's wander and the temperature's drift vanish from it; the re
 the tare, :func:`fbgforce.recordings.tare.contact_free_mask`), ``s`` each press's least-squares
 shift per newton over its samples above 1 N, from the rest before it.
 
-Used by ``fbgforce coverage`` (what a calibration's noise allows) and
-``python -m fbgforce.bench.bench_onset_bound`` (any labelled recordings).
+Used by ``fbgforce coverage`` (what a calibration's noise allows), ``fbgforce evaluate`` (beside
+the onset it measures) and ``python -m fbgforce.bench.bench_onset_bound`` (any labelled
+recordings).
 """
 from __future__ import annotations
 
@@ -59,8 +60,8 @@ def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray,
 
 
 def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
-                 noise_cov: np.ndarray, rate_hz: float, per_min: float = 1.0
-                 ) -> list[dict[str, float]]:
+                 noise_cov: np.ndarray, rate_hz: float, per_min: float = 1.0,
+                 keep: np.ndarray | None = None) -> list[dict[str, float]]:
     """The bound for every press of one recording with a rest before it.
 
     Parameters
@@ -75,6 +76,9 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
         Sample rate.
     per_min
         False events per minute at rest the detector may raise.
+    keep
+        (n,) bool: only the presses whose first labelled sample it holds (all when None), as
+        ``fbgforce evaluate --split`` scores them.
 
     Returns
     -------
@@ -92,6 +96,8 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     out = []
     rests_from = [0, *stops[:-1].tolist()]
     for t_on, t_off, rest_from in zip(starts.tolist(), stops.tolist(), rests_from):
+        if keep is not None and not keep[t_on]:
+            continue
         # From the last unloaded sample of the rest: the tail of the release before counts
         # for nothing.
         unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
@@ -113,9 +119,11 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     return out
 
 
-def bound(datasets: Sequence[Dataset], per_min: float = 1.0) -> dict[str, Any] | None:
+def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
+          keeps: Sequence[np.ndarray | None] | None = None) -> dict[str, Any] | None:
     """:func:`press_bounds` over recordings (the noise from each one's own rests, or pooled
-    over the others where one has too few); None when none has ``MIN_REST_PAIRS`` rest pairs.
+    over the others where one has too few; ``keeps``: each recording's ``keep``); None when
+    none has ``MIN_REST_PAIRS`` rest pairs.
 
     Returns
     -------
@@ -134,9 +142,10 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0) -> dict[str, Any] |
         return None
     pooled = np.mean(known, axis=0)
     presses: list[dict[str, float]] = []
-    for w, ds, cov in zip(shifts, datasets, covs):
+    for i, (w, ds, cov) in enumerate(zip(shifts, datasets, covs)):
         presses += press_bounds(w, ds.force_N, ds.contact, pooled if cov is None else cov,
-                                sample_rate_hz(ds.t_s), per_min)
+                                sample_rate_hz(ds.t_s), per_min,
+                                None if keeps is None else keeps[i])
     delays = np.array([p["onset_bound_ms"] for p in presses])
     noise = np.array([p["force_noise_N"] for p in presses])
     above = sum(p["above_1N"] for p in presses)
