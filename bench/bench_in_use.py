@@ -348,7 +348,24 @@ def table(result: dict[str, Any]) -> str:
     if result["calibration_test_rmse_force_N"] is not None:
         lines.append(f"- calibration test presses: force RMSE "
                      f"{result['calibration_test_rmse_force_N']:.3f} N")
+    allows = _noise_allows(result)
+    if allows:
+        lines.append(f"- the noise allows on the constant-temperature presses: onset "
+                     f"{allows[0]}, {allows[1]} of the samples above 1 N "
+                     "(fbgforce.evaluation.onset_bound)")
     return "\n".join(lines)
+
+
+def _noise_allows(result: dict[str, Any]) -> tuple[str, str] | None:
+    """The median onset and the share of the samples above 1 N that the constant-temperature
+    logs' noise allows any decision (``noise_allows`` of their ``evaluate`` run), as text; None
+    where those logs or their rests are missing."""
+    allows = result["scored"].get("constant+rest", {}).get("noise_allows")
+    if not allows or not allows.get("onset_bound_ms"):
+        return None
+    onset, found = allows["onset_bound_ms"]["median"], allows["detected_above_1N"]
+    return ("never" if onset is None else f"{onset:.1f} ms",
+            "–" if found is None else f"{100 * found:.2f} %")
 
 
 #: What ``--without STAGE`` sets in a copy of each member's model: the in-use stage off, the
@@ -521,6 +538,13 @@ def family_table(result: dict[str, Any], stage: str | None = None) -> str:
         verdict = words[r["pass"]] + (f" / {words[other['pass']]}" if other else "")
         lines.append(f"| {g.label} | {g.show_target()} | " + " | ".join(map(cell, members))
                      + f" | {worst_text} | {verdict} |")
+    if not stage:
+        # Beside the onset and detection goals: how far any decision could get on these pads.
+        allows = {m: _noise_allows(result["members"][m]) for m in members}
+        for i, label in enumerate(("onset the noise allows, median",
+                                   "samples above 1 N the noise allows")):
+            lines.append(f"| {label} | | "
+                         + " | ".join(a[i] if a else "–" for a in allows.values()) + " | | |")
     if stage:
         what = (f"with the {stage} decision rule" if stage in RULES else f"without {stage}")
         lines += ["", f"Each cell: the default / the same model {what}."]

@@ -256,7 +256,14 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     assert res["scored"]["held_grips"]["holds"]["holds"] == 3
     assert bench_in_use.main(["--model", str(small_exported_dir), "--logs",
                               str(in_use_logs)]) == 0
-    assert "| force at rest, 99th percentile | ramp40K_fast |" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "| force at rest, 99th percentile | ramp40K_fast |" in text
+    # Beside the onset goal: what the constant-temperature logs' noise allows any decision.
+    allows = res["scored"]["constant+rest"]["noise_allows"]
+    assert allows["presses"] > 0
+    assert (f"- the noise allows on the constant-temperature presses: onset "
+            f"{allows['onset_bound_ms']['median']:.1f} ms, "
+            f"{100 * allows['detected_above_1N']:.2f} % of the samples above 1 N") in text
 
 
 def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_exported_dir,
@@ -362,7 +369,10 @@ def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tm
     copy = json.loads((tmp_path / "work" / "a" / "without_hold_gain" / "model.json").read_text())
     assert copy["in_use"]["hold_gain"] == 0.0
     assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work")]) == 0
-    assert "| force bias over the holds | within ±0.1 N |" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "| force bias over the holds | within ±0.1 N |" in text
+    onset = res["members"]["a"]["scored"]["constant+rest"]["noise_allows"]["onset_bound_ms"]
+    assert f"| onset the noise allows, median | | {onset['median']:.1f} ms | " in text
     # Members scored in separate runs combine into the same table.
     for member in ("a", "b"):
         assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work"),
