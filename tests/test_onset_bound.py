@@ -3,6 +3,7 @@ prints it) against presses whose sensitivity, noise and force profile are known.
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -137,6 +138,17 @@ def test_coverage_says_what_the_calibrations_noise_allows():
     line = coverage_lines(cov)[-1]
     assert line.startswith(f"  the noise allows: {allows['noise_pm']:.1f} pm per grating")
     assert f"{allows['onset_bound_ms']['median']:.1f} ms after the label" in line
+    # Lost peaks (a non-finite value, one out of the window) give no evidence, no zero and no
+    # noise: the bound reads as without them, and nothing raises.
+    lost = wl.copy()
+    lost[100, 2], lost[5000, 1], lost[310:330, 0] = np.nan, 0.0, np.inf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        faulty = coverage([_dataset(lost, force, contact)])["noise_allows"]
+    assert faulty["presses"] == allows["presses"]
+    assert faulty["noise_pm"] == pytest.approx(allows["noise_pm"], rel=0.01)
+    assert faulty["onset_bound_ms"]["median"] == pytest.approx(
+        allows["onset_bound_ms"]["median"], abs=1.0)
     # No rest to measure the noise on: said, not guessed.
     n = force.size
     held = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),

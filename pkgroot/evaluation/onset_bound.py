@@ -33,6 +33,7 @@ import numpy as np
 from fbgforce.recordings.dataset import Dataset
 from fbgforce.recordings.stagelog import runs
 from fbgforce.recordings.tare import contact_free_mask, sample_rate_hz
+from fbgforce.samples import sensor_fault_rows
 
 #: Unloaded samples before a press that give its zero for the sensitivity fit.
 ZERO_SAMPLES = 50
@@ -47,21 +48,27 @@ MIN_REST_PAIRS = 100
 
 
 def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray,
-                          t_s: np.ndarray | None = None) -> np.ndarray | None:
+                          t_s: np.ndarray | None = None, fault: np.ndarray | None = None
+                          ) -> np.ndarray | None:
     """Half the covariance of consecutive rest samples' differences, pm^2 (None with fewer
     than ``MIN_REST_PAIRS`` pairs); the rest samples are the tare's
-    (:func:`fbgforce.recordings.tare.contact_free_mask`)."""
+    (:func:`fbgforce.recordings.tare.contact_free_mask`), less the ``fault`` rows (a lost
+    peak, :func:`fbgforce.samples.sensor_fault_rows`)."""
     rest = contact_free_mask(contact, t_s)
+    if fault is not None:
+        rest = rest & ~np.asarray(fault, bool)
     pair = rest[1:] & rest[:-1]
     if pair.sum() < MIN_REST_PAIRS:
         return None
-    d = np.diff(wl_pm, axis=0)[pair]
+    wl = np.asarray(wl_pm, dtype=np.float64)
+    d = wl[1:][pair] - wl[:-1][pair]
     return np.cov(d, rowvar=False) / 2.0
 
 
 def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
                  noise_cov: np.ndarray, rate_hz: float, per_min: float = 1.0,
-                 keep: np.ndarray | None = None) -> list[dict[str, float]]:
+                 keep: np.ndarray | None = None, fault: np.ndarray | None = None
+                 ) -> list[dict[str, float]]:
     """The bound for every press of one recording with a rest before it.
 
     Parameters
@@ -79,6 +86,9 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     keep
         (n,) bool: only the presses whose first labelled sample it holds (all when None), as
         ``fbgforce evaluate --split`` scores them.
+    fault
+        (n,) bool: samples with a lost peak (:func:`fbgforce.samples.sensor_fault_rows`),
+        which give no evidence, no zero and no sensitivity.
 
     Returns
     -------
@@ -90,6 +100,7 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     """
     contact = np.asarray(contact, bool)
     f = np.where(np.asarray(force_N, float) > FORCE_FLOOR_N, np.asarray(force_N, float), 0.0)
+    good = np.ones(contact.size, bool) if fault is None else ~np.asarray(fault, bool)
     threshold = math.log(60.0 * rate_hz / per_min)
     inv = np.linalg.pinv(noise_cov)
     starts, stops = runs(contact)
@@ -101,21 +112,26 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
         # From the last unloaded sample of the rest: the tail of the release before counts
         # for nothing.
         unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
-        loaded = np.arange(t_on, t_off)[f[t_on:t_off] > SENSITIVITY_MIN_N]
+        above = np.arange(t_on, t_off)[f[t_on:t_off] > SENSITIVITY_MIN_N]
+        loaded = above[good[above]]
         if not unloaded.size or unloaded[-1] + 1 < ZERO_SAMPLES or loaded.size < 5:
             continue
         start = rest_from + int(unloaded[-1])
-        zero = wl_pm[start + 1 - ZERO_SAMPLES:start + 1].mean(axis=0)
+        window = np.arange(start + 1 - ZERO_SAMPLES, start + 1)
+        window = window[good[window]]
+        if not window.size:
+            continue
+        zero = wl_pm[window].mean(axis=0)
         s = (f[loaded] @ (wl_pm[loaded] - zero)) / float(f[loaded] @ f[loaded])
         q = float(s @ inv @ s)
-        evidence = 0.5 * q * np.cumsum(f[start:t_off] ** 2)
+        evidence = 0.5 * q * np.cumsum(np.where(good[start:t_off], f[start:t_off], 0.0) ** 2)
         reached = np.flatnonzero(evidence >= threshold)
         delay = (start + int(reached[0]) - int(t_on)) if reached.size else math.inf
         found_from = t_on + max(delay, 0) if reached.size else t_off
         out.append({"onset_bound_ms": max(delay, 0) * 1000.0 / rate_hz,
                     "force_noise_N": 1.0 / math.sqrt(q) if q > 0 else math.inf,
-                    "above_1N": int(loaded.size),
-                    "missed_above_1N": int((loaded < found_from).sum())})
+                    "above_1N": int(above.size),
+                    "missed_above_1N": int((above < found_from).sum())})
     return out
 
 
@@ -136,7 +152,9 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
         no press.
     """
     shifts = [1000.0 * np.asarray(ds.wl_nm, float) for ds in datasets]
-    covs = [rest_noise_covariance(w, ds.contact, ds.t_s) for w, ds in zip(shifts, datasets)]
+    faults = [sensor_fault_rows(ds.wl_nm) for ds in datasets]
+    covs = [rest_noise_covariance(w, ds.contact, ds.t_s, bad)
+            for w, ds, bad in zip(shifts, datasets, faults)]
     known = [c for c in covs if c is not None]
     if not known:
         return None
@@ -145,7 +163,7 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
     for i, (w, ds, cov) in enumerate(zip(shifts, datasets, covs)):
         presses += press_bounds(w, ds.force_N, ds.contact, pooled if cov is None else cov,
                                 sample_rate_hz(ds.t_s), per_min,
-                                None if keeps is None else keeps[i])
+                                None if keeps is None else keeps[i], faults[i])
     delays = np.array([p["onset_bound_ms"] for p in presses])
     noise = np.array([p["force_noise_N"] for p in presses])
     above = sum(p["above_1N"] for p in presses)
