@@ -50,3 +50,9 @@ def test_demo_quick_writes_figures_listed_in_json(tmp_path, capsys):
         assert np.unique(rgb, axis=0).shape[0] > 20, path.name
         assert (rgb.sum(axis=1) < 1.5).mean() > 0.005, path.name
     assert (out / "model" / "model.fbgm").is_file() and (out / "report").is_dir()
+    # The report's onset stands beside what the recordings' own noise allows.
+    allows = json.loads((out / "report" / "report.json").read_text()
+                        )["network"]["causal"]["metrics"]["noise_allows"]
+    text = (out / "report" / "report.md").read_text()
+    assert ("lets no contact decision within one false event a minute at rest find these "
+            f"presses sooner than {allows['onset_bound_ms']['median']:.1f} ms median") in text
