@@ -284,6 +284,11 @@ def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_pat
     assert csv[2].startswith("cusum,,,") and csv[1].startswith("schmitt,")
     md = decision.markdown(res)
     assert "| cusum |" in md and "| schmitt (default) |" in md
+    # Beside the grid, what the recordings' own noise allows any decision at the same quiet.
+    from fbgforce.evaluation.onset_bound import bound
+    assert res["noise_allows"] == bound([ds], decision.QUIET_PER_MIN)
+    assert (f"allows no decision within 1 false event(s) per minute at rest an onset before "
+            f"{res['noise_allows']['onset_bound_ms']['median']:.1f} ms median") in md
     assert decision.plot(res, tmp_path / "d.png").stat().st_size > 1000
 
 

@@ -23,6 +23,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.evaluation import onset_bound
 from fbgforce.model import artifact, decision, modeldir
 from fbgforce.recordings import tare as ftare
 from fbgforce.export import blob
@@ -107,7 +108,9 @@ def decision_curve(model_dir: str | Path, recordings: Sequence[Any],
     (the factor the trainer sets) and ``rise_counts``, the CUSUM over ``h_scales`` times
     :func:`cusum_base`'s ``h`` for each drift ``k + offset`` of ``k_offsets`` (:func:`cusum_base`'s
     ``k``), with its ``lo`` and ``hi = k + h / 2``. Both keep the model's
-    ``contact_off_margin``. ``quickest`` holds :func:`quickest_quiet` of the rows."""
+    ``contact_off_margin``. ``quickest`` holds :func:`quickest_quiet` of the rows,
+    ``noise_allows`` what the recordings' own noise allows any decision at that quiet
+    (:func:`fbgforce.evaluation.onset_bound.bound`; None without rests to measure it on)."""
     model = modeldir.load(model_dir)
     q0 = blob.load_model_blob(model_dir)
     own = model.in_use
@@ -142,7 +145,8 @@ def decision_curve(model_dir: str | Path, recordings: Sequence[Any],
                          "cusum_hi": hi, "default": own_setting, **_score(q, recordings)})
     return {"model": str(model_dir), "model_on_margin": own.contact_on_margin,
             "cusum_base": {"h": h0, "k": k0, "lo": lo}, "rows": rows,
-            "quickest": quickest_quiet(rows)}
+            "quickest": quickest_quiet(rows),
+            "noise_allows": onset_bound.bound(recordings, QUIET_PER_MIN)}
 
 
 def quickest_quiet(rows: Sequence[dict[str, Any]], per_min: float = QUIET_PER_MIN
@@ -196,7 +200,21 @@ def markdown(res: dict[str, Any]) -> str:
                          f"at rest: {_setting(r)}, {r['false_events_per_min']:.2f} /min, onset "
                          f"{r['onset_median_ms']:.1f} ms (p90 {_fmt(r['onset_p90_ms'], '.1f')}), "
                          f"detected > 1 N {_fmt(None if det is None else 100 * det, '.2f')} %")
+    best = _bound_ms(res)
+    if best is not None:
+        found = res["noise_allows"]["detected_above_1N"]
+        lines.append(f"- the recordings' own noise ({res['noise_allows']['noise_pm']:.1f} pm) "
+                     f"allows no decision within {QUIET_PER_MIN:g} false event(s) per minute "
+                     f"at rest an onset before {best:.1f} ms median, nor more than "
+                     f"{_fmt(None if found is None else 100 * found, '.2f')} % detected > 1 N "
+                     "(docs/tradeoff.md, \"The information bound\")")
     return "\n".join(lines)
+
+
+def _bound_ms(res: dict[str, Any]) -> float | None:
+    """The median onset the recordings' noise allows (``res["noise_allows"]``), or None."""
+    allows = res.get("noise_allows") or {}
+    return (allows.get("onset_bound_ms") or {}).get("median")
 
 
 def csv_text(res: dict[str, Any]) -> str:
@@ -248,6 +266,16 @@ def plot(res: dict[str, Any], path: Path) -> Path:
     ax.axhline(QUIET_PER_MIN, color="grey", lw=0.8, ls="--")
     ax.axvline(ONSET_GOAL_MS, color="grey", lw=0.8, ls=":")
     ax.set_yscale("log")
+    best = _bound_ms(res)
+    if best is not None:
+        # Quicker than the bound and as quiet as the line, no decision can be: the noise's
+        # corner, not the rule's.
+        (x0, x1), (y0, _) = ax.get_xlim(), ax.get_ylim()
+        left = min(x0, best - 1.0)
+        ax.fill_between([left, best], y0, QUIET_PER_MIN, color="0.85", zorder=0,
+                        label=f"out of reach at this noise (bound {best:.1f} ms)")
+        ax.set_xlim(left, max(x1, best + 1.0))
+        ax.set_ylim(bottom=y0)
     ax.set_xlabel("median onset delay, ms (first labelled contact sample to detection)")
     ax.set_ylabel("false contact events per minute at rest (0 drawn at 0.05)")
     ax.set_title("A quiet decision costs onset delay: Schmitt trigger and CUSUM")
