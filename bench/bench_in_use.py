@@ -187,7 +187,7 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
                             "data": [str(manifest[name]["other"])]}
     rows = _ramp_rows(by_role, manifest, scored, run)
     rows += _constant_rows(by_role, manifest, scored, run)
-    rows += _idle_rows(by_role["constant"] + by_role["rest"], model_dir, engine, run)
+    rows += _idle_rows(scored.get("constant+rest", {}).get("noise_allows"), model_dir, engine)
     cal = calibration_test(model_dir, model, engine)
     cal_rmse = cal["rmse_force_N"] if cal is not None else None
     rows += _hold_rows(by_role["hold"], cal, cal_rmse, model_dir, run)
@@ -290,22 +290,17 @@ def _constant_rows(by_role: dict[str, list[str]], manifest: dict[str, Any],
     return [_row(g, constant, values[g.key]) for g in CONSTANT_GOALS]
 
 
-def _idle_rows(names: list[str], model_dir: Path, engine: str, run: _LogRuns
+def _idle_rows(noise_allows: dict[str, Any] | None, model_dir: Path, engine: str
                ) -> list[dict[str, Any]]:
     """The idle pad's goal at the interrogator noise of the constant-temperature logs' rests
-    (the median grating's, :func:`fbgforce.evaluation.onset_bound.rest_noise_covariance`);
-    not measured without those logs."""
-    import numpy as np
-
+    (the median grating's, which their ``evaluate`` run measured in ``noise_allows``:
+    :func:`fbgforce.evaluation.onset_bound.bound`); not measured without those logs or
+    their rests."""
     from fbgforce.bench.bench_idle import idle_events
-    from fbgforce.evaluation.onset_bound import rest_noise_covariance
 
-    covs = [rest_noise_covariance(1000.0 * np.asarray(ds.wl_nm, dtype=np.float64), ds.contact,
-                                  ds.t_s) for ds, _ in (run.runs[n] for n in names)]
-    known = [c for c in covs if c is not None]
-    if not known:
+    if noise_allows is None:
         return [_row(g, [], None) for g in IDLE_GOALS]
-    noise_pm = float(np.median(np.sqrt(np.diag(np.mean(known, axis=0)))))
+    noise_pm = noise_allows["noise_pm"]
     idle = idle_events(str(model_dir), noise_pm=noise_pm, engine=engine)
     return [_row(g, [f"idle at {noise_pm:.1f} pm"], idle["worst_per_min"]) for g in IDLE_GOALS]
 
