@@ -355,11 +355,13 @@ def _noise_allows(result: dict[str, Any]) -> tuple[str, str] | None:
     """The median onset and the share of the samples above 1 N that the constant-temperature
     logs' noise allows any decision (``noise_allows`` of their ``evaluate`` run), as text; None
     where those logs or their rests are missing."""
+    from fbgforce.evaluation.onset_bound import delay_text, median_onset_ms
+
     allows = result["scored"].get("constant+rest", {}).get("noise_allows")
     if not allows or not allows.get("onset_bound_ms"):
         return None
-    onset, found = allows["onset_bound_ms"]["median"], allows["detected_above_1N"]
-    return ("never" if onset is None else f"{onset:.1f} ms",
+    found = allows["detected_above_1N"]
+    return (delay_text(median_onset_ms(allows)),
             "–" if found is None else f"{100 * found:.2f} %")
 
 

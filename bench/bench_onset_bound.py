@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fbgforce.cliargs import fail
     from fbgforce.errors import InputError
-    from fbgforce.evaluation.onset_bound import SENSITIVITY_MIN_N, ZERO_SAMPLES
+    from fbgforce.evaluation.onset_bound import SENSITIVITY_MIN_N, ZERO_SAMPLES, delay_text
 
     if not args.per_min > 0:
         return fail("bench_onset_bound: --per-min must be above 0", args.json)
@@ -59,14 +59,14 @@ def main(argv: list[str] | None = None) -> int:
               f"{SENSITIVITY_MIN_N:g} N")
     else:
         b = out["onset_bound_ms"]
-        ms = (lambda v: "never" if v is None else f"{v:.1f} ms")
         noise = out["force_noise_N"]
         print(f"{out['presses']} presses, noise {out['noise_pm']:.1f} pm per grating, force "
               f"noise of the matched filter "
               f"{'unbounded' if noise is None else f'{noise:.3f} N'} per sample: "
               f"no decision within {args.per_min:g} false event"
               f"{'' if args.per_min == 1 else 's'} a minute finds them sooner "
-              f"than {ms(b['median'])} median ({ms(b['p90'])} p90) after the label, "
+              f"than {delay_text(b['median'])} median ({delay_text(b['p90'])} p90) after the "
+              f"label, "
               f"nor more than {100 * out['detected_above_1N']:.2f} % of their samples above "
               f"{SENSITIVITY_MIN_N:g} N")
     return 0

@@ -149,6 +149,11 @@ def test_coverage_says_what_the_calibrations_noise_allows():
     assert faulty["noise_pm"] == pytest.approx(allows["noise_pm"], rel=0.01)
     assert faulty["onset_bound_ms"]["median"] == pytest.approx(
         allows["onset_bound_ms"]["median"], abs=1.0)
+    # Every command reads and prints the median onset through the same two helpers.
+    from fbgforce.evaluation.onset_bound import delay_text, median_onset_ms
+    assert median_onset_ms(allows) == allows["onset_bound_ms"]["median"]
+    assert median_onset_ms(None) is None and median_onset_ms({"onset_bound_ms": None}) is None
+    assert delay_text(None) == "never" and delay_text(12.34) == "12.3 ms"
     # No rest to measure the noise on: said, not guessed.
     n = force.size
     held = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),

@@ -200,7 +200,7 @@ def markdown(res: dict[str, Any]) -> str:
                          f"at rest: {_setting(r)}, {r['false_events_per_min']:.2f} /min, onset "
                          f"{r['onset_median_ms']:.1f} ms (p90 {_fmt(r['onset_p90_ms'], '.1f')}), "
                          f"detected > 1 N {_fmt(None if det is None else 100 * det, '.2f')} %")
-    best = _bound_ms(res)
+    best = onset_bound.median_onset_ms(res.get("noise_allows"))
     if best is not None:
         found = res["noise_allows"]["detected_above_1N"]
         lines.append(f"- the recordings' own noise ({res['noise_allows']['noise_pm']:.1f} pm) "
@@ -209,12 +209,6 @@ def markdown(res: dict[str, Any]) -> str:
                      f"{_fmt(None if found is None else 100 * found, '.2f')} % detected > 1 N "
                      "(docs/tradeoff.md, \"The information bound\")")
     return "\n".join(lines)
-
-
-def _bound_ms(res: dict[str, Any]) -> float | None:
-    """The median onset the recordings' noise allows (``res["noise_allows"]``), or None."""
-    allows = res.get("noise_allows") or {}
-    return (allows.get("onset_bound_ms") or {}).get("median")
 
 
 def csv_text(res: dict[str, Any]) -> str:
@@ -266,7 +260,7 @@ def plot(res: dict[str, Any], path: Path) -> Path:
     ax.axhline(QUIET_PER_MIN, color="grey", lw=0.8, ls="--")
     ax.axvline(ONSET_GOAL_MS, color="grey", lw=0.8, ls=":")
     ax.set_yscale("log")
-    best = _bound_ms(res)
+    best = onset_bound.median_onset_ms(res.get("noise_allows"))
     if best is not None:
         # Quicker than the bound and as quiet as the line, no decision can be: the noise's
         # corner, not the rule's.

@@ -357,11 +357,12 @@ def _onset_against_bound(out: dict[str, Any]) -> str | None:
     onset = (timing or {}).get("onset_delay_ms", {}).get("median")
     if onset is None or not allows or not allows.get("onset_bound_ms"):
         return None
-    best = allows["onset_bound_ms"]["median"]
+    from fbgforce.evaluation.onset_bound import delay_text, median_onset_ms
+
     above = out.get("contact_accuracy_above_1N")
     return (f"onset: median {onset:.1f} ms after the label; the noise "
             f"({allows['noise_pm']:.1f} pm) allows no decision sooner than "
-            + ("never" if best is None else f"{best:.1f} ms")
+            + delay_text(median_onset_ms(allows))
             + f" on these {allows['presses']} presses"
             + ("" if above is None or allows["detected_above_1N"] is None else
                f"; samples above 1 N found {100 * above:.2f} %, at best "

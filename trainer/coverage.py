@@ -228,11 +228,11 @@ def _noise_allows_lines(b: dict[str, Any] | None) -> list[str]:
         return [head + f"; no press with a rest before it and 5 samples above "
                 f"{onset_bound.SENSITIVITY_MIN_N:g} N to bound the onset on"]
     o = b["onset_bound_ms"]
-    ms = (lambda v: "never" if v is None else f"{v:.1f} ms")
     noise = ("" if b["force_noise_N"] is None
              else f", a force noise of {b['force_noise_N']:.3f} N a sample at best")
     return [head + f"{noise}; no contact decision within {b['per_min']:g} false event a minute "
-            f"at rest finds its {b['presses']} presses sooner than {ms(o['median'])} after the "
-            f"label (median; p90 {ms(o['p90'])}), nor more than "
+            f"at rest finds its {b['presses']} presses sooner than "
+            f"{onset_bound.delay_text(o['median'])} after the label (median; p90 "
+            f"{onset_bound.delay_text(o['p90'])}), nor more than "
             f"{100 * b['detected_above_1N']:.2f} % of their samples above "
             f"{onset_bound.SENSITIVITY_MIN_N:g} N"]

@@ -23,6 +23,7 @@ import numpy as np
 
 from fbgforce.jsonutil import json_default
 from fbgforce.evaluation import metrics as fmetrics
+from fbgforce.evaluation.onset_bound import median_onset_ms
 from fbgforce.model import artifact, modeldir
 from fbgforce.trainer import baseline as bl
 from fbgforce.trainer.data import load_datasets
@@ -333,11 +334,11 @@ def to_markdown(rep: dict[str, Any]) -> str:
         on, off = timing["onset_delay_ms"], timing["release_delay_ms"]
         lines += ["", f"Per press ({timing['presses']} presses, {timing['missed_presses']} "
                   "missed): onset delay " + _delay(on) + "; release delay " + _delay(off) + "."]
-        best = (m.get("noise_allows") or {}).get("onset_bound_ms") or {}
-        if best.get("median") is not None:
+        best = median_onset_ms(m.get("noise_allows"))
+        if best is not None:
             lines += ["", f"The recordings' own noise ({m['noise_allows']['noise_pm']:.1f} pm a "
                       "grating) lets no contact decision within one false event a minute at "
-                      f"rest find these presses sooner than {best['median']:.1f} ms median "
+                      f"rest find these presses sooner than {best:.1f} ms median "
                       "(docs/lab-import.md, \"Coverage\")."]
     lines += ["", "## Checks", "", *check_lines(rep), ""]
     return "\n".join(lines)

@@ -26,7 +26,7 @@ recordings).
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -175,6 +175,17 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
                                 "p90": _finite(np.percentile(delays, 90))}
                                if delays.size else None),
             "detected_above_1N": 1.0 - missed / above if above else None}
+
+
+def median_onset_ms(allows: Mapping[str, Any] | None) -> float | None:
+    """The median onset a :func:`bound` result allows, ms; None without a result, without a
+    press, or where most presses never give the evidence."""
+    return ((allows or {}).get("onset_bound_ms") or {}).get("median")
+
+
+def delay_text(ms: float | None) -> str:
+    """An onset of the bound as the commands print it: ``12.3 ms``, or ``never`` (None)."""
+    return "never" if ms is None else f"{ms:.1f} ms"
 
 
 def _finite(value: float) -> float | None:
