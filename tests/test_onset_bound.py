@@ -28,6 +28,23 @@ def _presses(noise_pm: float, slope_N: float = 0.02, presses: int = 40, seed: in
     return wl, force, force > 0.3
 
 
+def _dataset(wl: np.ndarray, force: np.ndarray, contact: np.ndarray) -> Dataset:
+    """The presses of :func:`_presses` as a dataset: one press_id per labelled run."""
+    n = force.size
+    xy = np.where(contact, 0.0, np.nan)
+    return Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=contact, x_mm=xy,
+                   y_mm=xy, force_N=force,
+                   press_id=np.cumsum(np.r_[0, np.diff(contact.astype(int)) == 1]))
+
+
+def _always_in_contact(wl: np.ndarray, force: np.ndarray) -> Dataset:
+    """The same samples labelled in contact throughout: no rest to measure the noise on."""
+    n = force.size
+    return Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
+                   x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
+                   press_id=np.zeros(n, int))
+
+
 def _reached(noise_pm: float, slope_N: float, per_min: float = 1.0) -> int:
     """The sample of the noise-free ramp (1 its first loaded one) at which its evidence, with
     the true sensitivity and noise, reaches log(60 * rate / per_min)."""
@@ -76,19 +93,12 @@ def test_more_noise_or_fewer_false_events_take_longer_and_a_slow_press_gives_its
 
 def test_the_command_prints_the_bound_and_refuses_a_log_without_rests(tmp_path, capsys):
     wl, force, contact = _presses(10.0, presses=8)
-    n = force.size
-    xy = np.where(contact, 0.0, np.nan)
-    ds = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=contact, x_mm=xy,
-                 y_mm=xy, force_N=force, press_id=np.cumsum(np.r_[0, np.diff(contact.astype(int)) == 1]))
-    save(ds, tmp_path / "presses.npz")
+    save(_dataset(wl, force, contact), tmp_path / "presses.npz")
     assert main(["--data", str(tmp_path / "presses.npz")]) == 0
     out = capsys.readouterr().out
     assert "8 presses" in out and f"{_expected_ms(10.0, 0.02):.0f}" in out
     assert "% of their samples above 1 N" in out
-    always = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
-                     x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
-                     press_id=np.zeros(n, int))
-    save(always, tmp_path / "held.npz")
+    save(_always_in_contact(wl, force), tmp_path / "held.npz")
     assert main(["--data", str(tmp_path / "held.npz")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "held.npz" in err and "rest" in err
@@ -116,14 +126,6 @@ def test_the_samples_above_1N_before_the_bound_are_the_ones_no_decision_finds():
     quiet = _presses(2.0)
     assert all(p["missed_above_1N"] == 0
                for p in press_bounds(*quiet, rest_noise_covariance(quiet[0], quiet[2]), RATE))
-
-
-def _dataset(wl: np.ndarray, force: np.ndarray, contact: np.ndarray) -> Dataset:
-    n = force.size
-    xy = np.where(contact, 0.0, np.nan)
-    return Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=contact, x_mm=xy,
-                   y_mm=xy, force_N=force,
-                   press_id=np.cumsum(np.r_[0, np.diff(contact.astype(int)) == 1]))
 
 
 def test_coverage_says_what_the_calibrations_noise_allows():
@@ -155,11 +157,7 @@ def test_coverage_says_what_the_calibrations_noise_allows():
     assert median_onset_ms(None) is None and median_onset_ms({"onset_bound_ms": None}) is None
     assert delay_text(None) == "never" and delay_text(12.34) == "12.3 ms"
     # No rest to measure the noise on: said, not guessed.
-    n = force.size
-    held = Dataset(t_s=np.arange(n) / RATE, wl_nm=wl / 1000.0, contact=np.ones(n, bool),
-                   x_mm=np.zeros(n), y_mm=np.zeros(n), force_N=force + 1.0,
-                   press_id=np.zeros(n, int))
-    none = coverage([held])
+    none = coverage([_always_in_contact(wl, force)])
     assert none["noise_allows"] is None
     assert coverage_lines(none)[-1] == ("  the noise allows: not measured (no rest to measure "
                                         "the noise on)")
