@@ -75,6 +75,27 @@ def test_the_bound_is_the_closed_form_of_known_presses(noise_pm):
     assert noise == pytest.approx(noise_pm / np.linalg.norm(SENSITIVITY), rel=0.05)
 
 
+@pytest.mark.parametrize("lag", [4, -3])
+def test_shifts_that_trail_the_load_cell_give_the_bound_of_the_shifts(lag):
+    # A pad whose rubber damps the rise answers the load `lag` samples late; a load cell
+    # whose clock runs behind the interrogator's reads as a negative lag. The bound is the one
+    # of the shifts as they come: the closed form moved by the lag, which it reports.
+    wl, force, contact = _presses(5.0, slope_N=0.1)
+    trailing = np.roll(wl - 1.5e6, lag, axis=0) + 1.5e6
+    cov = rest_noise_covariance(trailing, contact)
+    at_once = press_bounds(wl, force, contact, cov, RATE)
+    got = press_bounds(trailing, force, contact, cov, RATE)
+    assert {p["shift_lag_ms"] for p in at_once} == {0.0}
+    assert {p["shift_lag_ms"] for p in got} == {lag * 1000.0 / RATE}
+    expected = _expected_ms(5.0, 0.1) + lag * 1000.0 / RATE
+    assert np.median([p["onset_bound_ms"] for p in got]) == pytest.approx(max(expected, 0.0),
+                                                                          abs=1.0)
+    # A slow rise under heavy noise cannot tell a few samples apart: no lag is taken there.
+    noisy = _presses(30.0, slope_N=0.005, presses=8)
+    assert {p["shift_lag_ms"] for p in press_bounds(*noisy, rest_noise_covariance(
+        noisy[0], noisy[2]), RATE)} == {0.0}
+
+
 def test_more_noise_or_fewer_false_events_take_longer_and_a_slow_press_gives_its_own_bound():
     wl, force, contact = _presses(5.0)
     cov = rest_noise_covariance(wl, contact)

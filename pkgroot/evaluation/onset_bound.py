@@ -6,18 +6,26 @@ average run length at rest of ``gamma = 60 * rate / per_min`` samples, and canno
 average, find a change before the log-likelihood ratio of what it has seen since the change
 reaches ``log(gamma)`` (Lorden 1971 for a fixed change, Lai 1998 for one that grows, as a
 press does; asymptotically in ``gamma``). For a press of force ``f(t)`` on a pad whose shifts
-move by ``f * s`` (``s``, pm/N per grating, the press's own location) under white noise of
-covariance ``C`` (pm^2), each sample adds ``f(t)^2 * s' C^-1 s / 2`` to that ratio. The bound
-is the delay after the contact label's onset at which the sum from the press's first loaded
-sample reaches ``log(gamma)`` (0 where it does so before the label): the quickest median onset
-of a detector that knew the press's location and force profile in advance. Any decision that
-must learn them from the signal, the contact net's included, comes later. The samples above
-1 N that such a detector has not yet found are the fewest any decision misses, on average.
+move by ``f(t - d) * s`` (``s``, pm/N per grating, the press's own location; ``d`` the lag of
+the shifts behind the load cell) under white noise of covariance ``C`` (pm^2), each sample
+adds ``f(t - d)^2 * s' C^-1 s / 2`` to that ratio. The bound is the delay after the contact
+label's onset at which the sum from the press's last unloaded sample reaches ``log(gamma)``
+(0 where it does so before the label): the quickest median onset of a detector that knew the
+press's location and force profile in advance. Any decision that must learn them from the
+signal, the contact net's included, comes later. The samples above 1 N that such a detector
+has not yet found are the fewest any decision misses, on average.
 
 ``C`` is half the covariance of the rests' first differences (white noise doubles in a
 difference; the zero's wander and the temperature's drift vanish from it; the rests those of
 the tare, :func:`fbgforce.recordings.tare.contact_free_mask`), ``s`` each press's least-squares
-shift per newton over its samples above 1 N, from the rest before it.
+shift per newton over its samples above 1 N, from the rest before it. ``d`` is the recording's
+own, read where it matters, on the presses' rises up to :data:`LAG_FIT_MAX_N`: the whole
+samples, within :data:`LAG_MAX_MS` either way, that bring the matched filter's reading of the
+shifts (``s' C^-1 (x - zero) / s' C^-1 s``, newtons) closest to the load cell. A pad whose
+rubber damps the rise gives its shifts milliseconds after the load (a Kelvin-Voigt damper of
+4 ms: ``d`` 4 ms, and a bound of 7 ms where the load cell times a fixed sensitivity promised
+3), and a load cell whose clock runs behind the interrogator's a negative ``d``; a pad that
+answers its load at once keeps ``d`` 0 and the bound it had.
 
 Used by ``fbgforce coverage`` (what a calibration's noise allows), ``fbgforce evaluate`` (beside
 the onset it measures) and ``python -m fbgforce.bench.bench_onset_bound`` (any labelled
@@ -45,6 +53,15 @@ FORCE_FLOOR_N = 0.05
 SENSITIVITY_MIN_N = 1.0
 #: Rest sample pairs needed to measure the noise on.
 MIN_REST_PAIRS = 100
+#: The shifts' lag behind the load cell is read on each press's rise up to this force (the
+#: onset the bound is about; a friction loop's lag grows further up), N, and sought within
+#: this many milliseconds either way.
+LAG_FIT_MAX_N = 2.0
+LAG_MAX_MS = 10.0
+#: How much better than none a lag must fit before the bound takes it: its squared
+#: differences lower by this much in units of the reading's noise variance (a chi-square of
+#: 9 on one degree of freedom: the 5 % level once twenty lags have been tried).
+LAG_MIN_GAIN = 9.0
 
 
 def rest_noise_covariance(wl_pm: np.ndarray, contact: np.ndarray,
@@ -95,7 +112,8 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     list of dict
         Per press: ``onset_bound_ms`` (inf where the press never gives enough evidence),
         ``force_noise_N`` (the per-sample noise of a force read by the matched filter at the
-        press's location, ``1 / sqrt(s' C^-1 s)``), ``above_1N`` (its labelled contact
+        press's location, ``1 / sqrt(s' C^-1 s)``), ``shift_lag_ms`` (the recording's,
+        :func:`shift_lag`), ``above_1N`` (its labelled contact
         samples above 1 N) and ``missed_above_1N`` (those of them before the bound).
     """
     contact = np.asarray(contact, bool)
@@ -104,11 +122,9 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
     threshold = math.log(60.0 * rate_hz / per_min)
     inv = np.linalg.pinv(noise_cov)
     starts, stops = runs(contact)
-    out = []
+    presses = []
     rests_from = [0, *stops[:-1].tolist()]
     for t_on, t_off, rest_from in zip(starts.tolist(), stops.tolist(), rests_from):
-        if keep is not None and not keep[t_on]:
-            continue
         # From the last unloaded sample of the rest: the tail of the release before counts
         # for nothing.
         unloaded = np.flatnonzero(f[rest_from:t_on] == 0.0)
@@ -123,16 +139,53 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
             continue
         zero = wl_pm[window].mean(axis=0)
         s = (f[loaded] @ (wl_pm[loaded] - zero)) / float(f[loaded] @ f[loaded])
-        q = float(s @ inv @ s)
-        evidence = 0.5 * q * np.cumsum(np.where(good[start:t_off], f[start:t_off], 0.0) ** 2)
+        presses.append((t_on, t_off, start, above, zero, s, float(s @ inv @ s)))
+    lag = shift_lag(wl_pm, f, good, inv, [(p[2], p[1], p[4], p[5]) for p in presses], rate_hz)
+    out = []
+    for t_on, t_off, start, above, zero, s, q in presses:
+        if keep is not None and not keep[t_on]:
+            continue
+        lagged = f[np.clip(np.arange(start, t_off) - lag, 0, f.size - 1)]
+        evidence = 0.5 * q * np.cumsum(np.where(good[start:t_off], lagged, 0.0) ** 2)
         reached = np.flatnonzero(evidence >= threshold)
         delay = (start + int(reached[0]) - int(t_on)) if reached.size else math.inf
         found_from = t_on + max(delay, 0) if reached.size else t_off
         out.append({"onset_bound_ms": max(delay, 0) * 1000.0 / rate_hz,
                     "force_noise_N": 1.0 / math.sqrt(q) if q > 0 else math.inf,
+                    "shift_lag_ms": lag * 1000.0 / rate_hz,
                     "above_1N": int(above.size),
                     "missed_above_1N": int((above < found_from).sum())})
     return out
+
+
+def shift_lag(wl_pm: np.ndarray, f: np.ndarray, good: np.ndarray, inv: np.ndarray,
+              presses: Sequence[tuple[int, int, np.ndarray, np.ndarray]], rate_hz: float) -> int:
+    """The shifts' lag behind the load cell on the presses' rises, samples (module docstring).
+
+    ``presses`` holds ``(start, stop, zero, s)`` each: the press's last unloaded sample, the
+    end of its label, its zero and sensitivity. Each rise runs from ``start`` to the first
+    sample at :data:`LAG_FIT_MAX_N`; the lag is the whole number of samples, within
+    :data:`LAG_MAX_MS`, that minimises the squared difference, over every rise's good samples,
+    between the matched filter's reading of the shifts and the load cell's force that many
+    samples before, each press weighted by its ``s' C^-1 s`` (the reading's inverse noise
+    variance). 0 without a rise to read it on, or where no lag fits better than none by
+    :data:`LAG_MIN_GAIN` (a slow rise under heavy noise cannot tell a few samples apart).
+    """
+    most = int(round(LAG_MAX_MS * rate_hz / 1000.0))
+    lags = np.arange(-most, most + 1)
+    cost = np.zeros(lags.size)
+    for start, stop, zero, s in presses:
+        q = float(s @ inv @ s)
+        strong = np.flatnonzero(f[start:stop] >= LAG_FIT_MAX_N)
+        end = start + (int(strong[0]) if strong.size else stop - start)
+        rise = np.arange(start, end)
+        rise = rise[good[rise] & (rise - most >= 0) & (rise + most < f.size)]
+        if q <= 0 or not rise.size:
+            continue
+        reading = (wl_pm[rise] - zero) @ inv @ s / q
+        cost += q * np.array([float(np.sum((reading - f[rise - d]) ** 2)) for d in lags])
+    best = int(np.argmin(cost))
+    return int(lags[best]) if cost[most] - cost[best] > LAG_MIN_GAIN else 0
 
 
 def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
@@ -146,10 +199,11 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
     dict or None
         ``per_min``, ``presses`` (how many had a rest before them and 5 samples above 1 N),
         ``noise_pm`` (the median grating's noise per sample), ``force_noise_N`` (median over
-        the presses), ``onset_bound_ms`` (``median`` and ``p90``, each None where that share
-        of the presses never gives the evidence) and ``detected_above_1N`` (the share of the
-        presses' samples above 1 N found by the bound's detector); the last three None with
-        no press.
+        the presses), ``shift_lag_ms`` (the shifts' lag behind the load cell that the bound
+        took, :func:`shift_lag`, median over the presses), ``onset_bound_ms`` (``median``
+        and ``p90``, each None where that share of the presses never gives the evidence) and
+        ``detected_above_1N`` (the share of the presses' samples above 1 N found by the
+        bound's detector); the last four None with no press.
     """
     shifts = [1000.0 * np.asarray(ds.wl_nm, float) for ds in datasets]
     faults = [sensor_fault_rows(ds.wl_nm) for ds in datasets]
@@ -166,11 +220,13 @@ def bound(datasets: Sequence[Dataset], per_min: float = 1.0,
                                 None if keeps is None else keeps[i], faults[i])
     delays = np.array([p["onset_bound_ms"] for p in presses])
     noise = np.array([p["force_noise_N"] for p in presses])
+    lags = np.array([p["shift_lag_ms"] for p in presses])
     above = sum(p["above_1N"] for p in presses)
     missed = sum(p["missed_above_1N"] for p in presses)
     return {"per_min": per_min, "presses": len(presses),
             "noise_pm": float(np.sqrt(np.median(np.diag(pooled)))),
             "force_noise_N": _finite(np.median(noise)) if noise.size else None,
+            "shift_lag_ms": float(np.median(lags)) if lags.size else None,
             "onset_bound_ms": ({"median": _finite(np.median(delays)),
                                 "p90": _finite(np.percentile(delays, 90))}
                                if delays.size else None),
