@@ -44,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from fbgforce.cliargs import fail
     from fbgforce.errors import InputError
-    from fbgforce.evaluation.onset_bound import SENSITIVITY_MIN_N, ZERO_SAMPLES, delay_text
+    from fbgforce.evaluation.onset_bound import (SENSITIVITY_MIN_N, ZERO_SAMPLES, delay_text,
+                                                 lag_text)
 
     if not args.per_min > 0:
         return fail("bench_onset_bound: --per-min must be above 0", args.json)
@@ -60,11 +61,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         b = out["onset_bound_ms"]
         noise = out["force_noise_N"]
-        lag = out["shift_lag_ms"] or 0.0
         print(f"{out['presses']} presses, noise {out['noise_pm']:.1f} pm per grating, force "
               f"noise of the matched filter "
-              f"{'unbounded' if noise is None else f'{noise:.3f} N'} per sample, the shifts "
-              f"{abs(lag):g} ms {'ahead of' if lag < 0 else 'behind'} the load cell: "
+              f"{'unbounded' if noise is None else f'{noise:.3f} N'} per sample"
+              f"{lag_text(out)}: "
               f"no decision within {args.per_min:g} false event"
               f"{'' if args.per_min == 1 else 's'} a minute finds them sooner "
               f"than {delay_text(b['median'])} median ({delay_text(b['p90'])} p90) after the "

@@ -90,6 +90,14 @@ def test_shifts_that_trail_the_load_cell_give_the_bound_of_the_shifts(lag):
     expected = _expected_ms(5.0, 0.1) + lag * 1000.0 / RATE
     assert np.median([p["onset_bound_ms"] for p in got]) == pytest.approx(max(expected, 0.0),
                                                                           abs=1.0)
+    # Every command says so after the noise, in the same words.
+    from fbgforce.evaluation.onset_bound import lag_text
+    from fbgforce.trainer.coverage import coverage, coverage_lines
+
+    said = coverage_lines(coverage([_dataset(trailing, force, contact)]))[-1]
+    words = f", the shifts {abs(lag)} ms {'behind' if lag > 0 else 'ahead of'} the load cell"
+    assert lag_text({"shift_lag_ms": float(lag)}) == words and words + ";" in said
+    assert lag_text({"shift_lag_ms": 0.0}) == lag_text(None) == ""
     # A slow rise under heavy noise cannot tell a few samples apart: no lag is taken there.
     noisy = _presses(30.0, slope_N=0.005, presses=8)
     assert {p["shift_lag_ms"] for p in press_bounds(*noisy, rest_noise_covariance(

@@ -357,11 +357,11 @@ def _onset_against_bound(out: dict[str, Any]) -> str | None:
     onset = (timing or {}).get("onset_delay_ms", {}).get("median")
     if onset is None or not allows or not allows.get("onset_bound_ms"):
         return None
-    from fbgforce.evaluation.onset_bound import delay_text, median_onset_ms
+    from fbgforce.evaluation.onset_bound import delay_text, lag_text, median_onset_ms
 
     above = out.get("contact_accuracy_above_1N")
     return (f"onset: median {onset:.1f} ms after the label; the noise "
-            f"({allows['noise_pm']:.1f} pm) allows no decision sooner than "
+            f"({allows['noise_pm']:.1f} pm{lag_text(allows)}) allows no decision sooner than "
             + delay_text(median_onset_ms(allows))
             + f" on these {allows['presses']} presses"
             + ("" if above is None or allows["detected_above_1N"] is None else

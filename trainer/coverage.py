@@ -230,9 +230,7 @@ def _noise_allows_lines(b: dict[str, Any] | None) -> list[str]:
     o = b["onset_bound_ms"]
     noise = ("" if b["force_noise_N"] is None
              else f", a force noise of {b['force_noise_N']:.3f} N a sample at best")
-    lag = b.get("shift_lag_ms") or 0.0
-    noise += "" if not lag else (f", the shifts {abs(lag):g} ms "
-                                 f"{'behind' if lag > 0 else 'ahead of'} the load cell")
+    noise += onset_bound.lag_text(b)
     return [head + f"{noise}; no contact decision within {b['per_min']:g} false event a minute "
             f"at rest finds its {b['presses']} presses sooner than "
             f"{onset_bound.delay_text(o['median'])} after the label (median; p90 "

@@ -23,7 +23,7 @@ import numpy as np
 
 from fbgforce.jsonutil import json_default
 from fbgforce.evaluation import metrics as fmetrics
-from fbgforce.evaluation.onset_bound import median_onset_ms
+from fbgforce.evaluation.onset_bound import lag_text, median_onset_ms
 from fbgforce.model import artifact, modeldir
 from fbgforce.trainer import baseline as bl
 from fbgforce.trainer.data import load_datasets
@@ -337,7 +337,7 @@ def to_markdown(rep: dict[str, Any]) -> str:
         best = median_onset_ms(m.get("noise_allows"))
         if best is not None:
             lines += ["", f"The recordings' own noise ({m['noise_allows']['noise_pm']:.1f} pm a "
-                      "grating) lets no contact decision within one false event a minute at "
+                      f"grating{lag_text(m['noise_allows'])}) lets no contact decision within one false event a minute at "
                       f"rest find these presses sooner than {best:.1f} ms median "
                       "(docs/lab-import.md, \"Coverage\")."]
     lines += ["", "## Checks", "", *check_lines(rep), ""]

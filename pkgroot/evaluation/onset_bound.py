@@ -244,6 +244,15 @@ def delay_text(ms: float | None) -> str:
     return "never" if ms is None else f"{ms:.1f} ms"
 
 
+def lag_text(allows: Mapping[str, Any] | None) -> str:
+    """The lag of the shifts behind the load cell a :func:`bound` result took, as the
+    commands print it after the noise: ``, the shifts 4 ms behind the load cell`` (``ahead of``
+    where they lead it); empty where the bound took none."""
+    lag = (allows or {}).get("shift_lag_ms") or 0.0
+    return (f", the shifts {abs(lag):g} ms {'behind' if lag > 0 else 'ahead of'} the load cell"
+            if lag else "")
+
+
 def _finite(value: float) -> float | None:
     """A float, or None for the presses that never give the evidence (inf, or the NaN two of
     them interpolate to): what JSON can hold."""
