@@ -337,9 +337,9 @@ def to_markdown(rep: dict[str, Any]) -> str:
         best = median_onset_ms(m.get("noise_allows"))
         if best is not None:
             lines += ["", f"The recordings' own noise ({m['noise_allows']['noise_pm']:.1f} pm a "
-                      f"grating{lag_text(m['noise_allows'])}) lets no contact decision within one false event a minute at "
-                      f"rest find these presses sooner than {best:.1f} ms median "
-                      "(docs/lab-import.md, \"Coverage\")."]
+                      f"grating{lag_text(m['noise_allows'])}) lets no contact decision within one "
+                      f"false event a minute at rest find these presses sooner than {best:.1f} ms "
+                      "median (docs/lab-import.md, \"Coverage\")."]
     lines += ["", "## Checks", "", *check_lines(rep), ""]
     return "\n".join(lines)
 
