@@ -140,7 +140,9 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
         zero = wl_pm[window].mean(axis=0)
         s = (f[loaded] @ (wl_pm[loaded] - zero)) / float(f[loaded] @ f[loaded])
         presses.append((t_on, t_off, start, above, zero, s, float(s @ inv @ s)))
-    lag = shift_lag(wl_pm, f, good, inv, [(p[2], p[1], p[4], p[5]) for p in presses], rate_hz)
+    lag = shift_lag(wl_pm, f, good, inv,
+                    [(start, t_off, zero, s, q) for _, t_off, start, _, zero, s, q in presses],
+                    rate_hz)
     out = []
     for t_on, t_off, start, above, zero, s, q in presses:
         if keep is not None and not keep[t_on]:
@@ -159,11 +161,12 @@ def press_bounds(wl_pm: np.ndarray, force_N: np.ndarray, contact: np.ndarray,
 
 
 def shift_lag(wl_pm: np.ndarray, f: np.ndarray, good: np.ndarray, inv: np.ndarray,
-              presses: Sequence[tuple[int, int, np.ndarray, np.ndarray]], rate_hz: float) -> int:
+              presses: Sequence[tuple[int, int, np.ndarray, np.ndarray, float]], rate_hz: float
+              ) -> int:
     """The shifts' lag behind the load cell on the presses' rises, samples (module docstring).
 
-    ``presses`` holds ``(start, stop, zero, s)`` each: the press's last unloaded sample, the
-    end of its label, its zero and sensitivity. Each rise runs from ``start`` to the first
+    ``presses`` holds ``(start, stop, zero, s, q)`` each: the press's last unloaded sample,
+    the end of its label, its zero, its sensitivity and ``s' C^-1 s``. Each rise runs from ``start`` to the first
     sample at :data:`LAG_FIT_MAX_N`; the lag is the whole number of samples, within
     :data:`LAG_MAX_MS`, that minimises the squared difference, over every rise's good samples,
     between the matched filter's reading of the shifts and the load cell's force that many
@@ -174,8 +177,7 @@ def shift_lag(wl_pm: np.ndarray, f: np.ndarray, good: np.ndarray, inv: np.ndarra
     most = int(round(LAG_MAX_MS * rate_hz / 1000.0))
     lags = np.arange(-most, most + 1)
     cost = np.zeros(lags.size)
-    for start, stop, zero, s in presses:
-        q = float(s @ inv @ s)
+    for start, stop, zero, s, q in presses:
         strong = np.flatnonzero(f[start:stop] >= LAG_FIT_MAX_N)
         end = start + (int(strong[0]) if strong.size else stop - start)
         rise = np.arange(start, end)
