@@ -203,7 +203,8 @@ def markdown(res: dict[str, Any]) -> str:
     best = onset_bound.median_onset_ms(res.get("noise_allows"))
     if best is not None:
         found = res["noise_allows"]["detected_above_1N"]
-        lines.append(f"- the recordings' own noise ({res['noise_allows']['noise_pm']:.1f} pm) "
+        lines.append(f"- the recordings' own noise ({res['noise_allows']['noise_pm']:.1f} pm"
+                     f"{onset_bound.lag_text(res['noise_allows'])}) "
                      f"allows no decision within {QUIET_PER_MIN:g} false event(s) per minute "
                      f"at rest an onset before {best:.1f} ms median, nor more than "
                      f"{_fmt(None if found is None else 100 * found, '.2f')} % detected > 1 N "
