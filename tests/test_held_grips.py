@@ -310,6 +310,36 @@ def test_synthetic_rest_settles_where_a_real_long_rest_settles():
     assert (np.abs(pp.compensated(pre, level, baseline)) / std).max() > 0.06
 
 
+def test_the_decisions_rests_read_no_load_through_the_creep_inverse(monkeypatch):
+    """With the creep inverse on, each of the decision's long rests goes on from the
+    recording's own state at its point with the pad's own recovery: without noise its
+    filtered channels read no load from the settle on (to the 0.005 standard deviations the
+    level's own tare leaves). A step to zero compensated shift there reads through the inverse
+    as a load below zero, fading with the creep's time constant: more than a standard
+    deviation here. Without the inverse, the recovery is zero compensated shift."""
+    base = sim.load_scene("calibration_paper")
+    effects = {k: v for k, v in base.to_dict()["effects"].items() if k != "temperature"}
+    effects["viscoelastic"] = {"magnitude": 0.05, "time_constant_s": 1.0}
+    data = prepare([sim.simulate(base.replace(schedule={"n_presses": 12}, effects=effects))])
+    assert not data.pre.creep
+    rows = data.rows("all")
+    comp = pp.compensated(data.pre, data.recordings[0].ds.wl_nm, data.recordings[0].baseline_nm,
+                          recording=True)
+    assert not synthetic.unloaded_recovery(data.pre, comp, 40).any()
+    assert synthetic.unloaded_recovery(data.pre, comp, 0).shape == (0, artifact.N_STRAIN)
+    monkeypatch.setattr(synthetic, "_rest_noise",
+                        lambda r: np.zeros((1, artifact.N_STRAIN + 1)))
+    monkeypatch.setattr(synthetic, "DECISION_REST_SHARE", 1.0)
+    creeping = dataclasses.replace(data.pre, creep=0.05, creep_shift=10)
+    x = synthetic.decision_rests(data, creeping, rows, np.random.default_rng(0))
+    assert len(x) > 8 * (synthetic.DECISION_REST_S[0] - synthetic.REST_AUGMENT_SETTLE_S) * 1000
+    assert np.abs(_peak_level(x, creeping)).max() < 0.005
+    monkeypatch.setattr(synthetic, "unloaded_recovery",
+                        lambda pre, comp, n: np.zeros((n, artifact.N_STRAIN)))
+    stepped = synthetic.decision_rests(data, creeping, rows, np.random.default_rng(0))
+    assert _peak_level(stepped, creeping).min() < -1.0
+
+
 def test_the_decisions_long_rests_and_press_windows():
     """The CUSUM's threshold reads every sample of its long rests (neighbours differ by the
     noise, not by the fifty samples the nets' rests skip), and its drift windows of the

@@ -1,8 +1,8 @@
 """Synthetic recordings the nets also train on: the calibration's presses held at their peak
 (:func:`synthetic_holds`), long rests inserted before them (:func:`synthetic_rests`) and
-pressed harder (:func:`scaled_presses`), and idle pads the contact decision is set on
-(:func:`idle_rests`), each recomputed through the model's preprocessing
-over the whole lengthened recording as the runtime would run it."""
+pressed harder (:func:`scaled_presses`); and the long rests (:func:`decision_rests`) and idle
+pads (:func:`idle_rests`) the contact decision is set on; each recomputed through the model's
+preprocessing as the runtime would run it."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -58,6 +58,10 @@ DECISION_REST_S = (3.0, 12.0)
 #: At most this many minutes of them, whatever the calibration's length (the share falls on
 #: longer ones): on 100 presses the share gives 3.4, whose net inputs take 22 MB.
 DECISION_REST_MINUTES = 4.0
+#: Each of them follows this many seconds of the recording before it: the states the
+#: preprocessing primes at its first sample (the creep inverse's lag, up to 2^12 samples;
+#: the plays, which a press resets) have then come to what the whole recording leaves.
+DECISION_REST_HISTORY_S = 30.0
 
 #: Idle pads the contact decision's threshold is also read on (:func:`idle_rests`): this many
 #: draws, each this many minutes of the calibration's own rest noise at its tare, from a fresh
@@ -184,24 +188,8 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
     the rest is not: it would start with a step up from zero to the residual.
     """
     inputs, kept = [], []
-    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
-        gap = int(round(fmetrics.REST_GAP_S * r.rate_hz))
-        touched = np.flatnonzero(contact)
-        starts = []
-        for p in np.unique(pid[contact[sel]]):
-            if rng.random() >= share:
-                continue
-            first = int(sel[(pid == p) & contact[sel]].min())
-            before = touched[touched < first]
-            prev = int(before[-1]) if before.size else -gap
-            if first - prev > 2 * gap + 6:
-                starts.append((prev + first) // 2)
-        if not starts:
-            continue
-        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
-        level = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in starts])
-        level[:, :artifact.N_STRAIN] -= pp.compensated(pre, level, r.baseline_nm) / 1000.0
-        lengths = np.round(rng.uniform(*lengths_s, len(starts)) * r.rate_hz).astype(np.int64)
+    for r, sl, wl, noise, starts, level, lengths in _placed_rests(data, pre, rows, share, rng,
+                                                                  lengths_s):
         rest = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
         in_rest = np.concatenate([np.arange(n) for n in lengths])
@@ -214,17 +202,88 @@ def synthetic_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
     return _stacked(inputs, kept, pre, rows)
 
 
+def _placed_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
+                  rng: np.random.Generator, lengths_s: tuple[float, float]
+                  ) -> Iterator[tuple[Recording, slice, np.ndarray, np.ndarray, list[int],
+                                      np.ndarray, np.ndarray]]:
+    """Where the rests of :func:`synthetic_rests` go, per recording with some of ``rows``:
+    ``(r, sl, wl, noise, points, levels, lengths)``, the recording, its slice of the prepared
+    rows, its wavelengths and rest noise; the samples after which a rest goes, before a
+    ``share`` of its presses (drawn per press), midway between the press's first contact
+    sample and the previous press's last where they lie more than ``2 * REST_GAP_S`` apart;
+    each rest's five wavelengths (the mean of the six samples there, the strain part moved to
+    zero compensated shift, temperature untouched) and its length, ``U(*lengths_s)``
+    seconds."""
+    for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
+        gap = int(round(fmetrics.REST_GAP_S * r.rate_hz))
+        touched = np.flatnonzero(contact)
+        points = []
+        for p in np.unique(pid[contact[sel]]):
+            if rng.random() >= share:
+                continue
+            first = int(sel[(pid == p) & contact[sel]].min())
+            before = touched[touched < first]
+            prev = int(before[-1]) if before.size else -gap
+            if first - prev > 2 * gap + 6:
+                points.append((prev + first) // 2)
+        if not points:
+            continue
+        wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
+        levels = np.array([wl[max(0, k - 5):k + 1].mean(axis=0) for k in points])
+        levels[:, :artifact.N_STRAIN] -= pp.compensated(pre, levels, r.baseline_nm) / 1000.0
+        lengths = np.round(rng.uniform(*lengths_s, len(points)) * r.rate_hz).astype(np.int64)
+        yield r, sl, wl, noise, points, levels, lengths
+
+
+def unloaded_recovery(pre: artifact.Preprocess, comp: np.ndarray, n: int) -> np.ndarray:
+    """What to add (pm, (n, 4)) to the compensated shifts of ``n`` samples at zero that follow
+    a recording's compensated shifts ``comp`` (m, 4) for ``pre``'s creep inverse to read no
+    load on them: the pad's own recovery. The standard linear solid of
+    :mod:`fbgforce.model.floatref` with no elastic strain reads ``kappa L``, ``L`` the
+    inverse's lag after ``comp`` decaying by ``2^-creep_shift`` a sample, and its inverse reads
+    exactly zero on that. Zeros without a creep inverse."""
+    if not pre.creep or n == 0 or len(comp) == 0:
+        return np.zeros((n, artifact.N_STRAIN))
+    comp = np.asarray(comp, dtype=np.float64)
+    lag = floatref.creep_lags(pre, comp, comp[0].copy())[-1]
+    kappa = pre.creep_gain / (1.0 + pre.creep_gain)
+    return kappa * lag * (1.0 - 2.0 ** -pre.creep_shift) ** np.arange(n)[:, None]
+
+
 def decision_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
                    rng: np.random.Generator) -> np.ndarray:
-    """Net inputs of every sample of synthetic long rests (:func:`synthetic_rests`) inserted
-    before :data:`DECISION_REST_SHARE` of the presses of ``rows`` (fewer on a calibration so
-    long that they would last past :data:`DECISION_REST_MINUTES`), each
-    ``U(*DECISION_REST_S)`` seconds long, in time order: what the contact decision's threshold
-    is read on beside the calibration's own rests."""
+    """Net inputs of every sample of synthetic long rests after :data:`DECISION_REST_SHARE`
+    of the presses of ``rows`` (fewer on a calibration so long that they would last past
+    :data:`DECISION_REST_MINUTES`), each ``U(*DECISION_REST_S)`` seconds long, from
+    :data:`REST_AUGMENT_SETTLE_S` on, in time order: what the contact decision's threshold is
+    read on beside the calibration's own rests.
+
+    Each rest is placed where :func:`synthetic_rests` places one, but made on its own: the
+    recording's last :data:`DECISION_REST_HISTORY_S` seconds up to that point, then the pad
+    left unloaded, with the calibration's rest noise. Unloaded is zero compensated shift,
+    or with ``pre``'s creep inverse the pad's own recovery from where it stood
+    (:func:`unloaded_recovery`), which the inverse reads as no load at all. So each rest
+    begins in the state a real rest after that press begins in: not after the rests inserted
+    before it (the recording would resume from each with a step up to its residual), and
+    not with a step to zero, which reads through the inverse as a load below zero fading
+    over the creep's time constant."""
     presses = sum(np.unique(pid[contact[sel]]).size
                   for _, _, sel, contact, _, pid in _augmented_recordings(data, rows))
-    return synthetic_rests(data, pre, rows, decision_rest_share(presses), 1, rng,
-                           DECISION_REST_S)[0]
+    share = decision_rest_share(presses)
+    inputs = []
+    for r, _, wl, noise, points, levels, lengths in _placed_rests(data, pre, rows, share, rng,
+                                                                  DECISION_REST_S):
+        history = int(round(DECISION_REST_HISTORY_S * r.rate_hz))
+        settle = int(round(REST_AUGMENT_SETTLE_S * r.rate_hz))
+        for point, level, n in zip(points, levels, lengths):
+            before = wl[max(0, point + 1 - history):point + 1]
+            rest = level + noise[rng.integers(0, len(noise), int(n))]
+            rest[:, :artifact.N_STRAIN] += unloaded_recovery(
+                pre, pp.compensated(pre, before, r.baseline_nm, recording=True), int(n)) / 1000.0
+            both = np.concatenate([before, rest])
+            x = floatref.standardise(pre, pp.recording_features(pre, both, r.baseline_nm))
+            inputs.append(x[len(before) + settle:])
+    return np.concatenate(inputs) if inputs else np.empty((0, pre.n_inputs))
 
 
 def idle_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,

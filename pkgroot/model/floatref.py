@@ -217,6 +217,14 @@ def compensate(model: HierarchicalModel, wl_nm: np.ndarray, baseline_nm: np.ndar
     return shift_pm[:, :N_STRAIN] - ref[:, None] * pre.temp_coeff
 
 
+def creep_lags(pre: Preprocess, comp: np.ndarray, prev: np.ndarray) -> np.ndarray:
+    """The creep inverse's lag ``L`` (n, 4) after each of the compensated shifts ``comp``
+    (n, 4), pm, of one continuous recording from ``prev`` (4,) before them: ``L`` follows
+    ``c`` with step ``(1 + q) / 2^creep_shift`` (:func:`creep_inverse`). ``pre.creep`` > 0."""
+    return _first_order(np.asarray(comp, dtype=np.float64),
+                        (1.0 + pre.creep_gain) * 2.0 ** -pre.creep_shift, prev)
+
+
 def creep_inverse(pre: Preprocess, comp: np.ndarray, lag: list[np.ndarray | None] | None = None,
                   fault: np.ndarray | None = None) -> np.ndarray:
     """The pad's creep taken out of the compensated shifts of one continuous recording, per
@@ -254,7 +262,7 @@ def creep_inverse(pre: Preprocess, comp: np.ndarray, lag: list[np.ndarray | None
     c = comp[good]
     prev = c[0].copy() if state[0] is None else np.asarray(state[0], dtype=np.float64)
     q = pre.creep_gain
-    lags = _first_order(c, (1.0 + q) * 2.0 ** -pre.creep_shift, prev)   # L after each sample
+    lags = creep_lags(pre, c, prev)
     before = np.vstack([prev[None, :], lags[:-1]])
     out = comp.copy()
     out[good] = c + q * (c - before)
