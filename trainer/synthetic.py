@@ -276,13 +276,14 @@ def decision_rests(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray,
         history = int(round(DECISION_REST_HISTORY_S * r.rate_hz))
         settle = int(round(REST_AUGMENT_SETTLE_S * r.rate_hz))
         for point, level, n in zip(points, levels, lengths):
-            before = wl[max(0, point + 1 - history):point + 1]
-            rest = level + noise[rng.integers(0, len(noise), int(n))]
-            rest[:, :artifact.N_STRAIN] += unloaded_recovery(
-                pre, pp.compensated(pre, before, r.baseline_nm, recording=True), int(n)) / 1000.0
-            both = np.concatenate([before, rest])
-            x = floatref.standardise(pre, pp.recording_features(pre, both, r.baseline_nm))
-            inputs.append(x[len(before) + settle:])
+            m = min(history, point + 1)
+            both = np.concatenate([wl[point + 1 - m:point + 1],
+                                   level + noise[rng.integers(0, len(noise), int(n))]])
+            # Compensated causally, so its first m rows are the history's own.
+            comp = pp.compensated(pre, both, r.baseline_nm, recording=True)
+            comp[m:] += unloaded_recovery(pre, comp[:m], int(n))
+            x = floatref.standardise(pre, floatref.apply_filter(pre, comp))
+            inputs.append(x[m + settle:])
     return np.concatenate(inputs) if inputs else np.empty((0, pre.n_inputs))
 
 
