@@ -321,13 +321,29 @@ def _press_windows(data: Prepared, logits: np.ndarray) -> list[tuple[np.ndarray,
     return windows
 
 
+#: Quantiles of the contact net's margin at rest that ``model.json`` records for the rests the
+#: decision's threshold was read on (``decision_rests``), to set beside a pad's real long rests
+#: (``python -m fbgforce.bench.bench_decision_rests``).
+DECISION_REST_QUANTILES = (0.999, 0.9999)
+
+
+def _margin_quantiles(margins: np.ndarray, rate_hz: float) -> dict[str, Any]:
+    """The minutes of ``margins`` and their :data:`DECISION_REST_QUANTILES` (None without)."""
+    return {"minutes": margins.size / rate_hz / 60.0,
+            "margin_quantiles": {f"{100 * q:g}": float(np.quantile(margins, q))
+                                 if margins.size else None for q in DECISION_REST_QUANTILES}}
+
+
 def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray,
                     cnet: FlatMLP, rests: tuple[Held, Held], settled: Mapping[str, Any],
-                    streams: _Streams, idle_pads: int) -> dict[str, artifact.InUse]:
+                    streams: _Streams, idle_pads: int
+                    ) -> tuple[dict[str, artifact.InUse], dict[str, Any]]:
     """The in-use stages each rule of :data:`~fbgforce.trainer.params.DECISION_RULES` would
     set from the training data: its decision over time, the tracker and the settled-hold
     gain with its steadiness band (``settled``, what
-    :func:`~fbgforce.trainer.hold_gain.hold_gain` measured; empty: the stage off).
+    :func:`~fbgforce.trainer.hold_gain.hold_gain` measured; empty: the stage off); and what
+    the rests the CUSUM's threshold was read on hold (``calibration`` and ``long`` rests, each
+    :func:`_margin_quantiles`).
 
     The decision's thresholds weigh every sample at rest, the synthetic long rests'
     included: the calibration's own rests end within a second of a release, before the
@@ -354,26 +370,30 @@ def _decision_rules(data: Prepared, pre: artifact.Preprocess, logits: np.ndarray
             for x in idle_rests(data, pre, rows, streams.idle_rests, idle_pads)]
     cusum = {"long_rests": lg[:, 1] - lg[:, 0], "presses": _press_windows(data, logits),
              "idle": idle}
-    return {rule: artifact.InUse.recommended(
+    rules = {rule: artifact.InUse.recommended(
         data.rate_hz, rest_margins=rest_margins[rule], creep_magnitude=left.magnitude,
         creep_time_constant_samples=left.time_constant_s * data.rate_hz,
         hold_gain=settled.get("gain", 0.0), hold_noise_N=settled.get("noise_N") or 0.0,
         decision=rule, **(cusum if rule == "cusum" else {})) for rule in DECISION_RULES}
+    return rules, {"calibration": _margin_quantiles(calibration_rests, data.rate_hz),
+                   "long": _margin_quantiles(cusum["long_rests"], data.rate_hz)}
 
 
 def _in_use(model: artifact.HierarchicalModel, data: Prepared, stage: "_ContactStage",
             settled: Mapping[str, Any], decision: str, idle_pads: int
-            ) -> dict[str, dict[str, Any]]:
+            ) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """Set the model's in-use stages (:func:`_decision_rules`, by the rule ``decision``, with
     ``idle_pads`` idle pads) and
     input range from the training data; return the decision's fields of every rule
-    (``metadata.decision_rules``: what the others would have set)."""
-    rules = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
-                            (stage.rest_tr, stage.rest_va), settled, stage.streams, idle_pads)
+    (``metadata.decision_rules``: what the others would have set) and what its rests hold
+    (``metadata.decision_rests``)."""
+    rules, rested = _decision_rules(data, model.preprocess, stage.logits, stage.cnet,
+                                    (stage.rest_tr, stage.rest_va), settled, stage.streams,
+                                    idle_pads)
     model.in_use = rules[decision]
     model.input_range = artifact.input_range_of(stage.z[stage.tr])
-    return {rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
-            for rule, iu in rules.items()}
+    return ({rule: {k: v for k, v in iu.to_json().items() if k.startswith("contact_")}
+             for rule, iu in rules.items()}, rested)
 
 
 def _asked(params: TrainParams | None, options: Mapping[str, Any]) -> TrainParams:
@@ -477,13 +497,14 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     t_train = time.perf_counter() - t_start - t_prep
     settled = _settled_gain(model, data, pre, np.concatenate([tr, va]), stage.creep,
                             bool(stage.hold_tr[1].size), stage.streams.hold_gain)
-    rules = _in_use(model, data, stage, settled, params.decision, params.idle_pads)
+    rules, rested = _in_use(model, data, stage, settled, params.decision, params.idle_pads)
     model.metadata = model_metadata(model, data, params, described, (tr, va, te), stage.x_all,
                                     reports, data_coverage, stage.creep,
                                     (stage.hold_tr, stage.hold_va, settled),
                                     (stage.rest_tr, stage.rest_va), held_s, warnings,
                                     (t_prep, t_train), tracking)
     model.metadata["decision_rules"] = rules
+    model.metadata["decision_rests"] = rested
     return model
 
 
@@ -553,7 +574,7 @@ def _tracked_calibration(data: Prepared, described: Sequence[Mapping[str, Any]],
     # holds, and the tracker's pass over it then finds the rests the calibration itself sets.
     in_use = _decision_rules(data, stage.pre, stage.logits, stage.cnet,
                              (stage.rest_tr, stage.rest_va), {},
-                             stage.streams, idle_pads=0)[params.decision]
+                             stage.streams, idle_pads=0)[0][params.decision]
     if not in_use.track_shift:
         return data, None
     model = tracked.tracker_model(stage.pre, stage.cnet.to_mlp(), in_use, stage.scaling,
