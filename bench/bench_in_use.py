@@ -8,7 +8,8 @@ Usage::
     python -m fbgforce.bench.bench_in_use --model MODEL --logs DIR [--engine fixed|float] [--json]
 
     python tests/foreign.py --out FAM --family                      # the family of fingertips
-    python -m fbgforce.bench.bench_in_use --family FAM --work WORK [--without STAGE ...]
+    python -m fbgforce.bench.bench_in_use --family FAM --work WORK [--without STAGE ...] \
+        [--calibration calib_1K|calib_3K]
 
 ``--logs`` is a directory holding ``foreign.json``, the manifest tests/foreign.py writes (read
 with :func:`fbgforce.bench.bench_generalisation.load_manifest`; the generator stays a test
@@ -37,7 +38,8 @@ the field"), with the logs it was scored on:
 
 With ``--family`` it does this for every member of a family of fingertips
 (``tests/foreign.py --family``: pads that differ in one piece of in-use physics each), each
-member's model trained by the default ``fbgforce train`` on its calibration log and exported
+member's model trained by the default ``fbgforce train`` on its calibration log
+(``--calibration``: which, when the member has several) and exported
 (into ``--work``, reused when there), and prints the goals by member with the worst member
 beside each target (:func:`family`); ``--without STAGE`` scores beside each model a copy with
 one in-use stage off, or the contact decision's other rule (docs/robustness.md, "The family
@@ -405,17 +407,26 @@ def _cli(args: list[str]) -> None:
         fail(f"fbgforce {' '.join(args)} exited {code}", PROG)
 
 
-def member_model(logs: Path, model_dir: Path, seed: int, train_options: list[str]) -> Path:
+#: The calibration a family member is trained on unless ``--calibration`` names another:
+#: tests/foreign.py's ``calib_1K``, about a kelvin.
+DEFAULT_CALIBRATION = "calib_1K"
+
+
+def member_model(logs: Path, model_dir: Path, seed: int, train_options: list[str],
+                 calibration: str = DEFAULT_CALIBRATION) -> Path:
     """``model_dir`` trained (``fbgforce train`` with ``train_options`` on the member's
-    ``calibration`` log) and exported, unless it already holds a model."""
+    ``calibration`` log, a variant with that role) and exported, unless it already holds a
+    model."""
     if not (model_dir / "model.json").is_file():
         manifest = load_manifest(logs, PROG)
-        calib = [e["train"] for e in manifest.values() if e.get("role") == "calibration"]
-        if not calib:
-            fail(f"{logs}: no variant with the role 'calibration' to train on", PROG)
-        print(f"{PROG}: training {model_dir} on {calib[0]}", file=sys.stderr)
-        _cli(["train", "--data", str(calib[0]), "--out", str(model_dir), "--seed", str(seed),
-              *train_options])
+        calib = {name: e["train"] for name, e in manifest.items()
+                 if e.get("role") == "calibration"}
+        if calibration not in calib:
+            fail(f"{logs}: no calibration {calibration!r} to train on; it has "
+                 f"{', '.join(calib) or 'none'}", PROG)
+        print(f"{PROG}: training {model_dir} on {calib[calibration]}", file=sys.stderr)
+        _cli(["train", "--data", str(calib[calibration]), "--out", str(model_dir), "--seed",
+              str(seed), *train_options])
     if not (model_dir / "model.fbgm").is_file():
         _cli(["export", "--model", str(model_dir)])
     return model_dir
@@ -450,11 +461,13 @@ def without(model_dir: Path, stage: str, out: Path) -> Path:
 
 def family(root: Path, work: Path, engine: str = "fixed", seed: int = 0,
            train_options: list[str] | None = None, stages: list[str] | None = None,
-           members: list[str] | None = None) -> dict[str, Any]:
+           members: list[str] | None = None,
+           calibration: str = DEFAULT_CALIBRATION) -> dict[str, Any]:
     """Every goal on every member of ``root/family.json``, and the worst member of each.
 
-    Each member's model is ``work/MEMBER/model`` (trained and exported by
-    :func:`member_model` when missing), scored by :func:`score` on the member's logs; for
+    Each member's model is ``work/MEMBER/model`` (trained on its ``calibration`` log and
+    exported by :func:`member_model` when missing), scored by :func:`score` on the member's
+    logs; for
     each of ``stages`` a copy of it (:func:`without`) is scored beside it on the same logs.
 
     Returns
@@ -480,7 +493,8 @@ def family(root: Path, work: Path, engine: str = "fixed", seed: int = 0,
     results: dict[str, Any] = {}
     for member in chosen:
         logs = (path.parent / listed[member]["manifest"]).parent
-        model_dir = member_model(logs, work / member / "model", seed, train_options or [])
+        model_dir = member_model(logs, work / member / "model", seed, train_options or [],
+                                 calibration)
         loaded: dict[str, Any] = {}      # each log read once for the model and its copies
         results[member] = score(model_dir, logs, engine, loaded)
         results[member]["without"] = {
@@ -571,6 +585,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--member", action="append", metavar="NAME",
                     help="with --family: score only this member (repeatable)")
     ap.add_argument("--seed", type=int, default=0, help="with --family: the training seed")
+    ap.add_argument("--calibration", default=DEFAULT_CALIBRATION, metavar="VARIANT",
+                    help="with --family: the calibration log each member trains on "
+                         "(default %(default)s, about a kelvin; calib_3K: a few kelvin; use a "
+                         "--work of its own)")
     ap.add_argument("--train-option", action="append", default=[], metavar="OPT",
                     help="with --family: an option for fbgforce train, e.g. "
                          "--train-option=--hold-augment=0 (repeatable; use a --work of its own)")
@@ -609,7 +627,7 @@ def main(argv: list[str] | None = None) -> int:
             fail("--family needs --work DIR (where the members' models go)", PROG)
         try:
             result = family(args.family, args.work, args.engine, args.seed, args.train_option,
-                            args.without, args.member)
+                            args.without, args.member, args.calibration)
         except InputError as exc:
             fail(str(exc), PROG)
         print(json.dumps(result, default=json_default) if args.json else family_tables(result))

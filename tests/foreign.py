@@ -455,6 +455,10 @@ IN_USE_VARIANTS: dict[str, Spec] = {
     # hold for 0.15 s or less, no long holds.
     "calib_1K": replace(IN_USE_FINGERTIP, name="calib_1K", role="calibration", drift_K=0.7,
                         hold_s=(0.0, 0.15)),
+    # The paper's protocol through a few kelvin (presses of at most 0.2 s): the reference
+    # grating then spans about the 30 pm from which the trainer fits temperature coefficients.
+    "calib_3K": replace(IN_USE_FINGERTIP, name="calib_3K", role="calibration", drift_K=3.0,
+                        hold_s=(0.0, 0.2)),
     # Sparse presses (1-4 s rests) at constant temperature: the reference for the ramps.
     "const_temp": replace(_SPARSE, name="const_temp", role="constant"),
     # The same presses through temperature ramps starting with the first press.
@@ -496,8 +500,8 @@ FAMILY: dict[str, dict[str, float]] = {
     "thermal_8pct": {"temp_coeff_spread": 0.08},        # strain gratings' coefficients +-8 %
 }
 #: The recordings of each family member: what it is calibrated with and what it is scored on.
-FAMILY_VARIANTS = ("calib_1K", "const_temp", "ramp40K", "long_rests", "held_grips",
-                   "light_presses")
+FAMILY_VARIANTS = ("calib_1K", "calib_3K", "const_temp", "ramp40K", "long_rests",
+                   "held_grips", "light_presses")
 
 #: Every variant the script can write, by name.
 ALL_VARIANTS: dict[str, Spec] = {**VARIANTS, **IN_USE_VARIANTS}

@@ -302,9 +302,13 @@ def test_family_members_differ_in_their_physics_only(tmp_path):
     assert fg.main(["--out", str(tmp_path), "--family", "--presses", "2", "no_creep"]) == 0
     listed = json.loads((tmp_path / fg.FAMILY_MANIFEST).read_text())["members"]
     assert list(listed) == ["no_creep"] and listed["no_creep"]["physics"] == {"creep": 0.0}
-    roles = {e["role"] for e in json.loads(
-        (tmp_path / "no_creep" / fg.MANIFEST).read_text())["variants"].values()}
-    assert roles == {"calibration", "constant", "ramp", "rest", "hold", "light"}
+    variants = json.loads((tmp_path / "no_creep" / fg.MANIFEST).read_text())["variants"]
+    assert {e["role"] for e in variants.values()} == {"calibration", "constant", "ramp", "rest",
+                                                      "hold", "light"}
+    # Two calibrations: about a kelvin, and a few, where temperature coefficients get fitted.
+    assert [n for n, e in variants.items() if e["role"] == "calibration"] == ["calib_1K",
+                                                                              "calib_3K"]
+    assert fg.IN_USE_VARIANTS["calib_3K"].drift_K == 3.0
     assert fg.main(["--out", str(tmp_path), "--family", "nosuchmember"]) == 2
 
 
@@ -320,6 +324,29 @@ def test_family_cli_writes_as_many_presses_as_the_tables_were_measured_on(tmp_pa
     assert asked == [fg.FAMILY_PRESSES, 7, fg.VARIANT_PRESSES]
     assert fg.FAMILY_PRESSES == 100
     assert fg.main(["--out", str(tmp_path), "--family", "--presses", "1"]) == 2
+
+
+def test_a_family_member_trains_on_the_calibration_asked_for(tmp_path, monkeypatch, capsys):
+    from fbgforce.bench import bench_in_use
+
+    for name in ("calib_1K_A.csv", "calib_1K_B.csv", "calib_3K_A.csv", "calib_3K_B.csv"):
+        (tmp_path / name).write_text("")
+    (tmp_path / fg.MANIFEST).write_text(json.dumps({"variants": {
+        v: {"train": f"{v}_A.csv", "other": f"{v}_B.csv", "role": "calibration"}
+        for v in ("calib_1K", "calib_3K")}}))
+    ran = []
+    monkeypatch.setattr(bench_in_use, "_cli", ran.append)
+    for calibration in (None, "calib_3K"):
+        asked = [] if calibration is None else [calibration]
+        bench_in_use.member_model(tmp_path, tmp_path / "model", 3, ["--epochs=1"], *asked)
+    assert [r[:3] for r in ran[::2]] == [["train", "--data", str(tmp_path / "calib_1K_A.csv")],
+                                         ["train", "--data", str(tmp_path / "calib_3K_A.csv")]]
+    assert ran[0][-3:] == ["--seed", "3", "--epochs=1"]
+    with pytest.raises(SystemExit) as exc:
+        bench_in_use.member_model(tmp_path, tmp_path / "model", 0, [], "calib_9K")
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "no calibration 'calib_9K'" in err and "calib_1K, calib_3K" in err
 
 
 def test_viscous_pad_reads_rate_not_creep():
