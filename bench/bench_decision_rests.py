@@ -8,9 +8,9 @@ The trainer reads the CUSUM's threshold on the calibration's own rests (under a 
 and on synthetic long rests it makes from the calibration (``fbgforce.trainer.synthetic.
 decision_rests``), and records in ``model.json`` the contact net's margin quantiles on both
 (``metadata.decision_rests``). Here the model's float pipeline
-(:func:`fbgforce.model.floatref.predict`: the filter, the at-rest tracker, the nets) runs on
-labelled recordings of the same pad that hold long rests, each tared on its own contact-free
-samples, and the same quantiles are read on their long rests: every rest at least
+(:func:`fbgforce.model.floatref.predict`: the filter, the at-rest tracker, the nets; run by
+:func:`fbgforce.bench.bench_onset_statistic.load`) runs on labelled recordings of the same pad
+that hold long rests, each tared on its own contact-free samples, and the same quantiles are read on their long rests: every rest at least
 ``--min-rest-s`` long, from :data:`~fbgforce.trainer.synthetic.REST_AUGMENT_SETTLE_S` after the
 release (where the synthetic rests are read from) to
 :data:`~fbgforce.evaluation.metrics.REST_GAP_S` before the next press.
@@ -29,13 +29,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from fbgforce.bench.bench_onset_statistic import load
 from fbgforce.cliargs import fail
 from fbgforce.errors import InputError
 from fbgforce.evaluation.metrics import REST_GAP_S
-from fbgforce.model import modeldir
-from fbgforce.model.floatref import predict
-from fbgforce.recordings import dataset
-from fbgforce.recordings import tare as ftare
 from fbgforce.recordings.stagelog import runs
 from fbgforce.trainer.synthetic import DECISION_REST_S, REST_AUGMENT_SETTLE_S
 
@@ -63,21 +60,15 @@ def measure(model_dir: str | Path, data: Sequence[str | Path],
             min_rest_s: float = DECISION_REST_S[0]) -> dict[str, Any]:
     """The margin quantiles the model recorded for its decision's rests (``calibration``,
     ``long``) beside the same quantiles on the long rests of ``data`` (``recorded``)."""
-    model = modeldir.load(model_dir)
+    model, recordings = load(model_dir, data)
     rested = model.metadata.get("decision_rests")
     if not rested:
         raise InputError(f"{model_dir}: model.json records no decision_rests (trained by an "
                          "earlier release, or with a decision that reads no rests); train "
                          "it again")
-    margins, minutes = [], 0.0
-    for path in data:
-        ds = dataset.load(path)
-        base, _ = ftare.tare(ds.wl_nm, ds.contact, ds.t_s, path=path)
-        out = predict(model, ds.wl_nm, base)
-        rate = ftare.sample_rate_hz(ds.t_s)
-        margins.append(long_rest_margins(np.asarray(out["margin"], dtype=np.float64),
-                                         np.asarray(ds.contact), rate, min_rest_s))
-        minutes += margins[-1].size / rate / 60.0
+    margins = [long_rest_margins(r["margin"], r["contact"], r["rate_hz"], min_rest_s)
+               for r in recordings]
+    minutes = sum(m.size / r["rate_hz"] / 60.0 for m, r in zip(margins, recordings))
     recorded = np.concatenate(margins)
     if not recorded.size:
         raise InputError(f"no rest of at least {min_rest_s:g} s after a press in "
