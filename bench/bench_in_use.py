@@ -203,8 +203,11 @@ def score(model_dir: Path, logs: Path, engine: str = "fixed",
         rows += [_row(g, by_role["light"], m["contact_accuracy"]) for g in LIGHT_GOALS]
     else:
         rows += [_row(g, [], None) for g in LIGHT_GOALS]
-    rows += [_row(g, ["calibration test"] if cal else [],
-                  1.0 - cal["contact_accuracy"] if cal else None) for g in CALIBRATION_GOALS]
+    # A few presses of a short calibration fall in its test split (6 of 60): the count says
+    # how far one training's figure can be read.
+    cal_on = [f"calibration test, {cal['contact_timing']['presses']} presses"] if cal else []
+    rows += [_row(g, cal_on, 1.0 - cal["contact_accuracy"] if cal else None)
+             for g in CALIBRATION_GOALS]
     verdicts = [r["pass"] for r in rows]
     return {"model": str(model_dir), "engine": engine, "logs": str(logs),
             "calibration_test_rmse_force_N": cal_rmse, "scored": scored, "goals": rows,

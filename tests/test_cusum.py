@@ -365,7 +365,7 @@ def test_the_trainers_cusum_keeps_false_events_at_rest_rare():
     rng = np.random.default_rng(2)
     calib = _ar1(rng, 120_000, -1.0)
     cs = fm_decision.cusum_parameters(calib, 1000.0, k=0.0)
-    floor = fm_decision.RISE_S * 1000.0 * 0.5
+    floor = fm_decision.CUSUM_FLOOR_SAMPLES * 0.5
     assert cs["h"] > 10 * floor and cs["hi"] == pytest.approx(0.5 * cs["h"])
     later = _ar1(rng, 1_800_000, -1.0)
     events = np.sum(fm_decision.cusum_peaks(later, cs["k"], cs["lo"], cs["hi"]) >= cs["h"])
@@ -373,6 +373,17 @@ def test_the_trainers_cusum_keeps_false_events_at_rest_rare():
     # Aimed at the goal itself, the same rests give a lower threshold.
     loose = fm_decision.cusum_parameters(calib, 1000.0, k=0.0, false_per_min=1.0)
     assert loose["h"] < cs["h"]
+
+
+def test_rests_that_never_reach_the_drift_leave_the_threshold_at_its_floor():
+    """No excursion above the drift, on the rests or their extension: ``h`` is the floor of
+    CUSUM_FLOOR_SAMPLES samples at the drift, and the clip still keeps one sample from
+    rising."""
+    rest = np.random.default_rng(5).normal(-5.0, 0.1, 60_000)
+    for k in (0.2, 1.0, 3.0):
+        cs = fm_decision.cusum_parameters(rest, 1000.0, k=k)
+        assert cs["h"] == fm_decision.CUSUM_FLOOR_SAMPLES * max(k, 0.5)
+        assert 0.0 < cs["hi"] - cs["k"] < cs["h"]
 
 
 def test_recommended_sets_a_valid_cusum_from_the_rests():
@@ -418,8 +429,8 @@ def test_the_drift_grids_peaks_are_the_whole_series_within_its_rounding():
         whole, within = fm_decision.cusum_peaks(extended, k), excursions.peaks(k)
         assert whole.size == within.size and whole.size > 0
         np.testing.assert_allclose(within, whole, rtol=0, atol=1e-7)
-        assert fm_decision._cusum_threshold(within, 60.0, rest, k, 0.5, 1000.0) == pytest.approx(
-            fm_decision._cusum_threshold(whole, 60.0, rest, k, 0.5, 1000.0), rel=1e-9)
+        assert fm_decision._cusum_threshold(within, 60.0, rest, k, 0.5) == pytest.approx(
+            fm_decision._cusum_threshold(whole, 60.0, rest, k, 0.5), rel=1e-9)
         assert np.array_equal(excursions.exact_peaks(k), whole)
     # Below the lowest drift the stretches do not hold its excursions: the whole series.
     assert np.array_equal(excursions.peaks(q - 0.5), fm_decision.cusum_peaks(extended, q - 0.5))
@@ -601,7 +612,7 @@ def test_a_short_calibrations_cusum_stays_under_the_goal_over_minutes_of_rest():
     # The calibration's samples as they are: the same drift, the floor or its highest peak.
     k = cs["k"]
     own = fm_decision.cusum_peaks(calib, k)
-    h = max(3.0 * max(k, 0.5), float(own.max()) if own.size else 0.0)
+    h = max(fm_decision.CUSUM_FLOOR_SAMPLES * max(k, 0.5), float(own.max()) if own.size else 0.0)
     assert h < cs["h"]
     loud = np.sum(fm_decision.cusum_peaks(later, k, -fm_decision.CUSUM_MAX, k + h / 2) >= h)
     assert loud / 30.0 >= 2.0

@@ -229,6 +229,8 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     cal = evaluate(small_exported_dir, [d["path"] for d in res_model_data(small_exported_dir)],
                    engine="fixed", split="test")
     assert rows["test_contact_errors"]["value"] == pytest.approx(1.0 - cal["contact_accuracy"])
+    assert rows["test_contact_errors"]["scored_on"] == [
+        f"calibration test, {cal['contact_timing']['presses']} presses"]
     assert res["passed"] + res["failed"] + res["not_measured"] == len(rows)
     for r in rows.values():
         assert r["pass"] is None or r["pass"] == (abs(r["value"]) <= r["target"]

@@ -26,6 +26,13 @@ REST_MARGIN_FACTOR = 2.0
 #: sample past a threshold set on settled rests is nearly as quiet and 3 ms faster, but the
 #: count also rides out the few samples a burst of lost peaks disturbs (docs/tradeoff.md).
 RISE_S = 0.003
+#: The CUSUM threshold's floor, in samples at the drift: ``h`` is at least this many times
+#: ``max(k, 0.5)`` (with ``hi = k + h / 2`` no single sample rises even at the floor). One
+#: sample, not the Schmitt trigger's three: on a calibration whose rests hold a release's tail
+#: the drift comes out near 3 and three samples of it, not the rests, set the threshold; at
+#: one sample the family's worst member found contact 0-3 ms sooner, with as few false events
+#: (docs/robustness.md, "A calibration through a few kelvin").
+CUSUM_FLOOR_SAMPLES = 1.0
 #: Largest magnitude of every CUSUM value of :class:`~fbgforce.model.artifact.InUse` (margin
 #: units): the contract's
 #: ``MAX_CUSUM_Q8`` in Q8.
@@ -347,14 +354,13 @@ class _Excursions:
 
 
 def _cusum_threshold(peaks: np.ndarray, minutes: float, own: np.ndarray, k: float,
-                     target: float, sample_rate_hz: float) -> float:
+                     target: float) -> float:
     """The least ``h`` at which the CUSUM of drift ``k`` raises at most ``target`` false events
     a minute on ``minutes`` of rests :func:`extended_rests` made of ``own``, whose excursions
     peak at ``peaks``: where the exponential fit of the peaks above their 90th percentile, and
     their count where there are more than it says, fall to ``target``; above every peak of
-    ``own`` and at least what the Schmitt trigger asks of a rise (:data:`RISE_S` of samples at
-    ``max(k, 0.5)``)."""
-    h = max(1.0, RISE_S * sample_rate_hz) * max(k, 0.5)
+    ``own`` and at least :data:`CUSUM_FLOOR_SAMPLES` samples at ``max(k, 0.5)``."""
+    h = CUSUM_FLOOR_SAMPLES * max(k, 0.5)
     own_peaks = cusum_peaks(own, k)
     if own_peaks.size:
         h = max(h, float(np.nextafter(own_peaks.max(), np.inf)))
@@ -489,7 +495,7 @@ def cusum_parameters(rest_margins: np.ndarray, sample_rate_hz: float = 1000.0,
         the next)."""
         return max([_cusum_threshold((ext.exact_peaks if exact else ext.peaks)(drift),
                                      ext.margins.size / sample_rate_hz / 60.0, own, drift,
-                                     target, sample_rate_hz) for ext, own in series]
+                                     target) for ext, own in series]
                    + [idle_at(drift)])
 
     def onset(drift: float, h: float) -> float:
