@@ -213,3 +213,10 @@ def test_coverage_names_what_a_log_cannot_establish():
                    for u in long["cannot_establish"])
     idle = coverage([fg.log(fg.device(replace(spec, rest_s=(121.0, 122.0)), 200), 1, 2)])
     assert not any("left alone" in u for u in idle["cannot_establish"])
+    # Presses that rise once and fall once never show the pad a load turning back; grips whose
+    # force wanders do.
+    assert any("turns back" in u for u in short["cannot_establish"])
+    assert short["turns"]["presses_turning"] == 0 and short["turns"]["deepest_fraction"] < 0.02
+    grips = coverage([fg.log(fg.device(fg.IN_USE_VARIANTS["held_grips"], 200), 1, 12)])
+    assert grips["turns"]["presses_turning"] >= 1
+    assert not any("turns back" in u for u in grips["cannot_establish"])

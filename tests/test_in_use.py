@@ -125,9 +125,15 @@ def _in_use_log(name: str, presses: int):
 
 def test_in_use_variants_are_one_fingertip_and_ramps_hold_the_same_presses():
     devs = [fg.device(s, fg.device_seed(n)) for n, s in fg.IN_USE_VARIANTS.items()]
+    # One pad answers a load alike whatever the protocol's range of presses (light presses
+    # of at most 3 N included): the same shifts for the same load at the same place.
+    load = np.array([0.5, 2.0, 20.0, 45.0])
+    xs, ys = np.full(4, 12.0), np.full(4, 25.0)
     for d in devs[1:]:
         np.testing.assert_array_equal(d.supports_mm, devs[0].supports_mm)
         np.testing.assert_array_equal(d.temp_coeff, devs[0].temp_coeff)
+        np.testing.assert_array_equal(fg.strain_pm(d, load, xs, ys),
+                                      fg.strain_pm(devs[0], load, xs, ys))
     # Thermal coefficients a few per cent from the reference grating's.
     assert np.all(np.abs(devs[0].temp_coeff - 1.0) <= fg.IN_USE_FINGERTIP.temp_coeff_spread)
     _, const = _in_use_log("const_temp", 4)
@@ -190,6 +196,18 @@ def test_held_grips_are_found_as_holds():
     # Every press holds 1.5-6 s: one hold each, lasting most of its plateau.
     assert use["hold_start"].sum() == 5
     assert use["held"].sum() > 5 * (spec.hold_s[0] - 0.3) * spec.rate_hz
+    # The grips wander +-15 % about levels of 3-40 N, below the calibration's 50 N.
+    force = np.asarray(ds.force_N)
+    starts = np.flatnonzero(use["hold_start"])
+    ends = np.flatnonzero(use["held"] & ~np.r_[use["held"][1:], False])
+    spans = []
+    for a, b in zip(starts, ends):
+        grip = np.convolve(force[a:b + 1], np.ones(20) / 20, mode="valid")
+        assert np.std(grip) < spec.hold_modulation * np.mean(grip)
+        spans.append(np.ptp(grip) / np.mean(grip))
+    assert np.median(spans) > 0.1
+    assert force.max() < (1 + spec.hold_modulation) * spec.force_max_N + 0.2
+    assert spec.force_max_N * (1 + spec.hold_modulation) < fg.IN_USE_VARIANTS["calib_3K"].force_max_N
 
 
 @pytest.mark.slow

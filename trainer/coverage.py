@@ -3,8 +3,9 @@
 "Coverage").
 
 Per press (a run of equal ``press_id`` with contact): its peak force, where it pressed (the
-median contact location), how fast it loaded (10 % to 90 % of its peak over the time taken)
-and how long it held (the longest stretch within the trainer's hold band of its peak). Over the
+median contact location), how fast it loaded (10 % to 90 % of its peak over the time taken),
+how long it held (the longest stretch within the trainer's hold band of its peak) and how far
+it turned back within itself (its deepest dip below the loads before and after it). Over the
 log: the temperature grating's span and the time without contact. And what the log's own
 noise allows any contact decision on its presses (:mod:`fbgforce.evaluation.onset_bound`): a
 model's onset is to be read against that, not against a number from another pad.
@@ -34,12 +35,30 @@ WANT_SLOW_N_PER_S = 20.0
 WANT_HOLD_S = 1.5
 WANT_TEMPERATURE_K = 2.0
 WANT_LONG_REST_S = 5.0
+#: A press turns back within itself when its force dips below the loads on either side of the
+#: dip by this share of its peak (and :data:`WANT_TURN_N`): a grip whose force wanders does,
+#: and runs the pad's hysteresis through loops no press that rises once and falls once shows.
+WANT_TURN_FRACTION = 0.1
+WANT_TURN_N = 0.5
+#: Load-cell samples averaged before the dip is read: its noise is no turn.
+TURN_SMOOTH_SAMPLES = 20
 #: The temperature grating's nominal sensitivity, pm/K (to quote its span in kelvin).
 T_SENSITIVITY_PM_PER_K = BASE_WL_NM[-1] * THERMAL_COEFF_PER_K * 1000.0
 
 
+def _dip_N(force: np.ndarray) -> float:
+    """The deepest dip of ``force`` (one press, in time order, averaged over
+    :data:`TURN_SMOOTH_SAMPLES`) below the lower of its highest loads before and after it."""
+    k = min(TURN_SMOOTH_SAMPLES, force.size)
+    f = np.convolve(force, np.ones(k) / k, mode="valid")
+    before = np.maximum.accumulate(f)
+    after = np.maximum.accumulate(f[::-1])[::-1]
+    return float(np.max(np.minimum(before, after) - f)) if f.size else 0.0
+
+
 def _press_table(ds: Dataset) -> np.ndarray:
-    """(presses, 5): peak N, x mm, y mm, loading N/s, hold s, for presses with contact."""
+    """(presses, 6): peak N, x mm, y mm, loading N/s, hold s, deepest dip N (:func:`_dip_N`),
+    for presses with contact."""
     rows = []
     rate = 1.0 / float(np.median(np.diff(ds.t_s))) if len(ds) > 1 else 1000.0
     order = np.argsort(ds.press_id, kind="stable")
@@ -62,8 +81,8 @@ def _press_table(ds: Dataset) -> np.ndarray:
         d = np.diff(np.concatenate([[0], near.astype(np.int8), [0]]))
         hold = float((np.flatnonzero(d == -1) - np.flatnonzero(d == 1)).max()) / rate
         rows.append((peak, float(np.median(ds.x_mm[c])), float(np.median(ds.y_mm[c])), speed,
-                     hold))
-    return np.array(rows, dtype=np.float64).reshape(-1, 5)
+                     hold, _dip_N(f)))
+    return np.array(rows, dtype=np.float64).reshape(-1, 6)
 
 
 def _location_map(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -128,8 +147,9 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
     trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
     tables = [_press_table(ds) for ds in datasets]
-    table = np.concatenate(tables) if tables else np.zeros((0, 5))
-    peak, x, y, speed, hold = table.T if table.size else (np.zeros(0),) * 5
+    table = np.concatenate(tables) if tables else np.zeros((0, 6))
+    peak, x, y, speed, hold, dip = table.T if table.size else (np.zeros(0),) * 6
+    turning = (dip >= WANT_TURN_FRACTION * peak) & (dip >= WANT_TURN_N)
     counts, w, h = _location_map(x, y)
     ny, nx = counts.shape
     edges = FORCE_BINS_N
@@ -153,6 +173,13 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         unknown.append(f"how the pad behaves under a held load: no hold of {WANT_HOLD_S:g} s "
                        f"(longest {longest_hold:.2f} s), so held grips are extrapolated and a "
                        "creep is read from the releases alone")
+    if not turning.any():
+        deepest = float(np.max(dip / np.maximum(peak, 1e-9))) if peak.size else 0.0
+        unknown.append(f"how the pad answers a load that turns back within a press: none dips "
+                       f"by {100 * WANT_TURN_FRACTION:g} % of its peak and rises again "
+                       f"(deepest {100 * deepest:.1f} %), so a grip whose force wanders runs "
+                       "the pad's friction and damping through loops the calibration never "
+                       "showed")
     if rest_longest < WANT_LONG_REST_S:
         unknown.append(f"a creep slower than its rests (longest {rest_longest:.1f} s): a slow "
                        "recovery after a release looks like the zero wandering")
@@ -179,6 +206,9 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         "holds": {"presses_holding_s": int((hold >= HOLD_MIN_S).sum()),
                   f"presses_holding_{WANT_HOLD_S:g}_s": int((hold >= WANT_HOLD_S).sum()),
                   "longest_s": float(hold.max()) if hold.size else 0.0},
+        "turns": {"presses_turning": int(turning.sum()),
+                  "deepest_fraction": float(np.max(dip / np.maximum(peak, 1e-9)))
+                  if peak.size else 0.0},
         "temperature": {"span_pm": span_pm, "span_K": span_K},
         "rest": {"total_s": rest_total, "longest_s": rest_longest},
         "missing": missing,
