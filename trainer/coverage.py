@@ -17,6 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fbgforce.evaluation import onset_bound
+from fbgforce.evaluation.metrics import HOLD_SMOOTH_S
 from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
@@ -40,16 +41,16 @@ WANT_LONG_REST_S = 5.0
 #: and runs the pad's hysteresis through loops no press that rises once and falls once shows.
 WANT_TURN_FRACTION = 0.1
 WANT_TURN_N = 0.5
-#: Load-cell samples averaged before the dip is read: its noise is no turn.
-TURN_SMOOTH_SAMPLES = 20
 #: The temperature grating's nominal sensitivity, pm/K (to quote its span in kelvin).
 T_SENSITIVITY_PM_PER_K = BASE_WL_NM[-1] * THERMAL_COEFF_PER_K * 1000.0
 
 
-def _dip_N(force: np.ndarray) -> float:
-    """The deepest dip of ``force`` (one press, in time order, averaged over
-    :data:`TURN_SMOOTH_SAMPLES`) below the lower of its highest loads before and after it."""
-    k = min(TURN_SMOOTH_SAMPLES, force.size)
+def _dip_N(force: np.ndarray, rate: float) -> float:
+    """The deepest dip of ``force`` (one press, in time order, sampled at ``rate`` Hz) below
+    the lower of its highest loads before and after it, the load averaged over the hold
+    test's :data:`~fbgforce.evaluation.metrics.HOLD_SMOOTH_S` first: load-cell noise is no
+    turn."""
+    k = max(1, min(int(round(HOLD_SMOOTH_S * rate)), force.size))
     f = np.convolve(force, np.ones(k) / k, mode="valid")
     before = np.maximum.accumulate(f)
     after = np.maximum.accumulate(f[::-1])[::-1]
@@ -81,7 +82,7 @@ def _press_table(ds: Dataset) -> np.ndarray:
         d = np.diff(np.concatenate([[0], near.astype(np.int8), [0]]))
         hold = float((np.flatnonzero(d == -1) - np.flatnonzero(d == 1)).max()) / rate
         rows.append((peak, float(np.median(ds.x_mm[c])), float(np.median(ds.y_mm[c])), speed,
-                     hold, _dip_N(f)))
+                     hold, _dip_N(f, rate)))
     return np.array(rows, dtype=np.float64).reshape(-1, 6)
 
 
@@ -150,6 +151,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     table = np.concatenate(tables) if tables else np.zeros((0, 6))
     peak, x, y, speed, hold, dip = table.T if table.size else (np.zeros(0),) * 6
     turning = (dip >= WANT_TURN_FRACTION * peak) & (dip >= WANT_TURN_N)
+    deepest = float(np.max(dip / np.maximum(peak, 1e-9))) if peak.size else 0.0
     counts, w, h = _location_map(x, y)
     ny, nx = counts.shape
     edges = FORCE_BINS_N
@@ -174,7 +176,6 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
                        f"(longest {longest_hold:.2f} s), so held grips are extrapolated and a "
                        "creep is read from the releases alone")
     if not turning.any():
-        deepest = float(np.max(dip / np.maximum(peak, 1e-9))) if peak.size else 0.0
         unknown.append(f"how the pad answers a load that turns back within a press: none dips "
                        f"by {100 * WANT_TURN_FRACTION:g} % of its peak and rises again "
                        f"(deepest {100 * deepest:.1f} %), so a grip whose force wanders runs "
@@ -206,9 +207,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         "holds": {"presses_holding_s": int((hold >= HOLD_MIN_S).sum()),
                   f"presses_holding_{WANT_HOLD_S:g}_s": int((hold >= WANT_HOLD_S).sum()),
                   "longest_s": float(hold.max()) if hold.size else 0.0},
-        "turns": {"presses_turning": int(turning.sum()),
-                  "deepest_fraction": float(np.max(dip / np.maximum(peak, 1e-9)))
-                  if peak.size else 0.0},
+        "turns": {"presses_turning": int(turning.sum()), "deepest_fraction": deepest},
         "temperature": {"span_pm": span_pm, "span_K": span_K},
         "rest": {"total_s": rest_total, "longest_s": rest_longest},
         "missing": missing,
