@@ -31,7 +31,9 @@ the field"), with the logs it was scored on:
 - an idle pad at those logs' interrogator noise (:mod:`fbgforce.bench.bench_idle`): false
   contact events per minute, the worst of 20 one-minute draws;
 - held grips: force bias over the holds, force RMSE over them against the model's own
-  calibration test RMSE (its training logs, test split, same engine);
+  calibration test RMSE (its training logs, test split, same engine); beside them, no goal,
+  the same over the held samples away from the load's turns
+  (:data:`fbgforce.evaluation.metrics.AFTER_TURN_S`);
 - a grip held through a ramp: force bias over the hold (the holds' bound);
 - light presses (0.2-3 N): contact accuracy;
 - the calibration's own test presses: contact errors.
@@ -353,7 +355,25 @@ def table(result: dict[str, Any]) -> str:
         lines.append(f"- the noise allows on the constant-temperature presses: onset "
                      f"{allows[0]}, {allows[1]} of the samples above 1 N "
                      "(fbgforce.evaluation.onset_bound)")
+    away = _away_from_turns(result)
+    if away:
+        lines.append(f"- held grips away from the load's turns (the held samples more than "
+                     f"{away[2]} after one): force bias {away[0]}, RMSE {away[1]} of the "
+                     "calibration test RMSE")
     return "\n".join(lines)
+
+
+def _away_from_turns(result: dict[str, Any]) -> tuple[str, str, str] | None:
+    """The held grips' force bias and RMSE ratio over the held samples away from the load's
+    turns (``holds.away_from_turns`` of their ``evaluate`` run), as text, and how long after a
+    turn counts as near it; None without held grips or samples away from turns."""
+    holds = [m["holds"] for m in result["scored"].values() if m.get("role") == "hold"]
+    away = holds[0].get("away_from_turns") if len(holds) == 1 else None
+    if not away or away["force_bias_N"] is None:
+        return None
+    ratio = _ratio(away["rmse_force_N"], result["calibration_test_rmse_force_N"])
+    return (f"{away['force_bias_N']:+.3f} N", "–" if ratio is None else f"{ratio:.2f}×",
+            f"{away['after_turn_s']:g} s")
 
 
 def _noise_allows(result: dict[str, Any]) -> tuple[str, str] | None:
@@ -559,6 +579,14 @@ def family_table(result: dict[str, Any], stage: str | None = None) -> str:
                                    "samples above 1 N the noise allows")):
             lines.append(f"| {label} | | "
                          + " | ".join(a[i] if a else "–" for a in allows.values()) + " | | |")
+        # Beside the held-grip goals: the same grips away from the load's turns.
+        away = {m: _away_from_turns(result["members"][m]) for m in members}
+        after = next((a[2] for a in away.values() if a), None)
+        if after:
+            for i, label in enumerate(("force bias over the holds",
+                                       "force RMSE over the holds / calibration test RMSE")):
+                lines.append(f"| {label}, more than {after} after a turn of the load | | "
+                             + " | ".join(a[i] if a else "–" for a in away.values()) + " | | |")
     if stage:
         what = (f"with the {stage} decision rule" if stage in RULES else f"without {stage}")
         lines += ["", f"Each cell: the default / the same model {what}."]

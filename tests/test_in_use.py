@@ -105,6 +105,37 @@ def test_holds_are_long_steady_contacts():
     assert none["holds"] == 0 and none["force_bias_N"] is None and none["rmse_force_N"] is None
 
 
+def test_turns_of_the_load_and_the_holds_away_from_them():
+    # A grip at 20 N wandering +-3 N over 4 s for 8 s, between rests; load-cell noise of 30 mN.
+    t = np.arange(12000) * 1e-3
+    grip = (t >= 2.0) & (t < 10.0)
+    force = np.where(grip, 20.0 + 3.0 * np.sin(2 * np.pi * (t - 2.0) / 4.0), 0.0)
+    noisy = force + np.random.default_rng(1).normal(0.0, 0.03, t.size)
+    smooth = np.convolve(noisy, np.ones(20) / 20, mode="same")
+    # The sine's extremes (3, 5, 7, 9 s) and the grip's last sample before the release; the
+    # noise (well inside the 0.2 N band) turns nothing.
+    turns = t[metrics.load_turns(smooth, metrics.HOLD_BAND_N)]
+    assert np.allclose(turns[:4], [3.0, 5.0, 7.0, 9.0], atol=0.05) and turns.size == 5
+    assert 9.9 <= turns[4] < 10.0
+    use = metrics.use_masks(grip, grip, noisy, t)
+    # A model that reads the branch wrong for half a second after each turn, right elsewhere.
+    err = np.where(use["after_turn"] & (np.mod(t - 1.0, 2.0) < 0.5), 1.0, 0.02)
+    pred = {"contact": grip, "force_N": noisy + err, "x_mm": np.full(t.size, np.nan),
+            "y_mm": np.full(t.size, np.nan)}
+    holds = metrics.compute(pred, grip, noisy, np.full(t.size, np.nan), np.full(t.size, np.nan),
+                            use=use)["holds"]
+    away = holds["away_from_turns"]
+    assert away["after_turn_s"] == metrics.AFTER_TURN_S
+    assert 0.5 < away["fraction"] < 0.8 and holds["force_bias_N"] > 0.2
+    assert away["force_bias_N"] == pytest.approx(0.02)
+    assert away["rmse_force_N"] == pytest.approx(0.02)
+    # A flat hold has no turn until its release: every held sample is away from turns.
+    flat = _press(300, 5.0, 1500, 300, 200)
+    tf = np.arange(flat.size) * 1e-3
+    flat_use = metrics.use_masks(flat > 0.3, flat > 0.3, flat, tf)
+    assert not (flat_use["after_turn"] & flat_use["held"]).any()
+
+
 def test_contact_bins_reach_20N():
     tc = np.ones(4, bool)
     tf = np.array([0.7, 15.0, 25.0, 60.0])
@@ -284,6 +315,12 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     assert (f"- the noise allows on the constant-temperature presses: onset "
             f"{allows['onset_bound_ms']['median']:.1f} ms, "
             f"{100 * allows['detected_above_1N']:.2f} % of the samples above 1 N") in text
+    # Beside the held-grip goals: the same holds away from the load's turns.
+    away = res["scored"]["held_grips"]["holds"]["away_from_turns"]
+    assert 0.0 < away["fraction"] <= 1.0
+    assert (f"- held grips away from the load's turns (the held samples more than 0.75 s after "
+            f"one): force bias {away['force_bias_N']:+.3f} N, RMSE "
+            f"{away['rmse_force_N'] / res['calibration_test_rmse_force_N']:.2f}×") in text
 
 
 def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_exported_dir,
@@ -420,6 +457,9 @@ def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tm
     assert "| force bias over the holds | within ±0.1 N |" in text
     onset = res["members"]["a"]["scored"]["constant+rest"]["noise_allows"]["onset_bound_ms"]
     assert f"| onset the noise allows, median | | {onset['median']:.1f} ms | " in text
+    away = res["members"]["a"]["scored"]["held_grips"]["holds"]["away_from_turns"]
+    assert (f"| force bias over the holds, more than 0.75 s after a turn of the load | | "
+            f"{away['force_bias_N']:+.3f} N | ") in text
     # Members scored in separate runs combine into the same table.
     for member in ("a", "b"):
         assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work"),

@@ -42,7 +42,14 @@ In use (:func:`use_masks`, then ``at_rest`` and ``holds`` when the caller passes
   which the true force, averaged over :data:`HOLD_SMOOTH_S` against load-cell noise, varies by
   at most ``max(HOLD_BAND_N, HOLD_BAND_FRACTION * force)`` over a centred
   :data:`HOLD_WINDOW_S` window (a slope below about 1 N/s at light loads, so ramps are not
-  holds); ``holds`` gives the force output's bias and RMSE over the held samples.
+  holds); ``holds`` gives the force output's bias and RMSE over the held samples, and the
+  same over the held samples more than :data:`AFTER_TURN_S` after the last turn of the load
+  (``away_from_turns``);
+- turn: where the smoothed true force reverses, found once it has moved :data:`HOLD_BAND_N`
+  back from its extreme (a dead band against load-cell noise), dated at the extreme. A pad with
+  friction changes branch within a fraction of a newton of load after a turn, while its
+  strain tells a slow turn from noise only later; how a model reads the grip away from the
+  turns separates that from a level error.
 """
 from __future__ import annotations
 
@@ -71,8 +78,11 @@ HOLD_WINDOW_S = 0.2
 #: Band of a hold: the smoothed true force varies by at most the larger of these (N, fraction).
 HOLD_BAND_N = 0.2
 HOLD_BAND_FRACTION = 0.05
+#: Held samples this long (s) after a turn of the load count as near it (``holds``,
+#: ``away_from_turns``).
+AFTER_TURN_S = 0.75
 #: Keys of :func:`use_masks` (each (n,)).
-USE_KEYS = ("rest", "event", "held", "hold_start", "period_s")
+USE_KEYS = ("rest", "event", "held", "hold_start", "after_turn", "period_s")
 #: Fewest presses a held-out split should hold for its metrics to mean much: fewer is a
 #: warning (``warnings`` in the JSON of train and evaluate), not an error.
 MIN_SPLIT_PRESSES = 5
@@ -238,8 +248,9 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
         ``rest``: at least :data:`REST_GAP_S` from any labelled contact; ``event``: the
         prediction rises from no-contact to contact here (never at the first sample);
         ``held``: in a hold (module docstring); ``hold_start``: the first sample of each hold;
-        ``period_s``: the recording's sample period, on every sample (rest time adds up over
-        recordings of different rates).
+        ``after_turn``: within :data:`AFTER_TURN_S` after a turn of the load (module
+        docstring); ``period_s``: the recording's sample period, on every sample (rest time
+        adds up over recordings of different rates).
     """
     pc = np.asarray(pred_contact, bool).reshape(-1)
     tc = np.asarray(contact, bool).reshape(-1)
@@ -258,9 +269,12 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
     event[1:] = pc[1:] & ~pc[:-1]
     held = np.zeros(n, bool)
     half = samples(HOLD_WINDOW_S) // 2
+    k = samples(HOLD_SMOOTH_S)
+    smooth = np.convolve(tf, np.ones(k) / k, mode="same")
+    after_turn = np.zeros(n, bool)
+    for turn in load_turns(smooth, HOLD_BAND_N):
+        after_turn[turn:turn + samples(AFTER_TURN_S)] = True
     if n > 2 * half:
-        k = samples(HOLD_SMOOTH_S)
-        smooth = np.convolve(tf, np.ones(k) / k, mode="same")
         padded = np.pad(smooth, half, mode="edge")
         windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
         spread = windows.max(axis=1) - windows.min(axis=1)
@@ -271,7 +285,32 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
                 held[a:b] = True
     hold_start = held & ~np.concatenate([[False], held[:-1]])
     return {"rest": ~near, "event": event, "held": held, "hold_start": hold_start,
-            "period_s": np.full(n, period)}
+            "after_turn": after_turn, "period_s": np.full(n, period)}
+
+
+def load_turns(force_N: np.ndarray, band_N: float) -> list[int]:
+    """The samples where ``force_N`` turns: each extreme from which it then moves back by more
+    than ``band_N`` (smaller reversals are noise), in time order."""
+    turns: list[int] = []
+    f = np.asarray(force_N, dtype=np.float64).tolist()
+    if not f:
+        return turns
+    hi = lo = 0          # the extremes since the last turn
+    going = 0            # +1 rising, -1 falling, 0 not yet known
+    for i, v in enumerate(f):
+        if v >= f[hi]:      # a flat extreme turns where the load leaves it
+            hi = i
+        if v <= f[lo]:
+            lo = i
+        if going >= 0 and v < f[hi] - band_N:
+            if going > 0:
+                turns.append(hi)
+            going, lo = -1, i
+        elif going <= 0 and v > f[lo] + band_N:
+            if going < 0:
+                turns.append(lo)
+            going, hi = 1, i
+    return turns
 
 
 def rest_summary(pc: np.ndarray, pf: np.ndarray, masks: Mapping[str, np.ndarray]
@@ -296,11 +335,16 @@ def hold_summary(pf: np.ndarray, tf: np.ndarray, masks: Mapping[str, np.ndarray]
     true force) and RMSE of the force output over the held samples."""
     held = masks["held"].astype(bool)
     err = pf[held] - tf[held]
+    away = ~masks["after_turn"].astype(bool)[held]
     return {"min_s": HOLD_MIN_S, "band_N": HOLD_BAND_N, "band_fraction": HOLD_BAND_FRACTION,
             "holds": int(np.sum(masks["hold_start"].astype(bool))), "samples": int(held.sum()),
             "seconds": float(np.sum(masks["period_s"][held])),
             "force_bias_N": float(np.mean(err)) if err.size else None,
-            "rmse_force_N": _rmse(err)}
+            "rmse_force_N": _rmse(err),
+            "away_from_turns": {"after_turn_s": AFTER_TURN_S,
+                                "fraction": float(np.mean(away)) if err.size else None,
+                                "force_bias_N": float(np.mean(err[away])) if away.any() else None,
+                                "rmse_force_N": _rmse(err[away])}}
 
 
 def common_location(preds: Mapping[str, Mapping[str, np.ndarray]], contact: np.ndarray,
