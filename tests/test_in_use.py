@@ -484,6 +484,12 @@ def test_evaluate_json_reports_rests_and_holds(in_use_logs, small_exported_dir, 
     assert {"samples", "seconds", "contact_fraction", "false_events", "false_events_per_min",
             "force_p99_N", "force_max_N", "gap_ms"} <= set(out["at_rest"])
     assert out["holds"]["holds"] == 3 and out["holds"]["rmse_force_N"] is not None
+    assert main(["evaluate", "--model", str(small_exported_dir), "--data",
+                 str(in_use_logs / "held_grips_B.csv"), "--engine", "fixed"]) == 0
+    text = capsys.readouterr().out
+    holds = out["holds"]
+    assert (f"holds: 3 ({holds['seconds']:.0f} s), force bias {holds['force_bias_N']:+.3f} N, "
+            f"RMSE {holds['rmse_force_N']:.3f} N") in text
 
 
 def test_bench_bad_logs_exit_2(tmp_path, small_exported_dir, capsys):

@@ -342,9 +342,9 @@ def _evaluate(args: argparse.Namespace) -> dict[str, Any]:
                    resample=args.resample)
     if not args.json:
         print(f"{args.engine}: {headline(out)} (n={out['n_samples']})")
-        line = _onset_against_bound(out)
-        if line:
-            print(line)
+        for line in (_onset_against_bound(out), _holds_line(out)):
+            if line:
+                print(line)
     for warning in out["warnings"]:
         print(f"fbgforce evaluate: warning: {warning}", file=sys.stderr)
     return out
@@ -367,6 +367,22 @@ def _onset_against_bound(out: dict[str, Any]) -> str | None:
             + ("" if above is None or allows["detected_above_1N"] is None else
                f"; samples above 1 N found {100 * above:.2f} %, at best "
                f"{100 * allows['detected_above_1N']:.2f} %"))
+
+
+def _holds_line(out: dict[str, Any]) -> str | None:
+    """The force over the held grips, all of them and away from the load's turns
+    (``holds``), or None without holds."""
+    holds = out.get("holds")
+    if not holds or holds["force_bias_N"] is None:
+        return None
+    text = (f"holds: {holds['holds']} ({holds['seconds']:.0f} s), force bias "
+            f"{holds['force_bias_N']:+.3f} N, RMSE {holds['rmse_force_N']:.3f} N")
+    away = holds["away_from_turns"]
+    if away["force_bias_N"] is not None:
+        text += (f"; more than {away['after_turn_s']:g} s after a turn of the load "
+                 f"({100 * away['fraction']:.0f} % of the held samples): "
+                 f"{away['force_bias_N']:+.3f} N, {away['rmse_force_N']:.3f} N")
+    return text
 
 
 def _analyze(args: argparse.Namespace) -> dict[str, Any]:
