@@ -72,6 +72,15 @@ def test_rest_seconds_add_up_over_recordings_of_other_rates():
     assert m["at_rest"]["false_events"] == 4
 
 
+def test_masks_of_a_recording_shorter_than_the_rest_gap():
+    # 30 samples at 1 kHz, contact on 10-11: every sample lies within 50 ms of it, so none is
+    # at rest, and every mask has the recording's length.
+    tc = np.zeros(30, bool)
+    tc[10:12] = True
+    use = metrics.use_masks(tc, tc, tc * 1.0, np.arange(30) * 1e-3)
+    assert all(use[k].shape == (30,) for k in metrics.USE_KEYS)
+    assert not use["rest"].any() and not use["held"].any() and not use["after_turn"].any()
+
 def _press(rise: int, level: float, hold: int, fall: int, rest: int) -> np.ndarray:
     return np.concatenate([np.zeros(rest), np.linspace(0.0, level, rise, endpoint=False),
                            np.full(hold, level), np.linspace(level, 0.0, fall)])

@@ -264,17 +264,22 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
 
     gap = samples(REST_GAP_S)
     # A sample is at rest when no labelled contact lies fewer than `gap` samples away.
-    near = np.convolve(tc.astype(np.int64), np.ones(2 * gap - 1, np.int64), mode="same") > 0
+    # Counted from cumulative sums, not np.convolve(mode="same"), which returns the kernel's
+    # length when a recording is shorter than it.
+    count = np.concatenate([[0], np.cumsum(tc, dtype=np.int64)])
+    idx = np.arange(n)
+    near = count[np.minimum(idx + gap, n)] - count[np.maximum(idx - gap + 1, 0)] > 0
     event = np.zeros(n, bool)
     event[1:] = pc[1:] & ~pc[:-1]
     held = np.zeros(n, bool)
     half = samples(HOLD_WINDOW_S) // 2
-    k = samples(HOLD_SMOOTH_S)
-    smooth = np.convolve(tf, np.ones(k) / k, mode="same")
     after_turn = np.zeros(n, bool)
-    for turn in load_turns(smooth, HOLD_BAND_N):
-        after_turn[turn:turn + samples(AFTER_TURN_S)] = True
     if n > 2 * half:
+        k = samples(HOLD_SMOOTH_S)
+        smooth = np.convolve(tf, np.ones(k) / k, mode="same")
+        # Read only beside holds, which a recording shorter than the window cannot hold.
+        for turn in load_turns(smooth, HOLD_BAND_N):
+            after_turn[turn:turn + samples(AFTER_TURN_S)] = True
         padded = np.pad(smooth, half, mode="edge")
         windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
         spread = windows.max(axis=1) - windows.min(axis=1)
