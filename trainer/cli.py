@@ -122,6 +122,13 @@ def _add_net_options(p: argparse.ArgumentParser) -> None:
                    help="share of the training presses the contact and force nets also see "
                         "held at their peak for 1.5-6 s (synthetic holds; default 0.2, "
                         "0 = off); docs/trainer.md \"Held grips\"")
+    p.add_argument("--release-holds", choices=("auto", "on", "off"), default="off",
+                   help="the force net also sees as many synthetic holds again on the presses' "
+                        "releases, keeping the release's strain: only where the calibration "
+                        "shows a friction (the gap between a press's rise and fall grows with "
+                        "its load, not its speed, and predicts held-out presses; auto), always "
+                        "(on) or never (off, default: they cost the egg-grasp loop). "
+                        "docs/trainer.md \"Holds on the release\"")
     p.add_argument("--turn-guard", type=non_negative_float, default=None, metavar="MS",
                    help="the force net leaves out the MS milliseconds after each press's turn, "
                         "where a held load and an unloading one look alike: held grips read "
@@ -212,7 +219,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          sizes=_sizes(args.sizes),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
                          creep_inverse=args.creep_inverse, creep=args.creep,
-                         decision=args.decision, init=args.init,
+                         release_holds=args.release_holds, decision=args.decision, init=args.init,
                          track_calibration=args.track_calibration == "on",
                          train_fraction=args.train_fraction,
                          turn_guard_s=None if args.turn_guard is None else args.turn_guard / 1000.0,

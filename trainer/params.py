@@ -12,6 +12,7 @@ from fbgforce import contract
 from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer.creep_evidence import CREEP_MODES
+from fbgforce.trainer.hysteresis import RELEASE_HOLD_MODES
 from fbgforce.trainer.synthetic import HOLD_AUGMENT, IDLE_DRAWS, LOCATION_AUGMENT, REST_AUGMENT
 
 
@@ -43,6 +44,7 @@ DECISION_RULES = ("schmitt", "cusum")
 _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "sigma": "--sigma",
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
+                "release_holds": "--release-holds",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
                 "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
                 "turn_guard_s": "--turn-guard", "sizes": "--sizes",
@@ -145,6 +147,13 @@ class TrainParams:
         presses held at their peak for 1.5-6 s
         (:func:`~fbgforce.trainer.synthetic.synthetic_holds`); 0 turns it off. Only a model with
         memory states uses it (a memoryless net reads a hold as its peak).
+    release_holds
+        ``auto``: as many synthetic holds again, on the presses' releases, for the force net,
+        where the calibration establishes a friction
+        (:func:`~fbgforce.trainer.hysteresis.release_hold_choice`); ``on``: always (with
+        ``hold_augment`` above 0); ``off`` (default): never. Off by default: on the
+        simulator's egg-grasp loop they read the grip low (docs/trainer.md, "Holds on the
+        release").
     rest_augment
         The contact and force nets also train on rests of 3-60 s inserted before this share of
         the training (and validation) presses
@@ -199,6 +208,7 @@ class TrainParams:
     weight_decay: float | Mapping[str, float] | None = None
     location_augment: float = LOCATION_AUGMENT
     hold_augment: float = HOLD_AUGMENT
+    release_holds: str = "off"
     rest_augment: float = REST_AUGMENT
     turn_guard_s: float | None = None
     memory: fm.Memory | str | None = None
@@ -243,6 +253,8 @@ class TrainParams:
              "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
         need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
         need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
+        need(self.release_holds in RELEASE_HOLD_MODES, "release_holds",
+             "one of " + ", ".join(RELEASE_HOLD_MODES))
         need(isinstance(self.track_calibration, (bool, np.bool_)), "track_calibration",
              "True or False")
         need(_is_int(self.idle_pads) and self.idle_pads >= 0, "idle_pads",

@@ -31,6 +31,12 @@ LOCATION_AUGMENT = 3.0
 HOLD_AUGMENT = 0.2
 HOLD_AUGMENT_S = (1.5, 6.0)
 HOLD_AUGMENT_STEP_S = 0.004
+#: Holds on the release (``synthetic_holds(on_release=True)``) start where the load has fallen
+#: to a share of its peak drawn here: well into the falling branch, short of the last
+#: newtons where the contact ends. Not just past the peak: a hold there has the inputs of the
+#: release's first milliseconds and another label, and on the family's pads the test presses'
+#: force read up to a quarter worse with holds drawn up to the peak.
+RELEASE_HOLD_AT = (0.4, 0.9)
 
 
 #: Synthetic long rests (:func:`synthetic_rests`): the contact and force nets also train on
@@ -80,9 +86,10 @@ Held = tuple[np.ndarray, np.ndarray]
 
 
 def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
-                    creep: Creep, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Net inputs of presses among ``rows`` held at their peak, and the rows (of ``data``)
-    whose labels they take.
+                    creep: Creep, rng: np.random.Generator, on_release: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Net inputs of presses among ``rows`` held at their peak (``on_release``: on their
+    release), and the rows (of ``data``) whose labels they take.
 
     A calibration stage that turns round at every peak never shows the memory a load standing
     still: its averages then decay towards the load, a state the nets meet first in a held grip.
@@ -100,6 +107,12 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
     filter and the memory states run through the hold as the runtime's would; the held samples
     (one every :data:`HOLD_AUGMENT_STEP_S`) and the rest of the press after the hold are
     returned.
+
+    ``on_release``: each hold starts instead at the first sample of the release at or below a
+    share of the peak drawn in :data:`RELEASE_HOLD_AT`, and keeps the strain the release had
+    there: what a friction keeps when the load stops on its way down, and a damper does not
+    (:func:`~fbgforce.trainer.hysteresis.release_hold_choice` decides whether the calibration
+    shows the one and not the other).
     """
     inputs, kept = [], []
     for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
@@ -108,7 +121,14 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
         peaks, after = [], np.zeros(len(wl), dtype=bool)
         for p in presses[rng.random(presses.size) < share]:
             loaded = sel[(pid == p) & contact[sel]]
-            peak = int(loaded[np.argmax(np.asarray(r.ds.force_N)[loaded])])
+            pressed = np.nan_to_num(np.asarray(r.ds.force_N, float)[loaded])
+            top = int(np.argmax(pressed))
+            if on_release:
+                below = np.flatnonzero(pressed[top:] <= rng.uniform(*RELEASE_HOLD_AT) * pressed[top])
+                if not below.size:
+                    continue
+                top += int(below[0])
+            peak = int(loaded[top])
             peaks.append(peak)
             after[sel[(pid == p) & (sel > peak)]] = True
         if not peaks:
