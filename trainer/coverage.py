@@ -21,7 +21,7 @@ from fbgforce.evaluation.metrics import HOLD_SMOOTH_S
 from fbgforce.recordings.dataset import Dataset
 from fbgforce.geometry import BASE_WL_NM, PAD_SIZE_MM, THERMAL_COEFF_PER_K
 from fbgforce.trainer.data import HOLD_BAND, HOLD_MIN_S
-from fbgforce.trainer.hysteresis import LOOP_MAX_CORRELATION
+from fbgforce.trainer.hysteresis import speed_follows_peak
 from fbgforce.trainer.preprocess import TEMP_MIN_SPAN_PM
 from fbgforce.trainer.synthetic import IDLE_MINUTES
 
@@ -145,17 +145,6 @@ def _missing_presses(peak: np.ndarray, speed: np.ndarray, hold: np.ndarray,
     return missing
 
 
-def _speed_follows_peak(peak: np.ndarray, speed: np.ndarray) -> float | None:
-    """The correlation of the presses' loading speeds with their peaks where it is too close
-    for :func:`~fbgforce.trainer.hysteresis.friction_evidence` to tell a friction from a
-    damper, else None (also with fewer than three presses, which establish nothing anyway)."""
-    if peak.size < 3:
-        return None
-    corr = (float(np.corrcoef(peak, speed)[0, 1])
-            if np.std(peak) > 0 and np.std(speed) > 0 else 1.0)
-    return corr if corr > LOOP_MAX_CORRELATION else None
-
-
 def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
     """What the recordings cover (module docstring); ``missing`` lists, in words, what a model
     trained on them has not seen. The keys are those of ``fbgforce coverage --json``."""
@@ -193,7 +182,8 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
                        f"(deepest {100 * deepest:.1f} %), so a grip whose force wanders runs "
                        "the pad's friction and damping through loops the calibration never "
                        "showed")
-    follows = _speed_follows_peak(peak, speed)
+    # Fewer than three presses establish nothing anyway.
+    follows = speed_follows_peak(peak, speed) if peak.size >= 3 else None
     if follows is not None:
         unknown.append(f"whether the pad's hysteresis is a friction or a damper: the presses' "
                        f"loading speeds follow their peaks (correlation {follows:.3f}), so a "

@@ -78,7 +78,7 @@ class CreepTails:
         """The tails of the releases among ``rows``; None when they hold fewer than 100
         samples or ``rows`` no contact."""
         keep = data.row_mask(rows)
-        comps, forces, tails, spans, releases = [], [], [], [], []
+        tails, spans, releases = [], [], []
         for r, sl in data.recording_slices():
             contact = np.asarray(r.ds.contact, bool)
             idx = np.arange(contact.size)
@@ -86,21 +86,17 @@ class CreepTails:
             nxt = np.minimum.accumulate(np.where(contact, idx, 2 * contact.size)[::-1])[::-1]
             tail = int(round(CREEP_TAIL_S * r.rate_hz))
             tails.append(~contact & (idx - last <= tail) & (nxt - idx > tail // 2) & keep[sl])
-            comps.append(pp.compensated(pre, r.ds.wl_nm, r.baseline_nm))
-            forces.append(np.nan_to_num(np.asarray(r.ds.force_N, float)))
             # Numbered across recordings: each recording's zero wanders on its own.
             first = spans[-1][-1] + 1 if spans else 0
             spans.append(first + idx // max(1, int(round(CREEP_ZERO_SPAN_S * r.rate_hz))))
             releases.append(last + (releases[-1].max() + contact.size + 1 if releases else 0))
-        comp, force, tail = np.concatenate(comps), np.concatenate(forces), np.concatenate(tails)
-        loaded = keep & data.contact
-        if tail.sum() < 100 or not loaded.any():
+        tail = np.concatenate(tails)
+        if tail.sum() < 100 or not (keep & data.contact).any():
             return None
         _, span = np.unique(np.concatenate(spans)[tail], return_inverse=True)
         _, release = np.unique(np.concatenate(releases)[tail], return_inverse=True)
-        w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
-                                force[loaded], rcond=None)
-        excess = (comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force)[tail]
+        force = np.nan_to_num(data.force_N)
+        excess = load_excess(data, pre, rows)[tail]
         taus = tuple(time_constants_s)
         # The rate effect is judged on the whole grid whatever the grid asked for, so that a
         # creep refitted at one time constant (held_creep) keeps the fit's decision.
@@ -220,6 +216,21 @@ class CreepTails:
         j = int(np.argmin(np.abs(np.log(np.asarray(self.time_constants_s)
                                          / creep.time_constant_s))))
         return self._rss_beside_rate(self._centred(self.excess - creep.magnitude * self.lags[:, j]))
+
+
+def load_excess(data: Prepared, pre: fm.Preprocess, rows: np.ndarray) -> np.ndarray:
+    """On every row of ``data``: a least-squares load signal less the load cell's force. The
+    signal is the force fitted, with an offset, on the compensated shifts
+    (:func:`~fbgforce.trainer.preprocess.compensated`, row by row) of the contact samples among
+    ``rows``; what a pad's creep or hysteresis holds back shows in its excess (``rows`` must
+    hold at least one contact sample)."""
+    comp = np.concatenate([pp.compensated(pre, r.ds.wl_nm, r.baseline_nm)
+                           for r, _ in data.recording_slices()])
+    force = np.nan_to_num(data.force_N)
+    loaded = data.row_mask(rows) & data.contact
+    w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
+                            force[loaded], rcond=None)
+    return comp @ w[:fm.N_STRAIN] + w[fm.N_STRAIN] - force
 
 
 def _projections(g: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

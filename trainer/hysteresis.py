@@ -19,7 +19,7 @@ import numpy as np
 
 from fbgforce.errors import InputError
 from fbgforce.model import artifact
-from fbgforce.trainer import preprocess as pp
+from fbgforce.trainer.creep_fit import load_excess
 from fbgforce.trainer.data import Prepared
 
 
@@ -73,17 +73,12 @@ class PressLoops:
     def of(cls, data: Prepared, pre: artifact.Preprocess, rows: np.ndarray) -> "PressLoops":
         """The loops of the presses among ``rows`` (those with enough samples on both
         branches in the band)."""
-        keep = data.row_mask(rows)
-        comps = [pp.compensated(pre, r.ds.wl_nm, r.baseline_nm) for r, _ in data.recording_slices()]
-        comp = np.concatenate(comps)
-        loaded = keep & data.contact
+        loaded = data.row_mask(rows) & data.contact
         force = np.nan_to_num(data.force_N)
-        w, *_ = np.linalg.lstsq(np.column_stack([comp[loaded], np.ones(loaded.sum())]),
-                                force[loaded], rcond=None)
-        excess = comp @ w[:artifact.N_STRAIN] + w[artifact.N_STRAIN] - force
+        excess = load_excess(data, pre, rows)
         peaks, speeds, gaps = [], [], []
         for r, sl in data.recording_slices():
-            f = force[sl]
+            f, e = force[sl], excess[sl]
             # Five samples smooth the load cell's noise out of its speed; the loops' speeds
             # span tens of newtons a second, the noise's a few.
             speed = np.abs(np.gradient(np.convolve(f, np.ones(5) / 5, "same"))) * r.rate_hz
@@ -96,11 +91,19 @@ class PressLoops:
                 rise, fall = band[band < top], band[band > top]
                 if rise.size < LOOP_MIN_SAMPLES or fall.size < LOOP_MIN_SAMPLES:
                     continue
-                e = excess[sl]
                 peaks.append(f[top])
                 speeds.append(0.5 * (speed[rise].mean() + speed[fall].mean()))
                 gaps.append(e[fall].mean() - e[rise].mean())
         return cls(np.asarray(peaks), np.asarray(speeds), np.asarray(gaps))
+
+
+def speed_follows_peak(peak_N: np.ndarray, speed_N_s: np.ndarray) -> float | None:
+    """The correlation of the presses' speeds with their peaks where it exceeds
+    :data:`LOOP_MAX_CORRELATION`, too close for :func:`friction_evidence` to tell a friction
+    from a damper (1 where either does not vary), else None."""
+    corr = (float(np.corrcoef(peak_N, speed_N_s)[0, 1])
+            if np.std(peak_N) > 0 and np.std(speed_N_s) > 0 else 1.0)
+    return corr if corr > LOOP_MAX_CORRELATION else None
 
 
 def _fit(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -135,13 +138,14 @@ def friction_evidence(loops: PressLoops, seed: int = 0) -> dict[str, Any]:
         return {**base, "why": f"{n} presses with both branches between "
                                 f"{100 * LOOP_BAND[0]:g} and {100 * LOOP_BAND[1]:g} % of their "
                                 f"peak (at least {LOOP_MIN_PRESSES} needed)"}
-    x = np.column_stack([loops.peak_N, loops.speed_N_s])
-    corr = float(np.corrcoef(x.T)[0, 1]) if np.all(np.std(x, axis=0) > 0) else 1.0
-    if corr > LOOP_MAX_CORRELATION:
-        return {**base, "correlation": corr,
-                "why": f"the presses' speeds follow their peaks (correlation {corr:.3f}), so a "
+    follows = speed_follows_peak(loops.peak_N, loops.speed_N_s)
+    if follows is not None:
+        return {**base, "correlation": follows,
+                "why": f"the presses' speeds follow their peaks (correlation {follows:.3f}), so a "
                        f"friction and a damper leave the same gaps: presses at several speeds "
                        f"to the same load would tell them apart"}
+    x = np.column_stack([loops.peak_N, loops.speed_N_s])
+    corr = float(np.corrcoef(x.T)[0, 1])
     coef, se = _fit(x, loops.gap_N)
     z = coef / np.maximum(se, 1e-300)
     at_median = np.array([np.median(loops.peak_N), np.median(loops.speed_N_s)]) * coef
