@@ -360,6 +360,10 @@ def table(result: dict[str, Any]) -> str:
         lines.append(f"- held grips away from the load's turns (the held samples more than "
                      f"{away[2]} after one): force bias {away[0]}, RMSE {away[1]} of the "
                      "calibration test RMSE")
+    direction = _by_direction(result)
+    if direction:
+        lines.append(f"- held grips by the load's direction: force bias {direction} (a "
+                     "friction reads the falls high and the rises low, a level error both alike)")
     return "\n".join(lines)
 
 
@@ -374,6 +378,17 @@ def _away_from_turns(result: dict[str, Any]) -> tuple[str, str, str] | None:
     ratio = _ratio(away["rmse_force_N"], result["calibration_test_rmse_force_N"])
     return (f"{away['force_bias_N']:+.3f} N", "–" if ratio is None else f"{ratio:.2f}×",
             f"{away['after_turn_s']:g} s")
+
+
+def _by_direction(result: dict[str, Any]) -> str | None:
+    """The held grips' force bias over the held samples whose load rises, then falls
+    (``holds.by_direction`` of their ``evaluate`` run), as text; None without held grips."""
+    holds = [m["holds"] for m in result["scored"].values() if m.get("role") == "hold"]
+    parts = holds[0].get("by_direction") if len(holds) == 1 else None
+    if not parts:
+        return None
+    return " / ".join("–" if parts[d]["force_bias_N"] is None else
+                      f"{parts[d]['force_bias_N']:+.3f} N" for d in ("rising", "falling"))
 
 
 def _noise_allows(result: dict[str, Any]) -> tuple[str, str] | None:
@@ -587,6 +602,10 @@ def family_table(result: dict[str, Any], stage: str | None = None) -> str:
                                        "force RMSE over the holds / calibration test RMSE")):
                 lines.append(f"| {label}, more than {after} after a turn of the load | | "
                              + " | ".join(a[i] if a else "–" for a in away.values()) + " | | |")
+        direction = {m: _by_direction(result["members"][m]) for m in members}
+        if any(direction.values()):
+            lines.append("| force bias over the holds, load rising / falling | | "
+                         + " | ".join(d or "–" for d in direction.values()) + " | | |")
     if stage:
         what = (f"with the {stage} decision rule" if stage in RULES else f"without {stage}")
         lines += ["", f"Each cell: the default / the same model {what}."]

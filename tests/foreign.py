@@ -9,9 +9,9 @@ differ from ``fbgforce.sim`` and ``fbgforce.geometry`` (neither is imported here
   force/torque balance), so the strain-to-location map is nonlinear;
 - per-channel sensitivities ±30 %, a quadratic beam response (±8 % at full load) and linear
   cross-talk between channels (up to 5 %), optional viscoelastic creep, optional
-  rate-independent pad friction (a Duhem/Dahl-type model with smooth, exponential reversals:
-  not the simulator's play operators), optional rate-dependent hysteresis (a damper beside
-  the beams: no creep);
+  rate-independent pad friction (a Dahl model, stepped in the beams' travel so that the pad
+  sticks at a reversal, then slips smoothly: not the simulator's play operators), optional
+  rate-dependent hysteresis (a damper beside the beams: no creep);
 - base wavelengths anywhere in 1510–1590 nm; sample rates 500 / 1000 / 2000 Hz; white noise
   2–15 pm quantised to 0.1 pm;
 - temperature: a slow ramp plus a wander seen by every grating with its own coefficient, or
@@ -162,13 +162,16 @@ def shares(dev: Device, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def pad_friction(beam: np.ndarray, gap: float, sharpness: float) -> np.ndarray:
-    """Beam loads (n, 4) after a frictional pad: a Duhem (Dahl-type) model.
+    """Beam loads (n, 4) after a frictional pad: a Dahl model, passive.
 
-    A friction force ``z`` per beam opposes the load change and saturates at ``mu |F|`` with
+    A friction force ``z`` per beam opposes the pad's motion and saturates at ``mu |F|`` with
     ``mu = gap / 2`` (Coulomb: proportional to the load, so the loop closes at zero), approached
-    exponentially in the load travelled: ``z <- b + (z - b) exp(-sharpness |dF| / (mu |F|))``
-    with ``b = mu |F| sign(dF)``. The beam receives ``F - z``. Depends on the sequence of
-    loads only, not on time.
+    exponentially in the beam's own travel, as Dahl's law has it in the displacement:
+    ``z <- b + (z - b) exp(-sharpness |db| / (mu |F|))`` with ``b = mu |F| sign(dF)``. The beam
+    receives ``F - z`` and so moves the way the load does, by ``dF / (1 + a)`` with ``a =
+    sharpness |b - z| / (mu |F|)`` to first order: right after a reversal (``a = 2 sharpness``)
+    the pad nearly sticks and the beam's load hardly moves, then slips onto the other branch.
+    Depends on the sequence of loads only, not on time.
     """
     mu = gap / 2.0
     out = np.empty_like(beam)
@@ -183,7 +186,8 @@ def pad_friction(beam: np.ndarray, gap: float, sharpness: float) -> np.ndarray:
                 z = 0.0
             elif d != 0.0:
                 target = bound if d > 0 else -bound
-                z = target + (z - target) * np.exp(-sharpness * abs(d) / bound)
+                travel = abs(d) / (1.0 + sharpness * abs(target - z) / bound)
+                z = target + (z - target) * np.exp(-sharpness * travel / bound)
             res[i] = f - z
             prev = f
         out[:, j] = res

@@ -138,6 +138,18 @@ def test_turns_of_the_load_and_the_holds_away_from_them():
     assert 0.5 < away["fraction"] < 0.8 and holds["force_bias_N"] > 0.2
     assert away["force_bias_N"] == pytest.approx(0.02)
     assert away["rmse_force_N"] == pytest.approx(0.02)
+    # The load falls from each high (3, 7 s) to the next low (5, 9 s) and from the last one to
+    # the release; a friction's signature reads the falls high and the rises low.
+    falling = use["falling"]
+    assert falling[(t > 3.05) & (t < 4.95)].all() and falling[(t > 7.05) & (t < 8.95)].all()
+    assert not falling[(t > 2.0) & (t < 2.95)].any() and not falling[(t > 5.05) & (t < 6.95)].any()
+    assert falling[(t > 10.0) & (t < 10.5)].all() and not falling[t < 1.0].any()
+    pred["force_N"] = noisy + np.where(falling, 0.5, -0.5)
+    direction = metrics.compute(pred, grip, noisy, np.full(t.size, np.nan),
+                                np.full(t.size, np.nan), use=use)["holds"]["by_direction"]
+    assert direction["falling"]["force_bias_N"] == pytest.approx(0.5)
+    assert direction["rising"]["force_bias_N"] == pytest.approx(-0.5)
+    assert direction["falling"]["fraction"] == pytest.approx(0.5, abs=0.05)
     # A flat hold has no turn until its release: every held sample is away from turns.
     flat = _press(300, 5.0, 1500, 300, 200)
     tf = np.arange(flat.size) * 1e-3
@@ -330,6 +342,10 @@ def test_bench_scores_every_goal(in_use_logs, small_exported_dir, capsys):
     assert (f"- held grips away from the load's turns (the held samples more than 0.75 s after "
             f"one): force bias {away['force_bias_N']:+.3f} N, RMSE "
             f"{away['rmse_force_N'] / res['calibration_test_rmse_force_N']:.2f}×") in text
+    rises = res["scored"]["held_grips"]["holds"]["by_direction"]
+    assert (f"- held grips by the load's direction: force bias "
+            f"{rises['rising']['force_bias_N']:+.3f} N / "
+            f"{rises['falling']['force_bias_N']:+.3f} N") in text
 
 
 def test_bench_goals_without_their_logs_are_not_measured(in_use_logs, small_exported_dir,
@@ -434,6 +450,27 @@ def test_viscous_pad_reads_rate_not_creep():
     np.testing.assert_allclose(s[850:], s0[850:], atol=1e-9)
 
 
+def test_friction_pad_is_passive():
+    # A friction takes work from the pad, never gives it: where the load turns back, the beams'
+    # load stays (the pad sticks) and never moves against the load, then slips onto the other
+    # branch, below the load on the rise and above it on the fall.
+    rise = np.linspace(0.0, 20.0, 400)
+    t = np.arange(2000) / 1000.0
+    wander = 20.0 - 3.0 * (1.0 - np.cos(2.0 * np.pi * t))
+    f = np.concatenate([rise, wander, np.linspace(20.0, 0.0, 400)])
+    beam = fg.pad_friction(np.repeat(f[:, None], 4, axis=1), gap=0.05, sharpness=4.0)[:, 0]
+    df, db = np.diff(f), np.diff(beam)
+    assert not np.any(df * db < -1e-12)
+    # Coulomb: on a slipping branch the beams carry about (1 ± mu) of the load, never more.
+    assert np.all(np.abs(db) <= 1.03 * np.abs(df))
+    top = rise.size - 1
+    assert beam[top:top + 500].max() <= beam[top] + 1e-9
+    mid_rise, mid_fall = 200, rise.size + wander.size + 200
+    assert f[mid_rise] - beam[mid_rise] == pytest.approx(0.025 * f[mid_rise], rel=0.05)
+    assert beam[mid_fall] - f[mid_fall] == pytest.approx(0.025 * f[mid_fall], rel=0.05)
+    assert beam[-1] == 0.0
+
+
 @pytest.mark.slow
 def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tmp_path, capsys):
     import shutil
@@ -469,6 +506,10 @@ def test_family_bench_names_the_worst_member(in_use_logs, small_exported_dir, tm
     away = res["members"]["a"]["scored"]["held_grips"]["holds"]["away_from_turns"]
     assert (f"| force bias over the holds, more than 0.75 s after a turn of the load | | "
             f"{away['force_bias_N']:+.3f} N | ") in text
+    rises = res["members"]["a"]["scored"]["held_grips"]["holds"]["by_direction"]
+    assert (f"| force bias over the holds, load rising / falling | | "
+            f"{rises['rising']['force_bias_N']:+.3f} N / "
+            f"{rises['falling']['force_bias_N']:+.3f} N | ") in text
     # Members scored in separate runs combine into the same table.
     for member in ("a", "b"):
         assert bench_in_use.main(["--family", str(root), "--work", str(tmp_path / "work"),

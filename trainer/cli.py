@@ -389,6 +389,10 @@ def _holds_line(out: dict[str, Any]) -> str | None:
         text += (f"; more than {away['after_turn_s']:g} s after a turn of the load "
                  f"({100 * away['fraction']:.0f} % of the held samples): "
                  f"{away['force_bias_N']:+.3f} N, {away['rmse_force_N']:.3f} N")
+    direction = holds.get("by_direction")
+    if direction and None not in (direction[d]["force_bias_N"] for d in ("rising", "falling")):
+        text += (f"; load rising {direction['rising']['force_bias_N']:+.3f} N, falling "
+                 f"{direction['falling']['force_bias_N']:+.3f} N")
     return text
 
 

@@ -49,7 +49,11 @@ In use (:func:`use_masks`, then ``at_rest`` and ``holds`` when the caller passes
   back from its extreme (a dead band against load-cell noise), dated at the extreme. A pad with
   friction changes branch within a fraction of a newton of load after a turn, while its
   strain tells a slow turn from noise only later; how a model reads the grip away from the
-  turns separates that from a level error.
+  turns separates that from a level error;
+- direction: between two turns the load rises or falls (``falling``: on its way down from a
+  turn at a high, or before a first turn at a low); ``holds.by_direction`` gives the bias and
+  RMSE over the held samples of each. A pad with friction reads its falling samples high and
+  its rising ones low by about the same; a level error reads both alike.
 """
 from __future__ import annotations
 
@@ -82,7 +86,7 @@ HOLD_BAND_FRACTION = 0.05
 #: ``away_from_turns``).
 AFTER_TURN_S = 0.75
 #: Keys of :func:`use_masks` (each (n,)).
-USE_KEYS = ("rest", "event", "held", "hold_start", "after_turn", "period_s")
+USE_KEYS = ("rest", "event", "held", "hold_start", "after_turn", "falling", "period_s")
 #: Fewest presses a held-out split should hold for its metrics to mean much: fewer is a
 #: warning (``warnings`` in the JSON of train and evaluate), not an error.
 MIN_SPLIT_PRESSES = 5
@@ -248,8 +252,8 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
         ``rest``: at least :data:`REST_GAP_S` from any labelled contact; ``event``: the
         prediction rises from no-contact to contact here (never at the first sample);
         ``held``: in a hold (module docstring); ``hold_start``: the first sample of each hold;
-        ``after_turn``: within :data:`AFTER_TURN_S` after a turn of the load (module
-        docstring); ``period_s``: the recording's sample period, on every sample (rest time
+        ``after_turn``: within :data:`AFTER_TURN_S` after a turn of the load, ``falling``:
+        the load on its way down between turns (module docstring); ``period_s``: the recording's sample period, on every sample (rest time
         adds up over recordings of different rates).
     """
     pc = np.asarray(pred_contact, bool).reshape(-1)
@@ -274,12 +278,15 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
     held = np.zeros(n, bool)
     half = samples(HOLD_WINDOW_S) // 2
     after_turn = np.zeros(n, bool)
+    falling = np.zeros(n, bool)
     if n > 2 * half:
         k = samples(HOLD_SMOOTH_S)
         smooth = np.convolve(tf, np.ones(k) / k, mode="same")
         # Read only beside holds, which a recording shorter than the window cannot hold.
-        for turn in load_turns(smooth, HOLD_BAND_N):
+        turns = load_turns(smooth, HOLD_BAND_N)
+        for turn in turns:
             after_turn[turn:turn + samples(AFTER_TURN_S)] = True
+        falling = load_falling(smooth, turns)
         padded = np.pad(smooth, half, mode="edge")
         windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
         spread = windows.max(axis=1) - windows.min(axis=1)
@@ -290,7 +297,7 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
                 held[a:b] = True
     hold_start = held & ~np.concatenate([[False], held[:-1]])
     return {"rest": ~near, "event": event, "held": held, "hold_start": hold_start,
-            "after_turn": after_turn, "period_s": np.full(n, period)}
+            "after_turn": after_turn, "falling": falling, "period_s": np.full(n, period)}
 
 
 def load_turns(force_N: np.ndarray, band_N: float) -> list[int]:
@@ -318,6 +325,21 @@ def load_turns(force_N: np.ndarray, band_N: float) -> list[int]:
     return turns
 
 
+def load_falling(force_N: np.ndarray, turns: Sequence[int]) -> np.ndarray:
+    """(n,) True where ``force_N`` is on its way down: from each turn at a high (the load then
+    lower at the next turn, or at the end) to the next turn; before the first turn, where that
+    turn is a low. Without turns, nothing falls."""
+    f = np.asarray(force_N, dtype=np.float64).reshape(-1)
+    out = np.zeros(f.size, bool)
+    if not turns:
+        return out
+    edges = [0, *turns, f.size - 1]
+    for a, b in zip(edges[:-1], edges[1:]):
+        # Every segment runs from one extreme to the next, so its ends tell its direction.
+        out[a:b] = f[b] < f[a]
+    return out
+
+
 def rest_summary(pc: np.ndarray, pf: np.ndarray, masks: Mapping[str, np.ndarray]
                  ) -> dict[str, Any]:
     """``at_rest``: samples and seconds at rest, the fraction flagged as contact, false contact
@@ -337,19 +359,26 @@ def rest_summary(pc: np.ndarray, pf: np.ndarray, masks: Mapping[str, np.ndarray]
 def hold_summary(pf: np.ndarray, tf: np.ndarray, masks: Mapping[str, np.ndarray]
                  ) -> dict[str, Any]:
     """``holds``: how many holds, their samples and seconds, and the bias (mean of output minus
-    true force) and RMSE of the force output over the held samples."""
+    true force) and RMSE of the force output over the held samples; the same over those away
+    from the load's turns (``away_from_turns``) and over those whose load rises or falls
+    (``by_direction``), each with its share of the held samples."""
     held = masks["held"].astype(bool)
     err = pf[held] - tf[held]
     away = ~masks["after_turn"].astype(bool)[held]
+    falling = masks["falling"].astype(bool)[held]
+
+    def part(keep: np.ndarray) -> dict[str, Any]:
+        return {"fraction": float(np.mean(keep)) if err.size else None,
+                "force_bias_N": float(np.mean(err[keep])) if keep.any() else None,
+                "rmse_force_N": _rmse(err[keep])}
+
     return {"min_s": HOLD_MIN_S, "band_N": HOLD_BAND_N, "band_fraction": HOLD_BAND_FRACTION,
             "holds": int(np.sum(masks["hold_start"].astype(bool))), "samples": int(held.sum()),
             "seconds": float(np.sum(masks["period_s"][held])),
             "force_bias_N": float(np.mean(err)) if err.size else None,
             "rmse_force_N": _rmse(err),
-            "away_from_turns": {"after_turn_s": AFTER_TURN_S,
-                                "fraction": float(np.mean(away)) if err.size else None,
-                                "force_bias_N": float(np.mean(err[away])) if away.any() else None,
-                                "rmse_force_N": _rmse(err[away])}}
+            "away_from_turns": {"after_turn_s": AFTER_TURN_S, **part(away)},
+            "by_direction": {"rising": part(~falling), "falling": part(falling)}}
 
 
 def common_location(preds: Mapping[str, Mapping[str, np.ndarray]], contact: np.ndarray,
