@@ -367,12 +367,18 @@ def table(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _held_grips(result: dict[str, Any]) -> dict[str, Any] | None:
+    """``holds`` of the one held-grip log's ``evaluate`` run; None without exactly one."""
+    holds = [m["holds"] for m in result["scored"].values() if m.get("role") == "hold"]
+    return holds[0] if len(holds) == 1 else None
+
+
 def _away_from_turns(result: dict[str, Any]) -> tuple[str, str, str] | None:
     """The held grips' force bias and RMSE ratio over the held samples away from the load's
     turns (``holds.away_from_turns`` of their ``evaluate`` run), as text, and how long after a
     turn counts as near it; None without held grips or samples away from turns."""
-    holds = [m["holds"] for m in result["scored"].values() if m.get("role") == "hold"]
-    away = holds[0].get("away_from_turns") if len(holds) == 1 else None
+    holds = _held_grips(result)
+    away = holds.get("away_from_turns") if holds else None
     if not away or away["force_bias_N"] is None:
         return None
     ratio = _ratio(away["rmse_force_N"], result["calibration_test_rmse_force_N"])
@@ -383,8 +389,8 @@ def _away_from_turns(result: dict[str, Any]) -> tuple[str, str, str] | None:
 def _by_direction(result: dict[str, Any]) -> str | None:
     """The held grips' force bias over the held samples whose load rises, then falls
     (``holds.by_direction`` of their ``evaluate`` run), as text; None without held grips."""
-    holds = [m["holds"] for m in result["scored"].values() if m.get("role") == "hold"]
-    parts = holds[0].get("by_direction") if len(holds) == 1 else None
+    holds = _held_grips(result)
+    parts = holds.get("by_direction") if holds else None
     if not parts:
         return None
     return " / ".join("–" if parts[d]["force_bias_N"] is None else

@@ -253,8 +253,9 @@ def use_masks(pred_contact: np.ndarray, contact: np.ndarray, force_N: np.ndarray
         prediction rises from no-contact to contact here (never at the first sample);
         ``held``: in a hold (module docstring); ``hold_start``: the first sample of each hold;
         ``after_turn``: within :data:`AFTER_TURN_S` after a turn of the load, ``falling``:
-        the load on its way down between turns (module docstring); ``period_s``: the recording's sample period, on every sample (rest time
-        adds up over recordings of different rates).
+        the load on its way down between turns (module docstring); ``period_s``: the
+        recording's sample period, on every sample (rest time adds up over recordings of
+        different rates).
     """
     pc = np.asarray(pred_contact, bool).reshape(-1)
     tc = np.asarray(contact, bool).reshape(-1)
