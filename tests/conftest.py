@@ -101,11 +101,13 @@ def small_model_dir(tmp_path_factory, small_dataset_path):
     # The Schmitt trigger's decision, with its rise count and release hysteresis, is the one
     # those pages and tests/test_engine_agreement.py measure (tests/test_cusum.py the CUSUM's).
     # The nets learn the recording as tared (tests/test_tracked_calibration.py trains through
-    # the tracker); the Schmitt trigger reads no idle pad.
+    # the tracker); the Schmitt trigger reads no idle pad. Its contact net reads the play
+    # operators: without synthetic holds they are its only sign of a load held for minutes
+    # (tests/test_decision_tracker.py holds one ten minutes; docs/trainer.md, "Memory").
     fm.save(train([small_dataset_path], epochs=40, seed=SMALL_SEED, filter="causal",
                   progress=False, restarts=1, weight_decay=0.0, hold_augment=0.0,
                   rest_augment=0.0, ref_shift=0, sizes=PAPER_SIZES, decision="schmitt",
-                  track_calibration=False, idle_pads=0), out)
+                  track_calibration=False, idle_pads=0, contact_plays=True), out)
     return out
 
 

@@ -547,10 +547,12 @@ def test_a_model_scores_the_import_like_the_simulators_file(small_model_dir, sma
 #: recording as tared (the tracker's pass trains a contact net and a decision of its own, a
 #: second path for label noise to move), and the mean over three seeds (docs/lab-import.md,
 #: "A model trained on the import"; a single seed's force RMSE moves by 3 % when 20 mN of
-#: white noise is added to the labels).
+#: white noise is added to the labels). The contact net reads the play operators, as it did
+#: when the 2 % was measured: the force net trains where the contact net passes, and with a
+#: contact net blind to them the aligned import's force RMSE read 2.3 % from the file's.
 STABLE_TRAINING = {"epochs": 20, "restarts": 1, "weight_decay": 0.0, "hold_augment": 0.0,
                    "location_augment": 1.0, "learning_rate": 1e-4, "progress": False,
-                   "track_calibration": False, "idle_pads": 0}
+                   "track_calibration": False, "idle_pads": 0, "contact_plays": True}
 STABLE_SEEDS = (0, 1, 2)
 METRICS = ("contact_accuracy", "rmse_force_N", "rmse_x_mm", "rmse_y_mm")
 

@@ -349,3 +349,42 @@ def test_holds_are_found_and_a_memory_without_them_is_warned_about(small_model_d
     # (A 10-press log also warns that its test split is small: not about holds.)
     assert md["synthetic_holds"]["samples"]["train"] > 0
     assert not any("held grip" in w for w in md["warnings"])
+
+
+def test_the_contact_net_reads_no_play_operator_unless_asked(tmp_path):
+    """By default the contact net's first layer has exact zeros on the play operators'
+    columns, in the float model and in the blob, so what the plays hold after a long rest
+    cannot move its margin in any engine; the force net reads them. ``contact_plays`` gives
+    it them again, and model.json records which."""
+    from fbgforce import sim
+    from fbgforce.export.exporter import export_model
+    from fbgforce.trainer.params import DEFAULT_SIZES
+    from fbgforce.trainer.train import train
+
+    rec = sim.simulate(sim.load_scene("smoke").replace(schedule={"n_presses": 10}))
+    tiny = {net: (4,) for net in DEFAULT_SIZES}
+    models = {asked: train([rec], epochs=1, sizes=tiny, restarts=1, idle_pads=0, progress=False,
+                           contact_plays=asked) for asked in (False, True)}
+    for asked, model in models.items():
+        memory = model.preprocess.memory
+        plays = list(memory.columns("play"))
+        assert plays == [contract.N_STRAIN + len(memory.ema_shifts) + i
+                         for i in range(len(memory.play_widths))] and plays
+        assert model.metadata["contact_reads_plays"] is asked
+        assert model.contact.weights[0][:, plays].all() if asked \
+            else not model.contact.weights[0][:, plays].any()
+        assert model.contact.weights[0][:, :plays[0]].any() and model.force.weights[0][:, plays].any()
+
+    model = models[False]
+    out = tmp_path / "model"
+    modeldir.save(model, out)
+    export_model(out)
+    q = blob.from_bytes((out / "model.fbgm").read_bytes())
+    first = q.nets[artifact.NET_NAMES.index("contact")][0].w
+    assert not first[:, plays].any() and first.any()
+    # Whatever the plays hold, the same logits.
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=(64, model.preprocess.n_features))
+    moved = z.copy()
+    moved[:, plays] += rng.normal(scale=3.0, size=(64, len(plays)))
+    assert np.array_equal(model.contact.forward(z), model.contact.forward(moved))

@@ -196,6 +196,25 @@ def test_qat_finetune_keeps_model_contract() -> None:
     assert all(isinstance(rep[k]["kept_start"], bool) for k in ("contact", "force", "location"))
 
 
+def test_qat_leaves_an_input_the_contact_net_does_not_read_unread() -> None:
+    """A contact net trained not to read an input (its first layer's column all zero, as the
+    trainer leaves the play operators) does not learn to read it in fine-tuning, even where
+    the labels would reward it."""
+    from fbgforce.trainer import qat
+
+    model = _model()
+    model.contact.weights[0][:, 3] = 0.0
+    rng = np.random.default_rng(5)
+    z = rng.standard_normal((600, 4))
+    contact = z[:, 0] + z[:, 3] > 0
+    force = np.where(contact, 10 + 5 * z[:, 1], 0.0)
+    x = np.where(contact, 10 + z[:, 2], np.nan)
+    y = np.where(contact, 13 + z[:, 3], np.nan)
+    tuned, rep = qat.finetune(model, z, contact, force, x, y, epochs=3, progress=False)
+    assert rep["contact"]["kept_start"] is False
+    assert not tuned.contact.weights[0][:, 3].any() and tuned.contact.weights[0][:, :3].any()
+
+
 @pytest.mark.slow
 def test_tradeoff_quick_end_to_end(tmp_path, capsys) -> None:
     """``fbgforce tradeoff --quick`` on a small scene: every output written and consistent."""

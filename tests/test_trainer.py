@@ -560,7 +560,8 @@ def test_training_progress_on_a_pipe_is_a_line_per_bar(monkeypatch):
     ("sizes", {"contact": [129]}, "--sizes"), ("sizes", {"contact": [0, 4]}, "--sizes"),
     ("sizes", {"force": [8] * 8}, "--sizes"), ("sizes", {"gripper": [8]}, "--sizes"),
     ("sizes", {"force": []}, "--sizes"), ("sizes", {"force": [8.5]}, "--sizes"),
-    ("idle_pads", -1, "--idle-pads"), ("idle_pads", 2.0, "--idle-pads")])
+    ("idle_pads", -1, "--idle-pads"), ("idle_pads", 2.0, "--idle-pads"),
+    ("contact_plays", "on", "--contact-plays")])
 def test_train_params_refuse_a_value_out_of_range_naming_the_option(name, value, column):
     from fbgforce.trainer.params import TrainParams
 

@@ -87,6 +87,12 @@ def _add_preprocess_options(p: argparse.ArgumentParser) -> None:
                         "from the zero the runtime holds and not from the calibration's "
                         "wandering one (on, default; a tenth to a third more training time), or on "
                         "the recordings as tared (off). docs/trainer.md \"The tracker's zero\"")
+    p.add_argument("--contact-plays", choices=("on", "off"), default="off",
+                   help="let the contact net read the memory's play operators too (on), or "
+                        "only the channels and the averages (off, default): at rest a play "
+                        "follows the noise's record low, and a contact net that reads it "
+                        "takes a pad left alone for minutes for a light press. "
+                        "docs/trainer.md \"What the contact net reads\"")
     p.add_argument("--creep-inverse", action=argparse.BooleanOptionalAction, default=None,
                    help="take the pad's fitted creep out before the filter (--creep-inverse) or "
                         "let the at-rest tracker discount its recovery (--no-creep-inverse); "
@@ -221,6 +227,7 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          creep_inverse=args.creep_inverse, creep=args.creep,
                          release_holds=args.release_holds, decision=args.decision, init=args.init,
                          track_calibration=args.track_calibration == "on",
+                         contact_plays=args.contact_plays == "on",
                          train_fraction=args.train_fraction,
                          turn_guard_s=None if args.turn_guard is None else args.turn_guard / 1000.0,
                          **augment)

@@ -145,22 +145,38 @@ class Scaling:
 
 def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarray,
                 va: np.ndarray, synth_tr: Held, synth_va: Held, rng: np.random.Generator,
-                desc: str = "contact net") -> tuple[FlatMLP, np.ndarray]:
+                desc: str = "contact net", unread: Sequence[int] = ()
+                ) -> tuple[FlatMLP, np.ndarray]:
     """The contact net on every sample and the synthetic ones (softmax cross-entropy);
-    returns it and its logits on every row. ``desc`` names it on the progress bar."""
+    returns it and its logits on every row. ``desc`` names it on the progress bar.
+
+    ``unread``: input columns the net does not read. It trains with them at 0 and its
+    first layer's weights on them are set to 0, so every engine computes the same function
+    on the full inputs without a change to the model's format."""
     nf = z.shape[1]
+    cols = list(unread)
+
+    def seen(x: np.ndarray) -> np.ndarray:
+        if not cols:
+            return x
+        x = np.array(x, dtype=np.float64, copy=True)
+        x[:, cols] = 0.0
+        return x
+
     labels = data.contact.astype(np.int64)
-    zc_tr = np.concatenate([z[tr], synth_tr[0][:, :nf]])
-    zc_va = np.concatenate([z[va], synth_va[0][:, :nf]])
+    zc_tr = seen(np.concatenate([z[tr], synth_tr[0][:, :nf]]))
+    zc_va = seen(np.concatenate([z[va], synth_va[0][:, :nf]]))
     yc_tr = labels[np.concatenate([tr, synth_tr[1]])]
     yc_va = labels[np.concatenate([va, synth_va[1]])]
+    z_va = seen(z[va])
 
     def contact_val(net: FlatMLP) -> dict[str, float]:
-        return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z[va]), 1) == 1)
+        return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z_va), 1) == 1)
                                          == data.contact[va])) if va.size else float("nan")}
 
     cnet = fit_net("contact", rng, "xent", zc_tr, yc_tr, zc_va, yc_va,
                    val_metrics=contact_val, desc=desc)
+    cnet.W[0][:, cols] = 0.0
     return cnet, predict_batched(cnet, z)
 
 

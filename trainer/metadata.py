@@ -151,6 +151,7 @@ def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainPar
                   "samples": {"train": int(tr.size), "val": int(va.size), "test": int(te.size)}},
         "sizes": {name: net.sizes for name, net in model.nets.items()},
         "memory": pre.memory.to_json(),
+        "contact_reads_plays": bool(params.contact_plays),
         "train_hold_s": held_s,
         "coverage": data_coverage,
         "creep": {"magnitude": creep.magnitude, "time_constant_s": creep.time_constant_s,

@@ -48,7 +48,8 @@ _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "s
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
                 "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
                 "turn_guard_s": "--turn-guard", "sizes": "--sizes",
-                "track_calibration": "--track-calibration", "idle_pads": "--idle-pads"}
+                "track_calibration": "--track-calibration", "idle_pads": "--idle-pads",
+                "contact_plays": "--contact-plays"}
 
 
 def _is_int(value: Any) -> bool:
@@ -117,6 +118,14 @@ class TrainParams:
         read loads from the zero the runtime will hold, not from the calibration's wandering
         one (:mod:`fbgforce.trainer.tracked`; docs/trainer.md, "The tracker's zero"). False
         trains on the recordings as tared.
+    contact_plays
+        The contact net reads the memory's play operators too (default False: it reads the
+        channels and the averages; the force and location nets read every state). At rest a
+        play operator follows the noise's record low, so the longer a pad rests the further
+        its feature drifts from any state a calibration's short rests show; a contact net
+        that reads it takes a long rest for a light press, and the contact decision's
+        threshold, read on idle pads, rises to match (docs/trainer.md, "What the contact net
+        reads").
     init
         A model (or model directory) of another device to start from (paper §VII-C). Its input
         standardisation and output scaling are kept so its weights keep their meaning; tare and
@@ -215,6 +224,7 @@ class TrainParams:
     restarts: int | Mapping[str, int] | None = None
     track_calibration: bool = True
     idle_pads: int = IDLE_DRAWS
+    contact_plays: bool = False
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, allowed: str) -> None:
@@ -257,6 +267,7 @@ class TrainParams:
              "one of " + ", ".join(RELEASE_HOLD_MODES))
         need(isinstance(self.track_calibration, (bool, np.bool_)), "track_calibration",
              "True or False")
+        need(isinstance(self.contact_plays, (bool, np.bool_)), "contact_plays", "True or False")
         need(_is_int(self.idle_pads) and self.idle_pads >= 0, "idle_pads",
              "a whole number >= 0 (0: the rests alone)")
         need(self.decision in DECISION_RULES, "decision", "one of " + ", ".join(DECISION_RULES))

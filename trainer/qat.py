@@ -204,9 +204,14 @@ def finetune(model: artifact.HierarchicalModel, z: np.ndarray, contact: np.ndarr
         vf, vxy = _targets(model, *(np.asarray(v, float) for v in val[2:5]))
     report: dict[str, Any] = {"weight_bits": weight_bits, "act_bits": act_bits}
 
-    cnet = FakeQuantMLP(model.contact, weight_bits, act_bits, z)
-    _tune(cnet, "xent", z, c.astype(np.int64), vz if val else None,
+    # Inputs the contact net was trained not to read (all-zero columns of its first layer,
+    # fbgforce.trainer.fit_nets.fit_contact) stay unread.
+    unread = ~model.contact.weights[0].any(axis=0)
+    cz = np.where(unread, 0.0, z)
+    cnet = FakeQuantMLP(model.contact, weight_bits, act_bits, cz)
+    _tune(cnet, "xent", cz, c.astype(np.int64), np.where(unread, 0.0, vz) if val else None,
           vc.astype(np.int64) if val else None, "contact", kw, report)
+    cnet.W[0][:, unread] = 0.0
 
     fnet = FakeQuantMLP(model.force, weight_bits, act_bits, z[c])
     _tune(fnet, "mse", z[c], f_t[c], vz[vc] if val else None, vf[vc] if val else None, "force",

@@ -578,7 +578,7 @@ def _contact_stage(data: Prepared, params: TrainParams,
     rest_tr, rest_va = _rests(data, pre, params, tr, va, streams.rests)
     synth_tr, synth_va = _joined(hold_tr, rest_tr), _joined(hold_va, rest_va)
     cnet, logits = fit_contact(fit_net, data, z, tr, va, synth_tr, synth_va, streams.contact,
-                               desc)
+                               desc, () if params.contact_plays else pre.memory.columns("play"))
     return _ContactStage(tr, va, te, scaling, pre, x_all, z, fit_net, streams, creep, hold_tr,
                          hold_va, rest_tr, rest_va, synth_tr, synth_va, cnet, logits)
 

@@ -89,6 +89,16 @@ class Memory:
         """States of ``kind`` in use (``n_<kind>`` of the parameter blocks)."""
         return len(getattr(self, memory_attr(kind, kind.counted_by)))
 
+    def columns(self, name: str) -> range:
+        """The net inputs' columns that the states of the kind ``name`` (``"ema"``,
+        ``"play"``) feed: after the four channels, in ``contract.MEMORY_KINDS`` order."""
+        start = N_STRAIN
+        for kind in contract.MEMORY_KINDS:
+            if kind.name == name:
+                return range(start, start + self.count(kind))
+            start += self.count(kind)
+        raise KeyError(f"no memory kind {name!r}")
+
     @property
     def n_states(self) -> int:
         """Memory states of every kind (averages and play operators)."""

@@ -390,7 +390,8 @@ def idle_threshold(draws: Sequence[np.ndarray], k: float, target: float,
     net's margins on each, in time order; 0 without).
 
     An idle pad's rest does not extend as the calibration's do: its memory's play operators
-    follow the noise's record low, so the margin creeps up with the log of the rest's length
+    follow the noise's record low, so a contact net that reads them (``fbgforce train
+    --contact-plays on``) reads a margin that creeps up with the log of the rest's length
     (docs/robustness.md, "An idle pad"), and a threshold read on rests of seconds extended to
     an hour sits below what a pad left alone for minutes reaches. So each draw is scored as
     it is, whole, and the worst one counts. Unclipped, as the rests' peaks are: the clip only
