@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from fbgforce.model import artifact, floatref
+from fbgforce.model.decision import CUSUM_MAX
 from fbgforce.tradeoff import grid, scoring, timing
 from fbgforce.cli import main
 from fbgforce.errors import InputError
@@ -290,13 +291,16 @@ def test_the_decision_curve_has_both_rules(small_exported_dir, small_dataset_pat
 
     ds = dataset.load(small_dataset_path)
     res = decision.decision_curve(small_exported_dir, [ds], on_scales=(1.0,), rise_counts=(3,),
-                                  h_scales=(1.0, 1e6), k_offsets=(0.0,))
+                                  h_scales=(1.0, 1e12), k_offsets=(0.0,))
     rules = [r["rule"] for r in res["rows"]]
     assert rules == ["schmitt", "cusum", "cusum"]
     low, high = res["rows"][1], res["rows"][2]
     assert low["cusum_h"] == pytest.approx(res["cusum_base"]["h"])
     assert low["cusum_hi"] == pytest.approx(low["cusum_k"] + 0.5 * low["cusum_h"])
     assert low["detected_above_1N"] > 0.9 and high["detected_above_1N"] == 0.0
+    # A threshold past the contract's range is swept at its edge.
+    assert high["cusum_h"] == CUSUM_MAX
+    assert high["cusum_hi"] == pytest.approx(high["cusum_k"] + 0.5 * CUSUM_MAX)
     assert res["rows"][0]["default"] and not low["default"]
     csv = decision.csv_text(res).splitlines()
     assert csv[0].split(",") == list(decision.CSV_COLUMNS) and len(csv) == 4

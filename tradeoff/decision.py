@@ -131,12 +131,13 @@ def decision_curve(model_dir: str | Path, recordings: Sequence[Any],
                                      and rise == own.contact_rise_samples),
                          **_score(q, recordings)})
     h0, k0, lo = cusum_base(own)
+    top = decision.CUSUM_MAX    # the contract's range: a threshold past it is one no press reaches
     for offset in k_offsets:
-        k = k0 + offset
+        k = float(np.clip(k0 + offset, -top, top))
         for scale in h_scales:
-            h = scale * h0
+            h = min(scale * h0, top)
             own_setting = bool(own.contact_cusum_h) and scale == 1.0 and offset == 0.0
-            hi = own.contact_cusum_hi if own_setting else k + 0.5 * h
+            hi = own.contact_cusum_hi if own_setting else min(k + 0.5 * h, top)
             iu = dataclasses.replace(schmitt, contact_on_margin=0.0, contact_rise_samples=1,
                                      contact_off_margin=own.contact_off_margin, contact_cusum_h=h,
                                      contact_cusum_k=k, contact_cusum_lo=lo, contact_cusum_hi=hi)
