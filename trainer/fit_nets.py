@@ -12,7 +12,7 @@ from fbgforce.model import artifact, floatref
 from fbgforce.errors import InputError
 from fbgforce.trainer import preprocess as pp
 from fbgforce.trainer.data import Prepared
-from fbgforce.trainer.nets import FlatMLP, fit, predict_batched
+from fbgforce.trainer.nets import FlatMLP, fit, predict_batched, zero_columns
 from fbgforce.trainer.params import TrainParams
 from fbgforce.trainer.synthetic import Held, scaled_presses
 
@@ -154,21 +154,12 @@ def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarra
     first layer's weights on them are set to 0, so every engine computes the same function
     on the full inputs without a change to the model's format."""
     nf = z.shape[1]
-    cols = list(unread)
-
-    def seen(x: np.ndarray) -> np.ndarray:
-        if not cols:
-            return x
-        x = np.array(x, dtype=np.float64, copy=True)
-        x[:, cols] = 0.0
-        return x
-
     labels = data.contact.astype(np.int64)
-    zc_tr = seen(np.concatenate([z[tr], synth_tr[0][:, :nf]]))
-    zc_va = seen(np.concatenate([z[va], synth_va[0][:, :nf]]))
+    zc_tr = zero_columns(np.concatenate([z[tr], synth_tr[0][:, :nf]]), unread)
+    zc_va = zero_columns(np.concatenate([z[va], synth_va[0][:, :nf]]), unread)
     yc_tr = labels[np.concatenate([tr, synth_tr[1]])]
     yc_va = labels[np.concatenate([va, synth_va[1]])]
-    z_va = seen(z[va])
+    z_va = zero_columns(z[va], unread)
 
     def contact_val(net: FlatMLP) -> dict[str, float]:
         return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z_va), 1) == 1)
@@ -176,7 +167,7 @@ def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarra
 
     cnet = fit_net("contact", rng, "xent", zc_tr, yc_tr, zc_va, yc_va,
                    val_metrics=contact_val, desc=desc)
-    cnet.W[0][:, cols] = 0.0
+    cnet.W[0][:, list(unread)] = 0.0
     return cnet, predict_batched(cnet, z)
 
 

@@ -186,6 +186,18 @@ def drop_unread_units(mlp: MLP) -> tuple[MLP, int]:
 # ------------------------------------------------------------------------------------------
 
 
+def zero_columns(x: np.ndarray, columns: Sequence[int]) -> np.ndarray:
+    """A copy of ``x`` (n, m) with the ``columns`` set to 0; ``x`` itself when there are none.
+    A net trained on such inputs, its first layer's weights on those columns then set to 0,
+    computes the same function on the full inputs: it does not read them."""
+    cols = list(columns)
+    if not cols:
+        return x
+    out = np.array(x, dtype=np.float64, copy=True)
+    out[:, cols] = 0.0
+    return out
+
+
 def predict_batched(net: FlatMLP, x: np.ndarray, batch: int = 65536) -> np.ndarray:
     """Forward pass over a large array in chunks (bounded memory)."""
     if x.shape[0] <= batch:

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from fbgforce.model import artifact, floatref
-from fbgforce.trainer.nets import LOSSES, FlatMLP, fit, predict_batched
+from fbgforce.trainer.nets import LOSSES, FlatMLP, fit, predict_batched, zero_columns
 
 
 def quantize_symmetric(x: np.ndarray, scale: float | np.ndarray, bits: int) -> np.ndarray:
@@ -206,10 +206,10 @@ def finetune(model: artifact.HierarchicalModel, z: np.ndarray, contact: np.ndarr
 
     # Inputs the contact net was trained not to read (all-zero columns of its first layer,
     # fbgforce.trainer.fit_nets.fit_contact) stay unread.
-    unread = ~model.contact.weights[0].any(axis=0)
-    cz = np.where(unread, 0.0, z)
+    unread = np.flatnonzero(~model.contact.weights[0].any(axis=0))
+    cz = zero_columns(z, unread)
     cnet = FakeQuantMLP(model.contact, weight_bits, act_bits, cz)
-    _tune(cnet, "xent", cz, c.astype(np.int64), np.where(unread, 0.0, vz) if val else None,
+    _tune(cnet, "xent", cz, c.astype(np.int64), zero_columns(vz, unread) if val else None,
           vc.astype(np.int64) if val else None, "contact", kw, report)
     cnet.W[0][:, unread] = 0.0
 
