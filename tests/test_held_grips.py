@@ -213,6 +213,22 @@ def test_hold_noise_is_the_scatter_about_each_holds_own_line():
     assert hold_noise(f[-2:], hold[-2:]) == 0.0
 
 
+def test_the_force_net_is_validated_on_the_recorded_presses_alone(paired_holds):
+    """Synthetic holds teach the force net but do not judge it: every epoch's validation loss
+    (what stops the net and picks among its restarts) is its error on the recorded validation
+    presses, although those presses were held for the contact net's validation too. Judged
+    with the holds, it stopped where its error on the presses was still falling."""
+    _, data, _ = paired_holds
+    model = train([data.recordings[0].ds], epochs=2, restarts=1, rest_augment=0.0,
+                  hold_augment=1.0, idle_pads=0, track_calibration=False, progress=False)
+    assert model.metadata["synthetic_holds"]["samples"]["val"] > 0
+    history = model.metadata["history"]["force"]
+    assert len(history) == 2
+    for epoch in history:
+        assert epoch["val_loss"] * model.force_scale ** 2 == pytest.approx(
+            epoch["val_rmse_N"] ** 2, rel=1e-9)
+
+
 @pytest.mark.slow
 def test_the_settled_hold_gain_is_the_nets_least_squares_gain_on_held_out_holds(paired_holds):
     """hold_gain: on settled synthetic hold samples the nets' least-squares gain minus 1

@@ -208,14 +208,20 @@ def after_turns(data: Prepared, guard_s: float) -> np.ndarray:
 
 def fit_force(fit_net: NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP,
               pred_contact: np.ndarray, scaling: Scaling, tr: np.ndarray, va: np.ndarray,
-              synth_tr: Held, synth_va: Held, rng: np.random.Generator) -> FlatMLP:
+              synth_tr: Held, rng: np.random.Generator) -> FlatMLP:
     """The force net on the samples the contact net passes (its output is 0 N elsewhere,
     whatever the net says), with the load-cell force as target: where the contact is real
     this is the force the metric scores; on false contacts (light touches below the label
     threshold, pad creep) it teaches ~0 N, which is what a controller should see. Missed
     contacts are left out: their output is gated to 0 N, so fitting them would only spend
     capacity; so are the samples within ``turn_guard_s`` after each press's turn
-    (:func:`after_turns`), when asked: they teach the net to read every hold low."""
+    (:func:`after_turns`), when asked: they teach the net to read every hold low.
+
+    The synthetic samples (``synth_tr``: held and rested presses built from the training
+    presses) join the training set only. Early stopping and the choice among restarts read the
+    recorded validation presses alone: a synthetic hold is the trainer's extrapolation, a held
+    press outweighs the recorded ones, and its error grows while theirs still falls, so judged
+    with it the net stops early (docs/trainer.md, "Restarts and force weight decay")."""
     nf = z.shape[1]
     f_off, f_scale = scaling.force_offset, scaling.force_scale
     fit = pred_contact & ~after_turns(data, fit_net.params.turn_guard_s)
@@ -224,22 +230,19 @@ def fit_force(fit_net: NetFitter, data: Prepared, z: np.ndarray, cnet: FlatMLP,
         ftr, fva = tr[data.contact[tr]], va[data.contact[va]]
     ft = ((data.force_N - f_off) / f_scale)[:, None]
 
-    def with_synthetic(rows: np.ndarray, held: Held) -> tuple[np.ndarray, np.ndarray]:
-        """Force-net inputs and targets of ``rows`` and of the synthetic (held, rested)
-        samples the contact net passes (the same gate as the recorded samples)."""
-        zh = held[0][:, :nf]
-        hl = predict_batched(cnet, zh) if len(zh) else np.empty((0, 2))
-        passed = hl[:, 1] > hl[:, 0]
-        return (np.concatenate([z[rows], zh[passed]]),
-                np.concatenate([ft[rows], ft[held[1][passed]]]))
-
-    (zf_tr, yf_tr), (zf_va, yf_va) = with_synthetic(ftr, synth_tr), with_synthetic(fva, synth_va)
+    # The synthetic (held, rested) samples join where the contact net passes them, the same
+    # gate as the recorded samples.
+    zh = synth_tr[0][:, :nf]
+    hl = predict_batched(cnet, zh) if len(zh) else np.empty((0, 2))
+    passed = hl[:, 1] > hl[:, 0]
+    zf_tr = np.concatenate([z[ftr], zh[passed]])
+    yf_tr = np.concatenate([ft[ftr], ft[synth_tr[1][passed]]])
 
     def force_val(net: FlatMLP) -> dict[str, float]:
         e = (predict_batched(net, z[fva])[:, 0] * f_scale + f_off) - data.force_N[fva]
         return {"val_rmse_N": float(np.sqrt(np.mean(e * e))) if e.size else float("nan")}
 
-    return fit_net("force", rng, "mse", zf_tr, yf_tr, zf_va, yf_va,
+    return fit_net("force", rng, "mse", zf_tr, yf_tr, z[fva], ft[fva],
                    val_metrics=force_val, desc="force net")
 
 

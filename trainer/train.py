@@ -235,25 +235,23 @@ def _holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np
 
 
 def _release_holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams,
-                   tr: np.ndarray, va: np.ndarray, creep: Creep, rng: np.random.Generator
-                   ) -> tuple[Held, Held]:
-    """As many synthetic holds again on the releases, for the force net alone, where
-    :func:`~fbgforce.trainer.hysteresis.release_hold_choice` applies them (``(inputs, rows)``
-    of the training and validation presses; none otherwise). The choice, made on the training
-    rows ``tr``, and how many held samples it gave are kept in ``data.release_holds``.
+                   tr: np.ndarray, creep: Creep, rng: np.random.Generator) -> Held:
+    """As many synthetic holds again on the releases of the training presses ``tr``, for the
+    force net alone, where :func:`~fbgforce.trainer.hysteresis.release_hold_choice` applies
+    them (``(inputs, rows)``; none otherwise). The choice and how many held samples it gave are
+    kept in ``data.release_holds``.
 
     Not for the contact net: the holds at the peaks already show it a load standing still,
-    and its decision's threshold and onset are set on what it reads."""
-    none = (np.empty((0, pre.n_inputs)), tr[:0]), (np.empty((0, pre.n_inputs)), va[:0])
+    and its decision's threshold and onset are set on what it reads. Not for validation: the
+    force net is validated on the recorded presses alone (:func:`fit_force`)."""
+    none = (np.empty((0, pre.n_inputs)), tr[:0])
     if not (params.hold_augment > 0 and pre.memory.n_states):
         return none
     choice = release_hold_choice(data, pre, tr, params.release_holds, params.seed)
-    release_tr, release_va = (
-        tuple(synthetic_holds(data, pre, rows, params.hold_augment, creep, rng, on_release=True)
-              for rows in (tr, va)) if choice["applied"] else none)
-    data.release_holds = {**choice, "samples": {"train": int(release_tr[1].size),
-                                                "val": int(release_va[1].size)}}
-    return release_tr, release_va
+    release_tr = (synthetic_holds(data, pre, tr, params.hold_augment, creep, rng,
+                                  on_release=True) if choice["applied"] else none)
+    data.release_holds = {**choice, "samples": {"train": int(release_tr[1].size)}}
+    return release_tr
 
 
 def _rests(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
@@ -510,11 +508,9 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     stage = _contact_stage(data, params, init_model, memory, net_sizes)
     tr, va, te, pre, fit_net = stage.tr, stage.va, stage.te, stage.pre, stage.fit_net
     pred_contact = stage.logits[:, 1] > stage.logits[:, 0]
-    release_tr, release_va = _release_holds(data, pre, params, tr, va, stage.creep,
-                                            stage.streams.release_holds)
+    release_tr = _release_holds(data, pre, params, tr, stage.creep, stage.streams.release_holds)
     fnet = fit_force(fit_net, data, stage.z, stage.cnet, pred_contact, stage.scaling, tr, va,
-                     _joined(stage.synth_tr, release_tr), _joined(stage.synth_va, release_va),
-                     stage.streams.force)
+                     _joined(stage.synth_tr, release_tr), stage.streams.force)
     lnet = fit_location(fit_net, data, pre, stage.x_all, pred_contact, fnet, stage.scaling,
                         params, tr, va, stage.streams.location, stage.streams.location_augment)
     warnings, held_s = training_warnings(data, pre, tr, te, stage.hold_tr)
