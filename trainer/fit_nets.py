@@ -159,7 +159,7 @@ def fit_contact(fit_net: NetFitter, data: Prepared, z: np.ndarray, tr: np.ndarra
     zc_va = zero_columns(np.concatenate([z[va], synth_va[0][:, :nf]]), unread)
     yc_tr = labels[np.concatenate([tr, synth_tr[1]])]
     yc_va = labels[np.concatenate([va, synth_va[1]])]
-    z_va = zero_columns(z[va], unread)
+    z_va = zc_va[:va.size]          # the recorded validation rows, already zeroed
 
     def contact_val(net: FlatMLP) -> dict[str, float]:
         return {"val_acc": float(np.mean((np.argmax(predict_batched(net, z_va), 1) == 1)
