@@ -1,11 +1,14 @@
-"""Holds on the release: the trainer places synthetic holds on the presses' releases only where
-the calibration shows a friction (a rise-fall gap that follows the load, not its speed), and
-such holds keep the release's strain (trainer.hysteresis, trainer.synthetic)."""
+"""Holds for a pad with friction: the trainer places synthetic holds on the presses' releases,
+or wandering holds, only where the calibration shows a friction (a rise-fall gap that follows
+the load, not its speed); a hold on the release keeps the release's strain, a wandering hold's
+strain sticks at each turn and slides on the press's own branches (trainer.hysteresis,
+trainer.synthetic)."""
 from __future__ import annotations
 
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -16,10 +19,12 @@ import foreign as fg  # noqa: E402
 from fbgforce.errors import InputError  # noqa: E402
 from fbgforce.model import floatref  # noqa: E402
 from fbgforce.trainer.hysteresis import (FRICTION_MIN_Z, LOOP_MIN_PRESSES, PressLoops,  # noqa: E402
-                                         friction_evidence, release_hold_choice)
+                                         friction_evidence, friction_hold_choice)
 from fbgforce.trainer.creep import Creep  # noqa: E402
 from fbgforce.trainer.params import TrainParams  # noqa: E402
-from fbgforce.trainer.synthetic import RELEASE_HOLD_AT, synthetic_holds  # noqa: E402
+from fbgforce.trainer.synthetic import (RELEASE_HOLD_AT, WANDER_DEPTH,  # noqa: E402
+                                        WANDER_LEAD_S, synthetic_holds)
+from fbgforce.trainer import synthetic  # noqa: E402
 from fbgforce.trainer.train import prepare  # noqa: E402
 
 
@@ -83,16 +88,18 @@ def test_the_loops_of_a_foreign_pad(member, established):
     assert ev["established"] is established, ev["why"]
     if not established:
         assert ev["damper"]["coefficient_s"] == pytest.approx(0.008, rel=0.15)
-    choice = release_hold_choice(data, data.pre, data.rows("all"), "auto")
+    choice = friction_hold_choice(data, data.pre, data.rows("all"), "auto")
     assert choice["applied"] is established
-    assert release_hold_choice(data, data.pre, data.rows("all"), "on")["applied"]
-    assert not release_hold_choice(data, data.pre, data.rows("all"), "off")["applied"]
+    assert friction_hold_choice(data, data.pre, data.rows("all"), "on")["applied"]
+    assert not friction_hold_choice(data, data.pre, data.rows("all"), "off")["applied"]
 
 
-def test_release_hold_modes():
+def test_friction_hold_modes():
     with pytest.raises(InputError, match="--release-holds"):
         TrainParams(release_holds="sometimes")
-    assert TrainParams().release_holds == "off"
+    with pytest.raises(InputError, match="--wander-holds"):
+        TrainParams(wander_holds="always")
+    assert TrainParams().release_holds == "off" and TrainParams().wander_holds == "auto"
 
 
 def test_a_hold_on_the_release_keeps_the_releases_strain_and_labels():
@@ -128,8 +135,73 @@ def test_a_hold_on_the_release_keeps_the_releases_strain_and_labels():
     assert np.linalg.norm(held - release) < 0.25 * np.linalg.norm(peak - release)
 
 
+def _no_creep_press(presses: int = 24) -> tuple[Any, np.ndarray, int]:
+    """A foreign pad with friction alone (tests/foreign.py's Dahl law, not the simulator's),
+    one recording; the loaded samples and the peak of its strongest press."""
+    spec = replace(fg.IN_USE_VARIANTS["calib_3K"], **fg.FAMILY["no_creep"])
+    ds = fg.log(fg.device(spec, 200), 1, presses)
+    force, pid = np.nan_to_num(np.asarray(ds.force_N, float)), np.asarray(ds.press_id)
+    loaded = np.asarray(ds.contact, bool)
+    strongest = pid[loaded][np.argmax(force[loaded])]
+    pressed = np.flatnonzero(loaded & (pid == strongest))
+    return ds, pressed, int(pressed[np.argmax(force[pressed])])
+
+
+def test_a_wandering_hold_sticks_at_each_turn_and_slides_on_the_press_branches():
+    """The load stands through the lead, then dips and comes back through the press's own
+    samples; the strain's load signal never leaves the band between the press's rise and its
+    fall at the present load, stays put after each turn until the load has crossed that band,
+    and then rides its edge (the fall on the way down, the rise on the way up)."""
+    ds, pressed, peak = _no_creep_press()
+    wl, force = np.asarray(ds.wl_nm, float), np.nan_to_num(np.asarray(ds.force_N, float))
+    n = 6000
+    moved, labels = synthetic._wandering(wl, force, pressed, peak, n, 1000.0,
+                                         np.random.default_rng(3))
+    assert moved.shape == (n, 4) and set(labels) <= set(pressed)
+    load = force[labels]
+    lead = int(np.argmax(labels != peak))
+    assert WANDER_LEAD_S[0] * 1000 - 1 <= lead <= WANDER_LEAD_S[1] * 1000 + 1
+    assert not moved[:lead].any()
+    assert (1 - WANDER_DEPTH[1]) * force[peak] - 0.5 <= load.min() < force[peak]
+    # It ends where it started, for the press's recorded release to go on from.
+    assert abs(load[-1] - force[peak]) < 0.02 * force[peak]
+
+    top = int(np.searchsorted(pressed, peak))
+    up = synthetic._branch(wl, force, pressed[:top + 1])
+    down = synthetic._branch(wl, force, pressed[top:])
+    both = np.concatenate([pressed[:top + 1], pressed[top:]])
+    signal = np.linalg.lstsq(np.column_stack([wl[both, :4], np.ones(both.size)]), force[both],
+                             rcond=None)[0][:4]
+    start = synthetic._shifts_at(up, force[peak:peak + 1])[0]
+    now = moved @ signal                            # newtons, from the peak's
+    rise = (synthetic._shifts_at(up, load) - start) @ signal
+    fall = (synthetic._shifts_at(down, load) - start) @ signal
+    below = load < 0.97 * force[peak]
+    assert np.all(fall[below] > rise[below])        # a friction: the fall reads higher
+    assert np.all(now >= np.minimum(rise, fall) - 1e-6)
+    assert np.all(now <= np.maximum(rise, fall) + 1e-6)
+    on_fall, on_rise = np.abs(now - fall) < 1e-6, np.abs(now - rise) < 1e-6
+    # Near the top both branches meet, and their noise there outweighs the load's steps.
+    inside = load < 0.98 * force[peak]
+    falling = np.r_[False, np.diff(load) < 0] & inside
+    rising = np.r_[False, np.diff(load) > 0] & inside
+    # Where the load moves, the strain has either stuck or follows the branch of that way.
+    assert not np.any(falling & on_rise & ~on_fall)
+    assert not np.any(rising & on_fall & ~on_rise)
+    assert falling[on_fall].sum() > 10 and rising[on_rise].sum() > 10     # steps of the load
+    # At the first turn below, the load rises by about the loop's width while the strain stays,
+    # then slides on the rise. (At the peak the press's own fall holds its stick.)
+    bottom = int(np.argmin(load))
+    first_slide = bottom + int(np.argmax(on_rise[bottom:] & rising[bottom:]))
+    stuck = load[first_slide] - load[bottom]
+    assert 0.01 * load[bottom] < stuck < 0.08 * load[bottom]
+    assert np.all(moved[bottom:first_slide] == moved[bottom])
+    assert abs(now[-1]) < 0.02 * force[peak]
+
+
 @pytest.mark.slow
-def test_release_holds_train_the_force_net_alone_and_are_recorded():
+@pytest.mark.parametrize("kind", ["release_holds", "wander_holds"])
+def test_friction_holds_train_the_force_net_alone_and_are_recorded(kind):
     """Trained on a pad with friction, the model records the choice and its held samples; the
     contact net is the one trained without them, weight for weight (its decision's threshold
     and onset are set on it), the force net is not."""
@@ -138,14 +210,15 @@ def test_release_holds_train_the_force_net_alone_and_are_recorded():
     spec = replace(fg.IN_USE_VARIANTS["calib_3K"], **fg.FAMILY["no_creep"])
     ds = fg.log(fg.device(spec, 200), 1, 30)
     fast = dict(epochs=2, seed=0, restarts=1, idle_pads=0, track_calibration=False,
-                progress=False)
-    on, off = (train([ds], release_holds=mode, **fast) for mode in ("auto", "off"))
-    release = on.metadata["synthetic_holds"]["release"]
-    assert release["applied"] and release["established"] and release["samples"]["train"] > 0
-    why = {c["name"]: c for c in on.metadata["corrections"]}["release_holds"]
+                progress=False, release_holds="off", wander_holds="off")
+    on, off = (train([ds], **{**fast, kind: mode}) for mode in ("auto", "off"))
+    key = kind.split("_")[0]
+    made = on.metadata["synthetic_holds"][key]
+    assert made["applied"] and made["established"] and made["samples"]["train"] > 0
+    why = {c["name"]: c for c in on.metadata["corrections"]}[kind]
     assert why["applied"] and why["why"].startswith("friction established")
-    assert not {c["name"]: c for c in off.metadata["corrections"]}["release_holds"]["applied"]
-    assert off.metadata["synthetic_holds"]["release"]["why"] == "--release-holds off"
+    assert not {c["name"]: c for c in off.metadata["corrections"]}[kind]["applied"]
+    assert off.metadata["synthetic_holds"][key]["why"] == f"--{kind.replace('_', '-')} off"
     for w_on, w_off in zip(on.nets["contact"].weights, off.nets["contact"].weights):
         np.testing.assert_array_equal(w_on, w_off)
     assert not np.array_equal(on.nets["force"].weights[0], off.nets["force"].weights[0])

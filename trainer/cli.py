@@ -134,7 +134,13 @@ def _add_net_options(p: argparse.ArgumentParser) -> None:
                         "shows a friction (the gap between a press's rise and fall grows with "
                         "its load, not its speed, and predicts held-out presses; auto), always "
                         "(on) or never (off, default: they cost the egg-grasp loop). "
-                        "docs/trainer.md \"Holds on the release\"")
+                        "docs/trainer.md \"Holds for a pad with friction\"")
+    p.add_argument("--wander-holds", choices=("auto", "on", "off"), default="auto",
+                   help="the force net also sees as many synthetic holds again whose load "
+                        "wanders below the peak and back, the strain sticking at each turn and "
+                        "sliding on the press's own rise or fall: only where the calibration "
+                        "shows a friction (auto, default), always (on) or never (off). "
+                        "docs/trainer.md \"Holds for a pad with friction\"")
     p.add_argument("--turn-guard", type=non_negative_float, default=None, metavar="MS",
                    help="the force net leaves out the MS milliseconds after each press's turn, "
                         "where a held load and an unloading one look alike: held grips read "
@@ -225,7 +231,8 @@ def _train(args: argparse.Namespace) -> dict[str, Any]:
                          sizes=_sizes(args.sizes),
                          sigma=args.sigma, window=args.window, ref_shift=args.ref_shift,
                          creep_inverse=args.creep_inverse, creep=args.creep,
-                         release_holds=args.release_holds, decision=args.decision, init=args.init,
+                         release_holds=args.release_holds, wander_holds=args.wander_holds,
+                         decision=args.decision, init=args.init,
                          track_calibration=args.track_calibration == "on",
                          contact_plays=args.contact_plays == "on",
                          train_fraction=args.train_fraction,

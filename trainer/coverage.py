@@ -188,7 +188,7 @@ def coverage(datasets: Sequence[Dataset]) -> dict[str, Any]:
         unknown.append(f"whether the pad's hysteresis is a friction or a damper: the presses' "
                        f"loading speeds follow their peaks (correlation {follows:.3f}), so a "
                        "gap between rise and fall in proportion to the load is one in "
-                       "proportion to its speed, and no holds are placed on the releases")
+                       "proportion to its speed, and no holds for friction are made")
     if rest_longest < WANT_LONG_REST_S:
         unknown.append(f"a creep slower than its rests (longest {rest_longest:.1f} s): a slow "
                        "recovery after a release looks like the zero wandering")

@@ -55,7 +55,8 @@ class Prepared:
     creep_held: "Creep | None" = None   # ... at a time constant the model can hold (held_creep)
     creep_found: "Creep | None" = None  # what the fit found, established or not
     creep_evidence: dict[str, Any] | None = None   # creep_evidence() on it, and the choice
-    release_holds: dict[str, Any] | None = None    # release_hold_choice() on the training rows
+    release_holds: dict[str, Any] | None = None    # friction_hold_choice() on the training rows
+    wander_holds: dict[str, Any] | None = None     # the same, for the wandering holds
     feats: np.ndarray = field(init=False)
     split: np.ndarray = field(init=False)
     contact: np.ndarray = field(init=False)

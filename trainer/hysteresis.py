@@ -1,12 +1,12 @@
 """Evidence before correction for the pad's hysteresis: whether a calibration shows a friction
 (a gap between a press's rise and its fall at equal load that stays when the load moves slowly)
 rather than a damper (a gap that grows with the load's speed), :func:`friction_evidence`; and
-whether the nets therefore also train on holds placed on the release
-(:func:`release_hold_choice`).
+whether the force net therefore also trains on holds placed on the release or wandering holds
+(:func:`friction_hold_choice`).
 
-Why it matters: a hold on a release keeps the strain the release had. A friction keeps that
-strain when the load stops, so holds made that way teach the nets a held grip's falling
-branch; a damper lets it relax, so the same holds teach a grip read low by the release's lag
+Why it matters: both kinds of hold keep the strain a branch had when the load stops or turns.
+A friction keeps it, so such holds teach the nets a held grip's falling branch and its turns;
+a damper lets it relax, so the same holds teach a grip read low by the release's lag
 (docs/robustness.md, "Grips that wander").
 """
 from __future__ import annotations
@@ -23,9 +23,9 @@ from fbgforce.trainer.creep_fit import load_excess
 from fbgforce.trainer.data import Prepared
 
 
-#: What ``release_holds`` (``fbgforce train --release-holds``) may say: hold on the releases
+#: What ``fbgforce train --release-holds`` and ``--wander-holds`` may say: make those holds
 #: where the calibration establishes a friction, always, or never.
-RELEASE_HOLD_MODES = ("auto", "on", "off")
+HOLD_MODES = ("auto", "on", "off")
 
 #: The part of each press's rise and fall compared (:class:`PressLoops`): loads between these
 #: shares of its peak, past the contact's first grams and short of the turn.
@@ -174,17 +174,20 @@ def friction_evidence(loops: PressLoops, seed: int = 0) -> dict[str, Any]:
             + figures}
 
 
-def release_hold_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mode: str,
-                        seed: int = 0) -> dict[str, Any]:
-    """:func:`friction_evidence` on the presses among ``rows`` and whether the nets train on
-    holds on the release in ``mode`` (:data:`RELEASE_HOLD_MODES`): ``applied``, ``mode`` and
-    ``why`` beside the evidence's keys."""
-    if mode not in RELEASE_HOLD_MODES:
-        raise InputError(f"must be one of {', '.join(RELEASE_HOLD_MODES)}, not {mode!r}",
-                         column="--release-holds")
+def friction_hold_choice(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, mode: str,
+                         seed: int = 0, option: str = "--release-holds",
+                         evidence: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Whether the force net trains on the holds ``option`` names in ``mode``
+    (:data:`HOLD_MODES`), by :func:`friction_evidence` on the presses among ``rows``
+    (``evidence``: that result, already read): ``applied``, ``mode`` and ``why`` beside the
+    evidence's keys."""
+    if mode not in HOLD_MODES:
+        raise InputError(f"must be one of {', '.join(HOLD_MODES)}, not {mode!r}",
+                         column=option)
     if mode == "off":
-        return {"established": None, "applied": False, "mode": mode, "why": "--release-holds off"}
-    evidence = friction_evidence(PressLoops.of(data, pre, rows), seed)
+        return {"established": None, "applied": False, "mode": mode, "why": f"{option} off"}
+    if evidence is None:
+        evidence = friction_evidence(PressLoops.of(data, pre, rows), seed)
     applied = mode == "on" or evidence["established"]
-    why = evidence["why"] if mode == "auto" else f"--release-holds on ({evidence['why']})"
+    why = evidence["why"] if mode == "auto" else f"{option} on ({evidence['why']})"
     return {**evidence, "applied": bool(applied), "mode": mode, "why": why}

@@ -53,7 +53,8 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
     how = ("taken out before the filter" if pre.creep else
            "discounted by the at-rest tracker" if iu.track_creep else "carried by the holds")
     holds = params.hold_augment > 0 and model.preprocess.memory.n_states > 0
-    release = data.release_holds or {}
+    friction = {"release_holds": (data.release_holds or {}, "on the releases"),
+                "wander_holds": (data.wander_holds or {}, "wandering")}
     return [
         {"name": "temperature_coefficients",
          "applied": bool(np.any(np.asarray(data.temp_info.get("temp_coeff_identified", [0.0]))
@@ -67,10 +68,11 @@ def corrections(model: fm.HierarchicalModel, data: Prepared, params: TrainParams
                  f"{HOLD_AUGMENT_S[1]:g} s" + (", creeping as fitted" if creep.magnitude > 0
                                               else ", flat (no creep established)"))
          if holds else "--hold-augment 0 or a memoryless model"},
-        {"name": "release_holds", "applied": bool(holds and release.get("applied")),
-         "why": (f"{release['why']}; the force net saw {release['samples']['train']} held "
-                 f"samples on the releases" if release.get("applied") else
-                 release.get("why", "no synthetic holds")) if holds else "no synthetic holds"},
+        *({"name": name, "applied": bool(holds and choice.get("applied")),
+           "why": (f"{choice['why']}; the force net saw {choice['samples']['train']} held "
+                   f"samples {where}" if choice.get("applied") else
+                   choice.get("why", "no synthetic holds")) if holds else "no synthetic holds"}
+          for name, (choice, where) in friction.items()),
         {"name": "settled_hold_gain", "applied": bool(iu.hold_gain),
          "why": (f"{iu.hold_gain:+.4f}, the nets' gain on {settled.get('holds', 0)} held-out "
                  f"synthetic holds, once the force has stood within {iu.hold_band_N:.2g} N "
@@ -166,7 +168,7 @@ def model_metadata(model: fm.HierarchicalModel, data: Prepared, params: TrainPar
                             "samples": {"train": int(hold_tr[1].size),
                                         "val": int(hold_va[1].size)},
                             "settled_gain": settled,
-                            "release": data.release_holds},
+                            "release": data.release_holds, "wander": data.wander_holds},
         "turn_guard_s": params.turn_guard_s,
         "corrections": corrections(model, data, params, settled, tracking),
         "tracked_calibration": None if tracking is None else dict(tracking),

@@ -12,7 +12,7 @@ from fbgforce import contract
 from fbgforce.model import artifact as fm
 from fbgforce.errors import InputError
 from fbgforce.trainer.creep_evidence import CREEP_MODES
-from fbgforce.trainer.hysteresis import RELEASE_HOLD_MODES
+from fbgforce.trainer.hysteresis import HOLD_MODES
 from fbgforce.trainer.synthetic import HOLD_AUGMENT, IDLE_DRAWS, LOCATION_AUGMENT, REST_AUGMENT
 
 
@@ -44,7 +44,7 @@ DECISION_RULES = ("schmitt", "cusum")
 _TRAIN_FLAGS = {"epochs": "--epochs", "seed": "--seed", "filter": "--filter", "sigma": "--sigma",
                 "window": "--window", "init": "--init", "train_fraction": "--train-fraction",
                 "memory": "--memory", "restarts": "--restarts", "hold_augment": "--hold-augment",
-                "release_holds": "--release-holds",
+                "release_holds": "--release-holds", "wander_holds": "--wander-holds",
                 "rest_augment": "--rest-augment", "ref_shift": "--ref-shift",
                 "creep_inverse": "--creep-inverse", "creep": "--creep", "decision": "--decision",
                 "turn_guard_s": "--turn-guard", "sizes": "--sizes",
@@ -159,10 +159,17 @@ class TrainParams:
     release_holds
         ``auto``: as many synthetic holds again, on the presses' releases, for the force net,
         where the calibration establishes a friction
-        (:func:`~fbgforce.trainer.hysteresis.release_hold_choice`); ``on``: always (with
+        (:func:`~fbgforce.trainer.hysteresis.friction_hold_choice`); ``on``: always (with
         ``hold_augment`` above 0); ``off`` (default): never. Off by default: on the
-        simulator's egg-grasp loop they read the grip low (docs/trainer.md, "Holds on the
-        release").
+        simulator's egg-grasp loop they read the grip low (docs/trainer.md, "Holds for a pad
+        with friction").
+    wander_holds
+        ``auto`` (default): as many synthetic holds again whose load wanders below the peak
+        and back, the strain sticking at each turn and sliding on the press's own rise or
+        fall, for the force net, where the calibration establishes a friction
+        (:func:`~fbgforce.trainer.synthetic.synthetic_holds` with ``wander``); ``on``: always
+        (with ``hold_augment`` above 0); ``off``: never (docs/trainer.md, "Holds for a pad
+        with friction").
     rest_augment
         The contact and force nets also train on rests of 3-60 s inserted before this share of
         the training (and validation) presses
@@ -218,6 +225,7 @@ class TrainParams:
     location_augment: float = LOCATION_AUGMENT
     hold_augment: float = HOLD_AUGMENT
     release_holds: str = "off"
+    wander_holds: str = "auto"
     rest_augment: float = REST_AUGMENT
     turn_guard_s: float | None = None
     memory: fm.Memory | str | None = None
@@ -263,8 +271,8 @@ class TrainParams:
              "turn_guard_s", "None or in [0, 1] s (--turn-guard takes milliseconds: 0 .. 1000)")
         need(self.creep_inverse in (None, True, False), "creep_inverse", "None, True or False")
         need(self.creep in CREEP_MODES, "creep", "one of " + ", ".join(CREEP_MODES))
-        need(self.release_holds in RELEASE_HOLD_MODES, "release_holds",
-             "one of " + ", ".join(RELEASE_HOLD_MODES))
+        for holds in ("release_holds", "wander_holds"):
+            need(getattr(self, holds) in HOLD_MODES, holds, "one of " + ", ".join(HOLD_MODES))
         need(isinstance(self.track_calibration, (bool, np.bool_)), "track_calibration",
              "True or False")
         need(isinstance(self.contact_plays, (bool, np.bool_)), "contact_plays", "True or False")

@@ -37,6 +37,20 @@ HOLD_AUGMENT_STEP_S = 0.004
 #: release's first milliseconds and another label, and on the family's pads the test presses'
 #: force read up to a quarter worse with holds drawn up to the peak.
 RELEASE_HOLD_AT = (0.4, 0.9)
+#: Wandering holds (``synthetic_holds(wander=True)``): the load stands at the peak for a time
+#: drawn in :data:`WANDER_LEAD_S`, then dips by a share of the peak drawn in
+#: :data:`WANDER_DEPTH` and comes back, over a period drawn in :data:`WANDER_PERIOD_S`, as a
+#: hand's grip wanders. The lead: a wander that turns at the peak sample has the inputs of the
+#: release's first milliseconds and another label. One held sample every
+#: :data:`WANDER_STEP_S` trains: at the flat holds' density they outnumbered the recorded
+#: presses' samples, and the family's test presses read worse.
+WANDER_LEAD_S = (0.3, 1.0)
+WANDER_DEPTH = (0.1, 0.3)
+WANDER_PERIOD_S = (2.0, 8.0)
+WANDER_STEP_S = 0.016
+#: Each branch of a press is a running mean over this many samples before a wander reads its
+#: strain there: one sample's noise would otherwise run through a whole hold.
+BRANCH_SMOOTH = 7
 
 
 #: Synthetic long rests (:func:`synthetic_rests`): the contact and force nets also train on
@@ -86,10 +100,11 @@ Held = tuple[np.ndarray, np.ndarray]
 
 
 def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, share: float,
-                    creep: Creep, rng: np.random.Generator, on_release: bool = False
-                    ) -> tuple[np.ndarray, np.ndarray]:
+                    creep: Creep, rng: np.random.Generator, on_release: bool = False,
+                    wander: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of presses among ``rows`` held at their peak (``on_release``: on their
-    release), and the rows (of ``data``) whose labels they take.
+    release; ``wander``: their load wandering below the peak), and the rows (of ``data``)
+    whose labels they take.
 
     A calibration stage that turns round at every peak never shows the memory a load standing
     still: its averages then decay towards the load, a state the nets meet first in a held grip.
@@ -111,14 +126,20 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
     ``on_release``: each hold starts instead at the first sample of the release at or below a
     share of the peak drawn in :data:`RELEASE_HOLD_AT`, and keeps the strain the release had
     there: what a friction keeps when the load stops on its way down, and a damper does not
-    (:func:`~fbgforce.trainer.hysteresis.release_hold_choice` decides whether the calibration
+    (:func:`~fbgforce.trainer.hysteresis.friction_hold_choice` decides whether the calibration
     shows the one and not the other).
+
+    ``wander``: after a lead at the peak the load dips and comes back (:data:`WANDER_DEPTH`,
+    :data:`WANDER_PERIOD_S`) through the press's own samples, each held sample labelled by one
+    of them, and the strain follows as a friction has it (:func:`_wandering`): a grip that
+    wanders runs the pad through loops a calibration press, which turns once, never shows.
+    One held sample every :data:`WANDER_STEP_S` is returned.
     """
     inputs, kept = [], []
     for r, sl, sel, contact, noise, pid in _augmented_recordings(data, rows):
         wl = np.asarray(r.ds.wl_nm, dtype=np.float64)
         presses = np.unique(pid[contact[sel]])
-        peaks, after = [], np.zeros(len(wl), dtype=bool)
+        peaks, pressed_rows, after = [], [], np.zeros(len(wl), dtype=bool)
         for p in presses[rng.random(presses.size) < share]:
             loaded = sel[(pid == p) & contact[sel]]
             pressed = np.nan_to_num(np.asarray(r.ds.force_N, float)[loaded])
@@ -130,10 +151,12 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
                 top += int(below[0])
             peak = int(loaded[top])
             peaks.append(peak)
+            pressed_rows.append(loaded)
             after[sel[(pid == p) & (sel > peak)]] = True
         if not peaks:
             continue
-        peaks = sorted(peaks)        # in time order: a hold's creep runs on into the later ones
+        order = np.argsort(peaks)   # in time order: a hold's creep runs on into the later ones
+        peaks = [peaks[i] for i in order]
         lengths = np.round(rng.uniform(*HOLD_AUGMENT_S, len(peaks)) * r.rate_hz).astype(np.int64)
         # The mean of the 6 samples up to the peak, its strain part scaled by the peak force
         # over their mean force (the load still rises there). Not the samples after it: past
@@ -151,14 +174,97 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
         held = (np.repeat(level, lengths, axis=0)
                 + noise[rng.integers(0, len(noise), int(lengths.sum()))])
         held[:, :artifact.N_STRAIN] += np.concatenate(ramp)[:, None] * np.repeat(strain, lengths, axis=0)
+        labels = np.repeat(peaks, lengths)
+        if wander:
+            first = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+            for i, k, n, at in zip(order, peaks, lengths, first):
+                moved, labels[at:at + n] = _wandering(wl, force, pressed_rows[i], k, n,
+                                                      r.rate_hz, rng)
+                held[at:at + n, :artifact.N_STRAIN] += moved
         wl, held = _creep_left_after_holds(wl, held, peaks, lengths, ramp, strain, creep,
                                            r.rate_hz)
         in_hold = np.concatenate([np.arange(n) for n in lengths])
-        step = max(1, int(round(HOLD_AUGMENT_STEP_S * r.rate_hz)))
-        x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after)
+        step = max(1, int(round((WANDER_STEP_S if wander else HOLD_AUGMENT_STEP_S) * r.rate_hz)))
+        x, src = _lengthened_inputs(pre, r, wl, peaks, lengths, held, in_hold % step == 0, after,
+                                    labels)
         inputs.append(x)
         kept.append(src + sl.start)
     return _stacked(inputs, kept, pre, rows)
+
+
+def _branch(wl: np.ndarray, force: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The loads and strain shifts (nm) of the samples ``idx`` of one branch of a press, each a
+    running mean over :data:`BRANCH_SMOOTH` of them, in the order of the load."""
+    kernel = np.ones(min(BRANCH_SMOOTH, idx.size)) / min(BRANCH_SMOOTH, idx.size)
+    load = np.convolve(force[idx], kernel, "valid")
+    shifts = np.column_stack([np.convolve(wl[idx, c], kernel, "valid")
+                              for c in range(artifact.N_STRAIN)])
+    order = np.argsort(load, kind="stable")
+    return load[order], shifts[order]
+
+
+def _shifts_at(branch: tuple[np.ndarray, np.ndarray], load: np.ndarray) -> np.ndarray:
+    """(len(load), N_STRAIN) the strain shifts of ``branch`` (:func:`_branch`) at ``load``."""
+    at, shifts = branch
+    return np.column_stack([np.interp(load, at, shifts[:, c]) for c in range(shifts.shape[1])])
+
+
+def _wandering(wl: np.ndarray, force: np.ndarray, pressed: np.ndarray, peak: int, n: int,
+               rate_hz: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """What a hold of ``n`` samples at ``peak`` (a sample of the press whose loaded samples
+    are ``pressed``) gains in strain shifts (n, N_STRAIN) when its load wanders, and the
+    samples of the press whose labels its samples take.
+
+    The load stands for :data:`WANDER_LEAD_S`, then dips by :data:`WANDER_DEPTH` of the peak
+    and back over :data:`WANDER_PERIOD_S` (whole periods, so that it ends at the peak), each
+    step to the press's sample (rise or fall) nearest it, whose labels the held sample takes.
+    The strain is the press's own: its load signal (the least-squares force of the press's
+    strain shifts) stays where it is while it lies between the rise and the fall at the
+    present load, and is carried along the branch the load pushes it onto: it sticks at each
+    turn, then slides on the other branch, as a friction has it. A damper's fall relaxes when
+    the load stops, which is why these holds are made only where the calibration establishes
+    a friction (:func:`~fbgforce.trainer.hysteresis.friction_hold_choice`). A press with too
+    few samples on a branch to read it gets a flat hold."""
+    top = int(np.searchsorted(pressed, peak))
+    rise, fall = pressed[:top + 1], pressed[top:]
+    if min(rise.size, fall.size) < BRANCH_SMOOTH + 2:
+        return np.zeros((n, artifact.N_STRAIN)), np.full(n, peak)
+    up_branch, down_branch = _branch(wl, force, rise), _branch(wl, force, fall)
+    both = np.concatenate([rise, fall])
+    fit = np.column_stack([wl[both, :artifact.N_STRAIN], np.ones(both.size)])
+    signal = np.linalg.lstsq(fit, force[both], rcond=None)[0][:artifact.N_STRAIN]
+
+    lead = min(n - 1, int(rng.uniform(*WANDER_LEAD_S) * rate_hz))
+    depth, period = rng.uniform(*WANDER_DEPTH), rng.uniform(*WANDER_PERIOD_S) * rate_hz
+    # Whole periods: the hold ends back at the peak, where the press's recorded release goes
+    # on (a hold that ended below it would hand the release a jump back up).
+    period = (n - 1 - lead) / max(1, round((n - 1 - lead) / period))
+    phase = 2 * np.pi * np.maximum(np.arange(n) - lead, 0) / max(period, 1.0)
+    wanted = force[peak] * (1.0 - 0.5 * depth * (1.0 - np.cos(phase)))
+    wanted = np.maximum(wanted, max(up_branch[0][0], down_branch[0][0]))
+    by_load = both[np.argsort(force[both], kind="stable")]
+    j = np.clip(np.searchsorted(force[by_load], wanted), 1, both.size - 1)
+    j -= (wanted - force[by_load[j - 1]]) < (force[by_load[j]] - wanted)
+    labels = by_load[j]
+    labels[:lead] = peak
+    load = force[labels]
+
+    up, down = _shifts_at(up_branch, load), _shifts_at(down_branch, load)
+    start = _shifts_at(up_branch, force[peak:peak + 1])[0]
+    lo_is_up = up @ signal <= down @ signal
+    lo = np.where(lo_is_up[:, None], up, down)
+    hi = np.where(lo_is_up[:, None], down, up)
+    level, now = start, float(start @ signal)
+    moved = np.empty((n, artifact.N_STRAIN))
+    for i in range(n):
+        if now < lo[i] @ signal:
+            level = lo[i]
+            now = float(level @ signal)
+        elif now > hi[i] @ signal:
+            level = hi[i]
+            now = float(level @ signal)
+        moved[i] = level
+    return moved - start, labels
 
 
 def _creep_left_after_holds(wl: np.ndarray, held: np.ndarray, peaks: Sequence[int],
@@ -384,15 +490,18 @@ def _stacked(inputs: list[np.ndarray], kept: list[np.ndarray], pre: artifact.Pre
 
 def _lengthened_inputs(pre: artifact.Preprocess, r: Recording, wl: np.ndarray, points: Sequence[int],
                        lengths: np.ndarray, inserted: np.ndarray, keep_inserted: np.ndarray,
-                       keep_recorded: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                       keep_recorded: np.ndarray, labels: np.ndarray | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
     """Net inputs of recording ``r`` (wavelengths ``wl``) lengthened by ``inserted`` (the
     rows of all insertions, ``lengths[i]`` of them after sample ``points[i]``), recomputed
     with ``pre`` over the whole lengthened recording as the runtime would run it; returned
     are the inserted rows ``keep_inserted`` marks and the recorded samples ``keep_recorded``
-    marks, and the samples of ``r`` whose labels they take (an inserted row its point's)."""
+    marks, and the samples of ``r`` whose labels they take (an inserted row its point's, or
+    its entry of ``labels``)."""
     at = np.repeat(np.asarray(points) + 1, lengths)
     keep = np.insert(keep_recorded, at, keep_inserted)
-    source = np.insert(np.arange(len(wl)), at, np.repeat(points, lengths))
+    source = np.insert(np.arange(len(wl)), at,
+                       np.repeat(points, lengths) if labels is None else labels)
     feats = pp.recording_features(pre, np.insert(wl, at, inserted, axis=0), r.baseline_nm)
     return floatref.standardise(pre, feats)[keep], source[keep]
 

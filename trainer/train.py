@@ -29,7 +29,7 @@ from fbgforce.trainer import tracked
 from fbgforce.trainer.coverage import coverage
 from fbgforce.trainer.creep import Creep
 from fbgforce.trainer.creep_evidence import creep_choice, takes_creep_out
-from fbgforce.trainer.hysteresis import release_hold_choice
+from fbgforce.trainer.hysteresis import PressLoops, friction_evidence, friction_hold_choice
 from fbgforce.trainer.creep_fit import held_creep
 from fbgforce.trainer.data import Prepared, Recording, load_datasets, split_rows
 from fbgforce.trainer.fit_nets import (TURN_GUARD_S, NetFitter, Scaling, fit_contact, fit_force,
@@ -163,11 +163,12 @@ class _Streams:
     decision_rests: np.random.Generator
     idle_rests: np.random.Generator
     release_holds: np.random.Generator
+    wander_holds: np.random.Generator
 
     @classmethod
     def from_seed(cls, seed: int) -> "_Streams":
         # spawn(n)'s first children do not depend on n: a stream added last leaves the others.
-        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(12)))
+        return cls(*(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(13)))
 
 
 def _split(data: Prepared, params: TrainParams, rng: np.random.Generator
@@ -234,12 +235,13 @@ def _holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np
     return hold_tr, hold_va
 
 
-def _release_holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams,
-                   tr: np.ndarray, creep: Creep, rng: np.random.Generator) -> Held:
-    """As many synthetic holds again on the releases of the training presses ``tr``, for the
-    force net alone, where :func:`~fbgforce.trainer.hysteresis.release_hold_choice` applies
-    them (``(inputs, rows)``; none otherwise). The choice and how many held samples it gave are
-    kept in ``data.release_holds``.
+def _friction_holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams,
+                    tr: np.ndarray, creep: Creep, streams: _Streams) -> Held:
+    """Synthetic holds of the training presses ``tr`` for the force net alone, where
+    :func:`~fbgforce.trainer.hysteresis.friction_hold_choice` applies them: as many again on
+    the releases (``params.release_holds``) and as many wandering
+    (``params.wander_holds``), ``(inputs, rows)`` of both. Each choice and how many held
+    samples it gave are kept in ``data.release_holds`` and ``data.wander_holds``.
 
     Not for the contact net: the holds at the peaks already show it a load standing still,
     and its decision's threshold and onset are set on what it reads. Not for validation: the
@@ -247,11 +249,20 @@ def _release_holds(data: Prepared, pre: artifact.Preprocess, params: TrainParams
     none = (np.empty((0, pre.n_inputs)), tr[:0])
     if not (params.hold_augment > 0 and pre.memory.n_states):
         return none
-    choice = release_hold_choice(data, pre, tr, params.release_holds, params.seed)
-    release_tr = (synthetic_holds(data, pre, tr, params.hold_augment, creep, rng,
-                                  on_release=True) if choice["applied"] else none)
-    data.release_holds = {**choice, "samples": {"train": int(release_tr[1].size)}}
-    return release_tr
+    # Read once for both kinds; "on" still reports what the calibration shows.
+    evidence = (friction_evidence(PressLoops.of(data, pre, tr), params.seed)
+                if {params.release_holds, params.wander_holds} != {"off"} else None)
+    made = []
+    for kind, mode, option, rng in (
+            ("release", params.release_holds, "--release-holds", streams.release_holds),
+            ("wander", params.wander_holds, "--wander-holds", streams.wander_holds)):
+        choice = friction_hold_choice(data, pre, tr, mode, params.seed, option, evidence)
+        held = (synthetic_holds(data, pre, tr, params.hold_augment, creep, rng,
+                                on_release=kind == "release", wander=kind == "wander")
+                if choice["applied"] else none)
+        setattr(data, f"{kind}_holds", {**choice, "samples": {"train": int(held[1].size)}})
+        made.append(held)
+    return _joined(*made)
 
 
 def _rests(data: Prepared, pre: artifact.Preprocess, params: TrainParams, tr: np.ndarray,
@@ -508,9 +519,9 @@ def train(datasets: Sequence[Any], params: TrainParams | None = None, *,
     stage = _contact_stage(data, params, init_model, memory, net_sizes)
     tr, va, te, pre, fit_net = stage.tr, stage.va, stage.te, stage.pre, stage.fit_net
     pred_contact = stage.logits[:, 1] > stage.logits[:, 0]
-    release_tr = _release_holds(data, pre, params, tr, stage.creep, stage.streams.release_holds)
+    friction_tr = _friction_holds(data, pre, params, tr, stage.creep, stage.streams)
     fnet = fit_force(fit_net, data, stage.z, stage.cnet, pred_contact, stage.scaling, tr, va,
-                     _joined(stage.synth_tr, release_tr), stage.streams.force)
+                     _joined(stage.synth_tr, friction_tr), stage.streams.force)
     lnet = fit_location(fit_net, data, pre, stage.x_all, pred_contact, fnet, stage.scaling,
                         params, tr, va, stage.streams.location, stage.streams.location_augment)
     warnings, held_s = training_warnings(data, pre, tr, te, stage.hold_tr)
