@@ -193,9 +193,10 @@ def synthetic_holds(data: Prepared, pre: artifact.Preprocess, rows: np.ndarray, 
 
 
 def _branch(wl: np.ndarray, force: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The loads and strain shifts (nm) of the samples ``idx`` of one branch of a press, each a
-    running mean over :data:`BRANCH_SMOOTH` of them, in the order of the load."""
-    kernel = np.ones(min(BRANCH_SMOOTH, idx.size)) / min(BRANCH_SMOOTH, idx.size)
+    """The loads and strain shifts (nm) of the samples ``idx`` (at least
+    :data:`BRANCH_SMOOTH`) of one branch of a press, each a running mean over
+    :data:`BRANCH_SMOOTH` of them, in the order of the load."""
+    kernel = np.ones(BRANCH_SMOOTH) / BRANCH_SMOOTH
     load = np.convolve(force[idx], kernel, "valid")
     shifts = np.column_stack([np.convolve(wl[idx, c], kernel, "valid")
                               for c in range(artifact.N_STRAIN)])
